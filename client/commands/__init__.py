@@ -1,0 +1,1 @@
+"""Client-side ``facecast`` subcommands: ``add_arguments(parser)`` and ``run(args) -> int``."""

@@ -1,0 +1,1 @@
+"""The HTTP/WebSocket API: ``create_app(config)`` builds the FastAPI application."""

@@ -1,0 +1,57 @@
+"""Credentials: the admin key (REST admin routes) and per-session producer/viewer tokens."""
+from __future__ import annotations
+
+import hmac
+import logging
+import secrets
+from pathlib import Path
+
+from fastapi import HTTPException, Request, status
+
+log = logging.getLogger(__name__)
+
+
+def new_token() -> str:
+    """A fresh random token (URL-safe, 32 bytes of entropy)."""
+    return secrets.token_urlsafe(32)
+
+
+def same(a: str | None, b: str | None) -> bool:
+    """Constant-time comparison of two optional secrets."""
+    return a is not None and b is not None and hmac.compare_digest(a.encode(), b.encode())
+
+
+def resolve_admin_key(configured: str | None, data_dir: Path) -> tuple[str, bool]:
+    """The admin key: ``configured`` if set, else the one kept in ``data_dir/admin.key`` (created).
+
+    Returns ``(key, generated_now)``.
+    """
+    if configured:
+        return configured, False
+    path = data_dir / "admin.key"
+    if path.exists():
+        return path.read_text().strip(), False
+    data_dir.mkdir(parents=True, exist_ok=True)
+    key = new_token()
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(key + "\n")
+    tmp.chmod(0o600)
+    tmp.replace(path)
+    return key, True
+
+
+def bearer(request: Request) -> str | None:
+    """The token of an ``Authorization: Bearer <token>`` header, or None."""
+    auth = request.headers.get("authorization", "")
+    scheme, _, token = auth.partition(" ")
+    return token.strip() if scheme.lower() == "bearer" and token else None
+
+
+def require_admin(request: Request) -> None:
+    """FastAPI dependency: the request must carry ``Authorization: Bearer <admin key>``."""
+    if not same(bearer(request), request.app.state.admin_key):
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            detail="admin key required: send 'Authorization: Bearer <key>' (the key is FACECAST_ADMIN_KEY, "
+                   "or the one the server printed at start-up and keeps in its data directory)",
+        )

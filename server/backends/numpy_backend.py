@@ -1,0 +1,90 @@
+"""The NumPy/SciPy reference backend: the results every other backend must reproduce."""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from ...protocol.quantize import dequantize_int16, quantize_int16  # noqa: F401  (re-exported)
+from ..deform.operator import Operator
+
+
+class NumpyDeformer:
+    """Per-frame deformation on the CPU with NumPy/SciPy.
+
+    ``out[v] = T[g[v]] · [rest[v] + (B·D)[v]; 1]`` where ``g`` is the vertex's rigid group and ``T``
+    the frame's ``(G, 3, 4)`` transforms (head, jaw, eye_l, eye_r, each already composed with the
+    head pose).
+
+    Args:
+        rest: ``(V, 3) float32`` neutral vertices.
+        triangles: ``(F, 3) int32``.
+        rigid_group: ``(V,) uint8`` group index per vertex.
+        operator: the compiled ``Operator`` (K controls).
+    """
+
+    name = "numpy"
+
+    def __init__(self, rest: np.ndarray, triangles: np.ndarray, rigid_group: np.ndarray, operator: Operator):
+        self.rest = np.ascontiguousarray(rest, dtype=np.float32)
+        self.triangles = np.ascontiguousarray(triangles, dtype=np.int32)
+        self.operator = operator
+        self.n_vertices = self.rest.shape[0]
+        self.n_controls = operator.n_controls
+        group = np.asarray(rigid_group, dtype=np.uint8)
+        self.groups = [np.flatnonzero(group == g) for g in range(int(group.max(initial=0)) + 1)]
+        if operator.is_sparse:
+            self._B = [sp.csr_matrix((operator.weights[:, a], operator.indices, operator.indptr),
+                                     shape=(self.n_vertices, self.n_controls)) for a in range(3)]
+        self._incidence: sp.csr_matrix | None = None
+
+    def displacements(self, D: np.ndarray) -> np.ndarray:
+        """``u = B·D``: ``D (K, 3)`` -> ``(V, 3) float32``."""
+        D = np.asarray(D, dtype=np.float32).reshape(self.n_controls, 3)
+        if self.operator.is_sparse:
+            return np.stack([self._B[a] @ D[:, a] for a in range(3)], axis=1).astype(np.float32, copy=False)
+        return self.operator.dense @ D
+
+    def deform(self, D: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+        """One frame: ``D (K, 3)``, ``transforms (G, 3, 4)`` -> vertices ``(V, 3) float32``."""
+        p = self.rest + self.displacements(D)
+        T = np.asarray(transforms, dtype=np.float32)
+        out = np.empty_like(p)
+        for g, ids in enumerate(self.groups):
+            if len(ids):
+                out[ids] = p[ids] @ T[g, :, :3].T + T[g, :, 3]
+        return out
+
+    def deform_batch(self, D: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+        """Many frames: ``D (T, K, 3)``, ``transforms (T, G, 3, 4)`` -> ``(T, V, 3) float32``."""
+        return np.stack([self.deform(d, t) for d, t in zip(D, transforms)])
+
+    def normals(self, vertices: np.ndarray) -> np.ndarray:
+        """Area-weighted unit vertex normals ``(V, 3) float32`` of deformed ``vertices (V, 3)``."""
+        return vertex_normals(vertices, self.triangles, self._vertex_face_incidence())
+
+    def _vertex_face_incidence(self) -> sp.csr_matrix:
+        if self._incidence is None:
+            self._incidence = incidence_matrix(self.triangles, self.n_vertices)
+        return self._incidence
+
+
+def incidence_matrix(triangles: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """``(V, F)`` 0/1 CSR matrix: vertex v touches triangle f."""
+    f = np.repeat(np.arange(len(triangles)), 3)
+    return sp.csr_matrix((np.ones(f.size, dtype=np.float32), (triangles.ravel(), f)),
+                         shape=(n_vertices, len(triangles)))
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray, incidence: sp.csr_matrix | None = None) -> np.ndarray:
+    """Area-weighted unit vertex normals: ``(V, 3)`` vertices, ``(F, 3)`` triangles -> ``(V, 3) float32``.
+
+    A vertex in no triangle (or whose triangles cancel) gets ``(0, 0, 0)``.
+    """
+    v = np.asarray(vertices, dtype=np.float32)
+    tri = v[triangles]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+    if incidence is None:
+        incidence = incidence_matrix(triangles, len(v))
+    n = np.asarray(incidence @ fn, dtype=np.float32)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)

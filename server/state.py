@@ -1,0 +1,75 @@
+"""What drivers produce: the state of a face at one media time, and animations as sequences of them."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+#: Number of MPEG-4 FAPs (2 high-level + 66 low-level).
+N_FAPS = 68
+
+
+def zero_faps() -> np.ndarray:
+    """``(69,) float64`` FAP vector; index k holds FAP k (1..68), index 0 is unused."""
+    return np.zeros(N_FAPS + 1, dtype=np.float64)
+
+
+@dataclass
+class FaceState:
+    """The face at media time ``t`` (seconds from the start of the stream).
+
+    Attributes:
+        t: media time in seconds.
+        faps: ``(69,) float64``, index k = low-level FAP k in its FAPU (angles in AU = 1e-5 rad);
+            indices 0, 1, 2 are unused (high-level FAPs live in ``viseme`` / ``expression``).
+        viseme: FAP 1 as ``(select1, select2, blend)``: ids 0-14, blend 0-63 (weight of select1 =
+            blend/63), or None.
+        expression: FAP 2 as ``(select1, intensity1, select2, intensity2)``: ids 0-6, intensities
+            0-63, or None.
+        controls: ``(K, 3) float32`` displacements of an explicit control set (e.g. retargeted mocap
+            markers) in mesh units, added to what the FAPs give; None for pure FAP input.
+        head: ``(3, 4)`` rigid head transform ``[R | t]`` (mesh units) that replaces FAPs 48-50, or None.
+    """
+
+    t: float = 0.0
+    faps: np.ndarray = field(default_factory=zero_faps)
+    viseme: tuple[int, int, int] | None = None
+    expression: tuple[int, int, int, int] | None = None
+    controls: np.ndarray | None = None
+    head: np.ndarray | None = None
+
+
+@dataclass
+class Animation:
+    """A batch input decoded into face states at a fixed frame rate.
+
+    Attributes:
+        fps: frames per second of ``states``.
+        states: one ``FaceState`` per frame, ``states[i].t == i / fps``.
+        control_vertices: ``(K,) int32`` vertex ids of the face that ``FaceState.controls`` move
+            (mocap markers placed on the face), or None when only FAPs drive the face.
+        source: what it was decoded from (file name), for messages.
+    """
+
+    fps: float
+    states: list[FaceState]
+    control_vertices: np.ndarray | None = None
+    source: str = ""
+
+    def __len__(self) -> int:
+        return len(self.states)
+
+
+class LiveDriver(Protocol):
+    """Turns a live producer's input (PCM chunks, marker frames) into face states, incrementally.
+
+    ``control_vertices`` is as in ``Animation``. ``push`` takes one chunk: PCM samples ``(n,) float32``
+    in [-1, 1] at the driver's declared rate, or markers ``(M, 3) float32`` (NaN = occluded), with the
+    media time ``t`` of its first sample / of the frame; it returns the face states that became
+    final, oldest first (possibly none, with the look-ahead a driver needs).
+    """
+
+    control_vertices: np.ndarray | None
+
+    def push(self, data: np.ndarray, t: float) -> list[FaceState]: ...

@@ -1,0 +1,19 @@
+"""Maps the top-level folders protocol/, server/ and client/ into the one ``facecast`` namespace."""
+from setuptools import find_packages, setup
+
+ROOTS = {"protocol": "facecast.protocol", "server": "facecast.server", "client": "facecast.client"}
+
+packages, package_dir = [], {}
+for folder, name in ROOTS.items():
+    package_dir[name] = folder
+    packages.append(name)
+    for sub in find_packages(folder):
+        packages.append(f"{name}.{sub}")
+        package_dir[f"{name}.{sub}"] = f"{folder}/{sub.replace('.', '/')}"
+
+setup(
+    packages=packages,
+    package_dir=package_dir,
+    package_data={"": ["*.json", "*.npz", "*.txt", "*.html", "*.js", "*.css", "*.md", "py.typed"]},
+    include_package_data=True,
+)
