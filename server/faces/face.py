@@ -18,6 +18,10 @@ JAW_PARTS: tuple[str, ...] = ("teeth_lower", "gums_lower", "tongue")
 #: Millimetres per mesh unit.
 UNIT_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 
+#: The 84 MPEG-4 feature point ids, by group (ISO/IEC 14496-2 FDP groups 2-11).
+FP_GROUP_SIZES: dict[int, int] = {2: 14, 3: 14, 4: 6, 5: 4, 6: 4, 7: 1, 8: 10, 9: 15, 10: 10, 11: 6}
+FEATURE_POINT_IDS: tuple[str, ...] = tuple(f"{g}.{i}" for g, n in FP_GROUP_SIZES.items() for i in range(1, n + 1))
+
 #: Part names with a fixed meaning. Other names (eyelashes, mouth_socket, hair, ...) are allowed.
 KNOWN_PARTS: tuple[str, ...] = (
     "skin", "eye_l", "eye_r", "teeth_upper", "teeth_lower", "gums_upper", "gums_lower", "tongue",
