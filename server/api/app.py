@@ -1,0 +1,168 @@
+"""The FastAPI application: ``create_app(config)`` wires faces, jobs, sessions, health and the web page.
+
+Who needs the admin key (``Authorization: Bearer <key>``):
+
+- ``/v1/jobs`` (submit, status, result, cancel) and creating/closing sessions: **admin**;
+- live WebSockets: the session's producer or viewer token (see ``routes_sessions``);
+- ``/v1/faces...``, ``/healthz``, ``/metrics``, ``/docs``, ``/openapi.json``, ``/``: public, read-only.
+
+Every error is JSON: ``{"error": "<what was wrong and what to do>", "where": "...", "status": N}``.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+from ..errors import FacecastError
+from . import routes_faces, routes_health, routes_jobs, routes_sessions, routes_web
+from .config import ServerConfig
+from .metrics import Metrics
+from .security import resolve_admin_key
+from .store import FaceStore
+
+log = logging.getLogger(__name__)
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("facecast")
+    except Exception:
+        return "0+unknown"
+
+
+def error_body(status: int, message: str, where: str = "", **extra) -> dict:
+    """The JSON body of every error response."""
+    body = {"error": message, "status": status}
+    if where:
+        body["where"] = where
+    body.update(extra)
+    return body
+
+
+def _warm_up(app: FastAPI) -> None:
+    """Load the default face and probe the compute backend once (runs in a thread at start-up)."""
+    cfg: ServerConfig = app.state.config
+    ready = app.state.readiness
+    t0 = time.perf_counter()
+    try:
+        ready["backend"], ready["device"] = _probe_backend(cfg.backend, cfg.device)
+        log.info("backend: %s, device: %s", ready["backend"], ready["device"])
+    except Exception as e:  # a broken device must not stop the server; NumPy still works
+        ready["backend"], ready["device"] = "numpy", None
+        ready["backend_error"] = f"{type(e).__name__}: {e}"
+        log.warning("OpenCL backend unavailable (%s); using numpy", e)
+    try:
+        face = app.state.store.face(None)
+        ready["face"] = {"name": app.state.store.default, "vertices": face.n_vertices}
+        log.info("default face %s: %d vertices", app.state.store.default, face.n_vertices)
+    except Exception as e:
+        ready["face_error"] = f"{type(e).__name__}: {e}"
+        log.error("cannot load the default face %r: %s", cfg.face, e)
+    ready["warmup_seconds"] = round(time.perf_counter() - t0, 3)
+    ready["ready"] = "face_error" not in ready
+
+
+def _probe_backend(backend: str, device: str | None) -> tuple[str, str | None]:
+    """``(backend, device description)`` the server will use; builds the OpenCL context once."""
+    if backend == "numpy":
+        return "numpy", None
+    try:
+        from ..backends.opencl_backend import default_context
+    except ImportError as e:
+        if backend == "opencl":
+            raise FacecastError(f"OpenCL backend not available: {e}") from e
+        return "numpy", None
+    ctx = default_context(device)
+    if ctx is None:
+        if backend == "opencl":
+            raise FacecastError("no working OpenCL device; install pocl-opencl-icd or use --backend numpy")
+        return "numpy", None
+    devs = getattr(ctx, "devices", None) or []
+    names = ", ".join(f"{d.name.strip()} ({d.platform.name.strip()})" for d in devs) or str(ctx)
+    return "opencl", names
+
+
+def create_app(config: ServerConfig | None = None) -> FastAPI:
+    """The facecast HTTP/WebSocket application for ``config`` (jobs start with the app's lifespan)."""
+    config = config or ServerConfig()
+    config.data_dir.mkdir(parents=True, exist_ok=True)
+    admin_key, _ = resolve_admin_key(config.admin_key, config.data_dir)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        app.state.started = time.time()
+        warm = asyncio.get_running_loop().run_in_executor(None, _warm_up, app)
+        await app.state.jobs.start()
+        try:
+            yield
+        finally:
+            await app.state.jobs.stop()
+            try:
+                await asyncio.wait_for(asyncio.shield(warm), 0.1)
+            except Exception:
+                pass
+
+    app = FastAPI(
+        title="facecast",
+        version=_version(),
+        description="Networked facial-animation server: MPEG-4 FAPs, mocap markers and speech in; "
+                    "deformed vertex streams (WebSocket) and animation files (REST jobs) out. "
+                    "Admin routes need `Authorization: Bearer <admin key>`.",
+        lifespan=lifespan,
+    )
+    app.state.config = config
+    app.state.admin_key = admin_key
+    app.state.metrics = Metrics()
+    app.state.store = FaceStore(default=config.face, backend=config.backend, device=config.device)
+    app.state.readiness = {"ready": False, "backend": None, "device": None}
+
+    from ..jobs.manager import JobManager
+
+    app.state.jobs = JobManager(config.data_dir, workers=config.job_workers, backend=config.backend,
+                                device=config.device)
+    app.state.metrics.watch_jobs(app.state.jobs.store.counts)
+
+    @app.exception_handler(FacecastError)
+    async def _facecast_error(request: Request, exc: FacecastError) -> JSONResponse:
+        app.state.metrics.http_errors.labels(str(exc.status)).inc()
+        return JSONResponse(error_body(exc.status, str(exc), exc.where), status_code=exc.status)
+
+    @app.exception_handler(HTTPException)
+    async def _http_error(request: Request, exc: HTTPException) -> JSONResponse:
+        app.state.metrics.http_errors.labels(str(exc.status_code)).inc()
+        detail = exc.detail if isinstance(exc.detail, str) else "request failed"
+        extra = {} if isinstance(exc.detail, str) else {"detail": exc.detail}
+        return JSONResponse(error_body(exc.status_code, detail, **extra), status_code=exc.status_code,
+                            headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        app.state.metrics.http_errors.labels("422").inc()
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', '')}" for e in exc.errors())
+        return JSONResponse(error_body(422, f"invalid request: {problems}; see /docs for the schema",
+                                       detail=jsonable(exc.errors())), status_code=422)
+
+    app.include_router(routes_health.router)
+    app.include_router(routes_faces.router)
+    app.include_router(routes_jobs.router)
+    app.include_router(routes_sessions.router)
+    app.include_router(routes_web.router)
+    return app
+
+
+def jsonable(obj):
+    from fastapi.encoders import jsonable_encoder
+
+    try:
+        return jsonable_encoder(obj)
+    except Exception:
+        return str(obj)

@@ -1,0 +1,87 @@
+"""``facecast serve``: the HTTP/WebSocket server with embedded defaults.
+
+Built-in face, in-process jobs (spawned worker processes), state in a local data directory.
+Binds to loopback unless ``--allow-remote`` is given. Prints the admin key when it generates one.
+"""
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import logging
+import os
+import socket
+from pathlib import Path
+
+from ..errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", help="address to bind (default 127.0.0.1; others need --allow-remote)")
+    p.add_argument("--port", type=int, help="TCP port (default 8000)")
+    p.add_argument("--data-dir", type=Path, help="where jobs, results and the admin key live "
+                                                   "(default ~/.local/share/facecast)")
+    p.add_argument("--face", help="default face: a built-in name (default, default:2k) or a mesh path")
+    p.add_argument("--backend", choices=("auto", "numpy", "opencl"), help="deformation backend")
+    p.add_argument("--device", help="OpenCL device (index or name substring)")
+    p.add_argument("--workers", type=int, help="batch job worker processes (default 1; 0 = queue only)")
+    p.add_argument("--allow-remote", action="store_true", default=None,
+                   help="allow binding to a non-loopback address (anyone who can reach it can use the "
+                        "public routes; admin routes still need the key)")
+    p.add_argument("--log-level", default=None, help="uvicorn log level (default: warning)")
+
+
+def is_loopback(host: str) -> bool:
+    """True for 127.0.0.0/8, ::1 and names that resolve only to loopback addresses."""
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        pass
+    try:
+        infos = socket.getaddrinfo(host, None)
+    except OSError:
+        return False
+    return bool(infos) and all(ipaddress.ip_address(i[4][0].split("%")[0]).is_loopback for i in infos)
+
+
+def make_config(args: argparse.Namespace):
+    """``ServerConfig`` from FACECAST_* environment variables, overridden by the flags given."""
+    from ..api.config import ServerConfig
+
+    overrides = {k: v for k, v in {
+        "host": args.host, "port": args.port, "data_dir": args.data_dir, "face": args.face,
+        "backend": args.backend, "device": args.device, "job_workers": args.workers,
+        "allow_remote": args.allow_remote,
+    }.items() if v is not None}
+    config = ServerConfig(**overrides)
+    if not is_loopback(config.host) and not config.allow_remote:
+        raise InputError(f"refusing to bind to {config.host}, which is not a loopback address; pass "
+                         "--allow-remote (or FACECAST_ALLOW_REMOTE=1) to serve other machines",
+                         where="--host")
+    if config.job_workers < 0:
+        raise InputError("must be 0 or more", where="--workers")
+    return config
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from ..api.app import create_app
+    from ..api.security import resolve_admin_key
+
+    config = make_config(args)
+    config.data_dir = config.data_dir.expanduser().resolve()
+    key, generated = resolve_admin_key(config.admin_key, config.data_dir)
+    config.admin_key = key
+    if generated:
+        print(f"facecast: generated admin key (kept in {config.data_dir / 'admin.key'}):\n"
+              f"  FACECAST_ADMIN_KEY={key}", flush=True)
+    elif not os.environ.get("FACECAST_ADMIN_KEY"):
+        print(f"facecast: admin key is in {config.data_dir / 'admin.key'}", flush=True)
+    app = create_app(config)
+    print(f"facecast: serving on http://{config.host}:{config.port}/ (data in {config.data_dir}, "
+          f"{config.job_workers} job worker(s), backend {config.backend})", flush=True)
+    uvicorn.run(app, host=config.host, port=config.port, ws_per_message_deflate=False,
+                log_level=args.log_level or "warning", lifespan="on", timeout_graceful_shutdown=5)
+    return 0
