@@ -1,0 +1,257 @@
+"""JSON control messages of live sessions, as pydantic models shared by the WebSocket and REST APIs.
+
+Every WebSocket text message is one JSON object with a ``type`` field; ``parse_message`` picks the
+model by it. The REST session routes use ``SessionCreate`` / ``SessionCreated`` / ``SessionInfo`` /
+``SessionList``. ``README.md`` beside this file lists every field.
+"""
+from __future__ import annotations
+
+import json
+from typing import Annotated, Literal, Union
+
+from pydantic import (BaseModel, ConfigDict, Discriminator, Field, Tag, TypeAdapter, ValidationError,
+                      field_validator)
+
+from .errors import MessageError
+
+__all__ = [
+    "PROTOCOL_VERSION", "InputKind", "Encoding",
+    "ProducerHello", "Ready", "ViewerHello", "ErrorMessage", "FapMessage", "Status", "Stats",
+    "SessionCreate", "SessionCreated", "SessionInfo", "SessionList", "Message",
+    "parse_message", "dump_message",
+]
+
+PROTOCOL_VERSION = 1
+#: Largest JSON control message a receiver parses (a marker name table fits easily).
+MAX_MESSAGE_BYTES = 256 * 1024
+
+InputKind = Literal["fap", "audio", "markers"]
+Encoding = Literal["f32", "i16"]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# ------------------------------------------------------------------------------------------ WebSocket
+
+class ProducerHello(_Model):
+    """Producer -> server, the first message on ``/produce``: what the producer will send."""
+
+    type: Literal["hello"] = "hello"
+    role: Literal["producer"] = "producer"
+    protocol: int = PROTOCOL_VERSION
+    input: InputKind = "fap"
+    rate: int | None = Field(None, gt=0, le=384_000, description="audio: sample rate in Hz")
+    sample_format: Encoding | None = Field(None, description="audio: 'i16' or 'f32' PCM chunks")
+    markers: list[str] | None = Field(None, max_length=4096, description="markers: name of each marker, in frame order")
+    layout: str | None = Field(None, max_length=200, description="markers: marker layout name (driver-specific)")
+    units: str | None = Field(None, max_length=16, description="markers: units of the positions (mm, cm, m)")
+
+
+class Ready(_Model):
+    """Server -> producer, the answer to its hello: the session accepts frames now."""
+
+    type: Literal["ready"] = "ready"
+    protocol: int = PROTOCOL_VERSION
+    session: str
+    input: InputKind
+    fps: float
+    max_fps: float = Field(description="input frames per second above which frames are dropped with an error")
+    vertex_count: int
+
+
+class ViewerHello(_Model):
+    """Server -> viewer, the first message on ``/watch``: how to read the binary frames that follow."""
+
+    type: Literal["hello"] = "hello"
+    role: Literal["viewer"] = "viewer"
+    protocol: int = PROTOCOL_VERSION
+    session: str
+    face: str
+    topology_url: str = Field(description="REST path of the face's triangles (relative to the server)")
+    vertex_count: int
+    encoding: Encoding
+    fps: float
+    input: InputKind
+    producer_connected: bool
+
+
+class ErrorMessage(_Model):
+    """Either direction: something was wrong. ``code`` is a ``CloseCode`` value; if ``fatal``, the
+    sender closes the connection with that code right after."""
+
+    type: Literal["error"] = "error"
+    code: int
+    message: str
+    where: str = ""
+    fatal: bool = False
+    seq: int | None = Field(None, description="sequence number of the offending frame, if any")
+
+
+class FapMessage(_Model):
+    """Producer -> server: one FAP frame as JSON (the binary ``FAPS`` frame carries the same).
+
+    ``faps`` maps FAP number (3..68) to its value in FAPU units; FAPs not listed keep their previous
+    value. ``wall`` is the producer's Unix time when sending (copied into the vertex frames, for
+    latency); ``t`` is media seconds from the session's start.
+    """
+
+    type: Literal["fap"] = "fap"
+    seq: int = Field(0, ge=0, le=0xFFFFFFFF)
+    t: float = Field(allow_inf_nan=False)
+    wall: float = Field(0.0, allow_inf_nan=False)
+    faps: dict[int, float] = Field(default_factory=dict)
+    viseme: tuple[int, int, int] | None = None
+    expression: tuple[int, int, int, int] | None = None
+
+    @field_validator("faps")
+    @classmethod
+    def _fap_numbers(cls, v: dict[int, float]) -> dict[int, float]:
+        for k, x in v.items():
+            if not 3 <= k <= 68:
+                raise ValueError(f"FAP number {k} is not a low-level FAP (3..68); send FAP 1 as 'viseme' "
+                                 "and FAP 2 as 'expression'")
+            if x != x or x in (float("inf"), float("-inf")):
+                raise ValueError(f"FAP {k} value must be finite")
+        return v
+
+    @field_validator("viseme")
+    @classmethod
+    def _viseme(cls, v: tuple[int, int, int] | None) -> tuple[int, int, int] | None:
+        if v is not None and not (0 <= v[0] <= 14 and 0 <= v[1] <= 14 and 0 <= v[2] <= 63):
+            raise ValueError("viseme is (select1 0-14, select2 0-14, blend 0-63)")
+        return v
+
+    @field_validator("expression")
+    @classmethod
+    def _expression(cls, v: tuple[int, int, int, int] | None) -> tuple[int, int, int, int] | None:
+        if v is not None and not (0 <= v[0] <= 6 and 0 <= v[2] <= 6 and 0 <= v[1] <= 63 and 0 <= v[3] <= 63):
+            raise ValueError("expression is (select1 0-6, intensity1 0-63, select2 0-6, intensity2 0-63)")
+        return v
+
+
+class Stats(_Model):
+    """Counters of one session (REST ``SessionInfo.stats``; also sent to viewers as a ``stats`` message)."""
+
+    type: Literal["stats"] = "stats"
+    frames_in: int = 0  #: input frames (FAP frames, PCM chunks, marker frames) accepted
+    frames_rejected: int = 0  #: input frames refused (malformed, over the rate limit)
+    states: int = 0  #: face states produced by the driver (= vertex frames numbered)
+    frames_deformed: int = 0  #: states deformed (the rest were dropped because deformation lagged)
+    frames_dropped: int = 0  #: states dropped before deformation
+    frames_sent: int = 0  #: vertex frames sent, summed over viewers
+    frames_skipped: int = 0  #: frames a slow viewer never got (replaced by a newer one), summed
+    deform_ms_mean: float = 0.0  #: mean deform + encode time per frame, milliseconds
+    viewers: int = 0
+    producer_connected: bool = False
+
+
+class Status(_Model):
+    """Server -> viewers: the producer connected or disconnected (viewers may stop on the latter)."""
+
+    type: Literal["status"] = "status"
+    producer_connected: bool
+    viewers: int
+    last_seq: int | None = Field(None, description="sequence number of the last vertex frame, if any")
+
+
+def _tag(obj: object) -> str | None:
+    """Discriminator: ``type``, and for ``hello`` also ``role`` (producer and viewer hellos differ)."""
+    get = obj.get if isinstance(obj, dict) else lambda k, d=None: getattr(obj, k, d)
+    kind = get("type")
+    return f"hello:{get('role')}" if kind == "hello" else kind
+
+
+Message = Annotated[Union[Annotated[ProducerHello, Tag("hello:producer")], Annotated[ViewerHello, Tag("hello:viewer")],
+                          Annotated[Ready, Tag("ready")], Annotated[ErrorMessage, Tag("error")],
+                          Annotated[FapMessage, Tag("fap")], Annotated[Stats, Tag("stats")],
+                          Annotated[Status, Tag("status")]],
+                    Discriminator(_tag)]
+
+
+# ------------------------------------------------------------------------------------------------ REST
+
+class SessionCreate(_Model):
+    """``POST /v1/sessions`` body."""
+
+    face: str | None = Field(None, max_length=512, description="face name or server-side mesh path; "
+                                                               "default: the server's face")
+    input: InputKind = "fap"
+    fps: float = Field(60.0, gt=0, le=240, description="output frame rate (audio/markers drivers "
+                                                       "resample to it; FAP frames are taken as sent)")
+    engine: str = Field("fp", max_length=32, description="deformation engine: fp | rbf")
+    max_viewers: int | None = Field(None, gt=0, description="viewer limit (≤ the server's)")
+
+
+class SessionCreated(_Model):
+    """``POST /v1/sessions`` answer: keep the tokens, they are shown only once."""
+
+    id: str
+    producer_token: str
+    viewer_token: str
+    face: str
+    input: InputKind
+    fps: float
+    vertex_count: int
+    produce_url: str = Field(description="WebSocket path for the producer (add ?token=PRODUCER_TOKEN)")
+    watch_url: str = Field(description="WebSocket path for viewers (add ?token=VIEWER_TOKEN&encoding=f32|i16)")
+
+
+class SessionInfo(_Model):
+    """One session in ``GET /v1/sessions`` / ``GET /v1/sessions/{id}``."""
+
+    id: str
+    face: str
+    input: InputKind
+    fps: float
+    engine: str
+    created: float = Field(description="Unix time")
+    vertex_count: int
+    max_viewers: int
+    stats: Stats
+
+
+class SessionList(_Model):
+    sessions: list[SessionInfo]
+
+
+# --------------------------------------------------------------------------------------------- codec
+
+_ADAPTER: TypeAdapter = TypeAdapter(Message)
+_TAGS = ("hello:producer", "hello:viewer", "ready", "error", "fap", "stats", "status")
+
+
+def parse_message(text: str | bytes) -> BaseModel:
+    """One JSON control message -> its model.
+
+    Raises:
+        MessageError: too long, not JSON, not an object, unknown ``type``, or invalid fields (the
+            message names the field).
+    """
+    if len(text) > MAX_MESSAGE_BYTES:
+        raise MessageError(f"control message of {len(text)} bytes is over the {MAX_MESSAGE_BYTES}-byte limit")
+    try:
+        obj = json.loads(text)
+    except (ValueError, UnicodeDecodeError) as e:
+        raise MessageError(f"not JSON: {e}") from None
+    if not isinstance(obj, dict):
+        raise MessageError("a control message must be a JSON object with a 'type' field")
+    tag = _tag(obj)
+    if tag not in _TAGS:
+        raise MessageError(f"unknown message type {obj.get('type')!r}" + (f" with role {obj.get('role')!r}" if
+                           obj.get("type") == "hello" else "") + "; expected one of: " + ", ".join(_TAGS),
+                           where="type")
+    try:
+        return _ADAPTER.validate_python(obj)
+    except ValidationError as e:
+        err = e.errors()[0]
+        where = ".".join(str(x) for x in err["loc"])
+        raise MessageError(f"{err['msg']} ({e.error_count()} error(s))", where=where) from None
+    except (ValueError, TypeError, RecursionError) as e:
+        raise MessageError(f"invalid message: {e}") from None
+
+
+def dump_message(message: BaseModel) -> str:
+    """A model -> its compact JSON text (fields left at None are omitted)."""
+    return message.model_dump_json(exclude_none=True)
