@@ -29,6 +29,7 @@ class ErrorBody(BaseModel):
     """Every 4xx/5xx response: what was wrong and what to do."""
 
     error: str = Field(description="what was wrong and what to do about it")
+    detail: str = Field(description="the same text as 'error' (FastAPI's usual field name)")
     status: int
     where: str | None = Field(None, description="file, line, field or parameter at fault")
 

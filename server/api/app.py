@@ -15,10 +15,12 @@ import logging
 import time
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, HTTPException, Request
+from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException
 
+from ...protocol.errors import ProtocolError
 from ..errors import FacecastError
 from . import routes_faces, routes_health, routes_jobs, routes_sessions, routes_web
 from .config import ServerConfig
@@ -40,7 +42,7 @@ def _version() -> str:
 
 def error_body(status: int, message: str, where: str = "", **extra) -> dict:
     """The JSON body of every error response."""
-    body = {"error": message, "status": status}
+    body = {"error": message, "detail": message, "status": status}
     if where:
         body["where"] = where
     body.update(extra)
@@ -135,13 +137,25 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         app.state.metrics.http_errors.labels(str(exc.status)).inc()
         return JSONResponse(error_body(exc.status, str(exc), exc.where), status_code=exc.status)
 
+    @app.exception_handler(ProtocolError)
+    async def _protocol_error(request: Request, exc: ProtocolError) -> JSONResponse:
+        app.state.metrics.http_errors.labels(str(exc.status)).inc()
+        return JSONResponse(error_body(exc.status, str(exc), exc.where), status_code=exc.status)
+
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, exc: HTTPException) -> JSONResponse:
         app.state.metrics.http_errors.labels(str(exc.status_code)).inc()
-        detail = exc.detail if isinstance(exc.detail, str) else "request failed"
-        extra = {} if isinstance(exc.detail, str) else {"detail": exc.detail}
-        return JSONResponse(error_body(exc.status_code, detail, **extra), status_code=exc.status_code,
+        message = exc.detail if isinstance(exc.detail, str) else "request failed"
+        extra = {} if isinstance(exc.detail, str) else {"problems": jsonable(exc.detail)}
+        return JSONResponse(error_body(exc.status_code, message, **extra), status_code=exc.status_code,
                             headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(Exception)
+    async def _server_error(request: Request, exc: Exception) -> JSONResponse:
+        log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
+        app.state.metrics.http_errors.labels("500").inc()
+        return JSONResponse(error_body(500, "internal server error; the server log has the details"),
+                            status_code=500)
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -149,7 +163,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         problems = "; ".join(
             f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', '')}" for e in exc.errors())
         return JSONResponse(error_body(422, f"invalid request: {problems}; see /docs for the schema",
-                                       detail=jsonable(exc.errors())), status_code=422)
+                                       problems=jsonable(exc.errors())), status_code=422)
 
     app.include_router(routes_health.router)
     app.include_router(routes_faces.router)

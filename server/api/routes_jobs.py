@@ -1,2 +1,211 @@
-from fastapi import APIRouter
-router = APIRouter()
+"""``/v1/jobs``: batch rendering. Upload an input file, poll its status, download the result, cancel.
+
+All routes need the admin key. The upload is streamed to the job's folder with a size limit
+(``max_upload_bytes``; 413 beyond it); the job runs in a worker process (see ``server/jobs``).
+"""
+from __future__ import annotations
+
+import logging
+import re
+import shutil
+
+from fastapi import APIRouter, Depends, Request, Response, status
+from fastapi.responses import FileResponse
+from pydantic import ValidationError
+
+from ...protocol.rest import RESULT_MEDIA_TYPES, ErrorBody, JobList, JobOptions, JobStatus
+from ..drivers import input_kind
+from ..errors import FacecastError, InputError, NotFound
+from ..jobs.store import JOB_ID, JobRecord, new_job_id
+from ..jobs.upload import PayloadTooLarge, UploadParser, boundary_of, input_suffix, safe_display_name
+from .security import require_admin
+
+log = logging.getLogger(__name__)
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], dependencies=[Depends(require_admin)],
+                   responses={401: {"model": ErrorBody, "description": "admin key missing or wrong"}})
+
+#: Bytes of an oversized request the server still reads (and discards) so the client sees the 413.
+DRAIN_LIMIT = 64 * 1024 * 1024
+#: Room for the multipart framing and form fields around the file.
+FORM_OVERHEAD = 64 * 1024
+
+_LAYOUT = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
+
+_UPLOAD_DOC = {
+    "requestBody": {
+        "required": True,
+        "content": {"multipart/form-data": {"schema": {
+            "type": "object", "required": ["file"],
+            "properties": {
+                "file": {"type": "string", "format": "binary",
+                         "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv (type from the "
+                                        "file name's suffix, else from its content)"},
+                "face": {"type": "string", "description": "face name (GET /v1/faces)"},
+                "engine": {"type": "string", "enum": ["fp", "rbf"], "default": "fp"},
+                "format": {"type": "string", "enum": ["glb", "npz", "fap"], "default": "glb"},
+                "layout": {"type": "string", "description": "mocap marker layout name"},
+            }}}},
+    }
+}
+
+
+class Conflict(FacecastError):
+    status = 409
+
+
+def job_status(job: JobRecord, request: Request | None = None) -> JobStatus:
+    opts = {k: v for k, v in job.options.items() if k in JobOptions.model_fields}
+    result_bytes = None
+    if job.status == "done" and request is not None:
+        path = request.app.state.jobs.store.result_path(job)
+        result_bytes = path.stat().st_size if path.is_file() else None
+    return JobStatus(
+        id=job.id, status=job.status, progress=job.progress, error=job.error or None,
+        input_name=job.input_name, input_kind=job.input_kind, input_bytes=job.input_bytes,
+        options=JobOptions(**opts), attempts=job.attempts, created=job.created, started=job.started,
+        finished=job.finished, result_url=f"/v1/jobs/{job.id}/result" if job.status == "done" else None,
+        result_bytes=result_bytes)
+
+
+def _job(request: Request, job_id: str) -> JobRecord:
+    job = request.app.state.jobs.store.get(job_id) if JOB_ID.match(job_id) else None
+    if job is None:
+        raise NotFound(f"no job {job_id!r} on this server; POST /v1/jobs returns the ids", where="job")
+    return job
+
+
+async def _drain(request: Request, already: int) -> None:
+    """Read and discard the rest of an oversized body (bounded), so the client can read the 413."""
+    n = already
+    try:
+        async for chunk in request.stream():
+            n += len(chunk)
+            if n > DRAIN_LIMIT:
+                break
+    except Exception:
+        pass
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobStatus, openapi_extra=_UPLOAD_DOC,
+             responses={413: {"model": ErrorBody, "description": "upload larger than the server's limit"},
+                        415: {"model": ErrorBody, "description": "not multipart, or unknown input type"},
+                        404: {"model": ErrorBody, "description": "no such face"},
+                        422: {"model": ErrorBody, "description": "bad option"}})
+async def submit_job(request: Request, response: Response) -> JobStatus:
+    """Submit a job: multipart form with ``file`` and options ``face``, ``engine``, ``format``, ``layout``.
+
+    Answers 202 with the job's status; poll ``GET /v1/jobs/{id}`` until ``done``, then fetch
+    ``result_url``.
+    """
+    app = request.app
+    cfg = app.state.config
+    jobs = app.state.jobs
+    limit = int(cfg.max_upload_bytes)
+    boundary = boundary_of(request.headers.get("content-type", ""))
+    declared = request.headers.get("content-length")
+    if declared and declared.isdigit() and int(declared) > limit + FORM_OVERHEAD:
+        await _drain(request, 0)
+        raise PayloadTooLarge(f"the upload is {int(declared)} bytes, more than this server's limit of {limit} "
+                              "bytes for a file; send a smaller file or raise FACECAST_MAX_UPLOAD_BYTES "
+                              "on the server", where="file")
+    job_id = new_job_id()
+    folder = jobs.store.folder(job_id)
+    folder.mkdir(parents=True)
+    parser = UploadParser(boundary, folder / ".upload", limit)
+    received = 0
+    try:
+        try:
+            async for chunk in request.stream():
+                received += len(chunk)
+                parser.write(chunk)
+            parser.finish()
+        except PayloadTooLarge:
+            parser.abort()
+            await _drain(request, received)
+            raise
+        except FacecastError:
+            raise
+        except Exception as e:  # malformed multipart framing
+            raise InputError(f"could not read the multipart upload ({e}); send a multipart/form-data "
+                             "body with a 'file' part", where="body") from None
+        try:
+            opts = JobOptions(**{k: v for k, v in parser.fields.items() if k in JobOptions.model_fields})
+        except ValidationError as e:
+            problems = "; ".join(f"{'.'.join(map(str, x['loc']))}: {x['msg']}" for x in e.errors())
+            raise InputError(f"bad job option: {problems}", where="form") from None
+        unknown = sorted(set(parser.fields) - set(JobOptions.model_fields))
+        if unknown:
+            raise InputError(f"unknown form field(s) {', '.join(unknown)}; known: file, "
+                             f"{', '.join(JobOptions.model_fields)}", where="form")
+        if opts.layout is not None and not _LAYOUT.match(opts.layout):
+            raise InputError("layout must be a layout name (letters, digits, _ . -), not a path",
+                             where="layout")
+        if parser.size == 0:
+            raise InputError("the uploaded file is empty", where="file")
+        face_spec = app.state.store.resolve(opts.face)
+        suffix = input_suffix(parser.filename, parser.head)
+        input_file = f"input{suffix}"
+        (folder / ".upload").replace(folder / input_file)
+        display = safe_display_name(parser.filename, f"upload{suffix}")
+        options = {**opts.model_dump(), "face_spec": face_spec}
+        job = jobs.store.add(job_id, input_name=display, input_kind=input_kind(input_file),
+                             input_file=input_file, input_bytes=parser.size,
+                             result_file=f"result.{opts.format}", options=options)
+    except BaseException:
+        parser.abort()
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    app.state.metrics.jobs_submitted.inc()
+    jobs.wake()
+    log.info("job %s queued: %s (%d bytes) -> %s", job_id, display, parser.size, opts.format)
+    response.headers["Location"] = f"/v1/jobs/{job_id}"
+    return job_status(job)
+
+
+@router.get("", response_model=JobList)
+async def list_jobs(request: Request, status: str | None = None, limit: int = 100) -> JobList:
+    """The newest jobs (optionally only those in one ``status``)."""
+    jobs = request.app.state.jobs.store.list(status, limit=max(1, min(limit, 1000)))
+    return JobList(jobs=[job_status(j, request) for j in jobs])
+
+
+@router.get("/{job_id}", response_model=JobStatus, responses={404: {"model": ErrorBody}})
+async def get_job(job_id: str, request: Request) -> JobStatus:
+    """Status, progress (0..1) and error message of a job."""
+    return job_status(_job(request, job_id), request)
+
+
+@router.get("/{job_id}/result", response_class=FileResponse,
+            responses={200: {"content": {t: {} for t in RESULT_MEDIA_TYPES.values()},
+                             "description": "the result file"},
+                       404: {"model": ErrorBody}, 409: {"model": ErrorBody, "description": "not done"}})
+async def get_result(job_id: str, request: Request):
+    """The result file of a finished job (409 while it is queued or running, or if it failed)."""
+    job = _job(request, job_id)
+    if job.status != "done":
+        what = {"queued": "is queued", "running": f"is running ({job.progress:.0%})",
+                "cancelled": "was cancelled", "failed": f"failed: {job.error}"}[job.status]
+        raise Conflict(f"job {job_id} {what}; "
+                       + ("poll GET /v1/jobs/{id} until status is 'done'" if job.status in ("queued", "running")
+                          else "submit it again"), where="job")
+    path = request.app.state.jobs.store.result_path(job)
+    if not path.is_file():
+        raise NotFound(f"the result of job {job_id} is no longer on the server; submit the job again",
+                       where="job")
+    stem = safe_display_name(job.input_name, "result").rsplit(".", 1)[0] or "result"
+    fmt = job.options.get("format", "glb")
+    return FileResponse(path, media_type=RESULT_MEDIA_TYPES.get(fmt, "application/octet-stream"),
+                        filename=f"{stem}.{fmt}")
+
+
+@router.delete("/{job_id}", response_model=JobStatus, responses={404: {"model": ErrorBody},
+                                                                   409: {"model": ErrorBody}})
+async def cancel_job(job_id: str, request: Request) -> JobStatus:
+    """Cancel a queued or running job (its worker is stopped). Cancelling it again is harmless;
+    a job that already finished (done or failed) answers 409."""
+    job = _job(request, job_id)
+    if job.status in ("done", "failed"):
+        raise Conflict(f"job {job_id} already {job.status}; there is nothing to cancel", where="job")
+    request.app.state.jobs.cancel(job_id)
+    return job_status(_job(request, job_id))

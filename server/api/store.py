@@ -59,6 +59,7 @@ class FaceStore:
         self.max_faces = max_faces
         self._faces: OrderedDict[str, Any] = OrderedDict()
         self._animators: OrderedDict[tuple, Any] = OrderedDict()
+        self._derived: dict[tuple, Any] = {}
         self._locks: dict[Any, threading.Lock] = {}
         self._guard = threading.Lock()
         if default not in self.configured and not _BUILTIN_SPEC.match(default):
@@ -114,6 +115,26 @@ class FaceStore:
     def loaded(self) -> list[str]:
         """Specs of the faces in memory."""
         return list(self._faces)
+
+    def loaded_face(self, name: str):
+        """The ``Face`` for a name if it is already in memory, else None (never loads)."""
+        try:
+            return self._faces.get(self.resolve(name))
+        except Exception:
+            return None
+
+    def derived(self, name: str | None, kind: str, fn):
+        """``fn(face)`` for a face, computed once per face and ``kind`` (e.g. its encoded topology)."""
+        key = (self.resolve(name), kind)
+        with self._lock(("derived", key)):
+            if key in self._derived:
+                return self._derived[key]
+            value = fn(self.face(name))
+            with self._guard:
+                self._derived[key] = value
+                while len(self._derived) > 4 * self.max_faces:
+                    self._derived.pop(next(iter(self._derived)))
+            return value
 
     def animator(self, name: str | None = None, engine: str = "fp", **params):
         """A shared ``Animator`` for a face and engine (blocking; built once, then cached)."""

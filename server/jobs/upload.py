@@ -1,0 +1,188 @@
+"""Streaming ``multipart/form-data`` upload: the file part goes to disk as it arrives, with a limit.
+
+Nothing is held in memory beyond one network chunk and small form fields. Client file names are
+only used to guess the input type and for display; they never become paths.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from python_multipart import MultipartParser
+from python_multipart.multipart import parse_options_header
+
+from ..drivers import DRIVERS
+from ..errors import FacecastError, InputError
+
+#: Form field values larger than this are refused (they are short options).
+MAX_FIELD_BYTES = 4096
+#: Bytes of the file kept to recognise its type from content.
+SNIFF_BYTES = 4096
+
+
+class PayloadTooLarge(FacecastError):
+    status = 413
+
+
+class UnsupportedMedia(FacecastError):
+    status = 415
+
+
+def safe_display_name(name: str | None, default: str = "upload") -> str:
+    """The last path component of a client file name, printable and at most 100 characters."""
+    base = re.split(r"[\\/]", name or "")[-1]
+    base = "".join(c for c in base if c.isprintable() and c not in '"<>|*?:').strip().lstrip(".")
+    return base[:100] or default
+
+
+class UploadParser:
+    """Feeds request body chunks to python-multipart; writes the ``file_field`` part to ``dest``.
+
+    After ``finish()``: ``fields`` (name -> str), ``filename`` (client's, unchecked text),
+    ``size`` (bytes of the file), ``head`` (its first ``SNIFF_BYTES``).
+    """
+
+    def __init__(self, boundary: bytes, dest: Path, limit: int, file_field: str = "file"):
+        self.dest = dest
+        self.limit = limit
+        self.file_field = file_field
+        self.fields: dict[str, str] = {}
+        self.filename: str | None = None
+        self.size = 0
+        self.head = b""
+        self.got_file = False
+        self._headers: dict[bytes, bytes] = {}
+        self._hname = b""
+        self._hvalue = b""
+        self._name: str | None = None
+        self._is_file = False
+        self._value = bytearray()
+        self._fh = None
+        self._parser = MultipartParser(boundary, {
+            "on_part_begin": self._part_begin,
+            "on_header_field": self._header_field,
+            "on_header_value": self._header_value,
+            "on_header_end": self._header_end,
+            "on_headers_finished": self._headers_finished,
+            "on_part_data": self._part_data,
+            "on_part_end": self._part_end,
+        })
+
+    # -- python-multipart callbacks --------------------------------------------------------------
+    def _part_begin(self) -> None:
+        self._headers = {}
+        self._hname = self._hvalue = b""
+
+    def _header_field(self, data: bytes, start: int, end: int) -> None:
+        self._hname += data[start:end]
+
+    def _header_value(self, data: bytes, start: int, end: int) -> None:
+        self._hvalue += data[start:end]
+
+    def _header_end(self) -> None:
+        self._headers[self._hname.lower()] = self._hvalue
+        self._hname = self._hvalue = b""
+
+    def _headers_finished(self) -> None:
+        _, opts = parse_options_header(self._headers.get(b"content-disposition", b""))
+        self._name = opts.get(b"name", b"").decode("utf-8", "replace")
+        self._value = bytearray()
+        self._is_file = self._name == self.file_field
+        if self._is_file:
+            if self.got_file:
+                raise InputError("send exactly one 'file' part", where="file")
+            self.got_file = True
+            fn = opts.get(b"filename")
+            self.filename = fn.decode("utf-8", "replace") if fn is not None else None
+            self._fh = open(self.dest, "wb")
+
+    def _part_data(self, data: bytes, start: int, end: int) -> None:
+        chunk = data[start:end]
+        if self._is_file:
+            self.size += len(chunk)
+            if self.size > self.limit:
+                raise PayloadTooLarge(
+                    f"the uploaded file is larger than this server's limit of {self.limit} bytes; send a "
+                    "smaller file (split long recordings) or raise FACECAST_MAX_UPLOAD_BYTES on the server",
+                    where="file")
+            if len(self.head) < SNIFF_BYTES:
+                self.head += chunk[:SNIFF_BYTES - len(self.head)]
+            self._fh.write(chunk)
+        else:
+            self._value += chunk
+            if len(self._value) > MAX_FIELD_BYTES:
+                raise InputError(f"form field is longer than {MAX_FIELD_BYTES} bytes", where=self._name or "form")
+
+    def _part_end(self) -> None:
+        if self._is_file:
+            self._fh.close()
+            self._fh = None
+        elif self._name:
+            self.fields[self._name] = self._value.decode("utf-8", "replace")
+
+    # -- driving ---------------------------------------------------------------------------------
+    def write(self, chunk: bytes) -> None:
+        self._parser.write(chunk)
+
+    def finish(self) -> None:
+        self._parser.finalize()
+        if not self.got_file:
+            raise InputError("no file in the upload; send the input as a multipart part named 'file'",
+                             where="file")
+        if self._fh is not None:
+            raise InputError("the upload ended in the middle of the file part", where="file")
+
+    def abort(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+        self.dest.unlink(missing_ok=True)
+
+
+def boundary_of(content_type: str) -> bytes:
+    """The multipart boundary of a Content-Type header; InputError if it is not multipart/form-data."""
+    ctype, opts = parse_options_header(content_type)
+    if ctype != b"multipart/form-data" or not opts.get(b"boundary"):
+        raise UnsupportedMedia(f"expected a multipart/form-data upload, got {content_type or 'no Content-Type'!r}; "
+                               "send the input file as a form part named 'file' (curl -F file=@take.fap)",
+                               where="Content-Type")
+    return opts[b"boundary"]
+
+
+_FAP_HEADER = re.compile(rb"^\s*2\.1\s+\S+\s+[0-9.]+\s+[0-9]+\s*$")
+
+
+def sniff_suffix(head: bytes) -> str | None:
+    """The input suffix the first bytes of a file suggest (``.wav``, ``.fap``...), or None."""
+    if head[:4] == b"RIFF" and head[8:12] == b"WAVE":
+        return ".wav"
+    if head[:4] == b"fLaC":
+        return ".flac"
+    if head[:4] == b"OggS":
+        return ".ogg"
+    if len(head) >= 2 and head[1] == 0x50 and 1 <= head[0] < 32:  # parameter block, 0x50 key
+        return ".c3d"
+    if head.lstrip().startswith(b"PathFileType"):
+        return ".trc"
+    for line in head.splitlines():
+        if not line.strip() or line.lstrip().startswith(b"#"):
+            continue
+        if _FAP_HEADER.match(line):
+            return ".fap"
+        if line.count(b",") >= 3:
+            return ".csv"
+        break
+    return None
+
+
+def input_suffix(filename: str | None, head: bytes) -> str:
+    """The input type of an upload: its file name's suffix if known, else what its content looks like."""
+    name = safe_display_name(filename, "")
+    suffix = ("." + name.rsplit(".", 1)[-1].lower()) if "." in name else ""
+    if suffix in DRIVERS:
+        return suffix
+    sniffed = sniff_suffix(head)
+    if sniffed:
+        return sniffed
+    raise UnsupportedMedia(f"cannot tell what kind of input {name or 'the upload'!r} is; name the file with "
+                           f"one of {', '.join(sorted(DRIVERS))}", where="file")
