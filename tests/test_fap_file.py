@@ -122,7 +122,7 @@ def fap_files(draw):
                    header_trailing_space=draw(st.booleans()), final_newline=draw(st.booleans()))
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=80, deadline=None)
 @given(fap_files())
 def test_write_read_write_is_identical(f):
     text = write_fap(f)
@@ -142,7 +142,7 @@ def test_garbage_is_rejected_cleanly(text):
         assert e.line >= 0 and str(e)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(fap_files(), st.data())
 def test_corrupted_files_fail_with_a_line_number_or_still_parse(f, data):
     text = write_fap(f)

@@ -1,0 +1,12 @@
+"""MPEG-4 face animation: FAP/FP tables, FAPU, high-level FAPs and the FAP rig of a face."""
+from .fapu import AU, FAPU_DEFINITIONS, fapu_mm, measure_fapu
+from .highlevel import EXPRESSION_NAMES, EXPRESSIONS, VISEME_NAMES, VISEMES, expand, expression_faps, viseme_faps
+from .rig import FapRig, fap_controls
+from .tables import FAP_GROUPS, FAP_NUMBER, FAPS, FEATURE_POINTS, FP_FAPS, Fap, fap
+
+__all__ = [
+    "AU", "FAPU_DEFINITIONS", "fapu_mm", "measure_fapu",
+    "EXPRESSION_NAMES", "EXPRESSIONS", "VISEME_NAMES", "VISEMES", "expand", "expression_faps", "viseme_faps",
+    "FapRig", "fap_controls",
+    "FAP_GROUPS", "FAP_NUMBER", "FAPS", "FEATURE_POINTS", "FP_FAPS", "Fap", "fap",
+]

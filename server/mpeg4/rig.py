@@ -1,0 +1,237 @@
+"""FAPs -> control displacements ``D (K, 3)`` and rigid transforms ``(G, 3, 4)`` for one face.
+
+The decoder side of MPEG-4 for a face with feature points (``docs/mpeg4-reference.md``; the
+feature-point method of Kshirsagar et al., ``research/seed-000-A.md`` §5):
+
+- **Controls** (``fap_controls``): every feature point the face has on a deformable vertex.
+  FPs without a FAP are anchors (constrained on x, y and z, displacement 0). FAP-driven FPs are
+  constrained on the axes their FAPs move (e.g. 2.2: y by FAP 4 and z by FAP 17) and free on the
+  others, where the operator moves them like ordinary vertices. The chin points that ride the jaw
+  (2.1, 2.10, 2.11, 2.12) and the tongue points are constrained on all three axes. FPs on rigid
+  parts (pupil centres 3.5/3.6 on the eyeballs, teeth points 9.8-9.11) are not controls: those
+  parts move by their rigid transforms. FPs that share a vertex share one control.
+- **Translations**: FP displacement = value x FAPU x + direction, summed over the FAPs of the FP,
+  in head-local space (the deformer then applies the head transform). Low-level lip FAPs are taken
+  as absolute displacements from the neutral face (not relative to the jaw): the Xface files drop
+  the lower lip (FAP 5) together with the jaw (FAP 3) by similar amounts.
+- **Jaw** (FAPs 3, 14, 15): a rigid transform of the ``jaw`` group (lower teeth, lower gums,
+  tongue): rotation about the x axis through ``face.pivot("jaw")`` by the angle that drops FP 2.1
+  by ``open_jaw x MNS``, then translation by ``thrust_jaw x MNS`` (+z) and ``shift_jaw x MW`` (-x).
+  The skin chin points follow it (plus FAP 18 on 2.10).
+- **Tongue** (43-47): displacements of 6.1-6.4 in jaw-local space (the tongue rides the jaw);
+  ``tongue_roll`` lifts 6.3/6.4 by ``tan(angle) x`` their distance from 6.2 across the tongue.
+- **Eyeballs** (23-28): yaw about +y, pitch about +x through the eyeball centre
+  (``face.pivot("eye_l"/"eye_r")``), then ``thrust x ES`` along +z. Pupil dilation (29/30) has no
+  geometry on a rigid eyeball and is ignored.
+- **Head** (48-50): ``R = Ry(yaw) · Rx(pitch) · Rz(roll)`` about ``face.pivot("head")`` (FP 7.1);
+  ``FaceState.head`` replaces it when given. Every group transform is composed with it.
+
+Negative values of unidirectional FAPs (real files have them) are applied as they are.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..faces.face import RIGID_GROUPS
+from .fapu import measure_fapu
+from .highlevel import EXPRESSIONS, VISEMES, expand
+from .tables import FAPS, FEATURE_POINTS, FP_FAPS, JAW_SKIN_FPS, TONGUE_FPS
+
+log = logging.getLogger(__name__)
+
+G = len(RIGID_GROUPS)
+_HEAD, _JAW, _EYE_L, _EYE_R = (RIGID_GROUPS.index(n) for n in ("head", "jaw", "eye_l", "eye_r"))
+
+
+def fap_controls(face) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """The face's FAP control set: ``(fp_ids, vertex_ids (K,) int32, constrained (K, 3) bool)``.
+
+    ``fp_ids[i]`` names the feature point(s) of control i (``"2.2"``, or ``"2.2+8.1"`` when
+    several FPs sit on one vertex). See the module docstring for the per-axis rule.
+    """
+    deformable = face.deformable
+    order: list[int] = []
+    names: dict[int, list[str]] = {}
+    axes: dict[int, np.ndarray] = {}
+    for fp in FEATURE_POINTS:
+        if fp not in face.feature_points:
+            continue
+        v = face.feature_points[fp]
+        if not deformable[v]:
+            continue
+        c = _constrained_axes(fp)
+        if v not in names:
+            order.append(v)
+            names[v], axes[v] = [], np.zeros(3, dtype=bool)
+        names[v].append(fp)
+        axes[v] |= c
+    return (["+".join(names[v]) for v in order], np.array(order, dtype=np.int32),
+            np.array([axes[v] for v in order], dtype=bool).reshape(-1, 3))
+
+
+def _constrained_axes(fp: str) -> np.ndarray:
+    if fp in JAW_SKIN_FPS or fp in TONGUE_FPS:
+        return np.ones(3, dtype=bool)
+    faps = [FAPS[k - 1] for k in FP_FAPS.get(fp, ()) if FAPS[k - 1].kind == "move"]
+    if not faps:
+        return np.ones(3, dtype=bool)  # anchor
+    return np.any([np.abs(f.vector) > 0 for f in faps], axis=0)
+
+
+def rotation(axis: str, angle: float) -> np.ndarray:
+    """``(3, 3)`` right-hand rotation by ``angle`` radians about ``x``, ``y`` or ``z``."""
+    c, s = np.cos(angle), np.sin(angle)
+    if axis == "x":
+        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    if axis == "y":
+        return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def about(R: np.ndarray, pivot: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
+    """``(3, 4)`` transform ``x -> R (x - pivot) + pivot + t``."""
+    out = np.empty((3, 4))
+    out[:, :3] = R
+    out[:, 3] = pivot - R @ pivot + (0 if t is None else t)
+    return out
+
+
+def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(3, 4)`` transform ``a ∘ b`` (apply b, then a)."""
+    out = np.empty((3, 4))
+    out[:, :3] = a[:, :3] @ b[:, :3]
+    out[:, 3] = a[:, :3] @ b[:, 3] + a[:, 3]
+    return out
+
+
+def jaw_angle(chin: np.ndarray, pivot: np.ndarray, drop: float) -> float:
+    """Angle (rad, right-hand about +x) that lowers ``chin`` by ``drop`` when rotating about ``pivot``.
+
+    With ``r = chin - pivot = (., ry, rz)`` the chin height after rotation is
+    ``ry cos a - rz sin a``; solves ``rz sin a + ry (1 - cos a) = drop`` (clamped at the reachable
+    extreme).
+    """
+    ry, rz = float(chin[1] - pivot[1]), float(chin[2] - pivot[2])
+    r = np.hypot(ry, rz)
+    if r == 0:
+        return 0.0
+    # rz sin a - ry cos a = drop - ry  <=>  r sin(a + phi) = drop - ry, phi = atan2(-ry, rz)
+    phi = np.arctan2(-ry, rz)
+    return float(np.arcsin(np.clip((drop - ry) / r, -1.0, 1.0)) - phi)
+
+
+class FapRig:
+    """Turns ``FaceState`` s into control displacements and rigid transforms for one face.
+
+    Args:
+        face: the ``Face`` (needs the FAPU feature points, see ``measure_fapu``).
+        control_vertices: ``(K,)`` vertex ids of an explicit control set (mocap markers); then
+            ``D = state.controls`` (zeros when None) and FAPs drive only the jaw, eyes and head.
+        visemes, expressions: ``(15, 69)`` / ``(7, 69)`` high-level tables (default: the face's
+            ``visemes`` / ``expressions`` attributes if it has them, else ``highlevel``'s).
+
+    Attributes:
+        fapu: ``measure_fapu(face)``.
+        control_vertices: ``(K,) int32``; ``constrained``: ``(K, 3) bool``; ``fp_ids``: names.
+    """
+
+    def __init__(self, face, control_vertices: np.ndarray | None = None, *,
+                 visemes: np.ndarray | None = None, expressions: np.ndarray | None = None):
+        self.face = face
+        self.fapu = measure_fapu(face)
+        self.visemes = np.asarray(visemes if visemes is not None else getattr(face, "visemes", None)
+                                  if getattr(face, "visemes", None) is not None else VISEMES, dtype=np.float64)
+        self.expressions = np.asarray(expressions if expressions is not None else getattr(face, "expressions", None)
+                                      if getattr(face, "expressions", None) is not None else EXPRESSIONS,
+                                      dtype=np.float64)
+        self.explicit = control_vertices is not None
+        if self.explicit:
+            self.control_vertices = np.asarray(control_vertices, dtype=np.int32).reshape(-1)
+            self.constrained = np.ones((len(self.control_vertices), 3), dtype=bool)
+            self.fp_ids: list[str] = []
+        else:
+            self.fp_ids, self.control_vertices, self.constrained = fap_controls(face)
+        self.n_controls = len(self.control_vertices)
+        self._pivots = {g: face.pivot(g) for g in RIGID_GROUPS}
+        self._chin = face.fp_position("2.1") if "2.1" in face.feature_points else None
+        self._build_linear()
+
+    # -- precomputation -----------------------------------------------------------------------
+    def _build_linear(self) -> None:
+        """``_M (K, 3, 69)``: D from the translation FAPs; jaw riders; tongue-roll lever arms."""
+        K = self.n_controls
+        self._M = np.zeros((K, 3, 69))
+        self._jaw_riders = np.zeros(0, dtype=np.int64)
+        self._roll = (np.zeros(0, dtype=np.int64), np.zeros(0))
+        if self.explicit:
+            return
+        index = {fp: i for i, names in enumerate(self.fp_ids) for fp in names.split("+")}
+        for f in FAPS:
+            if f.kind != "move" or not f.unit:
+                continue
+            for fp in f.fps:
+                if fp in index:
+                    self._M[index[fp], :, f.number] += f.vector * self.fapu[f.unit]
+        self._M *= self.constrained[:, :, None]
+        self._jaw_riders = np.array([index[p] for p in JAW_SKIN_FPS if p in index], dtype=np.int64)
+        self._rider_pos = self.face.vertices[self.control_vertices[self._jaw_riders]].astype(np.float64)
+        if "6.2" in self.face.feature_points:
+            mid = self.face.fp_position("6.2")
+            ids, arms = [], []
+            for p in ("6.3", "6.4"):
+                if p in index:
+                    ids.append(index[p])
+                    arms.append(abs(self.face.fp_position(p)[0] - mid[0]))
+            self._roll = (np.array(ids, dtype=np.int64), np.array(arms))
+
+    # -- per frame ----------------------------------------------------------------------------
+    def faps(self, state) -> np.ndarray:
+        """``(69,) float64`` low-level FAPs of ``state`` with FAP 1/2 expanded."""
+        return expand(state, self.visemes, self.expressions)
+
+    def local_transforms(self, faps: np.ndarray) -> np.ndarray:
+        """``(G, 3, 4) float64`` group transforms in head-local space (head slot = identity)."""
+        u = self.fapu
+        T = np.zeros((G, 3, 4))
+        T[:, :, :3] = np.eye(3)
+        # Jaw: rotate so that 2.1 drops by open_jaw, then thrust (+z) and shift (-x).
+        pivot = self._pivots["jaw"]
+        a = jaw_angle(self._chin, pivot, faps[3] * u["MNS"]) if self._chin is not None and faps[3] else 0.0
+        t = np.array([-faps[15] * u["MW"], 0.0, faps[14] * u["MNS"]])
+        T[_JAW] = about(rotation("x", a), pivot, t)
+        # Eyeballs: yaw (+y), pitch (+x) about the centre, then thrust along +z.
+        for g, (yaw, pitch, thrust) in ((_EYE_L, (23, 25, 27)), (_EYE_R, (24, 26, 28))):
+            R = rotation("y", faps[yaw] * u["AU"]) @ rotation("x", faps[pitch] * u["AU"])
+            T[g] = about(R, self._pivots[RIGID_GROUPS[g]], np.array([0.0, 0.0, faps[thrust] * u["ES"]]))
+        return T
+
+    def head_transform(self, state, faps: np.ndarray) -> np.ndarray:
+        """``(3, 4)`` head pose: ``state.head`` if given, else FAPs 48-50 about the head pivot."""
+        if state.head is not None:
+            return np.asarray(state.head, dtype=np.float64).reshape(3, 4)
+        au = self.fapu["AU"]
+        R = rotation("y", faps[49] * au) @ rotation("x", faps[48] * au) @ rotation("z", faps[50] * au)
+        return about(R, self._pivots["head"])
+
+    def solve(self, state) -> tuple[np.ndarray, np.ndarray]:
+        """``state`` -> ``(D (K, 3) float32, transforms (G, 3, 4) float32)`` for the deformer."""
+        faps = self.faps(state)
+        local = self.local_transforms(faps)
+        H = self.head_transform(state, faps)
+        transforms = np.stack([H] + [compose(H, local[g]) for g in range(1, G)])
+        if self.explicit:
+            if state.controls is None:
+                D = np.zeros((self.n_controls, 3), dtype=np.float32)
+            else:
+                D = np.asarray(state.controls, dtype=np.float32).reshape(self.n_controls, 3)
+            return D, transforms.astype(np.float32)
+        D = self._M @ faps
+        if len(self._jaw_riders):
+            J = local[_JAW]
+            D[self._jaw_riders] += self._rider_pos @ J[:, :3].T + J[:, 3] - self._rider_pos
+        ids, arms = self._roll
+        if len(ids) and faps[47]:
+            D[ids, 1] += np.tan(faps[47] * self.fapu["AU"]) * arms
+        return D.astype(np.float32), transforms.astype(np.float32)

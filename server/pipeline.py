@@ -1,0 +1,69 @@
+"""The per-face animation pipeline: FaceState -> rig -> D, transforms -> deformer -> vertices."""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import numpy as np
+
+from .mpeg4.rig import FapRig
+from .state import Animation, FaceState
+
+log = logging.getLogger(__name__)
+
+#: Frames deformed per ``deform_batch`` call in ``Animator.render``.
+CHUNK = 32
+
+
+class Animator:
+    """Animates one face: builds its FAP rig, its deformation operator and a deformer.
+
+    Args:
+        face: the ``Face``.
+        engine: deformation engine (``fp`` | ``rbf``), see ``server.deform.build``.
+        backend: ``auto`` | ``numpy`` | ``opencl``; ``device``: OpenCL device selector.
+        control_vertices: ``(K,)`` explicit control vertices (mocap); None = the face's FAP controls.
+        operator: a ready ``Operator`` for these controls (skips ``get_operator``).
+        **engine_params: passed to ``get_operator``.
+    """
+
+    def __init__(self, face, *, engine: str = "fp", backend: str = "auto", device: str | None = None,
+                 control_vertices: np.ndarray | None = None, operator=None, **engine_params):
+        from .backends import make_deformer
+
+        self.face = face
+        self.rig = FapRig(face, control_vertices)
+        if operator is None:
+            from .deform.build import get_operator
+
+            operator = get_operator(face, self.rig.control_vertices, engine=engine,
+                                    constrained=self.rig.constrained, **engine_params)
+        if operator.n_controls != self.rig.n_controls or operator.n_vertices != face.n_vertices:
+            raise ValueError(f"operator is {operator.n_vertices}x{operator.n_controls}, face/controls need "
+                             f"{face.n_vertices}x{self.rig.n_controls}")
+        self.operator = operator
+        self.deformer = make_deformer(face, operator, backend, device)
+        log.debug("animator for %s: %d controls, engine %s, backend %s", face.name, self.rig.n_controls,
+                  engine, getattr(self.deformer, "name", type(self.deformer).__name__))
+
+    def solve(self, state: FaceState) -> tuple[np.ndarray, np.ndarray]:
+        """``(D (K, 3) float32, transforms (G, 3, 4) float32)`` of one state."""
+        return self.rig.solve(state)
+
+    def frame(self, state: FaceState) -> np.ndarray:
+        """Deformed vertices ``(V, 3) float32`` of one state."""
+        return np.asarray(self.deformer.deform(*self.solve(state)), dtype=np.float32)
+
+    def render(self, animation: Animation, progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+        """All frames of ``animation``: ``(T, V, 3) float32``; ``progress(done, total)`` after each chunk."""
+        total = len(animation.states)
+        out = np.empty((total, self.face.n_vertices, 3), dtype=np.float32)
+        for start in range(0, total, CHUNK):
+            states = animation.states[start:start + CHUNK]
+            solved = [self.solve(s) for s in states]
+            D = np.stack([d for d, _ in solved])
+            T = np.stack([t for _, t in solved])
+            out[start:start + len(states)] = self.deformer.deform_batch(D, T)
+            if progress is not None:
+                progress(start + len(states), total)
+        return out
