@@ -1,0 +1,223 @@
+// The facecast page: watch a live session, start a demo, drive the face, play files, lip-sync the mic.
+import { FaceRenderer } from './renderer.js';
+import { Viewer } from './viewer.js';
+import { Producer } from './producer.js';
+import { EXPRESSIONS, VISEMES, SLIDERS } from './controls.js';
+
+const $ = (id) => document.getElementById(id);
+const state = { session: null, tokens: {}, producer: null, mic: null, drawTimes: [] };
+
+function setStatus(text, level = 'ok') {
+  const el = $('status');
+  el.textContent = text;
+  el.className = `overlay status ${level}`;
+}
+
+// ---- admin key and REST -------------------------------------------------------------------------
+const hashParams = new URLSearchParams(location.hash.slice(1));
+if (hashParams.get('key')) localStorage.setItem('facecast-admin-key', hashParams.get('key'));
+$('admin-key').value = localStorage.getItem('facecast-admin-key') || '';
+$('admin-key').addEventListener('change', () => localStorage.setItem('facecast-admin-key', $('admin-key').value.trim()));
+
+async function api(method, path, body, { form = false } = {}) {
+  const headers = {};
+  const key = $('admin-key').value.trim();
+  if (key) headers.Authorization = `Bearer ${key}`;
+  if (body && !form) headers['Content-Type'] = 'application/json';
+  const res = await fetch(path, { method, headers, body: form ? body : body ? JSON.stringify(body) : undefined });
+  const text = await res.text();
+  const data = text ? (() => { try { return JSON.parse(text); } catch { return { error: text }; } })() : null;
+  if (!res.ok) {
+    const why = data && (data.error || data.detail);
+    throw new Error(`${method} ${path}: ${res.status} ${typeof why === 'string' ? why : JSON.stringify(why)}`);
+  }
+  return data;
+}
+
+async function refreshSessions() {
+  const list = $('session-list');
+  try {
+    const data = await api('GET', '/v1/sessions');
+    const sessions = data.sessions || data;
+    list.innerHTML = '<option value="">— live sessions —</option>';
+    for (const s of sessions) {
+      const o = document.createElement('option');
+      o.value = s.id;
+      o.textContent = `${s.id.slice(0, 8)} · ${s.face} · ${s.input}${s.stats && s.stats.producer_connected ? ' · live' : ''}`;
+      list.appendChild(o);
+    }
+  } catch (e) {
+    setStatus(`cannot list sessions: ${e.message} (enter the admin key printed by 'facecast serve')`, 'warn');
+  }
+}
+
+async function newSession(input) {
+  const s = await api('POST', '/v1/sessions', { input });
+  state.tokens[s.id] = { producer: s.producer_token, viewer: s.viewer_token };
+  return s;
+}
+
+async function watch(sessionId) {
+  if (!state.tokens[sessionId]) {
+    const t = await api('GET', `/v1/sessions/${sessionId}/tokens`);
+    state.tokens[sessionId] = { producer: t.producer_token, viewer: t.viewer_token };
+  }
+  if (state.producer && state.producer.session !== sessionId) { state.producer.close(); state.producer = null; }
+  state.session = sessionId;
+  viewer.close();
+  viewer.watch(sessionId, state.tokens[sessionId].viewer, $('encoding').value);
+}
+
+/** The producer of the watched session (created on first use); stops a running server demo. */
+async function producer() {
+  if (!state.session) {
+    const s = await newSession('fap');
+    await watch(s.id);
+  }
+  if (!state.producer || state.producer.session !== state.session || !state.producer.open) {
+    try { await api('DELETE', `/v1/sessions/${state.session}/demo`); } catch { /* no demo running */ }
+    state.producer = new Producer(state.session, state.tokens[state.session].producer, setStatus);
+    await state.producer.connect({ input: 'fap' });
+  }
+  return state.producer;
+}
+
+// ---- rendering ----------------------------------------------------------------------------------
+const renderer = new FaceRenderer($('view'));
+const viewer = new Viewer(renderer, { onStatus: setStatus });
+let dirty = true;
+function frameLoop() {
+  if (viewer.flush()) dirty = true;
+  if (dirty && renderer.mesh) {
+    renderer.draw();
+    dirty = false;
+    const now = performance.now();
+    state.drawTimes.push(now);
+    while (state.drawTimes.length && now - state.drawTimes[0] > 2000) state.drawTimes.shift();
+  }
+  requestAnimationFrame(frameLoop);
+}
+requestAnimationFrame(frameLoop);
+
+setInterval(() => {
+  const s = viewer.summary();
+  const ms = (x) => (Number.isFinite(x) ? `${x.toFixed(x < 10 ? 2 : 0)} ms` : '–');
+  $('st-fps').textContent = s.fps.toFixed(1);
+  $('st-lat').textContent = `${ms(s.latencyP50)} / ${ms(s.latencyP95)}`;
+  $('st-bytes').textContent = s.bytes ? `${(s.bytes / 1024).toFixed(1)} KiB` : '–';
+  $('st-drop').textContent = String(s.dropped);
+  $('st-decode').textContent = ms(s.decodeMs);
+  $('st-draw').textContent = (state.drawTimes.length / 2).toFixed(1);
+  window.facecastStats = { ...s, drawFps: state.drawTimes.length / 2 };
+}, 500);
+
+// ---- controls -----------------------------------------------------------------------------------
+renderer.canvas.addEventListener('pointermove', () => { dirty = true; });
+renderer.canvas.addEventListener('wheel', () => { dirty = true; });
+new ResizeObserver(() => { dirty = true; }).observe(renderer.canvas);
+const attachCamera = setInterval(() => {
+  if (renderer.camera) { renderer.camera.attach(renderer.canvas, () => { dirty = true; }); clearInterval(attachCamera); }
+}, 100);
+
+$('refresh').onclick = refreshSessions;
+$('watch').onclick = () => { const id = $('session-list').value; if (id) watch(id).catch((e) => setStatus(e.message, 'error')); };
+$('encoding').onchange = () => { if (state.session) watch(state.session); };
+$('demo').onclick = async () => {
+  try {
+    const s = await newSession('fap');
+    await api('POST', `/v1/sessions/${s.id}/demo`);
+    await watch(s.id);
+    refreshSessions();
+  } catch (e) { setStatus(e.message, 'error'); }
+};
+
+const sliderValues = {};
+for (const [label, values] of [[EXPRESSIONS, 'expression'], [VISEMES, 'viseme']]) {
+  const box = $(values === 'expression' ? 'expressions' : 'visemes');
+  for (const item of label) {
+    const b = document.createElement('button');
+    b.textContent = item.name;
+    b.title = item.title || item.name;
+    b.onclick = async () => {
+      try {
+        const p = await producer();
+        p.sendFaps({ ...sliderValues }, values === 'viseme' ? [item.id, 0, 63] : null,
+                   values === 'expression' ? [item.id, 63, 0, 0] : null);
+      } catch (e) { setStatus(e.message, 'error'); }
+    };
+    box.appendChild(b);
+  }
+}
+for (const s of SLIDERS) {
+  const row = document.createElement('label');
+  row.className = 'slider';
+  row.innerHTML = `<span>${s.name}</span><input type="range" min="${s.min}" max="${s.max}" value="0" step="1" data-fap="${s.fap}"><output>0</output>`;
+  const input = row.querySelector('input'), out = row.querySelector('output');
+  input.oninput = async () => {
+    out.textContent = input.value;
+    for (const f of s.fap.split(',')) sliderValues[f] = Number(input.value);
+    try { (await producer()).sendFaps({ ...sliderValues }); } catch (e) { setStatus(e.message, 'error'); }
+  };
+  $('sliders').appendChild(row);
+}
+$('neutral').onclick = async () => {
+  for (const k of Object.keys(sliderValues)) sliderValues[k] = 0;
+  for (const i of document.querySelectorAll('#sliders input')) { i.value = 0; i.nextElementSibling.textContent = '0'; }
+  try { (await producer()).sendFaps({ ...sliderValues }, [0, 0, 63], [0, 0, 0, 0]); } catch (e) { setStatus(e.message, 'error'); }
+};
+
+$('play').onclick = async () => {
+  const file = $('file').files[0];
+  if (!file) { setStatus('choose a .fap, audio or marker file first', 'warn'); return; }
+  try {
+    if (!state.session) { const s = await newSession('fap'); await watch(s.id); }
+    const form = new FormData();
+    form.append('file', file, file.name);
+    const isAudio = /\.(wav|flac|ogg)$/i.test(file.name);
+    const audio = $('audio');
+    if (isAudio) { audio.src = URL.createObjectURL(file); audio.load(); }
+    const res = await api('POST', `/v1/sessions/${state.session}/play?token=${encodeURIComponent(state.tokens[state.session].producer)}`, form, { form: true });
+    setStatus(`playing ${file.name}: ${res.frames} frames at ${res.fps} fps`, 'ok');
+    if (isAudio) {
+      // Start the sound when the server starts the motion: both run from the same start instant.
+      const delay = Math.max(0, res.start_wall * 1000 - Date.now() + (viewer.summary().latencyP50 || 0));
+      setTimeout(() => audio.play().catch(() => setStatus('the browser blocked sound playback; click the page', 'warn')), delay);
+    }
+  } catch (e) { setStatus(e.message, 'error'); }
+};
+
+$('mic').onclick = async () => {
+  if (state.mic) {
+    state.mic.stop(); state.mic = null; $('mic').textContent = 'Start microphone lip-sync'; return;
+  }
+  try {
+    const { Microphone } = await import('./microphone.js');
+    const s = await newSession('audio');
+    await watch(s.id);
+    const p = new Producer(s.id, state.tokens[s.id].producer, setStatus);
+    state.mic = new Microphone(p, (info) => { $('mic-info').textContent = info; });
+    await state.mic.start();
+    $('mic').textContent = 'Stop microphone';
+  } catch (e) { setStatus(`microphone: ${e.message}`, 'error'); }
+};
+
+// ---- start: watch the session named in the URL, else the newest live one, else a demo -----------
+(async () => {
+  try {
+    const sid = hashParams.get('session'), tok = hashParams.get('token');
+    if (sid && tok) {
+      state.tokens[sid] = { viewer: tok, producer: hashParams.get('producer') || null };
+      await watch(sid);
+      return;
+    }
+    const faces = await api('GET', '/v1/faces');
+    const list = faces.faces || faces;
+    const first = list[0] && (list[0].name || list[0]);
+    if (first) await viewer.loadFace(first);
+    dirty = true;
+    setStatus(`face ${first} loaded; start a demo, pick a live session, or drive the face`, 'ok');
+    if ($('admin-key').value) refreshSessions();
+  } catch (e) { setStatus(`cannot reach the server: ${e.message}`, 'error'); }
+})();
+
+window.facecast = { renderer, viewer, state, watch, newSession, api };

@@ -1,0 +1,246 @@
+// WebGL2 face renderer: one indexed mesh, positions streamed per frame, lit per part, orbit camera.
+// Positions arrive either as float32 or as int16 with a per-frame offset/scale; int16 frames are
+// uploaded as they are and dequantised in the vertex shader, so a frame costs one bufferSubData.
+
+const VERT = `#version 300 es
+in vec3 a_f32;
+in vec3 a_i16;
+in vec3 a_normal;
+in float a_part;
+uniform mat4 u_viewProj;
+uniform vec3 u_offset;
+uniform vec3 u_scale;
+uniform bool u_quantized;
+out vec3 v_normal;
+out vec3 v_pos;
+flat out int v_part;
+void main() {
+  vec3 p = u_quantized ? u_offset + a_i16 * u_scale : a_f32;
+  v_pos = p;
+  v_normal = a_normal;
+  v_part = int(a_part + 0.5);
+  gl_Position = u_viewProj * vec4(p, 1.0);
+}`;
+
+const FRAG = `#version 300 es
+precision highp float;
+in vec3 v_normal;
+in vec3 v_pos;
+flat in int v_part;
+uniform vec3 u_colors[16];
+uniform vec3 u_eye;
+out vec4 outColor;
+void main() {
+  vec3 n = normalize(v_normal);
+  vec3 v = normalize(u_eye - v_pos);
+  if (dot(n, v) < 0.0) n = -n;  // inner surfaces (mouth) are lit from the viewer's side
+  vec3 key = normalize(vec3(0.4, 0.6, 1.0));
+  vec3 fill = normalize(vec3(-0.7, 0.1, 0.5));
+  vec3 base = u_colors[min(v_part, 15)];
+  float diff = max(dot(n, key), 0.0) * 0.75 + max(dot(n, fill), 0.0) * 0.25;
+  float spec = pow(max(dot(n, normalize(key + v)), 0.0), 40.0) * 0.18;
+  float rim = pow(1.0 - max(dot(n, v), 0.0), 3.0) * 0.15;
+  outColor = vec4(base * (0.22 + diff) + vec3(spec + rim), 1.0);
+}`;
+
+// Colours by part name; anything unnamed is skin.
+export const PART_COLORS = {
+  skin: [0.86, 0.64, 0.53], eye_l: [0.93, 0.93, 0.91], eye_r: [0.93, 0.93, 0.91],
+  teeth_upper: [0.95, 0.93, 0.84], teeth_lower: [0.95, 0.93, 0.84],
+  gums_upper: [0.78, 0.36, 0.38], gums_lower: [0.78, 0.36, 0.38], tongue: [0.80, 0.40, 0.42],
+  mouth_socket: [0.45, 0.18, 0.2], eyelashes: [0.15, 0.1, 0.08], eye_extras: [0.9, 0.85, 0.85],
+  eye_socket: [0.8, 0.55, 0.5],
+};
+
+function compile(gl, type, src) {
+  const s = gl.createShader(type);
+  gl.shaderSource(s, src);
+  gl.compileShader(s);
+  if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s));
+  return s;
+}
+
+export class OrbitCamera {
+  constructor(target, radius) {
+    this.target = target; this.radius = radius; this.yaw = 0.35; this.pitch = 0.08;
+  }
+  eye() {
+    const [tx, ty, tz] = this.target, r = this.radius;
+    return [tx + r * Math.sin(this.yaw) * Math.cos(this.pitch), ty + r * Math.sin(this.pitch),
+            tz + r * Math.cos(this.yaw) * Math.cos(this.pitch)];
+  }
+  viewProj(aspect) {
+    const e = this.eye(), t = this.target;
+    const f = norm(sub(t, e)), s = norm(cross(f, [0, 1, 0])), u = cross(s, f);
+    const view = [s[0], u[0], -f[0], 0, s[1], u[1], -f[1], 0, s[2], u[2], -f[2], 0,
+                  -dot(s, e), -dot(u, e), dot(f, e), 1];
+    const near = this.radius * 0.05, far = this.radius * 10, k = 1 / Math.tan(0.45 / 2);
+    const proj = [k / aspect, 0, 0, 0, 0, k, 0, 0, 0, 0, (far + near) / (near - far), -1,
+                  0, 0, (2 * far * near) / (near - far), 0];
+    return mul4(proj, view);
+  }
+  attach(canvas, onChange) {
+    let drag = null;
+    canvas.addEventListener('pointerdown', (e) => { drag = [e.clientX, e.clientY]; canvas.setPointerCapture(e.pointerId); });
+    canvas.addEventListener('pointerup', () => { drag = null; });
+    canvas.addEventListener('pointermove', (e) => {
+      if (!drag) return;
+      this.yaw -= (e.clientX - drag[0]) * 0.01;
+      this.pitch = Math.max(-1.4, Math.min(1.4, this.pitch + (e.clientY - drag[1]) * 0.01));
+      drag = [e.clientX, e.clientY];
+      onChange();
+    });
+    canvas.addEventListener('wheel', (e) => {
+      e.preventDefault();
+      this.radius *= Math.exp(e.deltaY * 0.001);
+      onChange();
+    }, { passive: false });
+  }
+}
+
+export class FaceRenderer {
+  /** @param {HTMLCanvasElement} canvas */
+  constructor(canvas) {
+    const gl = canvas.getContext('webgl2', { antialias: true, preserveDrawingBuffer: true });
+    if (!gl) throw new Error('this browser has no WebGL2');
+    this.gl = gl; this.canvas = canvas;
+    const prog = gl.createProgram();
+    gl.attachShader(prog, compile(gl, gl.VERTEX_SHADER, VERT));
+    gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, FRAG));
+    gl.linkProgram(prog);
+    if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
+    this.prog = prog;
+    this.loc = {};
+    for (const n of ['a_f32', 'a_i16', 'a_normal', 'a_part']) this.loc[n] = gl.getAttribLocation(prog, n);
+    for (const n of ['u_viewProj', 'u_offset', 'u_scale', 'u_quantized', 'u_colors', 'u_eye']) {
+      this.loc[n] = gl.getUniformLocation(prog, n);
+    }
+    this.mesh = null;
+  }
+
+  /** Set the topology: rest positions (Float32Array 3V), triangles (Uint32Array 3F), part ids (Uint8Array V). */
+  setMesh(rest, triangles, partIds, partNames) {
+    const gl = this.gl, V = rest.length / 3;
+    const vao = gl.createVertexArray();
+    gl.bindVertexArray(vao);
+    const buf = (data, loc, size, type, normalized = false, usage = gl.STATIC_DRAW) => {
+      const b = gl.createBuffer();
+      gl.bindBuffer(gl.ARRAY_BUFFER, b);
+      gl.bufferData(gl.ARRAY_BUFFER, data, usage);
+      if (loc >= 0) { gl.enableVertexAttribArray(loc); gl.vertexAttribPointer(loc, size, type, normalized, 0, 0); }
+      return b;
+    };
+    const f32 = buf(rest, this.loc.a_f32, 3, gl.FLOAT, false, gl.DYNAMIC_DRAW);
+    const i16 = buf(new Int16Array(3 * V), this.loc.a_i16, 3, gl.SHORT, false, gl.DYNAMIC_DRAW);
+    const nrm = buf(new Float32Array(3 * V), this.loc.a_normal, 3, gl.FLOAT, false, gl.DYNAMIC_DRAW);
+    const part = buf(new Float32Array(partIds), this.loc.a_part, 1, gl.FLOAT);
+    const ibo = gl.createBuffer();
+    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ibo);
+    gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, triangles, gl.STATIC_DRAW);
+    const colors = new Float32Array(48);
+    for (let i = 0; i < 16; i++) {
+      const c = PART_COLORS[partNames[i]] || PART_COLORS.skin;
+      colors.set(c, 3 * i);
+    }
+    this.normals = new VertexNormals(triangles, V);
+    this.mesh = { vao, f32, i16, nrm, part, V, count: triangles.length, colors, quantized: false,
+                  offset: [0, 0, 0], scale: [1, 1, 1], positions: new Float32Array(rest) };
+    this.updateNormals(rest);
+    let lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    for (let i = 0; i < rest.length; i += 3) {
+      for (let a = 0; a < 3; a++) { lo[a] = Math.min(lo[a], rest[i + a]); hi[a] = Math.max(hi[a], rest[i + a]); }
+    }
+    const centre = [0, 1, 2].map((a) => (lo[a] + hi[a]) / 2);
+    const size = Math.max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]);
+    this.camera = new OrbitCamera([centre[0], centre[1] + size * 0.05, centre[2]], size * 2.1);
+  }
+
+  /** A float32 frame: positions Float32Array(3V). */
+  setFrameF32(positions) {
+    const gl = this.gl, m = this.mesh;
+    gl.bindBuffer(gl.ARRAY_BUFFER, m.f32);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, positions);
+    m.quantized = false;
+    m.positions = positions;
+    this.updateNormals(positions);
+  }
+
+  /** An int16 frame: q Int16Array(3V), offset and scale [3]. Dequantised on the GPU. */
+  setFrameI16(q, offset, scale) {
+    const gl = this.gl, m = this.mesh;
+    gl.bindBuffer(gl.ARRAY_BUFFER, m.i16);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, q);
+    m.quantized = true; m.offset = offset; m.scale = scale;
+    this.updateNormalsQuantized(q, scale);
+  }
+
+  updateNormals(positions) {
+    const n = this.normals.compute(positions, null);
+    this.gl.bindBuffer(this.gl.ARRAY_BUFFER, this.mesh.nrm);
+    this.gl.bufferSubData(this.gl.ARRAY_BUFFER, 0, n);
+  }
+
+  updateNormalsQuantized(q, scale) {
+    const n = this.normals.compute(q, scale);
+    this.gl.bindBuffer(this.gl.ARRAY_BUFFER, this.mesh.nrm);
+    this.gl.bufferSubData(this.gl.ARRAY_BUFFER, 0, n);
+  }
+
+  draw() {
+    const gl = this.gl, m = this.mesh, c = this.canvas;
+    const dpr = window.devicePixelRatio || 1;
+    const w = Math.floor(c.clientWidth * dpr), h = Math.floor(c.clientHeight * dpr);
+    if (c.width !== w || c.height !== h) { c.width = w; c.height = h; }
+    gl.viewport(0, 0, c.width, c.height);
+    gl.clearColor(0.11, 0.12, 0.14, 1);
+    gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+    if (!m) return;
+    gl.enable(gl.DEPTH_TEST);
+    gl.useProgram(this.prog);
+    gl.bindVertexArray(m.vao);
+    gl.uniformMatrix4fv(this.loc.u_viewProj, false, this.camera.viewProj(c.width / c.height));
+    gl.uniform3fv(this.loc.u_eye, this.camera.eye());
+    gl.uniform1i(this.loc.u_quantized, m.quantized ? 1 : 0);
+    gl.uniform3fv(this.loc.u_offset, m.offset);
+    gl.uniform3fv(this.loc.u_scale, m.scale);
+    gl.uniform3fv(this.loc.u_colors, m.colors);
+    // Only one of the two position attributes is read; keep the other's array disabled-safe.
+    gl.drawElements(gl.TRIANGLES, m.count, gl.UNSIGNED_INT, 0);
+  }
+}
+
+/** Area-weighted vertex normals with typed arrays (no allocation per frame). */
+export class VertexNormals {
+  constructor(triangles, V) {
+    this.tri = triangles; this.V = V; this.out = new Float32Array(3 * V);
+  }
+  /** positions: Float32Array(3V) or Int16Array(3V) with per-axis scale (then normals of the scaled mesh). */
+  compute(p, scale) {
+    const t = this.tri, n = this.out, sx = scale ? scale[0] : 1, sy = scale ? scale[1] : 1, sz = scale ? scale[2] : 1;
+    n.fill(0);
+    for (let i = 0; i < t.length; i += 3) {
+      const a = 3 * t[i], b = 3 * t[i + 1], c = 3 * t[i + 2];
+      const ux = (p[b] - p[a]) * sx, uy = (p[b + 1] - p[a + 1]) * sy, uz = (p[b + 2] - p[a + 2]) * sz;
+      const vx = (p[c] - p[a]) * sx, vy = (p[c + 1] - p[a + 1]) * sy, vz = (p[c + 2] - p[a + 2]) * sz;
+      const nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
+      n[a] += nx; n[a + 1] += ny; n[a + 2] += nz;
+      n[b] += nx; n[b + 1] += ny; n[b + 2] += nz;
+      n[c] += nx; n[c + 1] += ny; n[c + 2] += nz;
+    }
+    return n;  // normalised in the fragment shader
+  }
+}
+
+function sub(a, b) { return [a[0] - b[0], a[1] - b[1], a[2] - b[2]]; }
+function dot(a, b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+function cross(a, b) { return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]; }
+function norm(a) { const l = Math.hypot(a[0], a[1], a[2]) || 1; return [a[0] / l, a[1] / l, a[2] / l]; }
+function mul4(a, b) {
+  const o = new Float32Array(16);
+  for (let c = 0; c < 4; c++) for (let r = 0; r < 4; r++) {
+    let s = 0;
+    for (let k = 0; k < 4; k++) s += a[k * 4 + r] * b[c * 4 + k];
+    o[c * 4 + r] = s;
+  }
+  return o;
+}
