@@ -14,6 +14,9 @@ for folder, name in ROOTS.items():
 setup(
     packages=packages,
     package_dir=package_dir,
-    package_data={"": ["*.json", "*.npz", "*.txt", "*.html", "*.js", "*.css", "*.md", "py.typed"]},
+    package_data={
+        "": ["*.json", "*.npz", "*.cl", "*.txt", "*.md", "py.typed", "data/*.json", "data/*.npz"],
+        "facecast.client": ["web/*.html", "web/*.css", "web/js/*.js"],
+    },
     include_package_data=True,
 )
