@@ -1,0 +1,132 @@
+"""Batch rendering on a facecast server: submit a file, follow its progress, download the result.
+
+``render_remote(url, input, output, options={...})`` is what ``facecast render --server URL`` calls.
+Synchronous (httpx); the result appears at ``output`` atomically (a partial download never does).
+"""
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import httpx
+
+FINAL = ("done", "failed", "cancelled")
+
+
+class RemoteJobError(RuntimeError):
+    """The server refused the job, the job failed, or the server could not be reached.
+
+    ``status`` is the HTTP status (0 when there was no answer); ``job`` the job id if one exists.
+    """
+
+    def __init__(self, message: str, *, status: int = 0, job: str | None = None):
+        super().__init__(message)
+        self.status = status
+        self.job = job
+
+
+def _error_text(resp: httpx.Response) -> str:
+    try:
+        body = resp.json()
+    except ValueError:
+        return resp.text.strip()[:300] or resp.reason_phrase
+    if isinstance(body, dict):
+        return str(body.get("error") or body.get("detail") or body)
+    return str(body)
+
+
+def _check(resp: httpx.Response, what: str, job: str | None = None) -> httpx.Response:
+    if resp.status_code >= 400:
+        hint = " (pass the server's admin key: --admin-key or FACECAST_ADMIN_KEY)" if resp.status_code == 401 else ""
+        raise RemoteJobError(f"{what}: HTTP {resp.status_code}: {_error_text(resp)}{hint}",
+                             status=resp.status_code, job=job)
+    return resp
+
+
+def submit(client: httpx.Client, input: Path, options: dict) -> dict:
+    """POST the file and options; the job's status as the server returned it."""
+    data = {k: str(v) for k, v in options.items() if v is not None}
+    with open(input, "rb") as fh:
+        resp = client.post("/v1/jobs", files={"file": (input.name, fh, "application/octet-stream")}, data=data)
+    return _check(resp, f"the server refused {input.name}").json()
+
+
+def wait(client: httpx.Client, job_id: str, *, progress: Callable[[float, str], None] | None = None,
+         poll: float = 0.5, timeout: float | None = None) -> dict:
+    """Poll a job until it is done, failed or cancelled; ``progress(fraction, status)`` on each poll."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    delay = min(poll, 0.1)
+    while True:
+        job = _check(client.get(f"/v1/jobs/{job_id}"), f"job {job_id}", job_id).json()
+        if progress is not None:
+            progress(float(job.get("progress") or 0.0), job["status"])
+        if job["status"] in FINAL:
+            return job
+        if deadline is not None and time.monotonic() > deadline:
+            raise RemoteJobError(f"job {job_id} still {job['status']} after {timeout:g} s; it keeps running on "
+                                 f"the server (GET /v1/jobs/{job_id})", job=job_id)
+        time.sleep(delay)
+        delay = min(delay * 1.5, poll)
+
+
+def download(client: httpx.Client, job_id: str, output: Path) -> Path:
+    """Stream a job's result to ``output`` through a temporary file in the same folder, then rename."""
+    output.parent.mkdir(parents=True, exist_ok=True)
+    tmp = output.with_name(f".{output.name}.{os.getpid()}.part")
+    try:
+        with client.stream("GET", f"/v1/jobs/{job_id}/result") as resp:
+            if resp.status_code >= 400:
+                resp.read()
+                _check(resp, f"result of job {job_id}", job_id)
+            with open(tmp, "wb") as fh:
+                for chunk in resp.iter_bytes(1 << 16):
+                    fh.write(chunk)
+        os.replace(tmp, output)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return output
+
+
+def render_remote(url: str, input: str | Path, output: str | Path, *, options: dict | None = None,
+                  progress: Callable[[int, int], None] | None = None, admin_key: str | None = None,
+                  poll: float = 0.5, timeout: float | None = None) -> Path:
+    """Render ``input`` on the server at ``url`` and write the result to ``output``.
+
+    ``options``: ``face``, ``engine``, ``format`` (default: ``output``'s suffix), ``layout``.
+    ``progress(done, total)`` is called with ``total = 1000`` as the job advances (like the local
+    renderer's callback). ``admin_key`` defaults to ``$FACECAST_ADMIN_KEY``. Raises
+    ``RemoteJobError`` with the server's message when the job is refused or fails.
+    """
+    input, output = Path(input), Path(output)
+    if not input.is_file():
+        raise RemoteJobError(f"{input}: no such file")
+    opts = dict(options or {})
+    if not opts.get("format"):
+        suffix = output.suffix.lower().lstrip(".")
+        if suffix not in ("glb", "npz", "fap"):
+            raise RemoteJobError(f"{output}: cannot tell the output format from the suffix; use .glb, .npz or .fap")
+        opts["format"] = suffix
+    key = admin_key or os.environ.get("FACECAST_ADMIN_KEY")
+    headers = {"Authorization": f"Bearer {key}"} if key else {}
+    report = None
+    if progress is not None:
+        def report(fraction: float, status: str) -> None:
+            progress(int(round(fraction * 1000)), 1000)
+    try:
+        with httpx.Client(base_url=url.rstrip("/"), headers=headers,
+                          timeout=httpx.Timeout(60.0, connect=10.0)) as client:
+            job = submit(client, input, opts)
+            job_id = job["id"]
+            try:
+                job = wait(client, job_id, progress=report, poll=poll, timeout=timeout)
+            except KeyboardInterrupt:
+                client.delete(f"/v1/jobs/{job_id}")
+                raise
+            if job["status"] != "done":
+                why = job.get("error") or job["status"]
+                raise RemoteJobError(f"job {job_id} {job['status']}: {why}", job=job_id)
+            return download(client, job_id, output)
+    except httpx.HTTPError as e:
+        raise RemoteJobError(f"cannot talk to the facecast server at {url}: {e}") from e
