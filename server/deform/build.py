@@ -1,0 +1,121 @@
+"""``get_operator``: build a face's deformation operator, or load it from the on-disk cache.
+
+Operators are cached under ``cache_dir("operators")`` as ``<mesh_hash>-<key>.npz``; the key hashes
+everything the result depends on: the mesh (``face.mesh_hash``), the deformable mask and rigid
+groups (from the face's parts), the control vertices, the constraints, the engine, its parameters
+(after defaults are filled in) and ``ALGORITHM_VERSION``. Files are written atomically; a file
+that cannot be read back, or does not match, is rebuilt and replaced.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..paths import cache_dir
+from .feature_point import feature_point_operator
+from .operator import Operator
+from .rbf import rbf_operator
+
+log = logging.getLogger(__name__)
+
+#: Bump when a change to an engine changes its output, to invalidate cached operators.
+ALGORITHM_VERSION = 1
+
+#: Default parameters per engine. ``normalisation="paper"`` (eq. 5, W/d²) gave the lowest mean
+#: skin error on the ICT expressions in ``bench/fidelity.py`` (see its output).
+DEFAULTS: dict[str, dict] = {
+    "fp": {"normalisation": "paper", "neighbour_ratio": 3.0, "attach_distance": None},
+    "rbf": {"kernel": "imq", "shape": 1.0, "affine": True, "distance": "surface", "attach_distance": None},
+}
+
+ENGINES = {"fp": feature_point_operator, "rbf": rbf_operator}
+
+
+def engine_params(engine: str, params: dict) -> dict:
+    """The engine's full parameter set: ``params`` over ``DEFAULTS`` (InputError on unknown names)."""
+    if engine not in ENGINES:
+        raise InputError(f"unknown deformation engine {engine!r}; choose one of {', '.join(ENGINES)}",
+                         where="engine")
+    unknown = sorted(set(params) - set(DEFAULTS[engine]))
+    if unknown:
+        raise InputError(f"unknown parameter(s) {', '.join(unknown)} for engine {engine!r}; known: "
+                         f"{', '.join(DEFAULTS[engine])}", where="engine_params")
+    return {**DEFAULTS[engine], **params}
+
+
+def cache_key(face, control_vertices: np.ndarray, constrained: np.ndarray, engine: str, params: dict) -> str:
+    """Hex digest naming the cached operator (see module docstring)."""
+    h = hashlib.sha256()
+    h.update(json.dumps({"v": ALGORITHM_VERSION, "mesh": face.mesh_hash, "engine": engine,
+                         "params": {k: params[k] for k in sorted(params)}}, default=str).encode())
+    for arr in (np.asarray(control_vertices, np.int64), np.asarray(constrained, bool),
+                np.asarray(face.deformable, bool), np.asarray(face.rigid_group, np.uint8)):
+        h.update(str(arr.shape).encode())
+        h.update(np.ascontiguousarray(arr).tobytes())
+    return h.hexdigest()[:24]
+
+
+def build_operator(face, control_vertices, *, engine: str = "fp", constrained=None, **params) -> Operator:
+    """Build (never cached) the operator of ``engine`` for ``face`` and ``control_vertices (K,)``."""
+    full = engine_params(engine, params)
+    return ENGINES[engine](face.vertices, face.triangles, control_vertices, constrained=constrained,
+                           deformable=face.deformable, rigid_group=face.rigid_group, **full)
+
+
+def get_operator(face, control_vertices, *, engine: str = "fp", constrained=None, cache: bool = True,
+                 **params) -> Operator:
+    """The operator mapping ``D (K, 3)`` of ``control_vertices (K,)`` to ``u (V, 3)`` on ``face``.
+
+    Args:
+        face: a ``Face``.
+        control_vertices: ``(K,)`` vertex ids.
+        engine: ``"fp"`` (feature points, sparse) or ``"rbf"`` (dense).
+        constrained: ``(K, 3) bool`` axes on which each control is driven (default all).
+        cache: read and write the on-disk cache.
+        **params: engine parameters (see ``DEFAULTS``).
+    """
+    controls = np.asarray(control_vertices, dtype=np.int64).reshape(-1)
+    if constrained is None:
+        constrained = np.ones((len(controls), 3), dtype=bool)
+    constrained = np.asarray(constrained, dtype=bool)
+    full = engine_params(engine, params)
+    if not cache:
+        return build_operator(face, controls, engine=engine, constrained=constrained, **full)
+    key = cache_key(face, controls, constrained, engine, full)
+    path = cache_dir("operators") / f"{face.mesh_hash}-{key}.npz"
+    if path.exists():
+        try:
+            op = Operator.load(path)
+            if (op.n_vertices, op.n_controls) == (face.n_vertices, len(controls)) and op.meta.get("key") == key:
+                log.debug("operator cache hit %s", path.name)
+                return op
+            log.warning("cached operator %s does not match; rebuilding", path)
+        except Exception as e:  # noqa: BLE001 - any unreadable file is rebuilt
+            log.warning("cached operator %s is unreadable (%s); rebuilding", path, e)
+    t0 = time.perf_counter()
+    op = build_operator(face, controls, engine=engine, constrained=constrained, **full)
+    op.meta["key"] = key
+    log.info("built %s operator for %s (%d vertices, %d controls) in %.2f s", engine, face.name,
+             face.n_vertices, len(controls), time.perf_counter() - t0)
+    _save_atomic(op, path)
+    return op
+
+
+def _save_atomic(op: Operator, path: Path) -> None:
+    """Write ``op`` to ``path`` through a unique temporary file in the same folder."""
+    fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=".npz", dir=path.parent)
+    os.close(fd)
+    try:
+        op.save(Path(tmp))
+        os.replace(tmp, path)
+    except OSError as e:
+        log.warning("could not write operator cache %s: %s", path, e)
+        Path(tmp).unlink(missing_ok=True)

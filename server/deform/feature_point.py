@@ -1,0 +1,350 @@
+"""The feature-point deformation of Kshirsagar, Garchery & Magnenat-Thalmann, as a linear operator.
+
+Every vertex P moves by a weighted average of the displacements of the feature points (FPs, the
+controls) that reach it (paper §2, eqs. 1–5):
+
+- **FP distribution.** Regions are grown from all FPs at once over the mesh surface; FPs whose
+  regions share a boundary are *neighbours*, at surface distance ``d_ik``.
+- **Effective radius** of FP_1 at P (eq. 2): FP_2 and FP_3 are the neighbours of FP_1 with the
+  smallest angles ``θ`` (at FP_1, between FP_1→P and FP_1→FP_k), both ``< π/2``;
+  ``d = (d_12 cosθ_2 + d_13 cosθ_3) / (cosθ_2 + cosθ_3)``, or ``d = d_12 / cosθ_2`` when only one
+  neighbour qualifies.
+- **Weight** (eqs. 3–4): ``W = sin(π/2 · (1 − d_1P / d))``, kept only when ``θ < π/2`` and
+  ``d_1P < d``.
+- **Per frame** (eq. 5): ``D_P = Σ W_i D_i / d_iP² / Σ W_i / d_iP²`` (``normalisation="paper"``),
+  or the slides' ``Σ W_i D_i / Σ W_i`` (``"slides"``), or un-normalised ``Σ W_i D_i`` (``"none"``,
+  the third option of the research digest §14.1).
+
+The answers chosen here to the questions the paper leaves open (research digest §14):
+
+1. *Normalisation*: all three are available; the default is chosen by ``bench/fidelity.py`` and
+   lives in ``build.DEFAULTS``. At the FP itself ``d_iP = 0`` (eq. 5 is singular there); the FP's
+   own vertex is set to follow its control exactly instead (below), and other distances are
+   floored at 1e-6 of the mean edge length.
+2. *Angles* are measured in the tangent plane at FP_1 (chords projected along FP_1's vertex
+   normal), so that the curvature of a nose or a chin does not skew them; where a projection is
+   degenerate (< 1 % of the chord) the 3-D chord is used. When no neighbour has ``θ < π/2`` the FP
+   does not influence P (criterion (1) taken literally): FPs on the rim of the control set do not
+   spill outwards. The one-neighbour radius ``d_12 / cosθ`` grows without bound as θ → π/2; it is
+   capped at the FP's largest neighbour distance.
+3. *Surface distance* is Dijkstra over edge lengths everywhere (regions grow by distance, not by
+   hop count), restricted to the deformable vertices, so the eyeballs and teeth are walls, not
+   bridges, and no weight crosses a slit except around it.
+   Region neighbours are pruned: a pair whose distance exceeds ``neighbour_ratio`` times the larger
+   of the two FPs' nearest-neighbour distances is dropped (with sparse controls, regions meet far
+   away, e.g. behind the head, and such "neighbours" would blow the radii up).
+4. *Per-axis constraints*: each axis is an independent deformation whose FPs are only the controls
+   constrained on that axis (their distribution, neighbours and radii are computed from that set);
+   an FP unconstrained on an axis is an ordinary vertex there, as the paper says. A control's own
+   vertex follows its displacement exactly on its constrained axes. Several controls on one vertex
+   share it (each gets 1/m of the weight).
+
+Vertices of components no FP can reach (eyelashes, lacrimal films, unconnected gums) copy the
+weights of the nearest reached vertex of their own rigid group, when the component comes within
+``attach_distance`` of it; otherwise, and for non-deformable vertices, rows are zero.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import InputError
+from .mesh_graph import bounded_distances, components, edge_graph, voronoi
+from .operator import Operator
+
+log = logging.getLogger(__name__)
+
+NORMALISATIONS: tuple[str, ...] = ("paper", "slides", "none")
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals ``(V, 3) float64`` (zero for vertices in no triangle)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = v[triangles]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n = np.zeros_like(v)
+    for c in range(3):
+        np.add.at(n, triangles[:, c], fn)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+
+
+def _validate(n_vertices: int, control_vertices, constrained, deformable):
+    controls = np.asarray(control_vertices, dtype=np.int64).reshape(-1)
+    if len(controls) and (controls.min() < 0 or controls.max() >= n_vertices):
+        raise InputError(f"control vertex ids must lie in 0..{n_vertices - 1}", where="control_vertices")
+    if constrained is None:
+        constrained = np.ones((len(controls), 3), dtype=bool)
+    constrained = np.asarray(constrained, dtype=bool)
+    if constrained.shape != (len(controls), 3):
+        raise InputError(f"constrained must have shape ({len(controls)}, 3), not {constrained.shape}",
+                         where="constrained")
+    if deformable is None:
+        deformable = np.ones(n_vertices, dtype=bool)
+    deformable = np.asarray(deformable, dtype=bool)
+    if deformable.shape != (n_vertices,):
+        raise InputError(f"deformable must have shape ({n_vertices},)", where="deformable")
+    return controls, constrained, deformable
+
+
+def _tangent_units(chords: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Unit directions of ``(n, 3)`` chords projected onto the plane with unit ``normal``."""
+    flat = chords - np.outer(chords @ normal, normal)
+    lf = np.linalg.norm(flat, axis=1)
+    lc = np.linalg.norm(chords, axis=1)
+    use = np.where((lf > 0.01 * lc)[:, None], flat, chords)
+    length = np.linalg.norm(use, axis=1, keepdims=True)
+    return np.divide(use, length, out=np.zeros_like(use), where=length > 0)
+
+
+def _site_weights(vertices, normal, site_vertex, ids, dist, nb_vertex, nb_dist, cap):
+    """Eqs. 1–4 for one FP over the vertices it reaches.
+
+    Returns ``(vertex ids, W, d_iP)`` of the vertices it influences (its own vertex with W = 1).
+    """
+    own = ids == site_vertex
+    if len(nb_vertex) == 0:
+        return np.array([site_vertex]), np.ones(1), np.zeros(1)
+    origin = vertices[site_vertex]
+    to_p = _tangent_units(vertices[ids] - origin, normal)
+    to_k = _tangent_units(vertices[nb_vertex] - origin, normal)
+    cos = to_p @ to_k.T  # (n, N)
+    cos = np.where(cos > 1e-9, cos, 0.0)  # criterion (1): θ < π/2
+    if cos.shape[1] >= 2:
+        top = np.argpartition(-cos, 1, axis=1)[:, :2]
+    else:
+        top = np.zeros((len(ids), 1), dtype=np.int64)
+    c = np.take_along_axis(cos, top, axis=1)
+    dk = nb_dist[top]
+    order = np.argsort(-c, axis=1)
+    c, dk = np.take_along_axis(c, order, axis=1), np.take_along_axis(dk, order, axis=1)
+    c2, d2 = c[:, 0], dk[:, 0]
+    if c.shape[1] >= 2:
+        c3, d3 = c[:, 1], dk[:, 1]
+    else:
+        c3, d3 = np.zeros_like(c2), np.zeros_like(d2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        two = (d2 * c2 + d3 * c3) / (c2 + c3)
+        one = np.minimum(d2 / c2, cap)
+    d = np.where(c3 > 0, two, np.where(c2 > 0, one, 0.0))
+    keep = (d > 0) & (dist < d) & ~own
+    w = np.sin(0.5 * np.pi * (1.0 - dist[keep] / d[keep]))
+    keep_ids = ids[keep]
+    pos = w > 0
+    return (np.r_[site_vertex, keep_ids[pos]], np.r_[1.0, w[pos]], np.r_[0.0, dist[keep][pos]])
+
+
+def feature_point_operator(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    control_vertices: np.ndarray,
+    *,
+    constrained: np.ndarray | None = None,
+    deformable: np.ndarray | None = None,
+    rigid_group: np.ndarray | None = None,
+    normalisation: str = "paper",
+    neighbour_ratio: float = 3.0,
+    attach_distance: float | None = None,
+) -> Operator:
+    """Build the feature-point operator (sparse, per-axis weights).
+
+    Args:
+        vertices: ``(V, 3)`` neutral positions (any units).
+        triangles: ``(F, 3)`` vertex ids.
+        control_vertices: ``(K,)`` vertex id of each control (FP).
+        constrained: ``(K, 3) bool``; on axis a only controls constrained on a are FPs (default:
+            all axes).
+        deformable: ``(V,) bool``; other vertices get zero rows and block surface paths.
+        rigid_group: ``(V,)`` group ids, used only to attach unreachable components to vertices
+            of their own rigid group (default: one group).
+        normalisation: ``"paper"`` (eq. 5, W/d²), ``"slides"`` (W) or ``"none"`` (ΣW·D).
+        neighbour_ratio: prune FP neighbours further than this many times the larger of the two
+            FPs' nearest-neighbour distances.
+        attach_distance: how close (mesh units) an unreachable component must come to a reached
+            vertex to copy its weights; default 3 median edge lengths.
+
+    Returns:
+        ``Operator`` with ``weights (nnz, 3)``; ``meta`` holds the engine and parameters.
+    """
+    if normalisation not in NORMALISATIONS:
+        raise InputError(f"normalisation must be one of {', '.join(NORMALISATIONS)}, not {normalisation!r}",
+                         where="normalisation")
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    n_vertices = len(vertices)
+    controls, constrained, deformable = _validate(n_vertices, control_vertices, constrained, deformable)
+    n_controls = len(controls)
+    meta = {"engine": "fp", "normalisation": normalisation, "neighbour_ratio": float(neighbour_ratio),
+            "attach_distance": None if attach_distance is None else float(attach_distance)}
+
+    graph = edge_graph(vertices, triangles, deformable)
+    if attach_distance is None:
+        lengths = graph.data
+        attach_distance = 3.0 * float(np.median(lengths)) if len(lengths) else 0.0
+    floor = 1e-6 * (float(graph.data.mean()) if graph.nnz else 1.0)
+    normals = vertex_normals(vertices, triangles)
+
+    # Sites: the distinct deformable vertices carrying controls.
+    usable = deformable[controls]
+    if not usable.all():
+        log.warning("%d control(s) sit on non-deformable vertices and are ignored", int((~usable).sum()))
+    sites, site_of = np.unique(controls, return_inverse=True)
+    site_of = site_of.reshape(-1)
+    site_ok = deformable[sites]
+    # axis_sites[a]: (n_sites,) bool, the site carries a usable control constrained on axis a.
+    axis_sites = np.zeros((3, len(sites)), dtype=bool)
+    for a in range(3):
+        np.logical_or.at(axis_sites[a], site_of, constrained[:, a] & usable)
+    patterns = {tuple(m) for m in axis_sites}
+
+    # Step 1: FP distribution per pattern -> pruned neighbour lists.
+    neighbours: dict[tuple, list[tuple[np.ndarray, np.ndarray]]] = {}
+    limits = np.zeros(len(sites))
+    for pat in patterns:
+        members = np.flatnonzero(np.array(pat) & site_ok)
+        vor = voronoi(graph, sites[members])
+        i, j = members[vor.pairs[:, 0]], members[vor.pairs[:, 1]]
+        dij = vor.pair_distance
+        nearest = np.full(len(sites), np.inf)
+        np.minimum.at(nearest, i, dij)
+        np.minimum.at(nearest, j, dij)
+        keep = dij <= neighbour_ratio * np.maximum(nearest[i], nearest[j])
+        i, j, dij = i[keep], j[keep], dij[keep]
+        lists = []
+        for s in range(len(sites)):
+            sel_i, sel_j = i == s, j == s
+            lists.append((np.r_[j[sel_i], i[sel_j]], np.r_[dij[sel_i], dij[sel_j]]))
+            if len(lists[-1][1]):
+                limits[s] = max(limits[s], lists[-1][1].max())
+        neighbours[pat] = lists
+
+    # Step 2: bounded surface distances from every site, then weights per pattern.
+    active = np.flatnonzero(axis_sites.any(axis=0) & site_ok)
+    reach = bounded_distances(graph, sites[active], np.maximum(limits[active], floor) * (1 + 1e-9))
+    reach_of = dict(zip(active.tolist(), reach))
+
+    def exact(s: int, others: np.ndarray, approx: np.ndarray) -> np.ndarray:
+        ids, dist = reach_of[s]
+        pos = np.searchsorted(ids, sites[others])
+        pos = np.minimum(pos, len(ids) - 1)
+        found = ids[pos] == sites[others]
+        return np.where(found, dist[pos], approx)
+
+    axis_entries: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    for pat, lists in neighbours.items():
+        members = np.flatnonzero(np.array(pat) & site_ok)
+        rows, cols, vals = [], [], []
+        for s in members:
+            nb, nb_d = lists[s]
+            nb_d = exact(s, nb, nb_d)
+            cap = nb_d.max() if len(nb_d) else 0.0
+            ids, dist = reach_of[s]
+            p, w, dp = _site_weights(vertices, normals[sites[s]], sites[s], ids, dist, sites[nb], nb_d, cap)
+            rows.append(p)
+            cols.append(np.full(len(p), s))
+            if normalisation == "paper":
+                vals.append(w / np.maximum(dp, floor) ** 2)
+            else:
+                vals.append(w)
+        if not rows:
+            axis_entries[pat] = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+            continue
+        r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+        # A site's own vertex follows that site only.
+        site_at = np.full(n_vertices, -1)
+        site_at[sites[members]] = members
+        keep = (site_at[r] < 0) | (site_at[r] == c)
+        r, c, v = r[keep], c[keep], v[keep]
+        if normalisation != "none":
+            total = np.bincount(r, weights=v, minlength=n_vertices)
+            v = v / total[r]
+        axis_entries[pat] = (r, c, v)
+
+    # Expand sites to controls, per axis.
+    per_axis = []
+    for a in range(3):
+        r, s, v = axis_entries[tuple(axis_sites[a])]
+        ctl = np.flatnonzero(constrained[:, a] & usable)
+        ctl_site = site_of[ctl]
+        count = np.bincount(ctl_site, minlength=len(sites))
+        order = np.argsort(ctl_site, kind="stable")
+        starts = np.r_[0, np.cumsum(count)]
+        m = count[s]
+        rr = np.repeat(r, m)
+        vv = np.repeat(v / np.maximum(m, 1), m)
+        offs = np.arange(len(rr)) - np.repeat(np.cumsum(m) - m, m)
+        cc = ctl[order][np.repeat(starts[s], m) + offs]
+        per_axis.append((rr, cc, vv))
+
+    per_axis = _attach_floating(per_axis, vertices, graph, deformable, sites[active], rigid_group,
+                                attach_distance)
+    return _assemble(per_axis, n_vertices, n_controls, meta)
+
+
+def floating_sources(vertices, graph, deformable, site_vertices, rigid_group, attach_distance):
+    """Vertices of unreachable components and the reached vertex each one copies.
+
+    A deformable component with no control is attached when it comes within ``attach_distance``
+    of a reached vertex of the same rigid group; each of its vertices then copies its own nearest
+    such vertex. Returns ``(orphans (n,), sources (n,))`` vertex ids.
+    """
+    empty = np.zeros(0, np.int64)
+    label = components(graph)
+    seeded = np.zeros(label.max() + 1 if len(label) else 0, dtype=bool)
+    seeded[label[np.asarray(site_vertices, dtype=np.int64)]] = True
+    floating = deformable & ~seeded[label]
+    reached = deformable & seeded[label]
+    if not floating.any() or not reached.any() or attach_distance <= 0:
+        return empty, empty
+    group = np.zeros(len(vertices), np.int64) if rigid_group is None else np.asarray(rigid_group, np.int64)
+    src_of = np.full(len(vertices), -1)
+    for g in np.unique(group[floating]):
+        target = np.flatnonzero(reached & (group == g))
+        orphans = np.flatnonzero(floating & (group == g))
+        if not len(target) or not len(orphans):
+            continue
+        dist, nearest = cKDTree(vertices[target]).query(vertices[orphans])
+        comp_min = np.full(label.max() + 1, np.inf)
+        np.minimum.at(comp_min, label[orphans], dist)
+        ok = comp_min[label[orphans]] <= attach_distance
+        src_of[orphans[ok]] = target[nearest[ok]]
+    orphans = np.flatnonzero(src_of >= 0)
+    if len(orphans):
+        log.debug("attached %d vertices of unreachable components", len(orphans))
+    return orphans, src_of[orphans]
+
+
+def _attach_floating(per_axis, vertices, graph, deformable, site_vertices, rigid_group, attach_distance):
+    """Append, per axis, copies of the rows of the vertices that floating vertices attach to."""
+    orphans, src = floating_sources(vertices, graph, deformable, site_vertices, rigid_group, attach_distance)
+    if not len(orphans):
+        return per_axis
+    out = []
+    for r, c, v in per_axis:
+        order = np.argsort(r, kind="stable")
+        r, c, v = r[order], c[order], v[order]
+        start = np.searchsorted(r, src, side="left")
+        stop = np.searchsorted(r, src, side="right")
+        n = stop - start
+        idx = np.repeat(start, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
+        out.append((np.r_[r, np.repeat(orphans, n)], np.r_[c, c[idx]], np.r_[v, v[idx]]))
+    return out
+
+
+def _assemble(per_axis, n_vertices: int, n_controls: int, meta: dict) -> Operator:
+    """Merge per-axis COO triples ``(vertex, control, weight)`` into one CSR with ``(nnz, 3)`` weights."""
+    keys = [r.astype(np.int64) * max(n_controls, 1) + c for r, c, _ in per_axis]
+    union, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+    weights = np.zeros((len(union), 3))
+    start = 0
+    for a, (r, _, v) in enumerate(per_axis):
+        np.add.at(weights[:, a], inverse[start:start + len(r)], v)
+        start += len(r)
+    rows = union // max(n_controls, 1)
+    cols = union % max(n_controls, 1)
+    nonzero = np.any(weights != 0, axis=1)
+    rows, cols, weights = rows[nonzero], cols[nonzero], weights[nonzero]
+    indptr = np.r_[0, np.cumsum(np.bincount(rows, minlength=n_vertices))]
+    return Operator(n_vertices, n_controls, indptr=indptr, indices=cols, weights=weights, meta=meta)

@@ -1,0 +1,228 @@
+"""Radial-basis-function warp driven by control displacements, compiled to a dense operator.
+
+``u(x) = Σ_j w_j φ_j(r(x, c_j)) + A x + b`` per axis, where the weights interpolate the control
+displacements exactly and the affine part (``A, b``) satisfies the usual side conditions
+``Σ_j w_j = 0, Σ_j w_j c_j = 0``, so an affine motion of the controls is reproduced exactly
+(Sánchez Lorenzo 2006, eqs. 3.14–3.16). The system depends only on the neutral geometry, so it
+is solved once per face: ``B = [Φ(x, c) P(x)] · M⁻¹[:, :K]`` and per frame ``u = B·D``.
+
+Kernels:
+
+- ``"imq"``: inverse multiquadric ``φ_j(r) = (r² + (s·δ_j)²)^(-1/2)``, δ_j the distance from
+  centre j to its nearest other centre and s = ``shape`` (the shape parameter scales with the
+  local control spacing, eq. 3.15);
+- ``"r"``: ``φ(r) = r``, the biharmonic kernel in 3-D (needs the affine part).
+
+``distance="euclidean"`` is the classic warp; it is blind to openings, so lower-lip controls pull
+the upper lip across the mouth slit. ``distance="surface"`` uses surface (Dijkstra) distances
+over the deformable vertices instead: motion then propagates along the skin and crosses a slit
+only around its corners. ``bench/fidelity.py`` measures both.
+
+As in the feature-point engine, only vertices connected (over deformable vertices) to some
+control are warped; unreachable components copy the row of their nearest reached vertex of the
+same rigid group within ``attach_distance``; everything else (eyeballs, teeth) has zero rows.
+Per-axis constraints: on axis a only the controls constrained on a are centres; when the axes
+differ the operator is stored sparse with full per-axis rows, otherwise dense ``(V, K)``.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from scipy.sparse.csgraph import dijkstra
+
+from ..errors import InputError
+from .feature_point import _assemble, _attach_floating, _validate, floating_sources
+from .mesh_graph import components, edge_graph
+from .operator import Operator
+
+log = logging.getLogger(__name__)
+
+KERNELS: tuple[str, ...] = ("imq", "r")
+DISTANCES: tuple[str, ...] = ("euclidean", "surface")
+
+
+def _kernel(r: np.ndarray, kernel: str, c: np.ndarray | None) -> np.ndarray:
+    if kernel == "imq":
+        return 1.0 / np.sqrt(r * r + c * c)
+    return r
+
+
+def _poly_basis(points: np.ndarray, centre: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """``[1, (x - centre) · axes]``: the affine basis restricted to the span of the centres."""
+    return np.c_[np.ones(len(points)), (points - centre) @ axes]
+
+
+def _surface_distances(graph, sources: np.ndarray, n_vertices: int, budget: int = 10_000_000) -> np.ndarray:
+    """``(n_vertices, S)`` surface distances from every source (inf where unreachable), chunked."""
+    out = np.empty((n_vertices, len(sources)))
+    chunk = max(1, budget // max(n_vertices, 1))
+    for start in range(0, len(sources), chunk):
+        d = dijkstra(graph, directed=False, indices=sources[start:start + chunk])
+        out[:, start:start + chunk] = np.atleast_2d(d).T
+    return out
+
+
+def rbf_matrix(
+    vertices: np.ndarray,
+    centres: np.ndarray,
+    *,
+    kernel: str = "imq",
+    shape: float = 1.0,
+    affine: bool = True,
+    centre_distances: np.ndarray | None = None,
+    vertex_distances: np.ndarray | None = None,
+    chunk: int = 65536,
+) -> np.ndarray:
+    """``(V, n) float32`` interpolation matrix: ``u = B @ D`` warps n centres' displacements.
+
+    Args:
+        vertices: ``(V, 3)`` points to warp.
+        centres: ``(n, 3)`` centre positions (distinct).
+        centre_distances: optional ``(n, n)`` centre-to-centre distances (default Euclidean).
+        vertex_distances: optional ``(V, n)`` vertex-to-centre distances (default Euclidean),
+            finite everywhere.
+    """
+    centres = np.asarray(centres, dtype=np.float64)
+    n = len(centres)
+    if n == 0:
+        return np.zeros((len(vertices), 0), dtype=np.float32)
+    rcc = centre_distances if centre_distances is not None else np.linalg.norm(
+        centres[:, None] - centres[None], axis=2)
+    c = None
+    if kernel == "imq":
+        if n > 1:
+            off = rcc + np.diag(np.full(n, np.inf))
+            delta = off.min(axis=1)
+        else:
+            delta = np.ones(1)
+        delta = np.where(np.isfinite(delta) & (delta > 0), delta, np.nanmax(np.r_[delta[np.isfinite(delta)], 1.0]))
+        c = shape * delta
+    phi = _kernel(rcc, kernel, c)
+    mean = centres.mean(axis=0)
+    axes = np.zeros((3, 0))
+    if affine and n > 1:
+        _, sv, vt = np.linalg.svd(centres - mean, full_matrices=False)
+        rank = int((sv > 1e-9 * max(sv[0], 1e-300)).sum())
+        axes = vt[:rank].T
+    if affine:
+        p = _poly_basis(centres, mean, axes)
+        m = p.shape[1]
+        system = np.block([[phi, p], [p.T, np.zeros((m, m))]])
+    else:
+        system = phi
+    rhs = np.eye(system.shape[0])[:, :n]
+    try:
+        inv = np.linalg.solve(system, rhs)
+        if not np.all(np.isfinite(inv)):
+            raise np.linalg.LinAlgError
+    except np.linalg.LinAlgError:
+        inv = np.linalg.lstsq(system, rhs, rcond=None)[0]
+    vertices = np.asarray(vertices, dtype=np.float64)
+    out = np.empty((len(vertices), n), dtype=np.float32)
+    for start in range(0, len(vertices), chunk):
+        x = vertices[start:start + chunk]
+        r = vertex_distances[start:start + chunk] if vertex_distances is not None else np.linalg.norm(
+            x[:, None] - centres[None], axis=2)
+        basis = _kernel(r, kernel, c)
+        if affine:
+            basis = np.c_[basis, _poly_basis(x, mean, axes)]
+        out[start:start + chunk] = basis @ inv
+    return out
+
+
+def rbf_operator(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    control_vertices: np.ndarray,
+    *,
+    constrained: np.ndarray | None = None,
+    deformable: np.ndarray | None = None,
+    rigid_group: np.ndarray | None = None,
+    kernel: str = "imq",
+    shape: float = 1.0,
+    affine: bool = True,
+    distance: str = "euclidean",
+    attach_distance: float | None = None,
+) -> Operator:
+    """Build the RBF operator (dense ``(V, K)`` when all axes share their constraints).
+
+    Args as ``feature_point_operator``, plus ``kernel`` (``"imq"``/``"r"``), ``shape`` (IMQ shape
+    factor s), ``affine`` (add the affine part) and ``distance`` (``"euclidean"``/``"surface"``).
+    """
+    if kernel not in KERNELS:
+        raise InputError(f"kernel must be one of {', '.join(KERNELS)}, not {kernel!r}", where="kernel")
+    if distance not in DISTANCES:
+        raise InputError(f"distance must be one of {', '.join(DISTANCES)}, not {distance!r}", where="distance")
+    if kernel == "r" and distance == "surface":
+        # φ(r) = r is conditionally positive definite only for Euclidean r; with surface distances
+        # the system is indefinite and, on the ICT head, the warp explodes (bench/fidelity.py).
+        raise InputError("kernel 'r' needs distance='euclidean' (use kernel 'imq' for surface distances)",
+                         where="distance")
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    n_vertices = len(vertices)
+    controls, constrained, deformable = _validate(n_vertices, control_vertices, constrained, deformable)
+    n_controls = len(controls)
+    meta = {"engine": "rbf", "kernel": kernel, "shape": float(shape), "affine": bool(affine),
+            "distance": distance, "attach_distance": None if attach_distance is None else float(attach_distance)}
+    graph = edge_graph(vertices, triangles, deformable)
+    if attach_distance is None:
+        attach_distance = 3.0 * float(np.median(graph.data)) if graph.nnz else 0.0
+    usable = deformable[controls]
+    if not usable.all():
+        log.warning("%d control(s) sit on non-deformable vertices and are ignored", int((~usable).sum()))
+    sites, site_of = np.unique(controls, return_inverse=True)
+    site_of = site_of.reshape(-1)
+    label = components(graph)
+    site_ok = deformable[sites]
+    seeded = np.zeros(label.max() + 1, dtype=bool)
+    seeded[label[sites[site_ok]]] = True
+    warped = np.flatnonzero(deformable & seeded[label])
+
+    surface = None
+    if distance == "surface":
+        surface = _surface_distances(graph, sites[site_ok], n_vertices)
+        all_d = np.full((n_vertices, len(sites)), np.inf)
+        all_d[:, site_ok] = surface
+        surface = all_d
+
+    per_axis = []
+    cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+    for a in range(3):
+        ctl = np.flatnonzero(constrained[:, a] & usable)
+        key = tuple(ctl)
+        if key not in cache:
+            members = np.unique(site_of[ctl])
+            cpos = vertices[sites[members]]
+            if surface is not None:
+                rcc = surface[sites[members]][:, members]
+                rcc = np.where(np.isfinite(rcc), rcc, np.linalg.norm(cpos[:, None] - cpos[None], axis=2) * 1e3)
+                rvx = surface[warped][:, members]
+                # A vertex in a component without some of the centres: far from them.
+                rvx = np.where(np.isfinite(rvx), rvx, np.nanmax(np.where(np.isfinite(rcc), rcc, 0)) * 1e3 + 1)
+            else:
+                rcc = rvx = None
+            b = rbf_matrix(vertices[warped], cpos, kernel=kernel, shape=shape, affine=affine,
+                           centre_distances=rcc, vertex_distances=rvx)
+            cache[key] = (members, b)
+        members, b = cache[key]
+        # Expand sites to controls: each control at a site with m constrained controls gets 1/m.
+        col_of_site = {s: i for i, s in enumerate(members)}
+        count = np.bincount(site_of[ctl], minlength=len(sites))
+        cols = np.array([col_of_site[s] for s in site_of[ctl]], dtype=np.int64)
+        vals = b[:, cols] / count[site_of[ctl]][None, :] if len(ctl) else np.zeros((len(warped), 0))
+        per_axis.append((ctl, vals))
+
+    same = all(np.array_equal(per_axis[0][0], p[0]) for p in per_axis)
+    if same:
+        ctl, vals = per_axis[0]
+        dense = np.zeros((n_vertices, n_controls), dtype=np.float32)
+        dense[np.ix_(warped, ctl)] = vals
+        orphans, src = floating_sources(vertices, graph, deformable, sites[site_ok], rigid_group,
+                                        attach_distance)
+        dense[orphans] = dense[src]
+        return Operator(n_vertices, n_controls, dense=dense, meta=meta)
+    triples = [(np.repeat(warped, len(ctl)), np.tile(ctl, len(warped)), vals.ravel()) for ctl, vals in per_axis]
+    triples = _attach_floating(triples, vertices, graph, deformable, sites[site_ok], rigid_group, attach_distance)
+    return _assemble(triples, n_vertices, n_controls, meta)
