@@ -1,0 +1,1 @@
+"""Output formats: animated glTF, NPZ frames, FAP streams and still previews."""
