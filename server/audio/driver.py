@@ -1,0 +1,59 @@
+"""Audio file → ``Animation``: ``facecast render speech.wav -o out.glb`` goes through here."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..state import Animation, FaceState
+from .io import read_audio
+from .pipeline import LipSync, lipsync
+from .visemes import Calibration, Params
+
+log = logging.getLogger(__name__)
+
+
+def track_states(ls: LipSync) -> list[FaceState]:
+    """One ``FaceState`` per output frame of ``ls.track`` (FAPs 3-60 of the lips and jaw, FAP 1)."""
+    tr = ls.track
+    states = []
+    for i in range(len(tr.t)):
+        blend = int(round(63 * float(tr.blend[i])))
+        states.append(FaceState(t=float(tr.t[i]), faps=tr.faps[i].copy(),
+                                viseme=(int(tr.select1[i]), int(tr.select2[i]), blend)))
+    return states
+
+
+def load(path: str | Path, face=None, fps: float = 25.0, lookahead: float | None = None,
+         silence_db: float | None = None, max_db: float | None = None, **options) -> Animation:
+    """Decode and lip-sync an audio file.
+
+    Args:
+        path: ``.wav``/``.flac``/``.ogg`` (any rate, mono or multichannel, any sample format).
+        face: the target face (FAPs are in FAPU, so the output does not depend on it).
+        fps: frame rate of the animation.
+        lookahead: coarticulation look-ahead in seconds (None = free, the batch default).
+        silence_db, max_db: explicit energy calibration (dB full scale); default: from the file.
+        options: other drivers' options are ignored (logged).
+    Raises:
+        InputError: unreadable or invalid audio.
+    """
+    if options:
+        log.debug("audio driver ignores options %s", sorted(options))
+    x, sr = read_audio(path)
+    cal = None
+    if silence_db is not None or max_db is not None:
+        from .visemes import calibrate
+        from .pipeline import features_of
+
+        auto = calibrate(features_of(x, sr).energy_db)
+        cal = Calibration(auto.silence_db if silence_db is None else float(silence_db),
+                          auto.max_db if max_db is None else float(max_db))
+    ls = lipsync(x, sr, fps=float(fps), lookahead=lookahead, calibration=cal, params=Params(),
+                 where=str(path))
+    log.info("%s: %.2f s of audio → %d frames at %g fps (silence %.1f dB, max %.1f dB)",
+             Path(path).name, ls.duration, len(ls.track.t), fps, ls.calibration.silence_db,
+             ls.calibration.max_db)
+    return Animation(fps=float(fps), states=track_states(ls), control_vertices=None,
+                     source=str(path))

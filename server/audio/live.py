@@ -1,0 +1,266 @@
+"""Live lip-sync: PCM chunks in, face states stamped with the audio's media time out.
+
+``AudioLiveDriver`` runs the batch pipeline incrementally (streaming resampler, frame-by-frame LPC
+analysis, the same labelling and coarticulation functions over a sliding window), so with the same
+calibration its output equals ``pipeline.lipsync(..., lookahead=driver.coart_lookahead)``.
+
+Algorithmic latency (audio that must arrive after media time t before the state at t is final):
+resampler delay (~1 ms) + half an analysis frame (10 ms) + half the median filter (20 ms) + the
+coarticulation look-ahead; ``lookahead`` is the budget for the sum (default 50 ms).
+"""
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from ..errors import InputError
+from ..state import FaceState
+from .classify import VowelNet, default_net
+from .io import MAX_RATE, MIN_RATE, StreamResampler, validate_pcm
+from .lpc import ANALYSIS_RATE, FRAME_LENGTH, HOP_LENGTH, ORDER, PREEMPHASIS, analyze_frames, \
+    frame, preemphasis
+from .visemes import MIN_SILENCE_DB, NOISE_MARGIN_DB, SILENCE_RANGE_DB, Calibration, Params, \
+    coarticulate, label_frames, median_filter_proba
+
+log = logging.getLogger(__name__)
+
+#: A gap in the media time larger than this restarts the analysis instead of filling with silence.
+MAX_GAP = 2.0
+
+
+class RunningCalibration:
+    """Continuous energy calibration for live streams (the source calibrated once per user).
+
+    Noise floor: follows the quietest frames (falls at once, rises ``rise_db_s`` dB/s). Maximum:
+    follows the loudest frames (rises at once, decays ``decay_db_s`` dB/s). Thresholds as
+    ``visemes.calibrate``.
+    """
+
+    def __init__(self, noise_db: float = -75.0, max_db: float = -25.0, rise_db_s: float = 2.0,
+                 decay_db_s: float = 1.0) -> None:
+        self.noise, self.max = noise_db, max_db
+        self.rise, self.decay = rise_db_s, decay_db_s
+
+    def update(self, energy_db: np.ndarray, hop: float) -> tuple[np.ndarray, np.ndarray]:
+        """Feed frame energies ``(T,)``; return per-frame ``(silence_db, max_db)`` arrays."""
+        sil = np.empty(len(energy_db))
+        mx = np.empty(len(energy_db))
+        for i, e in enumerate(np.asarray(energy_db, dtype=np.float64)):
+            self.noise = min(self.noise + self.rise * hop, e)
+            self.max = max(self.max - self.decay * hop, e)
+            s = max(self.noise + NOISE_MARGIN_DB, self.max - SILENCE_RANGE_DB, MIN_SILENCE_DB)
+            sil[i], mx[i] = s, max(self.max, s + 10.0)
+        return sil, mx
+
+
+class AudioLiveDriver:
+    """``LiveDriver`` for PCM audio.
+
+    Args:
+        face: the target face (FAPs are in FAPU; kept for the protocol).
+        rate: sample rate of the pushed chunks, Hz.
+        lookahead: algorithmic latency budget, seconds (see module doc); the part left after the
+            fixed delays is the coarticulation look-ahead ``coart_lookahead`` (whole 10 ms frames).
+        fps: rate of the emitted face states (at ``t0 + k/fps``).
+        calibration: fixed energy levels; None = estimated continuously from the stream.
+    """
+
+    control_vertices = None
+
+    def __init__(self, face=None, rate: float = 16000, lookahead: float = 0.05, fps: float = 50.0,
+                 calibration: Calibration | None = None, params: Params | None = None,
+                 net: VowelNet | None = None) -> None:
+        if not (MIN_RATE <= float(rate) <= MAX_RATE):
+            raise InputError(f"sample rate {rate} Hz is outside {MIN_RATE}-{MAX_RATE} Hz",
+                             where="rate")
+        if not (0 < fps <= 1000):
+            raise InputError(f"fps must be in (0, 1000], got {fps}", where="fps")
+        if lookahead < 0:
+            raise InputError(f"lookahead must be >= 0 s, got {lookahead}", where="lookahead")
+        self.face = face
+        self.rate = float(rate)
+        self.fps = float(fps)
+        self.params = params or Params()
+        self.net = net or default_net()
+        self.fixed_calibration = calibration
+        self.hop = HOP_LENGTH
+        self.n_frame = int(round(FRAME_LENGTH * ANALYSIS_RATE))
+        self.n_hop = int(round(HOP_LENGTH * ANALYSIS_RATE))
+        self.med_half = self.params.median // 2
+        fixed = StreamResampler(self.rate, ANALYSIS_RATE).delay + FRAME_LENGTH / 2 \
+            + self.med_half * self.hop
+        self.coart_frames = max(0, int(math.floor((lookahead - fixed) / self.hop + 1e-9)))
+        self.coart_lookahead = self.coart_frames * self.hop
+        #: Audio needed after t before the state at t is final, seconds.
+        self.latency = fixed + self.coart_lookahead
+        self.lookahead = lookahead
+        self.dropped_chunks = 0
+        self._reset(None)
+
+    # -- stream state ---------------------------------------------------------------------
+    def _reset(self, t0: float | None) -> None:
+        self.t0 = t0                       # media time of sample 0 of the current stream
+        self._n_in = 0                     # input samples consumed
+        self._rs = StreamResampler(self.rate, ANALYSIS_RATE)
+        self._cal = RunningCalibration()
+        self._buf = np.zeros(self.n_frame // 2)   # centred frames: half a frame of zeros first
+        self._buf_start = -(self.n_frame // 2)     # analysis-rate index of _buf[0]
+        self._emph_prev = 0.0
+        self._emph = np.zeros(self.n_frame // 2)
+        self._n10 = 0                      # analysis-rate samples received
+        # features of frames [_f0, _f0 + len)
+        self._f0 = 0
+        self._e = np.zeros(0)
+        self._z = np.zeros(0)
+        self._p = np.zeros((0, 5))
+        self._sil = np.zeros(0)
+        self._max = np.zeros(0)
+        self._next_out = 0                 # next output state index k (time t0 + k/fps)
+
+    @property
+    def _n_feat(self) -> int:
+        return self._f0 + len(self._e)
+
+    def push(self, data: np.ndarray, t: float) -> list[FaceState]:
+        """Take one chunk of samples ``(n,)`` (or ``(n, channels)``, averaged) starting at media
+        time ``t``; return the face states that became final, oldest first.
+
+        A chunk that is late (starts before the end of what was already received) is trimmed or
+        dropped; a gap up to ``MAX_GAP`` s is filled with silence, a longer one restarts the
+        analysis at ``t``. Raises InputError for NaN/inf samples or a bad shape; the driver
+        state is unchanged then and the next chunk is processed normally.
+        """
+        where = f"audio chunk at t={t:.3f}s" if np.isfinite(t) else "audio chunk"
+        if not np.isfinite(t):
+            raise InputError("media time is not finite", where="t")
+        x = validate_pcm(data, self.rate, where=where, allow_empty=True)
+        out: list[FaceState] = []
+        if self.t0 is None:
+            self._reset(float(t))
+        expected = self.t0 + self._n_in / self.rate
+        offset = int(round((t - expected) * self.rate))
+        if offset < 0:  # late or out-of-order: drop what we already have
+            if -offset >= len(x):
+                self.dropped_chunks += 1
+                log.warning("%s: dropped, it ends before the %.3f s already received", where,
+                            expected)
+                return out
+            log.warning("%s: overlaps %.1f ms already received; trimmed", where,
+                        -offset / self.rate * 1e3)
+            x = x[-offset:]
+        elif offset > 0:
+            if offset / self.rate > MAX_GAP:
+                log.warning("%s: %.2f s gap; restarting the analysis", where, offset / self.rate)
+                out = self.flush()
+                self._reset(float(t))
+            else:
+                log.info("%s: %.1f ms gap filled with silence", where, offset / self.rate * 1e3)
+                x = np.concatenate([np.zeros(offset), x])
+        if len(x):
+            self._n_in += len(x)
+            self._consume(self._rs.push(x))
+        return out + self._emit(final=False)
+
+    def flush(self) -> list[FaceState]:
+        """End of stream: pad with silence and return every remaining state."""
+        if self.t0 is None:
+            return []
+        n_total10 = -(-self._n_in * self._rs.up // self._rs.down) if not self._rs.identity \
+            else self._n_in
+        tail = self._rs.push(np.zeros(len(self._rs.h) // max(self._rs.up, 1) + 8))
+        need = n_total10 - self._n10
+        self._consume(tail[:max(need, 0)], end=n_total10)
+        states = self._emit(final=True)
+        self.t0 = None
+        return states
+
+    # -- analysis ---------------------------------------------------------------------------
+    def _consume(self, y: np.ndarray, end: int | None = None) -> None:
+        """Append analysis-rate samples and analyse every complete frame."""
+        if len(y):
+            emph = preemphasis(y, coef=PREEMPHASIS, zi=self._emph_prev)
+            self._emph_prev = float(y[-1])
+            self._buf = np.concatenate([self._buf, y])
+            self._emph = np.concatenate([self._emph, emph])
+            self._n10 += len(y)
+        if end is not None:  # end of stream: frames up to ceil(n/hop), zero padded like batch
+            n_frames_total = -(-end // self.n_hop)
+            pad = self.n_frame
+            self._buf = np.concatenate([self._buf, np.zeros(pad)])
+            self._emph = np.concatenate([self._emph, np.zeros(pad)])
+        else:
+            n_frames_total = None
+        # frame i covers analysis samples [i·hop - half, i·hop + half) = _buf[i·hop - _buf_start ...]
+        start_i = self._n_feat
+        first = start_i * self.n_hop - self.n_frame // 2 - self._buf_start
+        raw = frame(self._buf[first:], frame_length=self.n_frame, hop_length=self.n_hop)
+        emf = frame(self._emph[first:], frame_length=self.n_frame, hop_length=self.n_hop)
+        if n_frames_total is not None:
+            raw, emf = raw[:max(0, n_frames_total - start_i)], emf[:max(0, n_frames_total - start_i)]
+        if len(raw):
+            k, e, z = analyze_frames(raw, emf, sr=ANALYSIS_RATE, order=ORDER)
+            p = self.net.proba(k)
+            if self.fixed_calibration is not None:
+                sil = np.full(len(e), self.fixed_calibration.silence_db)
+                mx = np.full(len(e), self.fixed_calibration.max_db)
+            else:
+                sil, mx = self._cal.update(e, self.hop)
+            self._e = np.concatenate([self._e, e])
+            self._z = np.concatenate([self._z, z])
+            self._p = np.concatenate([self._p, p])
+            self._sil = np.concatenate([self._sil, sil])
+            self._max = np.concatenate([self._max, mx])
+        # drop samples no future frame needs
+        keep_from = self._n_feat * self.n_hop - self.n_frame // 2 - self._buf_start
+        if keep_from > 0:
+            self._buf = self._buf[keep_from:]
+            self._emph = self._emph[keep_from:]
+            self._buf_start += keep_from
+
+    def _emit(self, final: bool) -> list[FaceState]:
+        n_feat = self._n_feat
+        if n_feat == 0:
+            return []
+        # frames whose (median-filtered) label is final
+        label_end = n_feat if final else n_feat - self.med_half
+        # output k at time k/fps uses label frames up to floor(k/fps/hop) + coart_frames
+        if final:  # as the batch pipeline: states at k/fps for k = 0 .. floor(duration·fps)
+            k_end = int(math.floor(self._n_in / self.rate * self.fps + 1e-9)) + 1
+        else:
+            last_base = label_end - 1 - self.coart_frames
+            if last_base < 0:
+                return []
+            k_end = int(math.floor((last_base + 1) * self.hop * self.fps - 1e-9)) + 1
+            # base(k) = floor(k/fps/hop) must be <= last_base
+            while k_end > 0 and math.floor((k_end - 1) / self.fps / self.hop + 1e-9) > last_base:
+                k_end -= 1
+        if k_end <= self._next_out:
+            return []
+        ks = np.arange(self._next_out, k_end)
+        t_rel = ks / self.fps
+        p = self.params
+        n_pause = int(round(p.min_pause / self.hop))
+        past = int(round(p.coart_past / self.hop)) + n_pause + self.med_half + 2
+        first_base = int(math.floor(t_rel[0] / self.hop + 1e-9))
+        s = max(self._f0, first_base - past)
+        lo, hi = s - self._f0, n_feat - self._f0
+        proba = median_filter_proba(self._p[lo:hi], p.median)[: label_end - s]
+        cal = Calibration(self._sil[lo:lo + len(proba)], self._max[lo:lo + len(proba)])
+        vis, w = label_frames(self._e[lo:lo + len(proba)], self._z[lo:lo + len(proba)], proba, cal,
+                              p, hop=self.hop, lookahead=0.0, at_stream_start=(s == 0))
+        frame_t = (s + np.arange(len(vis))) * self.hop
+        tr = coarticulate(frame_t, vis, w, t_rel, p, hop=self.hop, lookahead=self.coart_lookahead)
+        states = [FaceState(t=float(self.t0 + tr.t[i]), faps=tr.faps[i].copy(),
+                            viseme=(int(tr.select1[i]), int(tr.select2[i]),
+                                    int(round(63 * float(tr.blend[i])))))
+                  for i in range(len(ks))]
+        self._next_out = k_end
+        # forget features no future output needs
+        keep = max(0, int(math.floor(k_end / self.fps / self.hop)) - past - 1) - self._f0
+        if keep > 0:
+            self._f0 += keep
+            for name in ("_e", "_z", "_p", "_sil", "_max"):
+                setattr(self, name, getattr(self, name)[keep:])
+        return states

@@ -1,0 +1,58 @@
+"""Batch lip-sync of a whole signal: resample → LPC features → network → labels → coarticulation."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .classify import VowelNet, default_net
+from .io import resample, validate_pcm
+from .lpc import ANALYSIS_RATE, Features, analyze
+from .visemes import Calibration, Params, Track, calibrate, coarticulate, label_frames, \
+    median_filter_proba
+
+
+@dataclass
+class LipSync:
+    """Result of ``lipsync``: per analysis frame (100/s) ``features``, ``proba (T, 5)`` (median
+    filtered), ``visemes (T,)``, ``weights (T,)``, the ``calibration`` used, and ``track``: the
+    coarticulated output sampled at the requested frame rate."""
+
+    features: Features
+    proba: np.ndarray
+    visemes: np.ndarray
+    weights: np.ndarray
+    calibration: Calibration
+    track: Track
+    duration: float
+
+
+def features_of(x: np.ndarray, sr: float) -> Features:
+    """LPC features of ``x (n,)`` at ``sr`` Hz, resampled to the analysis rate."""
+    return analyze(resample(x, sr, ANALYSIS_RATE), sr=ANALYSIS_RATE)
+
+
+def lipsync(x: np.ndarray, sr: float, *, fps: float = 100.0, lookahead: float | None = None,
+            calibration: Calibration | None = None, params: Params | None = None,
+            net: VowelNet | None = None, where: str = "audio") -> LipSync:
+    """Lip-sync ``x`` (samples, mono or ``(n, channels)``) at ``sr`` Hz.
+
+    Args:
+        fps: output frame rate of ``track`` (frames at ``i / fps`` seconds).
+        lookahead: coarticulation/pause look-ahead in seconds; None = free (batch).
+        calibration: energy levels; None = calibrated from this signal (``visemes.calibrate``).
+    """
+    x = validate_pcm(x, sr, where=where)
+    params = params or Params()
+    net = net or default_net()
+    f = features_of(x, sr)
+    proba = median_filter_proba(net.proba(f.k), params.median)
+    cal = calibration or calibrate(f.energy_db)
+    # with a limited look-ahead (live equivalence) the pause rule is causal
+    vis, w = label_frames(f.energy_db, f.zcr, proba, cal, params, hop=f.hop,
+                          lookahead=None if lookahead is None else 0.0)
+    duration = len(x) / float(sr)
+    n_out = max(1, int(np.floor(duration * fps + 1e-9)) + 1) if len(x) else 0
+    track = coarticulate(f.times, vis, w, np.arange(n_out) / fps, params, hop=f.hop,
+                         lookahead=lookahead)
+    return LipSync(f, proba, vis, w, cal, track, duration)

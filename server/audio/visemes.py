@@ -1,0 +1,271 @@
+"""From LPC features to MPEG-4 visemes and low-level lip/jaw FAPs.
+
+Three pure stages, shared by the batch driver and the live driver (which runs them on a sliding
+window, so both give the same frames when they use the same calibration and look-ahead):
+
+1. ``label_frames``: per 10 ms frame, energy against the calibrated silence threshold and maximum,
+   the zero-crossing rate and the median-filtered vowel network output give a viseme id and an
+   intensity (source: Kshirsagar & Magnenat-Thalmann 2000; the consonant rules marked EXT are
+   facecast's).
+2. ``coarticulate``: Cohen–Massaro dominance functions blend the per-frame targets: each frame j
+   with viseme v_j is a short segment whose dominance over time t is
+   ``alpha_v · exp(-theta_v · |t - t_j|)``; the FAPs at t are the dominance-weighted mean of the
+   frames' targets ``VISEME_FAPS[v_j] · w_j``, and the reported viseme is the one with the largest
+   dominance mass. Only frames up to ``lookahead`` seconds after t take part (free in batch).
+3. ``VISEME_FAPS``: the viseme → low-level FAP table (FAPU units) that facecast's audio path uses.
+
+Viseme ids are MPEG-4 FAP 1 ids (mpeg4-reference §4.1): 0 sil, 1 PP, 2 FF, 3 TH, 4 DD, 5 kk,
+6 CH, 7 SS, 8 nn, 9 RR, 10 aa, 11 E, 12 ih, 13 oh, 14 ou.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.ndimage
+
+from ..state import N_FAPS
+
+SIL, PP, FF, TH, DD, KK, CH, SS, NN, RR, AA, E, IH, OH, OU = range(15)
+VISEME_NAMES = ("sil", "PP", "FF", "TH", "DD", "kk", "CH", "SS", "nn", "RR", "aa", "E", "ih",
+                "oh", "ou")
+#: Network class index (a e i o u) → viseme id.
+VOWEL_VISEMES = np.array([AA, E, IH, OH, OU])
+
+
+def _table() -> np.ndarray:
+    """``(15, 69)`` FAP values per viseme at full intensity (index k = FAP k; MNS/MW units).
+
+    Inner-lip FAPs 4-13 are mirrored on the outer-lip FAPs 51-60. FAP 3 (open_jaw) moves the
+    jaw only, so opening shapes also lower the lower lip (FAPs 5, 10, 11 negative = down).
+    """
+    # columns: jaw3, t_mid4(down+), b_mid5(up+), stretch6/7(+ = outwards), t_lm/rm8/9(down+),
+    #          b_lm/rm10/11(up+), corners12/13(up+), push_b16, push_t17
+    rows = {
+        SIL: (0, 0, 0, 0, 0, 0, 0, 0, 0),
+        PP: (0, 60, 120, -20, 50, 100, 0, 20, 20),
+        FF: (60, -30, 160, 20, -20, 120, 0, -120, 0),
+        TH: (120, -40, -80, 30, -30, -60, 0, 0, 0),
+        DD: (160, -40, -120, 40, -30, -100, 0, 0, 0),
+        KK: (200, -40, -160, 30, -30, -140, 0, 0, 0),
+        CH: (100, -80, -80, -80, -60, -60, 0, 160, 160),
+        SS: (60, -50, -60, 90, -40, -50, 20, 0, 0),
+        NN: (150, -30, -120, 30, -20, -100, 0, 0, 0),
+        RR: (130, -50, -110, -60, -40, -90, 0, 100, 80),
+        AA: (420, -80, -420, 50, -60, -360, 0, 0, 0),
+        E: (260, -70, -260, 110, -50, -220, 20, 0, 0),
+        IH: (140, -50, -130, 180, -40, -110, 50, 0, 0),
+        OH: (320, -50, -320, -150, -40, -270, 0, 150, 120),
+        OU: (150, -30, -110, -260, -20, -90, 0, 250, 220),
+    }
+    t = np.zeros((15, N_FAPS + 1))
+    for v, (jaw, tm, bm, st, tlm, blm, cor, pb, pt) in rows.items():
+        t[v, 3] = jaw
+        t[v, 4], t[v, 5] = tm, bm
+        t[v, 6] = t[v, 7] = st
+        t[v, 8] = t[v, 9] = tlm
+        t[v, 10] = t[v, 11] = blm
+        t[v, 12] = t[v, 13] = cor
+        t[v, 16], t[v, 17] = pb, pt
+    t[:, 51:61] = t[:, 4:14]  # outer lip contour follows the inner one
+    return t
+
+
+#: ``(15, 69)`` viseme → low-level FAP targets (this module is their single source of truth).
+VISEME_FAPS = _table()
+
+#: Cohen–Massaro dominance per viseme: (alpha, theta 1/s). Closures and labiodentals dominate
+#: strongly (the lips must meet), vowels moderately, tongue consonants and silence weakly.
+DOMINANCE = np.array([
+    (0.5, 25.0),   # sil
+    (1.0, 18.0),   # PP
+    (0.9, 18.0),   # FF
+    (0.4, 20.0),   # TH
+    (0.4, 20.0),   # DD
+    (0.4, 20.0),   # kk
+    (0.8, 16.0),   # CH
+    (0.8, 16.0),   # SS
+    (0.4, 20.0),   # nn
+    (0.5, 16.0),   # RR
+    (0.6, 12.0),   # aa
+    (0.6, 12.0),   # E
+    (0.6, 12.0),   # ih
+    (0.7, 12.0),   # oh
+    (0.7, 12.0),   # ou
+])
+
+
+@dataclass
+class Calibration:
+    """Energy levels in dB (10·log10 of mean frame power, full scale = 0 dB).
+
+    ``silence_db``: frames below are quiet (mouth closed or at rest); ``max_db``: the loudest
+    normal-speech level (intensity 1).
+    """
+
+    silence_db: float
+    max_db: float
+
+    def intensity(self, energy_db: np.ndarray) -> np.ndarray:
+        """``(T,)`` in [0, 1], linear in dB between the silence threshold and the maximum (EXT)."""
+        span = np.maximum(np.asarray(self.max_db) - self.silence_db, 1e-6)
+        return np.clip((np.asarray(energy_db) - self.silence_db) / span, 0.0, 1.0)
+
+
+#: Quietest level ever used as a silence threshold, dB (digital silence is -120 dB).
+MIN_SILENCE_DB = -70.0
+#: The silence threshold sits at most this far below the maximum, dB.
+SILENCE_RANGE_DB = 40.0
+#: ... and at least this far above the noise floor, dB.
+NOISE_MARGIN_DB = 8.0
+
+
+def calibrate(energy_db: np.ndarray) -> Calibration:
+    """File calibration from the frame energies themselves (the source recorded room noise and a
+    loud /a/ instead): noise floor = 5th percentile, maximum = 99th percentile of frame energy;
+    silence threshold = max(noise + 8 dB, maximum - 40 dB, -70 dB)."""
+    e = np.asarray(energy_db, dtype=np.float64)
+    if e.size == 0:
+        return Calibration(MIN_SILENCE_DB, MIN_SILENCE_DB + SILENCE_RANGE_DB)
+    noise = float(np.percentile(e, 5))
+    top = float(np.percentile(e, 99))
+    sil = max(noise + NOISE_MARGIN_DB, top - SILENCE_RANGE_DB, MIN_SILENCE_DB)
+    return Calibration(silence_db=sil, max_db=max(top, sil + 10.0))
+
+
+@dataclass
+class Params:
+    """Rules and smoothing (EXT = facecast's choice where the source gives no value).
+
+    Attributes:
+        zcr_fricative: zero crossings per 10 ms above which a non-vowel frame is a fricative
+            (source: unvoiced 49, voiced 14 → midpoint ~31).
+        weak_db: frames more than this far below the maximum (and above silence) that are not
+            fricatives are weak voiced consonants (nasals, liquids, voiced closures) → ``nn``.
+        median: length of the median filter over the vowel network's outputs, frames.
+        min_pause: a quiet run at least this long is silence (viseme 0); shorter runs are lip
+            closures (viseme 1, PP), seconds.
+        fricative_viseme / weak_viseme: viseme ids used for those classes.
+        coart_past: how far back dominance functions reach, seconds.
+    """
+
+    zcr_fricative: float = 31.0
+    weak_db: float = 18.0
+    median: int = 5
+    min_pause: float = 0.15
+    fricative_viseme: int = SS
+    weak_viseme: int = NN
+    coart_past: float = 0.25
+    dominance: np.ndarray = field(default_factory=lambda: DOMINANCE.copy())
+
+
+def median_filter_proba(proba: np.ndarray, size: int) -> np.ndarray:
+    """Per-class running median of ``proba (T, 5)`` over ``size`` frames (centred; edges repeat).
+
+    The source median-filters its vowel labels; filtering each class score and taking the argmax
+    afterwards does the same job without imposing an order on the classes.
+    """
+    if size <= 1 or len(proba) == 0:
+        return proba
+    return scipy.ndimage.median_filter(proba, size=(size, 1), mode="nearest")
+
+
+def label_frames(energy_db: np.ndarray, zcr: np.ndarray, proba: np.ndarray, cal: Calibration,
+                 params: Params, *, hop: float, lookahead: float | None = None,
+                 at_stream_start: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Viseme id and intensity of every frame.
+
+    Args:
+        energy_db, zcr: ``(T,)`` frame energy (dB) and zero crossings per 10 ms.
+        proba: ``(T, 5)`` vowel network outputs (already median-filtered).
+        hop: seconds between frames.
+        lookahead: how far past a frame the pause rule may look, seconds (None = to the end;
+            the streaming pipeline uses 0: a quiet run becomes silence once it has lasted
+            ``min_pause``).
+        at_stream_start: frame 0 is the start of the stream (a quiet run there is silence).
+    Returns:
+        ``(viseme (T,) int64, weight (T,) float64)``.
+    """
+    e = np.asarray(energy_db)
+    T = len(e)
+    w = cal.intensity(e)
+    quiet = e < cal.silence_db
+    fric = ~quiet & (np.asarray(zcr) > params.zcr_fricative)
+    weak = ~quiet & ~fric & (e < cal.max_db - params.weak_db)
+    vis = VOWEL_VISEMES[np.argmax(proba, axis=1)] if T else np.zeros(0, dtype=np.int64)
+    vis = np.where(weak, params.weak_viseme, vis)
+    vis = np.where(fric, params.fricative_viseme, vis)
+    w = np.where(fric, np.maximum(w, 0.5), w)
+    # quiet runs: silence if long enough (looking at most `lookahead` ahead), else a lip closure
+    n_pause = int(round(params.min_pause / hop))
+    la = T if lookahead is None else int(round(lookahead / hop))
+    pause = np.zeros(T, dtype=bool)
+    if T:
+        idx = np.arange(T)
+        edges = np.diff(np.concatenate([[0], quiet.astype(np.int8), [0]]))
+        starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+        run_start = np.full(T, -1)
+        run_end = np.full(T, -1)
+        for s, t_end in zip(starts, ends):
+            run_start[s:t_end], run_end[s:t_end] = s, t_end
+        visible_end = np.minimum(run_end, idx + la + 1)
+        # a run touching the start of the stream counts as silence too
+        pause = quiet & (((visible_end - run_start) >= n_pause) | ((run_start == 0) & at_stream_start))
+    vis = np.where(quiet, np.where(pause, SIL, PP), vis)
+    w = np.where(quiet, np.where(pause, 0.0, 1.0), w)
+    return vis.astype(np.int64), w
+
+
+@dataclass
+class Track:
+    """Coarticulated output at times ``t (N,)``: ``faps (N, 69)``, top two visemes ``select1``,
+    ``select2`` (N,), ``blend`` (N,) weight of select1 in [0, 1], ``weight`` (N,) intensity."""
+
+    t: np.ndarray
+    faps: np.ndarray
+    select1: np.ndarray
+    select2: np.ndarray
+    blend: np.ndarray
+    weight: np.ndarray
+
+
+def coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np.ndarray,
+                 params: Params, *, hop: float, lookahead: float | None = None) -> Track:
+    """Blend per-frame targets with dominance functions and sample at ``t_out (N,)`` seconds.
+
+    ``frame_t (T,)`` must be evenly spaced by ``hop`` seconds. Frames with
+    ``frame_t > t + lookahead`` do not contribute to time t (None = no limit).
+    """
+    frame_t = np.asarray(frame_t, dtype=np.float64)
+    t_out = np.asarray(t_out, dtype=np.float64)
+    N = len(t_out)
+    faps = np.zeros((N, N_FAPS + 1))
+    if len(frame_t) == 0 or N == 0:
+        z = np.zeros(N, dtype=np.int64)
+        return Track(t_out, faps, z, z.copy(), np.ones(N), np.zeros(N))
+    future = params.coart_past if lookahead is None else min(lookahead, params.coart_past)
+    offs = np.arange(-int(round(params.coart_past / hop)), int(round(future / hop + 1e-9)) + 1)
+    # nearest frame at or before each output time, then a window of frames around it
+    base = np.clip(np.floor((t_out - frame_t[0]) / hop + 1e-9).astype(np.int64), 0, len(frame_t) - 1)
+    j = base[:, None] + offs[None, :]
+    ok = (j >= 0) & (j < len(frame_t))
+    jc = np.clip(j, 0, len(frame_t) - 1)
+    dt = frame_t[jc] - t_out[:, None]
+    if lookahead is not None:
+        ok &= dt <= lookahead + 1e-9
+    v = vis[jc]
+    alpha, theta = params.dominance[v, 0], params.dominance[v, 1]
+    dom = np.where(ok, alpha * np.exp(-theta * np.abs(dt)), 0.0)
+    total = dom.sum(axis=1)
+    total = np.where(total > 0, total, 1.0)
+    targets = VISEME_FAPS[v] * w[jc][..., None]           # (N, W, 69)
+    faps = np.einsum("nw,nwk->nk", dom, targets) / total[:, None]
+    weight = (dom * w[jc]).sum(axis=1) / total
+    mass = np.zeros((N, 15))
+    np.add.at(mass, (np.repeat(np.arange(N), dom.shape[1]), v.ravel()), dom.ravel())
+    order = np.argsort(-mass, axis=1, kind="stable")
+    s1, s2 = order[:, 0], order[:, 1]
+    m1 = mass[np.arange(N), s1]
+    m2 = mass[np.arange(N), s2]
+    blend = np.where(m1 + m2 > 0, m1 / np.maximum(m1 + m2, 1e-12), 1.0)
+    return Track(t_out, faps, s1.astype(np.int64), s2.astype(np.int64), blend, weight)

@@ -1,0 +1,47 @@
+"""``facecast lipsync AUDIO [--json]``: the viseme track of a speech file.
+
+``--json`` prints ``{"fps": F, "frames": [{"t": s, "viseme": 0-14, "weight": 0-1}, ...]}`` with
+MPEG-4 viseme ids (0 = silence); without it, a readable table of viseme segments.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from ..audio.io import read_audio
+from ..audio.pipeline import lipsync
+from ..audio.visemes import VISEME_NAMES
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("audio", help="speech file (.wav, .flac, .ogg; any rate, any channels)")
+    parser.add_argument("--json", action="store_true", help="print the frame track as JSON")
+    parser.add_argument("--fps", type=float, default=100.0, help="output frame rate (default 100)")
+    parser.add_argument("--lookahead", type=float, default=None,
+                        help="coarticulation look-ahead in seconds (default: free, as in batch)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..errors import InputError
+
+    if args.fps <= 0 or args.fps > 1000:
+        raise InputError(f"--fps must be in (0, 1000], got {args.fps}", where="--fps")
+    x, sr = read_audio(args.audio)
+    ls = lipsync(x, sr, fps=args.fps, lookahead=args.lookahead, where=args.audio)
+    tr = ls.track
+    if args.json:
+        frames = [{"t": round(float(t), 6), "viseme": int(v), "weight": round(float(w), 4)}
+                  for t, v, w in zip(tr.t, tr.select1, tr.weight)]
+        json.dump({"fps": args.fps, "frames": frames}, sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+    start = 0
+    print(f"{args.audio}: {ls.duration:.2f} s, {len(tr.t)} frames at {args.fps:g} fps")
+    print(f"{'start':>8} {'end':>8}  viseme")
+    for i in range(1, len(tr.t) + 1):
+        if i == len(tr.t) or tr.select1[i] != tr.select1[start]:
+            v = int(tr.select1[start])
+            print(f"{tr.t[start]:8.3f} {tr.t[i - 1] + 1 / args.fps:8.3f}  {v:2d} {VISEME_NAMES[v]}")
+            start = i
+    return 0
