@@ -1,4 +1,352 @@
-"""Placeholder router; its owner fills it in."""
-from fastapi import APIRouter
+"""Live sessions: REST create/list/info/close (admin) and the producer and viewer WebSockets.
 
-router = APIRouter()
+The handlers are shells: they check credentials and limits, decode with ``facecast.protocol``, hand
+face states to ``server.live`` and send what it encoded. Every refusal on a WebSocket is one JSON
+``error`` message, then a close with the same 4xxx code (``protocol/README.md`` lists them).
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import Any
+from urllib.parse import quote
+
+from fastapi import APIRouter, Depends, Request, Response, WebSocket, status
+from starlette.websockets import WebSocketDisconnect, WebSocketState
+
+from ...protocol import frames
+from ...protocol.errors import CloseCode, FrameError, MessageError
+from ...protocol.messages import (ErrorMessage, FapMessage, ProducerHello, Ready, SessionCreate, SessionCreated,
+                                  SessionInfo, SessionList, ViewerHello, dump_message, parse_message)
+from ..errors import FacecastError
+from .security import require_admin, same
+
+log = logging.getLogger(__name__)
+
+router = APIRouter(tags=["sessions"])
+
+#: Seconds a producer has to send its hello.
+HELLO_TIMEOUT = 10.0
+
+
+def registry(app: Any):
+    """The app's ``SessionRegistry`` (created on first use from ``app.state.config``)."""
+    reg = getattr(app.state, "live", None)
+    if reg is None:
+        from ..live import SessionRegistry
+
+        cfg = app.state.config
+        reg = SessionRegistry(app.state.store, max_sessions=cfg.max_sessions,
+                              max_viewers=cfg.max_viewers_per_session, max_fps=cfg.max_producer_fps,
+                              metrics=getattr(app.state, "metrics", None))
+        app.state.live = reg
+    return reg
+
+
+# ------------------------------------------------------------------------------------------------ REST
+
+@router.post("/v1/sessions", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
+             dependencies=[Depends(require_admin)],
+             responses={401: {"description": "admin key missing or wrong"},
+                        404: {"description": "no such face"},
+                        429: {"description": "the server's session limit is reached"},
+                        503: {"description": "the driver for this input kind is not installed"}})
+async def create_session(request: Request, body: SessionCreate | None = None) -> SessionCreated:
+    """Open a live session; the answer's tokens are shown only once."""
+    s = await registry(request.app).create(body or SessionCreate())
+    sp = s.spec
+    base = f"/v1/sessions/{sp.id}"
+    return SessionCreated(id=sp.id, producer_token=sp.producer_token, viewer_token=sp.viewer_token, face=sp.face,
+                          input=sp.input, fps=sp.fps, vertex_count=s.vertex_count, produce_url=base + "/produce",
+                          watch_url=base + "/watch")
+
+
+@router.get("/v1/sessions", response_model=SessionList, dependencies=[Depends(require_admin)])
+async def list_sessions(request: Request) -> SessionList:
+    reg = registry(request.app)
+    return SessionList(sessions=[reg.info(s) for s in reg.sessions.values()])
+
+
+@router.get("/v1/sessions/{session_id}", response_model=SessionInfo, dependencies=[Depends(require_admin)])
+async def get_session(session_id: str, request: Request) -> SessionInfo:
+    reg = registry(request.app)
+    return reg.info(reg.get(session_id))
+
+
+@router.delete("/v1/sessions/{session_id}", status_code=status.HTTP_204_NO_CONTENT,
+               dependencies=[Depends(require_admin)])
+async def close_session(session_id: str, request: Request) -> Response:
+    """Close a session: its producer and viewers get an error 4000 and are disconnected."""
+    await registry(request.app).close(session_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+# ------------------------------------------------------------------------------------------- WebSocket
+
+def _error(code: int, message: str, *, where: str = "", fatal: bool = False, seq: int | None = None) -> str:
+    return dump_message(ErrorMessage(code=int(code), message=message, where=where, fatal=fatal, seq=seq))
+
+
+async def _refuse(ws: WebSocket, code: int, message: str, where: str = "") -> None:
+    """Send one fatal error message and close with ``code``."""
+    try:
+        await ws.send_text(_error(code, message, where=where, fatal=True))
+        await ws.close(int(code))
+    except Exception:  # the peer is already gone
+        pass
+
+
+async def _authorise(ws: WebSocket, session_id: str, token: str | None, role: str):
+    """The session if ``token`` is its ``role`` token; else refuse and return None."""
+    reg = registry(ws.app)
+    session = reg.sessions.get(session_id)
+    if session is None:
+        await _refuse(ws, CloseCode.NOT_FOUND, f"no live session {session_id!r}; it was closed or never existed")
+        return None
+    mine, other = ((session.spec.producer_token, session.spec.viewer_token) if role == "producer"
+                   else (session.spec.viewer_token, session.spec.producer_token))
+    if same(token, mine):
+        return session
+    if same(token, other):
+        await _refuse(ws, CloseCode.FORBIDDEN, f"this token is the session's {'viewer' if role == 'producer' else 'producer'}"
+                      f" token; {role}s need the {role} token", where="token")
+    else:
+        await _refuse(ws, CloseCode.UNAUTHORIZED, f"missing or wrong {role} token: add ?token=<{role}_token from "
+                      "POST /v1/sessions>", where="token")
+    return None
+
+
+class _Producer:
+    """The connected producer, as the session sees it (so an admin close can end it)."""
+
+    def __init__(self, ws: WebSocket) -> None:
+        self.ws = ws
+
+    async def end(self, code: int, error_json: str) -> None:
+        try:
+            await self.ws.send_text(error_json)
+            await self.ws.close(int(code))
+        except Exception:
+            pass
+
+
+class _RateLimit:
+    """Token bucket: ``rate`` frames per second on average, bursts up to one second's worth."""
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate
+        self.tokens = rate
+        self.last = time.monotonic()
+        self.last_error = 0.0
+
+    def allow(self) -> bool:
+        now = time.monotonic()
+        self.tokens = min(self.rate, self.tokens + (now - self.last) * self.rate)
+        self.last = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+@router.websocket("/v1/sessions/{session_id}/produce")
+async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> None:
+    """Producer: hello, then FAP frames / PCM chunks / marker frames (``protocol/README.md``)."""
+    await ws.accept()
+    session = await _authorise(ws, session_id, token, "producer")
+    if session is None:
+        return
+    if session.producer is not None:
+        await _refuse(ws, CloseCode.CONFLICT, "this session already has a producer; only one may send at a time "
+                      "(connect again once it has disconnected)")
+        return
+    reg = registry(ws.app)
+    me = _Producer(ws)
+    session.producer = me  # claim before any await, so a second producer is refused
+    metrics = reg.metrics
+    if metrics:
+        metrics.producers.inc()
+    loop = asyncio.get_running_loop()
+    try:
+        inp = await _producer_hello(ws, session, reg, loop)
+        if inp is None:
+            return
+        session.set_producer(me)  # tells viewers
+        await _producer_loop(ws, session, reg, inp)
+    except WebSocketDisconnect:
+        pass
+    except Exception:
+        log.exception("session %s: producer failed", session_id)
+        await _refuse(ws, CloseCode.INTERNAL, "internal error; the server log has the details")
+    finally:
+        if session.producer is me:
+            session.set_producer(None)
+        if metrics:
+            metrics.producers.dec()
+
+
+async def _producer_hello(ws: WebSocket, session, reg, loop):
+    """Wait for the hello and build the input; None (after refusing) if it is missing or unusable."""
+    from ..live.inputs import BadHello, InputUnavailable, make_input
+
+    try:
+        msg = await asyncio.wait_for(ws.receive(), HELLO_TIMEOUT)
+    except asyncio.TimeoutError:
+        await _refuse(ws, CloseCode.TIMEOUT, f"no hello within {HELLO_TIMEOUT:g} s; send "
+                      '{"type": "hello", "role": "producer", "input": ...} first')
+        return None
+    if msg["type"] == "websocket.disconnect":
+        return None
+    text = msg.get("text")
+    try:
+        if text is None:
+            raise MessageError("the first message must be a JSON hello, not a binary frame")
+        hello = parse_message(text)
+        if not isinstance(hello, ProducerHello):
+            raise MessageError(f"the first message must be a producer hello, got '{hello.type}'")
+        if hello.protocol != frames.VERSION:
+            raise MessageError(f"protocol version {hello.protocol} is not supported (server speaks {frames.VERSION})",
+                               where="hello.protocol")
+        inp = await loop.run_in_executor(reg.executor, make_input, session.spec.input, session.face, hello,
+                                         session.spec.fps)
+        if inp.control_vertices is not None:
+            animator = await loop.run_in_executor(reg.executor, reg.animator_for, session, inp.control_vertices)
+            session.animator, session._animator_lock = animator, reg._lock_for(animator)
+    except (MessageError, BadHello) as e:
+        await _refuse(ws, CloseCode.BAD_REQUEST, str(e), where=getattr(e, "where", ""))
+        return None
+    except InputUnavailable as e:
+        await _refuse(ws, CloseCode.UNAVAILABLE, str(e))
+        return None
+    except FacecastError as e:
+        await _refuse(ws, CloseCode.BAD_REQUEST, str(e), where=e.where)
+        return None
+    await ws.send_text(dump_message(Ready(session=session.spec.id, input=session.spec.input, fps=session.spec.fps,
+                                          max_fps=reg.max_fps, vertex_count=session.vertex_count)))
+    return inp
+
+
+async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
+    loop = asyncio.get_running_loop()
+    limit = _RateLimit(reg.max_fps)
+    inline = session.spec.input == "fap"  # audio / mocap drivers do real work: run them in a thread
+    metrics = reg.metrics
+    while not session.closed:
+        msg = await ws.receive()
+        if msg["type"] == "websocket.disconnect":
+            return
+        data, text = msg.get("bytes"), msg.get("text")
+        seq: int | None = None
+        try:
+            if data is not None:
+                frame = frames.decode(data, kinds=inp.kinds)
+                seq, wall = frame.header.seq, frame.header.wall
+                if not limit.allow():
+                    raise _OverLimit()
+                states = inp.push_frame(frame) if inline else await loop.run_in_executor(
+                    reg.executor, inp.push_frame, frame)
+            else:
+                m = parse_message(text or "")
+                if not isinstance(m, FapMessage):
+                    raise MessageError(f"producers send 'fap' messages or binary frames after the hello, "
+                                       f"not '{m.type}'", where="type")
+                seq, wall = m.seq, m.wall
+                if not limit.allow():
+                    raise _OverLimit()
+                states = inp.push_message(m)
+        except _OverLimit:
+            session.stats["frames_rejected"] += 1
+            now = time.monotonic()
+            if now - limit.last_error >= 1.0:
+                limit.last_error = now
+                await ws.send_text(_error(CloseCode.TOO_MANY, f"frames arrive faster than this server's limit of "
+                                          f"{reg.max_fps:g} per second; frames over it are dropped", seq=seq))
+            continue
+        except (FrameError, MessageError, ValueError) as e:
+            session.stats["frames_rejected"] += 1
+            await ws.send_text(_error(CloseCode.BAD_REQUEST, f"frame dropped: {e}", where=getattr(e, "where", ""),
+                                      seq=seq))
+            continue
+        except Exception:
+            log.exception("session %s: the %s driver failed on a frame", session.spec.id, session.spec.input)
+            session.stats["frames_rejected"] += 1
+            await ws.send_text(_error(CloseCode.INTERNAL, "frame dropped: the driver failed (see the server log)",
+                                      seq=seq))
+            continue
+        session.stats["frames_in"] += 1
+        if metrics:
+            metrics.frames_in.inc()
+        session.submit(states, wall)
+
+
+class _OverLimit(Exception):
+    pass
+
+
+@router.websocket("/v1/sessions/{session_id}/watch")
+async def watch(ws: WebSocket, session_id: str, token: str | None = None, encoding: str = "f32") -> None:
+    """Viewer: a JSON hello, then binary vertex frames (newest only for a slow viewer)."""
+    from ..live.session import Viewer
+
+    await ws.accept()
+    session = await _authorise(ws, session_id, token, "viewer")
+    if session is None:
+        return
+    if encoding not in ("f32", "i16"):
+        await _refuse(ws, CloseCode.BAD_REQUEST, f"unknown encoding {encoding!r}; use f32 or i16", where="encoding")
+        return
+    if len(session.viewers) >= session.spec.max_viewers:
+        await _refuse(ws, CloseCode.TOO_MANY, f"this session already has {len(session.viewers)} viewers, its limit")
+        return
+    sp = session.spec
+    await ws.send_text(dump_message(ViewerHello(
+        session=sp.id, face=sp.face, topology_url=f"/v1/faces/{quote(sp.face, safe='')}/topology",
+        vertex_count=session.vertex_count, encoding=encoding, fps=sp.fps, input=sp.input,
+        producer_connected=session.producer is not None)))
+    viewer = Viewer(encoding)
+    session.add_viewer(viewer)
+    sender = asyncio.create_task(_send_loop(ws, session, viewer))
+    receiver = asyncio.create_task(_drain(ws))
+    try:
+        await asyncio.wait({sender, receiver}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        session.remove_viewer(viewer)
+        for task in (sender, receiver):
+            task.cancel()
+        await asyncio.gather(sender, receiver, return_exceptions=True)
+        if ws.application_state == WebSocketState.CONNECTED and ws.client_state == WebSocketState.CONNECTED:
+            try:
+                await ws.close()
+            except Exception:
+                pass
+
+
+async def _send_loop(ws: WebSocket, session, viewer) -> None:
+    try:
+        while True:
+            kind, payload = await viewer.next()
+            if kind == "bytes":
+                await ws.send_bytes(payload)
+                viewer.sent += 1
+                session.count_sent()
+            elif kind == "text":
+                await ws.send_text(payload)
+            else:
+                code, text = payload
+                await ws.send_text(text)
+                await ws.close(int(code))
+                return
+    except (WebSocketDisconnect, RuntimeError, OSError):
+        return  # the viewer went away
+
+
+async def _drain(ws: WebSocket) -> None:
+    """Read (and ignore) what the viewer sends, so its departure is noticed at once."""
+    try:
+        while True:
+            msg = await ws.receive()
+            if msg["type"] == "websocket.disconnect":
+                return
+    except (WebSocketDisconnect, RuntimeError):
+        return

@@ -1,0 +1,370 @@
+"""The asyncio client of facecast live sessions.
+
+REST (httpx): ``SessionAdmin(url, admin_key)`` creates, lists and closes sessions.
+WebSocket (websockets, per-message deflate off):
+
+- ``produce(url, session, token, hello)`` -> ``Producer``: ``send_faps`` / ``send_pcm`` /
+  ``send_markers`` stamp each frame with the sender's wall clock (for end-to-end latency);
+  errors the server sends back are collected in ``Producer.errors``.
+- ``watch(url, session, token, encoding=...)`` -> ``Watcher``: an async iterator of
+  ``WatchedFrame`` (decoded vertex frame + receive time + size); ``hello``, ``status``, ``stats``
+  and ``errors`` hold the control messages.
+
+Both are async context managers. Nothing here imports the server.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any, AsyncIterator
+from urllib.parse import quote, urlencode, urlsplit, urlunsplit
+
+import httpx
+import numpy as np
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed
+
+from ..protocol import frames
+from ..protocol.messages import (ErrorMessage, ProducerHello, Ready, SessionCreate, SessionCreated, SessionInfo,
+                                 SessionList, Stats, Status, ViewerHello, FapMessage, dump_message, parse_message)
+
+log = logging.getLogger(__name__)
+
+#: Largest message a client accepts (a 500k-vertex float32 frame is 6 MB).
+MAX_MESSAGE = 64 * 1024 * 1024
+
+
+class LiveError(Exception):
+    """The server refused a request or ended a connection with an error.
+
+    ``code`` is the HTTP status or the WebSocket close code (``protocol.errors.CloseCode``), 0 if the
+    server could not be reached.
+    """
+
+    def __init__(self, message: str, code: int = 0) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def ws_url(url: str, path: str, **query: Any) -> str:
+    """``http://h:p`` + ``/path`` + query -> ``ws://h:p/path?query`` (``https`` -> ``wss``)."""
+    parts = urlsplit(url)
+    scheme = {"http": "ws", "https": "wss"}.get(parts.scheme, parts.scheme)
+    q = urlencode({k: v for k, v in query.items() if v is not None})
+    return urlunsplit((scheme, parts.netloc, parts.path.rstrip("/") + path, q, ""))
+
+
+def _http_error(resp: httpx.Response, what: str) -> LiveError:
+    try:
+        body = resp.json()
+        text = body.get("error") or body.get("detail") or body if isinstance(body, dict) else body
+    except ValueError:
+        text = resp.text.strip()[:300]
+    hint = " (set FACECAST_ADMIN_KEY to the server's admin key)" if resp.status_code == 401 else ""
+    return LiveError(f"{what}: HTTP {resp.status_code}: {text}{hint}", resp.status_code)
+
+
+class SessionAdmin:
+    """Create, list and close live sessions (needs the admin key)."""
+
+    def __init__(self, url: str, admin_key: str | None, *, timeout: float = 120.0) -> None:
+        headers = {"Authorization": f"Bearer {admin_key}"} if admin_key else {}
+        self.http = httpx.AsyncClient(base_url=url, headers=headers, timeout=timeout)
+
+    async def __aenter__(self) -> "SessionAdmin":
+        return self
+
+    async def __aexit__(self, *exc: Any) -> None:
+        await self.http.aclose()
+
+    async def _call(self, method: str, path: str, what: str, **kw: Any) -> httpx.Response:
+        try:
+            resp = await self.http.request(method, path, **kw)
+        except httpx.HTTPError as e:
+            raise LiveError(f"{what}: cannot reach {self.http.base_url}: {e}") from None
+        if resp.status_code >= 400:
+            raise _http_error(resp, what)
+        return resp
+
+    async def create(self, *, face: str | None = None, input: str = "fap", fps: float = 60.0,
+                     engine: str = "fp", max_viewers: int | None = None) -> SessionCreated:
+        body = SessionCreate(face=face, input=input, fps=fps, engine=engine, max_viewers=max_viewers)
+        resp = await self._call("POST", "/v1/sessions", "cannot create a session",
+                                json=body.model_dump(exclude_none=True))
+        return SessionCreated.model_validate(resp.json())
+
+    async def list(self) -> list[SessionInfo]:
+        resp = await self._call("GET", "/v1/sessions", "cannot list sessions")
+        return SessionList.model_validate(resp.json()).sessions
+
+    async def info(self, session: str) -> SessionInfo:
+        resp = await self._call("GET", f"/v1/sessions/{quote(session, safe='')}", "cannot read the session")
+        return SessionInfo.model_validate(resp.json())
+
+    async def close(self, session: str) -> None:
+        await self._call("DELETE", f"/v1/sessions/{quote(session, safe='')}", f"cannot close session {session}")
+
+
+async def _connect(url: str) -> ClientConnection:
+    try:
+        return await connect(url, compression=None, max_size=MAX_MESSAGE, open_timeout=30,
+                             ping_interval=None)
+    except (OSError, asyncio.TimeoutError) as e:
+        raise LiveError(f"cannot connect to {url.split('?')[0]}: {e}") from None
+    except Exception as e:  # handshake refused (HTTP status instead of 101)
+        raise LiveError(f"WebSocket handshake with {url.split('?')[0]} failed: {e}") from None
+
+
+def _closed_error(ws: ClientConnection, last_error: ErrorMessage | None) -> LiveError | None:
+    """A ``LiveError`` for an error close, or None for a normal end."""
+    code = ws.close_code or 0
+    if code in (1000, 1001, 0) and last_error is None:
+        return None
+    if last_error is not None:
+        return LiveError(f"server: {last_error.message}" + (f" ({last_error.where})" if last_error.where else ""),
+                         last_error.code)
+    if code in (1000, 1001):
+        return None
+    return LiveError(f"connection closed with code {code} {ws.close_reason or ''}".strip(), code)
+
+
+# ---------------------------------------------------------------------------------------------- producer
+
+class Producer:
+    """A connected producer. Use ``produce(...)``; frames carry the sender's wall clock."""
+
+    def __init__(self, ws: ClientConnection, ready: Ready) -> None:
+        self.ws = ws
+        self.ready = ready
+        self.seq = 0
+        self.errors: list[ErrorMessage] = []
+        self._reader = asyncio.get_running_loop().create_task(self._read())
+
+    async def _read(self) -> None:
+        try:
+            async for msg in self.ws:
+                if isinstance(msg, str):
+                    try:
+                        m = parse_message(msg)
+                    except ValueError:
+                        continue
+                    if isinstance(m, ErrorMessage):
+                        self.errors.append(m)
+                        log.warning("server: %s", m.message)
+        except ConnectionClosed:
+            pass
+
+    def _next(self) -> int:
+        s = self.seq
+        self.seq = (self.seq + 1) & 0xFFFFFFFF
+        return s
+
+    async def _send(self, data: str | bytes) -> None:
+        try:
+            await self.ws.send(data)
+        except ConnectionClosed:
+            err = _closed_error(self.ws, self.errors[-1] if self.errors else None)
+            raise err or LiveError("the server closed the connection") from None
+
+    async def send_faps(self, faps: dict[int, float] | np.ndarray, t: float, *, viseme: tuple | None = None,
+                        expression: tuple | None = None, binary: bool = True) -> None:
+        """One FAP frame at media time ``t``: ``{fap: value}`` (3..68) or a ``(68,)``/``(69,)`` vector
+        (NaN = not sent); as a binary ``FAPS`` frame or, with ``binary=False``, a JSON ``fap`` message."""
+        seq, wall = self._next(), time.time()
+        if binary:
+            if isinstance(faps, dict):
+                v = np.full(frames.N_FAP_VALUES, np.nan, np.float32)
+                for k, x in faps.items():
+                    v[int(k) - 1] = x
+            else:
+                v = np.asarray(faps, np.float32)
+            await self._send(frames.encode_faps(v, seq=seq, t=t, wall=wall, viseme=viseme, expression=expression))
+        else:
+            if not isinstance(faps, dict):
+                arr = np.asarray(faps, np.float64)
+                arr = arr[1:] if arr.shape == (69,) else arr
+                faps = {k + 1: float(x) for k, x in enumerate(arr) if k >= 2 and not np.isnan(x)}
+            msg = FapMessage(seq=seq, t=t, wall=wall, faps=faps, viseme=viseme, expression=expression)
+            await self._send(dump_message(msg))
+
+    async def send_pcm(self, samples: np.ndarray, *, rate: int, sample_offset: int) -> None:
+        """One mono chunk (int16 or float32) starting at ``sample_offset``."""
+        await self._send(frames.encode_pcm(samples, rate=rate, sample_offset=sample_offset, seq=self._next(),
+                                           wall=time.time()))
+
+    async def send_markers(self, markers: np.ndarray, t: float) -> None:
+        """One ``(M, 3)`` marker frame (hello's name order, NaN = occluded) at media time ``t``."""
+        await self._send(frames.encode_markers(markers, seq=self._next(), t=t, wall=time.time()))
+
+    async def send_raw(self, data: str | bytes) -> None:
+        """Send anything (tests of the server's error handling)."""
+        await self._send(data)
+
+    async def close(self) -> None:
+        await self.ws.close()
+        await asyncio.gather(self._reader, return_exceptions=True)
+
+
+class produce:
+    """``async with produce(url, session, token, ProducerHello(...)) as p:`` -> a ``Producer``."""
+
+    def __init__(self, url: str, session: str, token: str, hello: ProducerHello | None = None) -> None:
+        self.url = ws_url(url, f"/v1/sessions/{quote(session, safe='')}/produce", token=token)
+        self.hello = hello or ProducerHello()
+        self.producer: Producer | None = None
+
+    async def __aenter__(self) -> Producer:
+        ws = await _connect(self.url)
+        try:
+            await ws.send(dump_message(self.hello))
+            first = await ws.recv()
+        except ConnectionClosed:
+            first = None
+        m = parse_message(first) if isinstance(first, str) else None
+        if not isinstance(m, Ready):
+            if first is not None and not isinstance(m, ErrorMessage):
+                await ws.close()
+            try:
+                await asyncio.wait_for(ws.wait_closed(), 5)
+            except asyncio.TimeoutError:
+                pass
+            raise _closed_error(ws, m if isinstance(m, ErrorMessage) else None) or LiveError(
+                "the server did not accept the producer")
+        self.producer = Producer(ws, m)
+        return self.producer
+
+    async def __aexit__(self, *exc: Any) -> None:
+        if self.producer is not None:
+            await self.producer.close()
+
+
+# ------------------------------------------------------------------------------------------------ viewer
+
+@dataclass(frozen=True, slots=True)
+class WatchedFrame:
+    """A received vertex frame.
+
+    Attributes:
+        frame: the decoded ``VertexFrame`` (header: ``seq``, ``t`` media s, ``wall`` producer send time).
+        received: the viewer's wall clock at receipt (Unix seconds).
+        size: bytes on the wire (payload of the WebSocket message).
+    """
+
+    frame: frames.VertexFrame
+    received: float
+    size: int
+
+    @property
+    def latency(self) -> float | None:
+        """Seconds from the producer sending the input to this frame's receipt (same clock)."""
+        w = self.frame.header.wall
+        return self.received - w if w > 0 else None
+
+    def positions(self) -> np.ndarray:
+        return self.frame.positions()
+
+
+class Watcher:
+    """A connected viewer: ``async for f in watcher`` yields ``WatchedFrame``s until the connection
+    ends (``LiveError`` if it ends with an error) or, with ``until_producer_leaves``, until the
+    producer disconnects after frames were seen."""
+
+    def __init__(self, ws: ClientConnection, hello: ViewerHello, until_producer_leaves: bool = False) -> None:
+        self.ws = ws
+        self.hello = hello
+        self.status: Status | None = None
+        self.stats: Stats | None = None
+        self.errors: list[ErrorMessage] = []
+        self.until_producer_leaves = until_producer_leaves
+        self._seen_frames = False
+
+    def __aiter__(self) -> AsyncIterator[WatchedFrame]:
+        return self._frames()
+
+    async def _frames(self) -> AsyncIterator[WatchedFrame]:
+        while True:
+            try:
+                msg = await self.ws.recv()
+            except ConnectionClosed:
+                err = _closed_error(self.ws, self.errors[-1] if self.errors else None)
+                if err:
+                    raise err from None
+                return
+            if isinstance(msg, bytes):
+                now = time.time()
+                f = frames.decode(msg)
+                if not isinstance(f, frames.VertexFrame):
+                    raise LiveError(f"unexpected {f.header.kind.name} frame from the server")
+                self._seen_frames = True
+                yield WatchedFrame(f, now, len(msg))
+                continue
+            m = parse_message(msg)
+            if isinstance(m, Status):
+                self.status = m
+                if self.until_producer_leaves and self._seen_frames and not m.producer_connected:
+                    return
+            elif isinstance(m, Stats):
+                self.stats = m
+            elif isinstance(m, ErrorMessage):
+                self.errors.append(m)
+
+    async def close(self) -> None:
+        await self.ws.close()
+
+
+class watch:
+    """``async with watch(url, session, token, encoding="i16") as w: async for f in w: ...``."""
+
+    def __init__(self, url: str, session: str, token: str, *, encoding: str = "f32",
+                 until_producer_leaves: bool = False) -> None:
+        self.url = ws_url(url, f"/v1/sessions/{quote(session, safe='')}/watch", token=token, encoding=encoding)
+        self.until = until_producer_leaves
+        self.watcher: Watcher | None = None
+
+    async def __aenter__(self) -> Watcher:
+        ws = await _connect(self.url)
+        try:
+            first = await ws.recv()
+        except ConnectionClosed:
+            raise _closed_error(ws, None) or LiveError("the server closed the connection") from None
+        m = parse_message(first) if isinstance(first, str) else None
+        if not isinstance(m, ViewerHello):
+            try:
+                await asyncio.wait_for(ws.wait_closed(), 5)
+            except asyncio.TimeoutError:
+                await ws.close()
+            raise _closed_error(ws, m if isinstance(m, ErrorMessage) else None) or LiveError(
+                f"expected a viewer hello, got {first!r:.100}")
+        self.watcher = Watcher(ws, m, self.until)
+        return self.watcher
+
+    async def __aexit__(self, *exc: Any) -> None:
+        if self.watcher is not None:
+            await self.watcher.close()
+
+
+def summary(frames_: list[WatchedFrame], *, first_seq: int | None = None) -> dict:
+    """fps, latency p50/p95 (ms), bytes per frame and dropped frames (gaps in ``seq``) of a run."""
+    n = len(frames_)
+    out: dict[str, Any] = {"frames": n}
+    if n == 0:
+        return out
+    seqs = np.array([f.frame.header.seq for f in frames_], dtype=np.int64)
+    gaps = np.diff(seqs) % (1 << 32) - 1
+    dropped = int(gaps[gaps > 0].sum()) if n > 1 else 0
+    span = frames_[-1].received - frames_[0].received
+    lat = np.array([f.latency for f in frames_ if f.latency is not None], dtype=np.float64) * 1000
+    out.update({
+        "fps": round((n - 1) / span, 2) if span > 0 else None,
+        "latency_ms_p50": round(float(np.percentile(lat, 50)), 2) if lat.size else None,
+        "latency_ms_p95": round(float(np.percentile(lat, 95)), 2) if lat.size else None,
+        "latency_ms_max": round(float(lat.max()), 2) if lat.size else None,
+        "bytes_per_frame": round(float(np.mean([f.size for f in frames_])), 1),
+        "dropped": dropped,
+        "first_seq": int(seqs[0]), "last_seq": int(seqs[-1]),
+        "seconds": round(span, 3),
+    })
+    return out
+

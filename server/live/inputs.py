@@ -1,0 +1,158 @@
+"""Producer inputs -> face states: FAP frames directly, PCM chunks and marker frames through the
+audio and mocap live drivers (imported lazily, by name, when a producer of that kind says hello).
+
+Each input object turns one decoded frame into the face states that became final, oldest first.
+They are used by one producer at a time and are not thread-safe.
+"""
+from __future__ import annotations
+
+import importlib
+import logging
+from typing import Any
+
+import numpy as np
+
+from ...protocol import frames
+from ...protocol.errors import CloseCode, FrameError, MessageError
+from ...protocol.messages import FapMessage, ProducerHello
+from ..state import FaceState, zero_faps
+
+log = logging.getLogger(__name__)
+
+#: input kind -> (module, class) of its live driver.
+DRIVERS: dict[str, tuple[str, str]] = {
+    "audio": ("facecast.server.audio.live", "AudioLiveDriver"),
+    "markers": ("facecast.server.mocap.live", "MarkerLiveDriver"),
+}
+
+#: Look-ahead asked of the audio driver, seconds (latency traded for coarticulation).
+AUDIO_LOOKAHEAD = 0.06
+
+
+class InputUnavailable(Exception):
+    """The driver for an input kind is not installed (close code 4503)."""
+
+    close_code = CloseCode.UNAVAILABLE
+
+
+class BadHello(MessageError):
+    """The producer's hello does not fit the session (close code 4400)."""
+
+
+def load_driver_class(kind: str) -> Any:
+    """The live driver class for ``kind`` (``audio`` | ``markers``); ``InputUnavailable`` if absent."""
+    module, name = DRIVERS[kind]
+    try:
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as e:
+        raise InputUnavailable(f"live '{kind}' input is not available on this server ({module}.{name}: {e}); "
+                               "use a FAP producer, or install the missing part") from None
+
+
+class FapInput:
+    """FAP frames (JSON ``fap`` messages or binary ``FAPS`` frames) -> one ``FaceState`` each.
+
+    FAPs a frame does not carry keep their previous value (all start at 0); viseme and expression
+    likewise hold until a frame sets them again.
+    """
+
+    kinds = frozenset({frames.Kind.FAPS})
+    control_vertices = None
+
+    def __init__(self) -> None:
+        self.faps = zero_faps()
+        self.viseme: tuple[int, int, int] | None = None
+        self.expression: tuple[int, int, int, int] | None = None
+
+    def _state(self, t: float) -> FaceState:
+        return FaceState(t=t, faps=self.faps.copy(), viseme=self.viseme, expression=self.expression)
+
+    def push_message(self, msg: FapMessage) -> list[FaceState]:
+        for k, v in msg.faps.items():
+            self.faps[k] = v
+        if msg.viseme is not None:
+            self.viseme = tuple(msg.viseme)
+        if msg.expression is not None:
+            self.expression = tuple(msg.expression)
+        return [self._state(msg.t)]
+
+    def push_frame(self, frame: frames.Frame) -> list[FaceState]:
+        assert isinstance(frame, frames.FapFrame)
+        v = frame.values
+        sent = ~np.isnan(v)
+        sent[:2] = False  # FAPs 1 and 2 travel in the sub-header
+        self.faps[1:][sent] = v[sent]
+        if frame.viseme is not None:
+            self.viseme = tuple(frame.viseme)
+        if frame.expression is not None:
+            self.expression = tuple(frame.expression)
+        return [self._state(frame.header.t)]
+
+
+class AudioInput:
+    """PCM chunks at the hello's rate -> ``AudioLiveDriver`` -> face states at the driver's rate."""
+
+    def __init__(self, face: Any, hello: ProducerHello, fps: float) -> None:
+        if not hello.rate:
+            raise BadHello("an audio producer must declare 'rate' (Hz) in its hello", where="hello.rate")
+        self.rate = hello.rate
+        fmt = hello.sample_format or "i16"
+        self.kinds = frozenset({frames.Kind.PCM_I16 if fmt == "i16" else frames.Kind.PCM_F32})
+        cls = load_driver_class("audio")
+        try:
+            self.driver = cls(face, hello.rate, lookahead=AUDIO_LOOKAHEAD)
+        except (ValueError, TypeError) as e:
+            raise BadHello(f"the audio driver refused this hello: {e}", where="hello") from None
+        self.control_vertices = getattr(self.driver, "control_vertices", None)
+
+    def push_message(self, msg: FapMessage) -> list[FaceState]:
+        raise MessageError("this session takes audio: send binary PCM chunks, not FAP messages")
+
+    def push_frame(self, frame: frames.Frame) -> list[FaceState]:
+        assert isinstance(frame, frames.PcmChunk)
+        if frame.rate != self.rate:
+            raise FrameError(f"chunk sample rate {frame.rate} Hz differs from the hello's {self.rate} Hz",
+                             where="bytes 32-35")
+        return list(self.driver.push(frame.as_float32(), frame.sample_offset / self.rate))
+
+
+class MarkerInput:
+    """Marker frames in the hello's name order -> ``MarkerLiveDriver`` -> face states."""
+
+    kinds = frozenset({frames.Kind.MARKERS})
+
+    def __init__(self, face: Any, hello: ProducerHello, fps: float) -> None:
+        if not hello.markers:
+            raise BadHello("a marker producer must list its marker names in the hello", where="hello.markers")
+        if len(set(hello.markers)) != len(hello.markers):
+            raise BadHello("marker names must be unique", where="hello.markers")
+        self.names = list(hello.markers)
+        cls = load_driver_class("markers")
+        try:
+            self.driver = cls(face, self.names, hello.layout)
+        except (ValueError, TypeError, KeyError) as e:
+            raise BadHello(f"the marker driver refused this hello: {e}", where="hello") from None
+        self.control_vertices = getattr(self.driver, "control_vertices", None)
+
+    def push_message(self, msg: FapMessage) -> list[FaceState]:
+        raise MessageError("this session takes markers: send binary MARKERS frames, not FAP messages")
+
+    def push_frame(self, frame: frames.Frame) -> list[FaceState]:
+        assert isinstance(frame, frames.MarkerFrame)
+        if frame.markers.shape[0] != len(self.names):
+            raise FrameError(f"frame has {frame.markers.shape[0]} markers, the hello named {len(self.names)}",
+                             where="bytes 12-15")
+        if np.isinf(frame.markers).any():
+            raise FrameError("marker positions must be finite or NaN (occluded)")
+        return list(self.driver.push(np.array(frame.markers, dtype=np.float32), frame.header.t))
+
+
+def make_input(kind: str, face: Any, hello: ProducerHello, fps: float):
+    """The input object for a session of ``kind`` after ``hello`` (blocking: drivers may precompute)."""
+    if hello.input != kind:
+        raise BadHello(f"this session takes '{kind}' input, the hello says '{hello.input}'", where="hello.input")
+    if kind == "fap":
+        return FapInput()
+    if kind == "audio":
+        return AudioInput(face, hello, fps)
+    return MarkerInput(face, hello, fps)

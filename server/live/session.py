@@ -1,0 +1,226 @@
+"""One live session: its tokens, its producer, its viewers, and the deform-once/encode-once fan-out.
+
+Frame path: the producer's connection turns input into ``FaceState``s and calls ``submit``; they
+are numbered (``seq``) and queued in a short bounded queue (oldest dropped if deformation lags).
+The session's worker task deforms each state once in a thread (``Animator.frame``), encodes it
+once per encoding some viewer asked for, and offers the same bytes to every viewer. Each viewer
+has a one-frame slot: a newer frame replaces an unsent one, so memory stays bounded and a slow
+viewer sees a gap in ``seq``.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections import deque
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from ...protocol import frames
+from ...protocol.messages import Stats, Status, dump_message
+from ..state import FaceState
+
+log = logging.getLogger(__name__)
+
+#: Face states waiting for deformation per session; beyond this the oldest is dropped.
+MAX_PENDING = 8
+#: Control messages (status, stats) waiting for one viewer; beyond this the oldest is dropped.
+MAX_CONTROL = 16
+#: Seconds between ``stats`` messages to viewers.
+STATS_INTERVAL = 2.0
+
+
+class Viewer:
+    """One viewer's outbox: a latest-frame slot plus a few control messages (both bounded)."""
+
+    def __init__(self, encoding: str) -> None:
+        self.encoding = encoding
+        self.slot: bytes | None = None
+        self.control: deque[str] = deque(maxlen=MAX_CONTROL)
+        self.wake = asyncio.Event()
+        self.sent = 0
+        self.skipped = 0
+        self.closing: tuple[int, str] | None = None  # (close code, JSON error) when the server ends it
+
+    def offer(self, frame: bytes) -> bool:
+        """Put ``frame`` in the slot; True if it replaced an unsent one (a skipped frame)."""
+        replaced = self.slot is not None
+        self.slot = frame
+        if replaced:
+            self.skipped += 1
+        self.wake.set()
+        return replaced
+
+    def say(self, text: str) -> None:
+        self.control.append(text)
+        self.wake.set()
+
+    def end(self, code: int, error_json: str) -> None:
+        self.closing = (code, error_json)
+        self.wake.set()
+
+    async def next(self) -> tuple[str, Any]:
+        """The next thing to send: ``("text", str)``, ``("bytes", bytes)`` or ``("close", (code, json))``."""
+        while True:
+            if self.closing is not None:
+                return "close", self.closing
+            if self.control:
+                return "text", self.control.popleft()
+            if self.slot is not None:
+                frame, self.slot = self.slot, None
+                return "bytes", frame
+            self.wake.clear()
+            await self.wake.wait()
+
+
+@dataclass
+class SessionSpec:
+    id: str
+    face: str  # the name clients use (topology URL)
+    input: str
+    fps: float
+    engine: str
+    max_viewers: int
+    producer_token: str
+    viewer_token: str
+    created: float = field(default_factory=time.time)
+
+
+class LiveSession:
+    """A live session. Create through ``SessionRegistry.create``; all methods run on the event loop
+    except ``_deform_encode``, which runs in the registry's thread pool."""
+
+    def __init__(self, spec: SessionSpec, face: Any, animator: Any, executor: Executor,
+                 metrics: Any = None, animator_lock: Any = None) -> None:
+        self.spec = spec
+        self.face = face
+        self.animator = animator  # replaced by a mocap producer's (control vertices) for its stream
+        self._animator_lock = animator_lock
+        self.vertex_count = int(face.vertices.shape[0])
+        self.executor = executor
+        self.metrics = metrics
+        self.viewers: set[Viewer] = set()
+        self.producer: Any = None  # the producer's connection object while one is connected
+        self.pending: deque[tuple[int, FaceState, float]] = deque()
+        self._wake = asyncio.Event()
+        self.seq = 0
+        self.last_seq: int | None = None
+        self.stats = {k: 0 for k in ("frames_in", "frames_rejected", "states", "frames_deformed",
+                                     "frames_dropped", "frames_sent", "frames_skipped")}
+        self._deform_total = 0.0
+        self._last_stats = time.monotonic()
+        self.closed = False
+        self._worker = asyncio.get_running_loop().create_task(self._run(), name=f"live-{spec.id}")
+
+    # -- producer side -----------------------------------------------------------------------------
+    def submit(self, states: list[FaceState], wall: float) -> None:
+        """Number ``states`` and queue them for deformation (oldest dropped beyond ``MAX_PENDING``)."""
+        for s in states:
+            if len(self.pending) >= MAX_PENDING:
+                self.pending.popleft()
+                self.stats["frames_dropped"] += 1
+                if self.metrics:
+                    self.metrics.frames_dropped.inc()
+            self.pending.append((self.seq, s, wall))
+            self.seq = (self.seq + 1) & 0xFFFFFFFF
+            self.stats["states"] += 1
+        if states:
+            self._wake.set()
+
+    def set_producer(self, producer: Any) -> None:
+        self.producer = producer
+        self.broadcast_status()
+
+    # -- viewers -----------------------------------------------------------------------------------
+    def add_viewer(self, viewer: Viewer) -> None:
+        self.viewers.add(viewer)
+        if self.metrics:
+            self.metrics.viewers.inc()
+
+    def remove_viewer(self, viewer: Viewer) -> None:
+        if viewer in self.viewers:
+            self.viewers.discard(viewer)
+            if self.metrics:
+                self.metrics.viewers.dec()
+
+    def broadcast_status(self) -> None:
+        text = dump_message(Status(producer_connected=self.producer is not None, viewers=len(self.viewers),
+                                   last_seq=self.last_seq))
+        for v in self.viewers:
+            v.say(text)
+
+    def snapshot(self) -> Stats:
+        n = self.stats["frames_deformed"]
+        return Stats(**self.stats, deform_ms_mean=round(1000 * self._deform_total / n, 3) if n else 0.0,
+                     viewers=len(self.viewers), producer_connected=self.producer is not None)
+
+    # -- the worker ----------------------------------------------------------------------------------
+    def _deform_encode(self, state: FaceState, seq: int, wall: float, encodings: set[str]) -> tuple[dict[str, bytes], float]:
+        t0 = time.perf_counter()
+        if self._animator_lock is not None:
+            with self._animator_lock:
+                v = self.animator.frame(state)
+        else:
+            v = self.animator.frame(state)
+        v = np.asarray(v, dtype=np.float32)
+        out = {e: frames.encode_vertices(v, e, seq=seq, t=state.t, wall=wall) for e in sorted(encodings)}
+        return out, time.perf_counter() - t0
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while not self.closed:
+            if not self.pending:
+                self._wake.clear()
+                await self._wake.wait()
+                continue
+            seq, state, wall = self.pending.popleft()
+            encodings = {v.encoding for v in self.viewers}
+            if not encodings:
+                continue  # nobody watches: skip the work, the numbering still advances
+            try:
+                encoded, dt = await loop.run_in_executor(self.executor, self._deform_encode, state, seq, wall, encodings)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                log.exception("session %s: deforming frame %d failed", self.spec.id, seq)
+                self.stats["frames_dropped"] += 1
+                continue
+            self.stats["frames_deformed"] += 1
+            self._deform_total += dt
+            self.last_seq = seq
+            if self.metrics:
+                self.metrics.deform_seconds.observe(dt)
+            sent = 0
+            for viewer in self.viewers:
+                frame = encoded.get(viewer.encoding)
+                if frame is None:  # joined while we were deforming, with another encoding
+                    continue
+                if viewer.offer(frame):
+                    self.stats["frames_skipped"] += 1
+                    if self.metrics:
+                        self.metrics.frames_dropped.inc()
+                sent += 1
+            now = time.monotonic()
+            if now - self._last_stats >= STATS_INTERVAL:
+                self._last_stats = now
+                text = dump_message(self.snapshot())
+                for viewer in self.viewers:
+                    viewer.say(text)
+
+    def count_sent(self, n: int = 1) -> None:
+        self.stats["frames_sent"] += n
+        if self.metrics:
+            self.metrics.frames_sent.inc(n)
+
+    async def close(self, code: int, error_json: str) -> Callable[[], None] | None:
+        """Stop the worker and tell every connection to end with ``code``."""
+        self.closed = True
+        self._worker.cancel()
+        for v in list(self.viewers):
+            v.end(code, error_json)
+        if self.producer is not None:
+            await self.producer.end(code, error_json)
+        return None
