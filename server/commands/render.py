@@ -1,0 +1,63 @@
+"""``facecast render INPUT -o OUT``: batch animation of a .fap, audio or mocap file."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", type=Path, help="input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output: .glb, .npz or .fap")
+    p.add_argument("--face", default="default", help="built-in face (default, default:2k, ...) or a mesh path")
+    p.add_argument("--engine", choices=["fp", "rbf"], default="fp", help="deformation engine (default fp)")
+    p.add_argument("--backend", choices=["auto", "numpy", "opencl"], default="auto", help="compute backend")
+    p.add_argument("--device", default=None, help="OpenCL device (index or name substring)")
+    p.add_argument("--layout", default=None, help="mocap marker layout (for .c3d/.trc/.csv input)")
+    p.add_argument("--server", metavar="URL", default=None,
+                   help="render on a facecast server instead of locally (admin key from $FACECAST_ADMIN_KEY)")
+
+
+def _progress_bar(total_hint: str):
+    """A ``(callback, close)`` pair drawing a tqdm bar on a terminal, or doing nothing."""
+    if not sys.stderr.isatty():
+        return None, lambda: None
+    from tqdm import tqdm
+
+    bar = tqdm(desc=total_hint, unit="frame", file=sys.stderr, leave=False)
+
+    def update(done: int, total: int) -> None:
+        if bar.total != total:
+            bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    return update, bar.close
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..errors import InputError
+    from ..render import output_kind
+
+    output_kind(args.output)
+    if not args.input.is_file():
+        raise InputError("input file not found", where=str(args.input))
+    progress, close = _progress_bar(args.input.name)
+    try:
+        if args.server:
+            from ...client.jobs import render_remote
+
+            options = {"face": args.face, "engine": args.engine, "backend": args.backend}
+            if args.layout:
+                options["layout"] = args.layout
+            render_remote(args.server, args.input, args.output, options=options, progress=progress,
+                          admin_key=os.environ.get("FACECAST_ADMIN_KEY"))
+        else:
+            from ..render import render_file
+
+            render_file(args.input, args.output, face=args.face, engine=args.engine, backend=args.backend,
+                        device=args.device, layout=args.layout, progress=progress)
+    finally:
+        close()
+    return 0
