@@ -1,0 +1,572 @@
+"""The OpenCL backend (PyOpenCL): the NumPy reference's results, near the memory-bandwidth limit.
+
+Per frame the device reads the resident operator, the rest positions and the rigid groups, and
+writes the vertices; only the frame's parameters (``transforms`` and ``D``, a few hundred bytes) go
+up. On a CPU device (PoCL) device memory is host memory, so the kernel writes straight into the
+NumPy array that is returned (``CL_MEM_USE_HOST_PTR``) and the read-back is free; on other devices
+the vertices are copied back from a resident buffer.
+
+Device format of the operator (``pack_operator``): sliced ELLPACK. Vertices are cut into slices
+of ``SLICE`` consecutive vertices; a slice stores as many entries per vertex as its longest row,
+column-major (entry j of all its vertices side by side) so that neighbouring work-items read
+neighbouring bytes. Control ids are ``uchar`` when ``K < 256`` (else ``ushort``/``uint``); padding
+entries point at an extra all-zero control ``K``. Weights are float32, one per entry when the three
+axis columns of the operator are equal, else three (x, y, z planes per slice). A dense operator
+(RBF, linear shell) is stored the same way with implicit ids (every slice is K wide).
+"""
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...protocol.quantize import dequantize_int16  # noqa: F401  (re-exported for symmetry)
+from ..deform.operator import Operator
+from .select import context_label, default_context, probe_devices  # noqa: F401  (re-exported)
+
+log = logging.getLogger(__name__)
+
+#: Consecutive vertices that share one ELL width; one work-item deforms one slice (fixed: the
+#: kernel works on them as float8 vectors).
+SLICE = 8
+#: Work-group size (in slices) of the deform kernel; in vertices for the others.
+LOCAL_SLICES = 16
+LOCAL_SIZE = 128
+#: Work-items for the min/max pass of the int16 quantisation.
+MINMAX_ITEMS = 64
+#: Floats per rigid transform on the device (4 float4 columns of the 3x4 matrix).
+T_FLOATS = 16
+
+KERNEL_SOURCE = r"""
+// Build defines: AXES (1|3), IDX_T (uchar|ushort|uint), DENSE (0|1).
+
+// One work-item deforms one slice of SLICE (= 8) consecutive vertices of frame f:
+// out[f, v] = T[f, g[v]] . (rest[v] + sum_j w[v, j] * D[f, id[v, j]]).
+// params per frame f (pstride floats): n_groups transforms as 4 float4 columns, then D as float4
+// rows ((K + 1) rows, the last one zero). rest is SoA per slice (x[8] y[8] z[8]); sgroup[s] is the
+// slice's rigid group, or 255 when its vertices differ (then group[v] is read per vertex).
+#define GATHER8(c) (float8)(acc[0].c, acc[1].c, acc[2].c, acc[3].c, acc[4].c, acc[5].c, acc[6].c, acc[7].c)
+
+__kernel void deform(const uint n_vertices,
+                     const uint n_controls,
+                     __global const uint *slice_ptr,
+                     __global const IDX_T *ids,
+                     __global const float *w,
+                     __global const float *rest,
+                     __global const uchar *sgroup,
+                     __global const uchar *group,
+                     __global const float4 *params,
+                     const uint pstride4,
+                     const uint n_groups,
+                     __global float *out)
+{
+    const uint s = get_global_id(0);
+    const uint f = get_global_id(1);
+    const uint v0 = s * 8;
+    if (v0 >= n_vertices) return;
+    __global const float4 *P = params + (size_t)f * pstride4;
+    __global const float4 *D = P + 4 * n_groups;
+    float4 acc[8];
+    for (int l = 0; l < 8; ++l) acc[l] = (float4)(0.0f);
+#if DENSE
+    const uint width = n_controls;
+    const size_t e0 = (size_t)s * n_controls * 8;
+#else
+    const uint e0 = slice_ptr[s];
+    const uint width = (slice_ptr[s + 1] - e0) / 8;
+#endif
+    for (uint j = 0; j < width; ++j) {
+        const size_t e = e0 + (size_t)j * 8;
+#if DENSE
+        const float4 d = D[j];
+        const float8 wj = vload8(0, w + e);
+        acc[0] = fma((float4)(wj.s0), d, acc[0]); acc[1] = fma((float4)(wj.s1), d, acc[1]);
+        acc[2] = fma((float4)(wj.s2), d, acc[2]); acc[3] = fma((float4)(wj.s3), d, acc[3]);
+        acc[4] = fma((float4)(wj.s4), d, acc[4]); acc[5] = fma((float4)(wj.s5), d, acc[5]);
+        acc[6] = fma((float4)(wj.s6), d, acc[6]); acc[7] = fma((float4)(wj.s7), d, acc[7]);
+#elif AXES == 3
+        const size_t b = 3 * (size_t)e0 + (size_t)j * 24;
+        for (int l = 0; l < 8; ++l)
+            acc[l] = fma((float4)(w[b + l], w[b + 8 + l], w[b + 16 + l], 0.0f), D[ids[e + l]], acc[l]);
+#else
+        for (int l = 0; l < 8; ++l)
+            acc[l] = fma((float4)(w[e + l]), D[ids[e + l]], acc[l]);
+#endif
+    }
+    __global const float *r = rest + (size_t)s * 24;
+    const float8 px = vload8(0, r) + GATHER8(x);
+    const float8 py = vload8(1, r) + GATHER8(y);
+    const float8 pz = vload8(2, r) + GATHER8(z);
+    float8 ox, oy, oz;
+    const uchar g = sgroup[s];
+    if (g != 255) {
+        __global const float4 *T = P + 4 * g;
+        const float4 c0 = T[0], c1 = T[1], c2 = T[2], c3 = T[3];
+        ox = fma((float8)(c0.x), px, fma((float8)(c1.x), py, fma((float8)(c2.x), pz, (float8)(c3.x))));
+        oy = fma((float8)(c0.y), px, fma((float8)(c1.y), py, fma((float8)(c2.y), pz, (float8)(c3.y))));
+        oz = fma((float8)(c0.z), px, fma((float8)(c1.z), py, fma((float8)(c2.z), pz, (float8)(c3.z))));
+    } else {
+        float a[3][8], b[3][8];
+        vstore8(px, 0, a[0]); vstore8(py, 0, a[1]); vstore8(pz, 0, a[2]);
+        for (int l = 0; l < 8; ++l) {
+            __global const float4 *T = P + 4 * group[min(v0 + l, n_vertices - 1)];
+            const float4 o = fma(T[0], (float4)(a[0][l]),
+                             fma(T[1], (float4)(a[1][l]), fma(T[2], (float4)(a[2][l]), T[3])));
+            b[0][l] = o.x; b[1][l] = o.y; b[2][l] = o.z;
+        }
+        ox = vload8(0, b[0]); oy = vload8(0, b[1]); oz = vload8(0, b[2]);
+    }
+    const float8 q0 = (float8)(ox.s0, oy.s0, oz.s0, ox.s1, oy.s1, oz.s1, ox.s2, oy.s2);
+    const float8 q1 = (float8)(oz.s2, ox.s3, oy.s3, oz.s3, ox.s4, oy.s4, oz.s4, ox.s5);
+    const float8 q2 = (float8)(oy.s5, oz.s5, ox.s6, oy.s6, oz.s6, ox.s7, oy.s7, oz.s7);
+    __global float *o = out + ((size_t)f * n_vertices + v0) * 3;
+    if (v0 + 8 <= n_vertices) {
+        vstore8(q0, 0, o); vstore8(q1, 1, o); vstore8(q2, 2, o);
+    } else {  // the last, partial slice
+        float t[24];
+        vstore8(q0, 0, t); vstore8(q1, 1, t); vstore8(q2, 2, t);
+        for (uint i = 0; i < 3 * (n_vertices - v0); ++i) o[i] = t[i];
+    }
+}
+
+// Cross product per triangle (length = 2 * area), for the area-weighted vertex normals.
+__kernel void face_normals(const uint n_faces, __global const int *tri,
+                           __global const float *verts, __global float *fn)
+{
+    const uint t = get_global_id(0);
+    if (t >= n_faces) return;
+    const int a = tri[3 * t], b = tri[3 * t + 1], c = tri[3 * t + 2];
+    const float3 p0 = vload3(a, verts), p1 = vload3(b, verts), p2 = vload3(c, verts);
+    vstore3(cross(p1 - p0, p2 - p0), t, fn);
+}
+
+// Sum of the incident triangles' cross products, normalised; (0, 0, 0) when it vanishes.
+__kernel void vertex_normals(const uint n_vertices, __global const uint *adj_ptr,
+                             __global const uint *adj, __global const float *fn,
+                             __global float *out)
+{
+    const uint v = get_global_id(0);
+    if (v >= n_vertices) return;
+    float3 n = (float3)(0.0f);
+    for (uint e = adj_ptr[v]; e < adj_ptr[v + 1]; ++e) n += vload3(adj[e], fn);
+    const float len = sqrt(n.x * n.x + n.y * n.y + n.z * n.z);
+    vstore3(len > 0.0f ? n / len : (float3)(0.0f), v, out);
+}
+
+// Per-axis min and max over contiguous chunks of the vertices: partial[i] = (min xyz, max xyz).
+__kernel void minmax_partial(const uint n_vertices, __global const float *verts,
+                             __global float *partial)
+{
+    const uint i = get_global_id(0), n = get_global_size(0);
+    const uint chunk = (n_vertices + n - 1) / n;
+    const uint lo = min(i * chunk, n_vertices), hi = min(lo + chunk, n_vertices);
+    float3 mn = (float3)(INFINITY), mx = (float3)(-INFINITY);
+    for (uint v = lo; v < hi; ++v) {
+        const float3 p = vload3(v, verts);
+        mn = fmin(mn, p);
+        mx = fmax(mx, p);
+    }
+    vstore3(mn, 2 * i, partial);
+    vstore3(mx, 2 * i + 1, partial);
+}
+
+// q = clip(rint((v - offset) / scale), -32767, 32767), as protocol/quantize.py.
+__kernel void quantize(const uint n_vertices, __global const float *verts,
+                       const float ox, const float oy, const float oz,
+                       const float sx, const float sy, const float sz,
+                       __global short *q)
+{
+    const uint v = get_global_id(0);
+    if (v >= n_vertices) return;
+    const float3 p = vload3(v, verts);
+    const float3 r = rint((p - (float3)(ox, oy, oz)) / (float3)(sx, sy, sz));
+    vstore3(convert_short3(clamp(r, -32767.0f, 32767.0f)), v, q);
+}
+"""
+
+
+@dataclass
+class PackedOperator:
+    """An ``Operator`` in the device's sliced-ELL format (see the module docstring).
+
+    ``slice_ptr (S+1,) uint32`` entry offsets per slice (sparse only), ``ids (E,)`` control ids,
+    ``weights (E * axes,) float32``; ``n_padded`` vertices rounded up to ``SLICE``.
+    """
+
+    n_vertices: int
+    n_controls: int
+    n_padded: int
+    dense: bool
+    axes: int
+    slice_ptr: np.ndarray
+    ids: np.ndarray
+    weights: np.ndarray
+
+    @property
+    def idx_ctype(self) -> str:
+        return {1: "uchar", 2: "ushort", 4: "uint"}[self.ids.dtype.itemsize]
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of operator data one frame reads."""
+        return int(self.weights.nbytes + (0 if self.dense else self.ids.nbytes + self.slice_ptr.nbytes))
+
+
+def _id_dtype(n_ids: int) -> np.dtype:
+    for dt in (np.uint8, np.uint16, np.uint32):
+        if n_ids <= np.iinfo(dt).max + 1:
+            return np.dtype(dt)
+    raise ValueError("too many controls")
+
+
+def pack_operator(op: Operator) -> PackedOperator:
+    """Convert ``op`` to the device's sliced-ELL layout (pure NumPy; vectorised)."""
+    V, K, S = op.n_vertices, op.n_controls, SLICE
+    n_slices = max(1, -(-V // S))
+    Vp = n_slices * S
+    if not op.is_sparse:
+        # weights[s, k, lane] = dense[s * S + lane, k]
+        B = np.zeros((Vp, K), dtype=np.float32)
+        B[:V] = op.dense
+        w = np.ascontiguousarray(B.reshape(n_slices, S, K).transpose(0, 2, 1)).ravel()
+        return PackedOperator(V, K, Vp, True, 1, np.zeros(1, np.uint32), np.zeros(1, np.uint8), w)
+    indptr = op.indptr.astype(np.int64)
+    lengths = np.zeros(Vp, dtype=np.int64)
+    lengths[:V] = np.diff(indptr)
+    width = lengths.reshape(n_slices, S).max(axis=1)
+    slice_ptr = np.zeros(n_slices + 1, dtype=np.int64)
+    np.cumsum(width * S, out=slice_ptr[1:])
+    if slice_ptr[-1] >= 2**32:
+        raise ValueError("operator too large for 32-bit entry offsets")
+    total = int(slice_ptr[-1])
+    rows = np.repeat(np.arange(V, dtype=np.int64), np.diff(indptr))
+    pos = np.arange(indptr[-1], dtype=np.int64) - indptr[rows]  # entry's position in its row
+    s, lane = rows // S, rows % S
+    dest = slice_ptr[s] + pos * S + lane
+    id_dtype = _id_dtype(K + 1)
+    ids = np.full(total, K, dtype=id_dtype)  # padding -> the all-zero control K
+    ids[dest] = op.indices
+    W = op.weights
+    same = bool(np.array_equal(W[:, 0], W[:, 1]) and np.array_equal(W[:, 0], W[:, 2]))
+    axes = 1 if same else 3
+    w = np.zeros(total * axes, dtype=np.float32)
+    if same:
+        w[dest] = W[:, 0]
+    else:
+        base = 3 * slice_ptr[s] + pos * (3 * S) + lane
+        for a in range(3):
+            w[base + a * S] = W[:, a]
+    return PackedOperator(V, K, Vp, False, axes, slice_ptr.astype(np.uint32), ids, w)
+
+
+def _aligned_empty(shape: tuple[int, ...], dtype, align: int = 128) -> np.ndarray:
+    """``np.empty`` whose data pointer is ``align``-byte aligned (what zero-copy buffers want)."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape)) * dtype.itemsize
+    raw = np.empty(n + align, dtype=np.uint8)
+    off = (-raw.ctypes.data) % align
+    return raw[off:off + n].view(dtype).reshape(shape)
+
+
+_programs: dict[tuple, object] = {}
+_programs_lock = threading.Lock()
+
+
+def _program(ctx, defines: dict[str, object]):
+    """The kernel program for ``ctx`` with ``defines``, built once per process."""
+    import pyopencl as cl
+
+    key = (id(ctx), tuple(sorted(defines.items())))
+    with _programs_lock:
+        hit = _programs.get(key)
+        if hit is None:
+            opts = [f"-D{k}={v}" for k, v in sorted(defines.items())]
+            opts.append("-cl-fp32-correctly-rounded-divide-sqrt")
+            hit = (ctx, cl.Program(ctx, KERNEL_SOURCE).build(options=opts))
+            _programs[key] = hit  # holding ctx keeps id(ctx) unique
+        return hit[1]
+
+
+class OpenCLDeformer:
+    """Per-frame deformation on an OpenCL device; the interface of ``NumpyDeformer``.
+
+    ``out[v] = T[g[v]] · [rest[v] + (B·D)[v]; 1]``. Operator, rest positions, rigid groups and
+    triangle adjacency are uploaded once and stay on the device; kernels are built and run once at
+    construction (PoCL caches the compiled code under ``cache_dir("pocl")``).
+
+    Args:
+        rest: ``(V, 3) float32`` neutral vertices.
+        triangles: ``(F, 3) int32``.
+        rigid_group: ``(V,) uint8`` group index per vertex.
+        operator: the compiled ``Operator`` (K controls).
+        context: a ``pyopencl.Context`` (default: ``default_context()``).
+        zero_copy: let kernels write into the returned arrays (default: on host-memory devices).
+    """
+
+    def __init__(self, rest: np.ndarray, triangles: np.ndarray, rigid_group: np.ndarray,
+                 operator: Operator, context=None, *, zero_copy: bool | None = None):
+        import pyopencl as cl
+
+        self._cl = cl
+        ctx = context if context is not None else default_context()
+        if ctx is None:
+            from ..errors import FacecastError
+
+            raise FacecastError("no working OpenCL device; install pocl-opencl-icd or use --backend numpy")
+        self.context = ctx
+        self.device = ctx.devices[0]
+        self.name = f"opencl:{context_label(ctx)}"
+        self.queue = cl.CommandQueue(ctx)
+        self.rest = np.ascontiguousarray(rest, dtype=np.float32)
+        self.triangles = np.ascontiguousarray(triangles, dtype=np.int32)
+        self.operator = operator
+        self.n_vertices = int(self.rest.shape[0])
+        self.n_controls = int(operator.n_controls)
+        self.n_faces = int(self.triangles.shape[0])
+        if operator.n_vertices != self.n_vertices:
+            raise ValueError(f"operator has {operator.n_vertices} vertices, the mesh {self.n_vertices}")
+        group = np.ascontiguousarray(rigid_group, dtype=np.uint8)
+        self.n_groups = int(group.max(initial=0)) + 1
+        if zero_copy is None:
+            zero_copy = bool(self.device.type & cl.device_type.CPU) or bool(
+                getattr(self.device, "host_unified_memory", False))
+        self.zero_copy = zero_copy
+
+        self.packed = pack_operator(operator)
+        p = self.packed
+        self._program = _program(ctx, {"AXES": p.axes, "IDX_T": p.idx_ctype, "DENSE": int(p.dense)})
+        self._k_deform = cl.Kernel(self._program, "deform")
+        self._k_face_normals = cl.Kernel(self._program, "face_normals")
+        self._k_vertex_normals = cl.Kernel(self._program, "vertex_normals")
+        self._k_minmax = cl.Kernel(self._program, "minmax_partial")
+        self._k_quantize = cl.Kernel(self._program, "quantize")
+
+        ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        self._slice_ptr = cl.Buffer(ctx, ro, hostbuf=p.slice_ptr)
+        self._ids = cl.Buffer(ctx, ro, hostbuf=p.ids)
+        self._w = cl.Buffer(ctx, ro, hostbuf=p.weights)
+        n_slices = p.n_padded // SLICE
+        rest_p = np.zeros((p.n_padded, 3), np.float32)
+        rest_p[:self.n_vertices] = self.rest
+        group_p = np.zeros(p.n_padded, np.uint8)
+        group_p[:self.n_vertices] = group
+        group_p[self.n_vertices:] = group_p[max(0, self.n_vertices - 1)]
+        gs = group_p.reshape(n_slices, SLICE)
+        sgroup = np.where((gs == gs[:, :1]).all(axis=1), gs[:, 0], 255).astype(np.uint8)
+        self._rest = cl.Buffer(ctx, ro, hostbuf=np.ascontiguousarray(
+            rest_p.reshape(n_slices, SLICE, 3).transpose(0, 2, 1)))
+        self._sgroup = cl.Buffer(ctx, ro, hostbuf=sgroup)
+        self._group = cl.Buffer(ctx, ro, hostbuf=group_p)
+        self._n_slices = n_slices
+        self._global_slices = -(-n_slices // LOCAL_SLICES) * LOCAL_SLICES
+        # Per-frame parameters: transforms, then D as float4 rows with an all-zero control K at the end.
+        self._pstride = -(-(self.n_groups * T_FLOATS + 4 * (self.n_controls + 1)) // 16) * 16
+        self._params_host = np.zeros(self._pstride, dtype=np.float32)
+        self._params = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, self._params_host.nbytes)
+        self._params_cap = 1
+        self._verts = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, max(12, 12 * self.n_vertices))
+        self._minmax_host = np.empty((MINMAX_ITEMS, 2, 3), dtype=np.float32)
+        self._minmax = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, self._minmax_host.nbytes)
+        self._global = (-(-max(1, self.n_vertices) // LOCAL_SIZE) * LOCAL_SIZE,)
+        self._warm_up()
+
+    # ----------------------------------------------------------------------------------- helpers
+    def _prepare_normals(self) -> None:
+        """Upload triangles and the vertex -> triangle adjacency (CSR) once."""
+        cl = self._cl
+        F, V = self.n_faces, self.n_vertices
+        flat = self.triangles.ravel().astype(np.int64)
+        order = np.argsort(flat, kind="stable")
+        adj = (order // 3).astype(np.uint32)
+        adj_ptr = np.zeros(V + 1, dtype=np.uint32)
+        np.cumsum(np.bincount(flat, minlength=V), out=adj_ptr[1:])
+        ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        self._tri = cl.Buffer(self.context, ro, hostbuf=self.triangles if F else np.zeros(3, np.int32))
+        self._adj = cl.Buffer(self.context, ro, hostbuf=adj if adj.size else np.zeros(1, np.uint32))
+        self._adj_ptr = cl.Buffer(self.context, ro, hostbuf=adj_ptr)
+        self._fn = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, max(12, 12 * F))
+
+    def _warm_up(self) -> None:
+        """Run every kernel once so that the first real frame pays no compilation."""
+        self._prepare_normals()
+        D = np.zeros((self.n_controls, 3), np.float32)
+        T = np.tile(np.eye(3, 4, dtype=np.float32), (self.n_groups, 1, 1))
+        v = self.deform(D, T)
+        self.normals(v)
+        self.deform_quantized(D, T)
+
+    def _check(self, D: np.ndarray, transforms: np.ndarray, batch: bool) -> tuple[np.ndarray, np.ndarray]:
+        D = np.asarray(D, dtype=np.float32)
+        T = np.asarray(transforms, dtype=np.float32)
+        lead = D.shape[:1] if batch else ()
+        D = D.reshape(lead + (self.n_controls, 3))
+        if T.ndim != len(lead) + 3 or T.shape[-2:] != (3, 4) or T.shape[:len(lead)] != lead:
+            raise ValueError(f"transforms must be {lead + ('G', 3, 4)}, not {T.shape}")
+        if T.shape[-3] < self.n_groups:
+            raise ValueError(f"the mesh has {self.n_groups} rigid groups; transforms has {T.shape[-3]}")
+        return D, T[..., :self.n_groups, :, :]
+
+    def _fill_params(self, D: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """``(n, pstride) float32`` parameter block for frames ``D (n, K, 3)``, ``T (n, G, 3, 4)``."""
+        n = D.shape[0]
+        P = self._params_host if n == 1 else np.zeros((n, self._pstride), dtype=np.float32)
+        P = P.reshape(n, self._pstride)
+        gt = self.n_groups * T_FLOATS
+        cols = P[:, :gt].reshape(n, self.n_groups, 4, 4)
+        cols[..., :3] = T.transpose(0, 1, 3, 2)  # column c of each 3x4 transform as a float4
+        Dv = P[:, gt:gt + 4 * (self.n_controls + 1)].reshape(n, self.n_controls + 1, 4)
+        Dv[:, :self.n_controls, :3] = D
+        return P
+
+    def _upload_params(self, P: np.ndarray) -> None:
+        cl = self._cl
+        n = P.shape[0]
+        if n > self._params_cap:
+            self._params = cl.Buffer(self.context, cl.mem_flags.READ_ONLY, P.nbytes)
+            self._params_cap = n
+        cl.enqueue_copy(self.queue, self._params, P, is_blocking=False)
+
+    def _launch_deform(self, n_frames: int, out_buf) -> None:
+        self._k_deform(self.queue, (self._global_slices, n_frames), (LOCAL_SLICES, 1),
+                       np.uint32(self.n_vertices), np.uint32(self.n_controls), self._slice_ptr,
+                       self._ids, self._w, self._rest, self._sgroup, self._group, self._params,
+                       np.uint32(self._pstride // 4), np.uint32(self.n_groups), out_buf)
+
+    def _host_out(self, arr: np.ndarray):
+        """A device buffer over host array ``arr`` (zero-copy on host-memory devices)."""
+        cl = self._cl
+        return cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
+
+    def _sync_host(self, buf, arr: np.ndarray) -> None:
+        """Make ``arr`` (the host pointer of ``buf``) hold the device's results."""
+        cl = self._cl
+        mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype,
+                                          is_blocking=True)
+        mapped.base.release(self.queue)
+
+    # ------------------------------------------------------------------------------- interface
+    def displacements(self, D: np.ndarray) -> np.ndarray:
+        """``u = B·D``: ``D (K, 3)`` -> ``(V, 3) float32``."""
+        T = np.zeros((self.n_groups, 3, 4), np.float32)
+        T[:, :, :3] = np.eye(3, dtype=np.float32)
+        return self.deform(D, T) - self.rest
+
+    def deform(self, D: np.ndarray, transforms: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """One frame: ``D (K, 3)``, ``transforms (G, 3, 4)`` -> vertices ``(V, 3) float32``.
+
+        ``out`` (a C-contiguous ``(V, 3) float32`` array) receives the result if given.
+        """
+        D, T = self._check(D, transforms, batch=False)
+        self._upload_params(self._fill_params(D[None], T[None]))
+        if out is None:
+            out = _aligned_empty((self.n_vertices, 3), np.float32)
+        elif out.shape != (self.n_vertices, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
+            raise ValueError("out must be a C-contiguous (V, 3) float32 array")
+        if self.n_vertices == 0:
+            return out
+        if self.zero_copy:  # the kernel writes straight into ``out``
+            buf = self._host_out(out)
+            self._launch_deform(1, buf)
+            self._sync_host(buf, out)
+        else:
+            self._launch_deform(1, self._verts)
+            self._cl.enqueue_copy(self.queue, out, self._verts, is_blocking=True)
+        return out
+
+    def deform_batch(self, D: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+        """Many frames in one launch: ``D (T, K, 3)``, ``transforms (T, G, 3, 4)`` -> ``(T, V, 3)``."""
+        D, T = self._check(D, transforms, batch=True)
+        n = D.shape[0]
+        out = _aligned_empty((n, self.n_vertices, 3), np.float32)
+        if n == 0 or self.n_vertices == 0:
+            return out
+        frame_bytes = 12 * self.n_vertices
+        max_alloc = int(self.device.max_mem_alloc_size)
+        chunk = max(1, min(n, max_alloc // frame_bytes, 65535))
+        for a in range(0, n, chunk):
+            b = min(n, a + chunk)
+            self._upload_params(self._fill_params(D[a:b], T[a:b]))
+            if self.zero_copy:
+                buf = self._host_out(out[a:b])
+                self._launch_deform(b - a, buf)
+                self._sync_host(buf, out[a:b])
+            else:
+                buf = self._cl.Buffer(self.context, self._cl.mem_flags.WRITE_ONLY, (b - a) * frame_bytes)
+                self._launch_deform(b - a, buf)
+                self._cl.enqueue_copy(self.queue, out[a:b], buf, is_blocking=True)
+        return out
+
+    def normals(self, vertices: np.ndarray) -> np.ndarray:
+        """Area-weighted unit vertex normals ``(V, 3) float32`` of deformed ``vertices (V, 3)``."""
+        cl = self._cl
+        v = np.ascontiguousarray(vertices, dtype=np.float32).reshape(self.n_vertices, 3)
+        out = _aligned_empty((self.n_vertices, 3), np.float32)
+        if self.n_vertices == 0:
+            return out
+        cl.enqueue_copy(self.queue, self._verts, v, is_blocking=False)
+        self._launch_normals()
+        cl.enqueue_copy(self.queue, out, self._nbuf(), is_blocking=True)
+        return out
+
+    def _nbuf(self):
+        if not hasattr(self, "_normals_out"):
+            self._normals_out = self._cl.Buffer(self.context, self._cl.mem_flags.READ_WRITE,
+                                                max(12, 12 * self.n_vertices))
+        return self._normals_out
+
+    def _launch_normals(self) -> None:
+        F = self.n_faces
+        if F:
+            self._k_face_normals(self.queue, (-(-F // LOCAL_SIZE) * LOCAL_SIZE,), (LOCAL_SIZE,),
+                                 np.uint32(F), self._tri, self._verts, self._fn)
+        self._k_vertex_normals(self.queue, self._global, (LOCAL_SIZE,), np.uint32(self.n_vertices),
+                               self._adj_ptr, self._adj, self._fn, self._nbuf())
+
+    def deform_with_normals(self, D: np.ndarray, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``deform`` and ``normals`` of the result, without sending the vertices back up."""
+        cl = self._cl
+        D, T = self._check(D, transforms, batch=False)
+        self._upload_params(self._fill_params(D[None], T[None]))
+        verts = _aligned_empty((self.n_vertices, 3), np.float32)
+        nrm = _aligned_empty((self.n_vertices, 3), np.float32)
+        if self.n_vertices == 0:
+            return verts, nrm
+        self._launch_deform(1, self._verts)
+        self._launch_normals()
+        cl.enqueue_copy(self.queue, verts, self._verts, is_blocking=False)
+        cl.enqueue_copy(self.queue, nrm, self._nbuf(), is_blocking=True)
+        return verts, nrm
+
+    def deform_quantized(self, D: np.ndarray, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One frame as int16 for the wire: ``(q (V, 3) int16, offset (3,), scale (3,) float32)``.
+
+        The same numbers as ``protocol.quantize.quantize_int16`` of ``deform(D, transforms)``:
+        ``vertices ~= offset + q * scale`` with an error of at most ``scale / 2`` per axis.
+        """
+        cl = self._cl
+        D, T = self._check(D, transforms, batch=False)
+        self._upload_params(self._fill_params(D[None], T[None]))
+        q = _aligned_empty((self.n_vertices, 3), np.int16)
+        if self.n_vertices == 0:
+            return q, np.zeros(3, np.float32), np.full(3, 1e-12, np.float32)
+        self._launch_deform(1, self._verts)
+        self._k_minmax(self.queue, (MINMAX_ITEMS,), None, np.uint32(self.n_vertices), self._verts,
+                       self._minmax)
+        cl.enqueue_copy(self.queue, self._minmax_host, self._minmax, is_blocking=True)
+        lo = self._minmax_host[:, 0].min(axis=0)
+        hi = self._minmax_host[:, 1].max(axis=0)
+        # The formula of protocol.quantize.quantize_int16, on the same float32 values.
+        offset = ((lo + hi) / 2).astype(np.float32)
+        scale = np.maximum((hi - lo) / np.float32(65534.0), np.float32(1e-12)).astype(np.float32)
+        self._k_quantize(self.queue, self._global, (LOCAL_SIZE,), np.uint32(self.n_vertices), self._verts,
+                         *(np.float32(x) for x in offset), *(np.float32(x) for x in scale),
+                         self._qbuf())
+        cl.enqueue_copy(self.queue, q, self._qbuf(), is_blocking=True)
+        return q, offset, scale
+
+    def _qbuf(self):
+        if not hasattr(self, "_q"):
+            self._q = self._cl.Buffer(self.context, self._cl.mem_flags.READ_WRITE, max(6, 6 * self.n_vertices))
+        return self._q
