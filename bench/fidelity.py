@@ -39,7 +39,7 @@ METHODS: dict[str, tuple[str, dict]] = {
     "fp-none": ("fp", {"normalisation": "none"}),
     "rbf-imq": ("rbf", {"kernel": "imq", "distance": "euclidean", "affine": True}),
     "rbf-imq-surface": ("rbf", {"kernel": "imq", "distance": "surface", "affine": True}),
-    "rbf-r": ("rbf", {"kernel": "r", "distance": "euclidean"}),
+    "rbf-r": ("rbf", {"kernel": "r", "distance": "euclidean", "affine": True}),
     "rbf-imq-noaffine": ("rbf", {"kernel": "imq", "distance": "euclidean", "affine": False}),
     "rbf-imq-surface-noaffine": ("rbf", {"kernel": "imq", "distance": "surface", "affine": False}),
 }

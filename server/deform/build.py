@@ -33,7 +33,7 @@ ALGORITHM_VERSION = 1
 #: skin error on the ICT expressions in ``bench/fidelity.py`` (see its output).
 DEFAULTS: dict[str, dict] = {
     "fp": {"normalisation": "paper", "neighbour_ratio": 3.0, "attach_distance": None},
-    "rbf": {"kernel": "imq", "shape": 1.0, "affine": True, "distance": "surface", "attach_distance": None},
+    "rbf": {"kernel": "imq", "shape": 1.0, "affine": False, "distance": "surface", "attach_distance": None},
 }
 
 ENGINES = {"fp": feature_point_operator, "rbf": rbf_operator}
