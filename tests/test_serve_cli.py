@@ -1,0 +1,76 @@
+"""``facecast serve``: admin key generation, loopback-only default, flags, and a clean restart."""
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+import httpx
+import pytest
+
+from conftest import RunningServer
+from facecast.server.cli import build_parser
+from facecast.server.commands.serve import is_loopback, make_config
+from facecast.server.errors import InputError
+
+FACE = "default:2k"
+
+
+def parse(*argv: str):
+    argv = ["serve", *argv]
+    return build_parser(argv).parse_args(argv)
+
+
+def test_generated_admin_key_is_printed_kept_and_required(tmp_path):
+    srv = RunningServer(tmp_path / "d", "--face", FACE, "--workers", "0", env={"FACECAST_ADMIN_KEY": ""})
+    srv.start()
+    try:
+        printed = re.findall(r"FACECAST_ADMIN_KEY=(\S+)", srv.log.read_text())
+        kept = (tmp_path / "d" / "admin.key").read_text().strip()
+        assert printed == [kept] and len(kept) >= 32
+        assert (tmp_path / "d" / "admin.key").stat().st_mode & 0o077 == 0
+        assert httpx.get(srv.url + "/v1/jobs", headers={"Authorization": f"Bearer {kept}"}).status_code == 200
+        assert httpx.get(srv.url + "/v1/jobs", headers=srv.admin_headers).status_code == 401
+    finally:
+        srv.stop()
+    # A restart on the same data directory keeps the key and does not print it again.
+    again = RunningServer(tmp_path / "d", "--face", FACE, "--workers", "0", env={"FACECAST_ADMIN_KEY": ""})
+    again.start()
+    try:
+        assert (tmp_path / "d" / "admin.key").read_text().strip() == kept
+        assert httpx.get(again.url + "/v1/jobs", headers={"Authorization": f"Bearer {kept}"}).status_code == 200
+        assert "FACECAST_ADMIN_KEY=" not in again.log.read_text()  # not generated, so not printed again
+    finally:
+        again.stop()
+
+
+def test_non_loopback_address_needs_allow_remote(tmp_path):
+    run = subprocess.run([sys.executable, "-m", "facecast.server.cli", "serve", "--host", "0.0.0.0",
+                          "--data-dir", str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    assert "--allow-remote" in run.stderr and "0.0.0.0" in run.stderr
+    assert not (tmp_path / "admin.key").exists()  # refused before doing anything
+    with pytest.raises(InputError, match="allow-remote"):
+        make_config(parse("--host", "192.0.2.7"))
+    assert make_config(parse("--host", "0.0.0.0", "--allow-remote")).allow_remote
+
+
+@pytest.mark.parametrize("host,loop", [("127.0.0.1", True), ("127.1.2.3", True), ("::1", True),
+                                       ("localhost", True), ("0.0.0.0", False), ("192.0.2.7", False),
+                                       ("::", False)])
+def test_is_loopback(host, loop):
+    assert is_loopback(host) is loop
+
+
+def test_flags_override_environment(tmp_path, monkeypatch):
+    monkeypatch.setenv("FACECAST_PORT", "9001")
+    monkeypatch.setenv("FACECAST_JOB_WORKERS", "3")
+    monkeypatch.setenv("FACECAST_BACKEND", "opencl")
+    cfg = make_config(parse("--port", "9100", "--data-dir", str(tmp_path), "--face", FACE, "--backend", "numpy",
+                            "--device", "1", "--workers", "2"))
+    assert (cfg.port, cfg.data_dir, cfg.face, cfg.backend, cfg.device, cfg.job_workers) == (
+        9100, tmp_path, FACE, "numpy", "1", 2)
+    cfg = make_config(parse())
+    assert (cfg.port, cfg.job_workers, cfg.backend, cfg.host) == (9001, 3, "opencl", "127.0.0.1")
+    with pytest.raises(InputError, match="workers"):
+        make_config(parse("--workers", "-1"))
