@@ -17,7 +17,9 @@ feature-point method of Kshirsagar et al., ``research/seed-000-A.md`` §5):
 - **Jaw** (FAPs 3, 14, 15): a rigid transform of the ``jaw`` group (lower teeth, lower gums,
   tongue): rotation about the x axis through ``face.pivot("jaw")`` by the angle that drops FP 2.1
   by ``open_jaw x MNS``, then translation by ``thrust_jaw x MNS`` (+z) and ``shift_jaw x MW`` (-x).
-  The skin chin points follow it (plus FAP 18 on 2.10).
+  The skin chin points follow it (plus FAP 18 on 2.10). The angle is capped at ``MAX_JAW``; any
+  drop the capped rotation cannot reach is added as a downward translation, so 2.1 always drops
+  by exactly the FAP amount.
 - **Tongue** (43-47): displacements of 6.1-6.4 in jaw-local space (the tongue rides the jaw);
   ``tongue_roll`` lifts 6.3/6.4 by ``tan(angle) x`` their distance from 6.2 across the tongue.
 - **Eyeballs** (23-28): yaw about +y, pitch about +x through the eyeball centre
@@ -42,6 +44,8 @@ from .tables import FAPS, FEATURE_POINTS, FP_FAPS, JAW_SKIN_FPS, TONGUE_FPS
 log = logging.getLogger(__name__)
 
 G = len(RIGID_GROUPS)
+#: Largest jaw rotation (rad); a drop beyond it (a pivot almost straight above the chin) is translated.
+MAX_JAW = 0.5
 _HEAD, _JAW, _EYE_L, _EYE_R = (RIGID_GROUPS.index(n) for n in ("head", "jaw", "eye_l", "eye_r"))
 
 
@@ -198,9 +202,13 @@ class FapRig:
         T[:, :, :3] = np.eye(3)
         # Jaw: rotate so that 2.1 drops by open_jaw, then thrust (+z) and shift (-x).
         pivot = self._pivots["jaw"]
-        a = jaw_angle(self._chin, pivot, faps[3] * u["MNS"]) if self._chin is not None and faps[3] else 0.0
+        drop = faps[3] * u["MNS"]
         t = np.array([-faps[15] * u["MW"], 0.0, faps[14] * u["MNS"]])
-        T[_JAW] = about(rotation("x", a), pivot, t)
+        R = np.eye(3)
+        if self._chin is not None and drop:
+            R = rotation("x", float(np.clip(jaw_angle(self._chin, pivot, drop), -MAX_JAW, MAX_JAW)))
+            t[1] -= drop - (self._chin[1] - (R @ (self._chin - pivot) + pivot)[1])  # rest of the drop
+        T[_JAW] = about(R, pivot, t)
         # Eyeballs: yaw (+y), pitch (+x) about the centre, then thrust along +z.
         for g, (yaw, pitch, thrust) in ((_EYE_L, (23, 25, 27)), (_EYE_R, (24, 26, 28))):
             R = rotation("y", faps[yaw] * u["AU"]) @ rotation("x", faps[pitch] * u["AU"])
