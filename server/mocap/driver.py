@@ -1,0 +1,148 @@
+"""Batch mocap driver: a take file (C3D, TRC, CSV) + a marker layout -> an ``Animation`` for a face.
+
+Pipeline (Sánchez Lorenzo 2006 ch. 4): spike rejection, DCT gap filling, Kalman/RTS filtering
+(``clean``), head pose from the stable markers and its removal (``stabilise``), RBF retargeting of
+the stabilised markers onto the face (``retarget``). The ``Animation`` has ``control_vertices`` =
+the marker vertices on the face, ``FaceState.controls`` = their displacements (face units),
+``FaceState.head`` = the head pose (face axes and units), and ``FaceState.faps`` = FAPs projected
+from markers on feature points (FAP 3 from the jaw marker, 48-50 from the head pose).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ...protocol.markers_file import MarkerTake
+from ..errors import InputError
+from ..faces.face import Face
+from ..state import Animation, FaceState
+from .clean import CleanParams, clean
+from .io import read_take
+from .layout import Layout, load_layout
+from .rig import MarkerRig, match_names
+from .stabilise import head_track, remove_head
+
+log = logging.getLogger(__name__)
+
+__all__ = ["load", "process", "Processed", "find_layout"]
+
+
+@dataclass
+class Processed:
+    """Everything the batch pipeline computed (for benchmarks and tools).
+
+    ``raw``/``cleaned``/``local``: ``(T, L, 3)`` mm in layout marker order (capture frame; local =
+    head removed, in the neutral frame's head pose); ``r (T,3,3)``, ``t (T,3)`` head poses (mm);
+    ``states`` the face states; ``info`` counts from cleaning.
+    """
+
+    take: MarkerTake
+    layout: Layout
+    raw: np.ndarray
+    cleaned: np.ndarray
+    local: np.ndarray
+    r: np.ndarray
+    t: np.ndarray
+    neutral_frame: int
+    rig: MarkerRig
+    states: list[FaceState]
+    info: dict
+
+
+def find_layout(path: Path) -> Path:
+    """The layout beside a take: ``<stem>.layout.json``, else ``layout.json`` in its folder."""
+    for cand in (path.with_name(path.stem + ".layout.json"), path.with_name("layout.json")):
+        if cand.is_file():
+            return cand
+    raise InputError("a mocap take needs a marker layout: pass --layout layout.json (or put "
+                     f"{path.stem}.layout.json beside the take)", where=str(path))
+
+
+def process(take: MarkerTake, face: Face, layout, *, neutral_frame: int | None = None,
+            clean_params: CleanParams | None = None, kernel: str = "imq", mu: float = 2.0,
+            stabilise_method: str = "auto", where: str = "take") -> Processed:
+    """Run the batch pipeline on a take already read (see module docstring)."""
+    layout = load_layout(layout)
+    if take.units is None:
+        take.units = layout.units
+    if take.units is None:
+        raise InputError("units of the take are unknown; declare them in the file or the layout", where=where)
+    idx = match_names(take.names, layout, where)
+    raw = take.in_mm()[:, idx]
+    n = len(raw)
+    if n < 2:
+        raise InputError(f"the take has {n} frame(s); at least 2 are needed", where=where)
+    seen = np.isfinite(raw).all(axis=2)
+    never = [layout.names[i] for i in np.flatnonzero(~seen.any(axis=0))]
+    if never:
+        raise InputError(f"marker(s) never visible in the take: {', '.join(never[:10])}; remove them from the "
+                         "layout", where=where)
+    empty = np.flatnonzero(~seen.any(axis=1))
+    if len(empty):
+        log.warning("%s: %d frame(s) with no visible marker (first: %d); filled from their neighbours", where,
+                    len(empty), int(empty[0]))
+    cleaned, info = clean(raw, take.fps, clean_params)
+    nf = neutral_frame if neutral_frame is not None else (layout.neutral_frame or 0)
+    if not 0 <= nf < n:
+        raise InputError(f"neutral_frame {nf} is outside the take's {n} frames", where=f"{layout.where}: neutral_frame")
+    neutral = cleaned[nf]
+    observed = np.isfinite(raw).all(axis=2)
+    if "rejected" in info:
+        observed &= ~info.pop("rejected")
+    r, t, solved = head_track(cleaned, layout_index(layout, layout.stable), neutral, stabilise_method,
+                              observed=observed)
+    if not solved.any():
+        raise InputError(f"the stable markers ({', '.join(layout.stable)}) never show 3 at once; head motion "
+                         "cannot be removed", where=where)
+    info["head_solved_frames"] = int(solved.sum())
+    local = remove_head(cleaned, r, t)
+    rig = MarkerRig(face, layout, local[nf], kernel=kernel, mu=mu)
+    states = rig.solve_batch(local, r, t, take.fps, 0.0)
+    return Processed(take, layout, raw, cleaned, local, r, t, nf, rig, states, info)
+
+
+def layout_index(layout: Layout, names: list[str]) -> np.ndarray:
+    pos = {n: i for i, n in enumerate(layout.names)}
+    return np.array([pos[n] for n in names], dtype=np.int64)
+
+
+def load(path: Path, face: Face, layout=None, *, units: str | None = None, neutral_frame: int | None = None,
+         filter: str = "rts", kernel: str = "imq", mu: float = 2.0, **options) -> Animation:
+    """Decode a mocap take into an ``Animation`` for ``face``.
+
+    Args:
+        path: ``.c3d``, ``.trc`` or ``.csv``.
+        layout: layout path/dict/``Layout``; None looks beside the take (``find_layout``).
+        units: units of the take, overriding what the file declares.
+        neutral_frame: frame of the actor's neutral face (default: the layout's, else 0).
+        filter: ``rts`` (zero-lag smoother), ``kalman`` (causal, as live) or ``none``.
+        kernel, mu: retarget RBF.
+    """
+    path = Path(path)
+    for k in options:
+        if options[k] is not None and k not in ("progress", "engine", "backend", "device"):
+            log.warning("mocap driver: ignoring option %s=%r", k, options[k])
+    lay = load_layout(layout if layout is not None else find_layout(path))
+    take = read_take(path, units=units or (lay.units if _undeclared(path) else None))
+    proc = process(take, face, lay, neutral_frame=neutral_frame, clean_params=CleanParams(filter=filter),
+                   kernel=kernel, mu=mu, where=str(path))
+    log.info("%s: %d frames at %g fps, %d markers (%d controls), %d occluded samples, %d spikes", path.name,
+             len(proc.states), take.fps, len(lay.names), len(proc.rig.control), proc.info["occluded"],
+             proc.info.get("spikes", 0))
+    return Animation(fps=take.fps, states=proc.states, control_vertices=proc.rig.control_vertices,
+                     source=path.name)
+
+
+def _undeclared(path: Path) -> bool:
+    """True when the file format may not declare units (CSV without a units comment)."""
+    if path.suffix.lower() != ".csv":
+        return False
+    try:
+        with path.open(encoding="utf-8", errors="replace") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return "units=" not in head.split("\n", 1)[0]

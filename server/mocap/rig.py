@@ -1,0 +1,142 @@
+"""The per-take setup shared by the batch driver and the live driver.
+
+``MarkerRig(face, names, layout, neutral_mm)`` matches the take's markers to the layout, places the
+control markers on the face, fits the RBF retarget from the actor's neutral to the face and the
+similarity that carries head poses into face axes. ``rig.solve(local_mm, r, t, time)`` turns one
+stabilised frame into a ``FaceState``.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ...protocol.markers_file import UNITS_MM
+from ..errors import InputError
+from ..faces.face import Face
+from ..state import FaceState, zero_faps
+from .layout import Layout, load_layout, place_markers
+from .retarget import RBFMap
+from .stabilise import euler_from_matrix, pose_in_frame, to_matrix
+
+log = logging.getLogger(__name__)
+
+__all__ = ["MarkerRig", "match_names", "similarity"]
+
+
+def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Least-squares ``dst ~= s Q src + c`` (Umeyama): ``(Q (3,3) rotation, s, c (3,))``."""
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - cs, dst - cd
+    u, sig, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    q = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    s = float((sig * np.array([1.0, 1.0, d])).sum() / max((a**2).sum(), 1e-300))
+    return q, s, cd - s * q @ cs
+
+
+def match_names(take_names: list[str], layout: Layout, where: str = "") -> np.ndarray:
+    """For each layout marker, its index among the take's markers. Markers of the take that the
+    layout does not name are ignored (logged); layout markers missing from the take are an
+    InputError naming them."""
+    index = {n: i for i, n in enumerate(take_names)}
+    missing = [n for n in layout.names if n not in index]
+    if missing:
+        stable = [n for n in missing if n in layout.stable]
+        what = f" (stable: {', '.join(stable)})" if stable else ""
+        raise InputError(f"the take lacks {len(missing)} marker(s) the layout names: {', '.join(missing[:10])}"
+                         f"{'...' if len(missing) > 10 else ''}{what}; the take has {', '.join(take_names[:10])}"
+                         f"{'...' if len(take_names) > 10 else ''}", where=where)
+    extra = [n for n in take_names if n not in set(layout.names)]
+    if extra:
+        log.warning("%s: ignoring %d marker(s) the layout does not name: %s", where or "take", len(extra),
+                    ", ".join(extra[:10]))
+    return np.array([index[n] for n in layout.names], dtype=np.int64)
+
+
+class MarkerRig:
+    """Retargeting set-up for one actor neutral onto one face.
+
+    Args:
+        face: the target face.
+        layout: the marker layout (path, dict or ``Layout``).
+        neutral_mm: ``(L, 3)`` the actor's neutral positions of the layout's markers (layout order),
+            millimetres, NaN where unseen (a control marker must be seen).
+        kernel, mu: the retarget RBF (``imq`` with mu = 2 as in the thesis, or ``r``).
+
+    Attributes:
+        control: ``(K,)`` layout indices of the control markers; ``control_vertices`` their face vertices.
+        stable: layout indices of the stable markers.
+        jaw: position of the jaw marker among the controls (None without one).
+    """
+
+    def __init__(self, face: Face, layout, neutral_mm: np.ndarray, *, kernel: str = "imq", mu: float = 2.0):
+        self.face = face
+        self.layout = load_layout(layout)
+        names = self.layout.names
+        self.neutral = np.asarray(neutral_mm, dtype=np.float64)
+        pos = {n: i for i, n in enumerate(names)}
+        placement = place_markers(self.layout, face, {n: self.neutral[i] for i, n in enumerate(names)})
+        self.control = np.array([pos[n] for n in placement.names], dtype=np.int64)
+        self.control_names = placement.names
+        self.control_vertices = placement.vertices
+        self.placement = placement
+        self.stable = np.array([pos[n] for n in self.layout.stable], dtype=np.int64)
+        unseen = [names[i] for i in self.control if not np.isfinite(self.neutral[i]).all()]
+        if unseen:
+            raise InputError(f"marker(s) {', '.join(unseen[:8])} are not visible in the neutral frame (even after "
+                             "gap filling); choose another neutral_frame or mark them {\"control\": false}",
+                             where=self.layout.where)
+        src = self.neutral[self.control]
+        dst = face.vertices[self.control_vertices].astype(np.float64)
+        self.rbf = RBFMap(src, dst, kernel=kernel, mu=mu)
+        # The frame change actor -> face for head poses (rigid part of the retarget).
+        self.q, self.s, self.c = similarity(src, dst)
+        jaw = self.layout.jaw
+        self.jaw = placement.names.index(jaw) if jaw in placement.names else None
+        try:
+            from ..mpeg4.fapu import measure_fapu
+
+            self.fapu: dict[str, float] | None = measure_fapu(face)
+        except Exception as e:  # a face without feature points has no FAPU: no FAP output
+            log.info("no FAPU for face %s (%s): FAPs from markers are off", face.name, e)
+            self.fapu = None
+        from .to_fap import FapProjection
+
+        self.fap_projection = FapProjection(face, self.placement, self.fapu, self.jaw) if self.fapu else None
+        mm_face = face.mm_per_unit
+        fit = np.linalg.norm(self.s * src @ self.q.T + self.c - dst, axis=1) * mm_face
+        log.info("retarget: %d control markers, actor->face scale %.4g face units/mm (x%.3g after units), "
+                 "rigid fit residual mean %.2f mm", len(src), self.s, self.s * mm_face, fit.mean())
+
+    @property
+    def n_markers(self) -> int:
+        return len(self.layout.names)
+
+    def head_matrix(self, r: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """``(..., 3, 4)`` head transform in face axes and units from a capture-space pose (mm)."""
+        rf, tf = pose_in_frame(r, t, self.q, self.s, self.c)
+        return to_matrix(rf, tf)
+
+    def solve(self, local_mm: np.ndarray, r: np.ndarray, t: np.ndarray, time: float) -> FaceState:
+        """One ``FaceState`` from ``(L, 3)`` stabilised markers (mm, layout order) and the head pose."""
+        d = self.rbf.displacements(local_mm[self.control]).astype(np.float32)
+        head = self.head_matrix(r, t)
+        return self.state(d, head, time)
+
+    def solve_batch(self, local_mm: np.ndarray, r: np.ndarray, t: np.ndarray, fps: float, t0: float = 0.0
+                    ) -> list[FaceState]:
+        """``solve`` for ``(T, L, 3)`` frames at once."""
+        d = self.rbf.displacements(local_mm[:, self.control]).astype(np.float32)
+        heads = self.head_matrix(r, t)
+        return [self.state(d[i], heads[i], t0 + i / fps) for i in range(len(d))]
+
+    def state(self, d: np.ndarray, head: np.ndarray, time: float) -> FaceState:
+        """A ``FaceState`` from ``(K, 3)`` control displacements (face units) and a ``(3, 4)`` head."""
+        faps = self.fap_projection.faps(d, head[:, :3]) if self.fap_projection is not None else zero_faps()
+        return FaceState(t=float(time), faps=faps, controls=d, head=head.astype(np.float64))
+
+
+def units_scale(units: str) -> float:
+    """Millimetres per take unit."""
+    return UNITS_MM[units]

@@ -1,0 +1,169 @@
+"""Head stabilisation: the rigid head motion from the stable markers, removed from all markers.
+
+The thesis (Sánchez Lorenzo 2006 §4.2.3) fits the rigid transform that best maps the stable markers
+of the neutral frame onto the current frame (least squares) by Gauss-Newton on an exponential map;
+the same optimum has a closed form (Kabsch / Horn: SVD of the cross-covariance, with a reflection
+guard), used here. With exactly three stable markers, Kshirsagar's construction (two difference
+unit vectors and their cross product as a third, R = M' M^-1, re-orthonormalised) is available.
+Convention: ``frame ~= R @ neutral + t``; stabilised = ``R.T @ (frame - t)``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["kabsch", "three_marker", "solve_pose", "head_track", "remove_head", "to_matrix",
+           "pose_in_frame", "euler_from_matrix", "matrix_from_euler"]
+
+
+def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid ``(R (3,3), t (3,))`` with ``dst ~= src @ R.T + t`` for ``(N, 3)`` points
+    (N >= 3, not collinear). A reflection (det < 0) is never returned."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    cs, cd = w @ src, w @ dst
+    h = (src - cs).T @ ((dst - cd) * w[:, None])
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return r, cd - r @ cs
+
+
+def _orthonormalise(m: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(m)
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def three_marker(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Kshirsagar's rigid pose from three markers ``(3, 3)`` (rows = markers): with unit difference
+    vectors ``m1 = p2 - p1``, ``m2 = p3 - p2`` and ``m3 = m1 x m2`` (normalised) in both frames,
+    ``R = M' M^-1`` (re-orthonormalised by SVD, since data is noisy) and ``t = p'_1 - R p_1``."""
+    def frame(p: np.ndarray) -> np.ndarray:
+        m1 = p[1] - p[0]
+        m2 = p[2] - p[1]
+        m1 = m1 / np.linalg.norm(m1)
+        m2 = m2 / np.linalg.norm(m2)
+        m3 = np.cross(m1, m2)
+        m3 = m3 / np.linalg.norm(m3)
+        return np.c_[m1, m2, m3]
+
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    r = _orthonormalise(frame(dst) @ np.linalg.inv(frame(src)))
+    # the translation that best fits all three, not just p1 (identical for exact data)
+    return r, dst.mean(axis=0) - r @ src.mean(axis=0)
+
+
+def solve_pose(neutral: np.ndarray, frame: np.ndarray, method: str = "auto") -> tuple[np.ndarray, np.ndarray] | None:
+    """Pose of one frame from ``(S, 3)`` stable markers (NaN = occluded) against their neutral
+    positions; None with fewer than 3 visible (or degenerate). ``method``: ``kabsch``, ``three``
+    (Kshirsagar, needs exactly 3 visible) or ``auto`` (three-marker when exactly 3 are visible)."""
+    ok = np.isfinite(frame).all(axis=1) & np.isfinite(neutral).all(axis=1)
+    n = int(ok.sum())
+    if n < 3:
+        return None
+    src, dst = neutral[ok], frame[ok]
+    spread = np.linalg.svd(src - src.mean(axis=0), compute_uv=False)
+    if spread[1] < 1e-6 * max(spread[0], 1e-12):
+        return None  # collinear: rotation about the line is undetermined
+    if method == "three" or (method == "auto" and n == 3):
+        return three_marker(src[:3], dst[:3])
+    return kabsch(src, dst)
+
+
+def head_track(xyz: np.ndarray, stable: np.ndarray, neutral: np.ndarray, method: str = "auto",
+               refine: int = 2, observed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-frame head pose of ``(T, M, 3)`` markers from the ``stable`` marker indices against the
+    ``(M, 3)`` neutral. Returns ``(R (T, 3, 3), t (T, 3), solved (T,) bool)``; a frame with fewer than
+    3 visible stable markers takes the pose of the nearest solved frame (identity if none).
+
+    With ``refine`` > 0 the reference shape of the stable markers is re-estimated as the mean of
+    their stabilised positions over the take and the poses solved again (generalised Procrustes),
+    so that the noise of one neutral frame does not tilt every pose; the reference is re-anchored
+    on the neutral frame's pose each time, so poses stay relative to the neutral.
+
+    ``observed`` ``(T, M) bool`` marks samples that were measured (not gap-filled): a frame with at
+    least 3 measured stable markers is solved from those only.
+    """
+    ref = np.asarray(neutral, dtype=np.float64)[stable]
+    xs = np.asarray(xyz, dtype=np.float64)[:, stable]
+    if observed is not None:
+        obs = np.asarray(observed, dtype=bool)[:, stable]
+        use = obs & (obs.sum(axis=1, keepdims=True) >= 3) | (obs.sum(axis=1, keepdims=True) < 3)
+        xs = np.where(use[..., None], xs, np.nan)
+    rs, ts, solved = _track(xs, ref, method)
+    for _ in range(refine if solved.sum() > 1 else 0):
+        loc = remove_head(xs[solved], rs[solved], ts[solved])
+        mean = np.nanmean(loc, axis=0)
+        ok = np.isfinite(mean).all(axis=1)
+        if ok.sum() < 3:
+            break
+        # express the mean shape in the neutral frame's pose (least squares onto the old reference)
+        fit = kabsch(mean[ok], ref[ok])
+        new = mean @ fit[0].T + fit[1]
+        ref = np.where(ok[:, None], new, ref)
+        rs, ts, solved = _track(xs, ref, method)
+    return rs, ts, solved
+
+
+def _track(xs: np.ndarray, ref: np.ndarray, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    t_n = len(xs)
+    rs = np.tile(np.eye(3), (t_n, 1, 1))
+    ts = np.zeros((t_n, 3))
+    solved = np.zeros(t_n, dtype=bool)
+    for f in range(t_n):
+        pose = solve_pose(ref, xs[f], method)
+        if pose is not None:
+            rs[f], ts[f] = pose
+            solved[f] = True
+    if solved.any() and not solved.all():
+        idx = np.flatnonzero(solved)
+        nearest = idx[np.clip(np.searchsorted(idx, np.arange(t_n)), 0, len(idx) - 1)]
+        prev = idx[np.clip(np.searchsorted(idx, np.arange(t_n)) - 1, 0, len(idx) - 1)]
+        pick = np.where(np.abs(prev - np.arange(t_n)) <= np.abs(nearest - np.arange(t_n)), prev, nearest)
+        rs[~solved], ts[~solved] = rs[pick[~solved]], ts[pick[~solved]]
+    return rs, ts, solved
+
+
+def remove_head(xyz: np.ndarray, r: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Stabilised markers ``R^T (x - t)``: ``(T, M, 3)`` with ``r (T, 3, 3)``, ``t (T, 3)`` (or one
+    frame ``(M, 3)`` with ``(3, 3)``, ``(3,)``)."""
+    return np.einsum("...mj,...jk->...mk", np.asarray(xyz) - t[..., None, :], r)
+
+
+def to_matrix(r: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(..., 3, 4)`` ``[R | t]``."""
+    return np.concatenate([r, t[..., :, None]], axis=-1)
+
+
+def pose_in_frame(r: np.ndarray, t: np.ndarray, q: np.ndarray, s: float, c: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """A rigid motion ``x' = R x + t`` of capture space expressed in another frame ``f = s Q x + c``
+    (e.g. the face's): ``R_f = Q R Q^T``, ``t_f = c - R_f c + s Q t``. Works on stacks ``(..., 3, 3)``."""
+    rf = q @ r @ q.T
+    tf = c - np.einsum("...ij,j->...i", rf, c) + s * np.einsum("ij,...j->...i", q, t)
+    return rf, tf
+
+
+def euler_from_matrix(r: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` angles (pitch about +x, yaw about +y, roll about +z; radians) with
+    ``R = Ry(yaw) @ Rx(pitch) @ Rz(roll)``. In MPEG-4 axes these are FAPs 48 (head_pitch: +down),
+    49 (head_yaw: +towards the face's left) and 50 (head_roll: top towards the face's right)."""
+    r = np.asarray(r, dtype=np.float64)
+    pitch = np.arcsin(np.clip(-r[..., 1, 2], -1.0, 1.0))
+    yaw = np.arctan2(r[..., 0, 2], r[..., 2, 2])
+    roll = np.arctan2(r[..., 1, 0], r[..., 1, 1])
+    return np.stack([pitch, yaw, roll], axis=-1)
+
+
+def matrix_from_euler(angles: np.ndarray) -> np.ndarray:
+    """Inverse of ``euler_from_matrix``: ``(..., 3)`` (pitch, yaw, roll) -> ``(..., 3, 3)``."""
+    a = np.asarray(angles, dtype=np.float64)
+    p, y, r = a[..., 0], a[..., 1], a[..., 2]
+    one, zero = np.ones_like(p), np.zeros_like(p)
+    rx = np.stack([one, zero, zero, zero, np.cos(p), -np.sin(p), zero, np.sin(p), np.cos(p)], -1).reshape(*p.shape, 3, 3)
+    ry = np.stack([np.cos(y), zero, np.sin(y), zero, one, zero, -np.sin(y), zero, np.cos(y)], -1).reshape(*p.shape, 3, 3)
+    rz = np.stack([np.cos(r), -np.sin(r), zero, np.sin(r), np.cos(r), zero, zero, zero, one], -1).reshape(*p.shape, 3, 3)
+    return ry @ rx @ rz
