@@ -1,0 +1,216 @@
+"""Batch rendering: real .fap files -> .glb/.npz/.fap, re-imported with pygltflib; CLI errors; atomic output."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pygltflib
+import pytest
+
+from facecast.protocol.fap_file import read_fap
+from facecast.server.drivers.fap import load as load_fap
+from facecast.server.errors import InputError
+from facecast.server.output.atomic import atomic_path
+from facecast.server.output.gltf import encode_glb
+from facecast.server.output.npz import read_npz
+from facecast.server.pipeline import Animator
+from facecast.server.render import render_file
+from test_mpeg4 import synthetic_face
+
+XFACE = ["anger.fap", "beg.fap", "disgust.fap", "happy-for.fap", "joy.fap"]
+MOUTH_FPS = ("2.2", "2.3", "8.1", "8.2", "8.3", "8.4")
+BROW_FPS = ("4.1", "4.2", "4.3", "4.4", "4.5", "4.6")
+
+
+@pytest.fixture(scope="module")
+def small_face():
+    """The small test face (``default:2k`` once the built-in head exists, else a synthetic head)."""
+    from facecast.server.faces import load_face
+
+    try:
+        return load_face("default:2k")
+    except ModuleNotFoundError:
+        return synthetic_face()
+
+
+@pytest.fixture(scope="module")
+def animator(small_face):
+    return Animator(small_face, backend="numpy")
+
+
+def read_glb(path: Path) -> dict:
+    """Decode a .glb with pygltflib into plain arrays (rest, targets, times, weights, extras)."""
+    g = pygltflib.GLTF2().load_binary(str(path))
+    blob = g.binary_blob()
+
+    def acc(i: int) -> np.ndarray:
+        a = g.accessors[i]
+        v = g.bufferViews[a.bufferView]
+        dtype = {5126: np.float32, 5125: np.uint32}[a.componentType]
+        n = {"SCALAR": 1, "VEC3": 3}[a.type]
+        off = v.byteOffset + (a.byteOffset or 0)
+        return np.frombuffer(blob, dtype=dtype, count=a.count * n, offset=off).reshape(a.count, n).squeeze()
+
+    prim = g.meshes[0].primitives[0]
+    sampler = g.animations[0].samplers[0]
+    targets = np.stack([acc(t["POSITION"] if isinstance(t, dict) else t.POSITION) for t in prim.targets])
+    times = acc(sampler.input).reshape(-1)
+    weights = acc(sampler.output).reshape(len(times), len(targets))
+    return {"gltf": g, "rest": acc(prim.attributes.POSITION), "normals": acc(prim.attributes.NORMAL),
+            "indices": acc(prim.indices).reshape(-1, 3), "targets": targets, "times": times, "weights": weights,
+            "extras": g.extras["facecast"]}
+
+
+def frames_of(glb: dict) -> np.ndarray:
+    """``(T, V, 3)`` vertices the glTF animation shows at its keyframes."""
+    return glb["rest"][None] + np.einsum("tm,mvc->tvc", glb["weights"], glb["targets"])
+
+
+def _fp_motion(face, frames, fps_ids) -> float:
+    ids = [face.feature_points[p] for p in fps_ids if p in face.feature_points]
+    return float(np.linalg.norm(frames[:, ids] - face.vertices[ids], axis=2).max())
+
+
+@pytest.mark.parametrize("name", XFACE)
+def test_real_fap_file_renders_to_a_glb_that_pygltflib_reads(data_dir, small_face, animator, tmp_path, name):
+    src = data_dir / "xface" / "faps" / name
+    fap = read_fap(src.read_text(), where=name)
+    out = tmp_path / (src.stem + ".glb")
+    calls = []
+    summary = render_file(src, out, face=small_face, backend="numpy", progress=lambda d, t: calls.append((d, t)))
+    assert calls[-1] == (len(fap), len(fap))
+    glb = read_glb(out)
+    assert glb["gltf"].asset.version == "2.0"
+    assert len(glb["times"]) == len(fap) == glb["extras"]["frames"] == summary["frames"]
+    assert glb["times"][-1] == pytest.approx((len(fap) - 1) / 25.0)
+    np.testing.assert_array_equal(glb["indices"], small_face.triangles)
+    shown = frames_of(glb)
+    assert np.isfinite(shown).all()
+    # The glTF shows what the animator computes, within the recorded error bound.
+    expected = animator.render(load_fap(src, small_face))
+    err_mm = np.linalg.norm(shown - expected, axis=2).max() * small_face.mm_per_unit
+    assert err_mm <= glb["extras"]["error_bound_mm"] + 1e-3
+    assert glb["extras"]["max_error_mm"] <= glb["extras"]["tolerance_mm"] + 1e-6
+    # Mouth always moves; brows move when the file drives them (joy and happy-for leave them alone).
+    assert _fp_motion(small_face, shown, MOUTH_FPS) * small_face.mm_per_unit > 1.0
+    if any(fr.faps().get(k, 0) for fr in fap.frames for k in range(31, 39)):
+        fapu = animator.rig.fapu  # brow control displacements (head-local, before the head pose)
+        brow_d = [animator.solve(s)[0] for s in load_fap(src, small_face).states]
+        idx = [i for i, n in enumerate(animator.rig.fp_ids) if set(n.split("+")) & set(BROW_FPS)]
+        assert max(np.abs(d[idx]).max() for d in brow_d) > 50 * fapu["ENS"]
+
+
+@pytest.mark.slow
+def test_glb_of_ict_head(data_dir, tmp_path):
+    """The scanned head in centimetres: node scaled to metres, jaw opens, lower teeth follow."""
+    from facecast.server.faces import load_face
+
+    face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
+    out = tmp_path / "joy.glb"
+    render_file(data_dir / "xface" / "faps" / "joy.fap", out, face=face, backend="numpy")
+    glb = read_glb(out)
+    assert glb["gltf"].nodes[0].scale == pytest.approx([0.01] * 3)
+    assert len(glb["times"]) == 108
+    shown = frames_of(glb)
+    assert np.isfinite(shown).all()
+    teeth = face.part("teeth_lower")
+    drop = (face.vertices[teeth, 1] - shown[:, teeth, 1]).mean(axis=1)
+    assert drop.max() > 0.3  # cm: the jaw opens (FAP 3 reaches 314 MNS)
+    assert _fp_motion(face, shown, MOUTH_FPS) > 0.3
+
+
+def test_npz_and_fap_outputs(data_dir, small_face, animator, tmp_path):
+    src = data_dir / "xface" / "faps" / "beg.fap"
+    render_file(src, tmp_path / "beg.npz", face=small_face, backend="numpy")
+    vertices, faces, fps = read_npz(tmp_path / "beg.npz")
+    assert vertices.shape == (107, small_face.n_vertices, 3) and vertices.dtype == np.float32
+    np.testing.assert_array_equal(faces, small_face.triangles)
+    assert fps == 25.0
+    np.testing.assert_allclose(vertices[40], animator.frame(load_fap(src, small_face).states[40]), atol=1e-5)
+    render_file(src, tmp_path / "beg.fap", face=small_face)
+    again = load_fap(tmp_path / "beg.fap", small_face)
+    orig = load_fap(src, small_face)
+    assert again.fps == orig.fps and len(again) == len(orig)
+    np.testing.assert_array_equal(np.array([s.faps for s in again.states]), np.array([s.faps for s in orig.states]))
+
+
+def test_masked_faps_hold_their_previous_value(tmp_path):
+    mask = lambda *k: " ".join("1" if i in k else "0" for i in range(1, 69))  # noqa: E731
+    p = tmp_path / "m.fap"
+    p.write_text(f"2.1 m 10 3\n{mask(3, 19)}\n0 100 50\n{mask(3)}\n1 120\n{mask(19)}\n2 7\n")
+    hold = load_fap(p, None)
+    assert [(s.faps[3], s.faps[19]) for s in hold.states] == [(100, 50), (120, 50), (120, 7)]
+    zero = load_fap(p, None, masked="zero")
+    assert [(s.faps[3], s.faps[19]) for s in zero.states] == [(100, 50), (120, 0), (0, 7)]
+    assert [s.t for s in hold.states] == [0.0, 0.1, 0.2]
+
+
+def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    return subprocess.run([sys.executable, "-m", "facecast.server.cli", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=120)
+
+
+MASK = " ".join(["0", "0", "1"] + ["0"] * 65)
+BAD_FILES = {
+    "truncated.fap": (f"2.1 t 25 2\n{MASK}\n0 5\n{MASK}\n", 4),
+    "shortmask.fap": ("2.1 t 25 1\n" + " ".join(["0"] * 60) + "\n0\n", 2),
+    "nonnumeric.fap": (f"2.1 t 25 1\n{MASK}\n0 x5\n", 3),
+}
+
+
+def test_cli_reports_malformed_fap_with_file_and_line_and_leaves_no_output(tmp_path):
+    for name, (text, line) in BAD_FILES.items():
+        (tmp_path / name).write_text(text)
+        r = _cli("render", name, "-o", "out.glb", "--face", "default:2k", "--backend", "numpy", cwd=tmp_path)
+        assert r.returncode == 2, r.stderr
+        msg = r.stderr.strip().splitlines()[-1]
+        assert msg.startswith(f"facecast: {name}:{line}:"), msg
+        assert not (tmp_path / "out.glb").exists() and not list(tmp_path.glob(".out.glb*"))
+    r = _cli("render", "truncated.fap", "-o", "out.obj", cwd=tmp_path)
+    assert r.returncode == 2 and "unsupported output type '.obj'" in r.stderr
+
+
+def test_cli_renders_and_faces_describes(data_dir, tmp_path):
+    r = _cli("render", str(data_dir / "xface" / "faps" / "joy.fap"), "-o", "joy.fap", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert len(read_fap((tmp_path / "joy.fap").read_text())) == 108
+    assert "it/s" not in r.stderr and "frame/s" not in r.stderr  # no progress bar off a terminal
+    r = _cli("faces", cwd=tmp_path)
+    assert r.returncode == 0 and r.stdout.startswith("default")
+    r = _cli("faces", str(data_dir / "ict-facekit" / "generic_neutral_mesh.obj"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "26719 vertices" in r.stdout and "84 of 84" in r.stdout and "IRISD0" in r.stdout
+
+
+def test_failed_writes_leave_nothing_and_keep_the_old_file(tmp_path, small_face):
+    target = tmp_path / "x.glb"
+    target.write_bytes(b"old")
+    with pytest.raises(ValueError):
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"partial")
+            raise ValueError("boom")
+    assert target.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["x.glb"]
+    bad = np.full((2, small_face.n_vertices, 3), np.nan, np.float32)
+    with pytest.raises(ValueError, match="NaN"):
+        encode_glb(bad, small_face.vertices, small_face.triangles, 25)
+    with pytest.raises(InputError, match="input file not found"):
+        render_file(tmp_path / "missing.fap", tmp_path / "y.glb", face=small_face)
+    assert not (tmp_path / "y.glb").exists()
+
+
+def test_glb_basis_is_exact_for_a_short_clip_and_bounded_for_a_long_one(small_face, rng):
+    V = small_face.n_vertices
+    T = 5
+    frames = small_face.vertices + rng.normal(0, 1.0, (T, V, 3)).astype(np.float32)
+    data, rec = encode_glb(frames, small_face.vertices, small_face.triangles, 10, tolerance_mm=0.01)
+    assert rec["targets"] == T and rec["max_error_mm"] < 0.01
+    # 300 frames of a 3-dimensional motion: 3 targets suffice.
+    basis = rng.normal(0, 1.0, (3, V, 3)).astype(np.float32)
+    w = np.sin(np.arange(300)[:, None] * np.array([0.05, 0.11, 0.23]))
+    frames = small_face.vertices + np.einsum("tm,mvc->tvc", w, basis).astype(np.float32)
+    data, rec = encode_glb(frames, small_face.vertices, small_face.triangles, 30, tolerance_mm=0.01)
+    assert rec["targets"] == 3 and rec["frames"] == 300 and rec["max_error_mm"] <= 0.01
