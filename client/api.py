@@ -219,6 +219,9 @@ class produce:
         ws = await _connect(self.url)
         try:
             await ws.send(dump_message(self.hello))
+        except ConnectionClosed:
+            pass  # refused at once: the error message is still waiting to be read
+        try:
             first = await ws.recv()
         except ConnectionClosed:
             first = None
@@ -368,3 +371,71 @@ def summary(frames_: list[WatchedFrame], *, first_seq: int | None = None) -> dic
     })
     return out
 
+
+
+# ---------------------------------------------------------------------------------------------- pacing
+
+class Pacer:
+    """Sleeps until media time ``t`` (seconds) is due on the wall clock, at ``speed`` x real time."""
+
+    def __init__(self, speed: float = 1.0) -> None:
+        self.speed = speed
+        self.t0 = time.monotonic()
+
+    async def until(self, t: float) -> None:
+        if self.speed <= 0:  # as fast as possible
+            await asyncio.sleep(0)
+            return
+        delay = self.t0 + t / self.speed - time.monotonic()
+        if delay > 0:
+            await asyncio.sleep(delay)
+
+
+def fap_frames(fap: Any) -> list[tuple[float, dict[int, float], tuple | None, tuple | None]]:
+    """A ``protocol.fap_file.FapFile`` -> ``(t, faps, viseme, expression)`` per frame (masked FAPs only;
+    the server keeps unsent FAPs at their previous value, like the batch reader)."""
+    fps = float(fap.fps)
+    out = []
+    for i, fr in enumerate(fap.frames):
+        vis = exp = None
+        if not fr.single_high_level:
+            vis = tuple(int(x) for x in fr.viseme[:3]) if fr.viseme is not None else None
+            exp = tuple(int(x) for x in fr.expression[:4]) if fr.expression is not None else None
+        out.append((i / fps, {k: float(v) for k, v in fr.faps().items()}, vis, exp))
+    return out
+
+
+async def stream_fap(producer: Producer, fap: Any, *, speed: float = 1.0, binary: bool = True,
+                     t_offset: float = 0.0) -> int:
+    """Send every frame of a ``FapFile`` paced at its frame rate; returns the number of frames sent."""
+    pacer = Pacer(speed)
+    n = 0
+    for t, faps, vis, exp in fap_frames(fap):
+        await pacer.until(t)
+        await producer.send_faps(faps, t + t_offset, viseme=vis, expression=exp, binary=binary)
+        n += 1
+    return n
+
+
+async def stream_pcm(producer: Producer, samples: np.ndarray, rate: int, *, chunk: float = 0.02,
+                     speed: float = 1.0) -> int:
+    """Send mono int16/float32 ``samples`` in ``chunk``-second pieces at real time; returns chunks sent."""
+    pacer = Pacer(speed)
+    step = max(1, int(round(chunk * rate)))
+    n = 0
+    for start in range(0, len(samples), step):
+        await pacer.until(start / rate)
+        await producer.send_pcm(samples[start:start + step], rate=rate, sample_offset=start)
+        n += 1
+    return n
+
+
+async def stream_markers(producer: Producer, xyz: np.ndarray, fps: float, *, t0: float = 0.0,
+                         speed: float = 1.0) -> int:
+    """Send ``(T, M, 3)`` marker positions frame by frame at ``fps``; returns frames sent."""
+    pacer = Pacer(speed)
+    for i in range(len(xyz)):
+        t = t0 + i / fps
+        await pacer.until(t - t0)
+        await producer.send_markers(np.asarray(xyz[i], np.float32), t)
+    return len(xyz)

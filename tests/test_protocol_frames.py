@@ -12,6 +12,7 @@ from hypothesis.extra import numpy as hnp
 
 from facecast.protocol import frames as fr
 from facecast.protocol.errors import FrameError, ProtocolError
+from facecast.protocol.quantize import quantize_int16
 
 finite32 = st.floats(-1e6, 1e6, width=32)
 
@@ -66,6 +67,18 @@ def test_i16_round_trip(v):
     err = np.abs(f.positions() - v)
     # half a quantisation step, plus float32 rounding of offset + q * scale
     assert np.all(err <= f.scale * 0.5 + 1e-6 * (np.abs(v).max(axis=0) + 1) * 4)
+
+
+@given(vertex_arrays(200).filter(lambda a: len(a) > 0))
+def test_fast_quantiser_equals_the_reference(v):
+    for a, b in zip(fr.quantize_int16_fast(v), quantize_int16(v)):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
+def test_empty_vertex_frames_round_trip():
+    for enc in ("f32", "i16"):
+        f = fr.decode(fr.encode_vertices(np.zeros((0, 3), np.float32), enc, seq=0, t=0))
+        assert f.positions().shape == (0, 3)
 
 
 @given(hnp.arrays(np.int16, st.integers(0, 400)), st.sampled_from([8000, 16000, 44100, 48000]),

@@ -265,6 +265,11 @@ async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
             continue
         except (FrameError, MessageError, ValueError) as e:
             session.stats["frames_rejected"] += 1
+            if seq is None and data is not None:
+                try:  # name the offending frame when its header is readable
+                    seq = frames.parse_header(data).seq
+                except FrameError:
+                    pass
             await ws.send_text(_error(CloseCode.BAD_REQUEST, f"frame dropped: {e}", where=getattr(e, "where", ""),
                                       seq=seq))
             continue

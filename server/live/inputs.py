@@ -25,9 +25,6 @@ DRIVERS: dict[str, tuple[str, str]] = {
     "markers": ("facecast.server.mocap.live", "MarkerLiveDriver"),
 }
 
-#: Look-ahead asked of the audio driver, seconds (latency traded for coarticulation).
-AUDIO_LOOKAHEAD = 0.06
-
 
 class InputUnavailable(Exception):
     """The driver for an input kind is not installed (close code 4503)."""
@@ -100,8 +97,11 @@ class AudioInput:
         self.kinds = frozenset({frames.Kind.PCM_I16 if fmt == "i16" else frames.Kind.PCM_F32})
         cls = load_driver_class("audio")
         try:
-            self.driver = cls(face, hello.rate, lookahead=AUDIO_LOOKAHEAD)
-        except (ValueError, TypeError) as e:
+            try:
+                self.driver = cls(face, hello.rate, fps=fps)
+            except TypeError:  # a driver without an output-rate parameter
+                self.driver = cls(face, hello.rate)
+        except ValueError as e:
             raise BadHello(f"the audio driver refused this hello: {e}", where="hello") from None
         self.control_vertices = getattr(self.driver, "control_vertices", None)
 

@@ -34,13 +34,18 @@ STATS_INTERVAL = 2.0
 
 
 class Viewer:
-    """One viewer's outbox: a latest-frame slot plus a few control messages (both bounded)."""
+    """One viewer's outbox: a latest-frame slot plus a few control messages (both bounded).
+
+    Frames and control messages leave in the order they were put in, except that a newer frame
+    replaces an unsent one.
+    """
 
     def __init__(self, encoding: str) -> None:
         self.encoding = encoding
-        self.slot: bytes | None = None
-        self.control: deque[str] = deque(maxlen=MAX_CONTROL)
+        self.slot: tuple[int, bytes] | None = None
+        self.control: deque[tuple[int, str]] = deque(maxlen=MAX_CONTROL)
         self.wake = asyncio.Event()
+        self._n = 0  # order of offer/say calls
         self.sent = 0
         self.skipped = 0
         self.closing: tuple[int, str] | None = None  # (close code, JSON error) when the server ends it
@@ -48,14 +53,16 @@ class Viewer:
     def offer(self, frame: bytes) -> bool:
         """Put ``frame`` in the slot; True if it replaced an unsent one (a skipped frame)."""
         replaced = self.slot is not None
-        self.slot = frame
+        self._n += 1
+        self.slot = (self._n, frame)
         if replaced:
             self.skipped += 1
         self.wake.set()
         return replaced
 
     def say(self, text: str) -> None:
-        self.control.append(text)
+        self._n += 1
+        self.control.append((self._n, text))
         self.wake.set()
 
     def end(self, code: int, error_json: str) -> None:
@@ -67,11 +74,11 @@ class Viewer:
         while True:
             if self.closing is not None:
                 return "close", self.closing
-            if self.control:
-                return "text", self.control.popleft()
-            if self.slot is not None:
-                frame, self.slot = self.slot, None
+            if self.slot is not None and (not self.control or self.slot[0] < self.control[0][0]):
+                frame, self.slot = self.slot[1], None
                 return "bytes", frame
+            if self.control:
+                return "text", self.control.popleft()[1]
             self.wake.clear()
             await self.wake.wait()
 
@@ -113,6 +120,7 @@ class LiveSession:
         self._deform_total = 0.0
         self._last_stats = time.monotonic()
         self.closed = False
+        self._status_due = False
         self._worker = asyncio.get_running_loop().create_task(self._run(), name=f"live-{spec.id}")
 
     # -- producer side -----------------------------------------------------------------------------
@@ -131,8 +139,13 @@ class LiveSession:
             self._wake.set()
 
     def set_producer(self, producer: Any) -> None:
+        """A producer connected (tell viewers now) or left (tell them once its frames are out)."""
         self.producer = producer
-        self.broadcast_status()
+        if producer is not None:
+            self.broadcast_status()
+        else:
+            self._status_due = True
+            self._wake.set()
 
     # -- viewers -----------------------------------------------------------------------------------
     def add_viewer(self, viewer: Viewer) -> None:
@@ -173,6 +186,9 @@ class LiveSession:
         loop = asyncio.get_running_loop()
         while not self.closed:
             if not self.pending:
+                if self._status_due:
+                    self._status_due = False
+                    self.broadcast_status()
                 self._wake.clear()
                 await self._wake.wait()
                 continue

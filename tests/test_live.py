@@ -1,0 +1,333 @@
+"""Live sessions against a real server on loopback, with the real asyncio client.
+
+One producer streams a real .fap file to three viewers; the float32 frames they receive must equal
+a batch render (``Animator.frame``, same face, same NumPy backend) exactly. Then the refusals (tokens,
+roles, limits, bad frames) and vanishing peers.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import struct
+
+import httpx
+import numpy as np
+import pytest
+
+from facecast.client.api import (LiveError, SessionAdmin, fap_frames, produce, stream_fap, summary, watch)
+from facecast.protocol import frames
+from facecast.protocol.errors import CloseCode
+from facecast.protocol.fap_file import read_fap
+from facecast.protocol.messages import ProducerHello
+
+from conftest import RunningServer
+
+import os
+#: Face of the test sessions (override to run against another server face, e.g. one in FACECAST_FACES).
+FACE = os.environ.get("FACECAST_TEST_LIVE_FACE", "default:2k")
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    s = RunningServer(tmp_path_factory.mktemp("live"), "--face", FACE, "--backend", "numpy", "--workers", "0",
+                      env={"FACECAST_MAX_SESSIONS": "6"}).start()
+    yield s
+    s.stop()
+
+
+def run(coro, timeout: float = 120):
+    return asyncio.run(asyncio.wait_for(coro, timeout))
+
+
+async def _collect(url, sid, token, *, encoding="f32", until_end=True, limit=None, started=None):
+    got = []
+    async with watch(url, sid, token, encoding=encoding, until_producer_leaves=until_end) as w:
+        if started is not None:
+            started.set()
+        async for f in w:
+            got.append(f)
+            if limit is not None and len(got) >= limit:
+                break
+    return got
+
+
+@pytest.fixture(scope="module")
+def joy(data_dir):
+    return read_fap((data_dir / "xface/faps/joy.fap").read_text(), where="joy.fap")
+
+
+def test_one_producer_three_viewers_equal_batch_render(live, joy):
+    from facecast.server.drivers.fap import to_animation
+    from facecast.server.api.store import FaceStore
+    from facecast.server.pipeline import Animator
+
+    async def main():
+        async with SessionAdmin(live.url, live.admin_key) as admin:
+            s = await admin.create(face=FACE, input="fap", fps=float(joy.fps))
+            ready = [asyncio.Event() for _ in range(3)]
+            viewers = [asyncio.create_task(_collect(live.url, s.id, s.viewer_token, started=ev)) for ev in ready]
+            await asyncio.gather(*(ev.wait() for ev in ready))
+            async with produce(live.url, s.id, s.producer_token) as p:
+                sent = await stream_fap(p, joy, speed=4.0)
+                errors = list(p.errors)
+            got = await asyncio.gather(*viewers)
+            info = await admin.info(s.id)
+            await admin.close(s.id)
+            return s, sent, errors, got, info
+
+    s, sent, errors, got, info = run(main())
+    assert errors == [] and sent == len(joy.frames)
+    animation = to_animation(joy)
+    animator = Animator(FaceStore().face(FACE), backend="numpy")
+    assert s.vertex_count == animator.face.n_vertices
+    expected = {}
+    for frames_ in got:
+        assert frames_, "a viewer received no frames"
+        assert frames_[-1].frame.header.seq == len(joy.frames) - 1  # the newest frame always arrives
+        for f in frames_:
+            h = f.frame.header
+            assert h.kind is frames.Kind.VERTICES_F32 and f.frame.vertices.shape == (s.vertex_count, 3)
+            assert h.t == pytest.approx(animation.states[h.seq].t)
+            assert h.wall > 0 and f.latency is not None
+            if h.seq not in expected:
+                expected[h.seq] = animator.frame(animation.states[h.seq])
+            np.testing.assert_array_equal(f.frame.vertices, expected[h.seq])
+    assert info.stats.frames_in == sent and info.stats.states == sent
+    # the frames differ over time (the face moves), so equality above is not trivial
+    seqs = sorted(expected)
+    assert any(not np.array_equal(expected[seqs[0]], expected[k]) for k in seqs)
+
+
+def test_int16_viewer_and_json_fap_frames(live, joy):
+    from facecast.server.drivers.fap import to_animation
+    from facecast.server.api.store import FaceStore
+    from facecast.server.pipeline import Animator
+
+    async def main():
+        async with SessionAdmin(live.url, live.admin_key) as admin:
+            s = await admin.create(face=FACE)
+            started = asyncio.Event()
+            viewer = asyncio.create_task(_collect(live.url, s.id, s.viewer_token, encoding="i16", started=started))
+            await started.wait()
+            short = type(joy)(fps=joy.fps, frames=joy.frames[:20])
+            async with produce(live.url, s.id, s.producer_token) as p:
+                await stream_fap(p, short, speed=4.0, binary=False)
+            got = await viewer
+            await admin.close(s.id)
+            return got
+
+    got = run(main())
+    animator = Animator(FaceStore().face(FACE), backend="numpy")
+    states = to_animation(joy).states
+    assert got and got[-1].frame.header.seq == 19
+    for f in got:
+        assert f.frame.header.kind is frames.Kind.VERTICES_I16 and f.size == 56 + 6 * f.frame.header.count
+        want = animator.frame(states[f.frame.header.seq])
+        assert np.all(np.abs(f.positions() - want) <= f.frame.scale * 0.5 + 1e-5 * np.abs(want).max())
+
+
+def _expect_refusal(coro, code: int) -> LiveError:
+    with pytest.raises(LiveError) as e:
+        run(coro)
+    assert e.value.code == code, str(e.value)
+    return e.value
+
+
+async def _session(live, **kw):
+    async with SessionAdmin(live.url, live.admin_key) as admin:
+        return await admin.create(face=FACE, **kw)
+
+
+async def _close(live, sid):
+    async with SessionAdmin(live.url, live.admin_key) as admin:
+        await admin.close(sid)
+
+
+def test_tokens_and_roles(live):
+    s = run(_session(live))
+
+    async def produce_with(token):
+        async with produce(live.url, s.id, token):
+            pass
+
+    async def watch_with(token, **kw):
+        async with watch(live.url, s.id, token, **kw):
+            pass
+
+    err = _expect_refusal(produce_with(s.viewer_token), CloseCode.FORBIDDEN)
+    assert "viewer token" in str(err)
+    _expect_refusal(produce_with("wrong"), CloseCode.UNAUTHORIZED)
+    _expect_refusal(produce_with(""), CloseCode.UNAUTHORIZED)
+    _expect_refusal(watch_with("wrong"), CloseCode.UNAUTHORIZED)
+    _expect_refusal(watch_with(s.producer_token), CloseCode.FORBIDDEN)
+    _expect_refusal(watch_with(s.viewer_token, encoding="f16"), CloseCode.BAD_REQUEST)
+
+    async def other_session():
+        async with watch(live.url, "nope", s.viewer_token):
+            pass
+
+    _expect_refusal(other_session(), CloseCode.NOT_FOUND)
+
+    async def wrong_hello():
+        async with produce(live.url, s.id, s.producer_token, ProducerHello(input="audio", rate=16000)):
+            pass
+
+    assert "takes 'fap'" in str(_expect_refusal(wrong_hello(), CloseCode.BAD_REQUEST))
+
+    async def second_producer():
+        async with produce(live.url, s.id, s.producer_token):
+            async with produce(live.url, s.id, s.producer_token):
+                pass
+
+    _expect_refusal(second_producer(), CloseCode.CONFLICT)
+    run(_close(live, s.id))
+
+
+def test_rest_admin_and_limits(live):
+    r = httpx.post(live.url + "/v1/sessions", json={})
+    assert r.status_code == 401 and "admin key" in r.json()["error"]
+    r = httpx.post(live.url + "/v1/sessions", json={"input": "video"}, headers=live.admin_headers)
+    assert r.status_code == 422
+    r = httpx.post(live.url + "/v1/sessions", json={"face": "no-such-face"}, headers=live.admin_headers)
+    assert r.status_code == 404 and "no-such-face" in r.json()["error"]
+    assert httpx.delete(live.url + "/v1/sessions/nope", headers=live.admin_headers).status_code == 404
+
+    s = run(_session(live, max_viewers=1))
+    listed = httpx.get(live.url + "/v1/sessions", headers=live.admin_headers).json()["sessions"]
+    assert s.id in [x["id"] for x in listed] and all("token" not in json.dumps(x) for x in listed)
+
+    async def two_viewers():
+        async with watch(live.url, s.id, s.viewer_token):
+            async with watch(live.url, s.id, s.viewer_token):
+                pass
+
+    _expect_refusal(two_viewers(), CloseCode.TOO_MANY)
+
+    # session limit (FACECAST_MAX_SESSIONS=6 on this server)
+    made = []
+    while True:
+        r = httpx.post(live.url + "/v1/sessions", json={"face": FACE}, headers=live.admin_headers, timeout=60)
+        if r.status_code != 201:
+            break
+        made.append(r.json()["id"])
+        assert len(made) <= 6
+    assert r.status_code == 429 and "limit" in r.json()["error"]
+    for sid in made + [s.id]:
+        assert httpx.delete(f"{live.url}/v1/sessions/{sid}", headers=live.admin_headers).status_code == 204
+
+
+def test_closing_a_session_ends_its_connections(live):
+    async def main():
+        s = await _session(live)
+        async with produce(live.url, s.id, s.producer_token) as p:
+            async with watch(live.url, s.id, s.viewer_token) as w:
+                await _close(live, s.id)
+                with pytest.raises(LiveError) as e:
+                    async for _ in w:
+                        pass
+                assert e.value.code == CloseCode.SESSION_CLOSED
+            with pytest.raises(LiveError):
+                for i in range(50):  # the server closed us; sending fails soon
+                    await p.send_faps({3: 1.0}, i / 60)
+                    await asyncio.sleep(0.02)
+
+    run(main())
+
+
+def test_bad_frames_get_errors_while_another_session_streams(live, joy):
+    async def main():
+        a, b = await _session(live), await _session(live)
+        started = asyncio.Event()
+        b_viewer = asyncio.create_task(_collect(live.url, b.id, b.viewer_token, started=started))
+        a_viewer = asyncio.create_task(_collect(live.url, a.id, a.viewer_token, until_end=True))
+        await started.wait()
+        async with produce(live.url, b.id, b.producer_token) as pb, \
+                produce(live.url, a.id, a.producer_token) as pa:
+            b_task = asyncio.create_task(stream_fap(pb, joy, speed=3.0))
+            good = frames.encode_faps(np.zeros(68), seq=0, t=0.0, wall=1.0)
+            bad = [b"garbage!" * 8, good[:-3], good + b"x", good[:5] + b"\x07" + good[6:],
+                   frames.encode_vertices_f32(np.zeros((3, 3)), seq=5, t=0.0),  # a kind producers may not send
+                   frames.encode_pcm(np.zeros(10, np.int16), rate=16000, sample_offset=0, seq=6),
+                   "not json", json.dumps({"type": "fap", "t": 0.1, "faps": {"1": 3}}),
+                   json.dumps({"type": "hello", "role": "producer"}), json.dumps({"type": "fap"})]
+            for msg in bad:
+                await pa.send_raw(msg)
+            await pa.send_faps({3: 100.0}, 0.5)  # the session still works after all that
+            await asyncio.sleep(0.5)
+            errors = list(pa.errors)
+            await b_task
+        got_a, got_b = await asyncio.gather(a_viewer, b_viewer)
+        for sid in (a.id, b.id):
+            await _close(live, sid)
+        return errors, got_a, got_b
+
+    errors, got_a, got_b = run(main())
+    assert len(errors) == 10 and all(e.code == CloseCode.BAD_REQUEST and not e.fatal for e in errors)
+    text = " | ".join(e.message for e in errors)
+    for phrase in ("magic", "truncated", "trailing", "unknown frame kind", "not accepted", "not JSON",
+                   "low-level FAP", "not 'hello'"):
+        assert phrase in text, phrase
+    assert [e.seq for e in errors][4:6] == [5, 6]  # the offending frame is named
+    assert got_a and got_a[-1].frame.header.seq == 0  # the one good frame came through
+    assert len(got_b) > 0 and got_b[-1].frame.header.seq == len(joy.frames) - 1
+
+
+def test_viewer_and_producer_vanishing(live, joy):
+    async def main():
+        s = await _session(live)
+        started = [asyncio.Event()]
+        last_t = 10 + 59 / 30
+
+        async def steady_viewer():
+            got = []
+            async with watch(live.url, s.id, s.viewer_token) as w:
+                started[0].set()
+                async for f in w:
+                    got.append(f)
+                    if f.frame.header.t >= last_t - 1e-9:
+                        return got
+
+        steady = asyncio.create_task(steady_viewer())
+        await started[0].wait()
+        async with watch(live.url, s.id, s.viewer_token) as doomed:
+            async with produce(live.url, s.id, s.producer_token) as p:
+                streaming = asyncio.create_task(stream_fap(p, joy, speed=2.0))
+                n = 0
+                async for _ in doomed:
+                    n += 1
+                    if n == 5:  # vanish without a close handshake
+                        doomed.ws.transport.abort()
+                        break
+                # the producer vanishes too, mid-stream
+                await asyncio.sleep(0.3)
+                streaming.cancel()
+                p.ws.transport.abort()
+        # a new producer may connect: the old one is gone, not "already connected"
+        await asyncio.sleep(0.3)
+        async with produce(live.url, s.id, s.producer_token) as p2:
+            for i in range(60):
+                await p2.send_faps({3: float(i)}, 10 + i / 30)
+                await asyncio.sleep(1 / 60)
+        got = await steady
+        async with SessionAdmin(live.url, live.admin_key) as admin:
+            info = await admin.info(s.id)
+            await admin.close(s.id)
+        return got, info
+
+    got, info = run(main())
+    assert got[-1].frame.header.t == pytest.approx(10 + 59 / 30)
+    assert info.stats.viewers == 0 and not info.stats.producer_connected
+    assert info.stats.states >= 60 + 5
+
+
+def test_summary_counts_gaps():
+    class F:
+        def __init__(self, seq, t):
+            self.frame = frames.decode(frames.encode_vertices_f32(np.zeros((1, 3)), seq=seq, t=0, wall=t - 0.01))
+            self.received, self.size = t, 44
+
+        latency = property(lambda self: self.received - self.frame.header.wall)
+
+    s = summary([F(0, 1.0), F(1, 1.1), F(4, 1.2), F(5, 1.3)])
+    assert s["dropped"] == 2 and s["fps"] == pytest.approx(10.0) and s["latency_ms_p50"] == pytest.approx(10.0)
