@@ -285,16 +285,21 @@ def rts_smooth(xyz: np.ndarray, fps: float, *, q: float | np.ndarray = 2.0e5, r:
 
 
 def estimate_r(xyz: np.ndarray, cluster: int = 6) -> float:
-    """Measurement variance (mm²) as in the thesis (L1347): the deviation of samples from the mean
-    of their ``cluster``-frame group (6 frames at 120 Hz ~ the 20 fps of perceptible motion),
-    corrected for the group mean's own share of the noise. Slightly high when markers move fast."""
+    """Measurement variance (mm²) after the thesis (L1347): the deviation of samples within groups
+    of ``cluster`` frames (6 frames at 120 Hz ~ the 20 fps of perceptible motion). Each group is
+    detrended by its own straight line first, so that steady motion does not count as noise (the
+    residual variance is scaled by n/(n-2) for the two fitted parameters)."""
     x = np.asarray(xyz, dtype=np.float64)
     t_n = (len(x) // cluster) * cluster
-    if t_n < 2 * cluster:
+    if t_n < 2 * cluster or cluster < 3:
         return 0.25
-    c = x[:t_n].reshape(t_n // cluster, cluster, *x.shape[1:])
-    dev = c - np.nanmean(c, axis=1, keepdims=True)
-    return max(float(np.nanmean(dev**2)) * cluster / (cluster - 1), 1e-6)
+    c = x[:t_n].reshape(t_n // cluster, cluster, -1)  # (G, n, D)
+    i = np.arange(cluster, dtype=np.float64) - (cluster - 1) / 2
+    mean = c.mean(axis=1, keepdims=True)
+    slope = (c * i[None, :, None]).sum(axis=1, keepdims=True) / (i**2).sum()
+    resid = c - mean - slope * i[None, :, None]
+    var = float(np.nanmean(resid**2)) * cluster / (cluster - 2)
+    return max(var, 1e-6) if np.isfinite(var) else 0.25
 
 
 #: Acceleration densities tried by ``estimate_q`` (mm²/s³).

@@ -1,0 +1,115 @@
+"""Synthetic marker takes on any face (no expression data needed): for tests and the live benchmark.
+
+Markers sit on skin vertices of the face; the skin moves by a smooth random field (a few Gaussian
+"muscle" bumps with smooth random amplitudes), the head moves rigidly, and capture noise, gaps and
+spikes are optional. Ground truth comes back with the take.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+
+from ...protocol.markers_file import MarkerTake
+from ..faces.face import Face
+from .stabilise import matrix_from_euler
+
+__all__ = ["SyntheticTake", "synthetic_take", "ellipsoid_face"]
+
+
+@dataclass
+class SyntheticTake:
+    """A take with its layout (dict) and ground truth: ``local`` ``(T, M, 3)`` mm marker positions
+    with the head motion removed (face axes, mm); ``head_r (T, 3, 3)``/``head_t (T, 3)`` capture pose
+    (mm); ``vertices (M,)`` marker vertices."""
+
+    take: MarkerTake
+    layout: dict
+    local: np.ndarray
+    clean: np.ndarray
+    head_r: np.ndarray
+    head_t: np.ndarray
+    vertices: np.ndarray
+
+
+def ellipsoid_face(subdivisions: int = 3, radii_mm: tuple[float, float, float] = (75.0, 105.0, 90.0)) -> Face:
+    """A head-sized ellipsoid ``Face`` (mm, all skin, no feature points): a mesh for tests."""
+    import trimesh
+
+    ico = trimesh.creation.icosphere(subdivisions=subdivisions)
+    return Face("ellipsoid", np.asarray(ico.vertices) * np.asarray(radii_mm), np.asarray(ico.faces), units="mm")
+
+
+def _smooth(rng, n: int, fps: float, amp: float, hold: int) -> np.ndarray:
+    keys = [0.0, hold / fps]
+    while keys[-1] < n / fps + 1:
+        keys.append(keys[-1] + rng.uniform(0.3, 0.9))
+    vals = np.r_[0.0, 0.0, rng.uniform(-amp, amp, len(keys) - 2)]
+    return PchipInterpolator(keys, vals)(np.arange(n) / fps)
+
+
+def synthetic_take(face: Face, *, n_markers: int = 30, n_stable: int = 4, seconds: float = 2.0, fps: float = 120.0,
+                   seed: int = 0, noise_mm: float = 0.0, gaps: bool = False, head_motion: bool = True,
+                   amplitude_mm: float = 4.0, units: str = "mm") -> SyntheticTake:
+    """A take of ``n_markers`` markers (``n_stable`` of them on the top of the head) on ``face``."""
+    rng = np.random.default_rng(seed)
+    mm = face.mm_per_unit
+    v = face.vertices.astype(np.float64) * mm
+    skin = face.part("skin")
+    if not len(skin):
+        skin = np.flatnonzero(face.deformable)
+    lo, hi = v[skin].min(axis=0), v[skin].max(axis=0)
+    size = hi - lo
+    top = skin[v[skin, 1] > hi[1] - 0.15 * size[1]]
+    # spread the stable markers: farthest points among the top
+    pts = v[top]
+    chosen = [int(np.argmax(pts[:, 2]))]
+    d = np.linalg.norm(pts - pts[chosen[0]], axis=1)
+    for _ in range(n_stable - 1):
+        chosen.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(pts - pts[chosen[-1]], axis=1))
+    stable = top[chosen]
+    front = skin[(v[skin, 2] > lo[2] + 0.6 * size[2]) & (v[skin, 1] < hi[1] - 0.3 * size[1])]
+    front = np.setdiff1d(front, stable)
+    n_face = n_markers - n_stable
+    pts = v[front]
+    pick = [int(np.argmax(pts[:, 2]))]
+    d = np.linalg.norm(pts - pts[pick[0]], axis=1)
+    for _ in range(n_face - 1):
+        pick.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(pts - pts[pick[-1]], axis=1))
+    face_m = front[pick]
+    verts = np.r_[stable, face_m].astype(np.int64)
+    names = [f"HEAD{i + 1}" for i in range(n_stable)] + [f"M{i + 1:02d}" for i in range(n_face)]
+    n = max(2, int(round(seconds * fps)))
+    hold = min(n - 1, int(0.25 * fps))
+    # deformation field: bumps centred on some face markers
+    centres = v[face_m[rng.choice(n_face, size=min(6, n_face), replace=False)]]
+    radius = 0.25 * size[0]
+    amps = np.stack([np.stack([_smooth(rng, n, fps, amplitude_mm, hold) for _ in range(3)], -1) for _ in centres])  # (B, T, 3)
+    w = np.exp(-((v[verts][:, None, :] - centres[None]) ** 2).sum(axis=2) / (2 * radius**2))  # (M, B)
+    w[:n_stable] = 0.0
+    local = v[verts][None] + np.einsum("mb,btc->tmc", w, amps)
+    if head_motion:
+        ang = np.stack([_smooth(rng, n, fps, a, hold) for a in np.radians([6.0, 10.0, 4.0])], -1)
+        trans = np.stack([_smooth(rng, n, fps, 10.0, hold) for _ in range(3)], -1)
+    else:
+        ang, trans = np.zeros((n, 3)), np.zeros((n, 3))
+    r = matrix_from_euler(ang)
+    pivot = face.pivot("head") * mm
+    clean = np.einsum("tij,tmj->tmi", r, local - pivot) + pivot + trans[:, None, :]
+    head_t = pivot - np.einsum("tij,j->ti", r, pivot) + trans
+    xyz = clean + rng.normal(0.0, noise_mm, clean.shape) if noise_mm else clean.copy()
+    if gaps:
+        for j in range(n_stable, len(verts)):
+            if rng.random() < 0.3:
+                length = int(rng.integers(3, max(4, n // 8)))
+                start = int(rng.integers(hold + 1, max(hold + 2, n - length)))
+                xyz[start:start + length, j] = np.nan
+    from ...protocol.markers_file import UNITS_MM
+
+    take = MarkerTake(names, xyz / UNITS_MM[units], float(fps), units)
+    markers: dict[str, dict] = {nm: {"vertex": int(vid)} for nm, vid in zip(names, verts)}
+    layout = {"units": units, "stable": names[:n_stable], "markers": markers}
+    return SyntheticTake(take, layout, local, clean, r, head_t, verts)

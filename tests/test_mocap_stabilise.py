@@ -1,0 +1,124 @@
+"""Head stabilisation (Kabsch, Kshirsagar's three markers, tracking) and the RBF retarget."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facecast.server.mocap.retarget import RBFMap
+from facecast.server.mocap.stabilise import (euler_from_matrix, head_track, kabsch, matrix_from_euler, pose_in_frame,
+                                             remove_head, solve_pose, three_marker)
+
+
+def _rotation(rng) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def test_kabsch_recovers_a_known_rigid_motion(rng):
+    src = rng.normal(size=(6, 3)) * 50
+    r, t = _rotation(rng), rng.normal(size=3) * 100
+    r2, t2 = kabsch(src, src @ r.T + t)
+    np.testing.assert_allclose(r2, r, atol=1e-10)
+    np.testing.assert_allclose(t2, t, atol=1e-8)
+
+
+def test_kabsch_never_returns_a_reflection(rng):
+    src = rng.normal(size=(5, 3)) * 50
+    mirrored = src * [-1.0, 1.0, 1.0]
+    r, _ = kabsch(src, mirrored)
+    assert np.linalg.det(r) == pytest.approx(1.0)
+
+
+def test_three_marker_construction_matches_kabsch(rng):
+    src = np.array([[0.0, 0.0, 0.0], [60.0, 5.0, 0.0], [30.0, 40.0, 20.0]])
+    r, t = _rotation(rng), rng.normal(size=3) * 10
+    dst = src @ r.T + t
+    r3, t3 = three_marker(src, dst)
+    np.testing.assert_allclose(r3, r, atol=1e-10)
+    np.testing.assert_allclose(t3, t, atol=1e-8)
+    # with noise it still returns a rotation, close to the truth
+    noisy = dst + rng.normal(0, 0.2, dst.shape)
+    r3, _ = three_marker(src, noisy)
+    assert np.allclose(r3 @ r3.T, np.eye(3), atol=1e-12)
+    assert np.degrees(np.arccos((np.trace(r3.T @ r) - 1) / 2)) < 1.5
+
+
+def test_solve_pose_needs_three_visible_non_collinear_markers(rng):
+    src = rng.normal(size=(4, 3)) * 40
+    frame = src.copy()
+    frame[:2] = np.nan
+    assert solve_pose(src, frame) is None
+    line = np.outer(np.arange(4.0), [1.0, 2.0, 3.0])
+    assert solve_pose(line, line) is None
+    frame = src + 5.0
+    frame[0] = np.nan  # three visible: Kshirsagar's construction
+    r, t = solve_pose(src, frame)
+    np.testing.assert_allclose(r, np.eye(3), atol=1e-10)
+    np.testing.assert_allclose(t, 5.0, atol=1e-9)
+
+
+def test_head_track_removes_head_motion_and_bridges_lost_frames(rng):
+    n, m = 50, 8
+    neutral = rng.normal(size=(m, 3)) * 60
+    angles = np.stack([np.linspace(0, 0.2, n), np.linspace(0, -0.3, n), np.zeros(n)], -1)
+    rs = matrix_from_euler(angles)
+    ts = np.linspace(0, 20, n)[:, None] * [1.0, 0.5, -1.0]
+    local = neutral[None].repeat(n, 0)
+    local[:, 4:] += np.sin(np.arange(n))[:, None, None] * 3.0  # non-rigid markers
+    xyz = np.einsum("tij,tmj->tmi", rs, local) + ts[:, None]
+    xyz[20, :3] = np.nan  # too few stable markers in this frame
+    r, t, solved = head_track(xyz, np.arange(4), neutral)
+    assert not solved[20] and solved.sum() == n - 1
+    keep = solved
+    np.testing.assert_allclose(r[keep], rs[keep], atol=1e-9)
+    out = remove_head(xyz[keep], r[keep], t[keep])
+    np.testing.assert_allclose(out, local[keep], atol=1e-8)
+    np.testing.assert_allclose(r[20], r[19])  # held from the nearest solved frame
+
+
+def test_euler_round_trip_and_mpeg4_signs():
+    a = np.array([[0.1, -0.2, 0.3], [0.0, 0.5, 0.0]])
+    np.testing.assert_allclose(euler_from_matrix(matrix_from_euler(a)), a, atol=1e-12)
+    # positive pitch turns the gaze (+z) down, positive yaw towards +x (the face's left)
+    gaze = np.array([0.0, 0.0, 1.0])
+    assert (matrix_from_euler([0.3, 0, 0]) @ gaze)[1] < 0
+    assert (matrix_from_euler([0, 0.3, 0]) @ gaze)[0] > 0
+    assert (matrix_from_euler([0, 0, 0.3]) @ np.array([0, 1.0, 0]))[0] < 0  # roll: top towards -x
+
+
+def test_pose_in_another_frame(rng):
+    r, t = _rotation(rng), rng.normal(size=3)
+    q, s, c = _rotation(rng), 0.1, rng.normal(size=3)
+    x = rng.normal(size=(5, 3))
+    rf, tf = pose_in_frame(r, t, q, s, c)
+    to_f = lambda p: s * p @ q.T + c  # noqa: E731
+    np.testing.assert_allclose(to_f(x @ r.T + t), to_f(x) @ rf.T + tf, atol=1e-12)
+
+
+def test_identity_retarget_reproduces_the_input_exactly(rng):
+    src = rng.normal(size=(30, 3)) * 50
+    moved = src + rng.normal(size=src.shape) * 3
+    for kernel in ("imq", "r"):
+        m = RBFMap(src, src.copy(), kernel=kernel)
+        assert np.array_equal(m(moved), moved)
+        np.testing.assert_array_equal(m.displacements(moved), moved - src)
+
+
+def test_retarget_carries_a_change_of_frame_and_units_exactly(rng):
+    src = rng.normal(size=(30, 3)) * 50  # mm
+    r = _rotation(rng)
+    dst = 0.1 * src @ r.T + [1.0, 2.0, 3.0]  # cm, another orientation
+    moved = src + rng.normal(size=src.shape) * 3
+    for kernel in ("imq", "r"):
+        m = RBFMap(src, dst, kernel=kernel)
+        np.testing.assert_allclose(m(src), dst, atol=1e-9)
+        np.testing.assert_allclose(m(moved), 0.1 * moved @ r.T + [1.0, 2.0, 3.0], atol=1e-7)
+
+
+def test_retarget_interpolates_a_different_face(rng):
+    src = rng.normal(size=(40, 3)) * 50
+    dst = src * [1.2, 0.9, 1.0] + 0.002 * src**2  # a non-linearly different face
+    m = RBFMap(src, dst, kernel="imq", mu=2.0)
+    np.testing.assert_allclose(m(src), dst, atol=1e-6)
+    d = m.displacements(src + [0.0, 1.0, 0.0])
+    assert np.isfinite(d).all() and np.abs(d[:, 1]).mean() == pytest.approx(0.9, abs=0.25)
