@@ -11,12 +11,16 @@ an edge) and ``mouth_socket`` (the cavity). See ``procedural_skin`` for how the 
 """
 from __future__ import annotations
 
+import hashlib
 import logging
+import os
 from dataclasses import asdict, fields
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
+from .. import paths
 from ..errors import InputError
 from .face import Face
 from .procedural_layout import (
@@ -68,10 +72,59 @@ def _name(n: int, conf: Conformation) -> str:
 
 @lru_cache(maxsize=6)
 def _build(n: int, conf: Conformation) -> Face:
+    name = _name(n, conf)
+    use_disk = n >= DISK_CACHE_MIN_VERTICES
+    path = None
+    if use_disk:
+        try:
+            path = paths.cache_dir("faces") / f"default-{_cache_key(n, conf)}.npz"
+            if path.exists():
+                return _load_npz(path, name)
+        except Exception as exc:  # a damaged or unreadable cache is rebuilt, never fatal
+            log.warning("ignoring cached head %s: %s", path, exc)
     lay = Layout(conf)
     model = SkinModel(lay)
     spacing = _calibrate(model, lay, n)
-    return _assemble(model, lay, spacing, _name(n, conf))
+    face = _assemble(model, lay, spacing, name)
+    if use_disk and path is not None:
+        try:
+            _save_npz(path, face)
+        except OSError as exc:
+            log.warning("could not cache the head in %s: %s", path, exc)
+    return face
+
+
+#: Heads at least this large are cached on disk (building 500k vertices takes a few seconds).
+DISK_CACHE_MIN_VERTICES = 150_000
+
+
+def _cache_key(n: int, conf: Conformation) -> str:
+    h = hashlib.blake2b(digest_size=10)
+    here = Path(__file__).parent
+    for f in sorted(here.glob("procedural*.py")) + [here / "face.py"]:
+        h.update(f.read_bytes())
+    h.update(repr((n, sorted(asdict(conf).items()))).encode())
+    return h.hexdigest()
+
+
+def _save_npz(path: Path, face: Face) -> None:
+    arrays = {"vertices": face.vertices, "triangles": face.triangles,
+              "fp_names": np.array(list(face.feature_points)), "fp_ids": np.array(list(face.feature_points.values())),
+              "pivot_names": np.array(list(face.pivots)), "pivots": np.array([face.pivots[k] for k in face.pivots])}
+    for k, v in face.parts.items():
+        arrays[f"part_{k}"] = v
+    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def _load_npz(path: Path, name: str) -> Face:
+    with np.load(path) as z:
+        parts = {k[5:]: z[k] for k in z.files if k.startswith("part_")}
+        fps = dict(zip(z["fp_names"].tolist(), z["fp_ids"].tolist()))
+        pivots = dict(zip(z["pivot_names"].tolist(), z["pivots"]))
+        return Face(name=name, vertices=z["vertices"], triangles=z["triangles"], units="mm", parts=parts,
+                    feature_points=fps, pivots=pivots)
 
 
 # ---- resolution --------------------------------------------------------------------------------------
@@ -106,12 +159,13 @@ def _parts_count(parts: dict[str, tuple]) -> int:
 def _calibrate(model: SkinModel, lay: Layout, n: int) -> float:
     """Spacing (mm on the face) that gives about ``n`` vertices in all."""
     spacing = np.sqrt(190_000.0 / n)
-    for _ in range(3):
-        target = n - _parts_count(_parts(model, lay, spacing))
+    for _ in range(2):
+        p0, s0 = _parts_count(_parts(model, lay, spacing)), spacing
         lo, hi = np.log(0.05), np.log(60.0)
-        for _ in range(40):
+        for _ in range(24):
             mid = (lo + hi) / 2
-            if _skin_count(model, float(np.exp(mid))) > target:
+            sp = float(np.exp(mid))
+            if _skin_count(model, sp) + p0 * (s0 / sp) ** 2 > n:
                 lo = mid
             else:
                 hi = mid
@@ -251,7 +305,8 @@ def _assemble(model: SkinModel, lay: Layout, spacing: float, name: str) -> Face:
     pocket_v, loop, (k, m), pocket_side, pocket_depth = mouth_pocket(model, grid, slit, spacing)
     n_grid = len(skin_v)
     pocket_f = pocket_triangles(loop, k, m, n_grid)
-    if _has_duplicate_directed_edges(np.concatenate([grid.triangles, pocket_f])):
+    near = np.isin(grid.triangles, loop).any(axis=1)
+    if _has_duplicate_directed_edges(np.concatenate([grid.triangles[near], pocket_f[: 2 * m]])):
         pocket_f = pocket_f[:, ::-1]
 
     verts = [skin_v, pocket_v]

@@ -21,7 +21,7 @@ def graded_axis(knots: list[float], n_intervals: int, density: Callable[[np.ndar
     at least one interval).
     """
     k = np.unique(np.asarray(knots, dtype=np.float64))
-    fine = np.linspace(k[0], k[-1], 4097)
+    fine = np.linspace(k[0], k[-1], 2049)
     cdf = np.concatenate([[0.0], np.cumsum((density(fine[1:]) + density(fine[:-1])) / 2 * np.diff(fine))])
     ck = np.interp(k, fine, cdf)
     mass = np.diff(ck)
