@@ -9,6 +9,7 @@ from facecast.server.deform.feature_point import feature_point_operator
 from facecast.server.deform.mesh_graph import edge_graph, voronoi
 from facecast.server.deform.operator import Operator
 from facecast.server.errors import InputError
+from facecast.server.faces import load_face
 from facecast.server.faces.face import Face
 
 
@@ -245,3 +246,33 @@ def test_unknown_engine_or_parameter_is_an_input_error(face, grid):
         get_operator(face, grid[4], engine="ffd", cache=False)
     with pytest.raises(InputError):
         get_operator(face, grid[4], engine="fp", cache=False, kernel="imq")
+
+
+# -- the real ICT FaceKit head --------------------------------------------------------------------
+
+LOWER_LIP_FPS = ("2.3", "2.8", "2.9", "8.2", "8.7", "8.8")
+UPPER_EYELID_FPS = ("3.1", "3.2", "3.13", "3.14")
+
+
+def test_ict_lips_and_eyelids_do_not_bleed(data_dir):
+    from scipy.sparse.csgraph import dijkstra
+
+    face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
+    names = [k for k, v in face.feature_points.items() if face.deformable[v]]
+    controls = np.array([face.feature_points[k] for k in names])
+    op = get_operator(face, controls, engine="fp", cache=False)
+    D = np.zeros((len(controls), 3), np.float32)
+    D[[names.index(k) for k in LOWER_LIP_FPS], 1] = -0.5  # lower lip 5 mm down
+    D[[names.index(k) for k in UPPER_EYELID_FPS], 1] = -0.5  # upper lids 5 mm down (a blink)
+    u = np.linalg.norm(op.apply(D), axis=1)
+    g = edge_graph(face.vertices, face.triangles, face.deformable)
+    near_upper_lip = dijkstra(g, directed=False, indices=face.feature_points["2.2"], limit=0.3) < 0.3
+    near_lower_lip = dijkstra(g, directed=False, indices=face.feature_points["2.3"], limit=0.3) < 0.3
+    # the upper lip lies within a millimetre of the lower one (a closed mouth) ...
+    gap = np.linalg.norm(face.fp_position("2.2") - face.fp_position("2.3"))
+    assert gap < 0.2
+    assert u[near_lower_lip].mean() > 0.3  # ... the lower lip moves ...
+    assert np.all(u[near_upper_lip] == 0)  # ... and the upper lip stays
+    eyes = np.r_[face.part("eye_l"), face.part("eye_r"), face.part("teeth_upper"), face.part("teeth_lower")]
+    assert len(eyes) > 1000 and np.all(u[eyes] == 0)  # eyelids do not pull the eyeballs
+    assert (u > 0.4).sum() > 20  # lid and lip skin follow their controls

@@ -34,7 +34,8 @@ def edge_graph(vertices: np.ndarray, triangles: np.ndarray, mask: np.ndarray | N
         mask = np.asarray(mask, dtype=bool)
         e = e[mask[e[:, 0]] & mask[e[:, 1]]]
     e = np.sort(e, axis=1)
-    e = np.unique(e[:, 0] * n + e[:, 1])
+    e = np.sort(e[:, 0] * n + e[:, 1])  # sort + diff: much faster than np.unique's hashing here
+    e = e[np.r_[True, e[1:] != e[:-1]]] if len(e) else e
     a, b = e // n, e % n
     length = np.linalg.norm(v[a] - v[b], axis=1)
     length = np.maximum(length, 1e-12 * max(float(np.ptp(v)) if len(v) else 1.0, 1e-30))
