@@ -46,13 +46,17 @@ def run(args: argparse.Namespace) -> int:
     progress, close = _progress_bar(args.input.name)
     try:
         if args.server:
-            from ...client.jobs import render_remote
+            from ...client.jobs import RemoteJobError, render_remote
+            from ..errors import FacecastError
 
             options = {"face": args.face, "engine": args.engine, "backend": args.backend}
             if args.layout:
                 options["layout"] = args.layout
-            render_remote(args.server, args.input, args.output, options=options, progress=progress,
-                          admin_key=os.environ.get("FACECAST_ADMIN_KEY"))
+            try:
+                render_remote(args.server, args.input, args.output, options=options, progress=progress,
+                              admin_key=os.environ.get("FACECAST_ADMIN_KEY"))
+            except RemoteJobError as e:  # one line, exit 2, like local errors
+                raise FacecastError(str(e), where=args.server) from None
         else:
             from ..render import render_file
 

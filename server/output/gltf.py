@@ -132,8 +132,14 @@ def encode_glb(frames: np.ndarray, rest: np.ndarray, triangles: np.ndarray, fps:
     M = targets.shape[0]
 
     inc = incidence_matrix(tri.astype(np.int32), V)
-    n0 = vertex_normals(rest, tri, inc)
-    dn = np.stack([vertex_normals(f, tri, inc) - n0 for f in frames]).reshape(T, -1)
+
+    def normals(v: np.ndarray) -> np.ndarray:  # glTF needs unit normals, also on loose vertices
+        n = vertex_normals(v, tri, inc)
+        n[~(np.abs(n).sum(axis=1) > 0)] = (0.0, 0.0, 1.0)
+        return n
+
+    n0 = normals(rest)
+    dn = np.stack([normals(f) - n0 for f in frames]).reshape(T, -1)
     ntargets = (np.linalg.pinv(weights.astype(np.float64)) @ dn).astype(np.float32).reshape(M, V, 3)
 
     b = _Bin()
