@@ -418,14 +418,15 @@ async def stream_fap(producer: Producer, fap: Any, *, speed: float = 1.0, binary
 
 
 async def stream_pcm(producer: Producer, samples: np.ndarray, rate: int, *, chunk: float = 0.02,
-                     speed: float = 1.0) -> int:
-    """Send mono int16/float32 ``samples`` in ``chunk``-second pieces at real time; returns chunks sent."""
+                     speed: float = 1.0, sample_offset: int = 0) -> int:
+    """Send mono int16/float32 ``samples`` in ``chunk``-second pieces at real time (the first at
+    ``sample_offset``); returns chunks sent."""
     pacer = Pacer(speed)
     step = max(1, int(round(chunk * rate)))
     n = 0
     for start in range(0, len(samples), step):
         await pacer.until(start / rate)
-        await producer.send_pcm(samples[start:start + step], rate=rate, sample_offset=start)
+        await producer.send_pcm(samples[start:start + step], rate=rate, sample_offset=sample_offset + start)
         n += 1
     return n
 

@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
-import struct
+import os
 
 import httpx
 import numpy as np
 import pytest
 
-from facecast.client.api import (LiveError, SessionAdmin, fap_frames, produce, stream_fap, summary, watch)
+from facecast.client.api import LiveError, SessionAdmin, produce, stream_fap, summary, watch
 from facecast.protocol import frames
 from facecast.protocol.errors import CloseCode
 from facecast.protocol.fap_file import read_fap
@@ -23,7 +22,6 @@ from facecast.protocol.messages import ProducerHello
 
 from conftest import RunningServer
 
-import os
 #: Face of the test sessions (override to run against another server face, e.g. one in FACECAST_FACES).
 FACE = os.environ.get("FACECAST_TEST_LIVE_FACE", "default:2k")
 

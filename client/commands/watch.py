@@ -1,0 +1,82 @@
+"""``facecast watch --url URL --session ID --token T``: subscribe to a live session and report.
+
+Reports frames per second, end-to-end latency p50/p95 (viewer receive time minus the producer's
+send time carried in each frame; both clocks must agree, e.g. the same machine), bytes per frame
+and dropped frames (gaps in the frame numbers). Stops after ``--frames`` or ``--seconds``, or
+when the producer leaves (after frames were seen). ``--json`` prints one JSON object at the end.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+import time
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--url", required=True, help="server URL, e.g. http://127.0.0.1:8000")
+    p.add_argument("--session", required=True, help="session id")
+    p.add_argument("--token", required=True, help="the session's viewer token")
+    p.add_argument("--encoding", choices=("f32", "i16"), default="f32", help="vertex encoding (default f32)")
+    stop = p.add_mutually_exclusive_group()
+    stop.add_argument("--frames", type=int, help="stop after this many frames")
+    stop.add_argument("--seconds", type=float, help="stop after this many seconds")
+    p.add_argument("--json", action="store_true", help="print one JSON object at the end (else a short table)")
+
+
+async def _main(args: argparse.Namespace) -> dict:
+    from ..api import WatchedFrame, summary, watch
+
+    got: list[WatchedFrame] = []
+    deadline = None if args.seconds is None else time.monotonic() + args.seconds
+    until_end = args.frames is None and args.seconds is None
+    async with watch(args.url, args.session, args.token, encoding=args.encoding,
+                     until_producer_leaves=until_end) as w:
+        hello = w.hello
+
+        async def consume() -> None:
+            async for f in w:
+                got.append(f)
+                if args.frames is not None and len(got) >= args.frames:
+                    return
+
+        try:
+            if deadline is None:
+                await consume()
+            else:
+                await asyncio.wait_for(consume(), max(0.0, deadline - time.monotonic()))
+        except asyncio.TimeoutError:
+            pass
+        stats = w.stats
+    report = summary(got)
+    report.update({"session": hello.session, "face": hello.face, "vertex_count": hello.vertex_count,
+                   "encoding": hello.encoding})
+    if stats is not None:
+        report["server"] = stats.model_dump(exclude={"type"})
+    return report
+
+
+def _table(r: dict) -> str:
+    rows = [("frames", r.get("frames")), ("fps", r.get("fps")), ("latency p50 (ms)", r.get("latency_ms_p50")),
+            ("latency p95 (ms)", r.get("latency_ms_p95")), ("bytes/frame", r.get("bytes_per_frame")),
+            ("dropped", r.get("dropped")), ("encoding", r.get("encoding")), ("vertices", r.get("vertex_count"))]
+    return "\n".join(["| metric | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows])
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+
+    from ..api import LiveError
+
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request is noise here
+
+    try:
+        report = asyncio.run(_main(args))
+    except LiveError as e:
+        print(f"facecast: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    print(json.dumps(report) if args.json else _table(report))
+    return 0
