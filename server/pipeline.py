@@ -24,15 +24,17 @@ class Animator:
         backend: ``auto`` | ``numpy`` | ``opencl``; ``device``: OpenCL device selector.
         control_vertices: ``(K,)`` explicit control vertices (mocap); None = the face's FAP controls.
         operator: a ready ``Operator`` for these controls (skips ``get_operator``).
+        per_axis: FAP-driven feature points constrained only on their FAP axes (``mpeg4.rig``).
         **engine_params: passed to ``get_operator``.
     """
 
     def __init__(self, face, *, engine: str = "fp", backend: str = "auto", device: str | None = None,
-                 control_vertices: np.ndarray | None = None, operator=None, **engine_params):
+                 control_vertices: np.ndarray | None = None, operator=None, per_axis: bool = False,
+                 **engine_params):
         from .backends import make_deformer
 
         self.face = face
-        self.rig = FapRig(face, control_vertices)
+        self.rig = FapRig(face, control_vertices, per_axis=per_axis)
         if operator is None:
             from .deform.build import get_operator
 

@@ -152,7 +152,9 @@ def test_controls_cover_deformable_feature_points_with_per_axis_constraints(face
     ids, verts, constrained = fap_controls(face)
     assert len(ids) == len(verts) == len(constrained) == len(set(verts.tolist()))
     assert "3.5" not in ids and "3.6" not in ids  # on the rigid eyeballs
-    assert all(face.deformable[verts])
+    assert all(face.deformable[verts]) and constrained.all()
+    ids2, verts2, constrained = fap_controls(face, per_axis=True)
+    assert ids2 == ids and (verts2 == verts).all()
     c = dict(zip(ids, constrained.tolist()))
     assert c["2.2"] == [False, True, True]   # FAP 4 (y) and 17 (z)
     assert c["5.1"] == [True, False, False]  # puff: x only

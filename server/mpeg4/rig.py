@@ -4,12 +4,17 @@ The decoder side of MPEG-4 for a face with feature points (``docs/mpeg4-referenc
 feature-point method of Kshirsagar et al., ``research/seed-000-A.md`` §5):
 
 - **Controls** (``fap_controls``): every feature point the face has on a deformable vertex.
-  FPs without a FAP are anchors (constrained on x, y and z, displacement 0). FAP-driven FPs are
-  constrained on the axes their FAPs move (e.g. 2.2: y by FAP 4 and z by FAP 17) and free on the
-  others, where the operator moves them like ordinary vertices. The chin points that ride the jaw
-  (2.1, 2.10, 2.11, 2.12) and the tongue points are constrained on all three axes. FPs on rigid
-  parts (pupil centres 3.5/3.6 on the eyeballs, teeth points 9.8-9.11) are not controls: those
-  parts move by their rigid transforms. FPs that share a vertex share one control.
+  FPs without a FAP are anchors (displacement 0). FPs on rigid parts (pupil centres 3.5/3.6 on
+  the eyeballs, teeth points 9.8-9.11) are not controls: those parts move by their rigid
+  transforms. FPs that share a vertex share one control.
+- **Per-axis rule**: by default every control is constrained on x, y and z; a FAP-driven FP keeps
+  its neutral coordinate on the axes no FAP of it moves (as in a FAT, an FP moves only along its
+  FAP directions). With ``per_axis=True`` a FAP-driven FP is constrained only on the axes its
+  FAPs move (2.2: y by FAP 4, z by FAP 17) and left free on the others for the operator to
+  interpolate, as Kshirsagar et al. describe; jaw riders, tongue points and anchors stay
+  constrained on all axes. All-axes is the default because it looked clearly better: on the
+  built-in head, joy.fap frame 56 with the ``fp`` engine shows cracks across both cheeks with
+  per-axis constraints and a smooth surface with all axes constrained.
 - **Translations**: FP displacement = value x FAPU x + direction, summed over the FAPs of the FP,
   in head-local space (the deformer then applies the head transform). Low-level lip FAPs are taken
   as absolute displacements from the neutral face (not relative to the jaw): the Xface files drop
@@ -49,7 +54,7 @@ MAX_JAW = 0.5
 _HEAD, _JAW, _EYE_L, _EYE_R = (RIGID_GROUPS.index(n) for n in ("head", "jaw", "eye_l", "eye_r"))
 
 
-def fap_controls(face) -> tuple[list[str], np.ndarray, np.ndarray]:
+def fap_controls(face, *, per_axis: bool = False) -> tuple[list[str], np.ndarray, np.ndarray]:
     """The face's FAP control set: ``(fp_ids, vertex_ids (K,) int32, constrained (K, 3) bool)``.
 
     ``fp_ids[i]`` names the feature point(s) of control i (``"2.2"``, or ``"2.2+8.1"`` when
@@ -65,7 +70,7 @@ def fap_controls(face) -> tuple[list[str], np.ndarray, np.ndarray]:
         v = face.feature_points[fp]
         if not deformable[v]:
             continue
-        c = _constrained_axes(fp)
+        c = _constrained_axes(fp) if per_axis else np.ones(3, dtype=bool)
         if v not in names:
             order.append(v)
             names[v], axes[v] = [], np.zeros(3, dtype=bool)
@@ -133,6 +138,7 @@ class FapRig:
         face: the ``Face`` (needs the FAPU feature points, see ``measure_fapu``).
         control_vertices: ``(K,)`` vertex ids of an explicit control set (mocap markers); then
             ``D = state.controls`` (zeros when None) and FAPs drive only the jaw, eyes and head.
+        per_axis: constrain FAP-driven FPs only on their FAP axes (see the module docstring).
         visemes, expressions: ``(15, 69)`` / ``(7, 69)`` high-level tables (default: the face's
             ``visemes`` / ``expressions`` attributes if it has them, else ``highlevel``'s).
 
@@ -141,7 +147,7 @@ class FapRig:
         control_vertices: ``(K,) int32``; ``constrained``: ``(K, 3) bool``; ``fp_ids``: names.
     """
 
-    def __init__(self, face, control_vertices: np.ndarray | None = None, *,
+    def __init__(self, face, control_vertices: np.ndarray | None = None, *, per_axis: bool = False,
                  visemes: np.ndarray | None = None, expressions: np.ndarray | None = None):
         self.face = face
         self.fapu = measure_fapu(face)
@@ -156,7 +162,7 @@ class FapRig:
             self.constrained = np.ones((len(self.control_vertices), 3), dtype=bool)
             self.fp_ids: list[str] = []
         else:
-            self.fp_ids, self.control_vertices, self.constrained = fap_controls(face)
+            self.fp_ids, self.control_vertices, self.constrained = fap_controls(face, per_axis=per_axis)
         self.n_controls = len(self.control_vertices)
         self._pivots = {g: face.pivot(g) for g in RIGID_GROUPS}
         self._chin = face.fp_position("2.1") if "2.1" in face.feature_points else None
