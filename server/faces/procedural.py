@@ -213,7 +213,7 @@ def _skin_targets(model: SkinModel, lay: Layout) -> dict[str, tuple[float, float
     plane("9.1", c.nose_width / 2 - 3.0, ysn + 0.3 * span * (1 - qt) + 4.0)
     plane("9.3", 0, yn - qt * span)
     plane("9.5", c.nose_width / 2 - 6.0, ysn + 2.5)
-    plane("9.7", 5.5, yn - 8)
+    plane("9.7", 5.5, yn - 3)
     plane("9.12", 0, yn - 0.36 * span)
     plane("9.13", 8.0, yn - 0.36 * span)
     plane("9.15", 0, ysn + 1.0)
@@ -221,7 +221,7 @@ def _skin_targets(model: SkinModel, lay: Layout) -> dict[str, tuple[float, float
     point("10.9", (c.head_width / 2 - 2, lay.ear_centre_height + 24, 2))
     point("11.1", (0, 70, 85))
     point("11.3", (c.head_width / 2 - 18, 52, 50))
-    point("11.5", (0, c.head_height, 14))
+    point("11.5", (0, c.head_height - 12, 50))
     point("11.6", (0, 20, -110))
     out["3.9"] = (model.theta_e, model.phi_e - 0.6 * model.eye_L)
     out["3.13"] = (model.theta_e, model.phi_e + 0.6 * model.eye_L)
@@ -236,7 +236,7 @@ _PAIRS = {"2.11": "2.12", "2.13": "2.14", "4.1": "4.2", "4.3": "4.4", "4.5": "4.
 
 def _snap(grid: SkinGrid, targets: dict[str, tuple[float, float]], protected_rows: set[int],
           taken: set[int]) -> dict[str, int]:
-    """Move the nearest free grid node of each target onto it (at most 0.6 cell; else use the node as is)."""
+    """Move the nearest free grid node of each target onto it (staying well inside its link; else use it as is)."""
     nr, nc = len(grid.phis), len(grid.thetas)
     ext = np.concatenate([grid.thetas, [np.pi]])
     out = {}
@@ -253,8 +253,11 @@ def _snap(grid: SkinGrid, targets: dict[str, tuple[float, float]], protected_row
                 if vid in taken:
                     continue
                 dx, dy = fi - i, fj - j
-                cost = max(abs(dx), abs(dy), abs(dx - dy))
-                if cost <= 0.6 and cost < best_cost:
+                # the node may move inside its link hexagon (diagonals are mirrored for theta < 0)
+                th = grid.thetas[i % nc]
+                skew = max(abs(dx - dy) if th >= 0 else 0.0, abs(dx + dy) if th <= 0 else 0.0)
+                cost = max(abs(dx), abs(dy), skew)
+                if cost <= 0.9 and cost < best_cost:
                     best, best_cost = vid, cost
                 d2 = dx * dx + dy * dy
                 if d2 < fb_cost:

@@ -69,7 +69,7 @@ class Layout:
 
     @property
     def z_stomion(self) -> float:
-        return 93.0
+        return 95.0
 
     @property
     def x_mouth(self) -> float:
@@ -78,7 +78,7 @@ class Layout:
     def z_lip_line(self, x: np.ndarray) -> np.ndarray:
         """Depth of the lip-contact line at lateral position ``x`` (it follows the dental arch)."""
         a = np.asarray(x, dtype=np.float64) / self.x_mouth
-        return self.z_stomion - 13.0 * a**2
+        return self.z_stomion - 10.0 * a**2
 
     @property
     def eye_centre_l(self) -> np.ndarray:

@@ -30,11 +30,12 @@ def graded_axis(knots: list[float], n_intervals: int, density: Callable[[np.ndar
     for a, b, c in zip(ck[:-1], ck[1:], counts):
         pieces.append(np.interp(np.linspace(a, b, c + 1)[:-1], cdf, fine))
     out = np.concatenate(pieces + [k[-1:]])
-    out[np.searchsorted(out, k[:-1])] = k[:-1]  # exact knots despite interpolation rounding
+    out[np.concatenate([[0], np.cumsum(counts)[:-1]])] = k[:-1]  # exact knots despite interpolation rounding
     return out
 
 
-def grid_triangles(ids_low: np.ndarray, ids_high: np.ndarray, wrap: bool) -> np.ndarray:
+def grid_triangles(ids_low: np.ndarray, ids_high: np.ndarray, wrap: bool,
+                   mirror_cols: np.ndarray | None = None) -> np.ndarray:
     """Triangles of a ``(R, C)`` vertex-id grid, two per cell, counter-clockwise seen with rows up, columns right.
 
     ``ids_low[r]`` is used when row ``r`` is the lower row of a cell and ``ids_high[r]`` when it is the
@@ -48,7 +49,12 @@ def grid_triangles(ids_low: np.ndarray, ids_high: np.ndarray, wrap: bool) -> np.
     b = ids_low[:-1][:, nxt]
     cc = ids_high[1:][:, nxt]
     d = ids_high[1:][:, cols]
-    tris = np.concatenate([np.stack([a, b, cc], -1).reshape(-1, 3), np.stack([a, cc, d], -1).reshape(-1, 3)])
+    t1, t2 = np.stack([a, b, cc], -1), np.stack([a, cc, d], -1)
+    if mirror_cols is not None:  # cells of these columns take the other diagonal (mirror-symmetric meshes)
+        m = np.broadcast_to(np.asarray(mirror_cols)[cols], a.shape)[..., None]
+        t1 = np.where(m, np.stack([a, b, d], -1), t1)
+        t2 = np.where(m, np.stack([b, cc, d], -1), t2)
+    tris = np.concatenate([t1.reshape(-1, 3), t2.reshape(-1, 3)])
     keep = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])
     return tris[keep]
 

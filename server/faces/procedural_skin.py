@@ -43,7 +43,7 @@ class SkinModel:
         px, py, _ = gnomonic(unit_dirs(th, ph))
         self._slit_px, self._slit_py = px, py
         self.theta_mc = float(direction_to(np.array([lay.x_mouth, lay.y_stomion, float(lay.z_lip_line(lay.x_mouth))]))[0])
-        xo = lay.x_mouth + 2.5
+        xo = lay.x_mouth + 1.2
         self.theta_oc = float(direction_to(np.array([xo, lay.y_stomion, float(lay.z_lip_line(1.05 * lay.x_mouth))]))[0])
         self.px_corner = float(np.interp(self.theta_mc, th, px))
         # Eyes (left; the right one is the mirror image).
@@ -275,7 +275,7 @@ def skin_grid(model: SkinModel, spacing: float) -> SkinGrid:
     rows = np.concatenate([rows] + extra_r)
     cols = np.concatenate([cols] + extra_c)
     side = np.concatenate([side, -np.ones(n_new, dtype=np.int8)])
-    tris = grid_triangles(ids, ids_low, wrap=True)
+    tris = grid_triangles(ids, ids_low, wrap=True, mirror_cols=thetas < -1e-12)
     return SkinGrid(th, ph, side, rows, cols, ids, ids_low, tris, thetas, phis, jm, je, (i_a, i_b))
 
 
