@@ -42,7 +42,8 @@ T_FLOATS = 16
 KERNEL_SOURCE = r"""
 // Build defines: AXES (1|3), IDX_T (uchar|ushort|uint), DENSE (0|1).
 
-// One work-item deforms one slice of SLICE (= 8) consecutive vertices of frame f:
+// One work-item deforms one slice of SLICE (= 8) consecutive vertices in frames 0..n_frames-1
+// (the slice's operator entries stay in L1 from one frame to the next):
 // out[f, v] = T[f, g[v]] . (rest[v] + sum_j w[v, j] * D[f, id[v, j]]).
 // params per frame f (pstride floats): n_groups transforms as 4 float4 columns, then D as float4
 // rows ((K + 1) rows, the last one zero). rest is SoA per slice (x[8] y[8] z[8]); sgroup[s] is the
@@ -60,12 +61,13 @@ __kernel void deform(const uint n_vertices,
                      __global const float4 *params,
                      const uint pstride4,
                      const uint n_groups,
+                     const uint n_frames,
                      __global float *out)
 {
     const uint s = get_global_id(0);
-    const uint f = get_global_id(1);
     const uint v0 = s * 8;
     if (v0 >= n_vertices) return;
+    for (uint f = 0; f < n_frames; ++f) {
     __global const float4 *P = params + (size_t)f * pstride4;
     __global const float4 *D = P + 4 * n_groups;
     float4 acc[8];
@@ -128,6 +130,7 @@ __kernel void deform(const uint n_vertices,
         float t[24];
         vstore8(q0, 0, t); vstore8(q1, 1, t); vstore8(q2, 2, t);
         for (uint i = 0; i < 3 * (n_vertices - v0); ++i) o[i] = t[i];
+    }
     }
 }
 
@@ -358,6 +361,7 @@ class OpenCLDeformer:
         self._rest = cl.Buffer(ctx, ro, hostbuf=np.ascontiguousarray(
             rest_p.reshape(n_slices, SLICE, 3).transpose(0, 2, 1)))
         self._sgroup = cl.Buffer(ctx, ro, hostbuf=sgroup)
+        self._sgroup_host = sgroup
         self._group = cl.Buffer(ctx, ro, hostbuf=group_p)
         self._n_slices = n_slices
         self._global_slices = -(-n_slices // LOCAL_SLICES) * LOCAL_SLICES
@@ -429,10 +433,10 @@ class OpenCLDeformer:
         cl.enqueue_copy(self.queue, self._params, P, is_blocking=False)
 
     def _launch_deform(self, n_frames: int, out_buf) -> None:
-        self._k_deform(self.queue, (self._global_slices, n_frames), (LOCAL_SLICES, 1),
+        self._k_deform(self.queue, (self._global_slices,), (LOCAL_SLICES,),
                        np.uint32(self.n_vertices), np.uint32(self.n_controls), self._slice_ptr,
                        self._ids, self._w, self._rest, self._sgroup, self._group, self._params,
-                       np.uint32(self._pstride // 4), np.uint32(self.n_groups), out_buf)
+                       np.uint32(self._pstride // 4), np.uint32(self.n_groups), np.uint32(n_frames), out_buf)
 
     def _host_out(self, arr: np.ndarray):
         """A device buffer over host array ``arr`` (zero-copy on host-memory devices)."""
@@ -565,6 +569,42 @@ class OpenCLDeformer:
                          self._qbuf())
         cl.enqueue_copy(self.queue, q, self._qbuf(), is_blocking=True)
         return q, offset, scale
+
+    # ------------------------------------------------------------------------ measuring aids
+    def bytes_per_frame(self) -> int:
+        """Bytes one ``deform`` frame moves at least: the operator as stored, rest positions, slice
+        groups (and per-vertex groups of mixed slices), the frame's parameters and the output."""
+        p = self.packed
+        mixed = int(np.count_nonzero(self._sgroup_host == 255)) * SLICE
+        return int(p.nbytes + 12 * p.n_padded + len(self._sgroup_host) + mixed + 4 * self._pstride
+                   + 12 * self.n_vertices)
+
+    def format_description(self) -> str:
+        """The operator's device format, e.g. ``"sliced-ELL8 uchar ids, 3 float32 weights"``."""
+        p = self.packed
+        if p.dense:
+            return "dense, slice-major float32"
+        return (f"sliced-ELL{SLICE}, {p.idx_ctype} ids, {p.axes} float32 weight{'s' if p.axes > 1 else ''}"
+                f" per entry, {p.ids.size / max(1, self.operator.nnz):.2f} entries per non-zero")
+
+    def upload_frame(self, D: np.ndarray, transforms: np.ndarray, wait: bool = False) -> None:
+        """Send one frame's ``D`` and transforms (for ``run_kernel_resident``)."""
+        D, T = self._check(D, transforms, batch=False)
+        self._upload_params(self._fill_params(D[None], T[None]))
+        if wait:
+            self.queue.finish()
+
+    def run_kernel_resident(self, wait: bool = False) -> None:
+        """Deform the uploaded frame into the resident vertex buffer."""
+        self._launch_deform(1, self._verts)
+        if wait:
+            self.queue.finish()
+
+    def read_resident(self) -> np.ndarray:
+        """Copy the resident vertex buffer to a new host array (the non-zero-copy read-back)."""
+        out = _aligned_empty((self.n_vertices, 3), np.float32)
+        self._cl.enqueue_copy(self.queue, out, self._verts, is_blocking=True)
+        return out
 
     def _qbuf(self):
         if not hasattr(self, "_q"):

@@ -1,0 +1,211 @@
+"""The OpenCL backend reproduces the NumPy reference (float32 tolerance) on a real OpenCL device."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facecast.protocol.quantize import dequantize_int16, quantize_int16
+from facecast.server.backends import NumpyDeformer
+from facecast.server.deform.operator import Operator
+
+cl_backend = pytest.importorskip("facecast.server.backends.opencl_backend")
+
+pytestmark = pytest.mark.opencl
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    c = cl_backend.default_context()
+    if c is None:
+        pytest.skip("no working OpenCL device (install pocl-opencl-icd)")
+    return c
+
+
+def random_transforms(rng, n_groups: int = 4, lead: tuple = ()) -> np.ndarray:
+    """Rigid transforms ``lead + (G, 3, 4)``: random rotations (QR) and translations."""
+    out = np.zeros(lead + (n_groups, 3, 4), np.float32)
+    for idx in np.ndindex(*lead, n_groups):
+        q, r = np.linalg.qr(rng.standard_normal((3, 3)))
+        out[idx][:, :3] = q * np.sign(np.diag(r))
+        out[idx][:, 3] = rng.standard_normal(3) * 5
+    return out
+
+
+def assert_close(a: np.ndarray, b: np.ndarray, scale: float) -> None:
+    """Equal within float32 rounding of values of magnitude ``scale`` (a few hundred ulps)."""
+    assert np.isfinite(b).all(), "the reference itself is not finite"
+    np.testing.assert_allclose(a, b, rtol=0, atol=scale * 2e-6 + 1e-6, equal_nan=False)
+
+
+def random_sparse(rng, V: int, K: int, max_row: int = 9, per_axis: bool = True) -> Operator:
+    lengths = rng.integers(0, min(max_row, K) + 1, size=V)
+    indptr = np.r_[0, np.cumsum(lengths)]
+    indices = np.concatenate([np.sort(rng.choice(K, n, replace=False)) for n in lengths]).astype(np.int32)
+    w = rng.random((indptr[-1], 3)).astype(np.float32)
+    if not per_axis:
+        w[:, 1] = w[:, 2] = w[:, 0]
+    return Operator(V, K, indptr=indptr, indices=indices, weights=w)
+
+
+def random_mesh(rng, V: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rest = (rng.standard_normal((V, 3)) * 80).astype(np.float32)
+    tri = rng.integers(0, V, size=(2 * V, 3)).astype(np.int32)
+    groups = rng.integers(0, 4, size=V).astype(np.uint8)
+    groups[:3] = [0, 1, 3][:V]  # the last group is present (when V > 2)
+    return rest, tri, groups
+
+
+def check_all(cl_def, ref: NumpyDeformer, rng, scale: float) -> None:
+    """deform, displacements, batch and normals agree with the reference for random D."""
+    K = ref.n_controls
+    for _ in range(2):
+        D = (rng.standard_normal((K, 3)) * scale / 50).astype(np.float32)
+        T = random_transforms(rng)
+        assert_close(cl_def.deform(D, T), ref.deform(D, T), scale)
+        assert_close(cl_def.displacements(D), ref.displacements(D), scale)
+    Db = (rng.standard_normal((3, K, 3)) * scale / 50).astype(np.float32)
+    Tb = random_transforms(rng, lead=(3,))
+    batch = cl_def.deform_batch(Db, Tb)
+    assert batch.shape == (3, ref.n_vertices, 3)
+    assert_close(batch, ref.deform_batch(Db, Tb), scale)
+    v = ref.deform(Db[0], Tb[0])
+    np.testing.assert_allclose(cl_def.normals(v), ref.normals(v), atol=2e-5)
+
+
+@pytest.mark.parametrize("V", [1, 13, 1000])
+@pytest.mark.parametrize("per_axis", [True, False])
+def test_sparse_matches_numpy(ctx, rng, V, per_axis):
+    rest, tri, groups = random_mesh(rng, V)
+    op = random_sparse(rng, V, 40, per_axis=per_axis)
+    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
+    assert d.packed.axes == (3 if per_axis else 1)
+    check_all(d, NumpyDeformer(rest, tri, groups, op), rng, 80)
+
+
+def test_dense_matches_numpy(ctx, rng):
+    rest, tri, groups = random_mesh(rng, 333)
+    op = Operator(333, 21, dense=rng.standard_normal((333, 21)).astype(np.float32))
+    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
+    assert d.packed.dense
+    check_all(d, NumpyDeformer(rest, tri, groups, op), rng, 80)
+
+
+def test_many_controls_use_wider_ids(ctx, rng):
+    rest, tri, groups = random_mesh(rng, 500)
+    op = random_sparse(rng, 500, 300)
+    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
+    assert d.packed.ids.dtype == np.uint16
+    check_all(d, NumpyDeformer(rest, tri, groups, op), rng, 80)
+
+
+def test_copying_readback_path_matches(ctx, rng):
+    rest, tri, groups = random_mesh(rng, 200)
+    op = random_sparse(rng, 200, 30)
+    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx, zero_copy=False)
+    check_all(d, NumpyDeformer(rest, tri, groups, op), rng, 80)
+
+
+def test_rigid_parts_move_as_rigid_bodies(ctx, rng):
+    """With D = 0 each vertex is its group's transform of its rest position."""
+    rest, tri, groups = random_mesh(rng, 257)
+    op = random_sparse(rng, 257, 10)
+    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
+    T = random_transforms(rng)
+    out = d.deform(np.zeros((10, 3), np.float32), T)
+    expect = np.einsum("vij,vj->vi", T[groups, :, :3], rest) + T[groups, :, 3]
+    assert_close(out, expect, 80)
+
+
+def test_out_parameter_receives_the_frame(ctx, rng):
+    rest, tri, groups = random_mesh(rng, 64)
+    op = random_sparse(rng, 64, 8)
+    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
+    D = rng.standard_normal((8, 3)).astype(np.float32)
+    T = random_transforms(rng)
+    out = np.full((64, 3), np.nan, np.float32)
+    assert d.deform(D, T, out=out) is out
+    assert_close(out, NumpyDeformer(rest, tri, groups, op).deform(D, T), 80)
+    with pytest.raises(ValueError):
+        d.deform(D, T, out=np.empty((64, 3), np.float64))
+    with pytest.raises(ValueError):
+        d.deform(D, T[:2])
+
+
+def test_deform_with_normals_matches(ctx, rng):
+    rest, tri, groups = random_mesh(rng, 300)
+    op = random_sparse(rng, 300, 12)
+    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
+    ref = NumpyDeformer(rest, tri, groups, op)
+    D = rng.standard_normal((12, 3)).astype(np.float32)
+    T = random_transforms(rng)
+    v, n = d.deform_with_normals(D, T)
+    assert_close(v, ref.deform(D, T), 80)
+    np.testing.assert_allclose(n, ref.normals(v), atol=2e-5)
+
+
+def test_quantized_frame_equals_protocol_quantisation(ctx, rng):
+    rest, tri, groups = random_mesh(rng, 777)
+    op = random_sparse(rng, 777, 33)
+    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
+    ref = NumpyDeformer(rest, tri, groups, op)
+    D = rng.standard_normal((33, 3)).astype(np.float32)
+    T = random_transforms(rng)
+    q, offset, scale = d.deform_quantized(D, T)
+    assert q.dtype == np.int16 and q.shape == (777, 3)
+    # Bit-identical to protocol.quantize on this backend's own float frame ...
+    q2, o2, s2 = quantize_int16(d.deform(D, T))
+    np.testing.assert_array_equal(q, q2)
+    np.testing.assert_array_equal(offset, o2)
+    np.testing.assert_array_equal(scale, s2)
+    # ... so within the stated bound (half a step per axis) of the NumPy reference.
+    err = np.abs(dequantize_int16(q, offset, scale) - ref.deform(D, T))
+    assert np.all(err <= scale / 2 + 80 * 2e-6 + 1e-6)
+
+
+def test_pack_operator_keeps_every_entry(rng):
+    """The sliced-ELL layout, read back on the host, is the operator (pure NumPy; no device)."""
+    op = random_sparse(rng, 100, 17)
+    p = cl_backend.pack_operator(op)
+    S = cl_backend.SLICE
+    dense = np.zeros((p.n_padded, op.n_controls + 1, 3), np.float32)
+    for s in range(p.n_padded // S):
+        e0, e1 = int(p.slice_ptr[s]), int(p.slice_ptr[s + 1])
+        for j in range((e1 - e0) // S):
+            for lane in range(S):
+                e = e0 + j * S + lane
+                for a in range(3):
+                    dense[s * S + lane, p.ids[e], a] += p.weights[3 * e0 + j * 3 * S + a * S + lane]
+    D = rng.standard_normal((op.n_controls, 3)).astype(np.float32)
+    u = np.einsum("vka,ka->va", dense[:100, :op.n_controls], D)
+    np.testing.assert_allclose(u, op.apply(D), atol=1e-5)
+    assert np.all(dense[:, op.n_controls] == 0)  # padding weighs nothing
+
+
+# ---------------------------------------------------------------- real heads and real engines
+def _engine_case(face, engine: str, ctx, rng) -> None:
+    from facecast.server.deform.build import get_operator
+    from facecast.server.mpeg4 import fap_controls
+
+    _, vertex_ids, constrained = fap_controls(face)
+    op = get_operator(face, vertex_ids, engine=engine, constrained=constrained)
+    scale = float(np.abs(face.vertices).max())
+    ref = NumpyDeformer(face.vertices, face.triangles, face.rigid_group, op)
+    d = cl_backend.OpenCLDeformer(face.vertices, face.triangles, face.rigid_group, op, context=ctx)
+    assert d.n_vertices == face.n_vertices and d.n_controls == op.n_controls
+    assert d.name.startswith("opencl:")
+    check_all(d, ref, rng, scale)
+
+
+@pytest.mark.parametrize("engine", ["fp", "rbf"])
+def test_builtin_head_every_engine(ctx, rng, engine):
+    from facecast.server.faces import load_face
+
+    _engine_case(load_face("default:2k"), engine, ctx, rng)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("engine", ["fp", "rbf"])
+def test_ict_head_every_engine(ctx, rng, data_dir, engine):
+    from facecast.server.faces import load_face
+
+    _engine_case(load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj"), engine, ctx, rng)
