@@ -108,7 +108,8 @@ class MarkerLiveDriver:
         filt = self.kf.step(z)
         if self.rig is None:
             self._gather_neutral(z, seen)
-            return []
+            if self.rig is None:
+                return []
         pose = self._solve_pose(filt, seen)
         r, tr = pose
         local = (filt - tr) @ r

@@ -51,8 +51,9 @@ def _smooth(rng, n: int, fps: float, amp: float, hold: int) -> np.ndarray:
 
 def synthetic_take(face: Face, *, n_markers: int = 30, n_stable: int = 4, seconds: float = 2.0, fps: float = 120.0,
                    seed: int = 0, noise_mm: float = 0.0, gaps: bool = False, head_motion: bool = True,
-                   amplitude_mm: float = 4.0, units: str = "mm") -> SyntheticTake:
-    """A take of ``n_markers`` markers (``n_stable`` of them on the top of the head) on ``face``."""
+                   amplitude_mm: float = 4.0, units: str = "mm", fp_markers: tuple[str, ...] = ()) -> SyntheticTake:
+    """A take of ``n_markers`` markers (``n_stable`` of them on the top of the head) on ``face``;
+    ``fp_markers`` adds markers on those feature points (named ``FP2_1`` ..., tied by ``fp``)."""
     rng = np.random.default_rng(seed)
     mm = face.mm_per_unit
     v = face.vertices.astype(np.float64) * mm
@@ -80,8 +81,12 @@ def synthetic_take(face: Face, *, n_markers: int = 30, n_stable: int = 4, second
         pick.append(int(np.argmax(d)))
         d = np.minimum(d, np.linalg.norm(pts - pts[pick[-1]], axis=1))
     face_m = front[pick]
+    fp_v = [face.feature_points[f] for f in fp_markers]
+    face_m = np.r_[fp_v, np.setdiff1d(face_m, fp_v)[: n_face - len(fp_v)]].astype(np.int64)
+    n_face = len(face_m)
     verts = np.r_[stable, face_m].astype(np.int64)
-    names = [f"HEAD{i + 1}" for i in range(n_stable)] + [f"M{i + 1:02d}" for i in range(n_face)]
+    names = ([f"HEAD{i + 1}" for i in range(n_stable)] + ["FP" + f.replace(".", "_") for f in fp_markers]
+             + [f"M{i + 1:02d}" for i in range(n_face - len(fp_markers))])
     n = max(2, int(round(seconds * fps)))
     hold = min(n - 1, int(0.25 * fps))
     # deformation field: bumps centred on some face markers
@@ -91,6 +96,9 @@ def synthetic_take(face: Face, *, n_markers: int = 30, n_stable: int = 4, second
     w = np.exp(-((v[verts][:, None, :] - centres[None]) ** 2).sum(axis=2) / (2 * radius**2))  # (M, B)
     w[:n_stable] = 0.0
     local = v[verts][None] + np.einsum("mb,btc->tmc", w, amps)
+    if "2.1" in fp_markers:  # the chin drops now and then (jaw opening)
+        chin = names.index("FP2_1")
+        local[:, chin, 1] -= np.abs(_smooth(rng, n, fps, 2.0 * amplitude_mm, hold))
     if head_motion:
         ang = np.stack([_smooth(rng, n, fps, a, hold) for a in np.radians([6.0, 10.0, 4.0])], -1)
         trans = np.stack([_smooth(rng, n, fps, 10.0, hold) for _ in range(3)], -1)
@@ -111,5 +119,7 @@ def synthetic_take(face: Face, *, n_markers: int = 30, n_stable: int = 4, second
 
     take = MarkerTake(names, xyz / UNITS_MM[units], float(fps), units)
     markers: dict[str, dict] = {nm: {"vertex": int(vid)} for nm, vid in zip(names, verts)}
+    for f in fp_markers:
+        markers["FP" + f.replace(".", "_")] = {"fp": f}
     layout = {"units": units, "stable": names[:n_stable], "markers": markers}
     return SyntheticTake(take, layout, local, clean, r, head_t, verts)

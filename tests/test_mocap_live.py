@@ -1,0 +1,80 @@
+"""The live marker driver: causal per-frame states, bad frames, changed marker counts."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facecast.server.errors import InputError
+from facecast.server.mocap.live import MarkerLiveDriver
+from facecast.server.mocap.synthetic import ellipsoid_face, synthetic_take
+
+
+@pytest.fixture(scope="module")
+def setup():
+    face = ellipsoid_face(3)
+    syn = synthetic_take(face, n_markers=20, seconds=1.5, noise_mm=0.2, seed=3)
+    return face, syn
+
+
+def _run(drv, xyz, fps, start=0):
+    out = []
+    for i, f in enumerate(xyz):
+        out += drv.push(f.astype(np.float32), (start + i) / fps)
+    return out
+
+
+def test_live_states_follow_the_markers_with_head_motion_removed(setup):
+    face, syn = setup
+    drv = MarkerLiveDriver(face, syn.take.names, syn.layout, neutral_frames=8)
+    assert drv.control_vertices is not None and len(drv.control_vertices) == 20
+    states = _run(drv, syn.take.xyz, syn.take.fps)
+    n = len(syn.take.xyz)
+    assert len(states) == n - 7  # none while the neutral is taken
+    assert states[0].t == pytest.approx(7 / syn.take.fps)
+    d = np.stack([s.controls for s in states])
+    truth = (syn.local - syn.local[0])[7:]  # face units are mm here
+    err = np.linalg.norm(d - truth, axis=2)
+    assert err.mean() < 0.35 * np.linalg.norm(truth, axis=2).mean()
+    heads = np.stack([s.head for s in states])
+    assert heads.shape == (n - 7, 3, 4)
+    np.testing.assert_allclose(heads[-1, :, :3], syn.head_r[-1], atol=0.02)
+
+
+def test_live_driver_survives_occluded_and_empty_frames(setup):
+    face, syn = setup
+    drv = MarkerLiveDriver(face, syn.take.names, syn.layout, neutral_frames=4)
+    xyz = syn.take.xyz.copy()
+    xyz[30:40, 6] = np.nan  # a marker lost for a while
+    xyz[50] = np.nan  # nothing visible
+    xyz[60, :4] = np.inf  # stable markers garbage
+    states = _run(drv, xyz[:80], syn.take.fps)
+    assert all(np.isfinite(s.controls).all() and np.isfinite(s.head).all() for s in states)
+    assert len(states) == 80 - 3
+
+
+def test_changed_marker_count_is_refused_clearly_and_the_driver_goes_on(setup):
+    face, syn = setup
+    drv = MarkerLiveDriver(face, syn.take.names, syn.layout, neutral_frames=2)
+    _run(drv, syn.take.xyz[:10], syn.take.fps)
+    with pytest.raises(InputError, match=r"frame 10.*\(19, 3\).*20 markers"):
+        drv.push(syn.take.xyz[10, :19].astype(np.float32), 10 / syn.take.fps)
+    assert len(drv.push(syn.take.xyz[10].astype(np.float32), 10 / syn.take.fps)) == 1
+
+
+def test_live_driver_refuses_a_hello_that_misses_layout_markers(setup):
+    face, syn = setup
+    with pytest.raises(InputError, match="lacks 1 marker.*HEAD2"):
+        MarkerLiveDriver(face, [n for n in syn.take.names if n != "HEAD2"], syn.layout)
+
+
+def test_automatic_placement_waits_for_the_neutral(setup):
+    face, syn = setup
+    layout = {**syn.layout, "markers": {**syn.layout["markers"], "M10": {}, "M11": {}}}
+    drv = MarkerLiveDriver(face, syn.take.names, layout, neutral_frames=3)
+    assert drv.control_vertices is None
+    _run(drv, syn.take.xyz[:5], syn.take.fps)
+    assert drv.ready and len(drv.control_vertices) == 20
+    names = syn.take.names
+    # the automatic placement finds the vertices the markers were generated on
+    auto = [int(drv.control_vertices[drv.rig.control_names.index(n)]) for n in ("M10", "M11")]
+    assert auto == [int(syn.vertices[names.index(n)]) for n in ("M10", "M11")]
