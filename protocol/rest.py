@@ -42,7 +42,8 @@ class Health(BaseModel):
     backend: str | None = Field(None, description="numpy | opencl (null until probed)")
     device: str | None = Field(None, description="OpenCL device(s) in use")
     face: dict | None = Field(None, description="default face: name, vertices")
-    warmup_seconds: float | None = None
+    animator: bool = Field(False, description="the default face's animator is built (first session starts at once)")
+    warmup_seconds: float | None = Field(None, description="seconds the start-up warm-up took (null: still running)")
     errors: dict[str, str] = Field(default_factory=dict)
     job_workers: int
     jobs: dict[str, int] = Field(default_factory=dict, description="jobs by state")

@@ -68,8 +68,18 @@ def _warm_up(app: FastAPI) -> None:
     except Exception as e:
         ready["face_error"] = f"{type(e).__name__}: {e}"
         log.error("cannot load the default face %r: %s", cfg.face, e)
-    ready["warmup_seconds"] = round(time.perf_counter() - t0, 3)
     ready["ready"] = "face_error" not in ready
+    if ready["ready"]:
+        # Build the default face's animator (operator from the disk cache, kernels on the device)
+        # so that the first live session starts at once. The server is usable meanwhile.
+        try:
+            app.state.store.animator(None)
+            ready["animator"] = True
+        except Exception as e:
+            ready["animator_error"] = f"{type(e).__name__}: {e}"
+            log.warning("cannot prepare the animator of the default face: %s", e)
+    ready["warmup_seconds"] = round(time.perf_counter() - t0, 3)
+    log.info("warm-up done in %.2f s", ready["warmup_seconds"])
 
 
 def _probe_backend(backend: str, device: str | None) -> tuple[str, str | None]:
@@ -106,6 +116,12 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         try:
             yield
         finally:
+            live = getattr(app.state, "live", None)
+            if live is not None:
+                try:
+                    await live.close_all()
+                except Exception:
+                    log.exception("closing live sessions")
             await app.state.jobs.stop()
             try:
                 await asyncio.wait_for(asyncio.shield(warm), 0.1)

@@ -26,6 +26,7 @@ async def healthz(request: Request) -> Health:
         backend=r.get("backend"),
         device=r.get("device"),
         face=r.get("face"),
+        animator=bool(r.get("animator")),
         warmup_seconds=r.get("warmup_seconds"),
         errors={k: v for k, v in r.items() if k.endswith("_error")},
         job_workers=st.jobs.workers,

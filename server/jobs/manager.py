@@ -1,8 +1,9 @@
-"""Server side of batch jobs: hands queued jobs to spawned worker processes, watches, cancels.
+"""Server side of batch jobs: hands queued jobs to worker processes, watches them, cancels.
 
-At start-up, jobs left ``running`` by a stopped server go back to ``queued`` and run again (their
-results are written atomically, so a half-finished attempt leaves nothing behind). A job whose
-worker died ``MAX_ATTEMPTS`` times is failed rather than retried forever.
+Workers are ``spawn``-ed on first need and kept for later jobs (``workers`` of them at most). At
+start-up, jobs left ``running`` by a stopped server go back to ``queued`` and run again (results
+are written atomically, so a half-finished attempt leaves nothing behind). A job whose worker died
+``MAX_ATTEMPTS`` times is failed rather than retried forever.
 """
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import asyncio
 import logging
 import multiprocessing
 import os
-import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 from .store import JobStore
@@ -21,8 +22,31 @@ MAX_ATTEMPTS = 3
 POLL_SECONDS = 0.2
 
 
+@dataclass
+class _Slot:
+    """One worker process (None until needed or after it died) and the job it is running."""
+
+    proc: multiprocessing.process.BaseProcess | None = None
+    conn: object | None = None
+    job_id: str | None = None
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.is_alive()
+
+    def kill(self, wait: float = 2.0) -> None:
+        if self.proc is not None:
+            self.proc.terminate()
+            self.proc.join(wait)
+            if self.proc.is_alive():
+                self.proc.kill()
+                self.proc.join(wait)
+        if self.conn is not None:
+            self.conn.close()
+        self.proc = self.conn = self.job_id = None
+
+
 class JobManager:
-    """Runs up to ``workers`` jobs at a time, each in its own ``spawn`` process."""
+    """Runs up to ``workers`` jobs at a time in ``spawn``-ed worker processes (0: queue only)."""
 
     def __init__(self, data_dir: Path, *, workers: int = 1, backend: str = "auto", device: str | None = None):
         self.store = JobStore(data_dir)
@@ -30,10 +54,11 @@ class JobManager:
         self.backend = backend
         self.device = device
         self._ctx = multiprocessing.get_context("spawn")
-        self._running: dict[str, multiprocessing.process.BaseProcess] = {}
+        self._slots = [_Slot() for _ in range(self.workers)]
         self._wake = asyncio.Event()
         self._task: asyncio.Task | None = None
 
+    # -- lifecycle -------------------------------------------------------------------------------
     async def start(self) -> None:
         again = self.store.requeue_running()
         if again:
@@ -41,51 +66,49 @@ class JobManager:
         self._task = asyncio.create_task(self._loop(), name="facecast-jobs")
 
     async def stop(self) -> None:
-        """Stop dispatching and end running workers (their jobs resume at the next start)."""
+        """Stop dispatching and end the workers (running jobs resume at the next start)."""
         if self._task:
             self._task.cancel()
             try:
                 await self._task
             except asyncio.CancelledError:
                 pass
-        for job_id, proc in list(self._running.items()):
-            log.info("stopping worker for job %s (it resumes at the next start)", job_id)
-            proc.terminate()
-        for proc in self._running.values():
-            await asyncio.to_thread(proc.join, 5)
-            if proc.is_alive():
-                proc.kill()
-        self._running.clear()
+        for slot in self._slots:
+            if slot.job_id:
+                log.info("stopping the worker of job %s (it resumes at the next start)", slot.job_id)
+            elif slot.alive():
+                try:
+                    slot.conn.send(None)  # idle: ask it to leave
+                except OSError:
+                    pass
+        await asyncio.gather(*(asyncio.to_thread(s.kill, 5.0) for s in self._slots))
         self.store.close()
 
     def wake(self) -> None:
         """Look for queued jobs now (after a submit)."""
         self._wake.set()
 
+    def running(self) -> list[str]:
+        """Ids of the jobs workers are running now."""
+        return [s.job_id for s in self._slots if s.job_id]
+
+    # -- cancel ----------------------------------------------------------------------------------
     def cancel(self, job_id: str) -> bool:
-        """Cancel a queued or running job; False if it had already finished."""
+        """Cancel a queued or running job (its worker is terminated); False if it had finished."""
         changed = self.store.cancel(job_id)
-        proc = self._running.pop(job_id, None)
-        if proc is not None:
-            proc.terminate()
-            proc.join(2)
-            if proc.is_alive():
-                proc.kill()
+        for slot in self._slots:
+            if slot.job_id == job_id:
+                log.info("job %s cancelled; stopping its worker (pid %s)", job_id, slot.proc.pid)
+                slot.kill()
         if changed:
-            self._cleanup_partial(job_id)
+            folder = self.store.folder(job_id)
+            for p in folder.glob(".*"):  # partial files of an interrupted atomic write
+                if p.is_file():
+                    p.unlink(missing_ok=True)
         self.wake()
         return changed
 
-    def _cleanup_partial(self, job_id: str) -> None:
-        """Remove temporary files an interrupted worker left in the job folder."""
-        folder = self.store.folder(job_id)
-        for p in folder.glob(".*"):
-            if p.is_file():
-                p.unlink(missing_ok=True)
-
-    def delete_files(self, job_id: str) -> None:
-        shutil.rmtree(self.store.folder(job_id), ignore_errors=True)
-
+    # -- dispatch loop ---------------------------------------------------------------------------
     async def _loop(self) -> None:
         while True:
             try:
@@ -100,38 +123,64 @@ class JobManager:
             self._wake.clear()
 
     def _reap(self) -> None:
-        for job_id, proc in list(self._running.items()):
-            if proc.is_alive():
+        for slot in self._slots:
+            if slot.job_id is None:
+                if slot.proc is not None and not slot.proc.is_alive():
+                    slot.kill(0)  # an idle worker died: forget it, a new one starts when needed
                 continue
-            proc.join()
-            del self._running[job_id]
-            job = self.store.get(job_id)
-            if job is None or job.status != "running":
-                continue
-            code = proc.exitcode
-            if job.attempts >= MAX_ATTEMPTS:
-                self.store.fail(job_id, f"the worker process died {job.attempts} times (last exit code "
-                                        f"{code}); the input may be too large for this server")
-            else:
-                log.warning("worker for job %s exited with %s; retrying", job_id, code)
-                self.store.requeue(job_id)
+            finished = False
+            try:
+                while slot.conn.poll():
+                    finished = slot.conn.recv() == slot.job_id or finished
+            except (EOFError, OSError):
+                pass
+            if finished:
+                job_id, slot.job_id = slot.job_id, None
+                job = self.store.get(job_id)
+                if job is not None and job.status == "running":  # abandoned without a verdict
+                    self.store.fail(job_id, "the worker gave up on this job; submit it again")
+            elif not slot.proc.is_alive():
+                job_id, code = slot.job_id, slot.proc.exitcode
+                slot.kill(0)
+                self._worker_died(job_id, code)
+
+    def _worker_died(self, job_id: str, code: int | None) -> None:
+        job = self.store.get(job_id)
+        if job is None or job.status != "running":
+            return
+        if job.attempts >= MAX_ATTEMPTS:
+            self.store.fail(job_id, f"the worker process died {job.attempts} times (last exit code {code}); "
+                                    "the input may be too large for this server")
+        else:
+            log.warning("worker for job %s exited with %s; running the job again", job_id, code)
+            self.store.requeue(job_id)
 
     def _dispatch(self) -> None:
-        free = self.workers - len(self._running)
-        if free <= 0:
+        idle = [s for s in self._slots if s.job_id is None]
+        if not idle:
             return
-        for job in self.store.list("queued", limit=free):
+        for job in self.store.list("queued", limit=len(idle)):
             attempt = self.store.claim(job.id)
             if attempt is None:
                 continue
             if attempt > MAX_ATTEMPTS:
                 self.store.fail(job.id, f"gave up after {MAX_ATTEMPTS} attempts (the worker kept dying)")
                 continue
-            from . import worker
+            slot = idle.pop()
+            if not slot.alive():
+                self._spawn(slot)
+            slot.job_id = job.id
+            slot.conn.send((job.id, attempt))
+            log.info("job %s started (attempt %d, worker pid %s)", job.id, attempt, slot.proc.pid)
 
-            proc = self._ctx.Process(target=worker.main, name=f"facecast-job-{job.id[:8]}",
-                                     args=(str(self.store.data_dir), job.id, attempt, self.backend,
-                                           self.device, os.getpid()), daemon=True)
-            proc.start()
-            self._running[job.id] = proc
-            log.info("job %s started (attempt %d, worker pid %s)", job.id, attempt, proc.pid)
+    def _spawn(self, slot: _Slot) -> None:
+        from . import worker
+
+        slot.kill(0)
+        mine, theirs = self._ctx.Pipe()
+        slot.proc = self._ctx.Process(target=worker.serve, name="facecast-job-worker", daemon=True,
+                                      args=(str(self.store.data_dir), theirs, self.backend, self.device,
+                                            os.getpid()))
+        slot.proc.start()
+        theirs.close()
+        slot.conn = mine

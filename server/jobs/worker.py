@@ -1,83 +1,136 @@
-"""One worker process runs one job: ``render_file(input, result, ...)``, with progress in SQLite.
+"""Worker processes: each runs jobs one at a time with ``render_file``, progress going to SQLite.
 
-Started with the ``spawn`` method by ``JobManager``. The worker stops by itself when the job is
-cancelled (its progress update no longer matches) or when the server that started it has gone.
+Started with the ``spawn`` method by ``JobManager`` and kept for many jobs, so imports, faces and
+the OpenCL device probe are paid once. The manager sends ``(job_id, attempt)`` over a pipe; the
+worker answers with the job id when it is finished with it. A worker exits when the pipe closes
+(the server has gone) and stops a job by itself when the job was cancelled or taken over (its
+progress update no longer matches); the manager also terminates it to cancel at once.
 """
 from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
 import time
 import traceback
+from collections import OrderedDict
 from pathlib import Path
 
-from .store import JobStore
+from .store import JobRecord, JobStore
 
 log = logging.getLogger(__name__)
 
 #: Least time between two progress writes (seconds); the last one is always written.
 PROGRESS_INTERVAL = 0.2
+#: Faces a worker keeps in memory between jobs.
+FACE_CACHE = 2
 
 
 class Stop(BaseException):
     """Raised inside ``render_file`` through the progress callback to abandon the job."""
 
 
-def main(data_dir: str, job_id: str, attempt: int, backend: str = "auto", device: str | None = None,
-         parent_pid: int | None = None) -> None:
-    """Run job ``job_id`` (attempt ``attempt``) and record done/failed in the store."""
+def serve(data_dir: str, conn, backend: str = "auto", device: str | None = None,
+          parent_pid: int | None = None) -> None:
+    """Worker process entry point: run the jobs the manager sends until the pipe closes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
     store = JobStore(Path(data_dir))
+    faces: OrderedDict[str, object] = OrderedDict()
     try:
-        job = store.get(job_id)
-        if job is None or job.attempts != attempt or job.status != "running":
-            return
-        last = [0.0]
-
-        def progress(done: int, total: int) -> None:
-            if parent_pid is not None and os.getppid() != parent_pid:
-                raise Stop("server gone")
-            now = time.monotonic()
-            if now - last[0] < PROGRESS_INTERVAL and done < total:
-                return
-            last[0] = now
-            if not store.progress(job_id, attempt, done / total if total else 0.0):
-                raise Stop("job cancelled or taken over")
-
-        status, error = run(store, job, backend, device, progress)
-        if status is not None:
-            store.finish(job_id, attempt, status, error)
-            log.info("job %s %s%s", job_id, status, f": {error}" if error else "")
+        while True:
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                break
+            if msg is None:
+                break
+            job_id, attempt = msg
+            try:
+                run_job(store, job_id, attempt, backend, device, parent_pid, faces)
+            except Exception:
+                log.error("job %s: worker error:\n%s", job_id, traceback.format_exc())
+                store.finish(job_id, attempt, "failed", "internal error in the job worker; the server log has "
+                                                        "the details")
+            try:
+                conn.send(job_id)
+            except (EOFError, OSError):
+                break
     finally:
         store.close()
 
 
-def run(store: JobStore, job, backend: str, device: str | None, progress) -> tuple[str | None, str | None]:
+def run_job(store: JobStore, job_id: str, attempt: int, backend: str, device: str | None,
+            parent_pid: int | None, faces: OrderedDict) -> None:
+    """Run attempt ``attempt`` of job ``job_id`` and record done/failed (nothing if abandoned)."""
+    job = store.get(job_id)
+    if job is None or job.attempts != attempt or job.status != "running":
+        return
+    last = [0.0]
+
+    def progress(done: int, total: int) -> None:
+        if parent_pid is not None and os.getppid() != parent_pid:
+            raise Stop("server gone")
+        now = time.monotonic()
+        if now - last[0] < PROGRESS_INTERVAL and done < total:
+            return
+        last[0] = now
+        if not store.progress(job_id, attempt, done / total if total else 0.0):
+            raise Stop("job cancelled or taken over")
+
+    status, error = render(store, job, backend, device, progress, faces)
+    if status is not None:
+        store.finish(job_id, attempt, status, error)
+        log.info("job %s %s%s", job_id, status, f": {error}" if error else "")
+
+
+def _face(spec: str, faces: OrderedDict):
+    from ..faces import load_face
+
+    if spec in faces:
+        faces.move_to_end(spec)
+        return faces[spec]
+    face = load_face(spec)
+    faces[spec] = face
+    while len(faces) > FACE_CACHE:
+        faces.popitem(last=False)
+    return face
+
+
+def render(store: JobStore, job: JobRecord, backend: str, device: str | None, progress,
+           faces: OrderedDict | None = None) -> tuple[str | None, str | None]:
     """``(status, error)`` of running ``job``; ``(None, None)`` when the job was abandoned."""
     opts = job.options
     src = store.input_path(job)
     dst = store.result_path(job)
+
+    def client_view(text: str) -> str:
+        # Messages name the upload by its server path; show the client's file name instead.
+        return text.replace(str(src), job.input_name).replace(str(store.folder(job.id)), "")
+
     try:
         from ..errors import FacecastError
         from ..render import render_file
     except ImportError as e:
         return "failed", f"the render engine is not available on this server ({e})"
     try:
-        render_file(src, dst, face=opts.get("face_spec") or "default", engine=opts.get("engine", "fp"),
-                    backend=backend, device=device, layout=opts.get("layout"), progress=progress)
+        face = _face(opts.get("face_spec") or "default", faces if faces is not None else OrderedDict())
+        render_file(src, dst, face=face, engine=opts.get("engine", "fp"), backend=backend, device=device,
+                    layout=opts.get("layout"), progress=progress)
     except Stop as e:
         log.info("job %s abandoned: %s", job.id, e)
         return None, None
     except FacecastError as e:
-        # The message names the uploaded file by its server path; show the client's name instead.
-        msg = str(e).replace(str(src), job.input_name)
-        return "failed", msg
-    except Exception as e:
-        log.error("job %s crashed:\n%s", job.id, traceback.format_exc())
-        msg = f"{type(e).__name__}: {e}".replace(str(src), job.input_name)
-        return "failed", f"could not process {job.input_name!r}: {msg}"
-    if not dst.exists():
+        return "failed", client_view(str(e))
+    except (ValueError, KeyError, IndexError, UnicodeDecodeError) as e:
+        # Decoders that let a low-level error through: still the input's fault, most likely.
+        log.warning("job %s: %s", job.id, traceback.format_exc())
+        return "failed", client_view(f"could not read {job.input_name!r} as {job.input_kind} input: "
+                                     f"{type(e).__name__}: {e}")
+    except MemoryError:
+        return "failed", f"{job.input_name!r} needs more memory than this server has; send a shorter input"
+    if not dst.is_file():
         return "failed", "the renderer finished without writing a result (server bug; please report)"
     return "done", None
