@@ -175,6 +175,7 @@ def test_cli_reports_malformed_fap_with_file_and_line_and_leaves_no_output(tmp_p
     assert r.returncode == 2 and "unsupported output type '.obj'" in r.stderr
 
 
+@pytest.mark.slow
 def test_cli_renders_and_faces_describes(data_dir, tmp_path):
     r = _cli("render", str(data_dir / "xface" / "faps" / "joy.fap"), "-o", "joy.fap", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
@@ -185,6 +186,10 @@ def test_cli_renders_and_faces_describes(data_dir, tmp_path):
     r = _cli("faces", str(data_dir / "ict-facekit" / "generic_neutral_mesh.obj"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "26719 vertices" in r.stdout and "84 of 84" in r.stdout and "IRISD0" in r.stdout
+    r = _cli("faces", "default:2k", "--json", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    info = __import__("json").loads(r.stdout)
+    assert info["feature_points"] == 84 and info["fapu_mm"]["MW0"] > 20 and info["parts"]["tongue"] > 0
 
 
 def test_failed_writes_leave_nothing_and_keep_the_old_file(tmp_path, small_face):
@@ -215,3 +220,31 @@ def test_glb_basis_is_exact_for_a_short_clip_and_bounded_for_a_long_one(small_fa
     frames = small_face.vertices + np.einsum("tm,mvc->tvc", w, basis).astype(np.float32)
     data, rec = encode_glb(frames, small_face.vertices, small_face.triangles, 30, tolerance_mm=0.01)
     assert rec["targets"] == 3 and rec["frames"] == 120 and rec["max_error_mm"] <= 0.01
+
+
+def test_preview_pngs_of_joy_show_the_mouth_moving(data_dir, small_face, animator, artifacts):
+    """Writes tests/artifacts/joy_frame_*.png for a person to look at; checks the mouth region changes."""
+    from facecast.server.output.preview import render_image, write_png
+
+    anim = load_fap(data_dir / "xface" / "faps" / "joy.fap", small_face)
+    mouth = small_face.fp_position("2.2")
+    images = []
+    for t in (0, 24, 56):
+        img = render_image(animator.frame(anim.states[t]), small_face.triangles, size=(160, 160),
+                           center=mouth, extent=80.0 / small_face.mm_per_unit)
+        write_png(artifacts / f"joy_frame_{t:03d}.png", img)
+        images.append(img.astype(np.int16))
+    assert np.abs(images[1] - images[0]).mean() > 1.0  # mouth open vs neutral
+    assert (artifacts / "joy_frame_024.png").stat().st_size > 1000
+
+
+@pytest.mark.opencl
+def test_opencl_backend_renders_the_same_frames(data_dir, small_face, animator):
+    from facecast.server.errors import FacecastError
+
+    try:
+        cl = Animator(small_face, backend="opencl", operator=animator.operator)
+    except (FacecastError, ImportError) as e:
+        pytest.skip(f"no OpenCL device: {e}")
+    anim = load_fap(data_dir / "xface" / "faps" / "anger.fap", small_face)
+    np.testing.assert_allclose(cl.render(anim), animator.render(anim), atol=1e-3)
