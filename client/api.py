@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 import time
 from dataclasses import dataclass
 from typing import Any, AsyncIterator
@@ -107,10 +108,37 @@ class SessionAdmin:
         await self._call("DELETE", f"/v1/sessions/{quote(session, safe='')}", f"cannot close session {session}")
 
 
-async def _connect(url: str) -> ClientConnection:
+#: Received messages the client library may hold before it stops reading the socket.
+MAX_QUEUE = 4
+#: Receive buffer of a viewer socket, bytes (small, so a slow reader skips frames at the server).
+VIEWER_RECEIVE_BUFFER = 512 * 1024
+
+
+async def _socket(url: str, rcvbuf: int | None) -> socket.socket | None:
+    """A connected TCP socket with a capped receive buffer (set before connecting), or None."""
+    if rcvbuf is None:
+        return None
+    parts = urlsplit(url)
+    port = parts.port or (443 if parts.scheme == "wss" else 80)
+    loop = asyncio.get_running_loop()
+    infos = await loop.getaddrinfo(parts.hostname, port, type=socket.SOCK_STREAM)
+    family, type_, proto, _, addr = infos[0]
+    sock = socket.socket(family, type_, proto)
+    sock.setblocking(False)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
     try:
+        await asyncio.wait_for(loop.sock_connect(sock, addr), 30)
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
+async def _connect(url: str, *, rcvbuf: int | None = None) -> ClientConnection:
+    try:
+        sock = await _socket(url, rcvbuf)
         return await connect(url, compression=None, max_size=MAX_MESSAGE, open_timeout=30,
-                             ping_interval=None)
+                             ping_interval=None, max_queue=MAX_QUEUE, sock=sock)
     except (OSError, asyncio.TimeoutError) as e:
         raise LiveError(f"cannot connect to {url.split('?')[0]}: {e}") from None
     except Exception as e:  # handshake refused (HTTP status instead of 101)
@@ -321,13 +349,14 @@ class watch:
     """``async with watch(url, session, token, encoding="i16") as w: async for f in w: ...``."""
 
     def __init__(self, url: str, session: str, token: str, *, encoding: str = "f32",
-                 until_producer_leaves: bool = False) -> None:
+                 until_producer_leaves: bool = False, receive_buffer: int | None = VIEWER_RECEIVE_BUFFER) -> None:
         self.url = ws_url(url, f"/v1/sessions/{quote(session, safe='')}/watch", token=token, encoding=encoding)
         self.until = until_producer_leaves
+        self.receive_buffer = receive_buffer
         self.watcher: Watcher | None = None
 
     async def __aenter__(self) -> Watcher:
-        ws = await _connect(self.url)
+        ws = await _connect(self.url, rcvbuf=self.receive_buffer)
         try:
             first = await ws.recv()
         except ConnectionClosed:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 import time
 from typing import Any
 from urllib.parse import quote
@@ -28,6 +29,9 @@ router = APIRouter(tags=["sessions"])
 
 #: Seconds a producer has to send its hello.
 HELLO_TIMEOUT = 10.0
+#: Kernel send buffer of a viewer socket, in vertex frames (see ``_limit_send_buffer``).
+VIEWER_SEND_BUFFER_FRAMES = 2
+MIN_SEND_BUFFER = 64 * 1024
 
 
 def registry(app: Any):
@@ -309,6 +313,9 @@ async def watch(ws: WebSocket, session_id: str, token: str | None = None, encodi
         session=sp.id, face=sp.face, topology_url=f"/v1/faces/{quote(sp.face, safe='')}/topology",
         vertex_count=session.vertex_count, encoding=encoding, fps=sp.fps, input=sp.input,
         producer_connected=session.producer is not None)))
+    frame_bytes = frames.frame_size(frames.Header(
+        frames.Kind.VERTICES_I16 if encoding == "i16" else frames.Kind.VERTICES_F32, 0, session.vertex_count, 0.0))
+    _limit_send_buffer(ws, VIEWER_SEND_BUFFER_FRAMES * frame_bytes)
     viewer = Viewer(encoding)
     session.add_viewer(viewer)
     sender = asyncio.create_task(_send_loop(ws, session, viewer))
@@ -325,6 +332,23 @@ async def watch(ws: WebSocket, session_id: str, token: str | None = None, encodi
                 await ws.close()
             except Exception:
                 pass
+
+
+def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
+    """Cap the kernel send buffer of a viewer's socket at about ``nbytes``.
+
+    Loopback and LAN sockets auto-tune their buffers to megabytes, i.e. dozens of 25k-vertex frames:
+    a viewer that reads too slowly would then see old frames (latency grows) instead of skipped
+    ones. With a small buffer the backlog stays in the viewer's one-frame slot, where a newer frame
+    replaces it. Best effort: servers that hide the transport keep their defaults.
+    """
+    try:
+        transport = getattr(getattr(ws._send, "__self__", None), "transport", None)
+        sock = transport.get_extra_info("socket") if transport is not None else None
+        if sock is not None:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, max(MIN_SEND_BUFFER, int(nbytes)))
+    except (OSError, AttributeError):  # pragma: no cover - depends on the ASGI server
+        log.debug("cannot set the send buffer of a viewer socket", exc_info=True)
 
 
 async def _send_loop(ws: WebSocket, session, viewer) -> None:

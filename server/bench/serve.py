@@ -1,0 +1,341 @@
+"""``facecast bench serve``: live-session throughput and end-to-end latency on loopback.
+
+Starts a real ``facecast serve`` on a free loopback port (25k-vertex ``default`` face), then two
+sweeps, each point bounded in time (``--warmup`` + ``--seconds``):
+
+- **sessions**: N concurrent sessions, one producer (FAP frames at ``--fps``) and one viewer each;
+- **viewers**: one session, one producer, M viewers.
+
+Viewers use the real asyncio client (``facecast.client.api.watch``) with int16 frames (``--encoding``).
+Latency is end to end: viewer receive wall time minus the producer's send wall time carried in the
+frame (same machine, same clock). Per point it reports the sustained frame rate per viewer (mean and
+minimum), latency p50/p95/max, frames skipped (gaps in ``seq``), the server's mean deform+encode
+time per frame, and CPU seconds per second of the server process and of this (client) process:
+that is where the time goes. The baseline is the first point of each sweep (one session, one
+viewer), measured in the same run; ``*_ratio`` columns compare against it. In-process costs of
+one frame (rig solve, deformation, int16/float32 encoding, decoding) are measured first.
+
+Writes ``bench/out/serve.json`` and prints markdown tables. Loopback only; nothing is downloaded.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import math
+import os
+import resource
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+ADMIN_KEY = "bench-serve-key"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--face", default="default", help="face of the sessions (default: the 25k-vertex default)")
+    p.add_argument("--backend", default="auto", choices=("auto", "numpy", "opencl"), help="server backend")
+    p.add_argument("--fps", type=float, default=60.0, help="producer frame rate")
+    p.add_argument("--encoding", default="i16", choices=("i16", "f32"))
+    p.add_argument("--sessions", default="1,5,10,20,25", help="session counts to sweep (comma-separated)")
+    p.add_argument("--viewers", default="1,25,50,100,120", help="viewer counts of one session to sweep")
+    p.add_argument("--warmup", type=float, default=1.0, help="seconds before measuring at each point")
+    p.add_argument("--seconds", type=float, default=3.0, help="seconds measured at each point")
+    p.add_argument("--latency-target", type=float, default=50.0, help="p95 target, ms")
+    p.add_argument("--url", help="use this running server instead of starting one (needs FACECAST_ADMIN_KEY)")
+    p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
+
+
+# ------------------------------------------------------------------------------------ server process
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class _Server:
+    def __init__(self, face: str, backend: str) -> None:
+        self.dir = tempfile.TemporaryDirectory(prefix="facecast-bench-serve-")
+        self.port = _free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        env = {**os.environ, "FACECAST_ADMIN_KEY": ADMIN_KEY, "FACECAST_MAX_SESSIONS": "256",
+               "FACECAST_MAX_VIEWERS_PER_SESSION": "1024", "FACECAST_MAX_PRODUCER_FPS": "1000"}
+        self.log = open(Path(self.dir.name) / "server.log", "wb")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "facecast.server.cli", "serve", "--port", str(self.port), "--data-dir",
+             self.dir.name, "--face", face, "--backend", backend, "--workers", "0"],
+            env=env, stdout=self.log, stderr=subprocess.STDOUT)
+
+    def wait_ready(self, timeout: float = 300.0) -> dict:
+        import httpx
+
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError("server exited: " + (Path(self.dir.name) / "server.log").read_text()[-2000:])
+            try:
+                r = httpx.get(self.url + "/healthz", timeout=1.0)
+                if r.status_code == 200 and r.json().get("ready", True):
+                    return r.json()
+            except Exception:
+                pass
+            time.sleep(0.3)
+        raise RuntimeError("server did not become ready")
+
+    def cpu_seconds(self) -> float:
+        """User + system CPU seconds of the server process so far (Linux /proc)."""
+        try:
+            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        except (OSError, IndexError, ValueError):
+            return float("nan")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        self.log.close()
+        self.dir.cleanup()
+
+
+def _own_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+# ----------------------------------------------------------------------------------------- in-process
+
+def frame_costs(face_name: str, backend: str, repeats: int = 30) -> dict:
+    """Milliseconds per frame of each server step, in this process (no network)."""
+    from ...protocol import frames
+    from ..api.store import FaceStore
+    from ..state import FaceState, zero_faps
+
+    store = FaceStore(default=face_name, backend=backend)
+    animator = store.animator(face_name)
+    states = [_state(i, 60.0, FaceState, zero_faps) for i in range(repeats)]
+    out: dict = {"vertices": int(animator.face.n_vertices),
+                 "backend": getattr(animator.deformer, "name", type(animator.deformer).__name__)}
+    animator.frame(states[0])
+
+    def timed(fn) -> float:
+        t0 = time.perf_counter()
+        for s in states:
+            fn(s)
+        return round(1000 * (time.perf_counter() - t0) / len(states), 3)
+
+    out["solve_ms"] = timed(animator.solve)
+    solved = [animator.solve(s) for s in states]
+    it = iter(range(len(states)))
+    out["deform_ms"] = timed(lambda s: animator.deformer.deform(*solved[next(it)]))
+    v = animator.frame(states[0])
+    out["encode_i16_ms"] = timed(lambda s: frames.encode_vertices_i16(v, seq=0, t=s.t))
+    out["encode_f32_ms"] = timed(lambda s: frames.encode_vertices_f32(v, seq=0, t=s.t))
+    blob = frames.encode_vertices_i16(v, seq=0, t=0.0)
+    out["decode_i16_ms"] = timed(lambda s: frames.decode(blob))
+    out["bytes_i16"] = len(blob)
+    out["bytes_f32"] = len(frames.encode_vertices_f32(v, seq=0, t=0.0))
+    return out
+
+
+def _state(i: int, fps: float, FaceState, zero_faps):
+    faps = zero_faps()
+    t = i / fps
+    faps[3] = 400 + 400 * math.sin(2 * math.pi * 0.7 * t)  # open jaw
+    faps[5] = 150 * math.sin(2 * math.pi * 1.3 * t)  # lower lip
+    faps[12] = faps[13] = 200 * math.sin(2 * math.pi * 0.4 * t)  # lip corners
+    faps[19] = faps[20] = 500 * max(0.0, math.sin(2 * math.pi * 0.25 * t)) ** 8  # blinks
+    return FaceState(t=t, faps=faps)
+
+
+def _faps(i: int, fps: float) -> dict[int, float]:
+    t = i / fps
+    return {3: 400 + 400 * math.sin(2 * math.pi * 0.7 * t), 5: 150 * math.sin(2 * math.pi * 1.3 * t),
+            12: 200 * math.sin(2 * math.pi * 0.4 * t), 13: 200 * math.sin(2 * math.pi * 0.4 * t),
+            19: 500 * max(0.0, math.sin(2 * math.pi * 0.25 * t)) ** 8}
+
+
+# ------------------------------------------------------------------------------------------ load points
+
+async def _producer(url: str, s, fps: float, stop: asyncio.Event, sent: list[int]) -> None:
+    from ...client.api import Pacer, produce
+
+    async with produce(url, s.id, s.producer_token) as p:
+        pacer = Pacer(1.0)
+        i = 0
+        while not stop.is_set():
+            await pacer.until(i / fps)
+            await p.send_faps(_faps(i, fps), i / fps)
+            i += 1
+        sent.append(i)
+
+
+async def _viewer(url: str, s, encoding: str, stop: asyncio.Event, ready: asyncio.Event,
+                  out: list[tuple[float, int, float, int]]) -> None:
+    from ...client.api import watch
+
+    async with watch(url, s.id, s.viewer_token, encoding=encoding) as w:
+        ready.set()
+        it = w.__aiter__()
+        while not stop.is_set():
+            try:
+                f = await asyncio.wait_for(it.__anext__(), 1.0)
+            except asyncio.TimeoutError:
+                continue
+            except StopAsyncIteration:
+                return
+            h = f.frame.header
+            out.append((f.received, h.seq, h.wall, f.size))
+
+
+async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> dict:
+    """One load point: ``sessions`` sessions with ``viewers`` viewers each, for warmup + seconds."""
+    from ...client.api import SessionAdmin
+
+    async with SessionAdmin(url, os.environ.get("FACECAST_ADMIN_KEY", ADMIN_KEY)) as admin:
+        made = [await admin.create(face=args.face, fps=args.fps) for _ in range(sessions)]
+        stop = asyncio.Event()
+        records: list[list] = []
+        ready_events = []
+        tasks = []
+        for s in made:
+            for _ in range(viewers):
+                rec: list = []
+                ev = asyncio.Event()
+                records.append(rec)
+                ready_events.append(ev)
+                tasks.append(asyncio.create_task(_viewer(url, s, args.encoding, stop, ev, rec)))
+        await asyncio.wait_for(asyncio.gather(*(e.wait() for e in ready_events)), 120)
+        sent: list[int] = []
+        tasks += [asyncio.create_task(_producer(url, s, args.fps, stop, sent)) for s in made]
+        await asyncio.sleep(args.warmup)
+        t0, cpu_s0, cpu_c0 = time.time(), server.cpu_seconds() if server else float("nan"), _own_cpu()
+        await asyncio.sleep(args.seconds)
+        t1, cpu_s1, cpu_c1 = time.time(), server.cpu_seconds() if server else float("nan"), _own_cpu()
+        stop.set()
+        await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 60)
+        infos = [await admin.info(s.id) for s in made]
+        for s in made:
+            await admin.close(s.id)
+
+    window = t1 - t0
+    rates, lat, skipped, sizes = [], [], 0, []
+    for rec in records:
+        inside = [r for r in rec if t0 <= r[0] < t1]
+        rates.append(len(inside) / window)
+        if len(inside) > 1:
+            seqs = np.array([r[1] for r in inside], dtype=np.int64)
+            d = np.diff(seqs) - 1
+            skipped += int(d[d > 0].sum())
+        lat += [1000 * (r[0] - r[2]) for r in inside if r[2] > 0]
+        sizes += [r[3] for r in inside]
+    lat_a = np.array(lat) if lat else np.array([np.nan])
+    deform = [i.stats.deform_ms_mean for i in infos if i.stats.frames_deformed]
+    return {
+        "sessions": sessions, "viewers_per_session": viewers, "viewers_total": sessions * viewers,
+        "fps_target": args.fps, "fps_mean": round(float(np.mean(rates)), 2), "fps_min": round(float(np.min(rates)), 2),
+        "latency_ms_p50": round(float(np.percentile(lat_a, 50)), 2),
+        "latency_ms_p95": round(float(np.percentile(lat_a, 95)), 2),
+        "latency_ms_max": round(float(np.max(lat_a)), 2),
+        "frames_received": len(lat), "frames_skipped": skipped,
+        "server_dropped_before_deform": int(sum(i.stats.frames_dropped for i in infos)),
+        "bytes_per_frame": round(float(np.mean(sizes)), 1) if sizes else None,
+        "server_deform_encode_ms": round(float(np.mean(deform)), 3) if deform else None,
+        "server_cpu": round((cpu_s1 - cpu_s0) / window, 2),
+        "client_cpu": round((cpu_c1 - cpu_c0) / window, 2),
+        "seconds": round(window, 2),
+    }
+
+
+def _ok(p: dict, args) -> bool:
+    return p["fps_min"] >= 0.95 * args.fps and p["latency_ms_p95"] <= args.latency_target
+
+
+def _table(title: str, points: list[dict], args) -> str:
+    base = points[0] if points else None
+    head = ("| sessions | viewers | fps mean | fps min | p50 ms | p95 ms | p95 ratio | skipped | deform+enc ms "
+            "| server CPU | client CPU | target |")
+    lines = [f"### {title}", "", head, "|" + "---|" * 12]
+    for p in points:
+        ratio = p["latency_ms_p95"] / base["latency_ms_p95"] if base and base["latency_ms_p95"] else float("nan")
+        p["latency_p95_ratio"] = round(ratio, 2)
+        lines.append(f"| {p['sessions']} | {p['viewers_total']} | {p['fps_mean']} | {p['fps_min']} | "
+                     f"{p['latency_ms_p50']} | {p['latency_ms_p95']} | {ratio:.2f} | {p['frames_skipped']} | "
+                     f"{p['server_deform_encode_ms']} | {p['server_cpu']} | {p['client_cpu']} | "
+                     f"{'ok' if _ok(p, args) else 'miss'} |")
+    return "\n".join(lines)
+
+
+async def _sweeps(server, url: str, args) -> dict:
+    res: dict = {"sessions_sweep": [], "viewers_sweep": []}
+    for n in [int(x) for x in args.sessions.split(",") if x.strip()]:
+        log.info("sessions: %d", n)
+        res["sessions_sweep"].append(await run_point(server, url, sessions=n, viewers=1, args=args))
+        log.info("%s", res["sessions_sweep"][-1])
+    for m in [int(x) for x in args.viewers.split(",") if x.strip()]:
+        log.info("viewers: %d", m)
+        res["viewers_sweep"].append(await run_point(server, url, sessions=1, viewers=m, args=args))
+        log.info("%s", res["viewers_sweep"][-1])
+    return res
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.getLogger("httpx").setLevel(logging.WARNING)
+    t_start = time.time()
+    costs = frame_costs(args.face, args.backend)
+    log.info("in-process costs per frame: %s", costs)
+    server = None
+    url = args.url
+    if url is None:
+        server = _Server(args.face, args.backend)
+    try:
+        health = server.wait_ready() if server else {}
+        res = asyncio.run(_sweeps(server, url or server.url, args))
+    finally:
+        if server:
+            server.stop()
+    load = os.getloadavg()
+    report = {
+        "bench": "serve", "face": args.face, "vertices": costs["vertices"], "encoding": args.encoding,
+        "fps": args.fps, "backend": health.get("backend", args.backend), "device": health.get("device"),
+        "frame_costs_ms": costs, "latency_target_ms": args.latency_target, **res,
+        "cpus": os.cpu_count(), "loadavg_after": [round(x, 2) for x in load],
+        "seconds_total": round(time.time() - t_start, 1),
+        "note": "loopback, server and all clients on this machine; the machine may be shared (see loadavg)",
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2))
+    c = costs
+    print(f"## facecast bench serve — {args.face} ({c['vertices']} vertices), {args.encoding} frames, "
+          f"producers at {args.fps:g} fps, backend {report['backend']}\n")
+    print(f"In-process per frame: solve {c['solve_ms']} ms, deform {c['deform_ms']} ms ({c['backend']}), "
+          f"encode i16 {c['encode_i16_ms']} ms / f32 {c['encode_f32_ms']} ms, decode i16 {c['decode_i16_ms']} ms; "
+          f"{c['bytes_i16']} B (i16) / {c['bytes_f32']} B (f32) per frame.\n")
+    print(_table("Concurrent sessions (1 producer + 1 viewer each)", res["sessions_sweep"], args))
+    print()
+    print(_table("Viewers of one session", res["viewers_sweep"], args))
+    print(f"\nTarget: every viewer ≥ {0.95 * args.fps:g} fps and p95 ≤ {args.latency_target:g} ms. "
+          f"CPU columns are CPU-seconds per second (2.0 = two cores busy). Load average after: {load[0]:.2f} "
+          f"on {os.cpu_count()} CPUs. JSON: {args.out}")
+    args.out.write_text(json.dumps(report, indent=2))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="bench/serve.py", description=__doc__.split("\n\n")[0])
+    add_arguments(p)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    return run(p.parse_args(argv))
