@@ -248,3 +248,16 @@ def test_opencl_backend_renders_the_same_frames(data_dir, small_face, animator):
         pytest.skip(f"no OpenCL device: {e}")
     anim = load_fap(data_dir / "xface" / "faps" / "anger.fap", small_face)
     np.testing.assert_allclose(cl.render(anim), animator.render(anim), atol=1e-3)
+
+
+@pytest.mark.slow
+def test_cli_render_on_a_server(data_dir, server, tmp_path):
+    env_key = {"FACECAST_ADMIN_KEY": server.admin_key}
+    r = subprocess.run([sys.executable, "-m", "facecast.server.cli", "render",
+                        str(data_dir / "xface" / "faps" / "happy-for.fap"), "-o", "remote.glb",
+                        "--face", "default:2k", "--server", server.url],
+                       cwd=tmp_path, env={**os.environ, **env_key}, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    glb = read_glb(tmp_path / "remote.glb")
+    assert len(glb["times"]) == 107 and np.isfinite(frames_of(glb)).all()
+    assert "HTTP Request" not in r.stderr

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 from pathlib import Path
@@ -43,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
     output_kind(args.output)
     if not args.input.is_file():
         raise InputError("input file not found", where=str(args.input))
+    if not getattr(args, "verbose", False):
+        logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per poll otherwise
     progress, close = _progress_bar(args.input.name)
     try:
         if args.server:
