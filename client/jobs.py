@@ -13,6 +13,8 @@ from pathlib import Path
 import httpx
 
 FINAL = ("done", "failed", "cancelled")
+#: Render options that only make sense locally (the server picks its own backend and device).
+LOCAL_ONLY = frozenset({"backend", "device"})
 
 
 class RemoteJobError(RuntimeError):
@@ -39,7 +41,7 @@ def _error_text(resp: httpx.Response) -> str:
 
 def _check(resp: httpx.Response, what: str, job: str | None = None) -> httpx.Response:
     if resp.status_code >= 400:
-        hint = " (pass the server's admin key: --admin-key or FACECAST_ADMIN_KEY)" if resp.status_code == 401 else ""
+        hint = " (set FACECAST_ADMIN_KEY to the server's admin key)" if resp.status_code == 401 else ""
         raise RemoteJobError(f"{what}: HTTP {resp.status_code}: {_error_text(resp)}{hint}",
                              status=resp.status_code, job=job)
     return resp
@@ -94,7 +96,8 @@ def render_remote(url: str, input: str | Path, output: str | Path, *, options: d
                   poll: float = 0.5, timeout: float | None = None) -> Path:
     """Render ``input`` on the server at ``url`` and write the result to ``output``.
 
-    ``options``: ``face``, ``engine``, ``format`` (default: ``output``'s suffix), ``layout``.
+    ``options``: ``face``, ``engine``, ``format`` (default: ``output``'s suffix), ``layout``;
+    ``backend``/``device`` are ignored (the server uses its own).
     ``progress(done, total)`` is called with ``total = 1000`` as the job advances (like the local
     renderer's callback). ``admin_key`` defaults to ``$FACECAST_ADMIN_KEY``. Raises
     ``RemoteJobError`` with the server's message when the job is refused or fails.
@@ -102,7 +105,8 @@ def render_remote(url: str, input: str | Path, output: str | Path, *, options: d
     input, output = Path(input), Path(output)
     if not input.is_file():
         raise RemoteJobError(f"{input}: no such file")
-    opts = dict(options or {})
+    # The server deforms on its own backend and device; those local options do not apply.
+    opts = {k: v for k, v in (options or {}).items() if k not in LOCAL_ONLY}
     if not opts.get("format"):
         suffix = output.suffix.lower().lstrip(".")
         if suffix not in ("glb", "npz", "fap"):

@@ -95,6 +95,26 @@ def test_render_remote_reports_progress_and_writes_atomically(srv, data_dir, tmp
         len(original.frames if hasattr(original, "frames") else original.values)
 
 
+def test_render_cli_with_server_option(srv, data_dir, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "joy.fap"
+    env = {**os.environ, "FACECAST_ADMIN_KEY": srv.admin_key}
+    run = subprocess.run([sys.executable, "-m", "facecast.server.cli", "render", str(fap_file(data_dir)), "-o",
+                          str(out), "--face", FACE, "--server", srv.url], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert out.read_text().lstrip().startswith(("#", "2.1"))
+    env["FACECAST_ADMIN_KEY"] = "wrong"
+    run = subprocess.run([sys.executable, "-m", "facecast.server.cli", "render", str(fap_file(data_dir)), "-o",
+                          str(tmp_path / "x.fap"), "--face", FACE, "--server", srv.url], env=env,
+                         capture_output=True, text=True, timeout=300)
+    last = run.stderr.strip().splitlines()[-1]
+    assert run.returncode == 2 and last.startswith("facecast:") and "admin key" in last
+
+
 def test_malformed_file_fails_the_job_with_a_clear_error(srv, tmp_path):
     bad = b"2.1 broken 25 3\nthis line is not a FAP mask\n"
     job = wait(srv, submit(srv, "broken.fap", bad)["id"])

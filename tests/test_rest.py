@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -14,15 +15,23 @@ from facecast.protocol.topology import (NO_PART, Topology, TopologyError, decode
                                         encode_topology)
 
 from conftest import RunningServer
+from facecast.server.api.store import parse_faces_env
+from facecast.server.errors import InputError
+from facecast.server.paths import shared_data
 
 FACE = "default:2k"
 UPLOAD_LIMIT = 128 * 1024
 
 
+ICT_MESH = (shared_data() / "ict-facekit" / "generic_neutral_mesh.obj") if shared_data() else None
+
+
 @pytest.fixture(scope="module")
 def srv(tmp_path_factory) -> RunningServer:
-    s = RunningServer(tmp_path_factory.mktemp("rest"), "--face", FACE, "--workers", "0",
-                      env={"FACECAST_MAX_UPLOAD_BYTES": str(UPLOAD_LIMIT)}).start()
+    env = {"FACECAST_MAX_UPLOAD_BYTES": str(UPLOAD_LIMIT)}
+    if ICT_MESH is not None and ICT_MESH.is_file():
+        env["FACECAST_FACES"] = f"ict={ICT_MESH}"
+    s = RunningServer(tmp_path_factory.mktemp("rest"), "--face", FACE, "--workers", "0", env=env).start()
     yield s
     s.stop()
 
@@ -127,6 +136,33 @@ def test_topology_is_the_face_the_server_loaded(srv):
         assert np.isin(tagged, face.parts[name]).all(), name
     if "eye_l" in topo.part_names:
         assert (topo.part_ids[face.parts["eye_l"]] == topo.part_names.index("eye_l")).all()
+
+
+def test_configured_mesh_face(srv, data_dir):
+    assert "ict" in [f["name"] for f in get(srv, "/v1/faces").json()["faces"]]
+    info = get(srv, "/v1/faces/ict").json()
+    assert info["units"] == "cm" and info["mm_per_unit"] == 10.0
+    assert {"eye_l", "eye_r", "teeth_lower", "tongue"} <= set(info["parts"])
+    assert info["rigid_groups"]["jaw"] > 0 and info["feature_points"] > 0
+    if info["fapu"] is not None:
+        assert all(v > 0 for v in info["fapu"].values())
+    topo = decode_topology(get(srv, "/v1/faces/ict/topology").content)
+    assert topo.n_vertices == info["vertices"] and topo.mm_per_unit == 10.0
+
+
+def test_faces_env_parsing():
+    assert parse_faces_env("ict=/a/b.obj; x-1 = /c.obj,") == {"ict": Path("/a/b.obj"), "x-1": Path("/c.obj")}
+    assert parse_faces_env(None) == {}
+    for bad in ("ict", "=/a.obj", "a b=/c.obj", "ict="):
+        with pytest.raises(InputError, match="FACECAST_FACES"):
+            parse_faces_env(bad)
+
+
+def test_new_builtin_resolution_needs_the_admin_key(srv):
+    assert_error(get(srv, "/v1/faces/default:1k"), 403, "admin key")
+    assert_error(get(srv, "/v1/faces/default:1k/topology"), 403, "admin key")
+    assert get(srv, "/v1/faces/default:1k", headers=srv.admin_headers).status_code == 200
+    assert get(srv, "/v1/faces/default:1k/topology").status_code == 200  # loaded now: public
 
 
 @pytest.mark.parametrize("name", ["nope", "..", "default:9", "etc%2Fpasswd"])

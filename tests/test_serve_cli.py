@@ -74,3 +74,29 @@ def test_flags_override_environment(tmp_path, monkeypatch):
     assert (cfg.port, cfg.job_workers, cfg.backend, cfg.host) == (9001, 3, "opencl", "127.0.0.1")
     with pytest.raises(InputError, match="workers"):
         make_config(parse("--workers", "-1"))
+
+
+def test_websockets_are_never_compressed(tmp_path):
+    """Vertex streams must not use per-message deflate, even when the client offers it."""
+    import asyncio
+
+    from websockets.asyncio.client import connect
+
+    srv = RunningServer(tmp_path, "--face", FACE, "--workers", "0").start()
+    try:
+        created = httpx.post(srv.url + "/v1/sessions", json={}, headers=srv.admin_headers, timeout=120)
+        assert created.status_code == 201, created.text
+        s = created.json()
+        url = f"ws://127.0.0.1:{srv.port}{s['watch_url']}?token={s['viewer_token']}"
+
+        async def handshake() -> tuple[dict, str | None]:
+            async with connect(url, compression="deflate") as ws:
+                assert "permessage-deflate" in ws.request.headers.get("Sec-WebSocket-Extensions", "")
+                hello = await asyncio.wait_for(ws.recv(), 30)
+                return hello, ws.response.headers.get("Sec-WebSocket-Extensions")
+
+        hello, extensions = asyncio.run(handshake())
+        assert '"hello"' in hello  # a real viewer connection
+        assert extensions is None
+    finally:
+        srv.stop()

@@ -4,7 +4,8 @@ Who needs the admin key (``Authorization: Bearer <key>``):
 
 - ``/v1/jobs`` (submit, status, result, cancel) and creating/closing sessions: **admin**;
 - live WebSockets: the session's producer or viewer token (see ``routes_sessions``);
-- ``/v1/faces...``, ``/healthz``, ``/metrics``, ``/docs``, ``/openapi.json``, ``/``: public, read-only.
+- ``/v1/faces...``, ``/healthz``, ``/metrics``, ``/docs``, ``/openapi.json``, ``/``: public, read-only
+  (except that building a not-yet-loaded resolution of a built-in face, ``default:N``, needs the key).
 
 Every error is JSON: ``{"error": "<what was wrong and what to do>", "where": "...", "status": N}``.
 """
@@ -29,6 +30,23 @@ from .security import resolve_admin_key
 from .store import FaceStore
 
 log = logging.getLogger(__name__)
+
+
+DESCRIPTION = """\
+Networked facial-animation server: MPEG-4 FAPs, mocap markers and speech in; deformed vertex
+streams (WebSocket) and animation files (REST jobs) out.
+
+| Routes | Credential |
+|---|---|
+| `/v1/jobs…` (submit, list, status, result, cancel) | admin key |
+| `POST/GET/DELETE /v1/sessions…` | admin key |
+| `/v1/sessions/{id}/produce`, `/watch` (WebSocket) | the session's producer / viewer token (`?token=`) |
+| `/v1/faces…`, `/healthz`, `/metrics`, `/docs`, `/` | none (building a new `default:N` resolution needs the admin key) |
+
+The admin key goes in `Authorization: Bearer <key>`; it is `FACECAST_ADMIN_KEY`, or the key the
+server generated, printed at start-up and keeps in `<data dir>/admin.key`. Errors are JSON:
+`{"error": "<what was wrong and what to do>", "detail": <same>, "status": N, "where": "<field>"}`.
+"""
 
 
 def _version() -> str:
@@ -131,9 +149,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     app = FastAPI(
         title="facecast",
         version=_version(),
-        description="Networked facial-animation server: MPEG-4 FAPs, mocap markers and speech in; "
-                    "deformed vertex streams (WebSocket) and animation files (REST jobs) out. "
-                    "Admin routes need `Authorization: Bearer <admin key>`.",
+        description=DESCRIPTION,
         lifespan=lifespan,
     )
     app.state.config = config

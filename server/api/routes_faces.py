@@ -13,13 +13,16 @@ from fastapi.responses import Response
 
 from ...protocol.rest import TOPOLOGY_MEDIA_TYPE, ErrorBody, FaceInfo, FaceList, FaceSummary
 from ...protocol.topology import Topology, encode_topology, part_ids_from_parts
+from ..errors import FacecastError
 from ..faces import KNOWN_PARTS, RIGID_GROUPS, builtin_faces
+from .security import bearer, same
 
 log = logging.getLogger(__name__)
 
 router = APIRouter(prefix="/v1/faces", tags=["faces"])
 
-_ERRORS = {404: {"model": ErrorBody, "description": "no such face"}}
+_ERRORS = {404: {"model": ErrorBody, "description": "no such face"},
+           403: {"model": ErrorBody, "description": "a new resolution of a built-in face needs the admin key"}}
 
 
 def part_order(face) -> list[str]:
@@ -58,6 +61,20 @@ def measure_fapu(face) -> dict[str, float] | None:
     return out or None
 
 
+class Forbidden(FacecastError):
+    status = 403
+
+
+def check_public_load(request: Request, name: str) -> None:
+    """Public routes may describe any offered face, but only an admin may make the server build a
+    new resolution of a built-in face (``default:300k``); sessions and jobs do that with the key."""
+    store = request.app.state.store
+    if store.needs_admin(name) and not same(bearer(request), request.app.state.admin_key):
+        raise Forbidden(f"face {name!r} is not loaded on this server; building a new resolution of a built-in "
+                        "face needs the admin key (Authorization: Bearer <key>), or use one of GET /v1/faces",
+                        where="face")
+
+
 @router.get("", response_model=FaceList)
 async def list_faces(request: Request) -> FaceList:
     """Faces a client may name: built-in ones (also as ``default:<vertices>``) and configured meshes."""
@@ -75,6 +92,7 @@ async def list_faces(request: Request) -> FaceList:
 async def describe_face(name: str, request: Request) -> FaceInfo:
     """Vertices, triangles, parts, feature points, FAPU and bounds of a face (loads it if needed)."""
     store = request.app.state.store
+    check_public_load(request, name)
     face = await run_in_threadpool(store.face, name)
     fapu = await run_in_threadpool(store.derived, name, "fapu", measure_fapu)
     groups = np.bincount(face.rigid_group, minlength=len(RIGID_GROUPS))
@@ -99,7 +117,7 @@ async def describe_face(name: str, request: Request) -> FaceInfo:
 async def face_topology_route(name: str, request: Request) -> Response:
     """Rest vertices, triangles, per-vertex part ids and rigid groups as one little-endian blob."""
     store = request.app.state.store
-    store.resolve(name)  # 404 before any work
+    check_public_load(request, name)  # 404 / 403 before any work
     blob = await run_in_threadpool(store.derived, name, "topology",
                                    lambda face: encode_topology(face_topology(face)))
     return Response(blob, media_type=TOPOLOGY_MEDIA_TYPE,

@@ -60,6 +60,7 @@ class FaceStore:
         self._faces: OrderedDict[str, Any] = OrderedDict()
         self._animators: OrderedDict[tuple, Any] = OrderedDict()
         self._derived: dict[tuple, Any] = {}
+        self._seen: set[str] = set()  # specs loaded at least once
         self._locks: dict[Any, threading.Lock] = {}
         self._guard = threading.Lock()
         if default not in self.configured and not _BUILTIN_SPEC.match(default):
@@ -92,6 +93,13 @@ class FaceStore:
         raise NotFound(f"no face named {name!r}; GET /v1/faces lists the faces this server offers "
                        f"({', '.join(self.names())}; built-in ones also as e.g. default:2k)")
 
+    def needs_admin(self, name: str | None) -> bool:
+        """True if loading ``name`` is a new resolution of a built-in face (``default:300k``) that this
+        server has not loaded yet: public routes may not make the server build arbitrary meshes."""
+        spec = self.resolve(name)
+        m = _BUILTIN_SPEC.match(spec)
+        return bool(m and m.group(2)) and spec not in self._seen
+
     # -- cached loads ----------------------------------------------------------------------------
     def _lock(self, key: Any) -> threading.Lock:
         with self._guard:
@@ -107,6 +115,7 @@ class FaceStore:
             log.info("loading face %s", spec)
             face = load_face(spec)
             with self._guard:
+                self._seen.add(spec)
                 self._faces[spec] = face
                 while len(self._faces) > self.max_faces:
                     self._faces.popitem(last=False)
