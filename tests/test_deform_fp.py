@@ -156,6 +156,22 @@ def test_non_deformable_vertices_get_zero_rows_and_block_paths(grid, rng):
     assert np.all(op.apply(random_D(rng, len(controls)))[eye] == 0)
 
 
+def test_paths_do_not_cross_rigid_groups(grid, rng):
+    """A "jaw" band of the grid (its own rigid group) is neither moved by the others' controls nor moves them."""
+    verts, tris, _, _, controls = grid
+    group = (verts[:, 1] >= 20).astype(np.uint8)  # rows 20.. ride the "jaw"
+    op = feature_point_operator(verts, tris, controls, rigid_group=group)
+    jaw_ctl = group[controls] == 1
+    D = np.zeros((len(controls), 3), np.float32)
+    D[jaw_ctl] = rng.normal(size=(jaw_ctl.sum(), 3))
+    u = op.apply(D)
+    assert np.abs(u[group == 1]).max() > 0.1
+    assert np.all(u[group == 0] == 0)
+    D = np.zeros((len(controls), 3), np.float32)
+    D[~jaw_ctl] = rng.normal(size=((~jaw_ctl).sum(), 3))
+    assert np.all(op.apply(D)[group == 1] == 0)
+
+
 def test_floating_component_copies_nearest_reached_vertex(grid):
     verts, tris, _, _, controls = grid
     n_before = len(verts)

@@ -28,8 +28,9 @@ The answers chosen here to the questions the paper leaves open (research digest 
    spill outwards. The one-neighbour radius ``d_12 / cosθ`` grows without bound as θ → π/2; it is
    capped at the FP's largest neighbour distance.
 3. *Surface distance* is Dijkstra over edge lengths everywhere (regions grow by distance, not by
-   hop count), restricted to the deformable vertices, so the eyeballs and teeth are walls, not
-   bridges, and no weight crosses a slit except around it.
+   hop count), restricted to the deformable vertices and to edges within one rigid group, so the
+   eyeballs and teeth are walls, not bridges, the tongue (on the jaw) never pulls the upper gums,
+   and no weight crosses a slit except around it.
    Region neighbours are pruned: a pair whose distance exceeds ``neighbour_ratio`` times the larger
    of the two FPs' nearest-neighbour distances is dropped (with sparse controls, regions meet far
    away, e.g. behind the head, and such "neighbours" would blow the radii up).
@@ -157,8 +158,8 @@ def feature_point_operator(
         constrained: ``(K, 3) bool``; on axis a only controls constrained on a are FPs (default:
             all axes).
         deformable: ``(V,) bool``; other vertices get zero rows and block surface paths.
-        rigid_group: ``(V,)`` group ids, used only to attach unreachable components to vertices
-            of their own rigid group (default: one group).
+        rigid_group: ``(V,)`` group ids: surface paths stay within a group, and unreachable
+            components attach only to vertices of their own group (default: one group).
         normalisation: ``"paper"`` (eq. 5, W/d²), ``"slides"`` (W) or ``"none"`` (ΣW·D).
         neighbour_ratio: prune FP neighbours further than this many times the larger of the two
             FPs' nearest-neighbour distances.
@@ -179,7 +180,7 @@ def feature_point_operator(
     meta = {"engine": "fp", "normalisation": normalisation, "neighbour_ratio": float(neighbour_ratio),
             "attach_distance": None if attach_distance is None else float(attach_distance)}
 
-    graph = edge_graph(vertices, triangles, deformable)
+    graph = edge_graph(vertices, triangles, deformable, rigid_group)
     if attach_distance is None:
         lengths = graph.data
         attach_distance = 3.0 * float(np.median(lengths)) if len(lengths) else 0.0

@@ -13,7 +13,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 
-def edge_graph(vertices: np.ndarray, triangles: np.ndarray, mask: np.ndarray | None = None) -> sp.csr_matrix:
+def edge_graph(vertices: np.ndarray, triangles: np.ndarray, mask: np.ndarray | None = None,
+               group: np.ndarray | None = None) -> sp.csr_matrix:
     """Symmetric ``(V, V)`` CSR matrix of edge lengths (float64, mesh units).
 
     Args:
@@ -21,6 +22,8 @@ def edge_graph(vertices: np.ndarray, triangles: np.ndarray, mask: np.ndarray | N
         triangles: ``(F, 3)`` vertex ids.
         mask: optional ``(V,) bool``; edges touching a vertex outside the mask are dropped (the
             vertex stays in the graph, isolated).
+        group: optional ``(V,)`` labels (rigid groups); edges between different labels are
+            dropped, so no path crosses from one part to another (the tongue to the upper gums).
 
     Zero-length edges (coincident vertices) get a tiny positive length so that they stay in the
     sparse structure (an explicit 0 would mean "no edge").
@@ -33,6 +36,9 @@ def edge_graph(vertices: np.ndarray, triangles: np.ndarray, mask: np.ndarray | N
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         e = e[mask[e[:, 0]] & mask[e[:, 1]]]
+    if group is not None:
+        group = np.asarray(group)
+        e = e[group[e[:, 0]] == group[e[:, 1]]]
     e = np.sort(e, axis=1)
     e = np.sort(e[:, 0] * n + e[:, 1])  # sort + diff: much faster than np.unique's hashing here
     e = e[np.r_[True, e[1:] != e[:-1]]] if len(e) else e

@@ -18,8 +18,8 @@ the upper lip across the mouth slit. ``distance="surface"`` uses surface (Dijkst
 over the deformable vertices instead: motion then propagates along the skin and crosses a slit
 only around its corners. ``bench/fidelity.py`` measures both.
 
-As in the feature-point engine, only vertices connected (over deformable vertices) to some
-control are warped; unreachable components copy the row of their nearest reached vertex of the
+As in the feature-point engine, only vertices connected (over deformable vertices of one rigid
+group) to some control are warped; unreachable components copy the row of their nearest reached vertex of the
 same rigid group within ``attach_distance``; everything else (eyeballs, teeth) has zero rows.
 Per-axis constraints: on axis a only the controls constrained on a are centres; when the axes
 differ the operator is stored sparse with full per-axis rows, otherwise dense ``(V, K)``.
@@ -180,7 +180,7 @@ def rbf_operator(
     n_controls = len(controls)
     meta = {"engine": "rbf", "kernel": kernel, "shape": float(shape), "affine": bool(affine),
             "distance": distance, "attach_distance": None if attach_distance is None else float(attach_distance)}
-    graph = edge_graph(vertices, triangles, deformable)
+    graph = edge_graph(vertices, triangles, deformable, rigid_group)
     if attach_distance is None:
         attach_distance = 3.0 * float(np.median(graph.data)) if graph.nnz else 0.0
     usable = deformable[controls]
