@@ -292,3 +292,20 @@ def test_ict_lips_and_eyelids_do_not_bleed(data_dir):
     eyes = np.r_[face.part("eye_l"), face.part("eye_r"), face.part("teeth_upper"), face.part("teeth_lower")]
     assert len(eyes) > 1000 and np.all(u[eyes] == 0)  # eyelids do not pull the eyeballs
     assert (u > 0.4).sum() > 20  # lid and lip skin follow their controls
+
+
+def test_bounded_distances_are_exact_and_chunking_does_not_matter(grid):
+    from scipy.sparse.csgraph import dijkstra
+
+    from facecast.server.deform.mesh_graph import bounded_distances
+
+    verts, tris, _, _, controls = grid
+    g = edge_graph(verts, tris)
+    limits = np.linspace(1.0, 9.0, len(controls))
+    whole = bounded_distances(g, controls, limits)
+    chunked = bounded_distances(g, controls, limits, budget=1)  # one source per Dijkstra call
+    full = dijkstra(g, directed=False, indices=controls)
+    for (ids, d), (ids2, d2), row, lim in zip(whole, chunked, full, limits):
+        assert np.array_equal(ids, ids2) and np.array_equal(d, d2)
+        assert np.array_equal(ids, np.flatnonzero(row < lim))
+        np.testing.assert_allclose(d, row[ids])

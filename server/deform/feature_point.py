@@ -113,19 +113,12 @@ def _site_weights(vertices, normal, site_vertex, ids, dist, nb_vertex, nb_dist, 
     to_k = _tangent_units(vertices[nb_vertex] - origin, normal)
     cos = to_p @ to_k.T  # (n, N)
     cos = np.where(cos > 1e-9, cos, 0.0)  # criterion (1): θ < π/2
-    if cos.shape[1] >= 2:
-        top = np.argpartition(-cos, 1, axis=1)[:, :2]
-    else:
-        top = np.zeros((len(ids), 1), dtype=np.int64)
-    c = np.take_along_axis(cos, top, axis=1)
-    dk = nb_dist[top]
-    order = np.argsort(-c, axis=1)
-    c, dk = np.take_along_axis(c, order, axis=1), np.take_along_axis(dk, order, axis=1)
-    c2, d2 = c[:, 0], dk[:, 0]
-    if c.shape[1] >= 2:
-        c3, d3 = c[:, 1], dk[:, 1]
-    else:
-        c3, d3 = np.zeros_like(c2), np.zeros_like(d2)
+    rows = np.arange(len(ids))
+    first = cos.argmax(axis=1)  # FP_2: the smallest angle
+    c2, d2 = cos[rows, first], nb_dist[first]
+    cos[rows, first] = -1.0
+    second = cos.argmax(axis=1)  # FP_3: the next smallest
+    c3, d3 = np.maximum(cos[rows, second], 0.0), nb_dist[second]
     with np.errstate(divide="ignore", invalid="ignore"):
         two = (d2 * c2 + d3 * c3) / (c2 + c3)
         one = np.minimum(d2 / c2, cap)
