@@ -203,3 +203,45 @@ def test_running_job_resumes_after_a_restart(tmp_path, data_dir):
         assert not [p for p in (tmp_path / "jobs" / job["id"]).iterdir() if p.name.startswith(".")]
     finally:
         second.stop()
+
+
+def test_worker_records_progress_frame_by_frame(tmp_path, data_dir, monkeypatch):
+    """The worker turns render_file's per-frame callback into job progress (in-process, real render)."""
+    from collections import OrderedDict
+
+    from facecast.server.jobs import worker
+    from facecast.server.jobs.store import JobStore, new_job_id
+
+    class RecordingStore(JobStore):
+        def progress(self, job_id, attempt, fraction):
+            seen.append(fraction)
+            return super().progress(job_id, attempt, fraction)
+
+    seen: list[float] = []
+    monkeypatch.setattr(worker, "PROGRESS_INTERVAL", 0.0)
+    store = RecordingStore(tmp_path)
+    job_id = new_job_id()
+    store.folder(job_id).mkdir(parents=True)
+    src = fap_file(data_dir, "happy-for.fap")
+    (store.folder(job_id) / "input.fap").write_bytes(src.read_bytes())
+    store.add(job_id, input_name=src.name, input_kind="fap", input_file="input.fap", input_bytes=1,
+              result_file="result.npz", options={"format": "npz", "face_spec": FACE, "engine": "fp"})
+    attempt = store.claim(job_id)
+    worker.run_job(store, job_id, attempt, "numpy", None, None, OrderedDict())
+    job = store.get(job_id)
+    assert job.status == "done" and job.progress == 1.0
+    assert len(set(seen)) >= 3 and seen == sorted(seen) and seen[-1] == 1.0 and seen[0] < 0.5  # batches of frames
+    assert store.result_path(job).is_file()
+    # A cancelled job stops at its next progress report and records nothing more.
+    job2 = new_job_id()
+    store.folder(job2).mkdir(parents=True)
+    (store.folder(job2) / "input.fap").write_bytes(src.read_bytes())
+    store.add(job2, input_name=src.name, input_kind="fap", input_file="input.fap", input_bytes=1,
+              result_file="result.npz", options={"format": "npz", "face_spec": FACE, "engine": "fp"})
+    attempt = store.claim(job2)
+    store.cancel(job2)
+    seen.clear()
+    worker.run_job(store, job2, attempt, "numpy", None, None, OrderedDict())
+    assert store.get(job2).status == "cancelled"
+    assert not store.result_path(store.get(job2)).exists()
+    store.close()

@@ -62,6 +62,7 @@ def assert_error(resp: httpx.Response, status: int, *words: str) -> dict:
 # ----------------------------------------------------------------------------------- health, docs
 
 def test_healthz_reports_readiness_backend_and_face(srv):
+    assert httpx.head(srv.url + "/healthz").status_code == 200
     h = wait_ready(srv)
     assert h["status"] == "ok"
     assert h["ready"], h
@@ -156,6 +157,23 @@ def test_faces_env_parsing():
     for bad in ("ict", "=/a.obj", "a b=/c.obj", "ict="):
         with pytest.raises(InputError, match="FACECAST_FACES"):
             parse_faces_env(bad)
+
+
+def test_face_store_names_and_resolution(tmp_path):
+    from facecast.server.api.store import FaceStore
+    from facecast.server.errors import NotFound
+
+    mesh = tmp_path / "my_head.obj"
+    store = FaceStore(default=str(mesh), configured={"ict": Path("/x/ict.obj")})
+    assert store.default == "my_head" and store.names()[:1] == ["default"]
+    assert set(store.names()) == {"default", "ict", "my_head"}
+    assert store.resolve(None) == str(mesh) and store.resolve("ict") == "/x/ict.obj"
+    assert store.resolve("default:2k") == "default:2k"
+    for bad in ("../my_head.obj", str(mesh), "/etc/passwd", "default:2k:3", "ict.obj"):
+        with pytest.raises(NotFound):
+            store.resolve(bad)
+    with pytest.raises(InputError, match="out of range"):
+        store.resolve("default:50M")
 
 
 def test_new_builtin_resolution_needs_the_admin_key(srv):

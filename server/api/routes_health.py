@@ -12,7 +12,7 @@ from .metrics import CONTENT_TYPE
 router = APIRouter(tags=["health"])
 
 
-@router.get("/healthz", response_model=Health)
+@router.api_route("/healthz", methods=["GET", "HEAD"], response_model=Health)
 async def healthz(request: Request) -> Health:
     """200 as soon as the server answers. ``ready`` turns true once the default face is loaded and
     the backend probed (start-up warm-up runs in the background); details say what is in use."""
