@@ -387,11 +387,48 @@ def _lip_sets(model: SkinModel, grid: SkinGrid, skin_v: np.ndarray, n_grid: int,
 
 
 # ---- colours for previews -----------------------------------------------------------------------------
+def _conformation_from_name(name: str) -> Conformation | None:
+    base, _, rest = name.partition(":")
+    if base != "default":
+        return None
+    kw = {}
+    for item in rest.split(",")[1:]:
+        k, _, v = item.partition("=")
+        if k not in Conformation.names():
+            return None
+        kw[k] = float(v)
+    return Conformation(**kw)
+
+
+def _lip_weight(face: Face) -> np.ndarray | None:
+    """``(V,)`` 0–1 vermilion weight of the built-in head's skin (smooth, for colouring), or None."""
+    conf = _conformation_from_name(face.name)
+    if conf is None:
+        return None
+    model = SkinModel(Layout(conf))
+    ids = face.part("skin")
+    d = face.vertices[ids].astype(np.float64) - RAY_ORIGIN
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+    px, py, fm = gnomonic(d)
+    a = px / model.px_corner
+    s = py - model.slit_py(px)
+    vu, vl = model.lip_heights(a)
+    inside = np.where(s >= 0, vu - s, vl + s)
+    w = np.clip(inside / 0.6 + 0.5, 0, 1) * np.clip((1.0 - np.abs(a)) / 0.06 + 0.5, 0, 1) * (fm > 0.5)
+    out = np.zeros(face.n_vertices)
+    out[ids] = w
+    out[face.part("mouth_socket")] = 0
+    out[face.part("lip_upper")] = np.maximum(out[face.part("lip_upper")], 0)
+    return out
+
 def head_colors(face: Face) -> np.ndarray:
     """``(V, 3)`` RGB 0–1 colours for previews of the built-in head (skin, lips, eyes, teeth, tongue)."""
-    col = np.tile(np.array([0.87, 0.70, 0.60]), (face.n_vertices, 1))
-    for p, rgb in (("lip_upper", (0.75, 0.42, 0.42)), ("lip_lower", (0.75, 0.42, 0.42)),
-                   ("mouth_socket", (0.45, 0.16, 0.18)), ("teeth_upper", (0.95, 0.93, 0.85)),
+    skin_rgb, lip_rgb = np.array([0.87, 0.70, 0.60]), np.array([0.76, 0.42, 0.42])
+    col = np.tile(skin_rgb, (face.n_vertices, 1))
+    lip = _lip_weight(face)
+    if lip is not None:
+        col += lip[:, None] * (lip_rgb - skin_rgb)
+    for p, rgb in (("mouth_socket", (0.45, 0.16, 0.18)), ("teeth_upper", (0.95, 0.93, 0.85)),
                    ("teeth_lower", (0.95, 0.93, 0.85)), ("gums_upper", (0.80, 0.40, 0.42)),
                    ("gums_lower", (0.80, 0.40, 0.42)), ("tongue", (0.80, 0.38, 0.40))):
         col[face.part(p)] = rgb

@@ -36,8 +36,8 @@ class Conformation:
     iris_diameter: float = 11.6
     brow_height: float = 24.0       #: top of the eyebrow above the pupil
     ear_size: float = 62.0          #: ear length (top to lobe)
-    neck_radius: float = 56.0
-    neck_length: float = 85.0       #: below the chin
+    neck_radius: float = 52.0
+    neck_length: float = 70.0       #: below the chin
 
     @classmethod
     def names(cls) -> tuple[str, ...]:

@@ -101,19 +101,21 @@ def orient_outward(verts: np.ndarray, tris: np.ndarray) -> np.ndarray:
     return tris if vol >= 0 else tris[:, ::-1].copy()
 
 
-def ray_exit(origin: np.ndarray, d: np.ndarray, centre, semi) -> np.ndarray:
-    """Distance along unit rays ``d (N, 3)`` from ``origin`` to where they leave an ellipsoid (-inf if missed)."""
+def ray_exit(origin: np.ndarray, d: np.ndarray, centre, semi, soft: float = 2.0) -> np.ndarray:
+    """Distance along unit rays ``d (N, 3)`` from ``origin`` to where they leave an ellipsoid.
+
+    Rays that miss get the closest-approach distance minus the miss (a smooth continuation, so that
+    smooth unions of ellipsoids that do not contain the origin have no cliff at their silhouettes);
+    ``soft`` (mm) rounds the half-chord near the silhouette.
+    """
     s = np.asarray(semi, dtype=np.float64)
     o = (np.asarray(origin, dtype=np.float64) - np.asarray(centre, dtype=np.float64)) / s
     dd = d / s
     a = (dd * dd).sum(-1)
     b = (dd * o).sum(-1)
     c = (o * o).sum() - 1
-    disc = b * b - a * c
-    out = np.full(len(d), -1e6)
-    ok = disc >= 0
-    out[ok] = (-b[ok] + np.sqrt(disc[ok])) / a[ok]
-    return out
+    q = (b * b - a * c) / (a * a)  # squared half-chord (mm^2), negative for misses
+    return -b / a + q / np.sqrt(np.abs(q) + soft * soft)
 
 
 def ray_exit_cylinder(origin: np.ndarray, d: np.ndarray, cx: float, cz: float, sx: float, sz: float,
@@ -134,7 +136,13 @@ def ray_exit_cylinder(origin: np.ndarray, d: np.ndarray, cx: float, cz: float, s
 
 
 def smooth_max(values: list[np.ndarray], k: float) -> np.ndarray:
-    """Log-sum-exp smooth maximum with softness ``k`` (same units as the values)."""
-    stack = np.stack(values)
-    m = stack.max(axis=0)
-    return m + k * np.log(np.exp((stack - m) / k).sum(axis=0))
+    """Smooth maximum with blend width ``k`` (same units as the values), applied pairwise.
+
+    Polynomial blend: exactly ``max`` where the values differ by more than ``k``, so a surface far
+    below another has no influence at all.
+    """
+    out = values[0]
+    for v in values[1:]:
+        h = np.clip(k - np.abs(out - v), 0.0, None) / k
+        out = np.maximum(out, v) + h * h * k * 0.25
+    return out

@@ -23,6 +23,12 @@ from .procedural_layout import (
 from .procedural_mesh import graded_axis, grid_triangles, ray_exit, ray_exit_cylinder, smooth_max, smoothstep
 
 
+def _lip_profile(u: np.ndarray) -> np.ndarray:
+    """Cross-section of a lip from the contact line (u = 0) to the vermilion border (u = 1): rolls
+    out quickly, peaks, and meets the skin with zero slope just past the border."""
+    return (1 - np.exp(-u / 0.16)) * (1 - smoothstep(0.7, 1.25, u)) * (1 - 0.2 * u)
+
+
 def _g(px, py, x0, y0, sx, sy):
     return np.exp(-(((px - x0) / sx) ** 2) - ((py - y0) / sy) ** 2)
 
@@ -106,11 +112,11 @@ class SkinModel:
         lay, c = self.lay, self.lay.conf
         o = RAY_ORIGIN
         cran = ray_exit(o, d, (0, c.head_height - 100, -3.0), (c.head_width / 2, 100, c.head_length / 2))
-        face = ray_exit(o, d, (0, -25, 12), (c.face_width / 2, 62, 80))
+        face = ray_exit(o, d, (0, -26, 10), (c.face_width / 2, 66, 83))
         jaw = ray_exit(o, d, (0, lay.y_menton + 46, 16), (c.jaw_width / 2, 46, 72))
-        muzzle = ray_exit(o, d, (0, lay.y_stomion + 4, 50), (lay.x_mouth + 15, 32, 43))
-        neck = ray_exit_cylinder(o, d, 0.0, -12.0, 0.95 * c.neck_radius, c.neck_radius, lay.y_menton - c.neck_length, 30.0)
-        r = smooth_max([cran, face, jaw, muzzle, neck], 7.0)
+        muzzle = ray_exit(o, d, (0, lay.y_stomion + 4, 48), (lay.x_mouth + 19, 34, 45))
+        neck = ray_exit_cylinder(o, d, 0.0, -14.0, 0.92 * c.neck_radius, c.neck_radius, lay.y_menton - c.neck_length, 30.0)
+        r = smooth_max([cran, face, jaw, muzzle, neck], 8.0)
         r = r + self.features(d)
         e = lay.eye_centre_l
         lid_l = ray_exit(o, d, e, (lay.lid_radius,) * 3)
@@ -126,13 +132,13 @@ class SkinModel:
         yn, ysn = lay.y_nasion, lay.y_subnasale
         out = np.zeros(len(d))
         # eye sockets, brow ridge, glabella, nasion
-        out += -10.0 * _g(ax, py, ex, 1.0, 17, 13)
-        out += 5.0 * _g(ax, py, ex - 3, c.brow_height - 3, 22, 7) + 3.0 * _g(px, py, 0, yn + 8, 12, 8)
+        out += -8.0 * _g(ax, py, ex, 1.0, 17, 13)
+        out += 3.5 * _g(ax, py, ex - 3, c.brow_height - 3, 22, 7) + 3.0 * _g(px, py, 0, yn + 8, 12, 8)
         out += -2.5 * _g(px, py, 0, yn, 7, 5)
         # temples in, cheekbones out, cheeks
-        out += -4.0 * _g(ax, py, c.face_width / 2 - 8, 18, 12, 18)
-        out += 6.0 * _g(ax, py, c.face_width / 2 - 22, -18, 16, 11)
-        out += 2.0 * _g(ax, py, 38, -45, 14, 14)
+        out += -2.5 * _g(ax, py, c.face_width / 2 - 8, 18, 12, 18)
+        out += 4.0 * _g(ax, py, c.face_width / 2 - 22, -16, 20, 12)
+        out += 3.0 * _g(ax, py, 36, -45, 16, 16)
         # nose: dorsum ridge with a rounded tip, alae, nostrils
         span = yn - (ysn + 2.0)
         q = (yn - py) / span  # 0 at the nasion, 1 at the subnasale (in face-plane coordinates)
@@ -152,11 +158,11 @@ class SkinModel:
         # philtrum and nasolabial folds
         out += -0.8 * _g(px, py, 0, (ysn + lay.y_stomion) / 2 + 2, 2.5, 6) + 0.6 * _g(ax, py, 4.5, (ysn + lay.y_stomion) / 2 + 2, 1.5, 6)
         fold_x = c.nose_width / 2 + 3 + (py - ysn) / (lay.y_stomion - ysn) * (lay.x_mouth - c.nose_width / 2)
-        out += -1.5 * np.exp(-(((ax - fold_x) / 3.0) ** 2)) * _g(0, py, 0, (ysn + lay.y_stomion) / 2, 1, 14)
+        out += -0.8 * np.exp(-(((ax - fold_x) / 4.0) ** 2)) * _g(0, py, 0, (ysn + lay.y_stomion) / 2, 1, 14)
         # lips
         out += self.lips(px, py)
         # chin and labiomental fold
-        out += 5.0 * _g(px, py, 0, lay.y_menton + 14, 15, 9) - 2.5 * _g(px, py, 0, lay.y_stomion - 20, 16, 3.5)
+        out += 8.0 * _g(px, py, 0, lay.y_menton + 14, 17, 13) - 2.0 * _g(px, py, 0, lay.y_stomion - 21, 16, 4)
         return out * fm
 
     def slit_py(self, px: np.ndarray) -> np.ndarray:
@@ -173,12 +179,12 @@ class SkinModel:
         c = self.lay.conf
         a = px / self.px_corner
         s = py - self.slit_py(px)
-        env = np.clip(1 - a * a, 0, 1) ** 0.5
+        env = smoothstep(1.08, 0.55, np.abs(a)) * (1 - 0.25 * a * a)
         vu, vl = self.lip_heights(a)
         u = np.clip(s / np.maximum(vu, 1e-3), 0, 1.3)
         lo = np.clip(-s / np.maximum(vl, 1e-3), 0, 1.3)
-        upper = 0.5 * c.lip_thickness * np.sin(np.pi / 1.3 * u) ** 0.7 * (s > 0)
-        lower = 0.65 * c.lip_thickness * np.sin(np.pi / 1.3 * lo) ** 0.7 * (s <= 0)
+        upper = 0.5 * c.lip_thickness * _lip_profile(u) * (s > 0)
+        lower = 0.65 * c.lip_thickness * _lip_profile(lo) * (s <= 0)
         crease = 1.6 * np.exp(-((s / 1.2) ** 2))
         corner = -2.0 * _g(np.abs(a), s, 1.05, 0, 0.12, 3.0)
         return env * (upper + lower - crease) + corner
