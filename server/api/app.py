@@ -23,7 +23,7 @@ from starlette.exceptions import HTTPException
 
 from ...protocol.errors import ProtocolError
 from ..errors import FacecastError
-from . import routes_faces, routes_health, routes_jobs, routes_sessions, routes_web
+from . import routes_faces, routes_health, routes_jobs, routes_playback, routes_sessions, routes_web
 from .config import ServerConfig
 from .metrics import Metrics
 from .security import resolve_admin_key
@@ -201,6 +201,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     app.include_router(routes_faces.router)
     app.include_router(routes_jobs.router)
     app.include_router(routes_sessions.router)
+    app.include_router(routes_playback.router)
     app.include_router(routes_web.router)
     return app
 

@@ -1,0 +1,182 @@
+"""Server-side producers for a live session: the built-in demo and playback of an uploaded file.
+
+- ``GET /v1/sessions/{id}/tokens`` (admin): the session's producer and viewer tokens, so a page
+  holding the admin key can watch any session it lists.
+- ``POST /v1/sessions/{id}/demo`` / ``DELETE .../demo`` (admin or ``?token=`` producer token): start
+  or stop the demo performance (expressions, visemes, blinks, head sway, gaze) at the session's rate.
+- ``POST /v1/sessions/{id}/play`` (admin or producer token): upload a ``.fap``, audio or marker file;
+  it is decoded with the batch drivers and played into the session at its real rate. The answer
+  gives ``start_wall`` (Unix seconds of media time 0) so a page can start the sound in sync.
+
+A server-side producer holds the session's producer slot: a WebSocket producer is refused (4409)
+while it runs, and a DELETE of the demo (or the end of the file) frees it.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import tempfile
+import time
+from pathlib import Path
+
+from fastapi import APIRouter, Request, status
+from fastapi.responses import Response
+
+from ...protocol.rest import ErrorBody
+from ..drivers import input_kind, load_animation
+from ..drivers.demo import demo_states
+from ..errors import FacecastError, InputError
+from ..jobs.upload import PayloadTooLarge, UploadParser, boundary_of, input_suffix
+from .routes_sessions import registry
+from .security import bearer, same
+
+log = logging.getLogger(__name__)
+
+router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["sessions"],
+                   responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}, 409: {"model": ErrorBody}})
+
+#: Seconds between the answer to ``play`` and media time 0, so the caller can get ready.
+LEAD_IN = 0.5
+
+
+class Busy(FacecastError):
+    status = 409
+
+
+class ServerProducer:
+    """Holds a session's producer slot while a server-side task feeds it."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind = kind
+        self.task: asyncio.Task | None = None
+
+    async def end(self, code: int, error_json: str) -> None:  # called when the session closes
+        if self.task is not None:
+            self.task.cancel()
+
+
+def _authorise(request: Request, session, token: str | None) -> None:
+    if same(bearer(request), request.app.state.admin_key) or same(token, session.spec.producer_token):
+        return
+    raise _Unauthorised()
+
+
+class _Unauthorised(FacecastError):
+    status = 401
+
+    def __init__(self) -> None:
+        super().__init__("send the admin key ('Authorization: Bearer <key>') or the session's producer token "
+                         "(?token=...)", where="token")
+
+
+async def _feed(session, states, fps: float, start_wall: float, producer: ServerProducer, loop_forever=False) -> None:
+    """Submit ``states`` to ``session`` paced at ``fps`` from ``start_wall``; frees the slot at the end."""
+    try:
+        for i, state in enumerate(states):
+            delay = start_wall + i / fps - time.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            elif delay < -1.0 and not loop_forever:
+                continue  # more than a second late (a stalled loop): skip rather than rush
+            session.submit([state], wall=time.time())
+    except asyncio.CancelledError:
+        pass
+    finally:
+        if session.producer is producer:
+            session.set_producer(None)
+        restore = getattr(producer, "restore_animator", None)
+        if restore is not None:
+            session.animator = restore
+
+
+def _claim(session, kind: str) -> ServerProducer:
+    current = session.producer
+    if isinstance(current, ServerProducer):
+        current.task.cancel()
+    elif current is not None:
+        raise Busy("a producer is connected to this session; it must disconnect first", where="producer")
+    producer = ServerProducer(kind)
+    session.set_producer(producer)
+    return producer
+
+
+@router.get("/tokens")
+async def tokens(session_id: str, request: Request) -> dict:
+    """The session's tokens (admin only)."""
+    session = registry(request.app).get(session_id)
+    if not same(bearer(request), request.app.state.admin_key):
+        raise _Unauthorised()
+    return {"id": session_id, "producer_token": session.spec.producer_token,
+            "viewer_token": session.spec.viewer_token}
+
+
+@router.post("/demo", status_code=status.HTTP_202_ACCEPTED)
+async def start_demo(session_id: str, request: Request, token: str | None = None) -> dict:
+    """Play the demo performance into the session until stopped."""
+    session = registry(request.app).get(session_id)
+    _authorise(request, session, token)
+    if session.spec.input != "fap":
+        raise InputError(f"the demo drives FAP sessions; this one takes {session.spec.input}", where="input")
+    producer = _claim(session, "demo")
+    fps = session.spec.fps
+    producer.task = asyncio.create_task(
+        _feed(session, demo_states(fps), fps, time.time(), producer, loop_forever=True), name=f"demo-{session_id}")
+    log.info("session %s: demo started at %g fps", session_id, fps)
+    return {"id": session_id, "producer": "demo", "fps": fps}
+
+
+@router.delete("/demo", status_code=status.HTTP_204_NO_CONTENT)
+async def stop_demo(session_id: str, request: Request, token: str | None = None) -> Response:
+    session = registry(request.app).get(session_id)
+    _authorise(request, session, token)
+    if isinstance(session.producer, ServerProducer):
+        session.producer.task.cancel()
+        session.set_producer(None)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.post("/play", status_code=status.HTTP_202_ACCEPTED)
+async def play(session_id: str, request: Request, token: str | None = None) -> dict:
+    """Upload a file (multipart field ``file``) and play it into the session at its real rate."""
+    reg = registry(request.app)
+    session = reg.get(session_id)
+    _authorise(request, session, token)
+    limit = int(request.app.state.config.max_upload_bytes)
+    with tempfile.TemporaryDirectory(prefix="facecast-play-") as tmp:
+        upload = Path(tmp) / "upload"
+        parser = UploadParser(boundary_of(request.headers.get("content-type", "")), upload, limit)
+        try:
+            async for chunk in request.stream():
+                parser.write(chunk)
+            parser.finish()
+        except (PayloadTooLarge, FacecastError):
+            parser.abort()
+            raise
+        except Exception as e:
+            parser.abort()
+            raise InputError(f"could not read the multipart upload ({e}); send a 'file' part", where="body") from None
+        if parser.size == 0:
+            raise InputError("the uploaded file is empty", where="file")
+        path = Path(tmp) / f"input{input_suffix(parser.filename, parser.head)}"
+        upload.replace(path)
+        kind = input_kind(path)
+        loop = asyncio.get_running_loop()
+        animation = await loop.run_in_executor(reg.executor, lambda: load_animation(path, session.face))
+    if not animation.states:
+        raise InputError("the file holds no frames", where="file")
+    animator = None
+    if animation.control_vertices is not None:
+        animator = await loop.run_in_executor(reg.executor, reg.animator_for, session, animation.control_vertices)
+    producer = _claim(session, f"play:{kind}")
+    if animator is not None:
+        producer.restore_animator = session.animator
+        session.animator = animator
+    start = time.time() + LEAD_IN
+    t0 = animation.states[0].t
+    for s in animation.states:
+        s.t -= t0
+    producer.task = asyncio.create_task(_feed(session, animation.states, animation.fps, start, producer),
+                                        name=f"play-{session_id}")
+    log.info("session %s: playing %s (%d frames at %g fps)", session_id, parser.filename, len(animation), animation.fps)
+    return {"id": session_id, "kind": kind, "frames": len(animation), "fps": animation.fps,
+            "seconds": len(animation) / animation.fps, "start_wall": start}
