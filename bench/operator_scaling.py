@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", default="2k,25k,100k,500k")
     ap.add_argument("--frames", type=int, default=20)
-    ap.add_argument("--rbf-max", type=int, default=150_000,
+    ap.add_argument("--rbf-max", type=int, default=600_000,
                     help="skip the dense RBF operator above this many vertices (memory: 4·V·K bytes)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "out" / "operator_scaling.json"))
     args = ap.parse_args(argv)

@@ -53,14 +53,21 @@ def _poly_basis(points: np.ndarray, centre: np.ndarray, axes: np.ndarray) -> np.
     return np.c_[np.ones(len(points)), (points - centre) @ axes]
 
 
-def _surface_distances(graph, sources: np.ndarray, n_vertices: int, budget: int = 10_000_000) -> np.ndarray:
-    """``(n_vertices, S)`` surface distances from every source (inf where unreachable), chunked."""
-    out = np.empty((n_vertices, len(sources)))
+def _surface_distances(graph, sources: np.ndarray, rows: np.ndarray,
+                       budget: int = 10_000_000) -> tuple[np.ndarray, np.ndarray]:
+    """Surface distances from every source (inf where unreachable), in chunks of sources.
+
+    Returns ``(to_rows (len(rows), S) float32, between_sources (S, S) float64)``.
+    """
+    n_vertices = graph.shape[0]
+    out = np.empty((len(rows), len(sources)), dtype=np.float32)
+    between = np.empty((len(sources), len(sources)))
     chunk = max(1, budget // max(n_vertices, 1))
     for start in range(0, len(sources), chunk):
-        d = dijkstra(graph, directed=False, indices=sources[start:start + chunk])
-        out[:, start:start + chunk] = np.atleast_2d(d).T
-    return out
+        d = np.atleast_2d(dijkstra(graph, directed=False, indices=sources[start:start + chunk]))
+        out[:, start:start + chunk] = d[:, rows].T
+        between[start:start + chunk] = d[:, sources]
+    return out, between
 
 
 def rbf_matrix(
@@ -194,12 +201,10 @@ def rbf_operator(
     seeded[label[sites[site_ok]]] = True
     warped = np.flatnonzero(deformable & seeded[label])
 
-    surface = None
+    surface = between = None
+    column = np.cumsum(site_ok) - 1  # site index -> column of the surface-distance arrays
     if distance == "surface":
-        surface = _surface_distances(graph, sites[site_ok], n_vertices)
-        all_d = np.full((n_vertices, len(sites)), np.inf)
-        all_d[:, site_ok] = surface
-        surface = all_d
+        surface, between = _surface_distances(graph, sites[site_ok], warped)
 
     per_axis = []
     cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
@@ -210,11 +215,14 @@ def rbf_operator(
             members = np.unique(site_of[ctl])
             cpos = vertices[sites[members]]
             if surface is not None:
-                rcc = surface[sites[members]][:, members]
-                rcc = np.where(np.isfinite(rcc), rcc, np.linalg.norm(cpos[:, None] - cpos[None], axis=2) * 1e3)
-                rvx = surface[warped][:, members]
-                # A vertex in a component without some of the centres: far from them.
-                rvx = np.where(np.isfinite(rvx), rvx, np.nanmax(np.where(np.isfinite(rcc), rcc, 0)) * 1e3 + 1)
+                cols = column[members]
+                # Centres in different components are treated as very far apart.
+                rcc = between[np.ix_(cols, cols)]
+                finite = np.isfinite(rcc)
+                far = (rcc[finite].max() if finite.any() else 1.0) * 1e3 + 1.0
+                rcc = np.where(finite, rcc, far)
+                rvx = surface[:, cols]
+                rvx[~np.isfinite(rvx)] = far
             else:
                 rcc = rvx = None
             b = rbf_matrix(vertices[warped], cpos, kernel=kernel, shape=shape, affine=affine,
