@@ -303,7 +303,7 @@ def estimate_r(xyz: np.ndarray, cluster: int = 6) -> float:
 
 
 #: Acceleration densities tried by ``estimate_q`` (mm²/s³).
-Q_GRID = np.array([30.0, 100.0, 300.0, 1e3, 3e3, 1e4, 3e4])
+Q_GRID = np.array([1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1e3, 3e3, 1e4, 3e4])
 
 
 def estimate_q(xyz: np.ndarray, fps: float, r: float, grid: np.ndarray = Q_GRID, per_marker: bool = True,

@@ -10,7 +10,7 @@ from markers on feature points (FAP 3 from the jaw marker, 48-50 from the head p
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +23,7 @@ from .clean import CleanParams, clean
 from .io import read_take
 from .layout import Layout, load_layout
 from .rig import MarkerRig, match_names
-from .stabilise import head_track, remove_head
+from .stabilise import head_track, remove_head, smooth_poses
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ def find_layout(path: Path) -> Path:
 
 def process(take: MarkerTake, face: Face, layout, *, neutral_frame: int | None = None,
             clean_params: CleanParams | None = None, kernel: str = "imq", mu: float = 2.0,
-            stabilise_method: str = "auto", where: str = "take") -> Processed:
+            stabilise_method: str = "auto", neutral_window: float = 0.2, where: str = "take") -> Processed:
     """Run the batch pipeline on a take already read (see module docstring)."""
     layout = load_layout(layout)
     if take.units is None:
@@ -84,24 +84,52 @@ def process(take: MarkerTake, face: Face, layout, *, neutral_frame: int | None =
     if len(empty):
         log.warning("%s: %d frame(s) with no visible marker (first: %d); filled from their neighbours", where,
                     len(empty), int(empty[0]))
-    cleaned, info = clean(raw, take.fps, clean_params)
+    params = clean_params or CleanParams()
     nf = neutral_frame if neutral_frame is not None else (layout.neutral_frame or 0)
     if not 0 <= nf < n:
         raise InputError(f"neutral_frame {nf} is outside the take's {n} frames", where=f"{layout.where}: neutral_frame")
-    neutral = cleaned[nf]
+    stable = layout_index(layout, layout.stable)
     observed = np.isfinite(raw).all(axis=2)
-    if "rejected" in info:
-        observed &= ~info.pop("rejected")
-    r, t, solved = head_track(cleaned, layout_index(layout, layout.stable), neutral, stabilise_method,
-                              observed=observed)
+    if params.filter == "rts":
+        # Batch: despike and fill, solve and smooth the head pose, then smooth the stabilised markers
+        # (their motion is the face's alone, far gentler than with the head's on top).
+        filled, info = clean(raw, take.fps, replace(params, filter="none"))
+        observed &= ~info.pop("rejected", np.zeros_like(observed))
+        window = int(round(neutral_window * take.fps))
+        anchor = neutral_pose(filled, nf, window, tolerance_mm=2.5)  # raw noise: ~1 mm between frames
+        r, t, solved = head_track(filled, stable, anchor, stabilise_method, observed=observed)
+        if solved.sum() > 3:
+            r, t = smooth_poses(r, t, filled[nf, stable].mean(axis=0), take.fps)
+        local, info2 = clean(remove_head(filled, r, t), take.fps, replace(params, despike=False))
+        info.update({k: v for k, v in info2.items() if k in ("q", "r", "filter")})
+        cleaned = np.einsum("tij,tmj->tmi", r, local) + t[:, None, :]
+    else:
+        # As live: filter in capture space, then stabilise frame by frame.
+        cleaned, info = clean(raw, take.fps, params)
+        observed &= ~info.pop("rejected", np.zeros_like(observed))
+        r, t, solved = head_track(cleaned, stable, cleaned[nf], stabilise_method, observed=observed)
+        local = remove_head(cleaned, r, t)
     if not solved.any():
         raise InputError(f"the stable markers ({', '.join(layout.stable)}) never show 3 at once; head motion "
                          "cannot be removed", where=where)
     info["head_solved_frames"] = int(solved.sum())
-    local = remove_head(cleaned, r, t)
-    rig = MarkerRig(face, layout, local[nf], kernel=kernel, mu=mu)
+    neutral = neutral_pose(local, nf, int(round(neutral_window * take.fps)))
+    rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu)
     states = rig.solve_batch(local, r, t, take.fps, 0.0)
     return Processed(take, layout, raw, cleaned, local, r, t, nf, rig, states, info)
+
+
+def neutral_pose(local: np.ndarray, nf: int, window: int, tolerance_mm: float = 1.0) -> np.ndarray:
+    """The actor's neutral ``(L, 3)``: frame ``nf`` of the markers, averaged with the following
+    frames (up to ``window``) whose median marker stays within ``tolerance_mm`` of it (an actor holds
+    the neutral for a moment; averaging removes what noise the filter left)."""
+    ref = local[nf]
+    frames = [nf]
+    for f in range(nf + 1, min(len(local), nf + max(window, 1))):
+        if np.nanmedian(np.linalg.norm(local[f] - ref, axis=1)) > tolerance_mm:
+            break
+        frames.append(f)
+    return np.nanmean(local[frames], axis=0)
 
 
 def layout_index(layout: Layout, names: list[str]) -> np.ndarray:

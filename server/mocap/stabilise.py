@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["kabsch", "three_marker", "solve_pose", "head_track", "remove_head", "to_matrix",
+__all__ = ["kabsch", "three_marker", "solve_pose", "head_track", "smooth_poses", "remove_head", "to_matrix",
            "pose_in_frame", "euler_from_matrix", "matrix_from_euler"]
 
 
@@ -167,3 +167,22 @@ def matrix_from_euler(angles: np.ndarray) -> np.ndarray:
     ry = np.stack([np.cos(y), zero, np.sin(y), zero, one, zero, -np.sin(y), zero, np.cos(y)], -1).reshape(*p.shape, 3, 3)
     rz = np.stack([np.cos(r), -np.sin(r), zero, np.sin(r), np.cos(r), zero, zero, zero, one], -1).reshape(*p.shape, 3, 3)
     return ry @ rx @ rz
+
+
+def smooth_poses(r: np.ndarray, t: np.ndarray, centre: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """RTS-smooth a head pose track ``(T, 3, 3)``, ``(T, 3)``: the rotation as a rotation vector and
+    the motion of ``centre`` (the stable markers' centroid, so that rotation and translation do not
+    trade off), each with its acceleration density fitted by maximum likelihood. Batch only."""
+    from scipy.spatial.transform import Rotation
+
+    from .clean import estimate_q, estimate_r, rts_smooth
+
+    c = np.asarray(centre, dtype=np.float64)
+    # radians scaled by a head-sized lever arm (100 mm) so that both rows are in mm-like units
+    rv = Rotation.from_matrix(r).as_rotvec() * 100.0
+    tc = np.einsum("tij,j->ti", r, c) + t - c
+    track = np.stack([rv, tc], axis=1)  # (T, 2, 3)
+    noise = estimate_r(track)
+    sm = rts_smooth(track, fps, q=estimate_q(track, fps, noise), r=noise)
+    rs = Rotation.from_rotvec(sm[:, 0] / 100.0).as_matrix()
+    return rs, c + sm[:, 1] - np.einsum("tij,j->ti", rs, c)
