@@ -162,23 +162,26 @@ def test_quantized_frame_equals_protocol_quantisation(ctx, rng):
     assert np.all(err <= scale / 2 + 80 * 2e-6 + 1e-6)
 
 
-def test_pack_operator_keeps_every_entry(rng):
-    """The sliced-ELL layout, read back on the host, is the operator (pure NumPy; no device)."""
-    op = random_sparse(rng, 100, 17)
+@pytest.mark.parametrize("per_axis", [True, False])
+def test_pack_operator_keeps_every_entry(rng, per_axis):
+    """The device layout, read back on the host, is the operator (pure NumPy; no device)."""
+    op = random_sparse(rng, 100, 17, per_axis=per_axis)
     p = cl_backend.pack_operator(op)
-    S = cl_backend.SLICE
-    dense = np.zeros((p.n_padded, op.n_controls + 1, 3), np.float32)
-    for s in range(p.n_padded // S):
-        e0, e1 = int(p.slice_ptr[s]), int(p.slice_ptr[s + 1])
-        for j in range((e1 - e0) // S):
-            for lane in range(S):
-                e = e0 + j * S + lane
-                for a in range(3):
-                    dense[s * S + lane, p.ids[e], a] += p.weights[3 * e0 + j * 3 * S + a * S + lane]
     D = rng.standard_normal((op.n_controls, 3)).astype(np.float32)
-    u = np.einsum("vka,ka->va", dense[:100, :op.n_controls], D)
-    np.testing.assert_allclose(u, op.apply(D), atol=1e-5)
-    assert np.all(dense[:, op.n_controls] == 0)  # padding weighs nothing
+    np.testing.assert_allclose(np.einsum("vka,ka->va", p.to_dense(), D), op.apply(D), atol=1e-5)
+
+
+def test_neighbours_sharing_controls_share_columns(rng):
+    """Slices whose vertices use the same controls store one id per column, not eight."""
+    V, K = 64, 10
+    indptr = np.arange(V + 1) * 3
+    indices = np.tile([1, 4, 7], V)
+    op = Operator(V, K, indptr=indptr, indices=indices, weights=rng.random((3 * V, 3)).astype(np.float32))
+    p = cl_backend.pack_operator(op)
+    assert p.shared_fraction == 1.0
+    assert p.ids.size == 3 * (V // 8)
+    D = rng.standard_normal((K, 3)).astype(np.float32)
+    np.testing.assert_allclose(np.einsum("vka,ka->va", p.to_dense(), D), op.apply(D), atol=1e-5)
 
 
 # ---------------------------------------------------------------- real heads and real engines

@@ -48,11 +48,11 @@ KERNEL_SOURCE = r"""
 // params per frame f (pstride floats): n_groups transforms as 4 float4 columns, then D as float4
 // rows ((K + 1) rows, the last one zero). rest is SoA per slice (x[8] y[8] z[8]); sgroup[s] is the
 // slice's rigid group, or 255 when its vertices differ (then group[v] is read per vertex).
-#define GATHER8(c) (float8)(acc[0].c, acc[1].c, acc[2].c, acc[3].c, acc[4].c, acc[5].c, acc[6].c, acc[7].c)
 
 __kernel void deform(const uint n_vertices,
                      const uint n_controls,
-                     __global const uint *slice_ptr,
+                     __global const uint *col_ptr,
+                     __global const uint *id_ptr,
                      __global const IDX_T *ids,
                      __global const float *w,
                      __global const float *rest,
@@ -70,37 +70,60 @@ __kernel void deform(const uint n_vertices,
     for (uint f = 0; f < n_frames; ++f) {
     __global const float4 *P = params + (size_t)f * pstride4;
     __global const float4 *D = P + 4 * n_groups;
-    float4 acc[8];
-    for (int l = 0; l < 8; ++l) acc[l] = (float4)(0.0f);
+    // u = B.D for the slice's 8 vertices, as three float8 (x, y, z of each vertex).
+    float8 sx = (float8)(0.0f), sy = (float8)(0.0f), sz = (float8)(0.0f);
 #if DENSE
-    const uint width = n_controls;
-    const size_t e0 = (size_t)s * n_controls * 8;
-#else
-    const uint e0 = slice_ptr[s];
-    const uint width = (slice_ptr[s + 1] - e0) / 8;
-#endif
-    for (uint j = 0; j < width; ++j) {
-        const size_t e = e0 + (size_t)j * 8;
-#if DENSE
+    for (uint j = 0; j < n_controls; ++j) {
         const float4 d = D[j];
-        const float8 wj = vload8(0, w + e);
-        acc[0] = fma((float4)(wj.s0), d, acc[0]); acc[1] = fma((float4)(wj.s1), d, acc[1]);
-        acc[2] = fma((float4)(wj.s2), d, acc[2]); acc[3] = fma((float4)(wj.s3), d, acc[3]);
-        acc[4] = fma((float4)(wj.s4), d, acc[4]); acc[5] = fma((float4)(wj.s5), d, acc[5]);
-        acc[6] = fma((float4)(wj.s6), d, acc[6]); acc[7] = fma((float4)(wj.s7), d, acc[7]);
-#elif AXES == 3
-        const size_t b = 3 * (size_t)e0 + (size_t)j * 24;
-        for (int l = 0; l < 8; ++l)
-            acc[l] = fma((float4)(w[b + l], w[b + 8 + l], w[b + 16 + l], 0.0f), D[ids[e + l]], acc[l]);
-#else
-        for (int l = 0; l < 8; ++l)
-            acc[l] = fma((float4)(w[e + l]), D[ids[e + l]], acc[l]);
-#endif
+        const float8 wj = vload8(0, w + ((size_t)s * n_controls + j) * 8);
+        sx = fma(wj, (float8)(d.x), sx);
+        sy = fma(wj, (float8)(d.y), sy);
+        sz = fma(wj, (float8)(d.z), sz);
     }
+#else
+    const uint c0 = col_ptr[s], width = col_ptr[s + 1] - c0;
+    const uint i0 = id_ptr[s];
+    __global const float *wc = w + (size_t)c0 * (8 * AXES);
+    if (id_ptr[s + 1] - i0 == width) {
+        // Shared columns: column j is one control for all 8 vertices (zero weight where unused).
+        for (uint j = 0; j < width; ++j) {
+            const float4 d = D[ids[i0 + j]];
+            __global const float *wj = wc + j * (8 * AXES);
+#if AXES == 3
+            sx = fma(vload8(0, wj), (float8)(d.x), sx);
+            sy = fma(vload8(1, wj), (float8)(d.y), sy);
+            sz = fma(vload8(2, wj), (float8)(d.z), sz);
+#else
+            const float8 w8 = vload8(0, wj);
+            sx = fma(w8, (float8)(d.x), sx);
+            sy = fma(w8, (float8)(d.y), sy);
+            sz = fma(w8, (float8)(d.z), sz);
+#endif
+        }
+    } else {
+        // ELL columns: entry j of each vertex, its own control.
+        for (uint j = 0; j < width; ++j) {
+            __global const IDX_T *id = ids + i0 + j * 8;
+            const float4 d0 = D[id[0]], d1 = D[id[1]], d2 = D[id[2]], d3 = D[id[3]];
+            const float4 d4 = D[id[4]], d5 = D[id[5]], d6 = D[id[6]], d7 = D[id[7]];
+            __global const float *wj = wc + j * (8 * AXES);
+#if AXES == 3
+            sx = fma(vload8(0, wj), (float8)(d0.x, d1.x, d2.x, d3.x, d4.x, d5.x, d6.x, d7.x), sx);
+            sy = fma(vload8(1, wj), (float8)(d0.y, d1.y, d2.y, d3.y, d4.y, d5.y, d6.y, d7.y), sy);
+            sz = fma(vload8(2, wj), (float8)(d0.z, d1.z, d2.z, d3.z, d4.z, d5.z, d6.z, d7.z), sz);
+#else
+            const float8 w8 = vload8(0, wj);
+            sx = fma(w8, (float8)(d0.x, d1.x, d2.x, d3.x, d4.x, d5.x, d6.x, d7.x), sx);
+            sy = fma(w8, (float8)(d0.y, d1.y, d2.y, d3.y, d4.y, d5.y, d6.y, d7.y), sy);
+            sz = fma(w8, (float8)(d0.z, d1.z, d2.z, d3.z, d4.z, d5.z, d6.z, d7.z), sz);
+#endif
+        }
+    }
+#endif
     __global const float *r = rest + (size_t)s * 24;
-    const float8 px = vload8(0, r) + GATHER8(x);
-    const float8 py = vload8(1, r) + GATHER8(y);
-    const float8 pz = vload8(2, r) + GATHER8(z);
+    const float8 px = vload8(0, r) + sx;
+    const float8 py = vload8(1, r) + sy;
+    const float8 pz = vload8(2, r) + sz;
     float8 ox, oy, oz;
     const uchar g = sgroup[s];
     if (g != 255) {
@@ -192,10 +215,14 @@ __kernel void quantize(const uint n_vertices, __global const float *verts,
 
 @dataclass
 class PackedOperator:
-    """An ``Operator`` in the device's sliced-ELL format (see the module docstring).
+    """An ``Operator`` in the device's format (see the module docstring).
 
-    ``slice_ptr (S+1,) uint32`` entry offsets per slice (sparse only), ``ids (E,)`` control ids,
-    ``weights (E * axes,) float32``; ``n_padded`` vertices rounded up to ``SLICE``.
+    Slice ``s`` (vertices ``8s .. 8s+7``) owns columns ``col_ptr[s] .. col_ptr[s+1]`` of ``weights``
+    (``8 * axes`` floats per column: lane-major, one plane per axis when ``axes == 3``) and ids
+    ``id_ptr[s] .. id_ptr[s+1]``: one per column for a *shared* slice (each column is one control
+    for all 8 vertices), or 8 per column for an *ELL* slice (column j is entry j of each vertex;
+    padding points at the all-zero control ``K``). A dense operator is K shared columns per slice
+    with implicit ids (``col_ptr``/``id_ptr``/``ids`` unused).
     """
 
     n_vertices: int
@@ -203,7 +230,8 @@ class PackedOperator:
     n_padded: int
     dense: bool
     axes: int
-    slice_ptr: np.ndarray
+    col_ptr: np.ndarray
+    id_ptr: np.ndarray
     ids: np.ndarray
     weights: np.ndarray
 
@@ -212,9 +240,44 @@ class PackedOperator:
         return {1: "uchar", 2: "ushort", 4: "uint"}[self.ids.dtype.itemsize]
 
     @property
+    def n_columns(self) -> int:
+        return int(self.weights.size // (8 * self.axes))
+
+    @property
+    def shared_fraction(self) -> float:
+        """Fraction of the non-empty slices stored as shared columns."""
+        if self.dense:
+            return 1.0
+        ncol = np.diff(self.col_ptr.astype(np.int64))
+        nid = np.diff(self.id_ptr.astype(np.int64))
+        busy = ncol > 0
+        return float(np.mean(nid[busy] == ncol[busy])) if busy.any() else 1.0
+
+    @property
     def nbytes(self) -> int:
         """Bytes of operator data one frame reads."""
-        return int(self.weights.nbytes + (0 if self.dense else self.ids.nbytes + self.slice_ptr.nbytes))
+        meta = 0 if self.dense else self.ids.nbytes + self.col_ptr.nbytes + self.id_ptr.nbytes
+        return int(self.weights.nbytes + meta)
+
+    def to_dense(self) -> np.ndarray:
+        """``(V, K, 3) float32`` dense weights read back from the packed layout (for checks)."""
+        K, A = self.n_controls, self.axes
+        out = np.zeros((self.n_padded, K + 1, 3), np.float32)
+        w = self.weights.reshape(-1, A, 8)
+        for s in range(self.n_padded // 8):
+            lanes = np.arange(8) + 8 * s
+            if self.dense:
+                cols, ids = s * K + np.arange(K), np.arange(K)[:, None].repeat(8, 1)
+            else:
+                c0, c1 = int(self.col_ptr[s]), int(self.col_ptr[s + 1])
+                i0, i1 = int(self.id_ptr[s]), int(self.id_ptr[s + 1])
+                cols = np.arange(c0, c1)
+                ids = self.ids[i0:i1].astype(np.int64)
+                ids = ids[:, None].repeat(8, 1) if i1 - i0 == c1 - c0 else ids.reshape(-1, 8)
+            for j, c in enumerate(cols):
+                for a in range(3):
+                    np.add.at(out, (lanes, ids[j], a), w[c, min(a, A - 1)])
+        return out[:self.n_vertices, :K]
 
 
 def _id_dtype(n_ids: int) -> np.dtype:
@@ -224,44 +287,65 @@ def _id_dtype(n_ids: int) -> np.dtype:
     raise ValueError("too many controls")
 
 
+#: A slice is stored as shared columns when that needs at most this many times the columns of
+#: ELL (neighbouring vertices mostly share their controls: on the built-in head 98% of slices
+#: need no extra column). Shared columns cost one D load per column instead of eight.
+SHARED_MAX_RATIO = 1.5
+
+
 def pack_operator(op: Operator) -> PackedOperator:
-    """Convert ``op`` to the device's sliced-ELL layout (pure NumPy; vectorised)."""
+    """Convert ``op`` to the device format (pure NumPy, vectorised)."""
     V, K, S = op.n_vertices, op.n_controls, SLICE
     n_slices = max(1, -(-V // S))
     Vp = n_slices * S
+    id_dtype = _id_dtype(K + 1)
     if not op.is_sparse:
         # weights[s, k, lane] = dense[s * S + lane, k]
         B = np.zeros((Vp, K), dtype=np.float32)
         B[:V] = op.dense
         w = np.ascontiguousarray(B.reshape(n_slices, S, K).transpose(0, 2, 1)).ravel()
-        return PackedOperator(V, K, Vp, True, 1, np.zeros(1, np.uint32), np.zeros(1, np.uint8), w)
-    indptr = op.indptr.astype(np.int64)
-    lengths = np.zeros(Vp, dtype=np.int64)
-    lengths[:V] = np.diff(indptr)
-    width = lengths.reshape(n_slices, S).max(axis=1)
-    slice_ptr = np.zeros(n_slices + 1, dtype=np.int64)
-    np.cumsum(width * S, out=slice_ptr[1:])
-    if slice_ptr[-1] >= 2**32:
-        raise ValueError("operator too large for 32-bit entry offsets")
-    total = int(slice_ptr[-1])
-    rows = np.repeat(np.arange(V, dtype=np.int64), np.diff(indptr))
-    pos = np.arange(indptr[-1], dtype=np.int64) - indptr[rows]  # entry's position in its row
-    s, lane = rows // S, rows % S
-    dest = slice_ptr[s] + pos * S + lane
-    id_dtype = _id_dtype(K + 1)
-    ids = np.full(total, K, dtype=id_dtype)  # padding -> the all-zero control K
-    ids[dest] = op.indices
+        z = np.zeros(1, np.uint32)
+        return PackedOperator(V, K, Vp, True, 1, z, z, np.zeros(1, id_dtype), w)
     W = op.weights
     same = bool(np.array_equal(W[:, 0], W[:, 1]) and np.array_equal(W[:, 0], W[:, 2]))
-    axes = 1 if same else 3
-    w = np.zeros(total * axes, dtype=np.float32)
-    if same:
-        w[dest] = W[:, 0]
-    else:
-        base = 3 * slice_ptr[s] + pos * (3 * S) + lane
-        for a in range(3):
-            w[base + a * S] = W[:, a]
-    return PackedOperator(V, K, Vp, False, axes, slice_ptr.astype(np.uint32), ids, w)
+    A = 1 if same else 3
+    indptr = op.indptr.astype(np.int64)
+    rows = np.repeat(np.arange(V, dtype=np.int64), np.diff(indptr))
+    pos = np.arange(indptr[-1], dtype=np.int64) - indptr[rows]      # entry's position in its row
+    s, lane = rows // S, rows % S
+    k = op.indices.astype(np.int64)
+    lengths = np.zeros(Vp, dtype=np.int64)
+    lengths[:V] = np.diff(indptr)
+    ell_width = lengths.reshape(n_slices, S).max(axis=1)
+    # Shared columns: the sorted distinct controls of each slice.
+    pairs, rank_of = np.unique(s * (K + 1) + k, return_inverse=True)
+    pair_slice = pairs // (K + 1)
+    union = np.bincount(pair_slice, minlength=n_slices)
+    first = np.zeros(n_slices + 1, dtype=np.int64)
+    np.cumsum(union, out=first[1:])
+    rank = rank_of.reshape(-1) - first[s]                               # column of each entry
+    shared = union <= SHARED_MAX_RATIO * ell_width
+    ncol = np.where(shared, union, ell_width)
+    nid = np.where(shared, union, S * ell_width)
+    col_ptr = np.zeros(n_slices + 1, dtype=np.int64)
+    np.cumsum(ncol, out=col_ptr[1:])
+    id_ptr = np.zeros(n_slices + 1, dtype=np.int64)
+    np.cumsum(nid, out=id_ptr[1:])
+    if max(col_ptr[-1] * S * A, id_ptr[-1]) >= 2**32:
+        raise ValueError("operator too large for 32-bit offsets")
+    ids = np.full(int(id_ptr[-1]), K, dtype=id_dtype)                 # ELL padding -> zero control K
+    w = np.zeros(int(col_ptr[-1]) * S * A, dtype=np.float32)
+    # shared slices
+    ps = shared[pair_slice]
+    ids[id_ptr[pair_slice[ps]] + (np.arange(len(pairs)) - first[pair_slice])[ps]] = (pairs % (K + 1))[ps]
+    es = shared[s]
+    col = np.where(es, col_ptr[s] + rank, col_ptr[s] + pos)
+    base = col * (S * A) + lane
+    eg = ~es
+    ids[id_ptr[s[eg]] + pos[eg] * S + lane[eg]] = k[eg]
+    for a in range(A):
+        np.add.at(w, base + a * S, W[:, a])
+    return PackedOperator(V, K, Vp, False, A, col_ptr.astype(np.uint32), id_ptr.astype(np.uint32), ids, w)
 
 
 def _aligned_empty(shape: tuple[int, ...], dtype, align: int = 128) -> np.ndarray:
@@ -305,7 +389,8 @@ class OpenCLDeformer:
         rigid_group: ``(V,) uint8`` group index per vertex.
         operator: the compiled ``Operator`` (K controls).
         context: a ``pyopencl.Context`` (default: ``default_context()``).
-        zero_copy: let kernels write into the returned arrays (default: on host-memory devices).
+        zero_copy: let kernels read parameters from and write results into host arrays directly
+            (default, and only possible, on CPU devices; False forces the copying path).
     """
 
     def __init__(self, rest: np.ndarray, triangles: np.ndarray, rigid_group: np.ndarray,
@@ -332,10 +417,9 @@ class OpenCLDeformer:
             raise ValueError(f"operator has {operator.n_vertices} vertices, the mesh {self.n_vertices}")
         group = np.ascontiguousarray(rigid_group, dtype=np.uint8)
         self.n_groups = int(group.max(initial=0)) + 1
-        if zero_copy is None:
-            zero_copy = bool(self.device.type & cl.device_type.CPU) or bool(
-                getattr(self.device, "host_unified_memory", False))
-        self.zero_copy = zero_copy
+        cpu = bool(self.device.type & cl.device_type.CPU)
+        # Zero-copy only where device memory is host memory (PoCL and other CPU drivers).
+        self.zero_copy = cpu if zero_copy is None else bool(zero_copy and cpu)
 
         self.packed = pack_operator(operator)
         p = self.packed
@@ -347,7 +431,8 @@ class OpenCLDeformer:
         self._k_quantize = cl.Kernel(self._program, "quantize")
 
         ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-        self._slice_ptr = cl.Buffer(ctx, ro, hostbuf=p.slice_ptr)
+        self._col_ptr = cl.Buffer(ctx, ro, hostbuf=p.col_ptr)
+        self._id_ptr = cl.Buffer(ctx, ro, hostbuf=p.id_ptr)
         self._ids = cl.Buffer(ctx, ro, hostbuf=p.ids)
         self._w = cl.Buffer(ctx, ro, hostbuf=p.weights)
         n_slices = p.n_padded // SLICE
@@ -367,9 +452,13 @@ class OpenCLDeformer:
         self._global_slices = -(-n_slices // LOCAL_SLICES) * LOCAL_SLICES
         # Per-frame parameters: transforms, then D as float4 rows with an all-zero control K at the end.
         self._pstride = -(-(self.n_groups * T_FLOATS + 4 * (self.n_controls + 1)) // 16) * 16
-        self._params_host = np.zeros(self._pstride, dtype=np.float32)
-        self._params = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, self._params_host.nbytes)
-        self._params_cap = 1
+        self._params_host = _aligned_empty((self._pstride,), np.float32)
+        self._params_host[:] = 0
+        if self.zero_copy:  # the kernel reads the host array itself: no upload command per frame
+            self._params_single = self._host_buffer(self._params_host, cl.mem_flags.READ_ONLY)
+        else:
+            self._params_single = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, self._params_host.nbytes)
+        self._params = self._params_single
         self._verts = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, max(12, 12 * self.n_vertices))
         self._minmax_host = np.empty((MINMAX_ITEMS, 2, 3), dtype=np.float32)
         self._minmax = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, self._minmax_host.nbytes)
@@ -415,7 +504,11 @@ class OpenCLDeformer:
     def _fill_params(self, D: np.ndarray, T: np.ndarray) -> np.ndarray:
         """``(n, pstride) float32`` parameter block for frames ``D (n, K, 3)``, ``T (n, G, 3, 4)``."""
         n = D.shape[0]
-        P = self._params_host if n == 1 else np.zeros((n, self._pstride), dtype=np.float32)
+        if n == 1:
+            P = self._params_host
+        else:
+            P = _aligned_empty((n, self._pstride), np.float32)
+            P[:] = 0
         P = P.reshape(n, self._pstride)
         gt = self.n_groups * T_FLOATS
         cols = P[:, :gt].reshape(n, self.n_groups, 4, 4)
@@ -425,26 +518,37 @@ class OpenCLDeformer:
         return P
 
     def _upload_params(self, P: np.ndarray) -> None:
+        """Make ``P`` (from ``_fill_params``) the parameters of the next launch."""
         cl = self._cl
-        n = P.shape[0]
-        if n > self._params_cap:
-            self._params = cl.Buffer(self.context, cl.mem_flags.READ_ONLY, P.nbytes)
-            self._params_cap = n
+        single = P.base is self._params_host or P is self._params_host
+        if self.zero_copy:
+            self._params = self._params_single if single else self._host_buffer(P, cl.mem_flags.READ_ONLY)
+            return
+        self._params = self._params_single if single else cl.Buffer(self.context, cl.mem_flags.READ_ONLY, P.nbytes)
         cl.enqueue_copy(self.queue, self._params, P, is_blocking=False)
 
-    def _launch_deform(self, n_frames: int, out_buf) -> None:
-        self._k_deform(self.queue, (self._global_slices,), (LOCAL_SLICES,),
-                       np.uint32(self.n_vertices), np.uint32(self.n_controls), self._slice_ptr,
-                       self._ids, self._w, self._rest, self._sgroup, self._group, self._params,
+    def _launch_deform(self, n_frames: int, out_buf):
+        return self._k_deform(self.queue, (self._global_slices,), (LOCAL_SLICES,),
+                       np.uint32(self.n_vertices), np.uint32(self.n_controls), self._col_ptr,
+                       self._id_ptr, self._ids, self._w, self._rest, self._sgroup, self._group, self._params,
                        np.uint32(self._pstride // 4), np.uint32(self.n_groups), np.uint32(n_frames), out_buf)
 
-    def _host_out(self, arr: np.ndarray):
-        """A device buffer over host array ``arr`` (zero-copy on host-memory devices)."""
+    def _host_buffer(self, arr: np.ndarray, flags=None):
+        """A buffer whose storage is host array ``arr`` (``CL_MEM_USE_HOST_PTR``): on a CPU device
+        the kernels read and write ``arr`` itself."""
         cl = self._cl
-        return cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
+        flags = cl.mem_flags.READ_WRITE if flags is None else flags
+        return cl.Buffer(self.context, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
 
-    def _sync_host(self, buf, arr: np.ndarray) -> None:
-        """Make ``arr`` (the host pointer of ``buf``) hold the device's results."""
+    def _host_out(self, arr: np.ndarray):
+        return self._host_buffer(arr, self._cl.mem_flags.WRITE_ONLY)
+
+    def _sync_host(self, buf, arr: np.ndarray, event) -> None:
+        """Wait for ``event`` (the kernel writing ``buf``) and make ``arr``, the host storage of
+        ``buf``, hold its results: on a host-memory device it already does."""
+        if self.zero_copy:
+            event.wait()
+            return
         cl = self._cl
         mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype,
                                           is_blocking=True)
@@ -472,8 +576,7 @@ class OpenCLDeformer:
             return out
         if self.zero_copy:  # the kernel writes straight into ``out``
             buf = self._host_out(out)
-            self._launch_deform(1, buf)
-            self._sync_host(buf, out)
+            self._sync_host(buf, out, self._launch_deform(1, buf))
         else:
             self._launch_deform(1, self._verts)
             self._cl.enqueue_copy(self.queue, out, self._verts, is_blocking=True)
@@ -494,8 +597,7 @@ class OpenCLDeformer:
             self._upload_params(self._fill_params(D[a:b], T[a:b]))
             if self.zero_copy:
                 buf = self._host_out(out[a:b])
-                self._launch_deform(b - a, buf)
-                self._sync_host(buf, out[a:b])
+                self._sync_host(buf, out[a:b], self._launch_deform(b - a, buf))
             else:
                 buf = self._cl.Buffer(self.context, self._cl.mem_flags.WRITE_ONLY, (b - a) * frame_bytes)
                 self._launch_deform(b - a, buf)
@@ -584,8 +686,9 @@ class OpenCLDeformer:
         p = self.packed
         if p.dense:
             return "dense, slice-major float32"
-        return (f"sliced-ELL{SLICE}, {p.idx_ctype} ids, {p.axes} float32 weight{'s' if p.axes > 1 else ''}"
-                f" per entry, {p.ids.size / max(1, self.operator.nnz):.2f} entries per non-zero")
+        return (f"slices of {SLICE}: {100 * p.shared_fraction:.0f}% shared columns, others ELL; "
+                f"{p.idx_ctype} ids; {p.axes} float32 weight plane{'s' if p.axes > 1 else ''}; "
+                f"{8 * p.n_columns / max(1, self.operator.nnz):.2f} stored weights per non-zero")
 
     def upload_frame(self, D: np.ndarray, transforms: np.ndarray, wait: bool = False) -> None:
         """Send one frame's ``D`` and transforms (for ``run_kernel_resident``)."""
