@@ -8,8 +8,8 @@ at the frame rate (keyframe i at ``i / fps`` seconds).
 Compression: the per-frame displacements ``X (T, 3V)`` from the neutral mesh are factored with a
 truncated SVD (eigen-decomposition of the ``T x T`` Gram matrix). The targets are the leading
 ``M`` components (scaled so that the weights stay in [-1, 1]); ``M`` is the smallest rank whose
-discarded energy ``sqrt(sum of the dropped eigenvalues)`` -- an upper bound on every vertex's
-error in every frame -- is within ``tolerance_mm``, capped at ``max_targets``. The same basis is
+largest per-frame residual norm ``max_t sqrt(sum_{i>=M} U[t,i]^2 lambda_i)`` -- an upper bound on
+every vertex's error in every frame -- is within ``tolerance_mm``, capped at ``max_targets``. The same basis is
 used for every length (a short clip simply needs fewer components; ``M <= T``). The measured
 maximum vertex error (mm) and the bound are recorded in ``extras.facecast`` with the frame count,
 fps and target count. Normal deltas per target are the least-squares fit of the per-frame normal
@@ -35,12 +35,12 @@ _FLOAT, _UINT = 5126, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
-def morph_basis(displacements: np.ndarray, tolerance: float, max_targets: int = 128
+def morph_basis(frames: np.ndarray, rest: np.ndarray, tolerance: float, max_targets: int = 128
                 ) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """Truncated SVD of per-frame displacements.
+    """Truncated SVD of the per-frame displacements ``frames - rest``.
 
     Args:
-        displacements: ``(T, V, 3)`` displacements from the neutral mesh (mesh units).
+        frames: ``(T, V, 3)`` vertices per frame; ``rest``: ``(V, 3)`` neutral mesh (mesh units).
         tolerance: wanted bound on any vertex's error (mesh units).
         max_targets: most components kept.
 
@@ -48,17 +48,26 @@ def morph_basis(displacements: np.ndarray, tolerance: float, max_targets: int = 
         ``targets (M, V, 3) float32``, ``weights (T, M) float32`` with ``targets`` scaled so that
         ``|weights| <= 1``, the measured max vertex error and the energy bound (mesh units).
     """
-    T = displacements.shape[0]
-    X = np.asarray(displacements, dtype=np.float32).reshape(T, -1)
+    T = frames.shape[0]
+    F = np.asarray(frames, dtype=np.float32).reshape(T, -1)
+    r = np.asarray(rest, dtype=np.float32).reshape(-1)
+    n_cols = F.shape[1]
+    step = max(3, 4_000_000 // max(T, 1) // 3 * 3)  # whole vertices per column chunk
+
+    def cols(c: int) -> np.ndarray:  # displacement columns c:c+step in float64 (no full copy)
+        return F[:, c:c + step].astype(np.float64) - r[c:c + step]
+
     gram = np.zeros((T, T))
-    step = max(1, 4_000_000 // max(T, 1))
-    for c in range(0, X.shape[1], step):  # chunks over columns, accumulated in float64
-        xc = X[:, c:c + step].astype(np.float64)
+    for c in range(0, n_cols, step):
+        xc = cols(c)
         gram += xc @ xc.T
     lam, U = np.linalg.eigh(gram)
     lam, U = np.clip(lam[::-1], 0.0, None), U[:, ::-1]
-    tail = np.sqrt(np.maximum(np.cumsum(lam[::-1])[::-1], 0.0))  # tail[m] = energy dropped keeping m
-    tail = np.append(tail, 0.0)
+    # Frame t's residual keeping m components has norm^2 = sum_{i>=m} U[t,i]^2 lam[i]; its max over
+    # frames bounds every vertex's error in every frame. tail[m] = that bound.
+    energy = (U**2) * lam
+    per_frame = np.cumsum(energy[:, ::-1], axis=1)[:, ::-1]
+    tail = np.append(np.sqrt(np.maximum(per_frame.max(axis=0), 0.0)), 0.0)
     ok = np.flatnonzero(tail[: min(T, max_targets) + 1] <= tolerance)
     M = int(ok[0]) if len(ok) else min(T, max_targets)
     M = max(M, 1)
@@ -69,13 +78,14 @@ def morph_basis(displacements: np.ndarray, tolerance: float, max_targets: int = 
     scale = np.abs(Um).max(axis=0)
     scale[scale == 0] = 1.0
     weights = (Um / scale).astype(np.float32)
-    targets = np.empty((M, X.shape[1]), dtype=np.float32)
-    for c in range(0, X.shape[1], step):
-        targets[:, c:c + step] = ((Um * scale).T @ X[:, c:c + step].astype(np.float64)).astype(np.float32)
+    targets = np.empty((M, n_cols), dtype=np.float32)
     err = 0.0
-    for t0 in range(0, T, 64):  # exact max vertex error of the float32 reconstruction
-        rec = weights[t0:t0 + 64].astype(np.float64) @ targets.astype(np.float64)
-        diff = (X[t0:t0 + 64] - rec).reshape(len(rec), -1, 3)
+    w64 = weights.astype(np.float64)
+    for c in range(0, n_cols, step):
+        xc = cols(c)
+        tc = ((Um * scale).T @ xc).astype(np.float32)
+        targets[:, c:c + step] = tc
+        diff = (xc - w64 @ tc.astype(np.float64)).reshape(T, -1, 3)  # exact float32 reconstruction error
         err = max(err, float(np.sqrt((diff**2).sum(axis=2)).max(initial=0.0)))
     return targets.reshape(M, -1, 3), weights, err, float(tail[M])
 
@@ -128,7 +138,7 @@ def encode_glb(frames: np.ndarray, rest: np.ndarray, triangles: np.ndarray, fps:
         raise ValueError(f"frames must be (T>=1, {V}, 3), not {frames.shape}")
     if not np.all(np.isfinite(frames)):
         raise ValueError("frames contain NaN or infinite values")
-    targets, weights, err, bound = morph_basis(frames - rest, tolerance_mm / mm_per_unit, max_targets)
+    targets, weights, err, bound = morph_basis(frames, rest, tolerance_mm / mm_per_unit, max_targets)
     M = targets.shape[0]
 
     inc = incidence_matrix(tri.astype(np.int32), V)
@@ -139,8 +149,12 @@ def encode_glb(frames: np.ndarray, rest: np.ndarray, triangles: np.ndarray, fps:
         return n
 
     n0 = normals(rest)
-    dn = np.stack([normals(f) - n0 for f in frames]).reshape(T, -1)
-    ntargets = (np.linalg.pinv(weights.astype(np.float64)) @ dn).astype(np.float32).reshape(M, V, 3)
+    pinv = np.linalg.pinv(weights.astype(np.float64)).astype(np.float32)  # (M, T)
+    ntargets = np.zeros((M, V * 3), dtype=np.float32)
+    for t0 in range(0, T, 32):  # least-squares normal deltas, accumulated 32 frames at a time
+        dn = np.stack([(normals(f) - n0).reshape(-1) for f in frames[t0:t0 + 32]])
+        ntargets += pinv[:, t0:t0 + 32] @ dn
+    ntargets = ntargets.reshape(M, V, 3)
 
     b = _Bin()
     pos = b.add(rest, comp=_FLOAT, type_="VEC3", target=_ARRAY_BUFFER, minmax=True)
