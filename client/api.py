@@ -108,10 +108,12 @@ class SessionAdmin:
         await self._call("DELETE", f"/v1/sessions/{quote(session, safe='')}", f"cannot close session {session}")
 
 
-#: Received messages the client library may hold before it stops reading the socket.
-MAX_QUEUE = 4
-#: Receive buffer of a viewer socket, bytes (small, so a slow reader skips frames at the server).
-VIEWER_RECEIVE_BUFFER = 512 * 1024
+#: Messages a viewer's client library may hold before it stops reading the socket. Every frame
+#: buffered between the server's slot and the consumer adds one frame interval of latency when
+#: the consumer is slow, so viewers buffer little and let the server skip frames instead.
+VIEWER_MAX_QUEUE = 2
+#: Receive buffer of a viewer socket, bytes (the kernel doubles it).
+VIEWER_RECEIVE_BUFFER = 128 * 1024
 
 
 async def _socket(url: str, rcvbuf: int | None) -> socket.socket | None:
@@ -134,11 +136,11 @@ async def _socket(url: str, rcvbuf: int | None) -> socket.socket | None:
     return sock
 
 
-async def _connect(url: str, *, rcvbuf: int | None = None) -> ClientConnection:
+async def _connect(url: str, *, rcvbuf: int | None = None, max_queue: int = 16) -> ClientConnection:
     try:
         sock = await _socket(url, rcvbuf)
         return await connect(url, compression=None, max_size=MAX_MESSAGE, open_timeout=30,
-                             ping_interval=None, max_queue=MAX_QUEUE, sock=sock)
+                             ping_interval=None, max_queue=max_queue, sock=sock)
     except (OSError, asyncio.TimeoutError) as e:
         raise LiveError(f"cannot connect to {url.split('?')[0]}: {e}") from None
     except Exception as e:  # handshake refused (HTTP status instead of 101)
@@ -356,7 +358,7 @@ class watch:
         self.watcher: Watcher | None = None
 
     async def __aenter__(self) -> Watcher:
-        ws = await _connect(self.url, rcvbuf=self.receive_buffer)
+        ws = await _connect(self.url, rcvbuf=self.receive_buffer, max_queue=VIEWER_MAX_QUEUE)
         try:
             first = await ws.recv()
         except ConnectionClosed:

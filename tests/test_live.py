@@ -29,7 +29,7 @@ FACE = os.environ.get("FACECAST_TEST_LIVE_FACE", "default:2k")
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
     s = RunningServer(tmp_path_factory.mktemp("live"), "--face", FACE, "--backend", "numpy", "--workers", "0",
-                      env={"FACECAST_MAX_SESSIONS": "6"}).start()
+                      env={"FACECAST_MAX_SESSIONS": "6", "FACECAST_MAX_PRODUCER_FPS": "150"}).start()
     yield s
     s.stop()
 
@@ -55,6 +55,7 @@ def joy(data_dir):
     return read_fap((data_dir / "xface/faps/joy.fap").read_text(), where="joy.fap")
 
 
+@pytest.mark.slow
 def test_one_producer_three_viewers_equal_batch_render(live, joy):
     from facecast.server.drivers.fap import to_animation
     from facecast.server.api.store import FaceStore
@@ -317,6 +318,89 @@ def test_viewer_and_producer_vanishing(live, joy):
     assert got[-1].frame.header.t == pytest.approx(10 + 59 / 30)
     assert info.stats.viewers == 0 and not info.stats.producer_connected
     assert info.stats.states >= 60 + 5
+
+
+def test_slow_viewer_gets_the_newest_frame_and_a_gap(live):
+    async def main():
+        s = await _session(live)
+        async with watch(live.url, s.id, s.viewer_token) as w:
+            async with produce(live.url, s.id, s.producer_token) as p:
+                for i in range(120):  # the viewer reads nothing meanwhile
+                    await p.send_faps({3: float(i)}, i / 100)
+                    await asyncio.sleep(0.005)
+                await asyncio.sleep(1.0)
+                got = []
+                async for f in w:
+                    got.append(f)
+                    if f.frame.header.seq == 119:
+                        break
+        async with SessionAdmin(live.url, live.admin_key) as admin:
+            info = await admin.info(s.id)
+            await admin.close(s.id)
+        return got, info
+
+    got, info = run(main())
+    seqs = [f.frame.header.seq for f in got]
+    assert seqs == sorted(seqs) and seqs[-1] == 119
+    assert len(seqs) < 120 and info.stats.frames_skipped > 0  # frames were replaced in the viewer's slot
+    assert summary(got)["dropped"] == 120 - len(seqs) - seqs[0]
+
+
+def test_producer_rate_limit(live):
+    async def main():
+        s = await _session(live)
+        async with produce(live.url, s.id, s.producer_token) as p:
+            assert p.ready.max_fps == 150
+            for i in range(1000):
+                await p.send_faps({3: 1.0}, i / 1000)
+            await p.send_faps({3: 2.0}, 2.0)
+            await asyncio.sleep(0.5)
+            errors = list(p.errors)
+        async with SessionAdmin(live.url, live.admin_key) as admin:
+            info = await admin.info(s.id)
+            await admin.close(s.id)
+        return errors, info
+
+    errors, info = run(main())
+    assert errors and all(e.code == CloseCode.TOO_MANY and not e.fatal for e in errors)
+    assert "150 per second" in errors[0].message
+    assert info.stats.frames_rejected > 0 and info.stats.frames_in + info.stats.frames_rejected == 1001
+
+
+def test_audio_session_streams_pcm(live, data_dir):
+    import soundfile as sf
+
+    from facecast.client.api import stream_pcm
+
+    samples, rate = sf.read(str(data_dir / "speech/mary.wav"), dtype="int16")
+    samples = samples[: rate * 2] if samples.ndim == 1 else samples[: rate * 2, 0].copy()
+
+    async def main():
+        s = await _session(live, input="audio", fps=50)
+        started = asyncio.Event()
+        viewer = asyncio.create_task(_collect(live.url, s.id, s.viewer_token, encoding="i16", started=started))
+        await started.wait()
+        async with produce(live.url, s.id, s.producer_token,
+                           ProducerHello(input="audio", rate=rate, sample_format="i16")) as p:
+            chunks = await stream_pcm(p, samples, rate, chunk=0.04, speed=4.0)
+            bad = frames.encode_pcm(samples[:100], rate=rate + 1, sample_offset=0, seq=999)
+            await p.send_raw(bad)
+            for _ in range(200):  # the driver works through the queued chunks first
+                if p.errors:
+                    break
+                await asyncio.sleep(0.05)
+            errors = list(p.errors)
+        got = await viewer
+        await _close(live, s.id)
+        return chunks, errors, got
+
+    chunks, errors, got = run(main())
+    assert len(errors) == 1 and "sample rate" in errors[0].message and errors[0].seq == 999
+    assert got, "no vertex frames from audio"
+    ts = [f.frame.header.t for f in got]
+    assert ts == sorted(ts) and ts[-1] <= 2.0 + 1e-6
+    # the mouth moves: frames differ
+    assert any(not np.array_equal(got[0].positions(), f.positions()) for f in got)
 
 
 def test_summary_counts_gaps():

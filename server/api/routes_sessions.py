@@ -30,7 +30,7 @@ router = APIRouter(tags=["sessions"])
 #: Seconds a producer has to send its hello.
 HELLO_TIMEOUT = 10.0
 #: Kernel send buffer of a viewer socket, in vertex frames (see ``_limit_send_buffer``).
-VIEWER_SEND_BUFFER_FRAMES = 2
+VIEWER_SEND_BUFFER_FRAMES = 1
 MIN_SEND_BUFFER = 64 * 1024
 
 
@@ -343,7 +343,7 @@ def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
     replaces it. Best effort: servers that hide the transport keep their defaults.
     """
     try:
-        transport = getattr(getattr(ws._send, "__self__", None), "transport", None)
+        transport = _find_transport(ws._send)
         sock = transport.get_extra_info("socket") if transport is not None else None
         if sock is not None:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, max(MIN_SEND_BUFFER, int(nbytes)))
@@ -351,14 +351,37 @@ def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
         log.debug("cannot set the send buffer of a viewer socket", exc_info=True)
 
 
+def _find_transport(send: Any, depth: int = 4) -> Any:
+    """The asyncio transport behind an ASGI ``send`` callable: uvicorn's is a method of its protocol
+    object (which has ``.transport``); Starlette wraps it in closures, which are followed."""
+    owner = getattr(send, "__self__", None)
+    if owner is not None and hasattr(owner, "transport"):
+        return owner.transport
+    if depth > 0:
+        for cell in getattr(send, "__closure__", None) or ():
+            try:
+                value = cell.cell_contents
+            except ValueError:
+                continue
+            if callable(value):
+                found = _find_transport(value, depth - 1)
+                if found is not None:
+                    return found
+    return None
+
+
 async def _send_loop(ws: WebSocket, session, viewer) -> None:
+    unsent = 0
     try:
         while True:
             kind, payload = await viewer.next()
             if kind == "bytes":
                 await ws.send_bytes(payload)
                 viewer.sent += 1
-                session.count_sent()
+                unsent += 1
+                if unsent >= 32:  # count in batches: a Prometheus counter update per send is measurable
+                    session.count_sent(unsent)
+                    unsent = 0
             elif kind == "text":
                 await ws.send_text(payload)
             else:
@@ -368,6 +391,8 @@ async def _send_loop(ws: WebSocket, session, viewer) -> None:
                 return
     except (WebSocketDisconnect, RuntimeError, OSError):
         return  # the viewer went away
+    finally:
+        session.count_sent(unsent)
 
 
 async def _drain(ws: WebSocket) -> None:

@@ -156,6 +156,7 @@ class LiveSession:
     def remove_viewer(self, viewer: Viewer) -> None:
         if viewer in self.viewers:
             self.viewers.discard(viewer)
+            self.stats["frames_sent"] += viewer.sent
             if self.metrics:
                 self.metrics.viewers.dec()
 
@@ -167,7 +168,8 @@ class LiveSession:
 
     def snapshot(self) -> Stats:
         n = self.stats["frames_deformed"]
-        return Stats(**self.stats, deform_ms_mean=round(1000 * self._deform_total / n, 3) if n else 0.0,
+        counts = dict(self.stats, frames_sent=self.stats["frames_sent"] + sum(v.sent for v in self.viewers))
+        return Stats(**counts, deform_ms_mean=round(1000 * self._deform_total / n, 3) if n else 0.0,
                      viewers=len(self.viewers), producer_connected=self.producer is not None)
 
     # -- the worker ----------------------------------------------------------------------------------
@@ -226,9 +228,9 @@ class LiveSession:
                 for viewer in self.viewers:
                     viewer.say(text)
 
-    def count_sent(self, n: int = 1) -> None:
-        self.stats["frames_sent"] += n
-        if self.metrics:
+    def count_sent(self, n: int) -> None:
+        """Add ``n`` sent frames to the Prometheus counter (the session's own count is per viewer)."""
+        if self.metrics and n:
             self.metrics.frames_sent.inc(n)
 
     async def close(self, code: int, error_json: str) -> Callable[[], None] | None:
