@@ -400,6 +400,31 @@ def _conformation_from_name(name: str) -> Conformation | None:
     return Conformation(**kw)
 
 
+def _brow_weight(face: Face) -> np.ndarray | None:
+    """``(V,)`` 0–1 eyebrow weight (an arch through FPs 4.1/4.3/4.5 and their mirrors), or None."""
+    if not all(k in face.feature_points for k in ("4.1", "4.3", "4.5", "4.2", "4.4", "4.6")):
+        return None
+    ids = face.part("skin")
+    v = face.vertices[ids].astype(np.float64)
+    out = np.zeros(face.n_vertices)
+    for fps in (("4.1", "4.3", "4.5"), ("4.2", "4.4", "4.6")):
+        p = np.array([face.fp_position(k) for k in fps])
+        order = np.argsort(p[:, 0])
+        p = p[order]
+        x = v[:, 0]
+        yb = np.interp(x, p[:, 0], p[:, 1])
+        zb = np.interp(x, p[:, 0], p[:, 2])
+        t = np.clip((x - p[0, 0]) / (p[-1, 0] - p[0, 0]), 0, 1)
+        inner_first = order[0] == 0  # 4.1 (inner end) has the smallest x on the left side
+        fat = 1.0 - 0.55 * (t if inner_first else 1 - t)
+        half = 4.2 * fat
+        band = np.clip((half - np.abs(v[:, 1] - yb + 1.0)) / 1.5, 0, 1)
+        span = np.clip((np.minimum(x - p[0, 0], p[-1, 0] - x) + 2.5) / 2.5, 0, 1)
+        near = np.abs(v[:, 2] - zb) < 12
+        out[ids] = np.maximum(out[ids], 0.85 * band * span * near)
+    return out
+
+
 def _lip_weight(face: Face) -> np.ndarray | None:
     """``(V,)`` 0–1 vermilion weight of the built-in head's skin (smooth, for colouring), or None."""
     conf = _conformation_from_name(face.name)
@@ -414,7 +439,7 @@ def _lip_weight(face: Face) -> np.ndarray | None:
     s = py - model.slit_py(px)
     vu, vl = model.lip_heights(a)
     inside = np.where(s >= 0, vu - s, vl + s)
-    w = np.clip(inside / 0.6 + 0.5, 0, 1) * np.clip((1.0 - np.abs(a)) / 0.06 + 0.5, 0, 1) * (fm > 0.5)
+    w = np.clip(inside / 1.5 + 0.5, 0, 1) * np.clip((1.0 - np.abs(a)) / 0.08 + 0.5, 0, 1) * (fm > 0.5)
     out = np.zeros(face.n_vertices)
     out[ids] = w
     out[face.part("mouth_socket")] = 0
@@ -425,9 +450,11 @@ def head_colors(face: Face) -> np.ndarray:
     """``(V, 3)`` RGB 0–1 colours for previews of the built-in head (skin, lips, eyes, teeth, tongue)."""
     skin_rgb, lip_rgb = np.array([0.87, 0.70, 0.60]), np.array([0.76, 0.42, 0.42])
     col = np.tile(skin_rgb, (face.n_vertices, 1))
-    lip = _lip_weight(face)
+    lip, brow = _lip_weight(face), _brow_weight(face)
     if lip is not None:
         col += lip[:, None] * (lip_rgb - skin_rgb)
+    if brow is not None:
+        col += brow[:, None] * (np.array([0.36, 0.25, 0.19]) - col)
     for p, rgb in (("mouth_socket", (0.45, 0.16, 0.18)), ("teeth_upper", (0.95, 0.93, 0.85)),
                    ("teeth_lower", (0.95, 0.93, 0.85)), ("gums_upper", (0.80, 0.40, 0.42)),
                    ("gums_lower", (0.80, 0.40, 0.42)), ("tongue", (0.80, 0.38, 0.40))):

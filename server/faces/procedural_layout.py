@@ -34,10 +34,10 @@ class Conformation:
     eye_spacing: float = 63.0       #: pupil to pupil
     eye_radius: float = 12.2        #: eyeball radius
     iris_diameter: float = 11.6
-    brow_height: float = 24.0       #: top of the eyebrow above the pupil
+    brow_height: float = 22.0       #: top of the eyebrow above the pupil
     ear_size: float = 62.0          #: ear length (top to lobe)
     neck_radius: float = 52.0
-    neck_length: float = 70.0       #: below the chin
+    neck_length: float = 60.0       #: below the chin
 
     @classmethod
     def names(cls) -> tuple[str, ...]:
@@ -82,11 +82,11 @@ class Layout:
 
     @property
     def eye_centre_l(self) -> np.ndarray:
-        return np.array([self.conf.eye_spacing / 2, 0.0, 70.0])
+        return np.array([self.conf.eye_spacing / 2, 0.0, 69.0])
 
     @property
     def lid_radius(self) -> float:
-        return self.conf.eye_radius + 1.0
+        return self.conf.eye_radius + 1.4
 
     @property
     def iris_radius(self) -> float:
@@ -96,7 +96,7 @@ class Layout:
     def canthus_offsets(self) -> tuple[float, float]:
         """Lateral offsets of the inner and outer eye corners from the pupil (mm)."""
         r = self.lid_radius
-        return -0.98 * r, 1.02 * r
+        return -0.9 * r, 0.96 * r
 
     @property
     def y_occlusal(self) -> float:

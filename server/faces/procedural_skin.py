@@ -111,7 +111,7 @@ class SkinModel:
         """Distance from ``RAY_ORIGIN`` to the skin along unit rays ``d (N, 3)``."""
         lay, c = self.lay, self.lay.conf
         o = RAY_ORIGIN
-        cran = ray_exit(o, d, (0, c.head_height - 100, -3.0), (c.head_width / 2, 100, c.head_length / 2))
+        cran = ray_exit(o, d, (0, c.head_height - 90, -3.0), (c.head_width / 2, 90, c.head_length / 2))
         face = ray_exit(o, d, (0, -26, 10), (c.face_width / 2, 66, 83))
         jaw = ray_exit(o, d, (0, lay.y_menton + 46, 16), (c.jaw_width / 2, 46, 72))
         muzzle = ray_exit(o, d, (0, lay.y_stomion + 4, 48), (lay.x_mouth + 19, 34, 45))
@@ -138,7 +138,7 @@ class SkinModel:
         # temples in, cheekbones out, cheeks
         out += -2.5 * _g(ax, py, c.face_width / 2 - 8, 18, 12, 18)
         out += 4.0 * _g(ax, py, c.face_width / 2 - 22, -16, 20, 12)
-        out += 3.0 * _g(ax, py, 36, -45, 16, 16)
+        out += 6.5 * _g(ax, py, 42, -42, 19, 19)
         # nose: dorsum ridge with a rounded tip, alae, nostrils
         span = yn - (ysn + 2.0)
         q = (yn - py) / span  # 0 at the nasion, 1 at the subnasale (in face-plane coordinates)
