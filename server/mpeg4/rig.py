@@ -89,6 +89,17 @@ def _constrained_axes(fp: str) -> np.ndarray:
     return np.any([np.abs(f.vector) > 0 for f in faps], axis=0)
 
 
+def _table(given, from_face, default: np.ndarray) -> np.ndarray:
+    """The first of ``given``, ``from_face``, ``default`` that is set, as a float64 array of its shape."""
+    for t in (given, from_face):
+        if t is not None:
+            t = np.asarray(t, dtype=np.float64)
+            if t.shape != default.shape:
+                raise ValueError(f"high-level table must have shape {default.shape}, not {t.shape}")
+            return t
+    return default
+
+
 def rotation(axis: str, angle: float) -> np.ndarray:
     """``(3, 3)`` right-hand rotation by ``angle`` radians about ``x``, ``y`` or ``z``."""
     c, s = np.cos(angle), np.sin(angle)
@@ -151,11 +162,8 @@ class FapRig:
                  visemes: np.ndarray | None = None, expressions: np.ndarray | None = None):
         self.face = face
         self.fapu = measure_fapu(face)
-        self.visemes = np.asarray(visemes if visemes is not None else getattr(face, "visemes", None)
-                                  if getattr(face, "visemes", None) is not None else VISEMES, dtype=np.float64)
-        self.expressions = np.asarray(expressions if expressions is not None else getattr(face, "expressions", None)
-                                      if getattr(face, "expressions", None) is not None else EXPRESSIONS,
-                                      dtype=np.float64)
+        self.visemes = _table(visemes, getattr(face, "visemes", None), VISEMES)
+        self.expressions = _table(expressions, getattr(face, "expressions", None), EXPRESSIONS)
         self.explicit = control_vertices is not None
         if self.explicit:
             self.control_vertices = np.asarray(control_vertices, dtype=np.int32).reshape(-1)
