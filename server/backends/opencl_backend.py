@@ -49,6 +49,20 @@ KERNEL_SOURCE = r"""
 // rows ((K + 1) rows, the last one zero). rest is SoA per slice (x[8] y[8] z[8]); sgroup[s] is the
 // slice's rigid group, or 255 when its vertices differ (then group[v] is read per vertex).
 
+// (ox, oy, oz) = the 3x4 transform at T (4 float4 columns) applied to (px, py, pz).
+#define TRANSFORM(T, ox, oy, oz) do { \
+        const float4 c0 = (T)[0], c1 = (T)[1], c2 = (T)[2], c3 = (T)[3]; \
+        ox = fma((float8)(c0.x), px, fma((float8)(c1.x), py, fma((float8)(c2.x), pz, (float8)(c3.x)))); \
+        oy = fma((float8)(c0.y), px, fma((float8)(c1.y), py, fma((float8)(c2.y), pz, (float8)(c3.y)))); \
+        oz = fma((float8)(c0.z), px, fma((float8)(c1.z), py, fma((float8)(c2.z), pz, (float8)(c3.z)))); \
+    } while (0)
+// Store the components of q that fall below n (o[b + i] for b + i < n).
+#define TAIL8(q, b) \
+    if ((b) + 0 < n) o[(b) + 0] = q.s0; if ((b) + 1 < n) o[(b) + 1] = q.s1; \
+    if ((b) + 2 < n) o[(b) + 2] = q.s2; if ((b) + 3 < n) o[(b) + 3] = q.s3; \
+    if ((b) + 4 < n) o[(b) + 4] = q.s4; if ((b) + 5 < n) o[(b) + 5] = q.s5; \
+    if ((b) + 6 < n) o[(b) + 6] = q.s6; if ((b) + 7 < n) o[(b) + 7] = q.s7;
+
 __kernel void deform(const uint n_vertices,
                      const uint n_controls,
                      __global const uint *col_ptr,
@@ -127,21 +141,19 @@ __kernel void deform(const uint n_vertices,
     float8 ox, oy, oz;
     const uchar g = sgroup[s];
     if (g != 255) {
-        __global const float4 *T = P + 4 * g;
-        const float4 c0 = T[0], c1 = T[1], c2 = T[2], c3 = T[3];
-        ox = fma((float8)(c0.x), px, fma((float8)(c1.x), py, fma((float8)(c2.x), pz, (float8)(c3.x))));
-        oy = fma((float8)(c0.y), px, fma((float8)(c1.y), py, fma((float8)(c2.y), pz, (float8)(c3.y))));
-        oz = fma((float8)(c0.z), px, fma((float8)(c1.z), py, fma((float8)(c2.z), pz, (float8)(c3.z))));
+        TRANSFORM(P + 4 * g, ox, oy, oz);
     } else {
-        float a[3][8], b[3][8];
-        vstore8(px, 0, a[0]); vstore8(py, 0, a[1]); vstore8(pz, 0, a[2]);
-        for (int l = 0; l < 8; ++l) {
-            __global const float4 *T = P + 4 * group[min(v0 + l, n_vertices - 1)];
-            const float4 o = fma(T[0], (float4)(a[0][l]),
-                             fma(T[1], (float4)(a[1][l]), fma(T[2], (float4)(a[2][l]), T[3])));
-            b[0][l] = o.x; b[1][l] = o.y; b[2][l] = o.z;
+        // Vertices of several rigid groups: every group's transform, each lane keeps its own.
+        const int8 g8 = convert_int8(vload8(0, group + v0));
+        ox = oy = oz = (float8)(0.0f);
+        for (uint k = 0; k < n_groups; ++k) {
+            float8 ax, ay, az;
+            TRANSFORM(P + 4 * k, ax, ay, az);
+            const int8 m = g8 == (int8)((int)k);
+            ox = select(ox, ax, m);
+            oy = select(oy, ay, m);
+            oz = select(oz, az, m);
         }
-        ox = vload8(0, b[0]); oy = vload8(0, b[1]); oz = vload8(0, b[2]);
     }
     const float8 q0 = (float8)(ox.s0, oy.s0, oz.s0, ox.s1, oy.s1, oz.s1, ox.s2, oy.s2);
     const float8 q1 = (float8)(oz.s2, ox.s3, oy.s3, oz.s3, ox.s4, oy.s4, oz.s4, ox.s5);
@@ -149,10 +161,9 @@ __kernel void deform(const uint n_vertices,
     __global float *o = out + ((size_t)f * n_vertices + v0) * 3;
     if (v0 + 8 <= n_vertices) {
         vstore8(q0, 0, o); vstore8(q1, 1, o); vstore8(q2, 2, o);
-    } else {  // the last, partial slice
-        float t[24];
-        vstore8(q0, 0, t); vstore8(q1, 1, t); vstore8(q2, 2, t);
-        for (uint i = 0; i < 3 * (n_vertices - v0); ++i) o[i] = t[i];
+    } else {  // the last, partial slice: 3 * (n_vertices - v0) floats
+        const uint n = 3 * (n_vertices - v0);
+        TAIL8(q0, 0) TAIL8(q1, 8) TAIL8(q2, 16)
     }
     }
 }
