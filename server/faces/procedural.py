@@ -425,6 +425,18 @@ def _brow_weight(face: Face) -> np.ndarray | None:
     return out
 
 
+def _nostril_weight(face: Face) -> np.ndarray | None:
+    conf = _conformation_from_name(face.name)
+    if conf is None:
+        return None
+    ids = face.part("skin")
+    d = face.vertices[ids].astype(np.float64) - RAY_ORIGIN
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+    out = np.zeros(face.n_vertices)
+    out[ids] = np.clip(SkinModel(Layout(conf)).nostrils(d) / 3.0, 0, 1)
+    return out
+
+
 def _lip_weight(face: Face) -> np.ndarray | None:
     """``(V,)`` 0–1 vermilion weight of the built-in head's skin (smooth, for colouring), or None."""
     conf = _conformation_from_name(face.name)
@@ -455,6 +467,9 @@ def head_colors(face: Face) -> np.ndarray:
         col += lip[:, None] * (lip_rgb - skin_rgb)
     if brow is not None:
         col += brow[:, None] * (np.array([0.36, 0.25, 0.19]) - col)
+    nostril = _nostril_weight(face)
+    if nostril is not None:
+        col *= 1 - 0.6 * nostril[:, None]
     for p, rgb in (("mouth_socket", (0.45, 0.16, 0.18)), ("teeth_upper", (0.95, 0.93, 0.85)),
                    ("teeth_lower", (0.95, 0.93, 0.85)), ("gums_upper", (0.80, 0.40, 0.42)),
                    ("gums_lower", (0.80, 0.40, 0.42)), ("tongue", (0.80, 0.38, 0.40))):

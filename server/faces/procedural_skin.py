@@ -148,13 +148,12 @@ class SkinModel:
         h_dn = prot * np.sqrt(np.clip(1 - ((q - qt) / (1 - qt)) ** 2, 0, 1))
         ridge_h = np.where(q < qt, h_up, h_dn) * (q > -0.1)
         ridge_h *= smoothstep(-0.15, 0.05, q)
-        w = 6.0 + 5.0 * np.clip(q, 0, 1) + 3.0 * np.exp(-(((q - qt) / 0.12) ** 2))
+        w = 4.8 + 3.6 * np.clip(q, 0, 1) + 2.6 * np.exp(-(((q - qt) / 0.12) ** 2))
         ridge = ridge_h * np.exp(-np.abs(px / w) ** 2.2)
         alae_y = ysn + 0.3 * span * (1 - qt) + 4.0
         alae = 10.0 * _g(ax, py, c.nose_width / 2 - 6.5, alae_y, 6.5, 7.0)
         nose = smooth_max([ridge, alae, np.zeros_like(px)], 1.5)
-        nostril = 5.0 * _g(ax, py, 6.5, ysn + 3.0, 3.2, 2.8) * smoothstep(qt + 0.05, qt + 0.2, q)
-        out += nose - nostril - 1.2 * _g(ax, py, c.nose_width / 2 - 1, alae_y + 2, 2.0, 8.0)
+        out += nose - 1.2 * _g(ax, py, c.nose_width / 2 - 1, alae_y + 2, 2.0, 8.0)
         # philtrum and nasolabial folds
         out += -0.8 * _g(px, py, 0, (ysn + lay.y_stomion) / 2 + 2, 2.5, 6) + 0.6 * _g(ax, py, 4.5, (ysn + lay.y_stomion) / 2 + 2, 1.5, 6)
         fold_x = c.nose_width / 2 + 3 + (py - ysn) / (lay.y_stomion - ysn) * (lay.x_mouth - c.nose_width / 2)
@@ -189,10 +188,26 @@ class SkinModel:
         corner = -2.0 * _g(np.abs(a), s, 1.05, 0, 0.12, 3.0)
         return env * (upper + lower - crease) + corner
 
+    def nostrils(self, d: np.ndarray) -> np.ndarray:
+        """Depth (mm) of the nostrils on the underside of the nose (0 elsewhere), for rays ``d``."""
+        lay = self.lay
+        px, py, fm = gnomonic(d)
+        yn, ysn = lay.y_nasion, lay.y_subnasale
+        span = yn - (ysn + 2.0)
+        cy = yn - 0.87 * span
+        u = ((np.abs(px) - 6.3) / 3.3) ** 2 + ((py - cy) / 4.6) ** 2
+        return 5.5 * fm * np.clip(1 - u, 0, 1) ** 1.5
+
     def points(self, theta: np.ndarray, phi_remapped: np.ndarray) -> np.ndarray:
-        """Skin points ``(N, 3)`` at grid parameters (after the eye remap)."""
+        """Skin points ``(N, 3)`` at grid parameters (after the eye remap).
+
+        Points lie on the star-shaped surface, except in the nostrils, which are pushed up into the
+        nose (the underside of the nose is nearly parallel to the rays, so radial relief cannot dent it).
+        """
         d = unit_dirs(theta, self.warp_phi(theta, phi_remapped))
-        return RAY_ORIGIN + self.radius(d)[:, None] * d
+        p = RAY_ORIGIN + self.radius(d)[:, None] * d
+        p[:, 1] += self.nostrils(d)
+        return p
 
 
 @dataclass
