@@ -172,6 +172,16 @@ def test_paths_do_not_cross_rigid_groups(grid, rng):
     assert np.all(op.apply(D)[group == 1] == 0)
 
 
+def test_controls_on_non_deformable_vertices_are_ignored(grid, rng):
+    verts, tris, _, _, controls = grid
+    deformable = np.ones(len(verts), bool)
+    deformable[controls[0]] = False  # e.g. an FP on an eyeball (3.5, the pupil)
+    op = feature_point_operator(verts, tris, controls, deformable=deformable)
+    assert not np.any(op.indices == 0)
+    u = op.apply(random_D(rng, len(controls)))
+    assert np.all(u[controls[0]] == 0)
+
+
 def test_floating_component_copies_nearest_reached_vertex(grid):
     verts, tris, _, _, controls = grid
     n_before = len(verts)
