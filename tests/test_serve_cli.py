@@ -21,6 +21,7 @@ def parse(*argv: str):
     return build_parser(argv).parse_args(argv)
 
 
+@pytest.mark.slow
 def test_generated_admin_key_is_printed_kept_and_required(tmp_path):
     srv = RunningServer(tmp_path / "d", "--face", FACE, "--workers", "0", env={"FACECAST_ADMIN_KEY": ""})
     srv.start()
@@ -76,6 +77,7 @@ def test_flags_override_environment(tmp_path, monkeypatch):
         make_config(parse("--workers", "-1"))
 
 
+@pytest.mark.slow
 def test_websockets_are_never_compressed(tmp_path):
     """Vertex streams must not use per-message deflate, even when the client offers it."""
     import asyncio

@@ -68,6 +68,7 @@ class FaceStore:
             path = Path(default).expanduser()
             self.configured.setdefault(path.stem, path)
             self.default = path.stem
+        self._seen.add(self.default)  # the operator chose it: public even before it is loaded
 
     # -- names -----------------------------------------------------------------------------------
     def names(self) -> list[str]:
