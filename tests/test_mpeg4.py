@@ -269,3 +269,15 @@ def test_jaw_drop_is_exact_even_when_the_pivot_sits_almost_above_the_chin(face):
     D, T = rig.solve(_state(f3=1000))
     assert D[ids["2.1"], 1] == pytest.approx(-1000 * rig.fapu["MNS"], rel=1e-4)
     assert np.isfinite(T).all()
+
+
+def test_high_level_tables_can_be_replaced_per_face(face):
+    custom = np.zeros((15, 69))
+    custom[5, 3] = 700
+    rig = FapRig(face, visemes=custom)
+    D, T = rig.solve(FaceState(viseme=(5, 0, 63)))
+    D2, T2 = rig.solve(_state(f3=700))
+    np.testing.assert_allclose(D, D2, atol=1e-6)
+    np.testing.assert_allclose(T, T2, atol=1e-6)
+    with pytest.raises(ValueError, match="shape"):
+        FapRig(face, expressions=np.zeros((6, 69)))

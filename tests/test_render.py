@@ -104,22 +104,31 @@ def test_real_fap_file_renders_to_a_glb_that_pygltflib_reads(data_dir, small_fac
                                                                                rel=1e-3)
 
 
-@pytest.mark.slow
-def test_glb_of_ict_head(data_dir, tmp_path):
-    """The scanned head in centimetres: node scaled to metres, jaw opens, lower teeth follow."""
+@pytest.fixture(scope="module")
+def ict_face(data_dir):
     from facecast.server.faces import load_face
 
-    face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
-    out = tmp_path / "joy.glb"
-    render_file(data_dir / "xface" / "faps" / "joy.fap", out, face=face, backend="numpy")
+    return load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", XFACE)
+def test_glb_of_ict_head(data_dir, ict_face, tmp_path, name):
+    """The scanned head in centimetres: node scaled to metres, jaw opens, lower teeth follow."""
+    face = ict_face
+    src = data_dir / "xface" / "faps" / name
+    fap = read_fap(src.read_text(), where=name)
+    out = tmp_path / "out.glb"
+    render_file(src, out, face=face, backend="numpy")
     glb = read_glb(out)
     assert glb["gltf"].nodes[0].scale == pytest.approx([0.01] * 3)
-    assert len(glb["times"]) == 108
+    assert len(glb["times"]) == len(fap)
     shown = frames_of(glb)
     assert np.isfinite(shown).all()
     teeth = face.part("teeth_lower")
     drop = (face.vertices[teeth, 1] - shown[:, teeth, 1]).mean(axis=1)
-    assert drop.max() > 0.3  # cm: the jaw opens (FAP 3 reaches 314 MNS)
+    jaw = max(fr.faps().get(3, 0) for fr in fap.frames)
+    assert drop.max() > 0.5 * jaw / 1024 * 2.12  # cm: the jaw opens by about FAP 3 x MNS (MNS0 2.12 cm)
     assert _fp_motion(face, shown, MOUTH_FPS) > 0.3
 
 
