@@ -7,6 +7,7 @@ import pytest
 from facecast.protocol.quantize import dequantize_int16, quantize_int16
 from facecast.server.backends import NumpyDeformer
 from facecast.server.deform.operator import Operator
+from facecast.server.errors import InputError
 
 cl_backend = pytest.importorskip("facecast.server.backends.opencl_backend")
 
@@ -129,6 +130,8 @@ def test_out_parameter_receives_the_frame(ctx, rng):
         d.deform(D, T, out=np.empty((64, 3), np.float64))
     with pytest.raises(ValueError):
         d.deform(D, T[:2])
+    with pytest.raises(InputError, match="finite"):
+        d.deform(np.full((8, 3), np.nan, np.float32), T)
 
 
 def test_deform_with_normals_matches(ctx, rng):
@@ -212,3 +215,19 @@ def test_ict_head_every_engine(ctx, rng, data_dir, engine):
     from facecast.server.faces import load_face
 
     _engine_case(load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj"), engine, ctx, rng)
+
+
+def test_threads_share_a_deformer(ctx, rng):
+    """Server sessions may call one deformer from several threads; every frame stays its own."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    rest, tri, groups = random_mesh(rng, 500)
+    op = random_sparse(rng, 500, 20)
+    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
+    ref = NumpyDeformer(rest, tri, groups, op)
+    Ds = [(rng.standard_normal((20, 3))).astype(np.float32) for _ in range(24)]
+    T = random_transforms(rng)
+    with ThreadPoolExecutor(4) as pool:
+        outs = list(pool.map(lambda D: d.deform(D, T), Ds))
+    for D, out in zip(Ds, outs):
+        assert_close(out, ref.deform(D, T), 80)

@@ -1,21 +1,28 @@
 """The OpenCL backend (PyOpenCL): the NumPy reference's results, near the memory-bandwidth limit.
 
-Per frame the device reads the resident operator, the rest positions and the rigid groups, and
-writes the vertices; only the frame's parameters (``transforms`` and ``D``, a few hundred bytes) go
-up. On a CPU device (PoCL) device memory is host memory, so the kernel writes straight into the
-NumPy array that is returned (``CL_MEM_USE_HOST_PTR``) and the read-back is free; on other devices
-the vertices are copied back from a resident buffer.
+Per frame the device reads the resident operator, rest positions and rigid groups, and writes the
+vertices; only the frame's parameters (transforms and ``D``, a few hundred bytes) go up. On a CPU
+device (PoCL) device memory is host memory, so kernels read the parameters from, and write the
+vertices straight into, NumPy arrays (``CL_MEM_USE_HOST_PTR``): no upload or read-back copies. On
+other devices the vertices are copied back from a resident buffer.
 
-Device format of the operator (``pack_operator``): sliced ELLPACK. Vertices are cut into slices
-of ``SLICE`` consecutive vertices; a slice stores as many entries per vertex as its longest row,
-column-major (entry j of all its vertices side by side) so that neighbouring work-items read
-neighbouring bytes. Control ids are ``uchar`` when ``K < 256`` (else ``ushort``/``uint``); padding
-entries point at an extra all-zero control ``K``. Weights are float32, one per entry when the three
-axis columns of the operator are equal, else three (x, y, z planes per slice). A dense operator
-(RBF, linear shell) is stored the same way with implicit ids (every slice is K wide).
+One work-item deforms a *slice* of 8 consecutive vertices as float8 vectors: ``u = B·D``, plus
+the rest position, then its rigid transform (jaw, eyes, head), all in one kernel; batches loop
+over frames inside the kernel, so a slice's operator stays in L1 from frame to frame.
+
+Device format of a sparse operator (``pack_operator``): per slice, columns of 8 weights (one per
+vertex; three planes when the operator's axis columns differ, else one). A *shared* slice stores
+one control id per column: neighbouring vertices are moved by the same feature points, so the
+union of the 8 rows is rarely wider than the longest row (100% of the slices of the built-in
+500k head), and each column costs one ``D`` load for 8 vertices. Other slices are ELL (8 ids per
+column). Ids are ``uchar`` for ``K < 256`` (else ``ushort``/``uint``); ELL padding points at an
+extra all-zero control ``K``; shared columns hold zero weights for vertices that do not use the
+control. A dense operator (RBF, linear shell) is K shared columns per slice. Weights stay float32,
+so results equal NumPy's to float32 rounding (different summation order and FMA).
 """
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 from dataclasses import dataclass
@@ -368,6 +375,17 @@ def _aligned_empty(shape: tuple[int, ...], dtype, align: int = 128) -> np.ndarra
     return raw[off:off + n].view(dtype).reshape(shape)
 
 
+def _serialised(method):
+    """Run ``method`` under the deformer's lock: one queue and one parameter block per deformer,
+    so calls from several threads (server sessions) take turns."""
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+
+    return wrapper
+
+
 _programs: dict[tuple, object] = {}
 _programs_lock = threading.Lock()
 
@@ -409,6 +427,7 @@ class OpenCLDeformer:
         import pyopencl as cl
 
         self._cl = cl
+        self._lock = threading.RLock()
         ctx = context if context is not None else default_context()
         if ctx is None:
             from ..errors import FacecastError
@@ -510,6 +529,12 @@ class OpenCLDeformer:
             raise ValueError(f"transforms must be {lead + ('G', 3, 4)}, not {T.shape}")
         if T.shape[-3] < self.n_groups:
             raise ValueError(f"the mesh has {self.n_groups} rigid groups; transforms has {T.shape[-3]}")
+        if not (np.isfinite(D).all() and np.isfinite(T).all()):
+            # (zero weights would otherwise spread a NaN to vertices that do not use the control)
+            from ..errors import InputError
+
+            raise InputError("control displacements and transforms must be finite (fill mocap gaps first)",
+                             where="D" if not np.isfinite(D).all() else "transforms")
         return D, T[..., :self.n_groups, :, :]
 
     def _fill_params(self, D: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -572,6 +597,7 @@ class OpenCLDeformer:
         T[:, :, :3] = np.eye(3, dtype=np.float32)
         return self.deform(D, T) - self.rest
 
+    @_serialised
     def deform(self, D: np.ndarray, transforms: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """One frame: ``D (K, 3)``, ``transforms (G, 3, 4)`` -> vertices ``(V, 3) float32``.
 
@@ -593,6 +619,7 @@ class OpenCLDeformer:
             self._cl.enqueue_copy(self.queue, out, self._verts, is_blocking=True)
         return out
 
+    @_serialised
     def deform_batch(self, D: np.ndarray, transforms: np.ndarray) -> np.ndarray:
         """Many frames in one launch: ``D (T, K, 3)``, ``transforms (T, G, 3, 4)`` -> ``(T, V, 3)``."""
         D, T = self._check(D, transforms, batch=True)
@@ -615,6 +642,7 @@ class OpenCLDeformer:
                 self._cl.enqueue_copy(self.queue, out[a:b], buf, is_blocking=True)
         return out
 
+    @_serialised
     def normals(self, vertices: np.ndarray) -> np.ndarray:
         """Area-weighted unit vertex normals ``(V, 3) float32`` of deformed ``vertices (V, 3)``."""
         cl = self._cl
@@ -641,6 +669,7 @@ class OpenCLDeformer:
         self._k_vertex_normals(self.queue, self._global, (LOCAL_SIZE,), np.uint32(self.n_vertices),
                                self._adj_ptr, self._adj, self._fn, self._nbuf())
 
+    @_serialised
     def deform_with_normals(self, D: np.ndarray, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``deform`` and ``normals`` of the result, without sending the vertices back up."""
         cl = self._cl
@@ -656,6 +685,7 @@ class OpenCLDeformer:
         cl.enqueue_copy(self.queue, nrm, self._nbuf(), is_blocking=True)
         return verts, nrm
 
+    @_serialised
     def deform_quantized(self, D: np.ndarray, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One frame as int16 for the wire: ``(q (V, 3) int16, offset (3,), scale (3,) float32)``.
 
@@ -701,6 +731,7 @@ class OpenCLDeformer:
                 f"{p.idx_ctype} ids; {p.axes} float32 weight plane{'s' if p.axes > 1 else ''}; "
                 f"{8 * p.n_columns / max(1, self.operator.nnz):.2f} stored weights per non-zero")
 
+    @_serialised
     def upload_frame(self, D: np.ndarray, transforms: np.ndarray, wait: bool = False) -> None:
         """Send one frame's ``D`` and transforms (for ``run_kernel_resident``)."""
         D, T = self._check(D, transforms, batch=False)
@@ -708,12 +739,14 @@ class OpenCLDeformer:
         if wait:
             self.queue.finish()
 
+    @_serialised
     def run_kernel_resident(self, wait: bool = False) -> None:
         """Deform the uploaded frame into the resident vertex buffer."""
         self._launch_deform(1, self._verts)
         if wait:
             self.queue.finish()
 
+    @_serialised
     def read_resident(self) -> np.ndarray:
         """Copy the resident vertex buffer to a new host array (the non-zero-copy read-back)."""
         out = _aligned_empty((self.n_vertices, 3), np.float32)
