@@ -7,7 +7,7 @@ model by it. The REST session routes use ``SessionCreate`` / ``SessionCreated`` 
 from __future__ import annotations
 
 import json
-from typing import Annotated, Literal, Union
+from typing import Annotated, Any, Literal, Union
 
 from pydantic import (BaseModel, ConfigDict, Discriminator, Field, Tag, TypeAdapter, ValidationError,
                       field_validator)
@@ -45,7 +45,8 @@ class ProducerHello(_Model):
     rate: int | None = Field(None, gt=0, le=384_000, description="audio: sample rate in Hz")
     sample_format: Encoding | None = Field(None, description="audio: 'i16' or 'f32' PCM chunks")
     markers: list[str] | None = Field(None, max_length=4096, description="markers: name of each marker, in frame order")
-    layout: str | None = Field(None, max_length=200, description="markers: marker layout name (driver-specific)")
+    layout: dict[str, Any] | None = Field(None, description="markers: the marker layout as a JSON object "
+                                                             "(markers, stable, units, ...), sent inline")
     units: str | None = Field(None, max_length=16, description="markers: units of the positions (mm, cm, m)")
 
 

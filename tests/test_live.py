@@ -403,6 +403,42 @@ def test_audio_session_streams_pcm(live, data_dir):
     assert any(not np.array_equal(got[0].positions(), f.positions()) for f in got)
 
 
+def test_websocket_frames_built_once_match_the_websockets_library():
+    from websockets.frames import Frame, Opcode
+
+    from facecast.server.live.wire import ws_binary_frame
+
+    for n in (0, 125, 126, 65535, 65536, 200_000):
+        payload = bytes(range(256)) * (n // 256) + bytes(n % 256)
+        assert ws_binary_frame(payload) == Frame(Opcode.BINARY, payload).serialize(mask=False)
+
+
+@pytest.mark.slow
+def test_asgi_send_path_gives_the_same_frames(live, joy, tmp_path):
+    """With the direct-to-transport path off, viewers get byte-identical frames through ASGI."""
+    plain = RunningServer(tmp_path, "--face", FACE, "--backend", "numpy", "--workers", "0",
+                          env={"FACECAST_LIVE_DIRECT": "0"}).start()
+    short = type(joy)(fps=joy.fps, frames=joy.frames[:15])
+
+    async def frames_from(server):
+        async with SessionAdmin(server.url, server.admin_key) as admin:
+            s = await admin.create(face=FACE)
+        started = asyncio.Event()
+        viewer = asyncio.create_task(_collect(server.url, s.id, s.viewer_token, started=started))
+        await started.wait()
+        async with produce(server.url, s.id, s.producer_token) as p:
+            await stream_fap(p, short, speed=2.0)
+        return {f.frame.header.seq: np.array(f.frame.vertices) for f in await viewer}
+
+    try:
+        a, b = run(frames_from(live)), run(frames_from(plain))
+    finally:
+        plain.stop()
+    assert 14 in a and 14 in b
+    for seq in set(a) & set(b):
+        np.testing.assert_array_equal(a[seq], b[seq])
+
+
 def test_summary_counts_gaps():
     class F:
         def __init__(self, seq, t):

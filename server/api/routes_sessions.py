@@ -13,6 +13,7 @@ import time
 from typing import Any
 from urllib.parse import quote
 
+import numpy as np
 from fastapi import APIRouter, Depends, Request, Response, WebSocket, status
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
@@ -21,6 +22,7 @@ from ...protocol.errors import CloseCode, FrameError, MessageError
 from ...protocol.messages import (ErrorMessage, FapMessage, ProducerHello, Ready, SessionCreate, SessionCreated,
                                   SessionInfo, SessionList, ViewerHello, dump_message, parse_message)
 from ..errors import FacecastError
+from ..live.wire import DirectSender, ViewerGone, find_protocol
 from .security import require_admin, same
 
 log = logging.getLogger(__name__)
@@ -214,9 +216,7 @@ async def _producer_hello(ws: WebSocket, session, reg, loop):
                                where="hello.protocol")
         inp = await loop.run_in_executor(reg.executor, make_input, session.spec.input, session.face, hello,
                                          session.spec.fps)
-        if inp.control_vertices is not None:
-            animator = await loop.run_in_executor(reg.executor, reg.animator_for, session, inp.control_vertices)
-            session.animator, session._animator_lock = animator, reg._lock_for(animator)
+        await _follow_controls(session, reg, inp)
     except (MessageError, BadHello) as e:
         await _refuse(ws, CloseCode.BAD_REQUEST, str(e), where=getattr(e, "where", ""))
         return None
@@ -229,6 +229,18 @@ async def _producer_hello(ws: WebSocket, session, reg, loop):
     await ws.send_text(dump_message(Ready(session=session.spec.id, input=session.spec.input, fps=session.spec.fps,
                                           max_fps=reg.max_fps, vertex_count=session.vertex_count)))
     return inp
+
+
+async def _follow_controls(session, reg, inp) -> None:
+    """Give the session an animator for the input's explicit control vertices (mocap), once known."""
+    cv = inp.control_vertices
+    current = getattr(session, "control_vertices", None)
+    if cv is None or (current is not None and np.array_equal(cv, current)):
+        return
+    loop = asyncio.get_running_loop()
+    animator = await loop.run_in_executor(reg.executor, reg.animator_for, session, cv)
+    session.animator, session._animator_lock = animator, reg._lock_for(animator)
+    session.control_vertices = np.array(cv)
 
 
 async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
@@ -286,6 +298,8 @@ async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
         session.stats["frames_in"] += 1
         if metrics:
             metrics.frames_in.inc()
+        if not inline:
+            await _follow_controls(session, reg, inp)
         session.submit(states, wall)
 
 
@@ -343,7 +357,8 @@ def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
     replaces it. Best effort: servers that hide the transport keep their defaults.
     """
     try:
-        transport = _find_transport(ws._send)
+        proto = find_protocol(ws._send)
+        transport = getattr(proto, "transport", None)
         sock = transport.get_extra_info("socket") if transport is not None else None
         if sock is not None:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, max(MIN_SEND_BUFFER, int(nbytes)))
@@ -351,32 +366,18 @@ def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
         log.debug("cannot set the send buffer of a viewer socket", exc_info=True)
 
 
-def _find_transport(send: Any, depth: int = 4) -> Any:
-    """The asyncio transport behind an ASGI ``send`` callable: uvicorn's is a method of its protocol
-    object (which has ``.transport``); Starlette wraps it in closures, which are followed."""
-    owner = getattr(send, "__self__", None)
-    if owner is not None and hasattr(owner, "transport"):
-        return owner.transport
-    if depth > 0:
-        for cell in getattr(send, "__closure__", None) or ():
-            try:
-                value = cell.cell_contents
-            except ValueError:
-                continue
-            if callable(value):
-                found = _find_transport(value, depth - 1)
-                if found is not None:
-                    return found
-    return None
-
-
 async def _send_loop(ws: WebSocket, session, viewer) -> None:
     unsent = 0
+    direct = DirectSender.attach(ws)  # pre-framed bytes straight to the transport, when possible
+    log.debug("session %s: viewer frames go %s", session.spec.id, "direct" if direct else "through ASGI")
     try:
         while True:
             kind, payload = await viewer.next()
             if kind == "bytes":
-                await ws.send_bytes(payload)
+                if direct is not None:
+                    await direct.send(payload[1])
+                else:
+                    await ws.send_bytes(payload[0])
                 viewer.sent += 1
                 unsent += 1
                 if unsent >= 32:  # count in batches: a Prometheus counter update per send is measurable
@@ -389,7 +390,7 @@ async def _send_loop(ws: WebSocket, session, viewer) -> None:
                 await ws.send_text(text)
                 await ws.close(int(code))
                 return
-    except (WebSocketDisconnect, RuntimeError, OSError):
+    except (WebSocketDisconnect, RuntimeError, OSError, ViewerGone):
         return  # the viewer went away
     finally:
         session.count_sent(unsent)

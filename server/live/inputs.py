@@ -126,10 +126,14 @@ class MarkerInput:
             raise BadHello("a marker producer must list its marker names in the hello", where="hello.markers")
         if len(set(hello.markers)) != len(hello.markers):
             raise BadHello("marker names must be unique", where="hello.markers")
+        if not hello.layout:
+            raise BadHello("a marker producer must send its marker layout (a JSON object with 'markers' and "
+                           "'stable') in the hello; the server never reads files named by clients",
+                           where="hello.layout")
         self.names = list(hello.markers)
         cls = load_driver_class("markers")
         try:
-            self.driver = cls(face, self.names, hello.layout)
+            self.driver = cls(face, self.names, dict(hello.layout), units=hello.units, fps=fps)
         except (ValueError, TypeError, KeyError) as e:
             raise BadHello(f"the marker driver refused this hello: {e}", where="hello") from None
         self.control_vertices = getattr(self.driver, "control_vertices", None)
@@ -144,7 +148,10 @@ class MarkerInput:
                              where="bytes 12-15")
         if np.isinf(frame.markers).any():
             raise FrameError("marker positions must be finite or NaN (occluded)")
-        return list(self.driver.push(np.array(frame.markers, dtype=np.float32), frame.header.t))
+        states = list(self.driver.push(np.array(frame.markers, dtype=np.float32), frame.header.t))
+        # drivers that place their controls from the actor's neutral know them only now
+        self.control_vertices = getattr(self.driver, "control_vertices", None)
+        return states
 
 
 def make_input(kind: str, face: Any, hello: ProducerHello, fps: float):

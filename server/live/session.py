@@ -22,6 +22,7 @@ import numpy as np
 from ...protocol import frames
 from ...protocol.messages import Stats, Status, dump_message
 from ..state import FaceState
+from .wire import ws_binary_frame
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ class Viewer:
 
     def __init__(self, encoding: str) -> None:
         self.encoding = encoding
-        self.slot: tuple[int, bytes] | None = None
+        self.slot: tuple[int, tuple[bytes, bytes]] | None = None  # (order, (payload, websocket frame))
         self.control: deque[tuple[int, str]] = deque(maxlen=MAX_CONTROL)
         self.wake = asyncio.Event()
         self._n = 0  # order of offer/say calls
@@ -50,7 +51,7 @@ class Viewer:
         self.skipped = 0
         self.closing: tuple[int, str] | None = None  # (close code, JSON error) when the server ends it
 
-    def offer(self, frame: bytes) -> bool:
+    def offer(self, frame: tuple[bytes, bytes]) -> bool:
         """Put ``frame`` in the slot; True if it replaced an unsent one (a skipped frame)."""
         replaced = self.slot is not None
         self._n += 1
@@ -70,7 +71,8 @@ class Viewer:
         self.wake.set()
 
     async def next(self) -> tuple[str, Any]:
-        """The next thing to send: ``("text", str)``, ``("bytes", bytes)`` or ``("close", (code, json))``."""
+        """The next thing to send: ``("text", str)``, ``("bytes", (payload, websocket frame))`` or
+        ``("close", (code, json))``."""
         while True:
             if self.closing is not None:
                 return "close", self.closing
@@ -105,6 +107,7 @@ class LiveSession:
         self.spec = spec
         self.face = face
         self.animator = animator  # replaced by a mocap producer's (control vertices) for its stream
+        self.control_vertices: np.ndarray | None = None  # the explicit controls of ``animator``, if any
         self._animator_lock = animator_lock
         self.vertex_count = int(face.vertices.shape[0])
         self.executor = executor
@@ -173,7 +176,10 @@ class LiveSession:
                      viewers=len(self.viewers), producer_connected=self.producer is not None)
 
     # -- the worker ----------------------------------------------------------------------------------
-    def _deform_encode(self, state: FaceState, seq: int, wall: float, encodings: set[str]) -> tuple[dict[str, bytes], float]:
+    def _deform_encode(self, state: FaceState, seq: int, wall: float,
+                       encodings: set[str]) -> tuple[dict[str, tuple[bytes, bytes]], float]:
+        """Deform and encode one state (in a worker thread): ``{encoding: (payload, websocket frame)}``
+        and the seconds it took."""
         t0 = time.perf_counter()
         if self._animator_lock is not None:
             with self._animator_lock:
@@ -181,7 +187,10 @@ class LiveSession:
         else:
             v = self.animator.frame(state)
         v = np.asarray(v, dtype=np.float32)
-        out = {e: frames.encode_vertices(v, e, seq=seq, t=state.t, wall=wall) for e in sorted(encodings)}
+        out = {}
+        for e in sorted(encodings):
+            payload = frames.encode_vertices(v, e, seq=seq, t=state.t, wall=wall)
+            out[e] = (payload, ws_binary_frame(payload))  # the same bytes serve every viewer
         return out, time.perf_counter() - t0
 
     async def _run(self) -> None:
