@@ -102,3 +102,17 @@ def test_websockets_are_never_compressed(tmp_path):
         assert extensions is None
     finally:
         srv.stop()
+
+
+def test_one_server_per_data_directory(tmp_path):
+    from facecast.server.commands.serve import lock_data_dir
+
+    held = lock_data_dir(tmp_path)
+    try:
+        run = subprocess.run([sys.executable, "-m", "facecast.server.cli", "serve", "--port", "1",
+                              "--data-dir", str(tmp_path)], capture_output=True, text=True, timeout=60)
+        assert run.returncode == 2
+        assert "another facecast server" in run.stderr and "--data-dir" in run.stderr
+    finally:
+        held.close()
+    lock_data_dir(tmp_path).close()  # free again once the holder has gone

@@ -64,6 +64,31 @@ def make_config(args: argparse.Namespace):
     return config
 
 
+def lock_data_dir(data_dir: Path):
+    """Hold an exclusive lock on ``data_dir/server.lock`` for the life of the process.
+
+    Two servers on one data directory would both resume the other's running jobs; the second one
+    is refused with a clear error instead. Returns the open lock file (keep a reference).
+    """
+    import fcntl
+
+    data_dir.mkdir(parents=True, exist_ok=True)
+    fh = open(data_dir / "server.lock", "a+")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.seek(0)
+        holder = fh.read().strip() or "another process"
+        fh.close()
+        raise InputError(f"another facecast server ({holder}) uses this data directory; stop it or pass a "
+                         "different --data-dir", where=str(data_dir)) from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+    fh.flush()
+    return fh
+
+
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -72,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
 
     config = make_config(args)
     config.data_dir = config.data_dir.expanduser().resolve()
+    lock = lock_data_dir(config.data_dir)  # noqa: F841  (held until the process exits)
     key, generated = resolve_admin_key(config.admin_key, config.data_dir)
     config.admin_key = key
     if generated:
