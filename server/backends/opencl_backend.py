@@ -620,11 +620,17 @@ class OpenCLDeformer:
         return out
 
     @_serialised
-    def deform_batch(self, D: np.ndarray, transforms: np.ndarray) -> np.ndarray:
-        """Many frames in one launch: ``D (T, K, 3)``, ``transforms (T, G, 3, 4)`` -> ``(T, V, 3)``."""
+    def deform_batch(self, D: np.ndarray, transforms: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Many frames in one launch: ``D (T, K, 3)``, ``transforms (T, G, 3, 4)`` -> ``(T, V, 3)``.
+
+        ``out`` (a C-contiguous ``(T, V, 3) float32`` array) receives the frames if given.
+        """
         D, T = self._check(D, transforms, batch=True)
         n = D.shape[0]
-        out = _aligned_empty((n, self.n_vertices, 3), np.float32)
+        if out is None:
+            out = _aligned_empty((n, self.n_vertices, 3), np.float32)
+        elif out.shape != (n, self.n_vertices, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
+            raise ValueError("out must be a C-contiguous (T, V, 3) float32 array")
         if n == 0 or self.n_vertices == 0:
             return out
         frame_bytes = 12 * self.n_vertices
