@@ -206,6 +206,46 @@ def test_mouth_cavity_holds_teeth_and_tongue(head25k):
     assert f.vertices[socket, 2].min() < lips_z - 40  # the skin turns inward, deep into the head
 
 
+def _farthest_hits(origin, dirs, v, tris, chunk=128):
+    """Distance to the farthest triangle hit along each ray (Moller-Trumbore, vectorised), -inf if none."""
+    a, b, c = v[tris[:, 0]], v[tris[:, 1]], v[tris[:, 2]]
+    e1, e2 = b - a, c - a
+    out = np.full(len(dirs), -np.inf)
+    for s in range(0, len(dirs), chunk):
+        d = dirs[s:s + chunk][:, None, :]
+        pv = np.cross(d, e2[None])
+        det = (e1[None] * pv).sum(-1)
+        tv = (origin - a)[None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = (tv * pv).sum(-1) / det
+            qv = np.cross(tv, e1[None])
+            w = (d * qv).sum(-1) / det
+            t = (e2[None] * qv).sum(-1) / det
+        hit = (np.abs(det) > 1e-12) & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0)
+        out[s:s + chunk] = np.where(hit, t, -np.inf).max(1)
+    return out
+
+
+def test_inner_parts_stay_inside_the_head(head2k):
+    """Cast rays from inside the head: the cavity, teeth, gums and tongue are never beyond the outer skin."""
+    f = head2k
+    v = f.vertices.astype(np.float64)
+    outer = np.zeros(f.n_vertices, bool)
+    outer[f.part("skin")] = True
+    outer[f.part("mouth_socket")] = False
+    tris = f.triangles[outer[f.triangles].all(1)]
+    origin = np.array([0.0, -30.0, 20.0])
+    for part in ("mouth_socket", "teeth_upper", "teeth_lower", "gums_upper", "gums_lower", "tongue", "eye_l"):
+        p = v[f.part(part)]
+        d = p - origin
+        dist = np.linalg.norm(d, axis=1)
+        beyond = dist > _farthest_hits(origin, d / dist[:, None], v, tris) + 0.01
+        if part == "eye_l":  # the eyeball shows through the lids (and only there)
+            assert 0 < beyond.sum() < 0.75 * len(p)
+        else:
+            assert not beyond.any(), part
+
+
 def test_eyeballs_are_separate_spheres_seen_through_the_lids(head25k):
     f = head25k
     e = _edges(f.triangles)

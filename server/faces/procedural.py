@@ -133,7 +133,7 @@ def _skin_count(model: SkinModel, spacing: float) -> int:
     nr, nc = len(phis), len(thetas)
     mouth = int(np.sum(np.abs(thetas) < model.theta_mc - 1e-9))
     eyes = 2 * int(np.sum((np.abs(thetas) > model.theta_in + 1e-9) & (np.abs(thetas) < model.theta_out - 1e-9)))
-    rings = max(3, int(round(62.0 / (1.6 * spacing)))) - 1
+    rings = max(3, int(round(76.0 / (1.6 * spacing)))) - 1
     return (nr - 2) * nc + 2 + mouth + eyes + rings * 2 * (mouth + 1) + 1
 
 

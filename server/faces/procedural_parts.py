@@ -147,7 +147,7 @@ def tongue(lay: Layout, spacing: float) -> Part:
 
     Anchors: ``tip``, ``body`` (top centre), ``left``, ``right`` (side edges).
     """
-    length, wmax = 52.0, 20.0
+    length, wmax = 47.0, 19.0
     z_tip = lay.z_incisors - 1.2 - 6.8
     y_top = lay.y_occlusal - 1.0
     t_body, t_edge = 0.45, 0.3
