@@ -98,6 +98,8 @@ def resample_filter(sr_in: float, sr_out: float) -> tuple[int, int, np.ndarray]:
     """``(up, down, h)``: the anti-aliasing FIR that ``scipy.signal.resample_poly`` uses by default
     (Kaiser window, beta 5, half length 10·max(up, down)), scaled by ``up``."""
     up, down = _ratio(sr_in, sr_out)
+    if up == down:
+        return 1, 1, np.ones(1)
     m = max(up, down)
     h = scipy.signal.firwin(2 * 10 * m + 1, 1.0 / m, window=("kaiser", 5.0)) * up
     return up, down, h
@@ -129,7 +131,11 @@ class StreamResampler:
         self.delay = 0.0 if self.identity else self.half / self.up / self.sr_in
         # Input history; index 0 of ``_buf`` is input sample ``_offset``. The stream is preceded by
         # zeros (as resample_poly pads).
-        pad = 0 if self.identity else self.half // self.up + 2
+        n_taps = len(self.h)
+        self._m = np.arange(-(-n_taps // self.up))
+        ks = np.arange(self.up)[:, None] + self.up * self._m[None, :]      # (up, M) tap ids
+        self._taps = np.where(ks < n_taps, self.h[np.minimum(ks, n_taps - 1)], 0.0)
+        pad = 0 if self.identity else len(self._m) + 2
         self._buf = np.zeros(pad)
         self._offset = -pad
         self._n_out = 0  # next output index
@@ -151,7 +157,7 @@ class StreamResampler:
         out = self._compute(js)
         self._n_out = last_j + 1
         # keep the history the next output needs
-        first_needed = (self._n_out * self.down - self.half) // self.up - 1
+        first_needed = (self._n_out * self.down + self.half) // self.up - len(self._m) - 1
         drop = max(0, first_needed - self._offset)
         if drop:
             self._buf = self._buf[drop:]
@@ -159,18 +165,8 @@ class StreamResampler:
         return out
 
     def _compute(self, js: np.ndarray) -> np.ndarray:
-        # y[j] = sum_k h[k] * u[j·down + half - k], u = upsampled input (x[i] at position i·up)
-        p = js * self.down + self.half  # position of h[0]'s partner
-        k0 = p % self.up                # taps that hit nonzero upsampled samples: k = k0 + m·up
-        out = np.zeros(len(js))
-        n_taps = len(self.h)
-        for phase in range(self.up):
-            sel = np.nonzero(k0 == phase)[0]
-            if sel.size == 0:
-                continue
-            ks = np.arange(phase, n_taps, self.up)
-            idx = (p[sel, None] - ks[None, :]) // self.up - self._offset
-            valid = (idx >= 0) & (idx < len(self._buf))
-            vals = np.where(valid, self._buf[np.clip(idx, 0, len(self._buf) - 1)], 0.0)
-            out[sel] = vals @ self.h[ks]
-        return out
+        # y[j] = sum_k h[k] · u[p - k] with p = j·down + half and u the upsampled input (x[i] at
+        # position i·up): only taps k = (p mod up) + m·up meet a nonzero sample, x[p//up - m].
+        p = js * self.down + self.half
+        idx = (p // self.up)[:, None] - self._m[None, :] - self._offset
+        return np.einsum("nm,nm->n", self._taps[p % self.up], self._buf[idx])

@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     val = np.isin(data.group, list(val_groups))
     net = fit(data.k[~val], data.y[~val], epochs=args.epochs, seed=args.seed)
     acc = float(np.mean(net.predict(data.k[val]) == data.y[val]))
-    log.info("validation on held-out variants %s: frame accuracy %.3f\n%s", sorted(val_groups),
+    log.info("validation on held-out variants %s: frame accuracy %.3f\n%s", sorted(map(str, val_groups)),
              acc, confusion(data.y[val], net.predict(data.k[val])))
     net = fit(data.k, data.y, epochs=args.epochs, seed=args.seed)  # final: all variants
     log.info("training accuracy %.3f", float(np.mean(net.predict(data.k) == data.y)))

@@ -7,11 +7,12 @@ window, so both give the same frames when they use the same calibration and look
    the zero-crossing rate and the median-filtered vowel network output give a viseme id and an
    intensity (source: Kshirsagar & Magnenat-Thalmann 2000; the consonant rules marked EXT are
    facecast's).
-2. ``coarticulate``: Cohen–Massaro dominance functions blend the per-frame targets: each frame j
-   with viseme v_j is a short segment whose dominance over time t is
-   ``alpha_v · exp(-theta_v · |t - t_j|)``; the FAPs at t are the dominance-weighted mean of the
-   frames' targets ``VISEME_FAPS[v_j] · w_j``, and the reported viseme is the one with the largest
-   dominance mass. Only frames up to ``lookahead`` seconds after t take part (free in batch).
+2. ``coarticulate``: Cohen–Massaro dominance functions blend the segments (runs of equal visemes):
+   segment s with viseme v has dominance ``alpha_v · exp(-theta_v · d_s(t))`` at time t, d_s = the
+   distance from t to the segment (0 inside it); the FAPs at t are the dominance-weighted mean of
+   the segments' targets ``VISEME_FAPS[v] · w`` (w = intensity at the segment's frame nearest t),
+   and the reported viseme is the one with the largest dominance. Only frames up to ``lookahead``
+   seconds after t are seen (free in batch).
 3. ``VISEME_FAPS``: the viseme → low-level FAP table (FAPU units) that facecast's audio path uses.
 
 Viseme ids are MPEG-4 FAP 1 ids (mpeg4-reference §4.1): 0 sil, 1 PP, 2 FF, 3 TH, 4 DD, 5 kk,
@@ -77,21 +78,21 @@ VISEME_FAPS = _table()
 #: Cohen–Massaro dominance per viseme: (alpha, theta 1/s). Closures and labiodentals dominate
 #: strongly (the lips must meet), vowels moderately, tongue consonants and silence weakly.
 DOMINANCE = np.array([
-    (0.5, 25.0),   # sil
-    (1.0, 18.0),   # PP
-    (0.9, 18.0),   # FF
-    (0.4, 20.0),   # TH
-    (0.4, 20.0),   # DD
-    (0.4, 20.0),   # kk
-    (0.8, 16.0),   # CH
-    (0.8, 16.0),   # SS
-    (0.4, 20.0),   # nn
-    (0.5, 16.0),   # RR
-    (0.6, 12.0),   # aa
-    (0.6, 12.0),   # E
-    (0.6, 12.0),   # ih
-    (0.7, 12.0),   # oh
-    (0.7, 12.0),   # ou
+    (0.5, 20.0),   # sil
+    (3.0, 40.0),   # PP: the lips must close, briefly
+    (2.0, 40.0),   # FF
+    (0.5, 30.0),   # TH
+    (0.5, 30.0),   # DD
+    (0.5, 30.0),   # kk
+    (1.5, 30.0),   # CH
+    (1.5, 30.0),   # SS
+    (0.5, 30.0),   # nn
+    (0.8, 25.0),   # RR
+    (0.6, 20.0),   # aa
+    (0.6, 20.0),   # E
+    (0.6, 20.0),   # ih
+    (0.8, 20.0),   # oh: lip rounding spreads to neighbours
+    (0.8, 20.0),   # ou
 ])
 
 
@@ -219,7 +220,8 @@ def label_frames(energy_db: np.ndarray, zcr: np.ndarray, proba: np.ndarray, cal:
 @dataclass
 class Track:
     """Coarticulated output at times ``t (N,)``: ``faps (N, 69)``, top two visemes ``select1``,
-    ``select2`` (N,), ``blend`` (N,) weight of select1 in [0, 1], ``weight`` (N,) intensity."""
+    ``select2`` (N,), ``blend`` (N,) weight of select1 in [0, 1], ``weight`` (N,) intensity of
+    select1 in [0, 1] (its most dominant segment's; 0 for silence)."""
 
     t: np.ndarray
     faps: np.ndarray
@@ -253,14 +255,22 @@ def coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np.
     dt = frame_t[jc] - t_out[:, None]
     if lookahead is not None:
         ok &= dt <= lookahead + 1e-9
-    v = vis[jc]
+    v = np.where(ok, vis[jc], -1)
+    # Cohen–Massaro: one dominance function per segment (run of equal visemes), measured from
+    # the segment's frame nearest to t (0 inside it); that frame also gives the intensity.
+    is_base = offs[None, :] == 0
+    same_next = np.zeros_like(ok)
+    same_next[:, :-1] = v[:, :-1] == v[:, 1:]
+    same_prev = np.zeros_like(ok)
+    same_prev[:, 1:] = v[:, 1:] == v[:, :-1]
+    rep = np.where(offs[None, :] <= 0, is_base | ~same_next, ~same_prev) & ok
+    v = np.where(ok, v, 0)
     alpha, theta = params.dominance[v, 0], params.dominance[v, 1]
-    dom = np.where(ok, alpha * np.exp(-theta * np.abs(dt)), 0.0)
+    dom = np.where(rep, alpha * np.exp(-theta * np.abs(dt)), 0.0)
     total = dom.sum(axis=1)
     total = np.where(total > 0, total, 1.0)
     targets = VISEME_FAPS[v] * w[jc][..., None]           # (N, W, 69)
     faps = np.einsum("nw,nwk->nk", dom, targets) / total[:, None]
-    weight = (dom * w[jc]).sum(axis=1) / total
     mass = np.zeros((N, 15))
     np.add.at(mass, (np.repeat(np.arange(N), dom.shape[1]), v.ravel()), dom.ravel())
     order = np.argsort(-mass, axis=1, kind="stable")
@@ -268,4 +278,7 @@ def coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np.
     m1 = mass[np.arange(N), s1]
     m2 = mass[np.arange(N), s2]
     blend = np.where(m1 + m2 > 0, m1 / np.maximum(m1 + m2, 1e-12), 1.0)
+    # weight: intensity of the most dominant segment of the chosen viseme
+    best = np.argmax(np.where(v == s1[:, None], dom, -1.0), axis=1)
+    weight = np.where(dom[np.arange(N), best] > 0, w[jc[np.arange(N), best]], 0.0)
     return Track(t_out, faps, s1.astype(np.int64), s2.astype(np.int64), blend, weight)

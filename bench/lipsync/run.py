@@ -1,0 +1,197 @@
+"""Lip-sync accuracy and speed benchmark: ``python bench/lipsync/run.py``.
+
+Ground truth: phone alignments → visual classes at 100 frames/s (``classes.py``), from the real
+recordings in ../shared/data/speech and from espeak-ng sentences (held-out voice variants)
+force-aligned with PocketSphinx (``corpus.py``). Systems: facecast batch, facecast live (default
+look-ahead, continuous calibration, 20 ms chunks), facecast without coarticulation, and two
+baselines measured in the same run (``baselines.py``). Writes bench/out/lipsync.json and prints a
+markdown table and confusion matrices. Needs: espeak-ng, ``pip install -e .[bench]``.
+"""
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # one core
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from facecast.server.audio.io import read_audio  # noqa: E402
+from facecast.server.audio.live import AudioLiveDriver  # noqa: E402
+from facecast.server.audio.pipeline import lipsync  # noqa: E402
+from facecast.server.paths import shared_data  # noqa: E402
+
+from baselines import MfccTemplates, energy_visemes  # noqa: E402
+from classes import CLASSES, OPEN, OPENING, VISEME_CLASS  # noqa: E402
+from corpus import generated_utterances, real_utterances  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+OUT = ROOT / "bench" / "out"
+log = logging.getLogger("bench.lipsync")
+
+
+def fit_len(a: np.ndarray, n: int) -> np.ndarray:
+    a = np.asarray(a)
+    return a[:n] if len(a) >= n else np.concatenate([a, np.repeat(a[-1:], n - len(a), 0)])
+
+
+def onset_lag_ms(truth: np.ndarray, pred_open: np.ndarray, max_lag: int = 25) -> float:
+    """Lag (ms, + = prediction late) maximising the cross-correlation of the mouth-opening curves."""
+    ok = truth >= 0
+    a = np.where(ok, OPENING[np.clip(truth, 0, None)], 0.0)
+    b = np.where(ok, pred_open, 0.0)
+    a, b = a - a.mean(), b - b.mean()
+    lags = np.arange(-max_lag, max_lag + 1)
+    cc = [np.dot(a[max(0, -L):len(a) - max(0, L)], b[max(0, L):len(b) - max(0, -L)]) for L in lags]
+    return float(lags[int(np.argmax(cc))] * 10.0)
+
+
+def scores(truth: np.ndarray, pred: np.ndarray) -> dict:
+    ok = truth >= 0
+    t, p = truth[ok], pred[ok]
+    n = len(CLASSES)
+    cm = np.zeros((n, n), dtype=np.int64)
+    np.add.at(cm, (t, p), 1)
+    f1 = []
+    for c in range(n):
+        if cm[c].sum() == 0:
+            continue  # macro-F1 over the classes present in the truth
+        prec = cm[c, c] / max(cm[:, c].sum(), 1)
+        rec = cm[c, c] / cm[c].sum()
+        f1.append(0.0 if prec + rec == 0 else 2 * prec * rec / (prec + rec))
+    return {"frames": int(ok.sum()), "accuracy": float(np.mean(t == p)),
+            "macro_f1": float(np.mean(f1)), "open_closed": float(np.mean(OPEN[t] == OPEN[p])),
+            "confusion": cm.tolist()}
+
+
+def run_live(x: np.ndarray, sr: int, chunk: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    drv = AudioLiveDriver(None, sr, fps=100.0)
+    states, n = [], max(1, int(chunk * sr))
+    for i in range(0, len(x), n):
+        states += drv.push(x[i:i + n].astype(np.float32), i / sr)
+    states += drv.flush()
+    return np.array([s.viseme[0] for s in states]), np.array([s.faps[3] for s in states])
+
+
+def live_latency(x: np.ndarray, sr: int, chunk_samples: int = 16) -> dict:
+    """Measured algorithmic latency: audio received after t when the state at t is returned."""
+    drv = AudioLiveDriver(None, sr, fps=100.0)
+    lat = []
+    for i in range(0, len(x), chunk_samples):
+        end = min(len(x), i + chunk_samples) / sr
+        lat += [end - s.t for s in drv.push(x[i:i + chunk_samples].astype(np.float32), i / sr)]
+    lat = np.array(lat) * 1e3
+    return {"lookahead_s": drv.lookahead, "declared_ms": drv.latency * 1e3,
+            "coart_lookahead_ms": drv.coart_lookahead * 1e3, "chunk_ms": chunk_samples / sr * 1e3,
+            "median_ms": float(np.median(lat)), "max_ms": float(lat.max())}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sentences", type=int, default=24)
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    data = shared_data()
+    if data is None:
+        print("../shared/data is absent: no real speech to score", file=sys.stderr)
+        return 1
+    t0 = time.perf_counter()
+    utts = real_utterances(data) + generated_utterances(OUT / "lipsync_data", args.sentences)
+    log.info("corpus ready (%d utterances) in %.1f s", len(utts), time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    mfcc = MfccTemplates()
+    log.info("MFCC templates from %d training frames in %.1f s", mfcc.n_frames,
+             time.perf_counter() - t0)
+
+    systems = ("facecast", "facecast-live", "facecast-nocoart", "energy", "mfcc")
+    preds: dict[str, dict[str, list]] = {s: {"real": [], "generated": []} for s in systems}
+    truths: dict[str, list] = {"real": [], "generated": []}
+    lags: dict[str, dict[str, list]] = {s: {"real": [], "generated": []} for s in systems}
+    cpu = {s: 0.0 for s in systems}
+    audio_s = 0.0
+    for u in utts:
+        x, sr = read_audio(u.audio)
+        audio_s += len(x) / sr
+        n = len(u.truth)
+        truths[u.kind].append(u.truth)
+        outs = {}
+        c = time.process_time()
+        ls = lipsync(x, sr, fps=100.0)
+        cpu["facecast"] += time.process_time() - c
+        outs["facecast"] = (ls.track.select1, ls.track.faps[:, 3] / 420.0)
+        outs["facecast-nocoart"] = (ls.visemes, ls.weights * OPENING[VISEME_CLASS[ls.visemes]])
+        c = time.process_time()
+        v, jaw = run_live(x, sr)
+        cpu["facecast-live"] += time.process_time() - c
+        outs["facecast-live"] = (v, jaw / 420.0)
+        c = time.process_time()
+        v, w = energy_visemes(x, sr)
+        cpu["energy"] += time.process_time() - c
+        outs["energy"] = (v, w)
+        c = time.process_time()
+        v, w = mfcc.visemes(x, sr)
+        cpu["mfcc"] += time.process_time() - c
+        outs["mfcc"] = (v, w * OPENING[VISEME_CLASS[v]])
+        for s, (vis, opening) in outs.items():
+            cls = VISEME_CLASS[fit_len(vis, n)]
+            preds[s][u.kind].append(cls)
+            lags[s][u.kind].append(onset_lag_ms(u.truth, fit_len(opening, n)))
+
+    results = {"audio_seconds": audio_s, "utterances": {k: sum(u.kind == k for u in utts)
+                                                        for k in ("real", "generated")},
+               "classes": list(CLASSES), "systems": {}}
+    for s in systems:
+        r = {}
+        for kind in ("real", "generated"):
+            r[kind] = scores(np.concatenate(truths[kind]), np.concatenate(preds[s][kind]))
+            r[kind]["onset_lag_ms_median"] = float(np.median(lags[s][kind]))
+        r["cpu_seconds"] = cpu[s]
+        r["x_realtime"] = audio_s / max(cpu[s], 1e-9)
+        results["systems"][s] = r
+    x, sr = read_audio(data / "speech" / "bobby_16bit_16khz.wav")
+    results["live_latency"] = live_latency(x, sr)
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "lipsync.json").write_text(json.dumps(results, indent=1))
+
+    print(f"\n## Lip-sync: {results['utterances']['real']} real + "
+          f"{results['utterances']['generated']} generated utterances, "
+          f"{audio_s:.1f} s of audio, 10 visual classes at 100 frames/s\n")
+    print("| system | real acc | real macro-F1 | real open/closed | real lag ms | gen acc | "
+          "gen macro-F1 | gen open/closed | gen lag ms | × real time (1 core) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for s in systems:
+        r = results["systems"][s]
+        cells = []
+        for kind in ("real", "generated"):
+            k = r[kind]
+            cells += [f"{k['accuracy']:.3f}", f"{k['macro_f1']:.3f}", f"{k['open_closed']:.3f}",
+                      f"{k['onset_lag_ms_median']:+.0f}"]
+        print(f"| {s} | " + " | ".join(cells) + f" | {r['x_realtime']:.0f} |")
+    lat = results["live_latency"]
+    print(f"\nLive algorithmic latency (look-ahead budget {lat['lookahead_s'] * 1e3:.0f} ms, "
+          f"{lat['chunk_ms']:.0f} ms chunks): median {lat['median_ms']:.1f} ms, max "
+          f"{lat['max_ms']:.1f} ms (declared {lat['declared_ms']:.1f} ms).")
+    for kind in ("real", "generated"):
+        cm = np.array(results["systems"]["facecast"][kind]["confusion"])
+        print(f"\nConfusion matrix, facecast batch, {kind} speech (rows = truth, columns = "
+              "predicted, frames):\n")
+        short = [c[:6] for c in CLASSES]
+        print("| truth \\ pred | " + " | ".join(short) + " |")
+        print("|---" * (len(CLASSES) + 1) + "|")
+        for i, c in enumerate(CLASSES):
+            print(f"| {c} | " + " | ".join(str(v) for v in cm[i]) + " |")
+    print(f"\nwrote {OUT / 'lipsync.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

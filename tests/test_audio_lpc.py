@@ -1,0 +1,103 @@
+"""LPC analysis and resampling against independent truth (scipy, synthetic AR processes, tones)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.signal
+
+from facecast.server.audio.io import StreamResampler, resample
+from facecast.server.audio.lpc import analyze, autocorrelate, levinson, zero_crossing_rate
+
+
+def stable_ar(rng: np.random.Generator, order: int) -> np.ndarray:
+    """A random stable all-pole polynomial ``[1, a1..ap]``: pole pairs with radius 0.5-0.9 at
+    well-separated angles (like formants; clustered poles make the problem ill-conditioned)."""
+    n = order // 2
+    r = rng.uniform(0.5, 0.9, n)
+    th = np.linspace(0.3, 2.8, n) + rng.uniform(-0.1, 0.1, n)
+    poles = np.concatenate([r * np.exp(1j * th), r * np.exp(-1j * th)])
+    return np.real(np.poly(poles))
+
+
+@pytest.mark.parametrize("order", [2, 4, 8, 12])
+def test_levinson_recovers_known_ar_coefficients(rng, order):
+    a = stable_ar(rng, order)
+    x = scipy.signal.lfilter([1.0], a, rng.standard_normal(100_000))
+    r = autocorrelate(x[None], max_lag=order)[0]
+    a_hat, k, err = levinson(r, order=order)
+    np.testing.assert_allclose(a_hat, a, atol=0.03)
+    assert np.all(np.abs(k) < 1)
+    assert err / len(x) == pytest.approx(1.0, rel=0.03)  # unit-variance innovation
+
+
+def test_levinson_matches_solve_toeplitz(rng):
+    frames = rng.standard_normal((16, 200)) * np.hamming(200)
+    r = autocorrelate(frames, max_lag=12)
+    a, _, _ = levinson(r, order=12)
+    for i in range(len(frames)):
+        ref = scipy.linalg.solve_toeplitz(r[i, :12], -r[i, 1:13])
+        np.testing.assert_allclose(a[i, 1:], ref, atol=1e-9)
+
+
+def test_autocorrelate_matches_fftconvolve(rng):
+    y = rng.standard_normal(200)
+    ref = scipy.signal.fftconvolve(y, y[::-1])[199:199 + 13]
+    np.testing.assert_allclose(autocorrelate(y, max_lag=12), ref, atol=1e-9)
+
+
+def test_first_reflection_coefficient_of_ar1():
+    x = scipy.signal.lfilter([1.0], [1.0, -0.8], np.random.default_rng(1).standard_normal(100_000))
+    _, k, _ = levinson(autocorrelate(x, max_lag=3), order=3)
+    assert k[0] == pytest.approx(-0.8, abs=0.01)
+    np.testing.assert_allclose(k[1:], 0, atol=0.02)
+
+
+def test_digital_silence_gives_zero_coefficients():
+    _, k, err = levinson(np.zeros((3, 13)), order=12)
+    assert np.all(k == 0) and np.all(err == 0)
+
+
+@pytest.mark.parametrize("freq", [100.0, 700.0, 2000.0])
+def test_zero_crossing_rate_of_a_tone(freq):
+    sr = 10000
+    t = np.arange(200) / sr
+    z = zero_crossing_rate(np.sin(2 * np.pi * freq * t + 0.3)[None], sr=sr)[0]
+    assert z == pytest.approx(2 * freq * 0.010, abs=0.6)  # crossings per 10 ms
+
+
+def test_analyze_frames_are_centred_every_10ms(rng):
+    x = rng.standard_normal(10_050) * 0.1
+    f = analyze(x, sr=10000)
+    assert len(f) == 101 and f.k.shape == (101, 12)
+    np.testing.assert_allclose(f.times[:3], [0.0, 0.01, 0.02])
+    # frame 0 holds only half a frame of signal: ~3 dB less power than a full frame
+    assert f.energy_db[0] < f.energy_db[50] - 1.5
+
+
+@pytest.mark.parametrize("sr", [8000, 16000, 44100, 48000])
+def test_resample_to_analysis_rate_keeps_tones_and_removes_aliases(sr):
+    t = np.arange(sr) / sr
+    y = resample(np.sin(2 * np.pi * 1000 * t), sr, 10000)
+    assert len(y) == 10000
+    spec = np.abs(np.fft.rfft(y[1000:9000] * np.hanning(8000)))
+    assert np.argmax(spec) * 10000 / 8000 == pytest.approx(1000, abs=2)
+    assert np.sqrt(np.mean(y[1000:9000] ** 2)) == pytest.approx(np.sqrt(0.5), rel=0.01)
+    if sr > 16000:  # a 7 kHz tone would alias to 3 kHz; the anti-aliasing filter removes it
+        z = resample(np.sin(2 * np.pi * 7000 * t), sr, 10000)
+        assert np.sqrt(np.mean(z[1000:9000] ** 2)) < 0.01
+
+
+@pytest.mark.parametrize("sr", [8000, 16000, 22050, 44100, 48000])
+def test_stream_resampler_equals_batch(rng, sr):
+    x = rng.standard_normal(sr // 4)
+    s = StreamResampler(sr, 10000)
+    out, i = [], 0
+    while i < len(x):
+        n = int(rng.integers(1, 600))
+        out.append(s.push(x[i:i + n]))
+        i += n
+    y = np.concatenate(out)
+    ref = resample(x, sr, 10000)
+    assert len(ref) - 30 < len(y) <= len(ref)
+    np.testing.assert_allclose(y, ref[:len(y)], atol=1e-12)
