@@ -38,6 +38,7 @@ __all__ = ["ict_dir", "load_ict", "load_expressions", "generate", "Truth", "load
 MARKER_FPS: tuple[str, ...] = (
     "2.1", "2.10", "8.1", "8.2", "8.3", "8.4", "8.5", "8.6", "8.7", "8.8", "4.1", "4.2", "4.3", "4.4",
     "4.5", "4.6", "5.1", "5.2", "5.3", "5.4", "9.1", "9.2", "9.3", "2.13", "2.14", "3.9", "3.10",
+    "3.1", "3.2",  # upper eyelids (Kshirsagar's layout has eyelid markers)
 )
 
 #: Capture space: a Z-up lab, the actor facing -y, the head ~1.6 m above the floor (face axes -> lab).
@@ -90,19 +91,22 @@ def load_expressions(face: Face | None = None) -> tuple[list[str], np.ndarray]:
     return names, arr
 
 
-def _farthest(points: np.ndarray, k: int, seed_points: np.ndarray | None = None) -> np.ndarray:
-    """Indices of ``k`` points spread by farthest-point sampling (away from ``seed_points`` too)."""
+def _farthest(points: np.ndarray, k: int, seed_points: np.ndarray | None = None,
+              weights: np.ndarray | None = None) -> np.ndarray:
+    """Indices of ``k`` points spread by farthest-point sampling (away from ``seed_points`` too);
+    with ``weights`` the distances are scaled by them (denser sampling where weights are high)."""
     if k <= 0 or not len(points):
         return np.zeros(0, dtype=np.int64)
+    w = np.ones(len(points)) if weights is None else np.asarray(weights, dtype=np.float64)
     if seed_points is not None and len(seed_points):
-        dist = cKDTree(seed_points).query(points)[0]
+        dist = cKDTree(seed_points).query(points)[0] * w
     else:
-        dist = np.linalg.norm(points - points.mean(axis=0), axis=1)  # start at the outermost point
+        dist = np.linalg.norm(points - points.mean(axis=0), axis=1) * w  # start at the outermost point
     chosen = []
     for _ in range(min(k, len(points))):
         i = int(np.argmax(dist))
         chosen.append(i)
-        dist = np.minimum(dist, np.linalg.norm(points - points[i], axis=1))
+        dist = np.minimum(dist, np.linalg.norm(points - points[i], axis=1) * w)
     return np.asarray(chosen, dtype=np.int64)
 
 
@@ -150,7 +154,8 @@ def choose_markers(face: Face, deltas: np.ndarray, n_markers: int, n_stable: int
     lids = np.concatenate([np.flatnonzero(np.linalg.norm(v - face.pivot(e), axis=1) < 0.45 * mw)
                            for e in ("eye_l", "eye_r")])
     cand = np.setdiff1d(cand, lids)
-    pick = cand[_farthest(v[cand], budget, seed_points=v[verts])]
+    # denser where the skin moves more (as real layouts crowd the mouth and brows)
+    pick = cand[_farthest(v[cand], budget, seed_points=v[verts], weights=np.sqrt(motion[cand]))]
     for j, vid in enumerate(pick):
         n = f"M{j + 1:02d}"
         names.append(n), verts.append(int(vid))
@@ -177,9 +182,9 @@ def blend_weights(rng, names: list[str], n: int, fps: float, hold: int) -> np.nd
     kv = np.zeros((len(keys), e))
     usable = [i for i, nm in enumerate(names) if not nm.startswith("Pupil")]
     for k in range(2, len(keys)):
-        act = rng.choice(usable, size=int(rng.integers(1, 4)), replace=False)
-        kv[k, act] = rng.uniform(0.3, 1.0, len(act))
-        if rng.random() < 0.3:
+        act = rng.choice(usable, size=int(rng.integers(2, 5)), replace=False)
+        kv[k, act] = rng.uniform(0.4, 1.0, len(act))
+        if rng.random() < 0.1:
             kv[k] = 0.0  # back to rest now and then
     w = PchipInterpolator(np.asarray(keys) / fps, kv, axis=0)(np.arange(n) / fps)
     return np.clip(w, 0.0, 1.0)

@@ -1,7 +1,10 @@
 """Live mocap driver: marker frames in, face states out, causally (``LiveDriver`` protocol).
 
-Per frame: constant-velocity Kalman filter with spike gating (``clean.KalmanCV``), head pose from the
-stable markers (Kabsch / three-marker), removal, RBF retarget onto the face (``rig.MarkerRig``).
+Per frame: head pose from the measured stable markers (Kabsch / three-marker, one outlier dropped),
+filtered by a constant-velocity Kalman filter on its rotation vector and the stable markers'
+centroid; its removal from the raw markers; a constant-velocity Kalman filter with spike gating on
+the stabilised markers (``clean.KalmanCV``: the face's motion alone is gentle, so it filters more
+than it would with the head's on top); RBF retarget onto the face (``rig.MarkerRig``).
 The actor's neutral is the average of the first ``neutral_frames`` frames in which every control
 marker and at least three stable markers are visible; until then ``push`` returns no state.
 """
@@ -36,7 +39,8 @@ class MarkerLiveDriver:
         units: units of the frames (default: the layout's, else guessed from the first frame).
         fps: nominal frame rate (the filter follows the actual time stamps).
         neutral_frames: frames averaged into the actor's neutral.
-        q, r: Kalman acceleration density (mm²/s³) and measurement variance (mm²).
+        q, r: Kalman acceleration density (mm²/s³) of the stabilised markers and measurement variance (mm²).
+        q_pose: the same for the head pose (rotation in radians x 100 mm, translation in mm).
 
     Attributes:
         control_vertices: ``(K,) int32`` face vertices driven, or None until the neutral is taken when
@@ -45,7 +49,8 @@ class MarkerLiveDriver:
     """
 
     def __init__(self, face: Face, names: list[str], layout, *, units: str | None = None, fps: float = 120.0,
-                 neutral_frames: int = 12, q: float = 1.0e3, r: float = 0.25, kernel: str = "imq", mu: float = 2.0):
+                 neutral_frames: int = 12, q: float = 1000.0, r: float = 0.25, q_pose: float = 1000.0,
+                 kernel: str = "imq", mu: float = 2.0):
         self.face = face
         self.layout: Layout = load_layout(layout)
         self.names = [str(n) for n in names]
@@ -57,7 +62,8 @@ class MarkerLiveDriver:
         self.neutral_frames = max(1, int(neutral_frames))
         self.kernel, self.mu = kernel, mu
         self.kf = KalmanCV(len(self.layout.names), 1.0 / self.fps, q=q, r=r)
-        self._q = q
+        self.kf_pose = KalmanCV(2, 1.0 / self.fps, q=q_pose, r=r / 2, gate=1e9)
+        self._q, self._q_pose = q, q_pose
         self.stable = np.array([self.layout.names.index(n) for n in self.layout.stable], dtype=np.int64)
         self.rig: MarkerRig | None = None
         self._neutral_sum = np.zeros((len(self.layout.names), 3))
@@ -72,8 +78,10 @@ class MarkerLiveDriver:
         self.control_vertices: np.ndarray | None = None
         if not auto:
             from .layout import place_markers
+            from .rig import anchor_vertices
 
-            self.control_vertices = place_markers(self.layout, face).vertices
+            markers = place_markers(self.layout, face).vertices
+            self.control_vertices = np.r_[markers, anchor_vertices(face, markers)].astype(np.int32)
 
     @property
     def ready(self) -> bool:
@@ -105,14 +113,12 @@ class MarkerLiveDriver:
         self._last_t = float(t)
         self.frames += 1
         seen = np.isfinite(z).all(axis=1)
-        filt = self.kf.step(z)
         if self.rig is None:
             self._gather_neutral(z, seen)
             if self.rig is None:
                 return []
-        pose = self._solve_pose(filt, seen)
-        r, tr = pose
-        local = (filt - tr) @ r
+        r, tr = self._solve_pose(z)
+        local = self.kf.step((z - tr) @ r)
         # markers never seen since the start hold their neutral position
         local = np.where(np.isfinite(local), local, self.rig.neutral)
         return [self.rig.solve(local, r, tr, float(t))]
@@ -120,8 +126,9 @@ class MarkerLiveDriver:
     def _set_dt(self, dt: float) -> None:
         from .clean import _cv_model
 
-        self.kf.dt = dt
+        self.kf.dt = self.kf_pose.dt = dt
         self.kf.A, self.kf.Q = _cv_model(dt, self._q)
+        self.kf_pose.A, self.kf_pose.Q = _cv_model(dt, self._q_pose)
 
     def _gather_neutral(self, z: np.ndarray, seen: np.ndarray) -> None:
         ctrl = np.array([i for i, n in enumerate(self.layout.names)
@@ -135,15 +142,33 @@ class MarkerLiveDriver:
         neutral = self._neutral_sum / self._neutral_n
         self.rig = MarkerRig(self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu)
         self._ref_stable = neutral[self.stable]
+        self._centre = np.nanmean(self._ref_stable, axis=0)
         self.control_vertices = self.rig.control_vertices
         log.info("live markers: neutral taken from %d frames; %d controls", self._neutral_n, len(self.rig.control))
 
-    def _solve_pose(self, filt: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        cur = filt[self.stable]
-        measured = seen[self.stable]
-        if measured.sum() >= 3:
-            cur = np.where(measured[:, None], cur, np.nan)
+    def _solve_pose(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Filtered head pose from the measured stable markers (the prediction when < 3 are seen)."""
+        from scipy.spatial.transform import Rotation
+
+        cur = z[self.stable]
         pose = solve_pose(self._ref_stable, cur)
-        if pose is not None:
-            self._pose = pose
+        if pose is not None and np.isfinite(cur).all(axis=1).sum() > 3:
+            # drop the worst stable marker when it is far off the rigid fit (a spike or a swap)
+            res = np.linalg.norm(cur - (self._ref_stable @ pose[0].T + pose[1]), axis=1)
+            worst = int(np.nanargmax(res))
+            if res[worst] > 3.0:
+                cur = cur.copy()
+                cur[worst] = np.nan
+                pose = solve_pose(self._ref_stable, cur)
+        c = self._centre
+        if pose is None:
+            meas = np.full((2, 3), np.nan)
+        else:
+            r, t = pose
+            meas = np.stack([Rotation.from_matrix(r).as_rotvec() * 100.0, r @ c + t - c])
+        est = self.kf_pose.step(meas)
+        if not np.isfinite(est).all():
+            return self._pose
+        r = Rotation.from_rotvec(est[0] / 100.0).as_matrix()
+        self._pose = (r, c + est[1] - r @ c)
         return self._pose

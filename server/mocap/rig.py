@@ -63,6 +63,9 @@ class MarkerRig:
         neutral_mm: ``(L, 3)`` the actor's neutral positions of the layout's markers (layout order),
             millimetres, NaN where unseen (a control marker must be seen).
         kernel, mu: the retarget RBF (``imq`` with mu = 2 as in the thesis, or ``r``).
+        anchors: also pin skin far from every marker (back and top of the head, ears; not below the
+            lowest marker, where the jaw and neck move) with zero displacement, so that the
+            deformation does not spread the face's motion over parts no marker sees.
 
     Attributes:
         control: ``(K,)`` layout indices of the control markers; ``control_vertices`` their face vertices.
@@ -70,7 +73,8 @@ class MarkerRig:
         jaw: position of the jaw marker among the controls (None without one).
     """
 
-    def __init__(self, face: Face, layout, neutral_mm: np.ndarray, *, kernel: str = "imq", mu: float = 2.0):
+    def __init__(self, face: Face, layout, neutral_mm: np.ndarray, *, kernel: str = "imq", mu: float = 2.0,
+                 anchors: bool = True):
         self.face = face
         self.layout = load_layout(layout)
         names = self.layout.names
@@ -79,8 +83,9 @@ class MarkerRig:
         placement = place_markers(self.layout, face, {n: self.neutral[i] for i, n in enumerate(names)})
         self.control = np.array([pos[n] for n in placement.names], dtype=np.int64)
         self.control_names = placement.names
-        self.control_vertices = placement.vertices
         self.placement = placement
+        self.anchor_vertices = anchor_vertices(face, placement.vertices) if anchors else np.zeros(0, np.int32)
+        self.control_vertices = np.r_[placement.vertices, self.anchor_vertices].astype(np.int32)
         self.stable = np.array([pos[n] for n in self.layout.stable], dtype=np.int64)
         unseen = [names[i] for i in self.control if not np.isfinite(self.neutral[i]).all()]
         if unseen:
@@ -88,7 +93,7 @@ class MarkerRig:
                              "gap filling); choose another neutral_frame or mark them {\"control\": false}",
                              where=self.layout.where)
         src = self.neutral[self.control]
-        dst = face.vertices[self.control_vertices].astype(np.float64)
+        dst = face.vertices[placement.vertices].astype(np.float64)
         self.rbf = RBFMap(src, dst, kernel=kernel, mu=mu)
         # The frame change actor -> face for head poses (rigid part of the retarget).
         self.q, self.s, self.c = similarity(src, dst)
@@ -124,6 +129,11 @@ class MarkerRig:
         head = self.head_matrix(r, t)
         return self.state(d, head, time)
 
+    def _with_anchors(self, d: np.ndarray) -> np.ndarray:
+        if not len(self.anchor_vertices):
+            return d
+        return np.concatenate([d, np.zeros((len(self.anchor_vertices), 3), dtype=d.dtype)], axis=0)
+
     def solve_batch(self, local_mm: np.ndarray, r: np.ndarray, t: np.ndarray, fps: float, t0: float = 0.0
                     ) -> list[FaceState]:
         """``solve`` for ``(T, L, 3)`` frames at once."""
@@ -134,7 +144,38 @@ class MarkerRig:
     def state(self, d: np.ndarray, head: np.ndarray, time: float) -> FaceState:
         """A ``FaceState`` from ``(K, 3)`` control displacements (face units) and a ``(3, 4)`` head."""
         faps = self.fap_projection.faps(d, head[:, :3]) if self.fap_projection is not None else zero_faps()
-        return FaceState(t=float(time), faps=faps, controls=d, head=head.astype(np.float64))
+        return FaceState(t=float(time), faps=faps, controls=self._with_anchors(d), head=head.astype(np.float64))
+
+
+def anchor_vertices(face: Face, markers: np.ndarray, factor: float = 2.0, limit: int = 64) -> np.ndarray:
+    """Skin vertices to pin (see ``MarkerRig``): farther than ``factor`` x the median marker spacing
+    from every marker and not below the lowest marker, spread by farthest-point sampling until the
+    remaining far skin is within that distance of a pin (at most ``limit``)."""
+    from scipy.spatial import cKDTree
+
+    from .layout import _skin_vertices
+
+    v = face.vertices.astype(np.float64)
+    pts = v[markers]
+    if len(pts) < 4:
+        return np.zeros(0, dtype=np.int32)
+    spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
+    skin = _skin_vertices(face)
+    skin = skin[v[skin, 1] >= pts[:, 1].min()]
+    dist = cKDTree(pts).query(v[skin])[0]
+    far = skin[dist > factor * spacing]
+    if not len(far):
+        return np.zeros(0, dtype=np.int32)
+    cand = v[far]
+    d = cKDTree(pts).query(cand)[0]
+    chosen: list[int] = []
+    while len(chosen) < limit:
+        i = int(np.argmax(d))
+        if d[i] <= factor * spacing:
+            break
+        chosen.append(i)
+        d = np.minimum(d, np.linalg.norm(cand - cand[i], axis=1))
+    return far[chosen].astype(np.int32)
 
 
 def units_scale(units: str) -> float:

@@ -41,10 +41,10 @@ def ellipsoid_face(subdivisions: int = 3, radii_mm: tuple[float, float, float] =
     return Face("ellipsoid", np.asarray(ico.vertices) * np.asarray(radii_mm), np.asarray(ico.faces), units="mm")
 
 
-def _smooth(rng, n: int, fps: float, amp: float, hold: int) -> np.ndarray:
+def _smooth(rng, n: int, fps: float, amp: float, hold: int, period: tuple[float, float] = (0.3, 0.9)) -> np.ndarray:
     keys = [0.0, hold / fps]
     while keys[-1] < n / fps + 1:
-        keys.append(keys[-1] + rng.uniform(0.3, 0.9))
+        keys.append(keys[-1] + rng.uniform(*period))
     vals = np.r_[0.0, 0.0, rng.uniform(-amp, amp, len(keys) - 2)]
     return PchipInterpolator(keys, vals)(np.arange(n) / fps)
 
@@ -100,8 +100,8 @@ def synthetic_take(face: Face, *, n_markers: int = 30, n_stable: int = 4, second
         chin = names.index("FP2_1")
         local[:, chin, 1] -= np.abs(_smooth(rng, n, fps, 2.0 * amplitude_mm, hold))
     if head_motion:
-        ang = np.stack([_smooth(rng, n, fps, a, hold) for a in np.radians([6.0, 10.0, 4.0])], -1)
-        trans = np.stack([_smooth(rng, n, fps, 10.0, hold) for _ in range(3)], -1)
+        ang = np.stack([_smooth(rng, n, fps, a, hold, (0.6, 1.5)) for a in np.radians([6.0, 10.0, 4.0])], -1)
+        trans = np.stack([_smooth(rng, n, fps, 10.0, hold, (0.8, 2.0)) for _ in range(3)], -1)
     else:
         ang, trans = np.zeros((n, 3)), np.zeros((n, 3))
     r = matrix_from_euler(ang)
