@@ -53,7 +53,8 @@ class FaceSummary(BaseModel):
     name: str
     builtin: bool
     default: bool = False
-    vertices: int | None = Field(None, description="vertex count (null: not loaded yet)")
+    vertices: int | None = Field(None, description="vertex count (approximate for a built-in face not loaded "
+                                                  "yet; null for a mesh not loaded yet)")
 
 
 class FaceList(BaseModel):

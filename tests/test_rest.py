@@ -69,6 +69,7 @@ def test_healthz_reports_readiness_backend_and_face(srv):
     assert h["backend"] in ("numpy", "opencl")
     assert h["face"]["name"] == FACE and h["face"]["vertices"] > 100
     assert h["job_workers"] == 0
+    assert get(srv, "/readyz").status_code == 200
 
 
 def test_openapi_and_docs(srv):

@@ -4,6 +4,7 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
+import time
 
 import httpx
 import pytest
@@ -116,3 +117,20 @@ def test_one_server_per_data_directory(tmp_path):
     finally:
         held.close()
     lock_data_dir(tmp_path).close()  # free again once the holder has gone
+
+
+@pytest.mark.slow
+def test_a_broken_default_face_is_reported_not_fatal(tmp_path):
+    srv = RunningServer(tmp_path, "--face", "broken", "--workers", "0",
+                        env={"FACECAST_FACES": f"broken={tmp_path / 'missing.obj'}"}).start()
+    try:
+        for _ in range(600):
+            h = httpx.get(srv.url + "/healthz").json()
+            if h["errors"]:
+                break
+            time.sleep(0.1)
+        assert h["ready"] is False and "missing.obj" in h["errors"]["face_error"]
+        assert httpx.get(srv.url + "/readyz").status_code == 503
+        assert httpx.get(srv.url + "/v1/faces").status_code == 200  # still serving
+    finally:
+        srv.stop()

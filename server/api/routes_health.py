@@ -34,6 +34,16 @@ async def healthz(request: Request) -> Health:
     )
 
 
+@router.api_route("/readyz", methods=["GET", "HEAD"], response_model=Health,
+                  responses={503: {"model": Health, "description": "still warming up, or the default face failed"}})
+async def readyz(request: Request, response: Response) -> Health:
+    """Like ``/healthz``, but 503 until the default face is loaded (for load balancers)."""
+    health = await healthz(request)
+    if not health.ready:
+        response.status_code = 503
+    return health
+
+
 @router.get("/metrics", response_class=Response,
             responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text format"}})
 async def metrics(request: Request) -> Response:
