@@ -412,14 +412,14 @@ def _brow_weight(face: Face) -> np.ndarray | None:
         order = np.argsort(p[:, 0])
         p = p[order]
         x = v[:, 0]
-        yb = np.interp(x, p[:, 0], p[:, 1])
-        zb = np.interp(x, p[:, 0], p[:, 2])
+        yb = np.polyval(np.polyfit(p[:, 0], p[:, 1], 2), x)
+        zb = np.polyval(np.polyfit(p[:, 0], p[:, 2], 2), x)
         t = np.clip((x - p[0, 0]) / (p[-1, 0] - p[0, 0]), 0, 1)
         inner_first = order[0] == 0  # 4.1 (inner end) has the smallest x on the left side
         fat = 1.0 - 0.55 * (t if inner_first else 1 - t)
         half = 4.2 * fat
-        band = np.clip((half - np.abs(v[:, 1] - yb + 1.0)) / 1.5, 0, 1)
-        span = np.clip((np.minimum(x - p[0, 0], p[-1, 0] - x) + 2.5) / 2.5, 0, 1)
+        band = np.clip((half - np.abs(v[:, 1] - yb + 1.0)) / 2.2 + 0.3, 0, 1)
+        span = np.clip((np.minimum(x - p[0, 0], p[-1, 0] - x) + 3.0) / 4.0, 0, 1)
         near = np.abs(v[:, 2] - zb) < 12
         out[ids] = np.maximum(out[ids], 0.85 * band * span * near)
     return out

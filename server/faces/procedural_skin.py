@@ -67,6 +67,21 @@ class SkinModel:
         lo = e + np.array([0, -ir, np.sqrt(r * r - ir * ir)])
         self.d_up = float(direction_to(up)[1]) - self.phi_e
         self.d_lo = self.phi_e - float(direction_to(lo)[1])
+        # Secant steps so the lid margins land exactly at the iris top and bottom (lids tangent to the iris).
+        th = np.array([self.theta_e])
+        for sign, target in ((1, e[1] + ir), (-1, e[1] - ir)):
+            d0 = self.d_up if sign > 0 else self.d_lo
+            y0 = self.points(th, np.array([self.phi_e + sign * d0]))[0, 1]
+            d1 = d0 * 1.02
+            for _ in range(4):
+                y1 = self.points(th, np.array([self.phi_e + sign * d1]))[0, 1]
+                if abs(y1 - target) < 1e-6 or y1 == y0:
+                    break
+                d0, d1, y0 = d1, d1 + (target - y1) * (d1 - d0) / (y1 - y0), y1
+            if sign > 0:
+                self.d_up = float(d1)
+            else:
+                self.d_lo = float(d1)
         self.eye_L = 2.6 * max(self.d_up, self.d_lo)
 
     # ---- parameter maps -------------------------------------------------------------------------
