@@ -115,6 +115,20 @@ def test_render_cli_with_server_option(srv, data_dir, tmp_path):
     assert run.returncode == 2 and last.startswith("facecast:") and "admin key" in last
 
 
+def test_speech_upload_recognised_by_content_becomes_a_fap_stream(srv, data_dir):
+    from facecast.protocol.fap_file import read_fap
+
+    wav = data_dir / "speech" / "bobby_16bit_16khz.wav"
+    job = submit(srv, "recording", wav.read_bytes(), format="fap")  # no suffix: sniffed as RIFF/WAVE
+    assert job["input_kind"] == "audio"
+    done = wait(srv, job["id"])
+    assert done["status"] == "done", done
+    resp = httpx.get(srv.url + done["result_url"], headers=srv.admin_headers, timeout=60)
+    assert resp.headers["content-type"].startswith("text/plain")
+    assert 'filename="recording.fap"' in resp.headers["content-disposition"]
+    read_fap(resp.text, where="result")  # parses as a FAP file
+
+
 def test_malformed_file_fails_the_job_with_a_clear_error(srv, tmp_path):
     bad = b"2.1 broken 25 3\nthis line is not a FAP mask\n"
     job = wait(srv, submit(srv, "broken.fap", bad)["id"])
