@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 #: kernel works on them as float8 vectors).
 SLICE = 8
 #: Work-group size (in slices) of the deform kernel; in vertices for the others.
-LOCAL_SLICES = 16
+LOCAL_SLICES = 64
 LOCAL_SIZE = 128
 #: Work-items for the min/max pass of the int16 quantisation.
 MINMAX_ITEMS = 64
