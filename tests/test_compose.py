@@ -77,3 +77,17 @@ def test_dockerfile_installs_debian_pocl_and_runs_facecast_serve():
 def test_dockerignore_keeps_the_build_context_small():
     ignored = (ROOT / ".dockerignore").read_text().split()
     assert ".git" in ignored and "tests/artifacts" in ignored
+
+
+def test_dockerfile_copies_what_pip_install_needs():
+    import tomllib
+
+    copied = set()
+    for ins, args in dockerfile_instructions():
+        if ins == "COPY":
+            copied.update(p.rstrip("/").removeprefix("./") for p in args.split()[:-1])
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    needed = {"pyproject.toml", "setup.py", project["readme"], "protocol", "server", "client"}
+    assert needed <= copied, needed - copied
+    ignored = {line.strip() for line in (ROOT / ".dockerignore").read_text().splitlines()}
+    assert not needed & ignored
