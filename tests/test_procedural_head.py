@@ -9,7 +9,7 @@ import pytest
 
 from facecast.server.errors import InputError
 from facecast.server.faces import load_face
-from facecast.server.faces.procedural import SKIN_SUBSETS, build_default_head, head_colors
+from facecast.server.faces.procedural import SKIN_SUBSETS, Conformation, build_default_head, head_colors
 from facecast.server.output.preview import render_image, render_png
 
 # MPEG-4 feature points (mpeg4-reference §3): 84 ids.
@@ -116,6 +116,25 @@ def test_conformation_changes_the_shape_and_rejects_unknown_names():
         build_default_head(2_000, nose_size=3)
     with pytest.raises(InputError):
         build_default_head(10)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_varied_conformations_stay_valid(seed):
+    rng = np.random.default_rng(seed)
+    names = ["face_width", "face_height", "jaw_width", "nose_length", "lip_thickness", "eye_spacing", "chin_length",
+             "mouth_width", "brow_height", "ear_size", "nose_width", "head_height"]
+    defaults = Conformation()
+    kw = {k: float(getattr(defaults, k) * rng.uniform(0.87, 1.13)) for k in names}
+    f = build_default_head(2_500, **kw)
+    v = f.vertices.astype(np.float64)
+    t = f.triangles
+    assert np.isfinite(v).all() and len(set(f.feature_points.values())) == 84
+    area = np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+    assert area.min() > 1e-6
+    u = _fapu(f)
+    assert u["ES0"] == pytest.approx(kw["eye_spacing"], abs=0.01)
+    assert all(x > 0 for x in u.values())
+    assert f.fp_position("2.2")[1] - f.fp_position("2.1")[1] == pytest.approx(kw["chin_length"], abs=12)
 
 
 def test_feature_points_agree_across_resolutions(head2k, head25k):
