@@ -68,7 +68,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"backend: opencl on {d['name']} ({d['platform']}; {d['version']}; "
                   f"{d['compute_units']} compute units)")
         else:
-            print("backend: numpy" + (" (no working OpenCL device)" if args.backend != "numpy" else ""))
+            why = "" if args.backend == "numpy" else (
+                f" (no working OpenCL device matches {args.device!r})" if args.device else " (no working OpenCL device)")
+            print("backend: numpy" + why)
         for p in info["devices"]:
             state = "ok" if p["ok"] else f"FAILED: {p['error']}"
             print(f"  device {p['id']}: {p['platform']} / {p['name']} [{p['type']}] {state}")
