@@ -56,7 +56,7 @@ def random_D(rng, k):
     return rng.normal(size=(k, 3)).astype(np.float32)
 
 
-@pytest.mark.parametrize("norm", ["paper", "slides", "none"])
+@pytest.mark.parametrize("norm", ["paper", "slides", "clamped", "none"])
 def test_zero_displacement_gives_zero_motion(grid, norm):
     verts, tris, _, _, controls = grid
     op = feature_point_operator(verts, tris, controls, normalisation=norm)
@@ -64,7 +64,7 @@ def test_zero_displacement_gives_zero_motion(grid, norm):
     assert np.all(op.apply(np.zeros((len(controls), 3))) == 0)
 
 
-@pytest.mark.parametrize("norm", ["paper", "slides", "none"])
+@pytest.mark.parametrize("norm", ["paper", "slides", "clamped", "none"])
 def test_control_vertex_follows_its_displacement_on_constrained_axes(grid, rng, norm):
     verts, tris, _, _, controls = grid
     constrained = rng.random((len(controls), 3)) < 0.7
@@ -104,12 +104,42 @@ def test_normalised_weights_sum_to_one_where_reached(grid, norm):
     assert np.all(op.weights >= 0)
 
 
+def test_clamped_weights_never_sum_above_one(grid):
+    verts, tris, _, _, controls = grid
+    op = feature_point_operator(verts, tris, controls, normalisation="clamped")
+    rows = np.repeat(np.arange(op.n_vertices), np.diff(op.indptr))
+    total = np.bincount(rows, weights=op.weights[:, 1], minlength=op.n_vertices)
+    assert total.max() <= 1 + 1e-5
+    assert np.isclose(total, 1, atol=1e-5).sum() > 0.3 * op.n_vertices  # where FPs overlap
+    assert ((total > 0.01) & (total < 0.99)).sum() > 10  # where a lone FP fades out
+
+
+@pytest.mark.parametrize("norm", ["slides", "clamped"])
+def test_rim_rule_cap_reaches_beyond_the_outer_controls(grid, norm):
+    """The grid's corner (0, 0) lies beyond the corner control (3, 3), at 135° from both of its
+    neighbours: "skip" (criterion (1) literally) leaves it still, "cap" lets that FP fade out there."""
+    verts, tris, _, _, controls = grid
+    skip = feature_point_operator(verts, tris, controls, normalisation=norm, no_neighbour="skip")
+    cap = feature_point_operator(verts, tris, controls, normalisation=norm, no_neighbour="cap")
+    D = np.zeros((len(controls), 3), np.float32)
+    D[0] = 1.0  # the control at (3, 3)
+    corner = 0  # vertex (0, 0)
+    assert np.all(skip.apply(D)[corner] == 0)
+    moved = cap.apply(D)[corner]
+    assert np.all(moved > 0)
+    if norm == "clamped":  # a lone FP's weight fades (with "slides" it is normalised back to 1)
+        assert np.all(moved < 1)
+    with pytest.raises(InputError):
+        feature_point_operator(verts, tris, controls, no_neighbour="sometimes")
+
+
 def test_the_normalisations_differ(grid, rng):
     verts, tris, _, _, controls = grid
     D = random_D(rng, len(controls))
     u = {n: feature_point_operator(verts, tris, controls, normalisation=n).apply(D)
-         for n in ("paper", "slides", "none")}
+         for n in ("paper", "slides", "clamped", "none")}
     assert np.abs(u["paper"] - u["slides"]).max() > 1e-3
+    assert np.abs(u["slides"] - u["clamped"]).max() > 1e-3
     assert np.abs(u["slides"] - u["none"]).max() > 1e-3
 
 
@@ -130,7 +160,7 @@ def test_locality(grid):
     assert lone.nnz == 1 and lone.indptr[controls[0] + 1] - lone.indptr[controls[0]] == 1
 
 
-@pytest.mark.parametrize("norm", ["paper", "slides", "none"])
+@pytest.mark.parametrize("norm", ["paper", "slides", "clamped", "none"])
 def test_no_bleeding_across_a_slit(grid, norm):
     verts, tris, upper, lower, controls = grid
     op = feature_point_operator(verts, tris, controls, normalisation=norm)

@@ -27,19 +27,21 @@ from .rbf import rbf_operator
 log = logging.getLogger(__name__)
 
 #: Bump when a change to an engine changes its output, to invalidate cached operators.
-ALGORITHM_VERSION = 2
+ALGORITHM_VERSION = 3
 
 #: Default parameters per engine, chosen with ``bench/fidelity.py`` (45 ICT expressions rebuilt from
-#: their control displacements; mean skin error, mm):
-#: - fp: the slides' ``ΣW·D/ΣW`` ("slides") against the paper's eq. 5 ("paper", W/d²): with the 78
-#:   deformable MPEG-4 FPs 0.2174 vs 0.2166 mean, 1.13 vs 1.19 p95; with the 68 landmarks 0.247 vs
-#:   0.252 (p95 1.33 vs 1.35); with both 0.191 vs 0.193 (1.04 vs 1.06). "slides" wins 5 of the 6
-#:   numbers, so it is the default. Un-normalised ΣW·D ("none") is far behind (0.44). A
-#:   ``neighbour_ratio`` of 3 beat 2 and 5.
+#: their control displacements; mean skin error in mm; numbers and reasons in that bench's output
+#: and in ``feature_point``'s docstring):
+#: - fp: ``no_neighbour="cap"`` beat the literal ``"skip"`` with every normalisation and control
+#:   set, and halved the 99th-percentile edge strain of jawOpen; with it, ``"clamped"``
+#:   (ΣW·D / max(ΣW, 1)) beat the slides' ΣW·D/ΣW and the paper's eq. 5 on the 78 MPEG-4 FPs and
+#:   on the 68 landmarks, and tied with all of them together. Of the paper's two, "slides" is
+#:   narrowly ahead of "paper"; un-normalised ΣW·D ("none") is far behind. ``neighbour_ratio`` 3
+#:   beat 2 and 5.
 #: - rbf: IMQ over surface distance without the affine part (0.242 with the 78 FPs) beat Euclidean
 #:   distance (0.271) and the affine part (0.321, 0.353 Euclidean); shape 1 beat 0.5 and 2.
 DEFAULTS: dict[str, dict] = {
-    "fp": {"normalisation": "slides", "neighbour_ratio": 3.0, "attach_distance": None},
+    "fp": {"normalisation": "clamped", "no_neighbour": "cap", "neighbour_ratio": 3.0, "attach_distance": None},
     "rbf": {"kernel": "imq", "shape": 1.0, "affine": False, "distance": "surface", "attach_distance": None},
 }
 
