@@ -259,3 +259,29 @@ def test_worker_records_progress_frame_by_frame(tmp_path, data_dir, monkeypatch)
     assert store.get(job2).status == "cancelled"
     assert not store.result_path(store.get(job2)).exists()
     store.close()
+
+
+def test_store_purges_only_old_finished_jobs(tmp_path):
+    from facecast.server.jobs.store import JobStore, new_job_id
+
+    store = JobStore(tmp_path)
+    ids = {}
+    for state in ("done", "failed", "cancelled", "queued", "running"):
+        job_id = new_job_id()
+        store.folder(job_id).mkdir(parents=True)
+        (store.folder(job_id) / "input.fap").write_text("x")
+        store.add(job_id, input_name="a.fap", input_kind="fap", input_file="input.fap", input_bytes=1,
+                  result_file="result.glb", options={})
+        if state != "queued":
+            attempt = store.claim(job_id)
+            if state in ("done", "failed"):
+                store.finish(job_id, attempt, state)
+            elif state == "cancelled":
+                store.cancel(job_id)
+        ids[state] = job_id
+    assert store.purge(time.time() - 3600) == []  # nothing finished an hour ago
+    gone = store.purge(time.time() + 1)
+    assert sorted(gone) == sorted(ids[s] for s in ("done", "failed", "cancelled"))
+    assert store.counts() == {"queued": 1, "running": 1}
+    assert sorted(p.name for p in (tmp_path / "jobs").iterdir()) == sorted([ids["queued"], ids["running"]])
+    store.close()

@@ -11,8 +11,8 @@ Every error is JSON: ``{"error": "<what was wrong and what to do>", "where": "..
 """
 from __future__ import annotations
 
-import asyncio
 import logging
+import threading
 import time
 from contextlib import asynccontextmanager
 
@@ -129,7 +129,8 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         app.state.started = time.time()
-        warm = asyncio.get_running_loop().run_in_executor(None, _warm_up, app)
+        # A daemon thread: stopping the server never waits for a warm-up still in progress.
+        threading.Thread(target=_warm_up, args=(app,), name="facecast-warm-up", daemon=True).start()
         await app.state.jobs.start()
         try:
             yield
@@ -141,10 +142,6 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
                 except Exception:
                     log.exception("closing live sessions")
             await app.state.jobs.stop()
-            try:
-                await asyncio.wait_for(asyncio.shield(warm), 0.1)
-            except Exception:
-                pass
 
     app = FastAPI(
         title="facecast",

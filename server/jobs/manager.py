@@ -3,7 +3,8 @@
 Workers are ``spawn``-ed on first need and kept for later jobs (``workers`` of them at most). At
 start-up, jobs left ``running`` by a stopped server go back to ``queued`` and run again (results
 are written atomically, so a half-finished attempt leaves nothing behind). A job whose worker died
-``MAX_ATTEMPTS`` times is failed rather than retried forever.
+``MAX_ATTEMPTS`` times is failed rather than retried forever. Finished jobs are deleted after
+``FACECAST_JOB_RETENTION_HOURS`` (default a week).
 """
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import asyncio
 import logging
 import multiprocessing
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +22,22 @@ log = logging.getLogger(__name__)
 
 MAX_ATTEMPTS = 3
 POLL_SECONDS = 0.2
+#: Finished jobs (and their files) are deleted this long after they finished
+#: (``FACECAST_JOB_RETENTION_HOURS``, default a week; 0 keeps them forever).
+DEFAULT_RETENTION_HOURS = 7 * 24.0
+PURGE_EVERY_SECONDS = 600.0
+
+
+def retention_seconds() -> float:
+    """Seconds a finished job is kept, from ``FACECAST_JOB_RETENTION_HOURS``."""
+    text = os.environ.get("FACECAST_JOB_RETENTION_HOURS", "")
+    try:
+        hours = float(text) if text.strip() else DEFAULT_RETENTION_HOURS
+    except ValueError:
+        log.warning("FACECAST_JOB_RETENTION_HOURS=%r is not a number; keeping jobs %g h", text,
+                    DEFAULT_RETENTION_HOURS)
+        hours = DEFAULT_RETENTION_HOURS
+    return max(hours, 0.0) * 3600.0
 
 
 @dataclass
@@ -57,6 +75,8 @@ class JobManager:
         self._slots = [_Slot() for _ in range(self.workers)]
         self._wake = asyncio.Event()
         self._task: asyncio.Task | None = None
+        self.retention = retention_seconds()
+        self._next_purge = 0.0
 
     # -- lifecycle -------------------------------------------------------------------------------
     async def start(self) -> None:
@@ -114,6 +134,7 @@ class JobManager:
             try:
                 self._reap()
                 self._dispatch()
+                self._purge()
             except Exception:  # never let the dispatcher die silently
                 log.exception("job dispatcher error")
             try:
@@ -143,6 +164,15 @@ class JobManager:
                 job_id, code = slot.job_id, slot.proc.exitcode
                 slot.kill(0)
                 self._worker_died(job_id, code)
+
+    def _purge(self) -> None:
+        now = time.time()
+        if not self.retention or now < self._next_purge:
+            return
+        self._next_purge = now + PURGE_EVERY_SECONDS
+        gone = self.store.purge(now - self.retention)
+        if gone:
+            log.info("deleted %d finished job(s) older than %g h", len(gone), self.retention / 3600)
 
     def _worker_died(self, job_id: str, code: int | None) -> None:
         job = self.store.get(job_id)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import sqlite3
 import threading
 import time
@@ -169,6 +170,16 @@ class JobStore:
         cur = self._exec("UPDATE jobs SET status = 'cancelled', finished = ?"
                          " WHERE id = ? AND status IN ('queued', 'running')", (time.time(), job_id))
         return cur.rowcount == 1
+
+    def purge(self, finished_before: float) -> list[str]:
+        """Delete finished jobs (row and folder) that finished before Unix time ``finished_before``."""
+        rows = self._exec("SELECT id FROM jobs WHERE status IN ('done', 'failed', 'cancelled') AND finished < ?",
+                          (finished_before,)).fetchall()
+        ids = [r[0] for r in rows]
+        for job_id in ids:
+            shutil.rmtree(self.folder(job_id), ignore_errors=True)
+            self._exec("DELETE FROM jobs WHERE id = ?", (job_id,))
+        return ids
 
     def requeue(self, job_id: str) -> bool:
         """running -> queued (its worker died; run it again)."""
