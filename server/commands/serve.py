@@ -17,7 +17,21 @@ from ..errors import InputError
 log = logging.getLogger(__name__)
 
 
+EPILOG = """\
+environment:
+  FACECAST_ADMIN_KEY            admin key (else generated, printed once, kept in <data dir>/admin.key)
+  FACECAST_FACES                more faces by name: ict=/path/generic_neutral_mesh.obj,other=/path/x.obj
+  FACECAST_MAX_UPLOAD_BYTES     largest job upload (default 64 MiB)
+  FACECAST_JOB_RETENTION_HOURS  delete finished jobs after this long (default 168; 0 = never)
+  every flag also as FACECAST_<NAME> (FACECAST_PORT, FACECAST_JOB_WORKERS, ...)
+
+routes: /docs (OpenAPI), /healthz, /readyz, /metrics, /v1/faces, /v1/jobs, /v1/sessions
+"""
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.epilog = EPILOG
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("--host", help="address to bind (default 127.0.0.1; others need --allow-remote)")
     p.add_argument("--port", type=int, help="TCP port (default 8000)")
     p.add_argument("--data-dir", type=Path, help="where jobs, results and the admin key live "
