@@ -469,7 +469,7 @@ def head_colors(face: Face) -> np.ndarray:
         col += brow[:, None] * (np.array([0.36, 0.25, 0.19]) - col)
     nostril = _nostril_weight(face)
     if nostril is not None:
-        col *= 1 - 0.6 * nostril[:, None]
+        col *= 1 - 0.45 * nostril[:, None]
     for p, rgb in (("mouth_socket", (0.45, 0.16, 0.18)), ("teeth_upper", (0.95, 0.93, 0.85)),
                    ("teeth_lower", (0.95, 0.93, 0.85)), ("gums_upper", (0.80, 0.40, 0.42)),
                    ("gums_lower", (0.80, 0.40, 0.42)), ("tongue", (0.80, 0.38, 0.40))):

@@ -136,7 +136,12 @@ class SkinModel:
         e = lay.eye_centre_l
         lid_l = ray_exit(o, d, e, (lay.lid_radius,) * 3)
         lid_r = ray_exit(o, d, e * np.array([-1, 1, 1]), (lay.lid_radius,) * 3)
-        return smooth_max([r, lid_l, lid_r], 1.0)
+        r = smooth_max([r, lid_l, lid_r], 1.0)
+        # upper-lid crease (supratarsal fold), following the lid margin ~8 mm above it
+        px, py, fm = gnomonic(d)
+        u = (np.abs(px) - e[0]) / 14.5
+        arc = e[1] + 1.5 + 7.5 * np.sqrt(np.clip(1 - u * u, 0, 1))
+        return r - 0.9 * fm * smoothstep(1.0, 0.55, np.abs(u)) * np.exp(-(((py - arc) / 1.4) ** 2))
 
     def features(self, d: np.ndarray) -> np.ndarray:
         """Radial relief of the face (mm), laid out on the face plane."""
@@ -154,6 +159,7 @@ class SkinModel:
         out += -2.5 * _g(ax, py, c.face_width / 2 - 8, 18, 12, 18)
         out += 4.0 * _g(ax, py, c.face_width / 2 - 22, -16, 20, 12)
         out += 6.5 * _g(ax, py, 42, -42, 19, 19)
+        out += 3.5 * _g(ax, py, lay.x_mouth + 9, lay.y_stomion + 2, 11, 13)
         # nose: dorsum ridge with a rounded tip, alae, nostrils
         span = yn - (ysn + 2.0)
         q = (yn - py) / span  # 0 at the nasion, 1 at the subnasale (in face-plane coordinates)
@@ -209,8 +215,8 @@ class SkinModel:
         px, py, fm = gnomonic(d)
         yn, ysn = lay.y_nasion, lay.y_subnasale
         span = yn - (ysn + 2.0)
-        cy = yn - 0.87 * span
-        u = ((np.abs(px) - 6.3) / 3.3) ** 2 + ((py - cy) / 4.6) ** 2
+        cy = yn - 0.9 * span
+        u = ((np.abs(px) - 6.0) / 3.2) ** 2 + ((py - cy) / 4.0) ** 2
         return 5.5 * fm * np.clip(1 - u, 0, 1) ** 1.5
 
     def points(self, theta: np.ndarray, phi_remapped: np.ndarray) -> np.ndarray:
