@@ -30,6 +30,7 @@ def main(argv: list[str]) -> int:
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--fps", type=float, default=120.0)
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--stable", type=int, default=5, help="stable head markers among the markers")
     p.add_argument("--every", type=int, default=4, help="evaluate every N-th frame (default 4)")
     p.add_argument("--engines", nargs="+", default=["fp", "rbf"])
     p.add_argument("--backend", default="numpy")
@@ -44,7 +45,8 @@ def main(argv: list[str]) -> int:
     face = load_ict()
     _, deltas = load_expressions(face)
     with tempfile.TemporaryDirectory() as tmp:
-        paths = generate(tmp, n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=a.seed, formats=("c3d",))
+        paths = generate(tmp, n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=a.seed, formats=("c3d",),
+                         n_stable=a.stable)
         truth = load_truth(paths["truth"])
         take = read_take(paths["c3d"])
         layout = json.loads(Path(paths["layout"]).read_text())

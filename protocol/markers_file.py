@@ -3,13 +3,15 @@
 A take is ``MarkerTake(names, xyz (T, M, 3) float64, fps, units)``; NaN marks an occluded marker.
 CSV layout: a header ``time, <name>_x, <name>_y, <name>_z, ...`` then one row per frame (seconds;
 empty cells or ``nan`` = occluded). Units of a CSV come from an optional first comment line
-``# units=mm`` (else ``None``: the reader of the take decides). C3D is binary and read with ezc3d in
-``facecast.server.mocap.io``.
+``# units=mm`` (else ``None``: the reader of the take decides). ``read_c3d`` parses the 3-D points
+of a C3D file from its bytes (Intel byte order, integer or float data), so that clients can read
+takes without ezc3d; the server reads C3D with ezc3d (``facecast.server.mocap.io``).
 """
 from __future__ import annotations
 
 import io
 import math
+import struct
 from dataclasses import dataclass
 
 import numpy as np
@@ -216,3 +218,102 @@ def write_csv(take: MarkerTake) -> str:
         cells = ["" if not np.isfinite(v) else repr(float(v)) for v in take.xyz[f].ravel()]
         out.write(f"{take.t0 + f / take.fps:.9f}," + ",".join(cells) + "\n")
     return out.getvalue()
+
+
+# --------------------------------------------------------------------------------------------- C3D
+
+def _c3d_parameters(data: bytes, start: int, where: str) -> dict[str, dict[str, tuple[int, tuple, bytes]]]:
+    """Groups -> parameters -> ``(type, dims, raw bytes)`` of a C3D parameter section."""
+    groups: dict[int, str] = {}
+    params: dict[int, dict[str, tuple[int, tuple, bytes]]] = {}
+    pos = start + 4
+    end = len(data)
+    while pos + 4 <= end:
+        name_len = abs(struct.unpack_from("<b", data, pos)[0])
+        gid = struct.unpack_from("<b", data, pos + 1)[0]
+        if name_len == 0:
+            break
+        name = data[pos + 2:pos + 2 + name_len].decode("ascii", "replace").strip().upper()
+        off_pos = pos + 2 + name_len
+        if off_pos + 2 > end:
+            raise MarkerFileError("truncated parameter section", where=where)
+        nxt = struct.unpack_from("<h", data, off_pos)[0]
+        body = off_pos + 2
+        if gid < 0:
+            groups[-gid] = name
+        else:
+            ptype = struct.unpack_from("<b", data, body)[0]
+            ndim = struct.unpack_from("<B", data, body + 1)[0]
+            dims = tuple(data[body + 2:body + 2 + ndim])
+            size = abs(ptype) * (int(np.prod(dims)) if ndim else 1)
+            raw = data[body + 2 + ndim:body + 2 + ndim + size]
+            params.setdefault(gid, {})[name] = (ptype, dims, raw)
+        if nxt == 0:
+            break
+        pos = off_pos + nxt
+    return {groups.get(g, str(g)): p for g, p in params.items()}
+
+
+def _c3d_value(param: tuple[int, tuple, bytes]):
+    ptype, dims, raw = param
+    if ptype == -1:  # characters: first dimension is the string length
+        if len(dims) <= 1:
+            return raw.decode("latin-1").strip()
+        w = dims[0]
+        return [raw[i * w:(i + 1) * w].decode("latin-1").strip() for i in range(len(raw) // w)]
+    fmt = {1: "b", 2: "h", 4: "f"}[abs(ptype)]
+    return np.frombuffer(raw, dtype="<" + fmt).tolist()
+
+
+def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
+    """Parse the 3-D points of a C3D file (Intel processor type; integer or floating-point data).
+
+    Points whose residual word is negative, or whose coordinates are NaN, are occluded. Labels come
+    from ``POINT:LABELS`` (then ``LABELS2``...), units from ``POINT:UNITS`` (None if absent), the rate
+    from the header (``POINT:RATE`` if present).
+    """
+    if len(data) < 512 or data[1] != 0x50:
+        raise MarkerFileError("not a C3D file (byte 2 of the header must be 0x50)", where=where)
+    n_points, n_analog, first, last = struct.unpack_from("<hhHH", data, 2)
+    scale = struct.unpack_from("<f", data, 12)[0]
+    data_start = struct.unpack_from("<h", data, 16)[0]
+    rate = struct.unpack_from("<f", data, 20)[0]
+    pstart = (data[0] - 1) * 512
+    if pstart + 4 > len(data):
+        raise MarkerFileError("the parameter section is missing", where=where)
+    if data[pstart + 3] != 84:
+        raise MarkerFileError(f"processor type {data[pstart + 3]} is not supported (only Intel, 84); re-save the "
+                              "take from your capture software or read it with ezc3d", where=where)
+    params = _c3d_parameters(data, pstart, where)
+    point = params.get("POINT", {})
+    labels: list[str] = []
+    for key in ("LABELS", "LABELS2", "LABELS3", "LABELS4"):
+        if key in point:
+            v = _c3d_value(point[key])
+            labels += v if isinstance(v, list) else [v]
+    if "DATA_START" in point:
+        data_start = int(_c3d_value(point["DATA_START"])[0]) or data_start
+    if "RATE" in point:
+        rate = float(_c3d_value(point["RATE"])[0])
+    units = None
+    if "UNITS" in point:
+        u = _c3d_value(point["UNITS"])
+        units = normalise_units(u[0] if isinstance(u, list) else u, where=f"{where}: POINT:UNITS") if u else None
+    n_frames = last - first + 1
+    if "FRAMES" in point:  # may exceed the header's 16-bit frame numbers
+        n_frames = max(n_frames, int(_c3d_value(point["FRAMES"])[0]) & 0xFFFF)
+    is_float = scale < 0
+    word = 4 if is_float else 2
+    per_frame = (4 * n_points + n_analog) * word
+    offset = (data_start - 1) * 512
+    available = max(0, (len(data) - offset) // per_frame) if per_frame else 0
+    if n_frames > available:
+        raise MarkerFileError(f"the header promises {n_frames} frames, the file holds {available}", where=where)
+    dtype = "<f4" if is_float else "<i2"
+    block = np.frombuffer(data, dtype=dtype, count=n_frames * per_frame // word, offset=offset)
+    block = block.reshape(n_frames, -1)[:, :4 * n_points].reshape(n_frames, n_points, 4).astype(np.float64)
+    xyz = block[..., :3] * (1.0 if is_float else scale)
+    residual = block[..., 3]
+    xyz[(residual < 0) | ~np.isfinite(xyz).all(axis=2)] = np.nan
+    names = [labels[i] if i < len(labels) and labels[i] else f"M{i:03d}" for i in range(n_points)]
+    return check_take(MarkerTake(names, xyz, float(rate), units, (first - 1) / rate if rate > 0 else 0.0), where)

@@ -72,3 +72,40 @@ def test_unreadable_files_are_input_errors(tmp_path):
         read_take(bad)
     with pytest.raises(InputError, match="no such take"):
         read_take(tmp_path / "missing.trc")
+
+
+def test_pure_c3d_parser_reads_what_ezc3d_writes(tmp_path, rng):
+    from facecast.protocol.markers_file import read_c3d
+
+    take = _take(rng)
+    path = write_take(take, tmp_path / "take.c3d")
+    pure = read_c3d(path.read_bytes(), where=str(path))
+    ez = read_take(path)
+    assert pure.names == ez.names and pure.fps == ez.fps and pure.units == "mm"
+    assert np.array_equal(np.isnan(pure.xyz), np.isnan(take.xyz))
+    np.testing.assert_allclose(pure.xyz, ez.xyz, atol=1e-9, equal_nan=True)
+    with pytest.raises(MarkerFileError, match="not a C3D"):
+        read_c3d(b"\x02\x00" + bytes(600), where="x.c3d")
+    truncated = path.read_bytes()[:-600]
+    with pytest.raises(MarkerFileError, match="promises"):
+        read_c3d(truncated, where="x.c3d")
+
+
+@pytest.mark.parametrize("fmt", ["trc", "csv"])
+def test_text_round_trip_property(fmt):
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+    from hypothesis.extra.numpy import arrays
+
+    coords = arrays(np.float64, st.tuples(st.integers(2, 6), st.integers(1, 4), st.just(3)),
+                    elements=st.one_of(st.floats(-1e4, 1e4, allow_nan=False), st.just(np.nan)))
+
+    @settings(max_examples=40, deadline=None)
+    @given(coords)
+    def check(xyz):
+        take = MarkerTake([f"m{i}" for i in range(xyz.shape[1])], xyz, 120.0, "mm")
+        back = read_trc(write_trc(take)) if fmt == "trc" else read_csv(write_csv(take))
+        assert back.names == take.names and back.fps == 120.0
+        np.testing.assert_array_equal(back.xyz, xyz)
+
+    check()

@@ -223,14 +223,15 @@ def truth_vertices(face: Face, deltas: np.ndarray, weights: np.ndarray) -> np.nd
 
 def generate(out: str | Path, *, n_markers: int = 60, seconds: float = 10.0, fps: float = 120.0, seed: int = 1,
              noise_mm: float = 0.5, gaps: bool = True, spikes: bool = True, head_motion: bool = True,
-             formats: tuple[str, ...] = ("c3d", "trc"), name: str = "take") -> dict[str, Path]:
-    """Write a generated take into folder ``out``; returns the written paths by kind."""
+             formats: tuple[str, ...] = ("c3d", "trc"), name: str = "take", n_stable: int = 5) -> dict[str, Path]:
+    """Write a generated take into folder ``out``; returns the written paths by kind. ``n_markers``
+    counts the ``n_stable`` head markers too."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     face = load_ict()
     enames, deltas = load_expressions(face)
-    names, verts, spec, stable = choose_markers(face, deltas, n_markers)
+    names, verts, spec, stable = choose_markers(face, deltas, n_markers, n_stable)
     n = max(2, int(round(seconds * fps)))
     hold = min(n - 1, int(0.5 * fps))
     w = blend_weights(rng, enames, n, fps, hold)
@@ -292,6 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--markers", type=int, default=60, help="markers in all, stable ones included (default 60)")
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--fps", type=float, default=120.0)
+    p.add_argument("--stable", type=int, default=5, help="stable head markers among them (default 5)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--noise", type=float, default=0.5, help="marker noise, mm (default 0.5)")
     p.add_argument("--clean", action="store_true", help="no gaps, no spikes")
@@ -303,7 +305,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         paths = generate(a.out, n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=a.seed, noise_mm=a.noise,
                          gaps=not a.clean, spikes=not a.clean, head_motion=not a.no_head_motion,
-                         formats=tuple(f.strip() for f in a.formats.split(",") if f.strip()), name=a.name)
+                         formats=tuple(f.strip() for f in a.formats.split(",") if f.strip()), name=a.name,
+                         n_stable=a.stable)
     except InputError as e:
         print(f"generate: {e}", file=sys.stderr)
         return 2
