@@ -7,9 +7,10 @@ noisy, so ratios matter more than seconds): sampling a bare two-pole sphere grid
 number of vertices with the same helpers (``closed_surface``) — the floor of "sample a parametric
 surface and triangulate it".
 
-    python bench/head_build.py [--sizes 2k,10k,25k,100k,250k,500k] [--repeat 2]
+    python bench/head_build.py [--sizes 2k,10k,25k,100k,250k,500k] [--repeat 2] [--previews]
 
-Writes ``bench/out/head_build.json`` and prints a markdown table.
+Writes ``bench/out/head_build.json`` and prints a markdown table; ``--previews`` also writes PNGs of
+the head (front, three-quarter, side, mouth and eye close-ups, 2k and 25k) to ``bench/out/head_previews/``.
 """
 from __future__ import annotations
 
@@ -48,12 +49,33 @@ def _best(fn, repeat: int) -> tuple[float, object]:
     return best, out
 
 
+def write_previews(folder: Path) -> None:
+    from facecast.server.output.preview import render_png
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for n in (2_000, 25_000):
+        f = procedural.build_default_head(n)
+        col = procedural.head_colors(f)
+        k = f"{n // 1000}k"
+        for view in ("front", "three_quarter", "side"):
+            render_png(f.vertices, f.triangles, folder / f"head_{k}_{view}.png", colors=col, view=view)
+        render_png(f.vertices, f.triangles, folder / f"head_{k}_mouth.png", colors=col, view=20,
+                   center=f.fp_position("2.2"), extent=80)
+        eyes = (f.fp_position("3.5") + f.fp_position("3.6")) / 2
+        render_png(f.vertices, f.triangles, folder / f"head_{k}_eyes.png", colors=col, size=(640, 320),
+                   center=eyes, extent=120)
+    print(f"previews in {folder}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="2k,10k,25k,100k,250k,500k")
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--out", default=str(Path(__file__).parent / "out" / "head_build.json"))
+    ap.add_argument("--previews", action="store_true", help="also write preview PNGs")
     args = ap.parse_args(argv)
+    if args.previews:
+        write_previews(Path(args.out).parent / "head_previews")
     sizes = [parse_count(s) for s in args.sizes.split(",")]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
