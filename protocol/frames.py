@@ -212,22 +212,27 @@ def encode_vertices_i16(vertices: np.ndarray, *, seq: int, t: float, wall: float
 
 
 def quantize_int16_fast(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``quantize_int16`` with the same result bit for bit, 2-3x faster on ``(V, 3) float32``:
-    per-axis min/max over strided views (NumPy's ``min(axis=0)`` is slow for 3 columns) and
-    in-place arithmetic in one temporary."""
+    """``quantize_int16`` with the same result bit for bit, several times faster on ``(V, 3) float32``.
+
+    NumPy broadcasts a ``(3,)`` offset over ``(V, 3)`` rows slowly (an inner loop of length 3), so
+    the work is done on a transposed ``(3, V)`` copy with one scalar per contiguous row; the same
+    float32 operations in the same order give the same bits.
+    """
     v = _vertices_array(v)
     if v.shape[0] == 0:  # nothing to quantise; any positive scale is valid
         return np.zeros((0, 3), "<i2"), np.zeros(3, np.float32), np.ones(3, np.float32)
-    flat = v.reshape(-1)
-    lo = np.array([flat[a::3].min() for a in range(3)], dtype=np.float32)
-    hi = np.array([flat[a::3].max() for a in range(3)], dtype=np.float32)
+    t = v.T.copy()  # (3, V)
+    lo = np.array([t[a].min() for a in range(3)], dtype=np.float32)
+    hi = np.array([t[a].max() for a in range(3)], dtype=np.float32)
     offset = ((lo + hi) / 2).astype(np.float32)
     scale = np.maximum((hi - lo) / np.float32(65534.0), np.float32(1e-12)).astype(np.float32)
-    tmp = np.subtract(v, offset)
-    np.divide(tmp, scale, out=tmp)
-    np.rint(tmp, out=tmp)
-    np.clip(tmp, -32767, 32767, out=tmp)
-    return tmp.astype("<i2"), offset, scale
+    for a in range(3):
+        row = t[a]
+        np.subtract(row, offset[a], out=row)
+        np.divide(row, scale[a], out=row)
+    np.rint(t, out=t)
+    np.clip(t, -32767, 32767, out=t)
+    return t.T.astype("<i2", order="C"), offset, scale
 
 
 def encode_vertices(vertices: np.ndarray, encoding: str, *, seq: int, t: float, wall: float = 0.0) -> bytes:

@@ -403,6 +403,57 @@ def test_audio_session_streams_pcm(live, data_dir):
     assert any(not np.array_equal(got[0].positions(), f.positions()) for f in got)
 
 
+def test_marker_session_equals_the_live_driver_run_locally(live):
+    """Marker frames -> the server's mocap live driver -> vertices, equal to the same driver and an
+    animator with the driver's control vertices run here (same face, NumPy backend)."""
+    from facecast.client.api import stream_markers
+    from facecast.server.api.store import FaceStore
+    from facecast.server.mocap.live import MarkerLiveDriver
+    from facecast.server.mocap.synthetic import synthetic_take
+    from facecast.server.pipeline import Animator
+
+    face = FaceStore().face(FACE)
+    syn = synthetic_take(face, n_markers=16, seconds=0.5, fps=60.0, seed=5)
+    take = syn.take
+    xyz = take.xyz.astype(np.float32)
+    fps = 60.0
+
+    async def main():
+        s = await _session(live, input="markers", fps=fps)
+        started = asyncio.Event()
+        viewer = asyncio.create_task(_collect(live.url, s.id, s.viewer_token, started=started))
+        await started.wait()
+        hello = ProducerHello(input="markers", markers=list(take.names), layout=syn.layout, units=take.units)
+        async with produce(live.url, s.id, s.producer_token, hello) as p:
+            await stream_markers(p, xyz, take.fps, speed=2.0)
+            errors = list(p.errors)
+        got = await viewer
+        await _close(live, s.id)
+        return errors, got
+
+    errors, got = run(main())
+    assert errors == [] and got
+    driver = MarkerLiveDriver(face, list(take.names), syn.layout, units=take.units, fps=fps)
+    states = [st for i in range(len(xyz)) for st in driver.push(xyz[i], i / take.fps)]
+    animator = Animator(face, backend="numpy", control_vertices=driver.control_vertices)
+    assert got[-1].frame.header.seq == len(states) - 1
+    for f in got:
+        np.testing.assert_array_equal(f.frame.vertices, animator.frame(states[f.frame.header.seq]))
+    assert any(not np.array_equal(got[0].frame.vertices, f.frame.vertices) for f in got)
+
+
+def test_marker_hello_without_layout_is_refused(live):
+    async def main():
+        s = await _session(live, input="markers")
+        try:
+            async with produce(live.url, s.id, s.producer_token, ProducerHello(input="markers", markers=["A", "B"])):
+                pass
+        finally:
+            await _close(live, s.id)
+
+    assert "layout" in str(_expect_refusal(main(), CloseCode.BAD_REQUEST))
+
+
 def test_websocket_frames_built_once_match_the_websockets_library():
     from websockets.frames import Frame, Opcode
 
@@ -414,29 +465,35 @@ def test_websocket_frames_built_once_match_the_websockets_library():
 
 
 @pytest.mark.slow
-def test_asgi_send_path_gives_the_same_frames(live, joy, tmp_path):
-    """With the direct-to-transport path off, viewers get byte-identical frames through ASGI."""
+def test_asgi_send_path_gives_the_same_frames(joy, tmp_path):
+    """With the direct-to-transport path off, viewers get the same frames through ASGI."""
+    from facecast.server.api.store import FaceStore
+    from facecast.server.drivers.fap import to_animation
+    from facecast.server.pipeline import Animator
+
     plain = RunningServer(tmp_path, "--face", FACE, "--backend", "numpy", "--workers", "0",
                           env={"FACECAST_LIVE_DIRECT": "0"}).start()
     short = type(joy)(fps=joy.fps, frames=joy.frames[:15])
 
-    async def frames_from(server):
-        async with SessionAdmin(server.url, server.admin_key) as admin:
+    async def main():
+        async with SessionAdmin(plain.url, plain.admin_key) as admin:
             s = await admin.create(face=FACE)
         started = asyncio.Event()
-        viewer = asyncio.create_task(_collect(server.url, s.id, s.viewer_token, started=started))
+        viewer = asyncio.create_task(_collect(plain.url, s.id, s.viewer_token, started=started))
         await started.wait()
-        async with produce(server.url, s.id, s.producer_token) as p:
+        async with produce(plain.url, s.id, s.producer_token) as p:
             await stream_fap(p, short, speed=2.0)
-        return {f.frame.header.seq: np.array(f.frame.vertices) for f in await viewer}
+        return await viewer
 
     try:
-        a, b = run(frames_from(live)), run(frames_from(plain))
+        got = run(main())
     finally:
         plain.stop()
-    assert 14 in a and 14 in b
-    for seq in set(a) & set(b):
-        np.testing.assert_array_equal(a[seq], b[seq])
+    animator = Animator(FaceStore().face(FACE), backend="numpy")
+    states = to_animation(short).states
+    assert got[-1].frame.header.seq == 14
+    for f in got:
+        np.testing.assert_array_equal(f.frame.vertices, animator.frame(states[f.frame.header.seq]))
 
 
 def test_summary_counts_gaps():
