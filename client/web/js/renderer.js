@@ -170,8 +170,25 @@ export class FaceRenderer {
     const gl = this.gl, m = this.mesh;
     gl.bindBuffer(gl.ARRAY_BUFFER, m.i16);
     gl.bufferSubData(gl.ARRAY_BUFFER, 0, q);
-    m.quantized = true; m.offset = offset; m.scale = scale;
+    m.quantized = true; m.offset = offset; m.scale = scale; m.q = q;
     this.updateNormalsQuantized(q, scale);
+  }
+
+  /** Current position of vertex i (world units), as drawn. */
+  vertex(i) {
+    const m = this.mesh;
+    if (m.quantized) return [0, 1, 2].map((a) => m.offset[a] + m.q[3 * i + a] * m.scale[a]);
+    return [m.positions[3 * i], m.positions[3 * i + 1], m.positions[3 * i + 2]];
+  }
+
+  /** CSS-pixel position of vertex i on the canvas. */
+  project(i) {
+    const c = this.canvas, p = this.vertex(i);
+    const M = this.camera.viewProj(c.width / c.height);
+    const x = M[0] * p[0] + M[4] * p[1] + M[8] * p[2] + M[12];
+    const y = M[1] * p[0] + M[5] * p[1] + M[9] * p[2] + M[13];
+    const w = M[3] * p[0] + M[7] * p[1] + M[11] * p[2] + M[15];
+    return [(x / w + 1) / 2 * c.clientWidth, (1 - y / w) / 2 * c.clientHeight];
   }
 
   updateNormals(positions) {

@@ -1,0 +1,157 @@
+"""The web viewer in a real headless Chromium against a real server (Playwright, Debian's chromium)."""
+from __future__ import annotations
+
+import asyncio
+import json
+import shutil
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import websockets
+
+from facecast.server.faces import load_face
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+pytestmark = [pytest.mark.browser, pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian chromium not installed")]
+
+ARGS = ["--no-sandbox", "--disable-gpu", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
+
+#: Pixel statistics of a canvas rectangle (x0, y0, x1, y1 in CSS pixels): mean RGB and spread.
+PIXELS_JS = """([x0, y0, x1, y1]) => {
+  const c = document.getElementById('view'), s = c.width / c.clientWidth;
+  const g = c.getContext('webgl2');
+  const w = Math.max(1, Math.round((x1 - x0) * s)), h = Math.max(1, Math.round((y1 - y0) * s));
+  const px = new Uint8Array(4 * w * h);
+  g.readPixels(Math.round(x0 * s), c.height - Math.round(y1 * s), w, h, g.RGBA, g.UNSIGNED_BYTE, px);
+  return Array.from(px);
+}"""
+
+
+@pytest.fixture(scope="module")
+def playwright():
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        yield p
+
+
+@pytest.fixture(scope="module")
+def browser(playwright):
+    b = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    yield b
+    b.close()
+
+
+def open_page(browser, url: str, artifacts: Path | None = None):
+    page = browser.new_page(viewport={"width": 1000, "height": 700})
+    problems: list[str] = []
+    page.on("console", lambda m: problems.append(f"{m.type}: {m.text}") if m.type == "error" else None)
+    page.on("pageerror", lambda e: problems.append(f"pageerror: {e}"))
+    page.goto(url)
+    return page, problems
+
+
+def region(page, box) -> np.ndarray:
+    return np.array(page.evaluate(PIXELS_JS, box), dtype=np.float32).reshape(-1, 4)[:, :3]
+
+
+def create_session(server, **body) -> dict:
+    r = httpx.post(server.url + "/v1/sessions", json=body, headers=server.admin_headers, timeout=60)
+    r.raise_for_status()
+    return r.json()
+
+
+async def produce_faps(server, session: dict, frames: list[dict]) -> None:
+    url = server.url.replace("http", "ws") + f"/v1/sessions/{session['id']}/produce?token={session['producer_token']}"
+    async with websockets.connect(url, compression=None) as ws:
+        await ws.send(json.dumps({"type": "hello", "role": "producer", "protocol": 1, "input": "fap"}))
+        assert json.loads(await ws.recv())["type"] == "ready"
+        for i, faps in enumerate(frames):
+            await ws.send(json.dumps({"type": "fap", "seq": i, "t": i / 30, "wall": time.time(), "faps": faps}))
+            await asyncio.sleep(0.4)
+        await asyncio.sleep(1.0)
+
+
+def run_async(coro) -> None:
+    """Run ``coro`` to completion in its own thread (Playwright's sync API owns this thread's loop)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(1) as pool:
+        pool.submit(asyncio.run, coro).result()
+
+
+def wait_for(page, js: str, timeout: float = 60.0):
+    page.wait_for_function(js, timeout=timeout * 1000)
+
+
+def test_page_loads_without_errors_and_draws_the_face(server, browser, artifacts):
+    page, problems = open_page(browser, server.url + "/")
+    wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
+    page.wait_for_timeout(500)
+    page.screenshot(path=str(artifacts / "web_loaded.png"))
+    whole = region(page, [0, 0, 690, 700])
+    assert whole.std(axis=0).max() > 20, "the canvas is blank"
+    # The face's skin colour dominates the middle of the view.
+    middle = region(page, [295, 300, 395, 400]).mean(axis=0)
+    assert middle[0] > middle[2] + 30, f"no skin in the middle of the canvas: {middle}"
+    assert not problems, problems
+    page.close()
+
+
+def test_a_fap_frame_that_opens_the_jaw_changes_the_mouth(server, browser, artifacts):
+    session = create_session(server, input="fap", fps=30)
+    face = load_face("default")
+    fp = face.feature_points
+    page, problems = open_page(browser, f"{server.url}/#session={session['id']}&token={session['viewer_token']}")
+    wait_for(page, "document.getElementById('status').textContent.includes('watching')")
+    run_async(produce_faps(server, session, [{"3": 0.0}]))
+    wait_for(page, "window.facecast.viewer.stats.frames >= 1")
+    page.wait_for_timeout(300)
+    upper, lower = page.evaluate(f"[facecast.renderer.project({fp['2.2']}), facecast.renderer.project({fp['2.1']})]")
+    box = [upper[0] - 40, upper[1] - 5, upper[0] + 40, lower[1]]
+    brow = page.evaluate(f"facecast.renderer.project({fp['4.3']})")
+    brow_box = [brow[0] - 20, brow[1] - 20, brow[0] + 20, brow[1] + 20]
+    mouth_before, brow_before = region(page, box), region(page, brow_box)
+    page.screenshot(path=str(artifacts / "web_jaw_closed.png"))
+    seen = page.evaluate("facecast.viewer.stats.frames")
+    run_async(produce_faps(server, session, [{"3": 900.0, "5": -500.0}]))
+    wait_for(page, f"window.facecast.viewer.stats.frames > {seen}")
+    page.wait_for_timeout(300)
+    page.screenshot(path=str(artifacts / "web_jaw_open.png"))
+    mouth_after, brow_after = region(page, box), region(page, brow_box)
+    mouth_change = np.abs(mouth_after - mouth_before).mean()
+    brow_change = np.abs(brow_after - brow_before).mean()
+    assert mouth_change > 8, f"the mouth region barely changed ({mouth_change:.1f})"
+    assert mouth_change > 4 * brow_change, (mouth_change, brow_change)
+    assert not problems, problems
+    page.close()
+
+
+def test_microphone_lip_sync_moves_the_mouth(server, playwright, data_dir, artifacts):
+    speech = data_dir / "speech" / "bobby_16bit_16khz.wav"
+    face = load_face("default")
+    fp = face.feature_points
+    b = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS + [
+        "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
+        f"--use-file-for-fake-audio-capture={speech}", "--autoplay-policy=no-user-gesture-required"])
+    try:
+        page, problems = open_page(b, f"{server.url}/#key={server.admin_key}")
+        wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
+        page.click("#mic")
+        wait_for(page, "window.facecast.viewer.stats.frames >= 10", timeout=90)
+        gaps = []
+        for _ in range(40):
+            page.wait_for_timeout(100)
+            gaps.append(page.evaluate(f"facecast.renderer.vertex({fp['2.2']})[1] - facecast.renderer.vertex({fp['2.3']})[1]"))
+        page.screenshot(path=str(artifacts / "web_microphone.png"))
+        info = page.inner_text("#mic-info")
+        assert "streaming" in info or "microphone on" in info, info
+        gaps = np.array(gaps)
+        assert np.ptp(gaps) > 0.5, f"the lips did not move with the voice: gap range {np.ptp(gaps):.2f} mm"
+        assert not problems, problems
+    finally:
+        b.close()
