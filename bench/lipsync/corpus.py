@@ -48,6 +48,20 @@ SENTENCES = (
     "we played cards until midnight",
 )
 VOICES = ("en-us", "en-gb-x-rp", "en-gb-scotland", "en-029")
+#: Development sentences (training voice variants) for choosing rule parameters (tune.py);
+#: never scored.
+DEV_SENTENCES = (
+    "the cat slept on a warm blanket",
+    "five big ships sailed past the harbour",
+    "she wore a pink scarf to the party",
+    "bring me the map from the car",
+    "a sudden noise woke the whole house",
+    "the boys threw stones into the pond",
+    "his voice was calm and very deep",
+    "fresh peaches taste sweet in june",
+    "we hope to buy a boat next spring",
+    "the clock on the wall stopped at noon",
+)
 
 
 @dataclass
@@ -105,15 +119,20 @@ def align(audio: Path, text: str) -> list[tuple[float, float, str]]:
     raise RuntimeError("PocketSphinx could not align it")
 
 
-def generated_utterances(cache: Path, n: int = 24) -> list[Utterance]:
-    """``n`` sentences, each spoken by a held-out variant on one of ``VOICES``, aligned (cached)."""
+def generated_utterances(cache: Path, n: int = 24, dev: bool = False) -> list[Utterance]:
+    """``n`` sentences, each spoken by a held-out variant on one of ``VOICES``, aligned (cached).
+
+    ``dev=True``: the development sentences spoken by training variants instead."""
     assert not set(HELD_OUT_VARIANTS) & set(TRAIN_VARIANTS)
+    assert not set(SENTENCES) & set(DEV_SENTENCES)
+    variants = [v for v in TRAIN_VARIANTS if v] if dev else HELD_OUT_VARIANTS
+    cache = cache / "dev" if dev else cache
     cache.mkdir(parents=True, exist_ok=True)
     out = []
-    for i, text in enumerate(SENTENCES[:n]):
-        for attempt in range(5):  # another held-out voice/pitch/rate if alignment fails
+    for i, text in enumerate((DEV_SENTENCES if dev else SENTENCES)[:n]):
+        for attempt in range(5):  # another voice/pitch/rate if alignment fails
             j = i + 7 * attempt
-            voice = f"{VOICES[j % len(VOICES)]}+{HELD_OUT_VARIANTS[j % len(HELD_OUT_VARIANTS)]}"
+            voice = f"{VOICES[j % len(VOICES)]}+{variants[j % len(variants)]}"
             pitch, rate = 30 + (j * 17) % 50, 130 + (j * 23) % 60
             stem = re.sub(r"\W+", "_", f"{i:02d}_{voice}_{pitch}_{rate}")
             wav, js = cache / f"{stem}.wav", cache / f"{stem}.json"
@@ -132,7 +151,7 @@ def generated_utterances(cache: Path, n: int = 24) -> list[Utterance]:
             phones = json.loads(js.read_text())["phones"]
             x, sr = read_audio(wav)
             out.append(Utterance(stem, wav, frames_from_intervals(
-                [tuple(p) for p in phones], "arpabet", len(x) / sr), "generated"))
+                [tuple(p) for p in phones], "arpabet", len(x) / sr), "dev" if dev else "generated"))
             break
         else:
             log.warning("sentence %d (%r) could not be aligned with any voice; skipped", i, text)

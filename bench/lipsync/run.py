@@ -146,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
             preds[s][u.kind].append(cls)
             lags[s][u.kind].append(onset_lag_ms(u.truth, fit_len(opening, n)))
 
+    cpu["facecast-nocoart"] = cpu["facecast"]  # same run: labels before coarticulation
     results = {"audio_seconds": audio_s, "utterances": {k: sum(u.kind == k for u in utts)
                                                         for k in ("real", "generated")},
                "classes": list(CLASSES), "systems": {}}

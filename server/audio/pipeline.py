@@ -43,16 +43,23 @@ def lipsync(x: np.ndarray, sr: float, *, fps: float = 100.0, lookahead: float | 
         calibration: energy levels; None = calibrated from this signal (``visemes.calibrate``).
     """
     x = validate_pcm(x, sr, where=where)
-    params = params or Params()
     net = net or default_net()
     f = features_of(x, sr)
-    proba = median_filter_proba(net.proba(f.k), params.median)
+    return track_of(f, net.proba(f.k), len(x) / float(sr), fps=fps, lookahead=lookahead,
+                    calibration=calibration, params=params)
+
+
+def track_of(f: Features, proba: np.ndarray, duration: float, *, fps: float = 100.0,
+             lookahead: float | None = None, calibration: Calibration | None = None,
+             params: Params | None = None) -> LipSync:
+    """The rest of ``lipsync`` from features and raw network outputs ``proba (T, 5)``."""
+    params = params or Params()
+    proba = median_filter_proba(proba, params.median)
     cal = calibration or calibrate(f.energy_db)
     # with a limited look-ahead (live equivalence) the pause rule is causal
     vis, w = label_frames(f.energy_db, f.zcr, proba, cal, params, hop=f.hop,
                           lookahead=None if lookahead is None else 0.0)
-    duration = len(x) / float(sr)
-    n_out = max(1, int(np.floor(duration * fps + 1e-9)) + 1) if len(x) else 0
+    n_out = int(np.floor(duration * fps + 1e-9)) + 1 if len(f) else 0
     track = coarticulate(f.times, vis, w, np.arange(n_out) / fps, params, hop=f.hop,
                          lookahead=lookahead)
     return LipSync(f, proba, vis, w, cal, track, duration)

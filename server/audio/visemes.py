@@ -146,7 +146,8 @@ class Params:
         median: length of the median filter over the vowel network's outputs, frames.
         min_pause: a quiet run at least this long is silence (viseme 0); shorter runs are lip
             closures (viseme 1, PP), seconds.
-        fricative_viseme / weak_viseme: viseme ids used for those classes.
+        fricative_viseme / weak_viseme: viseme ids used for those classes (weak_viseme None:
+            keep the vowel, only its intensity is low, as in the source).
         coart_past: how far back dominance functions reach, seconds.
     """
 
@@ -155,7 +156,7 @@ class Params:
     median: int = 5
     min_pause: float = 0.15
     fricative_viseme: int = SS
-    weak_viseme: int = NN
+    weak_viseme: int | None = NN
     coart_past: float = 0.25
     dominance: np.ndarray = field(default_factory=lambda: DOMINANCE.copy())
 
@@ -194,7 +195,8 @@ def label_frames(energy_db: np.ndarray, zcr: np.ndarray, proba: np.ndarray, cal:
     fric = ~quiet & (np.asarray(zcr) > params.zcr_fricative)
     weak = ~quiet & ~fric & (e < cal.max_db - params.weak_db)
     vis = VOWEL_VISEMES[np.argmax(proba, axis=1)] if T else np.zeros(0, dtype=np.int64)
-    vis = np.where(weak, params.weak_viseme, vis)
+    if params.weak_viseme is not None:
+        vis = np.where(weak, params.weak_viseme, vis)
     vis = np.where(fric, params.fricative_viseme, vis)
     w = np.where(fric, np.maximum(w, 0.5), w)
     # quiet runs: silence if long enough (looking at most `lookahead` ahead), else a lip closure

@@ -1,0 +1,58 @@
+"""Choose the rule parameters on development sentences (training voice variants, sentences never
+scored): ``python bench/lipsync/tune.py``. Prints the grid, best first; the chosen values are
+written into ``visemes.Params`` defaults by hand (so the shipped pipeline does not depend on the
+bench)."""
+from __future__ import annotations
+
+import itertools
+import logging
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from run import OUT, fit_len, scores  # noqa: E402
+
+from facecast.server.audio.classify import default_net  # noqa: E402
+from facecast.server.audio.io import read_audio  # noqa: E402
+from facecast.server.audio.pipeline import features_of, track_of  # noqa: E402
+from facecast.server.audio.visemes import NN, Params  # noqa: E402
+
+from classes import VISEME_CLASS  # noqa: E402
+from corpus import generated_utterances  # noqa: E402
+
+
+def main() -> int:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    utts = generated_utterances(OUT / "lipsync_data", 10, dev=True)
+    net = default_net()
+    pre = []
+    for u in utts:
+        x, sr = read_audio(u.audio)
+        f = features_of(x, sr)
+        pre.append((u, f, net.proba(f.k), len(x) / sr))
+    grid = {"zcr_fricative": (25.0, 31.0, 40.0), "weak_db": (12.0, 18.0, 24.0, 99.0),
+            "min_pause": (0.1, 0.2), "weak_viseme": (NN, None), "median": (3, 5, 7)}
+    rows = []
+    for values in itertools.product(*grid.values()):
+        params = replace(Params(), **dict(zip(grid, values)))
+        truth, pred = [], []
+        for u, f, proba, dur in pre:
+            tr = track_of(f, proba, dur, fps=100.0, params=params).track
+            truth.append(u.truth)
+            pred.append(VISEME_CLASS[fit_len(tr.select1, len(u.truth))])
+        s = scores(np.concatenate(truth), np.concatenate(pred))
+        rows.append((s["macro_f1"] + s["accuracy"], s["accuracy"], s["macro_f1"], values))
+    rows.sort(key=lambda r: -r[0])
+    print(f"{len(utts)} dev utterances; grid {list(grid)}")
+    for r in rows[:12]:
+        print(f"acc {r[1]:.3f} macro-F1 {r[2]:.3f}  {r[3]}")
+    print("defaults:", [getattr(Params(), k) for k in grid])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
