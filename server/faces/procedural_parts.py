@@ -195,10 +195,12 @@ def ear(lay: Layout, spacing: float, attach: np.ndarray) -> Part:
     def pts(tt, ww):
         st, ct = np.sin(np.pi * tt), np.cos(np.pi * tt)
         u, v = st * np.sin(ww), st * np.cos(ww)  # u: up, v: forward (unit disc)
-        width = aw * (0.78 + 0.28 * u) * (1 - 0.25 * smoothstep(-0.2, -1.0, u))
-        bowl = np.exp(-(((u + 0.12) / 0.42) ** 2) - ((v - 0.18) / 0.5) ** 2)
-        rim = 1.0 + 0.8 * smoothstep(0.75, 0.95, st)
-        thick = at * ct * np.where(ct > 0, rim - 1.7 * bowl, 1.0)
+        width = aw * (0.82 + 0.22 * u) * (1 - 0.12 * smoothstep(-0.3, -1.0, u))
+        bowl = np.exp(-(((u + 0.18) / 0.36) ** 2) - ((v - 0.22) / 0.42) ** 2)       # concha
+        scapha = np.exp(-(((st - 0.8) / 0.07) ** 2)) * smoothstep(-0.2, 0.3, u - 0.4 * v)  # groove inside the rim
+        lobe = smoothstep(-0.55, -0.85, u)                                            # the lobe is flat and soft
+        rim = 1.0 + 0.9 * smoothstep(0.8, 0.97, st) * (1 - lobe)
+        thick = at * ct * np.where(ct > 0, np.maximum(rim - 2.0 * bowl - 0.6 * scapha, -0.7), 1.0)
         return (centre + (u * ah)[..., None] * up + (v * width)[..., None] * fwd + thick[..., None] * out)
 
     v, f = closed_surface(pts, t, n_seg)
