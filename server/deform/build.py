@@ -33,11 +33,12 @@ ALGORITHM_VERSION = 3
 #: their control displacements; mean skin error in mm; numbers and reasons in that bench's output
 #: and in ``feature_point``'s docstring):
 #: - fp: ``no_neighbour="cap"`` beat the literal ``"skip"`` with every normalisation and control
-#:   set, and halved the 99th-percentile edge strain of jawOpen; with it, ``"clamped"``
-#:   (ΣW·D / max(ΣW, 1)) beat the slides' ΣW·D/ΣW and the paper's eq. 5 on the 78 MPEG-4 FPs and
-#:   on the 68 landmarks, and tied with all of them together. Of the paper's two, "slides" is
-#:   narrowly ahead of "paper"; un-normalised ΣW·D ("none") is far behind. ``neighbour_ratio`` 3
-#:   beat 2 and 5.
+#:   set and made the skin less torn (mean p99 edge strain with "slides": 0.193 vs 0.223 on the
+#:   78 MPEG-4 FPs). With it, ``"clamped"`` (ΣW·D / max(ΣW, 1)) had the lowest error on the 78
+#:   FPs (0.2045 mm vs "slides" 0.2172, "paper" 0.2163; no deformation 0.5983) and on the 68
+#:   landmarks (0.2223 vs 0.2456, 0.2502), and tied on both together (0.1904 vs 0.1898, 0.1924;
+#:   p95 1.02 vs 1.04, 1.07). Of the paper's two, "slides" wins 5 of the 6 mean/p95 numbers.
+#:   Un-normalised ΣW·D ("none") is far behind (0.44). ``neighbour_ratio`` 3 beat 2 and 4.
 #: - rbf: IMQ over surface distance without the affine part (0.242 with the 78 FPs) beat Euclidean
 #:   distance (0.271) and the affine part (0.321, 0.353 Euclidean); shape 1 beat 0.5 and 2.
 DEFAULTS: dict[str, dict] = {
