@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import time
 
 import httpx
 import numpy as np
@@ -494,6 +495,47 @@ def test_asgi_send_path_gives_the_same_frames(joy, tmp_path):
     assert got[-1].frame.header.seq == 14
     for f in got:
         np.testing.assert_array_equal(f.frame.vertices, animator.frame(states[f.frame.header.seq]))
+
+
+@pytest.mark.slow
+def test_cli_session_stream_watch_close(live, data_dir):
+    import subprocess
+    import sys
+
+    env = {**os.environ, "FACECAST_ADMIN_KEY": live.admin_key}
+    cli = [sys.executable, "-m", "facecast.server.cli"]
+    out = subprocess.run(cli + ["session", "create", "--url", live.url, "--face", FACE], env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    s = json.loads(out.stdout)
+    assert {"id", "producer_token", "viewer_token"} <= set(s)
+    watcher = subprocess.Popen(cli + ["watch", "--url", live.url, "--session", s["id"], "--token", s["viewer_token"],
+                                      "--encoding", "i16", "--json"], env=env, stdout=subprocess.PIPE, text=True)
+    try:
+        for _ in range(600):  # wait until the viewer is connected
+            info = httpx.get(f"{live.url}/v1/sessions/{s['id']}", headers=live.admin_headers).json()
+            if info["stats"]["viewers"] == 1:
+                break
+            time.sleep(0.05)
+        fap = data_dir / "xface/faps/joy.fap"
+        streamed = subprocess.run(cli + ["stream", str(fap), "--url", live.url, "--session", s["id"], "--token",
+                                         s["producer_token"], "--speed", "4"], env=env, capture_output=True,
+                                  text=True, timeout=120)
+        assert streamed.returncode == 0, streamed.stderr
+        assert json.loads(streamed.stdout)["frames_sent"] == 108
+        report = json.loads(watcher.communicate(timeout=60)[0])
+    finally:
+        watcher.kill()
+    assert report["frames"] > 0 and report["last_seq"] == 107 and report["encoding"] == "i16"
+    assert report["bytes_per_frame"] == 56 + 6 * report["vertex_count"]
+    assert report["latency_ms_p95"] is not None and report["dropped"] + report["frames"] == 108 - report["first_seq"]
+    bad = subprocess.run(cli + ["stream", str(fap), "--url", live.url, "--session", s["id"], "--token", "nope"],
+                         env=env, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "token" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    closed = subprocess.run(cli + ["session", "close", "--url", live.url, s["id"]], env=env, capture_output=True,
+                            text=True, timeout=120)
+    assert closed.returncode == 0
+    assert httpx.get(f"{live.url}/v1/sessions/{s['id']}", headers=live.admin_headers).status_code == 404
 
 
 def test_summary_counts_gaps():

@@ -26,8 +26,10 @@ from .wire import ws_binary_frame
 
 log = logging.getLogger(__name__)
 
-#: Face states waiting for deformation per session; beyond this the oldest is dropped.
-MAX_PENDING = 8
+#: Face states waiting for deformation per session; beyond this the oldest is dropped. Each state
+#: is complete (not a delta), so under overload it is better to skip states than to let latency
+#: grow by one frame interval per queued state.
+MAX_PENDING = 2
 #: Control messages (status, stats) waiting for one viewer; beyond this the oldest is dropped.
 MAX_CONTROL = 16
 #: Seconds between ``stats`` messages to viewers.
