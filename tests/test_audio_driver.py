@@ -59,12 +59,28 @@ def test_driver_gives_animation_with_jaw_and_lip_faps(bobby):
     assert faps.shape[1] == 69
     assert faps[:, 3].max() > 100          # open_jaw in MNS units
     assert faps[:, 5].min() < -50          # lower lip goes down with the jaw
-    assert np.all(faps[:, 19:48] == 0)     # eyes and brows untouched
+    assert np.all(faps[:, 19:39] == 0)     # eyes and brows untouched
+    assert all(s.viseme is None for s in anim.states)  # FAP 1 would add the mouth a second time
+    # starts at rest; the mouth only begins to anticipate the first word (at 65 ms)
+    assert faps[0, 3] < 0.25 * faps[:, 3].max()
+
+
+def test_driver_fap1_mode_and_the_faces_own_viseme_shapes(bobby):
+    from types import SimpleNamespace
+
+    from facecast.server.mpeg4 import VISEMES
+
+    anim = load(bobby, None, fps=25, fap1=True)
     for s in anim.states:
         s1, s2, blend = s.viseme
-        assert 0 <= s1 <= 14 and 0 <= s2 <= 14 and 0 <= blend <= 63
-    # starts in silence; the mouth only begins to anticipate the first word (at 65 ms)
-    assert anim.states[0].viseme[0] == 0 and faps[0, 3] < 0.25 * faps[:, 3].max()
+        assert 0 <= s1 <= 14 and 0 <= s2 <= 14 and 0 <= blend <= 63 and not s.faps.any()
+    assert anim.states[0].viseme[0] == 0
+    assert {s.viseme[0] for s in anim.states} & VOWEL_VISEMES
+    # a face with its own (here: doubled) viseme table gets doubled FAPs
+    ref = np.array([s.faps for s in load(bobby, None, fps=25).states])
+    face = SimpleNamespace(visemes=VISEMES * 2)
+    np.testing.assert_allclose(np.array([s.faps for s in load(bobby, face, fps=25).states]),
+                               2 * ref, atol=1e-9)
 
 
 def test_render_dispatch_reaches_the_audio_driver(bobby):

@@ -36,7 +36,11 @@ def test_live_equals_batch_with_the_same_lookahead(speech, rng, lookahead, fps):
     assert len(states) == len(ref.t)
     np.testing.assert_allclose([s.t for s in states], ref.t, atol=1e-9)
     np.testing.assert_allclose(np.array([s.faps for s in states]), ref.faps, atol=1e-6)
+    assert all(s.viseme is None for s in states)
+    drv = AudioLiveDriver(None, sr, lookahead=lookahead, fps=fps, calibration=cal, fap1=True)
+    states = stream(drv, x, sr, rng)
     assert [s.viseme[0] for s in states] == ref.select1.tolist()
+    assert [s.viseme[1] for s in states] == ref.select2.tolist()
 
 
 def test_longer_lookahead_approaches_free_batch(speech):
@@ -44,7 +48,8 @@ def test_longer_lookahead_approaches_free_batch(speech):
     free = lipsync(x, sr).track
     agree = []
     for la in (0.04, 0.3):
-        drv = AudioLiveDriver(None, sr, lookahead=la, fps=100, calibration=lipsync(x, sr).calibration)
+        drv = AudioLiveDriver(None, sr, lookahead=la, fps=100,
+                              calibration=lipsync(x, sr).calibration, fap1=True)
         vis = np.array([s.viseme[0] for s in stream(drv, x, sr)])
         agree.append(np.mean(vis == free.select1))
     assert agree[1] >= agree[0] and agree[1] > 0.9
@@ -74,7 +79,7 @@ def test_states_carry_the_audio_media_time(speech):
 
 def test_running_calibration_finds_silence_and_speech(speech):
     x, sr = speech
-    drv = AudioLiveDriver(None, sr, fps=100)
+    drv = AudioLiveDriver(None, sr, fps=100, fap1=True)
     vis = np.array([s.viseme[0] for s in stream(drv, x, sr)])
     assert vis[0] == 0 and np.mean(vis[10:100] != 0) > 0.8
     assert {10, 11, 12, 13, 14} & set(vis.tolist())

@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from facecast.server.audio.io import read_audio  # noqa: E402
 from facecast.server.audio.live import AudioLiveDriver  # noqa: E402
 from facecast.server.audio.pipeline import lipsync  # noqa: E402
+from facecast.server.mpeg4.highlevel import VISEMES  # noqa: E402
 from facecast.server.paths import shared_data  # noqa: E402
 
 from baselines import MfccTemplates, energy_visemes  # noqa: E402
@@ -37,6 +38,7 @@ from corpus import generated_utterances, real_utterances  # noqa: E402
 ROOT = Path(__file__).resolve().parents[2]
 OUT = ROOT / "bench" / "out"
 log = logging.getLogger("bench.lipsync")
+JAW_FULL = float(VISEMES[10, 3])  # open_jaw of "aa" at full strength
 
 
 def fit_len(a: np.ndarray, n: int) -> np.ndarray:
@@ -73,13 +75,12 @@ def scores(truth: np.ndarray, pred: np.ndarray) -> dict:
             "confusion": cm.tolist()}
 
 
-def run_live(x: np.ndarray, sr: int, chunk: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
-    drv = AudioLiveDriver(None, sr, fps=100.0)
+def run_live(x: np.ndarray, sr: int, chunk: float = 0.02, fap1: bool = False) -> list:
+    drv = AudioLiveDriver(None, sr, fps=100.0, fap1=fap1)
     states, n = [], max(1, int(chunk * sr))
     for i in range(0, len(x), n):
         states += drv.push(x[i:i + n].astype(np.float32), i / sr)
-    states += drv.flush()
-    return np.array([s.viseme[0] for s in states]), np.array([s.faps[3] for s in states])
+    return states + drv.flush()
 
 
 def live_latency(x: np.ndarray, sr: int, chunk_samples: int = 16) -> dict:
@@ -127,12 +128,13 @@ def main(argv: list[str] | None = None) -> int:
         c = time.process_time()
         ls = lipsync(x, sr, fps=100.0)
         cpu["facecast"] += time.process_time() - c
-        outs["facecast"] = (ls.track.select1, ls.track.faps[:, 3] / 420.0)
+        outs["facecast"] = (ls.track.select1, ls.track.faps[:, 3] / JAW_FULL)
         outs["facecast-nocoart"] = (ls.visemes, ls.weights * OPENING[VISEME_CLASS[ls.visemes]])
         c = time.process_time()
-        v, jaw = run_live(x, sr)
+        jaw = np.array([s.faps[3] for s in run_live(x, sr)])
         cpu["facecast-live"] += time.process_time() - c
-        outs["facecast-live"] = (v, jaw / 420.0)
+        v = np.array([s.viseme[0] for s in run_live(x, sr, fap1=True)])
+        outs["facecast-live"] = (v, jaw / JAW_FULL)
         c = time.process_time()
         v, w = energy_visemes(x, sr)
         cpu["energy"] += time.process_time() - c

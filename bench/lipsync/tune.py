@@ -34,7 +34,8 @@ def main() -> int:
         x, sr = read_audio(u.audio)
         f = features_of(x, sr)
         pre.append((u, f, net.proba(f.k), len(x) / sr))
-    grid = {"zcr_fricative": (25.0, 31.0, 40.0), "weak_db": (12.0, 18.0, 24.0, 99.0),
+    grid = {"zcr_fricative": (25.0, 31.0, 40.0), "weak_fricative_db": (20.0, 30.0, 99.0),
+            "weak_db": (12.0, 18.0, 24.0, 99.0),
             "min_pause": (0.1, 0.2), "weak_viseme": (NN, None), "median": (3, 5, 7)}
     rows = []
     for values in itertools.product(*grid.values()):

@@ -9,32 +9,44 @@ import numpy as np
 from ..state import Animation, FaceState
 from .io import read_audio
 from .pipeline import LipSync, lipsync
-from .visemes import Calibration, Params
+from .visemes import Calibration, Params, viseme_table
 
 log = logging.getLogger(__name__)
 
 
-def track_states(ls: LipSync) -> list[FaceState]:
-    """One ``FaceState`` per output frame of ``ls.track`` (FAPs 3-60 of the lips and jaw, FAP 1)."""
+def track_states(ls: LipSync, fap1: bool = False) -> list[FaceState]:
+    """One ``FaceState`` per output frame of ``ls.track``.
+
+    Default: the coarticulated, intensity-scaled mouth as low-level FAPs (jaw 3, inner lip 4-13,
+    lip protrusion 16-17, outer lip 51-60) and ``viseme=None`` — decoders add FAP 1 to the
+    low-level FAPs, so sending both would count the mouth twice. ``fap1=True``: FAP 1 only (top
+    two visemes and their blend), for viseme-only consumers.
+    """
     tr = ls.track
     states = []
     for i in range(len(tr.t)):
-        blend = int(round(63 * float(tr.blend[i])))
-        states.append(FaceState(t=float(tr.t[i]), faps=tr.faps[i].copy(),
-                                viseme=(int(tr.select1[i]), int(tr.select2[i]), blend)))
+        if fap1:
+            blend = int(round(63 * float(tr.blend[i])))
+            states.append(FaceState(t=float(tr.t[i]),
+                                    viseme=(int(tr.select1[i]), int(tr.select2[i]), blend)))
+        else:
+            states.append(FaceState(t=float(tr.t[i]), faps=tr.faps[i].copy()))
     return states
 
 
 def load(path: str | Path, face=None, fps: float = 25.0, lookahead: float | None = None,
-         silence_db: float | None = None, max_db: float | None = None, **options) -> Animation:
+         silence_db: float | None = None, max_db: float | None = None, fap1: bool = False,
+         **options) -> Animation:
     """Decode and lip-sync an audio file.
 
     Args:
         path: ``.wav``/``.flac``/``.ogg`` (any rate, mono or multichannel, any sample format).
-        face: the target face (FAPs are in FAPU, so the output does not depend on it).
+        face: the target face; its own viseme shapes (``face.visemes``) are used if it has
+            them, else ``facecast.server.mpeg4.VISEMES``.
         fps: frame rate of the animation.
         lookahead: coarticulation look-ahead in seconds (None = free, the batch default).
         silence_db, max_db: explicit energy calibration (dB full scale); default: from the file.
+        fap1: emit FAP 1 (visemes) instead of low-level FAPs (see ``track_states``).
         options: other drivers' options are ignored (logged).
     Raises:
         InputError: unreadable or invalid audio.
@@ -51,9 +63,9 @@ def load(path: str | Path, face=None, fps: float = 25.0, lookahead: float | None
         cal = Calibration(auto.silence_db if silence_db is None else float(silence_db),
                           auto.max_db if max_db is None else float(max_db))
     ls = lipsync(x, sr, fps=float(fps), lookahead=lookahead, calibration=cal, params=Params(),
-                 where=str(path))
+                 where=str(path), table=viseme_table(face))
     log.info("%s: %.2f s of audio → %d frames at %g fps (silence %.1f dB, max %.1f dB)",
              Path(path).name, ls.duration, len(ls.track.t), fps, ls.calibration.silence_db,
              ls.calibration.max_db)
-    return Animation(fps=float(fps), states=track_states(ls), control_vertices=None,
+    return Animation(fps=float(fps), states=track_states(ls, fap1), control_vertices=None,
                      source=str(path))

@@ -22,12 +22,16 @@ from .io import MAX_RATE, MIN_RATE, StreamResampler, validate_pcm
 from .lpc import ANALYSIS_RATE, FRAME_LENGTH, HOP_LENGTH, ORDER, PREEMPHASIS, analyze_frames, \
     frame, preemphasis
 from .visemes import MIN_SILENCE_DB, NOISE_MARGIN_DB, SILENCE_RANGE_DB, Calibration, Params, \
-    coarticulate, label_frames, median_filter_proba
+    coarticulate, label_frames, median_filter_proba, viseme_table
 
 log = logging.getLogger(__name__)
 
 #: A gap in the media time larger than this restarts the analysis instead of filling with silence.
 MAX_GAP = 2.0
+
+
+def _fap1(tr, i: int) -> tuple[int, int, int]:
+    return int(tr.select1[i]), int(tr.select2[i]), int(round(63 * float(tr.blend[i])))
 
 
 class RunningCalibration:
@@ -65,13 +69,19 @@ class AudioLiveDriver:
             fixed delays is the coarticulation look-ahead ``coart_lookahead`` (whole 10 ms frames).
         fps: rate of the emitted face states (at ``t0 + k/fps``).
         calibration: fixed energy levels; None = estimated continuously from the stream.
+        fap1: emit the viseme as FAP 1 (``FaceState.viseme``) instead of low-level FAPs.
+
+    States carry the coarticulated mouth as low-level FAPs (jaw, inner and outer lips) and
+    ``viseme=None``: a decoder adds FAP 1 to the low-level FAPs, so sending both would count the
+    mouth twice. With ``fap1=True`` they carry FAP 1 only (top two visemes and their blend; no
+    intensity), for viseme-only consumers.
     """
 
     control_vertices = None
 
     def __init__(self, face=None, rate: float = 16000, lookahead: float = 0.05, fps: float = 50.0,
                  calibration: Calibration | None = None, params: Params | None = None,
-                 net: VowelNet | None = None) -> None:
+                 net: VowelNet | None = None, fap1: bool = False) -> None:
         if not (MIN_RATE <= float(rate) <= MAX_RATE):
             raise InputError(f"sample rate {rate} Hz is outside {MIN_RATE}-{MAX_RATE} Hz",
                              where="rate")
@@ -80,11 +90,13 @@ class AudioLiveDriver:
         if lookahead < 0:
             raise InputError(f"lookahead must be >= 0 s, got {lookahead}", where="lookahead")
         self.face = face
+        self.table = viseme_table(face)
         self.rate = float(rate)
         self.fps = float(fps)
         self.params = params or Params()
         self.net = net or default_net()
         self.fixed_calibration = calibration
+        self.fap1 = fap1
         self.hop = HOP_LENGTH
         self.n_frame = int(round(FRAME_LENGTH * ANALYSIS_RATE))
         self.n_hop = int(round(HOP_LENGTH * ANALYSIS_RATE))
@@ -251,10 +263,10 @@ class AudioLiveDriver:
         vis, w = label_frames(self._e[lo:lo + len(proba)], self._z[lo:lo + len(proba)], proba, cal,
                               p, hop=self.hop, lookahead=0.0, at_stream_start=(s == 0))
         frame_t = (s + np.arange(len(vis))) * self.hop
-        tr = coarticulate(frame_t, vis, w, t_rel, p, hop=self.hop, lookahead=self.coart_lookahead)
+        tr = coarticulate(frame_t, vis, w, t_rel, p, hop=self.hop, lookahead=self.coart_lookahead,
+                          table=self.table)
         states = [FaceState(t=float(self.t0 + tr.t[i]), faps=tr.faps[i].copy(),
-                            viseme=(int(tr.select1[i]), int(tr.select2[i]),
-                                    int(round(63 * float(tr.blend[i])))))
+                            viseme=_fap1(tr, i) if self.fap1 else None)
                   for i in range(len(ks))]
         self._next_out = k_end
         # forget features no future output needs

@@ -34,24 +34,26 @@ def features_of(x: np.ndarray, sr: float) -> Features:
 
 def lipsync(x: np.ndarray, sr: float, *, fps: float = 100.0, lookahead: float | None = None,
             calibration: Calibration | None = None, params: Params | None = None,
-            net: VowelNet | None = None, where: str = "audio") -> LipSync:
+            net: VowelNet | None = None, where: str = "audio",
+            table: np.ndarray | None = None) -> LipSync:
     """Lip-sync ``x`` (samples, mono or ``(n, channels)``) at ``sr`` Hz.
 
     Args:
         fps: output frame rate of ``track`` (frames at ``i / fps`` seconds).
         lookahead: coarticulation/pause look-ahead in seconds; None = free (batch).
         calibration: energy levels; None = calibrated from this signal (``visemes.calibrate``).
+        table: viseme → FAP targets ``(15, 69)`` (default ``visemes.viseme_table()``).
     """
     x = validate_pcm(x, sr, where=where)
     net = net or default_net()
     f = features_of(x, sr)
     return track_of(f, net.proba(f.k), len(x) / float(sr), fps=fps, lookahead=lookahead,
-                    calibration=calibration, params=params)
+                    calibration=calibration, params=params, table=table)
 
 
 def track_of(f: Features, proba: np.ndarray, duration: float, *, fps: float = 100.0,
              lookahead: float | None = None, calibration: Calibration | None = None,
-             params: Params | None = None) -> LipSync:
+             params: Params | None = None, table: np.ndarray | None = None) -> LipSync:
     """The rest of ``lipsync`` from features and raw network outputs ``proba (T, 5)``."""
     params = params or Params()
     proba = median_filter_proba(proba, params.median)
@@ -61,5 +63,5 @@ def track_of(f: Features, proba: np.ndarray, duration: float, *, fps: float = 10
                           lookahead=None if lookahead is None else 0.0)
     n_out = int(np.floor(duration * fps + 1e-9)) + 1 if len(f) else 0
     track = coarticulate(f.times, vis, w, np.arange(n_out) / fps, params, hop=f.hop,
-                         lookahead=lookahead)
+                         lookahead=lookahead, table=table)
     return LipSync(f, proba, vis, w, cal, track, duration)

@@ -10,10 +10,11 @@ window, so both give the same frames when they use the same calibration and look
 2. ``coarticulate``: Cohen–Massaro dominance functions blend the segments (runs of equal visemes):
    segment s with viseme v has dominance ``alpha_v · exp(-theta_v · d_s(t))`` at time t, d_s = the
    distance from t to the segment (0 inside it); the FAPs at t are the dominance-weighted mean of
-   the segments' targets ``VISEME_FAPS[v] · w`` (w = intensity at the segment's frame nearest t),
+   the segments' targets ``table[v] · w`` (w = intensity at the segment's frame nearest t),
    and the reported viseme is the one with the largest dominance. Only frames up to ``lookahead``
    seconds after t are seen (free in batch).
-3. ``VISEME_FAPS``: the viseme → low-level FAP table (FAPU units) that facecast's audio path uses.
+3. ``viseme_table``: the viseme → low-level FAP table (FAPU units): ``facecast.server.mpeg4.VISEMES``
+   (or the face's own), so mouth shapes have one source of truth.
 
 Viseme ids are MPEG-4 FAP 1 ids (mpeg4-reference §4.1): 0 sil, 1 PP, 2 FF, 3 TH, 4 DD, 5 kk,
 6 CH, 7 SS, 8 nn, 9 RR, 10 aa, 11 E, 12 ih, 13 oh, 14 ou.
@@ -34,46 +35,20 @@ VISEME_NAMES = ("sil", "PP", "FF", "TH", "DD", "kk", "CH", "SS", "nn", "RR", "aa
 VOWEL_VISEMES = np.array([AA, E, IH, OH, OU])
 
 
-def _table() -> np.ndarray:
-    """``(15, 69)`` FAP values per viseme at full intensity (index k = FAP k; MNS/MW units).
+def viseme_table(face=None) -> np.ndarray:
+    """``(15, 69)`` viseme → low-level FAP targets (FAPU, full strength): the face's own table
+    (``face.visemes``) if it has one, else ``facecast.server.mpeg4.VISEMES`` — the single source
+    of truth for mouth shapes, shared with the FAP rig."""
+    table = getattr(face, "visemes", None)
+    if table is None:
+        from ..mpeg4.highlevel import VISEMES
 
-    Inner-lip FAPs 4-13 are mirrored on the outer-lip FAPs 51-60. FAP 3 (open_jaw) moves the
-    jaw only, so opening shapes also lower the lower lip (FAPs 5, 10, 11 negative = down).
-    """
-    # columns: jaw3, t_mid4(down+), b_mid5(up+), stretch6/7(+ = outwards), t_lm/rm8/9(down+),
-    #          b_lm/rm10/11(up+), corners12/13(up+), push_b16, push_t17
-    rows = {
-        SIL: (0, 0, 0, 0, 0, 0, 0, 0, 0),
-        PP: (0, 60, 120, -20, 50, 100, 0, 20, 20),
-        FF: (60, -30, 160, 20, -20, 120, 0, -120, 0),
-        TH: (120, -40, -80, 30, -30, -60, 0, 0, 0),
-        DD: (160, -40, -120, 40, -30, -100, 0, 0, 0),
-        KK: (200, -40, -160, 30, -30, -140, 0, 0, 0),
-        CH: (100, -80, -80, -80, -60, -60, 0, 160, 160),
-        SS: (60, -50, -60, 90, -40, -50, 20, 0, 0),
-        NN: (150, -30, -120, 30, -20, -100, 0, 0, 0),
-        RR: (130, -50, -110, -60, -40, -90, 0, 100, 80),
-        AA: (420, -80, -420, 50, -60, -360, 0, 0, 0),
-        E: (260, -70, -260, 110, -50, -220, 20, 0, 0),
-        IH: (140, -50, -130, 180, -40, -110, 50, 0, 0),
-        OH: (320, -50, -320, -150, -40, -270, 0, 150, 120),
-        OU: (150, -30, -110, -260, -20, -90, 0, 250, 220),
-    }
-    t = np.zeros((15, N_FAPS + 1))
-    for v, (jaw, tm, bm, st, tlm, blm, cor, pb, pt) in rows.items():
-        t[v, 3] = jaw
-        t[v, 4], t[v, 5] = tm, bm
-        t[v, 6] = t[v, 7] = st
-        t[v, 8] = t[v, 9] = tlm
-        t[v, 10] = t[v, 11] = blm
-        t[v, 12] = t[v, 13] = cor
-        t[v, 16], t[v, 17] = pb, pt
-    t[:, 51:61] = t[:, 4:14]  # outer lip contour follows the inner one
-    return t
+        table = VISEMES
+    table = np.asarray(table, dtype=np.float64)
+    if table.shape != (15, N_FAPS + 1):
+        raise ValueError(f"viseme table must be (15, {N_FAPS + 1}), not {table.shape}")
+    return table
 
-
-#: ``(15, 69)`` viseme → low-level FAP targets (this module is their single source of truth).
-VISEME_FAPS = _table()
 
 #: Cohen–Massaro dominance per viseme: (alpha, theta 1/s). Closures and labiodentals dominate
 #: strongly (the lips must meet), vowels moderately, tongue consonants and silence weakly.
@@ -141,6 +116,8 @@ class Params:
     Attributes:
         zcr_fricative: zero crossings per 10 ms above which a non-vowel frame is a fricative
             (source: unvoiced 49, voiced 14 → midpoint ~31).
+        weak_fricative_db: fricatives more than this far below the maximum are labiodental
+            (f, v, th: weak) → ``FF``; louder ones are sibilants (EXT; 99 = off).
         weak_db: frames more than this far below the maximum (and above silence) that are not
             fricatives are weak voiced consonants (nasals, liquids, voiced closures) → ``nn``.
         median: length of the median filter over the vowel network's outputs, frames.
@@ -152,6 +129,7 @@ class Params:
     """
 
     zcr_fricative: float = 31.0
+    weak_fricative_db: float = 99.0
     weak_db: float = 18.0
     median: int = 5
     min_pause: float = 0.15
@@ -197,7 +175,8 @@ def label_frames(energy_db: np.ndarray, zcr: np.ndarray, proba: np.ndarray, cal:
     vis = VOWEL_VISEMES[np.argmax(proba, axis=1)] if T else np.zeros(0, dtype=np.int64)
     if params.weak_viseme is not None:
         vis = np.where(weak, params.weak_viseme, vis)
-    vis = np.where(fric, params.fricative_viseme, vis)
+    vis = np.where(fric, np.where(e < cal.max_db - params.weak_fricative_db, FF,
+                                  params.fricative_viseme), vis)
     w = np.where(fric, np.maximum(w, 0.5), w)
     # quiet runs: silence if long enough (looking at most `lookahead` ahead), else a lip closure
     n_pause = int(round(params.min_pause / hop))
@@ -234,11 +213,13 @@ class Track:
 
 
 def coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np.ndarray,
-                 params: Params, *, hop: float, lookahead: float | None = None) -> Track:
+                 params: Params, *, hop: float, lookahead: float | None = None,
+                 table: np.ndarray | None = None) -> Track:
     """Blend per-frame targets with dominance functions and sample at ``t_out (N,)`` seconds.
 
     ``frame_t (T,)`` must be evenly spaced by ``hop`` seconds. Frames with
-    ``frame_t > t + lookahead`` do not contribute to time t (None = no limit).
+    ``frame_t > t + lookahead`` do not contribute to time t (None = no limit). ``table``: viseme
+    → FAP targets (default ``viseme_table()``).
     """
     frame_t = np.asarray(frame_t, dtype=np.float64)
     t_out = np.asarray(t_out, dtype=np.float64)
@@ -271,7 +252,8 @@ def coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np.
     dom = np.where(rep, alpha * np.exp(-theta * np.abs(dt)), 0.0)
     total = dom.sum(axis=1)
     total = np.where(total > 0, total, 1.0)
-    targets = VISEME_FAPS[v] * w[jc][..., None]           # (N, W, 69)
+    table = viseme_table() if table is None else table
+    targets = table[v] * w[jc][..., None]           # (N, W, 69)
     faps = np.einsum("nw,nwk->nk", dom, targets) / total[:, None]
     mass = np.zeros((N, 15))
     np.add.at(mass, (np.repeat(np.arange(N), dom.shape[1]), v.ravel()), dom.ravel())
