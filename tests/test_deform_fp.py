@@ -349,3 +349,13 @@ def test_bounded_distances_are_exact_and_chunking_does_not_matter(grid):
         assert np.array_equal(ids, ids2) and np.array_equal(d, d2)
         assert np.array_equal(ids, np.flatnonzero(row < lim))
         np.testing.assert_allclose(d, row[ids])
+
+
+def test_no_controls_give_an_empty_operator(grid):
+    from facecast.server.deform.rbf import rbf_operator
+
+    verts, tris, _, _, _ = grid
+    for build in (feature_point_operator, rbf_operator):
+        op = build(verts, tris, np.zeros(0, int))
+        assert op.n_controls == 0 and op.n_vertices == len(verts)
+        assert np.all(op.apply(np.zeros((0, 3))) == 0)

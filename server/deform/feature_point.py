@@ -219,7 +219,7 @@ def feature_point_operator(
     neighbours: dict[tuple, list[tuple[np.ndarray, np.ndarray]]] = {}
     limits = np.zeros(len(sites))
     for pat in patterns:
-        members = np.flatnonzero(np.array(pat) & site_ok)
+        members = np.flatnonzero(np.array(pat, dtype=bool) & site_ok)
         vor = voronoi(graph, sites[members])
         i, j = members[vor.pairs[:, 0]], members[vor.pairs[:, 1]]
         dij = vor.pair_distance
@@ -250,7 +250,7 @@ def feature_point_operator(
 
     axis_entries: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for pat, lists in neighbours.items():
-        members = np.flatnonzero(np.array(pat) & site_ok)
+        members = np.flatnonzero(np.array(pat, dtype=bool) & site_ok)
         rows, cols, vals = [], [], []
         for s in members:
             nb, nb_d = lists[s]
