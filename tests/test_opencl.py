@@ -99,6 +99,16 @@ def test_many_controls_use_wider_ids(ctx, rng):
     check_all(d, NumpyDeformer(rest, tri, groups, op), rng, 80)
 
 
+@pytest.mark.parametrize("dense", [False, True])
+def test_float8_slices_match_too(ctx, rng, dense):
+    rest, tri, groups = random_mesh(rng, 37)
+    op = (Operator(37, 9, dense=rng.standard_normal((37, 9)).astype(np.float32)) if dense
+          else random_sparse(rng, 37, 9))
+    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx, slice_size=8)
+    assert d.packed.slice == 8
+    check_all(d, NumpyDeformer(rest, tri, groups, op), rng, 80)
+
+
 def test_copying_readback_path_matches(ctx, rng):
     rest, tri, groups = random_mesh(rng, 200)
     op = random_sparse(rng, 200, 30)
@@ -182,7 +192,7 @@ def test_neighbours_sharing_controls_share_columns(rng):
     op = Operator(V, K, indptr=indptr, indices=indices, weights=rng.random((3 * V, 3)).astype(np.float32))
     p = cl_backend.pack_operator(op)
     assert p.shared_fraction == 1.0
-    assert p.ids.size == 3 * (V // 8)
+    assert p.ids.size == 3 * (V // cl_backend.SLICE)
     D = rng.standard_normal((K, 3)).astype(np.float32)
     np.testing.assert_allclose(np.einsum("vka,ka->va", p.to_dense(), D), op.apply(D), atol=1e-5)
 

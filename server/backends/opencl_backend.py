@@ -6,16 +6,16 @@ device (PoCL) device memory is host memory, so kernels read the parameters from,
 vertices straight into, NumPy arrays (``CL_MEM_USE_HOST_PTR``): no upload or read-back copies. On
 other devices the vertices are copied back from a resident buffer.
 
-One work-item deforms a *slice* of 8 consecutive vertices as float8 vectors: ``u = B·D``, plus
+One work-item deforms a *slice* of 16 consecutive vertices as float16 vectors: ``u = B·D``, plus
 the rest position, then its rigid transform (jaw, eyes, head), all in one kernel; batches loop
 over frames inside the kernel, so a slice's operator stays in L1 from frame to frame.
 
-Device format of a sparse operator (``pack_operator``): per slice, columns of 8 weights (one per
+Device format of a sparse operator (``pack_operator``): per slice, columns of 16 weights (one per
 vertex; three planes when the operator's axis columns differ, else one). A *shared* slice stores
 one control id per column: neighbouring vertices are moved by the same feature points, so the
-union of the 8 rows is rarely wider than the longest row (100% of the slices of the built-in
-500k head), and each column costs one ``D`` load for 8 vertices. Other slices are ELL (8 ids per
-column). Ids are ``uchar`` for ``K < 256`` (else ``ushort``/``uint``); ELL padding points at an
+union of the 16 rows is rarely wider than the longest row (100% of the slices of the built-in
+500k head, with 1.12 stored weights per non-zero), and each column costs one ``D`` load for 16
+vertices. Other slices are ELL (16 ids per column). Ids are ``uchar`` for ``K < 256`` (else ``ushort``/``uint``); ELL padding points at an
 extra all-zero control ``K``; shared columns hold zero weights for vertices that do not use the
 control. A dense operator (RBF, linear shell) is K shared columns per slice. Weights stay float32,
 so results equal NumPy's to float32 rounding (different summation order and FMA).
@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 import logging
 import threading
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,9 +36,9 @@ from .select import context_label, default_context, probe_devices  # noqa: F401 
 
 log = logging.getLogger(__name__)
 
-#: Consecutive vertices that share one ELL width; one work-item deforms one slice (fixed: the
-#: kernel works on them as float8 vectors).
-SLICE = 8
+#: Vertices per slice: one work-item deforms one slice as float16 vectors (two AVX2 registers,
+#: two independent chains). 8 (float8) also works; 16 measured 10-20% less CPU per frame here.
+SLICE = 16
 #: Work-group size (in slices) of the deform kernel; in vertices for the others.
 LOCAL_SLICES = 64
 LOCAL_SIZE = 128
@@ -46,30 +47,41 @@ MINMAX_ITEMS = 64
 #: Floats per rigid transform on the device (4 float4 columns of the 3x4 matrix).
 T_FLOATS = 16
 
-KERNEL_SOURCE = r"""
-// Build defines: AXES (1|3), IDX_T (uchar|ushort|uint), DENSE (0|1).
+def _deform_source(S: int) -> str:
+    """OpenCL C of the ``deform`` kernel for slices of ``S`` (8 or 16) vertices."""
+    hx = "0123456789abcdef"
+    lanes = range(S)
 
-// One work-item deforms one slice of SLICE (= 8) consecutive vertices in frames 0..n_frames-1
-// (the slice's operator entries stay in L1 from one frame to the next):
-// out[f, v] = T[f, g[v]] . (rest[v] + sum_j w[v, j] * D[f, id[v, j]]).
-// params per frame f (pstride floats): n_groups transforms as 4 float4 columns, then D as float4
-// rows ((K + 1) rows, the last one zero). rest is SoA per slice (x[8] y[8] z[8]); sgroup[s] is the
-// slice's rigid group, or 255 when its vertices differ (then group[v] is read per vertex).
+    def vec(parts: list[str]) -> str:
+        return f"(VF)({', '.join(parts)})"
+
+    inter = [f"o{c}.s{hx[v]}" for v in lanes for c in "xyz"]  # AoS order of the slice's output
+    stores = "\n        ".join(f"VSTORE({vec(inter[i * S:(i + 1) * S])}, {i}, o);" for i in range(3))
+    tail = "\n        ".join(f"if ({i} < n) o[{i}] = {x};" for i, x in enumerate(inter))
+    gathers = "\n            ".join(f"const float4 d{l} = D[id[{l}]];" for l in lanes)
+    dx, dy, dz = (vec([f"d{l}.{c}" for l in lanes]) for c in "xyz")
+    return f"""
+#define SN {S}
+#define VF float{S}
+#define VI int{S}
+#define VLOAD vload{S}
+#define VSTORE vstore{S}
+#define CONVERT_VI convert_int{S}
 
 // (ox, oy, oz) = the 3x4 transform at T (4 float4 columns) applied to (px, py, pz).
-#define TRANSFORM(T, ox, oy, oz) do { \
-        const float4 c0 = (T)[0], c1 = (T)[1], c2 = (T)[2], c3 = (T)[3]; \
-        ox = fma((float8)(c0.x), px, fma((float8)(c1.x), py, fma((float8)(c2.x), pz, (float8)(c3.x)))); \
-        oy = fma((float8)(c0.y), px, fma((float8)(c1.y), py, fma((float8)(c2.y), pz, (float8)(c3.y)))); \
-        oz = fma((float8)(c0.z), px, fma((float8)(c1.z), py, fma((float8)(c2.z), pz, (float8)(c3.z)))); \
-    } while (0)
-// Store the components of q that fall below n (o[b + i] for b + i < n).
-#define TAIL8(q, b) \
-    if ((b) + 0 < n) o[(b) + 0] = q.s0; if ((b) + 1 < n) o[(b) + 1] = q.s1; \
-    if ((b) + 2 < n) o[(b) + 2] = q.s2; if ((b) + 3 < n) o[(b) + 3] = q.s3; \
-    if ((b) + 4 < n) o[(b) + 4] = q.s4; if ((b) + 5 < n) o[(b) + 5] = q.s5; \
-    if ((b) + 6 < n) o[(b) + 6] = q.s6; if ((b) + 7 < n) o[(b) + 7] = q.s7;
+#define TRANSFORM(T, ox, oy, oz) do {{ \\
+        const float4 c0 = (T)[0], c1 = (T)[1], c2 = (T)[2], c3 = (T)[3]; \\
+        ox = fma((VF)(c0.x), px, fma((VF)(c1.x), py, fma((VF)(c2.x), pz, (VF)(c3.x)))); \\
+        oy = fma((VF)(c0.y), px, fma((VF)(c1.y), py, fma((VF)(c2.y), pz, (VF)(c3.y)))); \\
+        oz = fma((VF)(c0.z), px, fma((VF)(c1.z), py, fma((VF)(c2.z), pz, (VF)(c3.z)))); \\
+    }} while (0)
 
+// One work-item deforms one slice of SN consecutive vertices, as SN-wide vectors, in frames
+// 0..n_frames-1 (the slice's operator stays in L1 from one frame to the next):
+// out[f, v] = T[f, g[v]] . (rest[v] + sum_j w[v, j] * D[f, id[v, j]]).
+// params per frame (pstride4 float4): n_groups transforms as 4 float4 columns, then D as float4
+// rows ((K + 1) rows, the last one zero). rest is SoA per slice (x[SN] y[SN] z[SN]); sgroup[s] is
+// the slice's rigid group, or 255 when its vertices differ (then group[v] is read per vertex).
 __kernel void deform(const uint n_vertices,
                      const uint n_controls,
                      __global const uint *col_ptr,
@@ -84,96 +96,95 @@ __kernel void deform(const uint n_vertices,
                      const uint n_groups,
                      const uint n_frames,
                      __global float *out)
-{
+{{
     const uint s = get_global_id(0);
-    const uint v0 = s * 8;
+    const uint v0 = s * SN;
     if (v0 >= n_vertices) return;
-    for (uint f = 0; f < n_frames; ++f) {
+    for (uint f = 0; f < n_frames; ++f) {{
     __global const float4 *P = params + (size_t)f * pstride4;
     __global const float4 *D = P + 4 * n_groups;
-    // u = B.D for the slice's 8 vertices, as three float8 (x, y, z of each vertex).
-    float8 sx = (float8)(0.0f), sy = (float8)(0.0f), sz = (float8)(0.0f);
+    VF sx = (VF)(0.0f), sy = (VF)(0.0f), sz = (VF)(0.0f);  // u = B.D of the slice
 #if DENSE
-    for (uint j = 0; j < n_controls; ++j) {
+    for (uint j = 0; j < n_controls; ++j) {{
         const float4 d = D[j];
-        const float8 wj = vload8(0, w + ((size_t)s * n_controls + j) * 8);
-        sx = fma(wj, (float8)(d.x), sx);
-        sy = fma(wj, (float8)(d.y), sy);
-        sz = fma(wj, (float8)(d.z), sz);
-    }
+        const VF wj = VLOAD(0, w + ((size_t)s * n_controls + j) * SN);
+        sx = fma(wj, (VF)(d.x), sx);
+        sy = fma(wj, (VF)(d.y), sy);
+        sz = fma(wj, (VF)(d.z), sz);
+    }}
 #else
     const uint c0 = col_ptr[s], width = col_ptr[s + 1] - c0;
     const uint i0 = id_ptr[s];
-    __global const float *wc = w + (size_t)c0 * (8 * AXES);
-    if (id_ptr[s + 1] - i0 == width) {
-        // Shared columns: column j is one control for all 8 vertices (zero weight where unused).
-        for (uint j = 0; j < width; ++j) {
+    __global const float *wc = w + (size_t)c0 * (SN * AXES);
+    if (id_ptr[s + 1] - i0 == width) {{
+        // Shared columns: column j is one control for all SN vertices (zero weight where unused).
+        for (uint j = 0; j < width; ++j) {{
             const float4 d = D[ids[i0 + j]];
-            __global const float *wj = wc + j * (8 * AXES);
+            __global const float *wj = wc + j * (SN * AXES);
 #if AXES == 3
-            sx = fma(vload8(0, wj), (float8)(d.x), sx);
-            sy = fma(vload8(1, wj), (float8)(d.y), sy);
-            sz = fma(vload8(2, wj), (float8)(d.z), sz);
+            sx = fma(VLOAD(0, wj), (VF)(d.x), sx);
+            sy = fma(VLOAD(1, wj), (VF)(d.y), sy);
+            sz = fma(VLOAD(2, wj), (VF)(d.z), sz);
 #else
-            const float8 w8 = vload8(0, wj);
-            sx = fma(w8, (float8)(d.x), sx);
-            sy = fma(w8, (float8)(d.y), sy);
-            sz = fma(w8, (float8)(d.z), sz);
+            const VF wv = VLOAD(0, wj);
+            sx = fma(wv, (VF)(d.x), sx);
+            sy = fma(wv, (VF)(d.y), sy);
+            sz = fma(wv, (VF)(d.z), sz);
 #endif
-        }
-    } else {
-        // ELL columns: entry j of each vertex, its own control.
-        for (uint j = 0; j < width; ++j) {
-            __global const IDX_T *id = ids + i0 + j * 8;
-            const float4 d0 = D[id[0]], d1 = D[id[1]], d2 = D[id[2]], d3 = D[id[3]];
-            const float4 d4 = D[id[4]], d5 = D[id[5]], d6 = D[id[6]], d7 = D[id[7]];
-            __global const float *wj = wc + j * (8 * AXES);
+        }}
+    }} else {{
+        // ELL columns: entry j of each vertex, each with its own control.
+        for (uint j = 0; j < width; ++j) {{
+            __global const IDX_T *id = ids + i0 + j * SN;
+            {gathers}
+            __global const float *wj = wc + j * (SN * AXES);
 #if AXES == 3
-            sx = fma(vload8(0, wj), (float8)(d0.x, d1.x, d2.x, d3.x, d4.x, d5.x, d6.x, d7.x), sx);
-            sy = fma(vload8(1, wj), (float8)(d0.y, d1.y, d2.y, d3.y, d4.y, d5.y, d6.y, d7.y), sy);
-            sz = fma(vload8(2, wj), (float8)(d0.z, d1.z, d2.z, d3.z, d4.z, d5.z, d6.z, d7.z), sz);
+            sx = fma(VLOAD(0, wj), {dx}, sx);
+            sy = fma(VLOAD(1, wj), {dy}, sy);
+            sz = fma(VLOAD(2, wj), {dz}, sz);
 #else
-            const float8 w8 = vload8(0, wj);
-            sx = fma(w8, (float8)(d0.x, d1.x, d2.x, d3.x, d4.x, d5.x, d6.x, d7.x), sx);
-            sy = fma(w8, (float8)(d0.y, d1.y, d2.y, d3.y, d4.y, d5.y, d6.y, d7.y), sy);
-            sz = fma(w8, (float8)(d0.z, d1.z, d2.z, d3.z, d4.z, d5.z, d6.z, d7.z), sz);
+            const VF wv = VLOAD(0, wj);
+            sx = fma(wv, {dx}, sx);
+            sy = fma(wv, {dy}, sy);
+            sz = fma(wv, {dz}, sz);
 #endif
-        }
-    }
+        }}
+    }}
 #endif
-    __global const float *r = rest + (size_t)s * 24;
-    const float8 px = vload8(0, r) + sx;
-    const float8 py = vload8(1, r) + sy;
-    const float8 pz = vload8(2, r) + sz;
-    float8 ox, oy, oz;
+    __global const float *r = rest + (size_t)s * (3 * SN);
+    const VF px = VLOAD(0, r) + sx, py = VLOAD(1, r) + sy, pz = VLOAD(2, r) + sz;
+    VF ox, oy, oz;
     const uchar g = sgroup[s];
-    if (g != 255) {
+    if (g != 255) {{
         TRANSFORM(P + 4 * g, ox, oy, oz);
-    } else {
+    }} else {{
         // Vertices of several rigid groups: every group's transform, each lane keeps its own.
-        const int8 g8 = convert_int8(vload8(0, group + v0));
-        ox = oy = oz = (float8)(0.0f);
-        for (uint k = 0; k < n_groups; ++k) {
-            float8 ax, ay, az;
+        const VI gv = CONVERT_VI(VLOAD(0, group + v0));
+        ox = oy = oz = (VF)(0.0f);
+        for (uint k = 0; k < n_groups; ++k) {{
+            VF ax, ay, az;
             TRANSFORM(P + 4 * k, ax, ay, az);
-            const int8 m = g8 == (int8)((int)k);
+            const VI m = gv == (VI)((int)k);
             ox = select(ox, ax, m);
             oy = select(oy, ay, m);
             oz = select(oz, az, m);
-        }
-    }
-    const float8 q0 = (float8)(ox.s0, oy.s0, oz.s0, ox.s1, oy.s1, oz.s1, ox.s2, oy.s2);
-    const float8 q1 = (float8)(oz.s2, ox.s3, oy.s3, oz.s3, ox.s4, oy.s4, oz.s4, ox.s5);
-    const float8 q2 = (float8)(oy.s5, oz.s5, ox.s6, oy.s6, oz.s6, ox.s7, oy.s7, oz.s7);
+        }}
+    }}
     __global float *o = out + ((size_t)f * n_vertices + v0) * 3;
-    if (v0 + 8 <= n_vertices) {
-        vstore8(q0, 0, o); vstore8(q1, 1, o); vstore8(q2, 2, o);
-    } else {  // the last, partial slice: 3 * (n_vertices - v0) floats
+    if (v0 + SN <= n_vertices) {{
+        {stores}
+    }} else {{  // the last, partial slice: 3 * (n_vertices - v0) floats
         const uint n = 3 * (n_vertices - v0);
-        TAIL8(q0, 0) TAIL8(q1, 8) TAIL8(q2, 16)
-    }
-    }
-}
+        {tail}
+    }}
+    }}
+}}
+"""
+
+
+KERNEL_SOURCE = r"""
+// Build defines: AXES (1|3), IDX_T (uchar|ushort|uint), DENSE (0|1); the deform kernel comes
+// from _deform_source(SLICE).
 
 // Cross product per triangle (length = 2 * area), for the area-weighted vertex normals.
 __kernel void face_normals(const uint n_faces, __global const int *tri,
@@ -235,10 +246,11 @@ __kernel void quantize(const uint n_vertices, __global const float *verts,
 class PackedOperator:
     """An ``Operator`` in the device's format (see the module docstring).
 
-    Slice ``s`` (vertices ``8s .. 8s+7``) owns columns ``col_ptr[s] .. col_ptr[s+1]`` of ``weights``
-    (``8 * axes`` floats per column: lane-major, one plane per axis when ``axes == 3``) and ids
-    ``id_ptr[s] .. id_ptr[s+1]``: one per column for a *shared* slice (each column is one control
-    for all 8 vertices), or 8 per column for an *ELL* slice (column j is entry j of each vertex;
+    Slice ``s`` (vertices ``S*s .. S*s+S-1``, ``S = slice``) owns columns ``col_ptr[s] ..
+    col_ptr[s+1]`` of ``weights`` (``S * axes`` floats per column: lane-major, one plane per axis
+    when ``axes == 3``) and ids ``id_ptr[s] .. id_ptr[s+1]``: one per column for a *shared* slice
+    (each column is one control for all S vertices), or S per column for an *ELL* slice (column j
+    is entry j of each vertex;
     padding points at the all-zero control ``K``). A dense operator is K shared columns per slice
     with implicit ids (``col_ptr``/``id_ptr``/``ids`` unused).
     """
@@ -246,6 +258,7 @@ class PackedOperator:
     n_vertices: int
     n_controls: int
     n_padded: int
+    slice: int
     dense: bool
     axes: int
     col_ptr: np.ndarray
@@ -259,7 +272,7 @@ class PackedOperator:
 
     @property
     def n_columns(self) -> int:
-        return int(self.weights.size // (8 * self.axes))
+        return int(self.weights.size // (self.slice * self.axes))
 
     @property
     def shared_fraction(self) -> float:
@@ -279,19 +292,19 @@ class PackedOperator:
 
     def to_dense(self) -> np.ndarray:
         """``(V, K, 3) float32`` dense weights read back from the packed layout (for checks)."""
-        K, A = self.n_controls, self.axes
+        K, A, S = self.n_controls, self.axes, self.slice
         out = np.zeros((self.n_padded, K + 1, 3), np.float32)
-        w = self.weights.reshape(-1, A, 8)
-        for s in range(self.n_padded // 8):
-            lanes = np.arange(8) + 8 * s
+        w = self.weights.reshape(-1, A, S)
+        for s in range(self.n_padded // S):
+            lanes = np.arange(S) + S * s
             if self.dense:
-                cols, ids = s * K + np.arange(K), np.arange(K)[:, None].repeat(8, 1)
+                cols, ids = s * K + np.arange(K), np.arange(K)[:, None].repeat(S, 1)
             else:
                 c0, c1 = int(self.col_ptr[s]), int(self.col_ptr[s + 1])
                 i0, i1 = int(self.id_ptr[s]), int(self.id_ptr[s + 1])
                 cols = np.arange(c0, c1)
                 ids = self.ids[i0:i1].astype(np.int64)
-                ids = ids[:, None].repeat(8, 1) if i1 - i0 == c1 - c0 else ids.reshape(-1, 8)
+                ids = ids[:, None].repeat(S, 1) if i1 - i0 == c1 - c0 else ids.reshape(-1, S)
             for j, c in enumerate(cols):
                 for a in range(3):
                     np.add.at(out, (lanes, ids[j], a), w[c, min(a, A - 1)])
@@ -306,14 +319,14 @@ def _id_dtype(n_ids: int) -> np.dtype:
 
 
 #: A slice is stored as shared columns when that needs at most this many times the columns of
-#: ELL (neighbouring vertices mostly share their controls: on the built-in head 98% of slices
-#: need no extra column). Shared columns cost one D load per column instead of eight.
+#: ELL (neighbouring vertices mostly share their controls: on the built-in 500k head every slice
+#: qualifies). Shared columns cost one D load per column instead of one per vertex.
 SHARED_MAX_RATIO = 1.5
 
 
-def pack_operator(op: Operator) -> PackedOperator:
-    """Convert ``op`` to the device format (pure NumPy, vectorised)."""
-    V, K, S = op.n_vertices, op.n_controls, SLICE
+def pack_operator(op: Operator, slice_size: int = SLICE) -> PackedOperator:
+    """Convert ``op`` to the device format for slices of ``slice_size`` (pure NumPy, vectorised)."""
+    V, K, S = op.n_vertices, op.n_controls, slice_size
     n_slices = max(1, -(-V // S))
     Vp = n_slices * S
     id_dtype = _id_dtype(K + 1)
@@ -323,7 +336,7 @@ def pack_operator(op: Operator) -> PackedOperator:
         B[:V] = op.dense
         w = np.ascontiguousarray(B.reshape(n_slices, S, K).transpose(0, 2, 1)).ravel()
         z = np.zeros(1, np.uint32)
-        return PackedOperator(V, K, Vp, True, 1, z, z, np.zeros(1, id_dtype), w)
+        return PackedOperator(V, K, Vp, S, True, 1, z, z, np.zeros(1, id_dtype), w)
     W = op.weights
     same = bool(np.array_equal(W[:, 0], W[:, 1]) and np.array_equal(W[:, 0], W[:, 2]))
     A = 1 if same else 3
@@ -363,7 +376,7 @@ def pack_operator(op: Operator) -> PackedOperator:
     ids[id_ptr[s[eg]] + pos[eg] * S + lane[eg]] = k[eg]
     for a in range(A):
         np.add.at(w, base + a * S, W[:, a])
-    return PackedOperator(V, K, Vp, False, A, col_ptr.astype(np.uint32), id_ptr.astype(np.uint32), ids, w)
+    return PackedOperator(V, K, Vp, S, False, A, col_ptr.astype(np.uint32), id_ptr.astype(np.uint32), ids, w)
 
 
 def _aligned_empty(shape: tuple[int, ...], dtype, align: int = 128) -> np.ndarray:
@@ -399,8 +412,12 @@ def _program(ctx, defines: dict[str, object]):
         hit = _programs.get(key)
         if hit is None:
             opts = [f"-D{k}={v}" for k, v in sorted(defines.items())]
-            opts.append("-cl-fp32-correctly-rounded-divide-sqrt")
-            hit = (ctx, cl.Program(ctx, KERNEL_SOURCE).build(options=opts))
+            # -w: clang's notes that float16 arguments change the ABI without AVX-512 are harmless
+            opts += ["-cl-fp32-correctly-rounded-divide-sqrt", "-w"]
+            source = _deform_source(int(defines["SLICE"])) + KERNEL_SOURCE
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", cl.CompilerWarning)
+                hit = (ctx, cl.Program(ctx, source).build(options=opts))
             _programs[key] = hit  # holding ctx keeps id(ctx) unique
         return hit[1]
 
@@ -420,10 +437,12 @@ class OpenCLDeformer:
         context: a ``pyopencl.Context`` (default: ``default_context()``).
         zero_copy: let kernels read parameters from and write results into host arrays directly
             (default, and only possible, on CPU devices; False forces the copying path).
+        slice_size: vertices per work-item (8 or 16; see ``SLICE``).
     """
 
     def __init__(self, rest: np.ndarray, triangles: np.ndarray, rigid_group: np.ndarray,
-                 operator: Operator, context=None, *, zero_copy: bool | None = None):
+                 operator: Operator, context=None, *, zero_copy: bool | None = None,
+                 slice_size: int = SLICE):
         import pyopencl as cl
 
         self._cl = cl
@@ -451,9 +470,12 @@ class OpenCLDeformer:
         # Zero-copy only where device memory is host memory (PoCL and other CPU drivers).
         self.zero_copy = cpu if zero_copy is None else bool(zero_copy and cpu)
 
-        self.packed = pack_operator(operator)
+        if slice_size not in (8, 16):
+            raise ValueError("slice_size must be 8 or 16")
+        self.packed = pack_operator(operator, slice_size)
         p = self.packed
-        self._program = _program(ctx, {"AXES": p.axes, "IDX_T": p.idx_ctype, "DENSE": int(p.dense)})
+        S = p.slice
+        self._program = _program(ctx, {"AXES": p.axes, "IDX_T": p.idx_ctype, "DENSE": int(p.dense), "SLICE": S})
         self._k_deform = cl.Kernel(self._program, "deform")
         self._k_face_normals = cl.Kernel(self._program, "face_normals")
         self._k_vertex_normals = cl.Kernel(self._program, "vertex_normals")
@@ -461,20 +483,24 @@ class OpenCLDeformer:
         self._k_quantize = cl.Kernel(self._program, "quantize")
 
         ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-        self._col_ptr = cl.Buffer(ctx, ro, hostbuf=p.col_ptr)
-        self._id_ptr = cl.Buffer(ctx, ro, hostbuf=p.id_ptr)
-        self._ids = cl.Buffer(ctx, ro, hostbuf=p.ids)
-        self._w = cl.Buffer(ctx, ro, hostbuf=p.weights)
-        n_slices = p.n_padded // SLICE
+
+        def nonempty(a: np.ndarray) -> np.ndarray:  # OpenCL buffers cannot be empty
+            return a if a.size else np.zeros(1, a.dtype)
+
+        self._col_ptr = cl.Buffer(ctx, ro, hostbuf=nonempty(p.col_ptr))
+        self._id_ptr = cl.Buffer(ctx, ro, hostbuf=nonempty(p.id_ptr))
+        self._ids = cl.Buffer(ctx, ro, hostbuf=nonempty(p.ids))
+        self._w = cl.Buffer(ctx, ro, hostbuf=nonempty(p.weights))
+        n_slices = p.n_padded // S
         rest_p = np.zeros((p.n_padded, 3), np.float32)
         rest_p[:self.n_vertices] = self.rest
         group_p = np.zeros(p.n_padded, np.uint8)
         group_p[:self.n_vertices] = group
         group_p[self.n_vertices:] = group_p[max(0, self.n_vertices - 1)]
-        gs = group_p.reshape(n_slices, SLICE)
+        gs = group_p.reshape(n_slices, S)
         sgroup = np.where((gs == gs[:, :1]).all(axis=1), gs[:, 0], 255).astype(np.uint8)
         self._rest = cl.Buffer(ctx, ro, hostbuf=np.ascontiguousarray(
-            rest_p.reshape(n_slices, SLICE, 3).transpose(0, 2, 1)))
+            rest_p.reshape(n_slices, S, 3).transpose(0, 2, 1)))
         self._sgroup = cl.Buffer(ctx, ro, hostbuf=sgroup)
         self._sgroup_host = sgroup
         self._group = cl.Buffer(ctx, ro, hostbuf=group_p)
@@ -724,18 +750,18 @@ class OpenCLDeformer:
         """Bytes one ``deform`` frame moves at least: the operator as stored, rest positions, slice
         groups (and per-vertex groups of mixed slices), the frame's parameters and the output."""
         p = self.packed
-        mixed = int(np.count_nonzero(self._sgroup_host == 255)) * SLICE
+        mixed = int(np.count_nonzero(self._sgroup_host == 255)) * p.slice
         return int(p.nbytes + 12 * p.n_padded + len(self._sgroup_host) + mixed + 4 * self._pstride
                    + 12 * self.n_vertices)
 
     def format_description(self) -> str:
-        """The operator's device format, e.g. ``"sliced-ELL8 uchar ids, 3 float32 weights"``."""
+        """The operator's device format, in words."""
         p = self.packed
         if p.dense:
             return "dense, slice-major float32"
-        return (f"slices of {SLICE}: {100 * p.shared_fraction:.0f}% shared columns, others ELL; "
+        return (f"slices of {p.slice}: {100 * p.shared_fraction:.0f}% shared columns, others ELL; "
                 f"{p.idx_ctype} ids; {p.axes} float32 weight plane{'s' if p.axes > 1 else ''}; "
-                f"{8 * p.n_columns / max(1, self.operator.nnz):.2f} stored weights per non-zero")
+                f"{p.slice * p.n_columns / max(1, self.operator.nnz):.2f} stored weights per non-zero")
 
     @_serialised
     def upload_frame(self, D: np.ndarray, transforms: np.ndarray, wait: bool = False) -> None:
