@@ -297,6 +297,14 @@ def test_corrupt_cache_file_is_rebuilt(face, grid, tmp_path, monkeypatch):
     assert Operator.load(path).nnz == first.nnz  # the file was replaced by a good one
 
 
+def test_unwritable_cache_still_builds(face, grid, tmp_path, monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("FACECAST_CACHE", str(blocker))  # cache_dir() cannot create folders here
+    op = get_operator(face, grid[4])
+    assert _same(op, get_operator(face, grid[4], cache=False))
+
+
 def test_unknown_engine_or_parameter_is_an_input_error(face, grid):
     with pytest.raises(InputError):
         get_operator(face, grid[4], engine="ffd", cache=False)

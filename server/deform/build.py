@@ -100,7 +100,11 @@ def get_operator(face, control_vertices, *, engine: str = "fp", constrained=None
     if not cache:
         return build_operator(face, controls, engine=engine, constrained=constrained, **full)
     key = cache_key(face, controls, constrained, engine, full)
-    path = cache_dir("operators") / f"{face.mesh_hash}-{key}.npz"
+    try:
+        path = cache_dir("operators") / f"{face.mesh_hash}-{key}.npz"
+    except OSError as e:  # an unwritable cache folder costs a rebuild, not a failure
+        log.warning("operator cache unavailable (%s); building without it", e)
+        return build_operator(face, controls, engine=engine, constrained=constrained, **full)
     if path.exists():
         try:
             op = Operator.load(path)
