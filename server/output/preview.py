@@ -80,7 +80,9 @@ def render_image(vertices: np.ndarray, triangles: np.ndarray, *, size: tuple[int
     rot = view_rotation(view, pitch)
     cam = v @ rot.T
     if center is None:
-        used = cam[np.unique(t)] if len(t) else cam
+        mask = np.zeros(len(cam), dtype=bool)
+        mask[t.ravel()] = True
+        used = cam[mask] if len(t) else cam
         lo, hi = used.min(axis=0), used.max(axis=0)
         mid = (lo + hi) / 2
         span = max((hi[0] - lo[0]) / w, (hi[1] - lo[1]) / h) * 1.08
@@ -92,11 +94,21 @@ def render_image(vertices: np.ndarray, triangles: np.ndarray, *, size: tuple[int
     sy = (mid[1] - cam[:, 1]) / span + h / 2
     depth = -cam[:, 2]
 
+    coef, boxes, ok = _setup(t, sx, sy, depth, w, h)
     zbuf = np.full(h * w, np.inf)
     tbuf = np.full(h * w, -1, dtype=np.int64)
-    bbuf = np.zeros((h * w, 3))
     for start in range(0, len(t), chunk):
-        _raster_chunk(t[start:start + chunk], start, sx, sy, depth, w, h, zbuf, tbuf, bbuf)
+        ids = np.arange(start, min(start + chunk, len(t)))
+        _raster_chunk(ids[ok[ids]], coef, boxes, w, zbuf, tbuf)
+    hit_pix = np.nonzero(tbuf >= 0)[0]
+    bbuf = np.zeros((h * w, 3))
+    if len(hit_pix):
+        tri = tbuf[hit_pix]
+        cx, cy = hit_pix % w + 0.5, hit_pix // w + 0.5
+        c = coef[tri]
+        l0 = c[:, 0] * cx + c[:, 1] * cy + c[:, 2]
+        l1 = c[:, 3] * cx + c[:, 4] * cy + c[:, 5]
+        bbuf[hit_pix] = np.stack([l0, l1, 1 - l0 - l1], -1).clip(0, 1)
 
     img = np.empty((h * w, 3))
     img[:] = np.asarray(background, dtype=np.float64) / 255.0
@@ -139,56 +151,85 @@ def _base_colors(colors, nv, nf, tri, corners, bary) -> np.ndarray:
     raise ValueError(f"colors must be (3,), (V={nv}, 3) or (F={nf}, 3), not {c.shape}")
 
 
-def _raster_chunk(tc, offset, sx, sy, depth, w, h, zbuf, tbuf, bbuf) -> None:
-    x0, x1, x2 = sx[tc[:, 0]], sx[tc[:, 1]], sx[tc[:, 2]]
-    y0, y1, y2 = sy[tc[:, 0]], sy[tc[:, 1]], sy[tc[:, 2]]
+def _setup(t, sx, sy, depth, w, h):
+    """Per-triangle plane coefficients ``(F, 9)`` (barycentric l0, l1 and depth as a*x + b*y + c in pixel
+    coordinates), integer pixel boxes ``(F, 4)`` and which triangles can cover a pixel centre."""
+    x0, x1, x2 = sx[t[:, 0]], sx[t[:, 1]], sx[t[:, 2]]
+    y0, y1, y2 = sy[t[:, 0]], sy[t[:, 1]], sy[t[:, 2]]
+    z0, z1, z2 = depth[t[:, 0]], depth[t[:, 1]], depth[t[:, 2]]
     area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-    xmin = np.clip(np.floor(np.minimum(np.minimum(x0, x1), x2) - 0.5), 0, w).astype(np.int64)
-    xmax = np.clip(np.ceil(np.maximum(np.maximum(x0, x1), x2) - 0.5), -1, w - 1).astype(np.int64)
-    ymin = np.clip(np.floor(np.minimum(np.minimum(y0, y1), y2) - 0.5), 0, h).astype(np.int64)
-    ymax = np.clip(np.ceil(np.maximum(np.maximum(y0, y1), y2) - 0.5), -1, h - 1).astype(np.int64)
-    bw = xmax - xmin + 1
-    bh = ymax - ymin + 1
-    ok = (np.abs(area) > 1e-12) & (bw > 0) & (bh > 0)
-    ok &= np.isfinite(area)
-    idx = np.nonzero(ok)[0]
-    if not len(idx):
+    ok = np.isfinite(area) & (np.abs(area) > 1e-12)
+    inv = np.where(ok, 1.0 / np.where(ok, area, 1.0), 0.0)
+    a0, b0, c0 = (y1 - y2) * inv, (x2 - x1) * inv, (x1 * y2 - x2 * y1) * inv
+    a1, b1, c1 = (y2 - y0) * inv, (x0 - x2) * inv, (x2 * y0 - x0 * y2) * inv
+    dz0, dz1 = z0 - z2, z1 - z2
+    coef = np.stack([a0, b0, c0, a1, b1, c1, a0 * dz0 + a1 * dz1, b0 * dz0 + b1 * dz1,
+                     z2 + c0 * dz0 + c1 * dz1], -1)
+    with np.errstate(invalid="ignore"):
+        xmin = np.clip(np.floor(np.minimum(np.minimum(x0, x1), x2) - 0.5), 0, w)
+        xmax = np.clip(np.ceil(np.maximum(np.maximum(x0, x1), x2) - 0.5), -1, w - 1)
+        ymin = np.clip(np.floor(np.minimum(np.minimum(y0, y1), y2) - 0.5), 0, h)
+        ymax = np.clip(np.ceil(np.maximum(np.maximum(y0, y1), y2) - 0.5), -1, h - 1)
+    ok &= np.isfinite(xmin + xmax + ymin + ymax)
+    boxes = np.stack([np.where(ok, xmin, 0), np.where(ok, xmax, -1), np.where(ok, ymin, 0),
+                      np.where(ok, ymax, -1)], -1).astype(np.int64)
+    ok &= (boxes[:, 1] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 2])
+    return coef, boxes, ok
+
+
+def _raster_chunk(ids, coef, boxes, w, zbuf, tbuf) -> None:
+    """Z-buffer the triangles ``ids``: small ones grouped by box size through fixed pixel stencils (no
+    per-fragment index arithmetic), large ones by enumerating their boxes."""
+    if not len(ids):
         return
-    counts = bw[idx] * bh[idx]
-    # Split very large batches of fragments to bound memory.
-    parts = np.array_split(idx, int(counts.sum() // 4_000_000) + 1)
-    for part in parts:
-        cnt = bw[part] * bh[part]
-        if cnt.sum() == 0:
+    bw = boxes[ids, 1] - boxes[ids, 0] + 1
+    bh = boxes[ids, 3] - boxes[ids, 2] + 1
+    pix_parts, z_parts, tri_parts = [], [], []
+    small = (bw <= 12) & (bh <= 12)
+    key = bw * 16 + bh
+    for kk in np.nonzero(np.bincount(key[small], minlength=1))[0]:
+        sel = ids[small & (key == kk)]
+        kw, kh = int(kk // 16), int(kk % 16)
+        dx, dy = np.meshgrid(np.arange(kw), np.arange(kh))
+        px = (boxes[sel, 0][:, None] + dx.ravel()[None, :]).ravel()
+        py = (boxes[sel, 2][:, None] + dy.ravel()[None, :]).ravel()
+        _fragments(np.repeat(sel, kw * kh), px, py, coef, w, pix_parts, z_parts, tri_parts)
+    big = ids[~small]
+    for part in np.array_split(big, max(1, int((bw[~small] * bh[~small]).sum() // 2_000_000) + 1)):
+        if not len(part):
             continue
+        pw = boxes[part, 1] - boxes[part, 0] + 1
+        cnt = pw * (boxes[part, 3] - boxes[part, 2] + 1)
         owner = np.repeat(part, cnt)
         local = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-        px = xmin[owner] + local % bw[owner]
-        py = ymin[owner] + local // bw[owner]
-        cx, cy = px + 0.5, py + 0.5
-        a = area[owner]
-        l0 = ((x1[owner] - cx) * (y2[owner] - cy) - (x2[owner] - cx) * (y1[owner] - cy)) / a
-        l1 = ((x2[owner] - cx) * (y0[owner] - cy) - (x0[owner] - cx) * (y2[owner] - cy)) / a
-        l2 = 1.0 - l0 - l1
-        inside = (l0 >= -1e-9) & (l1 >= -1e-9) & (l2 >= -1e-9)
-        if not inside.any():
-            continue
-        owner, px, py = owner[inside], px[inside], py[inside]
-        l0, l1, l2 = l0[inside], l1[inside], l2[inside]
-        tri = tc[owner]
-        z = l0 * depth[tri[:, 0]] + l1 * depth[tri[:, 1]] + l2 * depth[tri[:, 2]]
-        pix = py * w + px
-        order = np.lexsort((z, pix))
-        pix_s = pix[order]
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = pix_s[1:] != pix_s[:-1]
-        win = order[first]
-        pw = pix[win]
-        closer = z[win] < zbuf[pw]
-        win, pw = win[closer], pw[closer]
-        zbuf[pw] = z[win]
-        tbuf[pw] = owner[win] + offset
-        bbuf[pw, 0], bbuf[pw, 1], bbuf[pw, 2] = l0[win], l1[win], l2[win]
+        pwo = np.repeat(pw, cnt)
+        _fragments(owner, boxes[owner, 0] + local % pwo, boxes[owner, 2] + local // pwo, coef, w,
+                   pix_parts, z_parts, tri_parts)
+    if not pix_parts:
+        return
+    pix, z, tri = np.concatenate(pix_parts), np.concatenate(z_parts), np.concatenate(tri_parts)
+    zmin, zmax = float(z.min()), float(z.max())
+    zq = ((z - zmin) * ((2**31 - 2) / max(zmax - zmin, 1e-12))).astype(np.int64)
+    order = np.argsort((pix << 31) | zq)
+    pix_s = pix[order]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = pix_s[1:] != pix_s[:-1]
+    win = order[first]
+    pw = pix[win]
+    closer = z[win] < zbuf[pw]
+    zbuf[pw[closer]] = z[win[closer]]
+    tbuf[pw[closer]] = tri[win[closer]]
+
+
+def _fragments(owner, px, py, coef, w, pix_parts, z_parts, tri_parts) -> None:
+    cx, cy = px + 0.5, py + 0.5
+    l0 = coef[owner, 0] * cx + coef[owner, 1] * cy + coef[owner, 2]
+    l1 = coef[owner, 3] * cx + coef[owner, 4] * cy + coef[owner, 5]
+    inside = np.nonzero((l0 >= -1e-9) & (l1 >= -1e-9) & (l0 + l1 <= 1 + 1e-9))[0]
+    owner, cx, cy = owner[inside], cx[inside], cy[inside]
+    pix_parts.append(py[inside] * w + px[inside])
+    z_parts.append(coef[owner, 6] * cx + coef[owner, 7] * cy + coef[owner, 8])
+    tri_parts.append(owner)
 
 
 def write_png(path: str | Path, image: np.ndarray) -> Path:
