@@ -53,6 +53,8 @@ def test_probe_lists_devices_and_auto_picks_a_working_one(working):
 def test_device_by_index_and_by_name(working):
     p = next(p for p in working if p.ok)
     assert select.default_context(p.key).devices[0].name.strip() == p.name
+    assert select.default_context(str(working.index(p))).devices[0].name.strip() == p.name
+    assert select.default_context(str(len(working))) is None
     assert select.default_context(p.name[:5].upper()).devices[0].name.strip() == p.name
 
 

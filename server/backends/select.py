@@ -6,8 +6,9 @@ skipped). ``default_context(device)`` returns a context on the first device that
 one named by ``device``; the choice is logged once and probe failures are remembered for the life of
 the process.
 
-``device`` is ``"P:D"`` (platform and device index as listed by ``probe_devices``) or a
-case-insensitive part of ``"<platform name> <device name>"`` (``"pthread"``, ``"NVIDIA"``).
+``device`` is ``"N"`` (the N-th device over all platforms, as ``facecast info`` lists them),
+``"P:D"`` (platform and device index) or a case-insensitive part of ``"<platform name> <device
+name>"`` (``"pthread"``, ``"NVIDIA"``).
 """
 from __future__ import annotations
 
@@ -136,8 +137,10 @@ def probe_devices(refresh: bool = False) -> list[DeviceProbe]:
         return probes
 
 
-def _matches(p: DeviceProbe, device: str) -> bool:
+def _matches(p: DeviceProbe, device: str, position: int) -> bool:
     d = device.strip().lower()
+    if d.isdigit():  # "N": the N-th device of all platforms, in probe order
+        return int(d) == position
     return d == p.key or d in f"{p.platform} {p.name}".lower()
 
 
@@ -148,7 +151,7 @@ def default_context(device: str | None = None):
     """
     with _lock:
         probes = probe_devices()
-        candidates = [p for p in probes if device is None or _matches(p, device)]
+        candidates = [p for i, p in enumerate(probes) if device is None or _matches(p, device, i)]
         chosen = next((p for p in candidates if p.ok), None)
         note = f"{device or 'auto'}->{chosen.key if chosen else None}"
         if note not in _logged:
