@@ -24,6 +24,7 @@ ARGS = ["--no-sandbox", "--disable-gpu", "--use-gl=angle", "--use-angle=swiftsha
 PIXELS_JS = """([x0, y0, x1, y1]) => {
   const c = document.getElementById('view'), s = c.width / c.clientWidth;
   const g = c.getContext('webgl2');
+  facecast.viewer.flush(); facecast.renderer.draw();  // read in the same task as the draw
   const w = Math.max(1, Math.round((x1 - x0) * s)), h = Math.max(1, Math.round((y1 - y0) * s));
   const px = new Uint8Array(4 * w * h);
   g.readPixels(Math.round(x0 * s), c.height - Math.round(y1 * s), w, h, g.RGBA, g.UNSIGNED_BYTE, px);

@@ -17,6 +17,7 @@ function setStatus(text, level = 'ok') {
 const hashParams = new URLSearchParams(location.hash.slice(1));
 if (hashParams.get('key')) localStorage.setItem('facecast-admin-key', hashParams.get('key'));
 $('admin-key').value = localStorage.getItem('facecast-admin-key') || '';
+if (['i16', 'f32'].includes(hashParams.get('encoding'))) $('encoding').value = hashParams.get('encoding');
 $('admin-key').addEventListener('change', () => localStorage.setItem('facecast-admin-key', $('admin-key').value.trim()));
 
 async function api(method, path, body, { form = false } = {}) {
@@ -220,4 +221,5 @@ $('mic').onclick = async () => {
   } catch (e) { setStatus(`cannot reach the server: ${e.message}`, 'error'); }
 })();
 
+window.addEventListener('hashchange', () => location.reload());  // a new #session=…&token=… link
 window.facecast = { renderer, viewer, state, watch, newSession, api };
