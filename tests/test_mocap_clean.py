@@ -73,6 +73,14 @@ def test_kalman_reduces_noise_and_its_lag_is_bounded(rng):
     assert np.abs(out[60 + 24:] - 10.0).max() < 1.0
 
 
+def test_kalman_phase_lag_is_small_at_facial_speeds():
+    from facecast.server.mocap.clean import kalman_lag
+
+    lag = kalman_lag(FPS, q=1e3, r=0.25, freqs=(1.0, 2.0))
+    assert 0.0 < lag[1.0] < lag[2.0] < 25.0  # ms; it grows with speed and stays a few frames
+    assert kalman_lag(FPS, q=30.0, r=0.25, freqs=(2.0,))[2.0] > lag[2.0]  # heavier filtering lags more
+
+
 def test_kalman_coasts_through_occlusion_and_gates_spikes():
     kf = KalmanCV(1, 1 / FPS, q=1e3, r=0.25)
     for i in range(60):

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.fft import dct, idct
 from scipy.ndimage import median_filter
 
-__all__ = ["find_gaps", "lowpass_dct", "fill_gap_dct", "fill_gaps", "despike", "KalmanCV", "kalman_filter", "rts_smooth",
+__all__ = ["find_gaps", "lowpass_dct", "fill_gap_dct", "fill_gaps", "despike", "KalmanCV", "kalman_filter", "kalman_lag", "rts_smooth",
            "estimate_noise", "estimate_r", "estimate_q", "estimate_q_cv", "clean", "CleanParams"]
 
 
@@ -229,6 +229,23 @@ class KalmanCV:
         out = self.x[:, :, 0].copy()
         out[~self.alive] = np.nan
         return out
+
+
+def kalman_lag(fps: float, q: float, r: float, freqs: tuple[float, ...] = (1.0, 2.0, 5.0)) -> dict[float, float]:
+    """Delay (ms) of ``KalmanCV`` on noise-free sinusoids of ``freqs`` Hz (its phase lag in
+    steady state): how far behind the causal filter runs on motion of that speed."""
+    out = {}
+    for f in freqs:
+        n = int(fps * max(4.0, 6.0 / f))
+        t = np.arange(n) / fps
+        x = 10.0 * np.sin(2 * np.pi * f * t)
+        y = kalman_filter(np.stack([x] * 3, -1)[:, None, :], fps, q=q, r=r, gate=1e9)[:, 0, 0]
+        keep = t > t[-1] / 2
+        basis = np.c_[np.sin(2 * np.pi * f * t[keep]), np.cos(2 * np.pi * f * t[keep])]
+        a, b = np.linalg.lstsq(basis, y[keep], rcond=None)[0]
+        phase = np.arctan2(-b, a)  # y ~ A sin(2 pi f t - phase)
+        out[f] = float(1000.0 * phase / (2 * np.pi * f))
+    return out
 
 
 def kalman_filter(xyz: np.ndarray, fps: float, **params) -> np.ndarray:

@@ -154,7 +154,7 @@ def load(path: Path, face: Face, layout=None, *, units: str | None = None, neutr
         if options[k] is not None and k not in ("progress", "engine", "backend", "device"):
             log.warning("mocap driver: ignoring option %s=%r", k, options[k])
     lay = load_layout(layout if layout is not None else find_layout(path))
-    take = read_take(path, units=units or (lay.units if _undeclared(path) else None))
+    take = read_take(path, units=units, default_units=lay.units)
     proc = process(take, face, lay, neutral_frame=neutral_frame, clean_params=CleanParams(filter=filter),
                    kernel=kernel, mu=mu, where=str(path))
     log.info("%s: %d frames at %g fps, %d markers (%d controls), %d occluded samples, %d spikes", path.name,
@@ -162,15 +162,3 @@ def load(path: Path, face: Face, layout=None, *, units: str | None = None, neutr
              proc.info.get("spikes", 0))
     return Animation(fps=take.fps, states=proc.states, control_vertices=proc.rig.control_vertices,
                      source=path.name)
-
-
-def _undeclared(path: Path) -> bool:
-    """True when the file format may not declare units (CSV without a units comment)."""
-    if path.suffix.lower() != ".csv":
-        return False
-    try:
-        with path.open(encoding="utf-8", errors="replace") as f:
-            head = f.read(4096)
-    except OSError:
-        return False
-    return "units=" not in head.split("\n", 1)[0]

@@ -26,8 +26,10 @@ SUFFIXES = (".c3d", ".trc", ".csv")
 FACE_SPAN_MM = (40.0, 600.0)
 
 
-def read_take(path: str | Path, *, units: str | None = None) -> MarkerTake:
-    """Read a take; ``units`` overrides what the file declares. Returns positions in the take's units.
+def read_take(path: str | Path, *, units: str | None = None, default_units: str | None = None) -> MarkerTake:
+    """Read a take; ``units`` overrides what the file declares, ``default_units`` (e.g. a layout's)
+    applies when the file declares none, else they are detected from the marker cloud's size.
+    Returns positions in the take's units.
 
     Raises InputError naming the file (and line) for malformed files, unknown suffixes, unknown or
     implausible units.
@@ -48,6 +50,8 @@ def read_take(path: str | Path, *, units: str | None = None) -> MarkerTake:
             raise InputError(f"unsupported take type {suffix!r}; use one of {', '.join(SUFFIXES)}", where=where)
         if units is not None:
             take.units = normalise_units(units, where="units")
+        elif take.units is None and default_units is not None:
+            take.units = normalise_units(default_units, where="units")
     except MarkerFileError as e:
         raise InputError(str(e.args[0]).split(": ", 1)[-1] if e.where else str(e), where=e.where or where) from None
     if units is None:  # units the caller gives are trusted; the file's are checked
