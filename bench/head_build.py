@@ -12,6 +12,7 @@ surface and triangulate it".
 Writes ``bench/out/head_build.json`` and prints a markdown table; ``--previews`` also writes PNGs of
 the head (front, three-quarter, side, mouth and eye close-ups, 2k and 25k) to ``bench/out/head_previews/``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,9 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from facecast.server.faces import parse_count
-from facecast.server.faces import procedural
+from facecast.server.faces import parse_count, procedural
 from facecast.server.faces.procedural_mesh import closed_surface
 
 
@@ -36,7 +35,7 @@ def _sphere(n: int) -> int:
         a = np.pi * t
         return 100 * np.stack([np.sin(a) * np.cos(w), np.sin(a) * np.sin(w), np.cos(a)], -1)
 
-    v, f = closed_surface(pts, (np.arange(rings) + 0.5) / rings, seg)
+    v, _ = closed_surface(pts, (np.arange(rings) + 0.5) / rings, seg)
     return len(v)
 
 
@@ -58,12 +57,28 @@ def write_previews(folder: Path) -> None:
         col = procedural.head_colors(f)
         k = f"{n // 1000}k"
         for view in ("front", "three_quarter", "side"):
-            render_png(f.vertices, f.triangles, folder / f"head_{k}_{view}.png", colors=col, view=view)
-        render_png(f.vertices, f.triangles, folder / f"head_{k}_mouth.png", colors=col, view=20,
-                   center=f.fp_position("2.2"), extent=80)
+            render_png(
+                f.vertices, f.triangles, folder / f"head_{k}_{view}.png", colors=col, view=view
+            )
+        render_png(
+            f.vertices,
+            f.triangles,
+            folder / f"head_{k}_mouth.png",
+            colors=col,
+            view=20,
+            center=f.fp_position("2.2"),
+            extent=80,
+        )
         eyes = (f.fp_position("3.5") + f.fp_position("3.6")) / 2
-        render_png(f.vertices, f.triangles, folder / f"head_{k}_eyes.png", colors=col, size=(640, 320),
-                   center=eyes, extent=120)
+        render_png(
+            f.vertices,
+            f.triangles,
+            folder / f"head_{k}_eyes.png",
+            colors=col,
+            size=(640, 320),
+            center=eyes,
+            extent=120,
+        )
     print(f"previews in {folder}")
 
 
@@ -89,32 +104,54 @@ def main(argv: list[str] | None = None) -> int:
             return procedural.build_default_head(n)
 
         for n in sizes:
-            t_build, face = _best(lambda: cold(n), args.repeat)
-            t_base, nv_base = _best(lambda: _sphere(face.n_vertices), args.repeat)
+            t_build, face = _best(lambda n=n: cold(n), args.repeat)
+            t_base, nv_base = _best(lambda nv=face.n_vertices: _sphere(nv), args.repeat)
             t_disk = None
             if n >= procedural.DISK_CACHE_MIN_VERTICES:
-                def from_disk():
+
+                def from_disk(n=n):
                     procedural._build.cache_clear()
                     return procedural.build_default_head(n)
+
                 t_disk, _ = _best(from_disk, args.repeat)
             procedural._build.cache_clear()
-            t_memo, _ = _best(lambda: procedural.build_default_head(n), 1)
-            t_memo, _ = _best(lambda: procedural.build_default_head(n), args.repeat)
-            drift = max(float(np.linalg.norm(face.fp_position(k) - ref.fp_position(k))) for k in ref.feature_points)
-            rows.append({"requested": n, "vertices": face.n_vertices, "triangles": int(len(face.triangles)),
-                         "count_error": face.n_vertices / n - 1, "build_s": t_build, "baseline_sphere_s": t_base,
-                         "baseline_vertices": nv_base, "ratio_to_baseline": t_build / t_base,
-                         "disk_load_s": t_disk, "memo_s": t_memo, "fp_drift_mm_vs_25k": drift})
+            t_memo, _ = _best(lambda n=n: procedural.build_default_head(n), 1)
+            t_memo, _ = _best(lambda n=n: procedural.build_default_head(n), args.repeat)
+            drift = max(
+                float(np.linalg.norm(face.fp_position(k) - ref.fp_position(k)))
+                for k in ref.feature_points
+            )
+            rows.append(
+                {
+                    "requested": n,
+                    "vertices": face.n_vertices,
+                    "triangles": len(face.triangles),
+                    "count_error": face.n_vertices / n - 1,
+                    "build_s": t_build,
+                    "baseline_sphere_s": t_base,
+                    "baseline_vertices": nv_base,
+                    "ratio_to_baseline": t_build / t_base,
+                    "disk_load_s": t_disk,
+                    "memo_s": t_memo,
+                    "fp_drift_mm_vs_25k": drift,
+                }
+            )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"bench": "head_build", "cpu_count": os.cpu_count(), "rows": rows}, indent=2))
-    print("| requested | vertices | count err | cold build s | sphere baseline s | ratio | disk load s | memo s | FP drift mm |")
+    out.write_text(
+        json.dumps({"bench": "head_build", "cpu_count": os.cpu_count(), "rows": rows}, indent=2)
+    )
+    print(
+        "| requested | vertices | count err | cold build s | sphere baseline s | ratio | disk load s | memo s | FP drift mm |"
+    )
     print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         disk = f"{r['disk_load_s']:.3f}" if r["disk_load_s"] is not None else "—"
-        print(f"| {r['requested']} | {r['vertices']} | {100 * r['count_error']:+.1f}% | {r['build_s']:.3f} | "
-              f"{r['baseline_sphere_s']:.4f} | {r['ratio_to_baseline']:.0f}x | {disk} | {r['memo_s']:.4f} | "
-              f"{r['fp_drift_mm_vs_25k']:.3f} |")
+        print(
+            f"| {r['requested']} | {r['vertices']} | {100 * r['count_error']:+.1f}% | {r['build_s']:.3f} | "
+            f"{r['baseline_sphere_s']:.4f} | {r['ratio_to_baseline']:.0f}x | {disk} | {r['memo_s']:.4f} | "
+            f"{r['fp_drift_mm_vs_25k']:.3f} |"
+        )
     return 0
 
 

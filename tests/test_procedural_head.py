@@ -1,4 +1,5 @@
 """The built-in procedural head (``default``): counts, parts, feature points, FAPU, topology, previews."""
+
 from __future__ import annotations
 
 import struct
@@ -6,26 +7,85 @@ import zlib
 
 import numpy as np
 import pytest
-
 from facecast.server.errors import InputError
 from facecast.server.faces import load_face
-from facecast.server.faces.procedural import SKIN_SUBSETS, Conformation, build_default_head, head_colors
+from facecast.server.faces.procedural import (
+    SKIN_SUBSETS,
+    Conformation,
+    build_default_head,
+    head_colors,
+)
 from facecast.server.output.preview import render_image, render_png
 
 # MPEG-4 feature points (mpeg4-reference §3): 84 ids.
-FP_IDS = ([f"2.{i}" for i in range(1, 15)] + [f"3.{i}" for i in range(1, 15)] + [f"4.{i}" for i in range(1, 7)]
-          + [f"5.{i}" for i in range(1, 5)] + [f"6.{i}" for i in range(1, 5)] + ["7.1"]
-          + [f"8.{i}" for i in range(1, 11)] + [f"9.{i}" for i in range(1, 16)] + [f"10.{i}" for i in range(1, 11)]
-          + [f"11.{i}" for i in range(1, 7)])
-PART_OF = {"3.5": "eye_l", "3.6": "eye_r", "6.1": "tongue", "6.2": "tongue", "6.3": "tongue", "6.4": "tongue",
-           "9.8": "teeth_upper", "9.10": "teeth_upper", "9.9": "teeth_lower", "9.11": "teeth_lower"}
-LEFT_RIGHT = [("2.4", "2.5"), ("2.6", "2.7"), ("2.8", "2.9"), ("2.11", "2.12"), ("2.13", "2.14"), ("3.1", "3.2"),
-              ("3.3", "3.4"), ("3.5", "3.6"), ("3.7", "3.12"), ("3.11", "3.8"), ("3.9", "3.10"), ("3.13", "3.14"),
-              ("4.1", "4.2"), ("4.3", "4.4"), ("4.5", "4.6"), ("5.1", "5.2"), ("5.3", "5.4"), ("6.3", "6.4"),
-              ("8.3", "8.4"), ("8.5", "8.6"), ("8.7", "8.8"), ("8.10", "8.9"), ("9.1", "9.2"), ("9.5", "9.4"),
-              ("9.7", "9.6"), ("9.13", "9.14"), ("10.1", "10.2"), ("10.3", "10.4"), ("10.5", "10.6"),
-              ("10.7", "10.8"), ("10.9", "10.10"), ("11.3", "11.2")]
-RIGID_AND_SKIN = ("skin", "eye_l", "eye_r", "teeth_upper", "teeth_lower", "gums_upper", "gums_lower", "tongue")
+FP_IDS = (
+    [f"2.{i}" for i in range(1, 15)]
+    + [f"3.{i}" for i in range(1, 15)]
+    + [f"4.{i}" for i in range(1, 7)]
+    + [f"5.{i}" for i in range(1, 5)]
+    + [f"6.{i}" for i in range(1, 5)]
+    + ["7.1"]
+    + [f"8.{i}" for i in range(1, 11)]
+    + [f"9.{i}" for i in range(1, 16)]
+    + [f"10.{i}" for i in range(1, 11)]
+    + [f"11.{i}" for i in range(1, 7)]
+)
+PART_OF = {
+    "3.5": "eye_l",
+    "3.6": "eye_r",
+    "6.1": "tongue",
+    "6.2": "tongue",
+    "6.3": "tongue",
+    "6.4": "tongue",
+    "9.8": "teeth_upper",
+    "9.10": "teeth_upper",
+    "9.9": "teeth_lower",
+    "9.11": "teeth_lower",
+}
+LEFT_RIGHT = [
+    ("2.4", "2.5"),
+    ("2.6", "2.7"),
+    ("2.8", "2.9"),
+    ("2.11", "2.12"),
+    ("2.13", "2.14"),
+    ("3.1", "3.2"),
+    ("3.3", "3.4"),
+    ("3.5", "3.6"),
+    ("3.7", "3.12"),
+    ("3.11", "3.8"),
+    ("3.9", "3.10"),
+    ("3.13", "3.14"),
+    ("4.1", "4.2"),
+    ("4.3", "4.4"),
+    ("4.5", "4.6"),
+    ("5.1", "5.2"),
+    ("5.3", "5.4"),
+    ("6.3", "6.4"),
+    ("8.3", "8.4"),
+    ("8.5", "8.6"),
+    ("8.7", "8.8"),
+    ("8.10", "8.9"),
+    ("9.1", "9.2"),
+    ("9.5", "9.4"),
+    ("9.7", "9.6"),
+    ("9.13", "9.14"),
+    ("10.1", "10.2"),
+    ("10.3", "10.4"),
+    ("10.5", "10.6"),
+    ("10.7", "10.8"),
+    ("10.9", "10.10"),
+    ("11.3", "11.2"),
+]
+RIGID_AND_SKIN = (
+    "skin",
+    "eye_l",
+    "eye_r",
+    "teeth_upper",
+    "teeth_lower",
+    "gums_upper",
+    "gums_lower",
+    "tongue",
+)
 
 
 @pytest.fixture(scope="module")
@@ -45,8 +105,13 @@ def _edges(tris: np.ndarray) -> np.ndarray:
 
 def _fapu(f):
     p = f.fp_position
-    return {"ES0": p("3.5")[0] - p("3.6")[0], "IRISD0": p("3.1")[1] - p("3.3")[1], "ENS0": p("3.5")[1] - p("9.15")[1],
-            "MNS0": p("9.15")[1] - p("2.2")[1], "MW0": p("8.3")[0] - p("8.4")[0]}
+    return {
+        "ES0": p("3.5")[0] - p("3.6")[0],
+        "IRISD0": p("3.1")[1] - p("3.3")[1],
+        "ENS0": p("3.5")[1] - p("9.15")[1],
+        "MNS0": p("9.15")[1] - p("2.2")[1],
+        "MW0": p("8.3")[0] - p("8.4")[0],
+    }
 
 
 @pytest.mark.parametrize("n", [2_000, 25_000, 100_000])
@@ -57,7 +122,8 @@ def test_vertex_count_follows_the_request(n):
 
 
 def test_load_face_names(head2k, head25k):
-    assert head2k.n_vertices < 3_000 < 20_000 < head25k.n_vertices
+    assert head2k.n_vertices < 3_000
+    assert head25k.n_vertices > 20_000
     assert head25k.name.startswith("default")
 
 
@@ -81,7 +147,21 @@ def test_left_points_have_positive_x_and_mirror_the_right(head25k):
         pl, pr = f.fp_position(left), f.fp_position(right)
         assert pl[0] > 0 > pr[0], (left, right)
         np.testing.assert_allclose(pl * [-1, 1, 1], pr, atol=1e-3)
-    for mid in ("2.1", "2.2", "2.3", "2.10", "8.1", "8.2", "9.3", "9.12", "9.15", "11.1", "11.4", "11.6", "7.1"):
+    for mid in (
+        "2.1",
+        "2.2",
+        "2.3",
+        "2.10",
+        "8.1",
+        "8.2",
+        "9.3",
+        "9.12",
+        "9.15",
+        "11.1",
+        "11.4",
+        "11.6",
+        "7.1",
+    ):
         assert abs(f.fp_position(mid)[0]) < 1.0, mid
 
 
@@ -121,8 +201,20 @@ def test_conformation_changes_the_shape_and_rejects_unknown_names():
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_varied_conformations_stay_valid(seed):
     rng = np.random.default_rng(seed)
-    names = ["face_width", "face_height", "jaw_width", "nose_length", "lip_thickness", "eye_spacing", "chin_length",
-             "mouth_width", "brow_height", "ear_size", "nose_width", "head_height"]
+    names = [
+        "face_width",
+        "face_height",
+        "jaw_width",
+        "nose_length",
+        "lip_thickness",
+        "eye_spacing",
+        "chin_length",
+        "mouth_width",
+        "brow_height",
+        "ear_size",
+        "nose_width",
+        "head_height",
+    ]
     defaults = Conformation()
     kw = {k: float(getattr(defaults, k) * rng.uniform(0.87, 1.13)) for k in names}
     f = build_default_head(2_500, **kw)
@@ -134,7 +226,9 @@ def test_varied_conformations_stay_valid(seed):
     u = _fapu(f)
     assert u["ES0"] == pytest.approx(kw["eye_spacing"], abs=0.01)
     assert all(x > 0 for x in u.values())
-    assert f.fp_position("2.2")[1] - f.fp_position("2.1")[1] == pytest.approx(kw["chin_length"], abs=12)
+    assert f.fp_position("2.2")[1] - f.fp_position("2.1")[1] == pytest.approx(
+        kw["chin_length"], abs=12
+    )
 
 
 def test_feature_points_agree_across_resolutions(head2k, head25k):
@@ -171,18 +265,26 @@ def test_triangles_are_valid_and_consistently_oriented(head2k, head25k):
         t = f.triangles
         assert np.isfinite(v).all()
         assert t.min() >= 0 and t.max() < f.n_vertices
-        area = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+        area = 0.5 * np.linalg.norm(
+            np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1
+        )
         assert area.min() > 1e-6
         e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]).astype(np.int64)
         key = e[:, 0] * f.n_vertices + e[:, 1]
-        assert len(np.unique(key)) == len(key), "some directed edge is used twice: orientation flips"
+        assert len(np.unique(key)) == len(key), (
+            "some directed edge is used twice: orientation flips"
+        )
         # every edge is shared by two triangles, except around the eye openings (closed parts) ...
         und = np.sort(e, axis=1)
         keys, counts = np.unique(und[:, 0] * f.n_vertices + und[:, 1], return_counts=True)
         assert counts.max() == 2
-        rim = np.unique(np.concatenate([keys[counts == 1] // f.n_vertices, keys[counts == 1] % f.n_vertices]))
-        near_eye = np.minimum(np.linalg.norm(v[rim] - f.pivot("eye_l"), axis=1),
-                              np.linalg.norm(v[rim] - f.pivot("eye_r"), axis=1))
+        rim = np.unique(
+            np.concatenate([keys[counts == 1] // f.n_vertices, keys[counts == 1] % f.n_vertices])
+        )
+        near_eye = np.minimum(
+            np.linalg.norm(v[rim] - f.pivot("eye_l"), axis=1),
+            np.linalg.norm(v[rim] - f.pivot("eye_r"), axis=1),
+        )
         assert len(rim) > 8 and near_eye.max() < 20
         # ... and each part encloses a positive volume (normals point outwards)
         for p in RIGID_AND_SKIN:
@@ -206,7 +308,9 @@ def test_lips_touch_but_share_no_edge(head2k, head25k):
         assert not across.any()
         # in contact: the inner lip points sit on top of each other
         assert np.linalg.norm(f.fp_position("2.2") - f.fp_position("2.3")) < 1e-3
-        assert f.feature_points["2.2"] in set(up.tolist()) and f.feature_points["2.3"] in set(lo.tolist())
+        assert f.feature_points["2.2"] in set(up.tolist()) and f.feature_points["2.3"] in set(
+            lo.tolist()
+        )
         for fp in ("2.6", "2.7"):
             assert f.feature_points[fp] in set(up.tolist())
         for fp in ("2.8", "2.9"):
@@ -231,7 +335,7 @@ def _farthest_hits(origin, dirs, v, tris, chunk=128):
     e1, e2 = b - a, c - a
     out = np.full(len(dirs), -np.inf)
     for s in range(0, len(dirs), chunk):
-        d = dirs[s:s + chunk][:, None, :]
+        d = dirs[s : s + chunk][:, None, :]
         pv = np.cross(d, e2[None])
         det = (e1[None] * pv).sum(-1)
         tv = (origin - a)[None]
@@ -241,7 +345,7 @@ def _farthest_hits(origin, dirs, v, tris, chunk=128):
             w = (d * qv).sum(-1) / det
             t = (e2[None] * qv).sum(-1) / det
         hit = (np.abs(det) > 1e-12) & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0)
-        out[s:s + chunk] = np.where(hit, t, -np.inf).max(1)
+        out[s : s + chunk] = np.where(hit, t, -np.inf).max(1)
     return out
 
 
@@ -254,7 +358,15 @@ def test_inner_parts_stay_inside_the_head(head2k):
     outer[f.part("mouth_socket")] = False
     tris = f.triangles[outer[f.triangles].all(1)]
     origin = np.array([0.0, -30.0, 20.0])
-    for part in ("mouth_socket", "teeth_upper", "teeth_lower", "gums_upper", "gums_lower", "tongue", "eye_l"):
+    for part in (
+        "mouth_socket",
+        "teeth_upper",
+        "teeth_lower",
+        "gums_upper",
+        "gums_lower",
+        "tongue",
+        "eye_l",
+    ):
         p = v[f.part(part)]
         d = p - origin
         dist = np.linalg.norm(d, axis=1)
@@ -288,7 +400,7 @@ def test_pivots(head25k):
     for name in ("head", "jaw", "eye_l", "eye_r"):
         assert name in f.pivots
     assert f.pivot("jaw")[2] < f.fp_position("2.2")[2] - 50  # hinge well behind the lips ...
-    assert f.pivot("jaw")[1] > f.fp_position("2.2")[1]       # ... and above them
+    assert f.pivot("jaw")[1] > f.fp_position("2.2")[1]  # ... and above them
     assert f.pivot("head")[1] < f.fp_position("9.15")[1]
     assert abs(f.pivot("eye_l")[0] - f.fp_position("3.5")[0]) < 0.01
 
@@ -298,9 +410,12 @@ def _read_png(path):
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
     pos, idat, header = 8, b"", None
     while pos < len(data):
-        (n,) = struct.unpack(">I", data[pos:pos + 4])
-        kind, body = data[pos + 4:pos + 8], data[pos + 8:pos + 8 + n]
-        assert zlib.crc32(kind + body) & 0xFFFFFFFF == struct.unpack(">I", data[pos + 8 + n:pos + 12 + n])[0]
+        (n,) = struct.unpack(">I", data[pos : pos + 4])
+        kind, body = data[pos + 4 : pos + 8], data[pos + 8 : pos + 8 + n]
+        assert (
+            zlib.crc32(kind + body) & 0xFFFFFFFF
+            == struct.unpack(">I", data[pos + 8 + n : pos + 12 + n])[0]
+        )
         if kind == b"IHDR":
             header = struct.unpack(">IIBBBBB", body)
         elif kind == b"IDAT":
@@ -313,12 +428,17 @@ def _read_png(path):
 
 
 def test_preview_png_shows_the_head(head2k, tmp_path):
-    out = render_png(head2k.vertices, head2k.triangles, tmp_path / "front.png", size=(96, 128),
-                     colors=head_colors(head2k))
+    out = render_png(
+        head2k.vertices,
+        head2k.triangles,
+        tmp_path / "front.png",
+        size=(96, 128),
+        colors=head_colors(head2k),
+    )
     img = _read_png(out)
     assert img.shape == (128, 96, 3)
-    assert (img[0, 0] == (40, 44, 52)).all()           # background in the corner
-    assert (img[64, 48] != (40, 44, 52)).any()         # the face in the middle
+    assert (img[0, 0] == (40, 44, 52)).all()  # background in the corner
+    assert (img[64, 48] != (40, 44, 52)).any()  # the face in the middle
     side = render_image(head2k.vertices, head2k.triangles, size=(64, 64), view="side")
     front = render_image(head2k.vertices, head2k.triangles, size=(64, 64), view="front")
     assert not np.array_equal(side, front)

@@ -9,6 +9,7 @@ front pole), ``teeth_upper``/``teeth_lower``, ``gums_upper``/``gums_lower``, ``t
 annotation subsets of ``skin`` ``lip_upper``, ``lip_lower`` (vermilion and inner lip, never joined by
 an edge) and ``mouth_socket`` (the cavity). See ``procedural_skin`` for how the surfaces are made.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -24,14 +25,26 @@ from .. import paths
 from ..errors import InputError
 from .face import Face
 from .procedural_layout import (
-    RAY_ORIGIN, Conformation, Layout, direction_from_plane, direction_to, gnomonic, unit_dirs,
+    RAY_ORIGIN,
+    Conformation,
+    Layout,
+    direction_from_plane,
+    direction_to,
+    gnomonic,
 )
 from .procedural_parts import ear, eyeball, gums, teeth, tongue
-from .procedural_skin import SkinGrid, SkinModel, axes_for, mouth_pocket, pocket_triangles, skin_grid
+from .procedural_skin import (
+    SkinGrid,
+    SkinModel,
+    axes_for,
+    mouth_pocket,
+    pocket_triangles,
+    skin_grid,
+)
 
 log = logging.getLogger(__name__)
 
-__all__ = ["build_default_head", "Conformation", "head_colors", "MIN_VERTICES", "MAX_VERTICES"]
+__all__ = ["MAX_VERTICES", "MIN_VERTICES", "Conformation", "build_default_head", "head_colors"]
 
 MIN_VERTICES = 1_000
 MAX_VERTICES = 5_000_000
@@ -50,22 +63,35 @@ def build_default_head(n_vertices: int = 25_000, **conformation: float) -> Face:
     """
     n = int(n_vertices)
     if not MIN_VERTICES <= n <= MAX_VERTICES:
-        raise InputError(f"the built-in head needs between {MIN_VERTICES} and {MAX_VERTICES} vertices, not {n}",
-                         where="n_vertices")
+        raise InputError(
+            f"the built-in head needs between {MIN_VERTICES} and {MAX_VERTICES} vertices, not {n}",
+            where="n_vertices",
+        )
     names = set(Conformation.names())
     unknown = sorted(set(conformation) - names)
     if unknown:
-        raise InputError(f"unknown head conformation parameter(s) {', '.join(unknown)}; "
-                         f"known: {', '.join(sorted(names))}", where="conformation")
+        raise InputError(
+            f"unknown head conformation parameter(s) {', '.join(unknown)}; "
+            f"known: {', '.join(sorted(names))}",
+            where="conformation",
+        )
     conf = Conformation(**{k: float(v) for k, v in conformation.items()})
     face = _build(n, conf)
-    return Face(name=face.name, vertices=face.vertices.copy(), triangles=face.triangles.copy(), units="mm",
-                parts={k: v.copy() for k, v in face.parts.items()}, feature_points=dict(face.feature_points),
-                pivots={k: v.copy() for k, v in face.pivots.items()})
+    return Face(
+        name=face.name,
+        vertices=face.vertices.copy(),
+        triangles=face.triangles.copy(),
+        units="mm",
+        parts={k: v.copy() for k, v in face.parts.items()},
+        feature_points=dict(face.feature_points),
+        pivots={k: v.copy() for k, v in face.pivots.items()},
+    )
 
 
 def _name(n: int, conf: Conformation) -> str:
-    changed = {f.name: getattr(conf, f.name) for f in fields(conf) if getattr(conf, f.name) != f.default}
+    changed = {
+        f.name: getattr(conf, f.name) for f in fields(conf) if getattr(conf, f.name) != f.default
+    }
     extra = "".join(f",{k}={v:g}" for k, v in sorted(changed.items()))
     return f"default:{n}{extra}"
 
@@ -80,7 +106,7 @@ def _build(n: int, conf: Conformation) -> Face:
             path = paths.cache_dir("faces") / f"default-{_cache_key(n, conf)}.npz"
             if path.exists():
                 return _load_npz(path, name)
-        except Exception as exc:  # a damaged or unreadable cache is rebuilt, never fatal
+        except Exception as exc:  # noqa: BLE001 - a damaged or unreadable cache is rebuilt, never fatal
             log.warning("ignoring cached head %s: %s", path, exc)
     lay = Layout(conf)
     model = SkinModel(lay)
@@ -108,9 +134,14 @@ def _cache_key(n: int, conf: Conformation) -> str:
 
 
 def _save_npz(path: Path, face: Face) -> None:
-    arrays = {"vertices": face.vertices, "triangles": face.triangles,
-              "fp_names": np.array(list(face.feature_points)), "fp_ids": np.array(list(face.feature_points.values())),
-              "pivot_names": np.array(list(face.pivots)), "pivots": np.array([face.pivots[k] for k in face.pivots])}
+    arrays = {
+        "vertices": face.vertices,
+        "triangles": face.triangles,
+        "fp_names": np.array(list(face.feature_points)),
+        "fp_ids": np.array(list(face.feature_points.values())),
+        "pivot_names": np.array(list(face.pivots)),
+        "pivots": np.array([face.pivots[k] for k in face.pivots]),
+    }
     for k, v in face.parts.items():
         arrays[f"part_{k}"] = v
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
@@ -123,8 +154,15 @@ def _load_npz(path: Path, name: str) -> Face:
         parts = {k[5:]: z[k] for k in z.files if k.startswith("part_")}
         fps = dict(zip(z["fp_names"].tolist(), z["fp_ids"].tolist()))
         pivots = dict(zip(z["pivot_names"].tolist(), z["pivots"]))
-        return Face(name=name, vertices=z["vertices"], triangles=z["triangles"], units="mm", parts=parts,
-                    feature_points=fps, pivots=pivots)
+        return Face(
+            name=name,
+            vertices=z["vertices"],
+            triangles=z["triangles"],
+            units="mm",
+            parts=parts,
+            feature_points=fps,
+            pivots=pivots,
+        )
 
 
 # ---- resolution --------------------------------------------------------------------------------------
@@ -132,7 +170,9 @@ def _skin_count(model: SkinModel, spacing: float) -> int:
     thetas, phis = axes_for(model, spacing)
     nr, nc = len(phis), len(thetas)
     mouth = int(np.sum(np.abs(thetas) < model.theta_mc - 1e-9))
-    eyes = 2 * int(np.sum((np.abs(thetas) > model.theta_in + 1e-9) & (np.abs(thetas) < model.theta_out - 1e-9)))
+    eyes = 2 * int(
+        np.sum((np.abs(thetas) > model.theta_in + 1e-9) & (np.abs(thetas) < model.theta_out - 1e-9))
+    )
     rings = max(3, int(round(76.0 / (1.6 * spacing)))) - 1
     return (nr - 2) * nc + 2 + mouth + eyes + rings * 2 * (mouth + 1) + 1
 
@@ -229,13 +269,35 @@ def _skin_targets(model: SkinModel, lay: Layout) -> dict[str, tuple[float, float
 
 
 #: left skin FP -> right counterpart (midline points have none)
-_PAIRS = {"2.11": "2.12", "2.13": "2.14", "4.1": "4.2", "4.3": "4.4", "4.5": "4.6", "5.1": "5.2", "5.3": "5.4",
-          "8.5": "8.6", "8.7": "8.8", "8.10": "8.9", "9.1": "9.2", "9.5": "9.4", "9.7": "9.6", "9.13": "9.14",
-          "10.7": "10.8", "10.9": "10.10", "11.3": "11.2", "3.9": "3.10", "3.13": "3.14"}
+_PAIRS = {
+    "2.11": "2.12",
+    "2.13": "2.14",
+    "4.1": "4.2",
+    "4.3": "4.4",
+    "4.5": "4.6",
+    "5.1": "5.2",
+    "5.3": "5.4",
+    "8.5": "8.6",
+    "8.7": "8.8",
+    "8.10": "8.9",
+    "9.1": "9.2",
+    "9.5": "9.4",
+    "9.7": "9.6",
+    "9.13": "9.14",
+    "10.7": "10.8",
+    "10.9": "10.10",
+    "11.3": "11.2",
+    "3.9": "3.10",
+    "3.13": "3.14",
+}
 
 
-def _snap(grid: SkinGrid, targets: dict[str, tuple[float, float]], protected_rows: set[int],
-          taken: set[int]) -> dict[str, int]:
+def _snap(
+    grid: SkinGrid,
+    targets: dict[str, tuple[float, float]],
+    protected_rows: set[int],
+    taken: set[int],
+) -> dict[str, int]:
     """Move the nearest free grid node of each target onto it (staying well inside its link; else use it as is)."""
     nr, nc = len(grid.phis), len(grid.thetas)
     ext = np.concatenate([grid.thetas, [np.pi]])
@@ -274,23 +336,43 @@ def _snap(grid: SkinGrid, targets: dict[str, tuple[float, float]], protected_row
 # ---- assembly --------------------------------------------------------------------------------------------
 def _assemble(model: SkinModel, lay: Layout, spacing: float, name: str) -> Face:
     grid = skin_grid(model, spacing)
-    nc = len(grid.thetas)
     jm, je = grid.row_mouth, grid.row_eye
     i_a, i_b = grid.mouth_cols
-    col = {k: int(np.argmin(np.abs(grid.thetas - v))) for k, v in
-           (("0", 0.0), ("m2l", model.theta_mc / 2), ("m2r", -model.theta_mc / 2), ("ocl", model.theta_oc),
-            ("ocr", -model.theta_oc), ("el", model.theta_e), ("er", -model.theta_e), ("inl", model.theta_in),
-            ("inr", -model.theta_in), ("outl", model.theta_out), ("outr", -model.theta_out))}
+    col = {
+        k: int(np.argmin(np.abs(grid.thetas - v)))
+        for k, v in (
+            ("0", 0.0),
+            ("m2l", model.theta_mc / 2),
+            ("m2r", -model.theta_mc / 2),
+            ("ocl", model.theta_oc),
+            ("ocr", -model.theta_oc),
+            ("el", model.theta_e),
+            ("er", -model.theta_e),
+            ("inl", model.theta_in),
+            ("inr", -model.theta_in),
+            ("outl", model.theta_out),
+            ("outr", -model.theta_out),
+        )
+    }
     fps: dict[str, int] = {
-        "2.2": grid.ids[jm, col["0"]], "2.3": grid.ids_low[jm, col["0"]],
-        "2.4": grid.ids[jm, i_b], "2.5": grid.ids[jm, i_a],
-        "2.6": grid.ids[jm, col["m2l"]], "2.7": grid.ids[jm, col["m2r"]],
-        "2.8": grid.ids_low[jm, col["m2l"]], "2.9": grid.ids_low[jm, col["m2r"]],
-        "8.3": grid.ids[jm, col["ocl"]], "8.4": grid.ids[jm, col["ocr"]],
-        "3.1": grid.ids[je, col["el"]], "3.2": grid.ids[je, col["er"]],
-        "3.3": grid.ids_low[je, col["el"]], "3.4": grid.ids_low[je, col["er"]],
-        "3.7": grid.ids[je, col["outl"]], "3.12": grid.ids[je, col["outr"]],
-        "3.11": grid.ids[je, col["inl"]], "3.8": grid.ids[je, col["inr"]],
+        "2.2": grid.ids[jm, col["0"]],
+        "2.3": grid.ids_low[jm, col["0"]],
+        "2.4": grid.ids[jm, i_b],
+        "2.5": grid.ids[jm, i_a],
+        "2.6": grid.ids[jm, col["m2l"]],
+        "2.7": grid.ids[jm, col["m2r"]],
+        "2.8": grid.ids_low[jm, col["m2l"]],
+        "2.9": grid.ids_low[jm, col["m2r"]],
+        "8.3": grid.ids[jm, col["ocl"]],
+        "8.4": grid.ids[jm, col["ocr"]],
+        "3.1": grid.ids[je, col["el"]],
+        "3.2": grid.ids[je, col["er"]],
+        "3.3": grid.ids_low[je, col["el"]],
+        "3.4": grid.ids_low[je, col["er"]],
+        "3.7": grid.ids[je, col["outl"]],
+        "3.12": grid.ids[je, col["outr"]],
+        "3.11": grid.ids[je, col["inl"]],
+        "3.8": grid.ids[je, col["inr"]],
         "11.4": grid.ids[-1, 0],
     }
     fps = {k: int(v) for k, v in fps.items()}
@@ -340,7 +422,9 @@ def _assemble(model: SkinModel, lay: Layout, spacing: float, name: str) -> Face:
             fps["9.11"], fps["9.9"] = s + an["edge"], s + an["root"]
     tv, tf, ta = built["tongue"]
     s = add("tongue", tv, tf)
-    fps.update({"6.1": s + ta["tip"], "6.2": s + ta["body"], "6.3": s + ta["left"], "6.4": s + ta["right"]})
+    fps.update(
+        {"6.1": s + ta["tip"], "6.2": s + ta["body"], "6.3": s + ta["left"], "6.4": s + ta["right"]}
+    )
     av, af, aa = built["ear"]
     s = add("skin", av, af)
     fps.update({"10.1": s + aa["top"], "10.3": s + aa["back"], "10.5": s + aa["lobe"]})
@@ -354,9 +438,22 @@ def _assemble(model: SkinModel, lay: Layout, spacing: float, name: str) -> Face:
     part_ids["mouth_socket"] = np.arange(n_grid, n_grid + len(pocket_v))
     e = lay.eye_centre_l
     pivots = {"head": lay.head_pivot, "jaw": lay.jaw_pivot, "eye_l": e, "eye_r": e * _MIRROR}
-    log.debug("built %s: %d vertices, %d triangles, spacing %.3f mm", name, len(vertices), len(triangles), spacing)
-    return Face(name=name, vertices=vertices, triangles=triangles, units="mm", parts=part_ids,
-                feature_points=fps, pivots=pivots)
+    log.debug(
+        "built %s: %d vertices, %d triangles, spacing %.3f mm",
+        name,
+        len(vertices),
+        len(triangles),
+        spacing,
+    )
+    return Face(
+        name=name,
+        vertices=vertices,
+        triangles=triangles,
+        units="mm",
+        parts=part_ids,
+        feature_points=fps,
+        pivots=pivots,
+    )
 
 
 def _has_duplicate_directed_edges(tris: np.ndarray) -> bool:
@@ -365,8 +462,14 @@ def _has_duplicate_directed_edges(tris: np.ndarray) -> bool:
     return len(np.unique(key)) != len(key)
 
 
-def _lip_sets(model: SkinModel, grid: SkinGrid, skin_v: np.ndarray, n_grid: int, pocket_side: np.ndarray,
-              pocket_depth: np.ndarray) -> dict[str, np.ndarray]:
+def _lip_sets(
+    model: SkinModel,
+    grid: SkinGrid,
+    skin_v: np.ndarray,
+    n_grid: int,
+    pocket_side: np.ndarray,
+    pocket_depth: np.ndarray,
+) -> dict[str, np.ndarray]:
     """Upper/lower lip vertex sets: vermilion rows on each side of the slit plus the inner lip."""
     jm = grid.row_mouth
     i_a, i_b = grid.mouth_cols
@@ -451,12 +554,17 @@ def _lip_weight(face: Face) -> np.ndarray | None:
     s = py - model.slit_py(px)
     vu, vl = model.lip_heights(a)
     inside = np.where(s >= 0, vu - s, vl + s)
-    w = np.clip(inside / 1.5 + 0.5, 0, 1) * np.clip((1.0 - np.abs(a)) / 0.08 + 0.5, 0, 1) * (fm > 0.5)
+    w = (
+        np.clip(inside / 1.5 + 0.5, 0, 1)
+        * np.clip((1.0 - np.abs(a)) / 0.08 + 0.5, 0, 1)
+        * (fm > 0.5)
+    )
     out = np.zeros(face.n_vertices)
     out[ids] = w
     out[face.part("mouth_socket")] = 0
     out[face.part("lip_upper")] = np.maximum(out[face.part("lip_upper")], 0)
     return out
+
 
 def head_colors(face: Face) -> np.ndarray:
     """``(V, 3)`` RGB 0–1 colours for previews of the built-in head (skin, lips, eyes, teeth, tongue)."""
@@ -470,9 +578,14 @@ def head_colors(face: Face) -> np.ndarray:
     nostril = _nostril_weight(face)
     if nostril is not None:
         col *= 1 - 0.45 * nostril[:, None]
-    for p, rgb in (("mouth_socket", (0.45, 0.16, 0.18)), ("teeth_upper", (0.95, 0.93, 0.85)),
-                   ("teeth_lower", (0.95, 0.93, 0.85)), ("gums_upper", (0.80, 0.40, 0.42)),
-                   ("gums_lower", (0.80, 0.40, 0.42)), ("tongue", (0.80, 0.38, 0.40))):
+    for p, rgb in (
+        ("mouth_socket", (0.45, 0.16, 0.18)),
+        ("teeth_upper", (0.95, 0.93, 0.85)),
+        ("teeth_lower", (0.95, 0.93, 0.85)),
+        ("gums_upper", (0.80, 0.40, 0.42)),
+        ("gums_lower", (0.80, 0.40, 0.42)),
+        ("tongue", (0.80, 0.38, 0.40)),
+    ):
         col[face.part(p)] = rgb
     for eye in ("eye_l", "eye_r"):
         ids = face.part(eye)

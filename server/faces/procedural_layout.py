@@ -3,6 +3,7 @@
 Origin: x = 0 on the mid-sagittal plane, y = 0 at pupil height, z = 0 at the ear canals; +x is the
 face's own left, +y up, +z out of the face.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
@@ -19,25 +20,25 @@ FEATURE_PLANE_Z = 90.0
 class Conformation:
     """Shape parameters of the built-in head, in millimetres (defaults: an average adult)."""
 
-    face_width: float = 136.0       #: bizygomatic breadth (cheekbone to cheekbone)
-    face_height: float = 122.0      #: nasion to menton (chin bottom)
-    head_width: float = 152.0       #: skull breadth
-    head_length: float = 196.0      #: glabella to back of the skull
-    head_height: float = 118.0      #: top of the skull above the pupils
-    jaw_width: float = 104.0        #: bigonial breadth (jaw angle to jaw angle)
-    chin_length: float = 47.0       #: lip contact (stomion) to menton
-    nose_length: float = 52.0       #: nasion to subnasale
-    nose_width: float = 34.0        #: alar breadth
-    nose_protrusion: float = 20.0   #: tip in front of the subnasale
-    mouth_width: float = 50.0       #: lip corner to lip corner
-    lip_thickness: float = 8.0      #: upper vermilion height at the middle (the lower lip is 1.2x)
-    eye_spacing: float = 63.0       #: pupil to pupil
-    eye_radius: float = 12.2        #: eyeball radius
+    face_width: float = 136.0  #: bizygomatic breadth (cheekbone to cheekbone)
+    face_height: float = 122.0  #: nasion to menton (chin bottom)
+    head_width: float = 152.0  #: skull breadth
+    head_length: float = 196.0  #: glabella to back of the skull
+    head_height: float = 118.0  #: top of the skull above the pupils
+    jaw_width: float = 104.0  #: bigonial breadth (jaw angle to jaw angle)
+    chin_length: float = 47.0  #: lip contact (stomion) to menton
+    nose_length: float = 52.0  #: nasion to subnasale
+    nose_width: float = 34.0  #: alar breadth
+    nose_protrusion: float = 20.0  #: tip in front of the subnasale
+    mouth_width: float = 50.0  #: lip corner to lip corner
+    lip_thickness: float = 8.0  #: upper vermilion height at the middle (the lower lip is 1.2x)
+    eye_spacing: float = 63.0  #: pupil to pupil
+    eye_radius: float = 12.2  #: eyeball radius
     iris_diameter: float = 11.6
-    brow_height: float = 22.0       #: top of the eyebrow above the pupil
-    ear_size: float = 62.0          #: ear length (top to lobe)
+    brow_height: float = 22.0  #: top of the eyebrow above the pupil
+    ear_size: float = 62.0  #: ear length (top to lobe)
     neck_radius: float = 52.0
-    neck_length: float = 60.0       #: below the chin
+    neck_length: float = 60.0  #: below the chin
 
     @classmethod
     def names(cls) -> tuple[str, ...]:

@@ -2,6 +2,7 @@
 
 Everything here is vectorised NumPy; nothing loops per vertex.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -14,7 +15,9 @@ def smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
     return t * t * (3 - 2 * t)
 
 
-def graded_axis(knots: list[float], n_intervals: int, density: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+def graded_axis(
+    knots: list[float], n_intervals: int, density: Callable[[np.ndarray], np.ndarray]
+) -> np.ndarray:
     """Sorted samples of ``[knots[0], knots[-1]]`` that contain every knot exactly.
 
     About ``n_intervals`` intervals in all, spaced inversely to ``density`` (each knot segment gets
@@ -22,7 +25,9 @@ def graded_axis(knots: list[float], n_intervals: int, density: Callable[[np.ndar
     """
     k = np.unique(np.asarray(knots, dtype=np.float64))
     fine = np.linspace(k[0], k[-1], 2049)
-    cdf = np.concatenate([[0.0], np.cumsum((density(fine[1:]) + density(fine[:-1])) / 2 * np.diff(fine))])
+    cdf = np.concatenate(
+        [[0.0], np.cumsum((density(fine[1:]) + density(fine[:-1])) / 2 * np.diff(fine))]
+    )
     ck = np.interp(k, fine, cdf)
     mass = np.diff(ck)
     counts = np.maximum(1, np.round(mass / cdf[-1] * n_intervals).astype(int))
@@ -30,19 +35,22 @@ def graded_axis(knots: list[float], n_intervals: int, density: Callable[[np.ndar
     for a, b, c in zip(ck[:-1], ck[1:], counts):
         pieces.append(np.interp(np.linspace(a, b, c + 1)[:-1], cdf, fine))
     out = np.concatenate(pieces + [k[-1:]])
-    out[np.concatenate([[0], np.cumsum(counts)[:-1]])] = k[:-1]  # exact knots despite interpolation rounding
+    out[np.concatenate([[0], np.cumsum(counts)[:-1]])] = k[
+        :-1
+    ]  # exact knots despite interpolation rounding
     return out
 
 
-def grid_triangles(ids_low: np.ndarray, ids_high: np.ndarray, wrap: bool,
-                   mirror_cols: np.ndarray | None = None) -> np.ndarray:
+def grid_triangles(
+    ids_low: np.ndarray, ids_high: np.ndarray, wrap: bool, mirror_cols: np.ndarray | None = None
+) -> np.ndarray:
     """Triangles of a ``(R, C)`` vertex-id grid, two per cell, counter-clockwise seen with rows up, columns right.
 
     ``ids_low[r]`` is used when row ``r`` is the lower row of a cell and ``ids_high[r]`` when it is the
     upper row (they differ only along slits). Cells whose corners repeat an id (poles) lose the
     degenerate triangle.
     """
-    r, c = ids_low.shape
+    c = ids_low.shape[1]
     cols = np.arange(c if wrap else c - 1)
     nxt = (cols + 1) % c
     a = ids_low[:-1][:, cols]
@@ -50,7 +58,9 @@ def grid_triangles(ids_low: np.ndarray, ids_high: np.ndarray, wrap: bool,
     cc = ids_high[1:][:, nxt]
     d = ids_high[1:][:, cols]
     t1, t2 = np.stack([a, b, cc], -1), np.stack([a, cc, d], -1)
-    if mirror_cols is not None:  # cells of these columns take the other diagonal (mirror-symmetric meshes)
+    if (
+        mirror_cols is not None
+    ):  # cells of these columns take the other diagonal (mirror-symmetric meshes)
         m = np.broadcast_to(np.asarray(mirror_cols)[cols], a.shape)[..., None]
         t1 = np.where(m, np.stack([a, b, d], -1), t1)
         t2 = np.where(m, np.stack([b, cc, d], -1), t2)
@@ -72,8 +82,12 @@ def closed_grid(n_rings: int, n_seg: int) -> tuple[np.ndarray, np.ndarray, np.nd
     return ids, np.arange(n_rings + 2), np.arange(n_seg)
 
 
-def closed_surface(points: Callable[[np.ndarray, np.ndarray], np.ndarray], t_rings: np.ndarray, n_seg: int,
-                   flip: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def closed_surface(
+    points: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    t_rings: np.ndarray,
+    n_seg: int,
+    flip: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
     """Sample a closed two-pole parametric surface.
 
     ``points(t, w)`` maps ``t`` in [0, 1] (0, 1 = poles) and angle ``w`` in [0, 2π) to ``(..., 3)`` points.
@@ -118,8 +132,16 @@ def ray_exit(origin: np.ndarray, d: np.ndarray, centre, semi, soft: float = 2.0)
     return -b / a + q / np.sqrt(np.abs(q) + soft * soft)
 
 
-def ray_exit_cylinder(origin: np.ndarray, d: np.ndarray, cx: float, cz: float, sx: float, sz: float,
-                      y_bottom: float, y_top: float) -> np.ndarray:
+def ray_exit_cylinder(
+    origin: np.ndarray,
+    d: np.ndarray,
+    cx: float,
+    cz: float,
+    sx: float,
+    sz: float,
+    y_bottom: float,
+    y_top: float,
+) -> np.ndarray:
     """Exit distance from a vertical elliptic cylinder (axis through x=cx, z=cz) cut at ``y_bottom`` and
     ``y_top`` (the origin must be inside)."""
     ox, oz = (origin[0] - cx) / sx, (origin[2] - cz) / sz
@@ -130,8 +152,12 @@ def ray_exit_cylinder(origin: np.ndarray, d: np.ndarray, cx: float, cz: float, s
     disc = np.maximum(b * b - a * c, 0)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(a > 1e-12, (-b + np.sqrt(disc)) / np.where(a > 1e-12, a, 1), np.inf)
-        tp = np.where(d[:, 1] < -1e-9, (y_bottom - origin[1]) / np.where(d[:, 1] < -1e-9, d[:, 1], -1), np.inf)
-        tq = np.where(d[:, 1] > 1e-9, (y_top - origin[1]) / np.where(d[:, 1] > 1e-9, d[:, 1], 1), np.inf)
+        tp = np.where(
+            d[:, 1] < -1e-9, (y_bottom - origin[1]) / np.where(d[:, 1] < -1e-9, d[:, 1], -1), np.inf
+        )
+        tq = np.where(
+            d[:, 1] > 1e-9, (y_top - origin[1]) / np.where(d[:, 1] > 1e-9, d[:, 1], 1), np.inf
+        )
     return np.minimum(np.minimum(t, tp), tq)
 
 

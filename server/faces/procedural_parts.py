@@ -3,6 +3,7 @@
 Each builder returns ``(vertices (n, 3), triangles (m, 3), anchors)`` where ``anchors`` names vertex
 indices at fixed parameters (feature points), so they are the same points at every resolution.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -35,7 +36,9 @@ def eyeball(lay: Layout, spacing: float) -> Part:
         al = np.pi * tt
         bulge = 0.7 * np.clip(1 - (al / a_i) ** 2, 0, 1)
         rr = r + bulge
-        return e + np.stack([rr * np.sin(al) * np.cos(ww), rr * np.sin(al) * np.sin(ww), rr * np.cos(al)], -1)
+        return e + np.stack(
+            [rr * np.sin(al) * np.cos(ww), rr * np.sin(al) * np.sin(ww), rr * np.cos(al)], -1
+        )
 
     v, f = closed_surface(pts, t, n_seg)
     return v, orient_outward(v - e, f), {"pupil": 0}
@@ -49,9 +52,23 @@ def _arch(z_front: float, half_width: float, depth: float):
 
 
 _UPPER = [  # width, height, labio-lingual depth (mm), central incisor first
-    (8.5, 10.5, 7.0), (6.6, 9.0, 6.2), (7.6, 10.0, 8.0), (7.0, 8.2, 9.0), (6.6, 7.8, 9.0), (10.0, 7.2, 11.0), (9.0, 6.8, 10.5)]
+    (8.5, 10.5, 7.0),
+    (6.6, 9.0, 6.2),
+    (7.6, 10.0, 8.0),
+    (7.0, 8.2, 9.0),
+    (6.6, 7.8, 9.0),
+    (10.0, 7.2, 11.0),
+    (9.0, 6.8, 10.5),
+]
 _LOWER = [
-    (5.4, 9.0, 6.0), (5.9, 9.0, 6.2), (6.9, 10.0, 7.5), (7.0, 8.4, 7.8), (7.1, 8.0, 8.2), (11.0, 7.5, 10.5), (10.5, 7.2, 10.0)]
+    (5.4, 9.0, 6.0),
+    (5.9, 9.0, 6.2),
+    (6.9, 10.0, 7.5),
+    (7.0, 8.4, 7.8),
+    (7.1, 8.0, 8.2),
+    (11.0, 7.5, 10.5),
+    (10.5, 7.2, 10.0),
+]
 
 
 def teeth(lay: Layout, spacing: float, upper: bool) -> Part:
@@ -71,11 +88,13 @@ def teeth(lay: Layout, spacing: float, upper: bool) -> Part:
         pos += w + 0.35
         xc, zc = np.interp(s_c, s, x), np.interp(sc, s, z)
         i = np.searchsorted(s, s_c)
-        tx, tz = x[min(i + 1, len(x) - 1)] - x[max(i - 1, 0)], z[min(i + 1, len(z) - 1)] - z[max(i - 1, 0)]
+        tx, tz = (
+            x[min(i + 1, len(x) - 1)] - x[max(i - 1, 0)],
+            z[min(i + 1, len(z) - 1)] - z[max(i - 1, 0)],
+        )
         tn = np.hypot(tx, tz)
         tang = np.array([tx / tn, 0, tz / tn])
         lab = np.array([-tang[2], 0, tang[0]])
-        up = np.array([0.0, 1.0, 0.0])
         yc = y0 + h / 2 if upper else y0 - h / 2
         centre = np.array([xc, yc, zc]) - lab * dpt / 2
         n_r = int(np.clip(round(h / (0.9 * spacing)), 2, 12))
@@ -94,15 +113,19 @@ def teeth(lay: Layout, spacing: float, upper: bool) -> Part:
             pz = np.sign(ce) * np.abs(ce) ** ex * np.sign(sw) * np.abs(sw) ** ex
             frac = (py + 1) / 2 if upper else (1 - py) / 2  # 0 at the biting edge
             thin = (0.35 + 0.65 * smoothstep(0.0, 0.7, frac)) if incisor else (0.85 + 0.15 * frac)
-            return (centre + (px * w / 2)[..., None] * tang + (py * h / 2)[..., None] * up
-                    + (pz * dpt / 2 * thin)[..., None] * lab)
+            return (
+                centre
+                + (px * w / 2)[..., None] * tang
+                + (py * h / 2)[..., None] * np.array([0.0, 1.0, 0.0])
+                + (pz * dpt / 2 * thin)[..., None] * lab
+            )
 
         t = (np.arange(n_r) + 0.5) / n_r
         t = np.clip(t, 0.02, 0.98)
         v, f = closed_surface(pts, t, n_s)
         f = orient_outward(v - v.mean(axis=0), f)
         if k == 0:
-            anchors["edge"] = nv + 0           # t = 0 pole: the biting edge
+            anchors["edge"] = nv + 0  # t = 0 pole: the biting edge
             anchors["root"] = nv + len(v) - 1  # t = 1 pole
         verts.append(v)
         tris.append(f + nv)
@@ -169,8 +192,12 @@ def tongue(lay: Layout, spacing: float) -> Part:
     v, f = closed_surface(pts, t, n_seg)
     f = orient_outward(v - v.mean(axis=0), f)
     r_body, r_edge = _ring_index(t, t_body), _ring_index(t, t_edge)
-    anchors = {"tip": 0, "body": 1 + r_body * n_seg + n_seg // 4,
-               "left": 1 + r_edge * n_seg + 0, "right": 1 + r_edge * n_seg + n_seg // 2}
+    anchors = {
+        "tip": 0,
+        "body": 1 + r_body * n_seg + n_seg // 4,
+        "left": 1 + r_edge * n_seg + 0,
+        "right": 1 + r_edge * n_seg + n_seg // 2,
+    }
     return v, f, anchors
 
 
@@ -196,15 +223,26 @@ def ear(lay: Layout, spacing: float, attach: np.ndarray) -> Part:
         st, ct = np.sin(np.pi * tt), np.cos(np.pi * tt)
         u, v = st * np.sin(ww), st * np.cos(ww)  # u: up, v: forward (unit disc)
         width = aw * (0.82 + 0.22 * u) * (1 - 0.12 * smoothstep(-0.3, -1.0, u))
-        bowl = np.exp(-(((u + 0.18) / 0.36) ** 2) - ((v - 0.22) / 0.42) ** 2)       # concha
-        scapha = np.exp(-(((st - 0.8) / 0.07) ** 2)) * smoothstep(-0.2, 0.3, u - 0.4 * v)  # groove inside the rim
-        lobe = smoothstep(-0.55, -0.85, u)                                            # the lobe is flat and soft
+        bowl = np.exp(-(((u + 0.18) / 0.36) ** 2) - ((v - 0.22) / 0.42) ** 2)  # concha
+        scapha = np.exp(-(((st - 0.8) / 0.07) ** 2)) * smoothstep(
+            -0.2, 0.3, u - 0.4 * v
+        )  # groove inside the rim
+        lobe = smoothstep(-0.55, -0.85, u)  # the lobe is flat and soft
         rim = 1.0 + 0.9 * smoothstep(0.8, 0.97, st) * (1 - lobe)
         thick = at * ct * np.where(ct > 0, np.maximum(rim - 2.0 * bowl - 0.6 * scapha, -0.7), 1.0)
-        return (centre + (u * ah)[..., None] * up + (v * width)[..., None] * fwd + thick[..., None] * out)
+        return (
+            centre
+            + (u * ah)[..., None] * up
+            + (v * width)[..., None] * fwd
+            + thick[..., None] * out
+        )
 
     v, f = closed_surface(pts, t, n_seg)
     f = orient_outward(v - v.mean(axis=0), f)
     r_eq = _ring_index(t, 0.5)
     base = 1 + r_eq * n_seg
-    return v, f, {"top": base + n_seg // 4, "back": base + n_seg // 2, "lobe": base + 3 * n_seg // 4}
+    return (
+        v,
+        f,
+        {"top": base + n_seg // 4, "back": base + n_seg // 2, "lobe": base + 3 * n_seg // 4},
+    )

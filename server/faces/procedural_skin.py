@@ -11,6 +11,7 @@
   apart along φ so the cut opens into the palpebral fissure; the lids lie on spheres 1 mm outside
   the eyeballs.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -18,9 +19,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from .procedural_layout import (
-    RAY_ORIGIN, Layout, direction_to, gnomonic, unit_dirs,
+    RAY_ORIGIN,
+    Layout,
+    direction_to,
+    gnomonic,
+    unit_dirs,
 )
-from .procedural_mesh import graded_axis, grid_triangles, ray_exit, ray_exit_cylinder, smooth_max, smoothstep
+from .procedural_mesh import (
+    graded_axis,
+    grid_triangles,
+    ray_exit,
+    ray_exit_cylinder,
+    smooth_max,
+    smoothstep,
+)
 
 
 def _lip_profile(u: np.ndarray) -> np.ndarray:
@@ -38,19 +50,33 @@ class SkinModel:
 
     def __init__(self, lay: Layout) -> None:
         self.lay = lay
-        c = lay.conf
         # Lip-contact line: level, at the stomion height, curving back along the dental arch.
         xs = np.linspace(-2.0, 2.0, 401) * lay.x_mouth
-        pts = np.stack([xs, np.full_like(xs, lay.y_stomion), lay.z_lip_line(np.clip(xs, -1.3 * lay.x_mouth, 1.3 * lay.x_mouth))], -1)
+        pts = np.stack(
+            [
+                xs,
+                np.full_like(xs, lay.y_stomion),
+                lay.z_lip_line(np.clip(xs, -1.3 * lay.x_mouth, 1.3 * lay.x_mouth)),
+            ],
+            -1,
+        )
         th, ph = direction_to(pts)
         self.phi_m = float(ph[200])
         self.slit_theta = th
         self.slit_dphi = ph - self.phi_m
         px, py, _ = gnomonic(unit_dirs(th, ph))
         self._slit_px, self._slit_py = px, py
-        self.theta_mc = float(direction_to(np.array([lay.x_mouth, lay.y_stomion, float(lay.z_lip_line(lay.x_mouth))]))[0])
+        self.theta_mc = float(
+            direction_to(
+                np.array([lay.x_mouth, lay.y_stomion, float(lay.z_lip_line(lay.x_mouth))])
+            )[0]
+        )
         xo = lay.x_mouth + 1.2
-        self.theta_oc = float(direction_to(np.array([xo, lay.y_stomion, float(lay.z_lip_line(1.05 * lay.x_mouth))]))[0])
+        self.theta_oc = float(
+            direction_to(np.array([xo, lay.y_stomion, float(lay.z_lip_line(1.05 * lay.x_mouth))]))[
+                0
+            ]
+        )
         self.px_corner = float(np.interp(self.theta_mc, th, px))
         # Eyes (left; the right one is the mirror image).
         e, r = lay.eye_centre_l, lay.lid_radius
@@ -58,8 +84,11 @@ class SkinModel:
         self.theta_e, self.phi_e = (float(v) for v in direction_to(front))
         off_in, off_out = lay.canthus_offsets
         cin = e + np.array([off_in, 0, np.sqrt(max(r * r - off_in**2, 0.0)) + 0.3])
-        cout = e + np.array([off_out, 0, np.sqrt(max(r * r - off_out**2, 0.0)) + 0.3]) if abs(off_out) < r else \
-            e + np.array([off_out, 0, 0.3])
+        cout = (
+            e + np.array([off_out, 0, np.sqrt(max(r * r - off_out**2, 0.0)) + 0.3])
+            if abs(off_out) < r
+            else e + np.array([off_out, 0, 0.3])
+        )
         self.theta_in = float(direction_to(cin)[0])
         self.theta_out = float(direction_to(cout)[0])
         ir = lay.iris_radius
@@ -104,8 +133,11 @@ class SkinModel:
     def eye_opening(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Half-openings (upper, lower) in elevation at azimuth ``theta`` (both eyes, 0 outside them)."""
         ta = np.abs(theta)
-        u = np.where(ta >= self.theta_e, (ta - self.theta_e) / (self.theta_out - self.theta_e),
-                     (self.theta_e - ta) / (self.theta_e - self.theta_in))
+        u = np.where(
+            ta >= self.theta_e,
+            (ta - self.theta_e) / (self.theta_out - self.theta_e),
+            (self.theta_e - ta) / (self.theta_e - self.theta_in),
+        )
         inside = u < 1
         base = np.where(inside, np.clip(1 - u * u, 0, 1) ** 0.62, 0.0)
         # the upper lid peaks a little towards the nose
@@ -126,11 +158,22 @@ class SkinModel:
         """Distance from ``RAY_ORIGIN`` to the skin along unit rays ``d (N, 3)``."""
         lay, c = self.lay, self.lay.conf
         o = RAY_ORIGIN
-        cran = ray_exit(o, d, (0, c.head_height - 90, -3.0), (c.head_width / 2, 90, c.head_length / 2))
+        cran = ray_exit(
+            o, d, (0, c.head_height - 90, -3.0), (c.head_width / 2, 90, c.head_length / 2)
+        )
         face = ray_exit(o, d, (0, -26, 10), (c.face_width / 2, 66, 83))
         jaw = ray_exit(o, d, (0, lay.y_menton + 46, 16), (c.jaw_width / 2, 46, 72))
         muzzle = ray_exit(o, d, (0, lay.y_stomion + 4, 48), (lay.x_mouth + 19, 34, 45))
-        neck = ray_exit_cylinder(o, d, 0.0, -14.0, 0.92 * c.neck_radius, c.neck_radius, lay.y_menton - c.neck_length, 30.0)
+        neck = ray_exit_cylinder(
+            o,
+            d,
+            0.0,
+            -14.0,
+            0.92 * c.neck_radius,
+            c.neck_radius,
+            lay.y_menton - c.neck_length,
+            30.0,
+        )
         r = smooth_max([cran, face, jaw, muzzle, neck], 8.0)
         r = r + self.features(d)
         e = lay.eye_centre_l
@@ -153,7 +196,9 @@ class SkinModel:
         out = np.zeros(len(d))
         # eye sockets, brow ridge, glabella, nasion
         out += -8.0 * _g(ax, py, ex, 1.0, 17, 13)
-        out += 3.5 * _g(ax, py, ex - 3, c.brow_height - 3, 22, 7) + 3.0 * _g(px, py, 0, yn + 8, 12, 8)
+        out += 3.5 * _g(ax, py, ex - 3, c.brow_height - 3, 22, 7) + 3.0 * _g(
+            px, py, 0, yn + 8, 12, 8
+        )
         out += -2.5 * _g(px, py, 0, yn, 7, 5)
         # temples in, cheekbones out, cheeks
         out += -2.5 * _g(ax, py, c.face_width / 2 - 8, 18, 12, 18)
@@ -170,19 +215,31 @@ class SkinModel:
         ridge_h = np.where(q < qt, h_up, h_dn) * (q > -0.1)
         ridge_h *= smoothstep(-0.15, 0.05, q)
         w = 4.8 + 3.6 * np.clip(q, 0, 1) + 2.6 * np.exp(-(((q - qt) / 0.12) ** 2))
-        ridge = ridge_h * np.exp(-np.abs(px / w) ** 2.2)
+        ridge = ridge_h * np.exp(-(np.abs(px / w) ** 2.2))
         alae_y = ysn + 0.3 * span * (1 - qt) + 4.0
         alae = 10.0 * _g(ax, py, c.nose_width / 2 - 6.5, alae_y, 6.5, 7.0)
         nose = smooth_max([ridge, alae, np.zeros_like(px)], 1.5)
         out += nose - 1.2 * _g(ax, py, c.nose_width / 2 - 1, alae_y + 2, 2.0, 8.0)
         # philtrum and nasolabial folds
-        out += -0.8 * _g(px, py, 0, (ysn + lay.y_stomion) / 2 + 2, 2.5, 6) + 0.6 * _g(ax, py, 4.5, (ysn + lay.y_stomion) / 2 + 2, 1.5, 6)
-        fold_x = c.nose_width / 2 + 3 + (py - ysn) / (lay.y_stomion - ysn) * (lay.x_mouth - c.nose_width / 2)
-        out += -0.8 * np.exp(-(((ax - fold_x) / 4.0) ** 2)) * _g(0, py, 0, (ysn + lay.y_stomion) / 2, 1, 14)
+        out += -0.8 * _g(px, py, 0, (ysn + lay.y_stomion) / 2 + 2, 2.5, 6) + 0.6 * _g(
+            ax, py, 4.5, (ysn + lay.y_stomion) / 2 + 2, 1.5, 6
+        )
+        fold_x = (
+            c.nose_width / 2
+            + 3
+            + (py - ysn) / (lay.y_stomion - ysn) * (lay.x_mouth - c.nose_width / 2)
+        )
+        out += (
+            -0.8
+            * np.exp(-(((ax - fold_x) / 4.0) ** 2))
+            * _g(0, py, 0, (ysn + lay.y_stomion) / 2, 1, 14)
+        )
         # lips
         out += self.lips(px, py)
         # chin and labiomental fold
-        out += 8.0 * _g(px, py, 0, lay.y_menton + 14, 17, 13) - 2.0 * _g(px, py, 0, lay.y_stomion - 21, 16, 4)
+        out += 8.0 * _g(px, py, 0, lay.y_menton + 14, 17, 13) - 2.0 * _g(
+            px, py, 0, lay.y_stomion - 21, 16, 4
+        )
         return out * fm
 
     def slit_py(self, px: np.ndarray) -> np.ndarray:
@@ -192,8 +249,14 @@ class SkinModel:
         """Vermilion heights (upper, lower) in face-plane mm at lateral fraction ``a`` (1 = corner)."""
         c = self.lay.conf
         a2 = np.clip(a * a, 0, 1)
-        bow = 1.0 - 0.10 * np.exp(-((a / 0.1) ** 2)) + 0.05 * np.exp(-(((np.abs(a) - 0.28) / 0.1) ** 2))
-        return c.lip_thickness * (1 - 0.75 * a2**1.3) * bow, 1.2 * c.lip_thickness * (1 - 0.8 * a2**1.2)
+        bow = (
+            1.0
+            - 0.10 * np.exp(-((a / 0.1) ** 2))
+            + 0.05 * np.exp(-(((np.abs(a) - 0.28) / 0.1) ** 2))
+        )
+        return c.lip_thickness * (1 - 0.75 * a2**1.3) * bow, 1.2 * c.lip_thickness * (
+            1 - 0.8 * a2**1.2
+        )
 
     def lips(self, px: np.ndarray, py: np.ndarray) -> np.ndarray:
         c = self.lay.conf
@@ -235,33 +298,50 @@ class SkinModel:
 class SkinGrid:
     """A sampled skin: vertex parameters and triangles, with the slit bookkeeping."""
 
-    theta: np.ndarray          # (N,) per vertex
-    phi: np.ndarray            # (N,) per vertex, before the eye remap
-    side: np.ndarray           # (N,) int8: +1 upper copy / -1 lower copy on slit rows, 0 elsewhere
-    row: np.ndarray            # (N,) grid row (-1 for pocket vertices)
-    col: np.ndarray            # (N,) grid column
-    ids: np.ndarray            # (R, C) vertex ids (upper copies on slit rows)
-    ids_low: np.ndarray        # (R, C) vertex ids (lower copies on slit rows)
+    theta: np.ndarray  # (N,) per vertex
+    phi: np.ndarray  # (N,) per vertex, before the eye remap
+    side: np.ndarray  # (N,) int8: +1 upper copy / -1 lower copy on slit rows, 0 elsewhere
+    row: np.ndarray  # (N,) grid row (-1 for pocket vertices)
+    col: np.ndarray  # (N,) grid column
+    ids: np.ndarray  # (R, C) vertex ids (upper copies on slit rows)
+    ids_low: np.ndarray  # (R, C) vertex ids (lower copies on slit rows)
     triangles: np.ndarray
-    thetas: np.ndarray         # (C,) column azimuths
-    phis: np.ndarray           # (R,) row elevations
+    thetas: np.ndarray  # (C,) column azimuths
+    phis: np.ndarray  # (R,) row elevations
     row_mouth: int
     row_eye: int
-    mouth_cols: tuple[int, int]   # corner columns (right, left)
+    mouth_cols: tuple[int, int]  # corner columns (right, left)
 
 
 def axes_for(model: SkinModel, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """Column azimuths (wrapping, no duplicate at ±π) and row elevations (poles included)."""
+
     def dth(t):
         return 0.38 + 1.25 * np.exp(-((t / 0.7) ** 2)) + 0.25 * np.exp(-(((t - 1.45) / 0.35) ** 2))
 
     def dph(p):
         return (0.45 + 1.0 * np.exp(-(((p + 0.3) / 0.6) ** 2))) * (0.35 + 0.65 * np.cos(p))
 
-    half = graded_axis([0.0, model.theta_mc / 2, model.theta_in, model.theta_mc, model.theta_oc, model.theta_e,
-                        model.theta_out, np.pi], int(round(np.pi * 0.62 * 95 / spacing)), dth)
+    half = graded_axis(
+        [
+            0.0,
+            model.theta_mc / 2,
+            model.theta_in,
+            model.theta_mc,
+            model.theta_oc,
+            model.theta_e,
+            model.theta_out,
+            np.pi,
+        ],
+        int(round(np.pi * 0.62 * 95 / spacing)),
+        dth,
+    )
     thetas = np.concatenate([-half[::-1][:-1], half[:-1]])
-    phis = graded_axis([-np.pi / 2, model.phi_m, model.phi_e, np.pi / 2], int(round(np.pi * 0.62 * 100 / spacing)), dph)
+    phis = graded_axis(
+        [-np.pi / 2, model.phi_m, model.phi_e, np.pi / 2],
+        int(round(np.pi * 0.62 * 100 / spacing)),
+        dph,
+    )
     return thetas, phis
 
 
@@ -321,8 +401,9 @@ def skin_grid(model: SkinModel, spacing: float) -> SkinGrid:
     return SkinGrid(th, ph, side, rows, cols, ids, ids_low, tris, thetas, phis, jm, je, (i_a, i_b))
 
 
-def mouth_pocket(model: SkinModel, grid: SkinGrid, slit_points: np.ndarray, spacing: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def mouth_pocket(
+    model: SkinModel, grid: SkinGrid, slit_points: np.ndarray, spacing: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The mouth cavity hanging from the lip slit.
 
     ``slit_points (C, 3)``: positions of the slit row's vertices (by column). Returns
@@ -333,7 +414,9 @@ def mouth_pocket(model: SkinModel, grid: SkinGrid, slit_points: np.ndarray, spac
     i_a, i_b = grid.mouth_cols
     jm = grid.row_mouth
     cs = np.arange(i_a + 1, i_b)
-    loop = np.concatenate([[grid.ids[jm, i_a]], grid.ids_low[jm, cs], [grid.ids[jm, i_b]], grid.ids[jm, cs[::-1]]])
+    loop = np.concatenate(
+        [[grid.ids[jm, i_a]], grid.ids_low[jm, cs], [grid.ids[jm, i_b]], grid.ids[jm, cs[::-1]]]
+    )
     lcols = np.concatenate([[i_a], cs, [i_b], cs[::-1]])
     lside = np.concatenate([[0], -np.ones(len(cs)), [0], np.ones(len(cs))])
     base = slit_points[lcols]
@@ -350,13 +433,23 @@ def mouth_pocket(model: SkinModel, grid: SkinGrid, slit_points: np.ndarray, spac
     flatten = smoothstep(0.0, 25.0, dd)
     x = base[None, :, 0] * widen
     arc = np.sqrt(np.clip(1 - a[None, :] ** 2, 0, 1))
-    y = base[None, :, 1] + yc + np.where(lside[None, :] > 0, h_up, -h_lo) * np.abs(lside[None, :]) * arc
+    y = (
+        base[None, :, 1]
+        + yc
+        + np.where(lside[None, :] > 0, h_up, -h_lo) * np.abs(lside[None, :]) * arc
+    )
     z = base[None, :, 2] * (1 - flatten) + z_mid * flatten - dd
     ring_pts = np.stack([x, y, z], -1).reshape(-1, 3)
     pole = np.array([[0.0, lay.y_stomion + 3.0, z_mid - dmax]])
     verts = np.concatenate([ring_pts, pole])
     k, m = len(depths), len(loop)
-    return verts, loop, (k, m), np.concatenate([np.tile(lside, k), [0]]), np.concatenate([np.repeat(depths, m), [dmax]])
+    return (
+        verts,
+        loop,
+        (k, m),
+        np.concatenate([np.tile(lside, k), [0]]),
+        np.concatenate([np.repeat(depths, m), [dmax]]),
+    )
 
 
 def pocket_triangles(loop: np.ndarray, k: int, m: int, first_id: int) -> np.ndarray:

@@ -7,6 +7,7 @@ Meant for looking at faces and animation frames without a GPU or a viewer::
 The camera is orthographic and looks at the mesh along −z of the chosen view (the face's own axes are
 MPEG-4: y up, z towards the viewer), so ``front`` shows the face as a person opposite it would see it.
 """
+
 from __future__ import annotations
 
 import struct
@@ -16,8 +17,14 @@ from pathlib import Path
 import numpy as np
 
 #: Yaw of the model (degrees about +y) for each named view; positive turns the face's left towards the viewer.
-VIEWS: dict[str, float] = {"front": 0.0, "three_quarter": 35.0, "side": 90.0, "back": 180.0,
-                           "three_quarter_right": -35.0, "side_right": -90.0}
+VIEWS: dict[str, float] = {
+    "front": 0.0,
+    "three_quarter": 35.0,
+    "side": 90.0,
+    "back": 180.0,
+    "three_quarter_right": -35.0,
+    "side_right": -90.0,
+}
 
 _LIGHT = np.array([-0.35, 0.45, 0.82])
 _LIGHT = _LIGHT / np.linalg.norm(_LIGHT)
@@ -27,7 +34,9 @@ def view_rotation(view: str | float, pitch: float = 0.0) -> np.ndarray:
     """``(3, 3)`` rotation taking model coordinates to camera coordinates for a named view or a yaw in degrees."""
     if isinstance(view, str):
         if view not in VIEWS:
-            raise ValueError(f"unknown view {view!r}; use one of {', '.join(VIEWS)} or a yaw angle in degrees")
+            raise ValueError(
+                f"unknown view {view!r}; use one of {', '.join(VIEWS)} or a yaw angle in degrees"
+            )
         yaw = VIEWS[view]
     else:
         yaw = float(view)
@@ -54,11 +63,20 @@ def _add_rows(out: np.ndarray, idx: np.ndarray, rows: np.ndarray) -> None:
         out[:, c] += np.bincount(idx, weights=rows[:, c], minlength=out.shape[0])
 
 
-def render_image(vertices: np.ndarray, triangles: np.ndarray, *, size: tuple[int, int] = (512, 512),
-                 view: str | float = "front", colors: np.ndarray | None = None, pitch: float = 0.0,
-                 center: np.ndarray | None = None, extent: float | None = None,
-                 background: tuple[int, int, int] = (40, 44, 52), smooth: bool = True,
-                 chunk: int = 65536) -> np.ndarray:
+def render_image(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    *,
+    size: tuple[int, int] = (512, 512),
+    view: str | float = "front",
+    colors: np.ndarray | None = None,
+    pitch: float = 0.0,
+    center: np.ndarray | None = None,
+    extent: float | None = None,
+    background: tuple[int, int, int] = (40, 44, 52),
+    smooth: bool = True,
+    chunk: int = 65536,
+) -> np.ndarray:
     """Rasterise a triangle mesh to an ``(H, W, 3) uint8`` image.
 
     Args:
@@ -121,10 +139,14 @@ def render_image(vertices: np.ndarray, triangles: np.ndarray, *, size: tuple[int
             vn = vertex_normals(cam, t)
             n = np.einsum("pk,pkc->pc", bary, vn[corners])
         else:
-            n = np.cross(cam[corners[:, 1]] - cam[corners[:, 0]], cam[corners[:, 2]] - cam[corners[:, 0]])
+            n = np.cross(
+                cam[corners[:, 1]] - cam[corners[:, 0]], cam[corners[:, 2]] - cam[corners[:, 0]]
+            )
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         # Flat normals decide which side we see (smooth ones can disagree at silhouettes).
-        fn = np.cross(cam[corners[:, 1]] - cam[corners[:, 0]], cam[corners[:, 2]] - cam[corners[:, 0]])
+        fn = np.cross(
+            cam[corners[:, 1]] - cam[corners[:, 0]], cam[corners[:, 2]] - cam[corners[:, 0]]
+        )
         back = fn[:, 2] < 0
         n[back] *= -1
         base = _base_colors(colors, len(v), len(t), tri, corners, bary)
@@ -163,16 +185,35 @@ def _setup(t, sx, sy, depth, w, h):
     a0, b0, c0 = (y1 - y2) * inv, (x2 - x1) * inv, (x1 * y2 - x2 * y1) * inv
     a1, b1, c1 = (y2 - y0) * inv, (x0 - x2) * inv, (x2 * y0 - x0 * y2) * inv
     dz0, dz1 = z0 - z2, z1 - z2
-    coef = np.stack([a0, b0, c0, a1, b1, c1, a0 * dz0 + a1 * dz1, b0 * dz0 + b1 * dz1,
-                     z2 + c0 * dz0 + c1 * dz1], -1)
+    coef = np.stack(
+        [
+            a0,
+            b0,
+            c0,
+            a1,
+            b1,
+            c1,
+            a0 * dz0 + a1 * dz1,
+            b0 * dz0 + b1 * dz1,
+            z2 + c0 * dz0 + c1 * dz1,
+        ],
+        -1,
+    )
     with np.errstate(invalid="ignore"):
         xmin = np.clip(np.floor(np.minimum(np.minimum(x0, x1), x2) - 0.5), 0, w)
         xmax = np.clip(np.ceil(np.maximum(np.maximum(x0, x1), x2) - 0.5), -1, w - 1)
         ymin = np.clip(np.floor(np.minimum(np.minimum(y0, y1), y2) - 0.5), 0, h)
         ymax = np.clip(np.ceil(np.maximum(np.maximum(y0, y1), y2) - 0.5), -1, h - 1)
     ok &= np.isfinite(xmin + xmax + ymin + ymax)
-    boxes = np.stack([np.where(ok, xmin, 0), np.where(ok, xmax, -1), np.where(ok, ymin, 0),
-                      np.where(ok, ymax, -1)], -1).astype(np.int64)
+    boxes = np.stack(
+        [
+            np.where(ok, xmin, 0),
+            np.where(ok, xmax, -1),
+            np.where(ok, ymin, 0),
+            np.where(ok, ymax, -1),
+        ],
+        -1,
+    ).astype(np.int64)
     ok &= (boxes[:, 1] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 2])
     return coef, boxes, ok
 
@@ -203,8 +244,16 @@ def _raster_chunk(ids, coef, boxes, w, zbuf, tbuf) -> None:
         owner = np.repeat(part, cnt)
         local = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
         pwo = np.repeat(pw, cnt)
-        _fragments(owner, boxes[owner, 0] + local % pwo, boxes[owner, 2] + local // pwo, coef, w,
-                   pix_parts, z_parts, tri_parts)
+        _fragments(
+            owner,
+            boxes[owner, 0] + local % pwo,
+            boxes[owner, 2] + local // pwo,
+            coef,
+            w,
+            pix_parts,
+            z_parts,
+            tri_parts,
+        )
     if not pix_parts:
         return
     pix, z, tri = np.concatenate(pix_parts), np.concatenate(z_parts), np.concatenate(tri_parts)
@@ -238,13 +287,25 @@ def write_png(path: str | Path, image: np.ndarray) -> Path:
     if img.ndim != 3 or img.shape[2] not in (3, 4):
         raise ValueError(f"image must be (H, W, 3|4) uint8, not {img.shape}")
     hgt, wid, ch = img.shape
-    raw = np.concatenate([np.zeros((hgt, 1), dtype=np.uint8), img.reshape(hgt, wid * ch)], axis=1).tobytes()
+    raw = np.concatenate(
+        [np.zeros((hgt, 1), dtype=np.uint8), img.reshape(hgt, wid * ch)], axis=1
+    ).tobytes()
 
     def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+        return (
+            struct.pack(">I", len(data))
+            + kind
+            + data
+            + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+        )
 
     header = struct.pack(">IIBBBBB", wid, hgt, 8, 2 if ch == 3 else 6, 0, 0, 0)
-    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
+    png = (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(raw, 6))
+        + chunk(b"IEND", b"")
+    )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
@@ -253,8 +314,17 @@ def write_png(path: str | Path, image: np.ndarray) -> Path:
     return path
 
 
-def render_png(vertices: np.ndarray, triangles: np.ndarray, path: str | Path, *,
-               size: tuple[int, int] = (512, 512), view: str | float = "front",
-               colors: np.ndarray | None = None, **options) -> Path:
+def render_png(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    path: str | Path,
+    *,
+    size: tuple[int, int] = (512, 512),
+    view: str | float = "front",
+    colors: np.ndarray | None = None,
+    **options,
+) -> Path:
     """Render a mesh (see ``render_image`` for the options) and write it to ``path`` as PNG."""
-    return write_png(path, render_image(vertices, triangles, size=size, view=view, colors=colors, **options))
+    return write_png(
+        path, render_image(vertices, triangles, size=size, view=view, colors=colors, **options)
+    )
