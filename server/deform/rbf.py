@@ -1,28 +1,37 @@
 """Radial-basis-function warp driven by control displacements, compiled to a dense operator.
 
 ``u(x) = Σ_j w_j φ_j(r(x, c_j)) + A x + b`` per axis, where the weights interpolate the control
-displacements exactly and the affine part (``A, b``) satisfies the usual side conditions
-``Σ_j w_j = 0, Σ_j w_j c_j = 0``, so an affine motion of the controls is reproduced exactly
-(Sánchez Lorenzo 2006, eqs. 3.14–3.16). The system depends only on the neutral geometry, so it
-is solved once per face: ``B = [Φ(x, c) P(x)] · M⁻¹[:, :K]`` and per frame ``u = B·D``.
+displacements exactly and, with ``affine=True``, the affine part (``A, b``) satisfies the usual
+side conditions ``Σ_j w_j = 0, Σ_j w_j c_j = 0``, so an affine motion of the controls is
+reproduced exactly (Sánchez Lorenzo 2006, eqs. 3.14–3.16; when the controls are coplanar the
+affine part is restricted to their plane). The system depends only on the neutral geometry, so
+it is solved once per face: ``B = [Φ(x, c) P(x)] · M⁻¹[:, :K]`` and per frame ``u = B·D``.
 
 Kernels:
 
 - ``"imq"``: inverse multiquadric ``φ_j(r) = (r² + (s·δ_j)²)^(-1/2)``, δ_j the distance from
   centre j to its nearest other centre and s = ``shape`` (the shape parameter scales with the
   local control spacing, eq. 3.15);
-- ``"r"``: ``φ(r) = r``, the biharmonic kernel in 3-D (needs the affine part).
+- ``"r"``: ``φ(r) = r``, the biharmonic kernel in 3-D (Euclidean distance only: with surface
+  distances its system is indefinite and the warp blew up on the ICT head).
 
 ``distance="euclidean"`` is the classic warp; it is blind to openings, so lower-lip controls pull
-the upper lip across the mouth slit. ``distance="surface"`` uses surface (Dijkstra) distances
-over the deformable vertices instead: motion then propagates along the skin and crosses a slit
-only around its corners. ``bench/fidelity.py`` measures both.
+the upper lip across the mouth slit (on the ICT head 0.23 mm of upper-lip motion per mm of
+lower-lip motion). ``distance="surface"`` uses surface (Dijkstra) distances over the deformable
+vertices instead: motion then propagates along the skin and crosses a slit only around its
+corners (0.016 mm/mm). Coincident centres (the two lips of a closed mouth, under Euclidean
+distance) are merged and share their displacement.
+
+Defaults (IMQ, surface distance, no affine part) are the measured best of ``bench/fidelity.py``:
+with sparse controls the affine part extrapolates the controls' mean stretch over the whole
+scalp and neck. Without it a rigid translation of all controls is not reproduced exactly (far
+from the controls the warp fades to 0); rigid head motion is the rigid groups' job anyway.
 
 As in the feature-point engine, only vertices connected (over deformable vertices of one rigid
-group) to some control are warped; unreachable components copy the row of their nearest reached vertex of the
-same rigid group within ``attach_distance``; everything else (eyeballs, teeth) has zero rows.
-Per-axis constraints: on axis a only the controls constrained on a are centres; when the axes
-differ the operator is stored sparse with full per-axis rows, otherwise dense ``(V, K)``.
+group) to some control are warped; unreachable components copy the row of their nearest reached
+vertex of the same rigid group within ``attach_distance``; everything else (eyeballs, teeth) has
+zero rows. Per-axis constraints: on axis a only the controls constrained on a are centres; when
+the axes differ the operator is stored sparse with full per-axis rows, otherwise dense ``(V, K)``.
 """
 from __future__ import annotations
 
