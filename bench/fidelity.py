@@ -26,7 +26,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from facecast.server.deform.build import build_operator
 from facecast.server.deform.mesh_graph import edge_graph, voronoi
 from facecast.server.faces import load_face
@@ -127,11 +126,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"read {len(targets)} expressions in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
 
     result: dict = {"face": str(ict / "generic_neutral_mesh.obj"), "units_mm": face.mm_per_unit,
-                    "skin_vertices": int(len(SKIN)), "sets": {}, "machine_loaded": True}
+                    "skin_vertices": len(SKIN), "sets": {}, "machine_loaded": True}
     for set_name in chosen_sets:
         controls = sets[set_name]
         lower_ctl, upper_skin, lower_skin = lip_sets(face, landmarks, controls)
-        per: dict = {"n_controls": int(len(controls)), "methods": {}, "expressions": {}}
+        per: dict = {"n_controls": len(controls), "methods": {}, "expressions": {}}
         baseline = {n: skin_error_mm(neutral, t, face.mm_per_unit) for n, t in targets.items()}
         per["baseline"] = {n: {"mean": b[0], "p95": b[1]} for n, b in baseline.items()}
         edges, rest = skin_edges(face)

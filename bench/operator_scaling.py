@@ -22,20 +22,19 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.sparse.csgraph import dijkstra
-
 from facecast.server.backends.numpy_backend import NumpyDeformer
 from facecast.server.deform.build import build_operator
 from facecast.server.deform.mesh_graph import edge_graph
 from facecast.server.faces import load_face, parse_count
 from facecast.server.faces.face import RIGID_GROUPS, Face
+from scipy.sparse.csgraph import dijkstra
 
 
 def sphere_face(n_vertices: int, n_controls: int = 84) -> tuple[Face, np.ndarray]:
     """A unit-radius (100 mm) UV sphere of about ``n_vertices`` and controls on its front cap."""
     import trimesh
 
-    lat = max(8, int(round(np.sqrt(n_vertices / 4))))
+    lat = max(8, round(np.sqrt(n_vertices / 4)))
     mesh = trimesh.creation.uv_sphere(radius=100.0, count=[lat, 2 * lat])
     face = Face(f"sphere:{len(mesh.vertices)}", mesh.vertices, mesh.faces, units="mm")
     # Fibonacci points on the cap z > 0.3 (the "face"), snapped to the nearest vertex.
@@ -62,11 +61,12 @@ def get_face(size: str) -> tuple[Face, np.ndarray, str]:
     return face, controls, "uv sphere"
 
 
-def timed(fn, repeat: int = 1) -> tuple[float, object]:
+def timed(fn, *args, repeat: int = 1, **kwargs) -> tuple[float, object]:
+    """Best wall time of ``repeat`` calls of ``fn(*args, **kwargs)``, and its result."""
     best, out = np.inf, None
     for _ in range(repeat):
         t = time.perf_counter()
-        out = fn()
+        out = fn(*args, **kwargs)
         best = min(best, time.perf_counter() - t)
     return best, out
 
@@ -84,11 +84,11 @@ def main(argv: list[str] | None = None) -> int:
     for size in args.sizes.split(","):
         face, controls, kind = get_face(size)
         graph = edge_graph(face.vertices, face.triangles, face.deformable)
-        t_dijkstra, _ = timed(lambda: dijkstra(graph, directed=False, indices=int(controls[0])))
-        row = {"size": size, "face": kind, "vertices": face.n_vertices, "controls": int(len(controls)),
+        t_dijkstra, _ = timed(dijkstra, graph, directed=False, indices=int(controls[0]))
+        row = {"size": size, "face": kind, "vertices": face.n_vertices, "controls": len(controls),
                "dijkstra_one_source_s": t_dijkstra}
         rest = face.vertices
-        t_pass, _ = timed(lambda: rest + rest, repeat=max(5, args.frames))
+        t_pass, _ = timed(np.add, rest, rest, repeat=max(5, args.frames))
         row["memory_pass_s"] = t_pass
         transforms = np.tile(np.eye(3, 4, dtype=np.float32), (len(RIGID_GROUPS), 1, 1))
         D = rng.normal(scale=1.0, size=(len(controls), 3)).astype(np.float32)
@@ -96,10 +96,10 @@ def main(argv: list[str] | None = None) -> int:
         if face.n_vertices <= args.rbf_max:
             engines.append(("rbf", {}))
         for engine, params in engines:
-            t_build, op = timed(lambda: build_operator(face, controls, engine=engine, **params))
+            t_build, op = timed(build_operator, face, controls, engine=engine, **params)
             deformer = NumpyDeformer(face.vertices, face.triangles, face.rigid_group, op)
             deformer.deform(D, transforms)
-            t_frame, _ = timed(lambda: deformer.deform(D, transforms), repeat=args.frames)
+            t_frame, _ = timed(deformer.deform, D, transforms, repeat=args.frames)
             row[engine] = {"build_s": t_build, "build_over_dijkstra": t_build / t_dijkstra,
                            "nnz": op.nnz, "frame_s": t_frame, "frame_over_memory_pass": t_frame / t_pass}
             print(f"{size:>5s} {kind:12s} V={face.n_vertices:7d} K={len(controls):3d} {engine:3s} "

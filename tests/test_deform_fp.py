@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from facecast.server.deform.build import get_operator
 from facecast.server.deform.feature_point import feature_point_operator
 from facecast.server.deform.mesh_graph import edge_graph, voronoi
@@ -176,7 +175,7 @@ def test_no_bleeding_across_a_slit(grid, norm):
 
 
 def test_non_deformable_vertices_get_zero_rows_and_block_paths(grid, rng):
-    verts, tris, upper, lower, controls = grid
+    verts, tris, _, _, controls = grid
     deformable = np.ones(len(verts), bool)
     n = 31
     eye = np.arange(n * n).reshape(n, n)[4:7, 18:21].ravel()  # an "eyeball" patch
@@ -343,9 +342,8 @@ def test_ict_lips_and_eyelids_do_not_bleed(data_dir):
 
 
 def test_bounded_distances_are_exact_and_chunking_does_not_matter(grid):
-    from scipy.sparse.csgraph import dijkstra
-
     from facecast.server.deform.mesh_graph import bounded_distances
+    from scipy.sparse.csgraph import dijkstra
 
     verts, tris, _, _, controls = grid
     g = edge_graph(verts, tris)
