@@ -82,3 +82,15 @@ def test_automatic_placement_waits_for_the_neutral(setup):
     # the automatic placement finds the vertices the markers were generated on
     auto = [int(drv.control_vertices[drv.rig.control_names.index(n)]) for n in ("M10", "M11")]
     assert auto == [int(syn.vertices[names.index(n)]) for n in ("M10", "M11")]
+
+
+def test_neutral_ignores_frames_where_a_marker_was_hidden(setup):
+    face, syn = setup
+    xyz = syn.take.xyz.copy()
+    xyz[:3, 0] = np.nan  # a stable marker (a jig marker, not on the face) hidden in the first frames
+    layout = {**syn.layout, "markers": {**syn.layout["markers"], "HEAD1": {"control": False}}}
+    drv = MarkerLiveDriver(face, syn.take.names, layout, neutral_frames=8)
+    _run(drv, xyz[:8], syn.take.fps)
+    assert drv.ready
+    np.testing.assert_allclose(drv.rig.neutral[0], syn.take.xyz[3:8, 0].mean(axis=0), atol=1e-4)
+    np.testing.assert_allclose(drv.rig.neutral[1], syn.take.xyz[:8, 1].mean(axis=0), atol=1e-4)

@@ -67,6 +67,7 @@ class MarkerLiveDriver:
         self.stable = np.array([self.layout.names.index(n) for n in self.layout.stable], dtype=np.int64)
         self.rig: MarkerRig | None = None
         self._neutral_sum = np.zeros((len(self.layout.names), 3))
+        self._neutral_count = np.zeros(len(self.layout.names))
         self._neutral_n = 0
         self._ref_stable: np.ndarray | None = None
         self._pose = (np.eye(3), np.zeros(3))
@@ -136,10 +137,12 @@ class MarkerLiveDriver:
         if not seen[ctrl].all() or seen[self.stable].sum() < 3:
             return
         self._neutral_sum += np.where(seen[:, None], z, 0.0)
+        self._neutral_count += seen
         self._neutral_n += 1
         if self._neutral_n < self.neutral_frames:
             return
-        neutral = self._neutral_sum / self._neutral_n
+        with np.errstate(invalid="ignore", divide="ignore"):
+            neutral = self._neutral_sum / self._neutral_count[:, None]  # NaN for markers never seen
         self.rig = MarkerRig(self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu)
         self._ref_stable = neutral[self.stable]
         self._centre = np.nanmean(self._ref_stable, axis=0)
