@@ -45,8 +45,10 @@ def eyeball(lay: Layout, spacing: float) -> Part:
 
 
 def _arch(z_front: float, half_width: float, depth: float):
-    x = np.linspace(0, half_width * 1.4, 2001)
-    z = z_front - depth * (x / half_width) ** 2
+    """Dental arch (left half): U-shaped, ``z = z_front - depth * (x / half_width)**3.5``; returns
+    ``(x, z, arc length)`` samples."""
+    x = np.linspace(0, half_width * 1.3, 2001)
+    z = z_front - depth * (x / half_width) ** 3.5
     s = np.concatenate([[0], np.cumsum(np.hypot(np.diff(x), np.diff(z)))])
     return x, z, s
 
@@ -139,13 +141,13 @@ def gums(lay: Layout, spacing: float, upper: bool) -> Part:
     hw = 24.5 if upper else 23.0
     x, z, s = _arch(zf, hw, 38.0 if upper else 36.0)
     length = sum(t[0] + 0.35 for t in (_UPPER if upper else _LOWER)) + 0.4
-    y = lay.y_occlusal + (8.5 if upper else -8.0)
+    y = lay.y_occlusal + (9.8 if upper else -9.0)
     n_r = max(4, int(round(length / (1.2 * spacing))))
     n_s = max(6, 2 * int(round(24 / (2 * 1.2 * spacing))))
 
     def pts(tt, ww):
-        sc = -1.0 + tt * (length + 1.0)
-        xc, zc = np.interp(sc, s, x, left=-1.0), np.interp(sc, s, z, left=zf)
+        sc = -1.5 + tt * (length + 1.5)
+        xc, zc = np.interp(sc, s, x, left=-1.5), np.interp(sc, s, z, left=zf)
         dx = np.interp(sc + 0.5, s, x) - np.interp(sc - 0.5, s, x)
         dz = np.interp(sc + 0.5, s, z) - np.interp(sc - 0.5, s, z)
         nrm = np.hypot(dx, dz)
@@ -153,8 +155,8 @@ def gums(lay: Layout, spacing: float, upper: bool) -> Part:
         lx = np.where(ok, -dz / np.where(ok, nrm, 1), 0.0)
         lz = np.where(ok, dx / np.where(ok, nrm, 1), 1.0)
         cap = np.sin(np.pi * np.clip(tt, 0, 1)) ** 0.3
-        rw, rh = 5.5 * cap, 4.5 * cap
-        off = -4.0
+        rw, rh = 4.8 * cap, 3.6 * cap
+        off = -3.6
         px = xc + (off + rw * np.cos(ww)) * lx
         pz = zc + (off + rw * np.cos(ww)) * lz
         py = y + rh * np.sin(ww)
@@ -170,7 +172,7 @@ def tongue(lay: Layout, spacing: float) -> Part:
 
     Anchors: ``tip``, ``body`` (top centre), ``left``, ``right`` (side edges).
     """
-    length, wmax = 47.0, 19.0
+    length, wmax = 47.0, 15.0
     z_tip = lay.z_incisors - 1.2 - 6.8
     y_top = lay.y_occlusal - 1.0
     t_body, t_edge = 0.45, 0.3
