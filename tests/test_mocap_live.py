@@ -94,3 +94,12 @@ def test_neutral_ignores_frames_where_a_marker_was_hidden(setup):
     assert drv.ready
     np.testing.assert_allclose(drv.rig.neutral[0], syn.take.xyz[3:8, 0].mean(axis=0), atol=1e-4)
     np.testing.assert_allclose(drv.rig.neutral[1], syn.take.xyz[:8, 1].mean(axis=0), atol=1e-4)
+
+
+def test_wrong_units_are_refused_with_a_clear_message(setup):
+    face, syn = setup
+    drv = MarkerLiveDriver(face, syn.take.names, syn.layout, units="m", neutral_frames=2)  # frames are mm
+    drv.push(syn.take.xyz[0].astype(np.float32), 0.0)
+    with pytest.raises(ValueError, match="not a face; they look like mm"):
+        drv.push(syn.take.xyz[1].astype(np.float32), 1 / 120)
+    assert not drv.ready

@@ -19,14 +19,19 @@ from ..errors import InputError
 from ..faces.face import Face
 from ..state import FaceState
 from .clean import KalmanCV
-from .io import detect_units
+from .io import FACE_SPAN_MM, detect_units
 from .layout import Layout, load_layout
 from .rig import MarkerRig, match_names
 from .stabilise import solve_pose
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MarkerLiveDriver"]
+__all__ = ["MarkerLiveDriver", "MarkerFrameError"]
+
+
+class MarkerFrameError(InputError, ValueError):
+    """A marker frame the driver cannot use (wrong shape, implausible units). Also a ValueError, so
+    that frame loops that drop bad frames on ValueError drop it with this message."""
 
 
 class MarkerLiveDriver:
@@ -96,7 +101,7 @@ class MarkerLiveDriver:
         xyz = np.asarray(data, dtype=np.float64)
         if xyz.ndim != 2 or xyz.shape != (len(self.names), 3):
             self.bad_frames += 1
-            raise InputError(f"marker frame has shape {xyz.shape}; the hello named {len(self.names)} markers, so "
+            raise MarkerFrameError(f"marker frame has shape {xyz.shape}; the hello named {len(self.names)} markers, so "
                              f"frames must be ({len(self.names)}, 3) — the marker count cannot change mid-stream",
                              where=f"frame {self.frames}")
         xyz = np.where(np.isfinite(xyz), xyz, np.nan)[self.index]
@@ -143,6 +148,17 @@ class MarkerLiveDriver:
             return
         with np.errstate(invalid="ignore", divide="ignore"):
             neutral = self._neutral_sum / self._neutral_count[:, None]  # NaN for markers never seen
+        span = float(np.nanmax(np.ptp(neutral[np.isfinite(neutral).all(axis=1)], axis=0)))
+        lo, hi = FACE_SPAN_MM
+        if not lo / 4 <= span <= hi * 4:
+            self._neutral_sum[:] = 0.0
+            self._neutral_count[:] = 0
+            self._neutral_n = 0
+            self.bad_frames += 1
+            guess = detect_units(neutral[None] / UNITS_MM[self.units])
+            raise MarkerFrameError(f"in {self.units} the markers span {span:.3g} mm, not a face"
+                                   + (f"; they look like {guess}" if guess else "") + ": declare the right units in "
+                                   "the hello or the layout", where=f"frame {self.frames - 1}")
         self.rig = MarkerRig(self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu)
         self._ref_stable = neutral[self.stable]
         self._centre = np.nanmean(self._ref_stable, axis=0)
