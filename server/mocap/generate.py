@@ -278,7 +278,7 @@ def generate(out: str | Path, *, n_markers: int = 60, seconds: float = 10.0, fps
         paths[fmt] = write_take(take, out / f"{name}.{fmt}")
     layout = {"units": "mm", "stable": stable, "neutral_frame": 0, "markers": spec}
     paths["layout"] = out / f"{name}.layout.json"
-    paths["layout"].write_text(json.dumps(layout, indent=1))
+    paths["layout"].write_text(json.dumps(layout, indent=1) + "\n")
     paths["truth"] = out / f"{name}.truth.npz"
     np.savez_compressed(paths["truth"], fps=fps, names=np.array(names), vertices=verts, stable=np.array(stable),
                         expression_names=np.array(enames), weights=w.astype(np.float32), head_r=head_r,

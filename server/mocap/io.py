@@ -158,6 +158,7 @@ def write_take(take: MarkerTake, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=suffix, prefix=".tmp-", dir=path.parent)
     os.close(fd)
+    os.chmod(tmp, 0o644)  # mkstemp makes 0600; takes are ordinary files
     try:
         if suffix == ".c3d":
             _write_c3d(take, Path(tmp))
