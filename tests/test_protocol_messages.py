@@ -12,7 +12,8 @@ from facecast.protocol.messages import (ErrorMessage, FapMessage, ProducerHello,
 
 EXAMPLES = [
     ProducerHello(input="audio", rate=16000, sample_format="i16"),
-    ProducerHello(input="markers", markers=["LBRO", "RBRO"], layout="vicon", units="mm"),
+    ProducerHello(input="markers", markers=["LBRO", "RBRO", "HEAD1"], units="mm",
+                  layout={"markers": {"LBRO": {"fp": "4.1"}, "RBRO": {"vertex": 12}, "HEAD1": {}}, "stable": ["HEAD1"]}),
     ProducerHello(),
     Ready(session="ab", input="fap", fps=60.0, max_fps=250.0, vertex_count=2000),
     ViewerHello(session="ab", face="default:2k", topology_url="/v1/faces/default%3A2k/topology", vertex_count=2000,

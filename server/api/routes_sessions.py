@@ -330,7 +330,7 @@ async def watch(ws: WebSocket, session_id: str, token: str | None = None, encodi
     frame_bytes = frames.frame_size(frames.Header(
         frames.Kind.VERTICES_I16 if encoding == "i16" else frames.Kind.VERTICES_F32, 0, session.vertex_count, 0.0))
     _limit_send_buffer(ws, VIEWER_SEND_BUFFER_FRAMES * frame_bytes)
-    viewer = Viewer(encoding)
+    viewer = Viewer(encoding, DirectSender.attach(ws))  # pre-framed bytes straight to the transport
     session.add_viewer(viewer)
     sender = asyncio.create_task(_send_loop(ws, session, viewer))
     receiver = asyncio.create_task(_drain(ws))
@@ -368,7 +368,7 @@ def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
 
 async def _send_loop(ws: WebSocket, session, viewer) -> None:
     unsent = 0
-    direct = DirectSender.attach(ws)  # pre-framed bytes straight to the transport, when possible
+    direct = viewer.direct
     log.debug("session %s: viewer frames go %s", session.spec.id, "direct" if direct else "through ASGI")
     try:
         while True:

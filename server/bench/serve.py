@@ -51,6 +51,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=3.0, help="seconds measured at each point")
     p.add_argument("--latency-target", type=float, default=50.0, help="p95 target, ms")
     p.add_argument("--url", help="use this running server instead of starting one (needs FACECAST_ADMIN_KEY)")
+    p.add_argument("--compare-asgi", action="store_true",
+                   help="also run the viewers sweep with frames sent through ASGI (FACECAST_LIVE_DIRECT=0), "
+                        "the baseline of the direct-to-transport path")
     p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
 
 
@@ -63,12 +66,12 @@ def _free_port() -> int:
 
 
 class _Server:
-    def __init__(self, face: str, backend: str) -> None:
+    def __init__(self, face: str, backend: str, env: dict[str, str] | None = None) -> None:
         self.dir = tempfile.TemporaryDirectory(prefix="facecast-bench-serve-")
         self.port = _free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         env = {**os.environ, "FACECAST_ADMIN_KEY": ADMIN_KEY, "FACECAST_MAX_SESSIONS": "256",
-               "FACECAST_MAX_VIEWERS_PER_SESSION": "1024", "FACECAST_MAX_PRODUCER_FPS": "1000"}
+               "FACECAST_MAX_VIEWERS_PER_SESSION": "1024", "FACECAST_MAX_PRODUCER_FPS": "1000", **(env or {})}
         self.log = open(Path(self.dir.name) / "server.log", "wb")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "facecast.server.cli", "serve", "--port", str(self.port), "--data-dir",
@@ -226,7 +229,10 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         await asyncio.sleep(args.seconds)
         t1, cpu_s1, cpu_c1 = time.time(), server.cpu_seconds() if server else float("nan"), _own_cpu()
         stop.set()
-        await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 60)
+        results = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 60)
+        failures = [r for r in results if isinstance(r, BaseException)]
+        for r in failures[:3]:
+            log.warning("a client failed: %r", r)
         infos = [await admin.info(s.id) for s in made]
         for s in made:
             await admin.close(s.id)
@@ -256,6 +262,10 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         "server_deform_encode_ms": round(float(np.mean(deform)), 3) if deform else None,
         "server_cpu": round((cpu_s1 - cpu_s0) / window, 2),
         "client_cpu": round((cpu_c1 - cpu_c0) / window, 2),
+        # CPU per delivered frame: comparable across points even when the machine is shared
+        "server_cpu_us_per_frame": round(1e6 * (cpu_s1 - cpu_s0) / len(lat), 1) if lat else None,
+        "client_cpu_us_per_frame": round(1e6 * (cpu_c1 - cpu_c0) / len(lat), 1) if lat else None,
+        "client_failures": len(failures),
         "seconds": round(window, 2),
     }
 
@@ -267,15 +277,16 @@ def _ok(p: dict, args) -> bool:
 def _table(title: str, points: list[dict], args) -> str:
     base = points[0] if points else None
     head = ("| sessions | viewers | fps mean | fps min | p50 ms | p95 ms | p95 ratio | skipped | deform+enc ms "
-            "| server CPU | client CPU | target |")
-    lines = [f"### {title}", "", head, "|" + "---|" * 12]
+            "| server CPU | client CPU | server µs/frame | client µs/frame | target |")
+    lines = [f"### {title}", "", head, "|" + "---|" * 14]
     for p in points:
         ratio = p["latency_ms_p95"] / base["latency_ms_p95"] if base and base["latency_ms_p95"] else float("nan")
         p["latency_p95_ratio"] = round(ratio, 2)
         lines.append(f"| {p['sessions']} | {p['viewers_total']} | {p['fps_mean']} | {p['fps_min']} | "
                      f"{p['latency_ms_p50']} | {p['latency_ms_p95']} | {ratio:.2f} | {p['frames_skipped']} | "
                      f"{p['server_deform_encode_ms']} | {p['server_cpu']} | {p['client_cpu']} | "
-                     f"{'ok' if _ok(p, args) else 'miss'} |")
+                     f"{p['server_cpu_us_per_frame']} | {p['client_cpu_us_per_frame']} | "
+                     f"{'ok' if _ok(p, args) else 'miss'}{' (%d client errors)' % p['client_failures'] if p['client_failures'] else ''} |")
     return "\n".join(lines)
 
 
@@ -307,6 +318,18 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if server:
             server.stop()
+    if args.compare_asgi and url is None:
+        server = _Server(args.face, args.backend, env={"FACECAST_LIVE_DIRECT": "0"})
+        try:
+            server.wait_ready()
+            sessions, args.sessions = args.sessions, ""
+            res["viewers_sweep_asgi"] = asyncio.run(_sweeps(server, server.url, args))["viewers_sweep"]
+            args.sessions = sessions
+        finally:
+            server.stop()
+        for d, a in zip(res["viewers_sweep"], res["viewers_sweep_asgi"]):
+            if d["server_cpu_us_per_frame"] and a["server_cpu_us_per_frame"]:
+                d["server_cpu_ratio_vs_asgi"] = round(d["server_cpu_us_per_frame"] / a["server_cpu_us_per_frame"], 2)
     load = os.getloadavg()
     report = {
         "bench": "serve", "face": args.face, "vertices": costs["vertices"], "encoding": args.encoding,
@@ -327,6 +350,12 @@ def run(args: argparse.Namespace) -> int:
     print(_table("Concurrent sessions (1 producer + 1 viewer each)", res["sessions_sweep"], args))
     print()
     print(_table("Viewers of one session", res["viewers_sweep"], args))
+    if "viewers_sweep_asgi" in res:
+        print()
+        print(_table("Viewers of one session, frames sent through ASGI (baseline of the direct path)",
+                     res["viewers_sweep_asgi"], args))
+        ratios = [d.get("server_cpu_ratio_vs_asgi") for d in res["viewers_sweep"]]
+        print(f"\nServer CPU per frame, direct / ASGI: {ratios}")
     print(f"\nTarget: every viewer ≥ {0.95 * args.fps:g} fps and p95 ≤ {args.latency_target:g} ms. "
           f"CPU columns are CPU-seconds per second (2.0 = two cores busy). Load average after: {load[0]:.2f} "
           f"on {os.cpu_count()} CPUs. JSON: {args.out}")

@@ -80,6 +80,15 @@ class DirectSender:
         except ImportError:  # pragma: no cover
             return None
 
+    def try_write(self, framed: bytes) -> bool:
+        """Write now if the transport has room and the connection is open; False otherwise."""
+        p = self.proto
+        if (not p.writable.is_set() or p.disconnected or p.close_sent or p.conn.state is not self._open
+                or p.transport.is_closing()):
+            return False
+        p.transport.write(framed)
+        return True
+
     async def send(self, framed: bytes) -> None:
         """Write one frame from ``ws_binary_frame``; waits while the transport's buffer is full."""
         p = self.proto
