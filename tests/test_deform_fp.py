@@ -132,6 +132,22 @@ def test_rim_rule_cap_reaches_beyond_the_outer_controls(grid, norm):
         feature_point_operator(verts, tris, controls, no_neighbour="sometimes")
 
 
+@pytest.mark.parametrize("norm", ["slides", "clamped"])
+def test_own_blend_makes_the_control_vertex_blend_into_its_ring(grid, rng, norm):
+    """Without it the exact control vertex can stick out of its 1-ring (others still weigh in)."""
+    verts, tris, _, _, controls = grid
+    D = random_D(rng, len(controls))
+    ring = {c: np.unique(tris[(tris == c).any(axis=1)]) for c in controls}
+    def jump(op):
+        u = op.apply(D)
+        return np.mean([np.linalg.norm(u[ring[c]] - D[i], axis=1).mean() for i, c in enumerate(controls)])
+    plain = feature_point_operator(verts, tris, controls, normalisation=norm, own_blend=0)
+    blended = feature_point_operator(verts, tris, controls, normalisation=norm, own_blend=0.5)
+    assert jump(blended) < 0.7 * jump(plain)
+    u = blended.apply(D)
+    np.testing.assert_allclose(u[controls], D, rtol=1e-5, atol=1e-6)
+
+
 def test_the_normalisations_differ(grid, rng):
     verts, tris, _, _, controls = grid
     D = random_D(rng, len(controls))
