@@ -37,6 +37,8 @@ from .procedural_skin import (
     SkinGrid,
     SkinModel,
     axes_for,
+    eye_sac,
+    eye_sac_rings,
     mouth_pocket,
     pocket_triangles,
     skin_grid,
@@ -174,7 +176,8 @@ def _skin_count(model: SkinModel, spacing: float) -> int:
         np.sum((np.abs(thetas) > model.theta_in + 1e-9) & (np.abs(thetas) < model.theta_out - 1e-9))
     )
     rings = max(3, int(round(76.0 / (1.6 * spacing)))) - 1
-    return (nr - 2) * nc + 2 + mouth + eyes + rings * 2 * (mouth + 1) + 1
+    sacs = eye_sac_rings(spacing, model.lay.conf.eye_radius + 0.35) * (eyes + 4) + 2
+    return (nr - 2) * nc + 2 + mouth + eyes + rings * 2 * (mouth + 1) + 1 + sacs
 
 
 def _parts(model: SkinModel, lay: Layout, spacing: float) -> dict[str, tuple]:
@@ -398,6 +401,17 @@ def _assemble(model: SkinModel, lay: Layout, spacing: float, name: str) -> Face:
     verts = [skin_v, pocket_v]
     tris = [grid.triangles, pocket_f]
     nv = n_grid + len(pocket_v)
+    for sgn in (1.0, -1.0):
+        centre = lay.eye_centre_l * np.array([sgn, 1.0, 1.0])
+        cols = (col["inl" if sgn > 0 else "inr"], col["outl" if sgn > 0 else "outr"])
+        sac_v, sac_loop, sk, sm = eye_sac(grid, skin_v, centre, lay.conf.eye_radius, cols, spacing)
+        sac_f = pocket_triangles(sac_loop, sk, sm, nv)
+        near = np.isin(grid.triangles, sac_loop).any(axis=1)
+        if _has_duplicate_directed_edges(np.concatenate([grid.triangles[near], sac_f[: 2 * sm]])):
+            sac_f = sac_f[:, ::-1]
+        verts.append(sac_v)
+        tris.append(sac_f)
+        nv += len(sac_v)
     parts: dict[str, list[np.ndarray]] = {"skin": [np.arange(nv)]}
 
     def add(part: str, v: np.ndarray, f: np.ndarray) -> int:

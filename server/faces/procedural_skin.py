@@ -183,8 +183,8 @@ class SkinModel:
         # upper-lid crease (supratarsal fold), following the lid margin ~8 mm above it
         px, py, fm = gnomonic(d)
         u = (np.abs(px) - e[0]) / 14.5
-        arc = e[1] + 1.5 + 7.5 * np.sqrt(np.clip(1 - u * u, 0, 1))
-        return r - 0.9 * fm * smoothstep(1.0, 0.55, np.abs(u)) * np.exp(-(((py - arc) / 1.4) ** 2))
+        arc = e[1] + 3.0 + 7.5 * np.sqrt(np.clip(1 - u * u, 0, 1))
+        return r - 0.5 * fm * smoothstep(1.0, 0.55, np.abs(u)) * np.exp(-(((py - arc) / 1.4) ** 2))
 
     def features(self, d: np.ndarray) -> np.ndarray:
         """Radial relief of the face (mm), laid out on the face plane."""
@@ -459,3 +459,51 @@ def pocket_triangles(loop: np.ndarray, k: int, m: int, first_id: int) -> np.ndar
     ids[1:-1] = first_id + np.arange(k * m).reshape(k, m)
     ids[-1] = first_id + k * m
     return grid_triangles(ids, ids, wrap=True)
+
+
+def eye_sac_rings(spacing: float, radius: float) -> int:
+    """Number of rings of an eye sac at this spacing."""
+    return max(2, int(round(np.pi * radius / (1.8 * spacing))))
+
+
+def eye_sac(
+    grid: SkinGrid,
+    skin_v: np.ndarray,
+    centre: np.ndarray,
+    eye_radius: float,
+    cols: tuple[int, int],
+    spacing: float,
+) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """The conjunctival sac of one eye: from the lid margins back around the eyeball (just outside
+    it, 0.35 mm outside) to a pole behind it, so the skin is closed and the eye corners show no gap.
+
+    ``cols``: the eye's corner columns on the slit row. Returns ``(vertices (k*m+1, 3), loop ids
+    (m,), k, m)``; triangulate with ``pocket_triangles``.
+    """
+    je = grid.row_eye
+    c0, c1 = min(cols), max(cols)
+    cs = np.arange(c0 + 1, c1)
+    loop = np.concatenate(
+        [[grid.ids[je, c0]], grid.ids_low[je, cs], [grid.ids[je, c1]], grid.ids[je, cs[::-1]]]
+    )
+    p = skin_v[loop] - centre
+    dist = np.linalg.norm(p, axis=1)
+    u = p / dist[:, None]
+    alpha0 = np.arccos(np.clip(u[:, 2], -1, 1))
+    beta = np.arctan2(u[:, 1], u[:, 0])
+    r_sac = eye_radius + 0.35
+    k = eye_sac_rings(spacing, r_sac)
+    t = (np.arange(1, k + 1) / (k + 1))[:, None]
+    # turn in towards the eyeball at once (so the sac never grazes the lid), then run back around it
+    alpha = alpha0[None, :] + (np.pi - alpha0[None, :]) * t**1.25
+    rad = r_sac + (dist[None, :] - r_sac) * np.clip(1 - t / 0.08, 0, 1) ** 2
+    ring = np.stack(
+        [
+            rad * np.sin(alpha) * np.cos(beta),
+            rad * np.sin(alpha) * np.sin(beta),
+            rad * np.cos(alpha),
+        ],
+        -1,
+    )
+    verts = np.concatenate([ring.reshape(-1, 3), [[0.0, 0.0, -r_sac]]]) + centre
+    return verts, loop, k, len(loop)
