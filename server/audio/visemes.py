@@ -51,23 +51,25 @@ def viseme_table(face=None) -> np.ndarray:
 
 
 #: Cohen–Massaro dominance per viseme: (alpha, theta 1/s). Closures and labiodentals dominate
-#: strongly (the lips must meet), vowels moderately, tongue consonants and silence weakly.
+#: strongly but briefly (the lips must meet: a 30 ms /p/ wins at its centre against vowels on
+#: both sides, and gives way 20 ms into them), rounded vowels spread a little further, tongue
+#: consonants and silence are weak.
 DOMINANCE = np.array([
     (0.5, 20.0),   # sil
-    (3.0, 40.0),   # PP: the lips must close, briefly
-    (2.0, 40.0),   # FF
+    (1.5, 50.0),   # PP: the lips must close, briefly
+    (1.0, 40.0),   # FF
     (0.5, 30.0),   # TH
     (0.5, 30.0),   # DD
     (0.5, 30.0),   # kk
-    (1.5, 30.0),   # CH
-    (1.5, 30.0),   # SS
+    (0.8, 40.0),   # CH
+    (0.8, 40.0),   # SS
     (0.5, 30.0),   # nn
-    (0.8, 25.0),   # RR
+    (0.6, 25.0),   # RR
     (0.6, 20.0),   # aa
     (0.6, 20.0),   # E
     (0.6, 20.0),   # ih
-    (0.8, 20.0),   # oh: lip rounding spreads to neighbours
-    (0.8, 20.0),   # ou
+    (0.7, 20.0),   # oh: lip rounding spreads to neighbours
+    (0.7, 20.0),   # ou
 ])
 
 
@@ -113,6 +115,9 @@ def calibrate(energy_db: np.ndarray) -> Calibration:
 class Params:
     """Rules and smoothing (EXT = facecast's choice where the source gives no value).
 
+    ``weak_fricative_db``, ``weak_db`` and ``min_pause`` were chosen on development sentences
+    (espeak-ng training voices, never scored) with ``bench/lipsync/tune.py``.
+
     Attributes:
         zcr_fricative: zero crossings per 10 ms above which a non-vowel frame is a fricative
             (source: unvoiced 49, voiced 14 → midpoint ~31).
@@ -129,10 +134,10 @@ class Params:
     """
 
     zcr_fricative: float = 31.0
-    weak_fricative_db: float = 99.0
-    weak_db: float = 18.0
+    weak_fricative_db: float = 30.0
+    weak_db: float = 12.0
     median: int = 5
-    min_pause: float = 0.15
+    min_pause: float = 0.2
     fricative_viseme: int = SS
     weak_viseme: int | None = NN
     coart_past: float = 0.25
@@ -253,10 +258,11 @@ def coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np.
     total = dom.sum(axis=1)
     total = np.where(total > 0, total, 1.0)
     table = viseme_table() if table is None else table
-    targets = table[v] * w[jc][..., None]           # (N, W, 69)
-    faps = np.einsum("nw,nwk->nk", dom, targets) / total[:, None]
-    mass = np.zeros((N, 15))
-    np.add.at(mass, (np.repeat(np.arange(N), dom.shape[1]), v.ravel()), dom.ravel())
+    # per output time and viseme: dominance mass, and dominance × intensity (→ FAP targets)
+    flat = (np.arange(N)[:, None] * 15 + v).ravel()
+    mass = np.bincount(flat, weights=dom.ravel(), minlength=N * 15).reshape(N, 15)
+    coef = np.bincount(flat, weights=(dom * w[jc]).ravel(), minlength=N * 15).reshape(N, 15)
+    faps = (coef @ table) / total[:, None]
     order = np.argsort(-mass, axis=1, kind="stable")
     s1, s2 = order[:, 0], order[:, 1]
     m1 = mass[np.arange(N), s1]
