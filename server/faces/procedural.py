@@ -4,11 +4,12 @@ Parke's parametric face.
 ``build_default_head(n_vertices, **conformation)`` samples the same parametric surfaces at a density
 derived from ``n_vertices`` (about 2k to 500k+ vertices), so the shape and the 84 MPEG-4 feature
 points (placed at fixed surface parameters) agree across resolutions. Parts: ``skin`` (head, face,
-ears, neck stub and the mouth cavity behind the lips), ``eye_l``/``eye_r`` (eyeballs, pupil centre =
-front pole), ``teeth_upper``/``teeth_lower``, ``gums_upper``/``gums_lower``, ``tongue``; plus the
-annotation subsets of ``skin`` ``lip_upper``, ``lip_lower`` (vermilion and inner lip, never joined by
-an edge) and ``mouth_socket`` (the cavity). See ``procedural_skin`` for how the surfaces are made.
-"""
+ears, neck stub, the mouth cavity behind the lips and the sacs behind the eyelids: a closed surface
+apart from the separate ears), ``eye_l``/``eye_r`` (eyeballs, pupil centre = front pole),
+``teeth_upper``/``teeth_lower``, ``gums_upper``/``gums_lower``, ``tongue``; plus annotation subsets of
+``skin`` (``SKIN_SUBSETS``): ``lip_upper``, ``lip_lower`` (vermilion and inner lip, never joined by an
+edge), ``mouth_socket`` (the cavity), ``eye_socket_l``/``eye_socket_r`` (the sacs). See
+``procedural_skin`` for how the surfaces are made; ``head_colors`` colours it for previews."""
 
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ __all__ = ["MAX_VERTICES", "MIN_VERTICES", "Conformation", "build_default_head",
 MIN_VERTICES = 1_000
 MAX_VERTICES = 5_000_000
 #: Annotation parts that are subsets of ``skin`` (not rigid, not disjoint from ``skin``).
-SKIN_SUBSETS = ("lip_upper", "lip_lower", "mouth_socket")
+SKIN_SUBSETS = ("lip_upper", "lip_lower", "mouth_socket", "eye_socket_l", "eye_socket_r")
 
 _MIRROR = np.array([-1.0, 1.0, 1.0])
 
@@ -401,6 +402,7 @@ def _assemble(model: SkinModel, lay: Layout, spacing: float, name: str) -> Face:
     verts = [skin_v, pocket_v]
     tris = [grid.triangles, pocket_f]
     nv = n_grid + len(pocket_v)
+    sockets = {}
     for sgn in (1.0, -1.0):
         centre = lay.eye_centre_l * np.array([sgn, 1.0, 1.0])
         cols = (col["inl" if sgn > 0 else "inr"], col["outl" if sgn > 0 else "outr"])
@@ -411,6 +413,7 @@ def _assemble(model: SkinModel, lay: Layout, spacing: float, name: str) -> Face:
             sac_f = sac_f[:, ::-1]
         verts.append(sac_v)
         tris.append(sac_f)
+        sockets["eye_socket_l" if sgn > 0 else "eye_socket_r"] = np.arange(nv, nv + len(sac_v))
         nv += len(sac_v)
     parts: dict[str, list[np.ndarray]] = {"skin": [np.arange(nv)]}
 
@@ -451,6 +454,7 @@ def _assemble(model: SkinModel, lay: Layout, spacing: float, name: str) -> Face:
     part_ids = {k: np.concatenate(v) for k, v in parts.items()}
     part_ids.update(_lip_sets(model, grid, skin_v, n_grid, pocket_side, pocket_depth))
     part_ids["mouth_socket"] = np.arange(n_grid, n_grid + len(pocket_v))
+    part_ids.update(sockets)
     e = lay.eye_centre_l
     pivots = {"head": lay.head_pivot, "jaw": lay.jaw_pivot, "eye_l": e, "eye_r": e * _MIRROR}
     log.debug(
@@ -595,6 +599,8 @@ def head_colors(face: Face) -> np.ndarray:
         col *= 1 - 0.45 * nostril[:, None]
     for p, rgb in (
         ("mouth_socket", (0.45, 0.16, 0.18)),
+        ("eye_socket_l", (0.86, 0.55, 0.55)),
+        ("eye_socket_r", (0.86, 0.55, 0.55)),
         ("teeth_upper", (0.95, 0.93, 0.85)),
         ("teeth_lower", (0.95, 0.93, 0.85)),
         ("gums_upper", (0.80, 0.40, 0.42)),
