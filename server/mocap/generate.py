@@ -149,8 +149,10 @@ def choose_markers(face: Face, deltas: np.ndarray, n_markers: int, n_stable: int
 
     normals = trimesh.Trimesh(face.vertices, face.triangles, process=False).vertex_normals
     # front-facing moving skin (not the lip rolls, nostrils or under the chin), off the eyelids
+    chin_y = face.fp_position("2.1")[1]
     cand = np.flatnonzero(face_region & (motion > 0.5) & (normals[:, 2] > 0.3) & (v[:, 2] > nose_z - 1.6 * mw)
-                          & (np.abs(v[:, 0]) < 1.5 * mw) & (v[:, 1] < eye_y + 1.2 * mw))
+                          & (np.abs(v[:, 0]) < 1.5 * mw) & (v[:, 1] < eye_y + 1.2 * mw)
+                          & (v[:, 1] > chin_y - 0.1 * mw))  # the face, not the neck or chest
     lids = np.concatenate([np.flatnonzero(np.linalg.norm(v - face.pivot(e), axis=1) < 0.45 * mw)
                            for e in ("eye_l", "eye_r")])
     cand = np.setdiff1d(cand, lids)
@@ -279,6 +281,11 @@ def generate(out: str | Path, *, n_markers: int = 60, seconds: float = 10.0, fps
     layout = {"units": "mm", "stable": stable, "neutral_frame": 0, "markers": spec}
     paths["layout"] = out / f"{name}.layout.json"
     paths["layout"].write_text(json.dumps(layout, indent=1) + "\n")
+    # The same markers for any face with MPEG-4 feature points: markers on FPs stay tied, the rest are
+    # placed automatically (retargeting the ICT actor onto another head).
+    portable = {n: (s if "fp" in s else {}) for n, s in spec.items()}
+    paths["layout_fp"] = out / f"{name}.layout-fp.json"
+    paths["layout_fp"].write_text(json.dumps({**layout, "markers": portable}, indent=1) + "\n")
     paths["truth"] = out / f"{name}.truth.npz"
     np.savez_compressed(paths["truth"], fps=fps, names=np.array(names), vertices=verts, stable=np.array(stable),
                         expression_names=np.array(enames), weights=w.astype(np.float32), head_r=head_r,
