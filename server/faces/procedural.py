@@ -574,7 +574,7 @@ def _lip_weight(face: Face) -> np.ndarray | None:
     vu, vl = model.lip_heights(a)
     inside = np.where(s >= 0, vu - s, vl + s)
     w = (
-        np.clip(inside / 1.5 + 0.5, 0, 1)
+        np.clip(inside / 3.0 + 0.45, 0, 1)
         * np.clip((1.0 - np.abs(a)) / 0.08 + 0.5, 0, 1)
         * (fm > 0.5)
     )
