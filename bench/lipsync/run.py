@@ -162,15 +162,27 @@ def main(argv: list[str] | None = None) -> int:
         results["systems"][s] = r
     x, sr = read_audio(data / "speech" / "bobby_16bit_16khz.wav")
     results["live_latency"] = live_latency(x, sr)
+    fc = results["systems"]["facecast"]
+    targets = {}
+    for kind in ("real", "generated"):
+        for metric in ("accuracy", "macro_f1"):
+            best = max(results["systems"][b][kind][metric] for b in ("energy", "mfcc"))
+            targets[f"beats baselines: {kind} {metric}"] = fc[kind][metric] > best
+    targets[">= 200x real time (batch analysis, 1 core)"] = fc["x_realtime"] >= 200
+    targets["live latency <= 60 ms (default look-ahead)"] = results["live_latency"]["max_ms"] <= 60
+    results["targets"] = targets
+    results["load_average"] = os.getloadavg()
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "lipsync.json").write_text(json.dumps(results, indent=1))
 
-    print(f"\n## Lip-sync: {results['utterances']['real']} real + "
+    lines: list[str] = []
+    out = lines.append  # the report goes to stdout and bench/out/lipsync.md
+    out(f"\n## Lip-sync: {results['utterances']['real']} real + "
           f"{results['utterances']['generated']} generated utterances, "
           f"{audio_s:.1f} s of audio, 10 visual classes at 100 frames/s\n")
-    print("| system | real acc | real macro-F1 | real open/closed | real lag ms | gen acc | "
+    out("| system | real acc | real macro-F1 | real open/closed | real lag ms | gen acc | "
           "gen macro-F1 | gen open/closed | gen lag ms | × real time (1 core) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    out("|---|---|---|---|---|---|---|---|---|---|")
     for s in systems:
         r = results["systems"][s]
         cells = []
@@ -178,21 +190,26 @@ def main(argv: list[str] | None = None) -> int:
             k = r[kind]
             cells += [f"{k['accuracy']:.3f}", f"{k['macro_f1']:.3f}", f"{k['open_closed']:.3f}",
                       f"{k['onset_lag_ms_median']:+.0f}"]
-        print(f"| {s} | " + " | ".join(cells) + f" | {r['x_realtime']:.0f} |")
+        out(f"| {s} | " + " | ".join(cells) + f" | {r['x_realtime']:.0f} |")
     lat = results["live_latency"]
-    print(f"\nLive algorithmic latency (look-ahead budget {lat['lookahead_s'] * 1e3:.0f} ms, "
+    out(f"\nLive algorithmic latency (look-ahead budget {lat['lookahead_s'] * 1e3:.0f} ms, "
           f"{lat['chunk_ms']:.0f} ms chunks): median {lat['median_ms']:.1f} ms, max "
           f"{lat['max_ms']:.1f} ms (declared {lat['declared_ms']:.1f} ms).")
+    out("\nTargets: " + "; ".join(f"{k}: {'met' if v else 'MISSED'}" for k, v in targets.items())
+        + f". Load average during the run: {results['load_average'][0]:.1f} (2 cores shared).")
     for kind in ("real", "generated"):
         cm = np.array(results["systems"]["facecast"][kind]["confusion"])
-        print(f"\nConfusion matrix, facecast batch, {kind} speech (rows = truth, columns = "
+        out(f"\nConfusion matrix, facecast batch, {kind} speech (rows = truth, columns = "
               "predicted, frames):\n")
         short = [c[:6] for c in CLASSES]
-        print("| truth \\ pred | " + " | ".join(short) + " |")
-        print("|---" * (len(CLASSES) + 1) + "|")
+        out("| truth \\ pred | " + " | ".join(short) + " |")
+        out("|---" * (len(CLASSES) + 1) + "|")
         for i, c in enumerate(CLASSES):
-            print(f"| {c} | " + " | ".join(str(v) for v in cm[i]) + " |")
-    print(f"\nwrote {OUT / 'lipsync.json'}")
+            out(f"| {c} | " + " | ".join(str(v) for v in cm[i]) + " |")
+    text = "\n".join(lines) + "\n"
+    (OUT / "lipsync.md").write_text(text)
+    sys.stdout.write(text)
+    print(f"\nwrote {OUT / 'lipsync.json'} and {OUT / 'lipsync.md'}")
     return 0
 
 
