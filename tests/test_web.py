@@ -156,3 +156,49 @@ def test_microphone_lip_sync_moves_the_mouth(server, playwright, data_dir, artif
         assert not problems, problems
     finally:
         b.close()
+
+
+def test_page_reconnects_after_a_server_restart_and_says_so(browser, tmp_path, artifacts):
+    from conftest import RunningServer
+
+    first = RunningServer(tmp_path / "data").start()
+    port = first.port
+    try:
+        session = create_session(first, input="fap", fps=30)
+        httpx.post(f"{first.url}/v1/sessions/{session['id']}/demo", headers=first.admin_headers).raise_for_status()
+        page, problems = open_page(browser, f"{first.url}/#session={session['id']}&token={session['viewer_token']}")
+        wait_for(page, "window.facecast.viewer.stats.frames >= 5")
+    finally:
+        first.stop()
+    wait_for(page, "document.getElementById('status').textContent.includes('reconnecting')")
+    second = RunningServer(tmp_path / "data")
+    second.port, second.url = port, f"http://127.0.0.1:{port}"
+    second.start()
+    try:
+        # Live sessions do not outlive the server: the page reconnects and says the session is gone.
+        wait_for(page, "document.getElementById('status').textContent.includes('is gone')")
+        page.screenshot(path=str(artifacts / "web_after_restart.png"))
+        assert not [p for p in problems if "WebSocket" not in p], problems
+    finally:
+        page.close()
+        second.stop()
+
+
+def test_playing_an_uploaded_speech_file_moves_the_lips_with_sound(server, browser, data_dir, artifacts):
+    face = load_face("default")
+    fp = face.feature_points
+    page, problems = open_page(browser, f"{server.url}/#key={server.admin_key}")
+    wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
+    page.set_input_files("#file", str(data_dir / "speech" / "bobby_16bit_16khz.wav"))
+    page.click("#play")
+    wait_for(page, "document.getElementById('play-info').textContent.includes('playing')", timeout=120)
+    wait_for(page, "window.facecast.viewer.stats.frames >= 10", timeout=60)
+    gaps = []
+    for _ in range(25):
+        page.wait_for_timeout(100)
+        gaps.append(page.evaluate(f"facecast.renderer.vertex({fp['2.2']})[1] - facecast.renderer.vertex({fp['2.3']})[1]"))
+    assert page.evaluate("document.getElementById('audio').src.startsWith('blob:')")
+    assert np.ptp(gaps) > 0.5, f"the lips did not move with the file: gap range {np.ptp(gaps):.2f} mm"
+    page.screenshot(path=str(artifacts / "web_play_speech.png"))
+    assert not problems, problems
+    page.close()

@@ -178,13 +178,13 @@ $('play').onclick = async () => {
     const audio = $('audio');
     if (isAudio) { audio.src = URL.createObjectURL(file); audio.load(); }
     const res = await api('POST', `/v1/sessions/${state.session}/play?token=${encodeURIComponent(state.tokens[state.session].producer)}`, form, { form: true });
-    setStatus(`playing ${file.name}: ${res.frames} frames at ${res.fps} fps`, 'ok');
+    $('play-info').textContent = `playing ${file.name}: ${res.frames} frames at ${res.fps} fps (${res.seconds.toFixed(1)} s)`;
     if (isAudio) {
       // Start the sound when the server starts the motion: both run from the same start instant.
       const delay = Math.max(0, res.start_wall * 1000 - Date.now() + (viewer.summary().latencyP50 || 0));
       setTimeout(() => audio.play().catch(() => setStatus('the browser blocked sound playback; click the page', 'warn')), delay);
     }
-  } catch (e) { setStatus(e.message, 'error'); }
+  } catch (e) { $('play-info').textContent = e.message; setStatus(e.message, 'error'); }
 };
 
 $('mic').onclick = async () => {

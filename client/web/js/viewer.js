@@ -34,6 +34,10 @@ export class Viewer {
     ws.onmessage = (ev) => this.onMessage(ev);
     ws.onclose = (ev) => {
       if (this.closedByUser || ws !== this.ws) return;
+      if (ev.code === 4404 && attempt > 0) {
+        this.onStatus(`reconnected, but session ${session} is gone (the server restarted); start a demo or pick a live session`, 'error');
+        return;
+      }
       if (ev.code >= 4400 && ev.code !== 4429 && ev.code !== 4500) {
         this.onStatus(`disconnected: ${ev.reason || 'refused'} (${ev.code})`, 'error');
         return;
