@@ -150,6 +150,7 @@ def annotate(v: np.ndarray, triangles: np.ndarray, landmarks: list[int]) -> dict
             "mouth_socket": r("mouth_socket"),
             "eye_socket": r("eye_socket_l") + r("eye_socket_r"),
             "eye_l": r("eye_l"), "eye_r": r("eye_r"),
+            "iris_l": [list(IRIS_L)], "iris_r": [list(IRIS_R)],
             "eye_extras": r("eye_extras"), "eyelashes": r("eyelashes"),
             "teeth_upper": r("teeth_upper"), "teeth_lower": r("teeth_lower"),
             "gums_upper": parts["gums_upper"].tolist(), "gums_lower": parts["gums_lower"].tolist(),
