@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.signal
-
 from facecast.server.audio.classify import VOWELS, WEIGHTS, VowelNet, default_net
 from facecast.server.audio.pipeline import features_of
 

@@ -7,7 +7,6 @@ import logging
 import numpy as np
 import pytest
 import soundfile as sf
-
 from facecast.server.audio.driver import load
 from facecast.server.audio.io import read_audio
 from facecast.server.cli import main

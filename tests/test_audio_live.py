@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from facecast.server.audio.io import read_audio
 from facecast.server.audio.live import AudioLiveDriver
 from facecast.server.audio.pipeline import lipsync

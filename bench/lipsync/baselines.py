@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 import scipy.fft
-
 from facecast.server.audio.generate import NUCLEUS_DB, NUCLEUS_MAX_ZCR, speak, utterances
 from facecast.server.audio.io import read_audio, resample
 from facecast.server.audio.lpc import frame, preemphasis
@@ -27,8 +26,8 @@ def mel_filterbank(*, sr: float, n_fft: int, n_mels: int = 26, fmin: float = 0.0
                    fmax: float | None = None) -> np.ndarray:
     """``(n_mels, n_fft//2 + 1)`` triangular filters equally spaced on the mel scale (HTK mel)."""
     fmax = fmax or sr / 2
-    mel = lambda f: 2595.0 * np.log10(1.0 + f / 700.0)  # noqa: E731
-    hz = lambda m: 700.0 * (10 ** (m / 2595.0) - 1.0)   # noqa: E731
+    mel = lambda f: 2595.0 * np.log10(1.0 + f / 700.0)
+    hz = lambda m: 700.0 * (10 ** (m / 2595.0) - 1.0)
     edges = hz(np.linspace(mel(fmin), mel(fmax), n_mels + 2))
     freqs = np.linspace(0, sr / 2, n_fft // 2 + 1)
     lo, c, hi = edges[:-2, None], edges[1:-1, None], edges[2:, None]

@@ -12,11 +12,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
+from classes import frames_from_intervals
 from facecast.server.audio.generate import HELD_OUT_VARIANTS, TRAIN_VARIANTS
 from facecast.server.audio.io import read_audio, resample
-
-from classes import frames_from_intervals
 from textgrid import read_tiers
 
 log = logging.getLogger(__name__)

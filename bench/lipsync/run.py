@@ -14,26 +14,25 @@ import os
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # one core
     os.environ.setdefault(_v, "1")
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import logging  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from facecast.server.audio.io import read_audio  # noqa: E402
-from facecast.server.audio.live import AudioLiveDriver  # noqa: E402
-from facecast.server.audio.pipeline import lipsync  # noqa: E402
-from facecast.server.mpeg4.highlevel import VISEMES  # noqa: E402
-from facecast.server.paths import shared_data  # noqa: E402
-
-from baselines import MfccTemplates, energy_visemes  # noqa: E402
-from classes import CLASSES, OPEN, OPENING, VISEME_CLASS  # noqa: E402
-from corpus import generated_utterances, real_utterances  # noqa: E402
+from baselines import MfccTemplates, energy_visemes
+from classes import CLASSES, OPEN, OPENING, VISEME_CLASS
+from corpus import generated_utterances, real_utterances
+from facecast.server.audio.io import read_audio
+from facecast.server.audio.live import AudioLiveDriver
+from facecast.server.audio.pipeline import lipsync
+from facecast.server.mpeg4.highlevel import VISEMES
+from facecast.server.paths import shared_data
 
 ROOT = Path(__file__).resolve().parents[2]
 OUT = ROOT / "bench" / "out"

@@ -14,15 +14,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from run import OUT, fit_len, scores  # noqa: E402
-
-from facecast.server.audio.classify import default_net  # noqa: E402
-from facecast.server.audio.io import read_audio  # noqa: E402
-from facecast.server.audio.pipeline import features_of, track_of  # noqa: E402
-from facecast.server.audio.visemes import NN, Params  # noqa: E402
-
-from classes import VISEME_CLASS  # noqa: E402
-from corpus import generated_utterances  # noqa: E402
+from classes import VISEME_CLASS
+from corpus import generated_utterances
+from facecast.server.audio.classify import default_net
+from facecast.server.audio.io import read_audio
+from facecast.server.audio.pipeline import features_of, track_of
+from facecast.server.audio.visemes import NN, Params
+from run import OUT, fit_len, scores
 
 
 def main() -> int:

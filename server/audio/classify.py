@@ -52,7 +52,7 @@ class VowelNet:
                                                            for k, v in meta.items()})
 
     @classmethod
-    def load(cls, path: str | Path = WEIGHTS) -> "VowelNet":
+    def load(cls, path: str | Path = WEIGHTS) -> VowelNet:
         path = Path(path)
         if not path.is_file():
             raise FacecastError(f"vowel network weights missing: {path}; run "

@@ -4,8 +4,6 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import numpy as np
-
 from ..state import Animation, FaceState
 from .io import read_audio
 from .pipeline import LipSync, lipsync
@@ -56,8 +54,8 @@ def load(path: str | Path, face=None, fps: float = 25.0, lookahead: float | None
     x, sr = read_audio(path)
     cal = None
     if silence_db is not None or max_db is not None:
-        from .visemes import calibrate
         from .pipeline import features_of
+        from .visemes import calibrate
 
         auto = calibrate(features_of(x, sr).energy_db)
         cal = Calibration(auto.silence_db if silence_db is None else float(silence_db),

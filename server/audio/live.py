@@ -19,10 +19,27 @@ from ..errors import InputError
 from ..state import FaceState
 from .classify import VowelNet, default_net
 from .io import MAX_RATE, MIN_RATE, StreamResampler, validate_pcm
-from .lpc import ANALYSIS_RATE, FRAME_LENGTH, HOP_LENGTH, ORDER, PREEMPHASIS, analyze_frames, \
-    frame, preemphasis
-from .visemes import MIN_SILENCE_DB, NOISE_MARGIN_DB, SILENCE_RANGE_DB, Calibration, Params, \
-    coarticulate, label_frames, median_filter_proba, viseme_table
+from .lpc import (
+    ANALYSIS_RATE,
+    FRAME_LENGTH,
+    HOP_LENGTH,
+    ORDER,
+    PREEMPHASIS,
+    analyze_frames,
+    frame,
+    preemphasis,
+)
+from .visemes import (
+    MIN_SILENCE_DB,
+    NOISE_MARGIN_DB,
+    SILENCE_RANGE_DB,
+    Calibration,
+    Params,
+    coarticulate,
+    label_frames,
+    median_filter_proba,
+    viseme_table,
+)
 
 log = logging.getLogger(__name__)
 

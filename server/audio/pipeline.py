@@ -8,8 +8,15 @@ import numpy as np
 from .classify import VowelNet, default_net
 from .io import resample, validate_pcm
 from .lpc import ANALYSIS_RATE, Features, analyze
-from .visemes import Calibration, Params, Track, calibrate, coarticulate, label_frames, \
-    median_filter_proba
+from .visemes import (
+    Calibration,
+    Params,
+    Track,
+    calibrate,
+    coarticulate,
+    label_frames,
+    median_filter_proba,
+)
 
 
 @dataclass
