@@ -5,15 +5,27 @@ every part (``POSITION``, ``NORMAL``, ``uint32`` indices), ``M`` morph targets (
 ``NORMAL`` deltas) and one animation whose ``LINEAR`` sampler holds the ``M`` weights of every frame
 at the frame rate (keyframe i at ``i / fps`` seconds).
 
-Compression: the per-frame displacements ``X (T, 3V)`` from the neutral mesh are factored with a
-truncated SVD (eigen-decomposition of the ``T x T`` Gram matrix). The targets are the leading
-``M`` components (scaled so that the weights stay in [-1, 1]); ``M`` is the smallest rank whose
-largest per-frame residual norm ``max_t sqrt(sum_{i>=M} U[t,i]^2 lambda_i)`` -- an upper bound on
-every vertex's error in every frame -- is within ``tolerance_mm``, capped at ``max_targets``. The same basis is
-used for every length (a short clip simply needs fewer components; ``M <= T``). The measured
-maximum vertex error (mm) and the bound are recorded in ``extras.facecast`` with the frame count,
-fps and target count. Normal deltas per target are the least-squares fit of the per-frame normal
-changes to the same weights.
+Compression: a truncated SVD of the per-frame displacements ``X (T, 3V)`` from the neutral mesh,
+computed in two streaming passes over frame chunks, so time grows linearly with ``T`` and memory is
+bounded (no ``T x T`` or ``T x 3V`` float64 array; frames may come as a re-iterable chunk source):
+
+1. *Basis*: an orthonormal ``Q (3V, k)`` grows chunk by chunk; a chunk's residual ``R = X_c - X_c Q Q^T``
+   that leaves some frame further than ``tau = basis_slack * tolerance`` (per-frame norm) from
+   ``span(Q)`` adds the fewest leading singular vectors of ``R`` that bring every frame of the chunk
+   within ``tau``. The coefficients ``B = X_c Q`` and the left-over residual energy ``rho_t`` of
+   every frame are kept (``(T, k)``, small).
+2. The principal directions of ``span(Q)`` (eigenvectors of ``B^T B``) are ordered; ``M`` is the smallest
+   count whose per-frame bound ``sqrt(sum_{i>=M} (BV)[t,i]^2) + sqrt(rho_t)`` (>= every vertex's error)
+   is within ``tolerance`` in every frame, capped at ``max_targets``.
+3. *Verification*: a second pass projects every frame on the ``M`` targets (the stored float32
+   weights and targets) and measures the largest vertex error exactly (float64), and fits the normal
+   deltas. Should it exceed ``tolerance``, ``M`` grows (and the basis with a smaller ``tau``) until it
+   holds or ``max_targets`` is reached; a capped result says so (``capped`` in the record, a warning).
+
+The targets are scaled so that every weight lies in [-1, 1]. The measured maximum vertex error (mm)
+is the recorded bound (``max_error_mm`` = ``error_bound_mm``), with the largest per-frame residual
+norm, frame count, fps, target count and passes in ``extras.facecast``. Normal deltas per target are
+the least-squares fit of the per-frame normal changes to the same weights.
 
 Axes: MPEG-4 and glTF agree (+y up, +z = the face's front, +x = the face's left).
 """
@@ -21,12 +33,15 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import struct
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..backends.numpy_backend import incidence_matrix, vertex_normals
+from ..backends.numpy_backend import incidence_matrix
 from .atomic import write_bytes_atomic
 
 log = logging.getLogger(__name__)
@@ -34,60 +49,267 @@ log = logging.getLogger(__name__)
 _FLOAT, _UINT = 5126, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 
+#: Frames: a ``(T, V, 3)`` array, or a callable returning a fresh iterable of ``(c, V, 3)`` chunks
+#: (called once per pass, it must yield the same frames each time).
+FrameSource = np.ndarray | Callable[[], Iterable[np.ndarray]]
 
-def morph_basis(frames: np.ndarray, rest: np.ndarray, tolerance: float, max_targets: int = 128
-                ) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """Truncated SVD of the per-frame displacements ``frames - rest``.
+
+@dataclass
+class MorphBasis:
+    """A morph basis: ``frames ~ rest + weights @ targets``.
+
+    ``targets (M, V, 3) float32`` (scaled so that ``|weights| <= 1``), ``weights (T, M) float32``,
+    ``normals (M, V, 3) float32`` normal deltas (zeros if not asked for), ``max_error``: measured
+    largest vertex error, ``frame_error``: measured largest per-frame residual norm (mesh units),
+    ``capped``: the tolerance was not met within ``max_targets``, ``passes``: passes over the frames,
+    ``basis_size``: directions gathered before truncation.
+    """
+
+    targets: np.ndarray
+    weights: np.ndarray
+    normals: np.ndarray
+    max_error: float
+    frame_error: float
+    capped: bool
+    passes: int
+    basis_size: int
+
+
+def frame_chunks(frames: FrameSource, chunk: int) -> Iterator[np.ndarray]:
+    """``(c, V, 3) float32`` chunks of ``frames`` (array slices of ``chunk`` frames, or the source's own)."""
+    if callable(frames):
+        for c in frames():
+            yield np.asarray(c, dtype=np.float32)
+    else:
+        for s in range(0, len(frames), chunk):
+            yield np.asarray(frames[s:s + chunk], dtype=np.float32)
+
+
+def _chunk_rows(n_cols: int) -> int:
+    """Frames per chunk: about 32 MB of float32 displacements, 16-256 frames."""
+    return int(min(256, max(16, 8_000_000 // max(n_cols, 1))))
+
+
+def _displacements(chunk: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    """``(c, 3V) float32`` displacements of a chunk; ValueError on a wrong shape or non-finite values."""
+    V = len(rest) // 3
+    if chunk.ndim != 3 or chunk.shape[1:] != (V, 3):
+        raise ValueError(f"frames must be (T>=1, {V}, 3), not {chunk.shape}")
+    if not np.all(np.isfinite(chunk)):
+        raise ValueError("frames contain NaN or infinite values")
+    return chunk.reshape(len(chunk), -1) - rest
+
+
+class _Basis:
+    """The growing orthonormal basis of pass 1: rows ``Qt[:k]`` of ``Qt (kmax, 3V) float32``."""
+
+    def __init__(self, n_cols: int, kmax: int, keep: int) -> None:
+        self.Qt = np.zeros((kmax, n_cols), dtype=np.float32)
+        self.k, self.kmax, self.keep = 0, kmax, keep
+
+    def sweep(self, frames: FrameSource, rest: np.ndarray, tau: float, chunk: int
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """One pass: grow the basis so every frame is within ``tau`` of its span (while room lasts).
+
+        Returns ``B (T, k) float64`` coefficients (zero on directions added after a frame was seen)
+        and ``rho (T,) float64``: each frame's squared distance to the span as it was after its chunk.
+        """
+        tau2 = tau * tau
+        rows_b: list[np.ndarray] = []
+        rows_rho: list[np.ndarray] = []
+        for fc in frame_chunks(frames, chunk):
+            X = _displacements(fc, rest)
+            C, R, e = self._project(X)
+            for _step in range(6):  # float32 deflation: each step resolves ~1e-6 of the residual energy
+                if e.max(initial=0.0) <= tau2:
+                    break
+                if self.k >= self.kmax:  # full: keep the leading directions, then redo this chunk
+                    self._compress(rows_b, rows_rho, C)
+                    C, R, e = self._project(X)
+                    continue
+                lam, U = np.linalg.eigh((R @ R.T).astype(np.float64))
+                lam, U = np.clip(lam[::-1], 0.0, None), np.ascontiguousarray(U[:, ::-1])
+                tail = np.cumsum(((U**2) * lam)[:, ::-1], axis=1)[:, ::-1]  # tail[t, j]: left after j
+                ok = np.flatnonzero(np.append(tail.max(axis=0), 0.0) <= tau2)
+                j = int(ok[0]) if len(ok) else len(lam)
+                j = max(1, min(j, int((lam > lam[0] * 1e-5).sum()), self.kmax - self.k))  # float32 floor
+                Vn = (np.ascontiguousarray(U[:, :j].T, dtype=np.float32) @ R) / np.sqrt(lam[:j]).astype(np.float32)[:, None]
+                Qk = self.Qt[:self.k]
+                for _ in range(2):  # orthonormalise against the basis and among themselves (float32 drift)
+                    Vn -= (Vn @ Qk.T) @ Qk
+                    L = np.linalg.cholesky((Vn @ Vn.T).astype(np.float64) + 1e-30 * np.eye(j))
+                    Vn = np.linalg.inv(L).astype(np.float32) @ Vn
+                self.Qt[self.k:self.k + j] = Vn
+                self.k += j
+                Cn = R @ Vn.T
+                R -= Cn @ Vn
+                C = np.concatenate([C, Cn], axis=1)
+                e = np.einsum("ij,ij->i", R, R).astype(np.float64)
+            rows_b.append(C.astype(np.float64))
+            rows_rho.append(e)
+        B = np.zeros((sum(len(b) for b in rows_b), self.k))
+        s = 0
+        for b in rows_b:
+            B[s:s + len(b), :b.shape[1]] = b[:, :self.k]
+            s += len(b)
+        return B, np.concatenate(rows_rho) if rows_rho else np.zeros(0)
+
+    def _project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Coefficients ``(c, k)``, residual ``(c, 3V)`` and residual energies ``(c,) float64`` of ``X``."""
+        Qk = self.Qt[:self.k]
+        C = X @ Qk.T
+        R = X - C @ Qk
+        return C, R, np.einsum("ij,ij->i", R, R).astype(np.float64)
+
+    def _compress(self, rows_b: list[np.ndarray], rows_rho: list[np.ndarray], current: np.ndarray) -> None:
+        """Full: keep the ``keep`` leading principal directions of the frames seen so far (and of the
+        current chunk's coefficients); the energy dropped is added (as a norm, triangle inequality)
+        to each earlier frame's residual bound."""
+        k = self.k
+        B = np.zeros((sum(len(b) for b in rows_b) + len(current), k))
+        s = 0
+        for b in [*rows_b, current]:
+            B[s:s + len(b), :b.shape[1]] = b
+            s += len(b)
+        lam, V = np.linalg.eigh(B.T @ B)
+        V = V[:, ::-1]
+        P = B @ V
+        keep = min(self.keep, k)
+        dropped = (P[:, keep:] ** 2).sum(axis=1)
+        self.Qt[:keep] = V[:, :keep].T.astype(np.float32) @ self.Qt[:k]
+        self.Qt[keep:] = 0.0
+        self.k = keep
+        s = 0
+        for i, b in enumerate(rows_b):
+            rows_b[i] = P[s:s + len(b), :keep]
+            rows_rho[i] = (np.sqrt(rows_rho[i]) + np.sqrt(dropped[s:s + len(b)])) ** 2
+            s += len(b)
+
+
+def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_targets: int = 128, *,
+                normals: Callable[[np.ndarray], np.ndarray] | None = None, basis_slack: float = 0.5,
+                chunk: int | None = None) -> MorphBasis:
+    """Streaming truncated SVD of the per-frame displacements ``frames - rest`` (see module docstring).
 
     Args:
-        frames: ``(T, V, 3)`` vertices per frame; ``rest``: ``(V, 3)`` neutral mesh (mesh units).
-        tolerance: wanted bound on any vertex's error (mesh units).
-        max_targets: most components kept.
-
-    Returns:
-        ``targets (M, V, 3) float32``, ``weights (T, M) float32`` with ``targets`` scaled so that
-        ``|weights| <= 1``, the measured max vertex error and the energy bound (mesh units).
+        frames: ``(T, V, 3)`` vertices per frame, or a callable returning a fresh iterable of
+            ``(c, V, 3)`` chunks (called once per pass, typically twice); ``rest``: ``(V, 3)`` (mesh units).
+        tolerance: wanted bound on any vertex's error in any frame (mesh units).
+        max_targets: most targets kept.
+        normals: ``(c, V, 3) vertices -> (c, V, 3)`` normal deltas to fit per target (None: zeros).
+        basis_slack: pass-1 per-frame tolerance as a fraction of ``tolerance``.
+        chunk: frames per chunk for array input (default: about 32 MB per chunk).
     """
-    T = frames.shape[0]
-    F = np.asarray(frames, dtype=np.float32).reshape(T, -1)
     r = np.asarray(rest, dtype=np.float32).reshape(-1)
-    n_cols = F.shape[1]
-    step = max(3, 4_000_000 // max(T, 1) // 3 * 3)  # whole vertices per column chunk
+    n_cols = r.size
+    chunk = chunk or _chunk_rows(n_cols)
+    basis = _Basis(n_cols, kmax=max_targets + max(16, max_targets // 2), keep=max_targets)
+    tau = basis_slack * tolerance
+    passes, M = 0, 0
+    for _round in range(6):
+        B, rho = basis.sweep(frames, r, tau, chunk)
+        passes += 1
+        T, k = B.shape
+        if T < 1:
+            raise ValueError("frames must hold at least one frame")
+        if k:
+            lam, V = np.linalg.eigh(B.T @ B)
+            V = V[:, ::-1]
+            P = B @ V  # coefficients on the principal directions of span(Q)
+            tail = np.sqrt(np.append(np.cumsum((P**2)[:, ::-1], axis=1)[:, ::-1], np.zeros((T, 1)), axis=1))
+            bound = (tail + np.sqrt(rho)[:, None]).max(axis=0)  # bound[m], m = 0..k
+            ok = np.flatnonzero(bound[:min(k, max_targets) + 1] <= tolerance)
+            M = max(M, int(ok[0]) if len(ok) else min(k, max_targets), 1)
+            M = min(M, k)
+        else:  # nothing moves: one zero target
+            V, P, M = np.ones((1, 1)), np.zeros((T, 1)), 1
+        while True:
+            if k:  # (M, 3V) orthonormal rows: the M leading principal directions
+                Qv = V[:, :M].T.astype(np.float32) @ basis.Qt[:k]
+            else:
+                Qv = np.zeros((1, n_cols), dtype=np.float32)
+            scale = np.abs(P[:, :M]).max(axis=0) + np.sqrt(rho.max())  # >= every exact |X Qv^T|
+            scale[scale == 0] = 1.0
+            targets = Qv * scale.astype(np.float32)[:, None]  # (M, 3V) float32
+            res = _verify(frames, r, Qv, scale, targets, T, chunk, normals)
+            passes += 1
+            weights, err, frame_err, ntargets = res
+            if err <= tolerance or M >= max_targets or M >= k:
+                break
+            M = min(k, max_targets, M + max(1, math.ceil(M / 8)))
+        if err <= tolerance or M >= max_targets:
+            break
+        tau *= 0.5  # every gathered direction is used and still too far: gather finer
+    capped = bool(err > tolerance)
+    if capped:
+        log.warning("glTF morph basis capped at %d targets: max vertex error %.4g > tolerance %.4g "
+                    "(mesh units)", M, err, tolerance)
+    return MorphBasis(targets.reshape(M, -1, 3), weights, ntargets.reshape(M, -1, 3), err, frame_err,
+                      capped, passes, k)
 
-    def cols(c: int) -> np.ndarray:  # displacement columns c:c+step in float64 (no full copy)
-        return F[:, c:c + step].astype(np.float64) - r[c:c + step]
 
-    gram = np.zeros((T, T))
-    for c in range(0, n_cols, step):
-        xc = cols(c)
-        gram += xc @ xc.T
-    lam, U = np.linalg.eigh(gram)
-    lam, U = np.clip(lam[::-1], 0.0, None), U[:, ::-1]
-    # Frame t's residual keeping m components has norm^2 = sum_{i>=m} U[t,i]^2 lam[i]; its max over
-    # frames bounds every vertex's error in every frame. tail[m] = that bound.
-    energy = (U**2) * lam
-    per_frame = np.cumsum(energy[:, ::-1], axis=1)[:, ::-1]
-    tail = np.append(np.sqrt(np.maximum(per_frame.max(axis=0), 0.0)), 0.0)
-    ok = np.flatnonzero(tail[: min(T, max_targets) + 1] <= tolerance)
-    M = int(ok[0]) if len(ok) else min(T, max_targets)
-    M = max(M, 1)
-    if not len(ok):
-        log.warning("glTF morph basis capped at %d targets; energy bound %.3g > tolerance %.3g",
-                    M, tail[M], tolerance)
-    Um = U[:, :M]
-    scale = np.abs(Um).max(axis=0)
-    scale[scale == 0] = 1.0
-    weights = (Um / scale).astype(np.float32)
-    targets = np.empty((M, n_cols), dtype=np.float32)
-    err = 0.0
-    w64 = weights.astype(np.float64)
-    for c in range(0, n_cols, step):
-        xc = cols(c)
-        tc = ((Um * scale).T @ xc).astype(np.float32)
-        targets[:, c:c + step] = tc
-        diff = (xc - w64 @ tc.astype(np.float64)).reshape(T, -1, 3)  # exact float32 reconstruction error
-        err = max(err, float(np.sqrt((diff**2).sum(axis=2)).max(initial=0.0)))
-    return targets.reshape(M, -1, 3), weights, err, float(tail[M])
+def _verify(frames: FrameSource, r: np.ndarray, Qv: np.ndarray, scale: np.ndarray, targets: np.ndarray,
+            T: int, chunk: int, normals: Callable[[np.ndarray], np.ndarray] | None
+            ) -> tuple[np.ndarray, float, float, np.ndarray]:
+    """Pass 2: weights, measured max vertex error and per-frame residual norm, fitted normal deltas."""
+    M = targets.shape[0]
+    t64 = targets.astype(np.float64)
+    inv = (1.0 / scale).astype(np.float32)
+    weights = np.empty((T, M), dtype=np.float32)
+    wtw = np.zeros((M, M))
+    wtn = np.zeros((M, r.size)) if normals is not None else None
+    err = frame_err = 0.0
+    s = 0
+    for fc in frame_chunks(frames, chunk):
+        X = _displacements(fc, r)
+        w = (X @ Qv.T) * inv
+        n = len(w)
+        if s + n > T:
+            raise ValueError("the frame source yielded more frames on its second pass")
+        weights[s:s + n] = w
+        w64 = w.astype(np.float64)
+        diff = fc.reshape(n, -1).astype(np.float64)  # float64 throughout: exact for float32 data
+        diff -= r
+        diff -= w64 @ t64
+        d3 = diff.reshape(n, -1, 3)
+        d2 = np.einsum("tvc,tvc->tv", d3, d3)
+        err = max(err, float(np.sqrt(d2.max(initial=0.0))))
+        frame_err = max(frame_err, float(np.sqrt(d2.sum(axis=1).max(initial=0.0))))
+        if wtn is not None:
+            wtn += w.T @ normals(fc).reshape(n, -1)
+        wtw += w64.T @ w64
+        s += n
+    if s != T:
+        raise ValueError(f"the frame source yielded {s} frames on its second pass, not {T}")
+    if wtn is not None:
+        ntargets = (np.linalg.pinv(wtw, hermitian=True) @ wtn).astype(np.float32)
+    else:
+        ntargets = np.zeros((M, r.size), dtype=np.float32)
+    return weights, err, frame_err, ntargets
+
+
+def unit_normals(frames: np.ndarray, triangles: np.ndarray, incidence) -> np.ndarray:
+    """Area-weighted unit vertex normals of ``(c, V, 3)`` frames -> ``(c, V, 3) float32``; a vertex in
+    no triangle gets ``+z`` (glTF needs unit normals everywhere). ``incidence``: ``(V, F)`` CSR."""
+    c, V = frames.shape[:2]
+    F = len(triangles)
+    i0, i1, i2 = (np.ascontiguousarray(triangles[:, i]) for i in range(3))
+    out = np.empty((c, V, 3), dtype=np.float32)
+    for s in range(0, c, 16):  # 16 frames per sparse product (V, F) @ (F, 3 * 16)
+        p = np.ascontiguousarray(np.asarray(frames[s:s + 16], dtype=np.float32).transpose(2, 0, 1))  # (3, b, V)
+        b = p.shape[1]
+        p0 = p[:, :, i0]
+        e1, e2 = p[:, :, i1] - p0, p[:, :, i2] - p0  # (3, b, F)
+        fn = np.empty((F, 3, b), dtype=np.float32)  # face normals, length = 2 * area
+        fn[:, 0] = (e1[1] * e2[2] - e1[2] * e2[1]).T
+        fn[:, 1] = (e1[2] * e2[0] - e1[0] * e2[2]).T
+        fn[:, 2] = (e1[0] * e2[1] - e1[1] * e2[0]).T
+        n = np.asarray(incidence @ fn.reshape(F, 3 * b), dtype=np.float32).reshape(V, 3, b).transpose(2, 0, 1)
+        length = np.sqrt(np.einsum("bvc,bvc->bv", n, n))[..., None]
+        n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+        n[~(np.abs(n).sum(axis=2) > 0)] = (0.0, 0.0, 1.0)
+        out[s:s + b] = n
+    return out
 
 
 class _Bin:
@@ -120,41 +342,32 @@ class _Bin:
         return len(self.accessors) - 1
 
 
-def encode_glb(frames: np.ndarray, rest: np.ndarray, triangles: np.ndarray, fps: float, *,
+def encode_glb(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float, *,
                mm_per_unit: float = 1.0, tolerance_mm: float = 0.01, max_targets: int = 128,
                name: str = "facecast", extras: dict | None = None) -> tuple[bytes, dict]:
     """The ``.glb`` bytes of an animation and its ``extras.facecast`` record (see module docstring).
 
     Args:
-        frames: ``(T, V, 3)`` vertices per frame (mesh units); ``rest``: ``(V, 3)`` neutral mesh.
+        frames: ``(T, V, 3)`` vertices per frame (mesh units), or a callable returning a fresh
+            iterable of ``(c, V, 3)`` chunks of them (called once per pass over the frames);
+            ``rest``: ``(V, 3)`` neutral mesh.
         triangles: ``(F, 3)``; ``fps``: frames per second; ``mm_per_unit``: mesh unit size.
         tolerance_mm: error bound for the morph basis; ``max_targets``: cap on targets.
     """
-    frames = np.asarray(frames, dtype=np.float32)
+    if not callable(frames):
+        frames = np.asarray(frames, dtype=np.float32)
+        if frames.ndim != 3 or len(frames) < 1:
+            raise ValueError(f"frames must be (T>=1, {len(rest)}, 3), not {frames.shape}")
     rest = np.asarray(rest, dtype=np.float32)
     tri = np.ascontiguousarray(triangles, dtype=np.uint32)
-    T, V = frames.shape[0], rest.shape[0]
-    if T < 1 or frames.shape[1:] != (V, 3):
-        raise ValueError(f"frames must be (T>=1, {V}, 3), not {frames.shape}")
-    if not np.all(np.isfinite(frames)):
-        raise ValueError("frames contain NaN or infinite values")
-    targets, weights, err, bound = morph_basis(frames, rest, tolerance_mm / mm_per_unit, max_targets)
-    M = targets.shape[0]
-
+    V = rest.shape[0]
     inc = incidence_matrix(tri.astype(np.int32), V)
 
-    def normals(v: np.ndarray) -> np.ndarray:  # glTF needs unit normals, also on loose vertices
-        n = vertex_normals(v, tri, inc)
-        n[~(np.abs(n).sum(axis=1) > 0)] = (0.0, 0.0, 1.0)
-        return n
-
-    n0 = normals(rest)
-    pinv = np.linalg.pinv(weights.astype(np.float64)).astype(np.float32)  # (M, T)
-    ntargets = np.zeros((M, V * 3), dtype=np.float32)
-    for t0 in range(0, T, 32):  # least-squares normal deltas, accumulated 32 frames at a time
-        dn = np.stack([(normals(f) - n0).reshape(-1) for f in frames[t0:t0 + 32]])
-        ntargets += pinv[:, t0:t0 + 32] @ dn
-    ntargets = ntargets.reshape(M, V, 3)
+    n0 = unit_normals(rest[None], tri, inc)[0]
+    mb = morph_basis(frames, rest, tolerance_mm / mm_per_unit, max_targets,
+                     normals=lambda v: unit_normals(v, tri, inc) - n0)
+    targets, weights, ntargets = mb.targets, mb.weights, mb.normals
+    T, M = weights.shape
 
     b = _Bin()
     pos = b.add(rest, comp=_FLOAT, type_="VEC3", target=_ARRAY_BUFFER, minmax=True)
@@ -167,8 +380,11 @@ def encode_glb(frames: np.ndarray, rest: np.ndarray, triangles: np.ndarray, fps:
     w_acc = b.add(weights.reshape(-1), comp=_FLOAT, type_="SCALAR")
 
     record = {"frames": T, "fps": float(fps), "duration_s": float(T / fps), "targets": M,
-              "method": "svd", "tolerance_mm": float(tolerance_mm), "max_error_mm": err * mm_per_unit,
-              "error_bound_mm": bound * mm_per_unit, "mm_per_unit": float(mm_per_unit), **(extras or {})}
+              "method": "svd-stream", "tolerance_mm": float(tolerance_mm),
+              "max_error_mm": mb.max_error * mm_per_unit, "error_bound_mm": mb.max_error * mm_per_unit,
+              "frame_error_mm": mb.frame_error * mm_per_unit, "capped": mb.capped,
+              "max_targets": int(max_targets), "passes": mb.passes, "mm_per_unit": float(mm_per_unit),
+              **(extras or {})}
     s = mm_per_unit / 1000.0
     doc = {
         "asset": {"version": "2.0", "generator": "facecast"},
@@ -196,7 +412,7 @@ def encode_glb(frames: np.ndarray, rest: np.ndarray, triangles: np.ndarray, fps:
     return out, record
 
 
-def write_glb(path: str | Path, frames: np.ndarray, rest: np.ndarray, triangles: np.ndarray, fps: float,
+def write_glb(path: str | Path, frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float,
               **options) -> dict:
     """Write ``encode_glb(...)`` to ``path`` atomically; returns the ``extras.facecast`` record."""
     data, record = encode_glb(frames, rest, triangles, fps, **options)
