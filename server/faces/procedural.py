@@ -85,10 +85,30 @@ def build_default_head(n_vertices: int = 25_000, **conformation: float) -> Face:
         vertices=face.vertices.copy(),
         triangles=face.triangles.copy(),
         units="mm",
-        parts={k: v.copy() for k, v in face.parts.items()},
+        parts={**{k: v.copy() for k, v in face.parts.items()}, **iris_parts(face)},
         feature_points=dict(face.feature_points),
         pivots={k: v.copy() for k, v in face.pivots.items()},
     )
+
+
+def iris_parts(face: Face) -> dict[str, np.ndarray]:
+    """``iris_l`` / ``iris_r``: eyeball vertices within the iris disc around the pupil (3.5 / 3.6).
+
+    The iris radius is 0.475 of the eyeball radius (an 11-12 mm iris on a 12 mm eyeball).
+    """
+    out = {}
+    for eye, fp in (("eye_l", "3.5"), ("eye_r", "3.6")):
+        ids = face.part(eye)
+        if not len(ids) or fp not in face.feature_points:
+            continue
+        centre = face.pivot(eye)
+        v = face.vertices[ids].astype(np.float64) - centre
+        r = np.linalg.norm(v, axis=1)
+        front = face.fp_position(fp) - centre
+        cosang = v @ (front / np.linalg.norm(front)) / np.maximum(r, 1e-9)
+        lateral = r * np.sqrt(np.clip(1 - cosang**2, 0, 1))
+        out["iris" + eye[3:]] = ids[(cosang > 0) & (lateral < 0.475 * np.linalg.norm(front))]
+    return out
 
 
 def _name(n: int, conf: Conformation) -> str:
@@ -608,20 +628,13 @@ def head_colors(face: Face) -> np.ndarray:
         ("tongue", (0.80, 0.38, 0.40)),
     ):
         col[face.part(p)] = rgb
-    for eye in ("eye_l", "eye_r"):
-        ids = face.part(eye)
-        if not len(ids):
+    for eye, fp in (("eye_l", "3.5"), ("eye_r", "3.6")):
+        col[face.part(eye)] = (0.95, 0.94, 0.92)
+        iris = face.parts.get("iris" + eye[3:])
+        if iris is None or not len(iris):
             continue
-        centre = face.pivot(eye)
-        v = face.vertices[ids].astype(np.float64) - centre
-        r = np.linalg.norm(v, axis=1)
-        front = face.fp_position("3.5" if eye == "eye_l" else "3.6") - centre
-        cosang = v @ (front / np.linalg.norm(front)) / np.maximum(r, 1e-9)
-        lateral = r * np.sqrt(np.clip(1 - cosang**2, 0, 1))
-        iris_r = float(np.linalg.norm(front)) * 0.475
-        c = np.tile(np.array([0.95, 0.94, 0.92]), (len(ids), 1))
-        iris = (cosang > 0) & (lateral < iris_r)
-        c[iris] = (0.30, 0.45, 0.62)
-        c[(cosang > 0) & (lateral < iris_r / 3 * 1.05)] = (0.05, 0.05, 0.07)
-        col[ids] = c
+        col[iris] = (0.30, 0.45, 0.62)
+        pupil = face.vertices[iris] - face.vertices[face.feature_points[fp]]
+        radius = np.linalg.norm(face.vertices[iris] - face.pivot(eye), axis=1).mean() * 0.475
+        col[iris[np.linalg.norm(pupil, axis=1) < radius / 3 * 1.05]] = (0.05, 0.05, 0.07)
     return col

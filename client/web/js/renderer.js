@@ -50,6 +50,7 @@ export const PART_COLORS = {
   gums_upper: [0.78, 0.36, 0.38], gums_lower: [0.78, 0.36, 0.38], tongue: [0.80, 0.40, 0.42],
   mouth_socket: [0.45, 0.18, 0.2], eyelashes: [0.15, 0.1, 0.08], eye_extras: [0.9, 0.85, 0.85],
   eye_socket: [0.8, 0.55, 0.5], iris_l: [0.22, 0.33, 0.45], iris_r: [0.22, 0.33, 0.45],
+  lip_upper: [0.74, 0.42, 0.42], lip_lower: [0.74, 0.42, 0.42],
 };
 
 function compile(gl, type, src) {
