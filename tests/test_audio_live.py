@@ -131,3 +131,12 @@ def test_int16_and_stereo_chunks_are_accepted(speech):
         drv.push(np.zeros((2, 2, 2)), 0.2)
     with pytest.raises(InputError):
         AudioLiveDriver(None, 100)  # rate out of range
+
+
+def test_clipping_stream_warns_once(speech, caplog):
+    x, sr = speech
+    drv = AudioLiveDriver(None, sr, fps=100)
+    loud = np.clip(x * 30, -1, 1).astype(np.float32)
+    for i in range(0, len(loud), 1600):
+        drv.push(loud[i:i + 1600], i / sr)
+    assert caplog.text.count("clipping") == 1

@@ -100,3 +100,14 @@ def test_stream_resampler_equals_batch(rng, sr):
     ref = resample(x, sr, 10000)
     assert len(ref) - 30 < len(y) <= len(ref)
     np.testing.assert_allclose(y, ref[:len(y)], atol=1e-12)
+
+
+def test_blockwise_analysis_equals_one_block(rng, monkeypatch):
+    import facecast.server.audio.lpc as lpc
+
+    x = rng.standard_normal(5_000) * 0.1
+    whole = analyze(x, sr=10000)
+    monkeypatch.setattr(lpc, "BLOCK", 7)
+    parts = analyze(x, sr=10000)
+    np.testing.assert_array_equal(parts.k, whole.k)
+    np.testing.assert_array_equal(parts.energy_db, whole.energy_db)

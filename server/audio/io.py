@@ -53,12 +53,12 @@ def read_audio(path: str | Path) -> tuple[np.ndarray, int]:
 
 
 def validate_pcm(x: np.ndarray, sr: float, *, where: str = "audio",
-                 allow_empty: bool = False) -> np.ndarray:
+                 allow_empty: bool = False, warn_clipping: bool = True) -> np.ndarray:
     """Check samples and rate; return ``(n,) float64`` mono.
 
     Accepts ``(n,)`` or ``(n, channels)`` arrays (channels averaged). Integer arrays are scaled
     from their full range (uint8 is offset binary). Raises InputError naming ``where`` for an
-    unsupported rate, an empty signal or NaN/inf samples; warns on clipping.
+    unsupported rate, an empty signal or NaN/inf samples; warns on clipping (``warn_clipping``).
     """
     if not (MIN_RATE <= float(sr) <= MAX_RATE):
         raise InputError(f"sample rate {sr} Hz is outside {MIN_RATE}-{MAX_RATE} Hz", where=where)
@@ -83,7 +83,7 @@ def validate_pcm(x: np.ndarray, sr: float, *, where: str = "audio",
         raise InputError(f"{int(bad.sum())} NaN/inf samples (first at sample {int(np.argmax(bad))})",
                          where=where)
     clipped = np.mean(np.abs(x) >= CLIP_LEVEL) if x.size else 0.0
-    if clipped > CLIP_WARN_FRACTION:
+    if clipped > CLIP_WARN_FRACTION and warn_clipping:
         log.warning("%s: %.1f%% of samples are clipped; intensity will saturate", where,
                     100 * clipped)
     return np.clip(x, -1.0, 1.0)

@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import InputError
 from ..state import FaceState
 from .classify import VowelNet, default_net
-from .io import MAX_RATE, MIN_RATE, StreamResampler, validate_pcm
+from .io import CLIP_LEVEL, MAX_RATE, MIN_RATE, StreamResampler, validate_pcm
 from .lpc import (
     ANALYSIS_RATE,
     FRAME_LENGTH,
@@ -126,6 +126,7 @@ class AudioLiveDriver:
         self.latency = fixed + self.coart_lookahead
         self.lookahead = lookahead
         self.dropped_chunks = 0
+        self._warned_clipping = False
         self._reset(None)
 
     # -- stream state ---------------------------------------------------------------------
@@ -164,7 +165,10 @@ class AudioLiveDriver:
         where = f"audio chunk at t={t:.3f}s" if np.isfinite(t) else "audio chunk"
         if not np.isfinite(t):
             raise InputError("media time is not finite", where="t")
-        x = validate_pcm(data, self.rate, where=where, allow_empty=True)
+        x = validate_pcm(data, self.rate, where=where, allow_empty=True, warn_clipping=False)
+        if not self._warned_clipping and x.size and np.mean(np.abs(x) >= CLIP_LEVEL) > 0.01:
+            self._warned_clipping = True
+            log.warning("%s: the stream is clipping; intensity will saturate", where)
         out: list[FaceState] = []
         if self.t0 is None:
             self._reset(float(t))

@@ -20,6 +20,8 @@ HOP_LENGTH = 0.010
 ORDER = 12
 #: Pre-emphasis coefficient (not stated in the source; the usual 0.97).
 PREEMPHASIS = 0.97
+#: Frames analysed per block in ``analyze``.
+BLOCK = 4096
 
 
 def preemphasis(x: np.ndarray, *, coef: float = PREEMPHASIS, zi: float = 0.0) -> np.ndarray:
@@ -164,5 +166,7 @@ def analyze(x: np.ndarray, *, sr: float = ANALYSIS_RATE, frame_length: float = F
     emph = preemphasis(padded, coef=preemph)
     raw_f = frame(padded, frame_length=n_frame, hop_length=n_hop)[:n_out]
     emph_f = frame(emph, frame_length=n_frame, hop_length=n_hop)[:n_out]
-    k, e, z = analyze_frames(raw_f, emph_f, sr=sr, order=order)
+    parts = [analyze_frames(raw_f[i:i + BLOCK], emph_f[i:i + BLOCK], sr=sr, order=order)
+             for i in range(0, max(n_out, 1), BLOCK)]  # blocks bound the memory of long files
+    k, e, z = (np.concatenate([p[j] for p in parts]) for j in range(3))
     return Features(k=k, energy_db=e, zcr=z, hop=n_hop / sr, t0=0.0)
