@@ -1,6 +1,23 @@
 """Facial motion capture: marker takes in (C3D, TRC, CSV), cleaned, stabilised and retargeted onto a face.
 
-``driver.load(path, face, layout=...)`` decodes a take into an ``Animation`` whose ``controls`` are
-the displacements of the marker vertices on the face; ``live.MarkerLiveDriver`` does the same per
-frame, causally, for live producers.
+After Sánchez Lorenzo (2006) ch. 4 and Kshirsagar et al. (head pose, mocap -> FAP).
+
+Modules:
+    io          read/write takes (C3D with ezc3d; TRC/CSV and a pure C3D reader in protocol.markers_file)
+    layout      the marker layout JSON and marker placement on a face (vertex, FP, automatic)
+    clean       spike rejection, DCT gap filling, constant-velocity Kalman filter, RTS smoother
+    stabilise   head pose (Kabsch / Kshirsagar's three markers), its smoothing and removal
+    retarget    RBF map actor neutral -> face (inverse multiquadric or r, with an affine part)
+    rig         per-take set-up shared by batch and live (placement, retarget, anchors, FAPs)
+    to_fap      projection of retargeted displacements to MPEG-4 FAPs
+    driver      batch: ``load(path, face, layout=None, **options) -> Animation``
+    live        ``MarkerLiveDriver(face, names, layout).push(xyz (M, 3), t) -> [FaceState]``
+    generate    test takes with ground truth from the ICT FaceKit expressions (CLI)
+    synthetic   synthetic takes on any face (tests, live benchmark)
+
+Command lines:
+    python -m facecast.server.mocap.generate --out DIR [--markers 60] [--seconds 10] [--fps 120]
+    facecast render DIR/take.c3d --layout DIR/take.layout.json --face <ICT mesh> -o out.glb|out.npz|out.fap
+    facecast render DIR/take.c3d --layout DIR/take.layout-fp.json --face default -o out.glb   (retarget)
+    python bench/mocap_cleaning.py | bench/mocap_fidelity.py | bench/mocap_live.py
 """
