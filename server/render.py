@@ -12,6 +12,10 @@ log = logging.getLogger(__name__)
 #: Output suffixes ``render_file`` writes.
 OUTPUTS: tuple[str, ...] = (".glb", ".npz", ".fap")
 
+#: A ``.glb`` whose frames would take more bytes than this is encoded from frame chunks rendered
+#: again on each of the encoder's passes (usually two) instead of being held in memory.
+GLB_STREAM_BYTES = 512 * 2**20
+
 
 def output_kind(path: str | Path) -> str:
     """``glb`` | ``npz`` | ``fap`` from the output suffix; InputError for anything else."""
@@ -69,7 +73,11 @@ def render_file(input: str | Path, output: str | Path, *, face="default", engine
 
     animator = Animator(face_obj, engine=engine, backend=backend, device=device,
                         control_vertices=animation.control_vertices)
-    frames = animator.render(animation, progress=progress)
+    n_frames = len(animation.states)
+    if kind == "glb" and n_frames * face_obj.n_vertices * 12 > GLB_STREAM_BYTES:
+        frames = _frame_chunks(animator, animation, progress)
+    else:
+        frames = animator.render(animation, progress=progress)
     if kind == "npz":
         from .output.npz import write_npz
 
@@ -80,5 +88,26 @@ def render_file(input: str | Path, output: str | Path, *, face="default", engine
         summary["gltf"] = write_glb(output, frames, face_obj.vertices, face_obj.triangles, animation.fps,
                                     mm_per_unit=face_obj.mm_per_unit, name=input.stem or "facecast",
                                     extras={"source": input.name, "face": str(face_obj.name)})
-    log.info("rendered %s -> %s (%d frames at %g fps)", input, output, len(frames), animation.fps)
+    log.info("rendered %s -> %s (%d frames at %g fps)", input, output, n_frames, animation.fps)
     return summary
+
+
+def _frame_chunks(animator, animation, progress: Callable[[int, int], None] | None, size: int = 128):
+    """A re-iterable source of ``(c, V, 3) float32`` frame chunks, rendered anew on every pass;
+    ``progress`` follows the first pass."""
+    import numpy as np
+
+    passes = []
+
+    def chunks():
+        first = not passes
+        passes.append(1)
+        total = len(animation.states)
+        for start in range(0, total, size):
+            solved = [animator.solve(s) for s in animation.states[start:start + size]]
+            yield np.asarray(animator.deformer.deform_batch(np.stack([d for d, _ in solved]),
+                                                            np.stack([t for _, t in solved])), dtype=np.float32)
+            if progress is not None and first:
+                progress(start + len(solved), total)
+
+    return chunks
