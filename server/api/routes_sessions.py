@@ -279,7 +279,7 @@ async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
                 await ws.send_text(_error(CloseCode.TOO_MANY, f"frames arrive faster than this server's limit of "
                                           f"{reg.max_fps:g} per second; frames over it are dropped", seq=seq))
             continue
-        except (FrameError, MessageError, ValueError) as e:
+        except (FrameError, MessageError, ValueError, FacecastError) as e:  # the frame's fault, not ours
             session.stats["frames_rejected"] += 1
             if seq is None and data is not None:
                 try:  # name the offending frame when its header is readable
@@ -319,14 +319,23 @@ async def watch(ws: WebSocket, session_id: str, token: str | None = None, encodi
     if encoding not in ("f32", "i16"):
         await _refuse(ws, CloseCode.BAD_REQUEST, f"unknown encoding {encoding!r}; use f32 or i16", where="encoding")
         return
-    if len(session.viewers) >= session.spec.max_viewers:
+    if len(session.viewers) + session.joining >= session.spec.max_viewers:
         await _refuse(ws, CloseCode.TOO_MANY, f"this session already has {len(session.viewers)} viewers, its limit")
         return
     sp = session.spec
-    await ws.send_text(dump_message(ViewerHello(
-        session=sp.id, face=sp.face, topology_url=f"/v1/faces/{quote(sp.face, safe='')}/topology",
-        vertex_count=session.vertex_count, encoding=encoding, fps=sp.fps, input=sp.input,
-        producer_connected=session.producer is not None)))
+    session.joining += 1  # counts against the limit while the hello is on its way
+    try:
+        await ws.send_text(dump_message(ViewerHello(
+            session=sp.id, face=sp.face, topology_url=f"/v1/faces/{quote(sp.face, safe='')}/topology",
+            vertex_count=session.vertex_count, encoding=encoding, fps=sp.fps, input=sp.input,
+            producer_connected=session.producer is not None)))
+    except Exception:
+        return  # gone already
+    finally:
+        session.joining -= 1
+    if session.closed:
+        await _refuse(ws, CloseCode.SESSION_CLOSED, "the session was closed")
+        return
     frame_bytes = frames.frame_size(frames.Header(
         frames.Kind.VERTICES_I16 if encoding == "i16" else frames.Kind.VERTICES_F32, 0, session.vertex_count, 0.0))
     _limit_send_buffer(ws, VIEWER_SEND_BUFFER_FRAMES * frame_bytes)

@@ -347,9 +347,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"In-process per frame: solve {c['solve_ms']} ms, deform {c['deform_ms']} ms ({c['backend']}), "
           f"encode i16 {c['encode_i16_ms']} ms / f32 {c['encode_f32_ms']} ms, decode i16 {c['decode_i16_ms']} ms; "
           f"{c['bytes_i16']} B (i16) / {c['bytes_f32']} B (f32) per frame.\n")
-    print(_table("Concurrent sessions (1 producer + 1 viewer each)", res["sessions_sweep"], args))
-    print()
-    print(_table("Viewers of one session", res["viewers_sweep"], args))
+    if res["sessions_sweep"]:
+        print(_table("Concurrent sessions (1 producer + 1 viewer each)", res["sessions_sweep"], args))
+        print()
+    if res["viewers_sweep"]:
+        print(_table("Viewers of one session", res["viewers_sweep"], args))
     if "viewers_sweep_asgi" in res:
         print()
         print(_table("Viewers of one session, frames sent through ASGI (baseline of the direct path)",

@@ -130,6 +130,7 @@ class LiveSession:
         self.executor = executor
         self.metrics = metrics
         self.viewers: set[Viewer] = set()
+        self.joining = 0  # viewers being greeted (count against the limit)
         self.producer: Any = None  # the producer's connection object while one is connected
         self.pending: deque[tuple[int, FaceState, float]] = deque()
         self._wake = asyncio.Event()
