@@ -6,19 +6,19 @@ const VERT = `#version 300 es
 in vec3 a_f32;
 in vec3 a_i16;
 in vec3 a_normal;
-in float a_part;
+in vec3 a_color;
 uniform mat4 u_viewProj;
 uniform vec3 u_offset;
 uniform vec3 u_scale;
 uniform bool u_quantized;
 out vec3 v_normal;
 out vec3 v_pos;
-flat out int v_part;
+out vec3 v_color;
 void main() {
   vec3 p = u_quantized ? u_offset + a_i16 * u_scale : a_f32;
   v_pos = p;
   v_normal = a_normal;
-  v_part = int(a_part + 0.5);
+  v_color = a_color;
   gl_Position = u_viewProj * vec4(p, 1.0);
 }`;
 
@@ -26,8 +26,7 @@ const FRAG = `#version 300 es
 precision highp float;
 in vec3 v_normal;
 in vec3 v_pos;
-flat in int v_part;
-uniform vec3 u_colors[16];
+in vec3 v_color;
 uniform vec3 u_eye;
 out vec4 outColor;
 void main() {
@@ -36,7 +35,7 @@ void main() {
   if (dot(n, v) < 0.0) n = -n;  // inner surfaces (mouth) are lit from the viewer's side
   vec3 key = normalize(vec3(0.4, 0.6, 1.0));
   vec3 fill = normalize(vec3(-0.7, 0.1, 0.5));
-  vec3 base = u_colors[min(v_part, 15)];
+  vec3 base = v_color;
   float diff = max(dot(n, key), 0.0) * 0.75 + max(dot(n, fill), 0.0) * 0.25;
   float spec = pow(max(dot(n, normalize(key + v)), 0.0), 40.0) * 0.18;
   float rim = pow(1.0 - max(dot(n, v), 0.0), 3.0) * 0.15;
@@ -112,8 +111,8 @@ export class FaceRenderer {
     if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
     this.prog = prog;
     this.loc = {};
-    for (const n of ['a_f32', 'a_i16', 'a_normal', 'a_part']) this.loc[n] = gl.getAttribLocation(prog, n);
-    for (const n of ['u_viewProj', 'u_offset', 'u_scale', 'u_quantized', 'u_colors', 'u_eye']) {
+    for (const n of ['a_f32', 'a_i16', 'a_normal', 'a_color']) this.loc[n] = gl.getAttribLocation(prog, n);
+    for (const n of ['u_viewProj', 'u_offset', 'u_scale', 'u_quantized', 'u_eye']) {
       this.loc[n] = gl.getUniformLocation(prog, n);
     }
     this.mesh = null;
@@ -134,17 +133,15 @@ export class FaceRenderer {
     const f32 = buf(rest, this.loc.a_f32, 3, gl.FLOAT, false, gl.DYNAMIC_DRAW);
     const i16 = buf(new Int16Array(3 * V), this.loc.a_i16, 3, gl.SHORT, false, gl.DYNAMIC_DRAW);
     const nrm = buf(new Float32Array(3 * V), this.loc.a_normal, 3, gl.FLOAT, false, gl.DYNAMIC_DRAW);
-    const part = buf(new Float32Array(partIds), this.loc.a_part, 1, gl.FLOAT);
+    // Colours per vertex from its part, interpolated across triangles (soft part borders).
+    const rgb = new Float32Array(3 * V);
+    for (let i = 0; i < V; i++) rgb.set(PART_COLORS[partNames[partIds[i]]] || PART_COLORS.skin, 3 * i);
+    const color = buf(rgb, this.loc.a_color, 3, gl.FLOAT);
     const ibo = gl.createBuffer();
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ibo);
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, triangles, gl.STATIC_DRAW);
-    const colors = new Float32Array(48);
-    for (let i = 0; i < 16; i++) {
-      const c = PART_COLORS[partNames[i]] || PART_COLORS.skin;
-      colors.set(c, 3 * i);
-    }
     this.normals = new VertexNormals(triangles, V);
-    this.mesh = { vao, f32, i16, nrm, part, V, count: triangles.length, colors, quantized: false,
+    this.mesh = { vao, f32, i16, nrm, color, V, count: triangles.length, quantized: false,
                   offset: [0, 0, 0], scale: [1, 1, 1], positions: new Float32Array(rest) };
     this.updateNormals(rest);
     let lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
@@ -221,7 +218,6 @@ export class FaceRenderer {
     gl.uniform1i(this.loc.u_quantized, m.quantized ? 1 : 0);
     gl.uniform3fv(this.loc.u_offset, m.offset);
     gl.uniform3fv(this.loc.u_scale, m.scale);
-    gl.uniform3fv(this.loc.u_colors, m.colors);
     // Only one of the two position attributes is read; keep the other's array disabled-safe.
     gl.drawElements(gl.TRIANGLES, m.count, gl.UNSIGNED_INT, 0);
   }
