@@ -1,0 +1,183 @@
+"""glTF (.glb) encoding time and peak memory against clip length: the streaming two-pass morph basis
+(``server/output/gltf.py``) against the previous ``T x T`` Gram-matrix SVD, measured in the same run.
+
+    python bench/gltf_encode.py [--face default] [--frames 100 400 1500 6000] [--old-max 1500]
+                                [--stream 6000] [--threads N] [--repeats 1]
+
+Frames: the five XFace ``.fap`` files (``../shared/data/xface/faps``) played one after the other and
+looped, every loop after the first with smooth random per-FAP gains (seeded) so that the clip does
+not simply repeat, rendered through ``pipeline.Animator(load_face(face), backend="numpy")`` at 25 fps.
+
+Measured per method and length: ``encode_glb`` wall time (the whole .glb: basis, verification,
+normals, packing) on frames already in memory, its peak traced allocation (``tracemalloc``; the input
+frames are allocated before and not counted, their size is given separately), the target count,
+the measured max vertex error and the file size. The old method is the previous ``gltf.py`` taken
+from git history (``BASELINE`` commit), run for ``T <= --old-max``. ``--stream T`` also encodes a
+clip of ``T`` frames from a chunk source that renders them anew on each pass (as ``render_file``
+does for long clips): wall time then includes the rendering, memory is everything.
+
+Writes ``bench/out/gltf_encode.json`` and prints a markdown table with the old/new ratios.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "bench" / "out" / "gltf_encode.json"
+#: The last commit with the T x T Gram-matrix encoder.
+BASELINE = "bfb3ea5"
+
+
+def parse(argv: list[str]) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--face", default="default")
+    p.add_argument("--frames", type=int, nargs="+", default=[100, 400, 1500, 6000])
+    p.add_argument("--old-max", type=int, default=1500, help="longest clip for the old method")
+    p.add_argument("--stream", type=int, nargs="*", default=[6000], help="clip lengths also encoded streamed")
+    p.add_argument("--threads", type=int, default=None, help="BLAS threads (sets OPENBLAS/OMP/MKL_NUM_THREADS)")
+    p.add_argument("--repeats", type=int, default=1, help="best of this many runs per point")
+    p.add_argument("--seed", type=int, default=7)
+    return p.parse_args(argv)
+
+
+def baseline_module():
+    """The previous ``facecast.server.output.gltf`` (from git history) as a module of the same package."""
+    import subprocess
+    import types
+
+    src = subprocess.run(["git", "show", f"{BASELINE}:server/output/gltf.py"], cwd=ROOT, check=True,
+                         capture_output=True, text=True).stdout
+    mod = types.ModuleType("facecast.server.output._gltf_baseline")
+    mod.__package__ = "facecast.server.output"
+    exec(compile(src, f"{BASELINE}:server/output/gltf.py", "exec"), mod.__dict__)
+    return mod
+
+
+def clip(face, n_frames: int, seed: int):
+    """The looped XFace animation (``Animation``) of ``n_frames`` frames, see the module docstring."""
+    import numpy as np
+    from dataclasses import replace
+
+    from facecast.server.drivers.fap import load as load_fap
+    from facecast.server.paths import shared_data
+    from facecast.server.state import Animation
+
+    files = sorted((shared_data() / "xface" / "faps").glob("*.fap"))
+    clips = [load_fap(f, None) for f in files]
+    rng = np.random.default_rng(seed)
+    states, loop = [], 0
+    while len(states) < n_frames:
+        for c in clips:
+            n = len(c.states)
+            if loop == 0:
+                gain = np.ones((n, 69))
+            else:  # smooth gains in [0.6, 1.4] per FAP: two random sinusoids over the clip
+                t = np.arange(n)[:, None] / n
+                f, ph = rng.uniform(0.5, 2.0, (2, 69)), rng.uniform(0, 2 * np.pi, (2, 69))
+                gain = 1 + 0.2 * np.sin(2 * np.pi * f[0] * t + ph[0]) + 0.2 * np.sin(2 * np.pi * f[1] * t + ph[1])
+            states.extend(replace(s, faps=s.faps * g) for s, g in zip(c.states, gain))
+        loop += 1
+    return Animation(25.0, [replace(s, t=i / 25.0) for i, s in enumerate(states[:n_frames])], source="xface-loop")
+
+
+def measure(fn, repeats: int) -> tuple[float, float, object]:
+    """Best wall time (s) and largest traced peak (bytes) over ``repeats`` calls, and the last result."""
+    import gc
+    import time
+    import tracemalloc
+
+    best, peak, out = float("inf"), 0, None
+    for _ in range(repeats):
+        out = None
+        gc.collect()
+        tracemalloc.start()
+        t0 = time.perf_counter()
+        out = fn()
+        dt = time.perf_counter() - t0
+        peak = max(peak, tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+        best = min(best, dt)
+    return best, peak, out
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["| frames | method | targets | max err (mm) | time (s) | peak (MB) | .glb (MB) | old/new time | old/new peak |",
+             "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['frames']} | {r['method']} | {r['targets']} | {r['max_error_mm']:.4f} | "
+                     f"{r['seconds']:.2f} | {r['peak_mb']:.0f} | {r['glb_mb']:.1f} | "
+                     f"{r.get('time_ratio', float('nan')):.1f} | {r.get('peak_ratio', float('nan')):.1f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> int:
+    args = parse(argv)
+    if args.threads:
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[var] = str(args.threads)
+    import numpy as np
+
+    from facecast.server.faces import load_face
+    from facecast.server.output import gltf
+    from facecast.server.pipeline import Animator
+    from facecast.server.render import _frame_chunks
+
+    face = load_face(args.face)
+    animator = Animator(face, backend="numpy")
+    old = baseline_module()
+    n_max = max(args.frames)
+    anim = clip(face, max(n_max, *(args.stream or [0])), args.seed)
+    import time
+
+    t0 = time.perf_counter()
+    full = animator.render(type(anim)(anim.fps, anim.states[:n_max], source=anim.source))
+    render_s = time.perf_counter() - t0
+    print(f"{args.face}: {face.n_vertices} vertices; rendered {n_max} frames in {render_s:.1f} s "
+          f"({1e3 * render_s / n_max:.1f} ms/frame)", file=sys.stderr)
+    opts = dict(mm_per_unit=face.mm_per_unit)
+    rows: list[dict] = []
+    for T in sorted(args.frames):
+        frames = full[:T]
+        results = {}
+        for method, mod in (("old", old), ("new", gltf)):
+            if method == "old" and T > args.old_max:
+                continue
+            sec, peak, (data, rec) = measure(lambda: mod.encode_glb(frames, face.vertices, face.triangles, 25.0,
+                                                                    **opts), args.repeats)
+            row = {"frames": T, "vertices": face.n_vertices, "method": method, "targets": rec["targets"],
+                   "max_error_mm": rec["max_error_mm"], "seconds": sec, "peak_mb": peak / 2**20,
+                   "glb_mb": len(data) / 1e6, "input_mb": frames.nbytes / 2**20,
+                   "capped": rec.get("capped"), "passes": rec.get("passes")}
+            results[method] = row
+            print(f"  T={T} {method}: {sec:.2f} s, peak {peak / 2**20:.0f} MB, {rec['targets']} targets, "
+                  f"max err {rec['max_error_mm']:.4f} mm", file=sys.stderr)
+        if "old" in results:
+            results["new"]["time_ratio"] = results["old"]["seconds"] / results["new"]["seconds"]
+            results["new"]["peak_ratio"] = results["old"]["peak_mb"] / results["new"]["peak_mb"]
+        rows.extend(results.values())
+    del full
+    for T in sorted(args.stream or []):
+        sub = type(anim)(anim.fps, anim.states[:T], source=anim.source)
+        sec, peak, (data, rec) = measure(lambda: gltf.encode_glb(_frame_chunks(animator, sub, None), face.vertices,
+                                                                 face.triangles, 25.0, **opts), 1)
+        rows.append({"frames": T, "vertices": face.n_vertices, "method": "new, streamed (incl. rendering)",
+                     "targets": rec["targets"], "max_error_mm": rec["max_error_mm"], "seconds": sec,
+                     "peak_mb": peak / 2**20, "glb_mb": len(data) / 1e6, "input_mb": 0.0,
+                     "capped": rec["capped"], "passes": rec["passes"]})
+        print(f"  T={T} streamed: {sec:.2f} s, peak {peak / 2**20:.0f} MB", file=sys.stderr)
+    info = {"face": args.face, "vertices": face.n_vertices, "threads": args.threads, "baseline": BASELINE,
+            "render_ms_per_frame": 1e3 * render_s / n_max, "load_avg": os.getloadavg(), "rows": rows}
+    OUT.parent.mkdir(parents=True, exist_ok=True)
+    OUT.write_text(json.dumps(info, indent=1) + "\n")
+    print(markdown(rows))
+    print(f"\nload average {os.getloadavg()[0]:.1f}; BLAS threads: {args.threads or 'default'}; "
+          f"peak = tracemalloc peak of the encoder (input frames not counted); wrote {OUT}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
