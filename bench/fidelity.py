@@ -33,9 +33,11 @@ from facecast.server.paths import shared_data
 
 SKIN = np.arange(0, 11248)  # face 0-9408 + head/neck 9409-11247 (data/README.md)
 
+#: The "-skip" variants are the paper read literally (criterion (1) as written, no own-vertex
+#: blending); the others use facecast's rim rule and blending (``server/deform/feature_point.py``).
 METHODS: dict[str, tuple[str, dict]] = {
-    "fp-paper-skip": ("fp", {"normalisation": "paper", "no_neighbour": "skip"}),
-    "fp-slides-skip": ("fp", {"normalisation": "slides", "no_neighbour": "skip"}),
+    "fp-paper-skip": ("fp", {"normalisation": "paper", "no_neighbour": "skip", "own_blend": 0.0}),
+    "fp-slides-skip": ("fp", {"normalisation": "slides", "no_neighbour": "skip", "own_blend": 0.0}),
     "fp-paper": ("fp", {"normalisation": "paper", "no_neighbour": "cap"}),
     "fp-slides": ("fp", {"normalisation": "slides", "no_neighbour": "cap"}),
     "fp-clamped-noblend": ("fp", {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.0}),
