@@ -158,3 +158,14 @@ def test_missing_file_and_zero_length_audio(tmp_path):
     sf.write(p, np.zeros(0), 16000)
     with pytest.raises(InputError, match="no audio samples"):
         load(p, None)
+
+
+def test_explicit_calibration_options(bobby, capsys):
+    auto = lipsync_json(capsys, bobby)["frames"]
+    loud = lipsync_json(capsys, bobby, "--max-db", "-6")["frames"]  # a much louder reference
+    def voiced_weight(frames):  # vowels and weak consonants: intensity from energy
+        return np.mean([f["weight"] for f in frames if f["viseme"] in VOWEL_VISEMES | {8}])
+
+    assert voiced_weight(loud) < 0.8 * voiced_weight(auto)
+    assert main(["lipsync", str(bobby), "--silence-db", "-20", "--max-db", "-30"]) == 2
+    assert "--max-db" in capsys.readouterr().err

@@ -25,7 +25,7 @@ from run import OUT, fit_len, scores
 
 def main() -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    utts = generated_utterances(OUT / "lipsync_data", 10, dev=True)
+    utts = generated_utterances(OUT / "lipsync_data", 18, dev=True)
     net = default_net()
     pre = []
     for u in utts:

@@ -10,8 +10,8 @@ import json
 import sys
 
 from ..audio.io import read_audio
-from ..audio.pipeline import lipsync
-from ..audio.visemes import VISEME_NAMES
+from ..audio.pipeline import features_of, lipsync
+from ..audio.visemes import VISEME_NAMES, Calibration, calibrate
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -20,6 +20,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=100.0, help="output frame rate (default 100)")
     parser.add_argument("--lookahead", type=float, default=None,
                         help="coarticulation look-ahead in seconds (default: free, as in batch)")
+    parser.add_argument("--silence-db", type=float, default=None,
+                        help="explicit silence threshold, dB full scale (default: from the file)")
+    parser.add_argument("--max-db", type=float, default=None,
+                        help="explicit loudest speech level, dB full scale (default: from the file)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -27,8 +31,18 @@ def run(args: argparse.Namespace) -> int:
 
     if args.fps <= 0 or args.fps > 1000:
         raise InputError(f"--fps must be in (0, 1000], got {args.fps}", where="--fps")
+    if args.lookahead is not None and args.lookahead < 0:
+        raise InputError(f"--lookahead must be >= 0 s, got {args.lookahead}", where="--lookahead")
     x, sr = read_audio(args.audio)
-    ls = lipsync(x, sr, fps=args.fps, lookahead=args.lookahead, where=args.audio)
+    cal = None
+    if args.silence_db is not None or args.max_db is not None:
+        auto = calibrate(features_of(x, sr).energy_db)
+        cal = Calibration(auto.silence_db if args.silence_db is None else args.silence_db,
+                          auto.max_db if args.max_db is None else args.max_db)
+        if cal.max_db <= cal.silence_db:
+            raise InputError(f"--max-db ({cal.max_db}) must be above the silence threshold "
+                             f"({cal.silence_db})", where="--max-db")
+    ls = lipsync(x, sr, fps=args.fps, lookahead=args.lookahead, calibration=cal, where=args.audio)
     tr = ls.track
     if args.json:
         frames = [{"t": round(float(t), 6), "viseme": int(v), "weight": round(float(w), 4)}
@@ -36,12 +50,21 @@ def run(args: argparse.Namespace) -> int:
         json.dump({"fps": args.fps, "frames": frames}, sys.stdout)
         sys.stdout.write("\n")
         return 0
+    try:
+        _table(args, ls)
+    except BrokenPipeError:  # e.g. piped into head
+        pass
+    return 0
+
+
+def _table(args: argparse.Namespace, ls) -> None:
+    tr = ls.track
     start = 0
-    print(f"{args.audio}: {ls.duration:.2f} s, {len(tr.t)} frames at {args.fps:g} fps")
+    print(f"{args.audio}: {ls.duration:.2f} s, {len(tr.t)} frames at {args.fps:g} fps; silence "
+          f"{ls.calibration.silence_db:.1f} dB, max {ls.calibration.max_db:.1f} dB")
     print(f"{'start':>8} {'end':>8}  viseme")
     for i in range(1, len(tr.t) + 1):
         if i == len(tr.t) or tr.select1[i] != tr.select1[start]:
             v = int(tr.select1[start])
             print(f"{tr.t[start]:8.3f} {tr.t[i - 1] + 1 / args.fps:8.3f}  {v:2d} {VISEME_NAMES[v]}")
             start = i
-    return 0
