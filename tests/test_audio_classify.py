@@ -54,3 +54,21 @@ def test_missing_weights_say_how_to_train(tmp_path):
 
     with pytest.raises(FacecastError, match="facecast.server.audio.train"):
         VowelNet.load(tmp_path / "none.npz")
+
+
+@pytest.mark.slow
+def test_training_command_is_reproducible(tmp_path):
+    import shutil
+
+    from facecast.server.audio import train
+
+    if shutil.which("espeak-ng") is None:
+        pytest.skip("espeak-ng is not installed (Debian package; CI has it)")
+    outs = []
+    for i in range(2):
+        out = tmp_path / f"net{i}.npz"
+        assert train.main(["--per-vowel", "3", "--epochs", "3", "--seed", "7", "--out", str(out)]) == 0
+        outs.append(VowelNet.load(out))
+    np.testing.assert_array_equal(outs[0].w1, outs[1].w1)
+    np.testing.assert_array_equal(outs[0].w2, outs[1].w2)
+    assert outs[0].w1.shape == (12, 10)
