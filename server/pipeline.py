@@ -65,7 +65,7 @@ class Animator:
             solved = [self.solve(s) for s in states]
             D = np.stack([d for d, _ in solved])
             T = np.stack([t for _, t in solved])
-            out[start:start + len(states)] = self.deformer.deform_batch(D, T)
+            self.deformer.deform_batch(D, T, out=out[start:start + len(states)])
             if progress is not None:
                 progress(start + len(states), total)
         return out

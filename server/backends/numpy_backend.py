@@ -54,9 +54,13 @@ class NumpyDeformer:
                 out[ids] = p[ids] @ T[g, :, :3].T + T[g, :, 3]
         return out
 
-    def deform_batch(self, D: np.ndarray, transforms: np.ndarray) -> np.ndarray:
-        """Many frames: ``D (T, K, 3)``, ``transforms (T, G, 3, 4)`` -> ``(T, V, 3) float32``."""
-        return np.stack([self.deform(d, t) for d, t in zip(D, transforms)])
+    def deform_batch(self, D: np.ndarray, transforms: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Many frames: ``D (T, K, 3)``, ``transforms (T, G, 3, 4)`` -> ``(T, V, 3) float32`` (into ``out``)."""
+        if out is None:
+            out = np.empty((len(D), self.n_vertices, 3), dtype=np.float32)
+        for i, (d, t) in enumerate(zip(D, transforms)):
+            out[i] = self.deform(d, t)
+        return out
 
     def normals(self, vertices: np.ndarray) -> np.ndarray:
         """Area-weighted unit vertex normals ``(V, 3) float32`` of deformed ``vertices (V, 3)``."""
