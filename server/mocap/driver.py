@@ -90,21 +90,23 @@ def process(take: MarkerTake, face: Face, layout, *, neutral_frame: int | None =
         raise InputError(f"neutral_frame {nf} is outside the take's {n} frames", where=f"{layout.where}: neutral_frame")
     stable = layout_index(layout, layout.stable)
     observed = np.isfinite(raw).all(axis=2)
-    if params.filter == "rts":
-        # Batch: despike and fill, solve and smooth the head pose, then smooth the stabilised markers
-        # (their motion is the face's alone, far gentler than with the head's on top).
+    if params.filter in ("rts", "kalman"):
+        # Despike and fill, solve and smooth the head pose, then filter the stabilised markers (their
+        # motion is the face's alone, far gentler than with the head's on top). ``rts`` smooths both
+        # ways (batch); ``kalman`` filters causally, exactly as the live driver does.
         filled, info = clean(raw, take.fps, replace(params, filter="none"))
         observed &= ~info.pop("rejected", np.zeros_like(observed))
         window = int(round(neutral_window * take.fps))
         anchor = neutral_pose(filled, nf, window, tolerance_mm=2.5)  # raw noise: ~1 mm between frames
         r, t, solved = head_track(filled, stable, anchor, stabilise_method, observed=observed)
         if solved.sum() > 3:
-            r, t = smooth_poses(r, t, filled[nf, stable].mean(axis=0), take.fps)
+            r, t = smooth_poses(r, t, filled[nf, stable].mean(axis=0), take.fps, causal=params.filter == "kalman")
         local, info2 = clean(remove_head(filled, r, t), take.fps, replace(params, despike=False))
         info.update({k: v for k, v in info2.items() if k in ("q", "r", "filter")})
         cleaned = np.einsum("tij,tmj->tmi", r, local) + t[:, None, :]
+        if params.filter == "kalman":  # the causal filters start cold: take the neutral from the raw hold
+            neutral = anchor
     else:
-        # As live: filter in capture space, then stabilise frame by frame.
         cleaned, info = clean(raw, take.fps, params)
         observed &= ~info.pop("rejected", np.zeros_like(observed))
         r, t, solved = head_track(cleaned, stable, cleaned[nf], stabilise_method, observed=observed)
@@ -113,7 +115,8 @@ def process(take: MarkerTake, face: Face, layout, *, neutral_frame: int | None =
         raise InputError(f"the stable markers ({', '.join(layout.stable)}) never show 3 at once; head motion "
                          "cannot be removed", where=where)
     info["head_solved_frames"] = int(solved.sum())
-    neutral = neutral_pose(local, nf, int(round(neutral_window * take.fps)))
+    if params.filter != "kalman":
+        neutral = neutral_pose(local, nf, int(round(neutral_window * take.fps)))
     rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu)
     states = rig.solve_batch(local, r, t, take.fps, 0.0)
     return Processed(take, layout, raw, cleaned, local, r, t, nf, rig, states, info)

@@ -169,13 +169,15 @@ def matrix_from_euler(angles: np.ndarray) -> np.ndarray:
     return ry @ rx @ rz
 
 
-def smooth_poses(r: np.ndarray, t: np.ndarray, centre: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
-    """RTS-smooth a head pose track ``(T, 3, 3)``, ``(T, 3)``: the rotation as a rotation vector and
-    the motion of ``centre`` (the stable markers' centroid, so that rotation and translation do not
-    trade off), each with its acceleration density chosen by cross-validation. Batch only."""
+def smooth_poses(r: np.ndarray, t: np.ndarray, centre: np.ndarray, fps: float, causal: bool = False,
+                 q: float = 1000.0) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth a head pose track ``(T, 3, 3)``, ``(T, 3)``: the rotation as a rotation vector and the
+    motion of ``centre`` (the stable markers' centroid, so that rotation and translation do not
+    trade off). Batch: RTS with each acceleration density chosen by cross-validation; ``causal``:
+    the constant-velocity Kalman filter with density ``q`` (as the live driver does)."""
     from scipy.spatial.transform import Rotation
 
-    from .clean import estimate_q_cv, estimate_r, rts_smooth
+    from .clean import estimate_q_cv, estimate_r, kalman_filter, rts_smooth
 
     c = np.asarray(centre, dtype=np.float64)
     # radians scaled by a head-sized lever arm (100 mm) so that both rows are in mm-like units
@@ -183,6 +185,9 @@ def smooth_poses(r: np.ndarray, t: np.ndarray, centre: np.ndarray, fps: float) -
     tc = np.einsum("tij,j->ti", r, c) + t - c
     track = np.stack([rv, tc], axis=1)  # (T, 2, 3)
     noise = estimate_r(track)
-    sm = rts_smooth(track, fps, q=estimate_q_cv(track, fps, noise), r=noise)
+    if causal:
+        sm = kalman_filter(track, fps, q=q, r=noise, gate=1e9)
+    else:
+        sm = rts_smooth(track, fps, q=estimate_q_cv(track, fps, noise), r=noise)
     rs = Rotation.from_rotvec(sm[:, 0] / 100.0).as_matrix()
     return rs, c + sm[:, 1] - np.einsum("tij,j->ti", rs, c)
