@@ -122,6 +122,8 @@ def run(args: argparse.Namespace) -> int:
     app = create_app(config)
     print(f"facecast: serving on http://{config.host}:{config.port}/ (data in {config.data_dir}, "
           f"{config.job_workers} job worker(s), backend {config.backend})", flush=True)
+    if not os.environ.get("FACECAST_ADMIN_KEY"):  # the operator did not choose the key: show the page link
+        print(f"facecast: web viewer with admin rights: http://{config.host}:{config.port}/#key={key}", flush=True)
     uvicorn.run(app, host=config.host, port=config.port, ws_per_message_deflate=False,
                 log_level=args.log_level or "warning", lifespan="on", timeout_graceful_shutdown=5)
     return 0
