@@ -11,13 +11,12 @@ import logging
 
 import numpy as np
 
-from ...protocol.markers_file import UNITS_MM
 from ..errors import InputError
 from ..faces.face import Face
 from ..state import FaceState, zero_faps
 from .layout import Layout, load_layout, place_markers
 from .retarget import RBFMap
-from .stabilise import euler_from_matrix, pose_in_frame, to_matrix
+from .stabilise import pose_in_frame, to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -176,8 +175,3 @@ def anchor_vertices(face: Face, markers: np.ndarray, factor: float = 2.0, limit:
         chosen.append(i)
         d = np.minimum(d, np.linalg.norm(cand - cand[i], axis=1))
     return far[chosen].astype(np.int32)
-
-
-def units_scale(units: str) -> float:
-    """Millimetres per take unit."""
-    return UNITS_MM[units]
