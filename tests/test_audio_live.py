@@ -140,3 +140,10 @@ def test_clipping_stream_warns_once(speech, caplog):
     for i in range(0, len(loud), 1600):
         drv.push(loud[i:i + 1600], i / sr)
     assert caplog.text.count("clipping") == 1
+
+
+def test_running_calibration_on_quiet_speech(speech):
+    x, sr = speech  # peaks at -26 dB full scale; scaled to -46 dB
+    drv = AudioLiveDriver(None, sr, fps=100, fap1=True)
+    vis = np.array([s.viseme[0] for s in stream(drv, x * 0.1, sr)])
+    assert np.mean(np.isin(vis[10:100], [10, 11, 12, 13, 14])) > 0.3

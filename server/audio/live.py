@@ -55,12 +55,13 @@ class RunningCalibration:
     """Continuous energy calibration for live streams (the source calibrated once per user).
 
     Noise floor: follows the quietest frames (falls at once, rises ``rise_db_s`` dB/s). Maximum:
-    follows the loudest frames (rises at once, decays ``decay_db_s`` dB/s). Thresholds as
-    ``visemes.calibrate``.
+    follows the loudest frames (rises at once, decays ``decay_db_s`` dB/s), starting from a
+    moderate speech level (-35 dB full scale) so that quiet speech is not taken for consonants
+    while the first syllables arrive. Thresholds as ``visemes.calibrate``.
     """
 
-    def __init__(self, noise_db: float = -75.0, max_db: float = -25.0, rise_db_s: float = 2.0,
-                 decay_db_s: float = 1.0) -> None:
+    def __init__(self, noise_db: float = -75.0, max_db: float = -35.0, rise_db_s: float = 2.0,
+                 decay_db_s: float = 2.0) -> None:
         self.noise, self.max = noise_db, max_db
         self.rise, self.decay = rise_db_s, decay_db_s
 
