@@ -38,6 +38,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 ADMIN_KEY = "bench-serve-key"
+_VIEWER_OPTS: dict = {}  # --viewer-rcvbuf / --viewer-queue
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,6 +52,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=3.0, help="seconds measured at each point")
     p.add_argument("--latency-target", type=float, default=50.0, help="p95 target, ms")
     p.add_argument("--url", help="use this running server instead of starting one (needs FACECAST_ADMIN_KEY)")
+    p.add_argument("--viewer-rcvbuf", type=int, default=None,
+                   help="viewer socket receive buffer, bytes (0 = OS default; default: the client's)")
+    p.add_argument("--viewer-queue", type=int, default=None,
+                   help="messages a viewer's client library buffers (default: the client's)")
     p.add_argument("--compare-asgi", action="store_true",
                    help="also run the viewers sweep with frames sent through ASGI (FACECAST_LIVE_DIRECT=0), "
                         "the baseline of the direct-to-transport path")
@@ -190,7 +195,13 @@ async def _viewer(url: str, s, encoding: str, stop: asyncio.Event, ready: asynci
                   out: list[tuple[float, int, float, int]]) -> None:
     from ...client.api import watch
 
-    async with watch(url, s.id, s.viewer_token, encoding=encoding) as w:
+    from ...client import api
+
+    opts = {}
+    if _VIEWER_OPTS.get("rcvbuf") is not None:
+        opts["receive_buffer"] = _VIEWER_OPTS["rcvbuf"] or None
+    opts["max_queue"] = _VIEWER_OPTS.get("queue") or api.VIEWER_MAX_QUEUE
+    async with watch(url, s.id, s.viewer_token, encoding=encoding, **opts) as w:
         ready.set()
         it = w.__aiter__()
         while not stop.is_set():
@@ -305,6 +316,7 @@ async def _sweeps(server, url: str, args) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     logging.getLogger("httpx").setLevel(logging.WARNING)
+    _VIEWER_OPTS.update(rcvbuf=args.viewer_rcvbuf, queue=args.viewer_queue)
     t_start = time.time()
     costs = frame_costs(args.face, args.backend)
     log.info("in-process costs per frame: %s", costs)
@@ -334,6 +346,7 @@ def run(args: argparse.Namespace) -> int:
     report = {
         "bench": "serve", "face": args.face, "vertices": costs["vertices"], "encoding": args.encoding,
         "fps": args.fps, "backend": health.get("backend", args.backend), "device": health.get("device"),
+        "viewer_rcvbuf": args.viewer_rcvbuf, "viewer_queue": args.viewer_queue,
         "frame_costs_ms": costs, "latency_target_ms": args.latency_target, **res,
         "cpus": os.cpu_count(), "loadavg_after": [round(x, 2) for x in load],
         "seconds_total": round(time.time() - t_start, 1),
