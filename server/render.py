@@ -92,7 +92,7 @@ def render_file(input: str | Path, output: str | Path, *, face="default", engine
     return summary
 
 
-def _frame_chunks(animator, animation, progress: Callable[[int, int], None] | None, size: int = 128):
+def _frame_chunks(animator, animation, progress: Callable[[int, int], None] | None, size: int = 64):
     """A re-iterable source of ``(c, V, 3) float32`` frame chunks, rendered anew on every pass;
     ``progress`` follows the first pass."""
     import numpy as np

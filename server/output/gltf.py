@@ -86,8 +86,8 @@ def frame_chunks(frames: FrameSource, chunk: int) -> Iterator[np.ndarray]:
 
 
 def _chunk_rows(n_cols: int) -> int:
-    """Frames per chunk: about 32 MB of float32 displacements, 16-256 frames."""
-    return int(min(256, max(16, 8_000_000 // max(n_cols, 1))))
+    """Frames per chunk: about 4M values (16 MB float32, 32 MB float64), 16-256 frames."""
+    return int(min(256, max(16, 4_000_000 // max(n_cols, 1))))
 
 
 def _displacements(chunk: np.ndarray, rest: np.ndarray) -> np.ndarray:
@@ -104,8 +104,14 @@ class _Basis:
     """The growing orthonormal basis of pass 1: rows ``Qt[:k]`` of ``Qt (kmax, 3V) float32``."""
 
     def __init__(self, n_cols: int, kmax: int, keep: int) -> None:
-        self.Qt = np.zeros((kmax, n_cols), dtype=np.float32)
+        self.Qt = np.zeros((min(kmax, 32), n_cols), dtype=np.float32)  # grows by doubling up to kmax
         self.k, self.kmax, self.keep = 0, kmax, keep
+
+    def _room(self, j: int) -> None:
+        if self.k + j > len(self.Qt):
+            grown = np.zeros((min(self.kmax, max(2 * len(self.Qt), self.k + j)), self.Qt.shape[1]), np.float32)
+            grown[:self.k] = self.Qt[:self.k]
+            self.Qt = grown
 
     def sweep(self, frames: FrameSource, rest: np.ndarray, tau: float, chunk: int
               ) -> tuple[np.ndarray, np.ndarray]:
@@ -139,6 +145,7 @@ class _Basis:
                     Vn -= (Vn @ Qk.T) @ Qk
                     L = np.linalg.cholesky((Vn @ Vn.T).astype(np.float64) + 1e-30 * np.eye(j))
                     Vn = np.linalg.inv(L).astype(np.float32) @ Vn
+                self._room(j)
                 self.Qt[self.k:self.k + j] = Vn
                 self.k += j
                 Cn = R @ Vn.T
@@ -231,9 +238,9 @@ def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_tar
             scale = np.abs(P[:, :M]).max(axis=0) + np.sqrt(rho.max())  # >= every exact |X Qv^T|
             scale[scale == 0] = 1.0
             targets = Qv * scale.astype(np.float32)[:, None]  # (M, 3V) float32
-            res = _verify(frames, r, Qv, scale, targets, T, chunk, normals)
+            weights, errors, wtw, wtn = _verify(frames, r, Qv, scale, targets, T, chunk, normals)
             passes += 1
-            weights, err, frame_err, ntargets = res
+            err, frame_err = errors[M]
             if err <= tolerance or M >= max_targets or M >= k:
                 break
             M = min(k, max_targets, M + max(1, math.ceil(M / 8)))
@@ -244,21 +251,36 @@ def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_tar
     if capped:
         log.warning("glTF morph basis capped at %d targets: max vertex error %.4g > tolerance %.4g "
                     "(mesh units)", M, err, tolerance)
-    return MorphBasis(targets.reshape(M, -1, 3), weights, ntargets.reshape(M, -1, 3), err, frame_err,
-                      capped, passes, k)
+    else:  # the per-frame bound is loose per vertex: keep the fewest measured counts that suffice
+        M = min(m for m, (e, _) in errors.items() if e <= tolerance)
+        err, frame_err = errors[M]
+    if wtn is not None:
+        ntargets = (np.linalg.pinv(wtw[:M, :M], hermitian=True) @ wtn[:M]).astype(np.float32)
+    else:
+        ntargets = np.zeros((M, n_cols), dtype=np.float32)
+    return MorphBasis(targets[:M].reshape(M, -1, 3), np.ascontiguousarray(weights[:, :M]),
+                      ntargets.reshape(M, -1, 3), err, frame_err, capped, passes, k)
+
+
+def _candidates(M: int) -> list[int]:
+    """Target counts whose exact error the verification pass also measures: ``M`` and about 8 below."""
+    return sorted({max(1, round(M * f)) for f in (0.1, 0.15, 0.2, 0.3, 0.4, 0.55, 0.7, 0.85)} | {M})
 
 
 def _verify(frames: FrameSource, r: np.ndarray, Qv: np.ndarray, scale: np.ndarray, targets: np.ndarray,
             T: int, chunk: int, normals: Callable[[np.ndarray], np.ndarray] | None
-            ) -> tuple[np.ndarray, float, float, np.ndarray]:
-    """Pass 2: weights, measured max vertex error and per-frame residual norm, fitted normal deltas."""
+            ) -> tuple[np.ndarray, dict[int, tuple[float, float]], np.ndarray, np.ndarray | None]:
+    """Pass 2: the weights ``(T, M) float32`` of every frame; for each candidate count ``m`` (the first
+    ``m`` targets) the measured max vertex error and max per-frame residual norm; and the normal-fit
+    sums ``W^T W (M, M)``, ``W^T dN (M, 3V)`` (None without ``normals``)."""
     M = targets.shape[0]
     t64 = targets.astype(np.float64)
     inv = (1.0 / scale).astype(np.float32)
     weights = np.empty((T, M), dtype=np.float32)
     wtw = np.zeros((M, M))
     wtn = np.zeros((M, r.size)) if normals is not None else None
-    err = frame_err = 0.0
+    cands = _candidates(M)[::-1]  # M first, then fewer
+    errors = {m: (0.0, 0.0) for m in cands}
     s = 0
     for fc in frame_chunks(frames, chunk):
         X = _displacements(fc, r)
@@ -272,20 +294,22 @@ def _verify(frames: FrameSource, r: np.ndarray, Qv: np.ndarray, scale: np.ndarra
         diff -= r
         diff -= w64 @ t64
         d3 = diff.reshape(n, -1, 3)
-        d2 = np.einsum("tvc,tvc->tv", d3, d3)
-        err = max(err, float(np.sqrt(d2.max(initial=0.0))))
-        frame_err = max(frame_err, float(np.sqrt(d2.sum(axis=1).max(initial=0.0))))
+        prev = M
+        for m in cands:  # residual with the first m targets = residual with M + the dropped ones
+            if m < prev:
+                diff += w64[:, m:prev] @ t64[m:prev]
+                prev = m
+            d2 = np.einsum("tvc,tvc->tv", d3, d3)
+            e, f = errors[m]
+            errors[m] = (max(e, float(np.sqrt(d2.max(initial=0.0)))),
+                         max(f, float(np.sqrt(d2.sum(axis=1).max(initial=0.0)))))
         if wtn is not None:
             wtn += w.T @ normals(fc).reshape(n, -1)
         wtw += w64.T @ w64
         s += n
     if s != T:
         raise ValueError(f"the frame source yielded {s} frames on its second pass, not {T}")
-    if wtn is not None:
-        ntargets = (np.linalg.pinv(wtw, hermitian=True) @ wtn).astype(np.float32)
-    else:
-        ntargets = np.zeros((M, r.size), dtype=np.float32)
-    return weights, err, frame_err, ntargets
+    return weights, errors, wtw, wtn
 
 
 def unit_normals(frames: np.ndarray, triangles: np.ndarray, incidence) -> np.ndarray:
