@@ -30,19 +30,24 @@ log = logging.getLogger(__name__)
 ALGORITHM_VERSION = 4
 
 #: Default parameters per engine, chosen with ``bench/fidelity.py`` (45 ICT expressions rebuilt from
-#: their control displacements; mean skin error in mm; numbers and reasons in that bench's output
-#: and in ``feature_point``'s docstring):
-#: - fp: ``no_neighbour="cap"`` beat the literal ``"skip"`` with every normalisation and control
-#:   set and made the skin less torn (mean p99 edge strain with "slides": 0.193 vs 0.223 on the
-#:   78 MPEG-4 FPs). With it, ``"clamped"`` (ΣW·D / max(ΣW, 1)) had the lowest error on the 78
-#:   FPs (0.2045 mm vs "slides" 0.2172, "paper" 0.2163; no deformation 0.5983) and on the 68
-#:   landmarks (0.2223 vs 0.2456, 0.2502), and tied on both together (0.1904 vs 0.1898, 0.1924;
-#:   p95 1.02 vs 1.04, 1.07). Of the paper's two, "slides" wins 5 of the 6 mean/p95 numbers.
-#:   Un-normalised ΣW·D ("none") is far behind (0.44). ``neighbour_ratio`` 3 beat 2 and 4.
-#:   ``own_blend`` 0.5 (see ``feature_point``) then took the 78-FP error to 0.2010 and the 68
-#:   landmarks' to 0.2200, and removed the spikes at the FPs' own vertices.
-#: - rbf: IMQ over surface distance without the affine part (0.242 with the 78 FPs) beat Euclidean
-#:   distance (0.271) and the affine part (0.321, 0.353 Euclidean); shape 1 beat 0.5 and 2.
+#: their control displacements; mean skin error in mm, no deformation: 0.598):
+#:
+#: ==========================  =========  ==========  ======
+#: fp variant                  78 FPs     68 landm.   both
+#: ==========================  =========  ==========  ======
+#: paper eq. 5, literal        0.2166     0.2518      0.1934
+#: slides ΣW·D/ΣW, literal     0.2174     0.2471      0.1908
+#: slides + rim cap + blend    0.2137     0.2434      0.1870
+#: clamped, rim cap, no blend  0.2045     0.2223      0.1904
+#: clamped + rim cap + blend   0.2010     0.2200      0.1875   <- default
+#: ==========================  =========  ==========  ======
+#:
+#: Of the paper's two normalisations "slides" wins 5 of the 6 mean/p95 numbers. The rim rule
+#: (``no_neighbour="cap"``) and ``own_blend`` also make the skin less torn (see
+#: ``feature_point``). Un-normalised ΣW·D ("none") is far behind (0.41). ``neighbour_ratio`` 3 beat
+#: 2 and 4.
+#: rbf: IMQ over surface distance without the affine part (0.242 with the 78 FPs) beat Euclidean
+#: distance (0.271) and the affine part (0.321, 0.353 Euclidean); shape 1 beat 0.5 and 2.
 DEFAULTS: dict[str, dict] = {
     "fp": {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.5, "neighbour_ratio": 3.0,
            "attach_distance": None},
