@@ -129,3 +129,13 @@ def test_still_clip_gives_one_zero_target(face):
     frames = np.repeat(face.vertices[None], 30, axis=0)
     data, rec = encode_glb(frames, face.vertices, face.triangles, 25.0)
     assert rec["targets"] == 1 and rec["max_error_mm"] == 0.0 and not rec["capped"]
+
+
+def test_target_count_grows_until_the_measured_bound_holds(data_dir, face, animator):
+    """A coarse first basis (per-frame slack 30x the tolerance) is not enough: the encoder measures,
+    gathers finer directions and passes over the frames again until every vertex is within 0.01 mm."""
+    frames = animator.render(load_fap(data_dir / "xface" / "faps" / "anger.fap", face))
+    coarse = morph_basis(frames, face.vertices, 0.01, basis_slack=30.0)
+    assert coarse.passes > 2 and not coarse.capped and coarse.max_error <= 0.01
+    rebuilt = face.vertices + np.einsum("tm,mvc->tvc", coarse.weights.astype(np.float64), coarse.targets)
+    assert np.linalg.norm(rebuilt - frames, axis=2).max() == pytest.approx(coarse.max_error, rel=1e-9)

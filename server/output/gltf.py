@@ -18,9 +18,11 @@ bounded (no ``T x T`` or ``T x 3V`` float64 array; frames may come as a re-itera
    count whose per-frame bound ``sqrt(sum_{i>=M} (BV)[t,i]^2) + sqrt(rho_t)`` (>= every vertex's error)
    is within ``tolerance`` in every frame, capped at ``max_targets``.
 3. *Verification*: a second pass projects every frame on the ``M`` targets (the stored float32
-   weights and targets) and measures the largest vertex error exactly (float64), and fits the normal
-   deltas. Should it exceed ``tolerance``, ``M`` grows (and the basis with a smaller ``tau``) until it
-   holds or ``max_targets`` is reached; a capped result says so (``capped`` in the record, a warning).
+   weights and targets) and measures the largest vertex error exactly (float64) with ``M`` and with
+   about 8 smaller counts (the first ``m`` targets: the per-frame bound is loose per vertex); the
+   fewest that meet ``tolerance`` are kept, and the normal deltas fitted. Should even ``M`` miss it,
+   ``M`` grows (and the basis, with a smaller ``tau``) until it holds or ``max_targets`` is reached;
+   a capped result says so (``capped`` in the record and a log warning).
 
 The targets are scaled so that every weight lies in [-1, 1]. The measured maximum vertex error (mm)
 is the recorded bound (``max_error_mm`` = ``error_bound_mm``), with the largest per-frame residual
