@@ -55,14 +55,14 @@ class RunningCalibration:
     """Continuous energy calibration for live streams (the source calibrated once per user).
 
     Noise floor: follows the quietest frames (falls at once, rises ``rise_db_s`` dB/s). Maximum:
-    follows the loudest frames (rises at once, decays ``decay_db_s`` dB/s), starting from a
-    moderate speech level (-35 dB full scale) so that quiet speech is not taken for consonants
-    while the first syllables arrive. Thresholds as ``visemes.calibrate``.
+    follows the loudest frames (rises at once, decays ``decay_db_s`` dB/s); it is unset until the
+    first frame rises ``NOISE_MARGIN_DB`` above the noise floor, so the first syllable sets the
+    level whatever the input gain. Thresholds as ``visemes.calibrate``.
     """
 
-    def __init__(self, noise_db: float = -75.0, max_db: float = -35.0, rise_db_s: float = 2.0,
+    def __init__(self, noise_db: float = -75.0, rise_db_s: float = 2.0,
                  decay_db_s: float = 2.0) -> None:
-        self.noise, self.max = noise_db, max_db
+        self.noise, self.max = noise_db, -np.inf
         self.rise, self.decay = rise_db_s, decay_db_s
 
     def update(self, energy_db: np.ndarray, hop: float) -> tuple[np.ndarray, np.ndarray]:
@@ -71,7 +71,8 @@ class RunningCalibration:
         mx = np.empty(len(energy_db))
         for i, e in enumerate(np.asarray(energy_db, dtype=np.float64)):
             self.noise = min(self.noise + self.rise * hop, e)
-            self.max = max(self.max - self.decay * hop, e)
+            if e > self.noise + NOISE_MARGIN_DB or np.isfinite(self.max):
+                self.max = max(self.max - self.decay * hop, e)
             s = max(self.noise + NOISE_MARGIN_DB, self.max - SILENCE_RANGE_DB, MIN_SILENCE_DB)
             sil[i], mx[i] = s, max(self.max, s + 10.0)
         return sil, mx
