@@ -29,6 +29,8 @@ def test_dct_fill_restores_a_smooth_gap():
     linear = np.linspace(sig[299], sig[336], 38)[1:-1]
     assert err < 0.1 * np.ptp(sig)
     assert err < np.abs(linear - sig[300:336]).max()  # better than joining the ends
+    thesis = fill_gap_dct(x, 300, 336, window=50, keep=0.2, method="thesis")  # Eq 4.2's extension
+    assert np.isfinite(thesis).all() and err < np.abs(thesis - sig[300:336]).max()
 
 
 def test_fill_gaps_handles_edges_and_never_seen_markers():

@@ -43,8 +43,20 @@ def lowpass_dct(window: np.ndarray, keep: float) -> np.ndarray:
     return a @ coef + idct(c, type=2, norm="ortho", axis=0)
 
 
+def _thesis_extension(window: np.ndarray, keep: float, positions: np.ndarray) -> np.ndarray:
+    """The truncated DCT-II series of ``(n, D)`` samples (Eq 4.1, M = keep * n) evaluated at
+    ``positions`` beyond the window (Eq 4.2 continues the series, which mirrors it)."""
+    n = len(window)
+    c = dct(window, type=2, norm="ortho", axis=0)
+    m = max(1, int(round(keep * n)))
+    k = np.arange(m, dtype=np.float64)
+    scale = np.where(k == 0, np.sqrt(1.0 / n), np.sqrt(2.0 / n))
+    basis = scale[None, :] * np.cos(np.pi * k[None, :] * (2 * positions[:, None] + 1) / (2 * n))
+    return basis @ c[:m]
+
+
 def fill_gap_dct(x: np.ndarray, t0: int, t1: int, *, window: int = 50, keep: float = 0.2,
-                 bridge: int = 10) -> np.ndarray:
+                 bridge: int = 10, method: str = "bridge") -> np.ndarray:
     """Values for the missing samples ``x[t0:t1]`` of ``(T, D)`` samples (NaN elsewhere allowed).
 
     Left window: the valid run ending at ``t0`` (at most ``window`` samples); right window: the
@@ -53,12 +65,13 @@ def fill_gap_dct(x: np.ndarray, t0: int, t1: int, *, window: int = 50, keep: flo
     cubic through the ``bridge`` low-passed samples nearest the gap on each side. (The thesis
     extends each window into the gap and cross-fades them (Eq 4.2); its extension is ill-defined —
     a truncated cosine series has zero slope at the window ends — and measured worse here, so the
-    two windows are joined by one smooth curve instead.) A gap with data on one side only holds the
-    low-passed end value. Returns ``(t1 - t0, D)``.
+    two windows are joined by one smooth curve instead; ``method="thesis"`` gives the thesis's
+    extension and cross-fade for comparison.) A gap with data on one side only holds the low-passed
+    end value. Returns ``(t1 - t0, D)``.
     """
     x = np.asarray(x, dtype=np.float64)
     if x.ndim == 1:
-        return fill_gap_dct(x[:, None], t0, t1, window=window, keep=keep, bridge=bridge)[:, 0]
+        return fill_gap_dct(x[:, None], t0, t1, window=window, keep=keep, bridge=bridge, method=method)[:, 0]
     ok = np.isfinite(x).all(axis=1)
     length = t1 - t0
     lo = t0
@@ -73,6 +86,14 @@ def fill_gap_dct(x: np.ndarray, t0: int, t1: int, *, window: int = 50, keep: flo
         return np.repeat(lowpass_dct(x[t1:hi], keep)[:1], length, axis=0)
     if hi == t1:
         return np.repeat(lowpass_dct(x[lo:t0], keep)[-1:], length, axis=0)
+    if method == "thesis":
+        j = np.arange(length, dtype=np.float64)
+        w = ((j + 1) / (length + 1))[:, None]
+        left = _thesis_extension(x[lo:t0], keep, (t0 - lo) + j)
+        right = _thesis_extension(x[t1:hi], keep, j - length)
+        return (1 - w) * left + w * right
+    if method != "bridge":
+        raise ValueError(f"method must be 'bridge' or 'thesis', not {method!r}")
     left = lowpass_dct(x[lo:t0], keep)[-bridge:]
     right = lowpass_dct(x[t1:hi], keep)[:bridge]
     pos = np.r_[np.arange(t0 - len(left), t0), np.arange(t1, t1 + len(right))].astype(np.float64)
