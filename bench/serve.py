@@ -1,4 +1,5 @@
 """Live-session load benchmark; same as ``facecast bench serve`` (see facecast.server.bench.serve)."""
+
 import sys
 
 from facecast.server.bench.serve import main

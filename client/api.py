@@ -12,6 +12,7 @@ WebSocket (websockets, per-message deflate off):
 
 Both are async context managers. Nothing here imports the server.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -28,8 +29,21 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
 from ..protocol import frames
-from ..protocol.messages import (ErrorMessage, ProducerHello, Ready, SessionCreate, SessionCreated, SessionInfo,
-                                 SessionList, Stats, Status, ViewerHello, FapMessage, dump_message, parse_message)
+from ..protocol.messages import (
+    ErrorMessage,
+    FapMessage,
+    ProducerHello,
+    Ready,
+    SessionCreate,
+    SessionCreated,
+    SessionInfo,
+    SessionList,
+    Stats,
+    Status,
+    ViewerHello,
+    dump_message,
+    parse_message,
+)
 
 log = logging.getLogger(__name__)
 
@@ -89,11 +103,24 @@ class SessionAdmin:
             raise _http_error(resp, what)
         return resp
 
-    async def create(self, *, face: str | None = None, input: str = "fap", fps: float = 60.0,
-                     engine: str = "fp", max_viewers: int | None = None) -> SessionCreated:
-        body = SessionCreate(face=face, input=input, fps=fps, engine=engine, max_viewers=max_viewers)
-        resp = await self._call("POST", "/v1/sessions", "cannot create a session",
-                                json=body.model_dump(exclude_none=True))
+    async def create(
+        self,
+        *,
+        face: str | None = None,
+        input: str = "fap",
+        fps: float = 60.0,
+        engine: str = "fp",
+        max_viewers: int | None = None,
+    ) -> SessionCreated:
+        body = SessionCreate(
+            face=face, input=input, fps=fps, engine=engine, max_viewers=max_viewers
+        )
+        resp = await self._call(
+            "POST",
+            "/v1/sessions",
+            "cannot create a session",
+            json=body.model_dump(exclude_none=True),
+        )
         return SessionCreated.model_validate(resp.json())
 
     async def list(self) -> list[SessionInfo]:
@@ -101,11 +128,15 @@ class SessionAdmin:
         return SessionList.model_validate(resp.json()).sessions
 
     async def info(self, session: str) -> SessionInfo:
-        resp = await self._call("GET", f"/v1/sessions/{quote(session, safe='')}", "cannot read the session")
+        resp = await self._call(
+            "GET", f"/v1/sessions/{quote(session, safe='')}", "cannot read the session"
+        )
         return SessionInfo.model_validate(resp.json())
 
     async def close(self, session: str) -> None:
-        await self._call("DELETE", f"/v1/sessions/{quote(session, safe='')}", f"cannot close session {session}")
+        await self._call(
+            "DELETE", f"/v1/sessions/{quote(session, safe='')}", f"cannot close session {session}"
+        )
 
 
 #: Messages a viewer's client library may hold before it stops reading the socket. Every frame
@@ -139,8 +170,15 @@ async def _socket(url: str, rcvbuf: int | None) -> socket.socket | None:
 async def _connect(url: str, *, rcvbuf: int | None = None, max_queue: int = 16) -> ClientConnection:
     try:
         sock = await _socket(url, rcvbuf)
-        return await connect(url, compression=None, max_size=MAX_MESSAGE, open_timeout=30,
-                             ping_interval=None, max_queue=max_queue, sock=sock)
+        return await connect(
+            url,
+            compression=None,
+            max_size=MAX_MESSAGE,
+            open_timeout=30,
+            ping_interval=None,
+            max_queue=max_queue,
+            sock=sock,
+        )
     except (OSError, asyncio.TimeoutError) as e:
         raise LiveError(f"cannot connect to {url.split('?')[0]}: {e}") from None
     except Exception as e:  # handshake refused (HTTP status instead of 101)
@@ -153,14 +191,18 @@ def _closed_error(ws: ClientConnection, last_error: ErrorMessage | None) -> Live
     if code in (1000, 1001, 0) and last_error is None:
         return None
     if last_error is not None:
-        return LiveError(f"server: {last_error.message}" + (f" ({last_error.where})" if last_error.where else ""),
-                         last_error.code)
+        return LiveError(
+            f"server: {last_error.message}"
+            + (f" ({last_error.where})" if last_error.where else ""),
+            last_error.code,
+        )
     if code in (1000, 1001):
         return None
     return LiveError(f"connection closed with code {code} {ws.close_reason or ''}".strip(), code)
 
 
 # ---------------------------------------------------------------------------------------------- producer
+
 
 class Producer:
     """A connected producer. Use ``produce(...)``; frames carry the sender's wall clock."""
@@ -198,8 +240,15 @@ class Producer:
             err = _closed_error(self.ws, self.errors[-1] if self.errors else None)
             raise err or LiveError("the server closed the connection") from None
 
-    async def send_faps(self, faps: dict[int, float] | np.ndarray, t: float, *, viseme: tuple | None = None,
-                        expression: tuple | None = None, binary: bool = True) -> None:
+    async def send_faps(
+        self,
+        faps: dict[int, float] | np.ndarray,
+        t: float,
+        *,
+        viseme: tuple | None = None,
+        expression: tuple | None = None,
+        binary: bool = True,
+    ) -> None:
         """One FAP frame at media time ``t``: ``{fap: value}`` (3..68) or a ``(68,)``/``(69,)`` vector
         (NaN = not sent); as a binary ``FAPS`` frame or, with ``binary=False``, a JSON ``fap`` message."""
         seq, wall = self._next(), time.time()
@@ -210,19 +259,26 @@ class Producer:
                     v[int(k) - 1] = x
             else:
                 v = np.asarray(faps, np.float32)
-            await self._send(frames.encode_faps(v, seq=seq, t=t, wall=wall, viseme=viseme, expression=expression))
+            await self._send(
+                frames.encode_faps(v, seq=seq, t=t, wall=wall, viseme=viseme, expression=expression)
+            )
         else:
             if not isinstance(faps, dict):
                 arr = np.asarray(faps, np.float64)
                 arr = arr[1:] if arr.shape == (69,) else arr
                 faps = {k + 1: float(x) for k, x in enumerate(arr) if k >= 2 and not np.isnan(x)}
-            msg = FapMessage(seq=seq, t=t, wall=wall, faps=faps, viseme=viseme, expression=expression)
+            msg = FapMessage(
+                seq=seq, t=t, wall=wall, faps=faps, viseme=viseme, expression=expression
+            )
             await self._send(dump_message(msg))
 
     async def send_pcm(self, samples: np.ndarray, *, rate: int, sample_offset: int) -> None:
         """One mono chunk (int16 or float32) starting at ``sample_offset``."""
-        await self._send(frames.encode_pcm(samples, rate=rate, sample_offset=sample_offset, seq=self._next(),
-                                           wall=time.time()))
+        await self._send(
+            frames.encode_pcm(
+                samples, rate=rate, sample_offset=sample_offset, seq=self._next(), wall=time.time()
+            )
+        )
 
     async def send_markers(self, markers: np.ndarray, t: float) -> None:
         """One ``(M, 3)`` marker frame (hello's name order, NaN = occluded) at media time ``t``."""
@@ -240,7 +296,9 @@ class Producer:
 class produce:
     """``async with produce(url, session, token, ProducerHello(...)) as p:`` -> a ``Producer``."""
 
-    def __init__(self, url: str, session: str, token: str, hello: ProducerHello | None = None) -> None:
+    def __init__(
+        self, url: str, session: str, token: str, hello: ProducerHello | None = None
+    ) -> None:
         self.url = ws_url(url, f"/v1/sessions/{quote(session, safe='')}/produce", token=token)
         self.hello = hello or ProducerHello()
         self.producer: Producer | None = None
@@ -264,7 +322,8 @@ class produce:
             except asyncio.TimeoutError:
                 pass
             raise _closed_error(ws, m if isinstance(m, ErrorMessage) else None) or LiveError(
-                "the server did not accept the producer")
+                "the server did not accept the producer"
+            )
         self.producer = Producer(ws, m)
         return self.producer
 
@@ -274,6 +333,7 @@ class produce:
 
 
 # ------------------------------------------------------------------------------------------------ viewer
+
 
 @dataclass(frozen=True, slots=True)
 class WatchedFrame:
@@ -304,7 +364,9 @@ class Watcher:
     ends (``LiveError`` if it ends with an error) or, with ``until_producer_leaves``, until the
     producer disconnects after frames were seen."""
 
-    def __init__(self, ws: ClientConnection, hello: ViewerHello, until_producer_leaves: bool = False) -> None:
+    def __init__(
+        self, ws: ClientConnection, hello: ViewerHello, until_producer_leaves: bool = False
+    ) -> None:
         self.ws = ws
         self.hello = hello
         self.status: Status | None = None
@@ -355,10 +417,20 @@ class watch:
     when the consumer is slow (the server skips frames instead) at some CPU cost per frame.
     """
 
-    def __init__(self, url: str, session: str, token: str, *, encoding: str = "f32",
-                 until_producer_leaves: bool = False, receive_buffer: int | None = VIEWER_RECEIVE_BUFFER,
-                 max_queue: int = VIEWER_MAX_QUEUE) -> None:
-        self.url = ws_url(url, f"/v1/sessions/{quote(session, safe='')}/watch", token=token, encoding=encoding)
+    def __init__(
+        self,
+        url: str,
+        session: str,
+        token: str,
+        *,
+        encoding: str = "f32",
+        until_producer_leaves: bool = False,
+        receive_buffer: int | None = VIEWER_RECEIVE_BUFFER,
+        max_queue: int = VIEWER_MAX_QUEUE,
+    ) -> None:
+        self.url = ws_url(
+            url, f"/v1/sessions/{quote(session, safe='')}/watch", token=token, encoding=encoding
+        )
         self.until = until_producer_leaves
         self.receive_buffer = receive_buffer
         self.max_queue = max_queue
@@ -377,7 +449,8 @@ class watch:
             except asyncio.TimeoutError:
                 await ws.close()
             raise _closed_error(ws, m if isinstance(m, ErrorMessage) else None) or LiveError(
-                f"expected a viewer hello, got {first!r:.100}")
+                f"expected a viewer hello, got {first!r:.100}"
+            )
         self.watcher = Watcher(ws, m, self.until)
         return self.watcher
 
@@ -397,21 +470,24 @@ def summary(frames_: list[WatchedFrame], *, first_seq: int | None = None) -> dic
     dropped = int(gaps[gaps > 0].sum()) if n > 1 else 0
     span = frames_[-1].received - frames_[0].received
     lat = np.array([f.latency for f in frames_ if f.latency is not None], dtype=np.float64) * 1000
-    out.update({
-        "fps": round((n - 1) / span, 2) if span > 0 else None,
-        "latency_ms_p50": round(float(np.percentile(lat, 50)), 2) if lat.size else None,
-        "latency_ms_p95": round(float(np.percentile(lat, 95)), 2) if lat.size else None,
-        "latency_ms_max": round(float(lat.max()), 2) if lat.size else None,
-        "bytes_per_frame": round(float(np.mean([f.size for f in frames_])), 1),
-        "dropped": dropped,
-        "first_seq": int(seqs[0]), "last_seq": int(seqs[-1]),
-        "seconds": round(span, 3),
-    })
+    out.update(
+        {
+            "fps": round((n - 1) / span, 2) if span > 0 else None,
+            "latency_ms_p50": round(float(np.percentile(lat, 50)), 2) if lat.size else None,
+            "latency_ms_p95": round(float(np.percentile(lat, 95)), 2) if lat.size else None,
+            "latency_ms_max": round(float(lat.max()), 2) if lat.size else None,
+            "bytes_per_frame": round(float(np.mean([f.size for f in frames_])), 1),
+            "dropped": dropped,
+            "first_seq": int(seqs[0]),
+            "last_seq": int(seqs[-1]),
+            "seconds": round(span, 3),
+        }
+    )
     return out
 
 
-
 # ---------------------------------------------------------------------------------------------- pacing
+
 
 class Pacer:
     """Sleeps until media time ``t`` (seconds) is due on the wall clock, at ``speed`` x real time."""
@@ -443,8 +519,9 @@ def fap_frames(fap: Any) -> list[tuple[float, dict[int, float], tuple | None, tu
     return out
 
 
-async def stream_fap(producer: Producer, fap: Any, *, speed: float = 1.0, binary: bool = True,
-                     t_offset: float = 0.0) -> int:
+async def stream_fap(
+    producer: Producer, fap: Any, *, speed: float = 1.0, binary: bool = True, t_offset: float = 0.0
+) -> int:
     """Send every frame of a ``FapFile`` paced at its frame rate; returns the number of frames sent."""
     pacer = Pacer(speed)
     n = 0
@@ -455,8 +532,15 @@ async def stream_fap(producer: Producer, fap: Any, *, speed: float = 1.0, binary
     return n
 
 
-async def stream_pcm(producer: Producer, samples: np.ndarray, rate: int, *, chunk: float = 0.02,
-                     speed: float = 1.0, sample_offset: int = 0) -> int:
+async def stream_pcm(
+    producer: Producer,
+    samples: np.ndarray,
+    rate: int,
+    *,
+    chunk: float = 0.02,
+    speed: float = 1.0,
+    sample_offset: int = 0,
+) -> int:
     """Send mono int16/float32 ``samples`` in ``chunk``-second pieces at real time (the first at
     ``sample_offset``); returns chunks sent."""
     pacer = Pacer(speed)
@@ -464,13 +548,16 @@ async def stream_pcm(producer: Producer, samples: np.ndarray, rate: int, *, chun
     n = 0
     for start in range(0, len(samples), step):
         await pacer.until(start / rate)
-        await producer.send_pcm(samples[start:start + step], rate=rate, sample_offset=sample_offset + start)
+        await producer.send_pcm(
+            samples[start : start + step], rate=rate, sample_offset=sample_offset + start
+        )
         n += 1
     return n
 
 
-async def stream_markers(producer: Producer, xyz: np.ndarray, fps: float, *, t0: float = 0.0,
-                         speed: float = 1.0) -> int:
+async def stream_markers(
+    producer: Producer, xyz: np.ndarray, fps: float, *, t0: float = 0.0, speed: float = 1.0
+) -> int:
     """Send ``(T, M, 3)`` marker positions frame by frame at ``fps``; returns frames sent."""
     pacer = Pacer(speed)
     for i in range(len(xyz)):

@@ -10,6 +10,7 @@ Exception tree (all decoding failures are one of these; nothing else escapes a d
 Encoders raise ``ValueError`` / ``TypeError`` for arrays of the wrong shape (a programming error on
 the sending side), never ``ProtocolError``.
 """
+
 from __future__ import annotations
 
 from enum import IntEnum

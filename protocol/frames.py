@@ -8,6 +8,7 @@ All payload offsets are multiples of 8, so a JavaScript client can map them stra
 Decoding never copies the payload: arrays are ``np.frombuffer`` views on the message (read-only
 when the message is ``bytes``). Any malformed input raises ``FrameError``, nothing else.
 """
+
 from __future__ import annotations
 
 import struct
@@ -18,14 +19,34 @@ from typing import Union
 import numpy as np
 
 from .errors import FrameError
-from .quantize import dequantize_int16, quantize_int16
+from .quantize import dequantize_int16
 
 __all__ = [
-    "MAGIC", "VERSION", "HEADER_SIZE", "Kind", "Flag", "Header",
-    "MAX_VERTICES", "MAX_SAMPLES", "MAX_MARKERS", "N_FAP_VALUES",
-    "VertexFrame", "PcmChunk", "MarkerFrame", "FapFrame", "Frame",
-    "encode_vertices", "encode_vertices_f32", "encode_vertices_i16", "encode_pcm", "encode_markers",
-    "encode_faps", "decode", "parse_header", "frame_size", "quantize_int16_fast",
+    "MAGIC",
+    "VERSION",
+    "HEADER_SIZE",
+    "Kind",
+    "Flag",
+    "Header",
+    "MAX_VERTICES",
+    "MAX_SAMPLES",
+    "MAX_MARKERS",
+    "N_FAP_VALUES",
+    "VertexFrame",
+    "PcmChunk",
+    "MarkerFrame",
+    "FapFrame",
+    "Frame",
+    "encode_vertices",
+    "encode_vertices_f32",
+    "encode_vertices_i16",
+    "encode_pcm",
+    "encode_markers",
+    "encode_faps",
+    "decode",
+    "parse_header",
+    "frame_size",
+    "quantize_int16_fast",
 ]
 
 MAGIC = b"FCST"
@@ -36,7 +57,9 @@ _HEADER = struct.Struct("<4sBBHIIdd")
 HEADER_SIZE = _HEADER.size  # 32
 _I16_SUB = struct.Struct("<3f3f")  # offset xyz, scale xyz: 24 bytes
 _PCM_SUB = struct.Struct("<IHHQ")  # sample rate, channels, reserved, sample offset: 16 bytes
-_FAP_SUB = struct.Struct("<3B4Bx")  # viseme (s1, s2, blend), expression (s1, i1, s2, i2), pad: 8 bytes
+_FAP_SUB = struct.Struct(
+    "<3B4Bx"
+)  # viseme (s1, s2, blend), expression (s1, i1, s2, i2), pad: 8 bytes
 
 #: Limits a decoder enforces before allocating anything (a frame claiming more is refused).
 MAX_VERTICES = 4_000_000  # 48 MB of float32 positions: far above any face mesh
@@ -92,26 +115,42 @@ class Header:
     version: int = VERSION
 
     def serialize(self) -> bytes:
-        return _HEADER.pack(MAGIC, self.version, int(self.kind), self.flags, self.seq & 0xFFFFFFFF,
-                            self.count, self.t, self.wall)
+        return _HEADER.pack(
+            MAGIC,
+            self.version,
+            int(self.kind),
+            self.flags,
+            self.seq & 0xFFFFFFFF,
+            self.count,
+            self.t,
+            self.wall,
+        )
 
 
 def parse_header(data: bytes | bytearray | memoryview) -> Header:
     """The header of a frame; checks magic, version, kind and flags but not the payload size."""
     if len(data) < HEADER_SIZE:
-        raise FrameError(f"frame of {len(data)} bytes is shorter than the {HEADER_SIZE}-byte header")
+        raise FrameError(
+            f"frame of {len(data)} bytes is shorter than the {HEADER_SIZE}-byte header"
+        )
     magic, version, kind, flags, seq, count, t, wall = _HEADER.unpack_from(data, 0)
     if magic != MAGIC:
-        raise FrameError(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}: not a facecast frame",
-                         where="bytes 0-3")
+        raise FrameError(
+            f"bad magic {bytes(magic)!r}, expected {MAGIC!r}: not a facecast frame",
+            where="bytes 0-3",
+        )
     if version != VERSION:
-        raise FrameError(f"protocol version {version} is not supported (this side speaks {VERSION})",
-                         where="byte 4")
+        raise FrameError(
+            f"protocol version {version} is not supported (this side speaks {VERSION})",
+            where="byte 4",
+        )
     try:
         k = Kind(kind)
     except ValueError:
-        raise FrameError(f"unknown frame kind {kind}; known: "
-                         + ", ".join(f"{m.value}={m.name}" for m in Kind), where="byte 5") from None
+        raise FrameError(
+            f"unknown frame kind {kind}; known: " + ", ".join(f"{m.value}={m.name}" for m in Kind),
+            where="byte 5",
+        ) from None
     if flags & ~_KNOWN_FLAGS.get(k, 0):
         raise FrameError(f"unknown flag bits 0x{flags:04x} for kind {k.name}", where="bytes 6-7")
     if not (np.isfinite(t) and np.isfinite(wall)):
@@ -183,10 +222,13 @@ Frame = Union[VertexFrame, PcmChunk, MarkerFrame, FapFrame]
 
 # ---------------------------------------------------------------------------------------------- encode
 
+
 def _header(kind: Kind, seq: int, count: int, t: float, wall: float, flags: int = 0) -> bytes:
     if not 0 <= count <= 0xFFFFFFFF:
         raise ValueError(f"count {count} does not fit in uint32")
-    return _HEADER.pack(MAGIC, VERSION, int(kind), flags, int(seq) & 0xFFFFFFFF, count, float(t), float(wall))
+    return _HEADER.pack(
+        MAGIC, VERSION, int(kind), flags, int(seq) & 0xFFFFFFFF, count, float(t), float(wall)
+    )
 
 
 def _vertices_array(vertices: np.ndarray) -> np.ndarray:
@@ -207,8 +249,13 @@ def encode_vertices_i16(vertices: np.ndarray, *, seq: int, t: float, wall: float
     ``quantize_int16`` (error per axis at most half a step, ``scale / 2``)."""
     v = _vertices_array(vertices)
     q, offset, scale = quantize_int16_fast(v)
-    return b"".join((_header(Kind.VERTICES_I16, seq, v.shape[0], t, wall),
-                     _I16_SUB.pack(*offset.tolist(), *scale.tolist()), q))
+    return b"".join(
+        (
+            _header(Kind.VERTICES_I16, seq, v.shape[0], t, wall),
+            _I16_SUB.pack(*offset.tolist(), *scale.tolist()),
+            q,
+        )
+    )
 
 
 def quantize_int16_fast(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -235,7 +282,9 @@ def quantize_int16_fast(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return t.T.astype("<i2", order="C"), offset, scale
 
 
-def encode_vertices(vertices: np.ndarray, encoding: str, *, seq: int, t: float, wall: float = 0.0) -> bytes:
+def encode_vertices(
+    vertices: np.ndarray, encoding: str, *, seq: int, t: float, wall: float = 0.0
+) -> bytes:
     """``encoding`` is ``"f32"`` or ``"i16"``."""
     if encoding == "f32":
         return encode_vertices_f32(vertices, seq=seq, t=t, wall=wall)
@@ -244,8 +293,15 @@ def encode_vertices(vertices: np.ndarray, encoding: str, *, seq: int, t: float, 
     raise ValueError(f"unknown vertex encoding {encoding!r}; use 'f32' or 'i16'")
 
 
-def encode_pcm(samples: np.ndarray, *, rate: int, sample_offset: int, seq: int, wall: float = 0.0,
-               t: float | None = None) -> bytes:
+def encode_pcm(
+    samples: np.ndarray,
+    *,
+    rate: int,
+    sample_offset: int,
+    seq: int,
+    wall: float = 0.0,
+    t: float | None = None,
+) -> bytes:
     """Mono ``(n,)`` int16 or float32 samples -> a ``PCM_I16`` / ``PCM_F32`` chunk (48 + 2n or 4n bytes).
 
     ``t`` defaults to ``sample_offset / rate``.
@@ -262,8 +318,9 @@ def encode_pcm(samples: np.ndarray, *, rate: int, sample_offset: int, seq: int, 
     if not 0 < rate <= MAX_RATE or sample_offset < 0:
         raise ValueError(f"bad rate {rate} or sample offset {sample_offset}")
     t = sample_offset / rate if t is None else t
-    return b"".join((_header(kind, seq, s.shape[0], t, wall), _PCM_SUB.pack(rate, 1, 0, sample_offset),
-                     s))
+    return b"".join(
+        (_header(kind, seq, s.shape[0], t, wall), _PCM_SUB.pack(rate, 1, 0, sample_offset), s)
+    )
 
 
 def encode_markers(markers: np.ndarray, *, seq: int, t: float, wall: float = 0.0) -> bytes:
@@ -274,9 +331,15 @@ def encode_markers(markers: np.ndarray, *, seq: int, t: float, wall: float = 0.0
     return b"".join((_header(Kind.MARKERS, seq, m.shape[0], t, wall), m))
 
 
-def encode_faps(values: np.ndarray, *, seq: int, t: float, wall: float = 0.0,
-                viseme: tuple[int, int, int] | None = None,
-                expression: tuple[int, int, int, int] | None = None) -> bytes:
+def encode_faps(
+    values: np.ndarray,
+    *,
+    seq: int,
+    t: float,
+    wall: float = 0.0,
+    viseme: tuple[int, int, int] | None = None,
+    expression: tuple[int, int, int, int] | None = None,
+) -> bytes:
     """``(68,)`` FAP values (``values[k-1]`` = FAP k, NaN = not sent) -> a ``FAPS`` frame (312 bytes).
 
     Also accepts a ``(69,)`` vector indexed by FAP number (``FaceState.faps``); its index 0 is dropped.
@@ -285,14 +348,23 @@ def encode_faps(values: np.ndarray, *, seq: int, t: float, wall: float = 0.0,
     if v.shape == (N_FAP_VALUES + 1,):
         v = v[1:]
     if v.shape != (N_FAP_VALUES,):
-        raise ValueError(f"FAP values must be ({N_FAP_VALUES},) or ({N_FAP_VALUES + 1},), got {v.shape}")
-    flags = (Flag.VISEME if viseme is not None else 0) | (Flag.EXPRESSION if expression is not None else 0)
+        raise ValueError(
+            f"FAP values must be ({N_FAP_VALUES},) or ({N_FAP_VALUES + 1},), got {v.shape}"
+        )
+    flags = (Flag.VISEME if viseme is not None else 0) | (
+        Flag.EXPRESSION if expression is not None else 0
+    )
     vis = tuple(viseme) if viseme is not None else (0, 0, 0)
     exp = tuple(expression) if expression is not None else (0, 0, 0, 0)
     _check_viseme(vis)
     _check_expression(exp)
-    return b"".join((_header(Kind.FAPS, seq, N_FAP_VALUES, t, wall, flags), _FAP_SUB.pack(*vis, *exp),
-                     np.ascontiguousarray(v).tobytes()))
+    return b"".join(
+        (
+            _header(Kind.FAPS, seq, N_FAP_VALUES, t, wall, flags),
+            _FAP_SUB.pack(*vis, *exp),
+            np.ascontiguousarray(v).tobytes(),
+        )
+    )
 
 
 def _check_viseme(v: tuple[int, ...], exc: type[Exception] = ValueError) -> None:
@@ -306,6 +378,7 @@ def _check_expression(e: tuple[int, ...], exc: type[Exception] = ValueError) -> 
 
 
 # ---------------------------------------------------------------------------------------------- decode
+
 
 def frame_size(header: Header, data: bytes | bytearray | memoryview | None = None) -> int:
     """The exact byte size a frame with ``header`` must have (PCM needs nothing beyond the header)."""
@@ -323,8 +396,14 @@ def frame_size(header: Header, data: bytes | bytearray | memoryview | None = Non
     return HEADER_SIZE + _FAP_SUB.size + 4 * n  # FAPS
 
 
-_LIMITS = {Kind.VERTICES_F32: MAX_VERTICES, Kind.VERTICES_I16: MAX_VERTICES, Kind.PCM_I16: MAX_SAMPLES,
-           Kind.PCM_F32: MAX_SAMPLES, Kind.MARKERS: MAX_MARKERS, Kind.FAPS: N_FAP_VALUES}
+_LIMITS = {
+    Kind.VERTICES_F32: MAX_VERTICES,
+    Kind.VERTICES_I16: MAX_VERTICES,
+    Kind.PCM_I16: MAX_SAMPLES,
+    Kind.PCM_F32: MAX_SAMPLES,
+    Kind.MARKERS: MAX_MARKERS,
+    Kind.FAPS: N_FAP_VALUES,
+}
 
 
 def decode(data: bytes | bytearray | memoryview, *, kinds: frozenset[Kind] | None = None) -> Frame:
@@ -340,19 +419,28 @@ def decode(data: bytes | bytearray | memoryview, *, kinds: frozenset[Kind] | Non
     """
     h = parse_header(data)
     if kinds is not None and h.kind not in kinds:
-        raise FrameError(f"frame kind {h.kind.name} is not accepted here; expected "
-                         + " or ".join(k.name for k in sorted(kinds)), where="byte 5")
+        raise FrameError(
+            f"frame kind {h.kind.name} is not accepted here; expected "
+            + " or ".join(k.name for k in sorted(kinds)),
+            where="byte 5",
+        )
     limit = _LIMITS[h.kind]
     if h.kind is Kind.FAPS:
         if h.count != N_FAP_VALUES:
-            raise FrameError(f"a FAP frame carries exactly {N_FAP_VALUES} values, header says {h.count}",
-                             where="bytes 12-15")
+            raise FrameError(
+                f"a FAP frame carries exactly {N_FAP_VALUES} values, header says {h.count}",
+                where="bytes 12-15",
+            )
     elif h.count > limit:
-        raise FrameError(f"count {h.count} is over the limit of {limit} for {h.kind.name}", where="bytes 12-15")
+        raise FrameError(
+            f"count {h.count} is over the limit of {limit} for {h.kind.name}", where="bytes 12-15"
+        )
     size = frame_size(h)
     if len(data) != size:
         what = "truncated" if len(data) < size else "has trailing bytes"
-        raise FrameError(f"{h.kind.name} frame of {h.count} items must be {size} bytes, got {len(data)} ({what})")
+        raise FrameError(
+            f"{h.kind.name} frame of {h.count} items must be {size} bytes, got {len(data)} ({what})"
+        )
     k, n, o = h.kind, h.count, HEADER_SIZE
     if k is Kind.VERTICES_F32:
         return VertexFrame(h, np.frombuffer(data, "<f4", 3 * n, o).reshape(n, 3))
@@ -360,14 +448,22 @@ def decode(data: bytes | bytearray | memoryview, *, kinds: frozenset[Kind] | Non
         sub = _I16_SUB.unpack_from(data, o)
         offset, scale = np.array(sub[:3], np.float32), np.array(sub[3:], np.float32)
         if not (np.all(np.isfinite(offset)) and np.all(np.isfinite(scale)) and np.all(scale > 0)):
-            raise FrameError("int16 frame offset/scale must be finite with scale > 0", where="bytes 32-55")
-        return VertexFrame(h, np.frombuffer(data, "<i2", 3 * n, o + _I16_SUB.size).reshape(n, 3), offset, scale)
+            raise FrameError(
+                "int16 frame offset/scale must be finite with scale > 0", where="bytes 32-55"
+            )
+        return VertexFrame(
+            h, np.frombuffer(data, "<i2", 3 * n, o + _I16_SUB.size).reshape(n, 3), offset, scale
+        )
     if k in (Kind.PCM_I16, Kind.PCM_F32):
         rate, channels, _reserved, sample_offset = _PCM_SUB.unpack_from(data, o)
         if not 0 < rate <= MAX_RATE:
-            raise FrameError(f"sample rate {rate} Hz is out of range 1..{MAX_RATE}", where="bytes 32-35")
+            raise FrameError(
+                f"sample rate {rate} Hz is out of range 1..{MAX_RATE}", where="bytes 32-35"
+            )
         if channels != 1:
-            raise FrameError(f"only mono PCM is supported, got {channels} channels", where="bytes 36-37")
+            raise FrameError(
+                f"only mono PCM is supported, got {channels} channels", where="bytes 36-37"
+            )
         dtype = "<i2" if k is Kind.PCM_I16 else "<f4"
         return PcmChunk(h, rate, sample_offset, np.frombuffer(data, dtype, n, o + _PCM_SUB.size))
     if k is Kind.MARKERS:

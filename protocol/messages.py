@@ -4,21 +4,43 @@ Every WebSocket text message is one JSON object with a ``type`` field; ``parse_m
 model by it. The REST session routes use ``SessionCreate`` / ``SessionCreated`` / ``SessionInfo`` /
 ``SessionList``. ``README.md`` beside this file lists every field.
 """
+
 from __future__ import annotations
 
 import json
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import (BaseModel, ConfigDict, Discriminator, Field, Tag, TypeAdapter, ValidationError,
-                      field_validator)
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    TypeAdapter,
+    ValidationError,
+    field_validator,
+)
 
 from .errors import MessageError
 
 __all__ = [
-    "PROTOCOL_VERSION", "InputKind", "Encoding",
-    "ProducerHello", "Ready", "ViewerHello", "ErrorMessage", "FapMessage", "Status", "Stats",
-    "SessionCreate", "SessionCreated", "SessionInfo", "SessionList", "Message",
-    "parse_message", "dump_message",
+    "PROTOCOL_VERSION",
+    "InputKind",
+    "Encoding",
+    "ProducerHello",
+    "Ready",
+    "ViewerHello",
+    "ErrorMessage",
+    "FapMessage",
+    "Status",
+    "Stats",
+    "SessionCreate",
+    "SessionCreated",
+    "SessionInfo",
+    "SessionList",
+    "Message",
+    "parse_message",
+    "dump_message",
 ]
 
 PROTOCOL_VERSION = 1
@@ -35,6 +57,7 @@ class _Model(BaseModel):
 
 # ------------------------------------------------------------------------------------------ WebSocket
 
+
 class ProducerHello(_Model):
     """Producer -> server, the first message on ``/produce``: what the producer will send."""
 
@@ -44,10 +67,17 @@ class ProducerHello(_Model):
     input: InputKind = "fap"
     rate: int | None = Field(None, gt=0, le=384_000, description="audio: sample rate in Hz")
     sample_format: Encoding | None = Field(None, description="audio: 'i16' or 'f32' PCM chunks")
-    markers: list[str] | None = Field(None, max_length=4096, description="markers: name of each marker, in frame order")
-    layout: dict[str, Any] | None = Field(None, description="markers: the marker layout as a JSON object "
-                                                             "(markers, stable, units, ...), sent inline")
-    units: str | None = Field(None, max_length=16, description="markers: units of the positions (mm, cm, m)")
+    markers: list[str] | None = Field(
+        None, max_length=4096, description="markers: name of each marker, in frame order"
+    )
+    layout: dict[str, Any] | None = Field(
+        None,
+        description="markers: the marker layout as a JSON object "
+        "(markers, stable, units, ...), sent inline",
+    )
+    units: str | None = Field(
+        None, max_length=16, description="markers: units of the positions (mm, cm, m)"
+    )
 
 
 class Ready(_Model):
@@ -58,7 +88,9 @@ class Ready(_Model):
     session: str
     input: InputKind
     fps: float
-    max_fps: float = Field(description="input frames per second above which frames are dropped with an error")
+    max_fps: float = Field(
+        description="input frames per second above which frames are dropped with an error"
+    )
     vertex_count: int
 
 
@@ -70,7 +102,9 @@ class ViewerHello(_Model):
     protocol: int = PROTOCOL_VERSION
     session: str
     face: str
-    topology_url: str = Field(description="REST path of the face's triangles (relative to the server)")
+    topology_url: str = Field(
+        description="REST path of the face's triangles (relative to the server)"
+    )
     vertex_count: int
     encoding: Encoding
     fps: float
@@ -111,8 +145,10 @@ class FapMessage(_Model):
     def _fap_numbers(cls, v: dict[int, float]) -> dict[int, float]:
         for k, x in v.items():
             if not 3 <= k <= 68:
-                raise ValueError(f"FAP number {k} is not a low-level FAP (3..68); send FAP 1 as 'viseme' "
-                                 "and FAP 2 as 'expression'")
+                raise ValueError(
+                    f"FAP number {k} is not a low-level FAP (3..68); send FAP 1 as 'viseme' "
+                    "and FAP 2 as 'expression'"
+                )
             if x != x or x in (float("inf"), float("-inf")):
                 raise ValueError(f"FAP {k} value must be finite")
         return v
@@ -127,8 +163,12 @@ class FapMessage(_Model):
     @field_validator("expression")
     @classmethod
     def _expression(cls, v: tuple[int, int, int, int] | None) -> tuple[int, int, int, int] | None:
-        if v is not None and not (0 <= v[0] <= 6 and 0 <= v[2] <= 6 and 0 <= v[1] <= 63 and 0 <= v[3] <= 63):
-            raise ValueError("expression is (select1 0-6, intensity1 0-63, select2 0-6, intensity2 0-63)")
+        if v is not None and not (
+            0 <= v[0] <= 6 and 0 <= v[2] <= 6 and 0 <= v[1] <= 63 and 0 <= v[3] <= 63
+        ):
+            raise ValueError(
+                "expression is (select1 0-6, intensity1 0-63, select2 0-6, intensity2 0-63)"
+            )
         return v
 
 
@@ -154,7 +194,9 @@ class Status(_Model):
     type: Literal["status"] = "status"
     producer_connected: bool
     viewers: int
-    last_seq: int | None = Field(None, description="sequence number of the last vertex frame, if any")
+    last_seq: int | None = Field(
+        None, description="sequence number of the last vertex frame, if any"
+    )
 
 
 def _tag(obj: object) -> str | None:
@@ -164,23 +206,39 @@ def _tag(obj: object) -> str | None:
     return f"hello:{get('role')}" if kind == "hello" else kind
 
 
-Message = Annotated[Union[Annotated[ProducerHello, Tag("hello:producer")], Annotated[ViewerHello, Tag("hello:viewer")],
-                          Annotated[Ready, Tag("ready")], Annotated[ErrorMessage, Tag("error")],
-                          Annotated[FapMessage, Tag("fap")], Annotated[Stats, Tag("stats")],
-                          Annotated[Status, Tag("status")]],
-                    Discriminator(_tag)]
+Message = Annotated[
+    Union[
+        Annotated[ProducerHello, Tag("hello:producer")],
+        Annotated[ViewerHello, Tag("hello:viewer")],
+        Annotated[Ready, Tag("ready")],
+        Annotated[ErrorMessage, Tag("error")],
+        Annotated[FapMessage, Tag("fap")],
+        Annotated[Stats, Tag("stats")],
+        Annotated[Status, Tag("status")],
+    ],
+    Discriminator(_tag),
+]
 
 
 # ------------------------------------------------------------------------------------------------ REST
 
+
 class SessionCreate(_Model):
     """``POST /v1/sessions`` body."""
 
-    face: str | None = Field(None, max_length=512, description="face name or server-side mesh path; "
-                                                               "default: the server's face")
+    face: str | None = Field(
+        None,
+        max_length=512,
+        description="face name or server-side mesh path; default: the server's face",
+    )
     input: InputKind = "fap"
-    fps: float = Field(60.0, gt=0, le=240, description="output frame rate (audio/markers drivers "
-                                                       "resample to it; FAP frames are taken as sent)")
+    fps: float = Field(
+        60.0,
+        gt=0,
+        le=240,
+        description="output frame rate (audio/markers drivers "
+        "resample to it; FAP frames are taken as sent)",
+    )
     engine: str = Field("fp", max_length=32, description="deformation engine: fp | rbf")
     max_viewers: int | None = Field(None, gt=0, description="viewer limit (≤ the server's)")
 
@@ -195,8 +253,12 @@ class SessionCreated(_Model):
     input: InputKind
     fps: float
     vertex_count: int
-    produce_url: str = Field(description="WebSocket path for the producer (add ?token=PRODUCER_TOKEN)")
-    watch_url: str = Field(description="WebSocket path for viewers (add ?token=VIEWER_TOKEN&encoding=f32|i16)")
+    produce_url: str = Field(
+        description="WebSocket path for the producer (add ?token=PRODUCER_TOKEN)"
+    )
+    watch_url: str = Field(
+        description="WebSocket path for viewers (add ?token=VIEWER_TOKEN&encoding=f32|i16)"
+    )
 
 
 class SessionInfo(_Model):
@@ -231,7 +293,9 @@ def parse_message(text: str | bytes) -> BaseModel:
             message names the field).
     """
     if len(text) > MAX_MESSAGE_BYTES:
-        raise MessageError(f"control message of {len(text)} bytes is over the {MAX_MESSAGE_BYTES}-byte limit")
+        raise MessageError(
+            f"control message of {len(text)} bytes is over the {MAX_MESSAGE_BYTES}-byte limit"
+        )
     try:
         obj = json.loads(text)
     except (ValueError, UnicodeDecodeError) as e:
@@ -240,9 +304,13 @@ def parse_message(text: str | bytes) -> BaseModel:
         raise MessageError("a control message must be a JSON object with a 'type' field")
     tag = _tag(obj)
     if tag not in _TAGS:
-        raise MessageError(f"unknown message type {obj.get('type')!r}" + (f" with role {obj.get('role')!r}" if
-                           obj.get("type") == "hello" else "") + "; expected one of: " + ", ".join(_TAGS),
-                           where="type")
+        raise MessageError(
+            f"unknown message type {obj.get('type')!r}"
+            + (f" with role {obj.get('role')!r}" if obj.get("type") == "hello" else "")
+            + "; expected one of: "
+            + ", ".join(_TAGS),
+            where="type",
+        )
     try:
         return _ADAPTER.validate_python(obj)
     except ValidationError as e:

@@ -4,6 +4,7 @@ One producer streams a real .fap file to three viewers; the float32 frames they 
 a batch render (``Animator.frame``, same face, same NumPy backend) exactly. Then the refusals (tokens,
 roles, limits, bad frames) and vanishing peers.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -14,14 +15,12 @@ import time
 import httpx
 import numpy as np
 import pytest
-
+from conftest import RunningServer
 from facecast.client.api import LiveError, SessionAdmin, produce, stream_fap, summary, watch
 from facecast.protocol import frames
 from facecast.protocol.errors import CloseCode
 from facecast.protocol.fap_file import read_fap
 from facecast.protocol.messages import ProducerHello
-
-from conftest import RunningServer
 
 #: Face of the test sessions (override to run against another server face, e.g. one in FACECAST_FACES).
 FACE = os.environ.get("FACECAST_TEST_LIVE_FACE", "default:2k")
@@ -29,8 +28,16 @@ FACE = os.environ.get("FACECAST_TEST_LIVE_FACE", "default:2k")
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    s = RunningServer(tmp_path_factory.mktemp("live"), "--face", FACE, "--backend", "numpy", "--workers", "0",
-                      env={"FACECAST_MAX_SESSIONS": "6", "FACECAST_MAX_PRODUCER_FPS": "150"}).start()
+    s = RunningServer(
+        tmp_path_factory.mktemp("live"),
+        "--face",
+        FACE,
+        "--backend",
+        "numpy",
+        "--workers",
+        "0",
+        env={"FACECAST_MAX_SESSIONS": "6", "FACECAST_MAX_PRODUCER_FPS": "150"},
+    ).start()
     yield s
     s.stop()
 
@@ -58,15 +65,18 @@ def joy(data_dir):
 
 @pytest.mark.slow
 def test_one_producer_three_viewers_equal_batch_render(live, joy):
-    from facecast.server.drivers.fap import to_animation
     from facecast.server.api.store import FaceStore
+    from facecast.server.drivers.fap import to_animation
     from facecast.server.pipeline import Animator
 
     async def main():
         async with SessionAdmin(live.url, live.admin_key) as admin:
             s = await admin.create(face=FACE, input="fap", fps=float(joy.fps))
             ready = [asyncio.Event() for _ in range(3)]
-            viewers = [asyncio.create_task(_collect(live.url, s.id, s.viewer_token, started=ev)) for ev in ready]
+            viewers = [
+                asyncio.create_task(_collect(live.url, s.id, s.viewer_token, started=ev))
+                for ev in ready
+            ]
             await asyncio.gather(*(ev.wait() for ev in ready))
             async with produce(live.url, s.id, s.producer_token) as p:
                 sent = await stream_fap(p, joy, speed=4.0)
@@ -84,10 +94,15 @@ def test_one_producer_three_viewers_equal_batch_render(live, joy):
     expected = {}
     for frames_ in got:
         assert frames_, "a viewer received no frames"
-        assert frames_[-1].frame.header.seq == len(joy.frames) - 1  # the newest frame always arrives
+        assert (
+            frames_[-1].frame.header.seq == len(joy.frames) - 1
+        )  # the newest frame always arrives
         for f in frames_:
             h = f.frame.header
-            assert h.kind is frames.Kind.VERTICES_F32 and f.frame.vertices.shape == (s.vertex_count, 3)
+            assert h.kind is frames.Kind.VERTICES_F32 and f.frame.vertices.shape == (
+                s.vertex_count,
+                3,
+            )
             assert h.t == pytest.approx(animation.states[h.seq].t)
             assert h.wall > 0 and f.latency is not None
             if h.seq not in expected:
@@ -100,15 +115,17 @@ def test_one_producer_three_viewers_equal_batch_render(live, joy):
 
 
 def test_int16_viewer_and_json_fap_frames(live, joy):
-    from facecast.server.drivers.fap import to_animation
     from facecast.server.api.store import FaceStore
+    from facecast.server.drivers.fap import to_animation
     from facecast.server.pipeline import Animator
 
     async def main():
         async with SessionAdmin(live.url, live.admin_key) as admin:
             s = await admin.create(face=FACE)
             started = asyncio.Event()
-            viewer = asyncio.create_task(_collect(live.url, s.id, s.viewer_token, encoding="i16", started=started))
+            viewer = asyncio.create_task(
+                _collect(live.url, s.id, s.viewer_token, encoding="i16", started=started)
+            )
             await started.wait()
             short = type(joy)(fps=joy.fps, frames=joy.frames[:20])
             async with produce(live.url, s.id, s.producer_token) as p:
@@ -122,9 +139,14 @@ def test_int16_viewer_and_json_fap_frames(live, joy):
     states = to_animation(joy).states
     assert got and got[-1].frame.header.seq == 19
     for f in got:
-        assert f.frame.header.kind is frames.Kind.VERTICES_I16 and f.size == 56 + 6 * f.frame.header.count
+        assert (
+            f.frame.header.kind is frames.Kind.VERTICES_I16
+            and f.size == 56 + 6 * f.frame.header.count
+        )
         want = animator.frame(states[f.frame.header.seq])
-        assert np.all(np.abs(f.positions() - want) <= f.frame.scale * 0.5 + 1e-5 * np.abs(want).max())
+        assert np.all(
+            np.abs(f.positions() - want) <= f.frame.scale * 0.5 + 1e-5 * np.abs(want).max()
+        )
 
 
 def _expect_refusal(coro, code: int) -> LiveError:
@@ -170,7 +192,9 @@ def test_tokens_and_roles(live):
     _expect_refusal(other_session(), CloseCode.NOT_FOUND)
 
     async def wrong_hello():
-        async with produce(live.url, s.id, s.producer_token, ProducerHello(input="audio", rate=16000)):
+        async with produce(
+            live.url, s.id, s.producer_token, ProducerHello(input="audio", rate=16000)
+        ):
             pass
 
     assert "takes 'fap'" in str(_expect_refusal(wrong_hello(), CloseCode.BAD_REQUEST))
@@ -189,9 +213,13 @@ def test_rest_admin_and_limits(live):
     assert r.status_code == 401 and "admin key" in r.json()["error"]
     r = httpx.post(live.url + "/v1/sessions", json={"input": "video"}, headers=live.admin_headers)
     assert r.status_code == 422
-    r = httpx.post(live.url + "/v1/sessions", json={"face": "no-such-face"}, headers=live.admin_headers)
+    r = httpx.post(
+        live.url + "/v1/sessions", json={"face": "no-such-face"}, headers=live.admin_headers
+    )
     assert r.status_code == 404 and "no-such-face" in r.json()["error"]
-    assert httpx.delete(live.url + "/v1/sessions/nope", headers=live.admin_headers).status_code == 404
+    assert (
+        httpx.delete(live.url + "/v1/sessions/nope", headers=live.admin_headers).status_code == 404
+    )
 
     s = run(_session(live, max_viewers=1))
     listed = httpx.get(live.url + "/v1/sessions", headers=live.admin_headers).json()["sessions"]
@@ -207,14 +235,19 @@ def test_rest_admin_and_limits(live):
     # session limit (FACECAST_MAX_SESSIONS=6 on this server)
     made = []
     while True:
-        r = httpx.post(live.url + "/v1/sessions", json={"face": FACE}, headers=live.admin_headers, timeout=60)
+        r = httpx.post(
+            live.url + "/v1/sessions", json={"face": FACE}, headers=live.admin_headers, timeout=60
+        )
         if r.status_code != 201:
             break
         made.append(r.json()["id"])
         assert len(made) <= 6
     assert r.status_code == 429 and "limit" in r.json()["error"]
     for sid in made + [s.id]:
-        assert httpx.delete(f"{live.url}/v1/sessions/{sid}", headers=live.admin_headers).status_code == 204
+        assert (
+            httpx.delete(f"{live.url}/v1/sessions/{sid}", headers=live.admin_headers).status_code
+            == 204
+        )
 
 
 def test_closing_a_session_ends_its_connections(live):
@@ -242,15 +275,26 @@ def test_bad_frames_get_errors_while_another_session_streams(live, joy):
         b_viewer = asyncio.create_task(_collect(live.url, b.id, b.viewer_token, started=started))
         a_viewer = asyncio.create_task(_collect(live.url, a.id, a.viewer_token, until_end=True))
         await started.wait()
-        async with produce(live.url, b.id, b.producer_token) as pb, \
-                produce(live.url, a.id, a.producer_token) as pa:
+        async with (
+            produce(live.url, b.id, b.producer_token) as pb,
+            produce(live.url, a.id, a.producer_token) as pa,
+        ):
             b_task = asyncio.create_task(stream_fap(pb, joy, speed=3.0))
             good = frames.encode_faps(np.zeros(68), seq=0, t=0.0, wall=1.0)
-            bad = [b"garbage!" * 8, good[:-3], good + b"x", good[:5] + b"\x07" + good[6:],
-                   frames.encode_vertices_f32(np.zeros((3, 3)), seq=5, t=0.0),  # a kind producers may not send
-                   frames.encode_pcm(np.zeros(10, np.int16), rate=16000, sample_offset=0, seq=6),
-                   "not json", json.dumps({"type": "fap", "t": 0.1, "faps": {"1": 3}}),
-                   json.dumps({"type": "hello", "role": "producer"}), json.dumps({"type": "fap"})]
+            bad = [
+                b"garbage!" * 8,
+                good[:-3],
+                good + b"x",
+                good[:5] + b"\x07" + good[6:],
+                frames.encode_vertices_f32(
+                    np.zeros((3, 3)), seq=5, t=0.0
+                ),  # a kind producers may not send
+                frames.encode_pcm(np.zeros(10, np.int16), rate=16000, sample_offset=0, seq=6),
+                "not json",
+                json.dumps({"type": "fap", "t": 0.1, "faps": {"1": 3}}),
+                json.dumps({"type": "hello", "role": "producer"}),
+                json.dumps({"type": "fap"}),
+            ]
             for msg in bad:
                 await pa.send_raw(msg)
             await pa.send_faps({3: 100.0}, 0.5)  # the session still works after all that
@@ -263,10 +307,20 @@ def test_bad_frames_get_errors_while_another_session_streams(live, joy):
         return errors, got_a, got_b
 
     errors, got_a, got_b = run(main())
-    assert len(errors) == 10 and all(e.code == CloseCode.BAD_REQUEST and not e.fatal for e in errors)
+    assert len(errors) == 10 and all(
+        e.code == CloseCode.BAD_REQUEST and not e.fatal for e in errors
+    )
     text = " | ".join(e.message for e in errors)
-    for phrase in ("magic", "truncated", "trailing", "unknown frame kind", "not accepted", "not JSON",
-                   "low-level FAP", "not 'hello'"):
+    for phrase in (
+        "magic",
+        "truncated",
+        "trailing",
+        "unknown frame kind",
+        "not accepted",
+        "not JSON",
+        "low-level FAP",
+        "not 'hello'",
+    ):
         assert phrase in text, phrase
     assert [e.seq for e in errors][4:6] == [5, 6]  # the offending frame is named
     assert got_a and got_a[-1].frame.header.seq == 0  # the one good frame came through
@@ -343,7 +397,9 @@ def test_slow_viewer_gets_the_newest_frame_and_a_gap(live):
     got, info = run(main())
     seqs = [f.frame.header.seq for f in got]
     assert seqs == sorted(seqs) and seqs[-1] == 119
-    assert len(seqs) < 120 and info.stats.frames_skipped > 0  # frames were replaced in the viewer's slot
+    assert (
+        len(seqs) < 120 and info.stats.frames_skipped > 0
+    )  # frames were replaced in the viewer's slot
     assert summary(got)["dropped"] == 120 - len(seqs) - seqs[0]
 
 
@@ -365,12 +421,13 @@ def test_producer_rate_limit(live):
     errors, info = run(main())
     assert errors and all(e.code == CloseCode.TOO_MANY and not e.fatal for e in errors)
     assert "150 per second" in errors[0].message
-    assert info.stats.frames_rejected > 0 and info.stats.frames_in + info.stats.frames_rejected == 1001
+    assert (
+        info.stats.frames_rejected > 0 and info.stats.frames_in + info.stats.frames_rejected == 1001
+    )
 
 
 def test_audio_session_streams_pcm(live, data_dir):
     import soundfile as sf
-
     from facecast.client.api import stream_pcm
 
     samples, rate = sf.read(str(data_dir / "speech/mary.wav"), dtype="int16")
@@ -379,10 +436,16 @@ def test_audio_session_streams_pcm(live, data_dir):
     async def main():
         s = await _session(live, input="audio", fps=50)
         started = asyncio.Event()
-        viewer = asyncio.create_task(_collect(live.url, s.id, s.viewer_token, encoding="i16", started=started))
+        viewer = asyncio.create_task(
+            _collect(live.url, s.id, s.viewer_token, encoding="i16", started=started)
+        )
         await started.wait()
-        async with produce(live.url, s.id, s.producer_token,
-                           ProducerHello(input="audio", rate=rate, sample_format="i16")) as p:
+        async with produce(
+            live.url,
+            s.id,
+            s.producer_token,
+            ProducerHello(input="audio", rate=rate, sample_format="i16"),
+        ) as p:
             chunks = await stream_pcm(p, samples, rate, chunk=0.04, speed=4.0)
             bad = frames.encode_pcm(samples[:100], rate=rate + 1, sample_offset=0, seq=999)
             await p.send_raw(bad)
@@ -424,7 +487,9 @@ def test_marker_session_equals_the_live_driver_run_locally(live):
         started = asyncio.Event()
         viewer = asyncio.create_task(_collect(live.url, s.id, s.viewer_token, started=started))
         await started.wait()
-        hello = ProducerHello(input="markers", markers=list(take.names), layout=syn.layout, units=take.units)
+        hello = ProducerHello(
+            input="markers", markers=list(take.names), layout=syn.layout, units=take.units
+        )
         async with produce(live.url, s.id, s.producer_token, hello) as p:
             await stream_markers(p, xyz, take.fps, speed=2.0)
             errors = list(p.errors)
@@ -447,7 +512,9 @@ def test_marker_hello_without_layout_is_refused(live):
     async def main():
         s = await _session(live, input="markers")
         try:
-            async with produce(live.url, s.id, s.producer_token, ProducerHello(input="markers", markers=["A", "B"])):
+            async with produce(
+                live.url, s.id, s.producer_token, ProducerHello(input="markers", markers=["A", "B"])
+            ):
                 pass
         finally:
             await _close(live, s.id)
@@ -456,9 +523,8 @@ def test_marker_hello_without_layout_is_refused(live):
 
 
 def test_websocket_frames_built_once_match_the_websockets_library():
-    from websockets.frames import Frame, Opcode
-
     from facecast.server.live.wire import ws_binary_frame
+    from websockets.frames import Frame, Opcode
 
     for n in (0, 125, 126, 65535, 65536, 200_000):
         payload = bytes(range(256)) * (n // 256) + bytes(n % 256)
@@ -472,8 +538,16 @@ def test_asgi_send_path_gives_the_same_frames(joy, tmp_path):
     from facecast.server.drivers.fap import to_animation
     from facecast.server.pipeline import Animator
 
-    plain = RunningServer(tmp_path, "--face", FACE, "--backend", "numpy", "--workers", "0",
-                          env={"FACECAST_LIVE_DIRECT": "0"}).start()
+    plain = RunningServer(
+        tmp_path,
+        "--face",
+        FACE,
+        "--backend",
+        "numpy",
+        "--workers",
+        "0",
+        env={"FACECAST_LIVE_DIRECT": "0"},
+    ).start()
     short = type(joy)(fps=joy.fps, frames=joy.frames[:15])
 
     async def main():
@@ -504,13 +578,34 @@ def test_cli_session_stream_watch_close(live, data_dir):
 
     env = {**os.environ, "FACECAST_ADMIN_KEY": live.admin_key}
     cli = [sys.executable, "-m", "facecast.server.cli"]
-    out = subprocess.run(cli + ["session", "create", "--url", live.url, "--face", FACE], env=env,
-                         capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        cli + ["session", "create", "--url", live.url, "--face", FACE],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     s = json.loads(out.stdout)
     assert {"id", "producer_token", "viewer_token"} <= set(s)
-    watcher = subprocess.Popen(cli + ["watch", "--url", live.url, "--session", s["id"], "--token", s["viewer_token"],
-                                      "--encoding", "i16", "--json"], env=env, stdout=subprocess.PIPE, text=True)
+    watcher = subprocess.Popen(
+        cli
+        + [
+            "watch",
+            "--url",
+            live.url,
+            "--session",
+            s["id"],
+            "--token",
+            s["viewer_token"],
+            "--encoding",
+            "i16",
+            "--json",
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         for _ in range(600):  # wait until the viewer is connected
             info = httpx.get(f"{live.url}/v1/sessions/{s['id']}", headers=live.admin_headers).json()
@@ -518,9 +613,25 @@ def test_cli_session_stream_watch_close(live, data_dir):
                 break
             time.sleep(0.05)
         fap = data_dir / "xface/faps/joy.fap"
-        streamed = subprocess.run(cli + ["stream", str(fap), "--url", live.url, "--session", s["id"], "--token",
-                                         s["producer_token"], "--speed", "4"], env=env, capture_output=True,
-                                  text=True, timeout=120)
+        streamed = subprocess.run(
+            cli
+            + [
+                "stream",
+                str(fap),
+                "--url",
+                live.url,
+                "--session",
+                s["id"],
+                "--token",
+                s["producer_token"],
+                "--speed",
+                "4",
+            ],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert streamed.returncode == 0, streamed.stderr
         assert json.loads(streamed.stdout)["frames_sent"] == 108
         report = json.loads(watcher.communicate(timeout=60)[0])
@@ -528,23 +639,47 @@ def test_cli_session_stream_watch_close(live, data_dir):
         watcher.kill()
     assert report["frames"] > 0 and report["last_seq"] == 107 and report["encoding"] == "i16"
     assert report["bytes_per_frame"] == 56 + 6 * report["vertex_count"]
-    assert report["latency_ms_p95"] is not None and report["dropped"] + report["frames"] == 108 - report["first_seq"]
-    bad = subprocess.run(cli + ["stream", str(fap), "--url", live.url, "--session", s["id"], "--token", "nope"],
-                         env=env, capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and "token" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
-    closed = subprocess.run(cli + ["session", "close", "--url", live.url, s["id"]], env=env, capture_output=True,
-                            text=True, timeout=120)
+    assert (
+        report["latency_ms_p95"] is not None
+        and report["dropped"] + report["frames"] == 108 - report["first_seq"]
+    )
+    bad = subprocess.run(
+        cli + ["stream", str(fap), "--url", live.url, "--session", s["id"], "--token", "nope"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert (
+        bad.returncode == 2 and "token" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    )
+    closed = subprocess.run(
+        cli + ["session", "close", "--url", live.url, s["id"]],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert closed.returncode == 0
-    assert httpx.get(f"{live.url}/v1/sessions/{s['id']}", headers=live.admin_headers).status_code == 404
+    assert (
+        httpx.get(f"{live.url}/v1/sessions/{s['id']}", headers=live.admin_headers).status_code
+        == 404
+    )
 
 
 def test_summary_counts_gaps():
     class F:
         def __init__(self, seq, t):
-            self.frame = frames.decode(frames.encode_vertices_f32(np.zeros((1, 3)), seq=seq, t=0, wall=t - 0.01))
+            self.frame = frames.decode(
+                frames.encode_vertices_f32(np.zeros((1, 3)), seq=seq, t=0, wall=t - 0.01)
+            )
             self.received, self.size = t, 44
 
         latency = property(lambda self: self.received - self.frame.header.wall)
 
     s = summary([F(0, 1.0), F(1, 1.1), F(4, 1.2), F(5, 1.3)])
-    assert s["dropped"] == 2 and s["fps"] == pytest.approx(10.0) and s["latency_ms_p50"] == pytest.approx(10.0)
+    assert (
+        s["dropped"] == 2
+        and s["fps"] == pytest.approx(10.0)
+        and s["latency_ms_p50"] == pytest.approx(10.0)
+    )

@@ -1,4 +1,5 @@
 """Binary frames: byte layout, round trips, and clean rejection of garbage (hypothesis)."""
+
 from __future__ import annotations
 
 import struct
@@ -7,12 +8,12 @@ import sys
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
-from hypothesis.extra import numpy as hnp
-
 from facecast.protocol import frames as fr
 from facecast.protocol.errors import FrameError, ProtocolError
 from facecast.protocol.quantize import quantize_int16
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 finite32 = st.floats(-1e6, 1e6, width=32)
 
@@ -81,8 +82,11 @@ def test_empty_vertex_frames_round_trip():
         assert f.positions().shape == (0, 3)
 
 
-@given(hnp.arrays(np.int16, st.integers(0, 400)), st.sampled_from([8000, 16000, 44100, 48000]),
-       st.integers(0, 2**40))
+@given(
+    hnp.arrays(np.int16, st.integers(0, 400)),
+    st.sampled_from([8000, 16000, 44100, 48000]),
+    st.integers(0, 2**40),
+)
 def test_pcm_i16_round_trip(s, rate, offset):
     f = fr.decode(fr.encode_pcm(s, rate=rate, sample_offset=offset, seq=2, wall=3.0))
     assert isinstance(f, fr.PcmChunk) and f.header.kind is fr.Kind.PCM_I16
@@ -97,17 +101,27 @@ def test_pcm_f32_round_trip(s):
     assert f.header.kind is fr.Kind.PCM_F32 and np.array_equal(f.as_float32(), s)
 
 
-@given(hnp.arrays(np.float32, st.tuples(st.integers(0, 50), st.just(3)),
-                  elements=st.one_of(finite32, st.just(np.float32("nan")))))
+@given(
+    hnp.arrays(
+        np.float32,
+        st.tuples(st.integers(0, 50), st.just(3)),
+        elements=st.one_of(finite32, st.just(np.float32("nan"))),
+    )
+)
 def test_markers_round_trip(m):
     f = fr.decode(fr.encode_markers(m, seq=9, t=2.0))
     assert isinstance(f, fr.MarkerFrame)
     assert np.array_equal(f.markers, m, equal_nan=True)
 
 
-@given(hnp.arrays(np.float32, 68, elements=st.one_of(finite32, st.just(np.float32("nan")))),
-       st.one_of(st.none(), st.tuples(st.integers(0, 14), st.integers(0, 14), st.integers(0, 63))),
-       st.one_of(st.none(), st.tuples(st.integers(0, 6), st.integers(0, 63), st.integers(0, 6), st.integers(0, 63))))
+@given(
+    hnp.arrays(np.float32, 68, elements=st.one_of(finite32, st.just(np.float32("nan")))),
+    st.one_of(st.none(), st.tuples(st.integers(0, 14), st.integers(0, 14), st.integers(0, 63))),
+    st.one_of(
+        st.none(),
+        st.tuples(st.integers(0, 6), st.integers(0, 63), st.integers(0, 6), st.integers(0, 63)),
+    ),
+)
 def test_fap_round_trip(values, viseme, expression):
     b = fr.encode_faps(values, seq=1, t=0.04, wall=5.0, viseme=viseme, expression=expression)
     assert len(b) == 312
@@ -126,10 +140,14 @@ def test_fap_accepts_faceState_indexing():
 
 def _valid_frames() -> list[bytes]:
     v = np.linspace(-1, 1, 30, dtype=np.float32).reshape(10, 3)
-    return [fr.encode_vertices_f32(v, seq=1, t=0), fr.encode_vertices_i16(v, seq=1, t=0),
-            fr.encode_pcm(np.zeros(16, np.int16), rate=16000, sample_offset=0, seq=0),
-            fr.encode_pcm(np.zeros(16, np.float32), rate=16000, sample_offset=0, seq=0),
-            fr.encode_markers(v, seq=0, t=0), fr.encode_faps(np.zeros(68), seq=0, t=0, viseme=(1, 2, 3))]
+    return [
+        fr.encode_vertices_f32(v, seq=1, t=0),
+        fr.encode_vertices_i16(v, seq=1, t=0),
+        fr.encode_pcm(np.zeros(16, np.int16), rate=16000, sample_offset=0, seq=0),
+        fr.encode_pcm(np.zeros(16, np.float32), rate=16000, sample_offset=0, seq=0),
+        fr.encode_markers(v, seq=0, t=0),
+        fr.encode_faps(np.zeros(68), seq=0, t=0, viseme=(1, 2, 3)),
+    ]
 
 
 @pytest.mark.parametrize("i", range(6))
@@ -143,13 +161,20 @@ def test_every_truncation_and_extension_is_rejected(i):
         fr.decode(b + b"\0")
 
 
-@pytest.mark.parametrize("offset,value,match", [
-    (0, b"XCST", "magic"), (4, b"\x02", "version"), (5, b"\x09", "kind"), (6, b"\x04\x00", "flag"),
-    (12, struct.pack("<I", 2**31), "limit|bytes"), (16, struct.pack("<d", float("nan")), "finite"),
-])
+@pytest.mark.parametrize(
+    "offset,value,match",
+    [
+        (0, b"XCST", "magic"),
+        (4, b"\x02", "version"),
+        (5, b"\x09", "kind"),
+        (6, b"\x04\x00", "flag"),
+        (12, struct.pack("<I", 2**31), "limit|bytes"),
+        (16, struct.pack("<d", float("nan")), "finite"),
+    ],
+)
 def test_bad_header_fields_are_named(offset, value, match):
     b = bytearray(_valid_frames()[0])
-    b[offset:offset + len(value)] = value
+    b[offset : offset + len(value)] = value
     with pytest.raises(FrameError, match=match):
         fr.decode(bytes(b))
 
@@ -223,14 +248,36 @@ def test_encoders_refuse_bad_shapes():
 
 
 def _loaded_after(imports: str, forbidden: tuple[str, ...]) -> str:
-    code = (f"import sys, {imports}; bad = [m for m in sys.modules if m in {forbidden!r} or "
-            "m.startswith(('facecast.server', 'facecast.client'))]; print(','.join(bad))")
+    code = (
+        f"import sys, {imports}; bad = [m for m in sys.modules if m in {forbidden!r} or "
+        "m.startswith(('facecast.server', 'facecast.client'))]; print(','.join(bad))"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return r.stdout.strip()
 
 
 def test_importing_protocol_loads_no_io_or_server_code():
-    io = ("asyncio", "socket", "ssl", "selectors", "fastapi", "starlette", "uvicorn", "websockets", "httpx")
-    assert _loaded_after("facecast.protocol.frames, facecast.protocol.errors, facecast.protocol.quantize", io) == ""
+    io = (
+        "asyncio",
+        "socket",
+        "ssl",
+        "selectors",
+        "fastapi",
+        "starlette",
+        "uvicorn",
+        "websockets",
+        "httpx",
+    )
+    assert (
+        _loaded_after(
+            "facecast.protocol.frames, facecast.protocol.errors, facecast.protocol.quantize", io
+        )
+        == ""
+    )
     # pydantic itself imports ``socket`` and ``selectors`` (through email.utils), so messages are checked without it
-    assert _loaded_after("facecast.protocol.messages", tuple(m for m in io if m not in ("socket", "selectors"))) == ""
+    assert (
+        _loaded_after(
+            "facecast.protocol.messages", tuple(m for m in io if m not in ("socket", "selectors"))
+        )
+        == ""
+    )

@@ -3,6 +3,7 @@
 ``create`` prints ``{"id", "producer_token", "viewer_token", ...}`` as JSON on stdout.
 The admin key comes from ``--admin-key`` or ``FACECAST_ADMIN_KEY``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -17,11 +18,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     sub.required = True
     c = sub.add_parser("create", help="open a live session; prints its id and tokens as JSON")
     c.add_argument("--face", help="face name (default: the server's face)")
-    c.add_argument("--input", choices=("fap", "audio", "markers"), default="fap", help="what the producer sends")
+    c.add_argument(
+        "--input",
+        choices=("fap", "audio", "markers"),
+        default="fap",
+        help="what the producer sends",
+    )
     c.add_argument("--fps", type=float, default=60.0, help="output frame rate (audio/markers)")
     c.add_argument("--engine", default="fp", help="deformation engine: fp | rbf")
     c.add_argument("--max-viewers", type=int, help="viewer limit for this session")
-    d = sub.add_parser("close", help="close a live session (its producer and viewers are disconnected)")
+    d = sub.add_parser(
+        "close", help="close a live session (its producer and viewers are disconnected)"
+    )
     d.add_argument("id", nargs="?", help="session id")
     d.add_argument("--session", dest="session", help="session id (alternative to the positional)")
     sub.add_parser("list", help="list live sessions with their counters")
@@ -36,8 +44,13 @@ async def _main(args: argparse.Namespace) -> int:
     key = args.admin_key or os.environ.get("FACECAST_ADMIN_KEY")
     async with SessionAdmin(args.url, key) as admin:
         if args.action == "create":
-            s = await admin.create(face=args.face, input=args.input, fps=args.fps, engine=args.engine,
-                                   max_viewers=args.max_viewers)
+            s = await admin.create(
+                face=args.face,
+                input=args.input,
+                fps=args.fps,
+                engine=args.engine,
+                max_viewers=args.max_viewers,
+            )
             print(s.model_dump_json())
         elif args.action == "close":
             sid = args.id or args.session

@@ -4,6 +4,7 @@ INPUT: ``.fap`` (FAP frames), ``.wav/.flac/.ogg`` (PCM chunks, the session must 
 ``.trc/.csv`` (marker frames, the session must take markers). Frames are paced at the input's own
 rate (``--speed`` scales it) and carry the sender's wall clock, so viewers can measure latency.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,10 +26,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--url", required=True, help="server URL, e.g. http://127.0.0.1:8000")
     p.add_argument("--session", required=True, help="session id (from 'facecast session create')")
     p.add_argument("--token", required=True, help="the session's producer token")
-    p.add_argument("--speed", type=float, default=1.0, help="pace multiplier (2 = twice real time; 0 = no pacing)")
-    p.add_argument("--loop", type=int, default=1, help="send the input this many times (media time continues)")
-    p.add_argument("--json-frames", action="store_true", help=".fap: send JSON 'fap' messages instead of binary frames")
-    p.add_argument("--chunk", type=float, default=0.02, help="audio: seconds per PCM chunk (default 0.02)")
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="pace multiplier (2 = twice real time; 0 = no pacing)",
+    )
+    p.add_argument(
+        "--loop", type=int, default=1, help="send the input this many times (media time continues)"
+    )
+    p.add_argument(
+        "--json-frames",
+        action="store_true",
+        help=".fap: send JSON 'fap' messages instead of binary frames",
+    )
+    p.add_argument(
+        "--chunk", type=float, default=0.02, help="audio: seconds per PCM chunk (default 0.02)"
+    )
     p.add_argument("--layout", help="markers: marker layout name passed to the server's driver")
 
 
@@ -55,7 +69,9 @@ def _read_audio(path: Path):
         data, rate = sf.read(str(path), dtype="int16", always_2d=True)
     except (RuntimeError, OSError, sf.LibsndfileError) as e:
         raise StreamError(f"{path}: cannot read audio: {e}") from None
-    return np.ascontiguousarray(data.mean(axis=1).astype(np.int16) if data.shape[1] > 1 else data[:, 0]), int(rate)
+    return np.ascontiguousarray(
+        data.mean(axis=1).astype(np.int16) if data.shape[1] > 1 else data[:, 0]
+    ), int(rate)
 
 
 def _read_markers(path: Path):
@@ -63,7 +79,11 @@ def _read_markers(path: Path):
 
     try:
         text = path.read_text()
-        return read_trc(text, where=str(path)) if path.suffix.lower() == ".trc" else read_csv(text, where=str(path))
+        return (
+            read_trc(text, where=str(path))
+            if path.suffix.lower() == ".trc"
+            else read_csv(text, where=str(path))
+        )
     except (OSError, UnicodeDecodeError) as e:
         raise StreamError(f"{path}: cannot read: {e}") from None
     except MarkerFileError as e:
@@ -82,8 +102,9 @@ async def _main(args: argparse.Namespace) -> dict:
         async with produce(args.url, args.session, args.token, hello) as p:
             n = 0
             for i in range(args.loop):
-                n += await stream_fap(p, fap, speed=args.speed, binary=not args.json_frames,
-                                      t_offset=i * fap.duration)
+                n += await stream_fap(
+                    p, fap, speed=args.speed, binary=not args.json_frames, t_offset=i * fap.duration
+                )
             errors = p.errors
         kind, rate = "fap", float(fap.fps)
     elif suffix in AUDIO:
@@ -92,28 +113,51 @@ async def _main(args: argparse.Namespace) -> dict:
         async with produce(args.url, args.session, args.token, hello) as p:
             n = 0
             for i in range(args.loop):
-                n += await stream_pcm(p, samples, rate, chunk=args.chunk, speed=args.speed,
-                                      sample_offset=i * len(samples))
+                n += await stream_pcm(
+                    p,
+                    samples,
+                    rate,
+                    chunk=args.chunk,
+                    speed=args.speed,
+                    sample_offset=i * len(samples),
+                )
             errors = p.errors
         kind = "audio"
     elif suffix in MARKERS:
         take = _read_markers(args.input)
-        hello = ProducerHello(input="markers", markers=list(take.names), layout=args.layout, units=take.units)
+        hello = ProducerHello(
+            input="markers", markers=list(take.names), layout=args.layout, units=take.units
+        )
         async with produce(args.url, args.session, args.token, hello) as p:
             n = 0
             for i in range(args.loop):
-                n += await stream_markers(p, take.xyz, take.fps, t0=take.t0 + i * take.n_frames / take.fps,
-                                          speed=args.speed)
+                n += await stream_markers(
+                    p,
+                    take.xyz,
+                    take.fps,
+                    t0=take.t0 + i * take.n_frames / take.fps,
+                    speed=args.speed,
+                )
             errors = p.errors
         kind, rate = "markers", float(take.fps)
     elif suffix == ".c3d":
-        raise StreamError(f"{args.input}: C3D is read by the server's mocap reader, which the client may not "
-                          "import; convert the take to .trc or .csv first (facecast render can write them)")
+        raise StreamError(
+            f"{args.input}: C3D is read by the server's mocap reader, which the client may not "
+            "import; convert the take to .trc or .csv first (facecast render can write them)"
+        )
     else:
-        raise StreamError(f"{args.input}: unsupported input {suffix or '(none)'}; use .fap, "
-                          f"{', '.join(AUDIO)} or {', '.join(MARKERS)}")
-    return {"input": str(args.input), "kind": kind, "frames_sent": n, "rate": rate,
-            "seconds": round(time.monotonic() - t_start, 3), "errors": [e.message for e in errors]}
+        raise StreamError(
+            f"{args.input}: unsupported input {suffix or '(none)'}; use .fap, "
+            f"{', '.join(AUDIO)} or {', '.join(MARKERS)}"
+        )
+    return {
+        "input": str(args.input),
+        "kind": kind,
+        "frames_sent": n,
+        "rate": rate,
+        "seconds": round(time.monotonic() - t_start, 3),
+        "errors": [e.message for e in errors],
+    }
 
 
 def run(args: argparse.Namespace) -> int:

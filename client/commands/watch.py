@@ -5,6 +5,7 @@ send time carried in each frame; both clocks must agree, e.g. the same machine),
 and dropped frames (gaps in the frame numbers). Stops after ``--frames`` or ``--seconds``, or
 when the producer leaves (after frames were seen). ``--json`` prints one JSON object at the end.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -18,11 +19,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--url", required=True, help="server URL, e.g. http://127.0.0.1:8000")
     p.add_argument("--session", required=True, help="session id")
     p.add_argument("--token", required=True, help="the session's viewer token")
-    p.add_argument("--encoding", choices=("f32", "i16"), default="f32", help="vertex encoding (default f32)")
+    p.add_argument(
+        "--encoding", choices=("f32", "i16"), default="f32", help="vertex encoding (default f32)"
+    )
     stop = p.add_mutually_exclusive_group()
     stop.add_argument("--frames", type=int, help="stop after this many frames")
     stop.add_argument("--seconds", type=float, help="stop after this many seconds")
-    p.add_argument("--json", action="store_true", help="print one JSON object at the end (else a short table)")
+    p.add_argument(
+        "--json", action="store_true", help="print one JSON object at the end (else a short table)"
+    )
 
 
 async def _main(args: argparse.Namespace) -> dict:
@@ -31,8 +36,9 @@ async def _main(args: argparse.Namespace) -> dict:
     got: list[WatchedFrame] = []
     deadline = None if args.seconds is None else time.monotonic() + args.seconds
     until_end = args.frames is None and args.seconds is None
-    async with watch(args.url, args.session, args.token, encoding=args.encoding,
-                     until_producer_leaves=until_end) as w:
+    async with watch(
+        args.url, args.session, args.token, encoding=args.encoding, until_producer_leaves=until_end
+    ) as w:
         hello = w.hello
 
         async def consume() -> None:
@@ -50,17 +56,30 @@ async def _main(args: argparse.Namespace) -> dict:
             pass
         stats = w.stats
     report = summary(got)
-    report.update({"session": hello.session, "face": hello.face, "vertex_count": hello.vertex_count,
-                   "encoding": hello.encoding})
+    report.update(
+        {
+            "session": hello.session,
+            "face": hello.face,
+            "vertex_count": hello.vertex_count,
+            "encoding": hello.encoding,
+        }
+    )
     if stats is not None:
         report["server"] = stats.model_dump(exclude={"type"})
     return report
 
 
 def _table(r: dict) -> str:
-    rows = [("frames", r.get("frames")), ("fps", r.get("fps")), ("latency p50 (ms)", r.get("latency_ms_p50")),
-            ("latency p95 (ms)", r.get("latency_ms_p95")), ("bytes/frame", r.get("bytes_per_frame")),
-            ("dropped", r.get("dropped")), ("encoding", r.get("encoding")), ("vertices", r.get("vertex_count"))]
+    rows = [
+        ("frames", r.get("frames")),
+        ("fps", r.get("fps")),
+        ("latency p50 (ms)", r.get("latency_ms_p50")),
+        ("latency p95 (ms)", r.get("latency_ms_p95")),
+        ("bytes/frame", r.get("bytes_per_frame")),
+        ("dropped", r.get("dropped")),
+        ("encoding", r.get("encoding")),
+        ("vertices", r.get("vertex_count")),
+    ]
     return "\n".join(["| metric | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows])
 
 

@@ -4,6 +4,7 @@ The handlers are shells: they check credentials and limits, decode with ``faceca
 face states to ``server.live`` and send what it encoded. Every refusal on a WebSocket is one JSON
 ``error`` message, then a close with the same 4xxx code (``protocol/README.md`` lists them).
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -19,8 +20,19 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from ...protocol import frames
 from ...protocol.errors import CloseCode, FrameError, MessageError
-from ...protocol.messages import (ErrorMessage, FapMessage, ProducerHello, Ready, SessionCreate, SessionCreated,
-                                  SessionInfo, SessionList, ViewerHello, dump_message, parse_message)
+from ...protocol.messages import (
+    ErrorMessage,
+    FapMessage,
+    ProducerHello,
+    Ready,
+    SessionCreate,
+    SessionCreated,
+    SessionInfo,
+    SessionList,
+    ViewerHello,
+    dump_message,
+    parse_message,
+)
 from ..errors import FacecastError
 from ..live.wire import DirectSender, ViewerGone, find_protocol
 from .security import require_admin, same
@@ -43,29 +55,48 @@ def registry(app: Any):
         from ..live import SessionRegistry
 
         cfg = app.state.config
-        reg = SessionRegistry(app.state.store, max_sessions=cfg.max_sessions,
-                              max_viewers=cfg.max_viewers_per_session, max_fps=cfg.max_producer_fps,
-                              metrics=getattr(app.state, "metrics", None))
+        reg = SessionRegistry(
+            app.state.store,
+            max_sessions=cfg.max_sessions,
+            max_viewers=cfg.max_viewers_per_session,
+            max_fps=cfg.max_producer_fps,
+            metrics=getattr(app.state, "metrics", None),
+        )
         app.state.live = reg
     return reg
 
 
 # ------------------------------------------------------------------------------------------------ REST
 
-@router.post("/v1/sessions", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
-             dependencies=[Depends(require_admin)],
-             responses={401: {"description": "admin key missing or wrong"},
-                        404: {"description": "no such face"},
-                        429: {"description": "the server's session limit is reached"},
-                        503: {"description": "the driver for this input kind is not installed"}})
+
+@router.post(
+    "/v1/sessions",
+    status_code=status.HTTP_201_CREATED,
+    response_model=SessionCreated,
+    dependencies=[Depends(require_admin)],
+    responses={
+        401: {"description": "admin key missing or wrong"},
+        404: {"description": "no such face"},
+        429: {"description": "the server's session limit is reached"},
+        503: {"description": "the driver for this input kind is not installed"},
+    },
+)
 async def create_session(request: Request, body: SessionCreate | None = None) -> SessionCreated:
     """Open a live session; the answer's tokens are shown only once."""
     s = await registry(request.app).create(body or SessionCreate())
     sp = s.spec
     base = f"/v1/sessions/{sp.id}"
-    return SessionCreated(id=sp.id, producer_token=sp.producer_token, viewer_token=sp.viewer_token, face=sp.face,
-                          input=sp.input, fps=sp.fps, vertex_count=s.vertex_count, produce_url=base + "/produce",
-                          watch_url=base + "/watch")
+    return SessionCreated(
+        id=sp.id,
+        producer_token=sp.producer_token,
+        viewer_token=sp.viewer_token,
+        face=sp.face,
+        input=sp.input,
+        fps=sp.fps,
+        vertex_count=s.vertex_count,
+        produce_url=base + "/produce",
+        watch_url=base + "/watch",
+    )
 
 
 @router.get("/v1/sessions", response_model=SessionList, dependencies=[Depends(require_admin)])
@@ -74,14 +105,19 @@ async def list_sessions(request: Request) -> SessionList:
     return SessionList(sessions=[reg.info(s) for s in reg.sessions.values()])
 
 
-@router.get("/v1/sessions/{session_id}", response_model=SessionInfo, dependencies=[Depends(require_admin)])
+@router.get(
+    "/v1/sessions/{session_id}", response_model=SessionInfo, dependencies=[Depends(require_admin)]
+)
 async def get_session(session_id: str, request: Request) -> SessionInfo:
     reg = registry(request.app)
     return reg.info(reg.get(session_id))
 
 
-@router.delete("/v1/sessions/{session_id}", status_code=status.HTTP_204_NO_CONTENT,
-               dependencies=[Depends(require_admin)])
+@router.delete(
+    "/v1/sessions/{session_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    dependencies=[Depends(require_admin)],
+)
 async def close_session(session_id: str, request: Request) -> Response:
     """Close a session: its producer and viewers get an error 4000 and are disconnected."""
     await registry(request.app).close(session_id)
@@ -90,8 +126,13 @@ async def close_session(session_id: str, request: Request) -> Response:
 
 # ------------------------------------------------------------------------------------------- WebSocket
 
-def _error(code: int, message: str, *, where: str = "", fatal: bool = False, seq: int | None = None) -> str:
-    return dump_message(ErrorMessage(code=int(code), message=message, where=where, fatal=fatal, seq=seq))
+
+def _error(
+    code: int, message: str, *, where: str = "", fatal: bool = False, seq: int | None = None
+) -> str:
+    return dump_message(
+        ErrorMessage(code=int(code), message=message, where=where, fatal=fatal, seq=seq)
+    )
 
 
 async def _refuse(ws: WebSocket, code: int, message: str, where: str = "") -> None:
@@ -108,18 +149,34 @@ async def _authorise(ws: WebSocket, session_id: str, token: str | None, role: st
     reg = registry(ws.app)
     session = reg.sessions.get(session_id)
     if session is None:
-        await _refuse(ws, CloseCode.NOT_FOUND, f"no live session {session_id!r}; it was closed or never existed")
+        await _refuse(
+            ws,
+            CloseCode.NOT_FOUND,
+            f"no live session {session_id!r}; it was closed or never existed",
+        )
         return None
-    mine, other = ((session.spec.producer_token, session.spec.viewer_token) if role == "producer"
-                   else (session.spec.viewer_token, session.spec.producer_token))
+    mine, other = (
+        (session.spec.producer_token, session.spec.viewer_token)
+        if role == "producer"
+        else (session.spec.viewer_token, session.spec.producer_token)
+    )
     if same(token, mine):
         return session
     if same(token, other):
-        await _refuse(ws, CloseCode.FORBIDDEN, f"this token is the session's {'viewer' if role == 'producer' else 'producer'}"
-                      f" token; {role}s need the {role} token", where="token")
+        await _refuse(
+            ws,
+            CloseCode.FORBIDDEN,
+            f"this token is the session's {'viewer' if role == 'producer' else 'producer'}"
+            f" token; {role}s need the {role} token",
+            where="token",
+        )
     else:
-        await _refuse(ws, CloseCode.UNAUTHORIZED, f"missing or wrong {role} token: add ?token=<{role}_token from "
-                      "POST /v1/sessions>", where="token")
+        await _refuse(
+            ws,
+            CloseCode.UNAUTHORIZED,
+            f"missing or wrong {role} token: add ?token=<{role}_token from POST /v1/sessions>",
+            where="token",
+        )
     return None
 
 
@@ -164,8 +221,12 @@ async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> N
     if session is None:
         return
     if session.producer is not None:
-        await _refuse(ws, CloseCode.CONFLICT, "this session already has a producer; only one may send at a time "
-                      "(connect again once it has disconnected)")
+        await _refuse(
+            ws,
+            CloseCode.CONFLICT,
+            "this session already has a producer; only one may send at a time "
+            "(connect again once it has disconnected)",
+        )
         return
     reg = registry(ws.app)
     me = _Producer(ws)
@@ -199,8 +260,12 @@ async def _producer_hello(ws: WebSocket, session, reg, loop):
     try:
         msg = await asyncio.wait_for(ws.receive(), HELLO_TIMEOUT)
     except asyncio.TimeoutError:
-        await _refuse(ws, CloseCode.TIMEOUT, f"no hello within {HELLO_TIMEOUT:g} s; send "
-                      '{"type": "hello", "role": "producer", "input": ...} first')
+        await _refuse(
+            ws,
+            CloseCode.TIMEOUT,
+            f"no hello within {HELLO_TIMEOUT:g} s; send "
+            '{"type": "hello", "role": "producer", "input": ...} first',
+        )
         return None
     if msg["type"] == "websocket.disconnect":
         return None
@@ -212,10 +277,13 @@ async def _producer_hello(ws: WebSocket, session, reg, loop):
         if not isinstance(hello, ProducerHello):
             raise MessageError(f"the first message must be a producer hello, got '{hello.type}'")
         if hello.protocol != frames.VERSION:
-            raise MessageError(f"protocol version {hello.protocol} is not supported (server speaks {frames.VERSION})",
-                               where="hello.protocol")
-        inp = await loop.run_in_executor(reg.executor, make_input, session.spec.input, session.face, hello,
-                                         session.spec.fps)
+            raise MessageError(
+                f"protocol version {hello.protocol} is not supported (server speaks {frames.VERSION})",
+                where="hello.protocol",
+            )
+        inp = await loop.run_in_executor(
+            reg.executor, make_input, session.spec.input, session.face, hello, session.spec.fps
+        )
         await _follow_controls(session, reg, inp)
     except (MessageError, BadHello) as e:
         await _refuse(ws, CloseCode.BAD_REQUEST, str(e), where=getattr(e, "where", ""))
@@ -226,8 +294,17 @@ async def _producer_hello(ws: WebSocket, session, reg, loop):
     except FacecastError as e:
         await _refuse(ws, CloseCode.BAD_REQUEST, str(e), where=e.where)
         return None
-    await ws.send_text(dump_message(Ready(session=session.spec.id, input=session.spec.input, fps=session.spec.fps,
-                                          max_fps=reg.max_fps, vertex_count=session.vertex_count)))
+    await ws.send_text(
+        dump_message(
+            Ready(
+                session=session.spec.id,
+                input=session.spec.input,
+                fps=session.spec.fps,
+                max_fps=reg.max_fps,
+                vertex_count=session.vertex_count,
+            )
+        )
+    )
     return inp
 
 
@@ -260,13 +337,19 @@ async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
                 seq, wall = frame.header.seq, frame.header.wall
                 if not limit.allow():
                     raise _OverLimit()
-                states = inp.push_frame(frame) if inline else await loop.run_in_executor(
-                    reg.executor, inp.push_frame, frame)
+                states = (
+                    inp.push_frame(frame)
+                    if inline
+                    else await loop.run_in_executor(reg.executor, inp.push_frame, frame)
+                )
             else:
                 m = parse_message(text or "")
                 if not isinstance(m, FapMessage):
-                    raise MessageError(f"producers send 'fap' messages or binary frames after the hello, "
-                                       f"not '{m.type}'", where="type")
+                    raise MessageError(
+                        f"producers send 'fap' messages or binary frames after the hello, "
+                        f"not '{m.type}'",
+                        where="type",
+                    )
                 seq, wall = m.seq, m.wall
                 if not limit.allow():
                     raise _OverLimit()
@@ -276,24 +359,48 @@ async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
             now = time.monotonic()
             if now - limit.last_error >= 1.0:
                 limit.last_error = now
-                await ws.send_text(_error(CloseCode.TOO_MANY, f"frames arrive faster than this server's limit of "
-                                          f"{reg.max_fps:g} per second; frames over it are dropped", seq=seq))
+                await ws.send_text(
+                    _error(
+                        CloseCode.TOO_MANY,
+                        f"frames arrive faster than this server's limit of "
+                        f"{reg.max_fps:g} per second; frames over it are dropped",
+                        seq=seq,
+                    )
+                )
             continue
-        except (FrameError, MessageError, ValueError, FacecastError) as e:  # the frame's fault, not ours
+        except (
+            FrameError,
+            MessageError,
+            ValueError,
+            FacecastError,
+        ) as e:  # the frame's fault, not ours
             session.stats["frames_rejected"] += 1
             if seq is None and data is not None:
                 try:  # name the offending frame when its header is readable
                     seq = frames.parse_header(data).seq
                 except FrameError:
                     pass
-            await ws.send_text(_error(CloseCode.BAD_REQUEST, f"frame dropped: {e}", where=getattr(e, "where", ""),
-                                      seq=seq))
+            await ws.send_text(
+                _error(
+                    CloseCode.BAD_REQUEST,
+                    f"frame dropped: {e}",
+                    where=getattr(e, "where", ""),
+                    seq=seq,
+                )
+            )
             continue
         except Exception:
-            log.exception("session %s: the %s driver failed on a frame", session.spec.id, session.spec.input)
+            log.exception(
+                "session %s: the %s driver failed on a frame", session.spec.id, session.spec.input
+            )
             session.stats["frames_rejected"] += 1
-            await ws.send_text(_error(CloseCode.INTERNAL, "frame dropped: the driver failed (see the server log)",
-                                      seq=seq))
+            await ws.send_text(
+                _error(
+                    CloseCode.INTERNAL,
+                    "frame dropped: the driver failed (see the server log)",
+                    seq=seq,
+                )
+            )
             continue
         session.stats["frames_in"] += 1
         if metrics:
@@ -308,7 +415,9 @@ class _OverLimit(Exception):
 
 
 @router.websocket("/v1/sessions/{session_id}/watch")
-async def watch(ws: WebSocket, session_id: str, token: str | None = None, encoding: str = "f32") -> None:
+async def watch(
+    ws: WebSocket, session_id: str, token: str | None = None, encoding: str = "f32"
+) -> None:
     """Viewer: a JSON hello, then binary vertex frames (newest only for a slow viewer)."""
     from ..live.session import Viewer
 
@@ -317,18 +426,37 @@ async def watch(ws: WebSocket, session_id: str, token: str | None = None, encodi
     if session is None:
         return
     if encoding not in ("f32", "i16"):
-        await _refuse(ws, CloseCode.BAD_REQUEST, f"unknown encoding {encoding!r}; use f32 or i16", where="encoding")
+        await _refuse(
+            ws,
+            CloseCode.BAD_REQUEST,
+            f"unknown encoding {encoding!r}; use f32 or i16",
+            where="encoding",
+        )
         return
     if len(session.viewers) + session.joining >= session.spec.max_viewers:
-        await _refuse(ws, CloseCode.TOO_MANY, f"this session already has {len(session.viewers)} viewers, its limit")
+        await _refuse(
+            ws,
+            CloseCode.TOO_MANY,
+            f"this session already has {len(session.viewers)} viewers, its limit",
+        )
         return
     sp = session.spec
     session.joining += 1  # counts against the limit while the hello is on its way
     try:
-        await ws.send_text(dump_message(ViewerHello(
-            session=sp.id, face=sp.face, topology_url=f"/v1/faces/{quote(sp.face, safe='')}/topology",
-            vertex_count=session.vertex_count, encoding=encoding, fps=sp.fps, input=sp.input,
-            producer_connected=session.producer is not None)))
+        await ws.send_text(
+            dump_message(
+                ViewerHello(
+                    session=sp.id,
+                    face=sp.face,
+                    topology_url=f"/v1/faces/{quote(sp.face, safe='')}/topology",
+                    vertex_count=session.vertex_count,
+                    encoding=encoding,
+                    fps=sp.fps,
+                    input=sp.input,
+                    producer_connected=session.producer is not None,
+                )
+            )
+        )
     except Exception:
         return  # gone already
     finally:
@@ -336,8 +464,14 @@ async def watch(ws: WebSocket, session_id: str, token: str | None = None, encodi
     if session.closed:
         await _refuse(ws, CloseCode.SESSION_CLOSED, "the session was closed")
         return
-    frame_bytes = frames.frame_size(frames.Header(
-        frames.Kind.VERTICES_I16 if encoding == "i16" else frames.Kind.VERTICES_F32, 0, session.vertex_count, 0.0))
+    frame_bytes = frames.frame_size(
+        frames.Header(
+            frames.Kind.VERTICES_I16 if encoding == "i16" else frames.Kind.VERTICES_F32,
+            0,
+            session.vertex_count,
+            0.0,
+        )
+    )
     _limit_send_buffer(ws, VIEWER_SEND_BUFFER_FRAMES * frame_bytes)
     viewer = Viewer(encoding, DirectSender.attach(ws))  # pre-framed bytes straight to the transport
     session.add_viewer(viewer)
@@ -350,7 +484,10 @@ async def watch(ws: WebSocket, session_id: str, token: str | None = None, encodi
         for task in (sender, receiver):
             task.cancel()
         await asyncio.gather(sender, receiver, return_exceptions=True)
-        if ws.application_state == WebSocketState.CONNECTED and ws.client_state == WebSocketState.CONNECTED:
+        if (
+            ws.application_state == WebSocketState.CONNECTED
+            and ws.client_state == WebSocketState.CONNECTED
+        ):
             try:
                 await ws.close()
             except Exception:
@@ -378,7 +515,9 @@ def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
 async def _send_loop(ws: WebSocket, session, viewer) -> None:
     unsent = 0
     direct = viewer.direct
-    log.debug("session %s: viewer frames go %s", session.spec.id, "direct" if direct else "through ASGI")
+    log.debug(
+        "session %s: viewer frames go %s", session.spec.id, "direct" if direct else "through ASGI"
+    )
     try:
         while True:
             kind, payload = await viewer.next()
@@ -389,7 +528,9 @@ async def _send_loop(ws: WebSocket, session, viewer) -> None:
                     await ws.send_bytes(payload[0])
                 viewer.sent += 1
                 unsent += 1
-                if unsent >= 32:  # count in batches: a Prometheus counter update per send is measurable
+                if (
+                    unsent >= 32
+                ):  # count in batches: a Prometheus counter update per send is measurable
                     session.count_sent(unsent)
                     unsent = 0
             elif kind == "text":

@@ -17,6 +17,7 @@ one frame (rig solve, deformation, int16/float32 encoding, decoding) are measure
 
 Writes ``bench/out/serve.json`` and prints markdown tables. Loopback only; nothing is downloaded.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,27 +43,51 @@ _VIEWER_OPTS: dict = {}  # --viewer-rcvbuf / --viewer-queue
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--face", default="default", help="face of the sessions (default: the 25k-vertex default)")
-    p.add_argument("--backend", default="auto", choices=("auto", "numpy", "opencl"), help="server backend")
+    p.add_argument(
+        "--face", default="default", help="face of the sessions (default: the 25k-vertex default)"
+    )
+    p.add_argument(
+        "--backend", default="auto", choices=("auto", "numpy", "opencl"), help="server backend"
+    )
     p.add_argument("--fps", type=float, default=60.0, help="producer frame rate")
     p.add_argument("--encoding", default="i16", choices=("i16", "f32"))
-    p.add_argument("--sessions", default="1,5,10,20,25", help="session counts to sweep (comma-separated)")
-    p.add_argument("--viewers", default="1,25,50,100,120", help="viewer counts of one session to sweep")
-    p.add_argument("--warmup", type=float, default=1.0, help="seconds before measuring at each point")
+    p.add_argument(
+        "--sessions", default="1,5,10,20,25", help="session counts to sweep (comma-separated)"
+    )
+    p.add_argument(
+        "--viewers", default="1,25,50,100,120", help="viewer counts of one session to sweep"
+    )
+    p.add_argument(
+        "--warmup", type=float, default=1.0, help="seconds before measuring at each point"
+    )
     p.add_argument("--seconds", type=float, default=3.0, help="seconds measured at each point")
     p.add_argument("--latency-target", type=float, default=50.0, help="p95 target, ms")
-    p.add_argument("--url", help="use this running server instead of starting one (needs FACECAST_ADMIN_KEY)")
-    p.add_argument("--viewer-rcvbuf", type=int, default=None,
-                   help="viewer socket receive buffer, bytes (0 = OS default; default: the client's)")
-    p.add_argument("--viewer-queue", type=int, default=None,
-                   help="messages a viewer's client library buffers (default: the client's)")
-    p.add_argument("--compare-asgi", action="store_true",
-                   help="also run the viewers sweep with frames sent through ASGI (FACECAST_LIVE_DIRECT=0), "
-                        "the baseline of the direct-to-transport path")
+    p.add_argument(
+        "--url", help="use this running server instead of starting one (needs FACECAST_ADMIN_KEY)"
+    )
+    p.add_argument(
+        "--viewer-rcvbuf",
+        type=int,
+        default=None,
+        help="viewer socket receive buffer, bytes (0 = OS default; default: the client's)",
+    )
+    p.add_argument(
+        "--viewer-queue",
+        type=int,
+        default=None,
+        help="messages a viewer's client library buffers (default: the client's)",
+    )
+    p.add_argument(
+        "--compare-asgi",
+        action="store_true",
+        help="also run the viewers sweep with frames sent through ASGI (FACECAST_LIVE_DIRECT=0), "
+        "the baseline of the direct-to-transport path",
+    )
     p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
 
 
 # ------------------------------------------------------------------------------------ server process
+
 
 def _free_port() -> int:
     with socket.socket() as s:
@@ -75,13 +100,36 @@ class _Server:
         self.dir = tempfile.TemporaryDirectory(prefix="facecast-bench-serve-")
         self.port = _free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        env = {**os.environ, "FACECAST_ADMIN_KEY": ADMIN_KEY, "FACECAST_MAX_SESSIONS": "256",
-               "FACECAST_MAX_VIEWERS_PER_SESSION": "1024", "FACECAST_MAX_PRODUCER_FPS": "1000", **(env or {})}
+        env = {
+            **os.environ,
+            "FACECAST_ADMIN_KEY": ADMIN_KEY,
+            "FACECAST_MAX_SESSIONS": "256",
+            "FACECAST_MAX_VIEWERS_PER_SESSION": "1024",
+            "FACECAST_MAX_PRODUCER_FPS": "1000",
+            **(env or {}),
+        }
         self.log = open(Path(self.dir.name) / "server.log", "wb")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "facecast.server.cli", "serve", "--port", str(self.port), "--data-dir",
-             self.dir.name, "--face", face, "--backend", backend, "--workers", "0"],
-            env=env, stdout=self.log, stderr=subprocess.STDOUT)
+            [
+                sys.executable,
+                "-m",
+                "facecast.server.cli",
+                "serve",
+                "--port",
+                str(self.port),
+                "--data-dir",
+                self.dir.name,
+                "--face",
+                face,
+                "--backend",
+                backend,
+                "--workers",
+                "0",
+            ],
+            env=env,
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+        )
 
     def wait_ready(self, timeout: float = 300.0) -> dict:
         import httpx
@@ -89,7 +137,9 @@ class _Server:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise RuntimeError("server exited: " + (Path(self.dir.name) / "server.log").read_text()[-2000:])
+                raise RuntimeError(
+                    "server exited: " + (Path(self.dir.name) / "server.log").read_text()[-2000:]
+                )
             try:
                 r = httpx.get(self.url + "/healthz", timeout=1.0)
                 if r.status_code == 200 and r.json().get("ready", True):
@@ -126,6 +176,7 @@ def _own_cpu() -> float:
 
 # ----------------------------------------------------------------------------------------- in-process
 
+
 def frame_costs(face_name: str, backend: str, repeats: int = 30) -> dict:
     """Milliseconds per frame of each server step, in this process (no network)."""
     from ...protocol import frames
@@ -135,8 +186,10 @@ def frame_costs(face_name: str, backend: str, repeats: int = 30) -> dict:
     store = FaceStore(default=face_name, backend=backend)
     animator = store.animator(face_name)
     states = [_state(i, 60.0, FaceState, zero_faps) for i in range(repeats)]
-    out: dict = {"vertices": int(animator.face.n_vertices),
-                 "backend": getattr(animator.deformer, "name", type(animator.deformer).__name__)}
+    out: dict = {
+        "vertices": int(animator.face.n_vertices),
+        "backend": getattr(animator.deformer, "name", type(animator.deformer).__name__),
+    }
     animator.frame(states[0])
 
     def timed(fn) -> float:
@@ -171,12 +224,17 @@ def _state(i: int, fps: float, FaceState, zero_faps):
 
 def _faps(i: int, fps: float) -> dict[int, float]:
     t = i / fps
-    return {3: 400 + 400 * math.sin(2 * math.pi * 0.7 * t), 5: 150 * math.sin(2 * math.pi * 1.3 * t),
-            12: 200 * math.sin(2 * math.pi * 0.4 * t), 13: 200 * math.sin(2 * math.pi * 0.4 * t),
-            19: 500 * max(0.0, math.sin(2 * math.pi * 0.25 * t)) ** 8}
+    return {
+        3: 400 + 400 * math.sin(2 * math.pi * 0.7 * t),
+        5: 150 * math.sin(2 * math.pi * 1.3 * t),
+        12: 200 * math.sin(2 * math.pi * 0.4 * t),
+        13: 200 * math.sin(2 * math.pi * 0.4 * t),
+        19: 500 * max(0.0, math.sin(2 * math.pi * 0.25 * t)) ** 8,
+    }
 
 
 # ------------------------------------------------------------------------------------------ load points
+
 
 async def _producer(url: str, s, fps: float, stop: asyncio.Event, sent: list[int]) -> None:
     from ...client.api import Pacer, produce
@@ -191,11 +249,16 @@ async def _producer(url: str, s, fps: float, stop: asyncio.Event, sent: list[int
         sent.append(i)
 
 
-async def _viewer(url: str, s, encoding: str, stop: asyncio.Event, ready: asyncio.Event,
-                  out: list[tuple[float, int, float, int]]) -> None:
-    from ...client.api import watch
-
+async def _viewer(
+    url: str,
+    s,
+    encoding: str,
+    stop: asyncio.Event,
+    ready: asyncio.Event,
+    out: list[tuple[float, int, float, int]],
+) -> None:
     from ...client import api
+    from ...client.api import watch
 
     opts = {}
     if _VIEWER_OPTS.get("rcvbuf") is not None:
@@ -236,9 +299,17 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         sent: list[int] = []
         tasks += [asyncio.create_task(_producer(url, s, args.fps, stop, sent)) for s in made]
         await asyncio.sleep(args.warmup)
-        t0, cpu_s0, cpu_c0 = time.time(), server.cpu_seconds() if server else float("nan"), _own_cpu()
+        t0, cpu_s0, cpu_c0 = (
+            time.time(),
+            server.cpu_seconds() if server else float("nan"),
+            _own_cpu(),
+        )
         await asyncio.sleep(args.seconds)
-        t1, cpu_s1, cpu_c1 = time.time(), server.cpu_seconds() if server else float("nan"), _own_cpu()
+        t1, cpu_s1, cpu_c1 = (
+            time.time(),
+            server.cpu_seconds() if server else float("nan"),
+            _own_cpu(),
+        )
         stop.set()
         results = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 60)
         failures = [r for r in results if isinstance(r, BaseException)]
@@ -262,12 +333,17 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
     lat_a = np.array(lat) if lat else np.array([np.nan])
     deform = [i.stats.deform_ms_mean for i in infos if i.stats.frames_deformed]
     return {
-        "sessions": sessions, "viewers_per_session": viewers, "viewers_total": sessions * viewers,
-        "fps_target": args.fps, "fps_mean": round(float(np.mean(rates)), 2), "fps_min": round(float(np.min(rates)), 2),
+        "sessions": sessions,
+        "viewers_per_session": viewers,
+        "viewers_total": sessions * viewers,
+        "fps_target": args.fps,
+        "fps_mean": round(float(np.mean(rates)), 2),
+        "fps_min": round(float(np.min(rates)), 2),
         "latency_ms_p50": round(float(np.percentile(lat_a, 50)), 2),
         "latency_ms_p95": round(float(np.percentile(lat_a, 95)), 2),
         "latency_ms_max": round(float(np.max(lat_a)), 2),
-        "frames_received": len(lat), "frames_skipped": skipped,
+        "frames_received": len(lat),
+        "frames_skipped": skipped,
         "server_dropped_before_deform": int(sum(i.stats.frames_dropped for i in infos)),
         "bytes_per_frame": round(float(np.mean(sizes)), 1) if sizes else None,
         "server_deform_encode_ms": round(float(np.mean(deform)), 3) if deform else None,
@@ -287,17 +363,25 @@ def _ok(p: dict, args) -> bool:
 
 def _table(title: str, points: list[dict], args) -> str:
     base = points[0] if points else None
-    head = ("| sessions | viewers | fps mean | fps min | p50 ms | p95 ms | p95 ratio | skipped | deform+enc ms "
-            "| server CPU | client CPU | server µs/frame | client µs/frame | target |")
+    head = (
+        "| sessions | viewers | fps mean | fps min | p50 ms | p95 ms | p95 ratio | skipped | deform+enc ms "
+        "| server CPU | client CPU | server µs/frame | client µs/frame | target |"
+    )
     lines = [f"### {title}", "", head, "|" + "---|" * 14]
     for p in points:
-        ratio = p["latency_ms_p95"] / base["latency_ms_p95"] if base and base["latency_ms_p95"] else float("nan")
+        ratio = (
+            p["latency_ms_p95"] / base["latency_ms_p95"]
+            if base and base["latency_ms_p95"]
+            else float("nan")
+        )
         p["latency_p95_ratio"] = round(ratio, 2)
-        lines.append(f"| {p['sessions']} | {p['viewers_total']} | {p['fps_mean']} | {p['fps_min']} | "
-                     f"{p['latency_ms_p50']} | {p['latency_ms_p95']} | {ratio:.2f} | {p['frames_skipped']} | "
-                     f"{p['server_deform_encode_ms']} | {p['server_cpu']} | {p['client_cpu']} | "
-                     f"{p['server_cpu_us_per_frame']} | {p['client_cpu_us_per_frame']} | "
-                     f"{'ok' if _ok(p, args) else 'miss'}{' (%d client errors)' % p['client_failures'] if p['client_failures'] else ''} |")
+        lines.append(
+            f"| {p['sessions']} | {p['viewers_total']} | {p['fps_mean']} | {p['fps_min']} | "
+            f"{p['latency_ms_p50']} | {p['latency_ms_p95']} | {ratio:.2f} | {p['frames_skipped']} | "
+            f"{p['server_deform_encode_ms']} | {p['server_cpu']} | {p['client_cpu']} | "
+            f"{p['server_cpu_us_per_frame']} | {p['client_cpu_us_per_frame']} | "
+            f"{'ok' if _ok(p, args) else 'miss'}{' (%d client errors)' % p['client_failures'] if p['client_failures'] else ''} |"
+        )
     return "\n".join(lines)
 
 
@@ -335,45 +419,71 @@ def run(args: argparse.Namespace) -> int:
         try:
             server.wait_ready()
             sessions, args.sessions = args.sessions, ""
-            res["viewers_sweep_asgi"] = asyncio.run(_sweeps(server, server.url, args))["viewers_sweep"]
+            res["viewers_sweep_asgi"] = asyncio.run(_sweeps(server, server.url, args))[
+                "viewers_sweep"
+            ]
             args.sessions = sessions
         finally:
             server.stop()
         for d, a in zip(res["viewers_sweep"], res["viewers_sweep_asgi"]):
             if d["server_cpu_us_per_frame"] and a["server_cpu_us_per_frame"]:
-                d["server_cpu_ratio_vs_asgi"] = round(d["server_cpu_us_per_frame"] / a["server_cpu_us_per_frame"], 2)
+                d["server_cpu_ratio_vs_asgi"] = round(
+                    d["server_cpu_us_per_frame"] / a["server_cpu_us_per_frame"], 2
+                )
     load = os.getloadavg()
     report = {
-        "bench": "serve", "face": args.face, "vertices": costs["vertices"], "encoding": args.encoding,
-        "fps": args.fps, "backend": health.get("backend", args.backend), "device": health.get("device"),
-        "viewer_rcvbuf": args.viewer_rcvbuf, "viewer_queue": args.viewer_queue,
-        "frame_costs_ms": costs, "latency_target_ms": args.latency_target, **res,
-        "cpus": os.cpu_count(), "loadavg_after": [round(x, 2) for x in load],
+        "bench": "serve",
+        "face": args.face,
+        "vertices": costs["vertices"],
+        "encoding": args.encoding,
+        "fps": args.fps,
+        "backend": health.get("backend", args.backend),
+        "device": health.get("device"),
+        "viewer_rcvbuf": args.viewer_rcvbuf,
+        "viewer_queue": args.viewer_queue,
+        "frame_costs_ms": costs,
+        "latency_target_ms": args.latency_target,
+        **res,
+        "cpus": os.cpu_count(),
+        "loadavg_after": [round(x, 2) for x in load],
         "seconds_total": round(time.time() - t_start, 1),
         "note": "loopback, server and all clients on this machine; the machine may be shared (see loadavg)",
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2))
     c = costs
-    print(f"## facecast bench serve — {args.face} ({c['vertices']} vertices), {args.encoding} frames, "
-          f"producers at {args.fps:g} fps, backend {report['backend']}\n")
-    print(f"In-process per frame: solve {c['solve_ms']} ms, deform {c['deform_ms']} ms ({c['backend']}), "
-          f"encode i16 {c['encode_i16_ms']} ms / f32 {c['encode_f32_ms']} ms, decode i16 {c['decode_i16_ms']} ms; "
-          f"{c['bytes_i16']} B (i16) / {c['bytes_f32']} B (f32) per frame.\n")
+    print(
+        f"## facecast bench serve — {args.face} ({c['vertices']} vertices), {args.encoding} frames, "
+        f"producers at {args.fps:g} fps, backend {report['backend']}\n"
+    )
+    print(
+        f"In-process per frame: solve {c['solve_ms']} ms, deform {c['deform_ms']} ms ({c['backend']}), "
+        f"encode i16 {c['encode_i16_ms']} ms / f32 {c['encode_f32_ms']} ms, decode i16 {c['decode_i16_ms']} ms; "
+        f"{c['bytes_i16']} B (i16) / {c['bytes_f32']} B (f32) per frame.\n"
+    )
     if res["sessions_sweep"]:
-        print(_table("Concurrent sessions (1 producer + 1 viewer each)", res["sessions_sweep"], args))
+        print(
+            _table("Concurrent sessions (1 producer + 1 viewer each)", res["sessions_sweep"], args)
+        )
         print()
     if res["viewers_sweep"]:
         print(_table("Viewers of one session", res["viewers_sweep"], args))
     if "viewers_sweep_asgi" in res:
         print()
-        print(_table("Viewers of one session, frames sent through ASGI (baseline of the direct path)",
-                     res["viewers_sweep_asgi"], args))
+        print(
+            _table(
+                "Viewers of one session, frames sent through ASGI (baseline of the direct path)",
+                res["viewers_sweep_asgi"],
+                args,
+            )
+        )
         ratios = [d.get("server_cpu_ratio_vs_asgi") for d in res["viewers_sweep"]]
         print(f"\nServer CPU per frame, direct / ASGI: {ratios}")
-    print(f"\nTarget: every viewer ≥ {0.95 * args.fps:g} fps and p95 ≤ {args.latency_target:g} ms. "
-          f"CPU columns are CPU-seconds per second (2.0 = two cores busy). Load average after: {load[0]:.2f} "
-          f"on {os.cpu_count()} CPUs. JSON: {args.out}")
+    print(
+        f"\nTarget: every viewer ≥ {0.95 * args.fps:g} fps and p95 ≤ {args.latency_target:g} ms. "
+        f"CPU columns are CPU-seconds per second (2.0 = two cores busy). Load average after: {load[0]:.2f} "
+        f"on {os.cpu_count()} CPUs. JSON: {args.out}"
+    )
     args.out.write_text(json.dumps(report, indent=2))
     return 0
 
@@ -381,5 +491,7 @@ def run(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="bench/serve.py", description=__doc__.split("\n\n")[0])
     add_arguments(p)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
     return run(p.parse_args(argv))

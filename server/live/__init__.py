@@ -2,6 +2,7 @@
 
 ``SessionRegistry`` lives on ``app.state.live``; ``routes_sessions`` is its HTTP/WebSocket shell.
 """
+
 from __future__ import annotations
 
 from .registry import SessionRegistry, TooMany, Unavailable

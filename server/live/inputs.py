@@ -4,6 +4,7 @@ audio and mocap live drivers (imported lazily, by name, when a producer of that 
 Each input object turns one decoded frame into the face states that became final, oldest first.
 They are used by one producer at a time and are not thread-safe.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -42,8 +43,10 @@ def load_driver_class(kind: str) -> Any:
     try:
         return getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError) as e:
-        raise InputUnavailable(f"live '{kind}' input is not available on this server ({module}.{name}: {e}); "
-                               "use a FAP producer, or install the missing part") from None
+        raise InputUnavailable(
+            f"live '{kind}' input is not available on this server ({module}.{name}: {e}); "
+            "use a FAP producer, or install the missing part"
+        ) from None
 
 
 class FapInput:
@@ -91,7 +94,9 @@ class AudioInput:
 
     def __init__(self, face: Any, hello: ProducerHello, fps: float) -> None:
         if not hello.rate:
-            raise BadHello("an audio producer must declare 'rate' (Hz) in its hello", where="hello.rate")
+            raise BadHello(
+                "an audio producer must declare 'rate' (Hz) in its hello", where="hello.rate"
+            )
         self.rate = hello.rate
         fmt = hello.sample_format or "i16"
         self.kinds = frozenset({frames.Kind.PCM_I16 if fmt == "i16" else frames.Kind.PCM_F32})
@@ -111,8 +116,10 @@ class AudioInput:
     def push_frame(self, frame: frames.Frame) -> list[FaceState]:
         assert isinstance(frame, frames.PcmChunk)
         if frame.rate != self.rate:
-            raise FrameError(f"chunk sample rate {frame.rate} Hz differs from the hello's {self.rate} Hz",
-                             where="bytes 32-35")
+            raise FrameError(
+                f"chunk sample rate {frame.rate} Hz differs from the hello's {self.rate} Hz",
+                where="bytes 32-35",
+            )
         return list(self.driver.push(frame.as_float32(), frame.sample_offset / self.rate))
 
 
@@ -123,13 +130,17 @@ class MarkerInput:
 
     def __init__(self, face: Any, hello: ProducerHello, fps: float) -> None:
         if not hello.markers:
-            raise BadHello("a marker producer must list its marker names in the hello", where="hello.markers")
+            raise BadHello(
+                "a marker producer must list its marker names in the hello", where="hello.markers"
+            )
         if len(set(hello.markers)) != len(hello.markers):
             raise BadHello("marker names must be unique", where="hello.markers")
         if not hello.layout:
-            raise BadHello("a marker producer must send its marker layout (a JSON object with 'markers' and "
-                           "'stable') in the hello; the server never reads files named by clients",
-                           where="hello.layout")
+            raise BadHello(
+                "a marker producer must send its marker layout (a JSON object with 'markers' and "
+                "'stable') in the hello; the server never reads files named by clients",
+                where="hello.layout",
+            )
         self.names = list(hello.markers)
         cls = load_driver_class("markers")
         try:
@@ -139,13 +150,17 @@ class MarkerInput:
         self.control_vertices = getattr(self.driver, "control_vertices", None)
 
     def push_message(self, msg: FapMessage) -> list[FaceState]:
-        raise MessageError("this session takes markers: send binary MARKERS frames, not FAP messages")
+        raise MessageError(
+            "this session takes markers: send binary MARKERS frames, not FAP messages"
+        )
 
     def push_frame(self, frame: frames.Frame) -> list[FaceState]:
         assert isinstance(frame, frames.MarkerFrame)
         if frame.markers.shape[0] != len(self.names):
-            raise FrameError(f"frame has {frame.markers.shape[0]} markers, the hello named {len(self.names)}",
-                             where="bytes 12-15")
+            raise FrameError(
+                f"frame has {frame.markers.shape[0]} markers, the hello named {len(self.names)}",
+                where="bytes 12-15",
+            )
         if np.isinf(frame.markers).any():
             raise FrameError("marker positions must be finite or NaN (occluded)")
         states = list(self.driver.push(np.array(frame.markers, dtype=np.float32), frame.header.t))
@@ -157,7 +172,10 @@ class MarkerInput:
 def make_input(kind: str, face: Any, hello: ProducerHello, fps: float):
     """The input object for a session of ``kind`` after ``hello`` (blocking: drivers may precompute)."""
     if hello.input != kind:
-        raise BadHello(f"this session takes '{kind}' input, the hello says '{hello.input}'", where="hello.input")
+        raise BadHello(
+            f"this session takes '{kind}' input, the hello says '{hello.input}'",
+            where="hello.input",
+        )
     if kind == "fap":
         return FapInput()
     if kind == "audio":

@@ -3,6 +3,7 @@
 One registry per app (``app.state.live``); it owns the thread pool that deforms live frames off the
 event loop (NumPy/SciPy and OpenCL release the GIL while they work).
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -45,15 +46,25 @@ class SessionRegistry:
         metrics: the app's ``Metrics`` (or None).
     """
 
-    def __init__(self, store: Any, *, max_sessions: int, max_viewers: int, max_fps: float,
-                 metrics: Any = None, threads: int | None = None) -> None:
+    def __init__(
+        self,
+        store: Any,
+        *,
+        max_sessions: int,
+        max_viewers: int,
+        max_fps: float,
+        metrics: Any = None,
+        threads: int | None = None,
+    ) -> None:
         self.store = store
         self.max_sessions = max_sessions
         self.max_viewers = max_viewers
         self.max_fps = max_fps
         self.metrics = metrics
         self.sessions: dict[str, LiveSession] = {}
-        self.executor = ThreadPoolExecutor(threads or deform_threads(), thread_name_prefix="live-deform")
+        self.executor = ThreadPoolExecutor(
+            threads or deform_threads(), thread_name_prefix="live-deform"
+        )
         self._animator_locks: dict[int, threading.Lock] = {}
         self._creating = 0
 
@@ -63,17 +74,23 @@ class SessionRegistry:
     def get(self, session_id: str) -> LiveSession:
         s = self.sessions.get(session_id)
         if s is None:
-            raise NotFound(f"no live session {session_id!r}; it was closed or never existed "
-                           "(GET /v1/sessions lists them)", where="session")
+            raise NotFound(
+                f"no live session {session_id!r}; it was closed or never existed "
+                "(GET /v1/sessions lists them)",
+                where="session",
+            )
         return s
 
     async def create(self, req: SessionCreate) -> LiveSession:
         """A new session; raises ``TooMany`` (429), ``NotFound`` (unknown face), ``Unavailable`` (503)."""
         if len(self.sessions) + self._creating >= self.max_sessions:
-            raise TooMany(f"this server already has {len(self.sessions)} live sessions (its limit is "
-                          f"{self.max_sessions}, FACECAST_MAX_SESSIONS); close one with DELETE /v1/sessions/ID")
+            raise TooMany(
+                f"this server already has {len(self.sessions)} live sessions (its limit is "
+                f"{self.max_sessions}, FACECAST_MAX_SESSIONS); close one with DELETE /v1/sessions/ID"
+            )
         if req.input != "fap":
             from .inputs import InputUnavailable, load_driver_class
+
             try:
                 load_driver_class("audio" if req.input == "audio" else "markers")
             except InputUnavailable as e:
@@ -83,18 +100,33 @@ class SessionRegistry:
         self._creating += 1
         try:
             loop = asyncio.get_running_loop()
-            face, animator = await loop.run_in_executor(self.executor, self._load, face_name, req.engine)
+            face, animator = await loop.run_in_executor(
+                self.executor, self._load, face_name, req.engine
+            )
             if len(self.sessions) >= self.max_sessions:
-                raise TooMany(f"session limit {self.max_sessions} reached while this one was being set up")
+                raise TooMany(
+                    f"session limit {self.max_sessions} reached while this one was being set up"
+                )
             sid = secrets.token_hex(8)
-            spec = SessionSpec(id=sid, face=face_name, input=req.input, fps=req.fps, engine=req.engine,
-                               max_viewers=min(req.max_viewers or self.max_viewers, self.max_viewers),
-                               producer_token=new_token(), viewer_token=new_token())
-            session = LiveSession(spec, face, animator, self.executor, self.metrics, self._lock_for(animator))
+            spec = SessionSpec(
+                id=sid,
+                face=face_name,
+                input=req.input,
+                fps=req.fps,
+                engine=req.engine,
+                max_viewers=min(req.max_viewers or self.max_viewers, self.max_viewers),
+                producer_token=new_token(),
+                viewer_token=new_token(),
+            )
+            session = LiveSession(
+                spec, face, animator, self.executor, self.metrics, self._lock_for(animator)
+            )
             self.sessions[sid] = session
             if self.metrics:
                 self.metrics.sessions.set(len(self.sessions))
-            log.info("live session %s: face %s, input %s, %g fps", sid, face_name, req.input, req.fps)
+            log.info(
+                "live session %s: face %s, input %s, %g fps", sid, face_name, req.input, req.fps
+            )
             return session
         finally:
             self._creating -= 1
@@ -113,22 +145,39 @@ class SessionRegistry:
 
         backend = getattr(self.store, "backend", "auto")
         device = getattr(self.store, "device", None)
-        return Animator(session.face, engine=session.spec.engine, backend=backend, device=device,
-                        control_vertices=control_vertices)
+        return Animator(
+            session.face,
+            engine=session.spec.engine,
+            backend=backend,
+            device=device,
+            control_vertices=control_vertices,
+        )
 
     def info(self, s: LiveSession) -> SessionInfo:
         sp = s.spec
-        return SessionInfo(id=sp.id, face=sp.face, input=sp.input, fps=sp.fps, engine=sp.engine,
-                           created=sp.created, vertex_count=s.vertex_count, max_viewers=sp.max_viewers,
-                           stats=s.snapshot())
+        return SessionInfo(
+            id=sp.id,
+            face=sp.face,
+            input=sp.input,
+            fps=sp.fps,
+            engine=sp.engine,
+            created=sp.created,
+            vertex_count=s.vertex_count,
+            max_viewers=sp.max_viewers,
+            stats=s.snapshot(),
+        )
 
-    async def close(self, session_id: str, reason: str = "the session was closed by an admin") -> None:
+    async def close(
+        self, session_id: str, reason: str = "the session was closed by an admin"
+    ) -> None:
         s = self.get(session_id)
         del self.sessions[session_id]
         if self.metrics:
             self.metrics.sessions.set(len(self.sessions))
-        await s.close(CloseCode.SESSION_CLOSED,
-                      dump_message(ErrorMessage(code=CloseCode.SESSION_CLOSED, message=reason, fatal=True)))
+        await s.close(
+            CloseCode.SESSION_CLOSED,
+            dump_message(ErrorMessage(code=CloseCode.SESSION_CLOSED, message=reason, fatal=True)),
+        )
         log.info("live session %s closed", session_id)
 
     async def close_all(self) -> None:

@@ -7,6 +7,7 @@ once per encoding some viewer asked for, and offers the same bytes to every view
 has a one-frame slot: a newer frame replaces an unsent one, so memory stays bounded and a slow
 viewer sees a gap in ``seq``.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -50,20 +51,30 @@ class Viewer:
     def __init__(self, encoding: str, direct: Any = None) -> None:
         self.encoding = encoding
         self.direct = direct
-        self.slot: tuple[int, tuple[bytes, bytes]] | None = None  # (order, (payload, websocket frame))
+        self.slot: tuple[int, tuple[bytes, bytes]] | None = (
+            None  # (order, (payload, websocket frame))
+        )
         self.control: deque[tuple[int, str]] = deque(maxlen=MAX_CONTROL)
         self.wake = asyncio.Event()
         self.idle = False  # the sender task waits in ``next`` with nothing in flight
         self._n = 0  # order of offer/say calls
         self.sent = 0
         self.skipped = 0
-        self.closing: tuple[int, str] | None = None  # (close code, JSON error) when the server ends it
+        self.closing: tuple[int, str] | None = (
+            None  # (close code, JSON error) when the server ends it
+        )
 
     def offer(self, frame: tuple[bytes, bytes]) -> int:
         """Send ``frame`` now if possible (``SENT``), else put it in the slot (``QUEUED``, or
         ``REPLACED`` if it replaced an unsent one: a skipped frame)."""
-        if (self.idle and self.direct is not None and self.slot is None and not self.control
-                and self.closing is None and self.direct.try_write(frame[1])):
+        if (
+            self.idle
+            and self.direct is not None
+            and self.slot is None
+            and not self.control
+            and self.closing is None
+            and self.direct.try_write(frame[1])
+        ):
             self.sent += 1
             return self.SENT
         replaced = self.slot is not None
@@ -119,12 +130,21 @@ class LiveSession:
     """A live session. Create through ``SessionRegistry.create``; all methods run on the event loop
     except ``_deform_encode``, which runs in the registry's thread pool."""
 
-    def __init__(self, spec: SessionSpec, face: Any, animator: Any, executor: Executor,
-                 metrics: Any = None, animator_lock: Any = None) -> None:
+    def __init__(
+        self,
+        spec: SessionSpec,
+        face: Any,
+        animator: Any,
+        executor: Executor,
+        metrics: Any = None,
+        animator_lock: Any = None,
+    ) -> None:
         self.spec = spec
         self.face = face
         self.animator = animator  # replaced by a mocap producer's (control vertices) for its stream
-        self.control_vertices: np.ndarray | None = None  # the explicit controls of ``animator``, if any
+        self.control_vertices: np.ndarray | None = (
+            None  # the explicit controls of ``animator``, if any
+        )
         self._animator_lock = animator_lock
         self.vertex_count = int(face.vertices.shape[0])
         self.executor = executor
@@ -136,8 +156,18 @@ class LiveSession:
         self._wake = asyncio.Event()
         self.seq = 0
         self.last_seq: int | None = None
-        self.stats = {k: 0 for k in ("frames_in", "frames_rejected", "states", "frames_deformed",
-                                     "frames_dropped", "frames_sent", "frames_skipped")}
+        self.stats = {
+            k: 0
+            for k in (
+                "frames_in",
+                "frames_rejected",
+                "states",
+                "frames_deformed",
+                "frames_dropped",
+                "frames_sent",
+                "frames_skipped",
+            )
+        }
         self._deform_total = 0.0
         self._last_stats = time.monotonic()
         self.closed = False
@@ -182,20 +212,32 @@ class LiveSession:
                 self.metrics.viewers.dec()
 
     def broadcast_status(self) -> None:
-        text = dump_message(Status(producer_connected=self.producer is not None, viewers=len(self.viewers),
-                                   last_seq=self.last_seq))
+        text = dump_message(
+            Status(
+                producer_connected=self.producer is not None,
+                viewers=len(self.viewers),
+                last_seq=self.last_seq,
+            )
+        )
         for v in self.viewers:
             v.say(text)
 
     def snapshot(self) -> Stats:
         n = self.stats["frames_deformed"]
-        counts = dict(self.stats, frames_sent=self.stats["frames_sent"] + sum(v.sent for v in self.viewers))
-        return Stats(**counts, deform_ms_mean=round(1000 * self._deform_total / n, 3) if n else 0.0,
-                     viewers=len(self.viewers), producer_connected=self.producer is not None)
+        counts = dict(
+            self.stats, frames_sent=self.stats["frames_sent"] + sum(v.sent for v in self.viewers)
+        )
+        return Stats(
+            **counts,
+            deform_ms_mean=round(1000 * self._deform_total / n, 3) if n else 0.0,
+            viewers=len(self.viewers),
+            producer_connected=self.producer is not None,
+        )
 
     # -- the worker ----------------------------------------------------------------------------------
-    def _deform_encode(self, state: FaceState, seq: int, wall: float,
-                       encodings: set[str]) -> tuple[dict[str, tuple[bytes, bytes]], float]:
+    def _deform_encode(
+        self, state: FaceState, seq: int, wall: float, encodings: set[str]
+    ) -> tuple[dict[str, tuple[bytes, bytes]], float]:
         """Deform and encode one state (in a worker thread): ``{encoding: (payload, websocket frame)}``
         and the seconds it took."""
         t0 = time.perf_counter()
@@ -226,7 +268,9 @@ class LiveSession:
             if not encodings:
                 continue  # nobody watches: skip the work, the numbering still advances
             try:
-                encoded, dt = await loop.run_in_executor(self.executor, self._deform_encode, state, seq, wall, encodings)
+                encoded, dt = await loop.run_in_executor(
+                    self.executor, self._deform_encode, state, seq, wall, encodings
+                )
             except asyncio.CancelledError:
                 raise
             except Exception:

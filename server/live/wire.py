@@ -10,6 +10,7 @@ the largest share of the server's CPU time with many viewers).
 ``websockets`` installed) and returns None for anything else; callers then use
 ``WebSocket.send_bytes``. Control messages (JSON text) always go through the ASGI interface.
 """
+
 from __future__ import annotations
 
 import logging
@@ -83,8 +84,13 @@ class DirectSender:
     def try_write(self, framed: bytes) -> bool:
         """Write now if the transport has room and the connection is open; False otherwise."""
         p = self.proto
-        if (not p.writable.is_set() or p.disconnected or p.close_sent or p.conn.state is not self._open
-                or p.transport.is_closing()):
+        if (
+            not p.writable.is_set()
+            or p.disconnected
+            or p.close_sent
+            or p.conn.state is not self._open
+            or p.transport.is_closing()
+        ):
             return False
         p.transport.write(framed)
         return True
@@ -93,6 +99,11 @@ class DirectSender:
         """Write one frame from ``ws_binary_frame``; waits while the transport's buffer is full."""
         p = self.proto
         await p.writable.wait()
-        if p.disconnected or p.close_sent or p.conn.state is not self._open or p.transport.is_closing():
+        if (
+            p.disconnected
+            or p.close_sent
+            or p.conn.state is not self._open
+            or p.transport.is_closing()
+        ):
             raise ViewerGone("viewer connection closed")
         p.transport.write(framed)
