@@ -53,15 +53,15 @@ def baseline_module():
                          capture_output=True, text=True).stdout
     mod = types.ModuleType("facecast.server.output._gltf_baseline")
     mod.__package__ = "facecast.server.output"
-    exec(compile(src, f"{BASELINE}:server/output/gltf.py", "exec"), mod.__dict__)
+    exec(compile(src, f"{BASELINE}:server/output/gltf.py", "exec"), mod.__dict__)  # noqa: S102 (our own history)
     return mod
 
 
 def clip(face, n_frames: int, seed: int):
     """The looped XFace animation (``Animation``) of ``n_frames`` frames, see the module docstring."""
-    import numpy as np
     from dataclasses import replace
 
+    import numpy as np
     from facecast.server.drivers.fap import load as load_fap
     from facecast.server.paths import shared_data
     from facecast.server.state import Animation
@@ -119,7 +119,6 @@ def main(argv: list[str]) -> int:
     if args.threads:
         for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
             os.environ[var] = str(args.threads)
-    import numpy as np
 
     from facecast.server.faces import load_face
     from facecast.server.output import gltf
@@ -138,7 +137,7 @@ def main(argv: list[str]) -> int:
     render_s = time.perf_counter() - t0
     print(f"{args.face}: {face.n_vertices} vertices; rendered {n_max} frames in {render_s:.1f} s "
           f"({1e3 * render_s / n_max:.1f} ms/frame)", file=sys.stderr)
-    opts = dict(mm_per_unit=face.mm_per_unit)
+    opts = {"mm_per_unit": face.mm_per_unit}
     rows: list[dict] = []
     for T in sorted(args.frames):
         frames = full[:T]
@@ -146,8 +145,8 @@ def main(argv: list[str]) -> int:
         for method, mod in (("old", old), ("new", gltf)):
             if method == "old" and T > args.old_max:
                 continue
-            sec, peak, (data, rec) = measure(lambda: mod.encode_glb(frames, face.vertices, face.triangles, 25.0,
-                                                                    **opts), args.repeats)
+            sec, peak, (data, rec) = measure(lambda mod=mod, frames=frames: mod.encode_glb(
+                frames, face.vertices, face.triangles, 25.0, **opts), args.repeats)
             row = {"frames": T, "vertices": face.n_vertices, "method": method, "targets": rec["targets"],
                    "max_error_mm": rec["max_error_mm"], "seconds": sec, "peak_mb": peak / 2**20,
                    "glb_mb": len(data) / 1e6, "input_mb": frames.nbytes / 2**20,
@@ -162,8 +161,8 @@ def main(argv: list[str]) -> int:
     del full
     for T in sorted(args.stream or []):
         sub = type(anim)(anim.fps, anim.states[:T], source=anim.source)
-        sec, peak, (data, rec) = measure(lambda: gltf.encode_glb(_frame_chunks(animator, sub, None), face.vertices,
-                                                                 face.triangles, 25.0, **opts), 1)
+        sec, peak, (data, rec) = measure(lambda sub=sub: gltf.encode_glb(
+            _frame_chunks(animator, sub, None), face.vertices, face.triangles, 25.0, **opts), 1)
         rows.append({"frames": T, "vertices": face.n_vertices, "method": "new, streamed (incl. rendering)",
                      "targets": rec["targets"], "max_error_mm": rec["max_error_mm"], "seconds": sec,
                      "peak_mb": peak / 2**20, "glb_mb": len(data) / 1e6, "input_mb": 0.0,

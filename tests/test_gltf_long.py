@@ -7,7 +7,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
 from facecast.server import render
 from facecast.server.drivers.fap import load as load_fap
 from facecast.server.output.fap import write_fap_file
@@ -68,7 +67,7 @@ def test_long_clip_streams_through_render_file_within_the_recorded_bound(data_di
     assert abs(err_mm - rec["max_error_mm"]) <= 1e-4  # the record is the measured maximum, not a guess
     assert 1 <= rec["targets"] < 128 and np.abs(glb["weights"]).max() <= 1.0 + 1e-6
     # The same frames held in memory give an equally good basis of about the same size.
-    data, mem = encode_glb(expected, face.vertices, face.triangles, 25.0, mm_per_unit=face.mm_per_unit)
+    _, mem = encode_glb(expected, face.vertices, face.triangles, 25.0, mm_per_unit=face.mm_per_unit)
     assert mem["max_error_mm"] <= 0.01 and abs(mem["targets"] - rec["targets"]) <= max(3, rec["targets"] // 10)
 
 
@@ -112,7 +111,7 @@ def test_capped_basis_reports_itself(face, rng, caplog):
     T, V = 40, face.n_vertices
     frames = face.vertices + rng.normal(0, 0.5, (T, V, 3)).astype(np.float32)
     with caplog.at_level(logging.WARNING, logger="facecast.server.output.gltf"):
-        data, rec = encode_glb(frames, face.vertices, face.triangles, 25.0, max_targets=4)
+        _, rec = encode_glb(frames, face.vertices, face.triangles, 25.0, max_targets=4)
     assert rec["capped"] is True and rec["targets"] == 4 and rec["max_targets"] == 4
     assert rec["max_error_mm"] > rec["tolerance_mm"]
     assert any("capped at 4 targets" in r.getMessage() for r in caplog.records)
@@ -121,13 +120,13 @@ def test_capped_basis_reports_itself(face, rng, caplog):
     measured = np.linalg.norm(rebuilt - frames, axis=2).max()
     assert measured == pytest.approx(rec["max_error_mm"], rel=1e-6) == pytest.approx(mb.max_error, rel=1e-9)
     # Uncapped, the same clip is exact with one target per frame.
-    data, rec = encode_glb(frames, face.vertices, face.triangles, 25.0)
+    _, rec = encode_glb(frames, face.vertices, face.triangles, 25.0)
     assert not rec["capped"] and rec["targets"] == T and rec["max_error_mm"] <= 0.01
 
 
 def test_still_clip_gives_one_zero_target(face):
     frames = np.repeat(face.vertices[None], 30, axis=0)
-    data, rec = encode_glb(frames, face.vertices, face.triangles, 25.0)
+    _, rec = encode_glb(frames, face.vertices, face.triangles, 25.0)
     assert rec["targets"] == 1 and rec["max_error_mm"] == 0.0 and not rec["capped"]
 
 

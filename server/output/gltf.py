@@ -180,8 +180,7 @@ class _Basis:
         for b in [*rows_b, current]:
             B[s:s + len(b), :b.shape[1]] = b
             s += len(b)
-        lam, V = np.linalg.eigh(B.T @ B)
-        V = V[:, ::-1]
+        V = np.linalg.eigh(B.T @ B)[1][:, ::-1]
         P = B @ V
         keep = min(self.keep, k)
         dropped = (P[:, keep:] ** 2).sum(axis=1)
@@ -222,8 +221,7 @@ def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_tar
         if T < 1:
             raise ValueError("frames must hold at least one frame")
         if k:
-            lam, V = np.linalg.eigh(B.T @ B)
-            V = V[:, ::-1]
+            V = np.linalg.eigh(B.T @ B)[1][:, ::-1]
             P = B @ V  # coefficients on the principal directions of span(Q)
             tail = np.sqrt(np.append(np.cumsum((P**2)[:, ::-1], axis=1)[:, ::-1], np.zeros((T, 1)), axis=1))
             bound = (tail + np.sqrt(rho)[:, None]).max(axis=0)  # bound[m], m = 0..k
