@@ -193,7 +193,11 @@ def _closed_error(ws: ClientConnection, last_error: ErrorMessage | None) -> Live
     if last_error is not None:
         return LiveError(
             f"server: {last_error.message}"
-            + (f" ({last_error.where})" if last_error.where else ""),
+            + (
+                f" ({last_error.where})"
+                if last_error.where and last_error.where not in last_error.message
+                else ""
+            ),
             last_error.code,
         )
     if code in (1000, 1001):
