@@ -316,7 +316,7 @@ async def _follow_controls(session, reg, inp) -> None:
         return
     loop = asyncio.get_running_loop()
     animator = await loop.run_in_executor(reg.executor, reg.animator_for, session, cv)
-    session.animator, session._animator_lock = animator, reg._lock_for(animator)
+    session.batcher = reg.batcher_for(animator)
     session.control_vertices = np.array(cv)
 
 

@@ -10,7 +10,6 @@ import asyncio
 import logging
 import os
 import secrets
-import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -18,6 +17,7 @@ from ...protocol.errors import CloseCode
 from ...protocol.messages import ErrorMessage, SessionCreate, SessionInfo, dump_message
 from ..api.security import new_token
 from ..errors import FacecastError, NotFound
+from .batcher import DeformBatcher
 from .session import LiveSession, SessionSpec
 
 log = logging.getLogger(__name__)
@@ -65,11 +65,15 @@ class SessionRegistry:
         self.executor = ThreadPoolExecutor(
             threads or deform_threads(), thread_name_prefix="live-deform"
         )
-        self._animator_locks: dict[int, threading.Lock] = {}
+        self._batchers: dict[int, DeformBatcher] = {}
         self._creating = 0
 
-    def _lock_for(self, animator: Any) -> threading.Lock:
-        return self._animator_locks.setdefault(id(animator), threading.Lock())
+    def batcher_for(self, animator: Any) -> DeformBatcher:
+        """The one ``DeformBatcher`` of ``animator`` (sessions of the same face share it)."""
+        b = self._batchers.get(id(animator))
+        if b is None or b.animator is not animator:
+            b = self._batchers[id(animator)] = DeformBatcher(animator, self.executor)
+        return b
 
     def get(self, session_id: str) -> LiveSession:
         s = self.sessions.get(session_id)
@@ -118,9 +122,7 @@ class SessionRegistry:
                 producer_token=new_token(),
                 viewer_token=new_token(),
             )
-            session = LiveSession(
-                spec, face, animator, self.executor, self.metrics, self._lock_for(animator)
-            )
+            session = LiveSession(spec, face, self.batcher_for(animator), self.metrics)
             self.sessions[sid] = session
             if self.metrics:
                 self.metrics.sessions.set(len(self.sessions))
@@ -172,6 +174,11 @@ class SessionRegistry:
     ) -> None:
         s = self.get(session_id)
         del self.sessions[session_id]
+        in_use = {id(x.batcher.animator) for x in self.sessions.values()}
+        for key in [
+            k for k in self._batchers if k not in in_use
+        ]:  # mocap animators die with their session
+            del self._batchers[key]
         if self.metrics:
             self.metrics.sessions.set(len(self.sessions))
         await s.close(

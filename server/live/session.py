@@ -14,16 +14,13 @@ import asyncio
 import logging
 import time
 from collections import deque
-from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 
-from ...protocol import frames
 from ...protocol.messages import Stats, Status, dump_message
 from ..state import FaceState
-from .wire import ws_binary_frame
 
 log = logging.getLogger(__name__)
 
@@ -127,27 +124,18 @@ class SessionSpec:
 
 
 class LiveSession:
-    """A live session. Create through ``SessionRegistry.create``; all methods run on the event loop
-    except ``_deform_encode``, which runs in the registry's thread pool."""
+    """A live session. Create through ``SessionRegistry.create``; all methods run on the event loop.
+    Deformation and encoding run in the registry's threads, through the ``DeformBatcher`` of the
+    session's animator (shared by the sessions of the same face)."""
 
-    def __init__(
-        self,
-        spec: SessionSpec,
-        face: Any,
-        animator: Any,
-        executor: Executor,
-        metrics: Any = None,
-        animator_lock: Any = None,
-    ) -> None:
+    def __init__(self, spec: SessionSpec, face: Any, batcher: Any, metrics: Any = None) -> None:
         self.spec = spec
         self.face = face
-        self.animator = animator  # replaced by a mocap producer's (control vertices) for its stream
+        self.batcher = batcher  # replaced when a mocap producer brings its own control vertices
         self.control_vertices: np.ndarray | None = (
-            None  # the explicit controls of ``animator``, if any
+            None  # explicit controls of the batcher's animator
         )
-        self._animator_lock = animator_lock
         self.vertex_count = int(face.vertices.shape[0])
-        self.executor = executor
         self.metrics = metrics
         self.viewers: set[Viewer] = set()
         self.joining = 0  # viewers being greeted (count against the limit)
@@ -235,26 +223,7 @@ class LiveSession:
         )
 
     # -- the worker ----------------------------------------------------------------------------------
-    def _deform_encode(
-        self, state: FaceState, seq: int, wall: float, encodings: set[str]
-    ) -> tuple[dict[str, tuple[bytes, bytes]], float]:
-        """Deform and encode one state (in a worker thread): ``{encoding: (payload, websocket frame)}``
-        and the seconds it took."""
-        t0 = time.perf_counter()
-        if self._animator_lock is not None:
-            with self._animator_lock:
-                v = self.animator.frame(state)
-        else:
-            v = self.animator.frame(state)
-        v = np.asarray(v, dtype=np.float32)
-        out = {}
-        for e in sorted(encodings):
-            payload = frames.encode_vertices(v, e, seq=seq, t=state.t, wall=wall)
-            out[e] = (payload, ws_binary_frame(payload))  # the same bytes serve every viewer
-        return out, time.perf_counter() - t0
-
     async def _run(self) -> None:
-        loop = asyncio.get_running_loop()
         while not self.closed:
             if not self.pending:
                 if self._status_due:
@@ -264,12 +233,12 @@ class LiveSession:
                 await self._wake.wait()
                 continue
             seq, state, wall = self.pending.popleft()
-            encodings = {v.encoding for v in self.viewers}
+            encodings = frozenset(v.encoding for v in self.viewers)
             if not encodings:
                 continue  # nobody watches: skip the work, the numbering still advances
             try:
-                encoded, dt = await loop.run_in_executor(
-                    self.executor, self._deform_encode, state, seq, wall, encodings
+                encoded, dt = await self.batcher.submit(
+                    state, seq=seq, wall=wall, encodings=encodings
                 )
             except asyncio.CancelledError:
                 raise
