@@ -8,6 +8,7 @@ take's ground truth. Baselines from the same run: the raw take (visible samples 
 take stabilised directly (Kabsch on the raw stable markers). Target (issue 6): p95 at least 3x lower
 than the raw take's. Writes ``bench/out/mocap_cleaning.json`` and prints markdown tables.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,8 +26,12 @@ OUT = Path(__file__).resolve().parent / "out" / "mocap_cleaning.json"
 def stats(err: np.ndarray) -> dict:
     e = np.asarray(err, dtype=np.float64)
     e = e[np.isfinite(e)]
-    return {"mean_mm": float(e.mean()), "p95_mm": float(np.percentile(e, 95)), "max_mm": float(e.max()),
-            "samples": int(e.size)}
+    return {
+        "mean_mm": float(e.mean()),
+        "p95_mm": float(np.percentile(e, 95)),
+        "max_mm": float(e.max()),
+        "samples": int(e.size),
+    }
 
 
 def lag_frames(est: np.ndarray, truth: np.ndarray, max_lag: int = 24) -> int:
@@ -52,13 +57,26 @@ def main(argv: list[str]) -> int:
 
     face = load_ict()
     with tempfile.TemporaryDirectory() as tmp:
-        paths = generate(tmp, n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=a.seed, formats=("c3d",),
-                         n_stable=a.stable)
+        paths = generate(
+            tmp,
+            n_markers=a.markers,
+            seconds=a.seconds,
+            fps=a.fps,
+            seed=a.seed,
+            formats=("c3d",),
+            n_stable=a.stable,
+        )
         truth = load_truth(paths["truth"])
         take = read_take(paths["c3d"])
         layout = json.loads(Path(paths["layout"]).read_text())
 
-    records: dict = {"markers": a.markers, "seconds": a.seconds, "fps": a.fps, "seed": a.seed, "rows": []}
+    records: dict = {
+        "markers": a.markers,
+        "seconds": a.seconds,
+        "fps": a.fps,
+        "seed": a.seed,
+        "rows": [],
+    }
     raw = take.xyz  # mm, take order == truth order
     seen = np.isfinite(raw).all(axis=2)
     records["occluded_fraction"] = float(1 - seen.mean())
@@ -69,8 +87,13 @@ def main(argv: list[str]) -> int:
     stable = np.array([truth.names.index(n) for n in truth.stable])
     r0, t0, _ = head_track(raw, stable, raw[0], refine=0)
     raw_local = remove_head(raw, r0, t0)
-    rows.append({"stage": "raw take stabilised (visible)", "filter": "-",
-                 **stats(np.linalg.norm(raw_local - truth.local, axis=2)[seen])})
+    rows.append(
+        {
+            "stage": "raw take stabilised (visible)",
+            "filter": "-",
+            **stats(np.linalg.norm(raw_local - truth.local, axis=2)[seen]),
+        }
+    )
     raw_disp = np.linalg.norm((raw_local - raw_local[0]) - (truth.local - truth.local[0]), axis=2)
     rows.append({"stage": "raw displacements (visible)", "filter": "-", **stats(raw_disp[seen])})
 
@@ -85,18 +108,34 @@ def main(argv: list[str]) -> int:
         e_local = np.linalg.norm(local - truth.local, axis=2)
         disp = (local - proc.rig.neutral) - (truth.local - truth.local[proc.neutral_frame])
         e_disp = np.linalg.norm(disp, axis=2)
-        ang = np.degrees(np.arccos(np.clip((np.einsum("tji,tji->t", proc.r, truth.head_r) - 1) / 2, -1, 1)))
-        rows.append({"stage": "cleaned (all samples)", "filter": filt, **stats(e_clean), "seconds": elapsed})
+        ang = np.degrees(
+            np.arccos(np.clip((np.einsum("tji,tji->t", proc.r, truth.head_r) - 1) / 2, -1, 1))
+        )
+        rows.append(
+            {"stage": "cleaned (all samples)", "filter": filt, **stats(e_clean), "seconds": elapsed}
+        )
         rows.append({"stage": "cleaned, gap samples only", "filter": filt, **stats(e_clean[~seen])})
         rows.append({"stage": "stabilised (all samples)", "filter": filt, **stats(e_local)})
         rows.append({"stage": "stabilised displacements", "filter": filt, **stats(e_disp)})
-        rows.append({"stage": "head rotation (deg)", "filter": filt, "mean_mm": float(ang.mean()),
-                     "p95_mm": float(np.percentile(ang, 95)), "max_mm": float(ang.max()), "samples": int(ang.size)})
+        rows.append(
+            {
+                "stage": "head rotation (deg)",
+                "filter": filt,
+                "mean_mm": float(ang.mean()),
+                "p95_mm": float(np.percentile(ang, 95)),
+                "max_mm": float(ang.max()),
+                "samples": int(ang.size),
+            }
+        )
         if filt == "kalman":
             from facecast.server.mocap.clean import kalman_lag
 
-            records["kalman_sine_lag_ms"] = {f"{f:g} Hz": v for f, v in kalman_lag(
-                a.fps, float(np.median(proc.info["q"])), proc.info["r"]).items()}
+            records["kalman_sine_lag_ms"] = {
+                f"{f:g} Hz": v
+                for f, v in kalman_lag(
+                    a.fps, float(np.median(proc.info["q"])), proc.info["r"]
+                ).items()
+            }
             records["kalman_lag_frames"] = lag_frames(cleaned, truth.clean)
             records["kalman_lag_ms"] = 1000.0 * records["kalman_lag_frames"] / a.fps
         if filt == "rts":
@@ -111,24 +150,36 @@ def main(argv: list[str]) -> int:
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(records, indent=1) + "\n")
 
-    print(f"Mocap cleaning — ICT take, {a.markers} markers, {a.seconds:g} s at {a.fps:g} fps, "
-          f"{100 * records['occluded_fraction']:.1f}% samples occluded, seed {a.seed}\n")
+    print(
+        f"Mocap cleaning — ICT take, {a.markers} markers, {a.seconds:g} s at {a.fps:g} fps, "
+        f"{100 * records['occluded_fraction']:.1f}% samples occluded, seed {a.seed}\n"
+    )
     print("| stage | filter | mean (mm) | p95 (mm) | max (mm) | raw p95 / p95 |")
     print("|---|---|---:|---:|---:|---:|")
     for r in rows:
         unit_note = " (deg)" if "deg" in r["stage"] else ""
         ratio = f"{r['raw_p95_over_p95']:.2f}x" if "raw_p95_over_p95" in r else ""
-        print(f"| {r['stage']} | {r['filter']} | {r['mean_mm']:.3f}{unit_note} | {r['p95_mm']:.3f} | "
-              f"{r['max_mm']:.2f} | {ratio} |")
+        print(
+            f"| {r['stage']} | {r['filter']} | {r['mean_mm']:.3f}{unit_note} | {r['p95_mm']:.3f} | "
+            f"{r['max_mm']:.2f} | {ratio} |"
+        )
     best = next(r for r in rows if r["stage"] == "cleaned (all samples)" and r["filter"] == "rts")
-    stab = next(r for r in rows if r["stage"] == "stabilised displacements" and r["filter"] == "rts")
-    print("\nKalman (causal) lag on sinusoids: " + ", ".join(f"{k}: {v:.1f} ms"
-                                                        for k, v in records["kalman_sine_lag_ms"].items()))
-    print(f"best-aligning delay on the take: {records['kalman_lag_frames']} frames = {records['kalman_lag_ms']:.1f} ms; "
-          f"spikes rejected: {records['spikes_rejected']}; r = {records['r_mm2']:.3f} mm²")
-    print(f"- target p95 >= 3x lower than raw: cleaned {best['raw_p95_over_p95']:.2f}x "
-          f"({'met' if best['raw_p95_over_p95'] >= 3 else 'NOT met'}); stabilised displacements "
-          f"{stab['raw_p95_over_p95']:.2f}x ({'met' if stab['raw_p95_over_p95'] >= 3 else 'NOT met'})")
+    stab = next(
+        r for r in rows if r["stage"] == "stabilised displacements" and r["filter"] == "rts"
+    )
+    print(
+        "\nKalman (causal) lag on sinusoids: "
+        + ", ".join(f"{k}: {v:.1f} ms" for k, v in records["kalman_sine_lag_ms"].items())
+    )
+    print(
+        f"best-aligning delay on the take: {records['kalman_lag_frames']} frames = {records['kalman_lag_ms']:.1f} ms; "
+        f"spikes rejected: {records['spikes_rejected']}; r = {records['r_mm2']:.3f} mm²"
+    )
+    print(
+        f"- target p95 >= 3x lower than raw: cleaned {best['raw_p95_over_p95']:.2f}x "
+        f"({'met' if best['raw_p95_over_p95'] >= 3 else 'NOT met'}); stabilised displacements "
+        f"{stab['raw_p95_over_p95']:.2f}x ({'met' if stab['raw_p95_over_p95'] >= 3 else 'NOT met'})"
+    )
     return 0
 
 

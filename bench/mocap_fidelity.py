@@ -10,6 +10,7 @@ engine driven by the exact marker displacements (no capture error: the engine's 
 Target (issue 6): with ~60 markers, mean skin error <= 1/4 of the not-deforming error.
 Writes ``bench/out/mocap_fidelity.json`` and prints a markdown table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,7 +38,13 @@ def main(argv: list[str]) -> int:
     a = p.parse_args(argv)
 
     from facecast.server.mocap.driver import process
-    from facecast.server.mocap.generate import generate, load_expressions, load_ict, load_truth, truth_vertices
+    from facecast.server.mocap.generate import (
+        generate,
+        load_expressions,
+        load_ict,
+        load_truth,
+        truth_vertices,
+    )
     from facecast.server.mocap.io import read_take
     from facecast.server.pipeline import Animator
     from facecast.server.state import FaceState
@@ -45,8 +52,15 @@ def main(argv: list[str]) -> int:
     face = load_ict()
     _, deltas = load_expressions(face)
     with tempfile.TemporaryDirectory() as tmp:
-        paths = generate(tmp, n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=a.seed, formats=("c3d",),
-                         n_stable=a.stable)
+        paths = generate(
+            tmp,
+            n_markers=a.markers,
+            seconds=a.seconds,
+            fps=a.fps,
+            seed=a.seed,
+            formats=("c3d",),
+            n_stable=a.stable,
+        )
         truth = load_truth(paths["truth"])
         take = read_take(paths["c3d"])
         layout = json.loads(Path(paths["layout"]).read_text())
@@ -68,26 +82,48 @@ def main(argv: list[str]) -> int:
             out[name] = {"mean_mm": float(e.mean()), "p95_mm": float(np.percentile(e, 95))}
         return out
 
-    records: dict = {"markers": a.markers, "controls": int(len(cv)), "seconds": a.seconds, "fps": a.fps,
-                     "frames_evaluated": int(len(frames)), "skin_vertices": int(len(skin)),
-                     "moving_skin_vertices": int(len(moving)), "driver_seconds": driver_s, "rows": []}
+    records: dict = {
+        "markers": a.markers,
+        "controls": len(cv),
+        "seconds": a.seconds,
+        "fps": a.fps,
+        "frames_evaluated": len(frames),
+        "skin_vertices": len(skin),
+        "moving_skin_vertices": len(moving),
+        "driver_seconds": driver_s,
+        "rows": [],
+    }
     rows = records["rows"]
-    rows.append({"method": "not deforming (neutral)", "engine": "-",
-                 **errors(np.broadcast_to(face.vertices, gt.shape))})
+    rows.append(
+        {
+            "method": "not deforming (neutral)",
+            "engine": "-",
+            **errors(np.broadcast_to(face.vertices, gt.shape)),
+        }
+    )
     for engine in a.engines:
         t0 = time.perf_counter()
         anim = Animator(face, engine=engine, backend=a.backend, control_vertices=cv)
         build_s = time.perf_counter() - t0
 
-        def render(ds: list[np.ndarray]) -> np.ndarray:
+        def render(ds: list[np.ndarray], animator=anim) -> np.ndarray:
             out = np.empty_like(gt)
             for i, d in enumerate(ds):
-                out[i] = anim.frame(FaceState(controls=d))  # head removed: compare in head space
+                out[i] = animator.frame(
+                    FaceState(controls=d)
+                )  # head removed: compare in head space
             return out
 
         mocap = render([proc.states[f].controls for f in frames])
         oracle = render([exact[i].astype(np.float32) for i in range(len(frames))])
-        rows.append({"method": "mocap take (driver)", "engine": engine, **errors(mocap), "operator_s": build_s})
+        rows.append(
+            {
+                "method": "mocap take (driver)",
+                "engine": engine,
+                **errors(mocap),
+                "operator_s": build_s,
+            }
+        )
         rows.append({"method": "exact marker displacements", "engine": engine, **errors(oracle)})
     base = rows[0]["skin"]["mean_mm"]
     for r in rows:
@@ -95,19 +131,27 @@ def main(argv: list[str]) -> int:
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(records, indent=1) + "\n")
 
-    print(f"Mocap fidelity — ICT head, {a.markers} markers ({len(cv)} controls), {a.seconds:g} s at {a.fps:g} fps, "
-          f"every {a.every}th frame ({len(frames)} frames), {len(skin)} skin vertices ({len(moving)} that move)\n")
-    print("| input | engine | skin mean (mm) | skin p95 (mm) | moving skin mean | moving skin p95 | neutral / mean |")
+    print(
+        f"Mocap fidelity — ICT head, {a.markers} markers ({len(cv)} controls), {a.seconds:g} s at {a.fps:g} fps, "
+        f"every {a.every}th frame ({len(frames)} frames), {len(skin)} skin vertices ({len(moving)} that move)\n"
+    )
+    print(
+        "| input | engine | skin mean (mm) | skin p95 (mm) | moving skin mean | moving skin p95 | neutral / mean |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['method']} | {r['engine']} | {r['skin']['mean_mm']:.3f} | {r['skin']['p95_mm']:.3f} | "
-              f"{r['moving_skin']['mean_mm']:.3f} | {r['moving_skin']['p95_mm']:.3f} | {r['neutral_over_mean']:.2f}x |")
+        print(
+            f"| {r['method']} | {r['engine']} | {r['skin']['mean_mm']:.3f} | {r['skin']['p95_mm']:.3f} | "
+            f"{r['moving_skin']['mean_mm']:.3f} | {r['moving_skin']['p95_mm']:.3f} | {r['neutral_over_mean']:.2f}x |"
+        )
     print()
     for r in rows[1:]:
         if r["method"].startswith("mocap"):
             ok = r["skin"]["mean_mm"] <= base / 4
-            print(f"- {r['engine']}: mean skin error {r['skin']['mean_mm']:.3f} mm vs {base:.3f} mm not deforming "
-                  f"({r['neutral_over_mean']:.2f}x; target >= 4x): {'met' if ok else 'NOT met'}")
+            print(
+                f"- {r['engine']}: mean skin error {r['skin']['mean_mm']:.3f} mm vs {base:.3f} mm not deforming "
+                f"({r['neutral_over_mean']:.2f}x; target >= 4x): {'met' if ok else 'NOT met'}"
+            )
     return 0
 
 

@@ -10,6 +10,7 @@ from the same run, the deformation alone. The Kalman filter's lag is the delay t
 driver's stabilised output with the ground truth. Target (issue 6): >= 120 frames/s sustained with
 60 markers on the 25k-vertex face. Writes ``bench/out/mocap_live.json`` and prints a table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,8 +26,13 @@ OUT = Path(__file__).resolve().parent / "out" / "mocap_live.json"
 
 def pct(ms: list[float]) -> dict:
     a = np.asarray(ms)
-    return {"mean_ms": float(a.mean()), "p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95)),
-            "p99_ms": float(np.percentile(a, 99)), "max_ms": float(a.max())}
+    return {
+        "mean_ms": float(a.mean()),
+        "p50_ms": float(np.percentile(a, 50)),
+        "p95_ms": float(np.percentile(a, 95)),
+        "p99_ms": float(np.percentile(a, 99)),
+        "max_ms": float(a.max()),
+    }
 
 
 def main(argv: list[str]) -> int:
@@ -45,7 +51,9 @@ def main(argv: list[str]) -> int:
     from facecast.server.pipeline import Animator
 
     face = load_face(a.face)
-    syn = synthetic_take(face, n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=7, noise_mm=0.5, gaps=True)
+    syn = synthetic_take(
+        face, n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=7, noise_mm=0.5, gaps=True
+    )
     frames = syn.take.xyz.astype(np.float32)
     drv = MarkerLiveDriver(face, syn.take.names, syn.layout, fps=a.fps)
     t0 = time.perf_counter()
@@ -85,7 +93,7 @@ def main(argv: list[str]) -> int:
     n0 = len(frames) - len(states)
     d = np.stack([s.controls[: a.markers] for s in states]) * face.mm_per_unit
     truth = (syn.local - syn.local[0])[n0:]
-    lags = [float(np.mean((d[k:] - truth[: len(truth) - k]) ** 2)) for k in range(0, 25)]
+    lags = [float(np.mean((d[k:] - truth[: len(truth) - k]) ** 2)) for k in range(25)]
     lag = int(np.argmin(lags))
     err = np.linalg.norm(d - truth, axis=2)
     raw = syn.take.xyz * 1.0  # capture noise baseline: raw markers stabilised with the true pose
@@ -95,36 +103,66 @@ def main(argv: list[str]) -> int:
     from facecast.server.mocap.clean import kalman_lag
 
     sine_lag = kalman_lag(a.fps, drv.kf.Q[1, 1] / drv.kf.dt, drv.kf.r)
-    rec = {"face": a.face, "vertices": face.n_vertices, "markers": a.markers,
-           "controls": int(len(drv.control_vertices)), "fps": a.fps, "frames": len(states), "backend": backend,
-           "engine": a.engine, "setup_s": setup_s, "driver": pct(drv_ms), "driver_plus_deform": pct(total_ms),
-           "deform_only": pct(base_ms), "sustained_fps": len(frames) / wall,
-           "kalman_lag_frames": lag, "kalman_lag_ms": 1e3 * lag / a.fps,
-           "kalman_sine_lag_ms": {f"{f:g} Hz": v for f, v in sine_lag.items()},
-           "control_error_mm": {"mean": float(np.nanmean(err)), "p95": float(np.nanpercentile(err, 95))},
-           "raw_error_mm": {"mean": float(np.nanmean(raw_err)), "p95": float(np.nanpercentile(raw_err, 95))}}
+    rec = {
+        "face": a.face,
+        "vertices": face.n_vertices,
+        "markers": a.markers,
+        "controls": len(drv.control_vertices),
+        "fps": a.fps,
+        "frames": len(states),
+        "backend": backend,
+        "engine": a.engine,
+        "setup_s": setup_s,
+        "driver": pct(drv_ms),
+        "driver_plus_deform": pct(total_ms),
+        "deform_only": pct(base_ms),
+        "sustained_fps": len(frames) / wall,
+        "kalman_lag_frames": lag,
+        "kalman_lag_ms": 1e3 * lag / a.fps,
+        "kalman_sine_lag_ms": {f"{f:g} Hz": v for f, v in sine_lag.items()},
+        "control_error_mm": {
+            "mean": float(np.nanmean(err)),
+            "p95": float(np.nanpercentile(err, 95)),
+        },
+        "raw_error_mm": {
+            "mean": float(np.nanmean(raw_err)),
+            "p95": float(np.nanpercentile(raw_err, 95)),
+        },
+    }
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(rec, indent=1) + "\n")
 
-    print(f"Mocap live — face {a.face} ({face.n_vertices} vertices), {a.markers} markers "
-          f"({rec['controls']} controls with anchors), {a.fps:g} Hz, {len(states)} frames, {a.engine} on {backend}\n")
+    print(
+        f"Mocap live — face {a.face} ({face.n_vertices} vertices), {a.markers} markers "
+        f"({rec['controls']} controls with anchors), {a.fps:g} Hz, {len(states)} frames, {a.engine} on {backend}\n"
+    )
     print("| per frame | mean (ms) | p50 | p95 | p99 | max |")
     print("|---|---:|---:|---:|---:|---:|")
-    for name, key in (("driver (filter, stabilise, retarget)", "driver"),
-                      ("driver + deform (marker frame in -> vertices out)", "driver_plus_deform"),
-                      ("deform alone (baseline)", "deform_only")):
+    for name, key in (
+        ("driver (filter, stabilise, retarget)", "driver"),
+        ("driver + deform (marker frame in -> vertices out)", "driver_plus_deform"),
+        ("deform alone (baseline)", "deform_only"),
+    ):
         r = rec[key]
-        print(f"| {name} | {r['mean_ms']:.3f} | {r['p50_ms']:.3f} | {r['p95_ms']:.3f} | {r['p99_ms']:.3f} | "
-              f"{r['max_ms']:.2f} |")
-    print(f"\nsustained: {rec['sustained_fps']:.0f} frames/s back to back (target >= {a.fps:g}): "
-          f"{'met' if rec['sustained_fps'] >= a.fps else 'NOT met'}; driver share of a frame: "
-          f"{rec['driver']['mean_ms'] / rec['driver_plus_deform']['mean_ms']:.0%}")
-    print("Kalman lag on sinusoids (steady state): " + ", ".join(f"{k}: {v:.1f} ms"
-                                                                  for k, v in rec["kalman_sine_lag_ms"].items()))
-    print(f"best-aligning delay on the take: {lag} frames = {rec['kalman_lag_ms']:.1f} ms; control error mean "
-          f"{rec['control_error_mm']['mean']:.3f} mm, p95 {rec['control_error_mm']['p95']:.3f} mm "
-          f"(raw markers with the true head pose: mean {rec['raw_error_mm']['mean']:.3f}, p95 "
-          f"{rec['raw_error_mm']['p95']:.3f})")
+        print(
+            f"| {name} | {r['mean_ms']:.3f} | {r['p50_ms']:.3f} | {r['p95_ms']:.3f} | {r['p99_ms']:.3f} | "
+            f"{r['max_ms']:.2f} |"
+        )
+    print(
+        f"\nsustained: {rec['sustained_fps']:.0f} frames/s back to back (target >= {a.fps:g}): "
+        f"{'met' if rec['sustained_fps'] >= a.fps else 'NOT met'}; driver share of a frame: "
+        f"{rec['driver']['mean_ms'] / rec['driver_plus_deform']['mean_ms']:.0%}"
+    )
+    print(
+        "Kalman lag on sinusoids (steady state): "
+        + ", ".join(f"{k}: {v:.1f} ms" for k, v in rec["kalman_sine_lag_ms"].items())
+    )
+    print(
+        f"best-aligning delay on the take: {lag} frames = {rec['kalman_lag_ms']:.1f} ms; control error mean "
+        f"{rec['control_error_mm']['mean']:.3f} mm, p95 {rec['control_error_mm']['p95']:.3f} mm "
+        f"(raw markers with the true head pose: mean {rec['raw_error_mm']['mean']:.3f}, p95 "
+        f"{rec['raw_error_mm']['p95']:.3f})"
+    )
     return 0
 
 

@@ -7,6 +7,7 @@ empty cells or ``nan`` = occluded). Units of a CSV come from an optional first c
 of a C3D file from its bytes (Intel byte order, integer or float data), so that clients can read
 takes without ezc3d; the server reads C3D with ezc3d (``facecast.server.mocap.io``).
 """
+
 from __future__ import annotations
 
 import io
@@ -62,12 +63,30 @@ def normalise_units(text: str | None, where: str = "") -> str | None:
     if text is None:
         return None
     t = text.strip().lower().rstrip(".")
-    aliases = {"mm": "mm", "millimeter": "mm", "millimeters": "mm", "millimetre": "mm", "millimetres": "mm",
-               "cm": "cm", "centimeter": "cm", "centimeters": "cm", "centimetre": "cm", "centimetres": "cm",
-               "m": "m", "meter": "m", "meters": "m", "metre": "m", "metres": "m",
-               "in": "in", "inch": "in", "inches": "in"}
+    aliases = {
+        "mm": "mm",
+        "millimeter": "mm",
+        "millimeters": "mm",
+        "millimetre": "mm",
+        "millimetres": "mm",
+        "cm": "cm",
+        "centimeter": "cm",
+        "centimeters": "cm",
+        "centimetre": "cm",
+        "centimetres": "cm",
+        "m": "m",
+        "meter": "m",
+        "meters": "m",
+        "metre": "m",
+        "metres": "m",
+        "in": "in",
+        "inch": "in",
+        "inches": "in",
+    }
     if t not in aliases:
-        raise MarkerFileError(f"unknown length unit {text!r}; use one of mm, cm, m, in", where=where)
+        raise MarkerFileError(
+            f"unknown length unit {text!r}; use one of mm, cm, m, in", where=where
+        )
     return aliases[t]
 
 
@@ -75,7 +94,9 @@ def check_take(take: MarkerTake, where: str = "") -> MarkerTake:
     """Validate shapes, names and rate; return the take (xyz as float64)."""
     xyz = np.asarray(take.xyz, dtype=np.float64)
     if xyz.ndim != 3 or xyz.shape[2] != 3 or xyz.shape[1] != len(take.names):
-        raise MarkerFileError(f"positions must be (frames, {len(take.names)}, 3), got {xyz.shape}", where=where)
+        raise MarkerFileError(
+            f"positions must be (frames, {len(take.names)}, 3), got {xyz.shape}", where=where
+        )
     if len(set(take.names)) != len(take.names):
         dup = sorted({n for n in take.names if take.names.count(n) > 1})
         raise MarkerFileError(f"duplicate marker names: {', '.join(dup)}", where=where)
@@ -91,6 +112,7 @@ def check_take(take: MarkerTake, where: str = "") -> MarkerTake:
 
 # --------------------------------------------------------------------------------------------- TRC
 
+
 def read_trc(text: str, *, where: str = "") -> MarkerTake:
     """Parse a TRC file (tab-separated; header lines 1-5 as written by Motion Analysis / OpenSim)."""
     lines = text.splitlines()
@@ -103,13 +125,16 @@ def read_trc(text: str, *, where: str = "") -> MarkerTake:
         fps = float(meta.get("DataRate") or meta.get("CameraRate") or "nan")
         n_markers = int(meta["NumMarkers"])
     except (KeyError, ValueError):
-        raise MarkerFileError("line 3 must give DataRate and NumMarkers", where=f"{where}:3") from None
+        raise MarkerFileError(
+            "line 3 must give DataRate and NumMarkers", where=f"{where}:3"
+        ) from None
     units = normalise_units(meta.get("Units"), where=f"{where}:3") if meta.get("Units") else None
     header = lines[3].split("\t")
     names = [h.strip() for h in header[2:] if h.strip()]
     if len(names) != n_markers:
-        raise MarkerFileError(f"line 4 names {len(names)} markers but NumMarkers is {n_markers}",
-                              where=f"{where}:4")
+        raise MarkerFileError(
+            f"line 4 names {len(names)} markers but NumMarkers is {n_markers}", where=f"{where}:4"
+        )
     rows: list[np.ndarray] = []
     times: list[float] = []
     for ln, line in enumerate(lines[5:], start=6):
@@ -122,10 +147,12 @@ def read_trc(text: str, *, where: str = "") -> MarkerTake:
             times.append(float(cells[1]))
         except ValueError:
             raise MarkerFileError(f"bad time {cells[1]!r}", where=f"{where}:{ln}") from None
-        coords = cells[2:2 + 3 * n_markers]
+        coords = cells[2 : 2 + 3 * n_markers]
         coords += [""] * (3 * n_markers - len(coords))
         try:
-            rows.append(np.array([float(c) if c.strip() else np.nan for c in coords], dtype=np.float64))
+            rows.append(
+                np.array([float(c) if c.strip() else np.nan for c in coords], dtype=np.float64)
+            )
         except ValueError as e:
             raise MarkerFileError(f"bad coordinate ({e})", where=f"{where}:{ln}") from None
     if not rows:
@@ -140,7 +167,9 @@ def write_trc(take: MarkerTake, *, filename: str = "take.trc") -> str:
     t, m = take.xyz.shape[:2]
     out = io.StringIO()
     out.write(f"PathFileType\t4\t(X/Y/Z)\t{filename}\n")
-    out.write("DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames\n")
+    out.write(
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames\n"
+    )
     out.write(f"{take.fps:g}\t{take.fps:g}\t{t}\t{m}\t{take.units or 'mm'}\t{take.fps:g}\t1\t{t}\n")
     out.write("Frame#\tTime\t" + "\t\t\t".join(take.names) + "\t\t\n")
     out.write("\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(m)) + "\n")
@@ -151,6 +180,7 @@ def write_trc(take: MarkerTake, *, filename: str = "take.trc") -> str:
 
 
 # --------------------------------------------------------------------------------------------- CSV
+
 
 def read_csv(text: str, *, where: str = "", fps: float | None = None) -> MarkerTake:
     """Parse a CSV take (see module docstring). The rate comes from the time column unless given."""
@@ -167,25 +197,34 @@ def read_csv(text: str, *, where: str = "", fps: float | None = None) -> MarkerT
         raise MarkerFileError("no header line", where=where)
     header = [h.strip() for h in lines[start].split(",")]
     if not header or header[0].lower() not in ("time", "t", "time_s", "seconds"):
-        raise MarkerFileError("the first column must be 'time' (seconds)", where=f"{where}:{start + 1}")
+        raise MarkerFileError(
+            "the first column must be 'time' (seconds)", where=f"{where}:{start + 1}"
+        )
     cols = header[1:]
     if len(cols) % 3:
-        raise MarkerFileError(f"{len(cols)} coordinate columns is not a multiple of 3", where=f"{where}:{start + 1}")
+        raise MarkerFileError(
+            f"{len(cols)} coordinate columns is not a multiple of 3", where=f"{where}:{start + 1}"
+        )
     names = []
     for i in range(0, len(cols), 3):
-        trio = cols[i:i + 3]
+        trio = cols[i : i + 3]
         base = trio[0][:-2]
-        if [c[-2:].lower() for c in trio] != ["_x", "_y", "_z"] or any(c[:-2] != base for c in trio):
-            raise MarkerFileError(f"columns {trio} must be <name>_x, <name>_y, <name>_z",
-                                  where=f"{where}:{start + 1}")
+        if [c[-2:].lower() for c in trio] != ["_x", "_y", "_z"] or any(
+            c[:-2] != base for c in trio
+        ):
+            raise MarkerFileError(
+                f"columns {trio} must be <name>_x, <name>_y, <name>_z", where=f"{where}:{start + 1}"
+            )
         names.append(base)
     times, rows = [], []
-    for ln, line in enumerate(lines[start + 1:], start=start + 2):
+    for ln, line in enumerate(lines[start + 1 :], start=start + 2):
         if not line.strip():
             continue
         cells = line.split(",")
         if len(cells) != len(header):
-            raise MarkerFileError(f"{len(cells)} cells, the header has {len(header)}", where=f"{where}:{ln}")
+            raise MarkerFileError(
+                f"{len(cells)} cells, the header has {len(header)}", where=f"{where}:{ln}"
+            )
         try:
             times.append(float(cells[0]))
             rows.append([float(c) if c.strip() else np.nan for c in cells[1:]])
@@ -196,7 +235,9 @@ def read_csv(text: str, *, where: str = "", fps: float | None = None) -> MarkerT
     tt = np.asarray(times)
     if fps is None:
         if len(tt) < 2:
-            raise MarkerFileError("one frame only: cannot tell the frame rate; pass fps", where=where)
+            raise MarkerFileError(
+                "one frame only: cannot tell the frame rate; pass fps", where=where
+            )
         dt = np.diff(tt)
         if (dt <= 0).any():
             raise MarkerFileError("time column must increase", where=where)
@@ -222,7 +263,10 @@ def write_csv(take: MarkerTake) -> str:
 
 # --------------------------------------------------------------------------------------------- C3D
 
-def _c3d_parameters(data: bytes, start: int, where: str) -> dict[str, dict[str, tuple[int, tuple, bytes]]]:
+
+def _c3d_parameters(
+    data: bytes, start: int, where: str
+) -> dict[str, dict[str, tuple[int, tuple, bytes]]]:
     """Groups -> parameters -> ``(type, dims, raw bytes)`` of a C3D parameter section."""
     groups: dict[int, str] = {}
     params: dict[int, dict[str, tuple[int, tuple, bytes]]] = {}
@@ -233,7 +277,7 @@ def _c3d_parameters(data: bytes, start: int, where: str) -> dict[str, dict[str, 
         gid = struct.unpack_from("<b", data, pos + 1)[0]
         if name_len == 0:
             break
-        name = data[pos + 2:pos + 2 + name_len].decode("ascii", "replace").strip().upper()
+        name = data[pos + 2 : pos + 2 + name_len].decode("ascii", "replace").strip().upper()
         off_pos = pos + 2 + name_len
         if off_pos + 2 > end:
             raise MarkerFileError("truncated parameter section", where=where)
@@ -244,9 +288,9 @@ def _c3d_parameters(data: bytes, start: int, where: str) -> dict[str, dict[str, 
         else:
             ptype = struct.unpack_from("<b", data, body)[0]
             ndim = struct.unpack_from("<B", data, body + 1)[0]
-            dims = tuple(data[body + 2:body + 2 + ndim])
+            dims = tuple(data[body + 2 : body + 2 + ndim])
             size = abs(ptype) * (int(np.prod(dims)) if ndim else 1)
-            raw = data[body + 2 + ndim:body + 2 + ndim + size]
+            raw = data[body + 2 + ndim : body + 2 + ndim + size]
             params.setdefault(gid, {})[name] = (ptype, dims, raw)
         if nxt == 0:
             break
@@ -260,7 +304,7 @@ def _c3d_value(param: tuple[int, tuple, bytes]):
         if len(dims) <= 1:
             return raw.decode("latin-1").strip()
         w = dims[0]
-        return [raw[i * w:(i + 1) * w].decode("latin-1").strip() for i in range(len(raw) // w)]
+        return [raw[i * w : (i + 1) * w].decode("latin-1").strip() for i in range(len(raw) // w)]
     fmt = {1: "b", 2: "h", 4: "f"}[abs(ptype)]
     return np.frombuffer(raw, dtype="<" + fmt).tolist()
 
@@ -282,8 +326,11 @@ def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
     if pstart + 4 > len(data):
         raise MarkerFileError("the parameter section is missing", where=where)
     if data[pstart + 3] != 84:
-        raise MarkerFileError(f"processor type {data[pstart + 3]} is not supported (only Intel, 84); re-save the "
-                              "take from your capture software or read it with ezc3d", where=where)
+        raise MarkerFileError(
+            f"processor type {data[pstart + 3]} is not supported (only Intel, 84); re-save the "
+            "take from your capture software or read it with ezc3d",
+            where=where,
+        )
     params = _c3d_parameters(data, pstart, where)
     point = params.get("POINT", {})
     labels: list[str] = []
@@ -298,7 +345,11 @@ def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
     units = None
     if "UNITS" in point:
         u = _c3d_value(point["UNITS"])
-        units = normalise_units(u[0] if isinstance(u, list) else u, where=f"{where}: POINT:UNITS") if u else None
+        units = (
+            normalise_units(u[0] if isinstance(u, list) else u, where=f"{where}: POINT:UNITS")
+            if u
+            else None
+        )
     n_frames = last - first + 1
     if "FRAMES" in point:  # may exceed the header's 16-bit frame numbers
         n_frames = max(n_frames, int(_c3d_value(point["FRAMES"])[0]) & 0xFFFF)
@@ -308,12 +359,20 @@ def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
     offset = (data_start - 1) * 512
     available = max(0, (len(data) - offset) // per_frame) if per_frame else 0
     if n_frames > available:
-        raise MarkerFileError(f"the header promises {n_frames} frames, the file holds {available}", where=where)
+        raise MarkerFileError(
+            f"the header promises {n_frames} frames, the file holds {available}", where=where
+        )
     dtype = "<f4" if is_float else "<i2"
     block = np.frombuffer(data, dtype=dtype, count=n_frames * per_frame // word, offset=offset)
-    block = block.reshape(n_frames, -1)[:, :4 * n_points].reshape(n_frames, n_points, 4).astype(np.float64)
+    block = (
+        block.reshape(n_frames, -1)[:, : 4 * n_points]
+        .reshape(n_frames, n_points, 4)
+        .astype(np.float64)
+    )
     xyz = block[..., :3] * (1.0 if is_float else scale)
     residual = block[..., 3]
     xyz[(residual < 0) | ~np.isfinite(xyz).all(axis=2)] = np.nan
     names = [labels[i] if i < len(labels) and labels[i] else f"M{i:03d}" for i in range(n_points)]
-    return check_take(MarkerTake(names, xyz, float(rate), units, (first - 1) / rate if rate > 0 else 0.0), where)
+    return check_take(
+        MarkerTake(names, xyz, float(rate), units, (first - 1) / rate if rate > 0 else 0.0), where
+    )

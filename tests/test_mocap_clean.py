@@ -1,10 +1,21 @@
 """Cleaning: DCT gap filling, spike rejection, constant-velocity Kalman filter and RTS smoother."""
+
 from __future__ import annotations
 
 import numpy as np
-
-from facecast.server.mocap.clean import (CleanParams, KalmanCV, clean, despike, estimate_q, estimate_r, fill_gap_dct,
-                                         fill_gaps, find_gaps, kalman_filter, rts_smooth)
+from facecast.server.mocap.clean import (
+    CleanParams,
+    KalmanCV,
+    clean,
+    despike,
+    estimate_q,
+    estimate_r,
+    fill_gap_dct,
+    fill_gaps,
+    find_gaps,
+    kalman_filter,
+    rts_smooth,
+)
 
 FPS = 120.0
 
@@ -66,12 +77,12 @@ def test_kalman_reduces_noise_and_its_lag_is_bounded(rng):
     assert rms_kf < 0.75 * rms_raw
     # lag: the shift that best aligns the filtered signal with the truth
     shifts = np.arange(0, 13)
-    errs = [np.mean((out[60 + s:] - sig[60:len(sig) - s]) ** 2) for s in shifts]
+    errs = [np.mean((out[60 + s :] - sig[60 : len(sig) - s]) ** 2) for s in shifts]
     assert shifts[int(np.argmin(errs))] <= 3  # <= 25 ms at 120 Hz
     # a step is followed within a bounded number of frames
     step = np.r_[np.zeros(60), np.full(60, 10.0)]
     out = kalman_filter(np.stack([step] * 3, -1)[:, None, :], FPS, q=1e3, r=0.25, gate=1e9)[:, 0, 0]
-    assert np.abs(out[60 + 24:] - 10.0).max() < 1.0
+    assert np.abs(out[60 + 24 :] - 10.0).max() < 1.0
 
 
 def test_kalman_phase_lag_is_small_at_facial_speeds():
@@ -79,7 +90,9 @@ def test_kalman_phase_lag_is_small_at_facial_speeds():
 
     lag = kalman_lag(FPS, q=1e3, r=0.25, freqs=(1.0, 2.0))
     assert 0.0 < lag[1.0] < lag[2.0] < 25.0  # ms; it grows with speed and stays a few frames
-    assert kalman_lag(FPS, q=30.0, r=0.25, freqs=(2.0,))[2.0] > lag[2.0]  # heavier filtering lags more
+    assert (
+        kalman_lag(FPS, q=30.0, r=0.25, freqs=(2.0,))[2.0] > lag[2.0]
+    )  # heavier filtering lags more
 
 
 def test_kalman_coasts_through_occlusion_and_gates_spikes():
@@ -111,7 +124,9 @@ def test_rts_smoother_beats_the_causal_filter_and_fits_noise(rng):
 
 def test_clean_pipeline_counts(rng):
     sig = _signal(300)
-    xyz = np.stack([sig, sig, sig], -1)[:, None, :].repeat(3, axis=1) + rng.normal(0, 0.4, (300, 3, 3))
+    xyz = np.stack([sig, sig, sig], -1)[:, None, :].repeat(3, axis=1) + rng.normal(
+        0, 0.4, (300, 3, 3)
+    )
     xyz[50:70, 1] = np.nan
     xyz[200, 2] += 30.0
     out, info = clean(xyz, FPS, CleanParams(filter="rts"))

@@ -1,10 +1,17 @@
 """Marker take readers and writers: C3D (ezc3d), TRC, CSV round trips with occlusions; units; errors."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from facecast.protocol.markers_file import MarkerFileError, MarkerTake, read_csv, read_trc, write_csv, write_trc
+from facecast.protocol.markers_file import (
+    MarkerFileError,
+    MarkerTake,
+    read_csv,
+    read_trc,
+    write_csv,
+    write_trc,
+)
 from facecast.server.errors import InputError
 from facecast.server.mocap.io import detect_units, read_take, write_take
 
@@ -25,7 +32,9 @@ def test_round_trip_keeps_positions_occlusions_rate_and_names(tmp_path, rng, suf
     assert back.fps == pytest.approx(120.0)
     assert back.units == "mm"
     assert np.array_equal(np.isnan(back.xyz), np.isnan(take.xyz))
-    np.testing.assert_allclose(back.xyz, take.xyz, atol=1e-3 if suffix == ".c3d" else 1e-9, equal_nan=True)
+    np.testing.assert_allclose(
+        back.xyz, take.xyz, atol=1e-3 if suffix == ".c3d" else 1e-9, equal_nan=True
+    )
 
 
 def test_units_are_detected_when_undeclared(tmp_path, rng):
@@ -97,8 +106,11 @@ def test_text_round_trip_property(fmt):
     from hypothesis import strategies as st
     from hypothesis.extra.numpy import arrays
 
-    coords = arrays(np.float64, st.tuples(st.integers(2, 6), st.integers(1, 4), st.just(3)),
-                    elements=st.one_of(st.floats(-1e4, 1e4, allow_nan=False), st.just(np.nan)))
+    coords = arrays(
+        np.float64,
+        st.tuples(st.integers(2, 6), st.integers(1, 4), st.just(3)),
+        elements=st.one_of(st.floats(-1e4, 1e4, allow_nan=False), st.just(np.nan)),
+    )
 
     @settings(max_examples=40, deadline=None)
     @given(coords)

@@ -1,19 +1,28 @@
 """Marker layouts: parsing errors, placement on a face (vertex, FP, automatic), batch driver errors."""
+
 from __future__ import annotations
 
 import json
 
 import numpy as np
 import pytest
-
 from facecast.server.errors import InputError
 from facecast.server.faces.face import Face
 from facecast.server.mocap.driver import process
 from facecast.server.mocap.layout import load_layout, place_markers
 from facecast.server.mocap.synthetic import ellipsoid_face, synthetic_take
 
-GOOD = {"units": "mm", "stable": ["A", "B", "C"],
-        "markers": {"A": {"vertex": 0}, "B": {"vertex": 1}, "C": {"vertex": 2}, "D": {"fp": "2.1"}, "E": {}}}
+GOOD = {
+    "units": "mm",
+    "stable": ["A", "B", "C"],
+    "markers": {
+        "A": {"vertex": 0},
+        "B": {"vertex": 1},
+        "C": {"vertex": 2},
+        "D": {"fp": "2.1"},
+        "E": {},
+    },
+}
 
 
 def test_a_good_layout_parses_and_finds_the_jaw_marker(tmp_path):
@@ -25,18 +34,24 @@ def test_a_good_layout_parses_and_finds_the_jaw_marker(tmp_path):
     assert load_layout(json.dumps(GOOD)).names == lay.names
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"stable": ["A", "B"]}, "at least 3 stable"),
-    ({"stable": ["A", "B", "Z"]}, "Z are not in 'markers'"),
-    ({"markers": {}}, "non-empty"),
-    ({"markers": {**GOOD["markers"], "F": {"vertex": -3}}}, "markers.F.*non-negative"),
-    ({"markers": {**GOOD["markers"], "F": {"vertex": 1, "fp": "2.1"}}}, "either 'vertex' or 'fp'"),
-    ({"markers": {**GOOD["markers"], "F": {"vertx": 1}}}, "unknown key.*vertx"),
-    ({"units": "furlongs"}, "unknown length unit"),
-    ({"neutral_frame": -1}, "neutral_frame"),
-    ({"jaw": "Q"}, "jaw marker 'Q'"),
-    ({"extra": 1}, "unknown field"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"stable": ["A", "B"]}, "at least 3 stable"),
+        ({"stable": ["A", "B", "Z"]}, "Z are not in 'markers'"),
+        ({"markers": {}}, "non-empty"),
+        ({"markers": {**GOOD["markers"], "F": {"vertex": -3}}}, "markers.F.*non-negative"),
+        (
+            {"markers": {**GOOD["markers"], "F": {"vertex": 1, "fp": "2.1"}}},
+            "either 'vertex' or 'fp'",
+        ),
+        ({"markers": {**GOOD["markers"], "F": {"vertx": 1}}}, "unknown key.*vertx"),
+        ({"units": "furlongs"}, "unknown length unit"),
+        ({"neutral_frame": -1}, "neutral_frame"),
+        ({"jaw": "Q"}, "jaw marker 'Q'"),
+        ({"extra": 1}, "unknown field"),
+    ],
+)
 def test_layout_errors_name_the_field(change, message):
     with pytest.raises(InputError, match=message):
         load_layout({**GOOD, **change})
@@ -84,14 +99,28 @@ def test_placement_by_vertex_fp_and_automatic():
 def test_placement_errors():
     face = _face_with_fp()
     with pytest.raises(InputError, match="out of range"):
-        place_markers(load_layout({"stable": ["A", "B", "C"], "markers": {"A": {"vertex": 0}, "B": {"vertex": 1},
-                                                                         "C": {"vertex": 10**6}}}), face)
+        place_markers(
+            load_layout(
+                {
+                    "stable": ["A", "B", "C"],
+                    "markers": {"A": {"vertex": 0}, "B": {"vertex": 1}, "C": {"vertex": 10**6}},
+                }
+            ),
+            face,
+        )
     with pytest.raises(InputError, match="no feature point 9.9"):
-        place_markers(load_layout({**GOOD, "markers": {**GOOD["markers"], "D": {"fp": "9.9"}}}), face,
-                      {n: np.zeros(3) for n in GOOD["markers"]})
+        place_markers(
+            load_layout({**GOOD, "markers": {**GOOD["markers"], "D": {"fp": "9.9"}}}),
+            face,
+            {n: np.zeros(3) for n in GOOD["markers"]},
+        )
     with pytest.raises(InputError, match="at least 4 markers tied"):
         three_tied = {**GOOD, "markers": {k: v for k, v in GOOD["markers"].items() if k != "D"}}
-        place_markers(load_layout(three_tied), face, {n: np.random.default_rng(0).normal(size=3) for n in GOOD["markers"]})
+        place_markers(
+            load_layout(three_tied),
+            face,
+            {n: np.random.default_rng(0).normal(size=3) for n in GOOD["markers"]},
+        )
 
 
 def test_driver_refuses_takes_that_do_not_fit_the_layout():

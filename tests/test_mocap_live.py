@@ -1,9 +1,9 @@
 """The live marker driver: causal per-frame states, bad frames, changed marker counts."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from facecast.server.errors import InputError
 from facecast.server.mocap.live import MarkerLiveDriver
 from facecast.server.mocap.synthetic import ellipsoid_face, synthetic_take
@@ -87,7 +87,9 @@ def test_automatic_placement_waits_for_the_neutral(setup):
 def test_neutral_ignores_frames_where_a_marker_was_hidden(setup):
     face, syn = setup
     xyz = syn.take.xyz.copy()
-    xyz[:3, 0] = np.nan  # a stable marker (a jig marker, not on the face) hidden in the first frames
+    xyz[:3, 0] = (
+        np.nan
+    )  # a stable marker (a jig marker, not on the face) hidden in the first frames
     layout = {**syn.layout, "markers": {**syn.layout["markers"], "HEAD1": {"control": False}}}
     drv = MarkerLiveDriver(face, syn.take.names, layout, neutral_frames=8)
     _run(drv, xyz[:8], syn.take.fps)
@@ -98,7 +100,9 @@ def test_neutral_ignores_frames_where_a_marker_was_hidden(setup):
 
 def test_wrong_units_are_refused_with_a_clear_message(setup):
     face, syn = setup
-    drv = MarkerLiveDriver(face, syn.take.names, syn.layout, units="m", neutral_frames=2)  # frames are mm
+    drv = MarkerLiveDriver(
+        face, syn.take.names, syn.layout, units="m", neutral_frames=2
+    )  # frames are mm
     drv.push(syn.take.xyz[0].astype(np.float32), 0.0)
     with pytest.raises(ValueError, match="not a face; they look like mm"):
         drv.push(syn.take.xyz[1].astype(np.float32), 1 / 120)

@@ -1,11 +1,11 @@
 """End to end: a mocap take rendered by ``facecast render`` onto the ICT head (.fap and .npz)."""
+
 from __future__ import annotations
 
 import json
 
 import numpy as np
 import pytest
-
 from facecast.protocol.fap_file import read_fap
 from facecast.server.cli import main
 from facecast.server.mocap.io import write_take
@@ -23,8 +23,15 @@ def ict_take(tmp_path_factory):
         pytest.skip("../shared/data/ict-facekit is not beside this checkout")
     mesh = d / "ict-facekit" / "generic_neutral_mesh.obj"
     face = load_face(mesh)
-    syn = synthetic_take(face, n_markers=24, seconds=1.0, fps=60.0, seed=5, noise_mm=0.1,
-                         fp_markers=("2.1", "8.3", "8.4"))
+    syn = synthetic_take(
+        face,
+        n_markers=24,
+        seconds=1.0,
+        fps=60.0,
+        seed=5,
+        noise_mm=0.1,
+        fp_markers=("2.1", "8.3", "8.4"),
+    )
     folder = tmp_path_factory.mktemp("mocap")
     write_take(syn.take, folder / "take.c3d")
     (folder / "layout.json").write_text(json.dumps(syn.layout))
@@ -36,8 +43,21 @@ def test_render_take_to_fap_gives_jaw_and_head_faps(ict_take):
 
     face, mesh, syn, folder = ict_take
     out = folder / "out.fap"
-    assert main(["render", str(folder / "take.c3d"), "--layout", str(folder / "layout.json"), "--face", str(mesh),
-                 "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(folder / "take.c3d"),
+                "--layout",
+                str(folder / "layout.json"),
+                "--face",
+                str(mesh),
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     fap = read_fap(out.read_text(), where=str(out))
     assert len(fap.frames) == len(syn.take.xyz)
     faps = [f.faps() for f in fap.frames]
@@ -58,8 +78,23 @@ def test_render_take_to_fap_gives_jaw_and_head_faps(ict_take):
 def test_render_take_to_npz_puts_the_markers_where_they_were(ict_take):
     face, mesh, syn, folder = ict_take
     out = folder / "out.npz"
-    assert main(["render", str(folder / "take.c3d"), "--layout", str(folder / "layout.json"), "--face", str(mesh),
-                 "--backend", "numpy", "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(folder / "take.c3d"),
+                "--layout",
+                str(folder / "layout.json"),
+                "--face",
+                str(mesh),
+                "--backend",
+                "numpy",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     with np.load(out) as z:
         verts = z["vertices"]
     assert verts.shape == (len(syn.take.xyz), face.n_vertices, 3)
@@ -72,11 +107,14 @@ def test_render_take_to_npz_puts_the_markers_where_they_were(ict_take):
 
 
 def test_render_without_a_layout_is_refused(ict_take, capsys):
-    face, mesh, syn, folder = ict_take
+    _, mesh, syn, folder = ict_take
     alone = folder / "alone"
     alone.mkdir(exist_ok=True)
     write_take(syn.take, alone / "take.trc")
-    assert main(["render", str(alone / "take.trc"), "--face", str(mesh), "-o", str(alone / "o.fap")]) == 2
+    assert (
+        main(["render", str(alone / "take.trc"), "--face", str(mesh), "-o", str(alone / "o.fap")])
+        == 2
+    )
     assert "needs a marker layout" in capsys.readouterr().err
 
 
@@ -92,7 +130,9 @@ def test_generated_take_round_trips_through_the_driver(ict_take, tmp_path):
     anim = load(paths["c3d"], face)  # finds take.layout.json beside the take
     assert len(anim) == len(truth.weights) and anim.fps == 120.0
     _, deltas = load_expressions(face)
-    d_true = np.einsum("te,emc->tmc", truth.weights, deltas[:, anim.control_vertices]) * face.mm_per_unit
+    d_true = (
+        np.einsum("te,emc->tmc", truth.weights, deltas[:, anim.control_vertices]) * face.mm_per_unit
+    )
     d = np.stack([s.controls for s in anim.states]) * face.mm_per_unit
     err = np.linalg.norm(d - d_true, axis=2)
     size = np.linalg.norm(d_true, axis=2)
@@ -100,4 +140,6 @@ def test_generated_take_round_trips_through_the_driver(ict_take, tmp_path):
     assert (size > 2.0).sum() > 100
     assert err[size > 2.0].mean() < 0.3 * size[size > 2.0].mean()
     trc = load(paths["trc"], face, layout=paths["layout"])
-    np.testing.assert_allclose(np.stack([s.controls for s in trc.states]), d / face.mm_per_unit, atol=1e-3)
+    np.testing.assert_allclose(
+        np.stack([s.controls for s in trc.states]), d / face.mm_per_unit, atol=1e-3
+    )

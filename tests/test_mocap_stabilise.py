@@ -1,12 +1,20 @@
 """Head stabilisation (Kabsch, Kshirsagar's three markers, tracking) and the RBF retarget."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from facecast.server.mocap.retarget import RBFMap
-from facecast.server.mocap.stabilise import (euler_from_matrix, head_track, kabsch, matrix_from_euler, pose_in_frame,
-                                             remove_head, solve_pose, three_marker)
+from facecast.server.mocap.stabilise import (
+    euler_from_matrix,
+    head_track,
+    kabsch,
+    matrix_from_euler,
+    pose_in_frame,
+    remove_head,
+    solve_pose,
+    three_marker,
+)
 
 
 def _rotation(rng) -> np.ndarray:
@@ -91,7 +99,7 @@ def test_pose_in_another_frame(rng):
     q, s, c = _rotation(rng), 0.1, rng.normal(size=3)
     x = rng.normal(size=(5, 3))
     rf, tf = pose_in_frame(r, t, q, s, c)
-    to_f = lambda p: s * p @ q.T + c  # noqa: E731
+    to_f = lambda p: s * p @ q.T + c
     np.testing.assert_allclose(to_f(x @ r.T + t), to_f(x) @ rf.T + tf, atol=1e-12)
 
 

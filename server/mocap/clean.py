@@ -6,6 +6,7 @@ per-coordinate constant-velocity Kalman filter (state = position, velocity), cau
 live. Batch input may also use the Rauch-Tung-Striebel smoother (the same model, run backwards too:
 no lag). Positions are millimetres, time in frames at ``fps``; NaN = occluded.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -14,11 +15,27 @@ import numpy as np
 from scipy.fft import dct, idct
 from scipy.ndimage import median_filter
 
-__all__ = ["find_gaps", "lowpass_dct", "fill_gap_dct", "fill_gaps", "despike", "KalmanCV", "kalman_filter", "kalman_lag", "rts_smooth",
-           "estimate_noise", "estimate_r", "estimate_q", "estimate_q_cv", "clean", "CleanParams"]
+__all__ = [
+    "CleanParams",
+    "KalmanCV",
+    "clean",
+    "despike",
+    "estimate_noise",
+    "estimate_q",
+    "estimate_q_cv",
+    "estimate_r",
+    "fill_gap_dct",
+    "fill_gaps",
+    "find_gaps",
+    "kalman_filter",
+    "kalman_lag",
+    "lowpass_dct",
+    "rts_smooth",
+]
 
 
 # ------------------------------------------------------------------------------------------- gaps
+
 
 def find_gaps(valid: np.ndarray) -> list[tuple[int, int]]:
     """Runs of False in ``(T,) bool``: list of ``(t0, t1)``, missing samples ``t0 .. t1-1``."""
@@ -39,7 +56,7 @@ def lowpass_dct(window: np.ndarray, keep: float) -> np.ndarray:
     a = np.c_[np.ones(n), i - (n - 1) / 2]
     coef, *_ = np.linalg.lstsq(a, window, rcond=None)
     c = dct(window - a @ coef, type=2, norm="ortho", axis=0)
-    c[max(1, int(round(keep * n))):] = 0.0
+    c[max(1, round(keep * n)) :] = 0.0
     return a @ coef + idct(c, type=2, norm="ortho", axis=0)
 
 
@@ -48,15 +65,23 @@ def _thesis_extension(window: np.ndarray, keep: float, positions: np.ndarray) ->
     ``positions`` beyond the window (Eq 4.2 continues the series, which mirrors it)."""
     n = len(window)
     c = dct(window, type=2, norm="ortho", axis=0)
-    m = max(1, int(round(keep * n)))
+    m = max(1, round(keep * n))
     k = np.arange(m, dtype=np.float64)
     scale = np.where(k == 0, np.sqrt(1.0 / n), np.sqrt(2.0 / n))
     basis = scale[None, :] * np.cos(np.pi * k[None, :] * (2 * positions[:, None] + 1) / (2 * n))
     return basis @ c[:m]
 
 
-def fill_gap_dct(x: np.ndarray, t0: int, t1: int, *, window: int = 50, keep: float = 0.2,
-                 bridge: int = 10, method: str = "bridge") -> np.ndarray:
+def fill_gap_dct(
+    x: np.ndarray,
+    t0: int,
+    t1: int,
+    *,
+    window: int = 50,
+    keep: float = 0.2,
+    bridge: int = 10,
+    method: str = "bridge",
+) -> np.ndarray:
     """Values for the missing samples ``x[t0:t1]`` of ``(T, D)`` samples (NaN elsewhere allowed).
 
     Left window: the valid run ending at ``t0`` (at most ``window`` samples); right window: the
@@ -71,7 +96,9 @@ def fill_gap_dct(x: np.ndarray, t0: int, t1: int, *, window: int = 50, keep: flo
     """
     x = np.asarray(x, dtype=np.float64)
     if x.ndim == 1:
-        return fill_gap_dct(x[:, None], t0, t1, window=window, keep=keep, bridge=bridge, method=method)[:, 0]
+        return fill_gap_dct(
+            x[:, None], t0, t1, window=window, keep=keep, bridge=bridge, method=method
+        )[:, 0]
     ok = np.isfinite(x).all(axis=1)
     length = t1 - t0
     lo = t0
@@ -105,7 +132,9 @@ def fill_gap_dct(x: np.ndarray, t0: int, t1: int, *, window: int = 50, keep: flo
     return np.vander((np.arange(t0, t1) - centre) / scale, deg + 1) @ coef
 
 
-def fill_gaps(xyz: np.ndarray, *, window: int = 50, keep: float = 0.2, max_gap: int | None = None) -> np.ndarray:
+def fill_gaps(
+    xyz: np.ndarray, *, window: int = 50, keep: float = 0.2, max_gap: int | None = None
+) -> np.ndarray:
     """Fill every occlusion of ``(T, M, 3)`` markers with ``fill_gap_dct``.
 
     Gaps longer than ``max_gap`` frames (None: no limit) are bridged by linear interpolation
@@ -131,7 +160,10 @@ def fill_gaps(xyz: np.ndarray, *, window: int = 50, keep: float = 0.2, max_gap: 
 
 # ----------------------------------------------------------------------------------------- spikes
 
-def despike(xyz: np.ndarray, *, size: int = 7, threshold_mm: float = 4.0, k: float = 8.0) -> tuple[np.ndarray, int]:
+
+def despike(
+    xyz: np.ndarray, *, size: int = 7, threshold_mm: float = 4.0, k: float = 8.0
+) -> tuple[np.ndarray, int]:
     """Mark samples far from their running median as occluded.
 
     For each marker, the running median over ``size`` visible samples is compared with each sample;
@@ -155,6 +187,7 @@ def despike(xyz: np.ndarray, *, size: int = 7, threshold_mm: float = 4.0, k: flo
 
 
 # ----------------------------------------------------------------------------------------- Kalman
+
 
 def _cv_model(dt: float, q: float) -> tuple[np.ndarray, np.ndarray]:
     """Transition ``A`` and process covariance ``Q`` of the constant-velocity model with white
@@ -184,14 +217,30 @@ class KalmanCV:
         r: measurement variance (mm²). Q: explicit 2x2 process covariance (overrides q).
     """
 
-    def __init__(self, m: int, dt: float, *, q: float = 1.0e3, r: float = 0.25, Q: np.ndarray | None = None,
-                 gate: float = 6.0, gate_mm: float = 4.0, max_rejects: int = 4, coast_damping: float = 0.9):
+    def __init__(
+        self,
+        m: int,
+        dt: float,
+        *,
+        q: float = 1.0e3,
+        r: float = 0.25,
+        Q: np.ndarray | None = None,
+        gate: float = 6.0,
+        gate_mm: float = 4.0,
+        max_rejects: int = 4,
+        coast_damping: float = 0.9,
+    ):
         self.m, self.dt = m, float(dt)
         self.A, self.Q = _cv_model(self.dt, q)
         if Q is not None:
             self.Q = np.asarray(Q, dtype=np.float64)
         self.r = float(r)
-        self.gate, self.gate_mm, self.max_rejects, self.coast_damping = gate, gate_mm, max_rejects, coast_damping
+        self.gate, self.gate_mm, self.max_rejects, self.coast_damping = (
+            gate,
+            gate_mm,
+            max_rejects,
+            coast_damping,
+        )
         self.x = np.zeros((m, 3, 2))  # position, velocity per coordinate
         self.P = np.zeros((m, 2, 2))
         self.alive = np.zeros(m, dtype=bool)
@@ -199,7 +248,7 @@ class KalmanCV:
         self.n_rejected = 0
 
     @classmethod
-    def thesis(cls, m: int, dt: float = 1 / 120, **kw) -> "KalmanCV":
+    def thesis(cls, m: int, dt: float = 1 / 120, **kw) -> KalmanCV:
         """The filter with the thesis's Q and R (tuned there for 120 Hz Vicon data)."""
         return cls(m, dt, Q=THESIS_Q_MM2, r=THESIS_R_MM2, **kw)
 
@@ -252,7 +301,9 @@ class KalmanCV:
         return out
 
 
-def kalman_lag(fps: float, q: float, r: float, freqs: tuple[float, ...] = (1.0, 2.0, 5.0)) -> dict[float, float]:
+def kalman_lag(
+    fps: float, q: float, r: float, freqs: tuple[float, ...] = (1.0, 2.0, 5.0)
+) -> dict[float, float]:
     """Delay (ms) of ``KalmanCV`` on noise-free sinusoids of ``freqs`` Hz (its phase lag in
     steady state): how far behind the causal filter runs on motion of that speed."""
     out = {}
@@ -308,7 +359,9 @@ def _forward(x: np.ndarray, fps: float, q: np.ndarray, r: float):
     return a, xp, pp, xf, pf, loglik
 
 
-def rts_smooth(xyz: np.ndarray, fps: float, *, q: float | np.ndarray = 2.0e5, r: float = 0.25) -> np.ndarray:
+def rts_smooth(
+    xyz: np.ndarray, fps: float, *, q: float | np.ndarray = 2.0e5, r: float = 0.25
+) -> np.ndarray:
     """Rauch-Tung-Striebel smoothing of ``(T, M, 3)`` mm with the constant-velocity model (forward
     Kalman pass, then backward correction: zero lag, batch only). ``q`` is one acceleration density
     (mm²/s³) or one per marker ``(M,)``; NaN samples are treated as missing observations."""
@@ -344,22 +397,36 @@ def estimate_r(xyz: np.ndarray, cluster: int = 6) -> float:
 Q_GRID = np.array([1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1e3, 3e3, 1e4, 3e4])
 
 
-def estimate_q(xyz: np.ndarray, fps: float, r: float, grid: np.ndarray = Q_GRID, per_marker: bool = True,
-               max_frames: int = 1200) -> np.ndarray:
+def estimate_q(
+    xyz: np.ndarray,
+    fps: float,
+    r: float,
+    grid: np.ndarray = Q_GRID,
+    per_marker: bool = True,
+    max_frames: int = 1200,
+) -> np.ndarray:
     """Acceleration density per marker ``(M,)`` (mm²/s³) by maximum likelihood of the forward
     filter's innovations over ``grid`` (one shared value when ``per_marker`` is False). All grid
     values run in one pass (the markers are tiled, one copy per value)."""
     x = np.asarray(xyz, dtype=np.float64)[:max_frames]
     m, g = x.shape[1], len(grid)
-    ll = _forward(np.tile(x, (1, g, 1)), fps, np.repeat(np.asarray(grid, dtype=np.float64), m), r)[-1]
+    ll = _forward(np.tile(x, (1, g, 1)), fps, np.repeat(np.asarray(grid, dtype=np.float64), m), r)[
+        -1
+    ]
     ll = ll.reshape(g, m)
     if per_marker:
         return grid[np.argmax(ll, axis=0)]
     return np.full(m, grid[int(np.argmax(ll.sum(axis=1)))])
 
 
-def estimate_q_cv(xyz: np.ndarray, fps: float, r: float, grid: np.ndarray = Q_GRID, folds: int = 4,
-                  per_marker: bool = True) -> np.ndarray:
+def estimate_q_cv(
+    xyz: np.ndarray,
+    fps: float,
+    r: float,
+    grid: np.ndarray = Q_GRID,
+    folds: int = 4,
+    per_marker: bool = True,
+) -> np.ndarray:
     """Acceleration density per marker ``(M,)`` by cross-validation of the RTS smoother: every
     ``folds``-th sample is hidden in turn and predicted from the rest; the ``q`` with the least
     squared prediction error wins. Slower than ``estimate_q`` (``len(grid) * folds`` smoother runs)
@@ -389,6 +456,7 @@ def estimate_noise(xyz: np.ndarray, fps: float, cluster: int = 6) -> tuple[float
 
 # ------------------------------------------------------------------------------------------ batch
 
+
 @dataclass
 class CleanParams:
     """Batch cleaning settings: DCT window N and kept fraction M/N; longest gap rebuilt by the DCT
@@ -406,7 +474,9 @@ class CleanParams:
     per_marker_q: bool = True
 
 
-def clean(xyz: np.ndarray, fps: float, params: CleanParams | None = None) -> tuple[np.ndarray, dict]:
+def clean(
+    xyz: np.ndarray, fps: float, params: CleanParams | None = None
+) -> tuple[np.ndarray, dict]:
     """Despike, gap-fill and filter ``(T, M, 3)`` mm. Returns ``(cleaned (T, M, 3), info)`` where
     info holds the counts and the noise parameters used."""
     p = params or CleanParams()
@@ -418,7 +488,11 @@ def clean(xyz: np.ndarray, fps: float, params: CleanParams | None = None) -> tup
         info["rejected"] = before & ~np.isfinite(x).all(axis=2)
     x = fill_gaps(x, window=p.window, keep=p.keep, max_gap=p.max_gap)
     r = p.r if p.r is not None else estimate_r(x)
-    q = np.full(x.shape[1], p.q) if p.q is not None else estimate_q(x, fps, r, per_marker=p.per_marker_q)
+    q = (
+        np.full(x.shape[1], p.q)
+        if p.q is not None
+        else estimate_q(x, fps, r, per_marker=p.per_marker_q)
+    )
     info.update(q=q, r=r, filter=p.filter)
     if p.filter == "rts":
         seen = np.isfinite(x).all(axis=2)

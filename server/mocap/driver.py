@@ -7,6 +7,7 @@ the marker vertices on the face, ``FaceState.controls`` = their displacements (f
 ``FaceState.head`` = the head pose (face axes and units), and ``FaceState.faps`` = FAPs projected
 from markers on feature points (FAP 3 from the jaw marker, 48-50 from the head pose).
 """
+
 from __future__ import annotations
 
 import logging
@@ -27,7 +28,7 @@ from .stabilise import head_track, remove_head, smooth_poses
 
 log = logging.getLogger(__name__)
 
-__all__ = ["load", "process", "Processed", "find_layout"]
+__all__ = ["Processed", "find_layout", "load", "process"]
 
 
 @dataclass
@@ -57,19 +58,34 @@ def find_layout(path: Path) -> Path:
     for cand in (path.with_name(path.stem + ".layout.json"), path.with_name("layout.json")):
         if cand.is_file():
             return cand
-    raise InputError("a mocap take needs a marker layout: pass --layout layout.json (or put "
-                     f"{path.stem}.layout.json beside the take)", where=str(path))
+    raise InputError(
+        "a mocap take needs a marker layout: pass --layout layout.json (or put "
+        f"{path.stem}.layout.json beside the take)",
+        where=str(path),
+    )
 
 
-def process(take: MarkerTake, face: Face, layout, *, neutral_frame: int | None = None,
-            clean_params: CleanParams | None = None, kernel: str = "imq", mu: float = 2.0,
-            stabilise_method: str = "auto", neutral_window: float = 0.2, where: str = "take") -> Processed:
+def process(
+    take: MarkerTake,
+    face: Face,
+    layout,
+    *,
+    neutral_frame: int | None = None,
+    clean_params: CleanParams | None = None,
+    kernel: str = "imq",
+    mu: float = 2.0,
+    stabilise_method: str = "auto",
+    neutral_window: float = 0.2,
+    where: str = "take",
+) -> Processed:
     """Run the batch pipeline on a take already read (see module docstring)."""
     layout = load_layout(layout)
     if take.units is None:
         take.units = layout.units
     if take.units is None:
-        raise InputError("units of the take are unknown; declare them in the file or the layout", where=where)
+        raise InputError(
+            "units of the take are unknown; declare them in the file or the layout", where=where
+        )
     idx = match_names(take.names, layout, where)
     raw = take.in_mm()[:, idx]
     n = len(raw)
@@ -78,16 +94,26 @@ def process(take: MarkerTake, face: Face, layout, *, neutral_frame: int | None =
     seen = np.isfinite(raw).all(axis=2)
     never = [layout.names[i] for i in np.flatnonzero(~seen.any(axis=0))]
     if never:
-        raise InputError(f"marker(s) never visible in the take: {', '.join(never[:10])}; remove them from the "
-                         "layout", where=where)
+        raise InputError(
+            f"marker(s) never visible in the take: {', '.join(never[:10])}; remove them from the "
+            "layout",
+            where=where,
+        )
     empty = np.flatnonzero(~seen.any(axis=1))
     if len(empty):
-        log.warning("%s: %d frame(s) with no visible marker (first: %d); filled from their neighbours", where,
-                    len(empty), int(empty[0]))
+        log.warning(
+            "%s: %d frame(s) with no visible marker (first: %d); filled from their neighbours",
+            where,
+            len(empty),
+            int(empty[0]),
+        )
     params = clean_params or CleanParams()
     nf = neutral_frame if neutral_frame is not None else (layout.neutral_frame or 0)
     if not 0 <= nf < n:
-        raise InputError(f"neutral_frame {nf} is outside the take's {n} frames", where=f"{layout.where}: neutral_frame")
+        raise InputError(
+            f"neutral_frame {nf} is outside the take's {n} frames",
+            where=f"{layout.where}: neutral_frame",
+        )
     stable = layout_index(layout, layout.stable)
     observed = np.isfinite(raw).all(axis=2)
     if params.filter in ("rts", "kalman"):
@@ -96,15 +122,21 @@ def process(take: MarkerTake, face: Face, layout, *, neutral_frame: int | None =
         # ways (batch); ``kalman`` filters causally, exactly as the live driver does.
         filled, info = clean(raw, take.fps, replace(params, filter="none"))
         observed &= ~info.pop("rejected", np.zeros_like(observed))
-        window = int(round(neutral_window * take.fps))
-        anchor = neutral_pose(filled, nf, window, tolerance_mm=2.5)  # raw noise: ~1 mm between frames
+        window = round(neutral_window * take.fps)
+        anchor = neutral_pose(
+            filled, nf, window, tolerance_mm=2.5
+        )  # raw noise: ~1 mm between frames
         r, t, solved = head_track(filled, stable, anchor, stabilise_method, observed=observed)
         if solved.sum() > 3:
-            r, t = smooth_poses(r, t, filled[nf, stable].mean(axis=0), take.fps, causal=params.filter == "kalman")
+            r, t = smooth_poses(
+                r, t, filled[nf, stable].mean(axis=0), take.fps, causal=params.filter == "kalman"
+            )
         local, info2 = clean(remove_head(filled, r, t), take.fps, replace(params, despike=False))
         info.update({k: v for k, v in info2.items() if k in ("q", "r", "filter")})
         cleaned = np.einsum("tij,tmj->tmi", r, local) + t[:, None, :]
-        if params.filter == "kalman":  # the causal filters start cold: take the neutral from the raw hold
+        if (
+            params.filter == "kalman"
+        ):  # the causal filters start cold: take the neutral from the raw hold
             neutral = anchor
     else:
         cleaned, info = clean(raw, take.fps, params)
@@ -112,11 +144,14 @@ def process(take: MarkerTake, face: Face, layout, *, neutral_frame: int | None =
         r, t, solved = head_track(cleaned, stable, cleaned[nf], stabilise_method, observed=observed)
         local = remove_head(cleaned, r, t)
     if not solved.any():
-        raise InputError(f"the stable markers ({', '.join(layout.stable)}) never show 3 at once; head motion "
-                         "cannot be removed", where=where)
+        raise InputError(
+            f"the stable markers ({', '.join(layout.stable)}) never show 3 at once; head motion "
+            "cannot be removed",
+            where=where,
+        )
     info["head_solved_frames"] = int(solved.sum())
     if params.filter != "kalman":
-        neutral = neutral_pose(local, nf, int(round(neutral_window * take.fps)))
+        neutral = neutral_pose(local, nf, round(neutral_window * take.fps))
     rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu)
     states = rig.solve_batch(local, r, t, take.fps, 0.0)
     return Processed(take, layout, raw, cleaned, local, r, t, nf, rig, states, info)
@@ -140,8 +175,18 @@ def layout_index(layout: Layout, names: list[str]) -> np.ndarray:
     return np.array([pos[n] for n in names], dtype=np.int64)
 
 
-def load(path: Path, face: Face, layout=None, *, units: str | None = None, neutral_frame: int | None = None,
-         filter: str = "rts", kernel: str = "imq", mu: float = 2.0, **options) -> Animation:
+def load(
+    path: Path,
+    face: Face,
+    layout=None,
+    *,
+    units: str | None = None,
+    neutral_frame: int | None = None,
+    filter: str = "rts",
+    kernel: str = "imq",
+    mu: float = 2.0,
+    **options,
+) -> Animation:
     """Decode a mocap take into an ``Animation`` for ``face``.
 
     Args:
@@ -153,15 +198,34 @@ def load(path: Path, face: Face, layout=None, *, units: str | None = None, neutr
         kernel, mu: retarget RBF.
     """
     path = Path(path)
-    for k in options:
-        if options[k] is not None and k not in ("progress", "engine", "backend", "device"):
-            log.warning("mocap driver: ignoring option %s=%r", k, options[k])
+    for k, v in options.items():
+        if v is not None and k not in ("progress", "engine", "backend", "device"):
+            log.warning("mocap driver: ignoring option %s=%r", k, v)
     lay = load_layout(layout if layout is not None else find_layout(path))
     take = read_take(path, units=units, default_units=lay.units)
-    proc = process(take, face, lay, neutral_frame=neutral_frame, clean_params=CleanParams(filter=filter),
-                   kernel=kernel, mu=mu, where=str(path))
-    log.info("%s: %d frames at %g fps, %d markers (%d controls), %d occluded samples, %d spikes", path.name,
-             len(proc.states), take.fps, len(lay.names), len(proc.rig.control), proc.info["occluded"],
-             proc.info.get("spikes", 0))
-    return Animation(fps=take.fps, states=proc.states, control_vertices=proc.rig.control_vertices,
-                     source=path.name)
+    proc = process(
+        take,
+        face,
+        lay,
+        neutral_frame=neutral_frame,
+        clean_params=CleanParams(filter=filter),
+        kernel=kernel,
+        mu=mu,
+        where=str(path),
+    )
+    log.info(
+        "%s: %d frames at %g fps, %d markers (%d controls), %d occluded samples, %d spikes",
+        path.name,
+        len(proc.states),
+        take.fps,
+        len(lay.names),
+        len(proc.rig.control),
+        proc.info["occluded"],
+        proc.info.get("spikes", 0),
+    )
+    return Animation(
+        fps=take.fps,
+        states=proc.states,
+        control_vertices=proc.rig.control_vertices,
+        source=path.name,
+    )

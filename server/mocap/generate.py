@@ -9,6 +9,7 @@ weights, head poses, clean markers) so benchmarks can rebuild ground-truth verti
 
     python -m facecast.server.mocap.generate --out DIR [--markers 60] [--seconds 10] [--fps 120]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,13 +33,47 @@ from .stabilise import matrix_from_euler
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ict_dir", "load_ict", "load_expressions", "generate", "Truth", "load_truth", "truth_vertices"]
+__all__ = [
+    "Truth",
+    "generate",
+    "ict_dir",
+    "load_expressions",
+    "load_ict",
+    "load_truth",
+    "truth_vertices",
+]
 
 #: Feature points that real marker layouts put a marker on (Kshirsagar's 27 on FPs, thesis fiducials).
 MARKER_FPS: tuple[str, ...] = (
-    "2.1", "2.10", "8.1", "8.2", "8.3", "8.4", "8.5", "8.6", "8.7", "8.8", "4.1", "4.2", "4.3", "4.4",
-    "4.5", "4.6", "5.1", "5.2", "5.3", "5.4", "9.1", "9.2", "9.3", "2.13", "2.14", "3.9", "3.10",
-    "3.1", "3.2",  # upper eyelids (Kshirsagar's layout has eyelid markers)
+    "2.1",
+    "2.10",
+    "8.1",
+    "8.2",
+    "8.3",
+    "8.4",
+    "8.5",
+    "8.6",
+    "8.7",
+    "8.8",
+    "4.1",
+    "4.2",
+    "4.3",
+    "4.4",
+    "4.5",
+    "4.6",
+    "5.1",
+    "5.2",
+    "5.3",
+    "5.4",
+    "9.1",
+    "9.2",
+    "9.3",
+    "2.13",
+    "2.14",
+    "3.9",
+    "3.10",
+    "3.1",
+    "3.2",  # upper eyelids (Kshirsagar's layout has eyelid markers)
 )
 
 #: Capture space: a Z-up lab, the actor facing -y, the head ~1.6 m above the floor (face axes -> lab).
@@ -81,7 +116,9 @@ def load_expressions(face: Face | None = None) -> tuple[list[str], np.ndarray]:
         with lzma.open(f, "rt") as fh:
             v = _read_obj_vertices(fh.read())
         if v.shape != face.vertices.shape:
-            raise InputError(f"expression has {len(v)} vertices, the neutral {face.n_vertices}", where=str(f))
+            raise InputError(
+                f"expression has {len(v)} vertices, the neutral {face.n_vertices}", where=str(f)
+            )
         names.append(f.name[: -len(".obj.xz")])
         deltas.append(v - face.vertices)
     arr = np.stack(deltas).astype(np.float32)
@@ -91,8 +128,12 @@ def load_expressions(face: Face | None = None) -> tuple[list[str], np.ndarray]:
     return names, arr
 
 
-def _farthest(points: np.ndarray, k: int, seed_points: np.ndarray | None = None,
-              weights: np.ndarray | None = None) -> np.ndarray:
+def _farthest(
+    points: np.ndarray,
+    k: int,
+    seed_points: np.ndarray | None = None,
+    weights: np.ndarray | None = None,
+) -> np.ndarray:
     """Indices of ``k`` points spread by farthest-point sampling (away from ``seed_points`` too);
     with ``weights`` the distances are scaled by them (denser sampling where weights are high)."""
     if k <= 0 or not len(points):
@@ -101,7 +142,9 @@ def _farthest(points: np.ndarray, k: int, seed_points: np.ndarray | None = None,
     if seed_points is not None and len(seed_points):
         dist = cKDTree(seed_points).query(points)[0] * w
     else:
-        dist = np.linalg.norm(points - points.mean(axis=0), axis=1) * w  # start at the outermost point
+        dist = (
+            np.linalg.norm(points - points.mean(axis=0), axis=1) * w
+        )  # start at the outermost point
     chosen = []
     for _ in range(min(k, len(points))):
         i = int(np.argmax(dist))
@@ -110,8 +153,9 @@ def _farthest(points: np.ndarray, k: int, seed_points: np.ndarray | None = None,
     return np.asarray(chosen, dtype=np.int64)
 
 
-def choose_markers(face: Face, deltas: np.ndarray, n_markers: int, n_stable: int = 5
-                   ) -> tuple[list[str], np.ndarray, dict[str, dict], list[str]]:
+def choose_markers(
+    face: Face, deltas: np.ndarray, n_markers: int, n_stable: int = 5
+) -> tuple[list[str], np.ndarray, dict[str, dict], list[str]]:
     """Pick marker vertices: ``(names, vertices, layout markers, stable names)``."""
     v = face.vertices.astype(np.float64)
     skin = face.part("skin")
@@ -150,11 +194,21 @@ def choose_markers(face: Face, deltas: np.ndarray, n_markers: int, n_stable: int
     normals = trimesh.Trimesh(face.vertices, face.triangles, process=False).vertex_normals
     # front-facing moving skin (not the lip rolls, nostrils or under the chin), off the eyelids
     chin_y = face.fp_position("2.1")[1]
-    cand = np.flatnonzero(face_region & (motion > 0.5) & (normals[:, 2] > 0.3) & (v[:, 2] > nose_z - 1.6 * mw)
-                          & (np.abs(v[:, 0]) < 1.5 * mw) & (v[:, 1] < eye_y + 1.2 * mw)
-                          & (v[:, 1] > chin_y - 0.1 * mw))  # the face, not the neck or chest
-    lids = np.concatenate([np.flatnonzero(np.linalg.norm(v - face.pivot(e), axis=1) < 0.45 * mw)
-                           for e in ("eye_l", "eye_r")])
+    cand = np.flatnonzero(
+        face_region
+        & (motion > 0.5)
+        & (normals[:, 2] > 0.3)
+        & (v[:, 2] > nose_z - 1.6 * mw)
+        & (np.abs(v[:, 0]) < 1.5 * mw)
+        & (v[:, 1] < eye_y + 1.2 * mw)
+        & (v[:, 1] > chin_y - 0.1 * mw)
+    )  # the face, not the neck or chest
+    lids = np.concatenate(
+        [
+            np.flatnonzero(np.linalg.norm(v - face.pivot(e), axis=1) < 0.45 * mw)
+            for e in ("eye_l", "eye_r")
+        ]
+    )
     cand = np.setdiff1d(cand, lids)
     # denser where the skin moves more (as real layouts crowd the mouth and brows)
     pick = cand[_farthest(v[cand], budget, seed_points=v[verts], weights=np.sqrt(motion[cand]))]
@@ -165,7 +219,9 @@ def choose_markers(face: Face, deltas: np.ndarray, n_markers: int, n_stable: int
     return names, np.asarray(verts, dtype=np.int64), spec, [f"HEAD{i + 1}" for i in range(len(st))]
 
 
-def _smooth_random(rng, n: int, fps: float, lo: float, hi: float, period: tuple[float, float], hold: int) -> np.ndarray:
+def _smooth_random(
+    rng, n: int, fps: float, lo: float, hi: float, period: tuple[float, float], hold: int
+) -> np.ndarray:
     """``(n,)`` smooth random curve in [lo, hi] (PCHIP through random keys), 0 for the first ``hold``."""
     keys_t = [0.0, hold / fps]
     while keys_t[-1] < n / fps + 1:
@@ -212,20 +268,45 @@ class Truth:
 
 def load_truth(path: str | Path) -> Truth:
     with np.load(path) as z:
-        return Truth(float(z["fps"]), [str(s) for s in z["names"]], z["vertices"], [str(s) for s in z["stable"]],
-                     [str(s) for s in z["expression_names"]], z["weights"], z["head_r"], z["head_t"], z["clean"],
-                     z["local"], z["lab_r"], z["lab_o"])
+        return Truth(
+            float(z["fps"]),
+            [str(s) for s in z["names"]],
+            z["vertices"],
+            [str(s) for s in z["stable"]],
+            [str(s) for s in z["expression_names"]],
+            z["weights"],
+            z["head_r"],
+            z["head_t"],
+            z["clean"],
+            z["local"],
+            z["lab_r"],
+            z["lab_o"],
+        )
 
 
 def truth_vertices(face: Face, deltas: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """``(T, V, 3) float32`` ground-truth meshes (face units, no head motion) for ``(T, E)`` weights."""
     flat = deltas.reshape(len(deltas), -1)
-    return (face.vertices[None] + (weights.astype(np.float32) @ flat).reshape(len(weights), -1, 3)).astype(np.float32)
+    return (
+        face.vertices[None] + (weights.astype(np.float32) @ flat).reshape(len(weights), -1, 3)
+    ).astype(np.float32)
 
 
-def generate(out: str | Path, *, n_markers: int = 60, seconds: float = 10.0, fps: float = 120.0, seed: int = 1,
-             noise_mm: float = 0.5, gaps: bool = True, spikes: bool = True, head_motion: bool = True,
-             formats: tuple[str, ...] = ("c3d", "trc"), name: str = "take", n_stable: int = 5) -> dict[str, Path]:
+def generate(
+    out: str | Path,
+    *,
+    n_markers: int = 60,
+    seconds: float = 10.0,
+    fps: float = 120.0,
+    seed: int = 1,
+    noise_mm: float = 0.5,
+    gaps: bool = True,
+    spikes: bool = True,
+    head_motion: bool = True,
+    formats: tuple[str, ...] = ("c3d", "trc"),
+    name: str = "take",
+    n_stable: int = 5,
+) -> dict[str, Path]:
     """Write a generated take into folder ``out``; returns the written paths by kind. ``n_markers``
     counts the ``n_stable`` head markers too."""
     out = Path(out)
@@ -234,15 +315,25 @@ def generate(out: str | Path, *, n_markers: int = 60, seconds: float = 10.0, fps
     face = load_ict()
     enames, deltas = load_expressions(face)
     names, verts, spec, stable = choose_markers(face, deltas, n_markers, n_stable)
-    n = max(2, int(round(seconds * fps)))
+    n = max(2, round(seconds * fps))
     hold = min(n - 1, int(0.5 * fps))
     w = blend_weights(rng, enames, n, fps, hold)
     mm = face.mm_per_unit
-    local_face = (face.vertices[verts][None].astype(np.float64)
-                  + np.einsum("te,emc->tmc", w, deltas[:, verts].astype(np.float64))) * mm  # (T, M, 3) mm, face axes
+    local_face = (
+        face.vertices[verts][None].astype(np.float64)
+        + np.einsum("te,emc->tmc", w, deltas[:, verts].astype(np.float64))
+    ) * mm  # (T, M, 3) mm, face axes
     if head_motion:
-        ang = np.stack([_smooth_random(rng, n, fps, -a, a, (0.6, 1.5), hold) for a in np.radians([8.0, 12.0, 5.0])], -1)
-        trans = np.stack([_smooth_random(rng, n, fps, -a, a, (0.8, 2.0), hold) for a in (12.0, 8.0, 10.0)], -1)
+        ang = np.stack(
+            [
+                _smooth_random(rng, n, fps, -a, a, (0.6, 1.5), hold)
+                for a in np.radians([8.0, 12.0, 5.0])
+            ],
+            -1,
+        )
+        trans = np.stack(
+            [_smooth_random(rng, n, fps, -a, a, (0.8, 2.0), hold) for a in (12.0, 8.0, 10.0)], -1
+        )
     else:
         ang, trans = np.zeros((n, 3)), np.zeros((n, 3))
     r_face = matrix_from_euler(ang)  # (T, 3, 3) about the head pivot, face axes
@@ -252,8 +343,11 @@ def generate(out: str | Path, *, n_markers: int = 60, seconds: float = 10.0, fps
     local_lab = local_face @ LAB_R.T + LAB_O
     # capture-space pose: lab = R lab_neutral + t
     head_r = LAB_R @ r_face @ LAB_R.T
-    head_t = (LAB_O + (pivot - np.einsum("tij,j->ti", r_face, pivot) + trans) @ LAB_R.T
-              - np.einsum("tij,j->ti", head_r, LAB_O))
+    head_t = (
+        LAB_O
+        + (pivot - np.einsum("tij,j->ti", r_face, pivot) + trans) @ LAB_R.T
+        - np.einsum("tij,j->ti", head_r, LAB_O)
+    )
     noisy = lab + rng.normal(0.0, noise_mm, lab.shape)
     m = len(names)
     if gaps:
@@ -265,7 +359,7 @@ def generate(out: str | Path, *, n_markers: int = 60, seconds: float = 10.0, fps
                 start = int(rng.integers(hold + 1, max(hold + 2, n - length)))
                 if stable[:] and names[j] in stable and j % 2:
                     continue  # keep most stable markers visible
-                noisy[start:start + length, j] = np.nan
+                noisy[start : start + length, j] = np.nan
         for _ in range(2):
             f = int(rng.integers(hold + 1, n))
             noisy[f] = np.nan  # a frame where the capture lost everything
@@ -273,7 +367,9 @@ def generate(out: str | Path, *, n_markers: int = 60, seconds: float = 10.0, fps
         for _ in range(max(1, n // 300)):
             j, f = int(rng.integers(m)), int(rng.integers(hold + 1, n))
             d = rng.normal(size=3)
-            noisy[f:f + int(rng.integers(1, 3)), j] += d / np.linalg.norm(d) * rng.uniform(8.0, 25.0)
+            noisy[f : f + int(rng.integers(1, 3)), j] += (
+                d / np.linalg.norm(d) * rng.uniform(8.0, 25.0)
+            )
     take = MarkerTake(names, noisy, float(fps), "mm")
     paths: dict[str, Path] = {}
     for fmt in formats:
@@ -287,20 +383,38 @@ def generate(out: str | Path, *, n_markers: int = 60, seconds: float = 10.0, fps
     paths["layout_fp"] = out / f"{name}.layout-fp.json"
     paths["layout_fp"].write_text(json.dumps({**layout, "markers": portable}, indent=1) + "\n")
     paths["truth"] = out / f"{name}.truth.npz"
-    np.savez_compressed(paths["truth"], fps=fps, names=np.array(names), vertices=verts, stable=np.array(stable),
-                        expression_names=np.array(enames), weights=w.astype(np.float32), head_r=head_r,
-                        head_t=head_t, clean=lab, local=local_lab, lab_r=LAB_R, lab_o=LAB_O)
+    np.savez_compressed(
+        paths["truth"],
+        fps=fps,
+        names=np.array(names),
+        vertices=verts,
+        stable=np.array(stable),
+        expression_names=np.array(enames),
+        weights=w.astype(np.float32),
+        head_r=head_r,
+        head_t=head_t,
+        clean=lab,
+        local=local_lab,
+        lab_r=LAB_R,
+        lab_o=LAB_O,
+    )
     log.info("wrote %s: %d frames, %d markers (%d stable)", out, n, m, len(stable))
     return paths
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m facecast.server.mocap.generate", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m facecast.server.mocap.generate", description=__doc__.split("\n\n")[0]
+    )
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--markers", type=int, default=60, help="markers in all, stable ones included (default 60)")
+    p.add_argument(
+        "--markers", type=int, default=60, help="markers in all, stable ones included (default 60)"
+    )
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--fps", type=float, default=120.0)
-    p.add_argument("--stable", type=int, default=5, help="stable head markers among them (default 5)")
+    p.add_argument(
+        "--stable", type=int, default=5, help="stable head markers among them (default 5)"
+    )
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--noise", type=float, default=0.5, help="marker noise, mm (default 0.5)")
     p.add_argument("--clean", action="store_true", help="no gaps, no spikes")
@@ -310,10 +424,20 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     try:
-        paths = generate(a.out, n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=a.seed, noise_mm=a.noise,
-                         gaps=not a.clean, spikes=not a.clean, head_motion=not a.no_head_motion,
-                         formats=tuple(f.strip() for f in a.formats.split(",") if f.strip()), name=a.name,
-                         n_stable=a.stable)
+        paths = generate(
+            a.out,
+            n_markers=a.markers,
+            seconds=a.seconds,
+            fps=a.fps,
+            seed=a.seed,
+            noise_mm=a.noise,
+            gaps=not a.clean,
+            spikes=not a.clean,
+            head_motion=not a.no_head_motion,
+            formats=tuple(f.strip() for f in a.formats.split(",") if f.strip()),
+            name=a.name,
+            n_stable=a.stable,
+        )
     except InputError as e:
         print(f"generate: {e}", file=sys.stderr)
         return 2

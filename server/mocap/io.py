@@ -3,6 +3,7 @@
 Units: declared by the file (C3D ``POINT:UNITS``, TRC ``Units``, CSV ``# units=``), overridden by the
 caller, or detected from the size of the marker cloud (a face spans roughly 100-300 mm).
 """
+
 from __future__ import annotations
 
 import logging
@@ -12,13 +13,22 @@ from pathlib import Path
 
 import numpy as np
 
-from ...protocol.markers_file import (UNITS_MM, MarkerFileError, MarkerTake, check_take, normalise_units,
-                                      read_csv, read_trc, write_csv, write_trc)
+from ...protocol.markers_file import (
+    UNITS_MM,
+    MarkerFileError,
+    MarkerTake,
+    check_take,
+    normalise_units,
+    read_csv,
+    read_trc,
+    write_csv,
+    write_trc,
+)
 from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MarkerTake", "read_take", "write_take", "detect_units", "SUFFIXES"]
+__all__ = ["SUFFIXES", "MarkerTake", "detect_units", "read_take", "write_take"]
 
 SUFFIXES = (".c3d", ".trc", ".csv")
 
@@ -26,7 +36,9 @@ SUFFIXES = (".c3d", ".trc", ".csv")
 FACE_SPAN_MM = (40.0, 600.0)
 
 
-def read_take(path: str | Path, *, units: str | None = None, default_units: str | None = None) -> MarkerTake:
+def read_take(
+    path: str | Path, *, units: str | None = None, default_units: str | None = None
+) -> MarkerTake:
     """Read a take; ``units`` overrides what the file declares, ``default_units`` (e.g. a layout's)
     applies when the file declares none, else they are detected from the marker cloud's size.
     Returns positions in the take's units.
@@ -47,13 +59,17 @@ def read_take(path: str | Path, *, units: str | None = None, default_units: str 
         elif suffix == ".csv":
             take = read_csv(path.read_text(encoding="utf-8", errors="replace"), where=where)
         else:
-            raise InputError(f"unsupported take type {suffix!r}; use one of {', '.join(SUFFIXES)}", where=where)
+            raise InputError(
+                f"unsupported take type {suffix!r}; use one of {', '.join(SUFFIXES)}", where=where
+            )
         if units is not None:
             take.units = normalise_units(units, where="units")
         elif take.units is None and default_units is not None:
             take.units = normalise_units(default_units, where="units")
     except MarkerFileError as e:
-        raise InputError(str(e.args[0]).split(": ", 1)[-1] if e.where else str(e), where=e.where or where) from None
+        raise InputError(
+            str(e.args[0]).split(": ", 1)[-1] if e.where else str(e), where=e.where or where
+        ) from None
     if units is None:  # units the caller gives are trusted; the file's are checked
         take.units = _check_units(take, where)
     return take
@@ -86,8 +102,11 @@ def _check_units(take: MarkerTake, where: str) -> str:
     if take.units is None:
         guess = detect_units(take.xyz)
         if guess is None:
-            raise InputError("the take does not declare its units and they cannot be guessed "
-                             f"(marker cloud spans {span} units); pass units (mm, cm, m, in)", where=where)
+            raise InputError(
+                "the take does not declare its units and they cannot be guessed "
+                f"(marker cloud spans {span} units); pass units (mm, cm, m, in)",
+                where=where,
+            )
         log.info("%s: units not declared; the marker cloud's size says %s", where, guess)
         return guess
     if span is not None and span > 0:
@@ -96,8 +115,11 @@ def _check_units(take: MarkerTake, where: str) -> str:
         if not (lo / 4 <= mm <= hi * 4):
             guess = detect_units(take.xyz)
             hint = f"; the size suggests {guess}" if guess else ""
-            raise InputError(f"declared units {take.units!r} make the marker cloud {mm:.3g} mm across, "
-                             f"not a face{hint}; pass the right units", where=where)
+            raise InputError(
+                f"declared units {take.units!r} make the marker cloud {mm:.3g} mm across, "
+                f"not a face{hint}; pass the right units",
+                where=where,
+            )
     return take.units
 
 
@@ -106,7 +128,7 @@ def _read_c3d(path: Path) -> MarkerTake:
 
     try:
         c = ezc3d.c3d(str(path))
-    except Exception as e:  # ezc3d raises plain RuntimeError/IOError with its own text
+    except Exception as e:  # noqa: BLE001 - ezc3d raises plain RuntimeError/IOError with its own text
         raise InputError(f"cannot read C3D ({e})", where=str(path)) from None
     params = c["parameters"]
     point = params.get("POINT", {})
@@ -118,7 +140,9 @@ def _read_c3d(path: Path) -> MarkerTake:
     labels = [str(s).strip() for s in labels[:m]]
     if len(labels) < m:
         labels += [f"M{i:03d}" for i in range(len(labels), m)]
-    rate = float(np.ravel(point.get("RATE", {}).get("value", [c["header"]["points"]["frame_rate"]]))[0])
+    rate = float(
+        np.ravel(point.get("RATE", {}).get("value", [c["header"]["points"]["frame_rate"]]))[0]
+    )
     units_v = point.get("UNITS", {}).get("value", [])
     units = normalise_units(str(units_v[0]), where=f"{path}: POINT:UNITS") if len(units_v) else None
     xyz = np.moveaxis(pts[:3], (0, 1, 2), (2, 1, 0))  # (T, M, 3)
@@ -129,7 +153,9 @@ def _read_c3d(path: Path) -> MarkerTake:
         xyz[bad] = np.nan
     xyz = np.where(np.isfinite(xyz).all(axis=2, keepdims=True), xyz, np.nan)
     first = int(c["header"]["points"].get("first_frame", 0))
-    return check_take(MarkerTake(labels, xyz, rate, units, first / rate if rate > 0 else 0.0), str(path))
+    return check_take(
+        MarkerTake(labels, xyz, rate, units, first / rate if rate > 0 else 0.0), str(path)
+    )
 
 
 def _write_c3d(take: MarkerTake, path: Path) -> None:
@@ -154,7 +180,9 @@ def write_take(take: MarkerTake, path: str | Path) -> Path:
     take = check_take(take, str(path))
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
-        raise InputError(f"cannot write {suffix!r}; use one of {', '.join(SUFFIXES)}", where=str(path))
+        raise InputError(
+            f"cannot write {suffix!r}; use one of {', '.join(SUFFIXES)}", where=str(path)
+        )
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=suffix, prefix=".tmp-", dir=path.parent)
     os.close(fd)

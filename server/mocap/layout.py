@@ -14,6 +14,7 @@ JSON::
 Automatic placement warps the actor's neutral markers onto the face with an RBF fitted on the tied
 markers (as the thesis does from its 11 fiducials), then snaps each to the nearest skin vertex.
 """
+
 from __future__ import annotations
 
 import json
@@ -30,7 +31,7 @@ from ..faces.face import Face
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Layout", "load_layout", "Placement", "place_markers"]
+__all__ = ["Layout", "Placement", "load_layout", "place_markers"]
 
 
 @dataclass
@@ -59,7 +60,7 @@ class Layout:
         return d
 
 
-def load_layout(src: "str | Path | dict | Layout") -> Layout:
+def load_layout(src: str | Path | dict | Layout) -> Layout:
     """Parse a layout from a path, a JSON string or a dict; InputError naming the field at fault."""
     if isinstance(src, Layout):
         return src
@@ -82,28 +83,50 @@ def load_layout(src: "str | Path | dict | Layout") -> Layout:
         data = src
     if not isinstance(data, dict):
         raise InputError("a layout is a JSON object with 'markers' and 'stable'", where=where)
-    unknown = set(data) - {"units", "stable", "markers", "neutral_frame", "jaw", "comment", "description"}
+    unknown = set(data) - {
+        "units",
+        "stable",
+        "markers",
+        "neutral_frame",
+        "jaw",
+        "comment",
+        "description",
+    }
     if unknown:
-        raise InputError(f"unknown field(s) {', '.join(sorted(unknown))}; expected units, stable, markers, "
-                         "neutral_frame, jaw", where=where)
+        raise InputError(
+            f"unknown field(s) {', '.join(sorted(unknown))}; expected units, stable, markers, "
+            "neutral_frame, jaw",
+            where=where,
+        )
     markers = data.get("markers")
     if not isinstance(markers, dict) or not markers:
-        raise InputError("'markers' must be a non-empty object {name: {...}}", where=f"{where}: markers")
+        raise InputError(
+            "'markers' must be a non-empty object {name: {...}}", where=f"{where}: markers"
+        )
     clean: dict[str, dict] = {}
     for name, spec in markers.items():
         w = f"{where}: markers.{name}"
         if spec is None:
             spec = {}
         if not isinstance(spec, dict):
-            raise InputError('each marker is {"vertex": id}, {"fp": "2.1"}, {} or {"control": false}', where=w)
+            raise InputError(
+                'each marker is {"vertex": id}, {"fp": "2.1"}, {} or {"control": false}', where=w
+            )
         bad = set(spec) - {"vertex", "fp", "control"}
         if bad:
-            raise InputError(f"unknown key(s) {', '.join(sorted(bad))}; use vertex, fp or control", where=w)
+            raise InputError(
+                f"unknown key(s) {', '.join(sorted(bad))}; use vertex, fp or control", where=w
+            )
         if "vertex" in spec and "fp" in spec:
             raise InputError("give either 'vertex' or 'fp', not both", where=w)
-        if "vertex" in spec and (isinstance(spec["vertex"], bool) or not isinstance(spec["vertex"], int)
-                                 or spec["vertex"] < 0):
-            raise InputError(f"'vertex' must be a non-negative integer, not {spec['vertex']!r}", where=w)
+        if "vertex" in spec and (
+            isinstance(spec["vertex"], bool)
+            or not isinstance(spec["vertex"], int)
+            or spec["vertex"] < 0
+        ):
+            raise InputError(
+                f"'vertex' must be a non-negative integer, not {spec['vertex']!r}", where=w
+            )
         if "fp" in spec and not isinstance(spec["fp"], str):
             raise InputError(f"'fp' must be a string such as \"2.1\", not {spec['fp']!r}", where=w)
         if "control" in spec and not isinstance(spec["control"], bool):
@@ -114,17 +137,26 @@ def load_layout(src: "str | Path | dict | Layout") -> Layout:
         raise InputError("'stable' must be a list of marker names", where=f"{where}: stable")
     missing = [s for s in stable if s not in clean]
     if missing:
-        raise InputError(f"stable marker(s) {', '.join(missing)} are not in 'markers'", where=f"{where}: stable")
+        raise InputError(
+            f"stable marker(s) {', '.join(missing)} are not in 'markers'", where=f"{where}: stable"
+        )
     if len(set(stable)) < 3:
-        raise InputError(f"at least 3 stable head markers are needed to remove head motion, got {len(set(stable))}",
-                         where=f"{where}: stable")
+        raise InputError(
+            f"at least 3 stable head markers are needed to remove head motion, got {len(set(stable))}",
+            where=f"{where}: stable",
+        )
     try:
-        units = normalise_units(data["units"], where=f"{where}: units") if data.get("units") else None
+        units = (
+            normalise_units(data["units"], where=f"{where}: units") if data.get("units") else None
+        )
     except MarkerFileError as e:
         raise InputError(str(e)) from None
     nf = data.get("neutral_frame")
     if nf is not None and (isinstance(nf, bool) or not isinstance(nf, int) or nf < 0):
-        raise InputError(f"'neutral_frame' must be a frame index >= 0, not {nf!r}", where=f"{where}: neutral_frame")
+        raise InputError(
+            f"'neutral_frame' must be a frame index >= 0, not {nf!r}",
+            where=f"{where}: neutral_frame",
+        )
     jaw = data.get("jaw")
     if jaw is not None and jaw not in clean:
         raise InputError(f"jaw marker {jaw!r} is not in 'markers'", where=f"{where}: jaw")
@@ -148,8 +180,13 @@ class Placement:
     how: list[str] = field(default_factory=list)
 
 
-def place_markers(layout: Layout, face: Face, neutral: dict[str, np.ndarray] | None = None,
-                  *, face_units_per_take_unit: float = 1.0) -> Placement:
+def place_markers(
+    layout: Layout,
+    face: Face,
+    neutral: dict[str, np.ndarray] | None = None,
+    *,
+    face_units_per_take_unit: float = 1.0,
+) -> Placement:
     """Resolve every control marker to a face vertex.
 
     ``neutral`` maps marker name -> actor's neutral position ``(3,)`` (needed only for automatic
@@ -165,15 +202,20 @@ def place_markers(layout: Layout, face: Face, neutral: dict[str, np.ndarray] | N
         if "vertex" in spec:
             v = spec["vertex"]
             if v >= face.n_vertices:
-                raise InputError(f"vertex {v} is out of range: the face {face.name!r} has {face.n_vertices} "
-                                 "vertices (is the layout for another mesh?)", where=w)
+                raise InputError(
+                    f"vertex {v} is out of range: the face {face.name!r} has {face.n_vertices} "
+                    "vertices (is the layout for another mesh?)",
+                    where=w,
+                )
             names.append(name), verts.append(v), how.append("vertex")
         elif "fp" in spec:
             fp = spec["fp"]
             if fp not in face.feature_points:
-                raise InputError(f"the face {face.name!r} has no feature point {fp}; it has "
-                                 f"{len(face.feature_points)} ({', '.join(sorted(face.feature_points)[:12])}...)",
-                                 where=w)
+                raise InputError(
+                    f"the face {face.name!r} has no feature point {fp}; it has "
+                    f"{len(face.feature_points)} ({', '.join(sorted(face.feature_points)[:12])}...)",
+                    where=w,
+                )
             names.append(name), verts.append(face.feature_points[fp]), how.append("fp")
         else:
             names.append(name), verts.append(-1), how.append("auto")
@@ -181,12 +223,17 @@ def place_markers(layout: Layout, face: Face, neutral: dict[str, np.ndarray] | N
     if auto:
         tied = [n for n, h in zip(names, how) if h != "auto"]
         if neutral is None:
-            raise InputError("automatic marker placement needs the actor's neutral frame", where=layout.where)
+            raise InputError(
+                "automatic marker placement needs the actor's neutral frame", where=layout.where
+            )
         tied = [n for n in tied if n in neutral and np.isfinite(neutral[n]).all()]
         if len(tied) < 4:
-            raise InputError(f"{len(auto)} marker(s) ({', '.join(auto[:5])}...) ask for automatic placement, which "
-                             f"needs at least 4 markers tied to a vertex or FP and visible in the neutral frame; "
-                             f"found {len(tied)}", where=layout.where)
+            raise InputError(
+                f"{len(auto)} marker(s) ({', '.join(auto[:5])}...) ask for automatic placement, which "
+                f"needs at least 4 markers tied to a vertex or FP and visible in the neutral frame; "
+                f"found {len(tied)}",
+                where=layout.where,
+            )
         from .retarget import RBFMap
 
         idx = {n: i for i, n in enumerate(names)}
@@ -198,8 +245,10 @@ def place_markers(layout: Layout, face: Face, neutral: dict[str, np.ndarray] | N
         used = {v for v in verts if v >= 0}
         for n in auto:
             if n not in neutral or not np.isfinite(neutral[n]).all():
-                raise InputError(f"marker {n} asks for automatic placement but is not visible in the neutral frame",
-                                 where=f"{layout.where}: markers.{n}")
+                raise InputError(
+                    f"marker {n} asks for automatic placement but is not visible in the neutral frame",
+                    where=f"{layout.where}: markers.{n}",
+                )
             _, js = tree.query(warp(neutral[n][None])[0], k=min(16, len(skin)))
             free = [int(skin[j]) for j in np.atleast_1d(js) if int(skin[j]) not in used]
             verts[idx[n]] = free[0] if free else int(skin[np.atleast_1d(js)[0]])
@@ -210,7 +259,9 @@ def place_markers(layout: Layout, face: Face, neutral: dict[str, np.ndarray] | N
         seen: dict[int, str] = {}
         for n, v in zip(names, vs.tolist()):
             if v in seen:
-                raise InputError(f"markers {seen[v]} and {n} sit on the same vertex {v}", where=layout.where)
+                raise InputError(
+                    f"markers {seen[v]} and {n} sit on the same vertex {v}", where=layout.where
+                )
             seen[v] = n
     return Placement(names, vs, how)
 

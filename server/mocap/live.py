@@ -8,6 +8,7 @@ than it would with the head's on top); RBF retarget onto the face (``rig.MarkerR
 The actor's neutral is the average of the first ``neutral_frames`` frames in which every control
 marker and at least three stable markers are visible; until then ``push`` returns no state.
 """
+
 from __future__ import annotations
 
 import logging
@@ -26,7 +27,7 @@ from .stabilise import solve_pose
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MarkerLiveDriver", "MarkerFrameError"]
+__all__ = ["MarkerFrameError", "MarkerLiveDriver"]
 
 
 class MarkerFrameError(InputError, ValueError):
@@ -53,9 +54,21 @@ class MarkerLiveDriver:
         lag_frames: frames since the last measured sample, per marker (diagnostics).
     """
 
-    def __init__(self, face: Face, names: list[str], layout, *, units: str | None = None, fps: float = 120.0,
-                 neutral_frames: int = 12, q: float = 1000.0, r: float = 0.25, q_pose: float = 1000.0,
-                 kernel: str = "imq", mu: float = 2.0):
+    def __init__(
+        self,
+        face: Face,
+        names: list[str],
+        layout,
+        *,
+        units: str | None = None,
+        fps: float = 120.0,
+        neutral_frames: int = 12,
+        q: float = 1000.0,
+        r: float = 0.25,
+        q_pose: float = 1000.0,
+        kernel: str = "imq",
+        mu: float = 2.0,
+    ):
         self.face = face
         self.layout: Layout = load_layout(layout)
         self.names = [str(n) for n in names]
@@ -69,7 +82,9 @@ class MarkerLiveDriver:
         self.kf = KalmanCV(len(self.layout.names), 1.0 / self.fps, q=q, r=r)
         self.kf_pose = KalmanCV(2, 1.0 / self.fps, q=q_pose, r=r / 2, gate=1e9)
         self._q, self._q_pose = q, q_pose
-        self.stable = np.array([self.layout.names.index(n) for n in self.layout.stable], dtype=np.int64)
+        self.stable = np.array(
+            [self.layout.names.index(n) for n in self.layout.stable], dtype=np.int64
+        )
         self.rig: MarkerRig | None = None
         self._neutral_sum = np.zeros((len(self.layout.names), 3))
         self._neutral_count = np.zeros(len(self.layout.names))
@@ -79,8 +94,10 @@ class MarkerLiveDriver:
         self._last_t: float | None = None
         self.frames = 0
         self.bad_frames = 0
-        auto = any("vertex" not in s and "fp" not in s and s.get("control", True) is not False
-                   for s in self.layout.markers.values())
+        auto = any(
+            "vertex" not in s and "fp" not in s and s.get("control", True) is not False
+            for s in self.layout.markers.values()
+        )
         self.control_vertices: np.ndarray | None = None
         if not auto:
             from .layout import place_markers
@@ -101,9 +118,11 @@ class MarkerLiveDriver:
         xyz = np.asarray(data, dtype=np.float64)
         if xyz.ndim != 2 or xyz.shape != (len(self.names), 3):
             self.bad_frames += 1
-            raise MarkerFrameError(f"marker frame has shape {xyz.shape}; the hello named {len(self.names)} markers, so "
-                             f"frames must be ({len(self.names)}, 3) — the marker count cannot change mid-stream",
-                             where=f"frame {self.frames}")
+            raise MarkerFrameError(
+                f"marker frame has shape {xyz.shape}; the hello named {len(self.names)} markers, so "
+                f"frames must be ({len(self.names)}, 3) — the marker count cannot change mid-stream",
+                where=f"frame {self.frames}",
+            )
         xyz = np.where(np.isfinite(xyz), xyz, np.nan)[self.index]
         if self.units is None:
             guess = detect_units(xyz[None])
@@ -137,8 +156,13 @@ class MarkerLiveDriver:
         self.kf_pose.A, self.kf_pose.Q = _cv_model(dt, self._q_pose)
 
     def _gather_neutral(self, z: np.ndarray, seen: np.ndarray) -> None:
-        ctrl = np.array([i for i, n in enumerate(self.layout.names)
-                         if self.layout.markers[n].get("control") is not False])
+        ctrl = np.array(
+            [
+                i
+                for i, n in enumerate(self.layout.names)
+                if self.layout.markers[n].get("control") is not False
+            ]
+        )
         if not seen[ctrl].all() or seen[self.stable].sum() < 3:
             return
         self._neutral_sum += np.where(seen[:, None], z, 0.0)
@@ -156,14 +180,22 @@ class MarkerLiveDriver:
             self._neutral_n = 0
             self.bad_frames += 1
             guess = detect_units(neutral[None] / UNITS_MM[self.units])
-            raise MarkerFrameError(f"in {self.units} the markers span {span:.3g} mm, not a face"
-                                   + (f"; they look like {guess}" if guess else "") + ": declare the right units in "
-                                   "the hello or the layout", where=f"frame {self.frames - 1}")
+            raise MarkerFrameError(
+                f"in {self.units} the markers span {span:.3g} mm, not a face"
+                + (f"; they look like {guess}" if guess else "")
+                + ": declare the right units in "
+                "the hello or the layout",
+                where=f"frame {self.frames - 1}",
+            )
         self.rig = MarkerRig(self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu)
         self._ref_stable = neutral[self.stable]
         self._centre = np.nanmean(self._ref_stable, axis=0)
         self.control_vertices = self.rig.control_vertices
-        log.info("live markers: neutral taken from %d frames; %d controls", self._neutral_n, len(self.rig.control))
+        log.info(
+            "live markers: neutral taken from %d frames; %d controls",
+            self._neutral_n,
+            len(self.rig.control),
+        )
 
     def _solve_pose(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Filtered head pose from the measured stable markers (the prediction when < 3 are seen)."""

@@ -8,6 +8,7 @@ length, so it is squared here to keep the units consistent; mu = 2 in the thesis
 scale or units is carried exactly, and an identity retarget reproduces its input). Displacements
 are retargeted along their whole path: ``d_t = Psi(c + d_s) - Psi(c)``.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,8 +28,15 @@ class RBFMap:
         affine: add a linear polynomial term (needs K >= 4 non-coplanar points; dropped otherwise).
     """
 
-    def __init__(self, src: np.ndarray, dst: np.ndarray, *, kernel: str = "imq", mu: float = 2.0,
-                 affine: bool = True):
+    def __init__(
+        self,
+        src: np.ndarray,
+        dst: np.ndarray,
+        *,
+        kernel: str = "imq",
+        mu: float = 2.0,
+        affine: bool = True,
+    ):
         src = np.asarray(src, dtype=np.float64)
         dst = np.asarray(dst, dtype=np.float64)
         if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
@@ -54,7 +62,11 @@ class RBFMap:
             rhs = np.r_[dst, np.zeros((4, 3))]
         else:
             a, rhs = phi, dst
-        sol = np.linalg.lstsq(a, rhs, rcond=None)[0] if np.linalg.cond(a) > 1e13 else np.linalg.solve(a, rhs)
+        sol = (
+            np.linalg.lstsq(a, rhs, rcond=None)[0]
+            if np.linalg.cond(a) > 1e13
+            else np.linalg.solve(a, rhs)
+        )
         self.w = sol[:k]
         self.poly = sol[k:] if self.affine else np.zeros((4, 3))
         self.dst = dst

@@ -5,6 +5,7 @@ control markers on the face, fits the RBF retarget from the actor's neutral to t
 similarity that carries head poses into face axes. ``rig.solve(local_mm, r, t, time)`` turns one
 stabilised frame into a ``FaceState``.
 """
+
 from __future__ import annotations
 
 import logging
@@ -43,13 +44,20 @@ def match_names(take_names: list[str], layout: Layout, where: str = "") -> np.nd
     if missing:
         stable = [n for n in missing if n in layout.stable]
         what = f" (stable: {', '.join(stable)})" if stable else ""
-        raise InputError(f"the take lacks {len(missing)} marker(s) the layout names: {', '.join(missing[:10])}"
-                         f"{'...' if len(missing) > 10 else ''}{what}; the take has {', '.join(take_names[:10])}"
-                         f"{'...' if len(take_names) > 10 else ''}", where=where)
+        raise InputError(
+            f"the take lacks {len(missing)} marker(s) the layout names: {', '.join(missing[:10])}"
+            f"{'...' if len(missing) > 10 else ''}{what}; the take has {', '.join(take_names[:10])}"
+            f"{'...' if len(take_names) > 10 else ''}",
+            where=where,
+        )
     extra = [n for n in take_names if n not in set(layout.names)]
     if extra:
-        log.warning("%s: ignoring %d marker(s) the layout does not name: %s", where or "take", len(extra),
-                    ", ".join(extra[:10]))
+        log.warning(
+            "%s: ignoring %d marker(s) the layout does not name: %s",
+            where or "take",
+            len(extra),
+            ", ".join(extra[:10]),
+        )
     return np.array([index[n] for n in layout.names], dtype=np.int64)
 
 
@@ -72,25 +80,39 @@ class MarkerRig:
         jaw: position of the jaw marker among the controls (None without one).
     """
 
-    def __init__(self, face: Face, layout, neutral_mm: np.ndarray, *, kernel: str = "imq", mu: float = 2.0,
-                 anchors: bool = True):
+    def __init__(
+        self,
+        face: Face,
+        layout,
+        neutral_mm: np.ndarray,
+        *,
+        kernel: str = "imq",
+        mu: float = 2.0,
+        anchors: bool = True,
+    ):
         self.face = face
         self.layout = load_layout(layout)
         names = self.layout.names
         self.neutral = np.asarray(neutral_mm, dtype=np.float64)
         pos = {n: i for i, n in enumerate(names)}
-        placement = place_markers(self.layout, face, {n: self.neutral[i] for i, n in enumerate(names)})
+        placement = place_markers(
+            self.layout, face, {n: self.neutral[i] for i, n in enumerate(names)}
+        )
         self.control = np.array([pos[n] for n in placement.names], dtype=np.int64)
         self.control_names = placement.names
         self.placement = placement
-        self.anchor_vertices = anchor_vertices(face, placement.vertices) if anchors else np.zeros(0, np.int32)
+        self.anchor_vertices = (
+            anchor_vertices(face, placement.vertices) if anchors else np.zeros(0, np.int32)
+        )
         self.control_vertices = np.r_[placement.vertices, self.anchor_vertices].astype(np.int32)
         self.stable = np.array([pos[n] for n in self.layout.stable], dtype=np.int64)
         unseen = [names[i] for i in self.control if not np.isfinite(self.neutral[i]).all()]
         if unseen:
-            raise InputError(f"marker(s) {', '.join(unseen[:8])} are not visible in the neutral frame (even after "
-                             "gap filling); choose another neutral_frame or mark them {\"control\": false}",
-                             where=self.layout.where)
+            raise InputError(
+                f"marker(s) {', '.join(unseen[:8])} are not visible in the neutral frame (even after "
+                'gap filling); choose another neutral_frame or mark them {"control": false}',
+                where=self.layout.where,
+            )
         src = self.neutral[self.control]
         dst = face.vertices[placement.vertices].astype(np.float64)
         self.rbf = RBFMap(src, dst, kernel=kernel, mu=mu)
@@ -102,16 +124,24 @@ class MarkerRig:
             from ..mpeg4.fapu import measure_fapu
 
             self.fapu: dict[str, float] | None = measure_fapu(face)
-        except Exception as e:  # a face without feature points has no FAPU: no FAP output
+        except Exception as e:  # noqa: BLE001 - a face without feature points has no FAPU: no FAP output
             log.info("no FAPU for face %s (%s): FAPs from markers are off", face.name, e)
             self.fapu = None
         from .to_fap import FapProjection
 
-        self.fap_projection = FapProjection(face, self.placement, self.fapu, self.jaw) if self.fapu else None
+        self.fap_projection = (
+            FapProjection(face, self.placement, self.fapu, self.jaw) if self.fapu else None
+        )
         mm_face = face.mm_per_unit
         fit = np.linalg.norm(self.s * src @ self.q.T + self.c - dst, axis=1) * mm_face
-        log.info("retarget: %d control markers, actor->face scale %.4g face units/mm (x%.3g after units), "
-                 "rigid fit residual mean %.2f mm", len(src), self.s, self.s * mm_face, fit.mean())
+        log.info(
+            "retarget: %d control markers, actor->face scale %.4g face units/mm (x%.3g after units), "
+            "rigid fit residual mean %.2f mm",
+            len(src),
+            self.s,
+            self.s * mm_face,
+            fit.mean(),
+        )
 
     @property
     def n_markers(self) -> int:
@@ -133,8 +163,9 @@ class MarkerRig:
             return d
         return np.concatenate([d, np.zeros((len(self.anchor_vertices), 3), dtype=d.dtype)], axis=0)
 
-    def solve_batch(self, local_mm: np.ndarray, r: np.ndarray, t: np.ndarray, fps: float, t0: float = 0.0
-                    ) -> list[FaceState]:
+    def solve_batch(
+        self, local_mm: np.ndarray, r: np.ndarray, t: np.ndarray, fps: float, t0: float = 0.0
+    ) -> list[FaceState]:
         """``solve`` for ``(T, L, 3)`` frames at once."""
         d = self.rbf.displacements(local_mm[:, self.control]).astype(np.float32)
         heads = self.head_matrix(r, t)
@@ -142,11 +173,19 @@ class MarkerRig:
 
     def state(self, d: np.ndarray, head: np.ndarray, time: float) -> FaceState:
         """A ``FaceState`` from ``(K, 3)`` control displacements (face units) and a ``(3, 4)`` head."""
-        faps = self.fap_projection.faps(d, head[:, :3]) if self.fap_projection is not None else zero_faps()
-        return FaceState(t=float(time), faps=faps, controls=self._with_anchors(d), head=head.astype(np.float64))
+        faps = (
+            self.fap_projection.faps(d, head[:, :3])
+            if self.fap_projection is not None
+            else zero_faps()
+        )
+        return FaceState(
+            t=float(time), faps=faps, controls=self._with_anchors(d), head=head.astype(np.float64)
+        )
 
 
-def anchor_vertices(face: Face, markers: np.ndarray, factor: float = 2.0, limit: int = 64) -> np.ndarray:
+def anchor_vertices(
+    face: Face, markers: np.ndarray, factor: float = 2.0, limit: int = 64
+) -> np.ndarray:
     """Skin vertices to pin (see ``MarkerRig``): farther than ``factor`` x the median marker spacing
     from every marker and not below the lowest marker, spread by farthest-point sampling until the
     remaining far skin is within that distance of a pin (at most ``limit``)."""

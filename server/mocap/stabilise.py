@@ -7,15 +7,28 @@ guard), used here. With exactly three stable markers, Kshirsagar's construction 
 unit vectors and their cross product as a third, R = M' M^-1, re-orthonormalised) is available.
 Convention: ``frame ~= R @ neutral + t``; stabilised = ``R.T @ (frame - t)``.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["kabsch", "three_marker", "solve_pose", "head_track", "smooth_poses", "remove_head", "to_matrix",
-           "pose_in_frame", "euler_from_matrix", "matrix_from_euler"]
+__all__ = [
+    "euler_from_matrix",
+    "head_track",
+    "kabsch",
+    "matrix_from_euler",
+    "pose_in_frame",
+    "remove_head",
+    "smooth_poses",
+    "solve_pose",
+    "three_marker",
+    "to_matrix",
+]
 
 
-def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def kabsch(
+    src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares rigid ``(R (3,3), t (3,))`` with ``dst ~= src @ R.T + t`` for ``(N, 3)`` points
     (N >= 3, not collinear). A reflection (det < 0) is never returned."""
     src = np.asarray(src, dtype=np.float64)
@@ -40,6 +53,7 @@ def three_marker(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """Kshirsagar's rigid pose from three markers ``(3, 3)`` (rows = markers): with unit difference
     vectors ``m1 = p2 - p1``, ``m2 = p3 - p2`` and ``m3 = m1 x m2`` (normalised) in both frames,
     ``R = M' M^-1`` (re-orthonormalised by SVD, since data is noisy) and ``t = p'_1 - R p_1``."""
+
     def frame(p: np.ndarray) -> np.ndarray:
         m1 = p[1] - p[0]
         m2 = p[2] - p[1]
@@ -56,7 +70,9 @@ def three_marker(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return r, dst.mean(axis=0) - r @ src.mean(axis=0)
 
 
-def solve_pose(neutral: np.ndarray, frame: np.ndarray, method: str = "auto") -> tuple[np.ndarray, np.ndarray] | None:
+def solve_pose(
+    neutral: np.ndarray, frame: np.ndarray, method: str = "auto"
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Pose of one frame from ``(S, 3)`` stable markers (NaN = occluded) against their neutral
     positions; None with fewer than 3 visible (or degenerate). ``method``: ``kabsch``, ``three``
     (Kshirsagar, needs exactly 3 visible) or ``auto`` (three-marker when exactly 3 are visible)."""
@@ -73,8 +89,14 @@ def solve_pose(neutral: np.ndarray, frame: np.ndarray, method: str = "auto") -> 
     return kabsch(src, dst)
 
 
-def head_track(xyz: np.ndarray, stable: np.ndarray, neutral: np.ndarray, method: str = "auto",
-               refine: int = 2, observed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def head_track(
+    xyz: np.ndarray,
+    stable: np.ndarray,
+    neutral: np.ndarray,
+    method: str = "auto",
+    refine: int = 2,
+    observed: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-frame head pose of ``(T, M, 3)`` markers from the ``stable`` marker indices against the
     ``(M, 3)`` neutral. Returns ``(R (T, 3, 3), t (T, 3), solved (T,) bool)``; a frame with fewer than
     3 visible stable markers takes the pose of the nearest solved frame (identity if none).
@@ -108,7 +130,9 @@ def head_track(xyz: np.ndarray, stable: np.ndarray, neutral: np.ndarray, method:
     return rs, ts, solved
 
 
-def _track(xs: np.ndarray, ref: np.ndarray, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _track(
+    xs: np.ndarray, ref: np.ndarray, method: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     t_n = len(xs)
     rs = np.tile(np.eye(3), (t_n, 1, 1))
     ts = np.zeros((t_n, 3))
@@ -122,7 +146,9 @@ def _track(xs: np.ndarray, ref: np.ndarray, method: str) -> tuple[np.ndarray, np
         idx = np.flatnonzero(solved)
         nearest = idx[np.clip(np.searchsorted(idx, np.arange(t_n)), 0, len(idx) - 1)]
         prev = idx[np.clip(np.searchsorted(idx, np.arange(t_n)) - 1, 0, len(idx) - 1)]
-        pick = np.where(np.abs(prev - np.arange(t_n)) <= np.abs(nearest - np.arange(t_n)), prev, nearest)
+        pick = np.where(
+            np.abs(prev - np.arange(t_n)) <= np.abs(nearest - np.arange(t_n)), prev, nearest
+        )
         rs[~solved], ts[~solved] = rs[pick[~solved]], ts[pick[~solved]]
     return rs, ts, solved
 
@@ -138,8 +164,9 @@ def to_matrix(r: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.concatenate([r, t[..., :, None]], axis=-1)
 
 
-def pose_in_frame(r: np.ndarray, t: np.ndarray, q: np.ndarray, s: float, c: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def pose_in_frame(
+    r: np.ndarray, t: np.ndarray, q: np.ndarray, s: float, c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """A rigid motion ``x' = R x + t`` of capture space expressed in another frame ``f = s Q x + c``
     (e.g. the face's): ``R_f = Q R Q^T``, ``t_f = c - R_f c + s Q t``. Works on stacks ``(..., 3, 3)``."""
     rf = q @ r @ q.T
@@ -163,14 +190,26 @@ def matrix_from_euler(angles: np.ndarray) -> np.ndarray:
     a = np.asarray(angles, dtype=np.float64)
     p, y, r = a[..., 0], a[..., 1], a[..., 2]
     one, zero = np.ones_like(p), np.zeros_like(p)
-    rx = np.stack([one, zero, zero, zero, np.cos(p), -np.sin(p), zero, np.sin(p), np.cos(p)], -1).reshape(*p.shape, 3, 3)
-    ry = np.stack([np.cos(y), zero, np.sin(y), zero, one, zero, -np.sin(y), zero, np.cos(y)], -1).reshape(*p.shape, 3, 3)
-    rz = np.stack([np.cos(r), -np.sin(r), zero, np.sin(r), np.cos(r), zero, zero, zero, one], -1).reshape(*p.shape, 3, 3)
+    rx = np.stack(
+        [one, zero, zero, zero, np.cos(p), -np.sin(p), zero, np.sin(p), np.cos(p)], -1
+    ).reshape(*p.shape, 3, 3)
+    ry = np.stack(
+        [np.cos(y), zero, np.sin(y), zero, one, zero, -np.sin(y), zero, np.cos(y)], -1
+    ).reshape(*p.shape, 3, 3)
+    rz = np.stack(
+        [np.cos(r), -np.sin(r), zero, np.sin(r), np.cos(r), zero, zero, zero, one], -1
+    ).reshape(*p.shape, 3, 3)
     return ry @ rx @ rz
 
 
-def smooth_poses(r: np.ndarray, t: np.ndarray, centre: np.ndarray, fps: float, causal: bool = False,
-                 q: float = 1000.0) -> tuple[np.ndarray, np.ndarray]:
+def smooth_poses(
+    r: np.ndarray,
+    t: np.ndarray,
+    centre: np.ndarray,
+    fps: float,
+    causal: bool = False,
+    q: float = 1000.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Smooth a head pose track ``(T, 3, 3)``, ``(T, 3)``: the rotation as a rotation vector and the
     motion of ``centre`` (the stable markers' centroid, so that rotation and translation do not
     trade off). Batch: RTS with each acceleration density chosen by cross-validation; ``causal``:

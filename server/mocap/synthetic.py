@@ -4,6 +4,7 @@ Markers sit on skin vertices of the face; the skin moves by a smooth random fiel
 "muscle" bumps with smooth random amplitudes), the head moves rigidly, and capture noise, gaps and
 spikes are optional. Ground truth comes back with the take.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -15,7 +16,7 @@ from ...protocol.markers_file import MarkerTake
 from ..faces.face import Face
 from .stabilise import matrix_from_euler
 
-__all__ = ["SyntheticTake", "synthetic_take", "ellipsoid_face"]
+__all__ = ["SyntheticTake", "ellipsoid_face", "synthetic_take"]
 
 
 @dataclass
@@ -33,15 +34,24 @@ class SyntheticTake:
     vertices: np.ndarray
 
 
-def ellipsoid_face(subdivisions: int = 3, radii_mm: tuple[float, float, float] = (75.0, 105.0, 90.0)) -> Face:
+def ellipsoid_face(
+    subdivisions: int = 3, radii_mm: tuple[float, float, float] = (75.0, 105.0, 90.0)
+) -> Face:
     """A head-sized ellipsoid ``Face`` (mm, all skin, no feature points): a mesh for tests."""
     import trimesh
 
     ico = trimesh.creation.icosphere(subdivisions=subdivisions)
-    return Face("ellipsoid", np.asarray(ico.vertices) * np.asarray(radii_mm), np.asarray(ico.faces), units="mm")
+    return Face(
+        "ellipsoid",
+        np.asarray(ico.vertices) * np.asarray(radii_mm),
+        np.asarray(ico.faces),
+        units="mm",
+    )
 
 
-def _smooth(rng, n: int, fps: float, amp: float, hold: int, period: tuple[float, float] = (0.3, 0.9)) -> np.ndarray:
+def _smooth(
+    rng, n: int, fps: float, amp: float, hold: int, period: tuple[float, float] = (0.3, 0.9)
+) -> np.ndarray:
     keys = [0.0, hold / fps]
     while keys[-1] < n / fps + 1:
         keys.append(keys[-1] + rng.uniform(*period))
@@ -49,9 +59,21 @@ def _smooth(rng, n: int, fps: float, amp: float, hold: int, period: tuple[float,
     return PchipInterpolator(keys, vals)(np.arange(n) / fps)
 
 
-def synthetic_take(face: Face, *, n_markers: int = 30, n_stable: int = 4, seconds: float = 2.0, fps: float = 120.0,
-                   seed: int = 0, noise_mm: float = 0.0, gaps: bool = False, head_motion: bool = True,
-                   amplitude_mm: float = 4.0, units: str = "mm", fp_markers: tuple[str, ...] = ()) -> SyntheticTake:
+def synthetic_take(
+    face: Face,
+    *,
+    n_markers: int = 30,
+    n_stable: int = 4,
+    seconds: float = 2.0,
+    fps: float = 120.0,
+    seed: int = 0,
+    noise_mm: float = 0.0,
+    gaps: bool = False,
+    head_motion: bool = True,
+    amplitude_mm: float = 4.0,
+    units: str = "mm",
+    fp_markers: tuple[str, ...] = (),
+) -> SyntheticTake:
     """A take of ``n_markers`` markers (``n_stable`` of them on the top of the head) on ``face``;
     ``fp_markers`` adds markers on those feature points (named ``FP2_1`` ..., tied by ``fp``)."""
     rng = np.random.default_rng(seed)
@@ -85,22 +107,34 @@ def synthetic_take(face: Face, *, n_markers: int = 30, n_stable: int = 4, second
     face_m = np.r_[fp_v, np.setdiff1d(face_m, fp_v)[: n_face - len(fp_v)]].astype(np.int64)
     n_face = len(face_m)
     verts = np.r_[stable, face_m].astype(np.int64)
-    names = ([f"HEAD{i + 1}" for i in range(n_stable)] + ["FP" + f.replace(".", "_") for f in fp_markers]
-             + [f"M{i + 1:02d}" for i in range(n_face - len(fp_markers))])
-    n = max(2, int(round(seconds * fps)))
+    names = (
+        [f"HEAD{i + 1}" for i in range(n_stable)]
+        + ["FP" + f.replace(".", "_") for f in fp_markers]
+        + [f"M{i + 1:02d}" for i in range(n_face - len(fp_markers))]
+    )
+    n = max(2, round(seconds * fps))
     hold = min(n - 1, int(0.25 * fps))
     # deformation field: bumps centred on some face markers
     centres = v[face_m[rng.choice(n_face, size=min(6, n_face), replace=False)]]
     radius = 0.25 * size[0]
-    amps = np.stack([np.stack([_smooth(rng, n, fps, amplitude_mm, hold) for _ in range(3)], -1) for _ in centres])  # (B, T, 3)
-    w = np.exp(-((v[verts][:, None, :] - centres[None]) ** 2).sum(axis=2) / (2 * radius**2))  # (M, B)
+    amps = np.stack(
+        [
+            np.stack([_smooth(rng, n, fps, amplitude_mm, hold) for _ in range(3)], -1)
+            for _ in centres
+        ]
+    )  # (B, T, 3)
+    w = np.exp(
+        -((v[verts][:, None, :] - centres[None]) ** 2).sum(axis=2) / (2 * radius**2)
+    )  # (M, B)
     w[:n_stable] = 0.0
     local = v[verts][None] + np.einsum("mb,btc->tmc", w, amps)
     if "2.1" in fp_markers:  # the chin drops now and then (jaw opening)
         chin = names.index("FP2_1")
         local[:, chin, 1] -= np.abs(_smooth(rng, n, fps, 2.0 * amplitude_mm, hold))
     if head_motion:
-        ang = np.stack([_smooth(rng, n, fps, a, hold, (0.6, 1.5)) for a in np.radians([6.0, 10.0, 4.0])], -1)
+        ang = np.stack(
+            [_smooth(rng, n, fps, a, hold, (0.6, 1.5)) for a in np.radians([6.0, 10.0, 4.0])], -1
+        )
         trans = np.stack([_smooth(rng, n, fps, 10.0, hold, (0.8, 2.0)) for _ in range(3)], -1)
     else:
         ang, trans = np.zeros((n, 3)), np.zeros((n, 3))
@@ -114,7 +148,7 @@ def synthetic_take(face: Face, *, n_markers: int = 30, n_stable: int = 4, second
             if rng.random() < 0.3:
                 length = int(rng.integers(3, max(4, n // 8)))
                 start = int(rng.integers(hold + 1, max(hold + 2, n - length)))
-                xyz[start:start + length, j] = np.nan
+                xyz[start : start + length, j] = np.nan
     from ...protocol.markers_file import UNITS_MM
 
     take = MarkerTake(names, xyz / UNITS_MM[units], float(fps), units)

@@ -5,6 +5,7 @@ A marker that sits on a feature point gives every translation FAP of that point:
 on the face (FAPU). The jaw marker gives FAP 3 (open_jaw) even when it is not tied to FP 2.1, so
 that the rigid jaw, teeth and tongue follow the chin. The head pose gives FAPs 48-50 in AU.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -65,11 +66,15 @@ class FapProjection:
         out = zero_faps()
         if len(self.cols):
             out[self.numbers] = (np.asarray(d, dtype=np.float64)[self.cols] * self.rows).sum(axis=1)
-            out[3] = max(out[3], 0.0)  # open_jaw is one-sided: a jaw does not close past its neutral
+            out[3] = max(
+                out[3], 0.0
+            )  # open_jaw is one-sided: a jaw does not close past its neutral
         if head_r is not None:
             out[48:51] = euler_from_matrix(head_r) / self.au
         return out
 
     def faps_batch(self, d: np.ndarray, head_r: np.ndarray | None = None) -> np.ndarray:
         """``(T, 69)`` for ``(T, K, 3)`` displacements and ``(T, 3, 3)`` rotations."""
-        return np.stack([self.faps(d[i], None if head_r is None else head_r[i]) for i in range(len(d))])
+        return np.stack(
+            [self.faps(d[i], None if head_r is None else head_r[i]) for i in range(len(d))]
+        )
