@@ -40,9 +40,9 @@ def main() -> int:
         params = replace(Params(), **dict(zip(grid, values)))
         truth, pred = [], []
         for u, f, proba, dur in pre:
-            tr = track_of(f, proba, dur, fps=100.0, params=params).track
+            ls = track_of(f, proba, dur, fps=100.0, params=params)
             truth.append(u.truth)
-            pred.append(VISEME_CLASS[fit_len(tr.select1, len(u.truth))])
+            pred.append(VISEME_CLASS[fit_len(ls.labels_at(ls.track.t)[0], len(u.truth))])
         s = scores(np.concatenate(truth), np.concatenate(pred))
         rows.append((s["macro_f1"] + s["accuracy"], s["accuracy"], s["macro_f1"], values))
     rows.sort(key=lambda r: -r[0])

@@ -33,6 +33,17 @@ class LipSync:
     track: Track
     duration: float
 
+    def labels_at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(viseme (N,), weight (N,))``: the classified viseme and intensity of the analysis frame
+        nearest each time ``t (N,)`` s — what is being said, before coarticulation (the viseme
+        track that ``facecast lipsync`` prints; the animation's FAPs are coarticulated)."""
+        if len(self.visemes) == 0:
+            z = np.zeros(len(t))
+            return z.astype(np.int64), z
+        i = np.clip(np.round(np.asarray(t) / self.features.hop).astype(np.int64), 0,
+                    len(self.visemes) - 1)
+        return self.visemes[i], self.weights[i]
+
 
 def features_of(x: np.ndarray, sr: float) -> Features:
     """LPC features of ``x (n,)`` at ``sr`` Hz, resampled to the analysis rate."""

@@ -134,10 +134,10 @@ class Params:
     """
 
     zcr_fricative: float = 31.0
-    weak_fricative_db: float = 30.0
-    weak_db: float = 12.0
+    weak_fricative_db: float = 20.0
+    weak_db: float = 18.0
     median: int = 5
-    min_pause: float = 0.2
+    min_pause: float = 0.1
     fricative_viseme: int = SS
     weak_viseme: int | None = NN
     coart_past: float = 0.25

@@ -1,7 +1,9 @@
 """``facecast lipsync AUDIO [--json]``: the viseme track of a speech file.
 
 ``--json`` prints ``{"fps": F, "frames": [{"t": s, "viseme": 0-14, "weight": 0-1}, ...]}`` with
-MPEG-4 viseme ids (0 = silence); without it, a readable table of viseme segments.
+MPEG-4 viseme ids (0 = silence): the classified viseme of the analysis frame nearest t and its
+intensity (the animation made from it by ``facecast render`` is coarticulated). Without
+``--json``, a readable table of viseme segments.
 """
 from __future__ import annotations
 
@@ -45,8 +47,9 @@ def run(args: argparse.Namespace) -> int:
     ls = lipsync(x, sr, fps=args.fps, lookahead=args.lookahead, calibration=cal, where=args.audio)
     tr = ls.track
     if args.json:
+        vis, weight = ls.labels_at(tr.t)
         frames = [{"t": round(float(t), 6), "viseme": int(v), "weight": round(float(w), 4)}
-                  for t, v, w in zip(tr.t, tr.select1, tr.weight)]
+                  for t, v, w in zip(tr.t, vis, weight)]
         json.dump({"fps": args.fps, "frames": frames}, sys.stdout)
         sys.stdout.write("\n")
         return 0
@@ -59,12 +62,13 @@ def run(args: argparse.Namespace) -> int:
 
 def _table(args: argparse.Namespace, ls) -> None:
     tr = ls.track
+    vis, _ = ls.labels_at(tr.t)
     start = 0
     print(f"{args.audio}: {ls.duration:.2f} s, {len(tr.t)} frames at {args.fps:g} fps; silence "
           f"{ls.calibration.silence_db:.1f} dB, max {ls.calibration.max_db:.1f} dB")
     print(f"{'start':>8} {'end':>8}  viseme")
     for i in range(1, len(tr.t) + 1):
-        if i == len(tr.t) or tr.select1[i] != tr.select1[start]:
-            v = int(tr.select1[start])
+        if i == len(tr.t) or vis[i] != vis[start]:
+            v = int(vis[start])
             print(f"{tr.t[start]:8.3f} {tr.t[i - 1] + 1 / args.fps:8.3f}  {v:2d} {VISEME_NAMES[v]}")
             start = i
