@@ -103,7 +103,7 @@ def test_stream_resampler_equals_batch(rng, sr):
 
 
 def test_blockwise_analysis_equals_one_block(rng, monkeypatch):
-    import facecast.server.audio.lpc as lpc
+    from facecast.server.audio import lpc
 
     x = rng.standard_normal(5_000) * 0.1
     whole = analyze(x, sr=10000)
