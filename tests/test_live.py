@@ -114,6 +114,43 @@ def test_one_producer_three_viewers_equal_batch_render(live, joy):
     assert any(not np.array_equal(expected[seqs[0]], expected[k]) for k in seqs)
 
 
+def test_concurrent_sessions_of_one_face_get_their_own_frames(live, joy, data_dir):
+    """Sessions of the same face are deformed in shared batches; each still gets exactly its frames."""
+    from facecast.server.api.store import FaceStore
+    from facecast.server.drivers.fap import to_animation
+    from facecast.server.pipeline import Animator
+
+    anger = read_fap((data_dir / "xface/faps/anger.fap").read_text(), where="anger.fap")
+    takes = [
+        type(joy)(fps=joy.fps, frames=joy.frames[:40]),
+        type(anger)(fps=anger.fps, frames=anger.frames[:40]),
+    ]
+
+    async def one(take):
+        s = await _session(live)
+        started = asyncio.Event()
+        viewer = asyncio.create_task(_collect(live.url, s.id, s.viewer_token, started=started))
+        await started.wait()
+        async with produce(live.url, s.id, s.producer_token) as p:
+            await stream_fap(p, take, speed=4.0)
+        got = await viewer
+        await _close(live, s.id)
+        return got
+
+    async def main():
+        return await asyncio.gather(*(one(t) for t in takes))
+
+    results = run(main())
+    animator = Animator(FaceStore().face(FACE), backend="numpy")
+    for take, got in zip(takes, results):
+        states = to_animation(take).states
+        assert got and got[-1].frame.header.seq == len(states) - 1
+        for f in got:
+            np.testing.assert_array_equal(
+                f.frame.vertices, animator.frame(states[f.frame.header.seq])
+            )
+
+
 def test_int16_viewer_and_json_fap_frames(live, joy):
     from facecast.server.api.store import FaceStore
     from facecast.server.drivers.fap import to_animation
@@ -506,6 +543,53 @@ def test_marker_session_equals_the_live_driver_run_locally(live):
     for f in got:
         np.testing.assert_array_equal(f.frame.vertices, animator.frame(states[f.frame.header.seq]))
     assert any(not np.array_equal(got[0].frame.vertices, f.frame.vertices) for f in got)
+
+
+def test_stream_command_sends_a_trc_take_with_its_layout(live, tmp_path):
+    """``facecast stream take.trc`` (in process): the layout beside the take goes in the hello."""
+    import argparse
+
+    from facecast.client.commands import stream as stream_cmd
+    from facecast.protocol.markers_file import write_trc
+    from facecast.server.api.store import FaceStore
+    from facecast.server.mocap.synthetic import synthetic_take
+
+    syn = synthetic_take(FaceStore().face(FACE), n_markers=12, seconds=0.4, fps=60.0, seed=2)
+    take_path = tmp_path / "take.trc"
+    take_path.write_text(write_trc(syn.take))
+    (tmp_path / "take.layout.json").write_text(json.dumps(syn.layout))
+
+    async def main():
+        s = await _session(live, input="markers")
+        started = asyncio.Event()
+        viewer = asyncio.create_task(_collect(live.url, s.id, s.viewer_token, started=started))
+        await started.wait()
+        args = argparse.Namespace(
+            input=take_path,
+            url=live.url,
+            session=s.id,
+            token=s.producer_token,
+            speed=4.0,
+            loop=1,
+            json_frames=False,
+            chunk=0.02,
+            layout=None,
+        )
+        report = await stream_cmd._main(args)
+        got = await viewer
+        await _close(live, s.id)
+        return report, got
+
+    report, got = run(main())
+    assert (
+        report["kind"] == "markers"
+        and report["frames_sent"] == syn.take.n_frames
+        and not report["errors"]
+    )
+    assert got and got[-1].frame.header.t == pytest.approx((syn.take.n_frames - 1) / 60.0)
+    args = argparse.Namespace(input=tmp_path / "nolayout" / "t.trc", layout=None)
+    with pytest.raises(stream_cmd.StreamError, match="layout"):
+        stream_cmd._read_layout(args)
 
 
 def test_marker_hello_without_layout_is_refused(live):

@@ -43,7 +43,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--chunk", type=float, default=0.02, help="audio: seconds per PCM chunk (default 0.02)"
     )
-    p.add_argument("--layout", help="markers: marker layout name passed to the server's driver")
+    p.add_argument(
+        "--layout",
+        type=Path,
+        help="markers: marker layout JSON file (default: <take>.layout.json or layout.json "
+        "beside the take); its content is sent in the hello",
+    )
 
 
 class StreamError(Exception):
@@ -90,6 +95,31 @@ def _read_markers(path: Path):
         raise StreamError(str(e)) from None
 
 
+def _read_layout(args: argparse.Namespace) -> dict:
+    """The marker layout to send: ``--layout``, else ``<take>.layout.json`` / ``layout.json`` beside it."""
+    take = args.input
+    candidates = (
+        [args.layout]
+        if args.layout
+        else [take.with_name(take.stem + ".layout.json"), take.with_name("layout.json")]
+    )
+    for path in candidates:
+        if path.is_file():
+            try:
+                layout = json.loads(path.read_text())
+            except (OSError, UnicodeDecodeError, ValueError) as e:
+                raise StreamError(f"{path}: cannot read the marker layout: {e}") from None
+            if not isinstance(layout, dict):
+                raise StreamError(
+                    f"{path}: a marker layout is a JSON object with 'markers' and 'stable'"
+                )
+            return layout
+    raise StreamError(
+        f"{take}: a marker take needs its layout: pass --layout layout.json (or put "
+        f"{take.stem}.layout.json beside the take)"
+    )
+
+
 async def _main(args: argparse.Namespace) -> dict:
     from ...protocol.messages import ProducerHello
     from ..api import produce, stream_fap, stream_markers, stream_pcm
@@ -126,7 +156,7 @@ async def _main(args: argparse.Namespace) -> dict:
     elif suffix in MARKERS:
         take = _read_markers(args.input)
         hello = ProducerHello(
-            input="markers", markers=list(take.names), layout=args.layout, units=take.units
+            input="markers", markers=list(take.names), layout=_read_layout(args), units=take.units
         )
         async with produce(args.url, args.session, args.token, hello) as p:
             n = 0
