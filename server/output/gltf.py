@@ -92,14 +92,29 @@ def _chunk_rows(n_cols: int) -> int:
     return int(min(256, max(16, 4_000_000 // max(n_cols, 1))))
 
 
+def _planar(a: np.ndarray, sub: np.ndarray | None = None, dtype=np.float32) -> np.ndarray:
+    """``(c, V, 3)`` -> ``(c, 3V)`` in planar order (all x, all y, all z: the basis works in this
+    order, so per-vertex norms are sums of three contiguous blocks), minus ``sub`` (planar ``(3V,)``)."""
+    c, V = a.shape[:2]
+    t = a.transpose(0, 2, 1)
+    out = np.subtract(t, sub.reshape(3, V), dtype=dtype) if sub is not None else t.astype(dtype)
+    return out.reshape(c, 3 * V)
+
+
+def _interleaved(a: np.ndarray) -> np.ndarray:
+    """Planar ``(M, 3V)`` -> ``(M, V, 3)`` contiguous."""
+    return np.ascontiguousarray(a.reshape(len(a), 3, -1).transpose(0, 2, 1))
+
+
 def _displacements(chunk: np.ndarray, rest: np.ndarray) -> np.ndarray:
-    """``(c, 3V) float32`` displacements of a chunk; ValueError on a wrong shape or non-finite values."""
+    """``(c, 3V) float32`` planar displacements of a chunk from planar ``rest``; ValueError on a wrong
+    shape or non-finite values."""
     V = len(rest) // 3
     if chunk.ndim != 3 or chunk.shape[1:] != (V, 3):
         raise ValueError(f"frames must be (T>=1, {V}, 3), not {chunk.shape}")
     if not np.all(np.isfinite(chunk)):
         raise ValueError("frames contain NaN or infinite values")
-    return chunk.reshape(len(chunk), -1) - rest
+    return _planar(chunk, rest)
 
 
 class _Basis:
@@ -208,7 +223,7 @@ def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_tar
         basis_slack: pass-1 per-frame tolerance as a fraction of ``tolerance``.
         chunk: frames per chunk for array input (default: about 32 MB per chunk).
     """
-    r = np.asarray(rest, dtype=np.float32).reshape(-1)
+    r = np.ascontiguousarray(np.asarray(rest, dtype=np.float32).T).reshape(-1)  # planar (3V,)
     n_cols = r.size
     chunk = chunk or _chunk_rows(n_cols)
     basis = _Basis(n_cols, kmax=max_targets + max(16, max_targets // 2), keep=max_targets)
@@ -238,7 +253,8 @@ def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_tar
             scale = np.abs(P[:, :M]).max(axis=0) + np.sqrt(rho.max())  # >= every exact |X Qv^T|
             scale[scale == 0] = 1.0
             targets = Qv * scale.astype(np.float32)[:, None]  # (M, 3V) float32
-            weights, errors, wtw, wtn = _verify(frames, r, Qv, scale, targets, T, chunk, normals)
+            del Qv
+            weights, errors, wtw, wtn = _verify(frames, r, scale, targets, T, chunk, normals)
             passes += 1
             err, frame_err = errors[M]
             if err <= tolerance or M >= max_targets or M >= k:
@@ -258,8 +274,8 @@ def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_tar
         ntargets = (np.linalg.pinv(wtw[:M, :M], hermitian=True) @ wtn[:M]).astype(np.float32)
     else:
         ntargets = np.zeros((M, n_cols), dtype=np.float32)
-    return MorphBasis(targets[:M].reshape(M, -1, 3), np.ascontiguousarray(weights[:, :M]),
-                      ntargets.reshape(M, -1, 3), err, frame_err, capped, passes, k)
+    return MorphBasis(_interleaved(targets[:M]), np.ascontiguousarray(weights[:, :M]), _interleaved(ntargets),
+                      err, frame_err, capped, passes, k)
 
 
 def _candidates(M: int) -> list[int]:
@@ -267,7 +283,7 @@ def _candidates(M: int) -> list[int]:
     return sorted({max(1, round(M * f)) for f in (0.1, 0.15, 0.2, 0.3, 0.4, 0.55, 0.7, 0.85)} | {M})
 
 
-def _verify(frames: FrameSource, r: np.ndarray, Qv: np.ndarray, scale: np.ndarray, targets: np.ndarray,
+def _verify(frames: FrameSource, r: np.ndarray, scale: np.ndarray, targets: np.ndarray,
             T: int, chunk: int, normals: Callable[[np.ndarray], np.ndarray] | None
             ) -> tuple[np.ndarray, dict[int, tuple[float, float]], np.ndarray, np.ndarray | None]:
     """Pass 2: the weights ``(T, M) float32`` of every frame; for each candidate count ``m`` (the first
@@ -275,36 +291,37 @@ def _verify(frames: FrameSource, r: np.ndarray, Qv: np.ndarray, scale: np.ndarra
     sums ``W^T W (M, M)``, ``W^T dN (M, 3V)`` (None without ``normals``)."""
     M = targets.shape[0]
     t64 = targets.astype(np.float64)
-    inv = (1.0 / scale).astype(np.float32)
+    inv = (1.0 / scale**2).astype(np.float32)  # targets = directions * scale
     weights = np.empty((T, M), dtype=np.float32)
     wtw = np.zeros((M, M))
-    wtn = np.zeros((M, r.size)) if normals is not None else None
+    wtn = np.zeros((M, r.size), dtype=np.float32) if normals is not None else None
     cands = _candidates(M)[::-1]  # M first, then fewer
     errors = {m: (0.0, 0.0) for m in cands}
     s = 0
     for fc in frame_chunks(frames, chunk):
         X = _displacements(fc, r)
-        w = (X @ Qv.T) * inv
+        w = (X @ targets.T) * inv
         n = len(w)
         if s + n > T:
             raise ValueError("the frame source yielded more frames on its second pass")
         weights[s:s + n] = w
         w64 = w.astype(np.float64)
-        diff = fc.reshape(n, -1).astype(np.float64)  # float64 throughout: exact for float32 data
-        diff -= r
+        diff = _planar(fc, r, np.float64)  # float64 throughout: exact for float32 data
         diff -= w64 @ t64
-        d3 = diff.reshape(n, -1, 3)
+        V = r.size // 3
         prev = M
         for m in cands:  # residual with the first m targets = residual with M + the dropped ones
             if m < prev:
                 diff += w64[:, m:prev] @ t64[m:prev]
                 prev = m
-            d2 = np.einsum("tvc,tvc->tv", d3, d3)
+            d2 = np.square(diff[:, :V])
+            d2 += np.square(diff[:, V:2 * V])
+            d2 += np.square(diff[:, 2 * V:])
             e, f = errors[m]
             errors[m] = (max(e, float(np.sqrt(d2.max(initial=0.0)))),
                          max(f, float(np.sqrt(d2.sum(axis=1).max(initial=0.0)))))
         if wtn is not None:
-            wtn += w.T @ normals(fc).reshape(n, -1)
+            wtn += w.T @ _planar(normals(fc))
         wtw += w64.T @ w64
         s += n
     if s != T:
