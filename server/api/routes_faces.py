@@ -13,8 +13,9 @@ from fastapi.responses import Response
 
 from ...protocol.rest import TOPOLOGY_MEDIA_TYPE, ErrorBody, FaceInfo, FaceList, FaceSummary
 from ...protocol.topology import Topology, encode_topology, part_ids_from_parts
-from ..errors import FacecastError
+from ..errors import FacecastError, InputError
 from ..faces import KNOWN_PARTS, RIGID_GROUPS, builtin_faces
+from ..mpeg4 import measure_fapu
 from .security import bearer, same
 
 log = logging.getLogger(__name__)
@@ -40,25 +41,13 @@ def face_topology(face) -> Topology:
         rigid_group=face.rigid_group, group_names=list(RIGID_GROUPS), mm_per_unit=face.mm_per_unit)
 
 
-def measure_fapu(face) -> dict[str, float] | None:
-    """The face's FAPU in mesh units, or None when they cannot be measured (missing feature points)."""
+def face_fapu(face) -> dict[str, float] | None:
+    """The face's FAPU in mesh units, or None when its feature points cannot give them."""
     try:
-        from ..mpeg4 import measure_fapu as measure
-    except ImportError:
-        return None
-    try:
-        fapu = measure(face)
-    except Exception as e:  # the face lacks the feature points; the description still works
+        return measure_fapu(face)
+    except InputError as e:  # the description still works without FAPU
         log.info("no FAPU for %s: %s", face.name, e)
         return None
-    items = fapu.items() if isinstance(fapu, dict) else getattr(fapu, "__dict__", {}).items()
-    out = {}
-    for k, v in items:
-        try:
-            out[str(k)] = float(v)
-        except (TypeError, ValueError):
-            continue
-    return out or None
 
 
 class Forbidden(FacecastError):
@@ -94,7 +83,7 @@ async def describe_face(name: str, request: Request) -> FaceInfo:
     store = request.app.state.store
     check_public_load(request, name)
     face = await run_in_threadpool(store.face, name)
-    fapu = await run_in_threadpool(store.derived, name, "fapu", measure_fapu)
+    fapu = await run_in_threadpool(store.derived, name, "fapu", face_fapu)
     groups = np.bincount(face.rigid_group, minlength=len(RIGID_GROUPS))
     return FaceInfo(
         name=name, vertices=face.n_vertices, triangles=int(face.triangles.shape[0]), units=face.units,
