@@ -28,6 +28,7 @@ import math
 import os
 import resource
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
@@ -64,6 +65,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--latency-target", type=float, default=50.0, help="p95 target, ms")
     p.add_argument(
         "--url", help="use this running server instead of starting one (needs FACECAST_ADMIN_KEY)"
+    )
+    p.add_argument(
+        "--viewer-kind",
+        choices=("client", "light"),
+        default="client",
+        help="viewers: the real asyncio client (default; end to end) or a minimal reader that skips "
+        "payloads (measures the server without the Python client's parsing cost)",
     )
     p.add_argument(
         "--viewer-rcvbuf",
@@ -278,6 +286,119 @@ async def _viewer(
             out.append((f.received, h.seq, h.wall, f.size))
 
 
+class _LightViewer(asyncio.Protocol):
+    """A minimal WebSocket viewer for load generation: it reads each server frame's length and the
+    first 32 bytes of binary payloads (seq, wall time) and skips the rest without copying it, so
+    the benchmark measures the server rather than the Python client's parser (``--viewer client``
+    uses the real client). Server frames are never masked or fragmented (RFC 6455 §5.1)."""
+
+    def __init__(self, path: str, host: str, out: list, ready: asyncio.Event) -> None:
+        self.request = (
+            f"GET {path} HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\n"
+            "Connection: Upgrade\r\nSec-WebSocket-Key: ZmFjZWNhc3QtYmVuY2gtMQ==\r\n"
+            "Sec-WebSocket-Version: 13\r\n\r\n"
+        ).encode()
+        self.out, self.ready = out, ready
+        self.buf = bytearray()
+        self.upgraded = False
+        self.skip = 0  # payload bytes of the current frame still to skip
+        self.want_head = 0  # payload bytes of the current frame still to keep (first 32)
+        self.head = bytearray()
+        self.size = 0
+        self.closed = asyncio.get_running_loop().create_future()
+
+    def connection_made(self, transport) -> None:
+        self.transport = transport
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            from ...client.api import VIEWER_RECEIVE_BUFFER
+
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, VIEWER_RECEIVE_BUFFER)
+        transport.write(self.request)
+
+    def connection_lost(self, exc) -> None:
+        if not self.closed.done():
+            self.closed.set_result(None)
+
+    def data_received(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            if self.want_head or self.skip:  # inside a payload
+                take = min(self.want_head, len(view))
+                if take:
+                    self.head += view[:take]
+                    self.want_head -= take
+                else:
+                    take = min(self.skip, len(view))
+                    self.skip -= take
+                view = view[take:]
+                if not self.want_head and not self.skip:
+                    self._frame_done()
+                continue
+            self.buf += view  # a header (or the HTTP answer) in pieces
+            view = memoryview(b"")
+            if not self.upgraded:
+                end = self.buf.find(b"\r\n\r\n")
+                if end < 0:
+                    return
+                if not self.buf.startswith(b"HTTP/1.1 101"):
+                    self.transport.close()
+                    return
+                self.upgraded = True
+                view = memoryview(bytes(self.buf[end + 4 :]))
+                self.buf.clear()
+                continue
+            if len(self.buf) < 2:
+                return
+            b0, b1 = self.buf[0], self.buf[1] & 0x7F
+            hlen = 2 if b1 < 126 else 4 if b1 == 126 else 10
+            if len(self.buf) < hlen:
+                return
+            n = b1 if b1 < 126 else int.from_bytes(self.buf[2:hlen], "big")
+            self.opcode, self.size = b0 & 0x0F, n
+            view = memoryview(bytes(self.buf[hlen:]))
+            self.buf.clear()
+            self.head = bytearray()
+            keep = min(n, 32) if self.opcode == 2 else n
+            self.want_head, self.skip = keep, n - keep
+            if n == 0:
+                self._frame_done()
+
+    def _frame_done(self) -> None:
+        if self.want_head or self.skip:
+            return
+        if self.opcode == 2 and len(self.head) >= 32:
+            seq, wall = (
+                struct.unpack_from("<I", self.head, 8)[0],
+                struct.unpack_from("<d", self.head, 24)[0],
+            )
+            self.out.append((time.time(), seq, wall, self.size))
+        elif self.opcode == 1 and not self.ready.is_set():
+            self.ready.set()  # the viewer hello
+        elif self.opcode == 8:
+            self.transport.close()
+        self.head = bytearray()
+        self.opcode = None
+
+
+async def _light_viewer(
+    url: str, s, encoding: str, stop: asyncio.Event, ready: asyncio.Event, out: list
+) -> None:
+    from urllib.parse import urlsplit
+
+    from ...client.api import ws_url
+
+    u = urlsplit(ws_url(url, f"/v1/sessions/{s.id}/watch", token=s.viewer_token, encoding=encoding))
+    loop = asyncio.get_running_loop()
+    transport, proto = await loop.create_connection(
+        lambda: _LightViewer(f"{u.path}?{u.query}", u.netloc, out, ready), u.hostname, u.port
+    )
+    try:
+        await stop.wait()
+    finally:
+        transport.close()
+
+
 async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> dict:
     """One load point: ``sessions`` sessions with ``viewers`` viewers each, for warmup + seconds."""
     from ...client.api import SessionAdmin
@@ -294,7 +415,8 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
                 ev = asyncio.Event()
                 records.append(rec)
                 ready_events.append(ev)
-                tasks.append(asyncio.create_task(_viewer(url, s, args.encoding, stop, ev, rec)))
+                fn = _light_viewer if args.viewer_kind == "light" else _viewer
+                tasks.append(asyncio.create_task(fn(url, s, args.encoding, stop, ev, rec)))
         await asyncio.wait_for(asyncio.gather(*(e.wait() for e in ready_events)), 120)
         sent: list[int] = []
         tasks += [asyncio.create_task(_producer(url, s, args.fps, stop, sent)) for s in made]
@@ -439,6 +561,7 @@ def run(args: argparse.Namespace) -> int:
         "fps": args.fps,
         "backend": health.get("backend", args.backend),
         "device": health.get("device"),
+        "viewer_kind": args.viewer_kind,
         "viewer_rcvbuf": args.viewer_rcvbuf,
         "viewer_queue": args.viewer_queue,
         "frame_costs_ms": costs,
