@@ -258,28 +258,46 @@ def encode_vertices_i16(vertices: np.ndarray, *, seq: int, t: float, wall: float
     )
 
 
-def quantize_int16_fast(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``quantize_int16`` with the same result bit for bit, several times faster on ``(V, 3) float32``.
+#: Rows per block in ``quantize_int16_fast``: a ``(V, 3)`` array is processed as ``(V / 256, 768)``.
+_QBLOCK = 256
 
-    NumPy broadcasts a ``(3,)`` offset over ``(V, 3)`` rows slowly (an inner loop of length 3), so
-    the work is done on a transposed ``(3, V)`` copy with one scalar per contiguous row; the same
-    float32 operations in the same order give the same bits.
+
+def quantize_int16_fast(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``quantize_int16`` with the same result bit for bit, faster on ``(V, 3) float32``.
+
+    NumPy applies a ``(3,)`` offset to ``(V, 3)`` rows slowly (an inner loop of length 3), so the
+    rows are viewed as blocks ``(V / 256, 768)`` and the offset and scale tiled to 768 values;
+    the same float32 operations in the same order give the same bits.
     """
     v = _vertices_array(v)
-    if v.shape[0] == 0:  # nothing to quantise; any positive scale is valid
+    n = v.shape[0]
+    if n == 0:  # nothing to quantise; any positive scale is valid
         return np.zeros((0, 3), "<i2"), np.zeros(3, np.float32), np.ones(3, np.float32)
-    t = v.T.copy()  # (3, V)
-    lo = np.array([t[a].min() for a in range(3)], dtype=np.float32)
-    hi = np.array([t[a].max() for a in range(3)], dtype=np.float32)
+    m = _QBLOCK
+    n_main = (n // m) * m
+    main, tail = v[:n_main].reshape(-1, 3 * m), v[n_main:]
+    parts_lo, parts_hi = [], []
+    if n_main:
+        parts_lo.append(main.min(axis=0).reshape(m, 3).min(axis=0))
+        parts_hi.append(main.max(axis=0).reshape(m, 3).max(axis=0))
+    if len(tail):
+        parts_lo.append(tail.min(axis=0))
+        parts_hi.append(tail.max(axis=0))
+    lo = np.min(parts_lo, axis=0).astype(np.float32)
+    hi = np.max(parts_hi, axis=0).astype(np.float32)
     offset = ((lo + hi) / 2).astype(np.float32)
     scale = np.maximum((hi - lo) / np.float32(65534.0), np.float32(1e-12)).astype(np.float32)
-    for a in range(3):
-        row = t[a]
-        np.subtract(row, offset[a], out=row)
-        np.divide(row, scale[a], out=row)
-    np.rint(t, out=t)
-    np.clip(t, -32767, 32767, out=t)
-    return t.T.astype("<i2", order="C"), offset, scale
+    out = np.empty_like(v)
+    if n_main:
+        block = out[:n_main].reshape(-1, 3 * m)
+        np.subtract(main, np.tile(offset, m), out=block)
+        np.divide(block, np.tile(scale, m), out=block)
+    if len(tail):
+        np.subtract(tail, offset, out=out[n_main:])
+        np.divide(out[n_main:], scale, out=out[n_main:])
+    np.rint(out, out=out)
+    np.clip(out, -32767, 32767, out=out)
+    return out.astype("<i2"), offset, scale
 
 
 def encode_vertices(

@@ -70,7 +70,14 @@ def test_i16_round_trip(v):
     assert np.all(err <= f.scale * 0.5 + 1e-6 * (np.abs(v).max(axis=0) + 1) * 4)
 
 
-@given(vertex_arrays(200).filter(lambda a: len(a) > 0))
+@pytest.mark.parametrize("n", [1, 255, 256, 257, 513, 24_850])
+def test_fast_quantiser_equals_the_reference_on_face_sized_arrays(n, rng):
+    v = (rng.standard_normal((n, 3)) * 90 + [0, 20, 60]).astype(np.float32)
+    for a, b in zip(fr.quantize_int16_fast(v), quantize_int16(v)):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
+@given(vertex_arrays(600).filter(lambda a: len(a) > 0))
 def test_fast_quantiser_equals_the_reference(v):
     for a, b in zip(fr.quantize_int16_fast(v), quantize_int16(v)):
         assert a.dtype == b.dtype and np.array_equal(a, b)
