@@ -36,13 +36,19 @@ SKIN = np.arange(0, 11248)  # face 0-9408 + head/neck 9409-11247 (data/README.md
 #: The "-skip" variants are the paper read literally (criterion (1) as written, no own-vertex
 #: blending); the others use facecast's rim rule and blending (``server/deform/feature_point.py``).
 METHODS: dict[str, tuple[str, dict]] = {
-    "fp-paper-skip": ("fp", {"normalisation": "paper", "no_neighbour": "skip", "own_blend": 0.0}),
-    "fp-slides-skip": ("fp", {"normalisation": "slides", "no_neighbour": "skip", "own_blend": 0.0}),
-    "fp-paper": ("fp", {"normalisation": "paper", "no_neighbour": "cap"}),
-    "fp-slides": ("fp", {"normalisation": "slides", "no_neighbour": "cap"}),
-    "fp-clamped-noblend": ("fp", {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.0}),
-    "fp-clamped": ("fp", {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.5}),
-    "fp-none": ("fp", {"normalisation": "none", "no_neighbour": "cap"}),
+    "fp-paper-skip": ("fp", {"normalisation": "paper", "no_neighbour": "skip", "own_blend": 0.0, "smooth": 0.0}),
+    "fp-slides-skip": ("fp", {"normalisation": "slides", "no_neighbour": "skip", "own_blend": 0.0, "smooth": 0.0}),
+    "fp-paper": ("fp", {"normalisation": "paper", "no_neighbour": "cap", "smooth": 0.0}),
+    "fp-slides": ("fp", {"normalisation": "slides", "no_neighbour": "cap", "smooth": 0.0}),
+    "fp-clamped-noblend": ("fp", {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.0,
+                                  "smooth": 0.0}),
+    "fp-clamped": ("fp", {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.5, "smooth": 0.0}),
+    "fp-none": ("fp", {"normalisation": "none", "no_neighbour": "cap", "smooth": 0.0}),
+    "fp-clamped-smooth0.3": ("fp", {"smooth": 0.3}),
+    "fp-clamped-smooth0.5": ("fp", {"smooth": 0.5}),  # the default
+    "fp-clamped-smooth0.7": ("fp", {"smooth": 0.7}),
+    "fp-clamped-smooth1.5": ("fp", {"smooth": 1.5}),
+    "fp-smoothfall-smooth0.5": ("fp", {"falloff": "smooth", "smooth": 0.5}),
     "rbf-imq": ("rbf", {"kernel": "imq", "distance": "euclidean", "affine": True}),
     "rbf-imq-surface": ("rbf", {"kernel": "imq", "distance": "surface", "affine": True}),
     "rbf-r": ("rbf", {"kernel": "r", "distance": "euclidean", "affine": True}),

@@ -27,7 +27,7 @@ from .rbf import rbf_operator
 log = logging.getLogger(__name__)
 
 #: Bump when a change to an engine changes its output, to invalidate cached operators.
-ALGORITHM_VERSION = 4
+ALGORITHM_VERSION = 5
 
 #: Default parameters per engine, chosen with ``bench/fidelity.py`` (45 ICT expressions rebuilt from
 #: their control displacements; mean skin error in mm, no deformation: 0.598):
@@ -50,8 +50,10 @@ ALGORITHM_VERSION = 4
 #: distance (0.271) and the affine part (0.321, 0.353 Euclidean); shape 1 beat 0.5 and 2.
 DEFAULTS: dict[str, dict] = {
     "fp": {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.5, "neighbour_ratio": 3.0,
-           "attach_distance": None},
-    "rbf": {"kernel": "imq", "shape": 1.0, "affine": False, "distance": "surface", "attach_distance": None},
+           "attach_distance": None, "smooth": 0.5, "inner": "membrane",
+           "falloff": "sine"},
+    "rbf": {"kernel": "imq", "shape": 1.0, "affine": False, "distance": "surface", "attach_distance": None,
+            "inner": "membrane"},
 }
 
 ENGINES = {"fp": feature_point_operator, "rbf": rbf_operator}
@@ -74,7 +76,7 @@ def cache_key(face, control_vertices: np.ndarray, constrained: np.ndarray, engin
     h = hashlib.sha256()
     h.update(json.dumps({"v": ALGORITHM_VERSION, "mesh": face.mesh_hash, "engine": engine,
                          "params": {k: params[k] for k in sorted(params)}}, default=str).encode())
-    for arr in (np.asarray(control_vertices, np.int64), np.asarray(constrained, bool),
+    for arr in (np.asarray(control_vertices, np.int64), np.asarray(constrained, bool), inner_vertices(face),
                 np.asarray(face.deformable, bool), np.asarray(face.rigid_group, np.uint8)):
         h.update(str(arr.shape).encode())
         h.update(np.ascontiguousarray(arr).tobytes())
@@ -85,7 +87,13 @@ def build_operator(face, control_vertices, *, engine: str = "fp", constrained=No
     """Build (never cached) the operator of ``engine`` for ``face`` and ``control_vertices (K,)``."""
     full = engine_params(engine, params)
     return ENGINES[engine](face.vertices, face.triangles, control_vertices, constrained=constrained,
-                           deformable=face.deformable, rigid_group=face.rigid_group, **full)
+                           deformable=face.deformable, rigid_group=face.rigid_group,
+                           inner_vertices=inner_vertices(face), **full)
+
+
+def inner_vertices(face) -> np.ndarray:
+    """``(n,)`` vertex ids of the face's inner surfaces hanging from the skin: the mouth socket."""
+    return np.asarray(face.parts.get("mouth_socket", np.zeros(0, np.int64)), dtype=np.int64)
 
 
 def get_operator(face, control_vertices, *, engine: str = "fp", constrained=None, cache: bool = True,

@@ -74,6 +74,7 @@ from scipy.spatial import cKDTree
 from ..errors import InputError
 from .mesh_graph import bounded_distances, components, edge_graph, voronoi
 from .operator import Operator
+from .smoothing import harmonic_fill, smooth_rows
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +123,7 @@ def _tangent_units(chords: np.ndarray, normal: np.ndarray) -> np.ndarray:
     return np.divide(flat, length, out=np.zeros_like(flat), where=length > 0)
 
 
-def _site_weights(vertices, normal, site_vertex, ids, dist, nb_vertex, nb_dist, cap, rim=True):
+def _site_weights(vertices, normal, site_vertex, ids, dist, nb_vertex, nb_dist, cap, rim=True, falloff="sine"):
     """Eqs. 1–4 for one FP over the vertices it reaches (``rim``: see ``no_neighbour="cap"``).
 
     Returns ``(vertex ids, W, d_iP)`` of the vertices it influences (its own vertex with W = 1).
@@ -148,6 +149,8 @@ def _site_weights(vertices, normal, site_vertex, ids, dist, nb_vertex, nb_dist, 
     d = np.where(c3 > 0, two, np.where(c2 > 0, one, cap if rim else 0.0))
     keep = (d > 0) & (dist < d) & ~own
     w = np.sin(0.5 * np.pi * (1.0 - dist[keep] / d[keep]))
+    if falloff == "smooth":  # sin²: zero slope at the radius too, no kink where the influence ends
+        w = w * w
     keep_ids = ids[keep]
     pos = w > 0
     return (np.r_[site_vertex, keep_ids[pos]], np.r_[1.0, w[pos]], np.r_[0.0, dist[keep][pos]])
@@ -166,6 +169,10 @@ def feature_point_operator(
     own_blend: float = 0.5,
     neighbour_ratio: float = 3.0,
     attach_distance: float | None = None,
+    smooth: float = 0.0,
+    inner: str = "copy",
+    inner_vertices: np.ndarray | None = None,
+    falloff: str = "sine",
 ) -> Operator:
     """Build the feature-point operator (sparse, per-axis weights).
 
@@ -191,6 +198,20 @@ def feature_point_operator(
             FPs' nearest-neighbour distances.
         attach_distance: how close (mesh units) an unreachable component must come to a reached
             vertex to copy its weights; default 3 median edge lengths.
+        smooth: strength s of the smoothing of the weight field (``smoothing.smooth_rows``,
+            controls held fixed): ``round(s · (h / e)²)`` Jacobi steps, h the median distance
+            between neighbouring FPs and e the median edge length, so the smoothing spans the same
+            fraction of the FP spacing at any mesh density (at most ``MAX_SMOOTH_ITERATIONS``);
+            0 disables.
+        inner: ``"copy"``: every vertex of an unreachable component copies the row of its nearest
+            reached vertex; ``"membrane"``: only the vertices within ``attach_distance`` of a
+            reached vertex copy (an eyelash's root, a socket's rim), the rest of the component and
+            the ``inner_vertices`` take the harmonic extension of their surroundings
+            (``smoothing.harmonic_fill``): they move smoothly with the skin they hang from.
+        inner_vertices: ``(n,)`` ids of inner surfaces attached to the skin (the mouth socket);
+            used with ``inner="membrane"``.
+        falloff: ``"sine"`` (eqs. 3–4) or ``"smooth"`` (its square: also flat where the influence
+            ends, so the rim of a region is not a kink).
 
     Returns:
         ``Operator`` with ``weights (nnz, 3)``; ``meta`` holds the engine and parameters.
@@ -207,7 +228,10 @@ def feature_point_operator(
     n_controls = len(controls)
     meta = {"engine": "fp", "normalisation": normalisation, "no_neighbour": no_neighbour,
             "own_blend": float(own_blend), "neighbour_ratio": float(neighbour_ratio),
-            "attach_distance": None if attach_distance is None else float(attach_distance)}
+            "attach_distance": None if attach_distance is None else float(attach_distance),
+            "smooth": float(smooth), "inner": inner, "falloff": falloff}
+    if falloff not in ("sine", "smooth"):
+        raise InputError(f"falloff must be 'sine' or 'smooth', not {falloff!r}", where="falloff")
 
     graph = edge_graph(vertices, triangles, deformable, rigid_group)
     if attach_distance is None:
@@ -233,6 +257,7 @@ def feature_point_operator(
     neighbours: dict[tuple, list[tuple[np.ndarray, np.ndarray]]] = {}
     regions: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # pattern -> (owner site, distance) per vertex
     limits = np.zeros(len(sites))
+    spacing: list[float] = []
     for pat in patterns:
         members = np.flatnonzero(np.array(pat, dtype=bool) & site_ok)
         vor = voronoi(graph, sites[members])
@@ -250,8 +275,11 @@ def feature_point_operator(
             if len(lists[-1][1]):
                 limits[s] = max(limits[s], lists[-1][1].max())
         neighbours[pat] = lists
+        spacing.extend(l[1].min() for l in lists if len(l[1]))
         owner = members[np.maximum(vor.source, 0)] if len(members) else np.zeros(n_vertices, np.int64)
         regions[pat] = (np.where(vor.source >= 0, owner, -1), vor.distance)
+
+    nn_spacing = float(np.median(spacing)) if spacing else 0.0
 
     # Step 2: bounded surface distances from every site, then weights per pattern.
     active = np.flatnonzero(axis_sites.any(axis=0) & site_ok)
@@ -275,7 +303,7 @@ def feature_point_operator(
             cap = nb_d.max() if len(nb_d) else 0.0
             ids, dist = reach_of[s]
             p, w, dp = _site_weights(vertices, normals[sites[s]], sites[s], ids, dist, sites[nb], nb_d, cap,
-                                     rim=no_neighbour == "cap")
+                                     rim=no_neighbour == "cap", falloff=falloff)
             rows.append(p)
             cols.append(np.full(len(p), s))
             if normalisation == "paper":
@@ -319,17 +347,86 @@ def feature_point_operator(
         cc = ctl[order][np.repeat(starts[s], m) + offs]
         per_axis.append((rr, cc, vv))
 
-    per_axis = _attach_floating(per_axis, vertices, graph, deformable, sites[active], rigid_group,
-                                attach_distance)
-    return _assemble(per_axis, n_vertices, n_controls, meta)
+    membrane = _check_inner(inner)
+    per_axis, free, floating = _attach_floating(per_axis, vertices, graph, deformable, sites[active],
+                                                rigid_group, attach_distance, membrane=membrane)
+    op = _assemble(per_axis, n_vertices, n_controls, meta)
+    fixed = np.zeros((n_vertices, 3), dtype=bool)
+    for a in range(3):
+        fixed[controls[constrained[:, a] & usable], a] = True
+    iterations = smoothing_iterations(smooth, graph, nn_spacing)
+    op.meta["smooth_iterations"] = iterations
+    if iterations > 0:
+        op = smooth_rows(op, graph, fixed, iterations)
+    if not membrane:
+        return op
+    return fill_inner(op, graph, free, inner_vertices, fixed.any(axis=1), deformable, vertices, triangles,
+                      deformable & ~floating)
 
 
-def floating_sources(vertices, graph, deformable, site_vertices, rigid_group, attach_distance):
+#: Upper bound on the smoothing steps (a 500k-vertex head would otherwise need ~300).
+MAX_SMOOTH_ITERATIONS = 60
+
+
+def smoothing_iterations(strength: float, graph, spacing: float) -> int:
+    """Jacobi steps for smoothing ``strength`` s: ``round(s · (spacing / median edge)²)``, capped."""
+    if strength <= 0 or graph.nnz == 0 or spacing <= 0:
+        return 0
+    e = float(np.median(graph.data))
+    return int(min(MAX_SMOOTH_ITERATIONS, round(strength * (spacing / e) ** 2)))
+
+
+def _check_inner(inner: str) -> bool:
+    if inner not in ("copy", "membrane"):
+        raise InputError(f"inner must be 'copy' or 'membrane', not {inner!r}", where="inner")
+    return inner == "membrane"
+
+
+def fill_inner(op: Operator, graph, free: np.ndarray, inner_vertices, controls: np.ndarray,
+               deformable: np.ndarray, vertices: np.ndarray, triangles: np.ndarray,
+               candidates: np.ndarray) -> Operator:
+    """Harmonic rows (``smoothing.harmonic_fill``) for ``free`` plus the deformable
+    ``inner_vertices``, never for control vertices (``controls (V,) bool``), each pulled towards
+    the ``candidates (V,) bool`` vertex in front of it (``front_vertices``)."""
+    free = free.copy()
+    if inner_vertices is not None and len(inner_vertices):
+        ids = np.asarray(inner_vertices, dtype=np.int64)
+        free[ids[deformable[ids]]] = True
+    free &= ~controls
+    front = front_vertices(vertices, triangles, free, candidates & ~free)
+    return harmonic_fill(op, graph, free, front=front)
+
+
+def front_vertices(vertices: np.ndarray, triangles: np.ndarray, inner: np.ndarray, candidates: np.ndarray,
+                   k: int = 16) -> np.ndarray:
+    """``(V,)`` for each ``inner`` vertex the nearest ``candidates`` vertex it lies behind (on the
+    inner side of that vertex's tangent plane), else -1: the skin in front of a socket vertex.
+    The side test keeps a lower socket vertex from picking the upper lip across the slit."""
+    out = np.full(len(vertices), -1, dtype=np.int64)
+    cand = np.flatnonzero(candidates)
+    ids = np.flatnonzero(inner)
+    if not len(cand) or not len(ids):
+        return out
+    normals = vertex_normals(vertices, triangles)
+    k = min(k, len(cand))
+    _, near = cKDTree(vertices[cand]).query(vertices[ids], k=k)
+    near = cand[np.asarray(near).reshape(len(ids), k)]
+    behind = np.einsum("ikj,ikj->ik", vertices[ids][:, None, :] - vertices[near], normals[near]) < 0
+    first = behind.argmax(axis=1)
+    ok = behind[np.arange(len(ids)), first]
+    out[ids[ok]] = near[np.arange(len(ids)), first][ok]
+    return out
+
+
+def floating_sources(vertices, graph, deformable, site_vertices, rigid_group, attach_distance,
+                     *, anchors_only: bool = False):
     """Vertices of unreachable components and the reached vertex each one copies.
 
     A deformable component with no control is attached when it comes within ``attach_distance``
     of a reached vertex of the same rigid group; each of its vertices then copies its own nearest
-    such vertex. Returns ``(orphans (n,), sources (n,))`` vertex ids.
+    such vertex. Returns ``(orphans (n,), sources (n,))`` vertex ids. With ``anchors_only`` only the
+    vertices themselves within ``attach_distance`` are returned, and a third array lists the other
+    vertices of the attached components, ``(orphans, sources, rest)``.
     """
     empty = np.zeros(0, np.int64)
     label = components(graph)
@@ -338,9 +435,10 @@ def floating_sources(vertices, graph, deformable, site_vertices, rigid_group, at
     floating = deformable & ~seeded[label]
     reached = deformable & seeded[label]
     if not floating.any() or not reached.any() or attach_distance <= 0:
-        return empty, empty
+        return (empty, empty, empty) if anchors_only else (empty, empty)
     group = np.zeros(len(vertices), np.int64) if rigid_group is None else np.asarray(rigid_group, np.int64)
     src_of = np.full(len(vertices), -1)
+    rest = np.zeros(len(vertices), dtype=bool)
     for g in np.unique(group[floating]):
         target = np.flatnonzero(reached & (group == g))
         orphans = np.flatnonzero(floating & (group == g))
@@ -350,18 +448,37 @@ def floating_sources(vertices, graph, deformable, site_vertices, rigid_group, at
         comp_min = np.full(label.max() + 1, np.inf)
         np.minimum.at(comp_min, label[orphans], dist)
         ok = comp_min[label[orphans]] <= attach_distance
+        if anchors_only:
+            rest[orphans[ok & (dist > attach_distance)]] = True
+            ok &= dist <= attach_distance
         src_of[orphans[ok]] = target[nearest[ok]]
     orphans = np.flatnonzero(src_of >= 0)
     if len(orphans):
         log.debug("attached %d vertices of unreachable components", len(orphans))
+    if anchors_only:
+        return orphans, src_of[orphans], np.flatnonzero(rest)
     return orphans, src_of[orphans]
 
 
-def _attach_floating(per_axis, vertices, graph, deformable, site_vertices, rigid_group, attach_distance):
-    """Append, per axis, copies of the rows of the vertices that floating vertices attach to."""
-    orphans, src = floating_sources(vertices, graph, deformable, site_vertices, rigid_group, attach_distance)
+def _attach_floating(per_axis, vertices, graph, deformable, site_vertices, rigid_group, attach_distance,
+                     *, membrane: bool = False):
+    """Append, per axis, copies of the rows of the vertices that floating vertices attach to.
+
+    Returns ``(per_axis, free (V,) bool, floating (V,) bool)``: with ``membrane`` only the anchors
+    copy and ``free`` marks the other vertices of attached components (for ``fill_inner``);
+    ``floating`` marks all vertices of attached components."""
+    free = np.zeros(len(vertices), dtype=bool)
+    if membrane:
+        orphans, src, rest = floating_sources(vertices, graph, deformable, site_vertices, rigid_group,
+                                              attach_distance, anchors_only=True)
+        free[rest] = True
+    else:
+        orphans, src = floating_sources(vertices, graph, deformable, site_vertices, rigid_group,
+                                        attach_distance)
+    floating = free.copy()
+    floating[orphans] = True
     if not len(orphans):
-        return per_axis
+        return per_axis, free, floating
     out = []
     for r, c, v in per_axis:
         order = np.argsort(r, kind="stable")
@@ -371,7 +488,7 @@ def _attach_floating(per_axis, vertices, graph, deformable, site_vertices, rigid
         n = stop - start
         idx = np.repeat(start, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
         out.append((np.r_[r, np.repeat(orphans, n)], np.r_[c, c[idx]], np.r_[v, v[idx]]))
-    return out
+    return out, free, floating
 
 
 def _assemble(per_axis, n_vertices: int, n_controls: int, meta: dict) -> Operator:

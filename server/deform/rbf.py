@@ -41,7 +41,7 @@ import numpy as np
 from scipy.sparse.csgraph import dijkstra
 
 from ..errors import InputError
-from .feature_point import _assemble, _attach_floating, _validate, floating_sources
+from .feature_point import _assemble, _attach_floating, _check_inner, _validate, fill_inner, floating_sources
 from .mesh_graph import components, edge_graph
 from .operator import Operator
 
@@ -171,11 +171,14 @@ def rbf_operator(
     affine: bool = False,
     distance: str = "surface",
     attach_distance: float | None = None,
+    inner: str = "copy",
+    inner_vertices: np.ndarray | None = None,
 ) -> Operator:
     """Build the RBF operator (dense ``(V, K)`` when all axes share their constraints).
 
     Args as ``feature_point_operator``, plus ``kernel`` (``"imq"``/``"r"``), ``shape`` (IMQ shape
-    factor s), ``affine`` (add the affine part) and ``distance`` (``"euclidean"``/``"surface"``).
+    factor s), ``affine`` (add the affine part) and ``distance`` (``"euclidean"``/``"surface"``);
+    ``inner``/``inner_vertices`` as there (eyelashes and the mouth socket as membranes).
     The defaults (IMQ over surface distance, no affine part) had the lowest skin error on the ICT
     expressions (``bench/fidelity.py``): with sparse controls the affine part extrapolates the
     controls' mean stretch over the whole scalp and neck.
@@ -195,7 +198,9 @@ def rbf_operator(
     controls, constrained, deformable = _validate(n_vertices, control_vertices, constrained, deformable)
     n_controls = len(controls)
     meta = {"engine": "rbf", "kernel": kernel, "shape": float(shape), "affine": bool(affine),
-            "distance": distance, "attach_distance": None if attach_distance is None else float(attach_distance)}
+            "distance": distance, "attach_distance": None if attach_distance is None else float(attach_distance),
+            "inner": inner}
+    membrane = _check_inner(inner)
     graph = edge_graph(vertices, triangles, deformable, rigid_group)
     if attach_distance is None:
         attach_distance = 3.0 * float(np.median(graph.data)) if graph.nnz else 0.0
@@ -250,10 +255,24 @@ def rbf_operator(
         ctl, vals = per_axis[0]
         dense = np.zeros((n_vertices, n_controls), dtype=np.float32)
         dense[np.ix_(warped, ctl)] = vals
-        orphans, src = floating_sources(vertices, graph, deformable, sites[site_ok], rigid_group,
-                                        attach_distance)
+        found = floating_sources(vertices, graph, deformable, sites[site_ok], rigid_group,
+                                 attach_distance, anchors_only=membrane)
+        orphans, src = found[0], found[1]
         dense[orphans] = dense[src]
-        return Operator(n_vertices, n_controls, dense=dense, meta=meta)
-    triples = [(np.repeat(warped, len(ctl)), np.tile(ctl, len(warped)), vals.ravel()) for ctl, vals in per_axis]
-    triples = _attach_floating(triples, vertices, graph, deformable, sites[site_ok], rigid_group, attach_distance)
-    return _assemble(triples, n_vertices, n_controls, meta)
+        free = np.zeros(n_vertices, dtype=bool)
+        if membrane:
+            free[found[2]] = True
+        floating = free.copy()
+        floating[orphans] = True
+        op = Operator(n_vertices, n_controls, dense=dense, meta=meta)
+    else:
+        triples = [(np.repeat(warped, len(ctl)), np.tile(ctl, len(warped)), vals.ravel()) for ctl, vals in per_axis]
+        triples, free, floating = _attach_floating(triples, vertices, graph, deformable, sites[site_ok], rigid_group,
+                                         attach_distance, membrane=membrane)
+        op = _assemble(triples, n_vertices, n_controls, meta)
+    if not membrane:
+        return op
+    held = np.zeros(n_vertices, dtype=bool)
+    held[controls[usable]] = True
+    return fill_inner(op, graph, free, inner_vertices, held, deformable, vertices, triangles,
+                      deformable & ~floating)
