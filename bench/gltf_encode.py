@@ -42,6 +42,7 @@ def parse(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=None, help="BLAS threads (sets OPENBLAS/OMP/MKL_NUM_THREADS)")
     p.add_argument("--repeats", type=int, default=1, help="best of this many runs per point")
     p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--out", type=Path, default=OUT, help="JSON output")
     return p.parse_args(argv)
 
 
@@ -176,11 +177,11 @@ def main(argv: list[str]) -> int:
         print(f"  T={T} streamed: {sec:.2f} s, peak {peak / 2**20:.0f} MB", file=sys.stderr)
     info = {"face": args.face, "vertices": face.n_vertices, "threads": args.threads, "baseline": BASELINE,
             "render_ms_per_frame": 1e3 * render_s / n_max, "load_avg": os.getloadavg(), "rows": rows}
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(info, indent=1) + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(info, indent=1) + "\n")
     print(markdown(rows))
     print(f"\nload average {os.getloadavg()[0]:.1f}; BLAS threads: {args.threads or 'default'}; "
-          f"peak = tracemalloc peak of the encoder (input frames not counted); wrote {OUT}")
+          f"peak = tracemalloc peak of the encoder (input frames not counted); wrote {args.out}")
     return 0
 
 

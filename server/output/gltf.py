@@ -78,10 +78,11 @@ class MorphBasis:
 
 
 def frame_chunks(frames: FrameSource, chunk: int) -> Iterator[np.ndarray]:
-    """``(c, V, 3) float32`` chunks of ``frames`` (array slices of ``chunk`` frames, or the source's own)."""
+    """``(c, V, 3) float32`` chunks of at most ``chunk`` frames of ``frames`` (an array or a source)."""
     if callable(frames):
         for c in frames():
-            yield np.asarray(c, dtype=np.float32)
+            for s in range(0, len(c), chunk):
+                yield np.asarray(c[s:s + chunk], dtype=np.float32)
     else:
         for s in range(0, len(frames), chunk):
             yield np.asarray(frames[s:s + chunk], dtype=np.float32)
@@ -221,7 +222,7 @@ def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_tar
         max_targets: most targets kept.
         normals: ``(c, V, 3) vertices -> (c, V, 3)`` normal deltas to fit per target (None: zeros).
         basis_slack: pass-1 per-frame tolerance as a fraction of ``tolerance``.
-        chunk: frames per chunk for array input (default: about 32 MB per chunk).
+        chunk: most frames per chunk (default: about 4M values per chunk, 16-256 frames).
     """
     r = np.ascontiguousarray(np.asarray(rest, dtype=np.float32).T).reshape(-1)  # planar (3V,)
     n_cols = r.size
