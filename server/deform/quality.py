@@ -188,7 +188,7 @@ def measure(points: np.ndarray, qm: QualityMesh) -> dict:
     sd = socket_signed_mm(p, qm)
     return {
         "strain_p99": float(np.percentile(strain, 99)), "strain_max": float(strain.max()),
-        "dihedral_p99": float(np.percentile(dih, 99)), "dihedral_max": float(dih.max()),
+        "dihedral_p90": float(np.percentile(dih, 90)), "dihedral_p99": float(np.percentile(dih, 99)), "dihedral_max": float(dih.max()),
         "normal_p99": float(np.percentile(ndev, 99)), "normal_max": float(ndev.max()),
         "flips": flips, "pokes": int((sd > POKE_TOL_MM).sum()),
         "poke_max_mm": float(sd.max()) if len(sd) else 0.0,
