@@ -11,6 +11,7 @@ when the message is ``bytes``). Any malformed input raises ``FrameError``, nothi
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 from enum import IntEnum
@@ -153,7 +154,7 @@ def parse_header(data: bytes | bytearray | memoryview) -> Header:
         ) from None
     if flags & ~_KNOWN_FLAGS.get(k, 0):
         raise FrameError(f"unknown flag bits 0x{flags:04x} for kind {k.name}", where="bytes 6-7")
-    if not (np.isfinite(t) and np.isfinite(wall)):
+    if not (math.isfinite(t) and math.isfinite(wall)):
         raise FrameError("media time and wall time must be finite", where="bytes 16-31")
     return Header(k, seq, count, t, wall, flags, version)
 

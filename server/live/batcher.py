@@ -92,11 +92,11 @@ class DeformBatcher:
             except Exception as e:  # the deformer failed: fail this batch, keep serving the next
                 log.exception("deforming a batch of %d frames failed", len(jobs))
                 results = [e] * len(jobs)
+            by_loop: dict[asyncio.AbstractEventLoop, list] = {}
             for j, r in zip(jobs, results):
-                if isinstance(r, Exception):
-                    j.loop.call_soon_threadsafe(_settle, j.future, None, r)
-                else:
-                    j.loop.call_soon_threadsafe(_settle, j.future, r, None)
+                by_loop.setdefault(j.loop, []).append((j.future, r))
+            for loop, done in by_loop.items():  # one wake-up of the event loop per batch
+                loop.call_soon_threadsafe(_settle_all, done)
 
     def _work(self, jobs: list[_Job]) -> list[tuple[Encoded, float] | Exception]:
         t0 = time.perf_counter()
@@ -127,10 +127,11 @@ class DeformBatcher:
         return results
 
 
-def _settle(future: asyncio.Future, result: Any, error: BaseException | None) -> None:
-    if future.done():  # the session was closed meanwhile
-        return
-    if error is not None:
-        future.set_exception(error)
-    else:
-        future.set_result(result)
+def _settle_all(done: list[tuple[asyncio.Future, Any]]) -> None:
+    for future, result in done:
+        if future.done():  # the session was closed meanwhile
+            continue
+        if isinstance(result, Exception):
+            future.set_exception(result)
+        else:
+            future.set_result(result)
