@@ -14,11 +14,13 @@ while it runs, and a DELETE of the demo (or the end of the file) frees it.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 from fastapi import APIRouter, Request, status
 from fastapi.responses import Response
 
@@ -84,15 +86,18 @@ async def _feed(session, states, fps: float, start_wall: float, producer: Server
     finally:
         if session.producer is producer:
             session.set_producer(None)
-        restore = getattr(producer, "restore_animator", None)
-        if restore is not None:
-            session.animator = restore
+        restore = getattr(producer, "restore", None)
+        if restore is not None:  # the session's own deformation, replaced for a mocap take
+            session.batcher, session.control_vertices = restore
 
 
 def _claim(session, kind: str) -> ServerProducer:
     current = session.producer
     if isinstance(current, ServerProducer):
         current.task.cancel()
+        if getattr(current, "restore", None) is not None:  # undo its mocap deformation now, not later
+            session.batcher, session.control_vertices = current.restore
+            current.restore = None
     elif current is not None:
         raise Busy("a producer is connected to this session; it must disconnect first", where="producer")
     producer = ServerProducer(kind)
@@ -137,7 +142,10 @@ async def stop_demo(session_id: str, request: Request, token: str | None = None)
 
 @router.post("/play", status_code=status.HTTP_202_ACCEPTED)
 async def play(session_id: str, request: Request, token: str | None = None) -> dict:
-    """Upload a file (multipart field ``file``) and play it into the session at its real rate."""
+    """Upload a file (multipart field ``file``) and play it into the session at its real rate.
+
+    A marker take needs its layout: a ``layout`` form field holding the layout JSON.
+    """
     reg = registry(request.app)
     session = reg.get(session_id)
     _authorise(request, session, token)
@@ -160,8 +168,14 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
         path = Path(tmp) / f"input{input_suffix(parser.filename, parser.head)}"
         upload.replace(path)
         kind = input_kind(path)
+        options = {}
+        if "layout" in parser.fields:
+            try:
+                options["layout"] = json.loads(parser.fields["layout"])
+            except json.JSONDecodeError as e:
+                raise InputError(f"the layout field is not JSON: {e}", where="layout") from None
         loop = asyncio.get_running_loop()
-        animation = await loop.run_in_executor(reg.executor, lambda: load_animation(path, session.face))
+        animation = await loop.run_in_executor(reg.executor, lambda: load_animation(path, session.face, **options))
     if not animation.states:
         raise InputError("the file holds no frames", where="file")
     animator = None
@@ -169,8 +183,9 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
         animator = await loop.run_in_executor(reg.executor, reg.animator_for, session, animation.control_vertices)
     producer = _claim(session, f"play:{kind}")
     if animator is not None:
-        producer.restore_animator = session.animator
-        session.animator = animator
+        producer.restore = (session.batcher, session.control_vertices)
+        session.batcher = reg.batcher_for(animator)
+        session.control_vertices = np.array(animation.control_vertices)
     start = time.time() + LEAD_IN
     t0 = animation.states[0].t
     for s in animation.states:
