@@ -500,6 +500,17 @@ def test_audio_session_streams_pcm(live, data_dir):
     assert got, "no vertex frames from audio"
     ts = [f.frame.header.t for f in got]
     assert ts == sorted(ts) and ts[-1] <= 2.0 + 1e-6
+    # the driver's look-ahead is flushed when the producer leaves: the last state is the one the
+    # same driver gives locally after its end-of-stream flush (without it, ~40 ms of states are lost)
+    from facecast.server.api.store import FaceStore
+    from facecast.server.audio.live import AudioLiveDriver
+
+    local = AudioLiveDriver(FaceStore().face(FACE), rate, fps=50)
+    x = samples.astype(np.float32) / 32768
+    n = int(0.04 * rate)
+    for i in range(0, len(x), n):
+        local.push(x[i:i + n], i / rate)
+    assert ts[-1] == pytest.approx(local.flush()[-1].t), ts[-5:]
     # the mouth moves: frames differ
     assert any(not np.array_equal(got[0].positions(), f.positions()) for f in got)
 

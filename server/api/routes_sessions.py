@@ -328,6 +328,9 @@ async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
     while not session.closed:
         msg = await ws.receive()
         if msg["type"] == "websocket.disconnect":
+            tail = await loop.run_in_executor(reg.executor, inp.flush)  # states held for look-ahead
+            if tail:
+                session.submit(tail, wall=time.time())
             return
         data, text = msg.get("bytes"), msg.get("text")
         seq: int | None = None

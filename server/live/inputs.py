@@ -16,6 +16,7 @@ import numpy as np
 from ...protocol import frames
 from ...protocol.errors import CloseCode, FrameError, MessageError
 from ...protocol.messages import FapMessage, ProducerHello
+from ..errors import FacecastError
 from ..state import FaceState, zero_faps
 
 log = logging.getLogger(__name__)
@@ -67,6 +68,10 @@ class FapInput:
     def _state(self, t: float) -> FaceState:
         return FaceState(t=t, faps=self.faps.copy(), viseme=self.viseme, expression=self.expression)
 
+    def flush(self) -> list[FaceState]:
+        """End of input: FAP frames are final as they arrive, nothing is held back."""
+        return []
+
     def push_message(self, msg: FapMessage) -> list[FaceState]:
         for k, v in msg.faps.items():
             self.faps[k] = v
@@ -106,9 +111,14 @@ class AudioInput:
                 self.driver = cls(face, hello.rate, fps=fps)
             except TypeError:  # a driver without an output-rate parameter
                 self.driver = cls(face, hello.rate)
-        except ValueError as e:
+        except (ValueError, FacecastError) as e:
             raise BadHello(f"the audio driver refused this hello: {e}", where="hello") from None
         self.control_vertices = getattr(self.driver, "control_vertices", None)
+
+    def flush(self) -> list[FaceState]:
+        """End of input: the states the driver held back for its look-ahead."""
+        flush = getattr(self.driver, "flush", None)
+        return list(flush()) if flush else []
 
     def push_message(self, msg: FapMessage) -> list[FaceState]:
         raise MessageError("this session takes audio: send binary PCM chunks, not FAP messages")
@@ -145,9 +155,13 @@ class MarkerInput:
         cls = load_driver_class("markers")
         try:
             self.driver = cls(face, self.names, dict(hello.layout), units=hello.units, fps=fps)
-        except (ValueError, TypeError, KeyError) as e:
+        except (ValueError, TypeError, KeyError, FacecastError) as e:
             raise BadHello(f"the marker driver refused this hello: {e}", where="hello") from None
         self.control_vertices = getattr(self.driver, "control_vertices", None)
+
+    def flush(self) -> list[FaceState]:
+        """End of input: marker frames are final as they arrive."""
+        return []
 
     def push_message(self, msg: FapMessage) -> list[FaceState]:
         raise MessageError(
