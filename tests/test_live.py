@@ -556,18 +556,18 @@ def test_marker_session_equals_the_live_driver_run_locally(live):
     assert any(not np.array_equal(got[0].frame.vertices, f.frame.vertices) for f in got)
 
 
-def test_stream_command_sends_a_trc_take_with_its_layout(live, tmp_path):
-    """``facecast stream take.trc`` (in process): the layout beside the take goes in the hello."""
+@pytest.mark.parametrize("suffix", [".trc", ".c3d"])
+def test_stream_command_sends_a_take_with_its_layout(live, tmp_path, suffix):
+    """``facecast stream take.trc|c3d`` (in process): the layout beside the take goes in the hello."""
     import argparse
 
     from facecast.client.commands import stream as stream_cmd
-    from facecast.protocol.markers_file import write_trc
     from facecast.server.api.store import FaceStore
+    from facecast.server.mocap.io import write_take
     from facecast.server.mocap.synthetic import synthetic_take
 
     syn = synthetic_take(FaceStore().face(FACE), n_markers=12, seconds=0.4, fps=60.0, seed=2)
-    take_path = tmp_path / "take.trc"
-    take_path.write_text(write_trc(syn.take))
+    take_path = write_take(syn.take, tmp_path / f"take{suffix}")
     (tmp_path / "take.layout.json").write_text(json.dumps(syn.layout))
 
     async def main():

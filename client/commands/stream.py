@@ -18,7 +18,7 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 AUDIO = (".wav", ".flac", ".ogg")
-MARKERS = (".trc", ".csv")
+MARKERS = (".trc", ".csv", ".c3d")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -80,15 +80,14 @@ def _read_audio(path: Path):
 
 
 def _read_markers(path: Path):
-    from ...protocol.markers_file import MarkerFileError, read_csv, read_trc
+    from ...protocol.markers_file import MarkerFileError, read_c3d, read_csv, read_trc
 
     try:
-        text = path.read_text()
-        return (
-            read_trc(text, where=str(path))
-            if path.suffix.lower() == ".trc"
-            else read_csv(text, where=str(path))
-        )
+        suffix = path.suffix.lower()
+        if suffix == ".c3d":
+            return read_c3d(path.read_bytes(), where=str(path))
+        reader = read_trc if suffix == ".trc" else read_csv
+        return reader(path.read_text(), where=str(path))
     except (OSError, UnicodeDecodeError) as e:
         raise StreamError(f"{path}: cannot read: {e}") from None
     except MarkerFileError as e:
@@ -170,11 +169,6 @@ async def _main(args: argparse.Namespace) -> dict:
                 )
             errors = p.errors
         kind, rate = "markers", float(take.fps)
-    elif suffix == ".c3d":
-        raise StreamError(
-            f"{args.input}: C3D is read by the server's mocap reader, which the client may not "
-            "import; convert the take to .trc or .csv first (facecast render can write them)"
-        )
     else:
         raise StreamError(
             f"{args.input}: unsupported input {suffix or '(none)'}; use .fap, "
