@@ -19,7 +19,7 @@ bounded (no ``T x T`` or ``T x 3V`` float64 array; frames may come as a re-itera
    is within ``tolerance`` in every frame, capped at ``max_targets``.
 3. *Verification*: a second pass projects every frame on the ``M`` targets (the stored float32
    weights and targets) and measures the largest vertex error exactly (float64) with ``M`` and with
-   about 8 smaller counts (the first ``m`` targets: the per-frame bound is loose per vertex); the
+   up to 9 smaller counts (the first ``m`` targets: the per-frame bound is loose per vertex); the
    fewest that meet ``tolerance`` are kept, and the normal deltas fitted. Should even ``M`` miss it,
    ``M`` grows (and the basis, with a smaller ``tau``) until it holds or ``max_targets`` is reached;
    a capped result says so (``capped`` in the record and a log warning).
@@ -280,8 +280,9 @@ def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_tar
 
 
 def _candidates(M: int) -> list[int]:
-    """Target counts whose exact error the verification pass also measures: ``M`` and about 8 below."""
-    return sorted({max(1, round(M * f)) for f in (0.1, 0.15, 0.2, 0.3, 0.4, 0.55, 0.7, 0.85)} | {M})
+    """Target counts whose exact error the verification pass also measures: ``M`` and up to 9 below
+    (denser near ``M``, where the fewest that suffice usually are)."""
+    return sorted({max(1, round(M * f)) for f in (0.2, 0.35, 0.5, 0.6, 0.7, 0.77, 0.84, 0.9, 0.95)} | {M})
 
 
 def _verify(frames: FrameSource, r: np.ndarray, scale: np.ndarray, targets: np.ndarray,
