@@ -50,7 +50,7 @@ ALGORITHM_VERSION = 5
 #: distance (0.271) and the affine part (0.321, 0.353 Euclidean); shape 1 beat 0.5 and 2.
 DEFAULTS: dict[str, dict] = {
     "fp": {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.5, "neighbour_ratio": 3.0,
-           "attach_distance": None, "smooth": 0.5, "inner": "membrane",
+           "attach_distance": None, "smooth": 0.5, "smooth_hold": 0.15, "inner": "membrane",
            "falloff": "sine"},
     "rbf": {"kernel": "imq", "shape": 1.0, "affine": False, "distance": "surface", "attach_distance": None,
             "inner": "membrane"},

@@ -63,6 +63,21 @@ The answers chosen here to the questions the paper leaves open (research digest 
 Vertices of components no FP can reach (eyelashes, lacrimal films, unconnected gums) copy the
 weights of the nearest reached vertex of their own rigid group, when the component comes within
 ``attach_distance`` of it; otherwise, and for non-deformable vertices, rows are zero.
+
+facecast additions against creases and poke-through (measured with ``bench/deform_quality.py``,
+chosen in ``build.DEFAULTS``):
+
+- ``smooth``: the weights above are only piecewise smooth (the sine's kink at the radius, the
+  FP_2/FP_3 switch, the clamp at ΣW = 1), and each kink is a crease line in the deformed skin.
+  The weight field is diffused along the mesh edges (``smoothing.smooth_rows``) with the controls'
+  rows held, so controls still reproduce D and zero D still gives zero motion; the number of
+  steps scales with (FP spacing / edge length)², capped.
+- ``inner="membrane"``: an unreachable component (an eyelash strip) copies rows only at the
+  vertices that touch the skin (its root); the rest of it, and the ``inner_vertices`` (the mouth
+  socket), take the harmonic extension of those rows, pulled towards the row of the skin vertex in
+  front of them (``smoothing.harmonic_fill``): a lash moves as a whole with its lid instead of each
+  tip copying a different lid vertex (spikes), and the socket behind the chin moves down with the
+  chin instead of showing through the skin below a mouth corner.
 """
 from __future__ import annotations
 
@@ -170,6 +185,7 @@ def feature_point_operator(
     neighbour_ratio: float = 3.0,
     attach_distance: float | None = None,
     smooth: float = 0.0,
+    smooth_hold: float = 0.0,
     inner: str = "copy",
     inner_vertices: np.ndarray | None = None,
     falloff: str = "sine",
@@ -203,6 +219,9 @@ def feature_point_operator(
             between neighbouring FPs and e the median edge length, so the smoothing spans the same
             fraction of the FP spacing at any mesh density (at most ``MAX_SMOOTH_ITERATIONS``);
             0 disables.
+        smooth_hold: rows within this fraction of an FP's nearest-neighbour distance from it are
+            held too (not smoothed), so a control does not become a cone rising out of a smoothed
+            surrounding (the ICT eyelid FP's 0.3 mm edge stretched 8-fold in a blink without it).
         inner: ``"copy"``: every vertex of an unreachable component copies the row of its nearest
             reached vertex; ``"membrane"``: only the vertices within ``attach_distance`` of a
             reached vertex copy (an eyelash's root, a socket's rim), the rest of the component and
@@ -229,7 +248,7 @@ def feature_point_operator(
     meta = {"engine": "fp", "normalisation": normalisation, "no_neighbour": no_neighbour,
             "own_blend": float(own_blend), "neighbour_ratio": float(neighbour_ratio),
             "attach_distance": None if attach_distance is None else float(attach_distance),
-            "smooth": float(smooth), "inner": inner, "falloff": falloff}
+            "smooth": float(smooth), "smooth_hold": float(smooth_hold), "inner": inner, "falloff": falloff}
     if falloff not in ("sine", "smooth"):
         raise InputError(f"falloff must be 'sine' or 'smooth', not {falloff!r}", where="falloff")
 
@@ -258,6 +277,7 @@ def feature_point_operator(
     regions: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # pattern -> (owner site, distance) per vertex
     limits = np.zeros(len(sites))
     spacing: list[float] = []
+    held: dict[tuple, np.ndarray] = {}
     for pat in patterns:
         members = np.flatnonzero(np.array(pat, dtype=bool) & site_ok)
         vor = voronoi(graph, sites[members])
@@ -275,6 +295,11 @@ def feature_point_operator(
             if len(lists[-1][1]):
                 limits[s] = max(limits[s], lists[-1][1].max())
         neighbours[pat] = lists
+        held[pat] = np.zeros(n_vertices, dtype=bool)
+        if len(members):
+            nn_pat = np.array([lst[1].min() if len(lst[1]) else 0.0 for lst in lists])
+            own = members[np.maximum(vor.source, 0)]
+            held[pat] = (vor.source >= 0) & (vor.distance < smooth_hold * nn_pat[own])
         spacing.extend(l[1].min() for l in lists if len(l[1]))
         owner = members[np.maximum(vor.source, 0)] if len(members) else np.zeros(n_vertices, np.int64)
         regions[pat] = (np.where(vor.source >= 0, owner, -1), vor.distance)
@@ -354,6 +379,8 @@ def feature_point_operator(
     fixed = np.zeros((n_vertices, 3), dtype=bool)
     for a in range(3):
         fixed[controls[constrained[:, a] & usable], a] = True
+        if smooth_hold > 0:
+            fixed[:, a] |= held[tuple(axis_sites[a])] & deformable
     iterations = smoothing_iterations(smooth, graph, nn_spacing)
     op.meta["smooth_iterations"] = iterations
     if iterations > 0:
