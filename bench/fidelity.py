@@ -47,7 +47,7 @@ METHODS: dict[str, tuple[str, dict]] = {
     "fp-clamped-smooth0.3": ("fp", {"smooth": 0.3, "smooth_hold": 0.0}),
     "fp-clamped-smooth0.5": ("fp", {"smooth": 0.5, "smooth_hold": 0.0}),
     "fp-clamped-smooth0.5-hold0.15": ("fp", {"smooth": 0.5, "smooth_hold": 0.15}),
-    "fp-clamped-smooth0.5-hold0.3": ("fp", {"smooth": 0.5, "smooth_hold": 0.3}),
+    "fp-clamped-smooth0.5-hold0.3": ("fp", {"smooth": 0.5, "smooth_hold": 0.3}),  # the default
     "fp-clamped-smooth1-hold0.15": ("fp", {"smooth": 1.0, "smooth_hold": 0.15}),
     "fp-clamped-smooth0.7": ("fp", {"smooth": 0.7, "smooth_hold": 0.0}),
     "fp-clamped-smooth1.5": ("fp", {"smooth": 1.5, "smooth_hold": 0.0}),

@@ -190,14 +190,14 @@ def test_rows_near_controls_are_held_by_smooth_hold():
 @pytest.mark.slow
 def test_ict_eyelid_control_is_no_cone_in_a_blink(data_dir):
     """Without ``smooth_hold`` the ICT upper-lid FP's 0.3 mm edge stretched 8-fold in beg.fap's
-    blink (frame 32); the default keeps its skin's worst edge strain near the unsmoothed 2.3."""
+    blink (frame 32); holding (0.3, the default) keeps its skin's worst edge strain near the unsmoothed 2.3."""
     from facecast.server.drivers import load_animation
 
     face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
     qm = QualityMesh.of(face)
     state = load_animation(data_dir / "xface" / "faps" / "beg.fap", face).states[32]
     worst = {}
-    for hold in (0.0, 0.15):
+    for hold in (0.0, 0.3):
         anim = Animator(face, backend="numpy", smooth_hold=hold)
         worst[hold] = measure(face.vertices + anim.operator.apply(anim.solve(state)[0]), qm)["strain_max"]
-    assert worst[0.0] > 5.0 and worst[0.15] < 3.0, worst
+    assert worst[0.0] > 5.0 and worst[0.3] < 3.0, worst

@@ -48,9 +48,32 @@ ALGORITHM_VERSION = 5
 #: 2 and 4.
 #: rbf: IMQ over surface distance without the affine part (0.242 with the 78 FPs) beat Euclidean
 #: distance (0.271) and the affine part (0.321, 0.353 Euclidean); shape 1 beat 0.5 and 2.
+#:
+#: Version 5 adds smoothness (``bench/deform_quality.py``: creases = change of the dihedral angle
+#: of skin edges, p99 per frame; the built-in head's demo and the five Xface FAP files on it and
+#: on ICT). ``smooth`` diffuses the fp weight field (strength s: s·(FP spacing / edge)² Jacobi
+#: steps, 12 on ``default``, 8 on ICT, capped at 60 on ``default:500k``); ``smooth_hold`` holds
+#: the rows within that fraction of each FP's spacing, so a control is not a cone in a smoothed
+#: surrounding; ``inner="membrane"`` makes the mouth socket and floating strips (eyelashes) move
+#: with the skin they hang from. ICT, 78 FPs, mean / mean p95 skin error mm:
+#:
+#: ===============================  ===============  ======  ========  ======================
+#: fp                               78 FPs           landm.  both      demo creases (default)
+#: ===============================  ===============  ======  ========  ======================
+#: v4 default (no smoothing)        0.2010 / 1.050   0.2200  0.1875    7.6° mean, 40 flips
+#: s 0.3 / 0.5 / 0.7 / 1.5          0.1984 / 0.1985 / 0.1991 / 0.2025 (p95 1.027-1.029)
+#: s 0.5, hold 0.15                 0.1979 / 1.024   0.2125  0.1835    4.0°, 6 flips
+#: s 0.5, hold 0.3  <- default      0.1970 / 1.022   0.2110  0.1819    4.6°, 4 flips
+#: sin² fall-off (+ s 0.5)          0.208 (0.203): worse, ``falloff="sine"`` stays
+#: ===============================  ===============  ======  ========  ======================
+#:
+#: Smoothing more (s 1.5) lowers creases little more and starts to blur the expressions. With
+#: ``inner="membrane"`` no socket vertex shows through the skin in the demo (17 before, fp; 12
+#: before, rbf: 2). fp stays the default engine: lower error than rbf (0.197 vs 0.242 mm, p95 alike),
+#: fewer creases and flips on the built-in head, and sparse (about 6 weights per vertex vs 78 dense).
 DEFAULTS: dict[str, dict] = {
     "fp": {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.5, "neighbour_ratio": 3.0,
-           "attach_distance": None, "smooth": 0.5, "smooth_hold": 0.15, "inner": "membrane",
+           "attach_distance": None, "smooth": 0.5, "smooth_hold": 0.3, "inner": "membrane",
            "falloff": "sine"},
     "rbf": {"kernel": "imq", "shape": 1.0, "affine": False, "distance": "surface", "attach_distance": None,
             "inner": "membrane"},
