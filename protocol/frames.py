@@ -48,6 +48,9 @@ __all__ = [
     "parse_header",
     "frame_size",
     "quantize_int16_fast",
+    "quantize_int16_batch",
+    "vertex_frame_size",
+    "vertex_frame_header",
 ]
 
 MAGIC = b"FCST"
@@ -299,6 +302,75 @@ def quantize_int16_fast(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     np.rint(out, out=out)
     np.clip(out, -32767, 32767, out=out)
     return out.astype("<i2"), offset, scale
+
+
+def quantize_int16_batch(
+    v: np.ndarray, out: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``quantize_int16`` of each frame of ``v (T, V, 3) float32`` at once, bit for bit.
+
+    Returns ``(q (T, V, 3) int16, offset (T, 3) float32, scale (T, 3) float32)``; ``q`` is written
+    into ``out`` (any ``(T, V, 3)`` int16 array, e.g. views on output buffers) when given. The same
+    float32 operations as ``quantize_int16_fast``, over all frames per NumPy call.
+    """
+    v = np.ascontiguousarray(v, dtype="<f4")
+    if v.ndim != 3 or v.shape[2] != 3:
+        raise ValueError(f"vertices must be (T, V, 3), got {v.shape}")
+    nt, n = v.shape[0], v.shape[1]
+    q = np.empty(v.shape, "<i2") if out is None else out
+    if nt == 0 or n == 0:
+        return q, np.zeros((nt, 3), np.float32), np.ones((nt, 3), np.float32)
+    m = _QBLOCK
+    n_main = (n // m) * m
+    main, tail = v[:, :n_main].reshape(nt, -1, 3 * m), v[:, n_main:]
+    parts_lo, parts_hi = [], []
+    if n_main:
+        parts_lo.append(main.min(axis=1).reshape(nt, m, 3).min(axis=1))
+        parts_hi.append(main.max(axis=1).reshape(nt, m, 3).max(axis=1))
+    if n_main < n:
+        parts_lo.append(tail.min(axis=1))
+        parts_hi.append(tail.max(axis=1))
+    lo = np.min(parts_lo, axis=0).astype(np.float32)
+    hi = np.max(parts_hi, axis=0).astype(np.float32)
+    offset = ((lo + hi) / 2).astype(np.float32)
+    scale = np.maximum((hi - lo) / np.float32(65534.0), np.float32(1e-12)).astype(np.float32)
+    work = np.empty_like(v)
+    if n_main:
+        block = work[:, :n_main].reshape(nt, -1, 3 * m)
+        np.subtract(main, np.tile(offset, m)[:, None, :], out=block)
+        np.divide(block, np.tile(scale, m)[:, None, :], out=block)
+    if n_main < n:
+        np.subtract(tail, offset[:, None, :], out=work[:, n_main:])
+        np.divide(work[:, n_main:], scale[:, None, :], out=work[:, n_main:])
+    np.rint(work, out=work)
+    np.clip(work, -32767, 32767, out=q, casting="unsafe")
+    return q, offset, scale
+
+
+def vertex_frame_size(encoding: str, n_vertices: int) -> int:
+    """Bytes of a vertex frame of ``n_vertices`` in ``encoding`` (``"f32"`` | ``"i16"``)."""
+    if encoding == "f32":
+        return HEADER_SIZE + 12 * n_vertices
+    if encoding == "i16":
+        return HEADER_SIZE + _I16_SUB.size + 6 * n_vertices
+    raise ValueError(f"unknown vertex encoding {encoding!r}; use 'f32' or 'i16'")
+
+
+def vertex_frame_header(
+    encoding: str, n_vertices: int, *, seq: int, t: float, wall: float = 0.0,
+    offset: np.ndarray | None = None, scale: np.ndarray | None = None,
+) -> bytes:
+    """The bytes of a vertex frame that precede its vertex data (the header, plus ``offset`` and
+    ``scale`` for i16). Followed by the ``(V, 3)`` data (``<f4``, or ``<i2`` from
+    ``quantize_int16_batch``) they make exactly the frame ``encode_vertices`` makes."""
+    if encoding == "f32":
+        return _header(Kind.VERTICES_F32, seq, n_vertices, t, wall)
+    return b"".join(
+        (
+            _header(Kind.VERTICES_I16, seq, n_vertices, t, wall),
+            _I16_SUB.pack(*offset.tolist(), *scale.tolist()),
+        )
+    )
 
 
 def encode_vertices(

@@ -528,7 +528,7 @@ async def _send_loop(ws: WebSocket, session, viewer) -> None:
                 if direct is not None:
                     await direct.send(payload[1])
                 else:
-                    await ws.send_bytes(payload[0])
+                    await ws.send_bytes(bytes(payload[0]))
                 viewer.sent += 1
                 unsent += 1
                 if (

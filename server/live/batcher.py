@@ -1,10 +1,12 @@
 """Deform the frames of all sessions that share an animator together, in one batch per launch.
 
-Sessions of the same face share one ``Animator``. Each session's worker submits a face state and
-awaits its encoded frames; a worker thread takes every state waiting at that moment, solves them,
-deforms them with one ``deform_batch`` call (one OpenCL launch instead of one per frame: about 4x
-less CPU per frame on PoCL for the 25k-vertex head) and encodes each. Under light load a batch
-holds one frame and adds no delay; under heavy load batches grow by themselves.
+Sessions of the same face share one ``Animator``. Each session hands over a face state with a
+callback (``submit_nowait``); a worker thread takes every state waiting at that moment, solves
+them, deforms them with one ``deform_batch`` call (one OpenCL launch instead of one per frame:
+about 4x less CPU per frame on PoCL for the 25k-vertex head), quantises all int16 frames of the
+batch together and writes each frame once, already framed for WebSocket, into its own buffer.
+The callbacks then run on their event loop, all of a batch in one wake-up. Under light load a
+batch holds one frame and adds no delay; under heavy load batches grow by themselves.
 """
 
 from __future__ import annotations
@@ -15,41 +17,87 @@ import threading
 import time
 from concurrent.futures import Executor
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from ...protocol import frames
 from ..state import FaceState
-from .wire import ws_binary_frame
+from .wire import ws_binary_header
 
 log = logging.getLogger(__name__)
 
 #: Most frames deformed in one launch.
 MAX_BATCH = 32
 
-Encoded = dict[str, tuple[bytes, bytes]]  # encoding -> (payload, websocket frame)
+#: encoding -> (payload, websocket frame). The payload is a view into the frame's buffer: both
+#: are written once and then only read (the same bytes serve every viewer).
+Encoded = dict[str, tuple[memoryview, bytearray]]
 
 
-@dataclass
+@dataclass(slots=True)
 class _Job:
     state: FaceState
     seq: int
     wall: float
     encodings: frozenset[str]
-    future: asyncio.Future
+    done: Callable[[Any], None]
     loop: asyncio.AbstractEventLoop
+
+
+def _framed_buffer(encoding: str, n_vertices: int) -> tuple[bytearray, int]:
+    """A buffer for one WebSocket-framed vertex frame, its WebSocket header already written, and
+    where the vertex frame starts in it."""
+    size = frames.vertex_frame_size(encoding, n_vertices)
+    head = ws_binary_header(size)
+    buf = bytearray(len(head) + size)
+    buf[: len(head)] = head
+    return buf, len(head)
+
+
+def encode_batch(
+    verts: np.ndarray, jobs: list[tuple[int, float, float, frozenset[str]]]
+) -> list[Encoded]:
+    """Encode frames ``verts (T, V, 3) float32``; ``jobs[i] = (seq, t, wall, encodings)`` of frame i.
+
+    Each encoding of each frame is written once, into a buffer that holds its WebSocket frame
+    (header + payload); int16 frames are quantised all together (``frames.quantize_int16_batch``,
+    bit for bit ``quantize_int16``) straight into their buffers.
+    """
+    n = verts.shape[1]
+    out: list[Encoded] = [{} for _ in jobs]
+    i16 = [i for i, j in enumerate(jobs) if "i16" in j[3]]
+    if i16:
+        bufs = [_framed_buffer("i16", n) for _ in i16]
+        sub = frames.HEADER_SIZE + 24
+        views = np.empty((len(i16), n, 3), "<i2")
+        src = verts if len(i16) == len(jobs) else verts[i16]
+        q, offset, scale = frames.quantize_int16_batch(src, out=views)
+        for k, (i, (buf, h)) in enumerate(zip(i16, bufs)):
+            seq, t, wall, _ = jobs[i]
+            buf[h : h + sub] = frames.vertex_frame_header(
+                "i16", n, seq=seq, t=t, wall=wall, offset=offset[k], scale=scale[k]
+            )
+            buf[h + sub :] = memoryview(q[k]).cast("B")
+            out[i]["i16"] = (memoryview(buf)[h:], buf)
+    for i, (seq, t, wall, encodings) in enumerate(jobs):
+        if "f32" in encodings:
+            buf, h = _framed_buffer("f32", n)
+            buf[h : h + frames.HEADER_SIZE] = frames.vertex_frame_header(
+                "f32", n, seq=seq, t=t, wall=wall
+            )
+            v = np.ascontiguousarray(verts[i], dtype="<f4")
+            buf[h + frames.HEADER_SIZE :] = memoryview(v).cast("B")
+            out[i]["f32"] = (memoryview(buf)[h:], buf)
+    return out
 
 
 def encode(
     vertices: np.ndarray, encodings: frozenset[str], *, seq: int, t: float, wall: float
 ) -> Encoded:
-    """``{encoding: (payload, websocket frame)}``: the same bytes then serve every viewer."""
-    out = {}
-    for e in sorted(encodings):
-        payload = frames.encode_vertices(vertices, e, seq=seq, t=t, wall=wall)
-        out[e] = (payload, ws_binary_frame(payload))
-    return out
+    """``{encoding: (payload, websocket frame)}`` of one frame: the same bytes serve every viewer."""
+    v = np.asarray(vertices, dtype=np.float32)
+    return encode_batch(v[None], [(seq, t, wall, encodings)])[0]
 
 
 class DeformBatcher:
@@ -65,19 +113,41 @@ class DeformBatcher:
         self.batches = 0
         self.frames = 0
 
-    async def submit(
-        self, state: FaceState, *, seq: int, wall: float, encodings: frozenset[str]
-    ) -> tuple[Encoded, float]:
-        """Deform and encode one state; returns its frames and the seconds of work it cost."""
-        loop = asyncio.get_running_loop()
-        job = _Job(state, seq, wall, encodings, loop.create_future(), loop)
+    def submit_nowait(
+        self,
+        state: FaceState,
+        *,
+        seq: int,
+        wall: float,
+        encodings: frozenset[str],
+        done: Callable[[Any], None],
+    ) -> None:
+        """Deform and encode one state; later, on this event loop, ``done((frames, seconds))`` (the
+        frames and the seconds of work they cost) or ``done(exception)``. Call on the event loop."""
+        job = _Job(state, seq, wall, encodings, done, asyncio.get_running_loop())
         with self._lock:
             self._pending.append(job)
             start = not self._running
             self._running = True
         if start:
             self.executor.submit(self._drain)
-        return await job.future
+
+    async def submit(
+        self, state: FaceState, *, seq: int, wall: float, encodings: frozenset[str]
+    ) -> tuple[Encoded, float]:
+        """``submit_nowait`` as a coroutine: returns the frames and the seconds of work."""
+        future = asyncio.get_running_loop().create_future()
+
+        def done(result: Any) -> None:
+            if future.done():
+                return
+            if isinstance(result, BaseException):
+                future.set_exception(result)
+            else:
+                future.set_result(result)
+
+        self.submit_nowait(state, seq=seq, wall=wall, encodings=encodings, done=done)
+        return await future
 
     def _drain(self) -> None:
         while True:
@@ -94,11 +164,14 @@ class DeformBatcher:
                 results = [e] * len(jobs)
             by_loop: dict[asyncio.AbstractEventLoop, list] = {}
             for j, r in zip(jobs, results):
-                by_loop.setdefault(j.loop, []).append((j.future, r))
+                by_loop.setdefault(j.loop, []).append((j.done, r))
             for loop, done in by_loop.items():  # one wake-up of the event loop per batch
-                loop.call_soon_threadsafe(_settle_all, done)
+                try:
+                    loop.call_soon_threadsafe(_deliver, done)
+                except RuntimeError:  # that loop is closed (server shutting down)
+                    pass
 
-    def _work(self, jobs: list[_Job]) -> list[tuple[Encoded, float] | Exception]:
+    def _work(self, jobs: list[_Job]) -> list[Any]:
         t0 = time.perf_counter()
         a = self.animator
         results: list[Any] = [None] * len(jobs)
@@ -109,29 +182,28 @@ class DeformBatcher:
                 ok.append(i)
             except Exception as e:
                 results[i] = e
+        if not ok:
+            return results
         if len(ok) == 1:
-            verts = [a.deformer.deform(*solved[0])]
-        elif ok:
+            verts = np.asarray(a.deformer.deform(*solved[0]), dtype=np.float32)[None]
+        else:
             D = np.stack([d for d, _ in solved])
             T = np.stack([t for _, t in solved])
-            verts = a.deformer.deform_batch(D, T)
-        else:
-            verts = []
+            verts = np.asarray(a.deformer.deform_batch(D, T), dtype=np.float32)
+        encoded = encode_batch(
+            verts, [(jobs[i].seq, jobs[i].state.t, jobs[i].wall, jobs[i].encodings) for i in ok]
+        )
         dt = (time.perf_counter() - t0) / len(jobs)
-        for i, v in zip(ok, verts):
-            j = jobs[i]
-            v = np.asarray(v, dtype=np.float32)
-            results[i] = (encode(v, j.encodings, seq=j.seq, t=j.state.t, wall=j.wall), dt)
+        for i, e in zip(ok, encoded):
+            results[i] = (e, dt)
         self.batches += 1
         self.frames += len(ok)
         return results
 
 
-def _settle_all(done: list[tuple[asyncio.Future, Any]]) -> None:
-    for future, result in done:
-        if future.done():  # the session was closed meanwhile
-            continue
-        if isinstance(result, Exception):
-            future.set_exception(result)
-        else:
-            future.set_result(result)
+def _deliver(done: list[tuple[Callable[[Any], None], Any]]) -> None:
+    for callback, result in done:
+        try:
+            callback(result)
+        except Exception:  # one session's failure must not starve the others of their frames
+            log.exception("delivering a live frame failed")

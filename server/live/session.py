@@ -2,10 +2,11 @@
 
 Frame path: the producer's connection turns input into ``FaceState``s and calls ``submit``; they
 are numbered (``seq``) and queued in a short bounded queue (oldest dropped if deformation lags).
-The session's worker task deforms each state once in a thread (``Animator.frame``), encodes it
-once per encoding some viewer asked for, and offers the same bytes to every viewer. Each viewer
-has a one-frame slot: a newer frame replaces an unsent one, so memory stays bounded and a slow
-viewer sees a gap in ``seq``.
+One state per session at a time goes to the ``DeformBatcher`` (deformed in a thread, encoded once
+per encoding some viewer asked for); its completion callback, on the event loop, offers the same
+bytes to every viewer and hands over the next state. No task per session: a frame costs the event
+loop one callback, not task wake-ups. Each viewer has a one-frame slot: a newer frame replaces an
+unsent one, so memory stays bounded and a slow viewer sees a gap in ``seq``.
 """
 
 from __future__ import annotations
@@ -141,7 +142,9 @@ class LiveSession:
         self.joining = 0  # viewers being greeted (count against the limit)
         self.producer: Any = None  # the producer's connection object while one is connected
         self.pending: deque[tuple[int, FaceState, float]] = deque()
-        self._wake = asyncio.Event()
+        self._busy = False  # a state of this session is with the batcher
+        self._in_flight = 0  # its seq
+        self._encodings: dict[str, int] = {}  # encoding -> viewers that asked for it
         self.seq = 0
         self.last_seq: int | None = None
         self.stats = {
@@ -160,7 +163,6 @@ class LiveSession:
         self._last_stats = time.monotonic()
         self.closed = False
         self._status_due = False
-        self._worker = asyncio.get_running_loop().create_task(self._run(), name=f"live-{spec.id}")
 
     # -- producer side -----------------------------------------------------------------------------
     def submit(self, states: list[FaceState], wall: float) -> None:
@@ -174,8 +176,8 @@ class LiveSession:
             self.pending.append((self.seq, s, wall))
             self.seq = (self.seq + 1) & 0xFFFFFFFF
             self.stats["states"] += 1
-        if states:
-            self._wake.set()
+        if states and not self._busy:
+            self._pump()
 
     def set_producer(self, producer: Any) -> None:
         """A producer connected (tell viewers now) or left (tell them once its frames are out)."""
@@ -184,17 +186,24 @@ class LiveSession:
             self.broadcast_status()
         else:
             self._status_due = True
-            self._wake.set()
+            if not self._busy:
+                self._pump()
 
     # -- viewers -----------------------------------------------------------------------------------
     def add_viewer(self, viewer: Viewer) -> None:
         self.viewers.add(viewer)
+        self._encodings[viewer.encoding] = self._encodings.get(viewer.encoding, 0) + 1
         if self.metrics:
             self.metrics.viewers.inc()
 
     def remove_viewer(self, viewer: Viewer) -> None:
         if viewer in self.viewers:
             self.viewers.discard(viewer)
+            left = self._encodings[viewer.encoding] - 1
+            if left:
+                self._encodings[viewer.encoding] = left
+            else:
+                del self._encodings[viewer.encoding]
             self.stats["frames_sent"] += viewer.sent
             if self.metrics:
                 self.metrics.viewers.dec()
@@ -222,54 +231,75 @@ class LiveSession:
             producer_connected=self.producer is not None,
         )
 
-    # -- the worker ----------------------------------------------------------------------------------
-    async def _run(self) -> None:
-        while not self.closed:
-            if not self.pending:
-                if self._status_due:
-                    self._status_due = False
-                    self.broadcast_status()
-                self._wake.clear()
-                await self._wake.wait()
-                continue
+    # -- the frame path -----------------------------------------------------------------------------
+    def _pump(self) -> None:
+        """Hand the oldest pending state to the batcher (one at a time per session); with nothing
+        pending, send a status that was waiting for the frames to be out."""
+        while self.pending and not self.closed:
             seq, state, wall = self.pending.popleft()
-            encodings = frozenset(v.encoding for v in self.viewers)
-            if not encodings:
+            if not self._encodings:
                 continue  # nobody watches: skip the work, the numbering still advances
+            self._busy = True
+            self._in_flight = seq
             try:
-                encoded, dt = await self.batcher.submit(
-                    state, seq=seq, wall=wall, encodings=encodings
+                self.batcher.submit_nowait(
+                    state,
+                    seq=seq,
+                    wall=wall,
+                    encodings=frozenset(self._encodings),
+                    done=self._done,
                 )
-            except asyncio.CancelledError:
-                raise
             except Exception:
-                log.exception("session %s: deforming frame %d failed", self.spec.id, seq)
+                self._busy = False
+                log.exception("session %s: queueing frame %d failed", self.spec.id, seq)
                 self.stats["frames_dropped"] += 1
                 continue
-            self.stats["frames_deformed"] += 1
-            self._deform_total += dt
-            self.last_seq = seq
+            return
+        if self._status_due and not self.closed:
+            self._status_due = False
+            self.broadcast_status()
+
+    def _done(self, result: Any) -> None:
+        """The batcher's answer for this session's state: offer the frames, then the next state."""
+        self._busy = False
+        if self.closed:
+            return
+        try:
+            if isinstance(result, BaseException):
+                log.error("session %s: deforming a frame failed: %r", self.spec.id, result)
+                self.stats["frames_dropped"] += 1
+            else:
+                self._fan_out(*result)
+        finally:
+            self._pump()
+
+    def _fan_out(self, encoded: dict, dt: float) -> None:
+        self.stats["frames_deformed"] += 1
+        self.last_seq = self._in_flight
+        self._deform_total += dt
+        if self.metrics:
+            self.metrics.deform_seconds.observe(dt)
+        sent_now = skipped = 0
+        for viewer in list(self.viewers):
+            frame = encoded.get(viewer.encoding)
+            if frame is None:  # joined while we were deforming, with another encoding
+                continue
+            outcome = viewer.offer(frame)
+            if outcome == Viewer.SENT:
+                sent_now += 1
+            elif outcome == Viewer.REPLACED:
+                skipped += 1
+        if skipped:
+            self.stats["frames_skipped"] += skipped
             if self.metrics:
-                self.metrics.deform_seconds.observe(dt)
-            sent_now = 0
-            for viewer in list(self.viewers):
-                frame = encoded.get(viewer.encoding)
-                if frame is None:  # joined while we were deforming, with another encoding
-                    continue
-                outcome = viewer.offer(frame)
-                if outcome == Viewer.SENT:
-                    sent_now += 1
-                elif outcome == Viewer.REPLACED:
-                    self.stats["frames_skipped"] += 1
-                    if self.metrics:
-                        self.metrics.frames_dropped.inc()
-            self.count_sent(sent_now)
-            now = time.monotonic()
-            if now - self._last_stats >= STATS_INTERVAL:
-                self._last_stats = now
-                text = dump_message(self.snapshot())
-                for viewer in self.viewers:
-                    viewer.say(text)
+                self.metrics.frames_dropped.inc(skipped)
+        self.count_sent(sent_now)
+        now = time.monotonic()
+        if now - self._last_stats >= STATS_INTERVAL:
+            self._last_stats = now
+            text = dump_message(self.snapshot())
+            for viewer in self.viewers:
+                viewer.say(text)
 
     def count_sent(self, n: int) -> None:
         """Add ``n`` sent frames to the Prometheus counter (the session's own count is per viewer)."""
@@ -279,7 +309,7 @@ class LiveSession:
     async def close(self, code: int, error_json: str) -> Callable[[], None] | None:
         """Stop the worker and tell every connection to end with ``code``."""
         self.closed = True
-        self._worker.cancel()
+        self.pending.clear()
         for v in list(self.viewers):
             v.end(code, error_json)
         if self.producer is not None:

@@ -23,16 +23,24 @@ log = logging.getLogger(__name__)
 _OP_BINARY_FIN = 0x82
 
 
+_HEAD_7 = struct.Struct("!BB")
+_HEAD_16 = struct.Struct("!BBH")
+_HEAD_64 = struct.Struct("!BBQ")
+
+
+def ws_binary_header(n: int) -> bytes:
+    """The header of an unmasked, unfragmented WebSocket binary frame (RFC 6455 §5.2) whose
+    payload is ``n`` bytes long (2, 4 or 10 bytes)."""
+    if n < 126:
+        return _HEAD_7.pack(_OP_BINARY_FIN, n)
+    if n < 1 << 16:
+        return _HEAD_16.pack(_OP_BINARY_FIN, 126, n)
+    return _HEAD_64.pack(_OP_BINARY_FIN, 127, n)
+
+
 def ws_binary_frame(payload: bytes) -> bytes:
     """The unmasked, unfragmented WebSocket binary frame (RFC 6455 §5.2) carrying ``payload``."""
-    n = len(payload)
-    if n < 126:
-        head = struct.pack("!BB", _OP_BINARY_FIN, n)
-    elif n < 1 << 16:
-        head = struct.pack("!BBH", _OP_BINARY_FIN, 126, n)
-    else:
-        head = struct.pack("!BBQ", _OP_BINARY_FIN, 127, n)
-    return b"".join((head, payload))
+    return b"".join((ws_binary_header(len(payload)), payload))
 
 
 def find_protocol(send: Any, depth: int = 4) -> Any:
