@@ -60,6 +60,10 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--face", type=Path, default=ICT)
     ap.add_argument("--fps", type=float, default=60.0)
+    ap.add_argument("--scale", type=float, default=None,
+                    help="fix renderer.scale (drawing-buffer pixels per CSS pixel); default: the page adapts it")
+    ap.add_argument("--width", type=int, default=1280)
+    ap.add_argument("--height", type=int, default=720)
     args = ap.parse_args()
     from playwright.sync_api import sync_playwright
 
@@ -69,7 +73,8 @@ def main() -> int:
     data = tempfile.mkdtemp(prefix="facecast-web-bench-")
     server = subprocess.Popen([sys.executable, "-m", "facecast.server.cli", "serve", "--port", str(port),
                                "--data-dir", data], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    results: dict = {"face": str(args.face), "session_fps": args.fps, "cpus": os.cpu_count(),
+    results: dict = {"face": str(args.face), "session_fps": args.fps, "cpus": os.cpu_count(), "scale": args.scale,
+                     "viewport": [args.width, args.height],
                      "load_average": os.getloadavg()}
     try:
         for _ in range(300):
@@ -81,7 +86,7 @@ def main() -> int:
         hdr = {"Authorization": f"Bearer {key}"}
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=ARGS)
-            page = browser.new_page(viewport={"width": 1280, "height": 720})
+            page = browser.new_page(viewport={"width": args.width, "height": args.height})
             page.goto(url + "/")
             results["raf_fps_idle"] = page.evaluate(RAF_JS, 3000)
             for encoding in ("i16", "f32"):
@@ -91,10 +96,13 @@ def main() -> int:
                 page.goto(f"{url}/?{encoding}#session={s['id']}&token={s['viewer_token']}&encoding={encoding}")
                 page.set_default_timeout(300_000)
                 page.wait_for_function("window.facecast && window.facecast.viewer.stats.frames > 30")
+                if args.scale is not None:  # pin it: stop the page's adaptation
+                    page.evaluate(f"Object.defineProperty(facecast.renderer, 'scale', {{get: () => {args.scale}, set: () => {{}}}})")
                 time.sleep(2)
                 sample = page.evaluate(SAMPLE_JS, int(args.seconds * 1000))
                 sample["vertices"] = page.evaluate("facecast.renderer.mesh.V")
                 sample["draw_vs_raf"] = sample["draw_fps"] / results["raf_fps_idle"]
+                sample["render_scale"] = page.evaluate("facecast.renderer.scale")
                 results[encoding] = sample
                 httpx.delete(f"{url}/v1/sessions/{s['id']}", headers=hdr, timeout=60)
             browser.close()
@@ -105,12 +113,12 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "web_viewer.json").write_text(json.dumps(results, indent=2))
     print(f"| stream | vertices | received fps | draw fps | draw / idle rAF ({results['raf_fps_idle']:.0f} fps) "
-          "| decode p50 ms | decode p95 ms | bytes/frame |")
-    print("|---|---|---|---|---|---|---|---|")
+          "| decode p50 ms | decode p95 ms | bytes/frame | render scale |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for enc in ("i16", "f32"):
         r = results[enc]
         print(f"| {enc} | {r['vertices']} | {r['received_fps']:.1f} | {r['draw_fps']:.1f} | {r['draw_vs_raf']:.2f} "
-              f"| {r['decode_ms_p50']} | {r['decode_ms_p95']} | {r['bytes_per_frame']} |")
+              f"| {r['decode_ms_p50']} | {r['decode_ms_p95']:.2f} | {r['bytes_per_frame']} | {r['render_scale']:.2f} |")
     return 0
 
 

@@ -100,6 +100,15 @@ function frameLoop() {
 }
 requestAnimationFrame(frameLoop);
 
+// Adaptive resolution: when frames arrive faster than the browser draws them, render fewer pixels
+// (down to half resolution); when it keeps up again, go back towards full resolution.
+setInterval(() => {
+  const s = viewer.summary(), drawFps = state.drawTimes.length / 2;
+  if (s.fps > 5 && drawFps < 0.8 * s.fps && renderer.scale > 0.5) renderer.scale = Math.max(0.5, renderer.scale * 0.85);
+  else if (drawFps >= 0.95 * s.fps && renderer.scale < 1) renderer.scale = Math.min(1, renderer.scale * 1.1);
+  $('st-scale').textContent = `${Math.round(100 * renderer.scale)} %`;
+}, 1000);
+
 setInterval(() => {
   const s = viewer.summary();
   const ms = (x) => (Number.isFinite(x) ? `${x.toFixed(x < 10 ? 2 : 0)} ms` : '–');

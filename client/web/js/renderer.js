@@ -116,6 +116,7 @@ export class FaceRenderer {
       this.loc[n] = gl.getUniformLocation(prog, n);
     }
     this.mesh = null;
+    this.scale = 1;  // < 1 renders fewer pixels (the browser scales the canvas up)
   }
 
   /** Set the topology: rest positions (Float32Array 3V), triangles (Uint32Array 3F), part ids (Uint8Array V). */
@@ -203,8 +204,8 @@ export class FaceRenderer {
 
   draw() {
     const gl = this.gl, m = this.mesh, c = this.canvas;
-    const dpr = window.devicePixelRatio || 1;
-    const w = Math.floor(c.clientWidth * dpr), h = Math.floor(c.clientHeight * dpr);
+    const k = (window.devicePixelRatio || 1) * this.scale;  // drawing-buffer pixels per CSS pixel
+    const w = Math.max(1, Math.floor(c.clientWidth * k)), h = Math.max(1, Math.floor(c.clientHeight * k));
     if (c.width !== w || c.height !== h) { c.width = w; c.height = h; }
     gl.viewport(0, 0, c.width, c.height);
     gl.clearColor(0.11, 0.12, 0.14, 1);
