@@ -147,14 +147,23 @@ def harmonic_fill(op: Operator, graph: sp.csr_matrix, free: np.ndarray, *, front
         dense[fid] = lu.solve(np.asarray(afb @ op.dense[bid], dtype=np.float64)).astype(np.float32)
         return Operator(n, k, dense=dense, meta=op.meta)
     mats = []
+    done: dict[bytes, sp.csr_matrix] = {}
     for ax in range(3):
+        key = op.weights[:, ax].tobytes()
+        if key in done:  # axes with the same weights (all controls constrained on all axes)
+            mats.append(done[key])
+            continue
         b = sp.csr_matrix((op.weights[:, ax].astype(np.float64), op.indices, op.indptr), shape=(n, k))
-        rhs = (afb @ b[bid]).toarray()
-        x = lu.solve(rhs)
+        rhs = (afb @ b[bid]).tocsc()
+        cols = np.flatnonzero(np.diff(rhs.indptr))  # only controls that reach the boundary
+        x = np.zeros((len(fid), k))
+        if len(cols):
+            x[:, cols] = lu.solve(rhs[:, cols].toarray())
         x[np.abs(x) < prune] = 0.0
         keep = sp.diags((~free).astype(np.float64)) @ b
         put = sp.csr_matrix((np.ones(len(fid)), (fid, np.arange(len(fid)))), shape=(n, len(fid)))
         m = (keep + put @ sp.csr_matrix(x)).tocsr()
         m.eliminate_zeros()
+        done[key] = m
         mats.append(m)
     return _merge(mats, n, k, op.meta)
