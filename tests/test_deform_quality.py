@@ -113,7 +113,7 @@ def test_an_eyelash_strip_follows_its_root_as_a_whole():
     verts, tris, controls, strip, root = lash_mesh()
     D = np.zeros((len(controls), 3), np.float32)
     D[:2, 2] = 1.0  # the lid under the lash's root rises
-    kw = dict(attach_distance=0.5, smooth=0.0)
+    kw = {"attach_distance": 0.5, "smooth": 0.0}
     membrane = feature_point_operator(verts, tris, controls, inner="membrane", **kw).apply(D)
     copy = feature_point_operator(verts, tris, controls, inner="copy", **kw).apply(D)
     # copy: the tip takes the motion of the plane point under it (far from the root): the lash bends
@@ -176,7 +176,7 @@ def test_rows_near_controls_are_held_by_smooth_hold():
     face = grid_face(41)
     vid = np.arange(41 * 41).reshape(41, 41)
     controls = np.array([vid[y, x] for y in range(4, 41, 8) for x in range(4, 41, 8)])
-    kw = dict(smooth=0.5, inner="copy")
+    kw = {"smooth": 0.5, "inner": "copy"}
     D = np.eye(len(controls))[:, :1].repeat(3, 1)  # control 0 moves by (1, 1, 1)
     raw = feature_point_operator(face.vertices, face.triangles, controls, smooth=0.0).apply(D)
     held = feature_point_operator(face.vertices, face.triangles, controls, smooth_hold=0.3, **kw)

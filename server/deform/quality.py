@@ -77,7 +77,7 @@ class QualityMesh:
     socket_cand: np.ndarray  # (P, K_NEAR) candidate triangle ids into tri
 
     @classmethod
-    def of(cls, face) -> "QualityMesh":
+    def of(cls, face) -> QualityMesh:
         skin = outer_skin_mask(face)
         tri = face.triangles[skin[face.triangles].all(axis=1)].astype(np.int64)
         rest = face.vertices.astype(np.float64)

@@ -41,7 +41,14 @@ import numpy as np
 from scipy.sparse.csgraph import dijkstra
 
 from ..errors import InputError
-from .feature_point import _assemble, _attach_floating, _check_inner, _validate, fill_inner, floating_sources
+from .feature_point import (
+    _assemble,
+    _attach_floating,
+    _check_inner,
+    _validate,
+    fill_inner,
+    floating_sources,
+)
 from .mesh_graph import components, edge_graph
 from .operator import Operator
 
