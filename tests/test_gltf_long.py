@@ -58,6 +58,7 @@ def test_long_clip_streams_through_render_file_within_the_recorded_bound(data_di
     summary = render_file(src, tmp_path / "long.glb", face=face, backend="numpy",
                           progress=lambda d, t: calls.append((d, t)))
     assert calls[-1] == (3000, 3000) and len(calls) == len({c for c in calls})  # one pass reported, once
+    assert calls[0] == (64, 3000)  # in the streaming source's chunks (Animator.render reports every 32)
     expected = animator.render(load_fap(src, face))
     glb, err_mm = reimported_error_mm(tmp_path / "long.glb", expected, face.mm_per_unit)
     rec = glb["extras"]
