@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import threading
 import time
 from concurrent.futures import Executor
@@ -100,16 +101,32 @@ def encode(
     return encode_batch(v[None], [(seq, t, wall, encodings)])[0]
 
 
-class DeformBatcher:
-    """Batches ``animator`` work across sessions (thread-safe; one batch runs at a time)."""
+def batch_threads() -> int:
+    """Batches of one animator worked on at once: ``FACECAST_LIVE_BATCHES``, else the number of CPUs
+    (at most 4)."""
+    env = os.environ.get("FACECAST_LIVE_BATCHES")
+    return max(1, int(env)) if env else max(1, min(4, os.cpu_count() or 1))
 
-    def __init__(self, animator: Any, executor: Executor, max_batch: int = MAX_BATCH) -> None:
+
+class DeformBatcher:
+    """Batches ``animator`` work across sessions (thread-safe; up to ``parallel`` batches at once)."""
+
+    def __init__(
+        self,
+        animator: Any,
+        executor: Executor,
+        max_batch: int = MAX_BATCH,
+        parallel: int | None = None,
+    ) -> None:
         self.animator = animator
         self.executor = executor
         self.max_batch = max_batch
         self._pending: list[_Job] = []
         self._lock = threading.Lock()
-        self._running = False
+        self._running = 0  # batches being worked on
+        #: Batches worked on at once: the solve and the int16 encoding of one batch overlap with the
+        #: deformation of the next (the deformer itself runs one launch at a time).
+        self.parallel = max(1, parallel if parallel is not None else batch_threads())
         self.batches = 0
         self.frames = 0
 
@@ -127,8 +144,9 @@ class DeformBatcher:
         job = _Job(state, seq, wall, encodings, done, asyncio.get_running_loop())
         with self._lock:
             self._pending.append(job)
-            start = not self._running
-            self._running = True
+            start = self._running < self.parallel
+            if start:
+                self._running += 1
         if start:
             self.executor.submit(self._drain)
 
@@ -155,7 +173,7 @@ class DeformBatcher:
                 jobs = self._pending[: self.max_batch]
                 del self._pending[: self.max_batch]
                 if not jobs:
-                    self._running = False
+                    self._running -= 1
                     return
             try:
                 results = self._work(jobs)

@@ -1,7 +1,7 @@
 """The server's live sessions: create (with limits), look up by id, list, close.
 
-One registry per app (``app.state.live``); it owns the thread pool that deforms live frames off the
-event loop (NumPy/SciPy and OpenCL release the GIL while they work).
+One registry per app (``app.state.live``); it owns the thread pools that deform live frames and run
+producer drivers off the event loop (NumPy/SciPy and OpenCL release the GIL while they work).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from ...protocol.errors import CloseCode
 from ...protocol.messages import ErrorMessage, SessionCreate, SessionInfo, dump_message
 from ..api.security import new_token
 from ..errors import FacecastError, NotFound
-from .batcher import DeformBatcher
+from .batcher import DeformBatcher, batch_threads
 from .session import LiveSession, SessionSpec
 
 log = logging.getLogger(__name__)
@@ -65,6 +65,9 @@ class SessionRegistry:
         self.executor = ThreadPoolExecutor(
             threads or deform_threads(), thread_name_prefix="live-deform"
         )
+        #: The threads that solve, deform and encode live frames (``DeformBatcher`` drains); apart
+        #: from ``executor`` so that drains busy under load never delay a producer's hello.
+        self.batch_executor = ThreadPoolExecutor(batch_threads(), thread_name_prefix="live-batch")
         self._batchers: dict[int, DeformBatcher] = {}
         self._creating = 0
 
@@ -72,7 +75,7 @@ class SessionRegistry:
         """The one ``DeformBatcher`` of ``animator`` (sessions of the same face share it)."""
         b = self._batchers.get(id(animator))
         if b is None or b.animator is not animator:
-            b = self._batchers[id(animator)] = DeformBatcher(animator, self.executor)
+            b = self._batchers[id(animator)] = DeformBatcher(animator, self.batch_executor)
         return b
 
     def get(self, session_id: str) -> LiveSession:
@@ -191,3 +194,4 @@ class SessionRegistry:
         for sid in list(self.sessions):
             await self.close(sid, "the server is shutting down")
         self.executor.shutdown(wait=False, cancel_futures=True)
+        self.batch_executor.shutdown(wait=False, cancel_futures=True)
