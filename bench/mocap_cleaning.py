@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -51,24 +50,12 @@ def main(argv: list[str]) -> int:
 
     from facecast.server.mocap.clean import CleanParams
     from facecast.server.mocap.driver import layout_index, process
-    from facecast.server.mocap.generate import generate, load_ict, load_truth
-    from facecast.server.mocap.io import read_take
+    from facecast.server.mocap.generate import generated_take, load_ict
     from facecast.server.mocap.stabilise import head_track, remove_head
 
     face = load_ict()
-    with tempfile.TemporaryDirectory() as tmp:
-        paths = generate(
-            tmp,
-            n_markers=a.markers,
-            seconds=a.seconds,
-            fps=a.fps,
-            seed=a.seed,
-            formats=("c3d",),
-            n_stable=a.stable,
-        )
-        truth = load_truth(paths["truth"])
-        take = read_take(paths["c3d"])
-        layout = json.loads(Path(paths["layout"]).read_text())
+    truth, take, layout = generated_take(n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=a.seed,
+                                         n_stable=a.stable)
 
     records: dict = {
         "markers": a.markers,

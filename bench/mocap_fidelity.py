@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -38,32 +37,14 @@ def main(argv: list[str]) -> int:
     a = p.parse_args(argv)
 
     from facecast.server.mocap.driver import process
-    from facecast.server.mocap.generate import (
-        generate,
-        load_expressions,
-        load_ict,
-        load_truth,
-        truth_vertices,
-    )
-    from facecast.server.mocap.io import read_take
+    from facecast.server.mocap.generate import generated_take, load_expressions, load_ict, truth_vertices
     from facecast.server.pipeline import Animator
     from facecast.server.state import FaceState
 
     face = load_ict()
     _, deltas = load_expressions(face)
-    with tempfile.TemporaryDirectory() as tmp:
-        paths = generate(
-            tmp,
-            n_markers=a.markers,
-            seconds=a.seconds,
-            fps=a.fps,
-            seed=a.seed,
-            formats=("c3d",),
-            n_stable=a.stable,
-        )
-        truth = load_truth(paths["truth"])
-        take = read_take(paths["c3d"])
-        layout = json.loads(Path(paths["layout"]).read_text())
+    truth, take, layout = generated_take(n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=a.seed,
+                                         n_stable=a.stable)
     t0 = time.perf_counter()
     proc = process(take, face, layout)
     driver_s = time.perf_counter() - t0

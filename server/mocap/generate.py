@@ -292,6 +292,23 @@ def truth_vertices(face: Face, deltas: np.ndarray, weights: np.ndarray) -> np.nd
     ).astype(np.float32)
 
 
+def generated_take(*, n_markers: int, seconds: float, fps: float, seed: int, n_stable: int):
+    """Generate a C3D take in a temporary folder and read it back (for benchmarks).
+
+    Returns ``(truth, take, layout)``: the ground truth, the ``MarkerTake`` as a user's reader sees
+    it, and the layout as a dict.
+    """
+    import json
+    import tempfile
+
+    from .io import read_take
+
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = generate(tmp, n_markers=n_markers, seconds=seconds, fps=fps, seed=seed, formats=("c3d",),
+                         n_stable=n_stable)
+        return load_truth(paths["truth"]), read_take(paths["c3d"]), json.loads(Path(paths["layout"]).read_text())
+
+
 def generate(
     out: str | Path,
     *,
