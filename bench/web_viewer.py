@@ -62,6 +62,7 @@ def main() -> int:
     ap.add_argument("--fps", type=float, default=60.0)
     ap.add_argument("--scale", type=float, default=None,
                     help="fix renderer.scale (drawing-buffer pixels per CSS pixel); default: the page adapts it")
+    ap.add_argument("--chromium-arg", action="append", default=[], help="extra Chromium switch (repeatable)")
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
     args = ap.parse_args()
@@ -73,7 +74,7 @@ def main() -> int:
     data = tempfile.mkdtemp(prefix="facecast-web-bench-")
     server = subprocess.Popen([sys.executable, "-m", "facecast.server.cli", "serve", "--port", str(port),
                                "--data-dir", data], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    results: dict = {"face": str(args.face), "session_fps": args.fps, "cpus": os.cpu_count(), "scale": args.scale,
+    results: dict = {"face": str(args.face), "session_fps": args.fps, "cpus": os.cpu_count(), "scale": args.scale, "chromium_args": ARGS + args.chromium_arg,
                      "viewport": [args.width, args.height],
                      "load_average": os.getloadavg()}
     try:
@@ -85,7 +86,7 @@ def main() -> int:
                 time.sleep(0.2)
         hdr = {"Authorization": f"Bearer {key}"}
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=ARGS)
+            browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=ARGS + args.chromium_arg)
             page = browser.new_page(viewport={"width": args.width, "height": args.height})
             page.goto(url + "/")
             results["raf_fps_idle"] = page.evaluate(RAF_JS, 3000)
