@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import lzma
 import sys
 import time
 from pathlib import Path
@@ -66,11 +65,10 @@ CORNER_LM = [48, 54, 60, 64]
 
 
 def read_vertices(path: Path) -> np.ndarray:
-    """``(V, 3) float32`` positions of the ``v`` lines of an OBJ (``.xz`` read with lzma)."""
-    opener = lzma.open if path.suffix == ".xz" else open
-    with opener(path, "rt") as f:
-        lines = [ln[2:] for ln in f if ln.startswith("v ")]
-    return np.array(" ".join(lines).split(), dtype=np.float64).reshape(len(lines), -1)[:, :3].astype(np.float32)
+    """``(V, 3) float32`` positions of an OBJ (``.xz`` read with lzma), in the file's vertex order."""
+    from facecast.server.faces.obj import read_obj
+
+    return read_obj(path)[0]
 
 
 def skin_error_mm(pred: np.ndarray, target: np.ndarray, mm_per_unit: float) -> tuple[float, float]:
