@@ -48,7 +48,6 @@ __all__ = [
     "parse_header",
     "frame_size",
     "quantize_int16_fast",
-    "quantize_int16_batch",
     "vertex_frame_size",
     "vertex_frame_header",
 ]
@@ -304,53 +303,6 @@ def quantize_int16_fast(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return out.astype("<i2"), offset, scale
 
 
-def quantize_int16_batch(
-    v: np.ndarray, out: np.ndarray | None = None, work: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``quantize_int16`` of each frame of ``v (T, V, 3) float32`` at once, bit for bit.
-
-    Returns ``(q (T, V, 3) int16, offset (T, 3) float32, scale (T, 3) float32)``; ``q`` is written
-    into ``out`` (a ``(T, V, 3)`` int16 array) when given. ``work``: optional ``(T, V, 3) float32``
-    scratch to reuse between calls (saves page faults on fresh memory). The same float32
-    operations as ``quantize_int16_fast``.
-    """
-    v = np.ascontiguousarray(v, dtype="<f4")
-    if v.ndim != 3 or v.shape[2] != 3:
-        raise ValueError(f"vertices must be (T, V, 3), got {v.shape}")
-    nt, n = v.shape[0], v.shape[1]
-    q = np.empty(v.shape, "<i2") if out is None else out
-    if nt == 0 or n == 0:
-        return q, np.zeros((nt, 3), np.float32), np.ones((nt, 3), np.float32)
-    m = _QBLOCK
-    n_main = (n // m) * m
-    main, tail = v[:, :n_main].reshape(nt, -1, 3 * m), v[:, n_main:]
-    parts_lo, parts_hi = [], []
-    if n_main:
-        parts_lo.append(main.min(axis=1).reshape(nt, m, 3).min(axis=1))
-        parts_hi.append(main.max(axis=1).reshape(nt, m, 3).max(axis=1))
-    if n_main < n:
-        parts_lo.append(tail.min(axis=1))
-        parts_hi.append(tail.max(axis=1))
-    lo = np.min(parts_lo, axis=0).astype(np.float32)
-    hi = np.max(parts_hi, axis=0).astype(np.float32)
-    offset = ((lo + hi) / 2).astype(np.float32)
-    scale = np.maximum((hi - lo) / np.float32(65534.0), np.float32(1e-12)).astype(np.float32)
-    if work is None or work.shape != v.shape or work.dtype != v.dtype:
-        work = np.empty_like(v)
-    if n_main:  # frame by frame: a broadcast over a middle axis is several times slower in NumPy
-        block = work[:, :n_main].reshape(nt, -1, 3 * m)
-        o_t, s_t = np.tile(offset, m), np.tile(scale, m)
-        for i in range(nt):
-            np.subtract(main[i], o_t[i], out=block[i])
-            np.divide(block[i], s_t[i], out=block[i])
-    if n_main < n:
-        np.subtract(tail, offset[:, None, :], out=work[:, n_main:])
-        np.divide(work[:, n_main:], scale[:, None, :], out=work[:, n_main:])
-    np.rint(work, out=work)
-    np.clip(work, -32767, 32767, out=q, casting="unsafe")
-    return q, offset, scale
-
-
 def vertex_frame_size(encoding: str, n_vertices: int) -> int:
     """Bytes of a vertex frame of ``n_vertices`` in ``encoding`` (``"f32"`` | ``"i16"``)."""
     if encoding == "f32":
@@ -366,7 +318,7 @@ def vertex_frame_header(
 ) -> bytes:
     """The bytes of a vertex frame that precede its vertex data (the header, plus ``offset`` and
     ``scale`` for i16). Followed by the ``(V, 3)`` data (``<f4``, or ``<i2`` from
-    ``quantize_int16_batch``) they make exactly the frame ``encode_vertices`` makes."""
+    ``quantize_int16_fast``) they make exactly the frame ``encode_vertices`` makes."""
     if encoding == "f32":
         return _header(Kind.VERTICES_F32, seq, n_vertices, t, wall)
     return b"".join(

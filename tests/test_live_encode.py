@@ -3,26 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from websockets.frames import Frame, Opcode
 
 from facecast.protocol import frames as fr
-from facecast.protocol.quantize import quantize_int16
 from facecast.server.live.batcher import encode_batch
-
-
-@pytest.mark.parametrize("n", [1, 255, 256, 257, 2000])
-def test_quantize_int16_batch_is_quantize_int16_per_frame(rng, n):
-    v = (rng.normal(size=(5, n, 3)) * [40, 60, 20] + [0, 150, 30]).astype(np.float32)
-    v[1] *= np.float32(1e-4)  # tiny range
-    v[2, :, 1] = 3.0  # flat axis: the minimum scale
-    q, offset, scale = fr.quantize_int16_batch(v)
-    for i in range(len(v)):
-        eq, eo, es = quantize_int16(v[i])
-        assert q[i].dtype == np.int16
-        np.testing.assert_array_equal(q[i], eq)
-        np.testing.assert_array_equal(offset[i], eo)
-        np.testing.assert_array_equal(scale[i], es)
 
 
 def test_encode_batch_frames_match_protocol_encoders(rng):

@@ -3,8 +3,8 @@
 Sessions of the same face share one ``Animator``. Each session hands over a face state with a
 callback (``submit_nowait``); a worker thread takes every state waiting at that moment, solves
 them, deforms them with one ``deform_batch`` call (one OpenCL launch instead of one per frame:
-about 4x less CPU per frame on PoCL for the 25k-vertex head), quantises all int16 frames of the
-batch together and writes each frame once, already framed for WebSocket, into its own buffer.
+about 4x less CPU per frame on PoCL for the 25k-vertex head) and writes each frame once, already
+framed for WebSocket, into its own buffer.
 The callbacks then run on their event loop, all of a batch in one wake-up. Under light load a
 batch holds one frame and adds no delay; under heavy load batches grow by themselves.
 """
@@ -62,24 +62,19 @@ def encode_batch(
     """Encode frames ``verts (T, V, 3) float32``; ``jobs[i] = (seq, t, wall, encodings)`` of frame i.
 
     Each encoding of each frame is written once, into a buffer that holds its WebSocket frame
-    (header + payload); int16 frames are quantised all together (``frames.quantize_int16_batch``,
-    bit for bit ``quantize_int16``) straight into their buffers.
+    (header + payload): the bytes every viewer is sent, without further copies.
     """
     n = verts.shape[1]
     out: list[Encoded] = [{} for _ in jobs]
-    i16 = [i for i, j in enumerate(jobs) if "i16" in j[3]]
-    if i16:
-        bufs = [_framed_buffer("i16", n) for _ in i16]
-        sub = frames.HEADER_SIZE + 24
-        views = np.empty((len(i16), n, 3), "<i2")
-        src = verts if len(i16) == len(jobs) else verts[i16]
-        q, offset, scale = frames.quantize_int16_batch(src, out=views)
-        for k, (i, (buf, h)) in enumerate(zip(i16, bufs)):
-            seq, t, wall, _ = jobs[i]
+    sub = frames.HEADER_SIZE + 24  # header + offset/scale of an int16 frame
+    for i, (seq, t, wall, encodings) in enumerate(jobs):
+        if "i16" in encodings:  # frame by frame: one frame's temporaries stay in the CPU cache
+            buf, h = _framed_buffer("i16", n)
+            q, offset, scale = frames.quantize_int16_fast(verts[i])
             buf[h : h + sub] = frames.vertex_frame_header(
-                "i16", n, seq=seq, t=t, wall=wall, offset=offset[k], scale=scale[k]
+                "i16", n, seq=seq, t=t, wall=wall, offset=offset, scale=scale
             )
-            buf[h + sub :] = memoryview(q[k]).cast("B")
+            buf[h + sub :] = memoryview(q).cast("B")
             out[i]["i16"] = (memoryview(buf)[h:], buf)
     for i, (seq, t, wall, encodings) in enumerate(jobs):
         if "f32" in encodings:
@@ -102,10 +97,13 @@ def encode(
 
 
 def batch_threads() -> int:
-    """Batches of one animator worked on at once: ``FACECAST_LIVE_BATCHES``, else the number of CPUs
-    (at most 4)."""
+    """Batches of one animator worked on at once: ``FACECAST_LIVE_BATCHES``, default 1.
+
+    Measured on 2 cores with PoCL (20 sessions): a second concurrent batch splits the frames into
+    smaller launches and adds GIL contention; it cost more CPU per frame than it saved.
+    """
     env = os.environ.get("FACECAST_LIVE_BATCHES")
-    return max(1, int(env)) if env else max(1, min(4, os.cpu_count() or 1))
+    return max(1, int(env)) if env else 1
 
 
 class DeformBatcher:
@@ -123,7 +121,8 @@ class DeformBatcher:
         self.max_batch = max_batch
         self._pending: list[_Job] = []
         self._lock = threading.Lock()
-        self._running = 0  # batches being worked on
+        self._running = 0  # drains at work
+        self._delivering = False  # ``_deliver`` is running callbacks (event loop side)
         #: Batches worked on at once: the solve and the int16 encoding of one batch overlap with the
         #: deformation of the next (the deformer itself runs one launch at a time).
         self.parallel = max(1, parallel if parallel is not None else batch_threads())
@@ -144,11 +143,29 @@ class DeformBatcher:
         job = _Job(state, seq, wall, encodings, done, asyncio.get_running_loop())
         with self._lock:
             self._pending.append(job)
-            start = self._running < self.parallel
-            if start:
-                self._running += 1
-        if start:
+        if not self._delivering:  # else ``_deliver`` starts the work once all callbacks have run
+            self._kick()
+
+    def _kick(self) -> None:
+        """Start drains for the waiting jobs: up to ``parallel``, at most one per waiting job."""
+        with self._lock:
+            n = min(self.parallel - self._running, len(self._pending))
+            self._running += max(0, n)
+        for _ in range(n):
             self.executor.submit(self._drain)
+
+    def _deliver(self, done: list[tuple[Callable[[Any], None], Any]]) -> None:
+        """Run a batch's callbacks on their loop; the states they submit form the next batch."""
+        self._delivering = True
+        try:
+            for callback, result in done:
+                try:
+                    callback(result)
+                except Exception:  # one session's failure must not starve the others
+                    log.exception("delivering a live frame failed")
+        finally:
+            self._delivering = False
+            self._kick()
 
     async def submit(
         self, state: FaceState, *, seq: int, wall: float, encodings: frozenset[str]
@@ -169,9 +186,10 @@ class DeformBatcher:
 
     def _drain(self) -> None:
         while True:
-            with self._lock:
-                jobs = self._pending[: self.max_batch]
-                del self._pending[: self.max_batch]
+            with self._lock:  # share the waiting jobs with the other drains
+                take = min(self.max_batch, -(-len(self._pending) // max(1, self._running)))
+                jobs = self._pending[:take]
+                del self._pending[:take]
                 if not jobs:
                     self._running -= 1
                     return
@@ -185,7 +203,7 @@ class DeformBatcher:
                 by_loop.setdefault(j.loop, []).append((j.done, r))
             for loop, done in by_loop.items():  # one wake-up of the event loop per batch
                 try:
-                    loop.call_soon_threadsafe(_deliver, done)
+                    loop.call_soon_threadsafe(self._deliver, done)
                 except RuntimeError:  # that loop is closed (server shutting down)
                     pass
 
@@ -217,11 +235,3 @@ class DeformBatcher:
         self.batches += 1
         self.frames += len(ok)
         return results
-
-
-def _deliver(done: list[tuple[Callable[[Any], None], Any]]) -> None:
-    for callback, result in done:
-        try:
-            callback(result)
-        except Exception:  # one session's failure must not starve the others of their frames
-            log.exception("delivering a live frame failed")

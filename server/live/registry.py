@@ -10,7 +10,6 @@ import asyncio
 import logging
 import os
 import secrets
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -38,19 +37,6 @@ def deform_threads() -> int:
     return max(1, int(env)) if env else max(1, min(8, os.cpu_count() or 1))
 
 
-def _tune_switch_interval() -> None:
-    """Shorten the interpreter's GIL switch interval (``FACECAST_GIL_SWITCH_MS``, default 0.3 ms).
-
-    Live frames are worked on by threads that release the GIL for each large NumPy/OpenCL step;
-    with the default 5 ms interval, a thread that wants the GIL back after such a step can wait
-    up to 5 ms behind a thread running Python code (the event loop, or another batch's solve),
-    several times per frame.
-    """
-    ms = float(os.environ.get("FACECAST_GIL_SWITCH_MS", "0.3"))
-    if ms > 0:
-        sys.setswitchinterval(ms / 1000.0)
-
-
 class SessionRegistry:
     """Live sessions of one server.
 
@@ -71,7 +57,6 @@ class SessionRegistry:
         threads: int | None = None,
     ) -> None:
         self.store = store
-        _tune_switch_interval()
         self.max_sessions = max_sessions
         self.max_viewers = max_viewers
         self.max_fps = max_fps
