@@ -313,8 +313,14 @@ def vertex_frame_size(encoding: str, n_vertices: int) -> int:
 
 
 def vertex_frame_header(
-    encoding: str, n_vertices: int, *, seq: int, t: float, wall: float = 0.0,
-    offset: np.ndarray | None = None, scale: np.ndarray | None = None,
+    encoding: str,
+    n_vertices: int,
+    *,
+    seq: int,
+    t: float,
+    wall: float = 0.0,
+    offset: np.ndarray | None = None,
+    scale: np.ndarray | None = None,
 ) -> bytes:
     """The bytes of a vertex frame that precede its vertex data (the header, plus ``offset`` and
     ``scale`` for i16). Followed by the ``(V, 3)`` data (``<f4``, or ``<i2`` from
