@@ -38,26 +38,18 @@ def ict_take(tmp_path_factory):
     return face, mesh, syn, folder
 
 
+def render_take(folder, mesh, out, *extra: str) -> int:
+    """``facecast render take.c3d --layout layout.json --face MESH -o OUT [extra]``; its exit status."""
+    take, layout = folder / "take.c3d", folder / "layout.json"
+    return main(["render", str(take), "--layout", str(layout), "--face", str(mesh), *extra, "-o", str(out)])
+
+
 def test_render_take_to_fap_gives_jaw_and_head_faps(ict_take):
     from facecast.server.mpeg4.fapu import measure_fapu
 
     face, mesh, syn, folder = ict_take
     out = folder / "out.fap"
-    assert (
-        main(
-            [
-                "render",
-                str(folder / "take.c3d"),
-                "--layout",
-                str(folder / "layout.json"),
-                "--face",
-                str(mesh),
-                "-o",
-                str(out),
-            ]
-        )
-        == 0
-    )
+    assert render_take(folder, mesh, out) == 0
     fap = read_fap(out.read_text(), where=str(out))
     assert len(fap.frames) == len(syn.take.xyz)
     faps = [f.faps() for f in fap.frames]
@@ -78,23 +70,7 @@ def test_render_take_to_fap_gives_jaw_and_head_faps(ict_take):
 def test_render_take_to_npz_puts_the_markers_where_they_were(ict_take):
     face, mesh, syn, folder = ict_take
     out = folder / "out.npz"
-    assert (
-        main(
-            [
-                "render",
-                str(folder / "take.c3d"),
-                "--layout",
-                str(folder / "layout.json"),
-                "--face",
-                str(mesh),
-                "--backend",
-                "numpy",
-                "-o",
-                str(out),
-            ]
-        )
-        == 0
-    )
+    assert render_take(folder, mesh, out, "--backend", "numpy") == 0
     with np.load(out) as z:
         verts = z["vertices"]
     assert verts.shape == (len(syn.take.xyz), face.n_vertices, 3)

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..faces.face import FEATURE_POINT_IDS
+
 #: FAP units. Distances are a neutral-face distance / 1024; AU is 1e-5 rad.
 UNITS: tuple[str, ...] = ("MNS", "MW", "ES", "ENS", "IRISD", "AU")
 
@@ -148,9 +150,8 @@ FAP_NUMBER: dict[str, int] = {f.name: f.number for f in FAPS}
 FAP_GROUPS: dict[int, tuple[int, ...]] = {
     g: tuple(f.number for f in FAPS if f.group == g) for g in range(1, 11)}
 
-#: Feature points per FP group (2..11), 84 in all.
-_FP_COUNTS = {2: 14, 3: 14, 4: 6, 5: 4, 6: 4, 7: 1, 8: 10, 9: 15, 10: 10, 11: 6}
-FEATURE_POINTS: tuple[str, ...] = tuple(f"{g}.{i}" for g, n in _FP_COUNTS.items() for i in range(1, n + 1))
+#: The 84 feature points (groups 2..11), defined with the face model.
+FEATURE_POINTS: tuple[str, ...] = FEATURE_POINT_IDS
 
 #: Feature point -> FAPs that name it (45 points; 3.5/3.6 are also moved by the eyeball FAPs).
 FP_FAPS: dict[str, tuple[int, ...]] = {}
