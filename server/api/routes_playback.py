@@ -71,15 +71,18 @@ class _Unauthorised(FacecastError):
                          "(?token=...)", where="token")
 
 
-async def _feed(session, states, fps: float, start_wall: float, producer: ServerProducer, loop_forever=False) -> None:
-    """Submit ``states`` to ``session`` paced at ``fps`` from ``start_wall``; frees the slot at the end."""
+async def _feed(session, states, fps: float, start_wall: float, producer: ServerProducer) -> None:
+    """Submit ``states`` to ``session`` paced at ``fps`` from ``start_wall``; frees the slot at the end.
+
+    A frame more than a second late (a stalled loop) is skipped rather than rushed out.
+    """
     try:
         for i, state in enumerate(states):
             delay = start_wall + i / fps - time.time()
             if delay > 0:
                 await asyncio.sleep(delay)
-            elif delay < -1.0 and not loop_forever:
-                continue  # more than a second late (a stalled loop): skip rather than rush
+            elif delay < -1.0:
+                continue
             session.submit([state], wall=time.time())
     except asyncio.CancelledError:
         pass
@@ -125,7 +128,7 @@ async def start_demo(session_id: str, request: Request, token: str | None = None
     producer = _claim(session, "demo")
     fps = session.spec.fps
     producer.task = asyncio.create_task(
-        _feed(session, demo_states(fps), fps, time.time(), producer, loop_forever=True), name=f"demo-{session_id}")
+        _feed(session, demo_states(fps), fps, time.time(), producer), name=f"demo-{session_id}")
     log.info("session %s: demo started at %g fps", session_id, fps)
     return {"id": session_id, "producer": "demo", "fps": fps}
 

@@ -122,12 +122,8 @@ setInterval(() => {
 }, 500);
 
 // ---- controls -----------------------------------------------------------------------------------
-renderer.canvas.addEventListener('pointermove', () => { dirty = true; });
-renderer.canvas.addEventListener('wheel', () => { dirty = true; });
+renderer.camera.attach(renderer.canvas, () => { dirty = true; });
 new ResizeObserver(() => { dirty = true; }).observe(renderer.canvas);
-const attachCamera = setInterval(() => {
-  if (renderer.camera) { renderer.camera.attach(renderer.canvas, () => { dirty = true; }); clearInterval(attachCamera); }
-}, 100);
 
 $('refresh').onclick = refreshSessions;
 $('watch').onclick = () => { const id = $('session-list').value; if (id) watch(id).catch((e) => setStatus(e.message, 'error')); };

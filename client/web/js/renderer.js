@@ -61,9 +61,11 @@ function compile(gl, type, src) {
 }
 
 export class OrbitCamera {
-  constructor(target, radius) {
+  constructor(target = [0, 0, 0], radius = 1) {
     this.target = target; this.radius = radius; this.yaw = 0.35; this.pitch = 0.08;
   }
+  /** Look at `target` from `radius` away (a new mesh). */
+  frame(target, radius) { this.target = target; this.radius = radius; }
   eye() {
     const [tx, ty, tz] = this.target, r = this.radius;
     return [tx + r * Math.sin(this.yaw) * Math.cos(this.pitch), ty + r * Math.sin(this.pitch),
@@ -116,6 +118,7 @@ export class FaceRenderer {
       this.loc[n] = gl.getUniformLocation(prog, n);
     }
     this.mesh = null;
+    this.camera = new OrbitCamera();
     this.scale = 1;  // < 1 renders fewer pixels (the browser scales the canvas up)
   }
 
@@ -151,7 +154,7 @@ export class FaceRenderer {
     }
     const centre = [0, 1, 2].map((a) => (lo[a] + hi[a]) / 2);
     const size = Math.max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]);
-    this.camera = new OrbitCamera([centre[0], centre[1] + size * 0.05, centre[2]], size * 2.1);
+    this.camera.frame([centre[0], centre[1] + size * 0.05, centre[2]], size * 2.1);
   }
 
   /** A float32 frame: positions Float32Array(3V). */
