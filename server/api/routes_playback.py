@@ -46,15 +46,39 @@ class Busy(FacecastError):
 
 
 class ServerProducer:
-    """Holds a session's producer slot while a server-side task feeds it."""
+    """Holds a session's producer slot while a server-side task feeds it.
 
-    def __init__(self, kind: str) -> None:
+    A marker take brings its own control vertices: ``deform_with`` swaps the session's batcher for
+    one over them, and ``release`` puts the session's own back.
+    """
+
+    def __init__(self, session, kind: str) -> None:
+        self.session = session
         self.kind = kind
         self.task: asyncio.Task | None = None
+        self._own: tuple | None = None  # the session's (batcher, control_vertices) while swapped
 
-    async def end(self, code: int, error_json: str) -> None:  # called when the session closes
+    def deform_with(self, batcher, control_vertices: np.ndarray) -> None:
+        s = self.session
+        self._own = (s.batcher, s.control_vertices)
+        s.batcher, s.control_vertices = batcher, np.array(control_vertices)
+
+    def release(self) -> None:
+        """Give back the session's deformation and producer slot (idempotent)."""
+        s = self.session
+        if self._own is not None:
+            s.batcher, s.control_vertices = self._own
+            self._own = None
+        if s.producer is self:
+            s.set_producer(None)
+
+    def stop(self) -> None:
         if self.task is not None:
             self.task.cancel()
+        self.release()
+
+    async def end(self, code: int, error_json: str) -> None:  # the session is closing
+        self.stop()
 
 
 def _authorise(request: Request, session, token: str | None) -> None:
@@ -87,23 +111,16 @@ async def _feed(session, states, fps: float, start_wall: float, producer: Server
     except asyncio.CancelledError:
         pass
     finally:
-        if session.producer is producer:
-            session.set_producer(None)
-        restore = getattr(producer, "restore", None)
-        if restore is not None:  # the session's own deformation, replaced for a mocap take
-            session.batcher, session.control_vertices = restore
+        producer.release()
 
 
 def _claim(session, kind: str) -> ServerProducer:
     current = session.producer
     if isinstance(current, ServerProducer):
-        current.task.cancel()
-        if getattr(current, "restore", None) is not None:  # undo its mocap deformation now, not later
-            session.batcher, session.control_vertices = current.restore
-            current.restore = None
+        current.stop()  # its deformation is undone now, before the new producer swaps its own in
     elif current is not None:
         raise Busy("a producer is connected to this session; it must disconnect first", where="producer")
-    producer = ServerProducer(kind)
+    producer = ServerProducer(session, kind)
     session.set_producer(producer)
     return producer
 
@@ -138,8 +155,7 @@ async def stop_demo(session_id: str, request: Request, token: str | None = None)
     session = registry(request.app).get(session_id)
     _authorise(request, session, token)
     if isinstance(session.producer, ServerProducer):
-        session.producer.task.cancel()
-        session.set_producer(None)
+        session.producer.stop()
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
@@ -186,9 +202,7 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
         animator = await loop.run_in_executor(reg.executor, reg.animator_for, session, animation.control_vertices)
     producer = _claim(session, f"play:{kind}")
     if animator is not None:
-        producer.restore = (session.batcher, session.control_vertices)
-        session.batcher = reg.batcher_for(animator)
-        session.control_vertices = np.array(animation.control_vertices)
+        producer.deform_with(reg.batcher_for(animator), animation.control_vertices)
     start = time.time() + LEAD_IN
     t0 = animation.states[0].t
     for s in animation.states:
