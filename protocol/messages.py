@@ -239,7 +239,7 @@ class SessionCreate(_Model):
         description="output frame rate (audio/markers drivers "
         "resample to it; FAP frames are taken as sent)",
     )
-    engine: str = Field("fp", max_length=32, description="deformation engine: fp | rbf")
+    engine: str = Field("fp", max_length=32, description="deformation engine: fp | rbf | shell")
     max_viewers: int | None = Field(None, gt=0, description="viewer limit (≤ the server's)")
 
 

@@ -12,7 +12,7 @@ from pydantic import BaseModel, Field
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
 FINAL_STATES: frozenset[str] = frozenset({"done", "failed", "cancelled"})
 OutputFormat = Literal["glb", "npz", "fap"]
-Engine = Literal["fp", "rbf"]
+Engine = Literal["fp", "rbf", "shell"]
 
 #: Media types of job results, by format.
 RESULT_MEDIA_TYPES: dict[str, str] = {

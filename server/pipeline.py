@@ -20,7 +20,7 @@ class Animator:
 
     Args:
         face: the ``Face``.
-        engine: deformation engine (``fp`` | ``rbf``), see ``server.deform.build``.
+        engine: deformation engine (``fp`` | ``rbf`` | ``shell``), see ``server.deform.build``.
         backend: ``auto`` | ``numpy`` | ``opencl``; ``device``: OpenCL device selector.
         control_vertices: ``(K,)`` explicit control vertices (mocap); None = the face's FAP controls.
         operator: a ready ``Operator`` for these controls (skips ``get_operator``).

@@ -25,7 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="what the producer sends",
     )
     c.add_argument("--fps", type=float, default=60.0, help="output frame rate (audio/markers)")
-    c.add_argument("--engine", default="fp", help="deformation engine: fp | rbf")
+    c.add_argument("--engine", default="fp", help="deformation engine: fp | rbf | shell")
     c.add_argument("--max-viewers", type=int, help="viewer limit for this session")
     d = sub.add_parser(
         "close", help="close a live session (its producer and viewers are disconnected)"

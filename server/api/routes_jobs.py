@@ -42,7 +42,7 @@ _UPLOAD_DOC = {
                          "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv (type from the "
                                         "file name's suffix, else from its content)"},
                 "face": {"type": "string", "description": "face name (GET /v1/faces)"},
-                "engine": {"type": "string", "enum": ["fp", "rbf"], "default": "fp"},
+                "engine": {"type": "string", "enum": ["fp", "rbf", "shell"], "default": "fp"},
                 "format": {"type": "string", "enum": ["glb", "npz", "fap"], "default": "glb"},
                 "layout": {"type": "string", "description": "mocap marker layout name"},
             }}}},

@@ -12,7 +12,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", type=Path, help="input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv")
     p.add_argument("-o", "--output", type=Path, required=True, help="output: .glb, .npz or .fap")
     p.add_argument("--face", default="default", help="built-in face (default, default:2k, ...) or a mesh path")
-    p.add_argument("--engine", choices=["fp", "rbf"], default="fp", help="deformation engine (default fp)")
+    p.add_argument("--engine", choices=["fp", "rbf", "shell"], default="fp", help="deformation engine (default fp)")
     p.add_argument("--backend", choices=["auto", "numpy", "opencl"], default="auto", help="compute backend")
     p.add_argument("--device", default=None, help="OpenCL device (index or name substring)")
     p.add_argument("--layout", default=None, help="mocap marker layout (for .c3d/.trc/.csv input)")

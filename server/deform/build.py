@@ -23,6 +23,7 @@ from ..paths import cache_dir
 from .feature_point import feature_point_operator
 from .operator import Operator
 from .rbf import rbf_operator
+from .shell import shell_operator
 
 log = logging.getLogger(__name__)
 
@@ -77,9 +78,10 @@ DEFAULTS: dict[str, dict] = {
            "falloff": "sine"},
     "rbf": {"kernel": "imq", "shape": 1.0, "affine": False, "distance": "surface", "attach_distance": None,
             "inner": "membrane"},
+    "shell": {"stretch": 0.1, "attach_distance": None, "inner": "membrane"},
 }
 
-ENGINES = {"fp": feature_point_operator, "rbf": rbf_operator}
+ENGINES = {"fp": feature_point_operator, "rbf": rbf_operator, "shell": shell_operator}
 
 
 def engine_params(engine: str, params: dict) -> dict:
@@ -99,8 +101,11 @@ def cache_key(face, control_vertices: np.ndarray, constrained: np.ndarray, engin
     h = hashlib.sha256()
     h.update(json.dumps({"v": ALGORITHM_VERSION, "mesh": face.mesh_hash, "engine": engine,
                          "params": {k: params[k] for k in sorted(params)}}, default=str).encode())
-    for arr in (np.asarray(control_vertices, np.int64), np.asarray(constrained, bool), inner_vertices(face),
-                np.asarray(face.deformable, bool), np.asarray(face.rigid_group, np.uint8)):
+    arrays = [np.asarray(control_vertices, np.int64), np.asarray(constrained, bool), inner_vertices(face),
+              np.asarray(face.deformable, bool), np.asarray(face.rigid_group, np.uint8)]
+    if engine == "shell":
+        arrays.append(np.asarray(skin_vertices(face) if skin_vertices(face) is not None else [], np.int64))
+    for arr in arrays:
         h.update(str(arr.shape).encode())
         h.update(np.ascontiguousarray(arr).tobytes())
     return h.hexdigest()[:24]
@@ -109,9 +114,17 @@ def cache_key(face, control_vertices: np.ndarray, constrained: np.ndarray, engin
 def build_operator(face, control_vertices, *, engine: str = "fp", constrained=None, **params) -> Operator:
     """Build (never cached) the operator of ``engine`` for ``face`` and ``control_vertices (K,)``."""
     full = engine_params(engine, params)
+    if engine == "shell":  # the shell covers the skin only
+        full["surface"] = skin_vertices(face)
     return ENGINES[engine](face.vertices, face.triangles, control_vertices, constrained=constrained,
                            deformable=face.deformable, rigid_group=face.rigid_group,
                            inner_vertices=inner_vertices(face), **full)
+
+
+def skin_vertices(face) -> np.ndarray | None:
+    """``(n,)`` vertex ids of the face's ``skin`` part, or None when it has none."""
+    skin = face.parts.get("skin")
+    return None if skin is None or not len(skin) else np.asarray(skin, dtype=np.int64)
 
 
 def inner_vertices(face) -> np.ndarray:
@@ -126,7 +139,7 @@ def get_operator(face, control_vertices, *, engine: str = "fp", constrained=None
     Args:
         face: a ``Face``.
         control_vertices: ``(K,)`` vertex ids.
-        engine: ``"fp"`` (feature points, sparse) or ``"rbf"`` (dense).
+        engine: ``"fp"`` (feature points, sparse), ``"rbf"`` (dense) or ``"shell"`` (linear shell, dense).
         constrained: ``(K, 3) bool`` axes on which each control is driven (default all).
         cache: read and write the on-disk cache.
         **params: engine parameters (see ``DEFAULTS``).
