@@ -47,6 +47,24 @@ MINMAX_ITEMS = 64
 #: Floats per rigid transform on the device (4 float4 columns of the 3x4 matrix).
 T_FLOATS = 16
 
+def _aos_store8(x: str, y: str, z: str, o: str) -> str:
+    """OpenCL C storing float8 ``x``, ``y``, ``z`` (8 vertices, SoA) as 24 AoS floats at ``o``: six
+    in-lane shuffles and three 128-bit lane moves, 12 instructions with the stores (LLVM's lowering
+    of the generic ``(float16)(ox.s0, oy.s0, ...)`` took ~75 per 16 vertices: 15% of the frame's CPU)."""
+    sh = "__builtin_shufflevector"
+    return f"""{{
+            const float8 xy = {sh}({x}, {y}, 0, 2, 8, 10, 4, 6, 12, 14);  // x0 x2 y0 y2 | x4 x6 y4 y6
+            const float8 yz = {sh}({y}, {z}, 1, 3, 9, 11, 5, 7, 13, 15);  // y1 y3 z1 z3 | y5 y7 z5 z7
+            const float8 zx = {sh}({z}, {x}, 0, 2, 9, 11, 4, 6, 13, 15);  // z0 z2 x1 x3 | z4 z6 x5 x7
+            const float8 a = {sh}(xy, zx, 0, 2, 8, 10, 4, 6, 12, 14);     // x0 y0 z0 x1 | x4 y4 z4 x5
+            const float8 b = {sh}(yz, xy, 0, 2, 9, 11, 4, 6, 13, 15);     // y1 z1 x2 y2 | y5 z5 x6 y6
+            const float8 c = {sh}(zx, yz, 1, 3, 9, 11, 5, 7, 13, 15);     // z2 x3 y3 z3 | z6 x7 y7 z7
+            vstore8({sh}(a, b, 0, 1, 2, 3, 8, 9, 10, 11), 0, {o});
+            vstore8({sh}(c, a, 0, 1, 2, 3, 12, 13, 14, 15), 1, {o});
+            vstore8({sh}(b, c, 4, 5, 6, 7, 12, 13, 14, 15), 2, {o});
+        }}"""
+
+
 def _deform_source(S: int) -> str:
     """OpenCL C of the ``deform`` kernel for slices of ``S`` (8 or 16) vertices."""
     hx = "0123456789abcdef"
@@ -56,7 +74,8 @@ def _deform_source(S: int) -> str:
         return f"(VF)({', '.join(parts)})"
 
     inter = [f"o{c}.s{hx[v]}" for v in lanes for c in "xyz"]  # AoS order of the slice's output
-    stores = "\n        ".join(f"VSTORE({vec(inter[i * S:(i + 1) * S])}, {i}, o);" for i in range(3))
+    stores = "\n        ".join(_aos_store8(f"ox{h}", f"oy{h}", f"oz{h}", f"o + {24 * i}")
+                                 for i, h in enumerate((".lo", ".hi") if S == 16 else ("",)))
     tail = "\n        ".join(f"if ({i} < n) o[{i}] = {x};" for i, x in enumerate(inter))
     gathers = "\n            ".join(f"const float4 d{l} = D[id[{l}]];" for l in lanes)
     dx, dy, dz = (vec([f"d{l}.{c}" for l in lanes]) for c in "xyz")
@@ -519,6 +538,7 @@ class OpenCLDeformer:
         self._minmax_host = np.empty((MINMAX_ITEMS, 2, 3), dtype=np.float32)
         self._minmax = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, self._minmax_host.nbytes)
         self._global = (-(-max(1, self.n_vertices) // LOCAL_SIZE) * LOCAL_SIZE,)
+        self._set_deform_args()
         self._warm_up()
 
     # ----------------------------------------------------------------------------------- helpers
@@ -589,11 +609,25 @@ class OpenCLDeformer:
         self._params = self._params_single if single else cl.Buffer(self.context, cl.mem_flags.READ_ONLY, P.nbytes)
         cl.enqueue_copy(self.queue, self._params, P, is_blocking=False)
 
+    def _set_deform_args(self) -> None:
+        """Set the deform kernel's resident arguments once (see ``_launch_deform``)."""
+        self._k_deform.set_args(np.uint32(self.n_vertices), np.uint32(self.n_controls), self._col_ptr,
+                                self._id_ptr, self._ids, self._w, self._rest, self._sgroup, self._group,
+                                self._params, np.uint32(self._pstride // 4), np.uint32(self.n_groups),
+                                np.uint32(1), self._verts)
+        self._arg_frames = 1
+
     def _launch_deform(self, n_frames: int, out_buf):
-        return self._k_deform(self.queue, (self._global_slices,), (LOCAL_SLICES,),
-                       np.uint32(self.n_vertices), np.uint32(self.n_controls), self._col_ptr,
-                       self._id_ptr, self._ids, self._w, self._rest, self._sgroup, self._group, self._params,
-                       np.uint32(self._pstride // 4), np.uint32(self.n_groups), np.uint32(n_frames), out_buf)
+        """Enqueue the deform kernel, setting only the per-launch arguments: buffers cost 0.2 us to
+        set, a scalar ~20 us through PyOpenCL (``Kernel.__call__`` setting all fourteen cost ~60 us
+        a frame, a third of a 25k-vertex frame), so the frame count is set only when it changes."""
+        k = self._k_deform
+        k.set_arg(9, self._params)
+        if n_frames != self._arg_frames:
+            k.set_arg(12, np.uint32(n_frames))
+            self._arg_frames = n_frames
+        k.set_arg(13, out_buf)
+        return self._cl.enqueue_nd_range_kernel(self.queue, k, (self._global_slices,), (LOCAL_SLICES,))
 
     def _host_buffer(self, arr: np.ndarray, flags=None):
         """A buffer whose storage is host array ``arr`` (``CL_MEM_USE_HOST_PTR``): on a CPU device
