@@ -144,6 +144,37 @@ def test_out_parameter_receives_the_frame(ctx, rng):
         d.deform(np.full((8, 3), np.nan, np.float32), T)
 
 
+
+@pytest.mark.parametrize("V", [1000, 1003])
+def test_streaming_stores_match(ctx, rng, monkeypatch, V):
+    """Large launches write with non-temporal stores (forced here for a small mesh): same results,
+    also into a misaligned ``out`` and for batches whose frames are not 32-byte aligned (V = 1003),
+    where the ordinary kernel must be used instead."""
+    monkeypatch.setattr(cl_backend, "STREAM_FRACTION", 0.0)
+    rest, tri, groups = random_mesh(rng, V)
+    op = random_sparse(rng, V, 40)
+    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
+    if not d._cache_bytes:
+        pytest.skip("not a CPU device with a reported cache size")
+    ref = NumpyDeformer(rest, tri, groups, op)
+    D = (rng.standard_normal((40, 3)) * 2).astype(np.float32)
+    T = random_transforms(rng)
+    assert d._streams(1)
+    assert_close(d.deform(D, T), ref.deform(D, T), 80)
+    raw = np.zeros(3 * V + 1, np.float32)
+    skew = raw[1:] if raw.ctypes.data % 32 == 0 else raw[:-1]
+    out = skew.reshape(V, 3)
+    if out.ctypes.data % 32:
+        assert not d._streams(1, out)
+    assert_close(d.deform(D, T, out=out), ref.deform(D, T), 80)
+    Db = (rng.standard_normal((3, 40, 3)) * 2).astype(np.float32)
+    Tb = random_transforms(rng, lead=(3,))
+    assert d._streams(3) == (V % 8 == 0)
+    assert_close(d.deform_batch(Db, Tb), ref.deform_batch(Db, Tb), 80)
+    d.upload_frame(D, T)
+    d.run_kernel_resident(wait=True)
+    assert_close(d.read_resident(), ref.deform(D, T), 80)
+
 def test_deform_with_normals_matches(ctx, rng):
     rest, tri, groups = random_mesh(rng, 300)
     op = random_sparse(rng, 300, 12)

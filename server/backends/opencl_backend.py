@@ -46,12 +46,27 @@ LOCAL_SIZE = 128
 MINMAX_ITEMS = 64
 #: Floats per rigid transform on the device (4 float4 columns of the 3x4 matrix).
 T_FLOATS = 16
+#: Write the vertices with non-temporal (streaming) stores when a launch's data -- resident operator
+#: and rest positions plus the frames it writes -- exceed this fraction of the device's last-level
+#: cache (CPU devices; ``deform``/``deform_batch``): allocating the output in the cache would evict
+#: the operator the next frame reads again, and costs a read of every output line first (memcpy
+#: streams large copies for the same reasons). 500k vertices: 23 MB per frame, 32 MB L3 here:
+#: 12% less CPU per frame. Smaller faces keep ordinary stores (their output stays in cache for the
+#: consumer).
+STREAM_FRACTION = 0.5
 
-def _aos_store8(x: str, y: str, z: str, o: str) -> str:
+def _aos_store8(x: str, y: str, z: str, o: str, stream: bool = False) -> str:
     """OpenCL C storing float8 ``x``, ``y``, ``z`` (8 vertices, SoA) as 24 AoS floats at ``o``: six
     in-lane shuffles and three 128-bit lane moves, 12 instructions with the stores (LLVM's lowering
-    of the generic ``(float16)(ox.s0, oy.s0, ...)`` took ~75 per 16 vertices: 15% of the frame's CPU)."""
+    of the generic ``(float16)(ox.s0, oy.s0, ...)`` took ~75 per 16 vertices: 15% of the frame's CPU).
+    ``stream``: non-temporal stores (``o`` must be 32-byte aligned)."""
     sh = "__builtin_shufflevector"
+    if stream:
+        def store(v: str, i: int) -> str:
+            return f"__builtin_nontemporal_store({v}, (__global float8 *)({o}) + {i});"
+    else:
+        def store(v: str, i: int) -> str:
+            return f"vstore8({v}, {i}, {o});"
     return f"""{{
             const float8 xy = {sh}({x}, {y}, 0, 2, 8, 10, 4, 6, 12, 14);  // x0 x2 y0 y2 | x4 x6 y4 y6
             const float8 yz = {sh}({y}, {z}, 1, 3, 9, 11, 5, 7, 13, 15);  // y1 y3 z1 z3 | y5 y7 z5 z7
@@ -59,14 +74,19 @@ def _aos_store8(x: str, y: str, z: str, o: str) -> str:
             const float8 a = {sh}(xy, zx, 0, 2, 8, 10, 4, 6, 12, 14);     // x0 y0 z0 x1 | x4 y4 z4 x5
             const float8 b = {sh}(yz, xy, 0, 2, 9, 11, 4, 6, 13, 15);     // y1 z1 x2 y2 | y5 z5 x6 y6
             const float8 c = {sh}(zx, yz, 1, 3, 9, 11, 5, 7, 13, 15);     // z2 x3 y3 z3 | z6 x7 y7 z7
-            vstore8({sh}(a, b, 0, 1, 2, 3, 8, 9, 10, 11), 0, {o});
-            vstore8({sh}(c, a, 0, 1, 2, 3, 12, 13, 14, 15), 1, {o});
-            vstore8({sh}(b, c, 4, 5, 6, 7, 12, 13, 14, 15), 2, {o});
+            {store(f"{sh}(a, b, 0, 1, 2, 3, 8, 9, 10, 11)", 0)}
+            {store(f"{sh}(c, a, 0, 1, 2, 3, 12, 13, 14, 15)", 1)}
+            {store(f"{sh}(b, c, 4, 5, 6, 7, 12, 13, 14, 15)", 2)}
         }}"""
 
 
 def _deform_source(S: int) -> str:
-    """OpenCL C of the ``deform`` kernel for slices of ``S`` (8 or 16) vertices."""
+    """OpenCL C of the ``deform`` and ``deform_stream`` kernels for slices of ``S`` (8 or 16)
+    vertices; ``deform_stream`` writes the vertices with non-temporal stores (see ``STREAM_FRACTION``)."""
+    return _deform_kernel(S, "deform", False) + _deform_kernel(S, "deform_stream", True)
+
+
+def _deform_kernel(S: int, name: str, stream: bool) -> str:
     hx = "0123456789abcdef"
     lanes = range(S)
 
@@ -74,12 +94,13 @@ def _deform_source(S: int) -> str:
         return f"(VF)({', '.join(parts)})"
 
     inter = [f"o{c}.s{hx[v]}" for v in lanes for c in "xyz"]  # AoS order of the slice's output
-    stores = "\n        ".join(_aos_store8(f"ox{h}", f"oy{h}", f"oz{h}", f"o + {24 * i}")
+    stores = "\n        ".join(_aos_store8(f"ox{h}", f"oy{h}", f"oz{h}", f"o + {24 * i}", stream)
                                  for i, h in enumerate((".lo", ".hi") if S == 16 else ("",)))
     tail = "\n        ".join(f"if ({i} < n) o[{i}] = {x};" for i, x in enumerate(inter))
     gathers = "\n            ".join(f"const float4 d{l} = D[id[{l}]];" for l in lanes)
     dx, dy, dz = (vec([f"d{l}.{c}" for l in lanes]) for c in "xyz")
     return f"""
+#ifndef SN
 #define SN {S}
 #define VF float{S}
 #define VI int{S}
@@ -94,6 +115,7 @@ def _deform_source(S: int) -> str:
         oy = fma((VF)(c0.y), px, fma((VF)(c1.y), py, fma((VF)(c2.y), pz, (VF)(c3.y)))); \\
         oz = fma((VF)(c0.z), px, fma((VF)(c1.z), py, fma((VF)(c2.z), pz, (VF)(c3.z)))); \\
     }} while (0)
+#endif
 
 // One work-item deforms one slice of SN consecutive vertices, as SN-wide vectors, in frames
 // 0..n_frames-1 (the slice's operator stays in L1 from one frame to the next):
@@ -101,7 +123,7 @@ def _deform_source(S: int) -> str:
 // params per frame (pstride4 float4): n_groups transforms as 4 float4 columns, then D as float4
 // rows ((K + 1) rows, the last one zero). rest is SoA per slice (x[SN] y[SN] z[SN]); sgroup[s] is
 // the slice's rigid group, or 255 when its vertices differ (then group[v] is read per vertex).
-__kernel void deform(const uint n_vertices,
+__kernel void {name}(const uint n_vertices,
                      const uint n_controls,
                      __global const uint *col_ptr,
                      __global const uint *id_ptr,
@@ -496,6 +518,8 @@ class OpenCLDeformer:
         S = p.slice
         self._program = _program(ctx, {"AXES": p.axes, "IDX_T": p.idx_ctype, "DENSE": int(p.dense), "SLICE": S})
         self._k_deform = cl.Kernel(self._program, "deform")
+        self._k_deform_stream = cl.Kernel(self._program, "deform_stream")
+        self._cache_bytes = int(self.device.global_mem_cache_size) if cpu else 0
         self._k_face_normals = cl.Kernel(self._program, "face_normals")
         self._k_vertex_normals = cl.Kernel(self._program, "vertex_normals")
         self._k_minmax = cl.Kernel(self._program, "minmax_partial")
@@ -610,22 +634,35 @@ class OpenCLDeformer:
         cl.enqueue_copy(self.queue, self._params, P, is_blocking=False)
 
     def _set_deform_args(self) -> None:
-        """Set the deform kernel's resident arguments once (see ``_launch_deform``)."""
-        self._k_deform.set_args(np.uint32(self.n_vertices), np.uint32(self.n_controls), self._col_ptr,
-                                self._id_ptr, self._ids, self._w, self._rest, self._sgroup, self._group,
-                                self._params, np.uint32(self._pstride // 4), np.uint32(self.n_groups),
-                                np.uint32(1), self._verts)
-        self._arg_frames = 1
+        """Set the deform kernels' resident arguments once (see ``_launch_deform``)."""
+        self._arg_frames = {}
+        for k in (self._k_deform, self._k_deform_stream):
+            k.set_args(np.uint32(self.n_vertices), np.uint32(self.n_controls), self._col_ptr,
+                       self._id_ptr, self._ids, self._w, self._rest, self._sgroup, self._group,
+                       self._params, np.uint32(self._pstride // 4), np.uint32(self.n_groups),
+                       np.uint32(1), self._verts)
+            self._arg_frames[k] = 1
 
-    def _launch_deform(self, n_frames: int, out_buf):
-        """Enqueue the deform kernel, setting only the per-launch arguments: buffers cost 0.2 us to
-        set, a scalar ~20 us through PyOpenCL (``Kernel.__call__`` setting all fourteen cost ~60 us
-        a frame, a third of a 25k-vertex frame), so the frame count is set only when it changes."""
-        k = self._k_deform
+    def _streams(self, n_frames: int, out: np.ndarray | None = None) -> bool:
+        """Whether a launch writing ``n_frames`` frames (into ``out``, else the resident vertex
+        buffer) uses non-temporal stores (see ``STREAM_FRACTION``; they need 32-byte aligned frames)."""
+        if not self._cache_bytes or self.n_vertices < self.packed.slice:
+            return False
+        if (n_frames > 1 and (12 * self.n_vertices) % 32) or (out is not None and out.ctypes.data % 32):
+            return False
+        data = self.packed.nbytes + 12 * self.packed.n_padded + n_frames * 12 * self.n_vertices
+        return data > STREAM_FRACTION * self._cache_bytes
+
+    def _launch_deform(self, n_frames: int, out_buf, stream: bool = False):
+        """Enqueue the deform kernel (``deform_stream`` if ``stream``), setting only the per-launch
+        arguments: buffers cost 0.2 us to set, a scalar ~20 us through PyOpenCL (``Kernel.__call__``
+        setting all fourteen cost ~60 us a frame, a third of a 25k-vertex frame), so the frame
+        count is set only when it changes."""
+        k = self._k_deform_stream if stream else self._k_deform
         k.set_arg(9, self._params)
-        if n_frames != self._arg_frames:
+        if n_frames != self._arg_frames[k]:
             k.set_arg(12, np.uint32(n_frames))
-            self._arg_frames = n_frames
+            self._arg_frames[k] = n_frames
         k.set_arg(13, out_buf)
         return self._cl.enqueue_nd_range_kernel(self.queue, k, (self._global_slices,), (LOCAL_SLICES,))
 
@@ -673,9 +710,9 @@ class OpenCLDeformer:
             return out
         if self.zero_copy:  # the kernel writes straight into ``out``
             buf = self._host_out(out)
-            self._sync_host(buf, out, self._launch_deform(1, buf))
+            self._sync_host(buf, out, self._launch_deform(1, buf, self._streams(1, out)))
         else:
-            self._launch_deform(1, self._verts)
+            self._launch_deform(1, self._verts, self._streams(1))
             self._cl.enqueue_copy(self.queue, out, self._verts, is_blocking=True)
         return out
 
@@ -701,10 +738,10 @@ class OpenCLDeformer:
             self._upload_params(self._fill_params(D[a:b], T[a:b]))
             if self.zero_copy:
                 buf = self._host_out(out[a:b])
-                self._sync_host(buf, out[a:b], self._launch_deform(b - a, buf))
+                self._sync_host(buf, out[a:b], self._launch_deform(b - a, buf, self._streams(b - a, out[a:b])))
             else:
                 buf = self._cl.Buffer(self.context, self._cl.mem_flags.WRITE_ONLY, (b - a) * frame_bytes)
-                self._launch_deform(b - a, buf)
+                self._launch_deform(b - a, buf, self._streams(b - a))
                 self._cl.enqueue_copy(self.queue, out[a:b], buf, is_blocking=True)
         return out
 
@@ -807,8 +844,8 @@ class OpenCLDeformer:
 
     @_serialised
     def run_kernel_resident(self, wait: bool = False) -> None:
-        """Deform the uploaded frame into the resident vertex buffer."""
-        self._launch_deform(1, self._verts)
+        """Deform the uploaded frame into the resident vertex buffer (with ``deform``'s stores)."""
+        self._launch_deform(1, self._verts, self._streams(1))
         if wait:
             self.queue.finish()
 
