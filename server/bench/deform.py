@@ -6,7 +6,13 @@ data layout (operator, rest positions, rigid groups, output), and times a plain 
 moves the same number of bytes in the same run: that copy time is the bandwidth bound, and
 ``ms_per_frame / bandwidth_bound_ms`` says how close a backend comes to it. Backends: ``opencl``
 (the fused kernel), ``numpy`` (the reference ``NumpyDeformer.deform``) and ``scipy`` (SciPy's CSR
-product u = B·D alone). Batch records (``*-batch``) deform many frames of a 25 fps take at once.
+product u = B·D alone). Batch records (``*-batch``) deform many frames of a 25 fps take at once
+(at the smallest size measured; at most ``BATCH_MAX_BYTES`` of output).
+
+Timing: every backend and its two copies alternate in blocks of ``BLOCK`` calls (each block after
+an untimed call), ``--rounds`` times with all backends interleaved, so that load which comes and
+goes on a shared machine falls on a backend and its bound alike; the records give medians (and
+bests). ``copy bound`` = the faster of the two copies' medians.
 
 The face is ``load_face("default:N")`` and the operator the feature-point engine's
 (``deform.build.get_operator``) when those are available; otherwise a synthetic ellipsoid head
@@ -29,6 +35,10 @@ from ..faces.face import Face
 log = logging.getLogger(__name__)
 
 DEFAULT_SIZES = (25_000, 100_000, 500_000)
+#: Timed calls per block: a backend and its bandwidth-bound copies alternate in blocks this long.
+BLOCK = 5
+#: Largest output of the batch test (bytes); fewer frames beyond it (recorded in ``frames``).
+BATCH_MAX_BYTES = 256 << 20
 
 
 # ------------------------------------------------------------------------------- test subjects
@@ -273,10 +283,14 @@ def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, fra
     for _ in range(rounds):  # interleave backends and copies so that all see the same load
         for name, (fn, _, _) in runners.items():
             reps = frames if name != "numpy" or V <= 100_000 else max(3, frames // 4)
-            times[name] += _times(fn, reps, f"{V}:{name}")
-            copies[name] += _times(meters[name].numpy_copy, reps, f"{V}:{name}:copy")
-            if meters[name].cl is not None:
-                dev_copies[name] += _times(meters[name].device_copy, reps)
+            # A backend and its copies alternate in blocks of BLOCK calls, each block after one
+            # untimed call: load that comes and goes (the machine is shared) falls on both alike.
+            for done in range(0, reps, BLOCK):
+                n = min(BLOCK, reps - done)
+                times[name] += _times(fn, n, f"{V}:{name}")
+                copies[name] += _times(meters[name].numpy_copy, n, f"{V}:{name}:copy")
+                if meters[name].cl is not None:
+                    dev_copies[name] += _times(meters[name].device_copy, n)
 
     records = []
     base = {"vertices": V, "controls": K, "nnz": op.nnz, "face": face_kind, "operator": op_kind}
@@ -303,7 +317,8 @@ def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, fra
     if cl_def is not None:
         records[[r["backend"] for r in records].index("opencl")].update(_breakdown(cl_def, Ds[0], Ts[0], frames))
     if batch_frames > 0:
-        records += _batch_records(face, op, runners, cl_def, Ds, Ts, batch_frames, base, records)
+        n_batch = max(1, min(batch_frames, BATCH_MAX_BYTES // (12 * V)))
+        records += _batch_records(face, op, runners, cl_def, Ds, Ts, n_batch, base, records)
     return records
 
 
@@ -384,9 +399,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backends", default="opencl,numpy,scipy", help="comma-separated (default: %(default)s)")
     p.add_argument("--device", default=None, help="OpenCL device ('P:D' or part of its name)")
     p.add_argument("--frames", type=int, default=20, help="timed frames per round (default: %(default)s)")
-    p.add_argument("--rounds", type=int, default=3, help="rounds, backends interleaved (default: %(default)s)")
+    p.add_argument("--rounds", type=int, default=5, help="rounds, backends interleaved (default: %(default)s)")
     p.add_argument("--batch-frames", type=int, default=250,
-                   help="frames of the batch test at the smallest size, 0 to skip (default: %(default)s)")
+                   help="frames of the batch test at the smallest size (fewer if they would exceed "
+                        f"{BATCH_MAX_BYTES >> 20} MB), 0 to skip (default: %(default)s)")
     p.add_argument("--json", action="store_true", help="print the records as JSON")
 
 
@@ -396,10 +412,11 @@ def run(args: argparse.Namespace) -> int:
     backends = tuple(b.strip() for b in args.backends.split(",") if b.strip())
     sizes = [args.vertices[0]] if args.face else args.vertices
     records: list[dict] = []
-    for i, size in enumerate(sizes):
-        n = parse_count(size)
+    counts = [parse_count(size) for size in sizes]
+    smallest = counts.index(min(counts))
+    for i, n in enumerate(counts):
         records += measure_size(n, backends=backends, engine=args.engine, frames=args.frames,
-                                rounds=args.rounds, batch_frames=args.batch_frames if i == 0 else 0,
+                                rounds=args.rounds, batch_frames=args.batch_frames if i == smallest else 0,
                                 device=args.device, face_spec=args.face)
     if args.json:
         print(json.dumps(records, indent=1))
