@@ -52,6 +52,11 @@ class Animator:
         """``(D (K, 3) float32, transforms (G, 3, 4) float32)`` of one state."""
         return self.rig.solve(state)
 
+    def solve_batch(self, states: list[FaceState]) -> tuple[np.ndarray, np.ndarray]:
+        """``(D (T, K, 3) float32, transforms (T, G, 3, 4) float32)`` of ``T`` states: the same
+        bits as ``solve`` of each, about 10x less CPU per state in batches of 20 or more."""
+        return self.rig.solve_batch(states)
+
     def frame(self, state: FaceState) -> np.ndarray:
         """Deformed vertices ``(V, 3) float32`` of one state."""
         return np.asarray(self.deformer.deform(*self.solve(state)), dtype=np.float32)
@@ -62,9 +67,7 @@ class Animator:
         out = np.empty((total, self.face.n_vertices, 3), dtype=np.float32)
         for start in range(0, total, CHUNK):
             states = animation.states[start:start + CHUNK]
-            solved = [self.solve(s) for s in states]
-            D = np.stack([d for d, _ in solved])
-            T = np.stack([t for _, t in solved])
+            D, T = self.solve_batch(states)
             self.deformer.deform_batch(D, T, out=out[start:start + len(states)])
             if progress is not None:
                 progress(start + len(states), total)

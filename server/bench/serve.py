@@ -67,6 +67,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--url", help="use this running server instead of starting one (needs FACECAST_ADMIN_KEY)"
     )
     p.add_argument(
+        "--server-pid",
+        type=int,
+        help="with --url: the server's process id, to measure its CPU time (Linux /proc)",
+    )
+    p.add_argument(
         "--viewer-kind",
         choices=("client", "light"),
         default="client",
@@ -159,11 +164,7 @@ class _Server:
 
     def cpu_seconds(self) -> float:
         """User + system CPU seconds of the server process so far (Linux /proc)."""
-        try:
-            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
-            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-        except (OSError, IndexError, ValueError):
-            return float("nan")
+        return _process_cpu(self.proc.pid)
 
     def stop(self) -> None:
         if self.proc.poll() is None:
@@ -175,6 +176,25 @@ class _Server:
                 self.proc.wait(5)
         self.log.close()
         self.dir.cleanup()
+
+
+def _process_cpu(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (Linux /proc), or NaN."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
+class _External:
+    """A server started elsewhere (``--url``), measured through ``--server-pid``."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+
+    def cpu_seconds(self) -> float:
+        return _process_cpu(self.pid)
 
 
 def _own_cpu() -> float:
@@ -207,6 +227,7 @@ def frame_costs(face_name: str, backend: str, repeats: int = 30) -> dict:
         return round(1000 * (time.perf_counter() - t0) / len(states), 3)
 
     out["solve_ms"] = timed(animator.solve)
+    out["solve_batch_ms"] = round(_cpu_ms(lambda: animator.solve_batch(states)) / len(states), 3)
     solved = [animator.solve(s) for s in states]
     it = iter(range(len(states)))
     out["deform_ms"] = timed(lambda s: animator.deformer.deform(*solved[next(it)]))
@@ -219,11 +240,42 @@ def frame_costs(face_name: str, backend: str, repeats: int = 30) -> dict:
     vb = np.repeat(v[None], 8, axis=0)
     jobs = [(i, 0.0, 0.0, frozenset({"i16"})) for i in range(len(vb))]
     out["encode_i16_batched_ms"] = round(timed(lambda s: encode_batch(vb, jobs)) / len(vb), 3)
+    # the live worker's whole job (solve, deform, encode) per frame, CPU of all threads: batches
+    # of 1 (light load) and of 20 (20 busy sessions), with and without device quantisation
+    from ..live.batcher import DeformBatcher, _Job
+
+    batcher = DeformBatcher(animator, None)  # type: ignore[arg-type]
+    for n in (1, 20):
+        js = [
+            _Job(states[i % len(states)], i, 0.0, frozenset({"i16"}), None, None) for i in range(n)
+        ]  # type: ignore[arg-type]
+        reps = max(20, 200 // n)
+        out[f"worker_cpu_ms_batch{n}"] = round(
+            _cpu_ms(lambda js=js: batcher._work(js), reps) / n, 3
+        )
+        if batcher.quantizer is not None:
+            q, batcher._quantizer = batcher._quantizer, None
+            out[f"worker_cpu_ms_batch{n}_numpy_quantize"] = round(
+                _cpu_ms(lambda js=js: batcher._work(js), reps) / n, 3
+            )
+            batcher._quantizer = q
     blob = frames.encode_vertices_i16(v, seq=0, t=0.0)
     out["decode_i16_ms"] = timed(lambda s: frames.decode(blob))
     out["bytes_i16"] = len(blob)
     out["bytes_f32"] = len(frames.encode_vertices_f32(v, seq=0, t=0.0))
     return out
+
+
+def _cpu_ms(fn, repeats: int = 20, rounds: int = 3) -> float:
+    """Process CPU milliseconds (all threads) of one ``fn()`` call: the best of ``rounds``."""
+    fn()
+    best = math.inf
+    for _ in range(rounds):
+        c0 = _own_cpu()
+        for _ in range(repeats):
+            fn()
+        best = min(best, (_own_cpu() - c0) / repeats)
+    return 1000 * best
 
 
 def _state(i: int, fps: float, FaceState, zero_faps):
@@ -449,8 +501,10 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
 
     window = t1 - t0
     rates, lat, skipped, sizes = [], [], 0, []
-    for rec in records:
+    produced: set[tuple[int, int]] = set()  # (session, seq) of frames some viewer received
+    for k, rec in enumerate(records):
         inside = [r for r in rec if t0 <= r[0] < t1]
+        produced.update((k // viewers, r[1]) for r in inside)
         rates.append(len(inside) / window)
         if len(inside) > 1:
             seqs = np.array([r[1] for r in inside], dtype=np.int64)
@@ -479,6 +533,10 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         "client_cpu": round((cpu_c1 - cpu_c0) / window, 2),
         # CPU per delivered frame: comparable across points even when the machine is shared
         "server_cpu_us_per_frame": round(1e6 * (cpu_s1 - cpu_s0) / len(lat), 1) if lat else None,
+        # ... and per session-frame (each deformed and encoded frame, whatever its viewers)
+        "server_cpu_us_per_session_frame": round(1e6 * (cpu_s1 - cpu_s0) / len(produced), 1)
+        if produced
+        else None,
         "client_cpu_us_per_frame": round(1e6 * (cpu_c1 - cpu_c0) / len(lat), 1) if lat else None,
         "client_failures": len(failures),
         "seconds": round(window, 2),
@@ -493,9 +551,10 @@ def _table(title: str, points: list[dict], args) -> str:
     base = points[0] if points else None
     head = (
         "| sessions | viewers | fps mean | fps min | p50 ms | p95 ms | p95 ratio | skipped | deform+enc ms "
-        "| server CPU | client CPU | server µs/frame | client µs/frame | target |"
+        "| server CPU | client CPU | server µs/frame | server µs/session-frame | client µs/frame "
+        "| target |"
     )
-    lines = [f"### {title}", "", head, "|" + "---|" * 14]
+    lines = [f"### {title}", "", head, "|" + "---|" * 15]
     for p in points:
         ratio = (
             p["latency_ms_p95"] / base["latency_ms_p95"]
@@ -507,7 +566,8 @@ def _table(title: str, points: list[dict], args) -> str:
             f"| {p['sessions']} | {p['viewers_total']} | {p['fps_mean']} | {p['fps_min']} | "
             f"{p['latency_ms_p50']} | {p['latency_ms_p95']} | {ratio:.2f} | {p['frames_skipped']} | "
             f"{p['server_deform_encode_ms']} | {p['server_cpu']} | {p['client_cpu']} | "
-            f"{p['server_cpu_us_per_frame']} | {p['client_cpu_us_per_frame']} | "
+            f"{p['server_cpu_us_per_frame']} | {p['server_cpu_us_per_session_frame']} | "
+            f"{p['client_cpu_us_per_frame']} | "
             f"{'ok' if _ok(p, args) else 'miss'}{' (%d client errors)' % p['client_failures'] if p['client_failures'] else ''} |"
         )
     return "\n".join(lines)
@@ -536,11 +596,13 @@ def run(args: argparse.Namespace) -> int:
     url = args.url
     if url is None:
         server = _Server(args.face, args.backend)
+    elif args.server_pid:
+        server = _External(args.server_pid)
     try:
-        health = server.wait_ready() if server else {}
+        health = server.wait_ready() if isinstance(server, _Server) else {}
         res = asyncio.run(_sweeps(server, url or server.url, args))
     finally:
-        if server:
+        if isinstance(server, _Server):
             server.stop()
     if args.compare_asgi and url is None:
         server = _Server(args.face, args.backend, env={"FACECAST_LIVE_DIRECT": "0"})
@@ -591,6 +653,18 @@ def run(args: argparse.Namespace) -> int:
         f"{c.get('encode_i16_batched_ms')} ms) / f32 {c['encode_f32_ms']} ms, "
         f"decode i16 {c['decode_i16_ms']} ms; "
         f"{c['bytes_i16']} B (i16) / {c['bytes_f32']} B (f32) per frame.\n"
+    )
+    print(
+        f"Live worker CPU per frame (solve + deform + encode, all threads): batch of 1 "
+        f"{c['worker_cpu_ms_batch1']} ms, batch of 20 {c['worker_cpu_ms_batch20']} ms "
+        f"(solve alone: {c['solve_ms']} ms one by one, {c['solve_batch_ms']} ms batched)"
+        + (
+            f"; int16 quantised in NumPy instead of on the device: "
+            f"{c['worker_cpu_ms_batch1_numpy_quantize']} / {c['worker_cpu_ms_batch20_numpy_quantize']} ms"
+            if "worker_cpu_ms_batch20_numpy_quantize" in c
+            else ""
+        )
+        + ".\n"
     )
     if res["sessions_sweep"]:
         print(

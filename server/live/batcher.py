@@ -2,9 +2,11 @@
 
 Sessions of the same face share one ``Animator``. Each session hands over a face state with a
 callback (``submit_nowait``); a worker thread takes every state waiting at that moment, solves
-them, deforms them with one ``deform_batch`` call (one OpenCL launch instead of one per frame:
-about 4x less CPU per frame on PoCL for the 25k-vertex head) and writes each frame once, already
-framed for WebSocket, into its own buffer.
+them together (``Animator.solve_batch``, vectorised), deforms them with one ``deform_batch`` call
+(one OpenCL launch instead of one per frame: about 4x less CPU per frame on PoCL for the
+25k-vertex head) and writes each frame once, already framed for WebSocket, into one buffer per
+batch. On a host-memory OpenCL device the int16 quantisation runs on the device too
+(``quantize_cl``), outside the GIL; elsewhere in NumPy (``frames.quantize_int16_fast``).
 The callbacks then run on their event loop, all of a batch in one wake-up. Under light load a
 batch holds one frame and adds no delay; under heavy load batches grow by themselves.
 """
@@ -25,6 +27,7 @@ import numpy as np
 
 from ...protocol import frames
 from ..state import FaceState
+from .quantize_cl import DeviceQuantizer, aligned_empty
 from .wire import ws_binary_header
 
 log = logging.getLogger(__name__)
@@ -58,18 +61,26 @@ def _framed_buffer(encoding: str, n_vertices: int) -> tuple[bytearray, int]:
 
 
 def encode_batch(
-    verts: np.ndarray, jobs: list[tuple[int, float, float, frozenset[str]]]
+    verts: np.ndarray,
+    jobs: list[tuple[int, float, float, frozenset[str]]],
+    quantizer: DeviceQuantizer | None = None,
 ) -> list[Encoded]:
     """Encode frames ``verts (T, V, 3) float32``; ``jobs[i] = (seq, t, wall, encodings)`` of frame i.
 
     Each encoding of each frame is written once, into a buffer that holds its WebSocket frame
-    (header + payload): the bytes every viewer is sent, without further copies.
+    (header + payload): the bytes every viewer is sent, without further copies. With a
+    ``quantizer`` the int16 frames are quantised on its device, all in one buffer (``verts``
+    must then be C-contiguous and ``quantize_cl.ALIGN``-aligned, as ``frame_buffer`` gives).
     """
     n = verts.shape[1]
     out: list[Encoded] = [{} for _ in jobs]
     sub = frames.HEADER_SIZE + 24  # header + offset/scale of an int16 frame
-    for i, (seq, t, wall, encodings) in enumerate(jobs):
-        if "i16" in encodings:  # frame by frame: one frame's temporaries stay in the CPU cache
+    i16 = [i for i, job in enumerate(jobs) if "i16" in job[3]]
+    if i16 and quantizer is not None:
+        _encode_i16_device(verts, jobs, i16, quantizer, out)
+    else:
+        for i in i16:  # frame by frame: one frame's temporaries stay in the CPU cache
+            seq, t, wall, _ = jobs[i]
             buf, h = _framed_buffer("i16", n)
             q, offset, scale = frames.quantize_int16_fast(verts[i])
             buf[h : h + sub] = frames.vertex_frame_header(
@@ -86,6 +97,43 @@ def encode_batch(
             v = np.ascontiguousarray(verts[i], dtype="<f4")
             buf[h + frames.HEADER_SIZE :] = memoryview(v).cast("B")
             out[i]["f32"] = (memoryview(buf)[h:], buf)
+    return out
+
+
+def _encode_i16_device(
+    verts: np.ndarray,
+    jobs: list[tuple[int, float, float, frozenset[str]]],
+    which: list[int],
+    quantizer: DeviceQuantizer,
+    out: list[Encoded],
+) -> None:
+    """The int16 frames of ``jobs[i]`` for ``i`` in ``which``, quantised on the device straight
+    into one buffer: frame k at ``pad + k * stride`` (WebSocket header, vertex frame header,
+    then the int16 data, which starts 64-byte aligned)."""
+    n = verts.shape[1]
+    size = frames.vertex_frame_size("i16", n)
+    head = ws_binary_header(size)
+    lead = len(head) + size - 6 * n  # bytes before the int16 data
+    pad = -lead % 64
+    stride = -(-(pad + lead + 6 * n) // 64) * 64
+    src = verts if len(which) == len(jobs) else _aligned_rows(verts, which)
+    buf = aligned_empty((len(which) * stride,), np.uint8)
+    offsets, scales = quantizer.quantize_into(src, buf, pad + lead, stride)
+    mv = memoryview(buf)
+    for k, i in enumerate(which):
+        seq, t, wall, _ = jobs[i]
+        a = pad + k * stride
+        d = a + lead
+        mv[a : a + len(head)] = head
+        mv[a + len(head) : d] = frames.vertex_frame_header(
+            "i16", n, seq=seq, t=t, wall=wall, offset=offsets[k], scale=scales[k]
+        )
+        out[i]["i16"] = (mv[a + len(head) : d + 6 * n], mv[a : d + 6 * n])
+
+
+def _aligned_rows(verts: np.ndarray, rows: list[int]) -> np.ndarray:
+    out = aligned_empty((len(rows),) + verts.shape[1:], np.float32)
+    out[...] = verts[rows]
     return out
 
 
@@ -129,6 +177,8 @@ class DeformBatcher:
         self.parallel = max(1, parallel if parallel is not None else batch_threads())
         self.batches = 0
         self.frames = 0
+        self._quantizer: DeviceQuantizer | None | bool = False  # False: not looked up yet
+        self._local = threading.local()  # per drain thread: its buffer of deformed frames
 
     def submit_nowait(
         self,
@@ -208,31 +258,109 @@ class DeformBatcher:
                 except RuntimeError:  # that loop is closed (server shutting down)
                     pass
 
+    @property
+    def quantizer(self) -> DeviceQuantizer | None:
+        """The device quantiser of the animator's deformer (built on first use), or None."""
+        if self._quantizer is False:
+            with self._lock:
+                if self._quantizer is False:
+                    self._quantizer = device_quantizer(self.animator.deformer)
+        return self._quantizer  # type: ignore[return-value]
+
+    def _frame_buffer(self, n: int) -> np.ndarray:
+        """This thread's ``(n, V, 3) float32`` aligned buffer for deformed frames (reused)."""
+        V = int(self.animator.face.n_vertices)
+        buf = getattr(self._local, "frames", None)
+        if buf is None or buf.shape[0] < n or buf.shape[1] != V:
+            buf = self._local.frames = aligned_empty((max(n, self.max_batch), V, 3), np.float32)
+        return buf[:n]
+
+    def _solve(self, jobs: list[_Job], results: list[Any]) -> tuple[list[int], Any, Any]:
+        """Solve the jobs' states together; a state that fails (or gives non-finite numbers)
+        fails alone. Returns the indices that worked and their ``D``, ``T``."""
+        a = self.animator
+        try:
+            D, T = a.solve_batch([j.state for j in jobs])
+            ok = list(range(len(jobs)))
+        except Exception:  # find the bad state(s): one at a time
+            ok, solved = [], []
+            for i, j in enumerate(jobs):
+                try:
+                    solved.append(a.solve_batch([j.state]))
+                    ok.append(i)
+                except Exception as e:
+                    results[i] = e
+            if not ok:
+                return [], None, None
+            D = np.concatenate([d for d, _ in solved])
+            T = np.concatenate([t for _, t in solved])
+        finite = np.isfinite(D).all(axis=(1, 2)) & np.isfinite(T).all(axis=(1, 2, 3))
+        if not finite.all():  # the deformer would refuse the whole batch
+            from ..errors import InputError
+
+            for k in np.flatnonzero(~finite):
+                results[ok[k]] = InputError(
+                    "control displacements and transforms must be finite", where="face state"
+                )
+            ok = [i for i, f in zip(ok, finite) if f]
+            D, T = D[finite], T[finite]
+        return ok, D, T
+
     def _work(self, jobs: list[_Job]) -> list[Any]:
         t0 = time.perf_counter()
         a = self.animator
         results: list[Any] = [None] * len(jobs)
-        solved, ok = [], []
-        for i, j in enumerate(jobs):
-            try:  # one bad state fails alone
-                solved.append(a.solve(j.state))
-                ok.append(i)
-            except Exception as e:
-                results[i] = e
+        ok, D, T = self._solve(jobs, results)
         if not ok:
             return results
-        if len(ok) == 1:
-            verts = np.asarray(a.deformer.deform(*solved[0]), dtype=np.float32)[None]
+        quantizer = self.quantizer
+        if quantizer is not None:  # deform into an aligned buffer the quantiser reads in place
+            verts = a.deformer.deform_batch(D, T, out=self._frame_buffer(len(ok)))
+        elif len(ok) == 1:
+            verts = np.asarray(a.deformer.deform(D[0], T[0]), dtype=np.float32)[None]
         else:
-            D = np.stack([d for d, _ in solved])
-            T = np.stack([t for _, t in solved])
             verts = np.asarray(a.deformer.deform_batch(D, T), dtype=np.float32)
         encoded = encode_batch(
-            verts, [(jobs[i].seq, jobs[i].state.t, jobs[i].wall, jobs[i].encodings) for i in ok]
+            verts,
+            [(jobs[i].seq, jobs[i].state.t, jobs[i].wall, jobs[i].encodings) for i in ok],
+            quantizer,
         )
         dt = (time.perf_counter() - t0) / len(jobs)
         for i, e in zip(ok, encoded):
             results[i] = (e, dt)
         self.batches += 1
         self.frames += len(ok)
+        if self.batches % 500 == 0:
+            log.debug(
+                "live batches: %d frames in %d batches (%.1f per batch)",
+                self.frames,
+                self.batches,
+                self.frames / self.batches,
+            )
         return results
+
+
+_quantizers: dict[int, tuple[Any, DeviceQuantizer | None]] = {}
+_quantizers_lock = threading.Lock()
+
+
+def device_quantizer(deformer: Any) -> DeviceQuantizer | None:
+    """The ``DeviceQuantizer`` for ``deformer``'s OpenCL context (one per context), or None: a
+    NumPy or copying deformer, ``FACECAST_LIVE_DEVICE_QUANTIZE=0``, or a device that fails."""
+    if os.environ.get("FACECAST_LIVE_DEVICE_QUANTIZE", "1") == "0":
+        return None
+    ctx = getattr(deformer, "context", None)
+    if ctx is None or not getattr(deformer, "zero_copy", False):
+        return None
+    with _quantizers_lock:
+        hit = _quantizers.get(id(ctx))
+        if hit is None:
+            try:
+                q = DeviceQuantizer.for_deformer(deformer)
+            except Exception:
+                log.warning(
+                    "int16 quantisation on the device failed to build; using NumPy", exc_info=True
+                )
+                q = None
+            hit = _quantizers[id(ctx)] = (ctx, q)  # holding ctx keeps id(ctx) unique
+        return hit[1]

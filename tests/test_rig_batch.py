@@ -1,0 +1,148 @@
+"""The vectorised FAP rig (``FapRig.solve_batch``): the same bits as the plain one-state reference,
+whatever the batch, and the live batcher's use of it (a bad state fails alone)."""
+
+from __future__ import annotations
+
+import asyncio
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from facecast.protocol import frames as fr
+from facecast.server.errors import InputError
+from facecast.server.faces import load_face
+from facecast.server.live.batcher import DeformBatcher
+from facecast.server.mpeg4 import FapRig
+from facecast.server.state import FaceState, zero_faps
+
+#: FAPs the rig turns into rigid transforms or special terms (jaw, eyes, tongue roll, head).
+_SPECIAL = [3, 14, 15, 23, 24, 25, 26, 27, 28, 47, 48, 49, 50]
+
+
+@pytest.fixture(scope="module")
+def face():
+    return load_face("default:2k")
+
+
+def _random_states(rng, n: int, *, head_every: int = 0) -> list[FaceState]:
+    out = []
+    for i in range(n):
+        faps = zero_faps()
+        k = rng.choice(np.arange(3, 69), size=int(rng.integers(0, 30)), replace=False)
+        faps[k] = rng.normal(0.0, 400.0, size=len(k))
+        special = rng.choice(_SPECIAL, size=4, replace=False)
+        faps[special] = rng.normal(0.0, 3000.0, size=4) * (rng.random(4) < 0.7)
+        if i % 9 == 0:
+            faps[3] = 0.0  # a closed jaw: no rotation at all
+        s = FaceState(t=i / 60, faps=faps)
+        if i % 5 == 1:
+            s.viseme = (
+                int(rng.integers(0, 15)),
+                int(rng.integers(0, 15)),
+                int(rng.integers(0, 64)),
+            )
+        if i % 7 == 2:
+            s.expression = (
+                int(rng.integers(0, 7)),
+                int(rng.integers(0, 64)),
+                int(rng.integers(0, 7)),
+                int(rng.integers(0, 64)),
+            )
+        if head_every and i % head_every == 3:
+            q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+            s.head = np.c_[q, rng.normal(size=3)]
+        out.append(s)
+    return out
+
+
+def _assert_rows_equal_reference(rig: FapRig, states: list[FaceState]) -> None:
+    D, T = rig.solve_batch(states)
+    assert D.shape == (len(states), rig.n_controls, 3) and D.dtype == np.float32
+    assert T.shape == (len(states), 4, 3, 4) and T.dtype == np.float32
+    for i, s in enumerate(states):
+        d, t = rig.solve_reference(s)
+        np.testing.assert_array_equal(D[i], d, err_msg=f"D of state {i}")
+        np.testing.assert_array_equal(T[i], t, err_msg=f"transforms of state {i}")
+
+
+def test_solve_batch_equals_the_reference_bit_for_bit(face, rng):
+    rig = FapRig(face)
+    states = _random_states(rng, 150, head_every=4)
+    _assert_rows_equal_reference(rig, states)
+    D, T = rig.solve_batch(states)
+    assert np.abs(D).max() > 1 and not np.allclose(T[:, 1], T[:, 0])  # the states did move things
+
+
+def test_solve_batch_equals_the_reference_on_the_ict_head_with_real_fap_files(data_dir):
+    from facecast.server.drivers import load_animation
+
+    face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
+    rig = FapRig(face)
+    files = sorted((data_dir / "xface" / "faps").glob("*.fap"))[:4]
+    assert files
+    states = [s for f in files for s in load_animation(f, face).states]
+    _assert_rows_equal_reference(rig, states)
+
+
+def test_per_axis_and_explicit_control_rigs(face, rng):
+    states = _random_states(rng, 40)
+    _assert_rows_equal_reference(FapRig(face, per_axis=True), states)
+    verts = face.part("skin")[:6]
+    rig = FapRig(face, control_vertices=verts)
+    for i, s in enumerate(states):
+        if i % 2:
+            s.controls = rng.normal(size=(6, 3)).astype(np.float32)
+    _assert_rows_equal_reference(rig, states)
+    D, _ = rig.solve_batch(states)
+    assert not D[0].any() and np.array_equal(D[1], states[1].controls)
+
+
+def test_a_row_does_not_depend_on_the_rest_of_the_batch(face, rng):
+    rig = FapRig(face)
+    states = _random_states(rng, 33, head_every=5)
+    D, T = rig.solve_batch(states)
+    for a, b in [(0, 1), (5, 6), (3, 20), (0, 33)]:
+        d, t = rig.solve_batch(states[a:b])
+        np.testing.assert_array_equal(d, D[a:b])
+        np.testing.assert_array_equal(t, T[a:b])
+    d, t = rig.solve(states[7])
+    np.testing.assert_array_equal(d, D[7])
+    np.testing.assert_array_equal(t, T[7])
+
+
+def test_solve_batch_refuses_invalid_states(face):
+    rig = FapRig(face)
+    with pytest.raises(InputError, match="viseme id 20"):
+        rig.solve_batch([FaceState(), FaceState(viseme=(20, 0, 0))])
+    with pytest.raises(ValueError, match="69"):
+        rig.solve_batch([FaceState(faps=np.zeros(12))])
+    D, T = rig.solve_batch([])
+    assert D.shape == (0, rig.n_controls, 3) and T.shape == (0, 4, 3, 4)
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+def test_batcher_fails_a_bad_state_alone_and_renders_the_others_exactly(face, rng):
+    from facecast.server.pipeline import Animator
+
+    animator = Animator(face, backend="numpy")
+    states = _random_states(rng, 6)
+    states[2] = FaceState(t=0.1, viseme=(20, 0, 0))  # invalid viseme id
+    states[4].faps[3] = 1e308  # overflows to inf in the rig: the deformer would refuse the batch
+
+    async def go():
+        batcher = DeformBatcher(animator, ThreadPoolExecutor(1))
+        return await asyncio.gather(
+            *(
+                batcher.submit(s, seq=i, wall=0.0, encodings=frozenset({"f32"}))
+                for i, s in enumerate(states)
+            ),
+            return_exceptions=True,
+        )
+
+    results = asyncio.run(go())
+    assert isinstance(results[2], InputError) and isinstance(results[4], InputError)
+    for i in (0, 1, 3, 5):
+        encoded, seconds = results[i]
+        frame = fr.decode(encoded["f32"][0])
+        assert frame.header.seq == i and seconds >= 0
+        np.testing.assert_array_equal(frame.positions(), animator.frame(states[i]))
