@@ -2,45 +2,73 @@
 // Positions arrive either as float32 or as int16 with a per-frame offset/scale; int16 frames are
 // uploaded as they are and dequantised in the vertex shader, so a frame costs one bufferSubData.
 
-const VERT = `#version 300 es
-in vec3 a_f32;
-in vec3 a_i16;
-in vec3 a_normal;
-in vec3 a_color;
+// The lighting model, shared by both shading modes: a key and a fill light, a specular highlight and
+// a rim. Surfaces facing away (the inside of the mouth, two-sided sheets) are lit from the viewer's side.
+const LIGHT = `
+vec3 light(vec3 n, vec3 v, vec3 base) {
+  if (dot(n, v) < 0.0) n = -n;
+  const vec3 key = vec3(0.3319, 0.4979, 0.8298);    // normalize(0.4, 0.6, 1.0)
+  const vec3 fill = vec3(-0.8087, 0.1155, 0.5776);  // normalize(-0.7, 0.1, 0.5)
+  float diff = max(dot(n, key), 0.0) * 0.75 + max(dot(n, fill), 0.0) * 0.25;
+  float spec = pow(max(dot(n, normalize(key + v)), 0.0), 40.0) * 0.18;
+  float r = 1.0 - max(dot(n, v), 0.0);
+  return base * (0.22 + diff) + vec3(spec + r * r * r * 0.15);
+}`;
+
+const HEAD = `#version 300 es
+precision highp float;
+layout(location = 0) in vec3 a_f32;
+layout(location = 1) in vec3 a_i16;
+layout(location = 2) in vec3 a_normal;
+layout(location = 3) in vec3 a_color;
 uniform mat4 u_viewProj;
 uniform vec3 u_offset;
 uniform vec3 u_scale;
 uniform bool u_quantized;
+uniform vec3 u_eye;
+vec3 position() { return u_quantized ? u_offset + a_i16 * u_scale : a_f32; }`;
+
+/** Per-pixel lighting: normal, position and colour interpolated, lit in the fragment shader. */
+const PIXEL = {
+  vert: `${HEAD}
 out vec3 v_normal;
 out vec3 v_pos;
 out vec3 v_color;
 void main() {
-  vec3 p = u_quantized ? u_offset + a_i16 * u_scale : a_f32;
-  v_pos = p;
-  v_normal = a_normal;
-  v_color = a_color;
+  vec3 p = position();
+  v_pos = p; v_normal = a_normal; v_color = a_color;
   gl_Position = u_viewProj * vec4(p, 1.0);
-}`;
-
-const FRAG = `#version 300 es
+}`,
+  frag: `#version 300 es
 precision highp float;
 in vec3 v_normal;
 in vec3 v_pos;
 in vec3 v_color;
 uniform vec3 u_eye;
 out vec4 outColor;
+${LIGHT}
+void main() { outColor = vec4(light(normalize(v_normal), normalize(u_eye - v_pos), v_color), 1.0); }`,
+};
+
+/** Per-vertex lighting (Gouraud): the fragment shader only writes the interpolated colour. */
+const VERTEX = {
+  vert: `${HEAD}
+out vec3 v_lit;
+${LIGHT}
 void main() {
-  vec3 n = normalize(v_normal);
-  vec3 v = normalize(u_eye - v_pos);
-  if (dot(n, v) < 0.0) n = -n;  // inner surfaces (mouth) are lit from the viewer's side
-  vec3 key = normalize(vec3(0.4, 0.6, 1.0));
-  vec3 fill = normalize(vec3(-0.7, 0.1, 0.5));
-  vec3 base = v_color;
-  float diff = max(dot(n, key), 0.0) * 0.75 + max(dot(n, fill), 0.0) * 0.25;
-  float spec = pow(max(dot(n, normalize(key + v)), 0.0), 40.0) * 0.18;
-  float rim = pow(1.0 - max(dot(n, v), 0.0), 3.0) * 0.15;
-  outColor = vec4(base * (0.22 + diff) + vec3(spec + rim), 1.0);
-}`;
+  vec3 p = position();
+  v_lit = light(normalize(a_normal), normalize(u_eye - p), a_color);
+  gl_Position = u_viewProj * vec4(p, 1.0);
+}`,
+  frag: `#version 300 es
+precision mediump float;
+in vec3 v_lit;
+out vec4 outColor;
+void main() { outColor = vec4(v_lit, 1.0); }`,
+};
+
+/** Attribute locations, fixed in the shaders (one vertex array serves both programs). */
+const ATTR = { a_f32: 0, a_i16: 1, a_normal: 2, a_color: 3 };
 
 // Colours by part name; anything unnamed is skin.
 export const PART_COLORS = {
@@ -106,17 +134,20 @@ export class FaceRenderer {
     const gl = canvas.getContext('webgl2', { antialias: false, preserveDrawingBuffer: false, powerPreference: 'high-performance' });
     if (!gl) throw new Error('this browser has no WebGL2');
     this.gl = gl; this.canvas = canvas;
-    const prog = gl.createProgram();
-    gl.attachShader(prog, compile(gl, gl.VERTEX_SHADER, VERT));
-    gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, FRAG));
-    gl.linkProgram(prog);
-    if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
-    this.prog = prog;
-    this.loc = {};
-    for (const n of ['a_f32', 'a_i16', 'a_normal', 'a_color']) this.loc[n] = gl.getAttribLocation(prog, n);
-    for (const n of ['u_viewProj', 'u_offset', 'u_scale', 'u_quantized', 'u_eye']) {
-      this.loc[n] = gl.getUniformLocation(prog, n);
+    this.programs = {};
+    for (const [name, src] of Object.entries({ pixel: PIXEL, vertex: VERTEX })) {
+      const prog = gl.createProgram();
+      gl.attachShader(prog, compile(gl, gl.VERTEX_SHADER, src.vert));
+      gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, src.frag));
+      gl.linkProgram(prog);
+      if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
+      const loc = { ...ATTR };
+      for (const n of ['u_viewProj', 'u_offset', 'u_scale', 'u_quantized', 'u_eye']) loc[n] = gl.getUniformLocation(prog, n);
+      this.programs[name] = { prog, loc };
     }
+    this.loc = ATTR;
+    /** 'pixel' (lit per fragment) or 'vertex' (lit per vertex: far fewer shader runs in software GL). */
+    this.shading = 'pixel';
     this.mesh = null;
     this.camera = new OrbitCamera();
     this.scale = 1;  // < 1 renders fewer pixels (the browser scales the canvas up)
@@ -141,11 +172,12 @@ export class FaceRenderer {
     const rgb = new Float32Array(3 * V);
     for (let i = 0; i < V; i++) rgb.set(PART_COLORS[partNames[partIds[i]]] || PART_COLORS.skin, 3 * i);
     const color = buf(rgb, this.loc.a_color, 3, gl.FLOAT);
+    const { order, groups } = drawOrder(triangles, partIds, partNames);
     const ibo = gl.createBuffer();
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ibo);
-    gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, triangles, gl.STATIC_DRAW);
+    gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, order, gl.STATIC_DRAW);
     this.normals = new VertexNormals(triangles, V);
-    this.mesh = { vao, f32, i16, nrm, color, V, count: triangles.length, quantized: false,
+    this.mesh = { vao, f32, i16, nrm, color, V, count: triangles.length, groups, quantized: false,
                   offset: [0, 0, 0], scale: [1, 1, 1], positions: new Float32Array(rest) };
     this.updateNormals(rest);
     let lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
@@ -215,16 +247,47 @@ export class FaceRenderer {
     gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
     if (!m) return;
     gl.enable(gl.DEPTH_TEST);
-    gl.useProgram(this.prog);
+    const { prog, loc } = this.programs[this.shading] || this.programs.pixel;
+    gl.useProgram(prog);
     gl.bindVertexArray(m.vao);
-    gl.uniformMatrix4fv(this.loc.u_viewProj, false, this.camera.viewProj(c.width / c.height));
-    gl.uniform3fv(this.loc.u_eye, this.camera.eye());
-    gl.uniform1i(this.loc.u_quantized, m.quantized ? 1 : 0);
-    gl.uniform3fv(this.loc.u_offset, m.offset);
-    gl.uniform3fv(this.loc.u_scale, m.scale);
-    // Only one of the two position attributes is read; keep the other's array disabled-safe.
-    gl.drawElements(gl.TRIANGLES, m.count, gl.UNSIGNED_INT, 0);
+    gl.uniformMatrix4fv(loc.u_viewProj, false, this.camera.viewProj(c.width / c.height));
+    gl.uniform3fv(loc.u_eye, this.camera.eye());
+    gl.uniform1i(loc.u_quantized, m.quantized ? 1 : 0);
+    gl.uniform3fv(loc.u_offset, m.offset);
+    gl.uniform3fv(loc.u_scale, m.scale);
+    // Closed surfaces with back faces culled (about half their triangles never reach the
+    // rasteriser), then the open single-sided sheets (lashes, eye extras, sockets) seen from both sides.
+    for (const g of m.groups) {
+      if (g.cull) gl.enable(gl.CULL_FACE); else gl.disable(gl.CULL_FACE);
+      gl.drawElements(gl.TRIANGLES, g.count, gl.UNSIGNED_INT, 4 * g.first);
+    }
+    gl.disable(gl.CULL_FACE);
   }
+}
+
+/** Parts drawn without back-face culling: open sheets that are seen from both sides. */
+export const TWO_SIDED = /^(eyelashes|eye_extras|eye_socket)/;
+/** Parts drawn last: hidden behind the lips most of the time, so the depth test rejects them early. */
+const INTERIOR = /^(mouth_socket|teeth|gums|tongue)/;
+
+/**
+ * Triangle order for drawing: one-sided outer parts (skin, eyes) first, then the mouth's interior,
+ * then the two-sided sheets. Returns the reordered indices (Uint32Array 3F) and the draw groups
+ * [{first, count, cull}] in index units.
+ */
+export function drawOrder(triangles, partIds, partNames) {
+  const F = triangles.length / 3, rank = new Uint8Array(F);
+  const partRank = partNames.map((n) => (TWO_SIDED.test(n) ? 2 : INTERIOR.test(n) ? 1 : 0));
+  const counts = [0, 0, 0];
+  for (let f = 0; f < F; f++) { const r = partRank[partIds[triangles[3 * f]]] ?? 0; rank[f] = r; counts[r]++; }
+  const order = new Uint32Array(3 * F), next = [0, counts[0], counts[0] + counts[1]];
+  for (let f = 0; f < F; f++) {
+    const o = 3 * next[rank[f]]++;
+    order[o] = triangles[3 * f]; order[o + 1] = triangles[3 * f + 1]; order[o + 2] = triangles[3 * f + 2];
+  }
+  const groups = [{ first: 0, count: 3 * (counts[0] + counts[1]), cull: true },
+                  { first: 3 * (counts[0] + counts[1]), count: 3 * counts[2], cull: false }];
+  return { order, groups: groups.filter((g) => g.count > 0) };
 }
 
 /** Area-weighted vertex normals with typed arrays (no allocation per frame). */
