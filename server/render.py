@@ -104,10 +104,9 @@ def _frame_chunks(animator, animation, progress: Callable[[int, int], None] | No
         passes.append(1)
         total = len(animation.states)
         for start in range(0, total, size):
-            solved = [animator.solve(s) for s in animation.states[start:start + size]]
-            yield np.asarray(animator.deformer.deform_batch(np.stack([d for d, _ in solved]),
-                                                            np.stack([t for _, t in solved])), dtype=np.float32)
+            D, T = animator.solve_batch(animation.states[start:start + size])
+            yield np.asarray(animator.deformer.deform_batch(D, T), dtype=np.float32)
             if progress is not None and first:
-                progress(start + len(solved), total)
+                progress(start + len(D), total)
 
     return chunks
