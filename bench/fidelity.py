@@ -56,6 +56,12 @@ METHODS: dict[str, tuple[str, dict]] = {
     "rbf-r": ("rbf", {"kernel": "r", "distance": "euclidean", "affine": True}),
     "rbf-imq-noaffine": ("rbf", {"kernel": "imq", "distance": "euclidean", "affine": False}),
     "rbf-imq-surface-noaffine": ("rbf", {"kernel": "imq", "distance": "surface", "affine": False}),
+    # Bickel et al.'s linear shell (server/deform/shell.py): stretch = k_s/k_b x control spacing²
+    "shell-s0": ("shell", {"stretch": 0.0}),
+    "shell-s1": ("shell", {"stretch": 1.0}),
+    "shell-s3": ("shell", {"stretch": 3.0}),
+    "shell-s10": ("shell", {"stretch": 10.0}),
+    "shell-s30": ("shell", {"stretch": 30.0}),
 }
 
 # iBUG 68 (0-based): outer lip 48-59, inner lip 60-67; corners 48, 54, 60, 64.

@@ -72,13 +72,27 @@ ALGORITHM_VERSION = 5
 #: ``inner="membrane"`` no socket vertex shows through the skin in the demo (17 before, fp; 12
 #: before, rbf: 2). fp stays the default engine: lower error than rbf (0.197 vs 0.242 mm, p95 alike),
 #: fewer creases and flips on the built-in head, and sparse (about 6 weights per vertex vs 78 dense).
+#:
+#: shell (Bickel et al.'s linear shell, ``shell.py``): ``stretch`` = k_s/k_b x (control spacing)².
+#: Mean skin error, mm, ICT: ``bench/fidelity.py`` (78 FPs / 68 landmarks / both) and
+#: ``bench/mocap_fidelity.py`` (60 markers of the technician layout + 64 anchors, exact displacements):
+#:
+#: =======  =====  =====  =====  ======
+#: stretch  78 FP  lm68   both   mocap
+#: =======  =====  =====  =====  ======
+#: 0        0.370  0.715  0.333  -      (a thin plate: extrapolates over scalp and neck without anchors)
+#: 1        0.219  0.345  0.200  0.2245
+#: 3        0.232  0.354  0.211  0.2155
+#: 10       0.257  0.377  0.230  0.2117  <- default (the shell is the mocap engine: markers + anchors)
+#: 30       0.282  0.401  0.251  0.2242
+#: =======  =====  =====  =====  ======
 DEFAULTS: dict[str, dict] = {
     "fp": {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.5, "neighbour_ratio": 3.0,
            "attach_distance": None, "smooth": 0.5, "smooth_hold": 0.3, "inner": "membrane",
            "falloff": "sine"},
     "rbf": {"kernel": "imq", "shape": 1.0, "affine": False, "distance": "surface", "attach_distance": None,
             "inner": "membrane"},
-    "shell": {"stretch": 0.1, "attach_distance": None, "inner": "membrane"},
+    "shell": {"stretch": 10.0, "attach_distance": None, "inner": "membrane"},
 }
 
 ENGINES = {"fp": feature_point_operator, "rbf": rbf_operator, "shell": shell_operator}

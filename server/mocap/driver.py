@@ -75,10 +75,15 @@ def process(
     kernel: str = "imq",
     mu: float = 2.0,
     stabilise_method: str = "auto",
-    neutral_window: float = 0.2,
+    neutral_window: float = 0.5,
     where: str = "take",
 ) -> Processed:
-    """Run the batch pipeline on a take already read (see module docstring)."""
+    """Run the batch pipeline on a take already read (see module docstring).
+
+    The actor's neutral averages up to ``neutral_window`` seconds from the neutral frame while the
+    face holds still (``neutral_pose``): 0.5 s brought the neutral's error from 0.17 to 0.11 mm on
+    generated takes (0.5 mm noise), the stabilised displacements' from 0.35 to 0.28 mm.
+    """
     layout = load_layout(layout)
     if take.units is None:
         take.units = layout.units

@@ -1,8 +1,17 @@
 """Test takes with ground truth, made from the ICT FaceKit head and its 45 artist-made expressions.
 
-Markers sit on skin vertices of the ICT neutral (on MPEG-4 feature points where there is one, and
-spread evenly elsewhere) plus stable head markers on vertices no expression moves (forehead,
-temples, nose bridge). The face is animated by smooth random blends of the expressions, the head
+Markers sit on skin vertices of the ICT neutral plus stable head markers on vertices no expression
+moves (the scalp, where a capture's head jig sits). Two placements (``placement``):
+
+- ``"technician"`` (default): a facial-capture layout sheet (``TECHNICIAN_LAYOUT``) written against
+  MPEG-4 feature points, as a mocap technician places markers: dense on the lips and around the
+  mouth, the nasolabial folds, cheeks, brows, chin and jaw line, one under the jaw, few on rigid
+  skin (none on the nose bridge or forehead centre, which the stable markers cover). Each marker
+  is a feature point or the skin point between two (the midpoint snapped to the nearest
+  front-facing skin vertex). Nothing is tuned to the expressions; beyond the sheet's length the
+  rest are spread as in ``"motion"``.
+- ``"motion"``: the 29 feature points of ``MARKER_FPS``, then farthest-point sampling over the
+  moving skin with distances scaled by √(largest motion over the expressions). The face is animated by smooth random blends of the expressions, the head
 moves rigidly, and the capture adds noise (~0.5 mm), occlusion gaps and a few spikes. Output:
 ``take.c3d``, ``take.trc``, ``take.layout.json`` and ``take.truth.npz`` (clean per-frame blend
 weights, head poses, clean markers) so benchmarks can rebuild ground-truth vertices.
@@ -153,10 +162,82 @@ def _farthest(
     return np.asarray(chosen, dtype=np.int64)
 
 
+#: A facial-capture layout sheet (see the module docstring), in the order a technician would drop
+#: markers when fewer are available: ``(name, feature point)`` or ``(name, (fp_a, fp_b))`` for the
+#: skin point between two feature points (the face's left = +x = odd MPEG-4 numbers = ``_L``).
+TECHNICIAN_LAYOUT: tuple[tuple[str, str | tuple[str, str]], ...] = (
+    # lips: the outer contour (corners, peaks, middles and between)
+    ("LIP_UP", "8.1"), ("LIP_LO", "8.2"), ("LIP_CORNER_L", "8.3"), ("LIP_CORNER_R", "8.4"),
+    ("LIP_UP_L", "8.5"), ("LIP_UP_R", "8.6"), ("LIP_LO_L", "8.7"), ("LIP_LO_R", "8.8"),
+    ("LIP_PEAK_R", "8.9"), ("LIP_PEAK_L", "8.10"),
+    ("LIP_UP_OUT_L", ("8.5", "8.3")), ("LIP_UP_OUT_R", ("8.6", "8.4")),
+    ("LIP_LO_OUT_L", ("8.7", "8.3")), ("LIP_LO_OUT_R", ("8.8", "8.4")),
+    # chin and jaw
+    ("CHIN", "2.1"), ("CHIN_FRONT", "2.10"), ("CHIN_L", "2.11"), ("CHIN_R", "2.12"),
+    ("JAW_L", "2.13"), ("JAW_R", "2.14"), ("JAW_MID_L", ("2.11", "2.13")), ("JAW_MID_R", ("2.12", "2.14")),
+    # around the mouth: philtrum, above the upper lip, below the lower lip
+    ("PHILTRUM", ("8.1", "9.15")), ("MOUTH_UP_L", ("8.5", "9.1")), ("MOUTH_UP_R", ("8.6", "9.2")),
+    ("LABIOMENTAL", ("8.2", "2.10")), ("MOUTH_LO_L", ("8.7", "2.11")), ("MOUTH_LO_R", ("8.8", "2.12")),
+    # brows
+    ("BROW_IN_L", "4.1"), ("BROW_IN_R", "4.2"), ("BROW_MID_L", "4.3"), ("BROW_MID_R", "4.4"),
+    ("BROW_OUT_L", "4.5"), ("BROW_OUT_R", "4.6"),
+    # cheeks and nasolabial folds
+    ("CHEEK_L", "5.1"), ("CHEEK_R", "5.2"), ("CHEEKBONE_L", "5.3"), ("CHEEKBONE_R", "5.4"),
+    ("NASOLABIAL_UP_L", ("9.1", "5.1")), ("NASOLABIAL_UP_R", ("9.2", "5.2")),
+    ("NASOLABIAL_LO_L", ("8.3", "5.1")), ("NASOLABIAL_LO_R", ("8.4", "5.2")),
+    ("CHEEK_LO_L", ("5.1", "2.13")), ("CHEEK_LO_R", ("5.2", "2.14")),
+    # nose wings, eyes, forehead
+    ("NOSTRIL_L", "9.1"), ("NOSTRIL_R", "9.2"),
+    ("UNDER_EYE_L", "3.9"), ("UNDER_EYE_R", "3.10"), ("LID_L", "3.1"), ("LID_R", "3.2"),
+    ("FOREHEAD_L", ("4.3", "11.3")), ("FOREHEAD_R", ("4.4", "11.2")),
+    ("CHEEK_OUT_L", ("5.3", "2.13")), ("CHEEK_OUT_R", ("5.4", "2.14")),
+    ("NOSE_TIP", "9.3"),
+)
+
+PLACEMENTS: tuple[str, ...] = ("technician", "motion")
+
+
+def technician_markers(face: Face, budget: int, taken: list[int]) -> tuple[list[str], list[int], dict[str, dict]]:
+    """The first ``budget`` markers of ``TECHNICIAN_LAYOUT`` the face can place (needs its feature
+    points): ``(names, vertex ids, layout entries)``; vertices in ``taken`` are skipped."""
+    import trimesh
+
+    v = face.vertices.astype(np.float64)
+    skin = face.part("skin")
+    normals = trimesh.Trimesh(face.vertices, face.triangles, process=False).vertex_normals
+    front = skin[normals[skin, 2] > 0.2]  # front-facing skin: never the inner lip rolls
+    tree = cKDTree(v[front])
+    names: list[str] = []
+    verts: list[int] = []
+    spec: dict[str, dict] = {}
+    used = set(int(t) for t in taken)
+    for name, where in TECHNICIAN_LAYOUT:
+        if len(names) >= budget:
+            break
+        fps = (where,) if isinstance(where, str) else where
+        if not all(f in face.feature_points for f in fps):
+            continue
+        if isinstance(where, str):
+            vid, entry = int(face.feature_points[where]), {"fp": where}
+        else:
+            vid = int(front[tree.query((face.fp_position(fps[0]) + face.fp_position(fps[1])) / 2)[1]])
+            entry = {"vertex": vid}
+        if vid in used:
+            continue
+        used.add(vid)
+        names.append(name), verts.append(vid)
+        spec[name] = entry
+    return names, verts, spec
+
+
 def choose_markers(
-    face: Face, deltas: np.ndarray, n_markers: int, n_stable: int = 5
+    face: Face, deltas: np.ndarray, n_markers: int, n_stable: int = 5, placement: str = "technician"
 ) -> tuple[list[str], np.ndarray, dict[str, dict], list[str]]:
-    """Pick marker vertices: ``(names, vertices, layout markers, stable names)``."""
+    """Pick marker vertices: ``(names, vertices, layout markers, stable names)`` (see the module
+    docstring for ``placement``)."""
+    if placement not in PLACEMENTS:
+        raise InputError(f"placement must be one of {', '.join(PLACEMENTS)}, not {placement!r}",
+                         where="placement")
     v = face.vertices.astype(np.float64)
     skin = face.part("skin")
     motion = np.linalg.norm(deltas, axis=2).max(axis=0) * face.mm_per_unit  # (V,) mm
@@ -165,7 +246,12 @@ def choose_markers(
     mw = abs(face.fp_position("8.3")[0] - face.fp_position("8.4")[0])
     # Stable: skin that no expression moves, on the front and top of the skull (on the ICT head
     # only the scalp above the hairline is that still: where a capture's head jig sits).
-    front = v[:, 2] > nose_z - 3.0 * mw
+    if placement == "technician":
+        # a headband: round the head above the eyes (forehead, temples, back), widely spread so that
+        # the pose, pitch included, is well determined at the face
+        front = np.ones(len(v), dtype=bool)
+    else:
+        front = v[:, 2] > nose_z - 3.0 * mw
     still = skin[(motion[skin] < 0.01) & front[skin] & (v[skin, 1] > eye_y)]
     if len(still) < n_stable:
         raise InputError(f"only {len(still)} candidate vertices for stable markers on {face.name}")
@@ -177,7 +263,13 @@ def choose_markers(
         names.append(n), verts.append(int(vid))
         spec[n] = {"vertex": int(vid)}
     budget = n_markers - len(st)
-    for fp in MARKER_FPS:
+    if placement == "technician":
+        tn, tv, tspec = technician_markers(face, budget, verts)
+        names += tn
+        verts += tv
+        spec.update(tspec)
+        budget -= len(tn)
+    for fp in MARKER_FPS if placement == "motion" else ():
         if budget <= 0:
             break
         vid = face.feature_points.get(fp)
@@ -211,6 +303,7 @@ def choose_markers(
     )
     cand = np.setdiff1d(cand, lids)
     # denser where the skin moves more (as real layouts crowd the mouth and brows)
+    cand = np.setdiff1d(cand, verts)
     pick = cand[_farthest(v[cand], budget, seed_points=v[verts], weights=np.sqrt(motion[cand]))]
     for j, vid in enumerate(pick):
         n = f"M{j + 1:02d}"
@@ -292,7 +385,8 @@ def truth_vertices(face: Face, deltas: np.ndarray, weights: np.ndarray) -> np.nd
     ).astype(np.float32)
 
 
-def generated_take(*, n_markers: int, seconds: float, fps: float, seed: int, n_stable: int):
+def generated_take(*, n_markers: int, seconds: float, fps: float, seed: int, n_stable: int,
+                   placement: str = "technician"):
     """Generate a C3D take in a temporary folder and read it back (for benchmarks).
 
     Returns ``(truth, take, layout)``: the ground truth, the ``MarkerTake`` as a user's reader sees
@@ -305,7 +399,7 @@ def generated_take(*, n_markers: int, seconds: float, fps: float, seed: int, n_s
 
     with tempfile.TemporaryDirectory() as tmp:
         paths = generate(tmp, n_markers=n_markers, seconds=seconds, fps=fps, seed=seed, formats=("c3d",),
-                         n_stable=n_stable)
+                         n_stable=n_stable, placement=placement)
         return load_truth(paths["truth"]), read_take(paths["c3d"]), json.loads(Path(paths["layout"]).read_text())
 
 
@@ -323,15 +417,16 @@ def generate(
     formats: tuple[str, ...] = ("c3d", "trc"),
     name: str = "take",
     n_stable: int = 5,
+    placement: str = "technician",
 ) -> dict[str, Path]:
     """Write a generated take into folder ``out``; returns the written paths by kind. ``n_markers``
-    counts the ``n_stable`` head markers too."""
+    counts the ``n_stable`` head markers too; ``placement``: see the module docstring."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     face = load_ict()
     enames, deltas = load_expressions(face)
-    names, verts, spec, stable = choose_markers(face, deltas, n_markers, n_stable)
+    names, verts, spec, stable = choose_markers(face, deltas, n_markers, n_stable, placement)
     n = max(2, round(seconds * fps))
     hold = min(n - 1, int(0.5 * fps))
     w = blend_weights(rng, enames, n, fps, hold)
@@ -438,6 +533,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-head-motion", action="store_true")
     p.add_argument("--formats", default="c3d,trc", help="comma-separated: c3d, trc, csv")
     p.add_argument("--name", default="take")
+    p.add_argument("--placement", choices=PLACEMENTS, default="technician",
+                   help="marker placement: a technician's layout sheet or motion-weighted (default technician)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     try:
@@ -454,6 +551,7 @@ def main(argv: list[str] | None = None) -> int:
             formats=tuple(f.strip() for f in a.formats.split(",") if f.strip()),
             name=a.name,
             n_stable=a.stable,
+            placement=a.placement,
         )
     except InputError as e:
         print(f"generate: {e}", file=sys.stderr)
