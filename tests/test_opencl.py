@@ -1,6 +1,11 @@
 """The OpenCL backend reproduces the NumPy reference (float32 tolerance) on a real OpenCL device."""
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -272,3 +277,43 @@ def test_threads_share_a_deformer(ctx, rng):
         outs = list(pool.map(lambda D: d.deform(D, T), Ds))
     for D, out in zip(Ds, outs):
         assert_close(out, ref.deform(D, T), 80)
+
+
+_THREADS_SCRIPT = """
+import glob, os
+from facecast.server.backends.select import default_context
+if default_context() is None:
+    print("no-device")
+    raise SystemExit
+single = []
+for status in glob.glob(f"/proc/{os.getpid()}/task/*/status"):
+    for line in open(status):
+        if line.startswith("Cpus_allowed_list:") and line.split()[1].isdigit():
+            single.append(int(line.split()[1]))
+print(os.environ.get("POCL_AFFINITY"), sorted(single))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads thread CPU masks from /proc")
+@pytest.mark.parametrize("preset", [None, "0"])
+def test_pocl_worker_threads_are_pinned_unless_the_environment_says(preset):
+    """facecast sets POCL_AFFINITY before PoCL starts (a fresh process): PoCL's worker threads run
+    one per CPU; a POCL_AFFINITY already in the environment is left alone."""
+    env = {k: v for k, v in os.environ.items() if k != "POCL_AFFINITY"}
+    if preset is not None:
+        env["POCL_AFFINITY"] = preset
+    out = subprocess.run([sys.executable, "-c", _THREADS_SCRIPT], env=env, capture_output=True, text=True,
+                         timeout=120, check=True).stdout.strip()
+    if out == "no-device":
+        pytest.skip("no working OpenCL device")
+    value, listed = out.split(" ", 1)
+    pinned = json.loads(listed)  # the CPU of each thread that may run on one CPU only
+    n = os.cpu_count() or 1
+    if preset == "0":
+        assert value == "0" and (n == 1 or pinned == [])
+    elif os.sched_getaffinity(0) == set(range(n)):
+        assert value == "1"
+        if n > 1:  # one worker per CPU, each on its own
+            assert len(pinned) >= 2 and len(set(pinned)) == len(pinned) and set(pinned) <= set(range(n))
+    else:  # this process may not run on every CPU: no pinning
+        assert value == "None" and pinned == []
