@@ -173,6 +173,7 @@ class FapRig:
             self.fp_ids, self.control_vertices, self.constrained = fap_controls(face, per_axis=per_axis)
         self.n_controls = len(self.control_vertices)
         self._pivots = {g: face.pivot(g) for g in RIGID_GROUPS}
+        self._pivot_rows = np.array([self._pivots[g] for g in RIGID_GROUPS], dtype=np.float64)
         self._chin = face.fp_position("2.1") if "2.1" in face.feature_points else None
         self._build_linear()
 
@@ -254,10 +255,10 @@ class FapRig:
         """
         n = len(states)
         F = self._faps_rows(states)
-        local, H = self._transforms_batch(states, F)
+        local = self._transforms_batch(states, F)  # slot head: the head pose itself
         transforms = np.empty((n, G, 3, 4))
-        transforms[:, _HEAD] = H
-        transforms[:, 1:] = _compose_batch(H[:, None], local[:, 1:])
+        transforms[:, _HEAD] = local[:, _HEAD]
+        transforms[:, 1:] = _compose_batch(local[:, _HEAD, None], local[:, 1:])
         if self.explicit:
             D = np.zeros((n, self.n_controls, 3), dtype=np.float32)
             for i, s in enumerate(states):
@@ -314,72 +315,70 @@ class FapRig:
     def _linear_batch(self, F: np.ndarray) -> np.ndarray:
         """``(T, K, 3) float64``: ``_M @ faps`` of each row, as a sum over the non-zeros of ``_M``."""
         if not hasattr(self, "_sparse"):
+            # row r of _M as its non-zeros (column, value), padded with column 0: FAP 0 is always
+            # 0 in ``F`` (as in ``expand``), so padding adds exact zeros
             M = self._M.reshape(-1, 69)
             nz = [np.flatnonzero(row) for row in M]
             width = max((len(c) for c in nz), default=0)
-            cols = np.zeros((len(nz), width), dtype=np.int64)
-            vals = np.zeros((len(nz), width))
+            cols = np.zeros((width, len(nz)), dtype=np.int64)
+            vals = np.zeros((width, len(nz)))
             for r, c in enumerate(nz):
-                cols[r, :len(c)], vals[r, :len(c)] = c, M[r, c]
-            self._sparse = (cols, vals, np.array([len(c) for c in nz]))
-        cols, vals, count = self._sparse
-        D = np.zeros((F.shape[0], cols.shape[0]))
-        for j in range(cols.shape[1]):  # the j-th non-zero of every row (padding adds exact zeros)
-            term = F[:, cols[:, j]] * vals[:, j]
-            D += np.where(j < count, term, 0.0)
+                cols[: len(c), r], vals[: len(c), r] = c, M[r, c]
+            self._sparse = (cols, vals)
+        cols, vals = self._sparse
+        D = np.zeros((F.shape[0], cols.shape[1]))
+        for c, v in zip(cols, vals):  # the j-th non-zero of every row
+            D += F[:, c] * v
         return D.reshape(F.shape[0], self.n_controls, 3)
 
-    def _transforms_batch(self, states, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``local_transforms`` ``(T, G, 3, 4)`` and ``head_transform`` ``(T, 3, 4)`` of each row
-        of ``F`` (float64; one ``cos`` and one ``sin`` call for all the angles of the batch)."""
+    def _transforms_batch(self, states, F: np.ndarray) -> np.ndarray:
+        """``(T, G, 3, 4) float64``: slot ``head`` is ``head_transform``, the other slots are
+        ``local_transforms``, of each state and row of ``F``. All groups at once: one ``cos`` and
+        one ``sin`` call for all the angles, one ``about`` for all the pivots."""
         u = self.fapu
         n = F.shape[0]
-        au = u["AU"]
-        pivot = self._pivots["jaw"]
         drop = F[:, 3] * u["MNS"]
-        # angles: jaw, eye_l yaw/pitch, eye_r yaw/pitch, head yaw/pitch/roll
-        A = np.empty((n, 8))
-        A[:, 1:] = F[:, [23, 25, 24, 26, 49, 48, 50]] * au
         moves = drop != 0
+        rotates = moves if self._chin is not None else np.zeros(n, dtype=bool)
+        # angles: jaw; yaw of eye_l, eye_r, head; pitch of eye_l, eye_r, head; head roll
+        A = np.empty((n, 8))
+        A[:, 1:] = F[:, [23, 24, 49, 25, 26, 48, 50]] * u["AU"]
+        pivot = self._pivots["jaw"]
         if self._chin is not None:
             chin = np.asarray(self._chin, dtype=np.float64)
-            A[:, 0] = np.where(moves, np.clip(_jaw_angles(chin, pivot, drop), -MAX_JAW, MAX_JAW), 0.0)
+            jaw = np.clip(_jaw_angles(chin, pivot, drop), -MAX_JAW, MAX_JAW)
+            A[:, 0] = np.where(rotates, jaw, 0.0)
         else:
             A[:, 0] = 0.0
         C, S = np.cos(A), np.sin(A)
-        T = np.zeros((n, G, 3, 4))
-        T[:, :, 0, 0] = T[:, :, 1, 1] = T[:, :, 2, 2] = 1.0
-        # Jaw: rotate so that 2.1 drops by open_jaw, then thrust (+z) and shift (-x).
-        t = np.zeros((n, 3))
-        t[:, 0] = -F[:, 15] * u["MW"]
-        t[:, 2] = F[:, 14] * u["MNS"]
+        R = np.zeros((n, G, 3, 3))
+        # Ry(yaw) · Rx(pitch) of the eyeballs and the head; the head then · Rz(roll)
+        Y = _ry_rx(C[:, 1:4], S[:, 1:4], C[:, 4:7], S[:, 4:7])  # (n, 3, 3, 3)
+        R[:, _EYE_L], R[:, _EYE_R] = Y[:, 0], Y[:, 1]
+        Yh, cz, sz = Y[:, 2], C[:, 7:8], S[:, 7:8]
+        R[:, _HEAD, :, 0] = Yh[:, :, 0] * cz + Yh[:, :, 1] * sz
+        R[:, _HEAD, :, 1] = Yh[:, :, 0] * -sz + Yh[:, :, 1] * cz
+        R[:, _HEAD, :, 2] = Yh[:, :, 2]
+        # Jaw: rotate about x so that 2.1 drops by open_jaw, then thrust (+z) and shift (-x).
         c, s = C[:, 0], S[:, 0]
-        R = np.zeros((n, 3, 3))
-        R[:, 0, 0] = 1.0
-        R[:, 1, 1], R[:, 1, 2], R[:, 2, 1], R[:, 2, 2] = c, -s, s, c
+        R[:, _JAW, 0, 0] = 1.0
+        R[:, _JAW, 1, 1], R[:, _JAW, 2, 2], R[:, _JAW, 2, 1] = c, c, s
+        R[:, _JAW, 1, 2] = np.where(rotates, -s, 0.0)  # (an identity is exactly np.eye)
+        t = np.zeros((n, G, 3))
+        t[:, _JAW, 0] = -F[:, 15] * u["MW"]
+        t[:, _JAW, 2] = F[:, 14] * u["MNS"]
         if self._chin is not None:
             w = chin - pivot
             y = (c * w[1] + -s * w[2]) + pivot[1]  # height of the rotated chin
-            t[:, 1] -= np.where(moves, drop - (chin[1] - y), 0.0)  # the rest of the drop
-        T[:, _JAW] = _about_batch(R, pivot, t)
-        # Eyeballs: yaw (+y), pitch (+x) about the centre, then thrust along +z.
-        for g, k, thrust in ((_EYE_L, 1, 27), (_EYE_R, 3, 28)):
-            R = _ry_rx(C[:, k], S[:, k], C[:, k + 1], S[:, k + 1])
-            t = np.zeros((n, 3))
-            t[:, 2] = F[:, thrust] * u["ES"]
-            T[:, g] = _about_batch(R, self._pivots[RIGID_GROUPS[g]], t)
-        # Head: Ry(yaw) · Rx(pitch) · Rz(roll) about its pivot, unless the state gives a pose.
-        Ryx = _ry_rx(C[:, 5], S[:, 5], C[:, 6], S[:, 6])
-        cz, sz = C[:, 7:8], S[:, 7:8]
-        R = np.empty_like(Ryx)
-        R[:, :, 0] = Ryx[:, :, 0] * cz + Ryx[:, :, 1] * sz
-        R[:, :, 1] = Ryx[:, :, 0] * -sz + Ryx[:, :, 1] * cz
-        R[:, :, 2] = Ryx[:, :, 2]
-        H = _about_batch(R, self._pivots["head"], np.zeros((n, 3)))
+            t[:, _JAW, 1] -= np.where(moves, drop - (chin[1] - y), 0.0)  # the rest of the drop
+        # Eyeballs: thrust along +z after the rotation about their centres.
+        t[:, _EYE_L, 2] = F[:, 27] * u["ES"]
+        t[:, _EYE_R, 2] = F[:, 28] * u["ES"]
+        out = _about_batch(R, self._pivot_rows, t)
         for i, st in enumerate(states):
             if st.head is not None:
-                H[i] = np.asarray(st.head, dtype=np.float64).reshape(3, 4)
-        return T, H
+                out[i, _HEAD] = np.asarray(st.head, dtype=np.float64).reshape(3, 4)
+        return out
 
 
 def _jaw_angles(chin: np.ndarray, pivot: np.ndarray, drop: np.ndarray) -> np.ndarray:
@@ -393,11 +392,11 @@ def _jaw_angles(chin: np.ndarray, pivot: np.ndarray, drop: np.ndarray) -> np.nda
 
 
 def _ry_rx(cy: np.ndarray, sy: np.ndarray, cx: np.ndarray, sx: np.ndarray) -> np.ndarray:
-    """``(T, 3, 3)``: ``Ry(yaw) · Rx(pitch)`` from the cosines and sines ``(T,)`` of the angles."""
-    R = np.zeros((len(cy), 3, 3))
-    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = cy, sy * sx, sy * cx
-    R[:, 1, 1], R[:, 1, 2] = cx, -sx
-    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = -sy, cy * sx, cy * cx
+    """``(..., 3, 3)``: ``Ry(yaw) · Rx(pitch)`` from the cosines and sines ``(...)`` of the angles."""
+    R = np.zeros(cy.shape + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = cy, sy * sx, sy * cx
+    R[..., 1, 1], R[..., 1, 2] = cx, -sx
+    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = -sy, cy * sx, cy * cx
     return R
 
 
