@@ -59,6 +59,24 @@ def test_flat_axis_and_extreme_values(quantizer):
     assert q[0, :, 0].min() == -32767 and q[0, :, 0].max() == 32767
 
 
+def test_halves_round_to_even(quantizer):
+    """offset 0 and scale 1 exactly (bounds -32767, 32767), so ``k + 0.5`` values are ties."""
+    halves = np.array(
+        [0.5, 1.5, 2.5, -0.5, -1.5, -2.5, 32766.5, -32766.5, 100.5, 101.5], np.float32
+    )
+    v = np.zeros((1, 50, 3), np.float32)  # 50: three 16-vertex units, then a tail of 2
+    v[0, 0], v[0, 1] = -32767.0, 32767.0
+    v[0, 48], v[0, 49] = 2.5, -32766.5
+    v[0, 2 : 2 + len(halves)] = halves[:, None]
+    v[0, 30 : 30 + len(halves)] = -halves[:, None]
+    q, _, _ = quantizer.quantize(v)
+    q0, o0, s0 = quantize_int16(v[0])
+    assert (o0 == 0).all() and (s0 == 1).all()
+    np.testing.assert_array_equal(q[0], q0)
+    assert q[0, 2, 0] == 0 and q[0, 3, 0] == 2 and q[0, 4, 0] == 2 and q[0, 8, 0] == 32766
+    assert q[0, 48, 0] == 2 and q[0, 49, 0] == -32766
+
+
 def test_quantize_into_writes_only_its_frames(quantizer, rng):
     verts = aligned_empty((3, 50, 3), np.float32)
     verts[...] = _frames(rng, 3, 50)
