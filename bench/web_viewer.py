@@ -1,11 +1,23 @@
 """The web viewer's speed in headless Chromium: draw rate and int16 decode time on the ICT head.
 
 Starts a real ``facecast serve`` with the ICT FaceKit head, plays the server-side demo into a 60 fps
-session, opens the page watching it (int16 and float32), and samples the page's own counters.
-Baseline in the same run: the rate at which this Chromium runs requestAnimationFrame on an idle
-page (the most a page can draw here). Writes bench/out/web_viewer.json and prints a table.
+session and opens the page watching it (int16, then float32), once per software GL back-end:
 
-    python bench/web_viewer.py [--seconds 10] [--face PATH]
+- ``llvmpipe``: ANGLE on Mesa's EGL (llvmpipe), software compositing (needs libegl-mesa0 and
+  libgl1-mesa-dri);
+- ``swiftshader``: ANGLE on SwiftShader (Chromium's own software Vulkan), ``--disable-gpu``.
+
+Baseline in the same run and browser (the most a page can draw here): the requestAnimationFrame rate
+of an idle page and of a page that only clears a full-window WebGL2 canvas every frame.
+
+Counts are honest: ``drawn fps`` is canvas draws per second that showed a new vertex frame (one draw
+is one presented canvas update; the page never draws off-frame), ``raf fps`` the page's animation
+frames, ``received fps`` the frames that arrived. CPU per drawn frame is measured from /proc for the
+Chromium GPU process (where software GL rasterises) and the page's renderer process. Writes
+bench/out/web_viewer.json and prints a markdown table.
+
+    python bench/web_viewer.py [--seconds 8] [--gl llvmpipe,swiftshader] [--scale S] [--shading vertex]
+                               [--width 1280 --height 720] [--chromium-arg ARG] [--screenshot DIR]
 """
 from __future__ import annotations
 
@@ -23,30 +35,67 @@ import httpx
 
 ROOT = Path(__file__).resolve().parents[1]
 ICT = ROOT.parent / "shared" / "data" / "ict-facekit" / "generic_neutral_mesh.obj"
-ARGS = ["--no-sandbox", "--disable-gpu", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
+COMMON = ["--no-sandbox", "--disable-background-networking", "--disable-component-update", "--disable-sync",
+          "--no-first-run"]
+GL_ARGS = {
+    "llvmpipe": ["--use-gl=angle", "--use-angle=gl-egl", "--ignore-gpu-blocklist", "--disable-gpu-compositing"],
+    "swiftshader": ["--disable-gpu", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
+}
 
-RAF_JS = """(ms) => new Promise((done) => {
+#: A page whose only work is clearing a full-window WebGL2 canvas (or nothing: mode 'idle') every frame.
+CEILING_HTML = """<!doctype html><html><body style="margin:0;overflow:hidden">
+<canvas id=c style="width:100vw;height:100vh;display:block"></canvas></body></html>"""
+CEILING_JS = """([mode, ms]) => new Promise((done) => {
+  const c = document.getElementById('c'); c.width = c.clientWidth; c.height = c.clientHeight;
+  const gl = mode === 'clear' ? c.getContext('webgl2', { antialias: false }) : null;
   let n = 0; const t0 = performance.now();
-  const tick = () => { n++; if (performance.now() - t0 < ms) requestAnimationFrame(tick); else done(1000 * n / (performance.now() - t0)); };
+  const tick = () => {
+    if (gl) { gl.viewport(0, 0, c.width, c.height); gl.clearColor((n % 60) / 60, 0.1, 0.1, 1); gl.clear(gl.COLOR_BUFFER_BIT); }
+    n++;
+    if (performance.now() - t0 < ms) requestAnimationFrame(tick);
+    else done({ frames: n, fps: 1000 * n / (performance.now() - t0), size: [c.width, c.height],
+                renderer: gl ? gl.getParameter(gl.RENDERER) : null });
+  };
   requestAnimationFrame(tick);
 })"""
 
-SAMPLE_JS = """(ms) => new Promise((done) => {
-  const v = facecast.viewer, s = v.stats, f0 = s.frames, d0 = facecast.state.drawTimes.length;
-  const draws = []; const t0 = performance.now();
-  const orig = facecast.renderer.draw.bind(facecast.renderer);
-  facecast.renderer.draw = () => { draws.push(performance.now()); orig(); };
-  s.decodeMs = [];
-  setTimeout(() => {
-    facecast.renderer.draw = orig;
-    const el = (performance.now() - t0) / 1000, dec = [...s.decodeMs].sort((a, b) => a - b);
-    const q = (p) => dec.length ? dec[Math.min(dec.length - 1, Math.floor(p * dec.length))] : null;
-    done({ seconds: el, frames_received: s.frames - f0, received_fps: (s.frames - f0) / el,
-           draw_fps: draws.length / el, decode_ms_p50: q(0.5), decode_ms_p95: q(0.95), decode_ms_max: dec.at(-1) ?? null,
-           decode_samples: dec.length, dropped: s.dropped, bytes_per_frame: s.bytes });
-  }, ms);
-})"""
+COUNTERS_JS = """() => { const c = facecast.counters, s = facecast.viewer.stats;
+  return { t: performance.now(), rafs: c.rafs, draws: c.draws, fresh: c.newFrameDraws, received: s.frames,
+           superseded: s.superseded, dropped: s.dropped, decode: [...s.decodeMs] }; }"""
+
+TCK = os.sysconf("SC_CLK_TCK")
+
+
+def process_cpu() -> dict[str, float]:
+    """CPU seconds (user + system) of this process's Chromium descendants, summed by process type."""
+    children: dict[int, list[int]] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                ppid = int(Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(d))
+    out: dict[str, float] = {}
+    stack = [os.getpid()]
+    while stack:
+        pid = stack.pop()
+        stack.extend(children.get(pid, []))
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ").split()
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if not cmd or "chrom" not in Path(cmd[0]).name:
+            continue
+        kind = next((a.split("=", 1)[1] for a in cmd if a.startswith("--type=")), "browser")
+        out[kind] = out.get(kind, 0.0) + (int(fields[11]) + int(fields[12])) / TCK
+    return out
+
+
+def pid_cpu(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / TCK
 
 
 def free_port() -> int:
@@ -55,16 +104,65 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def ceiling(browser, width: int, height: int, ms: int) -> dict:
+    """rAF rate (and GPU-process CPU per frame) of an idle page and of a full-window WebGL2 clear."""
+    page = browser.new_page(viewport={"width": width, "height": height})
+    page.set_content(CEILING_HTML)
+    out = {}
+    for mode in ("idle", "clear"):
+        c0 = process_cpu()
+        r = page.evaluate(CEILING_JS, [mode, ms])
+        c1 = process_cpu()
+        r["gpu_ms_per_frame"] = 1000 * (c1.get("gpu-process", 0) - c0.get("gpu-process", 0)) / r["frames"]
+        out[mode] = r
+    page.close()
+    return out
+
+
+def sample(page, server_pid: int, seconds: float) -> dict:
+    """The page's counters and the processes' CPU over `seconds` of streaming."""
+    page.evaluate("facecast.viewer.stats.decodeMs = []")
+    c0, s0, a = process_cpu(), pid_cpu(server_pid), page.evaluate(COUNTERS_JS)
+    time.sleep(seconds)
+    c1, s1, b = process_cpu(), pid_cpu(server_pid), page.evaluate(COUNTERS_JS)
+    el = (b["t"] - a["t"]) / 1000
+    dec = sorted(b["decode"])
+    def q(p: float) -> float | None:
+        return dec[min(len(dec) - 1, int(p * len(dec)))] if dec else None
+
+    fresh = max(1, b["fresh"] - a["fresh"])
+    cpu = {k: c1.get(k, 0) - c0.get(k, 0) for k in c1}
+    return {
+        "seconds": el,
+        "received_fps": (b["received"] - a["received"]) / el,
+        "drawn_fps": (b["fresh"] - a["fresh"]) / el,          # draws that showed a new vertex frame
+        "draws_fps": (b["draws"] - a["draws"]) / el,          # all canvas draws
+        "raf_fps": (b["rafs"] - a["rafs"]) / el,
+        "superseded": b["superseded"] - a["superseded"],      # received but never drawn (a newer one came first)
+        "dropped_by_server": b["dropped"] - a["dropped"],
+        "decode_ms_p50": q(0.5), "decode_ms_p95": q(0.95), "decode_ms_max": dec[-1] if dec else None,
+        "decode_samples": len(dec),
+        "gpu_ms_per_frame": 1000 * cpu.get("gpu-process", 0) / fresh,
+        "renderer_ms_per_frame": 1000 * cpu.get("renderer", 0) / fresh,
+        "server_cpu_percent": 100 * (s1 - s0) / el,
+    }
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--face", type=Path, default=ICT)
     ap.add_argument("--fps", type=float, default=60.0)
+    ap.add_argument("--gl", default="llvmpipe,swiftshader", help="comma-separated: " + ", ".join(GL_ARGS))
+    ap.add_argument("--encodings", default="i16,f32")
     ap.add_argument("--scale", type=float, default=None,
                     help="fix renderer.scale (drawing-buffer pixels per CSS pixel); default: the page adapts it")
+    ap.add_argument("--shading", choices=("pixel", "vertex"), default=None,
+                    help="fix the lighting (default: the page adapts: per pixel, per vertex when it falls behind)")
     ap.add_argument("--chromium-arg", action="append", default=[], help="extra Chromium switch (repeatable)")
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
+    ap.add_argument("--screenshot", type=Path, default=None, help="directory for a screenshot per run")
     args = ap.parse_args()
     from playwright.sync_api import sync_playwright
 
@@ -74,9 +172,9 @@ def main() -> int:
     data = tempfile.mkdtemp(prefix="facecast-web-bench-")
     server = subprocess.Popen([sys.executable, "-m", "facecast.server.cli", "serve", "--port", str(port),
                                "--data-dir", data], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    results: dict = {"face": str(args.face), "session_fps": args.fps, "cpus": os.cpu_count(), "scale": args.scale, "chromium_args": ARGS + args.chromium_arg,
-                     "viewport": [args.width, args.height],
-                     "load_average": os.getloadavg()}
+    results: dict = {"face": str(args.face), "session_fps": args.fps, "cpus": os.cpu_count(), "scale": args.scale,
+                     "shading": args.shading, "viewport": [args.width, args.height],
+                     "load_average_start": os.getloadavg(), "runs": []}
     try:
         for _ in range(300):
             try:
@@ -86,40 +184,55 @@ def main() -> int:
                 time.sleep(0.2)
         hdr = {"Authorization": f"Bearer {key}"}
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=ARGS + args.chromium_arg)
-            page = browser.new_page(viewport={"width": args.width, "height": args.height})
-            page.goto(url + "/")
-            results["raf_fps_idle"] = page.evaluate(RAF_JS, 3000)
-            for encoding in ("i16", "f32"):
-                s = httpx.post(url + "/v1/sessions", json={"face": "bench", "input": "fap", "fps": args.fps},
-                               headers=hdr, timeout=300).json()
-                httpx.post(f"{url}/v1/sessions/{s['id']}/demo", headers=hdr, timeout=60).raise_for_status()
-                page.goto(f"{url}/?{encoding}#session={s['id']}&token={s['viewer_token']}&encoding={encoding}")
-                page.set_default_timeout(300_000)
-                page.wait_for_function("window.facecast && window.facecast.viewer.stats.frames > 30")
-                if args.scale is not None:  # pin it: stop the page's adaptation
-                    page.evaluate(f"Object.defineProperty(facecast.renderer, 'scale', {{get: () => {args.scale}, set: () => {{}}}})")
-                time.sleep(2)
-                sample = page.evaluate(SAMPLE_JS, int(args.seconds * 1000))
-                sample["vertices"] = page.evaluate("facecast.renderer.mesh.V")
-                sample["draw_vs_raf"] = sample["draw_fps"] / results["raf_fps_idle"]
-                sample["render_scale"] = page.evaluate("facecast.renderer.scale")
-                results[encoding] = sample
-                httpx.delete(f"{url}/v1/sessions/{s['id']}", headers=hdr, timeout=60)
-            browser.close()
+            for gl in args.gl.split(","):
+                flags = COMMON + GL_ARGS[gl] + args.chromium_arg
+                browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=flags)
+                base = ceiling(browser, args.width, args.height, 3000)
+                page = browser.new_page(viewport={"width": args.width, "height": args.height})
+                for encoding in args.encodings.split(","):
+                    s = httpx.post(url + "/v1/sessions", json={"face": "bench", "input": "fap", "fps": args.fps},
+                                   headers=hdr, timeout=300).json()
+                    httpx.post(f"{url}/v1/sessions/{s['id']}/demo", headers=hdr, timeout=60).raise_for_status()
+                    page.goto(f"{url}/?{encoding}#session={s['id']}&token={s['viewer_token']}&encoding={encoding}")
+                    page.set_default_timeout(300_000)
+                    page.wait_for_function("window.facecast && window.facecast.viewer.stats.frames > 30")
+                    if args.scale is not None or args.shading:
+                        page.evaluate("(q) => facecast.setQuality(q)", {"scale": args.scale, "shading": args.shading})
+                    time.sleep(4)  # let the page's adaptation settle
+                    run = {"gl": gl, "flags": flags, "encoding": encoding, "ceiling": base,
+                           **sample(page, server.pid, args.seconds)}
+                    run["vertices"] = page.evaluate("facecast.renderer.mesh.V")
+                    run["triangles"] = page.evaluate("facecast.renderer.mesh.count / 3")
+                    run["render_scale"] = page.evaluate("facecast.renderer.scale")
+                    run["shading"] = page.evaluate("facecast.renderer.shading")
+                    run["canvas"] = page.evaluate("[facecast.renderer.canvas.width, facecast.renderer.canvas.height]")
+                    run["drawn_vs_clear_ceiling"] = run["drawn_fps"] / base["clear"]["fps"]
+                    if args.screenshot:
+                        args.screenshot.mkdir(parents=True, exist_ok=True)
+                        page.screenshot(path=str(args.screenshot / f"web_viewer_{gl}_{encoding}.png"))
+                    results["runs"].append(run)
+                    httpx.delete(f"{url}/v1/sessions/{s['id']}", headers=hdr, timeout=60)
+                browser.close()
     finally:
         server.terminate()
         server.wait(20)
+    results["load_average_end"] = os.getloadavg()
     out = ROOT / "bench" / "out"
     out.mkdir(parents=True, exist_ok=True)
     (out / "web_viewer.json").write_text(json.dumps(results, indent=2))
-    print(f"| stream | vertices | received fps | draw fps | draw / idle rAF ({results['raf_fps_idle']:.0f} fps) "
-          "| decode p50 ms | decode p95 ms | bytes/frame | render scale |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for enc in ("i16", "f32"):
-        r = results[enc]
-        print(f"| {enc} | {r['vertices']} | {r['received_fps']:.1f} | {r['draw_fps']:.1f} | {r['draw_vs_raf']:.2f} "
-              f"| {r['decode_ms_p50']} | {r['decode_ms_p95']:.2f} | {r['bytes_per_frame']} | {r['render_scale']:.2f} |")
+    print(f"ICT head, viewport {args.width}x{args.height}, session {args.fps:g} fps, {os.cpu_count()} CPUs, "
+          f"load average {results['load_average_start'][0]:.1f} -> {results['load_average_end'][0]:.1f}")
+    print("| GL | stream | canvas px (scale, lighting) | received fps | drawn fps (new frames) | raf fps "
+          "| idle / clear ceiling fps | drawn / clear | GPU-process CPU ms/frame (clear) | renderer ms/frame "
+          "| server CPU % | decode p50 / p95 ms |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in results["runs"]:
+        c = r["ceiling"]
+        print(f"| {r['gl']} | {r['encoding']} | {r['canvas'][0]}x{r['canvas'][1]} ({r['render_scale']:.2f}, {r['shading']}) "
+              f"| {r['received_fps']:.1f} | {r['drawn_fps']:.1f} | {r['raf_fps']:.1f} "
+              f"| {c['idle']['fps']:.0f} / {c['clear']['fps']:.0f} | {r['drawn_vs_clear_ceiling']:.2f} "
+              f"| {r['gpu_ms_per_frame']:.1f} ({c['clear']['gpu_ms_per_frame']:.1f}) | {r['renderer_ms_per_frame']:.1f} "
+              f"| {r['server_cpu_percent']:.0f} | {r['decode_ms_p50']:.2f} / {r['decode_ms_p95']:.2f} |")
     return 0
 
 

@@ -86,12 +86,19 @@ async function producer() {
 // ---- rendering ----------------------------------------------------------------------------------
 const renderer = new FaceRenderer($('view'));
 const viewer = new Viewer(renderer, { onStatus: setStatus });
+// Counters for the stats overlay and benchmarks: animation frames, canvas draws, and draws that
+// showed a new vertex frame (a draw is one presented canvas update: nothing is drawn off-frame).
+const counters = { rafs: 0, draws: 0, newFrameDraws: 0 };
 let dirty = true;
 function frameLoop() {
-  if (viewer.flush()) dirty = true;
+  counters.rafs++;
+  const fresh = viewer.flush();
+  if (fresh) dirty = true;
   if (dirty && renderer.mesh) {
     renderer.draw();
     dirty = false;
+    counters.draws++;
+    if (fresh) counters.newFrameDraws++;
     const now = performance.now();
     state.drawTimes.push(now);
     while (state.drawTimes.length && now - state.drawTimes[0] > 2000) state.drawTimes.shift();
@@ -100,14 +107,27 @@ function frameLoop() {
 }
 requestAnimationFrame(frameLoop);
 
-// Adaptive resolution: when frames arrive faster than the browser draws them, render fewer pixels
-// (down to half resolution); when it keeps up again, go back towards full resolution.
+// Adaptive quality when frames arrive faster than the browser draws them (software GL): first light
+// per vertex instead of per pixel (kept for the session), then render fewer pixels (down to half
+// resolution); when it keeps up again, go back towards full resolution.
+let adapt = true;
 setInterval(() => {
+  if (!adapt) return;
   const s = viewer.summary(), drawFps = state.drawTimes.length / 2;
-  if (s.fps > 5 && drawFps < 0.8 * s.fps && renderer.scale > 0.5) renderer.scale = Math.max(0.5, renderer.scale * 0.85);
-  else if (drawFps >= 0.95 * s.fps && renderer.scale < 1) renderer.scale = Math.min(1, renderer.scale * 1.1);
-  $('st-scale').textContent = `${Math.round(100 * renderer.scale)} %`;
+  if (s.fps > 5 && drawFps < 0.8 * s.fps) {
+    if (renderer.shading === 'pixel') renderer.shading = 'vertex';
+    else if (renderer.scale > 0.5) renderer.scale = Math.max(0.5, renderer.scale * 0.85);
+  } else if (drawFps >= 0.95 * s.fps && renderer.scale < 1) renderer.scale = Math.min(1, renderer.scale * 1.1);
+  $('st-scale').textContent = `${Math.round(100 * renderer.scale)} %${renderer.shading === 'vertex' ? ' · vertex lit' : ''}`;
 }, 1000);
+
+/** Fix the render quality (scale: drawing-buffer pixels per CSS pixel; shading 'pixel' | 'vertex'); stops adapting. */
+function setQuality({ scale, shading } = {}) {
+  adapt = false;
+  if (scale !== undefined && scale !== null) renderer.scale = scale;
+  if (shading) renderer.shading = shading;
+  $('st-scale').textContent = `${Math.round(100 * renderer.scale)} %${renderer.shading === 'vertex' ? ' · vertex lit' : ''} (fixed)`;
+}
 
 setInterval(() => {
   const s = viewer.summary();
@@ -227,4 +247,4 @@ $('mic').onclick = async () => {
 })();
 
 window.addEventListener('hashchange', () => location.reload());  // a new #session=…&token=… link
-window.facecast = { renderer, viewer, state, watch, newSession, api };
+window.facecast = { renderer, viewer, state, counters, setQuality, watch, newSession, api };
