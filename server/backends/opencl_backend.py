@@ -8,7 +8,11 @@ other devices the vertices are copied back from a resident buffer.
 
 One work-item deforms a *slice* of 16 consecutive vertices as float16 vectors: ``u = B·D``, plus
 the rest position, then its rigid transform (jaw, eyes, head), all in one kernel; batches loop
-over frames inside the kernel, so a slice's operator stays in L1 from frame to frame.
+over frames inside the kernel, so a slice's operator stays in L1 from frame to frame. The slice
+goes out as (V, 3) rows through a fixed 3x8 shuffle network; launches whose data outgrow half the
+last-level cache write with non-temporal stores (``STREAM_FRACTION``). Per frame the host sets only
+the launch's buffers (the other kernel arguments are set once). PoCL's worker threads are pinned
+one per CPU (``select.pin_pocl_workers``).
 
 Device format of a sparse operator (``pack_operator``): per slice, columns of 16 weights (one per
 vertex; three planes when the operator's axis columns differ, else one). A *shared* slice stores
@@ -520,6 +524,7 @@ class OpenCLDeformer:
         self._k_deform = cl.Kernel(self._program, "deform")
         self._k_deform_stream = cl.Kernel(self._program, "deform_stream")
         self._cache_bytes = int(self.device.global_mem_cache_size) if cpu else 0
+        self._resident_bytes = self.packed.nbytes + 12 * self.packed.n_padded  # operator and rest positions
         self._k_face_normals = cl.Kernel(self._program, "face_normals")
         self._k_vertex_normals = cl.Kernel(self._program, "vertex_normals")
         self._k_minmax = cl.Kernel(self._program, "minmax_partial")
@@ -650,8 +655,7 @@ class OpenCLDeformer:
             return False
         if (n_frames > 1 and (12 * self.n_vertices) % 32) or (out is not None and out.ctypes.data % 32):
             return False
-        data = self.packed.nbytes + 12 * self.packed.n_padded + n_frames * 12 * self.n_vertices
-        return data > STREAM_FRACTION * self._cache_bytes
+        return self._resident_bytes + n_frames * 12 * self.n_vertices > STREAM_FRACTION * self._cache_bytes
 
     def _launch_deform(self, n_frames: int, out_buf, stream: bool = False):
         """Enqueue the deform kernel (``deform_stream`` if ``stream``), setting only the per-launch
