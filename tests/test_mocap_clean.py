@@ -133,3 +133,16 @@ def test_clean_pipeline_counts(rng):
     assert np.isfinite(out).all()
     assert info["occluded"] == 20 and info["spikes"] == 1
     assert np.abs(out[200, 2] - sig[200]).max() < 2.0
+
+
+def test_neutral_stops_averaging_when_a_few_markers_move(rng):
+    """The neutral averages the still frames only: once the chin markers (a tenth of them) leave
+    the tolerance, later frames are not averaged in, even though the median marker is still."""
+    from facecast.server.mocap.driver import neutral_pose
+
+    still = rng.normal(size=(20, 3)) * 10
+    frames = np.repeat(still[None], 40, axis=0) + rng.normal(scale=0.05, size=(40, 20, 3))
+    frames[10:, :3, 1] -= np.linspace(1.5, 10.0, 30)[:, None]  # three markers (the jaw) move from frame 10
+    neutral = neutral_pose(frames, 0, 40, tolerance_mm=1.0)
+    np.testing.assert_allclose(neutral, still, atol=0.1)
+    assert np.allclose(neutral_pose(frames, 0, 5), frames[:5].mean(axis=0))

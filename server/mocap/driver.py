@@ -164,12 +164,14 @@ def process(
 
 def neutral_pose(local: np.ndarray, nf: int, window: int, tolerance_mm: float = 1.0) -> np.ndarray:
     """The actor's neutral ``(L, 3)``: frame ``nf`` of the markers, averaged with the following
-    frames (up to ``window``) whose median marker stays within ``tolerance_mm`` of it (an actor holds
-    the neutral for a moment; averaging removes what noise the filter left)."""
+    frames (up to ``window``) until one in which a tenth of the markers have left ``tolerance_mm``
+    of it (an actor holds the neutral for a moment; averaging removes what noise the filter left;
+    the 90th percentile, not the median, stops as soon as the jaw or the lips start to move)."""
     ref = local[nf]
     frames = [nf]
     for f in range(nf + 1, min(len(local), nf + max(window, 1))):
-        if np.nanmedian(np.linalg.norm(local[f] - ref, axis=1)) > tolerance_mm:
+        dist = np.linalg.norm(local[f] - ref, axis=1)
+        if np.isfinite(dist).any() and np.nanpercentile(dist, 90) > tolerance_mm:
             break
         frames.append(f)
     return np.nanmean(local[frames], axis=0)
