@@ -67,10 +67,11 @@ def test_render_take_to_fap_gives_jaw_and_head_faps(ict_take):
     assert any(f.get(53, 0) or f.get(6, 0) for f in faps)
 
 
-def test_render_take_to_npz_puts_the_markers_where_they_were(ict_take):
+@pytest.mark.parametrize("engine", ["fp", "shell"])
+def test_render_take_to_npz_puts_the_markers_where_they_were(ict_take, engine):
     face, mesh, syn, folder = ict_take
-    out = folder / "out.npz"
-    assert render_take(folder, mesh, out, "--backend", "numpy") == 0
+    out = folder / f"out-{engine}.npz"
+    assert render_take(folder, mesh, out, "--backend", "numpy", "--engine", engine) == 0
     with np.load(out) as z:
         verts = z["vertices"]
     assert verts.shape == (len(syn.take.xyz), face.n_vertices, 3)
