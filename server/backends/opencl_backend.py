@@ -102,6 +102,9 @@ def _deform_kernel(S: int, name: str, stream: bool) -> str:
                                  for i, h in enumerate((".lo", ".hi") if S == 16 else ("",)))
     tail = "\n        ".join(f"if ({i} < n) o[{i}] = {x};" for i, x in enumerate(inter))
     gathers = "\n            ".join(f"const float4 d{l} = D[id[{l}]];" for l in lanes)
+    # Non-temporal stores are weakly ordered: drain them before the work-group ends (on CPU
+    # devices, the only ones that stream, a work-group's items run in order on one thread).
+    fence = ("\n    if (get_local_id(0) + 1 == get_local_size(0)) STREAM_FENCE();" if stream else "")
     dx, dy, dz = (vec([f"d{l}.{c}" for l in lanes]) for c in "xyz")
     return f"""
 #ifndef SN
@@ -111,6 +114,11 @@ def _deform_kernel(S: int, name: str, stream: bool) -> str:
 #define VLOAD vload{S}
 #define VSTORE vstore{S}
 #define CONVERT_VI convert_int{S}
+#if defined(__x86_64__) || defined(__i386__)
+#define STREAM_FENCE() __builtin_ia32_sfence()
+#else
+#define STREAM_FENCE() mem_fence(CLK_GLOBAL_MEM_FENCE)
+#endif
 
 // (ox, oy, oz) = the 3x4 transform at T (4 float4 columns) applied to (px, py, pz).
 #define TRANSFORM(T, ox, oy, oz) do {{ \\
@@ -144,8 +152,7 @@ __kernel void {name}(const uint n_vertices,
 {{
     const uint s = get_global_id(0);
     const uint v0 = s * SN;
-    if (v0 >= n_vertices) return;
-    for (uint f = 0; f < n_frames; ++f) {{
+    for (uint f = 0; v0 < n_vertices && f < n_frames; ++f) {{
     __global const float4 *P = params + (size_t)f * pstride4;
     __global const float4 *D = P + 4 * n_groups;
     VF sx = (VF)(0.0f), sy = (VF)(0.0f), sz = (VF)(0.0f);  // u = B.D of the slice
@@ -222,7 +229,7 @@ __kernel void {name}(const uint n_vertices,
         const uint n = 3 * (n_vertices - v0);
         {tail}
     }}
-    }}
+    }}{fence}
 }}
 """
 
