@@ -658,11 +658,10 @@ class OpenCLDeformer:
     def _streams(self, n_frames: int, out: np.ndarray | None = None) -> bool:
         """Whether a launch writing ``n_frames`` frames (into ``out``, else the resident vertex
         buffer) uses non-temporal stores (see ``STREAM_FRACTION``; they need 32-byte aligned frames)."""
-        if not self._cache_bytes or self.n_vertices < self.packed.slice:
+        big = self._resident_bytes + n_frames * 12 * self.n_vertices > STREAM_FRACTION * self._cache_bytes
+        if not (big and self._cache_bytes) or self.n_vertices < self.packed.slice:
             return False
-        if (n_frames > 1 and (12 * self.n_vertices) % 32) or (out is not None and out.ctypes.data % 32):
-            return False
-        return self._resident_bytes + n_frames * 12 * self.n_vertices > STREAM_FRACTION * self._cache_bytes
+        return not ((n_frames > 1 and (12 * self.n_vertices) % 32) or (out is not None and out.ctypes.data % 32))
 
     def _launch_deform(self, n_frames: int, out_buf, stream: bool = False):
         """Enqueue the deform kernel (``deform_stream`` if ``stream``), setting only the per-launch
