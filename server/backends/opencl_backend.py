@@ -59,6 +59,7 @@ T_FLOATS = 16
 #: consumer).
 STREAM_FRACTION = 0.5
 
+
 def _aos_store8(x: str, y: str, z: str, o: str, stream: bool = False) -> str:
     """OpenCL C storing float8 ``x``, ``y``, ``z`` (8 vertices, SoA) as 24 AoS floats at ``o``: six
     in-lane shuffles and three 128-bit lane moves, 12 instructions with the stores (LLVM's lowering
