@@ -70,7 +70,7 @@ def encode_batch(
     Each encoding of each frame is written once, into a buffer that holds its WebSocket frame
     (header + payload): the bytes every viewer is sent, without further copies. With a
     ``quantizer`` the int16 frames are quantised on its device, all in one buffer (``verts``
-    must then be C-contiguous and ``quantize_cl.ALIGN``-aligned, as ``frame_buffer`` gives).
+    must then be C-contiguous and ``quantize_cl.ALIGN``-aligned, as the batcher's buffer is).
     """
     n = verts.shape[1]
     out: list[Encoded] = [{} for _ in jobs]
@@ -179,6 +179,8 @@ class DeformBatcher:
         self.frames = 0
         self._quantizer: DeviceQuantizer | None | bool = False  # False: not looked up yet
         self._local = threading.local()  # per drain thread: its buffer of deformed frames
+        if executor is not None:  # build the quantiser before the first frames need it
+            executor.submit(lambda: self.quantizer)
 
     def submit_nowait(
         self,
@@ -261,10 +263,8 @@ class DeformBatcher:
     @property
     def quantizer(self) -> DeviceQuantizer | None:
         """The device quantiser of the animator's deformer (built on first use), or None."""
-        if self._quantizer is False:
-            with self._lock:
-                if self._quantizer is False:
-                    self._quantizer = device_quantizer(self.animator.deformer)
+        if self._quantizer is False:  # (``device_quantizer`` builds one per context, locked)
+            self._quantizer = device_quantizer(self.animator.deformer)
         return self._quantizer  # type: ignore[return-value]
 
     def _frame_buffer(self, n: int) -> np.ndarray:
