@@ -179,3 +179,29 @@ def test_numpy_and_opencl_agree(head, rng):
         T[1, :, 3] = [0.0, -0.5, 0.2]
         scale = float(np.abs(face.vertices).max())
         np.testing.assert_allclose(dev.deform(D, T), ref.deform(D, T), rtol=0, atol=scale * 2e-6 + 1e-5)
+
+
+@pytest.mark.slow
+def test_ict_lips_are_not_coupled_across_the_slit(data_dir):
+    """On the ICT head only the lower lip's markers move: the upper lip stays, the socket follows."""
+    from facecast.server.faces import load_face
+    from facecast.server.mpeg4 import fap_controls
+
+    face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
+    fps, vertex_ids, _ = fap_controls(face)
+    op = get_operator(face, vertex_ids, engine="shell")
+    lower = [i for i, f in enumerate(fps) if set(f.split("+")) & {"8.2", "8.7", "8.8", "2.3", "2.8", "2.9"}]
+    D = np.zeros((len(vertex_ids), 3), np.float32)
+    D[lower, 1] = -1.0 / face.mm_per_unit  # 1 mm down
+    u = op.apply(D) * face.mm_per_unit
+    v = face.vertices
+    mouth = (face.fp_position("8.1") + face.fp_position("8.2")) / 2
+    width = np.linalg.norm(face.fp_position("8.3") - face.fp_position("8.4"))
+    skin = face.part("skin")
+    lips = skin[(np.abs(v[skin, 0] - mouth[0]) < 0.25 * width) & (np.abs(v[skin, 1] - mouth[1]) < 0.3 * width)
+                & (v[skin, 2] > mouth[2] - 0.3 * width)]
+    upper, below = lips[v[lips, 1] > face.fp_position("2.2")[1]], lips[v[lips, 1] < face.fp_position("2.3")[1]]
+    assert len(upper) > 20 and len(below) > 20
+    assert np.abs(u[upper]).max() < 0.1
+    assert -u[below, 1].mean() > 0.5
+    assert np.all(u[~face.deformable] == 0)
