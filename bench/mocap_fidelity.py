@@ -42,7 +42,12 @@ def main(argv: list[str]) -> int:
     a = p.parse_args(argv)
 
     from facecast.server.mocap.driver import process
-    from facecast.server.mocap.generate import generated_take, load_expressions, load_ict, truth_vertices
+    from facecast.server.mocap.generate import (
+        generated_take,
+        load_expressions,
+        load_ict,
+        truth_vertices,
+    )
     from facecast.server.pipeline import Animator
     from facecast.server.state import FaceState
 

@@ -19,7 +19,7 @@ def test_technician_layout_follows_the_sheet(ict):
     from facecast.server.mocap.generate import TECHNICIAN_LAYOUT, choose_markers
 
     face, deltas = ict
-    names, verts, spec, stable = choose_markers(face, deltas, 60, 5, "technician")
+    names, verts, spec, _ = choose_markers(face, deltas, 60, 5, "technician")
     assert len(names) == len(set(names)) == 60 and len(set(verts.tolist())) == 60
     assert np.isin(verts, face.part("skin")).all()
     sheet = [n for n, _ in TECHNICIAN_LAYOUT]

@@ -210,7 +210,7 @@ def technician_markers(face: Face, budget: int, taken: list[int]) -> tuple[list[
     names: list[str] = []
     verts: list[int] = []
     spec: dict[str, dict] = {}
-    used = set(int(t) for t in taken)
+    used = {int(t) for t in taken}
     for name, where in TECHNICIAN_LAYOUT:
         if len(names) >= budget:
             break
