@@ -11,7 +11,11 @@ Latency is end to end: viewer receive wall time minus the producer's send wall t
 frame (same machine, same clock). Per point it reports the sustained frame rate per viewer (mean and
 minimum), latency p50/p95/max, frames skipped (gaps in ``seq``), the server's mean deform+encode
 time per frame, and CPU seconds per second of the server process and of this (client) process:
-that is where the time goes. The baseline is the first point of each sweep (one session, one
+that is where the time goes. Server CPU is also given per delivered frame and per *session-frame*
+(a frame deformed and encoded once, whatever its viewers): robust to a shared machine's load,
+where frame rates and latencies are not. The in-process part also measures the live worker's
+whole job per frame (solve + deform + encode, CPU of all threads) in batches of 1 and 20, with
+int16 quantisation on the OpenCL device and in NumPy. The baseline is the first point of each sweep (one session, one
 viewer), measured in the same run; ``*_ratio`` columns compare against it. In-process costs of
 one frame (rig solve, deformation, int16/float32 encoding, decoding) are measured first.
 
@@ -590,6 +594,7 @@ def run(args: argparse.Namespace) -> int:
     logging.getLogger("httpx").setLevel(logging.WARNING)
     _VIEWER_OPTS.update(rcvbuf=args.viewer_rcvbuf, queue=args.viewer_queue)
     t_start = time.time()
+    load_before = os.getloadavg()
     costs = frame_costs(args.face, args.backend)
     log.info("in-process costs per frame: %s", costs)
     server = None
@@ -636,6 +641,7 @@ def run(args: argparse.Namespace) -> int:
         "latency_target_ms": args.latency_target,
         **res,
         "cpus": os.cpu_count(),
+        "loadavg_before": [round(x, 2) for x in load_before],
         "loadavg_after": [round(x, 2) for x in load],
         "seconds_total": round(time.time() - t_start, 1),
         "note": "loopback, server and all clients on this machine; the machine may be shared (see loadavg)",
@@ -686,7 +692,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"\nServer CPU per frame, direct / ASGI: {ratios}")
     print(
         f"\nTarget: every viewer ≥ {0.95 * args.fps:g} fps and p95 ≤ {args.latency_target:g} ms. "
-        f"CPU columns are CPU-seconds per second (2.0 = two cores busy). Load average after: {load[0]:.2f} "
+        f"CPU columns are CPU-seconds per second (2.0 = two cores busy). Load average before/after: {load_before[0]:.2f}/{load[0]:.2f} "
         f"on {os.cpu_count()} CPUs. JSON: {args.out}"
     )
     args.out.write_text(json.dumps(report, indent=2))
