@@ -11,7 +11,6 @@ import httpx
 import numpy as np
 import pytest
 import websockets
-
 from facecast.server.faces import load_face
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -202,3 +201,87 @@ def test_playing_an_uploaded_speech_file_moves_the_lips_with_sound(server, brows
     page.screenshot(path=str(artifacts / "web_play_speech.png"))
     assert not problems, problems
     page.close()
+
+
+#: Render the current frame twice in one task: as drawn (back faces culled on closed surfaces) and
+#: with every triangle drawn unculled, or with per-pixel and per-vertex lighting. Returns pixel
+#: statistics: `face` the fraction of pixels unlike the background, `differ` the fraction that differ
+#: between the two pictures by more than 24 levels, `mad` the mean absolute difference over the face,
+#: `mid` the second picture's mean RGB in the middle, `spread` its largest per-channel deviation.
+TWO_RENDERS_JS = """([what, yaw, pitch]) => {
+  const r = facecast.renderer, gl = r.gl, m = r.mesh, groups = m.groups, shading = r.shading;
+  r.camera.yaw = yaw; r.camera.pitch = pitch;
+  const grab = (variant) => {
+    if (what === 'cull') m.groups = variant ? groups : [{ first: 0, count: m.count, cull: false }];
+    else r.shading = variant ? 'vertex' : 'pixel';
+    r.draw();
+    const px = new Uint8Array(4 * r.canvas.width * r.canvas.height);
+    gl.readPixels(0, 0, r.canvas.width, r.canvas.height, gl.RGBA, gl.UNSIGNED_BYTE, px);
+    m.groups = groups; r.shading = shading;
+    return px;
+  };
+  const a = grab(false), b = grab(true), W = r.canvas.width, H = r.canvas.height, n = W * H;
+  let face = 0, differ = 0, sad = 0; const mid = [0, 0, 0], sum = [0, 0, 0], sq = [0, 0, 0]; let k = 0;
+  for (let i = 0; i < 4 * n; i += 4) {
+    let d = 0, bg = 0;
+    for (let c = 0; c < 3; c++) { d = Math.max(d, Math.abs(a[i + c] - b[i + c])); bg = Math.max(bg, Math.abs(a[i + c] - a[c])); }
+    if (d > 24) differ++;
+    if (bg > 8) {
+      face++;
+      for (let c = 0; c < 3; c++) { sad += Math.abs(a[i + c] - b[i + c]) / 3; sum[c] += b[i + c]; sq[c] += b[i + c] ** 2; }
+    }
+    const x = (i / 4) % W, y = Math.floor(i / 4 / W);
+    if (Math.abs(x - W / 2) < 10 && Math.abs(y - H / 2) < 10) { for (let c = 0; c < 3; c++) mid[c] += b[i + c]; k++; }
+  }
+  const spread = Math.max(...sum.map((s, c) => Math.sqrt(sq[c] / face - (s / face) ** 2)));
+  return { face: face / n, differ: differ / n, mad: sad / face, mid: mid.map((x) => x / k), spread };
+}"""
+
+
+@pytest.fixture(scope="module")
+def face_page(server, browser):
+    page, problems = open_page(browser, server.url + "/")
+    wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
+    page.evaluate("facecast.setQuality({ scale: 0.5 })")  # small readbacks; fixed, no adaptation
+    yield page, problems
+    page.close()
+
+
+def test_draw_order_keeps_every_triangle_once_with_the_two_sided_sheets_last(face_page):
+    page, _ = face_page
+    r = page.evaluate("""async () => {
+      const { drawOrder } = await import('/static/js/renderer.js');
+      const tris = new Uint32Array([0, 1, 2, 2, 3, 4, 4, 5, 6, 6, 7, 0]);
+      const partIds = new Uint8Array([0, 1, 2, 0, 1, 2, 0, 1]), names = ['skin', 'eyelashes', 'teeth_upper'];
+      const { order, groups } = drawOrder(tris, partIds, names);
+      return { order: Array.from(order), groups };
+    }""")
+    tris = [tuple(r["order"][i:i + 3]) for i in range(0, 12, 3)]
+    assert sorted(tris) == sorted([(0, 1, 2), (2, 3, 4), (4, 5, 6), (6, 7, 0)])
+    # skin (0,1,2), (6,7,0) and the interior teeth (2,3,4) culled; the eyelash sheet (4,5,6) last, unculled
+    assert tris[-1] == (4, 5, 6)
+    assert r["groups"] == [{"first": 0, "count": 9, "cull": True}, {"first": 9, "count": 3, "cull": False}]
+
+
+def test_back_face_culling_leaves_the_picture_unchanged(face_page):
+    page, problems = face_page
+    for yaw, pitch in [(0.35, 0.08), (-1.2, -0.3), (2.8, 0.2)]:
+        r = page.evaluate(TWO_RENDERS_JS, ["cull", yaw, pitch])
+        assert r["face"] > 0.05, f"nothing drawn at yaw {yaw}"
+        assert r["differ"] < 0.002, f"culling changed {100 * r['differ']:.2f} % of the pixels at yaw {yaw}"
+    assert not problems, problems
+
+
+def test_per_vertex_lighting_draws_the_same_lit_face(face_page, artifacts):
+    page, problems = face_page
+    r = page.evaluate(TWO_RENDERS_JS, ["shading", 0.35, 0.08])
+    assert r["face"] > 0.05, "nothing drawn"
+    mid = r["mid"]
+    assert mid[0] > mid[2] + 30, f"no lit skin in the middle with per-vertex lighting: {mid}"
+    # Same lights and colours, only interpolated differently: close on average, shaded (not flat).
+    assert r["mad"] < 12, r
+    assert r["spread"] > 10, r
+    page.evaluate("facecast.setQuality({ shading: 'vertex' }); facecast.renderer.draw()")
+    page.screenshot(path=str(artifacts / "web_vertex_lighting.png"))
+    page.evaluate("facecast.setQuality({ shading: 'pixel' })")
+    assert not problems, problems
