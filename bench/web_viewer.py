@@ -201,6 +201,8 @@ def main() -> int:
                     time.sleep(4)  # let the page's adaptation settle
                     run = {"gl": gl, "flags": flags, "encoding": encoding, "ceiling": base,
                            **sample(page, server.pid, args.seconds)}
+                    summary = page.evaluate("facecast.viewer.summary()")  # latency: frame sent -> in the page
+                    run["latency_ms_p50"], run["latency_ms_p95"] = summary["latencyP50"], summary["latencyP95"]
                     run["vertices"] = page.evaluate("facecast.renderer.mesh.V")
                     run["triangles"] = page.evaluate("facecast.renderer.mesh.count / 3")
                     run["render_scale"] = page.evaluate("facecast.renderer.scale")
@@ -224,15 +226,16 @@ def main() -> int:
           f"load average {results['load_average_start'][0]:.1f} -> {results['load_average_end'][0]:.1f}")
     print("| GL | stream | canvas px (scale, lighting) | received fps | drawn fps (new frames) | raf fps "
           "| idle / clear ceiling fps | drawn / clear | GPU-process CPU ms/frame (clear) | renderer ms/frame "
-          "| server CPU % | decode p50 / p95 ms |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| server CPU % | latency p50 / p95 ms | decode p50 / p95 ms |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in results["runs"]:
         c = r["ceiling"]
         print(f"| {r['gl']} | {r['encoding']} | {r['canvas'][0]}x{r['canvas'][1]} ({r['render_scale']:.2f}, {r['shading']}) "
               f"| {r['received_fps']:.1f} | {r['drawn_fps']:.1f} | {r['raf_fps']:.1f} "
               f"| {c['idle']['fps']:.0f} / {c['clear']['fps']:.0f} | {r['drawn_vs_clear_ceiling']:.2f} "
               f"| {r['gpu_ms_per_frame']:.1f} ({c['clear']['gpu_ms_per_frame']:.1f}) | {r['renderer_ms_per_frame']:.1f} "
-              f"| {r['server_cpu_percent']:.0f} | {r['decode_ms_p50']:.2f} / {r['decode_ms_p95']:.2f} |")
+              f"| {r['server_cpu_percent']:.0f} | {r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} "
+              f"| {r['decode_ms_p50']:.2f} / {r['decode_ms_p95']:.2f} |")
     return 0
 
 
