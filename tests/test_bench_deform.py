@@ -20,6 +20,7 @@ def test_records_per_backend_and_size_with_the_faster_copy_as_bound(capsys):
     singles = [r for r in records if not r["backend"].endswith("-batch")]
     assert {r["backend"] for r in singles} >= {"numpy", "scipy"}
     for r in singles:
+        assert "loadavg_1min" in r
         for key in ("ms_per_frame", "bytes_per_frame", "bandwidth_bound_ms"):
             assert r[key] > 0, (r["backend"], key)
         assert r["x_bound"] == pytest.approx(r["ms_per_frame"] / r["bandwidth_bound_ms"], rel=0.02, abs=0.01)

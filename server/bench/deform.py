@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import time
 
 import numpy as np
@@ -293,7 +294,8 @@ def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, fra
                     dev_copies[name] += _times(meters[name].device_copy, n)
 
     records = []
-    base = {"vertices": V, "controls": K, "nnz": op.nnz, "face": face_kind, "operator": op_kind}
+    base = {"vertices": V, "controls": K, "nnz": op.nnz, "face": face_kind, "operator": op_kind,
+            "loadavg_1min": _loadavg()}  # the machine may be shared: how busy it was
     scipy_ms = 1e3 * float(np.median(times["scipy"])) if "scipy" in times else None
     for name, (_, nbytes, extra) in runners.items():
         ms = 1e3 * float(np.median(times[name]))
@@ -320,6 +322,14 @@ def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, fra
         n_batch = max(1, min(batch_frames, BATCH_MAX_BYTES // (12 * V)))
         records += _batch_records(face, op, runners, cl_def, Ds, Ts, n_batch, base, records)
     return records
+
+
+def _loadavg() -> float | None:
+    """The 1-minute load average (None where the OS has none)."""
+    try:
+        return round(os.getloadavg()[0], 2)
+    except (AttributeError, OSError):
+        return None
 
 
 def _breakdown(cl_def, D: np.ndarray, T: np.ndarray, frames: int) -> dict:
@@ -422,6 +432,10 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(records, indent=1))
     else:
         print(markdown_table(records))
+        load = _loadavg()
+        if load is not None:
+            print(f"\nLoad average (1 min) after: {load} on {os.cpu_count()} CPUs (work by other "
+                  "processes raises the medians; each record has loadavg_1min).")
     return 0
 
 
