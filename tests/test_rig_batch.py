@@ -146,3 +146,45 @@ def test_batcher_fails_a_bad_state_alone_and_renders_the_others_exactly(face, rn
         frame = fr.decode(encoded["f32"][0])
         assert frame.header.seq == i and seconds >= 0
         np.testing.assert_array_equal(frame.positions(), animator.frame(states[i]))
+
+
+def test_a_coalescing_batcher_waits_for_the_other_sessions_frame(face, rng, monkeypatch):
+    import facecast.server.live.batcher as batcher_mod
+    from facecast.server.pipeline import Animator
+
+    monkeypatch.setattr(batcher_mod, "ACTIVE_WINDOW", 60.0)
+    animator = Animator(face, backend="numpy")
+    states = _random_states(rng, 4)
+
+    class Session:  # the batcher tells sessions apart by their bound ``done`` methods
+        def __init__(self) -> None:
+            self.results: list = []
+            self.arrived = asyncio.Event()
+
+        def done(self, result) -> None:
+            self.results.append(result)
+            self.arrived.set()
+
+    async def go():
+        batcher = DeformBatcher(animator, ThreadPoolExecutor(1))
+        batcher.coalesce = (
+            30.0  # longer than the test: only the second session's frame ends the wait
+        )
+        a, b = Session(), Session()
+        enc = frozenset({"f32"})
+        batcher.submit_nowait(states[0], seq=0, wall=0.0, encodings=enc, done=a.done)
+        batcher.submit_nowait(states[1], seq=1, wall=0.0, encodings=enc, done=b.done)
+        await asyncio.wait_for(asyncio.gather(a.arrived.wait(), b.arrived.wait()), 60)
+        a.arrived.clear()
+        b.arrived.clear()
+        batcher.submit_nowait(states[2], seq=2, wall=0.0, encodings=enc, done=a.done)
+        await asyncio.sleep(0.3)  # a drain that did not wait would deform frame 2 alone now
+        assert not a.arrived.is_set()
+        batcher.submit_nowait(states[3], seq=3, wall=0.0, encodings=enc, done=b.done)
+        await asyncio.wait_for(asyncio.gather(a.arrived.wait(), b.arrived.wait()), 60)
+        return batcher, a, b
+
+    batcher, a, b = asyncio.run(go())
+    assert batcher.batches == 2 and batcher.frames == 4
+    got = [fr.decode(r[0]["f32"][0]) for r in a.results + b.results]
+    assert sorted(f.header.seq for f in got) == [0, 1, 2, 3]
