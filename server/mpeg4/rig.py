@@ -280,7 +280,8 @@ class FapRig:
 
     def solve_reference(self, state) -> tuple[np.ndarray, np.ndarray]:
         """``solve`` one state at a time, written plainly: the reference ``solve_batch`` matches
-        bit for bit (tests check it; about 10x slower per state)."""
+        bit for bit, up to the sign of a zero (tests check it); 10x slower per state than
+        ``solve_batch`` in batches of 20."""
         faps = self.faps(state)
         local = self.local_transforms(faps)
         H = self.head_transform(state, faps)
