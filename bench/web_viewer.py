@@ -17,7 +17,7 @@ Chromium GPU process (where software GL rasterises) and the page's renderer proc
 bench/out/web_viewer.json and prints a markdown table.
 
     python bench/web_viewer.py [--seconds 8] [--gl llvmpipe,swiftshader] [--scale S] [--shading vertex]
-                               [--width 1280 --height 720] [--chromium-arg ARG] [--screenshot DIR]
+                               [--lod 0|1] [--width 1280 --height 720] [--chromium-arg ARG] [--screenshot DIR]
 """
 from __future__ import annotations
 
@@ -159,6 +159,8 @@ def main() -> int:
                     help="fix renderer.scale (drawing-buffer pixels per CSS pixel); default: the page adapts it")
     ap.add_argument("--shading", choices=("pixel", "vertex"), default=None,
                     help="fix the lighting (default: the page adapts: per pixel, per vertex when it falls behind)")
+    ap.add_argument("--lod", type=int, choices=(0, 1), default=None,
+                    help="fix the level of detail (0: every triangle, 1: the coarse level; default: the page adapts)")
     ap.add_argument("--chromium-arg", action="append", default=[], help="extra Chromium switch (repeatable)")
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
@@ -196,15 +198,19 @@ def main() -> int:
                     page.goto(f"{url}/?{encoding}#session={s['id']}&token={s['viewer_token']}&encoding={encoding}")
                     page.set_default_timeout(300_000)
                     page.wait_for_function("window.facecast && window.facecast.viewer.stats.frames > 30")
-                    if args.scale is not None or args.shading:
-                        page.evaluate("(q) => facecast.setQuality(q)", {"scale": args.scale, "shading": args.shading})
+                    if args.scale is not None or args.shading or args.lod is not None:
+                        page.evaluate("(q) => facecast.setQuality(q)",
+                                      {"scale": args.scale, "shading": args.shading, "lod": args.lod})
                     time.sleep(4)  # let the page's adaptation settle
                     run = {"gl": gl, "flags": flags, "encoding": encoding, "ceiling": base,
                            **sample(page, server.pid, args.seconds)}
                     summary = page.evaluate("facecast.viewer.summary()")  # latency: frame sent -> in the page
                     run["latency_ms_p50"], run["latency_ms_p95"] = summary["latencyP50"], summary["latencyP95"]
                     run["vertices"] = page.evaluate("facecast.renderer.mesh.V")
+                    run["lod"] = page.evaluate("facecast.renderer.lod")
                     run["triangles"] = page.evaluate("facecast.renderer.mesh.count / 3")
+                    run["triangles_drawn"] = page.evaluate(
+                        "(facecast.renderer.lod ? facecast.renderer.coarseLevel() : facecast.renderer.mesh).count / 3")
                     run["render_scale"] = page.evaluate("facecast.renderer.scale")
                     run["shading"] = page.evaluate("facecast.renderer.shading")
                     run["canvas"] = page.evaluate("[facecast.renderer.canvas.width, facecast.renderer.canvas.height]")
@@ -224,13 +230,14 @@ def main() -> int:
     (out / "web_viewer.json").write_text(json.dumps(results, indent=2))
     print(f"ICT head, viewport {args.width}x{args.height}, session {args.fps:g} fps, {os.cpu_count()} CPUs, "
           f"load average {results['load_average_start'][0]:.1f} -> {results['load_average_end'][0]:.1f}")
-    print("| GL | stream | canvas px (scale, lighting) | received fps | drawn fps (new frames) | raf fps "
+    print("| GL | stream | canvas px (scale, lighting) | triangles drawn | received fps | drawn fps (new frames) | raf fps "
           "| idle / clear ceiling fps | drawn / clear | GPU-process CPU ms/frame (clear) | renderer ms/frame "
           "| server CPU % | latency p50 / p95 ms | decode p50 / p95 ms |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in results["runs"]:
         c = r["ceiling"]
         print(f"| {r['gl']} | {r['encoding']} | {r['canvas'][0]}x{r['canvas'][1]} ({r['render_scale']:.2f}, {r['shading']}) "
+              f"| {r['triangles_drawn']:.0f} of {r['triangles']:.0f} "
               f"| {r['received_fps']:.1f} | {r['drawn_fps']:.1f} | {r['raf_fps']:.1f} "
               f"| {c['idle']['fps']:.0f} / {c['clear']['fps']:.0f} | {r['drawn_vs_clear_ceiling']:.2f} "
               f"| {r['gpu_ms_per_frame']:.1f} ({c['clear']['gpu_ms_per_frame']:.1f}) | {r['renderer_ms_per_frame']:.1f} "

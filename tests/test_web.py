@@ -204,7 +204,8 @@ def test_playing_an_uploaded_speech_file_moves_the_lips_with_sound(server, brows
 
 
 #: Render the current frame twice in one task: as drawn (back faces culled on closed surfaces) and
-#: with every triangle drawn unculled, or with per-pixel and per-vertex lighting. Returns pixel
+#: with every triangle drawn unculled, or with per-pixel and per-vertex lighting, or at full and
+#: coarse level of detail. Returns pixel
 #: statistics: `face` the fraction of pixels unlike the background, `differ` the fraction that differ
 #: between the two pictures by more than 24 levels, `mad` the mean absolute difference over the face,
 #: `mid` the second picture's mean RGB in the middle, `spread` its largest per-channel deviation.
@@ -213,11 +214,12 @@ TWO_RENDERS_JS = """([what, yaw, pitch]) => {
   r.camera.yaw = yaw; r.camera.pitch = pitch;
   const grab = (variant) => {
     if (what === 'cull') m.groups = variant ? groups : [{ first: 0, count: m.count, cull: false }];
+    else if (what === 'lod') r.lod = variant ? 1 : 0;
     else r.shading = variant ? 'vertex' : 'pixel';
     r.draw();
     const px = new Uint8Array(4 * r.canvas.width * r.canvas.height);
     gl.readPixels(0, 0, r.canvas.width, r.canvas.height, gl.RGBA, gl.UNSIGNED_BYTE, px);
-    m.groups = groups; r.shading = shading;
+    m.groups = groups; r.shading = shading; r.lod = 0;
     return px;
   };
   const a = grab(false), b = grab(true), W = r.canvas.width, H = r.canvas.height, n = W * H;
@@ -284,4 +286,40 @@ def test_per_vertex_lighting_draws_the_same_lit_face(face_page, artifacts):
     page.evaluate("facecast.setQuality({ shading: 'vertex' }); facecast.renderer.draw()")
     page.screenshot(path=str(artifacts / "web_vertex_lighting.png"))
     page.evaluate("facecast.setQuality({ shading: 'pixel' })")
+    assert not problems, problems
+
+
+def test_coarsening_keeps_openings_open_and_fine_parts_whole(face_page):
+    page, _ = face_page
+    r = page.evaluate("""async () => {
+      const { coarsen } = await import('/static/js/renderer.js');
+      // Two 6x6-vertex grids side by side (part 0 and part 1), not joined: an opening between them.
+      const tris = [], partIds = new Uint8Array(72);
+      for (let p = 0; p < 2; p++) for (let y = 0; y < 5; y++) for (let x = 0; x < 5; x++) {
+        const v = 36 * p + 6 * y + x;
+        tris.push(v, v + 1, v + 7, v, v + 7, v + 6);
+        if (p) partIds[v] = partIds[v + 1] = partIds[v + 6] = partIds[v + 7] = 1;
+      }
+      const all = coarsen(Uint32Array.from(tris), 72, partIds);
+      const keep1 = coarsen(Uint32Array.from(tris), 72, partIds, [false, true]);
+      return { all: Array.from(all), keep1: Array.from(keep1) };
+    }""")
+    tris = np.array(r["all"]).reshape(-1, 3)
+    assert 0 < len(tris) < 100 * 0.6, f"{len(tris)} of 100 triangles"
+    assert all(len(set(t)) == 3 for t in tris.tolist()), "degenerate triangles left"
+    assert not any((t < 36).any() and (t >= 36).any() for t in tris), "the two grids were welded together"
+    kept = np.array(r["keep1"]).reshape(-1, 3)
+    assert (kept >= 36).all(axis=1).sum() == 50, "the kept part lost triangles"
+    assert (kept < 36).all(axis=1).sum() == (tris < 36).all(axis=1).sum()
+
+
+def test_the_coarse_level_draws_the_same_lit_face(face_page, artifacts):
+    page, problems = face_page
+    r = page.evaluate(TWO_RENDERS_JS, ["lod", 0.35, 0.08])
+    assert r["face"] > 0.05, "nothing drawn"
+    assert r["mid"][0] > r["mid"][2] + 30, f"no lit skin in the middle at the coarse level: {r['mid']}"
+    assert r["differ"] < 0.05, f"the coarse level changed {100 * r['differ']:.1f} % of the pixels"
+    page.evaluate("facecast.setQuality({ lod: 1 }); facecast.renderer.draw()")
+    page.screenshot(path=str(artifacts / "web_coarse_level.png"))
+    page.evaluate("facecast.setQuality({ lod: 0 })")
     assert not problems, problems

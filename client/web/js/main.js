@@ -107,39 +107,35 @@ function frameLoop() {
 }
 requestAnimationFrame(frameLoop);
 
-// Adaptive quality when frames arrive faster than the browser draws them (software GL): first light
-// per vertex instead of per pixel (kept for the session), then render fewer pixels (down to half
-// resolution); when it keeps up again, go back towards full resolution.
+// Adaptive quality when frames arrive faster than the browser draws them (software GL), one step a
+// second, each kept for the session: light per vertex instead of per pixel, then draw the coarse
+// level of detail (about half the triangles; eyes and teeth kept whole), then render fewer pixels
+// (down to half resolution); when it keeps up again, go back towards full resolution.
 let adapt = true;
+const qualityText = () => `${Math.round(100 * renderer.scale)} %${renderer.shading === 'vertex' ? ' · vertex lit' : ''}`
+  + `${renderer.lod ? ' · coarse' : ''}${adapt ? '' : ' (fixed)'}`;
 setInterval(() => {
   if (!adapt) return;
   const s = viewer.summary(), drawFps = state.drawTimes.length / 2;
   if (s.fps > 5 && drawFps < 0.8 * s.fps) {
     if (renderer.shading === 'pixel') renderer.shading = 'vertex';
+    else if (!renderer.lod) renderer.lod = 1;
     else if (renderer.scale > 0.5) renderer.scale = Math.max(0.5, renderer.scale * 0.85);
   } else if (drawFps >= 0.95 * s.fps && renderer.scale < 1) renderer.scale = Math.min(1, renderer.scale * 1.1);
-  $('st-scale').textContent = `${Math.round(100 * renderer.scale)} %${renderer.shading === 'vertex' ? ' · vertex lit' : ''}`;
+  $('st-scale').textContent = qualityText();
 }, 1000);
 
-/** Fix the render quality (scale: drawing-buffer pixels per CSS pixel; shading 'pixel' | 'vertex'); stops adapting. */
-function setQuality({ scale, shading } = {}) {
+/**
+ * Fix the render quality and stop adapting: scale (drawing-buffer pixels per CSS pixel), shading
+ * ('pixel' | 'vertex'), lod (0: every triangle, 1: the coarse level).
+ */
+function setQuality({ scale, shading, lod } = {}) {
   adapt = false;
   if (scale !== undefined && scale !== null) renderer.scale = scale;
   if (shading) renderer.shading = shading;
-  $('st-scale').textContent = `${Math.round(100 * renderer.scale)} %${renderer.shading === 'vertex' ? ' · vertex lit' : ''} (fixed)`;
+  if (lod !== undefined && lod !== null) renderer.lod = lod;
+  $('st-scale').textContent = qualityText();
 }
-
-setInterval(() => {
-  const s = viewer.summary();
-  const ms = (x) => (Number.isFinite(x) ? `${x.toFixed(x < 10 ? 2 : 0)} ms` : '–');
-  $('st-fps').textContent = s.fps.toFixed(1);
-  $('st-lat').textContent = `${ms(s.latencyP50)} / ${ms(s.latencyP95)}`;
-  $('st-bytes').textContent = s.bytes ? `${(s.bytes / 1024).toFixed(1)} KiB` : '–';
-  $('st-drop').textContent = String(s.dropped);
-  $('st-decode').textContent = ms(s.decodeMs);
-  $('st-draw').textContent = (state.drawTimes.length / 2).toFixed(1);
-  window.facecastStats = { ...s, drawFps: state.drawTimes.length / 2 };
-}, 500);
 
 // ---- controls -----------------------------------------------------------------------------------
 renderer.camera.attach(renderer.canvas, () => { dirty = true; });

@@ -148,6 +148,8 @@ export class FaceRenderer {
     this.loc = ATTR;
     /** 'pixel' (lit per fragment) or 'vertex' (lit per vertex: far fewer shader runs in software GL). */
     this.shading = 'pixel';
+    /** Level of detail: 0 draws every triangle, 1 a coarser mesh over the same, animated vertices (see coarsen). */
+    this.lod = 0;
     this.mesh = null;
     this.camera = new OrbitCamera();
     this.scale = 1;  // < 1 renders fewer pixels (the browser scales the canvas up)
@@ -177,7 +179,8 @@ export class FaceRenderer {
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ibo);
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, order, gl.STATIC_DRAW);
     this.normals = new VertexNormals(triangles, V);
-    this.mesh = { vao, f32, i16, nrm, color, V, count: triangles.length, groups, quantized: false,
+    this.mesh = { vao, ibo, f32, i16, nrm, color, V, count: triangles.length, groups, partIds, partNames, coarse: null,
+                  quantized: false,
                   offset: [0, 0, 0], scale: [1, 1, 1], positions: new Float32Array(rest) };
     this.updateNormals(rest);
     let lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
@@ -225,6 +228,20 @@ export class FaceRenderer {
     return [(x / w + 1) / 2 * c.clientWidth, (1 - y / w) / 2 * c.clientHeight];
   }
 
+  /** The coarse level's index buffer and draw groups (built on first use). */
+  coarseLevel() {
+    const gl = this.gl, m = this.mesh;
+    if (!m.coarse) {
+      const keep = m.partNames.map((n) => FINE.test(n));
+      const { order, groups } = drawOrder(coarsen(this.normals.tri, m.V, m.partIds, keep), m.partIds, m.partNames);
+      const ibo = gl.createBuffer();
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ibo);
+      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, order, gl.STATIC_DRAW);
+      m.coarse = { ibo, groups, count: order.length };
+    }
+    return m.coarse;
+  }
+
   updateNormals(positions) {
     const n = this.normals.compute(positions, null);
     this.gl.bindBuffer(this.gl.ARRAY_BUFFER, this.mesh.nrm);
@@ -257,7 +274,9 @@ export class FaceRenderer {
     gl.uniform3fv(loc.u_scale, m.scale);
     // Closed surfaces with back faces culled (about half their triangles never reach the
     // rasteriser), then the open single-sided sheets (lashes, eye extras, sockets) seen from both sides.
-    for (const g of m.groups) {
+    const level = this.lod ? this.coarseLevel() : m;
+    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, level.ibo);
+    for (const g of level.groups) {
       if (g.cull) gl.enable(gl.CULL_FACE); else gl.disable(gl.CULL_FACE);
       gl.drawElements(gl.TRIANGLES, g.count, gl.UNSIGNED_INT, 4 * g.first);
     }
@@ -288,6 +307,46 @@ export function drawOrder(triangles, partIds, partNames) {
   const groups = [{ first: 0, count: 3 * (counts[0] + counts[1]), cull: true },
                   { first: 3 * (counts[0] + counts[1]), count: 3 * counts[2], cull: false }];
   return { order, groups: groups.filter((g) => g.count > 0) };
+}
+
+/** Small parts whose shape matters more than their triangle count: never coarsened. */
+const FINE = /^(teeth|eye_l|eye_r|iris|eyelashes|eye_extras)/;
+
+/**
+ * A coarser triangle list over the same vertices (vertex clustering along the mesh): each vertex not
+ * yet taken becomes a representative and takes its untaken edge neighbours of the same part; every
+ * triangle is mapped to representatives and dropped when two corners meet. Edges only merge
+ * vertices that share an edge, so openings (mouth, eyes) never weld shut and shared edges stay
+ * shared (no cracks). The vertices keep streaming and their normals stay those of the full mesh.
+ * triangles: Uint32Array 3F; partIds: Uint8Array V; keep[part id] true: that part is left as it is.
+ * Returns Uint32Array 3F' (F' <= F).
+ */
+export function coarsen(triangles, V, partIds, keep = null) {
+  const start = new Uint32Array(V + 1);
+  for (let i = 0; i < triangles.length; i++) start[triangles[i] + 1] += 2;
+  for (let v = 0; v < V; v++) start[v + 1] += start[v];
+  const fill = start.slice(0, V), adj = new Uint32Array(start[V]);
+  for (let i = 0; i < triangles.length; i += 3) {
+    const a = triangles[i], b = triangles[i + 1], c = triangles[i + 2];
+    adj[fill[a]++] = b; adj[fill[a]++] = c; adj[fill[b]++] = c; adj[fill[b]++] = a; adj[fill[c]++] = a; adj[fill[c]++] = b;
+  }
+  const rep = new Int32Array(V).fill(-1);
+  for (let v = 0; v < V; v++) {
+    if (rep[v] >= 0) continue;
+    rep[v] = v;
+    if (keep && keep[partIds[v]]) continue;
+    for (let k = start[v]; k < start[v + 1]; k++) {
+      const u = adj[k];
+      if (rep[u] < 0 && partIds[u] === partIds[v]) rep[u] = v;
+    }
+  }
+  const out = new Uint32Array(triangles.length);
+  let n = 0;
+  for (let i = 0; i < triangles.length; i += 3) {
+    const a = rep[triangles[i]], b = rep[triangles[i + 1]], c = rep[triangles[i + 2]];
+    if (a !== b && b !== c && a !== c) { out[n++] = a; out[n++] = b; out[n++] = c; }
+  }
+  return out.slice(0, n);
 }
 
 /** Area-weighted vertex normals with typed arrays (no allocation per frame). */
