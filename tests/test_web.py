@@ -122,6 +122,7 @@ def test_a_fap_frame_that_opens_the_jaw_changes_the_mouth(server, browser, artif
     wait_for(page, f"window.facecast.viewer.stats.frames > {seen}")
     page.wait_for_timeout(300)
     page.screenshot(path=str(artifacts / "web_jaw_open.png"))
+    wait_for(page, "document.getElementById('st-bytes').textContent.includes('KiB')")  # the stats overlay
     mouth_after, brow_after = region(page, box), region(page, brow_box)
     mouth_change = np.abs(mouth_after - mouth_before).mean()
     brow_change = np.abs(brow_after - brow_before).mean()

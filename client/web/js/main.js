@@ -137,6 +137,18 @@ function setQuality({ scale, shading, lod } = {}) {
   $('st-scale').textContent = qualityText();
 }
 
+setInterval(() => {
+  const s = viewer.summary();
+  const ms = (x) => (Number.isFinite(x) ? `${x.toFixed(x < 10 ? 2 : 0)} ms` : '–');
+  $('st-fps').textContent = s.fps.toFixed(1);
+  $('st-lat').textContent = `${ms(s.latencyP50)} / ${ms(s.latencyP95)}`;
+  $('st-bytes').textContent = s.bytes ? `${(s.bytes / 1024).toFixed(1)} KiB` : '–';
+  $('st-drop').textContent = String(s.dropped);
+  $('st-decode').textContent = ms(s.decodeMs);
+  $('st-draw').textContent = (state.drawTimes.length / 2).toFixed(1);
+  window.facecastStats = { ...s, drawFps: state.drawTimes.length / 2 };
+}, 500);
+
 // ---- controls -----------------------------------------------------------------------------------
 renderer.camera.attach(renderer.canvas, () => { dirty = true; });
 new ResizeObserver(() => { dirty = true; }).observe(renderer.canvas);
