@@ -128,3 +128,44 @@ def test_encode_batch_on_the_device_gives_the_protocol_bytes(quantizer, rng):
             want = fr.encode_vertices(v[i], e, seq=seq, t=t, wall=wall)
             assert bytes(payload) == want == bytes(host[i][e][0])
             assert bytes(framed) == Frame(Opcode.BINARY, want).serialize(mask=False)
+
+
+def test_batcher_quantises_on_the_device_and_falls_back_to_numpy(quantizer, rng, monkeypatch):
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from facecast.server.faces import load_face
+    from facecast.server.live.batcher import DeformBatcher
+    from facecast.server.pipeline import Animator
+    from facecast.server.state import FaceState, zero_faps
+
+    animator = Animator(load_face("default:2k"), backend="opencl")
+    states = []
+    for i in range(6):
+        faps = zero_faps()
+        faps[[3, 5, 12, 13, 19]] = rng.normal(0.0, 300.0, size=5)
+        states.append(FaceState(t=i / 60, faps=faps))
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("device lost")
+
+    async def go(batcher):
+        return await asyncio.gather(
+            *(
+                batcher.submit(s, seq=i, wall=0.0, encodings=frozenset({"i16", "f32"}))
+                for i, s in enumerate(states)
+            )
+        )
+
+    batcher = DeformBatcher(animator, ThreadPoolExecutor(1))
+    assert batcher.quantizer is not None  # a zero-copy OpenCL deformer: quantised on the device
+    rounds = [asyncio.run(go(batcher))]
+    monkeypatch.setattr(batcher.quantizer, "quantize_into", fail)  # later batches: NumPy
+    rounds.append(asyncio.run(go(batcher)))
+    assert batcher.quantizer is None
+    for results in rounds:
+        for i, (encoded, _) in enumerate(results):
+            f32 = fr.decode(encoded["f32"][0])
+            np.testing.assert_array_equal(f32.positions(), animator.frame(states[i]))
+            want = fr.encode_vertices(f32.positions(), "i16", seq=i, t=states[i].t, wall=0.0)
+            assert bytes(encoded["i16"][0]) == want

@@ -367,11 +367,15 @@ class DeformBatcher:
             verts = np.asarray(a.deformer.deform(D[0], T[0]), dtype=np.float32)[None]
         else:
             verts = np.asarray(a.deformer.deform_batch(D, T), dtype=np.float32)
-        encoded = encode_batch(
-            verts,
-            [(jobs[i].seq, jobs[i].state.t, jobs[i].wall, jobs[i].encodings) for i in ok],
-            quantizer,
-        )
+        meta = [(jobs[i].seq, jobs[i].state.t, jobs[i].wall, jobs[i].encodings) for i in ok]
+        try:
+            encoded = encode_batch(verts, meta, quantizer)
+        except Exception:
+            if quantizer is None:
+                raise
+            log.warning("int16 quantisation on the device failed; NumPy from now on", exc_info=True)
+            self._quantizer = None
+            encoded = encode_batch(verts, meta)
         dt = (time.perf_counter() - t0) / len(jobs)
         for i, e in zip(ok, encoded):
             results[i] = (e, dt)
