@@ -8,7 +8,8 @@ session and opens the page watching it (int16, then float32), once per software 
 - ``swiftshader``: ANGLE on SwiftShader (Chromium's own software Vulkan), ``--disable-gpu``.
 
 Baseline in the same run and browser (the most a page can draw here): the requestAnimationFrame rate
-of an idle page and of a page that only clears a full-window WebGL2 canvas every frame.
+of an idle page, of a page that only clears a full-window WebGL2 canvas every frame, and of that clear
+plus N small visible triangles (``--sweep``; the ICT head has 52,220).
 
 Counts are honest: ``drawn fps`` is canvas draws per second that showed a new vertex frame (one draw
 is one presented canvas update; the page never draws off-frame), ``raf fps`` the page's animation
@@ -45,12 +46,32 @@ GL_ARGS = {
 #: A page whose only work is clearing a full-window WebGL2 canvas (or nothing: mode 'idle') every frame.
 CEILING_HTML = """<!doctype html><html><body style="margin:0;overflow:hidden">
 <canvas id=c style="width:100vw;height:100vh;display:block"></canvas></body></html>"""
-CEILING_JS = """([mode, ms]) => new Promise((done) => {
+CEILING_JS = """([mode, ms, tris]) => new Promise((done) => {
   const c = document.getElementById('c'); c.width = c.clientWidth; c.height = c.clientHeight;
-  const gl = mode === 'clear' ? c.getContext('webgl2', { antialias: false }) : null;
+  const gl = mode === 'idle' ? null : c.getContext('webgl2', { antialias: false });
+  if (gl && tris > 0) {  // a grid of small, visible, lit-free triangles over the middle half of the window
+    const sh = (t, src) => { const x = gl.createShader(t); gl.shaderSource(x, src); gl.compileShader(x); return x; };
+    const p = gl.createProgram();
+    gl.attachShader(p, sh(gl.VERTEX_SHADER, `#version 300 es
+layout(location = 0) in vec2 a; void main() { gl_Position = vec4(a, 0.5, 1.0); }`));
+    gl.attachShader(p, sh(gl.FRAGMENT_SHADER, `#version 300 es
+precision mediump float; out vec4 o; void main() { o = vec4(0.86, 0.64, 0.53, 1.0); }`));
+    gl.linkProgram(p); gl.useProgram(p);
+    const side = Math.ceil(Math.sqrt(tris / 2)), d = 1.4 / side, v = new Float32Array(6 * tris);
+    for (let k = 0, i = 0; i < side; i++) for (let j = 0; j < side; j++) {
+      const x = -0.7 + d * i, y = -0.7 + d * j;
+      if (k < v.length) { v.set([x, y, x + d, y, x, y + d], k); k += 6; }
+      if (k < v.length) { v.set([x + d, y, x + d, y + d, x, y + d], k); k += 6; }
+    }
+    gl.bindBuffer(gl.ARRAY_BUFFER, gl.createBuffer()); gl.bufferData(gl.ARRAY_BUFFER, v, gl.STATIC_DRAW);
+    gl.enableVertexAttribArray(0); gl.vertexAttribPointer(0, 2, gl.FLOAT, false, 0, 0);
+  }
   let n = 0; const t0 = performance.now();
   const tick = () => {
-    if (gl) { gl.viewport(0, 0, c.width, c.height); gl.clearColor((n % 60) / 60, 0.1, 0.1, 1); gl.clear(gl.COLOR_BUFFER_BIT); }
+    if (gl) {
+      gl.viewport(0, 0, c.width, c.height); gl.clearColor((n % 60) / 60, 0.1, 0.1, 1); gl.clear(gl.COLOR_BUFFER_BIT);
+      if (tris > 0) gl.drawArrays(gl.TRIANGLES, 0, 3 * tris);
+    }
     n++;
     if (performance.now() - t0 < ms) requestAnimationFrame(tick);
     else done({ frames: n, fps: 1000 * n / (performance.now() - t0), size: [c.width, c.height],
@@ -104,14 +125,15 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def ceiling(browser, width: int, height: int, ms: int) -> dict:
-    """rAF rate (and GPU-process CPU per frame) of an idle page and of a full-window WebGL2 clear."""
+def ceiling(browser, width: int, height: int, ms: int, sweep: tuple[int, ...] = ()) -> dict:
+    """rAF rate (and GPU-process CPU per frame) of an idle page, of a full-window WebGL2 clear and,
+    for each count in `sweep`, of a clear plus that many small visible triangles (keys "tris:N")."""
     page = browser.new_page(viewport={"width": width, "height": height})
-    page.set_content(CEILING_HTML)
     out = {}
-    for mode in ("idle", "clear"):
+    for mode in ("idle", "clear", *(f"tris:{n}" for n in sweep)):
+        page.set_content(CEILING_HTML)  # a fresh canvas each time
         c0 = process_cpu()
-        r = page.evaluate(CEILING_JS, [mode, ms])
+        r = page.evaluate(CEILING_JS, [mode, ms, int(mode[5:]) if mode.startswith("tris:") else 0])
         c1 = process_cpu()
         r["gpu_ms_per_frame"] = 1000 * (c1.get("gpu-process", 0) - c0.get("gpu-process", 0)) / r["frames"]
         out[mode] = r
@@ -165,6 +187,8 @@ def main() -> int:
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
     ap.add_argument("--screenshot", type=Path, default=None, help="directory for a screenshot per run")
+    ap.add_argument("--sweep", default="10000,25000,50000,100000",
+                    help="triangle counts for the dummy-scene ceiling (comma-separated; empty: none)")
     args = ap.parse_args()
     from playwright.sync_api import sync_playwright
 
@@ -189,7 +213,9 @@ def main() -> int:
             for gl in args.gl.split(","):
                 flags = COMMON + GL_ARGS[gl] + args.chromium_arg
                 browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=flags)
-                base = ceiling(browser, args.width, args.height, 3000)
+                sweep = tuple(int(n) for n in args.sweep.split(",") if n)
+                base = ceiling(browser, args.width, args.height, 3000, sweep)
+                results.setdefault("ceilings", {})[gl] = base
                 page = browser.new_page(viewport={"width": args.width, "height": args.height})
                 for encoding in args.encodings.split(","):
                     s = httpx.post(url + "/v1/sessions", json={"face": "bench", "input": "fap", "fps": args.fps},
@@ -243,6 +269,16 @@ def main() -> int:
               f"| {r['gpu_ms_per_frame']:.1f} ({c['clear']['gpu_ms_per_frame']:.1f}) | {r['renderer_ms_per_frame']:.1f} "
               f"| {r['server_cpu_percent']:.0f} | {r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} "
               f"| {r['decode_ms_p50']:.2f} / {r['decode_ms_p95']:.2f} |")
+    print()
+    print(f"Ceiling: a page that only clears a {args.width}x{args.height} WebGL2 canvas, plus N small visible "
+          "triangles (one draw call), every animation frame")
+    print("| GL | idle rAF fps | clear fps (GPU ms/frame) | " + " | ".join(
+        f"+{n // 1000}k triangles fps (GPU ms)" for n in sweep) + " |")
+    print("|---|---|---|" + "---|" * len(sweep))
+    for gl, c in results.get("ceilings", {}).items():
+        print(f"| {gl} | {c['idle']['fps']:.0f} | {c['clear']['fps']:.0f} ({c['clear']['gpu_ms_per_frame']:.1f}) | "
+              + " | ".join(f"{c[f'tris:{n}']['fps']:.0f} ({c[f'tris:{n}']['gpu_ms_per_frame']:.1f})" for n in sweep)
+              + " |")
     return 0
 
 
