@@ -41,6 +41,15 @@ def test_ict_topology_is_recognised_and_annotated(data_dir):
     assert set(np.unique(face.rigid_group[face.part("teeth_lower")])) == {1}
     assert set(np.unique(face.rigid_group[face.part("eye_r")])) == {3}
     assert not face.deformable[face.part("teeth_upper")].any()
+    # Each eyeball: a transparent cornea shell over an inner sphere whose front disc is the iris.
+    for side in "lr":
+        eye, cornea, iris = (face.part(f"{p}_{side}") for p in ("eye", "cornea", "iris"))
+        assert np.isin(cornea, eye).all() and np.isin(iris, eye).all() and not np.isin(iris, cornea).any()
+        pupil = v[fp["3.5" if side == "l" else "3.6"]]
+        centre = v[np.setdiff1d(eye, cornea)].mean(axis=0)
+        assert 50 < len(iris) < 0.5 * (len(eye) - len(cornea))  # a disc, not the whole sphere
+        assert (((v[iris] - centre) @ (pupil - centre)) > 0).all()  # on the front, round the pupil
+        assert np.linalg.norm(v[cornea] - centre, axis=1).max() > np.linalg.norm(v[iris] - centre, axis=1).max()
 
 
 def test_annotation_with_axes_turns_mesh_into_mpeg4_axes(tmp_path):

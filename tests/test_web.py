@@ -254,15 +254,17 @@ def test_draw_order_keeps_every_triangle_once_with_the_two_sided_sheets_last(fac
     page, _ = face_page
     r = page.evaluate("""async () => {
       const { drawOrder } = await import('/static/js/renderer.js');
-      const tris = new Uint32Array([0, 1, 2, 2, 3, 4, 4, 5, 6, 6, 7, 0]);
-      const partIds = new Uint8Array([0, 1, 2, 0, 1, 2, 0, 1]), names = ['skin', 'eyelashes', 'teeth_upper'];
+      const tris = new Uint32Array([0, 1, 2, 2, 3, 4, 4, 5, 6, 6, 7, 0, 8, 9, 10]);
+      const partIds = new Uint8Array([0, 1, 2, 0, 1, 2, 0, 1, 3, 3, 3]);
+      const names = ['skin', 'eyelashes', 'teeth_upper', 'cornea_l'];
       const { order, groups } = drawOrder(tris, partIds, names);
       return { order: Array.from(order), groups };
     }""")
-    tris = [tuple(r["order"][i:i + 3]) for i in range(0, 12, 3)]
-    assert sorted(tris) == sorted([(0, 1, 2), (2, 3, 4), (4, 5, 6), (6, 7, 0)])
-    # skin (0,1,2), (6,7,0) and the interior teeth (2,3,4) culled; the eyelash sheet (4,5,6) last, unculled
-    assert tris[-1] == (4, 5, 6)
+    tris = [tuple(r["order"][i:i + 3]) for i in range(0, 15, 3)]
+    assert sorted(tris) == sorted([(0, 1, 2), (2, 3, 4), (4, 5, 6), (6, 7, 0), (8, 9, 10)])
+    # skin (0,1,2), (6,7,0) and the interior teeth (2,3,4) culled; the eyelash sheet (4,5,6) next, unculled;
+    # the transparent cornea (8,9,10) last and in no draw group
+    assert tris[-2:] == [(4, 5, 6), (8, 9, 10)]
     assert r["groups"] == [{"first": 0, "count": 9, "cull": True}, {"first": 9, "count": 3, "cull": False}]
 
 

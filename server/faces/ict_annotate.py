@@ -23,7 +23,12 @@ ICT_RANGES: dict[str, tuple[int, int]] = {
     "eye_l": (21451, 23020), "eye_r": (23021, 24590), "eye_extras": (24591, 25350),
     "eyelashes": (25351, 26718),
 }
-IRIS_L, IRIS_R = (22221, 23020), (23791, 24590)
+#: Each ICT eyeball is two concentric spheres: an outer transparent shell (the cornea and the eye's
+#: wet surface) and an inner opaque one whose front carries the iris texture.
+CORNEA_L, CORNEA_R = (21451, 22220), (23021, 23790)
+INNER_EYE_L, INNER_EYE_R = (22221, 23020), (23791, 24590)
+#: Iris radius over eyeball radius (an 11-12 mm iris on a 24 mm eyeball), as the built-in head.
+IRIS_RATIO = 0.475
 UPPER_CENTRAL_INCISORS, LOWER_CENTRAL_INCISORS = (18067, 18218), (20263, 20434)
 
 #: MPEG-4 feature point -> index into the 68 Multi-PIE landmarks (0 = the subject's right jaw end).
@@ -74,10 +79,10 @@ def annotate(v: np.ndarray, triangles: np.ndarray, landmarks: list[int]) -> dict
     # Outer edges of the lids: 0.45 cm above the upper / below the lower lid centre.
     for k, base, dy in (("3.13", "3.1", 0.45), ("3.14", "3.2", 0.45), ("3.9", "3.3", -0.45), ("3.10", "3.4", -0.45)):
         fp[k] = front(P(base)[0], P(base)[1] + dy)
-    # Pupils: the front-most iris vertex.
-    for k, (a, b) in (("3.5", IRIS_L), ("3.6", IRIS_R)):
-        iris = np.arange(a, b + 1)
-        fp[k] = int(iris[np.argmax(v[iris, 2])])
+    # Pupils: the front-most vertex of the inner eyeball.
+    for k, (a, b) in (("3.5", INNER_EYE_L), ("3.6", INNER_EYE_R)):
+        inner = np.arange(a, b + 1)
+        fp[k] = int(inner[np.argmax(v[inner, 2])])
     # Cheeks: below the outer eye corner at nostril height; cheekbones 1.3 cm under the lower lid.
     for side, sign in (("l", 1.0), ("r", -1.0)):
         corner = P("3.7" if side == "l" else "3.12")
@@ -150,7 +155,8 @@ def annotate(v: np.ndarray, triangles: np.ndarray, landmarks: list[int]) -> dict
             "mouth_socket": r("mouth_socket"),
             "eye_socket": r("eye_socket_l") + r("eye_socket_r"),
             "eye_l": r("eye_l"), "eye_r": r("eye_r"),
-            "iris_l": [list(IRIS_L)], "iris_r": [list(IRIS_R)],
+            "iris_l": _iris(v, INNER_EYE_L, fp["3.5"]).tolist(), "iris_r": _iris(v, INNER_EYE_R, fp["3.6"]).tolist(),
+            "cornea_l": [list(CORNEA_L)], "cornea_r": [list(CORNEA_R)],
             "eye_extras": r("eye_extras"), "eyelashes": r("eyelashes"),
             "teeth_upper": r("teeth_upper"), "teeth_lower": r("teeth_lower"),
             "gums_upper": parts["gums_upper"].tolist(), "gums_lower": parts["gums_lower"].tolist(),
@@ -158,6 +164,17 @@ def annotate(v: np.ndarray, triangles: np.ndarray, landmarks: list[int]) -> dict
         },
         "pivots": {"jaw": [round(float(x), 4) for x in hinge]},
     }
+
+
+def _iris(v: np.ndarray, inner: tuple[int, int], pupil: int) -> np.ndarray:
+    """Vertex ids of the inner eyeball's front disc around ``pupil`` (``IRIS_RATIO`` of its radius)."""
+    ids = np.arange(inner[0], inner[1] + 1)
+    centre = v[ids].mean(axis=0)
+    p = v[ids] - centre
+    axis = (v[pupil] - centre) / np.linalg.norm(v[pupil] - centre)
+    along = p @ axis
+    lateral = np.linalg.norm(p - along[:, None] * axis, axis=1)
+    return ids[(along > 0) & (lateral < IRIS_RATIO * np.linalg.norm(v[pupil] - centre))]
 
 
 def _split_mouth(v: np.ndarray) -> dict[str, np.ndarray]:

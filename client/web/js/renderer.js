@@ -288,18 +288,20 @@ export class FaceRenderer {
 export const TWO_SIDED = /^(eyelashes|eye_extras|eye_socket)/;
 /** Parts drawn last: hidden behind the lips most of the time, so the depth test rejects them early. */
 const INTERIOR = /^(mouth_socket|teeth|gums|tongue)/;
+/** Transparent parts (the cornea over an eyeball's iris; the tear film and eye-occlusion overlays): not drawn. */
+export const TRANSPARENT = /^(cornea|eye_extras)/;
 
 /**
  * Triangle order for drawing: one-sided outer parts (skin, eyes) first, then the mouth's interior,
- * then the two-sided sheets. Returns the reordered indices (Uint32Array 3F) and the draw groups
- * [{first, count, cull}] in index units.
+ * then the two-sided sheets; transparent parts go last and are in no group (not drawn). Returns the
+ * reordered indices (Uint32Array 3F) and the draw groups [{first, count, cull}] in index units.
  */
 export function drawOrder(triangles, partIds, partNames) {
   const F = triangles.length / 3, rank = new Uint8Array(F);
-  const partRank = partNames.map((n) => (TWO_SIDED.test(n) ? 2 : INTERIOR.test(n) ? 1 : 0));
-  const counts = [0, 0, 0];
+  const partRank = partNames.map((n) => (TRANSPARENT.test(n) ? 3 : TWO_SIDED.test(n) ? 2 : INTERIOR.test(n) ? 1 : 0));
+  const counts = [0, 0, 0, 0];
   for (let f = 0; f < F; f++) { const r = partRank[partIds[triangles[3 * f]]] ?? 0; rank[f] = r; counts[r]++; }
-  const order = new Uint32Array(3 * F), next = [0, counts[0], counts[0] + counts[1]];
+  const order = new Uint32Array(3 * F), next = [0, counts[0], counts[0] + counts[1], counts[0] + counts[1] + counts[2]];
   for (let f = 0; f < F; f++) {
     const o = 3 * next[rank[f]]++;
     order[o] = triangles[3 * f]; order[o + 1] = triangles[3 * f + 1]; order[o + 2] = triangles[3 * f + 2];
