@@ -139,6 +139,9 @@ def test_batcher_quantises_on_the_device_and_falls_back_to_numpy(quantizer, rng,
     from facecast.server.pipeline import Animator
     from facecast.server.state import FaceState, zero_faps
 
+    import facecast.server.live.batcher as batcher_mod
+
+    monkeypatch.setattr(batcher_mod, "DEVICE_MIN_FRAMES", 1)  # every batch on the device
     animator = Animator(load_face("default:2k"), backend="opencl")
     states = []
     for i in range(6):

@@ -34,6 +34,9 @@ log = logging.getLogger(__name__)
 
 #: Most frames deformed in one launch.
 MAX_BATCH = 32
+#: Fewest frames quantised on the device at once: a launch costs PoCL 0.1-0.2 ms of CPU, so a
+#: single frame was 0.03-0.1 ms cheaper in NumPy (4 of 5 bench runs); from 2 frames on, the device.
+DEVICE_MIN_FRAMES = 2
 #: A drain about to start a batch of fewer frames than this, while more sessions than that
 #: have been submitting (within ``ACTIVE_WINDOW`` seconds), waits up to ``coalesce_seconds()``
 #: for more. A batch has a fixed cost (two OpenCL launches, ~0.15 ms of PoCL CPU each, and the
@@ -360,7 +363,7 @@ class DeformBatcher:
         ok, D, T = self._solve(jobs, results)
         if not ok:
             return results
-        quantizer = self.quantizer
+        quantizer = self.quantizer if len(ok) >= DEVICE_MIN_FRAMES else None
         if quantizer is not None:  # deform into an aligned buffer the quantiser reads in place
             verts = a.deformer.deform_batch(D, T, out=self._frame_buffer(len(ok)))
         elif len(ok) == 1:
