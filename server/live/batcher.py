@@ -5,8 +5,9 @@ callback (``submit_nowait``); a worker thread takes every state waiting at that 
 them together (``Animator.solve_batch``, vectorised), deforms them with one ``deform_batch`` call
 (one OpenCL launch instead of one per frame: about 4x less CPU per frame on PoCL for the
 25k-vertex head) and writes each frame once, already framed for WebSocket, into one buffer per
-batch. On a host-memory OpenCL device the int16 quantisation runs on the device too
-(``quantize_cl``), outside the GIL; elsewhere in NumPy (``frames.quantize_int16_fast``).
+batch. On a host-memory OpenCL device the int16 quantisation of batches of 2 frames or more runs
+on the device too (``quantize_cl``), outside the GIL; elsewhere in NumPy
+(``frames.quantize_int16_fast``).
 The callbacks then run on their event loop, all of a batch in one wake-up. Under light load a
 batch holds one frame and adds no delay; under heavy load batches grow by themselves.
 """
