@@ -327,3 +327,13 @@ def test_topology_sections_are_4_byte_aligned():
     n_names = int.from_bytes(blob[20:24], "little")
     assert n_names == len(b"skin\nhead\n") and (32 + n_names + 2) % 4 == 0
     assert len(blob) == 32 + 12 + 60 + 12 + 8 + 8
+
+
+def test_tokens_never_look_like_command_line_options():
+    # `facecast watch --token T` must work for every token the server hands out: a token starting
+    # with "-" was taken by argparse for an option (1 token in 64 with plain token_urlsafe).
+    from facecast.server.api.security import new_token
+
+    tokens = [new_token() for _ in range(3000)]
+    assert not [t for t in tokens if t.startswith("-")]
+    assert len(set(tokens)) == len(tokens) and min(map(len, tokens)) >= 43  # 32 random bytes each

@@ -12,8 +12,12 @@ log = logging.getLogger(__name__)
 
 
 def new_token() -> str:
-    """A fresh random token (URL-safe, 32 bytes of entropy)."""
-    return secrets.token_urlsafe(32)
+    """A fresh random token (URL-safe, 32 bytes of entropy) that does not start with ``-``, so that
+    it can follow a command-line flag (``--token T``) without being taken for an option."""
+    while True:
+        token = secrets.token_urlsafe(32)
+        if not token.startswith("-"):
+            return token
 
 
 def same(a: str | None, b: str | None) -> bool:
