@@ -108,6 +108,27 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
 
 
+def _control_sites(
+    vertices: np.ndarray, triangles: np.ndarray, controls: np.ndarray, deformable: np.ndarray,
+    rigid_group: np.ndarray | None, attach_distance: float | None,
+) -> tuple:
+    """What every engine starts from: ``(graph, attach_distance, usable, sites, site_of)``.
+
+    ``graph`` is the deformable edge graph (no edge across rigid groups); ``attach_distance``
+    defaults to 3 median edge lengths; ``usable (K,) bool`` marks controls on deformable vertices
+    (the others are logged and ignored); ``sites (n,)`` are the distinct control vertices and
+    ``site_of (K,)`` maps each control to its site.
+    """
+    graph = edge_graph(vertices, triangles, deformable, rigid_group)
+    if attach_distance is None:
+        attach_distance = 3.0 * float(np.median(graph.data)) if graph.nnz else 0.0
+    usable = deformable[controls]
+    if not usable.all():
+        log.warning("%d control(s) sit on non-deformable vertices and are ignored", int((~usable).sum()))
+    sites, site_of = np.unique(controls, return_inverse=True)
+    return graph, attach_distance, usable, sites, site_of.reshape(-1)
+
+
 def _validate(n_vertices: int, control_vertices, constrained, deformable):
     controls = np.asarray(control_vertices, dtype=np.int64).reshape(-1)
     if len(controls) and (controls.min() < 0 or controls.max() >= n_vertices):
@@ -252,19 +273,12 @@ def feature_point_operator(
     if falloff not in ("sine", "smooth"):
         raise InputError(f"falloff must be 'sine' or 'smooth', not {falloff!r}", where="falloff")
 
-    graph = edge_graph(vertices, triangles, deformable, rigid_group)
-    if attach_distance is None:
-        lengths = graph.data
-        attach_distance = 3.0 * float(np.median(lengths)) if len(lengths) else 0.0
+    # Sites: the distinct deformable vertices carrying controls.
+    graph, attach_distance, usable, sites, site_of = _control_sites(
+        vertices, triangles, controls, deformable, rigid_group, attach_distance)
     floor = 1e-6 * (float(graph.data.mean()) if graph.nnz else 1.0)
     normals = vertex_normals(vertices, triangles)
 
-    # Sites: the distinct deformable vertices carrying controls.
-    usable = deformable[controls]
-    if not usable.all():
-        log.warning("%d control(s) sit on non-deformable vertices and are ignored", int((~usable).sum()))
-    sites, site_of = np.unique(controls, return_inverse=True)
-    site_of = site_of.reshape(-1)
     site_ok = deformable[sites]
     # axis_sites[a]: (n_sites,) bool, the site carries a usable control constrained on axis a.
     axis_sites = np.zeros((3, len(sites)), dtype=bool)

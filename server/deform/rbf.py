@@ -45,11 +45,12 @@ from .feature_point import (
     _assemble,
     _attach_floating,
     _check_inner,
+    _control_sites,
     _validate,
     fill_inner,
     floating_sources,
 )
-from .mesh_graph import components, edge_graph
+from .mesh_graph import components
 from .operator import Operator
 
 log = logging.getLogger(__name__)
@@ -208,14 +209,8 @@ def rbf_operator(
             "distance": distance, "attach_distance": None if attach_distance is None else float(attach_distance),
             "inner": inner}
     membrane = _check_inner(inner)
-    graph = edge_graph(vertices, triangles, deformable, rigid_group)
-    if attach_distance is None:
-        attach_distance = 3.0 * float(np.median(graph.data)) if graph.nnz else 0.0
-    usable = deformable[controls]
-    if not usable.all():
-        log.warning("%d control(s) sit on non-deformable vertices and are ignored", int((~usable).sum()))
-    sites, site_of = np.unique(controls, return_inverse=True)
-    site_of = site_of.reshape(-1)
+    graph, attach_distance, usable, sites, site_of = _control_sites(
+        vertices, triangles, controls, deformable, rigid_group, attach_distance)
     label = components(graph)
     site_ok = deformable[sites]
     seeded = np.zeros(label.max() + 1, dtype=bool)

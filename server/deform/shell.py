@@ -42,8 +42,8 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
-from .feature_point import _check_inner, _validate, fill_inner, floating_sources
-from .mesh_graph import components, edge_graph
+from .feature_point import _check_inner, _control_sites, _validate, fill_inner, floating_sources
+from .mesh_graph import components
 from .operator import Operator
 
 log = logging.getLogger(__name__)
@@ -164,14 +164,8 @@ def shell_operator(
     membrane = _check_inner(inner)
     meta = {"engine": "shell", "stretch": float(stretch),
             "attach_distance": None if attach_distance is None else float(attach_distance), "inner": inner}
-    graph = edge_graph(vertices, triangles, deformable, rigid_group)
-    if attach_distance is None:
-        attach_distance = 3.0 * float(np.median(graph.data)) if graph.nnz else 0.0
-    usable = deformable[controls]
-    if not usable.all():
-        log.warning("%d control(s) sit on non-deformable vertices and are ignored", int((~usable).sum()))
-    sites, site_of = np.unique(controls, return_inverse=True)
-    site_of = site_of.reshape(-1)
+    graph, attach_distance, usable, sites, site_of = _control_sites(
+        vertices, triangles, controls, deformable, rigid_group, attach_distance)
     label = components(graph)
     seeded = np.zeros(label.max() + 1, dtype=bool)
     seeded[label[sites[deformable[sites]]]] = True
