@@ -17,8 +17,8 @@ def bumpy(verts: np.ndarray) -> np.ndarray:
     return v
 
 
-@pytest.fixture(scope="module")
-def grid():
+def slit_grid():
+    """``(verts, tris, upper, lower, controls)``: the bumpy slit grid and controls round and on the lips."""
     verts, tris, upper, lower = slit_mesh()
     n = 31
     vid = np.arange(n * n).reshape(n, n)
@@ -26,6 +26,11 @@ def grid():
     controls = np.array([vid[y, x] for y in (3, 9, 21, 27) for x in (3, 9, 15, 21, 27)]
                         + [lower[i] for i in lips] + [upper[i] for i in lips])
     return bumpy(verts), tris, upper, lower, controls
+
+
+@pytest.fixture(scope="module")
+def grid():
+    return slit_grid()
 
 
 CASES = [{"kernel": "imq", "distance": "euclidean"}, {"kernel": "imq", "distance": "surface"},

@@ -7,23 +7,12 @@ from facecast.server.deform.build import get_operator
 from facecast.server.deform.shell import cotangent_laplacian, shell_matrix, shell_operator
 from facecast.server.errors import InputError
 from test_deform_fp import slit_mesh
-
-
-def bumpy(verts: np.ndarray) -> np.ndarray:
-    v = verts.copy()
-    v[:, 2] = 0.1 * (v[:, 0] - 15) ** 2 / 15 + 0.05 * v[:, 1]
-    return v
+from test_deform_rbf import bumpy, slit_grid
 
 
 @pytest.fixture(scope="module")
 def grid():
-    verts, tris, upper, lower = slit_mesh()
-    n = 31
-    vid = np.arange(n * n).reshape(n, n)
-    lips = [2, 6, 10, 14, 18]
-    controls = np.array([vid[y, x] for y in (3, 9, 21, 27) for x in (3, 9, 15, 21, 27)]
-                        + [lower[i] for i in lips] + [upper[i] for i in lips])
-    return bumpy(verts), tris, upper, lower, controls
+    return slit_grid()
 
 
 def test_cotangent_laplacian_of_a_plane():
