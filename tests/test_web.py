@@ -268,6 +268,22 @@ def test_draw_order_keeps_every_triangle_once_with_the_two_sided_sheets_last(fac
     assert r["groups"] == [{"first": 0, "count": 9, "cull": True}, {"first": 9, "count": 3, "cull": False}]
 
 
+def test_part_colours_blend_across_shared_edges_only(face_page):
+    page, _ = face_page
+    r = page.evaluate("""async () => {
+      const { smoothColors } = await import('/static/js/renderer.js');
+      // a strip of 6 vertices (0-5, red then blue from vertex 3) and a separate triangle (6-8, green)
+      const tris = new Uint32Array([0, 1, 2, 1, 3, 2, 2, 3, 4, 3, 5, 4, 6, 7, 8]);
+      const rgb = new Float32Array(27);
+      for (let v = 0; v < 9; v++) rgb.set(v < 3 ? [1, 0, 0] : v < 6 ? [0, 0, 1] : [0, 1, 0], 3 * v);
+      return Array.from(smoothColors(rgb, tris, 9, 1));
+    }""")
+    c = np.array(r).reshape(9, 3)
+    assert 0 < c[2, 2] < c[3, 2] < 1 and c[2, 0] > c[3, 0] > 0  # the border blends both ways
+    np.testing.assert_allclose(c.sum(axis=1), 1.0, atol=1e-6)    # averages of colours stay colours
+    np.testing.assert_allclose(c[6:], [[0, 1, 0]] * 3)           # no edge to the strip: unchanged
+
+
 def test_back_face_culling_leaves_the_picture_unchanged(face_page):
     page, problems = face_page
     for yaw, pitch in [(0.35, 0.08), (-1.2, -0.3), (2.8, 0.2)]:

@@ -170,10 +170,10 @@ export class FaceRenderer {
     const f32 = buf(rest, this.loc.a_f32, 3, gl.FLOAT, false, gl.DYNAMIC_DRAW);
     const i16 = buf(new Int16Array(3 * V), this.loc.a_i16, 3, gl.SHORT, false, gl.DYNAMIC_DRAW);
     const nrm = buf(new Float32Array(3 * V), this.loc.a_normal, 3, gl.FLOAT, false, gl.DYNAMIC_DRAW);
-    // Colours per vertex from its part, interpolated across triangles (soft part borders).
+    // Colours per vertex from its part, blended over the mesh at part borders (soft borders).
     const rgb = new Float32Array(3 * V);
     for (let i = 0; i < V; i++) rgb.set(PART_COLORS[partNames[partIds[i]]] || PART_COLORS.skin, 3 * i);
-    const color = buf(rgb, this.loc.a_color, 3, gl.FLOAT);
+    const color = buf(smoothColors(rgb, triangles, V), this.loc.a_color, 3, gl.FLOAT);
     const { order, groups } = drawOrder(triangles, partIds, partNames);
     const ibo = gl.createBuffer();
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ibo);
@@ -282,6 +282,28 @@ export class FaceRenderer {
     }
     gl.disable(gl.CULL_FACE);
   }
+}
+
+/**
+ * Per-vertex colours (Float32Array 3V) averaged with their edge neighbours `passes` times: a part
+ * border that zig-zags along the mesh (a lip's vermilion line across skewed rows) becomes a soft
+ * line instead of stripes. Separate meshes share no edge, so eyes and teeth stay as they are.
+ */
+export function smoothColors(rgb, triangles, V, passes = 2) {
+  let cur = rgb;
+  for (let p = 0; p < passes; p++) {
+    const sum = Float32Array.from(cur), n = new Float32Array(V).fill(1);
+    for (let i = 0; i < triangles.length; i += 3) {
+      for (let k = 0; k < 3; k++) {
+        const a = triangles[i + k], b = triangles[i + (k + 1) % 3];
+        for (let c = 0; c < 3; c++) { sum[3 * a + c] += cur[3 * b + c]; sum[3 * b + c] += cur[3 * a + c]; }
+        n[a]++; n[b]++;
+      }
+    }
+    for (let v = 0; v < V; v++) for (let c = 0; c < 3; c++) sum[3 * v + c] /= n[v];
+    cur = sum;
+  }
+  return cur;
 }
 
 /** Parts drawn without back-face culling: open sheets that are seen from both sides. */
