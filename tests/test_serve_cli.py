@@ -78,6 +78,25 @@ def test_flags_override_environment(tmp_path, monkeypatch):
         make_config(parse("--workers", "-1"))
 
 
+def test_environment_settings_reach_the_server_and_bad_ones_are_named(tmp_path, monkeypatch):
+    from facecast.server.api.app import create_app
+
+    monkeypatch.setenv("FACECAST_FACES", f"ict={tmp_path / 'ict.obj'}")
+    monkeypatch.setenv("FACECAST_JOB_RETENTION_HOURS", "2")
+    app = create_app(make_config(parse("--data-dir", str(tmp_path), "--face", FACE)))
+    assert "ict" in app.state.store.names()
+    assert app.state.jobs.retention == 2 * 3600
+    for name, value, says in [("FACECAST_PORT", "abc", "valid integer"),
+                              ("FACECAST_JOB_RETENTION_HOURS", "-3", "greater than or equal to 0")]:
+        monkeypatch.setenv(name, value)
+        with pytest.raises(InputError, match=f"{name}='{value}': .*{says}"):
+            make_config(parse("--data-dir", str(tmp_path)))
+        monkeypatch.delenv(name)
+    monkeypatch.setenv("FACECAST_FACES", "no-path-given")
+    with pytest.raises(InputError, match="FACECAST_FACES"):
+        create_app(make_config(parse("--data-dir", str(tmp_path))))
+
+
 @pytest.mark.slow
 def test_websockets_are_never_compressed(tmp_path):
     """Vertex streams must not use per-message deflate, even when the client offers it."""

@@ -27,7 +27,7 @@ from . import routes_faces, routes_health, routes_jobs, routes_playback, routes_
 from .config import ServerConfig
 from .metrics import Metrics
 from .security import resolve_admin_key
-from .store import FaceStore
+from .store import FaceStore, parse_faces_env
 
 log = logging.getLogger(__name__)
 
@@ -152,13 +152,14 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     app.state.config = config
     app.state.admin_key = admin_key
     app.state.metrics = Metrics()
-    app.state.store = FaceStore(default=config.face, backend=config.backend, device=config.device)
+    app.state.store = FaceStore(default=config.face, backend=config.backend, device=config.device,
+                                configured=parse_faces_env(config.faces))
     app.state.readiness = {"ready": False, "backend": None, "device": None}
 
     from ..jobs.manager import JobManager
 
     app.state.jobs = JobManager(config.data_dir, workers=config.job_workers, backend=config.backend,
-                                device=config.device)
+                                device=config.device, retention_hours=config.job_retention_hours)
     app.state.metrics.watch_jobs(app.state.jobs.store.counts)
 
     @app.exception_handler(FacecastError)

@@ -29,3 +29,5 @@ class ServerConfig(BaseSettings):
     max_viewers_per_session: int = 256
     max_producer_fps: float = 250.0  # frames per second a producer may send (markers run at 240 Hz)
     allow_remote: bool = False  # must be set to bind to a non-loopback address
+    faces: str | None = None  # more faces by name: "ict=/path/mesh.obj,other=/path/x.obj"
+    job_retention_hours: float = Field(default=7 * 24.0, ge=0)  # finished jobs kept this long; 0 = forever

@@ -7,7 +7,6 @@ a vertex count such as ``default:2k``) and the faces configured by the operator 
 from __future__ import annotations
 
 import logging
-import os
 import re
 import threading
 from collections import OrderedDict
@@ -51,8 +50,7 @@ class FaceStore:
 
     def __init__(self, *, default: str = "default", backend: str = "auto", device: str | None = None,
                  configured: dict[str, Path] | None = None, max_faces: int = 8):
-        self.configured = dict(parse_faces_env(os.environ.get("FACECAST_FACES"))
-                               if configured is None else configured)
+        self.configured = dict(configured or {})
         self.default = default
         self.backend = backend
         self.device = device

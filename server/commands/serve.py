@@ -61,6 +61,8 @@ def is_loopback(host: str) -> bool:
 
 def make_config(args: argparse.Namespace):
     """``ServerConfig`` from FACECAST_* environment variables, overridden by the flags given."""
+    from pydantic import ValidationError
+
     from ..api.config import ServerConfig
 
     overrides = {k: v for k, v in {
@@ -68,7 +70,13 @@ def make_config(args: argparse.Namespace):
         "backend": args.backend, "device": args.device, "job_workers": args.workers,
         "allow_remote": args.allow_remote,
     }.items() if v is not None}
-    config = ServerConfig(**overrides)
+    try:
+        config = ServerConfig(**overrides)
+    except ValidationError as e:  # a malformed FACECAST_* variable (flags are typed by argparse)
+        problems = "; ".join(
+            f"FACECAST_{'_'.join(map(str, err['loc'])).upper()}={err.get('input')!r}: {err['msg']}"
+            for err in e.errors())
+        raise InputError(f"{problems}; fix or unset the variable", where="environment") from None
     if not is_loopback(config.host) and not config.allow_remote:
         raise InputError(f"refusing to bind to {config.host}, which is not a loopback address; pass "
                          "--allow-remote (or FACECAST_ALLOW_REMOTE=1) to serve other machines",

@@ -4,7 +4,7 @@ Workers are ``spawn``-ed on first need and kept for later jobs (``workers`` of t
 start-up, jobs left ``running`` by a stopped server go back to ``queued`` and run again (results
 are written atomically, so a half-finished attempt leaves nothing behind). A job whose worker died
 ``MAX_ATTEMPTS`` times is failed rather than retried forever. Finished jobs are deleted after
-``FACECAST_JOB_RETENTION_HOURS`` (default a week).
+``retention_hours`` (``ServerConfig.job_retention_hours``, ``FACECAST_JOB_RETENTION_HOURS``; a week).
 """
 from __future__ import annotations
 
@@ -22,22 +22,9 @@ log = logging.getLogger(__name__)
 
 MAX_ATTEMPTS = 3
 POLL_SECONDS = 0.2
-#: Finished jobs (and their files) are deleted this long after they finished
-#: (``FACECAST_JOB_RETENTION_HOURS``, default a week; 0 keeps them forever).
+#: Finished jobs (and their files) are deleted this long after they finished (0 keeps them).
 DEFAULT_RETENTION_HOURS = 7 * 24.0
 PURGE_EVERY_SECONDS = 600.0
-
-
-def retention_seconds() -> float:
-    """Seconds a finished job is kept, from ``FACECAST_JOB_RETENTION_HOURS``."""
-    text = os.environ.get("FACECAST_JOB_RETENTION_HOURS", "")
-    try:
-        hours = float(text) if text.strip() else DEFAULT_RETENTION_HOURS
-    except ValueError:
-        log.warning("FACECAST_JOB_RETENTION_HOURS=%r is not a number; keeping jobs %g h", text,
-                    DEFAULT_RETENTION_HOURS)
-        hours = DEFAULT_RETENTION_HOURS
-    return max(hours, 0.0) * 3600.0
 
 
 @dataclass
@@ -66,7 +53,8 @@ class _Slot:
 class JobManager:
     """Runs up to ``workers`` jobs at a time in ``spawn``-ed worker processes (0: queue only)."""
 
-    def __init__(self, data_dir: Path, *, workers: int = 1, backend: str = "auto", device: str | None = None):
+    def __init__(self, data_dir: Path, *, workers: int = 1, backend: str = "auto", device: str | None = None,
+                 retention_hours: float = DEFAULT_RETENTION_HOURS):
         self.store = JobStore(data_dir)
         self.workers = max(0, int(workers))
         self.backend = backend
@@ -75,7 +63,7 @@ class JobManager:
         self._slots = [_Slot() for _ in range(self.workers)]
         self._wake = asyncio.Event()
         self._task: asyncio.Task | None = None
-        self.retention = retention_seconds()
+        self.retention = max(float(retention_hours), 0.0) * 3600.0  # seconds; 0 = keep forever
         self._next_purge = 0.0
 
     # -- lifecycle -------------------------------------------------------------------------------
