@@ -432,7 +432,7 @@ def pack_operator(op: Operator, slice_size: int = SLICE) -> PackedOperator:
     return PackedOperator(V, K, Vp, S, False, A, col_ptr.astype(np.uint32), id_ptr.astype(np.uint32), ids, w)
 
 
-def _aligned_empty(shape: tuple[int, ...], dtype, align: int = 128) -> np.ndarray:
+def aligned_empty(shape: tuple[int, ...], dtype, align: int = 128) -> np.ndarray:
     """``np.empty`` whose data pointer is ``align``-byte aligned (what zero-copy buffers want)."""
     dtype = np.dtype(dtype)
     n = int(np.prod(shape)) * dtype.itemsize
@@ -564,7 +564,7 @@ class OpenCLDeformer:
         self._global_slices = -(-n_slices // LOCAL_SLICES) * LOCAL_SLICES
         # Per-frame parameters: transforms, then D as float4 rows with an all-zero control K at the end.
         self._pstride = -(-(self.n_groups * T_FLOATS + 4 * (self.n_controls + 1)) // 16) * 16
-        self._params_host = _aligned_empty((self._pstride,), np.float32)
+        self._params_host = aligned_empty((self._pstride,), np.float32)
         self._params_host[:] = 0
         if self.zero_copy:  # the kernel reads the host array itself: no upload command per frame
             self._params_single = self._host_buffer(self._params_host, cl.mem_flags.READ_ONLY)
@@ -626,7 +626,7 @@ class OpenCLDeformer:
         if n == 1:
             P = self._params_host
         else:
-            P = _aligned_empty((n, self._pstride), np.float32)
+            P = aligned_empty((n, self._pstride), np.float32)
             P[:] = 0
         P = P.reshape(n, self._pstride)
         gt = self.n_groups * T_FLOATS
@@ -714,7 +714,7 @@ class OpenCLDeformer:
         D, T = self._check(D, transforms, batch=False)
         self._upload_params(self._fill_params(D[None], T[None]))
         if out is None:
-            out = _aligned_empty((self.n_vertices, 3), np.float32)
+            out = aligned_empty((self.n_vertices, 3), np.float32)
         elif out.shape != (self.n_vertices, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
             raise ValueError("out must be a C-contiguous (V, 3) float32 array")
         if self.n_vertices == 0:
@@ -736,7 +736,7 @@ class OpenCLDeformer:
         D, T = self._check(D, transforms, batch=True)
         n = D.shape[0]
         if out is None:
-            out = _aligned_empty((n, self.n_vertices, 3), np.float32)
+            out = aligned_empty((n, self.n_vertices, 3), np.float32)
         elif out.shape != (n, self.n_vertices, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
             raise ValueError("out must be a C-contiguous (T, V, 3) float32 array")
         if n == 0 or self.n_vertices == 0:
@@ -761,7 +761,7 @@ class OpenCLDeformer:
         """Area-weighted unit vertex normals ``(V, 3) float32`` of deformed ``vertices (V, 3)``."""
         cl = self._cl
         v = np.ascontiguousarray(vertices, dtype=np.float32).reshape(self.n_vertices, 3)
-        out = _aligned_empty((self.n_vertices, 3), np.float32)
+        out = aligned_empty((self.n_vertices, 3), np.float32)
         if self.n_vertices == 0:
             return out
         cl.enqueue_copy(self.queue, self._verts, v, is_blocking=False)
@@ -789,8 +789,8 @@ class OpenCLDeformer:
         cl = self._cl
         D, T = self._check(D, transforms, batch=False)
         self._upload_params(self._fill_params(D[None], T[None]))
-        verts = _aligned_empty((self.n_vertices, 3), np.float32)
-        nrm = _aligned_empty((self.n_vertices, 3), np.float32)
+        verts = aligned_empty((self.n_vertices, 3), np.float32)
+        nrm = aligned_empty((self.n_vertices, 3), np.float32)
         if self.n_vertices == 0:
             return verts, nrm
         self._launch_deform(1, self._verts)
@@ -809,7 +809,7 @@ class OpenCLDeformer:
         cl = self._cl
         D, T = self._check(D, transforms, batch=False)
         self._upload_params(self._fill_params(D[None], T[None]))
-        q = _aligned_empty((self.n_vertices, 3), np.int16)
+        q = aligned_empty((self.n_vertices, 3), np.int16)
         if self.n_vertices == 0:
             return q, np.zeros(3, np.float32), np.full(3, 1e-12, np.float32)
         self._launch_deform(1, self._verts)
@@ -863,7 +863,7 @@ class OpenCLDeformer:
     @_serialised
     def read_resident(self) -> np.ndarray:
         """Copy the resident vertex buffer to a new host array (the non-zero-copy read-back)."""
-        out = _aligned_empty((self.n_vertices, 3), np.float32)
+        out = aligned_empty((self.n_vertices, 3), np.float32)
         self._cl.enqueue_copy(self.queue, out, self._verts, is_blocking=True)
         return out
 

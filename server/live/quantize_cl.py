@@ -25,6 +25,8 @@ import warnings
 
 import numpy as np
 
+from ..backends.opencl_backend import aligned_empty
+
 #: Work-items per frame (one work-group per frame); each takes a contiguous run of the vertices.
 WG = 8
 #: Byte alignment of host arrays the kernel reads or writes in place (``CL_MEM_USE_HOST_PTR``).
@@ -109,15 +111,6 @@ void quantize_frames(const uint n_vertices, __global const float *verts, __globa
     }
 }
 """
-
-
-def aligned_empty(shape: tuple[int, ...], dtype, align: int = ALIGN) -> np.ndarray:
-    """``np.empty`` whose data pointer is ``align``-byte aligned (host memory kernels use in place)."""
-    dtype = np.dtype(dtype)
-    n = int(np.prod(shape)) * dtype.itemsize
-    raw = np.empty(n + align, dtype=np.uint8)
-    off = (-raw.ctypes.data) % align
-    return raw[off : off + n].view(dtype).reshape(shape)
 
 
 class DeviceQuantizer:
