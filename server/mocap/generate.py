@@ -38,6 +38,7 @@ from ..errors import InputError
 from ..faces.face import Face
 from ..paths import cache_dir, shared_data
 from .io import write_take
+from .sampling import farthest_points
 from .stabilise import matrix_from_euler
 
 log = logging.getLogger(__name__)
@@ -137,31 +138,6 @@ def load_expressions(face: Face | None = None) -> tuple[list[str], np.ndarray]:
     return names, arr
 
 
-def _farthest(
-    points: np.ndarray,
-    k: int,
-    seed_points: np.ndarray | None = None,
-    weights: np.ndarray | None = None,
-) -> np.ndarray:
-    """Indices of ``k`` points spread by farthest-point sampling (away from ``seed_points`` too);
-    with ``weights`` the distances are scaled by them (denser sampling where weights are high)."""
-    if k <= 0 or not len(points):
-        return np.zeros(0, dtype=np.int64)
-    w = np.ones(len(points)) if weights is None else np.asarray(weights, dtype=np.float64)
-    if seed_points is not None and len(seed_points):
-        dist = cKDTree(seed_points).query(points)[0] * w
-    else:
-        dist = (
-            np.linalg.norm(points - points.mean(axis=0), axis=1) * w
-        )  # start at the outermost point
-    chosen = []
-    for _ in range(min(k, len(points))):
-        i = int(np.argmax(dist))
-        chosen.append(i)
-        dist = np.minimum(dist, np.linalg.norm(points - points[i], axis=1) * w)
-    return np.asarray(chosen, dtype=np.int64)
-
-
 #: A facial-capture layout sheet (see the module docstring), in the order a technician would drop
 #: markers when fewer are available: ``(name, feature point)`` or ``(name, (fp_a, fp_b))`` for the
 #: skin point between two feature points (the face's left = +x = odd MPEG-4 numbers = ``_L``).
@@ -255,7 +231,7 @@ def choose_markers(
     still = skin[(motion[skin] < 0.01) & front[skin] & (v[skin, 1] > eye_y)]
     if len(still) < n_stable:
         raise InputError(f"only {len(still)} candidate vertices for stable markers on {face.name}")
-    st = still[_farthest(v[still], n_stable)]
+    st = still[farthest_points(v[still], n_stable)]
     # Face markers: feature points on moving skin first, then evenly spread moving skin.
     names, verts, spec = [], [], {}
     for i, vid in enumerate(st):
@@ -304,7 +280,7 @@ def choose_markers(
     cand = np.setdiff1d(cand, lids)
     # denser where the skin moves more (as real layouts crowd the mouth and brows)
     cand = np.setdiff1d(cand, verts)
-    pick = cand[_farthest(v[cand], budget, seed_points=v[verts], weights=np.sqrt(motion[cand]))]
+    pick = cand[farthest_points(v[cand], budget, seed_points=v[verts], weights=np.sqrt(motion[cand]))]
     for j, vid in enumerate(pick):
         n = f"M{j + 1:02d}"
         names.append(n), verts.append(int(vid))

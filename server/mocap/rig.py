@@ -17,6 +17,7 @@ from ..faces.face import Face
 from ..state import FaceState, zero_faps
 from .layout import Layout, load_layout, place_markers
 from .retarget import RBFMap
+from .sampling import farthest_points
 from .stabilise import pose_in_frame, to_matrix
 
 log = logging.getLogger(__name__)
@@ -204,13 +205,4 @@ def anchor_vertices(
     far = skin[dist > factor * spacing]
     if not len(far):
         return np.zeros(0, dtype=np.int32)
-    cand = v[far]
-    d = cKDTree(pts).query(cand)[0]
-    chosen: list[int] = []
-    while len(chosen) < limit:
-        i = int(np.argmax(d))
-        if d[i] <= factor * spacing:
-            break
-        chosen.append(i)
-        d = np.minimum(d, np.linalg.norm(cand - cand[i], axis=1))
-    return far[chosen].astype(np.int32)
+    return far[farthest_points(v[far], limit, seed_points=pts, until=factor * spacing)].astype(np.int32)

@@ -14,6 +14,7 @@ from scipy.interpolate import PchipInterpolator
 
 from ...protocol.markers_file import MarkerTake
 from ..faces.face import Face
+from .sampling import farthest_points
 from .stabilise import matrix_from_euler
 
 __all__ = ["SyntheticTake", "ellipsoid_face", "synthetic_take"]
@@ -86,23 +87,11 @@ def synthetic_take(
     size = hi - lo
     top = skin[v[skin, 1] > hi[1] - 0.15 * size[1]]
     # spread the stable markers: farthest points among the top
-    pts = v[top]
-    chosen = [int(np.argmax(pts[:, 2]))]
-    d = np.linalg.norm(pts - pts[chosen[0]], axis=1)
-    for _ in range(n_stable - 1):
-        chosen.append(int(np.argmax(d)))
-        d = np.minimum(d, np.linalg.norm(pts - pts[chosen[-1]], axis=1))
-    stable = top[chosen]
+    stable = top[farthest_points(v[top], n_stable, start=int(np.argmax(v[top, 2])))]
     front = skin[(v[skin, 2] > lo[2] + 0.6 * size[2]) & (v[skin, 1] < hi[1] - 0.3 * size[1])]
     front = np.setdiff1d(front, stable)
     n_face = n_markers - n_stable
-    pts = v[front]
-    pick = [int(np.argmax(pts[:, 2]))]
-    d = np.linalg.norm(pts - pts[pick[0]], axis=1)
-    for _ in range(n_face - 1):
-        pick.append(int(np.argmax(d)))
-        d = np.minimum(d, np.linalg.norm(pts - pts[pick[-1]], axis=1))
-    face_m = front[pick]
+    face_m = front[farthest_points(v[front], n_face, start=int(np.argmax(v[front, 2])))]
     fp_v = [face.feature_points[f] for f in fp_markers]
     face_m = np.r_[fp_v, np.setdiff1d(face_m, fp_v)[: n_face - len(fp_v)]].astype(np.int64)
     n_face = len(face_m)
