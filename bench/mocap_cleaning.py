@@ -33,12 +33,6 @@ def stats(err: np.ndarray) -> dict:
     }
 
 
-def lag_frames(est: np.ndarray, truth: np.ndarray, max_lag: int = 24) -> int:
-    """The delay (frames) that best aligns ``est`` (T, M, 3) with ``truth``."""
-    errs = [np.nanmean((est[s:] - truth[: len(truth) - s]) ** 2) for s in range(max_lag + 1)]
-    return int(np.argmin(errs))
-
-
 def main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--markers", type=int, default=60)
@@ -117,7 +111,7 @@ def main(argv: list[str]) -> int:
             }
         )
         if filt == "kalman":
-            from facecast.server.mocap.clean import kalman_lag
+            from facecast.server.mocap.clean import best_delay, kalman_lag
 
             records["kalman_sine_lag_ms"] = {
                 f"{f:g} Hz": v
@@ -125,7 +119,7 @@ def main(argv: list[str]) -> int:
                     a.fps, float(np.median(proc.info["q"])), proc.info["r"]
                 ).items()
             }
-            records["kalman_lag_frames"] = lag_frames(cleaned, truth.clean)
+            records["kalman_lag_frames"] = best_delay(cleaned, truth.clean)
             records["kalman_lag_ms"] = 1000.0 * records["kalman_lag_frames"] / a.fps
         if filt == "rts":
             records["spikes_rejected"] = proc.info.get("spikes", 0)

@@ -46,6 +46,7 @@ def main(argv: list[str]) -> int:
     a = p.parse_args(argv)
 
     from facecast.server.faces import load_face
+    from facecast.server.mocap.clean import best_delay, kalman_lag
     from facecast.server.mocap.live import MarkerLiveDriver
     from facecast.server.mocap.synthetic import synthetic_take
     from facecast.server.pipeline import Animator
@@ -93,14 +94,12 @@ def main(argv: list[str]) -> int:
     n0 = len(frames) - len(states)
     d = np.stack([s.controls[: a.markers] for s in states]) * face.mm_per_unit
     truth = (syn.local - syn.local[0])[n0:]
-    lags = [float(np.mean((d[k:] - truth[: len(truth) - k]) ** 2)) for k in range(25)]
-    lag = int(np.argmin(lags))
+    lag = best_delay(d, truth)
     err = np.linalg.norm(d - truth, axis=2)
     raw = syn.take.xyz * 1.0  # capture noise baseline: raw markers stabilised with the true pose
     raw_local = np.einsum("tmj,tji->tmi", raw - syn.head_t[:, None], syn.head_r)
     raw_err = np.linalg.norm((raw_local - syn.local)[n0:], axis=2)
 
-    from facecast.server.mocap.clean import kalman_lag
 
     sine_lag = kalman_lag(a.fps, drv.kf.Q[1, 1] / drv.kf.dt, drv.kf.r)
     rec = {

@@ -146,3 +146,14 @@ def test_neutral_stops_averaging_when_a_few_markers_move(rng):
     neutral = neutral_pose(frames, 0, 40, tolerance_mm=1.0)
     np.testing.assert_allclose(neutral, still, atol=0.1)
     assert np.allclose(neutral_pose(frames, 0, 5), frames[:5].mean(axis=0))
+
+
+def test_best_delay_finds_the_shift_and_ignores_gaps():
+    from facecast.server.mocap.clean import best_delay
+
+    t = np.linspace(0, 4 * np.pi, 400)
+    truth = np.stack([np.sin(t), np.cos(2 * t), 0.5 * t], axis=1)[:, None, :]  # (T, 1, 3)
+    late = np.empty_like(truth)
+    late[7:], late[:7] = truth[:-7], truth[0]
+    late[100:120] = np.nan  # an occlusion gap
+    assert best_delay(late, truth) == 7 and best_delay(truth, truth) == 0

@@ -301,6 +301,13 @@ class KalmanCV:
         return out
 
 
+def best_delay(est: np.ndarray, truth: np.ndarray, max_lag: int = 24) -> int:
+    """Frames by which ``est (T, ...)`` trails ``truth``: the shift that best aligns them (least mean
+    squared difference over the finite samples, shifts 0 .. ``max_lag``)."""
+    errs = [np.nanmean((est[s:] - truth[: len(truth) - s]) ** 2) for s in range(max_lag + 1)]
+    return int(np.argmin(errs))
+
+
 def kalman_lag(
     fps: float, q: float, r: float, freqs: tuple[float, ...] = (1.0, 2.0, 5.0)
 ) -> dict[float, float]:
