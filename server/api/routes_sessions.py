@@ -83,20 +83,8 @@ def registry(app: Any):
 )
 async def create_session(request: Request, body: SessionCreate | None = None) -> SessionCreated:
     """Open a live session; the answer's tokens are shown only once."""
-    s = await registry(request.app).create(body or SessionCreate())
-    sp = s.spec
-    base = f"/v1/sessions/{sp.id}"
-    return SessionCreated(
-        id=sp.id,
-        producer_token=sp.producer_token,
-        viewer_token=sp.viewer_token,
-        face=sp.face,
-        input=sp.input,
-        fps=sp.fps,
-        vertex_count=s.vertex_count,
-        produce_url=base + "/produce",
-        watch_url=base + "/watch",
-    )
+    reg = registry(request.app)
+    return reg.created(await reg.create(body or SessionCreate()))
 
 
 @router.get("/v1/sessions", response_model=SessionList, dependencies=[Depends(require_admin)])

@@ -14,7 +14,13 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from ...protocol.errors import CloseCode
-from ...protocol.messages import ErrorMessage, SessionCreate, SessionInfo, dump_message
+from ...protocol.messages import (
+    ErrorMessage,
+    SessionCreate,
+    SessionCreated,
+    SessionInfo,
+    dump_message,
+)
 from ..api.security import new_token
 from ..errors import FacecastError, NotFound
 from .batcher import DeformBatcher, batch_threads
@@ -156,6 +162,22 @@ class SessionRegistry:
             backend=backend,
             device=device,
             control_vertices=control_vertices,
+        )
+
+    def created(self, s: LiveSession) -> SessionCreated:
+        """The answer to creating ``s``: its id, both tokens (shown only then) and its URLs."""
+        sp = s.spec
+        base = f"/v1/sessions/{sp.id}"
+        return SessionCreated(
+            id=sp.id,
+            producer_token=sp.producer_token,
+            viewer_token=sp.viewer_token,
+            face=sp.face,
+            input=sp.input,
+            fps=sp.fps,
+            vertex_count=s.vertex_count,
+            produce_url=base + "/produce",
+            watch_url=base + "/watch",
         )
 
     def info(self, s: LiveSession) -> SessionInfo:
