@@ -222,7 +222,8 @@ class DeformBatcher:
         job = _Job(state, seq, wall, encodings, done, asyncio.get_running_loop())
         with self._lock:
             self._pending.append(job)
-            self._sources[getattr(done, "__self__", done)] = time.monotonic()
+            if self.coalesce > 0:  # who is active: only a coalescing drain asks (and prunes)
+                self._sources[getattr(done, "__self__", done)] = time.monotonic()
             if self._waiting and len(self._pending) >= self._want:
                 self._more.notify()
         if not self._delivering:  # else ``_deliver`` starts the work once all callbacks have run
