@@ -206,21 +206,26 @@ def test_playing_an_uploaded_speech_file_moves_the_lips_with_sound(server, brows
 
 #: Render the current frame twice in one task: as drawn (back faces culled on closed surfaces) and
 #: with every triangle drawn unculled, or with per-pixel and per-vertex lighting, or at full and
-#: coarse level of detail. Returns pixel
+#: coarse level of detail, or in mesh and vertex-cache triangle order, or with the mouth's interior
+#: drawn whole and only inside the mouth window. Returns pixel
 #: statistics: `face` the fraction of pixels unlike the background, `differ` the fraction that differ
 #: between the two pictures by more than 24 levels, `mad` the mean absolute difference over the face,
-#: `mid` the second picture's mean RGB in the middle, `spread` its largest per-channel deviation.
+#: `mid` the second picture's mean RGB in the middle, `spread` its largest per-channel deviation,
+#: `changed` the number of colour bytes that differ at all, `window` the last mouth window.
 TWO_RENDERS_JS = """([what, yaw, pitch]) => {
   const r = facecast.renderer, gl = r.gl, m = r.mesh, groups = m.groups, shading = r.shading;
   r.camera.yaw = yaw; r.camera.pitch = pitch;
   const grab = (variant) => {
     if (what === 'cull') m.groups = variant ? groups : [{ first: 0, count: m.count, cull: false }];
     else if (what === 'lod') r.lod = variant ? 1 : 0;
+    else if (what === 'order') r.setVertexCacheOrder(variant);
+    else if (what === 'scissor') r.mouthScissor = variant;
     else r.shading = variant ? 'vertex' : 'pixel';
     r.draw();
     const px = new Uint8Array(4 * r.canvas.width * r.canvas.height);
     gl.readPixels(0, 0, r.canvas.width, r.canvas.height, gl.RGBA, gl.UNSIGNED_BYTE, px);
-    m.groups = groups; r.shading = shading; r.lod = 0;
+    if (what !== 'order') m.groups = groups;
+    r.shading = shading; r.lod = 0; r.mouthScissor = true;
     return px;
   };
   const a = grab(false), b = grab(true), W = r.canvas.width, H = r.canvas.height, n = W * H;
@@ -237,7 +242,10 @@ TWO_RENDERS_JS = """([what, yaw, pitch]) => {
     if (Math.abs(x - W / 2) < 10 && Math.abs(y - H / 2) < 10) { for (let c = 0; c < 3; c++) mid[c] += b[i + c]; k++; }
   }
   const spread = Math.max(...sum.map((s, c) => Math.sqrt(sq[c] / face - (s / face) ** 2)));
-  return { face: face / n, differ: differ / n, mad: sad / face, mid: mid.map((x) => x / k), spread };
+  let changed = 0;
+  for (let i = 0; i < 4 * n; i++) if (a[i] !== b[i]) changed++;
+  return { face: face / n, differ: differ / n, mad: sad / face, mid: mid.map((x) => x / k), spread, changed,
+           window: r.lastMouthWindow, size: [W, H] };
 }"""
 
 
@@ -262,10 +270,11 @@ def test_draw_order_keeps_every_triangle_once_with_the_two_sided_sheets_last(fac
     }""")
     tris = [tuple(r["order"][i:i + 3]) for i in range(0, 15, 3)]
     assert sorted(tris) == sorted([(0, 1, 2), (2, 3, 4), (4, 5, 6), (6, 7, 0), (8, 9, 10)])
-    # skin (0,1,2), (6,7,0) and the interior teeth (2,3,4) culled; the eyelash sheet (4,5,6) next, unculled;
-    # the transparent cornea (8,9,10) last and in no draw group
-    assert tris[-2:] == [(4, 5, 6), (8, 9, 10)]
-    assert r["groups"] == [{"first": 0, "count": 9, "cull": True}, {"first": 9, "count": 3, "cull": False}]
+    # skin (0,1,2), (6,7,0) culled, then the interior teeth (2,3,4) culled in a draw of their own; the
+    # eyelash sheet (4,5,6) next, unculled; the transparent cornea (8,9,10) last and in no draw group
+    assert tris[2:] == [(2, 3, 4), (4, 5, 6), (8, 9, 10)]
+    assert r["groups"] == [{"first": 0, "count": 6, "cull": True}, {"first": 6, "count": 3, "cull": True, "interior": True},
+                           {"first": 9, "count": 3, "cull": False}]
 
 
 def test_part_colours_blend_across_shared_edges_only(face_page):
@@ -342,3 +351,109 @@ def test_the_coarse_level_draws_the_same_lit_face(face_page, artifacts):
     page.screenshot(path=str(artifacts / "web_coarse_level.png"))
     page.evaluate("facecast.setQuality({ lod: 0 })")
     assert not problems, problems
+
+
+def test_vertex_cache_order_keeps_every_triangle_and_shades_fewer_vertices(face_page):
+    page, _ = face_page
+    r = page.evaluate("""async () => {
+      const { cacheOrder, vertexRuns } = await import('/static/js/renderer.js');
+      // a 40x40-quad grid, its triangles shuffled (a fixed linear congruential sequence)
+      const n = 40, V = (n + 1) * (n + 1), tris = [];
+      for (let y = 0; y < n; y++) for (let x = 0; x < n; x++) {
+        const v = y * (n + 1) + x;
+        tris.push([v, v + 1, v + n + 2], [v, v + n + 2, v + n + 1]);
+      }
+      let seed = 12345;
+      for (let i = tris.length - 1; i > 0; i--) {
+        seed = (seed * 1103515245 + 12345) % 2147483648;
+        const j = seed % (i + 1); [tris[i], tris[j]] = [tris[j], tris[i]];
+      }
+      const shuffled = Uint32Array.from(tris.flat()), ordered = cacheOrder(shuffled, V);
+      return { V, shuffled: Array.from(shuffled), ordered: Array.from(ordered),
+               before: vertexRuns(shuffled), after: vertexRuns(ordered) };
+    }""")
+    def canon(flat):  # each triangle rotated to start at its smallest index: same winding, same triangle
+        out = []
+        for i in range(0, len(flat), 3):
+            t = flat[i:i + 3]
+            k = t.index(min(t))
+            out.append(tuple(t[k:] + t[:k]))
+        return sorted(out)
+    assert canon(r["ordered"]) == canon(r["shuffled"])
+    assert r["after"] < 0.5 * r["before"], r
+    assert r["after"] < 1.3 * r["V"], f"{r['after']} vertex shader runs for {r['V']} vertices"
+
+
+def test_vertex_cache_order_draws_the_same_picture(face_page):
+    page, problems = face_page
+    for yaw, pitch in [(0.35, 0.08), (-1.2, -0.3)]:
+        r = page.evaluate(TWO_RENDERS_JS, ["order", yaw, pitch])
+        assert r["face"] > 0.05, f"nothing drawn at yaw {yaw}"
+        # the same triangles; only where two surfaces meet at equal depth may the other one win
+        assert r["differ"] < 0.002, f"the triangle order changed {100 * r['differ']:.2f} % of the pixels"
+    assert not problems, problems
+
+
+#: Views for the mouth window checks: front, side, from below, from behind (yaw, pitch).
+MOUTH_VIEWS = [(0.35, 0.08), (-1.0, 0.3), (0.2, -1.3), (3.0, 0.1)]
+
+
+def check_mouth_window(server, browser, artifacts, face: str, fp: dict) -> list[dict]:
+    """Drive a session's mouth closed, then open, and render each state from MOUTH_VIEWS with the mouth's
+    interior drawn whole and only inside the mouth window: every pixel must be the same."""
+    session = create_session(server, input="fap", fps=30, face=face)
+    page, problems = open_page(browser, f"{server.url}/#session={session['id']}&token={session['viewer_token']}")
+    try:
+        wait_for(page, "document.getElementById('status').textContent.includes('watching')")
+        page.evaluate("facecast.setQuality({ scale: 0.5 })")
+        results = []
+        for faps in ({"3": 0.0}, {"3": 900.0, "5": -500.0}):
+            seen = page.evaluate("facecast.viewer.stats.frames")
+            run_async(produce_faps(server, session, [faps]))
+            wait_for(page, f"window.facecast.viewer.stats.frames > {seen}")
+            gap = page.evaluate(f"facecast.renderer.vertex({fp['2.2']})[1] - facecast.renderer.vertex({fp['2.3']})[1]")
+            for yaw, pitch in MOUTH_VIEWS:
+                r = page.evaluate(TWO_RENDERS_JS, ["scissor", yaw, pitch])
+                assert r["face"] > 0.02, f"nothing drawn at {yaw, pitch}"
+                assert r["changed"] == 0, f"the mouth window changed {r['changed']} bytes at {(yaw, pitch)}, FAPs {faps}"
+                results.append({"faps": faps, "view": (yaw, pitch), "window": r["window"], "size": r["size"], "gap": gap})
+        page.evaluate("facecast.renderer.camera.yaw = 0.35; facecast.renderer.camera.pitch = 0.08; facecast.renderer.draw()")
+        page.screenshot(path=str(artifacts / f"web_mouth_window_{face}.png"))
+        assert not problems, problems
+        return results
+    finally:
+        page.close()
+
+
+def window_area(r: dict) -> float:
+    w = r["window"]
+    return 0.0 if w is None else max(0, w[2] - w[0]) * max(0, w[3] - w[1]) / (r["size"][0] * r["size"][1])
+
+
+def test_the_mouth_window_leaves_the_picture_unchanged(server, browser, artifacts):
+    fp = load_face("default").feature_points
+    results = check_mouth_window(server, browser, artifacts, "default", fp)
+    front = [r for r in results if r["view"] == MOUTH_VIEWS[0]]
+    assert front[1]["gap"] > front[0]["gap"] + 0.5, "the jaw did not open"
+    # the window is in use (the built-in head's shell is closed): small, larger with the mouth open
+    assert all(r["window"] is not None for r in front)
+    assert 0 < window_area(front[0]) < window_area(front[1]) < 0.1, front
+
+
+@pytest.mark.slow
+def test_the_mouth_window_leaves_the_ict_head_unchanged(browser, data_dir, tmp_path, artifacts):
+    from conftest import RunningServer
+
+    mesh = data_dir / "ict-facekit" / "generic_neutral_mesh.obj"
+    if not mesh.exists():
+        pytest.skip("ICT FaceKit head not in the shared data")
+    srv = RunningServer(tmp_path / "data", env={"FACECAST_FACES": f"ict={mesh}"}).start()
+    try:
+        fp = load_face(str(mesh)).feature_points
+        results = check_mouth_window(srv, browser, artifacts, "ict", fp)
+    finally:
+        srv.stop()
+    front = [r for r in results if r["view"] == MOUTH_VIEWS[0]]
+    assert all(r["window"] is not None and 0 < window_area(r) < 0.1 for r in front), front
+    # from below, the eye sees into the neck opening: the interior is drawn whole
+    assert all(r["window"] is None for r in results if r["view"] == MOUTH_VIEWS[2]), results

@@ -150,6 +150,10 @@ export class FaceRenderer {
     this.shading = 'pixel';
     /** Level of detail: 0 draws every triangle, 1 a coarser mesh over the same, animated vertices (see coarsen). */
     this.lod = 0;
+    /** Triangles in vertex-cache order within each draw group (fewer vertex shader runs in software GL). */
+    this.vertexCacheOrder = true;
+    /** Draw the mouth's interior only inside the screen rectangle of the mouth opening (see mouthWindow). */
+    this.mouthScissor = true;
     this.mesh = null;
     this.camera = new OrbitCamera();
     this.scale = 1;  // < 1 renders fewer pixels (the browser scales the canvas up)
@@ -174,14 +178,16 @@ export class FaceRenderer {
     const rgb = new Float32Array(3 * V);
     for (let i = 0; i < V; i++) rgb.set(PART_COLORS[partNames[partIds[i]]] || PART_COLORS.skin, 3 * i);
     const color = buf(smoothColors(rgb, triangles, V), this.loc.a_color, 3, gl.FLOAT);
-    const { order, groups } = drawOrder(triangles, partIds, partNames);
+    const { order, groups } = this.ordered(triangles, partIds, partNames, V);
     const ibo = gl.createBuffer();
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ibo);
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, order, gl.STATIC_DRAW);
     this.normals = new VertexNormals(triangles, V);
+    this.mouthShell = mouthShell(triangles, partIds, partNames, V);
     this.mesh = { vao, ibo, f32, i16, nrm, color, V, count: triangles.length, groups, partIds, partNames, coarse: null,
                   quantized: false,
                   offset: [0, 0, 0], scale: [1, 1, 1], positions: new Float32Array(rest) };
+    this.positionArrays(false);
     this.updateNormals(rest);
     let lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
     for (let i = 0; i < rest.length; i += 3) {
@@ -192,11 +198,31 @@ export class FaceRenderer {
     this.camera.frame([centre[0], centre[1] + size * 0.05, centre[2]], size * 2.1);
   }
 
+  /** The draw order (see drawOrder) with each draw group's triangles in vertex-cache order (see cacheOrder). */
+  ordered(triangles, partIds, partNames, V) {
+    const { order, groups } = drawOrder(triangles, partIds, partNames);
+    if (this.vertexCacheOrder) for (const g of groups) order.set(cacheOrder(order.subarray(g.first, g.first + g.count), V), g.first);
+    // 16-bit indices when the vertices fit (half the index bytes for the GL to read)
+    return { order: V <= 65535 ? Uint16Array.from(order) : order, groups };
+  }
+
+  /** Switch the vertex-cache order of the index buffers on or off (for comparisons): rebuilt at once. */
+  setVertexCacheOrder(on) {
+    this.vertexCacheOrder = on;
+    const m = this.mesh;
+    if (!m) return;
+    const { order, groups } = this.ordered(this.normals.tri, m.partIds, m.partNames, m.V);
+    this.gl.bindBuffer(this.gl.ELEMENT_ARRAY_BUFFER, m.ibo);
+    this.gl.bufferData(this.gl.ELEMENT_ARRAY_BUFFER, order, this.gl.STATIC_DRAW);
+    m.groups = groups; m.coarse = null;
+  }
+
   /** A float32 frame: positions Float32Array(3V). */
   setFrameF32(positions) {
     const gl = this.gl, m = this.mesh;
     gl.bindBuffer(gl.ARRAY_BUFFER, m.f32);
     gl.bufferSubData(gl.ARRAY_BUFFER, 0, positions);
+    if (m.quantized) this.positionArrays(false);
     m.quantized = false;
     m.positions = positions;
     this.updateNormals(positions);
@@ -207,8 +233,18 @@ export class FaceRenderer {
     const gl = this.gl, m = this.mesh;
     gl.bindBuffer(gl.ARRAY_BUFFER, m.i16);
     gl.bufferSubData(gl.ARRAY_BUFFER, 0, q);
+    if (!m.quantized) this.positionArrays(true);
     m.quantized = true; m.offset = offset; m.scale = scale; m.q = q;
     this.updateNormalsQuantized(q, scale);
+  }
+
+  /** Read positions from the int16 array (quantized) or the float32 one; the other is not fetched. */
+  positionArrays(quantized) {
+    const gl = this.gl;
+    gl.bindVertexArray(this.mesh.vao);
+    if (quantized) { gl.enableVertexAttribArray(ATTR.a_i16); gl.disableVertexAttribArray(ATTR.a_f32); }
+    else { gl.enableVertexAttribArray(ATTR.a_f32); gl.disableVertexAttribArray(ATTR.a_i16); }
+    gl.bindVertexArray(null);
   }
 
   /** Current position of vertex i (world units), as drawn. */
@@ -233,7 +269,7 @@ export class FaceRenderer {
     const gl = this.gl, m = this.mesh;
     if (!m.coarse) {
       const keep = m.partNames.map((n) => FINE.test(n));
-      const { order, groups } = drawOrder(coarsen(this.normals.tri, m.V, m.partIds, keep), m.partIds, m.partNames);
+      const { order, groups } = this.ordered(coarsen(this.normals.tri, m.V, m.partIds, keep), m.partIds, m.partNames, m.V);
       const ibo = gl.createBuffer();
       gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ibo);
       gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, order, gl.STATIC_DRAW);
@@ -276,11 +312,72 @@ export class FaceRenderer {
     // rasteriser), then the open single-sided sheets (lashes, eye extras, sockets) seen from both sides.
     const level = this.lod ? this.coarseLevel() : m;
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, level.ibo);
+    const [type, bytes] = m.V <= 65535 ? [gl.UNSIGNED_SHORT, 2] : [gl.UNSIGNED_INT, 4];
+    const window_ = this.mouthScissor ? this.mouthWindow() : null;
     for (const g of level.groups) {
+      if (g.interior && window_) {
+        const [x0, y0, x1, y1] = window_;
+        if (x1 <= x0 || y1 <= y0) continue;  // the opening is off screen: nothing inside can show
+        gl.enable(gl.SCISSOR_TEST);
+        gl.scissor(x0, y0, x1 - x0, y1 - y0);
+      }
       if (g.cull) gl.enable(gl.CULL_FACE); else gl.disable(gl.CULL_FACE);
-      gl.drawElements(gl.TRIANGLES, g.count, gl.UNSIGNED_INT, 4 * g.first);
+      gl.drawElements(gl.TRIANGLES, g.count, type, bytes * g.first);
+      gl.disable(gl.SCISSOR_TEST);
     }
     gl.disable(gl.CULL_FACE);
+    this.lastMouthWindow = window_;
+  }
+
+  /**
+   * The drawing-buffer rectangle [x0, y0, x1, y1) (pixels, y up) outside which nothing of the mouth's
+   * interior can be seen this frame, or null when that cannot be shown (then it is drawn whole).
+   * The interior (teeth, gums, tongue, mouth socket) sits in the pocket the mouth socket makes behind
+   * the lips; the pocket's only opening is the lips' inner rim, and the rest of the shell (skin, lips,
+   * sockets) is closed but for its own holes (the neck). A ray from the eye reaches the interior either
+   * through the rim, whose opening projects inside the rim's projected bounding box, or through a
+   * hole of the shell: ruled out when the eye and every interior vertex lie on the same side of the
+   * slab that holds the hole's rim (and so any surface spanning it). Positions are this frame's.
+   */
+  mouthWindow() {
+    const ms = this.mouthShell, m = this.mesh, c = this.canvas;
+    if (!ms || !m) return null;
+    const P = m.quantized ? m.q : m.positions, o = m.quantized ? m.offset : [0, 0, 0], k = m.quantized ? m.scale : [1, 1, 1];
+    const at = (i, a) => o[a] + P[3 * i + a] * k[a];
+    const eye = this.camera.eye();
+    for (const hole of ms.holes) {
+      // centroid and Newell normal of the hole's rim
+      const cen = [0, 0, 0], n = [0, 0, 0];
+      for (let j = 0; j < hole.length; j++) for (let a = 0; a < 3; a++) cen[a] += at(hole[j], a) / hole.length;
+      for (let j = 0; j < hole.length; j++) {
+        const p = hole[j], q = hole[(j + 1) % hole.length];
+        for (let a = 0; a < 3; a++) {
+          const b = (a + 1) % 3, d = (a + 2) % 3;
+          n[a] += (at(p, b) - at(q, b)) * (at(p, d) + at(q, d));
+        }
+      }
+      const dist = (x, y, z) => (x - cen[0]) * n[0] + (y - cen[1]) * n[1] + (z - cen[2]) * n[2];
+      let lo = Infinity, hi = -Infinity;
+      for (const v of hole) { const d = dist(at(v, 0), at(v, 1), at(v, 2)); lo = Math.min(lo, d); hi = Math.max(hi, d); }
+      let ilo = Infinity, ihi = -Infinity;
+      for (const v of ms.interior) { const d = dist(at(v, 0), at(v, 1), at(v, 2)); ilo = Math.min(ilo, d); ihi = Math.max(ihi, d); }
+      const e = dist(eye[0], eye[1], eye[2]);
+      const above = ilo > hi && e > hi, below = ihi < lo && e < lo;
+      if (!above && !below) return null;
+    }
+    const M = this.camera.viewProj(c.width / c.height);
+    let x0 = Infinity, y0 = Infinity, x1 = -Infinity, y1 = -Infinity;
+    for (const v of ms.rim) {
+      const x = at(v, 0), y = at(v, 1), z = at(v, 2);
+      const w = M[3] * x + M[7] * y + M[11] * z + M[15];
+      if (!(w > 1e-6)) return null;  // the rim reaches behind the eye
+      const sx = (M[0] * x + M[4] * y + M[8] * z + M[12]) / w, sy = (M[1] * x + M[5] * y + M[9] * z + M[13]) / w;
+      x0 = Math.min(x0, sx); x1 = Math.max(x1, sx); y0 = Math.min(y0, sy); y1 = Math.max(y1, sy);
+    }
+    // to pixels, rounded outwards with a pixel to spare, clamped to the drawing buffer
+    const W = c.width, H = c.height, pad = 1;
+    return [Math.max(0, Math.floor((x0 + 1) / 2 * W) - pad), Math.max(0, Math.floor((y0 + 1) / 2 * H) - pad),
+            Math.min(W, Math.ceil((x1 + 1) / 2 * W) + pad), Math.min(H, Math.ceil((y1 + 1) / 2 * H) + pad)];
   }
 }
 
@@ -316,7 +413,8 @@ export const TRANSPARENT = /^(cornea|eye_extras)/;
 /**
  * Triangle order for drawing: one-sided outer parts (skin, eyes) first, then the mouth's interior,
  * then the two-sided sheets; transparent parts go last and are in no group (not drawn). Returns the
- * reordered indices (Uint32Array 3F) and the draw groups [{first, count, cull}] in index units.
+ * reordered indices (Uint32Array 3F) and the draw groups [{first, count, cull, interior?}] in index
+ * units (one draw call each; empty groups left out).
  */
 export function drawOrder(triangles, partIds, partNames) {
   const F = triangles.length / 3, rank = new Uint8Array(F);
@@ -328,9 +426,164 @@ export function drawOrder(triangles, partIds, partNames) {
     const o = 3 * next[rank[f]]++;
     order[o] = triangles[3 * f]; order[o + 1] = triangles[3 * f + 1]; order[o + 2] = triangles[3 * f + 2];
   }
-  const groups = [{ first: 0, count: 3 * (counts[0] + counts[1]), cull: true },
+  const groups = [{ first: 0, count: 3 * counts[0], cull: true },
+                  { first: 3 * counts[0], count: 3 * counts[1], cull: true, interior: true },
                   { first: 3 * (counts[0] + counts[1]), count: 3 * counts[2], cull: false }];
   return { order, groups: groups.filter((g) => g.count > 0) };
+}
+
+/** Parts of the head's shell: the surface that closes the head around the mouth's pocket. */
+const SHELL = /^(skin|lip|mouth_socket|eye_socket)/;
+
+/**
+ * Where the mouth's interior can be seen from: {rim: vertex ids of the mouth socket's open edge (the
+ * lips' inner rim), holes: [vertex ids of each other hole of the shell, in order around it], interior:
+ * vertex ids of the interior parts}, or null when the mesh is not a shell sealed onto a mouth socket
+ * (then the interior is always drawn whole). A triangle's part is its first corner's (as in drawOrder).
+ */
+export function mouthShell(triangles, partIds, partNames, V) {
+  const socket = partNames.indexOf('mouth_socket');
+  if (socket < 0) return null;
+  const shellPart = partNames.map((n) => SHELL.test(n)), interiorPart = partNames.map((n) => INTERIOR.test(n));
+  // boundary edges (used by one triangle) of the shell and of the socket alone
+  const edges = (keep) => {
+    const count = new Map();
+    for (let i = 0; i < triangles.length; i += 3) {
+      if (!keep(partIds[triangles[i]])) continue;
+      for (let k = 0; k < 3; k++) {
+        const a = triangles[i + k], b = triangles[i + (k + 1) % 3], key = a < b ? a * V + b : b * V + a;
+        count.set(key, (count.get(key) || 0) + 1);
+      }
+    }
+    const out = [];
+    for (const [key, n] of count) if (n === 1) out.push([Math.floor(key / V), key % V]);
+    return out;
+  };
+  const rimEdges = edges((p) => p === socket);
+  if (!rimEdges.length) return null;
+  const shellEdges = edges((p) => shellPart[p]);
+  const shellKeys = new Set(shellEdges.map(([a, b]) => a * V + b));
+  if (rimEdges.some(([a, b]) => shellKeys.has(a * V + b))) return null;  // the socket is not sealed onto the shell
+  // the shell's holes as loops of vertices
+  const next = new Map();
+  for (const [a, b] of shellEdges) {
+    next.set(a, [...(next.get(a) || []), b]); next.set(b, [...(next.get(b) || []), a]);
+  }
+  if ([...next.values()].some((l) => l.length !== 2)) return null;  // not simple loops
+  const seen = new Set(), holes = [];
+  for (const s of next.keys()) {
+    if (seen.has(s)) continue;
+    const loop = [s]; seen.add(s);
+    let prev = -1, cur = s;
+    for (;;) {
+      const [u, w] = next.get(cur), nxt = u !== prev ? u : w;
+      if (seen.has(nxt)) break;
+      loop.push(nxt); seen.add(nxt); prev = cur; cur = nxt;
+    }
+    holes.push(Uint32Array.from(loop));
+  }
+  const rim = Uint32Array.from(new Set(rimEdges.flat()));
+  const inner = new Set();
+  for (let i = 0; i < triangles.length; i += 3) {
+    if (interiorPart[partIds[triangles[i]]]) for (let k = 0; k < 3; k++) inner.add(triangles[i + k]);
+  }
+  return { rim, holes, interior: Uint32Array.from(inner) };
+}
+
+/**
+ * Triangles reordered for the vertex cache of a software GL's vertex stage. Mesa's draw module (llvmpipe)
+ * cuts an indexed draw into segments of `segment` triangles (341: 1023 indices), and within a segment
+ * shades a vertex again whenever a direct-mapped cache of `slots` entries (index mod 256) misses. This
+ * greedy pass fills each segment with a compact patch: it keeps a model of that cache and always takes
+ * the open triangle whose corners hit it most (then the oldest seen), starting a patch where the last
+ * one left off. Same triangles, same winding, only their order changes. triangles: Uint32Array 3F (one
+ * draw call: segments start at its first triangle). Returns a new Uint32Array 3F.
+ */
+export function cacheOrder(triangles, V, segment = 341, slots = 256) {
+  const F = triangles.length / 3;
+  if (F <= segment) return Uint32Array.from(triangles);
+  // vertex -> triangles (CSR)
+  const start = new Uint32Array(V + 1);
+  for (let i = 0; i < triangles.length; i++) start[triangles[i] + 1]++;
+  for (let v = 0; v < V; v++) start[v + 1] += start[v];
+  const fill = start.slice(0, V), vt = new Uint32Array(triangles.length);
+  for (let i = 0; i < triangles.length; i++) vt[fill[triangles[i]]++] = (i / 3) | 0;
+  const done = new Uint8Array(F), cache = new Int32Array(slots).fill(-1);
+  const hits = (f) => {
+    let h = 0;
+    for (let k = 0; k < 3; k++) { const v = triangles[3 * f + k]; if (cache[v % slots] === v) h++; }
+    return h;
+  };
+  // Candidates by the number of their corners in the cache (1..3), each a stack; entries go stale
+  // (re-checked when taken).
+  const buckets = [null, [], [], []], heads = [0, 0, 0, 0];  // queues: the oldest first (a round patch)
+  const out = new Uint32Array(triangles.length);
+  let n = 0, cursor = 0, inSegment = 0;
+  const emit = (f) => {
+    done[f] = 1;
+    for (let k = 0; k < 3; k++) {
+      const v = triangles[3 * f + k];
+      out[3 * n + k] = v;
+      cache[v % slots] = v;
+    }
+    n++;
+    for (let k = 0; k < 3; k++) {
+      const v = triangles[3 * f + k];
+      for (let j = start[v]; j < start[v + 1]; j++) {
+        const g = vt[j];
+        if (!done[g]) { const h = hits(g); if (h) buckets[h].push(g); }
+      }
+    }
+  };
+  let last = -1;  // a triangle of the previous patch: the next one starts next to it
+  while (n < F) {
+    if (inSegment === segment) {  // a new segment: Mesa starts with an empty cache
+      inSegment = 0; cache.fill(-1);
+      for (const b of buckets) if (b) b.length = 0;
+      heads.fill(0);
+      // seed next to where the last patch ended, else the first triangle left
+      let seed = -1;
+      if (last >= 0) {
+        for (let k = 0; k < 3 && seed < 0; k++) {
+          const v = triangles[3 * last + k];
+          for (let j = start[v]; j < start[v + 1]; j++) if (!done[vt[j]]) { seed = vt[j]; break; }
+        }
+      }
+      if (seed >= 0) { emit(seed); inSegment++; last = seed; continue; }
+    }
+    let f = -1;
+    for (let h = 3; h >= 1 && f < 0; h--) {
+      const b = buckets[h];
+      while (heads[h] < b.length) {
+        const g = b[heads[h]++];
+        if (done[g]) continue;
+        const real = hits(g);
+        if (real === h) { f = g; break; }
+        if (real > 0) buckets[real].push(g);
+      }
+    }
+    if (f < 0) {  // nothing touches the cache: the first triangle not yet taken
+      while (done[cursor]) cursor++;
+      f = cursor;
+    }
+    emit(f); inSegment++; last = f;
+  }
+  return out;
+}
+
+/**
+ * Vertex shader runs of a draw of `triangles` in Mesa's draw module (segments of `segment` triangles,
+ * a direct-mapped cache of `slots` vertices per segment): the count cacheOrder lowers.
+ */
+export function vertexRuns(triangles, segment = 341, slots = 256) {
+  const cache = new Int32Array(slots);
+  let runs = 0;
+  for (let i = 0; i < triangles.length; i++) {
+    if (i % (3 * segment) === 0) cache.fill(-1);
+    const v = triangles[i];
+    if (cache[v % slots] !== v) { cache[v % slots] = v; runs++; }
+  }
+  return runs;
 }
 
 /** Small parts whose shape matters more than their triangle count: never coarsened. */
