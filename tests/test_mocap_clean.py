@@ -14,6 +14,8 @@ from facecast.server.mocap.clean import (
     fill_gaps,
     find_gaps,
     kalman_filter,
+    lowrank_denoise,
+    motion_rank,
     rts_smooth,
 )
 
@@ -157,3 +159,30 @@ def test_best_delay_finds_the_shift_and_ignores_gaps():
     late[7:], late[:7] = truth[:-7], truth[0]
     late[100:120] = np.nan  # an occlusion gap
     assert best_delay(late, truth) == 7 and best_delay(truth, truth) == 0
+
+
+def _low_rank_take(rng, n=900, m=40, k=5, noise=0.5):
+    """``(truth, noisy)`` ``(n, m, 3)`` mm: k smooth motions (a few mm) plus white noise."""
+    t = np.arange(n) / FPS
+    w = np.stack([np.sin(2 * np.pi * f * t + p) for f, p in zip(rng.uniform(0.2, 1.5, k), rng.uniform(0, 6, k))], 1)
+    w += 0.5  # a mean expression over the take, as every real take has
+    truth = (w @ rng.normal(size=(k, 3 * m)) * 1.5).reshape(n, m, 3)
+    return truth, truth + rng.normal(0.0, noise, truth.shape)
+
+
+def test_motion_rank_counts_the_motions_above_the_noise(rng):
+    truth, noisy = _low_rank_take(rng, k=5)
+    assert motion_rank(noisy) == 6  # five motions and the mean displacement
+    assert motion_rank(rng.normal(0.0, 0.5, noisy.shape)) <= 2  # noise alone: nothing stands out
+
+
+def test_lowrank_denoise_removes_the_noise_outside_the_motion(rng):
+    truth, noisy = _low_rank_take(rng, k=5)
+    before = np.linalg.norm(noisy - truth, axis=2).mean()
+    after = np.linalg.norm(lowrank_denoise(noisy, motion_rank(noisy)) - truth, axis=2).mean()
+    assert after < 0.3 * before  # 6 of 120 directions kept
+    full = lowrank_denoise(noisy, 3 * noisy.shape[1])  # every direction kept: nothing changes
+    np.testing.assert_allclose(full, noisy, atol=1e-9)
+    gap = noisy.copy()
+    gap[10, 3] = np.nan
+    assert np.isnan(lowrank_denoise(gap, 6)[10, 3]).all()  # frames with a hole are left alone

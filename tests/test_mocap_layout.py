@@ -149,3 +149,23 @@ def test_driver_ignores_markers_the_layout_does_not_name(caplog):
     proc = process(syn.take, face, lay)
     assert len(proc.rig.control) == 9
     assert "ignoring 1 marker" in caplog.text
+
+
+def test_anchors_pin_the_far_skin_and_the_neck_but_leave_the_markers_room(data_dir):
+    from facecast.server.faces import load_face
+    from facecast.server.mocap.generate import technician_markers
+    from facecast.server.mocap.rig import anchor_vertices
+    from scipy.spatial import cKDTree
+
+    face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
+    _, markers, _ = technician_markers(face, 55, [])
+    pins = anchor_vertices(face, np.asarray(markers))
+    v = face.vertices
+    spacing = np.median(cKDTree(v[markers]).query(v[markers], k=2)[0][:, 1])
+    assert cKDTree(v[markers]).query(v[pins])[0].min() > 2.0 * spacing  # room round every marker
+    below = v[pins, 1] < v[markers, 1].min() - 2.0 * spacing
+    assert below.sum() >= 5  # the neck is held
+    skin = face.part("skin")
+    far = skin[cKDTree(v[markers]).query(v[skin])[0] > 2.0 * spacing]
+    # every far skin vertex is within reach of a pin (the pins cover it, they are not just a few)
+    assert cKDTree(v[pins]).query(v[far])[0].max() <= 2.0 * spacing + 1e-6

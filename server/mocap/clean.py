@@ -30,6 +30,9 @@ __all__ = [
     "kalman_filter",
     "kalman_lag",
     "lowpass_dct",
+    "lowrank_denoise",
+    "motion_rank",
+    "optimal_rank",
     "rts_smooth",
 ]
 
@@ -461,6 +464,55 @@ def estimate_noise(xyz: np.ndarray, fps: float, cluster: int = 6) -> tuple[float
     return r, float(estimate_q(xyz, fps, r, per_marker=False)[0])
 
 
+# -------------------------------------------------------------------------------------- low rank
+
+
+def optimal_rank(singular_values: np.ndarray, shape: tuple[int, int]) -> int:
+    """Number of singular values of a ``shape`` data matrix that stand above white noise of unknown
+    level: Gavish & Donoho's (2014) hard threshold ``ω(β) · median(σ)`` with ``β`` = the short side
+    over the long side and ``ω(β) ≈ 0.56β³ − 0.95β² + 1.82β + 1.43``."""
+    s = np.sort(np.asarray(singular_values, dtype=np.float64))[::-1]
+    if not len(s) or s[0] <= 0:
+        return 0
+    beta = min(shape) / max(shape)
+    omega = 0.56 * beta**3 - 0.95 * beta**2 + 1.82 * beta + 1.43
+    return int((s > omega * np.median(s)).sum())
+
+
+def motion_rank(disp: np.ndarray) -> int:
+    """How many directions the motion in ``(T, M, 3)`` displacements (mm, white noise: before any
+    smoothing) spans: the principal components above the noise (``optimal_rank``) plus one for
+    the mean displacement. Frames with a NaN are skipped."""
+    flat = np.asarray(disp, dtype=np.float64).reshape(len(disp), -1)
+    flat = flat[np.isfinite(flat).all(axis=1)]
+    if len(flat) < 2:
+        return flat.shape[1]
+    return min(optimal_rank(np.linalg.svd(flat - flat.mean(axis=0), compute_uv=False), flat.shape) + 1,
+               flat.shape[1])
+
+
+def lowrank_denoise(disp: np.ndarray, rank: int) -> np.ndarray:
+    """``(T, M, 3)`` marker displacements from the neutral (mm) projected onto their ``rank``
+    leading principal directions.
+
+    A face moves in few independent ways (a few dozen muscles or expressions) while capture noise
+    spreads over all ``3M`` coordinates, so dropping the directions that do not stand above the
+    noise (``motion_rank``) removes most of the noise a smoother leaves (batch only: the directions
+    come from the whole take). The projection is not centred: with no expression there is no
+    displacement, so the motion spans a subspace through zero (the take's mean displacement is one
+    of its directions). Frames with a NaN are left as they are.
+    """
+    d = np.asarray(disp, dtype=np.float64)
+    flat = d.reshape(len(d), -1)
+    ok = np.isfinite(flat).all(axis=1)
+    if ok.sum() < 2:
+        return d.copy()
+    basis = np.linalg.svd(flat[ok], full_matrices=False)[2][: max(0, int(rank))].T  # (3M, k)
+    out = flat.copy()
+    out[ok] = flat[ok] @ basis @ basis.T
+    return out.reshape(d.shape)
+
+
 # ------------------------------------------------------------------------------------------ batch
 
 
@@ -468,7 +520,10 @@ def estimate_noise(xyz: np.ndarray, fps: float, cluster: int = 6) -> tuple[float
 class CleanParams:
     """Batch cleaning settings: DCT window N and kept fraction M/N; longest gap rebuilt by the DCT
     (longer ones are interpolated linearly); filter ``rts`` (smoother, batch), ``kalman`` (causal) or
-    ``none``; q/r None = estimated from the take (q per marker by maximum likelihood, r as in the thesis)."""
+    ``none``; q/r None = estimated from the take (q per marker by maximum likelihood, r as in the thesis);
+    ``lowrank``: the stabilised displacements of a batch take smoothed by ``rts`` are projected onto
+    their leading principal components (``lowrank_denoise``): ``auto`` (as many as stand above the
+    noise), ``off``, or a number of components."""
 
     window: int = 50
     keep: float = 0.2
@@ -476,6 +531,7 @@ class CleanParams:
     despike: bool = True
     spike_mm: float = 4.0
     filter: str = "rts"
+    lowrank: str | int = "auto"
     q: float | None = None
     r: float | None = None
     per_marker_q: bool = True

@@ -6,6 +6,10 @@ the same optimum has a closed form (Kabsch / Horn: SVD of the cross-covariance, 
 guard), used here. With exactly three stable markers, Kshirsagar's construction (two difference
 unit vectors and their cross product as a third, R = M' M^-1, re-orthonormalised) is available.
 Convention: ``frame ~= R @ neutral + t``; stabilised = ``R.T @ (frame - t)``.
+
+Batch takes refine the poses with every marker (``refine_poses``): the face moves in few ways, so
+each frame's stabilised markers are split, by least squares, into a small rigid motion (what the
+stable markers got wrong) and a combination of the take's own principal motions.
 """
 
 from __future__ import annotations
@@ -18,7 +22,9 @@ __all__ = [
     "kabsch",
     "matrix_from_euler",
     "pose_in_frame",
+    "refine_poses",
     "remove_head",
+    "rigid_fields",
     "smooth_poses",
     "solve_pose",
     "three_marker",
@@ -230,3 +236,79 @@ def smooth_poses(
         sm = rts_smooth(track, fps, q=estimate_q_cv(track, fps, noise), r=noise)
     rs = Rotation.from_rotvec(sm[:, 0] / 100.0).as_matrix()
     return rs, c + sm[:, 1] - np.einsum("tij,j->ti", rs, c)
+
+
+def rigid_fields(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """``(3P, 6)`` first-order displacements of ``(P, 3)`` points under a small rotation about
+    ``centre`` (rotation vector, radians: columns 0-2) and a translation (columns 3-5)."""
+    q = np.asarray(points, dtype=np.float64) - centre
+    g = np.zeros((len(q), 3, 6))
+    x, y, z = q[:, 0], q[:, 1], q[:, 2]
+    g[:, 0, 1], g[:, 0, 2] = z, -y  # omega x q
+    g[:, 1, 0], g[:, 1, 2] = -z, x
+    g[:, 2, 0], g[:, 2, 1] = y, -x
+    g[:, :, 3:] = np.eye(3)
+    return g.reshape(-1, 6)
+
+
+def refine_poses(
+    xyz: np.ndarray,
+    r: np.ndarray,
+    t: np.ndarray,
+    neutral: np.ndarray,
+    stable: np.ndarray,
+    motion: np.ndarray,
+    fps: float,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Head poses refined with every marker (batch). Returns ``(R, t, k)``, k the principal motions used.
+
+    Five stable markers with half a millimetre of noise leave the pose of each frame uncertain by about
+    0.1°, which shows at the mouth, 10 cm away, as a rigid error of a few tenths of a millimetre.
+    The face's own markers carry more information about the pose, once their expression motion is
+    accounted for: that motion spans few directions (``clean.optimal_rank`` of them). So each frame's
+    stabilised markers minus the ``neutral`` are fitted, by least squares, by a small rigid motion of
+    the whole head (``rigid_fields``; the stable markers have no expression motion) plus a
+    combination of the leading principal motions of the face markers in ``motion`` (smoothed
+    displacements from the neutral, ``(T, M, 3)`` mm); the rigid corrections are smoothed (RTS) and
+    composed into the poses.
+
+    Args:
+        xyz: ``(T, M, 3)`` gap-filled capture-space markers (mm).
+        r, t: ``(T, 3, 3)``, ``(T, 3)`` the poses to refine (``frame = R x + t``).
+        neutral: ``(M, 3)`` stabilised neutral; ``stable``: indices of the stable markers.
+
+    On generated takes (0.5 mm noise, technician layout, 5 stable markers) this cut the stabilised
+    displacements' mean error from 0.263 to 0.200 mm (seed 1; 0.273 to 0.218 on seed 2, 0.223 to
+    0.215 on seed 3). True poses would give 0.165.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from .clean import estimate_q_cv, estimate_r, motion_rank, rts_smooth
+
+    t_n, m = xyz.shape[:2]
+    face = np.setdiff1d(np.arange(m), stable)
+    raw = remove_head(np.asarray(xyz, dtype=np.float64), r, t) - neutral  # (T, M, 3)
+    ok = np.isfinite(raw).all(axis=(1, 2)) & np.isfinite(motion).all(axis=(1, 2))
+    if ok.sum() < 12 or len(face) < 2:
+        return r, t, 0
+    k = motion_rank(raw[ok][:, face]) - 1  # centred here: the take's mean motion is an offset
+    smooth = motion[ok][:, face].reshape(int(ok.sum()), -1)
+    mean = smooth.mean(axis=0)
+    basis = np.linalg.svd(smooth - mean, full_matrices=False)[2][:k].T  # (3F, k)
+    full = np.zeros((m, 3, k))
+    full[face] = basis.reshape(len(face), 3, k)
+    offset = np.zeros((m, 3))
+    offset[face] = mean.reshape(len(face), 3)
+    centre = neutral[stable].mean(axis=0)
+    a = np.concatenate([rigid_fields(neutral, centre), full.reshape(3 * m, k)], axis=1)
+    delta = np.zeros((t_n, 6))
+    delta[ok] = np.linalg.lstsq(a, (raw[ok] - offset).reshape(int(ok.sum()), -1).T, rcond=None)[0][:6].T
+    # smooth the corrections as a pose track (rotation scaled by a 100 mm lever arm, as smooth_poses)
+    track = np.stack([delta[:, :3] * 100.0, delta[:, 3:]], axis=1)
+    noise = estimate_r(track[ok])
+    track = rts_smooth(np.where(ok[:, None, None], track, np.nan), fps,
+                       q=estimate_q_cv(track[ok], fps, noise), r=noise)
+    # stabilised = S x_true + (c - S c + tau): frame = R S x_true + R (c - S c + tau) + t
+    s = Rotation.from_rotvec(track[:, 0] / 100.0).as_matrix()
+    off = centre - np.einsum("tij,j->ti", s, centre) + track[:, 1]
+    return np.einsum("tij,tjk->tik", r, s), np.einsum("tij,tj->ti", r, off) + t, k
