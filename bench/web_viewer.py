@@ -1,24 +1,32 @@
 """The web viewer's speed in headless Chromium: draw rate and int16 decode time on the ICT head.
 
 Starts a real ``facecast serve`` with the ICT FaceKit head, plays the server-side demo into a 60 fps
-session and opens the page watching it (int16, then float32), once per software GL back-end:
+session and opens the page watching it (int16 by default) at full detail (every triangle, fixed render
+quality: ``--scale 1 --shading vertex --lod 0`` unless told otherwise), once per *variant* and per
+repeat, the variants interleaved so that a busy machine slows them alike:
 
-- ``llvmpipe``: ANGLE on Mesa's EGL (llvmpipe), software compositing (needs libegl-mesa0 and
-  libgl1-mesa-dri);
-- ``swiftshader``: ANGLE on SwiftShader (Chromium's own software Vulkan), ``--disable-gpu``.
+- ``baseline``: the page with its draw-time savings switched off (triangles in mesh order, the
+  mouth's interior drawn whole) in Chromium without the allocator switch (``ALLOC_RING``): the state
+  before; ``page``: the page as it ships, in Chromium as this bench starts it; more in ``VARIANTS``
+  (each saving alone switched off, Chromium switches, Mesa environment, WebGL context attributes),
+  chosen with ``--variants``.
 
-Baseline in the same run and browser (the most a page can draw here): the requestAnimationFrame rate
-of an idle page, of a page that only clears a full-window WebGL2 canvas every frame, and of that clear
-plus N small visible triangles (``--sweep``; the ICT head has 52,220).
+GL back-ends (``--gl``): ``llvmpipe``: ANGLE on Mesa's EGL (llvmpipe), software compositing (needs
+libegl-mesa0 and libgl1-mesa-dri); ``swiftshader``: ANGLE on SwiftShader, ``--disable-gpu``.
+
+Ceiling in the same run and browser (the most a page can draw here), once per repeat: the
+requestAnimationFrame rate of an idle page, of a page that only clears a full-window WebGL2 canvas
+every frame, and (first repeat, ``--sweep``) of that clear plus N small visible triangles.
 
 Counts are honest: ``drawn fps`` is canvas draws per second that showed a new vertex frame (one draw
 is one presented canvas update; the page never draws off-frame), ``raf fps`` the page's animation
-frames, ``received fps`` the frames that arrived. CPU per drawn frame is measured from /proc for the
-Chromium GPU process (where software GL rasterises) and the page's renderer process. Writes
-bench/out/web_viewer.json and prints a markdown table.
+frames, ``received fps`` the frames that arrived. CPU per drawn frame is measured from /proc for each
+Chromium process type (the GPU process rasterises in software GL) and the server. The load average is
+recorded for every run. Writes bench/out/web_viewer.json and prints markdown tables.
 
-    python bench/web_viewer.py [--seconds 8] [--gl llvmpipe,swiftshader] [--scale S] [--shading vertex]
-                               [--lod 0|1] [--width 1280 --height 720] [--chromium-arg ARG] [--screenshot DIR]
+    python bench/web_viewer.py [--seconds 8] [--repeats 3] [--variants baseline,page] [--gl llvmpipe]
+                               [--encodings i16] [--scale 1] [--shading vertex] [--lod 0]
+                               [--width 1280 --height 720] [--chromium-arg ARG] [--screenshot DIR]
 """
 from __future__ import annotations
 
@@ -26,6 +34,7 @@ import argparse
 import json
 import os
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -38,8 +47,13 @@ ROOT = Path(__file__).resolve().parents[1]
 ICT = ROOT.parent / "shared" / "data" / "ict-facekit" / "generic_neutral_mesh.obj"
 COMMON = ["--no-sandbox", "--disable-background-networking", "--disable-component-update", "--disable-sync",
           "--no-first-run"]
+#: PartitionAlloc (Chromium's malloc, which Mesa's allocations go through too) keeps more emptied slot
+#: spans committed: llvmpipe allocates and frees its vertex and bin buffers every draw, and with the default
+#: ring they were decommitted (madvise) and faulted in again every frame (~16 % of the GPU process's CPU).
+ALLOC_RING = "--enable-features=PartitionAllocLargeEmptySlotSpanRing"
 GL_ARGS = {
-    "llvmpipe": ["--use-gl=angle", "--use-angle=gl-egl", "--ignore-gpu-blocklist", "--disable-gpu-compositing"],
+    "llvmpipe": ["--use-gl=angle", "--use-angle=gl-egl", "--ignore-gpu-blocklist", "--disable-gpu-compositing",
+                 ALLOC_RING],
     "swiftshader": ["--disable-gpu", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
 }
 
@@ -141,6 +155,29 @@ def ceiling(browser, width: int, height: int, ms: int, sweep: tuple[int, ...] = 
     return out
 
 
+#: Variants: name -> (Chromium switches to add, or to drop when written "-switch"; environment to add;
+#: page setup run after the face has loaded and the quality is fixed, or "?query" for the page's URL:
+#: WebGL context attributes).
+VARIANTS: dict[str, tuple[list[str], dict[str, str], str]] = {
+    "baseline": (["-" + ALLOC_RING], {},
+                 "facecast.renderer.setVertexCacheOrder(false); facecast.renderer.mouthScissor = false"),
+    "page": ([], {}, ""),
+    "no-alloc-ring": (["-" + ALLOC_RING], {}, ""),
+    "mesh-order": ([], {}, "facecast.renderer.setVertexCacheOrder(false)"),
+    "no-mouth-window": ([], {}, "facecast.renderer.mouthScissor = false"),
+    "pixel-lit": ([], {}, "facecast.setQuality({ shading: 'pixel' })"),
+    "scale-0.85": ([], {}, "facecast.setQuality({ scale: 0.85 })"),
+    "opaque-canvas": ([], {}, "?alpha=false"),
+    "desynchronized": ([], {}, "?desynchronized=true"),
+    "in-process-gpu": (["--in-process-gpu"], {}, ""),
+    "gpu-compositing": (["-" + "--disable-gpu-compositing"], {}, ""),
+    "no-vsync": (["--disable-gpu-vsync", "--disable-frame-rate-limit"], {}, ""),
+    "lp-threads-0": ([], {"LP_NUM_THREADS": "0"}, ""),
+    "lp-threads-1": ([], {"LP_NUM_THREADS": "1"}, ""),
+    "lp-vector-128": ([], {"LP_NATIVE_VECTOR_WIDTH": "128"}, ""),
+}
+
+
 def sample(page, server_pid: int, seconds: float) -> dict:
     """The page's counters and the processes' CPU over `seconds` of streaming."""
     page.evaluate("facecast.viewer.stats.decodeMs = []")
@@ -166,30 +203,47 @@ def sample(page, server_pid: int, seconds: float) -> dict:
         "decode_samples": len(dec),
         "gpu_ms_per_frame": 1000 * cpu.get("gpu-process", 0) / fresh,
         "renderer_ms_per_frame": 1000 * cpu.get("renderer", 0) / fresh,
+        "chromium_ms_per_frame": 1000 * sum(cpu.values()) / fresh,   # every Chromium process
+        "cpu_ms_per_frame_by_process": {k: 1000 * v / fresh for k, v in cpu.items()},
         "server_cpu_percent": 100 * (s1 - s0) / el,
+        "load_average": os.getloadavg()[0],
     }
+
+
+def flags_for(gl: str, variant: str, extra: list[str]) -> list[str]:
+    add, _, _ = VARIANTS[variant]
+    drop = {a[1:] for a in add if a.startswith("-" + "--")}
+    return [a for a in COMMON + GL_ARGS[gl] + extra if a not in drop] + [a for a in add if not a.startswith("-" + "--")]
+
+
+def median(xs: list[float]) -> float:
+    return statistics.median(xs) if xs else float("nan")
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--seconds", type=float, default=8.0, help="measured seconds per run")
+    ap.add_argument("--repeats", type=int, default=3, help="rounds over the variants (interleaved)")
+    ap.add_argument("--variants", default="baseline,page", help="comma-separated: " + ", ".join(VARIANTS))
     ap.add_argument("--face", type=Path, default=ICT)
     ap.add_argument("--fps", type=float, default=60.0)
-    ap.add_argument("--gl", default="llvmpipe,swiftshader", help="comma-separated: " + ", ".join(GL_ARGS))
-    ap.add_argument("--encodings", default="i16,f32")
-    ap.add_argument("--scale", type=float, default=None,
-                    help="fix renderer.scale (drawing-buffer pixels per CSS pixel); default: the page adapts it")
-    ap.add_argument("--shading", choices=("pixel", "vertex"), default=None,
-                    help="fix the lighting (default: the page adapts: per pixel, per vertex when it falls behind)")
-    ap.add_argument("--lod", type=int, choices=(0, 1), default=None,
-                    help="fix the level of detail (0: every triangle, 1: the coarse level; default: the page adapts)")
+    ap.add_argument("--gl", default="llvmpipe", help="comma-separated: " + ", ".join(GL_ARGS))
+    ap.add_argument("--encodings", default="i16")
+    ap.add_argument("--scale", type=float, default=1.0, help="renderer.scale (drawing-buffer pixels per CSS pixel)")
+    ap.add_argument("--shading", choices=("pixel", "vertex"), default="vertex")
+    ap.add_argument("--lod", type=int, choices=(0, 1), default=0,
+                    help="level of detail (0: every triangle, 1: the coarse level)")
     ap.add_argument("--chromium-arg", action="append", default=[], help="extra Chromium switch (repeatable)")
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
-    ap.add_argument("--screenshot", type=Path, default=None, help="directory for a screenshot per run")
-    ap.add_argument("--sweep", default="10000,25000,50000,100000",
-                    help="triangle counts for the dummy-scene ceiling (comma-separated; empty: none)")
+    ap.add_argument("--screenshot", type=Path, default=None, help="directory for a screenshot per variant")
+    ap.add_argument("--sweep", default="25000,50000",
+                    help="triangle counts for the dummy-scene ceiling, first repeat only (comma-separated; empty: none)")
     args = ap.parse_args()
+    variants = [v for v in args.variants.split(",") if v]
+    for v in variants:
+        if v not in VARIANTS:
+            ap.error(f"unknown variant {v!r}; known: {', '.join(VARIANTS)}")
     from playwright.sync_api import sync_playwright
 
     port, key = free_port(), "bench-key"
@@ -198,9 +252,12 @@ def main() -> int:
     data = tempfile.mkdtemp(prefix="facecast-web-bench-")
     server = subprocess.Popen([sys.executable, "-m", "facecast.server.cli", "serve", "--port", str(port),
                                "--data-dir", data], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    sweep = tuple(int(n) for n in args.sweep.split(",") if n)
     results: dict = {"face": str(args.face), "session_fps": args.fps, "cpus": os.cpu_count(), "scale": args.scale,
-                     "shading": args.shading, "viewport": [args.width, args.height],
-                     "load_average_start": os.getloadavg(), "runs": []}
+                     "shading": args.shading, "lod": args.lod, "viewport": [args.width, args.height],
+                     "variants": {v: {"add_flags": VARIANTS[v][0], "env": VARIANTS[v][1], "page": VARIANTS[v][2]}
+                                  for v in variants},
+                     "load_average_start": os.getloadavg(), "ceilings": [], "runs": []}
     try:
         for _ in range(300):
             try:
@@ -210,75 +267,117 @@ def main() -> int:
                 time.sleep(0.2)
         hdr = {"Authorization": f"Bearer {key}"}
         with sync_playwright() as p:
-            for gl in args.gl.split(","):
-                flags = COMMON + GL_ARGS[gl] + args.chromium_arg
-                browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=flags)
-                sweep = tuple(int(n) for n in args.sweep.split(",") if n)
-                base = ceiling(browser, args.width, args.height, 3000, sweep)
-                results.setdefault("ceilings", {})[gl] = base
-                page = browser.new_page(viewport={"width": args.width, "height": args.height})
-                for encoding in args.encodings.split(","):
-                    s = httpx.post(url + "/v1/sessions", json={"face": "bench", "input": "fap", "fps": args.fps},
-                                   headers=hdr, timeout=300).json()
-                    httpx.post(f"{url}/v1/sessions/{s['id']}/demo", headers=hdr, timeout=60).raise_for_status()
-                    page.goto(f"{url}/?{encoding}#session={s['id']}&token={s['viewer_token']}&encoding={encoding}")
-                    page.set_default_timeout(300_000)
-                    page.wait_for_function("window.facecast && window.facecast.viewer.stats.frames > 30")
-                    if args.scale is not None or args.shading or args.lod is not None:
-                        page.evaluate("(q) => facecast.setQuality(q)",
-                                      {"scale": args.scale, "shading": args.shading, "lod": args.lod})
-                    time.sleep(4)  # let the page's adaptation settle
-                    run = {"gl": gl, "flags": flags, "encoding": encoding, "ceiling": base,
-                           **sample(page, server.pid, args.seconds)}
-                    summary = page.evaluate("facecast.viewer.summary()")  # latency: frame sent -> in the page
-                    run["latency_ms_p50"], run["latency_ms_p95"] = summary["latencyP50"], summary["latencyP95"]
-                    run["vertices"] = page.evaluate("facecast.renderer.mesh.V")
-                    run["lod"] = page.evaluate("facecast.renderer.lod")
-                    run["triangles"] = page.evaluate("facecast.renderer.mesh.count / 3")
-                    run["triangles_drawn"] = page.evaluate(
-                        "(facecast.renderer.lod ? facecast.renderer.coarseLevel() : facecast.renderer.mesh).count / 3")
-                    run["render_scale"] = page.evaluate("facecast.renderer.scale")
-                    run["shading"] = page.evaluate("facecast.renderer.shading")
-                    run["canvas"] = page.evaluate("[facecast.renderer.canvas.width, facecast.renderer.canvas.height]")
-                    run["drawn_vs_clear_ceiling"] = run["drawn_fps"] / base["clear"]["fps"]
-                    if args.screenshot:
-                        args.screenshot.mkdir(parents=True, exist_ok=True)
-                        page.screenshot(path=str(args.screenshot / f"web_viewer_{gl}_{encoding}.png"))
-                    results["runs"].append(run)
-                    httpx.delete(f"{url}/v1/sessions/{s['id']}", headers=hdr, timeout=60)
-                browser.close()
+            for rep in range(args.repeats):
+                for gl in args.gl.split(","):
+                    browser = p.chromium.launch(executable_path="/usr/bin/chromium",
+                                                args=COMMON + GL_ARGS[gl] + args.chromium_arg)
+                    base = ceiling(browser, args.width, args.height, 3000, sweep if rep == 0 else ())
+                    browser.close()
+                    results["ceilings"].append({"repeat": rep, "gl": gl, **base, "load_average": os.getloadavg()[0]})
+                    for variant in variants:
+                        _, venv, setup = VARIANTS[variant]
+                        flags = flags_for(gl, variant, args.chromium_arg)
+                        browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=flags,
+                                                    env={**os.environ, **venv})
+                        page = browser.new_page(viewport={"width": args.width, "height": args.height})
+                        page.set_default_timeout(300_000)
+                        for encoding in args.encodings.split(","):
+                            s = httpx.post(url + "/v1/sessions", json={"face": "bench", "input": "fap", "fps": args.fps},
+                                           headers=hdr, timeout=300).json()
+                            httpx.post(f"{url}/v1/sessions/{s['id']}/demo", headers=hdr, timeout=60).raise_for_status()
+                            query = setup if setup.startswith("?") else "?"
+                            page.goto(f"{url}/{query}#session={s['id']}&token={s['viewer_token']}&encoding={encoding}")
+                            page.wait_for_function("window.facecast && window.facecast.viewer.stats.frames > 30")
+                            page.evaluate("(q) => facecast.setQuality(q)",
+                                          {"scale": args.scale, "shading": args.shading, "lod": args.lod})
+                            if setup and not setup.startswith("?"):
+                                page.evaluate(f"() => {{ {setup}; }}")
+                            time.sleep(3)  # let the page settle
+                            run = {"repeat": rep, "variant": variant, "gl": gl, "flags": flags, "env": venv,
+                                   "encoding": encoding, **sample(page, server.pid, args.seconds)}
+                            summary = page.evaluate("facecast.viewer.summary()")  # latency: frame sent -> in the page
+                            run["latency_ms_p50"], run["latency_ms_p95"] = summary["latencyP50"], summary["latencyP95"]
+                            info = page.evaluate("""() => { const r = facecast.renderer, m = r.mesh;
+                              const level = r.lod ? r.coarseLevel() : m, gl = r.gl;
+                              const dbg = gl.getExtension('WEBGL_debug_renderer_info');
+                              return { vertices: m.V, lod: r.lod, triangles: m.count / 3,
+                                       triangles_drawn: level.groups.reduce((n, g) => n + g.count, 0) / 3,
+                                       render_scale: r.scale, shading: r.shading, canvas: [r.canvas.width, r.canvas.height],
+                                       vertex_cache_order: r.vertexCacheOrder, mouth_window: r.mouthScissor,
+                                       gl_renderer: dbg ? gl.getParameter(dbg.UNMASKED_RENDERER_WEBGL) : null }; }""")
+                            run.update(info)
+                            run["drawn_vs_clear_ceiling"] = run["drawn_fps"] / base["clear"]["fps"]
+                            if args.screenshot and rep == 0:
+                                args.screenshot.mkdir(parents=True, exist_ok=True)
+                                page.screenshot(path=str(args.screenshot / f"web_viewer_{gl}_{encoding}_{variant}.png"))
+                            results["runs"].append(run)
+                            print(f"repeat {rep} {gl} {encoding} {variant}: drawn {run['drawn_fps']:.1f} fps, GPU process "
+                                  f"{run['gpu_ms_per_frame']:.1f} ms/frame, load {run['load_average']:.2f}",
+                                  file=sys.stderr, flush=True)
+                            httpx.delete(f"{url}/v1/sessions/{s['id']}", headers=hdr, timeout=60)
+                        browser.close()
     finally:
         server.terminate()
         server.wait(20)
     results["load_average_end"] = os.getloadavg()
+    # Per variant: medians over the repeats, and the drawn-fps ratio to the baseline of the same repeat.
+    summary = []
+    for gl in args.gl.split(","):
+        for encoding in args.encodings.split(","):
+            for variant in variants:
+                rs = [r for r in results["runs"] if (r["gl"], r["encoding"], r["variant"]) == (gl, encoding, variant)]
+                if not rs:
+                    continue
+                ratios = []
+                for r in rs:
+                    b = [x for x in results["runs"] if (x["gl"], x["encoding"], x["variant"], x["repeat"])
+                         == (gl, encoding, "baseline", r["repeat"])]
+                    if b and b[0]["drawn_fps"] > 0:
+                        ratios.append(r["drawn_fps"] / b[0]["drawn_fps"])
+                summary.append({
+                    "gl": gl, "encoding": encoding, "variant": variant, "runs": len(rs),
+                    "drawn_fps_median": median([r["drawn_fps"] for r in rs]),
+                    "drawn_fps_min": min(r["drawn_fps"] for r in rs), "drawn_fps_max": max(r["drawn_fps"] for r in rs),
+                    "received_fps_median": median([r["received_fps"] for r in rs]),
+                    "vs_baseline_median": median(ratios) if ratios else None,
+                    "gpu_ms_per_frame_median": median([r["gpu_ms_per_frame"] for r in rs]),
+                    "renderer_ms_per_frame_median": median([r["renderer_ms_per_frame"] for r in rs]),
+                    "chromium_ms_per_frame_median": median([r["chromium_ms_per_frame"] for r in rs]),
+                    "decode_ms_p50_median": median([r["decode_ms_p50"] for r in rs if r["decode_ms_p50"] is not None]),
+                    "decode_ms_p95_max": max((r["decode_ms_p95"] for r in rs if r["decode_ms_p95"] is not None), default=None),
+                    "load_average_range": [min(r["load_average"] for r in rs), max(r["load_average"] for r in rs)],
+                    "triangles_drawn": rs[0]["triangles_drawn"], "triangles": rs[0]["triangles"],
+                    "canvas": rs[0]["canvas"], "shading": rs[0]["shading"], "render_scale": rs[0]["render_scale"],
+                })
+    results["summary"] = summary
     out = ROOT / "bench" / "out"
     out.mkdir(parents=True, exist_ok=True)
     (out / "web_viewer.json").write_text(json.dumps(results, indent=2))
+    la0, la1 = results["load_average_start"][0], results["load_average_end"][0]
     print(f"ICT head, viewport {args.width}x{args.height}, session {args.fps:g} fps, {os.cpu_count()} CPUs, "
-          f"load average {results['load_average_start'][0]:.1f} -> {results['load_average_end'][0]:.1f}")
-    print("| GL | stream | canvas px (scale, lighting) | triangles drawn | received fps | drawn fps (new frames) | raf fps "
-          "| idle / clear ceiling fps | drawn / clear | GPU-process CPU ms/frame (clear) | renderer ms/frame "
-          "| server CPU % | latency p50 / p95 ms | decode p50 / p95 ms |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for r in results["runs"]:
-        c = r["ceiling"]
-        print(f"| {r['gl']} | {r['encoding']} | {r['canvas'][0]}x{r['canvas'][1]} ({r['render_scale']:.2f}, {r['shading']}) "
-              f"| {r['triangles_drawn']:.0f} of {r['triangles']:.0f} "
-              f"| {r['received_fps']:.1f} | {r['drawn_fps']:.1f} | {r['raf_fps']:.1f} "
-              f"| {c['idle']['fps']:.0f} / {c['clear']['fps']:.0f} | {r['drawn_vs_clear_ceiling']:.2f} "
-              f"| {r['gpu_ms_per_frame']:.1f} ({c['clear']['gpu_ms_per_frame']:.1f}) | {r['renderer_ms_per_frame']:.1f} "
-              f"| {r['server_cpu_percent']:.0f} | {r['latency_ms_p50']:.0f} / {r['latency_ms_p95']:.0f} "
-              f"| {r['decode_ms_p50']:.2f} / {r['decode_ms_p95']:.2f} |")
+          f"{args.repeats} repeats x {args.seconds:g} s, load average {la0:.1f} -> {la1:.1f}")
+    print("| GL | stream | variant | canvas px (scale, lighting) | triangles drawn | received fps | drawn fps median "
+          "(min-max) | vs baseline | GPU-process ms/frame | renderer ms/frame | all Chromium ms/frame "
+          "| decode p50 / p95 ms | load avg |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in summary:
+        vs = f"{r['vs_baseline_median']:.2f}" if r["vs_baseline_median"] else "–"
+        print(f"| {r['gl']} | {r['encoding']} | {r['variant']} | {r['canvas'][0]}x{r['canvas'][1]} "
+              f"({r['render_scale']:.2f}, {r['shading']}) | {r['triangles_drawn']:.0f} of {r['triangles']:.0f} "
+              f"| {r['received_fps_median']:.1f} | {r['drawn_fps_median']:.1f} ({r['drawn_fps_min']:.1f}-{r['drawn_fps_max']:.1f}) "
+              f"| {vs} | {r['gpu_ms_per_frame_median']:.1f} | {r['renderer_ms_per_frame_median']:.1f} "
+              f"| {r['chromium_ms_per_frame_median']:.1f} | {r['decode_ms_p50_median']:.2f} / {r['decode_ms_p95_max'] or 0:.2f} "
+              f"| {r['load_average_range'][0]:.1f}-{r['load_average_range'][1]:.1f} |")
     print()
-    print(f"Ceiling: a page that only clears a {args.width}x{args.height} WebGL2 canvas, plus N small visible "
-          "triangles (one draw call), every animation frame")
-    print("| GL | idle rAF fps | clear fps (GPU ms/frame) | " + " | ".join(
-        f"+{n // 1000}k triangles fps (GPU ms)" for n in sweep) + " |")
-    print("|---|---|---|" + "---|" * len(sweep))
-    for gl, c in results.get("ceilings", {}).items():
-        print(f"| {gl} | {c['idle']['fps']:.0f} | {c['clear']['fps']:.0f} ({c['clear']['gpu_ms_per_frame']:.1f}) | "
-              + " | ".join(f"{c[f'tris:{n}']['fps']:.0f} ({c[f'tris:{n}']['gpu_ms_per_frame']:.1f})" for n in sweep)
-              + " |")
+    print(f"Ceiling: a page that only clears a {args.width}x{args.height} WebGL2 canvas (plus N small visible "
+          "triangles, one draw call, first repeat) every animation frame")
+    print("| GL | repeat | idle rAF fps | clear fps (GPU ms/frame) | " + " | ".join(
+        f"+{n // 1000}k triangles fps (GPU ms)" for n in sweep) + " | load avg |")
+    print("|---|---|---|---|" + "---|" * len(sweep) + "---|")
+    for c in results["ceilings"]:
+        print(f"| {c['gl']} | {c['repeat']} | {c['idle']['fps']:.0f} | {c['clear']['fps']:.0f} ({c['clear']['gpu_ms_per_frame']:.1f}) | "
+              + " | ".join(f"{c[f'tris:{n}']['fps']:.0f} ({c[f'tris:{n}']['gpu_ms_per_frame']:.1f})" if f"tris:{n}" in c
+                           else "–" for n in sweep) + f" | {c['load_average']:.1f} |")
     return 0
 
 

@@ -84,7 +84,12 @@ async function producer() {
 }
 
 // ---- rendering ----------------------------------------------------------------------------------
-const renderer = new FaceRenderer($('view'));
+// WebGL context attributes from the query string, for comparisons: ?alpha=true&desynchronized=true
+const contextAttributes = {};
+for (const [k, v] of new URLSearchParams(location.search)) {
+  if (['alpha', 'desynchronized', 'antialias', 'depth', 'stencil'].includes(k)) contextAttributes[k] = v === 'true';
+}
+const renderer = new FaceRenderer($('view'), contextAttributes);
 const viewer = new Viewer(renderer, { onStatus: setStatus });
 // Counters for the stats overlay and benchmarks: animation frames, canvas draws, and draws that
 // showed a new vertex frame (a draw is one presented canvas update: nothing is drawn off-frame).
