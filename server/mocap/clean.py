@@ -468,9 +468,10 @@ def estimate_noise(xyz: np.ndarray, fps: float, cluster: int = 6) -> tuple[float
 
 
 def optimal_rank(singular_values: np.ndarray, shape: tuple[int, int]) -> int:
-    """Number of singular values of a ``shape`` data matrix that stand above white noise of unknown
-    level: Gavish & Donoho's (2014) hard threshold ``ω(β) · median(σ)`` with ``β`` = the short side
-    over the long side and ``ω(β) ≈ 0.56β³ − 0.95β² + 1.82β + 1.43``."""
+    """How many singular values of a ``shape`` data matrix (centred) are worth keeping to estimate
+    its signal under white noise of unknown level: Gavish & Donoho's (2014) hard threshold
+    ``ω(β) · median(σ)``, ``β`` = short side / long side, ``ω(β) ≈ 0.56β³ − 0.95β² + 1.82β + 1.43``.
+    Stricter than ``motion_rank``'s noise edge: directions barely above the noise are left out."""
     s = np.sort(np.asarray(singular_values, dtype=np.float64))[::-1]
     if not len(s) or s[0] <= 0:
         return 0
@@ -479,35 +480,41 @@ def optimal_rank(singular_values: np.ndarray, shape: tuple[int, int]) -> int:
     return int((s > omega * np.median(s)).sum())
 
 
-def motion_rank(disp: np.ndarray) -> int:
-    """How many directions the motion in ``(T, M, 3)`` displacements (mm, white noise: before any
-    smoothing) spans: the principal components above the noise (``optimal_rank``) plus one for
-    the mean displacement. Frames with a NaN are skipped."""
-    flat = np.asarray(disp, dtype=np.float64).reshape(len(disp), -1)
-    flat = flat[np.isfinite(flat).all(axis=1)]
-    if len(flat) < 2:
+def motion_rank(disp: np.ndarray, noise_var: float | None = None) -> int:
+    """How many directions the motion in ``(T, M, 3)`` displacements spans (mm; unsmoothed, so that
+    the noise is white): the principal components of their variation that stand above the noise,
+    i.e. whose singular value exceeds the largest a ``T x 3M`` matrix of white noise has
+    (Marchenko-Pastur: ``σ (√T + √3M)``). ``noise_var`` is ``σ²`` (mm²; None: ``estimate_r``).
+    Frames with a NaN are skipped."""
+    d = np.asarray(disp, dtype=np.float64)
+    flat = d.reshape(len(d), -1)
+    ok = np.isfinite(flat).all(axis=1)
+    if ok.sum() < 2:
         return flat.shape[1]
-    return min(optimal_rank(np.linalg.svd(flat - flat.mean(axis=0), compute_uv=False), flat.shape) + 1,
-               flat.shape[1])
+    var = estimate_r(d[ok]) if noise_var is None else float(noise_var)
+    s = np.linalg.svd(flat[ok] - flat[ok].mean(axis=0), compute_uv=False)
+    return int((s > np.sqrt(var) * (np.sqrt(ok.sum()) + np.sqrt(flat.shape[1]))).sum())
 
 
 def lowrank_denoise(disp: np.ndarray, rank: int) -> np.ndarray:
-    """``(T, M, 3)`` marker displacements from the neutral (mm) projected onto their ``rank``
-    leading principal directions.
+    """``(T, M, 3)`` marker displacements from the neutral (mm) projected onto the ``rank`` leading
+    principal directions of their variation.
 
     A face moves in few independent ways (a few dozen muscles or expressions) while capture noise
     spreads over all ``3M`` coordinates, so dropping the directions that do not stand above the
     noise (``motion_rank``) removes most of the noise a smoother leaves (batch only: the directions
-    come from the whole take). The projection is not centred: with no expression there is no
-    displacement, so the motion spans a subspace through zero (the take's mean displacement is one
-    of its directions). Frames with a NaN are left as they are.
+    come from the whole take). The projection passes through zero, not through the take's mean:
+    with no expression there is no displacement, so the true motion, its mean included, lies in a
+    subspace through zero; the part of the mean outside it is an error of the neutral (which offsets
+    every frame) and goes. Frames with a NaN are left as they are.
     """
     d = np.asarray(disp, dtype=np.float64)
     flat = d.reshape(len(d), -1)
     ok = np.isfinite(flat).all(axis=1)
     if ok.sum() < 2:
         return d.copy()
-    basis = np.linalg.svd(flat[ok], full_matrices=False)[2][: max(0, int(rank))].T  # (3M, k)
+    centred = flat[ok] - flat[ok].mean(axis=0)
+    basis = np.linalg.svd(centred, full_matrices=False)[2][: max(0, int(rank))].T  # (3M, k)
     out = flat.copy()
     out[ok] = flat[ok] @ basis @ basis.T
     return out.reshape(d.shape)

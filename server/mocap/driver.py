@@ -206,12 +206,13 @@ def denoise_displacements(
     """``(local, rank)``: the stabilised markers ``(T, L, 3)`` mm with their displacements from
     ``neutral`` projected onto their leading principal directions (``clean.lowrank_denoise``;
     ``rank`` a count, or ``auto``: ``clean.motion_rank`` of the ``unsmoothed`` stabilised markers,
-    whose noise is white as the threshold assumes). The stable markers are left alone: they do not
+    whose noise is white as that threshold assumes). The stable markers are left alone: they do not
     move with the face.
 
-    On generated takes (0.5 mm noise, technician layout, seeds 1 and 2) this cut the stabilised
-    displacements' mean error from 0.200 and 0.218 mm to 0.194 and 0.206 mm, after ``refine_poses``
-    (without it, from 0.295 to 0.263 mm on seed 1); ``auto`` kept 17 of 165 directions."""
+    On generated takes (0.5 mm noise, technician layout) the driver's displacement error, seeds
+    1/2/3: 0.295/0.299/0.248 mm with neither this nor ``stabilise.refine_poses``, 0.182/0.197/0.188
+    with both (``auto`` kept 16-19 of 165 directions).
+    """
     face = np.setdiff1d(np.arange(local.shape[1]), stable)
     if rank == "auto":
         rank = motion_rank((local if unsmoothed is None else unsmoothed)[:, face] - neutral[face])
