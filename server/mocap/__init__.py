@@ -5,8 +5,10 @@ After Sánchez Lorenzo (2006) ch. 4 and Kshirsagar et al. (head pose, mocap -> F
 Modules:
     io          read/write takes (C3D with ezc3d; TRC/CSV and a pure C3D reader in protocol.markers_file)
     layout      the marker layout JSON and marker placement on a face (vertex, FP, automatic)
-    clean       spike rejection, DCT gap filling, constant-velocity Kalman filter, RTS smoother
-    stabilise   head pose (Kabsch / Kshirsagar's three markers), its smoothing and removal
+    clean       spike rejection, DCT gap filling, constant-velocity Kalman filter, RTS smoother,
+                low-rank projection of displacements (batch)
+    stabilise   head pose (Kabsch / Kshirsagar's three markers), its smoothing, refinement with every
+                marker (batch) and removal
     retarget    RBF map actor neutral -> face (inverse multiquadric or r, with an affine part)
     rig         per-take set-up shared by batch and live (placement, retarget, anchors, FAPs)
     to_fap      projection of retargeted displacements to MPEG-4 FAPs

@@ -2,7 +2,9 @@
 
 Pipeline (Sánchez Lorenzo 2006 ch. 4): spike rejection, DCT gap filling, Kalman/RTS filtering
 (``clean``), head pose from the stable markers and its removal (``stabilise``), RBF retargeting of
-the stabilised markers onto the face (``retarget``). The ``Animation`` has ``control_vertices`` =
+the stabilised markers onto the face (``retarget``). With the RTS smoother (batch) the head poses
+are then refined with every marker (``stabilise.refine_poses``) and the displacements projected onto
+the take's motion subspace (``clean.lowrank_denoise``). The ``Animation`` has ``control_vertices`` =
 the marker vertices on the face, ``FaceState.controls`` = their displacements (face units),
 ``FaceState.head`` = the head pose (face axes and units), and ``FaceState.faps`` = FAPs projected
 from markers on feature points (FAP 3 from the jaw marker, 48-50 from the head pose).
