@@ -47,3 +47,14 @@ def test_fewer_markers_keep_the_sheet_priority_and_motion_placement_still_works(
     assert len(set(verts.tolist())) == 60 and "FP2_1" in spec
     with pytest.raises(InputError):
         choose_markers(face, deltas, 60, 5, "uniform")
+
+
+def test_a_take_shorter_than_the_neutral_hold_is_written_whole(ict, tmp_path):
+    from facecast.server.mocap.generate import generate, load_truth
+    from facecast.server.mocap.io import read_take
+
+    paths = generate(tmp_path, n_markers=20, seconds=0.2, fps=120.0, seed=3, formats=("trc",))
+    take = read_take(paths["trc"])
+    assert take.xyz.shape == (24, 20, 3)
+    assert np.isfinite(take.xyz).all()  # no gaps or spikes: the whole take is the neutral hold
+    assert not load_truth(paths["truth"]).weights.any()

@@ -438,7 +438,8 @@ def generate(
     )
     noisy = lab + rng.normal(0.0, noise_mm, lab.shape)
     m = len(names)
-    if gaps:
+    after_hold = n > hold + 1  # gaps and spikes go after the neutral hold (none in a take that short)
+    if gaps and after_hold:
         for j in range(m):
             for _ in range(int(rng.integers(0, 3))):
                 if rng.random() < 0.5:
@@ -451,7 +452,7 @@ def generate(
         for _ in range(2):
             f = int(rng.integers(hold + 1, n))
             noisy[f] = np.nan  # a frame where the capture lost everything
-    if spikes:
+    if spikes and after_hold:
         for _ in range(max(1, n // 300)):
             j, f = int(rng.integers(m)), int(rng.integers(hold + 1, n))
             d = rng.normal(size=3)
