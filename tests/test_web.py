@@ -399,15 +399,18 @@ MOUTH_VIEWS = [(0.35, 0.08), (-1.0, 0.3), (0.2, -1.3), (3.0, 0.1)]
 
 
 def check_mouth_window(server, browser, artifacts, face: str, fp: dict) -> list[dict]:
-    """Drive a session's mouth closed, then open, and render each state from MOUTH_VIEWS with the mouth's
-    interior drawn whole and only inside the mouth window: every pixel must be the same."""
+    """Drive a session's mouth closed, then open, then open with the tongue thrust out, and render each
+    state from MOUTH_VIEWS with the mouth's interior drawn whole and only inside the mouth window:
+    every pixel must be the same."""
     session = create_session(server, input="fap", fps=30, face=face)
     page, problems = open_page(browser, f"{server.url}/#session={session['id']}&token={session['viewer_token']}")
     try:
         wait_for(page, "document.getElementById('status').textContent.includes('watching')")
         page.evaluate("facecast.setQuality({ scale: 0.5 })")
         results = []
-        for faps in ({"3": 0.0}, {"3": 900.0, "5": -500.0}):
+        # closed; jaw open; jaw open with the tongue thrust out to its limit and raised (the built-in
+        # head's tongue then comes out through the lips and the skin of the chin)
+        for faps in ({"3": 0.0}, {"3": 900.0, "5": -500.0}, {"3": 900.0, "45": 1080.0, "44": 400.0}):
             seen = page.evaluate("facecast.viewer.stats.frames")
             run_async(produce_faps(server, session, [faps]))
             wait_for(page, f"window.facecast.viewer.stats.frames > {seen}")

@@ -342,7 +342,9 @@ export class FaceRenderer {
    * sockets) is closed but for its own holes (the neck). A ray from the eye reaches the interior either
    * through the rim, whose opening projects inside the rim's projected bounding box, or through a
    * hole of the shell: ruled out when the eye and every interior vertex lie on the same side of the
-   * slab that holds the hole's rim (and so any surface spanning it). Positions are this frame's.
+   * slab that holds the hole's rim (and so any surface spanning it). What may leave the pocket widens
+   * the window: the whole tongue, and interior vertices forward of the rim's deepest point less its
+   * depth. Positions are this frame's.
    */
   mouthWindow() {
     const ms = this.mouthShell, m = this.mesh, c = this.canvas;
@@ -371,14 +373,27 @@ export class FaceRenderer {
       if (!above && !below) return null;
     }
     const M = this.camera.viewProj(c.width / c.height);
-    let x0 = Infinity, y0 = Infinity, x1 = -Infinity, y1 = -Infinity;
-    for (const v of ms.rim) {
+    let x0 = Infinity, y0 = Infinity, x1 = -Infinity, y1 = -Infinity, front = -Infinity;
+    const add = (v) => {
       const x = at(v, 0), y = at(v, 1), z = at(v, 2);
       const w = M[3] * x + M[7] * y + M[11] * z + M[15];
-      if (!(w > 1e-6)) return null;  // the rim reaches behind the eye
+      if (!(w > 1e-6)) return false;  // behind the eye
       const sx = (M[0] * x + M[4] * y + M[8] * z + M[12]) / w, sy = (M[1] * x + M[5] * y + M[9] * z + M[13]) / w;
       x0 = Math.min(x0, sx); x1 = Math.max(x1, sx); y0 = Math.min(y0, sy); y1 = Math.max(y1, sy);
+      return true;
+    };
+    let back = Infinity;
+    for (const v of ms.rim) {
+      if (!add(v)) return null;
+      back = Math.min(back, at(v, 2)); front = Math.max(front, at(v, 2));
     }
+    // Whatever of the interior comes forward of the rim's deepest point less the rim's depth (z points
+    // out of the face) may have left the pocket (a thrust tongue, teeth through a lip): the window takes
+    // it in too.
+    const reach = back - (front - back);
+    for (const v of ms.interior) if (at(v, 2) >= reach && !add(v)) return null;
+    // The tongue bends and thrusts out of the mouth (through the skin, at the limits): all of it counts.
+    for (const v of ms.tongue) if (!add(v)) return null;
     // to pixels, rounded outwards with a pixel to spare, clamped to the drawing buffer
     const W = c.width, H = c.height, pad = 1;
     return [Math.max(0, Math.floor((x0 + 1) / 2 * W) - pad), Math.max(0, Math.floor((y0 + 1) / 2 * H) - pad),
@@ -443,7 +458,7 @@ const SHELL = /^(skin|lip|mouth_socket|eye_socket)/;
 /**
  * Where the mouth's interior can be seen from: {rim: vertex ids of the mouth socket's open edge (the
  * lips' inner rim), holes: [vertex ids of each other hole of the shell, in order around it], interior:
- * vertex ids of the interior parts}, or null when the mesh is not a shell sealed onto a mouth socket
+ * vertex ids of the interior parts, tongue: those of the tongue}, or null when the mesh is not a shell sealed onto a mouth socket
  * (then the interior is always drawn whole). A triangle's part is its first corner's (as in drawOrder).
  */
 export function mouthShell(triangles, partIds, partNames, V) {
@@ -488,11 +503,13 @@ export function mouthShell(triangles, partIds, partNames, V) {
     holes.push(Uint32Array.from(loop));
   }
   const rim = Uint32Array.from(new Set(rimEdges.flat()));
+  const tongue = [];
+  for (let v = 0; v < V; v++) if (/^tongue/.test(partNames[partIds[v]])) tongue.push(v);
   const inner = new Set();
   for (let i = 0; i < triangles.length; i += 3) {
     if (interiorPart[partIds[triangles[i]]]) for (let k = 0; k < 3; k++) inner.add(triangles[i + k]);
   }
-  return { rim, holes, interior: Uint32Array.from(inner) };
+  return { rim, holes, interior: Uint32Array.from(inner), tongue: Uint32Array.from(tongue) };
 }
 
 /**
