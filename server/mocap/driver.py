@@ -139,13 +139,15 @@ def process(
             r, t = smooth_poses(
                 r, t, filled[nf, stable].mean(axis=0), take.fps, causal=params.filter == "kalman"
             )
-        local, info2 = clean(remove_head(filled, r, t), take.fps, replace(params, despike=False))
+        unsmoothed = remove_head(filled, r, t)
+        local, info2 = clean(unsmoothed, take.fps, replace(params, despike=False))
         info.update({k: v for k, v in info2.items() if k in ("q", "r", "filter")})
         if params.filter == "rts" and params.lowrank != "off" and solved.sum() > 12:
             # the poses again with every marker (stabilise.refine_poses), then the markers again
             neutral = neutral_pose(local, nf, window)
             r, t, _ = refine_poses(filled, r, t, neutral, stable, local - neutral, take.fps)
-            local = clean(remove_head(filled, r, t), take.fps, replace(params, despike=False))[0]
+            unsmoothed = remove_head(filled, r, t)
+            local = clean(unsmoothed, take.fps, replace(params, despike=False))[0]
         cleaned = np.einsum("tij,tmj->tmi", r, local) + t[:, None, :]
         if (
             params.filter == "kalman"
@@ -167,7 +169,7 @@ def process(
         neutral = neutral_pose(local, nf, round(neutral_window * take.fps))
     if params.filter == "rts" and params.lowrank != "off":
         local, info["lowrank"] = denoise_displacements(
-            local, neutral, stable, params.lowrank, unsmoothed=remove_head(filled, r, t)
+            local, neutral, stable, params.lowrank, unsmoothed=unsmoothed
         )
     rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu)
     states = rig.solve_batch(local, r, t, take.fps, 0.0)
