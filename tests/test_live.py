@@ -556,6 +556,49 @@ def test_marker_session_equals_the_live_driver_run_locally(live):
     assert any(not np.array_equal(got[0].frame.vertices, f.frame.vertices) for f in got)
 
 
+def test_a_marker_session_sends_frames_at_its_own_rate(live):
+    """120 Hz marker frames into a 30 fps session: every marker frame is filtered, a quarter of
+    them go out, a session period apart, each the driver's state at its time."""
+    from facecast.client.api import stream_markers
+    from facecast.server.api.store import FaceStore
+    from facecast.server.mocap.live import MarkerLiveDriver
+    from facecast.server.mocap.synthetic import synthetic_take
+    from facecast.server.pipeline import Animator
+
+    face = FaceStore().face(FACE)
+    syn = synthetic_take(face, n_markers=16, seconds=1.0, fps=120.0, seed=6)
+    take = syn.take
+    xyz = take.xyz.astype(np.float32)
+
+    async def main():
+        s = await _session(live, input="markers", fps=30.0)
+        started = asyncio.Event()
+        viewer = asyncio.create_task(_collect(live.url, s.id, s.viewer_token, started=started))
+        await started.wait()
+        hello = ProducerHello(
+            input="markers", markers=list(take.names), layout=syn.layout, units=take.units
+        )
+        async with produce(live.url, s.id, s.producer_token, hello) as p:
+            await stream_markers(p, xyz, take.fps, speed=2.0)
+            errors = list(p.errors)
+        got = await viewer
+        await _close(live, s.id)
+        return errors, got
+
+    errors, got = run(main())
+    assert errors == []
+    driver = MarkerLiveDriver(face, list(take.names), syn.layout, units=take.units, fps=30.0)
+    states = {round(st.t * take.fps): st for i in range(len(xyz)) for st in driver.push(xyz[i], i / take.fps)}
+    assert len(states) > 100
+    times = np.array([f.frame.header.t for f in got])
+    assert abs(len(got) - len(states) / 4) <= 2, (len(got), len(states))
+    assert np.diff(times).min() >= 0.8 / 30.0 - 1e-6
+    animator = Animator(face, backend="numpy", control_vertices=driver.control_vertices)
+    for f in got[::5]:
+        st = states[round(f.frame.header.t * take.fps)]
+        np.testing.assert_array_equal(f.frame.vertices, animator.frame(st))
+
+
 @pytest.mark.parametrize("suffix", [".trc", ".c3d"])
 def test_stream_command_sends_a_take_with_its_layout(live, tmp_path, suffix):
     """``facecast stream take.trc|c3d`` (in process): the layout beside the take goes in the hello."""

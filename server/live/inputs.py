@@ -134,7 +134,11 @@ class AudioInput:
 
 
 class MarkerInput:
-    """Marker frames in the hello's name order -> ``MarkerLiveDriver`` -> face states."""
+    """Marker frames in the hello's name order -> ``MarkerLiveDriver`` -> face states at the
+    session's rate: the driver filters every marker frame (captures run at 60-240 Hz), and a state
+    goes out at each tick of the session's clock (1/``fps`` apart, anchored at the first state; a
+    frame up to a fifth of a period early counts), so a 120 Hz take gives a 60 fps session every
+    other frame, a 30 fps one every fourth, and a slower take every frame."""
 
     kinds = frozenset({frames.Kind.MARKERS})
 
@@ -152,6 +156,8 @@ class MarkerInput:
                 where="hello.layout",
             )
         self.names = list(hello.markers)
+        self.period = 1.0 / fps if fps and fps > 0 else 0.0  # seconds between states sent
+        self.next_t = -np.inf  # the next tick
         cls = load_driver_class("markers")
         try:
             self.driver = cls(face, self.names, dict(hello.layout), units=hello.units, fps=fps)
@@ -177,7 +183,13 @@ class MarkerInput:
             )
         if np.isinf(frame.markers).any():
             raise FrameError("marker positions must be finite or NaN (occluded)")
-        states = list(self.driver.push(np.array(frame.markers, dtype=np.float32), frame.header.t))
+        states = []
+        for st in self.driver.push(np.array(frame.markers, dtype=np.float32), frame.header.t):
+            late = st.t - self.next_t
+            if late >= -0.2 * self.period or late < -2.0 * self.period:  # due (or time went back)
+                states.append(st)
+                # next tick: one period on, unless the stream jumped (a gap, a restart): re-anchor
+                self.next_t = self.next_t + self.period if 0 <= late < self.period else st.t + self.period
         # drivers that place their controls from the actor's neutral know them only now
         self.control_vertices = getattr(self.driver, "control_vertices", None)
         return states
