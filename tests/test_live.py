@@ -515,23 +515,21 @@ def test_audio_session_streams_pcm(live, data_dir):
     assert any(not np.array_equal(got[0].positions(), f.positions()) for f in got)
 
 
-def test_marker_session_equals_the_live_driver_run_locally(live):
-    """Marker frames -> the server's mocap live driver -> vertices, equal to the same driver and an
-    animator with the driver's control vertices run here (same face, NumPy backend)."""
+def _marker_session(live, seconds: float, take_fps: float, session_fps: float, seed: int):
+    """A synthetic take streamed (at twice real time) into a marker session of ``session_fps``.
+    Returns ``(face, errors, frames watched, the same driver run here, its states)``."""
     from facecast.client.api import stream_markers
     from facecast.server.api.store import FaceStore
     from facecast.server.mocap.live import MarkerLiveDriver
     from facecast.server.mocap.synthetic import synthetic_take
-    from facecast.server.pipeline import Animator
 
     face = FaceStore().face(FACE)
-    syn = synthetic_take(face, n_markers=16, seconds=0.5, fps=60.0, seed=5)
+    syn = synthetic_take(face, n_markers=16, seconds=seconds, fps=take_fps, seed=seed)
     take = syn.take
     xyz = take.xyz.astype(np.float32)
-    fps = 60.0
 
     async def main():
-        s = await _session(live, input="markers", fps=fps)
+        s = await _session(live, input="markers", fps=session_fps)
         started = asyncio.Event()
         viewer = asyncio.create_task(_collect(live.url, s.id, s.viewer_token, started=started))
         await started.wait()
@@ -546,9 +544,18 @@ def test_marker_session_equals_the_live_driver_run_locally(live):
         return errors, got
 
     errors, got = run(main())
-    assert errors == [] and got
-    driver = MarkerLiveDriver(face, list(take.names), syn.layout, units=take.units, fps=fps)
+    driver = MarkerLiveDriver(face, list(take.names), syn.layout, units=take.units, fps=session_fps)
     states = [st for i in range(len(xyz)) for st in driver.push(xyz[i], i / take.fps)]
+    return face, errors, got, driver, states
+
+
+def test_marker_session_equals_the_live_driver_run_locally(live):
+    """Marker frames -> the server's mocap live driver -> vertices, equal to the same driver and an
+    animator with the driver's control vertices run here (same face, NumPy backend)."""
+    from facecast.server.pipeline import Animator
+
+    face, errors, got, driver, states = _marker_session(live, 0.5, 60.0, 60.0, seed=5)
+    assert errors == [] and got
     animator = Animator(face, backend="numpy", control_vertices=driver.control_vertices)
     assert got[-1].frame.header.seq == len(states) - 1
     for f in got:
@@ -559,43 +566,18 @@ def test_marker_session_equals_the_live_driver_run_locally(live):
 def test_a_marker_session_sends_frames_at_its_own_rate(live):
     """120 Hz marker frames into a 30 fps session: every marker frame is filtered, a quarter of
     them go out, a session period apart, each the driver's state at its time."""
-    from facecast.client.api import stream_markers
-    from facecast.server.api.store import FaceStore
-    from facecast.server.mocap.live import MarkerLiveDriver
-    from facecast.server.mocap.synthetic import synthetic_take
     from facecast.server.pipeline import Animator
 
-    face = FaceStore().face(FACE)
-    syn = synthetic_take(face, n_markers=16, seconds=1.0, fps=120.0, seed=6)
-    take = syn.take
-    xyz = take.xyz.astype(np.float32)
-
-    async def main():
-        s = await _session(live, input="markers", fps=30.0)
-        started = asyncio.Event()
-        viewer = asyncio.create_task(_collect(live.url, s.id, s.viewer_token, started=started))
-        await started.wait()
-        hello = ProducerHello(
-            input="markers", markers=list(take.names), layout=syn.layout, units=take.units
-        )
-        async with produce(live.url, s.id, s.producer_token, hello) as p:
-            await stream_markers(p, xyz, take.fps, speed=2.0)
-            errors = list(p.errors)
-        got = await viewer
-        await _close(live, s.id)
-        return errors, got
-
-    errors, got = run(main())
+    face, errors, got, driver, states = _marker_session(live, 1.0, 120.0, 30.0, seed=6)
     assert errors == []
-    driver = MarkerLiveDriver(face, list(take.names), syn.layout, units=take.units, fps=30.0)
-    states = {round(st.t * take.fps): st for i in range(len(xyz)) for st in driver.push(xyz[i], i / take.fps)}
-    assert len(states) > 100
+    by_frame = {round(st.t * 120.0): st for st in states}
+    assert len(by_frame) > 100
     times = np.array([f.frame.header.t for f in got])
-    assert abs(len(got) - len(states) / 4) <= 2, (len(got), len(states))
+    assert abs(len(got) - len(by_frame) / 4) <= 2, (len(got), len(by_frame))
     assert np.diff(times).min() >= 0.8 / 30.0 - 1e-6
     animator = Animator(face, backend="numpy", control_vertices=driver.control_vertices)
     for f in got[::5]:
-        st = states[round(f.frame.header.t * take.fps)]
+        st = by_frame[round(f.frame.header.t * 120.0)]
         np.testing.assert_array_equal(f.frame.vertices, animator.frame(st))
 
 
