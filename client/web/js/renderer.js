@@ -208,7 +208,7 @@ export class FaceRenderer {
     const { order, groups } = drawOrder(triangles, partIds, partNames);
     if (this.vertexCacheOrder) for (const g of groups) order.set(cacheOrder(order.subarray(g.first, g.first + g.count), V), g.first);
     // 16-bit indices when the vertices fit (half the index bytes for the GL to read)
-    return { order: V <= 65535 ? Uint16Array.from(order) : order, groups };
+    return { order: shortIndices(V) ? Uint16Array.from(order) : order, groups };
   }
 
   /** Switch the vertex-cache order of the index buffers on or off (for comparisons): rebuilt at once. */
@@ -317,7 +317,7 @@ export class FaceRenderer {
     // rasteriser), then the open single-sided sheets (lashes, eye extras, sockets) seen from both sides.
     const level = this.lod ? this.coarseLevel() : m;
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, level.ibo);
-    const [type, bytes] = m.V <= 65535 ? [gl.UNSIGNED_SHORT, 2] : [gl.UNSIGNED_INT, 4];
+    const [type, bytes] = shortIndices(m.V) ? [gl.UNSIGNED_SHORT, 2] : [gl.UNSIGNED_INT, 4];
     const window_ = this.mouthScissor ? this.mouthWindow() : null;
     for (const g of level.groups) {
       if (g.interior && window_) {
@@ -536,9 +536,9 @@ export function cacheOrder(triangles, V, segment = 341, slots = 256) {
     for (let k = 0; k < 3; k++) { const v = triangles[3 * f + k]; if (cache[v % slots] === v) h++; }
     return h;
   };
-  // Candidates by the number of their corners in the cache (1..3), each a stack; entries go stale
-  // (re-checked when taken).
-  const buckets = [null, [], [], []], heads = [0, 0, 0, 0];  // queues: the oldest first (a round patch)
+  // Candidates by the number of their corners in the cache (1..3), each a queue taken oldest first
+  // (a round patch); entries go stale and are re-checked when taken.
+  const buckets = [null, [], [], []], heads = [0, 0, 0, 0];
   const out = new Uint32Array(triangles.length);
   let n = 0, cursor = 0, inSegment = 0;
   const emit = (f) => {
@@ -607,6 +607,9 @@ export function vertexRuns(triangles, segment = 341, slots = 256) {
   }
   return runs;
 }
+
+/** Whether the index buffers of a mesh of V vertices hold 16-bit indices (else 32-bit). */
+function shortIndices(V) { return V <= 65535; }
 
 /** Small parts whose shape matters more than their triangle count: never coarsened. */
 const FINE = /^(teeth|eye_l|eye_r|iris|eyelashes|eye_extras)/;
