@@ -5,7 +5,9 @@ Exception tree (all decoding failures are one of these; nothing else escapes a d
     ValueError
      └── ProtocolError          root: carries ``close_code`` (WebSocket) and ``status`` (HTTP) hints
           ├── FrameError        a binary frame (vertices, PCM, markers, FAPs) is malformed
-          └── MessageError      a JSON control message is malformed or of an unknown type
+          ├── MessageError      a JSON control message is malformed or of an unknown type
+          └── FileFormatError   a file is malformed: FapFormatError (.fap), MarkerFileError
+                                (C3D/TRC/CSV takes), TopologyError (topology blob)
 
 Encoders raise ``ValueError`` / ``TypeError`` for arrays of the wrong shape (a programming error on
 the sending side), never ``ProtocolError``.
@@ -15,7 +17,7 @@ from __future__ import annotations
 
 from enum import IntEnum
 
-__all__ = ["CloseCode", "ProtocolError", "FrameError", "MessageError"]
+__all__ = ["CloseCode", "ProtocolError", "FrameError", "MessageError", "FileFormatError"]
 
 
 class CloseCode(IntEnum):
@@ -62,3 +64,7 @@ class FrameError(ProtocolError):
 
 class MessageError(ProtocolError):
     """A JSON control message is not JSON, has an unknown ``type``, or fails validation."""
+
+
+class FileFormatError(ProtocolError):
+    """A file (or file-like blob) a client sent or named is malformed; HTTP 400 / close 4400."""

@@ -26,6 +26,8 @@ import math
 import re
 from dataclasses import dataclass, field
 
+from .errors import FileFormatError
+
 #: Number of MPEG-4 FAPs (2 high-level + 66 low-level).
 N_FAPS = 68
 #: Mask widths accepted: the standard 68, and Greta's 69 (its last flag always 0).
@@ -41,18 +43,18 @@ _NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
 _INT = re.compile(r"^[+-]?\d+$")
 
 
-class FapFormatError(ValueError):
+class FapFormatError(FileFormatError):
     """A ``.fap`` text that cannot be read (or a ``FapFile`` that cannot be written).
 
     ``line`` is the 1-based line number at fault (0 when not tied to a line), ``where`` the file.
     """
 
     def __init__(self, message: str, *, line: int = 0, where: str = "") -> None:
+        loc = ":".join(x for x in (where, str(line) if line else "") if x)
+        super().__init__(message, where=loc)
         self.line = line
         self.where = where
         self.reason = message
-        loc = ":".join(x for x in (where, str(line) if line else "") if x)
-        super().__init__(f"{loc}: {message}" if loc else message)
 
 
 @dataclass(frozen=True)
@@ -162,14 +164,32 @@ class FapFile:
         return len(self.frames)
 
 
+#: Integers have at most this many digits (Python refuses to parse over 4,300; no FAP needs 19).
+MAX_DIGITS = 18
+
+
+def _show(tok: str) -> str:
+    """A token for an error message, cut to a readable length."""
+    return repr(tok if len(tok) <= 40 else tok[:36] + "...")
+
+
+def _int(tok: str, line: int, where: str, what: str) -> int:
+    """An integer token (already matched by ``_INT``) of at most ``MAX_DIGITS`` digits."""
+    digits = len(tok.lstrip("+-"))
+    if digits > MAX_DIGITS:
+        raise FapFormatError(f"{what} {_show(tok)} has {digits} digits; integers have at most "
+                             f"{MAX_DIGITS}", line=line, where=where)
+    return int(tok)
+
+
 def _number(tok: str, line: int, where: str, what: str) -> Number:
     if _INT.match(tok):
-        return int(tok)
+        return _int(tok, line, where, what)
     if _NUMBER.match(tok):
         v = float(tok)
         if math.isfinite(v):
             return v
-    raise FapFormatError(f"{what} {tok!r} is not a number; every value must be an integer "
+    raise FapFormatError(f"{what} {_show(tok)} is not a number; every value must be an integer "
                          "(or a decimal number)", line=line, where=where)
 
 
@@ -200,20 +220,20 @@ def read_fap(text: str, *, where: str = "") -> FapFile:
     hline, header = content[0]
     tokens = header.split()
     if len(tokens) < 3:
-        raise FapFormatError(f"header: {header.strip()!r} has {len(tokens)} fields; expected "
+        raise FapFormatError(f"header: {_show(header.strip())} has {len(tokens)} fields; expected "
                              "'<version> <name> <fps> <number of frames>'", line=hline, where=where)
     version = tokens[0]
     if not _NUMBER.match(version):
-        raise FapFormatError(f"header: version {version!r} is not a number (expected e.g. 2.1)", line=hline, where=where)
+        raise FapFormatError(f"header: version {_show(version)} is not a number (expected e.g. 2.1)", line=hline, where=where)
     usage = "; expected '<version> <name> <fps> <number of frames>'"
     if not _NUMBER.match(tokens[-2]) or not math.isfinite(float(tokens[-2])) or float(tokens[-2]) <= 0:
-        raise FapFormatError(f"header: frame rate {tokens[-2]!r} is not a positive number" + usage,
+        raise FapFormatError(f"header: frame rate {_show(tokens[-2])} is not a positive number" + usage,
                              line=hline, where=where)
     fps = _number(tokens[-2], hline, where, "frame rate")
-    if not _INT.match(tokens[-1]) or int(tokens[-1]) < 0:
-        raise FapFormatError(f"header: number of frames {tokens[-1]!r} is not a non-negative integer" + usage,
-                             line=hline, where=where)
-    n_declared = int(tokens[-1])
+    if not _INT.match(tokens[-1]) or tokens[-1].startswith("-"):
+        raise FapFormatError(f"header: number of frames {_show(tokens[-1])} is not a non-negative integer"
+                             + usage, line=hline, where=where)
+    n_declared = _int(tokens[-1], hline, where, "header: number of frames")
     m = re.match(r"^\s*\S+\s+(.*\S)\s+\S+\s+\S+\s*$", header)
     name = m.group(1) if m and len(tokens) > 3 else ""
 
@@ -232,7 +252,7 @@ def read_fap(text: str, *, where: str = "") -> FapFile:
         flags = mtext.split()
         for tok in flags:
             if tok not in ("0", "1"):
-                raise FapFormatError(f"mask flag {tok!r} is not 0 or 1 (is a mask or values line "
+                raise FapFormatError(f"mask flag {_show(tok)} is not 0 or 1 (is a mask or values line "
                                      "missing before this one?)", line=mline, where=where)
         mask = tuple(int(t) for t in flags)
         if width is None:
@@ -248,9 +268,10 @@ def read_fap(text: str, *, where: str = "") -> FapFile:
                                  f"range (FAPs are 1..{N_FAPS}); the extra flag must be 0", line=mline, where=where)
         vals = vtext.split()
         number_tok, vals = vals[0], vals[1:]
-        if not _INT.match(number_tok) or int(number_tok) < 0:
-            raise FapFormatError(f"frame number {number_tok!r} must be a non-negative integer",
+        if not _INT.match(number_tok) or number_tok.startswith("-"):
+            raise FapFormatError(f"frame number {_show(number_tok)} must be a non-negative integer",
                                  line=vline, where=where)
+        number = _int(number_tok, vline, where, "frame number")
         n_set = sum(mask)
         n_full = n_set + (3 if mask[0] else 0) + (5 if mask[1] else 0)
         single = False
@@ -262,7 +283,7 @@ def read_fap(text: str, *, where: str = "") -> FapFile:
                                      f"sets {n_set} flags, which need {n_full} values "
                                      "(4 for FAP 1, 6 for FAP 2, 1 for each other FAP)", line=vline, where=where)
         values = tuple(_number(t, vline, where, "value") for t in vals)
-        frame = FapFrame(int(number_tok), mask, values, single)
+        frame = FapFrame(number, mask, values, single)
         _check_high_level(frame, vline, where)
         frames.append(frame)
 
@@ -306,6 +327,8 @@ def _fmt(v: Number) -> str:
         if not math.isfinite(v):
             raise FapFormatError(f"value {v!r} is not finite")
         return repr(v)
+    if abs(int(v)) >= 10**MAX_DIGITS:
+        raise FapFormatError(f"integer {v} has more than {MAX_DIGITS} digits")
     return str(int(v))
 
 

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import FileFormatError
+
 MAGIC = b"FCTP"
 VERSION = 1
 HEADER = struct.Struct("<4sHHIIHHIfI")  # 32 bytes
@@ -35,8 +37,8 @@ NO_PART = 255
 MAX_PARTS = 255
 
 
-class TopologyError(ValueError):
-    """A blob that is not a valid facecast topology."""
+class TopologyError(FileFormatError):
+    """A blob that is not a valid facecast topology (or a mesh the format cannot carry)."""
 
 
 @dataclass

@@ -1,4 +1,11 @@
-"""One root for the errors a user sees. Messages say what was wrong and what to do."""
+"""One root for the errors a user sees. Messages say what was wrong and what to do.
+
+Parsers in ``facecast.protocol`` raise ``ProtocolError`` subclasses (``FileFormatError`` for .fap,
+C3D/TRC/CSV takes and topology blobs); those are the caller's fault too. ``CLIENT_ERRORS`` catches
+both kinds, and ``as_facecast_error`` turns a protocol error into an ``InputError`` (same status).
+"""
+
+from ..protocol.errors import ProtocolError
 
 
 class FacecastError(Exception):
@@ -21,3 +28,18 @@ class InputError(FacecastError):
 
 class NotFound(FacecastError):
     status = 404
+
+
+#: Every error that is the caller's fault (a 4xx): the server's own and the protocol's parsers'.
+CLIENT_ERRORS: tuple[type[Exception], ...] = (FacecastError, ProtocolError)
+
+
+def as_facecast_error(e: Exception) -> FacecastError:
+    """``e`` itself if it is a FacecastError; a ProtocolError as an InputError with its status."""
+    if isinstance(e, FacecastError):
+        return e
+    if isinstance(e, ProtocolError):
+        err = InputError(str(e))  # the message already names the file, line or field
+        err.where, err.status = e.where, e.status
+        return err
+    raise TypeError(f"{type(e).__name__} is not a user-facing error")

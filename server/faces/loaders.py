@@ -24,6 +24,9 @@ from ..errors import InputError
 from .face import FEATURE_POINT_IDS, UNIT_MM, Face
 from .obj import read_obj
 
+#: Most parts an annotation may name (the topology format carries at most 255 names).
+MAX_PARTS = 255
+
 AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
 
 
@@ -59,10 +62,11 @@ def load_mesh_face(path: str | Path) -> Face:
     ann_path = annotation_path(path)
     if ann_path is not None:
         try:
-            annotation = json.loads(ann_path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise InputError(f"annotation is not valid JSON: {e}", where=str(ann_path)) from None
+            raw = ann_path.read_bytes()
+        except OSError as e:
+            raise InputError(f"cannot read the annotation: {e.strerror}", where=str(ann_path)) from None
         where = str(ann_path)
+        annotation = parse_annotation(raw, where=where)
     else:
         from .ict import ict_annotation
 
@@ -76,6 +80,30 @@ def load_mesh_face(path: str | Path) -> Face:
     return face_from_annotation(str(path), vertices, triangles, annotation, where=where)
 
 
+def parse_annotation(raw: bytes | str, *, where: str) -> dict:
+    """The JSON object of a ``.face.json`` annotation; InputError if it is not UTF-8 JSON."""
+    try:
+        text = raw.decode("utf-8") if isinstance(raw, (bytes, bytearray)) else raw
+        annotation = json.loads(text)
+    except UnicodeDecodeError as e:
+        raise InputError(f"annotation is not UTF-8 text (byte {e.start})", where=where) from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"annotation is not valid JSON: {e}", where=where) from None
+    except RecursionError:
+        raise InputError("annotation is nested too deeply", where=where) from None
+    if not isinstance(annotation, dict):
+        raise InputError("the annotation must be a JSON object", where=where)
+    return annotation
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
 def face_from_annotation(name: str, vertices: np.ndarray, triangles: np.ndarray, annotation: dict,
                          *, where: str) -> Face:
     """Validate ``annotation`` against the mesh and build the ``Face`` (axes turned to MPEG-4's)."""
@@ -83,37 +111,42 @@ def face_from_annotation(name: str, vertices: np.ndarray, triangles: np.ndarray,
         raise InputError("the annotation must be a JSON object", where=where)
     n = len(vertices)
     units = annotation.get("units", "mm")
-    if units not in UNIT_MM:
-        raise InputError(f"field 'units': {units!r} is not one of {', '.join(UNIT_MM)}", where=where)
+    if not isinstance(units, str) or units not in UNIT_MM:
+        raise InputError(f"field 'units': {_show(units)} is not one of {', '.join(UNIT_MM)}", where=where)
 
-    fps = annotation.get("feature_points", {})
-    if not isinstance(fps, dict):
-        raise InputError("field 'feature_points' must map FP ids to vertex ids", where=where)
+    fps = _object(annotation, "feature_points", "map MPEG-4 feature point ids to vertex ids", where)
     unknown = sorted(set(fps) - set(FEATURE_POINT_IDS))
     if unknown:
-        raise InputError(f"field 'feature_points': unknown MPEG-4 feature point(s) {', '.join(unknown)}; "
+        listed = ", ".join(_show(u, 12)[1:-1] for u in unknown[:10]) + (", ..." if len(unknown) > 10 else "")
+        raise InputError(f"field 'feature_points': unknown MPEG-4 feature point(s) {listed}; "
                          "ids run 2.1-2.14, 3.1-3.14, 4.1-4.6, 5.1-5.4, 6.1-6.4, 7.1, 8.1-8.10, 9.1-9.15, "
                          "10.1-10.10, 11.1-11.6", where=where)
     for fp, vid in fps.items():
-        if not isinstance(vid, int) or not 0 <= vid < n:
-            raise InputError(f"field 'feature_points.{fp}': vertex id {vid!r} is outside 0..{n - 1}", where=where)
+        if not _is_int(vid) or not 0 <= vid < n:
+            raise InputError(f"field 'feature_points.{fp}': vertex id {_show(vid)} is outside 0..{n - 1}",
+                             where=where)
 
     parts = {}
-    for part, spec in (annotation.get("parts") or {}).items():
-        parts[part] = _part_ids(spec, n, f"parts.{part}", where)
+    specs = _object(annotation, "parts", "map part names to vertex ids", where)
+    if len(specs) > MAX_PARTS:
+        raise InputError(f"field 'parts': {len(specs)} parts; a face has at most {MAX_PARTS}", where=where)
+    for part, spec in specs.items():
+        parts[part] = _part_ids(spec, n, f"parts.{_show(part, 40)[1:-1]}", where)
 
     pivots = {}
-    for key, value in (annotation.get("pivots") or {}).items():
-        arr = np.asarray(value, dtype=np.float64)
-        if arr.shape != (3,) or not np.all(np.isfinite(arr)):
-            raise InputError(f"field 'pivots.{key}' must be three finite numbers", where=where)
-        pivots[key] = arr
+    for key, value in _object(annotation, "pivots", "map pivot names to [x, y, z]", where).items():
+        if (not isinstance(value, list) or len(value) != 3 or not all(_is_number(x) for x in value)
+                or not np.all(np.isfinite(np.asarray(value, dtype=np.float64)))):
+            raise InputError(f"field 'pivots.{_show(key, 40)[1:-1]}' must be three finite numbers",
+                             where=where)
+        pivots[key] = np.asarray(value, dtype=np.float64)
 
-    axes = annotation.get("axes") or {}
+    axes = _object(annotation, "axes", 'be {"up": "+y", "forward": "+z"}', where)
     up, forward = axes.get("up", "+y"), axes.get("forward", "+z")
-    if up not in AXES or forward not in AXES or up[1] == forward[1]:
-        raise InputError(f"field 'axes': up {up!r} and forward {forward!r} must be two different axes "
-                         "among +x -x +y -y +z -z", where=where)
+    if not (isinstance(up, str) and isinstance(forward, str) and up in AXES and forward in AXES) \
+            or up[1] == forward[1]:
+        raise InputError(f"field 'axes': up {_show(up)} and forward {_show(forward)} must be two different "
+                         "axes among +x -x +y -y +z -z", where=where)
     if (up, forward) != ("+y", "+z"):
         u, f = np.array(AXES[up], float), np.array(AXES[forward], float)
         rot = np.stack([np.cross(u, f), u, f])  # rows: MPEG-4 x (face's left), y (up), z (forward)
@@ -124,21 +157,38 @@ def face_from_annotation(name: str, vertices: np.ndarray, triangles: np.ndarray,
                 feature_points=fps, pivots=pivots)
 
 
+def _show(value, limit: int = 60) -> str:
+    """``repr`` of a client's value, cut to ``limit`` characters for an error message."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 4] + "...'"
+
+
+def _object(annotation: dict, key: str, what: str, where: str) -> dict:
+    """Field ``key`` of the annotation as a JSON object (absent or null: empty)."""
+    value = annotation.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise InputError(f"field '{key}' must be a JSON object that {what}, not {type(value).__name__}",
+                         where=where)
+    return value
+
+
 def _part_ids(spec, n: int, field: str, where: str) -> np.ndarray:
     if not isinstance(spec, list):
         raise InputError(f"field '{field}' must be a list of vertex ids or [first, last] ranges", where=where)
-    chunks = []
+    member = np.zeros(n, dtype=bool)  # a mask: memory is one byte per vertex however the ranges overlap
     for item in spec:
-        if isinstance(item, list) and len(item) == 2 and all(isinstance(x, int) for x in item):
+        if isinstance(item, list) and len(item) == 2 and all(_is_int(x) for x in item):
             a, b = item
             if not 0 <= a <= b < n:
-                raise InputError(f"field '{field}': range {item} is outside 0..{n - 1}", where=where)
-            chunks.append(np.arange(a, b + 1))
-        elif isinstance(item, int):
+                raise InputError(f"field '{field}': range {_show(item)} is outside 0..{n - 1}", where=where)
+            member[a:b + 1] = True
+        elif _is_int(item):
             if not 0 <= item < n:
-                raise InputError(f"field '{field}': vertex id {item} is outside 0..{n - 1}", where=where)
-            chunks.append(np.array([item]))
+                raise InputError(f"field '{field}': vertex id {_show(item)} is outside 0..{n - 1}", where=where)
+            member[item] = True
         else:
-            raise InputError(f"field '{field}': {item!r} is neither a vertex id nor a [first, last] range",
+            raise InputError(f"field '{field}': {_show(item)} is neither a vertex id nor a [first, last] range",
                              where=where)
-    return np.concatenate(chunks).astype(np.int32) if chunks else np.zeros(0, np.int32)
+    return np.flatnonzero(member).astype(np.int32)
