@@ -1,4 +1,5 @@
-"""Marker take readers and writers: C3D (ezc3d), TRC, CSV round trips with occlusions; units; errors."""
+"""Marker take readers and writers: C3D, TRC, CSV round trips with occlusions; units; errors
+(C3D in depth: test_c3d.py)."""
 
 from __future__ import annotations
 
@@ -81,23 +82,6 @@ def test_unreadable_files_are_input_errors(tmp_path):
         read_take(bad)
     with pytest.raises(InputError, match="no such take"):
         read_take(tmp_path / "missing.trc")
-
-
-def test_pure_c3d_parser_reads_what_ezc3d_writes(tmp_path, rng):
-    from facecast.protocol.markers_file import read_c3d
-
-    take = _take(rng)
-    path = write_take(take, tmp_path / "take.c3d")
-    pure = read_c3d(path.read_bytes(), where=str(path))
-    ez = read_take(path)
-    assert pure.names == ez.names and pure.fps == ez.fps and pure.units == "mm"
-    assert np.array_equal(np.isnan(pure.xyz), np.isnan(take.xyz))
-    np.testing.assert_allclose(pure.xyz, ez.xyz, atol=1e-9, equal_nan=True)
-    with pytest.raises(MarkerFileError, match="not a C3D"):
-        read_c3d(b"\x02\x00" + bytes(600), where="x.c3d")
-    truncated = path.read_bytes()[:-600]
-    with pytest.raises(MarkerFileError, match="promises"):
-        read_c3d(truncated, where="x.c3d")
 
 
 @pytest.mark.parametrize("fmt", ["trc", "csv"])

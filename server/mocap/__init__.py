@@ -3,7 +3,7 @@
 After Sánchez Lorenzo (2006) ch. 4 and Kshirsagar et al. (head pose, mocap -> FAP).
 
 Modules:
-    io          read/write takes (C3D with ezc3d; TRC/CSV and a pure C3D reader in protocol.markers_file)
+    io          read/write takes (C3D, TRC, CSV: the pure parsers in protocol.markers_file)
     layout      the marker layout JSON and marker placement on a face (vertex, FP, automatic)
     clean       spike rejection, DCT gap filling, constant-velocity Kalman filter, RTS smoother,
                 low-rank projection of displacements (batch)

@@ -1,4 +1,4 @@
-"""Reading and writing marker takes: C3D (ezc3d), TRC and CSV (pure parsers in ``protocol.markers_file``).
+"""Reading and writing marker takes: C3D, TRC and CSV (pure parsers in ``protocol.markers_file``).
 
 Units: declared by the file (C3D ``POINT:UNITS``, TRC ``Units``, CSV ``# units=``), overridden by the
 caller, or detected from the size of the marker cloud (a face spans roughly 100-300 mm).
@@ -19,8 +19,10 @@ from ...protocol.markers_file import (
     MarkerTake,
     check_take,
     normalise_units,
+    read_c3d,
     read_csv,
     read_trc,
+    write_c3d,
     write_csv,
     write_trc,
 )
@@ -53,7 +55,7 @@ def read_take(
         raise InputError("no such take file", where=where)
     try:
         if suffix == ".c3d":
-            take = _read_c3d(path)
+            take = read_c3d(path.read_bytes(), where=where)
         elif suffix == ".trc":
             take = read_trc(path.read_text(encoding="utf-8", errors="replace"), where=where)
         elif suffix == ".csv":
@@ -123,57 +125,6 @@ def _check_units(take: MarkerTake, where: str) -> str:
     return take.units
 
 
-def _read_c3d(path: Path) -> MarkerTake:
-    import ezc3d
-
-    try:
-        c = ezc3d.c3d(str(path))
-    except Exception as e:  # noqa: BLE001 - ezc3d raises plain RuntimeError/IOError with its own text
-        raise InputError(f"cannot read C3D ({e})", where=str(path)) from None
-    params = c["parameters"]
-    point = params.get("POINT", {})
-    labels = list(point.get("LABELS", {}).get("value", []))
-    for extra in ("LABELS2", "LABELS3", "LABELS4"):
-        labels += list(point.get(extra, {}).get("value", []))
-    pts = np.asarray(c["data"]["points"], dtype=np.float64)  # (4, M, T)
-    m = pts.shape[1]
-    labels = [str(s).strip() for s in labels[:m]]
-    if len(labels) < m:
-        labels += [f"M{i:03d}" for i in range(len(labels), m)]
-    rate = float(
-        np.ravel(point.get("RATE", {}).get("value", [c["header"]["points"]["frame_rate"]]))[0]
-    )
-    units_v = point.get("UNITS", {}).get("value", [])
-    units = normalise_units(str(units_v[0]), where=f"{path}: POINT:UNITS") if len(units_v) else None
-    xyz = np.moveaxis(pts[:3], (0, 1, 2), (2, 1, 0))  # (T, M, 3)
-    res = c["data"].get("meta_points", {}).get("residuals")
-    if res is not None and np.size(res):
-        bad = np.asarray(res)[0].T < 0  # (T, M)
-        xyz = xyz.copy()
-        xyz[bad] = np.nan
-    xyz = np.where(np.isfinite(xyz).all(axis=2, keepdims=True), xyz, np.nan)
-    first = int(c["header"]["points"].get("first_frame", 0))
-    return check_take(
-        MarkerTake(labels, xyz, rate, units, first / rate if rate > 0 else 0.0), str(path)
-    )
-
-
-def _write_c3d(take: MarkerTake, path: Path) -> None:
-    import ezc3d
-
-    c = ezc3d.c3d()
-    c["parameters"]["POINT"]["RATE"]["value"] = [float(take.fps)]
-    c["parameters"]["POINT"]["LABELS"]["value"] = list(take.names)
-    c.add_parameter("POINT", "UNITS", take.units or "mm")
-    t, m = take.xyz.shape[:2]
-    pts = np.ones((4, m, t))
-    pts[:3] = np.moveaxis(take.xyz, (0, 1, 2), (2, 1, 0))
-    occluded = ~np.isfinite(take.xyz).all(axis=2)  # (T, M)
-    pts[:3, occluded.T] = np.nan
-    c["data"]["points"] = pts
-    c.write(str(path))
-
-
 def write_take(take: MarkerTake, path: str | Path) -> Path:
     """Write ``take`` as C3D, TRC or CSV (by suffix), atomically."""
     path = Path(path)
@@ -189,7 +140,7 @@ def write_take(take: MarkerTake, path: str | Path) -> Path:
     os.chmod(tmp, 0o644)  # mkstemp makes 0600; takes are ordinary files
     try:
         if suffix == ".c3d":
-            _write_c3d(take, Path(tmp))
+            Path(tmp).write_bytes(write_c3d(take))
         else:
             text = write_trc(take, filename=path.name) if suffix == ".trc" else write_csv(take)
             Path(tmp).write_text(text, encoding="utf-8")
