@@ -293,7 +293,7 @@ _C3D_MAX_ENTRIES = 10_000
 class _C3dParam:
     type: int
     dims: tuple[int, ...]
-    raw: bytes
+    raw: memoryview  # a view into the file: entries may overlap, so values are never copied
 
 
 def _dec_to_float(u: np.ndarray) -> np.ndarray:
@@ -343,8 +343,11 @@ class _C3dCodec:
         return "<u4" if self.processor == "dec" else self.order + "f4"
 
     def reals(self, a: np.ndarray) -> np.ndarray:
-        """Stored reals (``real_dtype``) -> float64."""
-        return _dec_to_float(a) if self.processor == "dec" else a.astype(np.float64)
+        """Stored reals (``real_dtype``) -> float64 (signalling NaNs become quiet NaNs silently)."""
+        if self.processor == "dec":
+            return _dec_to_float(a)
+        with np.errstate(invalid="ignore"):
+            return a.astype(np.float64)
 
     def real(self, data: bytes, offset: int) -> float:
         return float(self.reals(np.frombuffer(data, self.real_dtype, 1, offset))[0])
@@ -373,6 +376,7 @@ def _c3d_parameters(
     """Groups -> parameters of the parameter section in ``data[start:end]`` (names upper case)."""
     groups: dict[int, str] = {}
     params: dict[int, dict[str, _C3dParam]] = {}
+    view = memoryview(data)
     pos = start + 4
     for _ in range(_C3D_MAX_ENTRIES):
         if pos + 2 > end:
@@ -405,7 +409,7 @@ def _c3d_parameters(
                 raise MarkerFileError(
                     f"parameter {name} declares {size} bytes of values; the section holds "
                     f"{max(0, end - first)} more", where=at)
-            params.setdefault(gid, {})[name] = _C3dParam(ptype, dims, data[first : first + size])
+            params.setdefault(gid, {})[name] = _C3dParam(ptype, dims, view[first : first + size])
         if nxt == 0:
             break  # the last entry
         if nxt < 0:
@@ -427,13 +431,13 @@ def _c3d_numbers(p: _C3dParam, codec: _C3dCodec) -> np.ndarray:
     return codec.reals(np.frombuffer(p.raw, codec.real_dtype))
 
 
-def _c3d_strings(p: _C3dParam) -> list[str]:
-    """A text parameter's strings (the first dimension is the length of each)."""
+def _c3d_strings(p: _C3dParam, limit: int) -> list[str]:
+    """A text parameter's first ``limit`` strings (the first dimension is the length of each)."""
     if len(p.dims) <= 1:
-        return [p.raw.decode("latin-1").strip()]
+        return [bytes(p.raw).decode("latin-1").strip()]
     w = p.dims[0]
-    n = math.prod(p.dims[1:])
-    return [p.raw[i * w : (i + 1) * w].decode("latin-1").strip() for i in range(n)] if w else [""] * n
+    n = min(math.prod(p.dims[1:]), limit)
+    return [bytes(p.raw[i * w : (i + 1) * w]).decode("latin-1").strip() for i in range(n)] if w else [""] * n
 
 
 def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
@@ -508,12 +512,14 @@ def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
             break
         if point[key].type != -1:
             raise MarkerFileError(f"POINT:{key} must be text", where=where)
-        labels += _c3d_strings(point[key])
+        labels += _c3d_strings(point[key], n_points - len(labels))
+        if len(labels) >= n_points:
+            break
     units = None
     if "UNITS" in point:
         if point["UNITS"].type != -1:
             raise MarkerFileError("POINT:UNITS must be text", where=where)
-        u = _c3d_strings(point["UNITS"])[0]
+        u = next(iter(_c3d_strings(point["UNITS"], 1)), "")  # (width, 0) dimensions: no string
         units = normalise_units(u, where=f"{where}: POINT:UNITS") if u else None
 
     if n_points == 0:

@@ -214,3 +214,27 @@ def test_the_crash_and_hang_files_are_input_errors_in_a_live_process(tmp_path, r
     assert out.stdout.count("refused") == len(files)
     with pytest.raises(InputError, match="f0.c3d"):
         read_take(tmp_path / "f0.c3d")
+
+
+def test_units_with_no_string_are_no_units():
+    units = _param(b"UNITS", -1, (2, 0), b"")  # found by bench/fuzz_parsers.py: an IndexError
+    assert read_c3d(_param_file(units)).units is None
+
+
+def test_overlapping_parameters_are_not_copied():
+    """5,000 entries 10 bytes apart, each declaring 65 kB of values over the next ones: reading them
+    must not copy each (325 MB) but view the file's bytes."""
+    import tracemalloc
+
+    entries = b"".join(bytes([2, 1, k & 0xFF, 65 + (k >> 8)]) + struct.pack("<h", 6) + b"\x01\x02\xff\xff"
+                       for k in range(5000))
+    section = b"\x01\x50\xff\x54" + bytes([5, 0xFF]) + b"POINT" + struct.pack("<h", 3) + b"\x00" + entries
+    data = b"\x02\x50" + bytes(510) + section + bytes(65025)
+    tracemalloc.start()
+    try:
+        with pytest.raises(MarkerFileError, match="no 3-D points"):
+            read_c3d(data)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 20e6, f"{peak / 1e6:.0f} MB"
