@@ -618,7 +618,7 @@ def write_c3d(take: MarkerTake, *, processor: str = "intel", scale: float = -1.0
     header[0:2] = bytes([2, 0x50])
     header[2:12] = words(m, 0, first, min(last, 65535), 0)
     header[12:16] = codec.encode_reals([scale])
-    header[16:20] = words(data_start, 0)
+    header[16:20] = words(data_start, 1)  # analog samples per frame: ANALOG:RATE / POINT:RATE
     header[20:24] = codec.encode_reals([take.fps])
     occluded = ~np.isfinite(take.xyz).all(axis=2)
     xyz = np.where(occluded[..., None], 0.0, take.xyz)
