@@ -158,8 +158,8 @@ def _mutate_bytes(b: bytearray, rng: random.Random) -> bytearray:
 def _mutate_token(data: bytes, rng: random.Random) -> bytes:
     lines = data.split(b"\n")
     i = rng.randrange(len(lines))
-    parts = lines[i].replace(b",", b"\t").split(b"\t") if b"\t" in lines[i] or b"," in lines[i] else lines[i].split(b" ")
     sep = b"\t" if b"\t" in lines[i] else (b"," if b"," in lines[i] else b" ")
+    parts = lines[i].split(sep)
     j = rng.randrange(len(parts))
     parts[j] = rng.choice(INTERESTING_TOKENS).encode("utf-8")
     lines[i] = sep.join(parts)

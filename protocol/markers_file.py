@@ -437,7 +437,9 @@ def _c3d_strings(p: _C3dParam, limit: int) -> list[str]:
         return [bytes(p.raw).decode("latin-1").strip()]
     w = p.dims[0]
     n = min(math.prod(p.dims[1:]), limit)
-    return [bytes(p.raw[i * w : (i + 1) * w]).decode("latin-1").strip() for i in range(n)] if w else [""] * n
+    if not w:
+        return [""] * n
+    return [bytes(p.raw[i * w : (i + 1) * w]).decode("latin-1").strip() for i in range(n)]
 
 
 def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
@@ -487,7 +489,8 @@ def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
     def count(group: str, name: str, default: int) -> int:
         """A 16-bit count (stored signed; read unsigned, as capture systems mean it)."""
         x = number(group, name, default)
-        if params.get(group, {}).get(name, _C3dParam(2, (), b"")).type == 2 and x < 0:
+        p = params.get(group, {}).get(name)
+        if p is not None and p.type == 2 and x < 0:
             x += 65536
         if not (math.isfinite(x) and 0 <= x < 2**31):
             raise MarkerFileError(f"{group}:{name} is {x}; it must be a count", where=where)
@@ -503,7 +506,8 @@ def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
         k in trial and trial[k].type == 2 and len(trial[k].raw) >= 4
         for k in ("ACTUAL_START_FIELD", "ACTUAL_END_FIELD")
     ):  # long takes: frame numbers as two 16-bit words (low, high)
-        s, e = (_c3d_numbers(trial[k], codec) & 0xFFFF for k in ("ACTUAL_START_FIELD", "ACTUAL_END_FIELD"))
+        s, e = (_c3d_numbers(trial[k], codec) & 0xFFFF
+                for k in ("ACTUAL_START_FIELD", "ACTUAL_END_FIELD"))
         n_frames = max(n_frames, int(e[0] + 65536 * e[1]) - int(s[0] + 65536 * s[1]) + 1)
 
     labels: list[str] = []
