@@ -39,8 +39,10 @@ INTERESTING_BYTES = (0x00, 0x01, 0x7F, 0x80, 0xFF, 0x50, 0x54, 0x55, 0x56, 0x20,
 INTERESTING_INTS = (0, 1, -1, 2, 255, 256, 511, 512, 32767, -32768, 65535, 2**31 - 1, -(2**31))
 INTERESTING_TOKENS = ("nan", "-nan", "inf", "-inf", "1e309", "-1", "0", "", " ", "\t", ",", "#",
                       "9" * 4301, "1" * 19, "-" * 3, "\xff", "\x00", "0x10", "1_000", "٣")
+#: Stands for an integer of 4,301 digits (json.dumps cannot write one; json.loads refuses it).
+HUGE_INT = "<4301 digits>"
 INTERESTING_JSON = ({}, [], 0, -1, 1.5, True, None, "x", "", 10**30, [0, 1, 2], [[0, 10**9]],
-                    {"a": [1]}, [[]], "+y", [True, 0, 0], 26719, -26720)
+                    {"a": [1]}, [[]], "+y", [True, 0, 0], 26719, -26720, HUGE_INT)
 
 
 # ------------------------------------------------------------------------------------------ seeds
@@ -196,7 +198,7 @@ def _mutate_json(data: bytes, rng: random.Random) -> bytes:
             container.pop(key)
     else:
         container[key] = rng.choice(INTERESTING_JSON)
-    return json.dumps(doc).encode()
+    return json.dumps(doc).replace(f'"{HUGE_INT}"', "9" * 4301).encode()  # over int()'s limit
 
 
 KIND = {"c3d": "binary", "ezc3d": "binary", "trc": "text", "csv": "text", "fap": "text",

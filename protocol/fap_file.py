@@ -39,7 +39,9 @@ MAX_VISEME, MAX_EXPRESSION = 14, 6
 
 Number = int | float
 
-_NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+#: A decimal number. Unambiguous (one way to match), so matching is linear in the token's length:
+#: ``\d+\.?\d*`` backtracked quadratically on a long run of digits followed by a letter.
+_NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?$")
 _INT = re.compile(r"^[+-]?\d+$")
 
 
@@ -234,8 +236,9 @@ def read_fap(text: str, *, where: str = "") -> FapFile:
         raise FapFormatError(f"header: number of frames {_show(tokens[-1])} is not a non-negative integer"
                              + usage, line=hline, where=where)
     n_declared = _int(tokens[-1], hline, where, "header: number of frames")
-    m = re.match(r"^\s*\S+\s+(.*\S)\s+\S+\s+\S+\s*$", header)
-    name = m.group(1) if m and len(tokens) > 3 else ""
+    name = header.strip()[len(tokens[0]):].strip()  # between the version and the last two fields
+    name = name[: len(name) - len(tokens[-1])].rstrip()
+    name = name[: len(name) - len(tokens[-2])].rstrip() if len(tokens) > 3 else ""
 
     body = content[1:]
     frames: list[FapFrame] = []

@@ -78,7 +78,7 @@ TRIS = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
 @pytest.mark.parametrize("annotation, field", [
     ({"units": {}}, "'units'"),
     ({"units": ["mm"]}, "'units'"),
-    ({"pivots": 1}, "'pivots'"),
+    ({"pivots": 1}, "'pivots' must be a JSON object like {\"jaw\": [0, -1.5, 2.0]}, not a number"),
     ({"pivots": {"jaw": "abc"}}, "'pivots.jaw'"),
     ({"pivots": {"jaw": [1, [2], 3]}}, "'pivots.jaw'"),
     ({"pivots": {"jaw": [True, 0, 0]}}, "'pivots.jaw'"),
@@ -90,7 +90,7 @@ TRIS = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
     ({"parts": {"skin": [[2, 1]]}}, "'parts.skin'"),
     ({"parts": {f"p{i}": [0] for i in range(300)}}, "'parts': 300 parts"),
     ({"feature_points": [1]}, "'feature_points'"),
-    ({"feature_points": {"2.1": True}}, "'feature_points.2.1'"),
+    ({"feature_points": {"2.1": True}}, "'feature_points.2.1': True must be a vertex id in 0..3"),
     ({"feature_points": {"2.1": 1.5}}, "'feature_points.2.1'"),
     ({"feature_points": {"2.1": 10**30}}, "'feature_points.2.1'"),
     ({"axes": "up"}, "'axes'"),
@@ -110,6 +110,7 @@ def test_wrong_types_and_ids_in_an_annotation_name_the_field(annotation, field):
     (b"[1, 2]", "must be a JSON object"),
     (b"[" * 100_000, "nested too deeply|not valid JSON"),
     (b"", "not valid JSON"),
+    (b'{"units": ' + b"9" * 4301 + b"}", "not valid JSON: Exceeds the limit"),  # a ValueError
 ])
 def test_annotation_bytes_that_are_not_a_json_object(raw, words):
     with pytest.raises(InputError, match=words):
@@ -154,3 +155,16 @@ def test_trc_with_a_nan_time_is_refused():
             "60\t60\t1\t1\tmm\nFrame#\tTime\tA\t\t\n\t\tX1\tY1\tZ1\n1\tnan\t1\t2\t3\n")
     with pytest.raises(MarkerFileError, match=r"t\.trc:6: time 'nan' must be finite"):
         read_trc(text, where="t.trc")
+
+
+def test_a_long_non_number_token_is_refused_without_backtracking():
+    """A 200,000-digit run then a letter: the old number pattern backtracked quadratically (found
+    by bench/fuzz_parsers.py: 1.8 s for 37 kB). In a subprocess, so a regression cannot hang pytest."""
+    import subprocess
+    import sys
+
+    code = ("from facecast.protocol.fap_file import read_fap, FapFormatError\n"
+            "text = '2.1 t 25 1\\n' + ' '.join(['0', '0', '1'] + ['0'] * 65) + '\\n0 ' + '9' * 200000 + 'x\\n'\n"
+            "try:\n    read_fap(text)\nexcept FapFormatError as e:\n    print(e)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert "3: value '9999" in out.stdout and "is not a number" in out.stdout, out.stderr[-500:]

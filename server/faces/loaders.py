@@ -87,8 +87,8 @@ def parse_annotation(raw: bytes | str, *, where: str) -> dict:
         annotation = json.loads(text)
     except UnicodeDecodeError as e:
         raise InputError(f"annotation is not UTF-8 text (byte {e.start})", where=where) from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"annotation is not valid JSON: {e}", where=where) from None
+    except ValueError as e:  # JSONDecodeError, or an integer over Python's 4,300-digit limit
+        raise InputError(f"annotation is not valid JSON: {str(e)[:200]}", where=where) from None
     except RecursionError:
         raise InputError("annotation is nested too deeply", where=where) from None
     if not isinstance(annotation, dict):
@@ -114,7 +114,7 @@ def face_from_annotation(name: str, vertices: np.ndarray, triangles: np.ndarray,
     if not isinstance(units, str) or units not in UNIT_MM:
         raise InputError(f"field 'units': {_show(units)} is not one of {', '.join(UNIT_MM)}", where=where)
 
-    fps = _object(annotation, "feature_points", "map MPEG-4 feature point ids to vertex ids", where)
+    fps = _object(annotation, "feature_points", '{"2.1": 966, ...}', where)
     unknown = sorted(set(fps) - set(FEATURE_POINT_IDS))
     if unknown:
         listed = ", ".join(_show(u, 12)[1:-1] for u in unknown[:10]) + (", ..." if len(unknown) > 10 else "")
@@ -123,25 +123,25 @@ def face_from_annotation(name: str, vertices: np.ndarray, triangles: np.ndarray,
                          "10.1-10.10, 11.1-11.6", where=where)
     for fp, vid in fps.items():
         if not _is_int(vid) or not 0 <= vid < n:
-            raise InputError(f"field 'feature_points.{fp}': vertex id {_show(vid)} is outside 0..{n - 1}",
-                             where=where)
+            what = f"vertex id {_show(vid)} is outside" if _is_int(vid) else f"{_show(vid)} must be a vertex id in"
+            raise InputError(f"field 'feature_points.{fp}': {what} 0..{n - 1}", where=where)
 
     parts = {}
-    specs = _object(annotation, "parts", "map part names to vertex ids", where)
+    specs = _object(annotation, "parts", '{"skin": [[0, 11247]], ...}', where)
     if len(specs) > MAX_PARTS:
         raise InputError(f"field 'parts': {len(specs)} parts; a face has at most {MAX_PARTS}", where=where)
     for part, spec in specs.items():
         parts[part] = _part_ids(spec, n, f"parts.{_show(part, 40)[1:-1]}", where)
 
     pivots = {}
-    for key, value in _object(annotation, "pivots", "map pivot names to [x, y, z]", where).items():
+    for key, value in _object(annotation, "pivots", '{"jaw": [0, -1.5, 2.0]}', where).items():
         if (not isinstance(value, list) or len(value) != 3 or not all(_is_number(x) for x in value)
                 or not np.all(np.isfinite(np.asarray(value, dtype=np.float64)))):
             raise InputError(f"field 'pivots.{_show(key, 40)[1:-1]}' must be three finite numbers",
                              where=where)
         pivots[key] = np.asarray(value, dtype=np.float64)
 
-    axes = _object(annotation, "axes", 'be {"up": "+y", "forward": "+z"}', where)
+    axes = _object(annotation, "axes", '{"up": "+y", "forward": "+z"}', where)
     up, forward = axes.get("up", "+y"), axes.get("forward", "+z")
     if not (isinstance(up, str) and isinstance(forward, str) and up in AXES and forward in AXES) \
             or up[1] == forward[1]:
@@ -163,13 +163,21 @@ def _show(value, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 4] + "...'"
 
 
-def _object(annotation: dict, key: str, what: str, where: str) -> dict:
+def _json_type(value) -> str:
+    """The JSON name of a decoded value's type."""
+    if isinstance(value, bool):
+        return "a boolean"
+    return {int: "a number", float: "a number", str: "a string", list: "an array", dict: "an object"}.get(
+        type(value), "null")
+
+
+def _object(annotation: dict, key: str, example: str, where: str) -> dict:
     """Field ``key`` of the annotation as a JSON object (absent or null: empty)."""
     value = annotation.get(key)
     if value is None:
         return {}
     if not isinstance(value, dict):
-        raise InputError(f"field '{key}' must be a JSON object that {what}, not {type(value).__name__}",
+        raise InputError(f"field '{key}' must be a JSON object like {example}, not {_json_type(value)}",
                          where=where)
     return value
 
