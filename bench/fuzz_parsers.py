@@ -300,7 +300,7 @@ def fuzz_counts(parser_name: str, n: int, seed: int = 1, timeout: float = TIMEOU
     """
     if parser_name not in PARSERS + ("ezc3d",):
         raise ValueError(f"unknown parser {parser_name!r}; one of {', '.join(PARSERS)}")
-    ctx = mp.get_context("fork")
+    ctx = mp.get_context("spawn")  # not fork: a caller may have threads (a server client, a loop)
     counts = dict(parser=parser_name, inputs=0, crashes=0, hangs=0, project_errors=0, parsed=0,
                   other_errors=0, max_seconds=0.0, examples=[])
     proc = conn = None
