@@ -29,6 +29,7 @@ from ...protocol.markers_file import MarkerFileError
 from ...protocol.topology import TopologyError
 from ..errors import FacecastError
 from . import routes_faces, routes_health, routes_jobs, routes_playback, routes_sessions, routes_web
+from ..jobs.upload import clear_upload_dir, upload_dir
 from .config import ServerConfig
 from .metrics import Metrics
 from .responses import SafeJSONResponse, safe_json, safe_text
@@ -148,6 +149,9 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         app.state.started = time.time()
+        left = clear_upload_dir(config.data_dir)  # uploads a crashed server left behind
+        if left:
+            log.info("removed %d upload(s) left by the last run in %s", left, upload_dir(config.data_dir))
         # A daemon thread: stopping the server never waits for a warm-up still in progress.
         threading.Thread(target=_warm_up, args=(app,), name="facecast-warm-up", daemon=True).start()
         await app.state.jobs.start()
@@ -181,7 +185,8 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     from ..jobs.manager import JobManager
 
     app.state.jobs = JobManager(config.data_dir, workers=config.job_workers, backend=config.backend,
-                                device=config.device, retention_hours=config.job_retention_hours)
+                                device=config.device, retention_hours=config.job_retention_hours,
+                                job_timeout=config.job_timeout_seconds)
     app.state.metrics.watch_jobs(app.state.jobs.store.counts)
 
     def _error(request: Request, status: int, message: str, where: str = "", headers=None, **extra):

@@ -5,6 +5,8 @@ start-up, jobs left ``running`` by a stopped server go back to ``queued`` and ru
 are written atomically, so a half-finished attempt leaves nothing behind). A job whose worker died
 ``MAX_ATTEMPTS`` times is failed rather than retried forever. Finished jobs are deleted after
 ``retention_hours`` (``ServerConfig.job_retention_hours``, ``FACECAST_JOB_RETENTION_HOURS``; a week).
+A job running longer than ``job_timeout`` (``FACECAST_JOB_TIMEOUT_SECONDS``) is failed and its worker
+killed. Workers die with the server (``worker.serve``), so none outlives it to race a resumed job.
 """
 from __future__ import annotations
 
@@ -34,6 +36,7 @@ class _Slot:
     proc: multiprocessing.process.BaseProcess | None = None
     conn: object | None = None
     job_id: str | None = None
+    started: float = 0.0  # time.monotonic() when the job was handed to the worker
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.is_alive()
@@ -54,7 +57,8 @@ class JobManager:
     """Runs up to ``workers`` jobs at a time in ``spawn``-ed worker processes (0: queue only)."""
 
     def __init__(self, data_dir: Path, *, workers: int = 1, backend: str = "auto", device: str | None = None,
-                 retention_hours: float = DEFAULT_RETENTION_HOURS):
+                 retention_hours: float = DEFAULT_RETENTION_HOURS, job_timeout: float = 0.0):
+        """``job_timeout``: seconds a job may run before it is failed and its worker killed (0: no limit)."""
         self.store = JobStore(data_dir)
         self.workers = max(0, int(workers))
         self.backend = backend
@@ -65,9 +69,13 @@ class JobManager:
         self._task: asyncio.Task | None = None
         self.retention = max(float(retention_hours), 0.0) * 3600.0  # seconds; 0 = keep forever
         self._next_purge = 0.0
+        self.job_timeout = max(float(job_timeout), 0.0)
 
     # -- lifecycle -------------------------------------------------------------------------------
     async def start(self) -> None:
+        orphans = self.store.sweep_orphans()
+        if orphans:
+            log.info("removed %d unfinished upload(s) left by the last run", len(orphans))
         again = self.store.requeue_running()
         if again:
             log.info("resuming %d job(s) interrupted by the last shutdown: %s", len(again), ", ".join(again))
@@ -143,6 +151,9 @@ class JobManager:
                     finished = slot.conn.recv() == slot.job_id or finished
             except (EOFError, OSError):
                 pass
+            if not finished and self.job_timeout and time.monotonic() - slot.started > self.job_timeout:
+                self._time_out(slot)
+                continue
             if finished:
                 job_id, slot.job_id = slot.job_id, None
                 job = self.store.get(job_id)
@@ -152,6 +163,16 @@ class JobManager:
                 job_id, code = slot.job_id, slot.proc.exitcode
                 slot.kill(0)
                 self._worker_died(job_id, code)
+
+    def _time_out(self, slot: _Slot) -> None:
+        """Fail the slot's job for running too long and kill its worker (a new one starts when needed)."""
+        job_id = slot.job_id
+        self.store.fail(job_id, f"the job ran longer than this server's limit of {self.job_timeout:g} s and was "
+                                "stopped; send a shorter input, or ask the operator to raise "
+                                "FACECAST_JOB_TIMEOUT_SECONDS")
+        log.warning("job %s exceeded %g s; killing its worker (pid %s)", job_id, self.job_timeout,
+                    slot.proc.pid if slot.proc else None)
+        slot.kill(1.0)
 
     def _purge(self) -> None:
         now = time.time()
@@ -188,6 +209,7 @@ class JobManager:
             if not slot.alive():
                 self._spawn(slot)
             slot.job_id = job.id
+            slot.started = time.monotonic()
             slot.conn.send((job.id, attempt))
             log.info("job %s started (attempt %d, worker pid %s)", job.id, attempt, slot.proc.pid)
 

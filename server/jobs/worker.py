@@ -8,10 +8,12 @@ progress update no longer matches); the manager also terminates it to cancel at 
 """
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections import OrderedDict
@@ -35,6 +37,7 @@ def serve(data_dir: str, conn, backend: str = "auto", device: str | None = None,
           parent_pid: int | None = None) -> None:
     """Worker process entry point: run the jobs the manager sends until the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
+    die_with_parent(parent_pid)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
     store = JobStore(Path(data_dir))
@@ -60,6 +63,39 @@ def serve(data_dir: str, conn, backend: str = "auto", device: str | None = None,
                 break
     finally:
         store.close()
+
+
+#: Seconds between two checks that the server is still there (where the kernel cannot tell us).
+PARENT_POLL_SECONDS = 1.0
+PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent_pid: int | None) -> None:
+    """End this process when the server that started it dies, even by SIGKILL.
+
+    On Linux the kernel sends SIGKILL at once (``prctl(PR_SET_PDEATHSIG)``); elsewhere, and as a
+    second line, a daemon thread checks the parent pid every ``PARENT_POLL_SECONDS``. A worker that
+    outlived its server would race the attempt the next server starts for the same job.
+    """
+    if parent_pid is None:
+        return
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):
+            log.warning("cannot ask the kernel to end this worker with the server; polling instead")
+    if os.getppid() != parent_pid:  # the server died before we got here
+        os._exit(1)
+
+    def watch() -> None:
+        while True:
+            time.sleep(PARENT_POLL_SECONDS)
+            if os.getppid() != parent_pid:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="facecast-parent-watch", daemon=True).start()
 
 
 def run_job(store: JobStore, job_id: str, attempt: int, backend: str, device: str | None,
@@ -117,8 +153,11 @@ def render(store: JobStore, job: JobRecord, backend: str, device: str | None, pr
         return "failed", f"the render engine is not available on this server ({e})"
     try:
         face = _face(opts.get("face_spec") or "default", faces if faces is not None else OrderedDict())
+        layout = None
+        if opts.get("layout_file"):  # the client's layout content, checked and saved at submit
+            layout = json.loads((store.folder(job.id) / opts["layout_file"]).read_text(encoding="utf-8"))
         render_file(src, dst, face=face, engine=opts.get("engine", "fp"), backend=backend, device=device,
-                    layout=opts.get("layout"), progress=progress)
+                    layout=layout, progress=progress)
     except Stop as e:
         log.info("job %s abandoned: %s", job.id, e)
         return None, None
