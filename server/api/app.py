@@ -172,6 +172,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         description=DESCRIPTION,
         lifespan=lifespan,
         default_response_class=SafeJSONResponse,
+        docs_url=None, redoc_url=None,  # served by routes_web from local assets (no CDN)
     )
     app.state.config = config
     app.state.private_roots = sorted({str(config.data_dir.expanduser().resolve()), str(config.data_dir),
