@@ -470,3 +470,42 @@ def test_die_with_parent_ends_a_busy_process_when_its_parent_is_killed(tmp_path)
     finally:
         if a.poll() is None:
             a.kill()
+
+
+def test_a_file_that_crashes_the_decoder_fails_its_job_and_the_server_keeps_serving(srv, mocap_take, data_dir):
+    """A 517-byte C3D that made the C3D reader segfault: the worker process may die, the server not."""
+    _, layout, _ = mocap_take
+    crash = b"\x02\x50" + bytes(510) + b"\x01\x50\x02\x54\xff"
+    resp = httpx.post(srv.url + "/v1/jobs", files={"file": ("segv.c3d", crash), "layout": ("l.json", layout.read_bytes())},
+                      data={"face": FACE}, headers=srv.admin_headers, timeout=60)
+    assert resp.status_code in (202, 400), resp.text
+    if resp.status_code == 202:
+        failed = wait(srv, resp.json()["id"])
+        assert failed["status"] == "failed" and failed["attempts"] == 1, failed  # no retry of a crash
+        assert "segv.c3d" in failed["error"] and str(srv.data_dir) not in failed["error"]
+    assert httpx.get(srv.url + "/healthz", timeout=30).status_code == 200
+    nxt = submit(srv, "joy.fap", fap_file(data_dir).read_bytes(), format="fap")
+    assert wait(srv, nxt["id"])["status"] == "done"
+
+
+def test_a_worker_killed_by_a_fault_fails_the_job_at_once(tmp_path):
+    import signal
+
+    from facecast.server.jobs.manager import JobManager
+    from facecast.server.jobs.store import new_job_id
+
+    jobs = JobManager(tmp_path, workers=0)
+    ids = []
+    for _ in range(2):
+        job_id = new_job_id()
+        jobs.store.folder(job_id).mkdir(parents=True)
+        jobs.store.add(job_id, input_name="take.c3d", input_kind="mocap", input_file="input.c3d", input_bytes=1,
+                       result_file="result.glb", options={})
+        jobs.store.claim(job_id)
+        ids.append(job_id)
+    jobs._worker_died(ids[0], -int(signal.SIGSEGV))
+    crashed = jobs.store.get(ids[0])
+    assert crashed.status == "failed" and "SIGSEGV" in crashed.error and "take.c3d" in crashed.error
+    jobs._worker_died(ids[1], -int(signal.SIGTERM))  # killed from outside: tried again
+    assert jobs.store.get(ids[1]).status == "queued"
+    jobs.store.close()

@@ -1,7 +1,11 @@
 """``/v1/jobs``: batch rendering. Upload an input file, poll its status, download the result, cancel.
 
-All routes need the admin key. The upload is streamed to the job's folder with a size limit
-(``max_upload_bytes``; 413 beyond it); the job runs in a worker process (see ``server/jobs``).
+All routes need the admin key. The upload is streamed to the job's folder with a size limit by
+kind (``max_fap_bytes``, ``max_markers_bytes``, ``max_audio_bytes``, all at most ``max_upload_bytes``;
+413 beyond it). A mocap take comes with its marker layout as content (a ``layout`` part holding the
+layout's JSON), never as a path. The job runs in a worker process (see ``server/jobs``), so a
+decoder that crashes or hangs on a hostile file costs that process, never the server; a job over
+``job_timeout_seconds`` is failed and its worker killed.
 """
 from __future__ import annotations
 

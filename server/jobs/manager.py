@@ -5,7 +5,8 @@ start-up, jobs left ``running`` by a stopped server go back to ``queued`` and ru
 are written atomically, so a half-finished attempt leaves nothing behind). A job whose worker died
 ``MAX_ATTEMPTS`` times is failed rather than retried forever. Finished jobs are deleted after
 ``retention_hours`` (``ServerConfig.job_retention_hours``, ``FACECAST_JOB_RETENTION_HOURS``; a week).
-A job running longer than ``job_timeout`` (``FACECAST_JOB_TIMEOUT_SECONDS``) is failed and its worker
+A worker that crashes in native code (SIGSEGV...) fails its job at once. A job running longer than
+``job_timeout`` (``FACECAST_JOB_TIMEOUT_SECONDS``) is failed and its worker
 killed. Workers die with the server (``worker.serve``), so none outlives it to race a resumed job.
 """
 from __future__ import annotations
@@ -14,6 +15,7 @@ import asyncio
 import logging
 import multiprocessing
 import os
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +25,9 @@ from .store import JobStore
 log = logging.getLogger(__name__)
 
 MAX_ATTEMPTS = 3
+#: Signals of a worker that faulted in native code (a decoder on a malformed file): no retry.
+CRASH_SIGNALS = {int(getattr(signal, n)): n for n in ("SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT")
+                 if hasattr(signal, n)}
 POLL_SECONDS = 0.2
 #: Finished jobs (and their files) are deleted this long after they finished (0 keeps them).
 DEFAULT_RETENTION_HOURS = 7 * 24.0
@@ -187,7 +192,12 @@ class JobManager:
         job = self.store.get(job_id)
         if job is None or job.status != "running":
             return
-        if job.attempts >= MAX_ATTEMPTS:
+        crash = CRASH_SIGNALS.get(-code) if code is not None and code < 0 else None
+        if crash:  # native code faulted on this input: running it again would fault again
+            log.warning("worker for job %s crashed (%s) on %s input", job_id, crash, job.input_kind)
+            self.store.fail(job_id, f"reading {job.input_name!r} crashed the decoder ({crash}); the file is "
+                                    f"probably damaged: check it or export it again")
+        elif job.attempts >= MAX_ATTEMPTS:
             self.store.fail(job_id, f"the worker process died {job.attempts} times (last exit code {code}); "
                                     "the input may be too large for this server")
         else:

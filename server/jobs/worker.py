@@ -38,6 +38,7 @@ def serve(data_dir: str, conn, backend: str = "auto", device: str | None = None,
     """Worker process entry point: run the jobs the manager sends until the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
     die_with_parent(parent_pid)
+    _no_core_dumps()
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
     store = JobStore(Path(data_dir))
@@ -96,6 +97,16 @@ def die_with_parent(parent_pid: int | None) -> None:
                 os._exit(1)
 
     threading.Thread(target=watch, name="facecast-parent-watch", daemon=True).start()
+
+
+def _no_core_dumps() -> None:
+    """A decoder crashing on a hostile file must not fill the disk with core files."""
+    try:
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    except (ImportError, ValueError, OSError):
+        pass
 
 
 def run_job(store: JobStore, job_id: str, attempt: int, backend: str, device: str | None,
@@ -163,13 +174,16 @@ def render(store: JobStore, job: JobRecord, backend: str, device: str | None, pr
         return None, None
     except FacecastError as e:
         return "failed", client_view(str(e))
-    except (ValueError, KeyError, IndexError, UnicodeDecodeError) as e:
-        # Decoders that let a low-level error through: still the input's fault, most likely.
-        log.warning("job %s: %s", job.id, traceback.format_exc())
-        return "failed", client_view(f"could not read {job.input_name!r} as {job.input_kind} input: "
-                                     f"{type(e).__name__}: {e}")
     except MemoryError:
         return "failed", f"{job.input_name!r} needs more memory than this server has; send a shorter input"
+    except Exception as e:
+        # A decoder's own error (FapFormatError...) or a low-level one it let through (ValueError,
+        # struct.error, OverflowError...): the input's fault, most likely. The traceback stays here.
+        own = type(e).__module__.startswith("facecast.")
+        if not own:
+            log.warning("job %s: %s", job.id, traceback.format_exc())
+        detail = str(e) if own else f"{type(e).__name__}: {e}"
+        return "failed", client_view(f"could not read {job.input_name!r} as {job.input_kind} input: {detail[:500]}")
     if not dst.is_file():
         return "failed", "the renderer finished without writing a result (server bug; please report)"
     return "done", None
