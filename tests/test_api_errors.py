@@ -67,6 +67,11 @@ def test_surrogates_in_paths_and_queries_are_a_4xx(client):
     json_error(resp, 400, 422)
 
 
+@pytest.mark.parametrize("path", ["/static/%00", "/static/" + "a/" * 3000, "/static/..%2F..%2Fpyproject.toml"])
+def test_odd_static_paths_are_a_404(client, path):
+    json_error(client.get(path), 404)
+
+
 def test_project_errors_are_4xx_and_unexpected_ones_a_500_without_details(app, client):
     secret = str(app.state.config.data_dir / "jobs" / "x" / "input.fap")
 

@@ -32,8 +32,12 @@ def index() -> FileResponse:
 
 @router.get("/static/{path:path}")
 def static(path: str) -> FileResponse:
-    target = (WEB_ROOT / path).resolve()
-    if not target.is_relative_to(WEB_ROOT.resolve()) or not target.is_file():
+    try:
+        target = (WEB_ROOT / path).resolve()
+        found = target.is_relative_to(WEB_ROOT.resolve()) and target.is_file()
+    except (ValueError, OSError):  # a NUL byte, a name too long for the file system
+        found = False
+    if not found:
         raise HTTPException(404, detail=f"no such file in the web viewer: {path}")
     return FileResponse(target, media_type=MEDIA_TYPES.get(target.suffix), headers={"Cache-Control": "no-cache"})
 
