@@ -4,9 +4,12 @@
   holding the admin key can watch any session it lists.
 - ``POST /v1/sessions/{id}/demo`` / ``DELETE .../demo`` (admin or ``?token=`` producer token): start
   or stop the demo performance (expressions, visemes, blinks, head sway, gaze) at the session's rate.
-- ``POST /v1/sessions/{id}/play`` (admin or producer token): upload a ``.fap``, audio or marker file;
-  it is decoded with the batch drivers and played into the session at its real rate. The answer
-  gives ``start_wall`` (Unix seconds of media time 0) so a page can start the sound in sync.
+- ``POST /v1/sessions/{id}/play`` (admin or producer token): upload a ``.fap``, audio or marker file
+  (a marker take with its layout's JSON content in a ``layout`` part; never a path); it is decoded
+  with the batch drivers and played into the session at its real rate. The answer gives
+  ``start_wall`` (Unix seconds of media time 0) so a page can start the sound in sync. Uploads wait
+  in ``<data dir>/tmp`` (emptied at each start), are limited by kind (``ServerConfig.upload_limit``),
+  and at most ``max_concurrent_decodes`` decode at once (503 with ``Retry-After`` beyond).
 
 A server-side producer holds the session's producer slot: a WebSocket producer is refused (4409)
 while it runs, and a DELETE of the demo (or the end of the file) frees it.
