@@ -150,6 +150,9 @@ def test_play_errors_name_no_server_path_and_uploads_live_in_the_data_dir(server
     assert 400 <= r.status_code < 500 and r.json()["error"], r.text
     for private in ("/tmp", str(server.data_dir), "facecast-play"):
         assert private not in r.text, r.text
+    r = httpx.post(url, files={"file": ("mine.fap", b"2.1 x 25 1\n\xff\xfe not text\n")}, timeout=60)
+    assert r.status_code == 400 and "mine.fap" in r.json()["error"], r.text  # the client's name, not ours
+    assert "/tmp" not in r.text and str(server.data_dir) not in r.text
     assert (server.data_dir / "tmp").is_dir() and not list((server.data_dir / "tmp").iterdir())
     big_fap = b"2.1 big 25 1\n" + b"0 " * (3 * 1024 * 1024)  # over the 4 MiB FAP limit
     r = httpx.post(url, files={"file": ("big.fap", big_fap)}, timeout=60)

@@ -196,7 +196,9 @@ def _decode(path: Path, face, name: str, kind: str, options: dict):
     """``load_animation`` of a client's file; any failure of the decoder is the input's fault (4xx)."""
     try:
         return load_animation(path, face, **options)
-    except FacecastError:
+    except FacecastError as e:  # name the client's file, not the server's copy of it
+        e.args = tuple(a.replace(str(path), name) if isinstance(a, str) else a for a in e.args)
+        e.where = e.where.replace(str(path), name)
         raise
     except MemoryError:
         raise PayloadTooLarge(f"{name!r} needs more memory to decode than this server allows; send a shorter "
@@ -205,7 +207,7 @@ def _decode(path: Path, face, name: str, kind: str, options: dict):
         own = type(e).__module__.startswith("facecast.")
         if not own:
             log.warning("decoding %s input %r failed", kind, name, exc_info=True)
-        detail = str(e) if own else f"{type(e).__name__}: {e}"
+        detail = (str(e) if own else f"{type(e).__name__}: {e}").replace(str(path), name)
         raise InputError(f"could not read {name!r} as {kind} input: {detail[:500]}", where="file") from None
 
 
