@@ -509,3 +509,15 @@ def test_a_worker_killed_by_a_fault_fails_the_job_at_once(tmp_path):
     jobs._worker_died(ids[1], -int(signal.SIGTERM))  # killed from outside: tried again
     assert jobs.store.get(ids[1]).status == "queued"
     jobs.store.close()
+
+
+def test_a_worker_memory_limit_turns_a_huge_allocation_into_a_memory_error():
+    import subprocess
+    import sys
+
+    code = ("from facecast.server.jobs.worker import limit_resources; import resource, numpy as np; "
+            "limit_resources(1024); "
+            "assert resource.getrlimit(resource.RLIMIT_CORE)[0] == 0\n"
+            "try:\n    np.ones(4 * 1024**3, dtype=np.uint8)\nexcept MemoryError:\n    print('memory error')")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == "memory error", run.stderr

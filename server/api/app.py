@@ -187,7 +187,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
 
     app.state.jobs = JobManager(config.data_dir, workers=config.job_workers, backend=config.backend,
                                 device=config.device, retention_hours=config.job_retention_hours,
-                                job_timeout=config.job_timeout_seconds)
+                                job_timeout=config.job_timeout_seconds, memory_mb=config.job_memory_mb)
     app.state.metrics.watch_jobs(app.state.jobs.store.counts)
 
     def _error(request: Request, status: int, message: str, where: str = "", headers=None, **extra):

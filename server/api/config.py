@@ -31,6 +31,7 @@ class ServerConfig(BaseSettings):
     max_audio_bytes: int = Field(default=64 * 1024 * 1024, gt=0)  # WAV/FLAC/OGG speech
     max_concurrent_decodes: int = Field(default=2, ge=1)  # /play decodes at once; more get 503
     job_timeout_seconds: float = Field(default=3600.0, ge=0)  # a job running longer fails; 0 = no limit
+    job_memory_mb: int = Field(default=0, ge=0)  # address space of a job worker process (MiB); 0 = no limit
     max_sessions: int = 64
     max_viewers_per_session: int = 256
     max_producer_fps: float = 250.0  # frames per second a producer may send (markers run at 240 Hz)

@@ -28,6 +28,7 @@ environment:
   FACECAST_MAX_AUDIO_BYTES      .wav/.flac/.ogg (default 64 MiB)
   FACECAST_MAX_CONCURRENT_DECODES  uploads /play decodes at once (default 2; more get 503)
   FACECAST_JOB_TIMEOUT_SECONDS  a job running longer fails, its worker killed (default 3600; 0 = none)
+  FACECAST_JOB_MEMORY_MB        address space of a job worker process in MiB (default 0 = no limit)
   FACECAST_JOB_RETENTION_HOURS  delete finished jobs after this long (default 168; 0 = never)
   every flag also as FACECAST_<NAME> (FACECAST_PORT, FACECAST_JOB_WORKERS, ...)
 

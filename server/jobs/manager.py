@@ -62,8 +62,9 @@ class JobManager:
     """Runs up to ``workers`` jobs at a time in ``spawn``-ed worker processes (0: queue only)."""
 
     def __init__(self, data_dir: Path, *, workers: int = 1, backend: str = "auto", device: str | None = None,
-                 retention_hours: float = DEFAULT_RETENTION_HOURS, job_timeout: float = 0.0):
-        """``job_timeout``: seconds a job may run before it is failed and its worker killed (0: no limit)."""
+                 retention_hours: float = DEFAULT_RETENTION_HOURS, job_timeout: float = 0.0, memory_mb: int = 0):
+        """``job_timeout``: seconds a job may run before it is failed and its worker killed (0: no limit);
+        ``memory_mb``: address space of a worker process in MiB (0: no limit)."""
         self.store = JobStore(data_dir)
         self.workers = max(0, int(workers))
         self.backend = backend
@@ -75,6 +76,7 @@ class JobManager:
         self.retention = max(float(retention_hours), 0.0) * 3600.0  # seconds; 0 = keep forever
         self._next_purge = 0.0
         self.job_timeout = max(float(job_timeout), 0.0)
+        self.memory_mb = max(int(memory_mb), 0)
 
     # -- lifecycle -------------------------------------------------------------------------------
     async def start(self) -> None:
@@ -230,7 +232,7 @@ class JobManager:
         mine, theirs = self._ctx.Pipe()
         slot.proc = self._ctx.Process(target=worker.serve, name="facecast-job-worker", daemon=True,
                                       args=(str(self.store.data_dir), theirs, self.backend, self.device,
-                                            os.getpid()))
+                                            os.getpid(), self.memory_mb))
         slot.proc.start()
         theirs.close()
         slot.conn = mine

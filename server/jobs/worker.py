@@ -34,11 +34,15 @@ class Stop(BaseException):
 
 
 def serve(data_dir: str, conn, backend: str = "auto", device: str | None = None,
-          parent_pid: int | None = None) -> None:
-    """Worker process entry point: run the jobs the manager sends until the pipe closes."""
+          parent_pid: int | None = None, memory_mb: int = 0) -> None:
+    """Worker process entry point: run the jobs the manager sends until the pipe closes.
+
+    ``memory_mb``: address-space limit of this process (0: none); a job over it fails with a
+    MemoryError message, and the server is not affected.
+    """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
     die_with_parent(parent_pid)
-    _no_core_dumps()
+    limit_resources(memory_mb)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
     store = JobStore(Path(data_dir))
@@ -99,14 +103,23 @@ def die_with_parent(parent_pid: int | None) -> None:
     threading.Thread(target=watch, name="facecast-parent-watch", daemon=True).start()
 
 
-def _no_core_dumps() -> None:
-    """A decoder crashing on a hostile file must not fill the disk with core files."""
+def limit_resources(memory_mb: int = 0) -> None:
+    """Limits for a process that parses hostile files: no core files (a decoder crashing must not
+    fill the disk) and, if ``memory_mb`` > 0, at most that many MiB of address space."""
     try:
         import resource
-
-        resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
-    except (ImportError, ValueError, OSError):
-        pass
+    except ImportError:  # not on this platform
+        return
+    limits = [(resource.RLIMIT_CORE, 0)]
+    if memory_mb > 0:
+        limits.append((resource.RLIMIT_AS, int(memory_mb) * 1024 * 1024))
+    for which, value in limits:
+        try:
+            hard = resource.getrlimit(which)[1]
+            value = value if hard == resource.RLIM_INFINITY else min(value, hard)
+            resource.setrlimit(which, (value, hard))
+        except (ValueError, OSError) as e:
+            log.warning("cannot set resource limit %s: %s", which, e)
 
 
 def run_job(store: JobStore, job_id: str, attempt: int, backend: str, device: str | None,
