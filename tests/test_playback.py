@@ -160,7 +160,7 @@ def test_play_errors_name_no_server_path_and_uploads_live_in_the_data_dir(server
 
 
 def test_play_answers_503_with_retry_after_when_every_decode_slot_is_busy(tmp_path):
-    import asyncio as aio
+    import threading
 
     from fastapi.testclient import TestClient
 
@@ -171,10 +171,17 @@ def test_play_answers_503_with_retry_after_when_every_decode_slot_is_busy(tmp_pa
                                   backend="numpy", max_concurrent_decodes=1))
     client = TestClient(app)
     s = client.post("/v1/sessions", json={"input": "fap", "fps": 30}, headers={"Authorization": "Bearer k"}).json()
-    app.state.decode_slots = aio.Semaphore(0)  # as if one decode were running
+    app.state.decode_slots = threading.Semaphore(0)  # as if one decode were running
     good = b"2.1 ok 25 1\n" + b" ".join([b"0", b"0", b"1"] + [b"0"] * 65) + b"\n0 300\n"
     r = client.post(f"/v1/sessions/{s['id']}/play?token={s['producer_token']}", files={"file": ("ok.fap", good)})
     assert r.status_code == 503 and r.headers["retry-after"] == "2" and "retry" in r.json()["error"], r.text
-    app.state.decode_slots = aio.Semaphore(1)
+    app.state.decode_slots = threading.Semaphore(1)
     r = client.post(f"/v1/sessions/{s['id']}/play?token={s['producer_token']}", files={"file": ("ok.fap", good)})
     assert r.status_code == 202, r.text
+    slots = app.state.decode_slots
+    assert slots.acquire(blocking=False)  # the decode gave its slot back
+    slots.release()
+    r = client.post(f"/v1/sessions/{s['id']}/play?token={s['producer_token']}",
+                    files={"file": ("bad.fap", b"2.1 bad 25 1\nnot a mask\n")})
+    assert r.status_code == 400, r.text
+    assert slots.acquire(blocking=False)  # so did the failed one

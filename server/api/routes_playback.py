@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -185,10 +186,13 @@ class TooBusy(FacecastError):
     headers = {"Retry-After": "2"}
 
 
-def _decode_slots(app) -> asyncio.Semaphore:
+def _decode_slots(app) -> threading.Semaphore:
+    """The app's decode slots. A slot is given back by the decoding thread when it ends, so a client
+    that hangs up mid-decode cannot start more decodes than the limit."""
     slots = getattr(app.state, "decode_slots", None)
     if slots is None:
-        slots = app.state.decode_slots = asyncio.Semaphore(max(1, int(app.state.config.max_concurrent_decodes)))
+        slots = app.state.decode_slots = threading.BoundedSemaphore(
+            max(1, int(app.state.config.max_concurrent_decodes)))
     return slots
 
 
@@ -263,12 +267,23 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
             raise InputError("a mocap take needs its marker layout: send the layout file's content as a "
                              "'layout' part (curl -F layout=@take.layout.json)", where="layout")
         slots = _decode_slots(app)
-        if slots.locked():
+        if not slots.acquire(blocking=False):
             raise TooBusy(f"the server is decoding {cfg.max_concurrent_decodes} upload(s) already; retry in a "
                           "few seconds", where="file")
+
+        def decode():
+            try:
+                return _decode(path, session.face, name, kind, options)
+            finally:
+                slots.release()
+
         loop = asyncio.get_running_loop()
-        async with slots:
-            animation = await loop.run_in_executor(reg.executor, _decode, path, session.face, name, kind, options)
+        try:
+            future = loop.run_in_executor(reg.executor, decode)
+        except BaseException:
+            slots.release()
+            raise
+        animation = await future
     if not animation.states:
         raise InputError("the file holds no frames", where="file")
     animator = None
