@@ -106,3 +106,17 @@ def test_safe_json_makes_any_echo_serialisable():
     text.encode("utf-8")
     assert len(text) < 2000
     assert SafeJSONResponse(weird).body  # renders instead of raising
+
+
+def test_an_operator_mesh_path_never_reaches_a_client(tmp_path, monkeypatch):
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", "/nonexistent-facecast-tmp")  # /tmp alone must not hide it
+    hidden = tmp_path / "operator-only" / "meshes"
+    hidden.mkdir(parents=True)
+    (hidden / "broken.obj").write_text("v 0 0\nf 1 2 3\n")
+    app = create_app(ServerConfig(data_dir=tmp_path / "data", admin_key=KEY, job_workers=0, backend="numpy",
+                                  faces=f"broken={hidden / 'broken.obj'}"))
+    resp = TestClient(app, raise_server_exceptions=False).get("/v1/faces/broken", headers=ADMIN)
+    assert resp.status_code == 400 and "broken.obj" in resp.json()["error"], resp.text
+    assert "operator-only" not in resp.text and str(tmp_path) not in resp.text

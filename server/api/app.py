@@ -175,12 +175,15 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         docs_url=None, redoc_url=None,  # served by routes_web from local assets (no CDN)
     )
     app.state.config = config
-    app.state.private_roots = sorted({str(config.data_dir.expanduser().resolve()), str(config.data_dir),
-                                      tempfile.gettempdir()}, key=len, reverse=True)
     app.state.admin_key = admin_key
     app.state.metrics = Metrics()
     app.state.store = FaceStore(default=config.face, backend=config.backend, device=config.device,
                                 configured=parse_faces_env(config.faces))
+    # Folders whose paths never reach a client: the data directory, the temporary folder, the
+    # operator's mesh folders (a message keeps only a file's own name).
+    roots = {str(config.data_dir.expanduser().resolve()), str(config.data_dir), tempfile.gettempdir(),
+             *(str(p.expanduser().parent) for p in app.state.store.configured.values())}
+    app.state.private_roots = sorted((r for r in roots if len(r) > 1), key=len, reverse=True)
     app.state.readiness = {"ready": False, "backend": None, "device": None}
 
     from ..jobs.manager import JobManager
