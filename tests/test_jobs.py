@@ -365,7 +365,7 @@ def test_a_layout_naming_a_server_file_is_refused_without_reading_it(srv, mocap_
 
 
 def test_uploads_are_limited_by_kind(srv):
-    big_fap = b"2.1 big 25 1\n" + b"0 " * (3 * 1024 * 1024)  # 6 MiB of FAP text: over the FAP limit
+    big_fap = b"2.1 big 25 1\n" + b"0 " * (5 * 1024 * 1024)  # 10 MiB of FAP text: over the 8 MiB FAP limit
     resp = httpx.post(srv.url + "/v1/jobs", files={"file": ("big.fap", big_fap)}, data={"face": FACE},
                       headers=srv.admin_headers, timeout=60)
     assert resp.status_code == 413, resp.text

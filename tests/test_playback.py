@@ -154,7 +154,7 @@ def test_play_errors_name_no_server_path_and_uploads_live_in_the_data_dir(server
     assert r.status_code == 400 and "mine.fap" in r.json()["error"], r.text  # the client's name, not ours
     assert "/tmp" not in r.text and str(server.data_dir) not in r.text
     assert (server.data_dir / "tmp").is_dir() and not list((server.data_dir / "tmp").iterdir())
-    big_fap = b"2.1 big 25 1\n" + b"0 " * (3 * 1024 * 1024)  # over the 4 MiB FAP limit
+    big_fap = b"2.1 big 25 1\n" + b"0 " * (5 * 1024 * 1024)  # 10 MiB: over the 8 MiB FAP limit
     r = httpx.post(url, files={"file": ("big.fap", big_fap)}, timeout=60)
     assert r.status_code == 413 and "FACECAST_MAX_FAP_BYTES" in r.json()["error"], r.text
 

@@ -26,7 +26,7 @@ class ServerConfig(BaseSettings):
     job_workers: int = 1  # worker processes for batch jobs
     # Uploads (jobs and /play): a file may not exceed its kind's limit nor max_upload_bytes.
     max_upload_bytes: int = Field(default=64 * 1024 * 1024, gt=0)
-    max_fap_bytes: int = Field(default=4 * 1024 * 1024, gt=0)  # FAP text: hours of animation
+    max_fap_bytes: int = Field(default=8 * 1024 * 1024, gt=0)  # FAP text: about 18 min at 25 fps
     max_markers_bytes: int = Field(default=32 * 1024 * 1024, gt=0)  # C3D/TRC/CSV mocap takes
     max_audio_bytes: int = Field(default=64 * 1024 * 1024, gt=0)  # WAV/FLAC/OGG speech
     max_concurrent_decodes: int = Field(default=2, ge=1)  # /play decodes at once; more get 503

@@ -23,7 +23,7 @@ environment:
   FACECAST_ADMIN_KEY            admin key (else generated, printed once, kept in <data dir>/admin.key, mode 0600)
   FACECAST_FACES                more faces by name: ict=/path/generic_neutral_mesh.obj,other=/path/x.obj
   FACECAST_MAX_UPLOAD_BYTES     largest upload of any kind (default 64 MiB), and per kind:
-  FACECAST_MAX_FAP_BYTES        .fap (default 4 MiB)
+  FACECAST_MAX_FAP_BYTES        .fap (default 8 MiB)
   FACECAST_MAX_MARKERS_BYTES    .c3d/.trc/.csv (default 32 MiB)
   FACECAST_MAX_AUDIO_BYTES      .wav/.flac/.ogg (default 64 MiB)
   FACECAST_MAX_CONCURRENT_DECODES  uploads /play decodes at once (default 2; more get 503)
