@@ -122,7 +122,7 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
             await drain(request, received)
             raise
         except Exception as e:  # malformed multipart framing
-            raise InputError(f"could not read the multipart upload ({e}); send a multipart/form-data "
+            raise InputError(f"could not read the multipart upload ({str(e)[:200]}); send a multipart/form-data "
                              "body with a 'file' part", where="body") from None
         try:
             opts = JobOptions(**{k: v for k, v in parser.fields.items() if k in JobOptions.model_fields})
