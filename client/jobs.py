@@ -15,6 +15,10 @@ import httpx
 FINAL = ("done", "failed", "cancelled")
 #: Render options that only make sense locally (the server picks its own backend and device).
 LOCAL_ONLY = frozenset({"backend", "device"})
+#: Input suffixes of mocap takes, which need a marker layout.
+MOCAP_SUFFIXES = frozenset({".c3d", ".trc", ".csv"})
+#: Largest layout file sent (the server's limit for the ``layout`` part).
+MAX_LAYOUT_BYTES = 1024 * 1024
 
 
 class RemoteJobError(RuntimeError):
@@ -47,11 +51,38 @@ def _check(resp: httpx.Response, what: str, job: str | None = None) -> httpx.Res
     return resp
 
 
+def find_layout(take: Path) -> Path | None:
+    """The layout beside a mocap take, as the local renderer looks for it: ``<stem>.layout.json``,
+    else ``layout.json`` in its folder; None when there is neither."""
+    for cand in (take.with_name(take.stem + ".layout.json"), take.with_name("layout.json")):
+        if cand.is_file():
+            return cand
+    return None
+
+
+def read_layout(layout: str | Path) -> bytes:
+    """The content of a local layout file, to upload (the server never opens a client's paths)."""
+    path = Path(layout)
+    if not path.is_file():
+        raise RemoteJobError(f"{path}: no such layout file")
+    data = path.read_bytes()
+    if len(data) > MAX_LAYOUT_BYTES:
+        raise RemoteJobError(f"{path}: a layout is JSON of a few KiB, this file has {len(data)} bytes")
+    return data
+
+
 def submit(client: httpx.Client, input: Path, options: dict) -> dict:
-    """POST the file and options; the job's status as the server returned it."""
-    data = {k: str(v) for k, v in options.items() if v is not None}
+    """POST the file and options; the job's status as the server returned it.
+
+    ``options["layout"]`` is a local layout file: its content is uploaded as the ``layout`` part.
+    """
+    data = {k: str(v) for k, v in options.items() if v is not None and k != "layout"}
+    files: dict = {}
+    if options.get("layout") is not None:
+        files["layout"] = ("layout.json", read_layout(options["layout"]), "application/json")
     with open(input, "rb") as fh:
-        resp = client.post("/v1/jobs", files={"file": (input.name, fh, "application/octet-stream")}, data=data)
+        files["file"] = (input.name, fh, "application/octet-stream")
+        resp = client.post("/v1/jobs", files=files, data=data)
     return _check(resp, f"the server refused {input.name}").json()
 
 
@@ -96,7 +127,8 @@ def render_remote(url: str, input: str | Path, output: str | Path, *, options: d
                   poll: float = 0.5, timeout: float | None = None) -> Path:
     """Render ``input`` on the server at ``url`` and write the result to ``output``.
 
-    ``options``: ``face``, ``engine``, ``format`` (default: ``output``'s suffix), ``layout``;
+    ``options``: ``face``, ``engine``, ``format`` (default: ``output``'s suffix), ``layout`` (a local
+    layout file, uploaded with the take; default for a mocap take: the one beside it, as locally);
     ``backend``/``device`` are ignored (the server uses its own).
     ``progress(done, total)`` is called with ``total = 1000`` as the job advances (like the local
     renderer's callback). ``admin_key`` defaults to ``$FACECAST_ADMIN_KEY``. Raises
@@ -112,6 +144,11 @@ def render_remote(url: str, input: str | Path, output: str | Path, *, options: d
         if suffix not in ("glb", "npz", "fap"):
             raise RemoteJobError(f"{output}: cannot tell the output format from the suffix; use .glb, .npz or .fap")
         opts["format"] = suffix
+    if opts.get("layout") is None and input.suffix.lower() in MOCAP_SUFFIXES:
+        opts["layout"] = find_layout(input)
+        if opts["layout"] is None:
+            raise RemoteJobError(f"{input}: a mocap take needs a marker layout: pass --layout layout.json "
+                                 f"(or put {input.stem}.layout.json beside the take)")
     key = admin_key or os.environ.get("FACECAST_ADMIN_KEY")
     headers = {"Authorization": f"Bearer {key}"} if key else {}
     report = None

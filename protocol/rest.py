@@ -84,7 +84,9 @@ class JobOptions(BaseModel):
     face: str | None = Field(None, description="face name (GET /v1/faces); default: the server's")
     engine: Engine = "fp"
     format: OutputFormat = "glb"
-    layout: str | None = Field(None, description="mocap marker layout name, for .c3d/.trc/.csv input")
+    layout: str | None = Field(None, description="mocap marker layout: the layout file's JSON content, "
+                               "required for .c3d/.trc/.csv input (never a path); a job's status shows "
+                               "'uploaded' when it has one")
 
 
 class JobStatus(BaseModel):

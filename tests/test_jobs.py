@@ -285,3 +285,239 @@ def test_store_purges_only_old_finished_jobs(tmp_path):
     assert store.counts() == {"queued": 1, "running": 1}
     assert sorted(p.name for p in (tmp_path / "jobs").iterdir()) == sorted([ids["queued"], ids["running"]])
     store.close()
+
+
+# ------------------------------------------------------------------------- layouts travel as content
+
+@pytest.fixture(scope="module")
+def mocap_take(tmp_path_factory):
+    """A small synthetic TRC take on the jobs server's face, with its layout beside it."""
+    import json
+
+    from facecast.protocol.markers_file import write_trc
+    from facecast.server.faces import load_face
+    from facecast.server.mocap.synthetic import synthetic_take
+
+    syn = synthetic_take(load_face(FACE), n_markers=16, seconds=0.5, fps=60.0, seed=7)
+    folder = tmp_path_factory.mktemp("take")
+    (folder / "take.trc").write_text(write_trc(syn.take))
+    (folder / "take.layout.json").write_text(json.dumps(syn.layout))
+    return folder / "take.trc", folder / "take.layout.json", syn
+
+
+def test_a_mocap_take_renders_with_its_layout_as_content(srv, mocap_take, n_vertices):
+    take, layout, syn = mocap_take
+    resp = httpx.post(srv.url + "/v1/jobs", files={"file": (take.name, take.read_bytes()),
+                                                  "layout": ("take.layout.json", layout.read_bytes())},
+                      data={"face": FACE, "format": "npz"}, headers=srv.admin_headers, timeout=60)
+    assert resp.status_code == 202, resp.text
+    assert resp.json()["input_kind"] == "mocap" and resp.json()["options"]["layout"] == "uploaded"
+    done = wait(srv, resp.json()["id"])
+    assert done["status"] == "done", done
+    npz = httpx.get(srv.url + done["result_url"], headers=srv.admin_headers, timeout=60).content
+    with np.load(io.BytesIO(npz)) as z:
+        frames = next(z[k] for k in z.files if z[k].ndim == 3)
+    assert frames.shape == (len(syn.take.xyz), n_vertices, 3) and np.isfinite(frames).all()
+    assert np.abs(frames - frames[0]).max() > 0  # the markers moved the face
+    # The layout inline (a form field holding the JSON) works the same.
+    inline = submit(srv, take.name, take.read_bytes(), format="fap", layout=layout.read_text())
+    assert wait(srv, inline["id"])["status"] == "done"
+
+
+def test_render_server_mode_uploads_the_layout_file(srv, mocap_take, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    take, layout, _ = mocap_take
+    env = {**os.environ, "FACECAST_ADMIN_KEY": srv.admin_key}
+    for extra in (["--layout", str(layout)], []):  # given, or found beside the take as locally
+        out = tmp_path / f"take{len(extra)}.fap"
+        run = subprocess.run([sys.executable, "-m", "facecast.server.cli", "render", str(take), "-o", str(out),
+                              "--face", FACE, "--server", srv.url, *extra], env=env, capture_output=True,
+                             text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        assert out.read_text().lstrip().startswith(("#", "2.1"))
+    lone = tmp_path / "lone" / "take.trc"
+    lone.parent.mkdir()
+    lone.write_bytes(take.read_bytes())
+    with pytest.raises(RemoteJobError, match="layout"):
+        render_remote(srv.url, lone, tmp_path / "x.fap", options={"face": FACE}, admin_key=srv.admin_key)
+
+
+def test_a_layout_naming_a_server_file_is_refused_without_reading_it(srv, mocap_take, tmp_path):
+    import json
+
+    take, _, _ = mocap_take
+    secret = tmp_path / "secret.json"
+    secret.write_text(json.dumps({"zz_secret_key": 1, "markers": {"zz_marker": {}}}))
+    for value in (str(secret), json.dumps(str(secret)), "/etc/passwd", json.dumps("/etc/passwd"), "[1, 2]"):
+        resp = httpx.post(srv.url + "/v1/jobs", files={"file": (take.name, take.read_bytes())},
+                          data={"face": FACE, "layout": value}, headers=srv.admin_headers, timeout=60)
+        assert resp.status_code == 400, (value, resp.text)
+        assert resp.json()["error"] and "layout" in resp.json()["error"]
+        assert "zz_" not in resp.text and "root:" not in resp.text and str(tmp_path) not in resp.text
+    resp = httpx.post(srv.url + "/v1/jobs", files={"file": (take.name, take.read_bytes())},
+                      data={"face": FACE}, headers=srv.admin_headers, timeout=60)
+    assert resp.status_code == 400 and "layout" in resp.json()["error"]  # a take needs its layout
+    leftovers = [p for p in (srv.data_dir / "jobs").iterdir() if not list(p.iterdir())]
+    assert leftovers == []
+
+
+def test_uploads_are_limited_by_kind(srv):
+    big_fap = b"2.1 big 25 1\n" + b"0 " * (5 * 1024 * 1024)  # 10 MiB of FAP text: over the 8 MiB FAP limit
+    resp = httpx.post(srv.url + "/v1/jobs", files={"file": ("big.fap", big_fap)}, data={"face": FACE},
+                      headers=srv.admin_headers, timeout=60)
+    assert resp.status_code == 413, resp.text
+    assert "fap input" in resp.json()["error"] and "FACECAST_MAX_FAP_BYTES" in resp.json()["error"]
+
+
+# ---------------------------------------------------------------------- job timeout, worker lifetime
+
+def children(pid: int) -> list[int]:
+    """Job workers whose parent is ``pid`` (from /proc; not multiprocessing's resource tracker)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            cmdline = (stat.parent / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and b"spawn_main" in cmdline:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.slow
+def test_a_job_over_the_time_limit_fails_and_its_worker_is_killed(tmp_path, data_dir):
+    s = RunningServer(tmp_path, "--face", FACE, "--workers", "1", env={"FACECAST_JOB_TIMEOUT_SECONDS": "0.5"}).start()
+    try:
+        src = fap_file(data_dir, "disgust.fap")
+        job = submit(s, src.name, src.read_bytes(), format="glb", face="default")  # seconds of work
+        failed = wait(s, job["id"])
+        assert failed["status"] == "failed", failed
+        assert "longer than" in failed["error"] and "FACECAST_JOB_TIMEOUT_SECONDS" in failed["error"]
+        for _ in range(200):  # the killed worker is reaped
+            if not [p for p in children(s.proc.pid) if alive(p)]:
+                break
+            time.sleep(0.05)
+        assert not [p for p in children(s.proc.pid) if alive(p)]
+    finally:
+        s.stop()
+
+
+@pytest.mark.slow
+def test_a_worker_dies_with_its_server(tmp_path, data_dir):
+    import os
+    import signal
+
+    s = RunningServer(tmp_path, "--face", FACE, "--workers", "1").start()
+    try:
+        src = fap_file(data_dir, "disgust.fap")
+        job = submit(s, src.name, src.read_bytes(), format="glb", face="default")
+        assert wait(s, job["id"], until=("running", "done", "failed"))["status"] == "running"
+        workers = [p for p in children(s.proc.pid) if alive(p)]
+        assert workers
+        os.kill(s.proc.pid, signal.SIGKILL)
+        s.proc.wait(30)
+        for _ in range(600):
+            if not any(alive(p) for p in workers):
+                break
+            time.sleep(0.05)
+        assert not any(alive(p) for p in workers), "a job worker outlived its server"
+    finally:
+        s.stop()
+
+
+def test_die_with_parent_ends_a_busy_process_when_its_parent_is_killed(tmp_path):
+    """The mechanism alone: a process busy outside any progress report (a decoder stuck in native
+    code) still ends when the process that started it dies by SIGKILL."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    child = ("import os, sys, time; from facecast.server.jobs.worker import die_with_parent; "
+             "die_with_parent(int(sys.argv[1])); print(os.getpid(), flush=True); time.sleep(600)")
+    parent = ("import subprocess, sys, time; "
+              f"p = subprocess.Popen([sys.executable, '-c', {child!r}, str(__import__('os').getpid())]); "
+              "time.sleep(600)")
+    out = tmp_path / "child.pid"
+    with open(out, "w") as fh:
+        a = subprocess.Popen([sys.executable, "-c", parent], stdout=fh)
+    try:
+        for _ in range(1200):
+            if out.read_text().strip():
+                break
+            time.sleep(0.05)
+        pid = int(out.read_text().split()[0])
+        assert alive(pid)
+        os.kill(a.pid, signal.SIGKILL)
+        a.wait(30)
+        for _ in range(600):
+            if not alive(pid):
+                break
+            time.sleep(0.05)
+        assert not alive(pid), "the child outlived its parent"
+    finally:
+        if a.poll() is None:
+            a.kill()
+
+
+def test_a_file_that_crashes_the_decoder_fails_its_job_and_the_server_keeps_serving(srv, mocap_take, data_dir):
+    """A 517-byte C3D that made the C3D reader segfault: the worker process may die, the server not."""
+    _, layout, _ = mocap_take
+    crash = b"\x02\x50" + bytes(510) + b"\x01\x50\x02\x54\xff"
+    resp = httpx.post(srv.url + "/v1/jobs", files={"file": ("segv.c3d", crash), "layout": ("l.json", layout.read_bytes())},
+                      data={"face": FACE}, headers=srv.admin_headers, timeout=60)
+    assert resp.status_code in (202, 400), resp.text
+    if resp.status_code == 202:
+        failed = wait(srv, resp.json()["id"])
+        assert failed["status"] == "failed" and failed["attempts"] == 1, failed  # no retry of a crash
+        assert "segv.c3d" in failed["error"] and str(srv.data_dir) not in failed["error"]
+    assert httpx.get(srv.url + "/healthz", timeout=30).status_code == 200
+    nxt = submit(srv, "joy.fap", fap_file(data_dir).read_bytes(), format="fap")
+    assert wait(srv, nxt["id"])["status"] == "done"
+
+
+def test_a_worker_killed_by_a_fault_fails_the_job_at_once(tmp_path):
+    import signal
+
+    from facecast.server.jobs.manager import JobManager
+    from facecast.server.jobs.store import new_job_id
+
+    jobs = JobManager(tmp_path, workers=0)
+    ids = []
+    for _ in range(2):
+        job_id = new_job_id()
+        jobs.store.folder(job_id).mkdir(parents=True)
+        jobs.store.add(job_id, input_name="take.c3d", input_kind="mocap", input_file="input.c3d", input_bytes=1,
+                       result_file="result.glb", options={})
+        jobs.store.claim(job_id)
+        ids.append(job_id)
+    jobs._worker_died(ids[0], -int(signal.SIGSEGV))
+    crashed = jobs.store.get(ids[0])
+    assert crashed.status == "failed" and "SIGSEGV" in crashed.error and "take.c3d" in crashed.error
+    jobs._worker_died(ids[1], -int(signal.SIGTERM))  # killed from outside: tried again
+    assert jobs.store.get(ids[1]).status == "queued"
+    jobs.store.close()
+
+
+def test_a_worker_memory_limit_turns_a_huge_allocation_into_a_memory_error():
+    import subprocess
+    import sys
+
+    code = ("from facecast.server.jobs.worker import limit_resources; import resource, numpy as np; "
+            "limit_resources(1024); "
+            "assert resource.getrlimit(resource.RLIMIT_CORE)[0] == 0\n"
+            "try:\n    np.ones(4 * 1024**3, dtype=np.uint8)\nexcept MemoryError:\n    print('memory error')")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == "memory error", run.stderr

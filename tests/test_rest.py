@@ -192,6 +192,15 @@ def test_unknown_or_path_like_face_is_a_json_error(srv, name):
     assert resp.json()["error"]
 
 
+def test_hostile_requests_of_the_issue_are_json_4xx_on_the_real_server(srv):
+    assert_error(get(srv, "/v1/faces/default:" + "9" * 400), 400, "out of range")  # no key needed
+    for raw in (b'{"fps": NaN}', b'{"fps": Infinity}', b'{"fps": 1e309}', b'{"face": "\\udcff"}'):
+        resp = httpx.post(srv.url + "/v1/sessions", content=raw, timeout=60,
+                          headers={**srv.admin_headers, "Content-Type": "application/json"})
+        assert 400 <= resp.status_code < 500 and resp.json()["error"], (raw, resp.text)
+    assert get(srv, "/healthz").status_code == 200
+
+
 # ------------------------------------------------------------------------------- auth and uploads
 
 def small_fap() -> bytes:

@@ -35,13 +35,26 @@ def test_generated_admin_key_is_printed_kept_and_required(tmp_path):
         assert httpx.get(srv.url + "/v1/jobs", headers=srv.admin_headers).status_code == 401
     finally:
         srv.stop()
-    # A restart on the same data directory keeps the key and does not print it again.
+    # A restart on the same data directory keeps the key and does not show it again, only where it is;
+    # a key file someone made readable to others is put back to 0600. Uploads a crash left behind
+    # (a /play upload, a job folder whose upload never finished) are removed.
+    (tmp_path / "d" / "admin.key").chmod(0o644)
+    stale = tmp_path / "d" / "tmp" / "facecast-play-old"
+    stale.mkdir(parents=True)
+    (stale / "upload").write_bytes(b"x" * 1000)
+    orphan = tmp_path / "d" / "jobs" / ("ab" * 16)
+    orphan.mkdir(parents=True)
+    (orphan / ".upload").write_bytes(b"x" * 1000)
     again = RunningServer(tmp_path / "d", "--face", FACE, "--workers", "0", env={"FACECAST_ADMIN_KEY": ""})
     again.start()
     try:
         assert (tmp_path / "d" / "admin.key").read_text().strip() == kept
+        assert (tmp_path / "d" / "admin.key").stat().st_mode & 0o777 == 0o600
         assert httpx.get(again.url + "/v1/jobs", headers={"Authorization": f"Bearer {kept}"}).status_code == 200
-        assert "FACECAST_ADMIN_KEY=" not in again.log.read_text()  # not generated, so not printed again
+        log = again.log.read_text()
+        assert "FACECAST_ADMIN_KEY=" not in log and kept not in log  # not generated, so not shown again
+        assert str(tmp_path / "d" / "admin.key") in log  # but where it is
+        assert not stale.exists() and not orphan.exists()
     finally:
         again.stop()
 

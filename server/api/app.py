@@ -12,6 +12,8 @@ Every error is JSON: ``{"error": "<what was wrong and what to do>", "where": "..
 from __future__ import annotations
 
 import logging
+import re
+import tempfile
 import threading
 import time
 from contextlib import asynccontextmanager
@@ -22,10 +24,15 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException
 
 from ...protocol.errors import ProtocolError
+from ...protocol.fap_file import FapFormatError
+from ...protocol.markers_file import MarkerFileError
+from ...protocol.topology import TopologyError
 from ..errors import FacecastError
 from . import routes_faces, routes_health, routes_jobs, routes_playback, routes_sessions, routes_web
+from ..jobs.upload import clear_upload_dir, upload_dir
 from .config import ServerConfig
 from .metrics import Metrics
+from .responses import SafeJSONResponse, safe_json, safe_text
 from .security import resolve_admin_key
 from .store import FaceStore, parse_faces_env
 
@@ -56,6 +63,19 @@ def _version() -> str:
         return version("facecast")
     except Exception:
         return "0+unknown"
+
+
+#: The protocol's parser errors (``ValueError`` subclasses outside ``ProtocolError``): bad client input.
+PROJECT_VALUE_ERRORS: tuple[type[Exception], ...] = (FapFormatError, MarkerFileError, TopologyError)
+
+
+def scrub_paths(text: str, app: FastAPI) -> str:
+    """``text`` with server paths (the data directory, the temporary folder) cut to their last part."""
+    if not text:
+        return text
+    for root in app.state.private_roots:
+        text = re.sub(re.escape(root) + r"[^\s'\",:;)]*", lambda m: m.group(0).rsplit("/", 1)[-1], text)
+    return text
 
 
 def error_body(status: int, message: str, where: str = "", **extra) -> dict:
@@ -129,6 +149,9 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         app.state.started = time.time()
+        left = clear_upload_dir(config.data_dir)  # uploads a crashed server left behind
+        if left:
+            log.info("removed %d upload(s) left by the last run in %s", left, upload_dir(config.data_dir))
         # A daemon thread: stopping the server never waits for a warm-up still in progress.
         threading.Thread(target=_warm_up, args=(app,), name="facecast-warm-up", daemon=True).start()
         await app.state.jobs.start()
@@ -148,52 +171,61 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         version=_version(),
         description=DESCRIPTION,
         lifespan=lifespan,
+        default_response_class=SafeJSONResponse,
+        docs_url=None, redoc_url=None,  # served by routes_web from local assets (no CDN)
     )
     app.state.config = config
     app.state.admin_key = admin_key
     app.state.metrics = Metrics()
     app.state.store = FaceStore(default=config.face, backend=config.backend, device=config.device,
                                 configured=parse_faces_env(config.faces))
+    # Folders whose paths never reach a client: the data directory, the temporary folder, the
+    # operator's mesh folders (a message keeps only a file's own name).
+    roots = {str(config.data_dir.expanduser().resolve()), str(config.data_dir), tempfile.gettempdir(),
+             *(str(p.expanduser().parent) for p in app.state.store.configured.values())}
+    app.state.private_roots = sorted((r for r in roots if len(r) > 1), key=len, reverse=True)
     app.state.readiness = {"ready": False, "backend": None, "device": None}
 
     from ..jobs.manager import JobManager
 
     app.state.jobs = JobManager(config.data_dir, workers=config.job_workers, backend=config.backend,
-                                device=config.device, retention_hours=config.job_retention_hours)
+                                device=config.device, retention_hours=config.job_retention_hours,
+                                job_timeout=config.job_timeout_seconds, memory_mb=config.job_memory_mb)
     app.state.metrics.watch_jobs(app.state.jobs.store.counts)
 
-    @app.exception_handler(FacecastError)
-    async def _facecast_error(request: Request, exc: FacecastError) -> JSONResponse:
-        app.state.metrics.http_errors.labels(str(exc.status)).inc()
-        return JSONResponse(error_body(exc.status, str(exc), exc.where), status_code=exc.status)
+    def _error(request: Request, status: int, message: str, where: str = "", headers=None, **extra):
+        app.state.metrics.http_errors.labels(str(status)).inc()
+        body = error_body(status, scrub_paths(message, app), scrub_paths(where, app), **extra)
+        return SafeJSONResponse(body, status_code=status, headers=headers)
 
-    @app.exception_handler(ProtocolError)
-    async def _protocol_error(request: Request, exc: ProtocolError) -> JSONResponse:
-        app.state.metrics.http_errors.labels(str(exc.status)).inc()
-        return JSONResponse(error_body(exc.status, str(exc), exc.where), status_code=exc.status)
+    # Every error a client can cause is one of the project's own: each maps to its 4xx status.
+    for error_type in (FacecastError, ProtocolError, *PROJECT_VALUE_ERRORS):
+        @app.exception_handler(error_type)
+        async def _project_error(request: Request, exc: Exception) -> JSONResponse:
+            status = int(getattr(exc, "status", 400))
+            return _error(request, status, str(exc), getattr(exc, "where", "") or "",
+                          headers=getattr(exc, "headers", None))
 
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, exc: HTTPException) -> JSONResponse:
-        app.state.metrics.http_errors.labels(str(exc.status_code)).inc()
         message = exc.detail if isinstance(exc.detail, str) else "request failed"
-        extra = {} if isinstance(exc.detail, str) else {"problems": jsonable(exc.detail)}
-        return JSONResponse(error_body(exc.status_code, message, **extra), status_code=exc.status_code,
-                            headers=getattr(exc, "headers", None))
+        extra = {} if isinstance(exc.detail, str) else {"problems": safe_json(jsonable(exc.detail))}
+        return _error(request, exc.status_code, message, headers=getattr(exc, "headers", None), **extra)
 
     @app.exception_handler(Exception)
     async def _server_error(request: Request, exc: Exception) -> JSONResponse:
-        log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
-        app.state.metrics.http_errors.labels("500").inc()
-        return JSONResponse(error_body(500, "internal server error; the server log has the details"),
-                            status_code=500)
+        # Last resort: the details (paths, traceback) go to the server log, never to the client.
+        log.error("unhandled error on %s %s", request.method, safe_text(request.url.path, 200), exc_info=exc)
+        return _error(request, 500, "internal server error; the server log has the details")
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-        app.state.metrics.http_errors.labels("422").inc()
+        # Client input echoed here may be NaN, bytes, lone surrogates or huge: safe_json copes.
+        errors = safe_json(jsonable(exc.errors()))
         problems = "; ".join(
-            f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', '')}" for e in exc.errors())
-        return JSONResponse(error_body(422, f"invalid request: {problems}; see /docs for the schema",
-                                       problems=jsonable(exc.errors())), status_code=422)
+            f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', '')}" for e in errors
+            if isinstance(e, dict))
+        return _error(request, 422, f"invalid request: {problems}; see /docs for the schema", problems=errors)
 
     app.include_router(routes_health.router)
     app.include_router(routes_faces.router)

@@ -24,10 +24,26 @@ class ServerConfig(BaseSettings):
     backend: str = "auto"  # auto | numpy | opencl
     device: str | None = None  # OpenCL device (index or name substring)
     job_workers: int = 1  # worker processes for batch jobs
-    max_upload_bytes: int = 64 * 1024 * 1024
+    # Uploads (jobs and /play): a file may not exceed its kind's limit nor max_upload_bytes.
+    max_upload_bytes: int = Field(default=64 * 1024 * 1024, gt=0)
+    max_fap_bytes: int = Field(default=8 * 1024 * 1024, gt=0)  # FAP text: about 18 min at 25 fps
+    max_markers_bytes: int = Field(default=32 * 1024 * 1024, gt=0)  # C3D/TRC/CSV mocap takes
+    max_audio_bytes: int = Field(default=64 * 1024 * 1024, gt=0)  # WAV/FLAC/OGG speech
+    max_concurrent_decodes: int = Field(default=2, ge=1)  # /play decodes at once; more get 503
+    job_timeout_seconds: float = Field(default=3600.0, ge=0)  # a job running longer fails; 0 = no limit
+    job_memory_mb: int = Field(default=0, ge=0)  # address space of a job worker process (MiB); 0 = no limit
     max_sessions: int = 64
     max_viewers_per_session: int = 256
     max_producer_fps: float = 250.0  # frames per second a producer may send (markers run at 240 Hz)
     allow_remote: bool = False  # must be set to bind to a non-loopback address
     faces: str | None = None  # more faces by name: "ict=/path/mesh.obj,other=/path/x.obj"
     job_retention_hours: float = Field(default=7 * 24.0, ge=0)  # finished jobs kept this long; 0 = forever
+
+    def upload_limit(self, kind: str) -> tuple[int, str]:
+        """``(bytes, variable)``: the largest upload of an input kind (fap | audio | mocap) and the
+        ``FACECAST_*`` variable that raises it."""
+        own = {"fap": ("max_fap_bytes", self.max_fap_bytes), "audio": ("max_audio_bytes", self.max_audio_bytes),
+               "mocap": ("max_markers_bytes", self.max_markers_bytes)}.get(kind)
+        if own is None or own[1] >= self.max_upload_bytes:
+            return self.max_upload_bytes, "FACECAST_MAX_UPLOAD_BYTES"
+        return own[1], f"FACECAST_{own[0].upper()}"

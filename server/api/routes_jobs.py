@@ -1,12 +1,16 @@
 """``/v1/jobs``: batch rendering. Upload an input file, poll its status, download the result, cancel.
 
-All routes need the admin key. The upload is streamed to the job's folder with a size limit
-(``max_upload_bytes``; 413 beyond it); the job runs in a worker process (see ``server/jobs``).
+All routes need the admin key. The upload is streamed to the job's folder with a size limit by
+kind (``max_fap_bytes``, ``max_markers_bytes``, ``max_audio_bytes``, all at most ``max_upload_bytes``;
+413 beyond it). A mocap take comes with its marker layout as content (a ``layout`` part holding the
+layout's JSON), never as a path. The job runs in a worker process (see ``server/jobs``), so a
+decoder that crashes or hangs on a hostile file costs that process, never the server; a job over
+``job_timeout_seconds`` is failed and its worker killed.
 """
 from __future__ import annotations
 
+import json
 import logging
-import re
 import shutil
 
 from fastapi import APIRouter, Depends, Request, Response, status
@@ -17,7 +21,8 @@ from ...protocol.rest import RESULT_MEDIA_TYPES, ErrorBody, JobList, JobOptions,
 from ..drivers import input_kind
 from ..errors import FacecastError, InputError, NotFound
 from ..jobs.store import JOB_ID, JobRecord, new_job_id
-from ..jobs.upload import PayloadTooLarge, UploadParser, boundary_of, input_suffix, safe_display_name
+from ..jobs.upload import (PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix, parse_layout,
+                           safe_display_name)
 from .security import require_admin
 
 log = logging.getLogger(__name__)
@@ -25,12 +30,11 @@ log = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], dependencies=[Depends(require_admin)],
                    responses={401: {"model": ErrorBody, "description": "admin key missing or wrong"}})
 
-#: Bytes of an oversized request the server still reads (and discards) so the client sees the 413.
-DRAIN_LIMIT = 64 * 1024 * 1024
 #: Room for the multipart framing and form fields around the file.
 FORM_OVERHEAD = 64 * 1024
 
-_LAYOUT = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
+#: Name of an uploaded marker layout in a job's folder.
+LAYOUT_FILE = "layout.json"
 
 _UPLOAD_DOC = {
     "requestBody": {
@@ -44,7 +48,10 @@ _UPLOAD_DOC = {
                 "face": {"type": "string", "description": "face name (GET /v1/faces)"},
                 "engine": {"type": "string", "enum": ["fp", "rbf", "shell"], "default": "fp"},
                 "format": {"type": "string", "enum": ["glb", "npz", "fap"], "default": "glb"},
-                "layout": {"type": "string", "description": "mocap marker layout name"},
+                "layout": {"type": "string", "format": "binary",
+                           "description": "mocap marker layout: the layout file's JSON content, as a file "
+                                          "part or an inline field (required for .c3d/.trc/.csv); "
+                                          "never a path"},
             }}}},
     }
 }
@@ -56,6 +63,8 @@ class Conflict(FacecastError):
 
 def job_status(job: JobRecord, request: Request | None = None) -> JobStatus:
     opts = {k: v for k, v in job.options.items() if k in JobOptions.model_fields}
+    if job.options.get("layout_file"):
+        opts["layout"] = "uploaded"  # the content stays on the server; the status only says it is there
     result_bytes = None
     if job.status == "done" and request is not None:
         path = request.app.state.jobs.store.result_path(job)
@@ -73,18 +82,6 @@ def _job(request: Request, job_id: str) -> JobRecord:
     if job is None:
         raise NotFound(f"no job {job_id!r} on this server; POST /v1/jobs returns the ids", where="job")
     return job
-
-
-async def _drain(request: Request, already: int) -> None:
-    """Read and discard the rest of an oversized body (bounded), so the client can read the 413."""
-    n = already
-    try:
-        async for chunk in request.stream():
-            n += len(chunk)
-            if n > DRAIN_LIMIT:
-                break
-    except Exception:
-        pass
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobStatus, openapi_extra=_UPLOAD_DOC,
@@ -105,14 +102,14 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
     boundary = boundary_of(request.headers.get("content-type", ""))
     declared = request.headers.get("content-length")
     if declared and declared.isdigit() and int(declared) > limit + FORM_OVERHEAD:
-        await _drain(request, 0)
+        await drain(request, 0)
         raise PayloadTooLarge(f"the upload is {int(declared)} bytes, more than this server's limit of {limit} "
                               "bytes for a file; send a smaller file or raise FACECAST_MAX_UPLOAD_BYTES "
                               "on the server", where="file")
     job_id = new_job_id()
     folder = jobs.store.folder(job_id)
     folder.mkdir(parents=True)
-    parser = UploadParser(boundary, folder / ".upload", limit)
+    parser = UploadParser(boundary, folder / ".upload", limit, kind_limit=cfg.upload_limit)
     received = 0
     try:
         try:
@@ -120,14 +117,12 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
                 received += len(chunk)
                 parser.write(chunk)
             parser.finish()
-        except PayloadTooLarge:
+        except FacecastError:  # too large, unknown type, bad framing: refuse, but let the client hear it
             parser.abort()
-            await _drain(request, received)
-            raise
-        except FacecastError:
+            await drain(request, received)
             raise
         except Exception as e:  # malformed multipart framing
-            raise InputError(f"could not read the multipart upload ({e}); send a multipart/form-data "
+            raise InputError(f"could not read the multipart upload ({str(e)[:200]}); send a multipart/form-data "
                              "body with a 'file' part", where="body") from None
         try:
             opts = JobOptions(**{k: v for k, v in parser.fields.items() if k in JobOptions.model_fields})
@@ -138,18 +133,24 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
         if unknown:
             raise InputError(f"unknown form field(s) {', '.join(unknown)}; known: file, "
                              f"{', '.join(JobOptions.model_fields)}", where="form")
-        if opts.layout is not None and not _LAYOUT.match(opts.layout):
-            raise InputError("layout must be a layout name (letters, digits, _ . -), not a path",
-                             where="layout")
         if parser.size == 0:
             raise InputError("the uploaded file is empty", where="file")
         face_spec = app.state.store.resolve(opts.face)
         suffix = input_suffix(parser.filename, parser.head)
         input_file = f"input{suffix}"
+        kind = input_kind(input_file)
+        options = {**opts.model_dump(exclude={"layout"}), "face_spec": face_spec}
+        if opts.layout is not None:
+            if kind != "mocap":
+                raise InputError(f"a layout goes with mocap input (.c3d/.trc/.csv), not {kind}", where="layout")
+            (folder / LAYOUT_FILE).write_text(json.dumps(parse_layout(opts.layout)), encoding="utf-8")
+            options["layout_file"] = LAYOUT_FILE
+        elif kind == "mocap":
+            raise InputError("a mocap take needs its marker layout: send the layout file's content as a "
+                             "'layout' part (curl -F layout=@take.layout.json)", where="layout")
         (folder / ".upload").replace(folder / input_file)
         display = safe_display_name(parser.filename, f"upload{suffix}")
-        options = {**opts.model_dump(), "face_spec": face_spec}
-        job = jobs.store.add(job_id, input_name=display, input_kind=input_kind(input_file),
+        job = jobs.store.add(job_id, input_name=display, input_kind=kind,
                              input_file=input_file, input_bytes=parser.size,
                              result_file=f"result.{opts.format}", options=options)
     except BaseException:

@@ -4,9 +4,12 @@
   holding the admin key can watch any session it lists.
 - ``POST /v1/sessions/{id}/demo`` / ``DELETE .../demo`` (admin or ``?token=`` producer token): start
   or stop the demo performance (expressions, visemes, blinks, head sway, gaze) at the session's rate.
-- ``POST /v1/sessions/{id}/play`` (admin or producer token): upload a ``.fap``, audio or marker file;
-  it is decoded with the batch drivers and played into the session at its real rate. The answer
-  gives ``start_wall`` (Unix seconds of media time 0) so a page can start the sound in sync.
+- ``POST /v1/sessions/{id}/play`` (admin or producer token): upload a ``.fap``, audio or marker file
+  (a marker take with its layout's JSON content in a ``layout`` part; never a path); it is decoded
+  with the batch drivers and played into the session at its real rate. The answer gives
+  ``start_wall`` (Unix seconds of media time 0) so a page can start the sound in sync. Uploads wait
+  in ``<data dir>/tmp`` (emptied at each start), are limited by kind (``ServerConfig.upload_limit``),
+  and at most ``max_concurrent_decodes`` decode at once (503 with ``Retry-After`` beyond).
 
 A server-side producer holds the session's producer slot: a WebSocket producer is refused (4409)
 while it runs, and a DELETE of the demo (or the end of the file) frees it.
@@ -14,9 +17,9 @@ while it runs, and a DELETE of the demo (or the end of the file) frees it.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -28,7 +31,8 @@ from ...protocol.rest import ErrorBody
 from ..drivers import input_kind, load_animation
 from ..drivers.demo import demo_states
 from ..errors import FacecastError, InputError
-from ..jobs.upload import PayloadTooLarge, UploadParser, boundary_of, input_suffix
+from ..jobs.upload import (PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix, parse_layout,
+                           safe_display_name, upload_dir)
 from .routes_sessions import registry
 from .security import bearer, same
 
@@ -159,42 +163,127 @@ async def stop_demo(session_id: str, request: Request, token: str | None = None)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
-@router.post("/play", status_code=status.HTTP_202_ACCEPTED)
-async def play(session_id: str, request: Request, token: str | None = None) -> dict:
-    """Upload a file (multipart field ``file``) and play it into the session at its real rate.
+_PLAY_DOC = {
+    "requestBody": {
+        "required": True,
+        "content": {"multipart/form-data": {"schema": {
+            "type": "object", "required": ["file"],
+            "properties": {
+                "file": {"type": "string", "format": "binary",
+                         "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv"},
+                "layout": {"type": "string", "format": "binary",
+                           "description": "mocap marker layout: the layout file's JSON content, as a file "
+                                          "part or an inline field (required for .c3d/.trc/.csv); never a path"},
+            }}}},
+    }
+}
 
-    A marker take needs its layout: a ``layout`` form field holding the layout JSON.
+
+class TooBusy(FacecastError):
+    """Every decode slot is taken: the client should retry after ``Retry-After`` seconds."""
+
+    status = 503
+    headers = {"Retry-After": "2"}
+
+
+def _decode_slots(app) -> threading.Semaphore:
+    """The app's decode slots. A slot is given back by the decoding thread when it ends, so a client
+    that hangs up mid-decode cannot start more decodes than the limit."""
+    slots = getattr(app.state, "decode_slots", None)
+    if slots is None:
+        slots = app.state.decode_slots = threading.BoundedSemaphore(
+            max(1, int(app.state.config.max_concurrent_decodes)))
+    return slots
+
+
+def _decode(path: Path, face, name: str, kind: str, options: dict):
+    """``load_animation`` of a client's file; any failure of the decoder is the input's fault (4xx)."""
+    try:
+        return load_animation(path, face, **options)
+    except FacecastError as e:  # name the client's file, not the server's copy of it
+        e.args = tuple(a.replace(str(path), name) if isinstance(a, str) else a for a in e.args)
+        e.where = e.where.replace(str(path), name)
+        raise
+    except MemoryError:
+        raise PayloadTooLarge(f"{name!r} needs more memory to decode than this server allows; send a shorter "
+                              "file", where="file") from None
+    except Exception as e:  # a decoder's own error (FapFormatError...) or one it let through
+        own = type(e).__module__.startswith("facecast.")
+        if not own:
+            log.warning("decoding %s input %r failed", kind, name, exc_info=True)
+        detail = (str(e) if own else f"{type(e).__name__}: {e}").replace(str(path), name)
+        raise InputError(f"could not read {name!r} as {kind} input: {detail[:500]}", where="file") from None
+
+
+@router.post("/play", status_code=status.HTTP_202_ACCEPTED, openapi_extra=_PLAY_DOC,
+             responses={413: {"model": ErrorBody}, 415: {"model": ErrorBody},
+                        503: {"model": ErrorBody, "description": "every decode slot is busy; retry after "
+                                                                  "Retry-After seconds"}})
+async def play(session_id: str, request: Request, token: str | None = None) -> dict:
+    """Upload a file (multipart part ``file``) and play it into the session at its real rate.
+
+    A marker take needs its layout: a ``layout`` part holding the layout file's JSON content (a file
+    part or an inline field). The server never opens a file a client names.
     """
-    reg = registry(request.app)
+    app = request.app
+    reg = registry(app)
     session = reg.get(session_id)
     _authorise(request, session, token)
-    limit = int(request.app.state.config.max_upload_bytes)
-    with tempfile.TemporaryDirectory(prefix="facecast-play-") as tmp:
+    cfg = app.state.config
+    tmp_root = upload_dir(cfg.data_dir)
+    with tempfile.TemporaryDirectory(prefix="facecast-play-", dir=tmp_root) as tmp:
         upload = Path(tmp) / "upload"
-        parser = UploadParser(boundary_of(request.headers.get("content-type", "")), upload, limit)
+        parser = UploadParser(boundary_of(request.headers.get("content-type", "")), upload,
+                              int(cfg.max_upload_bytes), kind_limit=cfg.upload_limit)
+        received = 0
         try:
             async for chunk in request.stream():
+                received += len(chunk)
                 parser.write(chunk)
             parser.finish()
-        except (PayloadTooLarge, FacecastError):
+        except FacecastError:
             parser.abort()
+            await drain(request, received)
             raise
         except Exception as e:
             parser.abort()
-            raise InputError(f"could not read the multipart upload ({e}); send a 'file' part", where="body") from None
+            raise InputError(f"could not read the multipart upload ({str(e)[:200]}); send a 'file' part",
+                             where="body") from None
         if parser.size == 0:
             raise InputError("the uploaded file is empty", where="file")
         path = Path(tmp) / f"input{input_suffix(parser.filename, parser.head)}"
         upload.replace(path)
         kind = input_kind(path)
+        name = safe_display_name(parser.filename, path.name)
+        unknown = sorted(set(parser.fields) - {"layout"})
+        if unknown:
+            raise InputError(f"unknown form field(s) {', '.join(unknown)}; known: file, layout", where="form")
         options = {}
         if "layout" in parser.fields:
+            if kind != "mocap":
+                raise InputError(f"a layout goes with mocap input (.c3d/.trc/.csv), not {kind}", where="layout")
+            options["layout"] = parse_layout(parser.fields["layout"])
+        elif kind == "mocap":
+            raise InputError("a mocap take needs its marker layout: send the layout file's content as a "
+                             "'layout' part (curl -F layout=@take.layout.json)", where="layout")
+        slots = _decode_slots(app)
+        if not slots.acquire(blocking=False):
+            raise TooBusy(f"the server is decoding {cfg.max_concurrent_decodes} upload(s) already; retry in a "
+                          "few seconds", where="file")
+
+        def decode():
             try:
-                options["layout"] = json.loads(parser.fields["layout"])
-            except json.JSONDecodeError as e:
-                raise InputError(f"the layout field is not JSON: {e}", where="layout") from None
+                return _decode(path, session.face, name, kind, options)
+            finally:
+                slots.release()
+
         loop = asyncio.get_running_loop()
-        animation = await loop.run_in_executor(reg.executor, lambda: load_animation(path, session.face, **options))
+        try:
+            future = loop.run_in_executor(reg.executor, decode)
+        except BaseException:
+            slots.release()
+            raise
+        animation = await future
     if not animation.states:
         raise InputError("the file holds no frames", where="file")
     animator = None
@@ -209,6 +298,6 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
         s.t -= t0
     producer.task = asyncio.create_task(_feed(session, animation.states, animation.fps, start, producer),
                                         name=f"play-{session_id}")
-    log.info("session %s: playing %s (%d frames at %g fps)", session_id, parser.filename, len(animation), animation.fps)
+    log.info("session %s: playing %s (%d frames at %g fps)", session_id, name, len(animation), animation.fps)
     return {"id": session_id, "kind": kind, "frames": len(animation), "fps": animation.fps,
             "seconds": len(animation) / animation.fps, "start_wall": start}

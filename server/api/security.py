@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import hmac
 import logging
+import os
 import secrets
+import stat
 from pathlib import Path
 
 from fastapi import HTTPException, Request, status
@@ -28,18 +30,27 @@ def same(a: str | None, b: str | None) -> bool:
 def resolve_admin_key(configured: str | None, data_dir: Path) -> tuple[str, bool]:
     """The admin key: ``configured`` if set, else the one kept in ``data_dir/admin.key`` (created).
 
-    Returns ``(key, generated_now)``.
+    The file is readable by its owner only (mode 0600): created so, and put back so with a warning
+    if someone widened it. Returns ``(key, generated_now)``.
     """
     if configured:
         return configured, False
     path = data_dir / "admin.key"
     if path.exists():
-        return path.read_text().strip(), False
+        mode = stat.S_IMODE(path.stat().st_mode)
+        if mode & 0o077:
+            log.warning("%s was readable by others (mode %o); setting it to 0600", path, mode)
+            path.chmod(0o600)
+        key = path.read_text().strip()
+        if key:
+            return key, False
     data_dir.mkdir(parents=True, exist_ok=True)
     key = new_token()
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(key + "\n")
-    tmp.chmod(0o600)
+    tmp = path.with_name(f".admin.key.{os.getpid()}.tmp")
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)  # never readable by others, not even briefly
+    with os.fdopen(fd, "w") as fh:
+        fh.write(key + "\n")
     tmp.replace(path)
     return key, True
 

@@ -82,14 +82,20 @@ class FaceStore:
         if name in self.configured:
             return str(self.configured[name])
         m = _BUILTIN_SPEC.match(name)
+        shown = name if len(name) <= 80 else name[:80] + "..."
         if m and m.group(1) in builtin_faces():
             if m.group(2):
-                n = parse_count(m.group(2))
-                if not 100 <= n <= MAX_BUILTIN_VERTICES:
-                    raise InputError(f"vertex count {n} out of range 100..{MAX_BUILTIN_VERTICES}",
-                                     where=f"face {name!r}")
+                count = m.group(2)
+                try:  # a count of hundreds of digits overflows: out of range like any other
+                    n = parse_count(count) if len(count) <= 12 else None
+                except (ValueError, OverflowError):
+                    n = None
+                if n is None or not 100 <= n <= MAX_BUILTIN_VERTICES:
+                    raise InputError(f"vertex count {n if n is not None else count[:20] + '...'} out of "
+                                     f"range 100..{MAX_BUILTIN_VERTICES}; use e.g. default:2k",
+                                     where=f"face {shown!r}")
             return name
-        raise NotFound(f"no face named {name!r}; GET /v1/faces lists the faces this server offers "
+        raise NotFound(f"no face named {shown!r}; GET /v1/faces lists the faces this server offers "
                        f"({', '.join(self.names())}; built-in ones also as e.g. default:2k)")
 
     def needs_admin(self, name: str | None) -> bool:

@@ -15,7 +15,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--engine", choices=["fp", "rbf", "shell"], default="fp", help="deformation engine (default fp)")
     p.add_argument("--backend", choices=["auto", "numpy", "opencl"], default="auto", help="compute backend")
     p.add_argument("--device", default=None, help="OpenCL device (index or name substring)")
-    p.add_argument("--layout", default=None, help="mocap marker layout (for .c3d/.trc/.csv input)")
+    p.add_argument("--layout", default=None, help="mocap marker layout file (for .c3d/.trc/.csv input; default: "
+                   "<take>.layout.json or layout.json beside the take; with --server its content is uploaded)")
     p.add_argument("--server", metavar="URL", default=None,
                    help="render on a facecast server instead of locally (admin key from $FACECAST_ADMIN_KEY)")
 

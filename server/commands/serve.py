@@ -1,7 +1,8 @@
 """``facecast serve``: the HTTP/WebSocket server with embedded defaults.
 
 Built-in face, in-process jobs (spawned worker processes), state in a local data directory.
-Binds to loopback unless ``--allow-remote`` is given. Prints the admin key when it generates one.
+Binds to loopback unless ``--allow-remote`` is given. Prints the admin key once, when it generates
+it (later starts print only where it is kept).
 """
 from __future__ import annotations
 
@@ -19,9 +20,15 @@ log = logging.getLogger(__name__)
 
 EPILOG = """\
 environment:
-  FACECAST_ADMIN_KEY            admin key (else generated, printed once, kept in <data dir>/admin.key)
+  FACECAST_ADMIN_KEY            admin key (else generated, printed once, kept in <data dir>/admin.key, mode 0600)
   FACECAST_FACES                more faces by name: ict=/path/generic_neutral_mesh.obj,other=/path/x.obj
-  FACECAST_MAX_UPLOAD_BYTES     largest job upload (default 64 MiB)
+  FACECAST_MAX_UPLOAD_BYTES     largest upload of any kind (default 64 MiB), and per kind:
+  FACECAST_MAX_FAP_BYTES        .fap (default 8 MiB)
+  FACECAST_MAX_MARKERS_BYTES    .c3d/.trc/.csv (default 32 MiB)
+  FACECAST_MAX_AUDIO_BYTES      .wav/.flac/.ogg (default 64 MiB)
+  FACECAST_MAX_CONCURRENT_DECODES  uploads /play decodes at once (default 2; more get 503)
+  FACECAST_JOB_TIMEOUT_SECONDS  a job running longer fails, its worker killed (default 3600; 0 = none)
+  FACECAST_JOB_MEMORY_MB        address space of a job worker process in MiB (default 0 = no limit)
   FACECAST_JOB_RETENTION_HOURS  delete finished jobs after this long (default 168; 0 = never)
   every flag also as FACECAST_<NAME> (FACECAST_PORT, FACECAST_JOB_WORKERS, ...)
 
@@ -120,18 +127,21 @@ def run(args: argparse.Namespace) -> int:
     config = make_config(args)
     config.data_dir = config.data_dir.expanduser().resolve()
     lock = lock_data_dir(config.data_dir)  # noqa: F841  (held until the process exits)
+    chosen = bool(config.admin_key)
     key, generated = resolve_admin_key(config.admin_key, config.data_dir)
     config.admin_key = key
-    if generated:
-        print(f"facecast: generated admin key (kept in {config.data_dir / 'admin.key'}):\n"
-              f"  FACECAST_ADMIN_KEY={key}", flush=True)
-    elif not os.environ.get("FACECAST_ADMIN_KEY"):
-        print(f"facecast: admin key is in {config.data_dir / 'admin.key'}", flush=True)
+    key_file = config.data_dir / "admin.key"
+    page = f"http://{config.host}:{config.port}/"
+    if generated:  # shown this once; later starts only say where it is
+        print(f"facecast: generated an admin key, kept in {key_file} (readable by you only); it is shown "
+              f"only now:\n  FACECAST_ADMIN_KEY={key}\n"
+              f"facecast: web viewer with admin rights: {page}#key={key}", flush=True)
+    elif not chosen:
+        print(f"facecast: admin key in {key_file}; web viewer with admin rights: {page}#key=<that key>",
+              flush=True)
     app = create_app(config)
-    print(f"facecast: serving on http://{config.host}:{config.port}/ (data in {config.data_dir}, "
+    print(f"facecast: serving on {page} (data in {config.data_dir}, "
           f"{config.job_workers} job worker(s), backend {config.backend})", flush=True)
-    if not os.environ.get("FACECAST_ADMIN_KEY"):  # the operator did not choose the key: show the page link
-        print(f"facecast: web viewer with admin rights: http://{config.host}:{config.port}/#key={key}", flush=True)
     uvicorn.run(app, host=config.host, port=config.port, ws_per_message_deflate=False,
                 log_level=args.log_level or "warning", lifespan="on", timeout_graceful_shutdown=5)
     return 0

@@ -5,6 +5,9 @@ start-up, jobs left ``running`` by a stopped server go back to ``queued`` and ru
 are written atomically, so a half-finished attempt leaves nothing behind). A job whose worker died
 ``MAX_ATTEMPTS`` times is failed rather than retried forever. Finished jobs are deleted after
 ``retention_hours`` (``ServerConfig.job_retention_hours``, ``FACECAST_JOB_RETENTION_HOURS``; a week).
+A worker that crashes in native code (SIGSEGV...) fails its job at once. A job running longer than
+``job_timeout`` (``FACECAST_JOB_TIMEOUT_SECONDS``) is failed and its worker
+killed. Workers die with the server (``worker.serve``), so none outlives it to race a resumed job.
 """
 from __future__ import annotations
 
@@ -12,6 +15,7 @@ import asyncio
 import logging
 import multiprocessing
 import os
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +25,9 @@ from .store import JobStore
 log = logging.getLogger(__name__)
 
 MAX_ATTEMPTS = 3
+#: Signals of a worker that faulted in native code (a decoder on a malformed file): no retry.
+CRASH_SIGNALS = {int(getattr(signal, n)): n for n in ("SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT")
+                 if hasattr(signal, n)}
 POLL_SECONDS = 0.2
 #: Finished jobs (and their files) are deleted this long after they finished (0 keeps them).
 DEFAULT_RETENTION_HOURS = 7 * 24.0
@@ -34,6 +41,7 @@ class _Slot:
     proc: multiprocessing.process.BaseProcess | None = None
     conn: object | None = None
     job_id: str | None = None
+    started: float = 0.0  # time.monotonic() when the job was handed to the worker
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.is_alive()
@@ -54,7 +62,9 @@ class JobManager:
     """Runs up to ``workers`` jobs at a time in ``spawn``-ed worker processes (0: queue only)."""
 
     def __init__(self, data_dir: Path, *, workers: int = 1, backend: str = "auto", device: str | None = None,
-                 retention_hours: float = DEFAULT_RETENTION_HOURS):
+                 retention_hours: float = DEFAULT_RETENTION_HOURS, job_timeout: float = 0.0, memory_mb: int = 0):
+        """``job_timeout``: seconds a job may run before it is failed and its worker killed (0: no limit);
+        ``memory_mb``: address space of a worker process in MiB (0: no limit)."""
         self.store = JobStore(data_dir)
         self.workers = max(0, int(workers))
         self.backend = backend
@@ -65,9 +75,14 @@ class JobManager:
         self._task: asyncio.Task | None = None
         self.retention = max(float(retention_hours), 0.0) * 3600.0  # seconds; 0 = keep forever
         self._next_purge = 0.0
+        self.job_timeout = max(float(job_timeout), 0.0)
+        self.memory_mb = max(int(memory_mb), 0)
 
     # -- lifecycle -------------------------------------------------------------------------------
     async def start(self) -> None:
+        orphans = self.store.sweep_orphans()
+        if orphans:
+            log.info("removed %d unfinished upload(s) left by the last run", len(orphans))
         again = self.store.requeue_running()
         if again:
             log.info("resuming %d job(s) interrupted by the last shutdown: %s", len(again), ", ".join(again))
@@ -143,6 +158,9 @@ class JobManager:
                     finished = slot.conn.recv() == slot.job_id or finished
             except (EOFError, OSError):
                 pass
+            if not finished and self.job_timeout and time.monotonic() - slot.started > self.job_timeout:
+                self._time_out(slot)
+                continue
             if finished:
                 job_id, slot.job_id = slot.job_id, None
                 job = self.store.get(job_id)
@@ -152,6 +170,16 @@ class JobManager:
                 job_id, code = slot.job_id, slot.proc.exitcode
                 slot.kill(0)
                 self._worker_died(job_id, code)
+
+    def _time_out(self, slot: _Slot) -> None:
+        """Fail the slot's job for running too long and kill its worker (a new one starts when needed)."""
+        job_id = slot.job_id
+        self.store.fail(job_id, f"the job ran longer than this server's limit of {self.job_timeout:g} s and was "
+                                "stopped; send a shorter input, or ask the operator to raise "
+                                "FACECAST_JOB_TIMEOUT_SECONDS")
+        log.warning("job %s exceeded %g s; killing its worker (pid %s)", job_id, self.job_timeout,
+                    slot.proc.pid if slot.proc else None)
+        slot.kill(1.0)
 
     def _purge(self) -> None:
         now = time.time()
@@ -166,7 +194,12 @@ class JobManager:
         job = self.store.get(job_id)
         if job is None or job.status != "running":
             return
-        if job.attempts >= MAX_ATTEMPTS:
+        crash = CRASH_SIGNALS.get(-code) if code is not None and code < 0 else None
+        if crash:  # native code faulted on this input: running it again would fault again
+            log.warning("worker for job %s crashed (%s) on %s input", job_id, crash, job.input_kind)
+            self.store.fail(job_id, f"reading {job.input_name!r} crashed the decoder ({crash}); the file is "
+                                    f"probably damaged: check it or export it again")
+        elif job.attempts >= MAX_ATTEMPTS:
             self.store.fail(job_id, f"the worker process died {job.attempts} times (last exit code {code}); "
                                     "the input may be too large for this server")
         else:
@@ -188,6 +221,7 @@ class JobManager:
             if not slot.alive():
                 self._spawn(slot)
             slot.job_id = job.id
+            slot.started = time.monotonic()
             slot.conn.send((job.id, attempt))
             log.info("job %s started (attempt %d, worker pid %s)", job.id, attempt, slot.proc.pid)
 
@@ -198,7 +232,7 @@ class JobManager:
         mine, theirs = self._ctx.Pipe()
         slot.proc = self._ctx.Process(target=worker.serve, name="facecast-job-worker", daemon=True,
                                       args=(str(self.store.data_dir), theirs, self.backend, self.device,
-                                            os.getpid()))
+                                            os.getpid(), self.memory_mb))
         slot.proc.start()
         theirs.close()
         slot.conn = mine

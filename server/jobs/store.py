@@ -187,6 +187,14 @@ class JobStore:
                          (job_id,))
         return cur.rowcount == 1
 
+    def sweep_orphans(self) -> list[str]:
+        """Delete job folders with no row (an upload cut short by a crash); their names."""
+        known = {r[0] for r in self._exec("SELECT id FROM jobs").fetchall()}
+        gone = [p.name for p in self.root.iterdir() if p.is_dir() and p.name not in known]
+        for name in gone:
+            shutil.rmtree(self.root / name, ignore_errors=True)
+        return gone
+
     def requeue_running(self) -> list[str]:
         """running -> queued for every job (at start-up: their workers died with the old server)."""
         ids = [r[0] for r in self._exec("SELECT id FROM jobs WHERE status = 'running'").fetchall()]

@@ -5,7 +5,9 @@ only used to guess the input type and for display; they never become paths.
 """
 from __future__ import annotations
 
+import json
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 from python_multipart import MultipartParser
@@ -14,8 +16,12 @@ from python_multipart.multipart import parse_options_header
 from ..drivers import DRIVERS
 from ..errors import FacecastError, InputError
 
-#: Form field values larger than this are refused (they are short options).
+#: Form field values larger than this are refused (they are short options)...
 MAX_FIELD_BYTES = 4096
+#: ... except these, which carry content (a mocap marker layout is JSON of a few KiB).
+FIELD_LIMITS = {"layout": 1024 * 1024}
+#: Form parts besides the file an upload may have.
+MAX_FIELDS = 16
 #: Bytes of the file kept to recognise its type from content.
 SNIFF_BYTES = 4096
 
@@ -42,9 +48,15 @@ class UploadParser:
     ``size`` (bytes of the file), ``head`` (its first ``SNIFF_BYTES``).
     """
 
-    def __init__(self, boundary: bytes, dest: Path, limit: int, file_field: str = "file"):
+    def __init__(self, boundary: bytes, dest: Path, limit: int, file_field: str = "file",
+                 kind_limit: Callable[[str], tuple[int, str]] | None = None):
+        """``limit``: bytes of the file at most; ``kind_limit(kind) -> (bytes, variable)`` lowers it
+        for the file's input kind (``fap`` | ``audio`` | ``mocap``) once its first bytes are known."""
         self.dest = dest
         self.limit = limit
+        self.limit_variable = "FACECAST_MAX_UPLOAD_BYTES"
+        self.kind: str | None = None
+        self._kind_limit = kind_limit
         self.file_field = file_field
         self.fields: dict[str, str] = {}
         self.filename: str | None = None
@@ -88,6 +100,8 @@ class UploadParser:
         self._name = opts.get(b"name", b"").decode("utf-8", "replace")
         self._value = bytearray()
         self._is_file = self._name == self.file_field
+        if not self._is_file and len(self.fields) >= MAX_FIELDS:
+            raise InputError(f"more than {MAX_FIELDS} form fields", where="form")
         if self._is_file:
             if self.got_file:
                 raise InputError("send exactly one 'file' part", where="file")
@@ -100,21 +114,43 @@ class UploadParser:
         chunk = data[start:end]
         if self._is_file:
             self.size += len(chunk)
-            if self.size > self.limit:
-                raise PayloadTooLarge(
-                    f"the uploaded file is larger than this server's limit of {self.limit} bytes; send a "
-                    "smaller file (split long recordings) or raise FACECAST_MAX_UPLOAD_BYTES on the server",
-                    where="file")
             if len(self.head) < SNIFF_BYTES:
                 self.head += chunk[:SNIFF_BYTES - len(self.head)]
+                if len(self.head) >= SNIFF_BYTES:
+                    self._check_kind()
+            self._check_size()
             self._fh.write(chunk)
         else:
             self._value += chunk
-            if len(self._value) > MAX_FIELD_BYTES:
-                raise InputError(f"form field is longer than {MAX_FIELD_BYTES} bytes", where=self._name or "form")
+            limit = FIELD_LIMITS.get(self._name or "", MAX_FIELD_BYTES)
+            if len(self._value) > limit:
+                raise InputError(f"form field is longer than {limit} bytes", where=self._name or "form")
+
+    def _check_kind(self) -> None:
+        """Learn the file's input kind from its name and first bytes; apply that kind's limit."""
+        if self.kind is not None:
+            return
+        from ..drivers import input_kind
+
+        self.kind = input_kind("input" + input_suffix(self.filename, self.head))
+        if self._kind_limit is not None:
+            limit, variable = self._kind_limit(self.kind)
+            if limit < self.limit:
+                self.limit, self.limit_variable = limit, variable
+
+    def _check_size(self) -> None:
+        if self.size > self.limit:
+            what = f"{self.kind} input" if self.kind else "a file"
+            raise PayloadTooLarge(
+                f"the uploaded file is larger than this server's limit of {self.limit} bytes for {what}; "
+                f"send a smaller file (split long recordings) or raise {self.limit_variable} on the server",
+                where="file")
 
     def _part_end(self) -> None:
         if self._is_file:
+            if self.size:
+                self._check_kind()
+                self._check_size()
             self._fh.close()
             self._fh = None
         elif self._name:
@@ -137,6 +173,70 @@ class UploadParser:
             self._fh.close()
             self._fh = None
         self.dest.unlink(missing_ok=True)
+
+
+#: Bytes of a refused request the server still reads (and discards) so the client sees the answer.
+DRAIN_LIMIT = 64 * 1024 * 1024
+
+
+async def drain(request, already: int = 0, limit: int = DRAIN_LIMIT) -> None:
+    """Read and discard the rest of a refused request body (at most ``limit`` bytes in all), so the
+    client, still sending, can read the error instead of a reset connection."""
+    n = already
+    try:
+        async for chunk in request.stream():
+            n += len(chunk)
+            if n > limit:
+                break
+    except Exception:
+        pass
+
+
+def upload_dir(data_dir: Path) -> Path:
+    """``<data_dir>/tmp``: where uploads wait while they are read (emptied at each server start)."""
+    path = Path(data_dir) / "tmp"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def clear_upload_dir(data_dir: Path) -> int:
+    """Delete what a previous server left in ``<data_dir>/tmp`` (uploads of a crash); the count."""
+    import shutil
+
+    root = upload_dir(data_dir)
+    n = 0
+    for p in root.iterdir():
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+        n += 1
+    return n
+
+
+def parse_layout(text: str) -> dict:
+    """A mocap marker layout sent as content (its JSON text), checked; InputError otherwise.
+
+    Layouts travel as content, never as names of server files: a JSON string (a path) is refused.
+    """
+    try:
+        data = json.loads(text)
+    except (ValueError, RecursionError) as e:  # JSONDecodeError, integers over 4300 digits, deep nesting
+        raise InputError(f"the layout is not JSON ({str(e)[:200]}); send the layout file's content "
+                         "(curl -F layout=@take.layout.json)", where="layout") from None
+    if not isinstance(data, dict):
+        raise InputError("the layout must be the layout's JSON content, an object with 'markers' and "
+                         "'stable' (curl -F layout=@take.layout.json); the server never opens files "
+                         "named by a client", where="layout")
+    from ..mocap.layout import load_layout
+
+    try:
+        load_layout(data)  # InputError naming the field at fault
+    except FacecastError:
+        raise
+    except (TypeError, ValueError, AttributeError, KeyError) as e:
+        raise InputError(f"cannot read the layout ({type(e).__name__}: {str(e)[:200]})", where="layout") from None
+    return data
 
 
 def boundary_of(content_type: str) -> bytes:

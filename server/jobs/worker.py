@@ -8,10 +8,12 @@ progress update no longer matches); the manager also terminates it to cancel at 
 """
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections import OrderedDict
@@ -32,9 +34,15 @@ class Stop(BaseException):
 
 
 def serve(data_dir: str, conn, backend: str = "auto", device: str | None = None,
-          parent_pid: int | None = None) -> None:
-    """Worker process entry point: run the jobs the manager sends until the pipe closes."""
+          parent_pid: int | None = None, memory_mb: int = 0) -> None:
+    """Worker process entry point: run the jobs the manager sends until the pipe closes.
+
+    ``memory_mb``: address-space limit of this process (0: none); a job over it fails with a
+    MemoryError message, and the server is not affected.
+    """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
+    die_with_parent(parent_pid)
+    limit_resources(memory_mb)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
     store = JobStore(Path(data_dir))
@@ -60,6 +68,58 @@ def serve(data_dir: str, conn, backend: str = "auto", device: str | None = None,
                 break
     finally:
         store.close()
+
+
+#: Seconds between two checks that the server is still there (where the kernel cannot tell us).
+PARENT_POLL_SECONDS = 1.0
+PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent_pid: int | None) -> None:
+    """End this process when the server that started it dies, even by SIGKILL.
+
+    On Linux the kernel sends SIGKILL at once (``prctl(PR_SET_PDEATHSIG)``); elsewhere, and as a
+    second line, a daemon thread checks the parent pid every ``PARENT_POLL_SECONDS``. A worker that
+    outlived its server would race the attempt the next server starts for the same job.
+    """
+    if parent_pid is None:
+        return
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):
+            log.warning("cannot ask the kernel to end this worker with the server; polling instead")
+    if os.getppid() != parent_pid:  # the server died before we got here
+        os._exit(1)
+
+    def watch() -> None:
+        while True:
+            time.sleep(PARENT_POLL_SECONDS)
+            if os.getppid() != parent_pid:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="facecast-parent-watch", daemon=True).start()
+
+
+def limit_resources(memory_mb: int = 0) -> None:
+    """Limits for a process that parses hostile files: no core files (a decoder crashing must not
+    fill the disk) and, if ``memory_mb`` > 0, at most that many MiB of address space."""
+    try:
+        import resource
+    except ImportError:  # not on this platform
+        return
+    limits = [(resource.RLIMIT_CORE, 0)]
+    if memory_mb > 0:
+        limits.append((resource.RLIMIT_AS, int(memory_mb) * 1024 * 1024))
+    for which, value in limits:
+        try:
+            hard = resource.getrlimit(which)[1]
+            value = value if hard == resource.RLIM_INFINITY else min(value, hard)
+            resource.setrlimit(which, (value, hard))
+        except (ValueError, OSError) as e:
+            log.warning("cannot set resource limit %s: %s", which, e)
 
 
 def run_job(store: JobStore, job_id: str, attempt: int, backend: str, device: str | None,
@@ -117,20 +177,26 @@ def render(store: JobStore, job: JobRecord, backend: str, device: str | None, pr
         return "failed", f"the render engine is not available on this server ({e})"
     try:
         face = _face(opts.get("face_spec") or "default", faces if faces is not None else OrderedDict())
+        layout = None
+        if opts.get("layout_file"):  # the client's layout content, checked and saved at submit
+            layout = json.loads((store.folder(job.id) / opts["layout_file"]).read_text(encoding="utf-8"))
         render_file(src, dst, face=face, engine=opts.get("engine", "fp"), backend=backend, device=device,
-                    layout=opts.get("layout"), progress=progress)
+                    layout=layout, progress=progress)
     except Stop as e:
         log.info("job %s abandoned: %s", job.id, e)
         return None, None
     except FacecastError as e:
         return "failed", client_view(str(e))
-    except (ValueError, KeyError, IndexError, UnicodeDecodeError) as e:
-        # Decoders that let a low-level error through: still the input's fault, most likely.
-        log.warning("job %s: %s", job.id, traceback.format_exc())
-        return "failed", client_view(f"could not read {job.input_name!r} as {job.input_kind} input: "
-                                     f"{type(e).__name__}: {e}")
     except MemoryError:
         return "failed", f"{job.input_name!r} needs more memory than this server has; send a shorter input"
+    except Exception as e:
+        # A decoder's own error (FapFormatError...) or a low-level one it let through (ValueError,
+        # struct.error, OverflowError...): the input's fault, most likely. The traceback stays here.
+        own = type(e).__module__.startswith("facecast.")
+        if not own:
+            log.warning("job %s: %s", job.id, traceback.format_exc())
+        detail = str(e) if own else f"{type(e).__name__}: {e}"
+        return "failed", client_view(f"could not read {job.input_name!r} as {job.input_kind} input: {detail[:500]}")
     if not dst.is_file():
         return "failed", "the renderer finished without writing a result (server bug; please report)"
     return "done", None
