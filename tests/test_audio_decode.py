@@ -236,3 +236,25 @@ def test_fuzz_mutated_audio_decodes_or_raises_input_error(seed_files, which, edi
             return
         assert d.x.dtype == np.float32 and np.isfinite(d.x).all() and np.abs(d.x).max(initial=0) <= 1
         assert d.seconds <= 60 and len(d.x) <= 60 * ANALYSIS_RATE * 1.001 + 1
+
+
+def test_a_live_producers_big_chunk_does_not_swing_memory(rng):
+    """A 1 Mi-sample PCM chunk swung the server's memory by 600 MB (the streaming resampler
+    gathered outputs × taps at once); now it is computed in slices, with the same output."""
+    from facecast.server.audio.io import StreamResampler
+    from facecast.server.audio.live import AudioLiveDriver
+
+    x = 0.1 * rng.standard_normal(1 << 20)
+    rs = StreamResampler(16000, ANALYSIS_RATE)
+    y = np.concatenate([rs.push(x[:1000]), rs.push(x[1000:])])
+    np.testing.assert_allclose(y, resample(x, 16000, ANALYSIS_RATE)[:len(y)], atol=1e-12)
+    assert len(y) > 0.99 * len(x) * 10 / 16
+    drv = AudioLiveDriver(None, 16000)
+    drv.push(x[:1000].astype(np.float32), 0.0)
+    tracemalloc.start()
+    try:
+        drv.push(x[1000:].astype(np.float32), 1000 / 16000)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 150 * 2**20, f"peak {peak / 2**20:.0f} MiB for a {len(x)}-sample chunk"

@@ -30,6 +30,8 @@ MAX_SECONDS = 3600.0
 BLOCK_SAMPLES = 1 << 18
 #: Largest term of a resampling ratio (the filter has 20 taps per unit of the larger term).
 MAX_RATIO_TERM = 1000
+#: Output samples ``StreamResampler`` computes at once (bounds its working memory).
+STREAM_SLICE = 8192
 #: Largest relative difference between ``Decoded.rate`` and the requested rate (5e-4 at worst).
 RATE_TOLERANCE = 1e-3
 
@@ -417,8 +419,10 @@ class StreamResampler:
         last_j = (n_in_end * self.up - 1 - self.half) // self.down  # largest j with all inputs known
         if last_j < self._n_out:
             return np.zeros(0)
-        js = np.arange(self._n_out, last_j + 1)
-        out = self._compute(js)
+        # in slices: _compute's gathers are (outputs × taps per phase); a 1 Mi-sample chunk at once
+        # swung the memory by 600 MB
+        out = np.concatenate([self._compute(np.arange(j, min(j + STREAM_SLICE, last_j + 1)))
+                              for j in range(self._n_out, last_j + 1, STREAM_SLICE)])
         self._n_out = last_j + 1
         # keep the history the next output needs
         first_needed = (self._n_out * self.down + self.half) // self.up - len(self._m) - 1
