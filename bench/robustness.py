@@ -75,7 +75,6 @@ def call_with(fn, **available):
 def speech() -> tuple[np.ndarray, int, str]:
     """Real speech (``../shared/data/speech``) or, without the data, a voiced synthetic tone."""
     import soundfile as sf
-
     from facecast.server.paths import shared_data
 
     d = shared_data()
@@ -240,7 +239,7 @@ class Server:
     def headers(self) -> dict:
         return {"Authorization": f"Bearer {ADMIN_KEY}"}
 
-    def start(self) -> "Server":
+    def start(self) -> Server:
         import httpx
 
         self.port = free_port()
@@ -414,19 +413,20 @@ def big_file(kind: str, size: int, max_seconds: float, tmp: Path) -> Path:
                 written += k
     elif kind == "fap":
         head, *lines = fap_seed().decode().splitlines()
-        body = "\n".join(lines)
         parts = head.split()
-        frames_per = len(lines) // 2
-        reps = max(1, (size - 200) // (len(body) + 1))
+        body, used, i = [], 200, 0
+        while True:  # the clip's frames again and again, renumbered into one long clip
+            mask, frame = lines[2 * (i % (len(lines) // 2))], lines[2 * (i % (len(lines) // 2)) + 1]
+            text = f"{mask}\n{i} {frame.split(maxsplit=1)[1]}\n"
+            if used + len(text) > size:
+                break
+            body.append(text)
+            used += len(text)
+            i += 1
         path = tmp / "big.fap"
-        with open(path, "w") as f:
-            f.write(" ".join(parts[:3] + [str(frames_per * reps)]) + "\n")
-            for r in range(reps):  # renumber the frames so the file is one long clip
-                for j in range(0, len(lines), 2):
-                    frame = lines[j + 1].split(maxsplit=1)
-                    f.write(lines[j] + "\n" + str(r * frames_per + j // 2) + " " + frame[1] + "\n")
+        path.write_text(" ".join(parts[:3] + [str(i)]) + "\n" + "".join(body))
     elif kind == "trc":
-        from facecast.protocol.markers_file import MarkerTake, write_trc  # noqa: F811
+        from facecast.protocol.markers_file import MarkerTake, write_trc
 
         take = _trc_take().take
         row_bytes = len(write_trc(take).encode()) / len(take.xyz)
@@ -470,7 +470,6 @@ def warm_up(server: Server, kind: str) -> None:
 def peak_memory(kinds: list[str], timeout: float) -> list[dict]:
     """Peak RSS of a fresh server while it decodes each kind's largest allowed upload via ``/play``."""
     import httpx
-
     from facecast.server.api.config import ServerConfig
     from facecast.server.audio.io import max_audio_seconds
 

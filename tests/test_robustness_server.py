@@ -18,7 +18,6 @@ import httpx
 import numpy as np
 import pytest
 import soundfile as sf
-
 from conftest import RunningServer
 from facecast.client.api import watch
 
@@ -45,14 +44,15 @@ def c3d_spin() -> bytes:
 
 
 def valid_take() -> tuple[bytes, str]:
-    """A valid C3D take (ezc3d's writer) and its marker layout as JSON."""
+    """A valid C3D take (ezc3d's writer) and its marker layout as JSON (30 markers: cut to 900 or
+    1092 bytes, ezc3d 1.7.2 spins on it)."""
     import tempfile
 
     from facecast.server.faces import load_face
     from facecast.server.mocap.io import write_take
     from facecast.server.mocap.synthetic import synthetic_take
 
-    syn = synthetic_take(load_face("default"), n_markers=16, seconds=1.0, fps=60.0, seed=3)
+    syn = synthetic_take(load_face("default"), n_markers=30, seconds=1.0, fps=60.0, seed=3)
     with tempfile.TemporaryDirectory() as tmp:
         path = write_take(syn.take, Path(tmp) / "take.c3d")
         return path.read_bytes(), json.dumps(syn.layout)
@@ -181,7 +181,7 @@ class Monitor:
             if self._stop.wait(0.5):
                 return
 
-    def __enter__(self) -> "Monitor":
+    def __enter__(self) -> Monitor:
         for th in self._threads:
             th.start()
         deadline = time.monotonic() + 30

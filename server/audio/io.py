@@ -191,7 +191,7 @@ def _open(path: Path, where: str, max_seconds: float):
 
     try:
         f = sf.SoundFile(str(path))
-    except Exception as e:  # libsndfile and soundfile report unreadable headers many ways
+    except Exception as e:  # noqa: BLE001 - libsndfile and soundfile report bad headers many ways
         raise InputError(f"cannot decode audio ({_libsndfile_says(e)}); is it a valid "
                          f"WAV/FLAC/OGG file?", where=where) from None
     try:
@@ -240,7 +240,7 @@ def _blocks(f, where: str):
     while done < frames:
         try:
             block = f.read(min(step, frames - done), dtype="float64", always_2d=True)
-        except Exception as e:  # a damaged or lying stream fails part-way
+        except Exception as e:  # noqa: BLE001 - a damaged or lying stream fails part-way
             raise InputError(f"cannot decode audio after {done} of {frames} samples "
                              f"({_libsndfile_says(e)}); the file is damaged or truncated",
                              where=where) from None
