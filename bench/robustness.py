@@ -167,18 +167,20 @@ def _audio_child(seed: int, start: int, n: int) -> None:
             print(i, "start", flush=True)
             try:
                 decode_audio(path, 10000, max_seconds=600)
-                outcome = "decoded"
+                outcome = "parsed"
             except FacecastError:
-                outcome = "refused"
+                outcome = "project_errors"
             except Exception as e:  # noqa: BLE001 - counted: any other exception is a bug
-                outcome = "other:" + type(e).__name__
+                outcome = "other_errors:" + type(e).__name__
             print(i, outcome, flush=True)
 
 
 def audio_fuzz(n: int, seed: int) -> dict:
-    """Counts over ``n`` mutated audio files: decoded, refused (project error), other exceptions,
-    crashes (the child died by a signal) and hangs (no progress for ``HANG_S``)."""
-    counts = {"inputs": 0, "decoded": 0, "refused": 0, "other": 0, "crashes": 0, "hangs": 0}
+    """Counts over ``n`` mutated audio files, keyed as ``fuzz_parsers.fuzz_counts``: parsed,
+    project_errors, other_errors (any other exception), crashes (the child died by a signal) and
+    hangs (no progress for ``HANG_S``)."""
+    counts = {"parser": "audio", "inputs": 0, "crashes": 0, "hangs": 0, "project_errors": 0, "parsed": 0,
+              "other_errors": 0}
     others: dict[str, int] = {}
     t0 = time.monotonic()
     start = 0
@@ -197,10 +199,10 @@ def audio_fuzz(n: int, seed: int) -> dict:
                 if outcome == "start":
                     continue
                 counts["inputs"] += 1
-                kind = outcome.split(":")[0]
+                kind, _, detail = outcome.partition(":")
                 counts[kind] += 1
-                if kind == "other":
-                    others[outcome[6:]] = others.get(outcome[6:], 0) + 1
+                if detail:
+                    others[detail] = others.get(detail, 0) + 1
                 current += 1
             elif time.monotonic() - last > HANG_S:
                 p.kill()
@@ -532,14 +534,14 @@ def peak_memory(kinds: list[str], timeout: float) -> list[dict]:
 def table(rec: dict) -> str:
     lines = [f"robustness — load average {rec['load_avg'][0]:.1f} (start) / {os.getloadavg()[0]:.1f} (end)", ""]
     if "fuzz" in rec:
-        lines += ["| parser | inputs | parsed | refused | other exc. | crashes | hangs |", "|---|---|---|---|---|---|---|"]
+        lines += ["| parser | inputs | parsed | project errors | other exceptions | crashes | hangs |",
+                  "|---|---|---|---|---|---|---|"]
         for name, c in rec["fuzz"].items():
             if not isinstance(c, dict) or "inputs" not in c:
                 lines.append(f"| {name} | {c} | | | | | |")
                 continue
-            parsed = c.get("decoded", c.get("parsed", ""))
-            lines.append(f"| {name} | {c['inputs']} | {parsed} | {c.get('refused', '')} | {c.get('other', '')} "
-                         f"| {c.get('crashes', '')} | {c.get('hangs', '')} |")
+            lines.append(f"| {name} | {c['inputs']} | {c.get('parsed')} | {c.get('project_errors')} "
+                         f"| {c.get('other_errors')} | {c.get('crashes')} | {c.get('hangs')} |")
         lines.append("")
     if "http" in rec:
         lines += ["| endpoint | kind | answers |", "|---|---|---|"]
@@ -594,7 +596,7 @@ def main(argv: list[str]) -> int:
         rec["fuzz"] = {"audio": audio_fuzz(args.fuzz, args.seed)}
         rec["fuzz"]["audio"]["source"] = speech()[2]
         fuzz_counts = optional("fuzz_parsers", "fuzz_counts")
-        for name in PARSERS:
+        for name in optional("fuzz_parsers", "PARSERS") or PARSERS:
             rec["fuzz"][name] = (fuzz_counts(name, args.fuzz, args.seed) if fuzz_counts
                                  else "not run: bench/fuzz_parsers.py (fuzz_counts) is not here")
     if args.http or args.jobs:
@@ -603,7 +605,8 @@ def main(argv: list[str]) -> int:
         rec["memory"] = peak_memory(args.memory, args.memory_timeout)
     if args.flood:
         run_flood = optional("flood", "run_flood")
-        rec["flood"] = call_with(run_flood, seed=args.seed) if run_flood else \
+        rec["flood"] = {"binary FAP": call_with(run_flood, json_frames=False),
+                        "JSON FAP": call_with(run_flood, json_frames=True)} if run_flood else \
             "not run: bench/flood.py (run_flood) is not here"
     if args.glb:
         glb_check = optional("gltf_encode", "glb_check")
