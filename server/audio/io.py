@@ -1,6 +1,11 @@
 """Audio in: decode a file, validate samples, downmix, resample (batch and streaming).
 
-Everything that reaches the analysis is ``(n,) float64`` mono in [-1, 1] at a known rate.
+Everything that reaches the analysis is ``(n,)`` mono in [-1, 1] at a known rate. Files are
+decoded by ``decode_audio``: the header is checked against the limits (rate, channels, declared
+length against ``max_audio_seconds()`` and, for WAV, the bytes present) before anything is
+allocated, then the samples stream through in blocks, downmixed and resampled on the way, so an
+upload costs about its duration at the output rate in memory, not its size (``read_audio`` keeps
+the file's own rate: for tools and tests, not for uploads).
 """
 from __future__ import annotations
 
