@@ -478,12 +478,15 @@ def peak_memory(kinds: list[str], timeout: float) -> list[dict]:
     from facecast.server.api.config import ServerConfig
     from facecast.server.audio.io import max_audio_seconds
 
-    limit = int(ServerConfig().max_upload_bytes)
+    cfg = ServerConfig()
     rows = []
     for kind in kinds:
+        input_kind = {"fap": "fap", "trc": "mocap"}.get(kind, "audio")
+        # the limit of this kind of upload where the server has one, else the general one
+        limit = cfg.upload_limit(input_kind)[0] if hasattr(cfg, "upload_limit") else cfg.max_upload_bytes
         with tempfile.TemporaryDirectory() as tmp:
             tmp = Path(tmp)
-            size = 60 * 2**20 if kind == "wav60x4" else limit - 4096
+            size = 60 * 2**20 if kind == "wav60x4" else int(limit) - 4096
             path = big_file(kind, size, max_audio_seconds(), tmp)
             layout = json.dumps(_trc_take().layout) if kind == "trc" else None
             server = Server(tmp).start()
