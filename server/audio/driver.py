@@ -5,9 +5,8 @@ import logging
 from pathlib import Path
 
 from ..state import Animation, FaceState
-from .io import read_audio
-from .pipeline import LipSync, lipsync
-from .visemes import Calibration, Params, viseme_table
+from .pipeline import LipSync, lipsync_file
+from .visemes import Params, viseme_table
 
 log = logging.getLogger(__name__)
 
@@ -46,22 +45,16 @@ def load(path: str | Path, face=None, fps: float = 25.0, lookahead: float | None
         silence_db, max_db: explicit energy calibration (dB full scale); default: from the file.
         fap1: emit FAP 1 (visemes) instead of low-level FAPs (see ``track_states``).
         options: other drivers' options are ignored (logged).
+    The file is decoded in blocks straight to the analysis rate (``pipeline.lipsync_file``):
+    memory follows the audio's duration, not the file's size, rate or channels.
+
     Raises:
-        InputError: unreadable or invalid audio.
+        InputError: unreadable, invalid or too long audio (``io.decode_audio``).
     """
     if options:
         log.debug("audio driver ignores options %s", sorted(options))
-    x, sr = read_audio(path)
-    cal = None
-    if silence_db is not None or max_db is not None:
-        from .pipeline import features_of
-        from .visemes import calibrate
-
-        auto = calibrate(features_of(x, sr).energy_db)
-        cal = Calibration(auto.silence_db if silence_db is None else float(silence_db),
-                          auto.max_db if max_db is None else float(max_db))
-    ls = lipsync(x, sr, fps=float(fps), lookahead=lookahead, calibration=cal, params=Params(),
-                 where=str(path), table=viseme_table(face))
+    ls = lipsync_file(path, fps=float(fps), lookahead=lookahead, silence_db=silence_db,
+                      max_db=max_db, params=Params(), table=viseme_table(face))
     log.info("%s: %.2f s of audio → %d frames at %g fps (silence %.1f dB, max %.1f dB)",
              Path(path).name, ls.duration, len(ls.track.t), fps, ls.calibration.silence_db,
              ls.calibration.max_db)

@@ -1,10 +1,18 @@
 """Audio in: decode a file, validate samples, downmix, resample (batch and streaming).
 
-Everything that reaches the analysis is ``(n,) float64`` mono in [-1, 1] at a known rate.
+Everything that reaches the analysis is ``(n,)`` mono in [-1, 1] at a known rate. Files are
+decoded by ``decode_audio``: the header is checked against the limits (rate, channels, declared
+length against ``max_audio_seconds()`` and, for WAV, the bytes present) before anything is
+allocated, then the samples stream through in blocks, downmixed and resampled on the way, so an
+upload costs about its duration at the output rate in memory, not its size (``read_audio`` keeps
+the file's own rate: for tools and tests, not for uploads).
 """
 from __future__ import annotations
 
 import logging
+import math
+import os
+from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
 
@@ -21,19 +29,123 @@ AUDIO_SUFFIXES = (".wav", ".flac", ".ogg")
 MIN_RATE, MAX_RATE = 4000, 384000
 #: Fraction of samples at |x| >= CLIP_LEVEL above which a file is reported as clipped.
 CLIP_LEVEL, CLIP_WARN_FRACTION = 0.999, 0.01
+#: Longest audio file accepted by default, seconds (``FACECAST_MAX_AUDIO_SECONDS`` overrides).
+MAX_SECONDS = 3600.0
+#: Decoded values (frames × channels) per block: bounds the decoder's working memory (2 MiB).
+BLOCK_SAMPLES = 1 << 18
+#: Largest term of a resampling ratio (the filter has 20 taps per unit of the larger term).
+MAX_RATIO_TERM = 1000
+#: Output samples ``StreamResampler`` computes at once (bounds its working memory).
+STREAM_SLICE = 8192
+#: Largest relative difference between ``Decoded.rate`` and the requested rate (5e-4 at worst).
+RATE_TOLERANCE = 1e-3
 
 
-def read_audio(path: str | Path) -> tuple[np.ndarray, int]:
-    """Decode ``path`` (WAV/FLAC/OGG, any sample format and rate) to mono float64.
+@dataclass
+class Decoded:
+    """An audio file decoded to mono.
 
-    Returns:
-        ``(x, sr)``: ``x (n,) float64`` in [-1, 1] (channels averaged), ``sr`` in Hz.
-
-    Raises:
-        InputError: missing, unsupported, corrupt or empty file, or non-finite samples.
+    Attributes:
+        x: ``(n,)`` samples in [-1, 1] at ``rate`` (channels averaged).
+        rate: sample rate of ``x``, Hz (the requested rate, or within ``RATE_TOLERANCE`` of it
+            when the file's rate has no exact small ratio to it; see ``conversion_ratio``).
+        seconds: duration of the file (its frames over its own rate), s.
+        source_rate: the file's sample rate, Hz; channels: the file's channel count.
     """
-    import soundfile as sf
 
+    x: np.ndarray
+    rate: float
+    seconds: float
+    source_rate: int
+    channels: int
+
+
+def max_audio_seconds() -> float:
+    """The longest audio accepted, seconds: ``FACECAST_MAX_AUDIO_SECONDS`` or ``MAX_SECONDS``."""
+    raw = os.environ.get("FACECAST_MAX_AUDIO_SECONDS")
+    if raw is None:
+        return MAX_SECONDS
+    try:
+        value = float(raw)
+    except ValueError:
+        value = float("nan")
+    if not (value > 0 and math.isfinite(value)):
+        raise InputError(f"must be a positive number of seconds, got {raw!r}",
+                         where="FACECAST_MAX_AUDIO_SECONDS")
+    return value
+
+
+def conversion_ratio(sr_in: float, sr_out: float) -> tuple[int, int]:
+    """``(up, down)`` for a polyphase conversion from ``sr_in`` to about ``sr_out`` Hz.
+
+    The exact reduced ratio when both terms are at most ``MAX_RATIO_TERM`` (every common rate:
+    44100 → 10000 is 100/441); otherwise the closest ratio with terms that small (a rate such as
+    383993 Hz would need a 7.7M-tap filter and minutes per second of audio). The output rate
+    ``sr_in·up/down`` is then within ``RATE_TOLERANCE`` of ``sr_out``.
+    """
+    f = Fraction(int(round(sr_out)), int(round(sr_in)))
+    if max(f.numerator, f.denominator) > MAX_RATIO_TERM:
+        # the best approximation with the smaller term bounded keeps the larger one bounded too
+        f = f.limit_denominator(MAX_RATIO_TERM) if f < 1 else 1 / (1 / f).limit_denominator(MAX_RATIO_TERM)
+    return f.numerator, f.denominator
+
+
+class BlockResampler:
+    """``scipy.signal.resample_poly`` over a stream of blocks, with bounded memory.
+
+    Output sample j of the whole stream equals ``resample_poly(whole_input, up, down)[j]`` (to
+    round-off): each call runs ``resample_poly`` on the new input plus the overlap the filter
+    needs, starting at an input index that is a multiple of ``down`` so the phases line up.
+    """
+
+    def __init__(self, up: int, down: int) -> None:
+        self.up, self.down = int(up), int(down)
+        self.half = 10 * max(self.up, self.down)  # resample_poly's filter half length (upsampled domain)
+        self._buf = np.zeros(0)
+        self._start = 0   # input index of _buf[0] (a multiple of down)
+        self._n_in = 0    # inputs received
+        self._n_out = 0   # outputs returned
+
+    def n_out(self, n_in: int) -> int:
+        """Length of ``resample_poly`` of ``n_in`` inputs."""
+        return -(-n_in * self.up // self.down)
+
+    def push(self, x: np.ndarray) -> np.ndarray:
+        """Append input ``(n,)``; return the outputs that are now final, ``(m,) float64``."""
+        x = np.asarray(x, dtype=np.float64)
+        if self.up == self.down:
+            self._n_in += len(x)
+            self._n_out += len(x)
+            return x
+        self._buf = np.concatenate([self._buf, x])
+        self._n_in += len(x)
+        # output j needs inputs up to floor((j·down + half) / up)
+        last = (self._n_in * self.up - 1 - self.half) // self.down
+        return self._emit(last + 1)
+
+    def flush(self) -> np.ndarray:
+        """The remaining outputs (the stream is over; zeros follow it, as in ``resample_poly``)."""
+        if self.up == self.down:
+            return np.zeros(0)
+        return self._emit(self.n_out(self._n_in))
+
+    def _emit(self, end: int) -> np.ndarray:
+        if end <= self._n_out:
+            return np.zeros(0)
+        y = scipy.signal.resample_poly(self._buf, self.up, self.down)
+        first = self._start * self.up // self.down  # output index of y[0]
+        out = y[self._n_out - first:end - first]
+        self._n_out = end
+        # keep the inputs from the first one output n_out needs, rounded down to a multiple of down
+        need = max(0, -(-(self._n_out * self.down - self.half) // self.up))
+        start = need // self.down * self.down
+        if start > self._start:
+            self._buf = self._buf[start - self._start:]
+            self._start = start
+        return out
+
+
+def _where_ok(path: str | Path) -> tuple[Path, str]:
     path = Path(path)
     where = str(path)
     if not path.is_file():
@@ -41,15 +153,174 @@ def read_audio(path: str | Path) -> tuple[np.ndarray, int]:
     if path.suffix.lower() not in AUDIO_SUFFIXES:
         raise InputError(f"unsupported audio type {path.suffix or '(none)'!r}; use "
                          f"{', '.join(AUDIO_SUFFIXES)}", where=where)
+    return path, where
+
+
+def _libsndfile_says(e: Exception) -> str:
+    """libsndfile's message without the file path soundfile prefixes it with."""
+    return str(getattr(e, "error_string", None) or e).strip()
+
+
+def _wav_shortfall(path: Path) -> tuple[int, int] | None:
+    """``(declared, present)`` data bytes of a RIFF/WAVE file whose data chunk is cut short
+    (libsndfile silently reads what is there); None when complete or not a plain WAV."""
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(12)
+        if len(head) < 12 or head[:4] != b"RIFF" or head[8:12] != b"WAVE":
+            return None
+        pos = 12
+        for _ in range(64):  # chunks before the data chunk (fmt, fact, LIST, ...)
+            fh.seek(pos)
+            chunk = fh.read(8)
+            if len(chunk) < 8:
+                return None
+            n = int.from_bytes(chunk[4:], "little")
+            if chunk[:4] == b"data":
+                present = size - pos - 8
+                if n in (0, 0xFFFFFFFF) or n <= present:  # 0 / -1: length not known by the writer
+                    return None
+                return n, present
+            pos += 8 + n + (n & 1)
+    return None
+
+
+def _open(path: Path, where: str, max_seconds: float):
+    """Open ``path`` with libsndfile and check what its header declares before decoding anything.
+
+    Returns the open ``soundfile.SoundFile``. Raises InputError for an undecodable header, no
+    channels, a rate outside ``MIN_RATE``-``MAX_RATE``, a declared length over ``max_seconds``
+    (or more samples than ``max_seconds`` at ``MAX_RATE``) or a truncated WAV data chunk.
+    """
+    import soundfile as sf
+
     try:
-        data, sr = sf.read(str(path), dtype="float64", always_2d=True)
-    except (RuntimeError, sf.LibsndfileError, ValueError) as e:  # libsndfile reports corrupt data so
-        raise InputError(f"cannot decode audio ({e}); is it a valid WAV/FLAC/OGG file?",
-                         where=where) from None
-    if data.shape[1] > 1:
-        log.info("%s: %d channels, averaged to mono", path.name, data.shape[1])
-    x = data.mean(axis=1)
-    return validate_pcm(x, sr, where=where), int(sr)
+        f = sf.SoundFile(str(path))
+    except Exception as e:  # noqa: BLE001 - libsndfile and soundfile report bad headers many ways
+        raise InputError(f"cannot decode audio ({_libsndfile_says(e)}); is it a valid "
+                         f"WAV/FLAC/OGG file?", where=where) from None
+    try:
+        rate, channels, frames = int(f.samplerate), int(f.channels), int(f.frames)
+        if channels < 1:
+            raise InputError("the file declares no audio channels; is it a valid WAV/FLAC/OGG file?",
+                             where=where)
+        if not (MIN_RATE <= rate <= MAX_RATE):
+            raise InputError(f"sample rate {rate} Hz is outside {MIN_RATE}-{MAX_RATE} Hz; "
+                             "resample the file to a common rate (16000, 44100, 48000 Hz)", where=where)
+        if frames >= 2**62:
+            raise InputError("the file's header does not say how many samples it holds; re-encode it "
+                             "(e.g. 'sox in.flac out.flac') so the length is written", where=where)
+        seconds = frames / rate
+        if seconds > max_seconds:
+            raise InputError(f"the audio lasts {seconds:.0f} s ({frames} samples at {rate} Hz, as its "
+                             f"header declares), over the limit of {max_seconds:.0f} s; send a shorter "
+                             "file (split it)", where=where)
+        if frames * channels > max_seconds * MAX_RATE:
+            raise InputError(f"{channels} channels × {frames} samples is over the limit of "
+                             f"{max_seconds * MAX_RATE:.0f} samples; send fewer channels "
+                             "(a mono mix)", where=where)
+        cut = _wav_shortfall(path)
+        if cut is not None:
+            per_second = rate * channels * _bytes_per_sample(f.subtype)
+            raise InputError(f"the file is truncated: its header declares {cut[0] / per_second:.2f} s "
+                             f"of audio, it holds {cut[1] / per_second:.2f} s; export or send the "
+                             "whole file again", where=where)
+    except BaseException:
+        f.close()
+        raise
+    return f
+
+
+def _bytes_per_sample(subtype: str) -> int:
+    return {"PCM_S8": 1, "PCM_U8": 1, "PCM_16": 2, "PCM_24": 3, "PCM_32": 4, "FLOAT": 4,
+            "DOUBLE": 8, "ULAW": 1, "ALAW": 1}.get(subtype, 2)
+
+
+def _blocks(f, where: str):
+    """Yield the open file's samples as mono ``(m,) float64`` blocks (at most ``BLOCK_SAMPLES``
+    decoded values each); InputError for non-finite samples or a stream that ends early."""
+    frames, channels = int(f.frames), int(f.channels)
+    step = max(1, BLOCK_SAMPLES // channels)
+    done = 0
+    while done < frames:
+        try:
+            block = f.read(min(step, frames - done), dtype="float64", always_2d=True)
+        except Exception as e:  # noqa: BLE001 - a damaged or lying stream fails part-way
+            raise InputError(f"cannot decode audio after {done} of {frames} samples "
+                             f"({_libsndfile_says(e)}); the file is damaged or truncated",
+                             where=where) from None
+        if len(block) == 0:
+            break
+        mono = block[:, 0] if channels == 1 else block.mean(axis=1)
+        bad = ~np.isfinite(mono)
+        if bad.any():
+            raise InputError(f"NaN/inf samples (first at sample {done + int(np.argmax(bad))})",
+                             where=where)
+        done += len(mono)
+        yield mono
+    if done < frames:
+        raise InputError(f"the file is truncated: its header declares {frames} samples, "
+                         f"{done} decode; export or send the whole file again", where=where)
+
+
+def decode_audio(path: str | Path, rate: float | None = None, *, dtype=np.float32,
+                 max_seconds: float | None = None) -> Decoded:
+    """Decode ``path`` (WAV/FLAC/OGG, any sample format, rate and channel count) to mono.
+
+    Streams: the file is decoded in blocks of ``BLOCK_SAMPLES`` values, each block is downmixed
+    and resampled to ``rate`` (``BlockResampler``) and written into the output, so the peak memory
+    is the output ``(n,)`` array of ``dtype`` plus a few blocks, whatever the file's rate,
+    channels or format. The header is checked first (``_open``): nothing is allocated for a
+    length the limits refuse.
+
+    Args:
+        rate: output rate, Hz (None: the file's own); see ``Decoded.rate``.
+        dtype: output sample type (float32 halves the memory of float64).
+        max_seconds: longest audio accepted (default ``max_audio_seconds()``).
+    Raises:
+        InputError: missing, unsupported, corrupt, truncated, too long or empty file, an
+            unsupported rate, no channels, or non-finite samples.
+    """
+    path, where = _where_ok(path)
+    max_seconds = max_audio_seconds() if max_seconds is None else float(max_seconds)
+    with _open(path, where, max_seconds) as f:
+        sr, channels, frames = int(f.samplerate), int(f.channels), int(f.frames)
+        up, down = (1, 1) if rate is None else conversion_ratio(sr, rate)
+        rs = BlockResampler(up, down)
+        out = np.empty(rs.n_out(frames), dtype=dtype)
+        n = clipped = 0
+
+        def put(y: np.ndarray) -> None:
+            nonlocal n
+            out[n:n + len(y)] = y
+            n += len(y)
+
+        for mono in _blocks(f, where):
+            clipped += int(np.count_nonzero(np.abs(mono) >= CLIP_LEVEL))
+            put(rs.push(mono))
+        put(rs.flush())
+    if frames == 0:
+        raise InputError("no audio samples", where=where)
+    if channels > 1:
+        log.info("%s: %d channels, averaged to mono", path.name, channels)
+    if clipped > CLIP_WARN_FRACTION * frames:
+        log.warning("%s: %.1f%% of samples are clipped; intensity will saturate", where,
+                    100 * clipped / frames)
+    np.clip(out, -1.0, 1.0, out=out)
+    return Decoded(out[:n], sr * up / down, frames / sr, sr, channels)
+
+
+def read_audio(path: str | Path, *, max_seconds: float | None = None) -> tuple[np.ndarray, int]:
+    """Decode ``path`` (WAV/FLAC/OGG, any sample format and rate) to mono float64 at its own rate.
+
+    Returns:
+        ``(x, sr)``: ``x (n,) float64`` in [-1, 1] (channels averaged), ``sr`` in Hz.
+
+    Raises:
+        InputError: as ``decode_audio``.
+    """
+    d = decode_audio(path, None, dtype=np.float64, max_seconds=max_seconds)
+    return d.x, d.source_rate
 
 
 def validate_pcm(x: np.ndarray, sr: float, *, where: str = "audio",
@@ -153,8 +424,10 @@ class StreamResampler:
         last_j = (n_in_end * self.up - 1 - self.half) // self.down  # largest j with all inputs known
         if last_j < self._n_out:
             return np.zeros(0)
-        js = np.arange(self._n_out, last_j + 1)
-        out = self._compute(js)
+        # in slices: _compute's gathers are (outputs × taps per phase); a 1 Mi-sample chunk at once
+        # swung the memory by 600 MB
+        out = np.concatenate([self._compute(np.arange(j, min(j + STREAM_SLICE, last_j + 1)))
+                              for j in range(self._n_out, last_j + 1, STREAM_SLICE)])
         self._n_out = last_j + 1
         # keep the history the next output needs
         first_needed = (self._n_out * self.down + self.half) // self.up - len(self._m) - 1

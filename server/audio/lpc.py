@@ -155,18 +155,37 @@ def analyze(x: np.ndarray, *, sr: float = ANALYSIS_RATE, frame_length: float = F
     """Frame, pre-emphasise, window and LP-analyse ``x (n,)`` sampled at ``sr`` Hz.
 
     Frames are centred: frame i covers ``[i·hop - frame_length/2, i·hop + frame_length/2)`` with
-    zeros before the start and after the end, so there are ``ceil(n / hop)`` frames.
+    zeros before the start and after the end, so there are ``ceil(n / hop)`` frames. ``x`` may be
+    float32: it is converted block by block (``BLOCK`` frames), so the memory beyond ``x`` and the
+    features does not grow with its length.
     """
-    x = np.asarray(x, dtype=np.float64)
+    x = np.asarray(x)
+    if x.dtype.kind != "f":
+        x = x.astype(np.float64)
     n_frame = int(round(frame_length * sr))
     n_hop = int(round(hop_length * sr))
     n_out = -(-len(x) // n_hop)
     half = n_frame // 2
-    padded = np.concatenate([np.zeros(half), x, np.zeros(n_frame)])
-    emph = preemphasis(padded, coef=preemph)
-    raw_f = frame(padded, frame_length=n_frame, hop_length=n_hop)[:n_out]
-    emph_f = frame(emph, frame_length=n_frame, hop_length=n_hop)[:n_out]
-    parts = [analyze_frames(raw_f[i:i + BLOCK], emph_f[i:i + BLOCK], sr=sr, order=order)
-             for i in range(0, max(n_out, 1), BLOCK)]  # blocks bound the memory of long files
+    empty = np.zeros((0, n_frame))
+    parts = [analyze_frames(empty, empty, sr=sr, order=order)]
+    for i in range(0, n_out, BLOCK):
+        m = min(BLOCK, n_out - i)
+        # padded signal (half zeros, x, zeros) under this block's frames, and the sample before them
+        lo = i * n_hop - half
+        seg = _window(x, lo - 1, lo + (m - 1) * n_hop + n_frame)
+        raw = seg[1:]
+        emph = preemphasis(raw, coef=preemph, zi=seg[0])
+        raw_f = frame(raw, frame_length=n_frame, hop_length=n_hop)[:m]
+        emph_f = frame(emph, frame_length=n_frame, hop_length=n_hop)[:m]
+        parts.append(analyze_frames(raw_f, emph_f, sr=sr, order=order))
     k, e, z = (np.concatenate([p[j] for p in parts]) for j in range(3))
     return Features(k=k, energy_db=e, zcr=z, hop=n_hop / sr, t0=0.0)
+
+
+def _window(x: np.ndarray, start: int, stop: int) -> np.ndarray:
+    """``x[start:stop]`` as float64, with zeros where the range leaves ``x``."""
+    out = np.zeros(max(0, stop - start))
+    a, b = max(start, 0), min(stop, len(x))
+    if b > a:
+        out[a - start:b - start] = x[a:b]
+    return out

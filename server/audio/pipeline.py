@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from .classify import VowelNet, default_net
-from .io import resample, validate_pcm
+from .io import RATE_TOLERANCE, decode_audio, resample, validate_pcm
 from .lpc import ANALYSIS_RATE, Features, analyze
 from .visemes import (
     Calibration,
@@ -46,8 +48,48 @@ class LipSync:
 
 
 def features_of(x: np.ndarray, sr: float) -> Features:
-    """LPC features of ``x (n,)`` at ``sr`` Hz, resampled to the analysis rate."""
-    return analyze(resample(x, sr, ANALYSIS_RATE), sr=ANALYSIS_RATE)
+    """LPC features of ``x (n,)`` at ``sr`` Hz, resampled to the analysis rate.
+
+    A signal already within ``RATE_TOLERANCE`` of the analysis rate (``decode_audio`` gives one
+    for odd file rates) is analysed at its own rate, so the frame times stay exact.
+    """
+    if abs(float(sr) / ANALYSIS_RATE - 1.0) > RATE_TOLERANCE:
+        x, sr = resample(x, sr, ANALYSIS_RATE), ANALYSIS_RATE
+    return analyze(x, sr=sr)
+
+
+def lipsync_file(path: str | Path, *, fps: float = 100.0, lookahead: float | None = None,
+                 silence_db: float | None = None, max_db: float | None = None,
+                 params: Params | None = None, net: VowelNet | None = None,
+                 table: np.ndarray | None = None, max_seconds: float | None = None) -> LipSync:
+    """Lip-sync an audio file, decoded in blocks straight to the analysis rate.
+
+    The peak memory is about the file's duration × ``ANALYSIS_RATE`` float32 samples (144 MB
+    for an hour) plus the per-frame features, whatever the file's rate, channels or format.
+
+    Args:
+        silence_db, max_db: explicit energy calibration, dB full scale (default: from the file).
+        max_seconds: longest audio accepted (default ``io.max_audio_seconds()``).
+        Others: as ``lipsync``.
+    Raises:
+        InputError: unreadable, invalid or too long audio (``io.decode_audio``), or a ``max_db``
+            not above the silence threshold.
+    """
+    audio = decode_audio(path, ANALYSIS_RATE, max_seconds=max_seconds)
+    f = features_of(audio.x, audio.rate)
+    seconds = audio.seconds
+    del audio  # the signal is not needed past the features
+    cal = None
+    if silence_db is not None or max_db is not None:
+        auto = calibrate(f.energy_db)
+        cal = Calibration(auto.silence_db if silence_db is None else float(silence_db),
+                          auto.max_db if max_db is None else float(max_db))
+        if cal.max_db <= cal.silence_db:
+            raise InputError(f"the loudest level (--max-db) {cal.max_db} dB must be above the silence "
+                             f"threshold {cal.silence_db} dB", where="max_db")
+    net = net or default_net()
+    return track_of(f, net.proba(f.k), seconds, fps=fps, lookahead=lookahead, calibration=cal,
+                    params=params, table=table)
 
 
 def lipsync(x: np.ndarray, sr: float, *, fps: float = 100.0, lookahead: float | None = None,

@@ -203,6 +203,10 @@ def label_frames(energy_db: np.ndarray, zcr: np.ndarray, proba: np.ndarray, cal:
     return vis.astype(np.int64), w
 
 
+#: Output times ``coarticulate`` works on at once (its arrays are rows × window frames).
+COART_ROWS = 4096
+
+
 @dataclass
 class Track:
     """Coarticulated output at times ``t (N,)``: ``faps (N, 69)``, top two visemes ``select1``,
@@ -224,10 +228,22 @@ def coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np.
 
     ``frame_t (T,)`` must be evenly spaced by ``hop`` seconds. Frames with
     ``frame_t > t + lookahead`` do not contribute to time t (None = no limit). ``table``: viseme
-    → FAP targets (default ``viseme_table()``).
+    → FAP targets (default ``viseme_table()``). Output times are taken ``COART_ROWS`` at a time,
+    so the working memory does not grow with the length of the track.
     """
-    frame_t = np.asarray(frame_t, dtype=np.float64)
     t_out = np.asarray(t_out, dtype=np.float64)
+    if len(t_out) <= COART_ROWS:
+        return _coarticulate(frame_t, vis, w, t_out, params, hop=hop, lookahead=lookahead, table=table)
+    parts = [_coarticulate(frame_t, vis, w, t_out[i:i + COART_ROWS], params, hop=hop,
+                           lookahead=lookahead, table=table) for i in range(0, len(t_out), COART_ROWS)]
+    return Track(*(np.concatenate([getattr(p, k) for p in parts]) for k in
+                   ("t", "faps", "select1", "select2", "blend", "weight")))
+
+
+def _coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np.ndarray,
+                  params: Params, *, hop: float, lookahead: float | None = None,
+                  table: np.ndarray | None = None) -> Track:
+    frame_t = np.asarray(frame_t, dtype=np.float64)
     N = len(t_out)
     faps = np.zeros((N, N_FAPS + 1))
     if len(frame_t) == 0 or N == 0:

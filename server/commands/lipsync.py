@@ -11,9 +11,8 @@ import argparse
 import json
 import sys
 
-from ..audio.io import read_audio
-from ..audio.pipeline import features_of, lipsync
-from ..audio.visemes import VISEME_NAMES, Calibration, calibrate
+from ..audio.pipeline import lipsync_file
+from ..audio.visemes import VISEME_NAMES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -35,16 +34,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--fps must be in (0, 1000], got {args.fps}", where="--fps")
     if args.lookahead is not None and args.lookahead < 0:
         raise InputError(f"--lookahead must be >= 0 s, got {args.lookahead}", where="--lookahead")
-    x, sr = read_audio(args.audio)
-    cal = None
-    if args.silence_db is not None or args.max_db is not None:
-        auto = calibrate(features_of(x, sr).energy_db)
-        cal = Calibration(auto.silence_db if args.silence_db is None else args.silence_db,
-                          auto.max_db if args.max_db is None else args.max_db)
-        if cal.max_db <= cal.silence_db:
-            raise InputError(f"--max-db ({cal.max_db}) must be above the silence threshold "
-                             f"({cal.silence_db})", where="--max-db")
-    ls = lipsync(x, sr, fps=args.fps, lookahead=args.lookahead, calibration=cal, where=args.audio)
+    ls = lipsync_file(args.audio, fps=args.fps, lookahead=args.lookahead,
+                      silence_db=args.silence_db, max_db=args.max_db)
     tr = ls.track
     if args.json:
         vis, weight = ls.labels_at(tr.t)
