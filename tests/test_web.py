@@ -222,7 +222,7 @@ def test_playing_an_uploaded_speech_file_moves_the_lips_with_sound(server, brows
     page.close()
 
 
-def jaw_fap(path: Path, frames: int = 50) -> Path:
+def jaw_fap(path: Path, frames: int = 100) -> Path:
     """A .fap clip that opens the jaw and closes it again (25 fps)."""
     from facecast.protocol.fap_file import FapFile, FapFrame, write_fap
 
@@ -238,13 +238,13 @@ def test_play_after_driving_the_face_with_a_button_takes_over_the_producer(serve
     wait_for(page, "window.facecast.viewer.stats.frames >= 1")
     wait_for(page, "window.facecast.state.producer && window.facecast.state.producer.open")
     page.set_input_files("#file", str(jaw_fap(tmp_path / "jaw.fap")))
+    seen = page.evaluate("facecast.viewer.stats.frames")  # the button's frame; nothing more comes until Play
     page.click("#play")
     wait_for(page, "document.getElementById('play-info').textContent.includes('playing') || "
                    "document.getElementById('status').className.includes('error')", timeout=120)
     info, status = page.inner_text("#play-info"), page.inner_text("#status")
-    assert "playing jaw.fap: 50 frames" in info, (info, status)
+    assert "playing jaw.fap: 100 frames" in info, (info, status)
     assert "409" not in status and "already" not in status, status
-    seen = page.evaluate("facecast.viewer.stats.frames")
     wait_for(page, f"window.facecast.viewer.stats.frames >= {seen + 5}")  # the file's frames arrive
     # and the buttons take the session back from the playing file
     page.click("#visemes button >> text=aa")
