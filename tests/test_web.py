@@ -255,7 +255,7 @@ def test_play_after_driving_the_face_with_a_button_takes_over_the_producer(serve
     page.close()
 
 
-def test_a_marker_take_plays_with_the_layout_file_the_page_attaches(server, browser, tmp_path):
+def test_a_marker_take_plays_with_the_layout_file_the_page_attaches(server, browser, tmp_path, artifacts):
     from facecast.protocol.markers_file import write_trc
     from facecast.server.mocap.synthetic import synthetic_take
 
@@ -275,6 +275,7 @@ def test_a_marker_take_plays_with_the_layout_file_the_page_attaches(server, brow
                    "document.getElementById('status').className.includes('error')", timeout=120)
     assert "playing take.trc: 60 frames" in page.inner_text("#play-info"), page.inner_text("#status")
     wait_for(page, "window.facecast.viewer.stats.frames >= 5")
+    page.screenshot(path=str(artifacts / "web_marker_take.png"))
     assert not problems, problems
     page.close()
 
