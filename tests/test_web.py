@@ -255,6 +255,22 @@ def test_play_after_driving_the_face_with_a_button_takes_over_the_producer(serve
     page.close()
 
 
+def test_a_dragged_slider_opens_one_producer_connection(server, browser):
+    page, problems = open_page(browser, f"{server.url}/#key={server.admin_key}")
+    sockets = []
+    page.on("websocket", lambda ws: sockets.append(ws.url) if "/produce" in ws.url else None)
+    wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
+    page.evaluate("""() => {
+      const jaw = document.querySelector('#sliders input[data-fap="3"]');
+      for (let v = 100; v <= 900; v += 100) { jaw.value = v; jaw.dispatchEvent(new Event('input')); }
+    }""")
+    wait_for(page, "window.facecast.state.producer && window.facecast.state.producer.open")
+    wait_for(page, "window.facecast.viewer.stats.frames >= 1")
+    assert len(sockets) == 1, sockets
+    assert not problems, problems
+    page.close()
+
+
 def test_a_marker_take_plays_with_the_layout_file_the_page_attaches(server, browser, tmp_path, artifacts):
     from facecast.protocol.markers_file import write_trc
     from facecast.server.mocap.synthetic import synthetic_take

@@ -134,9 +134,15 @@ async function releaseProducer() {
 /**
  * The page's FAP producer for the watched session (created on first use). It takes the session's
  * producer slot over from whatever the page or the server runs there: the microphone, a server
- * demo or a playing file (stopped).
+ * demo or a playing file (stopped). Calls while it connects (a dragged slider) share the connection.
  */
-async function producer() {
+let connecting = null;
+function producer() {
+  if (!connecting) connecting = openProducer().finally(() => { connecting = null; });
+  return connecting;
+}
+
+async function openProducer() {
   if (state.mic) { await releaseProducer(); state.session = null; }  // the microphone's session takes audio
   if (!state.session) {
     const s = await newSession('fap');
