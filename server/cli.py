@@ -2,12 +2,16 @@
 
 A command module defines ``add_arguments(parser)`` and ``run(args) -> int``. Errors derived from
 ``FacecastError`` are printed as one line ("facecast: <where>: <what>") with exit status 2.
+
+Every ``--url`` and ``--server`` is a server URL, taken as typed (``127.0.0.1:8000`` works; see
+``facecast.client.urls.server_url``). Logs go to stderr at WARNING; ``-v`` shows INFO, ``-vv`` DEBUG.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import logging
+import re
 import sys
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -23,9 +27,23 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: Log level by the number of ``-v`` flags.
+LOG_LEVELS = (logging.WARNING, logging.INFO, logging.DEBUG)
+#: Arguments that name a facecast server.
+URL_ARGS = ("url", "server")
+
+
+def _version() -> str:
+    from . import __version__
+
+    return f"facecast {__version__}"
+
+
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="facecast", description="Networked facial-animation server.")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log more")
+    parser.add_argument("--version", action="version", version=_version())
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="log more: -v for INFO, -vv for DEBUG (default: warnings only); also after the command")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     wanted = next((a for a in argv if not a.startswith("-")), None)
@@ -36,11 +54,34 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     return parser
 
 
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    """The parsed command line, with every server URL normalised (exits 2 on a bad one).
+
+    ``-v`` counts wherever it stands, also after a command's own subcommand (``session list -v``).
+    """
+    from ..client.urls import server_url
+
+    parser = build_parser(argv)
+    args, rest = parser.parse_known_args(argv)
+    unknown = [a for a in rest if not re.fullmatch(r"-v+|--verbose", a)]
+    if unknown:
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+    args.verbose += sum(1 if a == "--verbose" else len(a) - 1 for a in rest)
+    for name in URL_ARGS:
+        value = getattr(args, name, None)
+        if isinstance(value, str):
+            try:
+                setattr(args, name, server_url(value))
+            except ValueError as e:
+                parser.error(f"--{name}: {e}")
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser(argv).parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    args = parse_args(argv)
+    level = LOG_LEVELS[min(args.verbose, len(LOG_LEVELS) - 1)]
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from .errors import FacecastError
 
     try:

@@ -46,8 +46,8 @@ def browser(playwright):
     b.close()
 
 
-def open_page(browser, url: str, artifacts: Path | None = None):
-    page = browser.new_page(viewport={"width": 1000, "height": 700})
+def open_page(browser, url: str, artifacts: Path | None = None, viewport: tuple[int, int] = (1000, 700)):
+    page = browser.new_page(viewport={"width": viewport[0], "height": viewport[1]})
     problems: list[str] = []
     page.on("console", lambda m: problems.append(f"{m.type}: {m.text}") if m.type == "error" else None)
     page.on("pageerror", lambda e: problems.append(f"pageerror: {e}"))
@@ -184,22 +184,188 @@ def test_page_reconnects_after_a_server_restart_and_says_so(browser, tmp_path, a
         second.stop()
 
 
-def test_playing_an_uploaded_speech_file_moves_the_lips_with_sound(server, browser, data_dir, artifacts):
-    face = load_face("default")
-    fp = face.feature_points
+#: Record the lip gap (mm, feature points 2.2 minus 2.3) of every frame the page draws, in window.gaps.
+RECORD_GAPS_JS = """([upper, lower]) => {
+  const v = facecast.viewer, r = facecast.renderer, flush = v.flush.bind(v);
+  window.gaps = [];
+  v.flush = () => {
+    const fresh = flush();
+    if (fresh) window.gaps.push(r.vertex(upper)[1] - r.vertex(lower)[1]);
+    return fresh;
+  };
+}"""
+
+
+def test_playing_an_uploaded_speech_file_moves_the_lips_with_sound(server, browser, data_dir, tmp_path, artifacts):
+    """The lips move with the file over its whole playback (every frame the page draws is looked at,
+    not samples at moments a loaded machine may reach only after the speech is over)."""
+    import soundfile as sf
+
+    fp = load_face("default").feature_points
+    samples, rate = sf.read(data_dir / "speech" / "bobby_16bit_16khz.wav", dtype="int16")
+    speech = tmp_path / "bobby_three_times.wav"  # 3.6 s: time for the page to see it under load
+    sf.write(speech, np.concatenate([samples] * 3), rate, subtype="PCM_16")
     page, problems = open_page(browser, f"{server.url}/#key={server.admin_key}")
     wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
-    page.set_input_files("#file", str(data_dir / "speech" / "bobby_16bit_16khz.wav"))
+    page.evaluate(RECORD_GAPS_JS, [fp["2.2"], fp["2.3"]])
+    page.set_input_files("#file", str(speech))
     page.click("#play")
     wait_for(page, "document.getElementById('play-info').textContent.includes('playing')", timeout=120)
-    wait_for(page, "window.facecast.viewer.stats.frames >= 10", timeout=60)
-    gaps = []
-    for _ in range(25):
-        page.wait_for_timeout(100)
-        gaps.append(page.evaluate(f"facecast.renderer.vertex({fp['2.2']})[1] - facecast.renderer.vertex({fp['2.3']})[1]"))
+    # The server tells viewers the producer left once the file's last frame is out.
+    wait_for(page, "document.getElementById('status').textContent.includes('producer not connected')", timeout=120)
+    gaps = np.array(page.evaluate("window.gaps"))
     assert page.evaluate("document.getElementById('audio').src.startsWith('blob:')")
-    assert np.ptp(gaps) > 0.5, f"the lips did not move with the file: gap range {np.ptp(gaps):.2f} mm"
+    assert len(gaps) >= 2, f"the page drew {len(gaps)} frames of the file"
+    assert np.ptp(gaps) > 0.5, f"the lips did not move with the file: gap range {np.ptp(gaps):.2f} mm over {len(gaps)} frames"
     page.screenshot(path=str(artifacts / "web_play_speech.png"))
+    assert not problems, problems
+    page.close()
+
+
+def jaw_fap(path: Path, frames: int = 100) -> Path:
+    """A .fap clip that opens the jaw and closes it again (25 fps)."""
+    from facecast.protocol.fap_file import FapFile, FapFrame, write_fap
+
+    values = 900 * np.sin(np.linspace(0, np.pi, frames))
+    path.write_text(write_fap(FapFile(frames=tuple(FapFrame.build(i, {3: int(v)}) for i, v in enumerate(values)))))
+    return path
+
+
+def test_play_after_driving_the_face_with_a_button_takes_over_the_producer(server, browser, tmp_path, artifacts):
+    page, problems = open_page(browser, f"{server.url}/#key={server.admin_key}")
+    wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
+    page.click("#expressions button >> text=joy")
+    wait_for(page, "window.facecast.viewer.stats.frames >= 1")
+    wait_for(page, "window.facecast.state.producer && window.facecast.state.producer.open")
+    page.set_input_files("#file", str(jaw_fap(tmp_path / "jaw.fap")))
+    seen = page.evaluate("facecast.viewer.stats.frames")  # the button's frame; nothing more comes until Play
+    page.click("#play")
+    wait_for(page, "document.getElementById('play-info').textContent.includes('playing') || "
+                   "document.getElementById('status').className.includes('error')", timeout=120)
+    info, status = page.inner_text("#play-info"), page.inner_text("#status")
+    assert "playing jaw.fap: 100 frames" in info, (info, status)
+    assert "409" not in status and "already" not in status, status
+    wait_for(page, f"window.facecast.viewer.stats.frames >= {seen + 5}")  # the file's frames arrive
+    # and the buttons take the session back from the playing file
+    page.click("#visemes button >> text=aa")
+    wait_for(page, "window.facecast.state.producer && window.facecast.state.producer.open")
+    page.screenshot(path=str(artifacts / "web_button_then_play.png"))
+    assert "error" not in page.evaluate("document.getElementById('status').className"), page.inner_text("#status")
+    assert not problems, problems
+    page.close()
+
+
+def test_a_dragged_slider_opens_one_producer_connection(server, browser):
+    page, problems = open_page(browser, f"{server.url}/#key={server.admin_key}")
+    sockets = []
+    page.on("websocket", lambda ws: sockets.append(ws.url) if "/produce" in ws.url else None)
+    wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
+    page.evaluate("""() => {
+      const jaw = document.querySelector('#sliders input[data-fap="3"]');
+      for (let v = 100; v <= 900; v += 100) { jaw.value = v; jaw.dispatchEvent(new Event('input')); }
+    }""")
+    wait_for(page, "window.facecast.state.producer && window.facecast.state.producer.open")
+    wait_for(page, "window.facecast.viewer.stats.frames >= 1")
+    assert len(sockets) == 1, sockets
+    assert not problems, problems
+    page.close()
+
+
+def test_a_marker_take_plays_with_the_layout_file_the_page_attaches(server, browser, tmp_path, artifacts):
+    from facecast.protocol.markers_file import write_trc
+    from facecast.server.mocap.synthetic import synthetic_take
+
+    syn = synthetic_take(load_face("default"), n_markers=16, seconds=1.0, fps=60.0, seed=3)
+    (tmp_path / "take.trc").write_text(write_trc(syn.take))
+    (tmp_path / "layout.json").write_text(json.dumps(syn.layout))
+    page, problems = open_page(browser, f"{server.url}/#key={server.admin_key}")
+    wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
+    assert not page.is_visible("#layout")  # asked for only with a marker take
+    page.set_input_files("#file", str(tmp_path / "take.trc"))
+    assert page.is_visible("#layout")
+    page.click("#play")  # no layout yet: the page says what is missing, nothing is sent
+    assert "layout" in page.inner_text("#status")
+    page.set_input_files("#layout", str(tmp_path / "layout.json"))
+    page.click("#play")
+    wait_for(page, "document.getElementById('play-info').textContent.includes('playing') || "
+                   "document.getElementById('status').className.includes('error')", timeout=120)
+    assert "playing take.trc: 60 frames" in page.inner_text("#play-info"), page.inner_text("#status")
+    wait_for(page, "window.facecast.viewer.stats.frames >= 5")
+    page.screenshot(path=str(artifacts / "web_marker_take.png"))
+    assert not problems, problems
+    page.close()
+
+
+def page_text_everywhere(page) -> str:
+    """Everything the page shows or holds in its markup: the address, the title, the rendered text,
+    the HTML (attributes included) and the value of every field but the admin key's password box."""
+    return "\n".join([page.url, page.title(), page.inner_text("body"), page.content(), page.evaluate(
+        "[...document.querySelectorAll('input, select, textarea, output')]"
+        ".filter((e) => e.id !== 'admin-key').map((e) => e.value).join('\\n')")])
+
+
+def test_the_page_never_shows_a_token_or_the_admin_key(server, browser, tmp_path):
+    session = create_session(server, input="fap", fps=30)
+    secrets = {"admin key": server.admin_key, "producer token": session["producer_token"],
+               "viewer token": session["viewer_token"]}
+    bad = tmp_path / "bad.fap"
+    bad.write_text("2.1 broken 25 1\nnot a mask\n")
+    # A link with the session's tokens and no admin key: producer routes take the token in the query,
+    # and the server's refusal of a bad file must not bring it into the status bar.
+    page, problems = open_page(browser, f"{server.url}/#session={session['id']}&token={session['viewer_token']}"
+                                        f"&producer={session['producer_token']}")
+    wait_for(page, "document.getElementById('status').textContent.includes('watching')")
+    assert page.evaluate("document.getElementById('admin-key').value") == ""
+    page.click("#expressions button >> text=joy")
+    wait_for(page, "window.facecast.state.producer && window.facecast.state.producer.open")
+    page.set_input_files("#file", str(bad))
+    page.click("#play")
+    wait_for(page, "document.getElementById('status').className.includes('error')", timeout=120)
+    assert "400" in page.inner_text("#status")
+    shown = page_text_everywhere(page)
+    assert f"session={session['id']}" in page.url  # the link still names the session, for a reload
+    assert not [name for name, s in secrets.items() if s in shown], page.inner_text("#status")
+    page.close()
+    # With the admin key in the link: every button, the demo and a file, then look again.
+    page, problems = open_page(browser, f"{server.url}/#key={server.admin_key}")
+    wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
+    assert page.evaluate("document.getElementById('admin-key').type") == "password"
+    page.click("#demo")
+    wait_for(page, "window.facecast.viewer.stats.frames >= 3")
+    page.click("#expressions button >> text=joy")
+    wait_for(page, "window.facecast.state.producer && window.facecast.state.producer.open")
+    page.set_input_files("#file", str(bad))
+    page.click("#play")
+    wait_for(page, "document.getElementById('status').className.includes('error')", timeout=120)
+    page_secrets = [v for t in page.evaluate("Object.values(facecast.state.tokens)") for v in t.values() if v]
+    assert page_secrets, "the page holds the tokens of the sessions it made"
+    shown = page_text_everywhere(page)
+    assert server.admin_key not in shown and not [s for s in page_secrets if s in shown], page.inner_text("#status")
+    assert not [p for p in problems if "status of 400" not in p], problems  # the bad file's refusal
+    page.close()
+
+
+def test_at_phone_width_the_face_is_not_covered(server, browser, artifacts):
+    page, problems = open_page(browser, f"{server.url}/#key={server.admin_key}", viewport=(390, 844))
+    wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
+    page.click("#demo")
+    wait_for(page, "window.facecast.viewer.stats.frames >= 3")
+    page.evaluate("window.scrollTo(0, 0)")
+    page.screenshot(path=str(artifacts / "web_phone.png"))
+    canvas = page.locator("#view").bounding_box()
+    assert canvas["width"] >= 0.9 * 390 and canvas["height"] >= 240, canvas
+    # The middle half of the canvas (where the camera frames the face) is free of every overlay
+    # and of the controls.
+    x0, x1 = canvas["x"] + canvas["width"] / 4, canvas["x"] + 3 * canvas["width"] / 4
+    y0, y1 = canvas["y"] + canvas["height"] / 4, canvas["y"] + 3 * canvas["height"] / 4
+    for sel in ("#stats", "#status", "aside"):
+        b = page.locator(sel).bounding_box()
+        apart = b["x"] >= x1 or b["x"] + b["width"] <= x0 or b["y"] >= y1 or b["y"] + b["height"] <= y0
+        assert apart, f"{sel} {b} covers the middle of the face {(x0, y0, x1, y1)}"
+    # and what is drawn there is the face
+    w, h = canvas["width"], canvas["height"]
+    middle = region(page, [w / 2 - 30, h / 2 - 30, w / 2 + 30, h / 2 + 30]).mean(axis=0)
+    assert middle[0] > middle[2] + 30, f"no skin in the middle of the canvas: {middle}"
     assert not problems, problems
     page.close()
 

@@ -6,19 +6,56 @@ import { EXPRESSIONS, VISEMES, SLIDERS } from './controls.js';
 
 const $ = (id) => document.getElementById(id);
 const state = { session: null, tokens: {}, producer: null, mic: null, drawTimes: [] };
+const sleep = (ms) => new Promise((resolve) => { setTimeout(resolve, ms); });
+
+// ---- secrets: never shown -----------------------------------------------------------------------
+// The admin key and session tokens are credentials: the page keeps them in storage and memory only.
+// Every text it shows goes through redact(), which masks any of them (and any ?token=/&key= value).
+function secrets() {
+  const all = [$('admin-key').value.trim()];
+  for (const t of Object.values(state.tokens)) all.push(t.producer, t.viewer);
+  return all.filter((s) => s && s.length >= 6);
+}
+
+function redact(text) {
+  let out = String(text);
+  for (const s of secrets()) out = out.split(s).join('•••');
+  return out.replace(/([?&#](?:token|key|producer)=)[^&\s]+/g, '$1•••');
+}
 
 function setStatus(text, level = 'ok') {
   const el = $('status');
-  el.textContent = text;
+  el.textContent = redact(text);
   el.className = `overlay status ${level}`;
 }
 
-// ---- admin key and REST -------------------------------------------------------------------------
+const setInfo = (id, text) => { $(id).textContent = redact(text); };
+
+// ---- admin key, the page's link, REST ------------------------------------------------------------
+// A link may carry the admin key (#key=…) or a session with its tokens (#session=…&token=…&producer=…).
+// The key goes to localStorage, a session's tokens to sessionStorage (this tab only, so a reload
+// still watches it); the address bar keeps only #session=… .
 const hashParams = new URLSearchParams(location.hash.slice(1));
 if (hashParams.get('key')) localStorage.setItem('facecast-admin-key', hashParams.get('key'));
 $('admin-key').value = localStorage.getItem('facecast-admin-key') || '';
 if (['i16', 'f32'].includes(hashParams.get('encoding'))) $('encoding').value = hashParams.get('encoding');
 $('admin-key').addEventListener('change', () => localStorage.setItem('facecast-admin-key', $('admin-key').value.trim()));
+const link = { session: hashParams.get('session'), token: hashParams.get('token'), producer: hashParams.get('producer') };
+if (link.session && link.token) {
+  sessionStorage.setItem(`facecast-link-${link.session}`, JSON.stringify(link));
+} else if (link.session) {
+  Object.assign(link, JSON.parse(sessionStorage.getItem(`facecast-link-${link.session}`) || '{}'));
+}
+{
+  const shown = new URLSearchParams(hashParams);
+  for (const k of ['key', 'token', 'producer']) shown.delete(k);
+  const hash = shown.toString();
+  if (hash !== location.hash.slice(1)) history.replaceState(null, '', `${location.pathname}${location.search}${hash ? `#${hash}` : ''}`);
+}
+
+class ApiError extends Error {
+  constructor(message, status) { super(message); this.status = status; }
+}
 
 async function api(method, path, body, { form = false } = {}) {
   const headers = {};
@@ -30,9 +67,17 @@ async function api(method, path, body, { form = false } = {}) {
   const data = text ? (() => { try { return JSON.parse(text); } catch { return { error: text }; } })() : null;
   if (!res.ok) {
     const why = data && (data.error || data.detail);
-    throw new Error(`${method} ${path}: ${res.status} ${typeof why === 'string' ? why : JSON.stringify(why)}`);
+    const where = path.split('?')[0];  // a query may hold a token
+    throw new ApiError(redact(`${method} ${where}: ${res.status} ${typeof why === 'string' ? why : JSON.stringify(why)}`), res.status);
   }
   return data;
+}
+
+/** The query that authorises producer routes (demo, play): none with the admin key, else the producer token. */
+function producerQuery(sessionId) {
+  const t = state.tokens[sessionId];
+  if ($('admin-key').value.trim() || !t || !t.producer) return '';
+  return `?token=${encodeURIComponent(t.producer)}`;
 }
 
 async function refreshSessions() {
@@ -69,14 +114,43 @@ async function watch(sessionId) {
   viewer.watch(sessionId, state.tokens[sessionId].viewer, $('encoding').value);
 }
 
-/** The producer of the watched session (created on first use); stops a running server demo. */
-async function producer() {
+/** Close a producer's connection; resolves once it is closed. */
+function closed(p) {
+  const ws = p && p.ws;
+  if (!ws || ws.readyState === WebSocket.CLOSED) { if (p) p.close(); return Promise.resolve(); }
+  const done = new Promise((resolve) => { ws.addEventListener('close', resolve, { once: true }); });
+  p.close();
+  return done;
+}
+
+/** Free the session's producer slot the page itself holds (buttons and sliders, or the microphone). */
+async function releaseProducer() {
+  const p = state.producer;
+  state.producer = null;
+  if (state.mic) await stopMic();
+  await closed(p);
+}
+
+/**
+ * The page's FAP producer for the watched session (created on first use). It takes the session's
+ * producer slot over from whatever the page or the server runs there: the microphone, a server
+ * demo or a playing file (stopped). Calls while it connects (a dragged slider) share the connection.
+ */
+let connecting = null;
+function producer() {
+  if (!connecting) connecting = openProducer().finally(() => { connecting = null; });
+  return connecting;
+}
+
+async function openProducer() {
+  if (state.mic) { await releaseProducer(); state.session = null; }  // the microphone's session takes audio
   if (!state.session) {
     const s = await newSession('fap');
     await watch(s.id);
   }
   if (!state.producer || state.producer.session !== state.session || !state.producer.open) {
-    try { await api('DELETE', `/v1/sessions/${state.session}/demo`); } catch { /* no demo running */ }
+    await closed(state.producer);
+    try { await api('DELETE', `/v1/sessions/${state.session}/demo${producerQuery(state.session)}`); } catch { /* no demo running */ }
     state.producer = new Producer(state.session, state.tokens[state.session].producer, setStatus);
     await state.producer.connect({ input: 'fap' });
   }
@@ -205,36 +279,75 @@ $('neutral').onclick = async () => {
   try { (await producer()).sendFaps({ ...sliderValues }, [0, 0, 63], [0, 0, 0, 0]); } catch (e) { setStatus(e.message, 'error'); }
 };
 
+const MARKERS = /\.(c3d|trc|csv)$/i;
+$('file').onchange = () => {
+  const file = $('file').files[0];
+  $('layout-row').hidden = !(file && MARKERS.test(file.name));
+};
+
+/**
+ * POST the upload to /play. The page's own producer has just been closed: until the server has seen
+ * it go, /play answers 409, so that answer is retried for a few seconds.
+ */
+async function postPlay(sessionId, form) {
+  for (let attempt = 0; ; attempt++) {
+    try {
+      return await api('POST', `/v1/sessions/${sessionId}/play${producerQuery(sessionId)}`, form, { form: true });
+    } catch (e) {
+      if (e.status !== 409 || attempt >= 8) throw e;
+      await sleep(Math.min(1000, 100 * 2 ** attempt));
+    }
+  }
+}
+
 $('play').onclick = async () => {
   const file = $('file').files[0];
   if (!file) { setStatus('choose a .fap, audio or marker file first', 'warn'); return; }
+  const layout = $('layout').files[0];
+  if (MARKERS.test(file.name) && !layout) {
+    setStatus(`${file.name} is a marker take: choose its marker layout (.json) too`, 'warn');
+    $('layout-row').hidden = false;
+    return;
+  }
   try {
+    await releaseProducer();  // Play takes over from the page's buttons, sliders and microphone
     if (!state.session) { const s = await newSession('fap'); await watch(s.id); }
     const form = new FormData();
     form.append('file', file, file.name);
+    if (layout && MARKERS.test(file.name)) form.append('layout', layout, layout.name);
     const isAudio = /\.(wav|flac|ogg)$/i.test(file.name);
     const audio = $('audio');
     if (isAudio) { audio.src = URL.createObjectURL(file); audio.load(); }
-    const res = await api('POST', `/v1/sessions/${state.session}/play?token=${encodeURIComponent(state.tokens[state.session].producer)}`, form, { form: true });
-    $('play-info').textContent = `playing ${file.name}: ${res.frames} frames at ${res.fps} fps (${res.seconds.toFixed(1)} s)`;
+    const res = await postPlay(state.session, form);
+    setInfo('play-info', `playing ${file.name}: ${res.frames} frames at ${res.fps} fps (${res.seconds.toFixed(1)} s)`);
     if (isAudio) {
       // Start the sound when the server starts the motion: both run from the same start instant.
       const delay = Math.max(0, res.start_wall * 1000 - Date.now() + (viewer.summary().latencyP50 || 0));
       setTimeout(() => audio.play().catch(() => setStatus('the browser blocked sound playback; click the page', 'warn')), delay);
     }
-  } catch (e) { $('play-info').textContent = e.message; setStatus(e.message, 'error'); }
+  } catch (e) { setInfo('play-info', e.message); setStatus(e.message, 'error'); }
 };
 
+/** Stop the microphone; resolves once its producer connection is closed. */
+async function stopMic() {
+  const mic = state.mic;
+  state.mic = null;
+  $('mic').textContent = 'Start microphone lip-sync';
+  if (!mic) return;
+  const done = closed(mic.producer);
+  mic.stop();
+  await done;
+}
+
 $('mic').onclick = async () => {
-  if (state.mic) {
-    state.mic.stop(); state.mic = null; $('mic').textContent = 'Start microphone lip-sync'; return;
-  }
+  if (state.mic) { await stopMic(); return; }
   try {
     const { Microphone } = await import('./microphone.js');
+    await releaseProducer();
     const s = await newSession('audio');
     await watch(s.id);
     const p = new Producer(s.id, state.tokens[s.id].producer, setStatus);
-    state.mic = new Microphone(p, (info) => { $('mic-info').textContent = info; });
+    state.mic = new Microphone(p, (info) => setInfo('mic-info', info));
     await state.mic.start();
     $('mic').textContent = 'Stop microphone';
   } catch (e) { setStatus(`microphone: ${e.message}`, 'error'); }
@@ -243,10 +356,9 @@ $('mic').onclick = async () => {
 // ---- start: watch the session named in the URL, else the newest live one, else a demo -----------
 (async () => {
   try {
-    const sid = hashParams.get('session'), tok = hashParams.get('token');
-    if (sid && tok) {
-      state.tokens[sid] = { viewer: tok, producer: hashParams.get('producer') || null };
-      await watch(sid);
+    if (link.session && link.token) {
+      state.tokens[link.session] = { viewer: link.token, producer: link.producer || null };
+      await watch(link.session);
       return;
     }
     const faces = await api('GET', '/v1/faces');

@@ -1,0 +1,31 @@
+"""The README's first-run commands and the CI entry point agree, and the setup makes a venv."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def readme_commands() -> list[str]:
+    return re.findall(r"^    (bash \.ci/setup && .+)$", (ROOT / "README.md").read_text(), re.M)
+
+
+def test_readme_gives_a_serve_and_a_test_command_through_the_setups_venv():
+    serve, test = readme_commands()
+    assert serve == "bash .ci/setup && .venv/bin/facecast serve"
+    assert test == "bash .ci/setup && .venv/bin/python -m pytest -q"
+    assert "virtual" in (ROOT / "README.md").read_text()
+
+
+def test_ci_runs_exactly_the_readmes_test_command_and_fails_with_it():
+    lines = (ROOT / ".ci" / "run").read_text().splitlines()
+    assert "set -euo pipefail" in lines
+    assert lines[-1] == readme_commands()[1]
+
+
+def test_setup_installs_into_a_venv_never_the_system_python():
+    setup = (ROOT / ".ci" / "setup").read_text()
+    assert "-m venv" in setup
+    pip_lines = [line for line in setup.splitlines() if "pip install" in line and not line.startswith("#")]
+    assert pip_lines and all(line.strip().startswith('"$VENV/bin/python" -m pip') for line in pip_lines)
