@@ -23,6 +23,7 @@ environment:
   FACECAST_FACES                more faces by name: ict=/path/generic_neutral_mesh.obj,other=/path/x.obj
   FACECAST_MAX_UPLOAD_BYTES     largest job upload (default 64 MiB)
   FACECAST_JOB_RETENTION_HOURS  delete finished jobs after this long (default 168; 0 = never)
+  FACECAST_SESSION_IDLE_SECONDS close a live session idle this long (default 600; 0 = never)
   every flag also as FACECAST_<NAME> (FACECAST_PORT, FACECAST_JOB_WORKERS, ...)
 
 routes: /docs (OpenAPI), /healthz, /readyz, /metrics, /v1/faces, /v1/jobs, /v1/sessions
@@ -43,6 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--allow-remote", action="store_true", default=None,
                    help="allow binding to a non-loopback address (anyone who can reach it can use the "
                         "public routes; admin routes still need the key)")
+    p.add_argument("--session-idle", type=float, metavar="SECONDS",
+                   help="close a live session after this long with no viewer and no connected producer "
+                        "(default 600; 0 = never)")
     p.add_argument("--log-level", default=None, help="uvicorn log level (default: warning)")
 
 
@@ -68,7 +72,7 @@ def make_config(args: argparse.Namespace):
     overrides = {k: v for k, v in {
         "host": args.host, "port": args.port, "data_dir": args.data_dir, "face": args.face,
         "backend": args.backend, "device": args.device, "job_workers": args.workers,
-        "allow_remote": args.allow_remote,
+        "allow_remote": args.allow_remote, "session_idle_seconds": getattr(args, "session_idle", None),
     }.items() if v is not None}
     try:
         config = ServerConfig(**overrides)
@@ -132,6 +136,10 @@ def run(args: argparse.Namespace) -> int:
           f"{config.job_workers} job worker(s), backend {config.backend})", flush=True)
     if not os.environ.get("FACECAST_ADMIN_KEY"):  # the operator did not choose the key: show the page link
         print(f"facecast: web viewer with admin rights: http://{config.host}:{config.port}/#key={key}", flush=True)
-    uvicorn.run(app, host=config.host, port=config.port, ws_per_message_deflate=False,
+    from ..api.redact import install as mask_secrets_in_logs
+    from ..live.budget import MAX_WS_MESSAGE
+
+    mask_secrets_in_logs()
+    uvicorn.run(app, host=config.host, port=config.port, ws_per_message_deflate=False, ws_max_size=MAX_WS_MESSAGE,
                 log_level=args.log_level or "warning", lifespan="on", timeout_graceful_shutdown=5)
     return 0
