@@ -143,6 +143,24 @@ async def _refuse(ws: WebSocket, code: int, message: str, where: str = "") -> No
         pass
 
 
+#: Seconds a flooding client has to read its close frame before its connection is dropped.
+CUT_OFF_GRACE = 1.0
+
+
+def _cut_off(ws: WebSocket) -> None:
+    """Stop reading a flooding connection now (its queued bytes are never parsed) and drop it after
+    ``CUT_OFF_GRACE`` seconds, whether or not it answers the close frame. Best effort."""
+    proto = find_protocol(getattr(ws, "_send", None))
+    transport = getattr(proto, "transport", None)
+    if transport is None or transport.is_closing():
+        return
+    try:
+        transport.pause_reading()
+    except RuntimeError:  # pragma: no cover - already closing
+        return
+    asyncio.get_running_loop().call_later(CUT_OFF_GRACE, transport.abort)
+
+
 async def _accept(ws: WebSocket, query_token: str | None) -> str | None:
     """Accept the handshake (with the ``facecast.v1`` subprotocol if offered); the token sent."""
     token, subprotocol = ws_token(ws.headers, ws.scope.get("subprotocols") or [], query_token)
@@ -353,6 +371,7 @@ async def _producer_loop(ws: WebSocket, session, reg, inp, limits: Limits) -> No
             code = CloseCode.TOO_BIG if verdict is Verdict.TOO_BIG else CloseCode.POLICY_VIOLATION
             log.warning("session %s: producer disconnected (%d): %s", session.spec.id, code, why)
             await _refuse(ws, code, why)
+            _cut_off(ws)
             return
         seq: int | None = None
         try:
@@ -574,6 +593,7 @@ async def _drain(ws: WebSocket, session, metrics) -> None:
                 code = CloseCode.TOO_BIG if verdict is Verdict.TOO_BIG else CloseCode.POLICY_VIOLATION
                 log.warning("session %s: viewer disconnected (%d): %s", session.spec.id, code, why)
                 await _refuse(ws, code, f"viewers only listen: {why}")
+                _cut_off(ws)
                 return
     except (WebSocketDisconnect, RuntimeError, OSError):
         return
