@@ -2,8 +2,9 @@
 
 uvicorn's access log and its WebSocket ``[accepted]`` lines print each request's path with its
 query string, where old clients still put session tokens (``?token=``). ``install()`` adds a
-filter to the uvicorn loggers (and facecast's own) that masks them before any handler sees them.
-Filters on a logger survive uvicorn's ``dictConfig`` of its handlers.
+filter to the uvicorn loggers, which masks them before any handler sees them (filters on a logger
+survive uvicorn's ``dictConfig`` of its handlers), and to the root logger's handlers, which
+print every other record that propagates (facecast's own).
 """
 
 from __future__ import annotations
@@ -13,8 +14,8 @@ import re
 
 _SECRET = re.compile(r"(?i)\b((?:producer_|viewer_|admin_)?(?:token|key))=[^&#\s\"']+")
 
-#: Loggers whose records are masked.
-LOGGERS = ("uvicorn", "uvicorn.error", "uvicorn.access", "facecast")
+#: Loggers whose own records are masked.
+LOGGERS = ("uvicorn", "uvicorn.error", "uvicorn.access")
 
 
 def mask(text: str) -> str:
@@ -40,8 +41,9 @@ class SecretFilter(logging.Filter):
 
 
 def install(names: tuple[str, ...] = LOGGERS) -> None:
-    """Add one ``SecretFilter`` to each logger in ``names`` (idempotent)."""
-    for name in names:
-        logger = logging.getLogger(name)
-        if not any(isinstance(f, SecretFilter) for f in logger.filters):
-            logger.addFilter(SecretFilter())
+    """Add one ``SecretFilter`` to each logger in ``names`` and to each handler of the root logger
+    (idempotent)."""
+    targets = [logging.getLogger(name) for name in names] + list(logging.getLogger().handlers)
+    for target in targets:
+        if not any(isinstance(f, SecretFilter) for f in target.filters):
+            target.addFilter(SecretFilter())
