@@ -1,7 +1,7 @@
 """A flooding producer against a healthy session: does the victim keep its frame rate?
 
 Starts a real ``facecast serve`` on a free loopback port (server defaults: 250 frames/s per
-producer, ``--face`` default the 25k-vertex ``default``), then two phases of ``--seconds`` each:
+producer, ``--face`` default the 25k-vertex ``default``), then three phases of ``--seconds`` each:
 
 - **baseline**: the victim session alone: a producer sending FAP frames at 60 fps (real time) and
   one viewer (int16 frames) measuring frames per second and end-to-end latency (viewer receive
@@ -12,7 +12,8 @@ producer, ``--face`` default the 25k-vertex ``default``), then two phases of ``-
   frames (binary, or JSON with ``--json``) as fast as it can, reconnecting whenever the server
   closes it.
 
-Reports the victim's fps and latency p50/p95 in both phases, the flood's messages per second (sent
+The three phases repeat ``--rounds`` times, interleaved; each number is the median over rounds.
+Reports the victim's fps and latency p50/p95 in each phase, the flood's messages per second (sent
 by the client; ``flood_msgs_per_s_open`` counts only time the flooder was connected), how the server
 ended the flooding connections (close codes), server CPU seconds per second, and the machine's load.
 Writes ``bench/out/flood.json`` and prints a markdown table.
@@ -99,14 +100,16 @@ def _burner(stop) -> None:
         sum(range(10_000))
 
 
-def _flooder(url: str, session: str, token: str, json_frames: bool, stop, conn) -> None:
+def _flooder(url: str, session: str, token: str, json_frames: bool, stop, conn,
+             query_token: bool = False) -> None:
     """Child process: flood ``session`` with FAP frames until ``stop`` is set; reports via ``conn``.
     Niced: on a real attack the flooder's CPU is not the server's (here they share the machine)."""
     os.nice(10)
-    asyncio.run(_flood(url, session, token, json_frames, stop, conn))
+    asyncio.run(_flood(url, session, token, json_frames, stop, conn, query_token))
 
 
-async def _flood(url: str, session: str, token: str, json_frames: bool, stop, conn) -> None:
+async def _flood(url: str, session: str, token: str, json_frames: bool, stop, conn,
+                 query_token: bool) -> None:
     import numpy as np
     from websockets.asyncio.client import connect
     from websockets.exceptions import ConnectionClosed
@@ -122,7 +125,7 @@ async def _flood(url: str, session: str, token: str, json_frames: bool, stop, co
     sent = connections = 0
     open_seconds = 0.0
     codes: dict[str, int] = {}
-    target = ws_url(url, f"/v1/sessions/{session}/produce")
+    target = ws_url(url, f"/v1/sessions/{session}/produce", token=token if query_token else None)
     while not stop.is_set():
         try:
             ws = await connect(target, additional_headers={"Authorization": f"Bearer {token}"},
@@ -151,42 +154,63 @@ async def _flood(url: str, session: str, token: str, json_frames: bool, stop, co
                "close_codes": codes})
 
 
-def run_flood(seconds: int = 10, *, face: str = "default", backend: str = "auto",
-              json_frames: bool = False) -> dict:
-    """Baseline then flood, ``seconds`` each, against a fresh server; the numbers as a dict
-    (``fps_victim``, ``p95_ms_victim``, ``flood_msgs_per_s``, ``baseline``, ``flood``, ...)."""
+def _median_phase(runs: list[dict]) -> dict:
+    """Per-field medians of several runs of one phase (the machine is shared: phases are noisy)."""
+    import statistics
+
+    out = {}
+    for k in runs[0]:
+        vals = [r[k] for r in runs if r.get(k) is not None]
+        out[k] = round(statistics.median(vals), 2) if vals else None
+    out["rounds"] = runs
+    return out
+
+
+def run_flood(seconds: int = 10, *, rounds: int = 3, face: str = "default", backend: str = "auto",
+              json_frames: bool = False, query_token: bool = False) -> dict:
+    """Against a fresh server, ``rounds`` rounds of three ``seconds``-long phases (baseline, control,
+    flood); per phase the median over rounds. The numbers as a dict (``fps_victim``,
+    ``p95_ms_victim``, ``flood_msgs_per_s``, ``baseline``, ``control``, ``flood``, ``load``, ...).
+    ``query_token``: the flooder sends its token as ``?token=`` (to measure servers older than
+    header tokens the same way)."""
     import httpx
 
     from facecast.server.bench.serve import ADMIN_KEY, _Server
 
+    ctx = multiprocessing.get_context("spawn")
+    phases: dict[str, list[dict]] = {"baseline": [], "control": [], "flood": []}
+    floods, loads, cpu = [], [], []
     server = _Server(face, backend, env={"FACECAST_MAX_PRODUCER_FPS": "250"})
     try:
         server.wait_ready()
         url = server.url
-        baseline = asyncio.run(_victim(url, ADMIN_KEY, seconds, face))
-        ctx = multiprocessing.get_context("spawn")
-        stop = ctx.Event()
-        burner = ctx.Process(target=_burner, args=(stop,))
-        burner.start()
-        control = asyncio.run(_victim(url, ADMIN_KEY, seconds, face))
-        stop.set()
-        burner.join(10)
-        attacker = httpx.post(url + "/v1/sessions", json={"face": face},
-                              headers={"Authorization": f"Bearer {ADMIN_KEY}"}, timeout=120).json()
-        stop = ctx.Event()
-        parent, child = ctx.Pipe()
-        proc = ctx.Process(target=_flooder, args=(url, attacker["id"], attacker["producer_token"],
-                                                  json_frames, stop, child))
-        cpu0, t0 = server.cpu_seconds(), time.monotonic()
-        proc.start()
-        time.sleep(0.5)  # the flood is on before the victim starts
-        load = _load()
-        flooded = asyncio.run(_victim(url, ADMIN_KEY, seconds, face))
-        stop.set()
-        flood = parent.recv() if parent.poll(30) else {}
-        proc.join(10)
-        wall = time.monotonic() - t0
-        server_cpu = (server.cpu_seconds() - cpu0) / wall
+        for _ in range(rounds):
+            loads.append(_load())
+            phases["baseline"].append(asyncio.run(_victim(url, ADMIN_KEY, seconds, face)))
+            stop = ctx.Event()
+            burner = ctx.Process(target=_burner, args=(stop,))
+            burner.start()
+            phases["control"].append(asyncio.run(_victim(url, ADMIN_KEY, seconds, face)))
+            stop.set()
+            burner.join(10)
+            attacker = httpx.post(url + "/v1/sessions", json={"face": face},
+                                  headers={"Authorization": f"Bearer {ADMIN_KEY}"}, timeout=120).json()
+            stop = ctx.Event()
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=_flooder, args=(url, attacker["id"], attacker["producer_token"],
+                                                      json_frames, stop, child, query_token))
+            cpu0, t0 = server.cpu_seconds(), time.monotonic()
+            proc.start()
+            time.sleep(0.5)  # the flood is on before the victim starts
+            phases["flood"].append(asyncio.run(_victim(url, ADMIN_KEY, seconds, face)))
+            stop.set()
+            flood = parent.recv() if parent.poll(30) else {}
+            proc.join(10)
+            wall = time.monotonic() - t0
+            cpu.append((server.cpu_seconds() - cpu0) / wall)
+            floods.append({**flood, "seconds": wall})
+            httpx.delete(f"{url}/v1/sessions/{attacker['id']}",
+                         headers={"Authorization": f"Bearer {ADMIN_KEY}"}, timeout=30)
         healthy = httpx.get(url + "/healthz", timeout=5).status_code == 200
         metrics = httpx.get(url + "/metrics", timeout=5).text
     finally:
@@ -194,25 +218,33 @@ def run_flood(seconds: int = 10, *, face: str = "default", backend: str = "auto"
     refused = {line.split("{")[1].split("}")[0]: float(line.rsplit(" ", 1)[1])
                for line in metrics.splitlines()
                if line.startswith("facecast_live_messages_refused_total{")}
+    base, control, flooded = (_median_phase(phases[k]) for k in ("baseline", "control", "flood"))
+    sent = sum(f.get("sent", 0) for f in floods)
+    codes: dict[str, int] = {}
+    for f in floods:
+        for k, v in (f.get("close_codes") or {}).items():
+            codes[k] = codes.get(k, 0) + v
     return {
         "face": face,
         "backend": backend,
         "seconds": seconds,
+        "rounds": rounds,
         "flood_kind": "json" if json_frames else "binary",
         "fps_victim": flooded["fps"],
         "p50_ms_victim": flooded["p50_ms"],
         "p95_ms_victim": flooded["p95_ms"],
-        "flood_msgs_per_s": round(flood.get("sent", 0) / wall, 1),
-        "flood_msgs_per_s_open": round(flood.get("sent", 0) / max(flood.get("open_seconds", 0), 1e-9), 1),
-        "flood_connections": flood.get("connections"),
-        "flood_close_codes": flood.get("close_codes"),
+        "flood_msgs_per_s": round(sent / sum(f["seconds"] for f in floods), 1),
+        "flood_msgs_per_s_open": round(sent / max(sum(f.get("open_seconds", 0) for f in floods), 1e-9), 1),
+        "flood_connections": sum(f.get("connections", 0) for f in floods),
+        "flood_close_codes": codes,
         "server_refused": refused,
-        "server_cpu_per_s": round(server_cpu, 3),
+        "server_cpu_per_s": round(sorted(cpu)[len(cpu) // 2], 3),
         "healthz_after": healthy,
-        "baseline": baseline,
+        "baseline": base,
         "control": control,
         "flood": flooded,
-        "load": load,
+        "load": {"loadavg_1m": round(sum(x["loadavg_1m"] for x in loads) / len(loads), 2),
+                 "cpus": os.cpu_count(), "rounds": loads},
         "ok": bool(flooded["fps"] and flooded["fps"] >= 57 and flooded["p95_ms"] is not None
                    and flooded["p95_ms"] <= 50),
     }
@@ -230,7 +262,8 @@ def _table(r: dict) -> str:
         ("server CPU s/s (flood phase)", "-", "-", r["server_cpu_per_s"]),
     ]
     head = (f"flood ({r['flood_kind']} FAP frames), face {r['face']}, {r['seconds']} s per phase, "
-            f"load {r['load']['loadavg_1m']} on {r['load']['cpus']} CPUs; target: victim >= 57 fps, "
+            f"median of {r['rounds']} rounds, mean load {r['load']['loadavg_1m']} on "
+            f"{r['load']['cpus']} CPUs; target: victim >= 57 fps, "
             f"p95 <= 50 ms: {'met' if r['ok'] else 'NOT met'}")
     return "\n".join([head, "", "| | baseline | control (CPU burner) | flood |", "|---|---|---|---|"]
                      + ["| " + " | ".join(str(x) for x in row) + " |" for row in rows])
@@ -239,13 +272,18 @@ def _table(r: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seconds", type=int, default=10, help="seconds per phase (default 10)")
+    p.add_argument("--rounds", type=int, default=3, help="rounds of the three phases (default 3)")
     p.add_argument("--face", default="default", help="face of both sessions (default: default)")
     p.add_argument("--backend", default="auto", choices=("auto", "numpy", "opencl"))
     p.add_argument("--json", action="store_true", help="flood with JSON 'fap' messages")
+    p.add_argument("--query-token", action="store_true",
+                   help="the flooder sends ?token= (to measure a server from before header tokens)")
+    p.add_argument("--out", default=None, help="JSON file name in bench/out (default flood.json)")
     args = p.parse_args(argv)
-    r = run_flood(args.seconds, face=args.face, backend=args.backend, json_frames=args.json)
+    r = run_flood(args.seconds, rounds=args.rounds, face=args.face, backend=args.backend, json_frames=args.json,
+                  query_token=args.query_token)
     OUT.mkdir(exist_ok=True)
-    name = "flood-json.json" if args.json else "flood.json"
+    name = args.out or ("flood-json.json" if args.json else "flood.json")
     (OUT / name).write_text(json.dumps(r, indent=2))
     print(_table(r))
     return 0

@@ -47,6 +47,9 @@ HELLO_TIMEOUT = 10.0
 #: Kernel send buffer of a viewer socket, in vertex frames (see ``_limit_send_buffer``).
 VIEWER_SEND_BUFFER_FRAMES = 1
 MIN_SEND_BUFFER = 64 * 1024
+#: Kernel receive buffer of a producer socket: what one read hands the event loop at most (a read
+#: of tiny frames is parsed in one go, so a flood's reads stay short); ample for 1 s audio chunks.
+PRODUCER_RECEIVE_BUFFER = 64 * 1024
 #: A receive loop yields to the event loop after this many messages: ``receive`` does not suspend
 #: while messages are queued, so without it one flooding socket would hold the loop.
 YIELD_EVERY = 8
@@ -241,6 +244,7 @@ async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> N
         )
         return
     reg = registry(ws.app)
+    _set_buffer(ws, socket.SO_RCVBUF, PRODUCER_RECEIVE_BUFFER)
     me = _Producer(ws)
     session.producer = me  # claim before any await, so a second producer is refused
     metrics = reg.metrics
@@ -518,6 +522,18 @@ async def watch(
                 pass
 
 
+def _set_buffer(ws: WebSocket, option: int, nbytes: int) -> None:
+    """Set a socket buffer size (``SO_SNDBUF`` / ``SO_RCVBUF``) of the connection; best effort."""
+    try:
+        proto = find_protocol(ws._send)
+        transport = getattr(proto, "transport", None)
+        sock = transport.get_extra_info("socket") if transport is not None else None
+        if sock is not None:
+            sock.setsockopt(socket.SOL_SOCKET, option, int(nbytes))
+    except (OSError, AttributeError):  # pragma: no cover - depends on the ASGI server
+        log.debug("cannot set a socket buffer of a live connection", exc_info=True)
+
+
 def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
     """Cap the kernel send buffer of a viewer's socket at about ``nbytes``.
 
@@ -526,14 +542,7 @@ def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
     ones. With a small buffer the backlog stays in the viewer's one-frame slot, where a newer frame
     replaces it. Best effort: servers that hide the transport keep their defaults.
     """
-    try:
-        proto = find_protocol(ws._send)
-        transport = getattr(proto, "transport", None)
-        sock = transport.get_extra_info("socket") if transport is not None else None
-        if sock is not None:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, max(MIN_SEND_BUFFER, int(nbytes)))
-    except (OSError, AttributeError):  # pragma: no cover - depends on the ASGI server
-        log.debug("cannot set the send buffer of a viewer socket", exc_info=True)
+    _set_buffer(ws, socket.SO_SNDBUF, max(MIN_SEND_BUFFER, int(nbytes)))
 
 
 async def _send_loop(ws: WebSocket, session, viewer) -> None:

@@ -33,7 +33,7 @@ AUDIO_SPEED = 8.0
 #: Beyond this multiple of the allowed rate (after the burst) a connection is a flood and is closed.
 FLOOD_FACTOR = 4.0
 #: Seconds of the allowed rate a connection may exceed the flood rate by before it is closed.
-FLOOD_BURST_SECONDS = 10.0
+FLOOD_BURST_SECONDS = 2.0
 #: Bytes a FAP or marker frame may exceed its exact size by and still be read (and answered with a
 #: "trailing bytes" error that names the frame) rather than end the connection.
 SLACK_BYTES = 1024
