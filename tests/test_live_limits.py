@@ -330,3 +330,42 @@ def test_session_create_with_non_finite_or_broken_text_is_a_422(srv, body):
                    headers={**srv.admin_headers, "content-type": "application/json"})
     assert r.status_code == 422 and r.headers["content-type"].startswith("application/json")
     assert r.json()["status"] == 422
+
+
+# --------------------------------------------------------------------------- real server: garbage
+
+
+@pytest.mark.parametrize("first", [b"\x00garbage", "x" * 300_000, "[]", "null", '{"type": "nope"}',
+                                   '{"type": "hello", "role": "producer", "protocol": 99}'])
+def test_garbage_instead_of_a_hello_is_a_4400(srv, first):
+    s = run(_session(srv))
+
+    async def main():
+        async with connect(ws_url(srv.url, f"/v1/sessions/{s.id}/produce"), compression=None,
+                           additional_headers={"Authorization": f"Bearer {s.producer_token}"}) as ws:
+            await ws.send(first)
+            msg = json.loads(await ws.recv())
+            with pytest.raises(ConnectionClosed):
+                await ws.recv()
+            return msg, ws.close_code
+
+    msg, code = run(main())
+    assert msg["type"] == "error" and msg["code"] == code == CloseCode.BAD_REQUEST and msg["fatal"]
+    assert httpx.get(srv.url + "/healthz", timeout=30).status_code == 200
+    _close(srv, s.id)
+
+
+def test_an_oversized_viewer_message_is_a_1009(srv):
+    s = run(_session(srv))
+
+    async def main():
+        async with watch(srv.url, s.id, s.viewer_token) as w:
+            await w.ws.send(b"\x00" * 100_000)
+            with pytest.raises(LiveError) as e:
+                async for _ in w:
+                    pass
+        return e.value
+
+    err = run(main())
+    assert err.code == CloseCode.TOO_BIG and "4096 bytes" in str(err)
+    _close(srv, s.id)
