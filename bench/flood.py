@@ -44,7 +44,7 @@ def _load() -> dict:
 
 async def _victim(url: str, admin_key: str, seconds: float, face: str) -> dict:
     """Stream 60 fps FAP frames into a fresh session for ``seconds`` while one viewer measures."""
-    from facecast.client.api import SessionAdmin, produce, summary, watch
+    from facecast.client.api import LiveError, SessionAdmin, produce, summary, watch
 
     async with SessionAdmin(url, admin_key) as admin:
         s = await admin.create(face=face, fps=VICTIM_FPS)
@@ -75,7 +75,7 @@ async def _victim(url: str, admin_key: str, seconds: float, face: str) -> dict:
     stop.set()
     try:
         await asyncio.wait_for(task, 5)
-    except (asyncio.TimeoutError, Exception):
+    except (asyncio.TimeoutError, LiveError):  # the viewer is stopped either way
         task.cancel()
     async with SessionAdmin(url, admin_key) as admin:
         await admin.close(s.id)
@@ -100,23 +100,24 @@ def _burner(stop) -> None:
         sum(range(10_000))
 
 
-def _flooder(url: str, session: str, token: str, json_frames: bool, stop, conn,
-             query_token: bool = False) -> None:
+def _flooder(
+    url: str, session: str, token: str, json_frames: bool, stop, conn, query_token: bool = False
+) -> None:
     """Child process: flood ``session`` with FAP frames until ``stop`` is set; reports via ``conn``.
     Niced: on a real attack the flooder's CPU is not the server's (here they share the machine)."""
     os.nice(10)
     asyncio.run(_flood(url, session, token, json_frames, stop, conn, query_token))
 
 
-async def _flood(url: str, session: str, token: str, json_frames: bool, stop, conn,
-                 query_token: bool) -> None:
+async def _flood(
+    url: str, session: str, token: str, json_frames: bool, stop, conn, query_token: bool
+) -> None:
     import numpy as np
-    from websockets.asyncio.client import connect
-    from websockets.exceptions import ConnectionClosed
-
     from facecast.client.api import ws_url
     from facecast.protocol import frames
     from facecast.protocol.messages import FapMessage, ProducerHello, dump_message
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import ConnectionClosed, InvalidHandshake
 
     if json_frames:
         msg: bytes | str = dump_message(FapMessage(seq=1, t=0.0, wall=time.time(), faps={3: 100.0}))
@@ -128,9 +129,14 @@ async def _flood(url: str, session: str, token: str, json_frames: bool, stop, co
     target = ws_url(url, f"/v1/sessions/{session}/produce", token=token if query_token else None)
     while not stop.is_set():
         try:
-            ws = await connect(target, additional_headers={"Authorization": f"Bearer {token}"},
-                               compression=None, ping_interval=None, open_timeout=10)
-        except Exception:
+            ws = await connect(
+                target,
+                additional_headers={"Authorization": f"Bearer {token}"},
+                compression=None,
+                ping_interval=None,
+                open_timeout=10,
+            )
+        except (OSError, asyncio.TimeoutError, InvalidHandshake):  # the server is busy: again
             await asyncio.sleep(0.05)
             continue
         connections += 1
@@ -150,8 +156,14 @@ async def _flood(url: str, session: str, token: str, json_frames: bool, stop, co
             await ws.close()
             code = str(ws.close_code)
             codes[code] = codes.get(code, 0) + 1
-    conn.send({"sent": sent, "connections": connections, "open_seconds": open_seconds,
-               "close_codes": codes})
+    conn.send(
+        {
+            "sent": sent,
+            "connections": connections,
+            "open_seconds": open_seconds,
+            "close_codes": codes,
+        }
+    )
 
 
 def _median_phase(runs: list[dict]) -> dict:
@@ -166,15 +178,21 @@ def _median_phase(runs: list[dict]) -> dict:
     return out
 
 
-def run_flood(seconds: int = 10, *, rounds: int = 3, face: str = "default", backend: str = "auto",
-              json_frames: bool = False, query_token: bool = False) -> dict:
+def run_flood(
+    seconds: int = 10,
+    *,
+    rounds: int = 3,
+    face: str = "default",
+    backend: str = "auto",
+    json_frames: bool = False,
+    query_token: bool = False,
+) -> dict:
     """Against a fresh server, ``rounds`` rounds of three ``seconds``-long phases (baseline, control,
     flood); per phase the median over rounds. The numbers as a dict (``fps_victim``,
     ``p95_ms_victim``, ``flood_msgs_per_s``, ``baseline``, ``control``, ``flood``, ``load``, ...).
     ``query_token``: the flooder sends its token as ``?token=`` (to measure servers older than
     header tokens the same way)."""
     import httpx
-
     from facecast.server.bench.serve import ADMIN_KEY, _Server
 
     ctx = multiprocessing.get_context("spawn")
@@ -193,12 +211,26 @@ def run_flood(seconds: int = 10, *, rounds: int = 3, face: str = "default", back
             phases["control"].append(asyncio.run(_victim(url, ADMIN_KEY, seconds, face)))
             stop.set()
             burner.join(10)
-            attacker = httpx.post(url + "/v1/sessions", json={"face": face},
-                                  headers={"Authorization": f"Bearer {ADMIN_KEY}"}, timeout=120).json()
+            attacker = httpx.post(
+                url + "/v1/sessions",
+                json={"face": face},
+                headers={"Authorization": f"Bearer {ADMIN_KEY}"},
+                timeout=120,
+            ).json()
             stop = ctx.Event()
             parent, child = ctx.Pipe()
-            proc = ctx.Process(target=_flooder, args=(url, attacker["id"], attacker["producer_token"],
-                                                      json_frames, stop, child, query_token))
+            proc = ctx.Process(
+                target=_flooder,
+                args=(
+                    url,
+                    attacker["id"],
+                    attacker["producer_token"],
+                    json_frames,
+                    stop,
+                    child,
+                    query_token,
+                ),
+            )
             cpu0, t0 = server.cpu_seconds(), time.monotonic()
             proc.start()
             time.sleep(0.5)  # the flood is on before the victim starts
@@ -209,15 +241,20 @@ def run_flood(seconds: int = 10, *, rounds: int = 3, face: str = "default", back
             wall = time.monotonic() - t0
             cpu.append((server.cpu_seconds() - cpu0) / wall)
             floods.append({**flood, "seconds": wall})
-            httpx.delete(f"{url}/v1/sessions/{attacker['id']}",
-                         headers={"Authorization": f"Bearer {ADMIN_KEY}"}, timeout=30)
+            httpx.delete(
+                f"{url}/v1/sessions/{attacker['id']}",
+                headers={"Authorization": f"Bearer {ADMIN_KEY}"},
+                timeout=30,
+            )
         healthy = httpx.get(url + "/healthz", timeout=5).status_code == 200
         metrics = httpx.get(url + "/metrics", timeout=5).text
     finally:
         server.stop()
-    refused = {line.split("{")[1].split("}")[0]: float(line.rsplit(" ", 1)[1])
-               for line in metrics.splitlines()
-               if line.startswith("facecast_live_messages_refused_total{")}
+    refused = {
+        line.split("{")[1].split("}")[0]: float(line.rsplit(" ", 1)[1])
+        for line in metrics.splitlines()
+        if line.startswith("facecast_live_messages_refused_total{")
+    }
     base, control, flooded = (_median_phase(phases[k]) for k in ("baseline", "control", "flood"))
     sent = sum(f.get("sent", 0) for f in floods)
     codes: dict[str, int] = {}
@@ -234,7 +271,9 @@ def run_flood(seconds: int = 10, *, rounds: int = 3, face: str = "default", back
         "p50_ms_victim": flooded["p50_ms"],
         "p95_ms_victim": flooded["p95_ms"],
         "flood_msgs_per_s": round(sent / sum(f["seconds"] for f in floods), 1),
-        "flood_msgs_per_s_open": round(sent / max(sum(f.get("open_seconds", 0) for f in floods), 1e-9), 1),
+        "flood_msgs_per_s_open": round(
+            sent / max(sum(f.get("open_seconds", 0) for f in floods), 1e-9), 1
+        ),
         "flood_connections": sum(f.get("connections", 0) for f in floods),
         "flood_close_codes": codes,
         "server_refused": refused,
@@ -243,30 +282,57 @@ def run_flood(seconds: int = 10, *, rounds: int = 3, face: str = "default", back
         "baseline": base,
         "control": control,
         "flood": flooded,
-        "load": {"loadavg_1m": round(sum(x["loadavg_1m"] for x in loads) / len(loads), 2),
-                 "cpus": os.cpu_count(), "rounds": loads},
-        "ok": bool(flooded["fps"] and flooded["fps"] >= 57 and flooded["p95_ms"] is not None
-                   and flooded["p95_ms"] <= 50),
+        "load": {
+            "loadavg_1m": round(sum(x["loadavg_1m"] for x in loads) / len(loads), 2),
+            "cpus": os.cpu_count(),
+            "rounds": loads,
+        },
+        "ok": bool(
+            flooded["fps"]
+            and flooded["fps"] >= 57
+            and flooded["p95_ms"] is not None
+            and flooded["p95_ms"] <= 50
+        ),
     }
 
 
 def _table(r: dict) -> str:
     b, c, f = r["baseline"], r["control"], r["flood"]
-    rows = [(f"victim {k}", b[key], c[key], f[key]) for k, key in (
-        ("fps", "fps"), ("latency p50 (ms)", "p50_ms"), ("latency p95 (ms)", "p95_ms"),
-        ("latency max (ms)", "max_ms"), ("frames dropped", "dropped"))]
+    rows = [
+        (f"victim {k}", b[key], c[key], f[key])
+        for k, key in (
+            ("fps", "fps"),
+            ("latency p50 (ms)", "p50_ms"),
+            ("latency p95 (ms)", "p95_ms"),
+            ("latency max (ms)", "max_ms"),
+            ("frames dropped", "dropped"),
+        )
+    ]
     rows += [
-        ("flood messages/s (sent; while connected)", "-", "-",
-         f"{r['flood_msgs_per_s']}; {r['flood_msgs_per_s_open']}"),
-        ("flood connections (close codes)", "-", "-", f"{r['flood_connections']} {r['flood_close_codes']}"),
+        (
+            "flood messages/s (sent; while connected)",
+            "-",
+            "-",
+            f"{r['flood_msgs_per_s']}; {r['flood_msgs_per_s_open']}",
+        ),
+        (
+            "flood connections (close codes)",
+            "-",
+            "-",
+            f"{r['flood_connections']} {r['flood_close_codes']}",
+        ),
         ("server CPU s/s (flood phase)", "-", "-", r["server_cpu_per_s"]),
     ]
-    head = (f"flood ({r['flood_kind']} FAP frames), face {r['face']}, {r['seconds']} s per phase, "
-            f"median of {r['rounds']} rounds, mean load {r['load']['loadavg_1m']} on "
-            f"{r['load']['cpus']} CPUs; target: victim >= 57 fps, "
-            f"p95 <= 50 ms: {'met' if r['ok'] else 'NOT met'}")
-    return "\n".join([head, "", "| | baseline | control (CPU burner) | flood |", "|---|---|---|---|"]
-                     + ["| " + " | ".join(str(x) for x in row) + " |" for row in rows])
+    head = (
+        f"flood ({r['flood_kind']} FAP frames), face {r['face']}, {r['seconds']} s per phase, "
+        f"median of {r['rounds']} rounds, mean load {r['load']['loadavg_1m']} on "
+        f"{r['load']['cpus']} CPUs; target: victim >= 57 fps, "
+        f"p95 <= 50 ms: {'met' if r['ok'] else 'NOT met'}"
+    )
+    return "\n".join(
+        [head, "", "| | baseline | control (CPU burner) | flood |", "|---|---|---|---|"]
+        + ["| " + " | ".join(str(x) for x in row) + " |" for row in rows]
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -276,12 +342,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--face", default="default", help="face of both sessions (default: default)")
     p.add_argument("--backend", default="auto", choices=("auto", "numpy", "opencl"))
     p.add_argument("--json", action="store_true", help="flood with JSON 'fap' messages")
-    p.add_argument("--query-token", action="store_true",
-                   help="the flooder sends ?token= (to measure a server from before header tokens)")
+    p.add_argument(
+        "--query-token",
+        action="store_true",
+        help="the flooder sends ?token= (to measure a server from before header tokens)",
+    )
     p.add_argument("--out", default=None, help="JSON file name in bench/out (default flood.json)")
     args = p.parse_args(argv)
-    r = run_flood(args.seconds, rounds=args.rounds, face=args.face, backend=args.backend, json_frames=args.json,
-                  query_token=args.query_token)
+    r = run_flood(
+        args.seconds,
+        rounds=args.rounds,
+        face=args.face,
+        backend=args.backend,
+        json_frames=args.json,
+        query_token=args.query_token,
+    )
     OUT.mkdir(exist_ok=True)
     name = args.out or ("flood-json.json" if args.json else "flood.json")
     (OUT / name).write_text(json.dumps(r, indent=2))

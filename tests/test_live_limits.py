@@ -31,7 +31,7 @@ from facecast.server.live.budget import (
 )
 from pydantic import ValidationError
 from websockets.asyncio.client import connect
-from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.exceptions import ConnectionClosed
 
 FACE = "default:2k"
 MAX_FPS = 100
@@ -42,8 +42,16 @@ IDLE = 3.0  # seconds; sessions the tests leave alone expire (closing them may t
 def srv(tmp_path_factory):
     s = RunningServer(
         tmp_path_factory.mktemp("live-limits"),
-        "--face", FACE, "--backend", "numpy", "--workers", "0",
-        "--session-idle", str(IDLE), "--log-level", "info",
+        "--face",
+        FACE,
+        "--backend",
+        "numpy",
+        "--workers",
+        "0",
+        "--session-idle",
+        str(IDLE),
+        "--log-level",
+        "info",
         env={"FACECAST_MAX_PRODUCER_FPS": str(MAX_FPS)},
     ).start()
     yield s
@@ -73,8 +81,11 @@ def _close(srv, sid: str) -> None:
 
 def _metric(srv, name: str) -> float:
     text = httpx.get(srv.url + "/metrics", timeout=30).text
-    return sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
-               if line.startswith(name) and not line.startswith("#"))
+    return sum(
+        float(line.rsplit(" ", 1)[1])
+        for line in text.splitlines()
+        if line.startswith(name) and not line.startswith("#")
+    )
 
 
 # ------------------------------------------------------------------------------------ budgets (unit)
@@ -105,8 +116,9 @@ def test_budget_drops_over_the_rate_and_closes_a_flood():
 
 def test_audio_chunks_are_capped_at_one_second():
     lim = producer_limits("audio", 250, rate=16000, sample_format="i16")
-    one_second = frames.encode_pcm(np.zeros(int(16000 * MAX_AUDIO_CHUNK_SECONDS), np.int16),
-                                   rate=16000, sample_offset=0, seq=0)
+    one_second = frames.encode_pcm(
+        np.zeros(int(16000 * MAX_AUDIO_CHUNK_SECONDS), np.int16), rate=16000, sample_offset=0, seq=0
+    )
     assert lim.too_big(len(one_second), False) is None
     assert "1 s of audio" in lim.too_big(len(one_second) + 2, False)
     f32 = producer_limits("audio", 250, rate=16000, sample_format="f32")
@@ -132,8 +144,9 @@ def test_a_flooding_producer_is_cut_off_while_another_session_keeps_streaming(sr
         started = asyncio.Event()
 
         async def viewer():
-            async with watch(srv.url, victim.id, victim.viewer_token,
-                             until_producer_leaves=True) as w:
+            async with watch(
+                srv.url, victim.id, victim.viewer_token, until_producer_leaves=True
+            ) as w:
                 started.set()
                 async for f in w:
                     got.append(f)
@@ -251,20 +264,37 @@ def test_tokens_travel_in_headers_or_subprotocols_and_never_reach_the_log(srv):
 
     watch_path = ws_url(srv.url, f"/v1/sessions/{s.id}/watch")
     # the Python client's way: Authorization header
-    assert run(hello_via(watch_path, additional_headers={"Authorization": f"Bearer {s.viewer_token}"}))[0] == "hello"
+    assert (
+        run(
+            hello_via(watch_path, additional_headers={"Authorization": f"Bearer {s.viewer_token}"})
+        )[0]
+        == "hello"
+    )
     # a browser's way: subprotocols; the server picks facecast.v1 (never echoes the token)
-    kind, chosen = run(hello_via(watch_path, subprotocols=["facecast.v1", f"facecast.token.{s.viewer_token}"]))
+    kind, chosen = run(
+        hello_via(watch_path, subprotocols=["facecast.v1", f"facecast.token.{s.viewer_token}"])
+    )
     assert (kind, chosen) == ("hello", "facecast.v1")
     # old clients: ?token= still works
-    assert run(hello_via(ws_url(srv.url, f"/v1/sessions/{s.id}/watch", token=s.viewer_token)))[0] == "hello"
+    assert (
+        run(hello_via(ws_url(srv.url, f"/v1/sessions/{s.id}/watch", token=s.viewer_token)))[0]
+        == "hello"
+    )
     # a wrong header token is refused even with a right query token (the header wins)
-    kind, _ = run(hello_via(ws_url(srv.url, f"/v1/sessions/{s.id}/watch", token=s.viewer_token),
-                            additional_headers={"Authorization": "Bearer wrong"}))
+    kind, _ = run(
+        hello_via(
+            ws_url(srv.url, f"/v1/sessions/{s.id}/watch", token=s.viewer_token),
+            additional_headers={"Authorization": "Bearer wrong"},
+        )
+    )
     assert kind == "error"
 
     async def producer_via_subprotocol():
-        async with connect(ws_url(srv.url, f"/v1/sessions/{s.id}/produce"), compression=None,
-                           subprotocols=["facecast.v1", f"facecast.token.{s.producer_token}"]) as ws:
+        async with connect(
+            ws_url(srv.url, f"/v1/sessions/{s.id}/produce"),
+            compression=None,
+            subprotocols=["facecast.v1", f"facecast.token.{s.producer_token}"],
+        ) as ws:
             await ws.send(dump_message(ProducerHello()))
             return json.loads(await ws.recv())["type"]
 
@@ -311,9 +341,11 @@ def test_idle_sessions_expire_and_watched_ones_do_not(srv):
         time.sleep(0.2)
     assert _metric(srv, "facecast_sessions_expired_total") >= before + 2
     with pytest.raises(LiveError) as e:
+
         async def late_viewer():
             async with watch(srv.url, idle.id, idle.viewer_token):
                 pass
+
         run(late_viewer())
     assert e.value.code == CloseCode.NOT_FOUND
 
@@ -321,13 +353,21 @@ def test_idle_sessions_expire_and_watched_ones_do_not(srv):
 # ------------------------------------------------------------------------------ real server: 500s -> 4xx
 
 
-@pytest.mark.xfail(strict=False, reason="the global validation-error handler must render non-finite "
-                                        "and non-UTF-8 inputs (server/api/app.py, the REST change)")
-@pytest.mark.parametrize("body", ['{"fps": NaN}', '{"fps": Infinity}', '{"fps": 1e309}',
-                                  '{"face": "\\ud800"}'])
+@pytest.mark.xfail(
+    strict=False,
+    reason="the global validation-error handler must render non-finite "
+    "and non-UTF-8 inputs (server/api/app.py, the REST change)",
+)
+@pytest.mark.parametrize(
+    "body", ['{"fps": NaN}', '{"fps": Infinity}', '{"fps": 1e309}', '{"face": "\\ud800"}']
+)
 def test_session_create_with_non_finite_or_broken_text_is_a_422(srv, body):
-    r = httpx.post(srv.url + "/v1/sessions", content=body, timeout=30,
-                   headers={**srv.admin_headers, "content-type": "application/json"})
+    r = httpx.post(
+        srv.url + "/v1/sessions",
+        content=body,
+        timeout=30,
+        headers={**srv.admin_headers, "content-type": "application/json"},
+    )
     assert r.status_code == 422 and r.headers["content-type"].startswith("application/json")
     assert r.json()["status"] == 422
 
@@ -335,14 +375,26 @@ def test_session_create_with_non_finite_or_broken_text_is_a_422(srv, body):
 # --------------------------------------------------------------------------- real server: garbage
 
 
-@pytest.mark.parametrize("first", [b"\x00garbage", "x" * 300_000, "[]", "null", '{"type": "nope"}',
-                                   '{"type": "hello", "role": "producer", "protocol": 99}'])
+@pytest.mark.parametrize(
+    "first",
+    [
+        b"\x00garbage",
+        "x" * 300_000,
+        "[]",
+        "null",
+        '{"type": "nope"}',
+        '{"type": "hello", "role": "producer", "protocol": 99}',
+    ],
+)
 def test_garbage_instead_of_a_hello_is_a_4400(srv, first):
     s = run(_session(srv))
 
     async def main():
-        async with connect(ws_url(srv.url, f"/v1/sessions/{s.id}/produce"), compression=None,
-                           additional_headers={"Authorization": f"Bearer {s.producer_token}"}) as ws:
+        async with connect(
+            ws_url(srv.url, f"/v1/sessions/{s.id}/produce"),
+            compression=None,
+            additional_headers={"Authorization": f"Bearer {s.producer_token}"},
+        ) as ws:
             await ws.send(first)
             msg = json.loads(await ws.recv())
             with pytest.raises(ConnectionClosed):

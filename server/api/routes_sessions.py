@@ -146,6 +146,8 @@ async def _refuse(ws: WebSocket, code: int, message: str, where: str = "") -> No
         pass
 
 
+#: Close code of a budget verdict that ends the connection.
+_CLOSE = {Verdict.TOO_BIG: CloseCode.TOO_BIG, Verdict.FLOOD: CloseCode.POLICY_VIOLATION}
 #: Seconds a flooding client has to read its close frame before its connection is dropped.
 CUT_OFF_GRACE = 1.0
 
@@ -271,7 +273,7 @@ async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> N
 
 
 async def _producer_hello(ws: WebSocket, session, reg, loop):
-    """Wait for the hello; ``(input, limits)``, or None (after refusing) if it is missing or unusable."""
+    """Wait for the hello; ``(input, limits)``, or None (after refusing) if it is unusable."""
     from ..live.inputs import BadHello, InputUnavailable, make_input
 
     try:
@@ -345,7 +347,7 @@ async def _follow_controls(session, reg, inp) -> None:
 
 
 async def _producer_loop(ws: WebSocket, session, reg, inp, limits: Limits) -> None:
-    """Receive frames until the producer leaves; each raw message passes the budget before decoding."""
+    """Receive frames until the producer leaves; raw messages meet the budget before decoding."""
     loop = asyncio.get_running_loop()
     budget = Budget(limits)
     inline = session.spec.input == "fap"  # audio / mocap drivers do real work: run them in a thread
@@ -362,8 +364,8 @@ async def _producer_loop(ws: WebSocket, session, reg, inp, limits: Limits) -> No
         if received % YIELD_EVERY == 0:
             await asyncio.sleep(0)
         data, text = msg.get("bytes"), msg.get("text")
-        verdict, why = budget.check(len(data) if data is not None else len(text or ""), data is None,
-                                    time.monotonic())
+        size = len(data) if data is not None else len(text or "")
+        verdict, why = budget.check(size, data is None, time.monotonic())
         if verdict is not Verdict.OK:
             session.stats["frames_rejected"] += 1
             if metrics:
@@ -372,7 +374,7 @@ async def _producer_loop(ws: WebSocket, session, reg, inp, limits: Limits) -> No
                 if budget.warn_now(time.monotonic()):
                     await ws.send_text(_error(CloseCode.TOO_MANY, why))
                 continue
-            code = CloseCode.TOO_BIG if verdict is Verdict.TOO_BIG else CloseCode.POLICY_VIOLATION
+            code = _CLOSE[verdict]
             log.warning("session %s: producer disconnected (%d): %s", session.spec.id, code, why)
             await _refuse(ws, code, why)
             _cut_off(ws)
@@ -599,7 +601,7 @@ async def _drain(ws: WebSocket, session, metrics) -> None:
             if verdict in (Verdict.FLOOD, Verdict.TOO_BIG):
                 if metrics:
                     metrics.live_refused.labels(verdict.name.lower()).inc()
-                code = CloseCode.TOO_BIG if verdict is Verdict.TOO_BIG else CloseCode.POLICY_VIOLATION
+                code = _CLOSE[verdict]
                 log.warning("session %s: viewer disconnected (%d): %s", session.spec.id, code, why)
                 await _refuse(ws, code, f"viewers only listen: {why}")
                 _cut_off(ws)

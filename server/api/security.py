@@ -67,7 +67,9 @@ WS_SUBPROTOCOL = "facecast.v1"
 WS_TOKEN_PREFIX = "facecast.token."
 
 
-def ws_token(headers, subprotocols: list[str], query_token: str | None) -> tuple[str | None, str | None]:
+def ws_token(
+    headers, subprotocols: list[str], query_token: str | None
+) -> tuple[str | None, str | None]:
     """A live WebSocket's token and the subprotocol to accept (or None).
 
     The token comes from ``Authorization: Bearer``, else a ``facecast.token.<token>`` subprotocol,

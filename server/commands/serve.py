@@ -45,8 +45,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="allow binding to a non-loopback address (anyone who can reach it can use the "
                         "public routes; admin routes still need the key)")
     p.add_argument("--session-idle", type=float, metavar="SECONDS",
-                   help="close a live session after this long with no viewer and no connected producer "
-                        "(default 600; 0 = never)")
+                   help="close a live session after this long with no viewer and no connected "
+                        "producer (default 600; 0 = never)")
     p.add_argument("--log-level", default=None, help="uvicorn log level (default: warning)")
 
 
@@ -72,7 +72,8 @@ def make_config(args: argparse.Namespace):
     overrides = {k: v for k, v in {
         "host": args.host, "port": args.port, "data_dir": args.data_dir, "face": args.face,
         "backend": args.backend, "device": args.device, "job_workers": args.workers,
-        "allow_remote": args.allow_remote, "session_idle_seconds": getattr(args, "session_idle", None),
+        "allow_remote": args.allow_remote,
+        "session_idle_seconds": getattr(args, "session_idle", None),
     }.items() if v is not None}
     try:
         config = ServerConfig(**overrides)
@@ -140,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
     from ..live.budget import MAX_WS_MESSAGE
 
     mask_secrets_in_logs()
-    uvicorn.run(app, host=config.host, port=config.port, ws_per_message_deflate=False, ws_max_size=MAX_WS_MESSAGE,
+    uvicorn.run(app, host=config.host, port=config.port, ws_per_message_deflate=False,
+                ws_max_size=MAX_WS_MESSAGE,  # the largest message a live input accepts
                 log_level=args.log_level or "warning", lifespan="on", timeout_graceful_shutdown=5)
     return 0

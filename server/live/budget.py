@@ -66,7 +66,7 @@ class Verdict(IntEnum):
 class TokenBucket:
     """``rate`` units a second on average, bursts up to ``burst`` units (starts full)."""
 
-    __slots__ = ("rate", "burst", "tokens", "last")
+    __slots__ = ("burst", "last", "rate", "tokens")
 
     def __init__(self, rate: float, burst: float, now: float | None = None) -> None:
         self.rate, self.burst, self.tokens = rate, burst, burst
@@ -107,8 +107,14 @@ class Limits:
         return f"{what} of {nbytes} bytes is over this connection's limit of {limit} bytes{hint}"
 
 
-def producer_limits(kind: str, max_fps: float, *, rate: int | None = None,
-                    sample_format: str | None = None, markers: int = 0) -> Limits:
+def producer_limits(
+    kind: str,
+    max_fps: float,
+    *,
+    rate: int | None = None,
+    sample_format: str | None = None,
+    markers: int = 0,
+) -> Limits:
     """The limits of a producer of ``kind`` (``fap`` | ``audio`` | ``markers``) after its hello."""
     if kind == "audio":
         sample_bytes = 4 if sample_format == "f32" else 2
@@ -137,7 +143,9 @@ class Budget:
         self.messages = TokenBucket(r, max(1.0, r), now)
         self.flood = TokenBucket(FLOOD_FACTOR * r, FLOOD_BURST_SECONDS * r, now)
         self.bytes = TokenBucket(b, b, now) if b else None
-        self.flood_bytes = TokenBucket(FLOOD_FACTOR * b, FLOOD_BURST_SECONDS * b, now) if b else None
+        self.flood_bytes = (
+            TokenBucket(FLOOD_FACTOR * b, FLOOD_BURST_SECONDS * b, now) if b else None
+        )
         self.dropped = 0
         self.last_warning = -1e9
 

@@ -219,7 +219,7 @@ class SessionRegistry:
         )
         log.info("live session %s closed", session_id)
 
-    # -- idle expiry --------------------------------------------------------------------------------
+    # -- idle expiry -------------------------------------------------------------------------------
     def _start_reaper(self) -> None:
         if self.idle_seconds > 0 and self._reaper is None:
             self._reaper = asyncio.get_running_loop().create_task(self._reap())

@@ -168,7 +168,8 @@ class LiveSession:
     def busy(self) -> bool:
         """A viewer is connected (or joining) or a client's producer is: the session is in use. A
         server-side producer (demo, playback) alone does not count: nobody asked for it any more."""
-        return bool(self.viewers) or self.joining > 0 or bool(getattr(self.producer, "remote", False))
+        remote = bool(getattr(self.producer, "remote", False))
+        return bool(self.viewers) or self.joining > 0 or remote
 
     # -- producer side -----------------------------------------------------------------------------
     def submit(self, states: list[FaceState], wall: float) -> None:

@@ -21,7 +21,7 @@ function deliver() {
 function connect(url, connId, protocols = []) {
   if (ws) { ws.onclose = null; ws.onmessage = null; ws.close(); }
   id = connId; newest = null; lastSeq = null;
-  const sock = new WebSocket(url, protocols);  // protocols carry the token (./protocol.js tokenProtocols)
+  const sock = new WebSocket(url, protocols);  // they carry the token (protocol.js tokenProtocols)
   sock.binaryType = 'arraybuffer';
   ws = sock;
   sock.onopen = () => postMessage({ type: 'open', id: connId });
