@@ -93,19 +93,26 @@ async def _victim(url: str, admin_key: str, seconds: float, face: str) -> dict:
     }
 
 
-def _burner(stop) -> None:
+def _burner(stop, nice: int = 10) -> None:
     """Child process: burn one CPU (niced like the flooder) until ``stop`` is set."""
-    os.nice(10)
+    os.nice(nice)
     while not stop.is_set():
         sum(range(10_000))
 
 
 def _flooder(
-    url: str, session: str, token: str, json_frames: bool, stop, conn, query_token: bool = False
+    url: str,
+    session: str,
+    token: str,
+    json_frames: bool,
+    stop,
+    conn,
+    query_token: bool = False,
+    nice: int = 10,
 ) -> None:
     """Child process: flood ``session`` with FAP frames until ``stop`` is set; reports via ``conn``.
     Niced: on a real attack the flooder's CPU is not the server's (here they share the machine)."""
-    os.nice(10)
+    os.nice(nice)
     asyncio.run(_flood(url, session, token, json_frames, stop, conn, query_token))
 
 
@@ -186,12 +193,13 @@ def run_flood(
     backend: str = "auto",
     json_frames: bool = False,
     query_token: bool = False,
+    nice: int = 10,
 ) -> dict:
     """Against a fresh server, ``rounds`` rounds of three ``seconds``-long phases (baseline, control,
     flood); per phase the median over rounds. The numbers as a dict (``fps_victim``,
     ``p95_ms_victim``, ``flood_msgs_per_s``, ``baseline``, ``control``, ``flood``, ``load``, ...).
     ``query_token``: the flooder sends its token as ``?token=`` (to measure servers older than
-    header tokens the same way)."""
+    header tokens the same way); ``nice``: of the flooder and the control's CPU burner."""
     import httpx
     from facecast.server.bench.serve import ADMIN_KEY, _Server
 
@@ -206,7 +214,7 @@ def run_flood(
             loads.append(_load())
             phases["baseline"].append(asyncio.run(_victim(url, ADMIN_KEY, seconds, face)))
             stop = ctx.Event()
-            burner = ctx.Process(target=_burner, args=(stop,))
+            burner = ctx.Process(target=_burner, args=(stop, nice))
             burner.start()
             phases["control"].append(asyncio.run(_victim(url, ADMIN_KEY, seconds, face)))
             stop.set()
@@ -229,6 +237,7 @@ def run_flood(
                     stop,
                     child,
                     query_token,
+                    nice,
                 ),
             )
             cpu0, t0 = server.cpu_seconds(), time.monotonic()
@@ -267,6 +276,7 @@ def run_flood(
         "seconds": seconds,
         "rounds": rounds,
         "flood_kind": "json" if json_frames else "binary",
+        "flooder_nice": nice,
         "fps_victim": flooded["fps"],
         "p50_ms_victim": flooded["p50_ms"],
         "p95_ms_victim": flooded["p95_ms"],
@@ -325,7 +335,7 @@ def _table(r: dict) -> str:
     ]
     head = (
         f"flood ({r['flood_kind']} FAP frames), face {r['face']}, {r['seconds']} s per phase, "
-        f"median of {r['rounds']} rounds, mean load {r['load']['loadavg_1m']} on "
+        f"median of {r['rounds']} rounds, flooder nice {r['flooder_nice']}, mean load {r['load']['loadavg_1m']} on "
         f"{r['load']['cpus']} CPUs; target: victim >= 57 fps, "
         f"p95 <= 50 ms: {'met' if r['ok'] else 'NOT met'}"
     )
@@ -347,6 +357,9 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="the flooder sends ?token= (to measure a server from before header tokens)",
     )
+    p.add_argument(
+        "--nice", type=int, default=10, help="niceness of the flooder and CPU burner (default 10)"
+    )
     p.add_argument("--out", default=None, help="JSON file name in bench/out (default flood.json)")
     args = p.parse_args(argv)
     r = run_flood(
@@ -356,6 +369,7 @@ def main(argv: list[str] | None = None) -> int:
         backend=args.backend,
         json_frames=args.json,
         query_token=args.query_token,
+        nice=args.nice,
     )
     OUT.mkdir(exist_ok=True)
     name = args.out or ("flood-json.json" if args.json else "flood.json")
