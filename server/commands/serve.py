@@ -120,7 +120,11 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from ..api.app import create_app
+    from ..api.redact import install as mask_secrets_in_logs
     from ..api.security import resolve_admin_key
+    from ..live.budget import MAX_WS_MESSAGE
+
+    mask_secrets_in_logs()  # tokens in query strings never reach a log line
 
     config = make_config(args)
     config.data_dir = config.data_dir.expanduser().resolve()
@@ -137,11 +141,7 @@ def run(args: argparse.Namespace) -> int:
           f"{config.job_workers} job worker(s), backend {config.backend})", flush=True)
     if not os.environ.get("FACECAST_ADMIN_KEY"):  # the operator did not choose the key: show the page link
         print(f"facecast: web viewer with admin rights: http://{config.host}:{config.port}/#key={key}", flush=True)
-    from ..api.redact import install as mask_secrets_in_logs
-    from ..live.budget import MAX_WS_MESSAGE
-
-    mask_secrets_in_logs()
     uvicorn.run(app, host=config.host, port=config.port, ws_per_message_deflate=False,
-                ws_max_size=MAX_WS_MESSAGE,  # the largest message a live input accepts
-                log_level=args.log_level or "warning", lifespan="on", timeout_graceful_shutdown=5)
+                log_level=args.log_level or "warning", lifespan="on", timeout_graceful_shutdown=5,
+                ws_max_size=MAX_WS_MESSAGE)  # the largest message a live input accepts
     return 0
