@@ -213,6 +213,13 @@ def test_an_audio_chunk_over_one_second_is_refused_with_1009(srv, samples):
         hello = ProducerHello(input="audio", rate=16000, sample_format="i16")
         async with produce(srv.url, s.id, s.producer_token, hello) as p:
             await p.send_pcm(np.zeros(16000, np.int16), rate=16000, sample_offset=0)  # 1 s: fine
+            async with SessionAdmin(srv.url, srv.admin_key) as admin:
+                for _ in range(
+                    600
+                ):  # taken before the next (a read with a bad frame is lost whole)
+                    if (await admin.info(s.id)).stats.frames_in:
+                        break
+                    await asyncio.sleep(0.05)
             with pytest.raises(LiveError) as e:
                 await p.send_pcm(np.zeros(samples, np.int16), rate=16000, sample_offset=16000)
                 for _ in range(200):  # the refusal arrives with a later send
