@@ -125,6 +125,24 @@ def test_audio_chunks_are_capped_at_one_second():
     assert f32.max_binary == 48 + 4 * 16000
 
 
+def test_log_lines_mask_token_values():
+    import logging
+
+    from facecast.server.api.redact import SecretFilter, mask
+
+    line = '127.0.0.1:1 - "POST /v1/sessions/ab/play?token=Zq-_9x&x=1 HTTP/1.1" 200'
+    assert mask(line) == '127.0.0.1:1 - "POST /v1/sessions/ab/play?token=***&x=1 HTTP/1.1" 200'
+    assert mask("watch?encoding=i16&token=a") == "watch?encoding=i16&token=***"
+    assert (
+        mask("producer_token=a admin_key=b monkey=c") == "producer_token=*** admin_key=*** monkey=c"
+    )
+    record = logging.LogRecord(
+        "uvicorn.error", 20, "", 0, '%s - "WebSocket %s"', ("h", "/w?token=s"), None
+    )
+    SecretFilter().filter(record)
+    assert record.getMessage() == 'h - "WebSocket /w?token=***"'
+
+
 def test_session_create_refuses_non_finite_fps():
     for bad in (math.nan, math.inf, -math.inf):
         with pytest.raises(ValidationError, match="finite"):
