@@ -1,7 +1,8 @@
 """The asyncio client of facecast live sessions.
 
 REST (httpx): ``SessionAdmin(url, admin_key)`` creates, lists and closes sessions.
-WebSocket (websockets, per-message deflate off):
+WebSocket (websockets, per-message deflate off; the session token travels in an
+``Authorization: Bearer`` header, never in the URL):
 
 - ``produce(url, session, token, hello)`` -> ``Producer``: ``send_faps`` / ``send_pcm`` /
   ``send_markers`` stamp each frame with the sender's wall clock (for end-to-end latency);
@@ -167,11 +168,19 @@ async def _socket(url: str, rcvbuf: int | None) -> socket.socket | None:
     return sock
 
 
-async def _connect(url: str, *, rcvbuf: int | None = None, max_queue: int = 16) -> ClientConnection:
+def _auth(token: str | None) -> dict[str, str]:
+    """The handshake header carrying a session token (kept out of URLs, which servers log)."""
+    return {"Authorization": f"Bearer {token}"} if token else {}
+
+
+async def _connect(
+    url: str, *, token: str | None = None, rcvbuf: int | None = None, max_queue: int = 16
+) -> ClientConnection:
     try:
         sock = await _socket(url, rcvbuf)
         return await connect(
             url,
+            additional_headers=_auth(token),
             compression=None,
             max_size=MAX_MESSAGE,
             open_timeout=30,
@@ -303,12 +312,13 @@ class produce:
     def __init__(
         self, url: str, session: str, token: str, hello: ProducerHello | None = None
     ) -> None:
-        self.url = ws_url(url, f"/v1/sessions/{quote(session, safe='')}/produce", token=token)
+        self.url = ws_url(url, f"/v1/sessions/{quote(session, safe='')}/produce")
+        self.token = token
         self.hello = hello or ProducerHello()
         self.producer: Producer | None = None
 
     async def __aenter__(self) -> Producer:
-        ws = await _connect(self.url)
+        ws = await _connect(self.url, token=self.token)
         try:
             await ws.send(dump_message(self.hello))
         except ConnectionClosed:
@@ -432,16 +442,17 @@ class watch:
         receive_buffer: int | None = VIEWER_RECEIVE_BUFFER,
         max_queue: int = VIEWER_MAX_QUEUE,
     ) -> None:
-        self.url = ws_url(
-            url, f"/v1/sessions/{quote(session, safe='')}/watch", token=token, encoding=encoding
-        )
+        self.url = ws_url(url, f"/v1/sessions/{quote(session, safe='')}/watch", encoding=encoding)
+        self.token = token
         self.until = until_producer_leaves
         self.receive_buffer = receive_buffer
         self.max_queue = max_queue
         self.watcher: Watcher | None = None
 
     async def __aenter__(self) -> Watcher:
-        ws = await _connect(self.url, rcvbuf=self.receive_buffer, max_queue=self.max_queue)
+        ws = await _connect(
+            self.url, token=self.token, rcvbuf=self.receive_buffer, max_queue=self.max_queue
+        )
         try:
             first = await ws.recv()
         except ConnectionClosed:

@@ -29,6 +29,8 @@ class CloseCode(IntEnum):
 
     NORMAL = 1000  #: the stream ended normally
     GOING_AWAY = 1001  #: the server is shutting down
+    POLICY_VIOLATION = 1008  #: messages far over the connection's rate budget (a flood)
+    TOO_BIG = 1009  #: a message over the size limit of its kind (e.g. an audio chunk over 1 s)
     SESSION_CLOSED = 4000  #: the session was closed (DELETE /v1/sessions/{id}) while connected
     BAD_REQUEST = 4400  #: bad query parameter, hello, or a frame that makes the stream unusable
     UNAUTHORIZED = 4401  #: token missing or wrong

@@ -236,6 +236,7 @@ class SessionCreate(_Model):
         60.0,
         gt=0,
         le=240,
+        allow_inf_nan=False,
         description="output frame rate (audio/markers drivers "
         "resample to it; FAP frames are taken as sent)",
     )
@@ -254,10 +255,11 @@ class SessionCreated(_Model):
     fps: float
     vertex_count: int
     produce_url: str = Field(
-        description="WebSocket path for the producer (add ?token=PRODUCER_TOKEN)"
+        description="WebSocket path for the producer (send 'Authorization: Bearer PRODUCER_TOKEN')"
     )
     watch_url: str = Field(
-        description="WebSocket path for viewers (add ?token=VIEWER_TOKEN&encoding=f32|i16)"
+        description="WebSocket path for viewers (send 'Authorization: Bearer VIEWER_TOKEN'; "
+        "add ?encoding=f32|i16)"
     )
 
 

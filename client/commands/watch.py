@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import sys
 import time
 
@@ -18,7 +19,13 @@ import time
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--url", required=True, help="server URL, e.g. http://127.0.0.1:8000")
     p.add_argument("--session", required=True, help="session id")
-    p.add_argument("--token", required=True, help="the session's viewer token")
+    p.add_argument(
+        "--token",
+        default=os.environ.get("FACECAST_TOKEN"),
+        required=not os.environ.get("FACECAST_TOKEN"),
+        help="the session's viewer token (default: $FACECAST_TOKEN, which keeps it out of the "
+        "process list); it is sent in the Authorization header, never in the URL",
+    )
     p.add_argument(
         "--encoding", choices=("f32", "i16"), default="f32", help="vertex encoding (default f32)"
     )

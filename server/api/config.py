@@ -34,6 +34,8 @@ class ServerConfig(BaseSettings):
     job_memory_mb: int = Field(default=0, ge=0)  # address space of a job worker process (MiB); 0 = no limit
     max_sessions: int = 64
     max_viewers_per_session: int = 256
+    # close a live session with no viewer and no producer for this long; 0 = never
+    session_idle_seconds: float = Field(default=600.0, ge=0)
     max_producer_fps: float = 250.0  # frames per second a producer may send (markers run at 240 Hz)
     allow_remote: bool = False  # must be set to bind to a non-loopback address
     faces: str | None = None  # more faces by name: "ict=/path/mesh.obj,other=/path/x.obj"

@@ -46,6 +46,13 @@ class Metrics:
                                       "Vertex frames a slow viewer skipped", registry=r)
         self.frames_in = Counter("facecast_frames_received", "Input frames received from producers",
                                  registry=r)
+        self.sessions_expired = Counter("facecast_sessions_expired",
+                                        "Live sessions closed after their idle time", registry=r)
+        self.live_refused = Counter(
+            "facecast_live_messages_refused",
+            "Live WebSocket messages refused before decoding, by reason "
+            "(drop: over the rate; flood, too_big: the connection is closed)",
+            ["reason"], registry=r)
         self.deform_seconds = Histogram(
             "facecast_deform_seconds", "Time to deform one live frame (seconds)", registry=r,
             buckets=(0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0))

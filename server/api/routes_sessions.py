@@ -34,8 +34,9 @@ from ...protocol.messages import (
     parse_message,
 )
 from ..errors import FacecastError
+from ..live.budget import Budget, Limits, Verdict, producer_limits, viewer_limits
 from ..live.wire import DirectSender, ViewerGone, find_protocol
-from .security import require_admin, same
+from .security import require_admin, same, ws_token
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,12 @@ HELLO_TIMEOUT = 10.0
 #: Kernel send buffer of a viewer socket, in vertex frames (see ``_limit_send_buffer``).
 VIEWER_SEND_BUFFER_FRAMES = 1
 MIN_SEND_BUFFER = 64 * 1024
+#: Kernel receive buffer of a producer socket: what one read hands the event loop at most (a read
+#: of tiny frames is parsed in one go, so a flood's reads stay short); ample for 1 s audio chunks.
+PRODUCER_RECEIVE_BUFFER = 64 * 1024
+#: A receive loop yields to the event loop after this many messages: ``receive`` does not suspend
+#: while messages are queued, so without it one flooding socket would hold the loop.
+YIELD_EVERY = 8
 
 
 def registry(app: Any):
@@ -61,6 +68,7 @@ def registry(app: Any):
             max_viewers=cfg.max_viewers_per_session,
             max_fps=cfg.max_producer_fps,
             metrics=getattr(app.state, "metrics", None),
+            idle_seconds=cfg.session_idle_seconds,
         )
         app.state.live = reg
     return reg
@@ -123,13 +131,46 @@ def _error(
     )
 
 
+def _reason(message: str) -> str:
+    """``message`` cut to fit a close frame's reason (123 bytes of UTF-8)."""
+    raw = message.encode("utf-8", "replace")
+    return raw.decode() if len(raw) <= 123 else raw[:120].decode("utf-8", "ignore") + "..."
+
+
 async def _refuse(ws: WebSocket, code: int, message: str, where: str = "") -> None:
-    """Send one fatal error message and close with ``code``."""
+    """Send one fatal error message and close with ``code`` (the message, cut, is the reason)."""
     try:
         await ws.send_text(_error(code, message, where=where, fatal=True))
-        await ws.close(int(code))
+        await ws.close(int(code), _reason(message))
     except Exception:  # the peer is already gone
         pass
+
+
+#: Close code of a budget verdict that ends the connection.
+_CLOSE = {Verdict.TOO_BIG: CloseCode.TOO_BIG, Verdict.FLOOD: CloseCode.POLICY_VIOLATION}
+#: Seconds a flooding client has to read its close frame before its connection is dropped.
+CUT_OFF_GRACE = 1.0
+
+
+def _cut_off(ws: WebSocket) -> None:
+    """Stop reading a flooding connection now (its queued bytes are never parsed) and drop it after
+    ``CUT_OFF_GRACE`` seconds, whether or not it answers the close frame. Best effort."""
+    proto = find_protocol(getattr(ws, "_send", None))
+    transport = getattr(proto, "transport", None)
+    if transport is None or transport.is_closing():
+        return
+    try:
+        transport.pause_reading()
+    except RuntimeError:  # pragma: no cover - already closing
+        return
+    asyncio.get_running_loop().call_later(CUT_OFF_GRACE, transport.abort)
+
+
+async def _accept(ws: WebSocket, query_token: str | None) -> str | None:
+    """Accept the handshake (with the ``facecast.v1`` subprotocol if offered); the token sent."""
+    token, subprotocol = ws_token(ws.headers, ws.scope.get("subprotocols") or [], query_token)
+    await ws.accept(subprotocol=subprotocol)
+    return token
 
 
 async def _authorise(ws: WebSocket, session_id: str, token: str | None, role: str):
@@ -162,7 +203,9 @@ async def _authorise(ws: WebSocket, session_id: str, token: str | None, role: st
         await _refuse(
             ws,
             CloseCode.UNAUTHORIZED,
-            f"missing or wrong {role} token: add ?token=<{role}_token from POST /v1/sessions>",
+            f"missing or wrong {role} token: send 'Authorization: Bearer <{role}_token from "
+            "POST /v1/sessions>' (browsers: the subprotocols 'facecast.v1' and "
+            f"'facecast.token.<{role}_token>')",
             where="token",
         )
     return None
@@ -170,6 +213,8 @@ async def _authorise(ws: WebSocket, session_id: str, token: str | None, role: st
 
 class _Producer:
     """The connected producer, as the session sees it (so an admin close can end it)."""
+
+    remote = True  # a client's producer: the session is in use (``LiveSession.busy``)
 
     def __init__(self, ws: WebSocket) -> None:
         self.ws = ws
@@ -182,29 +227,13 @@ class _Producer:
             pass
 
 
-class _RateLimit:
-    """Token bucket: ``rate`` frames per second on average, bursts up to one second's worth."""
-
-    def __init__(self, rate: float) -> None:
-        self.rate = rate
-        self.tokens = rate
-        self.last = time.monotonic()
-        self.last_error = 0.0
-
-    def allow(self) -> bool:
-        now = time.monotonic()
-        self.tokens = min(self.rate, self.tokens + (now - self.last) * self.rate)
-        self.last = now
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False
-
-
 @router.websocket("/v1/sessions/{session_id}/produce")
 async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> None:
-    """Producer: hello, then FAP frames / PCM chunks / marker frames (``protocol/README.md``)."""
-    await ws.accept()
+    """Producer: hello, then FAP frames / PCM chunks / marker frames (``protocol/README.md``).
+
+    The token: ``Authorization: Bearer``, a ``facecast.token.<token>`` subprotocol, or ``?token=``.
+    """
+    token = await _accept(ws, token)
     session = await _authorise(ws, session_id, token, "producer")
     if session is None:
         return
@@ -217,6 +246,7 @@ async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> N
         )
         return
     reg = registry(ws.app)
+    _set_buffer(ws, socket.SO_RCVBUF, PRODUCER_RECEIVE_BUFFER)
     me = _Producer(ws)
     session.producer = me  # claim before any await, so a second producer is refused
     metrics = reg.metrics
@@ -224,12 +254,13 @@ async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> N
         metrics.producers.inc()
     loop = asyncio.get_running_loop()
     try:
-        inp = await _producer_hello(ws, session, reg, loop)
-        if inp is None:
+        hello = await _producer_hello(ws, session, reg, loop)
+        if hello is None:
             return
+        inp, limits = hello
         session.set_producer(me)  # tells viewers
-        await _producer_loop(ws, session, reg, inp)
-    except WebSocketDisconnect:
+        await _producer_loop(ws, session, reg, inp, limits)
+    except (WebSocketDisconnect, OSError):  # the producer went away mid-send
         pass
     except Exception:
         log.exception("session %s: producer failed", session_id)
@@ -242,7 +273,7 @@ async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> N
 
 
 async def _producer_hello(ws: WebSocket, session, reg, loop):
-    """Wait for the hello and build the input; None (after refusing) if it is missing or unusable."""
+    """Wait for the hello; ``(input, limits)``, or None (after refusing) if it is unusable."""
     from ..live.inputs import BadHello, InputUnavailable, make_input
 
     try:
@@ -293,7 +324,14 @@ async def _producer_hello(ws: WebSocket, session, reg, loop):
             )
         )
     )
-    return inp
+    limits = producer_limits(
+        session.spec.input,
+        reg.max_fps,
+        rate=hello.rate,
+        sample_format=hello.sample_format,
+        markers=len(hello.markers or ()),
+    )
+    return inp, limits
 
 
 async def _follow_controls(session, reg, inp) -> None:
@@ -308,11 +346,13 @@ async def _follow_controls(session, reg, inp) -> None:
     session.control_vertices = np.array(cv)
 
 
-async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
+async def _producer_loop(ws: WebSocket, session, reg, inp, limits: Limits) -> None:
+    """Receive frames until the producer leaves; raw messages meet the budget before decoding."""
     loop = asyncio.get_running_loop()
-    limit = _RateLimit(reg.max_fps)
+    budget = Budget(limits)
     inline = session.spec.input == "fap"  # audio / mocap drivers do real work: run them in a thread
     metrics = reg.metrics
+    received = 0
     while not session.closed:
         msg = await ws.receive()
         if msg["type"] == "websocket.disconnect":
@@ -320,14 +360,30 @@ async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
             if tail:
                 session.submit(tail, wall=time.time())
             return
+        received += 1
+        if received % YIELD_EVERY == 0:
+            await asyncio.sleep(0)
         data, text = msg.get("bytes"), msg.get("text")
+        size = len(data) if data is not None else len(text or "")
+        verdict, why = budget.check(size, data is None, time.monotonic())
+        if verdict is not Verdict.OK:
+            session.stats["frames_rejected"] += 1
+            if metrics:
+                metrics.live_refused.labels(verdict.name.lower()).inc()
+            if verdict is Verdict.DROP:
+                if budget.warn_now(time.monotonic()):
+                    await ws.send_text(_error(CloseCode.TOO_MANY, why))
+                continue
+            code = _CLOSE[verdict]
+            log.warning("session %s: producer disconnected (%d): %s", session.spec.id, code, why)
+            await _refuse(ws, code, why)
+            _cut_off(ws)
+            return
         seq: int | None = None
         try:
             if data is not None:
                 frame = frames.decode(data, kinds=inp.kinds)
                 seq, wall = frame.header.seq, frame.header.wall
-                if not limit.allow():
-                    raise _OverLimit()
                 states = (
                     inp.push_frame(frame)
                     if inline
@@ -342,23 +398,7 @@ async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
                         where="type",
                     )
                 seq, wall = m.seq, m.wall
-                if not limit.allow():
-                    raise _OverLimit()
                 states = inp.push_message(m)
-        except _OverLimit:
-            session.stats["frames_rejected"] += 1
-            now = time.monotonic()
-            if now - limit.last_error >= 1.0:
-                limit.last_error = now
-                await ws.send_text(
-                    _error(
-                        CloseCode.TOO_MANY,
-                        f"frames arrive faster than this server's limit of "
-                        f"{reg.max_fps:g} per second; frames over it are dropped",
-                        seq=seq,
-                    )
-                )
-            continue
         except (
             FrameError,
             MessageError,
@@ -401,18 +441,17 @@ async def _producer_loop(ws: WebSocket, session, reg, inp) -> None:
         session.submit(states, wall)
 
 
-class _OverLimit(Exception):
-    pass
-
-
 @router.websocket("/v1/sessions/{session_id}/watch")
 async def watch(
     ws: WebSocket, session_id: str, token: str | None = None, encoding: str = "f32"
 ) -> None:
-    """Viewer: a JSON hello, then binary vertex frames (newest only for a slow viewer)."""
+    """Viewer: a JSON hello, then binary vertex frames (newest only for a slow viewer).
+
+    The token: ``Authorization: Bearer``, a ``facecast.token.<token>`` subprotocol, or ``?token=``.
+    """
     from ..live.session import Viewer
 
-    await ws.accept()
+    token = await _accept(ws, token)
     session = await _authorise(ws, session_id, token, "viewer")
     if session is None:
         return
@@ -467,7 +506,7 @@ async def watch(
     viewer = Viewer(encoding, DirectSender.attach(ws))  # pre-framed bytes straight to the transport
     session.add_viewer(viewer)
     sender = asyncio.create_task(_send_loop(ws, session, viewer))
-    receiver = asyncio.create_task(_drain(ws))
+    receiver = asyncio.create_task(_drain(ws, session, registry(ws.app).metrics))
     try:
         await asyncio.wait({sender, receiver}, return_when=asyncio.FIRST_COMPLETED)
     finally:
@@ -485,6 +524,18 @@ async def watch(
                 pass
 
 
+def _set_buffer(ws: WebSocket, option: int, nbytes: int) -> None:
+    """Set a socket buffer size (``SO_SNDBUF`` / ``SO_RCVBUF``) of the connection; best effort."""
+    try:
+        proto = find_protocol(ws._send)
+        transport = getattr(proto, "transport", None)
+        sock = transport.get_extra_info("socket") if transport is not None else None
+        if sock is not None:
+            sock.setsockopt(socket.SOL_SOCKET, option, int(nbytes))
+    except (OSError, AttributeError):  # pragma: no cover - depends on the ASGI server
+        log.debug("cannot set a socket buffer of a live connection", exc_info=True)
+
+
 def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
     """Cap the kernel send buffer of a viewer's socket at about ``nbytes``.
 
@@ -493,14 +544,7 @@ def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
     ones. With a small buffer the backlog stays in the viewer's one-frame slot, where a newer frame
     replaces it. Best effort: servers that hide the transport keep their defaults.
     """
-    try:
-        proto = find_protocol(ws._send)
-        transport = getattr(proto, "transport", None)
-        sock = transport.get_extra_info("socket") if transport is not None else None
-        if sock is not None:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, max(MIN_SEND_BUFFER, int(nbytes)))
-    except (OSError, AttributeError):  # pragma: no cover - depends on the ASGI server
-        log.debug("cannot set the send buffer of a viewer socket", exc_info=True)
+    _set_buffer(ws, socket.SO_SNDBUF, max(MIN_SEND_BUFFER, int(nbytes)))
 
 
 async def _send_loop(ws: WebSocket, session, viewer) -> None:
@@ -537,12 +581,30 @@ async def _send_loop(ws: WebSocket, session, viewer) -> None:
         session.count_sent(unsent)
 
 
-async def _drain(ws: WebSocket) -> None:
-    """Read (and ignore) what the viewer sends, so its departure is noticed at once."""
+async def _drain(ws: WebSocket, session, metrics) -> None:
+    """Read (and ignore) what the viewer sends, so its departure is noticed at once; a viewer that
+    floods or sends an oversized message is disconnected (1008 / 1009)."""
+    budget = Budget(viewer_limits())
+    received = 0
     try:
         while True:
             msg = await ws.receive()
             if msg["type"] == "websocket.disconnect":
                 return
-    except (WebSocketDisconnect, RuntimeError):
+            received += 1
+            if received % YIELD_EVERY == 0:
+                await asyncio.sleep(0)
+            data, text = msg.get("bytes"), msg.get("text")
+            verdict, why = budget.check(
+                len(data) if data is not None else len(text or ""), data is None, time.monotonic()
+            )
+            if verdict in (Verdict.FLOOD, Verdict.TOO_BIG):
+                if metrics:
+                    metrics.live_refused.labels(verdict.name.lower()).inc()
+                code = _CLOSE[verdict]
+                log.warning("session %s: viewer disconnected (%d): %s", session.spec.id, code, why)
+                await _refuse(ws, code, f"viewers only listen: {why}")
+                _cut_off(ws)
+                return
+    except (WebSocketDisconnect, RuntimeError, OSError):
         return

@@ -70,3 +70,28 @@ def require_admin(request: Request) -> None:
             detail="admin key required: send 'Authorization: Bearer <key>' (the key is FACECAST_ADMIN_KEY, "
                    "or the one the server printed at start-up and keeps in its data directory)",
         )
+
+
+#: The WebSocket subprotocol of facecast. Browsers cannot set headers on a WebSocket, so a page
+#: offers ``[WS_SUBPROTOCOL, WS_TOKEN_PREFIX + token]``; the server accepts with ``WS_SUBPROTOCOL``.
+WS_SUBPROTOCOL = "facecast.v1"
+WS_TOKEN_PREFIX = "facecast.token."
+
+
+def ws_token(
+    headers, subprotocols: list[str], query_token: str | None
+) -> tuple[str | None, str | None]:
+    """A live WebSocket's token and the subprotocol to accept (or None).
+
+    The token comes from ``Authorization: Bearer``, else a ``facecast.token.<token>`` subprotocol,
+    else (kept for old clients) the ``?token=`` query parameter, which servers log (masked).
+    """
+    offered = [p for p in subprotocols if p.startswith(WS_TOKEN_PREFIX)]
+    accept = WS_SUBPROTOCOL if WS_SUBPROTOCOL in subprotocols else None
+    auth = headers.get("authorization", "")
+    scheme, _, token = auth.partition(" ")
+    if scheme.lower() == "bearer" and token.strip():
+        return token.strip(), accept
+    if offered:
+        return offered[0][len(WS_TOKEN_PREFIX):], accept
+    return query_token, accept

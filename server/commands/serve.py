@@ -30,6 +30,7 @@ environment:
   FACECAST_JOB_TIMEOUT_SECONDS  a job running longer fails, its worker killed (default 3600; 0 = none)
   FACECAST_JOB_MEMORY_MB        address space of a job worker process in MiB (default 0 = no limit)
   FACECAST_JOB_RETENTION_HOURS  delete finished jobs after this long (default 168; 0 = never)
+  FACECAST_SESSION_IDLE_SECONDS close a live session idle this long (default 600; 0 = never)
   every flag also as FACECAST_<NAME> (FACECAST_PORT, FACECAST_JOB_WORKERS, ...)
 
 routes: /docs (OpenAPI), /healthz, /readyz, /metrics, /v1/faces, /v1/jobs, /v1/sessions
@@ -50,6 +51,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--allow-remote", action="store_true", default=None,
                    help="allow binding to a non-loopback address (anyone who can reach it can use the "
                         "public routes; admin routes still need the key)")
+    p.add_argument("--session-idle", type=float, metavar="SECONDS",
+                   help="close a live session after this long with no viewer and no connected "
+                        "producer (default 600; 0 = never)")
     p.add_argument("--log-level", default=None, help="uvicorn log level (default: warning)")
 
 
@@ -76,6 +80,7 @@ def make_config(args: argparse.Namespace):
         "host": args.host, "port": args.port, "data_dir": args.data_dir, "face": args.face,
         "backend": args.backend, "device": args.device, "job_workers": args.workers,
         "allow_remote": args.allow_remote,
+        "session_idle_seconds": getattr(args, "session_idle", None),
     }.items() if v is not None}
     try:
         config = ServerConfig(**overrides)
@@ -122,7 +127,11 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from ..api.app import create_app
+    from ..api.redact import install as mask_secrets_in_logs
     from ..api.security import resolve_admin_key
+    from ..live.budget import MAX_WS_MESSAGE
+
+    mask_secrets_in_logs()  # tokens in query strings never reach a log line
 
     config = make_config(args)
     config.data_dir = config.data_dir.expanduser().resolve()
@@ -143,5 +152,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"facecast: serving on {page} (data in {config.data_dir}, "
           f"{config.job_workers} job worker(s), backend {config.backend})", flush=True)
     uvicorn.run(app, host=config.host, port=config.port, ws_per_message_deflate=False,
-                log_level=args.log_level or "warning", lifespan="on", timeout_graceful_shutdown=5)
+                log_level=args.log_level or "warning", lifespan="on", timeout_graceful_shutdown=5,
+                ws_max_size=MAX_WS_MESSAGE)  # the largest message a live input accepts
     return 0

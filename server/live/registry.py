@@ -10,6 +10,7 @@ import asyncio
 import logging
 import os
 import secrets
+import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -50,6 +51,8 @@ class SessionRegistry:
         store: the app's ``FaceStore`` (face names -> faces and shared animators).
         max_sessions, max_viewers, max_fps: the server's limits (``ServerConfig``).
         metrics: the app's ``Metrics`` (or None).
+        idle_seconds: a session not ``busy`` (no viewer, no client producer) this long is closed
+            (``ServerConfig.session_idle_seconds``; 0 = never).
     """
 
     def __init__(
@@ -61,6 +64,7 @@ class SessionRegistry:
         max_fps: float,
         metrics: Any = None,
         threads: int | None = None,
+        idle_seconds: float = 0.0,
     ) -> None:
         self.store = store
         self.max_sessions = max_sessions
@@ -76,6 +80,8 @@ class SessionRegistry:
         self.batch_executor = ThreadPoolExecutor(batch_threads(), thread_name_prefix="live-batch")
         self._batchers: dict[int, DeformBatcher] = {}
         self._creating = 0
+        self.idle_seconds = idle_seconds
+        self._reaper: asyncio.Task | None = None
 
     def batcher_for(self, animator: Any) -> DeformBatcher:
         """The one ``DeformBatcher`` of ``animator`` (sessions of the same face share it)."""
@@ -133,6 +139,7 @@ class SessionRegistry:
             )
             session = LiveSession(spec, face, self.batcher_for(animator), self.metrics)
             self.sessions[sid] = session
+            self._start_reaper()
             if self.metrics:
                 self.metrics.sessions.set(len(self.sessions))
             log.info(
@@ -212,7 +219,47 @@ class SessionRegistry:
         )
         log.info("live session %s closed", session_id)
 
+    # -- idle expiry -------------------------------------------------------------------------------
+    def _start_reaper(self) -> None:
+        if self.idle_seconds > 0 and self._reaper is None:
+            self._reaper = asyncio.get_running_loop().create_task(self._reap())
+
+    async def _reap(self) -> None:
+        """Every quarter of the idle time (at most 30 s): close the sessions idle for it."""
+        interval = min(30.0, max(0.05, self.idle_seconds / 4))
+        while True:
+            await asyncio.sleep(interval)
+            try:
+                await self.expire_idle(time.monotonic())
+            except Exception:  # never let the reaper die
+                log.exception("expiring idle sessions")
+
+    async def expire_idle(self, now: float) -> list[str]:
+        """Close the sessions nobody used for ``idle_seconds`` (monotonic ``now``); their ids."""
+        idle = [
+            sid
+            for sid, s in self.sessions.items()
+            if not s.busy() and now - s.last_active >= self.idle_seconds
+        ]
+        for s in self.sessions.values():
+            if s.busy():
+                s.last_active = now
+        for sid in idle:
+            if sid in self.sessions:
+                await self.close(
+                    sid,
+                    f"the session expired: no viewer and no producer for {self.idle_seconds:g} s "
+                    "(FACECAST_SESSION_IDLE_SECONDS); create a new one",
+                )
+                log.info("live session %s expired after %g s idle", sid, self.idle_seconds)
+                if self.metrics:
+                    self.metrics.sessions_expired.inc()
+        return idle
+
     async def close_all(self) -> None:
+        if self._reaper is not None:
+            self._reaper.cancel()
+            self._reaper = None
         for sid in list(self.sessions):
             await self.close(sid, "the server is shutting down")
         self.executor.shutdown(wait=False, cancel_futures=True)

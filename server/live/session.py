@@ -163,6 +163,13 @@ class LiveSession:
         self._last_stats = time.monotonic()
         self.closed = False
         self._status_due = False
+        self.last_active = time.monotonic()  # last time a peer was seen (``busy``); for idle expiry
+
+    def busy(self) -> bool:
+        """A viewer is connected (or joining) or a client's producer is: the session is in use. A
+        server-side producer (demo, playback) alone does not count: nobody asked for it any more."""
+        remote = bool(getattr(self.producer, "remote", False))
+        return bool(self.viewers) or self.joining > 0 or remote
 
     # -- producer side -----------------------------------------------------------------------------
     def submit(self, states: list[FaceState], wall: float) -> None:
@@ -182,6 +189,7 @@ class LiveSession:
     def set_producer(self, producer: Any) -> None:
         """A producer connected (tell viewers now) or left (tell them once its frames are out)."""
         self.producer = producer
+        self.last_active = time.monotonic()
         if producer is not None:
             self.broadcast_status()
         else:
@@ -197,6 +205,7 @@ class LiveSession:
             self.metrics.viewers.inc()
 
     def remove_viewer(self, viewer: Viewer) -> None:
+        self.last_active = time.monotonic()
         if viewer in self.viewers:
             self.viewers.discard(viewer)
             left = self._encodings[viewer.encoding] - 1

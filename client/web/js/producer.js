@@ -1,5 +1,5 @@
 // Producing into a session from the page: FAP frames (buttons, sliders) or PCM chunks (microphone).
-import { fapMessage, pcmF32Frame } from './protocol.js';
+import { fapMessage, pcmF32Frame, tokenProtocols } from './protocol.js';
 
 export class Producer {
   constructor(session, token, onStatus = () => {}) {
@@ -10,7 +10,8 @@ export class Producer {
   /** Connect and send the hello; resolves when the server answers `ready`. */
   connect(hello) {
     const proto = location.protocol === 'https:' ? 'wss' : 'ws';
-    const ws = new WebSocket(`${proto}://${location.host}/v1/sessions/${this.session}/produce?token=${encodeURIComponent(this.token)}`);
+    const url = `${proto}://${location.host}/v1/sessions/${this.session}/produce`;
+    const ws = new WebSocket(url, tokenProtocols(this.token));  // the token is not in the URL
     ws.binaryType = 'arraybuffer';
     this.ws = ws;
     return new Promise((resolve, reject) => {

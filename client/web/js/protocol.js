@@ -44,6 +44,12 @@ export function decodeTopology(buffer) {
            groupNames: names.slice(P, P + G), groups, mmPerUnit };
 }
 
+/** WebSocket subprotocols that carry a session token: browsers cannot set an Authorization header,
+ *  and a token in the URL would reach server logs. The server accepts with 'facecast.v1'. */
+export function tokenProtocols(token) {
+  return ['facecast.v1', `facecast.token.${token}`];
+}
+
 /** A JSON FAP frame for a producer: faps maps FAP number (3-68) to its value. */
 export function fapMessage(seq, t, faps, viseme = null, expression = null) {
   const msg = { type: 'fap', seq, t, wall: Date.now() / 1000, faps };

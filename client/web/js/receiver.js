@@ -3,7 +3,7 @@
 // thread for tens of milliseconds), keeps only the newest vertex frame, and hands it to the page when
 // the page asks for the next one: at most one frame is in flight to the page.
 //
-// Page -> worker: {type: 'connect', id, url} | {type: 'next'} | {type: 'close'}
+// Page -> worker: {type: 'connect', id, url, protocols} | {type: 'next'} | {type: 'close'}
 // Worker -> page: {type: 'open'|'close'|'text'|'frame'|'error', id, ...}
 import { decodeVertexFrame } from './protocol.js';
 
@@ -18,10 +18,10 @@ function deliver() {
   decodeMs = [];
 }
 
-function connect(url, connId) {
+function connect(url, connId, protocols = []) {
   if (ws) { ws.onclose = null; ws.onmessage = null; ws.close(); }
   id = connId; newest = null; lastSeq = null;
-  const sock = new WebSocket(url);
+  const sock = new WebSocket(url, protocols);  // they carry the token (protocol.js tokenProtocols)
   sock.binaryType = 'arraybuffer';
   ws = sock;
   sock.onopen = () => postMessage({ type: 'open', id: connId });
@@ -43,7 +43,7 @@ function connect(url, connId) {
 
 onmessage = (ev) => {
   const m = ev.data;
-  if (m.type === 'connect') connect(m.url, m.id);
+  if (m.type === 'connect') connect(m.url, m.id, m.protocols);
   else if (m.type === 'next') { wanted = true; deliver(); }
   else if (m.type === 'close') { if (ws) { ws.onclose = null; ws.close(); ws = null; } newest = null; }
 };

@@ -1,6 +1,6 @@
 // Watching a session: fetch the face topology, subscribe over WebSocket (in a Worker: ./receiver.js),
 // draw the newest frame. Reconnects with back-off when the connection drops (server restart) and says so.
-import { decodeTopology, decodeVertexFrame, KIND } from './protocol.js';
+import { decodeTopology, decodeVertexFrame, KIND, tokenProtocols } from './protocol.js';
 
 export class Viewer {
   constructor(renderer, { onStatus = () => {}, onStats = () => {} } = {}) {
@@ -30,11 +30,11 @@ export class Viewer {
   connect(attempt) {
     const { session, token, encoding } = this.target;
     const proto = location.protocol === 'https:' ? 'wss' : 'ws';
-    const url = `${proto}://${location.host}/v1/sessions/${session}/watch?token=${encodeURIComponent(token)}&encoding=${encoding}`;
+    const url = `${proto}://${location.host}/v1/sessions/${session}/watch?encoding=${encoding}`;
     const id = ++this.connId;
     this.attempt = attempt;
     this.pending = null;
-    this.worker.postMessage({ type: 'connect', id, url });
+    this.worker.postMessage({ type: 'connect', id, url, protocols: tokenProtocols(token) });
     this.worker.postMessage({ type: 'next' });
   }
 
