@@ -378,11 +378,6 @@ def test_idle_sessions_expire_and_watched_ones_do_not(srv):
 # ------------------------------------------------------------------------------ real server: 500s -> 4xx
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="the global validation-error handler must render non-finite "
-    "and non-UTF-8 inputs (server/api/app.py, the REST change)",
-)
 @pytest.mark.parametrize(
     "body", ['{"fps": NaN}', '{"fps": Infinity}', '{"fps": 1e309}', '{"face": "\\ud800"}']
 )
