@@ -1,0 +1,125 @@
+"""Non-rigid fit of the template to the user's head (Kähler, Haber, Seidel 2002, "Head shop").
+
+After the similarity alignment, the template is warped by a radial-basis-function field fitted to
+displacements between the two surfaces, then refined: each round recomputes closest-point
+correspondences both ways (template to mesh and mesh to template, dropping pairs that are far, lie on
+the mesh's open rim or whose normals disagree), fits the field on more control points with less
+smoothing, and warps again. User landmarks, when given, are extra controls with near-zero smoothing.
+All positions are in the template's frame (mm, MPEG-4 axes).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import RBFInterpolator
+from scipy.spatial import cKDTree
+
+from ...output.preview import vertex_normals
+from .template import Template
+
+#: Refinement rounds: (control points, correspondence distance limit in mm, smoothing).
+SCHEDULE: tuple[tuple[int, float, float], ...] = (
+    (40, 40.0, 30.0), (80, 30.0, 10.0), (160, 20.0, 3.0), (300, 14.0, 1.0),
+    (500, 10.0, 0.3), (700, 8.0, 0.1), (900, 6.0, 0.05), (900, 5.0, 0.02),
+)
+
+
+@dataclass
+class Target:
+    """The user's head surface in the template frame.
+
+    Attributes:
+        points: ``(P, 3)`` mm: surface samples (vertices of the matched surface, then triangle centroids).
+        normals: ``(P, 3)`` unit normals, oriented outwards like the template's.
+        rim: ``(P,) bool``: samples on an open boundary (a mask's edge, a bust's cut).
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    rim: np.ndarray
+
+
+def farthest_point_order(points: np.ndarray, k: int, start: int = 0) -> np.ndarray:
+    """Indices of ``k`` points of ``(N, 3)`` chosen greedily farthest from those already chosen."""
+    k = min(k, len(points))
+    chosen = np.empty(k, dtype=np.int64)
+    chosen[0] = start
+    d = np.linalg.norm(points - points[start], axis=1)
+    for i in range(1, k):
+        chosen[i] = int(np.argmax(d))
+        d = np.minimum(d, np.linalg.norm(points - points[chosen[i]], axis=1))
+    return chosen
+
+
+def fit(template: Template, target: Target, *, landmarks: dict[str, np.ndarray] | None = None,
+        crop: np.ndarray | None = None) -> tuple[np.ndarray, list]:
+    """Warp all template vertices onto ``target``.
+
+    Args:
+        landmarks: MPEG-4 id -> ``(3,)`` target position (template frame) the matching template
+            feature point must reach.
+        crop: ``(P,) bool``: target samples that belong to the head (others never pull the template).
+
+    Returns:
+        ``(N, 3)`` warped template vertices and the list of fitted RBF fields (apply in order to any
+        template-frame point, e.g. a pivot, with ``warp_points``).
+    """
+    w = template.vertices.copy()
+    outer = template.outer
+    order = farthest_point_order(template.vertices[outer], max(s[0] for s in SCHEDULE))
+    ttree = cKDTree(target.points)
+    head = np.ones(len(target.points), bool) if crop is None else crop
+    back_pts = target.points[head & ~target.rim]
+    back_n = target.normals[head & ~target.rim]
+    fields = []
+    lm_keys = [k for k in (landmarks or {}) if k in template.feature_points]
+    for n_ctrl, limit, smooth in SCHEDULE:
+        wo = w[outer]
+        wn = vertex_normals(w, template.triangles)[outer]
+        acc = np.zeros_like(wo)
+        cnt = np.zeros(len(wo))
+        # template -> mesh
+        d, j = ttree.query(wo)
+        ok = (d < limit) & ~target.rim[j] & head[j] & (np.einsum("ij,ij->i", wn, target.normals[j]) > 0.3)
+        acc[ok] += target.points[j[ok]] - wo[ok]
+        cnt[ok] += 1
+        # mesh -> template
+        d2, i2 = cKDTree(wo).query(back_pts)
+        ok2 = (d2 < limit) & (np.einsum("ij,ij->i", back_n, wn[i2]) > 0.3)
+        np.add.at(acc, i2[ok2], back_pts[ok2] - wo[i2[ok2]])
+        np.add.at(cnt, i2[ok2], 1)
+        has = cnt > 0
+        if has.sum() < 10:
+            break
+        disp = np.zeros_like(wo)
+        disp[has] = acc[has] / cnt[has, None]
+        # Control displacements: the mean over the nearest matched template vertices.
+        ctrl = order[:n_ctrl]
+        matched = np.nonzero(has)[0]
+        k = min(12, len(matched))
+        _, nn = cKDTree(wo[matched]).query(wo[ctrl], k=k)
+        nn = nn.reshape(len(ctrl), k)
+        dist = np.linalg.norm(wo[matched][nn] - wo[ctrl][:, None], axis=2)
+        near = dist < 2.5 * limit
+        valid = near.any(axis=1)
+        c_disp = (disp[matched][nn] * near[..., None]).sum(1)[valid] / near.sum(1)[valid][:, None]
+        c_pos = wo[ctrl][valid]
+        sm = np.full(len(c_pos), smooth)
+        if lm_keys:
+            lp = np.array([w[template.feature_points[k]] for k in lm_keys])
+            c_pos = np.r_[c_pos, lp]
+            c_disp = np.r_[c_disp, np.array([landmarks[k] for k in lm_keys]) - lp]
+            sm = np.r_[sm, np.full(len(lp), 1e-6)]
+        rbf = RBFInterpolator(c_pos, c_disp, kernel="thin_plate_spline", smoothing=sm, degree=1)
+        w = w + rbf(w)
+        fields.append(rbf)
+    return w, fields
+
+
+def warp_points(points: np.ndarray, fields: list) -> np.ndarray:
+    """Carry template-frame ``points (K, 3)`` through the fitted fields (pivots, extra points)."""
+    p = np.atleast_2d(np.asarray(points, dtype=np.float64))
+    for f in fields:
+        p = p + f(p)
+    return p
