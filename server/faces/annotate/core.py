@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 from ...errors import InputError
 from ...output.preview import vertex_normals
 from ..face import FEATURE_POINT_IDS, UNIT_MM
+from .detect import profile_landmarks, sphere_centre
 from .orient import frame, place
 from .template import INNER, OUTER, PIECE_PARTS, Template, default_template
 from .warp import Target, fit, warp_points
@@ -129,8 +130,8 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
     if np.median(np.einsum("ij,ij->i", nrm[head][close], tpl.normals[tpl.outer][j[close]])) < 0:
         nrm, yn = -nrm, -yn
     target = Target(points=pts, normals=nrm, rim=np.r_[rim[main], rim[mtri].any(axis=1)])
-    lm_t = {k: sim.apply(p[None])[0] for k, p in lm.items() if k in tpl.feature_points}
-    warped, fields = fit(tpl, target, landmarks=lm_t or None, crop=head)
+    anchors, found = _anchors(tpl, lm, sim, y, mtri, label, sizes, main_label)
+    warped, fields = fit(tpl, target, anchors=anchors, crop=head)
 
     box = (y[:, 1] > tpl.vertices[:, 1].min() - 20) & (np.abs(y[:, 0]) < 140) & (np.abs(y[:, 2]) < 200)
     parts = _parts(y, label, main_label, sizes, warped, tpl, box)
@@ -148,7 +149,7 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
     report = {
         "template": "default", "seconds": round(time.perf_counter() - t0, 2),
         "mm_per_unit_measured": round(mm_per_unit, 4), "tilt_deg": round(off_axis, 1),
-        "alignment_score_mm": round(pl.score, 2), "fit_median_mm": round(fit_err, 2),
+        "alignment_score_mm": round(pl.score, 2), "landmarks": found, "fit_median_mm": round(fit_err, 2),
         "cropped_to_head": bool(pl.cropped or (~head_v[used]).any()),
         "left_out": left_out, "warnings": warnings,
     }
@@ -178,6 +179,45 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
         "pivots": {k: [round(float(x), 6) for x in p] for k, p in zip(names, piv)},
         "automatic": report,
     }
+
+
+def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
+    """Template points and where they belong on the mesh: the user's landmarks, else the midline
+    profile landmarks (``detect``) and the centres of eyeball pieces."""
+    src, dst, found = [], [], []
+    if lm:
+        for k, p in lm.items():
+            if k in tpl.feature_points:
+                src.append(tpl.fp_position(k))
+                dst.append(sim.apply(np.asarray(p, dtype=np.float64)[None])[0])
+                found.append(k)
+    else:
+        mine = profile_landmarks(y, mtri, tpl.profile_heights)
+        for name, p in mine.items():
+            if name in tpl.profile:
+                src.append(tpl.profile[name])
+                dst.append(p)
+                found.append(name)
+        for eye in ("eye_l", "eye_r"):
+            c = tpl.pivots[eye]
+            best = None
+            for comp in np.nonzero(sizes)[0]:
+                if comp == main_label or sizes[comp] < 20:
+                    continue
+                ids = np.nonzero(label == comp)[0]
+                centre = sphere_centre(y[ids])
+                radius = np.linalg.norm(y[ids] - centre, axis=1)
+                round_ = radius.std() < 0.15 * radius.mean() and 6.0 < radius.mean() < 20.0
+                d = np.linalg.norm(centre - c)
+                if round_ and d < 18.0 and (best is None or d < best[0]):
+                    best = (d, centre)
+            if best is not None:
+                src.append(c)
+                dst.append(best[1])
+                found.append(eye)
+    if not src:
+        return None, found
+    return (np.array(src), np.array(dst)), found
 
 
 def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[str, np.ndarray]:

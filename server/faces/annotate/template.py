@@ -35,6 +35,7 @@ class Template:
         face_region: ids of outer-skin vertices on the face (forehead to chin, cheek to cheek).
         normals: ``(N, 3)`` unit vertex normals.
         mouth_socket: ids of the mouth cavity behind the lips (part of the inner skin).
+        profile: the midline landmarks ``detect.profile_landmarks`` finds on the template.
     """
 
     vertices: np.ndarray
@@ -46,6 +47,11 @@ class Template:
     face_region: np.ndarray
     normals: np.ndarray
     mouth_socket: np.ndarray
+    profile: dict[str, np.ndarray]
+
+    @property
+    def profile_heights(self) -> dict[str, float]:
+        return {k: float(p[1]) for k, p in self.profile.items()}
 
     def part_of(self, fp: str) -> str:
         """``"skin"`` or the piece part name carrying feature point ``fp``."""
@@ -76,7 +82,9 @@ def default_template() -> Template:
     front = (p[:, 2] > nose_base[2] - 45) & (p[:, 1] > chin[1] - 5) & (p[:, 1] < brow[1] + 25) \
         & (np.abs(p[:, 0]) < 62)
     from ...output.preview import vertex_normals
+    from .detect import profile_landmarks
 
     return Template(vertices=v, triangles=face.triangles, label=label, outer=outer,
                     feature_points=dict(face.feature_points), pivots=pivots, face_region=outer[front],
-                    normals=vertex_normals(v, face.triangles), mouth_socket=face.part("mouth_socket"))
+                    normals=vertex_normals(v, face.triangles), mouth_socket=face.part("mouth_socket"),
+                    profile=profile_landmarks(v, face.triangles[(label[face.triangles] == OUTER).all(axis=1)]))

@@ -52,13 +52,13 @@ def farthest_point_order(points: np.ndarray, k: int, start: int = 0) -> np.ndarr
     return chosen
 
 
-def fit(template: Template, target: Target, *, landmarks: dict[str, np.ndarray] | None = None,
+def fit(template: Template, target: Target, *, anchors: tuple[np.ndarray, np.ndarray] | None = None,
         crop: np.ndarray | None = None) -> tuple[np.ndarray, list]:
     """Warp all template vertices onto ``target``.
 
     Args:
-        landmarks: MPEG-4 id -> ``(3,)`` target position (template frame) the matching template
-            feature point must reach.
+        anchors: ``(src (K, 3), dst (K, 3))``: template-frame points of the template (landmarks found
+            on it, the user's feature points, eyeball centres) and where they must land on the mesh.
         crop: ``(P,) bool``: target samples that belong to the head (others never pull the template).
 
     Returns:
@@ -73,7 +73,7 @@ def fit(template: Template, target: Target, *, landmarks: dict[str, np.ndarray] 
     back_pts = target.points[head & ~target.rim]
     back_n = target.normals[head & ~target.rim]
     fields = []
-    lm_keys = [k for k in (landmarks or {}) if k in template.feature_points]
+    src, dst = (np.zeros((0, 3)), np.zeros((0, 3))) if anchors is None else (anchors[0].copy(), anchors[1])
     for n_ctrl, limit, smooth in SCHEDULE:
         wo = w[outer]
         wn = vertex_normals(w, template.triangles)[outer]
@@ -106,13 +106,14 @@ def fit(template: Template, target: Target, *, landmarks: dict[str, np.ndarray] 
         c_disp = (disp[matched][nn] * near[..., None]).sum(1)[valid] / near.sum(1)[valid][:, None]
         c_pos = wo[ctrl][valid]
         sm = np.full(len(c_pos), smooth)
-        if lm_keys:
-            lp = np.array([w[template.feature_points[k]] for k in lm_keys])
-            c_pos = np.r_[c_pos, lp]
-            c_disp = np.r_[c_disp, np.array([landmarks[k] for k in lm_keys]) - lp]
-            sm = np.r_[sm, np.full(len(lp), 1e-6)]
+        if len(src):
+            # Anchors replace the surface controls around them (which would pull them elsewhere).
+            far = cKDTree(src).query(c_pos)[0] > 0.5 * limit
+            c_pos, c_disp, sm = np.r_[c_pos[far], src], np.r_[c_disp[far], dst - src], np.r_[sm[far], np.full(len(src), 1e-3)]
         rbf = RBFInterpolator(c_pos, c_disp, kernel="thin_plate_spline", smoothing=sm, degree=1)
         w = w + rbf(w)
+        if len(src):
+            src = src + rbf(src)
         fields.append(rbf)
     return w, fields
 

@@ -1,0 +1,125 @@
+"""Facial landmarks found geometrically on a head already aligned to the template (template frame:
+mm, y up, z forward, the face's midline near x = 0).
+
+The midline profile (the front-most surface point every millimetre of height within a thin slab
+around x = 0) rises and falls in a fixed order going down from the nose tip: subnasale (dip), upper
+lip (bump), mouth slit (dip), lower lip (bump), the fold under the lip (dip), chin (bump); the
+nasion is the deepest point above the tip. The same detector runs on the template and on the mesh,
+so the pairs it finds pull the template's features onto the mesh's during the warp.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import find_peaks
+
+#: Names of the profile landmarks, in order from the top.
+PROFILE = ("nasion", "tip", "subnasale", "lip_upper", "slit", "lip_lower", "fold", "chin")
+
+
+def midline_section(vertices: np.ndarray, triangles: np.ndarray, step: float = 0.5) -> np.ndarray:
+    """``(M, 3)`` points of the surface's section by the plane x = 0, every ``step`` mm along it."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    side = v[t, 0] >= 0  # (F, 3)
+    cross = side.any(axis=1) & ~side.all(axis=1)
+    t = t[cross]
+    ends = []
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        pa, pb = v[t[:, a]], v[t[:, b]]
+        hit = (pa[:, 0] >= 0) != (pb[:, 0] >= 0)
+        f = np.where(hit, pa[:, 0] / np.where(hit, pa[:, 0] - pb[:, 0], 1.0), np.nan)
+        ends.append(pa + f[:, None] * (pb - pa))
+    e = np.stack(ends, axis=1)  # (F, 3, 3), one NaN row per triangle
+    ok = ~np.isnan(e[:, :, 0])
+    e = e[ok.sum(axis=1) == 2]
+    ok = ~np.isnan(e[:, :, 0])
+    p0 = np.array([row[m][0] for row, m in zip(e, ok)]) if len(e) else np.zeros((0, 3))
+    p1 = np.array([row[m][1] for row, m in zip(e, ok)]) if len(e) else np.zeros((0, 3))
+    if not len(p0):
+        return np.zeros((0, 3))
+    n = np.maximum(1, np.ceil(np.linalg.norm(p1 - p0, axis=1) / step).astype(int))
+    f = np.concatenate([np.linspace(0, 1, k + 1) for k in n])
+    rep = np.repeat(np.arange(len(p0)), n + 1)
+    return p0[rep] + f[:, None] * (p1[rep] - p0[rep])
+
+
+def midline_profile(points: np.ndarray, *, y_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """``(y, z)``: for every 1 mm of height in ``y_range``, the largest z of section ``points (N, 3)``
+    (gaps interpolated; NaN when there is too little)."""
+    y0, y1 = y_range
+    sel = points[(points[:, 1] >= y0) & (points[:, 1] < y1)]
+    ys = np.arange(y0, y1, 1.0)
+    z = np.full(len(ys), -np.inf)
+    if len(sel):
+        idx = np.minimum(((sel[:, 1] - y0) // 1.0).astype(int), len(ys) - 1)
+        np.maximum.at(z, idx, sel[:, 2])
+    ok = np.isfinite(z)
+    if ok.sum() < 10:
+        return ys, np.full(len(ys), np.nan)
+    z = np.interp(ys, ys[ok], z[ok])
+    k = np.array([1, 2, 3, 2, 1], float) / 9  # a light smoothing: coarse meshes give a staircase
+    return ys, np.convolve(np.pad(z, 2, mode="edge"), k, mode="valid")
+
+
+def profile_landmarks(vertices: np.ndarray, triangles: np.ndarray,
+                      expect: dict[str, float] | None = None) -> dict[str, np.ndarray]:
+    """Named midline landmarks ``{name: (3,) point}`` of a surface (template frame).
+
+    ``expect``: the template's landmark heights (mm); a found landmark more than 18 mm (nasion,
+    tip: 25 mm) from its expected height is dropped, and so is every one below a missing one.
+    """
+    ys, z = midline_profile(midline_section(vertices, triangles), y_range=(-150.0, 80.0))
+    if not np.all(np.isfinite(z)):
+        return {}
+    out: dict[str, np.ndarray] = {}
+    guess = expect or {}
+    lo, hi = (guess.get("tip", -29.0) - 30, guess.get("tip", -29.0) + 30)
+    band = (ys > lo) & (ys < hi)
+    if not band.any():
+        return {}
+    i_tip = int(np.nonzero(band)[0][np.argmax(z[band])])
+    out["tip"] = np.array([0.0, ys[i_tip], z[i_tip]])
+    above = (ys > ys[i_tip] + 12) & (ys < ys[i_tip] + 60)
+    if above.any():
+        i = int(np.nonzero(above)[0][np.argmin(z[above])])
+        out["nasion"] = np.array([0.0, ys[i], z[i]])
+    # Going down from the tip: alternate dips and bumps.
+    below = z[:i_tip][::-1]  # index 0 = just below the tip
+    peaks, _ = find_peaks(below, prominence=0.4)
+    dips, _ = find_peaks(-below, prominence=0.4)
+    order = ("subnasale", "lip_upper", "slit", "lip_lower", "fold", "chin")
+    pos = 0
+    for name in order:
+        cand = dips if name in ("subnasale", "slit", "fold") else peaks
+        cand = cand[cand > pos]
+        if not len(cand):
+            break
+        pos = int(cand[0])
+        i = i_tip - 1 - pos
+        out[name] = np.array([0.0, ys[i], z[i]])
+    if expect:
+        for name in PROFILE:
+            if name in out and name in expect:
+                limit = 25.0 if name in ("nasion", "tip") else 18.0
+                if abs(out[name][1] - expect[name]) > limit:
+                    del out[name]
+                elif name not in ("nasion", "tip") and "tip" in out and "tip" in expect:
+                    # its depth below the nose tip, against the template's: a face's proportions
+                    ratio = (out["tip"][1] - out[name][1]) / max(expect["tip"] - expect[name], 1e-6)
+                    if not 0.6 <= ratio <= 1.7:
+                        del out[name]
+        # the chain below the tip is only trusted up to its first gap
+        for k, name in enumerate(order):
+            if name not in out:
+                for later in order[k + 1:]:
+                    out.pop(later, None)
+                break
+    return out
+
+
+def sphere_centre(points: np.ndarray) -> np.ndarray:
+    """Least-squares sphere centre of ``(N, 3)`` points."""
+    a = np.c_[2 * points, np.ones(len(points))]
+    b = (points**2).sum(axis=1)
+    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+    return sol[:3]
