@@ -43,7 +43,7 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
     try:
         mesh = trimesh.load(path, process=False, force="mesh")
-        mesh.merge_vertices()  # UV seams, STL's unshared corners: one vertex per position moves as one
+        mesh.merge_vertices(merge_tex=True, merge_norm=True)  # UV seams, STL corners: one vertex per position
     except Exception as e:  # trimesh raises many types for unreadable files
         raise InputError(f"trimesh cannot read this mesh ({e}); use OBJ, PLY, GLB or STL", where=str(path)) from None
     if len(mesh.vertices) == 0 or len(mesh.faces) == 0:

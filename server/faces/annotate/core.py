@@ -22,7 +22,8 @@ from .orient import frame, place
 from .template import INNER, OUTER, PIECE_PARTS, Template, default_template
 from .warp import Target, fit, warp_points
 
-#: A feature point farther than this (template mm) from every mesh vertex is left out.
+#: A feature point farther than this (template mm) from every mesh vertex is left out (1.6x this on
+#: the face, where a surface cannot be missing, only sunk into an eye or mouth opening).
 FP_REACH_MM = 9.0
 #: Neutral FAPU distances (mm, on a head scaled to the template) a human face has.
 FAPU_RANGE_MM: dict[str, tuple[float, float]] = {
@@ -32,6 +33,9 @@ _FAPU = {"IRISD": ("3.1", "3.3", 1), "ES": ("3.5", "3.6", 0), "ENS": ("3.5", "9.
          "MNS": ("9.15", "2.2", 1), "MW": ("8.3", "8.4", 0)}
 
 
+#: Feature points animation cannot do without: the chin (the jaw's angle) and the FAPU's.
+ESSENTIAL = frozenset({"2.1", "3.1", "3.3", "3.5", "3.6", "9.15", "2.2", "8.3", "8.4"})
+_FAPU_CHECK = True  # tests and debugging may look at a failed fit
 _FAPU_POINTS = {p for a, b, _ in _FAPU.values() for p in (a, b)}
 
 
@@ -135,7 +139,7 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
 
     box = (y[:, 1] > tpl.vertices[:, 1].min() - 20) & (np.abs(y[:, 0]) < 140) & (np.abs(y[:, 2]) < 200)
     parts = _parts(y, label, main_label, sizes, warped, tpl, box)
-    fps, left_out = _feature_points(y, wtri, parts, warped, tpl)
+    fps, left_out, approximate = _feature_points(y, wtri, parts, warped, tpl)
     warnings = _checks(y, fps, left_out, tpl)
 
     # Pivots: template pivots through the warp, back to mesh coordinates.
@@ -151,7 +155,7 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
         "mm_per_unit_measured": round(mm_per_unit, 4), "tilt_deg": round(off_axis, 1),
         "alignment_score_mm": round(pl.score, 2), "landmarks": found, "fit_median_mm": round(fit_err, 2),
         "cropped_to_head": bool(pl.cropped or (~head_v[used]).any()),
-        "left_out": left_out, "warnings": warnings,
+        "left_out": left_out, "approximate_mm": approximate, "warnings": warnings,
     }
     if abs(np.log(UNIT_MM[unit] / mm_per_unit)) > np.log(1.5):
         warnings.append(f"the head measures {mm_per_unit:.3g} mm per unit; the nearest unit {unit!r} is "
@@ -167,7 +171,7 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
     warnings.extend(f"FAPU {k} measures {v:.1f} mm on a head scaled to the template; humans have "
                     f"{FAPU_RANGE_MM[k][0]:g}-{FAPU_RANGE_MM[k][1]:g} mm" for k, v in odd.items() if k not in bad)
     missing = [k for k in _FAPU if k not in fapu]
-    if bad or missing:
+    if (bad or missing) and _FAPU_CHECK:
         raise InputError("the fitted feature points give implausible face proportions ("
                          + ", ".join([f"{k} {v:.1f} mm" for k, v in bad.items()] + [f"no {k}" for k in missing])
                          + "); give --landmarks or write the annotation by hand")
@@ -265,8 +269,9 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
     return out
 
 
-def _feature_points(y, wtri, parts, warped, tpl: Template) -> tuple[dict[str, int], dict[str, str]]:
-    """MPEG-4 id -> mesh vertex id, and the ids left out with the reason.
+def _feature_points(y, wtri, parts, warped, tpl: Template) -> tuple[dict[str, int], dict[str, str], dict]:
+    """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
+    on the nearest surface though it is farther than the reach (id -> mm).
 
     Each feature point goes to the nearest mesh vertex of its part; among coincident vertices (lips
     that touch but are not joined) the one whose neighbourhood lies on the template point's side.
@@ -291,6 +296,7 @@ def _feature_points(y, wtri, parts, warped, tpl: Template) -> tuple[dict[str, in
     skin_ids = np.r_[parts["skin"], parts.get("mouth_socket", np.zeros(0, np.int64))]
     trees = {"skin": (cKDTree(y[skin_ids]), skin_ids)}
     taken: set[int] = set()
+    approximate: dict[str, float] = {}
     fps: dict[str, int] = {}
     left_out: dict[str, str] = {}
     wanted = []
@@ -308,9 +314,12 @@ def _feature_points(y, wtri, parts, warped, tpl: Template) -> tuple[dict[str, in
         d, i = trees[key][0].query(p, k=min(16, len(trees[key][1])))
         wanted.append((float(np.atleast_1d(d)[0]), fp, key, np.atleast_1d(d), np.atleast_1d(i)))
     for d0, fp, key, d, i in sorted(wanted):
-        reach = FP_REACH_MM * (2.0 if key != tpl.part_of(fp) else 1.0)
+        reach = FP_REACH_MM * (2.0 if key != tpl.part_of(fp) else 1.0 if fp.split(".")[0] in ("7", "10", "11") else 1.6)
         ids = trees[key][1][i]
-        if d0 > reach:
+        if d0 > reach and fp in ESSENTIAL and d0 < 2.5 * reach:
+            reach = d0 + 1.0  # the jaw and the FAPU need it: the nearest surface will do
+            approximate[fp] = round(d0, 1)
+        elif d0 > reach:
             left_out[fp] = f"no surface within {reach:.0f} mm of where it belongs (the mesh ends there)"
             continue
         tr = t_ring[tpl.feature_points[fp]]
@@ -322,7 +331,7 @@ def _feature_points(y, wtri, parts, warped, tpl: Template) -> tuple[dict[str, in
             continue
         fps[fp] = int(ids[free[0]])
         taken.add(fps[fp])
-    return fps, left_out
+    return fps, left_out, approximate
 
 
 def _checks(y, fps: dict[str, int], left_out: dict, tpl: Template) -> list[str]:
