@@ -17,18 +17,19 @@ _COLOURS = {1: (60, 220, 90), -1: (235, 70, 60), 0: (250, 220, 50)}
 def annotation_preview(face, path: str | Path, *, size: int = 480) -> Path:
     """Write ``path`` (PNG): front and side views of ``face`` (MPEG-4 axes) with its feature points."""
     v = face.vertices.astype(np.float64)
-    skin = face.part("skin")
-    ids = skin if len(skin) else np.arange(face.n_vertices)
     fp_ids = np.array(list(face.feature_points.values()), dtype=np.int64)
-    focus = np.r_[ids, fp_ids]
-    lo, hi = v[focus].min(axis=0), v[focus].max(axis=0)
+    # The head: the feature points' box with a margin (a body's feet stay out of the picture).
+    lo, hi = v[fp_ids].min(axis=0), v[fp_ids].max(axis=0)
     centre = (lo + hi) / 2
-    extent = float(max(np.ptp(v[focus], axis=0))) * 1.1 or 1.0
+    extent = float(max(hi - lo)) * 1.35 or 1.0
     ordered = sorted(face.feature_points.items())
     mid_x = float(np.median([v[i, 0] for k, i in ordered])) if ordered else 0.0
+    other = np.zeros(face.n_vertices, bool)
+    other[face.part("other")] = True  # clothing, hair cards: not what the points sit on
+    tri = face.triangles[~other[face.triangles].all(axis=1)]
     images = []
     for view in ("front", "side"):
-        img = render_image(v, face.triangles, size=(size, size), view=view, center=centre, extent=extent)
+        img = render_image(v, tri, size=(size, size), view=view, center=centre, extent=extent)
         rot = view_rotation(view)
         cam = v @ rot.T
         mid = rot @ centre
