@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from ...errors import InputError
 from ...output.preview import vertex_normals
 from ..face import FEATURE_POINT_IDS, UNIT_MM
-from .detect import profile_landmarks, sphere_centre
+from .detect import mouth_corners, profile_landmarks, sphere_centre
 from .orient import frame, place
 from .template import INNER, OUTER, PIECE_PARTS, Template, default_template
 from .warp import Target, fit, warp_points
@@ -33,6 +33,8 @@ _FAPU = {"IRISD": ("3.1", "3.3", 1), "ES": ("3.5", "3.6", 0), "ENS": ("3.5", "9.
          "MNS": ("9.15", "2.2", 1), "MW": ("8.3", "8.4", 0)}
 
 
+#: Vertices of the matched piece above which triangle centroids are not added as surface samples.
+DENSE = 30_000
 #: Feature points animation cannot do without: the chin (the jaw's angle) and the FAPU's.
 ESSENTIAL = frozenset({"2.1", "3.1", "3.3", "3.5", "3.6", "9.15", "2.2", "8.3", "8.4"})
 _FAPU_CHECK = True  # tests and debugging may look at a failed fit
@@ -118,28 +120,42 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
     y = sim.apply(v)  # every vertex in the template frame (mm)
     yn = vn @ sim.rotation.T
 
-    # The matched surface: the main piece's vertices and triangle centroids.
-    mtri = wtri[label[wtri[:, 0]] == main_label]
+    # The matched surface: the main piece and the pieces lying on the template's skin (separate
+    # ears, a scalp), their vertices and triangle centroids.
+    crop_full = np.zeros(len(v), bool)
+    crop_full[main[pl.crop]] = True
+    surface = _surface_pieces(y, yn, label, sizes, main_label, tpl)
+    on_surface = np.isin(label, surface)
+    main = np.nonzero(on_surface)[0]
+    mtri = wtri[on_surface[wtri[:, 0]]]
     rim = rim_vertices(len(v), mtri)
     cent = y[mtri].mean(axis=1)
     fn = np.cross(y[mtri[:, 1]] - y[mtri[:, 0]], y[mtri[:, 2]] - y[mtri[:, 0]])
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
-    pts, nrm = np.r_[y[main], cent], np.r_[yn[main], fn]
-    head_v = np.zeros(len(v), bool)
-    head_v[main[pl.crop]] = True
-    head = np.r_[head_v[main], head_v[mtri].all(axis=1)]
+    head_v = crop_full | (on_surface & (label != main_label))
+    # Coarse meshes add their triangle centroids as samples; dense ones have enough vertices.
+    use = np.ones(len(mtri), bool) if len(main) < DENSE else np.zeros(len(mtri), bool)
+    pts, nrm = np.r_[y[main], cent[use]], np.r_[yn[main], fn[use]]
+    head = np.r_[head_v[main], head_v[mtri[use]].all(axis=1)]
     # Orient the mesh's normals like the template's (some files wind their triangles inwards).
     d, j = cKDTree(tpl.vertices[tpl.outer]).query(pts[head])
     close = d < np.quantile(d, 0.5)
     if np.median(np.einsum("ij,ij->i", nrm[head][close], tpl.normals[tpl.outer][j[close]])) < 0:
         nrm, yn = -nrm, -yn
-    target = Target(points=pts, normals=nrm, rim=np.r_[rim[main], rim[mtri].any(axis=1)])
-    anchors, found = _anchors(tpl, lm, sim, y, mtri, label, sizes, main_label)
+    anchors, found, eyes = _anchors(tpl, lm, sim, y, mtri, label, sizes, main_label)
+    # Skin behind an eyeball's equator is its socket: never matched, never a feature point.
+    socket_v = np.zeros(len(v), bool)
+    for centre, radius in eyes:
+        rel = y - centre
+        socket_v |= (np.linalg.norm(rel, axis=1) < 1.3 * radius) & (rel[:, 2] < 0.3 * radius)
+    socket_v &= label == main_label
+    excluded = np.r_[rim[main] | socket_v[main], (rim | socket_v)[mtri[use]].any(axis=1)]
+    target = Target(points=pts, normals=nrm, rim=excluded)
     warped, fields = fit(tpl, target, anchors=anchors, crop=head)
 
     box = (y[:, 1] > tpl.vertices[:, 1].min() - 20) & (np.abs(y[:, 0]) < 140) & (np.abs(y[:, 2]) < 200)
     parts = _parts(y, label, main_label, sizes, warped, tpl, box)
-    fps, left_out, approximate = _feature_points(y, wtri, parts, warped, tpl)
+    fps, left_out, approximate = _feature_points(y, yn, wtri, parts, warped, tpl, socket_v)
     warnings = _checks(y, fps, left_out, tpl)
 
     # Pivots: template pivots through the warp, back to mesh coordinates.
@@ -185,10 +201,31 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
     }
 
 
+def _surface_pieces(y, yn, label, sizes, main_label, tpl: Template) -> list[int]:
+    """The main piece and the other pieces that lie on the template's skin after the alignment
+    (large enough, within 6 mm, facing the same way, not round like an eyeball)."""
+    out = [main_label]
+    tree = cKDTree(tpl.vertices[tpl.outer])
+    for c in np.nonzero(sizes >= max(20, 0.01 * sizes[main_label]))[0]:
+        if c == main_label:
+            continue
+        ids = np.nonzero(label == c)[0]
+        d, j = tree.query(y[ids])
+        if np.median(d) > 6.0:
+            continue
+        facing = np.abs(np.einsum("ij,ij->i", yn[ids], tpl.normals[tpl.outer][j]))
+        centre = sphere_centre(y[ids])
+        r = np.linalg.norm(y[ids] - centre, axis=1)
+        if np.median(facing) > 0.5 and not r.std() < 0.15 * r.mean():
+            out.append(int(c))
+    return out
+
+
 def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
     """Template points and where they belong on the mesh: the user's landmarks, else the midline
-    profile landmarks (``detect``) and the centres of eyeball pieces."""
-    src, dst, found = [], [], []
+    profile landmarks and mouth corners (``detect``) and the centres of eyeball pieces; also the
+    eyeballs found, as ``[(centre, radius)]``."""
+    src, dst, found, eyes = [], [], [], []
     if lm:
         for k, p in lm.items():
             if k in tpl.feature_points:
@@ -202,6 +239,12 @@ def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
                 src.append(tpl.profile[name])
                 dst.append(p)
                 found.append(name)
+        if "slit" in mine:
+            half = abs(tpl.fp_position("8.3")[0])
+            for k, p in mouth_corners(y, mtri, mine["slit"], half).items():
+                src.append(tpl.fp_position(k))  # the corner is where the slit ends
+                dst.append(p)
+                found.append(k)
         for eye in ("eye_l", "eye_r"):
             c = tpl.pivots[eye]
             best = None
@@ -214,14 +257,15 @@ def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
                 round_ = radius.std() < 0.15 * radius.mean() and 6.0 < radius.mean() < 20.0
                 d = np.linalg.norm(centre - c)
                 if round_ and d < 18.0 and (best is None or d < best[0]):
-                    best = (d, centre)
+                    best = (d, centre, float(radius.mean()))
             if best is not None:
                 src.append(c)
                 dst.append(best[1])
                 found.append(eye)
+                eyes.append((best[1], best[2]))
     if not src:
-        return None, found
-    return (np.array(src), np.array(dst)), found
+        return None, found, eyes
+    return (np.array(src), np.array(dst)), found, eyes
 
 
 def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[str, np.ndarray]:
@@ -269,14 +313,17 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
     return out
 
 
-def _feature_points(y, wtri, parts, warped, tpl: Template) -> tuple[dict[str, int], dict[str, str], dict]:
+def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
 
     Each feature point goes to the nearest mesh vertex of its part; among coincident vertices (lips
     that touch but are not joined) the one whose neighbourhood lies on the template point's side.
     Two feature points never share a vertex: the farther one takes its next-nearest free vertex.
+    A point of the template's outer skin avoids mesh vertices facing another way (an eye or mouth
+    socket just behind the lid or lip).
     """
+    t_normals = vertex_normals(warped, tpl.triangles)
     n = len(y)
     ring = np.zeros((n, 3))
     cnt = np.zeros(n)
@@ -294,6 +341,7 @@ def _feature_points(y, wtri, parts, warped, tpl: Template) -> tuple[dict[str, in
     t_ring = t_ring / np.maximum(t_cnt, 1)[:, None] - warped
 
     skin_ids = np.r_[parts["skin"], parts.get("mouth_socket", np.zeros(0, np.int64))]
+    skin_ids = skin_ids[~socket_v[skin_ids]]
     trees = {"skin": (cKDTree(y[skin_ids]), skin_ids)}
     taken: set[int] = set()
     approximate: dict[str, float] = {}
@@ -325,6 +373,10 @@ def _feature_points(y, wtri, parts, warped, tpl: Template) -> tuple[dict[str, in
         tr = t_ring[tpl.feature_points[fp]]
         cost = d + 2.0 * np.linalg.norm(ring[ids] - tr, axis=1) * (d < d0 + 0.5)
         cost[d >= d0 + 0.5] += 1e3
+        vid = tpl.feature_points[fp]
+        if tpl.label[vid] == OUTER:
+            facing = yn[ids] @ t_normals[vid]
+            cost[facing < 0.3] += 2e3  # behind the surface: only if nothing else is near
         free = [j for j in np.argsort(cost) if int(ids[j]) not in taken and d[j] <= reach]
         if not free:
             left_out[fp] = "no free vertex near it (the mesh is too coarse there)"

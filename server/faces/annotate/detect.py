@@ -16,9 +16,9 @@ from scipy.signal import find_peaks
 PROFILE = ("nasion", "tip", "subnasale", "lip_upper", "slit", "lip_lower", "fold", "chin")
 
 
-def midline_section(vertices: np.ndarray, triangles: np.ndarray, step: float = 0.5) -> np.ndarray:
-    """``(M, 3)`` points of the surface's section by the plane x = 0, every ``step`` mm along it."""
-    v = np.asarray(vertices, dtype=np.float64)
+def midline_section(vertices: np.ndarray, triangles: np.ndarray, step: float = 0.5, x: float = 0.0) -> np.ndarray:
+    """``(M, 3)`` points of the surface's section by the plane x = ``x``, every ``step`` mm along it."""
+    v = np.asarray(vertices, dtype=np.float64) - np.array([x, 0.0, 0.0])
     t = np.asarray(triangles, dtype=np.int64)
     side = v[t, 0] >= 0  # (F, 3)
     cross = side.any(axis=1) & ~side.all(axis=1)
@@ -40,7 +40,48 @@ def midline_section(vertices: np.ndarray, triangles: np.ndarray, step: float = 0
     n = np.maximum(1, np.ceil(np.linalg.norm(p1 - p0, axis=1) / step).astype(int))
     f = np.concatenate([np.linspace(0, 1, k + 1) for k in n])
     rep = np.repeat(np.arange(len(p0)), n + 1)
-    return p0[rep] + f[:, None] * (p1[rep] - p0[rep])
+    return p0[rep] + f[:, None] * (p1[rep] - p0[rep]) + np.array([x, 0.0, 0.0])
+
+
+def mouth_corners(vertices: np.ndarray, triangles: np.ndarray, slit: np.ndarray,
+                  half_width: float) -> dict[str, np.ndarray]:
+    """The mouth corners ``{"8.3": (3,), "8.4": (3,)}`` (left = +x, right), by following the mouth
+    slit sideways from its midline point ``slit``: in each vertical section x = c (1 mm apart) the
+    slit is the front profile's deepest dip near its last height; the corner is where the dip fades
+    (under an eighth of its depth at the midline, or 0.25 mm). ``half_width``: the template's (mm); a
+    corner closer than 0.6 or farther than 1.6 of it is not trusted (left out)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    near = (np.abs(v[:, 1] - slit[1]) < 40) & (v[:, 2] > slit[2] - 40)
+    t = t[near[t].all(axis=1)]
+    out = {}
+
+    def dip(c: float, y_prev: float) -> tuple[float, float, float] | None:
+        sec = midline_section(v, t, step=0.3, x=c)
+        ys, z = midline_profile(sec, y_range=(y_prev - 12.0, y_prev + 12.0))
+        if not np.all(np.isfinite(z)):
+            return None
+        win = np.abs(ys - y_prev) <= 4.0
+        i = int(np.nonzero(win)[0][np.argmin(z[win])])
+        above, below = z[(ys > ys[i]) & (ys <= ys[i] + 6)], z[(ys < ys[i]) & (ys >= ys[i] - 6)]
+        if not len(above) or not len(below):
+            return None
+        return float(ys[i]), float(z[i]), float(min(above.max(), below.max()) - z[i])
+
+    first = dip(0.0, float(slit[1]))
+    if first is None:
+        return {}
+    for key, sign in (("8.3", 1.0), ("8.4", -1.0)):
+        y_prev, last = first[0], None
+        threshold = max(0.25, first[2] / 8)
+        for c in np.arange(2.0, 1.7 * half_width, 1.0):
+            d = dip(sign * c, y_prev)
+            if d is None or d[2] < threshold:
+                break
+            y_prev, last = d[0], (sign * c, d[0], d[1])
+        if last is not None and 0.6 * half_width <= abs(last[0]) <= 1.6 * half_width:
+            out[key] = np.array(last)
+    return out
 
 
 def midline_profile(points: np.ndarray, *, y_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:

@@ -36,6 +36,9 @@ class Template:
         normals: ``(N, 3)`` unit vertex normals.
         mouth_socket: ids of the mouth cavity behind the lips (part of the inner skin).
         profile: the midline landmarks ``detect.profile_landmarks`` finds on the template.
+        mouth_corners: where ``detect.mouth_corners`` ends the mouth slit on the template (for
+            reference: the template's own 8.3/8.4 lie about 6 mm farther out; on a mesh the
+            detected ends are taken as the corners).
     """
 
     vertices: np.ndarray
@@ -48,6 +51,7 @@ class Template:
     normals: np.ndarray
     mouth_socket: np.ndarray
     profile: dict[str, np.ndarray]
+    mouth_corners: dict[str, np.ndarray]
 
     @property
     def profile_heights(self) -> dict[str, float]:
@@ -82,9 +86,13 @@ def default_template() -> Template:
     front = (p[:, 2] > nose_base[2] - 45) & (p[:, 1] > chin[1] - 5) & (p[:, 1] < brow[1] + 25) \
         & (np.abs(p[:, 0]) < 62)
     from ...output.preview import vertex_normals
-    from .detect import profile_landmarks
+    from .detect import mouth_corners, profile_landmarks
+
+    outer_tri = face.triangles[(label[face.triangles] == OUTER).all(axis=1)]
+    profile = profile_landmarks(v, outer_tri)
+    corners = mouth_corners(v, outer_tri, profile["slit"], abs(float(v[face.feature_points["8.3"], 0])))
 
     return Template(vertices=v, triangles=face.triangles, label=label, outer=outer,
                     feature_points=dict(face.feature_points), pivots=pivots, face_region=outer[front],
                     normals=vertex_normals(v, face.triangles), mouth_socket=face.part("mouth_socket"),
-                    profile=profile_landmarks(v, face.triangles[(label[face.triangles] == OUTER).all(axis=1)]))
+                    profile=profile, mouth_corners=corners)

@@ -25,6 +25,10 @@ SCHEDULE: tuple[tuple[int, float, float], ...] = (
 )
 
 
+#: Mesh samples pulling the template (mesh -> template correspondences) per round, at most.
+BACK_SAMPLES = 30_000
+
+
 @dataclass
 class Target:
     """The user's head surface in the template frame.
@@ -70,8 +74,10 @@ def fit(template: Template, target: Target, *, anchors: tuple[np.ndarray, np.nda
     order = farthest_point_order(template.vertices[outer], max(s[0] for s in SCHEDULE))
     ttree = cKDTree(target.points)
     head = np.ones(len(target.points), bool) if crop is None else crop
-    back_pts = target.points[head & ~target.rim]
-    back_n = target.normals[head & ~target.rim]
+    back = np.nonzero(head & ~target.rim)[0]
+    if len(back) > BACK_SAMPLES:  # mesh -> template pairs: a dense mesh needs only a sample
+        back = back[np.random.default_rng(0).choice(len(back), BACK_SAMPLES, replace=False)]
+    back_pts, back_n = target.points[back], target.normals[back]
     fields = []
     src, dst = (np.zeros((0, 3)), np.zeros((0, 3))) if anchors is None else (anchors[0].copy(), anchors[1])
     for n_ctrl, limit, smooth in SCHEDULE:
