@@ -178,6 +178,21 @@ def test_a_head_on_its_side_facing_minus_z_is_turned_upright(faces):
     assert face.vertices[face.feature_points["9.3"], 2] > face.vertices[face.feature_points["7.1"], 2]
 
 
+def test_user_landmarks_give_the_alignment(faces, tmp_path):
+    from facecast.server.faces.annotate.landmarks import read_landmarks
+
+    _, builtin = faces["builtin-3k"]
+    rot = frame("-z", "+x")
+    v = builtin.vertices.astype(np.float64) @ rot * 0.1  # cm, lying on its back... upside down
+    keys = ("9.3", "3.7", "3.12", "8.3", "8.4", "2.1")
+    (tmp_path / "lm.json").write_text(json.dumps({k: v[builtin.feature_points[k]].tolist() for k in keys}))
+    lm = read_landmarks(tmp_path / "lm.json", len(v))
+    ann = annotate_mesh(v, builtin.triangles, landmarks=lm)
+    assert ann["axes"] == {"up": "-z", "forward": "+x"} and ann["units"] == "cm"
+    for k in keys:
+        assert np.linalg.norm(v[ann["feature_points"][k]] - v[builtin.feature_points[k]]) < 0.4  # 4 mm
+
+
 def test_units_come_from_the_head_size(faces):
     _, builtin = faces["builtin-3k"]
     ann = annotate_mesh(builtin.vertices / 1000.0, builtin.triangles)  # metres
@@ -253,3 +268,24 @@ def test_loading_a_mesh_without_annotation_says_so_once(tmp_path, cache, faces, 
         load_face(path)  # from the cache
     said = [r for r in caplog.records if "annotated it automatically" in r.getMessage()]
     assert len(said) == 1
+
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+_json = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
+                     lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=5), c, max_size=4),
+                     max_leaves=12)
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.one_of(_json, st.dictionaries(st.sampled_from(["9.3", "3.7", "3.12", "8.3", "2.1", "x"]), _json,
+                                             max_size=5)))
+def test_landmark_files_are_parsed_or_refused_with_a_project_error(data):
+    from facecast.server.faces.annotate.landmarks import parse_landmarks
+
+    try:
+        out = parse_landmarks(data, 100)
+    except InputError:
+        return
+    assert len(out) >= 3 and all(isinstance(p, int) or np.asarray(p).shape == (3,) for p in out.values())
