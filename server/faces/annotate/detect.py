@@ -106,8 +106,9 @@ def profile_landmarks(vertices: np.ndarray, triangles: np.ndarray,
                       expect: dict[str, float] | None = None) -> dict[str, np.ndarray]:
     """Named midline landmarks ``{name: (3,) point}`` of a surface (template frame).
 
-    ``expect``: the template's landmark heights (mm); a found landmark more than 18 mm (nasion,
-    tip: 25 mm) from its expected height is dropped, and so is every one below a missing one.
+    ``expect``: the template's landmark heights (mm): each landmark below the tip is then the
+    candidate whose depth below the tip is nearest the template's (0.6-1.7 of it, within 18 mm of
+    its height), in order; one the profile lacks is left out.
     """
     ys, z = midline_profile(midline_section(vertices, triangles), y_range=(-150.0, 80.0))
     if not np.all(np.isfinite(z)):
@@ -122,40 +123,62 @@ def profile_landmarks(vertices: np.ndarray, triangles: np.ndarray,
     out["tip"] = np.array([0.0, ys[i_tip], z[i_tip]])
     above = (ys > ys[i_tip] + 12) & (ys < ys[i_tip] + 60)
     if above.any():
-        i = int(np.nonzero(above)[0][np.argmin(z[above])])
-        out["nasion"] = np.array([0.0, ys[i], z[i]])
+        idx = np.nonzero(above)[0]
+        k = int(np.argmin(z[idx]))
+        if 0 < k < len(idx) - 1:  # a dip, not the window's edge (a receding forehead)
+            out["nasion"] = np.array([0.0, ys[idx[k]], z[idx[k]]])
     # Going down from the tip: alternate dips and bumps.
     below = z[:i_tip][::-1]  # index 0 = just below the tip
     peaks, _ = find_peaks(below, prominence=0.4)
     dips, _ = find_peaks(-below, prominence=0.4)
     order = ("subnasale", "lip_upper", "slit", "lip_lower", "fold", "chin")
-    pos = 0
-    for name in order:
-        cand = dips if name in ("subnasale", "slit", "fold") else peaks
-        cand = cand[cand > pos]
-        if not len(cand):
-            break
-        pos = int(cand[0])
-        i = i_tip - 1 - pos
-        out[name] = np.array([0.0, ys[i], z[i]])
-    if expect:
-        for name in PROFILE:
-            if name in out and name in expect:
-                limit = 25.0 if name in ("nasion", "tip") else 18.0
-                if abs(out[name][1] - expect[name]) > limit:
-                    del out[name]
-                elif name not in ("nasion", "tip") and "tip" in out and "tip" in expect:
-                    # its depth below the nose tip, against the template's: a face's proportions
-                    ratio = (out["tip"][1] - out[name][1]) / max(expect["tip"] - expect[name], 1e-6)
-                    if not 0.6 <= ratio <= 1.7:
-                        del out[name]
-        # the chain below the tip is only trusted up to its first gap
-        for k, name in enumerate(order):
-            if name not in out:
-                for later in order[k + 1:]:
-                    out.pop(later, None)
+
+    def chain(matched: bool) -> dict[str, np.ndarray]:
+        found, pos = {}, 0
+        for name in order:
+            cand = dips if name in ("subnasale", "slit", "fold") else peaks
+            cand = cand[cand > pos]
+            if matched:
+                # the dip or bump whose depth below the tip is nearest the template's; a feature
+                # the profile lacks is skipped, not guessed
+                if name not in expect:
+                    continue
+                depth = ys[i_tip] - ys[i_tip - 1 - cand]
+                ratio = depth / max(expect["tip"] - expect[name], 1e-6)
+                ok = _plausible(ratio, ys[i_tip - 1 - cand], expect[name])
+                if not ok.any():
+                    continue
+                cand = cand[ok][np.argsort(np.abs(np.log(ratio[ok])))]
+            elif not len(cand):
                 break
+            pos = int(cand[0])
+            i = i_tip - 1 - pos
+            found[name] = np.array([0.0, ys[i], z[i]])
+        return found
+
+    below = chain(False)
+    if expect is not None and "tip" in expect:
+        # The dips and bumps in order, trusted up to the first implausible one; or, when that keeps
+        # fewer, each matched to the template's by its depth below the tip.
+        kept = {}
+        for name in order:
+            if name not in below or name not in expect:
+                break
+            ratio = (ys[i_tip] - below[name][1]) / max(expect["tip"] - expect[name], 1e-6)
+            if not _plausible(np.array([ratio]), np.array([below[name][1]]), expect[name])[0]:
+                break
+            kept[name] = below[name]
+        matched = chain(True)
+        below = kept if len(kept) >= len(matched) else matched
+        if "nasion" in out and "nasion" in expect and abs(out["nasion"][1] - expect["nasion"]) > 25.0:
+            del out["nasion"]
+    out.update(below)
     return out
+
+
+def _plausible(ratio: np.ndarray, y: np.ndarray, expect_y: float) -> np.ndarray:
+    """Depth below the tip 0.6-1.7 of the template's, and within 18 mm of its height."""
+    return (ratio >= 0.6) & (ratio <= 1.7) & (np.abs(y - expect_y) <= 18.0)
 
 
 def sphere_centre(points: np.ndarray) -> np.ndarray:
