@@ -277,6 +277,12 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
     parts: dict[str, list] = {"skin": [np.nonzero(label == main_label)[0]]}
     socket = np.zeros(len(tpl.vertices), bool)
     socket[tpl.mouth_socket] = True
+    slit_y = float(warped[tpl.feature_points["2.2"], 1])
+    mouth_centre = warped[tpl.mouth_socket].mean(axis=0) if len(tpl.mouth_socket) else warped[tpl.feature_points["2.2"]]
+
+    def inside_mouth(ids: np.ndarray) -> bool:
+        """A separate piece behind the lips (ICT's upper teeth look like the socket's inside)."""
+        return bool(np.linalg.norm(y[ids].mean(axis=0) - mouth_centre) < 35.0)
     for c in np.nonzero(sizes)[0]:
         if c == main_label:
             continue
@@ -289,13 +295,23 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
         top = int(np.argmax(counts))
         if top >= 2 and PIECE_PARTS[top - 2].startswith("eye"):
             parts.setdefault(PIECE_PARTS[top - 2], []).append(ids)
-        elif top >= 2 or (top == INNER and socket[j[ids]].mean() < 0.5):
-            # Mouth interior: each vertex to the nearest teeth / gums / tongue template part.
+        elif top >= 2 or (top == INNER and socket[j[ids]].mean() < 0.5) or (top == INNER and inside_mouth(ids)):
+            # Mouth interior. What animation needs is which pieces ride the jaw: a piece above the
+            # mouth slit stays with the head (upper teeth, upper gums), one below rides the jaw
+            # (lower teeth, lower gums, tongue); a piece across it (gums and tongue in one) is cut
+            # at the slit. The template's nearest part names teeth apart from gums and tongue.
             mouth = np.nonzero((tpl.label >= 2 + PIECE_PARTS.index("teeth_upper")))[0]
             _, k = cKDTree(warped[mouth]).query(y[ids])
-            sub = tpl.label[mouth[k]]
-            for s in np.unique(sub):
-                parts.setdefault(PIECE_PARTS[s - 2], []).append(ids[sub == s])
+            name = np.array([PIECE_PARTS[s - 2] for s in tpl.label[mouth[k]]])
+            teeth = np.char.startswith(name, "teeth")
+            above = y[ids, 1] > slit_y
+            if above.mean() > 0.8 or above.mean() < 0.2:
+                above[:] = above.mean() > 0.5
+                teeth[:] = teeth.mean() > 0.5
+            label_of = np.where(above, np.where(teeth, "teeth_upper", "gums_upper"),
+                                np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")))
+            for s in np.unique(label_of):
+                parts.setdefault(str(s), []).append(ids[label_of == s])
         elif top == INNER:
             parts.setdefault("mouth_socket", []).append(ids)
         elif top == OUTER and np.median(dist) < 6.0:
