@@ -263,6 +263,16 @@ def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
                 dst.append(best[1])
                 found.append(eye)
                 eyes.append((best[1], best[2]))
+                # The outer eye corner sits where it sits beside the template's eyeball, scaled by
+                # the eyeballs' sizes, on the mesh's surface nearest that spot.
+                corner = "3.7" if eye == "eye_l" else "3.12"
+                t_radius = float(np.linalg.norm(tpl.fp_position("3.5" if eye == "eye_l" else "3.6") - c))
+                guess = best[1] + (tpl.fp_position(corner) - c) * best[2] / max(t_radius, 1e-6)
+                d_s, i_s = cKDTree(y[np.unique(mtri)]).query(guess)
+                if d_s < 6.0:
+                    src.append(tpl.fp_position(corner))
+                    dst.append(y[np.unique(mtri)][i_s])
+                    found.append(corner)
     if not src:
         return None, found, eyes
     return (np.array(src), np.array(dst)), found, eyes
@@ -399,6 +409,15 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
             continue
         fps[fp] = int(ids[free[0]])
         taken.add(fps[fp])
+    # Pupils: the front pole of each eyeball piece (a neutral head looks straight ahead, +z).
+    for eye, fp in (("eye_l", "3.5"), ("eye_r", "3.6")):
+        ids = parts.get(eye)
+        if ids is not None and len(ids) >= 10:
+            vid = int(ids[np.argmax(y[ids, 2])])
+            if vid not in taken:
+                taken.discard(fps.get(fp, -1))
+                fps[fp] = vid
+                taken.add(vid)
     return fps, left_out, approximate
 
 
