@@ -16,7 +16,7 @@ RIGID_GROUPS: tuple[str, ...] = ("head", "jaw", "eye_l", "eye_r")
 JAW_PARTS: tuple[str, ...] = ("teeth_lower", "gums_lower", "tongue")
 
 #: Millimetres per mesh unit.
-UNIT_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+UNIT_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "dm": 100.0, "m": 1000.0, "in": 25.4}
 
 #: The 84 MPEG-4 feature point ids, by group (ISO/IEC 14496-2 FDP groups 2-11).
 FP_GROUP_SIZES: dict[int, int] = {2: 14, 3: 14, 4: 6, 5: 4, 6: 4, 7: 1, 8: 10, 9: 15, 10: 10, 11: 6}

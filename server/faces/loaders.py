@@ -46,11 +46,17 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
     try:
         mesh = trimesh.load(path, process=False, force="mesh")
+        mesh.merge_vertices(merge_tex=True, merge_norm=True)  # UV seams, STL corners: one vertex per position
     except Exception as e:  # trimesh raises many types for unreadable files
         raise InputError(f"trimesh cannot read this mesh ({e}); use OBJ, PLY, GLB or STL", where=str(path)) from None
     if len(mesh.vertices) == 0 or len(mesh.faces) == 0:
         raise InputError("the mesh has no triangles", where=str(path))
     return np.asarray(mesh.vertices, dtype=np.float32), np.asarray(mesh.faces, dtype=np.int32)
+
+
+def _declared_units(path: Path) -> str | None:
+    """Units a format fixes: glTF is in metres by its specification."""
+    return "m" if path.suffix.lower() in (".glb", ".gltf") else None
 
 
 def load_mesh_face(path: str | Path) -> Face:
@@ -67,13 +73,25 @@ def load_mesh_face(path: str | Path) -> Face:
             raise InputError(f"cannot read the annotation: {e.strerror}", where=str(ann_path)) from None
         where = str(ann_path)
         annotation = parse_annotation(raw, where=where)
+        from .annotate import complete  # a partial annotation: the automatic one fills the rest
+
+        annotation = complete(vertices, triangles, annotation, name=path.name)
     else:
         from .ict import ict_annotation
 
         annotation = ict_annotation(vertices, triangles)
-        where = "built-in ICT FaceKit annotation"
+        where, reason = "built-in ICT FaceKit annotation", ""
         if annotation is None:
-            raise InputError(
+            from .annotate import cached_annotation
+
+            try:
+                annotation = cached_annotation(vertices, triangles, name=path.name, units=_declared_units(path))
+                where = "automatic annotation"
+            except InputError as e:
+                annotation = None
+                reason = f"automatic annotation failed ({e}); "
+        if annotation is None:
+            raise InputError(reason +
                 f"no annotation found: write {path.with_suffix('.face.json').name} beside the mesh with "
                 "'units', 'feature_points' (MPEG-4 FP id -> vertex id) and 'parts' (see facecast docs)",
                 where=str(path))

@@ -1,0 +1,448 @@
+"""``annotate_mesh``: a complete ``.face.json`` annotation for any head mesh, by fitting the template.
+
+Steps (Kähler, Haber, Seidel 2002): weld the mesh and split it into connected pieces; find the head
+and its axes and align the template to it (``orient``); warp the template onto it (``warp``); then
+carry the template's parts, feature points and pivots over by closest point, with sanity checks.
+What the mesh cannot carry (no back of the head, no mouth opening, no eyeballs) is left out and said.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from ...errors import InputError
+from ...output.preview import vertex_normals
+from ..face import FEATURE_POINT_IDS, UNIT_MM
+from .detect import mouth_corners, profile_landmarks, sphere_centre
+from .orient import frame, place
+from .template import INNER, OUTER, PIECE_PARTS, Template, default_template
+from .warp import Target, fit, warp_points
+
+#: A feature point farther than this (template mm) from every mesh vertex is left out (1.6x this on
+#: the face, where a surface cannot be missing, only sunk into an eye or mouth opening).
+FP_REACH_MM = 9.0
+#: Neutral FAPU distances (mm, on a head scaled to the template) a human face has.
+FAPU_RANGE_MM: dict[str, tuple[float, float]] = {
+    "IRISD": (4.0, 25.0), "ES": (40.0, 90.0), "ENS": (15.0, 65.0), "MNS": (6.0, 45.0), "MW": (25.0, 85.0)}
+#: FAPU -> (fp_a, fp_b, axis), as ``mpeg4.fapu``.
+_FAPU = {"IRISD": ("3.1", "3.3", 1), "ES": ("3.5", "3.6", 0), "ENS": ("3.5", "9.15", 1),
+         "MNS": ("9.15", "2.2", 1), "MW": ("8.3", "8.4", 0)}
+
+
+#: Vertices of the matched piece above which triangle centroids are not added as surface samples.
+DENSE = 30_000
+#: Feature points animation cannot do without: the chin (the jaw's angle) and the FAPU's.
+ESSENTIAL = frozenset({"2.1", "3.1", "3.3", "3.5", "3.6", "9.15", "2.2", "8.3", "8.4"})
+_FAPU_CHECK = True  # tests and debugging may look at a failed fit
+_FAPU_POINTS = {p for a, b, _ in _FAPU.values() for p in (a, b)}
+
+
+def weld(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(rep, welded_triangles)``: ``rep (V,)`` maps every vertex to the lowest id at its position
+    (vertices split at UV seams become one), ``welded_triangles`` uses those ids."""
+    v = np.asarray(vertices, dtype=np.float64)
+    tol = max(float(np.ptp(v, axis=0).max()), 1e-12) * 1e-7
+    _, first, inverse = np.unique(np.round(v / tol).astype(np.int64), axis=0, return_index=True,
+                                  return_inverse=True)
+    rep = first[inverse.ravel()]
+    return rep, rep[np.asarray(triangles, dtype=np.int64)]
+
+
+def components(n: int, triangles: np.ndarray) -> np.ndarray:
+    """``(n,)`` connected-piece label of every vertex (isolated vertices get their own)."""
+    t = np.asarray(triangles, dtype=np.int64)
+    e = np.r_[t[:, [0, 1]], t[:, [1, 2]]]
+    g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    return connected_components(g, directed=False)[1]
+
+
+def rim_vertices(n: int, triangles: np.ndarray) -> np.ndarray:
+    """``(n,) bool``: vertices on an open boundary (an edge used by one triangle only)."""
+    t = np.asarray(triangles, dtype=np.int64)
+    e = np.sort(np.r_[t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]], axis=1)
+    key = e[:, 0] * n + e[:, 1]
+    uniq, count = np.unique(key, return_counts=True)
+    once = uniq[count == 1]
+    out = np.zeros(n, dtype=bool)
+    out[once // n] = True
+    out[once % n] = True
+    return out
+
+
+def ranges(ids: np.ndarray) -> list:
+    """Sorted ids as a compact list of ``[first, last]`` runs and single ids (the annotation's form)."""
+    ids = np.unique(np.asarray(ids, dtype=np.int64))
+    if not len(ids):
+        return []
+    breaks = np.nonzero(np.diff(ids) != 1)[0]
+    starts, ends = np.r_[ids[0], ids[breaks + 1]], np.r_[ids[breaks], ids[-1]]
+    return [int(a) if a == b else [int(a), int(b)] for a, b in zip(starts, ends)]
+
+
+def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dict | None = None,
+                  axes: tuple[str, str] | None = None, units: str | None = None,
+                  template: Template | None = None) -> dict:
+    """The annotation (``loaders`` format plus an ``automatic`` report) for a head mesh.
+
+    Args:
+        vertices: ``(V, 3)`` in the file's units and axes; ``triangles``: ``(F, 3)``.
+        landmarks: MPEG-4 feature point id -> ``[x, y, z]`` in mesh units (nose tip 9.3, eye corners
+            3.7/3.12, mouth corners 8.3/8.4, chin 2.1, ...), to guide the fit.
+        axes: ``(up, forward)`` when known; ``units``: when the file says (else from the head size).
+
+    Raises ``InputError`` when no head can be fitted (too few vertices, a fit too poor to trust).
+    """
+    t0 = time.perf_counter()
+    tpl = template or default_template()
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = np.asarray(triangles, dtype=np.int64)
+    if len(v) < 50 or len(tri) < 50 or not np.all(np.isfinite(v)):
+        raise InputError("the mesh is too small (or has non-finite vertices) to be a head")
+    rep, wtri = weld(v, tri)
+    wtri = wtri[(wtri[:, 0] != wtri[:, 1]) & (wtri[:, 1] != wtri[:, 2]) & (wtri[:, 0] != wtri[:, 2])]
+    used = np.zeros(len(v), bool)
+    used[wtri.ravel()] = True
+    label = components(len(v), wtri)
+    label[~used] = -1
+    sizes = np.bincount(label[used])
+    main_label = int(np.argmax(sizes))
+    main = np.nonzero(label == main_label)[0]
+    vn = vertex_normals(v, wtri)
+
+    lm = {k: v[p] if isinstance(p, (int, np.integer)) else np.asarray(p, dtype=np.float64)
+          for k, p in (landmarks or {}).items()}
+    pl = place(v[main], vn[main], tpl, axes=axes, landmarks=lm or None)
+    sim = pl.similarity
+    y = sim.apply(v)  # every vertex in the template frame (mm)
+    yn = vn @ sim.rotation.T
+
+    # The matched surface: the main piece and the pieces lying on the template's skin (separate
+    # ears, a scalp), their vertices and triangle centroids.
+    crop_full = np.zeros(len(v), bool)
+    crop_full[main[pl.crop]] = True
+    surface = _surface_pieces(y, yn, label, sizes, main_label, tpl)
+    on_surface = np.isin(label, surface)
+    main = np.nonzero(on_surface)[0]
+    mtri = wtri[on_surface[wtri[:, 0]]]
+    rim = rim_vertices(len(v), mtri)
+    cent = y[mtri].mean(axis=1)
+    fn = np.cross(y[mtri[:, 1]] - y[mtri[:, 0]], y[mtri[:, 2]] - y[mtri[:, 0]])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
+    head_v = crop_full | (on_surface & (label != main_label))
+    # Coarse meshes add their triangle centroids as samples; dense ones have enough vertices.
+    use = np.ones(len(mtri), bool) if len(main) < DENSE else np.zeros(len(mtri), bool)
+    pts, nrm = np.r_[y[main], cent[use]], np.r_[yn[main], fn[use]]
+    head = np.r_[head_v[main], head_v[mtri[use]].all(axis=1)]
+    # Orient the mesh's normals like the template's (some files wind their triangles inwards).
+    d, j = cKDTree(tpl.vertices[tpl.outer]).query(pts[head])
+    close = d < np.quantile(d, 0.5)
+    if np.median(np.einsum("ij,ij->i", nrm[head][close], tpl.normals[tpl.outer][j[close]])) < 0:
+        nrm, yn = -nrm, -yn
+    anchors, found, eyes = _anchors(tpl, lm, sim, y, mtri, label, sizes, main_label)
+    # Skin behind an eyeball's equator is its socket: never matched, never a feature point.
+    socket_v = np.zeros(len(v), bool)
+    for centre, radius in eyes:
+        rel = y - centre
+        socket_v |= (np.linalg.norm(rel, axis=1) < 1.3 * radius) & (rel[:, 2] < 0.3 * radius)
+    socket_v &= label == main_label
+    excluded = np.r_[rim[main] | socket_v[main], (rim | socket_v)[mtri[use]].any(axis=1)]
+    target = Target(points=pts, normals=nrm, rim=excluded)
+    warped, fields = fit(tpl, target, anchors=anchors, crop=head)
+
+    box = (y[:, 1] > tpl.vertices[:, 1].min() - 20) & (np.abs(y[:, 0]) < 140) & (np.abs(y[:, 2]) < 200)
+    parts = _parts(y, label, main_label, sizes, warped, tpl, box)
+    fps, left_out, approximate = _feature_points(y, yn, wtri, parts, warped, tpl, socket_v)
+    warnings = _checks(y, fps, left_out, tpl)
+
+    # Pivots: template pivots through the warp, back to mesh coordinates.
+    names = [k for k in ("jaw", "head", "eye_l", "eye_r") if k in tpl.pivots and not (k in parts and k.startswith("eye"))]
+    piv = sim.inverse(warp_points(np.array([tpl.pivots[k] for k in names]), fields))
+    mm_per_unit = sim.scale
+    unit = units or min(UNIT_MM, key=lambda u: abs(np.log(UNIT_MM[u] / mm_per_unit)))
+    up, forward = axes or (pl.up, pl.forward)
+    off_axis = float(np.degrees(np.arccos(np.clip((np.trace(frame(up, forward) @ sim.rotation.T) - 1) / 2, -1, 1))))
+    fit_err = float(np.median(cKDTree(warped[tpl.outer]).query(pts[head & ~target.rim])[0]))
+    report = {
+        "template": "default", "seconds": round(time.perf_counter() - t0, 2),
+        "mm_per_unit_measured": round(mm_per_unit, 4), "tilt_deg": round(off_axis, 1),
+        "alignment_score_mm": round(pl.score, 2), "landmarks": found, "fit_median_mm": round(fit_err, 2),
+        "cropped_to_head": bool(pl.cropped or (~head_v[used]).any()),
+        "left_out": left_out, "approximate_mm": approximate, "warnings": warnings,
+    }
+    if abs(np.log(UNIT_MM[unit] / mm_per_unit)) > np.log(1.5):
+        warnings.append(f"the head measures {mm_per_unit:.3g} mm per unit; the nearest unit {unit!r} is "
+                        f"{UNIT_MM[unit] / mm_per_unit:.2f}x that (only sizes in mm are affected)")
+    if off_axis > 25:
+        warnings.append(f"the head is tilted {off_axis:.0f} degrees from the {up} / {forward} axes")
+    if fit_err > 6.0:
+        raise InputError(f"no head found: the template fits the mesh only to a median {fit_err:.1f} mm; "
+                         "give --landmarks or write the annotation by hand")
+    fapu = _fapu_mm(y, fps)
+    odd = {k: v for k, v in fapu.items() if not FAPU_RANGE_MM[k][0] <= v <= FAPU_RANGE_MM[k][1]}
+    bad = {k: v for k, v in fapu.items() if not FAPU_RANGE_MM[k][0] / 1.5 <= v <= FAPU_RANGE_MM[k][1] * 1.5}
+    warnings.extend(f"FAPU {k} measures {v:.1f} mm on a head scaled to the template; humans have "
+                    f"{FAPU_RANGE_MM[k][0]:g}-{FAPU_RANGE_MM[k][1]:g} mm" for k, v in odd.items() if k not in bad)
+    missing = [k for k in _FAPU if k not in fapu]
+    if (bad or missing) and _FAPU_CHECK:
+        raise InputError("the fitted feature points give implausible face proportions ("
+                         + ", ".join([f"{k} {v:.1f} mm" for k, v in bad.items()] + [f"no {k}" for k in missing])
+                         + "); give --landmarks or write the annotation by hand")
+    return {
+        "units": unit,
+        "axes": {"up": up, "forward": forward},
+        "feature_points": dict(sorted(fps.items(), key=lambda kv: tuple(int(x) for x in kv[0].split(".")))),
+        "parts": {k: ranges(ids) for k, ids in parts.items()},
+        "pivots": {k: [round(float(x), 6) for x in p] for k, p in zip(names, piv)},
+        "automatic": report,
+    }
+
+
+def _surface_pieces(y, yn, label, sizes, main_label, tpl: Template) -> list[int]:
+    """The main piece and the other pieces that lie on the template's skin after the alignment
+    (large enough, within 6 mm, facing the same way, not round like an eyeball)."""
+    out = [main_label]
+    tree = cKDTree(tpl.vertices[tpl.outer])
+    for c in np.nonzero(sizes >= max(20, 0.01 * sizes[main_label]))[0]:
+        if c == main_label:
+            continue
+        ids = np.nonzero(label == c)[0]
+        d, j = tree.query(y[ids])
+        if np.median(d) > 6.0:
+            continue
+        facing = np.abs(np.einsum("ij,ij->i", yn[ids], tpl.normals[tpl.outer][j]))
+        centre = sphere_centre(y[ids])
+        r = np.linalg.norm(y[ids] - centre, axis=1)
+        if np.median(facing) > 0.5 and not r.std() < 0.15 * r.mean():
+            out.append(int(c))
+    return out
+
+
+def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
+    """Template points and where they belong on the mesh: the user's landmarks, else the midline
+    profile landmarks and mouth corners (``detect``) and the centres of eyeball pieces; also the
+    eyeballs found, as ``[(centre, radius)]``."""
+    src, dst, found, eyes = [], [], [], []
+    if lm:
+        for k, p in lm.items():
+            if k in tpl.feature_points:
+                src.append(tpl.fp_position(k))
+                dst.append(sim.apply(np.asarray(p, dtype=np.float64)[None])[0])
+                found.append(k)
+    else:
+        mine = profile_landmarks(y, mtri, tpl.profile_heights)
+        for name, p in mine.items():
+            if name in tpl.profile:
+                src.append(tpl.profile[name])
+                dst.append(p)
+                found.append(name)
+        if "slit" in mine:
+            half = abs(tpl.fp_position("8.3")[0])
+            for k, p in mouth_corners(y, mtri, mine["slit"], half).items():
+                src.append(tpl.fp_position(k))  # the corner is where the slit ends
+                dst.append(p)
+                found.append(k)
+        for eye in ("eye_l", "eye_r"):
+            c = tpl.pivots[eye]
+            best = None
+            for comp in np.nonzero(sizes)[0]:
+                if comp == main_label or sizes[comp] < 20:
+                    continue
+                ids = np.nonzero(label == comp)[0]
+                centre = sphere_centre(y[ids])
+                radius = np.linalg.norm(y[ids] - centre, axis=1)
+                round_ = radius.std() < 0.15 * radius.mean() and 6.0 < radius.mean() < 20.0
+                d = np.linalg.norm(centre - c)
+                if round_ and d < 18.0 and (best is None or d < best[0]):
+                    best = (d, centre, float(radius.mean()))
+            if best is not None:
+                src.append(c)
+                dst.append(best[1])
+                found.append(eye)
+                eyes.append((best[1], best[2]))
+                # The outer eye corner sits where it sits beside the template's eyeball, scaled by
+                # the eyeballs' sizes, on the mesh's surface nearest that spot.
+                corner = "3.7" if eye == "eye_l" else "3.12"
+                t_radius = float(np.linalg.norm(tpl.fp_position("3.5" if eye == "eye_l" else "3.6") - c))
+                guess = best[1] + (tpl.fp_position(corner) - c) * best[2] / max(t_radius, 1e-6)
+                d_s, i_s = cKDTree(y[np.unique(mtri)]).query(guess)
+                if d_s < 6.0:
+                    src.append(tpl.fp_position(corner))
+                    dst.append(y[np.unique(mtri)][i_s])
+                    found.append(corner)
+    if not src:
+        return None, found, eyes
+    return (np.array(src), np.array(dst)), found, eyes
+
+
+def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[str, np.ndarray]:
+    """Parts of the mesh: ``skin``, the pieces (eyes, teeth, gums, tongue), ``mouth_socket``, ``other``
+    (pieces that are not part of the head: clothing, a body's markers)."""
+    tree = cKDTree(warped)
+    d, j = tree.query(y)
+    tlabel = tpl.label[j]
+    parts: dict[str, list] = {"skin": [np.nonzero(label == main_label)[0]]}
+    socket = np.zeros(len(tpl.vertices), bool)
+    socket[tpl.mouth_socket] = True
+    slit_y = float(warped[tpl.feature_points["2.2"], 1])
+    mouth_centre = warped[tpl.mouth_socket].mean(axis=0) if len(tpl.mouth_socket) else warped[tpl.feature_points["2.2"]]
+
+    def inside_mouth(ids: np.ndarray) -> bool:
+        """A separate piece behind the lips (ICT's upper teeth look like the socket's inside)."""
+        return bool(np.linalg.norm(y[ids].mean(axis=0) - mouth_centre) < 35.0)
+    for c in np.nonzero(sizes)[0]:
+        if c == main_label:
+            continue
+        ids = np.nonzero(label == c)[0]
+        lab, dist = tlabel[ids], d[ids]
+        if np.median(dist) > 12.0 or not head_v[ids].any():
+            parts.setdefault("other", []).append(ids)
+            continue
+        counts = np.bincount(lab, minlength=2 + len(PIECE_PARTS))
+        top = int(np.argmax(counts))
+        if top >= 2 and PIECE_PARTS[top - 2].startswith("eye"):
+            parts.setdefault(PIECE_PARTS[top - 2], []).append(ids)
+        elif top >= 2 or (top == INNER and socket[j[ids]].mean() < 0.5) or (top == INNER and inside_mouth(ids)):
+            # Mouth interior. What animation needs is which pieces ride the jaw: a piece above the
+            # mouth slit stays with the head (upper teeth, upper gums), one below rides the jaw
+            # (lower teeth, lower gums, tongue); a piece across it (gums and tongue in one) is cut
+            # at the slit. The template's nearest part names teeth apart from gums and tongue.
+            mouth = np.nonzero((tpl.label >= 2 + PIECE_PARTS.index("teeth_upper")))[0]
+            _, k = cKDTree(warped[mouth]).query(y[ids])
+            name = np.array([PIECE_PARTS[s - 2] for s in tpl.label[mouth[k]]])
+            teeth = np.char.startswith(name, "teeth")
+            above = y[ids, 1] > slit_y
+            if above.mean() > 0.8 or above.mean() < 0.2:
+                above[:] = above.mean() > 0.5
+                teeth[:] = teeth.mean() > 0.5
+            label_of = np.where(above, np.where(teeth, "teeth_upper", "gums_upper"),
+                                np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")))
+            for s in np.unique(label_of):
+                parts.setdefault(str(s), []).append(ids[label_of == s])
+        elif top == INNER:
+            parts.setdefault("mouth_socket", []).append(ids)
+        elif top == OUTER and np.median(dist) < 6.0:
+            parts["skin"].append(ids)  # a separate ear, a scalp
+        else:
+            parts.setdefault("other", []).append(ids)
+    # The main piece's own mouth cavity (a mesh whose lips fold inwards into a socket).
+    main = parts["skin"][0]
+    inside = main[socket[j[main]] & (d[main] < 6.0)]
+    if len(inside) >= 10:
+        parts.setdefault("mouth_socket", []).append(inside)
+    out = {k: np.unique(np.concatenate(v)) for k, v in parts.items()}
+    if "mouth_socket" in out:
+        out["skin"] = np.setdiff1d(out["skin"], out["mouth_socket"]) if "mouth_socket" in out else out["skin"]
+    return out
+
+
+def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tuple[dict[str, int], dict[str, str], dict]:
+    """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
+    on the nearest surface though it is farther than the reach (id -> mm).
+
+    Each feature point goes to the nearest mesh vertex of its part; among coincident vertices (lips
+    that touch but are not joined) the one whose neighbourhood lies on the template point's side.
+    Two feature points never share a vertex: the farther one takes its next-nearest free vertex.
+    A point of the template's outer skin avoids mesh vertices facing another way (an eye or mouth
+    socket just behind the lid or lip).
+    """
+    t_normals = vertex_normals(warped, tpl.triangles)
+    n = len(y)
+    ring = np.zeros((n, 3))
+    cnt = np.zeros(n)
+    cent = y[wtri].mean(axis=1)
+    for k in range(3):
+        np.add.at(ring, wtri[:, k], cent)
+        np.add.at(cnt, wtri[:, k], 1)
+    ring = ring / np.maximum(cnt, 1)[:, None] - y
+    t_ring = np.zeros((len(warped), 3))
+    t_cnt = np.zeros(len(warped))
+    tc = warped[tpl.triangles].mean(axis=1)
+    for k in range(3):
+        np.add.at(t_ring, tpl.triangles[:, k], tc)
+        np.add.at(t_cnt, tpl.triangles[:, k], 1)
+    t_ring = t_ring / np.maximum(t_cnt, 1)[:, None] - warped
+
+    skin_ids = np.r_[parts["skin"], parts.get("mouth_socket", np.zeros(0, np.int64))]
+    skin_ids = skin_ids[~socket_v[skin_ids]]
+    trees = {"skin": (cKDTree(y[skin_ids]), skin_ids)}
+    taken: set[int] = set()
+    approximate: dict[str, float] = {}
+    fps: dict[str, int] = {}
+    left_out: dict[str, str] = {}
+    wanted = []
+    for fp in FEATURE_POINT_IDS:
+        if fp not in tpl.feature_points:
+            continue
+        part = tpl.part_of(fp)
+        key = part if part in parts else "skin"
+        if part != key and part not in ("eye_l", "eye_r"):
+            left_out[fp] = f"the mesh has no {part.replace('_', ' ')}"
+            continue
+        if key not in trees:
+            trees[key] = (cKDTree(y[parts[key]]), parts[key])
+        p = warped[tpl.feature_points[fp]]
+        d, i = trees[key][0].query(p, k=min(16, len(trees[key][1])))
+        wanted.append((float(np.atleast_1d(d)[0]), fp, key, np.atleast_1d(d), np.atleast_1d(i)))
+    for d0, fp, key, d, i in sorted(wanted):
+        reach = FP_REACH_MM * (2.0 if key != tpl.part_of(fp) else 1.0 if fp.split(".")[0] in ("7", "10", "11") else 1.6)
+        ids = trees[key][1][i]
+        if d0 > reach and fp in ESSENTIAL and d0 < 2.5 * reach:
+            reach = d0 + 1.0  # the jaw and the FAPU need it: the nearest surface will do
+            approximate[fp] = round(d0, 1)
+        elif d0 > reach:
+            left_out[fp] = f"no surface within {reach:.0f} mm of where it belongs (the mesh ends there)"
+            continue
+        tr = t_ring[tpl.feature_points[fp]]
+        cost = d + 2.0 * np.linalg.norm(ring[ids] - tr, axis=1) * (d < d0 + 0.5)
+        cost[d >= d0 + 0.5] += 1e3
+        vid = tpl.feature_points[fp]
+        if tpl.label[vid] == OUTER:
+            facing = yn[ids] @ t_normals[vid]
+            cost[facing < 0.3] += 2e3  # behind the surface: only if nothing else is near
+        free = [j for j in np.argsort(cost) if int(ids[j]) not in taken and d[j] <= reach]
+        if not free:
+            left_out[fp] = "no free vertex near it (the mesh is too coarse there)"
+            continue
+        fps[fp] = int(ids[free[0]])
+        taken.add(fps[fp])
+    # Pupils: the front pole of each eyeball piece (a neutral head looks straight ahead, +z).
+    for eye, fp in (("eye_l", "3.5"), ("eye_r", "3.6")):
+        ids = parts.get(eye)
+        if ids is not None and len(ids) >= 10:
+            vid = int(ids[np.argmax(y[ids, 2])])
+            if vid not in taken:
+                taken.discard(fps.get(fp, -1))
+                fps[fp] = vid
+                taken.add(vid)
+    return fps, left_out, approximate
+
+
+def _checks(y, fps: dict[str, int], left_out: dict, tpl: Template) -> list[str]:
+    """Sanity checks: sides and mirrored pairs; points on the wrong side are dropped."""
+    warnings = []
+    centre = np.median([y[v, 0] for k, v in fps.items() if abs(tpl.fp_position(k)[0]) < 1.0] or [0.0])
+    for fp in list(fps):
+        tx = tpl.fp_position(fp)[0]
+        if abs(tx) > 5.0 and np.sign(y[fps[fp], 0] - centre) != np.sign(tx):
+            left_out[fp] = "landed on the wrong side of the face"
+            del fps[fp]
+    for a, b in (("3.7", "3.12"), ("8.3", "8.4"), ("3.5", "3.6"), ("4.5", "4.6"), ("10.9", "10.10")):
+        if a in fps and b in fps:
+            pa, pb = y[fps[a]], y[fps[b]]
+            asym = np.linalg.norm((pa - centre * np.array([1, 0, 0])) * [1, 1, 1]
+                                  - (pb - centre * np.array([1, 0, 0])) * [-1, 1, 1])
+            if asym > 12.0:
+                warnings.append(f"{a} and {b} are {asym:.0f} mm from mirror images of each other")
+    return warnings
+
+
+def _fapu_mm(y, fps: dict[str, int]) -> dict[str, float]:
+    out = {}
+    for unit, (a, b, axis) in _FAPU.items():
+        if a in fps and b in fps:
+            out[unit] = float(y[fps[a], axis] - y[fps[b], axis])
+    return out

@@ -1,0 +1,98 @@
+"""The annotated template fitted to a user's mesh: the built-in head at a modest resolution, in mm.
+
+The template supplies everything an annotation needs — feature points, parts and pivots — in MPEG-4
+axes (y up, z forward, x the face's left) and millimetres; ``fit`` warps it onto the user's mesh.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+#: Vertices of the built-in head used as the template (its feature points sit at fixed surface
+#: parameters, so the resolution only sets how finely the warp is sampled).
+TEMPLATE_VERTICES = 8000
+#: Skin subsets that are inside the head (never matched to the user's outer surface).
+INNER_SKIN = ("mouth_socket", "eye_socket_l", "eye_socket_r")
+#: Rigid or interior parts a user's mesh may carry as separate pieces.
+PIECE_PARTS = ("eye_l", "eye_r", "teeth_upper", "teeth_lower", "gums_upper", "gums_lower", "tongue")
+#: Template label of each vertex: 0 outer skin, 1 inner skin (mouth and eye sockets), then PIECE_PARTS.
+OUTER, INNER = 0, 1
+
+
+@dataclass(frozen=True)
+class Template:
+    """The template head.
+
+    Attributes:
+        vertices: ``(N, 3) float64`` mm, MPEG-4 axes.
+        triangles: ``(F, 3) int32``.
+        label: ``(N,) int8``: ``OUTER``, ``INNER`` or ``2 + PIECE_PARTS.index(part)``.
+        outer: ids of the outer skin (the surface matched to the user's mesh).
+        feature_points: MPEG-4 id -> template vertex id.
+        pivots: ``head``, ``jaw``, ``eye_l``, ``eye_r`` -> ``(3,)`` mm.
+        face_region: ids of outer-skin vertices on the face (forehead to chin, cheek to cheek).
+        normals: ``(N, 3)`` unit vertex normals.
+        mouth_socket: ids of the mouth cavity behind the lips (part of the inner skin).
+        profile: the midline landmarks ``detect.profile_landmarks`` finds on the template.
+        mouth_corners: where ``detect.mouth_corners`` ends the mouth slit on the template (for
+            reference: the template's own 8.3/8.4 lie about 6 mm farther out; on a mesh the
+            detected ends are taken as the corners).
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    label: np.ndarray
+    outer: np.ndarray
+    feature_points: dict[str, int]
+    pivots: dict[str, np.ndarray]
+    face_region: np.ndarray
+    normals: np.ndarray
+    mouth_socket: np.ndarray
+    profile: dict[str, np.ndarray]
+    mouth_corners: dict[str, np.ndarray]
+
+    @property
+    def profile_heights(self) -> dict[str, float]:
+        return {k: float(p[1]) for k, p in self.profile.items()}
+
+    def part_of(self, fp: str) -> str:
+        """``"skin"`` or the piece part name carrying feature point ``fp``."""
+        lab = int(self.label[self.feature_points[fp]])
+        return "skin" if lab < 2 else PIECE_PARTS[lab - 2]
+
+    def fp_position(self, fp: str) -> np.ndarray:
+        return self.vertices[self.feature_points[fp]]
+
+
+@lru_cache(maxsize=1)
+def default_template() -> Template:
+    """The built-in head as a template (memoised)."""
+    from ..procedural import build_default_head
+
+    face = build_default_head(TEMPLATE_VERTICES)
+    v = face.vertices.astype(np.float64)
+    label = np.full(len(v), OUTER, dtype=np.int8)
+    for name in INNER_SKIN:
+        label[face.part(name)] = INNER
+    for i, name in enumerate(PIECE_PARTS):
+        label[face.part(name)] = 2 + i
+    outer = np.nonzero(label == OUTER)[0]
+    pivots = {k: face.pivot(k).astype(np.float64) for k in ("head", "jaw", "eye_l", "eye_r")}
+    nose_base = v[face.feature_points["9.15"]]
+    chin, brow = v[face.feature_points["2.1"]], v[face.feature_points["4.3"]]
+    p = v[outer]
+    front = (p[:, 2] > nose_base[2] - 45) & (p[:, 1] > chin[1] - 5) & (p[:, 1] < brow[1] + 25) \
+        & (np.abs(p[:, 0]) < 62)
+    from ...output.preview import vertex_normals
+    from .detect import mouth_corners, profile_landmarks
+
+    outer_tri = face.triangles[(label[face.triangles] == OUTER).all(axis=1)]
+    profile = profile_landmarks(v, outer_tri)
+    corners = mouth_corners(v, outer_tri, profile["slit"], abs(float(v[face.feature_points["8.3"], 0])))
+
+    return Template(vertices=v, triangles=face.triangles, label=label, outer=outer,
+                    feature_points=dict(face.feature_points), pivots=pivots, face_region=outer[front],
+                    normals=vertex_normals(v, face.triangles), mouth_socket=face.part("mouth_socket"),
+                    profile=profile, mouth_corners=corners)
