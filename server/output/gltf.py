@@ -480,12 +480,14 @@ class _Bin:
         return len(self.accessors) - 1
 
 
+#: Most morph targets a .glb gets (viewers handle more, but files grow by 24 bytes per vertex each).
+MAX_TARGETS = 128
 #: The largest .glb: its header stores the total length in 32 bits.
 GLB_MAX_BYTES = 2**32 - 1
 
 
 def glb_parts(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float, *,
-              mm_per_unit: float = 1.0, tolerance_mm: float = 0.01, max_targets: int = 128,
+              mm_per_unit: float = 1.0, tolerance_mm: float = 0.01, max_targets: int | None = None,
               name: str = "facecast", extras: dict | None = None, where: str = "glTF"
               ) -> tuple[list, dict]:
     """The ``.glb`` as a list of byte buffers (header, JSON, binary pieces) and its
@@ -495,6 +497,7 @@ def glb_parts(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps:
         frames = np.asarray(frames, dtype=np.float32)
         if frames.ndim != 3 or len(frames) < 1:
             raise ValueError(f"frames must be (T>=1, {len(rest)}, 3), not {frames.shape}")
+    max_targets = MAX_TARGETS if max_targets is None else int(max_targets)
     rest = np.asarray(rest, dtype=np.float32)
     tri = np.ascontiguousarray(triangles, dtype=np.uint32)
     V = rest.shape[0]
@@ -565,7 +568,7 @@ def glb_parts(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps:
 
 
 def encode_glb(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float, *,
-               mm_per_unit: float = 1.0, tolerance_mm: float = 0.01, max_targets: int = 128,
+               mm_per_unit: float = 1.0, tolerance_mm: float = 0.01, max_targets: int | None = None,
                name: str = "facecast", extras: dict | None = None) -> tuple[bytes, dict]:
     """The ``.glb`` bytes of an animation and its ``extras.facecast`` record (see module docstring).
 
@@ -574,7 +577,8 @@ def encode_glb(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps
             iterable of ``(c, V, 3)`` chunks of them (called once per pass over the frames);
             ``rest``: ``(V, 3)`` neutral mesh.
         triangles: ``(F, 3)``; ``fps``: frames per second; ``mm_per_unit``: mesh unit size.
-        tolerance_mm: largest vertex error allowed in any frame (mm); ``max_targets``: cap on targets.
+        tolerance_mm: largest vertex error allowed in any frame (mm); ``max_targets``: cap on targets
+            (default ``MAX_TARGETS``).
 
     Raises OutputError (nothing written) when no basis of at most ``max_targets`` targets meets
     ``tolerance_mm``, or the file would pass the 4 GiB limit of the format.
