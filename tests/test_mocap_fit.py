@@ -75,3 +75,25 @@ def test_the_rigid_fit_of_a_matching_layout_is_about_the_noise(take_on_2k):
     rig = process(syn.take, face, syn.layout).rig
     assert rig.fit["markers"] == 24 and rig.fit["median_mm"] < 0.5
     assert rig.fit["limit_mm"] > 5 * rig.fit["median_mm"] and FIT_SPACING_FRACTION == 0.25
+
+
+def test_the_generated_take_names_its_face_and_the_built_in_head_refuses_it(tmp_path, capsys):
+    """The README's path: ``python -m facecast.server.mocap.generate --out DIR`` then ``facecast render
+    DIR/take.c3d``: the ICT-vertex layout on the built-in head is refused, the message gives the --face
+    to pass (the generator prints the same command)."""
+    from facecast.server.mocap import generate as gen
+    from facecast.server.paths import shared_data
+
+    d = shared_data()
+    if d is None or not (d / "ict-facekit" / "generic_neutral_mesh.obj").is_file():
+        pytest.skip("../shared/data/ict-facekit is not beside this checkout")
+    assert gen.main(["--out", str(tmp_path), "--markers", "30", "--seconds", "0.6", "--formats", "c3d"]) == 0
+    printed = capsys.readouterr().out
+    ict = gen.face_path()
+    assert f"facecast render {tmp_path / 'take.c3d'} --face {ict} -o take.glb" in printed
+    assert json.loads((tmp_path / "take.layout.json").read_text())["face"] == str(ict)
+    out = tmp_path / "take.glb"
+    assert main(["render", str(tmp_path / "take.c3d"), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "this layout does not fit the face 'default" in err and f"Pass --face {ict} (the face" in err
+    assert not out.exists()

@@ -543,7 +543,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{k}: {v}")
     take = paths.get("c3d") or next(iter(paths.values()))
     print(f"render on the actor's own head: facecast render {take} --face {face_path()} -o take.glb\n"
-          f"retarget onto the built-in head: facecast render {take} --layout {paths['layout_fp']} -o take.glb")
+          f"retarget onto the built-in head: facecast render {take} --layout {paths['layout_fp']} -o take.npz")
     return 0
 
 
