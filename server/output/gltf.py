@@ -172,13 +172,12 @@ class _Basis:
     def _orthonormal(self, v: np.ndarray, new: list[np.ndarray]) -> np.ndarray | None:
         """``v (3V,)`` orthogonalised (twice) against the basis and ``new`` rows, unit length; None
         when little of it is left (it lies in the span up to rounding)."""
-        n0 = float(np.linalg.norm(v.astype(np.float64)))
+        n0 = float(np.sqrt(np.dot(v, v)))
+        blocks = [*self.blocks, np.stack(new)] if new else self.blocks
         for _ in range(2):
-            for Q in self.blocks:
+            for Q in blocks:
                 v -= (Q @ v) @ Q
-            for q in new:
-                v -= float(np.dot(q.astype(np.float64), v.astype(np.float64))) * q
-        n = float(np.linalg.norm(v.astype(np.float64)))
+        n = float(np.sqrt(np.dot(v, v)))
         if not n > 1e-3 * n0:
             return None
         return (v / n).astype(np.float32)
