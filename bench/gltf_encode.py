@@ -18,6 +18,10 @@ clip of ``T`` frames from a chunk source that renders them anew on each pass (as
 does for long clips): wall time then includes the rendering, memory is everything.
 
 Writes ``bench/out/gltf_encode.json`` and prints a markdown table with the old/new ratios.
+
+``--check default:200k default:500k`` instead runs ``glb_check`` per face (``facecast render joy.fap -o
+x.glb --face SPEC`` in a subprocess, then the file read back independently and compared with the
+renderer's float vertices) and writes ``bench/out/gltf_check.json`` and a table.
 """
 from __future__ import annotations
 
@@ -43,7 +47,88 @@ def parse(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--repeats", type=int, default=1, help="best of this many runs per point")
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--out", type=Path, default=OUT, help="JSON output")
+    p.add_argument("--check", nargs="+", metavar="FACE", default=None,
+                   help="instead: glb_check each face spec (e.g. default:200k default:500k)")
     return p.parse_args(argv)
+
+
+_RUNNER = """
+import json, resource, sys
+from facecast.server.cli import main
+code = main(sys.argv[2:])
+with open(sys.argv[1], "w") as f:
+    json.dump({"code": code, "peak_rss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}, f)
+"""
+
+
+def _reader():
+    """The independent .glb reader of ``tests/test_gltf_verify.py`` (pygltflib + numpy, none of the
+    writer's code): ``(read_back, max_error_mm)``."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_glb_read_back", ROOT / "tests" / "test_gltf_verify.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.read_back, mod.max_error_mm
+
+
+def glb_check(face_spec: str, *, fap: str | Path | None = None, backend: str = "auto") -> dict:
+    """Render ``fap`` (default: XFace ``joy.fap``) to a .glb on ``face_spec`` as a user does (``facecast
+    render``, its own process: ``seconds`` is its wall time with the face build and rendering, and
+    ``peak_rss_mb`` its peak resident memory), then read the file back independently and measure the
+    largest vertex distance (mm) from the renderer's float vertices (``max_error_mm``) against the
+    tolerance the file records. A refused render gives ``refused: True`` and its ``message``.
+
+    Returns ``face, vertices, frames, targets, method, tolerance_mm, recorded_max_error_mm,
+    max_error_mm, within_tolerance, bytes, peak_rss_mb, seconds, load_avg``.
+    """
+    import subprocess
+    import tempfile
+    import time
+
+    from facecast.server.drivers.fap import load as load_fap
+    from facecast.server.faces import load_face
+    from facecast.server.paths import shared_data
+    from facecast.server.pipeline import Animator
+
+    src = Path(fap) if fap else shared_data() / "xface" / "faps" / "joy.fap"
+    with tempfile.TemporaryDirectory(prefix="glb-check-") as tmp:
+        out, stats = Path(tmp) / "out.glb", Path(tmp) / "stats.json"
+        load0 = os.getloadavg()
+        t0 = time.perf_counter()
+        r = subprocess.run([sys.executable, "-c", _RUNNER, str(stats), "render", str(src), "-o", str(out),
+                            "--face", face_spec, "--backend", backend], capture_output=True, text=True)
+        seconds = time.perf_counter() - t0
+        run = json.loads(stats.read_text()) if stats.is_file() else {"code": r.returncode, "peak_rss_kb": 0}
+        row = {"face": face_spec, "seconds": seconds, "peak_rss_mb": run["peak_rss_kb"] / 1024,
+               "exit": run["code"], "load_avg": [round((a + b) / 2, 2) for a, b in zip(load0, os.getloadavg())]}
+        if run["code"] != 0 or not out.is_file():
+            lines = r.stderr.strip().splitlines()
+            return {**row, "refused": True, "message": lines[-1] if lines else ""}
+        read_back, max_error_mm = _reader()
+        glb = read_back(out)
+        face = load_face(face_spec)
+        frames = Animator(face, backend=backend).render(load_fap(src, face))
+        err = max_error_mm(glb, frames, face.mm_per_unit)
+        return {**row, "refused": False, "vertices": face.n_vertices, "frames": len(frames),
+                "targets": len(glb["targets"]), "method": glb["record"]["method"],
+                "tolerance_mm": glb["tolerance_mm"], "recorded_max_error_mm": glb["max_error_mm"],
+                "max_error_mm": err, "within_tolerance": bool(err <= glb["tolerance_mm"]),
+                "bytes": out.stat().st_size}
+
+
+def check_markdown(rows: list[dict]) -> str:
+    lines = ["| face | vertices | frames | targets | tolerance (mm) | max error read back (mm) | within | .glb (MB) "
+             "| peak RSS (MB) | wall (s) | load |", "|---|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
+    for r in rows:
+        if r["refused"]:
+            lines.append(f"| {r['face']} | refused: {r['message']} | | | | | | | {r['peak_rss_mb']:.0f} | "
+                         f"{r['seconds']:.0f} | {r['load_avg'][0]:.1f} |")
+            continue
+        lines.append(f"| {r['face']} | {r['vertices']} | {r['frames']} | {r['targets']} | {r['tolerance_mm']} | "
+                     f"{r['max_error_mm']:.4f} | {'yes' if r['within_tolerance'] else 'NO'} | {r['bytes'] / 1e6:.1f} | "
+                     f"{r['peak_rss_mb']:.0f} | {r['seconds']:.0f} | {r['load_avg'][0]:.1f} |")
+    return "\n".join(lines)
 
 
 def baseline_module():
@@ -122,6 +207,17 @@ def main(argv: list[str]) -> int:
     if args.threads:
         for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
             os.environ[var] = str(args.threads)
+    if args.check:
+        rows = []
+        for spec in args.check:
+            rows.append(glb_check(spec))
+            print(json.dumps(rows[-1]), file=sys.stderr)
+        out = args.out.with_name("gltf_check.json") if args.out == OUT else args.out
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({"rows": rows, "cpus": os.cpu_count()}, indent=1) + "\n")
+        print(check_markdown(rows))
+        print(f"\nload average (1 min) at the end {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs; wrote {out}")
+        return 0 if all(not r["refused"] and r["within_tolerance"] for r in rows) else 1
 
     from facecast.server.faces import load_face
     from facecast.server.output import gltf

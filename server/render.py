@@ -15,6 +15,8 @@ OUTPUTS: tuple[str, ...] = (".glb", ".npz", ".fap")
 #: A ``.glb`` whose frames would take more bytes than this is encoded from frame chunks rendered
 #: again on each of the encoder's passes (usually two) instead of being held in memory.
 GLB_STREAM_BYTES = 512 * 2**20
+#: Frames rendered at once for such a streamed ``.glb``: at most 64, and at most this many bytes.
+GLB_CHUNK_BYTES = 96 * 2**20
 
 
 def output_kind(path: str | Path) -> str:
@@ -92,11 +94,13 @@ def render_file(input: str | Path, output: str | Path, *, face="default", engine
     return summary
 
 
-def _frame_chunks(animator, animation, progress: Callable[[int, int], None] | None, size: int = 64):
-    """A re-iterable source of ``(c, V, 3) float32`` frame chunks, rendered anew on every pass;
-    ``progress`` follows the first pass."""
+def _frame_chunks(animator, animation, progress: Callable[[int, int], None] | None, size: int | None = None):
+    """A re-iterable source of ``(c, V, 3) float32`` frame chunks of ``size`` frames (default: 64, fewer
+    on big faces, see ``GLB_CHUNK_BYTES``), rendered anew on every pass; ``progress`` follows the
+    first pass."""
     import numpy as np
 
+    size = size or int(min(64, max(4, GLB_CHUNK_BYTES // (12 * animator.face.n_vertices))))
     passes = []
 
     def chunks():

@@ -10,7 +10,7 @@ import pytest
 from facecast.server import render
 from facecast.server.drivers.fap import load as load_fap
 from facecast.server.output.fap import write_fap_file
-from facecast.server.output.gltf import encode_glb, morph_basis
+from facecast.server.output.gltf import OutputError, encode_glb, morph_basis, write_glb
 from facecast.server.pipeline import Animator
 from facecast.server.render import render_file
 from facecast.server.state import Animation
@@ -106,23 +106,40 @@ def test_chunk_source_equals_array_input(face, rng):
         morph_basis(shrinking, face.vertices, 0.01)
 
 
-def test_capped_basis_reports_itself(face, rng, caplog):
-    """Noise needs as many targets as frames: with a cap of 4 the record and a warning say so, and the
-    recorded error is still the measured one."""
+def test_a_basis_that_misses_the_tolerance_is_refused_not_written(face, rng, caplog, tmp_path):
+    """Noise needs as many targets as frames: with a cap of 4 the encoder refuses (OutputError naming
+    the size, the tolerance, the error and what to do; no file), and the capped basis it found
+    reports its measured error."""
     T, V = 40, face.n_vertices
     frames = face.vertices + rng.normal(0, 0.5, (T, V, 3)).astype(np.float32)
+    out = tmp_path / "noise.glb"
     with caplog.at_level(logging.WARNING, logger="facecast.server.output.gltf"):
-        _, rec = encode_glb(frames, face.vertices, face.triangles, 25.0, max_targets=4)
-    assert rec["capped"] is True and rec["targets"] == 4 and rec["max_targets"] == 4
-    assert rec["max_error_mm"] > rec["tolerance_mm"]
+        with pytest.raises(OutputError) as e:
+            write_glb(out, frames, face.vertices, face.triangles, 25.0, max_targets=4)
+    msg = str(e.value)
+    assert str(out) in msg and f"{T} frames of a {V:,}-vertex face" in msg and "0.01 mm" in msg
+    assert "more than 4 morph targets" in msg and ".npz" in msg and "smaller --face" in msg
+    assert not out.exists() and not list(tmp_path.iterdir())
     assert any("capped at 4 targets" in r.getMessage() for r in caplog.records)
     mb = morph_basis(frames, face.vertices, 0.01, max_targets=4)
+    assert mb.capped and mb.targets.shape[0] == 4 and mb.max_error > 0.01
     rebuilt = face.vertices + np.einsum("tm,mvc->tvc", mb.weights.astype(np.float64), mb.targets)
-    measured = np.linalg.norm(rebuilt - frames, axis=2).max()
-    assert measured == pytest.approx(rec["max_error_mm"], rel=1e-6) == pytest.approx(mb.max_error, rel=1e-9)
+    assert np.linalg.norm(rebuilt - frames, axis=2).max() == pytest.approx(mb.max_error, rel=1e-9)
     # Uncapped, the same clip is exact with one target per frame.
     _, rec = encode_glb(frames, face.vertices, face.triangles, 25.0)
     assert not rec["capped"] and rec["targets"] == T and rec["max_error_mm"] <= 0.01
+
+
+def test_exact_per_frame_targets_when_the_decomposition_falls_short(face, rng):
+    """A clip of no more frames than the cap always has a verified file: one target per frame."""
+    T = 6
+    frames = face.vertices + rng.normal(0, 0.5, (T, face.n_vertices, 3)).astype(np.float32)
+    # a first basis far too coarse (per-vertex slack 100 mm) and no second round: the decomposition misses
+    mb = morph_basis(frames, face.vertices, 0.01, max_targets=8, basis_slack=1e4, rounds=1)
+    assert mb.method == "exact" and not mb.capped and mb.targets.shape[0] == T and mb.max_error < 1e-4
+    rebuilt = face.vertices + np.einsum("tm,mvc->tvc", mb.weights.astype(np.float64), mb.targets)
+    assert np.linalg.norm(rebuilt - frames, axis=2).max() == pytest.approx(mb.max_error, rel=1e-9)
+    np.testing.assert_array_equal(mb.weights, np.eye(T))
 
 
 def test_still_clip_gives_one_zero_target(face):

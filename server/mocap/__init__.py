@@ -19,7 +19,7 @@ Modules:
 
 Command lines:
     python -m facecast.server.mocap.generate --out DIR [--markers 60] [--seconds 10] [--fps 120]
-    facecast render DIR/take.c3d --layout DIR/take.layout.json --face <ICT mesh> -o out.glb|out.npz|out.fap
-    facecast render DIR/take.c3d --layout DIR/take.layout-fp.json --face default -o out.glb   (retarget)
+    facecast render DIR/take.c3d --face <ICT mesh> -o out.glb|out.npz|out.fap   (DIR/take.layout.json: ICT vertices)
+    facecast render DIR/take.c3d --layout DIR/take.layout-fp.json -o out.npz   (retarget onto the built-in head)
     python bench/mocap_cleaning.py | bench/mocap_fidelity.py | bench/mocap_live.py
 """

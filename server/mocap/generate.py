@@ -99,11 +99,16 @@ def ict_dir() -> Path:
     return d / "ict-facekit"
 
 
+def face_path() -> Path:
+    """The ICT neutral mesh the generated takes are made on (absolute)."""
+    return (ict_dir() / "generic_neutral_mesh.obj").resolve()
+
+
 def load_ict() -> Face:
     """The ICT neutral head as a ``Face`` (centimetres)."""
     from ..faces import load_face
 
-    return load_face(ict_dir() / "generic_neutral_mesh.obj")
+    return load_face(face_path())
 
 
 def _read_obj_vertices(text: str) -> np.ndarray:
@@ -465,7 +470,8 @@ def generate(
         paths[fmt] = write_take(take, out / f"{name}.{fmt}")
     layout = {"units": "mm", "stable": stable, "neutral_frame": 0, "markers": spec}
     paths["layout"] = out / f"{name}.layout.json"
-    paths["layout"].write_text(json.dumps(layout, indent=1) + "\n")
+    # its vertex ids are the ICT head's: say so, so that a render on another face names the right one
+    paths["layout"].write_text(json.dumps({**layout, "face": str(face_path())}, indent=1) + "\n")
     # The same markers for any face with MPEG-4 feature points: markers on FPs stay tied, the rest are
     # placed automatically (retargeting the ICT actor onto another head).
     portable = {n: (s if "fp" in s else {}) for n, s in spec.items()}
@@ -535,6 +541,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for k, v in paths.items():
         print(f"{k}: {v}")
+    take = paths.get("c3d") or next(iter(paths.values()))
+    print(f"render on the actor's own head: facecast render {take} --face {face_path()} -o take.glb\n"
+          f"retarget onto the built-in head: facecast render {take} --layout {paths['layout_fp']} -o take.npz")
     return 0
 
 

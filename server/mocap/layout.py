@@ -3,6 +3,7 @@
 JSON::
 
     {"units": "mm",                      # units of the take (optional: declared by the file or detected)
+     "face": "path/to/mesh.obj",          # optional: the face its vertex ids are for (named in errors)
      "stable": ["HEAD_L", "HEAD_R", ...],   # markers that move only with the skull (>= 3)
      "neutral_frame": 0,                 # optional: frame holding the actor's neutral face
      "jaw": "CHIN",                      # optional: marker giving jaw opening (default: the one tied to FP 2.1)
@@ -44,6 +45,7 @@ class Layout:
     neutral_frame: int | None = None
     jaw: str | None = None
     where: str = "layout"
+    face: str | None = None
 
     @property
     def names(self) -> list[str]:
@@ -57,6 +59,8 @@ class Layout:
             d["neutral_frame"] = self.neutral_frame
         if self.jaw:
             d["jaw"] = self.jaw
+        if self.face:
+            d["face"] = self.face
         return d
 
 
@@ -89,13 +93,14 @@ def load_layout(src: str | Path | dict | Layout) -> Layout:
         "markers",
         "neutral_frame",
         "jaw",
+        "face",
         "comment",
         "description",
     }
     if unknown:
         raise InputError(
             f"unknown field(s) {', '.join(sorted(unknown))}; expected units, stable, markers, "
-            "neutral_frame, jaw",
+            "neutral_frame, jaw, face",
             where=where,
         )
     markers = data.get("markers")
@@ -162,7 +167,10 @@ def load_layout(src: str | Path | dict | Layout) -> Layout:
         raise InputError(f"jaw marker {jaw!r} is not in 'markers'", where=f"{where}: jaw")
     if jaw is None:
         jaw = next((n for n, s in clean.items() if s.get("fp") == "2.1"), None)
-    return Layout(clean, list(dict.fromkeys(stable)), units, nf, jaw, where)
+    made_for = data.get("face")
+    if made_for is not None and not isinstance(made_for, str):
+        raise InputError("'face' must be a string: the face the vertex ids are for", where=f"{where}: face")
+    return Layout(clean, list(dict.fromkeys(stable)), units, nf, jaw, where, made_for)
 
 
 @dataclass

@@ -22,7 +22,19 @@ from .stabilise import pose_in_frame, to_matrix
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MarkerRig", "match_names", "similarity"]
+__all__ = ["FIT_SPACING_FRACTION", "MarkerRig", "check_vertex_fit", "match_names", "similarity"]
+
+#: A layout is refused when its vertex-tied markers, after the best similarity (rotation, scale,
+#: shift) onto their face vertices, sit a median distance from the actor's neutral markers above this
+#: fraction of the median distance between neighbouring markers on the face. A vertex id says "this
+#: marker sits on this vertex of this mesh": for the face the layout was made for, what is left is
+#: capture noise (0.1 mm on the generated take, 0.5 mm noise before averaging) and small differences
+#: of shape; once it reaches a good part of the marker spacing, markers are no longer arranged on the
+#: face as they were captured, and the retarget carries one region's motion onto another (the ICT
+#: layout on the built-in head: 53 mm median, a torn chin and neck). A quarter of the spacing is
+#: ~3 mm with 60 markers: several times the noise, far below a mismatch. Markers tied to feature
+#: points or placed automatically are not judged: they retarget across faces by design.
+FIT_SPACING_FRACTION = 0.25
 
 
 def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -133,6 +145,7 @@ class MarkerRig:
         self.fap_projection = (
             FapProjection(face, self.placement, self.fapu, self.jaw) if self.fapu else None
         )
+        self.fit = check_vertex_fit(self.layout, face, placement, src)
         mm_face = face.mm_per_unit
         fit = np.linalg.norm(self.s * src @ self.q.T + self.c - dst, axis=1) * mm_face
         log.info(
@@ -182,6 +195,42 @@ class MarkerRig:
         return FaceState(
             t=float(time), faps=faps, controls=self._with_anchors(d), head=head.astype(np.float64)
         )
+
+
+def check_vertex_fit(layout: Layout, face: Face, placement, actor_mm: np.ndarray) -> dict:
+    """Refuse (InputError) a layout whose vertex-tied markers do not fit ``face`` (see
+    ``FIT_SPACING_FRACTION``); returns the fit: ``markers``, ``median_mm``, ``max_mm``, ``limit_mm``.
+
+    ``placement``: the layout's ``Placement`` on the face; ``actor_mm``: ``(K, 3)`` the actor's
+    neutral positions of its control markers (mm, placement order)."""
+    from scipy.spatial import cKDTree
+
+    mm = face.mm_per_unit
+    on_face = face.vertices[placement.vertices].astype(np.float64) * mm  # (K, 3) mm
+    tied = np.array([h == "vertex" for h in placement.how], dtype=bool)
+    fit = {"markers": int(tied.sum()), "median_mm": 0.0, "max_mm": 0.0, "limit_mm": float("inf")}
+    if tied.sum() < 4 or len(on_face) < 2:
+        return fit
+    src = np.asarray(actor_mm, dtype=np.float64)[tied]
+    q, s, c = similarity(src, on_face[tied])
+    res = np.linalg.norm(s * src @ q.T + c - on_face[tied], axis=1)
+    spacing = float(np.median(cKDTree(on_face).query(on_face, k=2)[0][:, 1]))
+    fit.update(median_mm=float(np.median(res)), max_mm=float(res.max()),
+               limit_mm=FIT_SPACING_FRACTION * spacing)
+    if fit["median_mm"] > fit["limit_mm"]:
+        instead = (f"pass --face {layout.face} (the face this layout was made for)" if layout.face else
+                   "pass --face <the mesh this layout was made for>")
+        raise InputError(
+            f"this layout does not fit the face {face.name!r}: after the best rigid fit its {fit['markers']} "
+            f"vertex-tied markers sit {fit['median_mm']:.1f} mm (median; max {fit['max_mm']:.1f} mm) from "
+            f"the actor's, where a layout made for this face leaves about the capture noise (refused above "
+            f"{fit['limit_mm']:.1f} mm, a quarter of the {spacing:.1f} mm between neighbouring markers): "
+            f"its vertex ids are for another mesh. {instead[0].upper()}{instead[1:]}, or a layout made for "
+            f"this face (markers tied to feature points, {{\"fp\": \"2.1\"}}, or placed automatically, "
+            "{}, retarget across faces)",
+            where=layout.where,
+        )
+    return fit
 
 
 def anchor_vertices(

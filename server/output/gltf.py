@@ -6,28 +6,32 @@ every part (``POSITION``, ``NORMAL``, ``uint32`` indices), ``M`` morph targets (
 at the frame rate (keyframe i at ``i / fps`` seconds).
 
 Compression: a truncated SVD of the per-frame displacements ``X (T, 3V)`` from the neutral mesh,
-computed in two streaming passes over frame chunks, so time grows linearly with ``T`` and memory is
-bounded (no ``T x T`` or ``T x 3V`` float64 array; frames may come as a re-iterable chunk source):
+computed in streaming passes over frame chunks, so time grows linearly with ``T`` and memory is
+bounded (no ``T x T`` or ``T x 3V`` array; frames may come as a re-iterable chunk source). Every
+criterion is the largest *vertex* error (mm), never a whole-frame norm: a frame norm grows with the
+vertex count, and at 500k vertices float32 rounding alone exceeds a 0.01 mm frame-norm budget (the
+old criterion then piled up rounding-noise directions to the cap and wrote a shredded head).
 
-1. *Basis*: an orthonormal ``Q (3V, k)`` grows chunk by chunk; a chunk's residual ``R = X_c - X_c Q Q^T``
-   that leaves some frame further than ``tau = basis_slack * tolerance`` (per-frame norm) from
-   ``span(Q)`` adds the fewest leading singular vectors of ``R`` that bring every frame of the chunk
-   within ``tau``. The coefficients ``B = X_c Q`` and the left-over residual energy ``rho_t`` of
-   every frame are kept (``(T, k)``, small).
-2. The principal directions of ``span(Q)`` (eigenvectors of ``B^T B``) are ordered; ``M`` is the smallest
-   count whose per-frame bound ``sqrt(sum_{i>=M} (BV)[t,i]^2) + sqrt(rho_t)`` (>= every vertex's error)
-   is within ``tolerance`` in every frame, capped at ``max_targets``.
-3. *Verification*: a second pass projects every frame on the ``M`` targets (the stored float32
-   weights and targets) and measures the largest vertex error exactly (float64) with ``M`` and with
-   up to 9 smaller counts (the first ``m`` targets: the per-frame bound is loose per vertex); the
-   fewest that meet ``tolerance`` are kept, and the normal deltas fitted. Should even ``M`` miss it,
-   ``M`` grows (and the basis, with a smaller ``tau``) until it holds or ``max_targets`` is reached;
-   a capped result says so (``capped`` in the record and a log warning).
+1. *Basis*: an orthonormal float32 ``Q (k, 3V)`` grows chunk by chunk; while a chunk's residual
+   ``R = X_c - X_c Q^T Q`` (projected twice) leaves a vertex further than ``tau = basis_slack *
+   tolerance`` from its place, the residual's next leading singular direction (orthogonalised twice,
+   skipped when only rounding is left of it) is added. Each frame's coefficients are kept
+   (``(T, k)``, small), and ``Q`` is rotated to its principal directions (eigenvectors of ``B^T B``).
+2. *Verification*: a second pass fits every frame's weights on the (power-of-two scaled, hence exactly
+   representable) float32 targets by least squares in float64, stores them as float32, and measures
+   the largest vertex error exactly (float64, in vertex blocks) as a reader will see it: with all
+   ``k`` targets and with up to 9 fewer counts; the fewest that meet ``tolerance`` are kept, and the
+   normal deltas fitted. Should none meet it, the basis is gathered finer (``tau / 4``) and verified
+   again, up to ``rounds`` times, within ``max_targets`` directions.
+3. *Fallback*: a clip of at most ``max_targets`` frames gets exact per-frame targets (weight 1 at its
+   keyframe; float32 rounding is the only error). Otherwise ``encode_glb`` refuses (``OutputError``:
+   what failed, the size, what to do) and nothing is written; so is a file over glTF's 4 GiB.
 
-The targets are scaled so that every weight lies in [-1, 1]. The measured maximum vertex error (mm)
-is the recorded bound (``max_error_mm`` = ``error_bound_mm``), with the largest per-frame residual
-norm, frame count, fps, target count and passes in ``extras.facecast``. Normal deltas per target are
-the least-squares fit of the per-frame normal changes to the same weights.
+Targets are scaled so that every weight lies in [-1, 1]. The measured maximum vertex error (mm) is
+recorded (``max_error_mm`` = ``error_bound_mm``) with the tolerance (``tolerance_mm``), the largest
+per-frame residual norm, frame count, fps, target count, method and passes in ``extras.facecast``
+(tolerance and error also in ``asset.extras``). Normal deltas per target are the least-squares fit of
+the per-frame normal changes to the same weights.
 
 Axes: MPEG-4 and glTF agree (+y up, +z = the face's front, +x = the face's left).
 """
@@ -44,7 +48,8 @@ from pathlib import Path
 import numpy as np
 
 from ..backends.numpy_backend import incidence_matrix
-from .atomic import write_bytes_atomic
+from ..errors import FacecastError
+from .atomic import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +80,7 @@ class MorphBasis:
     capped: bool
     passes: int
     basis_size: int
+    method: str = "svd"
 
 
 def frame_chunks(frames: FrameSource, chunk: int) -> Iterator[np.ndarray]:
@@ -110,110 +116,134 @@ def _interleaved(a: np.ndarray) -> np.ndarray:
 def _displacements(chunk: np.ndarray, rest: np.ndarray) -> np.ndarray:
     """``(c, 3V) float32`` planar displacements of a chunk from planar ``rest``; ValueError on a wrong
     shape or non-finite values."""
-    V = len(rest) // 3
+    _check(chunk, len(rest) // 3)
+    return _planar(chunk, rest)
+
+
+def _check(chunk: np.ndarray, V: int) -> None:
+    """ValueError unless ``chunk`` is ``(c, V, 3)`` and finite."""
     if chunk.ndim != 3 or chunk.shape[1:] != (V, 3):
         raise ValueError(f"frames must be (T>=1, {V}, 3), not {chunk.shape}")
     if not np.all(np.isfinite(chunk)):
         raise ValueError("frames contain NaN or infinite values")
-    return _planar(chunk, rest)
+
+
+#: Largest float64 temporary of the error measurement, in values (32 MB): vertex blocks are sized to it.
+_BLOCK_VALUES = 1 << 22
+
+
+def _vertex_max(R: np.ndarray) -> np.ndarray:
+    """Largest vertex norm in each planar row of ``R (c, 3V)`` -> ``(c,) float64``."""
+    V = R.shape[1] // 3
+    d2 = np.square(R[:, :V], dtype=np.float64)
+    d2 += np.square(R[:, V:2 * V], dtype=np.float64)
+    d2 += np.square(R[:, 2 * V:], dtype=np.float64)
+    return np.sqrt(d2.max(axis=1, initial=0.0))
+
+
+def _vertex_blocks(V: int, rows: int) -> Iterator[slice]:
+    """Vertex ranges whose ``(rows, 3, n) float64`` blocks hold at most ``_BLOCK_VALUES`` values."""
+    n = max(1024, _BLOCK_VALUES // max(3 * rows, 1))
+    for a in range(0, V, n):
+        yield slice(a, min(a + n, V))
 
 
 class _Basis:
-    """The growing orthonormal basis of pass 1: rows ``Qt[:k]`` of ``Qt (kmax, 3V) float32``."""
+    """Pass 1's orthonormal directions: float32 planar rows ``(j, 3V)`` in blocks (one per chunk
+    that added any), ``k`` rows in all, at most ``kmax``."""
 
-    def __init__(self, n_cols: int, kmax: int, keep: int) -> None:
-        self.Qt = np.zeros((min(kmax, 32), n_cols), dtype=np.float32)  # grows by doubling up to kmax
-        self.k, self.kmax, self.keep = 0, kmax, keep
+    def __init__(self, n_cols: int, kmax: int) -> None:
+        self.blocks: list[np.ndarray] = []
+        self.k, self.kmax, self.n_cols = 0, kmax, n_cols
+        self.full = False  # a chunk wanted more than kmax directions
 
-    def _room(self, j: int) -> None:
-        if self.k + j > len(self.Qt):
-            grown = np.zeros((min(self.kmax, max(2 * len(self.Qt), self.k + j)), self.Qt.shape[1]), np.float32)
-            grown[:self.k] = self.Qt[:self.k]
-            self.Qt = grown
+    def project(self, X: np.ndarray, extra: list[np.ndarray] = ()) -> tuple[np.ndarray, np.ndarray]:
+        """Coefficients ``(c, k) float32`` of ``X (c, 3V)`` on the basis and its residual ``(c, 3V)``,
+        projected twice (float32 products over millions of values leave ~1e-5 of ``X`` in the span)."""
+        R = np.array(X, dtype=np.float32, copy=True)
+        C = [np.zeros((len(X), len(Q)), np.float32) for Q in self.blocks]
+        for _ in range(2):
+            for c, Q in zip(C, self.blocks):
+                cb = R @ Q.T
+                R -= cb @ Q
+                c += cb
+        return (np.concatenate(C, axis=1) if C else np.zeros((len(X), 0), np.float32)), R
 
-    def sweep(self, frames: FrameSource, rest: np.ndarray, tau: float, chunk: int
+    def _orthonormal(self, v: np.ndarray, new: list[np.ndarray]) -> np.ndarray | None:
+        """``v (3V,)`` orthogonalised (twice) against the basis and ``new`` rows, unit length; None
+        when little of it is left (it lies in the span up to rounding)."""
+        n0 = float(np.sqrt(np.dot(v, v)))
+        blocks = [*self.blocks, np.stack(new)] if new else self.blocks
+        for _ in range(2):
+            for Q in blocks:
+                v -= (Q @ v) @ Q
+        n = float(np.sqrt(np.dot(v, v)))
+        if not n > 1e-3 * n0:
+            return None
+        return (v / n).astype(np.float32)
+
+    def sweep(self, frames: FrameSource, r: np.ndarray, tau: float, chunk: int
               ) -> tuple[np.ndarray, np.ndarray]:
-        """One pass: grow the basis so every frame is within ``tau`` of its span (while room lasts).
+        """One pass: for each chunk whose residual leaves a vertex further than ``tau`` from where it
+        belongs, add the chunk residual's leading singular directions, one at a time, until no vertex
+        is (or ``kmax`` is reached, or rounding is all that is left).
 
-        Returns ``B (T, k) float64`` coefficients (zero on directions added after a frame was seen)
-        and ``rho (T,) float64``: each frame's squared distance to the span as it was after its chunk.
+        Returns ``B (T, k) float64``: each frame's coefficients as of its chunk (zero on directions
+        added later), and ``rho (T,) float64``: its squared residual norm then.
         """
-        tau2 = tau * tau
         rows_b: list[np.ndarray] = []
         rows_rho: list[np.ndarray] = []
         for fc in frame_chunks(frames, chunk):
-            X = _displacements(fc, rest)
-            C, R, e = self._project(X)
-            for _step in range(6):  # float32 deflation: each step resolves ~1e-6 of the residual energy
-                if e.max(initial=0.0) <= tau2:
-                    break
-                if self.k >= self.kmax:  # full: keep the leading directions, then redo this chunk
-                    self._compress(rows_b, rows_rho, C)
-                    C, R, e = self._project(X)
-                    continue
+            X = _displacements(fc, r)
+            C, R = self.project(X)
+            err = _vertex_max(R)
+            new: list[np.ndarray] = []
+            coef: list[np.ndarray] = []
+            if err.max(initial=0.0) > tau and not self.full:
                 lam, U = np.linalg.eigh((R @ R.T).astype(np.float64))
-                lam, U = np.clip(lam[::-1], 0.0, None), np.ascontiguousarray(U[:, ::-1])
-                tail = np.cumsum(((U**2) * lam)[:, ::-1], axis=1)[:, ::-1]  # tail[t, j]: left after j
-                ok = np.flatnonzero(np.append(tail.max(axis=0), 0.0) <= tau2)
-                j = int(ok[0]) if len(ok) else len(lam)
-                j = max(1, min(j, int((lam > lam[0] * 1e-5).sum()), self.kmax - self.k))  # float32 floor
-                Vn = (np.ascontiguousarray(U[:, :j].T, dtype=np.float32) @ R) / np.sqrt(lam[:j]).astype(np.float32)[:, None]
-                Qk = self.Qt[:self.k]
-                for _ in range(2):  # orthonormalise against the basis and among themselves (float32 drift)
-                    Vn -= (Vn @ Qk.T) @ Qk
-                    L = np.linalg.cholesky((Vn @ Vn.T).astype(np.float64) + 1e-30 * np.eye(j))
-                    Vn = np.linalg.inv(L).astype(np.float32) @ Vn
-                self._room(j)
-                self.Qt[self.k:self.k + j] = Vn
-                self.k += j
-                Cn = R @ Vn.T
-                R -= Cn @ Vn
-                C = np.concatenate([C, Cn], axis=1)
-                e = np.einsum("ij,ij->i", R, R).astype(np.float64)
+                for i in np.argsort(lam)[::-1]:
+                    if err.max(initial=0.0) <= tau or not lam[i] > 0:
+                        break
+                    if self.k + len(new) >= self.kmax:
+                        self.full = True
+                        break
+                    v = self._orthonormal(U[:, i].astype(np.float32) @ R, new)
+                    if v is None:
+                        continue
+                    cn = R @ v
+                    R -= np.outer(cn, v)
+                    new.append(v)
+                    coef.append(cn)
+                    err = _vertex_max(R)
+            if new:
+                self.blocks.append(np.stack(new))
+                self.k += len(new)
+                C = np.concatenate([C, np.stack(coef, axis=1)], axis=1)
             rows_b.append(C.astype(np.float64))
-            rows_rho.append(e)
+            rows_rho.append(np.einsum("ij,ij->i", R, R, dtype=np.float64))
         B = np.zeros((sum(len(b) for b in rows_b), self.k))
         s = 0
         for b in rows_b:
-            B[s:s + len(b), :b.shape[1]] = b[:, :self.k]
+            B[s:s + len(b), :b.shape[1]] = b
             s += len(b)
         return B, np.concatenate(rows_rho) if rows_rho else np.zeros(0)
 
-    def _project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Coefficients ``(c, k)``, residual ``(c, 3V)`` and residual energies ``(c,) float64`` of ``X``."""
-        Qk = self.Qt[:self.k]
-        C = X @ Qk.T
-        R = X - C @ Qk
-        return C, R, np.einsum("ij,ij->i", R, R).astype(np.float64)
-
-    def _compress(self, rows_b: list[np.ndarray], rows_rho: list[np.ndarray], current: np.ndarray) -> None:
-        """Full: keep the ``keep`` leading principal directions of the frames seen so far (and of the
-        current chunk's coefficients); the energy dropped is added (as a norm, triangle inequality)
-        to each earlier frame's residual bound."""
-        k = self.k
-        B = np.zeros((sum(len(b) for b in rows_b) + len(current), k))
+    def rotate(self, V: np.ndarray) -> np.ndarray:
+        """Replace the basis by ``V^T Q`` (``V (k, k)`` orthogonal: the same span, principal
+        directions first); returns it ``(k, 3V) float32``."""
+        out = np.zeros((self.k, self.n_cols), dtype=np.float32)
         s = 0
-        for b in [*rows_b, current]:
-            B[s:s + len(b), :b.shape[1]] = b
-            s += len(b)
-        V = np.linalg.eigh(B.T @ B)[1][:, ::-1]
-        P = B @ V
-        keep = min(self.keep, k)
-        dropped = (P[:, keep:] ** 2).sum(axis=1)
-        self.Qt[:keep] = V[:, :keep].T.astype(np.float32) @ self.Qt[:k]
-        self.Qt[keep:] = 0.0
-        self.k = keep
-        s = 0
-        for i, b in enumerate(rows_b):
-            rows_b[i] = P[s:s + len(b), :keep]
-            rows_rho[i] = (np.sqrt(rows_rho[i]) + np.sqrt(dropped[s:s + len(b)])) ** 2
-            s += len(b)
+        for Q in self.blocks:
+            out += V[s:s + len(Q)].T.astype(np.float32) @ Q
+            s += len(Q)
+        self.blocks = [out]
+        return out
 
 
 def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_targets: int = 128, *,
                 normals: Callable[[np.ndarray], np.ndarray] | None = None, basis_slack: float = 0.5,
-                chunk: int | None = None) -> MorphBasis:
-    """Streaming truncated SVD of the per-frame displacements ``frames - rest`` (see module docstring).
+                chunk: int | None = None, rounds: int = 5) -> MorphBasis:
+    """Morph targets within ``tolerance`` of every vertex of every frame (see module docstring).
 
     Args:
         frames: ``(T, V, 3)`` vertices per frame, or a callable returning a fresh iterable of
@@ -221,16 +251,21 @@ def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_tar
         tolerance: wanted bound on any vertex's error in any frame (mesh units).
         max_targets: most targets kept.
         normals: ``(c, V, 3) vertices -> (c, V, 3)`` normal deltas to fit per target (None: zeros).
-        basis_slack: pass-1 per-frame tolerance as a fraction of ``tolerance``.
+        basis_slack: pass-1 per-vertex tolerance as a fraction of ``tolerance``.
         chunk: most frames per chunk (default: about 4M values per chunk, 16-256 frames).
+        rounds: most basis passes (each followed by a verification pass).
+
+    Returns the smallest verified basis; when none meets ``tolerance`` (``capped``), the best
+    measured one (or exact per-frame targets when the clip has at most ``max_targets`` frames).
     """
     r = np.ascontiguousarray(np.asarray(rest, dtype=np.float32).T).reshape(-1)  # planar (3V,)
     n_cols = r.size
     chunk = chunk or _chunk_rows(n_cols)
-    basis = _Basis(n_cols, kmax=max_targets + max(16, max_targets // 2), keep=max_targets)
+    basis = _Basis(n_cols, kmax=max_targets)
     tau = basis_slack * tolerance
-    passes, M = 0, 0
-    for _round in range(6):
+    passes = 0
+    best: MorphBasis | None = None
+    for _round in range(rounds):
         B, rho = basis.sweep(frames, r, tau, chunk)
         passes += 1
         T, k = B.shape
@@ -238,45 +273,44 @@ def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_tar
             raise ValueError("frames must hold at least one frame")
         if k:
             V = np.linalg.eigh(B.T @ B)[1][:, ::-1]
-            P = B @ V  # coefficients on the principal directions of span(Q)
-            tail = np.sqrt(np.append(np.cumsum((P**2)[:, ::-1], axis=1)[:, ::-1], np.zeros((T, 1)), axis=1))
-            bound = (tail + np.sqrt(rho)[:, None]).max(axis=0)  # bound[m], m = 0..k
-            ok = np.flatnonzero(bound[:min(k, max_targets) + 1] <= tolerance)
-            M = max(M, int(ok[0]) if len(ok) else min(k, max_targets), 1)
-            M = min(M, k)
-        else:  # nothing moves: one zero target
-            V, P, M = np.ones((1, 1)), np.zeros((T, 1)), 1
-        while True:
-            if k:  # (M, 3V) orthonormal rows: the M leading principal directions
-                Qv = V[:, :M].T.astype(np.float32) @ basis.Qt[:k]
-            else:
-                Qv = np.zeros((1, n_cols), dtype=np.float32)
-            scale = np.abs(P[:, :M]).max(axis=0) + np.sqrt(rho.max())  # >= every exact |X Qv^T|
-            scale[scale == 0] = 1.0
-            targets = Qv * scale.astype(np.float32)[:, None]  # (M, 3V) float32
-            del Qv
-            weights, errors, wtw, wtn = _verify(frames, r, scale, targets, T, chunk, normals)
-            passes += 1
-            err, frame_err = errors[M]
-            if err <= tolerance or M >= max_targets or M >= k:
-                break
-            M = min(k, max_targets, M + max(1, math.ceil(M / 8)))
-        if err <= tolerance or M >= max_targets:
+            Qv = basis.rotate(V)
+            bound = np.abs(B @ V).max(axis=0) + np.sqrt(rho.max())  # >= every |weight| on Qv
+        else:  # nothing moves further than tau: one zero target
+            Qv, bound = np.zeros((1, n_cols), dtype=np.float32), np.ones(1)
+        scale = np.exp2(np.ceil(np.log2(np.maximum(bound, 1e-30))))  # powers of 2: exact in float32
+        targets = Qv * scale.astype(np.float32)[:, None]
+        weights, errors, wtw, wtn = _verify(frames, r, targets, T, chunk, normals)
+        passes += 1
+        ok = [m for m, (e, _) in errors.items() if e <= tolerance]
+        M = min(ok) if ok else len(targets)
+        if best is None or errors[M][0] < best.max_error:
+            best = _finish(targets, weights, M, errors[M], wtw, wtn, not ok, passes, k, "svd")
+        if ok or basis.full:
             break
-        tau *= 0.5  # every gathered direction is used and still too far: gather finer
-    capped = bool(err > tolerance)
-    if capped:
+        tau *= 0.25  # every gathered direction is used and still too far: gather finer
+    best.passes = passes
+    if best.capped and best.weights.shape[0] <= max_targets:
+        exact = _exact(frames, r, T, chunk, normals)
+        exact.passes += passes
+        if exact.max_error < best.max_error:
+            best = exact
+            best.capped = bool(best.max_error > tolerance)
+    if best.capped:
         log.warning("glTF morph basis capped at %d targets: max vertex error %.4g > tolerance %.4g "
-                    "(mesh units)", M, err, tolerance)
-    else:  # the per-frame bound is loose per vertex: keep the fewest measured counts that suffice
-        M = min(m for m, (e, _) in errors.items() if e <= tolerance)
-        err, frame_err = errors[M]
+                    "(mesh units)", best.targets.shape[0], best.max_error, tolerance)
+    return best
+
+
+def _finish(targets: np.ndarray, weights: np.ndarray, M: int, errors: tuple[float, float],
+            wtw: np.ndarray, wtn: np.ndarray | None, capped: bool, passes: int, k: int, method: str
+            ) -> MorphBasis:
+    """The ``MorphBasis`` of the first ``M`` targets (normal deltas: least squares on the weights)."""
     if wtn is not None:
         ntargets = (np.linalg.pinv(wtw[:M, :M], hermitian=True) @ wtn[:M]).astype(np.float32)
     else:
-        ntargets = np.zeros((M, n_cols), dtype=np.float32)
+        ntargets = np.zeros((M, targets.shape[1]), dtype=np.float32)
     return MorphBasis(_interleaved(targets[:M]), np.ascontiguousarray(weights[:, :M]), _interleaved(ntargets),
-                      err, frame_err, capped, passes, k)
+                      float(errors[0]), float(errors[1]), capped, passes, k, method)
 
 
 def _candidates(M: int) -> list[int]:
@@ -285,43 +319,64 @@ def _candidates(M: int) -> list[int]:
     return sorted({max(1, round(M * f)) for f in (0.2, 0.35, 0.5, 0.6, 0.7, 0.77, 0.84, 0.9, 0.95)} | {M})
 
 
-def _verify(frames: FrameSource, r: np.ndarray, scale: np.ndarray, targets: np.ndarray,
-            T: int, chunk: int, normals: Callable[[np.ndarray], np.ndarray] | None
+def _planar64(fc: np.ndarray, r3: np.ndarray, vb: slice) -> np.ndarray:
+    """``(c, 3, n) float64`` displacements of vertices ``vb`` of frames ``fc (c, V, 3)`` from planar
+    ``r3 (3, V)``: exact for float32 data."""
+    return fc[:, vb].transpose(0, 2, 1).astype(np.float64) - r3[:, vb]
+
+
+def _verify(frames: FrameSource, r: np.ndarray, targets: np.ndarray, T: int, chunk: int,
+            normals: Callable[[np.ndarray], np.ndarray] | None
             ) -> tuple[np.ndarray, dict[int, tuple[float, float]], np.ndarray, np.ndarray | None]:
-    """Pass 2: the weights ``(T, M) float32`` of every frame; for each candidate count ``m`` (the first
-    ``m`` targets) the measured max vertex error and max per-frame residual norm; and the normal-fit
-    sums ``W^T W (M, M)``, ``W^T dN (M, 3V)`` (None without ``normals``)."""
-    M = targets.shape[0]
-    t64 = targets.astype(np.float64)
-    inv = (1.0 / scale**2).astype(np.float32)  # targets = directions * scale
+    """Pass 2: each frame's least-squares weights on ``targets (M, 3V) float32`` (planar) in float64,
+    stored as float32 ``(T, M)``; for each candidate count ``m`` (the first ``m`` targets and
+    weights, as a reader sees them) the exact max vertex error and max per-frame residual norm
+    (float64, in vertex blocks); and the normal-fit sums ``W^T W (M, M)``, ``W^T dN (M, 3V)``
+    (None without ``normals``)."""
+    M, n_cols = targets.shape
+    V = n_cols // 3
+    t3 = targets.reshape(M, 3, V)
+    r3 = r.reshape(3, V).astype(np.float64)
+    blocks = list(_vertex_blocks(V, max(M, chunk)))
+    G = np.zeros((M, M))
+    for vb in blocks:
+        tb = t3[:, :, vb].reshape(M, -1).astype(np.float64)
+        G += tb @ tb.T
+    Ginv = np.linalg.pinv(G, hermitian=True)
     weights = np.empty((T, M), dtype=np.float32)
     wtw = np.zeros((M, M))
-    wtn = np.zeros((M, r.size), dtype=np.float32) if normals is not None else None
+    wtn = np.zeros((M, n_cols), dtype=np.float32) if normals is not None else None
     cands = _candidates(M)[::-1]  # M first, then fewer
     errors = {m: (0.0, 0.0) for m in cands}
     s = 0
     for fc in frame_chunks(frames, chunk):
-        X = _displacements(fc, r)
-        w = (X @ targets.T) * inv
-        n = len(w)
+        _check(fc, V)
+        n = len(fc)
         if s + n > T:
             raise ValueError("the frame source yielded more frames on its second pass")
+        num = np.zeros((n, M))
+        for vb in blocks:
+            num += _planar64(fc, r3, vb).reshape(n, -1) @ t3[:, :, vb].reshape(M, -1).astype(np.float64).T
+        w = (num @ Ginv).astype(np.float32)
         weights[s:s + n] = w
         w64 = w.astype(np.float64)
-        diff = _planar(fc, r, np.float64)  # float64 throughout: exact for float32 data
-        diff -= w64 @ t64
-        V = r.size // 3
-        prev = M
-        for m in cands:  # residual with the first m targets = residual with M + the dropped ones
-            if m < prev:
-                diff += w64[:, m:prev] @ t64[m:prev]
-                prev = m
-            d2 = np.square(diff[:, :V])
-            d2 += np.square(diff[:, V:2 * V])
-            d2 += np.square(diff[:, 2 * V:])
+        frame2 = {m: np.zeros(n) for m in cands}
+        for vb in blocks:
+            tb = t3[:, :, vb].astype(np.float64)  # (M, 3, nb)
+            diff = _planar64(fc, r3, vb)
+            diff -= (w64 @ tb.reshape(M, -1)).reshape(diff.shape)
+            prev = M
+            for m in cands:  # residual with the first m targets = residual with M + the dropped ones
+                if m < prev:
+                    diff += (w64[:, m:prev] @ tb[m:prev].reshape(prev - m, -1)).reshape(diff.shape)
+                    prev = m
+                d2 = np.einsum("cxn,cxn->cn", diff, diff)
+                e, f = errors[m]
+                errors[m] = (max(e, float(np.sqrt(d2.max(initial=0.0)))), f)
+                frame2[m] += d2.sum(axis=1)
+        for m in cands:
             e, f = errors[m]
-            errors[m] = (max(e, float(np.sqrt(d2.max(initial=0.0)))),
-                         max(f, float(np.sqrt(d2.sum(axis=1).max(initial=0.0)))))
+            errors[m] = (e, max(f, float(np.sqrt(frame2[m].max(initial=0.0)))))
         if wtn is not None:
             wtn += w.T @ _planar(normals(fc))
         wtw += w64.T @ w64
@@ -329,6 +384,37 @@ def _verify(frames: FrameSource, r: np.ndarray, scale: np.ndarray, targets: np.n
     if s != T:
         raise ValueError(f"the frame source yielded {s} frames on its second pass, not {T}")
     return weights, errors, wtw, wtn
+
+
+def _exact(frames: FrameSource, r: np.ndarray, T: int, chunk: int,
+           normals: Callable[[np.ndarray], np.ndarray] | None) -> MorphBasis:
+    """One target per frame (its float32 displacement, weight 1 at its keyframe): error is float32
+    rounding alone, measured exactly; one pass."""
+    n_cols = r.size
+    V = n_cols // 3
+    r3 = r.reshape(3, V).astype(np.float64)
+    targets = np.empty((T, n_cols), dtype=np.float32)
+    ntargets = np.zeros((T, n_cols), dtype=np.float32)
+    err, frame_err, s = 0.0, 0.0, 0
+    for fc in frame_chunks(frames, chunk):
+        n = len(fc)
+        if s + n > T:
+            raise ValueError("the frame source yielded more frames on another pass")
+        targets[s:s + n] = _displacements(fc, r)
+        f2 = np.zeros(n)
+        for vb in _vertex_blocks(V, n):
+            diff = _planar64(fc, r3, vb) - targets[s:s + n].reshape(n, 3, V)[:, :, vb]
+            d2 = np.einsum("cxn,cxn->cn", diff, diff)
+            err = max(err, float(np.sqrt(d2.max(initial=0.0))))
+            f2 += d2.sum(axis=1)
+        frame_err = max(frame_err, float(np.sqrt(f2.max(initial=0.0))))
+        if normals is not None:
+            ntargets[s:s + n] = _planar(normals(fc))
+        s += n
+    if s != T:
+        raise ValueError(f"the frame source yielded {s} frames on another pass, not {T}")
+    return MorphBasis(_interleaved(targets), np.eye(T, dtype=np.float32), _interleaved(ntargets), err,
+                      frame_err, False, 1, T, "exact")
 
 
 def unit_normals(frames: np.ndarray, triangles: np.ndarray, incidence) -> np.ndarray:
@@ -355,52 +441,62 @@ def unit_normals(frames: np.ndarray, triangles: np.ndarray, incidence) -> np.nda
     return out
 
 
+class OutputError(FacecastError):
+    """The output cannot be written correctly (it would miss its tolerance or a format limit)."""
+
+    status = 422
+
+
 class _Bin:
-    """Accumulates the binary chunk, buffer views and accessors."""
+    """Accumulates the binary chunk (as array views, not copies), buffer views and accessors."""
 
     def __init__(self) -> None:
-        self.parts: list[bytes] = []
+        self.parts: list = []
         self.size = 0
         self.views: list[dict] = []
         self.accessors: list[dict] = []
 
     def add(self, array: np.ndarray, *, comp: int, type_: str, target: int | None = None,
             minmax: bool = False) -> int:
-        data = np.ascontiguousarray(array).tobytes()
+        data = memoryview(np.ascontiguousarray(array)).cast("B")
         view = {"buffer": 0, "byteOffset": self.size, "byteLength": len(data)}
         if target is not None:
             view["target"] = target
         self.views.append(view)
         pad = (-len(data)) % 4
-        self.parts.append(data + b"\0" * pad)
+        self.parts.append(data)
+        if pad:
+            self.parts.append(b"\0" * pad)
         self.size += len(data) + pad
         ncomp = {"SCALAR": 1, "VEC3": 3}[type_]
         acc = {"bufferView": len(self.views) - 1, "componentType": comp, "count": int(array.size // ncomp),
                "type": type_}
         if minmax:
-            a = np.asarray(array, dtype=np.float64).reshape(-1, ncomp)
+            a = np.asarray(array).reshape(-1, ncomp)
             acc["min"] = [float(x) for x in a.min(axis=0)] if len(a) else [0.0] * ncomp
             acc["max"] = [float(x) for x in a.max(axis=0)] if len(a) else [0.0] * ncomp
         self.accessors.append(acc)
         return len(self.accessors) - 1
 
 
-def encode_glb(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float, *,
-               mm_per_unit: float = 1.0, tolerance_mm: float = 0.01, max_targets: int = 128,
-               name: str = "facecast", extras: dict | None = None) -> tuple[bytes, dict]:
-    """The ``.glb`` bytes of an animation and its ``extras.facecast`` record (see module docstring).
+#: Most morph targets a .glb gets (viewers handle more, but files grow by 24 bytes per vertex each).
+MAX_TARGETS = 128
+#: The largest .glb: its header stores the total length in 32 bits.
+GLB_MAX_BYTES = 2**32 - 1
 
-    Args:
-        frames: ``(T, V, 3)`` vertices per frame (mesh units), or a callable returning a fresh
-            iterable of ``(c, V, 3)`` chunks of them (called once per pass over the frames);
-            ``rest``: ``(V, 3)`` neutral mesh.
-        triangles: ``(F, 3)``; ``fps``: frames per second; ``mm_per_unit``: mesh unit size.
-        tolerance_mm: error bound for the morph basis; ``max_targets``: cap on targets.
-    """
+
+def glb_parts(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float, *,
+              mm_per_unit: float = 1.0, tolerance_mm: float = 0.01, max_targets: int | None = None,
+              name: str = "facecast", extras: dict | None = None, where: str = "glTF"
+              ) -> tuple[list, dict]:
+    """The ``.glb`` as a list of byte buffers (header, JSON, binary pieces) and its
+    ``extras.facecast`` record; OutputError when no morph basis within ``max_targets`` meets
+    ``tolerance_mm`` (see module docstring) or the file would pass 4 GiB. Arguments: ``encode_glb``."""
     if not callable(frames):
         frames = np.asarray(frames, dtype=np.float32)
         if frames.ndim != 3 or len(frames) < 1:
             raise ValueError(f"frames must be (T>=1, {len(rest)}, 3), not {frames.shape}")
+    max_targets = MAX_TARGETS if max_targets is None else int(max_targets)
     rest = np.asarray(rest, dtype=np.float32)
     tri = np.ascontiguousarray(triangles, dtype=np.uint32)
     V = rest.shape[0]
@@ -411,6 +507,19 @@ def encode_glb(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps
                      normals=lambda v: unit_normals(v, tri, inc) - n0)
     targets, weights, ntargets = mb.targets, mb.weights, mb.normals
     T, M = weights.shape
+    err_mm = mb.max_error * mm_per_unit
+    if mb.capped:
+        raise OutputError(
+            f"refusing to write a wrong file: {T} frames of a {V:,}-vertex face need more than "
+            f"{max_targets} morph targets to stay within {tolerance_mm:g} mm (the best basis found is off "
+            f"by {err_mm:.3g} mm); write .npz instead (exact vertices), or use a smaller --face or a "
+            "shorter clip", where=where)
+    size = 12 + 8 * 2 + 4096 + 4 * (2 * V * 3 * (M + 1) + tri.size + T * (M + 1))
+    if size > GLB_MAX_BYTES:
+        raise OutputError(
+            f"the .glb would take {size / 2**30:.1f} GiB ({M} morph targets of a {V:,}-vertex face), over "
+            "the format's 4 GiB limit; write .npz instead, or use a smaller --face or a shorter clip",
+            where=where)
 
     b = _Bin()
     pos = b.add(rest, comp=_FLOAT, type_="VEC3", target=_ARRAY_BUFFER, minmax=True)
@@ -423,14 +532,15 @@ def encode_glb(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps
     w_acc = b.add(weights.reshape(-1), comp=_FLOAT, type_="SCALAR")
 
     record = {"frames": T, "fps": float(fps), "duration_s": float(T / fps), "targets": M,
-              "method": "svd-stream", "tolerance_mm": float(tolerance_mm),
-              "max_error_mm": mb.max_error * mm_per_unit, "error_bound_mm": mb.max_error * mm_per_unit,
+              "method": "svd-stream" if mb.method == "svd" else "exact", "tolerance_mm": float(tolerance_mm),
+              "max_error_mm": err_mm, "error_bound_mm": err_mm, "verified": True,
               "frame_error_mm": mb.frame_error * mm_per_unit, "capped": mb.capped,
               "max_targets": int(max_targets), "passes": mb.passes, "mm_per_unit": float(mm_per_unit),
               **(extras or {})}
     s = mm_per_unit / 1000.0
     doc = {
-        "asset": {"version": "2.0", "generator": "facecast"},
+        "asset": {"version": "2.0", "generator": "facecast",
+                  "extras": {"tolerance_mm": float(tolerance_mm), "max_error_mm": err_mm}},
         "scene": 0,
         "scenes": [{"nodes": [0]}],
         "nodes": [{"name": name, "mesh": 0, "scale": [s, s, s]}],
@@ -447,19 +557,46 @@ def encode_glb(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps
     }
     js = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     js += b" " * ((-len(js)) % 4)
-    binary = b"".join(b.parts)
-    total = 12 + 8 + len(js) + 8 + len(binary)
-    out = b"".join([struct.pack("<III", 0x46546C67, 2, total),
-                    struct.pack("<II", len(js), 0x4E4F534A), js,
-                    struct.pack("<II", len(binary), 0x004E4942), binary])
-    return out, record
+    total = 12 + 8 + len(js) + 8 + b.size
+    if total > GLB_MAX_BYTES:
+        raise OutputError(f"the .glb would take {total / 2**30:.1f} GiB, over the format's 4 GiB limit; "
+                          "write .npz instead, or use a smaller --face or a shorter clip", where=where)
+    head = [struct.pack("<III", 0x46546C67, 2, total), struct.pack("<II", len(js), 0x4E4F534A), js,
+            struct.pack("<II", b.size, 0x004E4942)]
+    return head + b.parts, record
+
+
+def encode_glb(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float, *,
+               mm_per_unit: float = 1.0, tolerance_mm: float = 0.01, max_targets: int | None = None,
+               name: str = "facecast", extras: dict | None = None) -> tuple[bytes, dict]:
+    """The ``.glb`` bytes of an animation and its ``extras.facecast`` record (see module docstring).
+
+    Args:
+        frames: ``(T, V, 3)`` vertices per frame (mesh units), or a callable returning a fresh
+            iterable of ``(c, V, 3)`` chunks of them (called once per pass over the frames);
+            ``rest``: ``(V, 3)`` neutral mesh.
+        triangles: ``(F, 3)``; ``fps``: frames per second; ``mm_per_unit``: mesh unit size.
+        tolerance_mm: largest vertex error allowed in any frame (mm); ``max_targets``: cap on targets
+            (default ``MAX_TARGETS``).
+
+    Raises OutputError (nothing written) when no basis of at most ``max_targets`` targets meets
+    ``tolerance_mm``, or the file would pass the 4 GiB limit of the format.
+    """
+    parts, record = glb_parts(frames, rest, triangles, fps, mm_per_unit=mm_per_unit, tolerance_mm=tolerance_mm,
+                              max_targets=max_targets, name=name, extras=extras)
+    return b"".join(parts), record
 
 
 def write_glb(path: str | Path, frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float,
               **options) -> dict:
-    """Write ``encode_glb(...)`` to ``path`` atomically; returns the ``extras.facecast`` record."""
-    data, record = encode_glb(frames, rest, triangles, fps, **options)
-    write_bytes_atomic(path, data)
-    log.info("wrote %s: %d frames, %d morph targets, max error %.4f mm, %.1f MB", path, record["frames"],
-             record["targets"], record["max_error_mm"], len(data) / 1e6)
+    """Write the ``.glb`` of ``encode_glb(...)`` to ``path`` atomically, piece by piece (no copy of the
+    whole file in memory); returns the ``extras.facecast`` record. OutputError: nothing is written."""
+    parts, record = glb_parts(frames, rest, triangles, fps, where=str(path), **options)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        for p in parts:
+            f.write(p)
+        size = f.tell()
+    log.info("wrote %s: %d frames, %d morph targets (%s), max error %.4f mm (tolerance %g mm), %.1f MB", path,
+             record["frames"], record["targets"], record["method"], record["max_error_mm"],
+             record["tolerance_mm"], size / 1e6)
     return record
