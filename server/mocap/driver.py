@@ -165,6 +165,18 @@ def process(
             where=where,
         )
     info["head_solved_frames"] = int(solved.sum())
+    # The head's rest is the neutral frame's pose exactly (the face frame): poses were solved against
+    # a reference averaged over the first frames (moving, in a take without a neutral hold) and then
+    # smoothed, so re-anchor them on the final pose of frame ``nf``. Left as they were, every output
+    # frame carried the reference's offset (0.77 degrees on a take moving from frame 0, 1.1 mm of
+    # skin error on frame 0, where the truth is the rest face).
+    r0, t0 = r[nf].copy(), t[nf].copy()
+    r, t = reanchor(r, t, nf)
+    local = local @ r0.T + t0
+    if params.filter in ("rts", "kalman"):
+        unsmoothed = unsmoothed @ r0.T + t0
+    if params.filter == "kalman":
+        neutral = neutral @ r0.T + t0
     if params.filter != "kalman":
         neutral = neutral_pose(local, nf, round(neutral_window * take.fps))
     if params.filter == "rts" and params.lowrank != "off":
@@ -174,6 +186,13 @@ def process(
     rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu)
     states = rig.solve_batch(local, r, t, take.fps, 0.0)
     return Processed(take, layout, raw, cleaned, local, r, t, nf, rig, states, info)
+
+
+def reanchor(r: np.ndarray, t: np.ndarray, nf: int) -> tuple[np.ndarray, np.ndarray]:
+    """Poses ``(T, 3, 3)``, ``(T, 3)`` (``frame = R x + t``) made relative to frame ``nf``'s: the
+    stabilised markers ``R'^T (frame - t')`` are then in frame ``nf``'s pose, and ``R'[nf] = I``."""
+    rr = np.einsum("tij,kj->tik", r, r[nf])
+    return rr, t - np.einsum("tij,j->ti", rr, t[nf])
 
 
 def neutral_pose(local: np.ndarray, nf: int, window: int, tolerance_mm: float = 1.0) -> np.ndarray:
