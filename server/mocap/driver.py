@@ -26,7 +26,7 @@ from .clean import CleanParams, clean, lowrank_denoise, motion_rank
 from .io import read_take
 from .layout import Layout, load_layout
 from .rig import MarkerRig, match_names
-from .stabilise import head_track, refine_poses, remove_head, smooth_poses
+from .stabilise import check_stable, head_track, pose_uncertainty, refine_poses, remove_head, smooth_poses
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +134,7 @@ def process(
         anchor = neutral_pose(
             filled, nf, window, tolerance_mm=2.5
         )  # raw noise: ~1 mm between frames
+        stable = _rigid_stable(filled, stable, layout, info, where)
         r, t, solved = head_track(filled, stable, anchor, stabilise_method, observed=observed)
         if solved.sum() > 3:
             r, t = smooth_poses(
@@ -156,6 +157,7 @@ def process(
     else:
         cleaned, info = clean(raw, take.fps, params)
         observed &= ~info.pop("rejected", np.zeros_like(observed))
+        stable = _rigid_stable(cleaned, stable, layout, info, where)
         r, t, solved = head_track(cleaned, stable, cleaned[nf], stabilise_method, observed=observed)
         local = remove_head(cleaned, r, t)
     if not solved.any():
@@ -179,6 +181,15 @@ def process(
         neutral = neutral @ r0.T + t0
     if params.filter != "kalman":
         neutral = neutral_pose(local, nf, round(neutral_window * take.fps))
+    xs = np.where(observed[..., None], raw, np.nan)[:, stable]
+    ref = np.nanmean(remove_head(xs, r, t), axis=0)
+    face_markers = np.setdiff1d(np.arange(len(layout.names)), stable)
+    info["pose_uncertainty_deg"], info["pose_uncertainty_mm"] = pose_uncertainty(
+        ref, xs, r, t, neutral[face_markers] if len(face_markers) else ref
+    )
+    log.info("%s: head pose standard error %.3f deg, %.3f mm at the face markers (stable: %s)", where,
+             info["pose_uncertainty_deg"], info["pose_uncertainty_mm"],
+             ", ".join(layout.names[i] for i in stable))
     if params.filter == "rts" and params.lowrank != "off":
         local, info["lowrank"] = denoise_displacements(
             local, neutral, stable, params.lowrank, unsmoothed=unsmoothed
@@ -186,6 +197,19 @@ def process(
     rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu)
     states = rig.solve_batch(local, r, t, take.fps, 0.0)
     return Processed(take, layout, raw, cleaned, local, r, t, nf, rig, states, info)
+
+
+def _rigid_stable(xyz: np.ndarray, stable: np.ndarray, layout: Layout, info: dict, where: str) -> np.ndarray:
+    """``stabilise.check_stable`` with its findings logged and kept in ``info``."""
+    keep, dropped, added = check_stable(xyz, stable, layout.names)
+    if dropped:
+        log.warning("%s: stable marker(s) %s move against the others (not rigid with the head): left "
+                    "out of the head pose; fix the layout's \"stable\" list", where, ", ".join(dropped))
+    if added:
+        log.warning("%s: fewer than 3 rigid stable markers; the head pose also uses %s (the markers "
+                    "most rigid with them)", where, ", ".join(added))
+    info["stable_dropped"], info["stable_added"] = dropped, added
+    return keep
 
 
 def reanchor(r: np.ndarray, t: np.ndarray, nf: int) -> tuple[np.ndarray, np.ndarray]:

@@ -17,7 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "check_stable",
     "euler_from_matrix",
+    "pose_uncertainty",
     "head_track",
     "kabsch",
     "matrix_from_euler",
@@ -316,3 +318,80 @@ def refine_poses(
     s = Rotation.from_rotvec(track[:, 0] / 100.0).as_matrix()
     off = centre - np.einsum("tij,j->ti", s, centre) + track[:, 1]
     return np.einsum("tij,tjk->tik", r, s), np.einsum("tij,tj->ti", r, off) + t, k
+
+
+def _distance_spread(xyz: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(len(a), len(b))`` standard deviation over the take of the distance between markers
+    ``a[i]`` and ``b[j]`` (mm; frames where either is unseen are skipped; inf if never seen together)."""
+    d = np.linalg.norm(xyz[:, a, None] - xyz[:, None, b], axis=3)  # (T, A, B)
+    ok = np.isfinite(d)
+    n = ok.sum(axis=0)
+    mean = np.where(ok, d, 0.0).sum(axis=0) / np.maximum(n, 1)
+    var = np.where(ok, (d - mean) ** 2, 0.0).sum(axis=0) / np.maximum(n - 1, 1)
+    return np.where(n >= 3, np.sqrt(var), np.inf)
+
+
+def check_stable(
+    xyz: np.ndarray, stable: np.ndarray, names: list[str], ratio: float = 2.5, floor_mm: float = 0.5
+) -> tuple[np.ndarray, list[str], list[str]]:
+    """The declared stable markers that are rigid with each other: ``(kept indices, dropped names,
+    added names)``.
+
+    Markers on the skull keep their distances (up to the capture noise); a "stable" marker on skin
+    that moves, a loose headband or a swapped label does not, and fitting the head to it bends every
+    pose. Each stable marker's score is the median spread (standard deviation over the take, mm)
+    of its distances to the other stable markers: most partners of a rigid marker are rigid. The
+    worst is dropped while its score exceeds ``ratio`` x the median score and that median plus
+    ``floor_mm``, and more than three remain. If fewer than three are left (or declared), the face
+    markers most rigid with the remaining ones are added (named in the result) so that the pose
+    stays determined.
+
+    Args:
+        xyz: ``(T, M, 3)`` markers (mm, NaN = unseen), head motion included.
+        stable: indices of the declared stable markers; ``names``: all M marker names.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    keep = [int(i) for i in stable]
+    dropped: list[str] = []
+    while len(keep) > 3:
+        k = np.asarray(keep)
+        spread = _distance_spread(xyz, k, k)
+        np.fill_diagonal(spread, np.nan)
+        score = np.nanmedian(spread, axis=1)
+        ref = float(np.median(score))
+        worst = int(np.argmax(score))
+        if not (score[worst] > ratio * ref and score[worst] > ref + floor_mm):
+            break
+        dropped.append(names[keep[worst]])
+        del keep[worst]
+    added: list[str] = []
+    if len(keep) < 3 and len(keep) >= 1:
+        others = np.setdiff1d(np.arange(xyz.shape[1]), keep)
+        spread = _distance_spread(xyz, others, np.asarray(keep)).max(axis=1)
+        for j in others[np.argsort(spread)][: 3 - len(keep)]:
+            keep.append(int(j))
+            added.append(names[int(j)])
+    return np.asarray(keep, dtype=np.int64), dropped, added
+
+
+def pose_uncertainty(
+    ref: np.ndarray, frames: np.ndarray, r: np.ndarray, t: np.ndarray, at: np.ndarray
+) -> tuple[float, float]:
+    """``(degrees, mm)``: the standard error of a rigid pose fitted to the ``(S, 3)`` reference
+    markers, from the residuals of ``(T, S, 3)`` frames against poses ``r``, ``t`` (their rms is the
+    noise), as a rotation angle and as the rms displacement of the ``(P, 3)`` points ``at`` (the
+    face) in the reference frame. Linearised least squares: ``cov = s^2 (J^T J)^-1``."""
+    ref = np.asarray(ref, dtype=np.float64)
+    res = np.asarray(frames) - (np.einsum("tij,sj->tsi", r, ref) + t[:, None])
+    ok = np.isfinite(res).all(axis=2)
+    dof = 3 * ok.sum() - 6 * int(ok.any(axis=1).sum())
+    if dof <= 0:
+        return float("nan"), float("nan")
+    s2 = float(np.nansum(res**2)) / dof
+    centre = ref.mean(axis=0)
+    j = rigid_fields(ref, centre)
+    cov = s2 * np.linalg.pinv(j.T @ j)
+    deg = float(np.degrees(np.sqrt(np.trace(cov[:3, :3]))))
+    jf = rigid_fields(np.asarray(at, dtype=np.float64), centre)
+    mm = float(np.sqrt(np.einsum("ij,jk,ik->", jf, cov, jf) / len(at)))
+    return deg, mm
