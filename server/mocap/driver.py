@@ -184,12 +184,14 @@ def process(
     xs = np.where(observed[..., None], raw, np.nan)[:, stable]
     ref = np.nanmean(remove_head(xs, r, t), axis=0)
     face_markers = np.setdiff1d(np.arange(len(layout.names)), stable)
-    info["pose_uncertainty_deg"], info["pose_uncertainty_mm"] = pose_uncertainty(
+    # one frame's pose from the stable markers alone; smoothing over frames and the face markers'
+    # refinement (batch) take the final poses well below it
+    info["pose_frame_sd_deg"], info["pose_frame_sd_mm"] = pose_uncertainty(
         ref, xs, r, t, neutral[face_markers] if len(face_markers) else ref
     )
-    log.info("%s: head pose standard error %.3f deg, %.3f mm at the face markers (stable: %s)", where,
-             info["pose_uncertainty_deg"], info["pose_uncertainty_mm"],
-             ", ".join(layout.names[i] for i in stable))
+    log.info("%s: one frame's head pose from the stable markers (%s) is uncertain by %.3f deg, %.3f mm "
+             "at the face markers (before smoothing)", where, ", ".join(layout.names[i] for i in stable),
+             info["pose_frame_sd_deg"], info["pose_frame_sd_mm"])
     if params.filter == "rts" and params.lowrank != "off":
         local, info["lowrank"] = denoise_displacements(
             local, neutral, stable, params.lowrank, unsmoothed=unsmoothed

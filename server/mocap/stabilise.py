@@ -27,8 +27,11 @@ __all__ = [
     "refine_poses",
     "remove_head",
     "rigid_fields",
+    "rigidity_weights",
+    "robust_pose",
     "smooth_poses",
     "solve_pose",
+    "start_neutral",
     "three_marker",
     "to_matrix",
 ]
@@ -395,3 +398,74 @@ def pose_uncertainty(
     jf = rigid_fields(np.asarray(at, dtype=np.float64), centre)
     mm = float(np.sqrt(np.einsum("ij,jk,ik->", jf, cov, jf) / len(at)))
     return deg, mm
+
+
+def start_neutral(frames: np.ndarray, stable: np.ndarray) -> np.ndarray:
+    """The actor's neutral ``(M, 3)`` in the pose of the FIRST of ``(N, M, 3)`` frames (mm, NaN =
+    unseen), for a take that may move from its first frame (the live driver's start).
+
+    Averaging the raw frames blurs the head's motion over them and leaves the reference at their
+    mean pose, not the first frame's; the first frame alone is noisy. So each frame's pose is solved
+    against the frames' mean shape (generalised Procrustes on the stable markers), every frame is
+    stabilised and averaged, and the poses' linear trend (rotation vector and centroid, least squares
+    over the frames) gives the first frame's pose, into which the average is carried."""
+    from scipy.spatial.transform import Rotation
+
+    x = np.asarray(frames, dtype=np.float64)
+    xs = x[:, stable]
+    rs, ts, solved = _track(xs, xs[0], "kabsch")
+    for _ in range(2):
+        if solved.sum() < 2:
+            return np.nanmean(x, axis=0)
+        ref = np.nanmean(remove_head(xs[solved], rs[solved], ts[solved]), axis=0)
+        ok = np.isfinite(ref).all(axis=1)
+        ref = np.where(ok[:, None], ref, xs[0])
+        rs, ts, solved = _track(xs, ref, "kabsch")
+    loc = remove_head(x[solved], rs[solved], ts[solved])
+    mean = np.nanmean(loc, axis=0)
+    # the poses again from every marker, weighted by how still each sat on the head over the frames
+    # (the face moves little in a fraction of a second; four stable markers alone left 0.4 deg)
+    spread = np.nanmean(((loc - mean) ** 2).sum(axis=2), axis=0)
+    noise = float(np.nanmedian(spread[stable])) if np.isfinite(spread[stable]).any() else 0.75
+    w = rigidity_weights(spread, stable, max(noise, 1e-3))
+    for f in np.flatnonzero(solved):
+        pose = robust_pose(mean, x[f], w, scale_mm=1.5)
+        if pose is not None:
+            rs[f], ts[f] = pose
+    mean = np.nanmean(remove_head(x[solved], rs[solved], ts[solved]), axis=0)
+    c = np.nanmean(ref, axis=0)
+    k = np.flatnonzero(solved).astype(np.float64)
+    track = np.c_[Rotation.from_matrix(rs[solved]).as_rotvec(),
+                  np.einsum("tij,j->ti", rs[solved], c) + ts[solved] - c]  # (n, 6)
+    design = np.c_[np.ones_like(k), k] if len(k) < 12 else np.c_[np.ones_like(k), k, k**2]
+    r0v, c0 = (design[:1] @ np.linalg.lstsq(design, track, rcond=None)[0])[0].reshape(2, 3)
+    r0 = Rotation.from_rotvec(r0v).as_matrix()
+    return mean @ r0.T + (c + c0 - r0 @ c)
+
+
+def robust_pose(
+    ref: np.ndarray, frame: np.ndarray, weights: np.ndarray, scale_mm: float = 1.0, iters: int = 3
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Rigid pose of one frame from ALL its markers: ``(R, t)`` with ``frame ~= R ref + t``, or None
+    with fewer than 3 usable markers. ``ref``, ``frame``: ``(M, 3)`` (NaN = unseen); ``weights``
+    ``(M,)`` how rigid each marker is (1 / its variance off the rigid motion: the stable markers
+    high, the lips low). Iteratively reweighted (Cauchy, scale ``scale_mm``), so that a marker
+    moving now, a spike or a swap pulls the pose little."""
+    ok = np.isfinite(frame).all(axis=1) & np.isfinite(ref).all(axis=1) & (weights > 0)
+    if ok.sum() < 3:
+        return None
+    src, dst, w = ref[ok], frame[ok], np.asarray(weights, dtype=np.float64)[ok]
+    pose = kabsch(src, dst, w)
+    for _ in range(iters):
+        res = np.linalg.norm(dst - (src @ pose[0].T + pose[1]), axis=1)
+        pose = kabsch(src, dst, w / (1.0 + (res / scale_mm) ** 2))
+    return pose
+
+
+def rigidity_weights(disp_sq: np.ndarray, stable: np.ndarray, noise_var: float) -> np.ndarray:
+    """``(M,)`` weights for ``robust_pose``: ``1 / (noise + non-rigid mean square)`` from each
+    marker's mean squared displacement off the head ``disp_sq`` (mm², NaN = unknown: weight 0); the
+    stable markers count as rigid."""
+    d = np.where(np.isfinite(disp_sq), disp_sq, np.inf)
+    d[np.asarray(stable)] = 0.0
+    return 1.0 / (noise_var + d)
