@@ -144,3 +144,23 @@ def test_live_driver_takes_its_neutral_on_a_take_moving_from_frame_0(tmp_path, i
     heads = np.asarray(heads)
     assert len(frames) > 150
     assert _angle_deg(heads[:, :, :3], truth.r[frames]).mean() < 0.3
+
+
+def test_render_exposes_the_mocap_cleaning_choices(tmp_path, ict, capsys):
+    from facecast.server.cli import main
+    from facecast.server.mocap.variants import make_take
+
+    face, _ = ict
+    truth = make_take("sparse30", tmp_path, seconds=0.5, face=face)
+    from facecast.server.paths import shared_data
+
+    mesh = str(shared_data() / "ict-facekit" / "generic_neutral_mesh.obj")
+    base = ["render", str(truth.paths["trc"]), "--layout", str(truth.paths["layout"]), "--face", mesh,
+            "--backend", "numpy", "-o", str(tmp_path / "out.npz")]
+    assert main([*base, "--filter", "kalman", "--lowrank", "off", "--neutral-frame", "3"]) == 0
+    with np.load(tmp_path / "out.npz") as z:
+        assert z["vertices"].shape[0] == 60
+    assert main([*base, "--lowrank", "many"]) == 2
+    assert "lowrank must be auto, off or a positive count" in capsys.readouterr().err
+    assert main([*base, "--stable", "HB1,NOPE"]) == 2
+    assert "NOPE" in capsys.readouterr().err

@@ -270,6 +270,16 @@ def denoise_displacements(
     return out, int(rank)
 
 
+def _lowrank(value: str | int) -> str | int:
+    """``auto``, ``off`` or a positive count (from a flag's text); InputError otherwise."""
+    text = str(value).strip().lower()
+    if text in ("auto", "off"):
+        return text
+    if text.isdigit() and int(text) > 0:
+        return int(text)
+    raise InputError(f"lowrank must be auto, off or a positive count, not {value!r}", where="lowrank")
+
+
 def layout_index(layout: Layout, names: list[str]) -> np.ndarray:
     pos = {n: i for i, n in enumerate(layout.names)}
     return np.array([pos[n] for n in names], dtype=np.int64)
@@ -283,6 +293,8 @@ def load(
     units: str | None = None,
     neutral_frame: int | None = None,
     filter: str = "rts",
+    lowrank: str | int = "auto",
+    stable: list[str] | None = None,
     kernel: str = "imq",
     mu: float = 2.0,
     **options,
@@ -295,6 +307,8 @@ def load(
         units: units of the take, overriding what the file declares.
         neutral_frame: frame of the actor's neutral face (default: the layout's, else 0).
         filter: ``rts`` (zero-lag smoother), ``kalman`` (causal, as live) or ``none``.
+        lowrank: ``auto``, ``off`` or a count of principal motions kept (``CleanParams.lowrank``).
+        stable: stable marker names overriding the layout's (each checked for rigidity).
         kernel, mu: retarget RBF.
     """
     path = Path(path)
@@ -302,13 +316,20 @@ def load(
         if v is not None and k not in ("progress", "engine", "backend", "device"):
             log.warning("mocap driver: ignoring option %s=%r", k, v)
     lay = load_layout(layout if layout is not None else find_layout(path))
+    if stable is not None:
+        unknown = [n for n in stable if n not in lay.markers]
+        if unknown or len(stable) < 3:
+            raise InputError(f"--stable needs at least 3 of the layout's markers; unknown: "
+                             f"{', '.join(unknown) or 'none'}", where="stable")
+        lay = replace(lay, stable=list(stable))
+    lowrank = _lowrank(lowrank)
     take = read_take(path, units=units, default_units=lay.units)
     proc = process(
         take,
         face,
         lay,
         neutral_frame=neutral_frame,
-        clean_params=CleanParams(filter=filter),
+        clean_params=CleanParams(filter=filter, lowrank=lowrank),
         kernel=kernel,
         mu=mu,
         where=str(path),
