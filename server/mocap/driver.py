@@ -32,6 +32,13 @@ log = logging.getLogger(__name__)
 
 __all__ = ["Processed", "find_layout", "load", "process"]
 
+#: How far (mm, 90th percentile) the filtered, stabilised markers may stray from the running mean of
+#: the neutral frames before the neutral stops averaging (``neutral_pose``). At 1 mm a take moving
+#: from frame 0 averaged the first half second of expression into its neutral: a constant 0.48 mm
+#: error on every marker's displacement (0.52 mm mean); at 0.2 mm, 0.23 mm, while a take with a
+#: neutral hold still averages its hold (technician layout: 0.188 mm either way).
+STILL_MM = 0.2
+
 
 @dataclass
 class Processed:
@@ -145,7 +152,7 @@ def process(
         info.update({k: v for k, v in info2.items() if k in ("q", "r", "filter")})
         if params.filter == "rts" and params.lowrank != "off" and solved.sum() > 12:
             # the poses again with every marker (stabilise.refine_poses), then the markers again
-            neutral = neutral_pose(local, nf, window)
+            neutral = neutral_pose(local, nf, window, tolerance_mm=STILL_MM)
             r, t, _ = refine_poses(filled, r, t, neutral, stable, local - neutral, take.fps)
             unsmoothed = remove_head(filled, r, t)
             local = clean(unsmoothed, take.fps, replace(params, despike=False))[0]
@@ -180,7 +187,7 @@ def process(
     if params.filter == "kalman":
         neutral = neutral @ r0.T + t0
     if params.filter != "kalman":
-        neutral = neutral_pose(local, nf, round(neutral_window * take.fps))
+        neutral = neutral_pose(local, nf, round(neutral_window * take.fps), tolerance_mm=STILL_MM)
     xs = np.where(observed[..., None], raw, np.nan)[:, stable]
     ref = np.nanmean(remove_head(xs, r, t), axis=0)
     face_markers = np.setdiff1d(np.arange(len(layout.names)), stable)

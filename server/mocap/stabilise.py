@@ -406,9 +406,11 @@ def start_neutral(frames: np.ndarray, stable: np.ndarray) -> np.ndarray:
 
     Averaging the raw frames blurs the head's motion over them and leaves the reference at their
     mean pose, not the first frame's; the first frame alone is noisy. So each frame's pose is solved
-    against the frames' mean shape (generalised Procrustes on the stable markers), every frame is
-    stabilised and averaged, and the poses' linear trend (rotation vector and centroid, least squares
-    over the frames) gives the first frame's pose, into which the average is carried."""
+    against the frames' mean shape (generalised Procrustes on the stable markers, then every marker
+    weighted by how still it sat), every frame is stabilised and averaged, and the poses' trend
+    (rotation vector and centroid, least squares) gives the first frame's pose, into which the
+    average is carried. (Each marker's own trend, to remove the face's motion over the frames as
+    well, was tried: over 12 frames its intercept's noise outweighed the motion it removed.)"""
     from scipy.spatial.transform import Rotation
 
     x = np.asarray(frames, dtype=np.float64)
@@ -432,7 +434,8 @@ def start_neutral(frames: np.ndarray, stable: np.ndarray) -> np.ndarray:
         pose = robust_pose(mean, x[f], w, scale_mm=1.5)
         if pose is not None:
             rs[f], ts[f] = pose
-    mean = np.nanmean(remove_head(x[solved], rs[solved], ts[solved]), axis=0)
+    loc = remove_head(x[solved], rs[solved], ts[solved])
+    mean = np.nanmean(loc, axis=0)
     c = np.nanmean(ref, axis=0)
     k = np.flatnonzero(solved).astype(np.float64)
     track = np.c_[Rotation.from_matrix(rs[solved]).as_rotvec(),
