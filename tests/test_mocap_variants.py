@@ -41,6 +41,9 @@ def test_check_stable_names_and_drops_a_marker_that_moves(rng):
     assert sorted(keep.tolist()) == [0, 1, 3, 4]
     # all rigid: nothing dropped
     assert check_stable(xyz, np.array([0, 1, 3, 4]), names)[1] == []
+    # three declared, one bad: named, left out, and the most rigid other marker stands in
+    keep, dropped, added = check_stable(xyz, np.array([0, 1, 2]), names)
+    assert dropped == ["S2"] and len(added) == 1 and sorted(keep.tolist()) != [0, 1, 2]
     # two declared: the marker most rigid with them stands in (never the moving one)
     keep, dropped, added = check_stable(xyz, np.array([0, 1]), names)
     assert len(keep) == 3 and added and added[0] != "S2"
@@ -73,17 +76,22 @@ def _process(truth, face, layout=None):
     return process(read_take(truth.paths["c3d"], default_units=lay["units"]), face, lay)
 
 
-def test_a_wrong_stable_marker_is_named_and_left_out(tmp_path, ict):
+@pytest.mark.parametrize("variant", ["issue16", "sparse30"])
+def test_a_wrong_stable_marker_is_named_and_left_out(tmp_path, ict, variant):
+    """issue16: a fifth "stable" marker on the mouth; sparse30: one of three replaced by it."""
     from facecast.server.mocap.variants import make_take
 
     face, deltas = ict
-    truth = make_take("issue16", tmp_path, seconds=1.5, face=face)
-    motion = np.linalg.norm(deltas[:, truth.vertices], axis=2).max(axis=0)
-    wrong = truth.names[int(np.argmax(motion))]  # the marker that moves most (the lips or the jaw)
+    truth = make_take(variant, tmp_path, seconds=1.5, face=face)
     layout = json.loads(truth.paths["layout"].read_text())
-    layout["stable"] = layout["stable"] + [wrong]
+    assert _process(truth, face, layout).info["stable_dropped"] == []  # the true ones are rigid
+    local = truth.local(face, deltas)[:, truth.vertices]
+    motion = np.linalg.norm(local - local.mean(axis=0), axis=2).std(axis=0)
+    wrong = truth.names[int(np.argmax(motion))]  # the marker that moves most in this take
+    layout["stable"] = (layout["stable"] if variant == "issue16" else layout["stable"][:2]) + [wrong]
     proc = _process(truth, face, layout)
     assert proc.info["stable_dropped"] == [wrong]
+    assert len(proc.info["stable_added"]) == (0 if variant == "issue16" else 1)
     assert _angle_deg(proc.rig.head_matrix(proc.r, proc.t)[:, :, :3], truth.r).mean() < 0.3
 
 

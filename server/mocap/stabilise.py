@@ -345,9 +345,9 @@ def check_stable(
     pose. Each stable marker's score is the median spread (standard deviation over the take, mm)
     of its distances to the other stable markers: most partners of a rigid marker are rigid. The
     worst is dropped while its score exceeds ``ratio`` x the median score and that median plus
-    ``floor_mm``, and more than three remain. If fewer than three are left (or declared), the face
-    markers most rigid with the remaining ones are added (named in the result) so that the pose
-    stays determined.
+    ``floor_mm``. With three stable markers left, the partners are all the markers (two cannot
+    outvote one). If fewer than three are left (or declared), the face markers most rigid with the
+    remaining ones are added (named in the result) so that the pose stays determined.
 
     Args:
         xyz: ``(T, M, 3)`` markers (mm, NaN = unseen), head motion included.
@@ -356,10 +356,12 @@ def check_stable(
     xyz = np.asarray(xyz, dtype=np.float64)
     keep = [int(i) for i in stable]
     dropped: list[str] = []
-    while len(keep) > 3:
+    everyone = np.arange(xyz.shape[1])
+    while len(keep) >= 3:
         k = np.asarray(keep)
-        spread = _distance_spread(xyz, k, k)
-        np.fill_diagonal(spread, np.nan)
+        # with three, two partners cannot outvote one: every marker is a witness then
+        spread = _distance_spread(xyz, k, k if len(k) > 3 else everyone)
+        spread[spread == 0.0] = np.nan  # a marker with itself
         score = np.nanmedian(spread, axis=1)
         ref = float(np.median(score))
         worst = int(np.argmax(score))
