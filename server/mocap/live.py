@@ -221,7 +221,7 @@ class MarkerLiveDriver:
         if np.isfinite(cur).all(axis=1).sum() >= 3:
             # every marker, weighted by how rigidly it has moved with the head so far: with four
             # stable markers alone one frame's pose is uncertain by ~0.4 deg at 0.5 mm noise
-            pose = robust_pose(self.rig.neutral, z, rigidity_weights(self._disp_sq, self.stable, self._noise),
+            pose = robust_pose(self.rig.neutral, z, rigidity_weights(self._disp_sq, self.stable, self._noise, gate=2.0),
                                scale_mm=1.5)
         if pose is None:
             pose = solve_pose(self._ref_stable, cur)

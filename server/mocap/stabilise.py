@@ -467,10 +467,10 @@ def robust_pose(
     return pose
 
 
-def rigidity_weights(disp_sq: np.ndarray, stable: np.ndarray, noise_var: float) -> np.ndarray:
+def rigidity_weights(disp_sq: np.ndarray, stable: np.ndarray, noise_var: float, gate: float = np.inf) -> np.ndarray:
     """``(M,)`` weights for ``robust_pose``: ``1 / (noise + non-rigid mean square)`` from each
     marker's mean squared displacement off the head ``disp_sq`` (mm², NaN = unknown: weight 0); the
-    stable markers count as rigid."""
+    stable markers count as rigid; a marker whose mean square exceeds ``gate`` x the noise's gets 0."""
     d = np.where(np.isfinite(disp_sq), disp_sq, np.inf)
     d[np.asarray(stable)] = 0.0
-    return 1.0 / (noise_var + d)
+    return np.where(d < gate * noise_var, 1.0 / (noise_var + d), 0.0)
