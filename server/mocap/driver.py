@@ -33,11 +33,12 @@ log = logging.getLogger(__name__)
 __all__ = ["Processed", "find_layout", "load", "process"]
 
 #: How far (mm, 90th percentile) the filtered, stabilised markers may stray from the running mean of
-#: the neutral frames before the neutral stops averaging (``neutral_pose``). At 1 mm a take moving
-#: from frame 0 averaged the first half second of expression into its neutral: a constant 0.48 mm
-#: error on every marker's displacement (0.52 mm mean); at 0.2 mm, 0.23 mm, while a take with a
-#: neutral hold still averages its hold (technician layout: 0.188 mm either way).
-STILL_MM = 0.2
+#: the neutral frames before the neutral stops averaging (``still_neutral``): a hold (HOLD_MM), or
+#: without one, the first frames (STILL_MM). At 1 mm a take moving from frame 0 averaged the first
+#: half second of expression into its neutral, a constant 0.48 mm on every marker's displacement
+#: (0.52 mm mean; 0.23 mm at 0.2); a take with a hold averages its hold (at 0.2 mm the generated
+#: take's stabilised displacements' p95 rose from 0.371 to 0.392 mm, at 0.4 it stays).
+HOLD_MM, STILL_MM = 0.4, 0.2
 
 
 @dataclass
@@ -152,7 +153,7 @@ def process(
         info.update({k: v for k, v in info2.items() if k in ("q", "r", "filter")})
         if params.filter == "rts" and params.lowrank != "off" and solved.sum() > 12:
             # the poses again with every marker (stabilise.refine_poses), then the markers again
-            neutral = neutral_pose(local, nf, window, tolerance_mm=STILL_MM)
+            neutral = still_neutral(local, nf, window)
             r, t, _ = refine_poses(filled, r, t, neutral, stable, local - neutral, take.fps)
             unsmoothed = remove_head(filled, r, t)
             local = clean(unsmoothed, take.fps, replace(params, despike=False))[0]
@@ -187,7 +188,7 @@ def process(
     if params.filter == "kalman":
         neutral = neutral @ r0.T + t0
     if params.filter != "kalman":
-        neutral = neutral_pose(local, nf, round(neutral_window * take.fps), tolerance_mm=STILL_MM)
+        neutral = still_neutral(local, nf, round(neutral_window * take.fps))
     xs = np.where(observed[..., None], raw, np.nan)[:, stable]
     ref = np.nanmean(remove_head(xs, r, t), axis=0)
     face_markers = np.setdiff1d(np.arange(len(layout.names)), stable)
@@ -228,8 +229,22 @@ def reanchor(r: np.ndarray, t: np.ndarray, nf: int) -> tuple[np.ndarray, np.ndar
     return rr, t - np.einsum("tij,j->ti", rr, t[nf])
 
 
+def still_neutral(local: np.ndarray, nf: int, window: int) -> np.ndarray:
+    """``neutral_pose`` over a hold when the take has one (a quarter of ``window`` or more frames
+    within ``HOLD_MM``), else over the first frames within ``STILL_MM`` (the face moves from ``nf``)."""
+    hold = neutral_frames(local, nf, window, HOLD_MM)
+    if len(hold) < max(2, window // 4):
+        hold = neutral_frames(local, nf, window, STILL_MM)
+    return np.nanmean(local[hold], axis=0)
+
+
 def neutral_pose(local: np.ndarray, nf: int, window: int, tolerance_mm: float = 1.0) -> np.ndarray:
-    """The actor's neutral ``(L, 3)``: frame ``nf`` of the markers, averaged with the following
+    """The actor's neutral ``(L, 3)``: the mean of ``neutral_frames``."""
+    return np.nanmean(local[neutral_frames(local, nf, window, tolerance_mm)], axis=0)
+
+
+def neutral_frames(local: np.ndarray, nf: int, window: int, tolerance_mm: float = 1.0) -> list[int]:
+    """The frames of the actor's neutral (``neutral_pose``): frame ``nf`` of the markers, with the following
     frames (up to ``window``) until one in which a tenth of the markers lie farther than
     ``tolerance_mm`` from the mean of the frames taken so far (an actor holds the neutral for a
     moment; averaging removes what noise the filter left). The 90th percentile, not the median,
@@ -249,7 +264,7 @@ def neutral_pose(local: np.ndarray, nf: int, window: int, tolerance_mm: float = 
         seen = np.isfinite(local[f])
         total += np.where(seen, local[f], 0.0)
         count += seen
-    return np.nanmean(local[frames], axis=0)
+    return frames
 
 
 def denoise_displacements(
