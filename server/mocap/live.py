@@ -6,8 +6,10 @@ centroid; its removal from the raw markers; a constant-velocity Kalman filter wi
 the stabilised markers (``clean.KalmanCV``: the face's motion alone is gentle, so it filters more
 than it would with the head's on top); RBF retarget onto the face (``rig.MarkerRig``).
 The actor's neutral is taken from the first ``neutral_frames`` frames in which at least three
-stable markers are visible (more until every control marker has been seen) (``stabilise.start_neutral``: stabilised and
-averaged, in the first frame's head pose); until then ``push`` returns no state.
+stable markers are visible, more until every control marker has been seen
+(``stabilise.start_neutral``: stabilised and averaged, in the first frame's head pose); until then
+``push`` returns no state. Each frame's head pose uses every marker that has shown itself rigid
+(``stabilise.robust_pose``).
 """
 
 from __future__ import annotations
@@ -221,8 +223,8 @@ class MarkerLiveDriver:
         if np.isfinite(cur).all(axis=1).sum() >= 3:
             # every marker, weighted by how rigidly it has moved with the head so far: with four
             # stable markers alone one frame's pose is uncertain by ~0.4 deg at 0.5 mm noise
-            pose = robust_pose(self.rig.neutral, z, rigidity_weights(self._disp_sq, self.stable, self._noise, gate=2.0),
-                               scale_mm=1.5)
+            w = rigidity_weights(self._disp_sq, self.stable, self._noise, gate=2.0)
+            pose = robust_pose(self.rig.neutral, z, w, scale_mm=1.5)
         if pose is None:
             pose = solve_pose(self._ref_stable, cur)
         c = self._centre
