@@ -30,7 +30,7 @@ def output_kind(path: str | Path) -> str:
 
 def render_file(input: str | Path, output: str | Path, *, face="default", engine: str = "fp",
                 backend: str = "auto", device: str | None = None, layout: str | None = None,
-                progress: Callable[[int, int], None] | None = None) -> dict:
+                progress: Callable[[int, int], None] | None = None, mocap: dict | None = None) -> dict:
     """Decode ``input``, animate ``face`` and write ``output`` atomically (nothing is left on failure).
 
     Args:
@@ -40,6 +40,8 @@ def render_file(input: str | Path, output: str | Path, *, face="default", engine
         face: a face spec for ``load_face`` (``default``, ``default:2k``, a mesh path) or a ``Face``.
         engine, backend, device: see ``pipeline.Animator``; ``layout``: mocap marker layout.
         progress: ``callable(done, total)`` in frames.
+        mocap: mocap cleaning choices for ``mocap.driver.load`` (``filter``, ``lowrank``, ``stable``,
+            ``neutral_frame``).
 
     Returns:
         a summary: ``frames``, ``fps``, ``output`` and, for glTF, the ``extras.facecast`` record.
@@ -54,6 +56,8 @@ def render_file(input: str | Path, output: str | Path, *, face="default", engine
     if not output.parent.is_dir():
         raise InputError("output folder does not exist", where=str(output.parent))
     options = {"layout": layout} if layout is not None else {}
+    if input.suffix.lower() in (".c3d", ".trc", ".csv"):
+        options.update({k: v for k, v in (mocap or {}).items() if v is not None})  # mocap.driver.load's
     if input.suffix.lower() == ".fap":  # FAPs do not depend on the face: check the input first
         animation = load_animation(input, None)
         face_obj = load_face(face) if isinstance(face, (str, Path)) else face

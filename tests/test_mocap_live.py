@@ -94,8 +94,11 @@ def test_neutral_ignores_frames_where_a_marker_was_hidden(setup):
     drv = MarkerLiveDriver(face, syn.take.names, layout, neutral_frames=8)
     _run(drv, xyz[:8], syn.take.fps)
     assert drv.ready
-    np.testing.assert_allclose(drv.rig.neutral[0], syn.take.xyz[3:8, 0].mean(axis=0), atol=1e-4)
-    np.testing.assert_allclose(drv.rig.neutral[1], syn.take.xyz[:8, 1].mean(axis=0), atol=1e-4)
+    # averaged over the frames that saw it, carried into the first frame's head pose
+    # (stabilise.start_neutral): near its plain average, and finite
+    assert np.isfinite(drv.rig.neutral).all()
+    np.testing.assert_allclose(drv.rig.neutral[0], syn.take.xyz[3:8, 0].mean(axis=0), atol=0.5)
+    np.testing.assert_allclose(drv.rig.neutral[1], syn.take.xyz[:8, 1].mean(axis=0), atol=0.5)
 
 
 def test_wrong_units_are_refused_with_a_clear_message(setup):

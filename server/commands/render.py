@@ -17,6 +17,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default=None, help="OpenCL device (index or name substring)")
     p.add_argument("--layout", default=None, help="mocap marker layout file (for .c3d/.trc/.csv input; default: "
                    "<take>.layout.json or layout.json beside the take; with --server its content is uploaded)")
+    m = p.add_argument_group("mocap cleaning (.c3d/.trc/.csv)")
+    m.add_argument("--filter", choices=["rts", "kalman", "none"], default=None,
+                   help="marker filter: rts (zero-lag smoother, default), kalman (causal, as live) or none")
+    m.add_argument("--lowrank", default=None, metavar="auto|off|N",
+                   help="project the displacements on their N leading motions (default auto: those above the noise)")
+    m.add_argument("--stable", default=None, metavar="A,B,C",
+                   help="stable (head) markers, overriding the layout's; one that is not rigid is named and left out")
+    m.add_argument("--neutral-frame", type=int, default=None, metavar="N",
+                   help="frame of the actor's neutral face and the head's rest (default: the layout's, else 0)")
     p.add_argument("--server", metavar="URL", default=None,
                    help="render on a facecast server instead of locally (admin key from $FACECAST_ADMIN_KEY)")
 
@@ -38,6 +47,13 @@ def _progress_bar(total_hint: str):
     return update, bar.close
 
 
+def _mocap_options(args: argparse.Namespace) -> dict:
+    """The mocap flags the user set, as ``mocap.driver.load`` options."""
+    opts = {"filter": args.filter, "lowrank": args.lowrank, "neutral_frame": args.neutral_frame,
+            "stable": [s.strip() for s in args.stable.split(",") if s.strip()] if args.stable else None}
+    return {k: v for k, v in opts.items() if v is not None}
+
+
 def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..render import output_kind
@@ -49,6 +65,9 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per poll otherwise
     progress, close = _progress_bar(args.input.name)
     try:
+        if args.server and _mocap_options(args):
+            raise InputError("--filter, --lowrank, --stable and --neutral-frame apply to local renders only",
+                             where="--server")
         if args.server:
             from ...client.jobs import RemoteJobError, render_remote
             from ..errors import FacecastError
@@ -65,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
             from ..render import render_file
 
             render_file(args.input, args.output, face=args.face, engine=args.engine, backend=args.backend,
-                        device=args.device, layout=args.layout, progress=progress)
+                        device=args.device, layout=args.layout, progress=progress, mocap=_mocap_options(args))
     finally:
         close()
     return 0

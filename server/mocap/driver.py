@@ -26,11 +26,19 @@ from .clean import CleanParams, clean, lowrank_denoise, motion_rank
 from .io import read_take
 from .layout import Layout, load_layout
 from .rig import MarkerRig, match_names
-from .stabilise import head_track, refine_poses, remove_head, smooth_poses
+from .stabilise import check_stable, head_track, pose_uncertainty, refine_poses, remove_head, smooth_poses
 
 log = logging.getLogger(__name__)
 
 __all__ = ["Processed", "find_layout", "load", "process"]
+
+#: How far (mm, 90th percentile) the filtered, stabilised markers may stray from the running mean of
+#: the neutral frames before the neutral stops averaging (``still_neutral``): a hold (HOLD_MM), or
+#: without one, the first frames (STILL_MM). At 1 mm a take moving from frame 0 averaged the first
+#: half second of expression into its neutral, a constant 0.48 mm on every marker's displacement
+#: (0.52 mm mean; 0.23 mm at 0.2); a take with a hold averages its hold (at 0.2 mm the generated
+#: take's stabilised displacements' p95 rose from 0.371 to 0.392 mm, at 0.4 it stays).
+HOLD_MM, STILL_MM = 0.4, 0.2
 
 
 @dataclass
@@ -134,6 +142,7 @@ def process(
         anchor = neutral_pose(
             filled, nf, window, tolerance_mm=2.5
         )  # raw noise: ~1 mm between frames
+        stable = _rigid_stable(filled, stable, layout, info, where)
         r, t, solved = head_track(filled, stable, anchor, stabilise_method, observed=observed)
         if solved.sum() > 3:
             r, t = smooth_poses(
@@ -144,7 +153,7 @@ def process(
         info.update({k: v for k, v in info2.items() if k in ("q", "r", "filter")})
         if params.filter == "rts" and params.lowrank != "off" and solved.sum() > 12:
             # the poses again with every marker (stabilise.refine_poses), then the markers again
-            neutral = neutral_pose(local, nf, window)
+            neutral = still_neutral(local, nf, window)
             r, t, _ = refine_poses(filled, r, t, neutral, stable, local - neutral, take.fps)
             unsmoothed = remove_head(filled, r, t)
             local = clean(unsmoothed, take.fps, replace(params, despike=False))[0]
@@ -156,6 +165,7 @@ def process(
     else:
         cleaned, info = clean(raw, take.fps, params)
         observed &= ~info.pop("rejected", np.zeros_like(observed))
+        stable = _rigid_stable(cleaned, stable, layout, info, where)
         r, t, solved = head_track(cleaned, stable, cleaned[nf], stabilise_method, observed=observed)
         local = remove_head(cleaned, r, t)
     if not solved.any():
@@ -165,8 +175,31 @@ def process(
             where=where,
         )
     info["head_solved_frames"] = int(solved.sum())
+    # The head's rest is the neutral frame's pose exactly (the face frame): poses were solved against
+    # a reference averaged over the first frames (moving, in a take without a neutral hold) and then
+    # smoothed, so re-anchor them on the final pose of frame ``nf``. Left as they were, every output
+    # frame carried the reference's offset (0.77 degrees on a take moving from frame 0, 1.1 mm of
+    # skin error on frame 0, where the truth is the rest face).
+    r0, t0 = r[nf].copy(), t[nf].copy()
+    r, t = reanchor(r, t, nf)
+    local = local @ r0.T + t0
+    if params.filter in ("rts", "kalman"):
+        unsmoothed = unsmoothed @ r0.T + t0
+    if params.filter == "kalman":
+        neutral = neutral @ r0.T + t0
     if params.filter != "kalman":
-        neutral = neutral_pose(local, nf, round(neutral_window * take.fps))
+        neutral = still_neutral(local, nf, round(neutral_window * take.fps))
+    xs = np.where(observed[..., None], raw, np.nan)[:, stable]
+    ref = np.nanmean(remove_head(xs, r, t), axis=0)
+    face_markers = np.setdiff1d(np.arange(len(layout.names)), stable)
+    # one frame's pose from the stable markers alone; smoothing over frames and the face markers'
+    # refinement (batch) take the final poses well below it
+    info["pose_frame_sd_deg"], info["pose_frame_sd_mm"] = pose_uncertainty(
+        ref, xs, r, t, neutral[face_markers] if len(face_markers) else ref
+    )
+    log.info("%s: one frame's head pose from the stable markers (%s) is uncertain by %.3f deg, %.3f mm "
+             "at the face markers (before smoothing)", where, ", ".join(layout.names[i] for i in stable),
+             info["pose_frame_sd_deg"], info["pose_frame_sd_mm"])
     if params.filter == "rts" and params.lowrank != "off":
         local, info["lowrank"] = denoise_displacements(
             local, neutral, stable, params.lowrank, unsmoothed=unsmoothed
@@ -176,8 +209,42 @@ def process(
     return Processed(take, layout, raw, cleaned, local, r, t, nf, rig, states, info)
 
 
+def _rigid_stable(xyz: np.ndarray, stable: np.ndarray, layout: Layout, info: dict, where: str) -> np.ndarray:
+    """``stabilise.check_stable`` with its findings logged and kept in ``info``."""
+    keep, dropped, added = check_stable(xyz, stable, layout.names)
+    if dropped:
+        log.warning("%s: stable marker(s) %s move against the others (not rigid with the head): left "
+                    "out of the head pose; fix the layout's \"stable\" list", where, ", ".join(dropped))
+    if added:
+        log.warning("%s: fewer than 3 rigid stable markers; the head pose also uses %s (the markers "
+                    "most rigid with them)", where, ", ".join(added))
+    info["stable_dropped"], info["stable_added"] = dropped, added
+    return keep
+
+
+def reanchor(r: np.ndarray, t: np.ndarray, nf: int) -> tuple[np.ndarray, np.ndarray]:
+    """Poses ``(T, 3, 3)``, ``(T, 3)`` (``frame = R x + t``) made relative to frame ``nf``'s: the
+    stabilised markers ``R'^T (frame - t')`` are then in frame ``nf``'s pose, and ``R'[nf] = I``."""
+    rr = np.einsum("tij,kj->tik", r, r[nf])
+    return rr, t - np.einsum("tij,j->ti", rr, t[nf])
+
+
+def still_neutral(local: np.ndarray, nf: int, window: int) -> np.ndarray:
+    """``neutral_pose`` over a hold when the take has one (a quarter of ``window`` or more frames
+    within ``HOLD_MM``), else over the first frames within ``STILL_MM`` (the face moves from ``nf``)."""
+    hold = neutral_frames(local, nf, window, HOLD_MM)
+    if len(hold) < max(2, window // 4):
+        hold = neutral_frames(local, nf, window, STILL_MM)
+    return np.nanmean(local[hold], axis=0)
+
+
 def neutral_pose(local: np.ndarray, nf: int, window: int, tolerance_mm: float = 1.0) -> np.ndarray:
-    """The actor's neutral ``(L, 3)``: frame ``nf`` of the markers, averaged with the following
+    """The actor's neutral ``(L, 3)``: the mean of ``neutral_frames``."""
+    return np.nanmean(local[neutral_frames(local, nf, window, tolerance_mm)], axis=0)
+
+
+def neutral_frames(local: np.ndarray, nf: int, window: int, tolerance_mm: float = 1.0) -> list[int]:
+    """The frames of the actor's neutral (``neutral_pose``): frame ``nf`` of the markers, with the following
     frames (up to ``window``) until one in which a tenth of the markers lie farther than
     ``tolerance_mm`` from the mean of the frames taken so far (an actor holds the neutral for a
     moment; averaging removes what noise the filter left). The 90th percentile, not the median,
@@ -197,7 +264,7 @@ def neutral_pose(local: np.ndarray, nf: int, window: int, tolerance_mm: float = 
         seen = np.isfinite(local[f])
         total += np.where(seen, local[f], 0.0)
         count += seen
-    return np.nanmean(local[frames], axis=0)
+    return frames
 
 
 def denoise_displacements(
@@ -225,6 +292,16 @@ def denoise_displacements(
     return out, int(rank)
 
 
+def _lowrank(value: str | int) -> str | int:
+    """``auto``, ``off`` or a positive count (from a flag's text); InputError otherwise."""
+    text = str(value).strip().lower()
+    if text in ("auto", "off"):
+        return text
+    if text.isdigit() and int(text) > 0:
+        return int(text)
+    raise InputError(f"lowrank must be auto, off or a positive count, not {value!r}", where="lowrank")
+
+
 def layout_index(layout: Layout, names: list[str]) -> np.ndarray:
     pos = {n: i for i, n in enumerate(layout.names)}
     return np.array([pos[n] for n in names], dtype=np.int64)
@@ -238,6 +315,8 @@ def load(
     units: str | None = None,
     neutral_frame: int | None = None,
     filter: str = "rts",
+    lowrank: str | int = "auto",
+    stable: list[str] | None = None,
     kernel: str = "imq",
     mu: float = 2.0,
     **options,
@@ -250,6 +329,8 @@ def load(
         units: units of the take, overriding what the file declares.
         neutral_frame: frame of the actor's neutral face (default: the layout's, else 0).
         filter: ``rts`` (zero-lag smoother), ``kalman`` (causal, as live) or ``none``.
+        lowrank: ``auto``, ``off`` or a count of principal motions kept (``CleanParams.lowrank``).
+        stable: stable marker names overriding the layout's (each checked for rigidity).
         kernel, mu: retarget RBF.
     """
     path = Path(path)
@@ -257,13 +338,20 @@ def load(
         if v is not None and k not in ("progress", "engine", "backend", "device"):
             log.warning("mocap driver: ignoring option %s=%r", k, v)
     lay = load_layout(layout if layout is not None else find_layout(path))
+    if stable is not None:
+        unknown = [n for n in stable if n not in lay.markers]
+        if unknown or len(stable) < 3:
+            raise InputError(f"--stable needs at least 3 of the layout's markers; unknown: "
+                             f"{', '.join(unknown) or 'none'}", where="stable")
+        lay = replace(lay, stable=list(stable))
+    lowrank = _lowrank(lowrank)
     take = read_take(path, units=units, default_units=lay.units)
     proc = process(
         take,
         face,
         lay,
         neutral_frame=neutral_frame,
-        clean_params=CleanParams(filter=filter),
+        clean_params=CleanParams(filter=filter, lowrank=lowrank),
         kernel=kernel,
         mu=mu,
         where=str(path),

@@ -5,8 +5,11 @@ filtered by a constant-velocity Kalman filter on its rotation vector and the sta
 centroid; its removal from the raw markers; a constant-velocity Kalman filter with spike gating on
 the stabilised markers (``clean.KalmanCV``: the face's motion alone is gentle, so it filters more
 than it would with the head's on top); RBF retarget onto the face (``rig.MarkerRig``).
-The actor's neutral is the average of the first ``neutral_frames`` frames in which every control
-marker and at least three stable markers are visible; until then ``push`` returns no state.
+The actor's neutral is taken from the first ``neutral_frames`` frames in which at least three
+stable markers are visible, more until every control marker has been seen
+(``stabilise.start_neutral``: stabilised and averaged, in the first frame's head pose); until then
+``push`` returns no state. Each frame's head pose uses every marker that has shown itself rigid
+(``stabilise.robust_pose``).
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from .clean import KalmanCV
 from .io import FACE_SPAN_MM, detect_units
 from .layout import Layout, load_layout
 from .rig import MarkerRig, match_names
-from .stabilise import solve_pose
+from .stabilise import rigidity_weights, robust_pose, solve_pose, start_neutral
 
 log = logging.getLogger(__name__)
 
@@ -86,8 +89,7 @@ class MarkerLiveDriver:
             [self.layout.names.index(n) for n in self.layout.stable], dtype=np.int64
         )
         self.rig: MarkerRig | None = None
-        self._neutral_sum = np.zeros((len(self.layout.names), 3))
-        self._neutral_count = np.zeros(len(self.layout.names))
+        self._gathered: list[np.ndarray] = []
         self._neutral_n = 0
         self._ref_stable: np.ndarray | None = None
         self._pose = (np.eye(3), np.zeros(3))
@@ -143,7 +145,11 @@ class MarkerLiveDriver:
             if self.rig is None:
                 return []
         r, tr = self._solve_pose(z)
-        local = self.kf.step((z - tr) @ r)
+        raw_local = (z - tr) @ r
+        d2 = ((raw_local - self.rig.neutral) ** 2).sum(axis=1)
+        seen_d = np.isfinite(d2)
+        self._disp_sq[seen_d] += self._alpha * (d2[seen_d] - self._disp_sq[seen_d])
+        local = self.kf.step(raw_local)
         # markers never seen since the start hold their neutral position
         local = np.where(np.isfinite(local), local, self.rig.neutral)
         return [self.rig.solve(local, r, tr, float(t))]
@@ -163,21 +169,26 @@ class MarkerLiveDriver:
                 if self.layout.markers[n].get("control") is not False
             ]
         )
-        if not seen[ctrl].all() or seen[self.stable].sum() < 3:
+        if seen[self.stable].sum() < 3:
             return
-        self._neutral_sum += np.where(seen[:, None], z, 0.0)
-        self._neutral_count += seen
+        self._gathered.append(z)
         self._neutral_n += 1
-        if self._neutral_n < self.neutral_frames:
+        # a marker occluded in some of the frames is averaged over the others (a take with gaps
+        # from its start); wait until every control marker has been seen
+        if self._neutral_n < self.neutral_frames or not np.isfinite(
+            np.stack(self._gathered)[:, ctrl]
+        ).all(axis=2).any(axis=0).all():
             return
-        with np.errstate(invalid="ignore", divide="ignore"):
-            neutral = self._neutral_sum / self._neutral_count[:, None]  # NaN for markers never seen
+        # in the first frame's head pose, the head's motion over the frames removed (the take may
+        # move from its first frame; a plain average left a 0.6 deg bias on every later pose)
+        with np.errstate(invalid="ignore"):
+            neutral = start_neutral(np.stack(self._gathered), self.stable)
+        self._gathered = []
         span = float(np.nanmax(np.ptp(neutral[np.isfinite(neutral).all(axis=1)], axis=0)))
         lo, hi = FACE_SPAN_MM
         if not lo / 4 <= span <= hi * 4:
-            self._neutral_sum[:] = 0.0
-            self._neutral_count[:] = 0
             self._neutral_n = 0
+            self._gathered = []
             self.bad_frames += 1
             guess = detect_units(neutral[None] / UNITS_MM[self.units])
             raise MarkerFrameError(
@@ -189,6 +200,11 @@ class MarkerLiveDriver:
             )
         self.rig = MarkerRig(self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu)
         self._ref_stable = neutral[self.stable]
+        # each marker's mean square off the head (mm², an exponential average over ~0.5 s); until
+        # measured, the face markers count as moving 5 mm
+        self._disp_sq = np.full(len(neutral), 25.0)
+        self._noise = 3.0 * self.kf.r  # mm², three axes
+        self._alpha = 1.0 / (0.5 * self.fps)
         self._centre = np.nanmean(self._ref_stable, axis=0)
         self.control_vertices = self.rig.control_vertices
         log.info(
@@ -198,19 +214,19 @@ class MarkerLiveDriver:
         )
 
     def _solve_pose(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Filtered head pose from the measured stable markers (the prediction when < 3 are seen)."""
+        """Filtered head pose: ``stabilise.robust_pose`` over every marker, weighted by rigidity (the
+        prediction when fewer than 3 stable markers are seen)."""
         from scipy.spatial.transform import Rotation
 
         cur = z[self.stable]
-        pose = solve_pose(self._ref_stable, cur)
-        if pose is not None and np.isfinite(cur).all(axis=1).sum() > 3:
-            # drop the worst stable marker when it is far off the rigid fit (a spike or a swap)
-            res = np.linalg.norm(cur - (self._ref_stable @ pose[0].T + pose[1]), axis=1)
-            worst = int(np.nanargmax(res))
-            if res[worst] > 3.0:
-                cur = cur.copy()
-                cur[worst] = np.nan
-                pose = solve_pose(self._ref_stable, cur)
+        pose = None
+        if np.isfinite(cur).all(axis=1).sum() >= 3:
+            # every marker, weighted by how rigidly it has moved with the head so far: with four
+            # stable markers alone one frame's pose is uncertain by ~0.4 deg at 0.5 mm noise
+            w = rigidity_weights(self._disp_sq, self.stable, self._noise, gate=2.0)
+            pose = robust_pose(self.rig.neutral, z, w, scale_mm=1.5)
+        if pose is None:
+            pose = solve_pose(self._ref_stable, cur)
         c = self._centre
         if pose is None:
             meas = np.full((2, 3), np.nan)

@@ -17,7 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "check_stable",
     "euler_from_matrix",
+    "pose_uncertainty",
     "head_track",
     "kabsch",
     "matrix_from_euler",
@@ -25,8 +27,11 @@ __all__ = [
     "refine_poses",
     "remove_head",
     "rigid_fields",
+    "rigidity_weights",
+    "robust_pose",
     "smooth_poses",
     "solve_pose",
+    "start_neutral",
     "three_marker",
     "to_matrix",
 ]
@@ -316,3 +321,156 @@ def refine_poses(
     s = Rotation.from_rotvec(track[:, 0] / 100.0).as_matrix()
     off = centre - np.einsum("tij,j->ti", s, centre) + track[:, 1]
     return np.einsum("tij,tjk->tik", r, s), np.einsum("tij,tj->ti", r, off) + t, k
+
+
+def _distance_spread(xyz: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(len(a), len(b))`` standard deviation over the take of the distance between markers
+    ``a[i]`` and ``b[j]`` (mm; frames where either is unseen are skipped; inf if never seen together)."""
+    d = np.linalg.norm(xyz[:, a, None] - xyz[:, None, b], axis=3)  # (T, A, B)
+    ok = np.isfinite(d)
+    n = ok.sum(axis=0)
+    mean = np.where(ok, d, 0.0).sum(axis=0) / np.maximum(n, 1)
+    var = np.where(ok, (d - mean) ** 2, 0.0).sum(axis=0) / np.maximum(n - 1, 1)
+    return np.where(n >= 3, np.sqrt(var), np.inf)
+
+
+def check_stable(
+    xyz: np.ndarray, stable: np.ndarray, names: list[str], ratio: float = 2.5, floor_mm: float = 0.5
+) -> tuple[np.ndarray, list[str], list[str]]:
+    """The declared stable markers that are rigid with each other: ``(kept indices, dropped names,
+    added names)``.
+
+    Markers on the skull keep their distances (up to the capture noise); a "stable" marker on skin
+    that moves, a loose headband or a swapped label does not, and fitting the head to it bends every
+    pose. Each stable marker's score is the median spread (standard deviation over the take, mm)
+    of its distances to the other stable markers: most partners of a rigid marker are rigid. The
+    worst is dropped while its score exceeds ``ratio`` x the median score and that median plus
+    ``floor_mm``. With three stable markers left, the partners are all the markers (two cannot
+    outvote one). If fewer than three are left (or declared), the face markers most rigid with the
+    remaining ones are added (named in the result) so that the pose stays determined.
+
+    Args:
+        xyz: ``(T, M, 3)`` markers (mm, NaN = unseen), head motion included.
+        stable: indices of the declared stable markers; ``names``: all M marker names.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    keep = [int(i) for i in stable]
+    dropped: list[str] = []
+    everyone = np.arange(xyz.shape[1])
+    while len(keep) >= 3:
+        k = np.asarray(keep)
+        # with three, two partners cannot outvote one: every marker is a witness then
+        spread = _distance_spread(xyz, k, k if len(k) > 3 else everyone)
+        spread[spread == 0.0] = np.nan  # a marker with itself
+        score = np.nanmedian(spread, axis=1)
+        ref = float(np.median(score))
+        worst = int(np.argmax(score))
+        if not (score[worst] > ratio * ref and score[worst] > ref + floor_mm):
+            break
+        dropped.append(names[keep[worst]])
+        del keep[worst]
+    added: list[str] = []
+    if len(keep) < 3 and len(keep) >= 1:
+        others = np.setdiff1d(np.arange(xyz.shape[1]), keep)
+        spread = _distance_spread(xyz, others, np.asarray(keep)).max(axis=1)
+        for j in others[np.argsort(spread)][: 3 - len(keep)]:
+            keep.append(int(j))
+            added.append(names[int(j)])
+    return np.asarray(keep, dtype=np.int64), dropped, added
+
+
+def pose_uncertainty(
+    ref: np.ndarray, frames: np.ndarray, r: np.ndarray, t: np.ndarray, at: np.ndarray
+) -> tuple[float, float]:
+    """``(degrees, mm)``: the standard error of a rigid pose fitted to the ``(S, 3)`` reference
+    markers, from the residuals of ``(T, S, 3)`` frames against poses ``r``, ``t`` (their rms is the
+    noise), as a rotation angle and as the rms displacement of the ``(P, 3)`` points ``at`` (the
+    face) in the reference frame. Linearised least squares: ``cov = s^2 (J^T J)^-1``."""
+    ref = np.asarray(ref, dtype=np.float64)
+    res = np.asarray(frames) - (np.einsum("tij,sj->tsi", r, ref) + t[:, None])
+    ok = np.isfinite(res).all(axis=2)
+    dof = 3 * ok.sum() - 6 * int(ok.any(axis=1).sum())
+    if dof <= 0:
+        return float("nan"), float("nan")
+    s2 = float(np.nansum(res**2)) / dof
+    centre = ref.mean(axis=0)
+    j = rigid_fields(ref, centre)
+    cov = s2 * np.linalg.pinv(j.T @ j)
+    deg = float(np.degrees(np.sqrt(np.trace(cov[:3, :3]))))
+    jf = rigid_fields(np.asarray(at, dtype=np.float64), centre)
+    mm = float(np.sqrt(np.einsum("ij,jk,ik->", jf, cov, jf) / len(at)))
+    return deg, mm
+
+
+def start_neutral(frames: np.ndarray, stable: np.ndarray) -> np.ndarray:
+    """The actor's neutral ``(M, 3)`` in the pose of the FIRST of ``(N, M, 3)`` frames (mm, NaN =
+    unseen), for a take that may move from its first frame (the live driver's start).
+
+    Averaging the raw frames blurs the head's motion over them and leaves the reference at their
+    mean pose, not the first frame's; the first frame alone is noisy. So each frame's pose is solved
+    against the frames' mean shape (generalised Procrustes on the stable markers, then every marker
+    weighted by how still it sat), every frame is stabilised and averaged, and the poses' trend
+    (rotation vector and centroid, least squares) gives the first frame's pose, into which the
+    average is carried. (Each marker's own trend, to remove the face's motion over the frames as
+    well, was tried: over 12 frames its intercept's noise outweighed the motion it removed.)"""
+    from scipy.spatial.transform import Rotation
+
+    x = np.asarray(frames, dtype=np.float64)
+    xs = x[:, stable]
+    rs, ts, solved = _track(xs, xs[0], "kabsch")
+    for _ in range(2):
+        if solved.sum() < 2:
+            return np.nanmean(x, axis=0)
+        ref = np.nanmean(remove_head(xs[solved], rs[solved], ts[solved]), axis=0)
+        ok = np.isfinite(ref).all(axis=1)
+        ref = np.where(ok[:, None], ref, xs[0])
+        rs, ts, solved = _track(xs, ref, "kabsch")
+    loc = remove_head(x[solved], rs[solved], ts[solved])
+    mean = np.nanmean(loc, axis=0)
+    # the poses again from every marker, weighted by how still each sat on the head over the frames
+    # (the face moves little in a fraction of a second; four stable markers alone left 0.4 deg)
+    spread = np.nanmean(((loc - mean) ** 2).sum(axis=2), axis=0)
+    noise = float(np.nanmedian(spread[stable])) if np.isfinite(spread[stable]).any() else 0.75
+    w = rigidity_weights(spread, stable, max(noise, 1e-3))
+    for f in np.flatnonzero(solved):
+        pose = robust_pose(mean, x[f], w, scale_mm=1.5)
+        if pose is not None:
+            rs[f], ts[f] = pose
+    loc = remove_head(x[solved], rs[solved], ts[solved])
+    mean = np.nanmean(loc, axis=0)
+    c = np.nanmean(ref, axis=0)
+    k = np.flatnonzero(solved).astype(np.float64)
+    track = np.c_[Rotation.from_matrix(rs[solved]).as_rotvec(),
+                  np.einsum("tij,j->ti", rs[solved], c) + ts[solved] - c]  # (n, 6)
+    design = np.c_[np.ones_like(k), k] if len(k) < 12 else np.c_[np.ones_like(k), k, k**2]
+    r0v, c0 = (design[:1] @ np.linalg.lstsq(design, track, rcond=None)[0])[0].reshape(2, 3)
+    r0 = Rotation.from_rotvec(r0v).as_matrix()
+    return mean @ r0.T + (c + c0 - r0 @ c)
+
+
+def robust_pose(
+    ref: np.ndarray, frame: np.ndarray, weights: np.ndarray, scale_mm: float = 1.0, iters: int = 3
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Rigid pose of one frame from ALL its markers: ``(R, t)`` with ``frame ~= R ref + t``, or None
+    with fewer than 3 usable markers. ``ref``, ``frame``: ``(M, 3)`` (NaN = unseen); ``weights``
+    ``(M,)`` how rigid each marker is (1 / its variance off the rigid motion: the stable markers
+    high, the lips low). Iteratively reweighted (Cauchy, scale ``scale_mm``), so that a marker
+    moving now, a spike or a swap pulls the pose little."""
+    ok = np.isfinite(frame).all(axis=1) & np.isfinite(ref).all(axis=1) & (weights > 0)
+    if ok.sum() < 3:
+        return None
+    src, dst, w = ref[ok], frame[ok], np.asarray(weights, dtype=np.float64)[ok]
+    pose = kabsch(src, dst, w)
+    for _ in range(iters):
+        res = np.linalg.norm(dst - (src @ pose[0].T + pose[1]), axis=1)
+        pose = kabsch(src, dst, w / (1.0 + (res / scale_mm) ** 2))
+    return pose
+
+
+def rigidity_weights(disp_sq: np.ndarray, stable: np.ndarray, noise_var: float, gate: float = np.inf) -> np.ndarray:
+    """``(M,)`` weights for ``robust_pose``: ``1 / (noise + non-rigid mean square)`` from each
+    marker's mean squared displacement off the head ``disp_sq`` (mm², NaN = unknown: weight 0); the
+    stable markers count as rigid; a marker whose mean square exceeds ``gate`` x the noise's gets 0."""
+    d = np.where(np.isfinite(disp_sq), disp_sq, np.inf)
+    d[np.asarray(stable)] = 0.0
+    return np.where(d < gate * noise_var, 1.0 / (noise_var + d), 0.0)
