@@ -51,6 +51,8 @@ MAX_GROUPS = 255
 #: ref (u32), step (f32), G (u8), planes (u8), reserved (u16), zlen (u32): 16 bytes after the header.
 _SUB = struct.Struct("<IfBBHI")
 SUB_SIZE = _SUB.size
+#: Largest grid step a decoder accepts (face units); with |R| <= 1 and |q| < 2^31 positions stay finite.
+MAX_STEP = 1e6
 #: Cells are kept within ±2²³ so ``q · step`` is exact in float32.
 _MAX_CELL = 1 << 23
 
@@ -118,8 +120,8 @@ def parse_compact(data: bytes | bytearray | memoryview) -> CompactFrame:
         raise FrameError(f"compact frame of {len(data)} bytes is shorter than its "
                          f"{HEADER_SIZE + SUB_SIZE}-byte headers")
     ref, step, g, planes, reserved, zlen = _SUB.unpack_from(data, HEADER_SIZE)
-    if not (math.isfinite(step) and step > 0):
-        raise FrameError(f"grid step must be finite and > 0, got {step}", where="bytes 36-39")
+    if not (math.isfinite(step) and 0 < step <= MAX_STEP):
+        raise FrameError(f"grid step must be in (0, {MAX_STEP:g}], got {step}", where="bytes 36-39")
     if g < 1:
         raise FrameError("a compact frame carries at least one transform", where="byte 40")
     if not 1 <= planes <= 4:
@@ -135,8 +137,9 @@ def parse_compact(data: bytes | bytearray | memoryview) -> CompactFrame:
                          f"{size} bytes, got {len(data)} ({what})")
     o = HEADER_SIZE + SUB_SIZE
     tr = np.frombuffer(data, "<f4", 12 * g, o).reshape(g, 3, 4)
-    if not np.isfinite(tr).all():
-        raise FrameError("transforms must be finite", where=f"bytes {o}-{o + 48 * g - 1}")
+    if not (np.isfinite(tr).all() and np.abs(tr[:, :, :3]).max() <= 1.001):
+        raise FrameError("transforms must be finite with rotation entries in [-1.001, 1.001]",
+                         where=f"bytes {o}-{o + 48 * g - 1}")
     return CompactFrame(h, ref, step, tr, planes, memoryview(data)[o + 48 * g:])
 
 
