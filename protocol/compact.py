@@ -93,6 +93,20 @@ def _unzigzag_planes(raw: bytes, planes: int, n: int) -> np.ndarray:
     return ((u >> np.uint32(1)) ^ (np.uint32(0) - (u & np.uint32(1)))).view(np.int32)
 
 
+def _group_spans(groups: np.ndarray, n_groups: int) -> list[list[slice | np.ndarray]]:
+    """Per group, its vertices as a few contiguous slices (parts are usually runs of the vertex
+    order), or one index array when they are scattered."""
+    spans = []
+    for g in range(n_groups):
+        idx = np.flatnonzero(groups == g)
+        cuts = np.flatnonzero(np.diff(idx) != 1) + 1
+        if len(cuts) < 32:
+            spans.append([slice(int(a[0]), int(a[-1]) + 1) for a in np.split(idx, cuts) if len(a)])
+        else:
+            spans.append([idx])
+    return spans
+
+
 @dataclass(frozen=True, slots=True)
 class CompactFrame:
     """A parsed compact frame before decoding (no state needed)."""
@@ -151,11 +165,11 @@ class CompactEncoder:
         groups: ``(V,)`` rigid group of each vertex (as in its topology).
         tolerance: largest distance of a decoded vertex from the input, face units.
         key_interval: a key frame at least every this many frames (e.g. 250 ms of the session's fps).
-        level: zlib level (1 fastest, 9 smallest); decoders do not care.
+        level, strategy: zlib's (decoders do not care).
     """
 
     def __init__(self, rest: np.ndarray, groups: np.ndarray, *, tolerance: float,
-                 key_interval: int = 15, level: int = 4) -> None:
+                 key_interval: int = 15, level: int = 1, strategy: int = zlib.Z_RLE) -> None:
         self.rest = np.ascontiguousarray(rest, np.float32)
         if self.rest.ndim != 2 or self.rest.shape[1] != 3:
             raise ValueError(f"rest must be (V, 3), got {self.rest.shape}")
@@ -167,11 +181,19 @@ class CompactEncoder:
             raise ValueError("key_interval must be >= 1")
         self.tolerance = float(tolerance)
         self.step = step_for_tolerance(tolerance)
-        self.key_interval, self.level = int(key_interval), int(level)
+        self.key_interval, self.level, self.strategy = int(key_interval), int(level), int(strategy)
         self.base = grid_base(self.rest, self.step)
         self.base_t = np.ascontiguousarray(self.base.T)
-        self._members = [np.flatnonzero(self.groups == g) for g in range(self.n_groups)]
+        self._base_f = self.base_t.astype(np.float32)  # cells < 2^23 are exact in float32
+        self._spans = _group_spans(self.groups, self.n_groups)
         self._keep2 = np.float32((self.tolerance * (1 - 2.0**-8) / self.step) ** 2)
+        n = len(self.rest)
+        self._buf = {"vt": np.empty((3, n), np.float32), "local": np.empty((3, n), np.float32),
+                     "qf": np.empty((3, n), np.float32), "q": np.empty((3, n), np.int32),
+                     "r": np.empty((3, n), np.int32), "dd": np.empty((3, n), np.int32),
+                     "tmp": np.empty(3 * n, np.int32), "fd": np.empty((3, n), np.float32),
+                     "dist": np.empty(n, np.float32), "keep": np.empty(n, bool),
+                     "u8": np.empty(3 * n, np.uint8)}
         self._key_q: np.ndarray | None = None
         self._key_seq = 0
         self._since_key = 0
@@ -182,16 +204,17 @@ class CompactEncoder:
         self._want_key = True
 
     def _local(self, v: np.ndarray, tr: np.ndarray) -> np.ndarray:
-        """``(3, V) float32`` positions in their group's local frame, in grid steps (axis-major)."""
+        """``(3, V) float32`` positions in their group's local frame, in grid steps (axis-major),
+        in a buffer reused from frame to frame."""
         m = (np.linalg.inv(tr[:, :, :3].astype(np.float64)) * (1.0 / self.step)).astype(np.float32)
         c = np.einsum("gij,gj->gi", m, tr[:, :, 3].astype(np.float64)).astype(np.float32)
-        vt = v.T  # (3, V) view
-        out = m[0] @ vt  # head transform for everyone, then the other groups' vertices redone
+        vt, out = self._buf["vt"], self._buf["local"]
+        np.copyto(vt, v.T)
+        np.matmul(m[0], vt, out=out)  # head transform for everyone, then the other groups redone
         out -= c[0][:, None]
         for g in range(1, self.n_groups):
-            idx = self._members[g]
-            if len(idx):
-                out[:, idx] = m[g] @ vt[:, idx] - c[g][:, None]
+            for sp in self._spans[g]:
+                out[:, sp] = m[g] @ vt[:, sp] - c[g][:, None]
         return out
 
     def encode(self, vertices: np.ndarray, transforms: np.ndarray | None = None, *, seq: int,
@@ -212,31 +235,50 @@ class CompactEncoder:
             tr = np.ascontiguousarray(tr[:g])
             if not np.isfinite(tr).all() or np.any(np.abs(np.linalg.det(tr[:, :, :3]) - 1) > 1e-3):
                 raise ValueError("transforms must be finite rigid motions (det R = 1)")
+        b = self._buf
         local = self._local(v, tr)
-        q = np.rint(local)
-        if not (np.abs(q).max(initial=0) < _MAX_CELL):  # also refuses NaN
+        qf, q, r, dd, tmp = b["qf"], b["q"], b["r"], b["dd"], b["tmp"]
+        np.rint(local, out=qf)
+        lo, hi = qf.min(initial=0), qf.max(initial=0)
+        if not (-_MAX_CELL < lo and hi < _MAX_CELL):  # also refuses NaN
             raise ValueError("vertices must be finite and within 2^23 grid steps of their group's origin")
-        q = q.astype(np.int32)
+        np.copyto(q, qf, casting="unsafe")
         seq = int(seq) & 0xFFFFFFFF
         is_key = key or self._want_key or self._key_q is None or self._since_key + 1 >= self.key_interval
         ref_q = self.base_t if is_key else self._key_q
-        r = q - ref_q  # (3, V): axis-major
+        np.subtract(q, ref_q, out=r)  # (3, V): axis-major
         # Keep the reference cell where it is within the tolerance too: small motions cost nothing.
-        moved = np.flatnonzero(r[0] | r[1] | r[2])
-        if len(moved):
-            d = ref_q[:, moved] - local[:, moved]
-            d *= d
-            keep = moved[d.sum(axis=0) <= self._keep2]
-            r[:, keep] = 0
-            if is_key:
-                q[:, keep] = ref_q[:, keep]
-        dd = np.empty_like(r)
+        fd, dist = b["fd"], b["dist"]
+        np.subtract(self._base_f if is_key else self._key_f, local, out=fd)
+        fd *= fd
+        np.add(fd[0], fd[1], out=dist)
+        dist += fd[2]
+        keep = np.less_equal(dist, self._keep2, out=b["keep"])
+        np.copyto(r, 0, where=keep)
+        if is_key:
+            np.copyto(q, ref_q, where=keep)
         dd[:, 0] = r[:, 0]
         np.subtract(r[:, 1:], r[:, :-1], out=dd[:, 1:])
-        raw, planes = _zigzag_planes(dd.ravel())
-        z = zlib.compress(raw, self.level)
+        # zigzag into r (free now): (d << 1) ^ (d >> 31), as uint32
+        u = r.reshape(-1).view(np.uint32)
+        flat = dd.reshape(-1)
+        np.left_shift(flat, 1, out=r.reshape(-1))
+        np.right_shift(flat, 31, out=tmp)
+        np.bitwise_xor(r.reshape(-1), tmp, out=r.reshape(-1))
+        top = int(u.max())
+        planes = 1 if top < 1 << 8 else 2 if top < 1 << 16 else 3 if top < 1 << 24 else 4
+        if planes == 1:
+            np.copyto(b["u8"], u, casting="unsafe")
+            raw = b["u8"]
+        else:
+            raw = np.ascontiguousarray(u.view(np.uint8).reshape(-1, 4)[:, :planes].T)
+        # Z_RLE: runs and Huffman codes only; on these mostly-zero planes it is both smaller and
+        # about twice as fast as the default LZ77 search (bench/compact_stream.py).
+        zc = zlib.compressobj(self.level, zlib.DEFLATED, 15, 9, self.strategy)
+        z = zc.compress(raw) + zc.flush()
         if is_key:
-            self._key_q, self._key_seq, self._since_key, self._want_key = q, seq, 0, False
+            self._key_q, self._key_seq, self._since_key, self._want_key = q.copy(), seq, 0, False
+            self._key_f = self._key_q.astype(np.float32)
         else:
             self._since_key += 1
         hdr = Header(Kind.VERTICES_COMPACT, seq, len(v), float(t), float(wall), KEY if is_key else 0)
@@ -257,7 +299,7 @@ class CompactDecoder:
         if self.rest.ndim != 2 or self.rest.shape[1] != 3 or self.groups.shape != (len(self.rest),):
             raise ValueError("rest must be (V, 3) and groups (V,)")
         self.n_groups = int(self.groups.max()) + 1 if len(self.groups) else 1
-        self._members = [np.flatnonzero(self.groups == g) for g in range(self.n_groups)]
+        self._spans = _group_spans(self.groups, self.n_groups)
         self._base: tuple[float, np.ndarray] | None = None
         self._key: tuple[int, float, np.ndarray] | None = None  # seq, step, q
 
@@ -313,7 +355,6 @@ class CompactDecoder:
         out = tr[0, :, :3] @ p
         out += tr[0, :, 3:]
         for g in range(1, self.n_groups):
-            idx = self._members[g]
-            if len(idx):
-                out[:, idx] = tr[g, :, :3] @ p[:, idx] + tr[g, :, 3:]
+            for sp in self._spans[g]:
+                out[:, sp] = tr[g, :, :3] @ p[:, sp] + tr[g, :, 3:]
         return np.ascontiguousarray(out.T)
