@@ -165,11 +165,13 @@ class CompactEncoder:
         groups: ``(V,)`` rigid group of each vertex (as in its topology).
         tolerance: largest distance of a decoded vertex from the input, face units.
         key_interval: a key frame at least every this many frames (e.g. 250 ms of the session's fps).
+        key_seconds: and at least every this many seconds of media time ``t`` (None: no limit).
         level, strategy: zlib's (decoders do not care).
     """
 
     def __init__(self, rest: np.ndarray, groups: np.ndarray, *, tolerance: float,
-                 key_interval: int = 15, level: int = 1, strategy: int = zlib.Z_RLE) -> None:
+                 key_interval: int = 15, key_seconds: float | None = None, level: int = 1,
+                 strategy: int = zlib.Z_RLE) -> None:
         self.rest = np.ascontiguousarray(rest, np.float32)
         if self.rest.ndim != 2 or self.rest.shape[1] != 3:
             raise ValueError(f"rest must be (V, 3), got {self.rest.shape}")
@@ -182,6 +184,8 @@ class CompactEncoder:
         self.tolerance = float(tolerance)
         self.step = step_for_tolerance(tolerance)
         self.key_interval, self.level, self.strategy = int(key_interval), int(level), int(strategy)
+        self.key_seconds = key_seconds
+        self._key_t = 0.0
         self.base = grid_base(self.rest, self.step)
         self.base_t = np.ascontiguousarray(self.base.T)
         self._base_f = self.base_t.astype(np.float32)  # cells < 2^23 are exact in float32
@@ -244,7 +248,8 @@ class CompactEncoder:
             raise ValueError("vertices must be finite and within 2^23 grid steps of their group's origin")
         np.copyto(q, qf, casting="unsafe")
         seq = int(seq) & 0xFFFFFFFF
-        is_key = key or self._want_key or self._key_q is None or self._since_key + 1 >= self.key_interval
+        is_key = (key or self._want_key or self._key_q is None or self._since_key + 1 >= self.key_interval
+                  or (self.key_seconds is not None and not 0 <= t - self._key_t < self.key_seconds))
         ref_q = self.base_t if is_key else self._key_q
         np.subtract(q, ref_q, out=r)  # (3, V): axis-major
         # Keep the reference cell where it is within the tolerance too: small motions cost nothing.
@@ -279,6 +284,7 @@ class CompactEncoder:
         if is_key:
             self._key_q, self._key_seq, self._since_key, self._want_key = q.copy(), seq, 0, False
             self._key_f = self._key_q.astype(np.float32)
+            self._key_t = float(t)
         else:
             self._since_key += 1
         hdr = Header(Kind.VERTICES_COMPACT, seq, len(v), float(t), float(wall), KEY if is_key else 0)

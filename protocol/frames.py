@@ -176,8 +176,9 @@ class VertexFrame:
     scale: np.ndarray | None = None  # (3,) float32, i16 only
 
     def positions(self) -> np.ndarray:
-        """``(V, 3) float32`` positions (a view for float32 frames, dequantised for int16)."""
-        if self.header.kind is Kind.VERTICES_F32:
+        """``(V, 3) float32`` positions (a view for float32 frames, dequantised for int16; compact
+        frames arrive decoded)."""
+        if self.header.kind is not Kind.VERTICES_I16:
             return self.vertices
         return dequantize_int16(self.vertices, self.offset, self.scale)
 
