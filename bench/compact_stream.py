@@ -18,7 +18,8 @@ meshoptimizer's vertex codec is left out: its PyPI wrapper (0.2.30a0, an alpha) 
 Reported: bytes per vertex per frame (whole frames, headers and transforms included), the largest
 decoded error (mm, over every vertex of every frame; compact's decoder only), and CPU time per
 frame on one thread (``time.thread_time``): encoding (for alternatives, their entropy stage next
-to compact's zlib stage) and decoding in Python. Keys every 250 ms of the stream's fps. The machine's
+to compact's zlib stage) and decoding in Python, and compact.js's decoding under Node (V8, the
+engine of Chromium; ``DecompressionStream`` included). Keys every 250 ms of the stream's fps. The machine's
 load average goes into the JSON: the times are CPU times but contend for caches with other work.
 Writes ``bench/out/compact_stream.json`` and prints a markdown table.
 """
@@ -127,10 +128,50 @@ def measure(name: str, fps: float, frames: np.ndarray, transforms: np.ndarray, f
         res[label] = {"bpvf": (sum(heads) + sum(map(len, out))) / n / nv, "entropy_ms": (t1 - t0) / n * 1e3,
                       "entropy_dec_ms": (t2 - t1) / n * 1e3}
     del zl
+    res["compact"]["js_dec"] = js_decode_ms(face, main)
     return res
 
 
 CODERS = ("i16", "compact", "compact-lz4", "zstd-3", "zstd-9")
+
+JS = Path(__file__).resolve().parents[1] / "client" / "web" / "js" / "compact.js"
+NODE_RUNNER = """
+import { readFileSync } from 'node:fs';
+import { CompactDecoder } from './compact.mjs';
+const dir = process.argv[2];
+const load = (n) => { const b = readFileSync(`${dir}/${n}`); return b.buffer.slice(b.byteOffset, b.byteOffset + b.length); };
+const all = load('frames.bin'), sizes = JSON.parse(readFileSync(`${dir}/sizes.json`));
+const frames = []; let o = 0;
+for (const n of sizes) { frames.push(all.slice(o, o + n)); o += n; }
+const dec = new CompactDecoder(new Float32Array(load('rest.bin')), new Uint8Array(load('groups.bin')));
+const out = new Float32Array(new Float32Array(load('rest.bin')).length);
+for (const f of frames.slice(0, 8)) await dec.decode(f, out);  // warm-up (JIT)
+const t0 = performance.now(), c0 = process.cpuUsage();
+for (const f of frames) await dec.decode(f, out);
+const c = process.cpuUsage(c0);
+console.log(JSON.stringify({ wall_ms: (performance.now() - t0) / frames.length,
+                             cpu_ms: (c.user + c.system) / 1000 / frames.length }));
+"""
+
+
+def js_decode_ms(face, wire: list[bytes]) -> dict | None:
+    """Per-frame decode time of ``client/web/js/compact.js`` under Node (V8, as in Chromium), or None."""
+    import shutil
+    import subprocess
+
+    node = shutil.which("node")
+    if node is None:
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        shutil.copy(JS, d / "compact.mjs")
+        (d / "run.mjs").write_text(NODE_RUNNER)
+        (d / "rest.bin").write_bytes(np.ascontiguousarray(face.vertices, "<f4").tobytes())
+        (d / "groups.bin").write_bytes(np.ascontiguousarray(face.rigid_group, np.uint8).tobytes())
+        (d / "frames.bin").write_bytes(b"".join(wire))
+        (d / "sizes.json").write_text(json.dumps([len(b) for b in wire]))
+        r = subprocess.run([node, str(d / "run.mjs"), str(d)], capture_output=True, text=True, timeout=600)
+        return json.loads(r.stdout) if r.returncode == 0 else None
 
 
 def main(argv: list[str]) -> int:
@@ -167,6 +208,10 @@ def main(argv: list[str]) -> int:
         summary[c]["dec_ms_mean"] = float(np.mean([r[c]["dec_ms"] for r in rows]))
         summary[c]["max_err_mm"] = max(r[c]["max_err_mm"] for r in rows)
         summary[c]["all_within_tolerance"] = all(r[c]["within_tolerance"] for r in rows)
+    js = [r["compact"]["js_dec"] for r in rows if r["compact"].get("js_dec")]
+    if js:
+        summary["compact"]["js_dec_cpu_ms_mean"] = float(np.mean([j["cpu_ms"] for j in js]))
+        summary["compact"]["js_dec_wall_ms_mean"] = float(np.mean([j["wall_ms"] for j in js]))
     for c in ("compact", "zstd-3", "zstd-9"):
         summary[c]["entropy_ms_mean"] = float(np.mean([r[c]["entropy_ms"] for r in rows]))
     result = {"tolerance_mm": a.tolerance_mm, "loadavg_start": load0, "loadavg_end": os.getloadavg(),
@@ -186,6 +231,9 @@ def main(argv: list[str]) -> int:
     s = summary
     print("| **mean** | | | " + " | ".join(f"**{s[c]['bpvf_mean']:.3f}**" for c in CODERS)
           + f" | {s['compact']['max_err_mm']:.4f} | {s['compact']['enc_ms_mean']:.2f} | {s['compact']['dec_ms_mean']:.2f} |")
+    if "js_dec_cpu_ms_mean" in s["compact"]:
+        print(f"\ncompact.js decode under Node: {s['compact']['js_dec_cpu_ms_mean']:.2f} ms CPU, "
+              f"{s['compact']['js_dec_wall_ms_mean']:.2f} ms wall per frame (mean over streams)")
     print("\nbytes per vertex per frame; entropy stage ms/frame (same residuals): "
           + ", ".join(f"{c} {s[c]['entropy_ms_mean']:.2f}" for c in ("compact", "zstd-3", "zstd-9")))
     return 0 if s["compact"]["all_within_tolerance"] else 1

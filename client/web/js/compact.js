@@ -10,7 +10,11 @@ const HEAD = 48; // 32-byte frame header + 16-byte compact sub-header
 async function inflateExactly(bytes, want) {
   const out = new Uint8Array(want);
   let got = 0;
-  const reader = new Blob([bytes]).stream().pipeThrough(new DecompressionStream('deflate')).getReader();
+  const ds = new DecompressionStream('deflate');
+  const writer = ds.writable.getWriter();
+  writer.write(bytes).catch(() => {});
+  writer.close().catch(() => {});
+  const reader = ds.readable.getReader();
   try {
     for (;;) {
       const { done, value } = await reader.read();
@@ -40,6 +44,7 @@ export class CompactDecoder {
     this.keyQ = null; // Int32Array(3V), axis-major: keyQ[a * V + i]
     this.baseStep = 0;
     this.base = null; // Int32Array(3V) rest cells, axis-major
+    this.scratch = null; // Int32Array(3V) reused for delta frames' cells
   }
 
   /** The frame's fields, or throws on a malformed frame (no payload decoding). */
@@ -102,22 +107,33 @@ export class CompactDecoder {
     }
     const n = 3 * V;
     const raw = await inflateExactly(f.payload, f.planes * n);
-    const q = new Int32Array(n);
+    const q = f.key || !this.scratch ? new Int32Array(n) : this.scratch; // a key's cells are kept
+    const P = f.planes;
     for (let a = 0; a < 3; a++) {
       let acc = 0;
-      for (let i = 0, j = a * V; i < V; i++, j++) {
-        let u = raw[j];
-        if (f.planes > 1) u |= raw[n + j] << 8;
-        if (f.planes > 2) u |= raw[2 * n + j] << 16;
-        if (f.planes > 3) u |= raw[3 * n + j] << 24;
-        acc = (acc + ((u >>> 1) ^ -(u & 1))) | 0;
-        q[j] = (ref[j] + acc) | 0;
+      const end = (a + 1) * V;
+      if (P === 1) {
+        for (let j = a * V; j < end; j++) {
+          const u = raw[j];
+          acc = (acc + ((u >>> 1) ^ -(u & 1))) | 0;
+          q[j] = (ref[j] + acc) | 0;
+        }
+      } else {
+        for (let j = a * V; j < end; j++) {
+          let u = raw[j] | (raw[n + j] << 8);
+          if (P > 2) u |= raw[2 * n + j] << 16;
+          if (P > 3) u |= raw[3 * n + j] << 24;
+          acc = (acc + ((u >>> 1) ^ -(u & 1))) | 0;
+          q[j] = (ref[j] + acc) | 0;
+        }
       }
     }
     if (f.key) {
       this.keyQ = q;
       this.keySeq = f.seq;
       this.keyStep = f.step;
+    } else {
+      this.scratch = q;
     }
     const pos = out && out.length === n ? out : new Float32Array(n);
     const T = f.transforms, s = f.step, g = this.groups;
