@@ -57,14 +57,18 @@ def streams(face, data: Path, seconds: float):
         yield ("fap:" + fap.stem, *render(load_animation(fap, face)))
     for wav in sorted((data / "speech").glob("*.wav")):
         yield ("speech:" + wav.stem, *render(load_animation(wav, face)))
-    syn = synthetic_take(face, n_markers=60, seconds=seconds, fps=60.0, seed=7, noise_mm=0.5, gaps=True)
+    syn = synthetic_take(
+        face, n_markers=60, seconds=seconds, fps=60.0, seed=7, noise_mm=0.5, gaps=True
+    )
     with tempfile.TemporaryDirectory() as tmp:
         take = write_take(syn.take, Path(tmp) / "take.trc")
         (Path(tmp) / "take.layout.json").write_text(json.dumps(syn.layout))
         yield ("mocap:synthetic", *render(load_animation(take, face)))
 
 
-def measure(name: str, fps: float, frames: np.ndarray, transforms: np.ndarray, face, tol_mm: float) -> dict:
+def measure(
+    name: str, fps: float, frames: np.ndarray, transforms: np.ndarray, face, tol_mm: float
+) -> dict:
     import zstandard
     from facecast.protocol import compact as cp
     from facecast.protocol import frames as fr
@@ -78,15 +82,32 @@ def measure(name: str, fps: float, frames: np.ndarray, transforms: np.ndarray, f
     t0 = clock()
     i16 = [fr.encode_vertices_i16(v, seq=i, t=0) for i, v in enumerate(frames)]
     t1 = clock()
-    err16 = max(float(np.linalg.norm(fr.decode(b).positions() - v, axis=1).max()) for b, v in zip(i16, frames))
-    res["i16"] = {"bpvf": sum(map(len, i16)) / n / nv, "max_err_mm": err16 * face.mm_per_unit,
-                  "enc_ms": (t1 - t0) / n * 1e3}
+    err16 = max(
+        float(np.linalg.norm(fr.decode(b).positions() - v, axis=1).max())
+        for b, v in zip(i16, frames)
+    )
+    res["i16"] = {
+        "bpvf": sum(map(len, i16)) / n / nv,
+        "max_err_mm": err16 * face.mm_per_unit,
+        "enc_ms": (t1 - t0) / n * 1e3,
+    }
 
-    for label, level, strategy in (("compact", 1, zlib.Z_RLE), ("compact-lz4", 4, zlib.Z_DEFAULT_STRATEGY)):
-        enc = cp.CompactEncoder(face.vertices, face.rigid_group, tolerance=tol, key_interval=key, level=level,
-                                strategy=strategy)
+    for label, level, strategy in (
+        ("compact", 1, zlib.Z_RLE),
+        ("compact-lz4", 4, zlib.Z_DEFAULT_STRATEGY),
+    ):
+        enc = cp.CompactEncoder(
+            face.vertices,
+            face.rigid_group,
+            tolerance=tol,
+            key_interval=key,
+            level=level,
+            strategy=strategy,
+        )
         t0 = clock()
-        wire = [enc.encode(v, tr, seq=i, t=i / fps) for i, (v, tr) in enumerate(zip(frames, transforms))]
+        wire = [
+            enc.encode(v, tr, seq=i, t=i / fps) for i, (v, tr) in enumerate(zip(frames, transforms))
+        ]
         enc_s = clock() - t0
         dec = cp.CompactDecoder(face.vertices, face.rigid_group)
         err, dec_s = 0.0, 0.0
@@ -96,10 +117,15 @@ def measure(name: str, fps: float, frames: np.ndarray, transforms: np.ndarray, f
             dec_s += clock() - t0
             err = max(err, float(np.linalg.norm(x.astype(np.float64) - v, axis=1).max()))
         keys = [b for b in wire if cp.parse_compact(b).key]
-        res[label] = {"bpvf": sum(map(len, wire)) / n / nv, "max_err_mm": err * face.mm_per_unit,
-                      "within_tolerance": err <= tol, "enc_ms": enc_s / n * 1e3, "dec_ms": dec_s / n * 1e3,
-                      "key_bpv": sum(map(len, keys)) / len(keys) / nv,
-                      "delta_bpv": (sum(map(len, wire)) - sum(map(len, keys))) / max(1, n - len(keys)) / nv}
+        res[label] = {
+            "bpvf": sum(map(len, wire)) / n / nv,
+            "max_err_mm": err * face.mm_per_unit,
+            "within_tolerance": err <= tol,
+            "enc_ms": enc_s / n * 1e3,
+            "dec_ms": dec_s / n * 1e3,
+            "key_bpv": sum(map(len, keys)) / len(keys) / nv,
+            "delta_bpv": (sum(map(len, wire)) - sum(map(len, keys))) / max(1, n - len(keys)) / nv,
+        }
         if label == "compact":
             main = wire
 
@@ -125,8 +151,11 @@ def measure(name: str, fps: float, frames: np.ndarray, transforms: np.ndarray, f
         for o in out:
             d.decompress(o)
         t2 = clock()
-        res[label] = {"bpvf": (sum(heads) + sum(map(len, out))) / n / nv, "entropy_ms": (t1 - t0) / n * 1e3,
-                      "entropy_dec_ms": (t2 - t1) / n * 1e3}
+        res[label] = {
+            "bpvf": (sum(heads) + sum(map(len, out))) / n / nv,
+            "entropy_ms": (t1 - t0) / n * 1e3,
+            "entropy_dec_ms": (t2 - t1) / n * 1e3,
+        }
     del zl
     res["compact"]["js_dec"] = js_decode_ms(face, main)
     return res
@@ -170,7 +199,13 @@ def js_decode_ms(face, wire: list[bytes]) -> dict | None:
         (d / "groups.bin").write_bytes(np.ascontiguousarray(face.rigid_group, np.uint8).tobytes())
         (d / "frames.bin").write_bytes(b"".join(wire))
         (d / "sizes.json").write_text(json.dumps([len(b) for b in wire]))
-        r = subprocess.run([node, str(d / "run.mjs"), str(d)], capture_output=True, text=True, timeout=600)
+        r = subprocess.run(
+            [node, str(d / "run.mjs"), str(d)],
+            capture_output=True,
+            text=True,
+            timeout=600,
+            check=False,
+        )
         return json.loads(r.stdout) if r.returncode == 0 else None
 
 
@@ -198,9 +233,12 @@ def main(argv: list[str]) -> int:
             r = measure(name, fps, frames, tr, face, a.tolerance_mm)
             r["face"] = spec
             rows.append(r)
-            print(f"{spec:8s} {name:22s} compact {r['compact']['bpvf']:.3f} B/v/f, "
-                  f"err {r['compact']['max_err_mm']:.4f} mm, enc {r['compact']['enc_ms']:.2f} ms, "
-                  f"dec {r['compact']['dec_ms']:.2f} ms", file=sys.stderr)
+            print(
+                f"{spec:8s} {name:22s} compact {r['compact']['bpvf']:.3f} B/v/f, "
+                f"err {r['compact']['max_err_mm']:.4f} mm, enc {r['compact']['enc_ms']:.2f} ms, "
+                f"dec {r['compact']['dec_ms']:.2f} ms",
+                file=sys.stderr,
+            )
     summary = {c: {"bpvf_mean": float(np.mean([r[c]["bpvf"] for r in rows]))} for c in CODERS}
     for c in ("i16", "compact", "compact-lz4"):
         summary[c]["enc_ms_mean"] = float(np.mean([r[c]["enc_ms"] for r in rows]))
@@ -214,28 +252,48 @@ def main(argv: list[str]) -> int:
         summary["compact"]["js_dec_wall_ms_mean"] = float(np.mean([j["wall_ms"] for j in js]))
     for c in ("compact", "zstd-3", "zstd-9"):
         summary[c]["entropy_ms_mean"] = float(np.mean([r[c]["entropy_ms"] for r in rows]))
-    result = {"tolerance_mm": a.tolerance_mm, "loadavg_start": load0, "loadavg_end": os.getloadavg(),
-              "cpus": os.cpu_count(), "streams": rows, "summary": summary}
+    result = {
+        "tolerance_mm": a.tolerance_mm,
+        "loadavg_start": load0,
+        "loadavg_end": os.getloadavg(),
+        "cpus": os.cpu_count(),
+        "streams": rows,
+        "summary": summary,
+    }
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
 
-    print(f"\nVertex streams at {a.tolerance_mm} mm, {len(rows)} streams; load average "
-          f"{load0[0]:.1f} -> {result['loadavg_end'][0]:.1f} on {os.cpu_count()} CPUs\n")
-    print("| face | stream | fps | i16 | compact | compact lz77-4 | zstd-3 | zstd-9 "
-          "| max err mm | enc ms | dec ms |")
+    print(
+        f"\nVertex streams at {a.tolerance_mm} mm, {len(rows)} streams; load average "
+        f"{load0[0]:.1f} -> {result['loadavg_end'][0]:.1f} on {os.cpu_count()} CPUs\n"
+    )
+    print(
+        "| face | stream | fps | i16 | compact | compact lz77-4 | zstd-3 | zstd-9 "
+        "| max err mm | enc ms | dec ms |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['face']} | {r['stream']} | {r['fps']:g} | " + " | ".join(f"{r[c]['bpvf']:.3f}" for c in CODERS)
-              + f" | {r['compact']['max_err_mm']:.4f} | {r['compact']['enc_ms']:.2f} | {r['compact']['dec_ms']:.2f} |")
+        print(
+            f"| {r['face']} | {r['stream']} | {r['fps']:g} | "
+            + " | ".join(f"{r[c]['bpvf']:.3f}" for c in CODERS)
+            + f" | {r['compact']['max_err_mm']:.4f} | {r['compact']['enc_ms']:.2f} | {r['compact']['dec_ms']:.2f} |"
+        )
     s = summary
-    print("| **mean** | | | " + " | ".join(f"**{s[c]['bpvf_mean']:.3f}**" for c in CODERS)
-          + f" | {s['compact']['max_err_mm']:.4f} | {s['compact']['enc_ms_mean']:.2f} | {s['compact']['dec_ms_mean']:.2f} |")
+    print(
+        "| **mean** | | | "
+        + " | ".join(f"**{s[c]['bpvf_mean']:.3f}**" for c in CODERS)
+        + f" | {s['compact']['max_err_mm']:.4f} | {s['compact']['enc_ms_mean']:.2f} | {s['compact']['dec_ms_mean']:.2f} |"
+    )
     if "js_dec_cpu_ms_mean" in s["compact"]:
-        print(f"\ncompact.js decode under Node: {s['compact']['js_dec_cpu_ms_mean']:.2f} ms CPU, "
-              f"{s['compact']['js_dec_wall_ms_mean']:.2f} ms wall per frame (mean over streams)")
-    print("\nbytes per vertex per frame; entropy stage ms/frame (same residuals): "
-          + ", ".join(f"{c} {s[c]['entropy_ms_mean']:.2f}" for c in ("compact", "zstd-3", "zstd-9")))
+        print(
+            f"\ncompact.js decode under Node: {s['compact']['js_dec_cpu_ms_mean']:.2f} ms CPU, "
+            f"{s['compact']['js_dec_wall_ms_mean']:.2f} ms wall per frame (mean over streams)"
+        )
+    print(
+        "\nbytes per vertex per frame; entropy stage ms/frame (same residuals): "
+        + ", ".join(f"{c} {s[c]['entropy_ms_mean']:.2f}" for c in ("compact", "zstd-3", "zstd-9"))
+    )
     return 0 if s["compact"]["all_within_tolerance"] else 1
 
 

@@ -36,12 +36,12 @@ from .frames import HEADER_SIZE, MAX_VERTICES, Header, Kind, parse_header
 __all__ = [
     "KEY",
     "MAX_GROUPS",
-    "CompactEncoder",
     "CompactDecoder",
+    "CompactEncoder",
     "CompactFrame",
-    "step_for_tolerance",
     "grid_base",
     "parse_compact",
+    "step_for_tolerance",
 ]
 
 #: Header flag bit of a key frame.
@@ -69,7 +69,9 @@ def grid_base(rest: np.ndarray, step: float) -> np.ndarray:
     """``(V, 3) int32`` cells of the rest vertices: ``floor(rest / step + 0.5)`` in float64."""
     b = np.floor(np.asarray(rest, np.float32).astype(np.float64) / float(np.float32(step)) + 0.5)
     if b.size and np.abs(b).max() >= _MAX_CELL:
-        raise ValueError("the rest mesh spans more than 2^23 grid steps: the tolerance is too small")
+        raise ValueError(
+            "the rest mesh spans more than 2^23 grid steps: the tolerance is too small"
+        )
     return b.astype(np.int32)
 
 
@@ -129,10 +131,14 @@ def parse_compact(data: bytes | bytearray | memoryview) -> CompactFrame:
     if h.kind is not Kind.VERTICES_COMPACT:
         raise FrameError(f"expected a VERTICES_COMPACT frame, got {h.kind.name}", where="byte 5")
     if h.count > MAX_VERTICES:
-        raise FrameError(f"count {h.count} is over the limit of {MAX_VERTICES}", where="bytes 12-15")
+        raise FrameError(
+            f"count {h.count} is over the limit of {MAX_VERTICES}", where="bytes 12-15"
+        )
     if len(data) < HEADER_SIZE + SUB_SIZE:
-        raise FrameError(f"compact frame of {len(data)} bytes is shorter than its "
-                         f"{HEADER_SIZE + SUB_SIZE}-byte headers")
+        raise FrameError(
+            f"compact frame of {len(data)} bytes is shorter than its "
+            f"{HEADER_SIZE + SUB_SIZE}-byte headers"
+        )
     ref, step, g, planes, reserved, zlen = _SUB.unpack_from(data, HEADER_SIZE)
     if not (math.isfinite(step) and 0 < step <= MAX_STEP):
         raise FrameError(f"grid step must be in (0, {MAX_STEP:g}], got {step}", where="bytes 36-39")
@@ -143,18 +149,24 @@ def parse_compact(data: bytes | bytearray | memoryview) -> CompactFrame:
     if reserved:
         raise FrameError("reserved bytes must be 0", where="bytes 42-43")
     if h.flags & KEY and ref != h.seq:
-        raise FrameError(f"a key frame must name itself: ref {ref} != seq {h.seq}", where="bytes 32-35")
+        raise FrameError(
+            f"a key frame must name itself: ref {ref} != seq {h.seq}", where="bytes 32-35"
+        )
     size = HEADER_SIZE + SUB_SIZE + 48 * g + zlen
     if len(data) != size:
         what = "truncated" if len(data) < size else "has trailing bytes"
-        raise FrameError(f"compact frame with {g} transforms and {zlen} payload bytes must be "
-                         f"{size} bytes, got {len(data)} ({what})")
+        raise FrameError(
+            f"compact frame with {g} transforms and {zlen} payload bytes must be "
+            f"{size} bytes, got {len(data)} ({what})"
+        )
     o = HEADER_SIZE + SUB_SIZE
     tr = np.frombuffer(data, "<f4", 12 * g, o).reshape(g, 3, 4)
     if not (np.isfinite(tr).all() and np.abs(tr[:, :, :3]).max() <= 1.001):
-        raise FrameError("transforms must be finite with rotation entries in [-1.001, 1.001]",
-                         where=f"bytes {o}-{o + 48 * g - 1}")
-    return CompactFrame(h, ref, step, tr, planes, memoryview(data)[o + 48 * g:])
+        raise FrameError(
+            "transforms must be finite with rotation entries in [-1.001, 1.001]",
+            where=f"bytes {o}-{o + 48 * g - 1}",
+        )
+    return CompactFrame(h, ref, step, tr, planes, memoryview(data)[o + 48 * g :])
 
 
 class CompactEncoder:
@@ -169,9 +181,17 @@ class CompactEncoder:
         level, strategy: zlib's (decoders do not care).
     """
 
-    def __init__(self, rest: np.ndarray, groups: np.ndarray, *, tolerance: float,
-                 key_interval: int = 15, key_seconds: float | None = None, level: int = 1,
-                 strategy: int = zlib.Z_RLE) -> None:
+    def __init__(
+        self,
+        rest: np.ndarray,
+        groups: np.ndarray,
+        *,
+        tolerance: float,
+        key_interval: int = 15,
+        key_seconds: float | None = None,
+        level: int = 1,
+        strategy: int = zlib.Z_RLE,
+    ) -> None:
         self.rest = np.ascontiguousarray(rest, np.float32)
         if self.rest.ndim != 2 or self.rest.shape[1] != 3:
             raise ValueError(f"rest must be (V, 3), got {self.rest.shape}")
@@ -192,12 +212,19 @@ class CompactEncoder:
         self._spans = _group_spans(self.groups, self.n_groups)
         self._keep2 = np.float32((self.tolerance * (1 - 2.0**-8) / self.step) ** 2)
         n = len(self.rest)
-        self._buf = {"vt": np.empty((3, n), np.float32), "local": np.empty((3, n), np.float32),
-                     "qf": np.empty((3, n), np.float32), "q": np.empty((3, n), np.int32),
-                     "r": np.empty((3, n), np.int32), "dd": np.empty((3, n), np.int32),
-                     "tmp": np.empty(3 * n, np.int32), "fd": np.empty((3, n), np.float32),
-                     "dist": np.empty(n, np.float32), "keep": np.empty(n, bool),
-                     "u8": np.empty(3 * n, np.uint8)}
+        self._buf = {
+            "vt": np.empty((3, n), np.float32),
+            "local": np.empty((3, n), np.float32),
+            "qf": np.empty((3, n), np.float32),
+            "q": np.empty((3, n), np.int32),
+            "r": np.empty((3, n), np.int32),
+            "dd": np.empty((3, n), np.int32),
+            "tmp": np.empty(3 * n, np.int32),
+            "fd": np.empty((3, n), np.float32),
+            "dist": np.empty(n, np.float32),
+            "keep": np.empty(n, bool),
+            "u8": np.empty(3 * n, np.uint8),
+        }
         self._key_q: np.ndarray | None = None
         self._key_seq = 0
         self._since_key = 0
@@ -221,8 +248,16 @@ class CompactEncoder:
                 out[:, sp] = m[g] @ vt[:, sp] - c[g][:, None]
         return out
 
-    def encode(self, vertices: np.ndarray, transforms: np.ndarray | None = None, *, seq: int,
-               t: float, wall: float = 0.0, key: bool = False) -> bytes:
+    def encode(
+        self,
+        vertices: np.ndarray,
+        transforms: np.ndarray | None = None,
+        *,
+        seq: int,
+        t: float,
+        wall: float = 0.0,
+        key: bool = False,
+    ) -> bytes:
         """One frame: ``vertices (V, 3)`` face units, ``transforms (G, 3, 4)`` (None = identity)
         the rigid pose of each group (the better they match the motion the smaller the frame)."""
         v = np.asarray(vertices, np.float32)
@@ -245,11 +280,18 @@ class CompactEncoder:
         np.rint(local, out=qf)
         lo, hi = qf.min(initial=0), qf.max(initial=0)
         if not (-_MAX_CELL < lo and hi < _MAX_CELL):  # also refuses NaN
-            raise ValueError("vertices must be finite and within 2^23 grid steps of their group's origin")
+            raise ValueError(
+                "vertices must be finite and within 2^23 grid steps of their group's origin"
+            )
         np.copyto(q, qf, casting="unsafe")
         seq = int(seq) & 0xFFFFFFFF
-        is_key = (key or self._want_key or self._key_q is None or self._since_key + 1 >= self.key_interval
-                  or (self.key_seconds is not None and not 0 <= t - self._key_t < self.key_seconds))
+        is_key = (
+            key
+            or self._want_key
+            or self._key_q is None
+            or self._since_key + 1 >= self.key_interval
+            or (self.key_seconds is not None and not 0 <= t - self._key_t < self.key_seconds)
+        )
         ref_q = self.base_t if is_key else self._key_q
         np.subtract(q, ref_q, out=r)  # (3, V): axis-major
         # Keep the reference cell where it is within the tolerance too: small motions cost nothing.
@@ -287,7 +329,9 @@ class CompactEncoder:
             self._key_t = float(t)
         else:
             self._since_key += 1
-        hdr = Header(Kind.VERTICES_COMPACT, seq, len(v), float(t), float(wall), KEY if is_key else 0)
+        hdr = Header(
+            Kind.VERTICES_COMPACT, seq, len(v), float(t), float(wall), KEY if is_key else 0
+        )
         sub = _SUB.pack(self._key_seq, self.step, g, planes, 0, len(z))
         return b"".join((hdr.serialize(), sub, tr.astype("<f4").tobytes(), z))
 
@@ -320,11 +364,15 @@ class CompactDecoder:
         f = parse_compact(data)
         n = len(self.rest)
         if f.header.count != n:
-            raise FrameError(f"frame has {f.header.count} vertices, the face has {n}", where="bytes 12-15")
+            raise FrameError(
+                f"frame has {f.header.count} vertices, the face has {n}", where="bytes 12-15"
+            )
         g = f.transforms.shape[0]
         if g < self.n_groups:
-            raise FrameError(f"frame has {g} transforms, the face has {self.n_groups} rigid groups",
-                             where="byte 40")
+            raise FrameError(
+                f"frame has {g} transforms, the face has {self.n_groups} rigid groups",
+                where="byte 40",
+            )
         if f.key:
             if self._base is None or self._base[0] != f.step:
                 try:
@@ -335,7 +383,9 @@ class CompactDecoder:
         elif self._key is None or self._key[0] != f.ref:
             return None
         elif self._key[1] != f.step:
-            raise FrameError("a delta frame's grid step differs from its key frame's", where="bytes 36-39")
+            raise FrameError(
+                "a delta frame's grid step differs from its key frame's", where="bytes 36-39"
+            )
         else:
             ref = self._key[2]
         want = 3 * n * f.planes
@@ -345,8 +395,11 @@ class CompactDecoder:
         except zlib.error as e:
             raise FrameError(f"payload is not a valid zlib stream: {e}", where="payload") from None
         if len(raw) != want or not d.eof or d.unconsumed_tail or d.unused_data:
-            raise FrameError(f"payload must inflate to exactly {want} bytes ({f.planes} planes of "
-                             f"3 x {n} values) and end there", where="payload")
+            raise FrameError(
+                f"payload must inflate to exactly {want} bytes ({f.planes} planes of "
+                f"3 x {n} values) and end there",
+                where="payload",
+            )
         dd = _unzigzag_planes(raw, f.planes, 3 * n).reshape(3, n)
         q = np.cumsum(dd, axis=1, dtype=np.int32)  # wraps modulo 2^32, as specified
         q += ref

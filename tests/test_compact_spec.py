@@ -10,7 +10,6 @@ import zlib
 
 import numpy as np
 from facecast.protocol.compact import CompactEncoder
-
 from test_protocol_compact import synthetic_stream
 
 
@@ -22,7 +21,7 @@ class SpecDecoder:
         self.key_seq, self.key_q = None, None
 
     def decode(self, msg: bytes):
-        magic, version, kind, flags, seq, count, t, wall = struct.unpack_from("<4sBBHIIdd", msg, 0)
+        magic, version, kind, flags, seq, count, t, _wall = struct.unpack_from("<4sBBHIIdd", msg, 0)
         assert (magic, version, kind) == (b"FCST", 1, 7) and flags in (0, 1)
         V = count
         assert V == len(self.rest)
@@ -39,7 +38,7 @@ class SpecDecoder:
         else:
             base = self.key_q
         z = zlib.decompressobj()
-        raw = z.decompress(msg[48 + 48 * G:], P * 3 * V)
+        raw = z.decompress(msg[48 + 48 * G :], P * 3 * V)
         assert len(raw) == P * 3 * V and z.eof and not z.unused_data
         n = 3 * V
         q = [[0, 0, 0] for _ in range(V)]
@@ -57,18 +56,34 @@ class SpecDecoder:
         for i in range(V):
             m = transforms[self.group[i]]
             p = [q[i][c] * step for c in range(3)]
-            out.append([sum(m[4 * b + c] * p[c] for c in range(3)) + m[4 * b + 3] for b in range(3)])
+            out.append(
+                [sum(m[4 * b + c] * p[c] for c in range(3)) + m[4 * b + 3] for b in range(3)]
+            )
         return seq, t, out
 
 
 def test_a_decoder_written_from_the_document_decodes_a_recorded_stream():
     rest, groups, frames, transforms = synthetic_stream(n_vertices=400, n_frames=30, seed=5)
     enc = CompactEncoder(rest, groups, tolerance=0.1, key_interval=6)
-    recorded = [enc.encode(v, tr, seq=1000 + i, t=i / 60) for i, (v, tr) in enumerate(zip(frames, transforms))]
+    recorded = [
+        enc.encode(v, tr, seq=1000 + i, t=i / 60)
+        for i, (v, tr) in enumerate(zip(frames, transforms))
+    ]
     dec = SpecDecoder([tuple(map(float, r)) for r in rest], [int(g) for g in groups])
     shown = 0
     for i, msg in enumerate(recorded):
-        if i in (2, 3, 7, 13, 14, 15, 16, 17, 18, 19):  # a slow viewer drops these (13-19: a key too)
+        if i in (
+            2,
+            3,
+            7,
+            13,
+            14,
+            15,
+            16,
+            17,
+            18,
+            19,
+        ):  # a slow viewer drops these (13-19: a key too)
             continue
         out = dec.decode(msg)
         if out is None:

@@ -21,8 +21,16 @@ FACE = "default:2k"
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    s = RunningServer(tmp_path_factory.mktemp("live-compact"), "--face", FACE, "--backend", "numpy",
-                      "--workers", "0", env={"FACECAST_MAX_PRODUCER_FPS": "150"}).start()
+    s = RunningServer(
+        tmp_path_factory.mktemp("live-compact"),
+        "--face",
+        FACE,
+        "--backend",
+        "numpy",
+        "--workers",
+        "0",
+        env={"FACECAST_MAX_PRODUCER_FPS": "150"},
+    ).start()
     yield s
     s.stop()
 
@@ -55,15 +63,26 @@ def test_compact_viewers_fast_slow_and_late_see_only_correct_faces(live, joy):
         ref, fast, slow, late = {}, {}, {}, {}
         evs = [asyncio.Event() for _ in range(3)]
         release = asyncio.Event()
-        tasks = [asyncio.create_task(_collect(live.url, s.id, s.viewer_token, enc, ev, out, slow_until=rel))
-                 for enc, ev, out, rel in (("f32", evs[0], ref, None), ("compact", evs[1], fast, None),
-                                           ("compact", evs[2], slow, release))]
+        tasks = [
+            asyncio.create_task(
+                _collect(live.url, s.id, s.viewer_token, enc, ev, out, slow_until=rel)
+            )
+            for enc, ev, out, rel in (
+                ("f32", evs[0], ref, None),
+                ("compact", evs[1], fast, None),
+                ("compact", evs[2], slow, release),
+            )
+        ]
         await asyncio.gather(*(e.wait() for e in evs))
         late_started = asyncio.Event()
         async with produce(live.url, s.id, s.producer_token) as p:
             streaming = asyncio.create_task(stream_fap(p, joy, speed=2.0))
             await asyncio.sleep(0.8)
-            tasks.append(asyncio.create_task(_collect(live.url, s.id, s.viewer_token, "compact", late_started, late)))
+            tasks.append(
+                asyncio.create_task(
+                    _collect(live.url, s.id, s.viewer_token, "compact", late_started, late)
+                )
+            )
             await asyncio.sleep(0.5)
             release.set()
             await streaming
@@ -100,9 +119,24 @@ def test_cli_watch_saves_the_decoded_frames(live, joy, tmp_path):
         async with SessionAdmin(live.url, live.admin_key) as admin:
             s = await admin.create(face=FACE, input="fap", fps=60.0)
         out = tmp_path / "rec.npz"
-        cmd = [sys.executable, "-m", "facecast.server.cli", "watch", "--url", live.url, "--session", s.id,
-               "--token", s.viewer_token, "--json", "--save", str(out)]
-        proc = await asyncio.create_subprocess_exec(*cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        cmd = [
+            sys.executable,
+            "-m",
+            "facecast.server.cli",
+            "watch",
+            "--url",
+            live.url,
+            "--session",
+            s.id,
+            "--token",
+            s.viewer_token,
+            "--json",
+            "--save",
+            str(out),
+        ]
+        proc = await asyncio.create_subprocess_exec(
+            *cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        )
         await asyncio.sleep(3.0)  # the CLI connects (imports take a while on a loaded machine)
         async with produce(live.url, s.id, s.producer_token) as p:
             await stream_fap(p, joy, speed=3.0)

@@ -17,26 +17,41 @@ from hypothesis import strategies as st
 
 
 def _rot(ax: float, ay: float, az: float) -> np.ndarray:
-    cx, sx, cy, sy, cz, sz = math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay), math.cos(az), math.sin(az)
+    cx, sx, cy, sy, cz, sz = (
+        math.cos(ax),
+        math.sin(ax),
+        math.cos(ay),
+        math.sin(ay),
+        math.cos(az),
+        math.sin(az),
+    )
     rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
     ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
     rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
     return rz @ ry @ rx
 
 
-def synthetic_stream(n_vertices: int = 3000, n_frames: int = 40, seed: int = 1, scale: float = 90.0):
+def synthetic_stream(
+    n_vertices: int = 3000, n_frames: int = 40, seed: int = 1, scale: float = 90.0
+):
     """A head-like stream: ``rest (V, 3)``, ``groups (V,)``, ``frames (T, V, 3) float32``,
     ``transforms (T, 4, 3, 4) float32`` (head moving, a jaw and two eyes turning, the skin of the
     lower face deforming smoothly plus 0.02-unit noise)."""
     rng = np.random.default_rng(seed)
     d = rng.standard_normal((n_vertices, 3))
-    rest = (d / np.linalg.norm(d, axis=1, keepdims=True) * [0.7, 1.0, 0.8] * scale).astype(np.float32)
+    rest = (d / np.linalg.norm(d, axis=1, keepdims=True) * [0.7, 1.0, 0.8] * scale).astype(
+        np.float32
+    )
     order = np.lexsort((rest[:, 0], np.round(rest[:, 1] / (scale / 20))))  # rows, like a scan
     rest = rest[order]
     groups = np.zeros(n_vertices, np.uint8)
     groups[(rest[:, 1] < -0.6 * scale) & (rest[:, 2] > 0)] = 1
-    groups[(np.linalg.norm(rest - [0.3 * scale, 0.3 * scale, 0.7 * scale], axis=1) < 0.2 * scale)] = 2
-    groups[(np.linalg.norm(rest - [-0.3 * scale, 0.3 * scale, 0.7 * scale], axis=1) < 0.2 * scale)] = 3
+    groups[
+        (np.linalg.norm(rest - [0.3 * scale, 0.3 * scale, 0.7 * scale], axis=1) < 0.2 * scale)
+    ] = 2
+    groups[
+        (np.linalg.norm(rest - [-0.3 * scale, 0.3 * scale, 0.7 * scale], axis=1) < 0.2 * scale)
+    ] = 3
     frames, transforms = [], []
     lower = np.clip(-rest[:, 1] / scale, 0, 1)[:, None]
     for i in range(n_frames):
@@ -46,8 +61,11 @@ def synthetic_stream(n_vertices: int = 3000, n_frames: int = 40, seed: int = 1, 
         tr = np.zeros((4, 3, 4))
         head = _rot(0.1 * math.sin(ph), 0.2 * math.sin(0.7 * ph), 0.05 * math.cos(ph))
         tr[0, :, :3], tr[0, :, 3] = head, [2 * math.sin(ph), 1.0, -3 * math.cos(ph)]
-        for g, r in ((1, _rot(0.15 * (1 + math.sin(ph)), 0, 0)), (2, _rot(0, 0.3 * math.sin(2 * ph), 0)),
-                     (3, _rot(0, 0.3 * math.sin(2 * ph), 0))):
+        for g, r in (
+            (1, _rot(0.15 * (1 + math.sin(ph)), 0, 0)),
+            (2, _rot(0, 0.3 * math.sin(2 * ph), 0)),
+            (3, _rot(0, 0.3 * math.sin(2 * ph), 0)),
+        ):
             pivot = rest[groups == g].mean(axis=0) if (groups == g).any() else np.zeros(3)
             local = np.zeros((3, 4))
             local[:, :3], local[:, 3] = r, pivot - r @ pivot
@@ -90,8 +108,10 @@ def test_rigid_transforms_make_frames_small(stream):
     sizes = {}
     for name, use in (("rigid", True), ("world", False)):
         enc = cp.CompactEncoder(rest, groups, tolerance=0.1, key_interval=10)
-        sizes[name] = sum(len(enc.encode(v, tr if use else None, seq=i, t=0))
-                          for i, (v, tr) in enumerate(zip(frames, transforms)))
+        sizes[name] = sum(
+            len(enc.encode(v, tr if use else None, seq=i, t=0))
+            for i, (v, tr) in enumerate(zip(frames, transforms))
+        )
     assert sizes["rigid"] < 0.5 * sizes["world"]
     assert sizes["rigid"] / len(frames) / len(rest) < 1.0  # int16 takes 6 bytes per vertex
 
@@ -162,7 +182,7 @@ def test_layout_is_as_documented(stream):
     assert (ref, g, reserved) == (9, 4, 0) and len(b) == 48 + 48 * g + zlen
     assert step == np.float32(2 * 0.1 / math.sqrt(3) * (1 - 2**-8))
     assert np.array_equal(np.frombuffer(b, "<f4", 48, 48).reshape(4, 3, 4), transforms[0])
-    assert len(zlib.decompress(b[48 + 48 * g:])) == planes * 3 * len(rest)
+    assert len(zlib.decompress(b[48 + 48 * g :])) == planes * 3 * len(rest)
     with pytest.raises(FrameError, match="CompactDecoder"):
         fr.decode(b)  # stateless decode refuses them with a pointer
 
@@ -192,8 +212,14 @@ def wire(stream):
     rest, groups, frames, transforms = stream
     small = slice(0, 300)
     enc = cp.CompactEncoder(rest[small], groups[small], tolerance=0.1, key_interval=3)
-    return rest[small], groups[small], [enc.encode(v[small], tr, seq=i, t=i)
-                                         for i, (v, tr) in enumerate(zip(frames[:6], transforms[:6]))]
+    return (
+        rest[small],
+        groups[small],
+        [
+            enc.encode(v[small], tr, seq=i, t=i)
+            for i, (v, tr) in enumerate(zip(frames[:6], transforms[:6]))
+        ],
+    )
 
 
 def _decoder_after_key(wire):
@@ -204,7 +230,7 @@ def _decoder_after_key(wire):
 
 
 def test_every_truncation_and_extension_is_refused(wire):
-    rest, groups, frames = wire
+    frames = wire[2]
     for b in (frames[0], frames[1]):
         for n in range(len(b)):
             with pytest.raises(FrameError):
@@ -215,26 +241,29 @@ def test_every_truncation_and_extension_is_refused(wire):
 
 def _with(b: bytes, offset: int, value: bytes) -> bytes:
     a = bytearray(b)
-    a[offset:offset + len(value)] = value
+    a[offset : offset + len(value)] = value
     return bytes(a)
 
 
-@pytest.mark.parametrize("offset,value,match", [
-    (6, b"\x02\x00", "flag"),
-    (12, struct.pack("<I", 299), "vertices"),
-    (32, struct.pack("<I", 1), "name itself"),
-    (36, struct.pack("<f", 0.0), "step"),
-    (36, struct.pack("<f", float("nan")), "step"),
-    (36, struct.pack("<f", 1e30), "step"),
-    (40, b"\x00", "transform"),
-    (40, b"\x03", "transforms|bytes"),
-    (41, b"\x00", "planes"),
-    (41, b"\x05", "planes"),
-    (42, b"\x01", "reserved"),
-    (44, struct.pack("<I", 1), "bytes"),
-    (48, struct.pack("<f", float("inf")), "finite"),
-    (48, struct.pack("<f", 3.0), "rotation"),
-])
+@pytest.mark.parametrize(
+    "offset,value,match",
+    [
+        (6, b"\x02\x00", "flag"),
+        (12, struct.pack("<I", 299), "vertices"),
+        (32, struct.pack("<I", 1), "name itself"),
+        (36, struct.pack("<f", 0.0), "step"),
+        (36, struct.pack("<f", float("nan")), "step"),
+        (36, struct.pack("<f", 1e30), "step"),
+        (40, b"\x00", "transform"),
+        (40, b"\x03", "transforms|bytes"),
+        (41, b"\x00", "planes"),
+        (41, b"\x05", "planes"),
+        (42, b"\x01", "reserved"),
+        (44, struct.pack("<I", 1), "bytes"),
+        (48, struct.pack("<f", float("inf")), "finite"),
+        (48, struct.pack("<f", 3.0), "rotation"),
+    ],
+)
 def test_bad_fields_are_named(wire, offset, value, match):
     with pytest.raises(FrameError, match=match):
         _decoder_after_key(wire).decode(_with(wire[2][0], offset, value))
@@ -242,7 +271,7 @@ def test_bad_fields_are_named(wire, offset, value, match):
 
 def _rebuild(b: bytes, payload: bytes, planes: int | None = None) -> bytes:
     g = b[40]
-    head = bytearray(b[:48 + 48 * g])
+    head = bytearray(b[: 48 + 48 * g])
     head[44:48] = struct.pack("<I", len(payload))
     if planes is not None:
         head[41] = planes
@@ -253,7 +282,7 @@ def test_payloads_that_inflate_wrongly_are_refused(wire):
     rest, groups, frames = wire
     b, n = frames[0], len(rest)
     g = b[40]
-    raw = zlib.decompress(b[48 + 48 * g:])
+    raw = zlib.decompress(b[48 + 48 * g :])
     for payload, match in (
         (b"not zlib at all", "zlib"),
         (zlib.compress(raw[:-1]), "exactly"),
@@ -289,7 +318,7 @@ def test_wrong_face_is_refused(wire):
 @settings(max_examples=300, deadline=None)
 @given(st.integers(0, 5), st.data())
 def test_mutated_frames_decode_or_raise_frame_error(wire, i, data):
-    rest, groups, frames = wire
+    rest, _, frames = wire
     b = bytearray(frames[i])
     for _ in range(data.draw(st.integers(1, 4))):
         pos = data.draw(st.integers(0, len(b) - 1))
@@ -321,7 +350,11 @@ def test_real_fap_stream_round_trips_within_0_1_mm(data_dir, face_spec):
     from facecast.server.faces import load_face
     from facecast.server.pipeline import Animator
 
-    spec = "default:2k" if face_spec == "default" else str(data_dir / "ict-facekit/generic_neutral_mesh.obj")
+    spec = (
+        "default:2k"
+        if face_spec == "default"
+        else str(data_dir / "ict-facekit/generic_neutral_mesh.obj")
+    )
     if face_spec == "ict" and not (data_dir / "ict-facekit/generic_neutral_mesh.obj").is_file():
         pytest.skip("ICT FaceKit is not in ../shared/data")
     face = load_face(spec)

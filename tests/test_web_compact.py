@@ -49,7 +49,9 @@ def node() -> str:
     return exe
 
 
-def _run(node: str, tmp: Path, rest, groups, frames: dict[str, bytes], order: list[str]) -> list[dict]:
+def _run(
+    node: str, tmp: Path, rest, groups, frames: dict[str, bytes], order: list[str]
+) -> list[dict]:
     shutil.copy(JS, tmp / "compact.mjs")
     (tmp / "run.mjs").write_text(RUNNER)
     (tmp / "rest.bin").write_bytes(np.ascontiguousarray(rest, "<f4").tobytes())
@@ -64,11 +66,18 @@ def _run(node: str, tmp: Path, rest, groups, frames: dict[str, bytes], order: li
 def test_js_decodes_what_python_decodes(node, tmp_path):
     rest, groups, frames, transforms = synthetic_stream(n_vertices=2000, n_frames=30, seed=3)
     enc = CompactEncoder(rest, groups, tolerance=0.1, key_interval=5)
-    wire = {f"f{i:03d}.bin": enc.encode(v, tr, seq=i, t=i / 60) for i, (v, tr) in enumerate(zip(frames, transforms))}
-    order = [n for i, n in enumerate(sorted(wire)) if i not in (3, 9, 10, 11, 19)]  # skips and a missed key (10)
+    wire = {
+        f"f{i:03d}.bin": enc.encode(v, tr, seq=i, t=i / 60)
+        for i, (v, tr) in enumerate(zip(frames, transforms))
+    }
+    order = [
+        n for i, n in enumerate(sorted(wire)) if i not in (3, 9, 10, 11, 19)
+    ]  # skips and a missed key (10)
     results = _run(node, tmp_path, rest, groups, wire, order)
     py = CompactDecoder(rest, groups)
-    positions = np.frombuffer((tmp_path / "positions.bin").read_bytes(), "<f4").reshape(-1, len(rest), 3)
+    positions = np.frombuffer((tmp_path / "positions.bin").read_bytes(), "<f4").reshape(
+        -1, len(rest), 3
+    )
     k = 0
     for name, res in zip(order, results):
         expect = py.decode(wire[name])
@@ -90,10 +99,10 @@ def test_js_refuses_malformed_frames(node, tmp_path):
     enc = CompactEncoder(rest, groups, tolerance=0.1)
     key = enc.encode(frames[0], transforms[0], seq=0, t=0)
     g, planes = key[40], key[41]
-    raw = zlib.decompress(key[48 + 48 * g:])
+    raw = zlib.decompress(key[48 + 48 * g :])
 
     def rebuild(payload: bytes) -> bytes:
-        head = bytearray(key[:48 + 48 * g])
+        head = bytearray(key[: 48 + 48 * g])
         head[44:48] = struct.pack("<I", len(payload))
         return bytes(head) + payload
 
