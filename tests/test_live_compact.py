@@ -177,3 +177,26 @@ def test_a_slow_viewer_gets_the_key_frame_before_the_deltas_that_replaced_it():
     assert got == [wire[0], wire[2], wire[4]]
     dec = CompactDecoder(rest, groups)
     assert all(dec.decode(b) is not None for b in got)
+
+
+def test_tolerance_is_validated_and_reaches_the_hello(live):
+    import httpx
+
+    for bad in (0, -1, 1000, "x"):
+        r = httpx.post(
+            f"{live.url}/v1/sessions", json={"tolerance": bad}, headers=live.admin_headers
+        )
+        assert r.status_code == 422, (bad, r.text)
+
+    async def main():
+        async with SessionAdmin(live.url, live.admin_key) as admin:
+            s = await admin.create(face=FACE, input="fap", tolerance=0.5)
+        async with watch(live.url, s.id, s.viewer_token) as w:
+            hello = w.hello
+        async with watch(live.url, s.id, s.viewer_token, encoding="i16") as w:
+            other = w.hello
+        return hello, other
+
+    hello, other = run(main())
+    assert hello.encoding == "compact" and hello.tolerance == pytest.approx(0.5)
+    assert other.encoding == "i16" and other.tolerance is None
