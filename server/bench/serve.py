@@ -59,7 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--backend", default="auto", choices=("auto", "numpy", "opencl"), help="server backend"
     )
     p.add_argument("--fps", type=float, default=60.0, help="producer frame rate")
-    p.add_argument("--encoding", default="i16", choices=("i16", "f32"))
+    p.add_argument("--encoding", default="i16", choices=("i16", "f32", "compact"))
     p.add_argument(
         "--sessions", default="1,5,10,20,25", help="session counts to sweep (comma-separated)"
     )

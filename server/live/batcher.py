@@ -59,6 +59,7 @@ class _Job:
     encodings: frozenset[str]
     done: Callable[[Any], None]
     loop: asyncio.AbstractEventLoop
+    compact: Any = None  # the session's ``CompactEncoder`` when a viewer asked for ``compact``
 
 
 def _framed_buffer(encoding: str, n_vertices: int) -> tuple[bytearray, int]:
@@ -216,10 +217,12 @@ class DeformBatcher:
         wall: float,
         encodings: frozenset[str],
         done: Callable[[Any], None],
+        compact: Any = None,
     ) -> None:
         """Deform and encode one state; later, on this event loop, ``done((frames, seconds))`` (the
-        frames and the seconds of work they cost) or ``done(exception)``. Call on the event loop."""
-        job = _Job(state, seq, wall, encodings, done, asyncio.get_running_loop())
+        frames and the seconds of work they cost) or ``done(exception)``. Call on the event loop.
+        ``compact``: the session's ``CompactEncoder`` (stateful: one state per session at a time)."""
+        job = _Job(state, seq, wall, encodings, done, asyncio.get_running_loop(), compact)
         with self._lock:
             self._pending.append(job)
             if self.coalesce > 0:  # who is active: only a coalescing drain asks (and prunes)
@@ -381,6 +384,17 @@ class DeformBatcher:
             log.warning("int16 quantisation on the device failed; NumPy from now on", exc_info=True)
             self._quantizer = None
             encoded = encode_batch(verts, meta)
+        for k, i in enumerate(ok):
+            if jobs[i].compact is not None and "compact" in jobs[i].encodings:
+                j = jobs[i]
+                try:
+                    data = j.compact.encode(verts[k], T[k], seq=j.seq, t=j.state.t, wall=j.wall)
+                except ValueError:  # this frame only (non-finite vertices); the next is a key
+                    log.warning("compact encoding of frame %d failed", j.seq, exc_info=True)
+                    j.compact.request_key()
+                    continue
+                buf = bytearray(ws_binary_header(len(data)) + data)
+                encoded[k]["compact"] = (memoryview(buf)[len(buf) - len(data):], buf)
         dt = (time.perf_counter() - t0) / len(jobs)
         for i, e in zip(ok, encoded):
             results[i] = (e, dt)
