@@ -8,7 +8,8 @@ mocap take (``mocap.synthetic``: 60 markers, 0.5 mm noise, gaps, head motion) th
 mocap driver; each on the built-in head and on ICT FaceKit. Per stream and coder:
 
 - ``i16``: today's ``VERTICES_I16`` frames (56 + 6·V bytes; error half a per-frame step);
-- ``compact``: ``VERTICES_COMPACT`` as the server sends it (deflate with zlib's Z_RLE strategy),
+- ``compact``: ``VERTICES_COMPACT`` as the server sends it (deflate with the Z_RLE strategy, by
+  zlib-ng when installed, as in ``protocol/compact.py``),
   and ``compact-lz4`` with zlib's default LZ77 search at level 4 (same format, other encoder choice);
 - ``zstd-3`` / ``zstd-9``: the same residual byte planes as ``compact``, zstd instead of deflate;
 
@@ -139,7 +140,7 @@ def measure(
     t0 = clock()
     zl = []
     for r in raws:
-        zc = zlib.compressobj(1, zlib.DEFLATED, 15, 9, zlib.Z_RLE)
+        zc = cp._deflate.compressobj(1, zlib.DEFLATED, 15, 9, zlib.Z_RLE)
         zl.append(zc.compress(r) + zc.flush())
     res["compact"]["entropy_ms"] = (clock() - t0) / n * 1e3
     for label, level in (("zstd-3", 3), ("zstd-9", 9)):
