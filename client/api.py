@@ -30,6 +30,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
 from ..protocol import frames
+from ..protocol.errors import FrameError
 from ..protocol.messages import (
     ErrorMessage,
     FapMessage,
@@ -112,9 +113,11 @@ class SessionAdmin:
         fps: float = 60.0,
         engine: str = "fp",
         max_viewers: int | None = None,
+        tolerance: float = 0.1,
     ) -> SessionCreated:
         body = SessionCreate(
-            face=face, input=input, fps=fps, engine=engine, max_viewers=max_viewers
+            face=face, input=input, fps=fps, engine=engine, max_viewers=max_viewers,
+            tolerance=tolerance,
         )
         resp = await self._call(
             "POST",
@@ -388,6 +391,9 @@ class Watcher:
         self.errors: list[ErrorMessage] = []
         self.until_producer_leaves = until_producer_leaves
         self._seen_frames = False
+        self.compact: Any = None  # ``CompactDecoder`` for the ``compact`` encoding (set by ``watch``)
+        self.waited = 0  # compact frames not shown: their key frame had not arrived
+        self.bytes_received = 0  # binary bytes, all frames
 
     def __aiter__(self) -> AsyncIterator[WatchedFrame]:
         return self._frames()
@@ -403,6 +409,18 @@ class Watcher:
                 return
             if isinstance(msg, bytes):
                 now = time.time()
+                self.bytes_received += len(msg)
+                if len(msg) > 5 and msg[5] == frames.Kind.VERTICES_COMPACT and self.compact is not None:
+                    try:
+                        out = self.compact.decode(msg)
+                    except FrameError as e:
+                        raise LiveError(f"bad compact frame from the server: {e}") from None
+                    if out is None:
+                        self.waited += 1
+                        continue
+                    self._seen_frames = True
+                    yield WatchedFrame(frames.VertexFrame(out[0], out[1]), now, len(msg))
+                    continue
                 f = frames.decode(msg)
                 if not isinstance(f, frames.VertexFrame):
                     raise LiveError(f"unexpected {f.header.kind.name} frame from the server")
@@ -424,7 +442,10 @@ class Watcher:
 
 
 class watch:
-    """``async with watch(url, session, token, encoding="i16") as w: async for f in w: ...``.
+    """``async with watch(url, session, token) as w: async for f in w: ...``.
+
+    ``encoding``: ``compact`` (default; within the session's tolerance, decoded here with the
+    face's topology), ``i16`` or ``f32`` (exact).
 
     ``receive_buffer`` (bytes; None = the OS default, which grows to megabytes) and ``max_queue``
     (messages) bound what waits between the server and the consumer: small values keep latency low
@@ -437,13 +458,14 @@ class watch:
         session: str,
         token: str,
         *,
-        encoding: str = "f32",
+        encoding: str = "compact",
         until_producer_leaves: bool = False,
         receive_buffer: int | None = VIEWER_RECEIVE_BUFFER,
         max_queue: int = VIEWER_MAX_QUEUE,
     ) -> None:
         self.url = ws_url(url, f"/v1/sessions/{quote(session, safe='')}/watch", encoding=encoding)
         self.token = token
+        self.http_url = url
         self.until = until_producer_leaves
         self.receive_buffer = receive_buffer
         self.max_queue = max_queue
@@ -467,11 +489,34 @@ class watch:
                 f"expected a viewer hello, got {first!r:.100}"
             )
         self.watcher = Watcher(ws, m, self.until)
+        if m.encoding == "compact":
+            try:
+                self.watcher.compact = await _compact_decoder(self.http_url, m.topology_url)
+            except BaseException:
+                await ws.close()
+                raise
         return self.watcher
 
     async def __aexit__(self, *exc: Any) -> None:
         if self.watcher is not None:
             await self.watcher.close()
+
+
+async def _compact_decoder(url: str, topology_url: str) -> Any:
+    """A ``CompactDecoder`` for the face whose topology is at ``topology_url`` (relative to ``url``)."""
+    from ..protocol.compact import CompactDecoder
+    from ..protocol.topology import decode_topology
+
+    base = url.replace("ws://", "http://", 1).replace("wss://", "https://", 1).rstrip("/")
+    async with httpx.AsyncClient(timeout=60.0) as c:
+        r = await c.get(base + topology_url)
+    if r.status_code != 200:
+        raise _http_error(r, "fetching the face topology for compact frames")
+    try:
+        topo = decode_topology(r.content)
+    except ValueError as e:
+        raise LiveError(f"the server's face topology is malformed: {e}") from None
+    return CompactDecoder(topo.vertices, topo.rigid_group)
 
 
 def summary(frames_: list[WatchedFrame], *, first_seq: int | None = None) -> dict:
@@ -492,6 +537,7 @@ def summary(frames_: list[WatchedFrame], *, first_seq: int | None = None) -> dic
             "latency_ms_p95": round(float(np.percentile(lat, 95)), 2) if lat.size else None,
             "latency_ms_max": round(float(lat.max()), 2) if lat.size else None,
             "bytes_per_frame": round(float(np.mean([f.size for f in frames_])), 1),
+            "bits_per_second": round(8 * sum(f.size for f in frames_[1:]) / span) if span > 0 else None,
             "dropped": dropped,
             "first_seq": int(seqs[0]),
             "last_seq": int(seqs[-1]),

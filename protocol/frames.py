@@ -81,6 +81,7 @@ class Kind(IntEnum):
     PCM_F32 = 4  #: producer -> server: (n,) float32 mono samples in [-1, 1]
     MARKERS = 5  #: producer -> server: (M, 3) float32 marker positions, NaN = occluded
     FAPS = 6  #: producer -> server: 68 float32 FAP values (NaN = not sent) + viseme/expression
+    VERTICES_COMPACT = 7  #: server -> viewer: error-bounded delta frames (``compact.py``)
 
 
 class Flag(IntEnum):
@@ -90,7 +91,7 @@ class Flag(IntEnum):
     EXPRESSION = 2  #: FAPS: the expression sub-header fields are set
 
 
-_KNOWN_FLAGS = {Kind.FAPS: Flag.VISEME | Flag.EXPRESSION}
+_KNOWN_FLAGS = {Kind.FAPS: Flag.VISEME | Flag.EXPRESSION, Kind.VERTICES_COMPACT: 1}  # compact.KEY
 
 
 @dataclass(frozen=True, slots=True)
@@ -175,8 +176,9 @@ class VertexFrame:
     scale: np.ndarray | None = None  # (3,) float32, i16 only
 
     def positions(self) -> np.ndarray:
-        """``(V, 3) float32`` positions (a view for float32 frames, dequantised for int16)."""
-        if self.header.kind is Kind.VERTICES_F32:
+        """``(V, 3) float32`` positions (a view for float32 frames, dequantised for int16; compact
+        frames arrive decoded)."""
+        if self.header.kind is not Kind.VERTICES_I16:
             return self.vertices
         return dequantize_int16(self.vertices, self.offset, self.scale)
 
@@ -477,6 +479,9 @@ def decode(data: bytes | bytearray | memoryview, *, kinds: frozenset[Kind] | Non
             + " or ".join(k.name for k in sorted(kinds)),
             where="byte 5",
         )
+    if h.kind is Kind.VERTICES_COMPACT:
+        raise FrameError("VERTICES_COMPACT frames depend on earlier frames: decode them with "
+                         "compact.CompactDecoder", where="byte 5")
     limit = _LIMITS[h.kind]
     if h.kind is Kind.FAPS:
         if h.count != N_FAP_VALUES:

@@ -48,7 +48,7 @@ PROTOCOL_VERSION = 1
 MAX_MESSAGE_BYTES = 256 * 1024
 
 InputKind = Literal["fap", "audio", "markers"]
-Encoding = Literal["f32", "i16"]
+Encoding = Literal["f32", "i16", "compact"]
 
 
 class _Model(BaseModel):
@@ -110,6 +110,9 @@ class ViewerHello(_Model):
     fps: float
     input: InputKind
     producer_connected: bool
+    tolerance: float | None = Field(
+        None, description="compact: largest error of a decoded vertex, in the face's units"
+    )
 
 
 class ErrorMessage(_Model):
@@ -242,6 +245,9 @@ class SessionCreate(_Model):
     )
     engine: str = Field("fp", max_length=32, description="deformation engine: fp | rbf | shell")
     max_viewers: int | None = Field(None, gt=0, description="viewer limit (≤ the server's)")
+    tolerance: float = Field(
+        0.1, gt=0, le=100, description="compact encoding: largest error of a decoded vertex, mm"
+    )
 
 
 class SessionCreated(_Model):
@@ -259,7 +265,7 @@ class SessionCreated(_Model):
     )
     watch_url: str = Field(
         description="WebSocket path for viewers (send 'Authorization: Bearer VIEWER_TOKEN'; "
-        "add ?encoding=f32|i16)"
+        "add ?encoding=f32|i16|compact)"
     )
 
 

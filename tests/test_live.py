@@ -322,7 +322,7 @@ def test_bad_frames_get_errors_while_another_session_streams(live, joy):
                 b"garbage!" * 8,
                 good[:-3],
                 good + b"x",
-                good[:5] + b"\x07" + good[6:],
+                good[:5] + b"\x09" + good[6:],
                 frames.encode_vertices_f32(
                     np.zeros((3, 3)), seq=5, t=0.0
                 ),  # a kind producers may not send
@@ -415,7 +415,7 @@ def test_viewer_and_producer_vanishing(live, joy):
 def test_slow_viewer_gets_the_newest_frame_and_a_gap(live):
     async def main():
         s = await _session(live)
-        async with watch(live.url, s.id, s.viewer_token) as w:
+        async with watch(live.url, s.id, s.viewer_token, encoding="f32") as w:  # frames > buffers
             async with produce(live.url, s.id, s.producer_token) as p:
                 for i in range(120):  # the viewer reads nothing meanwhile
                     await p.send_faps({3: float(i)}, i / 100)

@@ -27,8 +27,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "process list); it is sent in the Authorization header, never in the URL",
     )
     p.add_argument(
-        "--encoding", choices=("f32", "i16"), default="f32", help="vertex encoding (default f32)"
+        "--encoding", choices=("compact", "i16", "f32"), default="compact",
+        help="vertex encoding (default compact: within the session's tolerance, a few %% of i16)",
     )
+    p.add_argument("--save", metavar="OUT.npz",
+                   help="write the decoded frames: seq, t (s), vertices (frames, V, 3) face units")
     stop = p.add_mutually_exclusive_group()
     stop.add_argument("--frames", type=int, help="stop after this many frames")
     stop.add_argument("--seconds", type=float, help="stop after this many seconds")
@@ -62,7 +65,12 @@ async def _main(args: argparse.Namespace) -> dict:
         except asyncio.TimeoutError:
             pass
         stats = w.stats
+        waited = w.waited
     report = summary(got)
+    if args.encoding == "compact":
+        report["frames_waiting_for_key"] = waited
+    if args.save:
+        report["saved"] = _save(args.save, got)
     report.update(
         {
             "session": hello.session,
@@ -76,6 +84,25 @@ async def _main(args: argparse.Namespace) -> dict:
     return report
 
 
+def _save(path: str, got: list) -> str:
+    """Write ``seq (n,) u32``, ``t (n,) f64`` and ``vertices (n, V, 3) f32`` to ``path`` atomically."""
+    import os
+
+    import numpy as np
+
+    out = path if path.endswith(".npz") else path + ".npz"
+    tmp = out + ".part.npz"
+    V = got[0].positions().shape[0] if got else 0
+    np.savez(
+        tmp,
+        seq=np.array([f.frame.header.seq for f in got], np.uint32),
+        t=np.array([f.frame.header.t for f in got], np.float64),
+        vertices=np.stack([f.positions() for f in got]) if got else np.zeros((0, V, 3), np.float32),
+    )
+    os.replace(tmp, out)
+    return out
+
+
 def _table(r: dict) -> str:
     rows = [
         ("frames", r.get("frames")),
@@ -83,6 +110,7 @@ def _table(r: dict) -> str:
         ("latency p50 (ms)", r.get("latency_ms_p50")),
         ("latency p95 (ms)", r.get("latency_ms_p95")),
         ("bytes/frame", r.get("bytes_per_frame")),
+        ("bits/s", r.get("bits_per_second")),
         ("dropped", r.get("dropped")),
         ("encoding", r.get("encoding")),
         ("vertices", r.get("vertex_count")),

@@ -455,11 +455,11 @@ async def watch(
     session = await _authorise(ws, session_id, token, "viewer")
     if session is None:
         return
-    if encoding not in ("f32", "i16"):
+    if encoding not in ("f32", "i16", "compact"):
         await _refuse(
             ws,
             CloseCode.BAD_REQUEST,
-            f"unknown encoding {encoding!r}; use f32 or i16",
+            f"unknown encoding {encoding!r}; use f32, i16 or compact",
             where="encoding",
         )
         return
@@ -484,6 +484,7 @@ async def watch(
                     fps=sp.fps,
                     input=sp.input,
                     producer_connected=session.producer is not None,
+                    tolerance=sp.tolerance / session.face.mm_per_unit if encoding == "compact" else None,
                 )
             )
         )
@@ -502,6 +503,9 @@ async def watch(
             0.0,
         )
     )
+    if encoding == "compact":  # a key frame is about a byte per vertex, a delta a fifth of that
+        frame_bytes = session.vertex_count
+        _limit_write_buffer(ws, VIEWER_SEND_BUFFER_FRAMES * frame_bytes)
     _limit_send_buffer(ws, VIEWER_SEND_BUFFER_FRAMES * frame_bytes)
     viewer = Viewer(encoding, DirectSender.attach(ws))  # pre-framed bytes straight to the transport
     session.add_viewer(viewer)
@@ -545,6 +549,17 @@ def _limit_send_buffer(ws: WebSocket, nbytes: int) -> None:
     replaces it. Best effort: servers that hide the transport keep their defaults.
     """
     _set_buffer(ws, socket.SO_SNDBUF, max(MIN_SEND_BUFFER, int(nbytes)))
+
+
+def _limit_write_buffer(ws: WebSocket, nbytes: int) -> None:
+    """Pause writing to a viewer once about ``nbytes`` wait in its transport (asyncio's default,
+    64 KiB, is dozens of compact frames: a slow viewer would fall behind instead of skipping)."""
+    try:
+        transport = getattr(find_protocol(ws._send), "transport", None)
+        if transport is not None:
+            transport.set_write_buffer_limits(high=max(4096, int(nbytes)))
+    except (AttributeError, NotImplementedError, ValueError):  # pragma: no cover - ASGI server
+        log.debug("cannot set the write buffer limit of a viewer", exc_info=True)
 
 
 async def _send_loop(ws: WebSocket, session, viewer) -> None:

@@ -59,7 +59,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--backend", default="auto", choices=("auto", "numpy", "opencl"), help="server backend"
     )
     p.add_argument("--fps", type=float, default=60.0, help="producer frame rate")
-    p.add_argument("--encoding", default="i16", choices=("i16", "f32"))
+    p.add_argument(
+        "--encoding",
+        default="i16",
+        type=_encodings,
+        help="viewers' encoding: i16, f32 or compact; several, comma-separated (i16,compact), "
+        "are swept one after the other against the same server, in the same run",
+    )
     p.add_argument(
         "--sessions", default="1,5,10,20,25", help="session counts to sweep (comma-separated)"
     )
@@ -112,6 +118,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "the baseline of the direct-to-transport path",
     )
     p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
+
+
+def _encodings(text: str) -> list[str]:
+    names = [x.strip() for x in text.split(",") if x.strip()]
+    bad = [x for x in names if x not in ("i16", "f32", "compact")]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"encodings are i16, f32 or compact, got {text!r}")
+    return names
 
 
 # ------------------------------------------------------------------------------------ server process
@@ -249,6 +263,20 @@ def frame_costs(face_name: str, backend: str, repeats: int = 30) -> dict:
     v = animator.frame(states[0])
     out["encode_i16_ms"] = timed(lambda s: frames.encode_vertices_i16(v, seq=0, t=s.t))
     out["encode_f32_ms"] = timed(lambda s: frames.encode_vertices_f32(v, seq=0, t=s.t))
+    # compact, as a session encodes it (0.1 mm, keys every 250 ms at 60 fps), process CPU
+    from ...protocol.compact import CompactEncoder
+
+    face = animator.face
+    enc = CompactEncoder(
+        face.vertices, face.rigid_group, tolerance=0.1 / face.mm_per_unit, key_interval=15
+    )
+    vs = [np.asarray(animator.deformer.deform(*x), np.float32) for x in solved]
+
+    def compact_all() -> None:
+        for k, (s, x) in enumerate(zip(states, vs)):
+            enc.encode(x, solved[k][1], seq=k, t=s.t)
+
+    out["encode_compact_ms"] = round(_cpu_ms(compact_all, 3) / len(states), 3)
     # what the live server does: int16 frames of a batch quantised together, WebSocket-framed
     from ..live.batcher import encode_batch
 
@@ -543,6 +571,11 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         def clients_cpu() -> float:
             return _own_cpu() + sum(_process_cpu(p.pid) for p, _, _ in children)
 
+        async def deformed() -> int:  # frames the server deformed and encoded, all sessions
+            infos = await asyncio.gather(*(admin.info(s.id) for s in made))
+            return sum(i.stats.frames_deformed for i in infos)
+
+        deformed0 = await deformed()
         t0, cpu_s0, cpu_c0 = (
             time.time(),
             server.cpu_seconds() if server else float("nan"),
@@ -554,6 +587,7 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
             server.cpu_seconds() if server else float("nan"),
             clients_cpu(),
         )
+        deformed1 = await deformed()
         stop.set()
         mp_stop.set()
         results = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 60)
@@ -606,6 +640,14 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         "server_cpu_us_per_session_frame": round(1e6 * (cpu_s1 - cpu_s0) / len(produced), 1)
         if produced
         else None,
+        # ... and per frame the server deformed and encoded (counted just outside the window):
+        # what the server's work costs even when starved viewers skip frames
+        "server_cpu_us_per_deformed_frame": round(
+            1e6 * (cpu_s1 - cpu_s0) / (deformed1 - deformed0), 1
+        )
+        if deformed1 > deformed0
+        else None,
+        "server_frames_deformed_per_s": round((deformed1 - deformed0) / window, 1),
         "client_cpu_us_per_frame": round(1e6 * (cpu_c1 - cpu_c0) / len(lat), 1) if lat else None,
         "client_failures": len(failures),
         "seconds": round(window, 2),
@@ -620,10 +662,10 @@ def _table(title: str, points: list[dict], args) -> str:
     base = points[0] if points else None
     head = (
         "| sessions | viewers | fps mean | fps min | p50 ms | p95 ms | p95 ratio | skipped | deform+enc ms "
-        "| server CPU | client CPU | server µs/frame | server µs/session-frame | client µs/frame "
-        "| target |"
+        "| server CPU | client CPU | server µs/frame | server µs/session-frame "
+        "| deformed/s | server µs/deformed frame | client µs/frame | target |"
     )
-    lines = [f"### {title}", "", head, "|" + "---|" * 15]
+    lines = [f"### {title}", "", head, "|" + "---|" * 17]
     for p in points:
         ratio = (
             p["latency_ms_p95"] / base["latency_ms_p95"]
@@ -636,6 +678,7 @@ def _table(title: str, points: list[dict], args) -> str:
             f"{p['latency_ms_p50']} | {p['latency_ms_p95']} | {ratio:.2f} | {p['frames_skipped']} | "
             f"{p['server_deform_encode_ms']} | {p['server_cpu']} | {p['client_cpu']} | "
             f"{p['server_cpu_us_per_frame']} | {p['server_cpu_us_per_session_frame']} | "
+            f"{p['server_frames_deformed_per_s']} | {p['server_cpu_us_per_deformed_frame']} | "
             f"{p['client_cpu_us_per_frame']} | "
             f"{'ok' if _ok(p, args) else 'miss'}{' (%d client errors)' % p['client_failures'] if p['client_failures'] else ''} |"
         )
@@ -670,7 +713,12 @@ def run(args: argparse.Namespace) -> int:
         server = _External(args.server_pid)
     try:
         health = server.wait_ready() if isinstance(server, _Server) else {}
-        res = asyncio.run(_sweeps(server, url or server.url, args))
+        encodings, by_encoding = list(args.encoding), {}
+        for enc in encodings:
+            args.encoding = enc
+            by_encoding[enc] = asyncio.run(_sweeps(server, url or server.url, args))
+        args.encoding = encodings[0]
+        res = by_encoding[encodings[0]]
     finally:
         if isinstance(server, _Server):
             server.stop()
@@ -696,6 +744,7 @@ def run(args: argparse.Namespace) -> int:
         "face": args.face,
         "vertices": costs["vertices"],
         "encoding": args.encoding,
+        "by_encoding": by_encoding,
         "fps": args.fps,
         "backend": health.get("backend", args.backend),
         "device": health.get("device"),
@@ -715,13 +764,15 @@ def run(args: argparse.Namespace) -> int:
     args.out.write_text(json.dumps(report, indent=2))
     c = costs
     print(
-        f"## facecast bench serve — {args.face} ({c['vertices']} vertices), {args.encoding} frames, "
+        f"## facecast bench serve — {args.face} ({c['vertices']} vertices), "
+        f"{', '.join(by_encoding)} frames, "
         f"producers at {args.fps:g} fps, backend {report['backend']}\n"
     )
     print(
         f"In-process per frame: solve {c['solve_ms']} ms, deform {c['deform_ms']} ms ({c['backend']}), "
         f"encode i16 {c['encode_i16_ms']} ms (batched as in the server: "
-        f"{c.get('encode_i16_batched_ms')} ms) / f32 {c['encode_f32_ms']} ms, "
+        f"{c.get('encode_i16_batched_ms')} ms) / f32 {c['encode_f32_ms']} ms / "
+        f"compact {c.get('encode_compact_ms')} ms (CPU), "
         f"decode i16 {c['decode_i16_ms']} ms; "
         f"{c['bytes_i16']} B (i16) / {c['bytes_f32']} B (f32) per frame.\n"
     )
@@ -737,13 +788,14 @@ def run(args: argparse.Namespace) -> int:
         )
         + ".\n"
     )
-    if res["sessions_sweep"]:
-        print(
-            _table("Concurrent sessions (1 producer + 1 viewer each)", res["sessions_sweep"], args)
-        )
-        print()
-    if res["viewers_sweep"]:
-        print(_table("Viewers of one session", res["viewers_sweep"], args))
+    for enc, r in by_encoding.items():
+        if r["sessions_sweep"]:
+            title = f"Concurrent sessions (1 producer + 1 viewer each), {enc}"
+            print(_table(title, r["sessions_sweep"], args))
+            print()
+        if r["viewers_sweep"]:
+            print(_table(f"Viewers of one session, {enc}", r["viewers_sweep"], args))
+            print()
     if "viewers_sweep_asgi" in res:
         print()
         print(

@@ -20,7 +20,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Executor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -59,6 +59,7 @@ class _Job:
     encodings: frozenset[str]
     done: Callable[[Any], None]
     loop: asyncio.AbstractEventLoop
+    compact: Any = None  # the session's ``CompactEncoder`` when a viewer asked for ``compact``
 
 
 def _framed_buffer(encoding: str, n_vertices: int) -> tuple[bytearray, int]:
@@ -176,6 +177,44 @@ def batch_threads() -> int:
     return max(1, int(env)) if env else 1
 
 
+def compact_threads() -> int:
+    """Threads encoding a batch's ``compact`` frames at once (one session's each):
+    ``FACECAST_LIVE_COMPACT_THREADS``, default the CPU count. The encoder spends most of its
+    time in NumPy passes and deflate, outside the GIL, so the frames of different sessions overlap
+    instead of queueing behind one another in the drain thread."""
+    env = os.environ.get("FACECAST_LIVE_COMPACT_THREADS")
+    return max(1, int(env)) if env else max(1, os.cpu_count() or 1)
+
+
+_compact_pool: ThreadPoolExecutor | None = None
+_compact_pool_lock = threading.Lock()
+
+
+def _compact_executor() -> ThreadPoolExecutor | None:
+    """The process's pool of compact encoding threads (None with one thread: encode inline)."""
+    global _compact_pool
+    n = compact_threads()
+    if n < 2:
+        return None
+    with _compact_pool_lock:
+        if _compact_pool is None:
+            _compact_pool = ThreadPoolExecutor(n, thread_name_prefix="facecast-compact")
+        return _compact_pool
+
+
+def _encode_compact(job: _Job, v: np.ndarray, T: Any) -> tuple[memoryview, bytearray] | None:
+    """``job``'s frame ``v (V, 3)`` with rigid poses ``T (G, 3, 4)`` by its session's stateful
+    ``CompactEncoder``, WebSocket-framed; None when that frame cannot be encoded."""
+    try:
+        data = job.compact.encode(v, T, seq=job.seq, t=job.state.t, wall=job.wall)
+    except ValueError:  # this frame only (non-finite vertices); the next is a key
+        log.warning("compact encoding of frame %d failed", job.seq, exc_info=True)
+        job.compact.request_key()
+        return None
+    buf = bytearray(ws_binary_header(len(data)) + data)
+    return memoryview(buf)[len(buf) - len(data) :], buf
+
+
 class DeformBatcher:
     """Batches ``animator`` work across sessions (thread-safe; up to ``parallel`` batches at once)."""
 
@@ -216,10 +255,12 @@ class DeformBatcher:
         wall: float,
         encodings: frozenset[str],
         done: Callable[[Any], None],
+        compact: Any = None,
     ) -> None:
         """Deform and encode one state; later, on this event loop, ``done((frames, seconds))`` (the
-        frames and the seconds of work they cost) or ``done(exception)``. Call on the event loop."""
-        job = _Job(state, seq, wall, encodings, done, asyncio.get_running_loop())
+        frames and the seconds of work they cost) or ``done(exception)``. Call on the event loop.
+        ``compact``: the session's ``CompactEncoder`` (stateful: one state per session at a time)."""
+        job = _Job(state, seq, wall, encodings, done, asyncio.get_running_loop(), compact)
         with self._lock:
             self._pending.append(job)
             if self.coalesce > 0:  # who is active: only a coalescing drain asks (and prunes)
@@ -381,6 +422,21 @@ class DeformBatcher:
             log.warning("int16 quantisation on the device failed; NumPy from now on", exc_info=True)
             self._quantizer = None
             encoded = encode_batch(verts, meta)
+        # compact: only for sessions with a compact viewer; a session has one state in a batch
+        # at most, so its encoder is used by one thread at a time
+        todo = [
+            (k, jobs[i])
+            for k, i in enumerate(ok)
+            if jobs[i].compact is not None and "compact" in jobs[i].encodings
+        ]
+        pool = _compact_executor() if len(todo) > 1 else None
+        if pool is not None:
+            done = list(pool.map(lambda kj: _encode_compact(kj[1], verts[kj[0]], T[kj[0]]), todo))
+        else:
+            done = [_encode_compact(j, verts[k], T[k]) for k, j in todo]
+        for (k, _), c in zip(todo, done):
+            if c is not None:
+                encoded[k]["compact"] = c
         dt = (time.perf_counter() - t0) / len(jobs)
         for i, e in zip(ok, encoded):
             results[i] = (e, dt)

@@ -136,6 +136,7 @@ class SessionRegistry:
                 max_viewers=min(req.max_viewers or self.max_viewers, self.max_viewers),
                 producer_token=new_token(),
                 viewer_token=new_token(),
+                tolerance=req.tolerance,
             )
             session = LiveSession(spec, face, self.batcher_for(animator), self.metrics)
             self.sessions[sid] = session

@@ -53,6 +53,9 @@ class Viewer:
             None  # (order, (payload, websocket frame))
         )
         self.control: deque[tuple[int, str]] = deque(maxlen=MAX_CONTROL)
+        #: compact: an unsent key frame a newer delta replaced in the slot; it goes out first, so a
+        #: slow viewer can decode the deltas it gets (``protocol/compact.py``).
+        self.held: tuple[int, tuple[bytes, bytes]] | None = None
         self.wake = asyncio.Event()
         self.idle = False  # the sender task waits in ``next`` with nothing in flight
         self._n = 0  # order of offer/say calls
@@ -69,6 +72,7 @@ class Viewer:
             self.idle
             and self.direct is not None
             and self.slot is None
+            and self.held is None
             and not self.control
             and self.closing is None
             and self.direct.try_write(frame[1])
@@ -76,6 +80,11 @@ class Viewer:
             self.sent += 1
             return self.SENT
         replaced = self.slot is not None
+        if self.encoding == "compact":
+            if frame[0][6] & 1:  # a key frame supersedes any held one
+                self.held = None
+            elif replaced and self.slot[1][0][6] & 1:
+                self.held = self.slot
         self._n += 1
         self.slot = (self._n, frame)
         if replaced:
@@ -98,6 +107,9 @@ class Viewer:
         while True:
             if self.closing is not None:
                 return "close", self.closing
+            if self.held is not None:
+                frame, self.held = self.held[1], None
+                return "bytes", frame
             if self.slot is not None and (not self.control or self.slot[0] < self.control[0][0]):
                 frame, self.slot = self.slot[1], None
                 return "bytes", frame
@@ -122,6 +134,7 @@ class SessionSpec:
     producer_token: str
     viewer_token: str
     created: float = field(default_factory=time.time)
+    tolerance: float = 0.1  # mm: largest error of a decoded vertex in the ``compact`` encoding
 
 
 class LiveSession:
@@ -145,6 +158,7 @@ class LiveSession:
         self._busy = False  # a state of this session is with the batcher
         self._in_flight = 0  # its seq
         self._encodings: dict[str, int] = {}  # encoding -> viewers that asked for it
+        self.compact: Any = None  # ``CompactEncoder``, made for the first ``compact`` viewer
         self.seq = 0
         self.last_seq: int | None = None
         self.stats = {
@@ -201,6 +215,16 @@ class LiveSession:
     def add_viewer(self, viewer: Viewer) -> None:
         self.viewers.add(viewer)
         self._encodings[viewer.encoding] = self._encodings.get(viewer.encoding, 0) + 1
+        if viewer.encoding == "compact":
+            if self.compact is None:
+                from ...protocol.compact import CompactEncoder
+
+                self.compact = CompactEncoder(
+                    self.face.vertices, self.face.rigid_group,
+                    tolerance=self.spec.tolerance / self.face.mm_per_unit,
+                    key_interval=max(1, int(0.25 * self.spec.fps)), key_seconds=0.25,
+                )
+            self.compact.request_key()  # the new viewer starts at the next frame
         if self.metrics:
             self.metrics.viewers.inc()
 
@@ -257,6 +281,7 @@ class LiveSession:
                     wall=wall,
                     encodings=frozenset(self._encodings),
                     done=self._done,
+                    compact=self.compact,
                 )
             except Exception:
                 self._busy = False

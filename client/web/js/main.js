@@ -38,7 +38,7 @@ const setInfo = (id, text) => { $(id).textContent = redact(text); };
 const hashParams = new URLSearchParams(location.hash.slice(1));
 if (hashParams.get('key')) localStorage.setItem('facecast-admin-key', hashParams.get('key'));
 $('admin-key').value = localStorage.getItem('facecast-admin-key') || '';
-if (['i16', 'f32'].includes(hashParams.get('encoding'))) $('encoding').value = hashParams.get('encoding');
+if (['compact', 'i16', 'f32'].includes(hashParams.get('encoding'))) $('encoding').value = hashParams.get('encoding');
 $('admin-key').addEventListener('change', () => localStorage.setItem('facecast-admin-key', $('admin-key').value.trim()));
 const link = { session: hashParams.get('session'), token: hashParams.get('token'), producer: hashParams.get('producer') };
 if (link.session && link.token) {
@@ -221,7 +221,7 @@ setInterval(() => {
   const ms = (x) => (Number.isFinite(x) ? `${x.toFixed(x < 10 ? 2 : 0)} ms` : '–');
   $('st-fps').textContent = s.fps.toFixed(1);
   $('st-lat').textContent = `${ms(s.latencyP50)} / ${ms(s.latencyP95)}`;
-  $('st-bytes').textContent = s.bytes ? `${(s.bytes / 1024).toFixed(1)} KiB` : '–';
+  $('st-bytes').textContent = s.bytes ? `${(s.bytes / 1024).toFixed(1)} KiB` + (s.bitsPerSecond > 0 ? ` · ${(s.bitsPerSecond / 1e6).toFixed(2)} Mbit/s` : '') : '–';
   $('st-drop').textContent = String(s.dropped);
   $('st-decode').textContent = ms(s.decodeMs);
   $('st-draw').textContent = (state.drawTimes.length / 2).toFixed(1);

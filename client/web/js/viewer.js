@@ -21,7 +21,7 @@ export class Viewer {
     this.topology = topo; this.face = name;
   }
 
-  watch(session, token, encoding = 'i16') {
+  watch(session, token, encoding = 'compact') {
     this.closedByUser = false;
     this.target = { session, token, encoding };
     this.connect(0);
@@ -83,9 +83,9 @@ export class Viewer {
   onFrame(m) {
     const frame = decodeVertexFrame(m.buffer), s = this.stats;
     s.decodeMs.push(...m.decodeMs);
-    s.frames = m.received; s.dropped = m.dropped; s.superseded = m.superseded; s.bytes = m.buffer.byteLength;
+    s.frames = m.received; s.dropped = m.dropped; s.superseded = m.superseded; s.bytes = m.wireBytes;
     if (frame.wall > 0) s.latencies.push(Date.now() - frame.wall * 1000);
-    s.times.push([performance.now(), m.received]);
+    s.times.push([performance.now(), m.received, m.wireTotal]);
     this.pending = frame;  // only the newest frame is drawn
   }
 
@@ -110,6 +110,7 @@ export class Viewer {
     const pct = (a, p) => { if (!a.length) return NaN; const b = [...a].sort((x, y) => x - y); return b[Math.min(b.length - 1, Math.floor(p * b.length))]; };
     s.latencies = recent(s.latencies); s.decodeMs = recent(s.decodeMs);
     return { fps, latencyP50: pct(s.latencies, 0.5), latencyP95: pct(s.latencies, 0.95),
-             bytes: s.bytes, dropped: s.dropped, frames: s.frames, decodeMs: pct(s.decodeMs, 0.5) };
+             bytes: s.bytes, dropped: s.dropped, frames: s.frames, decodeMs: pct(s.decodeMs, 0.5),
+             bitsPerSecond: s.times.length > 1 ? 8 * (s.times.at(-1)[2] - s.times[0][2]) / ((s.times.at(-1)[0] - s.times[0][0]) / 1000) : NaN };
   }
 }

@@ -1,0 +1,426 @@
+"""``VERTICES_COMPACT`` frames: error-bounded, rigid-aware, temporally predicted vertex streams.
+
+A session's compact stream needs, on both sides, the face's topology (``topology.py``): its rest
+vertices ``rest (V, 3) float32`` and rigid group per vertex ``groups (V,) uint8``. Each frame sends
+
+- one rigid transform per group, ``(G, 3, 4) float32`` (``[R | t]``, world = R · local + t);
+- the vertices in their group's local frame, quantised on a grid of ``step`` (face units, fixed
+  for the session): integer cells ``q (V, 3) int32``, position = R_g · (q · step) + t_g;
+- ``q`` minus a reference: for a **key** frame the rest mesh on the same grid
+  (``base = floor(rest / step + 0.5)``, float64), for a **delta** frame the ``q`` of the key frame
+  it names; the difference is differenced again along the vertex order per axis, zigzagged to
+  ``uint32``, split into byte planes and deflated (zlib format).
+
+A delta depends only on its key, so a viewer that skips any number of deltas still decodes every
+frame it gets exactly; a viewer that missed the key waits for the next one (``None`` from
+``CompactDecoder.decode``), never showing a wrong face. ``README.md`` beside this file gives
+every byte. With ``step = 2 · tolerance / √3 · (1 − 2⁻⁸)`` a vertex rounded to its cell is within
+``tolerance`` (Euclidean) of the input; the encoder keeps a vertex's reference cell instead when
+that is within the tolerance too, which turns small motions into zeros.
+
+Decoding raises only ``FrameError``; encoders raise ``ValueError`` for bad arguments.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+try:  # zlib-ng: the same deflate streams (Z_RLE output is byte for byte zlib's size), ~2x faster
+    from zlib_ng import zlib_ng as _deflate
+except ImportError:  # pragma: no cover - a platform without its wheel
+    _deflate = zlib
+
+from .errors import FrameError
+from .frames import HEADER_SIZE, MAX_VERTICES, Header, Kind, parse_header
+
+__all__ = [
+    "KEY",
+    "MAX_GROUPS",
+    "CompactDecoder",
+    "CompactEncoder",
+    "CompactFrame",
+    "grid_base",
+    "parse_compact",
+    "step_for_tolerance",
+]
+
+#: Header flag bit of a key frame.
+KEY = 1
+#: Most rigid groups a frame may carry.
+MAX_GROUPS = 255
+#: ref (u32), step (f32), G (u8), planes (u8), reserved (u16), zlen (u32): 16 bytes after the header.
+_SUB = struct.Struct("<IfBBHI")
+SUB_SIZE = _SUB.size
+#: Largest grid step a decoder accepts (face units); with |R| <= 1 and |q| < 2^31 positions stay finite.
+MAX_STEP = 1e6
+#: Cells are kept within ±2²³ so ``q · step`` is exact in float32.
+_MAX_CELL = 1 << 23
+
+
+def step_for_tolerance(tolerance: float) -> float:
+    """Grid step (face units, as float32) whose rounding error is within ``tolerance`` (face
+    units, Euclidean): ``2 · tol / √3`` less 2⁻⁸ of margin for float32 arithmetic."""
+    if not (math.isfinite(tolerance) and tolerance > 0):
+        raise ValueError(f"tolerance must be a positive number, got {tolerance}")
+    return float(np.float32(2.0 * tolerance / math.sqrt(3.0) * (1.0 - 2.0**-8)))
+
+
+def grid_base(rest: np.ndarray, step: float) -> np.ndarray:
+    """``(V, 3) int32`` cells of the rest vertices: ``floor(rest / step + 0.5)`` in float64."""
+    b = np.floor(np.asarray(rest, np.float32).astype(np.float64) / float(np.float32(step)) + 0.5)
+    if b.size and np.abs(b).max() >= _MAX_CELL:
+        raise ValueError(
+            "the rest mesh spans more than 2^23 grid steps: the tolerance is too small"
+        )
+    return b.astype(np.int32)
+
+
+def _zigzag_planes(d: np.ndarray) -> tuple[bytes, int]:
+    """``d (n,) int32`` -> (byte planes of zigzag(d), number of planes)."""
+    u = ((d << 1) ^ (d >> 31)).view(np.uint32)
+    top = int(u.max()) if u.size else 0
+    planes = 1 if top < 1 << 8 else 2 if top < 1 << 16 else 3 if top < 1 << 24 else 4
+    if planes == 1:
+        return u.astype(np.uint8).tobytes(), 1
+    b = u.view(np.uint8).reshape(-1, 4)[:, :planes]  # little-endian bytes of each value
+    return np.ascontiguousarray(b.T).tobytes(), planes
+
+
+def _unzigzag_planes(raw: bytes, planes: int, n: int) -> np.ndarray:
+    """Inverse of ``_zigzag_planes``: ``(n,) int32``."""
+    p = np.frombuffer(raw, np.uint8).reshape(planes, n)
+    u = p[0].astype(np.uint32)
+    for k in range(1, planes):
+        u |= p[k].astype(np.uint32) << np.uint32(8 * k)
+    return ((u >> np.uint32(1)) ^ (np.uint32(0) - (u & np.uint32(1)))).view(np.int32)
+
+
+def _group_spans(groups: np.ndarray, n_groups: int) -> list[list[slice | np.ndarray]]:
+    """Per group, its vertices as a few contiguous slices (parts are usually runs of the vertex
+    order), or one index array when they are scattered."""
+    spans = []
+    for g in range(n_groups):
+        idx = np.flatnonzero(groups == g)
+        cuts = np.flatnonzero(np.diff(idx) != 1) + 1
+        if len(cuts) < 32:
+            spans.append([slice(int(a[0]), int(a[-1]) + 1) for a in np.split(idx, cuts) if len(a)])
+        else:
+            spans.append([idx])
+    return spans
+
+
+@dataclass(frozen=True, slots=True)
+class CompactFrame:
+    """A parsed compact frame before decoding (no state needed)."""
+
+    header: Header
+    ref: int  #: seq of the key frame this frame is relative to (a key names itself)
+    step: float  #: grid step, face units
+    transforms: np.ndarray  #: (G, 3, 4) float32
+    planes: int
+    payload: memoryview  #: zlib stream
+
+    @property
+    def key(self) -> bool:
+        return bool(self.header.flags & KEY)
+
+
+def parse_compact(data: bytes | bytearray | memoryview) -> CompactFrame:
+    """Check a compact frame's header, sub-header and length (not its zlib stream)."""
+    h = parse_header(data)
+    if h.kind is not Kind.VERTICES_COMPACT:
+        raise FrameError(f"expected a VERTICES_COMPACT frame, got {h.kind.name}", where="byte 5")
+    if h.count > MAX_VERTICES:
+        raise FrameError(
+            f"count {h.count} is over the limit of {MAX_VERTICES}", where="bytes 12-15"
+        )
+    if len(data) < HEADER_SIZE + SUB_SIZE:
+        raise FrameError(
+            f"compact frame of {len(data)} bytes is shorter than its "
+            f"{HEADER_SIZE + SUB_SIZE}-byte headers"
+        )
+    ref, step, g, planes, reserved, zlen = _SUB.unpack_from(data, HEADER_SIZE)
+    if not (math.isfinite(step) and 0 < step <= MAX_STEP):
+        raise FrameError(f"grid step must be in (0, {MAX_STEP:g}], got {step}", where="bytes 36-39")
+    if g < 1:
+        raise FrameError("a compact frame carries at least one transform", where="byte 40")
+    if not 1 <= planes <= 4:
+        raise FrameError(f"planes must be 1-4, got {planes}", where="byte 41")
+    if reserved:
+        raise FrameError("reserved bytes must be 0", where="bytes 42-43")
+    if h.flags & KEY and ref != h.seq:
+        raise FrameError(
+            f"a key frame must name itself: ref {ref} != seq {h.seq}", where="bytes 32-35"
+        )
+    size = HEADER_SIZE + SUB_SIZE + 48 * g + zlen
+    if len(data) != size:
+        what = "truncated" if len(data) < size else "has trailing bytes"
+        raise FrameError(
+            f"compact frame with {g} transforms and {zlen} payload bytes must be "
+            f"{size} bytes, got {len(data)} ({what})"
+        )
+    o = HEADER_SIZE + SUB_SIZE
+    tr = np.frombuffer(data, "<f4", 12 * g, o).reshape(g, 3, 4)
+    if not (np.isfinite(tr).all() and np.abs(tr[:, :, :3]).max() <= 1.001):
+        raise FrameError(
+            "transforms must be finite with rotation entries in [-1.001, 1.001]",
+            where=f"bytes {o}-{o + 48 * g - 1}",
+        )
+    return CompactFrame(h, ref, step, tr, planes, memoryview(data)[o + 48 * g :])
+
+
+class CompactEncoder:
+    """Encodes one session's vertex frames (once for all viewers).
+
+    Args:
+        rest: ``(V, 3)`` rest vertices of the face (as in its topology), face units.
+        groups: ``(V,)`` rigid group of each vertex (as in its topology).
+        tolerance: largest distance of a decoded vertex from the input, face units.
+        key_interval: a key frame at least every this many frames (e.g. 250 ms of the session's fps).
+        key_seconds: and at least every this many seconds of media time ``t`` (None: no limit).
+        level, strategy: zlib's (decoders do not care).
+    """
+
+    def __init__(
+        self,
+        rest: np.ndarray,
+        groups: np.ndarray,
+        *,
+        tolerance: float,
+        key_interval: int = 15,
+        key_seconds: float | None = None,
+        level: int = 1,
+        strategy: int = zlib.Z_RLE,
+    ) -> None:
+        self.rest = np.ascontiguousarray(rest, np.float32)
+        if self.rest.ndim != 2 or self.rest.shape[1] != 3:
+            raise ValueError(f"rest must be (V, 3), got {self.rest.shape}")
+        self.groups = np.ascontiguousarray(groups, np.uint8)
+        if self.groups.shape != (len(self.rest),):
+            raise ValueError("groups needs one entry per rest vertex")
+        self.n_groups = int(self.groups.max()) + 1 if len(self.groups) else 1
+        if key_interval < 1:
+            raise ValueError("key_interval must be >= 1")
+        self.tolerance = float(tolerance)
+        self.step = step_for_tolerance(tolerance)
+        self.key_interval, self.level, self.strategy = int(key_interval), int(level), int(strategy)
+        self.key_seconds = key_seconds
+        self._key_t = 0.0
+        self.base = grid_base(self.rest, self.step)
+        self.base_t = np.ascontiguousarray(self.base.T)
+        self._base_f = self.base_t.astype(np.float32)  # cells < 2^23 are exact in float32
+        self._spans = _group_spans(self.groups, self.n_groups)
+        self._keep2 = np.float32((self.tolerance * (1 - 2.0**-8) / self.step) ** 2)
+        n = len(self.rest)
+        self._buf = {
+            "vt": np.ones((4, n), np.float32),  # homogeneous: rows x, y, z, 1
+            "local": np.empty((3, n), np.float32),
+            "qf": np.empty((3, n), np.float32),
+            "q": np.empty((3, n), np.int32),
+            "r": np.empty((3, n), np.int32),
+            "dd": np.empty((3, n), np.int32),
+            "tmp": np.empty(3 * n, np.int32),
+            "fd": np.empty((3, n), np.float32),
+            "dist": np.empty(n, np.float32),
+            "keep": np.empty(n, bool),
+            "u8": np.empty(3 * n, np.uint8),
+        }
+        self._key_q: np.ndarray | None = None
+        self._key_seq = 0
+        self._since_key = 0
+        self._want_key = True
+
+    def request_key(self) -> None:
+        """Make the next frame a key frame (a new viewer, or a viewer asked for one)."""
+        self._want_key = True
+
+    def _local(self, v: np.ndarray, tr: np.ndarray) -> np.ndarray:
+        """``(3, V) float32`` positions in their group's local frame, in grid steps (axis-major),
+        in a buffer reused from frame to frame: one matmul per run of a group's vertices, on
+        homogeneous coordinates (``vt``'s last row stays 1, so the translation comes with it)."""
+        m = np.empty((len(tr), 3, 4), np.float64)
+        m[:, :, :3] = np.linalg.inv(tr[:, :, :3].astype(np.float64)) * (1.0 / self.step)
+        m[:, :, 3:] = -np.matmul(m[:, :, :3], tr[:, :, 3:].astype(np.float64))
+        m32 = m.astype(np.float32)
+        vt, out = self._buf["vt"], self._buf["local"]
+        np.copyto(vt[:3], v.T)
+        for g in range(self.n_groups):
+            for sp in self._spans[g]:
+                if isinstance(sp, slice):
+                    np.matmul(m32[g], vt[:, sp], out=out[:, sp])
+                else:  # scattered vertices (rare): gather, transform, scatter
+                    out[:, sp] = m32[g] @ vt[:, sp]
+        return out
+
+    def encode(
+        self,
+        vertices: np.ndarray,
+        transforms: np.ndarray | None = None,
+        *,
+        seq: int,
+        t: float,
+        wall: float = 0.0,
+        key: bool = False,
+    ) -> bytes:
+        """One frame: ``vertices (V, 3)`` face units, ``transforms (G, 3, 4)`` (None = identity)
+        the rigid pose of each group (the better they match the motion the smaller the frame)."""
+        v = np.asarray(vertices, np.float32)
+        if v.shape != self.rest.shape:
+            raise ValueError(f"vertices must be {self.rest.shape}, got {v.shape}")
+        g = self.n_groups
+        if transforms is None:
+            tr = np.zeros((g, 3, 4), np.float32)
+            tr[:, :, :3] = np.eye(3, dtype=np.float32)
+        else:
+            tr = np.asarray(transforms, np.float32)
+            if tr.ndim != 3 or tr.shape[1:] != (3, 4) or tr.shape[0] < g:
+                raise ValueError(f"transforms must be ({g}, 3, 4), got {tr.shape}")
+            tr = np.ascontiguousarray(tr[:g])
+            if not np.isfinite(tr).all() or np.any(np.abs(np.linalg.det(tr[:, :, :3]) - 1) > 1e-3):
+                raise ValueError("transforms must be finite rigid motions (det R = 1)")
+        b = self._buf
+        local = self._local(v, tr)
+        qf, q, r, dd, tmp = b["qf"], b["q"], b["r"], b["dd"], b["tmp"]
+        np.rint(local, out=qf)
+        lo, hi = qf.min(initial=0), qf.max(initial=0)
+        if not (-_MAX_CELL < lo and hi < _MAX_CELL):  # also refuses NaN
+            raise ValueError(
+                "vertices must be finite and within 2^23 grid steps of their group's origin"
+            )
+        np.copyto(q, qf, casting="unsafe")
+        seq = int(seq) & 0xFFFFFFFF
+        is_key = (
+            key
+            or self._want_key
+            or self._key_q is None
+            or self._since_key + 1 >= self.key_interval
+            or (self.key_seconds is not None and not 0 <= t - self._key_t < self.key_seconds)
+        )
+        ref_q = self.base_t if is_key else self._key_q
+        np.subtract(q, ref_q, out=r)  # (3, V): axis-major
+        # Keep the reference cell where it is within the tolerance too: small motions cost nothing.
+        fd, dist = b["fd"], b["dist"]
+        np.subtract(self._base_f if is_key else self._key_f, local, out=fd)
+        np.einsum("ij,ij->j", fd, fd, out=dist)  # squared distance, one pass
+        move = np.greater(dist, self._keep2, out=b["keep"])
+        np.multiply(r, move.view(np.uint8), out=r, casting="unsafe")  # r = 0 where kept
+        if is_key:
+            np.add(ref_q, r, out=q)
+        dd[:, 0] = r[:, 0]
+        np.subtract(r[:, 1:], r[:, :-1], out=dd[:, 1:])
+        # zigzag into r (free now): (d << 1) ^ (d >> 31), as uint32
+        u = r.reshape(-1).view(np.uint32)
+        flat = dd.reshape(-1)
+        np.left_shift(flat, 1, out=r.reshape(-1))
+        np.right_shift(flat, 31, out=tmp)
+        np.bitwise_xor(r.reshape(-1), tmp, out=r.reshape(-1))
+        top = int(u.max())
+        planes = 1 if top < 1 << 8 else 2 if top < 1 << 16 else 3 if top < 1 << 24 else 4
+        if planes == 1:
+            np.copyto(b["u8"], u, casting="unsafe")
+            raw = b["u8"]
+        else:
+            raw = np.ascontiguousarray(u.view(np.uint8).reshape(-1, 4)[:, :planes].T)
+        # Z_RLE: runs and Huffman codes only; on these mostly-zero planes it is both smaller and
+        # about twice as fast as the default LZ77 search (bench/compact_stream.py).
+        zc = _deflate.compressobj(self.level, zlib.DEFLATED, 15, 9, self.strategy)
+        z = zc.compress(raw) + zc.flush()
+        if is_key:
+            self._key_q, self._key_seq, self._since_key, self._want_key = q.copy(), seq, 0, False
+            self._key_f = self._key_q.astype(np.float32)
+            self._key_t = float(t)
+        else:
+            self._since_key += 1
+        hdr = Header(
+            Kind.VERTICES_COMPACT, seq, len(v), float(t), float(wall), KEY if is_key else 0
+        )
+        sub = _SUB.pack(self._key_seq, self.step, g, planes, 0, len(z))
+        return b"".join((hdr.serialize(), sub, tr.astype("<f4").tobytes(), z))
+
+
+class CompactDecoder:
+    """Decodes one session's compact stream for one viewer.
+
+    Args:
+        rest, groups: the face's topology (rest vertices and rigid group per vertex).
+    """
+
+    def __init__(self, rest: np.ndarray, groups: np.ndarray) -> None:
+        self.rest = np.ascontiguousarray(rest, np.float32)
+        self.groups = np.ascontiguousarray(groups, np.uint8)
+        if self.rest.ndim != 2 or self.rest.shape[1] != 3 or self.groups.shape != (len(self.rest),):
+            raise ValueError("rest must be (V, 3) and groups (V,)")
+        self.n_groups = int(self.groups.max()) + 1 if len(self.groups) else 1
+        self._spans = _group_spans(self.groups, self.n_groups)
+        self._base: tuple[float, np.ndarray] | None = None
+        self._key: tuple[int, float, np.ndarray] | None = None  # seq, step, q
+
+    @property
+    def key_seq(self) -> int | None:
+        """Seq of the key frame held (None before the first)."""
+        return None if self._key is None else self._key[0]
+
+    def decode(self, data: bytes | bytearray | memoryview) -> tuple[Header, np.ndarray] | None:
+        """``(header, vertices (V, 3) float32)``, or None for a delta whose key frame this decoder
+        has not got (skip it and wait for the next key). Raises ``FrameError`` on a bad frame."""
+        f = parse_compact(data)
+        n = len(self.rest)
+        if f.header.count != n:
+            raise FrameError(
+                f"frame has {f.header.count} vertices, the face has {n}", where="bytes 12-15"
+            )
+        g = f.transforms.shape[0]
+        if g < self.n_groups:
+            raise FrameError(
+                f"frame has {g} transforms, the face has {self.n_groups} rigid groups",
+                where="byte 40",
+            )
+        if f.key:
+            if self._base is None or self._base[0] != f.step:
+                try:
+                    self._base = (f.step, np.ascontiguousarray(grid_base(self.rest, f.step).T))
+                except ValueError as e:
+                    raise FrameError(str(e), where="bytes 36-39") from None
+            ref = self._base[1]
+        elif self._key is None or self._key[0] != f.ref:
+            return None
+        elif self._key[1] != f.step:
+            raise FrameError(
+                "a delta frame's grid step differs from its key frame's", where="bytes 36-39"
+            )
+        else:
+            ref = self._key[2]
+        want = 3 * n * f.planes
+        d = zlib.decompressobj()
+        try:
+            raw = d.decompress(f.payload, want)
+        except zlib.error as e:
+            raise FrameError(f"payload is not a valid zlib stream: {e}", where="payload") from None
+        if len(raw) != want or not d.eof or d.unconsumed_tail or d.unused_data:
+            raise FrameError(
+                f"payload must inflate to exactly {want} bytes ({f.planes} planes of "
+                f"3 x {n} values) and end there",
+                where="payload",
+            )
+        dd = _unzigzag_planes(raw, f.planes, 3 * n).reshape(3, n)
+        q = np.cumsum(dd, axis=1, dtype=np.int32)  # wraps modulo 2^32, as specified
+        q += ref
+        if f.key:
+            self._key = (f.header.seq, f.step, q)
+        return f.header, self._positions(q, f.step, f.transforms)
+
+    def _positions(self, q: np.ndarray, step: float, tr: np.ndarray) -> np.ndarray:
+        """``q (3, V)`` cells -> ``(V, 3) float32`` positions."""
+        p = q.astype(np.float32)
+        p *= np.float32(step)
+        out = tr[0, :, :3] @ p
+        out += tr[0, :, 3:]
+        for g in range(1, self.n_groups):
+            for sp in self._spans[g]:
+                out[:, sp] = tr[g, :, :3] @ p[:, sp] + tr[g, :, 3:]
+        return np.ascontiguousarray(out.T)
