@@ -27,6 +27,7 @@ from facecast.protocol.markers_file import (
 from facecast.server.errors import InputError
 from facecast.server.faces.ict import ANNOTATION
 from facecast.server.faces.loaders import face_from_annotation, parse_annotation
+from test_c3d import _ezc3d_write
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -46,22 +47,13 @@ def _take() -> MarkerTake:
 
 
 def _ezc3d_seed(take: MarkerTake, tmp_path_factory) -> list[bytes]:
+    """The take as ezc3d writes it, with analog channels (none without ezc3d)."""
     try:
-        import ezc3d
+        import ezc3d  # noqa: F401
     except ImportError:
         return []
-    c = ezc3d.c3d()
-    c["parameters"]["POINT"]["RATE"]["value"] = [take.fps]
-    c["parameters"]["POINT"]["LABELS"]["value"] = list(take.names)
-    c.add_parameter("POINT", "UNITS", take.units)
-    pts = np.ones((4, take.xyz.shape[1], take.xyz.shape[0]))
-    pts[:3] = np.moveaxis(take.xyz, (0, 1, 2), (2, 1, 0))
-    c["data"]["points"] = pts
-    c["parameters"]["ANALOG"]["RATE"]["value"] = [take.fps * 2]
-    c["parameters"]["ANALOG"]["LABELS"]["value"] = ["A0", "A1"]
-    c["data"]["analogs"] = np.zeros((1, 2, take.xyz.shape[0] * 2))
     path = tmp_path_factory.mktemp("ez") / "ez.c3d"
-    c.write(str(path))
+    _ezc3d_write(take, path, analog_channels=2)
     return [path.read_bytes()]
 
 
