@@ -7,6 +7,7 @@ last coefficient of the order-i predictor in the Levinson–Durbin recursion (``
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -113,12 +114,15 @@ class Features:
         k: ``(T, 12)`` reflection coefficients.
         energy_db: ``(T,)`` 10·log10 of the mean power R0/N of the windowed, pre-emphasised frame.
         zcr: ``(T,)`` zero crossings per 10 ms.
+        shape: ``(T, N_BANDS)`` spectral shape: log power in mel bands of the windowed,
+            pre-emphasised frame, minus the frame's mean over the bands (level-independent).
         hop: seconds between frames; t0: time of frame 0, seconds.
     """
 
     k: np.ndarray
     energy_db: np.ndarray
     zcr: np.ndarray
+    shape: np.ndarray | None = None
     hop: float = HOP_LENGTH
     t0: float = 0.0
 
@@ -131,22 +135,45 @@ class Features:
         return self.t0 + self.hop * np.arange(len(self))
 
 
+#: Mel bands of the spectral-shape feature (100 Hz to 4.8 kHz at the analysis rate).
+N_BANDS = 16
+
+
+@functools.lru_cache(maxsize=8)
+def _mel_bands(n_fft: int, sr: float, n_bands: int = N_BANDS) -> np.ndarray:
+    """``(n_fft//2 + 1, n_bands)`` triangular mel filters, 100 Hz .. 0.48·sr."""
+    mel = lambda f: 2595.0 * np.log10(1.0 + f / 700.0)  # noqa: E731
+    edges = 700.0 * (10 ** (np.linspace(mel(100.0), mel(0.48 * sr), n_bands + 2) / 2595.0) - 1)
+    f = np.linspace(0, sr / 2, n_fft // 2 + 1)[:, None]
+    lo, c, hi = edges[None, :-2], edges[None, 1:-1], edges[None, 2:]
+    return np.maximum(0.0, np.minimum((f - lo) / (c - lo), (hi - f) / (hi - c)))
+
+
+def spectral_shape(windowed: np.ndarray, *, sr: float = ANALYSIS_RATE) -> np.ndarray:
+    """``(T, N_BANDS)`` log mel-band power of windowed frames ``(T, N)``, each row minus its mean
+    (the spectrum's shape, independent of the level)."""
+    n_fft = 1 << (windowed.shape[-1] - 1).bit_length()
+    p = np.abs(np.fft.rfft(windowed, n=n_fft)) ** 2
+    b = np.log(p @ _mel_bands(n_fft, float(sr)) + 1e-10)
+    return b - b.mean(axis=-1, keepdims=True)
+
+
 def analyze_frames(raw_frames: np.ndarray, emph_frames: np.ndarray, *, sr: float = ANALYSIS_RATE,
-                   order: int = ORDER) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   order: int = ORDER) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """LPC features of already-cut frames.
 
     Args:
         raw_frames: ``(T, N)`` frames of the signal (for the zero-crossing rate).
         emph_frames: ``(T, N)`` the same frames of the pre-emphasised signal.
     Returns:
-        ``(k (T, order), energy_db (T,), zcr (T,))``.
+        ``(k (T, order), energy_db (T,), zcr (T,), shape (T, N_BANDS))``.
     """
     n = emph_frames.shape[-1]
     y = emph_frames * np.hamming(n)
     r = autocorrelate(y, max_lag=order)
     _, k, _ = levinson(r, order=order)
     energy_db = 10.0 * np.log10(r[..., 0] / n + 1e-12)
-    return k, energy_db, zero_crossing_rate(raw_frames, sr=sr)
+    return k, energy_db, zero_crossing_rate(raw_frames, sr=sr), spectral_shape(y, sr=sr)
 
 
 def analyze(x: np.ndarray, *, sr: float = ANALYSIS_RATE, frame_length: float = FRAME_LENGTH,
@@ -168,5 +195,5 @@ def analyze(x: np.ndarray, *, sr: float = ANALYSIS_RATE, frame_length: float = F
     emph_f = frame(emph, frame_length=n_frame, hop_length=n_hop)[:n_out]
     parts = [analyze_frames(raw_f[i:i + BLOCK], emph_f[i:i + BLOCK], sr=sr, order=order)
              for i in range(0, max(n_out, 1), BLOCK)]  # blocks bound the memory of long files
-    k, e, z = (np.concatenate([p[j] for p in parts]) for j in range(3))
-    return Features(k=k, energy_db=e, zcr=z, hop=n_hop / sr, t0=0.0)
+    k, e, z, sh = (np.concatenate([p[j] for p in parts]) for j in range(4))
+    return Features(k=k, energy_db=e, zcr=z, shape=sh, hop=n_hop / sr, t0=0.0)

@@ -1,11 +1,12 @@
-"""Batch lip-sync of a whole signal: resample → LPC features → network → labels → coarticulation."""
+"""Batch lip-sync of a whole signal: resample → LPC features → calibration → frame network over
+context-stacked features (ten visual classes) → median filter → visemes → coarticulation."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from .classify import VowelNet, default_net
+from .classify import CLASS_VISEMES, FrameNet, default_frame_net, frame_features
 from .io import resample, validate_pcm
 from .lpc import ANALYSIS_RATE, Features, analyze
 from .visemes import (
@@ -13,16 +14,19 @@ from .visemes import (
     Params,
     Track,
     calibrate,
+    calibrate_reference,
     coarticulate,
-    label_frames,
     median_filter_proba,
 )
+
+#: Class indices (``classify.CLASSES``) with a fixed intensity: silence rests, a closure closes.
+_SIL, _CLOSED, _LABIODENTAL, _SIBILANT = 0, 1, 2, 3
 
 
 @dataclass
 class LipSync:
-    """Result of ``lipsync``: per analysis frame (100/s) ``features``, ``proba (T, 5)`` (median
-    filtered), ``visemes (T,)``, ``weights (T,)``, the ``calibration`` used, and ``track``: the
+    """Result of ``lipsync``: per analysis frame (100/s) ``features``, ``proba (T, 10)`` (median
+    filtered class probabilities, ``classify.CLASSES``), ``visemes (T,)``, ``weights (T,)``, the ``calibration`` used, and ``track``: the
     coarticulated output sampled at the requested frame rate."""
 
     features: Features
@@ -50,35 +54,67 @@ def features_of(x: np.ndarray, sr: float) -> Features:
     return analyze(resample(x, sr, ANALYSIS_RATE), sr=ANALYSIS_RATE)
 
 
+def calibration_from(x: np.ndarray, sr: float, *, where: str = "calibration") -> Calibration:
+    """Calibration from a recording of room noise and a loud sustained /a/
+    (``visemes.calibrate_reference``); pass it to ``lipsync`` or ``AudioLiveDriver``."""
+    x = validate_pcm(x, sr, where=where)
+    return calibrate_reference(features_of(x, sr).energy_db, where=where)
+
+
 def lipsync(x: np.ndarray, sr: float, *, fps: float = 100.0, lookahead: float | None = None,
             calibration: Calibration | None = None, params: Params | None = None,
-            net: VowelNet | None = None, where: str = "audio",
+            net: FrameNet | None = None, where: str = "audio",
             table: np.ndarray | None = None) -> LipSync:
     """Lip-sync ``x`` (samples, mono or ``(n, channels)``) at ``sr`` Hz.
 
     Args:
         fps: output frame rate of ``track`` (frames at ``i / fps`` seconds).
-        lookahead: coarticulation/pause look-ahead in seconds; None = free (batch).
-        calibration: energy levels; None = calibrated from this signal (``visemes.calibrate``).
+        lookahead: coarticulation look-ahead in seconds; None = free (batch).
+        calibration: energy levels (``visemes.Calibration``, e.g. from ``calibrate_from``);
+            None = calibrated from this signal (``visemes.calibrate``).
+        net: the frame network (default: the shipped one).
         table: viseme → FAP targets ``(15, 69)`` (default ``visemes.viseme_table()``).
     """
     x = validate_pcm(x, sr, where=where)
-    net = net or default_net()
+    net = net or default_frame_net()
     f = features_of(x, sr)
-    return track_of(f, net.proba(f.k), len(x) / float(sr), fps=fps, lookahead=lookahead,
-                    calibration=calibration, params=params, table=table)
+    cal = calibration or calibrate(f.energy_db)
+    proba = net.proba(frame_features(f.k, f.energy_db, f.zcr, cal.silence_db, cal.max_db, f.shape))
+    return track_of(f, proba, len(x) / float(sr), fps=fps, lookahead=lookahead,
+                    calibration=cal, params=params, table=table)
+
+
+def first_sound(energy_db: np.ndarray, cal: Calibration) -> int:
+    """Index of the first frame at or above the silence threshold (``len`` if none)."""
+    loud = np.asarray(energy_db) >= cal.silence_db
+    return int(np.argmax(loud)) if loud.any() else len(loud)
+
+
+def classes_to_visemes(cls: np.ndarray, energy_db: np.ndarray, cal: Calibration,
+                       first: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(viseme (T,), weight (T,))`` from frame classes ``cls (T,)``: the class's viseme, with an
+    intensity linear in dB between the calibrated silence and maximum (silence 0, a closure 1,
+    fricatives at least 0.5). Frames before ``first`` (default: ``first_sound``, frame 0 being
+    the start of the stream) are silence: the mouth rests until the first sound."""
+    cls = np.asarray(cls)
+    first = first_sound(energy_db, cal) if first is None else first
+    cls = np.where(np.arange(len(cls)) < first, _SIL, cls)
+    vis = CLASS_VISEMES[cls] if len(cls) else np.zeros(0, dtype=np.int64)
+    w = cal.intensity(energy_db)
+    w = np.where((cls == _LABIODENTAL) | (cls == _SIBILANT), np.maximum(w, 0.5), w)
+    w = np.where(cls == _CLOSED, 1.0, np.where(cls == _SIL, 0.0, w))
+    return vis.astype(np.int64), w
 
 
 def track_of(f: Features, proba: np.ndarray, duration: float, *, fps: float = 100.0,
              lookahead: float | None = None, calibration: Calibration | None = None,
              params: Params | None = None, table: np.ndarray | None = None) -> LipSync:
-    """The rest of ``lipsync`` from features and raw network outputs ``proba (T, 5)``."""
+    """The rest of ``lipsync`` from features and frame network outputs ``proba (T, 10)``."""
     params = params or Params()
     proba = median_filter_proba(proba, params.median)
     cal = calibration or calibrate(f.energy_db)
-    # with a limited look-ahead (live equivalence) the pause rule is causal
-    vis, w = label_frames(f.energy_db, f.zcr, proba, cal, params, hop=f.hop,
-                          lookahead=None if lookahead is None else 0.0)
+    cls = np.argmax(proba, axis=1) if len(proba) else np.zeros(0, dtype=np.int64)
+    vis, w = classes_to_visemes(cls, f.energy_db, cal)
     n_out = int(np.floor(duration * fps + 1e-9)) + 1 if len(f) else 0
     track = coarticulate(f.times, vis, w, np.arange(n_out) / fps, params, hop=f.hop,
                          lookahead=lookahead, table=table)

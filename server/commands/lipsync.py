@@ -1,24 +1,48 @@
-"""``facecast lipsync AUDIO [--json]``: the viseme track of a speech file.
+"""``facecast lipsync AUDIO``: the viseme track of a speech file.
 
-``--json`` prints ``{"fps": F, "frames": [{"t": s, "viseme": 0-14, "weight": 0-1}, ...]}`` with
-MPEG-4 viseme ids (0 = silence): the classified viseme of the analysis frame nearest t and its
-intensity (the animation made from it by ``facecast render`` is coarticulated). Without
-``--json``, a readable table of viseme segments.
+Formats (``--format``; ``--json`` = ``--format json``):
+
+- ``table`` (default): a readable table of viseme segments (start, end, MPEG-4 viseme id, name);
+- ``cues``: the same segments as JSON ``{"duration": s, "cues": [{"start", "end", "viseme",
+  "name"}, ...]}``;
+- ``json``: ``{"fps": F, "frames": [{"t": s, "viseme": 0-14, "weight": 0-1}, ...]}``, the
+  classified viseme of the analysis frame nearest t and its intensity (the animation made from
+  it by ``facecast render`` is coarticulated);
+- ``rhubarb`` / ``rhubarb-tsv``: Rhubarb Lip Sync's JSON / TSV mouth cues (shapes A-H, X), for
+  tools that read Rhubarb's output.
+
+``--text "..."`` aligns the transcript's phones to the audio (refused, exit 2, when the text does
+not match); ``--calibrate FILE`` calibrates the energy levels from a recording of room noise and a
+loud sustained /a/ (the source's procedure) instead of from the file itself. ``-o PATH`` writes
+the output to a file (atomically) instead of standard output.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import tempfile
+from pathlib import Path
 
+from ..audio.cues import named_segments, rhubarb_cues, rhubarb_json, rhubarb_tsv
 from ..audio.io import read_audio
-from ..audio.pipeline import features_of, lipsync
+from ..audio.pipeline import calibration_from, features_of, lipsync
 from ..audio.visemes import VISEME_NAMES, Calibration, calibrate
+
+FORMATS = ("table", "cues", "json", "rhubarb", "rhubarb-tsv")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("audio", help="speech file (.wav, .flac, .ogg; any rate, any channels)")
-    parser.add_argument("--json", action="store_true", help="print the frame track as JSON")
+    parser.add_argument("--format", choices=FORMATS, default=None,
+                        help="output format (default table; see 'facecast lipsync --help')")
+    parser.add_argument("--json", action="store_true", help="same as --format json")
+    parser.add_argument("-o", "--output", default=None, help="write to this file, not stdout")
+    parser.add_argument("--text", default=None,
+                        help="the transcript (English): align its phones to the audio")
+    parser.add_argument("--calibrate", default=None, metavar="FILE",
+                        help="calibration recording: room noise, then a loud sustained /a/")
     parser.add_argument("--fps", type=float, default=100.0, help="output frame rate (default 100)")
     parser.add_argument("--lookahead", type=float, default=None,
                         help="coarticulation look-ahead in seconds (default: free, as in batch)")
@@ -35,40 +59,70 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--fps must be in (0, 1000], got {args.fps}", where="--fps")
     if args.lookahead is not None and args.lookahead < 0:
         raise InputError(f"--lookahead must be >= 0 s, got {args.lookahead}", where="--lookahead")
+    fmt = args.format or ("json" if args.json else "table")
+    if args.json and args.format not in (None, "json"):
+        raise InputError(f"--json contradicts --format {args.format}", where="--json")
     x, sr = read_audio(args.audio)
     cal = None
+    if args.calibrate is not None:
+        cx, csr = read_audio(args.calibrate)
+        cal = calibration_from(cx, csr, where=args.calibrate)
     if args.silence_db is not None or args.max_db is not None:
-        auto = calibrate(features_of(x, sr).energy_db)
+        auto = cal or calibrate(features_of(x, sr).energy_db)
         cal = Calibration(auto.silence_db if args.silence_db is None else args.silence_db,
                           auto.max_db if args.max_db is None else args.max_db)
         if cal.max_db <= cal.silence_db:
             raise InputError(f"--max-db ({cal.max_db}) must be above the silence threshold "
                              f"({cal.silence_db})", where="--max-db")
-    ls = lipsync(x, sr, fps=args.fps, lookahead=args.lookahead, calibration=cal, where=args.audio)
-    tr = ls.track
-    if args.json:
-        vis, weight = ls.labels_at(tr.t)
-        frames = [{"t": round(float(t), 6), "viseme": int(v), "weight": round(float(w), 4)}
-                  for t, v, w in zip(tr.t, vis, weight)]
-        json.dump({"fps": args.fps, "frames": frames}, sys.stdout)
-        sys.stdout.write("\n")
+    if args.text is not None:
+        from ..audio.align import align_text
+
+        ls = align_text(x, sr, args.text, fps=args.fps, lookahead=args.lookahead,
+                        calibration=cal, where=args.audio)
+    else:
+        ls = lipsync(x, sr, fps=args.fps, lookahead=args.lookahead, calibration=cal,
+                     where=args.audio)
+    text = _render(fmt, args, ls)
+    if args.output:
+        _write_atomic(Path(args.output), text)
         return 0
     try:
-        _table(args, ls)
+        sys.stdout.write(text)
+        sys.stdout.flush()
     except BrokenPipeError:  # e.g. piped into head
         pass
     return 0
 
 
-def _table(args: argparse.Namespace, ls) -> None:
+def _render(fmt: str, args: argparse.Namespace, ls) -> str:
     tr = ls.track
-    vis, _ = ls.labels_at(tr.t)
-    start = 0
-    print(f"{args.audio}: {ls.duration:.2f} s, {len(tr.t)} frames at {args.fps:g} fps; silence "
-          f"{ls.calibration.silence_db:.1f} dB, max {ls.calibration.max_db:.1f} dB")
-    print(f"{'start':>8} {'end':>8}  viseme")
-    for i in range(1, len(tr.t) + 1):
-        if i == len(tr.t) or vis[i] != vis[start]:
-            v = int(vis[start])
-            print(f"{tr.t[start]:8.3f} {tr.t[i - 1] + 1 / args.fps:8.3f}  {v:2d} {VISEME_NAMES[v]}")
-            start = i
+    vis, weight = ls.labels_at(tr.t)
+    if fmt == "json":
+        frames = [{"t": round(float(t), 6), "viseme": int(v), "weight": round(float(w), 4)}
+                  for t, v, w in zip(tr.t, vis, weight)]
+        return json.dumps({"fps": args.fps, "frames": frames}) + "\n"
+    if fmt == "cues":
+        return json.dumps({"duration": round(ls.duration, 6),
+                           "cues": named_segments(vis, args.fps)}) + "\n"
+    if fmt in ("rhubarb", "rhubarb-tsv"):
+        cues = rhubarb_cues(vis, args.fps, ls.duration)
+        if fmt == "rhubarb-tsv":
+            return rhubarb_tsv(cues)
+        return rhubarb_json(cues, str(args.audio), ls.duration)
+    lines = [f"{args.audio}: {ls.duration:.2f} s, {len(tr.t)} frames at {args.fps:g} fps; silence "
+             f"{ls.calibration.silence_db:.1f} dB, max {ls.calibration.max_db:.1f} dB",
+             f"{'start':>8} {'end':>8}  viseme"]
+    for s in named_segments(vis, args.fps):
+        lines.append(f"{s['start']:8.3f} {s['end']:8.3f}  {s['viseme']:2d} {VISEME_NAMES[s['viseme']]}")
+    return "\n".join(lines) + "\n"
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
