@@ -176,3 +176,13 @@ def test_calibration_recording(bobby, tmp_path, capsys, rng):
         calibration_from(noise, sr)
     assert main(["lipsync", str(bobby), "--calibrate", str(flat)]) == 2
     assert "loud sustained /a/" in capsys.readouterr().err
+
+
+def test_output_file_errors_are_reported_not_raised(bobby, tmp_path, capsys):
+    missing = tmp_path / "no" / "such" / "dir" / "cues.json"
+    assert main(["lipsync", str(bobby), "--format", "cues", "-o", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert "cannot write the output" in err and str(missing) in err
+    assert not missing.parent.exists()
+    assert main(["lipsync", str(bobby), "--json", "--format", "rhubarb"]) == 2
+    assert "--json contradicts" in capsys.readouterr().err

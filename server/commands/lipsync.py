@@ -36,7 +36,9 @@ FORMATS = ("table", "cues", "json", "rhubarb", "rhubarb-tsv")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("audio", help="speech file (.wav, .flac, .ogg; any rate, any channels)")
     parser.add_argument("--format", choices=FORMATS, default=None,
-                        help="output format (default table; see 'facecast lipsync --help')")
+                        help="table: viseme segments (default); cues: the segments as JSON; "
+                        "json: one frame per 1/fps s; rhubarb / rhubarb-tsv: Rhubarb Lip "
+                        "Sync's JSON / TSV mouth cues (shapes A-H, X)")
     parser.add_argument("--json", action="store_true", help="same as --format json")
     parser.add_argument("-o", "--output", default=None, help="write to this file, not stdout")
     parser.add_argument("--text", default=None,
@@ -84,7 +86,11 @@ def run(args: argparse.Namespace) -> int:
                      where=args.audio)
     text = _render(fmt, args, ls)
     if args.output:
-        _write_atomic(Path(args.output), text)
+        try:
+            _write_atomic(Path(args.output), text)
+        except OSError as e:
+            raise InputError(f"cannot write the output: {e.strerror or e}",
+                             where=args.output) from None
         return 0
     try:
         sys.stdout.write(text)
