@@ -70,7 +70,7 @@ def utterance_frames(x: np.ndarray, sr: int) -> np.ndarray:
     """``(T, 44)`` frame features of one utterance with its own file calibration."""
     f = features_of(x, sr)
     cal = calibrate(f.energy_db)
-    return frame_features(f.k, f.energy_db, f.zcr, cal.silence_db, cal.max_db, f.shape)
+    return frame_features(f.k, f.energy_db, f.zcr, cal.silence_db, cal.max_db, f.shape, f.cep)
 
 
 @dataclass

@@ -188,7 +188,8 @@ def align_text(x: np.ndarray, sr: float, text: str, *, net: FrameNet | None = No
     net = net or default_frame_net()
     f = features_of(x, sr)
     cal = calibration or calibrate(f.energy_db)
-    proba = net.proba(frame_features(f.k, f.energy_db, f.zcr, cal.silence_db, cal.max_db, f.shape))
+    F = frame_features(f.k, f.energy_db, f.zcr, cal.silence_db, cal.max_db, f.shape, f.cep)
+    proba = net.proba(F)
     path, mismatch, n_phones = text_fit(proba, text, voice)
     if mismatch > MAX_MISMATCH:
         raise InputError(f"the transcript does not match the audio (its {n_phones} phones fit "

@@ -239,7 +239,7 @@ class AudioLiveDriver:
         if n_frames_total is not None:
             raw, emf = raw[:max(0, n_frames_total - start_i)], emf[:max(0, n_frames_total - start_i)]
         if len(raw):
-            k, e, z, sh = analyze_frames(raw, emf, sr=ANALYSIS_RATE, order=ORDER)
+            k, e, z, sh, cep = analyze_frames(raw, emf, sr=ANALYSIS_RATE, order=ORDER)
             if self.fixed_calibration is not None:
                 sil = np.full(len(e), self.fixed_calibration.silence_db)
                 mx = np.full(len(e), self.fixed_calibration.max_db)
@@ -247,7 +247,7 @@ class AudioLiveDriver:
                 sil, mx = self._cal.update(e, self.hop)
             self._e = np.concatenate([self._e, e])
             self._z = np.concatenate([self._z, z])
-            self._F = np.concatenate([self._F, frame_features(k, e, z, sil, mx, sh)])
+            self._F = np.concatenate([self._F, frame_features(k, e, z, sil, mx, sh, cep)])
             if self._first is None and np.any(e >= sil):  # the stream's first sound
                 self._first = start_i + int(np.argmax(e >= sil))
             self._sil = np.concatenate([self._sil, sil])

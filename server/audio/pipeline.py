@@ -79,7 +79,8 @@ def lipsync(x: np.ndarray, sr: float, *, fps: float = 100.0, lookahead: float | 
     net = net or default_frame_net()
     f = features_of(x, sr)
     cal = calibration or calibrate(f.energy_db)
-    proba = net.proba(frame_features(f.k, f.energy_db, f.zcr, cal.silence_db, cal.max_db, f.shape))
+    F = frame_features(f.k, f.energy_db, f.zcr, cal.silence_db, cal.max_db, f.shape, f.cep)
+    proba = net.proba(F)
     return track_of(f, proba, len(x) / float(sr), fps=fps, lookahead=lookahead,
                     calibration=cal, params=params, table=table)
 
