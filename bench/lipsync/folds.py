@@ -48,8 +48,8 @@ def cached_items(refresh: bool = False):
     return items
 
 
-def run_live(x: np.ndarray, sr: float, net, chunk: float = 0.02) -> np.ndarray:
-    drv = AudioLiveDriver(None, sr, fps=100.0, fap1=True, net=net)
+def run_live(x: np.ndarray, sr: float, net, chunk: float = 0.02, params=None) -> np.ndarray:
+    drv = AudioLiveDriver(None, sr, fps=100.0, fap1=True, net=net, params=params)
     states, n = [], max(1, int(chunk * sr))
     for i in range(0, len(x), n):
         states += drv.push(x[i:i + n].astype(np.float32), i / sr)
@@ -87,6 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     mismatch: dict[str, list] = {"own text": [], "other text": [], "refused own": []}
     texts = [it.utt.text for it in real if it.utt.text]
     import scipy.ndimage
+    from facecast.server.audio.visemes import Params
+
+    params = Params(median=args.median)
 
     for fold in FOLDS:
         t0 = time.perf_counter()
@@ -112,11 +115,11 @@ def main(argv: list[str] | None = None) -> int:
             x, sr = read_audio(u.audio)
             audio_s += len(x) / sr
             c = time.process_time()
-            ls = lipsync(x, sr, fps=100.0, net=net)
+            ls = lipsync(x, sr, fps=100.0, net=net, params=params)
             cpu["facecast"] += time.process_time() - c
             outs = {"facecast": ls.labels_at(ls.track.t)[0]}
             c = time.process_time()
-            outs["facecast-live"] = run_live(x, sr, net)
+            outs["facecast-live"] = run_live(x, sr, net, params=params)
             cpu["facecast-live"] += time.process_time() - c
             from facecast.server.audio.align import MAX_MISMATCH, text_fit
 
