@@ -61,7 +61,7 @@ class RunningCalibration:
     level whatever the input gain. The maximum reported is the peak plus ``headroom_db``: a
     stream's running peak sits below the loud speech still to come (the file calibration sees it
     all) and decays in pauses; 6 dB brought live accuracy on held-out speakers from 0.489 to
-    0.504 (batch 0.524; bench/lipsync/folds.py). Thresholds as ``visemes.calibrate``.
+    0.498 (batch 0.524; bench/lipsync/folds.py). Thresholds as ``visemes.calibrate``.
     """
 
     def __init__(self, noise_db: float = -75.0, rise_db_s: float = 2.0,
