@@ -118,6 +118,10 @@ def frame_features(k: np.ndarray, energy_db: np.ndarray, zcr: np.ndarray,
                             np.asarray(shape, dtype=np.float64) / 4])
 
 
+#: Frames per block of ``FrameNet.proba`` (the stacked inputs of a block: about 14 MB).
+BLOCK_FRAMES = 4096
+
+
 def stack_context(F: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """``(T, D·len(offsets))``: row t holds rows ``t + o`` of ``F (T, D)`` for each offset o
     (edge rows repeated past either end)."""
@@ -159,8 +163,22 @@ class FrameNet:
         return z / z.sum(axis=-1, keepdims=True)
 
     def proba(self, F: np.ndarray) -> np.ndarray:
-        """``(T, 10)`` class probabilities of per-frame features ``F (T, 44)`` (one utterance)."""
-        return self.proba_stacked(stack_context(F, self.offsets))
+        """``(T, 10)`` class probabilities of per-frame features ``F (T, 44)`` (one utterance).
+
+        The context-stacked inputs are built ``BLOCK_FRAMES`` rows at a time (as
+        ``stack_context``: edge rows repeated past either end of the utterance), so the memory
+        beyond ``F`` and the output does not grow with the utterance's length.
+        """
+        F = np.asarray(F)
+        T = len(F)
+        if T == 0:
+            return self.proba_stacked(np.zeros((0, F.shape[1] * len(self.offsets))))
+        offsets = np.asarray(self.offsets)[None, :]
+        out = []
+        for i in range(0, T, BLOCK_FRAMES):
+            idx = np.clip(np.arange(i, min(T, i + BLOCK_FRAMES))[:, None] + offsets, 0, T - 1)
+            out.append(self.proba_stacked(F[idx].reshape(len(idx), -1)))
+        return np.concatenate(out)
 
     def save(self, path: str | Path, **meta: str) -> None:
         np.savez(path, w1=self.w1, b1=self.b1, w2=self.w2, b2=self.b2, mean=self.mean,
