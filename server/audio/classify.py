@@ -65,3 +65,138 @@ class VowelNet:
 def default_net() -> VowelNet:
     """The shipped network (loaded once)."""
     return VowelNet.load(WEIGHTS)
+
+
+# -- the frame network: ten visual classes from context-stacked LPC features ---------------------
+
+#: Visual classes of the frame network (phones grouped by what the mouth shows; the same ten
+#: classes as ``bench/lipsync``): silence; P B M; F V; S Z SH ZH CH JH; AA AE AH AW AY; EH EY ER;
+#: IH IY Y; AO OW OY; UH UW W; the rest (tongue and throat consonants: T D N L K G R HH NG TH DH).
+CLASSES = ("sil", "closed", "labiodental", "sibilant", "open", "mid", "spread", "round",
+           "narrow-round", "other")
+#: MPEG-4 viseme id shown for each class (0 sil, 1 PP, 2 FF, 7 SS, 10 aa, 11 E, 12 ih, 13 oh,
+#: 14 ou, 4 DD).
+CLASS_VISEMES = np.array([0, 1, 2, 7, 10, 11, 12, 13, 14, 4])
+FRAME_WEIGHTS = Path(__file__).with_name("frame_net.npz")
+#: Feature columns per frame (see ``frame_features``).
+N_FRAME_FEATURES = 44
+
+
+def lpc_cepstrum(k: np.ndarray, n: int = 12) -> np.ndarray:
+    """``(T, n)`` LPC cepstrum c_1..c_n (n <= p) of the all-pole model given by reflection
+    coefficients ``k (T, p)``: step-up to the predictor, then ``lpc.cepstrum``."""
+    from .lpc import cepstrum
+
+    k = np.asarray(k, dtype=np.float64)
+    T, p = k.shape
+    a = np.zeros((T, p + 1))
+    a[:, 0] = 1.0
+    for i in range(1, p + 1):
+        a[:, 1:i] += k[:, i - 1:i] * a[:, i - 1:0:-1].copy()
+        a[:, i] = k[:, i - 1]
+    return cepstrum(a, n)
+
+
+def frame_features(k: np.ndarray, energy_db: np.ndarray, zcr: np.ndarray,
+                   silence_db: np.ndarray | float, max_db: np.ndarray | float,
+                   shape: np.ndarray, cep: np.ndarray | None = None) -> np.ndarray:
+    """``(T, 44)`` per-frame inputs of the frame network, all invariant to the input level:
+    log-area ratios of ``k (T, 12)``, the LPC cepstrum c1..c12, the prediction gain (dB/10,
+    voicing and spectral flatness), energy relative to the calibrated maximum and to the silence
+    threshold (dB/10, clipped), log(1 + zero crossings per 10 ms), and the mel-band spectral
+    shape ``(T, 16)`` (``lpc.spectral_shape``, /4). ``cep``: the LPC cepstrum if already known
+    (``lpc.analyze_frames`` gives it), else computed from ``k``."""
+    k = np.clip(np.asarray(k, dtype=np.float64), -0.999, 0.999)
+    e = np.asarray(energy_db, dtype=np.float64)
+    lar = np.log((1 - k) / (1 + k))
+    gain = 10 * np.log10(np.prod(1 - k * k, axis=1) + 1e-12) / 10
+    rel_max = np.clip((e - max_db) / 10, -6.0, 1.0)
+    rel_sil = np.clip((e - silence_db) / 10, -3.0, 5.0)
+    cep = lpc_cepstrum(k) if cep is None else cep
+    return np.column_stack([lar, cep, gain, rel_max, rel_sil,
+                            np.log1p(np.asarray(zcr, dtype=np.float64)),
+                            np.asarray(shape, dtype=np.float64) / 4])
+
+
+#: Frames per block of ``FrameNet.proba`` (the stacked inputs of a block: about 14 MB).
+BLOCK_FRAMES = 4096
+
+
+def stack_context(F: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """``(T, D·len(offsets))``: row t holds rows ``t + o`` of ``F (T, D)`` for each offset o
+    (edge rows repeated past either end)."""
+    T = len(F)
+    if T == 0:
+        return np.zeros((0, F.shape[1] * len(offsets)))
+    idx = np.clip(np.arange(T)[:, None] + np.asarray(offsets)[None, :], 0, T - 1)
+    return F[idx].reshape(T, -1)
+
+
+@dataclass
+class FrameNet:
+    """A small MLP over context-stacked frame features: standardise → tanh(D→H) → softmax(H→10)
+    over ``CLASSES``. ``offsets``: frame offsets stacked (the largest is the look-ahead the
+    network needs, in 10 ms frames)."""
+
+    w1: np.ndarray
+    b1: np.ndarray
+    w2: np.ndarray
+    b2: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    offsets: np.ndarray
+
+    @property
+    def future(self) -> int:
+        """Frames after t the network needs for frame t."""
+        return max(0, int(np.max(self.offsets)))
+
+    @property
+    def past(self) -> int:
+        return max(0, -int(np.min(self.offsets)))
+
+    def proba_stacked(self, X: np.ndarray) -> np.ndarray:
+        """``(T, 10)`` class probabilities of context-stacked inputs ``X (T, D)``."""
+        h = np.tanh(((X - self.mean) / self.std) @ self.w1 + self.b1)
+        z = h @ self.w2 + self.b2
+        z = np.exp(z - z.max(axis=-1, keepdims=True))
+        return z / z.sum(axis=-1, keepdims=True)
+
+    def proba(self, F: np.ndarray) -> np.ndarray:
+        """``(T, 10)`` class probabilities of per-frame features ``F (T, 44)`` (one utterance).
+
+        The context-stacked inputs are built ``BLOCK_FRAMES`` rows at a time (as
+        ``stack_context``: edge rows repeated past either end of the utterance), so the memory
+        beyond ``F`` and the output does not grow with the utterance's length.
+        """
+        F = np.asarray(F)
+        T = len(F)
+        if T == 0:
+            return self.proba_stacked(np.zeros((0, F.shape[1] * len(self.offsets))))
+        offsets = np.asarray(self.offsets)[None, :]
+        out = []
+        for i in range(0, T, BLOCK_FRAMES):
+            idx = np.clip(np.arange(i, min(T, i + BLOCK_FRAMES))[:, None] + offsets, 0, T - 1)
+            out.append(self.proba_stacked(F[idx].reshape(len(idx), -1)))
+        return np.concatenate(out)
+
+    def save(self, path: str | Path, **meta: str) -> None:
+        np.savez(path, w1=self.w1, b1=self.b1, w2=self.w2, b2=self.b2, mean=self.mean,
+                 std=self.std, offsets=self.offsets, classes=np.array(CLASSES),
+                 **{f"meta_{k}": np.array(v) for k, v in meta.items()})
+
+    @classmethod
+    def load(cls, path: str | Path = FRAME_WEIGHTS) -> FrameNet:
+        path = Path(path)
+        if not path.is_file():
+            raise FacecastError(f"frame network weights missing: {path}; run "
+                                "'python bench/lipsync/train_frames.py'")
+        with np.load(path) as z:
+            return cls(*(z[n].astype(np.float64) for n in ("w1", "b1", "w2", "b2", "mean", "std")),
+                       offsets=z["offsets"].astype(np.int64))
+
+
+@functools.lru_cache(maxsize=1)
+def default_frame_net() -> FrameNet:
+    """The shipped frame network (loaded once)."""
+    return FrameNet.load(FRAME_WEIGHTS)

@@ -7,6 +7,7 @@ last coefficient of the order-i predictor in the Levinson–Durbin recursion (``
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,7 +83,9 @@ def levinson(r: np.ndarray, *, order: int) -> tuple[np.ndarray, np.ndarray, np.n
     for i in range(1, order + 1):
         acc = r[..., i] + np.einsum("...j,...j->...", a[..., 1:i], r[..., i - 1:0:-1])
         ki = np.where(live, -acc / safe_err, 0.0)
-        ki = np.clip(ki, -0.999999, 0.999999)  # guards round-off on ill-conditioned frames
+        # guards round-off on ill-conditioned frames (minimum/maximum: np.clip's overhead
+        # dominates on the live path's few frames)
+        ki = np.minimum(np.maximum(ki, -0.999999), 0.999999)
         prev = a[..., 1:i].copy()
         a[..., 1:i] = prev + ki[..., None] * prev[..., ::-1]
         a[..., i] = ki
@@ -113,12 +116,17 @@ class Features:
         k: ``(T, 12)`` reflection coefficients.
         energy_db: ``(T,)`` 10·log10 of the mean power R0/N of the windowed, pre-emphasised frame.
         zcr: ``(T,)`` zero crossings per 10 ms.
+        shape: ``(T, N_BANDS)`` spectral shape: log power in mel bands of the windowed,
+            pre-emphasised frame, minus the frame's mean over the bands (level-independent).
+        cep: ``(T, 12)`` LPC cepstrum (``cepstrum``).
         hop: seconds between frames; t0: time of frame 0, seconds.
     """
 
     k: np.ndarray
     energy_db: np.ndarray
     zcr: np.ndarray
+    shape: np.ndarray | None = None
+    cep: np.ndarray | None = None
     hop: float = HOP_LENGTH
     t0: float = 0.0
 
@@ -131,22 +139,67 @@ class Features:
         return self.t0 + self.hop * np.arange(len(self))
 
 
+#: Mel bands of the spectral-shape feature (100 Hz to 4.8 kHz at the analysis rate).
+N_BANDS = 16
+
+
+@functools.lru_cache(maxsize=8)
+def _mel_bands(n_fft: int, sr: float, n_bands: int = N_BANDS) -> np.ndarray:
+    """``(n_fft//2 + 1, n_bands)`` triangular mel filters, 100 Hz .. 0.48·sr."""
+    mel = lambda f: 2595.0 * np.log10(1.0 + f / 700.0)  # noqa: E731
+    edges = 700.0 * (10 ** (np.linspace(mel(100.0), mel(0.48 * sr), n_bands + 2) / 2595.0) - 1)
+    f = np.linspace(0, sr / 2, n_fft // 2 + 1)[:, None]
+    lo, c, hi = edges[None, :-2], edges[None, 1:-1], edges[None, 2:]
+    return np.maximum(0.0, np.minimum((f - lo) / (c - lo), (hi - f) / (hi - c)))
+
+
+def spectral_shape(windowed: np.ndarray, *, sr: float = ANALYSIS_RATE) -> np.ndarray:
+    """``(T, N_BANDS)`` log mel-band power of windowed frames ``(T, N)``, each row minus its mean
+    (the spectrum's shape, independent of the level)."""
+    n_fft = 1 << (windowed.shape[-1] - 1).bit_length()
+    spec = np.fft.rfft(windowed, n=n_fft)
+    return _shape_of_power(spec.real ** 2 + spec.imag ** 2, n_fft, sr)
+
+
+def _shape_of_power(p: np.ndarray, n_fft: int, sr: float) -> np.ndarray:
+    b = np.log(p @ _mel_bands(n_fft, float(sr)) + 1e-10)
+    return b - b.mean(axis=-1, keepdims=True)
+
+
+def cepstrum(a: np.ndarray, n: int = ORDER) -> np.ndarray:
+    """``(T, n)`` LPC cepstrum c_1..c_n (n <= p) of predictors ``a (T, p+1)`` (``a[:, 0] = 1``):
+    the cepstrum of ``1 / A(z)``, by ``c_m = -a_m - sum_{j<m} (j/m) c_j a_{m-j}``."""
+    T = a.shape[0]
+    c = np.zeros((T, n + 1))
+    j = np.arange(n + 1, dtype=np.float64)
+    for m in range(1, n + 1):
+        c[:, m] = -a[:, m] - (c[:, 1:m] * a[:, m - 1:0:-1]) @ (j[1:m] / m)
+    return c[:, 1:]
+
+
 def analyze_frames(raw_frames: np.ndarray, emph_frames: np.ndarray, *, sr: float = ANALYSIS_RATE,
-                   order: int = ORDER) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """LPC features of already-cut frames.
+                   order: int = ORDER) -> tuple[np.ndarray, ...]:
+    """LPC features of already-cut frames. The autocorrelation comes from the frame's power
+    spectrum (one FFT, zero-padded past ``N + order`` so no lag wraps), which also gives the
+    spectral shape.
 
     Args:
         raw_frames: ``(T, N)`` frames of the signal (for the zero-crossing rate).
         emph_frames: ``(T, N)`` the same frames of the pre-emphasised signal.
     Returns:
-        ``(k (T, order), energy_db (T,), zcr (T,))``.
+        ``(k (T, order), energy_db (T,), zcr (T,), shape (T, N_BANDS), cep (T, order))``.
     """
     n = emph_frames.shape[-1]
     y = emph_frames * np.hamming(n)
-    r = autocorrelate(y, max_lag=order)
-    _, k, _ = levinson(r, order=order)
-    energy_db = 10.0 * np.log10(r[..., 0] / n + 1e-12)
-    return k, energy_db, zero_crossing_rate(raw_frames, sr=sr)
+    n_fft = 1 << (n - 1).bit_length()
+    n_r = n_fft if n_fft >= n + order else 2 * n_fft
+    spec = np.fft.rfft(y, n=n_r)
+    p = spec.real ** 2 + spec.imag ** 2
+    r = np.fft.irfft(p, n=n_r)[..., :order + 1]
+    a, k, _ = levinson(r, order=order)
+    energy_db = 10.0 * np.log10(np.maximum(r[..., 0], 0.0) / n + 1e-12)
+    shape = _shape_of_power(p if n_r == n_fft else p[..., ::2], n_fft, sr)
+    return k, energy_db, zero_crossing_rate(raw_frames, sr=sr), shape, cepstrum(a, order)
 
 
 def analyze(x: np.ndarray, *, sr: float = ANALYSIS_RATE, frame_length: float = FRAME_LENGTH,
@@ -178,8 +231,8 @@ def analyze(x: np.ndarray, *, sr: float = ANALYSIS_RATE, frame_length: float = F
         raw_f = frame(raw, frame_length=n_frame, hop_length=n_hop)[:m]
         emph_f = frame(emph, frame_length=n_frame, hop_length=n_hop)[:m]
         parts.append(analyze_frames(raw_f, emph_f, sr=sr, order=order))
-    k, e, z = (np.concatenate([p[j] for p in parts]) for j in range(3))
-    return Features(k=k, energy_db=e, zcr=z, hop=n_hop / sr, t0=0.0)
+    k, e, z, sh, c = (np.concatenate([p[j] for p in parts]) for j in range(5))
+    return Features(k=k, energy_db=e, zcr=z, shape=sh, cep=c, hop=n_hop / sr, t0=0.0)
 
 
 def _window(x: np.ndarray, start: int, stop: int) -> np.ndarray:

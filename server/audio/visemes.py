@@ -90,8 +90,10 @@ class Calibration:
         return np.clip((np.asarray(energy_db) - self.silence_db) / span, 0.0, 1.0)
 
 
-#: Quietest level ever used as a silence threshold, dB (digital silence is -120 dB).
-MIN_SILENCE_DB = -70.0
+#: Quietest level ever used as a silence threshold, dB (digital silence is -120 dB; 16-bit
+#: dither about -100 dB, which the noise margin keeps below the threshold anyway). Low enough
+#: that a quiet recording (speech peaking 50 dB below full scale) is calibrated like a loud one.
+MIN_SILENCE_DB = -100.0
 #: The silence threshold sits at most this far below the maximum, dB.
 SILENCE_RANGE_DB = 40.0
 #: ... and at least this far above the noise floor, dB.
@@ -101,7 +103,7 @@ NOISE_MARGIN_DB = 8.0
 def calibrate(energy_db: np.ndarray) -> Calibration:
     """File calibration from the frame energies themselves (the source recorded room noise and a
     loud /a/ instead): noise floor = 5th percentile, maximum = 99th percentile of frame energy;
-    silence threshold = max(noise + 8 dB, maximum - 40 dB, -70 dB)."""
+    silence threshold = max(noise + 8 dB, maximum - 40 dB, MIN_SILENCE_DB)."""
     e = np.asarray(energy_db, dtype=np.float64)
     if e.size == 0:
         return Calibration(MIN_SILENCE_DB, MIN_SILENCE_DB + SILENCE_RANGE_DB)
@@ -109,6 +111,32 @@ def calibrate(energy_db: np.ndarray) -> Calibration:
     top = float(np.percentile(e, 99))
     sil = max(noise + NOISE_MARGIN_DB, top - SILENCE_RANGE_DB, MIN_SILENCE_DB)
     return Calibration(silence_db=sil, max_db=max(top, sil + 10.0))
+
+
+#: A calibration recording must span at least this much between room noise and the loud /a/, dB.
+MIN_CALIBRATION_SPAN_DB = 15.0
+
+
+def calibrate_reference(energy_db: np.ndarray, *, where: str = "calibration") -> Calibration:
+    """The source's calibration: from a recording of the room's noise and a loud sustained /a/
+    (in one file, in any order). Noise floor = 10th percentile of frame energy, the /a/ = 90th
+    percentile; silence threshold as ``calibrate`` (noise + 8 dB, at most 40 dB below the /a/),
+    maximum = the /a/. Raises InputError when the recording holds no loud part well above its
+    noise (what to record is in the message)."""
+    from ..errors import InputError
+
+    e = np.asarray(energy_db, dtype=np.float64)
+    if e.size < 20:
+        raise InputError("the calibration recording is shorter than 0.2 s; record about 1 s of "
+                         "room noise and then a loud sustained /a/", where=where)
+    noise, loud = float(np.percentile(e, 10)), float(np.percentile(e, 90))
+    if loud - noise < MIN_CALIBRATION_SPAN_DB:
+        raise InputError(f"the calibration recording's loud part is only {loud - noise:.1f} dB "
+                         f"above its quiet part (at least {MIN_CALIBRATION_SPAN_DB:.0f} dB needed): "
+                         "record about 1 s of room noise and then a loud sustained /a/",
+                         where=where)
+    sil = max(noise + NOISE_MARGIN_DB, loud - SILENCE_RANGE_DB, MIN_SILENCE_DB)
+    return Calibration(silence_db=sil, max_db=max(loud, sil + 10.0))
 
 
 @dataclass
@@ -136,7 +164,7 @@ class Params:
     zcr_fricative: float = 31.0
     weak_fricative_db: float = 20.0
     weak_db: float = 18.0
-    median: int = 5
+    median: int = 3
     min_pause: float = 0.1
     fricative_viseme: int = SS
     weak_viseme: int | None = NN

@@ -1,0 +1,204 @@
+"""Speaker-disjoint evaluation of the frame network: ``python bench/lipsync/folds.py``.
+
+Folds by speaker (``FOLDS``): for each, a network is trained on the other speakers' real
+recordings plus the synthetic development sentences (``frames.py``), and the held-out speakers'
+recordings are scored as the bench scores (ten classes, 100 frames/s, against PocketSphinx
+alignments): facecast batch (``pipeline.lipsync`` with the fold's network), facecast live
+(``AudioLiveDriver``, default look-ahead, 20 ms chunks, FAP 1) and facecast with the transcript
+(``align.align_text``), next to the energy and MFCC baselines. Never a number on a speaker the
+network was trained on. Writes bench/out/lipsync_folds.json and .md.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import pickle
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+import frames  # noqa: E402  (sets one thread)
+from baselines import MfccTemplates, energy_visemes  # noqa: E402
+from classes import CLASSES, VISEME_CLASS  # noqa: E402
+from facecast.server.audio.io import read_audio  # noqa: E402
+from facecast.server.audio.live import AudioLiveDriver  # noqa: E402
+from facecast.server.audio.pipeline import lipsync  # noqa: E402
+from run import fit_len, scores  # noqa: E402
+
+log = logging.getLogger("bench.lipsync.folds")
+#: Held-out speaker groups (every speaker is held out exactly once).
+FOLDS = (("michael",), ("librivox",), ("lj", "slt"), ("cards", "digits", "uberi", "libri61"),
+         ("bobby", "mary"))
+SYSTEMS = ("facecast", "facecast-live", "facecast-text", "energy", "mfcc")
+
+
+def cached_items(refresh: bool = False):
+    path = frames.OUT / "lipsync_data" / "items.pkl"
+    if path.exists() and not refresh:
+        return pickle.loads(path.read_bytes())
+    items = frames.load_items()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(pickle.dumps(items))
+    return items
+
+
+def run_live(x: np.ndarray, sr: float, net, chunk: float = 0.02, params=None) -> np.ndarray:
+    drv = AudioLiveDriver(None, sr, fps=100.0, fap1=True, net=net, params=params)
+    states, n = [], max(1, int(chunk * sr))
+    for i in range(0, len(x), n):
+        states += drv.push(x[i:i + n].astype(np.float32), i / sr)
+    states += drv.flush()
+    return np.array([s.viseme[0] for s in states])
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--refresh", action="store_true", help="recompute the cached features")
+    ap.add_argument("--quick", action="store_true", help="frame-level batch scores only")
+    ap.add_argument("--epochs", type=int, default=frames.EPOCHS)
+    ap.add_argument("--hidden", type=int, default=frames.HIDDEN)
+    ap.add_argument("--offsets", default=",".join(map(str, frames.OFFSETS)))
+    ap.add_argument("--balance", type=float, default=frames.BALANCE)
+    ap.add_argument("--step", type=int, default=frames.STEP)
+    ap.add_argument("--median", type=int, default=3)
+    ap.add_argument("--no-dev", action="store_true", help="train without synthetic speech")
+    ap.add_argument("--cmvn", action="store_true", help="quick: per-utterance mean removal")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    offsets = np.array([int(v) for v in args.offsets.split(",")])
+    real, dev = cached_items(args.refresh)
+    if args.cmvn:
+        for it in real + dev:
+            for F in it.feats:
+                speech = F[:, 26] > 0
+                F[:, :25] -= F[speech if speech.sum() > 10 else slice(None), :25].mean(0)
+    speakers = sorted({it.utt.speaker for it in real})
+    assert sorted(s for f in FOLDS for s in f) == speakers, speakers
+    mfcc = None if args.quick else MfccTemplates()
+    truths: dict[str, list] = {s: [] for s in speakers}
+    preds: dict[str, dict[str, list]] = {m: {s: [] for s in speakers} for m in SYSTEMS}
+    audio_s, cpu = 0.0, {m: 0.0 for m in SYSTEMS}
+    mismatch: dict[str, list] = {"own text": [], "other text": [], "refused own": []}
+    texts = [it.utt.text for it in real if it.utt.text]
+    import scipy.ndimage
+    from facecast.server.audio.visemes import Params
+
+    params = Params(median=args.median)
+
+    for fold in FOLDS:
+        t0 = time.perf_counter()
+        train_items = [it for it in real if it.utt.speaker not in fold] + ([] if args.no_dev else dev)
+        net = frames.train(train_items, offsets, epochs=args.epochs, hidden=args.hidden,
+                           balance=args.balance, step=args.step)
+        log.info("fold %s: trained on %d utterances in %.0f s", fold, len(train_items),
+                 time.perf_counter() - t0)
+        for it in real:
+            u = it.utt
+            if u.speaker not in fold:
+                continue
+            n = len(u.truth)
+            truths[u.speaker].append(u.truth)
+            if args.quick:
+                for med in (1, 3, 5, 7):
+                    p = scipy.ndimage.median_filter(net.proba(it.feats[0]), size=(med, 1),
+                                                    mode="nearest")
+                    key = "facecast" if med == args.median else f"median{med}"
+                    preds.setdefault(key, {s: [] for s in speakers})
+                    preds[key][u.speaker].append(fit_len(np.argmax(p, 1), n))
+                continue
+            x, sr = read_audio(u.audio)
+            audio_s += len(x) / sr
+            c = time.process_time()
+            ls = lipsync(x, sr, fps=100.0, net=net, params=params)
+            cpu["facecast"] += time.process_time() - c
+            outs = {"facecast": ls.labels_at(ls.track.t)[0]}
+            c = time.process_time()
+            outs["facecast-live"] = run_live(x, sr, net, params=params)
+            cpu["facecast-live"] += time.process_time() - c
+            from facecast.server.audio.align import MAX_MISMATCH, text_fit
+
+            if u.text:  # the transcript check: own text vs another recording's
+                proba = net.proba(it.feats[0])
+                other = texts[(texts.index(u.text) + len(texts) // 2) % len(texts)]
+                for key, t in (("own text", u.text), ("other text", other)):
+                    try:
+                        mismatch[key].append(text_fit(proba, t)[1])
+                    except Exception:  # noqa: BLE001  (too many phones: refused outright)
+                        mismatch[key].append(float("inf"))
+                if mismatch["own text"][-1] > MAX_MISMATCH:
+                    mismatch["refused own"].append(u.name)
+            try:
+                from facecast.server.audio.align import align_text
+
+                c = time.process_time()
+                outs["facecast-text"] = align_text(x, sr, u.text, net=net).labels_at(ls.track.t)[0]
+                cpu["facecast-text"] += time.process_time() - c
+            except Exception as e:  # noqa: BLE001  (reported, scored as missing)
+                log.warning("%s: transcript path failed: %s", u.name, e)
+                outs["facecast-text"] = outs["facecast"]
+            outs["energy"] = energy_visemes(x, sr)[0]
+            outs["mfcc"] = mfcc.visemes(x, sr)[0]
+            for m, vis in outs.items():
+                preds[m][u.speaker].append(VISEME_CLASS[fit_len(vis, n)])
+    systems = tuple(preds) if args.quick else SYSTEMS
+    systems = tuple(m for m in systems if any(preds[m][s] for s in speakers))
+    res: dict = {"folds": [list(f) for f in FOLDS], "args": vars(args), "per_speaker": {},
+                 "overall": {}, "load_average": os.getloadavg()}
+    for m in systems:
+        res["per_speaker"][m] = {s: scores(np.concatenate(truths[s]), np.concatenate(preds[m][s]))
+                                 for s in speakers}
+        res["overall"][m] = scores(np.concatenate([np.concatenate(truths[s]) for s in speakers]),
+                                   np.concatenate([np.concatenate(preds[m][s]) for s in speakers]))
+        if not args.quick:
+            res["overall"][m]["x_realtime"] = audio_s / max(cpu[m], 1e-9) if cpu[m] else None
+    lines = [f"\n## Lip-sync, speakers held out ({len(FOLDS)} folds by speaker; "
+             f"{sum(len(t) for s in speakers for t in truths[s])} frames)\n",
+             "| speaker | fold | frames | " + " | ".join(f"{m} acc / F1" for m in systems) + " |",
+             "|---|---|---|" + "---|" * len(systems)]
+    for s in speakers:
+        fold = next(i for i, f in enumerate(FOLDS) if s in f)
+        cells = [f"{res['per_speaker'][m][s]['accuracy']:.3f} / {res['per_speaker'][m][s]['macro_f1']:.3f}"
+                 for m in systems]
+        lines.append(f"| {s} | {fold + 1} | {res['per_speaker'][systems[0]][s]['frames']} | "
+                     + " | ".join(cells) + " |")
+    lines.append("| **all** | | " + str(res["overall"][systems[0]]["frames"]) + " | " + " | ".join(
+        f"**{res['overall'][m]['accuracy']:.3f} / {res['overall'][m]['macro_f1']:.3f}**"
+        for m in systems) + " |")
+    if not args.quick:
+        lines.append("\n× real time (1 core, process time): " + ", ".join(
+            f"{m} {res['overall'][m]['x_realtime']:.0f}" for m in systems if res["overall"][m]["x_realtime"]))
+    if not args.quick:
+        from facecast.server.audio.align import MAX_MISMATCH
+
+        own, oth = np.array(mismatch["own text"]), np.array(mismatch["other text"])
+        res["transcript_check"] = {k: (v if k == "refused own" else [float(a) for a in v])
+                                   for k, v in mismatch.items()}
+        lines.append(f"\nTranscript check (limit {MAX_MISMATCH} nats/frame): own transcripts "
+                     f"refused {np.sum(own > MAX_MISMATCH)}/{len(own)} (median {np.median(own):.2f},"
+                     f" max {own.max():.2f}); another recording's transcript refused "
+                     f"{np.sum(oth > MAX_MISMATCH)}/{len(oth)} (min {oth.min():.2f}). Text-path "
+                     "frames of refused own transcripts are scored with the no-text output.")
+    lines.append(f"\nLoad average: {res['load_average'][0]:.1f} (2 cores shared). Args: {vars(args)}")
+    cm = np.array(res["overall"]["facecast"]["confusion"])
+    lines.append("\nConfusion, facecast batch, held-out speakers (rows truth, columns predicted):\n")
+    lines.append("| truth \\ pred | " + " | ".join(c[:6] for c in CLASSES) + " |")
+    lines.append("|---" * (len(CLASSES) + 1) + "|")
+    for i, c in enumerate(CLASSES):
+        lines.append(f"| {c} | " + " | ".join(str(v) for v in cm[i]) + " |")
+    text = "\n".join(lines) + "\n"
+    frames.OUT.mkdir(parents=True, exist_ok=True)
+    tag = f"_quick{os.getpid()}" if args.quick else ""
+    (frames.OUT / f"lipsync_folds{tag}.json").write_text(json.dumps(res, indent=1))
+    (frames.OUT / f"lipsync_folds{tag}.md").write_text(text)
+    sys.stdout.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
