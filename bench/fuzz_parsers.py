@@ -88,28 +88,22 @@ def seeds(parser: str) -> tuple[bytes, ...]:
 
 
 def _ezc3d_bytes(take) -> bytes | None:
-    """The take as ezc3d writes it (with 2 analog channels), or None without ezc3d."""
+    """The take as ezc3d writes it (tests/test_c3d.py's writer, 2 analog channels), or None without
+    ezc3d."""
     try:
-        import ezc3d
+        import ezc3d  # noqa: F401
     except ImportError:
         return None
     import tempfile
 
-    import numpy as np
-
-    c = ezc3d.c3d()
-    c["parameters"]["POINT"]["RATE"]["value"] = [take.fps]
-    c["parameters"]["POINT"]["LABELS"]["value"] = list(take.names)
-    c.add_parameter("POINT", "UNITS", take.units)
-    pts = np.ones((4, take.xyz.shape[1], take.xyz.shape[0]))
-    pts[:3] = np.moveaxis(take.xyz, (0, 1, 2), (2, 1, 0))
-    c["data"]["points"] = pts
-    c["parameters"]["ANALOG"]["RATE"]["value"] = [take.fps * 2]
-    c["parameters"]["ANALOG"]["LABELS"]["value"] = ["A0", "A1"]
-    c["data"]["analogs"] = np.zeros((1, 2, take.xyz.shape[0] * 2))
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    try:
+        from test_c3d import _ezc3d_write
+    finally:
+        sys.path.pop(0)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "ez.c3d"
-        c.write(str(path))
+        _ezc3d_write(take, path, analog_channels=2)
         return path.read_bytes()
 
 
