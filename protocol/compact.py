@@ -80,19 +80,9 @@ def grid_base(rest: np.ndarray, step: float) -> np.ndarray:
     return b.astype(np.int32)
 
 
-def _zigzag_planes(d: np.ndarray) -> tuple[bytes, int]:
-    """``d (n,) int32`` -> (byte planes of zigzag(d), number of planes)."""
-    u = ((d << 1) ^ (d >> 31)).view(np.uint32)
-    top = int(u.max()) if u.size else 0
-    planes = 1 if top < 1 << 8 else 2 if top < 1 << 16 else 3 if top < 1 << 24 else 4
-    if planes == 1:
-        return u.astype(np.uint8).tobytes(), 1
-    b = u.view(np.uint8).reshape(-1, 4)[:, :planes]  # little-endian bytes of each value
-    return np.ascontiguousarray(b.T).tobytes(), planes
-
-
 def _unzigzag_planes(raw: bytes, planes: int, n: int) -> np.ndarray:
-    """Inverse of ``_zigzag_planes``: ``(n,) int32``."""
+    """``raw``: ``planes`` byte planes (little end first) of ``n`` zigzagged values, as
+    ``CompactEncoder.encode`` writes them -> ``(n,) int32``."""
     p = np.frombuffer(raw, np.uint8).reshape(planes, n)
     u = p[0].astype(np.uint32)
     for k in range(1, planes):
