@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from enum import IntEnum
 
-__all__ = ["CloseCode", "ProtocolError", "FrameError", "MessageError", "FileFormatError"]
+__all__ = ["CloseCode", "ProtocolError", "FrameError", "MessageError", "FileFormatError", "show_token"]
 
 
 class CloseCode(IntEnum):
@@ -70,3 +70,8 @@ class MessageError(ProtocolError):
 
 class FileFormatError(ProtocolError):
     """A file (or file-like blob) a client sent or named is malformed; HTTP 400 / close 4400."""
+
+
+def show_token(text: str, limit: int = 40) -> str:
+    """A client's token for an error message (``repr``), cut to ``limit`` characters or so."""
+    return repr(text if len(text) <= limit else text[: limit - 4] + "...")

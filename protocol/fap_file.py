@@ -26,7 +26,7 @@ import math
 import re
 from dataclasses import dataclass, field
 
-from .errors import FileFormatError
+from .errors import FileFormatError, show_token as _show
 
 #: Number of MPEG-4 FAPs (2 high-level + 66 low-level).
 N_FAPS = 68
@@ -168,11 +168,6 @@ class FapFile:
 
 #: Integers have at most this many digits (Python refuses to parse over 4,300; no FAP needs 19).
 MAX_DIGITS = 18
-
-
-def _show(tok: str) -> str:
-    """A token for an error message, cut to a readable length."""
-    return repr(tok if len(tok) <= 40 else tok[:36] + "...")
 
 
 def _int(tok: str, line: int, where: str, what: str) -> int:

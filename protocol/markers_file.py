@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import FileFormatError
+from .errors import FileFormatError, show_token as _show
 
 #: Length units a take may declare, in millimetres.
 UNITS_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
@@ -107,11 +107,6 @@ def check_take(take: MarkerTake, where: str = "") -> MarkerTake:
         xyz = np.where(np.isinf(xyz), np.nan, xyz)
     take.xyz = xyz
     return take
-
-
-def _show(text: str, limit: int = 40) -> str:
-    """A client's token for an error message, cut to a readable length."""
-    return repr(text if len(text) <= limit else text[: limit - 4] + "...")
 
 
 def _float(cell: str, what: str, where: str, *, finite: bool = False) -> float:
@@ -575,7 +570,7 @@ def write_c3d(take: MarkerTake, *, processor: str = "intel", scale: float = -1.0
     if not (math.isfinite(scale) and scale != 0):
         raise ValueError("scale must be a non-zero number")
     codec = _C3dCodec(processor)
-    be = ">" if processor == "mips" else "<"
+    be = codec.order
     t, m = take.xyz.shape[:2]
     if m > 65535 or any(len(n.encode("latin-1", "replace")) > 255 for n in take.names):
         raise MarkerFileError("C3D holds at most 65535 markers with labels of 255 characters")
