@@ -46,6 +46,7 @@ from ..protocol.messages import (
     dump_message,
     parse_message,
 )
+from .urls import server_url
 
 log = logging.getLogger(__name__)
 
@@ -507,9 +508,8 @@ async def _compact_decoder(url: str, topology_url: str) -> Any:
     from ..protocol.compact import CompactDecoder
     from ..protocol.topology import decode_topology
 
-    base = url.replace("ws://", "http://", 1).replace("wss://", "https://", 1).rstrip("/")
     async with httpx.AsyncClient(timeout=60.0) as c:
-        r = await c.get(base + topology_url)
+        r = await c.get(server_url(url) + topology_url)
     if r.status_code != 200:
         raise _http_error(r, "fetching the face topology for compact frames")
     try:

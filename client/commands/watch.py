@@ -86,8 +86,6 @@ async def _main(args: argparse.Namespace) -> dict:
 
 def _save(path: str, got: list) -> str:
     """Write ``seq (n,) u32``, ``t (n,) f64`` and ``vertices (n, V, 3) f32`` to ``path`` atomically."""
-    import os
-
     import numpy as np
 
     out = path if path.endswith(".npz") else path + ".npz"
