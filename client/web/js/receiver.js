@@ -5,7 +5,7 @@
 //
 // Page -> worker: {type: 'connect', id, url, protocols} | {type: 'next'} | {type: 'close'}
 // Worker -> page: {type: 'open'|'close'|'text'|'frame'|'error', id, ...}
-import { decodeVertexFrame } from './protocol.js';
+import { decodeTopology, decodeVertexFrame } from './protocol.js';
 import { CompactDecoder, KIND_COMPACT } from './compact.js';
 
 let ws = null, id = 0, newest = null, wanted = false;
@@ -17,11 +17,8 @@ let compact = null, chain = Promise.resolve(), wireBytes = 0, wireTotal = 0;
 async function compactDecoder(topologyUrl) {
   const res = await fetch(topologyUrl);
   if (!res.ok) throw new Error(`topology: HTTP ${res.status}`);
-  const buf = await res.arrayBuffer(), dv = new DataView(buf);
-  const V = dv.getUint32(8, true), F = dv.getUint32(12, true), N = dv.getUint32(20, true);
-  const pad = (n) => (n + 3) & ~3;
-  const vOff = 32 + pad(N), gOff = vOff + 12 * V + 12 * F + pad(V);
-  return new CompactDecoder(new Float32Array(buf, vOff, 3 * V), new Uint8Array(buf, gOff, V));
+  const topo = decodeTopology(await res.arrayBuffer());
+  return new CompactDecoder(topo.vertices, topo.groups);
 }
 
 /** A VERTICES_F32 frame with the compact frame's header fields and the decoded positions. */
@@ -68,8 +65,7 @@ function connect(url, connId, protocols = []) {
         const t0 = performance.now();
         const out = await compact.decode(data);
         if (out === null) return; // its key frame has not come: keep showing the last good face
-        const f32 = asF32(data, out);
-        take(f32, decodeVertexFrame(f32), t0);
+        take(asF32(data, out), out, t0);
       }).catch((e) => postMessage({ type: 'error', id: connId, message: e.message }));
       return;
     }
