@@ -11,10 +11,11 @@ import argparse
 import asyncio
 import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
+
+from . import add_token_argument
 
 log = logging.getLogger(__name__)
 
@@ -26,13 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", type=Path, help=".fap, .wav/.flac/.ogg or .trc/.csv file")
     p.add_argument("--url", required=True, help="server URL, e.g. http://127.0.0.1:8000")
     p.add_argument("--session", required=True, help="session id (from 'facecast session create')")
-    p.add_argument(
-        "--token",
-        default=os.environ.get("FACECAST_TOKEN"),
-        required=not os.environ.get("FACECAST_TOKEN"),
-        help="the session's producer token (default: $FACECAST_TOKEN, which keeps it out of the "
-        "process list); it is sent in the Authorization header, never in the URL",
-    )
+    add_token_argument(p, "producer")
     p.add_argument(
         "--speed",
         type=float,

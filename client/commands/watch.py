@@ -15,17 +15,13 @@ import os
 import sys
 import time
 
+from . import add_token_argument
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--url", required=True, help="server URL, e.g. http://127.0.0.1:8000")
     p.add_argument("--session", required=True, help="session id")
-    p.add_argument(
-        "--token",
-        default=os.environ.get("FACECAST_TOKEN"),
-        required=not os.environ.get("FACECAST_TOKEN"),
-        help="the session's viewer token (default: $FACECAST_TOKEN, which keeps it out of the "
-        "process list); it is sent in the Authorization header, never in the URL",
-    )
+    add_token_argument(p, "viewer")
     p.add_argument(
         "--encoding", choices=("compact", "i16", "f32"), default="compact",
         help="vertex encoding (default compact: within the session's tolerance, a few %% of i16)",
