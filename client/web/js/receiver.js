@@ -21,13 +21,11 @@ async function compactDecoder(topologyUrl) {
   return new CompactDecoder(topo.vertices, topo.groups);
 }
 
-/** A VERTICES_F32 frame with the compact frame's header fields and the decoded positions. */
-function asF32(data, out) {
-  const buf = new ArrayBuffer(32 + 4 * out.positions.length);
+/** `buf` (decoded positions after a 32-byte header) made a VERTICES_F32 frame with the compact frame's header fields. */
+function asF32(data, buf) {
   new Uint8Array(buf, 0, 32).set(new Uint8Array(data, 0, 32));
   const dv = new DataView(buf);
   dv.setUint8(5, 1); dv.setUint16(6, 0, true);
-  new Float32Array(buf, 32).set(out.positions);
   return buf;
 }
 
@@ -63,9 +61,10 @@ function connect(url, connId, protocols = []) {
       chain = chain.then(async () => {
         if (ws !== sock || !compact) return;
         const t0 = performance.now();
-        const out = await compact.decode(data);
+        const buf = new ArrayBuffer(32 + 12 * compact.V);  // decoded straight into the f32 frame
+        const out = await compact.decode(data, new Float32Array(buf, 32));
         if (out === null) return; // its key frame has not come: keep showing the last good face
-        take(asF32(data, out), out, t0);
+        take(asF32(data, buf), out, t0);
       }).catch((e) => postMessage({ type: 'error', id: connId, message: e.message }));
       return;
     }
