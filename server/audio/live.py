@@ -150,7 +150,6 @@ class AudioLiveDriver:
         # features of frames [_f0, _f0 + len)
         self._f0 = 0
         self._e = np.zeros(0)
-        self._z = np.zeros(0)
         self._F = np.zeros((0, len(self.net.mean) // len(self.net.offsets)))
         self._p = np.zeros((0, len(self.net.b2)))  # class probabilities of frames [_f0, _n_p)
         self._n_p = 0
@@ -250,7 +249,6 @@ class AudioLiveDriver:
             else:
                 sil, mx = self._cal.update(e, self.hop)
             self._e = np.concatenate([self._e, e])
-            self._z = np.concatenate([self._z, z])
             self._F = np.concatenate([self._F, frame_features(k, e, z, sil, mx, sh, cep)])
             if self._first is None and np.any(e >= sil):  # the stream's first sound
                 self._first = start_i + int(np.argmax(e >= sil))
@@ -321,6 +319,6 @@ class AudioLiveDriver:
         keep = max(0, int(math.floor(k_end / self.fps / self.hop)) - past - 1) - self._f0
         if keep > 0:
             self._f0 += keep
-            for name in ("_e", "_z", "_F", "_p", "_sil", "_max"):
+            for name in ("_e", "_F", "_p", "_sil", "_max"):
                 setattr(self, name, getattr(self, name)[keep:])
         return states
