@@ -122,7 +122,7 @@ def frame_features(k: np.ndarray, energy_db: np.ndarray, zcr: np.ndarray,
     log-area ratios of ``k (T, 12)``, the LPC cepstrum c1..c12, the prediction gain (dB/10,
     voicing and spectral flatness), energy relative to the calibrated maximum and to the silence
     threshold (dB/10, clipped), log(1 + zero crossings per 10 ms), and the mel-band spectral
-    shape ``(T, 16)`` (``lpc.spectral_shape``, /4). ``cep``: the LPC cepstrum if already known
+    shape ``(T, 16)`` (``Features.shape``, /4). ``cep``: the LPC cepstrum if already known
     (``lpc.analyze_frames`` gives it), else computed from ``k``."""
     k = np.clip(np.asarray(k, dtype=np.float64), -0.999, 0.999)
     e = np.asarray(energy_db, dtype=np.float64)
