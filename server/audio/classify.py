@@ -100,37 +100,20 @@ FRAME_WEIGHTS = Path(__file__).with_name("frame_net.npz")
 N_FRAME_FEATURES = 44
 
 
-def lpc_cepstrum(k: np.ndarray, n: int = 12) -> np.ndarray:
-    """``(T, n)`` LPC cepstrum c_1..c_n (n <= p) of the all-pole model given by reflection
-    coefficients ``k (T, p)``: step-up to the predictor, then ``lpc.cepstrum``."""
-    from .lpc import cepstrum
-
-    k = np.asarray(k, dtype=np.float64)
-    T, p = k.shape
-    a = np.zeros((T, p + 1))
-    a[:, 0] = 1.0
-    for i in range(1, p + 1):
-        a[:, 1:i] += k[:, i - 1:i] * a[:, i - 1:0:-1].copy()
-        a[:, i] = k[:, i - 1]
-    return cepstrum(a, n)
-
-
 def frame_features(k: np.ndarray, energy_db: np.ndarray, zcr: np.ndarray,
                    silence_db: np.ndarray | float, max_db: np.ndarray | float,
-                   shape: np.ndarray, cep: np.ndarray | None = None) -> np.ndarray:
+                   shape: np.ndarray, cep: np.ndarray) -> np.ndarray:
     """``(T, 44)`` per-frame inputs of the frame network, all invariant to the input level:
     log-area ratios of ``k (T, 12)``, the LPC cepstrum c1..c12, the prediction gain (dB/10,
     voicing and spectral flatness), energy relative to the calibrated maximum and to the silence
     threshold (dB/10, clipped), log(1 + zero crossings per 10 ms), and the mel-band spectral
-    shape ``(T, 16)`` (``Features.shape``, /4). ``cep``: the LPC cepstrum if already known
-    (``lpc.analyze_frames`` gives it), else computed from ``k``."""
+    shape ``(T, 16)`` (``Features.shape``, /4); ``cep (T, 12)`` is ``Features.cep``."""
     k = np.clip(np.asarray(k, dtype=np.float64), -0.999, 0.999)
     e = np.asarray(energy_db, dtype=np.float64)
     lar = np.log((1 - k) / (1 + k))
     gain = 10 * np.log10(np.prod(1 - k * k, axis=1) + 1e-12) / 10
     rel_max = np.clip((e - max_db) / 10, -6.0, 1.0)
     rel_sil = np.clip((e - silence_db) / 10, -3.0, 5.0)
-    cep = lpc_cepstrum(k) if cep is None else cep
     return np.column_stack([lar, cep, gain, rel_max, rel_sil,
                             np.log1p(np.asarray(zcr, dtype=np.float64)),
                             np.asarray(shape, dtype=np.float64) / 4])
