@@ -298,8 +298,7 @@ class AudioLiveDriver:
         ks = np.arange(self._next_out, k_end)
         t_rel = ks / self.fps
         p = self.params
-        n_pause = int(round(p.min_pause / self.hop))
-        past = int(round(p.coart_past / self.hop)) + n_pause + self.med_half + self.net.past + 2
+        past = int(round(p.coart_past / self.hop)) + self.med_half + self.net.past + 2
         first_base = int(math.floor(t_rel[0] / self.hop + 1e-9))
         s = max(self._f0, first_base - past)
         lo, hi = s - self._f0, self._n_p - self._f0

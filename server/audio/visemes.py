@@ -144,13 +144,10 @@ class Params:
 
     Attributes:
         median: length of the median filter over the frame network's outputs, frames.
-        min_pause: extra history the live driver keeps before its window, seconds (kept from
-            the removed quiet-run pause rule).
         coart_past: how far back dominance functions reach, seconds.
     """
 
     median: int = 3
-    min_pause: float = 0.1
     coart_past: float = 0.25
     dominance: np.ndarray = field(default_factory=lambda: DOMINANCE.copy())
 
