@@ -17,6 +17,33 @@ WEIGHTS = Path(__file__).with_name("vowel_net.npz")
 VOWELS = ("a", "e", "i", "o", "u")
 
 
+#: Arrays every network file holds (the dataclasses' first fields, in order).
+_PARAMS = ("w1", "b1", "w2", "b2", "mean", "std")
+
+
+def _softmax(z: np.ndarray) -> np.ndarray:
+    """Row-wise softmax of ``z (T, C)``."""
+    z = np.exp(z - z.max(axis=-1, keepdims=True))
+    return z / z.sum(axis=-1, keepdims=True)
+
+
+def _save(path: str | Path, net, classes: tuple[str, ...], meta: dict[str, str],
+          **extra: np.ndarray) -> None:
+    """Write ``net``'s ``_PARAMS``, ``extra`` arrays, the class names and ``meta_*`` strings."""
+    np.savez(path, **{n: getattr(net, n) for n in _PARAMS}, **extra, classes=np.array(classes),
+             **{f"meta_{k}": np.array(v) for k, v in meta.items()})
+
+
+def _load(path: str | Path, what: str, make: str, *extra: str) -> list[np.ndarray]:
+    """``_PARAMS`` as float64, then the ``extra`` arrays as stored, from ``path``; FacecastError
+    naming ``what`` network and the command that ``make``s the file when it is missing."""
+    path = Path(path)
+    if not path.is_file():
+        raise FacecastError(f"{what} network weights missing: {path}; run '{make}'")
+    with np.load(path) as z:
+        return [z[n].astype(np.float64) for n in _PARAMS] + [z[n] for n in extra]
+
+
 @dataclass
 class VowelNet:
     """Weights of the 12-10-5 network. ``w1 (12, 10)``, ``b1 (10,)``, ``w2 (10, 5)``, ``b2 (5,)``;
@@ -38,27 +65,18 @@ class VowelNet:
 
     def proba(self, k: np.ndarray) -> np.ndarray:
         """``(T, 5)`` class probabilities (softmax), rows sum to 1."""
-        z = self.logits(k)
-        z = np.exp(z - z.max(axis=-1, keepdims=True))
-        return z / z.sum(axis=-1, keepdims=True)
+        return _softmax(self.logits(k))
 
     def predict(self, k: np.ndarray) -> np.ndarray:
         """``(T,) int`` index into ``VOWELS``."""
         return np.argmax(self.logits(k), axis=-1)
 
     def save(self, path: str | Path, **meta: str) -> None:
-        np.savez(path, w1=self.w1, b1=self.b1, w2=self.w2, b2=self.b2, mean=self.mean,
-                 std=self.std, classes=np.array(VOWELS), **{f"meta_{k}": np.array(v)
-                                                           for k, v in meta.items()})
+        _save(path, self, VOWELS, meta)
 
     @classmethod
     def load(cls, path: str | Path = WEIGHTS) -> VowelNet:
-        path = Path(path)
-        if not path.is_file():
-            raise FacecastError(f"vowel network weights missing: {path}; run "
-                                "'python -m facecast.server.audio.train'")
-        with np.load(path) as z:
-            return cls(*(z[n].astype(np.float64) for n in ("w1", "b1", "w2", "b2", "mean", "std")))
+        return cls(*_load(path, "vowel", "python -m facecast.server.audio.train"))
 
 
 @functools.lru_cache(maxsize=1)
@@ -82,37 +100,20 @@ FRAME_WEIGHTS = Path(__file__).with_name("frame_net.npz")
 N_FRAME_FEATURES = 44
 
 
-def lpc_cepstrum(k: np.ndarray, n: int = 12) -> np.ndarray:
-    """``(T, n)`` LPC cepstrum c_1..c_n (n <= p) of the all-pole model given by reflection
-    coefficients ``k (T, p)``: step-up to the predictor, then ``lpc.cepstrum``."""
-    from .lpc import cepstrum
-
-    k = np.asarray(k, dtype=np.float64)
-    T, p = k.shape
-    a = np.zeros((T, p + 1))
-    a[:, 0] = 1.0
-    for i in range(1, p + 1):
-        a[:, 1:i] += k[:, i - 1:i] * a[:, i - 1:0:-1].copy()
-        a[:, i] = k[:, i - 1]
-    return cepstrum(a, n)
-
-
 def frame_features(k: np.ndarray, energy_db: np.ndarray, zcr: np.ndarray,
                    silence_db: np.ndarray | float, max_db: np.ndarray | float,
-                   shape: np.ndarray, cep: np.ndarray | None = None) -> np.ndarray:
+                   shape: np.ndarray, cep: np.ndarray) -> np.ndarray:
     """``(T, 44)`` per-frame inputs of the frame network, all invariant to the input level:
     log-area ratios of ``k (T, 12)``, the LPC cepstrum c1..c12, the prediction gain (dB/10,
     voicing and spectral flatness), energy relative to the calibrated maximum and to the silence
     threshold (dB/10, clipped), log(1 + zero crossings per 10 ms), and the mel-band spectral
-    shape ``(T, 16)`` (``lpc.spectral_shape``, /4). ``cep``: the LPC cepstrum if already known
-    (``lpc.analyze_frames`` gives it), else computed from ``k``."""
+    shape ``(T, 16)`` (``Features.shape``, /4); ``cep (T, 12)`` is ``Features.cep``."""
     k = np.clip(np.asarray(k, dtype=np.float64), -0.999, 0.999)
     e = np.asarray(energy_db, dtype=np.float64)
     lar = np.log((1 - k) / (1 + k))
     gain = 10 * np.log10(np.prod(1 - k * k, axis=1) + 1e-12) / 10
     rel_max = np.clip((e - max_db) / 10, -6.0, 1.0)
     rel_sil = np.clip((e - silence_db) / 10, -3.0, 5.0)
-    cep = lpc_cepstrum(k) if cep is None else cep
     return np.column_stack([lar, cep, gain, rel_max, rel_sil,
                             np.log1p(np.asarray(zcr, dtype=np.float64)),
                             np.asarray(shape, dtype=np.float64) / 4])
@@ -125,11 +126,14 @@ BLOCK_FRAMES = 4096
 def stack_context(F: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """``(T, D·len(offsets))``: row t holds rows ``t + o`` of ``F (T, D)`` for each offset o
     (edge rows repeated past either end)."""
-    T = len(F)
-    if T == 0:
-        return np.zeros((0, F.shape[1] * len(offsets)))
-    idx = np.clip(np.arange(T)[:, None] + np.asarray(offsets)[None, :], 0, T - 1)
-    return F[idx].reshape(T, -1)
+    return _stack_rows(F, offsets, 0, len(F))
+
+
+def _stack_rows(F: np.ndarray, offsets: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """Rows ``lo:hi`` of ``stack_context(F, offsets)``, ``(hi - lo, D·len(offsets))``."""
+    idx = np.arange(lo, hi)[:, None] + np.asarray(offsets)[None, :]
+    idx = np.clip(idx, 0, max(len(F) - 1, 0))
+    return F[idx].reshape(hi - lo, F.shape[1] * len(offsets))
 
 
 @dataclass
@@ -158,9 +162,7 @@ class FrameNet:
     def proba_stacked(self, X: np.ndarray) -> np.ndarray:
         """``(T, 10)`` class probabilities of context-stacked inputs ``X (T, D)``."""
         h = np.tanh(((X - self.mean) / self.std) @ self.w1 + self.b1)
-        z = h @ self.w2 + self.b2
-        z = np.exp(z - z.max(axis=-1, keepdims=True))
-        return z / z.sum(axis=-1, keepdims=True)
+        return _softmax(h @ self.w2 + self.b2)
 
     def proba(self, F: np.ndarray) -> np.ndarray:
         """``(T, 10)`` class probabilities of per-frame features ``F (T, 44)`` (one utterance).
@@ -171,29 +173,17 @@ class FrameNet:
         """
         F = np.asarray(F)
         T = len(F)
-        if T == 0:
-            return self.proba_stacked(np.zeros((0, F.shape[1] * len(self.offsets))))
-        offsets = np.asarray(self.offsets)[None, :]
-        out = []
-        for i in range(0, T, BLOCK_FRAMES):
-            idx = np.clip(np.arange(i, min(T, i + BLOCK_FRAMES))[:, None] + offsets, 0, T - 1)
-            out.append(self.proba_stacked(F[idx].reshape(len(idx), -1)))
-        return np.concatenate(out)
+        blocks = (_stack_rows(F, self.offsets, i, min(T, i + BLOCK_FRAMES))
+                  for i in range(0, max(T, 1), BLOCK_FRAMES))  # one block's inputs at a time
+        return np.concatenate([self.proba_stacked(X) for X in blocks])
 
     def save(self, path: str | Path, **meta: str) -> None:
-        np.savez(path, w1=self.w1, b1=self.b1, w2=self.w2, b2=self.b2, mean=self.mean,
-                 std=self.std, offsets=self.offsets, classes=np.array(CLASSES),
-                 **{f"meta_{k}": np.array(v) for k, v in meta.items()})
+        _save(path, self, CLASSES, meta, offsets=self.offsets)
 
     @classmethod
     def load(cls, path: str | Path = FRAME_WEIGHTS) -> FrameNet:
-        path = Path(path)
-        if not path.is_file():
-            raise FacecastError(f"frame network weights missing: {path}; run "
-                                "'python bench/lipsync/train_frames.py'")
-        with np.load(path) as z:
-            return cls(*(z[n].astype(np.float64) for n in ("w1", "b1", "w2", "b2", "mean", "std")),
-                       offsets=z["offsets"].astype(np.int64))
+        *params, offsets = _load(path, "frame", "python bench/lipsync/train_frames.py", "offsets")
+        return cls(*params, offsets=offsets.astype(np.int64))
 
 
 @functools.lru_cache(maxsize=1)

@@ -42,10 +42,9 @@ def named_segments(vis: np.ndarray, fps: float) -> list[dict]:
 def rhubarb_cues(vis: np.ndarray, fps: float, duration: float) -> list[tuple[float, float, str]]:
     """Rhubarb mouth cues ``[(start, end, shape)]`` covering ``[0, duration]`` (times rounded to
     10 ms as Rhubarb writes them; adjacent equal shapes merged, empty cues dropped)."""
-    shapes = np.array(RHUBARB_SHAPES)[np.asarray(vis, dtype=np.int64)] if len(vis) else []
     cues: list[tuple[float, float, str]] = []
-    bounds = [(s, e, str(shapes[int(round(s * fps))])) for s, e, _ in segments(vis, fps)]
-    for s, e, shape in bounds:
+    for s, e, v in segments(vis, fps):
+        shape = RHUBARB_SHAPES[v]
         s, e = round(min(s, duration), 2), round(min(e, duration), 2)
         if cues and cues[-1][2] == shape:
             cues[-1] = (cues[-1][0], e, shape)

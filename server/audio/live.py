@@ -150,7 +150,6 @@ class AudioLiveDriver:
         # features of frames [_f0, _f0 + len)
         self._f0 = 0
         self._e = np.zeros(0)
-        self._z = np.zeros(0)
         self._F = np.zeros((0, len(self.net.mean) // len(self.net.offsets)))
         self._p = np.zeros((0, len(self.net.b2)))  # class probabilities of frames [_f0, _n_p)
         self._n_p = 0
@@ -250,7 +249,6 @@ class AudioLiveDriver:
             else:
                 sil, mx = self._cal.update(e, self.hop)
             self._e = np.concatenate([self._e, e])
-            self._z = np.concatenate([self._z, z])
             self._F = np.concatenate([self._F, frame_features(k, e, z, sil, mx, sh, cep)])
             if self._first is None and np.any(e >= sil):  # the stream's first sound
                 self._first = start_i + int(np.argmax(e >= sil))
@@ -300,8 +298,7 @@ class AudioLiveDriver:
         ks = np.arange(self._next_out, k_end)
         t_rel = ks / self.fps
         p = self.params
-        n_pause = int(round(p.min_pause / self.hop))
-        past = int(round(p.coart_past / self.hop)) + n_pause + self.med_half + self.net.past + 2
+        past = int(round(p.coart_past / self.hop)) + self.med_half + self.net.past + 2
         first_base = int(math.floor(t_rel[0] / self.hop + 1e-9))
         s = max(self._f0, first_base - past)
         lo, hi = s - self._f0, self._n_p - self._f0
@@ -321,6 +318,6 @@ class AudioLiveDriver:
         keep = max(0, int(math.floor(k_end / self.fps / self.hop)) - past - 1) - self._f0
         if keep > 0:
             self._f0 += keep
-            for name in ("_e", "_z", "_F", "_p", "_sil", "_max"):
+            for name in ("_e", "_F", "_p", "_sil", "_max"):
                 setattr(self, name, getattr(self, name)[keep:])
         return states

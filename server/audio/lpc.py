@@ -153,15 +153,9 @@ def _mel_bands(n_fft: int, sr: float, n_bands: int = N_BANDS) -> np.ndarray:
     return np.maximum(0.0, np.minimum((f - lo) / (c - lo), (hi - f) / (hi - c)))
 
 
-def spectral_shape(windowed: np.ndarray, *, sr: float = ANALYSIS_RATE) -> np.ndarray:
-    """``(T, N_BANDS)`` log mel-band power of windowed frames ``(T, N)``, each row minus its mean
-    (the spectrum's shape, independent of the level)."""
-    n_fft = 1 << (windowed.shape[-1] - 1).bit_length()
-    spec = np.fft.rfft(windowed, n=n_fft)
-    return _shape_of_power(spec.real ** 2 + spec.imag ** 2, n_fft, sr)
-
-
 def _shape_of_power(p: np.ndarray, n_fft: int, sr: float) -> np.ndarray:
+    """``(T, N_BANDS)`` log mel-band power of power spectra ``p (T, n_fft//2 + 1)``, each row
+    minus its mean (the spectrum's shape, independent of the level)."""
     b = np.log(p @ _mel_bands(n_fft, float(sr)) + 1e-10)
     return b - b.mean(axis=-1, keepdims=True)
 

@@ -28,8 +28,9 @@ _SIL, _CLOSED, _LABIODENTAL, _SIBILANT = 0, 1, 2, 3
 @dataclass
 class LipSync:
     """Result of ``lipsync``: per analysis frame (100/s) ``features``, ``proba (T, 10)`` (median
-    filtered class probabilities, ``classify.CLASSES``), ``visemes (T,)``, ``weights (T,)``, the ``calibration`` used, and ``track``: the
-    coarticulated output sampled at the requested frame rate."""
+    filtered class probabilities, ``classify.CLASSES``), ``visemes (T,)``, ``weights (T,)``, the
+    ``calibration`` used, and ``track``: the coarticulated output sampled at the requested frame
+    rate."""
 
     features: Features
     proba: np.ndarray
@@ -138,7 +139,7 @@ def lipsync(x: np.ndarray, sr: float, *, fps: float = 100.0, lookahead: float | 
     Args:
         fps: output frame rate of ``track`` (frames at ``i / fps`` seconds).
         lookahead: coarticulation look-ahead in seconds; None = free (batch).
-        calibration: energy levels (``visemes.Calibration``, e.g. from ``calibrate_from``);
+        calibration: energy levels (``visemes.Calibration``, e.g. from ``calibration_from``);
             None = calibrated from this signal (``visemes.calibrate``).
         net: the frame network (default: the shipped one).
         table: viseme → FAP targets ``(15, 69)`` (default ``visemes.viseme_table()``).

@@ -1,4 +1,5 @@
-"""Train the 12-10-5 vowel network on espeak-ng material and write ``vowel_net.npz``.
+"""Train the 12-10-5 vowel network on espeak-ng material and write ``vowel_net.npz``; and
+``fit_frames``, the frame network's trainer (used by ``bench/lipsync/frames.py``).
 
     python -m facecast.server.audio.train [--per-vowel 200] [--seed 0] [--out PATH]
 
@@ -17,7 +18,7 @@ import time
 
 import numpy as np
 
-from .classify import VOWELS, WEIGHTS, VowelNet
+from .classify import VOWELS, WEIGHTS, FrameNet, VowelNet
 from .generate import Dataset, generate
 
 log = logging.getLogger(__name__)
@@ -92,10 +93,6 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
-
-
 def fit_frames(X: np.ndarray, y: np.ndarray, offsets: np.ndarray, *, hidden: int = 48,
                epochs: int = 30, lr: float = 3e-3, batch: int = 256, l2: float = 1e-4,
                balance: float = 0.5, seed: int = 0, n_classes: int = 10):
@@ -105,8 +102,6 @@ def fit_frames(X: np.ndarray, y: np.ndarray, offsets: np.ndarray, *, hidden: int
     Class weights are ``(N / (C·count))**balance`` (0 = none, 1 = fully balanced), for macro-F1.
     Reproducible from ``seed``.
     """
-    from .classify import FrameNet
-
     rng = np.random.default_rng(seed)
     mean, std = X.mean(axis=0), X.std(axis=0) + 1e-6
     x = ((X - mean) / std).astype(np.float32)
@@ -142,3 +137,7 @@ def fit_frames(X: np.ndarray, y: np.ndarray, offsets: np.ndarray, *, hidden: int
                 params[i] -= rate * mh / (np.sqrt(vh) + 1e-8)
     return FrameNet(*(p.astype(np.float64) for p in params), mean, std,
                     np.asarray(offsets, dtype=np.int64))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,12 +1,11 @@
 """From LPC features to MPEG-4 visemes and low-level lip/jaw FAPs.
 
-Three pure stages, shared by the batch driver and the live driver (which runs them on a sliding
+Pure stages, shared by the batch driver and the live driver (which runs them on a sliding
 window, so both give the same frames when they use the same calibration and look-ahead):
 
-1. ``label_frames``: per 10 ms frame, energy against the calibrated silence threshold and maximum,
-   the zero-crossing rate and the median-filtered vowel network output give a viseme id and an
-   intensity (source: Kshirsagar & Magnenat-Thalmann 2000; the consonant rules marked EXT are
-   facecast's).
+1. ``calibrate`` / ``calibrate_reference`` and ``median_filter_proba``: the energy levels and the
+   smoothed frame-network output from which ``pipeline.classes_to_visemes`` gives each 10 ms
+   frame a viseme id and an intensity.
 2. ``coarticulate``: Cohen–Massaro dominance functions blend the segments (runs of equal visemes):
    segment s with viseme v has dominance ``alpha_v · exp(-theta_v · d_s(t))`` at time t, d_s = the
    distance from t to the segment (0 inside it); the FAPs at t are the dominance-weighted mean of
@@ -141,39 +140,20 @@ def calibrate_reference(energy_db: np.ndarray, *, where: str = "calibration") ->
 
 @dataclass
 class Params:
-    """Rules and smoothing (EXT = facecast's choice where the source gives no value).
-
-    ``weak_fricative_db``, ``weak_db`` and ``min_pause`` were chosen on development sentences
-    (espeak-ng training voices, never scored) with ``bench/lipsync/tune.py``.
+    """Smoothing (EXT = facecast's choice where the source gives no value).
 
     Attributes:
-        zcr_fricative: zero crossings per 10 ms above which a non-vowel frame is a fricative
-            (source: unvoiced 49, voiced 14 → midpoint ~31).
-        weak_fricative_db: fricatives more than this far below the maximum are labiodental
-            (f, v, th: weak) → ``FF``; louder ones are sibilants (EXT; 99 = off).
-        weak_db: frames more than this far below the maximum (and above silence) that are not
-            fricatives are weak voiced consonants (nasals, liquids, voiced closures) → ``nn``.
-        median: length of the median filter over the vowel network's outputs, frames.
-        min_pause: a quiet run at least this long is silence (viseme 0); shorter runs are lip
-            closures (viseme 1, PP), seconds.
-        fricative_viseme / weak_viseme: viseme ids used for those classes (weak_viseme None:
-            keep the vowel, only its intensity is low, as in the source).
+        median: length of the median filter over the frame network's outputs, frames.
         coart_past: how far back dominance functions reach, seconds.
     """
 
-    zcr_fricative: float = 31.0
-    weak_fricative_db: float = 20.0
-    weak_db: float = 18.0
     median: int = 3
-    min_pause: float = 0.1
-    fricative_viseme: int = SS
-    weak_viseme: int | None = NN
     coart_past: float = 0.25
     dominance: np.ndarray = field(default_factory=lambda: DOMINANCE.copy())
 
 
 def median_filter_proba(proba: np.ndarray, size: int) -> np.ndarray:
-    """Per-class running median of ``proba (T, 5)`` over ``size`` frames (centred; edges repeat).
+    """Per-class running median of ``proba (T, C)`` over ``size`` frames (centred; edges repeat).
 
     The source median-filters its vowel labels; filtering each class score and taking the argmax
     afterwards does the same job without imposing an order on the classes.
@@ -181,54 +161,6 @@ def median_filter_proba(proba: np.ndarray, size: int) -> np.ndarray:
     if size <= 1 or len(proba) == 0:
         return proba
     return scipy.ndimage.median_filter(proba, size=(size, 1), mode="nearest")
-
-
-def label_frames(energy_db: np.ndarray, zcr: np.ndarray, proba: np.ndarray, cal: Calibration,
-                 params: Params, *, hop: float, lookahead: float | None = None,
-                 at_stream_start: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Viseme id and intensity of every frame.
-
-    Args:
-        energy_db, zcr: ``(T,)`` frame energy (dB) and zero crossings per 10 ms.
-        proba: ``(T, 5)`` vowel network outputs (already median-filtered).
-        hop: seconds between frames.
-        lookahead: how far past a frame the pause rule may look, seconds (None = to the end;
-            the streaming pipeline uses 0: a quiet run becomes silence once it has lasted
-            ``min_pause``).
-        at_stream_start: frame 0 is the start of the stream (a quiet run there is silence).
-    Returns:
-        ``(viseme (T,) int64, weight (T,) float64)``.
-    """
-    e = np.asarray(energy_db)
-    T = len(e)
-    w = cal.intensity(e)
-    quiet = e < cal.silence_db
-    fric = ~quiet & (np.asarray(zcr) > params.zcr_fricative)
-    weak = ~quiet & ~fric & (e < cal.max_db - params.weak_db)
-    vis = VOWEL_VISEMES[np.argmax(proba, axis=1)] if T else np.zeros(0, dtype=np.int64)
-    if params.weak_viseme is not None:
-        vis = np.where(weak, params.weak_viseme, vis)
-    vis = np.where(fric, np.where(e < cal.max_db - params.weak_fricative_db, FF,
-                                  params.fricative_viseme), vis)
-    w = np.where(fric, np.maximum(w, 0.5), w)
-    # quiet runs: silence if long enough (looking at most `lookahead` ahead), else a lip closure
-    n_pause = int(round(params.min_pause / hop))
-    la = T if lookahead is None else int(round(lookahead / hop))
-    pause = np.zeros(T, dtype=bool)
-    if T:
-        idx = np.arange(T)
-        edges = np.diff(np.concatenate([[0], quiet.astype(np.int8), [0]]))
-        starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
-        run_start = np.full(T, -1)
-        run_end = np.full(T, -1)
-        for s, t_end in zip(starts, ends):
-            run_start[s:t_end], run_end[s:t_end] = s, t_end
-        visible_end = np.minimum(run_end, idx + la + 1)
-        # a run touching the start of the stream counts as silence too
-        pause = quiet & (((visible_end - run_start) >= n_pause) | ((run_start == 0) & at_stream_start))
-    vis = np.where(quiet, np.where(pause, SIL, PP), vis)
-    w = np.where(quiet, np.where(pause, 0.0, 1.0), w)
-    return vis.astype(np.int64), w
 
 
 #: Output times ``coarticulate`` works on at once (its arrays are rows × window frames).

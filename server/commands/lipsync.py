@@ -20,14 +20,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
-from pathlib import Path
 
 from ..audio.cues import named_segments, rhubarb_cues, rhubarb_json, rhubarb_tsv
 from ..audio.pipeline import calibration_file, lipsync_file
 from ..audio.visemes import VISEME_NAMES
+from ..output.atomic import write_bytes_atomic
 
 FORMATS = ("table", "cues", "json", "rhubarb", "rhubarb-tsv")
 
@@ -69,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     text = _render(fmt, args, ls)
     if args.output:
         try:
-            _write_atomic(Path(args.output), text)
+            write_bytes_atomic(args.output, text.encode("utf-8"))
         except OSError as e:
             raise InputError(f"cannot write the output: {e.strerror or e}",
                              where=args.output) from None
@@ -103,14 +101,3 @@ def _render(fmt: str, args: argparse.Namespace, ls) -> str:
     for s in named_segments(vis, args.fps):
         lines.append(f"{s['start']:8.3f} {s['end']:8.3f}  {s['viseme']:2d} {VISEME_NAMES[s['viseme']]}")
     return "\n".join(lines) + "\n"
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
