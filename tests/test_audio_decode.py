@@ -301,3 +301,17 @@ def test_a_live_producers_big_chunk_does_not_swing_memory(rng):
     finally:
         tracemalloc.stop()
     assert peak < 150 * 2**20, f"peak {peak / 2**20:.0f} MiB for a {len(x)}-sample chunk"
+
+
+def test_a_live_producers_odd_rate_builds_a_small_resampler():
+    """A hello may declare any rate up to 384 kHz: 383993 Hz needed a 7.7M-tap filter (1.5 s and
+    ~450 MB per resampler, built twice per producer); the live resampler uses the same bounded ratio
+    as file decoding, so its filter stays small and its output rate within the tolerance."""
+    from facecast.server.audio.io import MAX_RATIO_TERM, RATE_TOLERANCE, StreamResampler
+
+    r = StreamResampler(383993, ANALYSIS_RATE)
+    assert max(r.up, r.down) <= MAX_RATIO_TERM
+    assert len(r.h) <= 20 * MAX_RATIO_TERM + 1
+    assert abs(383993 * r.up / r.down / ANALYSIS_RATE - 1.0) <= RATE_TOLERANCE
+    common = StreamResampler(44100, ANALYSIS_RATE)
+    assert (common.up, common.down) == (100, 441)  # common rates stay exact

@@ -360,15 +360,10 @@ def validate_pcm(x: np.ndarray, sr: float, *, where: str = "audio",
     return np.clip(x, -1.0, 1.0)
 
 
-def _ratio(sr_in: float, sr_out: float) -> tuple[int, int]:
-    f = Fraction(int(round(sr_out)), int(round(sr_in)))
-    return f.numerator, f.denominator
-
-
 def resample_filter(sr_in: float, sr_out: float) -> tuple[int, int, np.ndarray]:
     """``(up, down, h)``: the anti-aliasing FIR that ``scipy.signal.resample_poly`` uses by default
     (Kaiser window, beta 5, half length 10·max(up, down)), scaled by ``up``."""
-    up, down = _ratio(sr_in, sr_out)
+    up, down = conversion_ratio(sr_in, sr_out)
     if up == down:
         return 1, 1, np.ones(1)
     m = max(up, down)
@@ -379,9 +374,10 @@ def resample_filter(sr_in: float, sr_out: float) -> tuple[int, int, np.ndarray]:
 def resample(x: np.ndarray, sr_in: float, sr_out: float) -> np.ndarray:
     """Resample ``x (n,)`` from ``sr_in`` to ``sr_out`` Hz with ``scipy.signal.resample_poly``.
 
-    Returns ``(ceil(n·sr_out/sr_in),) float64``.
+    Returns ``(ceil(n·up/down),) float64`` with ``(up, down) = conversion_ratio(sr_in, sr_out)``
+    (exactly ``sr_out/sr_in`` for every common rate; within ``RATE_TOLERANCE`` of it otherwise).
     """
-    up, down = _ratio(sr_in, sr_out)
+    up, down = conversion_ratio(sr_in, sr_out)
     if up == down:
         return np.asarray(x, dtype=np.float64)
     return scipy.signal.resample_poly(np.asarray(x, dtype=np.float64), up, down)
