@@ -31,8 +31,8 @@ from ...protocol.rest import ErrorBody
 from ..drivers import input_kind, load_animation
 from ..drivers.demo import demo_states
 from ..errors import FacecastError, InputError
-from ..jobs.upload import (PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix, parse_layout,
-                           safe_display_name, upload_dir)
+from ..jobs.upload import (LAYOUT_PART, PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix,
+                           multipart_doc, parse_layout, safe_display_name, upload_dir)
 from .routes_sessions import registry
 from .security import bearer, same
 
@@ -163,20 +163,11 @@ async def stop_demo(session_id: str, request: Request, token: str | None = None)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
-_PLAY_DOC = {
-    "requestBody": {
-        "required": True,
-        "content": {"multipart/form-data": {"schema": {
-            "type": "object", "required": ["file"],
-            "properties": {
-                "file": {"type": "string", "format": "binary",
-                         "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv"},
-                "layout": {"type": "string", "format": "binary",
-                           "description": "mocap marker layout: the layout file's JSON content, as a file "
-                                          "part or an inline field (required for .c3d/.trc/.csv); never a path"},
-            }}}},
-    }
-}
+_PLAY_DOC = multipart_doc(
+    file={"type": "string", "format": "binary",
+          "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv"},
+    layout=LAYOUT_PART,
+)
 
 
 class TooBusy(FacecastError):

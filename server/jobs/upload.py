@@ -239,6 +239,19 @@ def parse_layout(text: str) -> dict:
     return data
 
 
+#: OpenAPI schema of the ``layout`` form part of an upload.
+LAYOUT_PART = {"type": "string", "format": "binary",
+               "description": "mocap marker layout: the layout file's JSON content, as a file part or an "
+                              "inline field (required for .c3d/.trc/.csv); never a path"}
+
+
+def multipart_doc(**properties: dict) -> dict:
+    """``openapi_extra`` of a route that reads a multipart/form-data body with a required ``file``
+    part and the form parts ``properties`` (name: OpenAPI schema)."""
+    return {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
+        "type": "object", "required": ["file"], "properties": properties}}}}}
+
+
 def boundary_of(content_type: str) -> bytes:
     """The multipart boundary of a Content-Type header; InputError if it is not multipart/form-data."""
     ctype, opts = parse_options_header(content_type)
