@@ -22,7 +22,7 @@ from ..drivers import input_kind
 from ..errors import FacecastError, InputError, NotFound
 from ..jobs.store import JOB_ID, JobRecord, new_job_id
 from ..jobs.upload import (LAYOUT_PART, PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix,
-                           multipart_doc, parse_layout, safe_display_name)
+                           multipart_doc, safe_display_name, upload_layout)
 from .security import require_admin
 
 log = logging.getLogger(__name__)
@@ -130,14 +130,10 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
         input_file = f"input{suffix}"
         kind = input_kind(input_file)
         options = {**opts.model_dump(exclude={"layout"}), "face_spec": face_spec}
-        if opts.layout is not None:
-            if kind != "mocap":
-                raise InputError(f"a layout goes with mocap input (.c3d/.trc/.csv), not {kind}", where="layout")
-            (folder / LAYOUT_FILE).write_text(json.dumps(parse_layout(opts.layout)), encoding="utf-8")
+        layout = upload_layout(kind, opts.layout)
+        if layout is not None:
+            (folder / LAYOUT_FILE).write_text(json.dumps(layout), encoding="utf-8")
             options["layout_file"] = LAYOUT_FILE
-        elif kind == "mocap":
-            raise InputError("a mocap take needs its marker layout: send the layout file's content as a "
-                             "'layout' part (curl -F layout=@take.layout.json)", where="layout")
         (folder / ".upload").replace(folder / input_file)
         display = safe_display_name(parser.filename, f"upload{suffix}")
         job = jobs.store.add(job_id, input_name=display, input_kind=kind,

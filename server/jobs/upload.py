@@ -239,6 +239,19 @@ def parse_layout(text: str) -> dict:
     return data
 
 
+def upload_layout(kind: str, text: str | None) -> dict | None:
+    """The checked marker layout sent with an upload of input ``kind`` (its ``layout`` part, or None):
+    a mocap take needs one, other kinds take none; InputError otherwise."""
+    if text is not None:
+        if kind != "mocap":
+            raise InputError(f"a layout goes with mocap input (.c3d/.trc/.csv), not {kind}", where="layout")
+        return parse_layout(text)
+    if kind == "mocap":
+        raise InputError("a mocap take needs its marker layout: send the layout file's content as a "
+                         "'layout' part (curl -F layout=@take.layout.json)", where="layout")
+    return None
+
+
 #: OpenAPI schema of the ``layout`` form part of an upload.
 LAYOUT_PART = {"type": "string", "format": "binary",
                "description": "mocap marker layout: the layout file's JSON content, as a file part or an "
