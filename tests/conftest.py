@@ -1,6 +1,7 @@
 """Shared fixtures: the real data in ../shared/data, a seeded RNG, and a real server on loopback."""
 from __future__ import annotations
 
+import asyncio
 import os
 import socket
 import subprocess
@@ -90,6 +91,17 @@ class RunningServer:
                 self.proc.wait(5)
         if getattr(self, "_logf", None):
             self._logf.close()
+
+
+def live_server(root: Path, face: str, *extra: str, env: dict | None = None) -> RunningServer:
+    """A started server for live tests: one ``face``, the NumPy backend (frames comparable with a batch
+    render) and no job workers; ``extra`` CLI options, ``env`` extra environment."""
+    return RunningServer(root, "--face", face, "--backend", "numpy", "--workers", "0", *extra, env=env).start()
+
+
+def run(coro, timeout: float = 120):
+    """Run ``coro`` to completion in a fresh event loop, at most ``timeout`` seconds."""
+    return asyncio.run(asyncio.wait_for(coro, timeout))
 
 
 @pytest.fixture(scope="module")

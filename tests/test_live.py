@@ -15,7 +15,7 @@ import time
 import httpx
 import numpy as np
 import pytest
-from conftest import RunningServer
+from conftest import live_server, run
 from facecast.client.api import LiveError, SessionAdmin, produce, stream_fap, summary, watch
 from facecast.protocol import frames
 from facecast.protocol.errors import CloseCode
@@ -28,22 +28,11 @@ FACE = os.environ.get("FACECAST_TEST_LIVE_FACE", "default:2k")
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    s = RunningServer(
-        tmp_path_factory.mktemp("live"),
-        "--face",
-        FACE,
-        "--backend",
-        "numpy",
-        "--workers",
-        "0",
-        env={"FACECAST_MAX_SESSIONS": "6", "FACECAST_MAX_PRODUCER_FPS": "150"},
-    ).start()
+    s = live_server(
+        tmp_path_factory.mktemp("live"), FACE, env={"FACECAST_MAX_SESSIONS": "6", "FACECAST_MAX_PRODUCER_FPS": "150"}
+    )
     yield s
     s.stop()
-
-
-def run(coro, timeout: float = 120):
-    return asyncio.run(asyncio.wait_for(coro, timeout))
 
 
 async def _collect(url, sid, token, *, encoding="f32", until_end=True, limit=None, started=None):
@@ -662,16 +651,7 @@ def test_asgi_send_path_gives_the_same_frames(joy, tmp_path):
     from facecast.server.drivers.fap import to_animation
     from facecast.server.pipeline import Animator
 
-    plain = RunningServer(
-        tmp_path,
-        "--face",
-        FACE,
-        "--backend",
-        "numpy",
-        "--workers",
-        "0",
-        env={"FACECAST_LIVE_DIRECT": "0"},
-    ).start()
+    plain = live_server(tmp_path, FACE, env={"FACECAST_LIVE_DIRECT": "0"})
     short = type(joy)(fps=joy.fps, frames=joy.frames[:15])
 
     async def main():

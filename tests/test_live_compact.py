@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import RunningServer
+from conftest import live_server, run
 from facecast.client.api import SessionAdmin, produce, stream_fap, watch
 from facecast.protocol import frames
 from facecast.protocol.fap_file import read_fap
@@ -21,16 +21,7 @@ FACE = "default:2k"
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    s = RunningServer(
-        tmp_path_factory.mktemp("live-compact"),
-        "--face",
-        FACE,
-        "--backend",
-        "numpy",
-        "--workers",
-        "0",
-        env={"FACECAST_MAX_PRODUCER_FPS": "150"},
-    ).start()
+    s = live_server(tmp_path_factory.mktemp("live-compact"), FACE, env={"FACECAST_MAX_PRODUCER_FPS": "150"})
     yield s
     s.stop()
 
@@ -38,10 +29,6 @@ def live(tmp_path_factory):
 @pytest.fixture(scope="module")
 def joy(data_dir):
     return read_fap((data_dir / "xface/faps/joy.fap").read_text(), where="joy.fap")
-
-
-def run(coro, timeout: float = 120):
-    return asyncio.run(asyncio.wait_for(coro, timeout))
 
 
 async def _collect(url, sid, token, encoding, started, out, *, slow_until=None):

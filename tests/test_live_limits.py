@@ -16,7 +16,7 @@ import time
 import httpx
 import numpy as np
 import pytest
-from conftest import RunningServer
+from conftest import live_server, run
 from facecast.client.api import LiveError, SessionAdmin, produce, watch, ws_url
 from facecast.protocol import frames
 from facecast.protocol.errors import CloseCode
@@ -40,26 +40,17 @@ IDLE = 3.0  # seconds; sessions the tests leave alone expire (closing them may t
 
 @pytest.fixture(scope="module")
 def srv(tmp_path_factory):
-    s = RunningServer(
+    s = live_server(
         tmp_path_factory.mktemp("live-limits"),
-        "--face",
         FACE,
-        "--backend",
-        "numpy",
-        "--workers",
-        "0",
         "--session-idle",
         str(IDLE),
         "--log-level",
         "info",
         env={"FACECAST_MAX_PRODUCER_FPS": str(MAX_FPS)},
-    ).start()
+    )
     yield s
     s.stop()
-
-
-def run(coro, timeout: float = 120):
-    return asyncio.run(asyncio.wait_for(coro, timeout))
 
 
 async def _session(srv, **kw):

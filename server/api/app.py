@@ -193,7 +193,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
                                 job_timeout=config.job_timeout_seconds, memory_mb=config.job_memory_mb)
     app.state.metrics.watch_jobs(app.state.jobs.store.counts)
 
-    def _error(request: Request, status: int, message: str, where: str = "", headers=None, **extra):
+    def _error(status: int, message: str, where: str = "", headers=None, **extra):
         app.state.metrics.http_errors.labels(str(status)).inc()
         body = error_body(status, scrub_paths(message, app), scrub_paths(where, app), **extra)
         return SafeJSONResponse(body, status_code=status, headers=headers)
@@ -203,20 +203,20 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         @app.exception_handler(error_type)
         async def _project_error(request: Request, exc: Exception) -> JSONResponse:
             status = int(getattr(exc, "status", 400))
-            return _error(request, status, str(exc), getattr(exc, "where", "") or "",
+            return _error(status, str(exc), getattr(exc, "where", "") or "",
                           headers=getattr(exc, "headers", None))
 
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, exc: HTTPException) -> JSONResponse:
         message = exc.detail if isinstance(exc.detail, str) else "request failed"
         extra = {} if isinstance(exc.detail, str) else {"problems": safe_json(jsonable(exc.detail))}
-        return _error(request, exc.status_code, message, headers=getattr(exc, "headers", None), **extra)
+        return _error(exc.status_code, message, headers=getattr(exc, "headers", None), **extra)
 
     @app.exception_handler(Exception)
     async def _server_error(request: Request, exc: Exception) -> JSONResponse:
         # Last resort: the details (paths, traceback) go to the server log, never to the client.
         log.error("unhandled error on %s %s", request.method, safe_text(request.url.path, 200), exc_info=exc)
-        return _error(request, 500, "internal server error; the server log has the details")
+        return _error(500, "internal server error; the server log has the details")
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -225,7 +225,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         problems = "; ".join(
             f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', '')}" for e in errors
             if isinstance(e, dict))
-        return _error(request, 422, f"invalid request: {problems}; see /docs for the schema", problems=errors)
+        return _error(422, f"invalid request: {problems}; see /docs for the schema", problems=errors)
 
     app.include_router(routes_health.router)
     app.include_router(routes_faces.router)

@@ -21,8 +21,8 @@ from ...protocol.rest import RESULT_MEDIA_TYPES, ErrorBody, JobList, JobOptions,
 from ..drivers import input_kind
 from ..errors import FacecastError, InputError, NotFound
 from ..jobs.store import JOB_ID, JobRecord, new_job_id
-from ..jobs.upload import (PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix, parse_layout,
-                           safe_display_name)
+from ..jobs.upload import (LAYOUT_PART, PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix,
+                           multipart_doc, safe_display_name, upload_layout)
 from .security import require_admin
 
 log = logging.getLogger(__name__)
@@ -36,25 +36,15 @@ FORM_OVERHEAD = 64 * 1024
 #: Name of an uploaded marker layout in a job's folder.
 LAYOUT_FILE = "layout.json"
 
-_UPLOAD_DOC = {
-    "requestBody": {
-        "required": True,
-        "content": {"multipart/form-data": {"schema": {
-            "type": "object", "required": ["file"],
-            "properties": {
-                "file": {"type": "string", "format": "binary",
-                         "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv (type from the "
-                                        "file name's suffix, else from its content)"},
-                "face": {"type": "string", "description": "face name (GET /v1/faces)"},
-                "engine": {"type": "string", "enum": ["fp", "rbf", "shell"], "default": "fp"},
-                "format": {"type": "string", "enum": ["glb", "npz", "fap"], "default": "glb"},
-                "layout": {"type": "string", "format": "binary",
-                           "description": "mocap marker layout: the layout file's JSON content, as a file "
-                                          "part or an inline field (required for .c3d/.trc/.csv); "
-                                          "never a path"},
-            }}}},
-    }
-}
+_UPLOAD_DOC = multipart_doc(
+    file={"type": "string", "format": "binary",
+          "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv (type from the file name's "
+                         "suffix, else from its content)"},
+    face={"type": "string", "description": "face name (GET /v1/faces)"},
+    engine={"type": "string", "enum": ["fp", "rbf", "shell"], "default": "fp"},
+    format={"type": "string", "enum": ["glb", "npz", "fap"], "default": "glb"},
+    layout=LAYOUT_PART,
+)
 
 
 class Conflict(FacecastError):
@@ -140,14 +130,10 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
         input_file = f"input{suffix}"
         kind = input_kind(input_file)
         options = {**opts.model_dump(exclude={"layout"}), "face_spec": face_spec}
-        if opts.layout is not None:
-            if kind != "mocap":
-                raise InputError(f"a layout goes with mocap input (.c3d/.trc/.csv), not {kind}", where="layout")
-            (folder / LAYOUT_FILE).write_text(json.dumps(parse_layout(opts.layout)), encoding="utf-8")
+        layout = upload_layout(kind, opts.layout)
+        if layout is not None:
+            (folder / LAYOUT_FILE).write_text(json.dumps(layout), encoding="utf-8")
             options["layout_file"] = LAYOUT_FILE
-        elif kind == "mocap":
-            raise InputError("a mocap take needs its marker layout: send the layout file's content as a "
-                             "'layout' part (curl -F layout=@take.layout.json)", where="layout")
         (folder / ".upload").replace(folder / input_file)
         display = safe_display_name(parser.filename, f"upload{suffix}")
         job = jobs.store.add(job_id, input_name=display, input_kind=kind,

@@ -31,8 +31,8 @@ from ...protocol.rest import ErrorBody
 from ..drivers import input_kind, load_animation
 from ..drivers.demo import demo_states
 from ..errors import FacecastError, InputError
-from ..jobs.upload import (PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix, parse_layout,
-                           safe_display_name, upload_dir)
+from ..jobs.upload import (LAYOUT_PART, PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix,
+                           multipart_doc, safe_display_name, upload_dir, upload_layout)
 from .routes_sessions import registry
 from .security import bearer, same
 
@@ -163,20 +163,11 @@ async def stop_demo(session_id: str, request: Request, token: str | None = None)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
-_PLAY_DOC = {
-    "requestBody": {
-        "required": True,
-        "content": {"multipart/form-data": {"schema": {
-            "type": "object", "required": ["file"],
-            "properties": {
-                "file": {"type": "string", "format": "binary",
-                         "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv"},
-                "layout": {"type": "string", "format": "binary",
-                           "description": "mocap marker layout: the layout file's JSON content, as a file "
-                                          "part or an inline field (required for .c3d/.trc/.csv); never a path"},
-            }}}},
-    }
-}
+_PLAY_DOC = multipart_doc(
+    file={"type": "string", "format": "binary",
+          "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv"},
+    layout=LAYOUT_PART,
+)
 
 
 class TooBusy(FacecastError):
@@ -258,14 +249,8 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
         unknown = sorted(set(parser.fields) - {"layout"})
         if unknown:
             raise InputError(f"unknown form field(s) {', '.join(unknown)}; known: file, layout", where="form")
-        options = {}
-        if "layout" in parser.fields:
-            if kind != "mocap":
-                raise InputError(f"a layout goes with mocap input (.c3d/.trc/.csv), not {kind}", where="layout")
-            options["layout"] = parse_layout(parser.fields["layout"])
-        elif kind == "mocap":
-            raise InputError("a mocap take needs its marker layout: send the layout file's content as a "
-                             "'layout' part (curl -F layout=@take.layout.json)", where="layout")
+        layout = upload_layout(kind, parser.fields.get("layout"))
+        options = {} if layout is None else {"layout": layout}
         slots = _decode_slots(app)
         if not slots.acquire(blocking=False):
             raise TooBusy(f"the server is decoding {cfg.max_concurrent_decodes} upload(s) already; retry in a "

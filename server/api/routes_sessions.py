@@ -152,11 +152,15 @@ _CLOSE = {Verdict.TOO_BIG: CloseCode.TOO_BIG, Verdict.FLOOD: CloseCode.POLICY_VI
 CUT_OFF_GRACE = 1.0
 
 
+def _transport(ws: WebSocket) -> Any:
+    """The asyncio transport under a live connection, or None (ASGI servers other than uvicorn)."""
+    return getattr(find_protocol(getattr(ws, "_send", None)), "transport", None)
+
+
 def _cut_off(ws: WebSocket) -> None:
     """Stop reading a flooding connection now (its queued bytes are never parsed) and drop it after
     ``CUT_OFF_GRACE`` seconds, whether or not it answers the close frame. Best effort."""
-    proto = find_protocol(getattr(ws, "_send", None))
-    transport = getattr(proto, "transport", None)
+    transport = _transport(ws)
     if transport is None or transport.is_closing():
         return
     try:
@@ -365,13 +369,14 @@ async def _producer_loop(ws: WebSocket, session, reg, inp, limits: Limits) -> No
             await asyncio.sleep(0)
         data, text = msg.get("bytes"), msg.get("text")
         size = len(data) if data is not None else len(text or "")
-        verdict, why = budget.check(size, data is None, time.monotonic())
+        now = time.monotonic()
+        verdict, why = budget.check(size, data is None, now)
         if verdict is not Verdict.OK:
             session.stats["frames_rejected"] += 1
             if metrics:
                 metrics.live_refused.labels(verdict.name.lower()).inc()
             if verdict is Verdict.DROP:
-                if budget.warn_now(time.monotonic()):
+                if budget.warn_now(now):
                     await ws.send_text(_error(CloseCode.TOO_MANY, why))
                 continue
             code = _CLOSE[verdict]
@@ -531,8 +536,7 @@ async def watch(
 def _set_buffer(ws: WebSocket, option: int, nbytes: int) -> None:
     """Set a socket buffer size (``SO_SNDBUF`` / ``SO_RCVBUF``) of the connection; best effort."""
     try:
-        proto = find_protocol(ws._send)
-        transport = getattr(proto, "transport", None)
+        transport = _transport(ws)
         sock = transport.get_extra_info("socket") if transport is not None else None
         if sock is not None:
             sock.setsockopt(socket.SOL_SOCKET, option, int(nbytes))
@@ -555,7 +559,7 @@ def _limit_write_buffer(ws: WebSocket, nbytes: int) -> None:
     """Pause writing to a viewer once about ``nbytes`` wait in its transport (asyncio's default,
     64 KiB, is dozens of compact frames: a slow viewer would fall behind instead of skipping)."""
     try:
-        transport = getattr(find_protocol(ws._send), "transport", None)
+        transport = _transport(ws)
         if transport is not None:
             transport.set_write_buffer_limits(high=max(4096, int(nbytes)))
     except (AttributeError, NotImplementedError, ValueError):  # pragma: no cover - ASGI server

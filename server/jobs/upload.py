@@ -239,6 +239,32 @@ def parse_layout(text: str) -> dict:
     return data
 
 
+def upload_layout(kind: str, text: str | None) -> dict | None:
+    """The checked marker layout sent with an upload of input ``kind`` (its ``layout`` part, or None):
+    a mocap take needs one, other kinds take none; InputError otherwise."""
+    if text is not None:
+        if kind != "mocap":
+            raise InputError(f"a layout goes with mocap input (.c3d/.trc/.csv), not {kind}", where="layout")
+        return parse_layout(text)
+    if kind == "mocap":
+        raise InputError("a mocap take needs its marker layout: send the layout file's content as a "
+                         "'layout' part (curl -F layout=@take.layout.json)", where="layout")
+    return None
+
+
+#: OpenAPI schema of the ``layout`` form part of an upload.
+LAYOUT_PART = {"type": "string", "format": "binary",
+               "description": "mocap marker layout: the layout file's JSON content, as a file part or an "
+                              "inline field (required for .c3d/.trc/.csv); never a path"}
+
+
+def multipart_doc(**properties: dict) -> dict:
+    """``openapi_extra`` of a route that reads a multipart/form-data body with a required ``file``
+    part and the form parts ``properties`` (name: OpenAPI schema)."""
+    return {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
+        "type": "object", "required": ["file"], "properties": properties}}}}}
+
+
 def boundary_of(content_type: str) -> bytes:
     """The multipart boundary of a Content-Type header; InputError if it is not multipart/form-data."""
     ctype, opts = parse_options_header(content_type)

@@ -20,10 +20,14 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ...protocol.compact import KEY
 from ...protocol.messages import Stats, Status, dump_message
 from ..state import FaceState
 
 log = logging.getLogger(__name__)
+
+#: Offset of the (low byte of the) flags in a frame header (``protocol/frames.py``: bytes 6-7, little-endian).
+FLAGS_BYTE = 6
 
 #: Face states waiting for deformation per session; beyond this the oldest is dropped. Each state
 #: is complete (not a delta), so under overload it is better to skip states than to let latency
@@ -81,9 +85,9 @@ class Viewer:
             return self.SENT
         replaced = self.slot is not None
         if self.encoding == "compact":
-            if frame[0][6] & 1:  # a key frame supersedes any held one
+            if frame[0][FLAGS_BYTE] & KEY:  # a key frame supersedes any held one
                 self.held = None
-            elif replaced and self.slot[1][0][6] & 1:
+            elif replaced and self.slot[1][0][FLAGS_BYTE] & KEY:
                 self.held = self.slot
         self._n += 1
         self.slot = (self._n, frame)
