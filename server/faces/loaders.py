@@ -30,6 +30,12 @@ MAX_PARTS = 255
 AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
 
 
+def axes_frame(up: str, forward: str) -> np.ndarray:
+    """``(3, 3)`` rotation whose rows are MPEG-4 x (face's left), y (up), z (forward) in mesh axes."""
+    u, f = np.array(AXES[up], float), np.array(AXES[forward], float)
+    return np.stack([np.cross(u, f), u, f])
+
+
 def annotation_path(mesh: Path) -> Path | None:
     """``head.face.json`` or ``head.obj.face.json`` beside ``head.obj``, if either exists."""
     for candidate in (mesh.with_suffix(".face.json"), mesh.with_name(mesh.name + ".face.json")):
@@ -166,8 +172,7 @@ def face_from_annotation(name: str, vertices: np.ndarray, triangles: np.ndarray,
         raise InputError(f"field 'axes': up {_show(up)} and forward {_show(forward)} must be two different "
                          "axes among +x -x +y -y +z -z", where=where)
     if (up, forward) != ("+y", "+z"):
-        u, f = np.array(AXES[up], float), np.array(AXES[forward], float)
-        rot = np.stack([np.cross(u, f), u, f])  # rows: MPEG-4 x (face's left), y (up), z (forward)
+        rot = axes_frame(up, forward)
         vertices = vertices @ rot.T.astype(np.float32)
         pivots = {k: rot @ p for k, p in pivots.items()}
 
