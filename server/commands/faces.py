@@ -51,6 +51,7 @@ def annotate(args: argparse.Namespace) -> int:
     from ..faces.annotate import annotate_mesh
     from ..faces.annotate.landmarks import read_landmarks
     from ..faces.loaders import _declared_units, face_from_annotation, read_mesh
+    from ..output.atomic import write_bytes_atomic
 
     if args.mesh is None:
         raise InputError("give the mesh to annotate: facecast faces annotate MESH")
@@ -74,9 +75,7 @@ def annotate(args: argparse.Namespace) -> int:
     info = describe(face)
     if "error" in info["fapu_mm"]:
         raise InputError(f"the automatic annotation cannot drive FAPs: {info['fapu_mm']['error']}", where=str(mesh))
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(json.dumps(annotation, indent=1) + "\n")
-    tmp.replace(out)
+    write_bytes_atomic(out, (json.dumps(annotation, indent=1) + "\n").encode())
     if args.preview:
         from ..faces.annotate.preview import annotation_preview
 
