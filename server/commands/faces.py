@@ -50,7 +50,7 @@ def annotate(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..faces.annotate import annotate_mesh
     from ..faces.annotate.landmarks import read_landmarks
-    from ..faces.loaders import _declared_units, face_from_annotation, read_mesh
+    from ..faces.loaders import declared_units, face_from_annotation, read_mesh
     from ..output.atomic import write_bytes_atomic
 
     if args.mesh is None:
@@ -70,7 +70,7 @@ def annotate(args: argparse.Namespace) -> int:
     vertices, triangles = read_mesh(mesh)
     landmarks = read_landmarks(Path(args.landmarks), len(vertices)) if args.landmarks else None
     annotation = annotate_mesh(vertices, triangles, landmarks=landmarks, axes=axes,
-                               units=_declared_units(mesh))
+                               units=declared_units(mesh))
     face = face_from_annotation(str(mesh), vertices, triangles, annotation, where="automatic annotation")
     info = describe(face)
     if "error" in info["fapu_mm"]:

@@ -60,7 +60,7 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, dtype=np.float32), np.asarray(mesh.faces, dtype=np.int32)
 
 
-def _declared_units(path: Path) -> str | None:
+def declared_units(path: Path) -> str | None:
     """Units a format fixes: glTF is in metres by its specification."""
     return "m" if path.suffix.lower() in (".glb", ".gltf") else None
 
@@ -91,7 +91,7 @@ def load_mesh_face(path: str | Path) -> Face:
             from .annotate import cached_annotation
 
             try:
-                annotation = cached_annotation(vertices, triangles, name=path.name, units=_declared_units(path))
+                annotation = cached_annotation(vertices, triangles, name=path.name, units=declared_units(path))
                 where = "automatic annotation"
             except InputError as e:
                 annotation = None
