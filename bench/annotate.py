@@ -52,10 +52,11 @@ DEFINITIONAL = ("9.8", "9.9", "9.13", "9.14", "2.1", "2.10", "2.11", "2.12", "2.
 def remesh(v: np.ndarray, tri: np.ndarray, cell: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Vertex clustering on a ``cell`` grid within each connected piece (new vertices are cluster
     means; separate pieces such as eyes and teeth stay separate), then a random vertex order."""
-    from facecast.server.faces.annotate.core import components, weld
+    from facecast.server.deform.mesh_graph import components, edge_graph
+    from facecast.server.faces.annotate.core import weld
 
     rep, wt = weld(v, tri)
-    piece = components(len(v), wt)[rep]
+    piece = components(edge_graph(v, wt))[rep]
     key = np.c_[np.floor(v / cell).astype(np.int64), piece]
     _, inv = np.unique(key, axis=0, return_inverse=True)
     inv = inv.ravel()

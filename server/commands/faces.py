@@ -50,7 +50,8 @@ def annotate(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..faces.annotate import annotate_mesh
     from ..faces.annotate.landmarks import read_landmarks
-    from ..faces.loaders import _declared_units, face_from_annotation, read_mesh
+    from ..faces.loaders import declared_units, face_from_annotation, read_mesh
+    from ..output.atomic import write_bytes_atomic
 
     if args.mesh is None:
         raise InputError("give the mesh to annotate: facecast faces annotate MESH")
@@ -69,14 +70,12 @@ def annotate(args: argparse.Namespace) -> int:
     vertices, triangles = read_mesh(mesh)
     landmarks = read_landmarks(Path(args.landmarks), len(vertices)) if args.landmarks else None
     annotation = annotate_mesh(vertices, triangles, landmarks=landmarks, axes=axes,
-                               units=_declared_units(mesh))
+                               units=declared_units(mesh))
     face = face_from_annotation(str(mesh), vertices, triangles, annotation, where="automatic annotation")
     info = describe(face)
     if "error" in info["fapu_mm"]:
         raise InputError(f"the automatic annotation cannot drive FAPs: {info['fapu_mm']['error']}", where=str(mesh))
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(json.dumps(annotation, indent=1) + "\n")
-    tmp.replace(out)
+    write_bytes_atomic(out, (json.dumps(annotation, indent=1) + "\n").encode())
     if args.preview:
         from ..faces.annotate.preview import annotation_preview
 

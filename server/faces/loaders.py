@@ -30,6 +30,12 @@ MAX_PARTS = 255
 AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
 
 
+def axes_frame(up: str, forward: str) -> np.ndarray:
+    """``(3, 3)`` rotation whose rows are MPEG-4 x (face's left), y (up), z (forward) in mesh axes."""
+    u, f = np.array(AXES[up], float), np.array(AXES[forward], float)
+    return np.stack([np.cross(u, f), u, f])
+
+
 def annotation_path(mesh: Path) -> Path | None:
     """``head.face.json`` or ``head.obj.face.json`` beside ``head.obj``, if either exists."""
     for candidate in (mesh.with_suffix(".face.json"), mesh.with_name(mesh.name + ".face.json")):
@@ -54,7 +60,7 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, dtype=np.float32), np.asarray(mesh.faces, dtype=np.int32)
 
 
-def _declared_units(path: Path) -> str | None:
+def declared_units(path: Path) -> str | None:
     """Units a format fixes: glTF is in metres by its specification."""
     return "m" if path.suffix.lower() in (".glb", ".gltf") else None
 
@@ -85,7 +91,7 @@ def load_mesh_face(path: str | Path) -> Face:
             from .annotate import cached_annotation
 
             try:
-                annotation = cached_annotation(vertices, triangles, name=path.name, units=_declared_units(path))
+                annotation = cached_annotation(vertices, triangles, name=path.name, units=declared_units(path))
                 where = "automatic annotation"
             except InputError as e:
                 annotation = None
@@ -166,8 +172,7 @@ def face_from_annotation(name: str, vertices: np.ndarray, triangles: np.ndarray,
         raise InputError(f"field 'axes': up {_show(up)} and forward {_show(forward)} must be two different "
                          "axes among +x -x +y -y +z -z", where=where)
     if (up, forward) != ("+y", "+z"):
-        u, f = np.array(AXES[up], float), np.array(AXES[forward], float)
-        rot = np.stack([np.cross(u, f), u, f])  # rows: MPEG-4 x (face's left), y (up), z (forward)
+        rot = axes_frame(up, forward)
         vertices = vertices @ rot.T.astype(np.float32)
         pivots = {k: rot @ p for k, p in pivots.items()}
 

@@ -175,14 +175,15 @@ class MarkerLiveDriver:
         self._neutral_n += 1
         # a marker occluded in some of the frames is averaged over the others (a take with gaps
         # from its start); wait until every control marker has been seen
-        if self._neutral_n < self.neutral_frames or not np.isfinite(
-            np.stack(self._gathered)[:, ctrl]
-        ).all(axis=2).any(axis=0).all():
+        if self._neutral_n < self.neutral_frames:
+            return
+        gathered = np.stack(self._gathered)
+        if not np.isfinite(gathered[:, ctrl]).all(axis=2).any(axis=0).all():
             return
         # in the first frame's head pose, the head's motion over the frames removed (the take may
         # move from its first frame; a plain average left a 0.6 deg bias on every later pose)
         with np.errstate(invalid="ignore"):
-            neutral = start_neutral(np.stack(self._gathered), self.stable)
+            neutral = start_neutral(gathered, self.stable)
         self._gathered = []
         span = float(np.nanmax(np.ptp(neutral[np.isfinite(neutral).all(axis=1)], axis=0)))
         lo, hi = FACE_SPAN_MM

@@ -15,6 +15,7 @@ import logging
 import numpy as np
 
 from ...errors import InputError
+from ...output.atomic import write_bytes_atomic
 from ...paths import cache_dir
 from .core import annotate_mesh
 
@@ -61,9 +62,7 @@ def cached_annotation(vertices: np.ndarray, triangles: np.ndarray, *, name: str 
                 f", cached as {path}" if path is not None else "")
     if path is not None:
         try:
-            tmp = path.with_name(path.name + ".tmp")
-            tmp.write_text(json.dumps(annotation, separators=(",", ":")))
-            tmp.replace(path)
+            write_bytes_atomic(path, json.dumps(annotation, separators=(",", ":")).encode())
         except OSError as e:
             log.warning("could not cache the annotation (%s)", e)
     return annotation

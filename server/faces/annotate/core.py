@@ -10,10 +10,9 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from ...deform.mesh_graph import components, edge_graph
 from ...errors import InputError
 from ...output.preview import vertex_normals
 from ..face import FEATURE_POINT_IDS, UNIT_MM
@@ -50,14 +49,6 @@ def weld(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.nd
                                   return_inverse=True)
     rep = first[inverse.ravel()]
     return rep, rep[np.asarray(triangles, dtype=np.int64)]
-
-
-def components(n: int, triangles: np.ndarray) -> np.ndarray:
-    """``(n,)`` connected-piece label of every vertex (isolated vertices get their own)."""
-    t = np.asarray(triangles, dtype=np.int64)
-    e = np.r_[t[:, [0, 1]], t[:, [1, 2]]]
-    g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    return connected_components(g, directed=False)[1]
 
 
 def rim_vertices(n: int, triangles: np.ndarray) -> np.ndarray:
@@ -106,7 +97,7 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
     wtri = wtri[(wtri[:, 0] != wtri[:, 1]) & (wtri[:, 1] != wtri[:, 2]) & (wtri[:, 0] != wtri[:, 2])]
     used = np.zeros(len(v), bool)
     used[wtri.ravel()] = True
-    label = components(len(v), wtri)
+    label = components(edge_graph(v, wtri))
     label[~used] = -1
     sizes = np.bincount(label[used])
     main_label = int(np.argmax(sizes))

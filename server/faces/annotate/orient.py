@@ -12,18 +12,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..loaders import AXES as _AXIS
+from ..loaders import axes_frame as frame
 from .template import Template
 
-AXIS_NAMES = ("+x", "-x", "+y", "-y", "+z", "-z")
-_AXIS = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
+AXIS_NAMES = tuple(_AXIS)
 #: Depth below the crown, in head widths, where the head crop ends (the chin is at about 1.35).
 HEAD_ASPECT = 1.6
-
-
-def frame(up: str, forward: str) -> np.ndarray:
-    """``(3, 3)`` rotation whose rows are MPEG-4 x (face's left), y (up), z (forward) in mesh axes."""
-    u, f = np.array(_AXIS[up], float), np.array(_AXIS[forward], float)
-    return np.stack([np.cross(u, f), u, f])
 
 
 def orientations() -> list[tuple[str, str]]:

@@ -15,6 +15,7 @@ import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
+from ...mocap.sampling import farthest_points
 from ...output.preview import vertex_normals
 from .template import Template
 
@@ -44,18 +45,6 @@ class Target:
     rim: np.ndarray
 
 
-def farthest_point_order(points: np.ndarray, k: int, start: int = 0) -> np.ndarray:
-    """Indices of ``k`` points of ``(N, 3)`` chosen greedily farthest from those already chosen."""
-    k = min(k, len(points))
-    chosen = np.empty(k, dtype=np.int64)
-    chosen[0] = start
-    d = np.linalg.norm(points - points[start], axis=1)
-    for i in range(1, k):
-        chosen[i] = int(np.argmax(d))
-        d = np.minimum(d, np.linalg.norm(points - points[chosen[i]], axis=1))
-    return chosen
-
-
 def fit(template: Template, target: Target, *, anchors: tuple[np.ndarray, np.ndarray] | None = None,
         crop: np.ndarray | None = None) -> tuple[np.ndarray, list]:
     """Warp all template vertices onto ``target``.
@@ -71,7 +60,7 @@ def fit(template: Template, target: Target, *, anchors: tuple[np.ndarray, np.nda
     """
     w = template.vertices.copy()
     outer = template.outer
-    order = farthest_point_order(template.vertices[outer], max(s[0] for s in SCHEDULE))
+    order = farthest_points(template.vertices[outer], max(s[0] for s in SCHEDULE), start=0)
     ttree = cKDTree(target.points)
     head = np.ones(len(target.points), bool) if crop is None else crop
     back = np.nonzero(head & ~target.rim)[0]
