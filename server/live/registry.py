@@ -22,19 +22,20 @@ from ...protocol.messages import (
     SessionInfo,
     dump_message,
 )
+from .. import errors
 from ..api.security import new_token
-from ..errors import FacecastError, NotFound
+from ..errors import NotFound
 from .batcher import DeformBatcher, batch_threads
 from .session import LiveSession, SessionSpec
 
 log = logging.getLogger(__name__)
 
 
-class TooMany(FacecastError):
+class TooMany(errors.TooMany):
     status = 429
 
 
-class Unavailable(FacecastError):
+class Unavailable(errors.Unavailable):
     status = 503
 
 
