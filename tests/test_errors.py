@@ -11,10 +11,6 @@ from functools import cache
 from http import HTTPStatus
 
 import pytest
-from fastapi import WebSocket
-from fastapi.testclient import TestClient
-from starlette.websockets import WebSocketDisconnect
-
 from facecast.protocol.errors import (
     INTERNAL_MESSAGE,
     CloseCode,
@@ -29,6 +25,9 @@ from facecast.server.api import redact
 from facecast.server.api.app import create_app
 from facecast.server.api.config import ServerConfig
 from facecast.server.api.errors import error_text, reply
+from fastapi import WebSocket
+from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
 
 #: Exceptions that are control flow, never an error a user sees: a job worker's stop signal (a
 #: ``BaseException``, like ``KeyboardInterrupt``) and a viewer's socket found closed mid-send.
@@ -155,7 +154,7 @@ def app(tmp_path_factory):
         await websocket.accept()
         try:
             raise_it(name)
-        except Exception as e:
+        except Exception as e:  # noqa: BLE001 - a shell answers every error
             r = reply(e, websocket.app)
             await websocket.send_text(error_text(r))
             await websocket.close(r.close_code)

@@ -18,6 +18,7 @@ import threading
 import time
 from contextlib import asynccontextmanager
 from pathlib import Path
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -181,7 +182,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
                                 job_timeout=config.job_timeout_seconds, memory_mb=config.job_memory_mb)
     app.state.metrics.watch_jobs(app.state.jobs.store.counts)
 
-    def _answer(exc: Exception, **extra) -> JSONResponse:
+    def _answer(exc: Exception, **extra: Any) -> JSONResponse:
         r = reply(exc, app)  # the one mapping, as on WebSockets: status from the error's class
         app.state.metrics.http_errors.labels(str(r.status)).inc()
         return error_response(r, **extra)
@@ -192,7 +193,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
 
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, exc: HTTPException) -> JSONResponse:
-        extra = {} if isinstance(exc.detail, str) else {"problems": safe_json(jsonable(exc.detail))}
+        extra: dict[str, Any] = {} if isinstance(exc.detail, str) else {"problems": safe_json(jsonable(exc.detail))}
         return _answer(exc, **extra)
 
     @app.exception_handler(Exception)
