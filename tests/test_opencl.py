@@ -14,7 +14,7 @@ from facecast.server.backends import NumpyDeformer
 from facecast.server.deform.operator import Operator
 from facecast.server.errors import InputError
 
-cl_backend = pytest.importorskip("facecast.server.backends.opencl_backend")
+cl_backend = pytest.importorskip("facecast.server.backends.opencl")
 
 pytestmark = pytest.mark.opencl
 
@@ -155,7 +155,7 @@ def test_streaming_stores_match(ctx, rng, monkeypatch, V):
     """Large launches write with non-temporal stores (forced here for a small mesh): same results,
     also into a misaligned ``out`` and for batches whose frames are not 32-byte aligned (V = 1003),
     where the ordinary kernel must be used instead."""
-    monkeypatch.setattr(cl_backend, "STREAM_FRACTION", 0.0)
+    monkeypatch.setattr(cl_backend.deformer, "STREAM_FRACTION", 0.0)
     rest, tri, groups = random_mesh(rng, V)
     op = random_sparse(rng, V, 40)
     d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
@@ -192,23 +192,24 @@ def test_deform_with_normals_matches(ctx, rng):
     np.testing.assert_allclose(n, ref.normals(v), atol=2e-5)
 
 
-def test_quantized_frame_equals_protocol_quantisation(ctx, rng):
+def test_device_quantised_frame_equals_protocol_quantisation(ctx, rng):
+    """A deformed frame quantised on the device is ``protocol.quantize`` of it, bit for bit, so
+    within half a step per axis of the NumPy reference."""
     rest, tri, groups = random_mesh(rng, 777)
     op = random_sparse(rng, 777, 33)
     d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
     ref = NumpyDeformer(rest, tri, groups, op)
     D = rng.standard_normal((33, 3)).astype(np.float32)
     T = random_transforms(rng)
-    q, offset, scale = d.deform_quantized(D, T)
-    assert q.dtype == np.int16 and q.shape == (777, 3)
-    # Bit-identical to protocol.quantize on this backend's own float frame ...
-    q2, o2, s2 = quantize_int16(d.deform(D, T))
-    np.testing.assert_array_equal(q, q2)
-    np.testing.assert_array_equal(offset, o2)
-    np.testing.assert_array_equal(scale, s2)
-    # ... so within the stated bound (half a step per axis) of the NumPy reference.
-    err = np.abs(dequantize_int16(q, offset, scale) - ref.deform(D, T))
-    assert np.all(err <= scale / 2 + 80 * 2e-6 + 1e-6)
+    v = d.deform_batch(D[None], T[None])
+    q, offset, scale = cl_backend.DeviceQuantizer(ctx).quantize(v)
+    assert q.dtype == np.int16 and q.shape == (1, 777, 3)
+    q2, o2, s2 = quantize_int16(v[0])
+    np.testing.assert_array_equal(q[0], q2)
+    np.testing.assert_array_equal(offset[0], o2)
+    np.testing.assert_array_equal(scale[0], s2)
+    err = np.abs(dequantize_int16(q[0], offset[0], scale[0]) - ref.deform(D, T))
+    assert np.all(err <= s2 / 2 + 80 * 2e-6 + 1e-6)
 
 
 @pytest.mark.parametrize("per_axis", [True, False])
