@@ -361,22 +361,6 @@ class OpenCLDeformer:
         self._k_vertex_normals(self.queue, self._global, (LOCAL_SIZE,), np.uint32(self.n_vertices),
                                self._adj_ptr, self._adj, self._fn, self._nbuf())
 
-    @_serialised
-    def deform_with_normals(self, D: np.ndarray, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``deform`` and ``normals`` of the result, without sending the vertices back up."""
-        cl = self._cl
-        D, T = self._check(D, transforms, batch=False)
-        self._upload_params(self._fill_params(D[None], T[None]))
-        verts = aligned_empty((self.n_vertices, 3), np.float32)
-        nrm = aligned_empty((self.n_vertices, 3), np.float32)
-        if self.n_vertices == 0:
-            return verts, nrm
-        self._launch_deform(1, self._verts)
-        self._launch_normals()
-        cl.enqueue_copy(self.queue, verts, self._verts, is_blocking=False)
-        cl.enqueue_copy(self.queue, nrm, self._nbuf(), is_blocking=True)
-        return verts, nrm
-
     # ------------------------------------------------------------------------ measuring aids
     def bytes_per_frame(self) -> int:
         """Bytes one ``deform`` frame moves at least: the operator as stored, rest positions, slice

@@ -72,26 +72,6 @@ class PackedOperator:
         meta = 0 if self.dense else self.ids.nbytes + self.col_ptr.nbytes + self.id_ptr.nbytes
         return int(self.weights.nbytes + meta)
 
-    def to_dense(self) -> np.ndarray:
-        """``(V, K, 3) float32`` dense weights read back from the packed layout (for checks)."""
-        K, A, S = self.n_controls, self.axes, self.slice
-        out = np.zeros((self.n_padded, K + 1, 3), np.float32)
-        w = self.weights.reshape(-1, A, S)
-        for s in range(self.n_padded // S):
-            lanes = np.arange(S) + S * s
-            if self.dense:
-                cols, ids = s * K + np.arange(K), np.arange(K)[:, None].repeat(S, 1)
-            else:
-                c0, c1 = int(self.col_ptr[s]), int(self.col_ptr[s + 1])
-                i0, i1 = int(self.id_ptr[s]), int(self.id_ptr[s + 1])
-                cols = np.arange(c0, c1)
-                ids = self.ids[i0:i1].astype(np.int64)
-                ids = ids[:, None].repeat(S, 1) if i1 - i0 == c1 - c0 else ids.reshape(-1, S)
-            for j, c in enumerate(cols):
-                for a in range(3):
-                    np.add.at(out, (lanes, ids[j], a), w[c, min(a, A - 1)])
-        return out[:self.n_vertices, :K]
-
 
 def index_dtype(n_ids: int) -> np.dtype:
     for dt in (np.uint8, np.uint16, np.uint32):
