@@ -21,6 +21,8 @@ from __future__ import annotations
 import functools
 import logging
 import threading
+from collections.abc import Callable
+from typing import Any, Concatenate, ParamSpec, TypeVar
 
 import numpy as np
 
@@ -47,11 +49,15 @@ T_FLOATS = 16
 STREAM_FRACTION = 0.5
 
 
-def _serialised(method):
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+def _serialised(method: Callable[Concatenate[OpenCLDeformer, _P], _R]) -> Callable[Concatenate[OpenCLDeformer, _P], _R]:
     """Run ``method`` under the deformer's lock: one queue and one parameter block per deformer,
     so calls from several threads (server sessions) take turns."""
     @functools.wraps(method)
-    def wrapper(self, *args, **kwargs):
+    def wrapper(self: OpenCLDeformer, /, *args: _P.args, **kwargs: _P.kwargs) -> _R:
         with self._lock:
             return method(self, *args, **kwargs)
 
@@ -77,8 +83,8 @@ class OpenCLDeformer:
     """
 
     def __init__(self, rest: np.ndarray, triangles: np.ndarray, rigid_group: np.ndarray,
-                 operator: Operator, context=None, *, zero_copy: bool | None = None,
-                 slice_size: int = SLICE):
+                 operator: Operator, context: Any = None, *, zero_copy: bool | None = None,
+                 slice_size: int = SLICE) -> None:
         import pyopencl as cl
 
         self._cl = cl
@@ -242,7 +248,7 @@ class OpenCLDeformer:
             return False
         return not ((n_frames > 1 and (12 * self.n_vertices) % 32) or (out is not None and out.ctypes.data % 32))
 
-    def _launch_deform(self, n_frames: int, out_buf, stream: bool = False):
+    def _launch_deform(self, n_frames: int, out_buf: Any, stream: bool = False) -> Any:
         """Enqueue the deform kernel (``deform_stream`` if ``stream``), setting only the per-launch
         arguments: buffers cost 0.2 us to set, a scalar ~20 us through PyOpenCL (``Kernel.__call__``
         setting all fourteen cost ~60 us a frame, a third of a 25k-vertex frame), so the frame
@@ -255,17 +261,17 @@ class OpenCLDeformer:
         k.set_arg(13, out_buf)
         return self._cl.enqueue_nd_range_kernel(self.queue, k, (self._global_slices,), (LOCAL_SLICES,))
 
-    def _host_buffer(self, arr: np.ndarray, flags=None):
+    def _host_buffer(self, arr: np.ndarray, flags: Any = None) -> Any:
         """A buffer whose storage is host array ``arr`` (``CL_MEM_USE_HOST_PTR``): on a CPU device
         the kernels read and write ``arr`` itself."""
         cl = self._cl
         flags = cl.mem_flags.READ_WRITE if flags is None else flags
         return cl.Buffer(self.context, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
 
-    def _host_out(self, arr: np.ndarray):
+    def _host_out(self, arr: np.ndarray) -> Any:
         return self._host_buffer(arr, self._cl.mem_flags.WRITE_ONLY)
 
-    def _sync_host(self, buf, arr: np.ndarray, event) -> None:
+    def _sync_host(self, buf: Any, arr: np.ndarray, event: Any) -> None:
         """Wait for ``event`` (the kernel writing ``buf``) and make ``arr``, the host storage of
         ``buf``, hold its results: on a host-memory device it already does."""
         if self.zero_copy:
@@ -347,7 +353,7 @@ class OpenCLDeformer:
         cl.enqueue_copy(self.queue, out, self._nbuf(), is_blocking=True)
         return out
 
-    def _nbuf(self):
+    def _nbuf(self) -> Any:
         if not hasattr(self, "_normals_out"):
             self._normals_out = self._cl.Buffer(self.context, self._cl.mem_flags.READ_WRITE,
                                                 max(12, 12 * self.n_vertices))
