@@ -32,7 +32,8 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     n = np.stack([np.bincount(corners, weights=np.repeat(fn[:, a], 3), minlength=len(v))
                   for a in range(3)], axis=1)
     length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+    unit: np.ndarray = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+    return unit
 
 
 def control_sites(
