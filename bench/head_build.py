@@ -23,8 +23,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from facecast.server.faces import parse_count, procedural
-from facecast.server.faces.procedural_mesh import closed_surface
+from facecast.server.faces import parse_count
+from facecast.server.faces.procedural import head as procedural
+from facecast.server.faces.procedural.mesh import closed_surface
 
 
 def _sphere(n: int) -> int:

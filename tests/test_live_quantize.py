@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from facecast.protocol import frames as fr
 from facecast.protocol.quantize import dequantize_int16, quantize_int16
+from facecast.server.backends.opencl import ALIGN, DeviceQuantizer, aligned_empty
 from facecast.server.live.batcher import encode_batch
-from facecast.server.live.quantize_cl import ALIGN, DeviceQuantizer, aligned_empty
 from websockets.frames import Frame, Opcode
 
-cl_backend = pytest.importorskip("facecast.server.backends.opencl_backend")
+cl_backend = pytest.importorskip("facecast.server.backends.opencl")
 
 pytestmark = pytest.mark.opencl
 

@@ -14,7 +14,7 @@ from facecast.server.backends import NumpyDeformer
 from facecast.server.deform.operator import Operator
 from facecast.server.errors import InputError
 
-cl_backend = pytest.importorskip("facecast.server.backends.opencl_backend")
+cl_backend = pytest.importorskip("facecast.server.backends.opencl")
 
 pytestmark = pytest.mark.opencl
 
@@ -51,6 +51,27 @@ def random_sparse(rng, V: int, K: int, max_row: int = 9, per_axis: bool = True) 
     if not per_axis:
         w[:, 1] = w[:, 2] = w[:, 0]
     return Operator(V, K, indptr=indptr, indices=indices, weights=w)
+
+
+def unpack_dense(p) -> np.ndarray:
+    """``(V, K, 3) float32`` dense weights read back from packed operator ``p``'s layout."""
+    K, A, S = p.n_controls, p.axes, p.slice
+    out = np.zeros((p.n_padded, K + 1, 3), np.float32)
+    w = p.weights.reshape(-1, A, S)
+    for s in range(p.n_padded // S):
+        lanes = np.arange(S) + S * s
+        if p.dense:
+            cols, ids = s * K + np.arange(K), np.arange(K)[:, None].repeat(S, 1)
+        else:
+            c0, c1 = int(p.col_ptr[s]), int(p.col_ptr[s + 1])
+            i0, i1 = int(p.id_ptr[s]), int(p.id_ptr[s + 1])
+            cols = np.arange(c0, c1)
+            ids = p.ids[i0:i1].astype(np.int64)
+            ids = ids[:, None].repeat(S, 1) if i1 - i0 == c1 - c0 else ids.reshape(-1, S)
+        for j, c in enumerate(cols):
+            for a in range(3):
+                np.add.at(out, (lanes, ids[j], a), w[c, min(a, A - 1)])
+    return out[:p.n_vertices, :K]
 
 
 def random_mesh(rng, V: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -155,7 +176,7 @@ def test_streaming_stores_match(ctx, rng, monkeypatch, V):
     """Large launches write with non-temporal stores (forced here for a small mesh): same results,
     also into a misaligned ``out`` and for batches whose frames are not 32-byte aligned (V = 1003),
     where the ordinary kernel must be used instead."""
-    monkeypatch.setattr(cl_backend, "STREAM_FRACTION", 0.0)
+    monkeypatch.setattr(cl_backend.deformer, "STREAM_FRACTION", 0.0)
     rest, tri, groups = random_mesh(rng, V)
     op = random_sparse(rng, V, 40)
     d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
@@ -180,35 +201,24 @@ def test_streaming_stores_match(ctx, rng, monkeypatch, V):
     d.run_kernel_resident(wait=True)
     assert_close(d.read_resident(), ref.deform(D, T), 80)
 
-def test_deform_with_normals_matches(ctx, rng):
-    rest, tri, groups = random_mesh(rng, 300)
-    op = random_sparse(rng, 300, 12)
-    d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
-    ref = NumpyDeformer(rest, tri, groups, op)
-    D = rng.standard_normal((12, 3)).astype(np.float32)
-    T = random_transforms(rng)
-    v, n = d.deform_with_normals(D, T)
-    assert_close(v, ref.deform(D, T), 80)
-    np.testing.assert_allclose(n, ref.normals(v), atol=2e-5)
-
-
-def test_quantized_frame_equals_protocol_quantisation(ctx, rng):
+def test_device_quantised_frame_equals_protocol_quantisation(ctx, rng):
+    """A deformed frame quantised on the device is ``protocol.quantize`` of it, bit for bit, so
+    within half a step per axis of the NumPy reference."""
     rest, tri, groups = random_mesh(rng, 777)
     op = random_sparse(rng, 777, 33)
     d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx)
     ref = NumpyDeformer(rest, tri, groups, op)
     D = rng.standard_normal((33, 3)).astype(np.float32)
     T = random_transforms(rng)
-    q, offset, scale = d.deform_quantized(D, T)
-    assert q.dtype == np.int16 and q.shape == (777, 3)
-    # Bit-identical to protocol.quantize on this backend's own float frame ...
-    q2, o2, s2 = quantize_int16(d.deform(D, T))
-    np.testing.assert_array_equal(q, q2)
-    np.testing.assert_array_equal(offset, o2)
-    np.testing.assert_array_equal(scale, s2)
-    # ... so within the stated bound (half a step per axis) of the NumPy reference.
-    err = np.abs(dequantize_int16(q, offset, scale) - ref.deform(D, T))
-    assert np.all(err <= scale / 2 + 80 * 2e-6 + 1e-6)
+    v = d.deform_batch(D[None], T[None])
+    q, offset, scale = cl_backend.DeviceQuantizer(ctx).quantize(v)
+    assert q.dtype == np.int16 and q.shape == (1, 777, 3)
+    q2, o2, s2 = quantize_int16(v[0])
+    np.testing.assert_array_equal(q[0], q2)
+    np.testing.assert_array_equal(offset[0], o2)
+    np.testing.assert_array_equal(scale[0], s2)
+    err = np.abs(dequantize_int16(q[0], offset[0], scale[0]) - ref.deform(D, T))
+    assert np.all(err <= s2 / 2 + 80 * 2e-6 + 1e-6)
 
 
 @pytest.mark.parametrize("per_axis", [True, False])
@@ -217,7 +227,7 @@ def test_pack_operator_keeps_every_entry(rng, per_axis):
     op = random_sparse(rng, 100, 17, per_axis=per_axis)
     p = cl_backend.pack_operator(op)
     D = rng.standard_normal((op.n_controls, 3)).astype(np.float32)
-    np.testing.assert_allclose(np.einsum("vka,ka->va", p.to_dense(), D), op.apply(D), atol=1e-5)
+    np.testing.assert_allclose(np.einsum("vka,ka->va", unpack_dense(p), D), op.apply(D), atol=1e-5)
 
 
 def test_neighbours_sharing_controls_share_columns(rng):
@@ -230,7 +240,7 @@ def test_neighbours_sharing_controls_share_columns(rng):
     assert p.shared_fraction == 1.0
     assert p.ids.size == 3 * (V // cl_backend.SLICE)
     D = rng.standard_normal((K, 3)).astype(np.float32)
-    np.testing.assert_allclose(np.einsum("vka,ka->va", p.to_dense(), D), op.apply(D), atol=1e-5)
+    np.testing.assert_allclose(np.einsum("vka,ka->va", unpack_dense(p), D), op.apply(D), atol=1e-5)
 
 
 # ---------------------------------------------------------------- real heads and real engines

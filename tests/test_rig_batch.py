@@ -13,6 +13,7 @@ from facecast.server.errors import InputError
 from facecast.server.faces import load_face
 from facecast.server.live.batcher import DeformBatcher
 from facecast.server.mpeg4 import FapRig
+from facecast.server.mpeg4 import rig as rig_mod
 from facecast.server.state import FaceState, zero_faps
 
 #: FAPs the rig turns into rigid transforms or special terms (jaw, eyes, tongue roll, head).
@@ -55,12 +56,35 @@ def _random_states(rng, n: int, *, head_every: int = 0) -> list[FaceState]:
     return out
 
 
+def solve_reference(rig: FapRig, state: FaceState) -> tuple[np.ndarray, np.ndarray]:
+    """``rig.solve`` of one state, written plainly: the reference ``solve_batch`` matches bit for
+    bit, up to the sign of a zero; 10x slower per state than ``solve_batch`` in batches of 20."""
+    faps = rig.faps(state)
+    local = rig.local_transforms(faps)
+    H = rig.head_transform(state, faps)
+    transforms = np.stack([H] + [rig_mod.compose(H, local[g]) for g in range(1, rig_mod.G)])
+    if rig.explicit:
+        if state.controls is None:
+            D = np.zeros((rig.n_controls, 3), dtype=np.float32)
+        else:
+            D = np.asarray(state.controls, dtype=np.float32).reshape(rig.n_controls, 3)
+        return D, transforms.astype(np.float32)
+    D = rig._M @ faps
+    if len(rig._jaw_riders):
+        J = local[rig_mod._JAW]
+        D[rig._jaw_riders] += rig._rider_pos @ J[:, :3].T + J[:, 3] - rig._rider_pos
+    ids, arms = rig._roll
+    if len(ids) and faps[47]:
+        D[ids, 1] += np.tan(faps[47] * rig.fapu["AU"]) * arms
+    return D.astype(np.float32), transforms.astype(np.float32)
+
+
 def _assert_rows_equal_reference(rig: FapRig, states: list[FaceState]) -> None:
     D, T = rig.solve_batch(states)
     assert D.shape == (len(states), rig.n_controls, 3) and D.dtype == np.float32
     assert T.shape == (len(states), 4, 3, 4) and T.dtype == np.float32
     for i, s in enumerate(states):
-        d, t = rig.solve_reference(s)
+        d, t = solve_reference(rig, s)
         np.testing.assert_array_equal(D[i], d, err_msg=f"D of state {i}")
         np.testing.assert_array_equal(T[i], t, err_msg=f"transforms of state {i}")
 

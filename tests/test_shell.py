@@ -151,7 +151,7 @@ def test_builtin_head_rigid_parts_untouched_and_cached(head, rng):
 
 @pytest.mark.opencl
 def test_numpy_and_opencl_agree(head, rng):
-    cl = pytest.importorskip("facecast.server.backends.opencl_backend")
+    cl = pytest.importorskip("facecast.server.backends.opencl")
     from facecast.server.backends import NumpyDeformer
 
     ctx = cl.default_context()

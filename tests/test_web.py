@@ -424,41 +424,6 @@ def face_page(server, browser):
     page.close()
 
 
-def test_draw_order_keeps_every_triangle_once_with_the_two_sided_sheets_last(face_page):
-    page, _ = face_page
-    r = page.evaluate("""async () => {
-      const { drawOrder } = await import('/static/js/renderer.js');
-      const tris = new Uint32Array([0, 1, 2, 2, 3, 4, 4, 5, 6, 6, 7, 0, 8, 9, 10]);
-      const partIds = new Uint8Array([0, 1, 2, 0, 1, 2, 0, 1, 3, 3, 3]);
-      const names = ['skin', 'eyelashes', 'teeth_upper', 'cornea_l'];
-      const { order, groups } = drawOrder(tris, partIds, names);
-      return { order: Array.from(order), groups };
-    }""")
-    tris = [tuple(r["order"][i:i + 3]) for i in range(0, 15, 3)]
-    assert sorted(tris) == sorted([(0, 1, 2), (2, 3, 4), (4, 5, 6), (6, 7, 0), (8, 9, 10)])
-    # skin (0,1,2), (6,7,0) culled, then the interior teeth (2,3,4) culled in a draw of their own; the
-    # eyelash sheet (4,5,6) next, unculled; the transparent cornea (8,9,10) last and in no draw group
-    assert tris[2:] == [(2, 3, 4), (4, 5, 6), (8, 9, 10)]
-    assert r["groups"] == [{"first": 0, "count": 6, "cull": True}, {"first": 6, "count": 3, "cull": True, "interior": True},
-                           {"first": 9, "count": 3, "cull": False}]
-
-
-def test_part_colours_blend_across_shared_edges_only(face_page):
-    page, _ = face_page
-    r = page.evaluate("""async () => {
-      const { smoothColors } = await import('/static/js/renderer.js');
-      // a strip of 6 vertices (0-5, red then blue from vertex 3) and a separate triangle (6-8, green)
-      const tris = new Uint32Array([0, 1, 2, 1, 3, 2, 2, 3, 4, 3, 5, 4, 6, 7, 8]);
-      const rgb = new Float32Array(27);
-      for (let v = 0; v < 9; v++) rgb.set(v < 3 ? [1, 0, 0] : v < 6 ? [0, 0, 1] : [0, 1, 0], 3 * v);
-      return Array.from(smoothColors(rgb, tris, 9, 1));
-    }""")
-    c = np.array(r).reshape(9, 3)
-    assert 0 < c[2, 2] < c[3, 2] < 1 and c[2, 0] > c[3, 0] > 0  # the border blends both ways
-    np.testing.assert_allclose(c.sum(axis=1), 1.0, atol=1e-6)    # averages of colours stay colours
-    np.testing.assert_allclose(c[6:], [[0, 1, 0]] * 3)           # no edge to the strip: unchanged
-
-
 def test_back_face_culling_leaves_the_picture_unchanged(face_page):
     page, problems = face_page
     for yaw, pitch in [(0.35, 0.08), (-1.2, -0.3), (2.8, 0.2)]:
@@ -483,30 +448,6 @@ def test_per_vertex_lighting_draws_the_same_lit_face(face_page, artifacts):
     assert not problems, problems
 
 
-def test_coarsening_keeps_openings_open_and_fine_parts_whole(face_page):
-    page, _ = face_page
-    r = page.evaluate("""async () => {
-      const { coarsen } = await import('/static/js/renderer.js');
-      // Two 6x6-vertex grids side by side (part 0 and part 1), not joined: an opening between them.
-      const tris = [], partIds = new Uint8Array(72);
-      for (let p = 0; p < 2; p++) for (let y = 0; y < 5; y++) for (let x = 0; x < 5; x++) {
-        const v = 36 * p + 6 * y + x;
-        tris.push(v, v + 1, v + 7, v, v + 7, v + 6);
-        if (p) partIds[v] = partIds[v + 1] = partIds[v + 6] = partIds[v + 7] = 1;
-      }
-      const all = coarsen(Uint32Array.from(tris), 72, partIds);
-      const keep1 = coarsen(Uint32Array.from(tris), 72, partIds, [false, true]);
-      return { all: Array.from(all), keep1: Array.from(keep1) };
-    }""")
-    tris = np.array(r["all"]).reshape(-1, 3)
-    assert 0 < len(tris) < 100 * 0.6, f"{len(tris)} of 100 triangles"
-    assert all(len(set(t)) == 3 for t in tris.tolist()), "degenerate triangles left"
-    assert not any((t < 36).any() and (t >= 36).any() for t in tris), "the two grids were welded together"
-    kept = np.array(r["keep1"]).reshape(-1, 3)
-    assert (kept >= 36).all(axis=1).sum() == 50, "the kept part lost triangles"
-    assert (kept < 36).all(axis=1).sum() == (tris < 36).all(axis=1).sum()
-
-
 def test_the_coarse_level_draws_the_same_lit_face(face_page, artifacts):
     page, problems = face_page
     r = page.evaluate(TWO_RENDERS_JS, ["lod", 0.35, 0.08])
@@ -517,37 +458,6 @@ def test_the_coarse_level_draws_the_same_lit_face(face_page, artifacts):
     page.screenshot(path=str(artifacts / "web_coarse_level.png"))
     page.evaluate("facecast.setQuality({ lod: 0 })")
     assert not problems, problems
-
-
-def test_vertex_cache_order_keeps_every_triangle_and_shades_fewer_vertices(face_page):
-    page, _ = face_page
-    r = page.evaluate("""async () => {
-      const { cacheOrder, vertexRuns } = await import('/static/js/renderer.js');
-      // a 40x40-quad grid, its triangles shuffled (a fixed linear congruential sequence)
-      const n = 40, V = (n + 1) * (n + 1), tris = [];
-      for (let y = 0; y < n; y++) for (let x = 0; x < n; x++) {
-        const v = y * (n + 1) + x;
-        tris.push([v, v + 1, v + n + 2], [v, v + n + 2, v + n + 1]);
-      }
-      let seed = 12345;
-      for (let i = tris.length - 1; i > 0; i--) {
-        seed = (seed * 1103515245 + 12345) % 2147483648;
-        const j = seed % (i + 1); [tris[i], tris[j]] = [tris[j], tris[i]];
-      }
-      const shuffled = Uint32Array.from(tris.flat()), ordered = cacheOrder(shuffled, V);
-      return { V, shuffled: Array.from(shuffled), ordered: Array.from(ordered),
-               before: vertexRuns(shuffled), after: vertexRuns(ordered) };
-    }""")
-    def canon(flat):  # each triangle rotated to start at its smallest index: same winding, same triangle
-        out = []
-        for i in range(0, len(flat), 3):
-            t = flat[i:i + 3]
-            k = t.index(min(t))
-            out.append(tuple(t[k:] + t[:k]))
-        return sorted(out)
-    assert canon(r["ordered"]) == canon(r["shuffled"])
-    assert r["after"] < 0.5 * r["before"], r
-    assert r["after"] < 1.3 * r["V"], f"{r['after']} vertex shader runs for {r['V']} vertices"
 
 
 def test_vertex_cache_order_draws_the_same_picture(face_page):

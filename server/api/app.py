@@ -111,7 +111,7 @@ def _probe_backend(backend: str, device: str | None) -> tuple[str, str | None]:
     if backend == "numpy":
         return "numpy", None
     try:
-        from ..backends.opencl_backend import default_context
+        from ..backends.opencl import default_context
     except ImportError as e:
         if backend == "opencl":
             raise FacecastError(f"OpenCL backend not available: {e}") from e

@@ -36,7 +36,7 @@ def make_deformer(face, operator, backend: str = "auto", device: str | None = No
         raise FacecastError(f"unknown backend {backend!r}; use auto, numpy or opencl", where="backend")
     if backend in ("auto", "opencl"):
         try:
-            from .opencl_backend import OpenCLDeformer, default_context
+            from .opencl import OpenCLDeformer, default_context
         except ImportError as e:  # PyOpenCL (or its ICD loader) missing
             if backend == "opencl":
                 raise FacecastError(f"the OpenCL backend needs PyOpenCL: {e}") from e

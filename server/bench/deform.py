@@ -225,7 +225,7 @@ def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, fra
     ctx = None
     cl_def = None
     if "opencl" in backends:
-        from ..backends.opencl_backend import OpenCLDeformer, default_context
+        from ..backends.opencl import OpenCLDeformer, default_context
 
         ctx = default_context(device)
         if ctx is None:

@@ -84,67 +84,24 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..errors import InputError
-from .mesh_graph import bounded_distances, components, edge_graph, voronoi
+from .controls import (
+    assemble_per_axis,
+    attach_floating,
+    control_sites,
+    fill_inner,
+    inner_is_membrane,
+    validate_controls,
+    vertex_normals,
+)
+from .mesh_graph import bounded_distances, voronoi
 from .operator import Operator
-from .smoothing import harmonic_fill, smooth_rows
+from .smoothing import smooth_rows
 
 log = logging.getLogger(__name__)
 
 NORMALISATIONS: tuple[str, ...] = ("paper", "slides", "clamped", "none")
-
-
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals ``(V, 3) float64`` (zero for vertices in no triangle)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    tri = v[triangles]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    corners = np.asarray(triangles).ravel()
-    n = np.stack([np.bincount(corners, weights=np.repeat(fn[:, a], 3), minlength=len(v))
-                  for a in range(3)], axis=1)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
-
-
-def _control_sites(
-    vertices: np.ndarray, triangles: np.ndarray, controls: np.ndarray, deformable: np.ndarray,
-    rigid_group: np.ndarray | None, attach_distance: float | None,
-) -> tuple:
-    """What every engine starts from: ``(graph, attach_distance, usable, sites, site_of)``.
-
-    ``graph`` is the deformable edge graph (no edge across rigid groups); ``attach_distance``
-    defaults to 3 median edge lengths; ``usable (K,) bool`` marks controls on deformable vertices
-    (the others are logged and ignored); ``sites (n,)`` are the distinct control vertices and
-    ``site_of (K,)`` maps each control to its site.
-    """
-    graph = edge_graph(vertices, triangles, deformable, rigid_group)
-    if attach_distance is None:
-        attach_distance = 3.0 * float(np.median(graph.data)) if graph.nnz else 0.0
-    usable = deformable[controls]
-    if not usable.all():
-        log.warning("%d control(s) sit on non-deformable vertices and are ignored", int((~usable).sum()))
-    sites, site_of = np.unique(controls, return_inverse=True)
-    return graph, attach_distance, usable, sites, site_of.reshape(-1)
-
-
-def _validate(n_vertices: int, control_vertices, constrained, deformable):
-    controls = np.asarray(control_vertices, dtype=np.int64).reshape(-1)
-    if len(controls) and (controls.min() < 0 or controls.max() >= n_vertices):
-        raise InputError(f"control vertex ids must lie in 0..{n_vertices - 1}", where="control_vertices")
-    if constrained is None:
-        constrained = np.ones((len(controls), 3), dtype=bool)
-    constrained = np.asarray(constrained, dtype=bool)
-    if constrained.shape != (len(controls), 3):
-        raise InputError(f"constrained must have shape ({len(controls)}, 3), not {constrained.shape}",
-                         where="constrained")
-    if deformable is None:
-        deformable = np.ones(n_vertices, dtype=bool)
-    deformable = np.asarray(deformable, dtype=bool)
-    if deformable.shape != (n_vertices,):
-        raise InputError(f"deformable must have shape ({n_vertices},)", where="deformable")
-    return controls, constrained, deformable
 
 
 def _tangent_units(chords: np.ndarray, normal: np.ndarray) -> np.ndarray:
@@ -264,7 +221,7 @@ def feature_point_operator(
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     n_vertices = len(vertices)
-    controls, constrained, deformable = _validate(n_vertices, control_vertices, constrained, deformable)
+    controls, constrained, deformable = validate_controls(n_vertices, control_vertices, constrained, deformable)
     n_controls = len(controls)
     meta = {"engine": "fp", "normalisation": normalisation, "no_neighbour": no_neighbour,
             "own_blend": float(own_blend), "neighbour_ratio": float(neighbour_ratio),
@@ -274,7 +231,7 @@ def feature_point_operator(
         raise InputError(f"falloff must be 'sine' or 'smooth', not {falloff!r}", where="falloff")
 
     # Sites: the distinct deformable vertices carrying controls.
-    graph, attach_distance, usable, sites, site_of = _control_sites(
+    graph, attach_distance, usable, sites, site_of = control_sites(
         vertices, triangles, controls, deformable, rigid_group, attach_distance)
     floor = 1e-6 * (float(graph.data.mean()) if graph.nnz else 1.0)
     normals = vertex_normals(vertices, triangles)
@@ -386,10 +343,10 @@ def feature_point_operator(
         cc = ctl[order][np.repeat(starts[s], m) + offs]
         per_axis.append((rr, cc, vv))
 
-    membrane = _check_inner(inner)
-    per_axis, free, floating = _attach_floating(per_axis, vertices, graph, deformable, sites[active],
+    membrane = inner_is_membrane(inner)
+    per_axis, free, floating = attach_floating(per_axis, vertices, graph, deformable, sites[active],
                                                 rigid_group, attach_distance, membrane=membrane)
-    op = _assemble(per_axis, n_vertices, n_controls, meta)
+    op = assemble_per_axis(per_axis, n_vertices, n_controls, meta)
     fixed = np.zeros((n_vertices, 3), dtype=bool)
     for a in range(3):
         fixed[controls[constrained[:, a] & usable], a] = True
@@ -415,135 +372,3 @@ def smoothing_iterations(strength: float, graph, spacing: float) -> int:
         return 0
     e = float(np.median(graph.data))
     return int(min(MAX_SMOOTH_ITERATIONS, round(strength * (spacing / e) ** 2)))
-
-
-def _check_inner(inner: str) -> bool:
-    if inner not in ("copy", "membrane"):
-        raise InputError(f"inner must be 'copy' or 'membrane', not {inner!r}", where="inner")
-    return inner == "membrane"
-
-
-def fill_inner(op: Operator, graph, free: np.ndarray, inner_vertices, controls: np.ndarray,
-               deformable: np.ndarray, vertices: np.ndarray, triangles: np.ndarray,
-               candidates: np.ndarray) -> Operator:
-    """Harmonic rows (``smoothing.harmonic_fill``) for ``free`` plus the deformable
-    ``inner_vertices``, never for control vertices (``controls (V,) bool``), each pulled towards
-    the ``candidates (V,) bool`` vertex in front of it (``front_vertices``)."""
-    free = free.copy()
-    if inner_vertices is not None and len(inner_vertices):
-        ids = np.asarray(inner_vertices, dtype=np.int64)
-        free[ids[deformable[ids]]] = True
-    free &= ~controls
-    front = front_vertices(vertices, triangles, free, candidates & ~free)
-    return harmonic_fill(op, graph, free, front=front)
-
-
-def front_vertices(vertices: np.ndarray, triangles: np.ndarray, inner: np.ndarray, candidates: np.ndarray,
-                   k: int = 16) -> np.ndarray:
-    """``(V,)`` for each ``inner`` vertex the nearest ``candidates`` vertex it lies behind (on the
-    inner side of that vertex's tangent plane), else -1: the skin in front of a socket vertex.
-    The side test keeps a lower socket vertex from picking the upper lip across the slit."""
-    out = np.full(len(vertices), -1, dtype=np.int64)
-    cand = np.flatnonzero(candidates)
-    ids = np.flatnonzero(inner)
-    if not len(cand) or not len(ids):
-        return out
-    normals = vertex_normals(vertices, triangles)
-    k = min(k, len(cand))
-    _, near = cKDTree(vertices[cand]).query(vertices[ids], k=k)
-    near = cand[np.asarray(near).reshape(len(ids), k)]
-    behind = np.einsum("ikj,ikj->ik", vertices[ids][:, None, :] - vertices[near], normals[near]) < 0
-    first = behind.argmax(axis=1)
-    ok = behind[np.arange(len(ids)), first]
-    out[ids[ok]] = near[np.arange(len(ids)), first][ok]
-    return out
-
-
-def floating_sources(vertices, graph, deformable, site_vertices, rigid_group, attach_distance,
-                     *, anchors_only: bool = False):
-    """Vertices of unreachable components and the reached vertex each one copies.
-
-    A deformable component with no control is attached when it comes within ``attach_distance``
-    of a reached vertex of the same rigid group; each of its vertices then copies its own nearest
-    such vertex. Returns ``(orphans (n,), sources (n,))`` vertex ids. With ``anchors_only`` only the
-    vertices themselves within ``attach_distance`` are returned, and a third array lists the other
-    vertices of the attached components, ``(orphans, sources, rest)``.
-    """
-    empty = np.zeros(0, np.int64)
-    label = components(graph)
-    seeded = np.zeros(label.max() + 1 if len(label) else 0, dtype=bool)
-    seeded[label[np.asarray(site_vertices, dtype=np.int64)]] = True
-    floating = deformable & ~seeded[label]
-    reached = deformable & seeded[label]
-    if not floating.any() or not reached.any() or attach_distance <= 0:
-        return (empty, empty, empty) if anchors_only else (empty, empty)
-    group = np.zeros(len(vertices), np.int64) if rigid_group is None else np.asarray(rigid_group, np.int64)
-    src_of = np.full(len(vertices), -1)
-    rest = np.zeros(len(vertices), dtype=bool)
-    for g in np.unique(group[floating]):
-        target = np.flatnonzero(reached & (group == g))
-        orphans = np.flatnonzero(floating & (group == g))
-        if not len(target) or not len(orphans):
-            continue
-        dist, nearest = cKDTree(vertices[target]).query(vertices[orphans])
-        comp_min = np.full(label.max() + 1, np.inf)
-        np.minimum.at(comp_min, label[orphans], dist)
-        ok = comp_min[label[orphans]] <= attach_distance
-        if anchors_only:
-            rest[orphans[ok & (dist > attach_distance)]] = True
-            ok &= dist <= attach_distance
-        src_of[orphans[ok]] = target[nearest[ok]]
-    orphans = np.flatnonzero(src_of >= 0)
-    if len(orphans):
-        log.debug("attached %d vertices of unreachable components", len(orphans))
-    if anchors_only:
-        return orphans, src_of[orphans], np.flatnonzero(rest)
-    return orphans, src_of[orphans]
-
-
-def _attach_floating(per_axis, vertices, graph, deformable, site_vertices, rigid_group, attach_distance,
-                     *, membrane: bool = False):
-    """Append, per axis, copies of the rows of the vertices that floating vertices attach to.
-
-    Returns ``(per_axis, free (V,) bool, floating (V,) bool)``: with ``membrane`` only the anchors
-    copy and ``free`` marks the other vertices of attached components (for ``fill_inner``);
-    ``floating`` marks all vertices of attached components."""
-    free = np.zeros(len(vertices), dtype=bool)
-    if membrane:
-        orphans, src, rest = floating_sources(vertices, graph, deformable, site_vertices, rigid_group,
-                                              attach_distance, anchors_only=True)
-        free[rest] = True
-    else:
-        orphans, src = floating_sources(vertices, graph, deformable, site_vertices, rigid_group,
-                                        attach_distance)
-    floating = free.copy()
-    floating[orphans] = True
-    if not len(orphans):
-        return per_axis, free, floating
-    out = []
-    for r, c, v in per_axis:
-        order = np.argsort(r, kind="stable")
-        r, c, v = r[order], c[order], v[order]
-        start = np.searchsorted(r, src, side="left")
-        stop = np.searchsorted(r, src, side="right")
-        n = stop - start
-        idx = np.repeat(start, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
-        out.append((np.r_[r, np.repeat(orphans, n)], np.r_[c, c[idx]], np.r_[v, v[idx]]))
-    return out, free, floating
-
-
-def _assemble(per_axis, n_vertices: int, n_controls: int, meta: dict) -> Operator:
-    """Merge per-axis COO triples ``(vertex, control, weight)`` into one CSR with ``(nnz, 3)`` weights."""
-    keys = [r.astype(np.int64) * max(n_controls, 1) + c for r, c, _ in per_axis]
-    union, inverse = np.unique(np.concatenate(keys), return_inverse=True)
-    weights = np.zeros((len(union), 3))
-    start = 0
-    for a, (r, _, v) in enumerate(per_axis):
-        np.add.at(weights[:, a], inverse[start:start + len(r)], v)
-        start += len(r)
-    rows = union // max(n_controls, 1)
-    cols = union % max(n_controls, 1)
-    nonzero = np.any(weights != 0, axis=1)
-    rows, cols, weights = rows[nonzero], cols[nonzero], weights[nonzero]
-    indptr = np.r_[0, np.cumsum(np.bincount(rows, minlength=n_vertices))]
-    return Operator(n_vertices, n_controls, indptr=indptr, indices=cols, weights=weights, meta=meta)

@@ -41,14 +41,14 @@ import numpy as np
 from scipy.sparse.csgraph import dijkstra
 
 from ..errors import InputError
-from .feature_point import (
-    _assemble,
-    _attach_floating,
-    _check_inner,
-    _control_sites,
-    _validate,
+from .controls import (
+    assemble_per_axis,
+    attach_floating,
+    control_sites,
     fill_inner,
     floating_sources,
+    inner_is_membrane,
+    validate_controls,
 )
 from .mesh_graph import components
 from .operator import Operator
@@ -203,13 +203,13 @@ def rbf_operator(
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     n_vertices = len(vertices)
-    controls, constrained, deformable = _validate(n_vertices, control_vertices, constrained, deformable)
+    controls, constrained, deformable = validate_controls(n_vertices, control_vertices, constrained, deformable)
     n_controls = len(controls)
     meta = {"engine": "rbf", "kernel": kernel, "shape": float(shape), "affine": bool(affine),
             "distance": distance, "attach_distance": None if attach_distance is None else float(attach_distance),
             "inner": inner}
-    membrane = _check_inner(inner)
-    graph, attach_distance, usable, sites, site_of = _control_sites(
+    membrane = inner_is_membrane(inner)
+    graph, attach_distance, usable, sites, site_of = control_sites(
         vertices, triangles, controls, deformable, rigid_group, attach_distance)
     label = components(graph)
     site_ok = deformable[sites]
@@ -269,9 +269,9 @@ def rbf_operator(
         op = Operator(n_vertices, n_controls, dense=dense, meta=meta)
     else:
         triples = [(np.repeat(warped, len(ctl)), np.tile(ctl, len(warped)), vals.ravel()) for ctl, vals in per_axis]
-        triples, free, floating = _attach_floating(triples, vertices, graph, deformable, sites[site_ok], rigid_group,
+        triples, free, floating = attach_floating(triples, vertices, graph, deformable, sites[site_ok], rigid_group,
                                          attach_distance, membrane=membrane)
-        op = _assemble(triples, n_vertices, n_controls, meta)
+        op = assemble_per_axis(triples, n_vertices, n_controls, meta)
     if not membrane:
         return op
     held = np.zeros(n_vertices, dtype=bool)

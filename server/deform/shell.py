@@ -27,7 +27,7 @@ The shell covers the skin only (``surface``, the face's ``skin`` part; every def
 not given) in the components that hold a control; rigid parts (eyeballs, teeth: not deformable)
 get zero rows and follow their rigid groups. Deformable vertices beside the shell (the mouth and eye
 sockets, ``inner_vertices``) and unreachable components (eyelashes) are attached as in the other
-engines (``feature_point.fill_inner``: harmonic membranes hanging from the skin, pulled towards the
+engines (``controls.fill_inner``: harmonic membranes hanging from the skin, pulled towards the
 skin in front of them). Per-axis constraints: on axis a, only the controls constrained on a are
 handles; when the axes differ the operator is stored sparse with full per-axis rows.
 """
@@ -42,7 +42,13 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
-from .feature_point import _check_inner, _control_sites, _validate, fill_inner, floating_sources
+from .controls import (
+    control_sites,
+    fill_inner,
+    floating_sources,
+    inner_is_membrane,
+    validate_controls,
+)
 from .mesh_graph import components
 from .operator import Operator
 
@@ -159,12 +165,12 @@ def shell_operator(
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     n_vertices = len(vertices)
-    controls, constrained, deformable = _validate(n_vertices, control_vertices, constrained, deformable)
+    controls, constrained, deformable = validate_controls(n_vertices, control_vertices, constrained, deformable)
     n_controls = len(controls)
-    membrane = _check_inner(inner)
+    membrane = inner_is_membrane(inner)
     meta = {"engine": "shell", "stretch": float(stretch),
             "attach_distance": None if attach_distance is None else float(attach_distance), "inner": inner}
-    graph, attach_distance, usable, sites, site_of = _control_sites(
+    graph, attach_distance, usable, sites, site_of = control_sites(
         vertices, triangles, controls, deformable, rigid_group, attach_distance)
     label = components(graph)
     seeded = np.zeros(label.max() + 1, dtype=bool)

@@ -82,21 +82,6 @@ def _merge(mats: list[sp.csr_matrix], n: int, k: int, meta: dict) -> Operator:
     return Operator(n, k, indptr=pattern.indptr, indices=pattern.indices, weights=weights, meta=meta)
 
 
-def copy_rows(op: Operator, targets: np.ndarray, sources: np.ndarray) -> Operator:
-    """Replace the rows of ``targets (n,)`` by the rows of ``sources (n,)`` (sparse operator)."""
-    if not len(targets) or not op.is_sparse:
-        return op
-    n, k = op.n_vertices, op.n_controls
-    mats = []
-    for a in range(3):
-        b = sp.csr_matrix((op.weights[:, a].astype(np.float64), op.indices, op.indptr), shape=(n, k))
-        pick = np.arange(n)
-        pick[targets] = sources
-        sel = sp.csr_matrix((np.ones(n), (np.arange(n), pick)), shape=(n, n))
-        mats.append((sel @ b).tocsr())
-    return _merge(mats, n, k, op.meta)
-
-
 def harmonic_fill(op: Operator, graph: sp.csr_matrix, free: np.ndarray, *, front: np.ndarray | None = None,
                   alpha: float = 1.0, prune: float = 1e-4) -> Operator:
     """Replace the rows of the ``free (V,) bool`` vertices by the harmonic extension of the others.

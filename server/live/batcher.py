@@ -28,7 +28,7 @@ import numpy as np
 
 from ...protocol import frames
 from ..state import FaceState
-from .quantize_cl import DeviceQuantizer, aligned_empty
+from ..backends.opencl import DeviceQuantizer, aligned_empty
 from .wire import ws_binary_header
 
 log = logging.getLogger(__name__)

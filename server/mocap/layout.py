@@ -51,18 +51,6 @@ class Layout:
     def names(self) -> list[str]:
         return list(self.markers)
 
-    def to_json(self) -> dict:
-        d: dict = {"markers": self.markers, "stable": self.stable}
-        if self.units:
-            d["units"] = self.units
-        if self.neutral_frame is not None:
-            d["neutral_frame"] = self.neutral_frame
-        if self.jaw:
-            d["jaw"] = self.jaw
-        if self.face:
-            d["face"] = self.face
-        return d
-
 
 def load_layout(src: str | Path | dict | Layout) -> Layout:
     """Parse a layout from a path, a JSON string or a dict; InputError naming the field at fault."""

@@ -94,9 +94,3 @@ class RBFMap:
         """Retarget ``(..., K, 3)`` moved source markers (same order as the centres) to target
         displacements ``Psi(moved) - dst``."""
         return self(moved) - self.dst
-
-    def linear_part(self) -> tuple[np.ndarray, np.ndarray]:
-        """The affine term as ``(A (3, 3), b (3,))`` in source units: ``x -> A x + b``."""
-        a = self.poly[:3].T / self.scale
-        b = self.poly[3] - a @ self.centre
-        return a, b

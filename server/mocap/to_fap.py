@@ -72,9 +72,3 @@ class FapProjection:
         if head_r is not None:
             out[48:51] = euler_from_matrix(head_r) / self.au
         return out
-
-    def faps_batch(self, d: np.ndarray, head_r: np.ndarray | None = None) -> np.ndarray:
-        """``(T, 69)`` for ``(T, K, 3)`` displacements and ``(T, 3, 3)`` rotations."""
-        return np.stack(
-            [self.faps(d[i], None if head_r is None else head_r[i]) for i in range(len(d))]
-        )

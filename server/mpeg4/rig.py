@@ -278,29 +278,6 @@ class FapRig:
             D[:, ids, 1] += np.where((roll != 0)[:, None], lift, 0.0)
         return D.astype(np.float32), transforms.astype(np.float32)
 
-    def solve_reference(self, state) -> tuple[np.ndarray, np.ndarray]:
-        """``solve`` one state at a time, written plainly: the reference ``solve_batch`` matches
-        bit for bit, up to the sign of a zero (tests check it); 10x slower per state than
-        ``solve_batch`` in batches of 20."""
-        faps = self.faps(state)
-        local = self.local_transforms(faps)
-        H = self.head_transform(state, faps)
-        transforms = np.stack([H] + [compose(H, local[g]) for g in range(1, G)])
-        if self.explicit:
-            if state.controls is None:
-                D = np.zeros((self.n_controls, 3), dtype=np.float32)
-            else:
-                D = np.asarray(state.controls, dtype=np.float32).reshape(self.n_controls, 3)
-            return D, transforms.astype(np.float32)
-        D = self._M @ faps
-        if len(self._jaw_riders):
-            J = local[_JAW]
-            D[self._jaw_riders] += self._rider_pos @ J[:, :3].T + J[:, 3] - self._rider_pos
-        ids, arms = self._roll
-        if len(ids) and faps[47]:
-            D[ids, 1] += np.tan(faps[47] * self.fapu["AU"]) * arms
-        return D.astype(np.float32), transforms.astype(np.float32)
-
     # -- batched helpers (elementwise, so every row is independent of the batch) ---------------
     def _faps_rows(self, states) -> np.ndarray:
         """``(T, 69) float64``: ``faps(state)`` of each state."""

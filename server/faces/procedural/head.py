@@ -9,7 +9,7 @@ apart from the separate ears), ``eye_l``/``eye_r`` (eyeballs, pupil centre = fro
 ``teeth_upper``/``teeth_lower``, ``gums_upper``/``gums_lower``, ``tongue``; plus annotation subsets of
 ``skin`` (``SKIN_SUBSETS``): ``lip_upper``, ``lip_lower`` (vermilion and inner lip, never joined by an
 edge), ``mouth_socket`` (the cavity), ``eye_socket_l``/``eye_socket_r`` (the sacs). See
-``procedural_skin`` for how the surfaces are made; ``head_colors`` colours it for previews."""
+``skin`` for how the surfaces are made; ``head_colors`` colours it for previews."""
 
 from __future__ import annotations
 
@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import paths
-from ..errors import InputError
-from .face import Face
-from .procedural_layout import (
+from ... import paths
+from ...errors import InputError
+from ..face import Face
+from .layout import (
     RAY_ORIGIN,
     Conformation,
     Layout,
@@ -33,8 +33,8 @@ from .procedural_layout import (
     direction_to,
     gnomonic,
 )
-from .procedural_parts import ear, eyeball, gums, teeth, tongue
-from .procedural_skin import (
+from .parts import ear, eyeball, gums, teeth, tongue
+from .skin import (
     SkinGrid,
     SkinModel,
     axes_for,
@@ -150,7 +150,7 @@ DISK_CACHE_MIN_VERTICES = 150_000
 def _cache_key(n: int, conf: Conformation) -> str:
     h = hashlib.blake2b(digest_size=10)
     here = Path(__file__).parent
-    for f in sorted(here.glob("procedural*.py")) + [here / "face.py"]:
+    for f in sorted(here.glob("*.py")) + [here.parent / "face.py"]:
         h.update(f.read_bytes())
     h.update(repr((n, sorted(asdict(conf).items()))).encode())
     return h.hexdigest()

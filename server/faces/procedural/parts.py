@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .procedural_layout import Layout
-from .procedural_mesh import closed_surface, graded_axis, orient_outward, smoothstep
+from .layout import Layout
+from .mesh import closed_surface, graded_axis, orient_outward, smoothstep
 
 Part = tuple[np.ndarray, np.ndarray, dict[str, int]]
 

@@ -18,14 +18,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .procedural_layout import (
+from .layout import (
     RAY_ORIGIN,
     Layout,
     direction_to,
     gnomonic,
     unit_dirs,
 )
-from .procedural_mesh import (
+from .mesh import (
     graded_axis,
     grid_triangles,
     ray_exit,

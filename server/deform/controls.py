@@ -1,0 +1,217 @@
+"""What every deformation engine does around its own weights (``feature_point``, ``rbf``,
+``shell``): check the controls and place them on the mesh, attach the components no control
+reaches, fill inner surfaces (eyelash strips, the mouth socket) with harmonic rows, and assemble
+per-axis ``(vertex, control, weight)`` triples into an ``Operator``.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from ..errors import InputError
+from .mesh_graph import components, edge_graph
+from .operator import Operator
+from .smoothing import harmonic_fill
+
+log = logging.getLogger(__name__)
+
+#: One axis of an operator as COO triples: ``(vertex (n,), control (n,), weight (n,))``.
+Triples = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals ``(V, 3) float64`` (zero for vertices in no triangle)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = v[triangles]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    corners = np.asarray(triangles).ravel()
+    n = np.stack([np.bincount(corners, weights=np.repeat(fn[:, a], 3), minlength=len(v))
+                  for a in range(3)], axis=1)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    unit: np.ndarray = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+    return unit
+
+
+def control_sites(
+    vertices: np.ndarray, triangles: np.ndarray, controls: np.ndarray, deformable: np.ndarray,
+    rigid_group: np.ndarray | None, attach_distance: float | None,
+) -> tuple[sp.csr_matrix, float, np.ndarray, np.ndarray, np.ndarray]:
+    """What every engine starts from: ``(graph, attach_distance, usable, sites, site_of)``.
+
+    ``graph`` is the deformable edge graph (no edge across rigid groups); ``attach_distance``
+    defaults to 3 median edge lengths; ``usable (K,) bool`` marks controls on deformable vertices
+    (the others are logged and ignored); ``sites (n,)`` are the distinct control vertices and
+    ``site_of (K,)`` maps each control to its site.
+    """
+    graph = edge_graph(vertices, triangles, deformable, rigid_group)
+    if attach_distance is None:
+        attach_distance = 3.0 * float(np.median(graph.data)) if graph.nnz else 0.0
+    usable = deformable[controls]
+    if not usable.all():
+        log.warning("%d control(s) sit on non-deformable vertices and are ignored", int((~usable).sum()))
+    sites, site_of = np.unique(controls, return_inverse=True)
+    return graph, attach_distance, usable, sites, site_of.reshape(-1)
+
+
+def validate_controls(n_vertices: int, control_vertices: Any, constrained: Any,
+                      deformable: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(controls (K,) int64, constrained (K, 3) bool, deformable (V,) bool)`` from the engines'
+    arguments (``None``: every axis constrained, every vertex deformable); ``InputError`` when a
+    vertex id is out of range or a shape is wrong."""
+    controls = np.asarray(control_vertices, dtype=np.int64).reshape(-1)
+    if len(controls) and (controls.min() < 0 or controls.max() >= n_vertices):
+        raise InputError(f"control vertex ids must lie in 0..{n_vertices - 1}", where="control_vertices")
+    if constrained is None:
+        constrained = np.ones((len(controls), 3), dtype=bool)
+    constrained = np.asarray(constrained, dtype=bool)
+    if constrained.shape != (len(controls), 3):
+        raise InputError(f"constrained must have shape ({len(controls)}, 3), not {constrained.shape}",
+                         where="constrained")
+    if deformable is None:
+        deformable = np.ones(n_vertices, dtype=bool)
+    deformable = np.asarray(deformable, dtype=bool)
+    if deformable.shape != (n_vertices,):
+        raise InputError(f"deformable must have shape ({n_vertices},)", where="deformable")
+    return controls, constrained, deformable
+
+
+def inner_is_membrane(inner: str) -> bool:
+    """Whether ``inner`` (``"copy"`` | ``"membrane"``) asks for membranes; refuses anything else."""
+    if inner not in ("copy", "membrane"):
+        raise InputError(f"inner must be 'copy' or 'membrane', not {inner!r}", where="inner")
+    return inner == "membrane"
+
+
+def fill_inner(op: Operator, graph: sp.csr_matrix, free: np.ndarray, inner_vertices: np.ndarray | None,
+               controls: np.ndarray,
+               deformable: np.ndarray, vertices: np.ndarray, triangles: np.ndarray,
+               candidates: np.ndarray) -> Operator:
+    """Harmonic rows (``smoothing.harmonic_fill``) for ``free`` plus the deformable
+    ``inner_vertices``, never for control vertices (``controls (V,) bool``), each pulled towards
+    the ``candidates (V,) bool`` vertex in front of it (``front_vertices``)."""
+    free = free.copy()
+    if inner_vertices is not None and len(inner_vertices):
+        ids = np.asarray(inner_vertices, dtype=np.int64)
+        free[ids[deformable[ids]]] = True
+    free &= ~controls
+    front = front_vertices(vertices, triangles, free, candidates & ~free)
+    return harmonic_fill(op, graph, free, front=front)
+
+
+def front_vertices(vertices: np.ndarray, triangles: np.ndarray, inner: np.ndarray, candidates: np.ndarray,
+                   k: int = 16) -> np.ndarray:
+    """``(V,)`` for each ``inner`` vertex the nearest ``candidates`` vertex it lies behind (on the
+    inner side of that vertex's tangent plane), else -1: the skin in front of a socket vertex.
+    The side test keeps a lower socket vertex from picking the upper lip across the slit."""
+    out = np.full(len(vertices), -1, dtype=np.int64)
+    cand = np.flatnonzero(candidates)
+    ids = np.flatnonzero(inner)
+    if not len(cand) or not len(ids):
+        return out
+    normals = vertex_normals(vertices, triangles)
+    k = min(k, len(cand))
+    _, near = cKDTree(vertices[cand]).query(vertices[ids], k=k)
+    near = cand[np.asarray(near).reshape(len(ids), k)]
+    behind = np.einsum("ikj,ikj->ik", vertices[ids][:, None, :] - vertices[near], normals[near]) < 0
+    first = behind.argmax(axis=1)
+    ok = behind[np.arange(len(ids)), first]
+    out[ids[ok]] = near[np.arange(len(ids)), first][ok]
+    return out
+
+
+def floating_sources(vertices: np.ndarray, graph: sp.csr_matrix, deformable: np.ndarray,
+                     site_vertices: np.ndarray, rigid_group: np.ndarray | None, attach_distance: float,
+                     *, anchors_only: bool = False) -> tuple[np.ndarray, ...]:
+    """Vertices of unreachable components and the reached vertex each one copies.
+
+    A deformable component with no control is attached when it comes within ``attach_distance``
+    of a reached vertex of the same rigid group; each of its vertices then copies its own nearest
+    such vertex. Returns ``(orphans (n,), sources (n,))`` vertex ids. With ``anchors_only`` only the
+    vertices themselves within ``attach_distance`` are returned, and a third array lists the other
+    vertices of the attached components, ``(orphans, sources, rest)``.
+    """
+    empty = np.zeros(0, np.int64)
+    label = components(graph)
+    seeded = np.zeros(label.max() + 1 if len(label) else 0, dtype=bool)
+    seeded[label[np.asarray(site_vertices, dtype=np.int64)]] = True
+    floating = deformable & ~seeded[label]
+    reached = deformable & seeded[label]
+    if not floating.any() or not reached.any() or attach_distance <= 0:
+        return (empty, empty, empty) if anchors_only else (empty, empty)
+    group = np.zeros(len(vertices), np.int64) if rigid_group is None else np.asarray(rigid_group, np.int64)
+    src_of = np.full(len(vertices), -1)
+    rest = np.zeros(len(vertices), dtype=bool)
+    for g in np.unique(group[floating]):
+        target = np.flatnonzero(reached & (group == g))
+        orphans = np.flatnonzero(floating & (group == g))
+        if not len(target) or not len(orphans):
+            continue
+        dist, nearest = cKDTree(vertices[target]).query(vertices[orphans])
+        comp_min = np.full(label.max() + 1, np.inf)
+        np.minimum.at(comp_min, label[orphans], dist)
+        ok = comp_min[label[orphans]] <= attach_distance
+        if anchors_only:
+            rest[orphans[ok & (dist > attach_distance)]] = True
+            ok &= dist <= attach_distance
+        src_of[orphans[ok]] = target[nearest[ok]]
+    orphans = np.flatnonzero(src_of >= 0)
+    if len(orphans):
+        log.debug("attached %d vertices of unreachable components", len(orphans))
+    if anchors_only:
+        return orphans, src_of[orphans], np.flatnonzero(rest)
+    return orphans, src_of[orphans]
+
+
+def attach_floating(per_axis: list[Triples], vertices: np.ndarray, graph: sp.csr_matrix,
+                    deformable: np.ndarray, site_vertices: np.ndarray, rigid_group: np.ndarray | None,
+                    attach_distance: float, *, membrane: bool = False,
+                    ) -> tuple[list[Triples], np.ndarray, np.ndarray]:
+    """Append, per axis, copies of the rows of the vertices that floating vertices attach to.
+
+    Returns ``(per_axis, free (V,) bool, floating (V,) bool)``: with ``membrane`` only the anchors
+    copy and ``free`` marks the other vertices of attached components (for ``fill_inner``);
+    ``floating`` marks all vertices of attached components."""
+    free = np.zeros(len(vertices), dtype=bool)
+    if membrane:
+        orphans, src, rest = floating_sources(vertices, graph, deformable, site_vertices, rigid_group,
+                                              attach_distance, anchors_only=True)
+        free[rest] = True
+    else:
+        orphans, src = floating_sources(vertices, graph, deformable, site_vertices, rigid_group,
+                                        attach_distance)
+    floating = free.copy()
+    floating[orphans] = True
+    if not len(orphans):
+        return per_axis, free, floating
+    out = []
+    for r, c, v in per_axis:
+        order = np.argsort(r, kind="stable")
+        r, c, v = r[order], c[order], v[order]
+        start = np.searchsorted(r, src, side="left")
+        stop = np.searchsorted(r, src, side="right")
+        n = stop - start
+        idx = np.repeat(start, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
+        out.append((np.r_[r, np.repeat(orphans, n)], np.r_[c, c[idx]], np.r_[v, v[idx]]))
+    return out, free, floating
+
+
+def assemble_per_axis(per_axis: list[Triples], n_vertices: int, n_controls: int,
+                      meta: dict[str, Any]) -> Operator:
+    """Merge per-axis COO triples ``(vertex, control, weight)`` into one CSR with ``(nnz, 3)`` weights."""
+    keys = [r.astype(np.int64) * max(n_controls, 1) + c for r, c, _ in per_axis]
+    union, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+    weights = np.zeros((len(union), 3))
+    start = 0
+    for a, (r, _, v) in enumerate(per_axis):
+        np.add.at(weights[:, a], inverse[start:start + len(r)], v)
+        start += len(r)
+    rows = union // max(n_controls, 1)
+    cols = union % max(n_controls, 1)
+    nonzero = np.any(weights != 0, axis=1)
+    rows, cols, weights = rows[nonzero], cols[nonzero], weights[nonzero]
+    indptr = np.r_[0, np.cumsum(np.bincount(rows, minlength=n_vertices))]
+    return Operator(n_vertices, n_controls, indptr=indptr, indices=cols, weights=weights, meta=meta)
