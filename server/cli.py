@@ -4,7 +4,7 @@ A command module defines ``add_arguments(parser)`` and ``run(args) -> int``. Err
 ``FacecastError`` are printed as one line ("facecast: <where>: <what>") with exit status 2.
 
 Every ``--url`` and ``--server`` is a server URL, taken as typed (``127.0.0.1:8000`` works; see
-``facecast.client.urls.server_url``). Logs go to stderr at WARNING; ``-v`` shows INFO, ``-vv`` DEBUG.
+``facecast.protocol.urls.server_url``). Logs go to stderr at WARNING; ``-v`` shows INFO, ``-vv`` DEBUG.
 """
 from __future__ import annotations
 
@@ -59,7 +59,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
     ``-v`` counts wherever it stands, also after a command's own subcommand (``session list -v``).
     """
-    from ..client.urls import server_url
+    from ..protocol.urls import server_url
 
     parser = build_parser(argv)
     args, rest = parser.parse_known_args(argv)

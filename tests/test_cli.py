@@ -9,7 +9,7 @@ import pytest
 
 from conftest import RunningServer
 from facecast import server as server_package
-from facecast.client.urls import server_url
+from facecast.protocol.urls import server_url
 from facecast.server.cli import parse_args
 
 
