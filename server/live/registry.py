@@ -22,8 +22,8 @@ from ...protocol.messages import (
     SessionInfo,
     dump_message,
 )
-from ..api.security import new_token
 from ..errors import FacecastError, NotFound
+from ..tokens import new_token
 from .batcher import DeformBatcher, batch_threads
 from .session import LiveSession, SessionSpec
 
