@@ -121,6 +121,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="also run the viewers sweep with frames sent through ASGI (FACECAST_LIVE_DIRECT=0), "
         "the baseline of the direct-to-transport path",
     )
+    p.add_argument(
+        "--baseline-python",
+        metavar="PYTHON",
+        help="also measure a server run by this interpreter (e.g. the .venv/bin/python of a checkout of "
+        "an earlier commit), point by point alternately with this checkout's, in the same run; "
+        "reported side by side, with the ratio of server CPU per session-frame",
+    )
     p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
 
 
@@ -135,12 +142,14 @@ def _encodings(text: str) -> list[str]:
 # ------------------------------------------------------------------------------------ server process
 
 
-def _server(face: str, backend: str, env: dict[str, str] | None = None) -> LocalServer:
-    """A ``facecast serve`` of the bench's own (temporary data dir, no job workers, generous limits)."""
+def _server(face: str, backend: str, env: dict[str, str] | None = None,
+            python: str = sys.executable) -> LocalServer:
+    """A ``facecast serve`` of the bench's own (temporary data dir, no job workers, generous limits),
+    run by ``python`` (another checkout's interpreter for ``--baseline-python``)."""
     limits = {"FACECAST_MAX_SESSIONS": "256", "FACECAST_MAX_VIEWERS_PER_SESSION": "1024",
               "FACECAST_MAX_PRODUCER_FPS": "1000"}
     return LocalServer(None, "--face", face, "--backend", backend, "--workers", "0", admin_key=ADMIN_KEY,
-                       env={**limits, **(env or {})})
+                       env={**limits, **(env or {})}, python=python)
 
 
 class _External:
@@ -618,17 +627,27 @@ def _table(title: str, points: list[dict], args) -> str:
     return "\n".join(lines)
 
 
-async def _sweeps(server, url: str, args) -> dict:
+async def _sweeps(server, url: str, args, baseline: LocalServer | None = None) -> dict:
+    """Both sweeps; with ``baseline``, each point is measured on it too, right after (``baseline_*``)."""
     res: dict = {"sessions_sweep": [], "viewers_sweep": []}
-    for n in [int(x) for x in args.sessions.split(",") if x.strip()]:
-        log.info("sessions: %d", n)
-        res["sessions_sweep"].append(await run_point(server, url, sessions=n, viewers=1, args=args))
-        log.info("%s", res["sessions_sweep"][-1])
-    for m in [int(x) for x in args.viewers.split(",") if x.strip()]:
-        log.info("viewers: %d", m)
-        res["viewers_sweep"].append(await run_point(server, url, sessions=1, viewers=m, args=args))
-        log.info("%s", res["viewers_sweep"][-1])
+    if baseline is not None:
+        res.update(baseline_sessions_sweep=[], baseline_viewers_sweep=[])
+    points = [("sessions_sweep", int(x), 1) for x in args.sessions.split(",") if x.strip()]
+    points += [("viewers_sweep", 1, int(x)) for x in args.viewers.split(",") if x.strip()]
+    for sweep, n, m in points:
+        log.info("%s: %d session(s), %d viewer(s) each", sweep, n, m)
+        res[sweep].append(await run_point(server, url, sessions=n, viewers=m, args=args))
+        log.info("%s", res[sweep][-1])
+        if baseline is not None:
+            res["baseline_" + sweep].append(
+                await run_point(baseline, baseline.url, sessions=n, viewers=m, args=args))
+            log.info("baseline: %s", res["baseline_" + sweep][-1])
     return res
+
+
+def _ratios(points: list[dict], baseline: list[dict], key: str) -> list[float | None]:
+    """``key`` of each point over the baseline's at the same point (None where one is missing)."""
+    return [round(p[key] / b[key], 2) if p.get(key) and b.get(key) else None for p, b in zip(points, baseline)]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -644,17 +663,28 @@ def run(args: argparse.Namespace) -> int:
         server = _server(args.face, args.backend)
     elif args.server_pid:
         server = _External(args.server_pid)
+    baseline = None
+    if args.baseline_python and url is None:
+        baseline = _server(args.face, args.backend, python=args.baseline_python)
     try:
         health = server.start(300, ready=True).health if isinstance(server, LocalServer) else {}
+        if baseline is not None:
+            baseline.start(300, ready=True)
         encodings, by_encoding = list(args.encoding), {}
         for enc in encodings:
             args.encoding = enc
-            by_encoding[enc] = asyncio.run(_sweeps(server, url or server.url, args))
+            by_encoding[enc] = asyncio.run(_sweeps(server, url or server.url, args, baseline))
         args.encoding = encodings[0]
         res = by_encoding[encodings[0]]
     finally:
-        if isinstance(server, LocalServer):
-            server.stop()
+        for srv in (server, baseline):
+            if isinstance(srv, LocalServer):
+                srv.stop()
+    if baseline is not None:
+        res["baseline_python"] = args.baseline_python
+        for sweep in ("sessions_sweep", "viewers_sweep"):
+            res[sweep + "_cpu_ratio_vs_baseline"] = _ratios(
+                res[sweep], res["baseline_" + sweep], "server_cpu_us_per_session_frame")
     if args.compare_asgi and url is None:
         server = _server(args.face, args.backend, env={"FACECAST_LIVE_DIRECT": "0"})
         try:
@@ -729,6 +759,12 @@ def run(args: argparse.Namespace) -> int:
         if r["viewers_sweep"]:
             print(_table(f"Viewers of one session, {enc}", r["viewers_sweep"], args))
             print()
+    for enc, r in by_encoding.items():
+        for sweep, title in (("sessions_sweep", "Concurrent sessions"), ("viewers_sweep", "Viewers of one session")):
+            if r.get("baseline_" + sweep):
+                print(_table(f"{title}, {enc}, baseline server ({args.baseline_python})", r["baseline_" + sweep], args))
+                ratios = _ratios(r[sweep], r["baseline_" + sweep], "server_cpu_us_per_session_frame")
+                print(f"\nServer CPU per session-frame, this checkout / baseline, point by point: {ratios}\n")
     if "viewers_sweep_asgi" in res:
         print()
         print(
