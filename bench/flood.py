@@ -33,6 +33,9 @@ import sys
 import time
 from pathlib import Path
 
+#: The flooded server's admin key (a server of its own, on loopback).
+ADMIN_KEY = "bench-flood-key"
+
 OUT = Path(__file__).resolve().parent / "out"
 VICTIM_FPS = 60.0
 
@@ -201,14 +204,15 @@ def run_flood(
     ``query_token``: the flooder sends its token as ``?token=`` (to measure servers older than
     header tokens the same way); ``nice``: of the flooder and the control's CPU burner."""
     import httpx
-    from facecast.server.bench.serve import ADMIN_KEY, _Server
+    from facecast.server.harness import LocalServer
 
     ctx = multiprocessing.get_context("spawn")
     phases: dict[str, list[dict]] = {"baseline": [], "control": [], "flood": []}
     floods, loads, cpu = [], [], []
-    server = _Server(face, backend, env={"FACECAST_MAX_PRODUCER_FPS": "250"})
+    server = LocalServer(None, "--face", face, "--backend", backend, "--workers", "0", admin_key=ADMIN_KEY,
+                         env={"FACECAST_MAX_SESSIONS": "256", "FACECAST_MAX_PRODUCER_FPS": "250"})
     try:
-        server.wait_ready()
+        server.start(300, ready=True)
         url = server.url
         for _ in range(rounds):
             loads.append(_load())

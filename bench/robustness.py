@@ -34,7 +34,6 @@ import io
 import json
 import os
 import select
-import socket
 import subprocess
 import sys
 import tempfile
@@ -43,6 +42,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from facecast.server.harness import LocalServer
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "bench" / "out" / "robustness.json"
@@ -226,75 +227,23 @@ def audio_fuzz(n: int, seed: int) -> dict:
 
 # ---- a real server ----
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class Server:
-    """``facecast serve`` in a subprocess on a free loopback port, with its RSS."""
+class Server(LocalServer):
+    """``facecast serve`` in a subprocess on a free loopback port (the shared harness), restartable."""
 
     def __init__(self, data_dir: Path, env: dict | None = None) -> None:
-        self.data_dir, self.env = data_dir, {**os.environ, "FACECAST_ADMIN_KEY": ADMIN_KEY, **(env or {})}
-        self.proc: subprocess.Popen | None = None
+        super().__init__(data_dir, env=env, admin_key=ADMIN_KEY)
         self.restarts = 0
 
     @property
     def headers(self) -> dict:
-        return {"Authorization": f"Bearer {ADMIN_KEY}"}
+        return self.admin_headers
 
-    def start(self) -> Server:
-        import httpx
-
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self._log = open(self.data_dir / f"server-{self.port}.log", "ab")
-        self.proc = subprocess.Popen([sys.executable, "-m", "facecast.server.cli", "serve", "--port", str(self.port),
-                                      "--data-dir", str(self.data_dir)], env=self.env, stdout=self._log,
-                                     stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 180
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"facecast serve exited with {self.proc.returncode}")
-            try:
-                if httpx.get(self.url + "/healthz", timeout=2).status_code == 200:
-                    return self
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        raise RuntimeError("facecast serve did not become healthy in 180 s")
-
-    def healthy(self) -> bool:
-        import httpx
-
-        try:
-            return self.proc.poll() is None and httpx.get(self.url + "/healthz", timeout=10).status_code == 200
-        except httpx.HTTPError:
-            return False
-
-    def rss(self) -> int:
-        with open(f"/proc/{self.proc.pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) * 1024
-        return 0
-
-    def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
-        self._log.close()
+    def start(self, timeout: float = 180.0, *, ready: bool = False) -> Server:
+        super().start(timeout, ready=ready)
+        return self
 
     def restart(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(10)
-        self._log.close()
+        self.kill()
         self.restarts += 1
         self.start()
 

@@ -1,8 +1,798 @@
-"""Live-session load benchmark; same as ``facecast bench serve`` (see facecast.server.bench.serve)."""
+"""Live-session throughput and end-to-end latency on loopback: ``python bench/serve.py [options]``.
 
+Run from a checkout with facecast installed (``.venv/bin/python bench/serve.py --help``); it was
+``facecast bench serve`` before the load generator left the server package.
+
+Starts a real ``facecast serve`` on a free loopback port (25k-vertex ``default`` face), then two
+sweeps, each point bounded in time (``--warmup`` + ``--seconds``):
+
+- **sessions**: N concurrent sessions, one producer (FAP frames at ``--fps``) and one viewer each;
+- **viewers**: one session, one producer, M viewers.
+
+Viewers use the real asyncio client (``facecast.client.api.watch``) with int16 frames (``--encoding``),
+spread over ``--viewer-processes`` client processes (default one per CPU: in a single Python process
+100 viewers, 6000 frames/s, saturate its core and the benchmark would measure itself).
+Latency is end to end: viewer receive wall time minus the producer's send wall time carried in the
+frame (same machine, same clock). Per point it reports the sustained frame rate per viewer (mean and
+minimum), latency p50/p95/max, frames skipped (gaps in ``seq``), the server's mean deform+encode
+time per frame, and CPU seconds per second of the server process and of the client processes:
+that is where the time goes. Server CPU is also given per delivered frame and per *session-frame*
+(a frame deformed and encoded once, whatever its viewers): robust to a shared machine's load,
+where frame rates and latencies are not. The in-process part also measures the live worker's
+whole job per frame (solve + deform + encode, CPU of all threads) in batches of 1 and 20, with
+int16 quantisation on the OpenCL device and in NumPy. The baseline is the first point of each sweep (one session, one
+viewer), measured in the same run; ``*_ratio`` columns compare against it. In-process costs of
+one frame (rig solve, deformation, int16/float32 encoding, decoding) are measured first.
+
+Writes ``bench/out/serve.json`` and prints markdown tables. Loopback only; nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import math
+import multiprocessing
+import os
+import resource
+import socket
+import struct
 import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
-from facecast.server.bench.serve import main
+import numpy as np
+
+from facecast.server.harness import LocalServer, process_cpu_seconds
+
+log = logging.getLogger(__name__)
+
+ADMIN_KEY = "bench-serve-key"
+_VIEWER_OPTS: dict = {}  # --viewer-rcvbuf / --viewer-queue
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--face", default="default", help="face of the sessions (default: the 25k-vertex default)"
+    )
+    p.add_argument(
+        "--backend", default="auto", choices=("auto", "numpy", "opencl"), help="server backend"
+    )
+    p.add_argument("--fps", type=float, default=60.0, help="producer frame rate")
+    p.add_argument(
+        "--encoding",
+        default="i16",
+        type=_encodings,
+        help="viewers' encoding: i16, f32 or compact; several, comma-separated (i16,compact), "
+        "are swept one after the other against the same server, in the same run",
+    )
+    p.add_argument(
+        "--sessions", default="1,5,10,20,25", help="session counts to sweep (comma-separated)"
+    )
+    p.add_argument(
+        "--viewers", default="1,25,50,100,120", help="viewer counts of one session to sweep"
+    )
+    p.add_argument(
+        "--warmup", type=float, default=1.0, help="seconds before measuring at each point"
+    )
+    p.add_argument("--seconds", type=float, default=3.0, help="seconds measured at each point")
+    p.add_argument("--latency-target", type=float, default=50.0, help="p95 target, ms")
+    p.add_argument(
+        "--url", help="use this running server instead of starting one (needs FACECAST_ADMIN_KEY)"
+    )
+    p.add_argument(
+        "--server-pid",
+        type=int,
+        help="with --url: the server's process id, to measure its CPU time (Linux /proc)",
+    )
+    p.add_argument(
+        "--viewer-kind",
+        choices=("client", "light"),
+        default="client",
+        help="viewers: the real asyncio client (default; end to end) or a minimal reader that skips "
+        "payloads (measures the server without the Python client's parsing cost)",
+    )
+    p.add_argument(
+        "--viewer-processes",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="spread the viewers over this many client processes (default: one per CPU); in one "
+        "Python process, 100 real-client viewers (6000 frames/s) saturate its core",
+    )
+    p.add_argument(
+        "--viewer-rcvbuf",
+        type=int,
+        default=None,
+        help="viewer socket receive buffer, bytes (0 = OS default; default: the client's)",
+    )
+    p.add_argument(
+        "--viewer-queue",
+        type=int,
+        default=None,
+        help="messages a viewer's client library buffers (default: the client's)",
+    )
+    p.add_argument(
+        "--compare-asgi",
+        action="store_true",
+        help="also run the viewers sweep with frames sent through ASGI (FACECAST_LIVE_DIRECT=0), "
+        "the baseline of the direct-to-transport path",
+    )
+    p.add_argument(
+        "--baseline-python",
+        metavar="PYTHON",
+        help="also measure a server run by this interpreter (e.g. the .venv/bin/python of a checkout of "
+        "an earlier commit), point by point alternately with this checkout's, in the same run; "
+        "reported side by side, with the ratio of server CPU per session-frame",
+    )
+    p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
+
+
+def _encodings(text: str) -> list[str]:
+    names = [x.strip() for x in text.split(",") if x.strip()]
+    bad = [x for x in names if x not in ("i16", "f32", "compact")]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"encodings are i16, f32 or compact, got {text!r}")
+    return names
+
+
+# ------------------------------------------------------------------------------------ server process
+
+
+def _server(face: str, backend: str, env: dict[str, str] | None = None,
+            python: str = sys.executable) -> LocalServer:
+    """A ``facecast serve`` of the bench's own (temporary data dir, no job workers, generous limits),
+    run by ``python`` (another checkout's interpreter for ``--baseline-python``)."""
+    limits = {"FACECAST_MAX_SESSIONS": "256", "FACECAST_MAX_VIEWERS_PER_SESSION": "1024",
+              "FACECAST_MAX_PRODUCER_FPS": "1000"}
+    return LocalServer(None, "--face", face, "--backend", backend, "--workers", "0", admin_key=ADMIN_KEY,
+                       env={**limits, **(env or {})}, python=python)
+
+
+class _External:
+    """A server started elsewhere (``--url``), measured through ``--server-pid``."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+
+    def cpu_seconds(self) -> float:
+        return process_cpu_seconds(self.pid)
+
+
+def _own_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+# ----------------------------------------------------------------------------------------- in-process
+
+
+def frame_costs(face_name: str, backend: str, repeats: int = 30) -> dict:
+    """Milliseconds per frame of each server step, in this process (no network)."""
+    from facecast.protocol import frames
+    from facecast.server.api.store import FaceStore
+    from facecast.server.state import FaceState, zero_faps
+
+    store = FaceStore(default=face_name, backend=backend)
+    animator = store.animator(face_name)
+    states = [_state(i, 60.0, FaceState, zero_faps) for i in range(repeats)]
+    out: dict = {
+        "vertices": int(animator.face.n_vertices),
+        "backend": getattr(animator.deformer, "name", type(animator.deformer).__name__),
+    }
+    animator.frame(states[0])
+
+    def timed(fn) -> float:
+        t0 = time.perf_counter()
+        for s in states:
+            fn(s)
+        return round(1000 * (time.perf_counter() - t0) / len(states), 3)
+
+    out["solve_ms"] = timed(animator.solve)
+    out["solve_batch_ms"] = round(_cpu_ms(lambda: animator.solve_batch(states)) / len(states), 3)
+    solved = [animator.solve(s) for s in states]
+    it = iter(range(len(states)))
+    out["deform_ms"] = timed(lambda s: animator.deformer.deform(*solved[next(it)]))
+    v = animator.frame(states[0])
+    out["encode_i16_ms"] = timed(lambda s: frames.encode_vertices_i16(v, seq=0, t=s.t))
+    out["encode_f32_ms"] = timed(lambda s: frames.encode_vertices_f32(v, seq=0, t=s.t))
+    # compact, as a session encodes it (0.1 mm, keys every 250 ms at 60 fps), process CPU
+    from facecast.protocol.compact import CompactEncoder
+
+    face = animator.face
+    enc = CompactEncoder(
+        face.vertices, face.rigid_group, tolerance=0.1 / face.mm_per_unit, key_interval=15
+    )
+    vs = [np.asarray(animator.deformer.deform(*x), np.float32) for x in solved]
+
+    def compact_all() -> None:
+        for k, (s, x) in enumerate(zip(states, vs)):
+            enc.encode(x, solved[k][1], seq=k, t=s.t)
+
+    out["encode_compact_ms"] = round(_cpu_ms(compact_all, 3) / len(states), 3)
+    # what the live server does: int16 frames of a batch quantised together, WebSocket-framed
+    from facecast.server.live.batcher import encode_batch
+
+    vb = np.repeat(v[None], 8, axis=0)
+    jobs = [(i, 0.0, 0.0, frozenset({"i16"})) for i in range(len(vb))]
+    out["encode_i16_batched_ms"] = round(timed(lambda s: encode_batch(vb, jobs)) / len(vb), 3)
+    # the live worker's whole job (solve, deform, encode) per frame, CPU of all threads: batches
+    # of 1 (light load) and of 20 (20 busy sessions), with and without device quantisation
+    from facecast.server.live.batcher import DeformBatcher, _Job
+
+    batcher = DeformBatcher(animator, None)  # type: ignore[arg-type]
+    for n in (1, 20):
+        js = [
+            _Job(states[i % len(states)], i, 0.0, frozenset({"i16"}), None, None) for i in range(n)
+        ]  # type: ignore[arg-type]
+        reps = max(20, 200 // n)
+        out[f"worker_cpu_ms_batch{n}"] = round(
+            _cpu_ms(lambda js=js: batcher._work(js), reps) / n, 3
+        )
+        if batcher.quantizer is not None:
+            q, batcher._quantizer = batcher._quantizer, None
+            out[f"worker_cpu_ms_batch{n}_numpy_quantize"] = round(
+                _cpu_ms(lambda js=js: batcher._work(js), reps) / n, 3
+            )
+            batcher._quantizer = q
+    blob = frames.encode_vertices_i16(v, seq=0, t=0.0)
+    out["decode_i16_ms"] = timed(lambda s: frames.decode(blob))
+    out["bytes_i16"] = len(blob)
+    out["bytes_f32"] = len(frames.encode_vertices_f32(v, seq=0, t=0.0))
+    return out
+
+
+def _cpu_ms(fn, repeats: int = 20, rounds: int = 3) -> float:
+    """Process CPU milliseconds (all threads) of one ``fn()`` call: the best of ``rounds``."""
+    fn()
+    best = math.inf
+    for _ in range(rounds):
+        c0 = _own_cpu()
+        for _ in range(repeats):
+            fn()
+        best = min(best, (_own_cpu() - c0) / repeats)
+    return 1000 * best
+
+
+def _state(i: int, fps: float, FaceState, zero_faps):
+    faps = zero_faps()
+    t = i / fps
+    faps[3] = 400 + 400 * math.sin(2 * math.pi * 0.7 * t)  # open jaw
+    faps[5] = 150 * math.sin(2 * math.pi * 1.3 * t)  # lower lip
+    faps[12] = faps[13] = 200 * math.sin(2 * math.pi * 0.4 * t)  # lip corners
+    faps[19] = faps[20] = 500 * max(0.0, math.sin(2 * math.pi * 0.25 * t)) ** 8  # blinks
+    return FaceState(t=t, faps=faps)
+
+
+def _faps(i: int, fps: float) -> dict[int, float]:
+    t = i / fps
+    return {
+        3: 400 + 400 * math.sin(2 * math.pi * 0.7 * t),
+        5: 150 * math.sin(2 * math.pi * 1.3 * t),
+        12: 200 * math.sin(2 * math.pi * 0.4 * t),
+        13: 200 * math.sin(2 * math.pi * 0.4 * t),
+        19: 500 * max(0.0, math.sin(2 * math.pi * 0.25 * t)) ** 8,
+    }
+
+
+# ------------------------------------------------------------------------------------------ load points
+
+
+async def _producer(url: str, s, fps: float, stop: asyncio.Event, sent: list[int]) -> None:
+    from facecast.client.api import Pacer, produce
+
+    async with produce(url, s.id, s.producer_token) as p:
+        pacer = Pacer(1.0)
+        i = 0
+        while not stop.is_set():
+            await pacer.until(i / fps)
+            await p.send_faps(_faps(i, fps), i / fps)
+            i += 1
+        sent.append(i)
+
+
+async def _viewer(
+    url: str,
+    s,
+    encoding: str,
+    stop: asyncio.Event,
+    ready: asyncio.Event,
+    out: list[tuple[float, int, float, int]],
+) -> None:
+    from facecast.client import api
+    from facecast.client.api import watch
+
+    opts = {}
+    if _VIEWER_OPTS.get("rcvbuf") is not None:
+        opts["receive_buffer"] = _VIEWER_OPTS["rcvbuf"] or None
+    opts["max_queue"] = _VIEWER_OPTS.get("queue") or api.VIEWER_MAX_QUEUE
+    async def receive(w: Any) -> None:
+        async for f in w:
+            h = f.frame.header
+            out.append((f.received, h.seq, h.wall, f.size))
+
+    async with watch(url, s.id, s.viewer_token, encoding=encoding, **opts) as w:
+        ready.set()
+        # Wait for frames as long as it takes (producers start once every viewer is connected, which
+        # may take seconds): a timeout around the frame iterator would end it, and the viewer with it.
+        frames, stopped = asyncio.create_task(receive(w)), asyncio.create_task(stop.wait())
+        await asyncio.wait({frames, stopped}, return_when=asyncio.FIRST_COMPLETED)
+        for task in (frames, stopped):
+            task.cancel()
+        await asyncio.gather(frames, stopped, return_exceptions=True)
+        error = None if frames.cancelled() else frames.exception()
+        if error is not None:
+            raise error
+
+
+class _LightViewer(asyncio.Protocol):
+    """A minimal WebSocket viewer for load generation: it reads each server frame's length and the
+    first 32 bytes of binary payloads (seq, wall time) and skips the rest without copying it, so
+    the benchmark measures the server rather than the Python client's parser (``--viewer client``
+    uses the real client). Server frames are never masked or fragmented (RFC 6455 §5.1)."""
+
+    def __init__(self, path: str, host: str, out: list, ready: asyncio.Event) -> None:
+        self.request = (
+            f"GET {path} HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\n"
+            "Connection: Upgrade\r\nSec-WebSocket-Key: ZmFjZWNhc3QtYmVuY2gtMQ==\r\n"
+            "Sec-WebSocket-Version: 13\r\n\r\n"
+        ).encode()
+        self.out, self.ready = out, ready
+        self.buf = bytearray()
+        self.upgraded = False
+        self.skip = 0  # payload bytes of the current frame still to skip
+        self.want_head = 0  # payload bytes of the current frame still to keep (first 32)
+        self.head = bytearray()
+        self.size = 0
+        self.closed = asyncio.get_running_loop().create_future()
+
+    def connection_made(self, transport) -> None:
+        self.transport = transport
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            from facecast.client.api import VIEWER_RECEIVE_BUFFER
+
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, VIEWER_RECEIVE_BUFFER)
+        transport.write(self.request)
+
+    def connection_lost(self, exc) -> None:
+        if not self.closed.done():
+            self.closed.set_result(None)
+
+    def data_received(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            if self.want_head or self.skip:  # inside a payload
+                take = min(self.want_head, len(view))
+                if take:
+                    self.head += view[:take]
+                    self.want_head -= take
+                else:
+                    take = min(self.skip, len(view))
+                    self.skip -= take
+                view = view[take:]
+                if not self.want_head and not self.skip:
+                    self._frame_done()
+                continue
+            self.buf += view  # a header (or the HTTP answer) in pieces
+            view = memoryview(b"")
+            if not self.upgraded:
+                end = self.buf.find(b"\r\n\r\n")
+                if end < 0:
+                    return
+                if not self.buf.startswith(b"HTTP/1.1 101"):
+                    self.transport.close()
+                    return
+                self.upgraded = True
+                view = memoryview(bytes(self.buf[end + 4 :]))
+                self.buf.clear()
+                continue
+            if len(self.buf) < 2:
+                return
+            b0, b1 = self.buf[0], self.buf[1] & 0x7F
+            hlen = 2 if b1 < 126 else 4 if b1 == 126 else 10
+            if len(self.buf) < hlen:
+                return
+            n = b1 if b1 < 126 else int.from_bytes(self.buf[2:hlen], "big")
+            self.opcode, self.size = b0 & 0x0F, n
+            view = memoryview(bytes(self.buf[hlen:]))
+            self.buf.clear()
+            self.head = bytearray()
+            keep = min(n, 32) if self.opcode == 2 else n
+            self.want_head, self.skip = keep, n - keep
+            if n == 0:
+                self._frame_done()
+
+    def _frame_done(self) -> None:
+        if self.want_head or self.skip:
+            return
+        if self.opcode == 2 and len(self.head) >= 32:
+            seq, wall = (
+                struct.unpack_from("<I", self.head, 8)[0],
+                struct.unpack_from("<d", self.head, 24)[0],
+            )
+            self.out.append((time.time(), seq, wall, self.size))
+        elif self.opcode == 1 and not self.ready.is_set():
+            self.ready.set()  # the viewer hello
+        elif self.opcode == 8:
+            self.transport.close()
+        self.head = bytearray()
+        self.opcode = None
+
+
+async def _light_viewer(
+    url: str, s, encoding: str, stop: asyncio.Event, ready: asyncio.Event, out: list
+) -> None:
+    from urllib.parse import urlsplit
+
+    from facecast.client.api import ws_url
+
+    u = urlsplit(ws_url(url, f"/v1/sessions/{s.id}/watch", token=s.viewer_token, encoding=encoding))
+    loop = asyncio.get_running_loop()
+    transport, proto = await loop.create_connection(
+        lambda: _LightViewer(f"{u.path}?{u.query}", u.netloc, out, ready), u.hostname, u.port
+    )
+    try:
+        await stop.wait()
+    finally:
+        transport.close()
+
+
+@dataclass(frozen=True)
+class _Seat:
+    """What a viewer in another process needs of its session."""
+
+    id: str
+    viewer_token: str
+
+
+def _viewer_process(url, seats, kind, encoding, opts, ready, stop, conn) -> None:
+    """Child process: watch ``seats`` (slot -> ``_Seat``) until ``stop``; send back slot -> records."""
+    _VIEWER_OPTS.update(opts)
+
+    async def main() -> dict:
+        local_stop = asyncio.Event()
+        fn = _light_viewer if kind == "light" else _viewer
+        recs = {slot: [] for slot in seats}
+        evs = [asyncio.Event() for _ in seats]
+        tasks = [asyncio.create_task(fn(url, seat, encoding, local_stop, ev, recs[slot]))
+                 for (slot, seat), ev in zip(seats.items(), evs)]
+        await asyncio.wait_for(asyncio.gather(*(e.wait() for e in evs)), 120)
+        ready.set()
+        while not stop.is_set():
+            await asyncio.sleep(0.05)
+        local_stop.set()
+        await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 60)
+        return recs
+
+    conn.send(asyncio.run(main()))
+    conn.close()
+
+
+async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> dict:
+    """One load point: ``sessions`` sessions with ``viewers`` viewers each, for warmup + seconds."""
+    from facecast.client.api import SessionAdmin
+
+    key = server.admin_key if isinstance(server, LocalServer) else os.environ.get("FACECAST_ADMIN_KEY", ADMIN_KEY)
+    async with SessionAdmin(url, key) as admin:
+        made = [await admin.create(face=args.face, fps=args.fps) for _ in range(sessions)]
+        stop = asyncio.Event()
+        records: list[list] = []
+        ready_events = []
+        tasks = []
+        n_proc = max(1, min(getattr(args, "viewer_processes", 1), sessions * viewers))
+        away: list[dict] = [{} for _ in range(n_proc - 1)]  # seats of the other processes
+        for k, s in enumerate(s for s in made for _ in range(viewers)):
+            rec: list = []
+            records.append(rec)
+            if k % n_proc:
+                away[k % n_proc - 1][k] = _Seat(s.id, s.viewer_token)
+                continue
+            ev = asyncio.Event()
+            ready_events.append(ev)
+            fn = _light_viewer if args.viewer_kind == "light" else _viewer
+            tasks.append(asyncio.create_task(fn(url, s, args.encoding, stop, ev, rec)))
+        mp = multiprocessing.get_context("spawn")
+        mp_stop, children = mp.Event(), []
+        for seats in away:
+            ready, (mine, theirs) = mp.Event(), mp.Pipe(duplex=False)
+            proc = mp.Process(target=_viewer_process, daemon=True, args=(
+                url, seats, args.viewer_kind, args.encoding, dict(_VIEWER_OPTS), ready, mp_stop, theirs))
+            proc.start()
+            children.append((proc, ready, mine))
+        await asyncio.wait_for(asyncio.gather(*(e.wait() for e in ready_events)), 120)
+        for proc, ready, _ in children:
+            if not await asyncio.to_thread(ready.wait, 180):
+                raise RuntimeError("a viewer process did not get its viewers connected")
+        sent: list[int] = []
+        tasks += [asyncio.create_task(_producer(url, s, args.fps, stop, sent)) for s in made]
+        await asyncio.sleep(args.warmup)
+        def clients_cpu() -> float:
+            return _own_cpu() + sum(process_cpu_seconds(p.pid) for p, _, _ in children)
+
+        async def deformed() -> int:  # frames the server deformed and encoded, all sessions
+            infos = await asyncio.gather(*(admin.info(s.id) for s in made))
+            return sum(i.stats.frames_deformed for i in infos)
+
+        deformed0 = await deformed()
+        t0, cpu_s0, cpu_c0 = (
+            time.time(),
+            server.cpu_seconds() if server else float("nan"),
+            clients_cpu(),
+        )
+        await asyncio.sleep(args.seconds)
+        t1, cpu_s1, cpu_c1 = (
+            time.time(),
+            server.cpu_seconds() if server else float("nan"),
+            clients_cpu(),
+        )
+        deformed1 = await deformed()
+        stop.set()
+        mp_stop.set()
+        results = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 60)
+        for proc, _, conn in children:
+            for k, rec in (await asyncio.to_thread(conn.recv)).items():
+                records[k][:] = rec
+            proc.join(10)
+        failures = [r for r in results if isinstance(r, BaseException)]
+        for r in failures[:3]:
+            log.warning("a client failed: %r", r)
+        infos = [await admin.info(s.id) for s in made]
+        for s in made:
+            await admin.close(s.id)
+
+    window = t1 - t0
+    rates, lat, skipped, sizes = [], [], 0, []
+    produced: set[tuple[int, int]] = set()  # (session, seq) of frames some viewer received
+    for k, rec in enumerate(records):
+        inside = [r for r in rec if t0 <= r[0] < t1]
+        produced.update((k // viewers, r[1]) for r in inside)
+        rates.append(len(inside) / window)
+        if len(inside) > 1:
+            seqs = np.array([r[1] for r in inside], dtype=np.int64)
+            d = np.diff(seqs) - 1
+            skipped += int(d[d > 0].sum())
+        lat += [1000 * (r[0] - r[2]) for r in inside if r[2] > 0]
+        sizes += [r[3] for r in inside]
+    lat_a = np.array(lat) if lat else np.array([np.nan])
+    deform = [i.stats.deform_ms_mean for i in infos if i.stats.frames_deformed]
+    return {
+        "sessions": sessions,
+        "viewers_per_session": viewers,
+        "viewers_total": sessions * viewers,
+        "fps_target": args.fps,
+        "fps_mean": round(float(np.mean(rates)), 2),
+        "fps_min": round(float(np.min(rates)), 2),
+        "latency_ms_p50": round(float(np.percentile(lat_a, 50)), 2),
+        "latency_ms_p95": round(float(np.percentile(lat_a, 95)), 2),
+        "latency_ms_max": round(float(np.max(lat_a)), 2),
+        "frames_received": len(lat),
+        "frames_skipped": skipped,
+        "server_dropped_before_deform": int(sum(i.stats.frames_dropped for i in infos)),
+        "bytes_per_frame": round(float(np.mean(sizes)), 1) if sizes else None,
+        "server_deform_encode_ms": round(float(np.mean(deform)), 3) if deform else None,
+        "server_cpu": round((cpu_s1 - cpu_s0) / window, 2),
+        "client_cpu": round((cpu_c1 - cpu_c0) / window, 2),
+        # CPU per delivered frame: comparable across points even when the machine is shared
+        "server_cpu_us_per_frame": round(1e6 * (cpu_s1 - cpu_s0) / len(lat), 1) if lat else None,
+        # ... and per session-frame (each deformed and encoded frame, whatever its viewers)
+        "server_cpu_us_per_session_frame": round(1e6 * (cpu_s1 - cpu_s0) / len(produced), 1)
+        if produced
+        else None,
+        # ... and per frame the server deformed and encoded (counted just outside the window):
+        # what the server's work costs even when starved viewers skip frames
+        "server_cpu_us_per_deformed_frame": round(
+            1e6 * (cpu_s1 - cpu_s0) / (deformed1 - deformed0), 1
+        )
+        if deformed1 > deformed0
+        else None,
+        "server_frames_deformed_per_s": round((deformed1 - deformed0) / window, 1),
+        "client_cpu_us_per_frame": round(1e6 * (cpu_c1 - cpu_c0) / len(lat), 1) if lat else None,
+        "client_failures": len(failures),
+        "seconds": round(window, 2),
+    }
+
+
+def _ok(p: dict, args) -> bool:
+    return p["fps_min"] >= 0.95 * args.fps and p["latency_ms_p95"] <= args.latency_target
+
+
+def _table(title: str, points: list[dict], args) -> str:
+    base = points[0] if points else None
+    head = (
+        "| sessions | viewers | fps mean | fps min | p50 ms | p95 ms | p95 ratio | skipped | deform+enc ms "
+        "| server CPU | client CPU | server µs/frame | server µs/session-frame "
+        "| deformed/s | server µs/deformed frame | client µs/frame | target |"
+    )
+    lines = [f"### {title}", "", head, "|" + "---|" * 17]
+    for p in points:
+        ratio = (
+            p["latency_ms_p95"] / base["latency_ms_p95"]
+            if base and base["latency_ms_p95"]
+            else float("nan")
+        )
+        p["latency_p95_ratio"] = round(ratio, 2)
+        lines.append(
+            f"| {p['sessions']} | {p['viewers_total']} | {p['fps_mean']} | {p['fps_min']} | "
+            f"{p['latency_ms_p50']} | {p['latency_ms_p95']} | {ratio:.2f} | {p['frames_skipped']} | "
+            f"{p['server_deform_encode_ms']} | {p['server_cpu']} | {p['client_cpu']} | "
+            f"{p['server_cpu_us_per_frame']} | {p['server_cpu_us_per_session_frame']} | "
+            f"{p['server_frames_deformed_per_s']} | {p['server_cpu_us_per_deformed_frame']} | "
+            f"{p['client_cpu_us_per_frame']} | "
+            f"{'ok' if _ok(p, args) else 'miss'}{' (%d client errors)' % p['client_failures'] if p['client_failures'] else ''} |"
+        )
+    return "\n".join(lines)
+
+
+async def _sweeps(server, url: str, args, baseline: LocalServer | None = None) -> dict:
+    """Both sweeps; with ``baseline``, each point is measured on it too, right after (``baseline_*``)."""
+    res: dict = {"sessions_sweep": [], "viewers_sweep": []}
+    if baseline is not None:
+        res.update(baseline_sessions_sweep=[], baseline_viewers_sweep=[])
+    points = [("sessions_sweep", int(x), 1) for x in args.sessions.split(",") if x.strip()]
+    points += [("viewers_sweep", 1, int(x)) for x in args.viewers.split(",") if x.strip()]
+    for sweep, n, m in points:
+        log.info("%s: %d session(s), %d viewer(s) each", sweep, n, m)
+        res[sweep].append(await run_point(server, url, sessions=n, viewers=m, args=args))
+        log.info("%s", res[sweep][-1])
+        if baseline is not None:
+            res["baseline_" + sweep].append(
+                await run_point(baseline, baseline.url, sessions=n, viewers=m, args=args))
+            log.info("baseline: %s", res["baseline_" + sweep][-1])
+    return res
+
+
+def _ratios(points: list[dict], baseline: list[dict], key: str) -> list[float | None]:
+    """``key`` of each point over the baseline's at the same point (None where one is missing)."""
+    return [round(p[key] / b[key], 2) if p.get(key) and b.get(key) else None for p, b in zip(points, baseline)]
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.getLogger("httpx").setLevel(logging.WARNING)
+    _VIEWER_OPTS.update(rcvbuf=args.viewer_rcvbuf, queue=args.viewer_queue)
+    t_start = time.time()
+    load_before = os.getloadavg()
+    costs = frame_costs(args.face, args.backend)
+    log.info("in-process costs per frame: %s", costs)
+    server = None
+    url = args.url
+    if url is None:
+        server = _server(args.face, args.backend)
+    elif args.server_pid:
+        server = _External(args.server_pid)
+    baseline = None
+    if args.baseline_python and url is None:
+        baseline = _server(args.face, args.backend, python=args.baseline_python)
+    try:
+        health = server.start(300, ready=True).health if isinstance(server, LocalServer) else {}
+        if baseline is not None:
+            baseline.start(300, ready=True)
+        encodings, by_encoding = list(args.encoding), {}
+        for enc in encodings:
+            args.encoding = enc
+            by_encoding[enc] = asyncio.run(_sweeps(server, url or server.url, args, baseline))
+        args.encoding = encodings[0]
+        res = by_encoding[encodings[0]]
+    finally:
+        for srv in (server, baseline):
+            if isinstance(srv, LocalServer):
+                srv.stop()
+    if baseline is not None:
+        res["baseline_python"] = args.baseline_python
+        for sweep in ("sessions_sweep", "viewers_sweep"):
+            res[sweep + "_cpu_ratio_vs_baseline"] = _ratios(
+                res[sweep], res["baseline_" + sweep], "server_cpu_us_per_session_frame")
+    if args.compare_asgi and url is None:
+        server = _server(args.face, args.backend, env={"FACECAST_LIVE_DIRECT": "0"})
+        try:
+            server.start(300, ready=True)
+            sessions, args.sessions = args.sessions, ""
+            res["viewers_sweep_asgi"] = asyncio.run(_sweeps(server, server.url, args))[
+                "viewers_sweep"
+            ]
+            args.sessions = sessions
+        finally:
+            server.stop()
+        for d, a in zip(res["viewers_sweep"], res["viewers_sweep_asgi"]):
+            if d["server_cpu_us_per_frame"] and a["server_cpu_us_per_frame"]:
+                d["server_cpu_ratio_vs_asgi"] = round(
+                    d["server_cpu_us_per_frame"] / a["server_cpu_us_per_frame"], 2
+                )
+    load = os.getloadavg()
+    report = {
+        "bench": "serve",
+        "face": args.face,
+        "vertices": costs["vertices"],
+        "encoding": args.encoding,
+        "by_encoding": by_encoding,
+        "fps": args.fps,
+        "backend": health.get("backend", args.backend),
+        "device": health.get("device"),
+        "viewer_kind": args.viewer_kind,
+        "viewer_rcvbuf": args.viewer_rcvbuf,
+        "viewer_queue": args.viewer_queue,
+        "frame_costs_ms": costs,
+        "latency_target_ms": args.latency_target,
+        **res,
+        "cpus": os.cpu_count(),
+        "loadavg_before": [round(x, 2) for x in load_before],
+        "loadavg_after": [round(x, 2) for x in load],
+        "seconds_total": round(time.time() - t_start, 1),
+        "note": "loopback, server and all clients on this machine; the machine may be shared (see loadavg)",
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2))
+    c = costs
+    print(
+        f"## bench/serve.py — {args.face} ({c['vertices']} vertices), "
+        f"{', '.join(by_encoding)} frames, "
+        f"producers at {args.fps:g} fps, backend {report['backend']}\n"
+    )
+    print(
+        f"In-process per frame: solve {c['solve_ms']} ms, deform {c['deform_ms']} ms ({c['backend']}), "
+        f"encode i16 {c['encode_i16_ms']} ms (batched as in the server: "
+        f"{c.get('encode_i16_batched_ms')} ms) / f32 {c['encode_f32_ms']} ms / "
+        f"compact {c.get('encode_compact_ms')} ms (CPU), "
+        f"decode i16 {c['decode_i16_ms']} ms; "
+        f"{c['bytes_i16']} B (i16) / {c['bytes_f32']} B (f32) per frame.\n"
+    )
+    print(
+        f"Live worker CPU per frame (solve + deform + encode, all threads): batch of 1 "
+        f"{c['worker_cpu_ms_batch1']} ms, batch of 20 {c['worker_cpu_ms_batch20']} ms "
+        f"(solve alone: {c['solve_ms']} ms one by one, {c['solve_batch_ms']} ms batched)"
+        + (
+            f"; int16 quantised in NumPy instead of on the device: "
+            f"{c['worker_cpu_ms_batch1_numpy_quantize']} / {c['worker_cpu_ms_batch20_numpy_quantize']} ms"
+            if "worker_cpu_ms_batch20_numpy_quantize" in c
+            else ""
+        )
+        + ".\n"
+    )
+    for enc, r in by_encoding.items():
+        if r["sessions_sweep"]:
+            title = f"Concurrent sessions (1 producer + 1 viewer each), {enc}"
+            print(_table(title, r["sessions_sweep"], args))
+            print()
+        if r["viewers_sweep"]:
+            print(_table(f"Viewers of one session, {enc}", r["viewers_sweep"], args))
+            print()
+    for enc, r in by_encoding.items():
+        for sweep, title in (("sessions_sweep", "Concurrent sessions"), ("viewers_sweep", "Viewers of one session")):
+            if r.get("baseline_" + sweep):
+                print(_table(f"{title}, {enc}, baseline server ({args.baseline_python})", r["baseline_" + sweep], args))
+                ratios = _ratios(r[sweep], r["baseline_" + sweep], "server_cpu_us_per_session_frame")
+                print(f"\nServer CPU per session-frame, this checkout / baseline, point by point: {ratios}\n")
+    if "viewers_sweep_asgi" in res:
+        print()
+        print(
+            _table(
+                "Viewers of one session, frames sent through ASGI (baseline of the direct path)",
+                res["viewers_sweep_asgi"],
+                args,
+            )
+        )
+        ratios = [d.get("server_cpu_ratio_vs_asgi") for d in res["viewers_sweep"]]
+        print(f"\nServer CPU per frame, direct / ASGI: {ratios}")
+    print(
+        f"\nTarget: every viewer ≥ {0.95 * args.fps:g} fps and p95 ≤ {args.latency_target:g} ms. "
+        f"CPU columns are CPU-seconds per second (2.0 = two cores busy). Load average before/after: {load_before[0]:.2f}/{load[0]:.2f} "
+        f"on {os.cpu_count()} CPUs. JSON: {args.out}"
+    )
+    args.out.write_text(json.dumps(report, indent=2))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="bench/serve.py", description=__doc__.split("\n\n")[0])
+    add_arguments(p)
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    return run(p.parse_args(argv))
+
 
 if __name__ == "__main__":
     sys.exit(main())

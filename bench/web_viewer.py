@@ -33,15 +33,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import statistics
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import httpx
+
+from facecast.server.harness import LocalServer
 
 ROOT = Path(__file__).resolve().parents[1]
 ICT = ROOT.parent / "shared" / "data" / "ict-facekit" / "generic_neutral_mesh.obj"
@@ -131,12 +130,6 @@ def process_cpu() -> dict[str, float]:
 def pid_cpu(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / TCK
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def ceiling(browser, width: int, height: int, ms: int, sweep: tuple[int, ...] = ()) -> dict:
@@ -246,12 +239,9 @@ def main() -> int:
             ap.error(f"unknown variant {v!r}; known: {', '.join(VARIANTS)}")
     from playwright.sync_api import sync_playwright
 
-    port, key = free_port(), "bench-key"
-    url = f"http://127.0.0.1:{port}"
-    env = {**os.environ, "FACECAST_ADMIN_KEY": key, "FACECAST_FACES": f"bench={args.face}"}
-    data = tempfile.mkdtemp(prefix="facecast-web-bench-")
-    server = subprocess.Popen([sys.executable, "-m", "facecast.server.cli", "serve", "--port", str(port),
-                               "--data-dir", data], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    key = "bench-key"
+    server = LocalServer(None, env={"FACECAST_FACES": f"bench={args.face}"}, admin_key=key)
+    url = server.url
     sweep = tuple(int(n) for n in args.sweep.split(",") if n)
     results: dict = {"face": str(args.face), "session_fps": args.fps, "cpus": os.cpu_count(), "scale": args.scale,
                      "shading": args.shading, "lod": args.lod, "viewport": [args.width, args.height],
@@ -259,12 +249,7 @@ def main() -> int:
                                   for v in variants},
                      "load_average_start": os.getloadavg(), "ceilings": [], "runs": []}
     try:
-        for _ in range(300):
-            try:
-                if httpx.get(url + "/healthz", timeout=1).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                time.sleep(0.2)
+        server.start(120)
         hdr = {"Authorization": f"Bearer {key}"}
         with sync_playwright() as p:
             for rep in range(args.repeats):
@@ -294,7 +279,7 @@ def main() -> int:
                                 page.evaluate(f"() => {{ {setup}; }}")
                             time.sleep(3)  # let the page settle
                             run = {"repeat": rep, "variant": variant, "gl": gl, "flags": flags, "env": venv,
-                                   "encoding": encoding, **sample(page, server.pid, args.seconds)}
+                                   "encoding": encoding, **sample(page, server.proc.pid, args.seconds)}
                             summary = page.evaluate("facecast.viewer.summary()")  # latency: frame sent -> in the page
                             run["latency_ms_p50"], run["latency_ms_p95"] = summary["latencyP50"], summary["latencyP95"]
                             info = page.evaluate("""() => { const r = facecast.renderer, m = r.mesh;
@@ -317,8 +302,7 @@ def main() -> int:
                             httpx.delete(f"{url}/v1/sessions/{s['id']}", headers=hdr, timeout=60)
                         browser.close()
     finally:
-        server.terminate()
-        server.wait(20)
+        server.stop()
     results["load_average_end"] = os.getloadavg()
     # Per variant: medians over the repeats, and the drawn-fps ratio to the baseline of the same repeat.
     summary = []

@@ -46,7 +46,7 @@ from ..protocol.messages import (
     dump_message,
     parse_message,
 )
-from .urls import server_url
+from ..protocol.urls import server_url
 
 log = logging.getLogger(__name__)
 

@@ -9,6 +9,7 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import httpx
 
@@ -74,28 +75,29 @@ def read_layout(layout: str | Path) -> bytes:
     return data
 
 
-def submit(client: httpx.Client, input: Path, options: dict) -> dict:
+def submit(client: httpx.Client, input: Path, options: dict[str, Any]) -> dict[str, Any]:
     """POST the file and options; the job's status as the server returned it.
 
     ``options["layout"]`` is a local layout file: its content is uploaded as the ``layout`` part.
     """
     data = {k: str(v) for k, v in options.items() if v is not None and k != "layout"}
-    files: dict = {}
+    files: dict[str, Any] = {}
     if options.get("layout") is not None:
         files["layout"] = ("layout.json", read_layout(options["layout"]), "application/json")
     with open(input, "rb") as fh:
         files["file"] = (input.name, fh, "application/octet-stream")
         resp = client.post("/v1/jobs", files=files, data=data)
-    return _check(resp, f"the server refused {input.name}").json()
+    job: dict[str, Any] = _check(resp, f"the server refused {input.name}").json()
+    return job
 
 
 def wait(client: httpx.Client, job_id: str, *, progress: Callable[[float, str], None] | None = None,
-         poll: float = 0.5, timeout: float | None = None) -> dict:
+         poll: float = 0.5, timeout: float | None = None) -> dict[str, Any]:
     """Poll a job until it is done, failed or cancelled; ``progress(fraction, status)`` on each poll."""
     deadline = None if timeout is None else time.monotonic() + timeout
     delay = min(poll, 0.1)
     while True:
-        job = _check(client.get(f"/v1/jobs/{job_id}"), f"job {job_id}", job_id).json()
+        job: dict[str, Any] = _check(client.get(f"/v1/jobs/{job_id}"), f"job {job_id}", job_id).json()
         if progress is not None:
             progress(float(job.get("progress") or 0.0), job["status"])
         if job["status"] in FINAL:
@@ -125,7 +127,7 @@ def download(client: httpx.Client, job_id: str, output: Path) -> Path:
     return output
 
 
-def render_remote(url: str, input: str | Path, output: str | Path, *, options: dict | None = None,
+def render_remote(url: str, input: str | Path, output: str | Path, *, options: dict[str, Any] | None = None,
                   progress: Callable[[int, int], None] | None = None, admin_key: str | None = None,
                   poll: float = 0.5, timeout: float | None = None) -> Path:
     """Render ``input`` on the server at ``url`` and write the result to ``output``.

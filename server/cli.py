@@ -1,10 +1,17 @@
 """The ``facecast`` command. Each subcommand lives in its own module, imported only when used.
 
 A command module defines ``add_arguments(parser)`` and ``run(args) -> int``. Errors derived from
-``FacecastError`` are printed as one line ("facecast: <where>: <what>") with exit status 2.
+``FacecastError`` are printed as one line ("facecast: <where>: <what>") with exit status 2; client
+commands print theirs the same way themselves.
+
+This entry point is the one place that knows both sides: it names command modules as strings and
+imports only the one that runs, so ``facecast.server`` never imports ``facecast.client`` (an
+import-linter contract in pyproject.toml). Client-side commands live in ``facecast.client.commands``;
+a command that has both a local and a remote form (``render`` and ``render --server URL``) takes its
+flags from the local module and runs the client module named in ``REMOTE`` when ``--server`` is given.
 
 Every ``--url`` and ``--server`` is a server URL, taken as typed (``127.0.0.1:8000`` works; see
-``facecast.client.urls.server_url``). Logs go to stderr at WARNING; ``-v`` shows INFO, ``-vv`` DEBUG.
+``facecast.protocol.urls.server_url``). Logs go to stderr at WARNING; ``-v`` shows INFO, ``-vv`` DEBUG.
 """
 from __future__ import annotations
 
@@ -25,6 +32,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "stream": ("facecast.client.commands.stream", "push an input file to a live session at its real rate"),
     "watch": ("facecast.client.commands.watch", "watch a live session; report fps, latency, bandwidth, drops"),
 }
+#: Commands run by a client module instead when ``--server URL`` is given.
+REMOTE: dict[str, str] = {"render": "facecast.client.commands.render"}
 
 
 #: Log level by the number of ``-v`` flags.
@@ -59,7 +68,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
     ``-v`` counts wherever it stands, also after a command's own subcommand (``session list -v``).
     """
-    from ..client.urls import server_url
+    from ..protocol.urls import server_url
 
     parser = build_parser(argv)
     args, rest = parser.parse_known_args(argv)
@@ -84,8 +93,11 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from .errors import FacecastError
 
+    module = COMMANDS[args.command][0]
+    if getattr(args, "server", None) and args.command in REMOTE:
+        module = REMOTE[args.command]
     try:
-        return int(importlib.import_module(COMMANDS[args.command][0]).run(args) or 0)
+        return int(importlib.import_module(module).run(args) or 0)
     except FacecastError as e:
         print(f"facecast: {e}", file=sys.stderr)
         return 2

@@ -1,21 +1,34 @@
-"""`facecast bench serve` at a tiny load point: every viewer's frames are counted, including the
-viewers that run in other client processes."""
+"""The live load generator (``python bench/serve.py``, run from the checkout as a user would) at a tiny
+load point: every viewer's frames are counted, including the viewers that run in other client processes."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 from facecast.server.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
 def test_viewers_in_other_processes_are_measured(tmp_path):
     out = tmp_path / "serve.json"
-    rc = main(["bench", "serve", "--face", "default:2k", "--sessions", "", "--viewers", "3",
-               "--viewer-processes", "2", "--warmup", "1", "--seconds", "2", "--out", str(out)])
-    assert rc == 0
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "serve.py"), "--face", "default:2k", "--sessions", "",
+                        "--viewers", "3", "--viewer-processes", "2", "--warmup", "1", "--seconds", "2",
+                        "--out", str(out)], check=False, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-4000:]
     point = json.loads(out.read_text())["viewers_sweep"][0]
-    assert point["viewers_total"] == 3 and point["client_failures"] == 0
+    assert point["viewers_total"] == 3 and point["client_failures"] == 0, r.stderr[-4000:]
     # a viewer whose frames stayed in its process would count 0 fps here
-    assert point["fps_min"] > 20 and point["frames_received"] > 3 * 20
+    assert point["fps_min"] > 20 and point["frames_received"] > 3 * 20, r.stderr[-4000:]
     assert point["latency_ms_p95"] < 10_000
+    assert "Viewers of one session" in r.stdout
+
+
+def test_the_old_command_says_where_the_benchmark_went(capsys):
+    assert main(["bench", "serve", "--sessions", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("facecast: bench serve: moved") and "python bench/serve.py" in err

@@ -9,7 +9,7 @@ import pytest
 
 from conftest import RunningServer
 from facecast import server as server_package
-from facecast.client.urls import server_url
+from facecast.protocol.urls import server_url
 from facecast.server.cli import parse_args
 
 
@@ -100,3 +100,28 @@ def test_serve_logs_neither_info_nor_requests_by_default(tmp_path):
     log = srv.log.read_text()
     assert "facecast: serving on" in log  # what the operator needs is still printed
     assert " INFO " not in log and "GET /" not in log, log
+
+
+@pytest.mark.parametrize("argv,where,what", [
+    (["x.fap", "-o", "x.obj"], "x.obj", "unsupported output type '.obj'"),
+    (["missing.fap", "-o", "x.glb"], "missing.fap", "input file not found"),
+    (["take.trc", "-o", "x.fap", "--filter", "kalman"], "--server", "apply to local renders only"),
+])
+def test_render_on_a_server_refuses_like_a_local_render(tmp_path, argv, where, what):
+    """``render --server`` runs the client's command module; its refusals are the local ones, one line."""
+    (tmp_path / "x.fap").write_text("2.1 demo 25 1\n")
+    (tmp_path / "take.trc").write_text("")
+    r = subprocess.run([sys.executable, "-m", "facecast.server.cli", "render", *argv, "--server", "127.0.0.1:9"],
+                       check=False, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.startswith(f"facecast: {where}: "), r.stderr
+    assert what in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_an_unreachable_render_server_is_one_line_naming_it(tmp_path):
+    (tmp_path / "x.fap").write_text("2.1 demo 25 1\n")
+    r = subprocess.run([sys.executable, "-m", "facecast.server.cli", "render", "x.fap", "-o", "x.glb",
+                        "--server", "127.0.0.1:9"], check=False, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.startswith("facecast: http://127.0.0.1:9: "), r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+    assert not (tmp_path / "x.glb").exists()

@@ -32,7 +32,8 @@ def test_generated_admin_key_is_printed_kept_and_required(tmp_path):
         assert printed == [kept] and len(kept) >= 32
         assert (tmp_path / "d" / "admin.key").stat().st_mode & 0o077 == 0
         assert httpx.get(srv.url + "/v1/jobs", headers={"Authorization": f"Bearer {kept}"}).status_code == 200
-        assert httpx.get(srv.url + "/v1/jobs", headers=srv.admin_headers).status_code == 401
+        assert srv.admin_key == kept  # what the harness read from the data dir
+        assert httpx.get(srv.url + "/v1/jobs", headers={"Authorization": "Bearer test-admin-key"}).status_code == 401
     finally:
         srv.stop()
     # A restart on the same data directory keeps the key and does not show it again, only where it is;
@@ -166,3 +167,51 @@ def test_a_broken_default_face_is_reported_not_fatal(tmp_path):
         assert httpx.get(srv.url + "/v1/faces").status_code == 200  # still serving
     finally:
         srv.stop()
+
+
+@pytest.mark.parametrize("name,value,says", [
+    ("FACECAST_MAX_AUDIO_SECONDS", "lots", "valid number"),
+    ("FACECAST_MAX_AUDIO_SECONDS", "inf", "finite number"),
+    ("FACECAST_MAX_SESSIONS", "many", "valid integer"),
+    ("FACECAST_ALLOW_REMOTE", "perhaps", "valid boolean"),
+])
+def test_a_malformed_setting_is_refused_in_one_line_naming_it(tmp_path, name, value, says):
+    import os
+
+    env = {**os.environ, name: value}
+    r = subprocess.run([sys.executable, "-m", "facecast.server.cli", "serve", "--data-dir", str(tmp_path / "d"),
+                        "--port", "9"], check=False, env=env, capture_output=True, text=True, timeout=120)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"facecast: environment: {name}={value!r}: ") and says in lines[0], lines
+    assert lines[0].endswith("fix or unset the variable")
+    assert not (tmp_path / "d").exists()  # refused before anything is written
+
+
+def test_settings_outside_a_server_are_refused_the_same_way(tmp_path, data_dir):
+    import os
+
+    env = {**os.environ, "FACECAST_MAX_AUDIO_SECONDS": "-1"}
+    r = subprocess.run([sys.executable, "-m", "facecast.server.cli", "render",
+                        str(data_dir / "xface" / "faps" / "joy.fap"), "-o", str(tmp_path / "x.npz"), "--face", "default:2k"],
+                       check=False, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and r.stderr.strip() == (
+        "facecast: environment: FACECAST_MAX_AUDIO_SECONDS='-1': Input should be greater than 0; "
+        "fix or unset the variable"), r.stderr
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_every_setting_is_in_the_readme_table_with_its_default():
+    from pathlib import Path
+
+    from facecast.server.api.config import ServerConfig
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    rows = {m[0]: m[1] for m in re.findall(r"^\| `(FACECAST_[A-Z_]+)` \| ([^|]*) \|", readme, re.M)}
+    for field, info in ServerConfig.model_fields.items():
+        name = f"FACECAST_{field.upper()}"
+        assert name in rows, f"{name} is missing from README.md's configuration table"
+        if isinstance(info.default, bool):
+            assert rows[name].strip() == f"`{str(info.default).lower()}`", name
+        elif isinstance(info.default, (int, float)) and "`" in rows[name]:  # else said in words ("CPUs")
+            assert float(rows[name].split("`")[1]) == info.default, name

@@ -1,17 +1,25 @@
-"""Server settings: embedded defaults, overridable by ``FACECAST_*`` environment variables or CLI flags."""
+"""Server settings: embedded defaults, overridable by ``FACECAST_*`` environment variables or CLI flags.
+
+Every ``FACECAST_*`` setting the server reads is a field here (those the library reads outside a
+server too, ``cache``, ``shared_data`` and ``max_audio_seconds``, come from ``settings.LocalSettings``);
+README.md's configuration table lists them. ``load_config`` refuses a malformed one in one line.
+"""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
+
+from ..settings import LocalSettings, load
 
 
 def _default_data_dir() -> Path:
     return Path.home() / ".local" / "share" / "facecast"
 
 
-class ServerConfig(BaseSettings):
+class ServerConfig(LocalSettings):
     """Everything ``facecast serve`` needs; every field has a working default."""
 
     model_config = SettingsConfigDict(env_prefix="FACECAST_", extra="ignore")
@@ -49,3 +57,9 @@ class ServerConfig(BaseSettings):
         if own is None or own[1] >= self.max_upload_bytes:
             return self.max_upload_bytes, "FACECAST_MAX_UPLOAD_BYTES"
         return own[1], f"FACECAST_{own[0].upper()}"
+
+
+def load_config(**overrides: Any) -> ServerConfig:
+    """``ServerConfig`` from the ``FACECAST_*`` variables and ``overrides`` (flags); a malformed
+    variable raises one ``InputError`` line naming it (``settings.load``)."""
+    return load(ServerConfig, **overrides)

@@ -4,22 +4,14 @@ from __future__ import annotations
 import hmac
 import logging
 import os
-import secrets
 import stat
 from pathlib import Path
 
 from fastapi import HTTPException, Request, status
 
+from ..tokens import new_token
+
 log = logging.getLogger(__name__)
-
-
-def new_token() -> str:
-    """A fresh random token (URL-safe, 32 bytes of entropy) that does not start with ``-``, so that
-    it can follow a command-line flag (``--token T``) without being taken for an option."""
-    while True:
-        token = secrets.token_urlsafe(32)
-        if not token.startswith("-"):
-            return token
 
 
 def same(a: str | None, b: str | None) -> bool:

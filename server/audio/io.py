@@ -10,8 +10,6 @@ the file's own rate: for tools and tests, not for uploads).
 from __future__ import annotations
 
 import logging
-import math
-import os
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -20,6 +18,7 @@ import numpy as np
 import scipy.signal
 
 from ..errors import InputError
+from ..settings import MAX_AUDIO_SECONDS, settings
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +29,7 @@ MIN_RATE, MAX_RATE = 4000, 384000
 #: Fraction of samples at |x| >= CLIP_LEVEL above which a file is reported as clipped.
 CLIP_LEVEL, CLIP_WARN_FRACTION = 0.999, 0.01
 #: Longest audio file accepted by default, seconds (``FACECAST_MAX_AUDIO_SECONDS`` overrides).
-MAX_SECONDS = 3600.0
+MAX_SECONDS = MAX_AUDIO_SECONDS
 #: Decoded values (frames × channels) per block: bounds the decoder's working memory (2 MiB).
 BLOCK_SAMPLES = 1 << 18
 #: Largest term of a resampling ratio (the filter has 20 taps per unit of the larger term).
@@ -61,18 +60,8 @@ class Decoded:
 
 
 def max_audio_seconds() -> float:
-    """The longest audio accepted, seconds: ``FACECAST_MAX_AUDIO_SECONDS`` or ``MAX_SECONDS``."""
-    raw = os.environ.get("FACECAST_MAX_AUDIO_SECONDS")
-    if raw is None:
-        return MAX_SECONDS
-    try:
-        value = float(raw)
-    except ValueError:
-        value = float("nan")
-    if not (value > 0 and math.isfinite(value)):
-        raise InputError(f"must be a positive number of seconds, got {raw!r}",
-                         where="FACECAST_MAX_AUDIO_SECONDS")
-    return value
+    """The longest audio accepted, seconds: ``FACECAST_MAX_AUDIO_SECONDS`` (``settings.LocalSettings``)."""
+    return settings().max_audio_seconds
 
 
 def conversion_ratio(sr_in: float, sr_out: float) -> tuple[int, int]:

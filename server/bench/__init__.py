@@ -1,1 +1,1 @@
-"""Benchmarks behind ``facecast bench``; bench/ holds the scripts that write JSON and tables."""
+"""Benchmarks behind ``facecast bench`` (the server's own code); bench/ holds the scripts that write JSON and tables."""

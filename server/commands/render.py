@@ -1,9 +1,10 @@
-"""``facecast render INPUT -o OUT``: batch animation of a .fap, audio or mocap file."""
+"""``facecast render INPUT -o OUT``: batch animation of a .fap, audio or mocap file, on this machine.
+
+With ``--server URL`` the ``facecast`` entry point runs ``facecast.client.commands.render`` instead.
+"""
 from __future__ import annotations
 
 import argparse
-import logging
-import os
 import sys
 from pathlib import Path
 
@@ -55,36 +56,17 @@ def _mocap_options(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Render locally (``--server`` runs ``facecast.client.commands.render`` instead, see ``cli.REMOTE``)."""
     from ..errors import InputError
-    from ..render import output_kind
+    from ..render import output_kind, render_file
 
     output_kind(args.output)
     if not args.input.is_file():
         raise InputError("input file not found", where=str(args.input))
-    if not getattr(args, "verbose", False):
-        logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per poll otherwise
     progress, close = _progress_bar(args.input.name)
     try:
-        if args.server and _mocap_options(args):
-            raise InputError("--filter, --lowrank, --stable and --neutral-frame apply to local renders only",
-                             where="--server")
-        if args.server:
-            from ...client.jobs import RemoteJobError, render_remote
-            from ..errors import FacecastError
-
-            options = {"face": args.face, "engine": args.engine, "backend": args.backend}
-            if args.layout:
-                options["layout"] = args.layout
-            try:
-                render_remote(args.server, args.input, args.output, options=options, progress=progress,
-                              admin_key=os.environ.get("FACECAST_ADMIN_KEY"))
-            except RemoteJobError as e:  # one line, exit 2, like local errors
-                raise FacecastError(str(e), where=args.server) from None
-        else:
-            from ..render import render_file
-
-            render_file(args.input, args.output, face=args.face, engine=args.engine, backend=args.backend,
-                        device=args.device, layout=args.layout, progress=progress, mocap=_mocap_options(args))
+        render_file(args.input, args.output, face=args.face, engine=args.engine, backend=args.backend,
+                    device=args.device, layout=args.layout, progress=progress, mocap=_mocap_options(args))
     finally:
         close()
     return 0

@@ -31,7 +31,8 @@ environment:
   FACECAST_JOB_MEMORY_MB        address space of a job worker process in MiB (default 0 = no limit)
   FACECAST_JOB_RETENTION_HOURS  delete finished jobs after this long (default 168; 0 = never)
   FACECAST_SESSION_IDLE_SECONDS close a live session idle this long (default 600; 0 = never)
-  every flag also as FACECAST_<NAME> (FACECAST_PORT, FACECAST_JOB_WORKERS, ...)
+  every flag also as FACECAST_<NAME> (FACECAST_PORT, FACECAST_JOB_WORKERS, ...); all settings, with their
+  defaults: the Configuration table in README.md
 
 routes: /docs (OpenAPI), /healthz, /readyz, /metrics, /v1/faces, /v1/jobs, /v1/sessions
 """
@@ -72,9 +73,7 @@ def is_loopback(host: str) -> bool:
 
 def make_config(args: argparse.Namespace):
     """``ServerConfig`` from FACECAST_* environment variables, overridden by the flags given."""
-    from pydantic import ValidationError
-
-    from ..api.config import ServerConfig
+    from ..api.config import load_config
 
     overrides = {k: v for k, v in {
         "host": args.host, "port": args.port, "data_dir": args.data_dir, "face": args.face,
@@ -82,13 +81,7 @@ def make_config(args: argparse.Namespace):
         "allow_remote": args.allow_remote,
         "session_idle_seconds": getattr(args, "session_idle", None),
     }.items() if v is not None}
-    try:
-        config = ServerConfig(**overrides)
-    except ValidationError as e:  # a malformed FACECAST_* variable (flags are typed by argparse)
-        problems = "; ".join(
-            f"FACECAST_{'_'.join(map(str, err['loc'])).upper()}={err.get('input')!r}: {err['msg']}"
-            for err in e.errors())
-        raise InputError(f"{problems}; fix or unset the variable", where="environment") from None
+    config = load_config(**overrides)  # one line naming a malformed FACECAST_* variable
     if not is_loopback(config.host) and not config.allow_remote:
         raise InputError(f"refusing to bind to {config.host}, which is not a loopback address; pass "
                          "--allow-remote (or FACECAST_ALLOW_REMOTE=1) to serve other machines",

@@ -23,8 +23,8 @@ from ...protocol.messages import (
     dump_message,
 )
 from .. import errors
-from ..api.security import new_token
 from ..errors import NotFound
+from ..tokens import new_token
 from .batcher import DeformBatcher, batch_threads
 from .session import LiveSession, SessionSpec
 

@@ -1,4 +1,7 @@
-"""Server URLs as people type them: ``127.0.0.1:8000`` means ``http://127.0.0.1:8000``."""
+"""Server URLs as people type them: ``127.0.0.1:8000`` means ``http://127.0.0.1:8000``.
+
+Pure (no I/O): the CLI normalises every ``--url``/``--server`` with it, the client library every URL.
+"""
 from __future__ import annotations
 
 import re
