@@ -15,6 +15,7 @@ import sys
 from collections.abc import Callable
 from typing import get_args
 
+from ...protocol.errors import InputError
 from ...protocol.rest import OutputFormat
 
 #: Output suffixes a job can produce: ``.glb``, ``.npz``, ``.fap``.
@@ -23,11 +24,8 @@ OUTPUT_SUFFIXES = tuple(f".{name}" for name in get_args(OutputFormat))
 LOCAL_ONLY_FLAGS = ("filter", "lowrank", "stable", "neutral_frame")
 
 
-class _Refused(Exception):
+class _Refused(InputError):
     """A render refused before or by the server: ``where`` is the file or flag at fault."""
-
-    def __init__(self, where: str, message: str) -> None:
-        super().__init__(f"{where}: {message}")
 
 
 def _progress_bar(name: str) -> tuple[Callable[[int, int], None] | None, Callable[[], None]]:
@@ -52,12 +50,12 @@ def render(args: argparse.Namespace) -> None:
 
     suffix = args.output.suffix.lower()
     if suffix not in OUTPUT_SUFFIXES:
-        raise _Refused(str(args.output), f"unsupported output type {suffix or '(none)'!r}; expected one of "
-                       f"{', '.join(OUTPUT_SUFFIXES)}")
+        raise _Refused(f"unsupported output type {suffix or '(none)'!r}; expected one of "
+                      f"{', '.join(OUTPUT_SUFFIXES)}", where=str(args.output))
     if not args.input.is_file():
-        raise _Refused(str(args.input), "input file not found")
+        raise _Refused("input file not found", where=str(args.input))
     if any(getattr(args, name, None) is not None for name in LOCAL_ONLY_FLAGS):
-        raise _Refused("--server", "--filter, --lowrank, --stable and --neutral-frame apply to local renders only")
+        raise _Refused("--filter, --lowrank, --stable and --neutral-frame apply to local renders only", where="--server")
     options = {"face": args.face, "engine": args.engine}
     if args.layout:
         options["layout"] = args.layout
@@ -66,7 +64,7 @@ def render(args: argparse.Namespace) -> None:
         render_remote(args.server, args.input, args.output, options=options, progress=progress,
                       admin_key=os.environ.get("FACECAST_ADMIN_KEY"))
     except RemoteJobError as e:
-        raise _Refused(args.server, str(e)) from None
+        raise _Refused(str(e), where=args.server) from None
     finally:
         close()
 
