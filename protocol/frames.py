@@ -20,7 +20,7 @@ from typing import Union
 import numpy as np
 
 from .errors import FrameError
-from .quantize import dequantize_int16
+from .quantize import dequantize_int16, quantize_int16
 
 __all__ = [
     "MAGIC",
@@ -29,6 +29,7 @@ __all__ = [
     "Kind",
     "Flag",
     "Header",
+    "encode_header",
     "MAX_VERTICES",
     "MAX_SAMPLES",
     "MAX_MARKERS",
@@ -47,7 +48,6 @@ __all__ = [
     "decode",
     "parse_header",
     "frame_size",
-    "quantize_int16_fast",
     "vertex_frame_size",
     "vertex_frame_header",
 ]
@@ -117,18 +117,6 @@ class Header:
     wall: float = 0.0
     flags: int = 0
     version: int = VERSION
-
-    def serialize(self) -> bytes:
-        return _HEADER.pack(
-            MAGIC,
-            self.version,
-            int(self.kind),
-            self.flags,
-            self.seq & 0xFFFFFFFF,
-            self.count,
-            self.t,
-            self.wall,
-        )
 
 
 def parse_header(data: bytes | bytearray | memoryview) -> Header:
@@ -228,7 +216,10 @@ Frame = Union[VertexFrame, PcmChunk, MarkerFrame, FapFrame]
 # ---------------------------------------------------------------------------------------------- encode
 
 
-def _header(kind: Kind, seq: int, count: int, t: float, wall: float, flags: int = 0) -> bytes:
+def encode_header(
+    kind: Kind, seq: int, count: int, t: float, wall: float = 0.0, flags: int = 0
+) -> bytes:
+    """The 32-byte header of a frame (``seq`` wraps to uint32; ``count`` must fit in one)."""
     if not 0 <= count <= 0xFFFFFFFF:
         raise ValueError(f"count {count} does not fit in uint32")
     return _HEADER.pack(
@@ -246,63 +237,21 @@ def _vertices_array(vertices: np.ndarray) -> np.ndarray:
 def encode_vertices_f32(vertices: np.ndarray, *, seq: int, t: float, wall: float = 0.0) -> bytes:
     """``(V, 3)`` positions -> a ``VERTICES_F32`` frame (32 + 12·V bytes, one copy of the data)."""
     v = _vertices_array(vertices)
-    return b"".join((_header(Kind.VERTICES_F32, seq, v.shape[0], t, wall), v))
+    return b"".join((encode_header(Kind.VERTICES_F32, seq, v.shape[0], t, wall), v))
 
 
 def encode_vertices_i16(vertices: np.ndarray, *, seq: int, t: float, wall: float = 0.0) -> bytes:
     """``(V, 3)`` positions -> a ``VERTICES_I16`` frame (56 + 6·V bytes), quantised per frame with
     ``quantize_int16`` (error per axis at most half a step, ``scale / 2``)."""
     v = _vertices_array(vertices)
-    q, offset, scale = quantize_int16_fast(v)
+    q, offset, scale = quantize_int16(v)
     return b"".join(
         (
-            _header(Kind.VERTICES_I16, seq, v.shape[0], t, wall),
+            encode_header(Kind.VERTICES_I16, seq, v.shape[0], t, wall),
             _I16_SUB.pack(*offset.tolist(), *scale.tolist()),
             q,
         )
     )
-
-
-#: Rows per block in ``quantize_int16_fast``: a ``(V, 3)`` array is processed as ``(V / 256, 768)``.
-_QBLOCK = 256
-
-
-def quantize_int16_fast(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``quantize_int16`` with the same result bit for bit, faster on ``(V, 3) float32``.
-
-    NumPy applies a ``(3,)`` offset to ``(V, 3)`` rows slowly (an inner loop of length 3), so the
-    rows are viewed as blocks ``(V / 256, 768)`` and the offset and scale tiled to 768 values;
-    the same float32 operations in the same order give the same bits.
-    """
-    v = _vertices_array(v)
-    n = v.shape[0]
-    if n == 0:  # nothing to quantise; any positive scale is valid
-        return np.zeros((0, 3), "<i2"), np.zeros(3, np.float32), np.ones(3, np.float32)
-    m = _QBLOCK
-    n_main = (n // m) * m
-    main, tail = v[:n_main].reshape(-1, 3 * m), v[n_main:]
-    parts_lo, parts_hi = [], []
-    if n_main:
-        parts_lo.append(main.min(axis=0).reshape(m, 3).min(axis=0))
-        parts_hi.append(main.max(axis=0).reshape(m, 3).max(axis=0))
-    if len(tail):
-        parts_lo.append(tail.min(axis=0))
-        parts_hi.append(tail.max(axis=0))
-    lo = np.min(parts_lo, axis=0).astype(np.float32)
-    hi = np.max(parts_hi, axis=0).astype(np.float32)
-    offset = ((lo + hi) / 2).astype(np.float32)
-    scale = np.maximum((hi - lo) / np.float32(65534.0), np.float32(1e-12)).astype(np.float32)
-    out = np.empty_like(v)
-    if n_main:
-        block = out[:n_main].reshape(-1, 3 * m)
-        np.subtract(main, np.tile(offset, m), out=block)
-        np.divide(block, np.tile(scale, m), out=block)
-    if len(tail):
-        np.subtract(tail, offset, out=out[n_main:])
-        np.divide(out[n_main:], scale, out=out[n_main:])
-    np.rint(out, out=out)
-    np.clip(out, -32767, 32767, out=out)
-    return out.astype("<i2"), offset, scale
 
 
 def vertex_frame_size(encoding: str, n_vertices: int) -> int:
@@ -326,12 +275,12 @@ def vertex_frame_header(
 ) -> bytes:
     """The bytes of a vertex frame that precede its vertex data (the header, plus ``offset`` and
     ``scale`` for i16). Followed by the ``(V, 3)`` data (``<f4``, or ``<i2`` from
-    ``quantize_int16_fast``) they make exactly the frame ``encode_vertices`` makes."""
+    ``quantize.quantize_int16``) they make exactly the frame ``encode_vertices`` makes."""
     if encoding == "f32":
-        return _header(Kind.VERTICES_F32, seq, n_vertices, t, wall)
+        return encode_header(Kind.VERTICES_F32, seq, n_vertices, t, wall)
     return b"".join(
         (
-            _header(Kind.VERTICES_I16, seq, n_vertices, t, wall),
+            encode_header(Kind.VERTICES_I16, seq, n_vertices, t, wall),
             _I16_SUB.pack(*offset.tolist(), *scale.tolist()),
         )
     )
@@ -374,7 +323,7 @@ def encode_pcm(
         raise ValueError(f"bad rate {rate} or sample offset {sample_offset}")
     t = sample_offset / rate if t is None else t
     return b"".join(
-        (_header(kind, seq, s.shape[0], t, wall), _PCM_SUB.pack(rate, 1, 0, sample_offset), s)
+        (encode_header(kind, seq, s.shape[0], t, wall), _PCM_SUB.pack(rate, 1, 0, sample_offset), s)
     )
 
 
@@ -383,7 +332,7 @@ def encode_markers(markers: np.ndarray, *, seq: int, t: float, wall: float = 0.0
     m = np.ascontiguousarray(markers, dtype="<f4")
     if m.ndim != 2 or m.shape[1] != 3:
         raise ValueError(f"markers must be (M, 3), got {m.shape}")
-    return b"".join((_header(Kind.MARKERS, seq, m.shape[0], t, wall), m))
+    return b"".join((encode_header(Kind.MARKERS, seq, m.shape[0], t, wall), m))
 
 
 def encode_faps(
@@ -415,7 +364,7 @@ def encode_faps(
     _check_expression(exp)
     return b"".join(
         (
-            _header(Kind.FAPS, seq, N_FAP_VALUES, t, wall, flags),
+            encode_header(Kind.FAPS, seq, N_FAP_VALUES, t, wall, flags),
             _FAP_SUB.pack(*vis, *exp),
             np.ascontiguousarray(v).tobytes(),
         )
