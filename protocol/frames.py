@@ -19,6 +19,7 @@ from typing import Union
 
 import numpy as np
 
+from .encoding import VertexEncoding
 from .errors import FrameError
 from .quantize import dequantize_int16, quantize_int16
 
@@ -254,7 +255,7 @@ def encode_vertices_i16(vertices: np.ndarray, *, seq: int, t: float, wall: float
     )
 
 
-def vertex_frame_size(encoding: str, n_vertices: int) -> int:
+def vertex_frame_size(encoding: VertexEncoding, n_vertices: int) -> int:
     """Bytes of a vertex frame of ``n_vertices`` in ``encoding`` (``"f32"`` | ``"i16"``)."""
     if encoding == "f32":
         return HEADER_SIZE + 12 * n_vertices
@@ -264,7 +265,7 @@ def vertex_frame_size(encoding: str, n_vertices: int) -> int:
 
 
 def vertex_frame_header(
-    encoding: str,
+    encoding: VertexEncoding,
     n_vertices: int,
     *,
     seq: int,
@@ -287,7 +288,7 @@ def vertex_frame_header(
 
 
 def encode_vertices(
-    vertices: np.ndarray, encoding: str, *, seq: int, t: float, wall: float = 0.0
+    vertices: np.ndarray, encoding: VertexEncoding, *, seq: int, t: float, wall: float = 0.0
 ) -> bytes:
     """``encoding`` is ``"f32"`` or ``"i16"``."""
     if encoding == "f32":

@@ -21,6 +21,7 @@ from pydantic import (
     field_validator,
 )
 
+from .encoding import VERTEX_ENCODINGS, SampleFormat, VertexEncoding
 from .errors import MessageError
 
 __all__ = [
@@ -48,7 +49,7 @@ PROTOCOL_VERSION = 1
 MAX_MESSAGE_BYTES = 256 * 1024
 
 InputKind = Literal["fap", "audio", "markers"]
-Encoding = Literal["f32", "i16", "compact"]
+Encoding = VertexEncoding  #: the one vocabulary, ``encoding.py``
 
 
 class _Model(BaseModel):
@@ -66,7 +67,7 @@ class ProducerHello(_Model):
     protocol: int = PROTOCOL_VERSION
     input: InputKind = "fap"
     rate: int | None = Field(None, gt=0, le=384_000, description="audio: sample rate in Hz")
-    sample_format: Encoding | None = Field(None, description="audio: 'i16' or 'f32' PCM chunks")
+    sample_format: SampleFormat | None = Field(None, description="audio: 'i16' or 'f32' PCM chunks")
     markers: list[str] | None = Field(
         None, max_length=4096, description="markers: name of each marker, in frame order"
     )
@@ -265,7 +266,7 @@ class SessionCreated(_Model):
     )
     watch_url: str = Field(
         description="WebSocket path for viewers (send 'Authorization: Bearer VIEWER_TOKEN'; "
-        "add ?encoding=f32|i16|compact)"
+        f"add ?encoding={'|'.join(VERTEX_ENCODINGS)})"
     )
 
 

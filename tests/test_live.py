@@ -209,7 +209,8 @@ def test_tokens_and_roles(live):
     _expect_refusal(produce_with(""), CloseCode.UNAUTHORIZED)
     _expect_refusal(watch_with("wrong"), CloseCode.UNAUTHORIZED)
     _expect_refusal(watch_with(s.producer_token), CloseCode.FORBIDDEN)
-    _expect_refusal(watch_with(s.viewer_token, encoding="f16"), CloseCode.BAD_REQUEST)
+    err = _expect_refusal(watch_with(s.viewer_token, encoding="f16"), CloseCode.BAD_REQUEST)
+    assert "unknown encoding 'f16'; use f32, i16 or compact" in str(err)
 
     async def other_session():
         async with watch(live.url, "nope", s.viewer_token):

@@ -15,6 +15,7 @@ import os
 import sys
 import time
 
+from ...protocol.encoding import VERTEX_ENCODINGS
 from . import add_token_argument
 
 
@@ -23,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--session", required=True, help="session id")
     add_token_argument(p, "viewer")
     p.add_argument(
-        "--encoding", choices=("compact", "i16", "f32"), default="compact",
+        "--encoding", choices=VERTEX_ENCODINGS, default="compact",
         help="vertex encoding (default compact: within the session's tolerance, a few %% of i16)",
     )
     p.add_argument("--save", metavar="OUT.npz",
