@@ -19,9 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import FileFormatError, show_token as _show
+from .units import UNIT_MM, unit_name
 
-#: Length units a take may declare, in millimetres.
-UNITS_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 
 
 class MarkerFileError(FileFormatError):
@@ -36,7 +35,8 @@ class MarkerTake:
         names: marker names, ``M`` of them, unique.
         xyz: ``(T, M, 3) float64`` positions in ``units``; NaN = occluded.
         fps: frames per second.
-        units: ``"mm" | "cm" | "m" | "in"`` or None when the file does not say.
+        units: a name in ``units.UNIT_MM`` (``"mm"``, ``"cm"``, ...) or None when the file does
+            not say.
         t0: media time of frame 0 in seconds.
     """
 
@@ -52,41 +52,21 @@ class MarkerTake:
 
     def in_mm(self) -> np.ndarray:
         """``(T, M, 3) float64`` positions in millimetres (units must be known)."""
-        if self.units not in UNITS_MM:
+        if self.units not in UNIT_MM:
             raise MarkerFileError(f"units of the take are unknown ({self.units!r}); declare them")
-        return self.xyz * UNITS_MM[self.units]
+        return self.xyz * UNIT_MM[self.units]
 
 
 def normalise_units(text: str | None, where: str = "") -> str | None:
     """``"Millimeters"``/``"mm"`` -> ``"mm"`` etc.; None stays None; unknown -> MarkerFileError."""
     if text is None:
         return None
-    t = text.strip().lower().rstrip(".")
-    aliases = {
-        "mm": "mm",
-        "millimeter": "mm",
-        "millimeters": "mm",
-        "millimetre": "mm",
-        "millimetres": "mm",
-        "cm": "cm",
-        "centimeter": "cm",
-        "centimeters": "cm",
-        "centimetre": "cm",
-        "centimetres": "cm",
-        "m": "m",
-        "meter": "m",
-        "meters": "m",
-        "metre": "m",
-        "metres": "m",
-        "in": "in",
-        "inch": "in",
-        "inches": "in",
-    }
-    if t not in aliases:
+    name = unit_name(text) if isinstance(text, str) else None
+    if name is None:
         raise MarkerFileError(
-            f"unknown length unit {_show(text)}; use one of mm, cm, m, in", where=where
+            f"unknown length unit {_show(str(text))}; use one of {', '.join(UNIT_MM)}", where=where
         )
-    return aliases[t]
+    return name
 
 
 def check_take(take: MarkerTake, where: str = "") -> MarkerTake:

@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 
 from ...protocol.markers_file import (
-    UNITS_MM,
     MarkerFileError,
     MarkerTake,
     check_take,
@@ -26,6 +25,7 @@ from ...protocol.markers_file import (
     write_csv,
     write_trc,
 )
+from ...protocol.units import UNIT_MM
 from ..errors import InputError
 
 log = logging.getLogger(__name__)
@@ -36,6 +36,9 @@ SUFFIXES = (".c3d", ".trc", ".csv")
 
 #: Plausible extent of a face's marker cloud in millimetres (for unit detection and checks).
 FACE_SPAN_MM = (40.0, 600.0)
+#: Units a take without declared units is guessed in, first match first (``dm`` is left out: a
+#: cloud that fits in dm fits in m or cm too, and no capture system writes dm).
+GUESSED_UNITS = ("mm", "cm", "m", "in")
 
 
 def read_take(
@@ -82,9 +85,9 @@ def detect_units(xyz: np.ndarray) -> str | None:
     span = _span(xyz)
     if span is None:
         return None
-    for unit in ("mm", "cm", "m", "in"):
+    for unit in GUESSED_UNITS:
         lo, hi = FACE_SPAN_MM
-        if lo <= span * UNITS_MM[unit] <= hi:
+        if lo <= span * UNIT_MM[unit] <= hi:
             return unit
     return None
 
@@ -106,13 +109,13 @@ def _check_units(take: MarkerTake, where: str) -> str:
         if guess is None:
             raise InputError(
                 "the take does not declare its units and they cannot be guessed "
-                f"(marker cloud spans {span} units); pass units (mm, cm, m, in)",
+                f"(marker cloud spans {span} units); pass units ({', '.join(UNIT_MM)})",
                 where=where,
             )
         log.info("%s: units not declared; the marker cloud's size says %s", where, guess)
         return guess
     if span is not None and span > 0:
-        mm = span * UNITS_MM[take.units]
+        mm = span * UNIT_MM[take.units]
         lo, hi = FACE_SPAN_MM
         if not (lo / 4 <= mm <= hi * 4):
             guess = detect_units(take.xyz)
