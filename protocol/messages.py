@@ -8,10 +8,11 @@ model by it. The REST session routes use ``SessionCreate`` / ``SessionCreated`` 
 from __future__ import annotations
 
 import json
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Union, get_args
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Discriminator,
     Field,
@@ -26,7 +27,10 @@ from .errors import MessageError
 
 __all__ = [
     "PROTOCOL_VERSION",
+    "INPUT_ALIASES",
+    "INPUT_KINDS",
     "InputKind",
+    "InputKindIn",
     "Encoding",
     "ProducerHello",
     "Ready",
@@ -48,7 +52,20 @@ PROTOCOL_VERSION = 1
 #: Largest JSON control message a receiver parses (a marker name table fits easily).
 MAX_MESSAGE_BYTES = 256 * 1024
 
+#: What a session's producer sends: FAP frames, PCM audio or optical markers (canonical names).
 InputKind = Literal["fap", "audio", "markers"]
+INPUT_KINDS: tuple[InputKind, ...] = get_args(InputKind)
+#: Other names a client may send for an input kind (``mocap``: what batch jobs called markers).
+INPUT_ALIASES: dict[str, InputKind] = {"mocap": "markers"}
+
+
+def input_kind_name(value: object) -> object:
+    """``value`` with an alias replaced by its canonical ``InputKind`` (anything else unchanged)."""
+    return INPUT_ALIASES.get(value, value) if isinstance(value, str) else value
+
+
+#: An ``InputKind`` a client sends: an alias is accepted and read as its canonical name.
+InputKindIn = Annotated[InputKind, BeforeValidator(input_kind_name)]
 Encoding = VertexEncoding  #: the one vocabulary, ``encoding.py``
 
 
@@ -65,7 +82,7 @@ class ProducerHello(_Model):
     type: Literal["hello"] = "hello"
     role: Literal["producer"] = "producer"
     protocol: int = PROTOCOL_VERSION
-    input: InputKind = "fap"
+    input: InputKindIn = "fap"
     rate: int | None = Field(None, gt=0, le=384_000, description="audio: sample rate in Hz")
     sample_format: SampleFormat | None = Field(None, description="audio: 'i16' or 'f32' PCM chunks")
     markers: list[str] | None = Field(
@@ -235,7 +252,7 @@ class SessionCreate(_Model):
         max_length=512,
         description="face name or server-side mesh path; default: the server's face",
     )
-    input: InputKind = "fap"
+    input: InputKindIn = "fap"
     fps: float = Field(
         60.0,
         gt=0,
