@@ -22,7 +22,6 @@ from .errors import FileFormatError, show_token as _show
 from .units import UNIT_MM, unit_name
 
 
-
 class MarkerFileError(FileFormatError):
     """A malformed take file; ``where`` names the file/line/column at fault."""
 
@@ -612,3 +611,26 @@ def write_c3d(take: MarkerTake, *, processor: str = "intel", scale: float = -1.0
         frames = codec.encode_reals(pts)
     return bytes(header) + section + frames.ljust(-(-len(frames) // 512) * 512, b"\x00")
 
+
+
+#: Suffixes of take files, each read by ``read_take``.
+TAKE_SUFFIXES: tuple[str, ...] = (".c3d", ".trc", ".csv")
+
+
+def read_take(data: bytes, suffix: str, *, where: str = "") -> MarkerTake:
+    """A take file's bytes -> its take, by its ``suffix`` (``.c3d``, ``.trc`` or ``.csv``, any case):
+    the one reading path of server and clients. TRC and CSV text is UTF-8 (bad bytes are replaced,
+    then refused by the parser if they matter).
+
+    Raises:
+        MarkerFileError: an unknown suffix, or a malformed file (``where`` names the place).
+    """
+    s = suffix.lower()
+    if s == ".c3d":
+        return read_c3d(data, where=where)
+    if s in (".trc", ".csv"):
+        text = data.decode("utf-8", errors="replace")
+        return read_trc(text, where=where) if s == ".trc" else read_csv(text, where=where)
+    raise MarkerFileError(
+        f"unsupported take type {s!r}; use one of {', '.join(TAKE_SUFFIXES)}", where=where
+    )

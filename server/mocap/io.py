@@ -14,13 +14,12 @@ from pathlib import Path
 import numpy as np
 
 from ...protocol.markers_file import (
+    TAKE_SUFFIXES,
     MarkerFileError,
     MarkerTake,
     check_take,
     normalise_units,
-    read_c3d,
-    read_csv,
-    read_trc,
+    read_take as parse_take,
     write_c3d,
     write_csv,
     write_trc,
@@ -32,7 +31,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["SUFFIXES", "MarkerTake", "detect_units", "read_take", "write_take"]
 
-SUFFIXES = (".c3d", ".trc", ".csv")
+SUFFIXES = TAKE_SUFFIXES
 
 #: Plausible extent of a face's marker cloud in millimetres (for unit detection and checks).
 FACE_SPAN_MM = (40.0, 600.0)
@@ -57,16 +56,7 @@ def read_take(
     if not path.is_file():
         raise InputError("no such take file", where=where)
     try:
-        if suffix == ".c3d":
-            take = read_c3d(path.read_bytes(), where=where)
-        elif suffix == ".trc":
-            take = read_trc(path.read_text(encoding="utf-8", errors="replace"), where=where)
-        elif suffix == ".csv":
-            take = read_csv(path.read_text(encoding="utf-8", errors="replace"), where=where)
-        else:
-            raise InputError(
-                f"unsupported take type {suffix!r}; use one of {', '.join(SUFFIXES)}", where=where
-            )
+        take = parse_take(path.read_bytes(), suffix, where=where)
         if units is not None:
             take.units = normalise_units(units, where="units")
         elif take.units is None and default_units is not None:
