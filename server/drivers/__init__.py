@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ...protocol.markers_file import TAKE_SUFFIXES
 from ...protocol.messages import INPUT_ALIASES, InputKind
 from ..errors import InputError
 from ..state import Animation
@@ -44,7 +45,7 @@ DRIVERS: dict[InputKind, Driver] = {
         ),
         Driver(
             "markers",
-            (".c3d", ".trc", ".csv"),
+            TAKE_SUFFIXES,
             "facecast.server.mocap.driver",
             ("facecast.server.mocap.live", "MarkerLiveDriver"),
         ),
