@@ -7,8 +7,6 @@ caller, or detected from the size of the marker cloud (a face spans roughly 100-
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +24,7 @@ from ...protocol.markers_file import (
 )
 from ...protocol.units import UNIT_MM
 from ..errors import InputError
+from ..output.atomic import write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -128,17 +127,10 @@ def write_take(take: MarkerTake, path: str | Path) -> Path:
             f"cannot write {suffix!r}; use one of {', '.join(SUFFIXES)}", where=str(path)
         )
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=suffix, prefix=".tmp-", dir=path.parent)
-    os.close(fd)
-    os.chmod(tmp, 0o644)  # mkstemp makes 0600; takes are ordinary files
-    try:
-        if suffix == ".c3d":
-            Path(tmp).write_bytes(write_c3d(take))
-        else:
-            text = write_trc(take, filename=path.name) if suffix == ".trc" else write_csv(take)
-            Path(tmp).write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    if suffix == ".c3d":
+        data = write_c3d(take)
+    else:
+        text = write_trc(take, filename=path.name) if suffix == ".trc" else write_csv(take)
+        data = text.encode("utf-8")
+    write_bytes_atomic(path, data)
     return path
