@@ -69,7 +69,7 @@ def normalise_units(text: str | None, where: str = "") -> str | None:
 
 
 def check_take(take: MarkerTake, where: str = "") -> MarkerTake:
-    """Validate shapes, names and rate; return the take (xyz as float64)."""
+    """Validate shapes, names, rate and units; return the take (xyz as float64)."""
     xyz = np.asarray(take.xyz, dtype=np.float64)
     if xyz.ndim != 3 or xyz.shape[2] != 3 or xyz.shape[1] != len(take.names):
         raise MarkerFileError(
@@ -82,6 +82,10 @@ def check_take(take: MarkerTake, where: str = "") -> MarkerTake:
         raise MarkerFileError("the take names no markers", where=where)
     if not (math.isfinite(take.fps) and take.fps > 0):
         raise MarkerFileError(f"frame rate must be positive, got {take.fps}", where=where)
+    if take.units is not None and take.units not in UNIT_MM:
+        raise MarkerFileError(
+            f"units {_show(str(take.units))} are not one of {', '.join(UNIT_MM)}", where=where
+        )
     if np.isinf(xyz).any():
         xyz = np.where(np.isinf(xyz), np.nan, xyz)
     take.xyz = xyz

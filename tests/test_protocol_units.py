@@ -42,3 +42,12 @@ def test_takes_and_faces_convert_with_the_same_factors():
     xyz = np.ones((1, 1, 3))
     for u, f in UNIT_MM.items():
         assert MarkerTake(["a"], xyz, 60.0, u).in_mm()[0, 0, 0] == f
+
+
+@pytest.mark.parametrize("fmt", ["c3d", "trc", "csv"])
+def test_writers_refuse_units_outside_the_table(fmt):
+    from facecast.protocol import markers_file as mf
+
+    take = MarkerTake(["a", "b"], np.ones((2, 2, 3)), 60.0, "furlong")
+    with pytest.raises(MarkerFileError, match="'furlong' are not one of mm, cm, dm, m, in"):
+        getattr(mf, f"write_{fmt}")(take)
