@@ -12,7 +12,7 @@ from facecast.client import files as client_files
 from facecast.client import jobs as client_jobs
 from facecast.protocol.markers_file import MarkerTake
 from facecast.server.api.security import resolve_admin_key
-from facecast.server.mocap.io import read_take, write_take
+from facecast.server.mocap.io import write_take
 from facecast.server.output import atomic
 
 
@@ -64,7 +64,9 @@ def test_a_failed_download_leaves_nothing(tmp_path):
     def handler(request: httpx.Request) -> httpx.Response:
         return httpx.Response(404, json={"error": "no such job", "detail": "no such job", "status": 404})
 
-    with httpx.Client(transport=httpx.MockTransport(handler), base_url="http://x") as client:
-        with pytest.raises(Exception, match="no such job"):
-            client_jobs.download(client, "j1", tmp_path / "r.glb")
+    with (
+        httpx.Client(transport=httpx.MockTransport(handler), base_url="http://x") as client,
+        pytest.raises(Exception, match="no such job"),
+    ):
+        client_jobs.download(client, "j1", tmp_path / "r.glb")
     assert list(tmp_path.iterdir()) == []

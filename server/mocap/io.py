@@ -11,13 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ...protocol import markers_file
 from ...protocol.markers_file import (
     TAKE_SUFFIXES,
     MarkerFileError,
     MarkerTake,
     check_take,
     normalise_units,
-    read_take as parse_take,
     write_c3d,
     write_csv,
     write_trc,
@@ -55,7 +55,7 @@ def read_take(
     if not path.is_file():
         raise InputError("no such take file", where=where)
     try:
-        take = parse_take(path.read_bytes(), suffix, where=where)
+        take = markers_file.read_take(path.read_bytes(), suffix, where=where)
         if units is not None:
             take.units = normalise_units(units, where="units")
         elif take.units is None and default_units is not None:
