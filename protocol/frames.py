@@ -30,7 +30,6 @@ __all__ = [
     "Kind",
     "Flag",
     "Header",
-    "encode_header",
     "MAX_VERTICES",
     "MAX_SAMPLES",
     "MAX_MARKERS",
@@ -217,10 +216,7 @@ Frame = Union[VertexFrame, PcmChunk, MarkerFrame, FapFrame]
 # ---------------------------------------------------------------------------------------------- encode
 
 
-def encode_header(
-    kind: Kind, seq: int, count: int, t: float, wall: float = 0.0, flags: int = 0
-) -> bytes:
-    """The 32-byte header of a frame (``seq`` wraps to uint32; ``count`` must fit in one)."""
+def _header(kind: Kind, seq: int, count: int, t: float, wall: float, flags: int = 0) -> bytes:
     if not 0 <= count <= 0xFFFFFFFF:
         raise ValueError(f"count {count} does not fit in uint32")
     return _HEADER.pack(
@@ -238,7 +234,7 @@ def _vertices_array(vertices: np.ndarray) -> np.ndarray:
 def encode_vertices_f32(vertices: np.ndarray, *, seq: int, t: float, wall: float = 0.0) -> bytes:
     """``(V, 3)`` positions -> a ``VERTICES_F32`` frame (32 + 12·V bytes, one copy of the data)."""
     v = _vertices_array(vertices)
-    return b"".join((encode_header(Kind.VERTICES_F32, seq, v.shape[0], t, wall), v))
+    return b"".join((_header(Kind.VERTICES_F32, seq, v.shape[0], t, wall), v))
 
 
 def encode_vertices_i16(vertices: np.ndarray, *, seq: int, t: float, wall: float = 0.0) -> bytes:
@@ -248,7 +244,7 @@ def encode_vertices_i16(vertices: np.ndarray, *, seq: int, t: float, wall: float
     q, offset, scale = quantize_int16(v)
     return b"".join(
         (
-            encode_header(Kind.VERTICES_I16, seq, v.shape[0], t, wall),
+            _header(Kind.VERTICES_I16, seq, v.shape[0], t, wall),
             _I16_SUB.pack(*offset.tolist(), *scale.tolist()),
             q,
         )
@@ -278,10 +274,10 @@ def vertex_frame_header(
     ``scale`` for i16). Followed by the ``(V, 3)`` data (``<f4``, or ``<i2`` from
     ``quantize.quantize_int16``) they make exactly the frame ``encode_vertices`` makes."""
     if encoding == "f32":
-        return encode_header(Kind.VERTICES_F32, seq, n_vertices, t, wall)
+        return _header(Kind.VERTICES_F32, seq, n_vertices, t, wall)
     return b"".join(
         (
-            encode_header(Kind.VERTICES_I16, seq, n_vertices, t, wall),
+            _header(Kind.VERTICES_I16, seq, n_vertices, t, wall),
             _I16_SUB.pack(*offset.tolist(), *scale.tolist()),
         )
     )
@@ -324,7 +320,7 @@ def encode_pcm(
         raise ValueError(f"bad rate {rate} or sample offset {sample_offset}")
     t = sample_offset / rate if t is None else t
     return b"".join(
-        (encode_header(kind, seq, s.shape[0], t, wall), _PCM_SUB.pack(rate, 1, 0, sample_offset), s)
+        (_header(kind, seq, s.shape[0], t, wall), _PCM_SUB.pack(rate, 1, 0, sample_offset), s)
     )
 
 
@@ -333,7 +329,7 @@ def encode_markers(markers: np.ndarray, *, seq: int, t: float, wall: float = 0.0
     m = np.ascontiguousarray(markers, dtype="<f4")
     if m.ndim != 2 or m.shape[1] != 3:
         raise ValueError(f"markers must be (M, 3), got {m.shape}")
-    return b"".join((encode_header(Kind.MARKERS, seq, m.shape[0], t, wall), m))
+    return b"".join((_header(Kind.MARKERS, seq, m.shape[0], t, wall), m))
 
 
 def encode_faps(
@@ -365,7 +361,7 @@ def encode_faps(
     _check_expression(exp)
     return b"".join(
         (
-            encode_header(Kind.FAPS, seq, N_FAP_VALUES, t, wall, flags),
+            _header(Kind.FAPS, seq, N_FAP_VALUES, t, wall, flags),
             _FAP_SUB.pack(*vis, *exp),
             np.ascontiguousarray(v).tobytes(),
         )
