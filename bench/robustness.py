@@ -430,7 +430,7 @@ def peak_memory(kinds: list[str], timeout: float) -> list[dict]:
     cfg = ServerConfig()
     rows = []
     for kind in kinds:
-        input_kind = {"fap": "fap", "trc": "mocap"}.get(kind, "audio")
+        input_kind = {"fap": "fap", "trc": "markers"}.get(kind, "audio")
         # the limit of this kind of upload where the server has one, else the general one
         limit = cfg.upload_limit(input_kind)[0] if hasattr(cfg, "upload_limit") else cfg.max_upload_bytes
         with tempfile.TemporaryDirectory() as tmp:

@@ -14,6 +14,7 @@ from typing import Any
 import httpx
 
 from ..protocol.errors import UpstreamError
+from .files import atomic_path
 
 FINAL = ("done", "failed", "cancelled")
 #: Render options that only make sense locally (the server picks its own backend and device).
@@ -112,18 +113,12 @@ def wait(client: httpx.Client, job_id: str, *, progress: Callable[[float, str], 
 def download(client: httpx.Client, job_id: str, output: Path) -> Path:
     """Stream a job's result to ``output`` through a temporary file in the same folder, then rename."""
     output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(f".{output.name}.{os.getpid()}.part")
-    try:
-        with client.stream("GET", f"/v1/jobs/{job_id}/result") as resp:
-            if resp.status_code >= 400:
-                resp.read()
-                _check(resp, f"result of job {job_id}", job_id)
-            with open(tmp, "wb") as fh:
-                for chunk in resp.iter_bytes(1 << 16):
-                    fh.write(chunk)
-        os.replace(tmp, output)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_path(output) as tmp, client.stream("GET", f"/v1/jobs/{job_id}/result") as resp:
+        if resp.status_code >= 400:
+            resp.read()
+            _check(resp, f"result of job {job_id}", job_id)
+        with open(tmp, "wb") as fh:
+            fh.writelines(resp.iter_bytes(1 << 16))
     return output
 
 

@@ -36,7 +36,7 @@ except ImportError:  # pragma: no cover - a platform without its wheel
     _deflate = zlib
 
 from .errors import FrameError
-from .frames import HEADER_SIZE, MAX_VERTICES, Header, Kind, parse_header
+from .frames import HEADER_SIZE, MAX_VERTICES, Header, Kind, _header, parse_header
 
 __all__ = [
     "KEY",
@@ -326,11 +326,11 @@ class CompactEncoder:
             self._key_t = float(t)
         else:
             self._since_key += 1
-        hdr = Header(
+        hdr = _header(  # the one header packer (frames.py)
             Kind.VERTICES_COMPACT, seq, len(v), float(t), float(wall), KEY if is_key else 0
         )
         sub = _SUB.pack(self._key_seq, self.step, g, planes, 0, len(z))
-        return b"".join((hdr.serialize(), sub, tr.astype("<f4").tobytes(), z))
+        return b"".join((hdr, sub, tr.astype("<f4").tobytes(), z))
 
 
 class CompactDecoder:

@@ -19,8 +19,9 @@ from typing import Union
 
 import numpy as np
 
+from .encoding import VertexEncoding
 from .errors import FrameError
-from .quantize import dequantize_int16
+from .quantize import dequantize_int16, quantize_int16
 
 __all__ = [
     "MAGIC",
@@ -47,7 +48,6 @@ __all__ = [
     "decode",
     "parse_header",
     "frame_size",
-    "quantize_int16_fast",
     "vertex_frame_size",
     "vertex_frame_header",
 ]
@@ -117,18 +117,6 @@ class Header:
     wall: float = 0.0
     flags: int = 0
     version: int = VERSION
-
-    def serialize(self) -> bytes:
-        return _HEADER.pack(
-            MAGIC,
-            self.version,
-            int(self.kind),
-            self.flags,
-            self.seq & 0xFFFFFFFF,
-            self.count,
-            self.t,
-            self.wall,
-        )
 
 
 def parse_header(data: bytes | bytearray | memoryview) -> Header:
@@ -253,7 +241,7 @@ def encode_vertices_i16(vertices: np.ndarray, *, seq: int, t: float, wall: float
     """``(V, 3)`` positions -> a ``VERTICES_I16`` frame (56 + 6·V bytes), quantised per frame with
     ``quantize_int16`` (error per axis at most half a step, ``scale / 2``)."""
     v = _vertices_array(vertices)
-    q, offset, scale = quantize_int16_fast(v)
+    q, offset, scale = quantize_int16(v)
     return b"".join(
         (
             _header(Kind.VERTICES_I16, seq, v.shape[0], t, wall),
@@ -263,49 +251,7 @@ def encode_vertices_i16(vertices: np.ndarray, *, seq: int, t: float, wall: float
     )
 
 
-#: Rows per block in ``quantize_int16_fast``: a ``(V, 3)`` array is processed as ``(V / 256, 768)``.
-_QBLOCK = 256
-
-
-def quantize_int16_fast(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``quantize_int16`` with the same result bit for bit, faster on ``(V, 3) float32``.
-
-    NumPy applies a ``(3,)`` offset to ``(V, 3)`` rows slowly (an inner loop of length 3), so the
-    rows are viewed as blocks ``(V / 256, 768)`` and the offset and scale tiled to 768 values;
-    the same float32 operations in the same order give the same bits.
-    """
-    v = _vertices_array(v)
-    n = v.shape[0]
-    if n == 0:  # nothing to quantise; any positive scale is valid
-        return np.zeros((0, 3), "<i2"), np.zeros(3, np.float32), np.ones(3, np.float32)
-    m = _QBLOCK
-    n_main = (n // m) * m
-    main, tail = v[:n_main].reshape(-1, 3 * m), v[n_main:]
-    parts_lo, parts_hi = [], []
-    if n_main:
-        parts_lo.append(main.min(axis=0).reshape(m, 3).min(axis=0))
-        parts_hi.append(main.max(axis=0).reshape(m, 3).max(axis=0))
-    if len(tail):
-        parts_lo.append(tail.min(axis=0))
-        parts_hi.append(tail.max(axis=0))
-    lo = np.min(parts_lo, axis=0).astype(np.float32)
-    hi = np.max(parts_hi, axis=0).astype(np.float32)
-    offset = ((lo + hi) / 2).astype(np.float32)
-    scale = np.maximum((hi - lo) / np.float32(65534.0), np.float32(1e-12)).astype(np.float32)
-    out = np.empty_like(v)
-    if n_main:
-        block = out[:n_main].reshape(-1, 3 * m)
-        np.subtract(main, np.tile(offset, m), out=block)
-        np.divide(block, np.tile(scale, m), out=block)
-    if len(tail):
-        np.subtract(tail, offset, out=out[n_main:])
-        np.divide(out[n_main:], scale, out=out[n_main:])
-    np.rint(out, out=out)
-    np.clip(out, -32767, 32767, out=out)
-    return out.astype("<i2"), offset, scale
-
-
-def vertex_frame_size(encoding: str, n_vertices: int) -> int:
+def vertex_frame_size(encoding: VertexEncoding, n_vertices: int) -> int:
     """Bytes of a vertex frame of ``n_vertices`` in ``encoding`` (``"f32"`` | ``"i16"``)."""
     if encoding == "f32":
         return HEADER_SIZE + 12 * n_vertices
@@ -315,7 +261,7 @@ def vertex_frame_size(encoding: str, n_vertices: int) -> int:
 
 
 def vertex_frame_header(
-    encoding: str,
+    encoding: VertexEncoding,
     n_vertices: int,
     *,
     seq: int,
@@ -326,7 +272,7 @@ def vertex_frame_header(
 ) -> bytes:
     """The bytes of a vertex frame that precede its vertex data (the header, plus ``offset`` and
     ``scale`` for i16). Followed by the ``(V, 3)`` data (``<f4``, or ``<i2`` from
-    ``quantize_int16_fast``) they make exactly the frame ``encode_vertices`` makes."""
+    ``quantize.quantize_int16``) they make exactly the frame ``encode_vertices`` makes."""
     if encoding == "f32":
         return _header(Kind.VERTICES_F32, seq, n_vertices, t, wall)
     return b"".join(
@@ -338,7 +284,7 @@ def vertex_frame_header(
 
 
 def encode_vertices(
-    vertices: np.ndarray, encoding: str, *, seq: int, t: float, wall: float = 0.0
+    vertices: np.ndarray, encoding: VertexEncoding, *, seq: int, t: float, wall: float = 0.0
 ) -> bytes:
     """``encoding`` is ``"f32"`` or ``"i16"``."""
     if encoding == "f32":

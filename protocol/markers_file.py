@@ -19,9 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import FileFormatError, show_token as _show
-
-#: Length units a take may declare, in millimetres.
-UNITS_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+from .units import UNIT_MM, unit_name
 
 
 class MarkerFileError(FileFormatError):
@@ -36,7 +34,8 @@ class MarkerTake:
         names: marker names, ``M`` of them, unique.
         xyz: ``(T, M, 3) float64`` positions in ``units``; NaN = occluded.
         fps: frames per second.
-        units: ``"mm" | "cm" | "m" | "in"`` or None when the file does not say.
+        units: a name in ``units.UNIT_MM`` (``"mm"``, ``"cm"``, ...) or None when the file does
+            not say.
         t0: media time of frame 0 in seconds.
     """
 
@@ -52,45 +51,25 @@ class MarkerTake:
 
     def in_mm(self) -> np.ndarray:
         """``(T, M, 3) float64`` positions in millimetres (units must be known)."""
-        if self.units not in UNITS_MM:
+        if self.units not in UNIT_MM:
             raise MarkerFileError(f"units of the take are unknown ({self.units!r}); declare them")
-        return self.xyz * UNITS_MM[self.units]
+        return self.xyz * UNIT_MM[self.units]
 
 
 def normalise_units(text: str | None, where: str = "") -> str | None:
     """``"Millimeters"``/``"mm"`` -> ``"mm"`` etc.; None stays None; unknown -> MarkerFileError."""
     if text is None:
         return None
-    t = text.strip().lower().rstrip(".")
-    aliases = {
-        "mm": "mm",
-        "millimeter": "mm",
-        "millimeters": "mm",
-        "millimetre": "mm",
-        "millimetres": "mm",
-        "cm": "cm",
-        "centimeter": "cm",
-        "centimeters": "cm",
-        "centimetre": "cm",
-        "centimetres": "cm",
-        "m": "m",
-        "meter": "m",
-        "meters": "m",
-        "metre": "m",
-        "metres": "m",
-        "in": "in",
-        "inch": "in",
-        "inches": "in",
-    }
-    if t not in aliases:
+    name = unit_name(text) if isinstance(text, str) else None
+    if name is None:
         raise MarkerFileError(
-            f"unknown length unit {_show(text)}; use one of mm, cm, m, in", where=where
+            f"unknown length unit {_show(str(text))}; use one of {', '.join(UNIT_MM)}", where=where
         )
-    return aliases[t]
+    return name
 
 
 def check_take(take: MarkerTake, where: str = "") -> MarkerTake:
-    """Validate shapes, names and rate; return the take (xyz as float64)."""
+    """Validate shapes, names, rate and units; return the take (xyz as float64)."""
     xyz = np.asarray(take.xyz, dtype=np.float64)
     if xyz.ndim != 3 or xyz.shape[2] != 3 or xyz.shape[1] != len(take.names):
         raise MarkerFileError(
@@ -103,6 +82,10 @@ def check_take(take: MarkerTake, where: str = "") -> MarkerTake:
         raise MarkerFileError("the take names no markers", where=where)
     if not (math.isfinite(take.fps) and take.fps > 0):
         raise MarkerFileError(f"frame rate must be positive, got {take.fps}", where=where)
+    if take.units is not None and take.units not in UNIT_MM:
+        raise MarkerFileError(
+            f"units {_show(str(take.units))} are not one of {', '.join(UNIT_MM)}", where=where
+        )
     if np.isinf(xyz).any():
         xyz = np.where(np.isinf(xyz), np.nan, xyz)
     take.xyz = xyz
@@ -632,3 +615,26 @@ def write_c3d(take: MarkerTake, *, processor: str = "intel", scale: float = -1.0
         frames = codec.encode_reals(pts)
     return bytes(header) + section + frames.ljust(-(-len(frames) // 512) * 512, b"\x00")
 
+
+
+#: Suffixes of take files, each read by ``read_take``.
+TAKE_SUFFIXES: tuple[str, ...] = (".c3d", ".trc", ".csv")
+
+
+def read_take(data: bytes, suffix: str, *, where: str = "") -> MarkerTake:
+    """A take file's bytes -> its take, by its ``suffix`` (``.c3d``, ``.trc`` or ``.csv``, any case):
+    the one reading path of server and clients. TRC and CSV text is UTF-8 (bad bytes are replaced,
+    then refused by the parser if they matter).
+
+    Raises:
+        MarkerFileError: an unknown suffix, or a malformed file (``where`` names the place).
+    """
+    s = suffix.lower()
+    if s == ".c3d":
+        return read_c3d(data, where=where)
+    if s in (".trc", ".csv"):
+        text = data.decode("utf-8", errors="replace")
+        return read_trc(text, where=where) if s == ".trc" else read_csv(text, where=where)
+    raise MarkerFileError(
+        f"unsupported take type {s!r}; use one of {', '.join(TAKE_SUFFIXES)}", where=where
+    )

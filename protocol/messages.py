@@ -8,10 +8,11 @@ model by it. The REST session routes use ``SessionCreate`` / ``SessionCreated`` 
 from __future__ import annotations
 
 import json
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Union, get_args
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Discriminator,
     Field,
@@ -21,11 +22,15 @@ from pydantic import (
     field_validator,
 )
 
+from .encoding import VERTEX_ENCODINGS, SampleFormat, VertexEncoding
 from .errors import MessageError
 
 __all__ = [
     "PROTOCOL_VERSION",
+    "INPUT_ALIASES",
+    "INPUT_KINDS",
     "InputKind",
+    "InputKindIn",
     "Encoding",
     "ProducerHello",
     "Ready",
@@ -47,8 +52,21 @@ PROTOCOL_VERSION = 1
 #: Largest JSON control message a receiver parses (a marker name table fits easily).
 MAX_MESSAGE_BYTES = 256 * 1024
 
+#: What a session's producer sends: FAP frames, PCM audio or optical markers (canonical names).
 InputKind = Literal["fap", "audio", "markers"]
-Encoding = Literal["f32", "i16", "compact"]
+INPUT_KINDS: tuple[InputKind, ...] = get_args(InputKind)
+#: Other names a client may send for an input kind (``mocap``: what batch jobs called markers).
+INPUT_ALIASES: dict[str, InputKind] = {"mocap": "markers"}
+
+
+def input_kind_name(value: object) -> object:
+    """``value`` with an alias replaced by its canonical ``InputKind`` (anything else unchanged)."""
+    return INPUT_ALIASES.get(value, value) if isinstance(value, str) else value
+
+
+#: An ``InputKind`` a client sends: an alias is accepted and read as its canonical name.
+InputKindIn = Annotated[InputKind, BeforeValidator(input_kind_name)]
+Encoding = VertexEncoding  #: the one vocabulary, ``encoding.py``
 
 
 class _Model(BaseModel):
@@ -64,9 +82,9 @@ class ProducerHello(_Model):
     type: Literal["hello"] = "hello"
     role: Literal["producer"] = "producer"
     protocol: int = PROTOCOL_VERSION
-    input: InputKind = "fap"
+    input: InputKindIn = "fap"
     rate: int | None = Field(None, gt=0, le=384_000, description="audio: sample rate in Hz")
-    sample_format: Encoding | None = Field(None, description="audio: 'i16' or 'f32' PCM chunks")
+    sample_format: SampleFormat | None = Field(None, description="audio: 'i16' or 'f32' PCM chunks")
     markers: list[str] | None = Field(
         None, max_length=4096, description="markers: name of each marker, in frame order"
     )
@@ -234,7 +252,7 @@ class SessionCreate(_Model):
         max_length=512,
         description="face name or server-side mesh path; default: the server's face",
     )
-    input: InputKind = "fap"
+    input: InputKindIn = "fap"
     fps: float = Field(
         60.0,
         gt=0,
@@ -265,7 +283,7 @@ class SessionCreated(_Model):
     )
     watch_url: str = Field(
         description="WebSocket path for viewers (send 'Authorization: Bearer VIEWER_TOKEN'; "
-        "add ?encoding=f32|i16|compact)"
+        f"add ?encoding={'|'.join(VERTEX_ENCODINGS)})"
     )
 
 

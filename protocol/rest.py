@@ -9,6 +9,8 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
+from .messages import InputKindIn
+
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
 FINAL_STATES: frozenset[str] = frozenset({"done", "failed", "cancelled"})
 OutputFormat = Literal["glb", "npz", "fap"]
@@ -95,7 +97,7 @@ class JobStatus(BaseModel):
     progress: float = Field(ge=0.0, le=1.0)
     error: str | None = None
     input_name: str = Field(description="the uploaded file's name (display only)")
-    input_kind: str = Field(description="fap | audio | mocap")
+    input_kind: InputKindIn = Field(description="fap | audio | markers")
     input_bytes: int
     options: JobOptions
     attempts: int = Field(description="times a worker started this job (restarts resume it)")

@@ -124,8 +124,8 @@ def test_an_operator_mesh_path_never_reaches_a_client(tmp_path, monkeypatch):
 
 def test_upload_limits_by_kind_never_exceed_the_overall_limit(tmp_path):
     cfg = ServerConfig(data_dir=tmp_path)
-    fap, markers, audio = (cfg.upload_limit(k)[0] for k in ("fap", "mocap", "audio"))
+    fap, markers, audio = (cfg.upload_limit(k)[0] for k in ("fap", "markers", "audio"))
     assert fap < markers < audio <= cfg.max_upload_bytes
-    assert cfg.upload_limit("mocap")[1] == "FACECAST_MAX_MARKERS_BYTES"
+    assert cfg.upload_limit("markers")[1] == "FACECAST_MAX_MARKERS_BYTES"
     small = ServerConfig(data_dir=tmp_path, max_upload_bytes=1000)
-    assert all(small.upload_limit(k) == (1000, "FACECAST_MAX_UPLOAD_BYTES") for k in ("fap", "mocap", "audio"))
+    assert all(small.upload_limit(k) == (1000, "FACECAST_MAX_UPLOAD_BYTES") for k in ("fap", "markers", "audio"))

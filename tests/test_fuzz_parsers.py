@@ -17,9 +17,7 @@ from facecast.protocol.fap_file import FapFormatError, read_fap
 from facecast.protocol.markers_file import (
     MarkerFileError,
     MarkerTake,
-    read_c3d,
-    read_csv,
-    read_trc,
+    read_take,
     write_c3d,
     write_csv,
     write_trc,
@@ -115,7 +113,7 @@ def test_c3d_fuzz(c3d_seeds):
     @given(mutated(c3d_seeds))
     def check(data):
         try:
-            _check_take(read_c3d(data, where="f.c3d"))
+            _check_take(read_take(data, ".c3d", where="f.c3d"))  # the one reading path
         except MarkerFileError:
             pass
 
@@ -125,13 +123,12 @@ def test_c3d_fuzz(c3d_seeds):
 @pytest.mark.parametrize("fmt", ["trc", "csv"])
 def test_text_take_fuzz(fmt):
     seed = (write_trc if fmt == "trc" else write_csv)(_take()).encode()
-    read = read_trc if fmt == "trc" else read_csv
 
     @FUZZ
     @given(mutated([seed], text=True))
     def check(data):
         try:
-            _check_take(read(data.decode("utf-8", errors="replace"), where=f"f.{fmt}"))
+            _check_take(read_take(data, f".{fmt}", where=f"f.{fmt}"))
         except MarkerFileError:
             pass
 

@@ -311,7 +311,7 @@ def test_a_mocap_take_renders_with_its_layout_as_content(srv, mocap_take, n_vert
                                                   "layout": ("take.layout.json", layout.read_bytes())},
                       data={"face": FACE, "format": "npz"}, headers=srv.admin_headers, timeout=60)
     assert resp.status_code == 202, resp.text
-    assert resp.json()["input_kind"] == "mocap" and resp.json()["options"]["layout"] == "uploaded"
+    assert resp.json()["input_kind"] == "markers" and resp.json()["options"]["layout"] == "uploaded"
     done = wait(srv, resp.json()["id"])
     assert done["status"] == "done", done
     npz = httpx.get(srv.url + done["result_url"], headers=srv.admin_headers, timeout=60).content

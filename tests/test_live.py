@@ -209,7 +209,8 @@ def test_tokens_and_roles(live):
     _expect_refusal(produce_with(""), CloseCode.UNAUTHORIZED)
     _expect_refusal(watch_with("wrong"), CloseCode.UNAUTHORIZED)
     _expect_refusal(watch_with(s.producer_token), CloseCode.FORBIDDEN)
-    _expect_refusal(watch_with(s.viewer_token, encoding="f16"), CloseCode.BAD_REQUEST)
+    err = _expect_refusal(watch_with(s.viewer_token, encoding="f16"), CloseCode.BAD_REQUEST)
+    assert "unknown encoding 'f16'; use f32, i16 or compact" in str(err)
 
     async def other_session():
         async with watch(live.url, "nope", s.viewer_token):
@@ -634,6 +635,32 @@ def test_marker_hello_without_layout_is_refused(live):
 
     assert "layout" in str(_expect_refusal(main(), CloseCode.BAD_REQUEST))
 
+
+
+def test_mocap_is_read_as_markers_in_rest_and_in_the_producer_hello(live):
+    """One input registry: ``markers`` is the kind's name; ``mocap`` (the batch jobs' old name)
+    is accepted wherever a client sends a kind, raw JSON included."""
+    from facecast.client.api import ws_url
+    from websockets.asyncio.client import connect
+
+    r = httpx.post(live.url + "/v1/sessions", json={"input": "mocap", "face": FACE},
+                   headers=live.admin_headers)
+    assert r.status_code == 201 and r.json()["input"] == "markers", r.text
+    s = r.json()
+
+    async def main():
+        url = ws_url(live.url, f"/v1/sessions/{s['id']}/produce", token=s["producer_token"])
+        async with connect(url) as ws:
+            await ws.send(json.dumps({"type": "hello", "role": "producer", "input": "mocap",
+                                      "markers": ["A", "B"]}))
+            return json.loads(await ws.recv())
+
+    try:
+        msg = run(main())
+    finally:
+        run(_close(live, s["id"]))
+    # matched as a marker hello (not "input does not match the session"): refused for its layout
+    assert msg["type"] == "error" and msg["where"] == "hello.layout", msg
 
 def test_websocket_frames_built_once_match_the_websockets_library():
     from facecast.server.live.wire import ws_binary_frame

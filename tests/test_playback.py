@@ -113,7 +113,7 @@ def test_playing_a_marker_take_with_its_layout_moves_the_face(server, tmp_path):
     assert r.status_code == 400 and "layout" in r.json()["error"], r.text  # no layout: says what is missing
     r = httpx.post(url, files={"file": ("take.trc", trc)}, data={"layout": json.dumps(syn.layout)}, timeout=120)
     assert r.status_code == 202, r.text
-    assert r.json()["kind"] == "mocap" and r.json()["frames"] == 60
+    assert r.json()["kind"] == "markers" and r.json()["frames"] == 60
     frames = asyncio.run(collect(server, s, 20))
     pos = np.stack([f.positions() for f in frames])
     assert np.isfinite(pos).all() and np.abs(pos - pos[0]).max() > 0.1
@@ -139,7 +139,7 @@ def test_play_never_opens_a_file_the_client_names(server, tmp_path):
     r = httpx.post(url, files={"file": ("take.trc", trc), "layout": ("take.layout.json", json.dumps(syn.layout))},
                    timeout=120)
     assert r.status_code == 202, r.text
-    assert r.json()["kind"] == "mocap" and r.json()["frames"] == 30
+    assert r.json()["kind"] == "markers" and r.json()["frames"] == 30
 
 
 def test_play_errors_name_no_server_path_and_uploads_live_in_the_data_dir(server):

@@ -70,17 +70,42 @@ def test_i16_round_trip(v):
     assert np.all(err <= f.scale * 0.5 + 1e-6 * (np.abs(v).max(axis=0) + 1) * 4)
 
 
+def _reference_quantize_int16(vertices):
+    """The plain broadcast formula the wire has always carried (the old ``protocol/quantize.py``)."""
+    v = np.asarray(vertices, dtype=np.float32)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    offset = ((lo + hi) / 2).astype(np.float32)
+    scale = np.maximum((hi - lo) / np.float32(65534.0), np.float32(1e-12)).astype(np.float32)
+    q = np.clip(np.rint((v - offset) / scale), -32767, 32767).astype(np.int16)
+    return q, offset, scale
+
+
 @pytest.mark.parametrize("n", [1, 255, 256, 257, 513, 24_850])
-def test_fast_quantiser_equals_the_reference_on_face_sized_arrays(n, rng):
+def test_quantiser_equals_the_reference_on_face_sized_arrays(n, rng):
     v = (rng.standard_normal((n, 3)) * 90 + [0, 20, 60]).astype(np.float32)
-    for a, b in zip(fr.quantize_int16_fast(v), quantize_int16(v)):
+    for a, b in zip(quantize_int16(v), _reference_quantize_int16(v)):
         assert a.dtype == b.dtype and np.array_equal(a, b)
 
 
 @given(vertex_arrays(600).filter(lambda a: len(a) > 0))
-def test_fast_quantiser_equals_the_reference(v):
-    for a, b in zip(fr.quantize_int16_fast(v), quantize_int16(v)):
+def test_quantiser_equals_the_reference(v):
+    for a, b in zip(quantize_int16(v), _reference_quantize_int16(v)):
         assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
+def test_i16_wire_bytes_of_a_real_face_frame_are_the_reference_formulas(rng):
+    from facecast.server.faces import load_face
+
+    rest = load_face("default").vertices  # (24848, 3) float32: the built-in head
+    frame = (rest + rng.normal(scale=0.5, size=rest.shape)).astype(np.float32)
+    for v in (rest, frame, frame.astype(np.float64), frame[::-1]):
+        q, offset, scale = _reference_quantize_int16(v)
+        want = b"".join((
+            struct.pack("<4sBBHIIdd", b"FCST", 1, 2, 0, 41, len(v), 2.5, 1700000000.0),
+            struct.pack("<3f3f", *offset.tolist(), *scale.tolist()),
+            q.astype("<i2").tobytes(),
+        ))
+        assert fr.encode_vertices_i16(v, seq=41, t=2.5, wall=1700000000.0) == want
 
 
 def test_empty_vertex_frames_round_trip():

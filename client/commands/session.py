@@ -12,6 +12,8 @@ import json
 import os
 import sys
 
+from ...protocol.messages import INPUT_ALIASES, INPUT_KINDS
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="action", metavar="ACTION")
@@ -20,7 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     c.add_argument("--face", help="face name (default: the server's face)")
     c.add_argument(
         "--input",
-        choices=("fap", "audio", "markers"),
+        choices=INPUT_KINDS + tuple(INPUT_ALIASES),  # the server reads an alias as its kind
         default="fap",
         help="what the producer sends",
     )

@@ -83,15 +83,11 @@ def _read_audio(path: Path):
 
 
 def _read_markers(path: Path):
-    from ...protocol.markers_file import MarkerFileError, read_c3d, read_csv, read_trc
+    from ...protocol.markers_file import MarkerFileError, read_take
 
     try:
-        suffix = path.suffix.lower()
-        if suffix == ".c3d":
-            return read_c3d(path.read_bytes(), where=str(path))
-        reader = read_trc if suffix == ".trc" else read_csv
-        return reader(path.read_text(), where=str(path))
-    except (OSError, UnicodeDecodeError) as e:
+        return read_take(path.read_bytes(), path.suffix, where=str(path))
+    except OSError as e:
         raise StreamError(f"{path}: cannot read: {e}") from None
     except MarkerFileError as e:
         raise StreamError(str(e)) from None

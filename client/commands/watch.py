@@ -11,10 +11,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import sys
 import time
 
+from ...protocol.encoding import VERTEX_ENCODINGS
 from . import add_token_argument
 
 
@@ -23,7 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--session", required=True, help="session id")
     add_token_argument(p, "viewer")
     p.add_argument(
-        "--encoding", choices=("compact", "i16", "f32"), default="compact",
+        "--encoding", choices=VERTEX_ENCODINGS, default="compact",
         help="vertex encoding (default compact: within the session's tolerance, a few %% of i16)",
     )
     p.add_argument("--save", metavar="OUT.npz",
@@ -84,16 +84,17 @@ def _save(path: str, got: list) -> str:
     """Write ``seq (n,) u32``, ``t (n,) f64`` and ``vertices (n, V, 3) f32`` to ``path`` atomically."""
     import numpy as np
 
+    from ..files import atomic_path
+
     out = path if path.endswith(".npz") else path + ".npz"
-    tmp = out + ".part.npz"
     V = got[0].positions().shape[0] if got else 0
-    np.savez(
-        tmp,
-        seq=np.array([f.frame.header.seq for f in got], np.uint32),
-        t=np.array([f.frame.header.t for f in got], np.float64),
-        vertices=np.stack([f.positions() for f in got]) if got else np.zeros((0, V, 3), np.float32),
-    )
-    os.replace(tmp, out)
+    with atomic_path(out) as tmp, open(tmp, "wb") as fh:
+        np.savez(
+            fh,
+            seq=np.array([f.frame.header.seq for f in got], np.uint32),
+            t=np.array([f.frame.header.t for f in got], np.float64),
+            vertices=np.stack([f.positions() for f in got]) if got else np.zeros((0, V, 3), np.float32),
+        )
     return out
 
 

@@ -50,10 +50,10 @@ class ServerConfig(LocalSettings):
     job_retention_hours: float = Field(default=7 * 24.0, ge=0)  # finished jobs kept this long; 0 = forever
 
     def upload_limit(self, kind: str) -> tuple[int, str]:
-        """``(bytes, variable)``: the largest upload of an input kind (fap | audio | mocap) and the
+        """``(bytes, variable)``: the largest upload of an input kind (fap | audio | markers) and the
         ``FACECAST_*`` variable that raises it."""
         own = {"fap": ("max_fap_bytes", self.max_fap_bytes), "audio": ("max_audio_bytes", self.max_audio_bytes),
-               "mocap": ("max_markers_bytes", self.max_markers_bytes)}.get(kind)
+               "markers": ("max_markers_bytes", self.max_markers_bytes)}.get(kind)
         if own is None or own[1] >= self.max_upload_bytes:
             return self.max_upload_bytes, "FACECAST_MAX_UPLOAD_BYTES"
         return own[1], f"FACECAST_{own[0].upper()}"

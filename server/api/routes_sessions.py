@@ -19,6 +19,7 @@ from fastapi import APIRouter, Depends, Request, Response, WebSocket, status
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from ...protocol import frames
+from ...protocol.encoding import parse_vertex_encoding
 from ...protocol.errors import CloseCode, FrameError, MessageError
 from ...protocol.messages import (
     ErrorMessage,
@@ -460,13 +461,10 @@ async def watch(
     session = await _authorise(ws, session_id, token, "viewer")
     if session is None:
         return
-    if encoding not in ("f32", "i16", "compact"):
-        await _refuse(
-            ws,
-            CloseCode.BAD_REQUEST,
-            f"unknown encoding {encoding!r}; use f32, i16 or compact",
-            where="encoding",
-        )
+    try:
+        encoding = parse_vertex_encoding(encoding)
+    except MessageError as e:
+        await _refuse(ws, e.close_code, str(e), where=e.where)
         return
     if len(session.viewers) + session.joining >= session.spec.max_viewers:
         await _refuse(

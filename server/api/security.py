@@ -3,12 +3,12 @@ from __future__ import annotations
 
 import hmac
 import logging
-import os
 import stat
 from pathlib import Path
 
 from fastapi import HTTPException, Request, status
 
+from ..output.atomic import write_bytes_atomic
 from ..tokens import new_token
 
 log = logging.getLogger(__name__)
@@ -38,12 +38,7 @@ def resolve_admin_key(configured: str | None, data_dir: Path) -> tuple[str, bool
             return key, False
     data_dir.mkdir(parents=True, exist_ok=True)
     key = new_token()
-    tmp = path.with_name(f".admin.key.{os.getpid()}.tmp")
-    tmp.unlink(missing_ok=True)
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)  # never readable by others, not even briefly
-    with os.fdopen(fd, "w") as fh:
-        fh.write(key + "\n")
-    tmp.replace(path)
+    write_bytes_atomic(path, (key + "\n").encode(), mode=0o600)  # never readable by others, not even briefly
     return key, True
 
 

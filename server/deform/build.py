@@ -11,8 +11,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -191,12 +189,8 @@ def get_operator(face, control_vertices, *, engine: str = "fp", constrained=None
 
 
 def _save_atomic(op: Operator, path: Path) -> None:
-    """Write ``op`` to ``path`` through a unique temporary file in the same folder."""
-    fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=".npz", dir=path.parent)
-    os.close(fd)
+    """Write ``op`` to ``path`` atomically (``Operator.save``); a failure only logs a warning."""
     try:
-        op.save(Path(tmp))
-        os.replace(tmp, path)
+        op.save(path)
     except OSError as e:
         log.warning("could not write operator cache %s: %s", path, e)
-        Path(tmp).unlink(missing_ok=True)

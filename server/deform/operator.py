@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..output.atomic import atomic_path
+
 
 @dataclass(eq=False)
 class Operator:
@@ -64,9 +66,8 @@ class Operator:
         """Write to ``path`` (.npz) atomically."""
         arrays = {"dense": self.dense} if not self.is_sparse else {
             "indptr": self.indptr, "indices": self.indices, "weights": self.weights}
-        tmp = Path(str(path) + ".tmp.npz")
-        np.savez(tmp, n=np.array([self.n_vertices, self.n_controls]), meta=np.array(repr(self.meta)), **arrays)
-        tmp.replace(path)
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, n=np.array([self.n_vertices, self.n_controls]), meta=np.array(repr(self.meta)), **arrays)
 
     @classmethod
     def load(cls, path: Path) -> "Operator":

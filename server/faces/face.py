@@ -7,6 +7,8 @@ from functools import cached_property
 
 import numpy as np
 
+from ...protocol.units import UNIT_MM  # millimetres per mesh unit (also imported from here)
+
 #: Rigid groups, in the order of the per-frame transform array ``(G, 3, 4)``. Every vertex belongs
 #: to exactly one: the head carries everything; the jaw also carries the lower teeth, lower gums and
 #: tongue; each eyeball turns about its own centre.
@@ -15,8 +17,6 @@ RIGID_GROUPS: tuple[str, ...] = ("head", "jaw", "eye_l", "eye_r")
 #: Parts that ride on the jaw (when the face has them).
 JAW_PARTS: tuple[str, ...] = ("teeth_lower", "gums_lower", "tongue")
 
-#: Millimetres per mesh unit.
-UNIT_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "dm": 100.0, "m": 1000.0, "in": 25.4}
 
 #: The 84 MPEG-4 feature point ids, by group (ISO/IEC 14496-2 FDP groups 2-11).
 FP_GROUP_SIZES: dict[int, int] = {2: 14, 3: 14, 4: 6, 5: 4, 6: 4, 7: 1, 8: 10, 9: 15, 10: 10, 11: 6}

@@ -13,7 +13,7 @@ from pathlib import Path
 from python_multipart import MultipartParser
 from python_multipart.multipart import parse_options_header
 
-from ..drivers import DRIVERS
+from ..drivers import SUFFIXES
 from ..errors import FacecastError, InputError, PayloadTooLarge, UnsupportedMedia
 
 #: Form field values larger than this are refused (they are short options)...
@@ -43,7 +43,7 @@ class UploadParser:
     def __init__(self, boundary: bytes, dest: Path, limit: int, file_field: str = "file",
                  kind_limit: Callable[[str], tuple[int, str]] | None = None):
         """``limit``: bytes of the file at most; ``kind_limit(kind) -> (bytes, variable)`` lowers it
-        for the file's input kind (``fap`` | ``audio`` | ``mocap``) once its first bytes are known."""
+        for the file's input kind (``fap`` | ``audio`` | ``markers``) once its first bytes are known."""
         self.dest = dest
         self.limit = limit
         self.limit_variable = "FACECAST_MAX_UPLOAD_BYTES"
@@ -235,10 +235,10 @@ def upload_layout(kind: str, text: str | None) -> dict | None:
     """The checked marker layout sent with an upload of input ``kind`` (its ``layout`` part, or None):
     a mocap take needs one, other kinds take none; InputError otherwise."""
     if text is not None:
-        if kind != "mocap":
+        if kind != "markers":
             raise InputError(f"a layout goes with mocap input (.c3d/.trc/.csv), not {kind}", where="layout")
         return parse_layout(text)
-    if kind == "mocap":
+    if kind == "markers":
         raise InputError("a mocap take needs its marker layout: send the layout file's content as a "
                          "'layout' part (curl -F layout=@take.layout.json)", where="layout")
     return None
@@ -297,10 +297,10 @@ def input_suffix(filename: str | None, head: bytes) -> str:
     """The input type of an upload: its file name's suffix if known, else what its content looks like."""
     name = safe_display_name(filename, "")
     suffix = ("." + name.rsplit(".", 1)[-1].lower()) if "." in name else ""
-    if suffix in DRIVERS:
+    if suffix in SUFFIXES:
         return suffix
     sniffed = sniff_suffix(head)
     if sniffed:
         return sniffed
     raise UnsupportedMedia(f"cannot tell what kind of input {name or 'the upload'!r} is; name the file with "
-                           f"one of {', '.join(sorted(DRIVERS))}", where="file")
+                           f"one of {', '.join(sorted(SUFFIXES))}", where="file")

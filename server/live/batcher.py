@@ -7,7 +7,7 @@ them together (``Animator.solve_batch``, vectorised), deforms them with one ``de
 25k-vertex head) and writes each frame once, already framed for WebSocket, into one buffer per
 batch. On a host-memory OpenCL device the int16 quantisation of batches of 2 frames or more runs
 on the device too (``quantize_cl``), outside the GIL; elsewhere in NumPy
-(``frames.quantize_int16_fast``).
+(``quantize.quantize_int16``).
 The callbacks then run on their event loop, all of a batch in one wake-up. Under light load a
 batch holds one frame and adds no delay; under heavy load batches grow by themselves.
 """
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from ...protocol import frames
+from ...protocol import frames, quantize
 from ..state import FaceState
 from ..backends.opencl import DeviceQuantizer, aligned_empty
 from .wire import ws_binary_header
@@ -94,7 +94,7 @@ def encode_batch(
         for i in i16:  # frame by frame: one frame's temporaries stay in the CPU cache
             seq, t, wall, _ = jobs[i]
             buf, h = _framed_buffer("i16", n)
-            q, offset, scale = frames.quantize_int16_fast(verts[i])
+            q, offset, scale = quantize.quantize_int16(verts[i])
             buf[h : h + sub] = frames.vertex_frame_header(
                 "i16", n, seq=seq, t=t, wall=wall, offset=offset, scale=scale
             )

@@ -16,16 +16,12 @@ import numpy as np
 from ...protocol import frames
 from ...protocol.errors import CloseCode, FrameError, MessageError
 from ...protocol.messages import FapMessage, ProducerHello
+from ..drivers import DRIVERS
 from ..errors import FacecastError, Unavailable
 from ..state import FaceState, zero_faps
 
 log = logging.getLogger(__name__)
 
-#: input kind -> (module, class) of its live driver.
-DRIVERS: dict[str, tuple[str, str]] = {
-    "audio": ("facecast.server.audio.live", "AudioLiveDriver"),
-    "markers": ("facecast.server.mocap.live", "MarkerLiveDriver"),
-}
 
 
 class InputUnavailable(Unavailable):
@@ -40,7 +36,10 @@ class BadHello(MessageError):
 
 def load_driver_class(kind: str) -> Any:
     """The live driver class for ``kind`` (``audio`` | ``markers``); ``InputUnavailable`` if absent."""
-    module, name = DRIVERS[kind]
+    live = DRIVERS[kind].live  # the one registry, ``server/drivers``
+    if live is None:
+        raise ValueError(f"input {kind!r} has no live driver (its frames map straight to states)")
+    module, name = live
     try:
         return getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError) as e:

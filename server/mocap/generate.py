@@ -36,6 +36,7 @@ from scipy.spatial import cKDTree
 from ...protocol.markers_file import MarkerTake
 from ..errors import InputError
 from ..faces.face import Face
+from ..output.atomic import atomic_path
 from ..paths import cache_dir, shared_data
 from .io import write_take
 from .sampling import farthest_points
@@ -137,9 +138,8 @@ def load_expressions(face: Face | None = None) -> tuple[list[str], np.ndarray]:
         names.append(f.name[: -len(".obj.xz")])
         deltas.append(v - face.vertices)
     arr = np.stack(deltas).astype(np.float32)
-    tmp = cache.with_suffix(".tmp.npz")
-    np.savez(tmp, names=np.array(names), deltas=arr)
-    tmp.replace(cache)
+    with atomic_path(cache) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, names=np.array(names), deltas=arr)
     return names, arr
 
 

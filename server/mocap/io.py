@@ -7,35 +7,36 @@ caller, or detected from the size of the marker cloud (a face spans roughly 100-
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from ...protocol import markers_file
 from ...protocol.markers_file import (
-    UNITS_MM,
+    TAKE_SUFFIXES,
     MarkerFileError,
     MarkerTake,
     check_take,
     normalise_units,
-    read_c3d,
-    read_csv,
-    read_trc,
     write_c3d,
     write_csv,
     write_trc,
 )
+from ...protocol.units import UNIT_MM
 from ..errors import InputError
+from ..output.atomic import write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
 __all__ = ["SUFFIXES", "MarkerTake", "detect_units", "read_take", "write_take"]
 
-SUFFIXES = (".c3d", ".trc", ".csv")
+SUFFIXES = TAKE_SUFFIXES
 
 #: Plausible extent of a face's marker cloud in millimetres (for unit detection and checks).
 FACE_SPAN_MM = (40.0, 600.0)
+#: Units a take without declared units is guessed in, first match first (``dm`` is left out: a
+#: cloud that fits in dm fits in m or cm too, and no capture system writes dm).
+GUESSED_UNITS = ("mm", "cm", "m", "in")
 
 
 def read_take(
@@ -54,16 +55,7 @@ def read_take(
     if not path.is_file():
         raise InputError("no such take file", where=where)
     try:
-        if suffix == ".c3d":
-            take = read_c3d(path.read_bytes(), where=where)
-        elif suffix == ".trc":
-            take = read_trc(path.read_text(encoding="utf-8", errors="replace"), where=where)
-        elif suffix == ".csv":
-            take = read_csv(path.read_text(encoding="utf-8", errors="replace"), where=where)
-        else:
-            raise InputError(
-                f"unsupported take type {suffix!r}; use one of {', '.join(SUFFIXES)}", where=where
-            )
+        take = markers_file.read_take(path.read_bytes(), suffix, where=where)
         if units is not None:
             take.units = normalise_units(units, where="units")
         elif take.units is None and default_units is not None:
@@ -82,9 +74,9 @@ def detect_units(xyz: np.ndarray) -> str | None:
     span = _span(xyz)
     if span is None:
         return None
-    for unit in ("mm", "cm", "m", "in"):
+    for unit in GUESSED_UNITS:
         lo, hi = FACE_SPAN_MM
-        if lo <= span * UNITS_MM[unit] <= hi:
+        if lo <= span * UNIT_MM[unit] <= hi:
             return unit
     return None
 
@@ -106,13 +98,13 @@ def _check_units(take: MarkerTake, where: str) -> str:
         if guess is None:
             raise InputError(
                 "the take does not declare its units and they cannot be guessed "
-                f"(marker cloud spans {span} units); pass units (mm, cm, m, in)",
+                f"(marker cloud spans {span} units); pass units ({', '.join(UNIT_MM)})",
                 where=where,
             )
         log.info("%s: units not declared; the marker cloud's size says %s", where, guess)
         return guess
     if span is not None and span > 0:
-        mm = span * UNITS_MM[take.units]
+        mm = span * UNIT_MM[take.units]
         lo, hi = FACE_SPAN_MM
         if not (lo / 4 <= mm <= hi * 4):
             guess = detect_units(take.xyz)
@@ -135,17 +127,10 @@ def write_take(take: MarkerTake, path: str | Path) -> Path:
             f"cannot write {suffix!r}; use one of {', '.join(SUFFIXES)}", where=str(path)
         )
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=suffix, prefix=".tmp-", dir=path.parent)
-    os.close(fd)
-    os.chmod(tmp, 0o644)  # mkstemp makes 0600; takes are ordinary files
-    try:
-        if suffix == ".c3d":
-            Path(tmp).write_bytes(write_c3d(take))
-        else:
-            text = write_trc(take, filename=path.name) if suffix == ".trc" else write_csv(take)
-            Path(tmp).write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    if suffix == ".c3d":
+        data = write_c3d(take)
+    else:
+        text = write_trc(take, filename=path.name) if suffix == ".trc" else write_csv(take)
+        data = text.encode("utf-8")
+    write_bytes_atomic(path, data)
     return path

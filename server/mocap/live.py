@@ -18,8 +18,8 @@ import logging
 
 import numpy as np
 
-from ...protocol.errors import FrameError
-from ...protocol.markers_file import UNITS_MM
+from ...protocol.errors import FrameError, show_token
+from ...protocol.units import UNIT_MM, unit_name
 from ..errors import InputError
 from ..faces.face import Face
 from ..state import FaceState
@@ -80,6 +80,13 @@ class MarkerLiveDriver:
             raise InputError("marker names in the hello message repeat", where="hello.markers")
         self.index = match_names(self.names, self.layout, "hello.markers")
         self.units = units or self.layout.units
+        if units:  # the hello's units: a name or spelling of ``protocol.units``
+            self.units = unit_name(units)
+            if self.units is None:
+                raise InputError(
+                    f"unknown length unit {show_token(units)}; use one of {', '.join(UNIT_MM)}",
+                    where="hello.units",
+                )
         self.fps = float(fps)
         self.neutral_frames = max(1, int(neutral_frames))
         self.kernel, self.mu = kernel, mu
@@ -133,7 +140,7 @@ class MarkerLiveDriver:
                 return []  # nothing visible yet to tell the units by
             self.units = guess
             log.info("live markers: units not declared; the marker cloud's size says %s", guess)
-        z = xyz * UNITS_MM[self.units]
+        z = xyz * UNIT_MM[self.units]
         if self._last_t is not None:
             dt = float(t) - self._last_t
             if dt > 0 and abs(dt - self.kf.dt) > 0.02 * self.kf.dt and dt < 1.0:
@@ -192,7 +199,7 @@ class MarkerLiveDriver:
             self._neutral_n = 0
             self._gathered = []
             self.bad_frames += 1
-            guess = detect_units(neutral[None] / UNITS_MM[self.units])
+            guess = detect_units(neutral[None] / UNIT_MM[self.units])
             raise MarkerFrameError(
                 f"in {self.units} the markers span {span:.3g} mm, not a face"
                 + (f"; they look like {guess}" if guess else "")

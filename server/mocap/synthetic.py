@@ -138,9 +138,9 @@ def synthetic_take(
                 length = int(rng.integers(3, max(4, n // 8)))
                 start = int(rng.integers(hold + 1, max(hold + 2, n - length)))
                 xyz[start : start + length, j] = np.nan
-    from ...protocol.markers_file import UNITS_MM
+    from ...protocol.units import UNIT_MM
 
-    take = MarkerTake(names, xyz / UNITS_MM[units], float(fps), units)
+    take = MarkerTake(names, xyz / UNIT_MM[units], float(fps), units)
     markers: dict[str, dict] = {nm: {"vertex": int(vid)} for nm, vid in zip(names, verts)}
     for f in fp_markers:
         markers["FP" + f.replace(".", "_")] = {"fp": f}

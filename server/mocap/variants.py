@@ -22,6 +22,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from ...protocol.markers_file import MarkerTake
+from ...protocol.units import UNIT_MM
 from ..faces.face import Face
 from .io import write_take
 from .sampling import farthest_points
@@ -227,7 +228,7 @@ def make_take(
                 length = int(rng.integers(3, max(4, int(0.3 * fps))))
                 start = int(rng.integers(hold + 1, max(hold + 2, n - length)))
                 noisy[start : start + length, j] = np.nan
-    scale = 0.001 if v.units == "m" else 1.0
+    scale = 1.0 / UNIT_MM[v.units]  # the noisy positions are in mm
     take = MarkerTake(names, noisy * scale, float(fps), v.units)
     paths: dict[str, Path] = {}
     for fmt in formats:

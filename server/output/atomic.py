@@ -1,4 +1,9 @@
-"""Atomic file output: write to a temporary file beside the target, then rename over it."""
+"""Atomic file output: write to a temporary file beside the target, then rename over it.
+
+The one helper of the server (client code has its own, ``client/files.py``: the client may not
+import the server, and ``protocol/`` does no I/O). Temporary files are named ``.<name>.*.part``,
+so a folder's leftovers of an interrupted write are its dot files (``jobs/manager.py`` removes them).
+"""
 from __future__ import annotations
 
 import contextlib
@@ -9,17 +14,19 @@ from pathlib import Path
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
+def atomic_path(path: str | Path, *, mode: int = 0o644) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s folder; on success rename it to ``path``, else delete it.
 
-    Readers never see a half-written ``path``, and a failure part-way leaves nothing behind.
+    Readers never see a half-written ``path``, and a failure part-way leaves nothing behind. The
+    file gets permission bits ``mode`` (``0o600`` for a secret: it is never readable by others,
+    not even while it is written).
     """
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent or ".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
-    os.chmod(tmp_path, 0o644)  # mkstemp makes 0600; results are ordinary files
     try:
+        os.chmod(tmp_path, mode)  # mkstemp makes 0600; results are ordinary files
         yield tmp_path
         os.replace(tmp_path, path)
     except BaseException:
@@ -27,7 +34,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
-def write_bytes_atomic(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically."""
-    with atomic_path(path) as tmp:
+def write_bytes_atomic(path: str | Path, data: bytes, *, mode: int = 0o644) -> None:
+    """Write ``data`` to ``path`` atomically (permission bits ``mode``)."""
+    with atomic_path(path, mode=mode) as tmp:
         tmp.write_bytes(data)

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import write_bytes_atomic
+
 #: Yaw of the model (degrees about +y) for each named view; positive turns the face's left towards the viewer.
 VIEWS: dict[str, float] = {
     "front": 0.0,
@@ -308,9 +310,7 @@ def write_png(path: str | Path, image: np.ndarray) -> Path:
     )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(png)
-    tmp.replace(path)
+    write_bytes_atomic(path, png)
     return path
 
 
