@@ -31,14 +31,15 @@ from types import ModuleType
 
 import numpy as np
 
-from .errors import FrameError
-from .frames import HEADER_SIZE, MAX_VERTICES, Header, Kind, parse_header
-
-_deflate: ModuleType
 try:  # zlib-ng: the same deflate streams (Z_RLE output is byte for byte zlib's size), ~2x faster
-    from zlib_ng import zlib_ng as _deflate
+    from zlib_ng import zlib_ng
+
+    _deflate: ModuleType = zlib_ng
 except ImportError:  # pragma: no cover - a platform without its wheel
     _deflate = zlib
+
+from .errors import FrameError
+from .frames import HEADER_SIZE, MAX_VERTICES, Header, Kind, parse_header
 
 __all__ = [
     "KEY",

@@ -8,7 +8,6 @@ model by it. The REST session routes use ``SessionCreate`` / ``SessionCreated`` 
 from __future__ import annotations
 
 import json
-import math
 from typing import Annotated, Any, Literal, Union
 
 from pydantic import (
@@ -153,7 +152,7 @@ class FapMessage(_Model):
                     f"FAP number {k} is not a low-level FAP (3..68); send FAP 1 as 'viseme' "
                     "and FAP 2 as 'expression'"
                 )
-            if not math.isfinite(x):
+            if x != x or x in (float("inf"), float("-inf")):
                 raise ValueError(f"FAP {k} value must be finite")
         return v
 
