@@ -11,17 +11,20 @@ def readme_commands() -> list[str]:
     return re.findall(r"^    (bash \.ci/setup && .+)$", (ROOT / "README.md").read_text(), re.M)
 
 
-def test_readme_gives_a_serve_and_a_test_command_through_the_setups_venv():
-    serve, test = readme_commands()
+def test_readme_gives_a_serve_a_test_and_a_gates_command_through_the_setups_venv():
+    serve, test, gates = readme_commands()
     assert serve == "bash .ci/setup && .venv/bin/facecast serve"
     assert test == "bash .ci/setup && .venv/bin/python -m pytest -q"
+    assert gates == "bash .ci/setup && bash .ci/gates"
     assert "virtual" in (ROOT / "README.md").read_text()
 
 
-def test_ci_runs_exactly_the_readmes_test_command_and_fails_with_it():
+def test_ci_runs_exactly_the_readmes_gates_and_test_commands_and_fails_with_either():
     lines = (ROOT / ".ci" / "run").read_text().splitlines()
+    _, test, gates = readme_commands()
     assert "set -euo pipefail" in lines
-    assert lines[-1] == readme_commands()[1]
+    assert lines[-3:] == [f"{gates} || status=1", f"{test} || status=1", "exit $status"]
+    assert "status=0" in lines[: lines.index(f"{gates} || status=1")]
 
 
 def test_setup_installs_into_a_venv_never_the_system_python():
