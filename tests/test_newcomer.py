@@ -2,7 +2,10 @@
 from __future__ import annotations
 
 import re
+import subprocess
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -32,3 +35,20 @@ def test_setup_installs_into_a_venv_never_the_system_python():
     assert "-m venv" in setup
     pip_lines = [line for line in setup.splitlines() if "pip install" in line and not line.startswith("#")]
     assert pip_lines and all(line.strip().startswith('"$VENV/bin/python" -m pip') for line in pip_lines)
+
+
+def test_setup_installs_the_gate_tools_and_the_gates_run_each_one():
+    assert '-e ".[test,dev]"' in (ROOT / ".ci" / "setup").read_text()
+    gates = (ROOT / ".ci" / "gates").read_text()
+    for command in ("-m ruff check", "-m ruff format --check", "-m mypy", "lint_imports_command()"):
+        assert command in gates
+    assert "all=(ruff format mypy imports)" in gates
+
+
+
+def test_gates_refuse_an_unknown_gate_by_name():
+    gates = ROOT / ".ci" / "gates"
+    run = subprocess.run(["bash", str(gates), "nonsense"], capture_output=True, text=True, check=False)
+    if "bash .ci/setup" in run.stderr:
+        pytest.skip("the venv lacks the gate tools (bash .ci/setup installs them)")
+    assert run.returncode == 2 and "unknown gate 'nonsense'" in run.stderr
