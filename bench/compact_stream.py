@@ -169,7 +169,10 @@ NODE_RUNNER = """
 import { readFileSync } from 'node:fs';
 import { CompactDecoder } from './compact.mjs';
 const dir = process.argv[2];
-const load = (n) => { const b = readFileSync(`${dir}/${n}`); return b.buffer.slice(b.byteOffset, b.byteOffset + b.length); };
+const load = (n) => {
+  const b = readFileSync(`${dir}/${n}`);
+  return b.buffer.slice(b.byteOffset, b.byteOffset + b.length);
+};
 const all = load('frames.bin'), sizes = JSON.parse(readFileSync(`${dir}/sizes.json`));
 const frames = []; let o = 0;
 for (const n of sizes) { frames.push(all.slice(o, o + n)); o += n; }
@@ -284,7 +287,8 @@ def main(argv: list[str]) -> int:
     print(
         "| **mean** | | | "
         + " | ".join(f"**{s[c]['bpvf_mean']:.3f}**" for c in CODERS)
-        + f" | {s['compact']['max_err_mm']:.4f} | {s['compact']['enc_ms_mean']:.2f} | {s['compact']['dec_ms_mean']:.2f} |"
+        + f" | {s['compact']['max_err_mm']:.4f} | {s['compact']['enc_ms_mean']:.2f}"
+        + f" | {s['compact']['dec_ms_mean']:.2f} |"
     )
     if "js_dec_cpu_ms_mean" in s["compact"]:
         print(

@@ -6,8 +6,9 @@ with 84 synthetic controls spread over its front (a face-sized cap), so the numb
 
 Baselines measured in the same run (the machine is shared and noisy, so ratios matter more than
 seconds): for the build, one unbounded Dijkstra over the whole surface graph from one source
-from a vertex of the largest connected piece (what any surface-distance method pays at least once); for a frame, one pass ``rest + rest`` over
-the ``(V, 3) float32`` vertices (a memory-bandwidth floor).
+from a vertex of the largest connected piece (what any surface-distance method pays at least
+once); for a frame, one pass ``rest + rest`` over the ``(V, 3) float32`` vertices (a
+memory-bandwidth floor).
 
     python bench/operator_scaling.py [--sizes 2k,25k,100k,500k] [--frames 20] [--rbf-max 100000]
 

@@ -27,11 +27,14 @@ import math
 import struct
 import zlib
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 
 try:  # zlib-ng: the same deflate streams (Z_RLE output is byte for byte zlib's size), ~2x faster
-    from zlib_ng import zlib_ng as _deflate
+    from zlib_ng import zlib_ng
+
+    _deflate: ModuleType = zlib_ng
 except ImportError:  # pragma: no cover - a platform without its wheel
     _deflate = zlib
 
@@ -87,13 +90,14 @@ def _unzigzag_planes(raw: bytes, planes: int, n: int) -> np.ndarray:
     u = p[0].astype(np.uint32)
     for k in range(1, planes):
         u |= p[k].astype(np.uint32) << np.uint32(8 * k)
-    return ((u >> np.uint32(1)) ^ (np.uint32(0) - (u & np.uint32(1)))).view(np.int32)
+    v: np.ndarray = (u >> np.uint32(1)) ^ (np.uint32(0) - (u & np.uint32(1)))
+    return v.view(np.int32)
 
 
 def _group_spans(groups: np.ndarray, n_groups: int) -> list[list[slice | np.ndarray]]:
     """Per group, its vertices as a few contiguous slices (parts are usually runs of the vertex
     order), or one index array when they are scattered."""
-    spans = []
+    spans: list[list[slice | np.ndarray]] = []
     for g in range(n_groups):
         idx = np.flatnonzero(groups == g)
         cuts = np.flatnonzero(np.diff(idx) != 1) + 1
@@ -221,6 +225,7 @@ class CompactEncoder:
             "u8": np.empty(3 * n, np.uint8),
         }
         self._key_q: np.ndarray | None = None
+        self._key_f: np.ndarray | None = None  # _key_q as float32
         self._key_seq = 0
         self._since_key = 0
         self._want_key = True
@@ -291,11 +296,12 @@ class CompactEncoder:
             or self._since_key + 1 >= self.key_interval
             or (self.key_seconds is not None and not 0 <= t - self._key_t < self.key_seconds)
         )
-        ref_q = self.base_t if is_key else self._key_q
+        ref_q, ref_f = (self.base_t, self._base_f) if is_key else (self._key_q, self._key_f)
+        assert ref_q is not None and ref_f is not None  # the first frame is a key frame
         np.subtract(q, ref_q, out=r)  # (3, V): axis-major
         # Keep the reference cell where it is within the tolerance too: small motions cost nothing.
         fd, dist = b["fd"], b["dist"]
-        np.subtract(self._base_f if is_key else self._key_f, local, out=fd)
+        np.subtract(ref_f, local, out=fd)
         np.einsum("ij,ij->j", fd, fd, out=dist)  # squared distance, one pass
         move = np.greater(dist, self._keep2, out=b["keep"])
         np.multiply(r, move.view(np.uint8), out=r, casting="unsafe")  # r = 0 where kept

@@ -15,7 +15,6 @@ import math
 import struct
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Union
 
 import numpy as np
 
@@ -168,6 +167,7 @@ class VertexFrame:
         frames arrive decoded)."""
         if self.header.kind is not Kind.VERTICES_I16:
             return self.vertices
+        assert self.offset is not None and self.scale is not None  # parse_frame sets both for i16
         return dequantize_int16(self.vertices, self.offset, self.scale)
 
 
@@ -186,7 +186,8 @@ class PcmChunk:
     def as_float32(self) -> np.ndarray:
         """``(n,) float32`` in [-1, 1] (int16 is divided by 32768)."""
         if self.samples.dtype == np.int16:
-            return self.samples.astype(np.float32) * np.float32(1.0 / 32768.0)
+            scaled: np.ndarray = self.samples.astype(np.float32) * np.float32(1.0 / 32768.0)
+            return scaled
         return self.samples
 
 
@@ -210,7 +211,7 @@ class FapFrame:
     expression: tuple[int, int, int, int] | None = None
 
 
-Frame = Union[VertexFrame, PcmChunk, MarkerFrame, FapFrame]
+Frame = VertexFrame | PcmChunk | MarkerFrame | FapFrame
 
 
 # ---------------------------------------------------------------------------------------------- encode
@@ -234,7 +235,7 @@ def _vertices_array(vertices: np.ndarray) -> np.ndarray:
 def encode_vertices_f32(vertices: np.ndarray, *, seq: int, t: float, wall: float = 0.0) -> bytes:
     """``(V, 3)`` positions -> a ``VERTICES_F32`` frame (32 + 12·V bytes, one copy of the data)."""
     v = _vertices_array(vertices)
-    return b"".join((_header(Kind.VERTICES_F32, seq, v.shape[0], t, wall), v))
+    return b"".join((_header(Kind.VERTICES_F32, seq, v.shape[0], t, wall), v.data))
 
 
 def encode_vertices_i16(vertices: np.ndarray, *, seq: int, t: float, wall: float = 0.0) -> bytes:
@@ -246,7 +247,7 @@ def encode_vertices_i16(vertices: np.ndarray, *, seq: int, t: float, wall: float
         (
             _header(Kind.VERTICES_I16, seq, v.shape[0], t, wall),
             _I16_SUB.pack(*offset.tolist(), *scale.tolist()),
-            q,
+            q.data,
         )
     )
 
@@ -275,6 +276,8 @@ def vertex_frame_header(
     ``quantize.quantize_int16``) they make exactly the frame ``encode_vertices`` makes."""
     if encoding == "f32":
         return _header(Kind.VERTICES_F32, seq, n_vertices, t, wall)
+    if offset is None or scale is None:
+        raise ValueError("an i16 vertex frame header needs offset and scale")
     return b"".join(
         (
             _header(Kind.VERTICES_I16, seq, n_vertices, t, wall),
@@ -320,7 +323,11 @@ def encode_pcm(
         raise ValueError(f"bad rate {rate} or sample offset {sample_offset}")
     t = sample_offset / rate if t is None else t
     return b"".join(
-        (_header(kind, seq, s.shape[0], t, wall), _PCM_SUB.pack(rate, 1, 0, sample_offset), s)
+        (
+            _header(kind, seq, s.shape[0], t, wall),
+            _PCM_SUB.pack(rate, 1, 0, sample_offset),
+            s.data,
+        )
     )
 
 
@@ -329,7 +336,7 @@ def encode_markers(markers: np.ndarray, *, seq: int, t: float, wall: float = 0.0
     m = np.ascontiguousarray(markers, dtype="<f4")
     if m.ndim != 2 or m.shape[1] != 3:
         raise ValueError(f"markers must be (M, 3), got {m.shape}")
-    return b"".join((_header(Kind.MARKERS, seq, m.shape[0], t, wall), m))
+    return b"".join((_header(Kind.MARKERS, seq, m.shape[0], t, wall), m.data))
 
 
 def encode_faps(

@@ -17,6 +17,7 @@ import struct
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import FileFormatError, show_token as _show
 from .units import UNIT_MM, unit_name
@@ -334,12 +335,12 @@ class _C3dCodec:
         """An unsigned 16-bit word."""
         return int(np.frombuffer(data, self.order + "u2", 1, offset)[0])
 
-    def encode_reals(self, x) -> bytes:
+    def encode_reals(self, x: ArrayLike) -> bytes:
         if self.processor == "dec":
             return _float_to_dec(np.ravel(x)).tobytes()
         return np.asarray(x, dtype=self.order + "f4").tobytes()
 
-    def encode_words(self, x) -> bytes:
+    def encode_words(self, x: ArrayLike) -> bytes:
         return np.asarray(x, dtype=self.order + "i2").tobytes()
 
 
@@ -560,7 +561,7 @@ def write_c3d(take: MarkerTake, *, processor: str = "intel", scale: float = -1.0
     first = max(1, round(take.t0 * take.fps) + 1)
     last = first + t - 1
 
-    def param(name: str, gid: int, ptype: int, dims: tuple[int, ...], values: bytes) -> tuple:
+    def param(name: str, gid: int, ptype: int, dims: tuple[int, ...], values: bytes) -> tuple[str, int, bytes]:
         return name, gid, bytes([ptype & 0xFF, len(dims), *dims]) + values + b"\x00"
 
     def words(*x: int) -> bytes:

@@ -307,7 +307,7 @@ class SessionList(_Model):
 
 # --------------------------------------------------------------------------------------------- codec
 
-_ADAPTER: TypeAdapter = TypeAdapter(Message)
+_ADAPTER: TypeAdapter[Message] = TypeAdapter(Message)
 _TAGS = ("hello:producer", "hello:viewer", "ready", "error", "fap", "stats", "status")
 
 

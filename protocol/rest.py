@@ -5,7 +5,7 @@ from ``queued`` or ``running``.
 """
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
@@ -43,7 +43,7 @@ class Health(BaseModel):
     uptime_seconds: float
     backend: str | None = Field(None, description="numpy | opencl (null until probed)")
     device: str | None = Field(None, description="OpenCL device(s) in use")
-    face: dict | None = Field(None, description="default face: name, vertices")
+    face: dict[str, Any] | None = Field(None, description="default face: name, vertices")
     animator: bool = Field(False, description="the default face's animator is built (first session starts at once)")
     warmup_seconds: float | None = Field(None, description="seconds the start-up warm-up took (null: still running)")
     errors: dict[str, str] = Field(default_factory=dict)

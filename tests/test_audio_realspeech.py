@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 import sys
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -116,7 +117,7 @@ def test_rhubarb_json_and_tsv_are_well_formed(bobby, capsys, tmp_path):
     assert out["metadata"] == {"soundFile": str(bobby), "duration": round(dur, 2)}
     cues = out["mouthCues"]
     assert cues[0]["start"] == 0 and cues[-1]["end"] == round(dur, 2)
-    for a, b in zip(cues, cues[1:]):
+    for a, b in pairwise(cues):
         assert a["end"] == b["start"] and a["value"] != b["value"]
     assert all(c["end"] > c["start"] and c["value"] in "ABCDEFGHX" and len(c["value"]) == 1
                for c in cues)
@@ -136,7 +137,7 @@ def test_named_cue_segments_tile_the_track(bobby, capsys):
     out = json.loads(capsys.readouterr().out)
     cues = out["cues"]
     assert cues[0]["start"] == 0
-    assert all(a["end"] == pytest.approx(b["start"]) for a, b in zip(cues, cues[1:]))
+    assert all(a["end"] == pytest.approx(b["start"]) for a, b in pairwise(cues))
     assert set(cues[0]) == {"start", "end", "viseme", "name"}
 
 

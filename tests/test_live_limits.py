@@ -169,7 +169,7 @@ def test_a_flooding_producer_is_cut_off_while_another_session_keeps_streaming(sr
                     assert e.code == CloseCode.CONFLICT, e
                     await asyncio.sleep(0.05)
             sent = 0
-            with pytest.raises(LiveError) as e:
+            with pytest.raises(LiveError) as e:  # noqa: PT012 - sends until the server cuts it off
                 for _ in range(200_000):
                     await p.send_raw(msg)
                     sent += 1
@@ -229,7 +229,7 @@ def test_an_audio_chunk_over_one_second_is_refused_with_1009(srv, samples):
                     if (await admin.info(s.id)).stats.frames_in:
                         break
                     await asyncio.sleep(0.05)
-            with pytest.raises(LiveError) as e:
+            with pytest.raises(LiveError) as e:  # noqa: PT012 - the refusal comes with a later send
                 await p.send_pcm(np.zeros(samples, np.int16), rate=16000, sample_offset=16000)
                 for _ in range(200):  # the refusal arrives with a later send
                     await asyncio.sleep(0.05)
@@ -356,7 +356,7 @@ def test_idle_sessions_expire_and_watched_ones_do_not(srv):
         assert time.monotonic() < deadline, "a session left idle did not expire"
         time.sleep(0.2)
     assert _metric(srv, "facecast_sessions_expired_total") >= before + 2
-    with pytest.raises(LiveError) as e:
+    with pytest.raises(LiveError) as e:  # noqa: PT012 - the viewer is refused as it connects
 
         async def late_viewer():
             async with watch(srv.url, idle.id, idle.viewer_token):

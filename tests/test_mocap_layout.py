@@ -114,8 +114,8 @@ def test_placement_errors():
             face,
             {n: np.zeros(3) for n in GOOD["markers"]},
         )
+    three_tied = {**GOOD, "markers": {k: v for k, v in GOOD["markers"].items() if k != "D"}}
     with pytest.raises(InputError, match="at least 4 markers tied"):
-        three_tied = {**GOOD, "markers": {k: v for k, v in GOOD["markers"].items() if k != "D"}}
         place_markers(
             load_layout(three_tied),
             face,

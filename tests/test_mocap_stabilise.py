@@ -102,7 +102,10 @@ def test_pose_in_another_frame(rng):
     q, s, c = _rotation(rng), 0.1, rng.normal(size=3)
     x = rng.normal(size=(5, 3))
     rf, tf = pose_in_frame(r, t, q, s, c)
-    to_f = lambda p: s * p @ q.T + c
+
+    def to_f(p):
+        return s * p @ q.T + c
+
     np.testing.assert_allclose(to_f(x @ r.T + t), to_f(x) @ rf.T + tf, atol=1e-12)
 
 

@@ -110,7 +110,7 @@ def test_a_take_without_a_neutral_hold_stabilises(tmp_path, ict):
     assert 0 < proc.info["pose_frame_sd_deg"] < 1.0
     # the neutral is not averaged over the expression that starts at frame 0 (that left a constant
     # 0.48 mm on every marker's displacement; 0.54 mm mean on this take, 0.37 now)
-    face_, deltas = ict
+    _, deltas = ict
     pv = proc.rig.placement.vertices
     got = np.stack([st.controls[: len(pv)] for st in proc.states]) * face.mm_per_unit
     want = (truth.local(face, deltas)[:, pv] - face.vertices[pv]) * face.mm_per_unit

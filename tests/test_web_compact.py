@@ -23,7 +23,10 @@ import { readFileSync, writeFileSync } from 'node:fs';
 import { CompactDecoder } from './compact.mjs';
 const dir = process.argv[2];
 const m = JSON.parse(readFileSync(`${dir}/manifest.json`));
-const buf = (name) => { const b = readFileSync(`${dir}/${name}`); return b.buffer.slice(b.byteOffset, b.byteOffset + b.length); };
+const buf = (name) => {
+  const b = readFileSync(`${dir}/${name}`);
+  return b.buffer.slice(b.byteOffset, b.byteOffset + b.length);
+};
 const dec = new CompactDecoder(new Float32Array(buf('rest.bin')), new Uint8Array(buf('groups.bin')));
 const results = [];
 const chunks = [];
@@ -31,7 +34,10 @@ for (const name of m.frames) {
   try {
     const out = await dec.decode(buf(name));
     if (out === null) results.push({ frame: name, wait: true });
-    else { results.push({ frame: name, seq: out.seq, t: out.t, key: out.key }); chunks.push(Buffer.from(out.positions.buffer)); }
+    else {
+      results.push({ frame: name, seq: out.seq, t: out.t, key: out.key });
+      chunks.push(Buffer.from(out.positions.buffer));
+    }
   } catch (e) {
     results.push({ frame: name, error: String(e.message || e) });
   }
