@@ -182,7 +182,7 @@ class FrameNet:
 
     @classmethod
     def load(cls, path: str | Path = FRAME_WEIGHTS) -> FrameNet:
-        *params, offsets = _load(path, "frame", "python bench/lipsync/train_frames.py", "offsets")
+        *params, offsets = _load(path, "frame", "python bench/lipsync/frames.py ship", "offsets")
         return cls(*params, offsets=offsets.astype(np.int64))
 
 
