@@ -108,12 +108,13 @@ def frame_features(k: np.ndarray, energy_db: np.ndarray, zcr: np.ndarray,
     voicing and spectral flatness), energy relative to the calibrated maximum and to the silence
     threshold (dB/10, clipped), log(1 + zero crossings per 10 ms), and the mel-band spectral
     shape ``(T, 16)`` (``Features.shape``, /4); ``cep (T, 12)`` is ``Features.cep``."""
-    k = np.clip(np.asarray(k, dtype=np.float64), -0.999, 0.999)
+    # np.minimum/np.maximum: np.clip's overhead weighs on the live path's few frames
+    k = np.minimum(np.maximum(np.asarray(k, dtype=np.float64), -0.999), 0.999)
     e = np.asarray(energy_db, dtype=np.float64)
     lar = np.log((1 - k) / (1 + k))
     gain = 10 * np.log10(np.prod(1 - k * k, axis=1) + 1e-12) / 10
-    rel_max = np.clip((e - max_db) / 10, -6.0, 1.0)
-    rel_sil = np.clip((e - silence_db) / 10, -3.0, 5.0)
+    rel_max = np.minimum(np.maximum((e - max_db) / 10, -6.0), 1.0)
+    rel_sil = np.minimum(np.maximum((e - silence_db) / 10, -3.0), 5.0)
     return np.column_stack([lar, cep, gain, rel_max, rel_sil,
                             np.log1p(np.asarray(zcr, dtype=np.float64)),
                             np.asarray(shape, dtype=np.float64) / 4])
@@ -132,7 +133,7 @@ def stack_context(F: np.ndarray, offsets: np.ndarray) -> np.ndarray:
 def _stack_rows(F: np.ndarray, offsets: np.ndarray, lo: int, hi: int) -> np.ndarray:
     """Rows ``lo:hi`` of ``stack_context(F, offsets)``, ``(hi - lo, D·len(offsets))``."""
     idx = np.arange(lo, hi)[:, None] + np.asarray(offsets)[None, :]
-    idx = np.clip(idx, 0, max(len(F) - 1, 0))
+    idx = np.minimum(np.maximum(idx, 0), max(len(F) - 1, 0))
     return F[idx].reshape(hi - lo, F.shape[1] * len(offsets))
 
 

@@ -86,7 +86,7 @@ class Calibration:
     def intensity(self, energy_db: np.ndarray) -> np.ndarray:
         """``(T,)`` in [0, 1], linear in dB between the silence threshold and the maximum (EXT)."""
         span = np.maximum(np.asarray(self.max_db) - self.silence_db, 1e-6)
-        return np.clip((np.asarray(energy_db) - self.silence_db) / span, 0.0, 1.0)
+        return np.minimum(np.maximum((np.asarray(energy_db) - self.silence_db) / span, 0.0), 1.0)
 
 
 #: Quietest level ever used as a silence threshold, dB (digital silence is -120 dB; 16-bit
@@ -160,6 +160,10 @@ def median_filter_proba(proba: np.ndarray, size: int) -> np.ndarray:
     """
     if size <= 1 or len(proba) == 0:
         return proba
+    if size == 3:  # the default: the median of three, exactly, without scipy's per-call cost
+        prev = np.concatenate([proba[:1], proba[:-1]])
+        nxt = np.concatenate([proba[1:], proba[-1:]])
+        return np.maximum(np.minimum(prev, proba), np.minimum(np.maximum(prev, proba), nxt))
     return scipy.ndimage.median_filter(proba, size=(size, 1), mode="nearest")
 
 
@@ -212,10 +216,12 @@ def _coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np
     future = params.coart_past if lookahead is None else min(lookahead, params.coart_past)
     offs = np.arange(-int(round(params.coart_past / hop)), int(round(future / hop + 1e-9)) + 1)
     # nearest frame at or before each output time, then a window of frames around it
-    base = np.clip(np.floor((t_out - frame_t[0]) / hop + 1e-9).astype(np.int64), 0, len(frame_t) - 1)
+    # (np.minimum/np.maximum: np.clip's per-call cost on integers weighs on the live path)
+    base = np.minimum(np.maximum(np.floor((t_out - frame_t[0]) / hop + 1e-9).astype(np.int64), 0),
+                      len(frame_t) - 1)
     j = base[:, None] + offs[None, :]
     ok = (j >= 0) & (j < len(frame_t))
-    jc = np.clip(j, 0, len(frame_t) - 1)
+    jc = np.minimum(np.maximum(j, 0), len(frame_t) - 1)
     dt = frame_t[jc] - t_out[:, None]
     if lookahead is not None:
         ok &= dt <= lookahead + 1e-9
