@@ -160,10 +160,23 @@ class FrameNet:
     def past(self) -> int:
         return max(0, -int(np.min(self.offsets)))
 
+    def _folded(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(w1 / std, b1 - (mean / std) @ w1)`` as float32: the standardisation folded into
+        the first layer (made once; remade if any of those arrays is replaced)."""
+        key = (id(self.w1), id(self.b1), id(self.mean), id(self.std))
+        cached = self.__dict__.get("_fold")
+        if cached is None or cached[0] != key:
+            w = (self.w1 / self.std[:, None]).astype(np.float32)
+            b = (self.b1 - (self.mean / self.std) @ self.w1).astype(np.float32)
+            self.__dict__["_fold"] = cached = (key, w, b)
+        return cached[1], cached[2]
+
     def proba_stacked(self, X: np.ndarray) -> np.ndarray:
-        """``(T, 10)`` class probabilities of context-stacked inputs ``X (T, D)``."""
-        h = np.tanh(((X - self.mean) / self.std) @ self.w1 + self.b1)
-        return _softmax(h @ self.w2 + self.b2)
+        """``(T, 10)`` class probabilities of context-stacked inputs ``X (T, D)`` (the hidden
+        layer in float32: half the time of float64, probabilities within 1e-5)."""
+        w1, b1 = self._folded()
+        h = np.tanh(np.asarray(X, dtype=np.float32) @ w1 + b1)
+        return _softmax(h.astype(np.float64) @ self.w2 + self.b2)
 
     def proba(self, F: np.ndarray) -> np.ndarray:
         """``(T, 10)`` class probabilities of per-frame features ``F (T, 44)`` (one utterance).
