@@ -37,12 +37,15 @@ def preemphasis(x: np.ndarray, *, coef: float = PREEMPHASIS, zi: float = 0.0) ->
 def frame(x: np.ndarray, *, frame_length: int, hop_length: int) -> np.ndarray:
     """Strided view ``(n_frames, frame_length)`` of ``x (n,)``; frame i starts at ``i·hop_length``.
 
-    ``n_frames = 1 + (n - frame_length) // hop_length`` (0 when ``n < frame_length``).
+    ``n_frames = 1 + (n - frame_length) // hop_length`` (0 when ``n < frame_length``); up to
+    ``SMALL`` frames come as a copy.
     """
     x = np.ascontiguousarray(x)
     n = 0 if len(x) < frame_length else 1 + (len(x) - frame_length) // hop_length
     if n == 0:
         return np.zeros((0, frame_length), dtype=x.dtype)
+    if n <= SMALL:  # a copy by index: as_strided's own cost dominates on the live path's chunks
+        return x[np.arange(n)[:, None] * hop_length + np.arange(frame_length)]
     return np.lib.stride_tricks.as_strided(
         x, shape=(n, frame_length), strides=(x.strides[0] * hop_length, x.strides[0]), writeable=False)
 
