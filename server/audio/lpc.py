@@ -45,7 +45,8 @@ def frame(x: np.ndarray, *, frame_length: int, hop_length: int) -> np.ndarray:
     if n == 0:
         return np.zeros((0, frame_length), dtype=x.dtype)
     if n <= SMALL:  # a copy by index: as_strided's own cost dominates on the live path's chunks
-        return x[np.arange(n)[:, None] * hop_length + np.arange(frame_length)]
+        frames: np.ndarray = x[np.arange(n)[:, None] * hop_length + np.arange(frame_length)]
+        return frames
     return np.lib.stride_tricks.as_strided(
         x, shape=(n, frame_length), strides=(x.strides[0] * hop_length, x.strides[0]), writeable=False)
 
@@ -203,13 +204,13 @@ def cepstrum(a: np.ndarray, n: int = ORDER) -> np.ndarray:
     if T <= SMALL:  # scalar loops: the live path's few frames
         out = np.zeros((T, n))
         for t, row in enumerate(a.tolist()):
-            c = [0.0] * (n + 1)
+            cs = [0.0] * (n + 1)
             for m in range(1, n + 1):
                 acc = row[m]
-                for j in range(1, m):
-                    acc += (j / m) * c[j] * row[m - j]
-                c[m] = -acc
-            out[t] = c[1:]
+                for i in range(1, m):
+                    acc += (i / m) * cs[i] * row[m - i]
+                cs[m] = -acc
+            out[t] = cs[1:]
         return out
     c = np.zeros((T, n + 1))
     j = np.arange(n + 1, dtype=np.float64)

@@ -163,7 +163,8 @@ def median_filter_proba(proba: np.ndarray, size: int) -> np.ndarray:
     if size == 3:  # the default: the median of three, exactly, without scipy's per-call cost
         prev = np.concatenate([proba[:1], proba[:-1]])
         nxt = np.concatenate([proba[1:], proba[-1:]])
-        return np.maximum(np.minimum(prev, proba), np.minimum(np.maximum(prev, proba), nxt))
+        med: np.ndarray = np.maximum(np.minimum(prev, proba), np.minimum(np.maximum(prev, proba), nxt))
+        return med
     return scipy.ndimage.median_filter(proba, size=(size, 1), mode="nearest")
 
 
