@@ -6,7 +6,9 @@ recordings are scored as the bench scores (ten classes, 100 frames/s, against Po
 alignments): facecast batch (``pipeline.lipsync`` with the fold's network), facecast live
 (``AudioLiveDriver``, default look-ahead, 20 ms chunks, FAP 1) and facecast with the transcript
 (``align.align_text``), next to the energy and MFCC baselines. Never a number on a speaker the
-network was trained on. Writes bench/out/lipsync_folds.json and .md.
+network was trained on; the fold's class-prior exponent (``frames.tune_prior``) is chosen on its
+training speakers alone (each held out in turn by a network trained without it and the fold).
+Writes bench/out/lipsync_folds.json and .md.
 """
 from __future__ import annotations
 
