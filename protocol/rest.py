@@ -89,6 +89,9 @@ class JobOptions(BaseModel):
     layout: str | None = Field(None, description="mocap marker layout: the layout file's JSON content, "
                                "required for .c3d/.trc/.csv input (never a path); a job's status shows "
                                "'uploaded' when it has one")
+    text: str | None = Field(None, max_length=10000,
+                             description="audio input only: its transcript (English); its phones are "
+                             "aligned to the audio; text that does not match the audio fails the job")
 
 
 class JobStatus(BaseModel):

@@ -30,7 +30,8 @@ def output_kind(path: str | Path) -> str:
 
 def render_file(input: str | Path, output: str | Path, *, face="default", engine: str = "fp",
                 backend: str = "auto", device: str | None = None, layout: str | None = None,
-                progress: Callable[[int, int], None] | None = None, mocap: dict | None = None) -> dict:
+                progress: Callable[[int, int], None] | None = None, mocap: dict | None = None,
+                text: str | None = None) -> dict:
     """Decode ``input``, animate ``face`` and write ``output`` atomically (nothing is left on failure).
 
     Args:
@@ -42,6 +43,7 @@ def render_file(input: str | Path, output: str | Path, *, face="default", engine
         progress: ``callable(done, total)`` in frames.
         mocap: mocap cleaning choices for ``mocap.driver.load`` (``filter``, ``lowrank``, ``stable``,
             ``neutral_frame``).
+        text: audio input's transcript (``audio.driver.load``); None = none.
 
     Returns:
         a summary: ``frames``, ``fps``, ``output`` and, for glTF, the ``extras.facecast`` record.
@@ -56,6 +58,8 @@ def render_file(input: str | Path, output: str | Path, *, face="default", engine
     if not output.parent.is_dir():
         raise InputError("output folder does not exist", where=str(output.parent))
     options = {"layout": layout} if layout is not None else {}
+    if text is not None:
+        options["text"] = text
     if input.suffix.lower() in (".c3d", ".trc", ".csv"):
         options.update({k: v for k, v in (mocap or {}).items() if v is not None})  # mocap.driver.load's
     if input.suffix.lower() == ".fap":  # FAPs do not depend on the face: check the input first

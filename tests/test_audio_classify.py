@@ -56,6 +56,18 @@ def test_missing_weights_say_how_to_train(tmp_path):
         VowelNet.load(tmp_path / "none.npz")
 
 
+def test_missing_frame_weights_name_the_real_ship_command(tmp_path):
+    """The frame network's missing-weights message names a command that exists in the repo."""
+    from pathlib import Path
+
+    from facecast.server.audio.classify import FrameNet
+    from facecast.server.errors import FacecastError
+
+    with pytest.raises(FacecastError, match="run 'python bench/lipsync/frames.py ship'"):
+        FrameNet.load(tmp_path / "none.npz")
+    assert (Path(__file__).resolve().parents[1] / "bench" / "lipsync" / "frames.py").is_file()
+
+
 @pytest.mark.slow
 def test_training_command_is_reproducible(tmp_path):
     import shutil

@@ -75,7 +75,9 @@ def test_driver_fap1_mode_and_the_faces_own_viseme_shapes(bobby):
     for s in anim.states:
         s1, s2, blend = s.viseme
         assert 0 <= s1 <= 14 and 0 <= s2 <= 14 and 0 <= blend <= 63 and not s.faps.any()
-    assert anim.states[0].viseme[0] == 0
+    # 20 ms of silence, then the /b/: the lips are closed at t=0 either way (silence, or the
+    # closure's strong dominance reaching 20 ms ahead of it)
+    assert anim.states[0].viseme[0] in (0, 1)
     assert {s.viseme[0] for s in anim.states} & VOWEL_VISEMES
     # a face with its own (here: doubled) viseme table gets doubled FAPs
     ref = np.array([s.faps for s in load(bobby, None, fps=25).states])

@@ -153,3 +153,15 @@ def test_running_calibration_on_quiet_speech(speech):
     drv = AudioLiveDriver(None, sr, fps=100, fap1=True)
     vis = np.array([s.viseme[0] for s in stream(drv, x * 0.1, sr)])
     assert np.mean(np.isin(vis[10:100], [10, 11, 12, 13, 14])) > 0.3
+
+
+def test_median_of_three_fast_path_equals_scipy(rng):
+    """``median_filter_proba``'s default length (3) is computed without scipy; it is exactly
+    scipy's running median (edges repeated), on short and long inputs."""
+    import scipy.ndimage
+    from facecast.server.audio.visemes import median_filter_proba
+
+    for n in (1, 2, 3, 50):
+        p = rng.random((n, 10))
+        np.testing.assert_array_equal(median_filter_proba(p, 3),
+                                      scipy.ndimage.median_filter(p, size=(3, 1), mode="nearest"))

@@ -108,6 +108,24 @@ def test_blockwise_analysis_equals_one_block(rng, monkeypatch):
     x = rng.standard_normal(5_000) * 0.1
     whole = analyze(x, sr=10000)
     monkeypatch.setattr(lpc, "BLOCK", 7)
+    monkeypatch.setattr(lpc, "SMALL", 0)  # the same (vectorised) arithmetic as the whole
     parts = analyze(x, sr=10000)
     np.testing.assert_array_equal(parts.k, whole.k)
     np.testing.assert_array_equal(parts.energy_db, whole.energy_db)
+
+
+def test_scalar_path_for_few_frames_equals_the_vectorised_one(rng, monkeypatch):
+    """``levinson`` and ``cepstrum`` loop per frame on a few frames (the live path's chunks);
+    the result is the vectorised one's, to rounding, digital silence included."""
+    from facecast.server.audio import lpc
+
+    frames = rng.standard_normal((6, 200))
+    frames[2] = 0.0
+    r = lpc.autocorrelate(frames, max_lag=12)
+    small = levinson(r, order=12)
+    small_cep = lpc.cepstrum(small[0])
+    monkeypatch.setattr(lpc, "SMALL", 0)
+    rows = levinson(r, order=12)
+    for got, ref in zip((*small, small_cep), (*rows, lpc.cepstrum(rows[0]))):
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+    assert np.all(small[1][2] == 0) and small[2][2] == 0

@@ -110,6 +110,17 @@ def test_transcript_aligns_when_it_matches_and_is_refused_when_not(bobby, capsys
     assert "empty" in capsys.readouterr().err
 
 
+@needs_espeak
+def test_transcript_far_too_short_for_the_audio_is_refused(data_dir, capsys):
+    """A one-word transcript for seconds of speech would be spoken at under 4 phones per second
+    of sound: refused, saying so, whatever the network makes of its few phones."""
+    wav = data_dir / "real-speech" / "pocketsphinx-librivox" / \
+        "sense_and_sensibility_01_austen_64kb-0870.wav"
+    assert main(["lipsync", str(wav), "--text", "no"]) == 2
+    err = capsys.readouterr().err
+    assert "does not match the audio" in err and "per second" in err, err
+
+
 def test_rhubarb_json_and_tsv_are_well_formed(bobby, capsys, tmp_path):
     assert main(["lipsync", str(bobby), "--format", "rhubarb"]) == 0
     out = json.loads(capsys.readouterr().out)
@@ -187,3 +198,21 @@ def test_output_file_errors_are_reported_not_raised(bobby, tmp_path, capsys):
     assert not missing.parent.exists()
     assert main(["lipsync", str(bobby), "--json", "--format", "rhubarb"]) == 2
     assert "--json contradicts" in capsys.readouterr().err
+
+
+def test_speed_copy_stretches_the_classes_with_the_audio(bench_modules, rng):
+    """The training set's speed-changed copy (``frames.speed_copy``) reads the audio ``factor``
+    times slower: its frame classes follow, each run ``factor`` times longer, in order."""
+    sys.path.insert(0, str(BENCH))
+    try:
+        import frames
+    finally:
+        sys.path.remove(str(BENCH))
+    sr = 16000
+    truth = np.repeat(np.arange(10), 20)                  # 2 s, ten classes of 200 ms
+    x = 0.1 * rng.standard_normal(2 * sr)
+    for factor in (0.9, 1.1):
+        F, t = frames.speed_copy(x, sr, truth, factor, rng)
+        assert len(F) == len(t) == pytest.approx(200 * factor, abs=2)
+        assert np.all(np.diff(t) >= 0) and set(t) == set(range(10))
+        assert np.abs(np.bincount(t)[1:-1] - 20 * factor).max() <= 1

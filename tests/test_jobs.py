@@ -521,3 +521,25 @@ def test_a_worker_memory_limit_turns_a_huge_allocation_into_a_memory_error():
             "try:\n    np.ones(4 * 1024**3, dtype=np.uint8)\nexcept MemoryError:\n    print('memory error')")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0 and run.stdout.strip() == "memory error", run.stderr
+
+
+def test_audio_job_with_its_transcript(srv, data_dir):
+    """``text`` aligns an audio job's transcript; text that does not match fails the job with a
+    clear error; text for other input, or empty text, is refused at submit."""
+    import shutil
+
+    if shutil.which("espeak-ng") is None:
+        pytest.skip("espeak-ng is not installed (Debian package; CI has it)")
+    wav = data_dir / "speech" / "bobby_16bit_16khz.wav"
+    job = wait(srv, submit(srv, wav.name, wav.read_bytes(), format="fap",
+                           text="Bobby ripped the ledger.")["id"])
+    assert job["status"] == "done" and job["options"]["text"] == "Bobby ripped the ledger.", job
+    wrong = "seven of the children said that their shoes were wet through"
+    job = wait(srv, submit(srv, wav.name, wav.read_bytes(), format="fap", text=wrong)["id"])
+    assert job["status"] == "failed" and "does not match the audio" in job["error"], job
+    for name, content, text, message in ((fap_file(data_dir).name, fap_file(data_dir).read_bytes(),
+                                          "hello", "audio input only"),
+                                         (wav.name, wav.read_bytes(), "   ", "empty")):
+        resp = httpx.post(srv.url + "/v1/jobs", files={"file": (name, content)},
+                          data={"face": FACE, "text": text}, headers=srv.admin_headers, timeout=60)
+        assert 400 <= resp.status_code < 500 and message in resp.json()["error"], resp.text

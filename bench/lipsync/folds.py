@@ -6,11 +6,14 @@ recordings are scored as the bench scores (ten classes, 100 frames/s, against Po
 alignments): facecast batch (``pipeline.lipsync`` with the fold's network), facecast live
 (``AudioLiveDriver``, default look-ahead, 20 ms chunks, FAP 1) and facecast with the transcript
 (``align.align_text``), next to the energy and MFCC baselines. Never a number on a speaker the
-network was trained on. Writes bench/out/lipsync_folds.json and .md.
+network was trained on; the fold's class-prior exponent (``frames.tune_prior``) is chosen on its
+training speakers alone (each held out in turn by a network trained without it and the fold).
+Writes bench/out/lipsync_folds.json and .md.
 """
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import logging
 import os
@@ -69,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--median", type=int, default=3)
     ap.add_argument("--no-dev", action="store_true", help="train without synthetic speech")
     ap.add_argument("--cmvn", action="store_true", help="quick: per-utterance mean removal")
+    ap.add_argument("--no-prior", action="store_true",
+                    help="no class prior in the output biases (else its exponent is chosen on "
+                    "the training speakers' own folds)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     offsets = np.array([int(v) for v in args.offsets.split(",")])
@@ -84,20 +90,41 @@ def main(argv: list[str] | None = None) -> int:
     truths: dict[str, list] = {s: [] for s in speakers}
     preds: dict[str, dict[str, list]] = {m: {s: [] for s in speakers} for m in SYSTEMS}
     audio_s, cpu = 0.0, {m: 0.0 for m in SYSTEMS}
-    mismatch: dict[str, list] = {"own text": [], "other text": [], "refused own": []}
+    mismatch: dict[str, list] = {"own text": [], "other text": [], "refused own": [],
+                                 "refused other": []}
     texts = [it.utt.text for it in real if it.utt.text]
     import scipy.ndimage
     from facecast.server.audio.visemes import Params
 
     params = Params(median=args.median)
 
-    for fold in FOLDS:
-        t0 = time.perf_counter()
-        train_items = [it for it in real if it.utt.speaker not in fold] + ([] if args.no_dev else dev)
-        net = frames.train(train_items, offsets, epochs=args.epochs, hidden=args.hidden,
-                           balance=args.balance, step=args.step)
-        log.info("fold %s: trained on %d utterances in %.0f s", fold, len(train_items),
-                 time.perf_counter() - t0)
+    nets: dict = {}
+
+    def net_without(groups: tuple[int, ...]):
+        """The network trained without the speakers of ``FOLDS[g]`` for g in ``groups``."""
+        if groups not in nets:
+            t0 = time.perf_counter()
+            held = {s for g in groups for s in FOLDS[g]}
+            train_items = [it for it in real if it.utt.speaker not in held] + \
+                ([] if args.no_dev else dev)
+            nets[groups] = frames.train(train_items, offsets, epochs=args.epochs,
+                                        hidden=args.hidden, balance=args.balance, step=args.step)
+            log.info("without %s: trained on %d utterances in %.0f s", sorted(held),
+                     len(train_items), time.perf_counter() - t0)
+        return nets[groups]
+
+    exponents = {}
+    for k, fold in enumerate(FOLDS):
+        net = copy.deepcopy(net_without((k,)))
+        if not args.no_prior:  # nested: chosen on the training speakers only, each held out once
+            pairs = [(net_without(tuple(sorted((k, j)))).proba(it.feats[0]), it.utt.truth)
+                     for j in range(len(FOLDS)) if j != k
+                     for it in real if it.utt.speaker in FOLDS[j]]
+            prior = frames.class_prior([it for it in real if it.utt.speaker not in fold] +
+                                       ([] if args.no_dev else dev))
+            exponents[fold[0]] = frames.tune_prior(pairs, prior, median=args.median)
+            net = frames.with_prior(net, prior, exponents[fold[0]])
+            log.info("fold %s: class prior exponent %s", fold, exponents[fold[0]])
         for it in real:
             u = it.utt
             if u.speaker not in fold:
@@ -121,18 +148,22 @@ def main(argv: list[str] | None = None) -> int:
             c = time.process_time()
             outs["facecast-live"] = run_live(x, sr, net, params=params)
             cpu["facecast-live"] += time.process_time() - c
-            from facecast.server.audio.align import MAX_MISMATCH, text_fit
+            from facecast.server.audio.align import checked_fit, text_fit
+            from facecast.server.errors import InputError
 
             if u.text:  # the transcript check: own text vs another recording's
                 proba = net.proba(it.feats[0])
+                speech = float(np.sum(it.feats[0][:, 26] > 0)) / 100  # above the silence threshold
                 other = texts[(texts.index(u.text) + len(texts) // 2) % len(texts)]
                 for key, t in (("own text", u.text), ("other text", other)):
                     try:
                         mismatch[key].append(text_fit(proba, t)[1])
-                    except Exception:  # noqa: BLE001  (too many phones: refused outright)
+                    except InputError:  # more phones than frames
                         mismatch[key].append(float("inf"))
-                if mismatch["own text"][-1] > MAX_MISMATCH:
-                    mismatch["refused own"].append(u.name)
+                    try:
+                        checked_fit(proba, t, speech)
+                    except InputError:
+                        mismatch["refused " + key.split()[0]].append(u.name)
             try:
                 from facecast.server.audio.align import align_text
 
@@ -148,7 +179,8 @@ def main(argv: list[str] | None = None) -> int:
                 preds[m][u.speaker].append(VISEME_CLASS[fit_len(vis, n)])
     systems = tuple(preds) if args.quick else SYSTEMS
     systems = tuple(m for m in systems if any(preds[m][s] for s in speakers))
-    res: dict = {"folds": [list(f) for f in FOLDS], "args": vars(args), "per_speaker": {},
+    res: dict = {"folds": [list(f) for f in FOLDS], "args": vars(args), "prior_exponents": exponents,
+                 "per_speaker": {},
                  "overall": {}, "load_average": os.getloadavg()}
     for m in systems:
         res["per_speaker"][m] = {s: scores(np.concatenate(truths[s]), np.concatenate(preds[m][s]))
@@ -174,16 +206,18 @@ def main(argv: list[str] | None = None) -> int:
         lines.append("\n× real time (1 core, process time): " + ", ".join(
             f"{m} {res['overall'][m]['x_realtime']:.0f}" for m in systems if res["overall"][m]["x_realtime"]))
     if not args.quick:
-        from facecast.server.audio.align import MAX_MISMATCH
+        from facecast.server.audio.align import MAX_MISMATCH, PHONE_RATE
 
         own, oth = np.array(mismatch["own text"]), np.array(mismatch["other text"])
-        res["transcript_check"] = {k: (v if k == "refused own" else [float(a) for a in v])
+        res["transcript_check"] = {k: (v if k.startswith("refused") else [float(a) for a in v])
                                    for k, v in mismatch.items()}
-        lines.append(f"\nTranscript check (limit {MAX_MISMATCH} nats/frame): own transcripts "
-                     f"refused {np.sum(own > MAX_MISMATCH)}/{len(own)} (median {np.median(own):.2f},"
-                     f" max {own.max():.2f}); another recording's transcript refused "
-                     f"{np.sum(oth > MAX_MISMATCH)}/{len(oth)} (min {oth.min():.2f}). Text-path "
-                     "frames of refused own transcripts are scored with the no-text output.")
+        lines.append(f"\nTranscript check (phones per second of sound {PHONE_RATE}, mismatch "
+                     f"limit {MAX_MISMATCH} nats/frame): own transcripts refused "
+                     f"{len(mismatch['refused own'])}/{len(own)} (mismatch median "
+                     f"{np.median(own):.2f}, max {own.max():.2f}); another recording's transcript "
+                     f"refused {len(mismatch['refused other'])}/{len(oth)} (mismatch min "
+                     f"{oth.min():.2f}). Text-path frames of refused own transcripts are scored "
+                     "with the no-text output.")
     lines.append(f"\nLoad average: {res['load_average'][0]:.1f} (2 cores shared). Args: {vars(args)}")
     cm = np.array(res["overall"]["facecast"]["confusion"])
     lines.append("\nConfusion, facecast batch, held-out speakers (rows truth, columns predicted):\n")

@@ -76,7 +76,8 @@ def _job(request: Request, job_id: str) -> JobRecord:
                         404: {"model": ErrorBody, "description": "no such face"},
                         422: {"model": ErrorBody, "description": "bad option"}})
 async def submit_job(request: Request, response: Response) -> JobStatus:
-    """Submit a job: multipart form with ``file`` and options ``face``, ``engine``, ``format``, ``layout``.
+    """Submit a job: multipart form with ``file`` and options ``face``, ``engine``, ``format``, ``layout``,
+    ``text`` (audio: its transcript).
 
     Answers 202 with the job's status; poll ``GET /v1/jobs/{id}`` until ``done``, then fetch
     ``result_url``.
@@ -127,6 +128,13 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
         kind = input_kind(input_file)
         options = {**opts.model_dump(exclude={"layout"}), "face_spec": face_spec}
         layout = upload_layout(kind, opts.layout)
+        if opts.text is not None:
+            from ..audio.align import check_text
+
+            if kind != "audio":
+                raise InputError(f"a transcript ('text') applies to audio input only, not {kind}",
+                                 where="text")
+            check_text(opts.text)
         if layout is not None:
             (folder / LAYOUT_FILE).write_text(json.dumps(layout), encoding="utf-8")
             options["layout_file"] = LAYOUT_FILE

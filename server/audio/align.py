@@ -4,9 +4,10 @@ espeak-ng turns the text into IPA phones (``espeak-ng -q --ipa --sep=_``); each 
 visual class the frame network knows (``classify.CLASSES``), every phone lasting at least
 ``MIN_FRAMES`` frames, with optional silence between words; a Viterbi search over the network's
 class posteriors (divided by the class priors, hybrid style) finds the timing. Text that does not
-fit the audio is refused: when the forced path scores far below the network's own best reading
-under the same duration rules (``MAX_MISMATCH`` nats per speech frame), the text is not what was
-said.
+fit the audio is refused: when its phones would be spoken implausibly fast or slow over the
+audio's sound (``PHONE_RATE``), or when the forced path scores far below the network's own best
+reading under the same duration rules (``MAX_MISMATCH`` nats per speech frame), the text is not
+what was said.
 """
 from __future__ import annotations
 
@@ -43,6 +44,10 @@ MIN_FRAMES = 3
 #: transcripts median 0.87 (11 of 38 above 1.0: short or mumbled recordings), another recording's
 #: transcript min 0.86 (36 of 38 above 1.0). Set to refuse rather than animate the wrong text.
 MAX_MISMATCH = 1.0
+#: Phones per second of sound (frames above the silence threshold) a transcript may imply:
+#: English speech runs at about 10-15; the 38 real recordings' own transcripts give 5.2-25.7
+#: (bench/lipsync/folds.py), another recording's transcript 1.2-50 (17 of 35 outside).
+PHONE_RATE = (4.0, 30.0)
 #: Most text accepted, characters.
 MAX_TEXT = 10000
 
@@ -169,6 +174,27 @@ def text_fit(proba: np.ndarray, text: str, voice: str = "en-us") -> tuple[np.nda
     return path, (free - forced) / speech, n_phones
 
 
+def checked_fit(proba: np.ndarray, text: str, speech: float, voice: str = "en-us") -> np.ndarray:
+    """``text_fit``'s class per frame, or InputError when the text does not match the audio:
+    ``speech`` seconds of sound (frames above the silence threshold) hold fewer than
+    ``PHONE_RATE[0]`` or more than ``PHONE_RATE[1]`` of its phones per second, or the forced
+    reading is more than ``MAX_MISMATCH`` worse than the free one."""
+    path, mismatch, n_phones = text_fit(proba, text, voice)
+    rate = n_phones / max(speech, 0.1)
+    lo, hi = PHONE_RATE
+    if not lo <= rate <= hi:
+        raise InputError(f"the transcript does not match the audio: its {n_phones} phones would "
+                         f"be spoken at {rate:.1f} per second over the {speech:.2f} s of sound "
+                         f"(speech has {lo:g}-{hi:g}): check that the text is what is said, or "
+                         "leave it out", where="text")
+    if mismatch > MAX_MISMATCH:
+        raise InputError(f"the transcript does not match the audio (its {n_phones} phones fit "
+                         f"{mismatch:.2f} nats per frame worse than what the audio sounds like; "
+                         f"limit {MAX_MISMATCH}): check that the text is what is said, or leave "
+                         "it out", where="text")
+    return path
+
+
 def check_text(text: str) -> None:
     """Refuse (InputError) an empty transcript or one longer than ``MAX_TEXT`` characters."""
     if not isinstance(text, str) or not text.strip():
@@ -205,12 +231,8 @@ def align_features(f: Features, duration: float, text: str, *, net: FrameNet | N
     check_text(text)
     cal = calibration or calibrate(f.energy_db)
     proba = frame_proba(f, cal, net)
-    path, mismatch, n_phones = text_fit(proba, text, voice)
-    if mismatch > MAX_MISMATCH:
-        raise InputError(f"the transcript does not match the audio (its {n_phones} phones fit "
-                         f"{mismatch:.2f} nats per frame worse than what the audio sounds like; "
-                         f"limit {MAX_MISMATCH}): check that the text is what is said, or leave "
-                         "it out", where="text")
+    speech = float(np.sum(np.asarray(f.energy_db) >= cal.silence_db)) * f.hop
+    path = checked_fit(proba, text, speech, voice)
     onehot = np.eye(len(CLASSES))[path]
     return track_of(f, onehot, duration, fps=fps, lookahead=lookahead,
                     calibration=cal, params=params, table=table)

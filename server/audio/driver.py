@@ -33,7 +33,7 @@ def track_states(ls: LipSync, fap1: bool = False) -> list[FaceState]:
 
 def load(path: str | Path, face=None, fps: float = 25.0, lookahead: float | None = None,
          silence_db: float | None = None, max_db: float | None = None, fap1: bool = False,
-         **options) -> Animation:
+         text: str | None = None, **options) -> Animation:
     """Decode and lip-sync an audio file.
 
     Args:
@@ -44,17 +44,19 @@ def load(path: str | Path, face=None, fps: float = 25.0, lookahead: float | None
         lookahead: coarticulation look-ahead in seconds (None = free, the batch default).
         silence_db, max_db: explicit energy calibration (dB full scale); default: from the file.
         fap1: emit FAP 1 (visemes) instead of low-level FAPs (see ``track_states``).
+        text: the transcript, aligned to the audio (``align.align_features``); None = none.
         options: other drivers' options are ignored (logged).
     The file is decoded in blocks straight to the analysis rate (``pipeline.lipsync_file``):
     memory follows the audio's duration, not the file's size, rate or channels.
 
     Raises:
-        InputError: unreadable, invalid or too long audio (``io.decode_audio``).
+        InputError: unreadable, invalid or too long audio (``io.decode_audio``), or a
+            transcript that does not match it.
     """
     if options:
         log.debug("audio driver ignores options %s", sorted(options))
     ls = lipsync_file(path, fps=float(fps), lookahead=lookahead, silence_db=silence_db,
-                      max_db=max_db, params=Params(), table=viseme_table(face))
+                      max_db=max_db, params=Params(), table=viseme_table(face), text=text)
     log.info("%s: %.2f s of audio → %d frames at %g fps (silence %.1f dB, max %.1f dB)",
              Path(path).name, ls.duration, len(ls.track.t), fps, ls.calibration.silence_db,
              ls.calibration.max_db)

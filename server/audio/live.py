@@ -73,9 +73,9 @@ class RunningCalibration:
         """Feed frame energies ``(T,)``; return per-frame ``(silence_db, max_db)`` arrays."""
         sil = np.empty(len(energy_db))
         mx = np.empty(len(energy_db))
-        for i, e in enumerate(np.asarray(energy_db, dtype=np.float64)):
+        for i, e in enumerate(np.asarray(energy_db, dtype=np.float64).tolist()):
             self.noise = min(self.noise + self.rise * hop, e)
-            if e > self.noise + NOISE_MARGIN_DB or np.isfinite(self.max):
+            if e > self.noise + NOISE_MARGIN_DB or math.isfinite(self.max):
                 self.max = max(self.max - self.decay * hop, e)
             top = self.max + self.headroom
             s = max(self.noise + NOISE_MARGIN_DB, top - SILENCE_RANGE_DB, MIN_SILENCE_DB)

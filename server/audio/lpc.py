@@ -37,12 +37,16 @@ def preemphasis(x: np.ndarray, *, coef: float = PREEMPHASIS, zi: float = 0.0) ->
 def frame(x: np.ndarray, *, frame_length: int, hop_length: int) -> np.ndarray:
     """Strided view ``(n_frames, frame_length)`` of ``x (n,)``; frame i starts at ``i·hop_length``.
 
-    ``n_frames = 1 + (n - frame_length) // hop_length`` (0 when ``n < frame_length``).
+    ``n_frames = 1 + (n - frame_length) // hop_length`` (0 when ``n < frame_length``); up to
+    ``SMALL`` frames come as a copy.
     """
     x = np.ascontiguousarray(x)
     n = 0 if len(x) < frame_length else 1 + (len(x) - frame_length) // hop_length
     if n == 0:
         return np.zeros((0, frame_length), dtype=x.dtype)
+    if n <= SMALL:  # a copy by index: as_strided's own cost dominates on the live path's chunks
+        frames: np.ndarray = x[np.arange(n)[:, None] * hop_length + np.arange(frame_length)]
+        return frames
     return np.lib.stride_tricks.as_strided(
         x, shape=(n, frame_length), strides=(x.strides[0] * hop_length, x.strides[0]), writeable=False)
 
@@ -61,6 +65,11 @@ def autocorrelate(frames: np.ndarray, *, max_lag: int) -> np.ndarray:
                      for lag in range(max_lag + 1)], axis=-1)
 
 
+#: Up to this many frames, ``levinson`` and ``cepstrum`` run a scalar loop per frame: NumPy's
+#: per-call overhead dominates on the live path's one or two frames per chunk (10x faster there).
+SMALL = 8
+
+
 def levinson(r: np.ndarray, *, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Levinson–Durbin recursion on autocorrelations, vectorised over leading axes.
 
@@ -70,30 +79,58 @@ def levinson(r: np.ndarray, *, order: int) -> tuple[np.ndarray, np.ndarray, np.n
     Returns:
         ``(a, k, err)``: ``a (..., p+1)`` predictor polynomial with ``a[..., 0] = 1``;
         ``k (..., p)`` reflection coefficients in (-1, 1); ``err (...,)`` final prediction-error
-        power. Frames with ``R0 == 0`` (digital silence) give ``a = [1, 0, ...]``, ``k = 0``.
+        power. Frames with ``R0 <= 0`` (digital silence) give ``a = [1, 0, ...]``, ``k = 0``.
     """
     r = np.asarray(r, dtype=np.float64)
     lead = r.shape[:-1]
-    a = np.zeros(lead + (order + 1,))
-    a[..., 0] = 1.0
-    k = np.zeros(lead + (order,))
-    err = r[..., 0].copy()
-    live = err > 0
-    safe_err = np.where(live, err, 1.0)
+    r2 = r.reshape(-1, r.shape[-1])
+    a, k, err = (_levinson_small if len(r2) <= SMALL else _levinson_rows)(r2, order)
+    return a.reshape(lead + (order + 1,)), k.reshape(lead + (order,)), err.reshape(lead)
+
+
+def _levinson_rows(r: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``levinson`` of ``r (T, >= order+1)``, vectorised over the rows."""
+    T = len(r)
+    a = np.zeros((T, order + 1))
+    a[:, 0] = 1.0
+    k = np.zeros((T, order))
+    err = r[:, 0].copy()
+    silent = ~(err > 0)
+    err[silent] = np.inf  # digital silence: every k is 0
     for i in range(1, order + 1):
-        acc = r[..., i] + np.einsum("...j,...j->...", a[..., 1:i], r[..., i - 1:0:-1])
-        ki = np.where(live, -acc / safe_err, 0.0)
-        # guards round-off on ill-conditioned frames (minimum/maximum: np.clip's overhead
-        # dominates on the live path's few frames)
-        ki = np.minimum(np.maximum(ki, -0.999999), 0.999999)
-        prev = a[..., 1:i].copy()
-        a[..., 1:i] = prev + ki[..., None] * prev[..., ::-1]
-        a[..., i] = ki
-        k[..., i - 1] = ki
-        err = err * (1.0 - ki * ki)
-        safe_err = np.where(live & (err > 0), err, 1.0)
-        live = live & (err > 0)
+        acc = r[:, i] + np.einsum("ij,ij->i", a[:, 1:i], r[:, i - 1:0:-1])
+        # the clip guards round-off on ill-conditioned frames, and keeps err > 0
+        ki = np.minimum(np.maximum(-acc / err, -0.999999), 0.999999)
+        a[:, 1:i] += ki[:, None] * a[:, i - 1:0:-1].copy()
+        a[:, i] = ki
+        k[:, i - 1] = ki
+        err *= 1.0 - ki * ki
+    err[silent] = 0.0
     return a, k, err
+
+
+def _levinson_small(r: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``levinson`` of a few rows ``r (T, >= order+1)``, one scalar loop per row."""
+    T = len(r)
+    A, K, E = np.zeros((T, order + 1)), np.zeros((T, order)), np.zeros(T)
+    A[:, 0] = 1.0
+    for t, row in enumerate(r.tolist()):
+        err = row[0]
+        if not err > 0:
+            continue
+        a, ks = [1.0] + [0.0] * order, [0.0] * order
+        for i in range(1, order + 1):
+            acc = row[i]
+            for j in range(1, i):
+                acc += a[j] * row[i - j]
+            ki = min(max(-acc / err, -0.999999), 0.999999)
+            prev = a[:i]
+            for j in range(1, i):
+                a[j] = prev[j] + ki * prev[i - j]
+            a[i] = ks[i - 1] = ki
+            err *= 1.0 - ki * ki
+        A[t], K[t], E[t] = a, ks, err
+    return A, K, E
 
 
 def zero_crossing_rate(frames: np.ndarray, *, sr: float) -> np.ndarray:
@@ -102,7 +139,7 @@ def zero_crossing_rate(frames: np.ndarray, *, sr: float) -> np.ndarray:
     Returns ``(...,) float64``; the source's reference means are 49 (unvoiced) and 14 (voiced).
     """
     y = np.asarray(frames, dtype=np.float64)
-    y = y - y.mean(axis=-1, keepdims=True)
+    y = y - y.sum(axis=-1, keepdims=True) / y.shape[-1]
     s = np.signbit(y)
     crossings = np.count_nonzero(s[..., 1:] != s[..., :-1], axis=-1)
     return crossings * (0.010 * sr) / y.shape[-1]
@@ -164,11 +201,30 @@ def cepstrum(a: np.ndarray, n: int = ORDER) -> np.ndarray:
     """``(T, n)`` LPC cepstrum c_1..c_n (n <= p) of predictors ``a (T, p+1)`` (``a[:, 0] = 1``):
     the cepstrum of ``1 / A(z)``, by ``c_m = -a_m - sum_{j<m} (j/m) c_j a_{m-j}``."""
     T = a.shape[0]
+    if T <= SMALL:  # scalar loops: the live path's few frames
+        out = np.zeros((T, n))
+        for t, row in enumerate(a.tolist()):
+            cs = [0.0] * (n + 1)
+            for m in range(1, n + 1):
+                acc = row[m]
+                for i in range(1, m):
+                    acc += (i / m) * cs[i] * row[m - i]
+                cs[m] = -acc
+            out[t] = cs[1:]
+        return out
     c = np.zeros((T, n + 1))
     j = np.arange(n + 1, dtype=np.float64)
     for m in range(1, n + 1):
         c[:, m] = -a[:, m] - (c[:, 1:m] * a[:, m - 1:0:-1]) @ (j[1:m] / m)
     return c[:, 1:]
+
+
+@functools.lru_cache(maxsize=8)
+def _hamming(n: int) -> np.ndarray:
+    """``np.hamming(n)``, made once per length."""
+    w = np.hamming(n)
+    w.flags.writeable = False
+    return w
 
 
 def analyze_frames(raw_frames: np.ndarray, emph_frames: np.ndarray, *, sr: float = ANALYSIS_RATE,
@@ -184,7 +240,7 @@ def analyze_frames(raw_frames: np.ndarray, emph_frames: np.ndarray, *, sr: float
         ``(k (T, order), energy_db (T,), zcr (T,), shape (T, N_BANDS), cep (T, order))``.
     """
     n = emph_frames.shape[-1]
-    y = emph_frames * np.hamming(n)
+    y = emph_frames * _hamming(n)
     n_fft = 1 << (n - 1).bit_length()
     n_r = n_fft if n_fft >= n + order else 2 * n_fft
     spec = np.fft.rfft(y, n=n_r)

@@ -86,7 +86,7 @@ class Calibration:
     def intensity(self, energy_db: np.ndarray) -> np.ndarray:
         """``(T,)`` in [0, 1], linear in dB between the silence threshold and the maximum (EXT)."""
         span = np.maximum(np.asarray(self.max_db) - self.silence_db, 1e-6)
-        return np.clip((np.asarray(energy_db) - self.silence_db) / span, 0.0, 1.0)
+        return np.minimum(np.maximum((np.asarray(energy_db) - self.silence_db) / span, 0.0), 1.0)
 
 
 #: Quietest level ever used as a silence threshold, dB (digital silence is -120 dB; 16-bit
@@ -160,6 +160,11 @@ def median_filter_proba(proba: np.ndarray, size: int) -> np.ndarray:
     """
     if size <= 1 or len(proba) == 0:
         return proba
+    if size == 3:  # the default: the median of three, exactly, without scipy's per-call cost
+        prev = np.concatenate([proba[:1], proba[:-1]])
+        nxt = np.concatenate([proba[1:], proba[-1:]])
+        med: np.ndarray = np.maximum(np.minimum(prev, proba), np.minimum(np.maximum(prev, proba), nxt))
+        return med
     return scipy.ndimage.median_filter(proba, size=(size, 1), mode="nearest")
 
 
@@ -205,17 +210,18 @@ def _coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np
                   table: np.ndarray | None = None) -> Track:
     frame_t = np.asarray(frame_t, dtype=np.float64)
     N = len(t_out)
-    faps = np.zeros((N, N_FAPS + 1))
     if len(frame_t) == 0 or N == 0:
         z = np.zeros(N, dtype=np.int64)
-        return Track(t_out, faps, z, z.copy(), np.ones(N), np.zeros(N))
+        return Track(t_out, np.zeros((N, N_FAPS + 1)), z, z.copy(), np.ones(N), np.zeros(N))
     future = params.coart_past if lookahead is None else min(lookahead, params.coart_past)
     offs = np.arange(-int(round(params.coart_past / hop)), int(round(future / hop + 1e-9)) + 1)
     # nearest frame at or before each output time, then a window of frames around it
-    base = np.clip(np.floor((t_out - frame_t[0]) / hop + 1e-9).astype(np.int64), 0, len(frame_t) - 1)
+    # (np.minimum/np.maximum: np.clip's per-call cost on integers weighs on the live path)
+    base = np.minimum(np.maximum(np.floor((t_out - frame_t[0]) / hop + 1e-9).astype(np.int64), 0),
+                      len(frame_t) - 1)
     j = base[:, None] + offs[None, :]
     ok = (j >= 0) & (j < len(frame_t))
-    jc = np.clip(j, 0, len(frame_t) - 1)
+    jc = np.minimum(np.maximum(j, 0), len(frame_t) - 1)
     dt = frame_t[jc] - t_out[:, None]
     if lookahead is not None:
         ok &= dt <= lookahead + 1e-9
@@ -229,22 +235,23 @@ def _coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np
     same_prev[:, 1:] = v[:, 1:] == v[:, :-1]
     rep = np.where(offs[None, :] <= 0, is_base | ~same_next, ~same_prev) & ok
     v = np.where(ok, v, 0)
-    alpha, theta = params.dominance[v, 0], params.dominance[v, 1]
-    dom = np.where(rep, alpha * np.exp(-theta * np.abs(dt)), 0.0)
+    at = params.dominance[v]  # (N, W, 2): alpha, theta
+    dom = np.where(rep, at[..., 0] * np.exp(-at[..., 1] * np.abs(dt)), 0.0)
     total = dom.sum(axis=1)
     total = np.where(total > 0, total, 1.0)
     table = viseme_table() if table is None else table
     # per output time and viseme: dominance mass, and dominance × intensity (→ FAP targets)
-    flat = (np.arange(N)[:, None] * 15 + v).ravel()
+    rows = np.arange(N)
+    flat = (rows[:, None] * 15 + v).ravel()
     mass = np.bincount(flat, weights=dom.ravel(), minlength=N * 15).reshape(N, 15)
     coef = np.bincount(flat, weights=(dom * w[jc]).ravel(), minlength=N * 15).reshape(N, 15)
     faps = (coef @ table) / total[:, None]
     order = np.argsort(-mass, axis=1, kind="stable")
     s1, s2 = order[:, 0], order[:, 1]
-    m1 = mass[np.arange(N), s1]
-    m2 = mass[np.arange(N), s2]
+    m1 = mass[rows, s1]
+    m2 = mass[rows, s2]
     blend = np.where(m1 + m2 > 0, m1 / np.maximum(m1 + m2, 1e-12), 1.0)
     # weight: intensity of the most dominant segment of the chosen viseme
     best = np.argmax(np.where(v == s1[:, None], dom, -1.0), axis=1)
-    weight = np.where(dom[np.arange(N), best] > 0, w[jc[np.arange(N), best]], 0.0)
+    weight = np.where(dom[rows, best] > 0, w[jc[rows, best]], 0.0)
     return Track(t_out, faps, s1.astype(np.int64), s2.astype(np.int64), blend, weight)

@@ -19,7 +19,7 @@ from ..errors import FacecastError, InputError, PayloadTooLarge, UnsupportedMedi
 #: Form field values larger than this are refused (they are short options)...
 MAX_FIELD_BYTES = 4096
 #: ... except these, which carry content (a mocap marker layout is JSON of a few KiB).
-FIELD_LIMITS = {"layout": 1024 * 1024}
+FIELD_LIMITS = {"layout": 1024 * 1024, "text": 64 * 1024}
 #: Form parts besides the file an upload may have.
 MAX_FIELDS = 16
 #: Bytes of the file kept to recognise its type from content.

@@ -181,7 +181,7 @@ def render(store: JobStore, job: JobRecord, backend: str, device: str | None, pr
         if opts.get("layout_file"):  # the client's layout content, checked and saved at submit
             layout = json.loads((store.folder(job.id) / opts["layout_file"]).read_text(encoding="utf-8"))
         render_file(src, dst, face=face, engine=opts.get("engine", "fp"), backend=backend, device=device,
-                    layout=layout, progress=progress)
+                    layout=layout, progress=progress, text=opts.get("text"))
     except Stop as e:
         log.info("job %s abandoned: %s", job.id, e)
         return None, None
