@@ -17,8 +17,8 @@ from ...errors import InputError
 from ...output.preview import vertex_normals
 from ..face import FEATURE_POINT_IDS, UNIT_MM
 from .detect import mouth_corners, profile_landmarks, sphere_centre
-from .orient import frame, place
-from .template import INNER, OUTER, PIECE_PARTS, Template, default_template
+from .orient import Similarity, frame, place, umeyama
+from .template import INNER, OUTER, PIECE_PARTS, TEMPLATES, Template, ict_available
 from .warp import Target, fit, warp_points
 
 #: A feature point farther than this (template mm) from every mesh vertex is left out (1.6x this on
@@ -76,7 +76,7 @@ def ranges(ids: np.ndarray) -> list:
 
 def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dict | None = None,
                   axes: tuple[str, str] | None = None, units: str | None = None,
-                  template: Template | None = None) -> dict:
+                  template: Template | str | None = None) -> dict:
     """The annotation (``loaders`` format plus an ``automatic`` report) for a head mesh.
 
     Args:
@@ -84,11 +84,13 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
         landmarks: MPEG-4 feature point id -> ``[x, y, z]`` in mesh units (nose tip 9.3, eye corners
             3.7/3.12, mouth corners 8.3/8.4, chin 2.1, ...), to guide the fit.
         axes: ``(up, forward)`` when known; ``units``: when the file says (else from the head size).
+        template: ``"default"`` (the built-in head), ``"ict"`` (the ICT FaceKit neutral), a
+            ``Template``, or None / ``"auto"``: the one the mesh's head is closer to after the rigid
+            alignment (ICT only when ``../shared/data`` has it).
 
     Raises ``InputError`` when no head can be fitted (too few vertices, a fit too poor to trust).
     """
     t0 = time.perf_counter()
-    tpl = template or default_template()
     v = np.asarray(vertices, dtype=np.float64)
     tri = np.asarray(triangles, dtype=np.int64)
     if len(v) < 50 or len(tri) < 50 or not np.all(np.isfinite(v)):
@@ -106,7 +108,7 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
 
     lm = {k: v[p] if isinstance(p, (int, np.integer)) else np.asarray(p, dtype=np.float64)
           for k, p in (landmarks or {}).items()}
-    pl = place(v[main], vn[main], tpl, axes=axes, landmarks=lm or None)
+    tpl, pl, scores = _choose(template, v[main], vn[main], axes, lm or None)
     sim = pl.similarity
     y = sim.apply(v)  # every vertex in the template frame (mm)
     yn = vn @ sim.rotation.T
@@ -158,7 +160,7 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
     off_axis = float(np.degrees(np.arccos(np.clip((np.trace(frame(up, forward) @ sim.rotation.T) - 1) / 2, -1, 1))))
     fit_err = float(np.median(cKDTree(warped[tpl.outer]).query(pts[head & ~target.rim])[0]))
     report = {
-        "template": "default", "seconds": round(time.perf_counter() - t0, 2),
+        "template": tpl.name, "template_scores_mm": scores, "seconds": round(time.perf_counter() - t0, 2),
         "mm_per_unit_measured": round(mm_per_unit, 4), "tilt_deg": round(off_axis, 1),
         "alignment_score_mm": round(pl.score, 2), "landmarks": found, "fit_median_mm": round(fit_err, 2),
         "cropped_to_head": bool(pl.cropped or (~head_v[used]).any()),
@@ -190,6 +192,27 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
         "pivots": {k: [round(float(x), 6) for x in p] for k, p in zip(names, piv)},
         "automatic": report,
     }
+
+
+def _choose(template: Template | str | None, v: np.ndarray, vn: np.ndarray, axes, lm):
+    """``(template, placement, {name: alignment score mm})``: the given template, or (auto) the
+    one whose rigid alignment to the head scores best."""
+    if isinstance(template, Template):
+        return template, place(v, vn, template, axes=axes, landmarks=lm), {}
+    name = template or "auto"
+    if name not in (*TEMPLATES, "auto"):
+        raise InputError(f"unknown template {name!r}; use {', '.join(TEMPLATES)} or auto", where="template")
+    names = [name] if name != "auto" else ["default", *(["ict"] if ict_available() else [])]
+    best = None
+    scores = {}
+    for n in names:
+        tpl = TEMPLATES[n]()
+        pl = place(v, vn, tpl, axes=axes or (best[1].up, best[1].forward) if best else axes, landmarks=lm)
+        scores[n] = round(pl.score, 2)
+        if best is None or pl.score < best[1].score:
+            best = (tpl, pl)
+    assert best is not None
+    return best[0], best[1], scores
 
 
 def _surface_pieces(y, yn, label, sizes, main_label, tpl: Template) -> list[int]:
@@ -233,9 +256,10 @@ def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
         if "slit" in mine:
             half = abs(tpl.fp_position("8.3")[0])
             for k, p in mouth_corners(y, mtri, mine["slit"], half).items():
-                src.append(tpl.fp_position(k))  # the corner is where the slit ends
-                dst.append(p)
-                found.append(k)
+                if k in tpl.mouth_corners:  # the same detector's end of the slit on the template
+                    src.append(tpl.mouth_corners[k])
+                    dst.append(p)
+                    found.append(k)
         for eye in ("eye_l", "eye_r"):
             c = tpl.pivots[eye]
             best = None
@@ -306,8 +330,12 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
             name = np.array([PIECE_PARTS[s - 2] for s in tpl.label[mouth[k]]])
             teeth = np.char.startswith(name, "teeth")
             above = y[ids, 1] > slit_y
-            if above.mean() > 0.8 or above.mean() < 0.2:
+            upper = np.char.endswith(name, "_upper").mean()
+            if upper > 0.7 or upper < 0.3:  # one jaw's piece (upper incisors reach below the slit)
+                above[:] = upper > 0.5
+            elif above.mean() > 0.8 or above.mean() < 0.2:
                 above[:] = above.mean() > 0.5
+            if teeth.mean() > 0.8 or teeth.mean() < 0.2 or above.all() or not above.any():
                 teeth[:] = teeth.mean() > 0.5
             label_of = np.where(above, np.where(teeth, "teeth_upper", "gums_upper"),
                                 np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")))
@@ -365,6 +393,7 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
     fps: dict[str, int] = {}
     left_out: dict[str, str] = {}
     wanted = []
+    piece_fit: dict = {}
     for fp in FEATURE_POINT_IDS:
         if fp not in tpl.feature_points:
             continue
@@ -376,6 +405,11 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
         if key not in trees:
             trees[key] = (cKDTree(y[parts[key]]), parts[key])
         p = warped[tpl.feature_points[fp]]
+        if key != "skin" and key == part:
+            if key not in piece_fit:
+                piece_fit[key] = _fit_piece(warped[tpl.label == 2 + PIECE_PARTS.index(key)], y[parts[key]],
+                                            trees[key][0])
+            p = piece_fit[key].apply(p[None])[0]
         d, i = trees[key][0].query(p, k=min(16, len(trees[key][1])))
         wanted.append((float(np.atleast_1d(d)[0]), fp, key, np.atleast_1d(d), np.atleast_1d(i)))
     for d0, fp, key, d, i in sorted(wanted):
@@ -410,6 +444,29 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
                 fps[fp] = vid
                 taken.add(vid)
     return fps, left_out, approximate
+
+
+def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int = 12) -> Similarity:
+    """Rigid fit (rotation, translation, scale within 0.8-1.25) of a template piece ``src (N, 3)``
+    (warped teeth, tongue) onto the mesh's piece ``dst (M, 3)``: trimmed ICP both ways. The warp
+    fits the skin; the pieces inside follow it only smoothly, so their points are placed by this."""
+    sim = Similarity(1.0, np.eye(3), np.zeros(3))
+    if len(src) < 10 or len(dst) < 10:
+        return sim
+    src_tree_pts = src
+    for _ in range(iterations):
+        cur = sim.apply(src_tree_pts)
+        d, j = tree.query(cur)
+        keep = d <= np.quantile(d, 0.8)
+        d2, i2 = cKDTree(cur).query(dst)
+        keep2 = d2 <= np.quantile(d2, 0.8)
+        a = np.r_[src_tree_pts[keep], src_tree_pts[i2[keep2]]]
+        b = np.r_[dst[j[keep]], dst[keep2]]
+        new = umeyama(a, b)
+        if not 0.8 <= new.scale <= 1.25:
+            break
+        sim = new
+    return sim
 
 
 def _checks(y, fps: dict[str, int], left_out: dict, tpl: Template) -> list[str]:
