@@ -36,6 +36,12 @@ _FAPU = {"IRISD": ("3.1", "3.3", 1), "ES": ("3.5", "3.6", 0), "ENS": ("3.5", "9.
 DENSE = 30_000
 #: Feature points animation cannot do without: the chin (the jaw's angle) and the FAPU's.
 ESSENTIAL = frozenset({"2.1", "3.1", "3.3", "3.5", "3.6", "9.15", "2.2", "8.3", "8.4"})
+#: A mesh vertex whose normal meets a skin point's template normal at a lower cosine is behind the
+#: surface (an eye or mouth socket behind the lid or lip): only taken when nothing else is near.
+#: Not higher: a coarse mesh's vertex where the lips meet faces forward, the template's lip
+#: contact point down.
+FACING_MIN = 0.0
+FACING_NEAR = 1.5
 _FAPU_CHECK = True  # tests and debugging may look at a failed fit
 _FAPU_POINTS = {p for a, b, _ in _FAPU.values() for p in (a, b)}
 
@@ -148,7 +154,7 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
 
     box = (y[:, 1] > tpl.vertices[:, 1].min() - 20) & (np.abs(y[:, 0]) < 140) & (np.abs(y[:, 2]) < 200)
     parts = _parts(y, label, main_label, sizes, warped, tpl, box)
-    fps, left_out, approximate = _feature_points(y, yn, wtri, parts, warped, tpl, socket_v)
+    fps, left_out, approximate = _feature_points(y, yn, wtri, parts, warped, tpl, socket_v, rep, tri)
     warnings = _checks(y, fps, left_out, tpl)
 
     # Pivots: template pivots through the warp, back to mesh coordinates.
@@ -339,6 +345,9 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
                 teeth[:] = teeth.mean() > 0.5
             label_of = np.where(above, np.where(teeth, "teeth_upper", "gums_upper"),
                                 np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")))
+            names, counts = np.unique(name, return_counts=True)
+            if counts.max() >= 0.6 * len(name):  # one piece of the template's (not gums and tongue fused)
+                label_of[:] = names[np.argmax(counts)]
             for s in np.unique(label_of):
                 parts.setdefault(str(s), []).append(ids[label_of == s])
         elif top == INNER:
@@ -358,7 +367,7 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
     return out
 
 
-def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tuple[dict[str, int], dict[str, str], dict]:
+def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tri) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
 
@@ -366,17 +375,15 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
     that touch but are not joined) the one whose neighbourhood lies on the template point's side.
     Two feature points never share a vertex: the farther one takes its next-nearest free vertex.
     A point of the template's outer skin avoids mesh vertices facing another way (an eye or mouth
-    socket just behind the lid or lip).
+    socket just behind the lid or lip). ``rep``: the welded id of every vertex (``weld``); ``tri``:
+    the mesh's own triangles, which tell coincident vertices apart.
     """
     t_normals = vertex_normals(warped, tpl.triangles)
-    n = len(y)
-    ring = np.zeros((n, 3))
-    cnt = np.zeros(n)
-    cent = y[wtri].mean(axis=1)
-    for k in range(3):
-        np.add.at(ring, wtri[:, k], cent)
-        np.add.at(cnt, wtri[:, k], 1)
-    ring = ring / np.maximum(cnt, 1)[:, None] - y
+    ring = _ring(y, wtri)
+    own_ring = _ring(y, tri)
+    coincident: dict[int, list[int]] = {}
+    for i in np.nonzero(rep != np.arange(len(rep)))[0]:
+        coincident.setdefault(int(rep[i]), [int(rep[i])]).append(int(i))
     t_ring = np.zeros((len(warped), 3))
     t_cnt = np.zeros(len(warped))
     tc = warped[tpl.triangles].mean(axis=1)
@@ -386,7 +393,6 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
     t_ring = t_ring / np.maximum(t_cnt, 1)[:, None] - warped
 
     skin_ids = np.r_[parts["skin"], parts.get("mouth_socket", np.zeros(0, np.int64))]
-    skin_ids = skin_ids[~socket_v[skin_ids]]
     trees = {"skin": (cKDTree(y[skin_ids]), skin_ids)}
     taken: set[int] = set()
     approximate: dict[str, float] = {}
@@ -424,15 +430,20 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
         tr = t_ring[tpl.feature_points[fp]]
         cost = d + 2.0 * np.linalg.norm(ring[ids] - tr, axis=1) * (d < d0 + 0.5)
         cost[d >= d0 + 0.5] += 1e3
+        cost[socket_v[ids] & (d > FACING_NEAR)] += 2e3  # an eye socket, unless right at the point
         vid = tpl.feature_points[fp]
         if tpl.label[vid] == OUTER:
             facing = yn[ids] @ t_normals[vid]
-            cost[facing < 0.3] += 2e3  # behind the surface: only if nothing else is near
-        free = [j for j in np.argsort(cost) if int(ids[j]) not in taken and d[j] <= reach]
+            # behind the surface: only if nothing else is near (a vertex within FACING_NEAR of the
+            # point is where the surface folds, e.g. a coarse mesh's lips meeting: taken)
+            cost[(facing < FACING_MIN) & (d > FACING_NEAR)] += 2e3
+        free = [j for j in np.argsort(cost) if d[j] <= reach
+                and any(m not in taken for m in coincident.get(int(ids[j]), [int(ids[j])]))]
         if not free:
             left_out[fp] = "no free vertex near it (the mesh is too coarse there)"
             continue
-        fps[fp] = int(ids[free[0]])
+        group = [m for m in coincident.get(int(ids[free[0]]), [int(ids[free[0]])]) if m not in taken]
+        fps[fp] = group[int(np.argmin(np.linalg.norm(own_ring[group] - tr, axis=1)))]
         taken.add(fps[fp])
     # Pupils: the front pole of each eyeball piece (a neutral head looks straight ahead, +z).
     for eye, fp in (("eye_l", "3.5"), ("eye_r", "3.6")):
@@ -444,6 +455,18 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
                 fps[fp] = vid
                 taken.add(vid)
     return fps, left_out, approximate
+
+
+def _ring(y: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``(V, 3)``: mean centroid of each vertex's triangles minus the vertex (0 for unused ones): which
+    side of the vertex its surface lies on."""
+    ring = np.zeros_like(y)
+    cnt = np.zeros(len(y))
+    cent = y[triangles].mean(axis=1)
+    for k in range(3):
+        np.add.at(ring, triangles[:, k], cent)
+        np.add.at(cnt, triangles[:, k], 1)
+    return ring / np.maximum(cnt, 1)[:, None] - y * (cnt > 0)[:, None]
 
 
 def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int = 12) -> Similarity:
