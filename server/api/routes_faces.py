@@ -206,6 +206,8 @@ async def upload_face(request: Request) -> Any:
             fmt = mesh_upload.sniff_format(parser.filename, parser.head)
             display = safe_display_name(parser.filename, f"upload.{fmt}")
             name = parser.fields.get("name") or None
+            if name is not None:
+                app.state.store.check_upload_name(name)
             prepared = await run_in_threadpool(mesh_worker(app).prepare, path, fmt,
                                                parser.fields.get("annotation"), name=display)
     finally:

@@ -233,6 +233,13 @@ class FaceStore:
         except (OSError, ValueError):
             return None
 
+    @staticmethod
+    def check_upload_name(name: str) -> None:
+        """InputError unless ``name`` may name an uploaded face."""
+        if not _NAME.match(name) or not name[0].isalnum():
+            raise InputError("a face name has 1-64 letters, digits, '_', '.' or '-', starting with a "
+                             "letter or digit", where="name")
+
     def add_upload(self, vertices, triangles, annotation: dict, *, name: str | None,
                    meta: dict) -> tuple[str, str, bool]:
         """Keep an uploaded face: ``(name, id, created)``; the same mesh and annotation again is the
@@ -242,13 +249,13 @@ class FaceStore:
 
         if self.uploads is None:
             raise Conflict("this server does not keep uploaded faces", where="face")
+        if name is not None:
+            self.check_upload_name(name)
         face_id = upload_id(vertices, triangles, annotation)
         with self._guard:
             if face_id in self.upload_ids:
                 return self.upload_ids[face_id], face_id, False
         if name is not None:
-            if not _NAME.match(name):
-                raise InputError("a face name has 1-64 letters, digits, '_', '.' or '-'", where="name")
             if name in builtin_faces() or name in self.configured or name in self.uploaded \
                     or UPLOAD_ID.match(name):
                 raise Conflict(f"the face name {name!r} is taken; choose another (GET /v1/faces lists them)",
