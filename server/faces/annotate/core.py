@@ -42,6 +42,8 @@ ESSENTIAL = frozenset({"2.1", "3.1", "3.3", "3.5", "3.6", "9.15", "2.2", "8.3", 
 #: contact point down.
 FACING_MIN = 0.0
 FACING_NEAR = 1.5
+#: Largest rotation (degrees) and shift (mm) of a piece's rigid fit that is trusted.
+PIECE_MAX_DEG, PIECE_MAX_MM = 10.0, 5.0
 _FAPU_CHECK = True  # tests and debugging may look at a failed fit
 _FAPU_POINTS = {p for a, b, _ in _FAPU.values() for p in (a, b)}
 
@@ -489,6 +491,12 @@ def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int 
         if not 0.8 <= new.scale <= 1.25:
             break
         sim = new
+    # A piece of another shape (a whole dental arch against the template's) can slide along itself:
+    # such a fit is not trusted.
+    angle = np.degrees(np.arccos(np.clip((np.trace(sim.rotation) - 1) / 2, -1.0, 1.0)))
+    moved = np.linalg.norm(sim.apply(src).mean(axis=0) - src.mean(axis=0))
+    if angle > PIECE_MAX_DEG or moved > PIECE_MAX_MM:
+        return Similarity(1.0, np.eye(3), np.zeros(3))
     return sim
 
 
