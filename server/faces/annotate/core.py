@@ -42,6 +42,9 @@ ESSENTIAL = frozenset({"2.1", "3.1", "3.3", "3.5", "3.6", "9.15", "2.2", "8.3", 
 #: contact point down.
 FACING_MIN = 0.0
 FACING_NEAR = 1.5
+#: Median distance (mm) from a mouth piece to the warped template's pieces under which the
+#: template's part names label it.
+PIECE_NAMES_MM = 2.5
 #: Largest rotation (degrees) and shift (mm) of a piece's rigid fit that is trusted.
 PIECE_MAX_DEG, PIECE_MAX_MM = 10.0, 5.0
 _FAPU_CHECK = True  # tests and debugging may look at a failed fit
@@ -334,12 +337,16 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
             # (lower teeth, lower gums, tongue); a piece across it (gums and tongue in one) is cut
             # at the slit. The template's nearest part names teeth apart from gums and tongue.
             mouth = np.nonzero((tpl.label >= 2 + PIECE_PARTS.index("teeth_upper")))[0]
-            _, k = cKDTree(warped[mouth]).query(y[ids])
+            d_mouth, k = cKDTree(warped[mouth]).query(y[ids])
             name = np.array([PIECE_PARTS[s - 2] for s in tpl.label[mouth[k]]])
             teeth = np.char.startswith(name, "teeth")
             above = y[ids, 1] > slit_y
+            # Where the template's pieces lie on the mesh's (a head of the template's family), their
+            # names say which jaw a piece is on (upper incisors reach below the slit) and whether it
+            # is one of the template's pieces; elsewhere only the slit and the teeth are trusted.
+            close = np.median(d_mouth) < PIECE_NAMES_MM
             upper = np.char.endswith(name, "_upper").mean()
-            if upper > 0.7 or upper < 0.3:  # one jaw's piece (upper incisors reach below the slit)
+            if close and (upper > 0.7 or upper < 0.3):
                 above[:] = upper > 0.5
             elif above.mean() > 0.8 or above.mean() < 0.2:
                 above[:] = above.mean() > 0.5
@@ -348,7 +355,7 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
             label_of = np.where(above, np.where(teeth, "teeth_upper", "gums_upper"),
                                 np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")))
             names, counts = np.unique(name, return_counts=True)
-            if counts.max() >= 0.6 * len(name):  # one piece of the template's (not gums and tongue fused)
+            if close and counts.max() >= 0.6 * len(name):  # one of the template's pieces
                 label_of[:] = names[np.argmax(counts)]
             for s in np.unique(label_of):
                 parts.setdefault(str(s), []).append(ids[label_of == s])
