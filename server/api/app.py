@@ -164,7 +164,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     app.state.admin_key = admin_key
     app.state.metrics = Metrics()
     app.state.store = FaceStore(default=config.face, backend=config.backend, device=config.device,
-                                configured=parse_faces_env(config.faces))
+                                configured=parse_faces_env(config.faces), uploads=config.data_dir / "faces")
     # Folders whose paths never reach a client: the data directory, the temporary folder, the
     # operator's mesh folders (a message keeps only a file's own name).
     roots = {str(config.data_dir.expanduser().resolve()), str(config.data_dir), tempfile.gettempdir(),

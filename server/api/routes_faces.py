@@ -1,22 +1,43 @@
 """``/v1/faces``: the faces this server offers, their description, and their topology for thin clients.
 
-Public (no key): viewers need the topology to draw the vertex frames they receive.
+Reading is public (no key): viewers need the topology to draw the vertex frames they receive.
+``POST /v1/faces`` (admin key) adds a face from an uploaded mesh (OBJ, PLY, GLB/glTF, STL) and its
+optional ``.face.json``; without one (or with a partial one) the server annotates it automatically.
+The mesh is read and annotated in a throw-away process with a deadline and a memory limit
+(``faces.upload``); the face is then kept in ``<data dir>/faces/`` and usable by name or id in
+sessions, jobs and playback. ``DELETE /v1/faces/{name}`` (admin key) removes an uploaded face.
 """
 from __future__ import annotations
 
 import logging
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Depends, Request, status
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import Response
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel, Field
 
 from ...protocol.rest import TOPOLOGY_MEDIA_TYPE, ErrorBody, FaceInfo, FaceList, FaceSummary
 from ...protocol.topology import Topology, encode_topology, part_ids_from_parts
 from ..errors import Forbidden, InputError
 from ..faces import KNOWN_PARTS, RIGID_GROUPS, builtin_faces
+from ..faces import upload as mesh_upload
+from ..jobs.upload import (
+    FIELD_LIMITS,
+    PayloadTooLarge,
+    UploadParser,
+    boundary_of,
+    drain,
+    multipart_doc,
+    safe_display_name,
+    upload_dir,
+)
 from ..mpeg4 import measure_fapu
-from .security import bearer, same
+from .security import bearer, require_admin, same
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +79,158 @@ def check_public_load(request: Request, name: str) -> None:
         raise Forbidden(f"face {name!r} is not loaded on this server; building a new resolution of a built-in "
                         "face needs the admin key (Authorization: Bearer <key>), or use one of GET /v1/faces",
                         where="face")
+
+
+#: Largest uploaded mesh file and annotation (bytes); the request's limit is also max_upload_bytes.
+MAX_MESH_BYTES = 64 * 1024 * 1024
+MAX_ANNOTATION_BYTES = 16 * 1024 * 1024
+#: Meshes read and annotated at once (each in its own process); more get 503.
+MAX_CONCURRENT_UPLOADS = 1
+#: Room for the multipart framing and form fields around the file.
+FORM_OVERHEAD = 64 * 1024 + MAX_ANNOTATION_BYTES
+
+
+class Busy(FacecastError):
+    """Every mesh-reading slot is taken: the client should retry after ``Retry-After`` seconds."""
+
+    status = 503
+    headers: ClassVar[dict[str, str]] = {"Retry-After": "5"}
+
+
+class FaceUploaded(BaseModel):
+    """Answer of ``POST /v1/faces``."""
+
+    id: str = Field(description="the face's id (hash of its mesh and annotation); usable as its name")
+    name: str
+    created: bool = Field(description="false when the same mesh and annotation were uploaded before")
+    annotation: str = Field(description="user | automatic | user+automatic: where the annotation came from")
+    cached: bool = Field(False, description="the automatic annotation came from the server's cache")
+    left_out: dict[str, str] = Field(default_factory=dict, description="feature points the annotator left out, "
+                                     "with the reason")
+    warnings: list[str] = Field(default_factory=list)
+    annotate_seconds: float | None = None
+    face: FaceInfo
+
+
+class _MeshUpload(UploadParser):
+    """The mesh upload: a ``file`` part and an optional ``annotation`` (JSON content) and ``name``."""
+
+    field_limits: ClassVar[dict[str, int]] = {**FIELD_LIMITS, "annotation": MAX_ANNOTATION_BYTES}
+
+    def _check_kind(self) -> None:  # a mesh, whatever its first bytes (the child tells formats apart)
+        self.kind = "mesh"
+
+
+def _upload_slots(app) -> threading.BoundedSemaphore:
+    slots = getattr(app.state, "face_upload_slots", None)
+    if slots is None:
+        slots = app.state.face_upload_slots = threading.BoundedSemaphore(MAX_CONCURRENT_UPLOADS)
+    return slots
+
+
+def mesh_worker(app) -> mesh_upload.MeshWorker:
+    """The app's mesh-reading worker (its process starts on the first upload)."""
+    worker = getattr(app.state, "mesh_worker", None)
+    if worker is None:
+        worker = app.state.mesh_worker = mesh_upload.MeshWorker()
+    return worker
+
+
+_UPLOAD_DOC = multipart_doc(
+    file={"type": "string", "format": "binary",
+          "description": "the head mesh: .obj, .ply, .glb/.gltf (buffers embedded) or .stl"},
+    annotation={"type": "string", "format": "binary",
+                "description": "optional .face.json content (complete or partial; it always wins over the "
+                               "automatic annotation); never a path"},
+    name={"type": "string", "description": "optional name (letters, digits, _ . -); default face-<id>"},
+)
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=FaceUploaded, openapi_extra=_UPLOAD_DOC,
+             dependencies=[Depends(require_admin)],
+             responses={200: {"model": FaceUploaded, "description": "the same face was uploaded before"},
+                        401: {"model": ErrorBody, "description": "admin key missing or wrong"},
+                        409: {"model": ErrorBody, "description": "name taken, or too many uploaded faces"},
+                        413: {"model": ErrorBody, "description": "file or mesh larger than the server's limits"},
+                        415: {"model": ErrorBody, "description": "not multipart"},
+                        422: {"model": ErrorBody, "description": "the mesh cannot be read or annotated"},
+                        503: {"model": ErrorBody, "description": "another mesh is being read; retry"}})
+async def upload_face(request: Request) -> Any:
+    """Add a face from a mesh (multipart ``file``), with an optional ``annotation`` and ``name``.
+
+    Without an annotation the server fits its template to the mesh (a few seconds; cached by the
+    mesh's hash). Answers 201 with the new face, 200 when the same face exists already.
+    """
+    app = request.app
+    cfg = app.state.config
+    limit = min(int(cfg.max_upload_bytes), MAX_MESH_BYTES)
+    boundary = boundary_of(request.headers.get("content-type", ""))
+    declared = request.headers.get("content-length")
+    if declared and declared.isdigit() and int(declared) > limit + FORM_OVERHEAD:
+        await drain(request, 0)
+        raise PayloadTooLarge(f"the upload is {int(declared)} bytes, more than this server's limit of {limit} "
+                              "bytes for a mesh; decimate the mesh", where="file")
+    slots = _upload_slots(app)
+    if not slots.acquire(blocking=False):
+        await drain(request, 0)
+        raise Busy("the server is reading another mesh; retry in a few seconds", where="file")
+    try:
+        with tempfile.TemporaryDirectory(prefix="facecast-face-", dir=upload_dir(cfg.data_dir)) as tmp:
+            path = Path(tmp) / "upload"
+            parser = _MeshUpload(boundary, path, limit)
+            parser.limit_variable = "FACECAST_MAX_UPLOAD_BYTES"
+            received = 0
+            try:
+                async for chunk in request.stream():
+                    received += len(chunk)
+                    parser.write(chunk)
+                parser.finish()
+            except FacecastError:
+                parser.abort()
+                await drain(request, received)
+                raise
+            except Exception as e:  # noqa: BLE001  malformed multipart framing
+                parser.abort()
+                raise InputError(f"could not read the multipart upload ({str(e)[:200]}); send a 'file' part",
+                                 where="body") from None
+            unknown = sorted(set(parser.fields) - {"annotation", "name"})
+            if unknown:
+                raise InputError(f"unknown form field(s) {', '.join(unknown)[:200]}; known: file, annotation, "
+                                 "name", where="form")
+            if parser.size == 0:
+                raise InputError("the uploaded file is empty", where="file")
+            fmt = mesh_upload.sniff_format(parser.filename, parser.head)
+            display = safe_display_name(parser.filename, f"upload.{fmt}")
+            name = parser.fields.get("name") or None
+            if name is not None:
+                app.state.store.check_upload_name(name)
+            prepared = await run_in_threadpool(mesh_worker(app).prepare, path, fmt,
+                                               parser.fields.get("annotation"), name=display)
+    finally:
+        slots.release()
+    report = prepared.report
+    meta = {"source": prepared.source, "file": display, "format": fmt, "report": report}
+    store = app.state.store
+    name, face_id, created = await run_in_threadpool(store.add_upload, prepared.vertices, prepared.triangles,
+                                                     prepared.annotation, name=name, meta=meta)
+    if created and prepared.source != "user":
+        log.info("face %s (%s): annotated automatically%s", name, display,
+                 " (from the cache)" if prepared.cached else f" in {report.get('seconds', 0):.1f} s")
+    info = await describe_face(name, request)
+    body = FaceUploaded(id=face_id, name=name, created=created, annotation=prepared.source, cached=prepared.cached,
+                        left_out={str(k): str(v) for k, v in (report.get("left_out") or {}).items()},
+                        warnings=[str(w) for w in report.get("warnings") or []],
+                        annotate_seconds=report.get("seconds"), face=info)
+    return JSONResponse(body.model_dump(), status_code=201 if created else 200,
+                        headers={"Location": f"/v1/faces/{name}"})
+
+
+@router.delete("/{name}", status_code=status.HTTP_204_NO_CONTENT, dependencies=[Depends(require_admin)],
+               responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody, "description": "no uploaded face"}})
+async def delete_face(name: str, request: Request) -> Response:
+    """Delete an uploaded face (by name or id); built-in and configured faces stay."""
+    await run_in_threadpool(request.app.state.store.remove_upload, name)
+    return Response(status_code=204)
 
 
 @router.get("", response_model=FaceList)

@@ -1,6 +1,7 @@
 """``facecast faces [SPEC]``: list the built-in faces, or describe one face.
 
-``facecast faces annotate MESH [-o MESH.face.json] [--landmarks L.json] [--preview PNG]``: annotate a
+``facecast faces annotate MESH [-o MESH.face.json] [--landmarks L.json] [--preview PNG]
+[--template auto|default|ict]``: annotate a
 head mesh automatically (``faces.annotate``) and write its ``.face.json``.
 """
 from __future__ import annotations
@@ -23,6 +24,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     a.add_argument("--up", default=None, help="the mesh's up axis (+y, -z, ...) if known")
     a.add_argument("--forward", default=None, help="the mesh's face-forward axis if known")
     a.add_argument("--force", action="store_true", help="overwrite an existing annotation")
+    a.add_argument("--template", choices=("auto", "default", "ict"), default="auto",
+                   help="head fitted to the mesh: the built-in head, the ICT FaceKit neutral (needs "
+                        "../shared/data/ict-facekit), or auto: the one the head aligns to better")
 
 
 def describe(face) -> dict:
@@ -70,7 +74,7 @@ def annotate(args: argparse.Namespace) -> int:
     vertices, triangles = read_mesh(mesh)
     landmarks = read_landmarks(Path(args.landmarks), len(vertices)) if args.landmarks else None
     annotation = annotate_mesh(vertices, triangles, landmarks=landmarks, axes=axes,
-                               units=declared_units(mesh))
+                               units=declared_units(mesh), template=args.template)
     face = face_from_annotation(str(mesh), vertices, triangles, annotation, where="automatic annotation")
     info = describe(face)
     if "error" in info["fapu_mm"]:
@@ -86,7 +90,8 @@ def annotate(args: argparse.Namespace) -> int:
         return 0
     print(f"{out}: {len(face.feature_points)} of 84 feature points, units {face.units} "
           f"({report['mm_per_unit_measured']:.3g} mm per unit measured), up {annotation['axes']['up']}, "
-          f"forward {annotation['axes']['forward']}, parts {', '.join(face.parts)}; {report['seconds']} s")
+          f"forward {annotation['axes']['forward']}, parts {', '.join(face.parts)}; template "
+          f"{report['template']}; {report['seconds']} s")
     for fp, why in report["left_out"].items():
         print(f"  left out {fp}: {why}")
     for w in report["warnings"]:

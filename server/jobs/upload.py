@@ -40,6 +40,9 @@ class UploadParser:
     ``size`` (bytes of the file), ``head`` (its first ``SNIFF_BYTES``).
     """
 
+    #: Form fields that carry content, and their size limits (others: ``MAX_FIELD_BYTES``).
+    field_limits: dict[str, int] = FIELD_LIMITS
+
     def __init__(self, boundary: bytes, dest: Path, limit: int, file_field: str = "file",
                  kind_limit: Callable[[str], tuple[int, str]] | None = None):
         """``limit``: bytes of the file at most; ``kind_limit(kind) -> (bytes, variable)`` lowers it
@@ -114,7 +117,7 @@ class UploadParser:
             self._fh.write(chunk)
         else:
             self._value += chunk
-            limit = FIELD_LIMITS.get(self._name or "", MAX_FIELD_BYTES)
+            limit = self.field_limits.get(self._name or "", MAX_FIELD_BYTES)
             if len(self._value) > limit:
                 raise InputError(f"form field is longer than {limit} bytes", where=self._name or "form")
 

@@ -24,7 +24,7 @@ __all__ = ["annotate_mesh", "cached_annotation", "merge", "mesh_key"]
 log = logging.getLogger(__name__)
 
 #: Bump when a change makes the annotator give different results (invalidates the cache).
-VERSION = 1
+VERSION = 2
 
 
 def mesh_key(vertices: np.ndarray, triangles: np.ndarray) -> str:
@@ -89,10 +89,11 @@ def merge(automatic: dict, user: dict) -> dict:
 
 
 def is_partial(annotation) -> bool:
-    """True when a user's annotation leaves feature points or parts to the annotator."""
+    """True when a user's annotation leaves feature points or parts to the annotator (never for one
+    marked ``"final": true``: an uploaded face's annotation, already completed once)."""
     from ..face import FEATURE_POINT_IDS
 
-    if not isinstance(annotation, dict):
+    if not isinstance(annotation, dict) or annotation.get("final") is True:
         return False
     fps = annotation.get("feature_points")
     return "parts" not in annotation or not isinstance(fps, dict) or not set(FEATURE_POINT_IDS) <= set(fps)

@@ -17,8 +17,8 @@ from ...errors import InputError
 from ...output.preview import vertex_normals
 from ..face import FEATURE_POINT_IDS, UNIT_MM
 from .detect import mouth_corners, profile_landmarks, sphere_centre
-from .orient import frame, place
-from .template import INNER, OUTER, PIECE_PARTS, Template, default_template
+from .orient import Similarity, frame, place, umeyama
+from .template import INNER, OUTER, PIECE_PARTS, TEMPLATES, Template, ict_available
 from .warp import Target, fit, warp_points
 
 #: A feature point farther than this (template mm) from every mesh vertex is left out (1.6x this on
@@ -36,6 +36,17 @@ _FAPU = {"IRISD": ("3.1", "3.3", 1), "ES": ("3.5", "3.6", 0), "ENS": ("3.5", "9.
 DENSE = 30_000
 #: Feature points animation cannot do without: the chin (the jaw's angle) and the FAPU's.
 ESSENTIAL = frozenset({"2.1", "3.1", "3.3", "3.5", "3.6", "9.15", "2.2", "8.3", "8.4"})
+#: A mesh vertex whose normal meets a skin point's template normal at a lower cosine is behind the
+#: surface (an eye or mouth socket behind the lid or lip): only taken when nothing else is near.
+#: Not higher: a coarse mesh's vertex where the lips meet faces forward, the template's lip
+#: contact point down.
+FACING_MIN = 0.0
+FACING_NEAR = 1.5
+#: Median distance (mm) from a mouth piece to the warped template's pieces under which the
+#: template's part names label it.
+PIECE_NAMES_MM = 2.5
+#: Largest rotation (degrees) and shift (mm) of a piece's rigid fit that is trusted.
+PIECE_MAX_DEG, PIECE_MAX_MM = 10.0, 5.0
 _FAPU_CHECK = True  # tests and debugging may look at a failed fit
 _FAPU_POINTS = {p for a, b, _ in _FAPU.values() for p in (a, b)}
 
@@ -76,7 +87,7 @@ def ranges(ids: np.ndarray) -> list:
 
 def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dict | None = None,
                   axes: tuple[str, str] | None = None, units: str | None = None,
-                  template: Template | None = None) -> dict:
+                  template: Template | str | None = None) -> dict:
     """The annotation (``loaders`` format plus an ``automatic`` report) for a head mesh.
 
     Args:
@@ -84,11 +95,13 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
         landmarks: MPEG-4 feature point id -> ``[x, y, z]`` in mesh units (nose tip 9.3, eye corners
             3.7/3.12, mouth corners 8.3/8.4, chin 2.1, ...), to guide the fit.
         axes: ``(up, forward)`` when known; ``units``: when the file says (else from the head size).
+        template: ``"default"`` (the built-in head), ``"ict"`` (the ICT FaceKit neutral), a
+            ``Template``, or None / ``"auto"``: the one the mesh's head is closer to after the rigid
+            alignment (ICT only when ``../shared/data`` has it).
 
     Raises ``InputError`` when no head can be fitted (too few vertices, a fit too poor to trust).
     """
     t0 = time.perf_counter()
-    tpl = template or default_template()
     v = np.asarray(vertices, dtype=np.float64)
     tri = np.asarray(triangles, dtype=np.int64)
     if len(v) < 50 or len(tri) < 50 or not np.all(np.isfinite(v)):
@@ -106,7 +119,7 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
 
     lm = {k: v[p] if isinstance(p, (int, np.integer)) else np.asarray(p, dtype=np.float64)
           for k, p in (landmarks or {}).items()}
-    pl = place(v[main], vn[main], tpl, axes=axes, landmarks=lm or None)
+    tpl, pl, scores = _choose(template, v[main], vn[main], axes, lm or None)
     sim = pl.similarity
     y = sim.apply(v)  # every vertex in the template frame (mm)
     yn = vn @ sim.rotation.T
@@ -146,7 +159,7 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
 
     box = (y[:, 1] > tpl.vertices[:, 1].min() - 20) & (np.abs(y[:, 0]) < 140) & (np.abs(y[:, 2]) < 200)
     parts = _parts(y, label, main_label, sizes, warped, tpl, box)
-    fps, left_out, approximate = _feature_points(y, yn, wtri, parts, warped, tpl, socket_v)
+    fps, left_out, approximate = _feature_points(y, yn, wtri, parts, warped, tpl, socket_v, rep, tri)
     warnings = _checks(y, fps, left_out, tpl)
 
     # Pivots: template pivots through the warp, back to mesh coordinates.
@@ -158,7 +171,7 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
     off_axis = float(np.degrees(np.arccos(np.clip((np.trace(frame(up, forward) @ sim.rotation.T) - 1) / 2, -1, 1))))
     fit_err = float(np.median(cKDTree(warped[tpl.outer]).query(pts[head & ~target.rim])[0]))
     report = {
-        "template": "default", "seconds": round(time.perf_counter() - t0, 2),
+        "template": tpl.name, "template_scores_mm": scores, "seconds": round(time.perf_counter() - t0, 2),
         "mm_per_unit_measured": round(mm_per_unit, 4), "tilt_deg": round(off_axis, 1),
         "alignment_score_mm": round(pl.score, 2), "landmarks": found, "fit_median_mm": round(fit_err, 2),
         "cropped_to_head": bool(pl.cropped or (~head_v[used]).any()),
@@ -190,6 +203,27 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
         "pivots": {k: [round(float(x), 6) for x in p] for k, p in zip(names, piv)},
         "automatic": report,
     }
+
+
+def _choose(template: Template | str | None, v: np.ndarray, vn: np.ndarray, axes, lm):
+    """``(template, placement, {name: alignment score mm})``: the given template, or (auto) the
+    one whose rigid alignment to the head scores best."""
+    if isinstance(template, Template):
+        return template, place(v, vn, template, axes=axes, landmarks=lm), {}
+    name = template or "auto"
+    if name not in (*TEMPLATES, "auto"):
+        raise InputError(f"unknown template {name!r}; use {', '.join(TEMPLATES)} or auto", where="template")
+    names = [name] if name != "auto" else ["default", *(["ict"] if ict_available() else [])]
+    best = None
+    scores = {}
+    for n in names:
+        tpl = TEMPLATES[n]()
+        pl = place(v, vn, tpl, axes=axes or (best[1].up, best[1].forward) if best else axes, landmarks=lm)
+        scores[n] = round(pl.score, 2)
+        if best is None or pl.score < best[1].score:
+            best = (tpl, pl)
+    assert best is not None
+    return best[0], best[1], scores
 
 
 def _surface_pieces(y, yn, label, sizes, main_label, tpl: Template) -> list[int]:
@@ -233,9 +267,10 @@ def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
         if "slit" in mine:
             half = abs(tpl.fp_position("8.3")[0])
             for k, p in mouth_corners(y, mtri, mine["slit"], half).items():
-                src.append(tpl.fp_position(k))  # the corner is where the slit ends
-                dst.append(p)
-                found.append(k)
+                if k in tpl.mouth_corners:  # the same detector's end of the slit on the template
+                    src.append(tpl.mouth_corners[k])
+                    dst.append(p)
+                    found.append(k)
         for eye in ("eye_l", "eye_r"):
             c = tpl.pivots[eye]
             best = None
@@ -302,15 +337,26 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
             # (lower teeth, lower gums, tongue); a piece across it (gums and tongue in one) is cut
             # at the slit. The template's nearest part names teeth apart from gums and tongue.
             mouth = np.nonzero((tpl.label >= 2 + PIECE_PARTS.index("teeth_upper")))[0]
-            _, k = cKDTree(warped[mouth]).query(y[ids])
+            d_mouth, k = cKDTree(warped[mouth]).query(y[ids])
             name = np.array([PIECE_PARTS[s - 2] for s in tpl.label[mouth[k]]])
             teeth = np.char.startswith(name, "teeth")
             above = y[ids, 1] > slit_y
-            if above.mean() > 0.8 or above.mean() < 0.2:
+            # Where the template's pieces lie on the mesh's (a head of the template's family), their
+            # names say which jaw a piece is on (upper incisors reach below the slit) and whether it
+            # is one of the template's pieces; elsewhere only the slit and the teeth are trusted.
+            close = np.median(d_mouth) < PIECE_NAMES_MM
+            upper = np.char.endswith(name, "_upper").mean()
+            if close and (upper > 0.7 or upper < 0.3):
+                above[:] = upper > 0.5
+            elif above.mean() > 0.8 or above.mean() < 0.2:
                 above[:] = above.mean() > 0.5
+            if teeth.mean() > 0.8 or teeth.mean() < 0.2 or above.all() or not above.any():
                 teeth[:] = teeth.mean() > 0.5
             label_of = np.where(above, np.where(teeth, "teeth_upper", "gums_upper"),
                                 np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")))
+            names, counts = np.unique(name, return_counts=True)
+            if close and counts.max() >= 0.6 * len(name):  # one of the template's pieces
+                label_of[:] = names[np.argmax(counts)]
             for s in np.unique(label_of):
                 parts.setdefault(str(s), []).append(ids[label_of == s])
         elif top == INNER:
@@ -330,7 +376,7 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
     return out
 
 
-def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tuple[dict[str, int], dict[str, str], dict]:
+def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tri) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
 
@@ -338,17 +384,15 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
     that touch but are not joined) the one whose neighbourhood lies on the template point's side.
     Two feature points never share a vertex: the farther one takes its next-nearest free vertex.
     A point of the template's outer skin avoids mesh vertices facing another way (an eye or mouth
-    socket just behind the lid or lip).
+    socket just behind the lid or lip). ``rep``: the welded id of every vertex (``weld``); ``tri``:
+    the mesh's own triangles, which tell coincident vertices apart.
     """
     t_normals = vertex_normals(warped, tpl.triangles)
-    n = len(y)
-    ring = np.zeros((n, 3))
-    cnt = np.zeros(n)
-    cent = y[wtri].mean(axis=1)
-    for k in range(3):
-        np.add.at(ring, wtri[:, k], cent)
-        np.add.at(cnt, wtri[:, k], 1)
-    ring = ring / np.maximum(cnt, 1)[:, None] - y
+    ring = _ring(y, wtri)
+    own_ring = _ring(y, tri)
+    coincident: dict[int, list[int]] = {}
+    for i in np.nonzero(rep != np.arange(len(rep)))[0]:
+        coincident.setdefault(int(rep[i]), [int(rep[i])]).append(int(i))
     t_ring = np.zeros((len(warped), 3))
     t_cnt = np.zeros(len(warped))
     tc = warped[tpl.triangles].mean(axis=1)
@@ -358,13 +402,13 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
     t_ring = t_ring / np.maximum(t_cnt, 1)[:, None] - warped
 
     skin_ids = np.r_[parts["skin"], parts.get("mouth_socket", np.zeros(0, np.int64))]
-    skin_ids = skin_ids[~socket_v[skin_ids]]
     trees = {"skin": (cKDTree(y[skin_ids]), skin_ids)}
     taken: set[int] = set()
     approximate: dict[str, float] = {}
     fps: dict[str, int] = {}
     left_out: dict[str, str] = {}
     wanted = []
+    piece_fit: dict = {}
     for fp in FEATURE_POINT_IDS:
         if fp not in tpl.feature_points:
             continue
@@ -376,6 +420,11 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
         if key not in trees:
             trees[key] = (cKDTree(y[parts[key]]), parts[key])
         p = warped[tpl.feature_points[fp]]
+        if key != "skin" and key == part:
+            if key not in piece_fit:
+                piece_fit[key] = _fit_piece(warped[tpl.label == 2 + PIECE_PARTS.index(key)], y[parts[key]],
+                                            trees[key][0])
+            p = piece_fit[key].apply(p[None])[0]
         d, i = trees[key][0].query(p, k=min(16, len(trees[key][1])))
         wanted.append((float(np.atleast_1d(d)[0]), fp, key, np.atleast_1d(d), np.atleast_1d(i)))
     for d0, fp, key, d, i in sorted(wanted):
@@ -390,15 +439,20 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
         tr = t_ring[tpl.feature_points[fp]]
         cost = d + 2.0 * np.linalg.norm(ring[ids] - tr, axis=1) * (d < d0 + 0.5)
         cost[d >= d0 + 0.5] += 1e3
+        cost[socket_v[ids] & (d > FACING_NEAR)] += 2e3  # an eye socket, unless right at the point
         vid = tpl.feature_points[fp]
         if tpl.label[vid] == OUTER:
             facing = yn[ids] @ t_normals[vid]
-            cost[facing < 0.3] += 2e3  # behind the surface: only if nothing else is near
-        free = [j for j in np.argsort(cost) if int(ids[j]) not in taken and d[j] <= reach]
+            # behind the surface: only if nothing else is near (a vertex within FACING_NEAR of the
+            # point is where the surface folds, e.g. a coarse mesh's lips meeting: taken)
+            cost[(facing < FACING_MIN) & (d > FACING_NEAR)] += 2e3
+        free = [j for j in np.argsort(cost) if d[j] <= reach
+                and any(m not in taken for m in coincident.get(int(ids[j]), [int(ids[j])]))]
         if not free:
             left_out[fp] = "no free vertex near it (the mesh is too coarse there)"
             continue
-        fps[fp] = int(ids[free[0]])
+        group = [m for m in coincident.get(int(ids[free[0]]), [int(ids[free[0]])]) if m not in taken]
+        fps[fp] = group[int(np.argmin(np.linalg.norm(own_ring[group] - tr, axis=1)))]
         taken.add(fps[fp])
     # Pupils: the front pole of each eyeball piece (a neutral head looks straight ahead, +z).
     for eye, fp in (("eye_l", "3.5"), ("eye_r", "3.6")):
@@ -410,6 +464,47 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v) -> tupl
                 fps[fp] = vid
                 taken.add(vid)
     return fps, left_out, approximate
+
+
+def _ring(y: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``(V, 3)``: mean centroid of each vertex's triangles minus the vertex (0 for unused ones): which
+    side of the vertex its surface lies on."""
+    ring = np.zeros_like(y)
+    cnt = np.zeros(len(y))
+    cent = y[triangles].mean(axis=1)
+    for k in range(3):
+        np.add.at(ring, triangles[:, k], cent)
+        np.add.at(cnt, triangles[:, k], 1)
+    return ring / np.maximum(cnt, 1)[:, None] - y * (cnt > 0)[:, None]
+
+
+def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int = 12) -> Similarity:
+    """Rigid fit (rotation, translation, scale within 0.8-1.25) of a template piece ``src (N, 3)``
+    (warped teeth, tongue) onto the mesh's piece ``dst (M, 3)``: trimmed ICP both ways. The warp
+    fits the skin; the pieces inside follow it only smoothly, so their points are placed by this."""
+    sim = Similarity(1.0, np.eye(3), np.zeros(3))
+    if len(src) < 10 or len(dst) < 10:
+        return sim
+    src_tree_pts = src
+    for _ in range(iterations):
+        cur = sim.apply(src_tree_pts)
+        d, j = tree.query(cur)
+        keep = d <= np.quantile(d, 0.8)
+        d2, i2 = cKDTree(cur).query(dst)
+        keep2 = d2 <= np.quantile(d2, 0.8)
+        a = np.r_[src_tree_pts[keep], src_tree_pts[i2[keep2]]]
+        b = np.r_[dst[j[keep]], dst[keep2]]
+        new = umeyama(a, b)
+        if not 0.8 <= new.scale <= 1.25:
+            break
+        sim = new
+    # A piece of another shape (a whole dental arch against the template's) can slide along itself:
+    # such a fit is not trusted.
+    angle = np.degrees(np.arccos(np.clip((np.trace(sim.rotation) - 1) / 2, -1.0, 1.0)))
+    moved = np.linalg.norm(sim.apply(src).mean(axis=0) - src.mean(axis=0))
+    if angle > PIECE_MAX_DEG or moved > PIECE_MAX_MM:
+        return Similarity(1.0, np.eye(3), np.zeros(3))
+    return sim
 
 
 def _checks(y, fps: dict[str, int], left_out: dict, tpl: Template) -> list[str]:

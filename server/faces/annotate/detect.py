@@ -114,8 +114,8 @@ def profile_landmarks(vertices: np.ndarray, triangles: np.ndarray,
     if not np.all(np.isfinite(z)):
         return {}
     out: dict[str, np.ndarray] = {}
-    guess = expect or {}
-    lo, hi = (guess.get("tip", -29.0) - 30, guess.get("tip", -29.0) + 30)
+    # Near the template's tip height; on a template itself, anywhere from the mouth to the brows.
+    lo, hi = (expect["tip"] - 30, expect["tip"] + 30) if expect and "tip" in expect else (-70.0, 40.0)
     band = (ys > lo) & (ys < hi)
     if not band.any():
         return {}

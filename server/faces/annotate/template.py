@@ -1,4 +1,5 @@
-"""The annotated template fitted to a user's mesh: the built-in head at a modest resolution, in mm.
+"""The annotated template fitted to a user's mesh: the built-in head at a modest resolution (or the
+ICT FaceKit neutral, when ``../shared/data`` has it), in mm.
 
 The template supplies everything an annotation needs — feature points, parts and pivots — in MPEG-4
 axes (y up, z forward, x the face's left) and millimetres; ``fit`` warps it onto the user's mesh.
@@ -26,6 +27,7 @@ class Template:
     """The template head.
 
     Attributes:
+        name: ``default`` (the built-in head) or ``ict`` (the ICT FaceKit neutral).
         vertices: ``(N, 3) float64`` mm, MPEG-4 axes.
         triangles: ``(F, 3) int32``.
         label: ``(N,) int8``: ``OUTER``, ``INNER`` or ``2 + PIECE_PARTS.index(part)``.
@@ -41,6 +43,7 @@ class Template:
             detected ends are taken as the corners).
     """
 
+    name: str
     vertices: np.ndarray
     triangles: np.ndarray
     label: np.ndarray
@@ -71,28 +74,72 @@ def default_template() -> Template:
     """The built-in head as a template (memoised)."""
     from ..procedural import build_default_head
 
-    face = build_default_head(TEMPLATE_VERTICES)
-    v = face.vertices.astype(np.float64)
-    label = np.full(len(v), OUTER, dtype=np.int8)
-    for name in INNER_SKIN:
-        label[face.part(name)] = INNER
-    for i, name in enumerate(PIECE_PARTS):
-        label[face.part(name)] = 2 + i
-    outer = np.nonzero(label == OUTER)[0]
-    pivots = {k: face.pivot(k).astype(np.float64) for k in ("head", "jaw", "eye_l", "eye_r")}
-    nose_base = v[face.feature_points["9.15"]]
-    chin, brow = v[face.feature_points["2.1"]], v[face.feature_points["4.3"]]
-    p = v[outer]
-    front = (p[:, 2] > nose_base[2] - 45) & (p[:, 1] > chin[1] - 5) & (p[:, 1] < brow[1] + 25) \
-        & (np.abs(p[:, 0]) < 62)
+    return template_from_face(build_default_head(TEMPLATE_VERTICES), "default")
+
+
+#: ICT FaceKit parts that are not part of a head's surface or its pieces (dropped from the template).
+ICT_DROPPED = ("eye_extras", "eyelashes")
+
+
+@lru_cache(maxsize=1)
+def ict_template() -> Template:
+    """The ICT FaceKit neutral (its shipped annotation) as a template, from ``../shared/data``
+    (memoised). Raises InputError when the ICT FaceKit is not there."""
+    from ...errors import InputError
+    from ...paths import shared_data
+    from .. import load_face
+
+    data = shared_data()
+    path = data / "ict-facekit" / "generic_neutral_mesh.obj" if data is not None else None
+    if path is None or not path.is_file():
+        raise InputError("the ICT FaceKit template needs ../shared/data/ict-facekit/generic_neutral_mesh.obj; "
+                         "use --template default", where="template")
+    return template_from_face(load_face(path), "ict", drop=ICT_DROPPED)
+
+
+def ict_available() -> bool:
+    """True when the ICT FaceKit template can be built here."""
+    from ...paths import shared_data
+
+    data = shared_data()
+    return data is not None and (data / "ict-facekit" / "generic_neutral_mesh.obj").is_file()
+
+
+TEMPLATES = {"default": default_template, "ict": ict_template}
+
+
+def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Template:
+    """An annotated face (MPEG-4 axes) as a template: in mm, without the parts ``drop``."""
     from ...output.preview import vertex_normals
     from .detect import mouth_corners, profile_landmarks
 
-    outer_tri = face.triangles[(label[face.triangles] == OUTER).all(axis=1)]
+    keep = np.ones(face.n_vertices, bool)
+    for part in drop:
+        keep[face.part(part)] = False
+    new_id = np.cumsum(keep) - 1
+    tri = face.triangles[keep[face.triangles].all(axis=1)]
+    tri = new_id[tri].astype(np.int32)
+    mm = float(face.mm_per_unit)
+    v = face.vertices[keep].astype(np.float64) * mm
+    label = np.full(len(v), OUTER, dtype=np.int8)
+    for part in (*INNER_SKIN, "eye_socket"):
+        ids = face.part(part)
+        label[new_id[ids[keep[ids]]]] = INNER
+    for i, part in enumerate(PIECE_PARTS):
+        ids = face.part(part)
+        label[new_id[ids[keep[ids]]]] = 2 + i
+    outer = np.nonzero(label == OUTER)[0]
+    fps = {k: int(new_id[i]) for k, i in face.feature_points.items() if keep[i]}
+    pivots = {k: face.pivot(k).astype(np.float64) * mm for k in ("head", "jaw", "eye_l", "eye_r")}
+    nose_base = v[fps["9.15"]]
+    chin, brow = v[fps["2.1"]], v[fps["4.3"]]
+    p = v[outer]
+    front = (p[:, 2] > nose_base[2] - 45) & (p[:, 1] > chin[1] - 5) & (p[:, 1] < brow[1] + 25) \
+        & (np.abs(p[:, 0]) < 62)
+    outer_tri = tri[(label[tri] == OUTER).all(axis=1)]
     profile = profile_landmarks(v, outer_tri)
-    corners = mouth_corners(v, outer_tri, profile["slit"], abs(float(v[face.feature_points["8.3"], 0])))
-
-    return Template(vertices=v, triangles=face.triangles, label=label, outer=outer,
-                    feature_points=dict(face.feature_points), pivots=pivots, face_region=outer[front],
-                    normals=vertex_normals(v, face.triangles), mouth_socket=face.part("mouth_socket"),
-                    profile=profile, mouth_corners=corners)
+    corners = mouth_corners(v, outer_tri, profile["slit"], abs(float(v[fps["8.3"], 0])))
+    socket = face.part("mouth_socket")
+    return Template(name=name, vertices=v, triangles=tri, label=label, outer=outer, feature_points=fps,
+                    pivots=pivots, face_region=outer[front], normals=vertex_normals(v, tri),
+                    mouth_socket=new_id[socket[keep[socket]]], profile=profile, mouth_corners=corners)
