@@ -23,7 +23,7 @@ from pydantic import BaseModel, Field
 
 from ...protocol.rest import TOPOLOGY_MEDIA_TYPE, ErrorBody, FaceInfo, FaceList, FaceSummary
 from ...protocol.topology import Topology, encode_topology, part_ids_from_parts
-from ..errors import Forbidden, InputError
+from ..errors import FacecastError, Forbidden, InputError, Unavailable
 from ..faces import KNOWN_PARTS, RIGID_GROUPS, builtin_faces
 from ..faces import upload as mesh_upload
 from ..jobs.upload import (
@@ -90,10 +90,9 @@ MAX_CONCURRENT_UPLOADS = 1
 FORM_OVERHEAD = 64 * 1024 + MAX_ANNOTATION_BYTES
 
 
-class Busy(FacecastError):
+class Busy(Unavailable):
     """Every mesh-reading slot is taken: the client should retry after ``Retry-After`` seconds."""
 
-    status = 503
     headers: ClassVar[dict[str, str]] = {"Retry-After": "5"}
 
 

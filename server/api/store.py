@@ -18,7 +18,7 @@ from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
-from ..errors import FacecastError, InputError, NotFound
+from ..errors import Conflict, InputError, NotFound
 from ..faces import builtin_faces, load_face, parse_count
 
 log = logging.getLogger(__name__)
@@ -34,10 +34,6 @@ MAX_UPLOADED_FACES = 32
 UPLOAD_ID = re.compile(r"^[0-9a-f]{16}$")
 #: File names inside an uploaded face's folder (fixed by the server, never a client's).
 UPLOAD_MESH, UPLOAD_ANNOTATION, UPLOAD_META = "mesh.obj", "mesh.face.json", "meta.json"
-
-
-class Conflict(FacecastError):
-    status = 409
 
 
 def upload_id(vertices, triangles, annotation: dict) -> str:

@@ -340,6 +340,5 @@ class MeshWorker:
             prepared: Prepared = msg[1]
             return prepared
         _, status, message = msg
-        err = InputError(message)  # the message names the field at fault already
-        err.status = status if 400 <= status < 500 else 422
-        raise err
+        # The worker's error class, rebuilt by its status (the message names the field at fault already).
+        raise {413: TooLarge, 422: Unprocessable}.get(status, InputError)(message)
