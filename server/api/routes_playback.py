@@ -33,6 +33,8 @@ from ..drivers.demo import demo_states
 from ..errors import FacecastError, InputError
 from ..jobs.upload import (LAYOUT_PART, PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix,
                            multipart_doc, safe_display_name, upload_dir, upload_layout)
+from ..live.ports import Deformer
+from ..live.session import LiveSession
 from .routes_sessions import registry
 from .security import bearer, same
 
@@ -53,28 +55,26 @@ class ServerProducer:
     """Holds a session's producer slot while a server-side task feeds it.
 
     A marker take brings its own control vertices: ``deform_with`` swaps the session's batcher for
-    one over them, and ``release`` puts the session's own back.
+    one over them (``LiveSession.deform_with``), and ``release`` puts the session's own back.
     """
 
-    def __init__(self, session, kind: str) -> None:
+    remote = False  # a server-side producer: alone, it does not keep the session in use
+
+    def __init__(self, session: LiveSession, kind: str) -> None:
         self.session = session
         self.kind = kind
         self.task: asyncio.Task | None = None
-        self._own: tuple | None = None  # the session's (batcher, control_vertices) while swapped
+        self._own: tuple[Deformer, np.ndarray | None] | None = None  # the session's, while swapped
 
-    def deform_with(self, batcher, control_vertices: np.ndarray) -> None:
-        s = self.session
-        self._own = (s.batcher, s.control_vertices)
-        s.batcher, s.control_vertices = batcher, np.array(control_vertices)
+    def deform_with(self, batcher: Deformer, control_vertices: np.ndarray) -> None:
+        self._own = self.session.deform_with(batcher, control_vertices)
 
     def release(self) -> None:
         """Give back the session's deformation and producer slot (idempotent)."""
-        s = self.session
         if self._own is not None:
-            s.batcher, s.control_vertices = self._own
+            self.session.restore(self._own)
             self._own = None
-        if s.producer is self:
-            s.set_producer(None)
+        self.session.release(self)
 
     def stop(self) -> None:
         if self.task is not None:
@@ -125,7 +125,8 @@ def _claim(session, kind: str) -> ServerProducer:
     elif current is not None:
         raise Busy("a producer is connected to this session; it must disconnect first", where="producer")
     producer = ServerProducer(session, kind)
-    session.set_producer(producer)
+    session.claim(producer)  # free: no await since the check above
+    session.announce(producer)
     return producer
 
 

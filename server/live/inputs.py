@@ -195,7 +195,9 @@ class MarkerInput:
         return states
 
 
-def make_input(kind: str, face: Any, hello: ProducerHello, fps: float):
+def make_input(
+    kind: str, face: Any, hello: ProducerHello, fps: float
+) -> FapInput | AudioInput | MarkerInput:
     """The input object for a session of ``kind`` after ``hello`` (blocking: drivers may precompute)."""
     if hello.input != kind:
         raise BadHello(

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 import secrets
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -24,8 +23,9 @@ from ...protocol.messages import (
 )
 from ..api.security import new_token
 from ..errors import FacecastError, NotFound
-from .batcher import DeformBatcher, batch_threads
+from .batcher import DeformBatcher
 from .session import LiveSession, SessionSpec
+from .settings import LiveSettings
 
 log = logging.getLogger(__name__)
 
@@ -38,12 +38,6 @@ class Unavailable(FacecastError):
     status = 503
 
 
-def deform_threads() -> int:
-    """Threads that deform live frames: ``FACECAST_LIVE_THREADS``, else the number of CPUs (≤ 8)."""
-    env = os.environ.get("FACECAST_LIVE_THREADS")
-    return max(1, int(env)) if env else max(1, min(8, os.cpu_count() or 1))
-
-
 class SessionRegistry:
     """Live sessions of one server.
 
@@ -53,6 +47,7 @@ class SessionRegistry:
         metrics: the app's ``Metrics`` (or None).
         idle_seconds: a session not ``busy`` (no viewer, no client producer) this long is closed
             (``ServerConfig.session_idle_seconds``; 0 = never).
+        settings: tuning of the live path (``ServerConfig.live_settings()``).
     """
 
     def __init__(
@@ -65,7 +60,9 @@ class SessionRegistry:
         metrics: Any = None,
         threads: int | None = None,
         idle_seconds: float = 0.0,
+        settings: LiveSettings | None = None,
     ) -> None:
+        self.settings = settings = settings or LiveSettings()
         self.store = store
         self.max_sessions = max_sessions
         self.max_viewers = max_viewers
@@ -73,11 +70,12 @@ class SessionRegistry:
         self.metrics = metrics
         self.sessions: dict[str, LiveSession] = {}
         self.executor = ThreadPoolExecutor(
-            threads or deform_threads(), thread_name_prefix="live-deform"
+            threads or settings.deform_threads, thread_name_prefix="live-deform"
         )
         #: The threads that solve, deform and encode live frames (``DeformBatcher`` drains); apart
         #: from ``executor`` so that drains busy under load never delay a producer's hello.
-        self.batch_executor = ThreadPoolExecutor(batch_threads(), thread_name_prefix="live-batch")
+        self.batch_executor = ThreadPoolExecutor(
+            settings.batch_threads, thread_name_prefix="live-batch")
         self._batchers: dict[int, DeformBatcher] = {}
         self._creating = 0
         self.idle_seconds = idle_seconds
@@ -87,7 +85,9 @@ class SessionRegistry:
         """The one ``DeformBatcher`` of ``animator`` (sessions of the same face share it)."""
         b = self._batchers.get(id(animator))
         if b is None or b.animator is not animator:
-            b = self._batchers[id(animator)] = DeformBatcher(animator, self.batch_executor)
+            b = self._batchers[id(animator)] = DeformBatcher(
+                animator, self.batch_executor, settings=self.settings
+            )
         return b
 
     def get(self, session_id: str) -> LiveSession:
