@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable
 from enum import Enum
 from functools import partial
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
@@ -30,7 +30,6 @@ from ...protocol import frames
 from ...protocol.errors import CloseCode, FrameError, MessageError
 from ...protocol.messages import (
     FapMessage,
-    InputKind,
     ProducerHello,
     Ready,
     dump_message,
@@ -257,7 +256,7 @@ class ProducerCore:
         self.session.announce(self.slot)  # tells viewers
         ready = Ready(
             session=spec.id,
-            input=cast(InputKind, spec.input),
+            input=spec.input,
             fps=spec.fps,
             max_fps=self.max_fps,
             vertex_count=self.session.vertex_count,

@@ -79,7 +79,7 @@ class SessionRegistry:
         self._batchers: dict[int, DeformBatcher] = {}
         self._creating = 0
         self.idle_seconds = idle_seconds
-        self._reaper: asyncio.Task | None = None
+        self._reaper: asyncio.Task[None] | None = None
 
     def batcher_for(self, animator: Any) -> DeformBatcher:
         """The one ``DeformBatcher`` of ``animator`` (sessions of the same face share it)."""
@@ -216,7 +216,9 @@ class SessionRegistry:
             self.metrics.sessions.set(len(self.sessions))
         await s.close(
             CloseCode.SESSION_CLOSED,
-            dump_message(ErrorMessage(code=CloseCode.SESSION_CLOSED, message=reason, fatal=True)),
+            dump_message(
+                ErrorMessage(code=CloseCode.SESSION_CLOSED, message=reason, fatal=True, seq=None)
+            ),
         )
         log.info("live session %s closed", session_id)
 

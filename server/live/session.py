@@ -21,7 +21,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ...protocol.compact import KEY
-from ...protocol.messages import Stats, Status, dump_message
+from ...protocol.messages import InputKind, Stats, Status, dump_message
 from ..state import FaceState
 from .ports import Deformer, DirectWriter, ProducerSlot
 
@@ -84,12 +84,13 @@ class Viewer:
         ):
             self.sent += 1
             return self.SENT
-        replaced = self.slot is not None
+        slot = self.slot
+        replaced = slot is not None
         if self.encoding == "compact":
             if frame[0][FLAGS_BYTE] & KEY:  # a key frame supersedes any held one
                 self.held = None
-            elif replaced and self.slot[1][0][FLAGS_BYTE] & KEY:
-                self.held = self.slot
+            elif slot is not None and slot[1][0][FLAGS_BYTE] & KEY:
+                self.held = slot
         self._n += 1
         self.slot = (self._n, frame)
         if replaced:
@@ -132,7 +133,7 @@ class Viewer:
 class SessionSpec:
     id: str
     face: str  # the name clients use (topology URL)
-    input: str
+    input: InputKind
     fps: float
     engine: str
     max_viewers: int
@@ -345,14 +346,16 @@ class LiveSession:
 
     def snapshot(self) -> Stats:
         n = self._stats["frames_deformed"]
-        counts = dict(
+        counts: dict[str, Any] = dict(
             self._stats, frames_sent=self._stats["frames_sent"] + sum(v.sent for v in self.viewers)
         )
-        return Stats(
-            **counts,
-            deform_ms_mean=round(1000 * self._deform_total / n, 3) if n else 0.0,
-            viewers=len(self.viewers),
-            producer_connected=self._producer is not None,
+        return Stats.model_validate(
+            counts
+            | {
+                "deform_ms_mean": round(1000 * self._deform_total / n, 3) if n else 0.0,
+                "viewers": len(self.viewers),
+                "producer_connected": self._producer is not None,
+            }
         )
 
     # -- the frame path -----------------------------------------------------------------------------
@@ -398,7 +401,7 @@ class LiveSession:
         finally:
             self._pump()
 
-    def _fan_out(self, encoded: dict, dt: float) -> None:
+    def _fan_out(self, encoded: dict[str, tuple[Any, Any]], dt: float) -> None:
         self._stats["frames_deformed"] += 1
         self.last_seq = self._in_flight
         self._deform_total += dt

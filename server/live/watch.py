@@ -16,7 +16,7 @@ from urllib.parse import quote
 
 from ...protocol import frames
 from ...protocol.errors import CloseCode
-from ...protocol.messages import Encoding, InputKind, ViewerHello, dump_message
+from ...protocol.messages import Encoding, ViewerHello, dump_message
 from .budget import viewer_limits
 from .core import NOTHING, Close, Gate, Step, closing
 from .session import LiveSession
@@ -82,7 +82,7 @@ class ViewerCore:
             vertex_count=s.vertex_count,
             encoding=cast(Encoding, self.encoding),
             fps=sp.fps,
-            input=cast(InputKind, sp.input),
+            input=sp.input,
             producer_connected=s.producer is not None,
             tolerance=sp.tolerance / s.face.mm_per_unit if self.encoding == "compact" else None,
         )
