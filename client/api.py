@@ -30,7 +30,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
 from ..protocol import frames
-from ..protocol.errors import FrameError
+from ..protocol.errors import FrameError, UpstreamError
 from ..protocol.messages import (
     ErrorMessage,
     FapMessage,
@@ -54,16 +54,12 @@ log = logging.getLogger(__name__)
 MAX_MESSAGE = 64 * 1024 * 1024
 
 
-class LiveError(Exception):
+class LiveError(UpstreamError):
     """The server refused a request or ended a connection with an error.
 
     ``code`` is the HTTP status or the WebSocket close code (``protocol.errors.CloseCode``), 0 if the
     server could not be reached.
     """
-
-    def __init__(self, message: str, code: int = 0) -> None:
-        super().__init__(message)
-        self.code = code
 
 
 def ws_url(url: str, path: str, **query: Any) -> str:

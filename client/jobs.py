@@ -12,6 +12,8 @@ from pathlib import Path
 
 import httpx
 
+from ..protocol.errors import UpstreamError
+
 FINAL = ("done", "failed", "cancelled")
 #: Render options that only make sense locally (the server picks its own backend and device).
 LOCAL_ONLY = frozenset({"backend", "device"})
@@ -21,15 +23,16 @@ MOCAP_SUFFIXES = frozenset({".c3d", ".trc", ".csv"})
 MAX_LAYOUT_BYTES = 1024 * 1024
 
 
-class RemoteJobError(RuntimeError):
+class RemoteJobError(UpstreamError):
     """The server refused the job, the job failed, or the server could not be reached.
 
-    ``status`` is the HTTP status (0 when there was no answer); ``job`` the job id if one exists.
+    ``code`` is the server's HTTP status (``status=`` here; 0 when there was no answer); ``job`` the
+    job id if one exists. (``status``, as on every facecast error, is what a facecast server relaying
+    this error would answer: 502.)
     """
 
-    def __init__(self, message: str, *, status: int = 0, job: str | None = None):
-        super().__init__(message)
-        self.status = status
+    def __init__(self, message: str, *, status: int = 0, job: str | None = None, where: str = "") -> None:
+        super().__init__(message, status, where=where)
         self.job = job
 
 

@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+from ...protocol.errors import InputError
 from . import add_token_argument
 
 log = logging.getLogger(__name__)
@@ -53,8 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-class StreamError(Exception):
-    pass
+class StreamError(InputError):
+    """A take, audio file or layout the stream command cannot read or use."""
 
 
 def _read_fap(path: Path):

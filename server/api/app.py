@@ -12,26 +12,26 @@ Every error is JSON: ``{"error": "<what was wrong and what to do>", "where": "..
 from __future__ import annotations
 
 import logging
-import re
+import sys
 import tempfile
 import threading
 import time
 from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException
 
-from ...protocol.errors import ProtocolError
-from ...protocol.fap_file import FapFormatError
-from ...protocol.markers_file import MarkerFileError
-from ...protocol.topology import TopologyError
 from ..errors import FacecastError
 from . import routes_faces, routes_health, routes_jobs, routes_playback, routes_sessions, routes_web
 from ..jobs.upload import clear_upload_dir, upload_dir
 from .config import ServerConfig
+from .errors import error_body, error_response, reply
 from .metrics import Metrics
+from .redact import path_scrubber
 from .responses import SafeJSONResponse, safe_json, safe_text
 from .security import resolve_admin_key
 from .store import FaceStore, parse_faces_env
@@ -65,26 +65,12 @@ def _version() -> str:
         return "0+unknown"
 
 
-#: The protocol's parser errors (``ValueError`` subclasses outside ``ProtocolError``): bad client input.
-PROJECT_VALUE_ERRORS: tuple[type[Exception], ...] = (FapFormatError, MarkerFileError, TopologyError)
-
-
 def scrub_paths(text: str, app: FastAPI) -> str:
     """``text`` with server paths (the data directory, the temporary folder) cut to their last part."""
-    if not text:
-        return text
-    for root in app.state.private_roots:
-        text = re.sub(re.escape(root) + r"[^\s'\",:;)]*", lambda m: m.group(0).rsplit("/", 1)[-1], text)
-    return text
+    return app.state.scrub_paths(text)
 
 
-def error_body(status: int, message: str, where: str = "", **extra) -> dict:
-    """The JSON body of every error response."""
-    body = {"error": message, "detail": message, "status": status}
-    if where:
-        body["where"] = where
-    body.update(extra)
-    return body
+__all__ = ["create_app", "error_body", "scrub_paths"]
 
 
 def _warm_up(app: FastAPI) -> None:
@@ -183,7 +169,10 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     # operator's mesh folders (a message keeps only a file's own name).
     roots = {str(config.data_dir.expanduser().resolve()), str(config.data_dir), tempfile.gettempdir(),
              *(str(p.expanduser().parent) for p in app.state.store.configured.values())}
+    # ... and where facecast and its Python live (a message may name a file of the package).
+    roots |= {str(Path(__file__).resolve().parents[2]), sys.prefix}
     app.state.private_roots = sorted((r for r in roots if len(r) > 1), key=len, reverse=True)
+    app.state.scrub_paths = path_scrubber(app.state.private_roots)
     app.state.readiness = {"ready": False, "backend": None, "device": None}
 
     from ..jobs.manager import JobManager
@@ -193,30 +182,25 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
                                 job_timeout=config.job_timeout_seconds, memory_mb=config.job_memory_mb)
     app.state.metrics.watch_jobs(app.state.jobs.store.counts)
 
-    def _error(status: int, message: str, where: str = "", headers=None, **extra):
-        app.state.metrics.http_errors.labels(str(status)).inc()
-        body = error_body(status, scrub_paths(message, app), scrub_paths(where, app), **extra)
-        return SafeJSONResponse(body, status_code=status, headers=headers)
+    def _answer(exc: Exception, **extra: Any) -> JSONResponse:
+        r = reply(exc, app)  # the one mapping, as on WebSockets: status from the error's class
+        app.state.metrics.http_errors.labels(str(r.status)).inc()
+        return error_response(r, **extra)
 
-    # Every error a client can cause is one of the project's own: each maps to its 4xx status.
-    for error_type in (FacecastError, ProtocolError, *PROJECT_VALUE_ERRORS):
-        @app.exception_handler(error_type)
-        async def _project_error(request: Request, exc: Exception) -> JSONResponse:
-            status = int(getattr(exc, "status", 400))
-            return _error(status, str(exc), getattr(exc, "where", "") or "",
-                          headers=getattr(exc, "headers", None))
+    @app.exception_handler(FacecastError)
+    async def _project_error(request: Request, exc: FacecastError) -> JSONResponse:
+        return _answer(exc)
 
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, exc: HTTPException) -> JSONResponse:
-        message = exc.detail if isinstance(exc.detail, str) else "request failed"
-        extra = {} if isinstance(exc.detail, str) else {"problems": safe_json(jsonable(exc.detail))}
-        return _error(exc.status_code, message, headers=getattr(exc, "headers", None), **extra)
+        extra: dict[str, Any] = {} if isinstance(exc.detail, str) else {"problems": safe_json(jsonable(exc.detail))}
+        return _answer(exc, **extra)
 
     @app.exception_handler(Exception)
     async def _server_error(request: Request, exc: Exception) -> JSONResponse:
         # Last resort: the details (paths, traceback) go to the server log, never to the client.
         log.error("unhandled error on %s %s", request.method, safe_text(request.url.path, 200), exc_info=exc)
-        return _error(500, "internal server error; the server log has the details")
+        return _answer(exc)
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -225,7 +209,8 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         problems = "; ".join(
             f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', '')}" for e in errors
             if isinstance(e, dict))
-        return _error(422, f"invalid request: {problems}; see /docs for the schema", problems=errors)
+        return _answer(HTTPException(422, f"invalid request: {problems}; see /docs for the schema"),
+                       problems=errors)
 
     app.include_router(routes_health.router)
     app.include_router(routes_faces.router)

@@ -1,4 +1,5 @@
-"""Secrets out of log lines: ``token=`` (and ``key=``) values in URLs become ``***``.
+"""Secrets out of log lines: ``token=`` (and ``key=``) values in URLs become ``***``; server paths
+out of error messages (``path_scrubber``).
 
 uvicorn's access log and its WebSocket ``[accepted]`` lines print each request's path with its
 query string, where old clients still put session tokens (``?token=``). ``install()`` adds a
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable, Iterable
 
 _SECRET = re.compile(r"(?i)\b((?:producer_|viewer_|admin_)?(?:token|key))=[^&#\s\"']+")
 
@@ -21,6 +23,25 @@ LOGGERS = ("uvicorn", "uvicorn.error", "uvicorn.access")
 def mask(text: str) -> str:
     """``text`` with every ``token=VALUE`` / ``key=VALUE`` query value replaced by ``***``."""
     return _SECRET.sub(r"\1=***", text)
+
+
+def path_scrubber(roots: Iterable[str]) -> Callable[[str], str]:
+    """A function that cuts every path under one of ``roots`` (folders a client must never see) in a
+    text to its last part: ``/srv/data/jobs/x/input.fap`` -> ``input.fap``. One regular expression,
+    compiled here once (the longest root wins); roots of one character (``/``) are ignored."""
+    kept = sorted({r for r in roots if len(r) > 1}, key=len, reverse=True)
+    if not kept:
+        return lambda text: text
+    pattern = re.compile("(?:" + "|".join(map(re.escape, kept)) + r")[^\s'\",:;)]*")
+
+    def scrub(text: str) -> str:
+        return pattern.sub(_last_part, text) if text else text
+
+    return scrub
+
+
+def _last_part(match: re.Match[str]) -> str:
+    return match.group(0).rsplit("/", 1)[-1]
 
 
 def _masked(value: object) -> object:

@@ -13,7 +13,7 @@ from fastapi.responses import Response
 
 from ...protocol.rest import TOPOLOGY_MEDIA_TYPE, ErrorBody, FaceInfo, FaceList, FaceSummary
 from ...protocol.topology import Topology, encode_topology, part_ids_from_parts
-from ..errors import FacecastError, InputError
+from ..errors import Forbidden, InputError
 from ..faces import KNOWN_PARTS, RIGID_GROUPS, builtin_faces
 from ..mpeg4 import measure_fapu
 from .security import bearer, same
@@ -48,10 +48,6 @@ def face_fapu(face) -> dict[str, float] | None:
     except InputError as e:  # the description still works without FAPU
         log.info("no FAPU for %s: %s", face.name, e)
         return None
-
-
-class Forbidden(FacecastError):
-    status = 403
 
 
 def check_public_load(request: Request, name: str) -> None:

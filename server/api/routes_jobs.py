@@ -19,7 +19,7 @@ from pydantic import ValidationError
 
 from ...protocol.rest import RESULT_MEDIA_TYPES, ErrorBody, JobList, JobOptions, JobStatus
 from ..drivers import input_kind
-from ..errors import FacecastError, InputError, NotFound
+from ..errors import Conflict, FacecastError, InputError, NotFound
 from ..jobs.store import JOB_ID, JobRecord, new_job_id
 from ..jobs.upload import (LAYOUT_PART, PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix,
                            multipart_doc, safe_display_name, upload_layout)
@@ -45,10 +45,6 @@ _UPLOAD_DOC = multipart_doc(
     format={"type": "string", "enum": ["glb", "npz", "fap"], "default": "glb"},
     layout=LAYOUT_PART,
 )
-
-
-class Conflict(FacecastError):
-    status = 409
 
 
 def job_status(job: JobRecord, request: Request | None = None) -> JobStatus:

@@ -30,7 +30,7 @@ from fastapi.responses import Response
 from ...protocol.rest import ErrorBody
 from ..drivers import input_kind, load_animation
 from ..drivers.demo import demo_states
-from ..errors import FacecastError, InputError
+from ..errors import Conflict, FacecastError, InputError, Unauthorized, Unavailable
 from ..jobs.upload import (LAYOUT_PART, PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix,
                            multipart_doc, safe_display_name, upload_dir, upload_layout)
 from ..live.ports import Deformer
@@ -47,7 +47,7 @@ router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["sessions"],
 LEAD_IN = 0.5
 
 
-class Busy(FacecastError):
+class Busy(Conflict):
     status = 409
 
 
@@ -91,7 +91,7 @@ def _authorise(request: Request, session, token: str | None) -> None:
     raise _Unauthorised()
 
 
-class _Unauthorised(FacecastError):
+class _Unauthorised(Unauthorized):
     status = 401
 
     def __init__(self) -> None:
@@ -171,7 +171,7 @@ _PLAY_DOC = multipart_doc(
 )
 
 
-class TooBusy(FacecastError):
+class TooBusy(Unavailable):
     """Every decode slot is taken: the client should retry after ``Retry-After`` seconds."""
 
     status = 503

@@ -14,7 +14,7 @@ from python_multipart import MultipartParser
 from python_multipart.multipart import parse_options_header
 
 from ..drivers import DRIVERS
-from ..errors import FacecastError, InputError
+from ..errors import FacecastError, InputError, PayloadTooLarge, UnsupportedMedia
 
 #: Form field values larger than this are refused (they are short options)...
 MAX_FIELD_BYTES = 4096
@@ -24,14 +24,6 @@ FIELD_LIMITS = {"layout": 1024 * 1024}
 MAX_FIELDS = 16
 #: Bytes of the file kept to recognise its type from content.
 SNIFF_BYTES = 4096
-
-
-class PayloadTooLarge(FacecastError):
-    status = 413
-
-
-class UnsupportedMedia(FacecastError):
-    status = 415
 
 
 def safe_display_name(name: str | None, default: str = "upload") -> str:

@@ -16,7 +16,7 @@ import numpy as np
 from ...protocol import frames
 from ...protocol.errors import CloseCode, FrameError, MessageError
 from ...protocol.messages import FapMessage, ProducerHello
-from ..errors import FacecastError
+from ..errors import FacecastError, Unavailable
 from ..state import FaceState, zero_faps
 
 log = logging.getLogger(__name__)
@@ -31,7 +31,7 @@ DRIVERS: dict[str, tuple[str, str]] = {
 }
 
 
-class InputUnavailable(Exception):
+class InputUnavailable(Unavailable):
     """The driver for an input kind is not installed (close code 4503)."""
 
     close_code = CloseCode.UNAVAILABLE

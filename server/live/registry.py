@@ -21,8 +21,9 @@ from ...protocol.messages import (
     SessionInfo,
     dump_message,
 )
+from .. import errors
 from ..api.security import new_token
-from ..errors import FacecastError, NotFound
+from ..errors import NotFound
 from .batcher import DeformBatcher
 from .session import LiveSession, SessionSpec
 from .settings import LiveSettings
@@ -30,11 +31,11 @@ from .settings import LiveSettings
 log = logging.getLogger(__name__)
 
 
-class TooMany(FacecastError):
+class TooMany(errors.TooMany):
     status = 429
 
 
-class Unavailable(FacecastError):
+class Unavailable(errors.Unavailable):
     status = 503
 
 

@@ -18,6 +18,7 @@ import logging
 
 import numpy as np
 
+from ...protocol.errors import FrameError
 from ...protocol.markers_file import UNITS_MM
 from ..errors import InputError
 from ..faces.face import Face
@@ -33,9 +34,9 @@ log = logging.getLogger(__name__)
 __all__ = ["MarkerFrameError", "MarkerLiveDriver"]
 
 
-class MarkerFrameError(InputError, ValueError):
-    """A marker frame the driver cannot use (wrong shape, implausible units). Also a ValueError, so
-    that frame loops that drop bad frames on ValueError drop it with this message."""
+class MarkerFrameError(FrameError):
+    """A marker frame the driver cannot use (wrong shape, implausible units): an ``InputError`` and,
+    as every ``FrameError``, a ``ValueError`` (HTTP 400 / close 4400; the frame is dropped)."""
 
 
 class MarkerLiveDriver:

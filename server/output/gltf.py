@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from ..backends.numpy_backend import incidence_matrix
-from ..errors import FacecastError
+from ..errors import Unprocessable
 from .atomic import atomic_path
 
 log = logging.getLogger(__name__)
@@ -441,7 +441,7 @@ def unit_normals(frames: np.ndarray, triangles: np.ndarray, incidence) -> np.nda
     return out
 
 
-class OutputError(FacecastError):
+class OutputError(Unprocessable):
     """The output cannot be written correctly (it would miss its tolerance or a format limit)."""
 
     status = 422
