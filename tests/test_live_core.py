@@ -16,7 +16,7 @@ import pytest
 from facecast.protocol import frames
 from facecast.protocol.errors import CloseCode, FrameError, MessageError
 from facecast.protocol.messages import ProducerHello, dump_message
-from facecast.server.errors import InputError, NotFound
+from facecast.server.errors import FacecastError, InputError, NotFound
 from facecast.server.live import inputs as inputs_mod
 from facecast.server.live import producer as producer_mod
 from facecast.server.live.budget import FLOOD_BURST_SECONDS, MAX_TEXT_BYTES
@@ -355,8 +355,9 @@ def test_errors_map_to_close_codes():
     assert client_error(BadHello("bad", where=where)) == (4400, f"{where}: bad", where)
     assert client_error(FrameError("short")) == (4400, "short", "")
     assert client_error(InputError("no", where="f")) == (4400, "f: no", "f")
-    assert client_error(NotFound("gone")) == (4400, "gone", "")
-    assert client_error(ValueError("nan")) == (4400, "nan", "")
+    assert client_error(NotFound("gone")) == (4404, "gone", "")
+    assert client_error(FacecastError("no device")) == (4500, "no device", "")  # this side's
+    assert client_error(ValueError("nan")) is None  # outside the tree: a server fault
     assert client_error(RuntimeError("bug")) is None
     assert client_error(KeyError("k")) is None
 

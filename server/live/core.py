@@ -6,8 +6,8 @@ decision, and at most one piece of blocking ``Work`` whose result the shell feed
 and animators may take milliseconds to seconds: the shell runs them in a thread). The shell
 (``api.routes_sessions``) only receives, feeds and carries out steps.
 
-Also here: the one mapping of an error to a close code (``client_error``), the token check of both
-roles (``authorise``) and the budget step both roles share (``Gate``).
+Also here: an error's close code (``client_error``, over the project's one mapping), the token
+check of both roles (``authorise``) and the budget step both roles share (``Gate``).
 """
 
 from __future__ import annotations
@@ -19,11 +19,9 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
-from ...protocol.errors import CloseCode, ProtocolError
+from ...protocol.errors import INTERNAL_MESSAGE, CloseCode, error_reply
 from ...protocol.messages import ErrorMessage, dump_message
-from ..errors import FacecastError
 from .budget import Budget, Limits, Verdict
-from .inputs import InputUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -109,26 +107,17 @@ def closing(close: Close) -> Step:
 
 
 def client_error(exc: BaseException) -> tuple[int, str, str] | None:
-    """``(close code, message, where)`` of an error that is the client's fault (its hello, frame or
-    message), or None for a fault of the server (logged, answered vaguely with 4500).
-
-    The one mapping of the live WebSockets: a protocol error carries its own close code; a missing
-    driver is 4503; any other project error, and a ``ValueError`` a driver raises on the values it
-    was sent, is 4400.
-    """
-    if isinstance(exc, InputUnavailable):
-        return int(CloseCode.UNAVAILABLE), str(exc), ""
-    if isinstance(exc, ProtocolError):
-        return int(exc.close_code), str(exc), exc.where
-    if isinstance(exc, FacecastError):
-        return int(CloseCode.BAD_REQUEST), str(exc), exc.where
-    if isinstance(exc, ValueError):  # a driver refusing the numbers it was sent
-        return int(CloseCode.BAD_REQUEST), str(exc), str(getattr(exc, "where", "") or "")
-    return None
+    """``(close code, message, where)`` of a facecast error (``protocol.errors.error_reply``, the
+    one mapping REST shares: a protocol error or a bad hello is 4400, a missing driver 4503...), or
+    None for an error outside the tree: a server fault, logged and answered vaguely with 4500."""
+    r = error_reply(exc)
+    if r.unexpected:
+        return None
+    return r.close_code, r.message, r.where
 
 
 #: The answer to a server fault (the details go to the log, never to the client).
-INTERNAL = Close(CloseCode.INTERNAL, "internal error; the server log has the details")
+INTERNAL = Close(CloseCode.INTERNAL, INTERNAL_MESSAGE)
 
 
 def authorise(
