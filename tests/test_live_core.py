@@ -369,3 +369,73 @@ def test_tokens_decide_who_may_connect():
     assert mixed.code == CloseCode.FORBIDDEN and "viewer token" in mixed.message
     for wrong in (None, "", "p", "\ud800"):
         assert authorise("s", True, wrong, "V", "P", "viewer").code == CloseCode.UNAUTHORIZED
+
+
+# ------------------------------------------------------------- the routes, in process (no server)
+
+
+@pytest.fixture
+def routed():
+    """The sessions router over a registry holding one stand-in session (TestClient: in process,
+    no socket; the transport helpers find no uvicorn and do nothing)."""
+    from facecast.server.api import routes_sessions
+    from facecast.server.live.registry import SessionRegistry
+    from fastapi import FastAPI
+    from starlette.testclient import TestClient
+
+    app = FastAPI()
+    app.include_router(routes_sessions.router)
+    reg = SessionRegistry(None, max_sessions=4, max_viewers=4, max_fps=MAX_FPS, threads=1)
+    session = _session()
+    reg.sessions[session.spec.id] = session
+    app.state.live = reg
+    with TestClient(app) as client:
+        yield client, session
+    reg.executor.shutdown()
+    reg.batch_executor.shutdown()
+
+
+def _refused(ws) -> tuple[dict, int]:
+    error = ws.receive_json()
+    return error, ws.receive()["code"]
+
+
+def test_routes_feed_the_core_and_carry_out_its_steps(routed):
+    client, session = routed
+    auth = {"Authorization": "Bearer P"}
+    with client.websocket_connect("/v1/sessions/s1/produce", headers=auth) as producer:
+        producer.send_text(dump_message(ProducerHello()))
+        assert producer.receive_json()["type"] == "ready"
+        for i in range(3):
+            producer.send_bytes(_faps(i))
+        producer.send_bytes(b"\x00garbage")
+        error = producer.receive_json()  # the routes send what the core answered
+        assert error["code"] == 4400 and not error["fatal"]
+        with client.websocket_connect("/v1/sessions/s1/produce", headers=auth) as second:
+            error, code = _refused(second)
+            assert code == error["code"] == CloseCode.CONFLICT and error["fatal"]
+        with client.websocket_connect(
+            "/v1/sessions/s1/watch?encoding=i16", headers={"Authorization": "Bearer V"}
+        ) as viewer:
+            hello = viewer.receive_json()
+            assert hello["type"] == "hello" and hello["producer_connected"]
+            viewer.close()
+        producer.close()
+    assert session.stats["frames_in"] == 3 and session.stats["frames_rejected"] == 1
+    assert session.producer is None  # the route's finally freed the slot
+
+
+@pytest.mark.parametrize(
+    "path, token, code",
+    [
+        ("/v1/sessions/nope/produce", "P", CloseCode.NOT_FOUND),
+        ("/v1/sessions/s1/produce", "V", CloseCode.FORBIDDEN),
+        ("/v1/sessions/s1/watch", "wrong", CloseCode.UNAUTHORIZED),
+        ("/v1/sessions/s1/watch?encoding=f16", "V", CloseCode.BAD_REQUEST),
+    ],
+)
+def test_routes_refuse_with_the_cores_close(routed, path, token, code):
+    client, _ = routed
+    with client.websocket_connect(path, headers={"Authorization": f"Bearer {token}"}) as ws:
+        error, closed = _refused(ws)
+    assert closed == error["code"] == code and error["fatal"]
