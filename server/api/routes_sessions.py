@@ -70,7 +70,7 @@ def registry(app: Any) -> SessionRegistry:
 async def create_session(request: Request, body: SessionCreate | None = None) -> SessionCreated:
     """Open a live session; the answer's tokens are shown only once."""
     reg = registry(request.app)
-    return reg.created(await reg.create(body or SessionCreate()))
+    return reg.created(await reg.create(body or SessionCreate.model_validate({})))
 
 
 @router.get("/v1/sessions", response_model=SessionList, dependencies=[Depends(require_admin)])

@@ -1,30 +1,16 @@
 """Credentials: the admin key (REST admin routes) and per-session producer/viewer tokens."""
 from __future__ import annotations
 
-import hmac
 import logging
 import os
-import secrets
 import stat
 from pathlib import Path
 
 from fastapi import HTTPException, Request, status
 
+from ..live.tokens import new_token, same
+
 log = logging.getLogger(__name__)
-
-
-def new_token() -> str:
-    """A fresh random token (URL-safe, 32 bytes of entropy) that does not start with ``-``, so that
-    it can follow a command-line flag (``--token T``) without being taken for an option."""
-    while True:
-        token = secrets.token_urlsafe(32)
-        if not token.startswith("-"):
-            return token
-
-
-def same(a: str | None, b: str | None) -> bool:
-    """Constant-time comparison of two optional secrets."""
-    return a is not None and b is not None and hmac.compare_digest(a.encode(), b.encode())
 
 
 def resolve_admin_key(configured: str | None, data_dir: Path) -> tuple[str, bool]:

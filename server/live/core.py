@@ -12,7 +12,6 @@ check of both roles (``authorise``) and the budget step both roles share (``Gate
 
 from __future__ import annotations
 
-import hmac
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,6 +21,7 @@ from typing import Any
 from ...protocol.errors import INTERNAL_MESSAGE, CloseCode, error_reply
 from ...protocol.messages import ErrorMessage, dump_message
 from .budget import Budget, Limits, Verdict
+from .tokens import same
 
 log = logging.getLogger(__name__)
 
@@ -136,9 +136,9 @@ def authorise(
         return Close(
             CloseCode.NOT_FOUND, f"no live session {session_id!r}; it was closed or never existed"
         )
-    if _same(token, mine):
+    if same(token, mine):
         return None
-    if _same(token, other):
+    if same(token, other):
         return Close(
             CloseCode.FORBIDDEN,
             f"this token is the session's {'viewer' if role == 'producer' else 'producer'}"
@@ -151,15 +151,6 @@ def authorise(
         "POST /v1/sessions>' (browsers: the subprotocols 'facecast.v1' and "
         f"'facecast.token.<{role}_token>')",
         where="token",
-    )
-
-
-def _same(a: str | None, b: str | None) -> bool:
-    """Constant-time comparison of two optional secrets."""
-    return (
-        a is not None
-        and b is not None
-        and hmac.compare_digest(a.encode("utf-8", "replace"), b.encode("utf-8", "replace"))
     )
 
 

@@ -22,11 +22,11 @@ from ...protocol.messages import (
     dump_message,
 )
 from .. import errors
-from ..api.security import new_token
 from ..errors import NotFound
 from .batcher import DeformBatcher
 from .session import LiveSession, SessionSpec
 from .settings import LiveSettings
+from .tokens import new_token
 
 log = logging.getLogger(__name__)
 

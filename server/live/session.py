@@ -23,7 +23,7 @@ import numpy as np
 from ...protocol.compact import KEY
 from ...protocol.messages import InputKind, Stats, Status, dump_message
 from ..state import FaceState
-from .ports import Deformer, DirectWriter, ProducerSlot
+from .ports import Deformer, DirectWriter, Outbox, ProducerSlot
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +157,7 @@ class LiveSession:
         self._control_vertices: np.ndarray | None = None  # explicit controls of its animator
         self.vertex_count = int(face.vertices.shape[0])
         self.metrics = metrics
-        self.viewers: set[Viewer] = set()
+        self.viewers: set[Outbox] = set()
         self._joining = 0  # viewers being greeted (count against the limit)
         self._producer: ProducerSlot | None = None  # who holds the producer slot
         self.pending: deque[tuple[int, FaceState, float]] = deque()
@@ -304,7 +304,7 @@ class LiveSession:
                 self._pump()
 
     # -- viewers -----------------------------------------------------------------------------------
-    def add_viewer(self, viewer: Viewer) -> None:
+    def add_viewer(self, viewer: Outbox) -> None:
         self.viewers.add(viewer)
         self._encodings[viewer.encoding] = self._encodings.get(viewer.encoding, 0) + 1
         if viewer.encoding == "compact":
@@ -320,7 +320,7 @@ class LiveSession:
         if self.metrics:
             self.metrics.viewers.inc()
 
-    def remove_viewer(self, viewer: Viewer) -> None:
+    def remove_viewer(self, viewer: Outbox) -> None:
         self.last_active = time.monotonic()
         if viewer in self.viewers:
             self.viewers.discard(viewer)
