@@ -439,3 +439,18 @@ def test_routes_refuse_with_the_cores_close(routed, path, token, code):
     with client.websocket_connect(path, headers={"Authorization": f"Bearer {token}"}) as ws:
         error, closed = _refused(ws)
     assert closed == error["code"] == code and error["fatal"]
+
+
+def test_the_core_imports_no_web_framework():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "import facecast.server.live.producer, facecast.server.live.watch\n"
+        "import facecast.server.live.server_producer, facecast.server.live.registry\n"
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'fastapi', 'starlette', 'uvicorn'}))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
