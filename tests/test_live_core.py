@@ -235,13 +235,12 @@ def test_no_hello_in_time_and_internal_faults():
 
 
 def test_a_driver_that_fails_costs_one_frame_not_the_connection(monkeypatch, caplog):
-    session = _session()
-    core, _ = _ready(session)
-
-    def boom(frame):
+    def boom(self, frame):
         raise RuntimeError("driver bug at /secret/path")
 
-    monkeypatch.setattr(core.input, "push_frame", boom)
+    monkeypatch.setattr(inputs_mod.FapInput, "push_frame", boom)
+    session = _session()
+    core, _ = _ready(session)
     with caplog.at_level(logging.ERROR):
         step = core.receive_bytes(_faps(3))
     message = json.loads(step.send[0])

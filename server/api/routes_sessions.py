@@ -196,7 +196,7 @@ async def _produce(ws: WebSocket, core: ProducerCore, reg: SessionRegistry) -> N
     """Receive until the producer leaves or the core closes; carry out each step."""
     try:
         msg = await asyncio.wait_for(ws.receive(), HELLO_TIMEOUT)
-    except TimeoutError:
+    except asyncio.TimeoutError:  # (TimeoutError itself from Python 3.11 on)
         await _carry_out(ws, core.timeout(), reg)
         return
     received = 0

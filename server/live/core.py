@@ -181,8 +181,10 @@ class Gate:
 
     def check(self, nbytes: int, text: bool, now: float) -> Step | None:
         verdict, why = self.budget.check(nbytes, text, now)
-        if verdict is Verdict.OK:
-            return None
+        return None if verdict is Verdict.OK else self.decide(verdict, why, now)
+
+    def decide(self, verdict: Verdict, why: str, now: float) -> Step:
+        """The step for a verdict other than OK (``check`` inlined by a hot loop)."""
         if verdict is Verdict.DROP and not self.warn:  # viewers: read and ignored anyway
             return _DROPPED
         if self.metrics:

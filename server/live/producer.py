@@ -36,7 +36,7 @@ from ...protocol.messages import (
     parse_message,
 )
 from ..state import FaceState
-from .budget import producer_limits
+from .budget import Verdict, producer_limits
 from .core import (
     INTERNAL,
     NOTHING,
@@ -98,6 +98,10 @@ class ProducerCore:
         self.state = State.AWAITING_HELLO
         self.input: Input | None = None
         self._gate: Gate | None = None
+        # the hot path's bound methods, set when the input is ready (no None checks per frame)
+        self._check: Callable[[int, bool, float], tuple[Verdict, str]] = _never_checked
+        self._kinds: frozenset[frames.Kind] = frozenset()
+        self._push_frame: Callable[[frames.Frame], list[FaceState]] = _never_pushed
         # audio / mocap drivers do real work: their frames are pushed in a thread
         self._offload = session.spec.input != "fap"
         self._connected = False
@@ -189,27 +193,31 @@ class ProducerCore:
     def receive_bytes(self, data: bytes) -> Step:
         """A binary message: a frame of the input's kinds (FAPs, PCM, markers)."""
         state = self.state
-        if state is State.AWAITING_HELLO:
-            return self._refuse(
-                MessageError("the first message must be a JSON hello, not a binary frame")
-            )
-        if state is not State.READY and state is not State.STREAMING:
+        if state is not State.STREAMING and state is not State.READY:
+            if state is State.AWAITING_HELLO:
+                return self._refuse(
+                    MessageError("the first message must be a JSON hello, not a binary frame")
+                )
             return NOTHING
-        assert self._gate is not None and self.input is not None
-        over = self._gate.check(len(data), False, self.clock())
-        if over is not None:
-            return self._over(over)
+        now = self.clock()
+        verdict, why = self._check(len(data), False, now)  # ``Gate.check``, inlined: hot path
+        if verdict is not Verdict.OK:
+            assert self._gate is not None
+            return self._over(self._gate.decide(verdict, why, now))
         try:
-            frame = frames.decode(data, kinds=self.input.kinds)
+            frame = frames.decode(data, kinds=self._kinds)
         except Exception as e:
             return self._rejected(e, None, data)
         if self._offload:
-            return Step(work=Work(partial(_push, self.input, frame), self._pushed))
+            return Step(work=Work(partial(_push_into, self._push_frame, frame), self._pushed))
         try:
-            states = self.input.push_frame(frame)
+            states = self._push_frame(frame)
         except Exception as e:
             return self._rejected(e, frame.header.seq)
-        self._take(states, frame.header.wall)
+        self.state = State.STREAMING
+        session = self.session
+        session.count_in()
+        session.submit(states, frame.header.wall)
         return NOTHING
 
     # -- the hello ---------------------------------------------------------------------------------
@@ -252,6 +260,10 @@ class ProducerCore:
             markers=len(hello.markers or ()),
         )
         self._gate = Gate(limits, self.clock(), label=self._label, metrics=self.metrics)
+        assert self.input is not None
+        self._check = self._gate.budget.check
+        self._kinds = self.input.kinds
+        self._push_frame = self.input.push_frame
         self.state = State.READY
         self.session.announce(self.slot)  # tells viewers
         ready = Ready(
@@ -367,11 +379,21 @@ def _build(animators: Animators, session: LiveSession, cv: np.ndarray) -> Any:
         return e
 
 
-def _push(inp: Input, frame: frames.Frame) -> tuple[list[FaceState], float] | tuple[Exception, int]:
+def _push_into(
+    push: Callable[[frames.Frame], list[FaceState]], frame: frames.Frame
+) -> tuple[list[FaceState], float] | tuple[Exception, int]:
     try:
-        return inp.push_frame(frame), frame.header.wall
+        return push(frame), frame.header.wall
     except Exception as e:
         return e, frame.header.seq
+
+
+def _never_checked(nbytes: int, text: bool, now: float) -> tuple[Verdict, str]:
+    raise AssertionError("no budget before the input is ready")
+
+
+def _never_pushed(frame: frames.Frame) -> list[FaceState]:
+    raise AssertionError("no input before the hello")
 
 
 def _flush(inp: Input) -> list[FaceState]:
