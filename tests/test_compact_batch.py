@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+
 from facecast.protocol.compact import CompactDecoder, CompactEncoder
 from facecast.server.faces import load_face
 from facecast.server.live import batcher as batcher_mod

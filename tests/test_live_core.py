@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+
 from facecast.protocol import frames
 from facecast.protocol.errors import CloseCode, FrameError, MessageError
 from facecast.protocol.messages import ProducerHello, dump_message
@@ -130,7 +131,7 @@ def test_hello_then_frames_stream_into_the_session():
 
 
 @pytest.mark.parametrize(
-    "first, words",
+    ("first", "words"),
     [
         (b"\x00garbage", "not a binary frame"),
         ("[]", ""),
@@ -377,10 +378,11 @@ def test_tokens_decide_who_may_connect():
 def routed():
     """The sessions router over a registry holding one stand-in session (TestClient: in process,
     no socket; the transport helpers find no uvicorn and do nothing)."""
-    from facecast.server.api import routes_sessions
-    from facecast.server.live.registry import SessionRegistry
     from fastapi import FastAPI
     from starlette.testclient import TestClient
+
+    from facecast.server.api import routes_sessions
+    from facecast.server.live.registry import SessionRegistry
 
     app = FastAPI()
     app.include_router(routes_sessions.router)
@@ -425,7 +427,7 @@ def test_routes_feed_the_core_and_carry_out_its_steps(routed):
 
 
 @pytest.mark.parametrize(
-    "path, token, code",
+    ("path", "token", "code"),
     [
         ("/v1/sessions/nope/produce", "P", CloseCode.NOT_FOUND),
         ("/v1/sessions/s1/produce", "V", CloseCode.FORBIDDEN),

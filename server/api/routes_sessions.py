@@ -205,10 +205,9 @@ async def _produce(ws: WebSocket, core: ProducerCore, reg: SessionRegistry) -> N
             await _carry_out(ws, core.disconnected(), reg)
             return
         data = msg.get("bytes")
-        if data is not None:
-            step = core.receive_bytes(data)
-        else:
-            step = core.receive_text(msg.get("text") or "")
+        step = (
+            core.receive_bytes(data) if data is not None else core.receive_text(msg.get("text") or "")
+        )
         if step is not NOTHING and not await _carry_out(ws, step, reg):
             return
         if not core.open:

@@ -185,7 +185,7 @@ class ProducerCore:
                 )
             seq = m.seq
             states = self.input.push_message(m)
-        except Exception as e:
+        except Exception as e:  # noqa: BLE001 - a message's or driver's error: mapped to its reply (_rejected)
             return self._rejected(e, seq)
         self._take(states, m.wall)
         return NOTHING
@@ -206,13 +206,13 @@ class ProducerCore:
             return self._over(self._gate.decide(verdict, why, now))
         try:
             frame = frames.decode(data, kinds=self._kinds)
-        except Exception as e:
+        except Exception as e:  # noqa: BLE001 - a frame the decoder refuses: mapped to its reply
             return self._rejected(e, None, data)
         if self._offload:
             return Step(work=Work(partial(_push_into, self._push_frame, frame), self._pushed))
         try:
             states = self._push_frame(frame)
-        except Exception as e:
+        except Exception as e:  # noqa: BLE001 - a driver's error costs this frame only (_rejected)
             return self._rejected(e, frame.header.seq)
         self.state = State.STREAMING
         session = self.session
@@ -368,14 +368,14 @@ class ProducerCore:
 def _open(kind: str, face: Any, hello: ProducerHello, fps: float) -> Input | BaseException:
     try:
         return make_input(kind, face, hello, fps)
-    except Exception as e:
+    except Exception as e:  # noqa: BLE001 - handed back to the core, which maps it (_opened)
         return e
 
 
 def _build(animators: Animators, session: LiveSession, cv: np.ndarray) -> Any:
     try:
         return animators.animator_for(session, cv)
-    except Exception as e:
+    except Exception as e:  # noqa: BLE001 - handed back to the core, which maps it (_swap)
         return e
 
 
@@ -384,7 +384,7 @@ def _push_into(
 ) -> tuple[list[FaceState], float] | tuple[Exception, int]:
     try:
         return push(frame), frame.header.wall
-    except Exception as e:
+    except Exception as e:  # noqa: BLE001 - handed back to the core, which maps it (_pushed)
         return e, frame.header.seq
 
 

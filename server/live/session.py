@@ -15,8 +15,9 @@ import asyncio
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -167,9 +168,8 @@ class LiveSession:
         self.compact: Any = None  # ``CompactEncoder``, made for the first ``compact`` viewer
         self.seq = 0
         self.last_seq: int | None = None
-        self._stats = {
-            k: 0
-            for k in (
+        self._stats = dict.fromkeys(
+            (
                 "frames_in",
                 "frames_rejected",
                 "states",
@@ -177,8 +177,9 @@ class LiveSession:
                 "frames_dropped",
                 "frames_sent",
                 "frames_skipped",
-            )
-        }
+            ),
+            0,
+        )
         self._deform_total = 0.0
         self._last_stats = time.monotonic()
         self.closed = False
