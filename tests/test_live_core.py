@@ -346,6 +346,18 @@ def test_a_viewer_that_talks_is_ignored_then_closed():
     assert big.close.code == CloseCode.TOO_BIG and "4096 bytes" in big.close.message
 
 
+def test_a_session_is_idle_only_while_nobody_uses_it():
+    session = _session()
+    start = session.last_active
+    assert session.idle_for(start + 5) == 5
+    session.join()  # a viewer being greeted: in use, and seen now
+    assert session.idle_for(start + 7) == 0 and session.last_active == start + 7
+    session.joined()
+    assert session.idle_for(start + 9) == 2
+    server_side = SimpleNamespace(remote=False)
+    assert session.claim(server_side) and session.idle_for(start + 10) == 3  # alone: not in use
+
+
 # ------------------------------------------------------------------------------ shared decisions
 
 

@@ -240,14 +240,7 @@ class SessionRegistry:
 
     async def expire_idle(self, now: float) -> list[str]:
         """Close the sessions nobody used for ``idle_seconds`` (monotonic ``now``); their ids."""
-        idle = [
-            sid
-            for sid, s in self.sessions.items()
-            if not s.busy() and now - s.last_active >= self.idle_seconds
-        ]
-        for s in self.sessions.values():
-            if s.busy():
-                s.last_active = now
+        idle = [sid for sid, s in self.sessions.items() if s.idle_for(now) >= self.idle_seconds]
         for sid in idle:
             if sid in self.sessions:
                 await self.close(

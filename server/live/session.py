@@ -218,6 +218,13 @@ class LiveSession:
         remote = self._producer is not None and self._producer.remote
         return bool(self.viewers) or self._joining > 0 or remote
 
+    def idle_for(self, now: float) -> float:
+        """Seconds (monotonic ``now``) since a peer was last seen; 0 while ``busy`` (seen now)."""
+        if self.busy():
+            self.last_active = now
+            return 0.0
+        return now - self.last_active
+
     # -- the producer slot and the control set ------------------------------------------------------
     def claim(self, producer: ProducerSlot) -> bool:
         """Take the producer slot for ``producer`` if it is free (True); viewers hear of it at
