@@ -467,3 +467,31 @@ def test_the_core_imports_no_web_framework():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+def test_live_settings_are_read_once_from_the_environment(monkeypatch):
+    from types import SimpleNamespace as NS
+
+    from facecast.server.api import routes_sessions
+    from facecast.server.api.config import ServerConfig
+    from facecast.server.api.transport import DirectSender
+
+    monkeypatch.setenv("FACECAST_LIVE_DIRECT", "0")
+    monkeypatch.setenv("FACECAST_LIVE_BATCHES", "2")
+    monkeypatch.setenv("FACECAST_LIVE_COALESCE_MS", "3")
+    app = NS(state=NS(config=ServerConfig(), store=None, metrics=None))
+    monkeypatch.setenv("FACECAST_LIVE_BATCHES", "5")  # read once: later changes do nothing
+    reg = routes_sessions.registry(app)
+    try:
+        s = reg.settings
+        assert (s.direct, s.batches, s.coalesce_seconds) == (False, 2, 0.003)
+        assert DirectSender.attach(NS(), s.direct) is None  # frames go through ASGI
+        assert reg.batcher_for(NS(deformer=None)).coalesce == 0.003
+    finally:
+        reg.executor.shutdown()
+        reg.batch_executor.shutdown()
+    defaults = ServerConfig.model_construct().live_settings()
+    assert (defaults.direct, defaults.batch_threads, defaults.device_quantize) == (True, 1, True)
+    monkeypatch.setenv("FACECAST_LIVE_THREADS", "many")
+    with pytest.raises(ValueError, match="live_threads"):
+        ServerConfig()
