@@ -495,3 +495,13 @@ def test_live_settings_are_read_once_from_the_environment(monkeypatch):
     monkeypatch.setenv("FACECAST_LIVE_THREADS", "many")
     with pytest.raises(ValueError, match="live_threads"):
         ServerConfig()
+
+
+def test_a_session_closed_while_the_hello_is_handled_gets_no_ready():
+    session = _session()
+    core = _core(session)
+    core.connect()
+    step = core.receive_text(dump_message(ProducerHello()))
+    session.closed = True  # an admin closed it while the input was being made
+    assert step.work.then(step.work.run()) is NOTHING
+    assert core.state is State.CLOSED and not core.open

@@ -243,7 +243,8 @@ class ProducerCore:
         return Step(work=Work(run, partial(self._opened, hello)), event=Event.HELLO)
 
     def _opened(self, hello: ProducerHello, result: Input | BaseException) -> Step:
-        if self.state is not State.OPENING:
+        if self.state is not State.OPENING or self.session.closed:  # closed meanwhile: it was told
+            self.state = State.CLOSED
             return NOTHING
         if isinstance(result, BaseException):
             return self._refuse(result)
@@ -288,7 +289,8 @@ class ProducerCore:
         return Step(work=Work(run, partial(self._swap, cv, then)))
 
     def _swap(self, cv: np.ndarray, then: Callable[[], Step], animator: Any) -> Step:
-        if self.state is State.CLOSED:
+        if self.state is State.CLOSED or self.session.closed:
+            self.state = State.CLOSED
             return NOTHING
         if isinstance(animator, BaseException):
             return self._refuse(animator)
