@@ -7,10 +7,12 @@ import math
 
 import numpy as np
 import pytest
+
 from facecast.protocol.compact import CompactDecoder, CompactEncoder
 from facecast.server.faces import load_face
 from facecast.server.live import batcher as batcher_mod
 from facecast.server.live.batcher import DeformBatcher, _Job
+from facecast.server.live.settings import LiveSettings
 from facecast.server.state import FaceState, zero_faps
 
 
@@ -32,10 +34,10 @@ def _state(session: int, i: int) -> FaceState:
 def test_a_batch_of_compact_sessions_decodes_within_tolerance(face, monkeypatch, threads):
     from facecast.server.pipeline import Animator
 
-    monkeypatch.setenv("FACECAST_LIVE_COMPACT_THREADS", threads)
     monkeypatch.setattr(batcher_mod, "_compact_pool", None)
     animator = Animator(face, backend="numpy")
-    batcher = DeformBatcher(animator, None)  # type: ignore[arg-type]
+    settings = LiveSettings(compact_threads=int(threads))  # FACECAST_LIVE_COMPACT_THREADS
+    batcher = DeformBatcher(animator, None, settings=settings)  # type: ignore[arg-type]
     tol = 0.1 / face.mm_per_unit
     n_sessions, n_frames = 5, 12
 

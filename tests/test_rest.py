@@ -341,7 +341,7 @@ def test_topology_sections_are_4_byte_aligned():
 def test_tokens_never_look_like_command_line_options():
     # `facecast watch --token T` must work for every token the server hands out: a token starting
     # with "-" was taken by argparse for an option (1 token in 64 with plain token_urlsafe).
-    from facecast.server.tokens import new_token
+    from facecast.server.live.tokens import new_token
 
     tokens = [new_token() for _ in range(3000)]
     assert not [t for t in tokens if t.startswith("-")]

@@ -14,6 +14,8 @@ from pydantic_settings import SettingsConfigDict
 
 from ..settings import LocalSettings, load
 
+from ..live.settings import LiveSettings
+
 
 def _default_data_dir() -> Path:
     return Path.home() / ".local" / "share" / "facecast"
@@ -48,6 +50,19 @@ class ServerConfig(LocalSettings):
     allow_remote: bool = False  # must be set to bind to a non-loopback address
     faces: str | None = None  # more faces by name: "ict=/path/mesh.obj,other=/path/x.obj"
     job_retention_hours: float = Field(default=7 * 24.0, ge=0)  # finished jobs kept this long; 0 = forever
+    # Live path tuning (FACECAST_LIVE_*; ``live.settings.LiveSettings`` says what each does).
+    live_threads: int | None = Field(default=None, ge=1)  # driver/animator threads; unset: CPUs, <= 8
+    live_batches: int = Field(default=1, ge=1)  # batches of one animator worked on at once
+    live_coalesce_ms: float = Field(default=0.0, ge=0, allow_inf_nan=False)  # batch wait for more frames
+    live_compact_threads: int | None = Field(default=None, ge=1)  # compact encoders; unset: CPUs
+    live_device_quantize: bool = True  # int16 quantisation on a host-memory OpenCL device
+    live_direct: bool = True  # vertex frames straight to viewers' transports (0: through ASGI)
+
+    def live_settings(self) -> LiveSettings:
+        """The ``live_*`` fields, for ``SessionRegistry``."""
+        return LiveSettings(threads=self.live_threads, batches=self.live_batches,
+                            coalesce_ms=self.live_coalesce_ms, compact_threads=self.live_compact_threads,
+                            device_quantize=self.live_device_quantize, direct=self.live_direct)
 
     def upload_limit(self, kind: str) -> tuple[int, str]:
         """``(bytes, variable)``: the largest upload of an input kind (fap | audio | markers) and the

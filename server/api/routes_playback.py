@@ -11,8 +11,8 @@
   in ``<data dir>/tmp`` (emptied at each start), are limited by kind (``ServerConfig.upload_limit``),
   and at most ``max_concurrent_decodes`` decode at once (503 with ``Retry-After`` beyond).
 
-A server-side producer holds the session's producer slot: a WebSocket producer is refused (4409)
-while it runs, and a DELETE of the demo (or the end of the file) frees it.
+A server-side producer (``live.server_producer``) holds the session's producer slot: a WebSocket
+producer is refused (4409) while it runs, and a DELETE of the demo (or the end of the file) frees it.
 """
 from __future__ import annotations
 
@@ -23,16 +23,16 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 from fastapi import APIRouter, Request, status
 from fastapi.responses import Response
 
 from ...protocol.rest import ErrorBody
 from ..drivers import input_kind, load_animation
 from ..drivers.demo import demo_states
-from ..errors import Conflict, FacecastError, InputError, Unauthorized, Unavailable
+from ..errors import FacecastError, InputError, Unauthorized, Unavailable
 from ..jobs.upload import (LAYOUT_PART, PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix,
                            multipart_doc, safe_display_name, upload_dir, upload_layout)
+from ..live.server_producer import Busy, ServerProducer  # noqa: F401  (Busy: re-exported)
 from .routes_sessions import registry
 from .security import bearer, same
 
@@ -43,46 +43,6 @@ router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["sessions"],
 
 #: Seconds between the answer to ``play`` and media time 0, so the caller can get ready.
 LEAD_IN = 0.5
-
-
-class Busy(Conflict):
-    status = 409
-
-
-class ServerProducer:
-    """Holds a session's producer slot while a server-side task feeds it.
-
-    A marker take brings its own control vertices: ``deform_with`` swaps the session's batcher for
-    one over them, and ``release`` puts the session's own back.
-    """
-
-    def __init__(self, session, kind: str) -> None:
-        self.session = session
-        self.kind = kind
-        self.task: asyncio.Task | None = None
-        self._own: tuple | None = None  # the session's (batcher, control_vertices) while swapped
-
-    def deform_with(self, batcher, control_vertices: np.ndarray) -> None:
-        s = self.session
-        self._own = (s.batcher, s.control_vertices)
-        s.batcher, s.control_vertices = batcher, np.array(control_vertices)
-
-    def release(self) -> None:
-        """Give back the session's deformation and producer slot (idempotent)."""
-        s = self.session
-        if self._own is not None:
-            s.batcher, s.control_vertices = self._own
-            self._own = None
-        if s.producer is self:
-            s.set_producer(None)
-
-    def stop(self) -> None:
-        if self.task is not None:
-            self.task.cancel()
-        self.release()
-
-    async def end(self, code: int, error_json: str) -> None:  # the session is closing
-        self.stop()
 
 
 def _authorise(request: Request, session, token: str | None) -> None:
@@ -97,36 +57,6 @@ class _Unauthorised(Unauthorized):
     def __init__(self) -> None:
         super().__init__("send the admin key ('Authorization: Bearer <key>') or the session's producer token "
                          "(?token=...)", where="token")
-
-
-async def _feed(session, states, fps: float, start_wall: float, producer: ServerProducer) -> None:
-    """Submit ``states`` to ``session`` paced at ``fps`` from ``start_wall``; frees the slot at the end.
-
-    A frame more than a second late (a stalled loop) is skipped rather than rushed out.
-    """
-    try:
-        for i, state in enumerate(states):
-            delay = start_wall + i / fps - time.time()
-            if delay > 0:
-                await asyncio.sleep(delay)
-            elif delay < -1.0:
-                continue
-            session.submit([state], wall=time.time())
-    except asyncio.CancelledError:
-        pass
-    finally:
-        producer.release()
-
-
-def _claim(session, kind: str) -> ServerProducer:
-    current = session.producer
-    if isinstance(current, ServerProducer):
-        current.stop()  # its deformation is undone now, before the new producer swaps its own in
-    elif current is not None:
-        raise Busy("a producer is connected to this session; it must disconnect first", where="producer")
-    producer = ServerProducer(session, kind)
-    session.set_producer(producer)
-    return producer
 
 
 @router.get("/tokens")
@@ -146,10 +76,9 @@ async def start_demo(session_id: str, request: Request, token: str | None = None
     _authorise(request, session, token)
     if session.spec.input != "fap":
         raise InputError(f"the demo drives FAP sessions; this one takes {session.spec.input}", where="input")
-    producer = _claim(session, "demo")
+    producer = ServerProducer.claim(session, "demo")
     fps = session.spec.fps
-    producer.task = asyncio.create_task(
-        _feed(session, demo_states(fps), fps, time.time(), producer), name=f"demo-{session_id}")
+    producer.play(demo_states(fps), fps, time.time(), name=f"demo-{session_id}")
     log.info("session %s: demo started at %g fps", session_id, fps)
     return {"id": session_id, "producer": "demo", "fps": fps}
 
@@ -158,8 +87,7 @@ async def start_demo(session_id: str, request: Request, token: str | None = None
 async def stop_demo(session_id: str, request: Request, token: str | None = None) -> Response:
     session = registry(request.app).get(session_id)
     _authorise(request, session, token)
-    if isinstance(session.producer, ServerProducer):
-        session.producer.stop()
+    ServerProducer.stop_in(session)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
@@ -274,15 +202,14 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
     animator = None
     if animation.control_vertices is not None:
         animator = await loop.run_in_executor(reg.executor, reg.animator_for, session, animation.control_vertices)
-    producer = _claim(session, f"play:{kind}")
+    producer = ServerProducer.claim(session, f"play:{kind}")
     if animator is not None:
         producer.deform_with(reg.batcher_for(animator), animation.control_vertices)
     start = time.time() + LEAD_IN
     t0 = animation.states[0].t
     for s in animation.states:
         s.t -= t0
-    producer.task = asyncio.create_task(_feed(session, animation.states, animation.fps, start, producer),
-                                        name=f"play-{session_id}")
+    producer.play(animation.states, animation.fps, start, name=f"play-{session_id}")
     log.info("session %s: playing %s (%d frames at %g fps)", session_id, name, len(animation), animation.fps)
     return {"id": session_id, "kind": kind, "frames": len(animation), "fps": animation.fps,
             "seconds": len(animation) / animation.fps, "start_wall": start}

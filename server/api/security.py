@@ -1,22 +1,16 @@
 """Credentials: the admin key (REST admin routes) and per-session producer/viewer tokens."""
 from __future__ import annotations
 
-import hmac
 import logging
 import stat
 from pathlib import Path
 
 from fastapi import HTTPException, Request, status
 
+from ..live.tokens import new_token, same
 from ..output.atomic import write_bytes_atomic
-from ..tokens import new_token
 
 log = logging.getLogger(__name__)
-
-
-def same(a: str | None, b: str | None) -> bool:
-    """Constant-time comparison of two optional secrets."""
-    return a is not None and b is not None and hmac.compare_digest(a.encode(), b.encode())
 
 
 def resolve_admin_key(configured: str | None, data_dir: Path) -> tuple[str, bool]:

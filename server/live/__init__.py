@@ -1,6 +1,8 @@
-"""Live sessions: the registry, one session's deform-once fan-out, and producer inputs.
+"""Live sessions: the registry, one session's deform-once fan-out, producer inputs, and the
+sans-I/O cores of the live connections (``producer.ProducerCore``, ``watch.ViewerCore``).
 
-``SessionRegistry`` lives on ``app.state.live``; ``routes_sessions`` is its HTTP/WebSocket shell.
+``SessionRegistry`` lives on ``app.state.live``; ``api.routes_sessions`` is the HTTP/WebSocket
+shell that feeds the cores, and ``api.transport`` holds its socket tricks.
 """
 
 from __future__ import annotations
@@ -8,4 +10,4 @@ from __future__ import annotations
 from .registry import SessionRegistry, TooMany, Unavailable
 from .session import LiveSession, Viewer
 
-__all__ = ["SessionRegistry", "LiveSession", "Viewer", "TooMany", "Unavailable"]
+__all__ = ["LiveSession", "SessionRegistry", "TooMany", "Unavailable", "Viewer"]

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -27,8 +26,9 @@ from typing import Any
 import numpy as np
 
 from ...protocol import frames, quantize
-from ..state import FaceState
 from ..backends.opencl import DeviceQuantizer, aligned_empty
+from ..state import FaceState
+from .settings import LiveSettings
 from .wire import ws_binary_header
 
 log = logging.getLogger(__name__)
@@ -39,7 +39,7 @@ MAX_BATCH = 32
 #: single frame was 0.03-0.1 ms cheaper in NumPy (4 of 5 bench runs); from 2 frames on, the device.
 DEVICE_MIN_FRAMES = 2
 #: A drain about to start a batch of fewer frames than this, while more sessions than that
-#: have been submitting (within ``ACTIVE_WINDOW`` seconds), waits up to ``coalesce_seconds()``
+#: have been submitting (within ``ACTIVE_WINDOW`` seconds), waits up to ``LiveSettings.coalesce_ms``
 #: for more. A batch has a fixed cost (two OpenCL launches, ~0.15 ms of PoCL CPU each, and the
 #: solve's NumPy calls) of about six frames' marginal cost, so on a quiet machine, where 20
 #: sessions at 60 fps may make batches of 1-2 frames, waiting could save CPU.
@@ -157,43 +157,16 @@ def encode(
     return encode_batch(v[None], [(seq, t, wall, encodings)])[0]
 
 
-def coalesce_seconds() -> float:
-    """Longest wait for a fuller batch: ``FACECAST_LIVE_COALESCE_MS``, default 0 (no wait).
-
-    Not measured on a quiet machine yet: on the shared 2-core machine (load 5-9) batches of 20
-    sessions held 6-13 frames by themselves and a 3 ms wait changed nothing measurable.
-    """
-    env = os.environ.get("FACECAST_LIVE_COALESCE_MS")
-    return max(0.0, float(env)) / 1000 if env else 0.0
-
-
-def batch_threads() -> int:
-    """Batches of one animator worked on at once: ``FACECAST_LIVE_BATCHES``, default 1.
-
-    Measured on 2 cores with PoCL (20 sessions): a second concurrent batch splits the frames into
-    smaller launches and adds GIL contention; it cost more CPU per frame than it saved.
-    """
-    env = os.environ.get("FACECAST_LIVE_BATCHES")
-    return max(1, int(env)) if env else 1
-
-
-def compact_threads() -> int:
-    """Threads encoding a batch's ``compact`` frames at once (one session's each):
-    ``FACECAST_LIVE_COMPACT_THREADS``, default the CPU count. The encoder spends most of its
-    time in NumPy passes and deflate, outside the GIL, so the frames of different sessions overlap
-    instead of queueing behind one another in the drain thread."""
-    env = os.environ.get("FACECAST_LIVE_COMPACT_THREADS")
-    return max(1, int(env)) if env else max(1, os.cpu_count() or 1)
-
-
 _compact_pool: ThreadPoolExecutor | None = None
 _compact_pool_lock = threading.Lock()
 
 
-def _compact_executor() -> ThreadPoolExecutor | None:
-    """The process's pool of compact encoding threads (None with one thread: encode inline)."""
+def _compact_executor(n: int) -> ThreadPoolExecutor | None:
+    """The process's pool of ``n`` compact encoding threads, made on first use (None for one
+    thread: encode inline). The encoder spends most of its time in NumPy passes and deflate,
+    outside the GIL, so the frames of different sessions overlap instead of queueing behind one
+    another in the drain thread."""
     global _compact_pool
-    n = compact_threads()
     if n < 2:
         return None
     with _compact_pool_lock:
@@ -224,7 +197,10 @@ class DeformBatcher:
         executor: Executor,
         max_batch: int = MAX_BATCH,
         parallel: int | None = None,
+        settings: LiveSettings | None = None,
     ) -> None:
+        settings = settings or LiveSettings()
+        self.settings = settings
         self.animator = animator
         self.executor = executor
         self.max_batch = max_batch
@@ -234,12 +210,12 @@ class DeformBatcher:
         self._waiting = 0  # drains waiting on ``_more``
         self._want = 1  # ... until this many jobs wait
         self._sources: dict[Any, float] = {}  # who submitted (session) -> when (monotonic)
-        self.coalesce = coalesce_seconds()
+        self.coalesce = settings.coalesce_seconds
         self._running = 0  # drains at work
         self._delivering = False  # ``_deliver`` is running callbacks (event loop side)
         #: Batches worked on at once: the solve and the int16 encoding of one batch overlap with the
         #: deformation of the next (the deformer itself runs one launch at a time).
-        self.parallel = max(1, parallel if parallel is not None else batch_threads())
+        self.parallel = max(1, parallel if parallel is not None else settings.batch_threads)
         self.batches = 0
         self.frames = 0
         self._quantizer: DeviceQuantizer | None | bool = False  # False: not looked up yet
@@ -357,7 +333,9 @@ class DeformBatcher:
     def quantizer(self) -> DeviceQuantizer | None:
         """The device quantiser of the animator's deformer (built on first use), or None."""
         if self._quantizer is False:  # (``device_quantizer`` builds one per context, locked)
-            self._quantizer = device_quantizer(self.animator.deformer)
+            self._quantizer = device_quantizer(
+                self.animator.deformer, enabled=self.settings.device_quantize
+            )
         return self._quantizer  # type: ignore[return-value]
 
     def _frame_buffer(self, n: int) -> np.ndarray:
@@ -429,7 +407,9 @@ class DeformBatcher:
             for k, i in enumerate(ok)
             if jobs[i].compact is not None and "compact" in jobs[i].encodings
         ]
-        pool = _compact_executor() if len(todo) > 1 else None
+        pool = (
+            _compact_executor(self.settings.compact_pool_threads) if len(todo) > 1 else None
+        )
         if pool is not None:
             done = list(pool.map(lambda kj: _encode_compact(kj[1], verts[kj[0]], T[kj[0]]), todo))
         else:
@@ -456,10 +436,11 @@ _quantizers: dict[int, tuple[Any, DeviceQuantizer | None]] = {}
 _quantizers_lock = threading.Lock()
 
 
-def device_quantizer(deformer: Any) -> DeviceQuantizer | None:
+def device_quantizer(deformer: Any, enabled: bool = True) -> DeviceQuantizer | None:
     """The ``DeviceQuantizer`` for ``deformer``'s OpenCL context (one per context), or None: a
-    NumPy or copying deformer, ``FACECAST_LIVE_DEVICE_QUANTIZE=0``, or a device that fails."""
-    if os.environ.get("FACECAST_LIVE_DEVICE_QUANTIZE", "1") == "0":
+    NumPy or copying deformer, not ``enabled`` (``FACECAST_LIVE_DEVICE_QUANTIZE=0``), or a device
+    that fails."""
+    if not enabled:
         return None
     ctx = getattr(deformer, "context", None)
     if ctx is None or not getattr(deformer, "zero_copy", False):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import importlib
 import logging
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -22,6 +22,8 @@ from ..state import FaceState, zero_faps
 
 log = logging.getLogger(__name__)
 
+Viseme = tuple[int, int, int]
+Expression = tuple[int, int, int, int]
 
 
 class InputUnavailable(Unavailable):
@@ -61,8 +63,8 @@ class FapInput:
 
     def __init__(self) -> None:
         self.faps = zero_faps()
-        self.viseme: tuple[int, int, int] | None = None
-        self.expression: tuple[int, int, int, int] | None = None
+        self.viseme: Viseme | None = None
+        self.expression: Expression | None = None
 
     def _state(self, t: float) -> FaceState:
         return FaceState(t=t, faps=self.faps.copy(), viseme=self.viseme, expression=self.expression)
@@ -75,9 +77,9 @@ class FapInput:
         for k, v in msg.faps.items():
             self.faps[k] = v
         if msg.viseme is not None:
-            self.viseme = tuple(msg.viseme)
+            self.viseme = cast(Viseme, tuple(msg.viseme))
         if msg.expression is not None:
-            self.expression = tuple(msg.expression)
+            self.expression = cast(Expression, tuple(msg.expression))
         return [self._state(msg.t)]
 
     def push_frame(self, frame: frames.Frame) -> list[FaceState]:
@@ -87,9 +89,9 @@ class FapInput:
         sent[:2] = False  # FAPs 1 and 2 travel in the sub-header
         self.faps[1:][sent] = v[sent]
         if frame.viseme is not None:
-            self.viseme = tuple(frame.viseme)
+            self.viseme = cast(Viseme, tuple(frame.viseme))
         if frame.expression is not None:
-            self.expression = tuple(frame.expression)
+            self.expression = cast(Expression, tuple(frame.expression))
         return [self._state(frame.header.t)]
 
 
@@ -194,7 +196,9 @@ class MarkerInput:
         return states
 
 
-def make_input(kind: str, face: Any, hello: ProducerHello, fps: float):
+def make_input(
+    kind: str, face: Any, hello: ProducerHello, fps: float
+) -> FapInput | AudioInput | MarkerInput:
     """The input object for a session of ``kind`` after ``hello`` (blocking: drivers may precompute)."""
     if hello.input != kind:
         raise BadHello(

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 import secrets
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -24,9 +23,10 @@ from ...protocol.messages import (
 )
 from .. import errors
 from ..errors import NotFound
-from ..tokens import new_token
-from .batcher import DeformBatcher, batch_threads
+from .batcher import DeformBatcher
 from .session import LiveSession, SessionSpec
+from .settings import LiveSettings
+from .tokens import new_token
 
 log = logging.getLogger(__name__)
 
@@ -39,12 +39,6 @@ class Unavailable(errors.Unavailable):
     status = 503
 
 
-def deform_threads() -> int:
-    """Threads that deform live frames: ``FACECAST_LIVE_THREADS``, else the number of CPUs (≤ 8)."""
-    env = os.environ.get("FACECAST_LIVE_THREADS")
-    return max(1, int(env)) if env else max(1, min(8, os.cpu_count() or 1))
-
-
 class SessionRegistry:
     """Live sessions of one server.
 
@@ -54,6 +48,7 @@ class SessionRegistry:
         metrics: the app's ``Metrics`` (or None).
         idle_seconds: a session not ``busy`` (no viewer, no client producer) this long is closed
             (``ServerConfig.session_idle_seconds``; 0 = never).
+        settings: tuning of the live path (``ServerConfig.live_settings()``).
     """
 
     def __init__(
@@ -66,7 +61,9 @@ class SessionRegistry:
         metrics: Any = None,
         threads: int | None = None,
         idle_seconds: float = 0.0,
+        settings: LiveSettings | None = None,
     ) -> None:
+        self.settings = settings = settings or LiveSettings()
         self.store = store
         self.max_sessions = max_sessions
         self.max_viewers = max_viewers
@@ -74,21 +71,24 @@ class SessionRegistry:
         self.metrics = metrics
         self.sessions: dict[str, LiveSession] = {}
         self.executor = ThreadPoolExecutor(
-            threads or deform_threads(), thread_name_prefix="live-deform"
+            threads or settings.deform_threads, thread_name_prefix="live-deform"
         )
         #: The threads that solve, deform and encode live frames (``DeformBatcher`` drains); apart
         #: from ``executor`` so that drains busy under load never delay a producer's hello.
-        self.batch_executor = ThreadPoolExecutor(batch_threads(), thread_name_prefix="live-batch")
+        self.batch_executor = ThreadPoolExecutor(
+            settings.batch_threads, thread_name_prefix="live-batch")
         self._batchers: dict[int, DeformBatcher] = {}
         self._creating = 0
         self.idle_seconds = idle_seconds
-        self._reaper: asyncio.Task | None = None
+        self._reaper: asyncio.Task[None] | None = None
 
     def batcher_for(self, animator: Any) -> DeformBatcher:
         """The one ``DeformBatcher`` of ``animator`` (sessions of the same face share it)."""
         b = self._batchers.get(id(animator))
         if b is None or b.animator is not animator:
-            b = self._batchers[id(animator)] = DeformBatcher(animator, self.batch_executor)
+            b = self._batchers[id(animator)] = DeformBatcher(
+                animator, self.batch_executor, settings=self.settings
+            )
         return b
 
     def get(self, session_id: str) -> LiveSession:
@@ -217,7 +217,9 @@ class SessionRegistry:
             self.metrics.sessions.set(len(self.sessions))
         await s.close(
             CloseCode.SESSION_CLOSED,
-            dump_message(ErrorMessage(code=CloseCode.SESSION_CLOSED, message=reason, fatal=True)),
+            dump_message(
+                ErrorMessage(code=CloseCode.SESSION_CLOSED, message=reason, fatal=True, seq=None)
+            ),
         )
         log.info("live session %s closed", session_id)
 
@@ -238,14 +240,7 @@ class SessionRegistry:
 
     async def expire_idle(self, now: float) -> list[str]:
         """Close the sessions nobody used for ``idle_seconds`` (monotonic ``now``); their ids."""
-        idle = [
-            sid
-            for sid, s in self.sessions.items()
-            if not s.busy() and now - s.last_active >= self.idle_seconds
-        ]
-        for s in self.sessions.values():
-            if s.busy():
-                s.last_active = now
+        idle = [sid for sid, s in self.sessions.items() if s.idle_for(now) >= self.idle_seconds]
         for sid in idle:
             if sid in self.sessions:
                 await self.close(

@@ -15,14 +15,16 @@ import asyncio
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from ...protocol.compact import KEY
-from ...protocol.messages import Stats, Status, dump_message
+from ...protocol.messages import InputKind, Stats, Status, dump_message
 from ..state import FaceState
+from .ports import Deformer, DirectWriter, Outbox, ProducerSlot
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +52,7 @@ class Viewer:
 
     QUEUED, REPLACED, SENT = 0, 1, 2
 
-    def __init__(self, encoding: str, direct: Any = None) -> None:
+    def __init__(self, encoding: str, direct: DirectWriter | None = None) -> None:
         self.encoding = encoding
         self.direct = direct
         self.slot: tuple[int, tuple[bytes, bytes]] | None = (
@@ -83,12 +85,13 @@ class Viewer:
         ):
             self.sent += 1
             return self.SENT
-        replaced = self.slot is not None
+        slot = self.slot
+        replaced = slot is not None
         if self.encoding == "compact":
             if frame[0][FLAGS_BYTE] & KEY:  # a key frame supersedes any held one
                 self.held = None
-            elif replaced and self.slot[1][0][FLAGS_BYTE] & KEY:
-                self.held = self.slot
+            elif slot is not None and slot[1][0][FLAGS_BYTE] & KEY:
+                self.held = slot
         self._n += 1
         self.slot = (self._n, frame)
         if replaced:
@@ -131,7 +134,7 @@ class Viewer:
 class SessionSpec:
     id: str
     face: str  # the name clients use (topology URL)
-    input: str
+    input: InputKind
     fps: float
     engine: str
     max_viewers: int
@@ -146,18 +149,18 @@ class LiveSession:
     Deformation and encoding run in the registry's threads, through the ``DeformBatcher`` of the
     session's animator (shared by the sessions of the same face)."""
 
-    def __init__(self, spec: SessionSpec, face: Any, batcher: Any, metrics: Any = None) -> None:
+    def __init__(
+        self, spec: SessionSpec, face: Any, batcher: Deformer, metrics: Any = None
+    ) -> None:
         self.spec = spec
         self.face = face
-        self.batcher = batcher  # replaced when a mocap producer brings its own control vertices
-        self.control_vertices: np.ndarray | None = (
-            None  # explicit controls of the batcher's animator
-        )
+        self._batcher = batcher  # replaced when a mocap producer brings its own control vertices
+        self._control_vertices: np.ndarray | None = None  # explicit controls of its animator
         self.vertex_count = int(face.vertices.shape[0])
         self.metrics = metrics
-        self.viewers: set[Viewer] = set()
-        self.joining = 0  # viewers being greeted (count against the limit)
-        self.producer: Any = None  # the producer's connection object while one is connected
+        self.viewers: set[Outbox] = set()
+        self._joining = 0  # viewers being greeted (count against the limit)
+        self._producer: ProducerSlot | None = None  # who holds the producer slot
         self.pending: deque[tuple[int, FaceState, float]] = deque()
         self._busy = False  # a state of this session is with the batcher
         self._in_flight = 0  # its seq
@@ -165,9 +168,8 @@ class LiveSession:
         self.compact: Any = None  # ``CompactEncoder``, made for the first ``compact`` viewer
         self.seq = 0
         self.last_seq: int | None = None
-        self.stats = {
-            k: 0
-            for k in (
+        self._stats = dict.fromkeys(
+            (
                 "frames_in",
                 "frames_rejected",
                 "states",
@@ -175,19 +177,113 @@ class LiveSession:
                 "frames_dropped",
                 "frames_sent",
                 "frames_skipped",
-            )
-        }
+            ),
+            0,
+        )
         self._deform_total = 0.0
         self._last_stats = time.monotonic()
         self.closed = False
         self._status_due = False
         self.last_active = time.monotonic()  # last time a peer was seen (``busy``); for idle expiry
 
+    # -- state, read-only outside this class -------------------------------------------------------
+    @property
+    def producer(self) -> ProducerSlot | None:
+        """Who holds the producer slot (``claim``), or None."""
+        return self._producer
+
+    @property
+    def batcher(self) -> Deformer:
+        """The deformer of the session's frames (``deform_with`` swaps it)."""
+        return self._batcher
+
+    @property
+    def control_vertices(self) -> np.ndarray | None:
+        """The explicit control vertices of the deformer's animator (None: the face's own)."""
+        return self._control_vertices
+
+    @property
+    def joining(self) -> int:
+        """Viewers being greeted (``join``): they count against the viewer limit."""
+        return self._joining
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """A copy of the session's counters."""
+        return dict(self._stats)
+
     def busy(self) -> bool:
         """A viewer is connected (or joining) or a client's producer is: the session is in use. A
         server-side producer (demo, playback) alone does not count: nobody asked for it any more."""
-        remote = bool(getattr(self.producer, "remote", False))
-        return bool(self.viewers) or self.joining > 0 or remote
+        remote = self._producer is not None and self._producer.remote
+        return bool(self.viewers) or self._joining > 0 or remote
+
+    def idle_for(self, now: float) -> float:
+        """Seconds (monotonic ``now``) since a peer was last seen; 0 while ``busy`` (seen now)."""
+        if self.busy():
+            self.last_active = now
+            return 0.0
+        return now - self.last_active
+
+    # -- the producer slot and the control set ------------------------------------------------------
+    def claim(self, producer: ProducerSlot) -> bool:
+        """Take the producer slot for ``producer`` if it is free (True); viewers hear of it at
+        ``announce``. Call before any await, so that a second producer is refused."""
+        if self._producer is not None:
+            return False
+        self._producer = producer
+        return True
+
+    def announce(self, producer: ProducerSlot) -> None:
+        """``producer`` (holding the slot) is ready: tell the viewers."""
+        if self._producer is producer:
+            self._set_producer(producer)
+
+    def release(self, producer: ProducerSlot) -> None:
+        """``producer`` leaves: free the slot if it holds it (idempotent)."""
+        if self._producer is producer:
+            self._set_producer(None)
+
+    def needs_controls(self, control_vertices: np.ndarray | None) -> bool:
+        """True if ``control_vertices`` (an input's explicit controls) are not those deformed now."""
+        cv, current = control_vertices, self._control_vertices
+        return cv is not None and (current is None or not np.array_equal(cv, current))
+
+    def deform_with(
+        self, batcher: Deformer, control_vertices: np.ndarray | None
+    ) -> tuple[Deformer, np.ndarray | None]:
+        """Deform with ``batcher`` (an animator over ``control_vertices``) from the next state on;
+        the previous pair, for ``restore``. The one place a session's control set changes."""
+        previous = (self._batcher, self._control_vertices)
+        self._batcher = batcher
+        self._control_vertices = None if control_vertices is None else np.array(control_vertices)
+        return previous
+
+    def restore(self, previous: tuple[Deformer, np.ndarray | None]) -> None:
+        """Put back a deformation ``deform_with`` replaced."""
+        self._batcher, self._control_vertices = previous
+
+    # -- viewers joining, counters ------------------------------------------------------------------
+    def has_room(self) -> bool:
+        """A viewer more fits under the session's limit (counting those being greeted)."""
+        return len(self.viewers) + self._joining < self.spec.max_viewers
+
+    def join(self) -> None:
+        """A viewer is being greeted: it counts against the limit until ``joined``."""
+        self._joining += 1
+
+    def joined(self) -> None:
+        self._joining -= 1
+
+    def count_in(self) -> None:
+        """A producer frame was taken."""
+        self._stats["frames_in"] += 1
+        if self.metrics:
+            self.metrics.frames_in.inc()
+
+    def count_rejected(self) -> None:
+        """A producer frame was refused (over the budget, malformed, or the driver failed)."""
+        self._stats["frames_rejected"] += 1
 
     # -- producer side -----------------------------------------------------------------------------
     def submit(self, states: list[FaceState], wall: float) -> None:
@@ -195,18 +291,18 @@ class LiveSession:
         for s in states:
             if len(self.pending) >= MAX_PENDING:
                 self.pending.popleft()
-                self.stats["frames_dropped"] += 1
+                self._stats["frames_dropped"] += 1
                 if self.metrics:
                     self.metrics.frames_dropped.inc()
             self.pending.append((self.seq, s, wall))
             self.seq = (self.seq + 1) & 0xFFFFFFFF
-            self.stats["states"] += 1
+            self._stats["states"] += 1
         if states and not self._busy:
             self._pump()
 
-    def set_producer(self, producer: Any) -> None:
+    def _set_producer(self, producer: ProducerSlot | None) -> None:
         """A producer connected (tell viewers now) or left (tell them once its frames are out)."""
-        self.producer = producer
+        self._producer = producer
         self.last_active = time.monotonic()
         if producer is not None:
             self.broadcast_status()
@@ -216,7 +312,7 @@ class LiveSession:
                 self._pump()
 
     # -- viewers -----------------------------------------------------------------------------------
-    def add_viewer(self, viewer: Viewer) -> None:
+    def add_viewer(self, viewer: Outbox) -> None:
         self.viewers.add(viewer)
         self._encodings[viewer.encoding] = self._encodings.get(viewer.encoding, 0) + 1
         if viewer.encoding == "compact":
@@ -232,7 +328,7 @@ class LiveSession:
         if self.metrics:
             self.metrics.viewers.inc()
 
-    def remove_viewer(self, viewer: Viewer) -> None:
+    def remove_viewer(self, viewer: Outbox) -> None:
         self.last_active = time.monotonic()
         if viewer in self.viewers:
             self.viewers.discard(viewer)
@@ -241,14 +337,14 @@ class LiveSession:
                 self._encodings[viewer.encoding] = left
             else:
                 del self._encodings[viewer.encoding]
-            self.stats["frames_sent"] += viewer.sent
+            self._stats["frames_sent"] += viewer.sent
             if self.metrics:
                 self.metrics.viewers.dec()
 
     def broadcast_status(self) -> None:
         text = dump_message(
             Status(
-                producer_connected=self.producer is not None,
+                producer_connected=self._producer is not None,
                 viewers=len(self.viewers),
                 last_seq=self.last_seq,
             )
@@ -257,15 +353,17 @@ class LiveSession:
             v.say(text)
 
     def snapshot(self) -> Stats:
-        n = self.stats["frames_deformed"]
-        counts = dict(
-            self.stats, frames_sent=self.stats["frames_sent"] + sum(v.sent for v in self.viewers)
+        n = self._stats["frames_deformed"]
+        counts: dict[str, Any] = dict(
+            self._stats, frames_sent=self._stats["frames_sent"] + sum(v.sent for v in self.viewers)
         )
-        return Stats(
-            **counts,
-            deform_ms_mean=round(1000 * self._deform_total / n, 3) if n else 0.0,
-            viewers=len(self.viewers),
-            producer_connected=self.producer is not None,
+        return Stats.model_validate(
+            counts
+            | {
+                "deform_ms_mean": round(1000 * self._deform_total / n, 3) if n else 0.0,
+                "viewers": len(self.viewers),
+                "producer_connected": self._producer is not None,
+            }
         )
 
     # -- the frame path -----------------------------------------------------------------------------
@@ -279,7 +377,7 @@ class LiveSession:
             self._busy = True
             self._in_flight = seq
             try:
-                self.batcher.submit_nowait(
+                self._batcher.submit_nowait(
                     state,
                     seq=seq,
                     wall=wall,
@@ -290,7 +388,7 @@ class LiveSession:
             except Exception:
                 self._busy = False
                 log.exception("session %s: queueing frame %d failed", self.spec.id, seq)
-                self.stats["frames_dropped"] += 1
+                self._stats["frames_dropped"] += 1
                 continue
             return
         if self._status_due and not self.closed:
@@ -305,14 +403,14 @@ class LiveSession:
         try:
             if isinstance(result, BaseException):
                 log.error("session %s: deforming a frame failed: %r", self.spec.id, result)
-                self.stats["frames_dropped"] += 1
+                self._stats["frames_dropped"] += 1
             else:
                 self._fan_out(*result)
         finally:
             self._pump()
 
-    def _fan_out(self, encoded: dict, dt: float) -> None:
-        self.stats["frames_deformed"] += 1
+    def _fan_out(self, encoded: dict[str, tuple[Any, Any]], dt: float) -> None:
+        self._stats["frames_deformed"] += 1
         self.last_seq = self._in_flight
         self._deform_total += dt
         if self.metrics:
@@ -328,7 +426,7 @@ class LiveSession:
             elif outcome == Viewer.REPLACED:
                 skipped += 1
         if skipped:
-            self.stats["frames_skipped"] += skipped
+            self._stats["frames_skipped"] += skipped
             if self.metrics:
                 self.metrics.frames_dropped.inc(skipped)
         self.count_sent(sent_now)
@@ -350,6 +448,6 @@ class LiveSession:
         self.pending.clear()
         for v in list(self.viewers):
             v.end(code, error_json)
-        if self.producer is not None:
-            await self.producer.end(code, error_json)
+        if self._producer is not None:
+            await self._producer.end(code, error_json)
         return None
