@@ -6,6 +6,8 @@ is the test's. What the shell would send and the close it would make are read of
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import logging
 from types import SimpleNamespace
@@ -251,7 +253,8 @@ def test_a_driver_that_fails_costs_one_frame_not_the_connection(monkeypatch, cap
 
 
 def test_a_missing_driver_is_4503(monkeypatch):
-    monkeypatch.setitem(inputs_mod.DRIVERS, "audio", ("facecast.no_such_module", "Driver"))
+    audio = dataclasses.replace(inputs_mod.DRIVERS["audio"], live=("facecast.no_such_module", "Driver"))
+    monkeypatch.setitem(inputs_mod.DRIVERS, "audio", audio)
     session = _session("audio")
     core = _core(session)
     core.connect()
