@@ -15,9 +15,9 @@ import numpy as np
 
 from ...protocol import frames
 from ...protocol.errors import CloseCode, FrameError, MessageError
-from ...protocol.messages import FapMessage, ProducerHello
+from ...protocol.messages import FapMessage, InputKind, ProducerHello
 from ..drivers import DRIVERS
-from ..errors import FacecastError, Unavailable
+from ..errors import FacecastError, InputError, Unavailable
 from ..state import FaceState, zero_faps
 
 log = logging.getLogger(__name__)
@@ -36,11 +36,11 @@ class BadHello(MessageError):
     """The producer's hello does not fit the session (close code 4400)."""
 
 
-def load_driver_class(kind: str) -> Any:
+def load_driver_class(kind: InputKind) -> Any:
     """The live driver class for ``kind`` (``audio`` | ``markers``); ``InputUnavailable`` if absent."""
     live = DRIVERS[kind].live  # the one registry, ``server/drivers``
     if live is None:
-        raise ValueError(f"input {kind!r} has no live driver (its frames map straight to states)")
+        raise InputError(f"input {kind!r} has no live driver (its frames map straight to states)")
     module, name = live
     try:
         return getattr(importlib.import_module(module), name)

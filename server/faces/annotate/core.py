@@ -391,8 +391,8 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tr
     ring = _ring(y, wtri)
     own_ring = _ring(y, tri)
     coincident: dict[int, list[int]] = {}
-    for i in np.nonzero(rep != np.arange(len(rep)))[0]:
-        coincident.setdefault(int(rep[i]), [int(rep[i])]).append(int(i))
+    for j in np.nonzero(rep != np.arange(len(rep)))[0]:
+        coincident.setdefault(int(rep[j]), [int(rep[j])]).append(int(j))
     t_ring = np.zeros((len(warped), 3))
     t_cnt = np.zeros(len(warped))
     tc = warped[tpl.triangles].mean(axis=1)
