@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from facecast.server.faces.annotate import annotate_mesh
 from facecast.server.faces.face import UNIT_MM
 from facecast.server.faces.obj import read_obj
@@ -140,7 +141,8 @@ def ict_cases(data: Path, quick: bool) -> list[dict]:
 def fidelity(data: Path) -> dict:
     """bench/fidelity.py's default engine on ICT with the shipped and the automatic feature points."""
     sys.path.insert(0, str(Path(__file__).parent))
-    import fidelity as fid  # noqa: E402
+    import fidelity as fid
+
     from facecast.server.deform.build import build_operator
     from facecast.server.faces import load_face
     from facecast.server.faces.face import Face

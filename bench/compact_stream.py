@@ -71,6 +71,7 @@ def measure(
     name: str, fps: float, frames: np.ndarray, transforms: np.ndarray, face, tol_mm: float
 ) -> dict:
     import zstandard
+
     from facecast.protocol import compact as cp
     from facecast.protocol import frames as fr
 

@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from facecast.server.deform.quality import QualityMesh, measure, summarise
 
 

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from facecast.server.deform.build import build_operator
 from facecast.server.deform.mesh_graph import edge_graph, voronoi
 from facecast.server.faces import load_face

@@ -123,11 +123,12 @@ async def _flood(
     url: str, session: str, token: str, json_frames: bool, stop, conn, query_token: bool
 ) -> None:
     import numpy as np
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import ConnectionClosed, InvalidHandshake
+
     from facecast.client.api import ws_url
     from facecast.protocol import frames
     from facecast.protocol.messages import FapMessage, ProducerHello, dump_message
-    from websockets.asyncio.client import connect
-    from websockets.exceptions import ConnectionClosed, InvalidHandshake
 
     if json_frames:
         msg: bytes | str = dump_message(FapMessage(seq=1, t=0.0, wall=time.time(), faps={3: 100.0}))
@@ -204,6 +205,7 @@ def run_flood(
     ``query_token``: the flooder sends its token as ``?token=`` (to measure servers older than
     header tokens the same way); ``nice``: of the flooder and the control's CPU burner."""
     import httpx
+
     from facecast.server.harness import LocalServer
 
     ctx = multiprocessing.get_context("spawn")

@@ -25,7 +25,7 @@ import os
 import random
 import sys
 import time
-from functools import lru_cache
+from functools import cache, lru_cache
 from pathlib import Path
 
 OUT = Path(__file__).resolve().parent / "out" / "fuzz_parsers.json"
@@ -48,7 +48,7 @@ INTERESTING_JSON = ({}, [], 0, -1, 1.5, True, None, "x", "", 10**30, [0, 1, 2], 
 # ------------------------------------------------------------------------------------------ seeds
 
 
-@lru_cache(maxsize=None)
+@cache
 def seeds(parser: str) -> tuple[bytes, ...]:
     """Seed files of ``parser`` (generated or real; never empty)."""
     import numpy as np
@@ -295,8 +295,8 @@ def fuzz_counts(parser_name: str, n: int, seed: int = 1, timeout: float = TIMEOU
     if parser_name not in PARSERS + ("ezc3d",):
         raise ValueError(f"unknown parser {parser_name!r}; one of {', '.join(PARSERS)}")
     ctx = mp.get_context("spawn")  # not fork: a caller may have threads (a server client, a loop)
-    counts = dict(parser=parser_name, inputs=0, crashes=0, hangs=0, project_errors=0, parsed=0,
-                  other_errors=0, max_seconds=0.0, examples=[])
+    counts = {"parser": parser_name, "inputs": 0, "crashes": 0, "hangs": 0, "project_errors": 0, "parsed": 0,
+                  "other_errors": 0, "max_seconds": 0.0, "examples": []}
     proc = conn = None
 
     def start():

@@ -150,6 +150,7 @@ def clip(face, n_frames: int, seed: int):
     from dataclasses import replace
 
     import numpy as np
+
     from facecast.server.drivers.fap import load as load_fap
     from facecast.server.paths import shared_data
     from facecast.server.state import Animation
@@ -244,7 +245,7 @@ def main(argv: list[str]) -> int:
         frames = full[:T]
         results = {}
         for method, mod in (("old", old), ("new", gltf)):
-            if method == "old" and T > args.old_max:
+            if method == "old" and args.old_max < T:
                 continue
             sec, peak, (data, rec) = measure(lambda mod=mod, frames=frames: mod.encode_glb(
                 frames, face.vertices, face.triangles, 25.0, **opts), args.repeats)

@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from facecast.server.faces import parse_count
 from facecast.server.faces.procedural import head as procedural
 from facecast.server.faces.procedural.mesh import closed_surface

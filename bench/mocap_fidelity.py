@@ -93,7 +93,6 @@ def main(argv: list[str]) -> int:
     a = p.parse_args(argv)
 
     from facecast.server.mocap.generate import load_expressions, load_ict
-    from facecast.server.pipeline import Animator
     from facecast.server.render import render_file
 
     face = load_ict()

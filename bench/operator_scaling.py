@@ -23,12 +23,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.sparse.csgraph import dijkstra
+
 from facecast.server.backends.numpy_backend import NumpyDeformer
 from facecast.server.deform.build import build_operator
 from facecast.server.deform.mesh_graph import components, edge_graph
 from facecast.server.faces import load_face, parse_count
 from facecast.server.faces.face import RIGID_GROUPS, Face
-from scipy.sparse.csgraph import dijkstra
 
 
 def sphere_face(n_vertices: int, n_controls: int = 84) -> tuple[Face, np.ndarray]:

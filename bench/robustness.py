@@ -76,6 +76,7 @@ def call_with(fn, **available):
 def speech() -> tuple[np.ndarray, int, str]:
     """Real speech (``../shared/data/speech``) or, without the data, a voiced synthetic tone."""
     import soundfile as sf
+
     from facecast.server.paths import shared_data
 
     d = shared_data()
@@ -424,6 +425,7 @@ def warm_up(server: Server, kind: str) -> None:
 def peak_memory(kinds: list[str], timeout: float) -> list[dict]:
     """Peak RSS of a fresh server while it decodes each kind's largest allowed upload via ``/play``."""
     import httpx
+
     from facecast.server.api.config import ServerConfig
     from facecast.server.audio.io import max_audio_seconds
 

@@ -432,7 +432,7 @@ async def _light_viewer(
 
     u = urlsplit(ws_url(url, f"/v1/sessions/{s.id}/watch", token=s.viewer_token, encoding=encoding))
     loop = asyncio.get_running_loop()
-    transport, proto = await loop.create_connection(
+    transport, _proto = await loop.create_connection(
         lambda: _LightViewer(f"{u.path}?{u.query}", u.netloc, out, ready), u.hostname, u.port
     )
     try:

@@ -20,8 +20,9 @@ import asyncio
 import logging
 import socket
 import time
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
-from typing import Any, AsyncIterator
+from typing import Any
 from urllib.parse import quote, urlencode, urlsplit, urlunsplit
 
 import httpx
@@ -87,10 +88,10 @@ class SessionAdmin:
         headers = {"Authorization": f"Bearer {admin_key}"} if admin_key else {}
         self.http = httpx.AsyncClient(base_url=url, headers=headers, timeout=timeout)
 
-    async def __aenter__(self) -> "SessionAdmin":
+    async def __aenter__(self) -> SessionAdmin:
         return self
 
-    async def __aexit__(self, *exc: Any) -> None:
+    async def __aexit__(self, *exc: object) -> None:
         await self.http.aclose()
 
     async def _call(self, method: str, path: str, what: str, **kw: Any) -> httpx.Response:
@@ -189,9 +190,9 @@ async def _connect(
             sock=sock,
         )
     except (OSError, asyncio.TimeoutError) as e:
-        raise LiveError(f"cannot connect to {url.split('?')[0]}: {e}") from None
+        raise LiveError(f"cannot connect to {url.split('?', maxsplit=1)[0]}: {e}") from None
     except Exception as e:  # handshake refused (HTTP status instead of 101)
-        raise LiveError(f"WebSocket handshake with {url.split('?')[0]} failed: {e}") from None
+        raise LiveError(f"WebSocket handshake with {url.split('?', maxsplit=1)[0]} failed: {e}") from None
 
 
 def _closed_error(ws: ClientConnection, last_error: ErrorMessage | None) -> LiveError | None:
@@ -341,7 +342,7 @@ class produce:
         self.producer = Producer(ws, m)
         return self.producer
 
-    async def __aexit__(self, *exc: Any) -> None:
+    async def __aexit__(self, *exc: object) -> None:
         if self.producer is not None:
             await self.producer.close()
 
@@ -494,7 +495,7 @@ class watch:
                 raise
         return self.watcher
 
-    async def __aexit__(self, *exc: Any) -> None:
+    async def __aexit__(self, *exc: object) -> None:
         if self.watcher is not None:
             await self.watcher.close()
 

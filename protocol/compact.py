@@ -283,7 +283,7 @@ class CompactEncoder:
         qf, q, r, dd, tmp = b["qf"], b["q"], b["r"], b["dd"], b["tmp"]
         np.rint(local, out=qf)
         lo, hi = qf.min(initial=0), qf.max(initial=0)
-        if not (-_MAX_CELL < lo and hi < _MAX_CELL):  # also refuses NaN
+        if not (lo > -_MAX_CELL and hi < _MAX_CELL):  # also refuses NaN
             raise ValueError(
                 "vertices must be finite and within 2^23 grid steps of their group's origin"
             )

@@ -24,9 +24,10 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-from .errors import FileFormatError, show_token as _show
+from .errors import FileFormatError
+from .errors import show_token as _show
 
 #: Number of MPEG-4 FAPs (2 high-level + 66 low-level).
 N_FAPS = 68
@@ -107,7 +108,7 @@ class FapFrame:
 
     @classmethod
     def build(cls, number: int, faps: dict[int, Number], *, viseme: tuple[int, ...] | None = None,
-              expression: tuple[int, ...] | None = None, mask_width: int = N_FAPS) -> "FapFrame":
+              expression: tuple[int, ...] | None = None, mask_width: int = N_FAPS) -> FapFrame:
         """A frame from low-level values ``{fap: value}`` (3..68) and optional FAP 1 / FAP 2 fields."""
         mask = [0] * mask_width
         values: list[Number] = []
@@ -199,7 +200,7 @@ def read_fap(text: str, *, where: str = "") -> FapFile:
     if final_newline:
         raw.pop()
     newline = "\r\n" if raw and raw[0].endswith("\r") else "\n"
-    lines = [r[:-1] if r.endswith("\r") else r for r in raw]
+    lines = [r.removesuffix("\r") for r in raw]
 
     comments: list[tuple[int, str]] = []
     content: list[tuple[int, str]] = []  # (line number, text) of non-comment, non-empty lines

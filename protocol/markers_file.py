@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .errors import FileFormatError, show_token as _show
+from .errors import FileFormatError
+from .errors import show_token as _show
 from .units import UNIT_MM, unit_name
 
 

@@ -8,7 +8,7 @@ model by it. The REST session routes use ``SessionCreate`` / ``SessionCreated`` 
 from __future__ import annotations
 
 import json
-from typing import Annotated, Any, Literal, Union, get_args
+from typing import Annotated, Any, Literal, get_args
 
 from pydantic import (
     BaseModel,
@@ -26,26 +26,26 @@ from .encoding import VERTEX_ENCODINGS, SampleFormat, VertexEncoding
 from .errors import MessageError
 
 __all__ = [
-    "PROTOCOL_VERSION",
     "INPUT_ALIASES",
     "INPUT_KINDS",
-    "InputKind",
-    "InputKindIn",
+    "PROTOCOL_VERSION",
     "Encoding",
-    "ProducerHello",
-    "Ready",
-    "ViewerHello",
     "ErrorMessage",
     "FapMessage",
-    "Status",
-    "Stats",
+    "InputKind",
+    "InputKindIn",
+    "Message",
+    "ProducerHello",
+    "Ready",
     "SessionCreate",
     "SessionCreated",
     "SessionInfo",
     "SessionList",
-    "Message",
-    "parse_message",
+    "Stats",
+    "Status",
+    "ViewerHello",
     "dump_message",
+    "parse_message",
 ]
 
 PROTOCOL_VERSION = 1
@@ -228,15 +228,7 @@ def _tag(obj: object) -> str | None:
 
 
 Message = Annotated[
-    Union[
-        Annotated[ProducerHello, Tag("hello:producer")],
-        Annotated[ViewerHello, Tag("hello:viewer")],
-        Annotated[Ready, Tag("ready")],
-        Annotated[ErrorMessage, Tag("error")],
-        Annotated[FapMessage, Tag("fap")],
-        Annotated[Stats, Tag("stats")],
-        Annotated[Status, Tag("status")],
-    ],
+    Annotated[ProducerHello, Tag("hello:producer")] | Annotated[ViewerHello, Tag("hello:viewer")] | Annotated[Ready, Tag("ready")] | Annotated[ErrorMessage, Tag("error")] | Annotated[FapMessage, Tag("fap")] | Annotated[Stats, Tag("stats")] | Annotated[Status, Tag("status")],
     Discriminator(_tag),
 ]
 

@@ -8,6 +8,7 @@ import stat
 import httpx
 import numpy as np
 import pytest
+
 from facecast.client import files as client_files
 from facecast.client import jobs as client_jobs
 from facecast.protocol.markers_file import MarkerTake

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.signal
+
 from facecast.server.audio.classify import VOWELS, WEIGHTS, VowelNet, default_net
 from facecast.server.audio.pipeline import features_of
 
@@ -31,14 +32,14 @@ def test_weights_ship_with_the_package():
     assert net.w1.shape == (12, 10) and net.w2.shape == (10, 5)
 
 
-@pytest.mark.parametrize("f0,scale", [(110.0, 1.0), (210.0, 1.15)], ids=["male", "female"])
+@pytest.mark.parametrize(("f0", "scale"), [(110.0, 1.0), (210.0, 1.15)], ids=["male", "female"])
 def test_network_classifies_synthetic_vowels(f0, scale):
     """Majority vote per vowel: at least 4 of 5 exact; the source's own confusions (e/i, o/u,
     pairs that also look alike on the mouth) are the only ones tolerated."""
     net = default_net()
     partner = {"a": "a", "e": "i", "i": "e", "o": "u", "u": "o"}
     exact = 0
-    for i, v in enumerate(VOWELS):
+    for _i, v in enumerate(VOWELS):
         f = features_of(formant_vowel(v, f0=f0, scale=scale), 16000)
         k = f.k[5:-5]
         np.testing.assert_allclose(net.proba(k).sum(1), 1.0)

@@ -11,6 +11,9 @@ import numpy as np
 import pytest
 import scipy.signal
 import soundfile as sf
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
 from facecast.server.audio.io import (
     MAX_RATIO_TERM,
     BlockResampler,
@@ -22,8 +25,6 @@ from facecast.server.audio.io import (
 from facecast.server.audio.lpc import ANALYSIS_RATE
 from facecast.server.audio.pipeline import lipsync, lipsync_file
 from facecast.server.errors import InputError
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 
 
 @pytest.fixture(scope="module")

@@ -7,6 +7,7 @@ import logging
 import numpy as np
 import pytest
 import soundfile as sf
+
 from facecast.server.audio.driver import load
 from facecast.server.audio.io import read_audio
 from facecast.server.cli import main
@@ -137,7 +138,7 @@ def test_clipped_speech_still_works_and_warns(bobby, tmp_path, capsys, caplog):
     assert VOWEL_VISEMES & {f["viseme"] for f in frames}
 
 
-@pytest.mark.parametrize("name,content,message", [
+@pytest.mark.parametrize(("name", "content", "message"), [
     ("corrupt.wav", b"RIFF\x10\x00\x00\x00WAVEfmt garbage" * 3, "cannot decode"),
     ("empty.wav", b"", "cannot decode"),
     ("speech.mp3", b"ID3", "unsupported audio type"),

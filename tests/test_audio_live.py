@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from facecast.server.audio.io import read_audio
 from facecast.server.audio.live import AudioLiveDriver
 from facecast.server.audio.pipeline import lipsync
@@ -24,7 +25,7 @@ def stream(drv, x, sr, rng=None, chunk=320, t0=0.0):
     return states + drv.flush()
 
 
-@pytest.mark.parametrize("lookahead,fps", [(0.05, 100.0), (0.12, 30.0)])
+@pytest.mark.parametrize(("lookahead", "fps"), [(0.05, 100.0), (0.12, 30.0)])
 def test_live_equals_batch_with_the_same_lookahead(speech, rng, lookahead, fps):
     x, sr = speech
     cal = lipsync(x, sr).calibration
@@ -159,6 +160,7 @@ def test_median_of_three_fast_path_equals_scipy(rng):
     """``median_filter_proba``'s default length (3) is computed without scipy; it is exactly
     scipy's running median (edges repeated), on short and long inputs."""
     import scipy.ndimage
+
     from facecast.server.audio.visemes import median_filter_proba
 
     for n in (1, 2, 3, 50):

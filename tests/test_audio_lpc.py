@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import scipy.signal
+
 from facecast.server.audio.io import StreamResampler, resample
 from facecast.server.audio.lpc import analyze, autocorrelate, levinson, zero_crossing_rate
 

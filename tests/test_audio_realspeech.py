@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import scipy.signal
 import soundfile as sf
+
 from facecast.server.audio.io import read_audio
 from facecast.server.audio.pipeline import lipsync
 from facecast.server.cli import main
@@ -168,7 +169,7 @@ def test_calibration_recording(bobby, tmp_path, capsys, rng):
     from facecast.server.audio.pipeline import calibration_from
 
     sr = 16000
-    x, _ = read_audio(bobby)
+    _x, _ = read_audio(bobby)
     noise = rng.normal(0, 1e-3, sr)
     cal_sig = np.concatenate([noise, 0.9 * _formant_a(sr, 1.0) + rng.normal(0, 1e-3, sr)])
     cal = calibration_from(cal_sig, sr)

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from facecast.server.backends import NumpyDeformer, make_deformer
+from facecast.server.deform.operator import Operator
 from facecast.server.errors import FacecastError
 from facecast.server.faces.face import Face
-from facecast.server.deform.operator import Operator
 
 select = pytest.importorskip("facecast.server.backends.select")
 

@@ -13,6 +13,7 @@ import textwrap
 
 import numpy as np
 import pytest
+
 from facecast.protocol.errors import FileFormatError, ProtocolError
 from facecast.protocol.markers_file import MarkerFileError, MarkerTake, read_c3d, write_c3d
 from facecast.server.errors import InputError
@@ -161,7 +162,7 @@ def _param(name: bytes, ptype: int, dims: tuple, values: bytes, nxt: int | None 
     return bytes([len(name), 1]) + name + struct.pack("<h", 2 + len(body) if nxt is None else nxt) + body
 
 
-@pytest.mark.parametrize("entry, message", [
+@pytest.mark.parametrize(("entry", "message"), [
     (_param(b"RATE", 4, (), struct.pack("<f", 60.0), nxt=-40) + bytes([4, 1]), "points -40 bytes back"),
     (_param(b"USED", 3, (), b"\x01\x00\x00"), "type 3"),
     (_param(b"RATE", 4, (0,), b""), "POINT:RATE has no value"),
@@ -181,7 +182,7 @@ def test_well_formed_parameter_file_reads_and_zero_length_text_is_empty():
     assert take.names == ["M000"] and take.xyz.tolist() == [[[1.0, 2.0, 3.0]]]
 
 
-@pytest.mark.parametrize("data, message", [
+@pytest.mark.parametrize(("data", "message"), [
     (b"\x00\x50" + bytes(600), "block 0"),
     (b"\x09\x50" + bytes(600), "past the end"),
     (b"\x02\x50" + bytes(510) + b"\x01\x50\x02\x57", "processor type 87"),

@@ -6,8 +6,8 @@ import sys
 
 import httpx
 import pytest
-
 from conftest import RunningServer
+
 from facecast import server as server_package
 from facecast.protocol.urls import server_url
 from facecast.server.cli import parse_args
@@ -18,7 +18,7 @@ def cli(*argv: str, timeout: float = 120) -> subprocess.CompletedProcess:
                           timeout=timeout)
 
 
-@pytest.mark.parametrize("typed,url", [
+@pytest.mark.parametrize(("typed", "url"), [
     ("127.0.0.1:8000", "http://127.0.0.1:8000"),
     ("localhost:8000/", "http://localhost:8000"),
     ("  example.org ", "http://example.org"),
@@ -102,7 +102,7 @@ def test_serve_logs_neither_info_nor_requests_by_default(tmp_path):
     assert " INFO " not in log and "GET /" not in log, log
 
 
-@pytest.mark.parametrize("argv,where,what", [
+@pytest.mark.parametrize(("argv", "where", "what"), [
     (["x.fap", "-o", "x.obj"], "x.obj", "unsupported output type '.obj'"),
     (["missing.fap", "-o", "x.glb"], "missing.fap", "input file not found"),
     (["take.trc", "-o", "x.fap", "--filter", "kalman"], "--server", "apply to local renders only"),

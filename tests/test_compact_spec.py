@@ -9,8 +9,9 @@ import struct
 import zlib
 
 import numpy as np
-from facecast.protocol.compact import CompactEncoder
 from test_protocol_compact import synthetic_stream
+
+from facecast.protocol.compact import CompactEncoder
 
 
 class SpecDecoder:
@@ -24,9 +25,9 @@ class SpecDecoder:
         magic, version, kind, flags, seq, count, t, _wall = struct.unpack_from("<4sBBHIIdd", msg, 0)
         assert (magic, version, kind) == (b"FCST", 1, 7) and flags in (0, 1)
         V = count
-        assert V == len(self.rest)
+        assert len(self.rest) == V
         ref, step, G, P, reserved, zlen = struct.unpack_from("<IfBBHI", msg, 32)
-        assert reserved == 0 and 1 <= P <= 4 and G >= max(self.group) + 1
+        assert reserved == 0 and 1 <= P <= 4 and max(self.group) + 1 <= G
         assert len(msg) == 48 + 48 * G + zlen
         transforms = [struct.unpack_from("<12f", msg, 48 + 48 * g) for g in range(G)]
         key = flags & 1

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from facecast.server.deform.build import get_operator
 from facecast.server.deform.feature_point import feature_point_operator
 from facecast.server.deform.mesh_graph import edge_graph, voronoi
@@ -358,8 +359,9 @@ def test_ict_lips_and_eyelids_do_not_bleed(data_dir):
 
 
 def test_bounded_distances_are_exact_and_chunking_does_not_matter(grid):
-    from facecast.server.deform.mesh_graph import bounded_distances
     from scipy.sparse.csgraph import dijkstra
+
+    from facecast.server.deform.mesh_graph import bounded_distances
 
     verts, tris, _, _, controls = grid
     g = edge_graph(verts, tris)

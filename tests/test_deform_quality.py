@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_deform_fp import slit_mesh
+
 from facecast.server.deform.build import get_operator
 from facecast.server.deform.feature_point import feature_point_operator
 from facecast.server.deform.quality import QualityMesh, measure
@@ -10,7 +12,6 @@ from facecast.server.drivers.demo import demo_states
 from facecast.server.faces import load_face
 from facecast.server.faces.face import Face
 from facecast.server.pipeline import Animator
-from test_deform_fp import slit_mesh
 
 SURPRISE = 75  # demo_states(10): jaw open + brows up
 

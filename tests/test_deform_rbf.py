@@ -3,11 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_deform_fp import slit_mesh
+
 from facecast.server.deform.build import get_operator
 from facecast.server.deform.rbf import rbf_matrix, rbf_operator
 from facecast.server.errors import InputError
 from facecast.server.faces.face import Face
-from test_deform_fp import slit_mesh
 
 
 def bumpy(verts: np.ndarray) -> np.ndarray:

@@ -6,6 +6,7 @@ import argparse
 import importlib
 
 import pytest
+
 from facecast.protocol.messages import INPUT_KINDS, ProducerHello, SessionCreate, parse_message
 from facecast.protocol.rest import JobOptions, JobStatus
 from facecast.server.drivers import DRIVERS, SUFFIXES, input_kind
@@ -15,7 +16,7 @@ from facecast.server.live.inputs import load_driver_class
 
 def test_the_registry_names_every_input_kind_once():
     assert tuple(DRIVERS) == INPUT_KINDS == ("fap", "audio", "markers")
-    assert {s: k for s, k in SUFFIXES.items()} == {
+    assert dict(SUFFIXES.items()) == {
         ".fap": "fap", ".wav": "audio", ".flac": "audio", ".ogg": "audio",
         ".c3d": "markers", ".trc": "markers", ".csv": "markers",
     }
@@ -28,7 +29,7 @@ def test_every_driver_module_and_class_exists(kind):
         assert isinstance(load_driver_class(kind), type)
 
 
-@pytest.mark.parametrize("name,kind", [("a.FAP", "fap"), ("x/y.wav", "audio"), ("t.C3D", "markers"),
+@pytest.mark.parametrize(("name", "kind"), [("a.FAP", "fap"), ("x/y.wav", "audio"), ("t.C3D", "markers"),
                                        ("t.trc", "markers"), ("t.csv", "markers")])
 def test_input_kind_by_suffix(name, kind):
     assert input_kind(name) == kind

@@ -11,6 +11,10 @@ from functools import cache
 from http import HTTPStatus
 
 import pytest
+from fastapi import WebSocket
+from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
+
 from facecast.protocol.errors import (
     INTERNAL_MESSAGE,
     CloseCode,
@@ -25,9 +29,6 @@ from facecast.server.api import redact
 from facecast.server.api.app import create_app
 from facecast.server.api.config import ServerConfig
 from facecast.server.api.errors import error_text, reply
-from fastapi import WebSocket
-from fastapi.testclient import TestClient
-from starlette.websockets import WebSocketDisconnect
 
 #: Exceptions that are control flow, never an error a user sees: a job worker's stop signal (a
 #: ``BaseException``, like ``KeyboardInterrupt``) and a viewer's socket found closed mid-send.

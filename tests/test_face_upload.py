@@ -15,10 +15,11 @@ import httpx
 import numpy as np
 import pytest
 from conftest import RunningServer
-from facecast.server.faces import load_face
-from facecast.server.faces.upload import MAX_VERTICES, sniff_format
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+
+from facecast.server.faces import load_face
+from facecast.server.faces.upload import MAX_VERTICES, sniff_format
 
 
 @pytest.fixture(scope="module")
@@ -127,10 +128,11 @@ def test_a_users_annotation_wins_complete_or_partial(srv, head2k):
     assert bad.status_code == 400 and "feature_points.2.1" in bad.json()["error"]
 
 
-@pytest.mark.parametrize("rel, fmt", [("demosthenes/demosthenes-low-res.obj.xz", "ply"),
+@pytest.mark.parametrize(("rel", "fmt"), [("demosthenes/demosthenes-low-res.obj.xz", "ply"),
                                       ("mediapipe-face/canonical_face_model.obj", "glb")])
 def test_real_heads_upload_in_other_formats(srv, data_dir, rel, fmt):
     import trimesh
+
     from facecast.server.faces.obj import read_obj
 
     raw = heads_file(data_dir, rel)

@@ -64,7 +64,7 @@ def test_annotation_with_axes_turns_mesh_into_mpeg4_axes(tmp_path):
     np.testing.assert_allclose(face.vertices[1], [1, 0, 0], atol=1e-6)  # x = up × forward: +x stays left
 
 
-@pytest.mark.parametrize("annotation, message", [
+@pytest.mark.parametrize(("annotation", "message"), [
     ({"feature_points": {"2.99": 0}}, "unknown MPEG-4 feature point(s) 2.99"),
     ({"feature_points": {"2.1": 17}}, "'feature_points.2.1': vertex id 17 is outside 0..3"),
     ({"units": "furlong"}, "'units'"),

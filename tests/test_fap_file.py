@@ -2,7 +2,8 @@
 from __future__ import annotations
 
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from facecast.protocol.fap_file import FapFile, FapFormatError, FapFrame, read_fap, write_fap
 
@@ -82,7 +83,7 @@ BAD = [
 ]
 
 
-@pytest.mark.parametrize("text,line,words", BAD)
+@pytest.mark.parametrize(("text", "line", "words"), BAD)
 def test_malformed_input_names_the_line(text, line, words):
     with pytest.raises(FapFormatError) as e:
         read_fap(text, where="bad.fap")

@@ -13,6 +13,10 @@ import struct
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from test_c3d import _ezc3d_write
+
 from facecast.protocol.fap_file import FapFormatError, read_fap
 from facecast.protocol.markers_file import (
     MarkerFileError,
@@ -25,9 +29,6 @@ from facecast.protocol.markers_file import (
 from facecast.server.errors import InputError
 from facecast.server.faces.ict import ANNOTATION
 from facecast.server.faces.loaders import face_from_annotation, parse_annotation
-from test_c3d import _ezc3d_write
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 
 FUZZ = settings(max_examples=150, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])

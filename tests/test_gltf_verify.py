@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pygltflib
 import pytest
+
 from facecast.server.cli import main
 from facecast.server.drivers.fap import load as load_fap
 from facecast.server.output import gltf

@@ -8,8 +8,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-
 from conftest import RunningServer
+
 from facecast.client.jobs import RemoteJobError, render_remote
 
 FACE = "default:2k"

@@ -16,6 +16,7 @@ import httpx
 import numpy as np
 import pytest
 from conftest import live_server, run
+
 from facecast.client.api import LiveError, SessionAdmin, produce, stream_fap, summary, watch
 from facecast.protocol import frames
 from facecast.protocol.errors import CloseCode
@@ -459,6 +460,7 @@ def test_producer_rate_limit(live):
 
 def test_audio_session_streams_pcm(live, data_dir):
     import soundfile as sf
+
     from facecast.client.api import stream_pcm
 
     samples, rate = sf.read(str(data_dir / "speech/mary.wav"), dtype="int16")
@@ -489,7 +491,7 @@ def test_audio_session_streams_pcm(live, data_dir):
         await _close(live, s.id)
         return chunks, errors, got
 
-    chunks, errors, got = run(main())
+    _chunks, errors, got = run(main())
     assert len(errors) == 1 and "sample rate" in errors[0].message and errors[0].seq == 999
     assert got, "no vertex frames from audio"
     ts = [f.frame.header.t for f in got]
@@ -640,8 +642,9 @@ def test_marker_hello_without_layout_is_refused(live):
 def test_mocap_is_read_as_markers_in_rest_and_in_the_producer_hello(live):
     """One input registry: ``markers`` is the kind's name; ``mocap`` (the batch jobs' old name)
     is accepted wherever a client sends a kind, raw JSON included."""
-    from facecast.client.api import ws_url
     from websockets.asyncio.client import connect
+
+    from facecast.client.api import ws_url
 
     r = httpx.post(live.url + "/v1/sessions", json={"input": "mocap", "face": FACE},
                    headers=live.admin_headers)
@@ -663,8 +666,9 @@ def test_mocap_is_read_as_markers_in_rest_and_in_the_producer_hello(live):
     assert msg["type"] == "error" and msg["where"] == "hello.layout", msg
 
 def test_websocket_frames_built_once_match_the_websockets_library():
-    from facecast.server.live.wire import ws_binary_frame
     from websockets.frames import Frame, Opcode
+
+    from facecast.server.live.wire import ws_binary_frame
 
     for n in (0, 125, 126, 65535, 65536, 200_000):
         payload = bytes(range(256)) * (n // 256) + bytes(n % 256)

@@ -12,6 +12,7 @@ import sys
 import numpy as np
 import pytest
 from conftest import live_server, run
+
 from facecast.client.api import SessionAdmin, produce, stream_fap, watch
 from facecast.protocol import frames
 from facecast.protocol.fap_file import read_fap
@@ -141,9 +142,10 @@ def test_cli_watch_saves_the_decoded_frames(live, joy, tmp_path):
 
 
 def test_a_slow_viewer_gets_the_key_frame_before_the_deltas_that_replaced_it():
+    from test_protocol_compact import synthetic_stream
+
     from facecast.protocol.compact import CompactDecoder, CompactEncoder
     from facecast.server.live.session import Viewer
-    from test_protocol_compact import synthetic_stream
 
     rest, groups, vs, trs = synthetic_stream(n_vertices=200, n_frames=8, seed=2)
     enc = CompactEncoder(rest, groups, tolerance=0.1, key_interval=4)

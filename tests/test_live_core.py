@@ -7,7 +7,6 @@ is the test's. What the shell would send and the close it would make are read of
 from __future__ import annotations
 
 import dataclasses
-
 import json
 import logging
 from types import SimpleNamespace

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+from websockets.frames import Frame, Opcode
+
 from facecast.protocol import frames as fr
 from facecast.server.live.batcher import encode_batch
-from websockets.frames import Frame, Opcode
 
 
 def test_encode_batch_frames_match_protocol_encoders(rng):

@@ -17,6 +17,10 @@ import httpx
 import numpy as np
 import pytest
 from conftest import live_server, run
+from pydantic import ValidationError
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+
 from facecast.client.api import LiveError, SessionAdmin, produce, watch, ws_url
 from facecast.protocol import frames
 from facecast.protocol.errors import CloseCode
@@ -29,9 +33,6 @@ from facecast.server.live.budget import (
     Verdict,
     producer_limits,
 )
-from pydantic import ValidationError
-from websockets.asyncio.client import connect
-from websockets.exceptions import ConnectionClosed
 
 FACE = "default:2k"
 MAX_FPS = 100

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from websockets.frames import Frame, Opcode
+
 from facecast.protocol import frames as fr
 from facecast.protocol.quantize import dequantize_int16, quantize_int16
 from facecast.server.backends.opencl import ALIGN, DeviceQuantizer, aligned_empty
 from facecast.server.live.batcher import encode_batch
-from websockets.frames import Frame, Opcode
 
 cl_backend = pytest.importorskip("facecast.server.backends.opencl")
 
@@ -30,7 +31,7 @@ def _frames(rng, n: int, v: int) -> np.ndarray:
     return (rng.normal(size=(n, v, 3)) * scale + centre).astype(np.float32)
 
 
-@pytest.mark.parametrize("n,v", [(1, 1), (3, 7), (2, 16), (4, 17), (2, 255), (5, 1000), (2, 4099)])
+@pytest.mark.parametrize(("n", "v"), [(1, 1), (3, 7), (2, 16), (4, 17), (2, 255), (5, 1000), (2, 4099)])
 def test_device_quantisation_equals_numpy_bit_for_bit(quantizer, rng, n, v):
     verts = _frames(rng, n, v)
     q, offset, scale = quantizer.quantize(verts)
@@ -134,12 +135,11 @@ def test_batcher_quantises_on_the_device_and_falls_back_to_numpy(quantizer, rng,
     import asyncio
     from concurrent.futures import ThreadPoolExecutor
 
+    import facecast.server.live.batcher as batcher_mod
     from facecast.server.faces import load_face
     from facecast.server.live.batcher import DeformBatcher
     from facecast.server.pipeline import Animator
     from facecast.server.state import FaceState, zero_faps
-
-    import facecast.server.live.batcher as batcher_mod
 
     monkeypatch.setattr(batcher_mod, "DEVICE_MIN_FRAMES", 1)  # every batch on the device
     animator = Animator(load_face("default:2k"), backend="opencl")

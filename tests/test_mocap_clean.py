@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+
 from facecast.server.mocap.clean import (
     CleanParams,
     KalmanCV,
@@ -171,7 +172,7 @@ def _low_rank_take(rng, n=900, m=40, k=5, noise=0.5):
 
 
 def test_motion_rank_counts_the_motions_above_the_noise(rng):
-    truth, noisy = _low_rank_take(rng, k=5)
+    _truth, noisy = _low_rank_take(rng, k=5)
     assert motion_rank(noisy) == 5
     assert motion_rank(noisy, noise_var=0.25) == 5  # the noise level given instead of estimated
     assert motion_rank(rng.normal(0.0, 0.5, noisy.shape)) <= 1  # noise alone: nothing stands out

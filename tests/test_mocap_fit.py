@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+
 from facecast.server.cli import main
 from facecast.server.mocap.io import write_take
 from facecast.server.mocap.synthetic import synthetic_take
@@ -71,7 +72,7 @@ def test_the_rigid_fit_of_a_matching_layout_is_about_the_noise(take_on_2k):
     from facecast.server.mocap.driver import process
     from facecast.server.mocap.rig import FIT_SPACING_FRACTION
 
-    face, syn, folder = take_on_2k
+    face, syn, _folder = take_on_2k
     rig = process(syn.take, face, syn.layout).rig
     assert rig.fit["markers"] == 24 and rig.fit["median_mm"] < 0.5
     assert rig.fit["limit_mm"] > 5 * rig.fit["median_mm"] and FIT_SPACING_FRACTION == 0.25

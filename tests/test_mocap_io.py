@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from facecast.protocol.markers_file import (
     MarkerFileError,
     MarkerTake,

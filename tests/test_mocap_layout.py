@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+
 from facecast.server.errors import InputError
 from facecast.server.faces.face import Face
 from facecast.server.mocap.driver import process
@@ -35,7 +36,7 @@ def test_a_good_layout_parses_and_finds_the_jaw_marker(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "change, message",
+    ("change", "message"),
     [
         ({"stable": ["A", "B"]}, "at least 3 stable"),
         ({"stable": ["A", "B", "Z"]}, "Z are not in 'markers'"),
@@ -152,10 +153,11 @@ def test_driver_ignores_markers_the_layout_does_not_name(caplog):
 
 
 def test_anchors_pin_the_far_skin_and_the_neck_but_leave_the_markers_room(data_dir):
+    from scipy.spatial import cKDTree
+
     from facecast.server.faces import load_face
     from facecast.server.mocap.generate import technician_markers
     from facecast.server.mocap.rig import anchor_vertices
-    from scipy.spatial import cKDTree
 
     face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
     _, markers, _ = technician_markers(face, 55, [])

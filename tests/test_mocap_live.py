@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from facecast.server.errors import InputError
 from facecast.server.mocap.live import MarkerLiveDriver
 from facecast.server.mocap.synthetic import ellipsoid_face, synthetic_take
@@ -119,7 +120,7 @@ def test_an_unknown_hello_unit_is_refused_at_the_hello(setup):
         MarkerLiveDriver(face, syn.take.names, syn.layout, units="furlong")
 
 
-@pytest.mark.parametrize("units,name", [("mm", "mm"), (" MM ", "mm"), ("Millimeters", "mm"),
+@pytest.mark.parametrize(("units", "name"), [("mm", "mm"), (" MM ", "mm"), ("Millimeters", "mm"),
                                         ("dm", "dm"), ("inches", "in")])
 def test_hello_units_are_read_by_the_one_unit_table(setup, units, name):
     face, syn = setup

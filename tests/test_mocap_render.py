@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+
 from facecast.protocol.fap_file import read_fap
 from facecast.server.cli import main
 from facecast.server.mocap.io import write_take

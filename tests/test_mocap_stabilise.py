@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from facecast.server.mocap.retarget import RBFMap
 from facecast.server.mocap.stabilise import (
     euler_from_matrix,

@@ -7,8 +7,9 @@ import json
 
 import numpy as np
 import pytest
-from facecast.server.mocap.stabilise import check_stable, matrix_from_euler
 from scipy.spatial.transform import Rotation
+
+from facecast.server.mocap.stabilise import check_stable, matrix_from_euler
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -105,7 +106,7 @@ def test_a_take_without_a_neutral_hold_stabilises(tmp_path, ict):
     err = _angle_deg(head[:, :, :3], truth.r)
     assert np.degrees(Rotation.from_matrix(truth.r).magnitude()).max() > 3.0  # the head does move
     assert err[0] < 0.15 and err.mean() < 0.2  # was 0.77 deg on every frame before re-anchoring
-    r, t = truth.head(face)
+    _r, t = truth.head(face)
     np.testing.assert_allclose(head[:, :, 3], t, atol=0.15)  # cm (ICT units): 1.5 mm
     assert 0 < proc.info["pose_frame_sd_deg"] < 1.0
     # the neutral is not averaged over the expression that starts at frame 0 (that left a constant

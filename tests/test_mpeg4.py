@@ -6,8 +6,20 @@ import pytest
 
 from facecast.server.errors import InputError
 from facecast.server.faces.face import RIGID_GROUPS, Face
-from facecast.server.mpeg4 import (EXPRESSIONS, FAP_GROUPS, FAPS, FEATURE_POINTS, FP_FAPS, VISEMES, FapRig,
-                                   expression_faps, fap, fap_controls, measure_fapu, viseme_faps)
+from facecast.server.mpeg4 import (
+    EXPRESSIONS,
+    FAP_GROUPS,
+    FAPS,
+    FEATURE_POINTS,
+    FP_FAPS,
+    VISEMES,
+    FapRig,
+    expression_faps,
+    fap,
+    fap_controls,
+    measure_fapu,
+    viseme_faps,
+)
 from facecast.server.state import FaceState
 
 # Feature point template of the synthetic face: (x, y) in mm on the front of a sphere (x = face's left).

@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def readme_commands() -> list[str]:
-    return re.findall(r"^    (bash \.ci/setup && .+)$", (ROOT / "README.md").read_text(), re.M)
+    return re.findall(r"^    (bash \.ci/setup && .+)$", (ROOT / "README.md").read_text(), re.MULTILINE)
 
 
 def test_readme_gives_a_serve_a_test_and_a_gates_command_through_the_setups_venv():

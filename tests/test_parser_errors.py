@@ -9,6 +9,7 @@ import json
 import numpy as np
 import pytest
 import trimesh
+
 from facecast.protocol.errors import FileFormatError, ProtocolError
 from facecast.protocol.fap_file import FapFile, FapFormatError, FapFrame, read_fap, write_fap
 from facecast.protocol.markers_file import MarkerFileError, read_csv, read_trc
@@ -42,7 +43,7 @@ HEADER = "2.1 test 25 1\n"
 MASK = " ".join(["0"] * 2 + ["1"] + ["0"] * 65) + "\n"
 
 
-@pytest.mark.parametrize("text, words", [
+@pytest.mark.parametrize(("text", "words"), [
     (HEADER + MASK + "0 " + "9" * 4301 + "\n", "value '99999"),  # over Python's int-string limit
     (HEADER + MASK + "9" * 4301 + " 5\n", "frame number '9999"),
     ("2.1 test 25 " + "9" * 4301 + "\n", "number of frames '9999"),
@@ -75,7 +76,7 @@ VERTS = np.zeros((4, 3), np.float32)
 TRIS = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
 
 
-@pytest.mark.parametrize("annotation, field", [
+@pytest.mark.parametrize(("annotation", "field"), [
     ({"units": {}}, "'units'"),
     ({"units": ["mm"]}, "'units'"),
     ({"pivots": 1}, "'pivots' must be a JSON object like {\"jaw\": [0, -1.5, 2.0]}, not a number"),
@@ -104,7 +105,7 @@ def test_wrong_types_and_ids_in_an_annotation_name_the_field(annotation, field):
     assert field in str(e.value) and len(str(e.value)) < 400
 
 
-@pytest.mark.parametrize("raw, words", [
+@pytest.mark.parametrize(("raw", "words"), [
     (b"\xff", "not UTF-8"),
     (b"{", "not valid JSON"),
     (b"[1, 2]", "must be a JSON object"),
@@ -137,7 +138,7 @@ def test_overlapping_part_ranges_cost_one_mask_not_a_copy_per_range():
 # -------------------------------------------------------------------------------------- TRC / CSV
 
 
-@pytest.mark.parametrize("text, words", [
+@pytest.mark.parametrize(("text", "words"), [
     ("time,A_x,A_y,A_z\nnan,1,2,3\nnan,1,2,3\n", ":2: time 'nan' must be finite"),
     ("time,A_x,A_y,A_z\n0,1,2,3\n1e-320,1,2,3\n", "frame rate of inf"),
     ("time,_x,_y,_z\n0,1,2,3\n1,1,2,3\n", "must be <name>_x"),

@@ -7,6 +7,7 @@ import zlib
 
 import numpy as np
 import pytest
+
 from facecast.server.errors import InputError
 from facecast.server.faces import load_face
 from facecast.server.faces.procedural import (
@@ -379,7 +380,7 @@ def test_eyeballs_are_separate_spheres_seen_through_the_lids(head25k):
         assert not (mask[e[:, 0]] ^ mask[e[:, 1]]).any(), "eyeball connected to the skin"
         c = f.pivot(eye)
         r = np.linalg.norm(f.vertices[f.part(eye)] - c, axis=1)
-        assert 11 < r.min() and r.max() < 14
+        assert r.min() > 11 and r.max() < 14
         # the pupil looks straight ahead (+z) and the lids are tangent to the iris
         d = f.fp_position(pupil) - c
         assert d[2] > 0.99 * np.linalg.norm(d)

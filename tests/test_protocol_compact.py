@@ -9,11 +9,12 @@ import zlib
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from facecast.protocol import compact as cp
 from facecast.protocol import frames as fr
 from facecast.protocol.errors import FrameError
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 
 def _rot(ax: float, ay: float, az: float) -> np.ndarray:
@@ -120,7 +121,7 @@ def test_skipped_frames_and_late_joins_never_give_a_wrong_face(stream, rng):
     rest, groups, frames, transforms = stream
     enc = cp.CompactEncoder(rest, groups, tolerance=0.1, key_interval=5)
     wire = [enc.encode(v, tr, seq=i, t=i) for i, (v, tr) in enumerate(zip(frames, transforms))]
-    for trial in range(12):
+    for _trial in range(12):
         start = int(rng.integers(0, len(wire)))  # joins late
         keep = rng.random(len(wire)) < rng.uniform(0.2, 0.9)  # and skips frames
         dec = cp.CompactDecoder(rest, groups)
@@ -246,7 +247,7 @@ def _with(b: bytes, offset: int, value: bytes) -> bytes:
 
 
 @pytest.mark.parametrize(
-    "offset,value,match",
+    ("offset", "value", "match"),
     [
         (6, b"\x02\x00", "flag"),
         (12, struct.pack("<I", 299), "vertices"),

@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+
 from facecast.protocol import frames as fr
 from facecast.protocol.encoding import (
     SAMPLE_FORMATS,

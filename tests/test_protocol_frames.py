@@ -8,12 +8,13 @@ import sys
 
 import numpy as np
 import pytest
-from facecast.protocol import frames as fr
-from facecast.protocol.errors import FrameError, ProtocolError
-from facecast.protocol.quantize import quantize_int16
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+
+from facecast.protocol import frames as fr
+from facecast.protocol.errors import FrameError, ProtocolError
+from facecast.protocol.quantize import quantize_int16
 
 finite32 = st.floats(-1e6, 1e6, width=32)
 
@@ -194,7 +195,7 @@ def test_every_truncation_and_extension_is_rejected(i):
 
 
 @pytest.mark.parametrize(
-    "offset,value,match",
+    ("offset", "value", "match"),
     [
         (0, b"XCST", "magic"),
         (4, b"\x02", "version"),

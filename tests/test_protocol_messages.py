@@ -5,6 +5,9 @@ from __future__ import annotations
 import json
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from facecast.protocol.errors import MessageError, ProtocolError
 from facecast.protocol.messages import (
     ErrorMessage,
@@ -18,8 +21,6 @@ from facecast.protocol.messages import (
     dump_message,
     parse_message,
 )
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 EXAMPLES = [
     ProducerHello(input="audio", rate=16000, sample_format="i16"),
@@ -73,7 +74,7 @@ def test_hello_is_told_apart_by_role():
 
 
 @pytest.mark.parametrize(
-    "text,where,match",
+    ("text", "where", "match"),
     [
         ('{"type": "fap", "t": 0, "faps": {"2": 1}}', "fap.faps", "low-level FAP"),
         ('{"type": "fap", "t": 0, "faps": {"70": 1}}', "fap.faps", "low-level FAP"),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from facecast.protocol.markers_file import MarkerFileError, MarkerTake, normalise_units
 from facecast.protocol.units import UNIT_MM, UNIT_SPELLINGS, unit_name
 
@@ -13,7 +14,7 @@ def test_the_table():
     assert set(UNIT_SPELLINGS.values()) == set(UNIT_MM)
 
 
-@pytest.mark.parametrize("text,name", [
+@pytest.mark.parametrize(("text", "name"), [
     ("mm", "mm"), ("Millimeters", "mm"), ("millimetre.", "mm"), (" CM ", "cm"),
     ("centimetres", "cm"), ("decimeter", "dm"), ("m", "m"), ("Metres", "m"), ("meter", "m"),
     ("in", "in"), ("Inches", "in"), ("inch", "in"),

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pygltflib
 import pytest
+from test_mpeg4 import synthetic_face
 
 from facecast.protocol.fap_file import read_fap
 from facecast.server.drivers.fap import load as load_fap
@@ -18,7 +19,6 @@ from facecast.server.output.gltf import encode_glb
 from facecast.server.output.npz import read_npz
 from facecast.server.pipeline import Animator
 from facecast.server.render import render_file
-from test_mpeg4 import synthetic_face
 
 XFACE = ["anger.fap", "beg.fap", "disgust.fap", "happy-for.fap", "joy.fap"]
 MOUTH_FPS = ("2.2", "2.3", "8.1", "8.2", "8.3", "8.4")
@@ -227,7 +227,7 @@ def test_glb_basis_is_exact_for_a_short_clip_and_bounded_for_a_long_one(small_fa
     basis = rng.normal(0, 1.0, (3, V, 3)).astype(np.float32)
     w = np.sin(np.arange(120)[:, None] * np.array([0.05, 0.11, 0.23]))
     frames = small_face.vertices + np.einsum("tm,mvc->tvc", w, basis).astype(np.float32)
-    data, rec = encode_glb(frames, small_face.vertices, small_face.triangles, 30, tolerance_mm=0.01)
+    _data, rec = encode_glb(frames, small_face.vertices, small_face.triangles, 30, tolerance_mm=0.01)
     assert rec["targets"] == 3 and rec["frames"] == 120 and rec["max_error_mm"] <= 0.01
 
 

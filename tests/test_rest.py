@@ -7,14 +7,18 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from conftest import RunningServer
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from prometheus_client.parser import text_string_to_metric_families
 
-from facecast.protocol.topology import (NO_PART, Topology, TopologyError, decode_topology,
-                                        encode_topology)
-
-from conftest import RunningServer
+from facecast.protocol.topology import (
+    NO_PART,
+    Topology,
+    TopologyError,
+    decode_topology,
+    encode_topology,
+)
 from facecast.server.api.store import parse_faces_env
 from facecast.server.errors import InputError
 from facecast.server.paths import shared_data
@@ -233,7 +237,7 @@ def test_oversized_upload_is_413_json_and_the_server_keeps_serving(srv):
     assert get(srv, "/healthz").status_code == 200
     ok = httpx.post(srv.url + "/v1/jobs", files={"file": ("ok.fap", small_fap())}, headers=srv.admin_headers)
     assert ok.status_code == 202, ok.text
-    leftovers = [p for p in (srv.data_dir / "jobs").rglob("*") if p.is_file() and "big" in p.name or p.name == ".upload"]
+    leftovers = [p for p in (srv.data_dir / "jobs").rglob("*") if (p.is_file() and "big" in p.name) or p.name == ".upload"]
     assert leftovers == []
 
 

@@ -8,6 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
+
 from facecast.protocol import frames as fr
 from facecast.server.errors import InputError
 from facecast.server.faces import load_face

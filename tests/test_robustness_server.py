@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import soundfile as sf
 from conftest import RunningServer
+
 from facecast.client.api import watch
 
 #: Seconds a request may take before the server counts as hung (generous: the machine may be loaded).

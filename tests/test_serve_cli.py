@@ -8,8 +8,8 @@ import time
 
 import httpx
 import pytest
-
 from conftest import RunningServer
+
 from facecast.server.cli import build_parser
 from facecast.server.commands.serve import is_loopback, make_config
 from facecast.server.errors import InputError
@@ -71,7 +71,7 @@ def test_non_loopback_address_needs_allow_remote(tmp_path):
     assert make_config(parse("--host", "0.0.0.0", "--allow-remote")).allow_remote
 
 
-@pytest.mark.parametrize("host,loop", [("127.0.0.1", True), ("127.1.2.3", True), ("::1", True),
+@pytest.mark.parametrize(("host", "loop"), [("127.0.0.1", True), ("127.1.2.3", True), ("::1", True),
                                        ("localhost", True), ("0.0.0.0", False), ("192.0.2.7", False),
                                        ("::", False)])
 def test_is_loopback(host, loop):
@@ -169,7 +169,7 @@ def test_a_broken_default_face_is_reported_not_fatal(tmp_path):
         srv.stop()
 
 
-@pytest.mark.parametrize("name,value,says", [
+@pytest.mark.parametrize(("name", "value", "says"), [
     ("FACECAST_MAX_AUDIO_SECONDS", "lots", "valid number"),
     ("FACECAST_MAX_AUDIO_SECONDS", "inf", "finite number"),
     ("FACECAST_MAX_SESSIONS", "many", "valid integer"),
@@ -207,7 +207,7 @@ def test_every_setting_is_in_the_readme_table_with_its_default():
     from facecast.server.api.config import ServerConfig
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    rows = {m[0]: m[1] for m in re.findall(r"^\| `(FACECAST_[A-Z_]+)` \| ([^|]*) \|", readme, re.M)}
+    rows = {m[0]: m[1] for m in re.findall(r"^\| `(FACECAST_[A-Z_]+)` \| ([^|]*) \|", readme, re.MULTILINE)}
     for field, info in ServerConfig.model_fields.items():
         name = f"FACECAST_{field.upper()}"
         assert name in rows, f"{name} is missing from README.md's configuration table"

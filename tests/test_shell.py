@@ -3,11 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_deform_fp import slit_mesh
+from test_deform_rbf import bumpy, slit_grid
+
 from facecast.server.deform.build import get_operator
 from facecast.server.deform.shell import cotangent_laplacian, shell_matrix, shell_operator
 from facecast.server.errors import InputError
-from test_deform_fp import slit_mesh
-from test_deform_rbf import bumpy, slit_grid
 
 
 @pytest.fixture(scope="module")

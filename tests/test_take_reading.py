@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from facecast.client.commands import stream as stream_cmd
 from facecast.protocol.markers_file import (
     TAKE_SUFFIXES,

@@ -11,6 +11,7 @@ import httpx
 import numpy as np
 import pytest
 import websockets
+
 from facecast.server.faces import load_face
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"

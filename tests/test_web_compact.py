@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from facecast.protocol.compact import CompactDecoder, CompactEncoder
 from test_protocol_compact import synthetic_stream
+
+from facecast.protocol.compact import CompactDecoder, CompactEncoder
 
 JS = Path(__file__).resolve().parents[1] / "client" / "web" / "js" / "compact.js"
 

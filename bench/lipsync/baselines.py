@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.fft
+
 from facecast.server.audio.generate import NUCLEUS_DB, NUCLEUS_MAX_ZCR, speak, utterances
 from facecast.server.audio.io import read_audio, resample
 from facecast.server.audio.lpc import frame, preemphasis

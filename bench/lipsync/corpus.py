@@ -13,9 +13,10 @@ from pathlib import Path
 
 import numpy as np
 from classes import frames_from_intervals
+from textgrid import read_tiers
+
 from facecast.server.audio.generate import HELD_OUT_VARIANTS, TRAIN_VARIANTS
 from facecast.server.audio.io import read_audio, resample
-from textgrid import read_tiers
 
 log = logging.getLogger(__name__)
 

@@ -26,13 +26,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-import frames  # noqa: E402  (sets one thread)
-from baselines import MfccTemplates, energy_visemes  # noqa: E402
-from classes import CLASSES, VISEME_CLASS  # noqa: E402
-from facecast.server.audio.io import read_audio  # noqa: E402
-from facecast.server.audio.live import AudioLiveDriver  # noqa: E402
-from facecast.server.audio.pipeline import lipsync  # noqa: E402
-from run import fit_len, scores  # noqa: E402
+import frames
+from baselines import MfccTemplates, energy_visemes
+from classes import CLASSES, VISEME_CLASS
+from run import fit_len, scores
+
+from facecast.server.audio.io import read_audio
+from facecast.server.audio.live import AudioLiveDriver
+from facecast.server.audio.pipeline import lipsync
 
 log = logging.getLogger("bench.lipsync.folds")
 #: Held-out speaker groups (every speaker is held out exactly once).
@@ -89,11 +90,12 @@ def main(argv: list[str] | None = None) -> int:
     mfcc = None if args.quick else MfccTemplates()
     truths: dict[str, list] = {s: [] for s in speakers}
     preds: dict[str, dict[str, list]] = {m: {s: [] for s in speakers} for m in SYSTEMS}
-    audio_s, cpu = 0.0, {m: 0.0 for m in SYSTEMS}
+    audio_s, cpu = 0.0, dict.fromkeys(SYSTEMS, 0.0)
     mismatch: dict[str, list] = {"own text": [], "other text": [], "refused own": [],
                                  "refused other": []}
     texts = [it.utt.text for it in real if it.utt.text]
     import scipy.ndimage
+
     from facecast.server.audio.visemes import Params
 
     params = Params(median=args.median)

@@ -26,14 +26,17 @@ import scipy.signal
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from corpus import Utterance, generated_utterances, recordings_utterances  # noqa: E402
-from facecast.server.audio.classify import stack_context  # noqa: E402
-from facecast.server.audio.generate import augment  # noqa: E402
-from facecast.server.audio.io import read_audio, resample  # noqa: E402
-from facecast.server.audio.pipeline import features_of  # noqa: E402
-from facecast.server.audio.visemes import calibrate  # noqa: E402
-from facecast.server.audio.classify import frame_features  # noqa: E402
-from facecast.server.audio.train import fit_frames  # noqa: E402
+from corpus import Utterance, generated_utterances, recordings_utterances
+
+from facecast.server.audio.classify import (
+    frame_features,
+    stack_context,
+)
+from facecast.server.audio.generate import augment
+from facecast.server.audio.io import read_audio, resample
+from facecast.server.audio.pipeline import features_of
+from facecast.server.audio.train import fit_frames
+from facecast.server.audio.visemes import calibrate
 
 ROOT = Path(__file__).resolve().parents[2]
 OUT = ROOT / "bench" / "out"
@@ -203,8 +206,9 @@ def with_prior(net, prior: np.ndarray, exponent: float):
 
 
 def ship(argv: list[str]) -> int:
-    from facecast.server.audio.classify import FRAME_WEIGHTS
     from folds import FOLDS, cached_items
+
+    from facecast.server.audio.classify import FRAME_WEIGHTS
 
     real, dev = cached_items(refresh="--refresh" in argv)
     pairs = []  # every speaker scored by a network that never heard it: the prior's exponent

@@ -29,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from baselines import MfccTemplates, energy_visemes
 from classes import CLASSES, OPEN, OPENING, VISEME_CLASS
 from corpus import generated_utterances
+
 from facecast.server.audio.io import read_audio
 from facecast.server.audio.live import AudioLiveDriver
 from facecast.server.audio.pipeline import lipsync
@@ -122,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     preds: dict[str, dict[str, list]] = {s: {k: [] for k in kinds} for s in systems}
     truths: dict[str, list] = {k: [] for k in kinds}
     lags: dict[str, dict[str, list]] = {s: {k: [] for k in kinds} for s in systems}
-    cpu = {s: 0.0 for s in systems}
+    cpu = dict.fromkeys(systems, 0.0)
     audio_s = 0.0
     for u in utts:
         x, sr = read_audio(u.audio)

@@ -26,8 +26,8 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException
 
 from ..errors import FacecastError
-from . import routes_faces, routes_health, routes_jobs, routes_playback, routes_sessions, routes_web
 from ..jobs.upload import clear_upload_dir, upload_dir
+from . import routes_faces, routes_health, routes_jobs, routes_playback, routes_sessions, routes_web
 from .config import ServerConfig
 from .errors import error_body, error_response, reply
 from .metrics import Metrics

@@ -12,9 +12,8 @@ from typing import Any
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from ..settings import LocalSettings, load
-
 from ..live.settings import LiveSettings
+from ..settings import LocalSettings, load
 
 
 def _default_data_dir() -> Path:

@@ -188,7 +188,7 @@ async def upload_face(request: Request) -> Any:
                 parser.abort()
                 await drain(request, received)
                 raise
-            except Exception as e:  # noqa: BLE001  malformed multipart framing
+            except Exception as e:
                 parser.abort()
                 raise InputError(f"could not read the multipart upload ({str(e)[:200]}); send a 'file' part",
                                  where="body") from None

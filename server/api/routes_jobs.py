@@ -21,8 +21,17 @@ from ...protocol.rest import RESULT_MEDIA_TYPES, ErrorBody, JobList, JobOptions,
 from ..drivers import input_kind
 from ..errors import Conflict, FacecastError, InputError, NotFound
 from ..jobs.store import JOB_ID, JobRecord, new_job_id
-from ..jobs.upload import (LAYOUT_PART, PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix,
-                           multipart_doc, safe_display_name, upload_layout)
+from ..jobs.upload import (
+    LAYOUT_PART,
+    PayloadTooLarge,
+    UploadParser,
+    boundary_of,
+    drain,
+    input_suffix,
+    multipart_doc,
+    safe_display_name,
+    upload_layout,
+)
 from .security import require_admin
 
 log = logging.getLogger(__name__)

@@ -30,8 +30,18 @@ from ...protocol.rest import ErrorBody
 from ..drivers import input_kind, load_animation
 from ..drivers.demo import demo_states
 from ..errors import FacecastError, InputError, Unauthorized, Unavailable
-from ..jobs.upload import (LAYOUT_PART, PayloadTooLarge, UploadParser, boundary_of, drain, input_suffix,
-                           multipart_doc, safe_display_name, upload_dir, upload_layout)
+from ..jobs.upload import (
+    LAYOUT_PART,
+    PayloadTooLarge,
+    UploadParser,
+    boundary_of,
+    drain,
+    input_suffix,
+    multipart_doc,
+    safe_display_name,
+    upload_dir,
+    upload_layout,
+)
 from ..live.server_producer import Busy, ServerProducer  # noqa: F401  (Busy: re-exported)
 from .routes_sessions import registry
 from .security import bearer, same
@@ -48,7 +58,7 @@ LEAD_IN = 0.5
 def _authorise(request: Request, session, token: str | None) -> None:
     if same(bearer(request), request.app.state.admin_key) or same(token, session.spec.producer_token):
         return
-    raise _Unauthorised()
+    raise _Unauthorised
 
 
 class _Unauthorised(Unauthorized):
@@ -64,7 +74,7 @@ async def tokens(session_id: str, request: Request) -> dict:
     """The session's tokens (admin only)."""
     session = registry(request.app).get(session_id)
     if not same(bearer(request), request.app.state.admin_key):
-        raise _Unauthorised()
+        raise _Unauthorised
     return {"id": session_id, "producer_token": session.spec.producer_token,
             "viewer_token": session.spec.viewer_token}
 

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import logging
 
-from .numpy_backend import NumpyDeformer, quantize_int16, dequantize_int16, vertex_normals
+from .numpy_backend import NumpyDeformer, dequantize_int16, quantize_int16, vertex_normals
 
-__all__ = ["NumpyDeformer", "make_deformer", "quantize_int16", "dequantize_int16", "vertex_normals"]
+__all__ = ["NumpyDeformer", "dequantize_int16", "make_deformer", "quantize_int16", "vertex_normals"]
 
 
 _fallback_logged = False

@@ -116,7 +116,7 @@ def load_subject(n_vertices: int, engine: str = "fp") -> tuple[Face, Operator, s
             from ..deform.build import get_operator  # the deform engineer's operator cache
             from ..mpeg4 import fap_controls
 
-            fp_ids, vertex_ids, constrained = fap_controls(face)
+            _fp_ids, vertex_ids, constrained = fap_controls(face)
             return face, get_operator(face, vertex_ids, engine="fp", constrained=constrained), face_kind, "fp"
         except Exception as e:  # not landed yet, or the face lacks feature points
             log.info("feature-point operator unavailable (%s); using a synthetic one", e)

@@ -70,7 +70,7 @@ class Operator:
             np.savez(fh, n=np.array([self.n_vertices, self.n_controls]), meta=np.array(repr(self.meta)), **arrays)
 
     @classmethod
-    def load(cls, path: Path) -> "Operator":
+    def load(cls, path: Path) -> Operator:
         import ast
 
         with np.load(path) as z:

@@ -10,7 +10,7 @@ from pathlib import Path
 from ..errors import InputError
 from .face import JAW_PARTS, KNOWN_PARTS, RIGID_GROUPS, Face
 
-__all__ = ["Face", "load_face", "builtin_faces", "RIGID_GROUPS", "JAW_PARTS", "KNOWN_PARTS"]
+__all__ = ["JAW_PARTS", "KNOWN_PARTS", "RIGID_GROUPS", "Face", "builtin_faces", "load_face"]
 
 #: Built-in faces: name -> approximate vertex count.
 BUILTIN: dict[str, int] = {"default": 25_000}

@@ -4,6 +4,6 @@
 - ``manager.JobManager``: the server-side dispatcher (start, monitor, cancel worker processes);
 - ``worker.main``: the entry point of one worker process (runs ``render_file`` for one job).
 """
-from .store import JobStore, JobRecord
+from .store import JobRecord, JobStore
 
-__all__ = ["JobStore", "JobRecord"]
+__all__ = ["JobRecord", "JobStore"]

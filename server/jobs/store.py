@@ -62,7 +62,7 @@ class JobRecord:
     finished: float | None
 
     @classmethod
-    def from_row(cls, row: tuple) -> "JobRecord":
+    def from_row(cls, row: tuple) -> JobRecord:
         d = dict(zip(COLUMNS, row))
         d["options"] = json.loads(d["options"])
         return cls(**d)

@@ -218,7 +218,7 @@ class DeformBatcher:
         self.parallel = max(1, parallel if parallel is not None else settings.batch_threads)
         self.batches = 0
         self.frames = 0
-        self._quantizer: DeviceQuantizer | None | bool = False  # False: not looked up yet
+        self._quantizer: DeviceQuantizer | bool | None = False  # False: not looked up yet
         self._local = threading.local()  # per drain thread: its buffer of deformed frames
         if executor is not None:  # build the quantiser before the first frames need it
             executor.submit(lambda: self.quantizer)

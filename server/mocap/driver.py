@@ -26,7 +26,14 @@ from .clean import CleanParams, clean, lowrank_denoise, motion_rank
 from .io import read_take
 from .layout import Layout, load_layout
 from .rig import MarkerRig, match_names
-from .stabilise import check_stable, head_track, pose_uncertainty, refine_poses, remove_head, smooth_poses
+from .stabilise import (
+    check_stable,
+    head_track,
+    pose_uncertainty,
+    refine_poses,
+    remove_head,
+    smooth_poses,
+)
 
 log = logging.getLogger(__name__)
 

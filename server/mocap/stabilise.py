@@ -19,11 +19,11 @@ import numpy as np
 __all__ = [
     "check_stable",
     "euler_from_matrix",
-    "pose_uncertainty",
     "head_track",
     "kabsch",
     "matrix_from_euler",
     "pose_in_frame",
+    "pose_uncertainty",
     "refine_poses",
     "remove_head",
     "rigid_fields",

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import numpy as np
 
-
 N = 69  # FAP vector length: index k = FAP k
 
 
@@ -135,5 +134,13 @@ def _check(select: int, maximum: int, what: str) -> int:
     return s
 
 
-__all__ = ["VISEMES", "EXPRESSIONS", "VISEME_NAMES", "EXPRESSION_NAMES", "viseme_faps",
-           "expression_faps", "expand", "mouth"]
+__all__ = [
+    "EXPRESSIONS",
+    "EXPRESSION_NAMES",
+    "VISEMES",
+    "VISEME_NAMES",
+    "expand",
+    "expression_faps",
+    "mouth",
+    "viseme_faps",
+]

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import struct
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -347,7 +346,7 @@ def _verify(frames: FrameSource, r: np.ndarray, targets: np.ndarray, T: int, chu
     wtw = np.zeros((M, M))
     wtn = np.zeros((M, n_cols), dtype=np.float32) if normals is not None else None
     cands = _candidates(M)[::-1]  # M first, then fewer
-    errors = {m: (0.0, 0.0) for m in cands}
+    errors = dict.fromkeys(cands, (0.0, 0.0))
     s = 0
     for fc in frame_chunks(frames, chunk):
         _check(fc, V)
@@ -593,8 +592,7 @@ def write_glb(path: str | Path, frames: FrameSource, rest: np.ndarray, triangles
     whole file in memory); returns the ``extras.facecast`` record. OutputError: nothing is written."""
     parts, record = glb_parts(frames, rest, triangles, fps, where=str(path), **options)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        for p in parts:
-            f.write(p)
+        f.writelines(parts)
         size = f.tell()
     log.info("wrote %s: %d frames, %d morph targets (%s), max error %.4f mm (tolerance %g mm), %.1f MB", path,
              record["frames"], record["targets"], record["method"], record["max_error_mm"],

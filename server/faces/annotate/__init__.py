@@ -71,13 +71,13 @@ def cached_annotation(vertices: np.ndarray, triangles: np.ndarray, *, name: str 
 def merge(automatic: dict, user: dict) -> dict:
     """The user's annotation over the automatic one: every field and every feature point, part and
     pivot the user gives wins; an automatic point on a vertex the user gave another point is dropped."""
-    out = {k: v for k, v in automatic.items()}
+    out = dict(automatic.items())
     for key in ("units", "axes"):
         if key in user:
             out[key] = user[key]
     fps = user.get("feature_points")
     if isinstance(fps, dict):
-        taken = set(v for v in fps.values() if isinstance(v, int))
+        taken = {v for v in fps.values() if isinstance(v, int)}
         out["feature_points"] = {**{k: v for k, v in automatic.get("feature_points", {}).items()
                                     if v not in taken}, **fps}
     for key in ("parts", "pivots"):

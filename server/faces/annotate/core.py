@@ -336,7 +336,7 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
             # mouth slit stays with the head (upper teeth, upper gums), one below rides the jaw
             # (lower teeth, lower gums, tongue); a piece across it (gums and tongue in one) is cut
             # at the slit. The template's nearest part names teeth apart from gums and tongue.
-            mouth = np.nonzero((tpl.label >= 2 + PIECE_PARTS.index("teeth_upper")))[0]
+            mouth = np.nonzero(tpl.label >= 2 + PIECE_PARTS.index("teeth_upper"))[0]
             d_mouth, k = cKDTree(warped[mouth]).query(y[ids])
             name = np.array([PIECE_PARTS[s - 2] for s in tpl.label[mouth[k]]])
             teeth = np.char.startswith(name, "teeth")

@@ -150,7 +150,7 @@ def place(vertices: np.ndarray, normals: np.ndarray, template: Template, *,
     face_fine = face_all[_subsample(len(face_all), 800, rng)]
     face_coarse = face_all[_subsample(len(face_all), 250, rng)]
     t_top, t_width, _ = head_crop(tpl_all)
-    fit = dict(tree=tree, samples=samples)
+    fit = {"tree": tree, "samples": samples}
 
     def run(sim: Similarity, crop: np.ndarray, k: int, iterations: int, face_pts: np.ndarray):
         ids = np.nonzero(crop)[0]
