@@ -1,4 +1,5 @@
 """Maps the top-level folders protocol/, server/ and client/ into the one ``facecast`` namespace."""
+
 from setuptools import find_packages, setup
 
 ROOTS = {"protocol": "facecast.protocol", "server": "facecast.server", "client": "facecast.client"}

@@ -20,6 +20,7 @@ annotation of the ICT neutral against the shipped one, and the time to annotate 
 
 Writes ``bench/out/annotate.json`` and prints a markdown table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,10 +38,15 @@ from facecast.server.faces.obj import read_obj
 from facecast.server.faces.procedural import build_default_head
 from facecast.server.paths import shared_data
 
-TUNING_VARIANTS = {"wide-face": {"face_width": 128.0, "mouth_width": 56.0}, "long-nose": {"nose_length": 48.0}}
+TUNING_VARIANTS = {
+    "wide-face": {"face_width": 128.0, "mouth_width": 56.0},
+    "long-nose": {"nose_length": 48.0},
+}
 HELD_OUT_VARIANTS = {
-    "narrow-face": {"face_width": 142.0, "jaw_width": 96.0}, "small-mouth": {"mouth_width": 45.0, "lip_thickness": 10.0},
-    "wide-eyes": {"eye_spacing": 68.0, "brow_height": 25.0}, "long-chin": {"chin_length": 53.0, "face_height": 128.0},
+    "narrow-face": {"face_width": 142.0, "jaw_width": 96.0},
+    "small-mouth": {"mouth_width": 45.0, "lip_thickness": 10.0},
+    "wide-eyes": {"eye_spacing": 68.0, "brow_height": 25.0},
+    "long-chin": {"chin_length": 53.0, "face_height": 128.0},
 }
 RESOLUTIONS = ("2k", "5k", "10k", "25k", "50k", "100k")
 #: Looked at point by point while developing (with default:3k of the tests): never the held-out ones.
@@ -50,12 +56,45 @@ HELD_OUT_ICT = (1, 2, 3, 4)
 #: Feature points whose meaning differs between the built-in head and ICT's annotation (ICT's are
 #: picked by its own rules: the chin on the jaw contour, brows, hairline, ears, the nose-bone points
 #: on the bridge from its 68 landmarks (9.13/9.14), and 9.8/9.9 at the tips of its teeth's roots); reported apart.
-DEFINITIONAL = ("9.8", "9.9", "9.13", "9.14", "2.1", "2.10", "2.11", "2.12", "2.13", "2.14", "4.1", "4.2", "4.3", "4.4", "4.5", "4.6",
-                "5.1", "5.2", "5.3", "5.4", "7.1", "11.1", "11.2", "11.3", "11.4", "11.5", "11.6",
-                *(f"10.{i}" for i in range(1, 11)), "6.1", "6.2", "6.3", "6.4")
+DEFINITIONAL = (
+    "9.8",
+    "9.9",
+    "9.13",
+    "9.14",
+    "2.1",
+    "2.10",
+    "2.11",
+    "2.12",
+    "2.13",
+    "2.14",
+    "4.1",
+    "4.2",
+    "4.3",
+    "4.4",
+    "4.5",
+    "4.6",
+    "5.1",
+    "5.2",
+    "5.3",
+    "5.4",
+    "7.1",
+    "11.1",
+    "11.2",
+    "11.3",
+    "11.4",
+    "11.5",
+    "11.6",
+    *(f"10.{i}" for i in range(1, 11)),
+    "6.1",
+    "6.2",
+    "6.3",
+    "6.4",
+)
 
 
-def remesh(v: np.ndarray, tri: np.ndarray, cell: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def remesh(
+    v: np.ndarray, tri: np.ndarray, cell: float, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """Vertex clustering on a ``cell`` grid within each connected piece (new vertices are cluster
     means; separate pieces such as eyes and teeth stay separate), then a random vertex order."""
     from facecast.server.deform.mesh_graph import components, edge_graph
@@ -80,28 +119,49 @@ def remesh(v: np.ndarray, tri: np.ndarray, cell: float, seed: int = 0) -> tuple[
 
 def score(auto: dict, v: np.ndarray, truth: dict[str, np.ndarray], mm: float, skip=()) -> dict:
     """Per-point distances (mm) of the automatic points from the true ones."""
-    d = {k: float(np.linalg.norm(v[auto["feature_points"][k]] - p) * mm)
-         for k, p in truth.items() if k in auto["feature_points"] and k not in skip}
+    d = {
+        k: float(np.linalg.norm(v[auto["feature_points"][k]] - p) * mm)
+        for k, p in truth.items()
+        if k in auto["feature_points"] and k not in skip
+    }
     arr = np.array(list(d.values())) if d else np.array([np.nan])
-    return {"n": len(d), "mean_mm": float(arr.mean()), "max_mm": float(arr.max()),
-            "worst": sorted(d.items(), key=lambda kv: -kv[1])[:3], "left_out": sorted(auto["automatic"]["left_out"]),
-            "per_point_mm": d}
+    return {
+        "n": len(d),
+        "mean_mm": float(arr.mean()),
+        "max_mm": float(arr.max()),
+        "worst": sorted(d.items(), key=lambda kv: -kv[1])[:3],
+        "left_out": sorted(auto["automatic"]["left_out"]),
+        "per_point_mm": d,
+    }
 
 
-def run_case(name: str, v, tri, truth, mm, split: str, skip=(), template: str | None = None) -> dict:
+def run_case(
+    name: str, v, tri, truth, mm, split: str, skip=(), template: str | None = None
+) -> dict:
     t, cpu = time.perf_counter(), time.process_time()
     try:
         auto = annotate_mesh(v, tri, template=template)
     except Exception as e:  # noqa: BLE001  a failure is a result here
         return {"case": name, "split": split, "error": str(e)}
     secs, cpu = time.perf_counter() - t, time.process_time() - cpu
-    out = {"case": name, "split": split, "vertices": len(v), "seconds": secs, "cpu_seconds": cpu,
-           "load": os.getloadavg()[0], "template": auto["automatic"]["template"],
-           "template_scores_mm": auto["automatic"].get("template_scores_mm"), **score(auto, v, truth, mm, skip)}
+    out = {
+        "case": name,
+        "split": split,
+        "vertices": len(v),
+        "seconds": secs,
+        "cpu_seconds": cpu,
+        "load": os.getloadavg()[0],
+        "template": auto["automatic"]["template"],
+        "template_scores_mm": auto["automatic"].get("template_scores_mm"),
+        **score(auto, v, truth, mm, skip),
+    }
     if skip:
         out["definitional"] = score(auto, v, {k: truth[k] for k in skip if k in truth}, mm)
-    print(f"{name:24s} {split:8s} {out['template']:7s} {len(v):7d} v  mean {out['mean_mm']:.2f}  max {out['max_mm']:.2f} mm "
-          f"({out['n']} pts) {secs:.1f} s ({cpu:.1f} s CPU)", file=sys.stderr)
+    print(
+        f"{name:24s} {split:8s} {out['template']:7s} {len(v):7d} v  mean {out['mean_mm']:.2f}  max {out['max_mm']:.2f} mm "
+        f"({out['n']} pts) {secs:.1f} s ({cpu:.1f} s CPU)",
+        file=sys.stderr,
+    )
     return out
 
 
@@ -109,32 +169,66 @@ def builtin_cases(quick: bool) -> list[dict]:
     from facecast.server.faces import parse_count
 
     cases = []
-    for res in (RESOLUTIONS[:3] if quick else RESOLUTIONS):
+    for res in RESOLUTIONS[:3] if quick else RESOLUTIONS:
         f = build_default_head(parse_count(res))
         truth = {k: f.vertices[i].astype(np.float64) for k, i in f.feature_points.items()}
-        cases.append(run_case(f"default:{res}", f.vertices, f.triangles, truth, 1.0,
-                              "tuning" if res in TUNING_RESOLUTIONS else "held-out"))
+        cases.append(
+            run_case(
+                f"default:{res}",
+                f.vertices,
+                f.triangles,
+                truth,
+                1.0,
+                "tuning" if res in TUNING_RESOLUTIONS else "held-out",
+            )
+        )
     for split, variants in (("tuning", TUNING_VARIANTS), ("held-out", HELD_OUT_VARIANTS)):
         for vname, conf in variants.items():
             f = build_default_head(20000, **conf)
             truth = {k: f.vertices[i].astype(np.float64) for k, i in f.feature_points.items()}
-            cases.append(run_case(f"default:20k {vname}", f.vertices, f.triangles, truth, 1.0, split))
+            cases.append(
+                run_case(f"default:20k {vname}", f.vertices, f.triangles, truth, 1.0, split)
+            )
     return cases
 
 
 def ict_cases(data: Path, quick: bool) -> list[dict]:
-    shipped = json.loads((Path(__file__).parents[1] / "server/faces/data/ict_facekit.face.json").read_text())
+    shipped = json.loads(
+        (Path(__file__).parents[1] / "server/faces/data/ict_facekit.face.json").read_text()
+    )
     cases = []
-    for split, ids in (("tuning", TUNING_ICT), ("held-out", HELD_OUT_ICT[:1] if quick else HELD_OUT_ICT)):
+    for split, ids in (
+        ("tuning", TUNING_ICT),
+        ("held-out", HELD_OUT_ICT[:1] if quick else HELD_OUT_ICT),
+    ):
         for i in ids:
             v, tri = read_obj(data / "heads" / "ict-identities" / f"identity{i:03d}.obj.xz")
             truth = {k: v[vid].astype(np.float64) for k, vid in shipped["feature_points"].items()}
             rv, rt = remesh(v.astype(np.float64), tri, 0.15, seed=i)
-            cases.append(run_case(f"ict identity{i:03d} remeshed", rv, rt, truth, UNIT_MM["cm"], split,
-                                  skip=DEFINITIONAL))
+            cases.append(
+                run_case(
+                    f"ict identity{i:03d} remeshed",
+                    rv,
+                    rt,
+                    truth,
+                    UNIT_MM["cm"],
+                    split,
+                    skip=DEFINITIONAL,
+                )
+            )
             if split == "held-out":
-                cases.append(run_case(f"ict identity{i:03d} remeshed", rv, rt, truth, UNIT_MM["cm"], "cross",
-                                      skip=DEFINITIONAL, template="default"))
+                cases.append(
+                    run_case(
+                        f"ict identity{i:03d} remeshed",
+                        rv,
+                        rt,
+                        truth,
+                        UNIT_MM["cm"],
+                        "cross",
+                        skip=DEFINITIONAL,
+                        template="default",
+                    )
+                )
     return cases
 
 
@@ -152,21 +246,42 @@ def fidelity(data: Path) -> dict:
     shipped = load_face(ict / "generic_neutral_mesh.obj")
     # The built-in head as the template (the ICT neutral is the ICT template itself: no test).
     auto_ann = annotate_mesh(shipped.vertices, shipped.triangles, template="default")
-    auto = face_from_annotation("ict-auto", shipped.vertices, shipped.triangles, auto_ann, where="auto")
-    targets = {p.name.split(".")[0]: fid.read_vertices(p) for p in sorted((ict / "expressions").glob("*.obj.xz"))}
+    auto = face_from_annotation(
+        "ict-auto", shipped.vertices, shipped.triangles, auto_ann, where="auto"
+    )
+    targets = {
+        p.name.split(".")[0]: fid.read_vertices(p)
+        for p in sorted((ict / "expressions").glob("*.obj.xz"))
+    }
     out = {}
     for name, face in (("shipped", shipped), ("automatic", auto)):
         # The automatic parts drive the rigid groups; the skin error is measured as fidelity.py does.
-        face = Face(name=name, vertices=shipped.vertices, triangles=shipped.triangles, units=face.units,
-                    parts=face.parts, feature_points=face.feature_points, pivots=face.pivots)
+        face = Face(
+            name=name,
+            vertices=shipped.vertices,
+            triangles=shipped.triangles,
+            units=face.units,
+            parts=face.parts,
+            feature_points=face.feature_points,
+            pivots=face.pivots,
+        )
         controls = np.array(sorted({v for v in face.feature_points.values() if face.deformable[v]}))
         op = build_operator(face, controls, engine="fp")
-        errs = [fid.skin_error_mm(shipped.vertices + op.apply(t[controls] - shipped.vertices[controls]), t,
-                                  shipped.mm_per_unit)[0] for t in targets.values()]
+        errs = [
+            fid.skin_error_mm(
+                shipped.vertices + op.apply(t[controls] - shipped.vertices[controls]),
+                t,
+                shipped.mm_per_unit,
+            )[0]
+            for t in targets.values()
+        ]
         out[name] = {"mean_mm": float(np.mean(errs)), "n_controls": int(len(controls))}
     out["ratio"] = out["automatic"]["mean_mm"] / out["shipped"]["mean_mm"]
-    print(f"fidelity on ICT: shipped {out['shipped']['mean_mm']:.3f} mm, automatic (default template) "
-          f"{out['automatic']['mean_mm']:.3f} mm (x{out['ratio']:.3f})", file=sys.stderr)
+    print(
+        f"fidelity on ICT: shipped {out['shipped']['mean_mm']:.3f} mm, automatic (default template) "
+        f"{out['automatic']['mean_mm']:.3f} mm (x{out['ratio']:.3f})",
+        file=sys.stderr,
+    )
     return out
 
 
@@ -186,34 +301,46 @@ def main(argv: list[str] | None = None) -> int:
     for split in ("tuning", "held-out", "cross"):
         ok = [c for c in cases if c["split"] == split and "error" not in c]
         if ok:
-            result[split] = {"mean_mm": float(np.mean([c["mean_mm"] for c in ok])),
-                             "worst_mm": float(max(c["max_mm"] for c in ok)),
-                             "failed": [c["case"] for c in cases if c["split"] == split and "error" in c]}
+            result[split] = {
+                "mean_mm": float(np.mean([c["mean_mm"] for c in ok])),
+                "worst_mm": float(max(c["max_mm"] for c in ok)),
+                "failed": [c["case"] for c in cases if c["split"] == split and "error" in c],
+            }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
-    print("| case | split | template | vertices | points | mean mm | worst mm (point) | left out | wall s | CPU s |\n"
-          "|---|---|---|---|---|---|---|---|---|---|")
+    print(
+        "| case | split | template | vertices | points | mean mm | worst mm (point) | left out | wall s | CPU s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|"
+    )
     for c in cases:
         if "error" in c:
             print(f"| {c['case']} | {c['split']} | | | | failed: {c['error']} | | | |")
             continue
         w = c["worst"][0] if c["worst"] else ("", float("nan"))
-        print(f"| {c['case']} | {c['split']} | {c['template']} | {c['vertices']} | {c['n']} | {c['mean_mm']:.2f} | "
-              f"{w[1]:.2f} ({w[0]}) | {len(c['left_out'])} | {c['seconds']:.1f} | {c['cpu_seconds']:.1f} |")
+        print(
+            f"| {c['case']} | {c['split']} | {c['template']} | {c['vertices']} | {c['n']} | {c['mean_mm']:.2f} | "
+            f"{w[1]:.2f} ({w[0]}) | {len(c['left_out'])} | {c['seconds']:.1f} | {c['cpu_seconds']:.1f} |"
+        )
     for split in ("tuning", "held-out", "cross"):
         if split in result:
             r = result[split]
-            print(f"\n{split}: mean of case means {r['mean_mm']:.2f} mm, worst point {r['worst_mm']:.2f} mm"
-                  + (f", failed: {', '.join(r['failed'])}" if r["failed"] else ""))
+            print(
+                f"\n{split}: mean of case means {r['mean_mm']:.2f} mm, worst point {r['worst_mm']:.2f} mm"
+                + (f", failed: {', '.join(r['failed'])}" if r["failed"] else "")
+            )
     defi = [c["definitional"] for c in cases if "definitional" in c]
     if defi:
-        print(f"ICT points defined differently from the template ({', '.join(DEFINITIONAL)}), reported apart: "
-              f"mean {np.mean([d['mean_mm'] for d in defi]):.2f} mm")
+        print(
+            f"ICT points defined differently from the template ({', '.join(DEFINITIONAL)}), reported apart: "
+            f"mean {np.mean([d['mean_mm'] for d in defi]):.2f} mm"
+        )
     if "fidelity" in result:
         f = result["fidelity"]
-        print(f"\nfidelity (ICT expressions, fp engine): shipped {f['shipped']['mean_mm']:.3f} mm, "
-              f"automatic (default template) {f['automatic']['mean_mm']:.3f} mm, ratio {f['ratio']:.3f}")
+        print(
+            f"\nfidelity (ICT expressions, fp engine): shipped {f['shipped']['mean_mm']:.3f} mm, "
+            f"automatic (default template) {f['automatic']['mean_mm']:.3f} mm, ratio {f['ratio']:.3f}"
+        )
     print(f"\nload average before {load[0]:.1f}, after {result['load_after'][0]:.1f} (2 cores)")
     return 0
 

@@ -7,6 +7,7 @@ Targets (issue 3, 2-core machine): 500k vertices with the feature-point operator
 frame including read-back, within 1.5x of the bandwidth bound, at least 3x faster than SciPy's CSR
 product; batch rendering of a 25k-vertex face at 25 fps at least 100x faster than real time.
 """
+
 from __future__ import annotations
 
 import json
@@ -22,16 +23,20 @@ def targets(records: list[dict]) -> list[str]:
     lines = []
     big = [r for r in records if r["backend"] == "opencl" and r["vertices"] >= 400_000]
     for r in big:
-        lines.append(f"- {r['vertices']} vertices, opencl: {r['ms_per_frame']:.3f} ms/frame (target <= 3): "
-                     f"{'met' if r['ms_per_frame'] <= 3 else 'NOT met'}; {r['x_bound']:.2f}x the copy bound "
-                     f"(target <= 1.5): {'met' if r['x_bound'] <= 1.5 else 'NOT met'}; "
-                     f"{r.get('speedup_vs_scipy', float('nan')):.1f}x SciPy (target >= 3): "
-                     f"{'met' if r.get('speedup_vs_scipy', 0) >= 3 else 'NOT met'}")
+        lines.append(
+            f"- {r['vertices']} vertices, opencl: {r['ms_per_frame']:.3f} ms/frame (target <= 3): "
+            f"{'met' if r['ms_per_frame'] <= 3 else 'NOT met'}; {r['x_bound']:.2f}x the copy bound "
+            f"(target <= 1.5): {'met' if r['x_bound'] <= 1.5 else 'NOT met'}; "
+            f"{r.get('speedup_vs_scipy', float('nan')):.1f}x SciPy (target >= 3): "
+            f"{'met' if r.get('speedup_vs_scipy', 0) >= 3 else 'NOT met'}"
+        )
     for r in records:
         if r["backend"] == "opencl-batch":
-            lines.append(f"- batch, {r['vertices']} vertices, {r['frames']} frames at 25 fps: "
-                         f"{r['realtime_factor']:.0f}x real time (target >= 100): "
-                         f"{'met' if r['realtime_factor'] >= 100 else 'NOT met'}")
+            lines.append(
+                f"- batch, {r['vertices']} vertices, {r['frames']} frames at 25 fps: "
+                f"{r['realtime_factor']:.0f}x real time (target >= 100): "
+                f"{'met' if r['realtime_factor'] >= 100 else 'NOT met'}"
+            )
     return lines
 
 

@@ -13,6 +13,7 @@ Sources: the built-in demo performance (``server/drivers/demo.py``, 10 fps, one 
 ``default``, and every ``../shared/data/xface/faps/*.fap`` on ``default`` and on the ICT head.
 Writes ``bench/out/deform_quality.json`` and a markdown table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -50,7 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--engines", default="fp,rbf")
     ap.add_argument("--faces", default="default,ict")
-    ap.add_argument("--param", action="append", default=[], help="engine parameter k=v (python literal)")
+    ap.add_argument(
+        "--param", action="append", default=[], help="engine parameter k=v (python literal)"
+    )
     ap.add_argument("--step", type=int, default=1, help="use every N-th frame")
     ap.add_argument("--tag", default="")
     ap.add_argument("--out", default=str(Path(__file__).parent / "out" / "deform_quality.json"))
@@ -84,22 +87,36 @@ def main(argv: list[str] | None = None) -> int:
             rest = measure(face.vertices, qm)
             for sname, states in sources.items():
                 s = run_source(anim, states, qm, args.step)
-                row = {"face": fname, "engine": engine, "source": sname, "build_s": build, "nnz_row": nnz_row,
-                       "rest_pokes": rest["pokes"], **s}
+                row = {
+                    "face": fname,
+                    "engine": engine,
+                    "source": sname,
+                    "build_s": build,
+                    "nnz_row": nnz_row,
+                    "rest_pokes": rest["pokes"],
+                    **s,
+                }
                 result["rows"].append(row)
-                print(f"{fname:8s} {engine:4s} {sname:10s} dih p99 {s['dihedral_p99']:6.2f} max "
-                      f"{s['dihedral_max']:6.1f} strain p99 {s['strain_p99']:.3f} flips {s['flips']} "
-                      f"pokes {s['pokes']} ({s['frames_with_pokes']} fr)", file=sys.stderr)
+                print(
+                    f"{fname:8s} {engine:4s} {sname:10s} dih p99 {s['dihedral_p99']:6.2f} max "
+                    f"{s['dihedral_max']:6.1f} strain p99 {s['strain_p99']:.3f} flips {s['flips']} "
+                    f"pokes {s['pokes']} ({s['frames_with_pokes']} fr)",
+                    file=sys.stderr,
+                )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
-    print("\n| face | engine | source | dihedral° p99 (mean/worst) | dihedral° max | normal° p99 | "
-          "strain p99 | strain max | flips | pokes (frames) | nnz/row | build s |")
+    print(
+        "\n| face | engine | source | dihedral° p99 (mean/worst) | dihedral° max | normal° p99 | "
+        "strain p99 | strain max | flips | pokes (frames) | nnz/row | build s |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in result["rows"]:
-        print(f"| {r['face']} | {r['engine']} | {r['source']} | {r['dihedral_p99_mean']:.2f}/{r['dihedral_p99']:.2f} "
-              f"| {r['dihedral_max']:.1f} | {r['normal_p99']:.1f} | {r['strain_p99']:.3f} | {r['strain_max']:.2f} | "
-              f"{r['flips']} | {r['pokes']} ({r['frames_with_pokes']}) | {r['nnz_row']:.1f} | {r['build_s']:.2f} |")
+        print(
+            f"| {r['face']} | {r['engine']} | {r['source']} | {r['dihedral_p99_mean']:.2f}/{r['dihedral_p99']:.2f} "
+            f"| {r['dihedral_max']:.1f} | {r['normal_p99']:.1f} | {r['strain_p99']:.3f} | {r['strain_max']:.2f} | "
+            f"{r['flips']} | {r['pokes']} ({r['frames_with_pokes']}) | {r['nnz_row']:.1f} | {r['build_s']:.2f} |"
+        )
     return 0
 
 

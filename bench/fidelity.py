@@ -16,6 +16,7 @@ upper lip, within 8 mm), as a fraction of the control motion: what crosses the m
 
 Writes ``bench/out/fidelity.json`` and prints markdown tables.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,13 +37,24 @@ SKIN = np.arange(0, 11248)  # face 0-9408 + head/neck 9409-11247 (data/README.md
 #: The "-skip" variants are the paper read literally (criterion (1) as written, no own-vertex
 #: blending); the others use facecast's rim rule and blending (``server/deform/feature_point.py``).
 METHODS: dict[str, tuple[str, dict]] = {
-    "fp-paper-skip": ("fp", {"normalisation": "paper", "no_neighbour": "skip", "own_blend": 0.0, "smooth": 0.0}),
-    "fp-slides-skip": ("fp", {"normalisation": "slides", "no_neighbour": "skip", "own_blend": 0.0, "smooth": 0.0}),
+    "fp-paper-skip": (
+        "fp",
+        {"normalisation": "paper", "no_neighbour": "skip", "own_blend": 0.0, "smooth": 0.0},
+    ),
+    "fp-slides-skip": (
+        "fp",
+        {"normalisation": "slides", "no_neighbour": "skip", "own_blend": 0.0, "smooth": 0.0},
+    ),
     "fp-paper": ("fp", {"normalisation": "paper", "no_neighbour": "cap", "smooth": 0.0}),
     "fp-slides": ("fp", {"normalisation": "slides", "no_neighbour": "cap", "smooth": 0.0}),
-    "fp-clamped-noblend": ("fp", {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.0,
-                                  "smooth": 0.0}),
-    "fp-clamped": ("fp", {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.5, "smooth": 0.0}),
+    "fp-clamped-noblend": (
+        "fp",
+        {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.0, "smooth": 0.0},
+    ),
+    "fp-clamped": (
+        "fp",
+        {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.5, "smooth": 0.0},
+    ),
     "fp-none": ("fp", {"normalisation": "none", "no_neighbour": "cap", "smooth": 0.0}),
     "fp-clamped-smooth0.3": ("fp", {"smooth": 0.3, "smooth_hold": 0.0}),
     "fp-clamped-smooth0.5": ("fp", {"smooth": 0.5, "smooth_hold": 0.0}),
@@ -98,7 +110,9 @@ def strain_p99(points: np.ndarray, edges: np.ndarray, rest: np.ndarray) -> float
     return float(np.percentile(np.abs(length / rest - 1), 99))
 
 
-def lip_sets(face, landmarks: np.ndarray, controls: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def lip_sets(
+    face, landmarks: np.ndarray, controls: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(lower-lip control indices, upper-lip skin vertices, lower-lip skin vertices).
 
     A point belongs to a lip when its nearest lip landmark (corners included) along the mesh
@@ -119,7 +133,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--only", default="", help="comma-separated method names (default: all)")
     ap.add_argument("--sets", default="fp,lm68,fp+lm68", help="control sets: fp, lm68, fp+lm68")
-    ap.add_argument("--limit", type=int, default=0, help="use only the first N expressions (quick runs)")
+    ap.add_argument(
+        "--limit", type=int, default=0, help="use only the first N expressions (quick runs)"
+    )
     ap.add_argument("--out", default=str(Path(__file__).parent / "out" / "fidelity.json"))
     args = ap.parse_args(argv)
     data = shared_data()
@@ -129,7 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     ict = data / "ict-facekit"
     face = load_face(ict / "generic_neutral_mesh.obj")
     neutral = face.vertices
-    landmarks = np.asarray(json.loads((ict / "vertex_indices.json").read_text())["idx_to_landmark_verts"])
+    landmarks = np.asarray(
+        json.loads((ict / "vertex_indices.json").read_text())["idx_to_landmark_verts"]
+    )
     fp_ids = np.array(sorted({v for v in face.feature_points.values() if face.deformable[v]}))
     sets = {"fp": fp_ids, "lm68": np.unique(landmarks), "fp+lm68": np.union1d(fp_ids, landmarks)}
     chosen_sets = [s for s in args.sets.split(",") if s]
@@ -137,13 +155,18 @@ def main(argv: list[str] | None = None) -> int:
 
     paths = sorted(p for p in (ict / "expressions").glob("*.obj.xz"))
     if args.limit:
-        paths = paths[:args.limit]
+        paths = paths[: args.limit]
     t0 = time.perf_counter()
     targets = {p.name.split(".")[0]: read_vertices(p) for p in paths}
     print(f"read {len(targets)} expressions in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
 
-    result: dict = {"face": str(ict / "generic_neutral_mesh.obj"), "units_mm": face.mm_per_unit,
-                    "skin_vertices": len(SKIN), "sets": {}, "machine_loaded": True}
+    result: dict = {
+        "face": str(ict / "generic_neutral_mesh.obj"),
+        "units_mm": face.mm_per_unit,
+        "skin_vertices": len(SKIN),
+        "sets": {},
+        "machine_loaded": True,
+    }
     for set_name in chosen_sets:
         controls = sets[set_name]
         lower_ctl, upper_skin, lower_skin = lip_sets(face, landmarks, controls)
@@ -151,7 +174,9 @@ def main(argv: list[str] | None = None) -> int:
         baseline = {n: skin_error_mm(neutral, t, face.mm_per_unit) for n, t in targets.items()}
         per["baseline"] = {n: {"mean": b[0], "p95": b[1]} for n, b in baseline.items()}
         edges, rest = skin_edges(face)
-        per["artist_strain_p99"] = float(np.mean([strain_p99(t, edges, rest) for t in targets.values()]))
+        per["artist_strain_p99"] = float(
+            np.mean([strain_p99(t, edges, rest) for t in targets.values()])
+        )
         for mname, (engine, params) in methods.items():
             t = time.perf_counter()
             op = build_operator(face, controls, engine=engine, **params)
@@ -173,19 +198,27 @@ def main(argv: list[str] | None = None) -> int:
             # deformed skin stays within 0.001 mm as well.
             better = (means < base) | ((base < 1e-3) & (means < 1e-3))
             per["methods"][mname] = {
-                "engine": engine, "params": params, "build_s": build_s, "nnz": op.nnz,
-                "mean_mm": float(means.mean()), "p95_mm": float(np.mean([e[1] for e in errs.values()])),
+                "engine": engine,
+                "params": params,
+                "build_s": build_s,
+                "nnz": op.nnz,
+                "mean_mm": float(means.mean()),
+                "p95_mm": float(np.mean([e[1] for e in errs.values()])),
                 "ratio_to_baseline": float(means.mean() / base.mean()),
-                "beats_baseline": int(better.sum()), "n_expressions": len(errs),
+                "beats_baseline": int(better.sum()),
+                "n_expressions": len(errs),
                 "worse": [n for n, ok in zip(errs, better) if not ok],
-                "bleed_upper_lip": bleed, "lower_lip_follow": follow,
+                "bleed_upper_lip": bleed,
+                "lower_lip_follow": follow,
                 "strain_p99": float(np.mean(strains)),
             }
             for n, e in errs.items():
                 per["expressions"].setdefault(n, {})[mname] = {"mean": e[0], "p95": e[1]}
-            print(f"{set_name:8s} {mname:26s} mean {means.mean():.3f} mm (none {base.mean():.3f}) "
-                  f"beats {int(better.sum())}/{len(errs)} bleed {bleed:.3f} build {build_s:.2f}s",
-                  file=sys.stderr)
+            print(
+                f"{set_name:8s} {mname:26s} mean {means.mean():.3f} mm (none {base.mean():.3f}) "
+                f"beats {int(better.sum())}/{len(errs)} bleed {bleed:.3f} build {build_s:.2f}s",
+                file=sys.stderr,
+            )
         result["sets"][set_name] = per
 
     out = Path(args.out)
@@ -200,15 +233,21 @@ def print_tables(result: dict) -> None:
         base_mean = np.mean([b["mean"] for b in per["baseline"].values()])
         base_p95 = np.mean([b["p95"] for b in per["baseline"].values()])
         print(f"\n### controls: {set_name} (K = {per['n_controls']})\n")
-        print("| method | mean skin error mm | mean p95 mm | ratio to no-deform | beats/ties no-deform | "
-              "bleed upper lip (per 1 mm lower lip) | lower lip follows | edge strain p99 | build s |")
+        print(
+            "| method | mean skin error mm | mean p95 mm | ratio to no-deform | beats/ties no-deform | "
+            "bleed upper lip (per 1 mm lower lip) | lower lip follows | edge strain p99 | build s |"
+        )
         print("|---|---|---|---|---|---|---|---|---|")
-        print(f"| no deformation | {base_mean:.4f} | {base_p95:.3f} | 1.00 | – | – | – | "
-              f"{per['artist_strain_p99']:.3f} (artist) | – |")
+        print(
+            f"| no deformation | {base_mean:.4f} | {base_p95:.3f} | 1.00 | – | – | – | "
+            f"{per['artist_strain_p99']:.3f} (artist) | – |"
+        )
         for name, m in per["methods"].items():
-            print(f"| {name} | {m['mean_mm']:.4f} | {m['p95_mm']:.3f} | {m['ratio_to_baseline']:.3f} | "
-                  f"{m['beats_baseline']}/{m['n_expressions']} | {m['bleed_upper_lip']:.3f} | "
-                  f"{m['lower_lip_follow']:.3f} | {m['strain_p99']:.3f} | {m['build_s']:.2f} |")
+            print(
+                f"| {name} | {m['mean_mm']:.4f} | {m['p95_mm']:.3f} | {m['ratio_to_baseline']:.3f} | "
+                f"{m['beats_baseline']}/{m['n_expressions']} | {m['bleed_upper_lip']:.3f} | "
+                f"{m['lower_lip_follow']:.3f} | {m['strain_p99']:.3f} | {m['build_s']:.2f} |"
+            )
     first = next(iter(result["sets"].values()), None)
     if first:
         names = list(first["methods"])

@@ -211,8 +211,17 @@ def run_flood(
     ctx = multiprocessing.get_context("spawn")
     phases: dict[str, list[dict]] = {"baseline": [], "control": [], "flood": []}
     floods, loads, cpu = [], [], []
-    server = LocalServer(None, "--face", face, "--backend", backend, "--workers", "0", admin_key=ADMIN_KEY,
-                         env={"FACECAST_MAX_SESSIONS": "256", "FACECAST_MAX_PRODUCER_FPS": "250"})
+    server = LocalServer(
+        None,
+        "--face",
+        face,
+        "--backend",
+        backend,
+        "--workers",
+        "0",
+        admin_key=ADMIN_KEY,
+        env={"FACECAST_MAX_SESSIONS": "256", "FACECAST_MAX_PRODUCER_FPS": "250"},
+    )
     try:
         server.start(300, ready=True)
         url = server.url

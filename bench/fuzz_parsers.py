@@ -37,12 +37,51 @@ MEMORY_LIMIT = 4 << 30
 
 INTERESTING_BYTES = (0x00, 0x01, 0x7F, 0x80, 0xFF, 0x50, 0x54, 0x55, 0x56, 0x20, 0x0A)
 INTERESTING_INTS = (0, 1, -1, 2, 255, 256, 511, 512, 32767, -32768, 65535, 2**31 - 1, -(2**31))
-INTERESTING_TOKENS = ("nan", "-nan", "inf", "-inf", "1e309", "-1", "0", "", " ", "\t", ",", "#",
-                      "9" * 4301, "1" * 19, "-" * 3, "\xff", "\x00", "0x10", "1_000", "٣")
+INTERESTING_TOKENS = (
+    "nan",
+    "-nan",
+    "inf",
+    "-inf",
+    "1e309",
+    "-1",
+    "0",
+    "",
+    " ",
+    "\t",
+    ",",
+    "#",
+    "9" * 4301,
+    "1" * 19,
+    "-" * 3,
+    "\xff",
+    "\x00",
+    "0x10",
+    "1_000",
+    "٣",
+)
 #: Stands for an integer of 4,301 digits (json.dumps cannot write one; json.loads refuses it).
 HUGE_INT = "<4301 digits>"
-INTERESTING_JSON = ({}, [], 0, -1, 1.5, True, None, "x", "", 10**30, [0, 1, 2], [[0, 10**9]],
-                    {"a": [1]}, [[]], "+y", [True, 0, 0], 26719, -26720, HUGE_INT)
+INTERESTING_JSON = (
+    {},
+    [],
+    0,
+    -1,
+    1.5,
+    True,
+    None,
+    "x",
+    "",
+    10**30,
+    [0, 1, 2],
+    [[0, 10**9]],
+    {"a": [1]},
+    [[]],
+    "+y",
+    [True, 0, 0],
+    26719,
+    -26720,
+    HUGE_INT,
+)
 
 
 # ------------------------------------------------------------------------------------------ seeds
@@ -60,8 +99,11 @@ def seeds(parser: str) -> tuple[bytes, ...]:
     xyz[3, 1] = np.nan
     take = MarkerTake(["CHIN", "LIP_L", "LIP_R", "HEAD 1"], xyz, 120.0, "mm")
     if parser in ("c3d", "ezc3d"):
-        out = [write_c3d(take), write_c3d(take, processor="dec", scale=0.1),
-               write_c3d(take, processor="mips", scale=-0.5)]
+        out = [
+            write_c3d(take),
+            write_c3d(take, processor="dec", scale=0.1),
+            write_c3d(take, processor="mips", scale=-0.5),
+        ]
         ez = _ezc3d_bytes(take)
         return tuple(out + ([ez] if ez else []))
     if parser == "trc":
@@ -77,8 +119,9 @@ def seeds(parser: str) -> tuple[bytes, ...]:
             return tuple(f.read_bytes() for f in files)
         from facecast.protocol.fap_file import FapFile, FapFrame, write_fap
 
-        frames = tuple(FapFrame.build(i, {3: 10 * i, 5: -i, 19: 400}, viseme=(1, 2, 30, 0))
-                       for i in range(5))
+        frames = tuple(
+            FapFrame.build(i, {3: 10 * i, 5: -i, 19: 400}, viseme=(1, 2, 30, 0)) for i in range(5)
+        )
         return (write_fap(FapFile(name="generated", frames=frames)).encode(),)
     if parser == "annotation":
         from facecast.server.faces.ict import ANNOTATION
@@ -138,15 +181,15 @@ def _mutate_bytes(b: bytearray, rng: random.Random) -> bytearray:
         pos = min(pos, n - size)
         if rng.random() < 0.5:  # C3D words sit at even offsets
             pos -= pos % 2
-        b[pos:pos + size] = v.to_bytes(size, "little" if order == "<" else "big")
+        b[pos : pos + size] = v.to_bytes(size, "little" if order == "<" else "big")
     elif op == 4:
         b[pos:pos] = bytes(rng.randrange(256) for _ in range(rng.randint(1, 8)))
     elif op == 5 and n:
-        del b[pos:pos + rng.randint(1, 64)]
+        del b[pos : pos + rng.randint(1, 64)]
     elif op == 6 and n:
-        del b[rng.randrange(n):]  # truncation
+        del b[rng.randrange(n) :]  # truncation
     elif op == 7 and n:
-        span = b[pos:pos + rng.randint(1, 256)]
+        span = b[pos : pos + rng.randint(1, 256)]
         b[pos:pos] = span * rng.randint(1, 8)
     return b
 
@@ -188,15 +231,22 @@ def _mutate_json(data: bytes, rng: random.Random) -> bytes:
         return json.dumps(rng.choice(INTERESTING_JSON)).encode()
     container, key = rng.choice(nodes)
     if isinstance(container, dict) and rng.random() < 0.2:  # rename a key
-        container[rng.choice(["units", "pivots", "parts", "axes", "feature_points", "2.99", ""])] = \
-            container.pop(key)
+        container[
+            rng.choice(["units", "pivots", "parts", "axes", "feature_points", "2.99", ""])
+        ] = container.pop(key)
     else:
         container[key] = rng.choice(INTERESTING_JSON)
     return json.dumps(doc).replace(f'"{HUGE_INT}"', "9" * 4301).encode()  # over int()'s limit
 
 
-KIND = {"c3d": "binary", "ezc3d": "binary", "trc": "text", "csv": "text", "fap": "text",
-        "annotation": "json"}
+KIND = {
+    "c3d": "binary",
+    "ezc3d": "binary",
+    "trc": "text",
+    "csv": "text",
+    "fap": "text",
+    "annotation": "json",
+}
 
 
 def fuzz_input(parser: str, seed: int, i: int) -> bytes:
@@ -234,8 +284,13 @@ def parse(parser: str, data: bytes) -> None:
         from facecast.server.faces.loaders import face_from_annotation, parse_annotation
 
         vertices, triangles = _ict_mesh()
-        face_from_annotation("fuzz", vertices, triangles, parse_annotation(data, where="fuzz.json"),
-                             where="fuzz.json")
+        face_from_annotation(
+            "fuzz",
+            vertices,
+            triangles,
+            parse_annotation(data, where="fuzz.json"),
+            where="fuzz.json",
+        )
     elif parser == "ezc3d":  # the baseline: the native reader the server used before issue 12
         import tempfile
 
@@ -295,8 +350,17 @@ def fuzz_counts(parser_name: str, n: int, seed: int = 1, timeout: float = TIMEOU
     if parser_name not in PARSERS + ("ezc3d",):
         raise ValueError(f"unknown parser {parser_name!r}; one of {', '.join(PARSERS)}")
     ctx = mp.get_context("spawn")  # not fork: a caller may have threads (a server client, a loop)
-    counts = {"parser": parser_name, "inputs": 0, "crashes": 0, "hangs": 0, "project_errors": 0, "parsed": 0,
-                  "other_errors": 0, "max_seconds": 0.0, "examples": []}
+    counts = {
+        "parser": parser_name,
+        "inputs": 0,
+        "crashes": 0,
+        "hangs": 0,
+        "project_errors": 0,
+        "parsed": 0,
+        "other_errors": 0,
+        "max_seconds": 0.0,
+        "examples": [],
+    }
     proc = conn = None
 
     def start():
@@ -369,17 +433,30 @@ def main(argv: list[str]) -> int:
         r = fuzz_counts(name.strip(), a.inputs, a.seed)
         r["seconds"] = time.perf_counter() - t
         results.append(r)
-    record = {"inputs_per_parser": a.inputs, "seed": a.seed, "timeout_s": TIMEOUT_S,
-              "memory_limit_bytes": MEMORY_LIMIT, "load_before": load_before, "load_after": _load(),
-              "cpus": os.cpu_count(), "results": results}
+    record = {
+        "inputs_per_parser": a.inputs,
+        "seed": a.seed,
+        "timeout_s": TIMEOUT_S,
+        "memory_limit_bytes": MEMORY_LIMIT,
+        "load_before": load_before,
+        "load_after": _load(),
+        "cpus": os.cpu_count(),
+        "results": results,
+    }
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(record, indent=2))
-    print(f"load average before {load_before}, after {record['load_after']} ({os.cpu_count()} CPUs)\n")
-    print("| parser | inputs | parsed | project errors | other errors | crashes | hangs | slowest (ms) | run (s) |")
+    print(
+        f"load average before {load_before}, after {record['load_after']} ({os.cpu_count()} CPUs)\n"
+    )
+    print(
+        "| parser | inputs | parsed | project errors | other errors | crashes | hangs | slowest (ms) | run (s) |"
+    )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in results:
-        print(f"| {r['parser']} | {r['inputs']} | {r['parsed']} | {r['project_errors']} | {r['other_errors']} "
-              f"| {r['crashes']} | {r['hangs']} | {1000 * r['max_seconds']:.1f} | {r['seconds']:.1f} |")
+        print(
+            f"| {r['parser']} | {r['inputs']} | {r['parsed']} | {r['project_errors']} | {r['other_errors']} "
+            f"| {r['crashes']} | {r['hangs']} | {1000 * r['max_seconds']:.1f} | {r['seconds']:.1f} |"
+        )
     bad = [r for r in results if r["crashes"] or r["hangs"] or r["other_errors"]]
     for r in bad:
         print(f"{r['parser']}: {r['examples']}", file=sys.stderr)

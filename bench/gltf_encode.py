@@ -23,6 +23,7 @@ Writes ``bench/out/gltf_encode.json`` and prints a markdown table with the old/n
 x.glb --face SPEC`` in a subprocess, then the file read back independently and compared with the
 renderer's float vertices) and writes ``bench/out/gltf_check.json`` and a table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,13 +43,22 @@ def parse(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--face", default="default")
     p.add_argument("--frames", type=int, nargs="+", default=[100, 400, 1500, 6000])
     p.add_argument("--old-max", type=int, default=1500, help="longest clip for the old method")
-    p.add_argument("--stream", type=int, nargs="*", default=[6000], help="clip lengths also encoded streamed")
-    p.add_argument("--threads", type=int, default=None, help="BLAS threads (sets OPENBLAS/OMP/MKL_NUM_THREADS)")
+    p.add_argument(
+        "--stream", type=int, nargs="*", default=[6000], help="clip lengths also encoded streamed"
+    )
+    p.add_argument(
+        "--threads", type=int, default=None, help="BLAS threads (sets OPENBLAS/OMP/MKL_NUM_THREADS)"
+    )
     p.add_argument("--repeats", type=int, default=1, help="best of this many runs per point")
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--out", type=Path, default=OUT, help="JSON output")
-    p.add_argument("--check", nargs="+", metavar="FACE", default=None,
-                   help="instead: glb_check each face spec (e.g. default:200k default:500k)")
+    p.add_argument(
+        "--check",
+        nargs="+",
+        metavar="FACE",
+        default=None,
+        help="instead: glb_check each face spec (e.g. default:200k default:500k)",
+    )
     return p.parse_args(argv)
 
 
@@ -66,7 +76,9 @@ def _reader():
     writer's code): ``(read_back, max_error_mm)``."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("_glb_read_back", ROOT / "tests" / "test_gltf_verify.py")
+    spec = importlib.util.spec_from_file_location(
+        "_glb_read_back", ROOT / "tests" / "test_gltf_verify.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod.read_back, mod.max_error_mm
@@ -96,12 +108,38 @@ def glb_check(face_spec: str, *, fap: str | Path | None = None, backend: str = "
         out, stats = Path(tmp) / "out.glb", Path(tmp) / "stats.json"
         load0 = os.getloadavg()
         t0 = time.perf_counter()
-        r = subprocess.run([sys.executable, "-c", _RUNNER, str(stats), "render", str(src), "-o", str(out),
-                            "--face", face_spec, "--backend", backend], capture_output=True, text=True, check=False)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                _RUNNER,
+                str(stats),
+                "render",
+                str(src),
+                "-o",
+                str(out),
+                "--face",
+                face_spec,
+                "--backend",
+                backend,
+            ],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
         seconds = time.perf_counter() - t0
-        run = json.loads(stats.read_text()) if stats.is_file() else {"code": r.returncode, "peak_rss_kb": 0}
-        row = {"face": face_spec, "seconds": seconds, "peak_rss_mb": run["peak_rss_kb"] / 1024,
-               "exit": run["code"], "load_avg": [round((a + b) / 2, 2) for a, b in zip(load0, os.getloadavg())]}
+        run = (
+            json.loads(stats.read_text())
+            if stats.is_file()
+            else {"code": r.returncode, "peak_rss_kb": 0}
+        )
+        row = {
+            "face": face_spec,
+            "seconds": seconds,
+            "peak_rss_mb": run["peak_rss_kb"] / 1024,
+            "exit": run["code"],
+            "load_avg": [round((a + b) / 2, 2) for a, b in zip(load0, os.getloadavg())],
+        }
         if run["code"] != 0 or not out.is_file():
             lines = r.stderr.strip().splitlines()
             return {**row, "refused": True, "message": lines[-1] if lines else ""}
@@ -110,25 +148,41 @@ def glb_check(face_spec: str, *, fap: str | Path | None = None, backend: str = "
         face = load_face(face_spec)
         frames = Animator(face, backend=backend).render(load_fap(src, face))
         err = max_error_mm(glb, frames, face.mm_per_unit)
-        return {**row, "refused": False, "vertices": face.n_vertices, "frames": len(frames),
-                "targets": len(glb["targets"]), "method": glb["record"]["method"],
-                "tolerance_mm": glb["tolerance_mm"], "recorded_max_error_mm": glb["max_error_mm"],
-                "max_error_mm": err, "within_tolerance": bool(err <= glb["tolerance_mm"]),
-                "bytes": out.stat().st_size}
+        return {
+            **row,
+            "refused": False,
+            "vertices": face.n_vertices,
+            "frames": len(frames),
+            "targets": len(glb["targets"]),
+            "method": glb["record"]["method"],
+            "tolerance_mm": glb["tolerance_mm"],
+            "recorded_max_error_mm": glb["max_error_mm"],
+            "max_error_mm": err,
+            "within_tolerance": bool(err <= glb["tolerance_mm"]),
+            "bytes": out.stat().st_size,
+        }
 
 
 def check_markdown(rows: list[dict]) -> str:
-    lines = [("| face | vertices | frames | targets | tolerance (mm) | max error read back (mm) | within "
-              "| .glb (MB) | peak RSS (MB) | wall (s) | load |"),
-             "|---|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
+    lines = [
+        (
+            "| face | vertices | frames | targets | tolerance (mm) | max error read back (mm) | within "
+            "| .glb (MB) | peak RSS (MB) | wall (s) | load |"
+        ),
+        "|---|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|",
+    ]
     for r in rows:
         if r["refused"]:
-            lines.append(f"| {r['face']} | refused: {r['message']} | | | | | | | {r['peak_rss_mb']:.0f} | "
-                         f"{r['seconds']:.0f} | {r['load_avg'][0]:.1f} |")
+            lines.append(
+                f"| {r['face']} | refused: {r['message']} | | | | | | | {r['peak_rss_mb']:.0f} | "
+                f"{r['seconds']:.0f} | {r['load_avg'][0]:.1f} |"
+            )
             continue
-        lines.append(f"| {r['face']} | {r['vertices']} | {r['frames']} | {r['targets']} | {r['tolerance_mm']} | "
-                     f"{r['max_error_mm']:.4f} | {'yes' if r['within_tolerance'] else 'NO'} | {r['bytes'] / 1e6:.1f} | "
-                     f"{r['peak_rss_mb']:.0f} | {r['seconds']:.0f} | {r['load_avg'][0]:.1f} |")
+        lines.append(
+            f"| {r['face']} | {r['vertices']} | {r['frames']} | {r['targets']} | {r['tolerance_mm']} | "
+            f"{r['max_error_mm']:.4f} | {'yes' if r['within_tolerance'] else 'NO'} | {r['bytes'] / 1e6:.1f} | "
+            f"{r['peak_rss_mb']:.0f} | {r['seconds']:.0f} | {r['load_avg'][0]:.1f} |"
+        )
     return "\n".join(lines)
 
 
@@ -137,8 +191,13 @@ def baseline_module():
     import subprocess
     import types
 
-    src = subprocess.run(["git", "show", f"{BASELINE}:server/output/gltf.py"], cwd=ROOT, check=True,
-                         capture_output=True, text=True).stdout
+    src = subprocess.run(
+        ["git", "show", f"{BASELINE}:server/output/gltf.py"],
+        cwd=ROOT,
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
     mod = types.ModuleType("facecast.server.output._gltf_baseline")
     mod.__package__ = "facecast.server.output"
     exec(compile(src, f"{BASELINE}:server/output/gltf.py", "exec"), mod.__dict__)  # noqa: S102 (our own history)
@@ -167,10 +226,16 @@ def clip(face, n_frames: int, seed: int):
             else:  # smooth gains in [0.6, 1.4] per FAP: two random sinusoids over the clip
                 t = np.arange(n)[:, None] / n
                 f, ph = rng.uniform(0.5, 2.0, (2, 69)), rng.uniform(0, 2 * np.pi, (2, 69))
-                gain = 1 + 0.2 * np.sin(2 * np.pi * f[0] * t + ph[0]) + 0.2 * np.sin(2 * np.pi * f[1] * t + ph[1])
+                gain = (
+                    1
+                    + 0.2 * np.sin(2 * np.pi * f[0] * t + ph[0])
+                    + 0.2 * np.sin(2 * np.pi * f[1] * t + ph[1])
+                )
             states.extend(replace(s, faps=s.faps * g) for s, g in zip(c.states, gain))
         loop += 1
-    return Animation(25.0, [replace(s, t=i / 25.0) for i, s in enumerate(states[:n_frames])], source="xface-loop")
+    return Animation(
+        25.0, [replace(s, t=i / 25.0) for i, s in enumerate(states[:n_frames])], source="xface-loop"
+    )
 
 
 def measure(fn, repeats: int) -> tuple[float, float, object]:
@@ -194,14 +259,20 @@ def measure(fn, repeats: int) -> tuple[float, float, object]:
 
 
 def markdown(rows: list[dict]) -> str:
-    lines = [("| frames | method | targets | max err (mm) | encode (s) | basis only (s) | peak (MB) "
-              "| .glb (MB) | old/new encode | old/new basis | old/new peak |"),
-             "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        (
+            "| frames | method | targets | max err (mm) | encode (s) | basis only (s) | peak (MB) "
+            "| .glb (MB) | old/new encode | old/new basis | old/new peak |"
+        ),
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in rows:
-        lines.append(f"| {r['frames']} | {r['method']} | {r['targets']} | {r['max_error_mm']:.4f} | "
-                     f"{r['seconds']:.2f} | {r.get('basis_seconds', float('nan')):.2f} | {r['peak_mb']:.0f} | "
-                     f"{r['glb_mb']:.1f} | {r.get('time_ratio', float('nan')):.1f} | "
-                     f"{r.get('basis_ratio', float('nan')):.1f} | {r.get('peak_ratio', float('nan')):.1f} |")
+        lines.append(
+            f"| {r['frames']} | {r['method']} | {r['targets']} | {r['max_error_mm']:.4f} | "
+            f"{r['seconds']:.2f} | {r.get('basis_seconds', float('nan')):.2f} | {r['peak_mb']:.0f} | "
+            f"{r['glb_mb']:.1f} | {r.get('time_ratio', float('nan')):.1f} | "
+            f"{r.get('basis_ratio', float('nan')):.1f} | {r.get('peak_ratio', float('nan')):.1f} |"
+        )
     return "\n".join(lines)
 
 
@@ -219,7 +290,9 @@ def main(argv: list[str]) -> int:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps({"rows": rows, "cpus": os.cpu_count()}, indent=1) + "\n")
         print(check_markdown(rows))
-        print(f"\nload average (1 min) at the end {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs; wrote {out}")
+        print(
+            f"\nload average (1 min) at the end {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs; wrote {out}"
+        )
         return 0 if all(not r["refused"] and r["within_tolerance"] for r in rows) else 1
 
     from facecast.server.faces import load_face
@@ -237,8 +310,11 @@ def main(argv: list[str]) -> int:
     t0 = time.perf_counter()
     full = animator.render(type(anim)(anim.fps, anim.states[:n_max], source=anim.source))
     render_s = time.perf_counter() - t0
-    print(f"{args.face}: {face.n_vertices} vertices; rendered {n_max} frames in {render_s:.1f} s "
-          f"({1e3 * render_s / n_max:.1f} ms/frame)", file=sys.stderr)
+    print(
+        f"{args.face}: {face.n_vertices} vertices; rendered {n_max} frames in {render_s:.1f} s "
+        f"({1e3 * render_s / n_max:.1f} ms/frame)",
+        file=sys.stderr,
+    )
     opts = {"mm_per_unit": face.mm_per_unit}
     rows: list[dict] = []
     for T in sorted(args.frames):
@@ -247,40 +323,89 @@ def main(argv: list[str]) -> int:
         for method, mod in (("old", old), ("new", gltf)):
             if method == "old" and args.old_max < T:
                 continue
-            sec, peak, (data, rec) = measure(lambda mod=mod, frames=frames: mod.encode_glb(
-                frames, face.vertices, face.triangles, 25.0, **opts), args.repeats)
-            row = {"frames": T, "vertices": face.n_vertices, "method": method, "targets": rec["targets"],
-                   "max_error_mm": rec["max_error_mm"], "seconds": sec, "peak_mb": peak / 2**20,
-                   "glb_mb": len(data) / 1e6, "input_mb": frames.nbytes / 2**20,
-                   "capped": rec.get("capped"), "passes": rec.get("passes")}
-            bsec, _, _ = measure(lambda mod=mod, frames=frames: mod.morph_basis(
-                frames, face.vertices, 0.01 / face.mm_per_unit, **({} if mod is old else {"normals": None})), 1)
+            sec, peak, (data, rec) = measure(
+                lambda mod=mod, frames=frames: mod.encode_glb(
+                    frames, face.vertices, face.triangles, 25.0, **opts
+                ),
+                args.repeats,
+            )
+            row = {
+                "frames": T,
+                "vertices": face.n_vertices,
+                "method": method,
+                "targets": rec["targets"],
+                "max_error_mm": rec["max_error_mm"],
+                "seconds": sec,
+                "peak_mb": peak / 2**20,
+                "glb_mb": len(data) / 1e6,
+                "input_mb": frames.nbytes / 2**20,
+                "capped": rec.get("capped"),
+                "passes": rec.get("passes"),
+            }
+            bsec, _, _ = measure(
+                lambda mod=mod, frames=frames: mod.morph_basis(
+                    frames,
+                    face.vertices,
+                    0.01 / face.mm_per_unit,
+                    **({} if mod is old else {"normals": None}),
+                ),
+                1,
+            )
             row["basis_seconds"] = bsec
             results[method] = row
-            print(f"  T={T} {method}: {sec:.2f} s (basis {bsec:.2f} s), peak {peak / 2**20:.0f} MB, "
-                  f"{rec['targets']} targets, max err {rec['max_error_mm']:.4f} mm", file=sys.stderr)
+            print(
+                f"  T={T} {method}: {sec:.2f} s (basis {bsec:.2f} s), peak {peak / 2**20:.0f} MB, "
+                f"{rec['targets']} targets, max err {rec['max_error_mm']:.4f} mm",
+                file=sys.stderr,
+            )
         if "old" in results:
             results["new"]["time_ratio"] = results["old"]["seconds"] / results["new"]["seconds"]
             results["new"]["peak_ratio"] = results["old"]["peak_mb"] / results["new"]["peak_mb"]
-            results["new"]["basis_ratio"] = results["old"]["basis_seconds"] / results["new"]["basis_seconds"]
+            results["new"]["basis_ratio"] = (
+                results["old"]["basis_seconds"] / results["new"]["basis_seconds"]
+            )
         rows.extend(results.values())
     del full
     for T in sorted(args.stream or []):
         sub = type(anim)(anim.fps, anim.states[:T], source=anim.source)
-        sec, peak, (data, rec) = measure(lambda sub=sub: gltf.encode_glb(
-            _frame_chunks(animator, sub, None), face.vertices, face.triangles, 25.0, **opts), 1)
-        rows.append({"frames": T, "vertices": face.n_vertices, "method": "new, streamed (incl. rendering)",
-                     "targets": rec["targets"], "max_error_mm": rec["max_error_mm"], "seconds": sec,
-                     "peak_mb": peak / 2**20, "glb_mb": len(data) / 1e6, "input_mb": 0.0,
-                     "capped": rec["capped"], "passes": rec["passes"]})
+        sec, peak, (data, rec) = measure(
+            lambda sub=sub: gltf.encode_glb(
+                _frame_chunks(animator, sub, None), face.vertices, face.triangles, 25.0, **opts
+            ),
+            1,
+        )
+        rows.append(
+            {
+                "frames": T,
+                "vertices": face.n_vertices,
+                "method": "new, streamed (incl. rendering)",
+                "targets": rec["targets"],
+                "max_error_mm": rec["max_error_mm"],
+                "seconds": sec,
+                "peak_mb": peak / 2**20,
+                "glb_mb": len(data) / 1e6,
+                "input_mb": 0.0,
+                "capped": rec["capped"],
+                "passes": rec["passes"],
+            }
+        )
         print(f"  T={T} streamed: {sec:.2f} s, peak {peak / 2**20:.0f} MB", file=sys.stderr)
-    info = {"face": args.face, "vertices": face.n_vertices, "threads": args.threads, "baseline": BASELINE,
-            "render_ms_per_frame": 1e3 * render_s / n_max, "load_avg": os.getloadavg(), "rows": rows}
+    info = {
+        "face": args.face,
+        "vertices": face.n_vertices,
+        "threads": args.threads,
+        "baseline": BASELINE,
+        "render_ms_per_frame": 1e3 * render_s / n_max,
+        "load_avg": os.getloadavg(),
+        "rows": rows,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(info, indent=1) + "\n")
     print(markdown(rows))
-    print(f"\nload average {os.getloadavg()[0]:.1f}; BLAS threads: {args.threads or 'default'}; "
-          f"peak = tracemalloc peak of the encoder (input frames not counted); wrote {args.out}")
+    print(
+        f"\nload average {os.getloadavg()[0]:.1f}; BLAS threads: {args.threads or 'default'}; "
+        f"peak = tracemalloc peak of the encoder (input frames not counted); wrote {args.out}"
+    )
     return 0
 
 

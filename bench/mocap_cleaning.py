@@ -40,7 +40,9 @@ def main(argv: list[str]) -> int:
     p.add_argument("--fps", type=float, default=120.0)
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--stable", type=int, default=5, help="stable head markers among the markers")
-    p.add_argument("--placement", default="technician", help="marker placement (generate.choose_markers)")
+    p.add_argument(
+        "--placement", default="technician", help="marker placement (generate.choose_markers)"
+    )
     a = p.parse_args(argv)
 
     from facecast.server.mocap.clean import CleanParams
@@ -49,8 +51,14 @@ def main(argv: list[str]) -> int:
     from facecast.server.mocap.stabilise import head_track, remove_head
 
     face = load_ict()
-    truth, take, layout = generated_take(n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=a.seed,
-                                         n_stable=a.stable, placement=a.placement)
+    truth, take, layout = generated_take(
+        n_markers=a.markers,
+        seconds=a.seconds,
+        fps=a.fps,
+        seed=a.seed,
+        n_stable=a.stable,
+        placement=a.placement,
+    )
 
     records: dict = {
         "markers": a.markers,
@@ -128,7 +136,10 @@ def main(argv: list[str]) -> int:
 
     raw_p95 = rows[0]["p95_mm"]
     # like for like: stabilised rows against the raw take stabilised directly (same quantity)
-    like = {"stabilised (all samples)": rows[1]["p95_mm"], "stabilised displacements": rows[2]["p95_mm"]}
+    like = {
+        "stabilised (all samples)": rows[1]["p95_mm"],
+        "stabilised displacements": rows[2]["p95_mm"],
+    }
     for r in rows:
         if "deg" not in r["stage"]:
             r["raw_p95_over_p95"] = raw_p95 / r["p95_mm"]
@@ -141,7 +152,9 @@ def main(argv: list[str]) -> int:
         f"Mocap cleaning — ICT take, {a.markers} markers, {a.seconds:g} s at {a.fps:g} fps, "
         f"{100 * records['occluded_fraction']:.1f}% samples occluded, seed {a.seed}, {a.placement} placement\n"
     )
-    print("| stage | filter | mean (mm) | p95 (mm) | max (mm) | raw p95 / p95 | raw stabilised p95 / p95 |")
+    print(
+        "| stage | filter | mean (mm) | p95 (mm) | max (mm) | raw p95 / p95 | raw stabilised p95 / p95 |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|")
     for r in rows:
         unit_note = " (deg)" if "deg" in r["stage"] else ""

@@ -36,7 +36,9 @@ import numpy as np
 OUT = Path(__file__).resolve().parent / "out" / "mocap_fidelity.json"
 
 
-def rigid_errors(got: np.ndarray, gt: np.ndarray, still: np.ndarray, skin: np.ndarray, mm: float) -> dict:
+def rigid_errors(
+    got: np.ndarray, gt: np.ndarray, still: np.ndarray, skin: np.ndarray, mm: float
+) -> dict:
     """Per-frame head pose error (the rigid fit of ``got`` onto ``gt`` over ``still`` vertices) and
     the skin error left after it. ``(F, V, 3)`` face units."""
     from scipy.spatial.transform import Rotation
@@ -50,8 +52,12 @@ def rigid_errors(got: np.ndarray, gt: np.ndarray, still: np.ndarray, skin: np.nd
         deg.append(np.degrees(Rotation.from_matrix(r).magnitude()))
         shift.append(np.linalg.norm(fixed - g[skin], axis=1).mean() * mm)
         nonrigid.append(np.linalg.norm(fixed - t[skin], axis=1).mean() * mm)
-    return {"pose_deg_mean": float(np.mean(deg)), "pose_deg_p95": float(np.percentile(deg, 95)),
-            "pose_mm_mean": float(np.mean(shift)), "nonrigid_mm_mean": float(np.mean(nonrigid))}
+    return {
+        "pose_deg_mean": float(np.mean(deg)),
+        "pose_deg_p95": float(np.percentile(deg, 95)),
+        "pose_mm_mean": float(np.mean(shift)),
+        "nonrigid_mm_mean": float(np.mean(nonrigid)),
+    }
 
 
 def live_vertices(tr, fmt: str, face, engine: str, backend: str) -> tuple[np.ndarray, int]:
@@ -73,7 +79,9 @@ def live_vertices(tr, fmt: str, face, engine: str, backend: str) -> tuple[np.nda
     anim = Animator(face, engine=engine, backend=backend, control_vertices=drv.control_vertices)
     from facecast.server.state import Animation
 
-    return anim.render(Animation(fps=take.fps, states=states, control_vertices=drv.control_vertices)), first
+    return anim.render(
+        Animation(fps=take.fps, states=states, control_vertices=drv.control_vertices)
+    ), first
 
 
 def main(argv: list[str]) -> int:
@@ -107,8 +115,15 @@ def main(argv: list[str]) -> int:
     for vname in a.variants:
         for k, held in enumerate(splits[: a.run_folds or len(splits)]):
             with tempfile.TemporaryDirectory() as tmp:
-                tr = make_take(vname, tmp, seed=a.seed + k, seconds=a.seconds, fps=a.fps, expressions=held,
-                               face=face)
+                tr = make_take(
+                    vname,
+                    tmp,
+                    seed=a.seed + k,
+                    seconds=a.seconds,
+                    fps=a.fps,
+                    expressions=held,
+                    face=face,
+                )
                 fmt = formats[k % 3]
                 frames = np.arange(0, len(tr.weights), a.every)
                 gt = tr.posed(face, deltas, frames)
@@ -118,16 +133,31 @@ def main(argv: list[str]) -> int:
                 def score(v: np.ndarray, gt=gt) -> dict:
                     e = np.linalg.norm(v[:, skin] - gt[:, skin], axis=2) * mm
                     em = np.linalg.norm(v[:, moving] - gt[:, moving], axis=2) * mm
-                    return {"skin_mm_mean": float(e.mean()), "skin_mm_p95": float(np.percentile(e, 95)),
-                            "moving_mm_mean": float(em.mean())}
+                    return {
+                        "skin_mm_mean": float(e.mean()),
+                        "skin_mm_p95": float(np.percentile(e, 95)),
+                        "moving_mm_mean": float(em.mean()),
+                    }
 
                 base = score(rest)
-                row = {"variant": vname, "fold": k, "held_out": [enames[i] for i in held], "format": fmt,
-                       "frames": len(tr.weights), "not_deforming": base}
+                row = {
+                    "variant": vname,
+                    "fold": k,
+                    "held_out": [enames[i] for i in held],
+                    "format": fmt,
+                    "frames": len(tr.weights),
+                    "not_deforming": base,
+                }
                 t0 = time.perf_counter()
                 out = Path(tmp) / "out.npz"
-                render_file(tr.paths[fmt], out, face=face, engine=a.engine, backend=a.backend,
-                            layout=str(tr.paths["layout"]))
+                render_file(
+                    tr.paths[fmt],
+                    out,
+                    face=face,
+                    engine=a.engine,
+                    backend=a.backend,
+                    layout=str(tr.paths["layout"]),
+                )
                 row["render_s"] = time.perf_counter() - t0
                 with np.load(out) as z:
                     got = z["vertices"][frames]
@@ -138,39 +168,63 @@ def main(argv: list[str]) -> int:
                     keep = frames >= first  # states start once the live neutral is taken
                     got = got[frames[keep] - first]
                     sc = score(got, gt[keep])
-                    row["live"] = {**sc, **rigid_errors(got, gt[keep], still, skin, mm),
-                                   "ratio": sc["skin_mm_mean"] / score(rest[keep], gt[keep])["skin_mm_mean"],
-                                   "first_frame": int(first)}
+                    row["live"] = {
+                        **sc,
+                        **rigid_errors(got, gt[keep], still, skin, mm),
+                        "ratio": sc["skin_mm_mean"] / score(rest[keep], gt[keep])["skin_mm_mean"],
+                        "first_frame": int(first),
+                    }
                 rows.append(row)
-                print(f"{vname} fold {k} ({fmt}): batch {row['batch']['ratio']:.2f}x, pose "
-                      f"{row['batch']['pose_deg_mean']:.3f} deg", file=sys.stderr, flush=True)
+                print(
+                    f"{vname} fold {k} ({fmt}): batch {row['batch']['ratio']:.2f}x, pose "
+                    f"{row['batch']['pose_deg_mean']:.3f} deg",
+                    file=sys.stderr,
+                    flush=True,
+                )
     load = os.getloadavg()
-    rec = {"seconds": a.seconds, "fps": a.fps, "engine": a.engine, "folds": a.folds, "every": a.every,
-           "skin_vertices": len(skin), "moving_skin_vertices": len(moving), "still_skin_vertices": len(still),
-           "loadavg": load, "rows": rows}
+    rec = {
+        "seconds": a.seconds,
+        "fps": a.fps,
+        "engine": a.engine,
+        "folds": a.folds,
+        "every": a.every,
+        "skin_vertices": len(skin),
+        "moving_skin_vertices": len(moving),
+        "still_skin_vertices": len(still),
+        "loadavg": load,
+        "rows": rows,
+    }
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(rec, indent=1) + "\n")
 
-    print(f"Mocap fidelity through `render` (ICT head, engine {a.engine}, {a.seconds:g} s at {a.fps:g} fps, "
-          f"every {a.every}th frame, held-out expression folds of {a.folds}; load {load[0]:.1f})\n")
+    print(
+        f"Mocap fidelity through `render` (ICT head, engine {a.engine}, {a.seconds:g} s at {a.fps:g} fps, "
+        f"every {a.every}th frame, held-out expression folds of {a.folds}; load {load[0]:.1f})\n"
+    )
     paths = ["batch"] + (["live"] if a.live else [])
-    print("| variant | fold | fmt | not deforming (mm) | path | skin mean (mm) | ratio | pose (deg) | pose (mm) "
-          "| non-rigid (mm) |")
+    print(
+        "| variant | fold | fmt | not deforming (mm) | path | skin mean (mm) | ratio | pose (deg) | pose (mm) "
+        "| non-rigid (mm) |"
+    )
     print("|---|---|---|---:|---|---:|---:|---:|---:|---:|")
     for r in rows:
         for pth in paths:
             s = r[pth]
-            print(f"| {r['variant']} | {r['fold']} | {r['format']} | {r['not_deforming']['skin_mm_mean']:.3f} | "
-                  f"{pth} | {s['skin_mm_mean']:.3f} | {s['ratio']:.2f}x | {s['pose_deg_mean']:.3f} | "
-                  f"{s['pose_mm_mean']:.3f} | {s['nonrigid_mm_mean']:.3f} |")
+            print(
+                f"| {r['variant']} | {r['fold']} | {r['format']} | {r['not_deforming']['skin_mm_mean']:.3f} | "
+                f"{pth} | {s['skin_mm_mean']:.3f} | {s['ratio']:.2f}x | {s['pose_deg_mean']:.3f} | "
+                f"{s['pose_mm_mean']:.3f} | {s['nonrigid_mm_mean']:.3f} |"
+            )
     print()
     for pth, target in (("batch", 0.25), ("live", 0.4)):
         if pth not in paths:
             continue
         ratio = np.mean([r[pth]["ratio"] for r in rows])
         pose = np.mean([r[pth]["pose_deg_mean"] for r in rows])
-        print(f"- {pth}: mean ratio {ratio:.2f}x (target <= {target}x): {'met' if ratio <= target else 'NOT met'}; "
-              f"mean head pose error {pose:.3f} deg (target <= 0.1): {'met' if pose <= 0.1 else 'NOT met'}")
+        print(
+            f"- {pth}: mean ratio {ratio:.2f}x (target <= {target}x): {'met' if ratio <= target else 'NOT met'}; "
+            f"mean head pose error {pose:.3f} deg (target <= 0.1): {'met' if pose <= 0.1 else 'NOT met'}"
+        )
     return 0
 
 

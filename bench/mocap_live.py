@@ -100,7 +100,6 @@ def main(argv: list[str]) -> int:
     raw_local = np.einsum("tmj,tji->tmi", raw - syn.head_t[:, None], syn.head_r)
     raw_err = np.linalg.norm((raw_local - syn.local)[n0:], axis=2)
 
-
     sine_lag = kalman_lag(a.fps, drv.kf.Q[1, 1] / drv.kf.dt, drv.kf.r)
     rec = {
         "face": a.face,

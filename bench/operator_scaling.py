@@ -14,6 +14,7 @@ memory-bandwidth floor).
 
 Writes ``bench/out/operator_scaling.json`` and prints a markdown table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,7 +43,7 @@ def sphere_face(n_vertices: int, n_controls: int = 84) -> tuple[Face, np.ndarray
     # Fibonacci points on the cap z > 0.3 (the "face"), snapped to the nearest vertex.
     i = np.arange(n_controls) + 0.5
     z = 1 - (1 - 0.3) * i / n_controls
-    phi = np.pi * (1 + 5 ** 0.5) * i
+    phi = np.pi * (1 + 5**0.5) * i
     r = np.sqrt(1 - z * z)
     pts = 100.0 * np.c_[r * np.cos(phi), r * np.sin(phi), z]
     from scipy.spatial import cKDTree
@@ -58,7 +59,9 @@ def get_face(size: str) -> tuple[Face, np.ndarray, str]:
         if len(controls) >= 4:
             return face, controls, "default head"
     except Exception as e:  # noqa: BLE001 - the built-in head may not exist yet
-        print(f"default:{size} unavailable ({type(e).__name__}: {e}); using a sphere", file=sys.stderr)
+        print(
+            f"default:{size} unavailable ({type(e).__name__}: {e}); using a sphere", file=sys.stderr
+        )
     face, controls = sphere_face(parse_count(size))
     return face, controls, "uv sphere"
 
@@ -77,8 +80,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", default="2k,25k,100k,500k")
     ap.add_argument("--frames", type=int, default=20)
-    ap.add_argument("--rbf-max", type=int, default=600_000,
-                    help="skip the dense RBF operator above this many vertices (memory: 4·V·K bytes)")
+    ap.add_argument(
+        "--rbf-max",
+        type=int,
+        default=600_000,
+        help="skip the dense RBF operator above this many vertices (memory: 4·V·K bytes)",
+    )
     ap.add_argument("--out", default=str(Path(__file__).parent / "out" / "operator_scaling.json"))
     args = ap.parse_args(argv)
     rng = np.random.default_rng(0)
@@ -87,10 +94,17 @@ def main(argv: list[str] | None = None) -> int:
         face, controls, kind = get_face(size)
         graph = edge_graph(face.vertices, face.triangles, face.deformable)
         label = components(graph)
-        source = int(np.flatnonzero(label == np.bincount(label).argmax())[0])  # in the largest piece
+        source = int(
+            np.flatnonzero(label == np.bincount(label).argmax())[0]
+        )  # in the largest piece
         t_dijkstra, _ = timed(dijkstra, graph, directed=False, indices=source)
-        row = {"size": size, "face": kind, "vertices": face.n_vertices, "controls": len(controls),
-               "dijkstra_one_source_s": t_dijkstra}
+        row = {
+            "size": size,
+            "face": kind,
+            "vertices": face.n_vertices,
+            "controls": len(controls),
+            "dijkstra_one_source_s": t_dijkstra,
+        }
         rest = face.vertices
         t_pass, _ = timed(np.add, rest, rest, repeat=max(5, args.frames))
         row["memory_pass_s"] = t_pass
@@ -104,23 +118,35 @@ def main(argv: list[str] | None = None) -> int:
             deformer = NumpyDeformer(face.vertices, face.triangles, face.rigid_group, op)
             deformer.deform(D, transforms)
             t_frame, _ = timed(deformer.deform, D, transforms, repeat=args.frames)
-            row[engine] = {"build_s": t_build, "build_over_dijkstra": t_build / t_dijkstra,
-                           "nnz": op.nnz, "frame_s": t_frame, "frame_over_memory_pass": t_frame / t_pass}
-            print(f"{size:>5s} {kind:12s} V={face.n_vertices:7d} K={len(controls):3d} {engine:3s} "
-                  f"build {t_build:7.2f}s frame {t_frame * 1e3:8.2f} ms", file=sys.stderr)
+            row[engine] = {
+                "build_s": t_build,
+                "build_over_dijkstra": t_build / t_dijkstra,
+                "nnz": op.nnz,
+                "frame_s": t_frame,
+                "frame_over_memory_pass": t_frame / t_pass,
+            }
+            print(
+                f"{size:>5s} {kind:12s} V={face.n_vertices:7d} K={len(controls):3d} {engine:3s} "
+                f"build {t_build:7.2f}s frame {t_frame * 1e3:8.2f} ms",
+                file=sys.stderr,
+            )
         rows.append(row)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"rows": rows, "machine_loaded": True}, indent=1))
-    print("| face | V | K | 1 Dijkstra s | fp build s (× Dijkstra) | fp frame ms (× memory pass) | "
-          "rbf build s | rbf frame ms |")
+    print(
+        "| face | V | K | 1 Dijkstra s | fp build s (× Dijkstra) | fp frame ms (× memory pass) | "
+        "rbf build s | rbf frame ms |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         fp, rbf = r["fp"], r.get("rbf")
         rb = f"{rbf['build_s']:.2f} | {rbf['frame_s'] * 1e3:.2f}" if rbf else "– | –"
-        print(f"| {r['face']} {r['size']} | {r['vertices']} | {r['controls']} | {r['dijkstra_one_source_s']:.3f} | "
-              f"{fp['build_s']:.2f} ({fp['build_over_dijkstra']:.1f}×) | {fp['frame_s'] * 1e3:.2f} "
-              f"({fp['frame_over_memory_pass']:.1f}×) | {rb} |")
+        print(
+            f"| {r['face']} {r['size']} | {r['vertices']} | {r['controls']} | {r['dijkstra_one_source_s']:.3f} | "
+            f"{fp['build_s']:.2f} ({fp['build_over_dijkstra']:.1f}×) | {fp['frame_s'] * 1e3:.2f} "
+            f"({fp['frame_over_memory_pass']:.1f}×) | {rb} |"
+        )
     return 0
 
 

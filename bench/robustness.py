@@ -26,6 +26,7 @@ that cannot run says why.
 Writes ``bench/out/robustness.json`` and ``bench/out/robustness.md`` (the table it prints), with
 the load average.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -73,6 +74,7 @@ def call_with(fn, **available):
 
 # ---- inputs ----
 
+
 def speech() -> tuple[np.ndarray, int, str]:
     """Real speech (``../shared/data/speech``) or, without the data, a voiced synthetic tone."""
     import soundfile as sf
@@ -84,7 +86,11 @@ def speech() -> tuple[np.ndarray, int, str]:
         x, sr = sf.read(str(d / "speech" / "bobby_16bit_16khz.wav"))
         return x, sr, "speech/bobby_16bit_16khz.wav"
     t = np.arange(19000) / 16000
-    return 0.3 * np.sin(2 * np.pi * 140 * t) * (1 + np.sin(2 * np.pi * 3 * t)) / 2, 16000, "synthetic tone"
+    return (
+        0.3 * np.sin(2 * np.pi * 140 * t) * (1 + np.sin(2 * np.pi * 3 * t)) / 2,
+        16000,
+        "synthetic tone",
+    )
 
 
 def audio_seeds(x: np.ndarray, sr: int) -> list[tuple[str, bytes]]:
@@ -93,11 +99,14 @@ def audio_seeds(x: np.ndarray, sr: int) -> list[tuple[str, bytes]]:
 
     x = x[:3000]
     out = []
-    for name, data, fmt, subtype in (("a.wav", x, "WAV", "PCM_16"), ("b.wav", x, "WAV", "FLOAT"),
-                                     ("c.wav", np.stack([x, x], 1), "WAV", "PCM_U8"),
-                                     ("d.flac", x, "FLAC", "PCM_16"),
-                                     ("e.flac", np.stack([x, -x], 1), "FLAC", "PCM_24"),
-                                     ("f.ogg", x, "OGG", "VORBIS")):
+    for name, data, fmt, subtype in (
+        ("a.wav", x, "WAV", "PCM_16"),
+        ("b.wav", x, "WAV", "FLOAT"),
+        ("c.wav", np.stack([x, x], 1), "WAV", "PCM_U8"),
+        ("d.flac", x, "FLAC", "PCM_16"),
+        ("e.flac", np.stack([x, -x], 1), "FLAC", "PCM_24"),
+        ("f.ogg", x, "OGG", "VORBIS"),
+    ):
         buf = io.BytesIO()
         sf.write(buf, data, sr, format=fmt, subtype=subtype)
         out.append((name, buf.getvalue()))
@@ -112,17 +121,21 @@ def mutate(data: bytes, rng: np.random.Generator) -> bytes:
         if not b:
             b = bytearray(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
         if op < 0.45:
-            i = int(rng.integers(0, min(len(b), 128))) if rng.random() < 0.6 else int(rng.integers(0, len(b)))
+            i = (
+                int(rng.integers(0, min(len(b), 128)))
+                if rng.random() < 0.6
+                else int(rng.integers(0, len(b)))
+            )
             b[i] = int(rng.integers(0, 256))
         elif op < 0.65:
             i = int(rng.integers(0, max(1, len(b) - 4)))
             word = [0, 1, 0xFFFF, 0x7FFFFFFF, 0xFFFFFFFF, 0x80000000][int(rng.integers(0, 6))]
-            b[i:i + 4] = word.to_bytes(4, "little")
+            b[i : i + 4] = word.to_bytes(4, "little")
         elif op < 0.8:
             i = int(rng.integers(0, len(b) + 1))
             b[i:i] = rng.integers(0, 256, int(rng.integers(1, 9)), dtype=np.uint8).tobytes()
         else:
-            b = b[:int(rng.integers(0, len(b) + 1))]
+            b = b[: int(rng.integers(0, len(b) + 1))]
     return bytes(b)
 
 
@@ -136,7 +149,9 @@ def take_seeds() -> tuple[dict[str, bytes], str]:
     files = {}
     with tempfile.TemporaryDirectory() as tmp:
         for suffix in (".c3d", ".trc"):
-            files["take" + suffix] = write_take(syn.take, Path(tmp) / ("take" + suffix)).read_bytes()
+            files["take" + suffix] = write_take(
+                syn.take, Path(tmp) / ("take" + suffix)
+            ).read_bytes()
     return files, json.dumps(syn.layout)
 
 
@@ -152,6 +167,7 @@ def fap_seed() -> bytes:
 
 
 # ---- audio fuzz in a child process ----
+
 
 def _audio_child(seed: int, start: int, n: int) -> None:
     """Decode mutated inputs ``start..n-1``; print ``i outcome`` for each before and after."""
@@ -184,14 +200,24 @@ def audio_fuzz(n: int, seed: int) -> dict:
     """Counts over ``n`` mutated audio files, keyed as ``fuzz_parsers.fuzz_counts``: parsed,
     project_errors, other_errors (any other exception), crashes (the child died by a signal) and
     hangs (no progress for ``HANG_S``)."""
-    counts = {"parser": "audio", "inputs": 0, "crashes": 0, "hangs": 0, "project_errors": 0, "parsed": 0,
-              "other_errors": 0}
+    counts = {
+        "parser": "audio",
+        "inputs": 0,
+        "crashes": 0,
+        "hangs": 0,
+        "project_errors": 0,
+        "parsed": 0,
+        "other_errors": 0,
+    }
     others: dict[str, int] = {}
     t0 = time.monotonic()
     start = 0
     while start < n:
-        p = subprocess.Popen([sys.executable, __file__, "--_audio-child", str(seed), str(start), str(n)],
-                             stdout=subprocess.PIPE, text=True)
+        p = subprocess.Popen(
+            [sys.executable, __file__, "--_audio-child", str(seed), str(start), str(n)],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         current, last, hung = start, time.monotonic(), False
         while True:
             ready, _, _ = select.select([p.stdout], [], [], 1.0)
@@ -228,6 +254,7 @@ def audio_fuzz(n: int, seed: int) -> dict:
 
 # ---- a real server ----
 
+
 class Server(LocalServer):
     """``facecast serve`` in a subprocess on a free loopback port (the shared harness), restartable."""
 
@@ -251,8 +278,12 @@ class Server(LocalServer):
     def session(self) -> dict:
         import httpx
 
-        r = httpx.post(self.url + "/v1/sessions", json={"input": "fap", "fps": 30}, headers=self.headers,
-                       timeout=REQUEST_TIMEOUT)
+        r = httpx.post(
+            self.url + "/v1/sessions",
+            json={"input": "fap", "fps": 30},
+            headers=self.headers,
+            timeout=REQUEST_TIMEOUT,
+        )
         r.raise_for_status()
         return r.json()
 
@@ -262,8 +293,11 @@ def http_inputs(seed: int):
     x, sr, _ = speech()
     audio = audio_seeds(x, sr)
     takes, layout = take_seeds()
-    kinds = [(n, d, None) for n, d in audio[:1] + audio[3:4]] + [("joy.fap", fap_seed(), None)] + \
-        [(n, d, layout) for n, d in takes.items()]
+    kinds = (
+        [(n, d, None) for n, d in audio[:1] + audio[3:4]]
+        + [("joy.fap", fap_seed(), None)]
+        + [(n, d, layout) for n, d in takes.items()]
+    )
     i = 0
     while True:
         rng = np.random.default_rng([seed, i])
@@ -281,7 +315,11 @@ def _classify(server: Server, send) -> str:
         code = send().status_code
         return f"{code // 100}xx"
     except httpx.HTTPError:
-        outcome = "crash" if server.proc.poll() is not None else ("hang" if not server.healthy() else "timeout")
+        outcome = (
+            "crash"
+            if server.proc.poll() is not None
+            else ("hang" if not server.healthy() else "timeout")
+        )
         if outcome != "timeout":
             server.restart()
         return outcome
@@ -302,8 +340,14 @@ def http_fuzz(n_play: int, n_jobs: int, seed: int) -> dict:
                 url = f"{server.url}/v1/sessions/{target['id']}/play"
 
                 def send():
-                    return httpx.post(url, files={"file": (name, content)}, data={"layout": layout} if layout else {},
-                                      headers=server.headers, timeout=REQUEST_TIMEOUT)
+                    return httpx.post(
+                        url,
+                        files={"file": (name, content)},
+                        data={"layout": layout} if layout else {},
+                        headers=server.headers,
+                        timeout=REQUEST_TIMEOUT,
+                    )
+
                 outcome = _classify(server, send)
                 if outcome in ("crash", "hang"):
                     target = server.session()
@@ -314,17 +358,25 @@ def http_fuzz(n_play: int, n_jobs: int, seed: int) -> dict:
                 job: dict = {}
 
                 def submit():
-                    r = httpx.post(server.url + "/v1/jobs", files={"file": (name, content)},
-                                   data={"format": "fap", **({"layout": layout} if layout else {})},
-                                   headers=server.headers, timeout=REQUEST_TIMEOUT)
+                    r = httpx.post(
+                        server.url + "/v1/jobs",
+                        files={"file": (name, content)},
+                        data={"format": "fap", **({"layout": layout} if layout else {})},
+                        headers=server.headers,
+                        timeout=REQUEST_TIMEOUT,
+                    )
                     job.update(r.json() if r.status_code == 202 else {})
                     return r
+
                 outcome = _classify(server, submit)
                 if outcome == "2xx" and job.get("id"):
                     deadline = time.monotonic() + 180
                     while True:
-                        st = httpx.get(f"{server.url}/v1/jobs/{job['id']}", headers=server.headers,
-                                       timeout=REQUEST_TIMEOUT)
+                        st = httpx.get(
+                            f"{server.url}/v1/jobs/{job['id']}",
+                            headers=server.headers,
+                            timeout=REQUEST_TIMEOUT,
+                        )
                         if st.status_code >= 500:
                             outcome = "5xx"
                             break
@@ -334,7 +386,11 @@ def http_fuzz(n_play: int, n_jobs: int, seed: int) -> dict:
                             break
                         if time.monotonic() > deadline:
                             outcome = "job stuck"
-                            httpx.delete(f"{server.url}/v1/jobs/{job['id']}", headers=server.headers, timeout=30)
+                            httpx.delete(
+                                f"{server.url}/v1/jobs/{job['id']}",
+                                headers=server.headers,
+                                timeout=30,
+                            )
                             break
                         time.sleep(0.3)
                 row = out["jobs"].setdefault(kind, {})
@@ -346,6 +402,7 @@ def http_fuzz(n_play: int, n_jobs: int, seed: int) -> dict:
 
 
 # ---- peak server memory on the largest uploads ----
+
 
 def big_file(kind: str, size: int, max_seconds: float, tmp: Path) -> Path:
     """A valid upload of about ``size`` bytes of ``kind``, built from the real inputs."""
@@ -362,7 +419,9 @@ def big_file(kind: str, size: int, max_seconds: float, tmp: Path) -> Path:
         rng = np.random.default_rng(0)
         with sf.SoundFile(path, "w", sr, 1, format="FLAC", subtype="PCM_16") as f:
             written, block = 0, sr * 60
-            while written < max_seconds * sr and (written == 0 or path.stat().st_size < size - 2**20):
+            while written < max_seconds * sr and (
+                written == 0 or path.stat().st_size < size - 2**20
+            ):
                 k = int(min(block, max_seconds * sr - written))
                 f.write(np.resize(x, k) * (0.5 + rng.random()))  # vary the level so blocks differ
                 written += k
@@ -386,7 +445,9 @@ def big_file(kind: str, size: int, max_seconds: float, tmp: Path) -> Path:
         take = _trc_take().take
         row_bytes = len(write_trc(take).encode()) / len(take.xyz)
         t = int(size / row_bytes * 0.95)
-        big = MarkerTake(take.names, np.resize(take.xyz, (t, *take.xyz.shape[1:])), take.fps, take.units, 0.0)
+        big = MarkerTake(
+            take.names, np.resize(take.xyz, (t, *take.xyz.shape[1:])), take.fps, take.units, 0.0
+        )
         path = tmp / "big.trc"
         path.write_text(write_trc(big))
     else:
@@ -416,8 +477,13 @@ def warm_up(server: Server, kind: str) -> None:
 
         name, data, layout = "take.trc", write_trc(syn.take).encode(), json.dumps(syn.layout)
     s = server.session()
-    r = httpx.post(f"{server.url}/v1/sessions/{s['id']}/play", headers=server.headers,
-                   files={"file": (name, data)}, data={"layout": layout} if layout else {}, timeout=REQUEST_TIMEOUT)
+    r = httpx.post(
+        f"{server.url}/v1/sessions/{s['id']}/play",
+        headers=server.headers,
+        files={"file": (name, data)},
+        data={"layout": layout} if layout else {},
+        timeout=REQUEST_TIMEOUT,
+    )
     r.raise_for_status()
     time.sleep(2.0)
 
@@ -434,7 +500,11 @@ def peak_memory(kinds: list[str], timeout: float) -> list[dict]:
     for kind in kinds:
         input_kind = {"fap": "fap", "trc": "markers"}.get(kind, "audio")
         # the limit of this kind of upload where the server has one, else the general one
-        limit = cfg.upload_limit(input_kind)[0] if hasattr(cfg, "upload_limit") else cfg.max_upload_bytes
+        limit = (
+            cfg.upload_limit(input_kind)[0]
+            if hasattr(cfg, "upload_limit")
+            else cfg.max_upload_bytes
+        )
         with tempfile.TemporaryDirectory() as tmp:
             tmp = Path(tmp)
             size = 60 * 2**20 if kind == "wav60x4" else int(limit) - 4096
@@ -443,7 +513,9 @@ def peak_memory(kinds: list[str], timeout: float) -> list[dict]:
             server = Server(tmp).start()
             try:
                 start_rss = server.rss()
-                warm_up(server, kind)  # imports, the face and the lip-sync net: not the upload's cost
+                warm_up(
+                    server, kind
+                )  # imports, the face and the lip-sync net: not the upload's cost
                 base = server.rss()
                 peak, stop = [base], threading.Event()
 
@@ -453,6 +525,7 @@ def peak_memory(kinds: list[str], timeout: float) -> list[dict]:
                             peak[0] = max(peak[0], server.rss())
                         except OSError:
                             return
+
                 th = threading.Thread(target=sample, daemon=True)
                 th.start()
                 copies = 4 if kind == "wav60x4" else 1
@@ -462,12 +535,17 @@ def peak_memory(kinds: list[str], timeout: float) -> list[dict]:
                     s = server.session()
                     try:
                         with open(path, "rb") as fh:
-                            r = httpx.post(f"{server.url}/v1/sessions/{s['id']}/play", headers=server.headers,
-                                           files={"file": (path.name, fh)}, data={"layout": layout} if layout else {},
-                                           timeout=timeout)
+                            r = httpx.post(
+                                f"{server.url}/v1/sessions/{s['id']}/play",
+                                headers=server.headers,
+                                files={"file": (path.name, fh)},
+                                data={"layout": layout} if layout else {},
+                                timeout=timeout,
+                            )
                         answers.append(r.status_code)
                     except httpx.HTTPError as e:
                         answers.append(type(e).__name__)
+
                 t0 = time.monotonic()
                 workers = [threading.Thread(target=play) for _ in range(copies)]
                 for w in workers:
@@ -477,9 +555,19 @@ def peak_memory(kinds: list[str], timeout: float) -> list[dict]:
                 seconds = time.monotonic() - t0
                 stop.set()
                 th.join()
-                rows.append({"kind": kind, "file_mib": round(path.stat().st_size / 2**20, 1), "concurrent": copies,
-                             "start_mb": round(start_rss / 2**20), "base_mb": round(base / 2**20), "peak_mb": round(peak[0] / 2**20),
-                             "answers": answers, "seconds": round(seconds, 1), "load_avg": os.getloadavg()})
+                rows.append(
+                    {
+                        "kind": kind,
+                        "file_mib": round(path.stat().st_size / 2**20, 1),
+                        "concurrent": copies,
+                        "start_mb": round(start_rss / 2**20),
+                        "base_mb": round(base / 2**20),
+                        "peak_mb": round(peak[0] / 2**20),
+                        "answers": answers,
+                        "seconds": round(seconds, 1),
+                        "load_avg": os.getloadavg(),
+                    }
+                )
                 print(rows[-1], flush=True)
             finally:
                 server.stop()
@@ -488,31 +576,45 @@ def peak_memory(kinds: list[str], timeout: float) -> list[dict]:
 
 # ---- report ----
 
+
 def table(rec: dict) -> str:
-    lines = [f"robustness — load average {rec['load_avg'][0]:.1f} (start) / {os.getloadavg()[0]:.1f} (end)", ""]
+    lines = [
+        f"robustness — load average {rec['load_avg'][0]:.1f} (start) / {os.getloadavg()[0]:.1f} (end)",
+        "",
+    ]
     if "fuzz" in rec:
-        lines += ["| parser | inputs | parsed | project errors | other exceptions | crashes | hangs |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [
+            "| parser | inputs | parsed | project errors | other exceptions | crashes | hangs |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for name, c in rec["fuzz"].items():
             if not isinstance(c, dict) or "inputs" not in c:
                 lines.append(f"| {name} | {c} | | | | | |")
                 continue
-            lines.append(f"| {name} | {c['inputs']} | {c.get('parsed')} | {c.get('project_errors')} "
-                         f"| {c.get('other_errors')} | {c.get('crashes')} | {c.get('hangs')} |")
+            lines.append(
+                f"| {name} | {c['inputs']} | {c.get('parsed')} | {c.get('project_errors')} "
+                f"| {c.get('other_errors')} | {c.get('crashes')} | {c.get('hangs')} |"
+            )
         lines.append("")
     if "http" in rec:
         lines += ["| endpoint | kind | answers |", "|---|---|---|"]
         for ep in ("play", "jobs"):
             for kind, row in rec["http"][ep].items():
-                lines.append(f"| {ep} | {kind} | {', '.join(f'{k}: {v}' for k, v in sorted(row.items()))} |")
+                lines.append(
+                    f"| {ep} | {kind} | {', '.join(f'{k}: {v}' for k, v in sorted(row.items()))} |"
+                )
         lines += [f"\nserver restarts (crash or hang): {rec['http'].get('server_restarts')}", ""]
     if "memory" in rec:
-        lines += ["| upload | MiB | concurrent | server RSS at start | warmed up | peak | answers | s |",
-                  "|---|---|---|---|---|---|---|---|"]
+        lines += [
+            "| upload | MiB | concurrent | server RSS at start | warmed up | peak | answers | s |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for r in rec["memory"]:
-            lines.append(f"| {r['kind']} | {r['file_mib']} | {r['concurrent']} | {r['start_mb']} MB | {r['base_mb']} MB "
-                         f"| {r['peak_mb']} MB "
-                         f"| {r['answers']} | {r['seconds']} |")
+            lines.append(
+                f"| {r['kind']} | {r['file_mib']} | {r['concurrent']} | {r['start_mb']} MB | {r['base_mb']} MB "
+                f"| {r['peak_mb']} MB "
+                f"| {r['answers']} | {r['seconds']} |"
+            )
         lines.append("")
     for part in ("flood", "glb"):
         if part in rec:
@@ -525,11 +627,18 @@ def parse(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--fuzz", type=int, default=0, metavar="N", help="mutated inputs per parser")
     p.add_argument("--http", type=int, default=0, metavar="N", help="mutated files through /play")
     p.add_argument("--jobs", type=int, default=0, metavar="N", help="mutated files as batch jobs")
-    p.add_argument("--memory", nargs="*", default=None, metavar="KIND",
-                   help="peak server RSS on the largest upload of each kind (default: wav flac fap wav60x4)")
+    p.add_argument(
+        "--memory",
+        nargs="*",
+        default=None,
+        metavar="KIND",
+        help="peak server RSS on the largest upload of each kind (default: wav flac fap wav60x4)",
+    )
     p.add_argument("--memory-timeout", type=float, default=600.0, help="seconds per upload")
     p.add_argument("--flood", action="store_true", help="bench/flood.py's run_flood")
-    p.add_argument("--glb", action="store_true", help="bench/gltf_encode.py's glb_check at 200k and 500k")
+    p.add_argument(
+        "--glb", action="store_true", help="bench/gltf_encode.py's glb_check at 200k and 500k"
+    )
     p.add_argument("--all", action="store_true", help="every part (fuzz 2000, http 300, jobs 30)")
     p.add_argument("--seed", type=int, default=12)
     p.add_argument("--out", type=Path, default=OUT)
@@ -554,21 +663,32 @@ def main(argv: list[str]) -> int:
         rec["fuzz"]["audio"]["source"] = speech()[2]
         fuzz_counts = optional("fuzz_parsers", "fuzz_counts")
         for name in optional("fuzz_parsers", "PARSERS") or PARSERS:
-            rec["fuzz"][name] = (fuzz_counts(name, args.fuzz, args.seed) if fuzz_counts
-                                 else "not run: bench/fuzz_parsers.py (fuzz_counts) is not here")
+            rec["fuzz"][name] = (
+                fuzz_counts(name, args.fuzz, args.seed)
+                if fuzz_counts
+                else "not run: bench/fuzz_parsers.py (fuzz_counts) is not here"
+            )
     if args.http or args.jobs:
         rec["http"] = http_fuzz(args.http, args.jobs, args.seed)
     if args.memory:
         rec["memory"] = peak_memory(args.memory, args.memory_timeout)
     if args.flood:
         run_flood = optional("flood", "run_flood")
-        rec["flood"] = {"binary FAP": call_with(run_flood, json_frames=False),
-                        "JSON FAP": call_with(run_flood, json_frames=True)} if run_flood else \
-            "not run: bench/flood.py (run_flood) is not here"
+        rec["flood"] = (
+            {
+                "binary FAP": call_with(run_flood, json_frames=False),
+                "JSON FAP": call_with(run_flood, json_frames=True),
+            }
+            if run_flood
+            else "not run: bench/flood.py (run_flood) is not here"
+        )
     if args.glb:
         glb_check = optional("gltf_encode", "glb_check")
-        rec["glb"] = {spec: glb_check(spec) for spec in ("default:200k", "default:500k")} if glb_check else \
-            "not run: bench/gltf_encode.py has no glb_check"
+        rec["glb"] = (
+            {spec: glb_check(spec) for spec in ("default:200k", "default:500k")}
+            if glb_check
+            else "not run: bench/gltf_encode.py has no glb_check"
+        )
     rec["load_avg_end"] = os.getloadavg()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(rec, indent=1, default=str) + "\n")

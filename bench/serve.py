@@ -142,14 +142,28 @@ def _encodings(text: str) -> list[str]:
 # ------------------------------------------------------------------------------------ server process
 
 
-def _server(face: str, backend: str, env: dict[str, str] | None = None,
-            python: str = sys.executable) -> LocalServer:
+def _server(
+    face: str, backend: str, env: dict[str, str] | None = None, python: str = sys.executable
+) -> LocalServer:
     """A ``facecast serve`` of the bench's own (temporary data dir, no job workers, generous limits),
     run by ``python`` (another checkout's interpreter for ``--baseline-python``)."""
-    limits = {"FACECAST_MAX_SESSIONS": "256", "FACECAST_MAX_VIEWERS_PER_SESSION": "1024",
-              "FACECAST_MAX_PRODUCER_FPS": "1000"}
-    return LocalServer(None, "--face", face, "--backend", backend, "--workers", "0", admin_key=ADMIN_KEY,
-                       env={**limits, **(env or {})}, python=python)
+    limits = {
+        "FACECAST_MAX_SESSIONS": "256",
+        "FACECAST_MAX_VIEWERS_PER_SESSION": "1024",
+        "FACECAST_MAX_PRODUCER_FPS": "1000",
+    }
+    return LocalServer(
+        None,
+        "--face",
+        face,
+        "--backend",
+        backend,
+        "--workers",
+        "0",
+        admin_key=ADMIN_KEY,
+        env={**limits, **(env or {})},
+        python=python,
+    )
 
 
 class _External:
@@ -309,6 +323,7 @@ async def _viewer(
     if _VIEWER_OPTS.get("rcvbuf") is not None:
         opts["receive_buffer"] = _VIEWER_OPTS["rcvbuf"] or None
     opts["max_queue"] = _VIEWER_OPTS.get("queue") or api.VIEWER_MAX_QUEUE
+
     async def receive(w: Any) -> None:
         async for f in w:
             h = f.frame.header
@@ -458,8 +473,10 @@ def _viewer_process(url, seats, kind, encoding, opts, ready, stop, conn) -> None
         fn = _light_viewer if kind == "light" else _viewer
         recs = {slot: [] for slot in seats}
         evs = [asyncio.Event() for _ in seats]
-        tasks = [asyncio.create_task(fn(url, seat, encoding, local_stop, ev, recs[slot]))
-                 for (slot, seat), ev in zip(seats.items(), evs)]
+        tasks = [
+            asyncio.create_task(fn(url, seat, encoding, local_stop, ev, recs[slot]))
+            for (slot, seat), ev in zip(seats.items(), evs)
+        ]
         await asyncio.wait_for(asyncio.gather(*(e.wait() for e in evs)), 120)
         ready.set()
         while not stop.is_set():
@@ -476,7 +493,11 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
     """One load point: ``sessions`` sessions with ``viewers`` viewers each, for warmup + seconds."""
     from facecast.client.api import SessionAdmin
 
-    key = server.admin_key if isinstance(server, LocalServer) else os.environ.get("FACECAST_ADMIN_KEY", ADMIN_KEY)
+    key = (
+        server.admin_key
+        if isinstance(server, LocalServer)
+        else os.environ.get("FACECAST_ADMIN_KEY", ADMIN_KEY)
+    )
     async with SessionAdmin(url, key) as admin:
         made = [await admin.create(face=args.face, fps=args.fps) for _ in range(sessions)]
         stop = asyncio.Event()
@@ -499,8 +520,20 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         mp_stop, children = mp.Event(), []
         for seats in away:
             ready, (mine, theirs) = mp.Event(), mp.Pipe(duplex=False)
-            proc = mp.Process(target=_viewer_process, daemon=True, args=(
-                url, seats, args.viewer_kind, args.encoding, dict(_VIEWER_OPTS), ready, mp_stop, theirs))
+            proc = mp.Process(
+                target=_viewer_process,
+                daemon=True,
+                args=(
+                    url,
+                    seats,
+                    args.viewer_kind,
+                    args.encoding,
+                    dict(_VIEWER_OPTS),
+                    ready,
+                    mp_stop,
+                    theirs,
+                ),
+            )
             proc.start()
             children.append((proc, ready, mine))
         await asyncio.wait_for(asyncio.gather(*(e.wait() for e in ready_events)), 120)
@@ -510,6 +543,7 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         sent: list[int] = []
         tasks += [asyncio.create_task(_producer(url, s, args.fps, stop, sent)) for s in made]
         await asyncio.sleep(args.warmup)
+
         def clients_cpu() -> float:
             return _own_cpu() + sum(process_cpu_seconds(p.pid) for p, _, _ in children)
 
@@ -640,14 +674,18 @@ async def _sweeps(server, url: str, args, baseline: LocalServer | None = None) -
         log.info("%s", res[sweep][-1])
         if baseline is not None:
             res["baseline_" + sweep].append(
-                await run_point(baseline, baseline.url, sessions=n, viewers=m, args=args))
+                await run_point(baseline, baseline.url, sessions=n, viewers=m, args=args)
+            )
             log.info("baseline: %s", res["baseline_" + sweep][-1])
     return res
 
 
 def _ratios(points: list[dict], baseline: list[dict], key: str) -> list[float | None]:
     """``key`` of each point over the baseline's at the same point (None where one is missing)."""
-    return [round(p[key] / b[key], 2) if p.get(key) and b.get(key) else None for p, b in zip(points, baseline)]
+    return [
+        round(p[key] / b[key], 2) if p.get(key) and b.get(key) else None
+        for p, b in zip(points, baseline)
+    ]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -684,7 +722,8 @@ def run(args: argparse.Namespace) -> int:
         res["baseline_python"] = args.baseline_python
         for sweep in ("sessions_sweep", "viewers_sweep"):
             res[sweep + "_cpu_ratio_vs_baseline"] = _ratios(
-                res[sweep], res["baseline_" + sweep], "server_cpu_us_per_session_frame")
+                res[sweep], res["baseline_" + sweep], "server_cpu_us_per_session_frame"
+            )
     if args.compare_asgi and url is None:
         server = _server(args.face, args.backend, env={"FACECAST_LIVE_DIRECT": "0"})
         try:
@@ -760,11 +799,24 @@ def run(args: argparse.Namespace) -> int:
             print(_table(f"Viewers of one session, {enc}", r["viewers_sweep"], args))
             print()
     for enc, r in by_encoding.items():
-        for sweep, title in (("sessions_sweep", "Concurrent sessions"), ("viewers_sweep", "Viewers of one session")):
+        for sweep, title in (
+            ("sessions_sweep", "Concurrent sessions"),
+            ("viewers_sweep", "Viewers of one session"),
+        ):
             if r.get("baseline_" + sweep):
-                print(_table(f"{title}, {enc}, baseline server ({args.baseline_python})", r["baseline_" + sweep], args))
-                ratios = _ratios(r[sweep], r["baseline_" + sweep], "server_cpu_us_per_session_frame")
-                print(f"\nServer CPU per session-frame, this checkout / baseline, point by point: {ratios}\n")
+                print(
+                    _table(
+                        f"{title}, {enc}, baseline server ({args.baseline_python})",
+                        r["baseline_" + sweep],
+                        args,
+                    )
+                )
+                ratios = _ratios(
+                    r[sweep], r["baseline_" + sweep], "server_cpu_us_per_session_frame"
+                )
+                print(
+                    f"\nServer CPU per session-frame, this checkout / baseline, point by point: {ratios}\n"
+                )
     if "viewers_sweep_asgi" in res:
         print()
         print(

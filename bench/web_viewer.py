@@ -28,6 +28,7 @@ recorded for every run. Writes bench/out/web_viewer.json and prints markdown tab
                                [--encodings i16] [--scale 1] [--shading vertex] [--lod 0]
                                [--width 1280 --height 720] [--chromium-arg ARG] [--screenshot DIR]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,16 +45,31 @@ from facecast.server.harness import LocalServer
 
 ROOT = Path(__file__).resolve().parents[1]
 ICT = ROOT.parent / "shared" / "data" / "ict-facekit" / "generic_neutral_mesh.obj"
-COMMON = ["--no-sandbox", "--disable-background-networking", "--disable-component-update", "--disable-sync",
-          "--no-first-run"]
+COMMON = [
+    "--no-sandbox",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 #: PartitionAlloc (Chromium's malloc, which Mesa's allocations go through too) keeps more emptied slot
 #: spans committed: llvmpipe allocates and frees its vertex and bin buffers every draw, and with the default
 #: ring they were decommitted (madvise) and faulted in again every frame (~16 % of the GPU process's CPU).
 ALLOC_RING = "--enable-features=PartitionAllocLargeEmptySlotSpanRing"
 GL_ARGS = {
-    "llvmpipe": ["--use-gl=angle", "--use-angle=gl-egl", "--ignore-gpu-blocklist", "--disable-gpu-compositing",
-                 ALLOC_RING],
-    "swiftshader": ["--disable-gpu", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
+    "llvmpipe": [
+        "--use-gl=angle",
+        "--use-angle=gl-egl",
+        "--ignore-gpu-blocklist",
+        "--disable-gpu-compositing",
+        ALLOC_RING,
+    ],
+    "swiftshader": [
+        "--disable-gpu",
+        "--use-gl=angle",
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+    ],
 }
 
 #: A page whose only work is clearing a full-window WebGL2 canvas (or nothing: mode 'idle') every frame.
@@ -142,7 +158,9 @@ def ceiling(browser, width: int, height: int, ms: int, sweep: tuple[int, ...] = 
         c0 = process_cpu()
         r = page.evaluate(CEILING_JS, [mode, ms, int(mode[5:]) if mode.startswith("tris:") else 0])
         c1 = process_cpu()
-        r["gpu_ms_per_frame"] = 1000 * (c1.get("gpu-process", 0) - c0.get("gpu-process", 0)) / r["frames"]
+        r["gpu_ms_per_frame"] = (
+            1000 * (c1.get("gpu-process", 0) - c0.get("gpu-process", 0)) / r["frames"]
+        )
         out[mode] = r
     page.close()
     return out
@@ -152,8 +170,11 @@ def ceiling(browser, width: int, height: int, ms: int, sweep: tuple[int, ...] = 
 #: page setup run after the face has loaded and the quality is fixed, or "?query" for the page's URL:
 #: WebGL context attributes).
 VARIANTS: dict[str, tuple[list[str], dict[str, str], str]] = {
-    "baseline": (["-" + ALLOC_RING], {},
-                 "facecast.renderer.setVertexCacheOrder(false); facecast.renderer.mouthScissor = false"),
+    "baseline": (
+        ["-" + ALLOC_RING],
+        {},
+        "facecast.renderer.setVertexCacheOrder(false); facecast.renderer.mouthScissor = false",
+    ),
     "page": ([], {}, ""),
     "no-alloc-ring": (["-" + ALLOC_RING], {}, ""),
     "mesh-order": ([], {}, "facecast.renderer.setVertexCacheOrder(false)"),
@@ -179,6 +200,7 @@ def sample(page, server_pid: int, seconds: float) -> dict:
     c1, s1, b = process_cpu(), pid_cpu(server_pid), page.evaluate(COUNTERS_JS)
     el = (b["t"] - a["t"]) / 1000
     dec = sorted(b["decode"])
+
     def q(p: float) -> float | None:
         return dec[min(len(dec) - 1, int(p * len(dec)))] if dec else None
 
@@ -187,16 +209,19 @@ def sample(page, server_pid: int, seconds: float) -> dict:
     return {
         "seconds": el,
         "received_fps": (b["received"] - a["received"]) / el,
-        "drawn_fps": (b["fresh"] - a["fresh"]) / el,          # draws that showed a new vertex frame
-        "draws_fps": (b["draws"] - a["draws"]) / el,          # all canvas draws
+        "drawn_fps": (b["fresh"] - a["fresh"]) / el,  # draws that showed a new vertex frame
+        "draws_fps": (b["draws"] - a["draws"]) / el,  # all canvas draws
         "raf_fps": (b["rafs"] - a["rafs"]) / el,
-        "superseded": b["superseded"] - a["superseded"],      # received but never drawn (a newer one came first)
+        "superseded": b["superseded"]
+        - a["superseded"],  # received but never drawn (a newer one came first)
         "dropped_by_server": b["dropped"] - a["dropped"],
-        "decode_ms_p50": q(0.5), "decode_ms_p95": q(0.95), "decode_ms_max": dec[-1] if dec else None,
+        "decode_ms_p50": q(0.5),
+        "decode_ms_p95": q(0.95),
+        "decode_ms_max": dec[-1] if dec else None,
         "decode_samples": len(dec),
         "gpu_ms_per_frame": 1000 * cpu.get("gpu-process", 0) / fresh,
         "renderer_ms_per_frame": 1000 * cpu.get("renderer", 0) / fresh,
-        "chromium_ms_per_frame": 1000 * sum(cpu.values()) / fresh,   # every Chromium process
+        "chromium_ms_per_frame": 1000 * sum(cpu.values()) / fresh,  # every Chromium process
         "cpu_ms_per_frame_by_process": {k: 1000 * v / fresh for k, v in cpu.items()},
         "server_cpu_percent": 100 * (s1 - s0) / el,
         "load_average": os.getloadavg()[0],
@@ -206,7 +231,9 @@ def sample(page, server_pid: int, seconds: float) -> dict:
 def flags_for(gl: str, variant: str, extra: list[str]) -> list[str]:
     add, _, _ = VARIANTS[variant]
     drop = {a[1:] for a in add if a.startswith("-" + "--")}
-    return [a for a in COMMON + GL_ARGS[gl] + extra if a not in drop] + [a for a in add if not a.startswith("-" + "--")]
+    return [a for a in COMMON + GL_ARGS[gl] + extra if a not in drop] + [
+        a for a in add if not a.startswith("-" + "--")
+    ]
 
 
 def median(xs: list[float]) -> float:
@@ -217,21 +244,40 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=8.0, help="measured seconds per run")
     ap.add_argument("--repeats", type=int, default=3, help="rounds over the variants (interleaved)")
-    ap.add_argument("--variants", default="baseline,page", help="comma-separated: " + ", ".join(VARIANTS))
+    ap.add_argument(
+        "--variants", default="baseline,page", help="comma-separated: " + ", ".join(VARIANTS)
+    )
     ap.add_argument("--face", type=Path, default=ICT)
     ap.add_argument("--fps", type=float, default=60.0)
     ap.add_argument("--gl", default="llvmpipe", help="comma-separated: " + ", ".join(GL_ARGS))
     ap.add_argument("--encodings", default="i16")
-    ap.add_argument("--scale", type=float, default=1.0, help="renderer.scale (drawing-buffer pixels per CSS pixel)")
+    ap.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="renderer.scale (drawing-buffer pixels per CSS pixel)",
+    )
     ap.add_argument("--shading", choices=("pixel", "vertex"), default="vertex")
-    ap.add_argument("--lod", type=int, choices=(0, 1), default=0,
-                    help="level of detail (0: every triangle, 1: the coarse level)")
-    ap.add_argument("--chromium-arg", action="append", default=[], help="extra Chromium switch (repeatable)")
+    ap.add_argument(
+        "--lod",
+        type=int,
+        choices=(0, 1),
+        default=0,
+        help="level of detail (0: every triangle, 1: the coarse level)",
+    )
+    ap.add_argument(
+        "--chromium-arg", action="append", default=[], help="extra Chromium switch (repeatable)"
+    )
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
-    ap.add_argument("--screenshot", type=Path, default=None, help="directory for a screenshot per variant")
-    ap.add_argument("--sweep", default="25000,50000",
-                    help="triangle counts for the dummy-scene ceiling, first repeat only (comma-separated; empty: none)")
+    ap.add_argument(
+        "--screenshot", type=Path, default=None, help="directory for a screenshot per variant"
+    )
+    ap.add_argument(
+        "--sweep",
+        default="25000,50000",
+        help="triangle counts for the dummy-scene ceiling, first repeat only (comma-separated; empty: none)",
+    )
     args = ap.parse_args()
     variants = [v for v in args.variants.split(",") if v]
     for v in variants:
@@ -243,45 +289,91 @@ def main() -> int:
     server = LocalServer(None, env={"FACECAST_FACES": f"bench={args.face}"}, admin_key=key)
     url = server.url
     sweep = tuple(int(n) for n in args.sweep.split(",") if n)
-    results: dict = {"face": str(args.face), "session_fps": args.fps, "cpus": os.cpu_count(), "scale": args.scale,
-                     "shading": args.shading, "lod": args.lod, "viewport": [args.width, args.height],
-                     "variants": {v: {"add_flags": VARIANTS[v][0], "env": VARIANTS[v][1], "page": VARIANTS[v][2]}
-                                  for v in variants},
-                     "load_average_start": os.getloadavg(), "ceilings": [], "runs": []}
+    results: dict = {
+        "face": str(args.face),
+        "session_fps": args.fps,
+        "cpus": os.cpu_count(),
+        "scale": args.scale,
+        "shading": args.shading,
+        "lod": args.lod,
+        "viewport": [args.width, args.height],
+        "variants": {
+            v: {"add_flags": VARIANTS[v][0], "env": VARIANTS[v][1], "page": VARIANTS[v][2]}
+            for v in variants
+        },
+        "load_average_start": os.getloadavg(),
+        "ceilings": [],
+        "runs": [],
+    }
     try:
         server.start(120)
         hdr = {"Authorization": f"Bearer {key}"}
         with sync_playwright() as p:
             for rep in range(args.repeats):
                 for gl in args.gl.split(","):
-                    browser = p.chromium.launch(executable_path="/usr/bin/chromium",
-                                                args=COMMON + GL_ARGS[gl] + args.chromium_arg)
-                    base = ceiling(browser, args.width, args.height, 3000, sweep if rep == 0 else ())
+                    browser = p.chromium.launch(
+                        executable_path="/usr/bin/chromium",
+                        args=COMMON + GL_ARGS[gl] + args.chromium_arg,
+                    )
+                    base = ceiling(
+                        browser, args.width, args.height, 3000, sweep if rep == 0 else ()
+                    )
                     browser.close()
-                    results["ceilings"].append({"repeat": rep, "gl": gl, **base, "load_average": os.getloadavg()[0]})
+                    results["ceilings"].append(
+                        {"repeat": rep, "gl": gl, **base, "load_average": os.getloadavg()[0]}
+                    )
                     for variant in variants:
                         _, venv, setup = VARIANTS[variant]
                         flags = flags_for(gl, variant, args.chromium_arg)
-                        browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=flags,
-                                                    env={**os.environ, **venv})
-                        page = browser.new_page(viewport={"width": args.width, "height": args.height})
+                        browser = p.chromium.launch(
+                            executable_path="/usr/bin/chromium",
+                            args=flags,
+                            env={**os.environ, **venv},
+                        )
+                        page = browser.new_page(
+                            viewport={"width": args.width, "height": args.height}
+                        )
                         page.set_default_timeout(300_000)
                         for encoding in args.encodings.split(","):
-                            s = httpx.post(url + "/v1/sessions", json={"face": "bench", "input": "fap", "fps": args.fps},
-                                           headers=hdr, timeout=300).json()
-                            httpx.post(f"{url}/v1/sessions/{s['id']}/demo", headers=hdr, timeout=60).raise_for_status()
+                            s = httpx.post(
+                                url + "/v1/sessions",
+                                json={"face": "bench", "input": "fap", "fps": args.fps},
+                                headers=hdr,
+                                timeout=300,
+                            ).json()
+                            httpx.post(
+                                f"{url}/v1/sessions/{s['id']}/demo", headers=hdr, timeout=60
+                            ).raise_for_status()
                             query = setup if setup.startswith("?") else "?"
-                            page.goto(f"{url}/{query}#session={s['id']}&token={s['viewer_token']}&encoding={encoding}")
-                            page.wait_for_function("window.facecast && window.facecast.viewer.stats.frames > 30")
-                            page.evaluate("(q) => facecast.setQuality(q)",
-                                          {"scale": args.scale, "shading": args.shading, "lod": args.lod})
+                            page.goto(
+                                f"{url}/{query}#session={s['id']}&token={s['viewer_token']}&encoding={encoding}"
+                            )
+                            page.wait_for_function(
+                                "window.facecast && window.facecast.viewer.stats.frames > 30"
+                            )
+                            page.evaluate(
+                                "(q) => facecast.setQuality(q)",
+                                {"scale": args.scale, "shading": args.shading, "lod": args.lod},
+                            )
                             if setup and not setup.startswith("?"):
                                 page.evaluate(f"() => {{ {setup}; }}")
                             time.sleep(3)  # let the page settle
-                            run = {"repeat": rep, "variant": variant, "gl": gl, "flags": flags, "env": venv,
-                                   "encoding": encoding, **sample(page, server.proc.pid, args.seconds)}
-                            summary = page.evaluate("facecast.viewer.summary()")  # latency: frame sent -> in the page
-                            run["latency_ms_p50"], run["latency_ms_p95"] = summary["latencyP50"], summary["latencyP95"]
+                            run = {
+                                "repeat": rep,
+                                "variant": variant,
+                                "gl": gl,
+                                "flags": flags,
+                                "env": venv,
+                                "encoding": encoding,
+                                **sample(page, server.proc.pid, args.seconds),
+                            }
+                            summary = page.evaluate(
+                                "facecast.viewer.summary()"
+                            )  # latency: frame sent -> in the page
+                            run["latency_ms_p50"], run["latency_ms_p95"] = (
+                                summary["latencyP50"],
+                                summary["latencyP95"],
+                            )
                             info = page.evaluate("""() => { const r = facecast.renderer, m = r.mesh;
                               const level = r.lod ? r.coarseLevel() : m, gl = r.gl;
                               const dbg = gl.getExtension('WEBGL_debug_renderer_info');
@@ -294,11 +386,19 @@ def main() -> int:
                             run["drawn_vs_clear_ceiling"] = run["drawn_fps"] / base["clear"]["fps"]
                             if args.screenshot and rep == 0:
                                 args.screenshot.mkdir(parents=True, exist_ok=True)
-                                page.screenshot(path=str(args.screenshot / f"web_viewer_{gl}_{encoding}_{variant}.png"))
+                                page.screenshot(
+                                    path=str(
+                                        args.screenshot
+                                        / f"web_viewer_{gl}_{encoding}_{variant}.png"
+                                    )
+                                )
                             results["runs"].append(run)
-                            print(f"repeat {rep} {gl} {encoding} {variant}: drawn {run['drawn_fps']:.1f} fps, GPU process "
-                                  f"{run['gpu_ms_per_frame']:.1f} ms/frame, load {run['load_average']:.2f}",
-                                  file=sys.stderr, flush=True)
+                            print(
+                                f"repeat {rep} {gl} {encoding} {variant}: drawn {run['drawn_fps']:.1f} fps, GPU process "
+                                f"{run['gpu_ms_per_frame']:.1f} ms/frame, load {run['load_average']:.2f}",
+                                file=sys.stderr,
+                                flush=True,
+                            )
                             httpx.delete(f"{url}/v1/sessions/{s['id']}", headers=hdr, timeout=60)
                         browser.close()
     finally:
@@ -309,59 +409,106 @@ def main() -> int:
     for gl in args.gl.split(","):
         for encoding in args.encodings.split(","):
             for variant in variants:
-                rs = [r for r in results["runs"] if (r["gl"], r["encoding"], r["variant"]) == (gl, encoding, variant)]
+                rs = [
+                    r
+                    for r in results["runs"]
+                    if (r["gl"], r["encoding"], r["variant"]) == (gl, encoding, variant)
+                ]
                 if not rs:
                     continue
                 ratios = []
                 for r in rs:
-                    b = [x for x in results["runs"] if (x["gl"], x["encoding"], x["variant"], x["repeat"])
-                         == (gl, encoding, "baseline", r["repeat"])]
+                    b = [
+                        x
+                        for x in results["runs"]
+                        if (x["gl"], x["encoding"], x["variant"], x["repeat"])
+                        == (gl, encoding, "baseline", r["repeat"])
+                    ]
                     if b and b[0]["drawn_fps"] > 0:
                         ratios.append(r["drawn_fps"] / b[0]["drawn_fps"])
-                summary.append({
-                    "gl": gl, "encoding": encoding, "variant": variant, "runs": len(rs),
-                    "drawn_fps_median": median([r["drawn_fps"] for r in rs]),
-                    "drawn_fps_min": min(r["drawn_fps"] for r in rs), "drawn_fps_max": max(r["drawn_fps"] for r in rs),
-                    "received_fps_median": median([r["received_fps"] for r in rs]),
-                    "vs_baseline_median": median(ratios) if ratios else None,
-                    "gpu_ms_per_frame_median": median([r["gpu_ms_per_frame"] for r in rs]),
-                    "renderer_ms_per_frame_median": median([r["renderer_ms_per_frame"] for r in rs]),
-                    "chromium_ms_per_frame_median": median([r["chromium_ms_per_frame"] for r in rs]),
-                    "decode_ms_p50_median": median([r["decode_ms_p50"] for r in rs if r["decode_ms_p50"] is not None]),
-                    "decode_ms_p95_max": max((r["decode_ms_p95"] for r in rs if r["decode_ms_p95"] is not None), default=None),
-                    "load_average_range": [min(r["load_average"] for r in rs), max(r["load_average"] for r in rs)],
-                    "triangles_drawn": rs[0]["triangles_drawn"], "triangles": rs[0]["triangles"],
-                    "canvas": rs[0]["canvas"], "shading": rs[0]["shading"], "render_scale": rs[0]["render_scale"],
-                })
+                summary.append(
+                    {
+                        "gl": gl,
+                        "encoding": encoding,
+                        "variant": variant,
+                        "runs": len(rs),
+                        "drawn_fps_median": median([r["drawn_fps"] for r in rs]),
+                        "drawn_fps_min": min(r["drawn_fps"] for r in rs),
+                        "drawn_fps_max": max(r["drawn_fps"] for r in rs),
+                        "received_fps_median": median([r["received_fps"] for r in rs]),
+                        "vs_baseline_median": median(ratios) if ratios else None,
+                        "gpu_ms_per_frame_median": median([r["gpu_ms_per_frame"] for r in rs]),
+                        "renderer_ms_per_frame_median": median(
+                            [r["renderer_ms_per_frame"] for r in rs]
+                        ),
+                        "chromium_ms_per_frame_median": median(
+                            [r["chromium_ms_per_frame"] for r in rs]
+                        ),
+                        "decode_ms_p50_median": median(
+                            [r["decode_ms_p50"] for r in rs if r["decode_ms_p50"] is not None]
+                        ),
+                        "decode_ms_p95_max": max(
+                            (r["decode_ms_p95"] for r in rs if r["decode_ms_p95"] is not None),
+                            default=None,
+                        ),
+                        "load_average_range": [
+                            min(r["load_average"] for r in rs),
+                            max(r["load_average"] for r in rs),
+                        ],
+                        "triangles_drawn": rs[0]["triangles_drawn"],
+                        "triangles": rs[0]["triangles"],
+                        "canvas": rs[0]["canvas"],
+                        "shading": rs[0]["shading"],
+                        "render_scale": rs[0]["render_scale"],
+                    }
+                )
     results["summary"] = summary
     out = ROOT / "bench" / "out"
     out.mkdir(parents=True, exist_ok=True)
     (out / "web_viewer.json").write_text(json.dumps(results, indent=2))
     la0, la1 = results["load_average_start"][0], results["load_average_end"][0]
-    print(f"ICT head, viewport {args.width}x{args.height}, session {args.fps:g} fps, {os.cpu_count()} CPUs, "
-          f"{args.repeats} repeats x {args.seconds:g} s, load average {la0:.1f} -> {la1:.1f}")
-    print("| GL | stream | variant | canvas px (scale, lighting) | triangles drawn | received fps | drawn fps median "
-          "(min-max) | vs baseline | GPU-process ms/frame | renderer ms/frame | all Chromium ms/frame "
-          "| decode p50 / p95 ms | load avg |")
+    print(
+        f"ICT head, viewport {args.width}x{args.height}, session {args.fps:g} fps, {os.cpu_count()} CPUs, "
+        f"{args.repeats} repeats x {args.seconds:g} s, load average {la0:.1f} -> {la1:.1f}"
+    )
+    print(
+        "| GL | stream | variant | canvas px (scale, lighting) | triangles drawn | received fps | drawn fps median "
+        "(min-max) | vs baseline | GPU-process ms/frame | renderer ms/frame | all Chromium ms/frame "
+        "| decode p50 / p95 ms | load avg |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in summary:
         vs = f"{r['vs_baseline_median']:.2f}" if r["vs_baseline_median"] else "–"
-        print(f"| {r['gl']} | {r['encoding']} | {r['variant']} | {r['canvas'][0]}x{r['canvas'][1]} "
-              f"({r['render_scale']:.2f}, {r['shading']}) | {r['triangles_drawn']:.0f} of {r['triangles']:.0f} "
-              f"| {r['received_fps_median']:.1f} | {r['drawn_fps_median']:.1f} ({r['drawn_fps_min']:.1f}-{r['drawn_fps_max']:.1f}) "
-              f"| {vs} | {r['gpu_ms_per_frame_median']:.1f} | {r['renderer_ms_per_frame_median']:.1f} "
-              f"| {r['chromium_ms_per_frame_median']:.1f} | {r['decode_ms_p50_median']:.2f} / {r['decode_ms_p95_max'] or 0:.2f} "
-              f"| {r['load_average_range'][0]:.1f}-{r['load_average_range'][1]:.1f} |")
+        print(
+            f"| {r['gl']} | {r['encoding']} | {r['variant']} | {r['canvas'][0]}x{r['canvas'][1]} "
+            f"({r['render_scale']:.2f}, {r['shading']}) | {r['triangles_drawn']:.0f} of {r['triangles']:.0f} "
+            f"| {r['received_fps_median']:.1f} | {r['drawn_fps_median']:.1f} ({r['drawn_fps_min']:.1f}-{r['drawn_fps_max']:.1f}) "
+            f"| {vs} | {r['gpu_ms_per_frame_median']:.1f} | {r['renderer_ms_per_frame_median']:.1f} "
+            f"| {r['chromium_ms_per_frame_median']:.1f} | {r['decode_ms_p50_median']:.2f} / {r['decode_ms_p95_max'] or 0:.2f} "
+            f"| {r['load_average_range'][0]:.1f}-{r['load_average_range'][1]:.1f} |"
+        )
     print()
-    print(f"Ceiling: a page that only clears a {args.width}x{args.height} WebGL2 canvas (plus N small visible "
-          "triangles, one draw call, first repeat) every animation frame")
-    print("| GL | repeat | idle rAF fps | clear fps (GPU ms/frame) | " + " | ".join(
-        f"+{n // 1000}k triangles fps (GPU ms)" for n in sweep) + " | load avg |")
+    print(
+        f"Ceiling: a page that only clears a {args.width}x{args.height} WebGL2 canvas (plus N small visible "
+        "triangles, one draw call, first repeat) every animation frame"
+    )
+    print(
+        "| GL | repeat | idle rAF fps | clear fps (GPU ms/frame) | "
+        + " | ".join(f"+{n // 1000}k triangles fps (GPU ms)" for n in sweep)
+        + " | load avg |"
+    )
     print("|---|---|---|---|" + "---|" * len(sweep) + "---|")
     for c in results["ceilings"]:
-        print(f"| {c['gl']} | {c['repeat']} | {c['idle']['fps']:.0f} | {c['clear']['fps']:.0f} ({c['clear']['gpu_ms_per_frame']:.1f}) | "
-              + " | ".join(f"{c[f'tris:{n}']['fps']:.0f} ({c[f'tris:{n}']['gpu_ms_per_frame']:.1f})" if f"tris:{n}" in c
-                           else "–" for n in sweep) + f" | {c['load_average']:.1f} |")
+        print(
+            f"| {c['gl']} | {c['repeat']} | {c['idle']['fps']:.0f} | {c['clear']['fps']:.0f} ({c['clear']['gpu_ms_per_frame']:.1f}) | "
+            + " | ".join(
+                f"{c[f'tris:{n}']['fps']:.0f} ({c[f'tris:{n}']['gpu_ms_per_frame']:.1f})"
+                if f"tris:{n}" in c
+                else "–"
+                for n in sweep
+            )
+            + f" | {c['load_average']:.1f} |"
+        )
     return 0
 
 

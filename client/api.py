@@ -114,7 +114,11 @@ class SessionAdmin:
         tolerance: float = 0.1,
     ) -> SessionCreated:
         body = SessionCreate(
-            face=face, input=input, fps=fps, engine=engine, max_viewers=max_viewers,
+            face=face,
+            input=input,
+            fps=fps,
+            engine=engine,
+            max_viewers=max_viewers,
             tolerance=tolerance,
         )
         resp = await self._call(
@@ -192,7 +196,9 @@ async def _connect(
     except (OSError, asyncio.TimeoutError) as e:
         raise LiveError(f"cannot connect to {url.split('?', maxsplit=1)[0]}: {e}") from None
     except Exception as e:  # handshake refused (HTTP status instead of 101)
-        raise LiveError(f"WebSocket handshake with {url.split('?', maxsplit=1)[0]} failed: {e}") from None
+        raise LiveError(
+            f"WebSocket handshake with {url.split('?', maxsplit=1)[0]} failed: {e}"
+        ) from None
 
 
 def _closed_error(ws: ClientConnection, last_error: ErrorMessage | None) -> LiveError | None:
@@ -389,7 +395,9 @@ class Watcher:
         self.errors: list[ErrorMessage] = []
         self.until_producer_leaves = until_producer_leaves
         self._seen_frames = False
-        self.compact: Any = None  # ``CompactDecoder`` for the ``compact`` encoding (set by ``watch``)
+        self.compact: Any = (
+            None  # ``CompactDecoder`` for the ``compact`` encoding (set by ``watch``)
+        )
         self.waited = 0  # compact frames not shown: their key frame had not arrived
         self.bytes_received = 0  # binary bytes, all frames
 
@@ -408,7 +416,11 @@ class Watcher:
             if isinstance(msg, bytes):
                 now = time.time()
                 self.bytes_received += len(msg)
-                if len(msg) > 5 and msg[5] == frames.Kind.VERTICES_COMPACT and self.compact is not None:
+                if (
+                    len(msg) > 5
+                    and msg[5] == frames.Kind.VERTICES_COMPACT
+                    and self.compact is not None
+                ):
                     try:
                         out = self.compact.decode(msg)
                     except FrameError as e:
@@ -534,7 +546,9 @@ def summary(frames_: list[WatchedFrame], *, first_seq: int | None = None) -> dic
             "latency_ms_p95": round(float(np.percentile(lat, 95)), 2) if lat.size else None,
             "latency_ms_max": round(float(lat.max()), 2) if lat.size else None,
             "bytes_per_frame": round(float(np.mean([f.size for f in frames_])), 1),
-            "bits_per_second": round(8 * sum(f.size for f in frames_[1:]) / span) if span > 0 else None,
+            "bits_per_second": round(8 * sum(f.size for f in frames_[1:]) / span)
+            if span > 0
+            else None,
             "dropped": dropped,
             "first_seq": int(seqs[0]),
             "last_seq": int(seqs[-1]),

@@ -3,6 +3,7 @@
 ``render_remote(url, input, output, options={...})`` is what ``facecast render --server URL`` calls.
 Synchronous (httpx); the result appears at ``output`` atomically (a partial download never does).
 """
+
 from __future__ import annotations
 
 import os
@@ -33,7 +34,9 @@ class RemoteJobError(UpstreamError):
     this error would answer: 502.)
     """
 
-    def __init__(self, message: str, *, status: int = 0, job: str | None = None, where: str = "") -> None:
+    def __init__(
+        self, message: str, *, status: int = 0, job: str | None = None, where: str = ""
+    ) -> None:
         super().__init__(message, status, where=where)
         self.job = job
 
@@ -50,9 +53,14 @@ def _error_text(resp: httpx.Response) -> str:
 
 def _check(resp: httpx.Response, what: str, job: str | None = None) -> httpx.Response:
     if resp.status_code >= 400:
-        hint = " (set FACECAST_ADMIN_KEY to the server's admin key)" if resp.status_code == 401 else ""
-        raise RemoteJobError(f"{what}: HTTP {resp.status_code}: {_error_text(resp)}{hint}",
-                             status=resp.status_code, job=job)
+        hint = (
+            " (set FACECAST_ADMIN_KEY to the server's admin key)" if resp.status_code == 401 else ""
+        )
+        raise RemoteJobError(
+            f"{what}: HTTP {resp.status_code}: {_error_text(resp)}{hint}",
+            status=resp.status_code,
+            job=job,
+        )
     return resp
 
 
@@ -72,7 +80,9 @@ def read_layout(layout: str | Path) -> bytes:
         raise RemoteJobError(f"{path}: no such layout file")
     data = path.read_bytes()
     if len(data) > MAX_LAYOUT_BYTES:
-        raise RemoteJobError(f"{path}: a layout is JSON of a few KiB, this file has {len(data)} bytes")
+        raise RemoteJobError(
+            f"{path}: a layout is JSON of a few KiB, this file has {len(data)} bytes"
+        )
     return data
 
 
@@ -92,20 +102,31 @@ def submit(client: httpx.Client, input: Path, options: dict[str, Any]) -> dict[s
     return job
 
 
-def wait(client: httpx.Client, job_id: str, *, progress: Callable[[float, str], None] | None = None,
-         poll: float = 0.5, timeout: float | None = None) -> dict[str, Any]:
+def wait(
+    client: httpx.Client,
+    job_id: str,
+    *,
+    progress: Callable[[float, str], None] | None = None,
+    poll: float = 0.5,
+    timeout: float | None = None,
+) -> dict[str, Any]:
     """Poll a job until it is done, failed or cancelled; ``progress(fraction, status)`` on each poll."""
     deadline = None if timeout is None else time.monotonic() + timeout
     delay = min(poll, 0.1)
     while True:
-        job: dict[str, Any] = _check(client.get(f"/v1/jobs/{job_id}"), f"job {job_id}", job_id).json()
+        job: dict[str, Any] = _check(
+            client.get(f"/v1/jobs/{job_id}"), f"job {job_id}", job_id
+        ).json()
         if progress is not None:
             progress(float(job.get("progress") or 0.0), job["status"])
         if job["status"] in FINAL:
             return job
         if deadline is not None and time.monotonic() > deadline:
-            raise RemoteJobError(f"job {job_id} still {job['status']} after {timeout:g} s; it keeps running on "
-                                 f"the server (GET /v1/jobs/{job_id})", job=job_id)
+            raise RemoteJobError(
+                f"job {job_id} still {job['status']} after {timeout:g} s; it keeps running on "
+                f"the server (GET /v1/jobs/{job_id})",
+                job=job_id,
+            )
         time.sleep(delay)
         delay = min(delay * 1.5, poll)
 
@@ -122,9 +143,17 @@ def download(client: httpx.Client, job_id: str, output: Path) -> Path:
     return output
 
 
-def render_remote(url: str, input: str | Path, output: str | Path, *, options: dict[str, Any] | None = None,
-                  progress: Callable[[int, int], None] | None = None, admin_key: str | None = None,
-                  poll: float = 0.5, timeout: float | None = None) -> Path:
+def render_remote(
+    url: str,
+    input: str | Path,
+    output: str | Path,
+    *,
+    options: dict[str, Any] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    admin_key: str | None = None,
+    poll: float = 0.5,
+    timeout: float | None = None,
+) -> Path:
     """Render ``input`` on the server at ``url`` and write the result to ``output``.
 
     ``options``: ``face``, ``engine``, ``format`` (default: ``output``'s suffix), ``layout`` (a local
@@ -142,22 +171,29 @@ def render_remote(url: str, input: str | Path, output: str | Path, *, options: d
     if not opts.get("format"):
         suffix = output.suffix.lower().lstrip(".")
         if suffix not in ("glb", "npz", "fap"):
-            raise RemoteJobError(f"{output}: cannot tell the output format from the suffix; use .glb, .npz or .fap")
+            raise RemoteJobError(
+                f"{output}: cannot tell the output format from the suffix; use .glb, .npz or .fap"
+            )
         opts["format"] = suffix
     if opts.get("layout") is None and input.suffix.lower() in MOCAP_SUFFIXES:
         opts["layout"] = find_layout(input)
         if opts["layout"] is None:
-            raise RemoteJobError(f"{input}: a mocap take needs a marker layout: pass --layout layout.json "
-                                 f"(or put {input.stem}.layout.json beside the take)")
+            raise RemoteJobError(
+                f"{input}: a mocap take needs a marker layout: pass --layout layout.json "
+                f"(or put {input.stem}.layout.json beside the take)"
+            )
     key = admin_key or os.environ.get("FACECAST_ADMIN_KEY")
     headers = {"Authorization": f"Bearer {key}"} if key else {}
     report = None
     if progress is not None:
+
         def report(fraction: float, status: str) -> None:
             progress(int(round(fraction * 1000)), 1000)
+
     try:
-        with httpx.Client(base_url=url.rstrip("/"), headers=headers,
-                          timeout=httpx.Timeout(60.0, connect=10.0)) as client:
+        with httpx.Client(
+            base_url=url.rstrip("/"), headers=headers, timeout=httpx.Timeout(60.0, connect=10.0)
+        ) as client:
             job = submit(client, input, opts)
             job_id = job["id"]
             try:

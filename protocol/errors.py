@@ -91,7 +91,9 @@ class CloseCode(IntEnum):
     NOT_FOUND = 4404  #: no such session
     TIMEOUT = 4408  #: no hello within the time limit
     CONFLICT = 4409  #: a producer is already connected to this session
-    UNPROCESSABLE = 4422  #: well-formed, but asks for what cannot be done (e.g. an output format limit)
+    UNPROCESSABLE = (
+        4422  #: well-formed, but asks for what cannot be done (e.g. an output format limit)
+    )
     TOO_MANY = 4429  #: too many viewers, or frames sent faster than the session's limit
     INTERNAL = 4500  #: a server fault; the message is deliberately vague
     UPSTREAM = 4502  #: a facecast server this one called refused or failed
@@ -99,21 +101,23 @@ class CloseCode(IntEnum):
 
 
 #: HTTP status -> the close code of an error with that status (the codes above, one table).
-_CLOSE_FOR_STATUS: Mapping[int, CloseCode] = MappingProxyType({
-    400: CloseCode.BAD_REQUEST,
-    401: CloseCode.UNAUTHORIZED,
-    403: CloseCode.FORBIDDEN,
-    404: CloseCode.NOT_FOUND,
-    408: CloseCode.TIMEOUT,
-    409: CloseCode.CONFLICT,
-    413: CloseCode.TOO_BIG,
-    415: CloseCode.UNSUPPORTED_DATA,
-    422: CloseCode.UNPROCESSABLE,
-    429: CloseCode.TOO_MANY,
-    500: CloseCode.INTERNAL,
-    502: CloseCode.UPSTREAM,
-    503: CloseCode.UNAVAILABLE,
-})
+_CLOSE_FOR_STATUS: Mapping[int, CloseCode] = MappingProxyType(
+    {
+        400: CloseCode.BAD_REQUEST,
+        401: CloseCode.UNAUTHORIZED,
+        403: CloseCode.FORBIDDEN,
+        404: CloseCode.NOT_FOUND,
+        408: CloseCode.TIMEOUT,
+        409: CloseCode.CONFLICT,
+        413: CloseCode.TOO_BIG,
+        415: CloseCode.UNSUPPORTED_DATA,
+        422: CloseCode.UNPROCESSABLE,
+        429: CloseCode.TOO_MANY,
+        500: CloseCode.INTERNAL,
+        502: CloseCode.UPSTREAM,
+        503: CloseCode.UNAVAILABLE,
+    }
+)
 
 
 def close_code_for(status: int) -> CloseCode:
@@ -153,10 +157,15 @@ class FacecastError(Exception):
         super().__init_subclass__(**kwargs)
         if "status" in cls.__dict__ and "close_code" not in cls.__dict__:
             cls.close_code = close_code_for(cls.status)
-        for branch, low in ((globals().get("RemoteError"), 400), (globals().get("LocalError"), 500)):
+        for branch, low in (
+            (globals().get("RemoteError"), 400),
+            (globals().get("LocalError"), 500),
+        ):
             if branch is not None and issubclass(cls, branch) and not low <= cls.status < low + 100:
-                raise TypeError(f"{cls.__qualname__}: status {cls.status} does not fit its branch of "
-                                f"the error tree ({branch.__name__}: {low // 100}xx)")
+                raise TypeError(
+                    f"{cls.__qualname__}: status {cls.status} does not fit its branch of "
+                    f"the error tree ({branch.__name__}: {low // 100}xx)"
+                )
 
 
 class RemoteError(FacecastError):
@@ -311,8 +320,14 @@ def error_reply(exc: BaseException) -> ErrorReply:
     """The status, close code and message of ``exc`` (read from its class: one place per error)."""
     if isinstance(exc, FacecastError):
         cls = type(exc)
-        return ErrorReply(cls.status, int(cls.close_code), str(exc), exc.where, dict(cls.headers),
-                          remote=isinstance(exc, RemoteError))
+        return ErrorReply(
+            cls.status,
+            int(cls.close_code),
+            str(exc),
+            exc.where,
+            dict(cls.headers),
+            remote=isinstance(exc, RemoteError),
+        )
     return ErrorReply(500, int(CloseCode.INTERNAL), INTERNAL_MESSAGE, unexpected=True)
 
 

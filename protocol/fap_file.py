@@ -20,6 +20,7 @@ ends and trailing spaces, so ``write_fap(read_fap(x))`` reproduces the Xface fil
 
 Malformed input raises ``FapFormatError`` (a ``ValueError``) with the 1-based line number.
 """
+
 from __future__ import annotations
 
 import math
@@ -91,7 +92,7 @@ class FapFrame:
         if len(self.mask) < k or not self.mask[k - 1]:
             return None
         start = 0 if k == 1 else (self._width_of(1) if self.mask[0] else 0)
-        return tuple(self.values[start:start + self._width_of(k)])
+        return tuple(self.values[start : start + self._width_of(k)])
 
     def _width_of(self, k: int) -> int:
         return 1 if self.single_high_level else HIGH_LEVEL_FIELDS[k]
@@ -107,8 +108,15 @@ class FapFrame:
         return self._high_level(2)
 
     @classmethod
-    def build(cls, number: int, faps: dict[int, Number], *, viseme: tuple[int, ...] | None = None,
-              expression: tuple[int, ...] | None = None, mask_width: int = N_FAPS) -> FapFrame:
+    def build(
+        cls,
+        number: int,
+        faps: dict[int, Number],
+        *,
+        viseme: tuple[int, ...] | None = None,
+        expression: tuple[int, ...] | None = None,
+        mask_width: int = N_FAPS,
+    ) -> FapFrame:
         """A frame from low-level values ``{fap: value}`` (3..68) and optional FAP 1 / FAP 2 fields."""
         mask = [0] * mask_width
         values: list[Number] = []
@@ -175,8 +183,11 @@ def _int(tok: str, line: int, where: str, what: str) -> int:
     """An integer token (already matched by ``_INT``) of at most ``MAX_DIGITS`` digits."""
     digits = len(tok.lstrip("+-"))
     if digits > MAX_DIGITS:
-        raise FapFormatError(f"{what} {_show(tok)} has {digits} digits; integers have at most "
-                             f"{MAX_DIGITS}", line=line, where=where)
+        raise FapFormatError(
+            f"{what} {_show(tok)} has {digits} digits; integers have at most {MAX_DIGITS}",
+            line=line,
+            where=where,
+        )
     return int(tok)
 
 
@@ -187,8 +198,12 @@ def _number(tok: str, line: int, where: str, what: str) -> Number:
         v = float(tok)
         if math.isfinite(v):
             return v
-    raise FapFormatError(f"{what} {_show(tok)} is not a number; every value must be an integer "
-                         "(or a decimal number)", line=line, where=where)
+    raise FapFormatError(
+        f"{what} {_show(tok)} is not a number; every value must be an integer "
+        "(or a decimal number)",
+        line=line,
+        where=where,
+    )
 
 
 def read_fap(text: str, *, where: str = "") -> FapFile:
@@ -209,30 +224,53 @@ def read_fap(text: str, *, where: str = "") -> FapFile:
             comments.append((n, ln))
         elif ln.strip():
             if "\x00" in ln:
-                raise FapFormatError("binary data (NUL byte) in a text .fap file", line=n, where=where)
+                raise FapFormatError(
+                    "binary data (NUL byte) in a text .fap file", line=n, where=where
+                )
             content.append((n, ln))
     if not content:
-        raise FapFormatError("empty file: expected a header line "
-                             "'<version> <name> <fps> <number of frames>'", line=len(lines), where=where)
+        raise FapFormatError(
+            "empty file: expected a header line '<version> <name> <fps> <number of frames>'",
+            line=len(lines),
+            where=where,
+        )
 
     hline, header = content[0]
     tokens = header.split()
     if len(tokens) < 3:
-        raise FapFormatError(f"header: {_show(header.strip())} has {len(tokens)} fields; expected "
-                             "'<version> <name> <fps> <number of frames>'", line=hline, where=where)
+        raise FapFormatError(
+            f"header: {_show(header.strip())} has {len(tokens)} fields; expected "
+            "'<version> <name> <fps> <number of frames>'",
+            line=hline,
+            where=where,
+        )
     version = tokens[0]
     if not _NUMBER.match(version):
-        raise FapFormatError(f"header: version {_show(version)} is not a number (expected e.g. 2.1)", line=hline, where=where)
+        raise FapFormatError(
+            f"header: version {_show(version)} is not a number (expected e.g. 2.1)",
+            line=hline,
+            where=where,
+        )
     usage = "; expected '<version> <name> <fps> <number of frames>'"
-    if not _NUMBER.match(tokens[-2]) or not math.isfinite(float(tokens[-2])) or float(tokens[-2]) <= 0:
-        raise FapFormatError(f"header: frame rate {_show(tokens[-2])} is not a positive number" + usage,
-                             line=hline, where=where)
+    if (
+        not _NUMBER.match(tokens[-2])
+        or not math.isfinite(float(tokens[-2]))
+        or float(tokens[-2]) <= 0
+    ):
+        raise FapFormatError(
+            f"header: frame rate {_show(tokens[-2])} is not a positive number" + usage,
+            line=hline,
+            where=where,
+        )
     fps = _number(tokens[-2], hline, where, "frame rate")
     if not _INT.match(tokens[-1]) or tokens[-1].startswith("-"):
-        raise FapFormatError(f"header: number of frames {_show(tokens[-1])} is not a non-negative integer"
-                             + usage, line=hline, where=where)
+        raise FapFormatError(
+            f"header: number of frames {_show(tokens[-1])} is not a non-negative integer" + usage,
+            line=hline,
+            where=where,
+        )
     n_declared = _int(tokens[-1], hline, where, "header: number of frames")
-    name = header.strip()[len(tokens[0]):].strip()  # between the version and the last two fields
+    name = header.strip()[len(tokens[0]) :].strip()  # between the version and the last two fields
     name = name[: len(name) - len(tokens[-1])].rstrip()
     name = name[: len(name) - len(tokens[-2])].rstrip() if len(tokens) > 3 else ""
 
@@ -243,33 +281,53 @@ def read_fap(text: str, *, where: str = "") -> FapFile:
     for i in range(0, len(body), 2):
         mline, mtext = body[i]
         if i + 1 >= len(body):
-            raise FapFormatError(f"truncated: frame {len(frames)} has a mask line but no values line; "
-                                 "the file was cut short", line=mline, where=where)
+            raise FapFormatError(
+                f"truncated: frame {len(frames)} has a mask line but no values line; "
+                "the file was cut short",
+                line=mline,
+                where=where,
+            )
         vline, vtext = body[i + 1]
         if trailing is None:
             trailing = mtext.endswith(" ")
         flags = mtext.split()
         for tok in flags:
             if tok not in ("0", "1"):
-                raise FapFormatError(f"mask flag {_show(tok)} is not 0 or 1 (is a mask or values line "
-                                     "missing before this one?)", line=mline, where=where)
+                raise FapFormatError(
+                    f"mask flag {_show(tok)} is not 0 or 1 (is a mask or values line "
+                    "missing before this one?)",
+                    line=mline,
+                    where=where,
+                )
         mask = tuple(int(t) for t in flags)
         if width is None:
             if len(mask) not in MASK_WIDTHS:
-                raise FapFormatError(f"mask line has {len(mask)} flags; expected 68 (or 69)",
-                                     line=mline, where=where)
+                raise FapFormatError(
+                    f"mask line has {len(mask)} flags; expected 68 (or 69)", line=mline, where=where
+                )
             width = len(mask)
         elif len(mask) != width:
-            raise FapFormatError(f"mask line has {len(mask)} flags but the first mask line has {width}; "
-                                 "every mask line must have the same width", line=mline, where=where)
+            raise FapFormatError(
+                f"mask line has {len(mask)} flags but the first mask line has {width}; "
+                "every mask line must have the same width",
+                line=mline,
+                where=where,
+            )
         if width > N_FAPS and any(mask[N_FAPS:]):
-            raise FapFormatError(f"flag {N_FAPS + 1 + mask[N_FAPS:].index(1)} is set: FAP number out of "
-                                 f"range (FAPs are 1..{N_FAPS}); the extra flag must be 0", line=mline, where=where)
+            raise FapFormatError(
+                f"flag {N_FAPS + 1 + mask[N_FAPS:].index(1)} is set: FAP number out of "
+                f"range (FAPs are 1..{N_FAPS}); the extra flag must be 0",
+                line=mline,
+                where=where,
+            )
         vals = vtext.split()
         number_tok, vals = vals[0], vals[1:]
         if not _INT.match(number_tok) or number_tok.startswith("-"):
-            raise FapFormatError(f"frame number {_show(number_tok)} must be a non-negative integer",
-                                 line=vline, where=where)
+            raise FapFormatError(
+                f"frame number {_show(number_tok)} must be a non-negative integer",
+                line=vline,
+                where=where,
+            )
         number = _int(number_tok, vline, where, "frame number")
         n_set = sum(mask)
         n_full = n_set + (3 if mask[0] else 0) + (5 if mask[1] else 0)
@@ -278,9 +336,13 @@ def read_fap(text: str, *, where: str = "") -> FapFile:
             if (mask[0] or mask[1]) and len(vals) == n_set:
                 single = True  # Greta layout: one value per flag also for FAPs 1/2
             else:
-                raise FapFormatError(f"frame {number_tok} has {len(vals)} values but its mask (line {mline}) "
-                                     f"sets {n_set} flags, which need {n_full} values "
-                                     "(4 for FAP 1, 6 for FAP 2, 1 for each other FAP)", line=vline, where=where)
+                raise FapFormatError(
+                    f"frame {number_tok} has {len(vals)} values but its mask (line {mline}) "
+                    f"sets {n_set} flags, which need {n_full} values "
+                    "(4 for FAP 1, 6 for FAP 2, 1 for each other FAP)",
+                    line=vline,
+                    where=where,
+                )
         values = tuple(_number(t, vline, where, "value") for t in vals)
         frame = FapFrame(number, mask, values, single)
         _check_high_level(frame, vline, where)
@@ -288,8 +350,12 @@ def read_fap(text: str, *, where: str = "") -> FapFile:
 
     if len(frames) != n_declared:
         at = body[-1][0] if body else hline
-        raise FapFormatError(f"the header declares {n_declared} frames but the file holds {len(frames)}; "
-                             "fix the count in the header or complete the file", line=at, where=where)
+        raise FapFormatError(
+            f"the header declares {n_declared} frames but the file holds {len(frames)}; "
+            "fix the count in the header or complete the file",
+            line=at,
+            where=where,
+        )
 
     # Comments are anchored to the frame that follows them.
     starts = [body[2 * i][0] for i in range(len(frames))]
@@ -299,24 +365,38 @@ def read_fap(text: str, *, where: str = "") -> FapFile:
             anchored.append((-1, text_))
         else:
             anchored.append((sum(1 for s in starts if s < n), text_))
-    return FapFile(version=version, name=name, fps=fps, frames=tuple(frames), comments=tuple(anchored),
-                   newline=newline, trailing_space=bool(trailing) if trailing is not None else True,
-                   header_trailing_space=header.endswith(" "), final_newline=final_newline)
+    return FapFile(
+        version=version,
+        name=name,
+        fps=fps,
+        frames=tuple(frames),
+        comments=tuple(anchored),
+        newline=newline,
+        trailing_space=bool(trailing) if trailing is not None else True,
+        header_trailing_space=header.endswith(" "),
+        final_newline=final_newline,
+    )
 
 
 def _check_high_level(frame: FapFrame, line: int, where: str) -> None:
     if frame.single_high_level:
         return
-    for fields, maximum, what in ((frame.viseme, MAX_VISEME, "viseme"),
-                                  (frame.expression, MAX_EXPRESSION, "expression")):
+    for fields, maximum, what in (
+        (frame.viseme, MAX_VISEME, "viseme"),
+        (frame.expression, MAX_EXPRESSION, "expression"),
+    ):
         if fields is None:
             continue
         if not all(isinstance(v, int) for v in fields):
-            raise FapFormatError(f"{what} fields must be integers, got {list(fields)}", line=line, where=where)
+            raise FapFormatError(
+                f"{what} fields must be integers, got {list(fields)}", line=line, where=where
+            )
         selects = (fields[0], fields[1]) if what == "viseme" else (fields[0], fields[2])
         for s in selects:
             if not 0 <= s <= maximum:
-                raise FapFormatError(f"{what} id {s} is out of range 0..{maximum}", line=line, where=where)
+                raise FapFormatError(
+                    f"{what} id {s} is out of range 0..{maximum}", line=line, where=where
+                )
 
 
 def _fmt(v: Number) -> str:
@@ -360,15 +440,23 @@ def write_fap(f: FapFile) -> str:
     for i, fr in enumerate(f.frames):
         emit_comments(i)
         if len(fr.mask) != width or width not in MASK_WIDTHS:
-            raise FapFormatError(f"frame {i}: mask has {len(fr.mask)} flags; all masks must have 68 (or 69)")
+            raise FapFormatError(
+                f"frame {i}: mask has {len(fr.mask)} flags; all masks must have 68 (or 69)"
+            )
         if any(b not in (0, 1) for b in fr.mask) or any(fr.mask[N_FAPS:]):
             raise FapFormatError(f"frame {i}: mask flags must be 0/1 and flag 69 must be 0")
         n_set = sum(fr.mask)
-        need = n_set if fr.single_high_level else n_set + (3 if fr.mask[0] else 0) + (5 if fr.mask[1] else 0)
+        need = (
+            n_set
+            if fr.single_high_level
+            else n_set + (3 if fr.mask[0] else 0) + (5 if fr.mask[1] else 0)
+        )
         if len(fr.values) != need:
             raise FapFormatError(f"frame {i}: {len(fr.values)} values for a mask that needs {need}")
         if isinstance(fr.number, bool) or not isinstance(fr.number, int) or fr.number < 0:
-            raise FapFormatError(f"frame {i}: frame number {fr.number!r} must be a non-negative int")
+            raise FapFormatError(
+                f"frame {i}: frame number {fr.number!r} must be a non-negative int"
+            )
         _check_high_level(fr, 0, "")
         out.append(" ".join(str(b) for b in fr.mask) + tail)
         out.append(" ".join([str(fr.number)] + [_fmt(v) for v in fr.values]) + tail)

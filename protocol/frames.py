@@ -433,8 +433,11 @@ def decode(data: bytes | bytearray | memoryview, *, kinds: frozenset[Kind] | Non
             where="byte 5",
         )
     if h.kind is Kind.VERTICES_COMPACT:
-        raise FrameError("VERTICES_COMPACT frames depend on earlier frames: decode them with "
-                         "compact.CompactDecoder", where="byte 5")
+        raise FrameError(
+            "VERTICES_COMPACT frames depend on earlier frames: decode them with "
+            "compact.CompactDecoder",
+            where="byte 5",
+        )
     limit = _LIMITS[h.kind]
     if h.kind is Kind.FAPS:
         if h.count != N_FAP_VALUES:

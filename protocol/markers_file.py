@@ -103,7 +103,9 @@ def _float(cell: str, what: str, where: str, *, finite: bool = False) -> float:
     try:
         v = float(cell)
     except ValueError:
-        raise MarkerFileError(f"{what} {_show(cell.strip())} is not a number", where=where) from None
+        raise MarkerFileError(
+            f"{what} {_show(cell.strip())} is not a number", where=where
+        ) from None
     if finite and not math.isfinite(v):
         raise MarkerFileError(f"{what} {_show(cell.strip())} must be finite", where=where)
     return v
@@ -200,12 +202,15 @@ def read_csv(text: str, *, where: str = "", fps: float | None = None) -> MarkerT
     for i in range(0, len(cols), 3):
         trio = cols[i : i + 3]
         base = trio[0][:-2]
-        if not base or [c[-2:].lower() for c in trio] != ["_x", "_y", "_z"] or any(
-            c[:-2] != base for c in trio
+        if (
+            not base
+            or [c[-2:].lower() for c in trio] != ["_x", "_y", "_z"]
+            or any(c[:-2] != base for c in trio)
         ):
             shown = ", ".join(_show(c) for c in trio)
             raise MarkerFileError(
-                f"columns {shown} must be <name>_x, <name>_y, <name>_z", where=f"{where}:{start + 1}"
+                f"columns {shown} must be <name>_x, <name>_y, <name>_z",
+                where=f"{where}:{start + 1}",
             )
         names.append(base)
     times, rows = [], []
@@ -367,8 +372,9 @@ def _c3d_parameters(
         at = f"{where}: parameter section byte {pos}"
         off = pos + 2 + name_len
         if off + 2 > end:
-            raise MarkerFileError("the parameter section is cut short (a name runs past it)",
-                                  where=at)
+            raise MarkerFileError(
+                "the parameter section is cut short (a name runs past it)", where=at
+            )
         name = data[pos + 2 : off].decode("latin-1").strip().upper()
         nxt = int(np.frombuffer(data, codec.order + "i2", 1, off)[0])
         body = off + 2
@@ -381,21 +387,26 @@ def _c3d_parameters(
             if ptype not in _C3D_TYPES:
                 raise MarkerFileError(
                     f"parameter {name} has type {ptype}; C3D types are -1 (text), 1, 2 and 4 "
-                    "(bytes per number)", where=at)
+                    "(bytes per number)",
+                    where=at,
+                )
             dims = tuple(data[body + 2 : body + 2 + ndim])
             size = abs(ptype) * math.prod(dims)
             first = body + 2 + ndim
             if first + size > end:
                 raise MarkerFileError(
                     f"parameter {name} declares {size} bytes of values; the section holds "
-                    f"{max(0, end - first)} more", where=at)
+                    f"{max(0, end - first)} more",
+                    where=at,
+                )
             params.setdefault(gid, {})[name] = _C3dParam(ptype, dims, view[first : first + size])
         if nxt == 0:
             break  # the last entry
         if nxt < 0:
             raise MarkerFileError(
                 f"entry {name} points {nxt} bytes back; pointers to the next entry must be positive",
-                where=at)
+                where=at,
+            )
         pos = off + nxt
     else:
         raise MarkerFileError(f"more than {_C3D_MAX_ENTRIES} parameters", where=where)
@@ -437,16 +448,22 @@ def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
     if data[0] < 2:
         raise MarkerFileError(
             f"the header puts the parameter section at block {data[0]}; it must follow the header "
-            "(block 2 or later)", where=where)
+            "(block 2 or later)",
+            where=where,
+        )
     pstart = (data[0] - 1) * 512
     if pstart + 4 > len(data):
         raise MarkerFileError(
             f"the parameter section (block {data[0]}) is past the end of the file "
-            f"({len(data)} bytes); the file was cut short", where=where)
+            f"({len(data)} bytes); the file was cut short",
+            where=where,
+        )
     if data[pstart + 3] not in C3D_PROCESSORS:
         raise MarkerFileError(
             f"processor type {data[pstart + 3]} is unknown; C3D knows 84 (Intel), 85 (DEC) "
-            "and 86 (MIPS)", where=where)
+            "and 86 (MIPS)",
+            where=where,
+        )
     codec = _C3dCodec(C3D_PROCESSORS[data[pstart + 3]])
     n_points, n_analog, first, last = (codec.word(data, 2 * i) for i in (1, 2, 3, 4))
     data_start = codec.word(data, 16)
@@ -486,8 +503,10 @@ def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
         k in trial and trial[k].type == 2 and len(trial[k].raw) >= 4
         for k in ("ACTUAL_START_FIELD", "ACTUAL_END_FIELD")
     ):  # long takes: frame numbers as two 16-bit words (low, high)
-        s, e = (_c3d_numbers(trial[k], codec) & 0xFFFF
-                for k in ("ACTUAL_START_FIELD", "ACTUAL_END_FIELD"))
+        s, e = (
+            _c3d_numbers(trial[k], codec) & 0xFFFF
+            for k in ("ACTUAL_START_FIELD", "ACTUAL_END_FIELD")
+        )
         n_frames = max(n_frames, int(e[0] + 65536 * e[1]) - int(s[0] + 65536 * s[1]) + 1)
 
     labels: list[str] = []
@@ -515,8 +534,9 @@ def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
     if not (math.isfinite(rate) and rate > 0):
         raise MarkerFileError(f"POINT:RATE is {rate}; it must be a positive number", where=where)
     if data_start < 2:
-        raise MarkerFileError(f"the data start block is {data_start}; it must be 2 or later",
-                              where=where)
+        raise MarkerFileError(
+            f"the data start block is {data_start}; it must be 2 or later", where=where
+        )
     word = 4 if scale < 0 else 2
     per_frame = (4 * n_points + n_analog) * word
     offset = (data_start - 1) * 512
@@ -524,7 +544,9 @@ def read_c3d(data: bytes, *, where: str = "") -> MarkerTake:
     if n_frames > available:
         raise MarkerFileError(
             f"the file declares {n_frames} frames of {n_points} points but holds {available}; "
-            "it was cut short (re-export or re-send the whole file)", where=where)
+            "it was cut short (re-export or re-send the whole file)",
+            where=where,
+        )
     dtype = codec.real_dtype if scale < 0 else codec.order + "i2"
     words = np.frombuffer(data, dtype, n_frames * per_frame // word, offset)
     block = words.reshape(n_frames, -1)[:, : 4 * n_points].reshape(n_frames, n_points, 4)
@@ -562,7 +584,9 @@ def write_c3d(take: MarkerTake, *, processor: str = "intel", scale: float = -1.0
     first = max(1, round(take.t0 * take.fps) + 1)
     last = first + t - 1
 
-    def param(name: str, gid: int, ptype: int, dims: tuple[int, ...], values: bytes) -> tuple[str, int, bytes]:
+    def param(
+        name: str, gid: int, ptype: int, dims: tuple[int, ...], values: bytes
+    ) -> tuple[str, int, bytes]:
         return name, gid, bytes([ptype & 0xFF, len(dims), *dims]) + values + b"\x00"
 
     def words(*x: int) -> bytes:
@@ -570,27 +594,37 @@ def write_c3d(take: MarkerTake, *, processor: str = "intel", scale: float = -1.0
 
     def text(strings: list[str]) -> tuple[tuple[int, ...], bytes]:
         width = max(1, *(len(s) for s in strings))
-        return (width, len(strings)), b"".join(s.encode("latin-1", "replace").ljust(width) for s in strings)
+        return (width, len(strings)), b"".join(
+            s.encode("latin-1", "replace").ljust(width) for s in strings
+        )
 
     def build(data_start: int) -> bytes:
-        entries = [("POINT", -1, b"\x00"),
-                   param("USED", 1, 2, (), words(m)),
-                   param("SCALE", 1, 4, (), codec.encode_reals([scale])),
-                   param("RATE", 1, 4, (), codec.encode_reals([take.fps])),
-                   param("DATA_START", 1, 2, (), words(data_start)),
-                   param("FRAMES", 1, 2, (), words(min(t, 65535))),
-                   param("UNITS", 1, -1, (len(take.units or "mm"),), (take.units or "mm").encode())]
+        entries = [
+            ("POINT", -1, b"\x00"),
+            param("USED", 1, 2, (), words(m)),
+            param("SCALE", 1, 4, (), codec.encode_reals([scale])),
+            param("RATE", 1, 4, (), codec.encode_reals([take.fps])),
+            param("DATA_START", 1, 2, (), words(data_start)),
+            param("FRAMES", 1, 2, (), words(min(t, 65535))),
+            param("UNITS", 1, -1, (len(take.units or "mm"),), (take.units or "mm").encode()),
+        ]
         for k in range(0, m, 255):  # a dimension is one byte: 255 labels per parameter
             dims, raw = text(take.names[k : k + 255])
             entries.append(param("LABELS" if k == 0 else f"LABELS{k // 255 + 1}", 1, -1, dims, raw))
-        entries += [("ANALOG", -2, b"\x00"), param("USED", 2, 2, (), words(0)),
-                    param("RATE", 2, 4, (), codec.encode_reals([take.fps]))]
+        entries += [
+            ("ANALOG", -2, b"\x00"),
+            param("USED", 2, 2, (), words(0)),
+            param("RATE", 2, 4, (), codec.encode_reals([take.fps])),
+        ]
         if last > 65535:
-            entries += [("TRIAL", -3, b"\x00"),
-                        param("ACTUAL_START_FIELD", 3, 2, (2,), words(first & 0xFFFF, first >> 16)),
-                        param("ACTUAL_END_FIELD", 3, 2, (2,), words(last & 0xFFFF, last >> 16))]
-        body = b"".join(_c3d_entry(n, g, b, i == len(entries) - 1, be)
-                        for i, (n, g, b) in enumerate(entries))
+            entries += [
+                ("TRIAL", -3, b"\x00"),
+                param("ACTUAL_START_FIELD", 3, 2, (2,), words(first & 0xFFFF, first >> 16)),
+                param("ACTUAL_END_FIELD", 3, 2, (2,), words(last & 0xFFFF, last >> 16)),
+            ]
+        body = b"".join(
+            _c3d_entry(n, g, b, i == len(entries) - 1, be) for i, (n, g, b) in enumerate(entries)
+        )
         n_blocks = (4 + len(body) + 511) // 512
         code = {v: k for k, v in C3D_PROCESSORS.items()}[processor]
         return (bytes([1, 0x50, n_blocks, code]) + body).ljust(n_blocks * 512, b"\x00")
@@ -609,14 +643,15 @@ def write_c3d(take: MarkerTake, *, processor: str = "intel", scale: float = -1.0
     if scale > 0:
         q = np.round(xyz / scale)
         if np.abs(q).max(initial=0) > 32767:
-            raise MarkerFileError(f"coordinates overflow int16 at scale {scale}; use a larger scale")
+            raise MarkerFileError(
+                f"coordinates overflow int16 at scale {scale}; use a larger scale"
+            )
         pts = np.concatenate([q, np.where(occluded, -1, 0)[..., None]], axis=2)
         frames = codec.encode_words(pts.astype(np.int16))
     else:
         pts = np.concatenate([xyz, np.where(occluded, -1.0, 0.0)[..., None]], axis=2)
         frames = codec.encode_reals(pts)
     return bytes(header) + section + frames.ljust(-(-len(frames) // 512) * 512, b"\x00")
-
 
 
 #: Suffixes of take files, each read by ``read_take``.

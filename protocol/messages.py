@@ -228,7 +228,13 @@ def _tag(obj: object) -> str | None:
 
 
 Message = Annotated[
-    Annotated[ProducerHello, Tag("hello:producer")] | Annotated[ViewerHello, Tag("hello:viewer")] | Annotated[Ready, Tag("ready")] | Annotated[ErrorMessage, Tag("error")] | Annotated[FapMessage, Tag("fap")] | Annotated[Stats, Tag("stats")] | Annotated[Status, Tag("status")],
+    Annotated[ProducerHello, Tag("hello:producer")]
+    | Annotated[ViewerHello, Tag("hello:viewer")]
+    | Annotated[Ready, Tag("ready")]
+    | Annotated[ErrorMessage, Tag("error")]
+    | Annotated[FapMessage, Tag("fap")]
+    | Annotated[Stats, Tag("stats")]
+    | Annotated[Status, Tag("status")],
     Discriminator(_tag),
 ]
 

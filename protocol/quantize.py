@@ -3,6 +3,7 @@
 ``frames.encode_vertices_i16`` and the live batcher both use ``quantize_int16``; the OpenCL
 device quantiser computes the same formula bit for bit.
 """
+
 from __future__ import annotations
 
 import numpy as np

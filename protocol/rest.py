@@ -3,6 +3,7 @@
 Pure pydantic; no I/O. Job states: ``queued`` -> ``running`` -> ``done`` | ``failed``; ``cancelled``
 from ``queued`` or ``running``.
 """
+
 from __future__ import annotations
 
 from typing import Any, Literal
@@ -44,8 +45,12 @@ class Health(BaseModel):
     backend: str | None = Field(None, description="numpy | opencl (null until probed)")
     device: str | None = Field(None, description="OpenCL device(s) in use")
     face: dict[str, Any] | None = Field(None, description="default face: name, vertices")
-    animator: bool = Field(False, description="the default face's animator is built (first session starts at once)")
-    warmup_seconds: float | None = Field(None, description="seconds the start-up warm-up took (null: still running)")
+    animator: bool = Field(
+        False, description="the default face's animator is built (first session starts at once)"
+    )
+    warmup_seconds: float | None = Field(
+        None, description="seconds the start-up warm-up took (null: still running)"
+    )
     errors: dict[str, str] = Field(default_factory=dict)
     job_workers: int
     jobs: dict[str, int] = Field(default_factory=dict, description="jobs by state")
@@ -55,8 +60,11 @@ class FaceSummary(BaseModel):
     name: str
     builtin: bool
     default: bool = False
-    vertices: int | None = Field(None, description="vertex count (approximate for a built-in face not loaded "
-                                                  "yet; null for a mesh not loaded yet)")
+    vertices: int | None = Field(
+        None,
+        description="vertex count (approximate for a built-in face not loaded "
+        "yet; null for a mesh not loaded yet)",
+    )
 
 
 class FaceList(BaseModel):
@@ -75,8 +83,12 @@ class FaceInfo(BaseModel):
     rigid_groups: dict[str, int] = Field(description="rigid group -> vertex count")
     feature_points: int = Field(description="number of MPEG-4 feature points annotated")
     feature_point_ids: list[str]
-    fapu: dict[str, float] | None = Field(None, description="MPEG-4 FAPU in mesh units (null if unmeasurable)")
-    bounds: list[list[float]] = Field(description="[[xmin,ymin,zmin],[xmax,ymax,zmax]] in mesh units")
+    fapu: dict[str, float] | None = Field(
+        None, description="MPEG-4 FAPU in mesh units (null if unmeasurable)"
+    )
+    bounds: list[list[float]] = Field(
+        description="[[xmin,ymin,zmin],[xmax,ymax,zmax]] in mesh units"
+    )
     topology_url: str
 
 
@@ -86,12 +98,18 @@ class JobOptions(BaseModel):
     face: str | None = Field(None, description="face name (GET /v1/faces); default: the server's")
     engine: Engine = "fp"
     format: OutputFormat = "glb"
-    layout: str | None = Field(None, description="mocap marker layout: the layout file's JSON content, "
-                               "required for .c3d/.trc/.csv input (never a path); a job's status shows "
-                               "'uploaded' when it has one")
-    text: str | None = Field(None, max_length=10000,
-                             description="audio input only: its transcript (English); its phones are "
-                             "aligned to the audio; text that does not match the audio fails the job")
+    layout: str | None = Field(
+        None,
+        description="mocap marker layout: the layout file's JSON content, "
+        "required for .c3d/.trc/.csv input (never a path); a job's status shows "
+        "'uploaded' when it has one",
+    )
+    text: str | None = Field(
+        None,
+        max_length=10000,
+        description="audio input only: its transcript (English); its phones are "
+        "aligned to the audio; text that does not match the audio fails the job",
+    )
 
 
 class JobStatus(BaseModel):

@@ -21,6 +21,7 @@ Layout (all little-endian; every section starts on a 4-byte boundary; see ``prot
 
 Pure encode/decode; no I/O.
 """
+
 from __future__ import annotations
 
 import struct
@@ -63,7 +64,9 @@ def _pad(n: int) -> int:
     return (-n) % 4
 
 
-def part_ids_from_parts(n_vertices: int, parts: dict[str, np.ndarray], order: list[str]) -> np.ndarray:
+def part_ids_from_parts(
+    n_vertices: int, parts: dict[str, np.ndarray], order: list[str]
+) -> np.ndarray:
     """``(V,) u8`` part index per vertex; a vertex in several parts gets the last one in ``order``."""
     ids = np.full(n_vertices, NO_PART, dtype=np.uint8)
     for i, name in enumerate(order):
@@ -76,7 +79,9 @@ def encode_topology(topo: Topology) -> bytes:
     v = np.ascontiguousarray(topo.vertices, dtype="<f4")
     t = np.ascontiguousarray(topo.triangles, dtype="<u4")
     if v.ndim != 2 or v.shape[1] != 3 or t.ndim != 2 or t.shape[1] != 3:
-        raise TopologyError(f"vertices must be (V,3) and triangles (F,3); got {v.shape} and {t.shape}")
+        raise TopologyError(
+            f"vertices must be (V,3) and triangles (F,3); got {v.shape} and {t.shape}"
+        )
     n = v.shape[0]
     parts = np.ascontiguousarray(topo.part_ids, dtype=np.uint8)
     groups = np.ascontiguousarray(topo.rigid_group, dtype=np.uint8)
@@ -88,11 +93,29 @@ def encode_topology(topo: Topology) -> bytes:
         if "\n" in name:
             raise TopologyError(f"names may not contain a newline: {name!r}")
     names = "".join(f"{s}\n" for s in [*topo.part_names, *topo.group_names]).encode("utf-8")
-    body = [names, b"\0" * _pad(len(names)), v.tobytes(), t.tobytes(),
-            parts.tobytes(), b"\0" * _pad(n), groups.tobytes(), b"\0" * _pad(n)]
+    body = [
+        names,
+        b"\0" * _pad(len(names)),
+        v.tobytes(),
+        t.tobytes(),
+        parts.tobytes(),
+        b"\0" * _pad(n),
+        groups.tobytes(),
+        b"\0" * _pad(n),
+    ]
     total = HEADER.size + sum(len(b) for b in body)
-    head = HEADER.pack(MAGIC, VERSION, 0, n, t.shape[0], len(topo.part_names), len(topo.group_names),
-                       len(names), float(topo.mm_per_unit), total)
+    head = HEADER.pack(
+        MAGIC,
+        VERSION,
+        0,
+        n,
+        t.shape[0],
+        len(topo.part_names),
+        len(topo.group_names),
+        len(names),
+        float(topo.mm_per_unit),
+        total,
+    )
     return b"".join([head, *body])
 
 
@@ -100,7 +123,9 @@ def decode_topology(data: bytes | bytearray | memoryview) -> Topology:
     """Inverse of ``encode_topology``; TopologyError names what is wrong with a bad blob."""
     buf = memoryview(data).cast("B")
     if len(buf) < HEADER.size:
-        raise TopologyError(f"blob of {len(buf)} bytes is shorter than the {HEADER.size}-byte header")
+        raise TopologyError(
+            f"blob of {len(buf)} bytes is shorter than the {HEADER.size}-byte header"
+        )
     magic, version, _flags, n, f, p, g, n_names, mm, total = HEADER.unpack_from(buf, 0)
     if magic != MAGIC:
         raise TopologyError(f"bad magic {bytes(magic)!r}; expected {MAGIC!r}")
@@ -108,11 +133,13 @@ def decode_topology(data: bytes | bytearray | memoryview) -> Topology:
         raise TopologyError(f"unsupported topology version {version}; this decoder reads {VERSION}")
     expected = HEADER.size + n_names + _pad(n_names) + 12 * n + 12 * f + 2 * (n + _pad(n))
     if total != expected or len(buf) != total:
-        raise TopologyError(f"length mismatch: header says {total} bytes, counts imply {expected}, "
-                            f"blob has {len(buf)}")
+        raise TopologyError(
+            f"length mismatch: header says {total} bytes, counts imply {expected}, "
+            f"blob has {len(buf)}"
+        )
     off = HEADER.size
     try:
-        names = bytes(buf[off:off + n_names]).decode("utf-8").split("\n")
+        names = bytes(buf[off : off + n_names]).decode("utf-8").split("\n")
     except UnicodeDecodeError as e:
         raise TopologyError(f"names are not UTF-8: {e}") from None
     if names[-1:] != [""] and n_names:

@@ -2,6 +2,7 @@
 
 Pure (no I/O): the CLI normalises every ``--url``/``--server`` with it, the client library every URL.
 """
+
 from __future__ import annotations
 
 import re
@@ -33,5 +34,7 @@ def server_url(text: str) -> str:
     except ValueError:
         port = -1
     if not parts.hostname or port == -1 or (port is not None and not 0 < port < 65536):
-        raise ValueError(f"'{text}' names no host and valid port; give one like http://127.0.0.1:8000")
+        raise ValueError(
+            f"'{text}' names no host and valid port; give one like http://127.0.0.1:8000"
+        )
     return urlunsplit((scheme, parts.netloc, parts.path.rstrip("/"), parts.query, ""))

@@ -1,4 +1,5 @@
 """facecast.server: faces, drivers, deformation, sessions, jobs and the HTTP/WebSocket API."""
+
 from importlib.metadata import PackageNotFoundError, version
 
 try:

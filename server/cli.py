@@ -13,6 +13,7 @@ flags from the local module and runs the client module named in ``REMOTE`` when 
 Every ``--url`` and ``--server`` is a server URL, taken as typed (``127.0.0.1:8000`` works; see
 ``facecast.protocol.urls.server_url``). Logs go to stderr at WARNING; ``-v`` shows INFO, ``-vv`` DEBUG.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,15 +23,27 @@ import re
 import sys
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "serve": ("facecast.server.commands.serve", "start the server (built-in face, in-process jobs, local disk)"),
-    "render": ("facecast.server.commands.render", "batch: .fap, audio or mocap in; .glb, .npz or .fap out"),
+    "serve": (
+        "facecast.server.commands.serve",
+        "start the server (built-in face, in-process jobs, local disk)",
+    ),
+    "render": (
+        "facecast.server.commands.render",
+        "batch: .fap, audio or mocap in; .glb, .npz or .fap out",
+    ),
     "lipsync": ("facecast.server.commands.lipsync", "audio in; viseme track out (JSON)"),
     "faces": ("facecast.server.commands.faces", "list built-in faces, or describe a face"),
     "info": ("facecast.server.commands.info", "version, backend and OpenCL device in use"),
     "bench": ("facecast.server.commands.bench", "benchmarks: deform, serve, ..."),
     "session": ("facecast.client.commands.session", "create or close a live session on a server"),
-    "stream": ("facecast.client.commands.stream", "push an input file to a live session at its real rate"),
-    "watch": ("facecast.client.commands.watch", "watch a live session; report fps, latency, bandwidth, drops"),
+    "stream": (
+        "facecast.client.commands.stream",
+        "push an input file to a live session at its real rate",
+    ),
+    "watch": (
+        "facecast.client.commands.watch",
+        "watch a live session; report fps, latency, bandwidth, drops",
+    ),
 }
 #: Commands run by a client module instead when ``--server URL`` is given.
 REMOTE: dict[str, str] = {"render": "facecast.client.commands.render"}
@@ -49,10 +62,17 @@ def _version() -> str:
 
 
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="facecast", description="Networked facial-animation server.")
+    parser = argparse.ArgumentParser(
+        prog="facecast", description="Networked facial-animation server."
+    )
     parser.add_argument("--version", action="version", version=_version())
-    parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="log more: -v for INFO, -vv for DEBUG (default: warnings only); also after the command")
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=0,
+        help="log more: -v for INFO, -vv for DEBUG (default: warnings only); also after the command",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     wanted = next((a for a in argv if not a.startswith("-")), None)

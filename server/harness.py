@@ -54,8 +54,14 @@ class LocalServer:
     ``python``: the interpreter to run (another checkout's venv, to compare two versions).
     """
 
-    def __init__(self, data_dir: Path | None = None, *args: str, env: Mapping[str, str] | None = None,
-                 admin_key: str | None = None, python: str = sys.executable) -> None:
+    def __init__(
+        self,
+        data_dir: Path | None = None,
+        *args: str,
+        env: Mapping[str, str] | None = None,
+        admin_key: str | None = None,
+        python: str = sys.executable,
+    ) -> None:
         self._tmp = None
         if data_dir is None:
             self._tmp = tempfile.TemporaryDirectory(prefix="facecast-serve-")
@@ -86,14 +92,25 @@ class LocalServer:
         Raises ``RuntimeError`` with the end of the server's log when it exits or times out.
         """
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        cmd = [self.python, "-m", "facecast.server.cli", "serve", "--port", str(self.port),
-               "--data-dir", str(self.data_dir), *self.args]
+        cmd = [
+            self.python,
+            "-m",
+            "facecast.server.cli",
+            "serve",
+            "--port",
+            str(self.port),
+            "--data-dir",
+            str(self.data_dir),
+            *self.args,
+        ]
         self._logf = open(self.log, "ab")  # noqa: SIM115 (closed by stop)
         self.proc = subprocess.Popen(cmd, env=self.env, stdout=self._logf, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"facecast serve exited with {self.proc.returncode}:\n{self.tail()}")
+                raise RuntimeError(
+                    f"facecast serve exited with {self.proc.returncode}:\n{self.tail()}"
+                )
             try:
                 r = httpx.get(self.url + "/healthz", timeout=2.0)
                 if r.status_code == 200 and (not ready or r.json().get("ready", True)):
@@ -105,8 +122,10 @@ class LocalServer:
                 pass
             time.sleep(POLL_SECONDS)
         self.stop()
-        raise RuntimeError(f"facecast serve did not become {'ready' if ready else 'healthy'} in {timeout:g} s:\n"
-                           f"{self.tail()}")
+        raise RuntimeError(
+            f"facecast serve did not become {'ready' if ready else 'healthy'} in {timeout:g} s:\n"
+            f"{self.tail()}"
+        )
 
     def tail(self, chars: int = 4000) -> str:
         """The end of the server's log."""
@@ -118,8 +137,11 @@ class LocalServer:
     def healthy(self, timeout: float = 10.0) -> bool:
         """True when the process runs and ``/healthz`` answers 200."""
         try:
-            return (self.proc is not None and self.proc.poll() is None
-                    and httpx.get(self.url + "/healthz", timeout=timeout).status_code == 200)
+            return (
+                self.proc is not None
+                and self.proc.poll() is None
+                and httpx.get(self.url + "/healthz", timeout=timeout).status_code == 200
+            )
         except httpx.HTTPError:
             return False
 
@@ -130,7 +152,9 @@ class LocalServer:
     def rss(self) -> int:
         """Resident memory of the server process, bytes (0 when unknown)."""
         try:
-            for line in Path(f"/proc/{self.proc.pid if self.proc else 0}/status").read_text().splitlines():
+            for line in (
+                Path(f"/proc/{self.proc.pid if self.proc else 0}/status").read_text().splitlines()
+            ):
                 if line.startswith("VmRSS:"):
                     return int(line.split()[1]) * 1024
         except OSError:
@@ -165,6 +189,7 @@ class LocalServer:
     def __enter__(self) -> Self:
         return self if self.proc is not None else self.start()
 
-    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.stop()

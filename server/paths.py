@@ -1,4 +1,5 @@
 """Where facecast keeps caches and where tests and benchmarks find ../shared/data."""
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -1,4 +1,5 @@
 """The per-face animation pipeline: FaceState -> rig -> D, transforms -> deformer -> vertices."""
+
 from __future__ import annotations
 
 import logging
@@ -28,9 +29,18 @@ class Animator:
         **engine_params: passed to ``get_operator``.
     """
 
-    def __init__(self, face, *, engine: str = "fp", backend: str = "auto", device: str | None = None,
-                 control_vertices: np.ndarray | None = None, operator=None, per_axis: bool = False,
-                 **engine_params):
+    def __init__(
+        self,
+        face,
+        *,
+        engine: str = "fp",
+        backend: str = "auto",
+        device: str | None = None,
+        control_vertices: np.ndarray | None = None,
+        operator=None,
+        per_axis: bool = False,
+        **engine_params,
+    ):
         from .backends import make_deformer
 
         self.face = face
@@ -38,15 +48,27 @@ class Animator:
         if operator is None:
             from .deform.build import get_operator
 
-            operator = get_operator(face, self.rig.control_vertices, engine=engine,
-                                    constrained=self.rig.constrained, **engine_params)
+            operator = get_operator(
+                face,
+                self.rig.control_vertices,
+                engine=engine,
+                constrained=self.rig.constrained,
+                **engine_params,
+            )
         if operator.n_controls != self.rig.n_controls or operator.n_vertices != face.n_vertices:
-            raise ValueError(f"operator is {operator.n_vertices}x{operator.n_controls}, face/controls need "
-                             f"{face.n_vertices}x{self.rig.n_controls}")
+            raise ValueError(
+                f"operator is {operator.n_vertices}x{operator.n_controls}, face/controls need "
+                f"{face.n_vertices}x{self.rig.n_controls}"
+            )
         self.operator = operator
         self.deformer = make_deformer(face, operator, backend, device)
-        log.debug("animator for %s: %d controls, engine %s, backend %s", face.name, self.rig.n_controls,
-                  engine, getattr(self.deformer, "name", type(self.deformer).__name__))
+        log.debug(
+            "animator for %s: %d controls, engine %s, backend %s",
+            face.name,
+            self.rig.n_controls,
+            engine,
+            getattr(self.deformer, "name", type(self.deformer).__name__),
+        )
 
     def solve(self, state: FaceState) -> tuple[np.ndarray, np.ndarray]:
         """``(D (K, 3) float32, transforms (G, 3, 4) float32)`` of one state."""
@@ -61,14 +83,16 @@ class Animator:
         """Deformed vertices ``(V, 3) float32`` of one state."""
         return np.asarray(self.deformer.deform(*self.solve(state)), dtype=np.float32)
 
-    def render(self, animation: Animation, progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+    def render(
+        self, animation: Animation, progress: Callable[[int, int], None] | None = None
+    ) -> np.ndarray:
         """All frames of ``animation``: ``(T, V, 3) float32``; ``progress(done, total)`` after each chunk."""
         total = len(animation.states)
         out = np.empty((total, self.face.n_vertices, 3), dtype=np.float32)
         for start in range(0, total, CHUNK):
-            states = animation.states[start:start + CHUNK]
+            states = animation.states[start : start + CHUNK]
             D, T = self.solve_batch(states)
-            self.deformer.deform_batch(D, T, out=out[start:start + len(states)])
+            self.deformer.deform_batch(D, T, out=out[start : start + len(states)])
             if progress is not None:
                 progress(start + len(states), total)
         return out

@@ -1,4 +1,5 @@
 """Batch rendering: an input file (.fap, audio, mocap) to an output file (.glb, .npz, .fap)."""
+
 from __future__ import annotations
 
 import logging
@@ -23,15 +24,26 @@ def output_kind(path: str | Path) -> str:
     """``glb`` | ``npz`` | ``fap`` from the output suffix; InputError for anything else."""
     suffix = Path(path).suffix.lower()
     if suffix not in OUTPUTS:
-        raise InputError(f"unsupported output type {suffix or '(none)'!r}; expected one of "
-                         f"{', '.join(OUTPUTS)}", where=str(path))
+        raise InputError(
+            f"unsupported output type {suffix or '(none)'!r}; expected one of {', '.join(OUTPUTS)}",
+            where=str(path),
+        )
     return suffix[1:]
 
 
-def render_file(input: str | Path, output: str | Path, *, face="default", engine: str = "fp",
-                backend: str = "auto", device: str | None = None, layout: str | None = None,
-                progress: Callable[[int, int], None] | None = None, mocap: dict | None = None,
-                text: str | None = None) -> dict:
+def render_file(
+    input: str | Path,
+    output: str | Path,
+    *,
+    face="default",
+    engine: str = "fp",
+    backend: str = "auto",
+    device: str | None = None,
+    layout: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    mocap: dict | None = None,
+    text: str | None = None,
+) -> dict:
     """Decode ``input``, animate ``face`` and write ``output`` atomically (nothing is left on failure).
 
     Args:
@@ -61,7 +73,9 @@ def render_file(input: str | Path, output: str | Path, *, face="default", engine
     if text is not None:
         options["text"] = text
     if input.suffix.lower() in (".c3d", ".trc", ".csv"):
-        options.update({k: v for k, v in (mocap or {}).items() if v is not None})  # mocap.driver.load's
+        options.update(
+            {k: v for k, v in (mocap or {}).items() if v is not None}
+        )  # mocap.driver.load's
     if input.suffix.lower() == ".fap":  # FAPs do not depend on the face: check the input first
         animation = load_animation(input, None)
         face_obj = load_face(face) if isinstance(face, (str, Path)) else face
@@ -81,8 +95,13 @@ def render_file(input: str | Path, output: str | Path, *, face="default", engine
 
     from .pipeline import Animator
 
-    animator = Animator(face_obj, engine=engine, backend=backend, device=device,
-                        control_vertices=animation.control_vertices)
+    animator = Animator(
+        face_obj,
+        engine=engine,
+        backend=backend,
+        device=device,
+        control_vertices=animation.control_vertices,
+    )
     n_frames = len(animation.states)
     if kind == "glb" and n_frames * face_obj.n_vertices * 12 > GLB_STREAM_BYTES:
         frames = _frame_chunks(animator, animation, progress)
@@ -95,14 +114,23 @@ def render_file(input: str | Path, output: str | Path, *, face="default", engine
     else:
         from .output.gltf import write_glb
 
-        summary["gltf"] = write_glb(output, frames, face_obj.vertices, face_obj.triangles, animation.fps,
-                                    mm_per_unit=face_obj.mm_per_unit, name=input.stem or "facecast",
-                                    extras={"source": input.name, "face": str(face_obj.name)})
+        summary["gltf"] = write_glb(
+            output,
+            frames,
+            face_obj.vertices,
+            face_obj.triangles,
+            animation.fps,
+            mm_per_unit=face_obj.mm_per_unit,
+            name=input.stem or "facecast",
+            extras={"source": input.name, "face": str(face_obj.name)},
+        )
     log.info("rendered %s -> %s (%d frames at %g fps)", input, output, n_frames, animation.fps)
     return summary
 
 
-def _frame_chunks(animator, animation, progress: Callable[[int, int], None] | None, size: int | None = None):
+def _frame_chunks(
+    animator, animation, progress: Callable[[int, int], None] | None, size: int | None = None
+):
     """A re-iterable source of ``(c, V, 3) float32`` frame chunks of ``size`` frames (default: 64, fewer
     on big faces, see ``GLB_CHUNK_BYTES``), rendered anew on every pass; ``progress`` follows the
     first pass."""
@@ -116,7 +144,7 @@ def _frame_chunks(animator, animation, progress: Callable[[int, int], None] | No
         passes.append(1)
         total = len(animation.states)
         for start in range(0, total, size):
-            D, T = animator.solve_batch(animation.states[start:start + size])
+            D, T = animator.solve_batch(animation.states[start : start + size])
             yield np.asarray(animator.deformer.deform_batch(D, T), dtype=np.float32)
             if progress is not None and first:
                 progress(start + len(D), total)

@@ -32,7 +32,9 @@ class LocalSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="FACECAST_", extra="ignore")
 
-    cache: Path = Field(default_factory=default_cache)  # built faces, operators, annotations, kernels
+    cache: Path = Field(
+        default_factory=default_cache
+    )  # built faces, operators, annotations, kernels
     shared_data: Path | None = None  # the shared data folder (tests, benches); else ../shared/data
     max_audio_seconds: float = Field(default=MAX_AUDIO_SECONDS, gt=0, allow_inf_nan=False)
 
@@ -55,13 +57,16 @@ def load(cls: type[S], **overrides: Any) -> S:
     except ValidationError as e:
         problems = "; ".join(
             f"FACECAST_{'_'.join(map(str, err['loc'])).upper()}={err.get('input')!r}: {err['msg']}"
-            for err in e.errors())
+            for err in e.errors()
+        )
         raise InputError(f"{problems}; fix or unset the variable", where="environment") from None
 
 
 def settings() -> LocalSettings:
     """The library's settings from the current environment (raises ``InputError`` when malformed)."""
-    return _parsed(tuple(sorted((k, v) for k, v in os.environ.items() if k.startswith("FACECAST_"))))
+    return _parsed(
+        tuple(sorted((k, v) for k, v in os.environ.items() if k.startswith("FACECAST_")))
+    )
 
 
 @lru_cache(maxsize=8)

@@ -1,4 +1,5 @@
 """What drivers produce: the state of a face at one media time, and animations as sequences of them."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field

@@ -1,4 +1,5 @@
 """Shared fixtures: the real data in ../shared/data, a seeded RNG, and a real server on loopback."""
+
 from __future__ import annotations
 
 import asyncio
@@ -44,7 +45,9 @@ class RunningServer(LocalServer):
 def live_server(root: Path, face: str, *extra: str, env: dict | None = None) -> RunningServer:
     """A started server for live tests: one ``face``, the NumPy backend (frames comparable with a batch
     render) and no job workers; ``extra`` CLI options, ``env`` extra environment."""
-    return RunningServer(root, "--face", face, "--backend", "numpy", "--workers", "0", *extra, env=env).start()
+    return RunningServer(
+        root, "--face", face, "--backend", "numpy", "--workers", "0", *extra, env=env
+    ).start()
 
 
 def run(coro, timeout: float = 120):

@@ -5,6 +5,7 @@ built-in head at another resolution are annotated once per module (each takes se
 then check what a user relies on: the annotation loads, FAPs animate the right way (the jaw opens
 downwards, a smile widens the mouth), full-strength expressions flip no triangle, seams stay closed.
 """
+
 from __future__ import annotations
 
 import json
@@ -54,11 +55,17 @@ def faces(cache):
     out = {"builtin-3k": _builtin_face(3000)}
     if data is not None:
         for name, rel in HEADS.items():
-            if name == "ict":  # ICT's topology is recognised: annotate it automatically all the same
+            if (
+                name == "ict"
+            ):  # ICT's topology is recognised: annotate it automatically all the same
                 shipped = load_face(data / "heads" / rel)
                 ann = annotate_mesh(shipped.vertices, shipped.triangles)
-                out[name] = (face_from_annotation("ict (automatic)", shipped.vertices, shipped.triangles, ann,
-                                                  where="test"), shipped)
+                out[name] = (
+                    face_from_annotation(
+                        "ict (automatic)", shipped.vertices, shipped.triangles, ann, where="test"
+                    ),
+                    shipped,
+                )
             else:
                 out[name] = load_face(data / "heads" / rel)
     return out
@@ -68,7 +75,9 @@ def _builtin_face(n: int):
     f = load_face(f"default:{n // 1000}k")
     ann = annotate_mesh(f.vertices, f.triangles)
     _REPORTS[f"builtin-{n // 1000}k"] = ann["automatic"]
-    return face_from_annotation(f"default:{n // 1000}k (automatic)", f.vertices, f.triangles, ann, where="test"), f
+    return face_from_annotation(
+        f"default:{n // 1000}k (automatic)", f.vertices, f.triangles, ann, where="test"
+    ), f
 
 
 _REPORTS: dict = {}
@@ -120,7 +129,9 @@ def test_jaw_opens_downwards_and_a_smile_widens_the_mouth(faces, name):
 def _flips(face) -> list[int]:
     qm = QualityMesh.of(face)
     anim = Animator(face, backend="numpy")
-    return [measure(anim.frame(FaceState(expression=(e, 63, 0, 0))), qm)["flips"] for e in range(1, 7)]
+    return [
+        measure(anim.frame(FaceState(expression=(e, 63, 0, 0))), qm)["flips"] for e in range(1, 7)
+    ]
 
 
 #: Flipped triangles allowed per expression at full strength on heads without a hand-made annotation
@@ -147,8 +158,12 @@ def test_builtin_head_points_land_near_its_own(faces):
     # and a coarse mesh's lip and eye-corner vertices (where the surface folds, facing away from
     # the template's normal, or inside the eye-socket test) were passed over for far ones.
     auto, truth = faces["builtin-3k"]
-    d = np.array([np.linalg.norm(auto.vertices[v] - truth.vertices[truth.feature_points[k]])
-                  for k, v in auto.feature_points.items()])
+    d = np.array(
+        [
+            np.linalg.norm(auto.vertices[v] - truth.vertices[truth.feature_points[k]])
+            for k, v in auto.feature_points.items()
+        ]
+    )
     assert len(d) == 84 and d.mean() < 1.0 and d.max() < 6.0, (d.mean(), d.max())
     assert _REPORTS["builtin-3k"]["template"] == "default"
 
@@ -157,7 +172,9 @@ def _bench():
     import importlib.util
     from pathlib import Path
 
-    spec = importlib.util.spec_from_file_location("bench_annotate", Path(__file__).parents[1] / "bench" / "annotate.py")
+    spec = importlib.util.spec_from_file_location(
+        "bench_annotate", Path(__file__).parents[1] / "bench" / "annotate.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -169,11 +186,16 @@ def test_a_remeshed_ict_variant_is_fitted_with_the_ict_template_within_2mm(cache
     from facecast.server.paths import shared_data
 
     data = shared_data()
-    if data is None or not (data / "ict-facekit" / "generic_neutral_mesh.obj").is_file() \
-            or not (data / "heads" / HEADS["ict"]).is_file():
+    if (
+        data is None
+        or not (data / "ict-facekit" / "generic_neutral_mesh.obj").is_file()
+        or not (data / "heads" / HEADS["ict"]).is_file()
+    ):
         pytest.skip("../shared/data has no ICT FaceKit")
     bench = _bench()
-    shipped = json.loads((__import__("facecast.server.faces.ict", fromlist=["x"]).ANNOTATION).read_text())
+    shipped = json.loads(
+        (__import__("facecast.server.faces.ict", fromlist=["x"]).ANNOTATION).read_text()
+    )
     v, tri = read_obj(data / "heads" / "ict-identities" / "identity003.obj.xz")
     truth = {k: v[i].astype(np.float64) for k, i in shipped["feature_points"].items()}
     rv, rt = bench.remesh(v.astype(np.float64), tri, 0.15, seed=3)
@@ -191,16 +213,26 @@ def test_an_unknown_template_is_refused(faces):
 
 def test_ict_variant_points_land_near_the_shipped_ones(faces):
     face = _face(faces, "ict")
-    shipped = json.loads((__import__("facecast.server.faces.ict", fromlist=["x"]).ANNOTATION).read_text())
+    shipped = json.loads(
+        (__import__("facecast.server.faces.ict", fromlist=["x"]).ANNOTATION).read_text()
+    )
     core = ("9.3", "9.15", "2.2", "8.1", "8.2", "3.5", "3.6", "8.3", "8.4", "3.7", "3.12")
-    d = [np.linalg.norm(face.vertices[face.feature_points[k]] - face.vertices[shipped["feature_points"][k]]) * 10
-         for k in core if k in face.feature_points]
+    d = [
+        np.linalg.norm(
+            face.vertices[face.feature_points[k]] - face.vertices[shipped["feature_points"][k]]
+        )
+        * 10
+        for k in core
+        if k in face.feature_points
+    ]
     assert len(d) == len(core) and np.mean(d) < 8.0, d
 
 
 def test_a_mask_says_what_it_left_out(faces):
     face = _face(faces, "mask")
-    assert "7.1" not in face.feature_points and "11.6" not in face.feature_points  # no back of the head
+    assert (
+        "7.1" not in face.feature_points and "11.6" not in face.feature_points
+    )  # no back of the head
     assert "teeth_upper" not in face.parts
 
 
@@ -219,7 +251,9 @@ def test_a_head_on_its_side_facing_minus_z_is_turned_upright(faces):
     assert ann["axes"] == {"up": "+x", "forward": "-z"}
     face = face_from_annotation("turned", v, builtin.triangles, ann, where="test")
     measure_fapu(face)
-    assert face.vertices[face.feature_points["9.3"], 2] > face.vertices[face.feature_points["7.1"], 2]
+    assert (
+        face.vertices[face.feature_points["9.3"], 2] > face.vertices[face.feature_points["7.1"], 2]
+    )
 
 
 def test_user_landmarks_give_the_alignment(faces, tmp_path):
@@ -229,12 +263,16 @@ def test_user_landmarks_give_the_alignment(faces, tmp_path):
     rot = frame("-z", "+x")
     v = builtin.vertices.astype(np.float64) @ rot * 0.1  # cm, lying on its back... upside down
     keys = ("9.3", "3.7", "3.12", "8.3", "8.4", "2.1")
-    (tmp_path / "lm.json").write_text(json.dumps({k: v[builtin.feature_points[k]].tolist() for k in keys}))
+    (tmp_path / "lm.json").write_text(
+        json.dumps({k: v[builtin.feature_points[k]].tolist() for k in keys})
+    )
     lm = read_landmarks(tmp_path / "lm.json", len(v))
     ann = annotate_mesh(v, builtin.triangles, landmarks=lm)
     assert ann["axes"] == {"up": "-z", "forward": "+x"} and ann["units"] == "cm"
     for k in keys:
-        assert np.linalg.norm(v[ann["feature_points"][k]] - v[builtin.feature_points[k]]) < 0.4  # 4 mm
+        assert (
+            np.linalg.norm(v[ann["feature_points"][k]] - v[builtin.feature_points[k]]) < 0.4
+        )  # 4 mm
 
 
 def test_units_come_from_the_head_size(faces):
@@ -317,14 +355,22 @@ def test_loading_a_mesh_without_annotation_says_so_once(tmp_path, cache, faces, 
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-_json = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
-                     lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=5), c, max_size=4),
-                     max_leaves=12)
+_json = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
+    lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=5), c, max_size=4),
+    max_leaves=12,
+)
 
 
 @settings(max_examples=200, deadline=None)
-@given(data=st.one_of(_json, st.dictionaries(st.sampled_from(["9.3", "3.7", "3.12", "8.3", "2.1", "x"]), _json,
-                                             max_size=5)))
+@given(
+    data=st.one_of(
+        _json,
+        st.dictionaries(
+            st.sampled_from(["9.3", "3.7", "3.12", "8.3", "2.1", "x"]), _json, max_size=5
+        ),
+    )
+)
 def test_landmark_files_are_parsed_or_refused_with_a_project_error(data):
     from facecast.server.faces.annotate.landmarks import parse_landmarks
 
@@ -332,4 +378,6 @@ def test_landmark_files_are_parsed_or_refused_with_a_project_error(data):
         out = parse_landmarks(data, 100)
     except InputError:
         return
-    assert len(out) >= 3 and all(isinstance(p, int) or np.asarray(p).shape == (3,) for p in out.values())
+    assert len(out) >= 3 and all(
+        isinstance(p, int) or np.asarray(p).shape == (3,) for p in out.values()
+    )

@@ -63,7 +63,9 @@ def test_a_take_whose_write_fails_leaves_the_old_file_and_nothing_else(tmp_path,
 
 def test_a_failed_download_leaves_nothing(tmp_path):
     def handler(request: httpx.Request) -> httpx.Response:
-        return httpx.Response(404, json={"error": "no such job", "detail": "no such job", "status": 404})
+        return httpx.Response(
+            404, json={"error": "no such job", "detail": "no such job", "status": 404}
+        )
 
     with (
         httpx.Client(transport=httpx.MockTransport(handler), base_url="http://x") as client,

@@ -1,5 +1,6 @@
 """The shipped 12-10-5 vowel network on vowels it never heard: a formant synthesiser written here
 (pulse train through second-order resonators at textbook formant frequencies), two speakers."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -10,12 +11,18 @@ from facecast.server.audio.classify import VOWELS, WEIGHTS, VowelNet, default_ne
 from facecast.server.audio.pipeline import features_of
 
 #: F1-F3 (Hz) of /a e i o u/ for an adult male (Spanish-like five-vowel system).
-FORMANTS = {"a": (730, 1150, 2600), "e": (470, 1850, 2500), "i": (290, 2250, 2950),
-            "o": (480, 850, 2450), "u": (310, 750, 2300)}
+FORMANTS = {
+    "a": (730, 1150, 2600),
+    "e": (470, 1850, 2500),
+    "i": (290, 2250, 2950),
+    "o": (480, 850, 2450),
+    "u": (310, 750, 2300),
+}
 
 
-def formant_vowel(v: str, *, sr: int = 16000, f0: float = 110.0, scale: float = 1.0,
-                  dur: float = 0.5) -> np.ndarray:
+def formant_vowel(
+    v: str, *, sr: int = 16000, f0: float = 110.0, scale: float = 1.0, dur: float = 0.5
+) -> np.ndarray:
     n = int(sr * dur)
     x = np.zeros(n)
     x[np.arange(0, n, sr / f0).astype(int)] = 1.0
@@ -80,7 +87,9 @@ def test_training_command_is_reproducible(tmp_path):
     outs = []
     for i in range(2):
         out = tmp_path / f"net{i}.npz"
-        assert train.main(["--per-vowel", "3", "--epochs", "3", "--seed", "7", "--out", str(out)]) == 0
+        assert (
+            train.main(["--per-vowel", "3", "--epochs", "3", "--seed", "7", "--out", str(out)]) == 0
+        )
         outs.append(VowelNet.load(out))
     np.testing.assert_array_equal(outs[0].w1, outs[1].w1)
     np.testing.assert_array_equal(outs[0].w2, outs[1].w2)

@@ -1,5 +1,6 @@
 """Decoding uploaded audio: streaming to the analysis rate in bounded memory, header limits, hostile
 files (lying or truncated headers, absurd rates, no channels) and a fuzz over mutated real files."""
+
 from __future__ import annotations
 
 import struct
@@ -46,7 +47,7 @@ def wav_field(src: bytes, offset: int, fmt: str, value: int) -> bytes:
     """``src`` (a WAV) with a field of its ``fmt `` chunk (``offset`` from the chunk id) replaced."""
     b = bytearray(src)
     i = b.find(b"fmt ")
-    b[i + offset:i + offset + struct.calcsize(fmt)] = struct.pack(fmt, value)
+    b[i + offset : i + offset + struct.calcsize(fmt)] = struct.pack(fmt, value)
     return bytes(b)
 
 
@@ -59,7 +60,7 @@ def test_block_resampler_equals_resample_poly_on_any_blocks(sr, rng):
         rs, parts, i = BlockResampler(up, down), [], 0
         while i < n:
             k = int(rng.integers(1, 20000))
-            parts.append(rs.push(x[i:i + k]))
+            parts.append(rs.push(x[i : i + k]))
             i += k
         y = np.concatenate(parts + [rs.flush()])
         ref = scipy.signal.resample_poly(x, up, down)
@@ -106,7 +107,9 @@ def test_an_odd_rate_keeps_exact_frame_times(speech, tmp_path):
 def test_decoding_memory_follows_the_analysis_rate_not_the_file(tmp_path, rng):
     seconds, sr = 60, 48000
     p = tmp_path / "long.wav"
-    sf.write(p, (0.1 * rng.standard_normal((seconds * sr, 2))).astype(np.float32), sr, subtype="PCM_16")
+    sf.write(
+        p, (0.1 * rng.standard_normal((seconds * sr, 2))).astype(np.float32), sr, subtype="PCM_16"
+    )
     tracemalloc.start()
     try:
         d = decode_audio(p, ANALYSIS_RATE)
@@ -115,7 +118,9 @@ def test_decoding_memory_follows_the_analysis_rate_not_the_file(tmp_path, rng):
         tracemalloc.stop()
     out = d.x.nbytes  # 2.4 MB; decoding the whole file as float64 needs 46 MB
     assert out == seconds * ANALYSIS_RATE * 4
-    assert peak < out + 12 * 2**20, f"peak {peak / 2**20:.1f} MiB for {out / 2**20:.1f} MiB of output"
+    assert peak < out + 12 * 2**20, (
+        f"peak {peak / 2**20:.1f} MiB for {out / 2**20:.1f} MiB of output"
+    )
 
 
 def test_the_frame_network_memory_does_not_grow_with_the_file(rng):
@@ -133,8 +138,9 @@ def test_the_frame_network_memory_does_not_grow_with_the_file(rng):
         tracemalloc.stop()
     assert peak < p.nbytes + 64 * 2**20, f"peak {peak / 2**20:.0f} MiB for {len(F)} frames"
     part = F[:5000]
-    np.testing.assert_allclose(net.proba(part), net.proba_stacked(stack_context(part, net.offsets)),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        net.proba(part), net.proba_stacked(stack_context(part, net.offsets)), atol=1e-12
+    )
 
 
 def test_lipsync_file_with_calibration_and_transcript_matches_the_signal_path(data_dir, tmp_path):
@@ -200,7 +206,10 @@ def test_truncated_and_lying_headers_are_refused(speech, tmp_path):
     sf.write(wav, x, sr, subtype="PCM_16")
     raw = wav.read_bytes()
     cases = {
-        "cut.wav": (raw[:len(raw) // 2], "truncated: its header declares 1.19 s of audio, it holds 0.60 s"),
+        "cut.wav": (
+            raw[: len(raw) // 2],
+            "truncated: its header declares 1.19 s of audio, it holds 0.60 s",
+        ),
         "nochannels.wav": (wav_field(raw, 10, "<H", 0), "cannot decode audio \\(.*[Cc]hannel"),
         "rate1.wav": (wav_field(raw, 12, "<I", 1), "sample rate 1 Hz is outside"),
         "rate2g.wav": (wav_field(raw, 12, "<I", 2**31 - 1), "sample rate 2147483647 Hz is outside"),
@@ -208,13 +217,18 @@ def test_truncated_and_lying_headers_are_refused(speech, tmp_path):
     }
     flac = tmp_path / "s.flac"
     sf.write(flac, x, sr)
-    cases["cut.flac"] = (flac.read_bytes()[:len(flac.read_bytes()) // 2], "damaged or truncated|truncated")
+    cases["cut.flac"] = (
+        flac.read_bytes()[: len(flac.read_bytes()) // 2],
+        "damaged or truncated|truncated",
+    )
     for name, (content, message) in cases.items():
         p = tmp_path / name
         p.write_bytes(content)
         with pytest.raises(InputError, match=message) as e:
             decode_audio(p, ANALYSIS_RATE)
-        assert str(p) in str(e.value) and str(e.value).count(str(p)) == 1, name  # named once, by where
+        assert str(p) in str(e.value) and str(e.value).count(str(p)) == 1, (
+            name
+        )  # named once, by where
 
 
 def test_many_channels_and_float_nan_samples(tmp_path):
@@ -231,12 +245,18 @@ def test_many_channels_and_float_nan_samples(tmp_path):
 
 # ---- fuzz: mutated real files give a decode or the project's error, nothing else ----
 
+
 def _seed_files(x: np.ndarray, sr: int) -> list[tuple[str, bytes]]:
     out = []
     with tempfile.TemporaryDirectory() as tmp:
-        for name, data, subtype in (("a.wav", x, "PCM_16"), ("b.wav", x, "FLOAT"),
-                                    ("c.wav", np.stack([x, x], 1), "PCM_U8"), ("d.flac", x, "PCM_16"),
-                                    ("e.flac", np.stack([x, -x], 1), "PCM_24"), ("f.ogg", x, None)):
+        for name, data, subtype in (
+            ("a.wav", x, "PCM_16"),
+            ("b.wav", x, "FLOAT"),
+            ("c.wav", np.stack([x, x], 1), "PCM_U8"),
+            ("d.flac", x, "PCM_16"),
+            ("e.flac", np.stack([x, -x], 1), "PCM_24"),
+            ("f.ogg", x, None),
+        ):
             p = Path(tmp) / name
             sf.write(p, data, sr, subtype=subtype)
             out.append((name, p.read_bytes()))
@@ -249,26 +269,39 @@ def seed_files(speech):
     return _seed_files(x[:3000], sr)
 
 
-def mutate(data: bytes, edits: list[tuple[int, int]], cut: int | None, words: list[tuple[int, int]]) -> bytes:
+def mutate(
+    data: bytes, edits: list[tuple[int, int]], cut: int | None, words: list[tuple[int, int]]
+) -> bytes:
     b = bytearray(data)
     for pos, val in edits:
         b[pos % len(b)] = val
     for pos, word in words:  # 32-bit fields: sizes, rates, counts
         i = pos % max(1, len(b) - 4)
-        b[i:i + 4] = word.to_bytes(4, "little")
+        b[i : i + 4] = word.to_bytes(4, "little")
     if cut is not None:
-        b = b[:cut % (len(b) + 1)]
+        b = b[: cut % (len(b) + 1)]
     return bytes(b)
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(which=st.integers(0, 5),
-       edits=st.lists(st.tuples(st.integers(0, 60), st.integers(0, 255)), max_size=6),
-       far=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=4),
-       words=st.lists(st.tuples(st.integers(0, 80), st.sampled_from([0, 1, 0xFFFF, 0x7FFFFFFF, 0xFFFFFFFF,
-                                                                    0x80000000, 44100])), max_size=2),
-       cut=st.none() | st.integers(0, 10**6))
-def test_fuzz_mutated_audio_decodes_or_raises_input_error(seed_files, which, edits, far, words, cut):
+@settings(
+    max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    which=st.integers(0, 5),
+    edits=st.lists(st.tuples(st.integers(0, 60), st.integers(0, 255)), max_size=6),
+    far=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=4),
+    words=st.lists(
+        st.tuples(
+            st.integers(0, 80),
+            st.sampled_from([0, 1, 0xFFFF, 0x7FFFFFFF, 0xFFFFFFFF, 0x80000000, 44100]),
+        ),
+        max_size=2,
+    ),
+    cut=st.none() | st.integers(0, 10**6),
+)
+def test_fuzz_mutated_audio_decodes_or_raises_input_error(
+    seed_files, which, edits, far, words, cut
+):
     name, data = seed_files[which]
     blob = mutate(data, edits + far, cut, words)
     with tempfile.TemporaryDirectory() as tmp:
@@ -278,7 +311,9 @@ def test_fuzz_mutated_audio_decodes_or_raises_input_error(seed_files, which, edi
             d = decode_audio(p, ANALYSIS_RATE, max_seconds=60)
         except InputError:
             return
-        assert d.x.dtype == np.float32 and np.isfinite(d.x).all() and np.abs(d.x).max(initial=0) <= 1
+        assert (
+            d.x.dtype == np.float32 and np.isfinite(d.x).all() and np.abs(d.x).max(initial=0) <= 1
+        )
         assert d.seconds <= 60 and len(d.x) <= 60 * ANALYSIS_RATE * 1.001 + 1
 
 
@@ -291,7 +326,7 @@ def test_a_live_producers_big_chunk_does_not_swing_memory(rng):
     x = 0.1 * rng.standard_normal(1 << 20)
     rs = StreamResampler(16000, ANALYSIS_RATE)
     y = np.concatenate([rs.push(x[:1000]), rs.push(x[1000:])])
-    np.testing.assert_allclose(y, resample(x, 16000, ANALYSIS_RATE)[:len(y)], atol=1e-12)
+    np.testing.assert_allclose(y, resample(x, 16000, ANALYSIS_RATE)[: len(y)], atol=1e-12)
     assert len(y) > 0.99 * len(x) * 10 / 16
     drv = AudioLiveDriver(None, 16000)
     drv.push(x[:1000].astype(np.float32), 0.0)

@@ -1,4 +1,5 @@
 """Audio files → visemes and FAPs: the lipsync CLI on real speech, the render driver, bad input."""
+
 from __future__ import annotations
 
 import json
@@ -57,9 +58,9 @@ def test_driver_gives_animation_with_jaw_and_lip_faps(bobby):
     assert anim.states[3].t == pytest.approx(0.12)
     faps = np.array([s.faps for s in anim.states])
     assert faps.shape[1] == 69
-    assert faps[:, 3].max() > 100          # open_jaw in MNS units
-    assert faps[:, 5].min() < -50          # lower lip goes down with the jaw
-    assert np.all(faps[:, 19:39] == 0)     # eyes and brows untouched
+    assert faps[:, 3].max() > 100  # open_jaw in MNS units
+    assert faps[:, 5].min() < -50  # lower lip goes down with the jaw
+    assert np.all(faps[:, 19:39] == 0)  # eyes and brows untouched
     assert all(s.viseme is None for s in anim.states)  # FAP 1 would add the mouth a second time
     # only 20 ms of silence before the /b/ voice bar: the jaw starts nearly closed and opens
     # widest in the first vowel (AA of "Bobby", 84-233 ms)
@@ -83,8 +84,9 @@ def test_driver_fap1_mode_and_the_faces_own_viseme_shapes(bobby):
     # a face with its own (here: doubled) viseme table gets doubled FAPs
     ref = np.array([s.faps for s in load(bobby, None, fps=25).states])
     face = SimpleNamespace(visemes=VISEMES * 2)
-    np.testing.assert_allclose(np.array([s.faps for s in load(bobby, face, fps=25).states]),
-                               2 * ref, atol=1e-9)
+    np.testing.assert_allclose(
+        np.array([s.faps for s in load(bobby, face, fps=25).states]), 2 * ref, atol=1e-9
+    )
 
 
 def test_render_dispatch_reaches_the_audio_driver(bobby):
@@ -100,6 +102,7 @@ def test_stereo_8bit_and_other_rates_give_the_same_track(bobby, tmp_path, capsys
     u8 = tmp_path / "u8.wav"
     sf.write(u8, x, sr, subtype="PCM_U8")
     import scipy.signal
+
     hi = tmp_path / "44k.flac"
     sf.write(hi, scipy.signal.resample_poly(x, 441, 160), 44100, subtype="PCM_24")
     y, _ = read_audio(u8)  # offset-binary 8 bit decodes to the same waveform (±1 LSB)
@@ -138,11 +141,14 @@ def test_clipped_speech_still_works_and_warns(bobby, tmp_path, capsys, caplog):
     assert VOWEL_VISEMES & {f["viseme"] for f in frames}
 
 
-@pytest.mark.parametrize(("name", "content", "message"), [
-    ("corrupt.wav", b"RIFF\x10\x00\x00\x00WAVEfmt garbage" * 3, "cannot decode"),
-    ("empty.wav", b"", "cannot decode"),
-    ("speech.mp3", b"ID3", "unsupported audio type"),
-])
+@pytest.mark.parametrize(
+    ("name", "content", "message"),
+    [
+        ("corrupt.wav", b"RIFF\x10\x00\x00\x00WAVEfmt garbage" * 3, "cannot decode"),
+        ("empty.wav", b"", "cannot decode"),
+        ("speech.mp3", b"ID3", "unsupported audio type"),
+    ],
+)
 def test_bad_files_are_refused_with_the_file_named(tmp_path, capsys, name, content, message):
     p = tmp_path / name
     p.write_bytes(content)
@@ -166,6 +172,7 @@ def test_missing_file_and_zero_length_audio(tmp_path):
 def test_explicit_calibration_options(bobby, capsys):
     auto = lipsync_json(capsys, bobby)["frames"]
     loud = lipsync_json(capsys, bobby, "--max-db", "-6")["frames"]  # a much louder reference
+
     def voiced_weight(frames):  # vowels and weak consonants: intensity from energy
         return np.mean([f["weight"] for f in frames if f["viseme"] in VOWEL_VISEMES | {8}])
 

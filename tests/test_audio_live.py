@@ -1,5 +1,6 @@
 """The live driver: same frames as the batch pipeline within its look-ahead, media time, latency
 and damaged streams (NaN chunks, late, duplicated and missing chunks)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -20,7 +21,7 @@ def stream(drv, x, sr, rng=None, chunk=320, t0=0.0):
     states, i = [], 0
     while i < len(x):
         n = int(rng.integers(1, 900)) if rng is not None else chunk
-        states += drv.push(x[i:i + n].astype(np.float32), t0 + i / sr)
+        states += drv.push(x[i : i + n].astype(np.float32), t0 + i / sr)
         i += n
     return states + drv.flush()
 
@@ -31,8 +32,9 @@ def test_live_equals_batch_with_the_same_lookahead(speech, rng, lookahead, fps):
     cal = lipsync(x, sr).calibration
     drv = AudioLiveDriver(None, sr, lookahead=lookahead, fps=fps, calibration=cal)
     states = stream(drv, x, sr, rng)
-    ref = lipsync(x.astype(np.float32), sr, fps=fps, lookahead=drv.coart_lookahead,
-                  calibration=cal).track
+    ref = lipsync(
+        x.astype(np.float32), sr, fps=fps, lookahead=drv.coart_lookahead, calibration=cal
+    ).track
     assert len(states) == len(ref.t)
     np.testing.assert_allclose([s.t for s in states], ref.t, atol=1e-9)
     # the stream resampler's flush and the batch resampler end the signal slightly differently
@@ -54,8 +56,9 @@ def test_longer_lookahead_approaches_free_batch(speech):
     free = lipsync(x, sr).track
     agree = []
     for la in (0.04, 0.3):
-        drv = AudioLiveDriver(None, sr, lookahead=la, fps=100,
-                              calibration=lipsync(x, sr).calibration, fap1=True)
+        drv = AudioLiveDriver(
+            None, sr, lookahead=la, fps=100, calibration=lipsync(x, sr).calibration, fap1=True
+        )
         vis = np.array([s.viseme[0] for s in stream(drv, x, sr)])
         agree.append(np.mean(vis == free.select1))
     assert agree[1] >= agree[0] and agree[1] > 0.9
@@ -68,9 +71,9 @@ def test_default_latency_budget_and_states_wait_for_their_audio(speech):
     got_after = []
     for i in range(0, len(x), 16):  # 1 ms chunks
         end = min(len(x), i + 16) / sr
-        got_after += [end - s.t for s in drv.push(x[i:i + 16], i / sr)]
+        got_after += [end - s.t for s in drv.push(x[i : i + 16], i / sr)]
     lat = np.array(got_after)
-    assert lat.min() >= drv.latency - 1e-9          # never emitted before its audio arrived
+    assert lat.min() >= drv.latency - 1e-9  # never emitted before its audio arrived
     assert lat.max() <= drv.latency + 16 / sr + 1e-9  # and not held longer than needed
 
 
@@ -110,9 +113,9 @@ def test_late_duplicate_and_overlapping_chunks(speech, caplog):
     x, sr = speech
     drv = AudioLiveDriver(None, sr, fps=100)
     states = drv.push(x[:4800], 0.0)
-    assert drv.push(x[1600:3200], 0.1) == []          # entirely old: dropped
+    assert drv.push(x[1600:3200], 0.1) == []  # entirely old: dropped
     assert drv.dropped_chunks == 1
-    states += drv.push(x[4000:8000], 0.25)             # overlaps 50 ms: trimmed
+    states += drv.push(x[4000:8000], 0.25)  # overlaps 50 ms: trimmed
     states += drv.push(x[8000:], 0.5) + drv.flush()
     t = np.array([s.t for s in states])
     assert np.all(np.diff(t) > 0)
@@ -145,7 +148,7 @@ def test_clipping_stream_warns_once(speech, caplog):
     drv = AudioLiveDriver(None, sr, fps=100)
     loud = np.clip(x * 30, -1, 1).astype(np.float32)
     for i in range(0, len(loud), 1600):
-        drv.push(loud[i:i + 1600], i / sr)
+        drv.push(loud[i : i + 1600], i / sr)
     assert caplog.text.count("clipping") == 1
 
 
@@ -165,5 +168,6 @@ def test_median_of_three_fast_path_equals_scipy(rng):
 
     for n in (1, 2, 3, 50):
         p = rng.random((n, 10))
-        np.testing.assert_array_equal(median_filter_proba(p, 3),
-                                      scipy.ndimage.median_filter(p, size=(3, 1), mode="nearest"))
+        np.testing.assert_array_equal(
+            median_filter_proba(p, 3), scipy.ndimage.median_filter(p, size=(3, 1), mode="nearest")
+        )

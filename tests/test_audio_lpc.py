@@ -1,4 +1,5 @@
 """LPC analysis and resampling against independent truth (scipy, synthetic AR processes, tones)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -42,7 +43,7 @@ def test_levinson_matches_solve_toeplitz(rng):
 
 def test_autocorrelate_matches_fftconvolve(rng):
     y = rng.standard_normal(200)
-    ref = scipy.signal.fftconvolve(y, y[::-1])[199:199 + 13]
+    ref = scipy.signal.fftconvolve(y, y[::-1])[199 : 199 + 13]
     np.testing.assert_allclose(autocorrelate(y, max_lag=12), ref, atol=1e-9)
 
 
@@ -95,12 +96,12 @@ def test_stream_resampler_equals_batch(rng, sr):
     out, i = [], 0
     while i < len(x):
         n = int(rng.integers(1, 600))
-        out.append(s.push(x[i:i + n]))
+        out.append(s.push(x[i : i + n]))
         i += n
     y = np.concatenate(out)
     ref = resample(x, sr, 10000)
     assert len(ref) - 30 < len(y) <= len(ref)
-    np.testing.assert_allclose(y, ref[:len(y)], atol=1e-12)
+    np.testing.assert_allclose(y, ref[: len(y)], atol=1e-12)
 
 
 def test_blockwise_analysis_equals_one_block(rng, monkeypatch):

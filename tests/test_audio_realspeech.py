@@ -1,5 +1,6 @@
 """Lip-sync on real speech: speaker-disjoint folds from the data, robustness to the recording
 channel, the transcript path, calibration, and the cue / Rhubarb output formats."""
+
 from __future__ import annotations
 
 import json
@@ -19,8 +20,10 @@ from facecast.server.cli import main
 from facecast.server.errors import InputError
 
 BENCH = Path(__file__).resolve().parents[1] / "bench" / "lipsync"
-needs_espeak = pytest.mark.skipif(shutil.which("espeak-ng") is None,
-                                  reason="espeak-ng is not installed (Debian package; CI has it)")
+needs_espeak = pytest.mark.skipif(
+    shutil.which("espeak-ng") is None,
+    reason="espeak-ng is not installed (Debian package; CI has it)",
+)
 
 
 @pytest.fixture(scope="module")
@@ -44,8 +47,10 @@ def test_folds_hold_out_every_real_speaker_once(data_dir, bench_modules):
     """Every recording of ../shared/data/real-speech has a speaker; every speaker (and bobby,
     mary) is held out in exactly one fold, so no fold scores a voice it trained on."""
     corpus, folds = bench_modules
-    speakers = {corpus.speaker_of(f"{p.parent.name}/{p.stem}")
-                for p in (data_dir / "real-speech").glob("*/*.txt")}
+    speakers = {
+        corpus.speaker_of(f"{p.parent.name}/{p.stem}")
+        for p in (data_dir / "real-speech").glob("*/*.txt")
+    }
     held = [s for fold in folds.FOLDS for s in fold]
     assert len(held) == len(set(held))
     assert set(held) == speakers | {"bobby", "mary"}
@@ -86,8 +91,8 @@ def test_level_rate_stereo_and_noise_variants_give_the_same_classes(bobby, tmp_p
         # measured: 8 kHz (no band above 4 kHz: sibilants change) 0.76; white noise 30 dB under
         # the mean speech power (fills the pauses of this quiet recording) 0.58, 40 dB 0.75
         "8 kHz": (scipy.signal.resample_poly(x, 1, 2), 8000, 0.65),
-        "noise 30 dB SNR": (x + rng.normal(0, np.sqrt(np.mean(x ** 2) / 1000), len(x)), sr, 0.5),
-        "noise 40 dB SNR": (x + rng.normal(0, np.sqrt(np.mean(x ** 2) / 1e4), len(x)), sr, 0.65),
+        "noise 30 dB SNR": (x + rng.normal(0, np.sqrt(np.mean(x**2) / 1000), len(x)), sr, 0.5),
+        "noise 40 dB SNR": (x + rng.normal(0, np.sqrt(np.mean(x**2) / 1e4), len(x)), sr, 0.65),
     }
     for name, (y, r, min_agree) in variants.items():
         got = _classes(y, r)
@@ -98,8 +103,9 @@ def test_level_rate_stereo_and_noise_variants_give_the_same_classes(bobby, tmp_p
 
 @needs_espeak
 def test_transcript_aligns_when_it_matches_and_is_refused_when_not(bobby, capsys):
-    assert main(["lipsync", str(bobby), "--text", "Bobby ripped the ledger.", "--format",
-                 "cues"]) == 0
+    assert (
+        main(["lipsync", str(bobby), "--text", "Bobby ripped the ledger.", "--format", "cues"]) == 0
+    )
     cues = json.loads(capsys.readouterr().out)["cues"]
     names = [c["name"] for c in cues]
     assert names[0] == "sil" and "PP" in names and "aa" in names  # b-o-bby: lips close, jaw opens
@@ -115,8 +121,12 @@ def test_transcript_aligns_when_it_matches_and_is_refused_when_not(bobby, capsys
 def test_transcript_far_too_short_for_the_audio_is_refused(data_dir, capsys):
     """A one-word transcript for seconds of speech would be spoken at under 4 phones per second
     of sound: refused, saying so, whatever the network makes of its few phones."""
-    wav = data_dir / "real-speech" / "pocketsphinx-librivox" / \
-        "sense_and_sensibility_01_austen_64kb-0870.wav"
+    wav = (
+        data_dir
+        / "real-speech"
+        / "pocketsphinx-librivox"
+        / "sense_and_sensibility_01_austen_64kb-0870.wav"
+    )
     assert main(["lipsync", str(wav), "--text", "no"]) == 2
     err = capsys.readouterr().err
     assert "does not match the audio" in err and "per second" in err, err
@@ -131,8 +141,9 @@ def test_rhubarb_json_and_tsv_are_well_formed(bobby, capsys, tmp_path):
     assert cues[0]["start"] == 0 and cues[-1]["end"] == round(dur, 2)
     for a, b in pairwise(cues):
         assert a["end"] == b["start"] and a["value"] != b["value"]
-    assert all(c["end"] > c["start"] and c["value"] in "ABCDEFGHX" and len(c["value"]) == 1
-               for c in cues)
+    assert all(
+        c["end"] > c["start"] and c["value"] in "ABCDEFGHX" and len(c["value"]) == 1 for c in cues
+    )
     assert {"A", "X"} <= {c["value"] for c in cues}
     path = tmp_path / "cues.tsv"
     assert main(["lipsync", str(bobby), "--format", "rhubarb-tsv", "-o", str(path)]) == 0
@@ -181,8 +192,9 @@ def test_calibration_recording(bobby, tmp_path, capsys, rng):
     assert main(["lipsync", str(bobby), "--json", "--calibrate", str(p)]) == 0
     calibrated = json.loads(capsys.readouterr().out)["frames"]
     speech = [i for i, f in enumerate(auto) if f["viseme"] >= 10]
-    assert np.mean([calibrated[i]["weight"] for i in speech]) < \
-        np.mean([auto[i]["weight"] for i in speech])
+    assert np.mean([calibrated[i]["weight"] for i in speech]) < np.mean(
+        [auto[i]["weight"] for i in speech]
+    )
     flat = tmp_path / "flat.wav"
     sf.write(flat, noise, sr)
     with pytest.raises(InputError, match="loud sustained /a/"):
@@ -210,7 +222,7 @@ def test_speed_copy_stretches_the_classes_with_the_audio(bench_modules, rng):
     finally:
         sys.path.remove(str(BENCH))
     sr = 16000
-    truth = np.repeat(np.arange(10), 20)                  # 2 s, ten classes of 200 ms
+    truth = np.repeat(np.arange(10), 20)  # 2 s, ten classes of 200 ms
     x = 0.1 * rng.standard_normal(2 * sr)
     for factor in (0.9, 1.1):
         F, t = frames.speed_copy(x, sr, truth, factor, rng)

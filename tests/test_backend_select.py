@@ -1,5 +1,6 @@
 """Device probing, backend choice and the NumPy fallback (real OpenCL stack; failures made real by
 pointing the ICD loader at no vendors, or by giving PoCL a build flag its compiler rejects)."""
+
 from __future__ import annotations
 
 import json
@@ -22,8 +23,13 @@ def tiny_face() -> tuple[Face, Operator]:
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
     tri = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]], np.int32)
     face = Face("tiny", v, tri, "mm", {"eye_l": np.array([3])})
-    op = Operator(4, 2, indptr=np.array([0, 1, 2, 2, 2]), indices=np.array([0, 1]),
-                  weights=np.ones((2, 3), np.float32))
+    op = Operator(
+        4,
+        2,
+        indptr=np.array([0, 1, 2, 2, 2]),
+        indices=np.array([0, 1]),
+        weights=np.ones((2, 3), np.float32),
+    )
     return face, op
 
 
@@ -38,7 +44,9 @@ def working():
 def run_py(code: str, **env: str) -> subprocess.CompletedProcess:
     """Run ``code`` in a fresh interpreter (OpenCL platforms are fixed per process)."""
     full = {**os.environ, **env}
-    return subprocess.run([sys.executable, "-c", code], env=full, capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-c", code], env=full, capture_output=True, text=True, timeout=120
+    )
 
 
 def test_probe_lists_devices_and_auto_picks_a_working_one(working):
@@ -101,15 +109,23 @@ def test_without_any_opencl_platform_facecast_runs_on_numpy(tmp_path):
 
 def test_device_that_fails_to_build_is_skipped(working, tmp_path):
     """PoCL rejects the extra build flag, so the probe kernel fails to build on the real device."""
-    proc = run_py(FALLBACK, POCL_EXTRA_BUILD_FLAGS="-Werror=no-such-warning-flag",
-                  POCL_CACHE_DIR=str(tmp_path / "pocl"), POCL_KERNEL_CACHE="0")
+    proc = run_py(
+        FALLBACK,
+        POCL_EXTRA_BUILD_FLAGS="-Werror=no-such-warning-flag",
+        POCL_CACHE_DIR=str(tmp_path / "pocl"),
+        POCL_KERNEL_CACHE="0",
+    )
     _check_fallback(proc)
     assert "INVALID_BUILD_OPTIONS" in proc.stderr or "build" in proc.stderr.lower()
 
 
 def test_info_reports_backend_and_devices(working):
-    proc = subprocess.run([sys.executable, "-m", "facecast.server.cli", "info", "--json"],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "facecast.server.cli", "info", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr
     info = json.loads(proc.stdout)
     assert info["backend"] == "opencl"
@@ -119,20 +135,34 @@ def test_info_reports_backend_and_devices(working):
 
 def test_info_without_opencl_says_numpy(tmp_path):
     env = {**os.environ, "OCL_ICD_VENDORS": str(tmp_path)}
-    proc = subprocess.run([sys.executable, "-m", "facecast.server.cli", "info"], env=env,
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "facecast.server.cli", "info"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "backend: numpy (no working OpenCL device)" in proc.stdout
-    proc = subprocess.run([sys.executable, "-m", "facecast.server.cli", "info", "--backend", "opencl"],
-                          env=env, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "facecast.server.cli", "info", "--backend", "opencl"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2
 
 
 @pytest.mark.slow
 def test_pocl_caches_kernels_under_the_facecast_cache(working, tmp_path):
     """With POCL_CACHE_DIR unset, PoCL's compiled kernels land in cache_dir("pocl")."""
-    proc = run_py("from facecast.server.backends.select import probe_devices; import os; probe_devices();"
-                  "print(os.environ['POCL_CACHE_DIR'])", FACECAST_CACHE=str(tmp_path), POCL_CACHE_DIR="")
+    proc = run_py(
+        "from facecast.server.backends.select import probe_devices; import os; probe_devices();"
+        "print(os.environ['POCL_CACHE_DIR'])",
+        FACECAST_CACHE=str(tmp_path),
+        POCL_CACHE_DIR="",
+    )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == str(tmp_path / "pocl")
     assert any(p.is_file() for p in (tmp_path / "pocl").rglob("*"))

@@ -1,4 +1,5 @@
 """``facecast bench deform``: its records, its bandwidth bound and its batch test (no timing checks)."""
+
 from __future__ import annotations
 
 import json
@@ -15,8 +16,19 @@ def bench_json(capsys, *args: str) -> list[dict]:
 
 
 def test_records_per_backend_and_size_with_the_faster_copy_as_bound(capsys):
-    records = bench_json(capsys, "--vertices", "2k", "--frames", "3", "--rounds", "1", "--batch-frames", "4",
-                         "--backends", "opencl,numpy,scipy")
+    records = bench_json(
+        capsys,
+        "--vertices",
+        "2k",
+        "--frames",
+        "3",
+        "--rounds",
+        "1",
+        "--batch-frames",
+        "4",
+        "--backends",
+        "opencl,numpy,scipy",
+    )
     singles = [r for r in records if not r["backend"].endswith("-batch")]
     assert {r["backend"] for r in singles} >= {"numpy", "scipy"}
     for r in singles:
@@ -25,7 +37,9 @@ def test_records_per_backend_and_size_with_the_faster_copy_as_bound(capsys):
             assert r[key] > 0, (r["backend"], key)
         # (both times are rounded to 0.1 us in the record)
         rounding = 1e-4 / r["bandwidth_bound_ms"] + 1e-4 / r["ms_per_frame"]
-        assert r["x_bound"] == pytest.approx(r["ms_per_frame"] / r["bandwidth_bound_ms"], rel=0.01 + rounding, abs=0.01)
+        assert r["x_bound"] == pytest.approx(
+            r["ms_per_frame"] / r["bandwidth_bound_ms"], rel=0.01 + rounding, abs=0.01
+        )
         # The bound is the faster of the two plain copies (NumPy's, and the device's when there is one).
         fastest = max(r["copy_gbps_numpy"], r.get("copy_gbps_device", 0.0))
         assert r["copy_gbps"] == pytest.approx(fastest, rel=0.02, abs=0.02)
@@ -39,9 +53,23 @@ def test_records_per_backend_and_size_with_the_faster_copy_as_bound(capsys):
 
 
 def test_batch_runs_at_the_smallest_size_and_stays_within_its_memory_cap(capsys, monkeypatch):
-    monkeypatch.setattr(bench, "BATCH_MAX_BYTES", 12 * 2100 * 3)  # three frames of a ~2k-vertex face
-    records = bench_json(capsys, "--vertices", "3k", "2k", "--frames", "2", "--rounds", "1",
-                         "--batch-frames", "10", "--backends", "numpy")
+    monkeypatch.setattr(
+        bench, "BATCH_MAX_BYTES", 12 * 2100 * 3
+    )  # three frames of a ~2k-vertex face
+    records = bench_json(
+        capsys,
+        "--vertices",
+        "3k",
+        "2k",
+        "--frames",
+        "2",
+        "--rounds",
+        "1",
+        "--batch-frames",
+        "10",
+        "--backends",
+        "numpy",
+    )
     batch = [r for r in records if r["backend"].endswith("-batch")]
     sizes = {r["vertices"] for r in records}
     assert len(sizes) == 2 and len(batch) == 1

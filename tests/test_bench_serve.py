@@ -1,5 +1,6 @@
 """The live load generator (``python bench/serve.py``, run from the checkout as a user would) at a tiny
 load point: every viewer's frames are counted, including the viewers that run in other client processes."""
+
 from __future__ import annotations
 
 import json
@@ -17,9 +18,31 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_viewers_in_other_processes_are_measured(tmp_path):
     out = tmp_path / "serve.json"
-    r = subprocess.run([sys.executable, str(ROOT / "bench" / "serve.py"), "--face", "default:2k", "--sessions", "",
-                        "--viewers", "3", "--viewer-processes", "2", "--warmup", "1", "--seconds", "2",
-                        "--out", str(out)], check=False, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "serve.py"),
+            "--face",
+            "default:2k",
+            "--sessions",
+            "",
+            "--viewers",
+            "3",
+            "--viewer-processes",
+            "2",
+            "--warmup",
+            "1",
+            "--seconds",
+            "2",
+            "--out",
+            str(out),
+        ],
+        check=False,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr[-4000:]
     point = json.loads(out.read_text())["viewers_sweep"][0]
     assert point["viewers_total"] == 3 and point["client_failures"] == 0, r.stderr[-4000:]

@@ -47,7 +47,8 @@ def _ezc3d_write(take: MarkerTake, path, analog_channels: int = 0) -> None:
         c["parameters"]["ANALOG"]["RATE"]["value"] = [take.fps * 5]
         c["parameters"]["ANALOG"]["LABELS"]["value"] = [f"A{i}" for i in range(analog_channels)]
         c["data"]["analogs"] = np.random.default_rng(0).normal(
-            size=(1, analog_channels, take.xyz.shape[0] * 5))
+            size=(1, analog_channels, take.xyz.shape[0] * 5)
+        )
     c.write(str(path))
 
 
@@ -79,8 +80,16 @@ def test_the_generators_writer_and_ezc3d_give_the_same_take(tmp_path, rng):
     """write_take (the generator's writer, now pure) and ezc3d: identical through read_take."""
     take = _take(rng)
     _ezc3d_write(take, tmp_path / "ez.c3d")
-    ours, theirs = read_take(write_take(take, tmp_path / "pure.c3d")), read_take(tmp_path / "ez.c3d")
-    assert (ours.names, ours.fps, ours.units, ours.t0) == (theirs.names, theirs.fps, theirs.units, theirs.t0)
+    ours, theirs = (
+        read_take(write_take(take, tmp_path / "pure.c3d")),
+        read_take(tmp_path / "ez.c3d"),
+    )
+    assert (ours.names, ours.fps, ours.units, ours.t0) == (
+        theirs.names,
+        theirs.fps,
+        theirs.units,
+        theirs.t0,
+    )
     np.testing.assert_array_equal(ours.xyz, theirs.xyz)
 
 
@@ -159,18 +168,29 @@ def _param_file(entry: bytes, header_scale: float = -1.0) -> bytes:
 
 def _param(name: bytes, ptype: int, dims: tuple, values: bytes, nxt: int | None = None) -> bytes:
     body = bytes([ptype & 0xFF, len(dims), *dims]) + values + b"\x00"
-    return bytes([len(name), 1]) + name + struct.pack("<h", 2 + len(body) if nxt is None else nxt) + body
+    return (
+        bytes([len(name), 1])
+        + name
+        + struct.pack("<h", 2 + len(body) if nxt is None else nxt)
+        + body
+    )
 
 
-@pytest.mark.parametrize(("entry", "message"), [
-    (_param(b"RATE", 4, (), struct.pack("<f", 60.0), nxt=-40) + bytes([4, 1]), "points -40 bytes back"),
-    (_param(b"USED", 3, (), b"\x01\x00\x00"), "type 3"),
-    (_param(b"RATE", 4, (0,), b""), "POINT:RATE has no value"),
-    (_param(b"USED", 2, (200, 200), b""), "declares 80000 bytes"),
-    (_param(b"RATE", -1, (2,), b"60"), "POINT:RATE must be a number"),
-    (_param(b"SCALE", 4, (), struct.pack("<f", 0.0)), "POINT:SCALE is 0.0"),
-    (_param(b"USED", 4, (), struct.pack("<f", float("nan"))), "POINT:USED is nan"),
-])
+@pytest.mark.parametrize(
+    ("entry", "message"),
+    [
+        (
+            _param(b"RATE", 4, (), struct.pack("<f", 60.0), nxt=-40) + bytes([4, 1]),
+            "points -40 bytes back",
+        ),
+        (_param(b"USED", 3, (), b"\x01\x00\x00"), "type 3"),
+        (_param(b"RATE", 4, (0,), b""), "POINT:RATE has no value"),
+        (_param(b"USED", 2, (200, 200), b""), "declares 80000 bytes"),
+        (_param(b"RATE", -1, (2,), b"60"), "POINT:RATE must be a number"),
+        (_param(b"SCALE", 4, (), struct.pack("<f", 0.0)), "POINT:SCALE is 0.0"),
+        (_param(b"USED", 4, (), struct.pack("<f", float("nan"))), "POINT:USED is nan"),
+    ],
+)
 def test_malformed_parameters_say_what_is_wrong(entry, message):
     with pytest.raises(MarkerFileError, match=message):
         read_c3d(_param_file(entry), where="bad.c3d")
@@ -182,20 +202,26 @@ def test_well_formed_parameter_file_reads_and_zero_length_text_is_empty():
     assert take.names == ["M000"] and take.xyz.tolist() == [[[1.0, 2.0, 3.0]]]
 
 
-@pytest.mark.parametrize(("data", "message"), [
-    (b"\x00\x50" + bytes(600), "block 0"),
-    (b"\x09\x50" + bytes(600), "past the end"),
-    (b"\x02\x50" + bytes(510) + b"\x01\x50\x02\x57", "processor type 87"),
-    (SEGFAULT_C3D, "no 3-D points"),
-    (SPIN_C3D, "no 3-D points"),
-], ids=["block0", "past-end", "processor", "segfault", "spin"])
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        (b"\x00\x50" + bytes(600), "block 0"),
+        (b"\x09\x50" + bytes(600), "past the end"),
+        (b"\x02\x50" + bytes(510) + b"\x01\x50\x02\x57", "processor type 87"),
+        (SEGFAULT_C3D, "no 3-D points"),
+        (SPIN_C3D, "no 3-D points"),
+    ],
+    ids=["block0", "past-end", "processor", "segfault", "spin"],
+)
 def test_bad_headers_say_what_is_wrong(data, message):
     with pytest.raises(MarkerFileError, match=message):
         read_c3d(data)
 
 
 def test_file_format_errors_share_the_protocol_root():
-    assert issubclass(MarkerFileError, FileFormatError) and issubclass(FileFormatError, ProtocolError)
+    assert issubclass(MarkerFileError, FileFormatError) and issubclass(
+        FileFormatError, ProtocolError
+    )
     assert issubclass(MarkerFileError, ValueError) and MarkerFileError("x").status == 400
 
 
@@ -236,9 +262,13 @@ def test_overlapping_parameters_are_not_copied():
     must not copy each (325 MB) but view the file's bytes."""
     import tracemalloc
 
-    entries = b"".join(bytes([2, 1, k & 0xFF, 65 + (k >> 8)]) + struct.pack("<h", 6) + b"\x01\x02\xff\xff"
-                       for k in range(5000))
-    section = b"\x01\x50\xff\x54" + bytes([5, 0xFF]) + b"POINT" + struct.pack("<h", 3) + b"\x00" + entries
+    entries = b"".join(
+        bytes([2, 1, k & 0xFF, 65 + (k >> 8)]) + struct.pack("<h", 6) + b"\x01\x02\xff\xff"
+        for k in range(5000)
+    )
+    section = (
+        b"\x01\x50\xff\x54" + bytes([5, 0xFF]) + b"POINT" + struct.pack("<h", 3) + b"\x00" + entries
+    )
     data = b"\x02\x50" + bytes(510) + section + bytes(65025)
     tracemalloc.start()
     try:

@@ -1,4 +1,5 @@
 """The container files: no container engine runs here, so check their structure and what they run."""
+
 from __future__ import annotations
 
 import re
@@ -55,7 +56,12 @@ def test_compose_command_is_accepted_by_facecast_serve():
     from facecast.server.commands.serve import make_config
 
     cfg = make_config(args)
-    assert (cfg.host, cfg.port, str(cfg.data_dir), cfg.allow_remote) == ("0.0.0.0", 8000, "/data", True)
+    assert (cfg.host, cfg.port, str(cfg.data_dir), cfg.allow_remote) == (
+        "0.0.0.0",
+        8000,
+        "/data",
+        True,
+    )
 
 
 def test_dockerfile_installs_debian_pocl_and_runs_facecast_serve():

@@ -1,4 +1,5 @@
 """Feature-point deformation operator (Kshirsagar et al.) and the operator cache, on small synthetic meshes."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -47,8 +48,11 @@ def grid():
     n = 31
     vid = np.arange(n * n).reshape(n, n)
     lips = [2, 6, 10, 14, 18]  # every 4th vertex along the 21-vertex slit, on both lips
-    controls = np.array([vid[y, x] for y in (3, 9, 21, 27) for x in (3, 9, 15, 21, 27)]
-                        + [lower[i] for i in lips] + [upper[i] for i in lips])
+    controls = np.array(
+        [vid[y, x] for y in (3, 9, 21, 27) for x in (3, 9, 15, 21, 27)]
+        + [lower[i] for i in lips]
+        + [upper[i] for i in lips]
+    )
     return verts, tris, upper, lower, controls
 
 
@@ -81,7 +85,9 @@ def test_unconstrained_axis_moves_like_an_ordinary_vertex(grid):
     constrained = np.ones((len(controls), 3), bool)
     free = 6  # a control in the middle of the grid, free on x
     constrained[free, 0] = False
-    op = feature_point_operator(verts, tris, controls, constrained=constrained, normalisation="slides")
+    op = feature_point_operator(
+        verts, tris, controls, constrained=constrained, normalisation="slides"
+    )
     D = np.zeros((len(controls), 3), np.float32)
     D[:, 0] = 1.0  # every constrained control moves +x
     D[free, 0] = -5.0  # ignored on x: the control is not an FP there
@@ -139,9 +145,13 @@ def test_own_blend_makes_the_control_vertex_blend_into_its_ring(grid, rng, norm)
     verts, tris, _, _, controls = grid
     D = random_D(rng, len(controls))
     ring = {c: np.unique(tris[(tris == c).any(axis=1)]) for c in controls}
+
     def jump(op):
         u = op.apply(D)
-        return np.mean([np.linalg.norm(u[ring[c]] - D[i], axis=1).mean() for i, c in enumerate(controls)])
+        return np.mean(
+            [np.linalg.norm(u[ring[c]] - D[i], axis=1).mean() for i, c in enumerate(controls)]
+        )
+
     plain = feature_point_operator(verts, tris, controls, normalisation=norm, own_blend=0)
     blended = feature_point_operator(verts, tris, controls, normalisation=norm, own_blend=0.5)
     assert jump(blended) < 0.7 * jump(plain)
@@ -152,8 +162,10 @@ def test_own_blend_makes_the_control_vertex_blend_into_its_ring(grid, rng, norm)
 def test_the_normalisations_differ(grid, rng):
     verts, tris, _, _, controls = grid
     D = random_D(rng, len(controls))
-    u = {n: feature_point_operator(verts, tris, controls, normalisation=n).apply(D)
-         for n in ("paper", "slides", "clamped", "none")}
+    u = {
+        n: feature_point_operator(verts, tris, controls, normalisation=n).apply(D)
+        for n in ("paper", "slides", "clamped", "none")
+    }
     assert np.abs(u["paper"] - u["slides"]).max() > 1e-3
     assert np.abs(u["slides"] - u["clamped"]).max() > 1e-3
     assert np.abs(u["slides"] - u["none"]).max() > 1e-3
@@ -168,6 +180,7 @@ def test_locality(grid):
     k = 0
     nb = np.r_[vor.pair_distance[vor.pairs[:, 0] == k], vor.pair_distance[vor.pairs[:, 1] == k]]
     from scipy.sparse.csgraph import dijkstra
+
     d = dijkstra(g, directed=False, indices=controls[k])
     touched = np.unique(np.repeat(np.arange(op.n_vertices), np.diff(op.indptr))[op.indices == k])
     assert len(touched) > 1
@@ -267,6 +280,7 @@ def test_bad_input_is_an_input_error(grid):
 
 # -- get_operator and its disk cache ------------------------------------------------------------
 
+
 @pytest.fixture
 def face(grid):
     verts, tris, _, _, _ = grid
@@ -274,8 +288,12 @@ def face(grid):
 
 
 def _same(a: Operator, b: Operator) -> bool:
-    return (a.n_vertices, a.n_controls) == (b.n_vertices, b.n_controls) and np.array_equal(
-        a.indptr, b.indptr) and np.array_equal(a.indices, b.indices) and np.array_equal(a.weights, b.weights)
+    return (
+        (a.n_vertices, a.n_controls) == (b.n_vertices, b.n_controls)
+        and np.array_equal(a.indptr, b.indptr)
+        and np.array_equal(a.indices, b.indices)
+        and np.array_equal(a.weights, b.weights)
+    )
 
 
 def test_cache_returns_an_equal_operator_and_is_keyed(face, grid, tmp_path, monkeypatch):
@@ -346,14 +364,20 @@ def test_ict_lips_and_eyelids_do_not_bleed(data_dir):
     D[[names.index(k) for k in UPPER_EYELID_FPS], 1] = -0.5  # upper lids 5 mm down (a blink)
     u = np.linalg.norm(op.apply(D), axis=1)
     g = edge_graph(face.vertices, face.triangles, face.deformable)
-    near_upper_lip = dijkstra(g, directed=False, indices=face.feature_points["2.2"], limit=0.3) < 0.3
-    near_lower_lip = dijkstra(g, directed=False, indices=face.feature_points["2.3"], limit=0.3) < 0.3
+    near_upper_lip = (
+        dijkstra(g, directed=False, indices=face.feature_points["2.2"], limit=0.3) < 0.3
+    )
+    near_lower_lip = (
+        dijkstra(g, directed=False, indices=face.feature_points["2.3"], limit=0.3) < 0.3
+    )
     # the upper lip lies within a millimetre of the lower one (a closed mouth) ...
     gap = np.linalg.norm(face.fp_position("2.2") - face.fp_position("2.3"))
     assert gap < 0.2
     assert u[near_lower_lip].mean() > 0.3  # ... the lower lip moves ...
     assert np.all(u[near_upper_lip] == 0)  # ... and the upper lip stays
-    eyes = np.r_[face.part("eye_l"), face.part("eye_r"), face.part("teeth_upper"), face.part("teeth_lower")]
+    eyes = np.r_[
+        face.part("eye_l"), face.part("eye_r"), face.part("teeth_upper"), face.part("teeth_lower")
+    ]
     assert len(eyes) > 1000 and np.all(u[eyes] == 0)  # eyelids do not pull the eyeballs
     assert (u > 0.4).sum() > 20  # lid and lip skin follow their controls
 

@@ -1,4 +1,5 @@
 """Deformation quality: the metric itself, weight-field smoothing and the inner-surface membranes."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -21,10 +22,21 @@ def grid_face(n: int = 21) -> Face:
     xs, ys = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))
     verts = np.c_[xs.ravel(), ys.ravel(), np.zeros(n * n)].astype(np.float32)
     vid = np.arange(n * n).reshape(n, n)
-    tris = [[vid[y, x], vid[y, x + 1], vid[y + 1, x + 1]] for y in range(n - 1) for x in range(n - 1)]
-    tris += [[vid[y, x], vid[y + 1, x + 1], vid[y + 1, x]] for y in range(n - 1) for x in range(n - 1)]
-    return Face(name="grid", vertices=verts, triangles=np.array(tris, np.int32), units="mm",
-                parts={"skin": np.arange(n * n)}, feature_points={}, pivots={})
+    tris = [
+        [vid[y, x], vid[y, x + 1], vid[y + 1, x + 1]] for y in range(n - 1) for x in range(n - 1)
+    ]
+    tris += [
+        [vid[y, x], vid[y + 1, x + 1], vid[y + 1, x]] for y in range(n - 1) for x in range(n - 1)
+    ]
+    return Face(
+        name="grid",
+        vertices=verts,
+        triangles=np.array(tris, np.int32),
+        units="mm",
+        parts={"skin": np.arange(n * n)},
+        feature_points={},
+        pivots={},
+    )
 
 
 def test_quality_is_zero_at_rest_and_sees_a_crease_and_a_flip():
@@ -70,8 +82,11 @@ def test_smoothing_keeps_the_operator_contracts(rng, inner):
     verts, tris, upper, lower = slit_mesh()
     vid = np.arange(31 * 31).reshape(31, 31)
     lips = [2, 6, 10, 14, 18]
-    controls = np.array([vid[y, x] for y in (3, 9, 21, 27) for x in (3, 9, 15, 21, 27)]
-                        + [lower[i] for i in lips] + [upper[i] for i in lips])
+    controls = np.array(
+        [vid[y, x] for y in (3, 9, 21, 27) for x in (3, 9, 15, 21, 27)]
+        + [lower[i] for i in lips]
+        + [upper[i] for i in lips]
+    )
     op = feature_point_operator(verts, tris, controls, smooth=0.5, inner=inner)
     assert op.meta["smooth_iterations"] > 1
     assert np.abs(op.apply(np.zeros((len(controls), 3)))).max() == 0
@@ -104,8 +119,11 @@ def lash_mesh():
     verts = np.r_[face.vertices, sv]
     tris = np.r_[face.triangles, np.array(st)]
     vid = np.arange(n0).reshape(21, 21)
-    controls = np.array([vid[10, 10], vid[11, 10]] + [vid[y, x] for y in (0, 20) for x in (0, 10, 20)]
-                        + [vid[10, 20], vid[10, 0]])
+    controls = np.array(
+        [vid[10, 10], vid[11, 10]]
+        + [vid[y, x] for y in (0, 20) for x in (0, 10, 20)]
+        + [vid[10, 20], vid[10, 0]]
+    )
     strip = np.arange(n0, n0 + len(sv))
     return verts, tris, controls, strip, strip[:2]
 
@@ -120,7 +138,9 @@ def test_an_eyelash_strip_follows_its_root_as_a_whole():
     # copy: the tip takes the motion of the plane point under it (far from the root): the lash bends
     assert copy[strip[-1], 2] < 0.8 * copy[root[0], 2]
     # membrane: the whole strip moves like its root
-    np.testing.assert_allclose(membrane[strip], membrane[root[0]][None].repeat(len(strip), 0), atol=1e-4)
+    np.testing.assert_allclose(
+        membrane[strip], membrane[root[0]][None].repeat(len(strip), 0), atol=1e-4
+    )
     assert membrane[root[0], 2] > 0.9
 
 
@@ -182,9 +202,13 @@ def test_rows_near_controls_are_held_by_smooth_hold():
     raw = feature_point_operator(face.vertices, face.triangles, controls, smooth=0.0).apply(D)
     held = feature_point_operator(face.vertices, face.triangles, controls, smooth_hold=0.3, **kw)
     free = feature_point_operator(face.vertices, face.triangles, controls, smooth_hold=0.0, **kw)
-    ring = np.flatnonzero(np.linalg.norm(face.vertices - face.vertices[controls[0]], axis=1) < 2.1)  # within 2.4 along edges
+    ring = np.flatnonzero(
+        np.linalg.norm(face.vertices - face.vertices[controls[0]], axis=1) < 2.1
+    )  # within 2.4 along edges
     assert len(ring) > 4
-    np.testing.assert_allclose(held.apply(D)[ring], raw[ring], atol=1e-6)  # held: as before smoothing
+    np.testing.assert_allclose(
+        held.apply(D)[ring], raw[ring], atol=1e-6
+    )  # held: as before smoothing
     assert np.abs(free.apply(D)[ring] - raw[ring]).max() > 1e-3  # not held: smoothed
 
 
@@ -200,5 +224,7 @@ def test_ict_eyelid_control_is_no_cone_in_a_blink(data_dir):
     worst = {}
     for hold in (0.0, 0.3):
         anim = Animator(face, backend="numpy", smooth_hold=hold)
-        worst[hold] = measure(face.vertices + anim.operator.apply(anim.solve(state)[0]), qm)["strain_max"]
+        worst[hold] = measure(face.vertices + anim.operator.apply(anim.solve(state)[0]), qm)[
+            "strain_max"
+        ]
     assert worst[0.0] > 5.0 and worst[0.3] < 3.0, worst

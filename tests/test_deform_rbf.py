@@ -1,4 +1,5 @@
 """RBF warp operator: interpolation, affine exactness, constraints, and bleeding across a slit."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -24,8 +25,11 @@ def slit_grid():
     n = 31
     vid = np.arange(n * n).reshape(n, n)
     lips = [2, 6, 10, 14, 18]
-    controls = np.array([vid[y, x] for y in (3, 9, 21, 27) for x in (3, 9, 15, 21, 27)]
-                        + [lower[i] for i in lips] + [upper[i] for i in lips])
+    controls = np.array(
+        [vid[y, x] for y in (3, 9, 21, 27) for x in (3, 9, 15, 21, 27)]
+        + [lower[i] for i in lips]
+        + [upper[i] for i in lips]
+    )
     return bumpy(verts), tris, upper, lower, controls
 
 
@@ -34,8 +38,12 @@ def grid():
     return slit_grid()
 
 
-CASES = [{"kernel": "imq", "distance": "euclidean"}, {"kernel": "imq", "distance": "surface"},
-         {"kernel": "r", "distance": "euclidean"}, {"kernel": "imq", "distance": "euclidean", "affine": False}]
+CASES = [
+    {"kernel": "imq", "distance": "euclidean"},
+    {"kernel": "imq", "distance": "surface"},
+    {"kernel": "r", "distance": "euclidean"},
+    {"kernel": "imq", "distance": "euclidean", "affine": False},
+]
 
 
 @pytest.mark.parametrize("params", CASES)
@@ -53,7 +61,9 @@ def test_reproduces_control_displacements(grid, rng, params):
 @pytest.mark.parametrize("params", CASES[:3])
 def test_reproduces_an_affine_motion(grid, rng, params):
     verts, tris, _, _, controls = grid
-    op = rbf_operator(verts, tris, controls, affine=True, **{k: v for k, v in params.items() if k != "affine"})
+    op = rbf_operator(
+        verts, tris, controls, affine=True, **{k: v for k, v in params.items() if k != "affine"}
+    )
     A = np.eye(3) * 0.02 + rng.normal(scale=0.02, size=(3, 3))
     b = rng.normal(size=3)
     D = verts[controls] @ A.T + b

@@ -1,4 +1,5 @@
 """``/docs`` and ``/redoc`` work offline: their scripts come from the server, not from a CDN."""
+
 from __future__ import annotations
 
 import re
@@ -18,8 +19,11 @@ CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 
 @pytest.fixture(scope="module")
 def client(tmp_path_factory):
-    app = create_app(ServerConfig(data_dir=tmp_path_factory.mktemp("docs"), admin_key="k", job_workers=0,
-                                  backend="numpy"))
+    app = create_app(
+        ServerConfig(
+            data_dir=tmp_path_factory.mktemp("docs"), admin_key="k", job_workers=0, backend="numpy"
+        )
+    )
     return TestClient(app)
 
 
@@ -29,7 +33,9 @@ def test_docs_pages_reference_no_external_host_and_their_assets_load(client, pag
     assert resp.status_code == 200 and resp.headers["content-type"].startswith("text/html")
     refs = re.findall(r"""(?:src|href)\s*=\s*["']([^"']+)["']""", resp.text)
     assert refs, resp.text
-    assert not re.search(r"https?://|//[a-z]", resp.text, re.IGNORECASE), "the page names an external host"
+    assert not re.search(r"https?://|//[a-z]", resp.text, re.IGNORECASE), (
+        "the page names an external host"
+    )
     for ref in refs:
         assert not urlparse(ref).netloc, ref
         asset = client.get(ref)
@@ -53,7 +59,9 @@ def test_swagger_ui_renders_the_api_with_no_network(tmp_path):
     outside: list[str] = []
     try:
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"])
+            browser = p.chromium.launch(
+                executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"]
+            )
             try:
                 page = browser.new_page()
 

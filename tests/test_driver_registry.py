@@ -17,8 +17,13 @@ from facecast.server.live.inputs import load_driver_class
 def test_the_registry_names_every_input_kind_once():
     assert tuple(DRIVERS) == INPUT_KINDS == ("fap", "audio", "markers")
     assert dict(SUFFIXES.items()) == {
-        ".fap": "fap", ".wav": "audio", ".flac": "audio", ".ogg": "audio",
-        ".c3d": "markers", ".trc": "markers", ".csv": "markers",
+        ".fap": "fap",
+        ".wav": "audio",
+        ".flac": "audio",
+        ".ogg": "audio",
+        ".c3d": "markers",
+        ".trc": "markers",
+        ".csv": "markers",
     }
 
 
@@ -29,8 +34,16 @@ def test_every_driver_module_and_class_exists(kind):
         assert isinstance(load_driver_class(kind), type)
 
 
-@pytest.mark.parametrize(("name", "kind"), [("a.FAP", "fap"), ("x/y.wav", "audio"), ("t.C3D", "markers"),
-                                       ("t.trc", "markers"), ("t.csv", "markers")])
+@pytest.mark.parametrize(
+    ("name", "kind"),
+    [
+        ("a.FAP", "fap"),
+        ("x/y.wav", "audio"),
+        ("t.C3D", "markers"),
+        ("t.trc", "markers"),
+        ("t.csv", "markers"),
+    ],
+)
 def test_input_kind_by_suffix(name, kind):
     assert input_kind(name) == kind
 
@@ -54,8 +67,17 @@ def test_other_names_are_still_refused():
 
 
 def test_a_job_stored_under_the_old_name_shows_the_one_name():
-    job = JobStatus(id="j", status="done", progress=1.0, input_name="t.c3d", input_kind="mocap",
-                    input_bytes=1, options=JobOptions(), attempts=1, created=0.0)
+    job = JobStatus(
+        id="j",
+        status="done",
+        progress=1.0,
+        input_name="t.c3d",
+        input_kind="mocap",
+        input_bytes=1,
+        options=JobOptions(),
+        attempts=1,
+        created=0.0,
+    )
     assert job.input_kind == "markers"
 
 

@@ -41,12 +41,17 @@ def project_exceptions() -> tuple[type[BaseException], ...]:
     found: dict[str, type[BaseException]] = {}
     for name in ("facecast.protocol", "facecast.server", "facecast.client"):
         package = importlib.import_module(name)
-        modules = [package] + [importlib.import_module(m.name)
-                               for m in pkgutil.walk_packages(package.__path__, name + ".")]
+        modules = [package] + [
+            importlib.import_module(m.name)
+            for m in pkgutil.walk_packages(package.__path__, name + ".")
+        ]
         for module in modules:
             for obj in vars(module).values():
-                if (inspect.isclass(obj) and issubclass(obj, BaseException)
-                        and obj.__module__ == module.__name__):
+                if (
+                    inspect.isclass(obj)
+                    and issubclass(obj, BaseException)
+                    and obj.__module__ == module.__name__
+                ):
                     found[f"{obj.__module__}.{obj.__qualname__}"] = obj
     return tuple(found[k] for k in sorted(found))
 
@@ -64,14 +69,30 @@ def instance(cls: type[FacecastError]) -> FacecastError:
 
 def test_the_walk_finds_the_errors_of_every_layer():
     names = {c.__name__ for c in project_exceptions()}
-    assert {"FapFormatError", "MarkerFileError", "TopologyError", "FrameError", "MessageError",
-            "BadHello", "InputUnavailable", "MarkerFrameError", "OutputError", "PayloadTooLarge",
-            "TooBusy", "LiveError", "RemoteJobError", "StreamError"} <= names
+    assert {
+        "FapFormatError",
+        "MarkerFileError",
+        "TopologyError",
+        "FrameError",
+        "MessageError",
+        "BadHello",
+        "InputUnavailable",
+        "MarkerFrameError",
+        "OutputError",
+        "PayloadTooLarge",
+        "TooBusy",
+        "LiveError",
+        "RemoteJobError",
+        "StreamError",
+    } <= names
 
 
 def test_every_exception_class_derives_from_the_one_root():
-    outside = [f"{c.__module__}.{c.__qualname__}" for c in project_exceptions()
-               if not issubclass(c, FacecastError) and c.__name__ not in SIGNALS]
+    outside = [
+        f"{c.__module__}.{c.__qualname__}"
+        for c in project_exceptions()
+        if not issubclass(c, FacecastError) and c.__name__ not in SIGNALS
+    ]
     assert outside == []
 
 
@@ -86,7 +107,11 @@ def test_each_error_is_remote_4xx_or_local_5xx_with_a_defined_close_code(cls):
         assert 500 <= cls.status < 600 and 4500 <= cls.close_code < 4600
     r = error_reply(instance(cls))
     assert (r.status, r.close_code, r.remote, r.unexpected) == (
-        cls.status, cls.close_code, issubclass(cls, RemoteError), False)
+        cls.status,
+        cls.close_code,
+        issubclass(cls, RemoteError),
+        False,
+    )
 
 
 def test_known_codes_of_today_are_kept():
@@ -97,11 +122,31 @@ def test_known_codes_of_today_are_kept():
     from facecast.server.live.registry import TooMany, Unavailable
     from facecast.server.output.gltf import OutputError
 
-    got = {c.__name__: (c.status, c.close_code) for c in (FapFormatError, BadHello, NotFound, Busy, TooMany,
-                                                          OutputError, InputUnavailable, Unavailable, TooBusy)}
-    assert got == {"FapFormatError": (400, 4400), "BadHello": (400, 4400), "NotFound": (404, 4404),
-                   "Busy": (409, 4409), "TooMany": (429, 4429), "OutputError": (422, 4422),
-                   "InputUnavailable": (503, 4503), "Unavailable": (503, 4503), "TooBusy": (503, 4503)}
+    got = {
+        c.__name__: (c.status, c.close_code)
+        for c in (
+            FapFormatError,
+            BadHello,
+            NotFound,
+            Busy,
+            TooMany,
+            OutputError,
+            InputUnavailable,
+            Unavailable,
+            TooBusy,
+        )
+    }
+    assert got == {
+        "FapFormatError": (400, 4400),
+        "BadHello": (400, 4400),
+        "NotFound": (404, 4404),
+        "Busy": (409, 4409),
+        "TooMany": (429, 4429),
+        "OutputError": (422, 4422),
+        "InputUnavailable": (503, 4503),
+        "Unavailable": (503, 4503),
+        "TooBusy": (503, 4503),
+    }
     assert error_reply(TooBusy("all slots busy")).headers == {"Retry-After": "2"}
 
 
@@ -122,7 +167,9 @@ def test_a_status_outside_its_branch_is_refused_when_the_class_is_defined():
 def test_anything_else_is_a_vague_server_fault():
     r = error_reply(RuntimeError("disk trouble at /srv/secret"))
     assert (r.status, r.close_code, r.message, r.unexpected) == (500, 4500, INTERNAL_MESSAGE, True)
-    assert error_reply(ValueError("bad")).status == 500  # a bare ValueError is not the client's fault
+    assert (
+        error_reply(ValueError("bad")).status == 500
+    )  # a bare ValueError is not the client's fault
 
 
 # ------------------------------------------------------------------ the same on REST and WebSocket
@@ -132,8 +179,15 @@ KEY = "test-key"
 
 @pytest.fixture(scope="module")
 def app(tmp_path_factory):
-    app = create_app(ServerConfig(data_dir=tmp_path_factory.mktemp("errors"), admin_key=KEY, job_workers=0,
-                                  face="default:2k", backend="numpy"))
+    app = create_app(
+        ServerConfig(
+            data_dir=tmp_path_factory.mktemp("errors"),
+            admin_key=KEY,
+            job_workers=0,
+            face="default:2k",
+            backend="numpy",
+        )
+    )
     by_name = {c.__qualname__ + "@" + c.__module__: c for c in errors()}
     secret = str(app.state.config.data_dir / "jobs" / "x" / "input.fap")
 
@@ -176,10 +230,16 @@ def test_rest_and_websocket_hear_the_same_status_code_and_message(app):
                 ws.receive_text()
         assert resp.status_code == body["status"], name
         assert closed.value.code == message["code"] and message["fatal"], name
-        assert (message["message"], message["where"]) == (body["error"], body.get("where", "")), name
+        assert (message["message"], message["where"]) == (body["error"], body.get("where", "")), (
+            name
+        )
         assert data_dir not in resp.text and data_dir not in message["message"], name
         if name == "boom":
-            assert (resp.status_code, message["code"], body["error"]) == (500, 4500, INTERNAL_MESSAGE)
+            assert (resp.status_code, message["code"], body["error"]) == (
+                500,
+                4500,
+                INTERNAL_MESSAGE,
+            )
         else:
             cls = next(c for c in errors() if f"{c.__qualname__}@{c.__module__}" == name)
             assert (resp.status_code, message["code"]) == (cls.status, cls.close_code), name

@@ -4,6 +4,7 @@ Real heads from ``../shared/data/heads`` (skipped when absent) and the built-in 
 file; hostile uploads (garbage, mutated meshes, external glTF buffers, oversized meshes) get a 4xx
 with a JSON body, never a 5xx.
 """
+
 from __future__ import annotations
 
 import io
@@ -25,15 +26,26 @@ from facecast.server.faces.upload import MAX_VERTICES, sniff_format
 @pytest.fixture(scope="module")
 def srv(tmp_path_factory):
     cache = tmp_path_factory.mktemp("cache")
-    s = RunningServer(tmp_path_factory.mktemp("server-data"), "--face", "default:2k", "--backend", "numpy",
-                      env={"FACECAST_CACHE": str(cache)}).start()
+    s = RunningServer(
+        tmp_path_factory.mktemp("server-data"),
+        "--face",
+        "default:2k",
+        "--backend",
+        "numpy",
+        env={"FACECAST_CACHE": str(cache)},
+    ).start()
     yield s
     s.stop()
 
 
 def post(srv, files: dict, data: dict | None = None, auth: bool = True) -> httpx.Response:
-    return httpx.post(srv.url + "/v1/faces", files=files, data=data or {},
-                      headers=srv.admin_headers if auth else {}, timeout=300)
+    return httpx.post(
+        srv.url + "/v1/faces",
+        files=files,
+        data=data or {},
+        headers=srv.admin_headers if auth else {},
+        timeout=300,
+    )
 
 
 def obj_bytes(v: np.ndarray, t: np.ndarray) -> bytes:
@@ -83,17 +95,32 @@ def test_an_uploaded_face_plays_in_sessions_and_renders_in_jobs(srv, head2k, dat
     data = obj_bytes(head2k.vertices, head2k.triangles)
     face_id = post(srv, {"file": ("head.obj", data)}).json()["id"]
     fap = data_dir / "xface" / "faps" / "joy.fap"
-    s = httpx.post(srv.url + "/v1/sessions", json={"input": "fap", "fps": 30, "face": face_id},
-                   headers=srv.admin_headers, timeout=120)
+    s = httpx.post(
+        srv.url + "/v1/sessions",
+        json={"input": "fap", "fps": 30, "face": face_id},
+        headers=srv.admin_headers,
+        timeout=120,
+    )
     assert s.status_code == 201, s.text
-    r = httpx.post(f"{srv.url}/v1/sessions/{s.json()['id']}/play", headers=srv.admin_headers,
-                   files={"file": ("joy.fap", fap.read_bytes())}, timeout=120)
+    r = httpx.post(
+        f"{srv.url}/v1/sessions/{s.json()['id']}/play",
+        headers=srv.admin_headers,
+        files={"file": ("joy.fap", fap.read_bytes())},
+        timeout=120,
+    )
     assert r.status_code == 202, r.text
-    job = httpx.post(srv.url + "/v1/jobs", files={"file": ("joy.fap", fap.read_bytes())},
-                     data={"face": face_id, "format": "npz"}, headers=srv.admin_headers, timeout=60)
+    job = httpx.post(
+        srv.url + "/v1/jobs",
+        files={"file": ("joy.fap", fap.read_bytes())},
+        data={"face": face_id, "format": "npz"},
+        headers=srv.admin_headers,
+        timeout=60,
+    )
     assert job.status_code == 202, job.text
     for _ in range(3000):
-        st_ = httpx.get(f"{srv.url}/v1/jobs/{job.json()['id']}", headers=srv.admin_headers, timeout=30).json()
+        st_ = httpx.get(
+            f"{srv.url}/v1/jobs/{job.json()['id']}", headers=srv.admin_headers, timeout=30
+        ).json()
         if st_["status"] in ("done", "failed"):
             break
         time.sleep(0.1)
@@ -110,9 +137,12 @@ def test_a_users_annotation_wins_complete_or_partial(srv, head2k):
 
     v = head2k.vertices * 0.1  # in cm: another mesh (another hash) with the same topology
     data = obj_bytes(v, head2k.triangles)
-    full = {"units": "cm", "feature_points": dict(head2k.feature_points),
-            "parts": {k: ranges(ids) for k, ids in head2k.parts.items()},
-            "pivots": {k: (np.asarray(p) * 0.1).tolist() for k, p in head2k.pivots.items()}}
+    full = {
+        "units": "cm",
+        "feature_points": dict(head2k.feature_points),
+        "parts": {k: ranges(ids) for k, ids in head2k.parts.items()},
+        "pivots": {k: (np.asarray(p) * 0.1).tolist() for k, p in head2k.pivots.items()},
+    }
     r = post(srv, {"file": ("cm.obj", data), "annotation": ("cm.face.json", json.dumps(full))})
     assert r.status_code == 201, r.text
     assert r.json()["annotation"] == "user" and r.json()["face"]["units"] == "cm"
@@ -122,14 +152,24 @@ def test_a_users_annotation_wins_complete_or_partial(srv, head2k):
     assert r.status_code == 201, r.text
     assert r.json()["annotation"] == "user+automatic"
     kept = json.loads((srv.data_dir / "faces" / r.json()["id"] / "mesh.face.json").read_text())
-    assert kept["feature_points"]["9.3"] == head2k.feature_points["9.15"] and len(kept["feature_points"]) > 60
+    assert (
+        kept["feature_points"]["9.3"] == head2k.feature_points["9.15"]
+        and len(kept["feature_points"]) > 60
+    )
     # A bad annotation names its field.
-    bad = post(srv, {"file": ("cm.obj", data)}, {"annotation": '{"feature_points": {"2.1": 10000000}}'})
+    bad = post(
+        srv, {"file": ("cm.obj", data)}, {"annotation": '{"feature_points": {"2.1": 10000000}}'}
+    )
     assert bad.status_code == 400 and "feature_points.2.1" in bad.json()["error"]
 
 
-@pytest.mark.parametrize(("rel", "fmt"), [("demosthenes/demosthenes-low-res.obj.xz", "ply"),
-                                      ("mediapipe-face/canonical_face_model.obj", "glb")])
+@pytest.mark.parametrize(
+    ("rel", "fmt"),
+    [
+        ("demosthenes/demosthenes-low-res.obj.xz", "ply"),
+        ("mediapipe-face/canonical_face_model.obj", "glb"),
+    ],
+)
 def test_real_heads_upload_in_other_formats(srv, data_dir, rel, fmt):
     import trimesh
 
@@ -143,7 +183,9 @@ def test_real_heads_upload_in_other_formats(srv, data_dir, rel, fmt):
     body = r.json()
     assert body["annotation"] == "automatic" and body["face"]["fapu"] is not None
     if "mediapipe" in rel:
-        assert body["left_out"], "a face mask has no back of the head: the annotation says what it left out"
+        assert body["left_out"], (
+            "a face mask has no back of the head: the annotation says what it left out"
+        )
 
 
 def test_malformed_and_hostile_uploads_get_a_clear_4xx(srv, tmp_path):
@@ -155,8 +197,12 @@ def test_malformed_and_hostile_uploads_get_a_clear_4xx(srv, tmp_path):
         "range.obj": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n",
         "tiny.obj": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
         "trunc.glb": b"glTF\x02\x00\x00\x00",
-        "ext.gltf": json.dumps({"asset": {"version": "2.0"}, "buffers": [{"uri": "../../../etc/passwd",
-                                                                           "byteLength": 10}]}).encode(),
+        "ext.gltf": json.dumps(
+            {
+                "asset": {"version": "2.0"},
+                "buffers": [{"uri": "../../../etc/passwd", "byteLength": 10}],
+            }
+        ).encode(),
         "bin.stl": b"\x00" * 80 + (10**6).to_bytes(4, "little") + b"\x00" * 100,
         "noext": b"\x89PNG\r\n\x1a\n" + bytes(100),
     }
@@ -168,7 +214,10 @@ def test_malformed_and_hostile_uploads_get_a_clear_4xx(srv, tmp_path):
     huge = b"v 0 0 0\n" * (MAX_VERTICES + 1) + b"f 1 2 3\n"
     r = post(srv, {"file": ("huge.obj", huge)})
     assert r.status_code == 413 and "at most" in r.json()["error"]
-    assert httpx.post(srv.url + "/v1/faces", content=b"x", headers=srv.admin_headers).status_code == 415
+    assert (
+        httpx.post(srv.url + "/v1/faces", content=b"x", headers=srv.admin_headers).status_code
+        == 415
+    )
     r = post(srv, {"file": ("a.obj", b"v 0 0 0\n")}, {"path": "/etc/passwd"})
     assert r.status_code == 400 and "unknown form field" in r.json()["error"]
     for bad_name in ("../../x", "..", "a" * 65):
@@ -181,9 +230,12 @@ def _small_meshes() -> dict[str, bytes]:
     import trimesh
 
     ico = trimesh.creation.icosphere(subdivisions=1)
-    return {f"s.{fmt}": ico.export(file_type=fmt) if fmt != "obj" else
-            obj_bytes(np.asarray(ico.vertices), np.asarray(ico.faces))
-            for fmt in ("obj", "ply", "stl", "glb")}
+    return {
+        f"s.{fmt}": ico.export(file_type=fmt)
+        if fmt != "obj"
+        else obj_bytes(np.asarray(ico.vertices), np.asarray(ico.faces))
+        for fmt in ("obj", "ply", "stl", "glb")
+    }
 
 
 SMALL = _small_meshes()
@@ -199,7 +251,7 @@ def test_fuzzed_mesh_uploads_never_give_a_5xx(srv, name, data):
         if op == "flip" and blob:
             blob[i] ^= data.draw(st.integers(1, 255))
         elif op == "cut":
-            del blob[i:i + data.draw(st.integers(1, 64))]
+            del blob[i : i + data.draw(st.integers(1, 64))]
         else:
             blob[i:i] = data.draw(st.binary(min_size=1, max_size=16))
     r = post(srv, {"file": (name if data.draw(st.booleans()) else "upload", bytes(blob))})
@@ -220,9 +272,19 @@ def test_deleting_an_uploaded_face(srv, head2k):
     r = post(srv, {"file": ("del.obj", obj_bytes(v, head2k.triangles))}, {"name": "to-delete"})
     assert r.status_code == 201, r.text
     assert httpx.delete(srv.url + "/v1/faces/to-delete", timeout=30).status_code == 401
-    assert httpx.delete(srv.url + "/v1/faces/to-delete", headers=srv.admin_headers, timeout=30).status_code == 204
+    assert (
+        httpx.delete(
+            srv.url + "/v1/faces/to-delete", headers=srv.admin_headers, timeout=30
+        ).status_code
+        == 204
+    )
     assert httpx.get(srv.url + "/v1/faces/to-delete", timeout=30).status_code == 404
-    assert httpx.delete(srv.url + "/v1/faces/default", headers=srv.admin_headers, timeout=30).status_code == 404
+    assert (
+        httpx.delete(
+            srv.url + "/v1/faces/default", headers=srv.admin_headers, timeout=30
+        ).status_code
+        == 404
+    )
     assert not (srv.data_dir / "faces" / r.json()["id"]).exists()
 
 
@@ -238,7 +300,9 @@ def test_a_worker_that_overruns_its_time_is_replaced(tmp_path, head2k):
             worker.prepare(path, "obj", None)
         assert worker._proc is None  # killed
         worker.timeout = 300.0
-        with pytest.raises(InputError, match="not valid JSON"):  # a fresh worker answers the next upload
+        with pytest.raises(
+            InputError, match="not valid JSON"
+        ):  # a fresh worker answers the next upload
             worker.prepare(path, "obj", '{"feature_points": ')
     finally:
         worker.stop()

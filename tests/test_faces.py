@@ -1,4 +1,5 @@
 """Faces from mesh files: annotations, their validation, axes, and the built-in ICT FaceKit annotation."""
+
 from __future__ import annotations
 
 import json
@@ -13,8 +14,11 @@ from facecast.server.faces.face import FEATURE_POINT_IDS
 
 
 def tetra_mesh(tmp_path, annotation: dict | None, suffix=".ply"):
-    mesh = trimesh.Trimesh(vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
-                           faces=[[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], process=False)
+    mesh = trimesh.Trimesh(
+        vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
+        faces=[[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        process=False,
+    )
     path = tmp_path / f"head{suffix}"
     mesh.export(path)
     if annotation is not None:
@@ -32,7 +36,9 @@ def test_ict_topology_is_recognised_and_annotated(data_dir):
     # Left is +x, up is +y, forward is +z, as MPEG-4 says.
     assert v[fp["3.5"], 0] > 0 > v[fp["3.6"], 0]
     assert v[fp["4.3"], 1] > v[fp["3.1"], 1] > v[fp["9.3"], 1] > v[fp["2.2"], 1] > v[fp["2.1"], 1]
-    assert v[fp["9.3"], 2] == pytest.approx(v[face.part("skin"), 2].max(), abs=0.05)  # nose tip in front (0.5 mm)
+    assert v[fp["9.3"], 2] == pytest.approx(
+        v[face.part("skin"), 2].max(), abs=0.05
+    )  # nose tip in front (0.5 mm)
     # Points land on the right parts.
     assert fp["3.5"] in face.part("eye_l") and fp["3.6"] in face.part("eye_r")
     assert all(fp[k] in face.part("tongue") for k in ("6.1", "6.2", "6.3", "6.4"))
@@ -44,35 +50,54 @@ def test_ict_topology_is_recognised_and_annotated(data_dir):
     # Each eyeball: a transparent cornea shell over an inner sphere whose front disc is the iris.
     for side in "lr":
         eye, cornea, iris = (face.part(f"{p}_{side}") for p in ("eye", "cornea", "iris"))
-        assert np.isin(cornea, eye).all() and np.isin(iris, eye).all() and not np.isin(iris, cornea).any()
+        assert (
+            np.isin(cornea, eye).all()
+            and np.isin(iris, eye).all()
+            and not np.isin(iris, cornea).any()
+        )
         pupil = v[fp["3.5" if side == "l" else "3.6"]]
         centre = v[np.setdiff1d(eye, cornea)].mean(axis=0)
         assert 50 < len(iris) < 0.5 * (len(eye) - len(cornea))  # a disc, not the whole sphere
         assert (((v[iris] - centre) @ (pupil - centre)) > 0).all()  # on the front, round the pupil
-        assert np.linalg.norm(v[cornea] - centre, axis=1).max() > np.linalg.norm(v[iris] - centre, axis=1).max()
+        assert (
+            np.linalg.norm(v[cornea] - centre, axis=1).max()
+            > np.linalg.norm(v[iris] - centre, axis=1).max()
+        )
 
 
 def test_annotation_with_axes_turns_mesh_into_mpeg4_axes(tmp_path):
     # A z-up, y-forward mesh (as many DCC tools export).
-    path = tetra_mesh(tmp_path, {"units": "m", "axes": {"up": "+z", "forward": "-y"},
-                                 "feature_points": {"2.1": 1}, "parts": {"skin": [[0, 3]]}})
+    path = tetra_mesh(
+        tmp_path,
+        {
+            "units": "m",
+            "axes": {"up": "+z", "forward": "-y"},
+            "feature_points": {"2.1": 1},
+            "parts": {"skin": [[0, 3]]},
+        },
+    )
     face = load_face(path)
     assert face.units == "m" and face.mm_per_unit == 1000
     # Old +z (vertex 3) is now +y; old +y (vertex 2) faced backwards, so it is now -z.
     np.testing.assert_allclose(face.vertices[3], [0, 1, 0], atol=1e-6)
     np.testing.assert_allclose(face.vertices[2], [0, 0, -1], atol=1e-6)
-    np.testing.assert_allclose(face.vertices[1], [1, 0, 0], atol=1e-6)  # x = up × forward: +x stays left
+    np.testing.assert_allclose(
+        face.vertices[1], [1, 0, 0], atol=1e-6
+    )  # x = up × forward: +x stays left
 
 
-@pytest.mark.parametrize(("annotation", "message"), [
-    ({"feature_points": {"2.99": 0}}, "unknown MPEG-4 feature point(s) 2.99"),
-    ({"feature_points": {"2.1": 17}}, "'feature_points.2.1': vertex id 17 is outside 0..3"),
-    ({"units": "furlong"}, "'units'"),
-    ({"parts": {"skin": [[0, 9]]}}, "'parts.skin': range [0, 9] is outside 0..3"),
-    ({"parts": {"tongue": ["a"]}}, "'parts.tongue'"),
-    ({"axes": {"up": "+y", "forward": "-y"}}, "'axes'"),
-    ({"pivots": {"jaw": [0, 1]}}, "'pivots.jaw'"),
-])
+@pytest.mark.parametrize(
+    ("annotation", "message"),
+    [
+        ({"feature_points": {"2.99": 0}}, "unknown MPEG-4 feature point(s) 2.99"),
+        ({"feature_points": {"2.1": 17}}, "'feature_points.2.1': vertex id 17 is outside 0..3"),
+        ({"units": "furlong"}, "'units'"),
+        ({"parts": {"skin": [[0, 9]]}}, "'parts.skin': range [0, 9] is outside 0..3"),
+        ({"parts": {"tongue": ["a"]}}, "'parts.tongue'"),
+        ({"axes": {"up": "+y", "forward": "-y"}}, "'axes'"),
+        ({"pivots": {"jaw": [0, 1]}}, "'pivots.jaw'"),
+    ],
+)
 def test_bad_annotations_name_the_field(tmp_path, annotation, message):
     path = tetra_mesh(tmp_path, annotation)
     with pytest.raises(InputError, match="head.face.json") as err:

@@ -1,4 +1,5 @@
 """The ASCII .fap reader/writer: real Xface files, Greta-style files, malformed input, property tests."""
+
 from __future__ import annotations
 
 import pytest
@@ -37,8 +38,11 @@ def test_masks_change_between_frames(data_dir):
 
 
 def test_greta_style_header_with_spaces_69_wide_mask_lf():
-    text = ("2.1 AU Interpolation_1131.fap 25 1 \n"
-            + _mask(19, 20, 21, 22, width=69) + " \n0 626 626 133 133 \n")
+    text = (
+        "2.1 AU Interpolation_1131.fap 25 1 \n"
+        + _mask(19, 20, 21, 22, width=69)
+        + " \n0 626 626 133 133 \n"
+    )
     f = read_fap(text)
     assert f.name == "AU Interpolation_1131.fap"
     assert f.mask_width == 69 and f.newline == "\n" and f.header_trailing_space
@@ -47,11 +51,15 @@ def test_greta_style_header_with_spaces_69_wide_mask_lf():
 
 
 def test_high_level_fields_four_and_six_values_and_greta_single_values():
-    text = ("# made by hand\n2.1 my name 30 2\n" + _mask(1, 2, 3) + "\n0 3 10 40 1 1 63 4 20 0 1 512\n"
-            "# second frame\n" + _mask(1, 5) + "\n1 14 0 63 0 -7\n")
+    text = (
+        "# made by hand\n2.1 my name 30 2\n" + _mask(1, 2, 3) + "\n0 3 10 40 1 1 63 4 20 0 1 512\n"
+        "# second frame\n" + _mask(1, 5) + "\n1 14 0 63 0 -7\n"
+    )
     f = read_fap(text)
     a, b = f.frames
-    assert a.viseme == (3, 10, 40, 1) and a.expression == (1, 63, 4, 20, 0, 1) and a.faps() == {3: 512}
+    assert (
+        a.viseme == (3, 10, 40, 1) and a.expression == (1, 63, 4, 20, 0, 1) and a.faps() == {3: 512}
+    )
     assert b.viseme == (14, 0, 63, 0) and b.expression is None and b.faps() == {5: -7}
     assert f.comments == ((-1, "# made by hand"), (1, "# second frame"))
     assert write_fap(f) == text
@@ -93,20 +101,35 @@ def test_malformed_input_names_the_line(text, line, words):
 
 # -- property tests -----------------------------------------------------------------------------
 
-values = st.one_of(st.integers(-10**9, 10**9), st.floats(allow_nan=False, allow_infinity=False, width=64))
+values = st.one_of(
+    st.integers(-(10**9), 10**9), st.floats(allow_nan=False, allow_infinity=False, width=64)
+)
 
 
 @st.composite
 def frames(draw, width: int, number: int):
     faps = draw(st.dictionaries(st.integers(3, 68), values, max_size=12))
-    vis = draw(st.none() | st.tuples(st.integers(0, 14), st.integers(0, 14), st.integers(0, 63), st.integers(0, 1)))
-    expr = draw(st.none() | st.tuples(st.integers(0, 6), st.integers(0, 63), st.integers(0, 6),
-                                      st.integers(0, 63), st.integers(0, 1), st.integers(0, 1)))
+    vis = draw(
+        st.none()
+        | st.tuples(st.integers(0, 14), st.integers(0, 14), st.integers(0, 63), st.integers(0, 1))
+    )
+    expr = draw(
+        st.none()
+        | st.tuples(
+            st.integers(0, 6),
+            st.integers(0, 63),
+            st.integers(0, 6),
+            st.integers(0, 63),
+            st.integers(0, 1),
+            st.integers(0, 1),
+        )
+    )
     return FapFrame.build(number, faps, viseme=vis, expression=expr, mask_width=width)
 
 
-names = st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\r\n\x00"), max_size=30) \
-    .map(str.strip)
+names = st.text(
+    st.characters(blacklist_categories=("Cs",), blacklist_characters="\r\n\x00"), max_size=30
+).map(str.strip)
 
 
 @st.composite
@@ -115,12 +138,20 @@ def fap_files(draw):
     n = draw(st.integers(0, 5))
     numbers = draw(st.lists(st.integers(0, 1000), min_size=n, max_size=n))
     fr = tuple(draw(frames(width, k)) for k in numbers)
-    comments = draw(st.lists(st.tuples(st.integers(-1, n), names.map(lambda s: "#" + s)), max_size=3))
-    return FapFile(version=draw(st.sampled_from(["2.1", "1.0", "2"])), name=draw(names),
-                   fps=draw(st.integers(1, 240) | st.floats(0.5, 240)), frames=fr,
-                   comments=tuple(sorted(comments, key=lambda c: c[0])),
-                   newline=draw(st.sampled_from(["\n", "\r\n"])), trailing_space=draw(st.booleans()),
-                   header_trailing_space=draw(st.booleans()), final_newline=draw(st.booleans()))
+    comments = draw(
+        st.lists(st.tuples(st.integers(-1, n), names.map(lambda s: "#" + s)), max_size=3)
+    )
+    return FapFile(
+        version=draw(st.sampled_from(["2.1", "1.0", "2"])),
+        name=draw(names),
+        fps=draw(st.integers(1, 240) | st.floats(0.5, 240)),
+        frames=fr,
+        comments=tuple(sorted(comments, key=lambda c: c[0])),
+        newline=draw(st.sampled_from(["\n", "\r\n"])),
+        trailing_space=draw(st.booleans()),
+        header_trailing_space=draw(st.booleans()),
+        final_newline=draw(st.booleans()),
+    )
 
 
 @settings(max_examples=80, deadline=None)

@@ -30,13 +30,34 @@ from facecast.server.errors import InputError
 from facecast.server.faces.ict import ANNOTATION
 from facecast.server.faces.loaders import face_from_annotation, parse_annotation
 
-FUZZ = settings(max_examples=150, deadline=None, derandomize=True,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+FUZZ = settings(
+    max_examples=150,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
 
 #: Stands for an integer of 4,301 digits (json.dumps cannot write one; json.loads refuses it).
 HUGE_INT = "<4301 digits>"
-TOKENS = ["nan", "inf", "-inf", "1e309", "-1", "0", "", " ", "\t", ",", "#", "9" * 4301, "1" * 19,
-          "\xff", "\x00", "٣", "0x10"]
+TOKENS = [
+    "nan",
+    "inf",
+    "-inf",
+    "1e309",
+    "-1",
+    "0",
+    "",
+    " ",
+    "\t",
+    ",",
+    "#",
+    "9" * 4301,
+    "1" * 19,
+    "\xff",
+    "\x00",
+    "٣",
+    "0x10",
+]
 
 
 def _take() -> MarkerTake:
@@ -64,8 +85,12 @@ def mutated(draw, seeds: list[bytes], text: bool = False) -> bytes:
     for _ in range(draw(st.integers(1, 4))):
         n = len(b)
         pos = draw(st.integers(0, max(n - 1, 0)))
-        op = draw(st.sampled_from(["flip", "byte", "word", "insert", "delete", "cut", "repeat"]
-                                  + (["token"] * 3 if text else [])))
+        op = draw(
+            st.sampled_from(
+                ["flip", "byte", "word", "insert", "delete", "cut", "repeat"]
+                + (["token"] * 3 if text else [])
+            )
+        )
         if op == "flip" and n:
             b[pos] ^= 1 << draw(st.integers(0, 7))
         elif op == "byte" and n:
@@ -76,15 +101,15 @@ def mutated(draw, seeds: list[bytes], text: bool = False) -> bytes:
             lo, hi = (-(2 ** (8 * size - 1)), 2 ** (8 * size - 1) - 1)
             v = draw(st.sampled_from([0, -1, 1, lo, hi, 255, 512]) | st.integers(lo, hi))
             pos = min(pos - pos % 2, n - size)
-            b[pos:pos + size] = struct.pack(fmt, v)
+            b[pos : pos + size] = struct.pack(fmt, v)
         elif op == "insert":
             b[pos:pos] = draw(st.binary(min_size=1, max_size=16))
         elif op == "delete" and n:
-            del b[pos:pos + draw(st.integers(1, 64))]
+            del b[pos : pos + draw(st.integers(1, 64))]
         elif op == "cut":
             del b[pos:]
         elif op == "repeat" and n:
-            b[pos:pos] = b[pos:pos + draw(st.integers(1, 256))] * draw(st.integers(1, 4))
+            b[pos:pos] = b[pos : pos + draw(st.integers(1, 256))] * draw(st.integers(1, 4))
         elif op == "token":
             lines = bytes(b).split(b"\n")
             i = draw(st.integers(0, len(lines) - 1))
@@ -105,8 +130,12 @@ def _check_take(take: MarkerTake) -> None:
 @pytest.fixture(scope="module")
 def c3d_seeds(tmp_path_factory) -> list[bytes]:
     take = _take()
-    return [write_c3d(take), write_c3d(take, processor="dec", scale=0.1),
-            write_c3d(take, processor="mips", scale=-0.5), *_ezc3d_seed(take, tmp_path_factory)]
+    return [
+        write_c3d(take),
+        write_c3d(take, processor="dec", scale=0.1),
+        write_c3d(take, processor="mips", scale=-0.5),
+        *_ezc3d_seed(take, tmp_path_factory),
+    ]
 
 
 def test_c3d_fuzz(c3d_seeds):
@@ -155,12 +184,35 @@ def test_fap_fuzz(data_dir):
 
 
 JSON_VALUES = st.recursive(
-    st.none() | st.booleans() | st.integers(-(10**30), 10**30) | st.floats(allow_nan=False)
+    st.none()
+    | st.booleans()
+    | st.integers(-(10**30), 10**30)
+    | st.floats(allow_nan=False)
     | st.sampled_from(["mm", "+y", "-z", "skin", "", "x", HUGE_INT]),
-    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(
-        st.sampled_from(["units", "axes", "up", "forward", "parts", "pivots", "feature_points",
-                         "2.1", "skin", "jaw", "x"]), inner, max_size=4),
-    max_leaves=8)
+    lambda inner: (
+        st.lists(inner, max_size=4)
+        | st.dictionaries(
+            st.sampled_from(
+                [
+                    "units",
+                    "axes",
+                    "up",
+                    "forward",
+                    "parts",
+                    "pivots",
+                    "feature_points",
+                    "2.1",
+                    "skin",
+                    "jaw",
+                    "x",
+                ]
+            ),
+            inner,
+            max_size=4,
+        )
+    ),
+    max_leaves=8,
+)
 
 
 @st.composite
@@ -192,8 +244,9 @@ def test_annotation_fuzz():
     @given(mutated_annotation(seed))
     def check(data):
         try:
-            face = face_from_annotation("f", vertices, triangles, parse_annotation(data, where="f.json"),
-                                        where="f.json")
+            face = face_from_annotation(
+                "f", vertices, triangles, parse_annotation(data, where="f.json"), where="f.json"
+            )
         except InputError as e:
             assert "f.json" in str(e) and len(str(e)) < 1000
         else:

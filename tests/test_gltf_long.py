@@ -1,5 +1,6 @@
 """glTF morph basis on long clips: the recorded error bound holds on re-import (pygltflib), long clips
 stream through ``render_file`` in chunks, and a capped basis says so."""
+
 from __future__ import annotations
 
 import logging
@@ -37,7 +38,9 @@ def looped(data_dir, n_frames: int) -> Animation:
     while len(states) < n_frames:
         for clip in clips:
             states.extend(clip.states)
-    return Animation(25.0, [replace(s, t=i / 25.0) for i, s in enumerate(states[:n_frames])], source="looped")
+    return Animation(
+        25.0, [replace(s, t=i / 25.0) for i, s in enumerate(states[:n_frames])], source="looped"
+    )
 
 
 def reimported_error_mm(path, expected: np.ndarray, mm_per_unit: float) -> tuple[dict, float]:
@@ -47,37 +50,54 @@ def reimported_error_mm(path, expected: np.ndarray, mm_per_unit: float) -> tuple
 
 
 @pytest.mark.slow
-def test_long_clip_streams_through_render_file_within_the_recorded_bound(data_dir, face, animator, tmp_path,
-                                                                        monkeypatch):
+def test_long_clip_streams_through_render_file_within_the_recorded_bound(
+    data_dir, face, animator, tmp_path, monkeypatch
+):
     """3000 frames (2 minutes) rendered in chunks on each pass (not held in memory) -> .glb whose frames,
     rebuilt from the morph targets and weights, match the animator's frames within the recorded bound."""
     anim = looped(data_dir, 3000)
     src = tmp_path / "long.fap"
     write_fap_file(src, anim)
-    monkeypatch.setattr(render, "GLB_STREAM_BYTES", 1 << 20)  # force the chunked path (3000 x 2k frames: 72 MB)
+    monkeypatch.setattr(
+        render, "GLB_STREAM_BYTES", 1 << 20
+    )  # force the chunked path (3000 x 2k frames: 72 MB)
     calls = []
-    summary = render_file(src, tmp_path / "long.glb", face=face, backend="numpy",
-                          progress=lambda d, t: calls.append((d, t)))
+    summary = render_file(
+        src,
+        tmp_path / "long.glb",
+        face=face,
+        backend="numpy",
+        progress=lambda d, t: calls.append((d, t)),
+    )
     assert calls[-1] == (3000, 3000) and len(calls) == len(set(calls))  # one pass reported, once
-    assert calls[0] == (64, 3000)  # in the streaming source's chunks (Animator.render reports every 32)
+    assert calls[0] == (
+        64,
+        3000,
+    )  # in the streaming source's chunks (Animator.render reports every 32)
     expected = animator.render(load_fap(src, face))
     glb, err_mm = reimported_error_mm(tmp_path / "long.glb", expected, face.mm_per_unit)
     rec = glb["extras"]
     assert rec == summary["gltf"] and rec["frames"] == 3000 and len(glb["times"]) == 3000
     assert not rec["capped"] and rec["max_error_mm"] <= rec["tolerance_mm"] == 0.01
     assert err_mm <= rec["error_bound_mm"] + 1e-4  # float32 re-evaluation of the same sum
-    assert abs(err_mm - rec["max_error_mm"]) <= 1e-4  # the record is the measured maximum, not a guess
+    assert (
+        abs(err_mm - rec["max_error_mm"]) <= 1e-4
+    )  # the record is the measured maximum, not a guess
     assert 1 <= rec["targets"] < 128 and np.abs(glb["weights"]).max() <= 1.0 + 1e-6
     # The same frames held in memory give an equally good basis of about the same size.
     _, mem = encode_glb(expected, face.vertices, face.triangles, 25.0, mm_per_unit=face.mm_per_unit)
-    assert mem["max_error_mm"] <= 0.01 and abs(mem["targets"] - rec["targets"]) <= max(3, rec["targets"] // 10)
+    assert mem["max_error_mm"] <= 0.01 and abs(mem["targets"] - rec["targets"]) <= max(
+        3, rec["targets"] // 10
+    )
 
 
 @pytest.mark.parametrize("name", ["anger.fap", "joy.fap"])
 def test_recorded_bound_holds_on_reimport_of_a_real_clip(data_dir, face, animator, tmp_path, name):
     src = data_dir / "xface" / "faps" / name
     render_file(src, tmp_path / "a.glb", face=face, backend="numpy")
-    glb, err_mm = reimported_error_mm(tmp_path / "a.glb", animator.render(load_fap(src, face)), face.mm_per_unit)
+    glb, err_mm = reimported_error_mm(
+        tmp_path / "a.glb", animator.render(load_fap(src, face)), face.mm_per_unit
+    )
     rec = glb["extras"]
     assert err_mm <= rec["error_bound_mm"] + 1e-4 and rec["error_bound_mm"] <= 0.01
     assert abs(err_mm - rec["max_error_mm"]) <= 1e-4
@@ -92,7 +112,7 @@ def test_chunk_source_equals_array_input(face, rng):
     w = np.sin(np.arange(700)[:, None] * np.array([0.01, 0.03, 0.07, 0.13, 0.31]))
     frames = face.vertices + np.einsum("tm,mvc->tvc", w, basis).astype(np.float32)
     a = morph_basis(frames, face.vertices, 0.01, chunk=100)
-    b = morph_basis(lambda: (frames[s:s + 100] for s in range(0, 700, 100)), face.vertices, 0.01)
+    b = morph_basis(lambda: (frames[s : s + 100] for s in range(0, 700, 100)), face.vertices, 0.01)
     assert a.targets.shape == b.targets.shape == (5, V, 3)
     np.testing.assert_array_equal(a.weights, b.weights)
     assert a.max_error == b.max_error <= 0.01 and a.passes == 2
@@ -101,7 +121,7 @@ def test_chunk_source_equals_array_input(face, rng):
     def shrinking():
         calls.append(1)
         n = 700 if len(calls) == 1 else 600
-        return (frames[s:min(s + 100, n)] for s in range(0, n, 100))
+        return (frames[s : min(s + 100, n)] for s in range(0, n, 100))
 
     with pytest.raises(ValueError, match="second pass"):
         morph_basis(shrinking, face.vertices, 0.01)
@@ -137,7 +157,9 @@ def test_exact_per_frame_targets_when_the_decomposition_falls_short(face, rng):
     frames = face.vertices + rng.normal(0, 0.5, (T, face.n_vertices, 3)).astype(np.float32)
     # a first basis far too coarse (per-vertex slack 100 mm) and no second round: the decomposition misses
     mb = morph_basis(frames, face.vertices, 0.01, max_targets=8, basis_slack=1e4, rounds=1)
-    assert mb.method == "exact" and not mb.capped and mb.targets.shape[0] == T and mb.max_error < 1e-4
+    assert (
+        mb.method == "exact" and not mb.capped and mb.targets.shape[0] == T and mb.max_error < 1e-4
+    )
     rebuilt = face.vertices + np.einsum("tm,mvc->tvc", mb.weights.astype(np.float64), mb.targets)
     assert np.linalg.norm(rebuilt - frames, axis=2).max() == pytest.approx(mb.max_error, rel=1e-9)
     np.testing.assert_array_equal(mb.weights, np.eye(T))
@@ -155,5 +177,9 @@ def test_target_count_grows_until_the_measured_bound_holds(data_dir, face, anima
     frames = animator.render(load_fap(data_dir / "xface" / "faps" / "anger.fap", face))
     coarse = morph_basis(frames, face.vertices, 0.01, basis_slack=30.0)
     assert coarse.passes > 2 and not coarse.capped and coarse.max_error <= 0.01
-    rebuilt = face.vertices + np.einsum("tm,mvc->tvc", coarse.weights.astype(np.float64), coarse.targets)
-    assert np.linalg.norm(rebuilt - frames, axis=2).max() == pytest.approx(coarse.max_error, rel=1e-9)
+    rebuilt = face.vertices + np.einsum(
+        "tm,mvc->tvc", coarse.weights.astype(np.float64), coarse.targets
+    )
+    assert np.linalg.norm(rebuilt - frames, axis=2).max() == pytest.approx(
+        coarse.max_error, rel=1e-9
+    )

@@ -1,6 +1,7 @@
 """A written .glb is read back independently (pygltflib + numpy, none of the writer's code): every frame
 rebuilt as rest + weights . targets matches the renderer's float vertices within the tolerance the file
 records; a clip the writer cannot represent within it is refused (exit 2, no file)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -31,27 +32,40 @@ def read_back(path: Path) -> dict:
         n = _WIDTH[a.type]
         dt = np.dtype(_DTYPES[a.componentType])
         assert v.byteStride in (None, 0, n * dt.itemsize)
-        data = np.frombuffer(blob, dtype=dt, count=a.count * n, offset=v.byteOffset + (a.byteOffset or 0))
+        data = np.frombuffer(
+            blob, dtype=dt, count=a.count * n, offset=v.byteOffset + (a.byteOffset or 0)
+        )
         return data.reshape(a.count, n).astype(np.float64)
 
     mesh = g.meshes[g.nodes[0].mesh]
     prim = mesh.primitives[0]
-    targets = np.stack([acc(t["POSITION"] if isinstance(t, dict) else t.POSITION) for t in prim.targets])
+    targets = np.stack(
+        [acc(t["POSITION"] if isinstance(t, dict) else t.POSITION) for t in prim.targets]
+    )
     sampler = g.animations[0].samplers[g.animations[0].channels[0].sampler]
-    assert g.animations[0].channels[0].target.path == "weights" and sampler.interpolation == "LINEAR"
+    assert (
+        g.animations[0].channels[0].target.path == "weights" and sampler.interpolation == "LINEAR"
+    )
     times = acc(sampler.input).reshape(-1)
     weights = acc(sampler.output).reshape(len(times), len(targets))
-    return {"rest": acc(prim.attributes.POSITION), "targets": targets, "weights": weights, "times": times,
-            "scale": g.nodes[0].scale, "tolerance_mm": g.asset.extras["tolerance_mm"],
-            "max_error_mm": g.asset.extras["max_error_mm"], "record": g.extras["facecast"]}
+    return {
+        "rest": acc(prim.attributes.POSITION),
+        "targets": targets,
+        "weights": weights,
+        "times": times,
+        "scale": g.nodes[0].scale,
+        "tolerance_mm": g.asset.extras["tolerance_mm"],
+        "max_error_mm": g.asset.extras["max_error_mm"],
+        "record": g.extras["facecast"],
+    }
 
 
 def max_error_mm(glb: dict, frames: np.ndarray, mm_per_unit: float) -> float:
     """Largest vertex distance (mm) between the frames the file shows at its keyframes and ``frames``."""
     err = 0.0
     for s in range(0, len(frames), 16):
-        shown = glb["rest"] + np.einsum("tm,mvc->tvc", glb["weights"][s:s + 16], glb["targets"])
-        err = max(err, float(np.linalg.norm(shown - frames[s:s + 16], axis=2).max()))
+        shown = glb["rest"] + np.einsum("tm,mvc->tvc", glb["weights"][s : s + 16], glb["targets"])
+        err = max(err, float(np.linalg.norm(shown - frames[s : s + 16], axis=2).max()))
     return err * mm_per_unit
 
 
@@ -62,7 +76,9 @@ def face():
     return load_face("default:2k")
 
 
-def test_joy_glb_read_back_matches_the_renderer_within_its_recorded_tolerance(data_dir, face, tmp_path):
+def test_joy_glb_read_back_matches_the_renderer_within_its_recorded_tolerance(
+    data_dir, face, tmp_path
+):
     src = data_dir / "xface" / "faps" / "joy.fap"
     out = tmp_path / "joy.glb"
     render_file(src, out, face=face, backend="numpy")
@@ -83,7 +99,9 @@ def test_many_vertices_in_float32_stay_within_the_tolerance(tmp_path):
     rest = rng.normal(0, 80, (V, 3)).astype(np.float32)
     centres = rest[rng.choice(V, 6)]
     bumps = np.exp(-((rest[:, None] - centres[None]) ** 2).sum(-1) / (2 * 150.0**2))  # (V, 6)
-    frames = (rest[None] + np.einsum("vb,tbc->tvc", bumps, rng.normal(0, 10, (T, 6, 3)))).astype(np.float32)
+    frames = (rest[None] + np.einsum("vb,tbc->tvc", bumps, rng.normal(0, 10, (T, 6, 3)))).astype(
+        np.float32
+    )
     out = tmp_path / "big.glb"
     rec = gltf.write_glb(out, frames, rest, np.array([[0, 1, 2]]), 25.0)
     glb = read_back(out)
@@ -93,12 +111,24 @@ def test_many_vertices_in_float32_stay_within_the_tolerance(tmp_path):
     assert err == pytest.approx(glb["max_error_mm"], abs=1e-5)
 
 
-def test_a_clip_the_writer_cannot_represent_is_refused_with_exit_2(data_dir, tmp_path, monkeypatch, capsys):
+def test_a_clip_the_writer_cannot_represent_is_refused_with_exit_2(
+    data_dir, tmp_path, monkeypatch, capsys
+):
     """With at most 2 targets joy (108 frames) cannot be met: no file, a message saying what to do."""
     monkeypatch.setattr(gltf, "MAX_TARGETS", 2)
     out = tmp_path / "joy.glb"
-    code = main(["render", str(data_dir / "xface" / "faps" / "joy.fap"), "-o", str(out), "--face", "default:2k",
-                 "--backend", "numpy"])
+    code = main(
+        [
+            "render",
+            str(data_dir / "xface" / "faps" / "joy.fap"),
+            "-o",
+            str(out),
+            "--face",
+            "default:2k",
+            "--backend",
+            "numpy",
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert code == 2 and not out.exists() and not list(tmp_path.iterdir())
     assert err.startswith(f"facecast: {out}: refusing to write a wrong file: 108 frames of a ")

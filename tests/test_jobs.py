@@ -1,4 +1,5 @@
 """Batch jobs on a real server: real FAP files in, valid results out; progress, cancel, failures, restarts."""
+
 from __future__ import annotations
 
 import io
@@ -32,8 +33,13 @@ def fap_file(data_dir: Path, name: str = "joy.fap") -> Path:
 
 
 def submit(srv: RunningServer, name: str, content: bytes, **options) -> dict:
-    resp = httpx.post(srv.url + "/v1/jobs", files={"file": (name, content)}, data={"face": FACE, **options},
-                      headers=srv.admin_headers, timeout=60)
+    resp = httpx.post(
+        srv.url + "/v1/jobs",
+        files={"file": (name, content)},
+        data={"face": FACE, **options},
+        headers=srv.admin_headers,
+        timeout=60,
+    )
     assert resp.status_code == 202, resp.text
     assert resp.headers["location"] == f"/v1/jobs/{resp.json()['id']}"
     return resp.json()
@@ -43,7 +49,9 @@ def status(srv: RunningServer, job_id: str) -> dict:
     return httpx.get(f"{srv.url}/v1/jobs/{job_id}", headers=srv.admin_headers, timeout=30).json()
 
 
-def wait(srv: RunningServer, job_id: str, until=("done", "failed", "cancelled"), polls: int = 6000) -> dict:
+def wait(
+    srv: RunningServer, job_id: str, until=("done", "failed", "cancelled"), polls: int = 6000
+) -> dict:
     for _ in range(polls):
         job = status(srv, job_id)
         if job["status"] in until:
@@ -57,7 +65,11 @@ def test_fap_job_renders_a_valid_glb(srv, data_dir, n_vertices):
 
     src = fap_file(data_dir)
     job = submit(srv, src.name, src.read_bytes(), format="glb")
-    assert job["status"] == "queued" and job["input_kind"] == "fap" and job["input_bytes"] == src.stat().st_size
+    assert (
+        job["status"] == "queued"
+        and job["input_kind"] == "fap"
+        and job["input_bytes"] == src.stat().st_size
+    )
     done = wait(srv, job["id"])
     assert done["status"] == "done", done
     assert done["progress"] == 1.0 and done["error"] is None and done["attempts"] == 1
@@ -75,9 +87,14 @@ def test_render_remote_reports_progress_and_writes_atomically(srv, data_dir, tmp
     from facecast.protocol.fap_file import read_fap
 
     calls: list[tuple[int, int]] = []
-    out = render_remote(srv.url, fap_file(data_dir, "anger.fap"), tmp_path / "anger.npz",
-                        options={"face": FACE}, progress=lambda d, t: calls.append((d, t)),
-                        admin_key=srv.admin_key)
+    out = render_remote(
+        srv.url,
+        fap_file(data_dir, "anger.fap"),
+        tmp_path / "anger.npz",
+        options={"face": FACE},
+        progress=lambda d, t: calls.append((d, t)),
+        admin_key=srv.admin_key,
+    )
     assert out == tmp_path / "anger.npz"
     assert calls and calls[-1] == (1000, 1000)
     done = [d for d, _ in calls]
@@ -87,12 +104,18 @@ def test_render_remote_reports_progress_and_writes_atomically(srv, data_dir, tmp
     assert any(len(s) == 3 and s[1:] == (n_vertices, 3) for s in shapes), shapes
     assert sorted(p.name for p in tmp_path.iterdir()) == ["anger.npz"]  # no partial download left
 
-    fap = render_remote(srv.url, fap_file(data_dir, "anger.fap"), tmp_path / "anger.fap",
-                        options={"face": FACE}, admin_key=srv.admin_key)
+    fap = render_remote(
+        srv.url,
+        fap_file(data_dir, "anger.fap"),
+        tmp_path / "anger.fap",
+        options={"face": FACE},
+        admin_key=srv.admin_key,
+    )
     reread = read_fap(fap.read_text(), where=str(fap))
     original = read_fap(fap_file(data_dir, "anger.fap").read_text())
-    assert len(reread.frames if hasattr(reread, "frames") else reread.values) == \
-        len(original.frames if hasattr(original, "frames") else original.values)
+    assert len(reread.frames if hasattr(reread, "frames") else reread.values) == len(
+        original.frames if hasattr(original, "frames") else original.values
+    )
 
 
 def test_render_cli_with_server_option(srv, data_dir, tmp_path):
@@ -102,15 +125,47 @@ def test_render_cli_with_server_option(srv, data_dir, tmp_path):
 
     out = tmp_path / "joy.fap"
     env = {**os.environ, "FACECAST_ADMIN_KEY": srv.admin_key}
-    run = subprocess.run([sys.executable, "-m", "facecast.server.cli", "render", str(fap_file(data_dir)), "-o",
-                          str(out), "--face", FACE, "--server", srv.url], env=env, capture_output=True,
-                         text=True, timeout=300)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "facecast.server.cli",
+            "render",
+            str(fap_file(data_dir)),
+            "-o",
+            str(out),
+            "--face",
+            FACE,
+            "--server",
+            srv.url,
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr
     assert out.read_text().lstrip().startswith(("#", "2.1"))
     env["FACECAST_ADMIN_KEY"] = "wrong"
-    run = subprocess.run([sys.executable, "-m", "facecast.server.cli", "render", str(fap_file(data_dir)), "-o",
-                          str(tmp_path / "x.fap"), "--face", FACE, "--server", srv.url], env=env,
-                         capture_output=True, text=True, timeout=300)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "facecast.server.cli",
+            "render",
+            str(fap_file(data_dir)),
+            "-o",
+            str(tmp_path / "x.fap"),
+            "--face",
+            FACE,
+            "--server",
+            srv.url,
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     last = run.stderr.strip().splitlines()[-1]
     assert run.returncode == 2 and last.startswith("facecast:") and "admin key" in last
 
@@ -119,7 +174,9 @@ def test_speech_upload_recognised_by_content_becomes_a_fap_stream(srv, data_dir)
     from facecast.protocol.fap_file import read_fap
 
     wav = data_dir / "speech" / "bobby_16bit_16khz.wav"
-    job = submit(srv, "recording", wav.read_bytes(), format="fap")  # no suffix: sniffed as RIFF/WAVE
+    job = submit(
+        srv, "recording", wav.read_bytes(), format="fap"
+    )  # no suffix: sniffed as RIFF/WAVE
     assert job["input_kind"] == "audio"
     done = wait(srv, job["id"])
     assert done["status"] == "done", done
@@ -138,13 +195,23 @@ def test_malformed_file_fails_the_job_with_a_clear_error(srv, tmp_path):
     assert resp.status_code == 409 and "failed" in resp.json()["error"]
     (tmp_path / "broken.fap").write_bytes(bad)
     with pytest.raises(RemoteJobError, match="broken.fap"):
-        render_remote(srv.url, tmp_path / "broken.fap", tmp_path / "out.glb", options={"face": FACE},
-                      admin_key=srv.admin_key)
+        render_remote(
+            srv.url,
+            tmp_path / "broken.fap",
+            tmp_path / "out.glb",
+            options={"face": FACE},
+            admin_key=srv.admin_key,
+        )
     assert not (tmp_path / "out.glb").exists()
     # The worker survives bad input: the next job still runs.
     with pytest.raises(RemoteJobError, match="admin key"):
-        render_remote(srv.url, tmp_path / "broken.fap", tmp_path / "out.glb", options={"face": FACE},
-                      admin_key="wrong")
+        render_remote(
+            srv.url,
+            tmp_path / "broken.fap",
+            tmp_path / "out.glb",
+            options={"face": FACE},
+            admin_key="wrong",
+        )
 
 
 def test_cancel_a_running_job(srv, data_dir):
@@ -238,20 +305,36 @@ def test_worker_records_progress_frame_by_frame(tmp_path, data_dir, monkeypatch)
     store.folder(job_id).mkdir(parents=True)
     src = fap_file(data_dir, "happy-for.fap")
     (store.folder(job_id) / "input.fap").write_bytes(src.read_bytes())
-    store.add(job_id, input_name=src.name, input_kind="fap", input_file="input.fap", input_bytes=1,
-              result_file="result.npz", options={"format": "npz", "face_spec": FACE, "engine": "fp"})
+    store.add(
+        job_id,
+        input_name=src.name,
+        input_kind="fap",
+        input_file="input.fap",
+        input_bytes=1,
+        result_file="result.npz",
+        options={"format": "npz", "face_spec": FACE, "engine": "fp"},
+    )
     attempt = store.claim(job_id)
     worker.run_job(store, job_id, attempt, "numpy", None, None, OrderedDict())
     job = store.get(job_id)
     assert job.status == "done" and job.progress == 1.0
-    assert len(set(seen)) >= 3 and seen == sorted(seen) and seen[-1] == 1.0 and seen[0] < 0.5  # batches of frames
+    assert (
+        len(set(seen)) >= 3 and seen == sorted(seen) and seen[-1] == 1.0 and seen[0] < 0.5
+    )  # batches of frames
     assert store.result_path(job).is_file()
     # A cancelled job stops at its next progress report and records nothing more.
     job2 = new_job_id()
     store.folder(job2).mkdir(parents=True)
     (store.folder(job2) / "input.fap").write_bytes(src.read_bytes())
-    store.add(job2, input_name=src.name, input_kind="fap", input_file="input.fap", input_bytes=1,
-              result_file="result.npz", options={"format": "npz", "face_spec": FACE, "engine": "fp"})
+    store.add(
+        job2,
+        input_name=src.name,
+        input_kind="fap",
+        input_file="input.fap",
+        input_bytes=1,
+        result_file="result.npz",
+        options={"format": "npz", "face_spec": FACE, "engine": "fp"},
+    )
     attempt = store.claim(job2)
     store.cancel(job2)
     seen.clear()
@@ -270,8 +353,15 @@ def test_store_purges_only_old_finished_jobs(tmp_path):
         job_id = new_job_id()
         store.folder(job_id).mkdir(parents=True)
         (store.folder(job_id) / "input.fap").write_text("x")
-        store.add(job_id, input_name="a.fap", input_kind="fap", input_file="input.fap", input_bytes=1,
-                  result_file="result.glb", options={})
+        store.add(
+            job_id,
+            input_name="a.fap",
+            input_kind="fap",
+            input_file="input.fap",
+            input_bytes=1,
+            result_file="result.glb",
+            options={},
+        )
         if state != "queued":
             attempt = store.claim(job_id)
             if state in ("done", "failed"):
@@ -283,11 +373,14 @@ def test_store_purges_only_old_finished_jobs(tmp_path):
     gone = store.purge(time.time() + 1)
     assert sorted(gone) == sorted(ids[s] for s in ("done", "failed", "cancelled"))
     assert store.counts() == {"queued": 1, "running": 1}
-    assert sorted(p.name for p in (tmp_path / "jobs").iterdir()) == sorted([ids["queued"], ids["running"]])
+    assert sorted(p.name for p in (tmp_path / "jobs").iterdir()) == sorted(
+        [ids["queued"], ids["running"]]
+    )
     store.close()
 
 
 # ------------------------------------------------------------------------- layouts travel as content
+
 
 @pytest.fixture(scope="module")
 def mocap_take(tmp_path_factory):
@@ -307,9 +400,16 @@ def mocap_take(tmp_path_factory):
 
 def test_a_mocap_take_renders_with_its_layout_as_content(srv, mocap_take, n_vertices):
     take, layout, syn = mocap_take
-    resp = httpx.post(srv.url + "/v1/jobs", files={"file": (take.name, take.read_bytes()),
-                                                  "layout": ("take.layout.json", layout.read_bytes())},
-                      data={"face": FACE, "format": "npz"}, headers=srv.admin_headers, timeout=60)
+    resp = httpx.post(
+        srv.url + "/v1/jobs",
+        files={
+            "file": (take.name, take.read_bytes()),
+            "layout": ("take.layout.json", layout.read_bytes()),
+        },
+        data={"face": FACE, "format": "npz"},
+        headers=srv.admin_headers,
+        timeout=60,
+    )
     assert resp.status_code == 202, resp.text
     assert resp.json()["input_kind"] == "markers" and resp.json()["options"]["layout"] == "uploaded"
     done = wait(srv, resp.json()["id"])
@@ -333,16 +433,35 @@ def test_render_server_mode_uploads_the_layout_file(srv, mocap_take, tmp_path):
     env = {**os.environ, "FACECAST_ADMIN_KEY": srv.admin_key}
     for extra in (["--layout", str(layout)], []):  # given, or found beside the take as locally
         out = tmp_path / f"take{len(extra)}.fap"
-        run = subprocess.run([sys.executable, "-m", "facecast.server.cli", "render", str(take), "-o", str(out),
-                              "--face", FACE, "--server", srv.url, *extra], env=env, capture_output=True,
-                             text=True, timeout=300)
+        run = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "facecast.server.cli",
+                "render",
+                str(take),
+                "-o",
+                str(out),
+                "--face",
+                FACE,
+                "--server",
+                srv.url,
+                *extra,
+            ],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert run.returncode == 0, run.stderr
         assert out.read_text().lstrip().startswith(("#", "2.1"))
     lone = tmp_path / "lone" / "take.trc"
     lone.parent.mkdir()
     lone.write_bytes(take.read_bytes())
     with pytest.raises(RemoteJobError, match="layout"):
-        render_remote(srv.url, lone, tmp_path / "x.fap", options={"face": FACE}, admin_key=srv.admin_key)
+        render_remote(
+            srv.url, lone, tmp_path / "x.fap", options={"face": FACE}, admin_key=srv.admin_key
+        )
 
 
 def test_a_layout_naming_a_server_file_is_refused_without_reading_it(srv, mocap_take, tmp_path):
@@ -351,28 +470,54 @@ def test_a_layout_naming_a_server_file_is_refused_without_reading_it(srv, mocap_
     take, _, _ = mocap_take
     secret = tmp_path / "secret.json"
     secret.write_text(json.dumps({"zz_secret_key": 1, "markers": {"zz_marker": {}}}))
-    for value in (str(secret), json.dumps(str(secret)), "/etc/passwd", json.dumps("/etc/passwd"), "[1, 2]"):
-        resp = httpx.post(srv.url + "/v1/jobs", files={"file": (take.name, take.read_bytes())},
-                          data={"face": FACE, "layout": value}, headers=srv.admin_headers, timeout=60)
+    for value in (
+        str(secret),
+        json.dumps(str(secret)),
+        "/etc/passwd",
+        json.dumps("/etc/passwd"),
+        "[1, 2]",
+    ):
+        resp = httpx.post(
+            srv.url + "/v1/jobs",
+            files={"file": (take.name, take.read_bytes())},
+            data={"face": FACE, "layout": value},
+            headers=srv.admin_headers,
+            timeout=60,
+        )
         assert resp.status_code == 400, (value, resp.text)
         assert resp.json()["error"] and "layout" in resp.json()["error"]
-        assert "zz_" not in resp.text and "root:" not in resp.text and str(tmp_path) not in resp.text
-    resp = httpx.post(srv.url + "/v1/jobs", files={"file": (take.name, take.read_bytes())},
-                      data={"face": FACE}, headers=srv.admin_headers, timeout=60)
+        assert (
+            "zz_" not in resp.text and "root:" not in resp.text and str(tmp_path) not in resp.text
+        )
+    resp = httpx.post(
+        srv.url + "/v1/jobs",
+        files={"file": (take.name, take.read_bytes())},
+        data={"face": FACE},
+        headers=srv.admin_headers,
+        timeout=60,
+    )
     assert resp.status_code == 400 and "layout" in resp.json()["error"]  # a take needs its layout
     leftovers = [p for p in (srv.data_dir / "jobs").iterdir() if not list(p.iterdir())]
     assert leftovers == []
 
 
 def test_uploads_are_limited_by_kind(srv):
-    big_fap = b"2.1 big 25 1\n" + b"0 " * (5 * 1024 * 1024)  # 10 MiB of FAP text: over the 8 MiB FAP limit
-    resp = httpx.post(srv.url + "/v1/jobs", files={"file": ("big.fap", big_fap)}, data={"face": FACE},
-                      headers=srv.admin_headers, timeout=60)
+    big_fap = b"2.1 big 25 1\n" + b"0 " * (
+        5 * 1024 * 1024
+    )  # 10 MiB of FAP text: over the 8 MiB FAP limit
+    resp = httpx.post(
+        srv.url + "/v1/jobs",
+        files={"file": ("big.fap", big_fap)},
+        data={"face": FACE},
+        headers=srv.admin_headers,
+        timeout=60,
+    )
     assert resp.status_code == 413, resp.text
     assert "fap input" in resp.json()["error"] and "FACECAST_MAX_FAP_BYTES" in resp.json()["error"]
 
 
 # ---------------------------------------------------------------------- job timeout, worker lifetime
+
 
 def children(pid: int) -> list[int]:
     """Job workers whose parent is ``pid`` (from /proc; not multiprocessing's resource tracker)."""
@@ -398,13 +543,17 @@ def alive(pid: int) -> bool:
 
 @pytest.mark.slow
 def test_a_job_over_the_time_limit_fails_and_its_worker_is_killed(tmp_path, data_dir):
-    s = RunningServer(tmp_path, "--face", FACE, "--workers", "1", env={"FACECAST_JOB_TIMEOUT_SECONDS": "0.5"}).start()
+    s = RunningServer(
+        tmp_path, "--face", FACE, "--workers", "1", env={"FACECAST_JOB_TIMEOUT_SECONDS": "0.5"}
+    ).start()
     try:
         src = fap_file(data_dir, "disgust.fap")
         job = submit(s, src.name, src.read_bytes(), format="glb", face="default")  # seconds of work
         failed = wait(s, job["id"])
         assert failed["status"] == "failed", failed
-        assert "longer than" in failed["error"] and "FACECAST_JOB_TIMEOUT_SECONDS" in failed["error"]
+        assert (
+            "longer than" in failed["error"] and "FACECAST_JOB_TIMEOUT_SECONDS" in failed["error"]
+        )
         for _ in range(200):  # the killed worker is reaped
             if not [p for p in children(s.proc.pid) if alive(p)]:
                 break
@@ -445,11 +594,15 @@ def test_die_with_parent_ends_a_busy_process_when_its_parent_is_killed(tmp_path)
     import subprocess
     import sys
 
-    child = ("import os, sys, time; from facecast.server.jobs.worker import die_with_parent; "
-             "die_with_parent(int(sys.argv[1])); print(os.getpid(), flush=True); time.sleep(600)")
-    parent = ("import subprocess, sys, time; "
-              f"p = subprocess.Popen([sys.executable, '-c', {child!r}, str(__import__('os').getpid())]); "
-              "time.sleep(600)")
+    child = (
+        "import os, sys, time; from facecast.server.jobs.worker import die_with_parent; "
+        "die_with_parent(int(sys.argv[1])); print(os.getpid(), flush=True); time.sleep(600)"
+    )
+    parent = (
+        "import subprocess, sys, time; "
+        f"p = subprocess.Popen([sys.executable, '-c', {child!r}, str(__import__('os').getpid())]); "
+        "time.sleep(600)"
+    )
     out = tmp_path / "child.pid"
     with open(out, "w") as fh:
         a = subprocess.Popen([sys.executable, "-c", parent], stdout=fh)
@@ -472,16 +625,25 @@ def test_die_with_parent_ends_a_busy_process_when_its_parent_is_killed(tmp_path)
             a.kill()
 
 
-def test_a_file_that_crashes_the_decoder_fails_its_job_and_the_server_keeps_serving(srv, mocap_take, data_dir):
+def test_a_file_that_crashes_the_decoder_fails_its_job_and_the_server_keeps_serving(
+    srv, mocap_take, data_dir
+):
     """A 517-byte C3D that made the C3D reader segfault: the worker process may die, the server not."""
     _, layout, _ = mocap_take
     crash = b"\x02\x50" + bytes(510) + b"\x01\x50\x02\x54\xff"
-    resp = httpx.post(srv.url + "/v1/jobs", files={"file": ("segv.c3d", crash), "layout": ("l.json", layout.read_bytes())},
-                      data={"face": FACE}, headers=srv.admin_headers, timeout=60)
+    resp = httpx.post(
+        srv.url + "/v1/jobs",
+        files={"file": ("segv.c3d", crash), "layout": ("l.json", layout.read_bytes())},
+        data={"face": FACE},
+        headers=srv.admin_headers,
+        timeout=60,
+    )
     assert resp.status_code in (202, 400), resp.text
     if resp.status_code == 202:
         failed = wait(srv, resp.json()["id"])
-        assert failed["status"] == "failed" and failed["attempts"] == 1, failed  # no retry of a crash
+        assert failed["status"] == "failed" and failed["attempts"] == 1, (
+            failed
+        )  # no retry of a crash
         assert "segv.c3d" in failed["error"] and str(srv.data_dir) not in failed["error"]
     assert httpx.get(srv.url + "/healthz", timeout=30).status_code == 200
     nxt = submit(srv, "joy.fap", fap_file(data_dir).read_bytes(), format="fap")
@@ -499,8 +661,15 @@ def test_a_worker_killed_by_a_fault_fails_the_job_at_once(tmp_path):
     for _ in range(2):
         job_id = new_job_id()
         jobs.store.folder(job_id).mkdir(parents=True)
-        jobs.store.add(job_id, input_name="take.c3d", input_kind="mocap", input_file="input.c3d", input_bytes=1,
-                       result_file="result.glb", options={})
+        jobs.store.add(
+            job_id,
+            input_name="take.c3d",
+            input_kind="mocap",
+            input_file="input.c3d",
+            input_bytes=1,
+            result_file="result.glb",
+            options={},
+        )
         jobs.store.claim(job_id)
         ids.append(job_id)
     jobs._worker_died(ids[0], -int(signal.SIGSEGV))
@@ -515,10 +684,12 @@ def test_a_worker_memory_limit_turns_a_huge_allocation_into_a_memory_error():
     import subprocess
     import sys
 
-    code = ("from facecast.server.jobs.worker import limit_resources; import resource, numpy as np; "
-            "limit_resources(1024); "
-            "assert resource.getrlimit(resource.RLIMIT_CORE)[0] == 0\n"
-            "try:\n    np.ones(4 * 1024**3, dtype=np.uint8)\nexcept MemoryError:\n    print('memory error')")
+    code = (
+        "from facecast.server.jobs.worker import limit_resources; import resource, numpy as np; "
+        "limit_resources(1024); "
+        "assert resource.getrlimit(resource.RLIMIT_CORE)[0] == 0\n"
+        "try:\n    np.ones(4 * 1024**3, dtype=np.uint8)\nexcept MemoryError:\n    print('memory error')"
+    )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0 and run.stdout.strip() == "memory error", run.stderr
 
@@ -531,15 +702,25 @@ def test_audio_job_with_its_transcript(srv, data_dir):
     if shutil.which("espeak-ng") is None:
         pytest.skip("espeak-ng is not installed (Debian package; CI has it)")
     wav = data_dir / "speech" / "bobby_16bit_16khz.wav"
-    job = wait(srv, submit(srv, wav.name, wav.read_bytes(), format="fap",
-                           text="Bobby ripped the ledger.")["id"])
+    job = wait(
+        srv,
+        submit(srv, wav.name, wav.read_bytes(), format="fap", text="Bobby ripped the ledger.")[
+            "id"
+        ],
+    )
     assert job["status"] == "done" and job["options"]["text"] == "Bobby ripped the ledger.", job
     wrong = "seven of the children said that their shoes were wet through"
     job = wait(srv, submit(srv, wav.name, wav.read_bytes(), format="fap", text=wrong)["id"])
     assert job["status"] == "failed" and "does not match the audio" in job["error"], job
-    for name, content, text, message in ((fap_file(data_dir).name, fap_file(data_dir).read_bytes(),
-                                          "hello", "audio input only"),
-                                         (wav.name, wav.read_bytes(), "   ", "empty")):
-        resp = httpx.post(srv.url + "/v1/jobs", files={"file": (name, content)},
-                          data={"face": FACE, "text": text}, headers=srv.admin_headers, timeout=60)
+    for name, content, text, message in (
+        (fap_file(data_dir).name, fap_file(data_dir).read_bytes(), "hello", "audio input only"),
+        (wav.name, wav.read_bytes(), "   ", "empty"),
+    ):
+        resp = httpx.post(
+            srv.url + "/v1/jobs",
+            files={"file": (name, content)},
+            data={"face": FACE, "text": text},
+            headers=srv.admin_headers,
+            timeout=60,
+        )
         assert 400 <= resp.status_code < 500 and message in resp.json()["error"], resp.text

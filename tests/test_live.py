@@ -30,7 +30,9 @@ FACE = os.environ.get("FACECAST_TEST_LIVE_FACE", "default:2k")
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
     s = live_server(
-        tmp_path_factory.mktemp("live"), FACE, env={"FACECAST_MAX_SESSIONS": "6", "FACECAST_MAX_PRODUCER_FPS": "150"}
+        tmp_path_factory.mktemp("live"),
+        FACE,
+        env={"FACECAST_MAX_SESSIONS": "6", "FACECAST_MAX_PRODUCER_FPS": "150"},
     )
     yield s
     s.stop()
@@ -505,7 +507,7 @@ def test_audio_session_streams_pcm(live, data_dir):
     x = samples.astype(np.float32) / 32768
     n = int(0.04 * rate)
     for i in range(0, len(x), n):
-        local.push(x[i:i + n], i / rate)
+        local.push(x[i : i + n], i / rate)
     assert ts[-1] == pytest.approx(local.flush()[-1].t), ts[-5:]
     # the mouth moves: frames differ
     assert any(not np.array_equal(got[0].positions(), f.positions()) for f in got)
@@ -638,7 +640,6 @@ def test_marker_hello_without_layout_is_refused(live):
     assert "layout" in str(_expect_refusal(main(), CloseCode.BAD_REQUEST))
 
 
-
 def test_mocap_is_read_as_markers_in_rest_and_in_the_producer_hello(live):
     """One input registry: ``markers`` is the kind's name; ``mocap`` (the batch jobs' old name)
     is accepted wherever a client sends a kind, raw JSON included."""
@@ -646,16 +647,20 @@ def test_mocap_is_read_as_markers_in_rest_and_in_the_producer_hello(live):
 
     from facecast.client.api import ws_url
 
-    r = httpx.post(live.url + "/v1/sessions", json={"input": "mocap", "face": FACE},
-                   headers=live.admin_headers)
+    r = httpx.post(
+        live.url + "/v1/sessions", json={"input": "mocap", "face": FACE}, headers=live.admin_headers
+    )
     assert r.status_code == 201 and r.json()["input"] == "markers", r.text
     s = r.json()
 
     async def main():
         url = ws_url(live.url, f"/v1/sessions/{s['id']}/produce", token=s["producer_token"])
         async with connect(url) as ws:
-            await ws.send(json.dumps({"type": "hello", "role": "producer", "input": "mocap",
-                                      "markers": ["A", "B"]}))
+            await ws.send(
+                json.dumps(
+                    {"type": "hello", "role": "producer", "input": "mocap", "markers": ["A", "B"]}
+                )
+            )
             return json.loads(await ws.recv())
 
     try:
@@ -664,6 +669,7 @@ def test_mocap_is_read_as_markers_in_rest_and_in_the_producer_hello(live):
         run(_close(live, s["id"]))
     # matched as a marker hello (not "input does not match the session"): refused for its layout
     assert msg["type"] == "error" and msg["where"] == "hello.layout", msg
+
 
 def test_websocket_frames_built_once_match_the_websockets_library():
     from websockets.frames import Frame, Opcode

@@ -22,7 +22,9 @@ FACE = "default:2k"
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    s = live_server(tmp_path_factory.mktemp("live-compact"), FACE, env={"FACECAST_MAX_PRODUCER_FPS": "150"})
+    s = live_server(
+        tmp_path_factory.mktemp("live-compact"), FACE, env={"FACECAST_MAX_PRODUCER_FPS": "150"}
+    )
     yield s
     s.stop()
 

@@ -74,8 +74,14 @@ class Animators:
 
 def _session(kind: str = "fap", max_viewers: int = 4) -> LiveSession:
     spec = SessionSpec(
-        id="s1", face="default", input=kind, fps=60.0, engine="fp", max_viewers=max_viewers,
-        producer_token="P", viewer_token="V",
+        id="s1",
+        face="default",
+        input=kind,
+        fps=60.0,
+        engine="fp",
+        max_viewers=max_viewers,
+        producer_token="P",
+        viewer_token="V",
     )
     face = SimpleNamespace(vertices=np.zeros((10, 3), np.float32), mm_per_unit=10.0)
     return LiveSession(spec, face, Deformer())
@@ -252,7 +258,9 @@ def test_a_driver_that_fails_costs_one_frame_not_the_connection(monkeypatch, cap
 
 
 def test_a_missing_driver_is_4503(monkeypatch):
-    audio = dataclasses.replace(inputs_mod.DRIVERS["audio"], live=("facecast.no_such_module", "Driver"))
+    audio = dataclasses.replace(
+        inputs_mod.DRIVERS["audio"], live=("facecast.no_such_module", "Driver")
+    )
     monkeypatch.setitem(inputs_mod.DRIVERS, "audio", audio)
     session = _session("audio")
     core = _core(session)

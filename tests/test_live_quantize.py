@@ -31,7 +31,9 @@ def _frames(rng, n: int, v: int) -> np.ndarray:
     return (rng.normal(size=(n, v, 3)) * scale + centre).astype(np.float32)
 
 
-@pytest.mark.parametrize(("n", "v"), [(1, 1), (3, 7), (2, 16), (4, 17), (2, 255), (5, 1000), (2, 4099)])
+@pytest.mark.parametrize(
+    ("n", "v"), [(1, 1), (3, 7), (2, 16), (4, 17), (2, 255), (5, 1000), (2, 4099)]
+)
 def test_device_quantisation_equals_numpy_bit_for_bit(quantizer, rng, n, v):
     verts = _frames(rng, n, v)
     q, offset, scale = quantizer.quantize(verts)

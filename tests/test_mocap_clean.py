@@ -145,7 +145,9 @@ def test_neutral_stops_averaging_when_a_few_markers_move(rng):
 
     still = rng.normal(size=(20, 3)) * 10
     frames = np.repeat(still[None], 40, axis=0) + rng.normal(scale=0.05, size=(40, 20, 3))
-    frames[10:, :3, 1] -= np.linspace(1.5, 10.0, 30)[:, None]  # three markers (the jaw) move from frame 10
+    frames[10:, :3, 1] -= np.linspace(1.5, 10.0, 30)[
+        :, None
+    ]  # three markers (the jaw) move from frame 10
     neutral = neutral_pose(frames, 0, 40, tolerance_mm=1.0)
     np.testing.assert_allclose(neutral, still, atol=0.1)
     assert np.allclose(neutral_pose(frames, 0, 5), frames[:5].mean(axis=0))
@@ -165,7 +167,13 @@ def test_best_delay_finds_the_shift_and_ignores_gaps():
 def _low_rank_take(rng, n=900, m=40, k=5, noise=0.5):
     """``(truth, noisy)`` ``(n, m, 3)`` mm: k smooth motions (a few mm) plus white noise."""
     t = np.arange(n) / FPS
-    w = np.stack([np.sin(2 * np.pi * f * t + p) for f, p in zip(rng.uniform(0.2, 1.5, k), rng.uniform(0, 6, k))], 1)
+    w = np.stack(
+        [
+            np.sin(2 * np.pi * f * t + p)
+            for f, p in zip(rng.uniform(0.2, 1.5, k), rng.uniform(0, 6, k))
+        ],
+        1,
+    )
     w += 0.5  # a mean expression over the take, as every real take has
     truth = (w @ rng.normal(size=(k, 3 * m)) * 1.5).reshape(n, m, 3)
     return truth, truth + rng.normal(0.0, noise, truth.shape)

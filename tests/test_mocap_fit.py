@@ -33,7 +33,9 @@ def test_a_layout_made_for_another_mesh_is_refused(take_on_2k, capsys):
     out = folder / "wrong.npz"
     assert main(["render", str(folder / "take.c3d"), "--face", "default:5k", "-o", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert err.startswith(f"facecast: {folder / 'take.layout.json'}: this layout does not fit the face 'default:5")
+    assert err.startswith(
+        f"facecast: {folder / 'take.layout.json'}: this layout does not fit the face 'default:5"
+    )
     assert "vertex-tied markers sit" in err and "refused above" in err
     median = float(err.split("markers sit ")[1].split(" mm")[0])
     limit = float(err.split("refused above ")[1].split(" mm")[0])
@@ -51,16 +53,32 @@ def test_the_fit_check_passes_the_matching_face_and_names_an_unknown_one(take_on
     anim = load(folder / "take.c3d", face)
     assert len(anim) == len(syn.take.xyz)
     layout = dict(syn.layout)  # no "face": the message cannot name it, and says what to do
-    with pytest.raises(InputError, match=r"Pass --face <the mesh this layout was made for>, or a layout made "
-                                         r"for this face \(markers tied to feature points"):
+    with pytest.raises(
+        InputError,
+        match=r"Pass --face <the mesh this layout was made for>, or a layout made "
+        r"for this face \(markers tied to feature points",
+    ):
         load(folder / "take.c3d", load_face("default:5k"), layout=layout)
 
 
 def test_a_matching_layout_renders(take_on_2k):
     face, syn, folder = take_on_2k
     out = folder / "right.npz"
-    assert main(["render", str(folder / "take.c3d"), "--face", "default:2k", "--backend", "numpy",
-                 "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(folder / "take.c3d"),
+                "--face",
+                "default:2k",
+                "--backend",
+                "numpy",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     with np.load(out) as z:
         verts = z["vertices"]
     got = verts[:, syn.vertices] * face.mm_per_unit
@@ -88,7 +106,12 @@ def test_the_generated_take_names_its_face_and_the_built_in_head_refuses_it(tmp_
     d = shared_data()
     if d is None or not (d / "ict-facekit" / "generic_neutral_mesh.obj").is_file():
         pytest.skip("../shared/data/ict-facekit is not beside this checkout")
-    assert gen.main(["--out", str(tmp_path), "--markers", "30", "--seconds", "0.6", "--formats", "c3d"]) == 0
+    assert (
+        gen.main(
+            ["--out", str(tmp_path), "--markers", "30", "--seconds", "0.6", "--formats", "c3d"]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     ict = gen.face_path()
     assert f"facecast render {tmp_path / 'take.c3d'} --face {ict} -o take.glb" in printed
@@ -96,5 +119,8 @@ def test_the_generated_take_names_its_face_and_the_built_in_head_refuses_it(tmp_
     out = tmp_path / "take.glb"
     assert main(["render", str(tmp_path / "take.c3d"), "-o", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert "this layout does not fit the face 'default" in err and f"Pass --face {ict} (the face" in err
+    assert (
+        "this layout does not fit the face 'default" in err
+        and f"Pass --face {ict} (the face" in err
+    )
     assert not out.exists()

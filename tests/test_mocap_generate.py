@@ -1,4 +1,5 @@
 """Marker placement of generated takes: the technician's layout sheet and the motion-weighted one."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -24,7 +25,9 @@ def test_technician_layout_follows_the_sheet(ict):
     assert np.isin(verts, face.part("skin")).all()
     sheet = [n for n, _ in TECHNICIAN_LAYOUT]
     assert names[5:] == sheet[:55]  # in the sheet's order, after the 5 stable markers
-    assert spec["LIP_CORNER_L"] == {"fp": "8.3"} and face.vertices[face.feature_points["8.3"], 0] > 0
+    assert (
+        spec["LIP_CORNER_L"] == {"fp": "8.3"} and face.vertices[face.feature_points["8.3"], 0] > 0
+    )
     motion = np.linalg.norm(deltas, axis=2).max(axis=0) * face.mm_per_unit
     assert motion[verts[:5]].max() < 0.01  # stable markers: skin no expression moves
     # the headband spreads round the head: front to back, far wider than the forehead alone

@@ -113,15 +113,16 @@ def test_wrong_units_are_refused_with_a_clear_message(setup):
     assert not drv.ready
 
 
-
 def test_an_unknown_hello_unit_is_refused_at_the_hello(setup):
     face, syn = setup
     with pytest.raises(InputError, match="unknown length unit 'furlong'"):
         MarkerLiveDriver(face, syn.take.names, syn.layout, units="furlong")
 
 
-@pytest.mark.parametrize(("units", "name"), [("mm", "mm"), (" MM ", "mm"), ("Millimeters", "mm"),
-                                        ("dm", "dm"), ("inches", "in")])
+@pytest.mark.parametrize(
+    ("units", "name"),
+    [("mm", "mm"), (" MM ", "mm"), ("Millimeters", "mm"), ("dm", "dm"), ("inches", "in")],
+)
 def test_hello_units_are_read_by_the_one_unit_table(setup, units, name):
     face, syn = setup
     assert MarkerLiveDriver(face, syn.take.names, syn.layout, units=units).units == name

@@ -42,7 +42,9 @@ def ict_take(tmp_path_factory):
 def render_take(folder, mesh, out, *extra: str) -> int:
     """``facecast render take.c3d --layout layout.json --face MESH -o OUT [extra]``; its exit status."""
     take, layout = folder / "take.c3d", folder / "layout.json"
-    return main(["render", str(take), "--layout", str(layout), "--face", str(mesh), *extra, "-o", str(out)])
+    return main(
+        ["render", str(take), "--layout", str(layout), "--face", str(mesh), *extra, "-o", str(out)]
+    )
 
 
 def test_render_take_to_fap_gives_jaw_and_head_faps(ict_take):

@@ -146,7 +146,9 @@ def test_rigid_fields_are_the_first_order_rigid_motion(rng):
     from scipy.spatial.transform import Rotation
 
     exact = (pts - centre) @ Rotation.from_rotvec(delta[:3]).as_matrix().T + centre + delta[3:]
-    np.testing.assert_allclose((rigid_fields(pts, centre) @ delta).reshape(-1, 3), exact - pts, atol=1e-5)
+    np.testing.assert_allclose(
+        (rigid_fields(pts, centre) @ delta).reshape(-1, 3), exact - pts, atol=1e-5
+    )
 
 
 def test_refine_poses_uses_the_face_markers_to_steady_the_head(rng):
@@ -154,25 +156,43 @@ def test_refine_poses_uses_the_face_markers_to_steady_the_head(rng):
     poses refined with every marker are closer to the truth at the face than the stable-only ones."""
     fps, n = 120.0, 720
     t = np.arange(n) / fps
-    band = np.c_[np.cos(np.linspace(0, 2 * np.pi, 5, endpoint=False)) * 80, np.full(5, 60.0),
-                 np.sin(np.linspace(0, 2 * np.pi, 5, endpoint=False)) * 80]
+    band = np.c_[
+        np.cos(np.linspace(0, 2 * np.pi, 5, endpoint=False)) * 80,
+        np.full(5, 60.0),
+        np.sin(np.linspace(0, 2 * np.pi, 5, endpoint=False)) * 80,
+    ]
     face = np.c_[rng.uniform(-50, 50, 40), rng.uniform(-90, 0, 40), rng.uniform(60, 90, 40)]
     neutral = np.r_[band, face]
     stable = np.arange(5)
-    w = np.stack([np.sin(2 * np.pi * f * t + p) for f, p in ((0.5, 0), (0.8, 1), (1.1, 2), (0.3, 3))], 1)
+    w = np.stack(
+        [np.sin(2 * np.pi * f * t + p) for f, p in ((0.5, 0), (0.8, 1), (1.1, 2), (0.3, 3))], 1
+    )
     motion = np.zeros((n, 45, 3))
     motion[:, 5:] = (w @ rng.normal(size=(4, 120)) * 2.0).reshape(n, 40, 3)
-    angles = np.stack([0.1 * np.sin(2 * np.pi * 0.4 * t), 0.15 * np.sin(2 * np.pi * 0.3 * t + 1), 0.05 * t / t[-1]], -1)
+    angles = np.stack(
+        [
+            0.1 * np.sin(2 * np.pi * 0.4 * t),
+            0.15 * np.sin(2 * np.pi * 0.3 * t + 1),
+            0.05 * t / t[-1],
+        ],
+        -1,
+    )
     rs = matrix_from_euler(angles)
     ts = np.stack([10 * np.sin(2 * np.pi * 0.25 * t), 5 * np.cos(2 * np.pi * 0.35 * t), 0 * t], -1)
-    xyz = np.einsum("tij,tmj->tmi", rs, neutral + motion) + ts[:, None] + rng.normal(0, 0.5, (n, 45, 3))
+    xyz = (
+        np.einsum("tij,tmj->tmi", rs, neutral + motion)
+        + ts[:, None]
+        + rng.normal(0, 0.5, (n, 45, 3))
+    )
     r, tt, _ = head_track(xyz, stable, neutral)
     r, tt = smooth_poses(r, tt, neutral[stable].mean(axis=0), fps)
     local = remove_head(xyz, r, tt)
 
     def pose_error(r_, t_):  # mm at the face markers' neutral positions
         est = np.einsum("tij,mj->tmi", r_, face) + t_[:, None]
-        return np.linalg.norm(est - (np.einsum("tij,mj->tmi", rs, face) + ts[:, None]), axis=2).mean()
+        return np.linalg.norm(
+            est - (np.einsum("tij,mj->tmi", rs, face) + ts[:, None]), axis=2
+        ).mean()
 
     r2, t2, rank = refine_poses(xyz, r, tt, neutral, stable, local - neutral, fps)
     assert 4 <= rank <= 8  # every motion found (head-pose errors may count too), not the noise

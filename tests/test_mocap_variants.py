@@ -89,7 +89,9 @@ def test_a_wrong_stable_marker_is_named_and_left_out(tmp_path, ict, variant):
     local = truth.local(face, deltas)[:, truth.vertices]
     motion = np.linalg.norm(local - local.mean(axis=0), axis=2).std(axis=0)
     wrong = truth.names[int(np.argmax(motion))]  # the marker that moves most in this take
-    layout["stable"] = (layout["stable"] if variant == "issue16" else layout["stable"][:2]) + [wrong]
+    layout["stable"] = (layout["stable"] if variant == "issue16" else layout["stable"][:2]) + [
+        wrong
+    ]
     proc = _process(truth, face, layout)
     assert proc.info["stable_dropped"] == [wrong]
     assert len(proc.info["stable_added"]) == (0 if variant == "issue16" else 1)
@@ -171,8 +173,18 @@ def test_render_exposes_the_mocap_cleaning_choices(tmp_path, ict, capsys):
     from facecast.server.paths import shared_data
 
     mesh = str(shared_data() / "ict-facekit" / "generic_neutral_mesh.obj")
-    base = ["render", str(truth.paths["trc"]), "--layout", str(truth.paths["layout"]), "--face", mesh,
-            "--backend", "numpy", "-o", str(tmp_path / "out.npz")]
+    base = [
+        "render",
+        str(truth.paths["trc"]),
+        "--layout",
+        str(truth.paths["layout"]),
+        "--face",
+        mesh,
+        "--backend",
+        "numpy",
+        "-o",
+        str(tmp_path / "out.npz"),
+    ]
     assert main([*base, "--filter", "kalman", "--lowrank", "off", "--neutral-frame", "3"]) == 0
     with np.load(tmp_path / "out.npz") as z:
         assert z["vertices"].shape[0] == 60

@@ -1,4 +1,5 @@
 """MPEG-4 tables, FAPU, high-level FAPs and the FAP rig (on a synthetic face and on the ICT head)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -24,20 +25,79 @@ from facecast.server.state import FaceState
 
 # Feature point template of the synthetic face: (x, y) in mm on the front of a sphere (x = face's left).
 _TEMPLATE = {
-    "2.1": (0, -70), "2.2": (0, -33), "2.3": (0, -47), "2.4": (22, -40), "2.5": (-22, -40), "2.6": (11, -33),
-    "2.7": (-11, -33), "2.8": (11, -47), "2.9": (-11, -47), "2.10": (0, -58), "2.11": (18, -62),
-    "2.12": (-18, -62), "2.13": (58, -45), "2.14": (-58, -45),
-    "3.1": (30, 24), "3.2": (-30, 24), "3.3": (30, 4), "3.4": (-30, 4), "3.7": (48, 14), "3.8": (-14, 14),
-    "3.9": (30, -4), "3.10": (-30, -4), "3.11": (14, 14), "3.12": (-48, 14), "3.13": (30, 32), "3.14": (-30, 32),
-    "4.1": (12, 40), "4.2": (-12, 40), "4.3": (30, 46), "4.4": (-30, 46), "4.5": (50, 40), "4.6": (-50, 40),
-    "5.1": (42, -22), "5.2": (-42, -22), "5.3": (44, 0), "5.4": (-44, 0),
-    "8.1": (0, -26), "8.2": (0, -54), "8.3": (30, -40), "8.4": (-30, -40), "8.5": (15, -27), "8.6": (-15, -27),
-    "8.7": (15, -52), "8.8": (-15, -52), "8.9": (-6, -24), "8.10": (6, -24),
-    "9.1": (12, -10), "9.2": (-12, -10), "9.3": (0, -4), "9.4": (-8, -16), "9.5": (8, -16), "9.6": (-7, 14),
-    "9.7": (7, 14), "9.12": (0, 6), "9.13": (6, 0), "9.14": (-6, 0), "9.15": (0, -16),
-    "10.1": (80, 20), "10.2": (-80, 20), "10.3": (84, 6), "10.4": (-84, 6), "10.5": (78, -20),
-    "10.6": (-78, -20), "10.7": (74, -12), "10.8": (-74, -12), "10.9": (74, 12), "10.10": (-74, 12),
-    "11.1": (0, 70), "11.2": (-40, 62), "11.3": (40, 62), "11.4": (0, 96), "11.5": (0, 98), "11.6": (0, 60),
+    "2.1": (0, -70),
+    "2.2": (0, -33),
+    "2.3": (0, -47),
+    "2.4": (22, -40),
+    "2.5": (-22, -40),
+    "2.6": (11, -33),
+    "2.7": (-11, -33),
+    "2.8": (11, -47),
+    "2.9": (-11, -47),
+    "2.10": (0, -58),
+    "2.11": (18, -62),
+    "2.12": (-18, -62),
+    "2.13": (58, -45),
+    "2.14": (-58, -45),
+    "3.1": (30, 24),
+    "3.2": (-30, 24),
+    "3.3": (30, 4),
+    "3.4": (-30, 4),
+    "3.7": (48, 14),
+    "3.8": (-14, 14),
+    "3.9": (30, -4),
+    "3.10": (-30, -4),
+    "3.11": (14, 14),
+    "3.12": (-48, 14),
+    "3.13": (30, 32),
+    "3.14": (-30, 32),
+    "4.1": (12, 40),
+    "4.2": (-12, 40),
+    "4.3": (30, 46),
+    "4.4": (-30, 46),
+    "4.5": (50, 40),
+    "4.6": (-50, 40),
+    "5.1": (42, -22),
+    "5.2": (-42, -22),
+    "5.3": (44, 0),
+    "5.4": (-44, 0),
+    "8.1": (0, -26),
+    "8.2": (0, -54),
+    "8.3": (30, -40),
+    "8.4": (-30, -40),
+    "8.5": (15, -27),
+    "8.6": (-15, -27),
+    "8.7": (15, -52),
+    "8.8": (-15, -52),
+    "8.9": (-6, -24),
+    "8.10": (6, -24),
+    "9.1": (12, -10),
+    "9.2": (-12, -10),
+    "9.3": (0, -4),
+    "9.4": (-8, -16),
+    "9.5": (8, -16),
+    "9.6": (-7, 14),
+    "9.7": (7, 14),
+    "9.12": (0, 6),
+    "9.13": (6, 0),
+    "9.14": (-6, 0),
+    "9.15": (0, -16),
+    "10.1": (80, 20),
+    "10.2": (-80, 20),
+    "10.3": (84, 6),
+    "10.4": (-84, 6),
+    "10.5": (78, -20),
+    "10.6": (-78, -20),
+    "10.7": (74, -12),
+    "10.8": (-74, -12),
+    "10.9": (74, 12),
+    "10.10": (-74, 12),
+    "11.1": (0, 70),
+    "11.2": (-40, 62),
+    "11.3": (40, 62),
+    "11.4": (0, 96),
+    "11.5": (0, 98),
+    "11.6": (0, 60),
 }
 
 
@@ -45,7 +105,9 @@ def _sphere(centre, radius, n_lat, n_lon):
     lat = np.linspace(0, np.pi, n_lat)[1:-1]
     lon = np.linspace(0, 2 * np.pi, n_lon, endpoint=False)
     la, lo = np.meshgrid(lat, lon, indexing="ij")
-    pts = np.c_[(np.sin(la) * np.sin(lo)).ravel(), np.cos(la).ravel(), (np.sin(la) * np.cos(lo)).ravel()]
+    pts = np.c_[
+        (np.sin(la) * np.sin(lo)).ravel(), np.cos(la).ravel(), (np.sin(la) * np.cos(lo)).ravel()
+    ]
     pts = np.r_[[[0, 1, 0]], pts, [[0, -1, 0]]] * radius + centre
     tris = []
     rows = n_lat - 2
@@ -67,9 +129,13 @@ def synthetic_face(n_lat: int = 40, n_lon: int = 72) -> Face:
     R = 100.0
     parts_pts, parts_tri, parts = [], [], {}
     n = 0
-    for name, (c, r, la, lo) in {"skin": ((0, 0, 0), R, n_lat, n_lon),
-                                 "eye_l": ((30, 14, 82), 12, 10, 12), "eye_r": ((-30, 14, 82), 12, 10, 12),
-                                 "teeth_lower": ((0, -44, 84), 8, 6, 8), "tongue": ((0, -44, 70), 10, 8, 10)}.items():
+    for name, (c, r, la, lo) in {
+        "skin": ((0, 0, 0), R, n_lat, n_lon),
+        "eye_l": ((30, 14, 82), 12, 10, 12),
+        "eye_r": ((-30, 14, 82), 12, 10, 12),
+        "teeth_lower": ((0, -44, 84), 8, 6, 8),
+        "tongue": ((0, -44, 70), 10, 8, 10),
+    }.items():
         p, t = _sphere(np.array(c, float), r, la, lo)
         parts_pts.append(p)
         parts_tri.append(t + n)
@@ -94,10 +160,22 @@ def synthetic_face(n_lat: int = 40, n_lon: int = 72) -> Face:
         fps[fp] = nearest(parts["skin"], np.array(tgt, float))
     fps["9.9"] = nearest(parts["teeth_lower"], np.array([0, -52, 90.0]))
     fps["9.11"] = nearest(parts["teeth_lower"], np.array([0, -36, 90.0]))
-    for fp, tgt in {"6.1": (0, -44, 80), "6.2": (0, -38, 70), "6.3": (9, -44, 70), "6.4": (-9, -44, 70)}.items():
+    for fp, tgt in {
+        "6.1": (0, -44, 80),
+        "6.2": (0, -38, 70),
+        "6.3": (9, -44, 70),
+        "6.4": (-9, -44, 70),
+    }.items():
         fps[fp] = nearest(parts["tongue"], np.array(tgt, float))
-    return Face("synthetic", vertices, np.concatenate(parts_tri), units="mm", parts=parts, feature_points=fps,
-                pivots={"jaw": np.array([0.0, -10.0, 0.0]), "head": vertices[fps["7.1"]]})
+    return Face(
+        "synthetic",
+        vertices,
+        np.concatenate(parts_tri),
+        units="mm",
+        parts=parts,
+        feature_points=fps,
+        pivots={"jaw": np.array([0.0, -10.0, 0.0]), "head": vertices[fps["7.1"]]},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -107,10 +185,21 @@ def face() -> Face:
 
 # -- tables -------------------------------------------------------------------------------------
 
+
 def test_fap_table_has_68_rows_in_10_groups():
     assert [f.number for f in FAPS] == list(range(1, 69))
-    assert {g: len(v) for g, v in FAP_GROUPS.items()} == {1: 2, 2: 16, 3: 12, 4: 8, 5: 4, 6: 5, 7: 3, 8: 10,
-                                                          9: 4, 10: 4}
+    assert {g: len(v) for g, v in FAP_GROUPS.items()} == {
+        1: 2,
+        2: 16,
+        3: 12,
+        4: 8,
+        5: 4,
+        6: 5,
+        7: 3,
+        8: 10,
+        9: 4,
+        10: 4,
+    }
     assert fap("open_jaw").number == 3 and fap(3).unit == "MNS" and not fap(3).bidirectional
     assert [f.number for f in FAPS if not f.bidirectional and f.unit] == [3, 14, 41, 42, 47]
     assert {f.unit for f in FAPS if f.unit} == {"MNS", "MW", "ES", "ENS", "IRISD", "AU"}
@@ -132,13 +221,18 @@ def test_high_level_blend_formulas():
     assert not VISEMES[0].any() and not EXPRESSIONS[0].any()
     np.testing.assert_allclose(viseme_faps(10, 1, 63), VISEMES[10])
     np.testing.assert_allclose(viseme_faps(10, 1, 0), VISEMES[1])
-    np.testing.assert_allclose(viseme_faps(10, 1, 21), VISEMES[10] / 3 + VISEMES[1] * 2 / 3, atol=1e-9)
+    np.testing.assert_allclose(
+        viseme_faps(10, 1, 21), VISEMES[10] / 3 + VISEMES[1] * 2 / 3, atol=1e-9
+    )
     np.testing.assert_allclose(expression_faps(1, 63, 6, 63), EXPRESSIONS[1] + EXPRESSIONS[6])
-    assert VISEMES[10][3] > VISEMES[1][3]          # "aa" opens the jaw more than "PP"
-    assert EXPRESSIONS[6][31] > 0 > EXPRESSIONS[3][31]  # surprise raises, anger lowers the inner brows
+    assert VISEMES[10][3] > VISEMES[1][3]  # "aa" opens the jaw more than "PP"
+    assert (
+        EXPRESSIONS[6][31] > 0 > EXPRESSIONS[3][31]
+    )  # surprise raises, anger lowers the inner brows
 
 
 # -- FAPU and controls --------------------------------------------------------------------------
+
 
 def test_fapu_measured_from_the_feature_points(face):
     u = measure_fapu(face)
@@ -150,8 +244,13 @@ def test_fapu_measured_from_the_feature_points(face):
 
 
 def test_fapu_rejects_a_mirrored_face(face):
-    mirrored = Face("mirrored", face.vertices * [-1, 1, 1], face.triangles, parts=face.parts,
-                    feature_points=face.feature_points)
+    mirrored = Face(
+        "mirrored",
+        face.vertices * [-1, 1, 1],
+        face.triangles,
+        parts=face.parts,
+        feature_points=face.feature_points,
+    )
     with pytest.raises(InputError, match=r"ES .*3\.5.*3\.6") as e:
         measure_fapu(mirrored)
     assert "mirrored" in str(e.value)
@@ -168,12 +267,13 @@ def test_controls_cover_deformable_feature_points_with_per_axis_constraints(face
     ids2, verts2, constrained = fap_controls(face, per_axis=True)
     assert ids2 == ids and (verts2 == verts).all()
     c = dict(zip(ids, constrained.tolist()))
-    assert c["2.2"] == [False, True, True]   # FAP 4 (y) and 17 (z)
+    assert c["2.2"] == [False, True, True]  # FAP 4 (y) and 17 (z)
     assert c["5.1"] == [True, False, False]  # puff: x only
     assert c["2.1"] == c["3.7"] == c["6.1"] == [True, True, True]  # jaw rider, anchor, tongue tip
 
 
 # -- the rig ------------------------------------------------------------------------------------
+
 
 def _state(**faps) -> FaceState:
     s = FaceState()
@@ -210,7 +310,9 @@ def test_open_jaw_drops_the_chin_by_the_fap_amount_and_carries_the_jaw_group(fac
     np.testing.assert_allclose(T[0], np.eye(3, 4), atol=1e-7)
     # thrust and shift translate the jaw: +z and -x
     _, T2 = rig.solve(_state(f14=100, f15=100))
-    np.testing.assert_allclose(T2[1][:, 3], [-100 * rig.fapu["MW"], 0, 100 * rig.fapu["MNS"]], atol=1e-5)
+    np.testing.assert_allclose(
+        T2[1][:, 3], [-100 * rig.fapu["MW"], 0, 100 * rig.fapu["MNS"]], atol=1e-5
+    )
 
 
 def test_head_and_eye_rotations_compose(face):
@@ -274,8 +376,14 @@ def test_ict_head_fapu_is_anatomically_plausible(data_dir):
 
 
 def test_jaw_drop_is_exact_even_when_the_pivot_sits_almost_above_the_chin(face):
-    above = Face("above", face.vertices, face.triangles, parts=face.parts, feature_points=face.feature_points,
-                 pivots={**face.pivots, "jaw": face.fp_position("2.1") + [0, 80, -5]})
+    above = Face(
+        "above",
+        face.vertices,
+        face.triangles,
+        parts=face.parts,
+        feature_points=face.feature_points,
+        pivots={**face.pivots, "jaw": face.fp_position("2.1") + [0, 80, -5]},
+    )
     rig = FapRig(above)
     ids = {fp: i for i, name in enumerate(rig.fp_ids) for fp in name.split("+")}
     D, T = rig.solve(_state(f3=1000))

@@ -1,4 +1,5 @@
 """The OpenCL backend reproduces the NumPy reference (float32 tolerance) on a real OpenCL device."""
+
 from __future__ import annotations
 
 import json
@@ -46,7 +47,9 @@ def assert_close(a: np.ndarray, b: np.ndarray, scale: float) -> None:
 def random_sparse(rng, V: int, K: int, max_row: int = 9, per_axis: bool = True) -> Operator:
     lengths = rng.integers(0, min(max_row, K) + 1, size=V)
     indptr = np.r_[0, np.cumsum(lengths)]
-    indices = np.concatenate([np.sort(rng.choice(K, n, replace=False)) for n in lengths]).astype(np.int32)
+    indices = np.concatenate([np.sort(rng.choice(K, n, replace=False)) for n in lengths]).astype(
+        np.int32
+    )
     w = rng.random((indptr[-1], 3)).astype(np.float32)
     if not per_axis:
         w[:, 1] = w[:, 2] = w[:, 0]
@@ -71,7 +74,7 @@ def unpack_dense(p) -> np.ndarray:
         for j, c in enumerate(cols):
             for a in range(3):
                 np.add.at(out, (lanes, ids[j], a), w[c, min(a, A - 1)])
-    return out[:p.n_vertices, :K]
+    return out[: p.n_vertices, :K]
 
 
 def random_mesh(rng, V: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -128,8 +131,11 @@ def test_many_controls_use_wider_ids(ctx, rng):
 @pytest.mark.parametrize("dense", [False, True])
 def test_float8_slices_match_too(ctx, rng, dense):
     rest, tri, groups = random_mesh(rng, 37)
-    op = (Operator(37, 9, dense=rng.standard_normal((37, 9)).astype(np.float32)) if dense
-          else random_sparse(rng, 37, 9))
+    op = (
+        Operator(37, 9, dense=rng.standard_normal((37, 9)).astype(np.float32))
+        if dense
+        else random_sparse(rng, 37, 9)
+    )
     d = cl_backend.OpenCLDeformer(rest, tri, groups, op, context=ctx, slice_size=8)
     assert d.packed.slice == 8
     check_all(d, NumpyDeformer(rest, tri, groups, op), rng, 80)
@@ -170,7 +176,6 @@ def test_out_parameter_receives_the_frame(ctx, rng):
         d.deform(np.full((8, 3), np.nan, np.float32), T)
 
 
-
 @pytest.mark.parametrize("V", [1000, 1003])
 def test_streaming_stores_match(ctx, rng, monkeypatch, V):
     """Large launches write with non-temporal stores (forced here for a small mesh): same results,
@@ -200,6 +205,7 @@ def test_streaming_stores_match(ctx, rng, monkeypatch, V):
     d.upload_frame(D, T)
     d.run_kernel_resident(wait=True)
     assert_close(d.read_resident(), ref.deform(D, T), 80)
+
 
 def test_device_quantised_frame_equals_protocol_quantisation(ctx, rng):
     """A deformed frame quantised on the device is ``protocol.quantize`` of it, bit for bit, so
@@ -235,7 +241,9 @@ def test_neighbours_sharing_controls_share_columns(rng):
     V, K = 64, 10
     indptr = np.arange(V + 1) * 3
     indices = np.tile([1, 4, 7], V)
-    op = Operator(V, K, indptr=indptr, indices=indices, weights=rng.random((3 * V, 3)).astype(np.float32))
+    op = Operator(
+        V, K, indptr=indptr, indices=indices, weights=rng.random((3 * V, 3)).astype(np.float32)
+    )
     p = cl_backend.pack_operator(op)
     assert p.shared_fraction == 1.0
     assert p.ids.size == 3 * (V // cl_backend.SLICE)
@@ -304,7 +312,9 @@ print(os.environ.get("POCL_AFFINITY"), sorted(single))
 """
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads thread CPU masks from /proc")
+@pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="reads thread CPU masks from /proc"
+)
 @pytest.mark.parametrize("preset", [None, "0"])
 def test_pocl_worker_threads_are_pinned_unless_the_environment_says(preset):
     """facecast sets POCL_AFFINITY before PoCL starts (a fresh process): PoCL's worker threads run
@@ -312,8 +322,14 @@ def test_pocl_worker_threads_are_pinned_unless_the_environment_says(preset):
     env = {k: v for k, v in os.environ.items() if k != "POCL_AFFINITY"}
     if preset is not None:
         env["POCL_AFFINITY"] = preset
-    out = subprocess.run([sys.executable, "-c", _THREADS_SCRIPT], env=env, capture_output=True, text=True,
-                         timeout=120, check=True).stdout.strip()
+    out = subprocess.run(
+        [sys.executable, "-c", _THREADS_SCRIPT],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    ).stdout.strip()
     if out == "no-device":
         pytest.skip("no working OpenCL device")
     value, listed = out.split(" ", 1)
@@ -324,6 +340,10 @@ def test_pocl_worker_threads_are_pinned_unless_the_environment_says(preset):
     elif os.sched_getaffinity(0) == set(range(n)):
         assert value == "1"
         if n > 1:  # one worker per CPU, each on its own
-            assert len(pinned) >= 2 and len(set(pinned)) == len(pinned) and set(pinned) <= set(range(n))
+            assert (
+                len(pinned) >= 2
+                and len(set(pinned)) == len(pinned)
+                and set(pinned) <= set(range(n))
+            )
     else:  # this process may not run on every CPU: no pinning
         assert value == "None" and pinned == []

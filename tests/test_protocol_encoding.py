@@ -26,8 +26,16 @@ def test_the_names_are_the_wire_names():
 @pytest.mark.parametrize("name", VERTEX_ENCODINGS)
 def test_every_name_parses_and_goes_into_a_viewer_hello(name):
     assert parse_vertex_encoding(name) == name
-    hello = ViewerHello(session="s", face="f", topology_url="/t", vertex_count=3, encoding=name,
-                        fps=60.0, input="fap", producer_connected=False)
+    hello = ViewerHello(
+        session="s",
+        face="f",
+        topology_url="/t",
+        vertex_count=3,
+        encoding=name,
+        fps=60.0,
+        input="fap",
+        producer_connected=False,
+    )
     assert parse_message(hello.model_dump_json()) == hello
 
 
@@ -52,8 +60,17 @@ def test_a_producer_sample_format_is_a_pcm_format_not_a_vertex_encoding():
     for fmt in SAMPLE_FORMATS:
         assert ProducerHello(input="audio", rate=16000, sample_format=fmt).sample_format == fmt
     with pytest.raises(MessageError) as e:  # was accepted (and read as f32) before
-        parse_message(json.dumps({"type": "hello", "role": "producer", "input": "audio",
-                                  "rate": 16000, "sample_format": "compact"}))
+        parse_message(
+            json.dumps(
+                {
+                    "type": "hello",
+                    "role": "producer",
+                    "input": "audio",
+                    "rate": 16000,
+                    "sample_format": "compact",
+                }
+            )
+        )
     assert e.value.where.endswith("sample_format")
 
 

@@ -101,11 +101,13 @@ def test_i16_wire_bytes_of_a_real_face_frame_are_the_reference_formulas(rng):
     frame = (rest + rng.normal(scale=0.5, size=rest.shape)).astype(np.float32)
     for v in (rest, frame, frame.astype(np.float64), frame[::-1]):
         q, offset, scale = _reference_quantize_int16(v)
-        want = b"".join((
-            struct.pack("<4sBBHIIdd", b"FCST", 1, 2, 0, 41, len(v), 2.5, 1700000000.0),
-            struct.pack("<3f3f", *offset.tolist(), *scale.tolist()),
-            q.astype("<i2").tobytes(),
-        ))
+        want = b"".join(
+            (
+                struct.pack("<4sBBHIIdd", b"FCST", 1, 2, 0, 41, len(v), 2.5, 1700000000.0),
+                struct.pack("<3f3f", *offset.tolist(), *scale.tolist()),
+                q.astype("<i2").tobytes(),
+            )
+        )
         assert fr.encode_vertices_i16(v, seq=41, t=2.5, wall=1700000000.0) == want
 
 

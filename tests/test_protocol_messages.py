@@ -83,7 +83,11 @@ def test_hello_is_told_apart_by_role():
         ('{"type": "fap"}', "fap.t", "required"),
         ('{"type": "fap", "t": 0, "extra": 1}', "fap.extra", "not permitted"),
         ('{"type": "hello", "role": "producer", "rate": -1}', "hello:producer.rate", "greater"),
-        ('{"type": "hello", "role": "producer", "input": "video"}', "hello:producer.input", "'fap', 'audio' or 'markers'"),
+        (
+            '{"type": "hello", "role": "producer", "input": "video"}',
+            "hello:producer.input",
+            "'fap', 'audio' or 'markers'",
+        ),
         ('{"type": "nope"}', "type", "unknown message type"),
         ("[]", "", "JSON object"),
         ("{", "", "not JSON"),

@@ -14,11 +14,23 @@ def test_the_table():
     assert set(UNIT_SPELLINGS.values()) == set(UNIT_MM)
 
 
-@pytest.mark.parametrize(("text", "name"), [
-    ("mm", "mm"), ("Millimeters", "mm"), ("millimetre.", "mm"), (" CM ", "cm"),
-    ("centimetres", "cm"), ("decimeter", "dm"), ("m", "m"), ("Metres", "m"), ("meter", "m"),
-    ("in", "in"), ("Inches", "in"), ("inch", "in"),
-])
+@pytest.mark.parametrize(
+    ("text", "name"),
+    [
+        ("mm", "mm"),
+        ("Millimeters", "mm"),
+        ("millimetre.", "mm"),
+        (" CM ", "cm"),
+        ("centimetres", "cm"),
+        ("decimeter", "dm"),
+        ("m", "m"),
+        ("Metres", "m"),
+        ("meter", "m"),
+        ("in", "in"),
+        ("Inches", "in"),
+        ("inch", "in"),
+    ],
+)
 def test_spellings(text, name):
     assert unit_name(text) == name and normalise_units(text) == name
 

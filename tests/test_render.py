@@ -1,4 +1,5 @@
 """Batch rendering: real .fap files -> .glb/.npz/.fap, re-imported with pygltflib; CLI errors; atomic output."""
+
 from __future__ import annotations
 
 import os
@@ -52,16 +53,29 @@ def read_glb(path: Path) -> dict:
         dtype = {5126: np.float32, 5125: np.uint32}[a.componentType]
         n = {"SCALAR": 1, "VEC3": 3}[a.type]
         off = v.byteOffset + (a.byteOffset or 0)
-        return np.frombuffer(blob, dtype=dtype, count=a.count * n, offset=off).reshape(a.count, n).squeeze()
+        return (
+            np.frombuffer(blob, dtype=dtype, count=a.count * n, offset=off)
+            .reshape(a.count, n)
+            .squeeze()
+        )
 
     prim = g.meshes[0].primitives[0]
     sampler = g.animations[0].samplers[0]
-    targets = np.stack([acc(t["POSITION"] if isinstance(t, dict) else t.POSITION) for t in prim.targets])
+    targets = np.stack(
+        [acc(t["POSITION"] if isinstance(t, dict) else t.POSITION) for t in prim.targets]
+    )
     times = acc(sampler.input).reshape(-1)
     weights = acc(sampler.output).reshape(len(times), len(targets))
-    return {"gltf": g, "rest": acc(prim.attributes.POSITION), "normals": acc(prim.attributes.NORMAL),
-            "indices": acc(prim.indices).reshape(-1, 3), "targets": targets, "times": times, "weights": weights,
-            "extras": g.extras["facecast"]}
+    return {
+        "gltf": g,
+        "rest": acc(prim.attributes.POSITION),
+        "normals": acc(prim.attributes.NORMAL),
+        "indices": acc(prim.indices).reshape(-1, 3),
+        "targets": targets,
+        "times": times,
+        "weights": weights,
+        "extras": g.extras["facecast"],
+    }
 
 
 def frames_of(glb: dict) -> np.ndarray:
@@ -75,12 +89,16 @@ def _fp_motion(face, frames, fps_ids) -> float:
 
 
 @pytest.mark.parametrize("name", XFACE)
-def test_real_fap_file_renders_to_a_glb_that_pygltflib_reads(data_dir, small_face, animator, tmp_path, name):
+def test_real_fap_file_renders_to_a_glb_that_pygltflib_reads(
+    data_dir, small_face, animator, tmp_path, name
+):
     src = data_dir / "xface" / "faps" / name
     fap = read_fap(src.read_text(), where=name)
     out = tmp_path / (src.stem + ".glb")
     calls = []
-    summary = render_file(src, out, face=small_face, backend="numpy", progress=lambda d, t: calls.append((d, t)))
+    summary = render_file(
+        src, out, face=small_face, backend="numpy", progress=lambda d, t: calls.append((d, t))
+    )
     assert calls[-1] == (len(fap), len(fap))
     glb = read_glb(out)
     assert glb["gltf"].asset.version == "2.0"
@@ -100,8 +118,9 @@ def test_real_fap_file_renders_to_a_glb_that_pygltflib_reads(data_dir, small_fac
     if brow_max:  # brow control displacements (head-local, before the head pose) follow FAPs 31-36
         brow_d = [animator.solve(s)[0] for s in load_fap(src, small_face).states]
         idx = [i for i, n in enumerate(animator.rig.fp_ids) if set(n.split("+")) & set(BROW_FPS)]
-        assert max(np.abs(d[idx, 1]).max() for d in brow_d) == pytest.approx(brow_max * animator.rig.fapu["ENS"],
-                                                                               rel=1e-3)
+        assert max(np.abs(d[idx, 1]).max() for d in brow_d) == pytest.approx(
+            brow_max * animator.rig.fapu["ENS"], rel=1e-3
+        )
 
 
 @pytest.fixture(scope="module")
@@ -128,7 +147,9 @@ def test_glb_of_ict_head(data_dir, ict_face, tmp_path, name):
     teeth = face.part("teeth_lower")
     drop = (face.vertices[teeth, 1] - shown[:, teeth, 1]).mean(axis=1)
     jaw = max(fr.faps().get(3, 0) for fr in fap.frames)
-    assert drop.max() > 0.5 * jaw / 1024 * 2.12  # cm: the jaw opens by about FAP 3 x MNS (MNS0 2.12 cm)
+    assert (
+        drop.max() > 0.5 * jaw / 1024 * 2.12
+    )  # cm: the jaw opens by about FAP 3 x MNS (MNS0 2.12 cm)
     assert _fp_motion(face, shown, MOUTH_FPS) > 0.3
 
 
@@ -139,12 +160,16 @@ def test_npz_and_fap_outputs(data_dir, small_face, animator, tmp_path):
     assert vertices.shape == (107, small_face.n_vertices, 3) and vertices.dtype == np.float32
     np.testing.assert_array_equal(faces, small_face.triangles)
     assert fps == 25.0
-    np.testing.assert_allclose(vertices[40], animator.frame(load_fap(src, small_face).states[40]), atol=1e-5)
+    np.testing.assert_allclose(
+        vertices[40], animator.frame(load_fap(src, small_face).states[40]), atol=1e-5
+    )
     render_file(src, tmp_path / "beg.fap", face=small_face)
     again = load_fap(tmp_path / "beg.fap", small_face)
     orig = load_fap(src, small_face)
     assert again.fps == orig.fps and len(again) == len(orig)
-    np.testing.assert_array_equal(np.array([s.faps for s in again.states]), np.array([s.faps for s in orig.states]))
+    np.testing.assert_array_equal(
+        np.array([s.faps for s in again.states]), np.array([s.faps for s in orig.states])
+    )
 
 
 def test_masked_faps_hold_their_previous_value(tmp_path):
@@ -160,8 +185,14 @@ def test_masked_faps_hold_their_previous_value(tmp_path):
 
 def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
-    return subprocess.run([sys.executable, "-m", "facecast.server.cli", *args], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "facecast.server.cli", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 MASK = " ".join(["0", "0", "1"] + ["0"] * 65)
@@ -175,7 +206,17 @@ BAD_FILES = {
 def test_cli_reports_malformed_fap_with_file_and_line_and_leaves_no_output(tmp_path):
     for name, (text, line) in BAD_FILES.items():
         (tmp_path / name).write_text(text)
-        r = _cli("render", name, "-o", "out.glb", "--face", "default:2k", "--backend", "numpy", cwd=tmp_path)
+        r = _cli(
+            "render",
+            name,
+            "-o",
+            "out.glb",
+            "--face",
+            "default:2k",
+            "--backend",
+            "numpy",
+            cwd=tmp_path,
+        )
         assert r.returncode == 2, r.stderr
         msg = r.stderr.strip().splitlines()[-1]
         assert msg.startswith(f"facecast: {name}:{line}:"), msg
@@ -198,7 +239,9 @@ def test_cli_renders_and_faces_describes(data_dir, tmp_path):
     r = _cli("faces", "default:2k", "--json", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     info = __import__("json").loads(r.stdout)
-    assert info["feature_points"] == 84 and info["fapu_mm"]["MW0"] > 20 and info["parts"]["tongue"] > 0
+    assert (
+        info["feature_points"] == 84 and info["fapu_mm"]["MW0"] > 20 and info["parts"]["tongue"] > 0
+    )
 
 
 def test_failed_writes_leave_nothing_and_keep_the_old_file(tmp_path, small_face):
@@ -227,7 +270,9 @@ def test_glb_basis_is_exact_for_a_short_clip_and_bounded_for_a_long_one(small_fa
     basis = rng.normal(0, 1.0, (3, V, 3)).astype(np.float32)
     w = np.sin(np.arange(120)[:, None] * np.array([0.05, 0.11, 0.23]))
     frames = small_face.vertices + np.einsum("tm,mvc->tvc", w, basis).astype(np.float32)
-    _data, rec = encode_glb(frames, small_face.vertices, small_face.triangles, 30, tolerance_mm=0.01)
+    _data, rec = encode_glb(
+        frames, small_face.vertices, small_face.triangles, 30, tolerance_mm=0.01
+    )
     assert rec["targets"] == 3 and rec["frames"] == 120 and rec["max_error_mm"] <= 0.01
 
 
@@ -239,8 +284,13 @@ def test_preview_pngs_of_joy_show_the_mouth_moving(data_dir, small_face, animato
     mouth = small_face.fp_position("2.2")
     images = []
     for t in (0, 24, 56):
-        img = render_image(animator.frame(anim.states[t]), small_face.triangles, size=(160, 160),
-                           center=mouth, extent=80.0 / small_face.mm_per_unit)
+        img = render_image(
+            animator.frame(anim.states[t]),
+            small_face.triangles,
+            size=(160, 160),
+            center=mouth,
+            extent=80.0 / small_face.mm_per_unit,
+        )
         write_png(artifacts / f"joy_frame_{t:03d}.png", img)
         images.append(img.astype(np.int16))
     assert np.abs(images[1] - images[0]).mean() > 1.0  # mouth open vs neutral
@@ -262,10 +312,26 @@ def test_opencl_backend_renders_the_same_frames(data_dir, small_face, animator):
 @pytest.mark.slow
 def test_cli_render_on_a_server(data_dir, server, tmp_path):
     env_key = {"FACECAST_ADMIN_KEY": server.admin_key}
-    r = subprocess.run([sys.executable, "-m", "facecast.server.cli", "render",
-                        str(data_dir / "xface" / "faps" / "happy-for.fap"), "-o", "remote.glb",
-                        "--face", "default:2k", "--server", server.url],
-                       cwd=tmp_path, env={**os.environ, **env_key}, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "facecast.server.cli",
+            "render",
+            str(data_dir / "xface" / "faps" / "happy-for.fap"),
+            "-o",
+            "remote.glb",
+            "--face",
+            "default:2k",
+            "--server",
+            server.url,
+        ],
+        cwd=tmp_path,
+        env={**os.environ, **env_key},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
     glb = read_glb(tmp_path / "remote.glb")
     assert len(glb["times"]) == 107 and np.isfinite(frames_of(glb)).all()

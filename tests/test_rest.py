@@ -1,4 +1,5 @@
 """REST API against a real ``facecast serve``: faces, topology, auth, upload limits, metrics, OpenAPI."""
+
 from __future__ import annotations
 
 import time
@@ -35,7 +36,9 @@ def srv(tmp_path_factory) -> RunningServer:
     env = {"FACECAST_MAX_UPLOAD_BYTES": str(UPLOAD_LIMIT)}
     if ICT_MESH is not None and ICT_MESH.is_file():
         env["FACECAST_FACES"] = f"ict={ICT_MESH}"
-    s = RunningServer(tmp_path_factory.mktemp("rest"), "--face", FACE, "--workers", "0", env=env).start()
+    s = RunningServer(
+        tmp_path_factory.mktemp("rest"), "--face", FACE, "--workers", "0", env=env
+    ).start()
     yield s
     s.stop()
 
@@ -65,6 +68,7 @@ def assert_error(resp: httpx.Response, status: int, *words: str) -> dict:
 
 # ----------------------------------------------------------------------------------- health, docs
 
+
 def test_healthz_reports_readiness_backend_and_face(srv):
     assert httpx.head(srv.url + "/healthz").status_code == 200
     h = wait_ready(srv)
@@ -78,8 +82,16 @@ def test_healthz_reports_readiness_backend_and_face(srv):
 
 def test_openapi_and_docs(srv):
     spec = get(srv, "/openapi.json").json()
-    for path in ("/v1/faces", "/v1/faces/{name}", "/v1/faces/{name}/topology", "/v1/jobs",
-                 "/v1/jobs/{job_id}", "/v1/jobs/{job_id}/result", "/healthz", "/metrics"):
+    for path in (
+        "/v1/faces",
+        "/v1/faces/{name}",
+        "/v1/faces/{name}/topology",
+        "/v1/jobs",
+        "/v1/jobs/{job_id}",
+        "/v1/jobs/{job_id}/result",
+        "/healthz",
+        "/metrics",
+    ):
         assert path in spec["paths"], path
     body = spec["paths"]["/v1/jobs"]["post"]["requestBody"]["content"]
     assert "file" in body["multipart/form-data"]["schema"]["properties"]
@@ -91,8 +103,14 @@ def test_metrics_parse_as_prometheus_text(srv):
     resp = get(srv, "/metrics")
     assert resp.status_code == 200 and resp.headers["content-type"].startswith("text/plain")
     families = {f.name: f for f in text_string_to_metric_families(resp.text)}
-    for name in ("facecast_sessions", "facecast_viewers", "facecast_frames_sent", "facecast_frames_dropped",
-                 "facecast_deform_seconds", "facecast_jobs"):
+    for name in (
+        "facecast_sessions",
+        "facecast_viewers",
+        "facecast_frames_sent",
+        "facecast_frames_dropped",
+        "facecast_deform_seconds",
+        "facecast_jobs",
+    ):
         assert name in families, sorted(families)
     states = {s.labels["state"] for s in families["facecast_jobs"].samples}
     assert states == {"queued", "running", "done", "failed", "cancelled"}
@@ -103,6 +121,7 @@ def test_unknown_route_is_json_404(srv):
 
 
 # ------------------------------------------------------------------------------------------ faces
+
 
 def test_faces_list_names_the_default(srv):
     body = get(srv, "/v1/faces").json()
@@ -158,7 +177,10 @@ def test_configured_mesh_face(srv, data_dir):
 
 
 def test_faces_env_parsing():
-    assert parse_faces_env("ict=/a/b.obj; x-1 = /c.obj,") == {"ict": Path("/a/b.obj"), "x-1": Path("/c.obj")}
+    assert parse_faces_env("ict=/a/b.obj; x-1 = /c.obj,") == {
+        "ict": Path("/a/b.obj"),
+        "x-1": Path("/c.obj"),
+    }
     assert parse_faces_env(None) == {}
     for bad in ("ict", "=/a.obj", "a b=/c.obj", "ict="):
         with pytest.raises(InputError, match="FACECAST_FACES"):
@@ -199,66 +221,133 @@ def test_unknown_or_path_like_face_is_a_json_error(srv, name):
 def test_hostile_requests_of_the_issue_are_json_4xx_on_the_real_server(srv):
     assert_error(get(srv, "/v1/faces/default:" + "9" * 400), 400, "out of range")  # no key needed
     for raw in (b'{"fps": NaN}', b'{"fps": Infinity}', b'{"fps": 1e309}', b'{"face": "\\udcff"}'):
-        resp = httpx.post(srv.url + "/v1/sessions", content=raw, timeout=60,
-                          headers={**srv.admin_headers, "Content-Type": "application/json"})
+        resp = httpx.post(
+            srv.url + "/v1/sessions",
+            content=raw,
+            timeout=60,
+            headers={**srv.admin_headers, "Content-Type": "application/json"},
+        )
         assert 400 <= resp.status_code < 500 and resp.json()["error"], (raw, resp.text)
     assert get(srv, "/healthz").status_code == 200
 
 
 # ------------------------------------------------------------------------------- auth and uploads
 
+
 def small_fap() -> bytes:
     return b"# tiny\n2.1 tiny 25 2\n" + b"0 " * 68 + b"\n0\n" + b"0 " * 68 + b"\n0\n"
 
 
-@pytest.mark.parametrize("headers", [{}, {"Authorization": "Bearer wrong"}, {"Authorization": "Basic eA=="}])
+@pytest.mark.parametrize(
+    "headers", [{}, {"Authorization": "Bearer wrong"}, {"Authorization": "Basic eA=="}]
+)
 def test_jobs_need_the_admin_key(srv, headers):
-    assert_error(httpx.post(srv.url + "/v1/jobs", files={"file": ("a.fap", small_fap())}, headers=headers),
-                 401, "admin key")
+    assert_error(
+        httpx.post(srv.url + "/v1/jobs", files={"file": ("a.fap", small_fap())}, headers=headers),
+        401,
+        "admin key",
+    )
     assert_error(httpx.get(srv.url + "/v1/jobs", headers=headers), 401)
 
 
 def test_oversized_upload_is_413_json_and_the_server_keeps_serving(srv):
     big = b"0" * (UPLOAD_LIMIT * 4)
-    resp = httpx.post(srv.url + "/v1/jobs", files={"file": ("big.fap", big)}, headers=srv.admin_headers,
-                      timeout=60.0)
+    resp = httpx.post(
+        srv.url + "/v1/jobs",
+        files={"file": ("big.fap", big)},
+        headers=srv.admin_headers,
+        timeout=60.0,
+    )
     body = assert_error(resp, 413, "limit")
     assert str(UPLOAD_LIMIT) in body["error"]
+
     # Without a Content-Length (chunked), the limit is enforced while streaming.
     def chunks():
         boundary = b"xyzzy"
-        yield b"--" + boundary + b'\r\nContent-Disposition: form-data; name="file"; filename="big.fap"\r\n\r\n'
+        yield (
+            b"--"
+            + boundary
+            + b'\r\nContent-Disposition: form-data; name="file"; filename="big.fap"\r\n\r\n'
+        )
         for _ in range(8):
             yield b"1" * (UPLOAD_LIMIT // 2)
         yield b"\r\n--" + boundary + b"--\r\n"
-    resp = httpx.post(srv.url + "/v1/jobs", content=chunks(), timeout=60.0,
-                      headers={**srv.admin_headers, "Content-Type": "multipart/form-data; boundary=xyzzy"})
+
+    resp = httpx.post(
+        srv.url + "/v1/jobs",
+        content=chunks(),
+        timeout=60.0,
+        headers={**srv.admin_headers, "Content-Type": "multipart/form-data; boundary=xyzzy"},
+    )
     assert_error(resp, 413, "limit")
     assert get(srv, "/healthz").status_code == 200
-    ok = httpx.post(srv.url + "/v1/jobs", files={"file": ("ok.fap", small_fap())}, headers=srv.admin_headers)
+    ok = httpx.post(
+        srv.url + "/v1/jobs", files={"file": ("ok.fap", small_fap())}, headers=srv.admin_headers
+    )
     assert ok.status_code == 202, ok.text
-    leftovers = [p for p in (srv.data_dir / "jobs").rglob("*") if (p.is_file() and "big" in p.name) or p.name == ".upload"]
+    leftovers = [
+        p
+        for p in (srv.data_dir / "jobs").rglob("*")
+        if (p.is_file() and "big" in p.name) or p.name == ".upload"
+    ]
     assert leftovers == []
 
 
 def test_upload_errors_say_what_to_do(srv):
     h = srv.admin_headers
     assert_error(httpx.post(srv.url + "/v1/jobs", json={"file": "x"}, headers=h), 415, "multipart")
-    assert_error(httpx.post(srv.url + "/v1/jobs", data={"face": FACE}, files={"other": ("a", b"1")}, headers=h),
-                 400, "file")
-    assert_error(httpx.post(srv.url + "/v1/jobs", files={"file": ("x.bin", b"\x00\x01\x02 nothing")}, headers=h),
-                 415, ".fap")
-    assert_error(httpx.post(srv.url + "/v1/jobs", files={"file": ("a.fap", small_fap())},
-                            data={"format": "mp4"}, headers=h), 400, "format")
-    assert_error(httpx.post(srv.url + "/v1/jobs", files={"file": ("a.fap", small_fap())},
-                            data={"face": "/etc/passwd"}, headers=h), 404, "no face")
-    assert_error(httpx.post(srv.url + "/v1/jobs", files={"file": ("a.fap", small_fap())},
-                            data={"layout": "../../x"}, headers=h), 400, "layout")
+    assert_error(
+        httpx.post(
+            srv.url + "/v1/jobs", data={"face": FACE}, files={"other": ("a", b"1")}, headers=h
+        ),
+        400,
+        "file",
+    )
+    assert_error(
+        httpx.post(
+            srv.url + "/v1/jobs", files={"file": ("x.bin", b"\x00\x01\x02 nothing")}, headers=h
+        ),
+        415,
+        ".fap",
+    )
+    assert_error(
+        httpx.post(
+            srv.url + "/v1/jobs",
+            files={"file": ("a.fap", small_fap())},
+            data={"format": "mp4"},
+            headers=h,
+        ),
+        400,
+        "format",
+    )
+    assert_error(
+        httpx.post(
+            srv.url + "/v1/jobs",
+            files={"file": ("a.fap", small_fap())},
+            data={"face": "/etc/passwd"},
+            headers=h,
+        ),
+        404,
+        "no face",
+    )
+    assert_error(
+        httpx.post(
+            srv.url + "/v1/jobs",
+            files={"file": ("a.fap", small_fap())},
+            data={"layout": "../../x"},
+            headers=h,
+        ),
+        400,
+        "layout",
+    )
 
 
 def test_client_file_names_never_become_paths(srv):
-    resp = httpx.post(srv.url + "/v1/jobs", files={"file": ("../../evil/../x.fap", small_fap())},
-                      headers=srv.admin_headers)
+    resp = httpx.post(
+        srv.url + "/v1/jobs",
+        files={"file": ("../../evil/../x.fap", small_fap())},
+        headers=srv.admin_headers,
+    )
     assert resp.status_code == 202, resp.text
     job = resp.json()
     assert job["input_name"] == "x.fap" and job["input_kind"] == "fap"
@@ -268,7 +357,9 @@ def test_client_file_names_never_become_paths(srv):
 
 
 def test_input_kind_from_content_when_the_name_says_nothing(srv):
-    resp = httpx.post(srv.url + "/v1/jobs", files={"file": ("take", small_fap())}, headers=srv.admin_headers)
+    resp = httpx.post(
+        srv.url + "/v1/jobs", files={"file": ("take", small_fap())}, headers=srv.admin_headers
+    )
     assert resp.status_code == 202, resp.text
     assert resp.json()["input_kind"] == "fap"
 
@@ -288,19 +379,28 @@ def test_queued_job_status_result_and_cancel(srv):
 
 # ------------------------------------------------------------------------------- topology codec
 
+
 @st.composite
 def topologies(draw):
     n = draw(st.integers(0, 40))
     f = draw(st.integers(0, 30)) if n else 0
-    names = st.text(st.characters(blacklist_characters="\n", blacklist_categories=("Cs",)), max_size=12)
+    names = st.text(
+        st.characters(blacklist_characters="\n", blacklist_categories=("Cs",)), max_size=12
+    )
     parts = draw(st.lists(names, max_size=5))
     groups = draw(st.lists(names, min_size=1, max_size=4))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     part_ids = rng.integers(0, len(parts) + 1, n).astype(np.uint8)
     part_ids[part_ids == len(parts)] = NO_PART
-    return Topology(rng.standard_normal((n, 3)).astype(np.float32), rng.integers(0, max(n, 1), (f, 3)),
-                    part_ids, parts, rng.integers(0, len(groups), n).astype(np.uint8), groups,
-                    draw(st.sampled_from([1.0, 10.0, 25.4])))
+    return Topology(
+        rng.standard_normal((n, 3)).astype(np.float32),
+        rng.integers(0, max(n, 1), (f, 3)),
+        part_ids,
+        parts,
+        rng.integers(0, len(groups), n).astype(np.uint8),
+        groups,
+        draw(st.sampled_from([1.0, 10.0, 25.4])),
+    )
 
 
 @given(topologies())
@@ -333,8 +433,15 @@ def test_topology_decoder_rejects_damage_with_topology_error(topo, data):
 
 
 def test_topology_sections_are_4_byte_aligned():
-    topo = Topology(np.zeros((5, 3), np.float32), np.array([[0, 1, 2]]), np.zeros(5, np.uint8), ["skin"],
-                    np.zeros(5, np.uint8), ["head"], 10.0)
+    topo = Topology(
+        np.zeros((5, 3), np.float32),
+        np.array([[0, 1, 2]]),
+        np.zeros(5, np.uint8),
+        ["skin"],
+        np.zeros(5, np.uint8),
+        ["head"],
+        10.0,
+    )
     blob = encode_topology(topo)
     assert blob[:4] == b"FCTP"
     n_names = int.from_bytes(blob[20:24], "little")

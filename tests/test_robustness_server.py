@@ -5,6 +5,7 @@ throughout and another live session keeps streaming.
 Timing is checked with wide margins only (a quarter of the frames, no silence over 5 s), so the test
 holds on a loaded machine; what it catches is a crashed server, a frozen event loop or a 500.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -33,6 +34,7 @@ JOB_TIMEOUT = 180.0
 
 
 # ---- the files ----
+
 
 def c3d_segv() -> bytes:
     """517 bytes that made ezc3d segfault (issue 12)."""
@@ -86,7 +88,7 @@ def hostile(name: str, take: tuple[bytes, str]) -> tuple[str, bytes, str | None]
     """``(filename, content, layout JSON or None)`` for a case name."""
     c3d, layout = take
     if name.startswith("c3d-cut-"):
-        return "take.c3d", c3d[:int(name.rsplit("-", 1)[1])], layout
+        return "take.c3d", c3d[: int(name.rsplit("-", 1)[1])], layout
     return {
         "c3d-segv": ("segv.c3d", c3d_segv(), layout),
         "c3d-spin": ("spin.c3d", c3d_spin(), layout),
@@ -95,11 +97,19 @@ def hostile(name: str, take: tuple[bytes, str]) -> tuple[str, bytes, str | None]
     }[name]
 
 
-CASES = ["c3d-segv", "c3d-spin", "c3d-cut-900", "c3d-cut-964", "c3d-cut-1092", "flac-huge-length",
-         "fap-4301-digits"]
+CASES = [
+    "c3d-segv",
+    "c3d-spin",
+    "c3d-cut-900",
+    "c3d-cut-964",
+    "c3d-cut-1092",
+    "flac-huge-length",
+    "fap-4301-digits",
+]
 
 
 # ---- a server that is restarted if a case killed or froze it ----
+
 
 @pytest.fixture(scope="module")
 def server_box(tmp_path_factory):
@@ -131,15 +141,21 @@ def srv(server_box) -> RunningServer:
 
 
 def create_session(server: RunningServer, fps: float = 30.0) -> dict:
-    r = httpx.post(server.url + "/v1/sessions", json={"input": "fap", "fps": fps},
-                   headers=server.admin_headers, timeout=REQUEST_TIMEOUT)
+    r = httpx.post(
+        server.url + "/v1/sessions",
+        json={"input": "fap", "fps": fps},
+        headers=server.admin_headers,
+        timeout=REQUEST_TIMEOUT,
+    )
     r.raise_for_status()
     return r.json()
 
 
 def close_session(server: RunningServer, session: dict) -> None:
     try:
-        httpx.delete(f"{server.url}/v1/sessions/{session['id']}", headers=server.admin_headers, timeout=10)
+        httpx.delete(
+            f"{server.url}/v1/sessions/{session['id']}", headers=server.admin_headers, timeout=10
+        )
     except httpx.HTTPError:
         pass
 
@@ -151,19 +167,26 @@ class Monitor:
     def __init__(self, server: RunningServer, fps: float = 30.0) -> None:
         self.server, self.fps = server, fps
         self.session = create_session(server, fps)
-        r = httpx.post(f"{server.url}/v1/sessions/{self.session['id']}/demo", headers=server.admin_headers,
-                       timeout=REQUEST_TIMEOUT)
+        r = httpx.post(
+            f"{server.url}/v1/sessions/{self.session['id']}/demo",
+            headers=server.admin_headers,
+            timeout=REQUEST_TIMEOUT,
+        )
         assert r.status_code == 202, r.text
-        self.frames: list[float] = []           # monotonic arrival times
+        self.frames: list[float] = []  # monotonic arrival times
         self.health: list[tuple[float, str]] = []  # (monotonic time, "200" or the failure)
         self.watch_error: str | None = None
         self._stop = threading.Event()
-        self._threads = [threading.Thread(target=lambda: asyncio.run(self._watch()), daemon=True),
-                         threading.Thread(target=self._poll, daemon=True)]
+        self._threads = [
+            threading.Thread(target=lambda: asyncio.run(self._watch()), daemon=True),
+            threading.Thread(target=self._poll, daemon=True),
+        ]
 
     async def _watch(self) -> None:
         try:
-            async with watch(self.server.url, self.session["id"], self.session["viewer_token"]) as w:
+            async with watch(
+                self.server.url, self.session["id"], self.session["viewer_token"]
+            ) as w:
                 async for _ in w:
                     self.frames.append(time.monotonic())
                     if self._stop.is_set():
@@ -202,7 +225,9 @@ class Monitor:
 
     def problems(self) -> list[str]:
         """What went wrong between entering and leaving (empty: the server kept serving)."""
-        out = [f"/healthz at +{t - self.t0:.1f} s: {what}" for t, what in self.health if what != "200"]
+        out = [
+            f"/healthz at +{t - self.t0:.1f} s: {what}" for t, what in self.health if what != "200"
+        ]
         if not self.health:
             out.append("/healthz was never asked")
         seen = [t for t in self.frames if self.t0 <= t <= self.t1]
@@ -211,7 +236,9 @@ class Monitor:
         if gaps.max() > MAX_GAP:
             out.append(f"the watched session was silent for {gaps.max():.1f} s")
         if len(seen) < 0.25 * self.fps * span - 2:
-            out.append(f"the watched session sent {len(seen)} frames in {span:.1f} s at {self.fps:g} fps")
+            out.append(
+                f"the watched session sent {len(seen)} frames in {span:.1f} s at {self.fps:g} fps"
+            )
         return out
 
 
@@ -228,28 +255,37 @@ def four_xx_json(r: httpx.Response) -> str | None:
 
 # ---- the tests ----
 
+
 @pytest.mark.parametrize("case", CASES)
 def test_hostile_file_through_play_gets_a_4xx_while_the_server_keeps_serving(srv, take, case):
     name, content, layout = hostile(case, take)
     target = create_session(srv)
     with Monitor(srv) as mon:
         try:
-            r = httpx.post(f"{srv.url}/v1/sessions/{target['id']}/play?token={target['producer_token']}",
-                           files={"file": (name, content)}, data={"layout": layout} if layout else {},
-                           timeout=REQUEST_TIMEOUT)
+            r = httpx.post(
+                f"{srv.url}/v1/sessions/{target['id']}/play?token={target['producer_token']}",
+                files={"file": (name, content)},
+                data={"layout": layout} if layout else {},
+                timeout=REQUEST_TIMEOUT,
+            )
             answer = four_xx_json(r)
         except httpx.HTTPError as e:
             answer = f"no answer: {e!r}"
     close_session(srv, target)
     alive = srv.proc.poll() is None
-    problems = ([answer] if answer else []) + mon.problems() + ([] if alive else [
-        f"the server died (exit {srv.proc.returncode})"])
+    problems = (
+        ([answer] if answer else [])
+        + mon.problems()
+        + ([] if alive else [f"the server died (exit {srv.proc.returncode})"])
+    )
     assert not problems, f"{case}: " + "; ".join(problems)
 
 
 def wait_job(server: RunningServer, job_id: str, deadline: float) -> dict:
     while True:
-        job = httpx.get(f"{server.url}/v1/jobs/{job_id}", headers=server.admin_headers, timeout=REQUEST_TIMEOUT).json()
+        job = httpx.get(
+            f"{server.url}/v1/jobs/{job_id}", headers=server.admin_headers, timeout=REQUEST_TIMEOUT
+        ).json()
         if job["status"] in ("done", "failed", "cancelled") or time.monotonic() > deadline:
             return job
         time.sleep(0.5)
@@ -262,23 +298,39 @@ def test_hostile_file_as_a_job_fails_clearly_while_the_server_keeps_serving(srv,
     with Monitor(srv) as mon:
         try:
             data = {"format": "fap", **({"layout": layout} if layout else {})}
-            r = httpx.post(srv.url + "/v1/jobs", files={"file": (name, content)}, data=data,
-                           headers=srv.admin_headers, timeout=REQUEST_TIMEOUT)
+            r = httpx.post(
+                srv.url + "/v1/jobs",
+                files={"file": (name, content)},
+                data=data,
+                headers=srv.admin_headers,
+                timeout=REQUEST_TIMEOUT,
+            )
             if r.status_code == 202:
                 job = wait_job(srv, r.json()["id"], time.monotonic() + JOB_TIMEOUT)
                 if job["status"] != "failed" or not job.get("error"):
                     answer = f"the job ended {job['status']!r} (error {job.get('error')!r})"
                 else:
-                    res = httpx.get(f"{srv.url}/v1/jobs/{job['id']}/result", headers=srv.admin_headers,
-                                    timeout=REQUEST_TIMEOUT)
+                    res = httpx.get(
+                        f"{srv.url}/v1/jobs/{job['id']}/result",
+                        headers=srv.admin_headers,
+                        timeout=REQUEST_TIMEOUT,
+                    )
                     answer = four_xx_json(res)
             else:
                 answer = four_xx_json(r)
         except httpx.HTTPError as e:
             answer = f"no answer: {e!r}"
-    if job is not None and job["status"] in ("queued", "running"):  # free the worker for the next case
-        httpx.delete(f"{srv.url}/v1/jobs/{job['id']}", headers=srv.admin_headers, timeout=REQUEST_TIMEOUT)
+    if job is not None and job["status"] in (
+        "queued",
+        "running",
+    ):  # free the worker for the next case
+        httpx.delete(
+            f"{srv.url}/v1/jobs/{job['id']}", headers=srv.admin_headers, timeout=REQUEST_TIMEOUT
+        )
     alive = srv.proc.poll() is None
-    problems = ([answer] if answer else []) + mon.problems() + ([] if alive else [
-        f"the server died (exit {srv.proc.returncode})"])
+    problems = (
+        ([answer] if answer else [])
+        + mon.problems()
+        + ([] if alive else [f"the server died (exit {srv.proc.returncode})"])
+    )
     assert not problems, f"{case} as a job: " + "; ".join(problems)

@@ -1,4 +1,5 @@
 """Linear-shell operator (Bickel et al.): constraints, energy, slits, rigid parts, both backends."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,7 +24,9 @@ def test_cotangent_laplacian_of_a_plane():
     assert abs(lap - lap.T).max() < 1e-12
     np.testing.assert_allclose(np.asarray(lap.sum(axis=1)).ravel(), 0, atol=1e-12)
     assert np.linalg.eigvalsh(lap.toarray()).min() > -1e-9
-    interior = np.flatnonzero((verts[:, 0] > 0) & (verts[:, 0] < 8) & (verts[:, 1] > 0) & (verts[:, 1] < 8))
+    interior = np.flatnonzero(
+        (verts[:, 0] > 0) & (verts[:, 0] < 8) & (verts[:, 1] > 0) & (verts[:, 1] < 8)
+    )
     f = 2 * verts[:, 0] - 3 * verts[:, 1]
     np.testing.assert_allclose((lap @ f)[interior], 0, atol=1e-9)
     assert mass.sum() == pytest.approx(64.0)
@@ -46,8 +49,11 @@ def test_solution_minimises_the_energy(grid, rng):
     verts, tris, _, _, controls = grid
     stretch = 0.5
     op = shell_operator(verts, tris, controls, stretch=stretch)
-    spacing = np.median(np.sort(np.linalg.norm(verts[controls][:, None] - verts[controls][None], axis=2),
-                                axis=1)[:, 1])
+    spacing = np.median(
+        np.sort(np.linalg.norm(verts[controls][:, None] - verts[controls][None], axis=2), axis=1)[
+            :, 1
+        ]
+    )
     a = shell_matrix(verts, tris, ks=stretch / spacing**2, kb=1.0)
     d = rng.normal(size=len(controls))
     u = op.dense.astype(np.float64) @ d
@@ -168,7 +174,9 @@ def test_numpy_and_opencl_agree(head, rng):
         T = np.tile(np.eye(3, 4, dtype=np.float32), (4, 1, 1))
         T[1, :, 3] = [0.0, -0.5, 0.2]
         scale = float(np.abs(face.vertices).max())
-        np.testing.assert_allclose(dev.deform(D, T), ref.deform(D, T), rtol=0, atol=scale * 2e-6 + 1e-5)
+        np.testing.assert_allclose(
+            dev.deform(D, T), ref.deform(D, T), rtol=0, atol=scale * 2e-6 + 1e-5
+        )
 
 
 @pytest.mark.slow
@@ -180,7 +188,11 @@ def test_ict_lips_are_not_coupled_across_the_slit(data_dir):
     face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
     fps, vertex_ids, _ = fap_controls(face)
     op = get_operator(face, vertex_ids, engine="shell")
-    lower = [i for i, f in enumerate(fps) if set(f.split("+")) & {"8.2", "8.7", "8.8", "2.3", "2.8", "2.9"}]
+    lower = [
+        i
+        for i, f in enumerate(fps)
+        if set(f.split("+")) & {"8.2", "8.7", "8.8", "2.3", "2.8", "2.9"}
+    ]
     D = np.zeros((len(vertex_ids), 3), np.float32)
     D[lower, 1] = -1.0 / face.mm_per_unit  # 1 mm down
     u = op.apply(D) * face.mm_per_unit
@@ -188,9 +200,15 @@ def test_ict_lips_are_not_coupled_across_the_slit(data_dir):
     mouth = (face.fp_position("8.1") + face.fp_position("8.2")) / 2
     width = np.linalg.norm(face.fp_position("8.3") - face.fp_position("8.4"))
     skin = face.part("skin")
-    lips = skin[(np.abs(v[skin, 0] - mouth[0]) < 0.25 * width) & (np.abs(v[skin, 1] - mouth[1]) < 0.3 * width)
-                & (v[skin, 2] > mouth[2] - 0.3 * width)]
-    upper, below = lips[v[lips, 1] > face.fp_position("2.2")[1]], lips[v[lips, 1] < face.fp_position("2.3")[1]]
+    lips = skin[
+        (np.abs(v[skin, 0] - mouth[0]) < 0.25 * width)
+        & (np.abs(v[skin, 1] - mouth[1]) < 0.3 * width)
+        & (v[skin, 2] > mouth[2] - 0.3 * width)
+    ]
+    upper, below = (
+        lips[v[lips, 1] > face.fp_position("2.2")[1]],
+        lips[v[lips, 1] < face.fp_position("2.3")[1]],
+    )
     assert len(upper) > 20 and len(below) > 20
     assert np.abs(u[upper]).max() < 0.1
     assert -u[below, 1].mean() > 0.5

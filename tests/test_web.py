@@ -1,4 +1,5 @@
 """The web viewer in a real headless Chromium against a real server (Playwright, Debian's chromium)."""
+
 from __future__ import annotations
 
 import asyncio
@@ -15,10 +16,22 @@ import websockets
 from facecast.server.faces import load_face
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-pytestmark = [pytest.mark.browser, pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian chromium not installed")]
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian chromium not installed"),
+]
 
-ARGS = ["--no-sandbox", "--disable-gpu", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
+ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--use-gl=angle",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 
 #: Pixel statistics of a canvas rectangle (x0, y0, x1, y1 in CSS pixels): mean RGB and spread.
 PIXELS_JS = """([x0, y0, x1, y1]) => {
@@ -47,10 +60,14 @@ def browser(playwright):
     b.close()
 
 
-def open_page(browser, url: str, artifacts: Path | None = None, viewport: tuple[int, int] = (1000, 700)):
+def open_page(
+    browser, url: str, artifacts: Path | None = None, viewport: tuple[int, int] = (1000, 700)
+):
     page = browser.new_page(viewport={"width": viewport[0], "height": viewport[1]})
     problems: list[str] = []
-    page.on("console", lambda m: problems.append(f"{m.type}: {m.text}") if m.type == "error" else None)
+    page.on(
+        "console", lambda m: problems.append(f"{m.type}: {m.text}") if m.type == "error" else None
+    )
     page.on("pageerror", lambda e: problems.append(f"pageerror: {e}"))
     page.goto(url)
     return page, problems
@@ -67,12 +84,21 @@ def create_session(server, **body) -> dict:
 
 
 async def produce_faps(server, session: dict, frames: list[dict]) -> None:
-    url = server.url.replace("http", "ws") + f"/v1/sessions/{session['id']}/produce?token={session['producer_token']}"
+    url = (
+        server.url.replace("http", "ws")
+        + f"/v1/sessions/{session['id']}/produce?token={session['producer_token']}"
+    )
     async with websockets.connect(url, compression=None) as ws:
-        await ws.send(json.dumps({"type": "hello", "role": "producer", "protocol": 1, "input": "fap"}))
+        await ws.send(
+            json.dumps({"type": "hello", "role": "producer", "protocol": 1, "input": "fap"})
+        )
         assert json.loads(await ws.recv())["type"] == "ready"
         for i, faps in enumerate(frames):
-            await ws.send(json.dumps({"type": "fap", "seq": i, "t": i / 30, "wall": time.time(), "faps": faps}))
+            await ws.send(
+                json.dumps(
+                    {"type": "fap", "seq": i, "t": i / 30, "wall": time.time(), "faps": faps}
+                )
+            )
             await asyncio.sleep(0.4)
         await asyncio.sleep(1.0)
 
@@ -107,12 +133,16 @@ def test_a_fap_frame_that_opens_the_jaw_changes_the_mouth(server, browser, artif
     session = create_session(server, input="fap", fps=30)
     face = load_face("default")
     fp = face.feature_points
-    page, problems = open_page(browser, f"{server.url}/#session={session['id']}&token={session['viewer_token']}")
+    page, problems = open_page(
+        browser, f"{server.url}/#session={session['id']}&token={session['viewer_token']}"
+    )
     wait_for(page, "document.getElementById('status').textContent.includes('watching')")
     run_async(produce_faps(server, session, [{"3": 0.0}]))
     wait_for(page, "window.facecast.viewer.stats.frames >= 1")
     page.wait_for_timeout(300)
-    upper, lower = page.evaluate(f"[facecast.renderer.project({fp['2.2']}), facecast.renderer.project({fp['2.1']})]")
+    upper, lower = page.evaluate(
+        f"[facecast.renderer.project({fp['2.2']}), facecast.renderer.project({fp['2.1']})]"
+    )
     box = [upper[0] - 40, upper[1] - 5, upper[0] + 40, lower[1]]
     brow = page.evaluate(f"facecast.renderer.project({fp['4.3']})")
     brow_box = [brow[0] - 20, brow[1] - 20, brow[0] + 20, brow[1] + 20]
@@ -123,7 +153,9 @@ def test_a_fap_frame_that_opens_the_jaw_changes_the_mouth(server, browser, artif
     wait_for(page, f"window.facecast.viewer.stats.frames > {seen}")
     page.wait_for_timeout(300)
     page.screenshot(path=str(artifacts / "web_jaw_open.png"))
-    wait_for(page, "document.getElementById('st-bytes').textContent.includes('KiB')")  # the stats overlay
+    wait_for(
+        page, "document.getElementById('st-bytes').textContent.includes('KiB')"
+    )  # the stats overlay
     mouth_after, brow_after = region(page, box), region(page, brow_box)
     mouth_change = np.abs(mouth_after - mouth_before).mean()
     brow_change = np.abs(brow_after - brow_before).mean()
@@ -137,9 +169,16 @@ def test_microphone_lip_sync_moves_the_mouth(server, playwright, data_dir, artif
     speech = data_dir / "speech" / "bobby_16bit_16khz.wav"
     face = load_face("default")
     fp = face.feature_points
-    b = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS + [
-        "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
-        f"--use-file-for-fake-audio-capture={speech}", "--autoplay-policy=no-user-gesture-required"])
+    b = playwright.chromium.launch(
+        executable_path=CHROMIUM,
+        args=ARGS
+        + [
+            "--use-fake-ui-for-media-stream",
+            "--use-fake-device-for-media-stream",
+            f"--use-file-for-fake-audio-capture={speech}",
+            "--autoplay-policy=no-user-gesture-required",
+        ],
+    )
     try:
         page, problems = open_page(b, f"{server.url}/#key={server.admin_key}")
         wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
@@ -148,12 +187,18 @@ def test_microphone_lip_sync_moves_the_mouth(server, playwright, data_dir, artif
         gaps = []
         for _ in range(40):
             page.wait_for_timeout(100)
-            gaps.append(page.evaluate(f"facecast.renderer.vertex({fp['2.2']})[1] - facecast.renderer.vertex({fp['2.3']})[1]"))
+            gaps.append(
+                page.evaluate(
+                    f"facecast.renderer.vertex({fp['2.2']})[1] - facecast.renderer.vertex({fp['2.3']})[1]"
+                )
+            )
         page.screenshot(path=str(artifacts / "web_microphone.png"))
         info = page.inner_text("#mic-info")
         assert "streaming" in info or "microphone on" in info, info
         gaps = np.array(gaps)
-        assert np.ptp(gaps) > 0.5, f"the lips did not move with the voice: gap range {np.ptp(gaps):.2f} mm"
+        assert np.ptp(gaps) > 0.5, (
+            f"the lips did not move with the voice: gap range {np.ptp(gaps):.2f} mm"
+        )
         assert not problems, problems
     finally:
         b.close()
@@ -166,8 +211,12 @@ def test_page_reconnects_after_a_server_restart_and_says_so(browser, tmp_path, a
     port = first.port
     try:
         session = create_session(first, input="fap", fps=30)
-        httpx.post(f"{first.url}/v1/sessions/{session['id']}/demo", headers=first.admin_headers).raise_for_status()
-        page, problems = open_page(browser, f"{first.url}/#session={session['id']}&token={session['viewer_token']}")
+        httpx.post(
+            f"{first.url}/v1/sessions/{session['id']}/demo", headers=first.admin_headers
+        ).raise_for_status()
+        page, problems = open_page(
+            browser, f"{first.url}/#session={session['id']}&token={session['viewer_token']}"
+        )
         wait_for(page, "window.facecast.viewer.stats.frames >= 5")
     finally:
         first.stop()
@@ -197,7 +246,9 @@ RECORD_GAPS_JS = """([upper, lower]) => {
 }"""
 
 
-def test_playing_an_uploaded_speech_file_moves_the_lips_with_sound(server, browser, data_dir, tmp_path, artifacts):
+def test_playing_an_uploaded_speech_file_moves_the_lips_with_sound(
+    server, browser, data_dir, tmp_path, artifacts
+):
     """The lips move with the file over its whole playback (every frame the page draws is looked at,
     not samples at moments a loaded machine may reach only after the speech is over)."""
     import soundfile as sf
@@ -211,13 +262,21 @@ def test_playing_an_uploaded_speech_file_moves_the_lips_with_sound(server, brows
     page.evaluate(RECORD_GAPS_JS, [fp["2.2"], fp["2.3"]])
     page.set_input_files("#file", str(speech))
     page.click("#play")
-    wait_for(page, "document.getElementById('play-info').textContent.includes('playing')", timeout=120)
+    wait_for(
+        page, "document.getElementById('play-info').textContent.includes('playing')", timeout=120
+    )
     # The server tells viewers the producer left once the file's last frame is out.
-    wait_for(page, "document.getElementById('status').textContent.includes('producer not connected')", timeout=120)
+    wait_for(
+        page,
+        "document.getElementById('status').textContent.includes('producer not connected')",
+        timeout=120,
+    )
     gaps = np.array(page.evaluate("window.gaps"))
     assert page.evaluate("document.getElementById('audio').src.startsWith('blob:')")
     assert len(gaps) >= 2, f"the page drew {len(gaps)} frames of the file"
-    assert np.ptp(gaps) > 0.5, f"the lips did not move with the file: gap range {np.ptp(gaps):.2f} mm over {len(gaps)} frames"
+    assert np.ptp(gaps) > 0.5, (
+        f"the lips did not move with the file: gap range {np.ptp(gaps):.2f} mm over {len(gaps)} frames"
+    )
     page.screenshot(path=str(artifacts / "web_play_speech.png"))
     assert not problems, problems
     page.close()
@@ -228,21 +287,33 @@ def jaw_fap(path: Path, frames: int = 100) -> Path:
     from facecast.protocol.fap_file import FapFile, FapFrame, write_fap
 
     values = 900 * np.sin(np.linspace(0, np.pi, frames))
-    path.write_text(write_fap(FapFile(frames=tuple(FapFrame.build(i, {3: int(v)}) for i, v in enumerate(values)))))
+    path.write_text(
+        write_fap(
+            FapFile(frames=tuple(FapFrame.build(i, {3: int(v)}) for i, v in enumerate(values)))
+        )
+    )
     return path
 
 
-def test_play_after_driving_the_face_with_a_button_takes_over_the_producer(server, browser, tmp_path, artifacts):
+def test_play_after_driving_the_face_with_a_button_takes_over_the_producer(
+    server, browser, tmp_path, artifacts
+):
     page, problems = open_page(browser, f"{server.url}/#key={server.admin_key}")
     wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
     page.click("#expressions button >> text=joy")
     wait_for(page, "window.facecast.viewer.stats.frames >= 1")
     wait_for(page, "window.facecast.state.producer && window.facecast.state.producer.open")
     page.set_input_files("#file", str(jaw_fap(tmp_path / "jaw.fap")))
-    seen = page.evaluate("facecast.viewer.stats.frames")  # the button's frame; nothing more comes until Play
+    seen = page.evaluate(
+        "facecast.viewer.stats.frames"
+    )  # the button's frame; nothing more comes until Play
     page.click("#play")
-    wait_for(page, "document.getElementById('play-info').textContent.includes('playing') || "
-                   "document.getElementById('status').className.includes('error')", timeout=120)
+    wait_for(
+        page,
+        "document.getElementById('play-info').textContent.includes('playing') || "
+        "document.getElementById('status').className.includes('error')",
+        timeout=120,
+    )
     info, status = page.inner_text("#play-info"), page.inner_text("#status")
     assert "playing jaw.fap: 100 frames" in info, (info, status)
     assert "409" not in status and "already" not in status, status
@@ -251,7 +322,9 @@ def test_play_after_driving_the_face_with_a_button_takes_over_the_producer(serve
     page.click("#visemes button >> text=aa")
     wait_for(page, "window.facecast.state.producer && window.facecast.state.producer.open")
     page.screenshot(path=str(artifacts / "web_button_then_play.png"))
-    assert "error" not in page.evaluate("document.getElementById('status').className"), page.inner_text("#status")
+    assert "error" not in page.evaluate("document.getElementById('status').className"), (
+        page.inner_text("#status")
+    )
     assert not problems, problems
     page.close()
 
@@ -272,7 +345,9 @@ def test_a_dragged_slider_opens_one_producer_connection(server, browser):
     page.close()
 
 
-def test_a_marker_take_plays_with_the_layout_file_the_page_attaches(server, browser, tmp_path, artifacts):
+def test_a_marker_take_plays_with_the_layout_file_the_page_attaches(
+    server, browser, tmp_path, artifacts
+):
     from facecast.protocol.markers_file import write_trc
     from facecast.server.mocap.synthetic import synthetic_take
 
@@ -288,9 +363,15 @@ def test_a_marker_take_plays_with_the_layout_file_the_page_attaches(server, brow
     assert "layout" in page.inner_text("#status")
     page.set_input_files("#layout", str(tmp_path / "layout.json"))
     page.click("#play")
-    wait_for(page, "document.getElementById('play-info').textContent.includes('playing') || "
-                   "document.getElementById('status').className.includes('error')", timeout=120)
-    assert "playing take.trc: 60 frames" in page.inner_text("#play-info"), page.inner_text("#status")
+    wait_for(
+        page,
+        "document.getElementById('play-info').textContent.includes('playing') || "
+        "document.getElementById('status').className.includes('error')",
+        timeout=120,
+    )
+    assert "playing take.trc: 60 frames" in page.inner_text("#play-info"), page.inner_text(
+        "#status"
+    )
     wait_for(page, "window.facecast.viewer.stats.frames >= 5")
     page.screenshot(path=str(artifacts / "web_marker_take.png"))
     assert not problems, problems
@@ -300,21 +381,36 @@ def test_a_marker_take_plays_with_the_layout_file_the_page_attaches(server, brow
 def page_text_everywhere(page) -> str:
     """Everything the page shows or holds in its markup: the address, the title, the rendered text,
     the HTML (attributes included) and the value of every field but the admin key's password box."""
-    return "\n".join([page.url, page.title(), page.inner_text("body"), page.content(), page.evaluate(
-        "[...document.querySelectorAll('input, select, textarea, output')]"
-        ".filter((e) => e.id !== 'admin-key').map((e) => e.value).join('\\n')")])
+    return "\n".join(
+        [
+            page.url,
+            page.title(),
+            page.inner_text("body"),
+            page.content(),
+            page.evaluate(
+                "[...document.querySelectorAll('input, select, textarea, output')]"
+                ".filter((e) => e.id !== 'admin-key').map((e) => e.value).join('\\n')"
+            ),
+        ]
+    )
 
 
 def test_the_page_never_shows_a_token_or_the_admin_key(server, browser, tmp_path):
     session = create_session(server, input="fap", fps=30)
-    secrets = {"admin key": server.admin_key, "producer token": session["producer_token"],
-               "viewer token": session["viewer_token"]}
+    secrets = {
+        "admin key": server.admin_key,
+        "producer token": session["producer_token"],
+        "viewer token": session["viewer_token"],
+    }
     bad = tmp_path / "bad.fap"
     bad.write_text("2.1 broken 25 1\nnot a mask\n")
     # A link with the session's tokens and no admin key: producer routes take the token in the query,
     # and the server's refusal of a bad file must not bring it into the status bar.
-    page, problems = open_page(browser, f"{server.url}/#session={session['id']}&token={session['viewer_token']}"
-                                        f"&producer={session['producer_token']}")
+    page, problems = open_page(
+        browser,
+        f"{server.url}/#session={session['id']}&token={session['viewer_token']}"
+        f"&producer={session['producer_token']}",
+    )
     wait_for(page, "document.getElementById('status').textContent.includes('watching')")
     assert page.evaluate("document.getElementById('admin-key').value") == ""
     page.click("#expressions button >> text=joy")
@@ -338,16 +434,22 @@ def test_the_page_never_shows_a_token_or_the_admin_key(server, browser, tmp_path
     page.set_input_files("#file", str(bad))
     page.click("#play")
     wait_for(page, "document.getElementById('status').className.includes('error')", timeout=120)
-    page_secrets = [v for t in page.evaluate("Object.values(facecast.state.tokens)") for v in t.values() if v]
+    page_secrets = [
+        v for t in page.evaluate("Object.values(facecast.state.tokens)") for v in t.values() if v
+    ]
     assert page_secrets, "the page holds the tokens of the sessions it made"
     shown = page_text_everywhere(page)
-    assert server.admin_key not in shown and not [s for s in page_secrets if s in shown], page.inner_text("#status")
+    assert server.admin_key not in shown and not [s for s in page_secrets if s in shown], (
+        page.inner_text("#status")
+    )
     assert not [p for p in problems if "status of 400" not in p], problems  # the bad file's refusal
     page.close()
 
 
 def test_at_phone_width_the_face_is_not_covered(server, browser, artifacts):
-    page, problems = open_page(browser, f"{server.url}/#key={server.admin_key}", viewport=(390, 844))
+    page, problems = open_page(
+        browser, f"{server.url}/#key={server.admin_key}", viewport=(390, 844)
+    )
     wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
     page.click("#demo")
     wait_for(page, "window.facecast.viewer.stats.frames >= 3")
@@ -361,7 +463,9 @@ def test_at_phone_width_the_face_is_not_covered(server, browser, artifacts):
     y0, y1 = canvas["y"] + canvas["height"] / 4, canvas["y"] + 3 * canvas["height"] / 4
     for sel in ("#stats", "#status", "aside"):
         b = page.locator(sel).bounding_box()
-        apart = b["x"] >= x1 or b["x"] + b["width"] <= x0 or b["y"] >= y1 or b["y"] + b["height"] <= y0
+        apart = (
+            b["x"] >= x1 or b["x"] + b["width"] <= x0 or b["y"] >= y1 or b["y"] + b["height"] <= y0
+        )
         assert apart, f"{sel} {b} covers the middle of the face {(x0, y0, x1, y1)}"
     # and what is drawn there is the face
     w, h = canvas["width"], canvas["height"]
@@ -430,7 +534,9 @@ def test_back_face_culling_leaves_the_picture_unchanged(face_page):
     for yaw, pitch in [(0.35, 0.08), (-1.2, -0.3), (2.8, 0.2)]:
         r = page.evaluate(TWO_RENDERS_JS, ["cull", yaw, pitch])
         assert r["face"] > 0.05, f"nothing drawn at yaw {yaw}"
-        assert r["differ"] < 0.002, f"culling changed {100 * r['differ']:.2f} % of the pixels at yaw {yaw}"
+        assert r["differ"] < 0.002, (
+            f"culling changed {100 * r['differ']:.2f} % of the pixels at yaw {yaw}"
+        )
     assert not problems, problems
 
 
@@ -453,7 +559,9 @@ def test_the_coarse_level_draws_the_same_lit_face(face_page, artifacts):
     page, problems = face_page
     r = page.evaluate(TWO_RENDERS_JS, ["lod", 0.35, 0.08])
     assert r["face"] > 0.05, "nothing drawn"
-    assert r["mid"][0] > r["mid"][2] + 30, f"no lit skin in the middle at the coarse level: {r['mid']}"
+    assert r["mid"][0] > r["mid"][2] + 30, (
+        f"no lit skin in the middle at the coarse level: {r['mid']}"
+    )
     assert r["differ"] < 0.05, f"the coarse level changed {100 * r['differ']:.1f} % of the pixels"
     page.evaluate("facecast.setQuality({ lod: 1 }); facecast.renderer.draw()")
     page.screenshot(path=str(artifacts / "web_coarse_level.png"))
@@ -467,7 +575,9 @@ def test_vertex_cache_order_draws_the_same_picture(face_page):
         r = page.evaluate(TWO_RENDERS_JS, ["order", yaw, pitch])
         assert r["face"] > 0.05, f"nothing drawn at yaw {yaw}"
         # the same triangles; only where two surfaces meet at equal depth may the other one win
-        assert r["differ"] < 0.002, f"the triangle order changed {100 * r['differ']:.2f} % of the pixels"
+        assert r["differ"] < 0.002, (
+            f"the triangle order changed {100 * r['differ']:.2f} % of the pixels"
+        )
     assert not problems, problems
 
 
@@ -480,24 +590,44 @@ def check_mouth_window(server, browser, artifacts, face: str, fp: dict) -> list[
     state from MOUTH_VIEWS with the mouth's interior drawn whole and only inside the mouth window:
     every pixel must be the same."""
     session = create_session(server, input="fap", fps=30, face=face)
-    page, problems = open_page(browser, f"{server.url}/#session={session['id']}&token={session['viewer_token']}")
+    page, problems = open_page(
+        browser, f"{server.url}/#session={session['id']}&token={session['viewer_token']}"
+    )
     try:
         wait_for(page, "document.getElementById('status').textContent.includes('watching')")
         page.evaluate("facecast.setQuality({ scale: 0.5 })")
         results = []
         # closed; jaw open; jaw open with the tongue thrust out to its limit and raised (the built-in
         # head's tongue then comes out through the lips and the skin of the chin)
-        for faps in ({"3": 0.0}, {"3": 900.0, "5": -500.0}, {"3": 900.0, "45": 1080.0, "44": 400.0}):
+        for faps in (
+            {"3": 0.0},
+            {"3": 900.0, "5": -500.0},
+            {"3": 900.0, "45": 1080.0, "44": 400.0},
+        ):
             seen = page.evaluate("facecast.viewer.stats.frames")
             run_async(produce_faps(server, session, [faps]))
             wait_for(page, f"window.facecast.viewer.stats.frames > {seen}")
-            gap = page.evaluate(f"facecast.renderer.vertex({fp['2.2']})[1] - facecast.renderer.vertex({fp['2.3']})[1]")
+            gap = page.evaluate(
+                f"facecast.renderer.vertex({fp['2.2']})[1] - facecast.renderer.vertex({fp['2.3']})[1]"
+            )
             for yaw, pitch in MOUTH_VIEWS:
                 r = page.evaluate(TWO_RENDERS_JS, ["scissor", yaw, pitch])
                 assert r["face"] > 0.02, f"nothing drawn at {yaw, pitch}"
-                assert r["changed"] == 0, f"the mouth window changed {r['changed']} bytes at {(yaw, pitch)}, FAPs {faps}"
-                results.append({"faps": faps, "view": (yaw, pitch), "window": r["window"], "size": r["size"], "gap": gap})
-        page.evaluate("facecast.renderer.camera.yaw = 0.35; facecast.renderer.camera.pitch = 0.08; facecast.renderer.draw()")
+                assert r["changed"] == 0, (
+                    f"the mouth window changed {r['changed']} bytes at {(yaw, pitch)}, FAPs {faps}"
+                )
+                results.append(
+                    {
+                        "faps": faps,
+                        "view": (yaw, pitch),
+                        "window": r["window"],
+                        "size": r["size"],
+                        "gap": gap,
+                    }
+                )
+        page.evaluate(
+            "facecast.renderer.camera.yaw = 0.35; facecast.renderer.camera.pitch = 0.08; facecast.renderer.draw()"
+        )
         page.screenshot(path=str(artifacts / f"web_mouth_window_{face}.png"))
         assert not problems, problems
         return results
@@ -507,7 +637,11 @@ def check_mouth_window(server, browser, artifacts, face: str, fp: dict) -> list[
 
 def window_area(r: dict) -> float:
     w = r["window"]
-    return 0.0 if w is None else max(0, w[2] - w[0]) * max(0, w[3] - w[1]) / (r["size"][0] * r["size"][1])
+    return (
+        0.0
+        if w is None
+        else max(0, w[2] - w[0]) * max(0, w[3] - w[1]) / (r["size"][0] * r["size"][1])
+    )
 
 
 def test_the_mouth_window_leaves_the_picture_unchanged(server, browser, artifacts):

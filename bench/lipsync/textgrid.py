@@ -1,4 +1,5 @@
 """Minimal Praat TextGrid reader (long and short text formats) for the lip-sync benchmark."""
+
 from __future__ import annotations
 
 import re
@@ -31,8 +32,10 @@ def read_tiers(path: str | Path) -> dict[str, list[tuple[float, float, str]]]:
         n = int(tok[i + 4])
         i += 5
         if kind == "IntervalTier":
-            tiers[str(name)] = [(float(tok[i + 3 * j]), float(tok[i + 3 * j + 1]),
-                                 str(tok[i + 3 * j + 2]).strip()) for j in range(n)]
+            tiers[str(name)] = [
+                (float(tok[i + 3 * j]), float(tok[i + 3 * j + 1]), str(tok[i + 3 * j + 2]).strip())
+                for j in range(n)
+            ]
             i += 3 * n
         else:  # TextTier: (time, mark) points
             i += 2 * n

@@ -1,4 +1,5 @@
 """Client-side ``facecast`` subcommands: ``add_arguments(parser)`` and ``run(args) -> int``."""
+
 from __future__ import annotations
 
 import argparse

@@ -34,8 +34,13 @@ def _progress_bar(name: str) -> tuple[Callable[[int, int], None] | None, Callabl
         return None, lambda: None
     from tqdm import tqdm
 
-    bar = tqdm(desc=name, total=100, file=sys.stderr, leave=False,
-               bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}")
+    bar = tqdm(
+        desc=name,
+        total=100,
+        file=sys.stderr,
+        leave=False,
+        bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}",
+    )
 
     def update(done: int, total: int) -> None:
         bar.n = round(100 * done / total) if total else 0
@@ -50,19 +55,31 @@ def render(args: argparse.Namespace) -> None:
 
     suffix = args.output.suffix.lower()
     if suffix not in OUTPUT_SUFFIXES:
-        raise _Refused(f"unsupported output type {suffix or '(none)'!r}; expected one of "
-                      f"{', '.join(OUTPUT_SUFFIXES)}", where=str(args.output))
+        raise _Refused(
+            f"unsupported output type {suffix or '(none)'!r}; expected one of "
+            f"{', '.join(OUTPUT_SUFFIXES)}",
+            where=str(args.output),
+        )
     if not args.input.is_file():
         raise _Refused("input file not found", where=str(args.input))
     if any(getattr(args, name, None) is not None for name in LOCAL_ONLY_FLAGS):
-        raise _Refused("--filter, --lowrank, --stable and --neutral-frame apply to local renders only", where="--server")
+        raise _Refused(
+            "--filter, --lowrank, --stable and --neutral-frame apply to local renders only",
+            where="--server",
+        )
     options = {"face": args.face, "engine": args.engine}
     if args.layout:
         options["layout"] = args.layout
     progress, close = _progress_bar(args.input.name)
     try:
-        render_remote(args.server, args.input, args.output, options=options, progress=progress,
-                      admin_key=os.environ.get("FACECAST_ADMIN_KEY"))
+        render_remote(
+            args.server,
+            args.input,
+            args.output,
+            options=options,
+            progress=progress,
+            admin_key=os.environ.get("FACECAST_ADMIN_KEY"),
+        )
     except RemoteJobError as e:
         raise _Refused(str(e), where=args.server) from None
     finally:

@@ -29,8 +29,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     c.add_argument("--fps", type=float, default=60.0, help="output frame rate (audio/markers)")
     c.add_argument("--engine", default="fp", help="deformation engine: fp | rbf | shell")
     c.add_argument("--max-viewers", type=int, help="viewer limit for this session")
-    c.add_argument("--tolerance", type=float, default=0.1,
-                   help="compact encoding: largest error of a decoded vertex, mm (default 0.1)")
+    c.add_argument(
+        "--tolerance",
+        type=float,
+        default=0.1,
+        help="compact encoding: largest error of a decoded vertex, mm (default 0.1)",
+    )
     d = sub.add_parser(
         "close", help="close a live session (its producer and viewers are disconnected)"
     )

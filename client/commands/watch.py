@@ -23,11 +23,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--session", required=True, help="session id")
     add_token_argument(p, "viewer")
     p.add_argument(
-        "--encoding", choices=VERTEX_ENCODINGS, default="compact",
+        "--encoding",
+        choices=VERTEX_ENCODINGS,
+        default="compact",
         help="vertex encoding (default compact: within the session's tolerance, a few %% of i16)",
     )
-    p.add_argument("--save", metavar="OUT.npz",
-                   help="write the decoded frames: seq, t (s), vertices (frames, V, 3) face units")
+    p.add_argument(
+        "--save",
+        metavar="OUT.npz",
+        help="write the decoded frames: seq, t (s), vertices (frames, V, 3) face units",
+    )
     stop = p.add_mutually_exclusive_group()
     stop.add_argument("--frames", type=int, help="stop after this many frames")
     stop.add_argument("--seconds", type=float, help="stop after this many seconds")
@@ -93,7 +98,9 @@ def _save(path: str, got: list) -> str:
             fh,
             seq=np.array([f.frame.header.seq for f in got], np.uint32),
             t=np.array([f.frame.header.t for f in got], np.float64),
-            vertices=np.stack([f.positions() for f in got]) if got else np.zeros((0, V, 3), np.float32),
+            vertices=np.stack([f.positions() for f in got])
+            if got
+            else np.zeros((0, V, 3), np.float32),
         )
     return out
 

@@ -9,6 +9,7 @@ Who needs the admin key (``Authorization: Bearer <key>``):
 
 Every error is JSON: ``{"error": "<what was wrong and what to do>", "where": "...", "status": N}``.
 """
+
 from __future__ import annotations
 
 import logging
@@ -119,7 +120,9 @@ def _probe_backend(backend: str, device: str | None) -> tuple[str, str | None]:
     ctx = default_context(device)
     if ctx is None:
         if backend == "opencl":
-            raise FacecastError("no working OpenCL device; install pocl-opencl-icd or use --backend numpy")
+            raise FacecastError(
+                "no working OpenCL device; install pocl-opencl-icd or use --backend numpy"
+            )
         return "numpy", None
     devs = getattr(ctx, "devices", None) or []
     names = ", ".join(f"{d.name.strip()} ({d.platform.name.strip()})" for d in devs) or str(ctx)
@@ -137,7 +140,9 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         app.state.started = time.time()
         left = clear_upload_dir(config.data_dir)  # uploads a crashed server left behind
         if left:
-            log.info("removed %d upload(s) left by the last run in %s", left, upload_dir(config.data_dir))
+            log.info(
+                "removed %d upload(s) left by the last run in %s", left, upload_dir(config.data_dir)
+            )
         # A daemon thread: stopping the server never waits for a warm-up still in progress.
         threading.Thread(target=_warm_up, args=(app,), name="facecast-warm-up", daemon=True).start()
         await app.state.jobs.start()
@@ -158,17 +163,27 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         description=DESCRIPTION,
         lifespan=lifespan,
         default_response_class=SafeJSONResponse,
-        docs_url=None, redoc_url=None,  # served by routes_web from local assets (no CDN)
+        docs_url=None,
+        redoc_url=None,  # served by routes_web from local assets (no CDN)
     )
     app.state.config = config
     app.state.admin_key = admin_key
     app.state.metrics = Metrics()
-    app.state.store = FaceStore(default=config.face, backend=config.backend, device=config.device,
-                                configured=parse_faces_env(config.faces), uploads=config.data_dir / "faces")
+    app.state.store = FaceStore(
+        default=config.face,
+        backend=config.backend,
+        device=config.device,
+        configured=parse_faces_env(config.faces),
+        uploads=config.data_dir / "faces",
+    )
     # Folders whose paths never reach a client: the data directory, the temporary folder, the
     # operator's mesh folders (a message keeps only a file's own name).
-    roots = {str(config.data_dir.expanduser().resolve()), str(config.data_dir), tempfile.gettempdir(),
-             *(str(p.expanduser().parent) for p in app.state.store.configured.values())}
+    roots = {
+        str(config.data_dir.expanduser().resolve()),
+        str(config.data_dir),
+        tempfile.gettempdir(),
+        *(str(p.expanduser().parent) for p in app.state.store.configured.values()),
+    }
     # ... and where facecast and its Python live (a message may name a file of the package).
     roots |= {str(Path(__file__).resolve().parents[2]), sys.prefix}
     app.state.private_roots = sorted((r for r in roots if len(r) > 1), key=len, reverse=True)
@@ -177,9 +192,15 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
 
     from ..jobs.manager import JobManager
 
-    app.state.jobs = JobManager(config.data_dir, workers=config.job_workers, backend=config.backend,
-                                device=config.device, retention_hours=config.job_retention_hours,
-                                job_timeout=config.job_timeout_seconds, memory_mb=config.job_memory_mb)
+    app.state.jobs = JobManager(
+        config.data_dir,
+        workers=config.job_workers,
+        backend=config.backend,
+        device=config.device,
+        retention_hours=config.job_retention_hours,
+        job_timeout=config.job_timeout_seconds,
+        memory_mb=config.job_memory_mb,
+    )
     app.state.metrics.watch_jobs(app.state.jobs.store.counts)
 
     def _answer(exc: Exception, **extra: Any) -> JSONResponse:
@@ -193,13 +214,20 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
 
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, exc: HTTPException) -> JSONResponse:
-        extra: dict[str, Any] = {} if isinstance(exc.detail, str) else {"problems": safe_json(jsonable(exc.detail))}
+        extra: dict[str, Any] = (
+            {} if isinstance(exc.detail, str) else {"problems": safe_json(jsonable(exc.detail))}
+        )
         return _answer(exc, **extra)
 
     @app.exception_handler(Exception)
     async def _server_error(request: Request, exc: Exception) -> JSONResponse:
         # Last resort: the details (paths, traceback) go to the server log, never to the client.
-        log.error("unhandled error on %s %s", request.method, safe_text(request.url.path, 200), exc_info=exc)
+        log.error(
+            "unhandled error on %s %s",
+            request.method,
+            safe_text(request.url.path, 200),
+            exc_info=exc,
+        )
         return _answer(exc)
 
     @app.exception_handler(RequestValidationError)
@@ -207,10 +235,14 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         # Client input echoed here may be NaN, bytes, lone surrogates or huge: safe_json copes.
         errors = safe_json(jsonable(exc.errors()))
         problems = "; ".join(
-            f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', '')}" for e in errors
-            if isinstance(e, dict))
-        return _answer(HTTPException(422, f"invalid request: {problems}; see /docs for the schema"),
-                       problems=errors)
+            f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', '')}"
+            for e in errors
+            if isinstance(e, dict)
+        )
+        return _answer(
+            HTTPException(422, f"invalid request: {problems}; see /docs for the schema"),
+            problems=errors,
+        )
 
     app.include_router(routes_health.router)
     app.include_router(routes_faces.router)

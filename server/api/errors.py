@@ -26,8 +26,13 @@ def reply(exc: BaseException, app: Any = None) -> ErrorReply:
     if isinstance(exc, HTTPException):
         status = exc.status_code
         message = exc.detail if isinstance(exc.detail, str) else "request failed"
-        r = ErrorReply(status, int(close_code_for(status)), message, headers=dict(exc.headers or {}),
-                       remote=400 <= status < 500)
+        r = ErrorReply(
+            status,
+            int(close_code_for(status)),
+            message,
+            headers=dict(exc.headers or {}),
+            remote=400 <= status < 500,
+        )
     else:
         r = error_reply(exc)
     scrub = getattr(getattr(app, "state", None), "scrub_paths", None)
@@ -47,12 +52,20 @@ def error_body(status: int, message: str, where: str = "", **extra: Any) -> dict
 
 def error_response(r: ErrorReply, **extra: Any) -> SafeJSONResponse:
     """The REST answer to ``r`` (``extra``: more body fields, e.g. validation ``problems``)."""
-    return SafeJSONResponse(error_body(r.status, r.message, r.where, **extra), status_code=r.status,
-                            headers=dict(r.headers) or None)
+    return SafeJSONResponse(
+        error_body(r.status, r.message, r.where, **extra),
+        status_code=r.status,
+        headers=dict(r.headers) or None,
+    )
 
 
-def error_text(r: ErrorReply, *, fatal: bool = True, seq: int | None = None, prefix: str = "") -> str:
+def error_text(
+    r: ErrorReply, *, fatal: bool = True, seq: int | None = None, prefix: str = ""
+) -> str:
     """The WebSocket ``error`` message of ``r`` (JSON text; ``code`` is ``r.close_code``; ``prefix``
     goes before the message, e.g. ``"frame dropped: "`` for a non-fatal error)."""
-    return dump_message(ErrorMessage(code=r.close_code, message=prefix + r.message, where=r.where,
-                                     fatal=fatal, seq=seq))
+    return dump_message(
+        ErrorMessage(
+            code=r.close_code, message=prefix + r.message, where=r.where, fatal=fatal, seq=seq
+        )
+    )

@@ -3,6 +3,7 @@
 The live session code updates ``sessions``, ``viewers``, ``frames_sent``, ``frames_dropped`` and
 ``deform_seconds``; jobs by state are read from the job store at scrape time.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -40,25 +41,38 @@ class Metrics:
         r = self.registry
         self.sessions = Gauge("facecast_sessions", "Live sessions open", registry=r)
         self.viewers = Gauge("facecast_viewers", "Viewers connected to live sessions", registry=r)
-        self.producers = Gauge("facecast_producers", "Producers connected to live sessions", registry=r)
-        self.frames_sent = Counter("facecast_frames_sent", "Vertex frames sent to viewers", registry=r)
-        self.frames_dropped = Counter("facecast_frames_dropped",
-                                      "Vertex frames a slow viewer skipped", registry=r)
-        self.frames_in = Counter("facecast_frames_received", "Input frames received from producers",
-                                 registry=r)
-        self.sessions_expired = Counter("facecast_sessions_expired",
-                                        "Live sessions closed after their idle time", registry=r)
+        self.producers = Gauge(
+            "facecast_producers", "Producers connected to live sessions", registry=r
+        )
+        self.frames_sent = Counter(
+            "facecast_frames_sent", "Vertex frames sent to viewers", registry=r
+        )
+        self.frames_dropped = Counter(
+            "facecast_frames_dropped", "Vertex frames a slow viewer skipped", registry=r
+        )
+        self.frames_in = Counter(
+            "facecast_frames_received", "Input frames received from producers", registry=r
+        )
+        self.sessions_expired = Counter(
+            "facecast_sessions_expired", "Live sessions closed after their idle time", registry=r
+        )
         self.live_refused = Counter(
             "facecast_live_messages_refused",
             "Live WebSocket messages refused before decoding, by reason "
             "(drop: over the rate; flood, too_big: the connection is closed)",
-            ["reason"], registry=r)
+            ["reason"],
+            registry=r,
+        )
         self.deform_seconds = Histogram(
-            "facecast_deform_seconds", "Time to deform one live frame (seconds)", registry=r,
-            buckets=(0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0))
+            "facecast_deform_seconds",
+            "Time to deform one live frame (seconds)",
+            registry=r,
+            buckets=(0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0),
+        )
         self.jobs_submitted = Counter("facecast_jobs_submitted", "Batch jobs accepted", registry=r)
-        self.http_errors = Counter("facecast_http_errors", "HTTP error responses by status",
-                                   ["status"], registry=r)
+        self.http_errors = Counter(
+            "facecast_http_errors", "HTTP error responses by status", ["status"], registry=r
+        )
 
     def watch_jobs(self, counts: Callable[[], dict[str, int]]) -> None:
         """Report jobs by state from ``counts()`` at every scrape."""

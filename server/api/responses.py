@@ -5,6 +5,7 @@ strict JSON cannot carry: NaN and infinities, bytes, lone surrogates, integers t
 ``safe_json`` turns them into plain strings; ``SafeJSONResponse`` uses it only when the fast path
 fails, so normal responses cost nothing extra.
 """
+
 from __future__ import annotations
 
 import json
@@ -39,7 +40,11 @@ def safe_json(obj: Any, limit: int | None = MAX_ECHO_CHARS, _depth: int = 0) -> 
     if obj is None or isinstance(obj, bool):
         return obj
     if isinstance(obj, int):
-        return int(obj) if obj.bit_length() <= MAX_INT_BITS else f"(an integer of {obj.bit_length()} bits)"
+        return (
+            int(obj)
+            if obj.bit_length() <= MAX_INT_BITS
+            else f"(an integer of {obj.bit_length()} bits)"
+        )
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else repr(obj)
     if isinstance(obj, str):
@@ -64,5 +69,9 @@ class SafeJSONResponse(JSONResponse):
         try:
             return super().render(content)
         except (ValueError, TypeError, UnicodeEncodeError, RecursionError):
-            return json.dumps(safe_json(content, limit=None), ensure_ascii=False, allow_nan=False,
-                              separators=(",", ":")).encode("utf-8")
+            return json.dumps(
+                safe_json(content, limit=None),
+                ensure_ascii=False,
+                allow_nan=False,
+                separators=(",", ":"),
+            ).encode("utf-8")

@@ -7,6 +7,7 @@ The mesh is read and annotated in a throw-away process with a deadline and a mem
 (``faces.upload``); the face is then kept in ``<data dir>/faces/`` and usable by name or id in
 sessions, jobs and playback. ``DELETE /v1/faces/{name}`` (admin key) removes an uploaded face.
 """
+
 from __future__ import annotations
 
 import logging
@@ -43,8 +44,13 @@ log = logging.getLogger(__name__)
 
 router = APIRouter(prefix="/v1/faces", tags=["faces"])
 
-_ERRORS = {404: {"model": ErrorBody, "description": "no such face"},
-           403: {"model": ErrorBody, "description": "a new resolution of a built-in face needs the admin key"}}
+_ERRORS = {
+    404: {"model": ErrorBody, "description": "no such face"},
+    403: {
+        "model": ErrorBody,
+        "description": "a new resolution of a built-in face needs the admin key",
+    },
+}
 
 
 def part_order(face) -> list[str]:
@@ -57,9 +63,14 @@ def face_topology(face) -> Topology:
     """The ``Topology`` of a face: rest vertices, triangles, part per vertex, rigid group per vertex."""
     order = part_order(face)
     return Topology(
-        vertices=face.vertices, triangles=face.triangles,
-        part_ids=part_ids_from_parts(face.n_vertices, face.parts, order), part_names=order,
-        rigid_group=face.rigid_group, group_names=list(RIGID_GROUPS), mm_per_unit=face.mm_per_unit)
+        vertices=face.vertices,
+        triangles=face.triangles,
+        part_ids=part_ids_from_parts(face.n_vertices, face.parts, order),
+        part_names=order,
+        rigid_group=face.rigid_group,
+        group_names=list(RIGID_GROUPS),
+        mm_per_unit=face.mm_per_unit,
+    )
 
 
 def face_fapu(face) -> dict[str, float] | None:
@@ -76,9 +87,11 @@ def check_public_load(request: Request, name: str) -> None:
     new resolution of a built-in face (``default:300k``); sessions and jobs do that with the key."""
     store = request.app.state.store
     if store.needs_admin(name) and not same(bearer(request), request.app.state.admin_key):
-        raise Forbidden(f"face {name!r} is not loaded on this server; building a new resolution of a built-in "
-                        "face needs the admin key (Authorization: Bearer <key>), or use one of GET /v1/faces",
-                        where="face")
+        raise Forbidden(
+            f"face {name!r} is not loaded on this server; building a new resolution of a built-in "
+            "face needs the admin key (Authorization: Bearer <key>), or use one of GET /v1/faces",
+            where="face",
+        )
 
 
 #: Largest uploaded mesh file and annotation (bytes); the request's limit is also max_upload_bytes.
@@ -99,13 +112,20 @@ class Busy(Unavailable):
 class FaceUploaded(BaseModel):
     """Answer of ``POST /v1/faces``."""
 
-    id: str = Field(description="the face's id (hash of its mesh and annotation); usable as its name")
+    id: str = Field(
+        description="the face's id (hash of its mesh and annotation); usable as its name"
+    )
     name: str
-    created: bool = Field(description="false when the same mesh and annotation were uploaded before")
-    annotation: str = Field(description="user | automatic | user+automatic: where the annotation came from")
+    created: bool = Field(
+        description="false when the same mesh and annotation were uploaded before"
+    )
+    annotation: str = Field(
+        description="user | automatic | user+automatic: where the annotation came from"
+    )
     cached: bool = Field(False, description="the automatic annotation came from the server's cache")
-    left_out: dict[str, str] = Field(default_factory=dict, description="feature points the annotator left out, "
-                                     "with the reason")
+    left_out: dict[str, str] = Field(
+        default_factory=dict, description="feature points the annotator left out, with the reason"
+    )
     warnings: list[str] = Field(default_factory=list)
     annotate_seconds: float | None = None
     face: FaceInfo
@@ -116,7 +136,9 @@ class _MeshUpload(UploadParser):
 
     field_limits: ClassVar[dict[str, int]] = {**FIELD_LIMITS, "annotation": MAX_ANNOTATION_BYTES}
 
-    def _check_kind(self) -> None:  # a mesh, whatever its first bytes (the child tells formats apart)
+    def _check_kind(
+        self,
+    ) -> None:  # a mesh, whatever its first bytes (the child tells formats apart)
         self.kind = "mesh"
 
 
@@ -136,24 +158,40 @@ def mesh_worker(app) -> mesh_upload.MeshWorker:
 
 
 _UPLOAD_DOC = multipart_doc(
-    file={"type": "string", "format": "binary",
-          "description": "the head mesh: .obj, .ply, .glb/.gltf (buffers embedded) or .stl"},
-    annotation={"type": "string", "format": "binary",
-                "description": "optional .face.json content (complete or partial; it always wins over the "
-                               "automatic annotation); never a path"},
-    name={"type": "string", "description": "optional name (letters, digits, _ . -); default face-<id>"},
+    file={
+        "type": "string",
+        "format": "binary",
+        "description": "the head mesh: .obj, .ply, .glb/.gltf (buffers embedded) or .stl",
+    },
+    annotation={
+        "type": "string",
+        "format": "binary",
+        "description": "optional .face.json content (complete or partial; it always wins over the "
+        "automatic annotation); never a path",
+    },
+    name={
+        "type": "string",
+        "description": "optional name (letters, digits, _ . -); default face-<id>",
+    },
 )
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, response_model=FaceUploaded, openapi_extra=_UPLOAD_DOC,
-             dependencies=[Depends(require_admin)],
-             responses={200: {"model": FaceUploaded, "description": "the same face was uploaded before"},
-                        401: {"model": ErrorBody, "description": "admin key missing or wrong"},
-                        409: {"model": ErrorBody, "description": "name taken, or too many uploaded faces"},
-                        413: {"model": ErrorBody, "description": "file or mesh larger than the server's limits"},
-                        415: {"model": ErrorBody, "description": "not multipart"},
-                        422: {"model": ErrorBody, "description": "the mesh cannot be read or annotated"},
-                        503: {"model": ErrorBody, "description": "another mesh is being read; retry"}})
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    response_model=FaceUploaded,
+    openapi_extra=_UPLOAD_DOC,
+    dependencies=[Depends(require_admin)],
+    responses={
+        200: {"model": FaceUploaded, "description": "the same face was uploaded before"},
+        401: {"model": ErrorBody, "description": "admin key missing or wrong"},
+        409: {"model": ErrorBody, "description": "name taken, or too many uploaded faces"},
+        413: {"model": ErrorBody, "description": "file or mesh larger than the server's limits"},
+        415: {"model": ErrorBody, "description": "not multipart"},
+        422: {"model": ErrorBody, "description": "the mesh cannot be read or annotated"},
+        503: {"model": ErrorBody, "description": "another mesh is being read; retry"},
+    },
+)
 async def upload_face(request: Request) -> Any:
     """Add a face from a mesh (multipart ``file``), with an optional ``annotation`` and ``name``.
 
@@ -167,14 +205,19 @@ async def upload_face(request: Request) -> Any:
     declared = request.headers.get("content-length")
     if declared and declared.isdigit() and int(declared) > limit + FORM_OVERHEAD:
         await drain(request, 0)
-        raise PayloadTooLarge(f"the upload is {int(declared)} bytes, more than this server's limit of {limit} "
-                              "bytes for a mesh; decimate the mesh", where="file")
+        raise PayloadTooLarge(
+            f"the upload is {int(declared)} bytes, more than this server's limit of {limit} "
+            "bytes for a mesh; decimate the mesh",
+            where="file",
+        )
     slots = _upload_slots(app)
     if not slots.acquire(blocking=False):
         await drain(request, 0)
         raise Busy("the server is reading another mesh; retry in a few seconds", where="file")
     try:
-        with tempfile.TemporaryDirectory(prefix="facecast-face-", dir=upload_dir(cfg.data_dir)) as tmp:
+        with tempfile.TemporaryDirectory(
+            prefix="facecast-face-", dir=upload_dir(cfg.data_dir)
+        ) as tmp:
             path = Path(tmp) / "upload"
             parser = _MeshUpload(boundary, path, limit)
             parser.limit_variable = "FACECAST_MAX_UPLOAD_BYTES"
@@ -190,12 +233,17 @@ async def upload_face(request: Request) -> Any:
                 raise
             except Exception as e:
                 parser.abort()
-                raise InputError(f"could not read the multipart upload ({str(e)[:200]}); send a 'file' part",
-                                 where="body") from None
+                raise InputError(
+                    f"could not read the multipart upload ({str(e)[:200]}); send a 'file' part",
+                    where="body",
+                ) from None
             unknown = sorted(set(parser.fields) - {"annotation", "name"})
             if unknown:
-                raise InputError(f"unknown form field(s) {', '.join(unknown)[:200]}; known: file, annotation, "
-                                 "name", where="form")
+                raise InputError(
+                    f"unknown form field(s) {', '.join(unknown)[:200]}; known: file, annotation, "
+                    "name",
+                    where="form",
+                )
             if parser.size == 0:
                 raise InputError("the uploaded file is empty", where="file")
             fmt = mesh_upload.sniff_format(parser.filename, parser.head)
@@ -203,29 +251,57 @@ async def upload_face(request: Request) -> Any:
             name = parser.fields.get("name") or None
             if name is not None:
                 app.state.store.check_upload_name(name)
-            prepared = await run_in_threadpool(mesh_worker(app).prepare, path, fmt,
-                                               parser.fields.get("annotation"), name=display)
+            prepared = await run_in_threadpool(
+                mesh_worker(app).prepare, path, fmt, parser.fields.get("annotation"), name=display
+            )
     finally:
         slots.release()
     report = prepared.report
     meta = {"source": prepared.source, "file": display, "format": fmt, "report": report}
     store = app.state.store
-    name, face_id, created = await run_in_threadpool(store.add_upload, prepared.vertices, prepared.triangles,
-                                                     prepared.annotation, name=name, meta=meta)
+    name, face_id, created = await run_in_threadpool(
+        store.add_upload,
+        prepared.vertices,
+        prepared.triangles,
+        prepared.annotation,
+        name=name,
+        meta=meta,
+    )
     if created and prepared.source != "user":
-        log.info("face %s (%s): annotated automatically%s", name, display,
-                 " (from the cache)" if prepared.cached else f" in {report.get('seconds', 0):.1f} s")
+        log.info(
+            "face %s (%s): annotated automatically%s",
+            name,
+            display,
+            " (from the cache)" if prepared.cached else f" in {report.get('seconds', 0):.1f} s",
+        )
     info = await describe_face(name, request)
-    body = FaceUploaded(id=face_id, name=name, created=created, annotation=prepared.source, cached=prepared.cached,
-                        left_out={str(k): str(v) for k, v in (report.get("left_out") or {}).items()},
-                        warnings=[str(w) for w in report.get("warnings") or []],
-                        annotate_seconds=report.get("seconds"), face=info)
-    return JSONResponse(body.model_dump(), status_code=201 if created else 200,
-                        headers={"Location": f"/v1/faces/{name}"})
+    body = FaceUploaded(
+        id=face_id,
+        name=name,
+        created=created,
+        annotation=prepared.source,
+        cached=prepared.cached,
+        left_out={str(k): str(v) for k, v in (report.get("left_out") or {}).items()},
+        warnings=[str(w) for w in report.get("warnings") or []],
+        annotate_seconds=report.get("seconds"),
+        face=info,
+    )
+    return JSONResponse(
+        body.model_dump(),
+        status_code=201 if created else 200,
+        headers={"Location": f"/v1/faces/{name}"},
+    )
 
 
-@router.delete("/{name}", status_code=status.HTTP_204_NO_CONTENT, dependencies=[Depends(require_admin)],
-               responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody, "description": "no uploaded face"}})
+@router.delete(
+    "/{name}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    dependencies=[Depends(require_admin)],
+    responses={
+        401: {"model": ErrorBody},
+        404: {"model": ErrorBody, "description": "no uploaded face"},
+    },
+)
 async def delete_face(name: str, request: Request) -> Response:
     """Delete an uploaded face (by name or id); built-in and configured faces stay."""
     await run_in_threadpool(request.app.state.store.remove_upload, name)
@@ -240,8 +316,14 @@ async def list_faces(request: Request) -> FaceList:
     faces = []
     for name in store.names():
         face = store.loaded_face(name)
-        faces.append(FaceSummary(name=name, builtin=name in builtin, default=name == store.default,
-                                 vertices=face.n_vertices if face is not None else builtin.get(name)))
+        faces.append(
+            FaceSummary(
+                name=name,
+                builtin=name in builtin,
+                default=name == store.default,
+                vertices=face.n_vertices if face is not None else builtin.get(name),
+            )
+        )
     return FaceList(faces=faces, default=store.default)
 
 
@@ -254,29 +336,47 @@ async def describe_face(name: str, request: Request) -> FaceInfo:
     fapu = await run_in_threadpool(store.derived, name, "fapu", face_fapu)
     groups = np.bincount(face.rigid_group, minlength=len(RIGID_GROUPS))
     return FaceInfo(
-        name=name, vertices=face.n_vertices, triangles=int(face.triangles.shape[0]), units=face.units,
-        mm_per_unit=face.mm_per_unit, mesh_hash=face.mesh_hash,
+        name=name,
+        vertices=face.n_vertices,
+        triangles=int(face.triangles.shape[0]),
+        units=face.units,
+        mm_per_unit=face.mm_per_unit,
+        mesh_hash=face.mesh_hash,
         parts={p: int(len(face.parts[p])) for p in part_order(face)},
         rigid_groups={g: int(groups[i]) for i, g in enumerate(RIGID_GROUPS)},
         feature_points=len(face.feature_points),
-        feature_point_ids=sorted(face.feature_points, key=lambda s: tuple(int(x) for x in s.split(".")
-                                                                          if x.isdigit())),
+        feature_point_ids=sorted(
+            face.feature_points, key=lambda s: tuple(int(x) for x in s.split(".") if x.isdigit())
+        ),
         fapu=fapu,
         bounds=[face.vertices.min(axis=0).tolist(), face.vertices.max(axis=0).tolist()],
         topology_url=f"/v1/faces/{name}/topology",
     )
 
 
-@router.get("/{name}/topology", response_class=Response, responses={
-    200: {"content": {TOPOLOGY_MEDIA_TYPE: {}},
-          "description": "binary topology (protocol/TOPOLOGY.md): rest vertices, triangles, parts, rigid groups"},
-    **_ERRORS})
+@router.get(
+    "/{name}/topology",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {TOPOLOGY_MEDIA_TYPE: {}},
+            "description": "binary topology (protocol/TOPOLOGY.md): rest vertices, triangles, parts, rigid groups",
+        },
+        **_ERRORS,
+    },
+)
 async def face_topology_route(name: str, request: Request) -> Response:
     """Rest vertices, triangles, per-vertex part ids and rigid groups as one little-endian blob."""
     store = request.app.state.store
     check_public_load(request, name)  # 404 / 403 before any work
-    blob = await run_in_threadpool(store.derived, name, "topology",
-                                   lambda face: encode_topology(face_topology(face)))
-    return Response(blob, media_type=TOPOLOGY_MEDIA_TYPE,
-                    headers={"Cache-Control": "no-cache",
-                             "Content-Disposition": f'inline; filename="{name}.topology"'})
+    blob = await run_in_threadpool(
+        store.derived, name, "topology", lambda face: encode_topology(face_topology(face))
+    )
+    return Response(
+        blob,
+        media_type=TOPOLOGY_MEDIA_TYPE,
+        headers={
+            "Cache-Control": "no-cache",
+            "Content-Disposition": f'inline; filename="{name}.topology"',
+        },
+    )

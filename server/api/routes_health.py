@@ -1,4 +1,5 @@
 """``/healthz`` (liveness with readiness details) and ``/metrics`` (Prometheus text)."""
+
 from __future__ import annotations
 
 import time
@@ -34,8 +35,14 @@ async def healthz(request: Request) -> Health:
     )
 
 
-@router.api_route("/readyz", methods=["GET", "HEAD"], response_model=Health,
-                  responses={503: {"model": Health, "description": "still warming up, or the default face failed"}})
+@router.api_route(
+    "/readyz",
+    methods=["GET", "HEAD"],
+    response_model=Health,
+    responses={
+        503: {"model": Health, "description": "still warming up, or the default face failed"}
+    },
+)
 async def readyz(request: Request, response: Response) -> Health:
     """Like ``/healthz``, but 503 until the default face is loaded (for load balancers)."""
     health = await healthz(request)
@@ -44,8 +51,11 @@ async def readyz(request: Request, response: Response) -> Health:
     return health
 
 
-@router.get("/metrics", response_class=Response,
-            responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text format"}})
+@router.get(
+    "/metrics",
+    response_class=Response,
+    responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text format"}},
+)
 async def metrics(request: Request) -> Response:
     """Sessions, viewers, frames sent and dropped, deform time, jobs by state (Prometheus text)."""
     return Response(request.app.state.metrics.render(), media_type=CONTENT_TYPE)

@@ -7,6 +7,7 @@ layout's JSON), never as a path. The job runs in a worker process (see ``server/
 decoder that crashes or hangs on a hostile file costs that process, never the server; a job over
 ``job_timeout_seconds`` is failed and its worker killed.
 """
+
 from __future__ import annotations
 
 import json
@@ -36,8 +37,12 @@ from .security import require_admin
 
 log = logging.getLogger(__name__)
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"], dependencies=[Depends(require_admin)],
-                   responses={401: {"model": ErrorBody, "description": "admin key missing or wrong"}})
+router = APIRouter(
+    prefix="/v1/jobs",
+    tags=["jobs"],
+    dependencies=[Depends(require_admin)],
+    responses={401: {"model": ErrorBody, "description": "admin key missing or wrong"}},
+)
 
 #: Room for the multipart framing and form fields around the file.
 FORM_OVERHEAD = 64 * 1024
@@ -46,9 +51,12 @@ FORM_OVERHEAD = 64 * 1024
 LAYOUT_FILE = "layout.json"
 
 _UPLOAD_DOC = multipart_doc(
-    file={"type": "string", "format": "binary",
-          "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv (type from the file name's "
-                         "suffix, else from its content)"},
+    file={
+        "type": "string",
+        "format": "binary",
+        "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv (type from the file name's "
+        "suffix, else from its content)",
+    },
     face={"type": "string", "description": "face name (GET /v1/faces)"},
     engine={"type": "string", "enum": ["fp", "rbf", "shell"], "default": "fp"},
     format={"type": "string", "enum": ["glb", "npz", "fap"], "default": "glb"},
@@ -59,31 +67,52 @@ _UPLOAD_DOC = multipart_doc(
 def job_status(job: JobRecord, request: Request | None = None) -> JobStatus:
     opts = {k: v for k, v in job.options.items() if k in JobOptions.model_fields}
     if job.options.get("layout_file"):
-        opts["layout"] = "uploaded"  # the content stays on the server; the status only says it is there
+        opts["layout"] = (
+            "uploaded"  # the content stays on the server; the status only says it is there
+        )
     result_bytes = None
     if job.status == "done" and request is not None:
         path = request.app.state.jobs.store.result_path(job)
         result_bytes = path.stat().st_size if path.is_file() else None
     return JobStatus(
-        id=job.id, status=job.status, progress=job.progress, error=job.error or None,
-        input_name=job.input_name, input_kind=job.input_kind, input_bytes=job.input_bytes,
-        options=JobOptions(**opts), attempts=job.attempts, created=job.created, started=job.started,
-        finished=job.finished, result_url=f"/v1/jobs/{job.id}/result" if job.status == "done" else None,
-        result_bytes=result_bytes)
+        id=job.id,
+        status=job.status,
+        progress=job.progress,
+        error=job.error or None,
+        input_name=job.input_name,
+        input_kind=job.input_kind,
+        input_bytes=job.input_bytes,
+        options=JobOptions(**opts),
+        attempts=job.attempts,
+        created=job.created,
+        started=job.started,
+        finished=job.finished,
+        result_url=f"/v1/jobs/{job.id}/result" if job.status == "done" else None,
+        result_bytes=result_bytes,
+    )
 
 
 def _job(request: Request, job_id: str) -> JobRecord:
     job = request.app.state.jobs.store.get(job_id) if JOB_ID.match(job_id) else None
     if job is None:
-        raise NotFound(f"no job {job_id!r} on this server; POST /v1/jobs returns the ids", where="job")
+        raise NotFound(
+            f"no job {job_id!r} on this server; POST /v1/jobs returns the ids", where="job"
+        )
     return job
 
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobStatus, openapi_extra=_UPLOAD_DOC,
-             responses={413: {"model": ErrorBody, "description": "upload larger than the server's limit"},
-                        415: {"model": ErrorBody, "description": "not multipart, or unknown input type"},
-                        404: {"model": ErrorBody, "description": "no such face"},
-                        422: {"model": ErrorBody, "description": "bad option"}})
+@router.post(
+    "",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=JobStatus,
+    openapi_extra=_UPLOAD_DOC,
+    responses={
+        413: {"model": ErrorBody, "description": "upload larger than the server's limit"},
+        415: {"model": ErrorBody, "description": "not multipart, or unknown input type"},
+        404: {"model": ErrorBody, "description": "no such face"},
+        422: {"model": ErrorBody, "description": "bad option"},
+    },
+)
 async def submit_job(request: Request, response: Response) -> JobStatus:
     """Submit a job: multipart form with ``file`` and options ``face``, ``engine``, ``format``, ``layout``,
     ``text`` (audio: its transcript).
@@ -99,9 +128,12 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
     declared = request.headers.get("content-length")
     if declared and declared.isdigit() and int(declared) > limit + FORM_OVERHEAD:
         await drain(request, 0)
-        raise PayloadTooLarge(f"the upload is {int(declared)} bytes, more than this server's limit of {limit} "
-                              "bytes for a file; send a smaller file or raise FACECAST_MAX_UPLOAD_BYTES "
-                              "on the server", where="file")
+        raise PayloadTooLarge(
+            f"the upload is {int(declared)} bytes, more than this server's limit of {limit} "
+            "bytes for a file; send a smaller file or raise FACECAST_MAX_UPLOAD_BYTES "
+            "on the server",
+            where="file",
+        )
     job_id = new_job_id()
     folder = jobs.store.folder(job_id)
     folder.mkdir(parents=True)
@@ -113,22 +145,32 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
                 received += len(chunk)
                 parser.write(chunk)
             parser.finish()
-        except FacecastError:  # too large, unknown type, bad framing: refuse, but let the client hear it
+        except (
+            FacecastError
+        ):  # too large, unknown type, bad framing: refuse, but let the client hear it
             parser.abort()
             await drain(request, received)
             raise
         except Exception as e:  # malformed multipart framing
-            raise InputError(f"could not read the multipart upload ({str(e)[:200]}); send a multipart/form-data "
-                             "body with a 'file' part", where="body") from None
+            raise InputError(
+                f"could not read the multipart upload ({str(e)[:200]}); send a multipart/form-data "
+                "body with a 'file' part",
+                where="body",
+            ) from None
         try:
-            opts = JobOptions(**{k: v for k, v in parser.fields.items() if k in JobOptions.model_fields})
+            opts = JobOptions(
+                **{k: v for k, v in parser.fields.items() if k in JobOptions.model_fields}
+            )
         except ValidationError as e:
             problems = "; ".join(f"{'.'.join(map(str, x['loc']))}: {x['msg']}" for x in e.errors())
             raise InputError(f"bad job option: {problems}", where="form") from None
         unknown = sorted(set(parser.fields) - set(JobOptions.model_fields))
         if unknown:
-            raise InputError(f"unknown form field(s) {', '.join(unknown)}; known: file, "
-                             f"{', '.join(JobOptions.model_fields)}", where="form")
+            raise InputError(
+                f"unknown form field(s) {', '.join(unknown)}; known: file, "
+                f"{', '.join(JobOptions.model_fields)}",
+                where="form",
+            )
         if parser.size == 0:
             raise InputError("the uploaded file is empty", where="file")
         face_spec = app.state.store.resolve(opts.face)
@@ -141,17 +183,24 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
             from ..audio.align import check_text
 
             if kind != "audio":
-                raise InputError(f"a transcript ('text') applies to audio input only, not {kind}",
-                                 where="text")
+                raise InputError(
+                    f"a transcript ('text') applies to audio input only, not {kind}", where="text"
+                )
             check_text(opts.text)
         if layout is not None:
             (folder / LAYOUT_FILE).write_text(json.dumps(layout), encoding="utf-8")
             options["layout_file"] = LAYOUT_FILE
         (folder / ".upload").replace(folder / input_file)
         display = safe_display_name(parser.filename, f"upload{suffix}")
-        job = jobs.store.add(job_id, input_name=display, input_kind=kind,
-                             input_file=input_file, input_bytes=parser.size,
-                             result_file=f"result.{opts.format}", options=options)
+        job = jobs.store.add(
+            job_id,
+            input_name=display,
+            input_kind=kind,
+            input_file=input_file,
+            input_bytes=parser.size,
+            result_file=f"result.{opts.format}",
+            options=options,
+        )
     except BaseException:
         parser.abort()
         shutil.rmtree(folder, ignore_errors=True)
@@ -176,36 +225,64 @@ async def get_job(job_id: str, request: Request) -> JobStatus:
     return job_status(_job(request, job_id), request)
 
 
-@router.get("/{job_id}/result", response_class=FileResponse,
-            responses={200: {"content": {t: {} for t in RESULT_MEDIA_TYPES.values()},
-                             "description": "the result file"},
-                       404: {"model": ErrorBody}, 409: {"model": ErrorBody, "description": "not done"}})
+@router.get(
+    "/{job_id}/result",
+    response_class=FileResponse,
+    responses={
+        200: {
+            "content": {t: {} for t in RESULT_MEDIA_TYPES.values()},
+            "description": "the result file",
+        },
+        404: {"model": ErrorBody},
+        409: {"model": ErrorBody, "description": "not done"},
+    },
+)
 async def get_result(job_id: str, request: Request):
     """The result file of a finished job (409 while it is queued or running, or if it failed)."""
     job = _job(request, job_id)
     if job.status != "done":
-        what = {"queued": "is queued", "running": f"is running ({job.progress:.0%})",
-                "cancelled": "was cancelled", "failed": f"failed: {job.error}"}[job.status]
-        raise Conflict(f"job {job_id} {what}; "
-                       + ("poll GET /v1/jobs/{id} until status is 'done'" if job.status in ("queued", "running")
-                          else "submit it again"), where="job")
+        what = {
+            "queued": "is queued",
+            "running": f"is running ({job.progress:.0%})",
+            "cancelled": "was cancelled",
+            "failed": f"failed: {job.error}",
+        }[job.status]
+        raise Conflict(
+            f"job {job_id} {what}; "
+            + (
+                "poll GET /v1/jobs/{id} until status is 'done'"
+                if job.status in ("queued", "running")
+                else "submit it again"
+            ),
+            where="job",
+        )
     path = request.app.state.jobs.store.result_path(job)
     if not path.is_file():
-        raise NotFound(f"the result of job {job_id} is no longer on the server; submit the job again",
-                       where="job")
+        raise NotFound(
+            f"the result of job {job_id} is no longer on the server; submit the job again",
+            where="job",
+        )
     stem = safe_display_name(job.input_name, "result").rsplit(".", 1)[0] or "result"
     fmt = job.options.get("format", "glb")
-    return FileResponse(path, media_type=RESULT_MEDIA_TYPES.get(fmt, "application/octet-stream"),
-                        filename=f"{stem}.{fmt}")
+    return FileResponse(
+        path,
+        media_type=RESULT_MEDIA_TYPES.get(fmt, "application/octet-stream"),
+        filename=f"{stem}.{fmt}",
+    )
 
 
-@router.delete("/{job_id}", response_model=JobStatus, responses={404: {"model": ErrorBody},
-                                                                   409: {"model": ErrorBody}})
+@router.delete(
+    "/{job_id}",
+    response_model=JobStatus,
+    responses={404: {"model": ErrorBody}, 409: {"model": ErrorBody}},
+)
 async def cancel_job(job_id: str, request: Request) -> JobStatus:
     """Cancel a queued or running job (its worker is stopped). Cancelling it again is harmless;
     a job that already finished (done or failed) answers 409."""
     job = _job(request, job_id)
     if job.status in ("done", "failed"):
-        raise Conflict(f"job {job_id} already {job.status}; there is nothing to cancel", where="job")
+        raise Conflict(
+            f"job {job_id} already {job.status}; there is nothing to cancel", where="job"
+        )
     request.app.state.jobs.cancel(job_id)
     return job_status(_job(request, job_id))

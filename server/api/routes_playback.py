@@ -14,6 +14,7 @@
 A server-side producer (``live.server_producer``) holds the session's producer slot: a WebSocket
 producer is refused (4409) while it runs, and a DELETE of the demo (or the end of the file) frees it.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -48,15 +49,20 @@ from .security import bearer, same
 
 log = logging.getLogger(__name__)
 
-router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["sessions"],
-                   responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}, 409: {"model": ErrorBody}})
+router = APIRouter(
+    prefix="/v1/sessions/{session_id}",
+    tags=["sessions"],
+    responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}, 409: {"model": ErrorBody}},
+)
 
 #: Seconds between the answer to ``play`` and media time 0, so the caller can get ready.
 LEAD_IN = 0.5
 
 
 def _authorise(request: Request, session, token: str | None) -> None:
-    if same(bearer(request), request.app.state.admin_key) or same(token, session.spec.producer_token):
+    if same(bearer(request), request.app.state.admin_key) or same(
+        token, session.spec.producer_token
+    ):
         return
     raise _Unauthorised
 
@@ -65,8 +71,11 @@ class _Unauthorised(Unauthorized):
     status = 401
 
     def __init__(self) -> None:
-        super().__init__("send the admin key ('Authorization: Bearer <key>') or the session's producer token "
-                         "(?token=...)", where="token")
+        super().__init__(
+            "send the admin key ('Authorization: Bearer <key>') or the session's producer token "
+            "(?token=...)",
+            where="token",
+        )
 
 
 @router.get("/tokens")
@@ -75,8 +84,11 @@ async def tokens(session_id: str, request: Request) -> dict:
     session = registry(request.app).get(session_id)
     if not same(bearer(request), request.app.state.admin_key):
         raise _Unauthorised
-    return {"id": session_id, "producer_token": session.spec.producer_token,
-            "viewer_token": session.spec.viewer_token}
+    return {
+        "id": session_id,
+        "producer_token": session.spec.producer_token,
+        "viewer_token": session.spec.viewer_token,
+    }
 
 
 @router.post("/demo", status_code=status.HTTP_202_ACCEPTED)
@@ -85,7 +97,9 @@ async def start_demo(session_id: str, request: Request, token: str | None = None
     session = registry(request.app).get(session_id)
     _authorise(request, session, token)
     if session.spec.input != "fap":
-        raise InputError(f"the demo drives FAP sessions; this one takes {session.spec.input}", where="input")
+        raise InputError(
+            f"the demo drives FAP sessions; this one takes {session.spec.input}", where="input"
+        )
     producer = ServerProducer.claim(session, "demo")
     fps = session.spec.fps
     producer.play(demo_states(fps), fps, time.time(), name=f"demo-{session_id}")
@@ -102,8 +116,11 @@ async def stop_demo(session_id: str, request: Request, token: str | None = None)
 
 
 _PLAY_DOC = multipart_doc(
-    file={"type": "string", "format": "binary",
-          "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv"},
+    file={
+        "type": "string",
+        "format": "binary",
+        "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv",
+    },
     layout=LAYOUT_PART,
 )
 
@@ -121,7 +138,8 @@ def _decode_slots(app) -> threading.Semaphore:
     slots = getattr(app.state, "decode_slots", None)
     if slots is None:
         slots = app.state.decode_slots = threading.BoundedSemaphore(
-            max(1, int(app.state.config.max_concurrent_decodes)))
+            max(1, int(app.state.config.max_concurrent_decodes))
+        )
     return slots
 
 
@@ -134,20 +152,33 @@ def _decode(path: Path, face, name: str, kind: str, options: dict):
         e.where = e.where.replace(str(path), name)
         raise
     except MemoryError:
-        raise PayloadTooLarge(f"{name!r} needs more memory to decode than this server allows; send a shorter "
-                              "file", where="file") from None
+        raise PayloadTooLarge(
+            f"{name!r} needs more memory to decode than this server allows; send a shorter file",
+            where="file",
+        ) from None
     except Exception as e:  # a decoder's own error (FapFormatError...) or one it let through
         own = type(e).__module__.startswith("facecast.")
         if not own:
             log.warning("decoding %s input %r failed", kind, name, exc_info=True)
         detail = (str(e) if own else f"{type(e).__name__}: {e}").replace(str(path), name)
-        raise InputError(f"could not read {name!r} as {kind} input: {detail[:500]}", where="file") from None
+        raise InputError(
+            f"could not read {name!r} as {kind} input: {detail[:500]}", where="file"
+        ) from None
 
 
-@router.post("/play", status_code=status.HTTP_202_ACCEPTED, openapi_extra=_PLAY_DOC,
-             responses={413: {"model": ErrorBody}, 415: {"model": ErrorBody},
-                        503: {"model": ErrorBody, "description": "every decode slot is busy; retry after "
-                                                                  "Retry-After seconds"}})
+@router.post(
+    "/play",
+    status_code=status.HTTP_202_ACCEPTED,
+    openapi_extra=_PLAY_DOC,
+    responses={
+        413: {"model": ErrorBody},
+        415: {"model": ErrorBody},
+        503: {
+            "model": ErrorBody,
+            "description": "every decode slot is busy; retry after Retry-After seconds",
+        },
+    },
+)
 async def play(session_id: str, request: Request, token: str | None = None) -> dict:
     """Upload a file (multipart part ``file``) and play it into the session at its real rate.
 
@@ -162,8 +193,12 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
     tmp_root = upload_dir(cfg.data_dir)
     with tempfile.TemporaryDirectory(prefix="facecast-play-", dir=tmp_root) as tmp:
         upload = Path(tmp) / "upload"
-        parser = UploadParser(boundary_of(request.headers.get("content-type", "")), upload,
-                              int(cfg.max_upload_bytes), kind_limit=cfg.upload_limit)
+        parser = UploadParser(
+            boundary_of(request.headers.get("content-type", "")),
+            upload,
+            int(cfg.max_upload_bytes),
+            kind_limit=cfg.upload_limit,
+        )
         received = 0
         try:
             async for chunk in request.stream():
@@ -176,8 +211,10 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
             raise
         except Exception as e:
             parser.abort()
-            raise InputError(f"could not read the multipart upload ({str(e)[:200]}); send a 'file' part",
-                             where="body") from None
+            raise InputError(
+                f"could not read the multipart upload ({str(e)[:200]}); send a 'file' part",
+                where="body",
+            ) from None
         if parser.size == 0:
             raise InputError("the uploaded file is empty", where="file")
         path = Path(tmp) / f"input{input_suffix(parser.filename, parser.head)}"
@@ -186,13 +223,18 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
         name = safe_display_name(parser.filename, path.name)
         unknown = sorted(set(parser.fields) - {"layout"})
         if unknown:
-            raise InputError(f"unknown form field(s) {', '.join(unknown)}; known: file, layout", where="form")
+            raise InputError(
+                f"unknown form field(s) {', '.join(unknown)}; known: file, layout", where="form"
+            )
         layout = upload_layout(kind, parser.fields.get("layout"))
         options = {} if layout is None else {"layout": layout}
         slots = _decode_slots(app)
         if not slots.acquire(blocking=False):
-            raise TooBusy(f"the server is decoding {cfg.max_concurrent_decodes} upload(s) already; retry in a "
-                          "few seconds", where="file")
+            raise TooBusy(
+                f"the server is decoding {cfg.max_concurrent_decodes} upload(s) already; retry in a "
+                "few seconds",
+                where="file",
+            )
 
         def decode():
             try:
@@ -211,7 +253,9 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
         raise InputError("the file holds no frames", where="file")
     animator = None
     if animation.control_vertices is not None:
-        animator = await loop.run_in_executor(reg.executor, reg.animator_for, session, animation.control_vertices)
+        animator = await loop.run_in_executor(
+            reg.executor, reg.animator_for, session, animation.control_vertices
+        )
     producer = ServerProducer.claim(session, f"play:{kind}")
     if animator is not None:
         producer.deform_with(reg.batcher_for(animator), animation.control_vertices)
@@ -220,6 +264,18 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
     for s in animation.states:
         s.t -= t0
     producer.play(animation.states, animation.fps, start, name=f"play-{session_id}")
-    log.info("session %s: playing %s (%d frames at %g fps)", session_id, name, len(animation), animation.fps)
-    return {"id": session_id, "kind": kind, "frames": len(animation), "fps": animation.fps,
-            "seconds": len(animation) / animation.fps, "start_wall": start}
+    log.info(
+        "session %s: playing %s (%d frames at %g fps)",
+        session_id,
+        name,
+        len(animation),
+        animation.fps,
+    )
+    return {
+        "id": session_id,
+        "kind": kind,
+        "frames": len(animation),
+        "fps": animation.fps,
+        "seconds": len(animation) / animation.fps,
+        "start_wall": start,
+    }

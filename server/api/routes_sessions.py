@@ -206,7 +206,9 @@ async def _produce(ws: WebSocket, core: ProducerCore, reg: SessionRegistry) -> N
             return
         data = msg.get("bytes")
         step = (
-            core.receive_bytes(data) if data is not None else core.receive_text(msg.get("text") or "")
+            core.receive_bytes(data)
+            if data is not None
+            else core.receive_text(msg.get("text") or "")
         )
         if step is not NOTHING and not await _carry_out(ws, step, reg):
             return
@@ -231,9 +233,7 @@ async def _carry_out(ws: WebSocket, step: Step, reg: SessionRegistry) -> bool:
         work = step.work
         if work is None:
             return True
-        result = (
-            await loop.run_in_executor(reg.executor, work.run) if work.offload else work.run()
-        )
+        result = await loop.run_in_executor(reg.executor, work.run) if work.offload else work.run()
         step = work.then(result)
 
 

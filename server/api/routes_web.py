@@ -3,6 +3,7 @@
 ``/docs`` (Swagger UI) and ``/redoc`` load their scripts from ``/docs-assets/...``, files shipped
 by the ``fastapi-offline`` package: the API docs work on a machine without internet access.
 """
+
 from __future__ import annotations
 
 from importlib.resources import files
@@ -15,8 +16,13 @@ from fastapi.responses import FileResponse, HTMLResponse
 router = APIRouter(include_in_schema=False)
 
 WEB_ROOT = Path(str(files("facecast.client"))) / "web"
-MEDIA_TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html", ".svg": "image/svg+xml",
-               ".png": "image/png"}
+MEDIA_TYPES = {
+    ".js": "text/javascript",
+    ".css": "text/css",
+    ".html": "text/html",
+    ".svg": "image/svg+xml",
+    ".png": "image/png",
+}
 #: The docs assets served under ``/docs-assets/`` (the only files of the package that are).
 DOCS_ASSETS = ("swagger-ui-bundle.js", "swagger-ui.css", "redoc.standalone.js", "favicon.png")
 
@@ -27,7 +33,9 @@ def docs_assets_root() -> Path:
 
 @router.get("/")
 def index() -> FileResponse:
-    return FileResponse(WEB_ROOT / "index.html", media_type="text/html", headers={"Cache-Control": "no-cache"})
+    return FileResponse(
+        WEB_ROOT / "index.html", media_type="text/html", headers={"Cache-Control": "no-cache"}
+    )
 
 
 @router.get("/static/{path:path}")
@@ -39,23 +47,32 @@ def static(path: str) -> FileResponse:
         found = False
     if not found:
         raise HTTPException(404, detail=f"no such file in the web viewer: {path}")
-    return FileResponse(target, media_type=MEDIA_TYPES.get(target.suffix), headers={"Cache-Control": "no-cache"})
+    return FileResponse(
+        target, media_type=MEDIA_TYPES.get(target.suffix), headers={"Cache-Control": "no-cache"}
+    )
 
 
 @router.get("/docs")
 def swagger_ui(request: Request) -> HTMLResponse:
-    return get_swagger_ui_html(openapi_url=request.app.openapi_url, title=f"{request.app.title} API",
-                               swagger_js_url="/docs-assets/swagger-ui-bundle.js",
-                               swagger_css_url="/docs-assets/swagger-ui.css",
-                               swagger_favicon_url="/docs-assets/favicon.png",
-                               swagger_ui_parameters={"validatorUrl": None})  # no call to an online validator
+    return get_swagger_ui_html(
+        openapi_url=request.app.openapi_url,
+        title=f"{request.app.title} API",
+        swagger_js_url="/docs-assets/swagger-ui-bundle.js",
+        swagger_css_url="/docs-assets/swagger-ui.css",
+        swagger_favicon_url="/docs-assets/favicon.png",
+        swagger_ui_parameters={"validatorUrl": None},
+    )  # no call to an online validator
 
 
 @router.get("/redoc")
 def redoc(request: Request) -> HTMLResponse:
-    return get_redoc_html(openapi_url=request.app.openapi_url, title=f"{request.app.title} API",
-                          redoc_js_url="/docs-assets/redoc.standalone.js",
-                          redoc_favicon_url="/docs-assets/favicon.png", with_google_fonts=False)
+    return get_redoc_html(
+        openapi_url=request.app.openapi_url,
+        title=f"{request.app.title} API",
+        redoc_js_url="/docs-assets/redoc.standalone.js",
+        redoc_favicon_url="/docs-assets/favicon.png",
+        with_google_fonts=False,
+    )
 
 
 @router.get("/docs-assets/{name}")
@@ -63,4 +80,6 @@ def docs_asset(name: str) -> FileResponse:
     if name not in DOCS_ASSETS:
         raise HTTPException(404, detail=f"no such docs asset: {name}")
     path = docs_assets_root() / name
-    return FileResponse(path, media_type=MEDIA_TYPES.get(path.suffix), headers={"Cache-Control": "max-age=86400"})
+    return FileResponse(
+        path, media_type=MEDIA_TYPES.get(path.suffix), headers={"Cache-Control": "max-age=86400"}
+    )

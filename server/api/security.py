@@ -1,4 +1,5 @@
 """Credentials: the admin key (REST admin routes) and per-session producer/viewer tokens."""
+
 from __future__ import annotations
 
 import logging
@@ -32,7 +33,9 @@ def resolve_admin_key(configured: str | None, data_dir: Path) -> tuple[str, bool
             return key, False
     data_dir.mkdir(parents=True, exist_ok=True)
     key = new_token()
-    write_bytes_atomic(path, (key + "\n").encode(), mode=0o600)  # never readable by others, not even briefly
+    write_bytes_atomic(
+        path, (key + "\n").encode(), mode=0o600
+    )  # never readable by others, not even briefly
     return key, True
 
 
@@ -49,7 +52,7 @@ def require_admin(request: Request) -> None:
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED,
             detail="admin key required: send 'Authorization: Bearer <key>' (the key is FACECAST_ADMIN_KEY, "
-                   "or the one the server printed at start-up and keeps in its data directory)",
+            "or the one the server printed at start-up and keeps in its data directory)",
         )
 
 
@@ -74,5 +77,5 @@ def ws_token(
     if scheme.lower() == "bearer" and token.strip():
         return token.strip(), accept
     if offered:
-        return offered[0][len(WS_TOKEN_PREFIX):], accept
+        return offered[0][len(WS_TOKEN_PREFIX) :], accept
     return query_token, accept

@@ -5,6 +5,7 @@ a vertex count such as ``default:2k``), the faces configured by the operator in
 ``FACECAST_FACES`` (``name=/path/mesh.obj`` pairs separated by ``,`` or ``;``) and the faces clients
 uploaded (``POST /v1/faces``), by name or id, kept in ``<data dir>/faces/<id>/`` across restarts.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -57,8 +58,11 @@ def parse_faces_env(text: str | None) -> dict[str, Path]:
         name, sep, path = item.partition("=")
         name, path = name.strip(), path.strip()
         if not sep or not _NAME.match(name) or not path:
-            raise InputError(f"cannot read face entry {item!r}; write name=/path/to/mesh.obj "
-                             "(name: letters, digits, _ . -)", where="FACECAST_FACES")
+            raise InputError(
+                f"cannot read face entry {item!r}; write name=/path/to/mesh.obj "
+                "(name: letters, digits, _ . -)",
+                where="FACECAST_FACES",
+            )
         out[name] = Path(path).expanduser()
     return out
 
@@ -70,8 +74,16 @@ class FaceStore:
     for the same face wait for one load.
     """
 
-    def __init__(self, *, default: str = "default", backend: str = "auto", device: str | None = None,
-                 configured: dict[str, Path] | None = None, max_faces: int = 8, uploads: Path | None = None):
+    def __init__(
+        self,
+        *,
+        default: str = "default",
+        backend: str = "auto",
+        device: str | None = None,
+        configured: dict[str, Path] | None = None,
+        max_faces: int = 8,
+        uploads: Path | None = None,
+    ):
         """``uploads``: folder of the faces clients upload (None: uploads are refused)."""
         self.configured = dict(configured or {})
         self.uploads = uploads
@@ -99,8 +111,11 @@ class FaceStore:
     # -- names -----------------------------------------------------------------------------------
     def names(self) -> list[str]:
         """Face names a client may use, built-in first."""
-        return [*builtin_faces(), *(n for n in self.configured if n not in builtin_faces()),
-                *(n for n in self.uploaded if n not in self.configured)]
+        return [
+            *builtin_faces(),
+            *(n for n in self.configured if n not in builtin_faces()),
+            *(n for n in self.uploaded if n not in self.configured),
+        ]
 
     def resolve(self, name: str | None) -> str:
         """The ``load_face`` spec for a client-given face name (``None`` -> the server default).
@@ -122,12 +137,16 @@ class FaceStore:
                 except (ValueError, OverflowError):
                     n = None
                 if n is None or not 100 <= n <= MAX_BUILTIN_VERTICES:
-                    raise InputError(f"vertex count {n if n is not None else count[:20] + '...'} out of "
-                                     f"range 100..{MAX_BUILTIN_VERTICES}; use e.g. default:2k",
-                                     where=f"face {shown!r}")
+                    raise InputError(
+                        f"vertex count {n if n is not None else count[:20] + '...'} out of "
+                        f"range 100..{MAX_BUILTIN_VERTICES}; use e.g. default:2k",
+                        where=f"face {shown!r}",
+                    )
             return name
-        raise NotFound(f"no face named {shown!r}; GET /v1/faces lists the faces this server offers "
-                       f"({', '.join(self.names())}; built-in ones also as e.g. default:2k)")
+        raise NotFound(
+            f"no face named {shown!r}; GET /v1/faces lists the faces this server offers "
+            f"({', '.join(self.names())}; built-in ones also as e.g. default:2k)"
+        )
 
     def needs_admin(self, name: str | None) -> bool:
         """True if loading ``name`` is a new resolution of a built-in face (``default:300k``) that this
@@ -211,7 +230,11 @@ class FaceStore:
                 meta = json.loads((folder / UPLOAD_META).read_text())
                 name = meta["name"]
             except (OSError, ValueError, KeyError, TypeError):
-                log.warning("ignoring the uploaded face folder %s (no readable %s)", folder.name, UPLOAD_META)
+                log.warning(
+                    "ignoring the uploaded face folder %s (no readable %s)",
+                    folder.name,
+                    UPLOAD_META,
+                )
                 continue
             if isinstance(name, str) and _NAME.match(name) and (folder / UPLOAD_MESH).is_file():
                 self.uploaded[name] = folder / UPLOAD_MESH
@@ -233,11 +256,15 @@ class FaceStore:
     def check_upload_name(name: str) -> None:
         """InputError unless ``name`` may name an uploaded face."""
         if not _NAME.match(name) or not name[0].isalnum():
-            raise InputError("a face name has 1-64 letters, digits, '_', '.' or '-', starting with a "
-                             "letter or digit", where="name")
+            raise InputError(
+                "a face name has 1-64 letters, digits, '_', '.' or '-', starting with a "
+                "letter or digit",
+                where="name",
+            )
 
-    def add_upload(self, vertices, triangles, annotation: dict, *, name: str | None,
-                   meta: dict) -> tuple[str, str, bool]:
+    def add_upload(
+        self, vertices, triangles, annotation: dict, *, name: str | None, meta: dict
+    ) -> tuple[str, str, bool]:
         """Keep an uploaded face: ``(name, id, created)``; the same mesh and annotation again is the
         same face (``created`` False). Raises Conflict for a name taken by another face or when the
         server holds ``MAX_UPLOADED_FACES`` already, InputError for a malformed name."""
@@ -252,20 +279,31 @@ class FaceStore:
             if face_id in self.upload_ids:
                 return self.upload_ids[face_id], face_id, False
         if name is not None:
-            if name in builtin_faces() or name in self.configured or name in self.uploaded \
-                    or UPLOAD_ID.match(name):
-                raise Conflict(f"the face name {name!r} is taken; choose another (GET /v1/faces lists them)",
-                               where="name")
+            if (
+                name in builtin_faces()
+                or name in self.configured
+                or name in self.uploaded
+                or UPLOAD_ID.match(name)
+            ):
+                raise Conflict(
+                    f"the face name {name!r} is taken; choose another (GET /v1/faces lists them)",
+                    where="name",
+                )
         name = name or f"face-{face_id[:8]}"
         if len(self.uploaded) >= MAX_UPLOADED_FACES:
-            raise Conflict(f"this server keeps {MAX_UPLOADED_FACES} uploaded faces already; delete one "
-                           "(DELETE /v1/faces/<name>) first", where="face")
+            raise Conflict(
+                f"this server keeps {MAX_UPLOADED_FACES} uploaded faces already; delete one "
+                "(DELETE /v1/faces/<name>) first",
+                where="face",
+            )
         self.uploads.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=".upload-", dir=self.uploads))
         try:
             write_obj(tmp / UPLOAD_MESH, vertices, triangles)
             (tmp / UPLOAD_ANNOTATION).write_text(json.dumps(annotation, separators=(",", ":")))
-            (tmp / UPLOAD_META).write_text(json.dumps({**meta, "id": face_id, "name": name}, indent=1))
+            (tmp / UPLOAD_META).write_text(
+                json.dumps({**meta, "id": face_id, "name": name}, indent=1)
+            )
             tmp.chmod(0o755)
             with self._guard:
                 if face_id in self.upload_ids:  # the same upload, finished meanwhile
@@ -286,8 +324,11 @@ class FaceStore:
         with self._guard:
             name = self.upload_ids.get(name, name)
             if name not in self.uploaded:
-                raise NotFound(f"no uploaded face named {name!r}; built-in and configured faces cannot be "
-                               "deleted", where="face")
+                raise NotFound(
+                    f"no uploaded face named {name!r}; built-in and configured faces cannot be "
+                    "deleted",
+                    where="face",
+                )
             path = self.uploaded.pop(name)
             face_id = path.parent.name
             self.upload_ids.pop(face_id, None)

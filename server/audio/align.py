@@ -9,6 +9,7 @@ audio's sound (``PHONE_RATE``), or when the forced path scores far below the net
 reading under the same duration rules (``MAX_MISMATCH`` nats per speech frame), the text is not
 what was said.
 """
+
 from __future__ import annotations
 
 import functools
@@ -28,14 +29,44 @@ from .visemes import Calibration, Params, calibrate
 C = {name: i for i, name in enumerate(CLASSES)}
 #: IPA symbol (stress and length marks removed) → class; multi-letter symbols first.
 IPA_CLASSES = {
-    "tʃ": "sibilant", "dʒ": "sibilant", "aɪ": "open", "aʊ": "open", "eɪ": "mid", "oʊ": "round",
-    "ɔɪ": "round", "əʊ": "round",
-    "p": "closed", "b": "closed", "m": "closed", "f": "labiodental", "v": "labiodental",
-    "s": "sibilant", "z": "sibilant", "ʃ": "sibilant", "ʒ": "sibilant",
-    "a": "open", "ɑ": "open", "æ": "open", "ʌ": "open", "ə": "open", "ɐ": "open", "ɒ": "round",
-    "e": "mid", "ɛ": "mid", "ɚ": "mid", "ɜ": "mid", "ɝ": "mid",
-    "i": "spread", "ɪ": "spread", "ᵻ": "spread", "j": "spread",
-    "o": "round", "ɔ": "round", "u": "narrow-round", "ʊ": "narrow-round", "w": "narrow-round",
+    "tʃ": "sibilant",
+    "dʒ": "sibilant",
+    "aɪ": "open",
+    "aʊ": "open",
+    "eɪ": "mid",
+    "oʊ": "round",
+    "ɔɪ": "round",
+    "əʊ": "round",
+    "p": "closed",
+    "b": "closed",
+    "m": "closed",
+    "f": "labiodental",
+    "v": "labiodental",
+    "s": "sibilant",
+    "z": "sibilant",
+    "ʃ": "sibilant",
+    "ʒ": "sibilant",
+    "a": "open",
+    "ɑ": "open",
+    "æ": "open",
+    "ʌ": "open",
+    "ə": "open",
+    "ɐ": "open",
+    "ɒ": "round",
+    "e": "mid",
+    "ɛ": "mid",
+    "ɚ": "mid",
+    "ɜ": "mid",
+    "ɝ": "mid",
+    "i": "spread",
+    "ɪ": "spread",
+    "ᵻ": "spread",
+    "j": "spread",
+    "o": "round",
+    "ɔ": "round",
+    "u": "narrow-round",
+    "ʊ": "narrow-round",
+    "w": "narrow-round",
 }
 #: Frames (10 ms) each phone lasts at least.
 MIN_FRAMES = 3
@@ -57,13 +88,23 @@ def text_phones(text: str, voice: str = "en-us") -> tuple[tuple[int, ...], ...]:
     """Class ids of the phones of each word of ``text`` (espeak-ng's pronunciation)."""
     exe = shutil.which("espeak-ng")
     if exe is None:
-        raise InputError("a transcript needs espeak-ng (Debian package espeak-ng) to find its "
-                         "phones; install it or leave out the text", where="text")
-    res = subprocess.run([exe, "-q", "--ipa", "--sep=_", "-v", voice, "--stdin"], input=text,
-                         capture_output=True, text=True, timeout=60, check=False)
+        raise InputError(
+            "a transcript needs espeak-ng (Debian package espeak-ng) to find its "
+            "phones; install it or leave out the text",
+            where="text",
+        )
+    res = subprocess.run(
+        [exe, "-q", "--ipa", "--sep=_", "-v", voice, "--stdin"],
+        input=text,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
     if res.returncode != 0:
-        raise InputError(f"espeak-ng could not read the text: {res.stderr.strip()[:200]}",
-                         where="text")
+        raise InputError(
+            f"espeak-ng could not read the text: {res.stderr.strip()[:200]}", where="text"
+        )
     words = []
     for word in res.stdout.split():
         classes = []
@@ -102,11 +143,11 @@ def forced_path(logp: np.ndarray, cls: np.ndarray, opt: np.ndarray) -> tuple[np.
     optional; the last ``MIN_FRAMES`` states of each phone and the silences may repeat. Starts in
     state 0 or 1, ends in the last or the one before."""
     T, S = len(logp), len(cls)
-    emit = logp[:, cls]                                  # (T, S)
+    emit = logp[:, cls]  # (T, S)
     loop = np.ones(S, dtype=bool)
     nxt = np.append(cls[1:], -1)
     same_next = (cls == nxt) & ~opt & np.append(~opt[1:], False)
-    loop[same_next] = False                              # inner chained states of a phone
+    loop[same_next] = False  # inner chained states of a phone
     skip_ok = np.zeros(S, dtype=bool)
     skip_ok[2:] = opt[1:-1]
     neg = -1e18
@@ -163,9 +204,11 @@ def text_fit(proba: np.ndarray, text: str, voice: str = "en-us") -> tuple[np.nda
     cls, opt = _states(words)
     n_phones = int((~opt).sum()) // MIN_FRAMES
     if (~opt).sum() > len(proba):
-        raise InputError(f"the transcript has {n_phones} phones, more than "
-                         f"{len(proba) / 100:.2f} s of audio can hold: it does not match the audio",
-                         where="text")
+        raise InputError(
+            f"the transcript has {n_phones} phones, more than "
+            f"{len(proba) / 100:.2f} s of audio can hold: it does not match the audio",
+            where="text",
+        )
     prior = np.maximum(proba.mean(axis=0), 1e-4)
     logp = np.log(np.maximum(proba, 1e-8)) - np.log(prior)
     path, forced = forced_path(logp, cls, opt)
@@ -183,15 +226,21 @@ def checked_fit(proba: np.ndarray, text: str, speech: float, voice: str = "en-us
     rate = n_phones / max(speech, 0.1)
     lo, hi = PHONE_RATE
     if not lo <= rate <= hi:
-        raise InputError(f"the transcript does not match the audio: its {n_phones} phones would "
-                         f"be spoken at {rate:.1f} per second over the {speech:.2f} s of sound "
-                         f"(speech has {lo:g}-{hi:g}): check that the text is what is said, or "
-                         "leave it out", where="text")
+        raise InputError(
+            f"the transcript does not match the audio: its {n_phones} phones would "
+            f"be spoken at {rate:.1f} per second over the {speech:.2f} s of sound "
+            f"(speech has {lo:g}-{hi:g}): check that the text is what is said, or "
+            "leave it out",
+            where="text",
+        )
     if mismatch > MAX_MISMATCH:
-        raise InputError(f"the transcript does not match the audio (its {n_phones} phones fit "
-                         f"{mismatch:.2f} nats per frame worse than what the audio sounds like; "
-                         f"limit {MAX_MISMATCH}): check that the text is what is said, or leave "
-                         "it out", where="text")
+        raise InputError(
+            f"the transcript does not match the audio (its {n_phones} phones fit "
+            f"{mismatch:.2f} nats per frame worse than what the audio sounds like; "
+            f"limit {MAX_MISMATCH}): check that the text is what is said, or leave "
+            "it out",
+            where="text",
+        )
     return path
 
 
@@ -203,11 +252,20 @@ def check_text(text: str) -> None:
         raise InputError(f"the transcript is longer than {MAX_TEXT} characters", where="text")
 
 
-def align_text(x: np.ndarray, sr: float, text: str, *, net: FrameNet | None = None,
-               calibration: Calibration | None = None, fps: float = 100.0,
-               lookahead: float | None = None, params: Params | None = None,
-               table: np.ndarray | None = None, where: str = "audio",
-               voice: str = "en-us") -> LipSync:
+def align_text(
+    x: np.ndarray,
+    sr: float,
+    text: str,
+    *,
+    net: FrameNet | None = None,
+    calibration: Calibration | None = None,
+    fps: float = 100.0,
+    lookahead: float | None = None,
+    params: Params | None = None,
+    table: np.ndarray | None = None,
+    where: str = "audio",
+    voice: str = "en-us",
+) -> LipSync:
     """Lip-sync ``x`` at ``sr`` Hz knowing its transcript ``text`` (English by default).
 
     Raises:
@@ -217,15 +275,33 @@ def align_text(x: np.ndarray, sr: float, text: str, *, net: FrameNet | None = No
     """
     check_text(text)
     x = validate_pcm(x, sr, where=where)
-    return align_features(features_of(x, sr), len(x) / float(sr), text, net=net,
-                          calibration=calibration, fps=fps, lookahead=lookahead, params=params,
-                          table=table, voice=voice)
+    return align_features(
+        features_of(x, sr),
+        len(x) / float(sr),
+        text,
+        net=net,
+        calibration=calibration,
+        fps=fps,
+        lookahead=lookahead,
+        params=params,
+        table=table,
+        voice=voice,
+    )
 
 
-def align_features(f: Features, duration: float, text: str, *, net: FrameNet | None = None,
-                   calibration: Calibration | None = None, fps: float = 100.0,
-                   lookahead: float | None = None, params: Params | None = None,
-                   table: np.ndarray | None = None, voice: str = "en-us") -> LipSync:
+def align_features(
+    f: Features,
+    duration: float,
+    text: str,
+    *,
+    net: FrameNet | None = None,
+    calibration: Calibration | None = None,
+    fps: float = 100.0,
+    lookahead: float | None = None,
+    params: Params | None = None,
+    table: np.ndarray | None = None,
+    voice: str = "en-us",
+) -> LipSync:
     """``align_text`` from the audio's features ``f`` and its ``duration`` (s), e.g. those of
     ``pipeline.lipsync_file``'s bounded decoding."""
     check_text(text)
@@ -234,5 +310,13 @@ def align_features(f: Features, duration: float, text: str, *, net: FrameNet | N
     speech = float(np.sum(np.asarray(f.energy_db) >= cal.silence_db)) * f.hop
     path = checked_fit(proba, text, speech, voice)
     onehot = np.eye(len(CLASSES))[path]
-    return track_of(f, onehot, duration, fps=fps, lookahead=lookahead,
-                    calibration=cal, params=params, table=table)
+    return track_of(
+        f,
+        onehot,
+        duration,
+        fps=fps,
+        lookahead=lookahead,
+        calibration=cal,
+        params=params,
+        table=table,
+    )

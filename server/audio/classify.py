@@ -3,6 +3,7 @@
 Weights ship as ``vowel_net.npz`` beside this module (made by ``python -m
 facecast.server.audio.train``). Layers: standardise → tanh(12→10) → softmax(10→5) over /a e i o u/.
 """
+
 from __future__ import annotations
 
 import functools
@@ -27,11 +28,17 @@ def _softmax(z: np.ndarray) -> np.ndarray:
     return z / z.sum(axis=-1, keepdims=True)
 
 
-def _save(path: str | Path, net, classes: tuple[str, ...], meta: dict[str, str],
-          **extra: np.ndarray) -> None:
+def _save(
+    path: str | Path, net, classes: tuple[str, ...], meta: dict[str, str], **extra: np.ndarray
+) -> None:
     """Write ``net``'s ``_PARAMS``, ``extra`` arrays, the class names and ``meta_*`` strings."""
-    np.savez(path, **{n: getattr(net, n) for n in _PARAMS}, **extra, classes=np.array(classes),
-             **{f"meta_{k}": np.array(v) for k, v in meta.items()})
+    np.savez(
+        path,
+        **{n: getattr(net, n) for n in _PARAMS},
+        **extra,
+        classes=np.array(classes),
+        **{f"meta_{k}": np.array(v) for k, v in meta.items()},
+    )
 
 
 def _load(path: str | Path, what: str, make: str, *extra: str) -> list[np.ndarray]:
@@ -90,8 +97,18 @@ def default_net() -> VowelNet:
 #: Visual classes of the frame network (phones grouped by what the mouth shows; the same ten
 #: classes as ``bench/lipsync``): silence; P B M; F V; S Z SH ZH CH JH; AA AE AH AW AY; EH EY ER;
 #: IH IY Y; AO OW OY; UH UW W; the rest (tongue and throat consonants: T D N L K G R HH NG TH DH).
-CLASSES = ("sil", "closed", "labiodental", "sibilant", "open", "mid", "spread", "round",
-           "narrow-round", "other")
+CLASSES = (
+    "sil",
+    "closed",
+    "labiodental",
+    "sibilant",
+    "open",
+    "mid",
+    "spread",
+    "round",
+    "narrow-round",
+    "other",
+)
 #: MPEG-4 viseme id shown for each class (0 sil, 1 PP, 2 FF, 7 SS, 10 aa, 11 E, 12 ih, 13 oh,
 #: 14 ou, 4 DD).
 CLASS_VISEMES = np.array([0, 1, 2, 7, 10, 11, 12, 13, 14, 4])
@@ -100,9 +117,15 @@ FRAME_WEIGHTS = Path(__file__).with_name("frame_net.npz")
 N_FRAME_FEATURES = 44
 
 
-def frame_features(k: np.ndarray, energy_db: np.ndarray, zcr: np.ndarray,
-                   silence_db: np.ndarray | float, max_db: np.ndarray | float,
-                   shape: np.ndarray, cep: np.ndarray) -> np.ndarray:
+def frame_features(
+    k: np.ndarray,
+    energy_db: np.ndarray,
+    zcr: np.ndarray,
+    silence_db: np.ndarray | float,
+    max_db: np.ndarray | float,
+    shape: np.ndarray,
+    cep: np.ndarray,
+) -> np.ndarray:
     """``(T, 44)`` per-frame inputs of the frame network, all invariant to the input level:
     log-area ratios of ``k (T, 12)``, the LPC cepstrum c1..c12, the prediction gain (dB/10,
     voicing and spectral flatness), energy relative to the calibrated maximum and to the silence
@@ -115,9 +138,17 @@ def frame_features(k: np.ndarray, energy_db: np.ndarray, zcr: np.ndarray,
     gain = 10 * np.log10(np.prod(1 - k * k, axis=1) + 1e-12) / 10
     rel_max = np.minimum(np.maximum((e - max_db) / 10, -6.0), 1.0)
     rel_sil = np.minimum(np.maximum((e - silence_db) / 10, -3.0), 5.0)
-    return np.column_stack([lar, cep, gain, rel_max, rel_sil,
-                            np.log1p(np.asarray(zcr, dtype=np.float64)),
-                            np.asarray(shape, dtype=np.float64) / 4])
+    return np.column_stack(
+        [
+            lar,
+            cep,
+            gain,
+            rel_max,
+            rel_sil,
+            np.log1p(np.asarray(zcr, dtype=np.float64)),
+            np.asarray(shape, dtype=np.float64) / 4,
+        ]
+    )
 
 
 #: Frames per block of ``FrameNet.proba`` (the stacked inputs of a block: about 14 MB).
@@ -187,8 +218,10 @@ class FrameNet:
         """
         F = np.asarray(F)
         T = len(F)
-        blocks = (_stack_rows(F, self.offsets, i, min(T, i + BLOCK_FRAMES))
-                  for i in range(0, max(T, 1), BLOCK_FRAMES))  # one block's inputs at a time
+        blocks = (
+            _stack_rows(F, self.offsets, i, min(T, i + BLOCK_FRAMES))
+            for i in range(0, max(T, 1), BLOCK_FRAMES)
+        )  # one block's inputs at a time
         return np.concatenate([self.proba_stacked(X) for X in blocks])
 
     def save(self, path: str | Path, **meta: str) -> None:

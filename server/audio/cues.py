@@ -7,6 +7,7 @@ raised (L), X idle (rest, silence). Its output formats: JSON ``{"metadata": {"so
 "duration"}, "mouthCues": [{"start", "end", "value"}]}`` and TSV lines ``start<TAB>shape`` whose
 last line is the end time with X. Times in seconds, two decimals.
 """
+
 from __future__ import annotations
 
 import json
@@ -35,8 +36,10 @@ def segments(vis: np.ndarray, fps: float) -> list[tuple[float, float, int]]:
 
 def named_segments(vis: np.ndarray, fps: float) -> list[dict]:
     """``[{"start", "end", "viseme", "name"}]`` (seconds rounded to 1 µs; MPEG-4 viseme names)."""
-    return [{"start": round(s, 6), "end": round(e, 6), "viseme": v, "name": VISEME_NAMES[v]}
-            for s, e, v in segments(vis, fps)]
+    return [
+        {"start": round(s, 6), "end": round(e, 6), "viseme": v, "name": VISEME_NAMES[v]}
+        for s, e, v in segments(vis, fps)
+    ]
 
 
 def rhubarb_cues(vis: np.ndarray, fps: float, duration: float) -> list[tuple[float, float, str]]:
@@ -57,9 +60,16 @@ def rhubarb_cues(vis: np.ndarray, fps: float, duration: float) -> list[tuple[flo
 
 def rhubarb_json(cues: list[tuple[float, float, str]], sound_file: str, duration: float) -> str:
     """Rhubarb's JSON export format."""
-    return json.dumps({"metadata": {"soundFile": sound_file, "duration": round(duration, 2)},
-                       "mouthCues": [{"start": s, "end": e, "value": v} for s, e, v in cues]},
-                      indent=2) + "\n"
+    return (
+        json.dumps(
+            {
+                "metadata": {"soundFile": sound_file, "duration": round(duration, 2)},
+                "mouthCues": [{"start": s, "end": e, "value": v} for s, e, v in cues],
+            },
+            indent=2,
+        )
+        + "\n"
+    )
 
 
 def rhubarb_tsv(cues: list[tuple[float, float, str]]) -> str:

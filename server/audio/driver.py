@@ -1,4 +1,5 @@
 """Audio file → ``Animation``: ``facecast render speech.wav -o out.glb`` goes through here."""
+
 from __future__ import annotations
 
 import logging
@@ -24,16 +25,25 @@ def track_states(ls: LipSync, fap1: bool = False) -> list[FaceState]:
     for i in range(len(tr.t)):
         if fap1:
             blend = int(round(63 * float(tr.blend[i])))
-            states.append(FaceState(t=float(tr.t[i]),
-                                    viseme=(int(tr.select1[i]), int(tr.select2[i]), blend)))
+            states.append(
+                FaceState(t=float(tr.t[i]), viseme=(int(tr.select1[i]), int(tr.select2[i]), blend))
+            )
         else:
             states.append(FaceState(t=float(tr.t[i]), faps=tr.faps[i].copy()))
     return states
 
 
-def load(path: str | Path, face=None, fps: float = 25.0, lookahead: float | None = None,
-         silence_db: float | None = None, max_db: float | None = None, fap1: bool = False,
-         text: str | None = None, **options) -> Animation:
+def load(
+    path: str | Path,
+    face=None,
+    fps: float = 25.0,
+    lookahead: float | None = None,
+    silence_db: float | None = None,
+    max_db: float | None = None,
+    fap1: bool = False,
+    text: str | None = None,
+    **options,
+) -> Animation:
     """Decode and lip-sync an audio file.
 
     Args:
@@ -55,10 +65,25 @@ def load(path: str | Path, face=None, fps: float = 25.0, lookahead: float | None
     """
     if options:
         log.debug("audio driver ignores options %s", sorted(options))
-    ls = lipsync_file(path, fps=float(fps), lookahead=lookahead, silence_db=silence_db,
-                      max_db=max_db, params=Params(), table=viseme_table(face), text=text)
-    log.info("%s: %.2f s of audio → %d frames at %g fps (silence %.1f dB, max %.1f dB)",
-             Path(path).name, ls.duration, len(ls.track.t), fps, ls.calibration.silence_db,
-             ls.calibration.max_db)
-    return Animation(fps=float(fps), states=track_states(ls, fap1), control_vertices=None,
-                     source=str(path))
+    ls = lipsync_file(
+        path,
+        fps=float(fps),
+        lookahead=lookahead,
+        silence_db=silence_db,
+        max_db=max_db,
+        params=Params(),
+        table=viseme_table(face),
+        text=text,
+    )
+    log.info(
+        "%s: %.2f s of audio → %d frames at %g fps (silence %.1f dB, max %.1f dB)",
+        Path(path).name,
+        ls.duration,
+        len(ls.track.t),
+        fps,
+        ls.calibration.silence_db,
+        ls.calibration.max_db,
+    )
+    return Animation(
+        fps=float(fps), states=track_states(ls, fap1), control_vertices=None, source=str(path)
+    )

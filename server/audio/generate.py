@@ -9,6 +9,7 @@ reflection-coefficient vectors.
 The variants listed in ``HELD_OUT_VARIANTS`` are never used here: the benchmark speaks its
 (different) sentences with them.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -32,8 +33,10 @@ VOWELS = ("a", "e", "i", "o", "u")
 
 #: Text per language and vowel class. Each utterance holds one vowel class only.
 TEXTS: dict[str, dict[str, list[str]]] = {
-    "es": {v: [f"{c}{v}" for c in ("p", "t", "c" if v in "aou" else "qu", "m", "l", "s", "f", "")]
-           for v in VOWELS},
+    "es": {
+        v: [f"{c}{v}" for c in ("p", "t", "c" if v in "aou" else "qu", "m", "l", "s", "f", "")]
+        for v in VOWELS
+    },
     "it": {v: [f"{c}{v}" for c in ("p", "t", "m", "l", "s", "v", "n", "")] for v in VOWELS},
     "en-us": {
         "a": ["father", "palm", "spa", "hot", "top", "cot", "cat", "bad", "cup", "but", "car"],
@@ -46,8 +49,23 @@ TEXTS: dict[str, dict[str, list[str]]] = {
 TEXTS["en-gb-x-rp"] = TEXTS["en-us"]
 
 #: espeak-ng voice variants used for training / kept for evaluation only.
-TRAIN_VARIANTS = ("", "m1", "m2", "m3", "m4", "m6", "f1", "f2", "f3", "klatt", "klatt2", "Alex",
-                  "Michael", "Linda", "Steph")
+TRAIN_VARIANTS = (
+    "",
+    "m1",
+    "m2",
+    "m3",
+    "m4",
+    "m6",
+    "f1",
+    "f2",
+    "f3",
+    "klatt",
+    "klatt2",
+    "Alex",
+    "Michael",
+    "Linda",
+    "Steph",
+)
 HELD_OUT_VARIANTS = ("f4", "f5", "m5", "m7", "klatt3", "Annie", "Andy", "Belinda")
 PITCHES = (25, 40, 55, 70, 85)
 RATES = (120, 160, 200)
@@ -73,7 +91,7 @@ def augment(x: np.ndarray, sr: int, rng: np.random.Generator) -> np.ndarray:
         y = scipy.signal.sosfilt(sos, y)
     y = y / (np.abs(y).max() + 1e-12) * rng.uniform(0.1, 0.9)
     if rng.random() < 0.7:
-        p = np.mean(y ** 2)
+        p = np.mean(y**2)
         y = y + rng.normal(0, np.sqrt(p / 10 ** (rng.uniform(25, 45) / 10)), len(y))
     return np.clip(y, -1, 1)
 
@@ -81,15 +99,20 @@ def augment(x: np.ndarray, sr: int, rng: np.random.Generator) -> np.ndarray:
 def espeak_binary() -> str:
     exe = shutil.which("espeak-ng")
     if exe is None:
-        raise FacecastError("espeak-ng is not installed (Debian package espeak-ng); it generates "
-                            "the vowel training data")
+        raise FacecastError(
+            "espeak-ng is not installed (Debian package espeak-ng); it generates "
+            "the vowel training data"
+        )
     return exe
 
 
 def speak(text: str, *, voice: str, pitch: int, rate: int, out: Path) -> None:
     """Write ``text`` spoken by espeak-ng ``voice`` at ``pitch`` (0-99) and ``rate`` (words/min)."""
-    subprocess.run([espeak_binary(), "-v", voice, "-p", str(pitch), "-s", str(rate), "-w",
-                    str(out), text], check=True, capture_output=True)
+    subprocess.run(
+        [espeak_binary(), "-v", voice, "-p", str(pitch), "-s", str(rate), "-w", str(out), text],
+        check=True,
+        capture_output=True,
+    )
 
 
 def nucleus_frames(x: np.ndarray, sr: int) -> np.ndarray:
@@ -120,12 +143,15 @@ def utterances(n_per_vowel: int, seed: int) -> list[tuple[str, str, int, int, st
             words = list(TEXTS[lang][v])
             rng.shuffle(words)
             voice = f"{lang}+{variant}" if variant else lang
-            out.append((voice, " ".join(words[:6]), int(pitch), int(rate), variant or "default", vi))
+            out.append(
+                (voice, " ".join(words[:6]), int(pitch), int(rate), variant or "default", vi)
+            )
     return out
 
 
-def generate(n_per_vowel: int = 120, seed: int = 0, progress: bool = False,
-             n_augment: int = 2) -> Dataset:
+def generate(
+    n_per_vowel: int = 120, seed: int = 0, progress: bool = False, n_augment: int = 2
+) -> Dataset:
     """Synthesise ``5 · n_per_vowel`` utterances and return the vowel-nucleus frames of each, clean
     and through ``n_augment`` random channels (``augment``)."""
     rng = np.random.default_rng(seed + 1)

@@ -7,6 +7,7 @@ allocated, then the samples stream through in blocks, downmixed and resampled on
 upload costs about its duration at the output rate in memory, not its size (``read_audio`` keeps
 the file's own rate: for tools and tests, not for uploads).
 """
+
 from __future__ import annotations
 
 import logging
@@ -75,7 +76,11 @@ def conversion_ratio(sr_in: float, sr_out: float) -> tuple[int, int]:
     f = Fraction(int(round(sr_out)), int(round(sr_in)))
     if max(f.numerator, f.denominator) > MAX_RATIO_TERM:
         # the best approximation with the smaller term bounded keeps the larger one bounded too
-        f = f.limit_denominator(MAX_RATIO_TERM) if f < 1 else 1 / (1 / f).limit_denominator(MAX_RATIO_TERM)
+        f = (
+            f.limit_denominator(MAX_RATIO_TERM)
+            if f < 1
+            else 1 / (1 / f).limit_denominator(MAX_RATIO_TERM)
+        )
     return f.numerator, f.denominator
 
 
@@ -89,11 +94,13 @@ class BlockResampler:
 
     def __init__(self, up: int, down: int) -> None:
         self.up, self.down = int(up), int(down)
-        self.half = 10 * max(self.up, self.down)  # resample_poly's filter half length (upsampled domain)
+        self.half = 10 * max(
+            self.up, self.down
+        )  # resample_poly's filter half length (upsampled domain)
         self._buf = np.zeros(0)
-        self._start = 0   # input index of _buf[0] (a multiple of down)
-        self._n_in = 0    # inputs received
-        self._n_out = 0   # outputs returned
+        self._start = 0  # input index of _buf[0] (a multiple of down)
+        self._n_in = 0  # inputs received
+        self._n_out = 0  # outputs returned
 
     def n_out(self, n_in: int) -> int:
         """Length of ``resample_poly`` of ``n_in`` inputs."""
@@ -123,13 +130,13 @@ class BlockResampler:
             return np.zeros(0)
         y = scipy.signal.resample_poly(self._buf, self.up, self.down)
         first = self._start * self.up // self.down  # output index of y[0]
-        out = y[self._n_out - first:end - first]
+        out = y[self._n_out - first : end - first]
         self._n_out = end
         # keep the inputs from the first one output n_out needs, rounded down to a multiple of down
         need = max(0, -(-(self._n_out * self.down - self.half) // self.up))
         start = need // self.down * self.down
         if start > self._start:
-            self._buf = self._buf[start - self._start:]
+            self._buf = self._buf[start - self._start :]
             self._start = start
         return out
 
@@ -140,8 +147,10 @@ def _where_ok(path: str | Path) -> tuple[Path, str]:
     if not path.is_file():
         raise InputError("no such audio file", where=where)
     if path.suffix.lower() not in AUDIO_SUFFIXES:
-        raise InputError(f"unsupported audio type {path.suffix or '(none)'!r}; use "
-                         f"{', '.join(AUDIO_SUFFIXES)}", where=where)
+        raise InputError(
+            f"unsupported audio type {path.suffix or '(none)'!r}; use {', '.join(AUDIO_SUFFIXES)}",
+            where=where,
+        )
     return path, where
 
 
@@ -186,34 +195,52 @@ def _open(path: Path, where: str, max_seconds: float):
     try:
         f = sf.SoundFile(str(path))
     except Exception as e:  # noqa: BLE001 - libsndfile and soundfile report bad headers many ways
-        raise InputError(f"cannot decode audio ({_libsndfile_says(e)}); is it a valid "
-                         f"WAV/FLAC/OGG file?", where=where) from None
+        raise InputError(
+            f"cannot decode audio ({_libsndfile_says(e)}); is it a valid WAV/FLAC/OGG file?",
+            where=where,
+        ) from None
     try:
         rate, channels, frames = int(f.samplerate), int(f.channels), int(f.frames)
         if channels < 1:
-            raise InputError("the file declares no audio channels; is it a valid WAV/FLAC/OGG file?",
-                             where=where)
+            raise InputError(
+                "the file declares no audio channels; is it a valid WAV/FLAC/OGG file?", where=where
+            )
         if not (MIN_RATE <= rate <= MAX_RATE):
-            raise InputError(f"sample rate {rate} Hz is outside {MIN_RATE}-{MAX_RATE} Hz; "
-                             "resample the file to a common rate (16000, 44100, 48000 Hz)", where=where)
+            raise InputError(
+                f"sample rate {rate} Hz is outside {MIN_RATE}-{MAX_RATE} Hz; "
+                "resample the file to a common rate (16000, 44100, 48000 Hz)",
+                where=where,
+            )
         if frames >= 2**62:
-            raise InputError("the file's header does not say how many samples it holds; re-encode it "
-                             "(e.g. 'sox in.flac out.flac') so the length is written", where=where)
+            raise InputError(
+                "the file's header does not say how many samples it holds; re-encode it "
+                "(e.g. 'sox in.flac out.flac') so the length is written",
+                where=where,
+            )
         seconds = frames / rate
         if seconds > max_seconds:
-            raise InputError(f"the audio lasts {seconds:.0f} s ({frames} samples at {rate} Hz, as its "
-                             f"header declares), over the limit of {max_seconds:.0f} s; send a shorter "
-                             "file (split it)", where=where)
+            raise InputError(
+                f"the audio lasts {seconds:.0f} s ({frames} samples at {rate} Hz, as its "
+                f"header declares), over the limit of {max_seconds:.0f} s; send a shorter "
+                "file (split it)",
+                where=where,
+            )
         if frames * channels > max_seconds * MAX_RATE:
-            raise InputError(f"{channels} channels × {frames} samples is over the limit of "
-                             f"{max_seconds * MAX_RATE:.0f} samples; send fewer channels "
-                             "(a mono mix)", where=where)
+            raise InputError(
+                f"{channels} channels × {frames} samples is over the limit of "
+                f"{max_seconds * MAX_RATE:.0f} samples; send fewer channels "
+                "(a mono mix)",
+                where=where,
+            )
         cut = _wav_shortfall(path)
         if cut is not None:
             per_second = rate * channels * _bytes_per_sample(f.subtype)
-            raise InputError(f"the file is truncated: its header declares {cut[0] / per_second:.2f} s "
-                             f"of audio, it holds {cut[1] / per_second:.2f} s; export or send the "
-                             "whole file again", where=where)
+            raise InputError(
+                f"the file is truncated: its header declares {cut[0] / per_second:.2f} s "
+                f"of audio, it holds {cut[1] / per_second:.2f} s; export or send the "
+                "whole file again",
+                where=where,
+            )
     except BaseException:
         f.close()
         raise
@@ -221,8 +248,17 @@ def _open(path: Path, where: str, max_seconds: float):
 
 
 def _bytes_per_sample(subtype: str) -> int:
-    return {"PCM_S8": 1, "PCM_U8": 1, "PCM_16": 2, "PCM_24": 3, "PCM_32": 4, "FLOAT": 4,
-            "DOUBLE": 8, "ULAW": 1, "ALAW": 1}.get(subtype, 2)
+    return {
+        "PCM_S8": 1,
+        "PCM_U8": 1,
+        "PCM_16": 2,
+        "PCM_24": 3,
+        "PCM_32": 4,
+        "FLOAT": 4,
+        "DOUBLE": 8,
+        "ULAW": 1,
+        "ALAW": 1,
+    }.get(subtype, 2)
 
 
 def _blocks(f, where: str):
@@ -235,25 +271,36 @@ def _blocks(f, where: str):
         try:
             block = f.read(min(step, frames - done), dtype="float64", always_2d=True)
         except Exception as e:  # noqa: BLE001 - a damaged or lying stream fails part-way
-            raise InputError(f"cannot decode audio after {done} of {frames} samples "
-                             f"({_libsndfile_says(e)}); the file is damaged or truncated",
-                             where=where) from None
+            raise InputError(
+                f"cannot decode audio after {done} of {frames} samples "
+                f"({_libsndfile_says(e)}); the file is damaged or truncated",
+                where=where,
+            ) from None
         if len(block) == 0:
             break
         mono = block[:, 0] if channels == 1 else block.mean(axis=1)
         bad = ~np.isfinite(mono)
         if bad.any():
-            raise InputError(f"NaN/inf samples (first at sample {done + int(np.argmax(bad))})",
-                             where=where)
+            raise InputError(
+                f"NaN/inf samples (first at sample {done + int(np.argmax(bad))})", where=where
+            )
         done += len(mono)
         yield mono
     if done < frames:
-        raise InputError(f"the file is truncated: its header declares {frames} samples, "
-                         f"{done} decode; export or send the whole file again", where=where)
+        raise InputError(
+            f"the file is truncated: its header declares {frames} samples, "
+            f"{done} decode; export or send the whole file again",
+            where=where,
+        )
 
 
-def decode_audio(path: str | Path, rate: float | None = None, *, dtype=np.float32,
-                 max_seconds: float | None = None) -> Decoded:
+def decode_audio(
+    path: str | Path,
+    rate: float | None = None,
+    *,
+    dtype=np.float32,
+    max_seconds: float | None = None,
+) -> Decoded:
     """Decode ``path`` (WAV/FLAC/OGG, any sample format, rate and channel count) to mono.
 
     Streams: the file is decoded in blocks of ``BLOCK_SAMPLES`` values, each block is downmixed
@@ -281,7 +328,7 @@ def decode_audio(path: str | Path, rate: float | None = None, *, dtype=np.float3
 
         def put(y: np.ndarray) -> None:
             nonlocal n
-            out[n:n + len(y)] = y
+            out[n : n + len(y)] = y
             n += len(y)
 
         for mono in _blocks(f, where):
@@ -293,8 +340,11 @@ def decode_audio(path: str | Path, rate: float | None = None, *, dtype=np.float3
     if channels > 1:
         log.info("%s: %d channels, averaged to mono", path.name, channels)
     if clipped > CLIP_WARN_FRACTION * frames:
-        log.warning("%s: %.1f%% of samples are clipped; intensity will saturate", where,
-                    100 * clipped / frames)
+        log.warning(
+            "%s: %.1f%% of samples are clipped; intensity will saturate",
+            where,
+            100 * clipped / frames,
+        )
     np.clip(out, -1.0, 1.0, out=out)
     return Decoded(out[:n], sr * up / down, frames / sr, sr, channels)
 
@@ -312,8 +362,14 @@ def read_audio(path: str | Path, *, max_seconds: float | None = None) -> tuple[n
     return d.x, d.source_rate
 
 
-def validate_pcm(x: np.ndarray, sr: float, *, where: str = "audio",
-                 allow_empty: bool = False, warn_clipping: bool = True) -> np.ndarray:
+def validate_pcm(
+    x: np.ndarray,
+    sr: float,
+    *,
+    where: str = "audio",
+    allow_empty: bool = False,
+    warn_clipping: bool = True,
+) -> np.ndarray:
     """Check samples and rate; return ``(n,) float64`` mono.
 
     Accepts ``(n,)`` or ``(n, channels)`` arrays (channels averaged). Integer arrays are scaled
@@ -326,8 +382,9 @@ def validate_pcm(x: np.ndarray, sr: float, *, where: str = "audio",
     if x.ndim == 2:
         x = x.mean(axis=1) if x.dtype.kind == "f" else x.astype(np.float64).mean(axis=1)
     elif x.ndim != 1:
-        raise InputError(f"expected samples of shape (n,) or (n, channels), got {x.shape}",
-                         where=where)
+        raise InputError(
+            f"expected samples of shape (n,) or (n, channels), got {x.shape}", where=where
+        )
     if x.dtype == np.uint8:
         x = (x.astype(np.float64) - 128.0) / 128.0
     elif x.dtype.kind in "iu":
@@ -340,12 +397,14 @@ def validate_pcm(x: np.ndarray, sr: float, *, where: str = "audio",
         raise InputError("no audio samples", where=where)
     if not np.isfinite(x).all():
         bad = ~np.isfinite(x)
-        raise InputError(f"{int(bad.sum())} NaN/inf samples (first at sample {int(np.argmax(bad))})",
-                         where=where)
+        raise InputError(
+            f"{int(bad.sum())} NaN/inf samples (first at sample {int(np.argmax(bad))})", where=where
+        )
     clipped = np.mean(np.abs(x) >= CLIP_LEVEL) if x.size and warn_clipping else 0.0
     if clipped > CLIP_WARN_FRACTION:
-        log.warning("%s: %.1f%% of samples are clipped; intensity will saturate", where,
-                    100 * clipped)
+        log.warning(
+            "%s: %.1f%% of samples are clipped; intensity will saturate", where, 100 * clipped
+        )
     return np.minimum(np.maximum(x, -1.0), 1.0)  # np.clip's per-call cost weighs on live chunks
 
 
@@ -382,14 +441,14 @@ class StreamResampler:
     def __init__(self, sr_in: float, sr_out: float) -> None:
         self.up, self.down, self.h = resample_filter(sr_in, sr_out)
         self.identity = self.up == self.down
-        self.half = (len(self.h) - 1) // 2           # in the upsampled domain
+        self.half = (len(self.h) - 1) // 2  # in the upsampled domain
         self.sr_in, self.sr_out = float(sr_in), float(sr_out)
         self.delay = 0.0 if self.identity else self.half / self.up / self.sr_in
         # Input history; index 0 of ``_buf`` is input sample ``_offset``. The stream is preceded by
         # zeros (as resample_poly pads).
         n_taps = len(self.h)
         self._m = np.arange(-(-n_taps // self.up))
-        ks = np.arange(self.up)[:, None] + self.up * self._m[None, :]      # (up, M) tap ids
+        ks = np.arange(self.up)[:, None] + self.up * self._m[None, :]  # (up, M) tap ids
         self._taps = np.where(ks < n_taps, self.h[np.minimum(ks, n_taps - 1)], 0.0)
         pad = 0 if self.identity else len(self._m) + 2
         self._buf = np.zeros(pad)
@@ -406,13 +465,19 @@ class StreamResampler:
         n_in_end = self._offset + len(self._buf)  # input samples known: [.., n_in_end)
         # output j sits at upsampled position p = j·down; it needs upsampled samples up to p + half,
         # i.e. input samples up to floor((p + half)/up).
-        last_j = (n_in_end * self.up - 1 - self.half) // self.down  # largest j with all inputs known
+        last_j = (
+            n_in_end * self.up - 1 - self.half
+        ) // self.down  # largest j with all inputs known
         if last_j < self._n_out:
             return np.zeros(0)
         # in slices: _compute's gathers are (outputs × taps per phase); a 1 Mi-sample chunk at once
         # swung the memory by 600 MB
-        out = np.concatenate([self._compute(np.arange(j, min(j + STREAM_SLICE, last_j + 1)))
-                              for j in range(self._n_out, last_j + 1, STREAM_SLICE)])
+        out = np.concatenate(
+            [
+                self._compute(np.arange(j, min(j + STREAM_SLICE, last_j + 1)))
+                for j in range(self._n_out, last_j + 1, STREAM_SLICE)
+            ]
+        )
         self._n_out = last_j + 1
         # keep the history the next output needs
         first_needed = (self._n_out * self.down + self.half) // self.up - len(self._m) - 1

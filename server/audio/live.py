@@ -9,6 +9,7 @@ resampler delay (~1 ms) + half an analysis frame (10 ms) + the frame network's l
 (``FrameNet.future`` frames) + half the median filter + the coarticulation look-ahead;
 ``lookahead`` is the budget for the sum (default 60 ms).
 """
+
 from __future__ import annotations
 
 import logging
@@ -64,8 +65,13 @@ class RunningCalibration:
     0.498 (batch 0.524; bench/lipsync/folds.py). Thresholds as ``visemes.calibrate``.
     """
 
-    def __init__(self, noise_db: float = -75.0, rise_db_s: float = 2.0,
-                 decay_db_s: float = 2.0, headroom_db: float = 6.0) -> None:
+    def __init__(
+        self,
+        noise_db: float = -75.0,
+        rise_db_s: float = 2.0,
+        decay_db_s: float = 2.0,
+        headroom_db: float = 6.0,
+    ) -> None:
         self.noise, self.max = noise_db, -np.inf
         self.rise, self.decay, self.headroom = rise_db_s, decay_db_s, headroom_db
 
@@ -103,12 +109,21 @@ class AudioLiveDriver:
 
     control_vertices = None
 
-    def __init__(self, face=None, rate: float = 16000, lookahead: float = 0.06, fps: float = 50.0,
-                 calibration: Calibration | None = None, params: Params | None = None,
-                 net: FrameNet | None = None, fap1: bool = False) -> None:
+    def __init__(
+        self,
+        face=None,
+        rate: float = 16000,
+        lookahead: float = 0.06,
+        fps: float = 50.0,
+        calibration: Calibration | None = None,
+        params: Params | None = None,
+        net: FrameNet | None = None,
+        fap1: bool = False,
+    ) -> None:
         if not (MIN_RATE <= float(rate) <= MAX_RATE):
-            raise InputError(f"sample rate {rate} Hz is outside {MIN_RATE}-{MAX_RATE} Hz",
-                             where="rate")
+            raise InputError(
+                f"sample rate {rate} Hz is outside {MIN_RATE}-{MAX_RATE} Hz", where="rate"
+            )
         if not (0 < fps <= 1000):
             raise InputError(f"fps must be in (0, 1000], got {fps}", where="fps")
         if lookahead < 0:
@@ -125,8 +140,11 @@ class AudioLiveDriver:
         self.n_frame = int(round(FRAME_LENGTH * ANALYSIS_RATE))
         self.n_hop = int(round(HOP_LENGTH * ANALYSIS_RATE))
         self.med_half = self.params.median // 2
-        fixed = StreamResampler(self.rate, ANALYSIS_RATE).delay + FRAME_LENGTH / 2 \
+        fixed = (
+            StreamResampler(self.rate, ANALYSIS_RATE).delay
+            + FRAME_LENGTH / 2
             + (self.med_half + self.net.future) * self.hop
+        )
         self.coart_frames = max(0, int(math.floor((lookahead - fixed) / self.hop + 1e-9)))
         self.coart_lookahead = self.coart_frames * self.hop
         #: Audio needed after t before the state at t is final, seconds.
@@ -138,25 +156,25 @@ class AudioLiveDriver:
 
     # -- stream state ---------------------------------------------------------------------
     def _reset(self, t0: float | None) -> None:
-        self.t0 = t0                       # media time of sample 0 of the current stream
-        self._n_in = 0                     # input samples consumed
+        self.t0 = t0  # media time of sample 0 of the current stream
+        self._n_in = 0  # input samples consumed
         self._rs = StreamResampler(self.rate, ANALYSIS_RATE)
         self._cal = RunningCalibration()
-        self._buf = np.zeros(self.n_frame // 2)   # centred frames: half a frame of zeros first
-        self._buf_start = -(self.n_frame // 2)     # analysis-rate index of _buf[0]
+        self._buf = np.zeros(self.n_frame // 2)  # centred frames: half a frame of zeros first
+        self._buf_start = -(self.n_frame // 2)  # analysis-rate index of _buf[0]
         self._emph_prev = 0.0
         self._emph = np.zeros(self.n_frame // 2)
-        self._n10 = 0                      # analysis-rate samples received
+        self._n10 = 0  # analysis-rate samples received
         # features of frames [_f0, _f0 + len)
         self._f0 = 0
         self._e = np.zeros(0)
         self._F = np.zeros((0, len(self.net.mean) // len(self.net.offsets)))
         self._p = np.zeros((0, len(self.net.b2)))  # class probabilities of frames [_f0, _n_p)
         self._n_p = 0
-        self._first: int | None = None     # frame index of the first sound (None: not yet)
+        self._first: int | None = None  # frame index of the first sound (None: not yet)
         self._sil = np.zeros(0)
         self._max = np.zeros(0)
-        self._next_out = 0                 # next output state index k (time t0 + k/fps)
+        self._next_out = 0  # next output state index k (time t0 + k/fps)
 
     @property
     def _n_feat(self) -> int:
@@ -186,11 +204,13 @@ class AudioLiveDriver:
         if offset < 0:  # late or out-of-order: drop what we already have
             if -offset >= len(x):
                 self.dropped_chunks += 1
-                log.warning("%s: dropped, it ends before the %.3f s already received", where,
-                            expected)
+                log.warning(
+                    "%s: dropped, it ends before the %.3f s already received", where, expected
+                )
                 return out
-            log.warning("%s: overlaps %.1f ms already received; trimmed", where,
-                        -offset / self.rate * 1e3)
+            log.warning(
+                "%s: overlaps %.1f ms already received; trimmed", where, -offset / self.rate * 1e3
+            )
             x = x[-offset:]
         elif offset > 0:
             if offset / self.rate > MAX_GAP:
@@ -209,11 +229,12 @@ class AudioLiveDriver:
         """End of stream: pad with silence and return every remaining state."""
         if self.t0 is None:
             return []
-        n_total10 = -(-self._n_in * self._rs.up // self._rs.down) if not self._rs.identity \
-            else self._n_in
+        n_total10 = (
+            -(-self._n_in * self._rs.up // self._rs.down) if not self._rs.identity else self._n_in
+        )
         tail = self._rs.push(np.zeros(len(self._rs.h) // max(self._rs.up, 1) + 8))
         need = n_total10 - self._n10
-        self._consume(tail[:max(need, 0)], end=n_total10)
+        self._consume(tail[: max(need, 0)], end=n_total10)
         states = self._emit(final=True)
         self.t0 = None
         return states
@@ -240,7 +261,10 @@ class AudioLiveDriver:
         raw = frame(self._buf[first:], frame_length=self.n_frame, hop_length=self.n_hop)
         emf = frame(self._emph[first:], frame_length=self.n_frame, hop_length=self.n_hop)
         if n_frames_total is not None:
-            raw, emf = raw[:max(0, n_frames_total - start_i)], emf[:max(0, n_frames_total - start_i)]
+            raw, emf = (
+                raw[: max(0, n_frames_total - start_i)],
+                emf[: max(0, n_frames_total - start_i)],
+            )
         if len(raw):
             k, e, z, sh, cep = analyze_frames(raw, emf, sr=ANALYSIS_RATE, order=ORDER)
             if self.fixed_calibration is not None:
@@ -270,8 +294,8 @@ class AudioLiveDriver:
             return
         lo = max(0, self._n_p - self.net.past)
         hi = min(n_feat, avail + self.net.future)
-        X = stack_context(self._F[lo - self._f0:hi - self._f0], self.net.offsets)
-        p = self.net.proba_stacked(X[self._n_p - lo:avail - lo])
+        X = stack_context(self._F[lo - self._f0 : hi - self._f0], self.net.offsets)
+        p = self.net.proba_stacked(X[self._n_p - lo : avail - lo])
         self._p = np.concatenate([self._p, p])
         self._n_p = avail
 
@@ -303,16 +327,30 @@ class AudioLiveDriver:
         s = max(self._f0, first_base - past)
         lo, hi = s - self._f0, self._n_p - self._f0
         proba = median_filter_proba(self._p[lo:hi], p.median)[: label_end - s]
-        cal = Calibration(self._sil[lo:lo + len(proba)], self._max[lo:lo + len(proba)])
+        cal = Calibration(self._sil[lo : lo + len(proba)], self._max[lo : lo + len(proba)])
         first = len(proba) if self._first is None else self._first - s
-        vis, w = classes_to_visemes(np.argmax(proba, axis=1), self._e[lo:lo + len(proba)], cal,
-                                    first=first)
+        vis, w = classes_to_visemes(
+            np.argmax(proba, axis=1), self._e[lo : lo + len(proba)], cal, first=first
+        )
         frame_t = (s + np.arange(len(vis))) * self.hop
-        tr = coarticulate(frame_t, vis, w, t_rel, p, hop=self.hop, lookahead=self.coart_lookahead,
-                          table=self.table)
-        states = [FaceState(t=float(self.t0 + tr.t[i]), faps=tr.faps[i].copy(),
-                            viseme=_fap1(tr, i) if self.fap1 else None)
-                  for i in range(len(ks))]
+        tr = coarticulate(
+            frame_t,
+            vis,
+            w,
+            t_rel,
+            p,
+            hop=self.hop,
+            lookahead=self.coart_lookahead,
+            table=self.table,
+        )
+        states = [
+            FaceState(
+                t=float(self.t0 + tr.t[i]),
+                faps=tr.faps[i].copy(),
+                viseme=_fap1(tr, i) if self.fap1 else None,
+            )
+            for i in range(len(ks))
+        ]
         self._next_out = k_end
         # forget features no future output needs
         keep = max(0, int(math.floor(k_end / self.fps / self.hop)) - past - 1) - self._f0

@@ -5,6 +5,7 @@ last axis. Polynomial convention: ``A(z) = 1 + a_1 z^-1 + ... + a_p z^-p`` (as `
 takes it), so an AR process is ``x = lfilter([1], a, e)``; reflection coefficients ``k_i`` are the
 last coefficient of the order-i predictor in the Levinson–Durbin recursion (``k_1 = -R1/R0``).
 """
+
 from __future__ import annotations
 
 import functools
@@ -48,7 +49,11 @@ def frame(x: np.ndarray, *, frame_length: int, hop_length: int) -> np.ndarray:
         frames: np.ndarray = x[np.arange(n)[:, None] * hop_length + np.arange(frame_length)]
         return frames
     return np.lib.stride_tricks.as_strided(
-        x, shape=(n, frame_length), strides=(x.strides[0] * hop_length, x.strides[0]), writeable=False)
+        x,
+        shape=(n, frame_length),
+        strides=(x.strides[0] * hop_length, x.strides[0]),
+        writeable=False,
+    )
 
 
 def autocorrelate(frames: np.ndarray, *, max_lag: int) -> np.ndarray:
@@ -61,8 +66,13 @@ def autocorrelate(frames: np.ndarray, *, max_lag: int) -> np.ndarray:
     """
     y = np.asarray(frames, dtype=np.float64)
     n = y.shape[-1]
-    return np.stack([np.einsum("...i,...i->...", y[..., : n - lag], y[..., lag:])
-                     for lag in range(max_lag + 1)], axis=-1)
+    return np.stack(
+        [
+            np.einsum("...i,...i->...", y[..., : n - lag], y[..., lag:])
+            for lag in range(max_lag + 1)
+        ],
+        axis=-1,
+    )
 
 
 #: Up to this many frames, ``levinson`` and ``cepstrum`` run a scalar loop per frame: NumPy's
@@ -98,10 +108,10 @@ def _levinson_rows(r: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, n
     silent = ~(err > 0)
     err[silent] = np.inf  # digital silence: every k is 0
     for i in range(1, order + 1):
-        acc = r[:, i] + np.einsum("ij,ij->i", a[:, 1:i], r[:, i - 1:0:-1])
+        acc = r[:, i] + np.einsum("ij,ij->i", a[:, 1:i], r[:, i - 1 : 0 : -1])
         # the clip guards round-off on ill-conditioned frames, and keeps err > 0
         ki = np.minimum(np.maximum(-acc / err, -0.999999), 0.999999)
-        a[:, 1:i] += ki[:, None] * a[:, i - 1:0:-1].copy()
+        a[:, 1:i] += ki[:, None] * a[:, i - 1 : 0 : -1].copy()
         a[:, i] = ki
         k[:, i - 1] = ki
         err *= 1.0 - ki * ki
@@ -215,7 +225,7 @@ def cepstrum(a: np.ndarray, n: int = ORDER) -> np.ndarray:
     c = np.zeros((T, n + 1))
     j = np.arange(n + 1, dtype=np.float64)
     for m in range(1, n + 1):
-        c[:, m] = -a[:, m] - (c[:, 1:m] * a[:, m - 1:0:-1]) @ (j[1:m] / m)
+        c[:, m] = -a[:, m] - (c[:, 1:m] * a[:, m - 1 : 0 : -1]) @ (j[1:m] / m)
     return c[:, 1:]
 
 
@@ -227,8 +237,13 @@ def _hamming(n: int) -> np.ndarray:
     return w
 
 
-def analyze_frames(raw_frames: np.ndarray, emph_frames: np.ndarray, *, sr: float = ANALYSIS_RATE,
-                   order: int = ORDER) -> tuple[np.ndarray, ...]:
+def analyze_frames(
+    raw_frames: np.ndarray,
+    emph_frames: np.ndarray,
+    *,
+    sr: float = ANALYSIS_RATE,
+    order: int = ORDER,
+) -> tuple[np.ndarray, ...]:
     """LPC features of already-cut frames. The autocorrelation comes from the frame's power
     spectrum (one FFT, zero-padded past ``N + order`` so no lag wraps), which also gives the
     spectral shape.
@@ -244,17 +259,23 @@ def analyze_frames(raw_frames: np.ndarray, emph_frames: np.ndarray, *, sr: float
     n_fft = 1 << (n - 1).bit_length()
     n_r = n_fft if n_fft >= n + order else 2 * n_fft
     spec = np.fft.rfft(y, n=n_r)
-    p = spec.real ** 2 + spec.imag ** 2
-    r = np.fft.irfft(p, n=n_r)[..., :order + 1]
+    p = spec.real**2 + spec.imag**2
+    r = np.fft.irfft(p, n=n_r)[..., : order + 1]
     a, k, _ = levinson(r, order=order)
     energy_db = 10.0 * np.log10(np.maximum(r[..., 0], 0.0) / n + 1e-12)
     shape = _shape_of_power(p if n_r == n_fft else p[..., ::2], n_fft, sr)
     return k, energy_db, zero_crossing_rate(raw_frames, sr=sr), shape, cepstrum(a, order)
 
 
-def analyze(x: np.ndarray, *, sr: float = ANALYSIS_RATE, frame_length: float = FRAME_LENGTH,
-            hop_length: float = HOP_LENGTH, order: int = ORDER,
-            preemph: float = PREEMPHASIS) -> Features:
+def analyze(
+    x: np.ndarray,
+    *,
+    sr: float = ANALYSIS_RATE,
+    frame_length: float = FRAME_LENGTH,
+    hop_length: float = HOP_LENGTH,
+    order: int = ORDER,
+    preemph: float = PREEMPHASIS,
+) -> Features:
     """Frame, pre-emphasise, window and LP-analyse ``x (n,)`` sampled at ``sr`` Hz.
 
     Frames are centred: frame i covers ``[i·hop - frame_length/2, i·hop + frame_length/2)`` with
@@ -290,5 +311,5 @@ def _window(x: np.ndarray, start: int, stop: int) -> np.ndarray:
     out = np.zeros(max(0, stop - start))
     a, b = max(start, 0), min(stop, len(x))
     if b > a:
-        out[a - start:b - start] = x[a:b]
+        out[a - start : b - start] = x[a:b]
     return out

@@ -1,5 +1,6 @@
 """Batch lip-sync of a whole signal: resample → LPC features → calibration → frame network over
 context-stacked features (ten visual classes) → median filter → visemes → coarticulation."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -47,8 +48,9 @@ class LipSync:
         if len(self.visemes) == 0:
             z = np.zeros(len(t))
             return z.astype(np.int64), z
-        i = np.clip(np.round(np.asarray(t) / self.features.hop).astype(np.int64), 0,
-                    len(self.visemes) - 1)
+        i = np.clip(
+            np.round(np.asarray(t) / self.features.hop).astype(np.int64), 0, len(self.visemes) - 1
+        )
         return self.visemes[i], self.weights[i]
 
 
@@ -67,15 +69,26 @@ def frame_proba(f: Features, cal: Calibration, net: FrameNet | None = None) -> n
     """``(T, 10)`` frame-network class probabilities (``classify.CLASSES``) of features ``f``
     under the energy calibration ``cal`` (default network: the shipped one)."""
     net = net or default_frame_net()
-    return net.proba(frame_features(f.k, f.energy_db, f.zcr, cal.silence_db, cal.max_db,
-                                    f.shape, f.cep))
+    return net.proba(
+        frame_features(f.k, f.energy_db, f.zcr, cal.silence_db, cal.max_db, f.shape, f.cep)
+    )
 
 
-def lipsync_file(path: str | Path, *, fps: float = 100.0, lookahead: float | None = None,
-                 calibration: Calibration | None = None, silence_db: float | None = None,
-                 max_db: float | None = None, text: str | None = None, voice: str = "en-us",
-                 params: Params | None = None, net: FrameNet | None = None,
-                 table: np.ndarray | None = None, max_seconds: float | None = None) -> LipSync:
+def lipsync_file(
+    path: str | Path,
+    *,
+    fps: float = 100.0,
+    lookahead: float | None = None,
+    calibration: Calibration | None = None,
+    silence_db: float | None = None,
+    max_db: float | None = None,
+    text: str | None = None,
+    voice: str = "en-us",
+    params: Params | None = None,
+    net: FrameNet | None = None,
+    table: np.ndarray | None = None,
+    max_seconds: float | None = None,
+) -> LipSync:
     """Lip-sync an audio file, decoded in blocks straight to the analysis rate.
 
     The peak memory follows the audio's duration, whatever the file's rate, channels or format:
@@ -104,17 +117,40 @@ def lipsync_file(path: str | Path, *, fps: float = 100.0, lookahead: float | Non
     cal = calibration
     if silence_db is not None or max_db is not None:
         auto = cal or calibrate(f.energy_db)
-        cal = Calibration(auto.silence_db if silence_db is None else float(silence_db),
-                          auto.max_db if max_db is None else float(max_db))
+        cal = Calibration(
+            auto.silence_db if silence_db is None else float(silence_db),
+            auto.max_db if max_db is None else float(max_db),
+        )
         if cal.max_db <= cal.silence_db:
-            raise InputError(f"the loudest level (--max-db) {cal.max_db} dB must be above the silence "
-                             f"threshold {cal.silence_db} dB", where="max_db")
+            raise InputError(
+                f"the loudest level (--max-db) {cal.max_db} dB must be above the silence "
+                f"threshold {cal.silence_db} dB",
+                where="max_db",
+            )
     if text is not None:
-        return align_features(f, seconds, text, net=net, calibration=cal, fps=fps,
-                              lookahead=lookahead, params=params, table=table, voice=voice)
+        return align_features(
+            f,
+            seconds,
+            text,
+            net=net,
+            calibration=cal,
+            fps=fps,
+            lookahead=lookahead,
+            params=params,
+            table=table,
+            voice=voice,
+        )
     cal = cal or calibrate(f.energy_db)
-    return track_of(f, frame_proba(f, cal, net), seconds, fps=fps, lookahead=lookahead,
-                    calibration=cal, params=params, table=table)
+    return track_of(
+        f,
+        frame_proba(f, cal, net),
+        seconds,
+        fps=fps,
+        lookahead=lookahead,
+        calibration=cal,
+        params=params,
+        table=table,
+    )
 
 
 def calibration_file(path: str | Path, *, max_seconds: float | None = None) -> Calibration:
@@ -130,10 +166,18 @@ def calibration_from(x: np.ndarray, sr: float, *, where: str = "calibration") ->
     return calibrate_reference(features_of(x, sr).energy_db, where=where)
 
 
-def lipsync(x: np.ndarray, sr: float, *, fps: float = 100.0, lookahead: float | None = None,
-            calibration: Calibration | None = None, params: Params | None = None,
-            net: FrameNet | None = None, where: str = "audio",
-            table: np.ndarray | None = None) -> LipSync:
+def lipsync(
+    x: np.ndarray,
+    sr: float,
+    *,
+    fps: float = 100.0,
+    lookahead: float | None = None,
+    calibration: Calibration | None = None,
+    params: Params | None = None,
+    net: FrameNet | None = None,
+    where: str = "audio",
+    table: np.ndarray | None = None,
+) -> LipSync:
     """Lip-sync ``x`` (samples, mono or ``(n, channels)``) at ``sr`` Hz.
 
     Args:
@@ -147,8 +191,16 @@ def lipsync(x: np.ndarray, sr: float, *, fps: float = 100.0, lookahead: float | 
     x = validate_pcm(x, sr, where=where)
     f = features_of(x, sr)
     cal = calibration or calibrate(f.energy_db)
-    return track_of(f, frame_proba(f, cal, net), len(x) / float(sr), fps=fps, lookahead=lookahead,
-                    calibration=cal, params=params, table=table)
+    return track_of(
+        f,
+        frame_proba(f, cal, net),
+        len(x) / float(sr),
+        fps=fps,
+        lookahead=lookahead,
+        calibration=cal,
+        params=params,
+        table=table,
+    )
 
 
 def first_sound(energy_db: np.ndarray, cal: Calibration) -> int:
@@ -157,8 +209,9 @@ def first_sound(energy_db: np.ndarray, cal: Calibration) -> int:
     return int(np.argmax(loud)) if loud.any() else len(loud)
 
 
-def classes_to_visemes(cls: np.ndarray, energy_db: np.ndarray, cal: Calibration,
-                       first: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def classes_to_visemes(
+    cls: np.ndarray, energy_db: np.ndarray, cal: Calibration, first: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """``(viseme (T,), weight (T,))`` from frame classes ``cls (T,)``: the class's viseme, with an
     intensity linear in dB between the calibrated silence and maximum (silence 0, a closure 1,
     fricatives at least 0.5). Frames before ``first`` (default: ``first_sound``, frame 0 being
@@ -173,9 +226,17 @@ def classes_to_visemes(cls: np.ndarray, energy_db: np.ndarray, cal: Calibration,
     return vis.astype(np.int64), w
 
 
-def track_of(f: Features, proba: np.ndarray, duration: float, *, fps: float = 100.0,
-             lookahead: float | None = None, calibration: Calibration | None = None,
-             params: Params | None = None, table: np.ndarray | None = None) -> LipSync:
+def track_of(
+    f: Features,
+    proba: np.ndarray,
+    duration: float,
+    *,
+    fps: float = 100.0,
+    lookahead: float | None = None,
+    calibration: Calibration | None = None,
+    params: Params | None = None,
+    table: np.ndarray | None = None,
+) -> LipSync:
     """The rest of ``lipsync`` from features and frame network outputs ``proba (T, 10)``."""
     params = params or Params()
     proba = median_filter_proba(proba, params.median)
@@ -183,6 +244,7 @@ def track_of(f: Features, proba: np.ndarray, duration: float, *, fps: float = 10
     cls = np.argmax(proba, axis=1) if len(proba) else np.zeros(0, dtype=np.int64)
     vis, w = classes_to_visemes(cls, f.energy_db, cal)
     n_out = int(np.floor(duration * fps + 1e-9)) + 1 if len(f) else 0
-    track = coarticulate(f.times, vis, w, np.arange(n_out) / fps, params, hop=f.hop,
-                         lookahead=lookahead, table=table)
+    track = coarticulate(
+        f.times, vis, w, np.arange(n_out) / fps, params, hop=f.hop, lookahead=lookahead, table=table
+    )
     return LipSync(f, proba, vis, w, cal, track, duration)

@@ -9,6 +9,7 @@ on a softmax output). The source trained for 5 shuffled cycles over its recordin
 generated set is cleaner but smaller per speaker, so it runs more epochs (``--epochs``).
 Validation holds out two training voice variants and reports their frame accuracy.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,8 +25,17 @@ from .generate import Dataset, generate
 log = logging.getLogger(__name__)
 
 
-def fit(k: np.ndarray, y: np.ndarray, *, hidden: int = 10, epochs: int = 60, lr: float = 0.05,
-        momentum: float = 0.9, batch: int = 32, seed: int = 0) -> VowelNet:
+def fit(
+    k: np.ndarray,
+    y: np.ndarray,
+    *,
+    hidden: int = 10,
+    epochs: int = 60,
+    lr: float = 0.05,
+    momentum: float = 0.9,
+    batch: int = 32,
+    seed: int = 0,
+) -> VowelNet:
     """Back-propagation training of a ``12-hidden-5`` net on ``k (N, 12)``, labels ``y (N,)``."""
     rng = np.random.default_rng(seed)
     mean, std = k.mean(axis=0), k.std(axis=0) + 1e-6
@@ -65,8 +75,11 @@ def confusion(y: np.ndarray, pred: np.ndarray, n: int = len(VOWELS)) -> np.ndarr
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m facecast.server.audio.train", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m facecast.server.audio.train",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--per-vowel", type=int, default=200, help="utterances per vowel (default 200)")
     p.add_argument("--epochs", type=int, default=60)
     p.add_argument("--seed", type=int, default=0)
@@ -75,27 +88,51 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     t = time.perf_counter()
     data: Dataset = generate(args.per_vowel, args.seed, progress=sys.stderr.isatty())
-    log.info("generated %d frames from %d utterances in %.1f s; per class %s", len(data.y),
-             5 * args.per_vowel, time.perf_counter() - t, np.bincount(data.y).tolist())
+    log.info(
+        "generated %d frames from %d utterances in %.1f s; per class %s",
+        len(data.y),
+        5 * args.per_vowel,
+        time.perf_counter() - t,
+        np.bincount(data.y).tolist(),
+    )
     groups = sorted(set(data.group))
     rng = np.random.default_rng(args.seed)
     val_groups = set(rng.choice(groups, size=2, replace=False))
     val = np.isin(data.group, list(val_groups))
     net = fit(data.k[~val], data.y[~val], epochs=args.epochs, seed=args.seed)
     acc = float(np.mean(net.predict(data.k[val]) == data.y[val]))
-    log.info("validation on held-out variants %s: frame accuracy %.3f\n%s", sorted(map(str, val_groups)),
-             acc, confusion(data.y[val], net.predict(data.k[val])))
+    log.info(
+        "validation on held-out variants %s: frame accuracy %.3f\n%s",
+        sorted(map(str, val_groups)),
+        acc,
+        confusion(data.y[val], net.predict(data.k[val])),
+    )
     net = fit(data.k, data.y, epochs=args.epochs, seed=args.seed)  # final: all variants
     log.info("training accuracy %.3f", float(np.mean(net.predict(data.k) == data.y)))
-    net.save(args.out, command="python -m facecast.server.audio.train " + " ".join(argv or sys.argv[1:]),
-             validation_accuracy=f"{acc:.4f}", frames=str(len(data.y)))
+    net.save(
+        args.out,
+        command="python -m facecast.server.audio.train " + " ".join(argv or sys.argv[1:]),
+        validation_accuracy=f"{acc:.4f}",
+        frames=str(len(data.y)),
+    )
     log.info("wrote %s", args.out)
     return 0
 
 
-def fit_frames(X: np.ndarray, y: np.ndarray, offsets: np.ndarray, *, hidden: int = 48,
-               epochs: int = 30, lr: float = 3e-3, batch: int = 256, l2: float = 1e-4,
-               balance: float = 0.5, seed: int = 0, n_classes: int = 10):
+def fit_frames(
+    X: np.ndarray,
+    y: np.ndarray,
+    offsets: np.ndarray,
+    *,
+    hidden: int = 48,
+    epochs: int = 30,
+    lr: float = 3e-3,
+    batch: int = 256,
+    l2: float = 1e-4,
+    balance: float = 0.5,
+    seed: int = 0,
+    n_classes: int = 10,
+):
     """Train a ``FrameNet`` (tanh hidden layer, softmax output, cross-entropy) with Adam on
     context-stacked inputs ``X (N, D)`` and class labels ``y (N,)`` (0..9).
 
@@ -106,10 +143,12 @@ def fit_frames(X: np.ndarray, y: np.ndarray, offsets: np.ndarray, *, hidden: int
     mean, std = X.mean(axis=0), X.std(axis=0) + 1e-6
     x = ((X - mean) / std).astype(np.float32)
     n_in = x.shape[1]
-    params = [rng.normal(0, 1 / np.sqrt(n_in), (n_in, hidden)).astype(np.float32),
-              np.zeros(hidden, np.float32),
-              rng.normal(0, 1 / np.sqrt(hidden), (hidden, n_classes)).astype(np.float32),
-              np.zeros(n_classes, np.float32)]
+    params = [
+        rng.normal(0, 1 / np.sqrt(n_in), (n_in, hidden)).astype(np.float32),
+        np.zeros(hidden, np.float32),
+        rng.normal(0, 1 / np.sqrt(hidden), (hidden, n_classes)).astype(np.float32),
+        np.zeros(n_classes, np.float32),
+    ]
     m = [np.zeros_like(p) for p in params]
     v = [np.zeros_like(p) for p in params]
     counts = np.maximum(np.bincount(y, minlength=n_classes), 1)
@@ -132,11 +171,12 @@ def fit_frames(X: np.ndarray, y: np.ndarray, offsets: np.ndarray, *, hidden: int
             for i, g in enumerate(grads):
                 m[i] = 0.9 * m[i] + 0.1 * g
                 v[i] = 0.999 * v[i] + 0.001 * g * g
-                mh = m[i] / (1 - 0.9 ** step)
-                vh = v[i] / (1 - 0.999 ** step)
+                mh = m[i] / (1 - 0.9**step)
+                vh = v[i] / (1 - 0.999**step)
                 params[i] -= rate * mh / (np.sqrt(vh) + 1e-8)
-    return FrameNet(*(p.astype(np.float64) for p in params), mean, std,
-                    np.asarray(offsets, dtype=np.int64))
+    return FrameNet(
+        *(p.astype(np.float64) for p in params), mean, std, np.asarray(offsets, dtype=np.int64)
+    )
 
 
 if __name__ == "__main__":

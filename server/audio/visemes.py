@@ -18,6 +18,7 @@ window, so both give the same frames when they use the same calibration and look
 Viseme ids are MPEG-4 FAP 1 ids (mpeg4-reference §4.1): 0 sil, 1 PP, 2 FF, 3 TH, 4 DD, 5 kk,
 6 CH, 7 SS, 8 nn, 9 RR, 10 aa, 11 E, 12 ih, 13 oh, 14 ou.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -28,8 +29,23 @@ import scipy.ndimage
 from ..state import N_FAPS
 
 SIL, PP, FF, TH, DD, KK, CH, SS, NN, RR, AA, E, IH, OH, OU = range(15)
-VISEME_NAMES = ("sil", "PP", "FF", "TH", "DD", "kk", "CH", "SS", "nn", "RR", "aa", "E", "ih",
-                "oh", "ou")
+VISEME_NAMES = (
+    "sil",
+    "PP",
+    "FF",
+    "TH",
+    "DD",
+    "kk",
+    "CH",
+    "SS",
+    "nn",
+    "RR",
+    "aa",
+    "E",
+    "ih",
+    "oh",
+    "ou",
+)
 #: Network class index (a e i o u) → viseme id.
 VOWEL_VISEMES = np.array([AA, E, IH, OH, OU])
 
@@ -53,23 +69,25 @@ def viseme_table(face=None) -> np.ndarray:
 #: strongly but briefly (the lips must meet: a 30 ms /p/ wins at its centre against vowels on
 #: both sides, and gives way 20 ms into them), rounded vowels spread a little further, tongue
 #: consonants and silence are weak.
-DOMINANCE = np.array([
-    (0.5, 20.0),   # sil
-    (1.5, 50.0),   # PP: the lips must close, briefly
-    (1.0, 40.0),   # FF
-    (0.5, 30.0),   # TH
-    (0.5, 30.0),   # DD
-    (0.5, 30.0),   # kk
-    (0.8, 40.0),   # CH
-    (0.8, 40.0),   # SS
-    (0.5, 30.0),   # nn
-    (0.6, 25.0),   # RR
-    (0.6, 20.0),   # aa
-    (0.6, 20.0),   # E
-    (0.6, 20.0),   # ih
-    (0.7, 20.0),   # oh: lip rounding spreads to neighbours
-    (0.7, 20.0),   # ou
-])
+DOMINANCE = np.array(
+    [
+        (0.5, 20.0),  # sil
+        (1.5, 50.0),  # PP: the lips must close, briefly
+        (1.0, 40.0),  # FF
+        (0.5, 30.0),  # TH
+        (0.5, 30.0),  # DD
+        (0.5, 30.0),  # kk
+        (0.8, 40.0),  # CH
+        (0.8, 40.0),  # SS
+        (0.5, 30.0),  # nn
+        (0.6, 25.0),  # RR
+        (0.6, 20.0),  # aa
+        (0.6, 20.0),  # E
+        (0.6, 20.0),  # ih
+        (0.7, 20.0),  # oh: lip rounding spreads to neighbours
+        (0.7, 20.0),  # ou
+    ]
+)
 
 
 @dataclass
@@ -126,14 +144,19 @@ def calibrate_reference(energy_db: np.ndarray, *, where: str = "calibration") ->
 
     e = np.asarray(energy_db, dtype=np.float64)
     if e.size < 20:
-        raise InputError("the calibration recording is shorter than 0.2 s; record about 1 s of "
-                         "room noise and then a loud sustained /a/", where=where)
+        raise InputError(
+            "the calibration recording is shorter than 0.2 s; record about 1 s of "
+            "room noise and then a loud sustained /a/",
+            where=where,
+        )
     noise, loud = float(np.percentile(e, 10)), float(np.percentile(e, 90))
     if loud - noise < MIN_CALIBRATION_SPAN_DB:
-        raise InputError(f"the calibration recording's loud part is only {loud - noise:.1f} dB "
-                         f"above its quiet part (at least {MIN_CALIBRATION_SPAN_DB:.0f} dB needed): "
-                         "record about 1 s of room noise and then a loud sustained /a/",
-                         where=where)
+        raise InputError(
+            f"the calibration recording's loud part is only {loud - noise:.1f} dB "
+            f"above its quiet part (at least {MIN_CALIBRATION_SPAN_DB:.0f} dB needed): "
+            "record about 1 s of room noise and then a loud sustained /a/",
+            where=where,
+        )
     sil = max(noise + NOISE_MARGIN_DB, loud - SILENCE_RANGE_DB, MIN_SILENCE_DB)
     return Calibration(silence_db=sil, max_db=max(loud, sil + 10.0))
 
@@ -163,7 +186,9 @@ def median_filter_proba(proba: np.ndarray, size: int) -> np.ndarray:
     if size == 3:  # the default: the median of three, exactly, without scipy's per-call cost
         prev = np.concatenate([proba[:1], proba[:-1]])
         nxt = np.concatenate([proba[1:], proba[-1:]])
-        med: np.ndarray = np.maximum(np.minimum(prev, proba), np.minimum(np.maximum(prev, proba), nxt))
+        med: np.ndarray = np.maximum(
+            np.minimum(prev, proba), np.minimum(np.maximum(prev, proba), nxt)
+        )
         return med
     return scipy.ndimage.median_filter(proba, size=(size, 1), mode="nearest")
 
@@ -186,9 +211,17 @@ class Track:
     weight: np.ndarray
 
 
-def coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np.ndarray,
-                 params: Params, *, hop: float, lookahead: float | None = None,
-                 table: np.ndarray | None = None) -> Track:
+def coarticulate(
+    frame_t: np.ndarray,
+    vis: np.ndarray,
+    w: np.ndarray,
+    t_out: np.ndarray,
+    params: Params,
+    *,
+    hop: float,
+    lookahead: float | None = None,
+    table: np.ndarray | None = None,
+) -> Track:
     """Blend per-frame targets with dominance functions and sample at ``t_out (N,)`` seconds.
 
     ``frame_t (T,)`` must be evenly spaced by ``hop`` seconds. Frames with
@@ -198,16 +231,41 @@ def coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np.
     """
     t_out = np.asarray(t_out, dtype=np.float64)
     if len(t_out) <= COART_ROWS:
-        return _coarticulate(frame_t, vis, w, t_out, params, hop=hop, lookahead=lookahead, table=table)
-    parts = [_coarticulate(frame_t, vis, w, t_out[i:i + COART_ROWS], params, hop=hop,
-                           lookahead=lookahead, table=table) for i in range(0, len(t_out), COART_ROWS)]
-    return Track(*(np.concatenate([getattr(p, k) for p in parts]) for k in
-                   ("t", "faps", "select1", "select2", "blend", "weight")))
+        return _coarticulate(
+            frame_t, vis, w, t_out, params, hop=hop, lookahead=lookahead, table=table
+        )
+    parts = [
+        _coarticulate(
+            frame_t,
+            vis,
+            w,
+            t_out[i : i + COART_ROWS],
+            params,
+            hop=hop,
+            lookahead=lookahead,
+            table=table,
+        )
+        for i in range(0, len(t_out), COART_ROWS)
+    ]
+    return Track(
+        *(
+            np.concatenate([getattr(p, k) for p in parts])
+            for k in ("t", "faps", "select1", "select2", "blend", "weight")
+        )
+    )
 
 
-def _coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np.ndarray,
-                  params: Params, *, hop: float, lookahead: float | None = None,
-                  table: np.ndarray | None = None) -> Track:
+def _coarticulate(
+    frame_t: np.ndarray,
+    vis: np.ndarray,
+    w: np.ndarray,
+    t_out: np.ndarray,
+    params: Params,
+    *,
+    hop: float,
+    lookahead: float | None = None,
+    table: np.ndarray | None = None,
+) -> Track:
     frame_t = np.asarray(frame_t, dtype=np.float64)
     N = len(t_out)
     if len(frame_t) == 0 or N == 0:
@@ -217,8 +275,10 @@ def _coarticulate(frame_t: np.ndarray, vis: np.ndarray, w: np.ndarray, t_out: np
     offs = np.arange(-int(round(params.coart_past / hop)), int(round(future / hop + 1e-9)) + 1)
     # nearest frame at or before each output time, then a window of frames around it
     # (np.minimum/np.maximum: np.clip's per-call cost on integers weighs on the live path)
-    base = np.minimum(np.maximum(np.floor((t_out - frame_t[0]) / hop + 1e-9).astype(np.int64), 0),
-                      len(frame_t) - 1)
+    base = np.minimum(
+        np.maximum(np.floor((t_out - frame_t[0]) / hop + 1e-9).astype(np.int64), 0),
+        len(frame_t) - 1,
+    )
     j = base[:, None] + offs[None, :]
     ok = (j >= 0) & (j < len(frame_t))
     jc = np.minimum(np.maximum(j, 0), len(frame_t) - 1)

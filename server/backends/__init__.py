@@ -3,6 +3,7 @@
 ``make_deformer(face, operator, backend=...)`` returns an object with the ``Deformer`` interface of
 ``numpy_backend.NumpyDeformer``; the OpenCL backend gives the same results within float32 tolerance.
 """
+
 from __future__ import annotations
 
 import logging
@@ -33,7 +34,9 @@ def make_deformer(face, operator, backend: str = "auto", device: str | None = No
     from ..errors import FacecastError
 
     if backend not in ("auto", "numpy", "opencl"):
-        raise FacecastError(f"unknown backend {backend!r}; use auto, numpy or opencl", where="backend")
+        raise FacecastError(
+            f"unknown backend {backend!r}; use auto, numpy or opencl", where="backend"
+        )
     if backend in ("auto", "opencl"):
         try:
             from .opencl import OpenCLDeformer, default_context
@@ -45,15 +48,27 @@ def make_deformer(face, operator, backend: str = "auto", device: str | None = No
             ctx = default_context(device)
             if ctx is None:
                 if backend == "opencl":
-                    what = f"no working OpenCL device matches {device!r}" if device else "no working OpenCL device"
-                    raise FacecastError(f"{what}; install pocl-opencl-icd, check `facecast info`, "
-                                        "or use --backend numpy")
+                    what = (
+                        f"no working OpenCL device matches {device!r}"
+                        if device
+                        else "no working OpenCL device"
+                    )
+                    raise FacecastError(
+                        f"{what}; install pocl-opencl-icd, check `facecast info`, "
+                        "or use --backend numpy"
+                    )
                 # (select.default_context has already said, once, that NumPy is used and why)
             else:
                 try:
-                    return OpenCLDeformer(face.vertices, face.triangles, face.rigid_group, operator, context=ctx)
+                    return OpenCLDeformer(
+                        face.vertices, face.triangles, face.rigid_group, operator, context=ctx
+                    )
                 except Exception as e:  # a kernel variant that fails to build or run on this device
                     if backend == "opencl":
-                        raise FacecastError(f"OpenCL deformer failed on {ctx.devices[0].name.strip()}: {e}") from e
-                    _note_fallback(f"OpenCL deformer failed ({str(e).splitlines()[0] if str(e) else e!r})")
+                        raise FacecastError(
+                            f"OpenCL deformer failed on {ctx.devices[0].name.strip()}: {e}"
+                        ) from e
+                    _note_fallback(
+                        f"OpenCL deformer failed ({str(e).splitlines()[0] if str(e) else e!r})"
+                    )
     return NumpyDeformer(face.vertices, face.triangles, face.rigid_group, operator)

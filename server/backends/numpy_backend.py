@@ -1,4 +1,5 @@
 """The NumPy/SciPy reference backend: the results every other backend must reproduce."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -24,7 +25,9 @@ class NumpyDeformer:
 
     name = "numpy"
 
-    def __init__(self, rest: np.ndarray, triangles: np.ndarray, rigid_group: np.ndarray, operator: Operator):
+    def __init__(
+        self, rest: np.ndarray, triangles: np.ndarray, rigid_group: np.ndarray, operator: Operator
+    ):
         self.rest = np.ascontiguousarray(rest, dtype=np.float32)
         self.triangles = np.ascontiguousarray(triangles, dtype=np.int32)
         self.operator = operator
@@ -33,15 +36,22 @@ class NumpyDeformer:
         group = np.asarray(rigid_group, dtype=np.uint8)
         self.groups = [np.flatnonzero(group == g) for g in range(int(group.max(initial=0)) + 1)]
         if operator.is_sparse:
-            self._B = [sp.csr_matrix((operator.weights[:, a], operator.indices, operator.indptr),
-                                     shape=(self.n_vertices, self.n_controls)) for a in range(3)]
+            self._B = [
+                sp.csr_matrix(
+                    (operator.weights[:, a], operator.indices, operator.indptr),
+                    shape=(self.n_vertices, self.n_controls),
+                )
+                for a in range(3)
+            ]
         self._incidence: sp.csr_matrix | None = None
 
     def displacements(self, D: np.ndarray) -> np.ndarray:
         """``u = B·D``: ``D (K, 3)`` -> ``(V, 3) float32``."""
         D = np.asarray(D, dtype=np.float32).reshape(self.n_controls, 3)
         if self.operator.is_sparse:
-            return np.stack([self._B[a] @ D[:, a] for a in range(3)], axis=1).astype(np.float32, copy=False)
+            return np.stack([self._B[a] @ D[:, a] for a in range(3)], axis=1).astype(
+                np.float32, copy=False
+            )
         return self.operator.dense @ D
 
     def deform(self, D: np.ndarray, transforms: np.ndarray) -> np.ndarray:
@@ -54,7 +64,9 @@ class NumpyDeformer:
                 out[ids] = p[ids] @ T[g, :, :3].T + T[g, :, 3]
         return out
 
-    def deform_batch(self, D: np.ndarray, transforms: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def deform_batch(
+        self, D: np.ndarray, transforms: np.ndarray, out: np.ndarray | None = None
+    ) -> np.ndarray:
         """Many frames: ``D (T, K, 3)``, ``transforms (T, G, 3, 4)`` -> ``(T, V, 3) float32`` (into ``out``)."""
         if out is None:
             out = np.empty((len(D), self.n_vertices, 3), dtype=np.float32)
@@ -75,11 +87,15 @@ class NumpyDeformer:
 def incidence_matrix(triangles: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     """``(V, F)`` 0/1 CSR matrix: vertex v touches triangle f."""
     f = np.repeat(np.arange(len(triangles)), 3)
-    return sp.csr_matrix((np.ones(f.size, dtype=np.float32), (triangles.ravel(), f)),
-                         shape=(n_vertices, len(triangles)))
+    return sp.csr_matrix(
+        (np.ones(f.size, dtype=np.float32), (triangles.ravel(), f)),
+        shape=(n_vertices, len(triangles)),
+    )
 
 
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray, incidence: sp.csr_matrix | None = None) -> np.ndarray:
+def vertex_normals(
+    vertices: np.ndarray, triangles: np.ndarray, incidence: sp.csr_matrix | None = None
+) -> np.ndarray:
     """Area-weighted unit vertex normals: ``(V, 3)`` vertices, ``(F, 3)`` triangles -> ``(V, 3) float32``.
 
     A vertex in no triangle (or whose triangles cancel) gets ``(0, 0, 0)``.

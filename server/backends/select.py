@@ -14,6 +14,7 @@ environment alone.
 ``"P:D"`` (platform and device index) or a case-insensitive part of ``"<platform name> <device
 name>"`` (``"pthread"``, ``"NVIDIA"``).
 """
+
 from __future__ import annotations
 
 import logging
@@ -153,7 +154,9 @@ def probe_devices(refresh: bool = False) -> list[DeviceProbe]:
                 continue
             for di, dev in enumerate(devices):
                 ctx, err = _probe_one(dev)
-                p = DeviceProbe(pi, di, plat.name.strip(), dev.name.strip(), _kind(dev), ctx is not None, err)
+                p = DeviceProbe(
+                    pi, di, plat.name.strip(), dev.name.strip(), _kind(dev), ctx is not None, err
+                )
                 probes.append(p)
                 if ctx is not None:
                     _contexts[p.key] = ctx
@@ -185,10 +188,16 @@ def default_context(device: str | None = None):
             if chosen is not None:
                 log.info("OpenCL device %s: %s", chosen.key, chosen.label)
             elif device is not None and not candidates:
-                log.warning("no OpenCL device matches %r (have: %s); using NumPy", device,
-                            ", ".join(f"{p.key} {p.label}" for p in probes) or "none")
+                log.warning(
+                    "no OpenCL device matches %r (have: %s); using NumPy",
+                    device,
+                    ", ".join(f"{p.key} {p.label}" for p in probes) or "none",
+                )
             else:
-                why = "; ".join(f"{p.label}: {p.error}" for p in candidates) or "no OpenCL devices found"
+                why = (
+                    "; ".join(f"{p.label}: {p.error}" for p in candidates)
+                    or "no OpenCL devices found"
+                )
                 log.warning("no working OpenCL device (%s); using NumPy", why)
         return _contexts.get(chosen.key) if chosen is not None else None
 

@@ -19,6 +19,7 @@ The face is ``load_face("default:N")`` and the operator the feature-point engine
 and/or a synthetic operator with the feature-point operator's row structure (each record says which
 in ``face`` and ``operator``).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -58,7 +59,9 @@ def ellipsoid_face(n_vertices: int) -> Face:
     i, j = np.meshgrid(np.arange(rows - 1), np.arange(cols), indexing="ij")
     a, b = i * cols + j, i * cols + (j + 1) % cols
     c, d = a + cols, b + cols
-    tri = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
+    tri = np.concatenate(
+        [np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)]
+    )
     front = v[:, 2] > 40
     parts = {
         "tongue": np.flatnonzero(front & (v[:, 1] < -60) & (np.abs(v[:, 0]) < 30)),
@@ -86,17 +89,23 @@ def synthetic_fp_operator(face: Face, n_controls: int = 78, seed: int = 0) -> Op
     dist, nb = cKDTree(v[ctrl]).query(v, k=min(8, K), distance_upper_bound=radius)
     nb = np.where(np.isfinite(dist), nb, 0)
     w = np.where(np.isfinite(dist), np.sin(np.pi / 2 * (1 - np.minimum(dist / radius, 1))), 0.0)
-    wa = w[:, :, None] * constrained[nb]                                  # (V, k, 3) per axis
+    wa = w[:, :, None] * constrained[nb]  # (V, k, 3) per axis
     wa = wa / np.maximum(wa.sum(axis=1, keepdims=True), 1e-12)
     keep = (wa > 1e-3).any(axis=2)
-    order = np.argsort(np.where(keep, nb, K), axis=1, kind="stable")      # ids ascending per row
+    order = np.argsort(np.where(keep, nb, K), axis=1, kind="stable")  # ids ascending per row
     nb_s = np.take_along_axis(nb, order, axis=1)
     keep_s = np.take_along_axis(keep, order, axis=1)
     wa_s = np.take_along_axis(wa, order[:, :, None], axis=1)
     indptr = np.zeros(len(v) + 1, dtype=np.int64)
     np.cumsum(keep_s.sum(axis=1), out=indptr[1:])
-    return Operator(len(v), K, indptr=indptr, indices=nb_s[keep_s], weights=wa_s[keep_s].astype(np.float32),
-                    meta={"engine": "synthetic-fp"})
+    return Operator(
+        len(v),
+        K,
+        indptr=indptr,
+        indices=nb_s[keep_s],
+        weights=wa_s[keep_s].astype(np.float32),
+        meta={"engine": "synthetic-fp"},
+    )
 
 
 def load_subject(n_vertices: int, engine: str = "fp") -> tuple[Face, Operator, str, str]:
@@ -117,14 +126,24 @@ def load_subject(n_vertices: int, engine: str = "fp") -> tuple[Face, Operator, s
             from ..mpeg4 import fap_controls
 
             _fp_ids, vertex_ids, constrained = fap_controls(face)
-            return face, get_operator(face, vertex_ids, engine="fp", constrained=constrained), face_kind, "fp"
+            return (
+                face,
+                get_operator(face, vertex_ids, engine="fp", constrained=constrained),
+                face_kind,
+                "fp",
+            )
         except Exception as e:  # not landed yet, or the face lacks feature points
             log.info("feature-point operator unavailable (%s); using a synthetic one", e)
         return face, synthetic_fp_operator(face), face_kind, "synthetic-fp"
     rng = np.random.default_rng(1)
     K = 84
     dense = rng.random((face.n_vertices, K), dtype=np.float32) / K
-    return face, Operator(face.n_vertices, K, dense=dense, meta={"engine": "synthetic-dense"}), face_kind, "synthetic-dense"
+    return (
+        face,
+        Operator(face.n_vertices, K, dense=dense, meta={"engine": "synthetic-dense"}),
+        face_kind,
+        "synthetic-dense",
+    )
 
 
 # --------------------------------------------------------------------------------- measuring
@@ -188,12 +207,23 @@ def bytes_numpy(op: Operator, n_vertices: int, axes_equal: bool) -> tuple[int, i
     else:
         csr = 4 * V * op.n_controls
     scipy_bytes = csr + 12 * op.n_controls + 12 * V
-    numpy_bytes = (3 * (4 * (V + 1) + 8 * op.nnz) if op.is_sparse else csr) + 12 * op.n_controls + 36 * V
+    numpy_bytes = (
+        (3 * (4 * (V + 1) + 8 * op.nnz) if op.is_sparse else csr) + 12 * op.n_controls + 36 * V
+    )
     return scipy_bytes, numpy_bytes
 
 
-def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, frames: int, rounds: int,
-                 batch_frames: int, device: str | None, face_spec: str | None = None) -> list[dict]:
+def measure_size(
+    n_vertices: int,
+    *,
+    backends: tuple[str, ...],
+    engine: str,
+    frames: int,
+    rounds: int,
+    batch_frames: int,
+    device: str | None,
+    face_spec: str | None = None,
+) -> list[dict]:
     """Records for one face size (see the module docstring)."""
     import scipy.sparse as sp
 
@@ -218,7 +248,9 @@ def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, fra
         T[:, :, 3] = rng.standard_normal((4, 3)).astype(np.float32)
         Ts.append(T)
     W = op.weights if op.is_sparse else None
-    axes_equal = bool(W is None or (np.array_equal(W[:, 0], W[:, 1]) and np.array_equal(W[:, 0], W[:, 2])))
+    axes_equal = bool(
+        W is None or (np.array_equal(W[:, 0], W[:, 1]) and np.array_equal(W[:, 0], W[:, 2]))
+    )
     scipy_bytes, numpy_bytes = bytes_numpy(op, V, axes_equal)
 
     runners: dict[str, tuple] = {}  # backend -> (callable per frame, bytes per frame, extra)
@@ -232,7 +264,9 @@ def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, fra
             log.warning("no working OpenCL device: skipping the opencl backend")
         else:
             t0 = time.perf_counter()
-            cl_def = OpenCLDeformer(face.vertices, face.triangles, face.rigid_group, op, context=ctx)
+            cl_def = OpenCLDeformer(
+                face.vertices, face.triangles, face.rigid_group, op, context=ctx
+            )
             setup_s = time.perf_counter() - t0
             cl_bytes = cl_def.bytes_per_frame()
             k = [0]
@@ -241,9 +275,16 @@ def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, fra
                 k[0] += 1
                 cl_def.deform(Ds[k[0] % 8], Ts[k[0] % 8])
 
-            runners["opencl"] = (cl_frame, cl_bytes, {"device": cl_def.name, "setup_s": round(setup_s, 3),
-                                                      "readback": "zero-copy" if cl_def.zero_copy else "copy",
-                                                      "operator_format": cl_def.format_description()})
+            runners["opencl"] = (
+                cl_frame,
+                cl_bytes,
+                {
+                    "device": cl_def.name,
+                    "setup_s": round(setup_s, 3),
+                    "readback": "zero-copy" if cl_def.zero_copy else "copy",
+                    "operator_format": cl_def.format_description(),
+                },
+            )
     if "numpy" in backends:
         nd = NumpyDeformer(face.vertices, face.triangles, face.rigid_group, op)
         kn = [0]
@@ -263,7 +304,9 @@ def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, fra
                     ks[0] += 1
                     B @ Ds[ks[0] % 8]
             else:
-                Bs = [sp.csr_matrix((W[:, a], op.indices, op.indptr), shape=(V, K)) for a in range(3)]
+                Bs = [
+                    sp.csr_matrix((W[:, a], op.indices, op.indptr), shape=(V, K)) for a in range(3)
+                ]
                 ks = [0]
 
                 def sp_frame():
@@ -272,10 +315,18 @@ def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, fra
                     for a in range(3):
                         Bs[a] @ d[:, a]
         else:
+
             def sp_frame():
                 op.dense @ Ds[0]
-        runners["scipy"] = (sp_frame, scipy_bytes, {"what": "u = B·D only" + (
-            "" if axes_equal or not op.is_sparse else ", one CSR matrix per axis")})
+
+        runners["scipy"] = (
+            sp_frame,
+            scipy_bytes,
+            {
+                "what": "u = B·D only"
+                + ("" if axes_equal or not op.is_sparse else ", one CSR matrix per axis")
+            },
+        )
 
     meters = {name: CopyMeter(b, ctx) for name, (_, b, _) in runners.items()}
     times: dict[str, list[float]] = {n: [] for n in runners}
@@ -294,30 +345,49 @@ def measure_size(n_vertices: int, *, backends: tuple[str, ...], engine: str, fra
                     dev_copies[name] += _times(meters[name].device_copy, n)
 
     records = []
-    base = {"vertices": V, "controls": K, "nnz": op.nnz, "face": face_kind, "operator": op_kind,
-            "loadavg_1min": _loadavg()}  # the machine may be shared: how busy it was
+    base = {
+        "vertices": V,
+        "controls": K,
+        "nnz": op.nnz,
+        "face": face_kind,
+        "operator": op_kind,
+        "loadavg_1min": _loadavg(),
+    }  # the machine may be shared: how busy it was
     scipy_ms = 1e3 * float(np.median(times["scipy"])) if "scipy" in times else None
     for name, (_, nbytes, extra) in runners.items():
         ms = 1e3 * float(np.median(times[name]))
         np_copy_ms = 1e3 * float(np.median(copies[name]))
         dev_copy_ms = 1e3 * float(np.median(dev_copies[name])) if dev_copies[name] else None
         bound_ms = min(x for x in (np_copy_ms, dev_copy_ms) if x is not None)
-        rec = {"backend": name, "vertices": V, "ms_per_frame": round(ms, 4), "bytes_per_frame": int(nbytes),
-               "bandwidth_bound_ms": round(bound_ms, 4), **base,
-               "ms_per_frame_min": round(1e3 * min(times[name]), 4),
-               "cpu_ms_per_frame": round(1e3 * CPU[f"{V}:{name}"] / len(times[name]), 4),
-               "copy_cpu_ms": round(1e3 * CPU[f"{V}:{name}:copy"] / len(copies[name]), 4),
-               "bandwidth_bound_ms_min": round(1e3 * min(copies[name] + dev_copies[name]), 4),
-               "x_bound": round(ms / bound_ms, 2),
-               "copy_gbps": round(nbytes / bound_ms / 1e6, 2),
-               "copy_gbps_numpy": round(meters[name].n_bytes / np_copy_ms / 1e6, 2),
-               **({"copy_gbps_device": round(meters[name].n_bytes / dev_copy_ms / 1e6, 2)} if dev_copy_ms else {}),
-               "effective_gbps": round(nbytes / ms / 1e6, 2), **extra}
+        rec = {
+            "backend": name,
+            "vertices": V,
+            "ms_per_frame": round(ms, 4),
+            "bytes_per_frame": int(nbytes),
+            "bandwidth_bound_ms": round(bound_ms, 4),
+            **base,
+            "ms_per_frame_min": round(1e3 * min(times[name]), 4),
+            "cpu_ms_per_frame": round(1e3 * CPU[f"{V}:{name}"] / len(times[name]), 4),
+            "copy_cpu_ms": round(1e3 * CPU[f"{V}:{name}:copy"] / len(copies[name]), 4),
+            "bandwidth_bound_ms_min": round(1e3 * min(copies[name] + dev_copies[name]), 4),
+            "x_bound": round(ms / bound_ms, 2),
+            "copy_gbps": round(nbytes / bound_ms / 1e6, 2),
+            "copy_gbps_numpy": round(meters[name].n_bytes / np_copy_ms / 1e6, 2),
+            **(
+                {"copy_gbps_device": round(meters[name].n_bytes / dev_copy_ms / 1e6, 2)}
+                if dev_copy_ms
+                else {}
+            ),
+            "effective_gbps": round(nbytes / ms / 1e6, 2),
+            **extra,
+        }
         if scipy_ms is not None:
             rec["speedup_vs_scipy"] = round(scipy_ms / ms, 2)
         records.append(rec)
     if cl_def is not None:
-        records[[r["backend"] for r in records].index("opencl")].update(_breakdown(cl_def, Ds[0], Ts[0], frames))
+        records[[r["backend"] for r in records].index("opencl")].update(
+            _breakdown(cl_def, Ds[0], Ts[0], frames)
+        )
     if batch_frames > 0:
         n_batch = max(1, min(batch_frames, BATCH_MAX_BYTES // (12 * V)))
         records += _batch_records(face, op, runners, cl_def, Ds, Ts, n_batch, base, records)
@@ -359,8 +429,13 @@ def _batch_records(face, op, runners, cl_def, Ds, Ts, n_frames, base, records) -
     if cl_def is not None:
         deformers.append(("opencl-batch", cl_def, by_name["opencl"]))
     if "numpy" in runners:
-        deformers.append(("numpy-batch", NumpyDeformer(face.vertices, face.triangles, face.rigid_group, op),
-                          by_name["numpy"]))
+        deformers.append(
+            (
+                "numpy-batch",
+                NumpyDeformer(face.vertices, face.triangles, face.rigid_group, op),
+                by_name["numpy"],
+            )
+        )
     for name, d, single in deformers:
         reps = 3 if name.startswith("opencl") else 1
         ts = _times(lambda: d.deform_batch(D, T), reps, f"{name}:{base['vertices']}")
@@ -370,16 +445,34 @@ def _batch_records(face, op, runners, cl_def, Ds, Ts, n_frames, base, records) -
         if name.startswith("opencl"):
             # Into a buffer the caller reuses: no page faults on fresh memory (about half the CPU).
             buf = np.empty((n_frames, base["vertices"], 3), np.float32)
-            ts2 = _times(lambda: d.deform_batch(D, T, out=buf), reps, f"{name}:{base['vertices']}:out")
-            extra = {"realtime_factor_into_buffer": round(n_frames / 25 / float(np.median(ts2)), 1),
-                     "cpu_ms_per_frame_into_buffer": round(
-                         1e3 * CPU[f"{name}:{base['vertices']}:out"] / reps / n_frames, 4)}
-        out.append({"backend": name, "vertices": base["vertices"], "ms_per_frame": round(ms, 4),
-                    "bytes_per_frame": single["bytes_per_frame"], "bandwidth_bound_ms": single["bandwidth_bound_ms"],
-                    **base, "frames": n_frames, "fps": 25, "realtime_factor": round(n_frames / 25 / secs, 1),
-                    "realtime_factor_best": round(n_frames / 25 / min(ts), 1),
-                    "cpu_ms_per_frame": round(1e3 * CPU[f"{name}:{base['vertices']}"] / reps / n_frames, 4),
-                    "x_bound": round(ms / single["bandwidth_bound_ms"], 2), **extra})
+            ts2 = _times(
+                lambda: d.deform_batch(D, T, out=buf), reps, f"{name}:{base['vertices']}:out"
+            )
+            extra = {
+                "realtime_factor_into_buffer": round(n_frames / 25 / float(np.median(ts2)), 1),
+                "cpu_ms_per_frame_into_buffer": round(
+                    1e3 * CPU[f"{name}:{base['vertices']}:out"] / reps / n_frames, 4
+                ),
+            }
+        out.append(
+            {
+                "backend": name,
+                "vertices": base["vertices"],
+                "ms_per_frame": round(ms, 4),
+                "bytes_per_frame": single["bytes_per_frame"],
+                "bandwidth_bound_ms": single["bandwidth_bound_ms"],
+                **base,
+                "frames": n_frames,
+                "fps": 25,
+                "realtime_factor": round(n_frames / 25 / secs, 1),
+                "realtime_factor_best": round(n_frames / 25 / min(ts), 1),
+                "cpu_ms_per_frame": round(
+                    1e3 * CPU[f"{name}:{base['vertices']}"] / reps / n_frames, 4
+                ),
+                "x_bound": round(ms / single["bandwidth_bound_ms"], 2),
+                **extra,
+            }
+        )
     return out
 
 
@@ -396,23 +489,45 @@ def _operator_for(face: Face, engine: str) -> tuple[Operator, str]:
             return synthetic_fp_operator(face), "synthetic-fp"
     rng = np.random.default_rng(1)
     dense = rng.random((face.n_vertices, 84), dtype=np.float32) / 84
-    return Operator(face.n_vertices, 84, dense=dense, meta={"engine": "synthetic-dense"}), "synthetic-dense"
+    return Operator(
+        face.n_vertices, 84, dense=dense, meta={"engine": "synthetic-dense"}
+    ), "synthetic-dense"
 
 
 # --------------------------------------------------------------------------------------- CLI
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--vertices", nargs="+", default=[str(n) for n in DEFAULT_SIZES],
-                   help="face sizes (e.g. 25k 100k 500k; default: %(default)s)")
-    p.add_argument("--face", default=None, help="benchmark this face (a mesh path) instead of default:N")
-    p.add_argument("--engine", choices=("fp", "dense"), default="fp",
-                   help="fp: the sparse feature-point operator; dense: an RBF-like dense one (K=84)")
-    p.add_argument("--backends", default="opencl,numpy,scipy", help="comma-separated (default: %(default)s)")
+    p.add_argument(
+        "--vertices",
+        nargs="+",
+        default=[str(n) for n in DEFAULT_SIZES],
+        help="face sizes (e.g. 25k 100k 500k; default: %(default)s)",
+    )
+    p.add_argument(
+        "--face", default=None, help="benchmark this face (a mesh path) instead of default:N"
+    )
+    p.add_argument(
+        "--engine",
+        choices=("fp", "dense"),
+        default="fp",
+        help="fp: the sparse feature-point operator; dense: an RBF-like dense one (K=84)",
+    )
+    p.add_argument(
+        "--backends", default="opencl,numpy,scipy", help="comma-separated (default: %(default)s)"
+    )
     p.add_argument("--device", default=None, help="OpenCL device ('P:D' or part of its name)")
-    p.add_argument("--frames", type=int, default=20, help="timed frames per round (default: %(default)s)")
-    p.add_argument("--rounds", type=int, default=5, help="rounds, backends interleaved (default: %(default)s)")
-    p.add_argument("--batch-frames", type=int, default=250,
-                   help="frames of the batch test at the smallest size (fewer if they would exceed "
-                        f"{BATCH_MAX_BYTES >> 20} MB), 0 to skip (default: %(default)s)")
+    p.add_argument(
+        "--frames", type=int, default=20, help="timed frames per round (default: %(default)s)"
+    )
+    p.add_argument(
+        "--rounds", type=int, default=5, help="rounds, backends interleaved (default: %(default)s)"
+    )
+    p.add_argument(
+        "--batch-frames",
+        type=int,
+        default=250,
+        help="frames of the batch test at the smallest size (fewer if they would exceed "
+        f"{BATCH_MAX_BYTES >> 20} MB), 0 to skip (default: %(default)s)",
+    )
     p.add_argument("--json", action="store_true", help="print the records as JSON")
 
 
@@ -425,43 +540,64 @@ def run(args: argparse.Namespace) -> int:
     counts = [parse_count(size) for size in sizes]
     smallest = counts.index(min(counts))
     for i, n in enumerate(counts):
-        records += measure_size(n, backends=backends, engine=args.engine, frames=args.frames,
-                                rounds=args.rounds, batch_frames=args.batch_frames if i == smallest else 0,
-                                device=args.device, face_spec=args.face)
+        records += measure_size(
+            n,
+            backends=backends,
+            engine=args.engine,
+            frames=args.frames,
+            rounds=args.rounds,
+            batch_frames=args.batch_frames if i == smallest else 0,
+            device=args.device,
+            face_spec=args.face,
+        )
     if args.json:
         print(json.dumps(records, indent=1))
     else:
         print(markdown_table(records))
         load = _loadavg()
         if load is not None:
-            print(f"\nLoad average (1 min) after: {load} on {os.cpu_count()} CPUs (work by other "
-                  "processes raises the medians; each record has loadavg_1min).")
+            print(
+                f"\nLoad average (1 min) after: {load} on {os.cpu_count()} CPUs (work by other "
+                "processes raises the medians; each record has loadavg_1min)."
+            )
     return 0
 
 
 def markdown_table(records: list[dict]) -> str:
     """A short markdown table of benchmark records."""
-    lines = ["| backend | vertices | ms/frame (median / best) | CPU ms/frame | MB/frame | copy bound ms "
-             "(median / best) | × bound | vs scipy | notes |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+    lines = [
+        "| backend | vertices | ms/frame (median / best) | CPU ms/frame | MB/frame | copy bound ms "
+        "(median / best) | × bound | vs scipy | notes |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
     for r in records:
         notes = []
         if "realtime_factor" in r:
-            notes.append(f"{r['frames']} frames at 25 fps: {r['realtime_factor']}× real time "
-                         f"(best run {r['realtime_factor_best']}×"
-                         + (f"; into a reused buffer {r['realtime_factor_into_buffer']}×, "
-                            f"{r['cpu_ms_per_frame_into_buffer']} CPU ms/frame"
-                            if "realtime_factor_into_buffer" in r else "") + ")")
+            notes.append(
+                f"{r['frames']} frames at 25 fps: {r['realtime_factor']}× real time "
+                f"(best run {r['realtime_factor_best']}×"
+                + (
+                    f"; into a reused buffer {r['realtime_factor_into_buffer']}×, "
+                    f"{r['cpu_ms_per_frame_into_buffer']} CPU ms/frame"
+                    if "realtime_factor_into_buffer" in r
+                    else ""
+                )
+                + ")"
+            )
         if "kernel_ms" in r:
-            notes.append(f"median (best): upload {r['upload_ms']} ({r['upload_ms_min']}) ms, kernel "
-                         f"{r['kernel_ms']} ({r['kernel_ms_min']}) ms, a copying read-back would add "
-                         f"{r['copy_readback_ms']} ({r['copy_readback_ms_min']}) ms; read-back: {r.get('readback')}")
+            notes.append(
+                f"median (best): upload {r['upload_ms']} ({r['upload_ms_min']}) ms, kernel "
+                f"{r['kernel_ms']} ({r['kernel_ms_min']}) ms, a copying read-back would add "
+                f"{r['copy_readback_ms']} ({r['copy_readback_ms_min']}) ms; read-back: {r.get('readback')}"
+            )
         notes.append(f"{r['operator']} on {r['face']}")
         best = r.get("ms_per_frame_min")
         bound_best = r.get("bandwidth_bound_ms_min")
-        lines.append(f"| {r['backend']} | {r['vertices']} | {r['ms_per_frame']:.3f}"
-                     f"{f' / {best:.3f}' if best is not None else ''} | {r.get('cpu_ms_per_frame', '')} "
-                     f"| {r['bytes_per_frame'] / 1e6:.1f} | {r['bandwidth_bound_ms']:.3f}"
-                     f"{f' / {bound_best:.3f}' if bound_best is not None else ''} | {r['x_bound']:.2f} "
-                     f"| {r.get('speedup_vs_scipy', '')} | {'; '.join(notes)} |")
+        lines.append(
+            f"| {r['backend']} | {r['vertices']} | {r['ms_per_frame']:.3f}"
+            f"{f' / {best:.3f}' if best is not None else ''} | {r.get('cpu_ms_per_frame', '')} "
+            f"| {r['bytes_per_frame'] / 1e6:.1f} | {r['bandwidth_bound_ms']:.3f}"
+            f"{f' / {bound_best:.3f}' if bound_best is not None else ''} | {r['x_bound']:.2f} "
+            f"| {r.get('speedup_vs_scipy', '')} | {'; '.join(notes)} |"
+        )
     return "\n".join(lines)

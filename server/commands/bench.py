@@ -3,6 +3,7 @@
 Only benchmarks of the server's own code ship here; those that drive a server from outside (the
 live load generator ``bench/serve.py``) live in the checkout's bench/ and are named in ``MOVED``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -15,7 +16,7 @@ BENCHES: dict[str, str] = {
 #: Benchmarks that left ``facecast bench``: where they are now.
 MOVED: dict[str, str] = {
     "serve": "python bench/serve.py (same options), from a checkout: the live load generator is a client "
-             "of the server and lives in bench/",
+    "of the server and lives in bench/",
 }
 
 

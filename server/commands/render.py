@@ -2,6 +2,7 @@
 
 With ``--server URL`` the ``facecast`` entry point runs ``facecast.client.commands.render`` instead.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -12,23 +13,57 @@ from pathlib import Path
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", type=Path, help="input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv")
     p.add_argument("-o", "--output", type=Path, required=True, help="output: .glb, .npz or .fap")
-    p.add_argument("--face", default="default", help="built-in face (default, default:2k, ...) or a mesh path")
-    p.add_argument("--engine", choices=["fp", "rbf", "shell"], default="fp", help="deformation engine (default fp)")
-    p.add_argument("--backend", choices=["auto", "numpy", "opencl"], default="auto", help="compute backend")
+    p.add_argument(
+        "--face", default="default", help="built-in face (default, default:2k, ...) or a mesh path"
+    )
+    p.add_argument(
+        "--engine",
+        choices=["fp", "rbf", "shell"],
+        default="fp",
+        help="deformation engine (default fp)",
+    )
+    p.add_argument(
+        "--backend", choices=["auto", "numpy", "opencl"], default="auto", help="compute backend"
+    )
     p.add_argument("--device", default=None, help="OpenCL device (index or name substring)")
-    p.add_argument("--layout", default=None, help="mocap marker layout file (for .c3d/.trc/.csv input; default: "
-                   "<take>.layout.json or layout.json beside the take; with --server its content is uploaded)")
+    p.add_argument(
+        "--layout",
+        default=None,
+        help="mocap marker layout file (for .c3d/.trc/.csv input; default: "
+        "<take>.layout.json or layout.json beside the take; with --server its content is uploaded)",
+    )
     m = p.add_argument_group("mocap cleaning (.c3d/.trc/.csv)")
-    m.add_argument("--filter", choices=["rts", "kalman", "none"], default=None,
-                   help="marker filter: rts (zero-lag smoother, default), kalman (causal, as live) or none")
-    m.add_argument("--lowrank", default=None, metavar="auto|off|N",
-                   help="project the displacements on their N leading motions (default auto: those above the noise)")
-    m.add_argument("--stable", default=None, metavar="A,B,C",
-                   help="stable (head) markers, overriding the layout's; one that is not rigid is named and left out")
-    m.add_argument("--neutral-frame", type=int, default=None, metavar="N",
-                   help="frame of the actor's neutral face and the head's rest (default: the layout's, else 0)")
-    p.add_argument("--server", metavar="URL", default=None,
-                   help="render on a facecast server instead of locally (admin key from $FACECAST_ADMIN_KEY)")
+    m.add_argument(
+        "--filter",
+        choices=["rts", "kalman", "none"],
+        default=None,
+        help="marker filter: rts (zero-lag smoother, default), kalman (causal, as live) or none",
+    )
+    m.add_argument(
+        "--lowrank",
+        default=None,
+        metavar="auto|off|N",
+        help="project the displacements on their N leading motions (default auto: those above the noise)",
+    )
+    m.add_argument(
+        "--stable",
+        default=None,
+        metavar="A,B,C",
+        help="stable (head) markers, overriding the layout's; one that is not rigid is named and left out",
+    )
+    m.add_argument(
+        "--neutral-frame",
+        type=int,
+        default=None,
+        metavar="N",
+        help="frame of the actor's neutral face and the head's rest (default: the layout's, else 0)",
+    )
+    p.add_argument(
+        "--server",
+        metavar="URL",
+        default=None,
+        help="render on a facecast server instead of locally (admin key from $FACECAST_ADMIN_KEY)",
+    )
 
 
 def _progress_bar(total_hint: str):
@@ -50,8 +85,12 @@ def _progress_bar(total_hint: str):
 
 def _mocap_options(args: argparse.Namespace) -> dict:
     """The mocap flags the user set, as ``mocap.driver.load`` options."""
-    opts = {"filter": args.filter, "lowrank": args.lowrank, "neutral_frame": args.neutral_frame,
-            "stable": [s.strip() for s in args.stable.split(",") if s.strip()] if args.stable else None}
+    opts = {
+        "filter": args.filter,
+        "lowrank": args.lowrank,
+        "neutral_frame": args.neutral_frame,
+        "stable": [s.strip() for s in args.stable.split(",") if s.strip()] if args.stable else None,
+    }
     return {k: v for k, v in opts.items() if v is not None}
 
 
@@ -65,8 +104,17 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("input file not found", where=str(args.input))
     progress, close = _progress_bar(args.input.name)
     try:
-        render_file(args.input, args.output, face=args.face, engine=args.engine, backend=args.backend,
-                    device=args.device, layout=args.layout, progress=progress, mocap=_mocap_options(args))
+        render_file(
+            args.input,
+            args.output,
+            face=args.face,
+            engine=args.engine,
+            backend=args.backend,
+            device=args.device,
+            layout=args.layout,
+            progress=progress,
+            mocap=_mocap_options(args),
+        )
     finally:
         close()
     return 0

@@ -4,6 +4,7 @@ Built-in face, in-process jobs (spawned worker processes), state in a local data
 Binds to loopback unless ``--allow-remote`` is given. Prints the admin key once, when it generates
 it (later starts print only where it is kept).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -43,18 +44,33 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("--host", help="address to bind (default 127.0.0.1; others need --allow-remote)")
     p.add_argument("--port", type=int, help="TCP port (default 8000)")
-    p.add_argument("--data-dir", type=Path, help="where jobs, results and the admin key live "
-                                                   "(default ~/.local/share/facecast)")
-    p.add_argument("--face", help="default face: a built-in name (default, default:2k) or a mesh path")
+    p.add_argument(
+        "--data-dir",
+        type=Path,
+        help="where jobs, results and the admin key live (default ~/.local/share/facecast)",
+    )
+    p.add_argument(
+        "--face", help="default face: a built-in name (default, default:2k) or a mesh path"
+    )
     p.add_argument("--backend", choices=("auto", "numpy", "opencl"), help="deformation backend")
     p.add_argument("--device", help="OpenCL device (index or name substring)")
-    p.add_argument("--workers", type=int, help="batch job worker processes (default 1; 0 = queue only)")
-    p.add_argument("--allow-remote", action="store_true", default=None,
-                   help="allow binding to a non-loopback address (anyone who can reach it can use the "
-                        "public routes; admin routes still need the key)")
-    p.add_argument("--session-idle", type=float, metavar="SECONDS",
-                   help="close a live session after this long with no viewer and no connected "
-                        "producer (default 600; 0 = never)")
+    p.add_argument(
+        "--workers", type=int, help="batch job worker processes (default 1; 0 = queue only)"
+    )
+    p.add_argument(
+        "--allow-remote",
+        action="store_true",
+        default=None,
+        help="allow binding to a non-loopback address (anyone who can reach it can use the "
+        "public routes; admin routes still need the key)",
+    )
+    p.add_argument(
+        "--session-idle",
+        type=float,
+        metavar="SECONDS",
+        help="close a live session after this long with no viewer and no connected "
+        "producer (default 600; 0 = never)",
+    )
     p.add_argument("--log-level", default=None, help="uvicorn log level (default: warning)")
 
 
@@ -68,24 +84,37 @@ def is_loopback(host: str) -> bool:
         infos = socket.getaddrinfo(host, None)
     except OSError:
         return False
-    return bool(infos) and all(ipaddress.ip_address(i[4][0].split("%")[0]).is_loopback for i in infos)
+    return bool(infos) and all(
+        ipaddress.ip_address(i[4][0].split("%")[0]).is_loopback for i in infos
+    )
 
 
 def make_config(args: argparse.Namespace):
     """``ServerConfig`` from FACECAST_* environment variables, overridden by the flags given."""
     from ..api.config import load_config
 
-    overrides = {k: v for k, v in {
-        "host": args.host, "port": args.port, "data_dir": args.data_dir, "face": args.face,
-        "backend": args.backend, "device": args.device, "job_workers": args.workers,
-        "allow_remote": args.allow_remote,
-        "session_idle_seconds": getattr(args, "session_idle", None),
-    }.items() if v is not None}
+    overrides = {
+        k: v
+        for k, v in {
+            "host": args.host,
+            "port": args.port,
+            "data_dir": args.data_dir,
+            "face": args.face,
+            "backend": args.backend,
+            "device": args.device,
+            "job_workers": args.workers,
+            "allow_remote": args.allow_remote,
+            "session_idle_seconds": getattr(args, "session_idle", None),
+        }.items()
+        if v is not None
+    }
     config = load_config(**overrides)  # one line naming a malformed FACECAST_* variable
     if not is_loopback(config.host) and not config.allow_remote:
-        raise InputError(f"refusing to bind to {config.host}, which is not a loopback address; pass "
-                         "--allow-remote (or FACECAST_ALLOW_REMOTE=1) to serve other machines",
-                         where="--host")
+        raise InputError(
+            f"refusing to bind to {config.host}, which is not a loopback address; pass "
+            "--allow-remote (or FACECAST_ALLOW_REMOTE=1) to serve other machines",
+            where="--host",
+        )
     if config.job_workers < 0:
         raise InputError("must be 0 or more", where="--workers")
     return config
@@ -107,8 +136,11 @@ def lock_data_dir(data_dir: Path):
         fh.seek(0)
         holder = fh.read().strip() or "another process"
         fh.close()
-        raise InputError(f"another facecast server ({holder}) uses this data directory; stop it or pass a "
-                         "different --data-dir", where=str(data_dir)) from None
+        raise InputError(
+            f"another facecast server ({holder}) uses this data directory; stop it or pass a "
+            "different --data-dir",
+            where=str(data_dir),
+        ) from None
     fh.seek(0)
     fh.truncate()
     fh.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
@@ -135,16 +167,31 @@ def run(args: argparse.Namespace) -> int:
     key_file = config.data_dir / "admin.key"
     page = f"http://{config.host}:{config.port}/"
     if generated:  # shown this once; later starts only say where it is
-        print(f"facecast: generated an admin key, kept in {key_file} (readable by you only); it is shown "
-              f"only now:\n  FACECAST_ADMIN_KEY={key}\n"
-              f"facecast: web viewer with admin rights: {page}#key={key}", flush=True)
+        print(
+            f"facecast: generated an admin key, kept in {key_file} (readable by you only); it is shown "
+            f"only now:\n  FACECAST_ADMIN_KEY={key}\n"
+            f"facecast: web viewer with admin rights: {page}#key={key}",
+            flush=True,
+        )
     elif not chosen:
-        print(f"facecast: admin key in {key_file}; web viewer with admin rights: {page}#key=<that key>",
-              flush=True)
+        print(
+            f"facecast: admin key in {key_file}; web viewer with admin rights: {page}#key=<that key>",
+            flush=True,
+        )
     app = create_app(config)
-    print(f"facecast: serving on {page} (data in {config.data_dir}, "
-          f"{config.job_workers} job worker(s), backend {config.backend})", flush=True)
-    uvicorn.run(app, host=config.host, port=config.port, ws_per_message_deflate=False,
-                log_level=args.log_level or "warning", lifespan="on", timeout_graceful_shutdown=5,
-                ws_max_size=MAX_WS_MESSAGE)  # the largest message a live input accepts
+    print(
+        f"facecast: serving on {page} (data in {config.data_dir}, "
+        f"{config.job_workers} job worker(s), backend {config.backend})",
+        flush=True,
+    )
+    uvicorn.run(
+        app,
+        host=config.host,
+        port=config.port,
+        ws_per_message_deflate=False,
+        log_level=args.log_level or "warning",
+        lifespan="on",
+        timeout_graceful_shutdown=5,
+        ws_max_size=MAX_WS_MESSAGE,
+    )  # the largest message a live input accepts
     return 0

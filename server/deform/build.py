@@ -6,6 +6,7 @@ groups (from the face's parts), the control vertices, the constraints, the engin
 (after defaults are filled in) and ``ALGORITHM_VERSION``. Files are written atomically; a file
 that cannot be read back, or does not match, is rebuilt and replaced.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -86,11 +87,25 @@ ALGORITHM_VERSION = 5
 #: 30       0.282  0.401  0.251  0.186 / 0.265
 #: =======  =====  =====  =====  ===============
 DEFAULTS: dict[str, dict] = {
-    "fp": {"normalisation": "clamped", "no_neighbour": "cap", "own_blend": 0.5, "neighbour_ratio": 3.0,
-           "attach_distance": None, "smooth": 0.5, "smooth_hold": 0.3, "inner": "membrane",
-           "falloff": "sine"},
-    "rbf": {"kernel": "imq", "shape": 1.0, "affine": False, "distance": "surface", "attach_distance": None,
-            "inner": "membrane"},
+    "fp": {
+        "normalisation": "clamped",
+        "no_neighbour": "cap",
+        "own_blend": 0.5,
+        "neighbour_ratio": 3.0,
+        "attach_distance": None,
+        "smooth": 0.5,
+        "smooth_hold": 0.3,
+        "inner": "membrane",
+        "falloff": "sine",
+    },
+    "rbf": {
+        "kernel": "imq",
+        "shape": 1.0,
+        "affine": False,
+        "distance": "surface",
+        "attach_distance": None,
+        "inner": "membrane",
+    },
     "shell": {"stretch": 10.0, "attach_distance": None, "inner": "membrane"},
 }
 
@@ -100,38 +115,70 @@ ENGINES = {"fp": feature_point_operator, "rbf": rbf_operator, "shell": shell_ope
 def engine_params(engine: str, params: dict) -> dict:
     """The engine's full parameter set: ``params`` over ``DEFAULTS`` (InputError on unknown names)."""
     if engine not in ENGINES:
-        raise InputError(f"unknown deformation engine {engine!r}; choose one of {', '.join(ENGINES)}",
-                         where="engine")
+        raise InputError(
+            f"unknown deformation engine {engine!r}; choose one of {', '.join(ENGINES)}",
+            where="engine",
+        )
     unknown = sorted(set(params) - set(DEFAULTS[engine]))
     if unknown:
-        raise InputError(f"unknown parameter(s) {', '.join(unknown)} for engine {engine!r}; known: "
-                         f"{', '.join(DEFAULTS[engine])}", where="engine_params")
+        raise InputError(
+            f"unknown parameter(s) {', '.join(unknown)} for engine {engine!r}; known: "
+            f"{', '.join(DEFAULTS[engine])}",
+            where="engine_params",
+        )
     return {**DEFAULTS[engine], **params}
 
 
-def cache_key(face, control_vertices: np.ndarray, constrained: np.ndarray, engine: str, params: dict) -> str:
+def cache_key(
+    face, control_vertices: np.ndarray, constrained: np.ndarray, engine: str, params: dict
+) -> str:
     """Hex digest naming the cached operator (see module docstring)."""
     h = hashlib.sha256()
-    h.update(json.dumps({"v": ALGORITHM_VERSION, "mesh": face.mesh_hash, "engine": engine,
-                         "params": {k: params[k] for k in sorted(params)}}, default=str).encode())
-    arrays = [np.asarray(control_vertices, np.int64), np.asarray(constrained, bool), inner_vertices(face),
-              np.asarray(face.deformable, bool), np.asarray(face.rigid_group, np.uint8)]
+    h.update(
+        json.dumps(
+            {
+                "v": ALGORITHM_VERSION,
+                "mesh": face.mesh_hash,
+                "engine": engine,
+                "params": {k: params[k] for k in sorted(params)},
+            },
+            default=str,
+        ).encode()
+    )
+    arrays = [
+        np.asarray(control_vertices, np.int64),
+        np.asarray(constrained, bool),
+        inner_vertices(face),
+        np.asarray(face.deformable, bool),
+        np.asarray(face.rigid_group, np.uint8),
+    ]
     if engine == "shell":
-        arrays.append(np.asarray(skin_vertices(face) if skin_vertices(face) is not None else [], np.int64))
+        arrays.append(
+            np.asarray(skin_vertices(face) if skin_vertices(face) is not None else [], np.int64)
+        )
     for arr in arrays:
         h.update(str(arr.shape).encode())
         h.update(np.ascontiguousarray(arr).tobytes())
     return h.hexdigest()[:24]
 
 
-def build_operator(face, control_vertices, *, engine: str = "fp", constrained=None, **params) -> Operator:
+def build_operator(
+    face, control_vertices, *, engine: str = "fp", constrained=None, **params
+) -> Operator:
     """Build (never cached) the operator of ``engine`` for ``face`` and ``control_vertices (K,)``."""
     full = engine_params(engine, params)
     if engine == "shell":  # the shell covers the skin only
         full["surface"] = skin_vertices(face)
-    return ENGINES[engine](face.vertices, face.triangles, control_vertices, constrained=constrained,
-                           deformable=face.deformable, rigid_group=face.rigid_group,
-                           inner_vertices=inner_vertices(face), **full)
+    return ENGINES[engine](
+        face.vertices,
+        face.triangles,
+        control_vertices,
+        constrained=constrained,
+        deformable=face.deformable,
+        rigid_group=face.rigid_group,
+        inner_vertices=inner_vertices(face),
+        **full,
+    )
 
 
 def skin_vertices(face) -> np.ndarray | None:
@@ -145,8 +192,9 @@ def inner_vertices(face) -> np.ndarray:
     return np.asarray(face.parts.get("mouth_socket", np.zeros(0, np.int64)), dtype=np.int64)
 
 
-def get_operator(face, control_vertices, *, engine: str = "fp", constrained=None, cache: bool = True,
-                 **params) -> Operator:
+def get_operator(
+    face, control_vertices, *, engine: str = "fp", constrained=None, cache: bool = True, **params
+) -> Operator:
     """The operator mapping ``D (K, 3)`` of ``control_vertices (K,)`` to ``u (V, 3)`` on ``face``.
 
     Args:
@@ -173,7 +221,9 @@ def get_operator(face, control_vertices, *, engine: str = "fp", constrained=None
     if path.exists():
         try:
             op = Operator.load(path)
-            if (op.n_vertices, op.n_controls) == (face.n_vertices, len(controls)) and op.meta.get("key") == key:
+            if (op.n_vertices, op.n_controls) == (face.n_vertices, len(controls)) and op.meta.get(
+                "key"
+            ) == key:
                 log.debug("operator cache hit %s", path.name)
                 return op
             log.warning("cached operator %s does not match; rebuilding", path)
@@ -182,8 +232,14 @@ def get_operator(face, control_vertices, *, engine: str = "fp", constrained=None
     t0 = time.perf_counter()
     op = build_operator(face, controls, engine=engine, constrained=constrained, **full)
     op.meta["key"] = key
-    log.info("built %s operator for %s (%d vertices, %d controls) in %.2f s", engine, face.name,
-             face.n_vertices, len(controls), time.perf_counter() - t0)
+    log.info(
+        "built %s operator for %s (%d vertices, %d controls) in %.2f s",
+        engine,
+        face.name,
+        face.n_vertices,
+        len(controls),
+        time.perf_counter() - t0,
+    )
     _save_atomic(op, path)
     return op
 

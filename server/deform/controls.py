@@ -3,6 +3,7 @@
 reaches, fill inner surfaces (eyelash strips, the mouth socket) with harmonic rows, and assemble
 per-axis ``(vertex, control, weight)`` triples into an ``Operator``.
 """
+
 from __future__ import annotations
 
 import logging
@@ -29,16 +30,22 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     tri = v[triangles]
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     corners = np.asarray(triangles).ravel()
-    n = np.stack([np.bincount(corners, weights=np.repeat(fn[:, a], 3), minlength=len(v))
-                  for a in range(3)], axis=1)
+    n = np.stack(
+        [np.bincount(corners, weights=np.repeat(fn[:, a], 3), minlength=len(v)) for a in range(3)],
+        axis=1,
+    )
     length = np.linalg.norm(n, axis=1, keepdims=True)
     unit: np.ndarray = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
     return unit
 
 
 def control_sites(
-    vertices: np.ndarray, triangles: np.ndarray, controls: np.ndarray, deformable: np.ndarray,
-    rigid_group: np.ndarray | None, attach_distance: float | None,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    controls: np.ndarray,
+    deformable: np.ndarray,
+    rigid_group: np.ndarray | None,
+    attach_distance: float | None,
 ) -> tuple[sp.csr_matrix, float, np.ndarray, np.ndarray, np.ndarray]:
     """What every engine starts from: ``(graph, attach_distance, usable, sites, site_of)``.
 
@@ -52,25 +59,32 @@ def control_sites(
         attach_distance = 3.0 * float(np.median(graph.data)) if graph.nnz else 0.0
     usable = deformable[controls]
     if not usable.all():
-        log.warning("%d control(s) sit on non-deformable vertices and are ignored", int((~usable).sum()))
+        log.warning(
+            "%d control(s) sit on non-deformable vertices and are ignored", int((~usable).sum())
+        )
     sites, site_of = np.unique(controls, return_inverse=True)
     return graph, attach_distance, usable, sites, site_of.reshape(-1)
 
 
-def validate_controls(n_vertices: int, control_vertices: Any, constrained: Any,
-                      deformable: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def validate_controls(
+    n_vertices: int, control_vertices: Any, constrained: Any, deformable: Any
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(controls (K,) int64, constrained (K, 3) bool, deformable (V,) bool)`` from the engines'
     arguments (``None``: every axis constrained, every vertex deformable); ``InputError`` when a
     vertex id is out of range or a shape is wrong."""
     controls = np.asarray(control_vertices, dtype=np.int64).reshape(-1)
     if len(controls) and (controls.min() < 0 or controls.max() >= n_vertices):
-        raise InputError(f"control vertex ids must lie in 0..{n_vertices - 1}", where="control_vertices")
+        raise InputError(
+            f"control vertex ids must lie in 0..{n_vertices - 1}", where="control_vertices"
+        )
     if constrained is None:
         constrained = np.ones((len(controls), 3), dtype=bool)
     constrained = np.asarray(constrained, dtype=bool)
     if constrained.shape != (len(controls), 3):
-        raise InputError(f"constrained must have shape ({len(controls)}, 3), not {constrained.shape}",
-                         where="constrained")
+        raise InputError(
+            f"constrained must have shape ({len(controls)}, 3), not {constrained.shape}",
+            where="constrained",
+        )
     if deformable is None:
         deformable = np.ones(n_vertices, dtype=bool)
     deformable = np.asarray(deformable, dtype=bool)
@@ -86,10 +100,17 @@ def inner_is_membrane(inner: str) -> bool:
     return inner == "membrane"
 
 
-def fill_inner(op: Operator, graph: sp.csr_matrix, free: np.ndarray, inner_vertices: np.ndarray | None,
-               controls: np.ndarray,
-               deformable: np.ndarray, vertices: np.ndarray, triangles: np.ndarray,
-               candidates: np.ndarray) -> Operator:
+def fill_inner(
+    op: Operator,
+    graph: sp.csr_matrix,
+    free: np.ndarray,
+    inner_vertices: np.ndarray | None,
+    controls: np.ndarray,
+    deformable: np.ndarray,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    candidates: np.ndarray,
+) -> Operator:
     """Harmonic rows (``smoothing.harmonic_fill``) for ``free`` plus the deformable
     ``inner_vertices``, never for control vertices (``controls (V,) bool``), each pulled towards
     the ``candidates (V,) bool`` vertex in front of it (``front_vertices``)."""
@@ -102,8 +123,13 @@ def fill_inner(op: Operator, graph: sp.csr_matrix, free: np.ndarray, inner_verti
     return harmonic_fill(op, graph, free, front=front)
 
 
-def front_vertices(vertices: np.ndarray, triangles: np.ndarray, inner: np.ndarray, candidates: np.ndarray,
-                   k: int = 16) -> np.ndarray:
+def front_vertices(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    inner: np.ndarray,
+    candidates: np.ndarray,
+    k: int = 16,
+) -> np.ndarray:
     """``(V,)`` for each ``inner`` vertex the nearest ``candidates`` vertex it lies behind (on the
     inner side of that vertex's tangent plane), else -1: the skin in front of a socket vertex.
     The side test keeps a lower socket vertex from picking the upper lip across the slit."""
@@ -123,9 +149,16 @@ def front_vertices(vertices: np.ndarray, triangles: np.ndarray, inner: np.ndarra
     return out
 
 
-def floating_sources(vertices: np.ndarray, graph: sp.csr_matrix, deformable: np.ndarray,
-                     site_vertices: np.ndarray, rigid_group: np.ndarray | None, attach_distance: float,
-                     *, anchors_only: bool = False) -> tuple[np.ndarray, ...]:
+def floating_sources(
+    vertices: np.ndarray,
+    graph: sp.csr_matrix,
+    deformable: np.ndarray,
+    site_vertices: np.ndarray,
+    rigid_group: np.ndarray | None,
+    attach_distance: float,
+    *,
+    anchors_only: bool = False,
+) -> tuple[np.ndarray, ...]:
     """Vertices of unreachable components and the reached vertex each one copies.
 
     A deformable component with no control is attached when it comes within ``attach_distance``
@@ -142,7 +175,11 @@ def floating_sources(vertices: np.ndarray, graph: sp.csr_matrix, deformable: np.
     reached = deformable & seeded[label]
     if not floating.any() or not reached.any() or attach_distance <= 0:
         return (empty, empty, empty) if anchors_only else (empty, empty)
-    group = np.zeros(len(vertices), np.int64) if rigid_group is None else np.asarray(rigid_group, np.int64)
+    group = (
+        np.zeros(len(vertices), np.int64)
+        if rigid_group is None
+        else np.asarray(rigid_group, np.int64)
+    )
     src_of = np.full(len(vertices), -1)
     rest = np.zeros(len(vertices), dtype=bool)
     for g in np.unique(group[floating]):
@@ -166,10 +203,17 @@ def floating_sources(vertices: np.ndarray, graph: sp.csr_matrix, deformable: np.
     return orphans, src_of[orphans]
 
 
-def attach_floating(per_axis: list[Triples], vertices: np.ndarray, graph: sp.csr_matrix,
-                    deformable: np.ndarray, site_vertices: np.ndarray, rigid_group: np.ndarray | None,
-                    attach_distance: float, *, membrane: bool = False,
-                    ) -> tuple[list[Triples], np.ndarray, np.ndarray]:
+def attach_floating(
+    per_axis: list[Triples],
+    vertices: np.ndarray,
+    graph: sp.csr_matrix,
+    deformable: np.ndarray,
+    site_vertices: np.ndarray,
+    rigid_group: np.ndarray | None,
+    attach_distance: float,
+    *,
+    membrane: bool = False,
+) -> tuple[list[Triples], np.ndarray, np.ndarray]:
     """Append, per axis, copies of the rows of the vertices that floating vertices attach to.
 
     Returns ``(per_axis, free (V,) bool, floating (V,) bool)``: with ``membrane`` only the anchors
@@ -177,12 +221,20 @@ def attach_floating(per_axis: list[Triples], vertices: np.ndarray, graph: sp.csr
     ``floating`` marks all vertices of attached components."""
     free = np.zeros(len(vertices), dtype=bool)
     if membrane:
-        orphans, src, rest = floating_sources(vertices, graph, deformable, site_vertices, rigid_group,
-                                              attach_distance, anchors_only=True)
+        orphans, src, rest = floating_sources(
+            vertices,
+            graph,
+            deformable,
+            site_vertices,
+            rigid_group,
+            attach_distance,
+            anchors_only=True,
+        )
         free[rest] = True
     else:
-        orphans, src = floating_sources(vertices, graph, deformable, site_vertices, rigid_group,
-                                        attach_distance)
+        orphans, src = floating_sources(
+            vertices, graph, deformable, site_vertices, rigid_group, attach_distance
+        )
     floating = free.copy()
     floating[orphans] = True
     if not len(orphans):
@@ -199,15 +251,16 @@ def attach_floating(per_axis: list[Triples], vertices: np.ndarray, graph: sp.csr
     return out, free, floating
 
 
-def assemble_per_axis(per_axis: list[Triples], n_vertices: int, n_controls: int,
-                      meta: dict[str, Any]) -> Operator:
+def assemble_per_axis(
+    per_axis: list[Triples], n_vertices: int, n_controls: int, meta: dict[str, Any]
+) -> Operator:
     """Merge per-axis COO triples ``(vertex, control, weight)`` into one CSR with ``(nnz, 3)`` weights."""
     keys = [r.astype(np.int64) * max(n_controls, 1) + c for r, c, _ in per_axis]
     union, inverse = np.unique(np.concatenate(keys), return_inverse=True)
     weights = np.zeros((len(union), 3))
     start = 0
     for a, (r, _, v) in enumerate(per_axis):
-        np.add.at(weights[:, a], inverse[start:start + len(r)], v)
+        np.add.at(weights[:, a], inverse[start : start + len(r)], v)
         start += len(r)
     rows = union // max(n_controls, 1)
     cols = union % max(n_controls, 1)

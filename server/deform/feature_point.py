@@ -79,6 +79,7 @@ chosen in ``build.DEFAULTS``):
   tip copying a different lid vertex (spikes), and the socket behind the chin moves down with the
   chin instead of showing through the skin below a mouth corner.
 """
+
 from __future__ import annotations
 
 import logging
@@ -116,7 +117,9 @@ def _tangent_units(chords: np.ndarray, normal: np.ndarray) -> np.ndarray:
     return np.divide(flat, length, out=np.zeros_like(flat), where=length > 0)
 
 
-def _site_weights(vertices, normal, site_vertex, ids, dist, nb_vertex, nb_dist, cap, rim=True, falloff="sine"):
+def _site_weights(
+    vertices, normal, site_vertex, ids, dist, nb_vertex, nb_dist, cap, rim=True, falloff="sine"
+):
     """Eqs. 1–4 for one FP over the vertices it reaches (``rim``: see ``no_neighbour="cap"``).
 
     Returns ``(vertex ids, W, d_iP)`` of the vertices it influences (its own vertex with W = 1).
@@ -127,7 +130,9 @@ def _site_weights(vertices, normal, site_vertex, ids, dist, nb_vertex, nb_dist, 
     origin = vertices[site_vertex]
     # float32 is ample for angles and halves the memory traffic on big meshes
     to_p = _tangent_units((vertices[ids] - origin).astype(np.float32), normal.astype(np.float32))
-    to_k = _tangent_units((vertices[nb_vertex] - origin).astype(np.float32), normal.astype(np.float32))
+    to_k = _tangent_units(
+        (vertices[nb_vertex] - origin).astype(np.float32), normal.astype(np.float32)
+    )
     cos = (to_p @ to_k.T).astype(np.float64)  # (n, N)
     cos[cos <= 1e-6] = 0.0  # criterion (1): θ < π/2
     rows = np.arange(len(ids))
@@ -214,25 +219,40 @@ def feature_point_operator(
         ``Operator`` with ``weights (nnz, 3)``; ``meta`` holds the engine and parameters.
     """
     if no_neighbour not in ("cap", "skip"):
-        raise InputError(f"no_neighbour must be 'cap' or 'skip', not {no_neighbour!r}", where="no_neighbour")
+        raise InputError(
+            f"no_neighbour must be 'cap' or 'skip', not {no_neighbour!r}", where="no_neighbour"
+        )
     if normalisation not in NORMALISATIONS:
-        raise InputError(f"normalisation must be one of {', '.join(NORMALISATIONS)}, not {normalisation!r}",
-                         where="normalisation")
+        raise InputError(
+            f"normalisation must be one of {', '.join(NORMALISATIONS)}, not {normalisation!r}",
+            where="normalisation",
+        )
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     n_vertices = len(vertices)
-    controls, constrained, deformable = validate_controls(n_vertices, control_vertices, constrained, deformable)
+    controls, constrained, deformable = validate_controls(
+        n_vertices, control_vertices, constrained, deformable
+    )
     n_controls = len(controls)
-    meta = {"engine": "fp", "normalisation": normalisation, "no_neighbour": no_neighbour,
-            "own_blend": float(own_blend), "neighbour_ratio": float(neighbour_ratio),
-            "attach_distance": None if attach_distance is None else float(attach_distance),
-            "smooth": float(smooth), "smooth_hold": float(smooth_hold), "inner": inner, "falloff": falloff}
+    meta = {
+        "engine": "fp",
+        "normalisation": normalisation,
+        "no_neighbour": no_neighbour,
+        "own_blend": float(own_blend),
+        "neighbour_ratio": float(neighbour_ratio),
+        "attach_distance": None if attach_distance is None else float(attach_distance),
+        "smooth": float(smooth),
+        "smooth_hold": float(smooth_hold),
+        "inner": inner,
+        "falloff": falloff,
+    }
     if falloff not in ("sine", "smooth"):
         raise InputError(f"falloff must be 'sine' or 'smooth', not {falloff!r}", where="falloff")
 
     # Sites: the distinct deformable vertices carrying controls.
     graph, attach_distance, usable, sites, site_of = control_sites(
-        vertices, triangles, controls, deformable, rigid_group, attach_distance)
+        vertices, triangles, controls, deformable, rigid_group, attach_distance
+    )
     floor = 1e-6 * (float(graph.data.mean()) if graph.nnz else 1.0)
     normals = vertex_normals(vertices, triangles)
 
@@ -245,7 +265,9 @@ def feature_point_operator(
 
     # Step 1: FP distribution per pattern -> pruned neighbour lists.
     neighbours: dict[tuple, list[tuple[np.ndarray, np.ndarray]]] = {}
-    regions: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # pattern -> (owner site, distance) per vertex
+    regions: dict[
+        tuple, tuple[np.ndarray, np.ndarray]
+    ] = {}  # pattern -> (owner site, distance) per vertex
     limits = np.zeros(len(sites))
     spacing: list[float] = []
     held: dict[tuple, np.ndarray] = {}
@@ -272,7 +294,9 @@ def feature_point_operator(
             own = members[np.maximum(vor.source, 0)]
             held[pat] = (vor.source >= 0) & (vor.distance < smooth_hold * nn_pat[own])
         spacing.extend(l[1].min() for l in lists if len(l[1]))
-        owner = members[np.maximum(vor.source, 0)] if len(members) else np.zeros(n_vertices, np.int64)
+        owner = (
+            members[np.maximum(vor.source, 0)] if len(members) else np.zeros(n_vertices, np.int64)
+        )
         regions[pat] = (np.where(vor.source >= 0, owner, -1), vor.distance)
 
     nn_spacing = float(np.median(spacing)) if spacing else 0.0
@@ -298,8 +322,18 @@ def feature_point_operator(
             nb_d = exact(s, nb, nb_d)
             cap = nb_d.max() if len(nb_d) else 0.0
             ids, dist = reach_of[s]
-            p, w, dp = _site_weights(vertices, normals[sites[s]], sites[s], ids, dist, sites[nb], nb_d, cap,
-                                     rim=no_neighbour == "cap", falloff=falloff)
+            p, w, dp = _site_weights(
+                vertices,
+                normals[sites[s]],
+                sites[s],
+                ids,
+                dist,
+                sites[nb],
+                nb_d,
+                cap,
+                rim=no_neighbour == "cap",
+                falloff=falloff,
+            )
             rows.append(p)
             cols.append(np.full(len(p), s))
             if normalisation == "paper":
@@ -313,7 +347,9 @@ def feature_point_operator(
         if own_blend > 0 and normalisation != "paper":
             # Near FP_i the other FPs fade out, so the FP's exact own vertex is not a spike.
             owner, to_owner = regions[pat]
-            nn = np.array([lists[k][1].min() if len(lists[k][1]) else np.inf for k in range(len(sites))])
+            nn = np.array(
+                [lists[k][1].min() if len(lists[k][1]) else np.inf for k in range(len(sites))]
+            )
             o = owner[r]
             fade = np.clip(to_owner[r] / (own_blend * nn[np.maximum(o, 0)]), 0.0, 1.0)
             v = np.where((c == o) | (o < 0), v, v * fade)
@@ -344,8 +380,16 @@ def feature_point_operator(
         per_axis.append((rr, cc, vv))
 
     membrane = inner_is_membrane(inner)
-    per_axis, free, floating = attach_floating(per_axis, vertices, graph, deformable, sites[active],
-                                                rigid_group, attach_distance, membrane=membrane)
+    per_axis, free, floating = attach_floating(
+        per_axis,
+        vertices,
+        graph,
+        deformable,
+        sites[active],
+        rigid_group,
+        attach_distance,
+        membrane=membrane,
+    )
     op = assemble_per_axis(per_axis, n_vertices, n_controls, meta)
     fixed = np.zeros((n_vertices, 3), dtype=bool)
     for a in range(3):
@@ -358,8 +402,17 @@ def feature_point_operator(
         op = smooth_rows(op, graph, fixed, iterations)
     if not membrane:
         return op
-    return fill_inner(op, graph, free, inner_vertices, fixed.any(axis=1), deformable, vertices, triangles,
-                      deformable & ~floating)
+    return fill_inner(
+        op,
+        graph,
+        free,
+        inner_vertices,
+        fixed.any(axis=1),
+        deformable,
+        vertices,
+        triangles,
+        deformable & ~floating,
+    )
 
 
 #: Upper bound on the smoothing steps (a 500k-vertex head would otherwise need ~300).

@@ -4,6 +4,7 @@
 It respects holes (a mouth slit, an eye opening): two points facing each other across a slit are
 as far apart as the path around the hole.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -13,8 +14,12 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 
-def edge_graph(vertices: np.ndarray, triangles: np.ndarray, mask: np.ndarray | None = None,
-               group: np.ndarray | None = None) -> sp.csr_matrix:
+def edge_graph(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    mask: np.ndarray | None = None,
+    group: np.ndarray | None = None,
+) -> sp.csr_matrix:
     """Symmetric ``(V, V)`` CSR matrix of edge lengths (float64, mesh units).
 
     Args:
@@ -83,8 +88,9 @@ def voronoi(graph: sp.csr_matrix, sources: np.ndarray) -> Voronoi:
     n = graph.shape[0]
     if len(sources) == 0:
         return Voronoi(np.full(n, np.inf), np.full(n, -1), np.zeros((0, 2), np.int64), np.zeros(0))
-    dist, _, src_vertex = dijkstra(graph, directed=False, indices=sources, min_only=True,
-                                   return_predecessors=True)
+    dist, _, src_vertex = dijkstra(
+        graph, directed=False, indices=sources, min_only=True, return_predecessors=True
+    )
     lookup = np.full(n, -1, dtype=np.int64)
     lookup[sources] = np.arange(len(sources))
     source = np.where(src_vertex >= 0, lookup[np.maximum(src_vertex, 0)], -1)
@@ -104,8 +110,9 @@ def voronoi(graph: sp.csr_matrix, sources: np.ndarray) -> Voronoi:
     return Voronoi(dist, source, pairs, through)
 
 
-def bounded_distances(graph: sp.csr_matrix, sources: np.ndarray, limits: np.ndarray,
-                      *, budget: int = 10_000_000) -> list[tuple[np.ndarray, np.ndarray]]:
+def bounded_distances(
+    graph: sp.csr_matrix, sources: np.ndarray, limits: np.ndarray, *, budget: int = 10_000_000
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Surface distances from each source to every vertex closer than its own limit.
 
     Args:
@@ -126,7 +133,7 @@ def bounded_distances(graph: sp.csr_matrix, sources: np.ndarray, limits: np.ndar
     chunk = max(1, budget // max(n, 1))
     order = np.argsort(limits)
     for start in range(0, len(order), chunk):
-        idx = order[start:start + chunk]
+        idx = order[start : start + chunk]
         lim = float(limits[idx].max())
         dist = dijkstra(graph, directed=False, indices=sources[idx], limit=lim)
         dist = np.atleast_2d(dist)

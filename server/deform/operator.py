@@ -1,4 +1,5 @@
 """The linear deformation operator every engine compiles to: vertex displacements u = B·D."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -64,10 +65,18 @@ class Operator:
 
     def save(self, path: Path) -> None:
         """Write to ``path`` (.npz) atomically."""
-        arrays = {"dense": self.dense} if not self.is_sparse else {
-            "indptr": self.indptr, "indices": self.indices, "weights": self.weights}
+        arrays = (
+            {"dense": self.dense}
+            if not self.is_sparse
+            else {"indptr": self.indptr, "indices": self.indices, "weights": self.weights}
+        )
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, n=np.array([self.n_vertices, self.n_controls]), meta=np.array(repr(self.meta)), **arrays)
+            np.savez(
+                fh,
+                n=np.array([self.n_vertices, self.n_controls]),
+                meta=np.array(repr(self.meta)),
+                **arrays,
+            )
 
     @classmethod
     def load(cls, path: Path) -> Operator:
@@ -78,4 +87,6 @@ class Operator:
             meta = ast.literal_eval(str(z["meta"]))
             if "dense" in z:
                 return cls(n_v, n_k, dense=z["dense"], meta=meta)
-            return cls(n_v, n_k, indptr=z["indptr"], indices=z["indices"], weights=z["weights"], meta=meta)
+            return cls(
+                n_v, n_k, indptr=z["indptr"], indices=z["indices"], weights=z["weights"], meta=meta
+            )

@@ -16,6 +16,7 @@ mouth-socket poke-through, over the *outer skin* (the ``skin`` part without the 
 
 Used by ``bench/deform_quality.py`` and the tests; positions are head-local (``rest + B·D``).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -112,8 +113,19 @@ class QualityMesh:
             cand = np.where(side < 0, cand, -1)
         else:
             cand = np.zeros((0, K_NEAR), np.int64)
-        qm = cls(face.mm_per_unit, tri, edges, rest_len, hinge, _dihedral(fn, hinge), verts, vn, fn,
-                 sock, cand)
+        qm = cls(
+            face.mm_per_unit,
+            tri,
+            edges,
+            rest_len,
+            hinge,
+            _dihedral(fn, hinge),
+            verts,
+            vn,
+            fn,
+            sock,
+            cand,
+        )
         # only vertices inside the skin at rest are checked (ICT's socket rim sits inside the lips)
         inside = (socket_signed_mm(rest, qm) <= 0) & (cand >= 0).any(axis=1)
         qm.socket, qm.socket_cand = sock[inside], cand[inside]
@@ -145,7 +157,9 @@ def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nda
         t_ab = np.clip(np.where((ab * ab).sum(-1) > 0, d1 / (ab * ab).sum(-1), 0), 0, 1)
         t_ac = np.clip(np.where((ac * ac).sum(-1) > 0, d2 / (ac * ac).sum(-1), 0), 0, 1)
         bc = c - b
-        t_bc = np.clip(np.where((bc * bc).sum(-1) > 0, (bc * bp).sum(-1) / (bc * bc).sum(-1), 0), 0, 1)
+        t_bc = np.clip(
+            np.where((bc * bc).sum(-1) > 0, (bc * bp).sum(-1) / (bc * bc).sum(-1), 0), 0, 1
+        )
     q_ab = a + ab * t_ab[..., None]
     q_ac = a + ac * t_ac[..., None]
     q_bc = b + bc * t_bc[..., None]
@@ -187,10 +201,15 @@ def measure(points: np.ndarray, qm: QualityMesh) -> dict:
     flips = int((np.einsum("ij,ij->i", fn, qm.rest_fn) < 0).sum())
     sd = socket_signed_mm(p, qm)
     return {
-        "strain_p99": float(np.percentile(strain, 99)), "strain_max": float(strain.max()),
-        "dihedral_p90": float(np.percentile(dih, 90)), "dihedral_p99": float(np.percentile(dih, 99)), "dihedral_max": float(dih.max()),
-        "normal_p99": float(np.percentile(ndev, 99)), "normal_max": float(ndev.max()),
-        "flips": flips, "pokes": int((sd > POKE_TOL_MM).sum()),
+        "strain_p99": float(np.percentile(strain, 99)),
+        "strain_max": float(strain.max()),
+        "dihedral_p90": float(np.percentile(dih, 90)),
+        "dihedral_p99": float(np.percentile(dih, 99)),
+        "dihedral_max": float(dih.max()),
+        "normal_p99": float(np.percentile(ndev, 99)),
+        "normal_max": float(ndev.max()),
+        "flips": flips,
+        "pokes": int((sd > POKE_TOL_MM).sum()),
         "poke_max_mm": float(sd.max()) if len(sd) else 0.0,
     }
 

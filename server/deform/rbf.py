@@ -33,6 +33,7 @@ vertex of the same rigid group within ``attach_distance``; everything else (eyeb
 zero rows. Per-axis constraints: on axis a only the controls constrained on a are centres; when
 the axes differ the operator is stored sparse with full per-axis rows, otherwise dense ``(V, K)``.
 """
+
 from __future__ import annotations
 
 import logging
@@ -70,8 +71,9 @@ def _poly_basis(points: np.ndarray, centre: np.ndarray, axes: np.ndarray) -> np.
     return np.c_[np.ones(len(points)), (points - centre) @ axes]
 
 
-def _surface_distances(graph, sources: np.ndarray, rows: np.ndarray,
-                       budget: int = 10_000_000) -> tuple[np.ndarray, np.ndarray]:
+def _surface_distances(
+    graph, sources: np.ndarray, rows: np.ndarray, budget: int = 10_000_000
+) -> tuple[np.ndarray, np.ndarray]:
     """Surface distances from every source (inf where unreachable), in chunks of sources.
 
     Returns ``(to_rows (len(rows), S) float32, between_sources (S, S) float64)``.
@@ -81,9 +83,9 @@ def _surface_distances(graph, sources: np.ndarray, rows: np.ndarray,
     between = np.empty((len(sources), len(sources)))
     chunk = max(1, budget // max(n_vertices, 1))
     for start in range(0, len(sources), chunk):
-        d = np.atleast_2d(dijkstra(graph, directed=False, indices=sources[start:start + chunk]))
-        out[:, start:start + chunk] = d[:, rows].T
-        between[start:start + chunk] = d[:, sources]
+        d = np.atleast_2d(dijkstra(graph, directed=False, indices=sources[start : start + chunk]))
+        out[:, start : start + chunk] = d[:, rows].T
+        between[start : start + chunk] = d[:, sources]
     return out, between
 
 
@@ -111,8 +113,11 @@ def rbf_matrix(
     n = len(centres)
     if n == 0:
         return np.zeros((len(vertices), 0), dtype=np.float32)
-    rcc = centre_distances if centre_distances is not None else np.linalg.norm(
-        centres[:, None] - centres[None], axis=2)
+    rcc = (
+        centre_distances
+        if centre_distances is not None
+        else np.linalg.norm(centres[:, None] - centres[None], axis=2)
+    )
     # Coincident centres (e.g. the two lips of a closed mouth, under Euclidean distance) cannot
     # carry different values: they are merged and share their column equally.
     scale = float(np.ptp(centres)) if n > 1 else 1.0
@@ -121,8 +126,16 @@ def rbf_matrix(
         reps, group = np.unique(group, return_inverse=True)
         count = np.bincount(group)
         vd = None if vertex_distances is None else vertex_distances[:, reps]
-        merged = rbf_matrix(vertices, centres[reps], kernel=kernel, shape=shape, affine=affine,
-                            centre_distances=rcc[np.ix_(reps, reps)], vertex_distances=vd, chunk=chunk)
+        merged = rbf_matrix(
+            vertices,
+            centres[reps],
+            kernel=kernel,
+            shape=shape,
+            affine=affine,
+            centre_distances=rcc[np.ix_(reps, reps)],
+            vertex_distances=vd,
+            chunk=chunk,
+        )
         return (merged[:, group] / count[group]).astype(np.float32)
     c = None
     if kernel == "imq":
@@ -131,7 +144,11 @@ def rbf_matrix(
             delta = off.min(axis=1)
         else:
             delta = np.ones(1)
-        delta = np.where(np.isfinite(delta) & (delta > 0), delta, np.nanmax(np.r_[delta[np.isfinite(delta)], 1.0]))
+        delta = np.where(
+            np.isfinite(delta) & (delta > 0),
+            delta,
+            np.nanmax(np.r_[delta[np.isfinite(delta)], 1.0]),
+        )
         c = shape * delta
     phi = _kernel(rcc, kernel, c)
     mean = centres.mean(axis=0)
@@ -156,13 +173,16 @@ def rbf_matrix(
     vertices = np.asarray(vertices, dtype=np.float64)
     out = np.empty((len(vertices), n), dtype=np.float32)
     for start in range(0, len(vertices), chunk):
-        x = vertices[start:start + chunk]
-        r = vertex_distances[start:start + chunk] if vertex_distances is not None else np.linalg.norm(
-            x[:, None] - centres[None], axis=2)
+        x = vertices[start : start + chunk]
+        r = (
+            vertex_distances[start : start + chunk]
+            if vertex_distances is not None
+            else np.linalg.norm(x[:, None] - centres[None], axis=2)
+        )
         basis = _kernel(r, kernel, c)
         if affine:
             basis = np.c_[basis, _poly_basis(x, mean, axes)]
-        out[start:start + chunk] = basis @ inv
+        out[start : start + chunk] = basis @ inv
     return out
 
 
@@ -192,25 +212,40 @@ def rbf_operator(
     controls' mean stretch over the whole scalp and neck.
     """
     if kernel not in KERNELS:
-        raise InputError(f"kernel must be one of {', '.join(KERNELS)}, not {kernel!r}", where="kernel")
+        raise InputError(
+            f"kernel must be one of {', '.join(KERNELS)}, not {kernel!r}", where="kernel"
+        )
     if distance not in DISTANCES:
-        raise InputError(f"distance must be one of {', '.join(DISTANCES)}, not {distance!r}", where="distance")
+        raise InputError(
+            f"distance must be one of {', '.join(DISTANCES)}, not {distance!r}", where="distance"
+        )
     if kernel == "r" and distance == "surface":
         # φ(r) = r is conditionally positive definite only for Euclidean r; with surface distances
         # the system is indefinite and, on the ICT head, the warp explodes (bench/fidelity.py).
-        raise InputError("kernel 'r' needs distance='euclidean' (use kernel 'imq' for surface distances)",
-                         where="distance")
+        raise InputError(
+            "kernel 'r' needs distance='euclidean' (use kernel 'imq' for surface distances)",
+            where="distance",
+        )
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     n_vertices = len(vertices)
-    controls, constrained, deformable = validate_controls(n_vertices, control_vertices, constrained, deformable)
+    controls, constrained, deformable = validate_controls(
+        n_vertices, control_vertices, constrained, deformable
+    )
     n_controls = len(controls)
-    meta = {"engine": "rbf", "kernel": kernel, "shape": float(shape), "affine": bool(affine),
-            "distance": distance, "attach_distance": None if attach_distance is None else float(attach_distance),
-            "inner": inner}
+    meta = {
+        "engine": "rbf",
+        "kernel": kernel,
+        "shape": float(shape),
+        "affine": bool(affine),
+        "distance": distance,
+        "attach_distance": None if attach_distance is None else float(attach_distance),
+        "inner": inner,
+    }
     membrane = inner_is_membrane(inner)
     graph, attach_distance, usable, sites, site_of = control_sites(
-        vertices, triangles, controls, deformable, rigid_group, attach_distance)
+        vertices, triangles, controls, deformable, rigid_group, attach_distance
+    )
     label = components(graph)
     site_ok = deformable[sites]
     seeded = np.zeros(label.max() + 1, dtype=bool)
@@ -241,8 +276,15 @@ def rbf_operator(
                 rvx[~np.isfinite(rvx)] = far
             else:
                 rcc = rvx = None
-            b = rbf_matrix(vertices[warped], cpos, kernel=kernel, shape=shape, affine=affine,
-                           centre_distances=rcc, vertex_distances=rvx)
+            b = rbf_matrix(
+                vertices[warped],
+                cpos,
+                kernel=kernel,
+                shape=shape,
+                affine=affine,
+                centre_distances=rcc,
+                vertex_distances=rvx,
+            )
             cache[key] = (members, b)
         members, b = cache[key]
         # Expand sites to controls: each control at a site with m constrained controls gets 1/m.
@@ -257,8 +299,15 @@ def rbf_operator(
         ctl, vals = per_axis[0]
         dense = np.zeros((n_vertices, n_controls), dtype=np.float32)
         dense[np.ix_(warped, ctl)] = vals
-        found = floating_sources(vertices, graph, deformable, sites[site_ok], rigid_group,
-                                 attach_distance, anchors_only=membrane)
+        found = floating_sources(
+            vertices,
+            graph,
+            deformable,
+            sites[site_ok],
+            rigid_group,
+            attach_distance,
+            anchors_only=membrane,
+        )
         orphans, src = found[0], found[1]
         dense[orphans] = dense[src]
         free = np.zeros(n_vertices, dtype=bool)
@@ -268,13 +317,33 @@ def rbf_operator(
         floating[orphans] = True
         op = Operator(n_vertices, n_controls, dense=dense, meta=meta)
     else:
-        triples = [(np.repeat(warped, len(ctl)), np.tile(ctl, len(warped)), vals.ravel()) for ctl, vals in per_axis]
-        triples, free, floating = attach_floating(triples, vertices, graph, deformable, sites[site_ok], rigid_group,
-                                         attach_distance, membrane=membrane)
+        triples = [
+            (np.repeat(warped, len(ctl)), np.tile(ctl, len(warped)), vals.ravel())
+            for ctl, vals in per_axis
+        ]
+        triples, free, floating = attach_floating(
+            triples,
+            vertices,
+            graph,
+            deformable,
+            sites[site_ok],
+            rigid_group,
+            attach_distance,
+            membrane=membrane,
+        )
         op = assemble_per_axis(triples, n_vertices, n_controls, meta)
     if not membrane:
         return op
     held = np.zeros(n_vertices, dtype=bool)
     held[controls[usable]] = True
-    return fill_inner(op, graph, free, inner_vertices, held, deformable, vertices, triangles,
-                      deformable & ~floating)
+    return fill_inner(
+        op,
+        graph,
+        free,
+        inner_vertices,
+        held,
+        deformable,
+        vertices,
+        triangles,
+        deformable & ~floating,
+    )

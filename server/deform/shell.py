@@ -31,6 +31,7 @@ engines (``controls.fill_inner``: harmonic membranes hanging from the skin, pull
 skin in front of them). Per-axis constraints: on axis a, only the controls constrained on a are
 handles; when the axes differ the operator is stored sparse with full per-axis rows.
 """
+
 from __future__ import annotations
 
 import logging
@@ -57,7 +58,9 @@ log = logging.getLogger(__name__)
 __all__ = ["cotangent_laplacian", "shell_matrix", "shell_operator"]
 
 
-def cotangent_laplacian(vertices: np.ndarray, triangles: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+def cotangent_laplacian(
+    vertices: np.ndarray, triangles: np.ndarray
+) -> tuple[sp.csr_matrix, np.ndarray]:
     """``(L (V, V) CSR float64, mass (V,) float64)``: cotangent stiffness (positive semi-definite,
     rows sum to 0) and lumped barycentric vertex areas (mesh units²; 0 for vertices in no triangle).
 
@@ -67,7 +70,9 @@ def cotangent_laplacian(vertices: np.ndarray, triangles: np.ndarray) -> tuple[sp
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     n = len(v)
     rows, cols, vals = [], [], []
-    area2 = np.linalg.norm(np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]]), axis=1)
+    area2 = np.linalg.norm(
+        np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]]), axis=1
+    )
     for k in range(3):
         i, j, o = tri[:, (k + 1) % 3], tri[:, (k + 2) % 3], tri[:, k]
         a, b = v[i] - v[o], v[j] - v[o]
@@ -79,14 +84,17 @@ def cotangent_laplacian(vertices: np.ndarray, triangles: np.ndarray) -> tuple[sp
         rows += [i, j, i, j]
         cols += [j, i, i, j]
         vals += [-w, -w, w, w]
-    lap = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                        shape=(n, n)).tocsr()
+    lap = sp.coo_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    ).tocsr()
     lap.sum_duplicates()
     mass = np.bincount(tri.ravel(), weights=np.repeat(area2 / 6.0, 3), minlength=n)
     return lap, mass
 
 
-def shell_matrix(vertices: np.ndarray, triangles: np.ndarray, ks: float, kb: float) -> sp.csr_matrix:
+def shell_matrix(
+    vertices: np.ndarray, triangles: np.ndarray, ks: float, kb: float
+) -> sp.csr_matrix:
     """``A = ks·L + kb·L M⁻¹ L`` ``(V, V)`` for the mesh (masses floored at 1e-6 of their mean)."""
     lap, mass = cotangent_laplacian(vertices, triangles)
     used = mass > 0
@@ -104,7 +112,9 @@ def _spacing(points: np.ndarray) -> float:
     return float(np.median(d)) if len(d) else 1.0
 
 
-def _solve_sites(a: sp.csr_matrix, domain: np.ndarray, sites: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _solve_sites(
+    a: sp.csr_matrix, domain: np.ndarray, sites: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Harmonic-in-``A`` basis on ``domain (n,)`` vertex ids with ``sites (S,)`` (vertex ids in the
     domain) held: ``(rows (m,) vertex ids, X (m, S) float32)``; ``X[site s, s] = 1``. Vertices of
     domain components with no site are left out (they are not determined)."""
@@ -129,7 +139,9 @@ def _solve_sites(a: sp.csr_matrix, domain: np.ndarray, sites: np.ndarray) -> tup
         ff = sub[free][:, free].tocsc()
         rhs = -(sub[free][:, local[sites]]).toarray()
         # symmetric positive definite: no pivoting needed, which keeps the fill-reducing ordering
-        lu = splu(ff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        lu = splu(
+            ff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+        )
         out[pos[np.flatnonzero(free)]] = lu.solve(rhs).astype(np.float32)
     return domain[kept], out
 
@@ -165,13 +177,20 @@ def shell_operator(
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     n_vertices = len(vertices)
-    controls, constrained, deformable = validate_controls(n_vertices, control_vertices, constrained, deformable)
+    controls, constrained, deformable = validate_controls(
+        n_vertices, control_vertices, constrained, deformable
+    )
     n_controls = len(controls)
     membrane = inner_is_membrane(inner)
-    meta = {"engine": "shell", "stretch": float(stretch),
-            "attach_distance": None if attach_distance is None else float(attach_distance), "inner": inner}
+    meta = {
+        "engine": "shell",
+        "stretch": float(stretch),
+        "attach_distance": None if attach_distance is None else float(attach_distance),
+        "inner": inner,
+    }
     graph, attach_distance, usable, sites, site_of = control_sites(
-        vertices, triangles, controls, deformable, rigid_group, attach_distance)
+        vertices, triangles, controls, deformable, rigid_group, attach_distance
+    )
     label = components(graph)
     seeded = np.zeros(label.max() + 1, dtype=bool)
     seeded[label[sites[deformable[sites]]]] = True
@@ -212,11 +231,19 @@ def shell_operator(
         solved[rows] = True
         # attach what the shell does not cover: floating components copy (their roots), sockets and
         # the rest of floating components hang as membranes from the skin
-        orphans, src, rest = floating_sources(vertices, graph, deformable, sites[members], rigid_group,
-                                              attach_distance, anchors_only=True)
+        orphans, src, rest = floating_sources(
+            vertices,
+            graph,
+            deformable,
+            sites[members],
+            rigid_group,
+            attach_distance,
+            anchors_only=True,
+        )
         if not membrane:
-            orphans, src = floating_sources(vertices, graph, deformable, sites[members], rigid_group,
-                                            attach_distance)
+            orphans, src = floating_sources(
+                vertices, graph, deformable, sites[members], rigid_group, attach_distance
+            )
             rest = np.zeros(0, np.int64)
         dense[orphans] = dense[src]
         if not membrane:  # the other deformable vertices copy their nearest shell vertex
@@ -229,8 +256,17 @@ def shell_operator(
         free |= reached & ~solved  # sockets and other deformable non-shell vertices
         held = np.zeros(n_vertices, dtype=bool)
         held[controls[usable]] = True
-        op = fill_inner(Operator(n_vertices, n_controls, dense=dense, meta=meta), graph, free, inner_vertices,
-                        held, deformable, vertices, triangles, solved)
+        op = fill_inner(
+            Operator(n_vertices, n_controls, dense=dense, meta=meta),
+            graph,
+            free,
+            inner_vertices,
+            held,
+            deformable,
+            vertices,
+            triangles,
+            solved,
+        )
         return op.dense
 
     cache: dict[tuple, np.ndarray] = {}

@@ -10,6 +10,7 @@ restricted to the edge graph the engine used (deformable vertices, one rigid gro
 crosses the lip slit except around its corners). Tiny weights are dropped afterwards to bound
 the fill-in.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -28,8 +29,15 @@ def averaging_matrix(graph: sp.csr_matrix) -> sp.csr_matrix:
     return (sp.diags(inv) @ a + sp.diags(iso.astype(np.float64))).tocsr()
 
 
-def smooth_rows(op: Operator, graph: sp.csr_matrix, fixed: np.ndarray, iterations: int, *,
-                lam: float = 0.5, prune: float = 1e-4) -> Operator:
+def smooth_rows(
+    op: Operator,
+    graph: sp.csr_matrix,
+    fixed: np.ndarray,
+    iterations: int,
+    *,
+    lam: float = 0.5,
+    prune: float = 1e-4,
+) -> Operator:
     """Diffuse the sparse operator's rows over ``graph``.
 
     Args:
@@ -49,7 +57,9 @@ def smooth_rows(op: Operator, graph: sp.csr_matrix, fixed: np.ndarray, iteration
     out = []
     cache: dict[bytes, sp.csr_matrix] = {}
     for a in range(3):
-        b0 = sp.csr_matrix((op.weights[:, a].astype(np.float64), op.indices, op.indptr), shape=(n, k))
+        b0 = sp.csr_matrix(
+            (op.weights[:, a].astype(np.float64), op.indices, op.indptr), shape=(n, k)
+        )
         key = op.weights[:, a].tobytes() + keep[a].tobytes()
         if key in cache:
             out.append(cache[key])
@@ -79,11 +89,20 @@ def _merge(mats: list[sp.csr_matrix], n: int, k: int, meta: dict) -> Operator:
         m = m.tocoo()
         pos = np.searchsorted(key, m.row.astype(np.int64) * k + m.col)
         weights[pos, a] = m.data
-    return Operator(n, k, indptr=pattern.indptr, indices=pattern.indices, weights=weights, meta=meta)
+    return Operator(
+        n, k, indptr=pattern.indptr, indices=pattern.indices, weights=weights, meta=meta
+    )
 
 
-def harmonic_fill(op: Operator, graph: sp.csr_matrix, free: np.ndarray, *, front: np.ndarray | None = None,
-                  alpha: float = 1.0, prune: float = 1e-4) -> Operator:
+def harmonic_fill(
+    op: Operator,
+    graph: sp.csr_matrix,
+    free: np.ndarray,
+    *,
+    front: np.ndarray | None = None,
+    alpha: float = 1.0,
+    prune: float = 1e-4,
+) -> Operator:
     """Replace the rows of the ``free (V,) bool`` vertices by the harmonic extension of the others.
 
     Each free row becomes the average of its edge neighbours' rows (graph Laplacian = 0 on the
@@ -125,7 +144,9 @@ def harmonic_fill(op: Operator, graph: sp.csr_matrix, free: np.ndarray, *, front
     lu = splu(lap)
     afb = a[fid][:, bid]
     if (fr >= 0).any():  # the front rows enter like extra boundary neighbours of weight alpha
-        extra = sp.csr_matrix((pull[fr >= 0], (np.flatnonzero(fr >= 0), fr[fr >= 0])), shape=(len(fid), n))
+        extra = sp.csr_matrix(
+            (pull[fr >= 0], (np.flatnonzero(fr >= 0), fr[fr >= 0])), shape=(len(fid), n)
+        )
         afb = (afb + extra[:, bid]).tocsr()
     if not op.is_sparse:
         dense = op.dense.copy()
@@ -138,7 +159,9 @@ def harmonic_fill(op: Operator, graph: sp.csr_matrix, free: np.ndarray, *, front
         if key in done:  # axes with the same weights (all controls constrained on all axes)
             mats.append(done[key])
             continue
-        b = sp.csr_matrix((op.weights[:, ax].astype(np.float64), op.indices, op.indptr), shape=(n, k))
+        b = sp.csr_matrix(
+            (op.weights[:, ax].astype(np.float64), op.indices, op.indptr), shape=(n, k)
+        )
         rhs = (afb @ b[bid]).tocsc()
         cols = np.flatnonzero(np.diff(rhs.indptr))  # only controls that reach the boundary
         x = np.zeros((len(fid), k))

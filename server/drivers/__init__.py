@@ -6,6 +6,7 @@ driver module has ``load(path: Path, face: Face, **options) -> Animation``; ``lo
 picks it from the file's suffix. A live driver class turns a producer's decoded frames into face
 states (``server/live/inputs.py`` loads it, lazily, when a producer of that kind says hello).
 """
+
 from __future__ import annotations
 
 import importlib
@@ -60,8 +61,11 @@ def input_kind(path: str | Path) -> InputKind:
     """``fap`` | ``audio`` | ``markers`` from the suffix; InputError for anything else."""
     suffix = Path(path).suffix.lower()
     if suffix not in SUFFIXES:
-        raise InputError(f"unsupported input type {suffix or '(none)'!r}; expected one of "
-                         f"{', '.join(sorted(SUFFIXES))}", where=str(path))
+        raise InputError(
+            f"unsupported input type {suffix or '(none)'!r}; expected one of "
+            f"{', '.join(sorted(SUFFIXES))}",
+            where=str(path),
+        )
     return SUFFIXES[suffix]
 
 

@@ -4,6 +4,7 @@ Idle motion follows what people do at rest: a blink every 2-6 s (about 150 ms cl
 closed, 200 ms opening), slow head sway of a few degrees, and gaze shifts (saccades) every 1-3 s.
 Everything is a deterministic function of the seed, so a demo can be replayed and tested.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -57,13 +58,17 @@ def blink_closure(t: float, starts: np.ndarray) -> float:
     return float(1 - _smoothstep((d - 0.25) / 0.2))
 
 
-def demo_states(fps: float = 30.0, *, loops: int | None = None, seed: int = 7) -> Iterator[FaceState]:
+def demo_states(
+    fps: float = 30.0, *, loops: int | None = None, seed: int = 7
+) -> Iterator[FaceState]:
     """Face states of the demo at ``fps``; endless when ``loops`` is None, else that many passes."""
     rng = np.random.default_rng(seed)
     period = sum(s for s, _, _ in SCRIPT)
     blinks = _events(rng, period, 2.0, 6.0)
     saccades = _events(rng, period, 1.0, 3.0)
-    gaze = rng.uniform(-1, 1, size=(len(saccades) + 1, 2)) * np.array([8.0, 4.0])  # degrees yaw, pitch
+    gaze = rng.uniform(-1, 1, size=(len(saccades) + 1, 2)) * np.array(
+        [8.0, 4.0]
+    )  # degrees yaw, pitch
     starts = np.cumsum([0.0] + [s for s, _, _ in SCRIPT])
     n = 0
     while loops is None or n < loops * round(period * fps):
@@ -74,7 +79,9 @@ def demo_states(fps: float = 30.0, *, loops: int | None = None, seed: int = 7) -
         u = (local - starts[k]) / seg_len
         faps = zero_faps()
         # Expressions rise and fall within their segment.
-        intensity = int(round(63 * _smoothstep(u / 0.25) * _smoothstep((1 - u) / 0.25))) if expr else 0
+        intensity = (
+            int(round(63 * _smoothstep(u / 0.25) * _smoothstep((1 - u) / 0.25))) if expr else 0
+        )
         expression = (expr, intensity, 0, 0) if expr else None
         viseme = None
         if visemes:
@@ -89,7 +96,9 @@ def demo_states(fps: float = 30.0, *, loops: int | None = None, seed: int = 7) -
         faps[19] = faps[20] = 1024 * closure  # upper lids down by one IRISD0 when closed
         faps[21] = faps[22] = 150 * closure
         # Head sway: incommensurate sines, a few degrees.
-        faps[48] = AU_PER_DEG * (2.0 * np.sin(2 * np.pi * t / 7.3) + 0.8 * np.sin(2 * np.pi * t / 3.1))
+        faps[48] = AU_PER_DEG * (
+            2.0 * np.sin(2 * np.pi * t / 7.3) + 0.8 * np.sin(2 * np.pi * t / 3.1)
+        )
         faps[49] = AU_PER_DEG * (3.0 * np.sin(2 * np.pi * t / 9.7 + 1.0))
         faps[50] = AU_PER_DEG * (1.5 * np.sin(2 * np.pi * t / 11.3 + 2.0))
         # Gaze: hold, then jump to the next target within 60 ms.

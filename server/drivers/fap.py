@@ -10,6 +10,7 @@ High-level FAPs: FAP 1 (viseme) and FAP 2 (expression) are held like the others 
 ``FaceState.viseme`` / ``expression``; in the Greta layout (one value per flag) they carry no
 selects and are ignored with a warning.
 """
+
 from __future__ import annotations
 
 import logging
@@ -28,7 +29,9 @@ def read(path: Path) -> FapFile:
     try:
         text = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as e:
-        raise InputError(f"not a text .fap file (byte {e.start} is not ASCII/UTF-8)", where=str(path)) from None
+        raise InputError(
+            f"not a text .fap file (byte {e.start} is not ASCII/UTF-8)", where=str(path)
+        ) from None
     except OSError as e:
         raise InputError(f"cannot read the file: {e.strerror}", where=str(path)) from None
     try:
@@ -55,7 +58,9 @@ def to_animation(f: FapFile, *, masked: str = "hold", source: str = "") -> Anima
             faps[k] = float(v)
         if fr.single_high_level and (fr.viseme is not None or fr.expression is not None):
             if not warned:
-                log.warning("%s: FAP 1/2 carry one value per flag (Greta layout); ignored", source or "fap")
+                log.warning(
+                    "%s: FAP 1/2 carry one value per flag (Greta layout); ignored", source or "fap"
+                )
                 warned = True
         else:
             if fr.viseme is not None:

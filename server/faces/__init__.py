@@ -3,6 +3,7 @@
 ``load_face(spec)`` takes ``default`` (the built-in head at its default resolution), ``default:N``
 (about N vertices, e.g. ``default:2k``, ``default:500k``), or a mesh path.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -28,7 +29,9 @@ def parse_count(text: str) -> int:
     try:
         return int(float(t[:-1] if mult > 1 else t) * mult)
     except ValueError:
-        raise InputError(f"cannot read a vertex count from {text!r}; use e.g. 2k, 25000 or 0.5M") from None
+        raise InputError(
+            f"cannot read a vertex count from {text!r}; use e.g. 2k, 25000 or 0.5M"
+        ) from None
 
 
 def load_face(spec: str | Path) -> Face:
@@ -41,8 +44,10 @@ def load_face(spec: str | Path) -> Face:
         return build_default_head(parse_count(count) if count else BUILTIN[name])
     path = Path(text)
     if not path.exists():
-        raise InputError(f"no built-in face or mesh file named {text!r}; built-in faces: "
-                         f"{', '.join(BUILTIN)} (optionally with ':<vertices>', e.g. default:100k)")
+        raise InputError(
+            f"no built-in face or mesh file named {text!r}; built-in faces: "
+            f"{', '.join(BUILTIN)} (optionally with ':<vertices>', e.g. default:100k)"
+        )
     from .loaders import load_mesh_face
 
     return load_mesh_face(path)

@@ -1,4 +1,5 @@
 """The face model: a neutral mesh with its parts, MPEG-4 feature points, units and rigid groups."""
+
 from __future__ import annotations
 
 import hashlib
@@ -20,11 +21,20 @@ JAW_PARTS: tuple[str, ...] = ("teeth_lower", "gums_lower", "tongue")
 
 #: The 84 MPEG-4 feature point ids, by group (ISO/IEC 14496-2 FDP groups 2-11).
 FP_GROUP_SIZES: dict[int, int] = {2: 14, 3: 14, 4: 6, 5: 4, 6: 4, 7: 1, 8: 10, 9: 15, 10: 10, 11: 6}
-FEATURE_POINT_IDS: tuple[str, ...] = tuple(f"{g}.{i}" for g, n in FP_GROUP_SIZES.items() for i in range(1, n + 1))
+FEATURE_POINT_IDS: tuple[str, ...] = tuple(
+    f"{g}.{i}" for g, n in FP_GROUP_SIZES.items() for i in range(1, n + 1)
+)
 
 #: Part names with a fixed meaning. Other names (eyelashes, mouth_socket, hair, ...) are allowed.
 KNOWN_PARTS: tuple[str, ...] = (
-    "skin", "eye_l", "eye_r", "teeth_upper", "teeth_lower", "gums_upper", "gums_lower", "tongue",
+    "skin",
+    "eye_l",
+    "eye_r",
+    "teeth_upper",
+    "teeth_lower",
+    "gums_upper",
+    "gums_lower",
+    "tongue",
 )
 
 
@@ -56,7 +66,9 @@ class Face:
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float32)
         self.triangles = np.ascontiguousarray(self.triangles, dtype=np.int32)
-        self.parts = {k: _sorted_unique(np.asarray(v, dtype=np.int32)) for k, v in self.parts.items()}
+        self.parts = {
+            k: _sorted_unique(np.asarray(v, dtype=np.int32)) for k, v in self.parts.items()
+        }
         self.feature_points = {str(k): int(v) for k, v in self.feature_points.items()}
         self.pivots = {k: np.asarray(v, dtype=np.float64) for k, v in self.pivots.items()}
         if self.units not in UNIT_MM:
@@ -115,18 +127,37 @@ class Face:
                 return _sphere_centre(self.vertices[ids].astype(np.float64))
             fp = "3.5" if name == "eye_l" else "3.6"
             return self.fp_position(fp) if fp in self.feature_points else np.zeros(3)
-        lo, hi = self.vertices.min(axis=0).astype(np.float64), self.vertices.max(axis=0).astype(np.float64)
+        lo, hi = (
+            self.vertices.min(axis=0).astype(np.float64),
+            self.vertices.max(axis=0).astype(np.float64),
+        )
         if name == "head":
             if "7.1" in self.feature_points:
                 return self.fp_position("7.1")
-            return np.array([(lo[0] + hi[0]) / 2, lo[1] + 0.25 * (hi[1] - lo[1]), lo[2] + 0.35 * (hi[2] - lo[2])])
+            return np.array(
+                [
+                    (lo[0] + hi[0]) / 2,
+                    lo[1] + 0.25 * (hi[1] - lo[1]),
+                    lo[2] + 0.35 * (hi[2] - lo[2]),
+                ]
+            )
         if name == "jaw":
             # The hinge sits just in front of the ears, a little below the eyes.
-            ears = [self.fp_position(f) for f in ("10.9", "10.10", "10.7", "10.8") if f in self.feature_points]
+            ears = [
+                self.fp_position(f)
+                for f in ("10.9", "10.10", "10.7", "10.8")
+                if f in self.feature_points
+            ]
             if ears:
                 c = np.mean(ears, axis=0)
                 return np.array([(lo[0] + hi[0]) / 2, c[1], c[2]])
-            return np.array([(lo[0] + hi[0]) / 2, lo[1] + 0.55 * (hi[1] - lo[1]), lo[2] + 0.45 * (hi[2] - lo[2])])
+            return np.array(
+                [
+                    (lo[0] + hi[0]) / 2,
+                    lo[1] + 0.55 * (hi[1] - lo[1]),
+                    lo[2] + 0.45 * (hi[2] - lo[2]),
+                ]
+            )
         raise KeyError(name)
 
 
@@ -144,6 +175,9 @@ def _sphere_centre(points: np.ndarray) -> np.ndarray:
     b = (points**2).sum(axis=1)
     sol, *_ = np.linalg.lstsq(a, b, rcond=None)
     centre = sol[:3]
-    if not np.all(np.isfinite(centre)) or np.linalg.norm(centre - points.mean(axis=0)) > np.ptp(points, axis=0).max():
+    if (
+        not np.all(np.isfinite(centre))
+        or np.linalg.norm(centre - points.mean(axis=0)) > np.ptp(points, axis=0).max()
+    ):
         return points.mean(axis=0)
     return centre

@@ -1,4 +1,5 @@
 """Recognising the ICT FaceKit topology and supplying facecast's annotation for it (never the mesh)."""
+
 from __future__ import annotations
 
 import json
@@ -20,8 +21,11 @@ def _shipped() -> dict:
 def is_ict_topology(vertices: np.ndarray, triangles: np.ndarray) -> bool:
     """True when the mesh has ICT FaceKit's vertex count and triangle list (any identity or expression)."""
     topo = _shipped()["topology"]
-    return (len(vertices) == topo["vertices"] and len(triangles) == topo["triangles"]
-            and topology_hash(triangles) == topo["hash"])
+    return (
+        len(vertices) == topo["vertices"]
+        and len(triangles) == topo["triangles"]
+        and topology_hash(triangles) == topo["hash"]
+    )
 
 
 def ict_annotation(vertices: np.ndarray, triangles: np.ndarray) -> dict | None:

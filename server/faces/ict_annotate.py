@@ -6,6 +6,7 @@ with the model: the part vertex ranges of its README and its 68 Multi-PIE landma
 remaining MPEG-4 points are picked geometrically here (front-most surface point at a given x/y, extremes
 of a part). Units are centimetres; axes already match MPEG-4 (y up, +z forward, +x = the face's left).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -17,10 +18,17 @@ import numpy as np
 
 #: Inclusive vertex ranges of the ICT FaceKit parts (its README).
 ICT_RANGES: dict[str, tuple[int, int]] = {
-    "face": (0, 9408), "head_neck": (9409, 11247), "mouth_socket": (11248, 13293),
-    "eye_socket_l": (13294, 13677), "eye_socket_r": (13678, 14061), "gums_tongue": (14062, 17038),
-    "teeth_upper": (17039, 19246), "teeth_lower": (19247, 21450),
-    "eye_l": (21451, 23020), "eye_r": (23021, 24590), "eye_extras": (24591, 25350),
+    "face": (0, 9408),
+    "head_neck": (9409, 11247),
+    "mouth_socket": (11248, 13293),
+    "eye_socket_l": (13294, 13677),
+    "eye_socket_r": (13678, 14061),
+    "gums_tongue": (14062, 17038),
+    "teeth_upper": (17039, 19246),
+    "teeth_lower": (19247, 21450),
+    "eye_l": (21451, 23020),
+    "eye_r": (23021, 24590),
+    "eye_extras": (24591, 25350),
     "eyelashes": (25351, 26718),
 }
 #: Each ICT eyeball is two concentric spheres: an outer transparent shell (the cornea and the eye's
@@ -33,18 +41,52 @@ UPPER_CENTRAL_INCISORS, LOWER_CENTRAL_INCISORS = (18067, 18218), (20263, 20434)
 
 #: MPEG-4 feature point -> index into the 68 Multi-PIE landmarks (0 = the subject's right jaw end).
 FROM_LANDMARK: dict[str, int] = {
-    "2.1": 8, "2.2": 62, "2.3": 66, "2.4": 64, "2.5": 60, "2.6": 63, "2.7": 61, "2.8": 65, "2.9": 67,
-    "2.11": 10, "2.12": 6, "2.13": 13, "2.14": 3,
-    "3.7": 45, "3.8": 39, "3.11": 42, "3.12": 36,
-    "4.1": 22, "4.2": 21, "4.3": 24, "4.4": 19, "4.5": 26, "4.6": 17,
-    "8.1": 51, "8.2": 57, "8.3": 54, "8.4": 48, "8.5": 53, "8.6": 49, "8.7": 55, "8.8": 59, "8.9": 50, "8.10": 52,
-    "9.3": 30, "9.4": 31, "9.5": 35, "9.12": 29, "9.15": 33,
+    "2.1": 8,
+    "2.2": 62,
+    "2.3": 66,
+    "2.4": 64,
+    "2.5": 60,
+    "2.6": 63,
+    "2.7": 61,
+    "2.8": 65,
+    "2.9": 67,
+    "2.11": 10,
+    "2.12": 6,
+    "2.13": 13,
+    "2.14": 3,
+    "3.7": 45,
+    "3.8": 39,
+    "3.11": 42,
+    "3.12": 36,
+    "4.1": 22,
+    "4.2": 21,
+    "4.3": 24,
+    "4.4": 19,
+    "4.5": 26,
+    "4.6": 17,
+    "8.1": 51,
+    "8.2": 57,
+    "8.3": 54,
+    "8.4": 48,
+    "8.5": 53,
+    "8.6": 49,
+    "8.7": 55,
+    "8.8": 59,
+    "8.9": 50,
+    "8.10": 52,
+    "9.3": 30,
+    "9.4": 31,
+    "9.5": 35,
+    "9.12": 29,
+    "9.15": 33,
 }
 
 
 def topology_hash(triangles: np.ndarray) -> str:
     """Hash of the triangle index array (the topology, whatever the vertex positions)."""
-    return hashlib.blake2b(np.ascontiguousarray(triangles, dtype=np.int32).tobytes(), digest_size=8).hexdigest()
+    return hashlib.blake2b(
+        np.ascontiguousarray(triangles, dtype=np.int32).tobytes(), digest_size=8
+    ).hexdigest()
 
 
 def _ids(name: str) -> np.ndarray:
@@ -77,7 +119,12 @@ def annotate(v: np.ndarray, triangles: np.ndarray, landmarks: list[int]) -> dict
     for k, (a, b) in lids.items():
         fp[k] = nearest((lm(a) + lm(b)) / 2, face)
     # Outer edges of the lids: 0.45 cm above the upper / below the lower lid centre.
-    for k, base, dy in (("3.13", "3.1", 0.45), ("3.14", "3.2", 0.45), ("3.9", "3.3", -0.45), ("3.10", "3.4", -0.45)):
+    for k, base, dy in (
+        ("3.13", "3.1", 0.45),
+        ("3.14", "3.2", 0.45),
+        ("3.9", "3.3", -0.45),
+        ("3.10", "3.4", -0.45),
+    ):
         fp[k] = front(P(base)[0], P(base)[1] + dy)
     # Pupils: the front-most vertex of the inner eyeball.
     for k, (a, b) in (("3.5", INNER_EYE_L), ("3.6", INNER_EYE_R)):
@@ -95,7 +142,10 @@ def annotate(v: np.ndarray, triangles: np.ndarray, landmarks: list[int]) -> dict
         fp["9.7" if side == "l" else "9.6"] = front(sign * 0.55, lm(27)[1])
         fp["9.13" if side == "l" else "9.14"] = front(sign * 0.6, lm(29)[1])
     # Teeth: biting edges and roots of the central incisors near the midline.
-    for (a, b), top, bottom in ((UPPER_CENTRAL_INCISORS, "9.8", "9.10"), (LOWER_CENTRAL_INCISORS, "9.11", "9.9")):
+    for (a, b), top, bottom in (
+        (UPPER_CENTRAL_INCISORS, "9.8", "9.10"),
+        (LOWER_CENTRAL_INCISORS, "9.11", "9.9"),
+    ):
         inc = np.arange(a, b + 1)
         inc = inc[np.abs(v[inc, 0]) < 0.25] if np.any(np.abs(v[inc, 0]) < 0.25) else inc
         fp[top], fp[bottom] = int(inc[np.argmax(v[inc, 1])]), int(inc[np.argmin(v[inc, 1])])
@@ -133,10 +183,15 @@ def annotate(v: np.ndarray, triangles: np.ndarray, landmarks: list[int]) -> dict
         lobe_zone = hn[(sign * v[hn, 0] > 7.3) & (v[hn, 1] > P("8.4")[1] + 1.5) & (v[hn, 2] < 0.5)]
         top, back = rim[np.argmax(v[rim, 1])], rim[np.argmin(v[rim, 2])]
         low = lobe_zone[np.argmin(v[lobe_zone, 1])]
-        k = {"l": ("10.1", "10.3", "10.5", "10.7", "10.9"), "r": ("10.2", "10.4", "10.6", "10.8", "10.10")}[side]
+        k = {
+            "l": ("10.1", "10.3", "10.5", "10.7", "10.9"),
+            "r": ("10.2", "10.4", "10.6", "10.8", "10.10"),
+        }[side]
         fp[k[0]], fp[k[1]], fp[k[2]] = int(top), int(back), int(low)
         # Contact points: the most medial head vertex in front of the ear, level with its top and lobe.
-        front_of_ear = hn[(sign * v[hn, 0] > 6.0) & (v[hn, 2] > v[top, 2]) & (v[hn, 2] < v[top, 2] + 1.5)]
+        front_of_ear = hn[
+            (sign * v[hn, 0] > 6.0) & (v[hn, 2] > v[top, 2]) & (v[hn, 2] < v[top, 2] + 1.5)
+        ]
         for key, y in ((k[3], v[low, 1]), (k[4], v[top, 1])):
             band = front_of_ear[np.abs(v[front_of_ear, 1] - y) < 0.4]
             fp[key] = int(band[np.argmin(sign * v[band, 0])])
@@ -144,22 +199,36 @@ def annotate(v: np.ndarray, triangles: np.ndarray, landmarks: list[int]) -> dict
     assert dup == 0, f"{dup} feature points share a vertex"
 
     r = lambda name: [list(ICT_RANGES[name])]  # noqa: E731
-    hinge = np.array([0.0, (P("10.7")[1] + P("10.9")[1]) / 2 - 0.3, (P("10.7")[2] + P("10.9")[2]) / 2 + 1.2])
+    hinge = np.array(
+        [0.0, (P("10.7")[1] + P("10.9")[1]) / 2 - 0.3, (P("10.7")[2] + P("10.9")[2]) / 2 + 1.2]
+    )
     return {
         "units": "cm",
         "axes": {"up": "+y", "forward": "+z"},
-        "topology": {"vertices": int(len(v)), "triangles": int(len(triangles)), "hash": topology_hash(triangles)},
-        "feature_points": dict(sorted(fp.items(), key=lambda kv: tuple(int(p) for p in kv[0].split(".")))),
+        "topology": {
+            "vertices": int(len(v)),
+            "triangles": int(len(triangles)),
+            "hash": topology_hash(triangles),
+        },
+        "feature_points": dict(
+            sorted(fp.items(), key=lambda kv: tuple(int(p) for p in kv[0].split(".")))
+        ),
         "parts": {
             "skin": r("face") + r("head_neck"),
             "mouth_socket": r("mouth_socket"),
             "eye_socket": r("eye_socket_l") + r("eye_socket_r"),
-            "eye_l": r("eye_l"), "eye_r": r("eye_r"),
-            "iris_l": _iris(v, INNER_EYE_L, fp["3.5"]).tolist(), "iris_r": _iris(v, INNER_EYE_R, fp["3.6"]).tolist(),
-            "cornea_l": [list(CORNEA_L)], "cornea_r": [list(CORNEA_R)],
-            "eye_extras": r("eye_extras"), "eyelashes": r("eyelashes"),
-            "teeth_upper": r("teeth_upper"), "teeth_lower": r("teeth_lower"),
-            "gums_upper": parts["gums_upper"].tolist(), "gums_lower": parts["gums_lower"].tolist(),
+            "eye_l": r("eye_l"),
+            "eye_r": r("eye_r"),
+            "iris_l": _iris(v, INNER_EYE_L, fp["3.5"]).tolist(),
+            "iris_r": _iris(v, INNER_EYE_R, fp["3.6"]).tolist(),
+            "cornea_l": [list(CORNEA_L)],
+            "cornea_r": [list(CORNEA_R)],
+            "eye_extras": r("eye_extras"),
+            "eyelashes": r("eyelashes"),
+            "teeth_upper": r("teeth_upper"),
+            "teeth_lower": r("teeth_lower"),
+            "gums_upper": parts["gums_upper"].tolist(),
+            "gums_lower": parts["gums_lower"].tolist(),
             "tongue": tongue.tolist(),
         },
         "pivots": {"jaw": [round(float(x), 4) for x in hinge]},

@@ -1,4 +1,5 @@
 """A fast Wavefront OBJ reader that keeps the file's vertex order (texture seams do not split vertices)."""
+
 from __future__ import annotations
 
 import lzma
@@ -36,7 +37,9 @@ def read_obj(source: str | Path, *, text: str | None = None) -> tuple[np.ndarray
             try:
                 corner = [int(tok.split("/", 1)[0]) for tok in line[2:].split()]
             except ValueError:
-                raise InputError(f"line {lineno}: face with a non-integer vertex index", where=where) from None
+                raise InputError(
+                    f"line {lineno}: face with a non-integer vertex index", where=where
+                ) from None
             if len(corner) < 3:
                 raise InputError(f"line {lineno}: face with fewer than 3 corners", where=where)
             n = len(verts)
@@ -45,7 +48,9 @@ def read_obj(source: str | Path, *, text: str | None = None) -> tuple[np.ndarray
     if not verts:
         raise InputError("no vertices ('v' lines) found", where=where)
     try:
-        vertices = np.array(" ".join(verts).split(), dtype=np.float64).reshape(len(verts), -1)[:, :3]
+        vertices = np.array(" ".join(verts).split(), dtype=np.float64).reshape(len(verts), -1)[
+            :, :3
+        ]
     except ValueError:
         raise InputError("a 'v' line does not hold three numbers", where=where) from None
     triangles = np.asarray(tris, dtype=np.int64).reshape(-1, 3)

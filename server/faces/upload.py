@@ -10,6 +10,7 @@ Nothing in an upload ever names a file the server opens: the mesh is read from m
 ``MeshWorker().prepare(path, fmt, annotation)`` returns a ``Prepared``: the mesh as read, its complete
 annotation (the user's, completed by the automatic one when partial or absent) and what was done.
 """
+
 from __future__ import annotations
 
 import io
@@ -96,7 +97,9 @@ def sniff_format(filename: str | None, head: bytes) -> str:
             return "stl"  # binary STL: 80-byte header, triangle count, 50 bytes a triangle
     raise InputError(
         f"cannot tell what mesh format {name or 'the upload'!r} is; name the file with one of "
-        f".{', .'.join(FORMATS)}", where="file")
+        f".{', .'.join(FORMATS)}",
+        where="file",
+    )
 
 
 def _gltf_json(data: bytes, fmt: str) -> dict[str, Any]:
@@ -108,13 +111,15 @@ def _gltf_json(data: bytes, fmt: str) -> dict[str, Any]:
         chunk_len, chunk_type = struct.unpack_from("<II", data, 12)
         if magic != b"glTF" or chunk_type != 0x4E4F534A or 20 + chunk_len > len(data):
             raise Unprocessable("not a GLB file (bad magic or JSON chunk)", where="file")
-        text = data[20:20 + chunk_len]
+        text = data[20 : 20 + chunk_len]
     else:
         text = data
     try:
         doc = json.loads(text)
     except (ValueError, RecursionError) as e:
-        raise Unprocessable(f"the glTF JSON cannot be read ({str(e)[:200]})", where="file") from None
+        raise Unprocessable(
+            f"the glTF JSON cannot be read ({str(e)[:200]})", where="file"
+        ) from None
     if not isinstance(doc, dict):
         raise Unprocessable("the glTF JSON is not an object", where="file")
     return doc
@@ -130,9 +135,11 @@ def check_no_external_files(data: bytes, fmt: str) -> None:
         for item in items:
             uri = item.get("uri") if isinstance(item, dict) else None
             if uri is not None and not (isinstance(uri, str) and uri.startswith("data:")):
-                raise Unprocessable(f"glTF {key} refer to other files ({str(uri)[:60]!r}); the server reads "
-                                    "only the upload itself: send a .glb or embed buffers as data: URIs",
-                                    where="file")
+                raise Unprocessable(
+                    f"glTF {key} refer to other files ({str(uri)[:60]!r}); the server reads "
+                    "only the upload itself: send a .glb or embed buffers as data: URIs",
+                    where="file",
+                )
 
 
 def parse_mesh(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray]:
@@ -142,7 +149,9 @@ def parse_mesh(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray]:
     ``loaders.read_mesh`` does for files), OBJ keeps its vertex order.
     """
     if fmt not in FORMATS:
-        raise InputError(f"unknown mesh format {fmt!r}; use one of {', '.join(FORMATS)}", where="file")
+        raise InputError(
+            f"unknown mesh format {fmt!r}; use one of {', '.join(FORMATS)}", where="file"
+        )
     if fmt == "obj":
         from .obj import read_obj
 
@@ -153,15 +162,19 @@ def parse_mesh(data: bytes, fmt: str) -> tuple[np.ndarray, np.ndarray]:
         import trimesh
 
         try:  # a file object and no resolver: trimesh can open nothing else
-            mesh: Any = trimesh.load(file_obj=io.BytesIO(data), file_type=fmt, process=False, force="mesh")
+            mesh: Any = trimesh.load(
+                file_obj=io.BytesIO(data), file_type=fmt, process=False, force="mesh"
+            )
             mesh.merge_vertices(merge_tex=True, merge_norm=True)
             v = np.asarray(mesh.vertices, dtype=np.float32)
             t = np.asarray(mesh.faces, dtype=np.int64)
         except MemoryError:
             raise
         except Exception as e:  # noqa: BLE001  trimesh raises many types for malformed files
-            raise Unprocessable(f"cannot read the {fmt.upper()} mesh ({type(e).__name__}: {str(e)[:200]})",
-                                where="file") from None
+            raise Unprocessable(
+                f"cannot read the {fmt.upper()} mesh ({type(e).__name__}: {str(e)[:200]})",
+                where="file",
+            ) from None
     return check_mesh(v, t)
 
 
@@ -172,16 +185,23 @@ def check_mesh(v: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if t.ndim != 2 or t.shape[1] != 3 or len(t) == 0:
         raise Unprocessable("the mesh has no triangles", where="file")
     if len(v) > MAX_VERTICES or len(t) > MAX_TRIANGLES:
-        raise TooLarge(f"the mesh has {len(v)} vertices and {len(t)} triangles; this server takes at most "
-                       f"{MAX_VERTICES} and {MAX_TRIANGLES}: decimate it first", where="file")
+        raise TooLarge(
+            f"the mesh has {len(v)} vertices and {len(t)} triangles; this server takes at most "
+            f"{MAX_VERTICES} and {MAX_TRIANGLES}: decimate it first",
+            where="file",
+        )
     if not np.all(np.isfinite(v)):
-        raise Unprocessable("the mesh has non-finite vertex coordinates (NaN or infinity)", where="file")
+        raise Unprocessable(
+            "the mesh has non-finite vertex coordinates (NaN or infinity)", where="file"
+        )
     if t.min() < 0 or t.max() >= len(v):
         raise Unprocessable(f"a triangle refers to a vertex outside 0..{len(v) - 1}", where="file")
     return np.ascontiguousarray(v, dtype=np.float32), np.ascontiguousarray(t, dtype=np.int32)
 
 
-def prepare(data: bytes, fmt: str, annotation_text: str | None, *, name: str = "upload") -> Prepared:
+def prepare(
+    data: bytes, fmt: str, annotation_text: str | None, *, name: str = "upload"
+) -> Prepared:
     """Read the mesh, complete its annotation and check that a face can be built from them.
 
     The user's annotation (complete or partial) always wins; without one, the automatic one (cached
@@ -193,7 +213,11 @@ def prepare(data: bytes, fmt: str, annotation_text: str | None, *, name: str = "
 
     v, t = parse_mesh(data, fmt)
     units = "m" if fmt in ("glb", "gltf") else None
-    user = parse_annotation(annotation_text, where="annotation") if annotation_text is not None else None
+    user = (
+        parse_annotation(annotation_text, where="annotation")
+        if annotation_text is not None
+        else None
+    )
     report: dict[str, Any] = {}
     cached = False
     if user is not None and not is_partial(user):
@@ -209,15 +233,22 @@ def prepare(data: bytes, fmt: str, annotation_text: str | None, *, name: str = "
             auto = cached_annotation(v, t, name=name, units=units)
         except InputError as e:
             if user is None:
-                raise Unprocessable(f"automatic annotation failed ({e}); send the mesh's .face.json as the "
-                                    "'annotation' part", where="file") from None
+                raise Unprocessable(
+                    f"automatic annotation failed ({e}); send the mesh's .face.json as the "
+                    "'annotation' part",
+                    where="file",
+                ) from None
             annotation, source = user, "user"  # a partial annotation is then all there is
             report = {"failed": str(e)}
         else:
             report = dict(auto.get("automatic", {}))
-            annotation, source = (auto, "automatic") if user is None else (merge(auto, user), "user+automatic")
+            annotation, source = (
+                (auto, "automatic") if user is None else (merge(auto, user), "user+automatic")
+            )
     annotation = {**annotation, FINAL: True}
-    face_from_annotation(name, v, t, annotation, where="annotation")  # InputError naming the bad field
+    face_from_annotation(
+        name, v, t, annotation, where="annotation"
+    )  # InputError naming the bad field
     return Prepared(v, t, annotation, source, report, cached)
 
 
@@ -232,6 +263,7 @@ def write_obj(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
 
 # -- the worker process --------------------------------------------------------------------------
 
+
 def _answer(path: str, fmt: str, annotation_text: str | None, name: str) -> tuple[Any, ...]:
     """``("ok", Prepared)`` or ``("error", status, message)`` for one upload (in the worker)."""
     try:
@@ -240,7 +272,11 @@ def _answer(path: str, fmt: str, annotation_text: str | None, name: str) -> tupl
     except FacecastError as e:
         return ("error", int(getattr(e, "status", 400)), str(e))
     except MemoryError:
-        return ("error", 413, "the mesh needs more memory to read than this server allows; send a smaller one")
+        return (
+            "error",
+            413,
+            "the mesh needs more memory to read than this server allows; send a smaller one",
+        )
     except RecursionError:
         return ("error", 422, "the mesh is nested too deeply to read")
     except Exception as e:  # a parser's error not turned into ours: still the file's fault
@@ -257,8 +293,10 @@ def _serve(conn: Any, memory_mb: int, parent_pid: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which ends us
     die_with_parent(parent_pid)
     limit_resources(memory_mb)
-    logging.basicConfig(level=logging.INFO, format=f"%(asctime)s %(levelname)s faces[{os.getpid()}] "
-                        "%(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO,
+        format=f"%(asctime)s %(levelname)s faces[{os.getpid()}] %(name)s: %(message)s",
+    )
     import trimesh  # noqa: F401  imported once, before the first upload's deadline starts
 
     while True:
@@ -288,8 +326,12 @@ class MeshWorker:
     def _start(self) -> None:
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_serve, args=(child, self.memory_mb, os.getpid()),
-                                 name="facecast-mesh-worker", daemon=True)
+        self._proc = ctx.Process(
+            target=_serve,
+            args=(child, self.memory_mb, os.getpid()),
+            name="facecast-mesh-worker",
+            daemon=True,
+        )
         self._proc.start()
         child.close()
         self._conn = parent
@@ -307,7 +349,9 @@ class MeshWorker:
             self._conn.close()
         self._proc = self._conn = None
 
-    def prepare(self, path: Path, fmt: str, annotation_text: str | None, *, name: str = "upload") -> Prepared:
+    def prepare(
+        self, path: Path, fmt: str, annotation_text: str | None, *, name: str = "upload"
+    ) -> Prepared:
         """``prepare`` of the upload at ``path`` in the worker (blocking: call from a thread).
 
         Raises InputError (4xx) for a bad upload, including one that makes the worker overrun its
@@ -329,13 +373,17 @@ class MeshWorker:
                 code = self._proc.exitcode
                 self._kill()
                 if overran:
-                    raise Unprocessable(f"reading and annotating the mesh took longer than {self.timeout:.0f} s; "
-                                        "send a smaller mesh or its .face.json as the 'annotation' part",
-                                        where="file")
+                    raise Unprocessable(
+                        f"reading and annotating the mesh took longer than {self.timeout:.0f} s; "
+                        "send a smaller mesh or its .face.json as the 'annotation' part",
+                        where="file",
+                    )
                 what = f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
                 log.warning("the mesh worker ended with %s on an upload", what)
-                raise Unprocessable(f"the mesh reader failed on this file ({what}); the file is malformed",
-                                    where="file")
+                raise Unprocessable(
+                    f"the mesh reader failed on this file ({what}); the file is malformed",
+                    where="file",
+                )
         if msg[0] == "ok":
             prepared: Prepared = msg[1]
             return prepared

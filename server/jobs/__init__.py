@@ -4,6 +4,7 @@
 - ``manager.JobManager``: the server-side dispatcher (start, monitor, cancel worker processes);
 - ``worker.main``: the entry point of one worker process (runs ``render_file`` for one job).
 """
+
 from .store import JobRecord, JobStore
 
 __all__ = ["JobRecord", "JobStore"]

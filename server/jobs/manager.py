@@ -9,6 +9,7 @@ A worker that crashes in native code (SIGSEGV...) fails its job at once. A job r
 ``job_timeout`` (``FACECAST_JOB_TIMEOUT_SECONDS``) is failed and its worker
 killed. Workers die with the server (``worker.serve``), so none outlives it to race a resumed job.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -26,8 +27,11 @@ log = logging.getLogger(__name__)
 
 MAX_ATTEMPTS = 3
 #: Signals of a worker that faulted in native code (a decoder on a malformed file): no retry.
-CRASH_SIGNALS = {int(getattr(signal, n)): n for n in ("SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT")
-                 if hasattr(signal, n)}
+CRASH_SIGNALS = {
+    int(getattr(signal, n)): n
+    for n in ("SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT")
+    if hasattr(signal, n)
+}
 POLL_SECONDS = 0.2
 #: Finished jobs (and their files) are deleted this long after they finished (0 keeps them).
 DEFAULT_RETENTION_HOURS = 7 * 24.0
@@ -61,8 +65,17 @@ class _Slot:
 class JobManager:
     """Runs up to ``workers`` jobs at a time in ``spawn``-ed worker processes (0: queue only)."""
 
-    def __init__(self, data_dir: Path, *, workers: int = 1, backend: str = "auto", device: str | None = None,
-                 retention_hours: float = DEFAULT_RETENTION_HOURS, job_timeout: float = 0.0, memory_mb: int = 0):
+    def __init__(
+        self,
+        data_dir: Path,
+        *,
+        workers: int = 1,
+        backend: str = "auto",
+        device: str | None = None,
+        retention_hours: float = DEFAULT_RETENTION_HOURS,
+        job_timeout: float = 0.0,
+        memory_mb: int = 0,
+    ):
         """``job_timeout``: seconds a job may run before it is failed and its worker killed (0: no limit);
         ``memory_mb``: address space of a worker process in MiB (0: no limit)."""
         self.store = JobStore(data_dir)
@@ -85,7 +98,11 @@ class JobManager:
             log.info("removed %d unfinished upload(s) left by the last run", len(orphans))
         again = self.store.requeue_running()
         if again:
-            log.info("resuming %d job(s) interrupted by the last shutdown: %s", len(again), ", ".join(again))
+            log.info(
+                "resuming %d job(s) interrupted by the last shutdown: %s",
+                len(again),
+                ", ".join(again),
+            )
         self._task = asyncio.create_task(self._loop(), name="facecast-jobs")
 
     async def stop(self) -> None:
@@ -98,7 +115,9 @@ class JobManager:
                 pass
         for slot in self._slots:
             if slot.job_id:
-                log.info("stopping the worker of job %s (it resumes at the next start)", slot.job_id)
+                log.info(
+                    "stopping the worker of job %s (it resumes at the next start)", slot.job_id
+                )
             elif slot.alive():
                 try:
                     slot.conn.send(None)  # idle: ask it to leave
@@ -158,7 +177,11 @@ class JobManager:
                     finished = slot.conn.recv() == slot.job_id or finished
             except (EOFError, OSError):
                 pass
-            if not finished and self.job_timeout and time.monotonic() - slot.started > self.job_timeout:
+            if (
+                not finished
+                and self.job_timeout
+                and time.monotonic() - slot.started > self.job_timeout
+            ):
                 self._time_out(slot)
                 continue
             if finished:
@@ -174,11 +197,18 @@ class JobManager:
     def _time_out(self, slot: _Slot) -> None:
         """Fail the slot's job for running too long and kill its worker (a new one starts when needed)."""
         job_id = slot.job_id
-        self.store.fail(job_id, f"the job ran longer than this server's limit of {self.job_timeout:g} s and was "
-                                "stopped; send a shorter input, or ask the operator to raise "
-                                "FACECAST_JOB_TIMEOUT_SECONDS")
-        log.warning("job %s exceeded %g s; killing its worker (pid %s)", job_id, self.job_timeout,
-                    slot.proc.pid if slot.proc else None)
+        self.store.fail(
+            job_id,
+            f"the job ran longer than this server's limit of {self.job_timeout:g} s and was "
+            "stopped; send a shorter input, or ask the operator to raise "
+            "FACECAST_JOB_TIMEOUT_SECONDS",
+        )
+        log.warning(
+            "job %s exceeded %g s; killing its worker (pid %s)",
+            job_id,
+            self.job_timeout,
+            slot.proc.pid if slot.proc else None,
+        )
         slot.kill(1.0)
 
     def _purge(self) -> None:
@@ -197,11 +227,17 @@ class JobManager:
         crash = CRASH_SIGNALS.get(-code) if code is not None and code < 0 else None
         if crash:  # native code faulted on this input: running it again would fault again
             log.warning("worker for job %s crashed (%s) on %s input", job_id, crash, job.input_kind)
-            self.store.fail(job_id, f"reading {job.input_name!r} crashed the decoder ({crash}); the file is "
-                                    f"probably damaged: check it or export it again")
+            self.store.fail(
+                job_id,
+                f"reading {job.input_name!r} crashed the decoder ({crash}); the file is "
+                f"probably damaged: check it or export it again",
+            )
         elif job.attempts >= MAX_ATTEMPTS:
-            self.store.fail(job_id, f"the worker process died {job.attempts} times (last exit code {code}); "
-                                    "the input may be too large for this server")
+            self.store.fail(
+                job_id,
+                f"the worker process died {job.attempts} times (last exit code {code}); "
+                "the input may be too large for this server",
+            )
         else:
             log.warning("worker for job %s exited with %s; running the job again", job_id, code)
             self.store.requeue(job_id)
@@ -215,7 +251,9 @@ class JobManager:
             if attempt is None:
                 continue
             if attempt > MAX_ATTEMPTS:
-                self.store.fail(job.id, f"gave up after {MAX_ATTEMPTS} attempts (the worker kept dying)")
+                self.store.fail(
+                    job.id, f"gave up after {MAX_ATTEMPTS} attempts (the worker kept dying)"
+                )
                 continue
             slot = idle.pop()
             if not slot.alive():
@@ -230,9 +268,19 @@ class JobManager:
 
         slot.kill(0)
         mine, theirs = self._ctx.Pipe()
-        slot.proc = self._ctx.Process(target=worker.serve, name="facecast-job-worker", daemon=True,
-                                      args=(str(self.store.data_dir), theirs, self.backend, self.device,
-                                            os.getpid(), self.memory_mb))
+        slot.proc = self._ctx.Process(
+            target=worker.serve,
+            name="facecast-job-worker",
+            daemon=True,
+            args=(
+                str(self.store.data_dir),
+                theirs,
+                self.backend,
+                self.device,
+                os.getpid(),
+                self.memory_mb,
+            ),
+        )
         slot.proc.start()
         theirs.close()
         slot.conn = mine

@@ -4,6 +4,7 @@ Every state change is one SQL statement, so a job's state is never half-written.
 their row only while it still carries their attempt number: a worker orphaned by a crashed server
 cannot overwrite a later attempt's state.
 """
+
 from __future__ import annotations
 
 import json
@@ -38,8 +39,22 @@ CREATE TABLE IF NOT EXISTS jobs (
 CREATE INDEX IF NOT EXISTS jobs_status ON jobs(status, created);
 """
 
-COLUMNS = ("id", "status", "progress", "error", "input_name", "input_kind", "input_file", "input_bytes",
-           "result_file", "options", "attempts", "created", "started", "finished")
+COLUMNS = (
+    "id",
+    "status",
+    "progress",
+    "error",
+    "input_name",
+    "input_kind",
+    "input_file",
+    "input_bytes",
+    "result_file",
+    "options",
+    "attempts",
+    "created",
+    "started",
+    "finished",
+)
 
 
 @dataclass
@@ -81,7 +96,9 @@ class JobStore:
         self.root.mkdir(parents=True, exist_ok=True)
         self.path = self.data_dir / "jobs.sqlite"
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.path, timeout=30.0, check_same_thread=False, isolation_level=None)
+        self._db = sqlite3.connect(
+            self.path, timeout=30.0, check_same_thread=False, isolation_level=None
+        )
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(SCHEMA)
@@ -108,27 +125,50 @@ class JobStore:
         return self.folder(job.id) / job.result_file
 
     # -- rows ------------------------------------------------------------------------------------
-    def add(self, job_id: str, *, input_name: str, input_kind: str, input_file: str, input_bytes: int,
-            result_file: str, options: dict) -> JobRecord:
+    def add(
+        self,
+        job_id: str,
+        *,
+        input_name: str,
+        input_kind: str,
+        input_file: str,
+        input_bytes: int,
+        result_file: str,
+        options: dict,
+    ) -> JobRecord:
         """Insert a queued job whose input is already in its folder."""
         self._exec(
             "INSERT INTO jobs (id, status, progress, input_name, input_kind, input_file, input_bytes,"
             " result_file, options, created) VALUES (?, 'queued', 0, ?, ?, ?, ?, ?, ?, ?)",
-            (job_id, input_name, input_kind, input_file, input_bytes, result_file, json.dumps(options),
-             time.time()))
+            (
+                job_id,
+                input_name,
+                input_kind,
+                input_file,
+                input_bytes,
+                result_file,
+                json.dumps(options),
+                time.time(),
+            ),
+        )
         return self.get(job_id)
 
     def get(self, job_id: str) -> JobRecord | None:
-        row = self._exec(f"SELECT {', '.join(COLUMNS)} FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        row = self._exec(
+            f"SELECT {', '.join(COLUMNS)} FROM jobs WHERE id = ?", (job_id,)
+        ).fetchone()
         return JobRecord.from_row(row) if row else None
 
     def list(self, status: str | None = None, limit: int = 100) -> list[JobRecord]:
         if status:
-            rows = self._exec(f"SELECT {', '.join(COLUMNS)} FROM jobs WHERE status = ? ORDER BY created"
-                              " LIMIT ?", (status, limit)).fetchall()
+            rows = self._exec(
+                f"SELECT {', '.join(COLUMNS)} FROM jobs WHERE status = ? ORDER BY created LIMIT ?",
+                (status, limit),
+            ).fetchall()
         else:
-            rows = self._exec(f"SELECT {', '.join(COLUMNS)} FROM jobs ORDER BY created DESC LIMIT ?",
-                              (limit,)).fetchall()
+            rows = self._exec(
+                f"SELECT {', '.join(COLUMNS)} FROM jobs ORDER BY created DESC LIMIT ?", (limit,)
+            ).fetchall()
         return [JobRecord.from_row(r) for r in rows]
 
     def counts(self) -> dict[str, int]:
@@ -137,17 +177,21 @@ class JobStore:
 
     def claim(self, job_id: str) -> int | None:
         """queued -> running; returns the new attempt number, or None if the job was not queued."""
-        cur = self._exec("UPDATE jobs SET status = 'running', attempts = attempts + 1, started = ?,"
-                         " progress = 0, error = NULL WHERE id = ? AND status = 'queued'",
-                         (time.time(), job_id))
+        cur = self._exec(
+            "UPDATE jobs SET status = 'running', attempts = attempts + 1, started = ?,"
+            " progress = 0, error = NULL WHERE id = ? AND status = 'queued'",
+            (time.time(), job_id),
+        )
         if cur.rowcount != 1:
             return None
         return self.get(job_id).attempts
 
     def progress(self, job_id: str, attempt: int, fraction: float) -> bool:
         """Record progress of a running attempt; False if the job is no longer this attempt's."""
-        cur = self._exec("UPDATE jobs SET progress = ? WHERE id = ? AND attempts = ? AND status = 'running'",
-                         (min(max(float(fraction), 0.0), 1.0), job_id, attempt))
+        cur = self._exec(
+            "UPDATE jobs SET progress = ? WHERE id = ? AND attempts = ? AND status = 'running'",
+            (min(max(float(fraction), 0.0), 1.0), job_id, attempt),
+        )
         return cur.rowcount == 1
 
     def finish(self, job_id: str, attempt: int, status: str, error: str | None = None) -> bool:
@@ -156,25 +200,34 @@ class JobStore:
             "UPDATE jobs SET status = ?, error = ?, finished = ?,"
             " progress = CASE WHEN ? = 'done' THEN 1.0 ELSE progress END"
             " WHERE id = ? AND attempts = ? AND status = 'running'",
-            (status, error, time.time(), status, job_id, attempt))
+            (status, error, time.time(), status, job_id, attempt),
+        )
         return cur.rowcount == 1
 
     def fail(self, job_id: str, error: str) -> bool:
         """queued | running -> failed (the server's verdict, e.g. a worker that crashed)."""
-        cur = self._exec("UPDATE jobs SET status = 'failed', error = ?, finished = ?"
-                         " WHERE id = ? AND status IN ('queued', 'running')", (error, time.time(), job_id))
+        cur = self._exec(
+            "UPDATE jobs SET status = 'failed', error = ?, finished = ?"
+            " WHERE id = ? AND status IN ('queued', 'running')",
+            (error, time.time(), job_id),
+        )
         return cur.rowcount == 1
 
     def cancel(self, job_id: str) -> bool:
         """queued | running -> cancelled; False if the job had already finished."""
-        cur = self._exec("UPDATE jobs SET status = 'cancelled', finished = ?"
-                         " WHERE id = ? AND status IN ('queued', 'running')", (time.time(), job_id))
+        cur = self._exec(
+            "UPDATE jobs SET status = 'cancelled', finished = ?"
+            " WHERE id = ? AND status IN ('queued', 'running')",
+            (time.time(), job_id),
+        )
         return cur.rowcount == 1
 
     def purge(self, finished_before: float) -> list[str]:
         """Delete finished jobs (row and folder) that finished before Unix time ``finished_before``."""
-        rows = self._exec("SELECT id FROM jobs WHERE status IN ('done', 'failed', 'cancelled') AND finished < ?",
-                          (finished_before,)).fetchall()
+        rows = self._exec(
+            "SELECT id FROM jobs WHERE status IN ('done', 'failed', 'cancelled') AND finished < ?",
+            (finished_before,),
+        ).fetchall()
         ids = [r[0] for r in rows]
         for job_id in ids:
             shutil.rmtree(self.folder(job_id), ignore_errors=True)
@@ -183,8 +236,10 @@ class JobStore:
 
     def requeue(self, job_id: str) -> bool:
         """running -> queued (its worker died; run it again)."""
-        cur = self._exec("UPDATE jobs SET status = 'queued', progress = 0 WHERE id = ? AND status = 'running'",
-                         (job_id,))
+        cur = self._exec(
+            "UPDATE jobs SET status = 'queued', progress = 0 WHERE id = ? AND status = 'running'",
+            (job_id,),
+        )
         return cur.rowcount == 1
 
     def sweep_orphans(self) -> list[str]:

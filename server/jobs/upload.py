@@ -3,6 +3,7 @@
 Nothing is held in memory beyond one network chunk and small form fields. Client file names are
 only used to guess the input type and for display; they never become paths.
 """
+
 from __future__ import annotations
 
 import json
@@ -43,8 +44,14 @@ class UploadParser:
     #: Form fields that carry content, and their size limits (others: ``MAX_FIELD_BYTES``).
     field_limits: dict[str, int] = FIELD_LIMITS
 
-    def __init__(self, boundary: bytes, dest: Path, limit: int, file_field: str = "file",
-                 kind_limit: Callable[[str], tuple[int, str]] | None = None):
+    def __init__(
+        self,
+        boundary: bytes,
+        dest: Path,
+        limit: int,
+        file_field: str = "file",
+        kind_limit: Callable[[str], tuple[int, str]] | None = None,
+    ):
         """``limit``: bytes of the file at most; ``kind_limit(kind) -> (bytes, variable)`` lowers it
         for the file's input kind (``fap`` | ``audio`` | ``markers``) once its first bytes are known."""
         self.dest = dest
@@ -65,15 +72,18 @@ class UploadParser:
         self._is_file = False
         self._value = bytearray()
         self._fh = None
-        self._parser = MultipartParser(boundary, {
-            "on_part_begin": self._part_begin,
-            "on_header_field": self._header_field,
-            "on_header_value": self._header_value,
-            "on_header_end": self._header_end,
-            "on_headers_finished": self._headers_finished,
-            "on_part_data": self._part_data,
-            "on_part_end": self._part_end,
-        })
+        self._parser = MultipartParser(
+            boundary,
+            {
+                "on_part_begin": self._part_begin,
+                "on_header_field": self._header_field,
+                "on_header_value": self._header_value,
+                "on_header_end": self._header_end,
+                "on_headers_finished": self._headers_finished,
+                "on_part_data": self._part_data,
+                "on_part_end": self._part_end,
+            },
+        )
 
     # -- python-multipart callbacks --------------------------------------------------------------
     def _part_begin(self) -> None:
@@ -110,7 +120,7 @@ class UploadParser:
         if self._is_file:
             self.size += len(chunk)
             if len(self.head) < SNIFF_BYTES:
-                self.head += chunk[:SNIFF_BYTES - len(self.head)]
+                self.head += chunk[: SNIFF_BYTES - len(self.head)]
                 if len(self.head) >= SNIFF_BYTES:
                     self._check_kind()
             self._check_size()
@@ -119,7 +129,9 @@ class UploadParser:
             self._value += chunk
             limit = self.field_limits.get(self._name or "", MAX_FIELD_BYTES)
             if len(self._value) > limit:
-                raise InputError(f"form field is longer than {limit} bytes", where=self._name or "form")
+                raise InputError(
+                    f"form field is longer than {limit} bytes", where=self._name or "form"
+                )
 
     def _check_kind(self) -> None:
         """Learn the file's input kind from its name and first bytes; apply that kind's limit."""
@@ -139,7 +151,8 @@ class UploadParser:
             raise PayloadTooLarge(
                 f"the uploaded file is larger than this server's limit of {self.limit} bytes for {what}; "
                 f"send a smaller file (split long recordings) or raise {self.limit_variable} on the server",
-                where="file")
+                where="file",
+            )
 
     def _part_end(self) -> None:
         if self._is_file:
@@ -158,8 +171,10 @@ class UploadParser:
     def finish(self) -> None:
         self._parser.finalize()
         if not self.got_file:
-            raise InputError("no file in the upload; send the input as a multipart part named 'file'",
-                             where="file")
+            raise InputError(
+                "no file in the upload; send the input as a multipart part named 'file'",
+                where="file",
+            )
         if self._fh is not None:
             raise InputError("the upload ended in the middle of the file part", where="file")
 
@@ -216,13 +231,22 @@ def parse_layout(text: str) -> dict:
     """
     try:
         data = json.loads(text)
-    except (ValueError, RecursionError) as e:  # JSONDecodeError, integers over 4300 digits, deep nesting
-        raise InputError(f"the layout is not JSON ({str(e)[:200]}); send the layout file's content "
-                         "(curl -F layout=@take.layout.json)", where="layout") from None
+    except (
+        ValueError,
+        RecursionError,
+    ) as e:  # JSONDecodeError, integers over 4300 digits, deep nesting
+        raise InputError(
+            f"the layout is not JSON ({str(e)[:200]}); send the layout file's content "
+            "(curl -F layout=@take.layout.json)",
+            where="layout",
+        ) from None
     if not isinstance(data, dict):
-        raise InputError("the layout must be the layout's JSON content, an object with 'markers' and "
-                         "'stable' (curl -F layout=@take.layout.json); the server never opens files "
-                         "named by a client", where="layout")
+        raise InputError(
+            "the layout must be the layout's JSON content, an object with 'markers' and "
+            "'stable' (curl -F layout=@take.layout.json); the server never opens files "
+            "named by a client",
+            where="layout",
+        )
     from ..mocap.layout import load_layout
 
     try:
@@ -230,7 +254,9 @@ def parse_layout(text: str) -> dict:
     except FacecastError:
         raise
     except (TypeError, ValueError, AttributeError, KeyError) as e:
-        raise InputError(f"cannot read the layout ({type(e).__name__}: {str(e)[:200]})", where="layout") from None
+        raise InputError(
+            f"cannot read the layout ({type(e).__name__}: {str(e)[:200]})", where="layout"
+        ) from None
     return data
 
 
@@ -239,34 +265,52 @@ def upload_layout(kind: str, text: str | None) -> dict | None:
     a mocap take needs one, other kinds take none; InputError otherwise."""
     if text is not None:
         if kind != "markers":
-            raise InputError(f"a layout goes with mocap input (.c3d/.trc/.csv), not {kind}", where="layout")
+            raise InputError(
+                f"a layout goes with mocap input (.c3d/.trc/.csv), not {kind}", where="layout"
+            )
         return parse_layout(text)
     if kind == "markers":
-        raise InputError("a mocap take needs its marker layout: send the layout file's content as a "
-                         "'layout' part (curl -F layout=@take.layout.json)", where="layout")
+        raise InputError(
+            "a mocap take needs its marker layout: send the layout file's content as a "
+            "'layout' part (curl -F layout=@take.layout.json)",
+            where="layout",
+        )
     return None
 
 
 #: OpenAPI schema of the ``layout`` form part of an upload.
-LAYOUT_PART = {"type": "string", "format": "binary",
-               "description": "mocap marker layout: the layout file's JSON content, as a file part or an "
-                              "inline field (required for .c3d/.trc/.csv); never a path"}
+LAYOUT_PART = {
+    "type": "string",
+    "format": "binary",
+    "description": "mocap marker layout: the layout file's JSON content, as a file part or an "
+    "inline field (required for .c3d/.trc/.csv); never a path",
+}
 
 
 def multipart_doc(**properties: dict) -> dict:
     """``openapi_extra`` of a route that reads a multipart/form-data body with a required ``file``
     part and the form parts ``properties`` (name: OpenAPI schema)."""
-    return {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
-        "type": "object", "required": ["file"], "properties": properties}}}}}
+    return {
+        "requestBody": {
+            "required": True,
+            "content": {
+                "multipart/form-data": {
+                    "schema": {"type": "object", "required": ["file"], "properties": properties}
+                }
+            },
+        }
+    }
 
 
 def boundary_of(content_type: str) -> bytes:
     """The multipart boundary of a Content-Type header; InputError if it is not multipart/form-data."""
     ctype, opts = parse_options_header(content_type)
     if ctype != b"multipart/form-data" or not opts.get(b"boundary"):
-        raise UnsupportedMedia(f"expected a multipart/form-data upload, got {content_type or 'no Content-Type'!r}; "
-                               "send the input file as a form part named 'file' (curl -F file=@take.fap)",
-                               where="Content-Type")
+        raise UnsupportedMedia(
+            f"expected a multipart/form-data upload, got {content_type or 'no Content-Type'!r}; "
+            "send the input file as a form part named 'file' (curl -F file=@take.fap)",
+            where="Content-Type",
+        )
     return opts[b"boundary"]
 
 
@@ -305,5 +349,8 @@ def input_suffix(filename: str | None, head: bytes) -> str:
     sniffed = sniff_suffix(head)
     if sniffed:
         return sniffed
-    raise UnsupportedMedia(f"cannot tell what kind of input {name or 'the upload'!r} is; name the file with "
-                           f"one of {', '.join(sorted(SUFFIXES))}", where="file")
+    raise UnsupportedMedia(
+        f"cannot tell what kind of input {name or 'the upload'!r} is; name the file with "
+        f"one of {', '.join(sorted(SUFFIXES))}",
+        where="file",
+    )

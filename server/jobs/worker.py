@@ -6,6 +6,7 @@ worker answers with the job id when it is finished with it. A worker exits when 
 (the server has gone) and stops a job by itself when the job was cancelled or taken over (its
 progress update no longer matches); the manager also terminates it to cancel at once.
 """
+
 from __future__ import annotations
 
 import json
@@ -33,8 +34,14 @@ class Stop(BaseException):
     """Raised inside ``render_file`` through the progress callback to abandon the job."""
 
 
-def serve(data_dir: str, conn, backend: str = "auto", device: str | None = None,
-          parent_pid: int | None = None, memory_mb: int = 0) -> None:
+def serve(
+    data_dir: str,
+    conn,
+    backend: str = "auto",
+    device: str | None = None,
+    parent_pid: int | None = None,
+    memory_mb: int = 0,
+) -> None:
     """Worker process entry point: run the jobs the manager sends until the pipe closes.
 
     ``memory_mb``: address-space limit of this process (0: none); a job over it fails with a
@@ -43,8 +50,11 @@ def serve(data_dir: str, conn, backend: str = "auto", device: str | None = None,
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
     die_with_parent(parent_pid)
     limit_resources(memory_mb)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
-                        format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO,
+        stream=sys.stderr,
+        format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s",
+    )
     store = JobStore(Path(data_dir))
     faces: OrderedDict[str, object] = OrderedDict()
     try:
@@ -60,8 +70,12 @@ def serve(data_dir: str, conn, backend: str = "auto", device: str | None = None,
                 run_job(store, job_id, attempt, backend, device, parent_pid, faces)
             except Exception:
                 log.error("job %s: worker error:\n%s", job_id, traceback.format_exc())
-                store.finish(job_id, attempt, "failed", "internal error in the job worker; the server log has "
-                                                        "the details")
+                store.finish(
+                    job_id,
+                    attempt,
+                    "failed",
+                    "internal error in the job worker; the server log has the details",
+                )
             try:
                 conn.send(job_id)
             except (EOFError, OSError):
@@ -122,8 +136,15 @@ def limit_resources(memory_mb: int = 0) -> None:
             log.warning("cannot set resource limit %s: %s", which, e)
 
 
-def run_job(store: JobStore, job_id: str, attempt: int, backend: str, device: str | None,
-            parent_pid: int | None, faces: OrderedDict) -> None:
+def run_job(
+    store: JobStore,
+    job_id: str,
+    attempt: int,
+    backend: str,
+    device: str | None,
+    parent_pid: int | None,
+    faces: OrderedDict,
+) -> None:
     """Run attempt ``attempt`` of job ``job_id`` and record done/failed (nothing if abandoned)."""
     job = store.get(job_id)
     if job is None or job.attempts != attempt or job.status != "running":
@@ -159,8 +180,14 @@ def _face(spec: str, faces: OrderedDict):
     return face
 
 
-def render(store: JobStore, job: JobRecord, backend: str, device: str | None, progress,
-           faces: OrderedDict | None = None) -> tuple[str | None, str | None]:
+def render(
+    store: JobStore,
+    job: JobRecord,
+    backend: str,
+    device: str | None,
+    progress,
+    faces: OrderedDict | None = None,
+) -> tuple[str | None, str | None]:
     """``(status, error)`` of running ``job``; ``(None, None)`` when the job was abandoned."""
     opts = job.options
     src = store.input_path(job)
@@ -176,19 +203,35 @@ def render(store: JobStore, job: JobRecord, backend: str, device: str | None, pr
     except ImportError as e:
         return "failed", f"the render engine is not available on this server ({e})"
     try:
-        face = _face(opts.get("face_spec") or "default", faces if faces is not None else OrderedDict())
+        face = _face(
+            opts.get("face_spec") or "default", faces if faces is not None else OrderedDict()
+        )
         layout = None
         if opts.get("layout_file"):  # the client's layout content, checked and saved at submit
-            layout = json.loads((store.folder(job.id) / opts["layout_file"]).read_text(encoding="utf-8"))
-        render_file(src, dst, face=face, engine=opts.get("engine", "fp"), backend=backend, device=device,
-                    layout=layout, progress=progress, text=opts.get("text"))
+            layout = json.loads(
+                (store.folder(job.id) / opts["layout_file"]).read_text(encoding="utf-8")
+            )
+        render_file(
+            src,
+            dst,
+            face=face,
+            engine=opts.get("engine", "fp"),
+            backend=backend,
+            device=device,
+            layout=layout,
+            progress=progress,
+            text=opts.get("text"),
+        )
     except Stop as e:
         log.info("job %s abandoned: %s", job.id, e)
         return None, None
     except FacecastError as e:
         return "failed", client_view(str(e))
     except MemoryError:
-        return "failed", f"{job.input_name!r} needs more memory than this server has; send a shorter input"
+        return (
+            "failed",
+            f"{job.input_name!r} needs more memory than this server has; send a shorter input",
+        )
     except Exception as e:
         # A decoder's own error (FapFormatError...) or a low-level one it let through (ValueError,
         # struct.error, OverflowError...): the input's fault, most likely. The traceback stays here.
@@ -196,7 +239,12 @@ def render(store: JobStore, job: JobRecord, backend: str, device: str | None, pr
         if not own:
             log.warning("job %s: %s", job.id, traceback.format_exc())
         detail = str(e) if own else f"{type(e).__name__}: {e}"
-        return "failed", client_view(f"could not read {job.input_name!r} as {job.input_kind} input: {detail[:500]}")
+        return "failed", client_view(
+            f"could not read {job.input_name!r} as {job.input_kind} input: {detail[:500]}"
+        )
     if not dst.is_file():
-        return "failed", "the renderer finished without writing a result (server bug; please report)"
+        return (
+            "failed",
+            "the renderer finished without writing a result (server bug; please report)",
+        )
     return "done", None

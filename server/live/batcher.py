@@ -407,9 +407,7 @@ class DeformBatcher:
             for k, i in enumerate(ok)
             if jobs[i].compact is not None and "compact" in jobs[i].encodings
         ]
-        pool = (
-            _compact_executor(self.settings.compact_pool_threads) if len(todo) > 1 else None
-        )
+        pool = _compact_executor(self.settings.compact_pool_threads) if len(todo) > 1 else None
         if pool is not None:
             done = list(pool.map(lambda kj: _encode_compact(kj[1], verts[kj[0]], T[kj[0]]), todo))
         else:

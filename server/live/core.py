@@ -170,8 +170,14 @@ class Gate:
     __slots__ = ("budget", "label", "metrics", "prefix", "warn")
 
     def __init__(
-        self, limits: Limits, now: float, *, label: str, metrics: Any = None,
-        warn: bool = True, prefix: str = "",
+        self,
+        limits: Limits,
+        now: float,
+        *,
+        label: str,
+        metrics: Any = None,
+        warn: bool = True,
+        prefix: str = "",
     ) -> None:
         self.budget = Budget(limits, now)
         self.label = label  # for the log: "session <id>: producer"

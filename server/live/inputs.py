@@ -190,7 +190,9 @@ class MarkerInput:
             if late >= -0.2 * self.period or late < -2.0 * self.period:  # due (or time went back)
                 states.append(st)
                 # next tick: one period on, unless the stream jumped (a gap, a restart): re-anchor
-                self.next_t = self.next_t + self.period if 0 <= late < self.period else st.t + self.period
+                self.next_t = (
+                    self.next_t + self.period if 0 <= late < self.period else st.t + self.period
+                )
         # drivers that place their controls from the actor's neutral know them only now
         self.control_vertices = getattr(self.driver, "control_vertices", None)
         return states

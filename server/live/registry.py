@@ -76,7 +76,8 @@ class SessionRegistry:
         #: The threads that solve, deform and encode live frames (``DeformBatcher`` drains); apart
         #: from ``executor`` so that drains busy under load never delay a producer's hello.
         self.batch_executor = ThreadPoolExecutor(
-            settings.batch_threads, thread_name_prefix="live-batch")
+            settings.batch_threads, thread_name_prefix="live-batch"
+        )
         self._batchers: dict[int, DeformBatcher] = {}
         self._creating = 0
         self.idle_seconds = idle_seconds

@@ -320,9 +320,11 @@ class LiveSession:
                 from ...protocol.compact import CompactEncoder
 
                 self.compact = CompactEncoder(
-                    self.face.vertices, self.face.rigid_group,
+                    self.face.vertices,
+                    self.face.rigid_group,
                     tolerance=self.spec.tolerance / self.face.mm_per_unit,
-                    key_interval=max(1, int(0.25 * self.spec.fps)), key_seconds=0.25,
+                    key_interval=max(1, int(0.25 * self.spec.fps)),
+                    key_seconds=0.25,
                 )
             self.compact.request_key()  # the new viewer starts at the next frame
         if self.metrics:

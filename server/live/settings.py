@@ -15,20 +15,20 @@ def _cpus() -> int:
 @dataclass(frozen=True, slots=True)
 class LiveSettings:
     """Args (each ``None`` picks the default shown):
-        threads: threads running producer drivers and building animators (``FACECAST_LIVE_THREADS``;
-            the CPU count, at most 8).
-        batches: batches of one animator worked on at once (``FACECAST_LIVE_BATCHES``; 1). Measured
-            on 2 cores with PoCL (20 sessions): a second concurrent batch splits the frames into
-            smaller launches and adds GIL contention; it cost more CPU per frame than it saved.
-        coalesce_ms: longest wait of a batch for more frames (``FACECAST_LIVE_COALESCE_MS``; 0, no
-            wait). On the shared 2-core machine (load 5-9) batches of 20 sessions held 6-13 frames
-            by themselves and a 3 ms wait changed nothing measurable.
-        compact_threads: threads encoding ``compact`` frames at once
-            (``FACECAST_LIVE_COMPACT_THREADS``; the CPU count).
-        device_quantize: quantise int16 frames on the OpenCL device when it shares host memory
-            (``FACECAST_LIVE_DEVICE_QUANTIZE``; true).
-        direct: write vertex frames straight to viewers' transports (``FACECAST_LIVE_DIRECT``;
-            true; false sends them through ASGI, the baseline of ``bench serve --compare-asgi``).
+    threads: threads running producer drivers and building animators (``FACECAST_LIVE_THREADS``;
+        the CPU count, at most 8).
+    batches: batches of one animator worked on at once (``FACECAST_LIVE_BATCHES``; 1). Measured
+        on 2 cores with PoCL (20 sessions): a second concurrent batch splits the frames into
+        smaller launches and adds GIL contention; it cost more CPU per frame than it saved.
+    coalesce_ms: longest wait of a batch for more frames (``FACECAST_LIVE_COALESCE_MS``; 0, no
+        wait). On the shared 2-core machine (load 5-9) batches of 20 sessions held 6-13 frames
+        by themselves and a 3 ms wait changed nothing measurable.
+    compact_threads: threads encoding ``compact`` frames at once
+        (``FACECAST_LIVE_COMPACT_THREADS``; the CPU count).
+    device_quantize: quantise int16 frames on the OpenCL device when it shares host memory
+        (``FACECAST_LIVE_DEVICE_QUANTIZE``; true).
+    direct: write vertex frames straight to viewers' transports (``FACECAST_LIVE_DIRECT``;
+        true; false sends them through ASGI, the baseline of ``bench serve --compare-asgi``).
     """
 
     threads: int | None = None

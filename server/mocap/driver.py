@@ -204,9 +204,14 @@ def process(
     info["pose_frame_sd_deg"], info["pose_frame_sd_mm"] = pose_uncertainty(
         ref, xs, r, t, neutral[face_markers] if len(face_markers) else ref
     )
-    log.info("%s: one frame's head pose from the stable markers (%s) is uncertain by %.3f deg, %.3f mm "
-             "at the face markers (before smoothing)", where, ", ".join(layout.names[i] for i in stable),
-             info["pose_frame_sd_deg"], info["pose_frame_sd_mm"])
+    log.info(
+        "%s: one frame's head pose from the stable markers (%s) is uncertain by %.3f deg, %.3f mm "
+        "at the face markers (before smoothing)",
+        where,
+        ", ".join(layout.names[i] for i in stable),
+        info["pose_frame_sd_deg"],
+        info["pose_frame_sd_mm"],
+    )
     if params.filter == "rts" and params.lowrank != "off":
         local, info["lowrank"] = denoise_displacements(
             local, neutral, stable, params.lowrank, unsmoothed=unsmoothed
@@ -216,15 +221,25 @@ def process(
     return Processed(take, layout, raw, cleaned, local, r, t, nf, rig, states, info)
 
 
-def _rigid_stable(xyz: np.ndarray, stable: np.ndarray, layout: Layout, info: dict, where: str) -> np.ndarray:
+def _rigid_stable(
+    xyz: np.ndarray, stable: np.ndarray, layout: Layout, info: dict, where: str
+) -> np.ndarray:
     """``stabilise.check_stable`` with its findings logged and kept in ``info``."""
     keep, dropped, added = check_stable(xyz, stable, layout.names)
     if dropped:
-        log.warning("%s: stable marker(s) %s move against the others (not rigid with the head): left "
-                    "out of the head pose; fix the layout's \"stable\" list", where, ", ".join(dropped))
+        log.warning(
+            "%s: stable marker(s) %s move against the others (not rigid with the head): left "
+            'out of the head pose; fix the layout\'s "stable" list',
+            where,
+            ", ".join(dropped),
+        )
     if added:
-        log.warning("%s: fewer than 3 rigid stable markers; the head pose also uses %s (the markers "
-                    "most rigid with them)", where, ", ".join(added))
+        log.warning(
+            "%s: fewer than 3 rigid stable markers; the head pose also uses %s (the markers "
+            "most rigid with them)",
+            where,
+            ", ".join(added),
+        )
     info["stable_dropped"], info["stable_added"] = dropped, added
     return keep
 
@@ -306,7 +321,9 @@ def _lowrank(value: str | int) -> str | int:
         return text
     if text.isdigit() and int(text) > 0:
         return int(text)
-    raise InputError(f"lowrank must be auto, off or a positive count, not {value!r}", where="lowrank")
+    raise InputError(
+        f"lowrank must be auto, off or a positive count, not {value!r}", where="lowrank"
+    )
 
 
 def layout_index(layout: Layout, names: list[str]) -> np.ndarray:
@@ -348,8 +365,11 @@ def load(
     if stable is not None:
         unknown = [n for n in stable if n not in lay.markers]
         if unknown or len(stable) < 3:
-            raise InputError(f"--stable needs at least 3 of the layout's markers; unknown: "
-                             f"{', '.join(unknown) or 'none'}", where="stable")
+            raise InputError(
+                f"--stable needs at least 3 of the layout's markers; unknown: "
+                f"{', '.join(unknown) or 'none'}",
+                where="stable",
+            )
         lay = replace(lay, stable=list(stable))
     lowrank = _lowrank(lowrank)
     take = read_take(path, units=units, default_units=lay.units)

@@ -148,37 +148,74 @@ def load_expressions(face: Face | None = None) -> tuple[list[str], np.ndarray]:
 #: skin point between two feature points (the face's left = +x = odd MPEG-4 numbers = ``_L``).
 TECHNICIAN_LAYOUT: tuple[tuple[str, str | tuple[str, str]], ...] = (
     # lips: the outer contour (corners, peaks, middles and between)
-    ("LIP_UP", "8.1"), ("LIP_LO", "8.2"), ("LIP_CORNER_L", "8.3"), ("LIP_CORNER_R", "8.4"),
-    ("LIP_UP_L", "8.5"), ("LIP_UP_R", "8.6"), ("LIP_LO_L", "8.7"), ("LIP_LO_R", "8.8"),
-    ("LIP_PEAK_R", "8.9"), ("LIP_PEAK_L", "8.10"),
-    ("LIP_UP_OUT_L", ("8.5", "8.3")), ("LIP_UP_OUT_R", ("8.6", "8.4")),
-    ("LIP_LO_OUT_L", ("8.7", "8.3")), ("LIP_LO_OUT_R", ("8.8", "8.4")),
+    ("LIP_UP", "8.1"),
+    ("LIP_LO", "8.2"),
+    ("LIP_CORNER_L", "8.3"),
+    ("LIP_CORNER_R", "8.4"),
+    ("LIP_UP_L", "8.5"),
+    ("LIP_UP_R", "8.6"),
+    ("LIP_LO_L", "8.7"),
+    ("LIP_LO_R", "8.8"),
+    ("LIP_PEAK_R", "8.9"),
+    ("LIP_PEAK_L", "8.10"),
+    ("LIP_UP_OUT_L", ("8.5", "8.3")),
+    ("LIP_UP_OUT_R", ("8.6", "8.4")),
+    ("LIP_LO_OUT_L", ("8.7", "8.3")),
+    ("LIP_LO_OUT_R", ("8.8", "8.4")),
     # chin and jaw
-    ("CHIN", "2.1"), ("CHIN_FRONT", "2.10"), ("CHIN_L", "2.11"), ("CHIN_R", "2.12"),
-    ("JAW_L", "2.13"), ("JAW_R", "2.14"), ("JAW_MID_L", ("2.11", "2.13")), ("JAW_MID_R", ("2.12", "2.14")),
+    ("CHIN", "2.1"),
+    ("CHIN_FRONT", "2.10"),
+    ("CHIN_L", "2.11"),
+    ("CHIN_R", "2.12"),
+    ("JAW_L", "2.13"),
+    ("JAW_R", "2.14"),
+    ("JAW_MID_L", ("2.11", "2.13")),
+    ("JAW_MID_R", ("2.12", "2.14")),
     # around the mouth: philtrum, above the upper lip, below the lower lip
-    ("PHILTRUM", ("8.1", "9.15")), ("MOUTH_UP_L", ("8.5", "9.1")), ("MOUTH_UP_R", ("8.6", "9.2")),
-    ("LABIOMENTAL", ("8.2", "2.10")), ("MOUTH_LO_L", ("8.7", "2.11")), ("MOUTH_LO_R", ("8.8", "2.12")),
+    ("PHILTRUM", ("8.1", "9.15")),
+    ("MOUTH_UP_L", ("8.5", "9.1")),
+    ("MOUTH_UP_R", ("8.6", "9.2")),
+    ("LABIOMENTAL", ("8.2", "2.10")),
+    ("MOUTH_LO_L", ("8.7", "2.11")),
+    ("MOUTH_LO_R", ("8.8", "2.12")),
     # brows
-    ("BROW_IN_L", "4.1"), ("BROW_IN_R", "4.2"), ("BROW_MID_L", "4.3"), ("BROW_MID_R", "4.4"),
-    ("BROW_OUT_L", "4.5"), ("BROW_OUT_R", "4.6"),
+    ("BROW_IN_L", "4.1"),
+    ("BROW_IN_R", "4.2"),
+    ("BROW_MID_L", "4.3"),
+    ("BROW_MID_R", "4.4"),
+    ("BROW_OUT_L", "4.5"),
+    ("BROW_OUT_R", "4.6"),
     # cheeks and nasolabial folds
-    ("CHEEK_L", "5.1"), ("CHEEK_R", "5.2"), ("CHEEKBONE_L", "5.3"), ("CHEEKBONE_R", "5.4"),
-    ("NASOLABIAL_UP_L", ("9.1", "5.1")), ("NASOLABIAL_UP_R", ("9.2", "5.2")),
-    ("NASOLABIAL_LO_L", ("8.3", "5.1")), ("NASOLABIAL_LO_R", ("8.4", "5.2")),
-    ("CHEEK_LO_L", ("5.1", "2.13")), ("CHEEK_LO_R", ("5.2", "2.14")),
+    ("CHEEK_L", "5.1"),
+    ("CHEEK_R", "5.2"),
+    ("CHEEKBONE_L", "5.3"),
+    ("CHEEKBONE_R", "5.4"),
+    ("NASOLABIAL_UP_L", ("9.1", "5.1")),
+    ("NASOLABIAL_UP_R", ("9.2", "5.2")),
+    ("NASOLABIAL_LO_L", ("8.3", "5.1")),
+    ("NASOLABIAL_LO_R", ("8.4", "5.2")),
+    ("CHEEK_LO_L", ("5.1", "2.13")),
+    ("CHEEK_LO_R", ("5.2", "2.14")),
     # nose wings, eyes, forehead
-    ("NOSTRIL_L", "9.1"), ("NOSTRIL_R", "9.2"),
-    ("UNDER_EYE_L", "3.9"), ("UNDER_EYE_R", "3.10"), ("LID_L", "3.1"), ("LID_R", "3.2"),
-    ("FOREHEAD_L", ("4.3", "11.3")), ("FOREHEAD_R", ("4.4", "11.2")),
-    ("CHEEK_OUT_L", ("5.3", "2.13")), ("CHEEK_OUT_R", ("5.4", "2.14")),
+    ("NOSTRIL_L", "9.1"),
+    ("NOSTRIL_R", "9.2"),
+    ("UNDER_EYE_L", "3.9"),
+    ("UNDER_EYE_R", "3.10"),
+    ("LID_L", "3.1"),
+    ("LID_R", "3.2"),
+    ("FOREHEAD_L", ("4.3", "11.3")),
+    ("FOREHEAD_R", ("4.4", "11.2")),
+    ("CHEEK_OUT_L", ("5.3", "2.13")),
+    ("CHEEK_OUT_R", ("5.4", "2.14")),
     ("NOSE_TIP", "9.3"),
 )
 
 PLACEMENTS: tuple[str, ...] = ("technician", "motion")
 
 
-def technician_markers(face: Face, budget: int, taken: list[int]) -> tuple[list[str], list[int], dict[str, dict]]:
+def technician_markers(
+    face: Face, budget: int, taken: list[int]
+) -> tuple[list[str], list[int], dict[str, dict]]:
     """The first ``budget`` markers of ``TECHNICIAN_LAYOUT`` the face can place (needs its feature
     points): ``(names, vertex ids, layout entries)``; vertices in ``taken`` are skipped."""
     import trimesh
@@ -201,7 +238,9 @@ def technician_markers(face: Face, budget: int, taken: list[int]) -> tuple[list[
         if isinstance(where, str):
             vid, entry = int(face.feature_points[where]), {"fp": where}
         else:
-            vid = int(front[tree.query((face.fp_position(fps[0]) + face.fp_position(fps[1])) / 2)[1]])
+            vid = int(
+                front[tree.query((face.fp_position(fps[0]) + face.fp_position(fps[1])) / 2)[1]]
+            )
             entry = {"vertex": vid}
         if vid in used:
             continue
@@ -217,8 +256,10 @@ def choose_markers(
     """Pick marker vertices: ``(names, vertices, layout markers, stable names)`` (see the module
     docstring for ``placement``)."""
     if placement not in PLACEMENTS:
-        raise InputError(f"placement must be one of {', '.join(PLACEMENTS)}, not {placement!r}",
-                         where="placement")
+        raise InputError(
+            f"placement must be one of {', '.join(PLACEMENTS)}, not {placement!r}",
+            where="placement",
+        )
     v = face.vertices.astype(np.float64)
     skin = face.part("skin")
     motion = np.linalg.norm(deltas, axis=2).max(axis=0) * face.mm_per_unit  # (V,) mm
@@ -285,7 +326,9 @@ def choose_markers(
     cand = np.setdiff1d(cand, lids)
     # denser where the skin moves more (as real layouts crowd the mouth and brows)
     cand = np.setdiff1d(cand, verts)
-    pick = cand[farthest_points(v[cand], budget, seed_points=v[verts], weights=np.sqrt(motion[cand]))]
+    pick = cand[
+        farthest_points(v[cand], budget, seed_points=v[verts], weights=np.sqrt(motion[cand]))
+    ]
     for j, vid in enumerate(pick):
         n = f"M{j + 1:02d}"
         names.append(n), verts.append(int(vid))
@@ -366,8 +409,15 @@ def truth_vertices(face: Face, deltas: np.ndarray, weights: np.ndarray) -> np.nd
     ).astype(np.float32)
 
 
-def generated_take(*, n_markers: int, seconds: float, fps: float, seed: int, n_stable: int,
-                   placement: str = "technician"):
+def generated_take(
+    *,
+    n_markers: int,
+    seconds: float,
+    fps: float,
+    seed: int,
+    n_stable: int,
+    placement: str = "technician",
+):
     """Generate a C3D take in a temporary folder and read it back (for benchmarks).
 
     Returns ``(truth, take, layout)``: the ground truth, the ``MarkerTake`` as a user's reader sees
@@ -379,9 +429,21 @@ def generated_take(*, n_markers: int, seconds: float, fps: float, seed: int, n_s
     from .io import read_take
 
     with tempfile.TemporaryDirectory() as tmp:
-        paths = generate(tmp, n_markers=n_markers, seconds=seconds, fps=fps, seed=seed, formats=("c3d",),
-                         n_stable=n_stable, placement=placement)
-        return load_truth(paths["truth"]), read_take(paths["c3d"]), json.loads(Path(paths["layout"]).read_text())
+        paths = generate(
+            tmp,
+            n_markers=n_markers,
+            seconds=seconds,
+            fps=fps,
+            seed=seed,
+            formats=("c3d",),
+            n_stable=n_stable,
+            placement=placement,
+        )
+        return (
+            load_truth(paths["truth"]),
+            read_take(paths["c3d"]),
+            json.loads(Path(paths["layout"]).read_text()),
+        )
 
 
 def generate(
@@ -443,7 +505,9 @@ def generate(
     )
     noisy = lab + rng.normal(0.0, noise_mm, lab.shape)
     m = len(names)
-    after_hold = n > hold + 1  # gaps and spikes go after the neutral hold (none in a take that short)
+    after_hold = (
+        n > hold + 1
+    )  # gaps and spikes go after the neutral hold (none in a take that short)
     if gaps and after_hold:
         for j in range(m):
             for _ in range(int(rng.integers(0, 3))):
@@ -516,8 +580,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-head-motion", action="store_true")
     p.add_argument("--formats", default="c3d,trc", help="comma-separated: c3d, trc, csv")
     p.add_argument("--name", default="take")
-    p.add_argument("--placement", choices=PLACEMENTS, default="technician",
-                   help="marker placement: a technician's layout sheet or motion-weighted (default technician)")
+    p.add_argument(
+        "--placement",
+        choices=PLACEMENTS,
+        default="technician",
+        help="marker placement: a technician's layout sheet or motion-weighted (default technician)",
+    )
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     try:
@@ -542,8 +610,10 @@ def main(argv: list[str] | None = None) -> int:
     for k, v in paths.items():
         print(f"{k}: {v}")
     take = paths.get("c3d") or next(iter(paths.values()))
-    print(f"render on the actor's own head: facecast render {take} --face {face_path()} -o take.glb\n"
-          f"retarget onto the built-in head: facecast render {take} --layout {paths['layout_fp']} -o take.npz")
+    print(
+        f"render on the actor's own head: facecast render {take} --face {face_path()} -o take.glb\n"
+        f"retarget onto the built-in head: facecast render {take} --layout {paths['layout_fp']} -o take.npz"
+    )
     return 0
 
 

@@ -157,7 +157,9 @@ def load_layout(src: str | Path | dict | Layout) -> Layout:
         jaw = next((n for n, s in clean.items() if s.get("fp") == "2.1"), None)
     made_for = data.get("face")
     if made_for is not None and not isinstance(made_for, str):
-        raise InputError("'face' must be a string: the face the vertex ids are for", where=f"{where}: face")
+        raise InputError(
+            "'face' must be a string: the face the vertex ids are for", where=f"{where}: face"
+        )
     return Layout(clean, list(dict.fromkeys(stable)), units, nf, jaw, where, made_for)
 
 

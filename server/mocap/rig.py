@@ -215,18 +215,24 @@ def check_vertex_fit(layout: Layout, face: Face, placement, actor_mm: np.ndarray
     q, s, c = similarity(src, on_face[tied])
     res = np.linalg.norm(s * src @ q.T + c - on_face[tied], axis=1)
     spacing = float(np.median(cKDTree(on_face).query(on_face, k=2)[0][:, 1]))
-    fit.update(median_mm=float(np.median(res)), max_mm=float(res.max()),
-               limit_mm=FIT_SPACING_FRACTION * spacing)
+    fit.update(
+        median_mm=float(np.median(res)),
+        max_mm=float(res.max()),
+        limit_mm=FIT_SPACING_FRACTION * spacing,
+    )
     if fit["median_mm"] > fit["limit_mm"]:
-        instead = (f"pass --face {layout.face} (the face this layout was made for)" if layout.face else
-                   "pass --face <the mesh this layout was made for>")
+        instead = (
+            f"pass --face {layout.face} (the face this layout was made for)"
+            if layout.face
+            else "pass --face <the mesh this layout was made for>"
+        )
         raise InputError(
             f"this layout does not fit the face {face.name!r}: after the best rigid fit its {fit['markers']} "
             f"vertex-tied markers sit {fit['median_mm']:.1f} mm (median; max {fit['max_mm']:.1f} mm) from "
             f"the actor's, where a layout made for this face leaves about the capture noise (refused above "
             f"{fit['limit_mm']:.1f} mm, a quarter of the {spacing:.1f} mm between neighbouring markers): "
             f"its vertex ids are for another mesh. {instead[0].upper()}{instead[1:]}, or a layout made for "
-            f"this face (markers tied to feature points, {{\"fp\": \"2.1\"}}, or placed automatically, "
+            f'this face (markers tied to feature points, {{"fp": "2.1"}}, or placed automatically, '
             "{}, retarget across faces)",
             where=layout.where,
         )
@@ -259,4 +265,6 @@ def anchor_vertices(
     far = skin[dist > factor * spacing]
     if not len(far):
         return np.zeros(0, dtype=np.int32)
-    return far[farthest_points(v[far], limit, seed_points=pts, until=factor * spacing)].astype(np.int32)
+    return far[farthest_points(v[far], limit, seed_points=pts, until=factor * spacing)].astype(
+        np.int32
+    )

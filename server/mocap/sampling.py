@@ -1,4 +1,5 @@
 """Farthest-point sampling: spreading markers (or pins) evenly over a set of points."""
+
 from __future__ import annotations
 
 import numpy as np

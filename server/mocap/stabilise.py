@@ -311,12 +311,18 @@ def refine_poses(
     centre = neutral[stable].mean(axis=0)
     a = np.concatenate([rigid_fields(neutral, centre), full.reshape(3 * m, k)], axis=1)
     delta = np.zeros((t_n, 6))
-    delta[ok] = np.linalg.lstsq(a, (raw[ok] - offset).reshape(int(ok.sum()), -1).T, rcond=None)[0][:6].T
+    delta[ok] = np.linalg.lstsq(a, (raw[ok] - offset).reshape(int(ok.sum()), -1).T, rcond=None)[0][
+        :6
+    ].T
     # smooth the corrections as a pose track (rotation scaled by a 100 mm lever arm, as smooth_poses)
     track = np.stack([delta[:, :3] * 100.0, delta[:, 3:]], axis=1)
     noise = estimate_r(track[ok])
-    track = rts_smooth(np.where(ok[:, None, None], track, np.nan), fps,
-                       q=estimate_q_cv(track[ok], fps, noise), r=noise)
+    track = rts_smooth(
+        np.where(ok[:, None, None], track, np.nan),
+        fps,
+        q=estimate_q_cv(track[ok], fps, noise),
+        r=noise,
+    )
     # stabilised = S x_true + (c - S c + tau): frame = R S x_true + R (c - S c + tau) + t
     s = Rotation.from_rotvec(track[:, 0] / 100.0).as_matrix()
     off = centre - np.einsum("tij,j->ti", s, centre) + track[:, 1]
@@ -440,8 +446,10 @@ def start_neutral(frames: np.ndarray, stable: np.ndarray) -> np.ndarray:
     mean = np.nanmean(loc, axis=0)
     c = np.nanmean(ref, axis=0)
     k = np.flatnonzero(solved).astype(np.float64)
-    track = np.c_[Rotation.from_matrix(rs[solved]).as_rotvec(),
-                  np.einsum("tij,j->ti", rs[solved], c) + ts[solved] - c]  # (n, 6)
+    track = np.c_[
+        Rotation.from_matrix(rs[solved]).as_rotvec(),
+        np.einsum("tij,j->ti", rs[solved], c) + ts[solved] - c,
+    ]  # (n, 6)
     design = np.c_[np.ones_like(k), k] if len(k) < 12 else np.c_[np.ones_like(k), k, k**2]
     r0v, c0 = (design[:1] @ np.linalg.lstsq(design, track, rcond=None)[0])[0].reshape(2, 3)
     r0 = Rotation.from_rotvec(r0v).as_matrix()
@@ -467,7 +475,9 @@ def robust_pose(
     return pose
 
 
-def rigidity_weights(disp_sq: np.ndarray, stable: np.ndarray, noise_var: float, gate: float = np.inf) -> np.ndarray:
+def rigidity_weights(
+    disp_sq: np.ndarray, stable: np.ndarray, noise_var: float, gate: float = np.inf
+) -> np.ndarray:
     """``(M,)`` weights for ``robust_pose``: ``1 / (noise + non-rigid mean square)`` from each
     marker's mean squared displacement off the head ``disp_sq`` (mm², NaN = unknown: weight 0); the
     stable markers count as rigid; a marker whose mean square exceeds ``gate`` x the noise's gets 0."""

@@ -66,8 +66,15 @@ VARIANTS: dict[str, Variant] = {
         Variant("dense100", markers=100, stable=6, units="m", axes="yup-side"),
         Variant("technician", placement="technician", markers=60, stable=5, axes="zup", hold=0.5),
         Variant("neck-pivot", pivot="neck", head_deg=(15.0, 25.0, 8.0), stable=5, units="m"),
-        Variant("fast-large", expr_max=1.0, expr_period=(0.12, 0.3), head_deg=(12.0, 20.0, 8.0),
-                pivot="nose", stable=4, axes="zup"),
+        Variant(
+            "fast-large",
+            expr_max=1.0,
+            expr_period=(0.12, 0.3),
+            head_deg=(12.0, 20.0, 8.0),
+            pivot="nose",
+            stable=4,
+            axes="zup",
+        ),
     )
 }
 
@@ -94,7 +101,9 @@ class VariantTruth:
         """``(F, V, 3) float32`` true vertices without head motion (face units)."""
         w = self.weights if frames is None else self.weights[frames]
         d = deltas[self.expressions].reshape(len(self.expressions), -1)
-        return (face.vertices[None] + (w.astype(np.float32) @ d).reshape(len(w), -1, 3)).astype(np.float32)
+        return (face.vertices[None] + (w.astype(np.float32) @ d).reshape(len(w), -1, 3)).astype(
+            np.float32
+        )
 
     def head(self, face: Face, frames: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(R (F, 3, 3), t (F, 3))`` the true head transform in face units: ``x' = R x + t``."""
@@ -106,10 +115,14 @@ class VariantTruth:
     def posed(self, face: Face, deltas: np.ndarray, frames: np.ndarray | None = None) -> np.ndarray:
         """``(F, V, 3)`` true vertices with head motion (face units): what ``render`` should write."""
         r, t = self.head(face, frames)
-        return (np.einsum("tij,tvj->tvi", r, self.local(face, deltas, frames)) + t[:, None]).astype(np.float32)
+        return (np.einsum("tij,tvj->tvi", r, self.local(face, deltas, frames)) + t[:, None]).astype(
+            np.float32
+        )
 
 
-def folds(n_expressions: int, k: int = 5, seed: int = 0, usable: np.ndarray | None = None) -> list[np.ndarray]:
+def folds(
+    n_expressions: int, k: int = 5, seed: int = 0, usable: np.ndarray | None = None
+) -> list[np.ndarray]:
     """``k`` disjoint held-out index sets over the expressions (``usable`` ones only)."""
     idx = np.arange(n_expressions) if usable is None else np.asarray(usable)
     perm = np.random.default_rng(seed).permutation(idx)
@@ -121,7 +134,9 @@ def usable_expressions(names: list[str]) -> np.ndarray:
     return np.array([i for i, n in enumerate(names) if not n.startswith("Pupil")])
 
 
-def choose_layout(face: Face, deltas: np.ndarray, v: Variant) -> tuple[list[str], np.ndarray, dict, list[str]]:
+def choose_layout(
+    face: Face, deltas: np.ndarray, v: Variant
+) -> tuple[list[str], np.ndarray, dict, list[str]]:
     """``(names, vertex ids, layout markers, stable names)`` for a variant. ``even``: headband plus
     face markers spread evenly (farthest points, unweighted) over the front skin; else ``generate``'s
     placements."""
@@ -141,11 +156,19 @@ def choose_layout(face: Face, deltas: np.ndarray, v: Variant) -> tuple[list[str]
     still = skin[(motion[skin] < 0.01) & (verts[skin, 1] > eye_y)]
     st = still[farthest_points(verts[still], v.stable)]
     normals = trimesh.Trimesh(face.vertices, face.triangles, process=False).vertex_normals
-    lids = np.concatenate([np.flatnonzero(np.linalg.norm(verts - face.pivot(e), axis=1) < 0.45 * mw)
-                           for e in ("eye_l", "eye_r")])
-    cand = skin[(normals[skin, 2] > 0.3) & (verts[skin, 2] > nose_z - 1.6 * mw)
-                & (np.abs(verts[skin, 0]) < 1.5 * mw) & (verts[skin, 1] < eye_y + 1.5 * mw)
-                & (verts[skin, 1] > chin_y - 0.1 * mw)]
+    lids = np.concatenate(
+        [
+            np.flatnonzero(np.linalg.norm(verts - face.pivot(e), axis=1) < 0.45 * mw)
+            for e in ("eye_l", "eye_r")
+        ]
+    )
+    cand = skin[
+        (normals[skin, 2] > 0.3)
+        & (verts[skin, 2] > nose_z - 1.6 * mw)
+        & (np.abs(verts[skin, 0]) < 1.5 * mw)
+        & (verts[skin, 1] < eye_y + 1.5 * mw)
+        & (verts[skin, 1] > chin_y - 0.1 * mw)
+    ]
     cand = np.setdiff1d(cand, np.r_[lids, st])
     pick = cand[farthest_points(verts[cand], v.markers - len(st), seed_points=verts[st])]
     names = [f"HB{i + 1}" for i in range(len(st))] + [f"F{j + 1:03d}" for j in range(len(pick))]
@@ -154,7 +177,9 @@ def choose_layout(face: Face, deltas: np.ndarray, v: Variant) -> tuple[list[str]
     return names, ids, spec, names[: len(st)]
 
 
-def _curve(rng, n: int, fps: float, amp: float, period: tuple[float, float], hold: int) -> np.ndarray:
+def _curve(
+    rng, n: int, fps: float, amp: float, period: tuple[float, float], hold: int
+) -> np.ndarray:
     """A smooth random curve in [-amp, amp], 0 at frame 0 (the head's rest: the face frame) and
     through the hold, moving from frame 0 without one."""
     keys = [0.0] + ([hold / fps] if hold else [])
@@ -165,7 +190,9 @@ def _curve(rng, n: int, fps: float, amp: float, period: tuple[float, float], hol
     return PchipInterpolator(keys, vals)(np.arange(n) / fps)
 
 
-def _weights(rng, usable: np.ndarray, n_expr: int, n: int, fps: float, hold: int, v: Variant) -> np.ndarray:
+def _weights(
+    rng, usable: np.ndarray, n_expr: int, n: int, fps: float, hold: int, v: Variant
+) -> np.ndarray:
     keys = [0] + ([hold] if hold else [])
     while keys[-1] < n + int(fps):
         keys.append(keys[-1] + max(1, int(rng.uniform(*v.expr_period) * fps)))
@@ -175,7 +202,9 @@ def _weights(rng, usable: np.ndarray, n_expr: int, n: int, fps: float, hold: int
         kv[k, act] = rng.uniform(0.3 * v.expr_max, v.expr_max, len(act))
         if rng.random() < 0.1:
             kv[k] = 0.0
-    return np.clip(PchipInterpolator(np.asarray(keys) / fps, kv, axis=0)(np.arange(n) / fps), 0.0, 1.0)
+    return np.clip(
+        PchipInterpolator(np.asarray(keys) / fps, kv, axis=0)(np.arange(n) / fps), 0.0, 1.0
+    )
 
 
 def make_take(
@@ -234,6 +263,7 @@ def make_take(
     for fmt in formats:
         paths[fmt] = write_take(take, out / f"take.{fmt}")
     paths["layout"] = out / "take.layout.json"
-    paths["layout"].write_text(json.dumps({"units": v.units, "stable": stable, "markers": spec}, indent=1) + "\n")
+    paths["layout"].write_text(
+        json.dumps({"units": v.units, "stable": stable, "markers": spec}, indent=1) + "\n"
+    )
     return VariantTruth(v, float(fps), names, verts, stable, expr, w, r, tr, pivot, paths)
-

@@ -1,4 +1,5 @@
 """MPEG-4 face animation: FAP/FP tables, FAPU, high-level FAPs and the FAP rig of a face."""
+
 from .fapu import AU, FAPU_DEFINITIONS, fapu_mm, measure_fapu
 from .highlevel import (
     EXPRESSION_NAMES,

@@ -35,6 +35,7 @@ feature-point method of Kshirsagar et al., ``research/seed-000-A.md`` §5):
 
 Negative values of unidirectional FAPs (real files have them) are applied as they are.
 """
+
 from __future__ import annotations
 
 import logging
@@ -76,8 +77,11 @@ def fap_controls(face, *, per_axis: bool = False) -> tuple[list[str], np.ndarray
             names[v], axes[v] = [], np.zeros(3, dtype=bool)
         names[v].append(fp)
         axes[v] |= c
-    return (["+".join(names[v]) for v in order], np.array(order, dtype=np.int32),
-            np.array([axes[v] for v in order], dtype=bool).reshape(-1, 3))
+    return (
+        ["+".join(names[v]) for v in order],
+        np.array(order, dtype=np.int32),
+        np.array([axes[v] for v in order], dtype=bool).reshape(-1, 3),
+    )
 
 
 def _constrained_axes(fp: str) -> np.ndarray:
@@ -158,8 +162,15 @@ class FapRig:
         control_vertices: ``(K,) int32``; ``constrained``: ``(K, 3) bool``; ``fp_ids``: names.
     """
 
-    def __init__(self, face, control_vertices: np.ndarray | None = None, *, per_axis: bool = False,
-                 visemes: np.ndarray | None = None, expressions: np.ndarray | None = None):
+    def __init__(
+        self,
+        face,
+        control_vertices: np.ndarray | None = None,
+        *,
+        per_axis: bool = False,
+        visemes: np.ndarray | None = None,
+        expressions: np.ndarray | None = None,
+    ):
         self.face = face
         self.fapu = measure_fapu(face)
         self.visemes = _table(visemes, getattr(face, "visemes", None), VISEMES)
@@ -170,7 +181,9 @@ class FapRig:
             self.constrained = np.ones((len(self.control_vertices), 3), dtype=bool)
             self.fp_ids: list[str] = []
         else:
-            self.fp_ids, self.control_vertices, self.constrained = fap_controls(face, per_axis=per_axis)
+            self.fp_ids, self.control_vertices, self.constrained = fap_controls(
+                face, per_axis=per_axis
+            )
         self.n_controls = len(self.control_vertices)
         self._pivots = {g: face.pivot(g) for g in RIGID_GROUPS}
         self._pivot_rows = np.array([self._pivots[g] for g in RIGID_GROUPS], dtype=np.float64)
@@ -195,7 +208,9 @@ class FapRig:
                     self._M[index[fp], :, f.number] += f.vector * self.fapu[f.unit]
         self._M *= self.constrained[:, :, None]
         self._jaw_riders = np.array([index[p] for p in JAW_SKIN_FPS if p in index], dtype=np.int64)
-        self._rider_pos = self.face.vertices[self.control_vertices[self._jaw_riders]].astype(np.float64)
+        self._rider_pos = self.face.vertices[self.control_vertices[self._jaw_riders]].astype(
+            np.float64
+        )
         if "6.2" in self.face.feature_points:
             mid = self.face.fp_position("6.2")
             ids, arms = [], []
@@ -222,12 +237,16 @@ class FapRig:
         R = np.eye(3)
         if self._chin is not None and drop:
             R = rotation("x", float(np.clip(jaw_angle(self._chin, pivot, drop), -MAX_JAW, MAX_JAW)))
-            t[1] -= drop - (self._chin[1] - (R @ (self._chin - pivot) + pivot)[1])  # rest of the drop
+            t[1] -= drop - (
+                self._chin[1] - (R @ (self._chin - pivot) + pivot)[1]
+            )  # rest of the drop
         T[_JAW] = about(R, pivot, t)
         # Eyeballs: yaw (+y), pitch (+x) about the centre, then thrust along +z.
         for g, (yaw, pitch, thrust) in ((_EYE_L, (23, 25, 27)), (_EYE_R, (24, 26, 28))):
             R = rotation("y", faps[yaw] * u["AU"]) @ rotation("x", faps[pitch] * u["AU"])
-            T[g] = about(R, self._pivots[RIGID_GROUPS[g]], np.array([0.0, 0.0, faps[thrust] * u["ES"]]))
+            T[g] = about(
+                R, self._pivots[RIGID_GROUPS[g]], np.array([0.0, 0.0, faps[thrust] * u["ES"]])
+            )
         return T
 
     def head_transform(self, state, faps: np.ndarray) -> np.ndarray:
@@ -235,7 +254,11 @@ class FapRig:
         if state.head is not None:
             return np.asarray(state.head, dtype=np.float64).reshape(3, 4)
         au = self.fapu["AU"]
-        R = rotation("y", faps[49] * au) @ rotation("x", faps[48] * au) @ rotation("z", faps[50] * au)
+        R = (
+            rotation("y", faps[49] * au)
+            @ rotation("x", faps[48] * au)
+            @ rotation("z", faps[50] * au)
+        )
         return about(R, self._pivots["head"])
 
     def solve(self, state) -> tuple[np.ndarray, np.ndarray]:
@@ -400,7 +423,8 @@ def _compose_batch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``(..., 3, 4)``: ``compose(a, b)`` (apply b, then a), broadcasting over leading axes."""
     A = a[..., :3]
     out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    out[..., :3] = (A[..., :, 0:1] * b[..., 0:1, :3] + A[..., :, 1:2] * b[..., 1:2, :3]) \
-        + A[..., :, 2:3] * b[..., 2:3, :3]
+    out[..., :3] = (A[..., :, 0:1] * b[..., 0:1, :3] + A[..., :, 1:2] * b[..., 1:2, :3]) + A[
+        ..., :, 2:3
+    ] * b[..., 2:3, :3]
     out[..., 3] = _matvec(A, b[..., 3]) + a[..., 3]
     return out

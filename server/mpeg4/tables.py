@@ -5,6 +5,7 @@ own left, +y up, +z out of the face. Positive rotations (eyeball/head yaw, pitch
 right-hand rotations about +y, +x and +z: yaw "left" turns the gaze (+z) toward +x, pitch "down"
 turns it toward -y, roll "right" tips the top of the head toward -x.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -18,11 +19,16 @@ UNITS: tuple[str, ...] = ("MNS", "MW", "ES", "ENS", "IRISD", "AU")
 
 #: Direction words -> unit vector (MPEG-4 axes) for translations, rotation axis for rotations.
 DIRECTIONS: dict[str, tuple[float, float, float]] = {
-    "up": (0.0, 1.0, 0.0), "down": (0.0, -1.0, 0.0),
-    "left": (1.0, 0.0, 0.0), "right": (-1.0, 0.0, 0.0),
+    "up": (0.0, 1.0, 0.0),
+    "down": (0.0, -1.0, 0.0),
+    "left": (1.0, 0.0, 0.0),
+    "right": (-1.0, 0.0, 0.0),
     "forward": (0.0, 0.0, 1.0),
-    "yaw": (0.0, 1.0, 0.0), "pitch": (1.0, 0.0, 0.0), "roll": (0.0, 0.0, 1.0),
-    "growing": (0.0, 0.0, 0.0), "concave_up": (0.0, 1.0, 0.0),
+    "yaw": (0.0, 1.0, 0.0),
+    "pitch": (1.0, 0.0, 0.0),
+    "roll": (0.0, 0.0, 1.0),
+    "growing": (0.0, 0.0, 0.0),
+    "concave_up": (0.0, 1.0, 0.0),
 }
 
 
@@ -136,9 +142,18 @@ def _parse_rows() -> tuple[Fap, ...]:
     rows = []
     for line in _ROWS.strip().splitlines():
         num, name, unit, ub, direction, group, fps, kind = line.split()
-        rows.append(Fap(int(num), name, "" if unit == "-" else unit, ub == "B",
-                        "" if direction == "-" else direction, int(group),
-                        () if fps == "-" else tuple(fps.split(",")), kind))
+        rows.append(
+            Fap(
+                int(num),
+                name,
+                "" if unit == "-" else unit,
+                ub == "B",
+                "" if direction == "-" else direction,
+                int(group),
+                () if fps == "-" else tuple(fps.split(",")),
+                kind,
+            )
+        )
     return tuple(rows)
 
 
@@ -148,7 +163,8 @@ FAPS: tuple[Fap, ...] = _parse_rows()
 FAP_NUMBER: dict[str, int] = {f.name: f.number for f in FAPS}
 #: FAP group -> its FAP numbers (10 groups).
 FAP_GROUPS: dict[int, tuple[int, ...]] = {
-    g: tuple(f.number for f in FAPS if f.group == g) for g in range(1, 11)}
+    g: tuple(f.number for f in FAPS if f.group == g) for g in range(1, 11)
+}
 
 #: The 84 feature points (groups 2..11), defined with the face model.
 FEATURE_POINTS: tuple[str, ...] = FEATURE_POINT_IDS

@@ -4,6 +4,7 @@ The one helper of the server (client code has its own, ``client/files.py``: the 
 import the server, and ``protocol/`` does no I/O). Temporary files are named ``.<name>.*.part``,
 so a folder's leftovers of an interrupted write are its dot files (``jobs/manager.py`` removes them).
 """
+
 from __future__ import annotations
 
 import contextlib

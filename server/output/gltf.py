@@ -35,6 +35,7 @@ the per-frame normal changes to the same weights.
 
 Axes: MPEG-4 and glTF agree (+y up, +z = the face's front, +x = the face's left).
 """
+
 from __future__ import annotations
 
 import json
@@ -87,10 +88,10 @@ def frame_chunks(frames: FrameSource, chunk: int) -> Iterator[np.ndarray]:
     if callable(frames):
         for c in frames():
             for s in range(0, len(c), chunk):
-                yield np.asarray(c[s:s + chunk], dtype=np.float32)
+                yield np.asarray(c[s : s + chunk], dtype=np.float32)
     else:
         for s in range(0, len(frames), chunk):
-            yield np.asarray(frames[s:s + chunk], dtype=np.float32)
+            yield np.asarray(frames[s : s + chunk], dtype=np.float32)
 
 
 def _chunk_rows(n_cols: int) -> int:
@@ -135,8 +136,8 @@ def _vertex_max(R: np.ndarray) -> np.ndarray:
     """Largest vertex norm in each planar row of ``R (c, 3V)`` -> ``(c,) float64``."""
     V = R.shape[1] // 3
     d2 = np.square(R[:, :V], dtype=np.float64)
-    d2 += np.square(R[:, V:2 * V], dtype=np.float64)
-    d2 += np.square(R[:, 2 * V:], dtype=np.float64)
+    d2 += np.square(R[:, V : 2 * V], dtype=np.float64)
+    d2 += np.square(R[:, 2 * V :], dtype=np.float64)
     return np.sqrt(d2.max(axis=1, initial=0.0))
 
 
@@ -181,8 +182,9 @@ class _Basis:
             return None
         return (v / n).astype(np.float32)
 
-    def sweep(self, frames: FrameSource, r: np.ndarray, tau: float, chunk: int
-              ) -> tuple[np.ndarray, np.ndarray]:
+    def sweep(
+        self, frames: FrameSource, r: np.ndarray, tau: float, chunk: int
+    ) -> tuple[np.ndarray, np.ndarray]:
         """One pass: for each chunk whose residual leaves a vertex further than ``tau`` from where it
         belongs, add the chunk residual's leading singular directions, one at a time, until no vertex
         is (or ``kmax`` is reached, or rounding is all that is left).
@@ -223,7 +225,7 @@ class _Basis:
         B = np.zeros((sum(len(b) for b in rows_b), self.k))
         s = 0
         for b in rows_b:
-            B[s:s + len(b), :b.shape[1]] = b
+            B[s : s + len(b), : b.shape[1]] = b
             s += len(b)
         return B, np.concatenate(rows_rho) if rows_rho else np.zeros(0)
 
@@ -233,15 +235,23 @@ class _Basis:
         out = np.zeros((self.k, self.n_cols), dtype=np.float32)
         s = 0
         for Q in self.blocks:
-            out += V[s:s + len(Q)].T.astype(np.float32) @ Q
+            out += V[s : s + len(Q)].T.astype(np.float32) @ Q
             s += len(Q)
         self.blocks = [out]
         return out
 
 
-def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_targets: int = 128, *,
-                normals: Callable[[np.ndarray], np.ndarray] | None = None, basis_slack: float = 0.5,
-                chunk: int | None = None, rounds: int = 5) -> MorphBasis:
+def morph_basis(
+    frames: FrameSource,
+    rest: np.ndarray,
+    tolerance: float,
+    max_targets: int = 128,
+    *,
+    normals: Callable[[np.ndarray], np.ndarray] | None = None,
+    basis_slack: float = 0.5,
+    chunk: int | None = None,
+    rounds: int = 5,
+) -> MorphBasis:
     """Morph targets within ``tolerance`` of every vertex of every frame (see module docstring).
 
     Args:
@@ -295,27 +305,52 @@ def morph_basis(frames: FrameSource, rest: np.ndarray, tolerance: float, max_tar
             best = exact
             best.capped = bool(best.max_error > tolerance)
     if best.capped:
-        log.warning("glTF morph basis capped at %d targets: max vertex error %.4g > tolerance %.4g "
-                    "(mesh units)", best.targets.shape[0], best.max_error, tolerance)
+        log.warning(
+            "glTF morph basis capped at %d targets: max vertex error %.4g > tolerance %.4g "
+            "(mesh units)",
+            best.targets.shape[0],
+            best.max_error,
+            tolerance,
+        )
     return best
 
 
-def _finish(targets: np.ndarray, weights: np.ndarray, M: int, errors: tuple[float, float],
-            wtw: np.ndarray, wtn: np.ndarray | None, capped: bool, passes: int, k: int, method: str
-            ) -> MorphBasis:
+def _finish(
+    targets: np.ndarray,
+    weights: np.ndarray,
+    M: int,
+    errors: tuple[float, float],
+    wtw: np.ndarray,
+    wtn: np.ndarray | None,
+    capped: bool,
+    passes: int,
+    k: int,
+    method: str,
+) -> MorphBasis:
     """The ``MorphBasis`` of the first ``M`` targets (normal deltas: least squares on the weights)."""
     if wtn is not None:
         ntargets = (np.linalg.pinv(wtw[:M, :M], hermitian=True) @ wtn[:M]).astype(np.float32)
     else:
         ntargets = np.zeros((M, targets.shape[1]), dtype=np.float32)
-    return MorphBasis(_interleaved(targets[:M]), np.ascontiguousarray(weights[:, :M]), _interleaved(ntargets),
-                      float(errors[0]), float(errors[1]), capped, passes, k, method)
+    return MorphBasis(
+        _interleaved(targets[:M]),
+        np.ascontiguousarray(weights[:, :M]),
+        _interleaved(ntargets),
+        float(errors[0]),
+        float(errors[1]),
+        capped,
+        passes,
+        k,
+        method,
+    )
 
 
 def _candidates(M: int) -> list[int]:
     """Target counts whose exact error the verification pass also measures: ``M`` and up to 9 below
     (denser near ``M``, where the fewest that suffice usually are)."""
-    return sorted({max(1, round(M * f)) for f in (0.2, 0.35, 0.5, 0.6, 0.7, 0.77, 0.84, 0.9, 0.95)} | {M})
+    return sorted(
+        {max(1, round(M * f)) for f in (0.2, 0.35, 0.5, 0.6, 0.7, 0.77, 0.84, 0.9, 0.95)} | {M}
+    )
 
 
 def _planar64(fc: np.ndarray, r3: np.ndarray, vb: slice) -> np.ndarray:
@@ -324,9 +359,14 @@ def _planar64(fc: np.ndarray, r3: np.ndarray, vb: slice) -> np.ndarray:
     return fc[:, vb].transpose(0, 2, 1).astype(np.float64) - r3[:, vb]
 
 
-def _verify(frames: FrameSource, r: np.ndarray, targets: np.ndarray, T: int, chunk: int,
-            normals: Callable[[np.ndarray], np.ndarray] | None
-            ) -> tuple[np.ndarray, dict[int, tuple[float, float]], np.ndarray, np.ndarray | None]:
+def _verify(
+    frames: FrameSource,
+    r: np.ndarray,
+    targets: np.ndarray,
+    T: int,
+    chunk: int,
+    normals: Callable[[np.ndarray], np.ndarray] | None,
+) -> tuple[np.ndarray, dict[int, tuple[float, float]], np.ndarray, np.ndarray | None]:
     """Pass 2: each frame's least-squares weights on ``targets (M, 3V) float32`` (planar) in float64,
     stored as float32 ``(T, M)``; for each candidate count ``m`` (the first ``m`` targets and
     weights, as a reader sees them) the exact max vertex error and max per-frame residual norm
@@ -355,9 +395,12 @@ def _verify(frames: FrameSource, r: np.ndarray, targets: np.ndarray, T: int, chu
             raise ValueError("the frame source yielded more frames on its second pass")
         num = np.zeros((n, M))
         for vb in blocks:
-            num += _planar64(fc, r3, vb).reshape(n, -1) @ t3[:, :, vb].reshape(M, -1).astype(np.float64).T
+            num += (
+                _planar64(fc, r3, vb).reshape(n, -1)
+                @ t3[:, :, vb].reshape(M, -1).astype(np.float64).T
+            )
         w = (num @ Ginv).astype(np.float32)
-        weights[s:s + n] = w
+        weights[s : s + n] = w
         w64 = w.astype(np.float64)
         frame2 = {m: np.zeros(n) for m in cands}
         for vb in blocks:
@@ -365,7 +408,9 @@ def _verify(frames: FrameSource, r: np.ndarray, targets: np.ndarray, T: int, chu
             diff = _planar64(fc, r3, vb)
             diff -= (w64 @ tb.reshape(M, -1)).reshape(diff.shape)
             prev = M
-            for m in cands:  # residual with the first m targets = residual with M + the dropped ones
+            for (
+                m
+            ) in cands:  # residual with the first m targets = residual with M + the dropped ones
                 if m < prev:
                     diff += (w64[:, m:prev] @ tb[m:prev].reshape(prev - m, -1)).reshape(diff.shape)
                     prev = m
@@ -385,8 +430,13 @@ def _verify(frames: FrameSource, r: np.ndarray, targets: np.ndarray, T: int, chu
     return weights, errors, wtw, wtn
 
 
-def _exact(frames: FrameSource, r: np.ndarray, T: int, chunk: int,
-           normals: Callable[[np.ndarray], np.ndarray] | None) -> MorphBasis:
+def _exact(
+    frames: FrameSource,
+    r: np.ndarray,
+    T: int,
+    chunk: int,
+    normals: Callable[[np.ndarray], np.ndarray] | None,
+) -> MorphBasis:
     """One target per frame (its float32 displacement, weight 1 at its keyframe): error is float32
     rounding alone, measured exactly; one pass."""
     n_cols = r.size
@@ -399,21 +449,30 @@ def _exact(frames: FrameSource, r: np.ndarray, T: int, chunk: int,
         n = len(fc)
         if s + n > T:
             raise ValueError("the frame source yielded more frames on another pass")
-        targets[s:s + n] = _displacements(fc, r)
+        targets[s : s + n] = _displacements(fc, r)
         f2 = np.zeros(n)
         for vb in _vertex_blocks(V, n):
-            diff = _planar64(fc, r3, vb) - targets[s:s + n].reshape(n, 3, V)[:, :, vb]
+            diff = _planar64(fc, r3, vb) - targets[s : s + n].reshape(n, 3, V)[:, :, vb]
             d2 = np.einsum("cxn,cxn->cn", diff, diff)
             err = max(err, float(np.sqrt(d2.max(initial=0.0))))
             f2 += d2.sum(axis=1)
         frame_err = max(frame_err, float(np.sqrt(f2.max(initial=0.0))))
         if normals is not None:
-            ntargets[s:s + n] = _planar(normals(fc))
+            ntargets[s : s + n] = _planar(normals(fc))
         s += n
     if s != T:
         raise ValueError(f"the frame source yielded {s} frames on another pass, not {T}")
-    return MorphBasis(_interleaved(targets), np.eye(T, dtype=np.float32), _interleaved(ntargets), err,
-                      frame_err, False, 1, T, "exact")
+    return MorphBasis(
+        _interleaved(targets),
+        np.eye(T, dtype=np.float32),
+        _interleaved(ntargets),
+        err,
+        frame_err,
+        False,
+        1,
+        T,
+        "exact",
+    )
 
 
 def unit_normals(frames: np.ndarray, triangles: np.ndarray, incidence) -> np.ndarray:
@@ -424,7 +483,9 @@ def unit_normals(frames: np.ndarray, triangles: np.ndarray, incidence) -> np.nda
     i0, i1, i2 = (np.ascontiguousarray(triangles[:, i]) for i in range(3))
     out = np.empty((c, V, 3), dtype=np.float32)
     for s in range(0, c, 16):  # 16 frames per sparse product (V, F) @ (F, 3 * 16)
-        p = np.ascontiguousarray(np.asarray(frames[s:s + 16], dtype=np.float32).transpose(2, 0, 1))  # (3, b, V)
+        p = np.ascontiguousarray(
+            np.asarray(frames[s : s + 16], dtype=np.float32).transpose(2, 0, 1)
+        )  # (3, b, V)
         b = p.shape[1]
         p0 = p[:, :, i0]
         e1, e2 = p[:, :, i1] - p0, p[:, :, i2] - p0  # (3, b, F)
@@ -432,11 +493,15 @@ def unit_normals(frames: np.ndarray, triangles: np.ndarray, incidence) -> np.nda
         fn[:, 0] = (e1[1] * e2[2] - e1[2] * e2[1]).T
         fn[:, 1] = (e1[2] * e2[0] - e1[0] * e2[2]).T
         fn[:, 2] = (e1[0] * e2[1] - e1[1] * e2[0]).T
-        n = np.asarray(incidence @ fn.reshape(F, 3 * b), dtype=np.float32).reshape(V, 3, b).transpose(2, 0, 1)
+        n = (
+            np.asarray(incidence @ fn.reshape(F, 3 * b), dtype=np.float32)
+            .reshape(V, 3, b)
+            .transpose(2, 0, 1)
+        )
         length = np.sqrt(np.einsum("bvc,bvc->bv", n, n))[..., None]
         n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
         n[~(np.abs(n).sum(axis=2) > 0)] = (0.0, 0.0, 1.0)
-        out[s:s + b] = n
+        out[s : s + b] = n
     return out
 
 
@@ -455,8 +520,15 @@ class _Bin:
         self.views: list[dict] = []
         self.accessors: list[dict] = []
 
-    def add(self, array: np.ndarray, *, comp: int, type_: str, target: int | None = None,
-            minmax: bool = False) -> int:
+    def add(
+        self,
+        array: np.ndarray,
+        *,
+        comp: int,
+        type_: str,
+        target: int | None = None,
+        minmax: bool = False,
+    ) -> int:
         data = memoryview(np.ascontiguousarray(array)).cast("B")
         view = {"buffer": 0, "byteOffset": self.size, "byteLength": len(data)}
         if target is not None:
@@ -468,8 +540,12 @@ class _Bin:
             self.parts.append(b"\0" * pad)
         self.size += len(data) + pad
         ncomp = {"SCALAR": 1, "VEC3": 3}[type_]
-        acc = {"bufferView": len(self.views) - 1, "componentType": comp, "count": int(array.size // ncomp),
-               "type": type_}
+        acc = {
+            "bufferView": len(self.views) - 1,
+            "componentType": comp,
+            "count": int(array.size // ncomp),
+            "type": type_,
+        }
         if minmax:
             a = np.asarray(array).reshape(-1, ncomp)
             acc["min"] = [float(x) for x in a.min(axis=0)] if len(a) else [0.0] * ncomp
@@ -484,10 +560,19 @@ MAX_TARGETS = 128
 GLB_MAX_BYTES = 2**32 - 1
 
 
-def glb_parts(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float, *,
-              mm_per_unit: float = 1.0, tolerance_mm: float = 0.01, max_targets: int | None = None,
-              name: str = "facecast", extras: dict | None = None, where: str = "glTF"
-              ) -> tuple[list, dict]:
+def glb_parts(
+    frames: FrameSource,
+    rest: np.ndarray,
+    triangles: np.ndarray,
+    fps: float,
+    *,
+    mm_per_unit: float = 1.0,
+    tolerance_mm: float = 0.01,
+    max_targets: int | None = None,
+    name: str = "facecast",
+    extras: dict | None = None,
+    where: str = "glTF",
+) -> tuple[list, dict]:
     """The ``.glb`` as a list of byte buffers (header, JSON, binary pieces) and its
     ``extras.facecast`` record; OutputError when no morph basis within ``max_targets`` meets
     ``tolerance_mm`` (see module docstring) or the file would pass 4 GiB. Arguments: ``encode_glb``."""
@@ -502,8 +587,13 @@ def glb_parts(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps:
     inc = incidence_matrix(tri.astype(np.int32), V)
 
     n0 = unit_normals(rest[None], tri, inc)[0]
-    mb = morph_basis(frames, rest, tolerance_mm / mm_per_unit, max_targets,
-                     normals=lambda v: unit_normals(v, tri, inc) - n0)
+    mb = morph_basis(
+        frames,
+        rest,
+        tolerance_mm / mm_per_unit,
+        max_targets,
+        normals=lambda v: unit_normals(v, tri, inc) - n0,
+    )
     targets, weights, ntargets = mb.targets, mb.weights, mb.normals
     T, M = weights.shape
     err_mm = mb.max_error * mm_per_unit
@@ -512,43 +602,83 @@ def glb_parts(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps:
             f"refusing to write a wrong file: {T} frames of a {V:,}-vertex face need more than "
             f"{max_targets} morph targets to stay within {tolerance_mm:g} mm (the best basis found is off "
             f"by {err_mm:.3g} mm); write .npz instead (exact vertices), or use a smaller --face or a "
-            "shorter clip", where=where)
+            "shorter clip",
+            where=where,
+        )
     size = 12 + 8 * 2 + 4096 + 4 * (2 * V * 3 * (M + 1) + tri.size + T * (M + 1))
     if size > GLB_MAX_BYTES:
         raise OutputError(
             f"the .glb would take {size / 2**30:.1f} GiB ({M} morph targets of a {V:,}-vertex face), over "
             "the format's 4 GiB limit; write .npz instead, or use a smaller --face or a shorter clip",
-            where=where)
+            where=where,
+        )
 
     b = _Bin()
     pos = b.add(rest, comp=_FLOAT, type_="VEC3", target=_ARRAY_BUFFER, minmax=True)
     nrm = b.add(n0, comp=_FLOAT, type_="VEC3", target=_ARRAY_BUFFER)
     idx = b.add(tri.reshape(-1), comp=_UINT, type_="SCALAR", target=_ELEMENT_ARRAY_BUFFER)
-    tgts = [{"POSITION": b.add(targets[m], comp=_FLOAT, type_="VEC3", target=_ARRAY_BUFFER, minmax=True),
-             "NORMAL": b.add(ntargets[m], comp=_FLOAT, type_="VEC3", target=_ARRAY_BUFFER)} for m in range(M)]
+    tgts = [
+        {
+            "POSITION": b.add(
+                targets[m], comp=_FLOAT, type_="VEC3", target=_ARRAY_BUFFER, minmax=True
+            ),
+            "NORMAL": b.add(ntargets[m], comp=_FLOAT, type_="VEC3", target=_ARRAY_BUFFER),
+        }
+        for m in range(M)
+    ]
     times = (np.arange(T, dtype=np.float64) / float(fps)).astype(np.float32)
     t_acc = b.add(times, comp=_FLOAT, type_="SCALAR", minmax=True)
     w_acc = b.add(weights.reshape(-1), comp=_FLOAT, type_="SCALAR")
 
-    record = {"frames": T, "fps": float(fps), "duration_s": float(T / fps), "targets": M,
-              "method": "svd-stream" if mb.method == "svd" else "exact", "tolerance_mm": float(tolerance_mm),
-              "max_error_mm": err_mm, "error_bound_mm": err_mm, "verified": True,
-              "frame_error_mm": mb.frame_error * mm_per_unit, "capped": mb.capped,
-              "max_targets": int(max_targets), "passes": mb.passes, "mm_per_unit": float(mm_per_unit),
-              **(extras or {})}
+    record = {
+        "frames": T,
+        "fps": float(fps),
+        "duration_s": float(T / fps),
+        "targets": M,
+        "method": "svd-stream" if mb.method == "svd" else "exact",
+        "tolerance_mm": float(tolerance_mm),
+        "max_error_mm": err_mm,
+        "error_bound_mm": err_mm,
+        "verified": True,
+        "frame_error_mm": mb.frame_error * mm_per_unit,
+        "capped": mb.capped,
+        "max_targets": int(max_targets),
+        "passes": mb.passes,
+        "mm_per_unit": float(mm_per_unit),
+        **(extras or {}),
+    }
     s = mm_per_unit / 1000.0
     doc = {
-        "asset": {"version": "2.0", "generator": "facecast",
-                  "extras": {"tolerance_mm": float(tolerance_mm), "max_error_mm": err_mm}},
+        "asset": {
+            "version": "2.0",
+            "generator": "facecast",
+            "extras": {"tolerance_mm": float(tolerance_mm), "max_error_mm": err_mm},
+        },
         "scene": 0,
         "scenes": [{"nodes": [0]}],
         "nodes": [{"name": name, "mesh": 0, "scale": [s, s, s]}],
-        "meshes": [{"name": name, "weights": [0.0] * M,
-                    "primitives": [{"attributes": {"POSITION": pos, "NORMAL": nrm}, "indices": idx,
-                                    "mode": 4, "targets": tgts}],
-                    "extras": {"targetNames": [f"pc{m:03d}" for m in range(M)]}}],
-        "animations": [{"name": name, "samplers": [{"input": t_acc, "output": w_acc, "interpolation": "LINEAR"}],
-                        "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]}],
+        "meshes": [
+            {
+                "name": name,
+                "weights": [0.0] * M,
+                "primitives": [
+                    {
+                        "attributes": {"POSITION": pos, "NORMAL": nrm},
+                        "indices": idx,
+                        "mode": 4,
+                        "targets": tgts,
+                    }
+                ],
+                "extras": {"targetNames": [f"pc{m:03d}" for m in range(M)]},
+            }
+        ],
+        "animations": [
+            {
+                "name": name,
+                "samplers": [{"input": t_acc, "output": w_acc, "interpolation": "LINEAR"}],
+                "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
+            }
+        ],
         "buffers": [{"byteLength": b.size}],
         "bufferViews": b.views,
         "accessors": b.accessors,
@@ -558,16 +688,32 @@ def glb_parts(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps:
     js += b" " * ((-len(js)) % 4)
     total = 12 + 8 + len(js) + 8 + b.size
     if total > GLB_MAX_BYTES:
-        raise OutputError(f"the .glb would take {total / 2**30:.1f} GiB, over the format's 4 GiB limit; "
-                          "write .npz instead, or use a smaller --face or a shorter clip", where=where)
-    head = [struct.pack("<III", 0x46546C67, 2, total), struct.pack("<II", len(js), 0x4E4F534A), js,
-            struct.pack("<II", b.size, 0x004E4942)]
+        raise OutputError(
+            f"the .glb would take {total / 2**30:.1f} GiB, over the format's 4 GiB limit; "
+            "write .npz instead, or use a smaller --face or a shorter clip",
+            where=where,
+        )
+    head = [
+        struct.pack("<III", 0x46546C67, 2, total),
+        struct.pack("<II", len(js), 0x4E4F534A),
+        js,
+        struct.pack("<II", b.size, 0x004E4942),
+    ]
     return head + b.parts, record
 
 
-def encode_glb(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float, *,
-               mm_per_unit: float = 1.0, tolerance_mm: float = 0.01, max_targets: int | None = None,
-               name: str = "facecast", extras: dict | None = None) -> tuple[bytes, dict]:
+def encode_glb(
+    frames: FrameSource,
+    rest: np.ndarray,
+    triangles: np.ndarray,
+    fps: float,
+    *,
+    mm_per_unit: float = 1.0,
+    tolerance_mm: float = 0.01,
+    max_targets: int | None = None,
+    name: str = "facecast",
+    extras: dict | None = None,
+) -> tuple[bytes, dict]:
     """The ``.glb`` bytes of an animation and its ``extras.facecast`` record (see module docstring).
 
     Args:
@@ -581,20 +727,42 @@ def encode_glb(frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps
     Raises OutputError (nothing written) when no basis of at most ``max_targets`` targets meets
     ``tolerance_mm``, or the file would pass the 4 GiB limit of the format.
     """
-    parts, record = glb_parts(frames, rest, triangles, fps, mm_per_unit=mm_per_unit, tolerance_mm=tolerance_mm,
-                              max_targets=max_targets, name=name, extras=extras)
+    parts, record = glb_parts(
+        frames,
+        rest,
+        triangles,
+        fps,
+        mm_per_unit=mm_per_unit,
+        tolerance_mm=tolerance_mm,
+        max_targets=max_targets,
+        name=name,
+        extras=extras,
+    )
     return b"".join(parts), record
 
 
-def write_glb(path: str | Path, frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float,
-              **options) -> dict:
+def write_glb(
+    path: str | Path,
+    frames: FrameSource,
+    rest: np.ndarray,
+    triangles: np.ndarray,
+    fps: float,
+    **options,
+) -> dict:
     """Write the ``.glb`` of ``encode_glb(...)`` to ``path`` atomically, piece by piece (no copy of the
     whole file in memory); returns the ``extras.facecast`` record. OutputError: nothing is written."""
     parts, record = glb_parts(frames, rest, triangles, fps, where=str(path), **options)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.writelines(parts)
         size = f.tell()
-    log.info("wrote %s: %d frames, %d morph targets (%s), max error %.4f mm (tolerance %g mm), %.1f MB", path,
-             record["frames"], record["targets"], record["method"], record["max_error_mm"],
-             record["tolerance_mm"], size / 1e6)
+    log.info(
+        "wrote %s: %d frames, %d morph targets (%s), max error %.4f mm (tolerance %g mm), %.1f MB",
+        path,
+        record["frames"],
+        record["targets"],
+        record["method"],
+        record["max_error_mm"],
+        record["tolerance_mm"],
+        size / 1e6,
+    )
     return record

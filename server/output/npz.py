@@ -1,4 +1,5 @@
 """Animated vertices as NumPy ``.npz``: ``vertices (T, V, 3) float32``, ``faces (F, 3) int32``, ``fps``."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -15,8 +16,12 @@ def write_npz(path: str | Path, vertices: np.ndarray, triangles: np.ndarray, fps
         raise ValueError(f"vertices must be (T, V, 3), not {vertices.shape}")
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            np.savez(fh, vertices=vertices, faces=np.asarray(triangles, dtype=np.int32),
-                     fps=np.float64(fps))
+            np.savez(
+                fh,
+                vertices=vertices,
+                faces=np.asarray(triangles, dtype=np.int32),
+                fps=np.float64(fps),
+            )
 
 
 def read_npz(path: str | Path) -> tuple[np.ndarray, np.ndarray, float]:

@@ -8,6 +8,7 @@
 
 Device selection is ``..select``'s (``default_context``).
 """
+
 from __future__ import annotations
 
 from ..select import context_label, default_context, probe_devices

@@ -16,6 +16,7 @@ one per CPU (``select.pin_pocl_workers``).
 
 The operator's device format is ``packing``'s; the kernels' sources are ``kernels``'.
 """
+
 from __future__ import annotations
 
 import functools
@@ -53,9 +54,12 @@ _P = ParamSpec("_P")
 _R = TypeVar("_R")
 
 
-def _serialised(method: Callable[Concatenate[OpenCLDeformer, _P], _R]) -> Callable[Concatenate[OpenCLDeformer, _P], _R]:
+def _serialised(
+    method: Callable[Concatenate[OpenCLDeformer, _P], _R],
+) -> Callable[Concatenate[OpenCLDeformer, _P], _R]:
     """Run ``method`` under the deformer's lock: one queue and one parameter block per deformer,
     so calls from several threads (server sessions) take turns."""
+
     @functools.wraps(method)
     def wrapper(self: OpenCLDeformer, /, *args: _P.args, **kwargs: _P.kwargs) -> _R:
         with self._lock:
@@ -82,9 +86,17 @@ class OpenCLDeformer:
         slice_size: vertices per work-item (8 or 16; see ``SLICE``).
     """
 
-    def __init__(self, rest: np.ndarray, triangles: np.ndarray, rigid_group: np.ndarray,
-                 operator: Operator, context: Any = None, *, zero_copy: bool | None = None,
-                 slice_size: int = SLICE) -> None:
+    def __init__(
+        self,
+        rest: np.ndarray,
+        triangles: np.ndarray,
+        rigid_group: np.ndarray,
+        operator: Operator,
+        context: Any = None,
+        *,
+        zero_copy: bool | None = None,
+        slice_size: int = SLICE,
+    ) -> None:
         import pyopencl as cl
 
         self._cl = cl
@@ -93,7 +105,9 @@ class OpenCLDeformer:
         if ctx is None:
             from ...errors import FacecastError
 
-            raise FacecastError("no working OpenCL device; install pocl-opencl-icd or use --backend numpy")
+            raise FacecastError(
+                "no working OpenCL device; install pocl-opencl-icd or use --backend numpy"
+            )
         self.context = ctx
         self.device = ctx.devices[0]
         self.name = f"opencl:{context_label(ctx)}"
@@ -105,7 +119,9 @@ class OpenCLDeformer:
         self.n_controls = int(operator.n_controls)
         self.n_faces = int(self.triangles.shape[0])
         if operator.n_vertices != self.n_vertices:
-            raise ValueError(f"operator has {operator.n_vertices} vertices, the mesh {self.n_vertices}")
+            raise ValueError(
+                f"operator has {operator.n_vertices} vertices, the mesh {self.n_vertices}"
+            )
         group = np.ascontiguousarray(rigid_group, dtype=np.uint8)
         self.n_groups = int(group.max(initial=0)) + 1
         cpu = bool(self.device.type & cl.device_type.CPU)
@@ -117,11 +133,15 @@ class OpenCLDeformer:
         self.packed = pack_operator(operator, slice_size)
         p = self.packed
         S = p.slice
-        self._program = deform_program(ctx, {"AXES": p.axes, "IDX_T": p.idx_ctype, "DENSE": int(p.dense), "SLICE": S})
+        self._program = deform_program(
+            ctx, {"AXES": p.axes, "IDX_T": p.idx_ctype, "DENSE": int(p.dense), "SLICE": S}
+        )
         self._k_deform = cl.Kernel(self._program, "deform")
         self._k_deform_stream = cl.Kernel(self._program, "deform_stream")
         self._cache_bytes = int(self.device.global_mem_cache_size) if cpu else 0
-        self._resident_bytes = self.packed.nbytes + 12 * self.packed.n_padded  # operator and rest positions
+        self._resident_bytes = (
+            self.packed.nbytes + 12 * self.packed.n_padded
+        )  # operator and rest positions
         self._k_face_normals = cl.Kernel(self._program, "face_normals")
         self._k_vertex_normals = cl.Kernel(self._program, "vertex_normals")
 
@@ -136,14 +156,15 @@ class OpenCLDeformer:
         self._w = cl.Buffer(ctx, ro, hostbuf=nonempty(p.weights))
         n_slices = p.n_padded // S
         rest_p = np.zeros((p.n_padded, 3), np.float32)
-        rest_p[:self.n_vertices] = self.rest
+        rest_p[: self.n_vertices] = self.rest
         group_p = np.zeros(p.n_padded, np.uint8)
-        group_p[:self.n_vertices] = group
-        group_p[self.n_vertices:] = group_p[max(0, self.n_vertices - 1)]
+        group_p[: self.n_vertices] = group
+        group_p[self.n_vertices :] = group_p[max(0, self.n_vertices - 1)]
         gs = group_p.reshape(n_slices, S)
         sgroup = np.where((gs == gs[:, :1]).all(axis=1), gs[:, 0], 255).astype(np.uint8)
-        self._rest = cl.Buffer(ctx, ro, hostbuf=np.ascontiguousarray(
-            rest_p.reshape(n_slices, S, 3).transpose(0, 2, 1)))
+        self._rest = cl.Buffer(
+            ctx, ro, hostbuf=np.ascontiguousarray(rest_p.reshape(n_slices, S, 3).transpose(0, 2, 1))
+        )
         self._sgroup = cl.Buffer(ctx, ro, hostbuf=sgroup)
         self._sgroup_host = sgroup
         self._group = cl.Buffer(ctx, ro, hostbuf=group_p)
@@ -174,7 +195,9 @@ class OpenCLDeformer:
         adj_ptr = np.zeros(V + 1, dtype=np.uint32)
         np.cumsum(np.bincount(flat, minlength=V), out=adj_ptr[1:])
         ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-        self._tri = cl.Buffer(self.context, ro, hostbuf=self.triangles if F else np.zeros(3, np.int32))
+        self._tri = cl.Buffer(
+            self.context, ro, hostbuf=self.triangles if F else np.zeros(3, np.int32)
+        )
         self._adj = cl.Buffer(self.context, ro, hostbuf=adj if adj.size else np.zeros(1, np.uint32))
         self._adj_ptr = cl.Buffer(self.context, ro, hostbuf=adj_ptr)
         self._fn = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, max(12, 12 * F))
@@ -187,22 +210,28 @@ class OpenCLDeformer:
         v = self.deform(D, T)
         self.normals(v)
 
-    def _check(self, D: np.ndarray, transforms: np.ndarray, batch: bool) -> tuple[np.ndarray, np.ndarray]:
+    def _check(
+        self, D: np.ndarray, transforms: np.ndarray, batch: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
         D = np.asarray(D, dtype=np.float32)
         T = np.asarray(transforms, dtype=np.float32)
         lead = D.shape[:1] if batch else ()
         D = D.reshape(lead + (self.n_controls, 3))
-        if T.ndim != len(lead) + 3 or T.shape[-2:] != (3, 4) or T.shape[:len(lead)] != lead:
+        if T.ndim != len(lead) + 3 or T.shape[-2:] != (3, 4) or T.shape[: len(lead)] != lead:
             raise ValueError(f"transforms must be {lead + ('G', 3, 4)}, not {T.shape}")
         if T.shape[-3] < self.n_groups:
-            raise ValueError(f"the mesh has {self.n_groups} rigid groups; transforms has {T.shape[-3]}")
+            raise ValueError(
+                f"the mesh has {self.n_groups} rigid groups; transforms has {T.shape[-3]}"
+            )
         if not (np.isfinite(D).all() and np.isfinite(T).all()):
             # (zero weights would otherwise spread a NaN to vertices that do not use the control)
             from ...errors import InputError
 
-            raise InputError("control displacements and transforms must be finite (fill mocap gaps first)",
-                             where="D" if not np.isfinite(D).all() else "transforms")
-        return D, T[..., :self.n_groups, :, :]
+            raise InputError(
+                "control displacements and transforms must be finite (fill mocap gaps first)",
+                where="D" if not np.isfinite(D).all() else "transforms",
+            )
+        return D, T[..., : self.n_groups, :, :]
 
     def _fill_params(self, D: np.ndarray, T: np.ndarray) -> np.ndarray:
         """``(n, pstride) float32`` parameter block for frames ``D (n, K, 3)``, ``T (n, G, 3, 4)``."""
@@ -216,8 +245,8 @@ class OpenCLDeformer:
         gt = self.n_groups * T_FLOATS
         cols = P[:, :gt].reshape(n, self.n_groups, 4, 4)
         cols[..., :3] = T.transpose(0, 1, 3, 2)  # column c of each 3x4 transform as a float4
-        Dv = P[:, gt:gt + 4 * (self.n_controls + 1)].reshape(n, self.n_controls + 1, 4)
-        Dv[:, :self.n_controls, :3] = D
+        Dv = P[:, gt : gt + 4 * (self.n_controls + 1)].reshape(n, self.n_controls + 1, 4)
+        Dv[:, : self.n_controls, :3] = D
         return P
 
     def _upload_params(self, P: np.ndarray) -> None:
@@ -225,28 +254,52 @@ class OpenCLDeformer:
         cl = self._cl
         single = P.base is self._params_host or P is self._params_host
         if self.zero_copy:
-            self._params = self._params_single if single else self._host_buffer(P, cl.mem_flags.READ_ONLY)
+            self._params = (
+                self._params_single if single else self._host_buffer(P, cl.mem_flags.READ_ONLY)
+            )
             return
-        self._params = self._params_single if single else cl.Buffer(self.context, cl.mem_flags.READ_ONLY, P.nbytes)
+        self._params = (
+            self._params_single
+            if single
+            else cl.Buffer(self.context, cl.mem_flags.READ_ONLY, P.nbytes)
+        )
         cl.enqueue_copy(self.queue, self._params, P, is_blocking=False)
 
     def _set_deform_args(self) -> None:
         """Set the deform kernels' resident arguments once (see ``_launch_deform``)."""
         self._arg_frames = {}
         for k in (self._k_deform, self._k_deform_stream):
-            k.set_args(np.uint32(self.n_vertices), np.uint32(self.n_controls), self._col_ptr,
-                       self._id_ptr, self._ids, self._w, self._rest, self._sgroup, self._group,
-                       self._params, np.uint32(self._pstride // 4), np.uint32(self.n_groups),
-                       np.uint32(1), self._verts)
+            k.set_args(
+                np.uint32(self.n_vertices),
+                np.uint32(self.n_controls),
+                self._col_ptr,
+                self._id_ptr,
+                self._ids,
+                self._w,
+                self._rest,
+                self._sgroup,
+                self._group,
+                self._params,
+                np.uint32(self._pstride // 4),
+                np.uint32(self.n_groups),
+                np.uint32(1),
+                self._verts,
+            )
             self._arg_frames[k] = 1
 
     def _streams(self, n_frames: int, out: np.ndarray | None = None) -> bool:
         """Whether a launch writing ``n_frames`` frames (into ``out``, else the resident vertex
         buffer) uses non-temporal stores (see ``STREAM_FRACTION``; they need 32-byte aligned frames)."""
-        big = self._resident_bytes + n_frames * 12 * self.n_vertices > STREAM_FRACTION * self._cache_bytes
+        big = (
+            self._resident_bytes + n_frames * 12 * self.n_vertices
+            > STREAM_FRACTION * self._cache_bytes
+        )
         if not (big and self._cache_bytes) or self.n_vertices < self.packed.slice:
             return False
-        return not ((n_frames > 1 and (12 * self.n_vertices) % 32) or (out is not None and out.ctypes.data % 32))
+        return not (
+            (n_frames > 1 and (12 * self.n_vertices) % 32)
+            or (out is not None and out.ctypes.data % 32)
+        )
 
     def _launch_deform(self, n_frames: int, out_buf: Any, stream: bool = False) -> Any:
         """Enqueue the deform kernel (``deform_stream`` if ``stream``), setting only the per-launch
@@ -259,7 +312,9 @@ class OpenCLDeformer:
             k.set_arg(12, np.uint32(n_frames))
             self._arg_frames[k] = n_frames
         k.set_arg(13, out_buf)
-        return self._cl.enqueue_nd_range_kernel(self.queue, k, (self._global_slices,), (LOCAL_SLICES,))
+        return self._cl.enqueue_nd_range_kernel(
+            self.queue, k, (self._global_slices,), (LOCAL_SLICES,)
+        )
 
     def _host_buffer(self, arr: np.ndarray, flags: Any = None) -> Any:
         """A buffer whose storage is host array ``arr`` (``CL_MEM_USE_HOST_PTR``): on a CPU device
@@ -278,8 +333,9 @@ class OpenCLDeformer:
             event.wait()
             return
         cl = self._cl
-        mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype,
-                                          is_blocking=True)
+        mapped, _ = cl.enqueue_map_buffer(
+            self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype, is_blocking=True
+        )
         mapped.base.release(self.queue)
 
     # ------------------------------------------------------------------------------- interface
@@ -290,7 +346,9 @@ class OpenCLDeformer:
         return self.deform(D, T) - self.rest
 
     @_serialised
-    def deform(self, D: np.ndarray, transforms: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def deform(
+        self, D: np.ndarray, transforms: np.ndarray, out: np.ndarray | None = None
+    ) -> np.ndarray:
         """One frame: ``D (K, 3)``, ``transforms (G, 3, 4)`` -> vertices ``(V, 3) float32``.
 
         ``out`` (a C-contiguous ``(V, 3) float32`` array) receives the result if given.
@@ -299,7 +357,11 @@ class OpenCLDeformer:
         self._upload_params(self._fill_params(D[None], T[None]))
         if out is None:
             out = aligned_empty((self.n_vertices, 3), np.float32)
-        elif out.shape != (self.n_vertices, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
+        elif (
+            out.shape != (self.n_vertices, 3)
+            or out.dtype != np.float32
+            or not out.flags.c_contiguous
+        ):
             raise ValueError("out must be a C-contiguous (V, 3) float32 array")
         if self.n_vertices == 0:
             return out
@@ -312,7 +374,9 @@ class OpenCLDeformer:
         return out
 
     @_serialised
-    def deform_batch(self, D: np.ndarray, transforms: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def deform_batch(
+        self, D: np.ndarray, transforms: np.ndarray, out: np.ndarray | None = None
+    ) -> np.ndarray:
         """Many frames in one launch: ``D (T, K, 3)``, ``transforms (T, G, 3, 4)`` -> ``(T, V, 3)``.
 
         ``out`` (a C-contiguous ``(T, V, 3) float32`` array) receives the frames if given.
@@ -321,7 +385,11 @@ class OpenCLDeformer:
         n = D.shape[0]
         if out is None:
             out = aligned_empty((n, self.n_vertices, 3), np.float32)
-        elif out.shape != (n, self.n_vertices, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
+        elif (
+            out.shape != (n, self.n_vertices, 3)
+            or out.dtype != np.float32
+            or not out.flags.c_contiguous
+        ):
             raise ValueError("out must be a C-contiguous (T, V, 3) float32 array")
         if n == 0 or self.n_vertices == 0:
             return out
@@ -333,9 +401,13 @@ class OpenCLDeformer:
             self._upload_params(self._fill_params(D[a:b], T[a:b]))
             if self.zero_copy:
                 buf = self._host_out(out[a:b])
-                self._sync_host(buf, out[a:b], self._launch_deform(b - a, buf, self._streams(b - a, out[a:b])))
+                self._sync_host(
+                    buf, out[a:b], self._launch_deform(b - a, buf, self._streams(b - a, out[a:b]))
+                )
             else:
-                buf = self._cl.Buffer(self.context, self._cl.mem_flags.WRITE_ONLY, (b - a) * frame_bytes)
+                buf = self._cl.Buffer(
+                    self.context, self._cl.mem_flags.WRITE_ONLY, (b - a) * frame_bytes
+                )
                 self._launch_deform(b - a, buf, self._streams(b - a))
                 self._cl.enqueue_copy(self.queue, out[a:b], buf, is_blocking=True)
         return out
@@ -355,17 +427,33 @@ class OpenCLDeformer:
 
     def _nbuf(self) -> Any:
         if not hasattr(self, "_normals_out"):
-            self._normals_out = self._cl.Buffer(self.context, self._cl.mem_flags.READ_WRITE,
-                                                max(12, 12 * self.n_vertices))
+            self._normals_out = self._cl.Buffer(
+                self.context, self._cl.mem_flags.READ_WRITE, max(12, 12 * self.n_vertices)
+            )
         return self._normals_out
 
     def _launch_normals(self) -> None:
         F = self.n_faces
         if F:
-            self._k_face_normals(self.queue, (-(-F // LOCAL_SIZE) * LOCAL_SIZE,), (LOCAL_SIZE,),
-                                 np.uint32(F), self._tri, self._verts, self._fn)
-        self._k_vertex_normals(self.queue, self._global, (LOCAL_SIZE,), np.uint32(self.n_vertices),
-                               self._adj_ptr, self._adj, self._fn, self._nbuf())
+            self._k_face_normals(
+                self.queue,
+                (-(-F // LOCAL_SIZE) * LOCAL_SIZE,),
+                (LOCAL_SIZE,),
+                np.uint32(F),
+                self._tri,
+                self._verts,
+                self._fn,
+            )
+        self._k_vertex_normals(
+            self.queue,
+            self._global,
+            (LOCAL_SIZE,),
+            np.uint32(self.n_vertices),
+            self._adj_ptr,
+            self._adj,
+            self._fn,
+            self._nbuf(),
+        )
 
     # ------------------------------------------------------------------------ measuring aids
     def bytes_per_frame(self) -> int:
@@ -373,17 +461,25 @@ class OpenCLDeformer:
         groups (and per-vertex groups of mixed slices), the frame's parameters and the output."""
         p = self.packed
         mixed = int(np.count_nonzero(self._sgroup_host == 255)) * p.slice
-        return int(p.nbytes + 12 * p.n_padded + len(self._sgroup_host) + mixed + 4 * self._pstride
-                   + 12 * self.n_vertices)
+        return int(
+            p.nbytes
+            + 12 * p.n_padded
+            + len(self._sgroup_host)
+            + mixed
+            + 4 * self._pstride
+            + 12 * self.n_vertices
+        )
 
     def format_description(self) -> str:
         """The operator's device format, in words."""
         p = self.packed
         if p.dense:
             return "dense, slice-major float32"
-        return (f"slices of {p.slice}: {100 * p.shared_fraction:.0f}% shared columns, others ELL; "
-                f"{p.idx_ctype} ids; {p.axes} float32 weight plane{'s' if p.axes > 1 else ''}; "
-                f"{p.slice * p.n_columns / max(1, self.operator.nnz):.2f} stored weights per non-zero")
+        return (
+            f"slices of {p.slice}: {100 * p.shared_fraction:.0f}% shared columns, others ELL; "
+            f"{p.idx_ctype} ids; {p.axes} float32 weight plane{'s' if p.axes > 1 else ''}; "
+            f"{p.slice * p.n_columns / max(1, self.operator.nnz):.2f} stored weights per non-zero"
+        )
 
     @_serialised
     def upload_frame(self, D: np.ndarray, transforms: np.ndarray, wait: bool = False) -> None:

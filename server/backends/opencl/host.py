@@ -1,4 +1,5 @@
 """Host arrays the device uses in place (``CL_MEM_USE_HOST_PTR`` on host-memory devices)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -14,4 +15,4 @@ def aligned_empty(shape: tuple[int, ...], dtype: DTypeLike, align: int = ALIGN) 
     n = int(np.prod(shape)) * dt.itemsize
     raw = np.empty(n + align, dtype=np.uint8)
     off = (-raw.ctypes.data) % align
-    return raw[off:off + n].view(dt).reshape(shape)
+    return raw[off : off + n].view(dt).reshape(shape)

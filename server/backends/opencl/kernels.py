@@ -5,6 +5,7 @@ into the gathers and stores); the others are plain sources beside this module (`
 ``normals.cl`` (area-weighted vertex normals) and ``quantize.cl`` (int16 wire frames, see
 ``quantize.DeviceQuantizer``).
 """
+
 from __future__ import annotations
 
 import threading
@@ -30,11 +31,14 @@ def aos_store8(x: str, y: str, z: str, o: str, stream: bool = False) -> str:
     ``stream``: non-temporal stores (``o`` must be 32-byte aligned)."""
     sh = "__builtin_shufflevector"
     if stream:
+
         def store(v: str, i: int) -> str:
             return f"__builtin_nontemporal_store({v}, (__global float8 *)({o}) + {i});"
     else:
+
         def store(v: str, i: int) -> str:
             return f"vstore8({v}, {i}, {o});"
+
     return f"""{{
             const float8 xy = {sh}({x}, {y}, 0, 2, 8, 10, 4, 6, 12, 14);  // x0 x2 y0 y2 | x4 x6 y4 y6
             const float8 yz = {sh}({y}, {z}, 1, 3, 9, 11, 5, 7, 13, 15);  // y1 y3 z1 z3 | y5 y7 z5 z7
@@ -62,13 +66,15 @@ def deform_kernel(S: int, name: str, stream: bool) -> str:
         return f"(VF)({', '.join(parts)})"
 
     inter = [f"o{c}.s{hx[v]}" for v in lanes for c in "xyz"]  # AoS order of the slice's output
-    stores = "\n        ".join(aos_store8(f"ox{h}", f"oy{h}", f"oz{h}", f"o + {24 * i}", stream)
-                                 for i, h in enumerate((".lo", ".hi") if S == 16 else ("",)))
+    stores = "\n        ".join(
+        aos_store8(f"ox{h}", f"oy{h}", f"oz{h}", f"o + {24 * i}", stream)
+        for i, h in enumerate((".lo", ".hi") if S == 16 else ("",))
+    )
     tail = "\n        ".join(f"if ({i} < n) o[{i}] = {x};" for i, x in enumerate(inter))
     gathers = "\n            ".join(f"const float4 d{l} = D[id[{l}]];" for l in lanes)
     # Non-temporal stores are weakly ordered: drain them before the work-group ends (on CPU
     # devices, the only ones that stream, a work-group's items run in order on one thread).
-    fence = ("\n    if (get_local_id(0) + 1 == get_local_size(0)) STREAM_FENCE();" if stream else "")
+    fence = "\n    if (get_local_id(0) + 1 == get_local_size(0)) STREAM_FENCE();" if stream else ""
     dx, dy, dz = (vec([f"d{l}.{c}" for l in lanes]) for c in "xyz")
     return f"""
 #ifndef SN

@@ -11,6 +11,7 @@ not use the control. A dense operator (RBF, linear shell) is K shared columns pe
 stay float32, so results equal NumPy's to float32 rounding (different summation order and FMA).
 Pure NumPy: no device needed.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -106,7 +107,7 @@ def pack_operator(op: Operator, slice_size: int = SLICE) -> PackedOperator:
     A = 1 if same else 3
     indptr = indptr32.astype(np.int64)
     rows = np.repeat(np.arange(V, dtype=np.int64), np.diff(indptr))
-    pos = np.arange(indptr[-1], dtype=np.int64) - indptr[rows]      # entry's position in its row
+    pos = np.arange(indptr[-1], dtype=np.int64) - indptr[rows]  # entry's position in its row
     s, lane = rows // S, rows % S
     k = indices.astype(np.int64)
     lengths = np.zeros(Vp, dtype=np.int64)
@@ -118,7 +119,7 @@ def pack_operator(op: Operator, slice_size: int = SLICE) -> PackedOperator:
     union = np.bincount(pair_slice, minlength=n_slices)
     first = np.zeros(n_slices + 1, dtype=np.int64)
     np.cumsum(union, out=first[1:])
-    rank = rank_of.reshape(-1) - first[s]                               # column of each entry
+    rank = rank_of.reshape(-1) - first[s]  # column of each entry
     shared = union <= SHARED_MAX_RATIO * ell_width
     ncol = np.where(shared, union, ell_width)
     nid = np.where(shared, union, S * ell_width)
@@ -128,11 +129,13 @@ def pack_operator(op: Operator, slice_size: int = SLICE) -> PackedOperator:
     np.cumsum(nid, out=id_ptr[1:])
     if max(col_ptr[-1] * S * A, id_ptr[-1]) >= 2**32:
         raise ValueError("operator too large for 32-bit offsets")
-    ids = np.full(int(id_ptr[-1]), K, dtype=id_dtype)                 # ELL padding -> zero control K
+    ids = np.full(int(id_ptr[-1]), K, dtype=id_dtype)  # ELL padding -> zero control K
     w = np.zeros(int(col_ptr[-1]) * S * A, dtype=np.float32)
     # shared slices
     ps = shared[pair_slice]
-    ids[id_ptr[pair_slice[ps]] + (np.arange(len(pairs)) - first[pair_slice])[ps]] = (pairs % (K + 1))[ps]
+    ids[id_ptr[pair_slice[ps]] + (np.arange(len(pairs)) - first[pair_slice])[ps]] = (
+        pairs % (K + 1)
+    )[ps]
     es = shared[s]
     col = np.where(es, col_ptr[s] + rank, col_ptr[s] + pos)
     base = col * (S * A) + lane
@@ -140,4 +143,6 @@ def pack_operator(op: Operator, slice_size: int = SLICE) -> PackedOperator:
     ids[id_ptr[s[eg]] + pos[eg] * S + lane[eg]] = k[eg]
     for a in range(A):
         np.add.at(w, base + a * S, W[:, a])
-    return PackedOperator(V, K, Vp, S, False, A, col_ptr.astype(np.uint32), id_ptr.astype(np.uint32), ids, w)
+    return PackedOperator(
+        V, K, Vp, S, False, A, col_ptr.astype(np.uint32), id_ptr.astype(np.uint32), ids, w
+    )

@@ -6,6 +6,7 @@ and what it left out. ``cached_annotation`` is what loading a mesh without an an
 result is cached under ``cache_dir("annotations")`` keyed by the mesh's hash. ``merge`` lets a user's
 partial annotation win over the automatic one, field by field and point by point.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -36,8 +37,9 @@ def mesh_key(vertices: np.ndarray, triangles: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def cached_annotation(vertices: np.ndarray, triangles: np.ndarray, *, name: str = "mesh",
-                      units: str | None = None) -> dict:
+def cached_annotation(
+    vertices: np.ndarray, triangles: np.ndarray, *, name: str = "mesh", units: str | None = None
+) -> dict:
     """The automatic annotation of a mesh, from the cache or computed (and cached, saying so once).
 
     Raises ``InputError`` when the mesh cannot be annotated (not a head, too small).
@@ -55,11 +57,15 @@ def cached_annotation(vertices: np.ndarray, triangles: np.ndarray, *, name: str 
             log.warning("cached annotation %s is unreadable; annotating again", path)
     annotation = annotate_mesh(vertices, triangles, units=units)
     report = annotation["automatic"]
-    log.warning("%s has no annotation: annotated it automatically in %.1f s (%d of 84 feature points%s)%s; "
-                "write a .face.json beside the mesh to correct any of it", name, report["seconds"],
-                len(annotation["feature_points"]),
-                f", left out {', '.join(report['left_out'])}" if report["left_out"] else "",
-                f", cached as {path}" if path is not None else "")
+    log.warning(
+        "%s has no annotation: annotated it automatically in %.1f s (%d of 84 feature points%s)%s; "
+        "write a .face.json beside the mesh to correct any of it",
+        name,
+        report["seconds"],
+        len(annotation["feature_points"]),
+        f", left out {', '.join(report['left_out'])}" if report["left_out"] else "",
+        f", cached as {path}" if path is not None else "",
+    )
     if path is not None:
         try:
             write_bytes_atomic(path, json.dumps(annotation, separators=(",", ":")).encode())
@@ -78,8 +84,10 @@ def merge(automatic: dict, user: dict) -> dict:
     fps = user.get("feature_points")
     if isinstance(fps, dict):
         taken = {v for v in fps.values() if isinstance(v, int)}
-        out["feature_points"] = {**{k: v for k, v in automatic.get("feature_points", {}).items()
-                                    if v not in taken}, **fps}
+        out["feature_points"] = {
+            **{k: v for k, v in automatic.get("feature_points", {}).items() if v not in taken},
+            **fps,
+        }
     for key in ("parts", "pivots"):
         if isinstance(user.get(key), dict):
             out[key] = {**automatic.get(key, {}), **user[key]}
@@ -96,7 +104,11 @@ def is_partial(annotation) -> bool:
     if not isinstance(annotation, dict) or annotation.get("final") is True:
         return False
     fps = annotation.get("feature_points")
-    return "parts" not in annotation or not isinstance(fps, dict) or not set(FEATURE_POINT_IDS) <= set(fps)
+    return (
+        "parts" not in annotation
+        or not isinstance(fps, dict)
+        or not set(FEATURE_POINT_IDS) <= set(fps)
+    )
 
 
 def complete(vertices: np.ndarray, triangles: np.ndarray, user: dict, *, name: str) -> dict:

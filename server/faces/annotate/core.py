@@ -5,6 +5,7 @@ and its axes and align the template to it (``orient``); warp the template onto i
 carry the template's parts, feature points and pivots over by closest point, with sanity checks.
 What the mesh cannot carry (no back of the head, no mouth opening, no eyeballs) is left out and said.
 """
+
 from __future__ import annotations
 
 import time
@@ -26,10 +27,20 @@ from .warp import Target, fit, warp_points
 FP_REACH_MM = 9.0
 #: Neutral FAPU distances (mm, on a head scaled to the template) a human face has.
 FAPU_RANGE_MM: dict[str, tuple[float, float]] = {
-    "IRISD": (4.0, 25.0), "ES": (40.0, 90.0), "ENS": (15.0, 65.0), "MNS": (6.0, 45.0), "MW": (25.0, 85.0)}
+    "IRISD": (4.0, 25.0),
+    "ES": (40.0, 90.0),
+    "ENS": (15.0, 65.0),
+    "MNS": (6.0, 45.0),
+    "MW": (25.0, 85.0),
+}
 #: FAPU -> (fp_a, fp_b, axis), as ``mpeg4.fapu``.
-_FAPU = {"IRISD": ("3.1", "3.3", 1), "ES": ("3.5", "3.6", 0), "ENS": ("3.5", "9.15", 1),
-         "MNS": ("9.15", "2.2", 1), "MW": ("8.3", "8.4", 0)}
+_FAPU = {
+    "IRISD": ("3.1", "3.3", 1),
+    "ES": ("3.5", "3.6", 0),
+    "ENS": ("3.5", "9.15", 1),
+    "MNS": ("9.15", "2.2", 1),
+    "MW": ("8.3", "8.4", 0),
+}
 
 
 #: Vertices of the matched piece above which triangle centroids are not added as surface samples.
@@ -56,8 +67,9 @@ def weld(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.nd
     (vertices split at UV seams become one), ``welded_triangles`` uses those ids."""
     v = np.asarray(vertices, dtype=np.float64)
     tol = max(float(np.ptp(v, axis=0).max()), 1e-12) * 1e-7
-    _, first, inverse = np.unique(np.round(v / tol).astype(np.int64), axis=0, return_index=True,
-                                  return_inverse=True)
+    _, first, inverse = np.unique(
+        np.round(v / tol).astype(np.int64), axis=0, return_index=True, return_inverse=True
+    )
     rep = first[inverse.ravel()]
     return rep, rep[np.asarray(triangles, dtype=np.int64)]
 
@@ -85,9 +97,15 @@ def ranges(ids: np.ndarray) -> list:
     return [int(a) if a == b else [int(a), int(b)] for a, b in zip(starts, ends)]
 
 
-def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dict | None = None,
-                  axes: tuple[str, str] | None = None, units: str | None = None,
-                  template: Template | str | None = None) -> dict:
+def annotate_mesh(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    *,
+    landmarks: dict | None = None,
+    axes: tuple[str, str] | None = None,
+    units: str | None = None,
+    template: Template | str | None = None,
+) -> dict:
     """The annotation (``loaders`` format plus an ``automatic`` report) for a head mesh.
 
     Args:
@@ -107,7 +125,9 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
     if len(v) < 50 or len(tri) < 50 or not np.all(np.isfinite(v)):
         raise InputError("the mesh is too small (or has non-finite vertices) to be a head")
     rep, wtri = weld(v, tri)
-    wtri = wtri[(wtri[:, 0] != wtri[:, 1]) & (wtri[:, 1] != wtri[:, 2]) & (wtri[:, 0] != wtri[:, 2])]
+    wtri = wtri[
+        (wtri[:, 0] != wtri[:, 1]) & (wtri[:, 1] != wtri[:, 2]) & (wtri[:, 0] != wtri[:, 2])
+    ]
     used = np.zeros(len(v), bool)
     used[wtri.ravel()] = True
     label = components(edge_graph(v, wtri))
@@ -117,8 +137,10 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
     main = np.nonzero(label == main_label)[0]
     vn = vertex_normals(v, wtri)
 
-    lm = {k: v[p] if isinstance(p, (int, np.integer)) else np.asarray(p, dtype=np.float64)
-          for k, p in (landmarks or {}).items()}
+    lm = {
+        k: v[p] if isinstance(p, (int, np.integer)) else np.asarray(p, dtype=np.float64)
+        for k, p in (landmarks or {}).items()
+    }
     tpl, pl, scores = _choose(template, v[main], vn[main], axes, lm or None)
     sim = pl.similarity
     y = sim.apply(v)  # every vertex in the template frame (mm)
@@ -157,48 +179,85 @@ def annotate_mesh(vertices: np.ndarray, triangles: np.ndarray, *, landmarks: dic
     target = Target(points=pts, normals=nrm, rim=excluded)
     warped, fields = fit(tpl, target, anchors=anchors, crop=head)
 
-    box = (y[:, 1] > tpl.vertices[:, 1].min() - 20) & (np.abs(y[:, 0]) < 140) & (np.abs(y[:, 2]) < 200)
+    box = (
+        (y[:, 1] > tpl.vertices[:, 1].min() - 20)
+        & (np.abs(y[:, 0]) < 140)
+        & (np.abs(y[:, 2]) < 200)
+    )
     parts = _parts(y, label, main_label, sizes, warped, tpl, box)
-    fps, left_out, approximate = _feature_points(y, yn, wtri, parts, warped, tpl, socket_v, rep, tri)
+    fps, left_out, approximate = _feature_points(
+        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri
+    )
     warnings = _checks(y, fps, left_out, tpl)
 
     # Pivots: template pivots through the warp, back to mesh coordinates.
-    names = [k for k in ("jaw", "head", "eye_l", "eye_r") if k in tpl.pivots and not (k in parts and k.startswith("eye"))]
+    names = [
+        k
+        for k in ("jaw", "head", "eye_l", "eye_r")
+        if k in tpl.pivots and not (k in parts and k.startswith("eye"))
+    ]
     piv = sim.inverse(warp_points(np.array([tpl.pivots[k] for k in names]), fields))
     mm_per_unit = sim.scale
     unit = units or min(UNIT_MM, key=lambda u: abs(np.log(UNIT_MM[u] / mm_per_unit)))
     up, forward = axes or (pl.up, pl.forward)
-    off_axis = float(np.degrees(np.arccos(np.clip((np.trace(frame(up, forward) @ sim.rotation.T) - 1) / 2, -1, 1))))
+    off_axis = float(
+        np.degrees(
+            np.arccos(np.clip((np.trace(frame(up, forward) @ sim.rotation.T) - 1) / 2, -1, 1))
+        )
+    )
     fit_err = float(np.median(cKDTree(warped[tpl.outer]).query(pts[head & ~target.rim])[0]))
     report = {
-        "template": tpl.name, "template_scores_mm": scores, "seconds": round(time.perf_counter() - t0, 2),
-        "mm_per_unit_measured": round(mm_per_unit, 4), "tilt_deg": round(off_axis, 1),
-        "alignment_score_mm": round(pl.score, 2), "landmarks": found, "fit_median_mm": round(fit_err, 2),
+        "template": tpl.name,
+        "template_scores_mm": scores,
+        "seconds": round(time.perf_counter() - t0, 2),
+        "mm_per_unit_measured": round(mm_per_unit, 4),
+        "tilt_deg": round(off_axis, 1),
+        "alignment_score_mm": round(pl.score, 2),
+        "landmarks": found,
+        "fit_median_mm": round(fit_err, 2),
         "cropped_to_head": bool(pl.cropped or (~head_v[used]).any()),
-        "left_out": left_out, "approximate_mm": approximate, "warnings": warnings,
+        "left_out": left_out,
+        "approximate_mm": approximate,
+        "warnings": warnings,
     }
     if abs(np.log(UNIT_MM[unit] / mm_per_unit)) > np.log(1.5):
-        warnings.append(f"the head measures {mm_per_unit:.3g} mm per unit; the nearest unit {unit!r} is "
-                        f"{UNIT_MM[unit] / mm_per_unit:.2f}x that (only sizes in mm are affected)")
+        warnings.append(
+            f"the head measures {mm_per_unit:.3g} mm per unit; the nearest unit {unit!r} is "
+            f"{UNIT_MM[unit] / mm_per_unit:.2f}x that (only sizes in mm are affected)"
+        )
     if off_axis > 25:
         warnings.append(f"the head is tilted {off_axis:.0f} degrees from the {up} / {forward} axes")
     if fit_err > 6.0:
-        raise InputError(f"no head found: the template fits the mesh only to a median {fit_err:.1f} mm; "
-                         "give --landmarks or write the annotation by hand")
+        raise InputError(
+            f"no head found: the template fits the mesh only to a median {fit_err:.1f} mm; "
+            "give --landmarks or write the annotation by hand"
+        )
     fapu = _fapu_mm(y, fps)
     odd = {k: v for k, v in fapu.items() if not FAPU_RANGE_MM[k][0] <= v <= FAPU_RANGE_MM[k][1]}
-    bad = {k: v for k, v in fapu.items() if not FAPU_RANGE_MM[k][0] / 1.5 <= v <= FAPU_RANGE_MM[k][1] * 1.5}
-    warnings.extend(f"FAPU {k} measures {v:.1f} mm on a head scaled to the template; humans have "
-                    f"{FAPU_RANGE_MM[k][0]:g}-{FAPU_RANGE_MM[k][1]:g} mm" for k, v in odd.items() if k not in bad)
+    bad = {
+        k: v
+        for k, v in fapu.items()
+        if not FAPU_RANGE_MM[k][0] / 1.5 <= v <= FAPU_RANGE_MM[k][1] * 1.5
+    }
+    warnings.extend(
+        f"FAPU {k} measures {v:.1f} mm on a head scaled to the template; humans have "
+        f"{FAPU_RANGE_MM[k][0]:g}-{FAPU_RANGE_MM[k][1]:g} mm"
+        for k, v in odd.items()
+        if k not in bad
+    )
     missing = [k for k in _FAPU if k not in fapu]
     if (bad or missing) and _FAPU_CHECK:
-        raise InputError("the fitted feature points give implausible face proportions ("
-                         + ", ".join([f"{k} {v:.1f} mm" for k, v in bad.items()] + [f"no {k}" for k in missing])
-                         + "); give --landmarks or write the annotation by hand")
+        raise InputError(
+            "the fitted feature points give implausible face proportions ("
+            + ", ".join([f"{k} {v:.1f} mm" for k, v in bad.items()] + [f"no {k}" for k in missing])
+            + "); give --landmarks or write the annotation by hand"
+        )
     return {
         "units": unit,
         "axes": {"up": up, "forward": forward},
-        "feature_points": dict(sorted(fps.items(), key=lambda kv: tuple(int(x) for x in kv[0].split(".")))),
+        "feature_points": dict(
+            sorted(fps.items(), key=lambda kv: tuple(int(x) for x in kv[0].split(".")))
+        ),
         "parts": {k: ranges(ids) for k, ids in parts.items()},
         "pivots": {k: [round(float(x), 6) for x in p] for k, p in zip(names, piv)},
         "automatic": report,
@@ -212,13 +271,17 @@ def _choose(template: Template | str | None, v: np.ndarray, vn: np.ndarray, axes
         return template, place(v, vn, template, axes=axes, landmarks=lm), {}
     name = template or "auto"
     if name not in (*TEMPLATES, "auto"):
-        raise InputError(f"unknown template {name!r}; use {', '.join(TEMPLATES)} or auto", where="template")
+        raise InputError(
+            f"unknown template {name!r}; use {', '.join(TEMPLATES)} or auto", where="template"
+        )
     names = [name] if name != "auto" else ["default", *(["ict"] if ict_available() else [])]
     best = None
     scores = {}
     for n in names:
         tpl = TEMPLATES[n]()
-        pl = place(v, vn, tpl, axes=axes or (best[1].up, best[1].forward) if best else axes, landmarks=lm)
+        pl = place(
+            v, vn, tpl, axes=axes or (best[1].up, best[1].forward) if best else axes, landmarks=lm
+        )
         scores[n] = round(pl.score, 2)
         if best is None or pl.score < best[1].score:
             best = (tpl, pl)
@@ -292,7 +355,9 @@ def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
                 # The outer eye corner sits where it sits beside the template's eyeball, scaled by
                 # the eyeballs' sizes, on the mesh's surface nearest that spot.
                 corner = "3.7" if eye == "eye_l" else "3.12"
-                t_radius = float(np.linalg.norm(tpl.fp_position("3.5" if eye == "eye_l" else "3.6") - c))
+                t_radius = float(
+                    np.linalg.norm(tpl.fp_position("3.5" if eye == "eye_l" else "3.6") - c)
+                )
                 guess = best[1] + (tpl.fp_position(corner) - c) * best[2] / max(t_radius, 1e-6)
                 d_s, i_s = cKDTree(y[np.unique(mtri)]).query(guess)
                 if d_s < 6.0:
@@ -314,11 +379,16 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
     socket = np.zeros(len(tpl.vertices), bool)
     socket[tpl.mouth_socket] = True
     slit_y = float(warped[tpl.feature_points["2.2"], 1])
-    mouth_centre = warped[tpl.mouth_socket].mean(axis=0) if len(tpl.mouth_socket) else warped[tpl.feature_points["2.2"]]
+    mouth_centre = (
+        warped[tpl.mouth_socket].mean(axis=0)
+        if len(tpl.mouth_socket)
+        else warped[tpl.feature_points["2.2"]]
+    )
 
     def inside_mouth(ids: np.ndarray) -> bool:
         """A separate piece behind the lips (ICT's upper teeth look like the socket's inside)."""
         return bool(np.linalg.norm(y[ids].mean(axis=0) - mouth_centre) < 35.0)
+
     for c in np.nonzero(sizes)[0]:
         if c == main_label:
             continue
@@ -331,7 +401,11 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
         top = int(np.argmax(counts))
         if top >= 2 and PIECE_PARTS[top - 2].startswith("eye"):
             parts.setdefault(PIECE_PARTS[top - 2], []).append(ids)
-        elif top >= 2 or (top == INNER and socket[j[ids]].mean() < 0.5) or (top == INNER and inside_mouth(ids)):
+        elif (
+            top >= 2
+            or (top == INNER and socket[j[ids]].mean() < 0.5)
+            or (top == INNER and inside_mouth(ids))
+        ):
             # Mouth interior. What animation needs is which pieces ride the jaw: a piece above the
             # mouth slit stays with the head (upper teeth, upper gums), one below rides the jaw
             # (lower teeth, lower gums, tongue); a piece across it (gums and tongue in one) is cut
@@ -352,8 +426,11 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
                 above[:] = above.mean() > 0.5
             if teeth.mean() > 0.8 or teeth.mean() < 0.2 or above.all() or not above.any():
                 teeth[:] = teeth.mean() > 0.5
-            label_of = np.where(above, np.where(teeth, "teeth_upper", "gums_upper"),
-                                np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")))
+            label_of = np.where(
+                above,
+                np.where(teeth, "teeth_upper", "gums_upper"),
+                np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")),
+            )
             names, counts = np.unique(name, return_counts=True)
             if close and counts.max() >= 0.6 * len(name):  # one of the template's pieces
                 label_of[:] = names[np.argmax(counts)]
@@ -372,11 +449,15 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
         parts.setdefault("mouth_socket", []).append(inside)
     out = {k: np.unique(np.concatenate(v)) for k, v in parts.items()}
     if "mouth_socket" in out:
-        out["skin"] = np.setdiff1d(out["skin"], out["mouth_socket"]) if "mouth_socket" in out else out["skin"]
+        out["skin"] = (
+            np.setdiff1d(out["skin"], out["mouth_socket"]) if "mouth_socket" in out else out["skin"]
+        )
     return out
 
 
-def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tri) -> tuple[dict[str, int], dict[str, str], dict]:
+def _feature_points(
+    y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tri
+) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
 
@@ -422,19 +503,24 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tr
         p = warped[tpl.feature_points[fp]]
         if key != "skin" and key == part:
             if key not in piece_fit:
-                piece_fit[key] = _fit_piece(warped[tpl.label == 2 + PIECE_PARTS.index(key)], y[parts[key]],
-                                            trees[key][0])
+                piece_fit[key] = _fit_piece(
+                    warped[tpl.label == 2 + PIECE_PARTS.index(key)], y[parts[key]], trees[key][0]
+                )
             p = piece_fit[key].apply(p[None])[0]
         d, i = trees[key][0].query(p, k=min(16, len(trees[key][1])))
         wanted.append((float(np.atleast_1d(d)[0]), fp, key, np.atleast_1d(d), np.atleast_1d(i)))
     for d0, fp, key, d, i in sorted(wanted):
-        reach = FP_REACH_MM * (2.0 if key != tpl.part_of(fp) else 1.0 if fp.split(".")[0] in ("7", "10", "11") else 1.6)
+        reach = FP_REACH_MM * (
+            2.0 if key != tpl.part_of(fp) else 1.0 if fp.split(".")[0] in ("7", "10", "11") else 1.6
+        )
         ids = trees[key][1][i]
         if d0 > reach and fp in ESSENTIAL and d0 < 2.5 * reach:
             reach = d0 + 1.0  # the jaw and the FAPU need it: the nearest surface will do
             approximate[fp] = round(d0, 1)
         elif d0 > reach:
-            left_out[fp] = f"no surface within {reach:.0f} mm of where it belongs (the mesh ends there)"
+            left_out[fp] = (
+                f"no surface within {reach:.0f} mm of where it belongs (the mesh ends there)"
+            )
             continue
         tr = t_ring[tpl.feature_points[fp]]
         cost = d + 2.0 * np.linalg.norm(ring[ids] - tr, axis=1) * (d < d0 + 0.5)
@@ -446,12 +532,18 @@ def _feature_points(y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tr
             # behind the surface: only if nothing else is near (a vertex within FACING_NEAR of the
             # point is where the surface folds, e.g. a coarse mesh's lips meeting: taken)
             cost[(facing < FACING_MIN) & (d > FACING_NEAR)] += 2e3
-        free = [j for j in np.argsort(cost) if d[j] <= reach
-                and any(m not in taken for m in coincident.get(int(ids[j]), [int(ids[j])]))]
+        free = [
+            j
+            for j in np.argsort(cost)
+            if d[j] <= reach
+            and any(m not in taken for m in coincident.get(int(ids[j]), [int(ids[j])]))
+        ]
         if not free:
             left_out[fp] = "no free vertex near it (the mesh is too coarse there)"
             continue
-        group = [m for m in coincident.get(int(ids[free[0]]), [int(ids[free[0]])]) if m not in taken]
+        group = [
+            m for m in coincident.get(int(ids[free[0]]), [int(ids[free[0]])]) if m not in taken
+        ]
         fps[fp] = group[int(np.argmin(np.linalg.norm(own_ring[group] - tr, axis=1)))]
         taken.add(fps[fp])
     # Pupils: the front pole of each eyeball piece (a neutral head looks straight ahead, +z).
@@ -510,17 +602,27 @@ def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int 
 def _checks(y, fps: dict[str, int], left_out: dict, tpl: Template) -> list[str]:
     """Sanity checks: sides and mirrored pairs; points on the wrong side are dropped."""
     warnings = []
-    centre = np.median([y[v, 0] for k, v in fps.items() if abs(tpl.fp_position(k)[0]) < 1.0] or [0.0])
+    centre = np.median(
+        [y[v, 0] for k, v in fps.items() if abs(tpl.fp_position(k)[0]) < 1.0] or [0.0]
+    )
     for fp in list(fps):
         tx = tpl.fp_position(fp)[0]
         if abs(tx) > 5.0 and np.sign(y[fps[fp], 0] - centre) != np.sign(tx):
             left_out[fp] = "landed on the wrong side of the face"
             del fps[fp]
-    for a, b in (("3.7", "3.12"), ("8.3", "8.4"), ("3.5", "3.6"), ("4.5", "4.6"), ("10.9", "10.10")):
+    for a, b in (
+        ("3.7", "3.12"),
+        ("8.3", "8.4"),
+        ("3.5", "3.6"),
+        ("4.5", "4.6"),
+        ("10.9", "10.10"),
+    ):
         if a in fps and b in fps:
             pa, pb = y[fps[a]], y[fps[b]]
-            asym = np.linalg.norm((pa - centre * np.array([1, 0, 0])) * [1, 1, 1]
-                                  - (pb - centre * np.array([1, 0, 0])) * [-1, 1, 1])
+            asym = np.linalg.norm(
+                (pa - centre * np.array([1, 0, 0])) * [1, 1, 1]
+                - (pb - centre * np.array([1, 0, 0])) * [-1, 1, 1]
+            )
             if asym > 12.0:
                 warnings.append(f"{a} and {b} are {asym:.0f} mm from mirror images of each other")
     return warnings

@@ -7,6 +7,7 @@ lip (bump), mouth slit (dip), lower lip (bump), the fold under the lip (dip), ch
 nasion is the deepest point above the tip. The same detector runs on the template and on the mesh,
 so the pairs it finds pull the template's features onto the mesh's during the warp.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -16,7 +17,9 @@ from scipy.signal import find_peaks
 PROFILE = ("nasion", "tip", "subnasale", "lip_upper", "slit", "lip_lower", "fold", "chin")
 
 
-def midline_section(vertices: np.ndarray, triangles: np.ndarray, step: float = 0.5, x: float = 0.0) -> np.ndarray:
+def midline_section(
+    vertices: np.ndarray, triangles: np.ndarray, step: float = 0.5, x: float = 0.0
+) -> np.ndarray:
     """``(M, 3)`` points of the surface's section by the plane x = ``x``, every ``step`` mm along it."""
     v = np.asarray(vertices, dtype=np.float64) - np.array([x, 0.0, 0.0])
     t = np.asarray(triangles, dtype=np.int64)
@@ -43,8 +46,9 @@ def midline_section(vertices: np.ndarray, triangles: np.ndarray, step: float = 0
     return p0[rep] + f[:, None] * (p1[rep] - p0[rep]) + np.array([x, 0.0, 0.0])
 
 
-def mouth_corners(vertices: np.ndarray, triangles: np.ndarray, slit: np.ndarray,
-                  half_width: float) -> dict[str, np.ndarray]:
+def mouth_corners(
+    vertices: np.ndarray, triangles: np.ndarray, slit: np.ndarray, half_width: float
+) -> dict[str, np.ndarray]:
     """The mouth corners ``{"8.3": (3,), "8.4": (3,)}`` (left = +x, right), by following the mouth
     slit sideways from its midline point ``slit``: in each vertical section x = c (1 mm apart) the
     slit is the front profile's deepest dip near its last height; the corner is where the dip fades
@@ -84,7 +88,9 @@ def mouth_corners(vertices: np.ndarray, triangles: np.ndarray, slit: np.ndarray,
     return out
 
 
-def midline_profile(points: np.ndarray, *, y_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+def midline_profile(
+    points: np.ndarray, *, y_range: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
     """``(y, z)``: for every 1 mm of height in ``y_range``, the largest z of section ``points (N, 3)``
     (gaps interpolated; NaN when there is too little)."""
     y0, y1 = y_range
@@ -102,8 +108,9 @@ def midline_profile(points: np.ndarray, *, y_range: tuple[float, float]) -> tupl
     return ys, np.convolve(np.pad(z, 2, mode="edge"), k, mode="valid")
 
 
-def profile_landmarks(vertices: np.ndarray, triangles: np.ndarray,
-                      expect: dict[str, float] | None = None) -> dict[str, np.ndarray]:
+def profile_landmarks(
+    vertices: np.ndarray, triangles: np.ndarray, expect: dict[str, float] | None = None
+) -> dict[str, np.ndarray]:
     """Named midline landmarks ``{name: (3,) point}`` of a surface (template frame).
 
     ``expect``: the template's landmark heights (mm): each landmark below the tip is then the
@@ -115,7 +122,9 @@ def profile_landmarks(vertices: np.ndarray, triangles: np.ndarray,
         return {}
     out: dict[str, np.ndarray] = {}
     # Near the template's tip height; on a template itself, anywhere from the mouth to the brows.
-    lo, hi = (expect["tip"] - 30, expect["tip"] + 30) if expect and "tip" in expect else (-70.0, 40.0)
+    lo, hi = (
+        (expect["tip"] - 30, expect["tip"] + 30) if expect and "tip" in expect else (-70.0, 40.0)
+    )
     band = (ys > lo) & (ys < hi)
     if not band.any():
         return {}
@@ -170,7 +179,11 @@ def profile_landmarks(vertices: np.ndarray, triangles: np.ndarray,
             kept[name] = below[name]
         matched = chain(True)
         below = kept if len(kept) >= len(matched) else matched
-        if "nasion" in out and "nasion" in expect and abs(out["nasion"][1] - expect["nasion"]) > 25.0:
+        if (
+            "nasion" in out
+            and "nasion" in expect
+            and abs(out["nasion"][1] - expect["nasion"]) > 25.0
+        ):
             del out["nasion"]
     out.update(below)
     return out

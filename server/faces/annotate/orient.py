@@ -5,6 +5,7 @@ Every axis-aligned orientation (24: up along ±x ±y ±z, forward along one of t
 each is cropped to the head, aligned by trimmed ICP with scale, and scored by how well the mesh lies on
 the template and how much of the template's face the mesh covers. The best one wins.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -97,8 +98,17 @@ def _subsample(n: int, k: int, rng: np.random.Generator) -> np.ndarray:
     return np.arange(n) if n <= k else np.sort(rng.choice(n, k, replace=False))
 
 
-def icp(points: np.ndarray, normals: np.ndarray, tpl: Template, start: Similarity, *, iterations: int,
-        tree: cKDTree, samples: np.ndarray, face_pts: np.ndarray) -> tuple[Similarity, float]:
+def icp(
+    points: np.ndarray,
+    normals: np.ndarray,
+    tpl: Template,
+    start: Similarity,
+    *,
+    iterations: int,
+    tree: cKDTree,
+    samples: np.ndarray,
+    face_pts: np.ndarray,
+) -> tuple[Similarity, float]:
     """Trimmed ICP with scale of mesh ``points`` (and unit ``normals``) onto the template's outer skin.
 
     The mesh may be partial (a mask) or larger than the template (shoulders): pairs farther than a
@@ -126,14 +136,23 @@ def icp(points: np.ndarray, normals: np.ndarray, tpl: Template, start: Similarit
     n = normals @ sim.rotation.T
     agree = np.abs(np.einsum("ij,ij->i", n, tpl_n[j]))
     near = d < np.quantile(d, 0.7)
-    score = float(np.median(d)) + float(np.minimum(cKDTree(y).query(face_pts)[0], 40.0).mean()) \
+    score = (
+        float(np.median(d))
+        + float(np.minimum(cKDTree(y).query(face_pts)[0], 40.0).mean())
         + 20.0 * float(1.0 - agree[near].mean())
+    )
     return sim, score
 
 
-def place(vertices: np.ndarray, normals: np.ndarray, template: Template, *,
-          axes: tuple[str, str] | None = None, landmarks: dict[str, np.ndarray] | None = None,
-          seed: int = 0) -> Placement:
+def place(
+    vertices: np.ndarray,
+    normals: np.ndarray,
+    template: Template,
+    *,
+    axes: tuple[str, str] | None = None,
+    landmarks: dict[str, np.ndarray] | None = None,
+    seed: int = 0,
+) -> Placement:
     """Find the head in ``vertices (V, 3)`` (mesh units, unit ``normals``) and align it to ``template``.
 
     Args:
@@ -155,19 +174,28 @@ def place(vertices: np.ndarray, normals: np.ndarray, template: Template, *,
     def run(sim: Similarity, crop: np.ndarray, k: int, iterations: int, face_pts: np.ndarray):
         ids = np.nonzero(crop)[0]
         ids = ids[_subsample(len(ids), k, np.random.default_rng(seed))]
-        return icp(v[ids], normals[ids], template, sim, iterations=iterations, face_pts=face_pts, **fit)
+        return icp(
+            v[ids], normals[ids], template, sim, iterations=iterations, face_pts=face_pts, **fit
+        )
 
     if landmarks and len(landmarks) >= 3:
         keys = [k for k in landmarks if k in template.feature_points]
-        sim = umeyama(np.array([landmarks[k] for k in keys]), np.array([template.fp_position(k) for k in keys]))
+        sim = umeyama(
+            np.array([landmarks[k] for k in keys]),
+            np.array([template.fp_position(k) for k in keys]),
+        )
         up, forward = axes or _nearest_axes(sim.rotation)
         y = sim.apply(v)
-        crop = (y[:, 1] > t_top - HEAD_ASPECT * t_width) & (np.abs(y[:, 0]) < 150) & (np.abs(y[:, 2]) < 200)
+        crop = (
+            (y[:, 1] > t_top - HEAD_ASPECT * t_width)
+            & (np.abs(y[:, 0]) < 150)
+            & (np.abs(y[:, 2]) < 200)
+        )
         sim, score = run(sim, crop, 4000, 8, face_fine)
         return Placement(up, forward, sim, crop, score, bool((~crop).any()))
 
     candidates: list[Placement] = []
-    for up, forward in ([axes] if axes else orientations()):
+    for up, forward in [axes] if axes else orientations():
         rot = frame(up, forward)
         p = v @ rot.T
         top, width, cropped = head_crop(p)
@@ -177,10 +205,14 @@ def place(vertices: np.ndarray, normals: np.ndarray, template: Template, *,
         c = p[crop]
         # Start: scale from the head widths, crown (or, for a mask, forehead) and front aligned.
         scale = t_width / width if width > 0 else 1.0
-        for drop in ([0.0] if cropped else [0.0, 0.3]):
-            t = np.array([-scale * (c[:, 0].max() + c[:, 0].min()) / 2,
-                          t_top - drop * t_width - scale * top,
-                          tpl_all[:, 2].max() - scale * c[:, 2].max()])
+        for drop in [0.0] if cropped else [0.0, 0.3]:
+            t = np.array(
+                [
+                    -scale * (c[:, 0].max() + c[:, 0].min()) / 2,
+                    t_top - drop * t_width - scale * top,
+                    tpl_all[:, 2].max() - scale * c[:, 2].max(),
+                ]
+            )
             sim = Similarity(scale, rot, t)
             sim, score = run(sim, crop, 500, 8, face_coarse)
             candidates.append(Placement(up, forward, sim, crop, score, cropped))

@@ -3,6 +3,7 @@
 Points on the face's left are green, on its right red, on the midline yellow (the project's own
 rasteriser, ``output.preview``; no imaging library).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -41,7 +42,7 @@ def annotation_preview(face, path: str | Path, *, size: int = 480) -> Path:
             y = int((mid[1] - cam[vid, 1]) / span + size / 2)
             side = 0 if abs(v[vid, 0] - mid_x) < 0.01 * extent else int(np.sign(v[vid, 0] - mid_x))
             r = max(2, size // 160)
-            img[max(0, y - r - 1):y + r + 2, max(0, x - r - 1):x + r + 2] = (20, 20, 20)
-            img[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1] = _COLOURS[side]
+            img[max(0, y - r - 1) : y + r + 2, max(0, x - r - 1) : x + r + 2] = (20, 20, 20)
+            img[max(0, y - r) : y + r + 1, max(0, x - r) : x + r + 1] = _COLOURS[side]
         images.append(img)
     return write_png(path, np.concatenate(images, axis=1))

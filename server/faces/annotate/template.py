@@ -4,6 +4,7 @@ ICT FaceKit neutral, when ``../shared/data`` has it), in mm.
 The template supplies everything an annotation needs — feature points, parts and pivots — in MPEG-4
 axes (y up, z forward, x the face's left) and millimetres; ``fit`` warps it onto the user's mesh.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -92,8 +93,11 @@ def ict_template() -> Template:
     data = shared_data()
     path = data / "ict-facekit" / "generic_neutral_mesh.obj" if data is not None else None
     if path is None or not path.is_file():
-        raise InputError("the ICT FaceKit template needs ../shared/data/ict-facekit/generic_neutral_mesh.obj; "
-                         "use --template default", where="template")
+        raise InputError(
+            "the ICT FaceKit template needs ../shared/data/ict-facekit/generic_neutral_mesh.obj; "
+            "use --template default",
+            where="template",
+        )
     return template_from_face(load_face(path), "ict", drop=ICT_DROPPED)
 
 
@@ -134,12 +138,27 @@ def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Templa
     nose_base = v[fps["9.15"]]
     chin, brow = v[fps["2.1"]], v[fps["4.3"]]
     p = v[outer]
-    front = (p[:, 2] > nose_base[2] - 45) & (p[:, 1] > chin[1] - 5) & (p[:, 1] < brow[1] + 25) \
+    front = (
+        (p[:, 2] > nose_base[2] - 45)
+        & (p[:, 1] > chin[1] - 5)
+        & (p[:, 1] < brow[1] + 25)
         & (np.abs(p[:, 0]) < 62)
+    )
     outer_tri = tri[(label[tri] == OUTER).all(axis=1)]
     profile = profile_landmarks(v, outer_tri)
     corners = mouth_corners(v, outer_tri, profile["slit"], abs(float(v[fps["8.3"], 0])))
     socket = face.part("mouth_socket")
-    return Template(name=name, vertices=v, triangles=tri, label=label, outer=outer, feature_points=fps,
-                    pivots=pivots, face_region=outer[front], normals=vertex_normals(v, tri),
-                    mouth_socket=new_id[socket[keep[socket]]], profile=profile, mouth_corners=corners)
+    return Template(
+        name=name,
+        vertices=v,
+        triangles=tri,
+        label=label,
+        outer=outer,
+        feature_points=fps,
+        pivots=pivots,
+        face_region=outer[front],
+        normals=vertex_normals(v, tri),
+        mouth_socket=new_id[socket[keep[socket]]],
+        profile=profile,
+        mouth_corners=corners,
+    )

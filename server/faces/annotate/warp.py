@@ -7,6 +7,7 @@ the mesh's open rim or whose normals disagree), fits the field on more control p
 smoothing, and warps again. User landmarks, when given, are extra controls with near-zero smoothing.
 All positions are in the template's frame (mm, MPEG-4 axes).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -21,8 +22,14 @@ from .template import Template
 
 #: Refinement rounds: (control points, correspondence distance limit in mm, smoothing).
 SCHEDULE: tuple[tuple[int, float, float], ...] = (
-    (40, 40.0, 30.0), (80, 30.0, 10.0), (160, 20.0, 3.0), (300, 14.0, 1.0),
-    (500, 10.0, 0.3), (700, 8.0, 0.1), (900, 6.0, 0.05), (900, 5.0, 0.02),
+    (40, 40.0, 30.0),
+    (80, 30.0, 10.0),
+    (160, 20.0, 3.0),
+    (300, 14.0, 1.0),
+    (500, 10.0, 0.3),
+    (700, 8.0, 0.1),
+    (900, 6.0, 0.05),
+    (900, 5.0, 0.02),
 )
 
 
@@ -45,8 +52,13 @@ class Target:
     rim: np.ndarray
 
 
-def fit(template: Template, target: Target, *, anchors: tuple[np.ndarray, np.ndarray] | None = None,
-        crop: np.ndarray | None = None) -> tuple[np.ndarray, list]:
+def fit(
+    template: Template,
+    target: Target,
+    *,
+    anchors: tuple[np.ndarray, np.ndarray] | None = None,
+    crop: np.ndarray | None = None,
+) -> tuple[np.ndarray, list]:
     """Warp all template vertices onto ``target``.
 
     Args:
@@ -68,7 +80,9 @@ def fit(template: Template, target: Target, *, anchors: tuple[np.ndarray, np.nda
         back = back[np.random.default_rng(0).choice(len(back), BACK_SAMPLES, replace=False)]
     back_pts, back_n = target.points[back], target.normals[back]
     fields = []
-    src, dst = (np.zeros((0, 3)), np.zeros((0, 3))) if anchors is None else (anchors[0].copy(), anchors[1])
+    src, dst = (
+        (np.zeros((0, 3)), np.zeros((0, 3))) if anchors is None else (anchors[0].copy(), anchors[1])
+    )
     for n_ctrl, limit, smooth in SCHEDULE:
         wo = w[outer]
         wn = vertex_normals(w, template.triangles)[outer]
@@ -76,7 +90,12 @@ def fit(template: Template, target: Target, *, anchors: tuple[np.ndarray, np.nda
         cnt = np.zeros(len(wo))
         # template -> mesh
         d, j = ttree.query(wo)
-        ok = (d < limit) & ~target.rim[j] & head[j] & (np.einsum("ij,ij->i", wn, target.normals[j]) > 0.3)
+        ok = (
+            (d < limit)
+            & ~target.rim[j]
+            & head[j]
+            & (np.einsum("ij,ij->i", wn, target.normals[j]) > 0.3)
+        )
         acc[ok] += target.points[j[ok]] - wo[ok]
         cnt[ok] += 1
         # mesh -> template
@@ -104,7 +123,11 @@ def fit(template: Template, target: Target, *, anchors: tuple[np.ndarray, np.nda
         if len(src):
             # Anchors replace the surface controls around them (which would pull them elsewhere).
             far = cKDTree(src).query(c_pos)[0] > 0.5 * limit
-            c_pos, c_disp, sm = np.r_[c_pos[far], src], np.r_[c_disp[far], dst - src], np.r_[sm[far], np.full(len(src), 1e-3)]
+            c_pos, c_disp, sm = (
+                np.r_[c_pos[far], src],
+                np.r_[c_disp[far], dst - src],
+                np.r_[sm[far], np.full(len(src), 1e-3)],
+            )
         rbf = RBFInterpolator(c_pos, c_disp, kernel="thin_plate_spline", smoothing=sm, degree=1)
         w = w + rbf(w)
         if len(src):

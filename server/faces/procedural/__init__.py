@@ -7,6 +7,7 @@ millimetres, in the spirit of Parke's parametric face.
 - ``parts``: eyeballs, teeth, gums, tongue and ears;
 - ``mesh``: graded parameter axes, grid triangulation, closed parametric surfaces.
 """
+
 from __future__ import annotations
 
 from .head import (
