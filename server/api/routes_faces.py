@@ -24,7 +24,7 @@ from pydantic import BaseModel, Field
 
 from ...protocol.rest import TOPOLOGY_MEDIA_TYPE, ErrorBody, FaceInfo, FaceList, FaceSummary
 from ...protocol.topology import Topology, encode_topology, part_ids_from_parts
-from ..errors import FacecastError, Forbidden, InputError, Unavailable
+from ..errors import Forbidden, InputError, Unavailable
 from ..faces import KNOWN_PARTS, RIGID_GROUPS, builtin_faces
 from ..faces import upload as mesh_upload
 from ..jobs.upload import (
@@ -34,6 +34,7 @@ from ..jobs.upload import (
     boundary_of,
     drain,
     multipart_doc,
+    receive,
     safe_display_name,
     upload_dir,
 )
@@ -221,22 +222,7 @@ async def upload_face(request: Request) -> Any:
             path = Path(tmp) / "upload"
             parser = _MeshUpload(boundary, path, limit)
             parser.limit_variable = "FACECAST_MAX_UPLOAD_BYTES"
-            received = 0
-            try:
-                async for chunk in request.stream():
-                    received += len(chunk)
-                    parser.write(chunk)
-                parser.finish()
-            except FacecastError:
-                parser.abort()
-                await drain(request, received)
-                raise
-            except Exception as e:
-                parser.abort()
-                raise InputError(
-                    f"could not read the multipart upload ({str(e)[:200]}); send a 'file' part",
-                    where="body",
-                ) from None
+            await receive(request, parser)
             unknown = sorted(set(parser.fields) - {"annotation", "name"})
             if unknown:
                 raise InputError(

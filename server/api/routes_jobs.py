@@ -20,7 +20,7 @@ from pydantic import ValidationError
 
 from ...protocol.rest import RESULT_MEDIA_TYPES, ErrorBody, JobList, JobOptions, JobStatus
 from ..drivers import input_kind
-from ..errors import Conflict, FacecastError, InputError, NotFound
+from ..errors import Conflict, InputError, NotFound
 from ..jobs.store import JOB_ID, JobRecord, new_job_id
 from ..jobs.upload import (
     LAYOUT_PART,
@@ -30,6 +30,7 @@ from ..jobs.upload import (
     drain,
     input_suffix,
     multipart_doc,
+    receive,
     safe_display_name,
     upload_layout,
 )
@@ -138,25 +139,8 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
     folder = jobs.store.folder(job_id)
     folder.mkdir(parents=True)
     parser = UploadParser(boundary, folder / ".upload", limit, kind_limit=cfg.upload_limit)
-    received = 0
     try:
-        try:
-            async for chunk in request.stream():
-                received += len(chunk)
-                parser.write(chunk)
-            parser.finish()
-        except (
-            FacecastError
-        ):  # too large, unknown type, bad framing: refuse, but let the client hear it
-            parser.abort()
-            await drain(request, received)
-            raise
-        except Exception as e:  # malformed multipart framing
-            raise InputError(
-                f"could not read the multipart upload ({str(e)[:200]}); send a multipart/form-data "
-                "body with a 'file' part",
-                where="body",
-            ) from None
+        await receive(request, parser)
         try:
             opts = JobOptions(
                 **{k: v for k, v in parser.fields.items() if k in JobOptions.model_fields}

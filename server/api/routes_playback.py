@@ -36,9 +36,9 @@ from ..jobs.upload import (
     PayloadTooLarge,
     UploadParser,
     boundary_of,
-    drain,
     input_suffix,
     multipart_doc,
+    receive,
     safe_display_name,
     upload_dir,
     upload_layout,
@@ -199,22 +199,7 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
             int(cfg.max_upload_bytes),
             kind_limit=cfg.upload_limit,
         )
-        received = 0
-        try:
-            async for chunk in request.stream():
-                received += len(chunk)
-                parser.write(chunk)
-            parser.finish()
-        except FacecastError:
-            parser.abort()
-            await drain(request, received)
-            raise
-        except Exception as e:
-            parser.abort()
-            raise InputError(
-                f"could not read the multipart upload ({str(e)[:200]}); send a 'file' part",
-                where="body",
-            ) from None
+        await receive(request, parser)
         if parser.size == 0:
             raise InputError("the uploaded file is empty", where="file")
         path = Path(tmp) / f"input{input_suffix(parser.filename, parser.head)}"

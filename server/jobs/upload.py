@@ -10,6 +10,7 @@ import json
 import re
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from python_multipart import MultipartParser
 from python_multipart.multipart import parse_options_header
@@ -183,6 +184,32 @@ class UploadParser:
             self._fh.close()
             self._fh = None
         self.dest.unlink(missing_ok=True)
+
+
+async def receive(request: Any, parser: UploadParser) -> None:
+    """Stream ``request``'s body into ``parser`` and finish it (the one upload loop of the routes).
+
+    A refusal on the way (too large, unknown type, bad framing: a ``FacecastError``) removes the
+    partial file and reads the rest of the body, so that the still-sending client hears the answer;
+    any other failure is malformed multipart framing, refused as an ``InputError`` naming the body.
+    """
+    received = 0
+    try:
+        async for chunk in request.stream():
+            received += len(chunk)
+            parser.write(chunk)
+        parser.finish()
+    except FacecastError:
+        parser.abort()
+        await drain(request, received)
+        raise
+    except Exception as e:  # noqa: BLE001 - the multipart parser's own errors: malformed framing
+        parser.abort()
+        raise InputError(
+            f"could not read the multipart upload ({str(e)[:200]}); send a multipart/form-data "
+            "body with a 'file' part",
+            where="body",
+        ) from None
 
 
 #: Bytes of a refused request the server still reads (and discards) so the client sees the answer.
