@@ -98,7 +98,7 @@ def main(argv: list[str]) -> int:
             n_ctl = len(rig.placement.vertices)
             anim = Animator(face, engine=a.engine, backend="numpy", control_vertices=cv)
 
-            def err(d: np.ndarray, heads: np.ndarray, gt=gt) -> float:
+            def err(d: np.ndarray, heads: np.ndarray, gt=gt, anim=anim, cv=cv) -> float:
                 states = [FaceState(t=i / a.fps, controls=d[i].astype(np.float32), head=heads[i])
                           for i in range(len(d))]
                 got = anim.render(Animation(fps=a.fps, states=states, control_vertices=cv))

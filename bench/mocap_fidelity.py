@@ -90,6 +90,8 @@ def main(argv: list[str]) -> int:
     p.add_argument("--engine", default="fp")
     p.add_argument("--backend", default="numpy")
     p.add_argument("--live", action="store_true", help="also the causal (live) filter")
+    p.add_argument("--neutral-frame", default=None, type=lambda v: v if v == "auto" else int(v),
+                   help="render's --neutral-frame: N or auto (default: render's default)")
     a = p.parse_args(argv)
 
     from facecast.server.mocap.generate import load_expressions, load_ict
@@ -128,7 +130,8 @@ def main(argv: list[str]) -> int:
                 t0 = time.perf_counter()
                 out = Path(tmp) / "out.npz"
                 render_file(tr.paths[fmt], out, face=face, engine=a.engine, backend=a.backend,
-                            layout=str(tr.paths["layout"]))
+                            layout=str(tr.paths["layout"]),
+                            mocap={"neutral_frame": a.neutral_frame})
                 row["render_s"] = time.perf_counter() - t0
                 with np.load(out) as z:
                     got = z["vertices"][frames]

@@ -24,10 +24,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="project the displacements on their N leading motions (default auto: those above the noise)")
     m.add_argument("--stable", default=None, metavar="A,B,C",
                    help="stable (head) markers, overriding the layout's; one that is not rigid is named and left out")
-    m.add_argument("--neutral-frame", type=int, default=None, metavar="N",
-                   help="frame of the actor's neutral face and the head's rest (default: the layout's, else 0)")
+    m.add_argument("--neutral-frame", type=_frame, default=None, metavar="N|auto",
+                   help="frame of the actor's neutral face and the head's rest (default: the layout's, else auto: "
+                   "frame 0 unless another fits the face at rest clearly better)")
     p.add_argument("--server", metavar="URL", default=None,
                    help="render on a facecast server instead of locally (admin key from $FACECAST_ADMIN_KEY)")
+
+
+def _frame(text: str) -> int | str:
+    """``--neutral-frame``: a frame index or ``auto``."""
+    return "auto" if text.strip().lower() == "auto" else int(text)
 
 
 def _progress_bar(total_hint: str):

@@ -25,6 +25,7 @@ from ..state import Animation, FaceState
 from .clean import CleanParams, clean, lowrank_denoise, motion_rank
 from .io import read_take
 from .layout import Layout, load_layout
+from .neutral import find_neutral
 from .rig import MarkerRig, match_names
 from .stabilise import check_stable, head_track, pose_uncertainty, refine_poses, remove_head, smooth_poses
 
@@ -124,7 +125,8 @@ def process(
             int(empty[0]),
         )
     params = clean_params or CleanParams()
-    nf = neutral_frame if neutral_frame is not None else (layout.neutral_frame or 0)
+    nf = neutral_frame if neutral_frame is not None else layout.neutral_frame
+    nf = find_neutral(raw, layout, face, take.fps, where) if nf in (None, "auto") else nf
     if not 0 <= nf < n:
         raise InputError(
             f"neutral_frame {nf} is outside the take's {n} frames",

@@ -5,7 +5,7 @@ JSON::
     {"units": "mm",                      # units of the take (optional: declared by the file or detected)
      "face": "path/to/mesh.obj",          # optional: the face its vertex ids are for (named in errors)
      "stable": ["HEAD_L", "HEAD_R", ...],   # markers that move only with the skull (>= 3)
-     "neutral_frame": 0,                 # optional: frame holding the actor's neutral face
+     "neutral_frame": 0,                 # optional: frame holding the actor's neutral face, or "auto"
      "jaw": "CHIN",                      # optional: marker giving jaw opening (default: the one tied to FP 2.1)
      "markers": {"CHIN": {"fp": "2.1"},  # tied to an MPEG-4 feature point of the face
                  "LIP_L": {"vertex": 1234},   # tied to a vertex id of the face
@@ -42,7 +42,7 @@ class Layout:
     markers: dict[str, dict]
     stable: list[str]
     units: str | None = None
-    neutral_frame: int | None = None
+    neutral_frame: int | str | None = None  # a frame, or "auto" (mocap.neutral)
     jaw: str | None = None
     where: str = "layout"
     face: str | None = None
@@ -157,9 +157,9 @@ def load_layout(src: str | Path | dict | Layout) -> Layout:
     except MarkerFileError as e:
         raise InputError(str(e)) from None
     nf = data.get("neutral_frame")
-    if nf is not None and (isinstance(nf, bool) or not isinstance(nf, int) or nf < 0):
+    if nf is not None and nf != "auto" and (isinstance(nf, bool) or not isinstance(nf, int) or nf < 0):
         raise InputError(
-            f"'neutral_frame' must be a frame index >= 0, not {nf!r}",
+            f"'neutral_frame' must be a frame index >= 0 or \"auto\", not {nf!r}",
             where=f"{where}: neutral_frame",
         )
     jaw = data.get("jaw")
