@@ -220,3 +220,34 @@ def _process_fmt(truth, face, fmt, layout=None, **kw):
 
     lay = layout or json.loads(truth.paths["layout"].read_text())
     return process(read_take(truth.paths[fmt], default_units=lay["units"]), face, lay, **kw)
+
+
+def test_exaggeration_masks_scale_their_region_only(tmp_path, ict):
+    """A layout's ``exaggerate`` region scales its markers' displacements (batch and live share the
+    rig); the other markers and the head are untouched; bad regions are refused, the field named."""
+    from facecast.server.errors import InputError
+    from facecast.server.mocap.layout import load_layout
+    from facecast.server.mocap.variants import make_take
+
+    face, _ = ict
+
+    truth = make_take("sparse30", tmp_path, seconds=0.5, face=face, formats=("trc",))
+    layout = json.loads(truth.paths["layout"].read_text())
+    region = [n for n in layout["markers"] if n not in layout["stable"]][:6]
+    plain = _process_fmt(truth, face, "trc")
+    lay = {**layout, "exaggerate": {"mouth": {"gain": 2.0, "markers": region}}}
+    more = _process_fmt(truth, face, "trc", layout=lay)
+    names = plain.rig.control_names
+    inside = np.array([n in region for n in names] + [False] * (len(plain.states[0].controls) - len(names)))
+    a = np.stack([s.controls for s in plain.states])
+    b = np.stack([s.controls for s in more.states])
+    np.testing.assert_allclose(b[:, inside], 2.0 * a[:, inside], rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(b[:, ~inside], a[:, ~inside])
+    np.testing.assert_array_equal(np.stack([s.head for s in more.states]), np.stack([s.head for s in plain.states]))
+    for bad, what in (({"m": {"gain": 9, "markers": region}}, "gain"),
+                      ({"m": {"gain": 1.2, "markers": ["NOPE"]}}, "NOPE"),
+                      ({"m": {"gain": 1.2, "markers": region}, "n": {"gain": 1.1, "markers": region[:1]}},
+                       "already in region"),
+                      ([1, 2], "exaggerate")):
+        with pytest.raises(InputError, match=what):
+            load_layout({**layout, "exaggerate": bad})
