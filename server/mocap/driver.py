@@ -329,7 +329,7 @@ def load(
         path: ``.c3d``, ``.trc`` or ``.csv``.
         layout: layout path/dict/``Layout``; None looks beside the take (``find_layout``).
         units: units of the take, overriding what the file declares.
-        neutral_frame: frame of the actor's neutral face (default: the layout's, else 0).
+        neutral_frame: the actor's neutral frame, or "auto" (default: the layout's, else auto).
         filter: ``rts`` (zero-lag smoother), ``kalman`` (causal, as live) or ``none``.
         lowrank: ``auto``, ``off`` or a count of principal motions kept (``CleanParams.lowrank``).
         stable: stable marker names overriding the layout's (each checked for rigidity).
