@@ -27,7 +27,7 @@ from .io import read_take
 from .layout import Layout, load_layout
 from .neutral import find_neutral
 from .rig import MarkerRig, match_names
-from .stabilise import check_stable, head_track, pose_uncertainty, refine_poses, remove_head, smooth_poses
+from .stabilise import check_stable, head_track, hold_pose, pose_uncertainty, refine_poses, remove_head, smooth_poses
 
 log = logging.getLogger(__name__)
 
@@ -182,6 +182,8 @@ def process(
     # smoothed, so re-anchor them on the final pose of frame ``nf``. Left as they were, every output
     # frame carried the reference's offset (0.77 degrees on a take moving from frame 0, 1.1 mm of
     # skin error on frame 0, where the truth is the rest face).
+    w = round(neutral_window * take.fps)  # a neutral hold's frames share their pose (stabilise.hold_pose)
+    r[nf], t[nf] = hold_pose(r, t, neutral_frames(local, nf, w, HOLD_MM), nf, np.nanmean(local[nf, stable], 0), w // 4)
     r0, t0 = r[nf].copy(), t[nf].copy()
     r, t = reanchor(r, t, nf)
     local = local @ r0.T + t0

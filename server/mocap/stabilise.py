@@ -19,6 +19,7 @@ import numpy as np
 __all__ = [
     "check_stable",
     "euler_from_matrix",
+    "hold_pose",
     "pose_uncertainty",
     "head_track",
     "kabsch",
@@ -474,3 +475,42 @@ def rigidity_weights(disp_sq: np.ndarray, stable: np.ndarray, noise_var: float, 
     d = np.where(np.isfinite(disp_sq), disp_sq, np.inf)
     d[np.asarray(stable)] = 0.0
     return np.where(d < gate * noise_var, 1.0 / (noise_var + d), 0.0)
+
+
+#: ``hold_pose``: hold frames whose head sits within these of the hold's median pose (degrees; mm at
+#: the stable markers' centre) are averaged, and the average replaces the neutral frame's own pose
+#: only when it lies within these of it too (a head turning through the hold keeps its own): a few
+#: times a smoothed pose's noise.
+HOLD_POSE_DEG, HOLD_POSE_MM = 0.3, 0.5
+
+
+def hold_pose(
+    r: np.ndarray, t: np.ndarray, frames: list[int] | np.ndarray | range, nf: int, centre: np.ndarray,
+    least: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frame ``nf``'s pose ``(R (3, 3), t (3,))``, averaged over the ``frames`` of its neutral hold
+    (at least ``least`` of them, else its own) in which the head sits still (``HOLD_POSE_DEG`` /
+    ``HOLD_POSE_MM``; ``centre`` ``(3,)``: the stable markers' centre, stabilised). Every output pose
+    is relative to the neutral frame's, so that frame's error is carried into every frame; a hold
+    shares it out over its frames. On generated takes with a half-second hold (held-out folds 1 and
+    2) the head pose error at the skin fell from 0.18/0.24 to 0.145/0.145 mm (technician layout) and
+    from 0.105/0.155 to 0.101/0.137 mm (neutral-last); takes without a hold keep frame ``nf``'s."""
+    from scipy.spatial.transform import Rotation
+
+    c = np.asarray(centre, dtype=np.float64)
+    idx = np.unique(np.r_[nf, np.asarray(list(frames), dtype=np.int64)])
+    if len(idx) < max(2, least) or not np.isfinite(c).all():
+        return r[nf].copy(), t[nf].copy()
+    rv = Rotation.from_matrix(np.einsum("tij,kj->tik", r[idx], r[nf])).as_rotvec()  # (n, 3) rad
+    p = r[idx] @ c + t[idx]  # (n, 3) where the centre goes, mm
+    still = (np.degrees(np.linalg.norm(rv - np.median(rv, axis=0), axis=1)) < HOLD_POSE_DEG) & (
+        np.linalg.norm(p - np.median(p, axis=0), axis=1) < HOLD_POSE_MM)
+    if still.sum() < max(2, least):
+        return r[nf].copy(), t[nf].copy()
+    mean_rv, mean_p = rv[still].mean(axis=0), p[still].mean(axis=0)
+    own = idx == nf
+    turned = np.degrees(np.linalg.norm(mean_rv)) >= HOLD_POSE_DEG
+    if turned or np.linalg.norm(mean_p - p[own][0]) >= HOLD_POSE_MM:
+        return r[nf].copy(), t[nf].copy()
+    r0 = Rotation.from_rotvec(mean_rv).as_matrix() @ r[nf]
+    return r0, mean_p - r0 @ c
