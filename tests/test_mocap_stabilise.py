@@ -198,3 +198,7 @@ def test_hold_pose_shares_the_neutral_frames_pose_error_over_its_hold(rng):
     turn = Rotation.from_rotvec(np.c_[np.zeros(n), np.radians(np.linspace(0, 2, n)), np.zeros(n)]).as_matrix()
     got = err(*hold_pose(turn, np.zeros((n, 3)), range(n), 0, centre, least=2))
     assert got[0] < HOLD_POSE_DEG / 2 + 0.01
+    # a slow turn within the tolerance (0.25 deg over the hold, as a take moving from frame 0): the
+    # mean would sit 0.12 deg off frame 0's pose; its own is kept
+    slow = Rotation.from_rotvec(np.c_[np.zeros(n), np.radians(np.linspace(0, 0.25, n)), np.zeros(n)]).as_matrix()
+    assert err(*hold_pose(slow, np.zeros((n, 3)), range(n), 0, centre, least=2))[0] < 0.01
