@@ -98,6 +98,12 @@ def main(argv: list[str]) -> int:
     p.add_argument("--engine", default="fp")
     p.add_argument("--backend", default="numpy")
     p.add_argument("--live", action="store_true", help="also the causal (live) filter")
+    p.add_argument(
+        "--neutral-frame",
+        default=None,
+        type=lambda v: v if v == "auto" else int(v),
+        help="render's --neutral-frame: N or auto (default: render's default)",
+    )
     a = p.parse_args(argv)
 
     from facecast.server.mocap.generate import load_expressions, load_ict
@@ -157,6 +163,7 @@ def main(argv: list[str]) -> int:
                     engine=a.engine,
                     backend=a.backend,
                     layout=str(tr.paths["layout"]),
+                    mocap={"neutral_frame": a.neutral_frame},
                 )
                 row["render_s"] = time.perf_counter() - t0
                 with np.load(out) as z:

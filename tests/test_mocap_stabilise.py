@@ -197,3 +197,39 @@ def test_refine_poses_uses_the_face_markers_to_steady_the_head(rng):
     r2, t2, rank = refine_poses(xyz, r, tt, neutral, stable, local - neutral, fps)
     assert 4 <= rank <= 8  # every motion found (head-pose errors may count too), not the noise
     assert pose_error(r2, t2) < 0.7 * pose_error(r, tt)
+
+
+def test_hold_pose_shares_the_neutral_frames_pose_error_over_its_hold(rng):
+    """The head still through a 60-frame neutral hold, each frame's pose 0.1 deg and 0.1 mm (per
+    axis) off at random: the hold's pose is far closer than frame 0's own; a head turning through the hold is
+    followed only within the tolerance; too short a hold keeps the frame's own pose."""
+    from scipy.spatial.transform import Rotation
+
+    from facecast.server.mocap.stabilise import HOLD_POSE_DEG, hold_pose
+
+    n = 60
+    centre = np.array([0.0, 80.0, 20.0])
+    noise = Rotation.from_rotvec(np.radians(rng.normal(0.0, 0.1, (n, 3)))).as_matrix()
+    r, t = noise, rng.normal(0.0, 0.1, (n, 3)) + centre - np.einsum("tij,j->ti", noise, centre)
+
+    def err(rr: np.ndarray, tt: np.ndarray) -> tuple[float, float]:
+        return float(np.degrees(Rotation.from_matrix(rr).magnitude())), float(
+            np.linalg.norm(rr @ centre + tt - centre)
+        )
+
+    own = err(r[0], t[0])
+    got = err(*hold_pose(r, t, range(n), 0, centre, least=15))
+    assert got[0] < 0.05 and got[1] < 0.06 and got[0] < own[0] and got[1] < own[1]
+    assert err(*hold_pose(r, t, range(10), 0, centre, least=15)) == own  # not a hold
+    # the head turning 2 deg over the hold: only the frames within the tolerance count
+    turn = Rotation.from_rotvec(
+        np.c_[np.zeros(n), np.radians(np.linspace(0, 2, n)), np.zeros(n)]
+    ).as_matrix()
+    got = err(*hold_pose(turn, np.zeros((n, 3)), range(n), 0, centre, least=2))
+    assert got[0] < HOLD_POSE_DEG / 2 + 0.01
+    # a slow turn within the tolerance (0.25 deg over the hold, as a take moving from frame 0): the
+    # mean would sit 0.12 deg off frame 0's pose; its own is kept
+    slow = Rotation.from_rotvec(
+        np.c_[np.zeros(n), np.radians(np.linspace(0, 0.25, n)), np.zeros(n)]
+    ).as_matrix()
+    assert err(*hold_pose(slow, np.zeros((n, 3)), range(n), 0, centre, least=2))[0] < 0.01

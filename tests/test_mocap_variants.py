@@ -186,9 +186,89 @@ def test_render_exposes_the_mocap_cleaning_choices(tmp_path, ict, capsys):
         str(tmp_path / "out.npz"),
     ]
     assert main([*base, "--filter", "kalman", "--lowrank", "off", "--neutral-frame", "3"]) == 0
+    assert main([*base, "--neutral-frame", "auto"]) == 0
     with np.load(tmp_path / "out.npz") as z:
         assert z["vertices"].shape[0] == 60
     assert main([*base, "--lowrank", "many"]) == 2
     assert "lowrank must be auto, off or a positive count" in capsys.readouterr().err
     assert main([*base, "--stable", "HB1,NOPE"]) == 2
     assert "NOPE" in capsys.readouterr().err
+
+
+def test_neutral_frame_auto_takes_the_neutral_where_the_markers_say_it_is(tmp_path, ict):
+    """A take that starts on an expression and holds the neutral at its end: ``auto`` (the default
+    when neither the flag nor the layout names a frame) finds the hold, frame 0 is an expression; a
+    take moving from its neutral frame 0 keeps frame 0."""
+    from facecast.server.errors import InputError
+    from facecast.server.mocap.layout import load_layout
+    from facecast.server.mocap.variants import make_take
+
+    face, deltas = ict
+    truth = make_take("neutral-last", tmp_path, seconds=1.5, face=face, formats=("trc",))
+    layout = json.loads(truth.paths["layout"].read_text())
+    local = truth.local(face, deltas)
+    found = {}
+    for nf in (0, "auto", None):
+        proc = _process_fmt(truth, face, "trc", neutral_frame=nf)
+        pv = proc.rig.placement.vertices
+        got = np.stack([st.controls[: len(pv)] for st in proc.states]) * face.mm_per_unit
+        want = (local[:, pv] - face.vertices[pv]) * face.mm_per_unit
+        found[nf] = (proc.neutral_frame, np.linalg.norm(got - want, axis=2).mean())
+    assert truth.weights[0].sum() > 0.5  # frame 0 is an expression
+    assert truth.weights[found["auto"][0]].sum() < 1e-3  # auto's frame is in the neutral hold
+    assert found[None] == found["auto"]
+    assert found["auto"][1] < 0.5 * found[0][1]
+    # in the layout too; anything else is refused with the field named
+    lay = {**layout, "neutral_frame": "auto"}
+    assert _process_fmt(truth, face, "trc", layout=lay).neutral_frame == found["auto"][0]
+    with pytest.raises(InputError, match="neutral_frame"):
+        load_layout({**layout, "neutral_frame": "soon"})
+    moving = make_take("issue16", tmp_path / "m", seconds=1.5, face=face, formats=("trc",))
+    assert _process_fmt(moving, face, "trc").neutral_frame == 0
+
+
+def _process_fmt(truth, face, fmt, layout=None, **kw):
+    from facecast.server.mocap.driver import process
+    from facecast.server.mocap.io import read_take
+
+    lay = layout or json.loads(truth.paths["layout"].read_text())
+    return process(read_take(truth.paths[fmt], default_units=lay["units"]), face, lay, **kw)
+
+
+def test_exaggeration_masks_scale_their_region_only(tmp_path, ict):
+    """A layout's ``exaggerate`` region scales its markers' displacements (batch and live share the
+    rig); the other markers and the head are untouched; bad regions are refused, the field named."""
+    from facecast.server.errors import InputError
+    from facecast.server.mocap.layout import load_layout
+    from facecast.server.mocap.variants import make_take
+
+    face, _ = ict
+
+    truth = make_take("sparse30", tmp_path, seconds=0.5, face=face, formats=("trc",))
+    layout = json.loads(truth.paths["layout"].read_text())
+    region = [n for n in layout["markers"] if n not in layout["stable"]][:6]
+    plain = _process_fmt(truth, face, "trc")
+    lay = {**layout, "exaggerate": {"mouth": {"gain": 2.0, "markers": region}}}
+    more = _process_fmt(truth, face, "trc", layout=lay)
+    names = plain.rig.control_names
+    inside = np.array(
+        [n in region for n in names] + [False] * (len(plain.states[0].controls) - len(names))
+    )
+    a = np.stack([s.controls for s in plain.states])
+    b = np.stack([s.controls for s in more.states])
+    np.testing.assert_allclose(b[:, inside], 2.0 * a[:, inside], rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(b[:, ~inside], a[:, ~inside])
+    np.testing.assert_array_equal(
+        np.stack([s.head for s in more.states]), np.stack([s.head for s in plain.states])
+    )
+    for bad, what in (
+        ({"m": {"gain": 9, "markers": region}}, "gain"),
+        ({"m": {"gain": 1.2, "markers": ["NOPE"]}}, "NOPE"),
+        (
+            {"m": {"gain": 1.2, "markers": region}, "n": {"gain": 1.1, "markers": region[:1]}},
+            "already in region",
+        ),
+        ([1, 2], "exaggerate"),
+    ):
+        with pytest.raises(InputError, match=what):
+            load_layout({**layout, "exaggerate": bad})

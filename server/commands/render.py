@@ -53,10 +53,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     m.add_argument(
         "--neutral-frame",
-        type=int,
+        type=_frame,
         default=None,
-        metavar="N",
-        help="frame of the actor's neutral face and the head's rest (default: the layout's, else 0)",
+        metavar="N|auto",
+        help="frame of the actor's neutral face and the head's rest (default: the layout's, else auto: "
+        "frame 0 unless another fits the face at rest clearly better)",
     )
     p.add_argument(
         "--server",
@@ -64,6 +65,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="render on a facecast server instead of locally (admin key from $FACECAST_ADMIN_KEY)",
     )
+
+
+def _frame(text: str) -> int | str:
+    """``--neutral-frame``: a frame index or ``auto``."""
+    return "auto" if text.strip().lower() == "auto" else int(text)
 
 
 def _progress_bar(total_hint: str):

@@ -25,10 +25,12 @@ from ..state import Animation, FaceState
 from .clean import CleanParams, clean, lowrank_denoise, motion_rank
 from .io import read_take
 from .layout import Layout, load_layout
+from .neutral import find_neutral
 from .rig import MarkerRig, match_names
 from .stabilise import (
     check_stable,
     head_track,
+    hold_pose,
     pose_uncertainty,
     refine_poses,
     remove_head,
@@ -131,7 +133,8 @@ def process(
             int(empty[0]),
         )
     params = clean_params or CleanParams()
-    nf = neutral_frame if neutral_frame is not None else (layout.neutral_frame or 0)
+    nf = neutral_frame if neutral_frame is not None else layout.neutral_frame
+    nf = find_neutral(raw, layout, face, take.fps, where) if nf in (None, "auto") else nf
     if not 0 <= nf < n:
         raise InputError(
             f"neutral_frame {nf} is outside the take's {n} frames",
@@ -187,6 +190,12 @@ def process(
     # smoothed, so re-anchor them on the final pose of frame ``nf``. Left as they were, every output
     # frame carried the reference's offset (0.77 degrees on a take moving from frame 0, 1.1 mm of
     # skin error on frame 0, where the truth is the rest face).
+    w = round(
+        neutral_window * take.fps
+    )  # a neutral hold's frames share their pose (stabilise.hold_pose)
+    r[nf], t[nf] = hold_pose(
+        r, t, neutral_frames(local, nf, w, HOLD_MM), nf, np.nanmean(local[nf, stable], 0), w // 4
+    )
     r0, t0 = r[nf].copy(), t[nf].copy()
     r, t = reanchor(r, t, nf)
     local = local @ r0.T + t0
@@ -351,7 +360,7 @@ def load(
         path: ``.c3d``, ``.trc`` or ``.csv``.
         layout: layout path/dict/``Layout``; None looks beside the take (``find_layout``).
         units: units of the take, overriding what the file declares.
-        neutral_frame: frame of the actor's neutral face (default: the layout's, else 0).
+        neutral_frame: the actor's neutral frame, or "auto" (default: the layout's, else auto).
         filter: ``rts`` (zero-lag smoother), ``kalman`` (causal, as live) or ``none``.
         lowrank: ``auto``, ``off`` or a count of principal motions kept (``CleanParams.lowrank``).
         stable: stable marker names overriding the layout's (each checked for rigidity).

@@ -5,8 +5,11 @@ JSON::
     {"units": "mm",                      # units of the take (optional: declared by the file or detected)
      "face": "path/to/mesh.obj",          # optional: the face its vertex ids are for (named in errors)
      "stable": ["HEAD_L", "HEAD_R", ...],   # markers that move only with the skull (>= 3)
-     "neutral_frame": 0,                 # optional: frame holding the actor's neutral face
+     "neutral_frame": 0,                 # optional: frame holding the actor's neutral face, or "auto"
      "jaw": "CHIN",                      # optional: marker giving jaw opening (default: the one tied to FP 2.1)
+     "exaggerate": {"mouth": {"gain": 1.3, "markers": ["LIP_L", "LIP_R"]}},  # optional: per region,
+                                         # the region's markers' displacements scaled (the engine
+                                         # spreads each gain smoothly over the skin around them)
      "markers": {"CHIN": {"fp": "2.1"},  # tied to an MPEG-4 feature point of the face
                  "LIP_L": {"vertex": 1234},   # tied to a vertex id of the face
                  "CHEEK_L": {},          # placed automatically from the tied markers
@@ -22,6 +25,7 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -32,7 +36,7 @@ from ..faces.face import Face
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Layout", "Placement", "load_layout", "place_markers"]
+__all__ = ["MAX_GAIN", "Layout", "Placement", "load_layout", "marker_gains", "place_markers"]
 
 
 @dataclass
@@ -42,10 +46,11 @@ class Layout:
     markers: dict[str, dict]
     stable: list[str]
     units: str | None = None
-    neutral_frame: int | None = None
+    neutral_frame: int | str | None = None  # a frame, or "auto" (mocap.neutral)
     jaw: str | None = None
     where: str = "layout"
     face: str | None = None
+    exaggerate: dict[str, dict] = field(default_factory=dict)
 
     @property
     def names(self) -> list[str]:
@@ -82,13 +87,14 @@ def load_layout(src: str | Path | dict | Layout) -> Layout:
         "neutral_frame",
         "jaw",
         "face",
+        "exaggerate",
         "comment",
         "description",
     }
     if unknown:
         raise InputError(
             f"unknown field(s) {', '.join(sorted(unknown))}; expected units, stable, markers, "
-            "neutral_frame, jaw, face",
+            "neutral_frame, jaw, face, exaggerate",
             where=where,
         )
     markers = data.get("markers")
@@ -145,9 +151,13 @@ def load_layout(src: str | Path | dict | Layout) -> Layout:
     except MarkerFileError as e:
         raise InputError(str(e)) from None
     nf = data.get("neutral_frame")
-    if nf is not None and (isinstance(nf, bool) or not isinstance(nf, int) or nf < 0):
+    if (
+        nf is not None
+        and nf != "auto"
+        and (isinstance(nf, bool) or not isinstance(nf, int) or nf < 0)
+    ):
         raise InputError(
-            f"'neutral_frame' must be a frame index >= 0, not {nf!r}",
+            f"'neutral_frame' must be a frame index >= 0 or \"auto\", not {nf!r}",
             where=f"{where}: neutral_frame",
         )
     jaw = data.get("jaw")
@@ -160,7 +170,55 @@ def load_layout(src: str | Path | dict | Layout) -> Layout:
         raise InputError(
             "'face' must be a string: the face the vertex ids are for", where=f"{where}: face"
         )
-    return Layout(clean, list(dict.fromkeys(stable)), units, nf, jaw, where, made_for)
+    exaggerate = _exaggeration(data.get("exaggerate", {}), clean, f"{where}: exaggerate")
+    return Layout(clean, list(dict.fromkeys(stable)), units, nf, jaw, where, made_for, exaggerate)
+
+
+#: The largest exaggeration gain a layout may ask for (beyond it the retargeted skin tears).
+MAX_GAIN = 4.0
+
+
+def _exaggeration(
+    data: object, markers: dict[str, dict[str, Any]], where: str
+) -> dict[str, dict[str, Any]]:
+    """The checked ``exaggerate`` field: ``{region: {"gain": g, "markers": [names]}}``, 0 <= g <=
+    ``MAX_GAIN``, each marker in one region at most; InputError naming what is wrong."""
+    if not isinstance(data, dict):
+        raise InputError(
+            '\'exaggerate\' is {"region": {"gain": 1.3, "markers": ["A", "B"]}}', where=where
+        )
+    out: dict[str, dict[str, Any]] = {}
+    owner: dict[str, str] = {}
+    for region, spec in data.items():
+        w = f"{where}.{region}"
+        if not isinstance(spec, dict) or set(spec) != {"gain", "markers"}:
+            raise InputError('a region is {"gain": 1.3, "markers": ["A", "B"]}', where=w)
+        gain, names = spec["gain"], spec["markers"]
+        if (
+            isinstance(gain, bool)
+            or not isinstance(gain, (int, float))
+            or not 0.0 <= gain <= MAX_GAIN
+        ):
+            raise InputError(
+                f"'gain' must be a number from 0 to {MAX_GAIN:g}, not {gain!r}", where=w
+            )
+        if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+            raise InputError("'markers' must be a non-empty list of marker names", where=w)
+        unknown = [n for n in names if n not in markers]
+        if unknown:
+            raise InputError(f"marker(s) {', '.join(unknown[:8])} are not in 'markers'", where=w)
+        twice = [n for n in names if n in owner]
+        if twice:
+            raise InputError(f"marker {twice[0]} is already in region {owner[twice[0]]!r}", where=w)
+        owner.update({n: str(region) for n in names})
+        out[str(region)] = {"gain": float(gain), "markers": list(dict.fromkeys(names))}
+    return out
+
+
+def marker_gains(layout: Layout, names: list[str]) -> np.ndarray:
+    """``(len(names),)`` the exaggeration gain of each named marker (1 outside every region)."""
+    gain = {n: r["gain"] for r in layout.exaggerate.values() for n in r["markers"]}
+    return np.array([gain.get(n, 1.0) for n in names], dtype=np.float32)
 
 
 @dataclass

@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import InputError
 from ..faces.face import Face
 from ..state import FaceState, zero_faps
-from .layout import Layout, load_layout, place_markers
+from .layout import Layout, load_layout, marker_gains, place_markers
 from .retarget import RBFMap
 from .sampling import farthest_points
 from .stabilise import pose_in_frame, to_matrix
@@ -131,6 +131,8 @@ class MarkerRig:
         self.rbf = RBFMap(src, dst, kernel=kernel, mu=mu)
         # The frame change actor -> face for head poses (rigid part of the retarget).
         self.q, self.s, self.c = similarity(src, dst)
+        # exaggeration per region (the layout's masks): each control's displacement scaled
+        self.gains = marker_gains(self.layout, placement.names)[:, None]
         jaw = self.layout.jaw
         self.jaw = placement.names.index(jaw) if jaw in placement.names else None
         try:
@@ -168,7 +170,7 @@ class MarkerRig:
 
     def solve(self, local_mm: np.ndarray, r: np.ndarray, t: np.ndarray, time: float) -> FaceState:
         """One ``FaceState`` from ``(L, 3)`` stabilised markers (mm, layout order) and the head pose."""
-        d = self.rbf.displacements(local_mm[self.control]).astype(np.float32)
+        d = self.rbf.displacements(local_mm[self.control]).astype(np.float32) * self.gains
         head = self.head_matrix(r, t)
         return self.state(d, head, time)
 
@@ -181,7 +183,7 @@ class MarkerRig:
         self, local_mm: np.ndarray, r: np.ndarray, t: np.ndarray, fps: float, t0: float = 0.0
     ) -> list[FaceState]:
         """``solve`` for ``(T, L, 3)`` frames at once."""
-        d = self.rbf.displacements(local_mm[:, self.control]).astype(np.float32)
+        d = self.rbf.displacements(local_mm[:, self.control]).astype(np.float32) * self.gains
         heads = self.head_matrix(r, t)
         return [self.state(d[i], heads[i], t0 + i / fps) for i in range(len(d))]
 

@@ -3,8 +3,8 @@
 ``generate`` makes one kind of take (a technician's layout sheet, five stable markers, a Z-up lab in
 mm, a half-second neutral hold). Real takes differ in all of these, so the benchmarks and tests also
 run on ``VARIANTS``: evenly spread, sparse and dense layouts, 3-6 headband markers, Y-up or Z-up
-capture axes in mm or m, motion from the first frame, head rotations about the neck or the nose,
-larger and faster expressions. ``folds`` splits the ICT expressions so that a take's truth is drawn
+capture axes in mm or m, motion from the first frame, the neutral hold at the end (not the start),
+head rotations about the neck or the nose, larger and faster expressions. ``folds`` splits the ICT expressions so that a take's truth is drawn
 only from shapes held out of whatever a prior was fitted on.
 
 ``make_take(variant, out, seed, expressions)`` writes ``take.{c3d,trc,csv}``, ``take.layout.json``
@@ -49,6 +49,9 @@ class Variant:
     axes: str = "yup"
     units: str = "mm"  # mm | m (as written to the file)
     hold: float = 0.0  # neutral hold at the start
+    neutral_last: bool = (
+        False  # the take runs backwards: it starts on an expression, the hold ends it
+    )
     pivot: str = "head"  # head | neck | nose: the point the head turns about
     head_deg: tuple[float, float, float] = (8.0, 12.0, 5.0)  # pitch, yaw, roll amplitude
     head_mm: tuple[float, float, float] = (12.0, 8.0, 10.0)
@@ -66,6 +69,7 @@ VARIANTS: dict[str, Variant] = {
         Variant("dense100", markers=100, stable=6, units="m", axes="yup-side"),
         Variant("technician", placement="technician", markers=60, stable=5, axes="zup", hold=0.5),
         Variant("neck-pivot", pivot="neck", head_deg=(15.0, 25.0, 8.0), stable=5, units="m"),
+        Variant("neutral-last", hold=0.5, neutral_last=True, axes="zup"),  # no neutral at frame 0
         Variant(
             "fast-large",
             expr_max=1.0,
@@ -239,6 +243,9 @@ def make_take(
     local = (face.vertices[verts][None].astype(np.float64) + np.einsum("te,emc->tmc", w, d)) * mm
     ang = np.stack([_curve(rng, n, fps, a, (0.6, 1.5), hold) for a in np.radians(v.head_deg)], -1)
     tr = np.stack([_curve(rng, n, fps, a, (0.8, 2.0), hold) for a in v.head_mm], -1)
+    if v.neutral_last:
+        w, local = w[::-1].copy(), local[::-1].copy()
+        ang, tr = ang[::-1].copy(), tr[::-1].copy()
     r = matrix_from_euler(ang)
     if v.pivot == "neck":
         pivot = face.pivot("head") * mm + np.array([0.0, -90.0, -20.0])
@@ -256,6 +263,7 @@ def make_take(
             for _ in range(int(rng.integers(0, 3))):
                 length = int(rng.integers(3, max(4, int(0.3 * fps))))
                 start = int(rng.integers(hold + 1, max(hold + 2, n - length)))
+                start = n - length - start if v.neutral_last else start
                 noisy[start : start + length, j] = np.nan
     scale = 1.0 / UNIT_MM[v.units]  # the noisy positions are in mm
     take = MarkerTake(names, noisy * scale, float(fps), v.units)
