@@ -662,21 +662,27 @@ def _table(title: str, points: list[dict], args) -> str:
 
 
 async def _sweeps(server, url: str, args, baseline: LocalServer | None = None) -> dict:
-    """Both sweeps; with ``baseline``, each point is measured on it too, right after (``baseline_*``)."""
+    """Both sweeps; with ``baseline``, each point is measured on it too (``baseline_*``), the two
+    servers going first in turn."""
     res: dict = {"sessions_sweep": [], "viewers_sweep": []}
     if baseline is not None:
         res.update(baseline_sessions_sweep=[], baseline_viewers_sweep=[])
     points = [("sessions_sweep", int(x), 1) for x in args.sessions.split(",") if x.strip()]
     points += [("viewers_sweep", 1, int(x)) for x in args.viewers.split(",") if x.strip()]
-    for sweep, n, m in points:
+    for i, (sweep, n, m) in enumerate(points):
         log.info("%s: %d session(s), %d viewer(s) each", sweep, n, m)
-        res[sweep].append(await run_point(server, url, sessions=n, viewers=m, args=args))
-        log.info("%s", res[sweep][-1])
-        if baseline is not None:
-            res["baseline_" + sweep].append(
-                await run_point(baseline, baseline.url, sessions=n, viewers=m, args=args)
+        # With a baseline, the two servers take turns going first (ABBA...), so that neither
+        # always meets the machine right after the other's load or always runs warm.
+        order = (
+            [(server, url, ""), (baseline, baseline.url, "baseline_")]
+            if baseline
+            else [(server, url, "")]
+        )
+        for srv, srv_url, prefix in order[:: -1 if baseline is not None and i % 2 else 1]:
+            res[prefix + sweep].append(
+                await run_point(srv, srv_url, sessions=n, viewers=m, args=args)
             )
-            log.info("baseline: %s", res["baseline_" + sweep][-1])
+            log.info("%s%s", prefix, res[prefix + sweep][-1])
     return res
 
 
