@@ -10,11 +10,13 @@ Heads whose truth is known:
   the true point on the original surface.
 
 Cases are split into a *tuning* set (looked at while developing: the wide-face and long-nose
-variants, ``default`` at 2k, 10k and 25k vertices, and ICT identity000) and a *held-out* set (reported, never looked at while
-developing). The template is chosen automatically (the built-in head, or the ICT FaceKit neutral when
-the head aligns to it better); the ICT variants are also annotated with the built-in head as the
-template (``cross`` rows: a template of another family, whose points differ in definition). Also: ``bench/fidelity.py``'s error on ICT's artist expressions with the automatic
-annotation of the ICT neutral against the shipped one, and the time to annotate a 100k-vertex head.
+variants, ``default`` at 2k, 10k and 25k vertices, and ICT identity000) and a *held-out* set
+(reported, never looked at while developing). The template is chosen automatically (the built-in
+head, or the ICT FaceKit neutral when the head aligns to it better); the ICT variants are also
+annotated with the built-in head as the template (``cross`` rows: a template of another family,
+whose points differ in definition). Also: ``bench/fidelity.py``'s error on ICT's artist
+expressions with the automatic annotation of the ICT neutral against the shipped one, and the time
+to annotate a 100k-vertex head.
 
     python bench/annotate.py [--quick]
 
@@ -158,7 +160,8 @@ def run_case(
     if skip:
         out["definitional"] = score(auto, v, {k: truth[k] for k in skip if k in truth}, mm)
     print(
-        f"{name:24s} {split:8s} {out['template']:7s} {len(v):7d} v  mean {out['mean_mm']:.2f}  max {out['max_mm']:.2f} mm "
+        f"{name:24s} {split:8s} {out['template']:7s} {len(v):7d} v  "
+        f"mean {out['mean_mm']:.2f}  max {out['max_mm']:.2f} mm "
         f"({out['n']} pts) {secs:.1f} s ({cpu:.1f} s CPU)",
         file=sys.stderr,
     )

@@ -378,8 +378,10 @@ def main() -> int:
                               const level = r.lod ? r.coarseLevel() : m, gl = r.gl;
                               const dbg = gl.getExtension('WEBGL_debug_renderer_info');
                               return { vertices: m.V, lod: r.lod, triangles: m.count / 3,
-                                       triangles_drawn: level.groups.reduce((n, g) => n + g.count, 0) / 3,
-                                       render_scale: r.scale, shading: r.shading, canvas: [r.canvas.width, r.canvas.height],
+                                       triangles_drawn:
+                                         level.groups.reduce((n, g) => n + g.count, 0) / 3,
+                                       render_scale: r.scale, shading: r.shading,
+                                       canvas: [r.canvas.width, r.canvas.height],
                                        vertex_cache_order: r.vertexCacheOrder, mouth_window: r.mouthScissor,
                                        gl_renderer: dbg ? gl.getParameter(dbg.UNMASKED_RENDERER_WEBGL) : null }; }""")
                             run.update(info)
@@ -394,7 +396,8 @@ def main() -> int:
                                 )
                             results["runs"].append(run)
                             print(
-                                f"repeat {rep} {gl} {encoding} {variant}: drawn {run['drawn_fps']:.1f} fps, GPU process "
+                                f"repeat {rep} {gl} {encoding} {variant}: "
+                                f"drawn {run['drawn_fps']:.1f} fps, GPU process "
                                 f"{run['gpu_ms_per_frame']:.1f} ms/frame, load {run['load_average']:.2f}",
                                 file=sys.stderr,
                                 flush=True,
@@ -481,16 +484,19 @@ def main() -> int:
         vs = f"{r['vs_baseline_median']:.2f}" if r["vs_baseline_median"] else "–"
         print(
             f"| {r['gl']} | {r['encoding']} | {r['variant']} | {r['canvas'][0]}x{r['canvas'][1]} "
-            f"({r['render_scale']:.2f}, {r['shading']}) | {r['triangles_drawn']:.0f} of {r['triangles']:.0f} "
-            f"| {r['received_fps_median']:.1f} | {r['drawn_fps_median']:.1f} ({r['drawn_fps_min']:.1f}-{r['drawn_fps_max']:.1f}) "
+            f"({r['render_scale']:.2f}, {r['shading']}) "
+            f"| {r['triangles_drawn']:.0f} of {r['triangles']:.0f} "
+            f"| {r['received_fps_median']:.1f} | {r['drawn_fps_median']:.1f} "
+            f"({r['drawn_fps_min']:.1f}-{r['drawn_fps_max']:.1f}) "
             f"| {vs} | {r['gpu_ms_per_frame_median']:.1f} | {r['renderer_ms_per_frame_median']:.1f} "
-            f"| {r['chromium_ms_per_frame_median']:.1f} | {r['decode_ms_p50_median']:.2f} / {r['decode_ms_p95_max'] or 0:.2f} "
+            f"| {r['chromium_ms_per_frame_median']:.1f} "
+            f"| {r['decode_ms_p50_median']:.2f} / {r['decode_ms_p95_max'] or 0:.2f} "
             f"| {r['load_average_range'][0]:.1f}-{r['load_average_range'][1]:.1f} |"
         )
     print()
     print(
-        f"Ceiling: a page that only clears a {args.width}x{args.height} WebGL2 canvas (plus N small visible "
-        "triangles, one draw call, first repeat) every animation frame"
+        f"Ceiling: a page that only clears a {args.width}x{args.height} WebGL2 canvas "
+        "(plus N small visible triangles, one draw call, first repeat) every animation frame"
     )
     print(
         "| GL | repeat | idle rAF fps | clear fps (GPU ms/frame) | "
@@ -500,7 +506,8 @@ def main() -> int:
     print("|---|---|---|---|" + "---|" * len(sweep) + "---|")
     for c in results["ceilings"]:
         print(
-            f"| {c['gl']} | {c['repeat']} | {c['idle']['fps']:.0f} | {c['clear']['fps']:.0f} ({c['clear']['gpu_ms_per_frame']:.1f}) | "
+            f"| {c['gl']} | {c['repeat']} | {c['idle']['fps']:.0f} | {c['clear']['fps']:.0f} "
+            f"({c['clear']['gpu_ms_per_frame']:.1f}) | "
             + " | ".join(
                 f"{c[f'tris:{n}']['fps']:.0f} ({c[f'tris:{n}']['gpu_ms_per_frame']:.1f})"
                 if f"tris:{n}" in c

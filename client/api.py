@@ -22,13 +22,13 @@ import socket
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import quote, urlencode, urlsplit, urlunsplit
 
 import httpx
 import numpy as np
 from websockets.asyncio.client import ClientConnection, connect
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, WebSocketException
 
 from ..protocol import frames
 from ..protocol.errors import FrameError, UpstreamError
@@ -48,6 +48,9 @@ from ..protocol.messages import (
     parse_message,
 )
 from ..protocol.urls import server_url
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +91,7 @@ class SessionAdmin:
         headers = {"Authorization": f"Bearer {admin_key}"} if admin_key else {}
         self.http = httpx.AsyncClient(base_url=url, headers=headers, timeout=timeout)
 
-    async def __aenter__(self) -> SessionAdmin:
+    async def __aenter__(self) -> Self:
         return self
 
     async def __aexit__(self, *exc: object) -> None:
@@ -195,7 +198,8 @@ async def _connect(
         )
     except (OSError, asyncio.TimeoutError) as e:
         raise LiveError(f"cannot connect to {url.split('?', maxsplit=1)[0]}: {e}") from None
-    except Exception as e:  # handshake refused (HTTP status instead of 101)
+    # the handshake refused (an HTTP status instead of 101) or a URL websockets cannot use
+    except (WebSocketException, ValueError) as e:
         raise LiveError(
             f"WebSocket handshake with {url.split('?', maxsplit=1)[0]} failed: {e}"
         ) from None

@@ -8,6 +8,7 @@ model by it. The REST session routes use ``SessionCreate`` / ``SessionCreated`` 
 from __future__ import annotations
 
 import json
+import math
 from typing import Annotated, Any, Literal, get_args
 
 from pydantic import (
@@ -170,7 +171,7 @@ class FapMessage(_Model):
                     f"FAP number {k} is not a low-level FAP (3..68); send FAP 1 as 'viseme' "
                     "and FAP 2 as 'expression'"
                 )
-            if x != x or x in (float("inf"), float("-inf")):
+            if not math.isfinite(x):
                 raise ValueError(f"FAP {k} value must be finite")
         return v
 

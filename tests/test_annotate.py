@@ -14,6 +14,8 @@ import logging
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from facecast.server.deform.quality import QualityMesh, measure
 from facecast.server.errors import InputError
@@ -351,9 +353,6 @@ def test_loading_a_mesh_without_annotation_says_so_once(tmp_path, cache, faces, 
     said = [r for r in caplog.records if "annotated it automatically" in r.getMessage()]
     assert len(said) == 1
 
-
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 _json = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),

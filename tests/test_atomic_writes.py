@@ -25,9 +25,14 @@ def _mode(path) -> int:
 def test_both_helpers_keep_the_old_file_on_failure_and_replace_it_on_success(tmp_path, helper):
     target = tmp_path / "out.bin"
     target.write_bytes(b"old")
-    with pytest.raises(RuntimeError), helper(target) as tmp:
-        tmp.write_bytes(b"partial")
-        raise RuntimeError("boom")
+
+    def write_then_fail() -> None:
+        with helper(target) as tmp:
+            tmp.write_bytes(b"partial")
+            raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError):
+        write_then_fail()
     assert target.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["out.bin"]
     with helper(target) as tmp:
         assert tmp.parent == tmp_path and tmp.name.startswith(".out.bin.")

@@ -264,7 +264,7 @@ def test_glb_basis_is_exact_for_a_short_clip_and_bounded_for_a_long_one(small_fa
     V = small_face.n_vertices
     T = 5
     frames = small_face.vertices + rng.normal(0, 1.0, (T, V, 3)).astype(np.float32)
-    data, rec = encode_glb(frames, small_face.vertices, small_face.triangles, 10, tolerance_mm=0.01)
+    _, rec = encode_glb(frames, small_face.vertices, small_face.triangles, 10, tolerance_mm=0.01)
     assert rec["targets"] == T and rec["max_error_mm"] < 0.01
     # 120 frames of a 3-dimensional motion: 3 targets suffice.
     basis = rng.normal(0, 1.0, (3, V, 3)).astype(np.float32)

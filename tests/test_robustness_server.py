@@ -14,6 +14,7 @@ import json
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import httpx
 import numpy as np
@@ -22,6 +23,9 @@ import soundfile as sf
 from conftest import RunningServer
 
 from facecast.client.api import watch
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
 
 #: Seconds a request may take before the server counts as hung (generous: the machine may be loaded).
 REQUEST_TIMEOUT = 60.0
@@ -205,7 +209,7 @@ class Monitor:
             if self._stop.wait(0.5):
                 return
 
-    def __enter__(self) -> Monitor:
+    def __enter__(self) -> Self:
         for th in self._threads:
             th.start()
         deadline = time.monotonic() + 30

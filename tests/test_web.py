@@ -500,14 +500,20 @@ TWO_RENDERS_JS = """([what, yaw, pitch]) => {
     return px;
   };
   const a = grab(false), b = grab(true), W = r.canvas.width, H = r.canvas.height, n = W * H;
-  let face = 0, differ = 0, sad = 0; const mid = [0, 0, 0], sum = [0, 0, 0], sq = [0, 0, 0]; let k = 0;
+  let face = 0, differ = 0, sad = 0;
+  const mid = [0, 0, 0], sum = [0, 0, 0], sq = [0, 0, 0]; let k = 0;
   for (let i = 0; i < 4 * n; i += 4) {
     let d = 0, bg = 0;
-    for (let c = 0; c < 3; c++) { d = Math.max(d, Math.abs(a[i + c] - b[i + c])); bg = Math.max(bg, Math.abs(a[i + c] - a[c])); }
+    for (let c = 0; c < 3; c++) {
+      d = Math.max(d, Math.abs(a[i + c] - b[i + c]));
+      bg = Math.max(bg, Math.abs(a[i + c] - a[c]));
+    }
     if (d > 24) differ++;
     if (bg > 8) {
       face++;
-      for (let c = 0; c < 3; c++) { sad += Math.abs(a[i + c] - b[i + c]) / 3; sum[c] += b[i + c]; sq[c] += b[i + c] ** 2; }
+      for (let c = 0; c < 3; c++) {
+        sad += Math.abs(a[i + c] - b[i + c]) / 3; sum[c] += b[i + c]; sq[c] += b[i + c] ** 2;
+      }
     }
     const x = (i / 4) % W, y = Math.floor(i / 4 / W);
     if (Math.abs(x - W / 2) < 10 && Math.abs(y - H / 2) < 10) { for (let c = 0; c < 3; c++) mid[c] += b[i + c]; k++; }

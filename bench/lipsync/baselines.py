@@ -29,8 +29,13 @@ def mel_filterbank(
 ) -> np.ndarray:
     """``(n_mels, n_fft//2 + 1)`` triangular filters equally spaced on the mel scale (HTK mel)."""
     fmax = fmax or sr / 2
-    mel = lambda f: 2595.0 * np.log10(1.0 + f / 700.0)
-    hz = lambda m: 700.0 * (10 ** (m / 2595.0) - 1.0)
+
+    def mel(f):
+        return 2595.0 * np.log10(1.0 + f / 700.0)
+
+    def hz(m):
+        return 700.0 * (10 ** (m / 2595.0) - 1.0)
+
     edges = hz(np.linspace(mel(fmin), mel(fmax), n_mels + 2))
     freqs = np.linspace(0, sr / 2, n_fft // 2 + 1)
     lo, c, hi = edges[:-2, None], edges[1:-1, None], edges[2:, None]

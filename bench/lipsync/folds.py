@@ -51,7 +51,8 @@ SYSTEMS = ("facecast", "facecast-live", "facecast-text", "energy", "mfcc")
 def cached_items(refresh: bool = False):
     path = frames.OUT / "lipsync_data" / "items.pkl"
     if path.exists() and not refresh:
-        return pickle.loads(path.read_bytes())
+        # our own cache, written below into bench/out (gitignored); never a downloaded file
+        return pickle.loads(path.read_bytes())  # noqa: S301
     items = frames.load_items()
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(pickle.dumps(items))
@@ -230,8 +231,10 @@ def main(argv: list[str] | None = None) -> int:
         if not args.quick:
             res["overall"][m]["x_realtime"] = audio_s / max(cpu[m], 1e-9) if cpu[m] else None
     lines = [
-        f"\n## Lip-sync, speakers held out ({len(FOLDS)} folds by speaker; "
-        f"{sum(len(t) for s in speakers for t in truths[s])} frames)\n",
+        (
+            f"\n## Lip-sync, speakers held out ({len(FOLDS)} folds by speaker; "
+            f"{sum(len(t) for s in speakers for t in truths[s])} frames)\n"
+        ),
         "| speaker | fold | frames | " + " | ".join(f"{m} acc / F1" for m in systems) + " |",
         "|---|---|---|" + "---|" * len(systems),
     ]

@@ -48,8 +48,10 @@ streams (WebSocket) and animation files (REST jobs) out.
 |---|---|
 | `/v1/jobs…` (submit, list, status, result, cancel) | admin key |
 | `POST/GET/DELETE /v1/sessions…` | admin key |
-| `/v1/sessions/{id}/produce`, `/watch` (WebSocket) | the session's producer / viewer token (`Authorization: Bearer`, or the subprotocol `facecast.token.<token>`) |
-| `/v1/faces…`, `/healthz`, `/metrics`, `/docs`, `/` | none (building a new `default:N` resolution needs the admin key) |
+| `/v1/sessions/{id}/produce`, `/watch` (WebSocket) | the session's producer / viewer token \
+(`Authorization: Bearer`, or the subprotocol `facecast.token.<token>`) |
+| `/v1/faces…`, `/healthz`, `/metrics`, `/docs`, `/` | none (building a new `default:N` \
+resolution needs the admin key) |
 
 The admin key goes in `Authorization: Bearer <key>`; it is `FACECAST_ADMIN_KEY`, or the key the
 server generated, printed at start-up and keeps in `<data dir>/admin.key`. Errors are JSON:

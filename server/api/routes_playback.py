@@ -22,7 +22,10 @@ import logging
 import tempfile
 import threading
 import time
+from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
+from typing import ClassVar
 
 from fastapi import APIRouter, Request, status
 from fastapi.responses import Response
@@ -129,7 +132,7 @@ class TooBusy(Unavailable):
     """Every decode slot is taken: the client should retry after ``Retry-After`` seconds."""
 
     status = 503
-    headers = {"Retry-After": "2"}
+    headers: ClassVar[Mapping[str, str]] = MappingProxyType({"Retry-After": "2"})
 
 
 def _decode_slots(app) -> threading.Semaphore:

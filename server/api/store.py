@@ -278,17 +278,16 @@ class FaceStore:
         with self._guard:
             if face_id in self.upload_ids:
                 return self.upload_ids[face_id], face_id, False
-        if name is not None:
-            if (
-                name in builtin_faces()
-                or name in self.configured
-                or name in self.uploaded
-                or UPLOAD_ID.match(name)
-            ):
-                raise Conflict(
-                    f"the face name {name!r} is taken; choose another (GET /v1/faces lists them)",
-                    where="name",
-                )
+        if name is not None and (
+            name in builtin_faces()
+            or name in self.configured
+            or name in self.uploaded
+            or UPLOAD_ID.match(name)
+        ):
+            raise Conflict(
+                f"the face name {name!r} is taken; choose another (GET /v1/faces lists them)",
+                where="name",
+            )
         name = name or f"face-{face_id[:8]}"
         if len(self.uploaded) >= MAX_UPLOADED_FACES:
             raise Conflict(

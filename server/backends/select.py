@@ -124,7 +124,7 @@ def _probe_one(dev) -> tuple[object | None, str]:
         if not np.allclose(y, 3 * np.arange(64, dtype=np.float32)):
             return None, "probe kernel gave wrong results"
         return ctx, ""
-    except Exception as e:  # any driver or compiler failure makes the device unusable
+    except Exception as e:  # noqa: BLE001 - any driver or compiler failure: the device is unusable
         msg = str(e).strip().splitlines()
         return None, (msg[0] if msg else type(e).__name__)[:300]
 
@@ -142,14 +142,14 @@ def probe_devices(refresh: bool = False) -> list[DeviceProbe]:
             import pyopencl as cl
 
             platforms = cl.get_platforms()
-        except Exception as e:  # no PyOpenCL, no ICD loader, or no platform at all
+        except Exception as e:  # noqa: BLE001 - no PyOpenCL, no ICD loader, or no platform at all
             log.debug("no OpenCL platforms: %s", e)
             _probes = probes
             return probes
         for pi, plat in enumerate(platforms):
             try:
                 devices = plat.get_devices()
-            except Exception as e:
+            except Exception as e:  # noqa: BLE001 - a broken platform is skipped, not fatal
                 log.debug("platform %s lists no devices: %s", plat.name, e)
                 continue
             for di, dev in enumerate(devices):

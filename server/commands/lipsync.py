@@ -130,8 +130,10 @@ def _render(fmt: str, args: argparse.Namespace, ls) -> str:
             return rhubarb_tsv(cues)
         return rhubarb_json(cues, str(args.audio), ls.duration)
     lines = [
-        f"{args.audio}: {ls.duration:.2f} s, {len(tr.t)} frames at {args.fps:g} fps; silence "
-        f"{ls.calibration.silence_db:.1f} dB, max {ls.calibration.max_db:.1f} dB",
+        (
+            f"{args.audio}: {ls.duration:.2f} s, {len(tr.t)} frames at {args.fps:g} fps; silence "
+            f"{ls.calibration.silence_db:.1f} dB, max {ls.calibration.max_db:.1f} dB"
+        ),
         f"{'start':>8} {'end':>8}  viseme",
     ]
     for s in named_segments(vis, args.fps):

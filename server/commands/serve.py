@@ -129,7 +129,7 @@ def lock_data_dir(data_dir: Path):
     import fcntl
 
     data_dir.mkdir(parents=True, exist_ok=True)
-    fh = open(data_dir / "server.lock", "a+")
+    fh = open(data_dir / "server.lock", "a+")  # noqa: SIM115 - held open (locked) till exit
     try:
         fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:

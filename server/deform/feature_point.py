@@ -293,7 +293,7 @@ def feature_point_operator(
             nn_pat = np.array([lst[1].min() if len(lst[1]) else 0.0 for lst in lists])
             own = members[np.maximum(vor.source, 0)]
             held[pat] = (vor.source >= 0) & (vor.distance < smooth_hold * nn_pat[own])
-        spacing.extend(l[1].min() for l in lists if len(l[1]))
+        spacing.extend(lst[1].min() for lst in lists if len(lst[1]))
         owner = (
             members[np.maximum(vor.source, 0)] if len(members) else np.zeros(n_vertices, np.int64)
         )

@@ -63,7 +63,7 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
         mesh.merge_vertices(
             merge_tex=True, merge_norm=True
         )  # UV seams, STL corners: one vertex per position
-    except Exception as e:  # trimesh raises many types for unreadable files
+    except Exception as e:  # noqa: BLE001 - trimesh raises many types for unreadable files
         raise InputError(
             f"trimesh cannot read this mesh ({e}); use OBJ, PLY, GLB or STL", where=str(path)
         ) from None

@@ -68,7 +68,7 @@ def serve(
             job_id, attempt = msg
             try:
                 run_job(store, job_id, attempt, backend, device, parent_pid, faces)
-            except Exception:
+            except Exception:  # noqa: BLE001 - the worker outlives a job's failure; logged, failed
                 log.error("job %s: worker error:\n%s", job_id, traceback.format_exc())
                 store.finish(
                     job_id,
@@ -232,7 +232,7 @@ def render(
             "failed",
             f"{job.input_name!r} needs more memory than this server has; send a shorter input",
         )
-    except Exception as e:
+    except Exception as e:  # noqa: BLE001 - reported as the job's failure (below)
         # A decoder's own error (FapFormatError...) or a low-level one it let through (ValueError,
         # struct.error, OverflowError...): the input's fault, most likely. The traceback stays here.
         own = type(e).__module__.startswith("facecast.")

@@ -11,10 +11,12 @@ moves (the scalp, where a capture's head jig sits). Two placements (``placement`
   front-facing skin vertex). Nothing is tuned to the expressions; beyond the sheet's length the
   rest are spread as in ``"motion"``.
 - ``"motion"``: the 29 feature points of ``MARKER_FPS``, then farthest-point sampling over the
-  moving skin with distances scaled by √(largest motion over the expressions). The face is animated by smooth random blends of the expressions, the head
-moves rigidly, and the capture adds noise (~0.5 mm), occlusion gaps and a few spikes. Output:
-``take.c3d``, ``take.trc``, ``take.layout.json`` and ``take.truth.npz`` (clean per-frame blend
-weights, head poses, clean markers) so benchmarks can rebuild ground-truth vertices.
+  moving skin with distances scaled by √(largest motion over the expressions).
+
+The face is animated by smooth random blends of the expressions, the head moves rigidly, and the
+capture adds noise (~0.5 mm), occlusion gaps and a few spikes. Output: ``take.c3d``, ``take.trc``,
+``take.layout.json`` and ``take.truth.npz`` (clean per-frame blend weights, head poses, clean
+markers) so benchmarks can rebuild ground-truth vertices.
 
     python -m facecast.server.mocap.generate --out DIR [--markers 60] [--seconds 10] [--fps 120]
 """
@@ -268,12 +270,11 @@ def choose_markers(
     mw = abs(face.fp_position("8.3")[0] - face.fp_position("8.4")[0])
     # Stable: skin that no expression moves, on the front and top of the skull (on the ICT head
     # only the scalp above the hairline is that still: where a capture's head jig sits).
-    if placement == "technician":
-        # a headband: round the head above the eyes (forehead, temples, back), widely spread so that
-        # the pose, pitch included, is well determined at the face
-        front = np.ones(len(v), dtype=bool)
-    else:
-        front = v[:, 2] > nose_z - 3.0 * mw
+    # The technician's is a headband: round the head above the eyes (forehead, temples, back),
+    # widely spread so that the pose, pitch included, is well determined at the face.
+    front = (
+        np.ones(len(v), dtype=bool) if placement == "technician" else v[:, 2] > nose_z - 3.0 * mw
+    )
     still = skin[(motion[skin] < 0.01) & front[skin] & (v[skin, 1] > eye_y)]
     if len(still) < n_stable:
         raise InputError(f"only {len(still)} candidate vertices for stable markers on {face.name}")

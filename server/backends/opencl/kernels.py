@@ -71,11 +71,11 @@ def deform_kernel(S: int, name: str, stream: bool) -> str:
         for i, h in enumerate((".lo", ".hi") if S == 16 else ("",))
     )
     tail = "\n        ".join(f"if ({i} < n) o[{i}] = {x};" for i, x in enumerate(inter))
-    gathers = "\n            ".join(f"const float4 d{l} = D[id[{l}]];" for l in lanes)
+    gathers = "\n            ".join(f"const float4 d{ln} = D[id[{ln}]];" for ln in lanes)
     # Non-temporal stores are weakly ordered: drain them before the work-group ends (on CPU
     # devices, the only ones that stream, a work-group's items run in order on one thread).
     fence = "\n    if (get_local_id(0) + 1 == get_local_size(0)) STREAM_FENCE();" if stream else ""
-    dx, dy, dz = (vec([f"d{l}.{c}" for l in lanes]) for c in "xyz")
+    dx, dy, dz = (vec([f"d{ln}.{c}" for ln in lanes]) for c in "xyz")
     return f"""
 #ifndef SN
 #define SN {S}
