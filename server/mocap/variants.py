@@ -4,8 +4,9 @@
 mm, a half-second neutral hold). Real takes differ in all of these, so the benchmarks and tests also
 run on ``VARIANTS``: evenly spread, sparse and dense layouts, 3-6 headband markers, Y-up or Z-up
 capture axes in mm or m, motion from the first frame, the neutral hold at the end (not the start),
-head rotations about the neck or the nose, larger and faster expressions. ``folds`` splits the ICT expressions so that a take's truth is drawn
-only from shapes held out of whatever a prior was fitted on.
+head rotations about the neck or the nose, larger and faster expressions. ``folds`` splits the ICT
+expressions so that a take's truth is drawn only from shapes held out of whatever a prior was
+fitted on.
 
 ``make_take(variant, out, seed, expressions)`` writes ``take.{c3d,trc,csv}``, ``take.layout.json``
 and returns a ``VariantTruth`` whose ``posed(face)`` rebuilds the true vertices, head motion
