@@ -509,8 +509,9 @@ def hold_pose(
     shares it out over its frames. A head that moves or turns through the hold (10 % of its frames
     off the median, or a trend over it of a third of the tolerances) keeps frame ``nf``'s own pose
     (a take moving from frame 0 was biased by 0.13 deg otherwise). On generated takes with a
-    half-second hold (held-out folds 1 and 2) the head pose error at the skin fell from 0.18/0.24 to 0.145/0.145 mm (technician layout) and
-    from 0.105/0.155 to 0.101/0.137 mm (neutral-last); takes without a hold keep frame ``nf``'s."""
+    half-second hold (held-out folds 1 and 2) the head pose error at the skin fell from 0.18/0.24
+    to 0.145/0.145 mm (technician layout) and from 0.105/0.155 to 0.101/0.137 mm (neutral-last);
+    takes without a hold keep frame ``nf``'s."""
     from scipy.spatial.transform import Rotation
 
     c = np.asarray(centre, dtype=np.float64)
