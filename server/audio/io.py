@@ -472,12 +472,15 @@ class StreamResampler:
             return np.zeros(0)
         # in slices: _compute's gathers are (outputs × taps per phase); a 1 Mi-sample chunk at once
         # swung the memory by 600 MB
-        out = np.concatenate(
-            [
-                self._compute(np.arange(j, min(j + STREAM_SLICE, last_j + 1)))
-                for j in range(self._n_out, last_j + 1, STREAM_SLICE)
-            ]
-        )
+        if last_j + 1 - self._n_out <= STREAM_SLICE:  # one slice: a live chunk
+            out = self._compute(np.arange(self._n_out, last_j + 1))
+        else:
+            out = np.concatenate(
+                [
+                    self._compute(np.arange(j, min(j + STREAM_SLICE, last_j + 1)))
+                    for j in range(self._n_out, last_j + 1, STREAM_SLICE)
+                ]
+            )
         self._n_out = last_j + 1
         # keep the history the next output needs
         first_needed = (self._n_out * self.down + self.half) // self.up - len(self._m) - 1

@@ -140,6 +140,7 @@ class AudioLiveDriver:
         self.n_frame = int(round(FRAME_LENGTH * ANALYSIS_RATE))
         self.n_hop = int(round(HOP_LENGTH * ANALYSIS_RATE))
         self.med_half = self.params.median // 2
+        self._future, self._past = self.net.future, self.net.past  # read per chunk
         fixed = (
             StreamResampler(self.rate, ANALYSIS_RATE).delay
             + FRAME_LENGTH / 2
@@ -193,7 +194,8 @@ class AudioLiveDriver:
         if not np.isfinite(t):
             raise InputError("media time is not finite", where="t")
         x = validate_pcm(data, self.rate, where=where, allow_empty=True, warn_clipping=False)
-        if not self._warned_clipping and x.size and np.mean(np.abs(x) >= CLIP_LEVEL) > 0.01:
+        clipped = np.count_nonzero(np.abs(x) >= CLIP_LEVEL) if not self._warned_clipping else 0
+        if clipped > 0.01 * x.size:
             self._warned_clipping = True
             log.warning("%s: the stream is clipping; intensity will saturate", where)
         out: list[FaceState] = []
@@ -289,11 +291,11 @@ class AudioLiveDriver:
         """Class probabilities of every frame whose look-ahead context has arrived (all at the
         end of the stream), as the batch pipeline computes them (edges repeated)."""
         n_feat = self._n_feat
-        avail = n_feat if final else n_feat - self.net.future
+        avail = n_feat if final else n_feat - self._future
         if avail <= self._n_p:
             return
-        lo = max(0, self._n_p - self.net.past)
-        hi = min(n_feat, avail + self.net.future)
+        lo = max(0, self._n_p - self._past)
+        hi = min(n_feat, avail + self._future)
         X = stack_context(self._F[lo - self._f0 : hi - self._f0], self.net.offsets)
         p = self.net.proba_stacked(X[self._n_p - lo : avail - lo])
         self._p = np.concatenate([self._p, p])
@@ -322,7 +324,7 @@ class AudioLiveDriver:
         ks = np.arange(self._next_out, k_end)
         t_rel = ks / self.fps
         p = self.params
-        past = int(round(p.coart_past / self.hop)) + self.med_half + self.net.past + 2
+        past = int(round(p.coart_past / self.hop)) + self.med_half + self._past + 2
         first_base = int(math.floor(t_rel[0] / self.hop + 1e-9))
         s = max(self._f0, first_base - past)
         lo, hi = s - self._f0, self._n_p - self._f0

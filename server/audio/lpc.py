@@ -46,7 +46,7 @@ def frame(x: np.ndarray, *, frame_length: int, hop_length: int) -> np.ndarray:
     if n == 0:
         return np.zeros((0, frame_length), dtype=x.dtype)
     if n <= SMALL:  # a copy by index: as_strided's own cost dominates on the live path's chunks
-        frames: np.ndarray = x[np.arange(n)[:, None] * hop_length + np.arange(frame_length)]
+        frames: np.ndarray = x[_frame_index(n, frame_length, hop_length)]
         return frames
     return np.lib.stride_tricks.as_strided(
         x,
@@ -54,6 +54,14 @@ def frame(x: np.ndarray, *, frame_length: int, hop_length: int) -> np.ndarray:
         strides=(x.strides[0] * hop_length, x.strides[0]),
         writeable=False,
     )
+
+
+@functools.lru_cache(maxsize=64)
+def _frame_index(n: int, frame_length: int, hop_length: int) -> np.ndarray:
+    """``(n, frame_length)`` sample indices of ``n`` frames (``frame``'s copy by index)."""
+    idx = np.arange(n)[:, None] * hop_length + np.arange(frame_length)
+    idx.flags.writeable = False
+    return idx
 
 
 def autocorrelate(frames: np.ndarray, *, max_lag: int) -> np.ndarray:
@@ -151,7 +159,7 @@ def zero_crossing_rate(frames: np.ndarray, *, sr: float) -> np.ndarray:
     y = np.asarray(frames, dtype=np.float64)
     y = y - y.sum(axis=-1, keepdims=True) / y.shape[-1]
     s = np.signbit(y)
-    crossings = np.count_nonzero(s[..., 1:] != s[..., :-1], axis=-1)
+    crossings = (s[..., 1:] != s[..., :-1]).sum(axis=-1)  # count_nonzero(axis=) costs more
     return crossings * (0.010 * sr) / y.shape[-1]
 
 
@@ -204,7 +212,7 @@ def _shape_of_power(p: np.ndarray, n_fft: int, sr: float) -> np.ndarray:
     """``(T, N_BANDS)`` log mel-band power of power spectra ``p (T, n_fft//2 + 1)``, each row
     minus its mean (the spectrum's shape, independent of the level)."""
     b = np.log(p @ _mel_bands(n_fft, float(sr)) + 1e-10)
-    return b - b.mean(axis=-1, keepdims=True)
+    return b - b.sum(axis=-1, keepdims=True) / b.shape[-1]  # = mean, without its per-call cost
 
 
 def cepstrum(a: np.ndarray, n: int = ORDER) -> np.ndarray:

@@ -21,6 +21,7 @@ Viseme ids are MPEG-4 FAP 1 ids (mpeg4-reference §4.1): 0 sil, 1 PP, 2 FF, 3 TH
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -255,6 +256,17 @@ def coarticulate(
     )
 
 
+@functools.lru_cache(maxsize=16)
+def _offsets(n_past: int, n_future: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(offs (W,), offs == 0, offs <= 0)`` of the frame window -n_past..n_future (read-only;
+    made once: the live path asks for the same window every chunk)."""
+    offs = np.arange(-n_past, n_future + 1)
+    out = (offs, offs[None, :] == 0, offs[None, :] <= 0)
+    for a in out:
+        a.flags.writeable = False
+    return out
+
+
 def _coarticulate(
     frame_t: np.ndarray,
     vis: np.ndarray,
@@ -272,7 +284,9 @@ def _coarticulate(
         z = np.zeros(N, dtype=np.int64)
         return Track(t_out, np.zeros((N, N_FAPS + 1)), z, z.copy(), np.ones(N), np.zeros(N))
     future = params.coart_past if lookahead is None else min(lookahead, params.coart_past)
-    offs = np.arange(-int(round(params.coart_past / hop)), int(round(future / hop + 1e-9)) + 1)
+    offs, is_base, before = _offsets(
+        int(round(params.coart_past / hop)), int(round(future / hop + 1e-9))
+    )
     # nearest frame at or before each output time, then a window of frames around it
     # (np.minimum/np.maximum: np.clip's per-call cost on integers weighs on the live path)
     base = np.minimum(
@@ -288,12 +302,11 @@ def _coarticulate(
     v = np.where(ok, vis[jc], -1)
     # Cohen–Massaro: one dominance function per segment (run of equal visemes), measured from
     # the segment's frame nearest to t (0 inside it); that frame also gives the intensity.
-    is_base = offs[None, :] == 0
     same_next = np.zeros_like(ok)
     same_next[:, :-1] = v[:, :-1] == v[:, 1:]
     same_prev = np.zeros_like(ok)
     same_prev[:, 1:] = v[:, 1:] == v[:, :-1]
-    rep = np.where(offs[None, :] <= 0, is_base | ~same_next, ~same_prev) & ok
+    rep = np.where(before, is_base | ~same_next, ~same_prev) & ok
     v = np.where(ok, v, 0)
     at = params.dominance[v]  # (N, W, 2): alpha, theta
     dom = np.where(rep, at[..., 0] * np.exp(-at[..., 1] * np.abs(dt)), 0.0)
