@@ -138,16 +138,18 @@ def frame_features(
     gain = 10 * np.log10(np.prod(1 - k * k, axis=1) + 1e-12) / 10
     rel_max = np.minimum(np.maximum((e - max_db) / 10, -6.0), 1.0)
     rel_sil = np.minimum(np.maximum((e - silence_db) / 10, -3.0), 5.0)
-    return np.column_stack(
+    # one concatenate of 2-D columns: np.column_stack's per-array conversions cost more
+    return np.concatenate(
         [
             lar,
-            cep,
-            gain,
-            rel_max,
-            rel_sil,
-            np.log1p(np.asarray(zcr, dtype=np.float64)),
+            np.asarray(cep, dtype=np.float64),
+            gain[:, None],
+            rel_max[:, None],
+            rel_sil[:, None],
+            np.log1p(np.asarray(zcr, dtype=np.float64))[:, None],
             np.asarray(shape, dtype=np.float64) / 4,
-        ]
+        ],
+        axis=1,
     )
 
 
@@ -163,9 +165,20 @@ def stack_context(F: np.ndarray, offsets: np.ndarray) -> np.ndarray:
 
 def _stack_rows(F: np.ndarray, offsets: np.ndarray, lo: int, hi: int) -> np.ndarray:
     """Rows ``lo:hi`` of ``stack_context(F, offsets)``, ``(hi - lo, D·len(offsets))``."""
-    idx = np.arange(lo, hi)[:, None] + np.asarray(offsets)[None, :]
-    idx = np.minimum(np.maximum(idx, 0), max(len(F) - 1, 0))
+    offsets = np.asarray(offsets)
+    idx = _stack_index(lo, hi, len(F), offsets.tobytes(), offsets.dtype.str)
     return F[idx].reshape(hi - lo, F.shape[1] * len(offsets))
+
+
+@functools.lru_cache(maxsize=64)
+def _stack_index(lo: int, hi: int, n: int, offsets: bytes, dtype: str) -> np.ndarray:
+    """``(hi - lo, len(offsets))`` row indices of ``_stack_rows`` (read-only; made once per
+    shape: the live path asks for the same few every chunk)."""
+    offs = np.frombuffer(offsets, dtype=dtype)
+    idx = np.arange(lo, hi)[:, None] + offs[None, :]
+    idx = np.minimum(np.maximum(idx, 0), max(n - 1, 0))
+    idx.flags.writeable = False
+    return idx
 
 
 @dataclass

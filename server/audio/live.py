@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..state import FaceState
-from .classify import FrameNet, default_frame_net, frame_features, stack_context
+from .classify import FrameNet, _stack_rows, default_frame_net, frame_features
 from .io import CLIP_LEVEL, MAX_RATE, MIN_RATE, StreamResampler, validate_pcm
 from .lpc import (
     ANALYSIS_RATE,
@@ -296,8 +296,8 @@ class AudioLiveDriver:
             return
         lo = max(0, self._n_p - self._past)
         hi = min(n_feat, avail + self._future)
-        X = stack_context(self._F[lo - self._f0 : hi - self._f0], self.net.offsets)
-        p = self.net.proba_stacked(X[self._n_p - lo : avail - lo])
+        F = self._F[lo - self._f0 : hi - self._f0]  # only the rows to classify are stacked
+        p = self.net.proba_stacked(_stack_rows(F, self.net.offsets, self._n_p - lo, avail - lo))
         self._p = np.concatenate([self._p, p])
         self._n_p = avail
 

@@ -267,6 +267,16 @@ def _offsets(n_past: int, n_future: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return out
 
 
+@functools.lru_cache(maxsize=16)
+def _rows(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(arange(n), arange(n)[:, None] * 15)``, read-only (the live path's few rows)."""
+    rows = np.arange(n)
+    out = (rows, rows[:, None] * 15)
+    for a in out:
+        a.flags.writeable = False
+    return out
+
+
 def _coarticulate(
     frame_t: np.ndarray,
     vis: np.ndarray,
@@ -302,11 +312,12 @@ def _coarticulate(
     v = np.where(ok, vis[jc], -1)
     # Cohen–Massaro: one dominance function per segment (run of equal visemes), measured from
     # the segment's frame nearest to t (0 inside it); that frame also gives the intensity.
-    same_next = np.zeros_like(ok)
-    same_next[:, :-1] = v[:, :-1] == v[:, 1:]
-    same_prev = np.zeros_like(ok)
-    same_prev[:, 1:] = v[:, 1:] == v[:, :-1]
-    rep = np.where(before, is_base | ~same_next, ~same_prev) & ok
+    changes = v[:, 1:] != v[:, :-1]
+    new_next = np.empty(ok.shape, dtype=bool)  # the next frame starts another segment (or none)
+    new_next[:, :-1], new_next[:, -1] = changes, True
+    new_prev = np.empty(ok.shape, dtype=bool)  # the previous frame ends another segment
+    new_prev[:, 1:], new_prev[:, 0] = changes, True
+    rep = np.where(before, is_base | new_next, new_prev) & ok
     v = np.where(ok, v, 0)
     at = params.dominance[v]  # (N, W, 2): alpha, theta
     dom = np.where(rep, at[..., 0] * np.exp(-at[..., 1] * np.abs(dt)), 0.0)
@@ -314,16 +325,21 @@ def _coarticulate(
     total = np.where(total > 0, total, 1.0)
     table = viseme_table() if table is None else table
     # per output time and viseme: dominance mass, and dominance × intensity (→ FAP targets)
-    rows = np.arange(N)
-    flat = (rows[:, None] * 15 + v).ravel()
+    rows, rows15 = _rows(N)
+    flat = (rows15 + v).ravel()
     mass = np.bincount(flat, weights=dom.ravel(), minlength=N * 15).reshape(N, 15)
     coef = np.bincount(flat, weights=(dom * w[jc]).ravel(), minlength=N * 15).reshape(N, 15)
     faps = (coef @ table) / total[:, None]
-    order = np.argsort(-mass, axis=1, kind="stable")
-    s1, s2 = order[:, 0], order[:, 1]
+    # the two largest masses, ties to the lower viseme id (a stable descending sort's first two;
+    # mass >= 0, so -1 takes s1 out of the second pick)
+    s1 = np.argmax(mass, axis=1)
     m1 = mass[rows, s1]
+    rest = mass.copy()
+    rest[rows, s1] = -1.0
+    s2 = np.argmax(rest, axis=1)
     m2 = mass[rows, s2]
-    blend = np.where(m1 + m2 > 0, m1 / np.maximum(m1 + m2, 1e-12), 1.0)
+    m12 = m1 + m2
+    blend = np.where(m12 > 0, m1 / np.maximum(m12, 1e-12), 1.0)
     # weight: intensity of the most dominant segment of the chosen viseme
     best = np.argmax(np.where(v == s1[:, None], dom, -1.0), axis=1)
     weight = np.where(dom[rows, best] > 0, w[jc[rows, best]], 0.0)
