@@ -141,10 +141,14 @@ def _levinson_small(r: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, 
             acc = row[i]
             for j in range(1, i):
                 acc += a[j] * row[i - j]
-            ki = min(max(-acc / err, -0.999999), 0.999999)
-            prev = a[:i]
-            for j in range(1, i):
-                a[j] = prev[j] + ki * prev[i - j]
+            ki = -acc / err
+            ki = -0.999999 if ki < -0.999999 else (0.999999 if ki > 0.999999 else ki)
+            # a[j] += ki·a[i-j] for all j at once: pairs (j, i-j) updated together, no copy
+            for j in range(1, (i + 1) // 2):
+                aj, aij = a[j], a[i - j]
+                a[j], a[i - j] = aj + ki * aij, aij + ki * aj
+            if not i & 1:
+                a[i // 2] += ki * a[i // 2]
             a[i] = ks[i - 1] = ki
             err *= 1.0 - ki * ki
         A[t], K[t], E[t] = a, ks, err
@@ -215,18 +219,25 @@ def _shape_of_power(p: np.ndarray, n_fft: int, sr: float) -> np.ndarray:
     return b - b.sum(axis=-1, keepdims=True) / b.shape[-1]  # = mean, without its per-call cost
 
 
+@functools.lru_cache(maxsize=4)
+def _cep_weights(n: int) -> tuple[tuple[float, ...], ...]:
+    """``w[m][i] = i/m`` for 0 <= i < m <= n (the scalar ``cepstrum``'s weights, made once)."""
+    return tuple(tuple(i / m for i in range(m)) if m else () for m in range(n + 1))
+
+
 def cepstrum(a: np.ndarray, n: int = ORDER) -> np.ndarray:
     """``(T, n)`` LPC cepstrum c_1..c_n (n <= p) of predictors ``a (T, p+1)`` (``a[:, 0] = 1``):
     the cepstrum of ``1 / A(z)``, by ``c_m = -a_m - sum_{j<m} (j/m) c_j a_{m-j}``."""
     T = a.shape[0]
     if T <= SMALL:  # scalar loops: the live path's few frames
         out = np.zeros((T, n))
+        ws = _cep_weights(n)
         for t, row in enumerate(a.tolist()):
             cs = [0.0] * (n + 1)
             for m in range(1, n + 1):
-                acc = row[m]
+                acc, wm = row[m], ws[m]
                 for i in range(1, m):
-                    acc += (i / m) * cs[i] * row[m - i]
+                    acc += wm[i] * cs[i] * row[m - i]
                 cs[m] = -acc
             out[t] = cs[1:]
         return out
