@@ -142,7 +142,10 @@ def _levinson_small(r: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, 
             for j in range(1, i):
                 acc += a[j] * row[i - j]
             ki = -acc / err
-            ki = -0.999999 if ki < -0.999999 else (0.999999 if ki > 0.999999 else ki)
+            if ki < -0.999999:  # (not min/max: their call cost, in this innermost loop)
+                ki = -0.999999
+            elif ki > 0.999999:
+                ki = 0.999999
             # a[j] += ki·a[i-j] for all j at once: pairs (j, i-j) updated together, no copy
             for j in range(1, (i + 1) // 2):
                 aj, aij = a[j], a[i - j]
