@@ -3,6 +3,7 @@ files (lying or truncated headers, absurd rates, no channels) and a fuzz over mu
 
 from __future__ import annotations
 
+import itertools
 import struct
 import tempfile
 import tracemalloc
@@ -351,3 +352,20 @@ def test_a_live_producers_odd_rate_builds_a_small_resampler():
     assert abs(383993 * r.up / r.down / ANALYSIS_RATE - 1.0) <= RATE_TOLERANCE
     common = StreamResampler(44100, ANALYSIS_RATE)
     assert (common.up, common.down) == (100, 441)  # common rates stay exact
+
+
+@pytest.mark.parametrize("rate", [16000, 44100, 48000])
+def test_stream_resampler_reused_plans_give_the_batch_output(rng, rate):
+    """The streaming resampler keeps the gather plans of recurring chunk shapes (live chunks):
+    equal chunks, then chunks of varying length, still give ``resample``'s samples."""
+    from facecast.server.audio.io import StreamResampler
+
+    x = 0.1 * rng.standard_normal(rate)
+    n = rate // 50  # 20 ms
+    sizes = [n] * 20 + [7, 1, n, 3 * n + 5, n, n] * 3
+    bounds = np.cumsum([0, *sizes])
+    rs = StreamResampler(rate, ANALYSIS_RATE)
+    y = np.concatenate([rs.push(x[a:b]) for a, b in itertools.pairwise(bounds)])
+    want = resample(x[: bounds[-1]], rate, ANALYSIS_RATE)[: len(y)]
+    np.testing.assert_allclose(y, want, atol=1e-12)
+    assert len(y) > 0.9 * bounds[-1] * ANALYSIS_RATE / rate

@@ -37,6 +37,9 @@ BLOCK_SAMPLES = 1 << 18
 MAX_RATIO_TERM = 1000
 #: Output samples ``StreamResampler`` computes at once (bounds its working memory).
 STREAM_SLICE = 8192
+#: ``StreamResampler`` keeps up to 8 gather plans (outputs × taps per phase) of up to this many
+#: elements each (live chunks: 20 ms at 48 kHz is 200 × 97): 16 MB at most.
+PLAN_MAX = 1 << 17
 #: Largest relative difference between ``Decoded.rate`` and the requested rate (5e-4 at worst).
 RATE_TOLERANCE = 1e-3
 
@@ -454,6 +457,7 @@ class StreamResampler:
         self._buf = np.zeros(pad)
         self._offset = -pad
         self._n_out = 0  # next output index
+        self._plans: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     def push(self, x: np.ndarray) -> np.ndarray:
         """Append input ``(n,)``; return the newly final output samples."""
@@ -493,6 +497,17 @@ class StreamResampler:
     def _compute(self, js: np.ndarray) -> np.ndarray:
         # y[j] = sum_k h[k] · u[p - k] with p = j·down + half and u the upsampled input (x[i] at
         # position i·up): only taps k = (p mod up) + m·up meet a nonzero sample, x[p//up - m].
-        p = js * self.down + self.half
-        idx = (p // self.up)[:, None] - self._m[None, :] - self._offset
-        return np.einsum("nm,nm->n", self._taps[p % self.up], self._buf[idx])
+        # js is a run j0..j0+n-1; its taps and gather indices depend only on key below, which a
+        # stream of equal chunks repeats: those of a few small runs are kept
+        p0 = int(js[0]) * self.down + self.half
+        key = (p0 % self.up, len(js), p0 // self.up - self._offset)
+        plan = self._plans.get(key)
+        if plan is None:
+            p = js * self.down + self.half
+            idx = (p // self.up)[:, None] - self._m[None, :] - self._offset
+            plan = (self._taps[p % self.up], idx)
+            if idx.size <= PLAN_MAX:
+                if len(self._plans) >= 8:
+                    self._plans.clear()
+                self._plans[key] = plan
+        return np.einsum("nm,nm->n", plan[0], self._buf[plan[1]])
