@@ -58,6 +58,8 @@ FACING_NEAR = 1.5
 PIECE_NAMES_MM = 2.5
 #: Largest rotation (degrees) and shift (mm) of a piece's rigid fit that is trusted.
 PIECE_MAX_DEG, PIECE_MAX_MM = 10.0, 5.0
+#: Largest median gap (mm, over the mesh's vertex spacing) from a fitted piece to the mesh's.
+PIECE_GAP_MM = 1.5
 _FAPU_CHECK = True  # tests and debugging may look at a failed fit
 _FAPU_POINTS = {p for a, b, _ in _FAPU.values() for p in (a, b)}
 
@@ -330,8 +332,8 @@ def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
         if "slit" in mine:
             half = abs(tpl.fp_position("8.3")[0])
             for k, p in mouth_corners(y, mtri, mine["slit"], half).items():
-                if k in tpl.mouth_corners:  # the same detector's end of the slit on the template
-                    src.append(tpl.mouth_corners[k])
+                if k in tpl.mouth_corners:
+                    src.append(_corner_source(tpl, k, float(p[0])))
                     dst.append(p)
                     found.append(k)
         for eye in ("eye_l", "eye_r"):
@@ -367,6 +369,23 @@ def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
     if not src:
         return None, found, eyes
     return (np.array(src), np.array(dst)), found, eyes
+
+
+def _corner_source(tpl: Template, key: str, mesh_x: float) -> np.ndarray:
+    """The template point ``(3,)`` (mm) anchored at the mesh's detected mouth corner ``key``.
+
+    The detector may stop short of a template's own corner ``key`` (a shallow slit: the built-in
+    head's ends 7 mm inside its 8.3). Where the mesh's slit ends as early (``mesh_x``, template
+    frame, at the template's detected end or inside), the two detections are matched; where it
+    reaches as far out as the template's corner, the mesh's slit end is its corner; in between, the
+    point between the two. So a mesh of another family (a sharp slit that runs to the corner) gets
+    its corner where its slit ends, and a mesh like the template gets the template's offset."""
+    found, own = tpl.mouth_corners[key], tpl.fp_position(key)
+    span = abs(own[0]) - abs(found[0])
+    if span <= 1.0:
+        return found
+    t = float(np.clip((abs(mesh_x) - abs(found[0])) / span, 0.0, 1.0))
+    return found + t * (own - found)
 
 
 def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[str, np.ndarray]:
@@ -499,12 +518,24 @@ def _feature_points(
             left_out[fp] = f"the mesh has no {part.replace('_', ' ')}"
             continue
         if key not in trees:
-            trees[key] = (cKDTree(y[parts[key]]), parts[key])
+            # A tooth's point is looked for on its jaw's teeth and gums: a mesh whose teeth and gums
+            # are one piece is split by the template's nearest part names, which across families
+            # may call its incisors gums.
+            jaw = key.split("_")[-1]
+            near = [k for k in (f"teeth_{jaw}", f"gums_{jaw}") if k in parts]
+            ids = (
+                np.unique(np.concatenate([parts[k] for k in near]))
+                if key.startswith("teeth")
+                else parts[key]
+            )
+            trees[key] = (cKDTree(y[ids]), ids)
         p = warped[tpl.feature_points[fp]]
         if key != "skin" and key == part:
             if key not in piece_fit:
                 piece_fit[key] = _fit_piece(
-                    warped[tpl.label == 2 + PIECE_PARTS.index(key)], y[parts[key]], trees[key][0]
+                    warped[tpl.label == 2 + PIECE_PARTS.index(key)],
+                    y[parts[key]],
+                    cKDTree(y[parts[key]]),
                 )
             p = piece_fit[key].apply(p[None])[0]
         d, i = trees[key][0].query(p, k=min(16, len(trees[key][1])))
@@ -594,9 +625,33 @@ def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int 
     # such a fit is not trusted.
     angle = np.degrees(np.arccos(np.clip((np.trace(sim.rotation) - 1) / 2, -1.0, 1.0)))
     moved = np.linalg.norm(sim.apply(src).mean(axis=0) - src.mean(axis=0))
-    if angle > PIECE_MAX_DEG or moved > PIECE_MAX_MM:
-        return Similarity(1.0, np.eye(3), np.zeros(3))
+    # Nor is one that leaves the piece off the mesh's (the labelled piece is another shape, or
+    # only part of one): the median gap is set against the mesh's own vertex spacing.
+    gap = float(np.median(tree.query(sim.apply(src))[0]))
+    spacing = float(np.median(tree.query(dst, k=2)[0][:, 1]))
+    if angle > PIECE_MAX_DEG or moved > PIECE_MAX_MM or gap > PIECE_GAP_MM + spacing:
+        return _front_shift(src, dst, tree)
     return sim
+
+
+def _front_shift(src: np.ndarray, dst: np.ndarray, tree: cKDTree) -> Similarity:
+    """The shift that puts a template piece's front at the midline (its most forward point within
+    3 mm of x = 0, +z forward; template frame, mm) on the mesh piece's: where a rigid fit slides
+    (pieces of different shapes), the front of the incisors or tongue is still where both agree.
+    Taken only when it brings the piece closer to the mesh's both ways (median distance), else no
+    shift."""
+    none = Similarity(1.0, np.eye(3), np.zeros(3))
+    mid_s, mid_d = np.abs(src[:, 0]) < 3.0, np.abs(dst[:, 0]) < 3.0
+    if not mid_s.any() or not mid_d.any():
+        return none
+    shift = dst[mid_d][np.argmax(dst[mid_d, 2])] - src[mid_s][np.argmax(src[mid_s, 2])]
+
+    def gap(t: np.ndarray) -> float:
+        return float(np.median(tree.query(src + t)[0]) + np.median(cKDTree(src + t).query(dst)[0]))
+
+    if gap(shift) >= gap(np.zeros(3)):
+        return none
+    return Similarity(1.0, np.eye(3), shift)
 
 
 def _checks(y, fps: dict[str, int], left_out: dict, tpl: Template) -> list[str]:
