@@ -397,7 +397,6 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
     parts: dict[str, list] = {"skin": [np.nonzero(label == main_label)[0]]}
     socket = np.zeros(len(tpl.vertices), bool)
     socket[tpl.mouth_socket] = True
-    slit_y = float(warped[tpl.feature_points["2.2"], 1])
     mouth_centre = (
         warped[tpl.mouth_socket].mean(axis=0)
         if len(tpl.mouth_socket)
@@ -408,6 +407,7 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
         """A separate piece behind the lips (ICT's upper teeth look like the socket's inside)."""
         return bool(np.linalg.norm(y[ids].mean(axis=0) - mouth_centre) < 35.0)
 
+    interior: list[np.ndarray] = []
     for c in np.nonzero(sizes)[0]:
         if c == main_label:
             continue
@@ -425,42 +425,16 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
             or (top == INNER and socket[j[ids]].mean() < 0.5)
             or (top == INNER and inside_mouth(ids))
         ):
-            # Mouth interior. What animation needs is which pieces ride the jaw: a piece above the
-            # mouth slit stays with the head (upper teeth, upper gums), one below rides the jaw
-            # (lower teeth, lower gums, tongue); a piece across it (gums and tongue in one) is cut
-            # at the slit. The template's nearest part names teeth apart from gums and tongue.
-            mouth = np.nonzero(tpl.label >= 2 + PIECE_PARTS.index("teeth_upper"))[0]
-            d_mouth, k = cKDTree(warped[mouth]).query(y[ids])
-            name = np.array([PIECE_PARTS[s - 2] for s in tpl.label[mouth[k]]])
-            teeth = np.char.startswith(name, "teeth")
-            above = y[ids, 1] > slit_y
-            # Where the template's pieces lie on the mesh's (a head of the template's family), their
-            # names say which jaw a piece is on (upper incisors reach below the slit) and whether it
-            # is one of the template's pieces; elsewhere only the slit and the teeth are trusted.
-            close = np.median(d_mouth) < PIECE_NAMES_MM
-            upper = np.char.endswith(name, "_upper").mean()
-            if close and (upper > 0.7 or upper < 0.3):
-                above[:] = upper > 0.5
-            elif above.mean() > 0.8 or above.mean() < 0.2:
-                above[:] = above.mean() > 0.5
-            if teeth.mean() > 0.8 or teeth.mean() < 0.2 or above.all() or not above.any():
-                teeth[:] = teeth.mean() > 0.5
-            label_of = np.where(
-                above,
-                np.where(teeth, "teeth_upper", "gums_upper"),
-                np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")),
-            )
-            names, counts = np.unique(name, return_counts=True)
-            if close and counts.max() >= 0.6 * len(name):  # one of the template's pieces
-                label_of[:] = names[np.argmax(counts)]
-            for s in np.unique(label_of):
-                parts.setdefault(str(s), []).append(ids[label_of == s])
+            interior.append(ids)
         elif top == INNER:
             parts.setdefault("mouth_socket", []).append(ids)
         elif top == OUTER and np.median(dist) < 6.0:
             parts["skin"].append(ids)  # a separate ear, a scalp
         else:
             parts.setdefault("other", []).append(ids)
+    if interior:
+        for k, v in _mouth_parts(y, interior, warped, tpl).items():
+            parts.setdefault(k, []).extend(v)
     # The main piece's own mouth cavity (a mesh whose lips fold inwards into a socket).
     main = parts["skin"][0]
     inside = main[socket[j[main]] & (d[main] < 6.0)]
@@ -471,6 +445,54 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
         out["skin"] = (
             np.setdiff1d(out["skin"], out["mouth_socket"]) if "mouth_socket" in out else out["skin"]
         )
+    return out
+
+
+def _mouth_parts(
+    y: np.ndarray, interior: list[np.ndarray], warped: np.ndarray, tpl: Template
+) -> dict[str, list[np.ndarray]]:
+    """Part name -> vertex ids of the mouth's pieces (``interior``: each piece's ids; ``y`` and
+    ``warped`` in the template frame, mm).
+
+    What animation needs is which pieces ride the jaw: a piece above the mouth slit stays with the
+    head (upper teeth, upper gums), one below rides the jaw (lower teeth, lower gums, tongue); a
+    piece across it (gums and tongue in one) is cut at the slit. The template's nearest part names
+    teeth apart from gums and tongue. Where the template's pieces lie on the mesh's (a head of the
+    template's family: over all the mouth's pieces, not one tooth that happens to lie near one of
+    the template's), their names say which jaw a piece is on (upper incisors reach below the slit)
+    and whether it is one of the template's pieces; elsewhere only the slit and the teeth are
+    trusted."""
+    slit_y = float(warped[tpl.feature_points["2.2"], 1])
+    mouth = np.nonzero(tpl.label >= 2 + PIECE_PARTS.index("teeth_upper"))[0]
+    tree = cKDTree(warped[mouth])
+    d_all, k_all = tree.query(y[np.concatenate(interior)])
+    family = bool(np.median(d_all) < PIECE_NAMES_MM)
+    out: dict[str, list[np.ndarray]] = {}
+    at = 0
+    for ids in interior:
+        d_mouth, k = d_all[at : at + len(ids)], k_all[at : at + len(ids)]
+        at += len(ids)
+        name = np.array([PIECE_PARTS[s - 2] for s in tpl.label[mouth[k]]])
+        teeth = np.char.startswith(name, "teeth")
+        above = y[ids, 1] > slit_y
+        close = family and np.median(d_mouth) < PIECE_NAMES_MM
+        upper = np.char.endswith(name, "_upper").mean()
+        if close and (upper > 0.7 or upper < 0.3):
+            above[:] = upper > 0.5
+        elif above.mean() > 0.8 or above.mean() < 0.2:
+            above[:] = above.mean() > 0.5
+        if teeth.mean() > 0.8 or teeth.mean() < 0.2 or above.all() or not above.any():
+            teeth[:] = teeth.mean() > 0.5
+        label_of = np.where(
+            above,
+            np.where(teeth, "teeth_upper", "gums_upper"),
+            np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")),
+        )
+        names, counts = np.unique(name, return_counts=True)
+        if close and counts.max() >= 0.6 * len(name):  # one of the template's pieces
+            label_of[:] = names[np.argmax(counts)]
+        for s in np.unique(label_of):
+            out.setdefault(str(s), []).append(ids[label_of == s])
     return out
 
 
