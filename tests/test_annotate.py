@@ -405,3 +405,20 @@ def test_landmark_files_are_parsed_or_refused_with_a_project_error(data):
     assert len(out) >= 3 and all(
         isinstance(p, int) or np.asarray(p).shape == (3,) for p in out.values()
     )
+
+
+def test_a_piece_seen_only_at_its_back_is_not_shifted_to_the_template_pieces_front():
+    # identity004 with the built-in template: its "upper teeth" were a few back teeth, and their
+    # "front" pulled 9.10 51 mm back (60 mm off).
+    from scipy.spatial import cKDTree
+
+    from facecast.server.faces.annotate.core import _front_shift
+
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-25, 25, 400)
+    arch = np.c_[x, rng.uniform(-5, 5, 400), 90 - 0.08 * x**2]  # a dental arch, front at z = 90
+    back = rng.uniform([-4, -5, 40], [4, 5, 52], (40, 3))  # the mesh's piece: a few back teeth
+    assert np.allclose(_front_shift(arch, back, cKDTree(back)).translation, 0)
+    ahead = arch + [0, 4, 3]  # the whole piece, 5 mm off: its front is matched
+    shift = _front_shift(arch, ahead, cKDTree(ahead)).translation
+    assert np.linalg.norm(shift - [0, 4, 3]) < 2.0, shift

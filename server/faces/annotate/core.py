@@ -660,13 +660,15 @@ def _front_shift(src: np.ndarray, dst: np.ndarray, tree: cKDTree) -> Similarity:
     """The shift that puts a template piece's front at the midline (its most forward point within
     3 mm of x = 0, +z forward; template frame, mm) on the mesh piece's: where a rigid fit slides
     (pieces of different shapes), the front of the incisors or tongue is still where both agree.
-    Taken only when it brings the piece closer to the mesh's both ways (median distance), else no
-    shift."""
+    Taken only when the fronts lie within 10 mm in depth and it brings the piece closer to the
+    mesh's both ways (median distance), else no shift."""
     none = Similarity(1.0, np.eye(3), np.zeros(3))
     mid_s, mid_d = np.abs(src[:, 0]) < 3.0, np.abs(dst[:, 0]) < 3.0
     if not mid_s.any() or not mid_d.any():
         return none
     shift = dst[mid_d][np.argmax(dst[mid_d, 2])] - src[mid_s][np.argmax(src[mid_s, 2])]
+    if abs(shift[2]) > 2 * PIECE_MAX_MM:
+        return none  # the mesh's piece has no front there (only back teeth were named so)
 
     def gap(t: np.ndarray) -> float:
         return float(np.median(tree.query(src + t)[0]) + np.median(cKDTree(src + t).query(dst)[0]))
