@@ -58,6 +58,8 @@ FACING_NEAR = 1.5
 PIECE_NAMES_MM = 2.5
 #: Largest rotation (degrees) and shift (mm) of a piece's rigid fit that is trusted.
 PIECE_MAX_DEG, PIECE_MAX_MM = 10.0, 5.0
+#: Largest median gap (mm, over the mesh's vertex spacing) from a fitted piece to the mesh's.
+PIECE_GAP_MM = 1.5
 _FAPU_CHECK = True  # tests and debugging may look at a failed fit
 _FAPU_POINTS = {p for a, b, _ in _FAPU.values() for p in (a, b)}
 
@@ -330,8 +332,8 @@ def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
         if "slit" in mine:
             half = abs(tpl.fp_position("8.3")[0])
             for k, p in mouth_corners(y, mtri, mine["slit"], half).items():
-                if k in tpl.mouth_corners:  # the same detector's end of the slit on the template
-                    src.append(tpl.mouth_corners[k])
+                if k in tpl.mouth_corners:
+                    src.append(_corner_source(tpl, k, float(p[0])))
                     dst.append(p)
                     found.append(k)
         for eye in ("eye_l", "eye_r"):
@@ -369,6 +371,23 @@ def _anchors(tpl: Template, lm: dict, sim, y, mtri, label, sizes, main_label):
     return (np.array(src), np.array(dst)), found, eyes
 
 
+def _corner_source(tpl: Template, key: str, mesh_x: float) -> np.ndarray:
+    """The template point ``(3,)`` (mm) anchored at the mesh's detected mouth corner ``key``.
+
+    The detector may stop short of a template's own corner ``key`` (a shallow slit: the built-in
+    head's ends 7 mm inside its 8.3). Where the mesh's slit ends as early (``mesh_x``, template
+    frame, at the template's detected end or inside), the two detections are matched; where it
+    reaches as far out as the template's corner, the mesh's slit end is its corner; in between, the
+    point between the two. So a mesh of another family (a sharp slit that runs to the corner) gets
+    its corner where its slit ends, and a mesh like the template gets the template's offset."""
+    found, own = tpl.mouth_corners[key], tpl.fp_position(key)
+    span = abs(own[0]) - abs(found[0])
+    if span <= 1.0:
+        return found
+    t = float(np.clip((abs(mesh_x) - abs(found[0])) / span, 0.0, 1.0))
+    return found + t * (own - found)
+
+
 def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[str, np.ndarray]:
     """Parts of the mesh: ``skin``, the pieces (eyes, teeth, gums, tongue), ``mouth_socket``, ``other``
     (pieces that are not part of the head: clothing, a body's markers)."""
@@ -378,7 +397,6 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
     parts: dict[str, list] = {"skin": [np.nonzero(label == main_label)[0]]}
     socket = np.zeros(len(tpl.vertices), bool)
     socket[tpl.mouth_socket] = True
-    slit_y = float(warped[tpl.feature_points["2.2"], 1])
     mouth_centre = (
         warped[tpl.mouth_socket].mean(axis=0)
         if len(tpl.mouth_socket)
@@ -389,6 +407,7 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
         """A separate piece behind the lips (ICT's upper teeth look like the socket's inside)."""
         return bool(np.linalg.norm(y[ids].mean(axis=0) - mouth_centre) < 35.0)
 
+    interior: list[np.ndarray] = []
     for c in np.nonzero(sizes)[0]:
         if c == main_label:
             continue
@@ -406,42 +425,16 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
             or (top == INNER and socket[j[ids]].mean() < 0.5)
             or (top == INNER and inside_mouth(ids))
         ):
-            # Mouth interior. What animation needs is which pieces ride the jaw: a piece above the
-            # mouth slit stays with the head (upper teeth, upper gums), one below rides the jaw
-            # (lower teeth, lower gums, tongue); a piece across it (gums and tongue in one) is cut
-            # at the slit. The template's nearest part names teeth apart from gums and tongue.
-            mouth = np.nonzero(tpl.label >= 2 + PIECE_PARTS.index("teeth_upper"))[0]
-            d_mouth, k = cKDTree(warped[mouth]).query(y[ids])
-            name = np.array([PIECE_PARTS[s - 2] for s in tpl.label[mouth[k]]])
-            teeth = np.char.startswith(name, "teeth")
-            above = y[ids, 1] > slit_y
-            # Where the template's pieces lie on the mesh's (a head of the template's family), their
-            # names say which jaw a piece is on (upper incisors reach below the slit) and whether it
-            # is one of the template's pieces; elsewhere only the slit and the teeth are trusted.
-            close = np.median(d_mouth) < PIECE_NAMES_MM
-            upper = np.char.endswith(name, "_upper").mean()
-            if close and (upper > 0.7 or upper < 0.3):
-                above[:] = upper > 0.5
-            elif above.mean() > 0.8 or above.mean() < 0.2:
-                above[:] = above.mean() > 0.5
-            if teeth.mean() > 0.8 or teeth.mean() < 0.2 or above.all() or not above.any():
-                teeth[:] = teeth.mean() > 0.5
-            label_of = np.where(
-                above,
-                np.where(teeth, "teeth_upper", "gums_upper"),
-                np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")),
-            )
-            names, counts = np.unique(name, return_counts=True)
-            if close and counts.max() >= 0.6 * len(name):  # one of the template's pieces
-                label_of[:] = names[np.argmax(counts)]
-            for s in np.unique(label_of):
-                parts.setdefault(str(s), []).append(ids[label_of == s])
+            interior.append(ids)
         elif top == INNER:
             parts.setdefault("mouth_socket", []).append(ids)
         elif top == OUTER and np.median(dist) < 6.0:
             parts["skin"].append(ids)  # a separate ear, a scalp
         else:
             parts.setdefault("other", []).append(ids)
+    if interior:
+        for k, v in _mouth_parts(y, interior, warped, tpl).items():
+            parts.setdefault(k, []).extend(v)
     # The main piece's own mouth cavity (a mesh whose lips fold inwards into a socket).
     main = parts["skin"][0]
     inside = main[socket[j[main]] & (d[main] < 6.0)]
@@ -452,6 +445,54 @@ def _parts(y, label, main_label, sizes, warped, tpl: Template, head_v) -> dict[s
         out["skin"] = (
             np.setdiff1d(out["skin"], out["mouth_socket"]) if "mouth_socket" in out else out["skin"]
         )
+    return out
+
+
+def _mouth_parts(
+    y: np.ndarray, interior: list[np.ndarray], warped: np.ndarray, tpl: Template
+) -> dict[str, list[np.ndarray]]:
+    """Part name -> vertex ids of the mouth's pieces (``interior``: each piece's ids; ``y`` and
+    ``warped`` in the template frame, mm).
+
+    What animation needs is which pieces ride the jaw: a piece above the mouth slit stays with the
+    head (upper teeth, upper gums), one below rides the jaw (lower teeth, lower gums, tongue); a
+    piece across it (gums and tongue in one) is cut at the slit. The template's nearest part names
+    teeth apart from gums and tongue. Where the template's pieces lie on the mesh's (a head of the
+    template's family: over all the mouth's pieces, not one tooth that happens to lie near one of
+    the template's), their names say which jaw a piece is on (upper incisors reach below the slit)
+    and whether it is one of the template's pieces; elsewhere only the slit and the teeth are
+    trusted."""
+    slit_y = float(warped[tpl.feature_points["2.2"], 1])
+    mouth = np.nonzero(tpl.label >= 2 + PIECE_PARTS.index("teeth_upper"))[0]
+    tree = cKDTree(warped[mouth])
+    d_all, k_all = tree.query(y[np.concatenate(interior)])
+    family = bool(np.median(d_all) < PIECE_NAMES_MM)
+    out: dict[str, list[np.ndarray]] = {}
+    at = 0
+    for ids in interior:
+        d_mouth, k = d_all[at : at + len(ids)], k_all[at : at + len(ids)]
+        at += len(ids)
+        name = np.array([PIECE_PARTS[s - 2] for s in tpl.label[mouth[k]]])
+        teeth = np.char.startswith(name, "teeth")
+        above = y[ids, 1] > slit_y
+        close = family and np.median(d_mouth) < PIECE_NAMES_MM
+        upper = np.char.endswith(name, "_upper").mean()
+        if close and (upper > 0.7 or upper < 0.3):
+            above[:] = upper > 0.5
+        elif above.mean() > 0.8 or above.mean() < 0.2:
+            above[:] = above.mean() > 0.5
+        if teeth.mean() > 0.8 or teeth.mean() < 0.2 or above.all() or not above.any():
+            teeth[:] = teeth.mean() > 0.5
+        label_of = np.where(
+            above,
+            np.where(teeth, "teeth_upper", "gums_upper"),
+            np.where(teeth, "teeth_lower", np.where(name == "tongue", "tongue", "gums_lower")),
+        )
+        names, counts = np.unique(name, return_counts=True)
+        if close and counts.max() >= 0.6 * len(name):  # one of the template's pieces
+            label_of[:] = names[np.argmax(counts)]
+        for s in np.unique(label_of):
+            out.setdefault(str(s), []).append(ids[label_of == s])
     return out
 
 
@@ -499,12 +540,24 @@ def _feature_points(
             left_out[fp] = f"the mesh has no {part.replace('_', ' ')}"
             continue
         if key not in trees:
-            trees[key] = (cKDTree(y[parts[key]]), parts[key])
+            # A tooth's point is looked for on its jaw's teeth and gums: a mesh whose teeth and gums
+            # are one piece is split by the template's nearest part names, which across families
+            # may call its incisors gums.
+            jaw = key.split("_")[-1]
+            near = [k for k in (f"teeth_{jaw}", f"gums_{jaw}") if k in parts]
+            ids = (
+                np.unique(np.concatenate([parts[k] for k in near]))
+                if key.startswith("teeth")
+                else parts[key]
+            )
+            trees[key] = (cKDTree(y[ids]), ids)
         p = warped[tpl.feature_points[fp]]
         if key != "skin" and key == part:
             if key not in piece_fit:
                 piece_fit[key] = _fit_piece(
-                    warped[tpl.label == 2 + PIECE_PARTS.index(key)], y[parts[key]], trees[key][0]
+                    warped[tpl.label == 2 + PIECE_PARTS.index(key)],
+                    y[parts[key]],
+                    cKDTree(y[parts[key]]),
                 )
             p = piece_fit[key].apply(p[None])[0]
         d, i = trees[key][0].query(p, k=min(16, len(trees[key][1])))
@@ -594,9 +647,35 @@ def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int 
     # such a fit is not trusted.
     angle = np.degrees(np.arccos(np.clip((np.trace(sim.rotation) - 1) / 2, -1.0, 1.0)))
     moved = np.linalg.norm(sim.apply(src).mean(axis=0) - src.mean(axis=0))
-    if angle > PIECE_MAX_DEG or moved > PIECE_MAX_MM:
-        return Similarity(1.0, np.eye(3), np.zeros(3))
+    # Nor is one that leaves the piece off the mesh's (the labelled piece is another shape, or
+    # only part of one): the median gap is set against the mesh's own vertex spacing.
+    gap = float(np.median(tree.query(sim.apply(src))[0]))
+    spacing = float(np.median(tree.query(dst, k=2)[0][:, 1]))
+    if angle > PIECE_MAX_DEG or moved > PIECE_MAX_MM or gap > PIECE_GAP_MM + spacing:
+        return _front_shift(src, dst, tree)
     return sim
+
+
+def _front_shift(src: np.ndarray, dst: np.ndarray, tree: cKDTree) -> Similarity:
+    """The shift that puts a template piece's front at the midline (its most forward point within
+    3 mm of x = 0, +z forward; template frame, mm) on the mesh piece's: where a rigid fit slides
+    (pieces of different shapes), the front of the incisors or tongue is still where both agree.
+    Taken only when the fronts lie within 10 mm in depth and it brings the piece closer to the
+    mesh's both ways (median distance), else no shift."""
+    none = Similarity(1.0, np.eye(3), np.zeros(3))
+    mid_s, mid_d = np.abs(src[:, 0]) < 3.0, np.abs(dst[:, 0]) < 3.0
+    if not mid_s.any() or not mid_d.any():
+        return none
+    shift = dst[mid_d][np.argmax(dst[mid_d, 2])] - src[mid_s][np.argmax(src[mid_s, 2])]
+    if abs(shift[2]) > 2 * PIECE_MAX_MM:
+        return none  # the mesh's piece has no front there (only back teeth were named so)
+
+    def gap(t: np.ndarray) -> float:
+        return float(np.median(tree.query(src + t)[0]) + np.median(cKDTree(src + t).query(dst)[0]))
+
+    if gap(shift) >= gap(np.zeros(3)):
+        return none
+    return Similarity(1.0, np.eye(3), shift)
 
 
 def _checks(y, fps: dict[str, int], left_out: dict, tpl: Template) -> list[str]:
