@@ -8,18 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-CLASSES = (
-    "sil",
-    "closed",
-    "labiodental",
-    "sibilant",
-    "open",
-    "mid",
-    "spread",
-    "round",
-    "narrow-round",
-    "other",
-)
+from facecast.server.audio.classify import CLASSES  # the network's classes, in its order
+
 C = {name: i for i, name in enumerate(CLASSES)}
 
 ARPABET = {

@@ -29,12 +29,12 @@ from ..faces import KNOWN_PARTS, RIGID_GROUPS, builtin_faces
 from ..faces import upload as mesh_upload
 from ..jobs.upload import (
     FIELD_LIMITS,
-    PayloadTooLarge,
     UploadParser,
     boundary_of,
     drain,
     multipart_doc,
     receive,
+    refuse_declared_oversize,
     safe_display_name,
     upload_dir,
 )
@@ -203,14 +203,7 @@ async def upload_face(request: Request) -> Any:
     cfg = app.state.config
     limit = min(int(cfg.max_upload_bytes), MAX_MESH_BYTES)
     boundary = boundary_of(request.headers.get("content-type", ""))
-    declared = request.headers.get("content-length")
-    if declared and declared.isdigit() and int(declared) > limit + FORM_OVERHEAD:
-        await drain(request, 0)
-        raise PayloadTooLarge(
-            f"the upload is {int(declared)} bytes, more than this server's limit of {limit} "
-            "bytes for a mesh; decimate the mesh",
-            where="file",
-        )
+    await refuse_declared_oversize(request, limit, FORM_OVERHEAD, "a mesh; decimate the mesh")
     slots = _upload_slots(app)
     if not slots.acquire(blocking=False):
         await drain(request, 0)

@@ -24,13 +24,12 @@ from ..errors import Conflict, InputError, NotFound
 from ..jobs.store import JOB_ID, JobRecord, new_job_id
 from ..jobs.upload import (
     LAYOUT_PART,
-    PayloadTooLarge,
     UploadParser,
     boundary_of,
-    drain,
     input_suffix,
     multipart_doc,
     receive,
+    refuse_declared_oversize,
     safe_display_name,
     upload_layout,
 )
@@ -126,15 +125,12 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
     jobs = app.state.jobs
     limit = int(cfg.max_upload_bytes)
     boundary = boundary_of(request.headers.get("content-type", ""))
-    declared = request.headers.get("content-length")
-    if declared and declared.isdigit() and int(declared) > limit + FORM_OVERHEAD:
-        await drain(request, 0)
-        raise PayloadTooLarge(
-            f"the upload is {int(declared)} bytes, more than this server's limit of {limit} "
-            "bytes for a file; send a smaller file or raise FACECAST_MAX_UPLOAD_BYTES "
-            "on the server",
-            where="file",
-        )
+    await refuse_declared_oversize(
+        request,
+        limit,
+        FORM_OVERHEAD,
+        "a file; send a smaller file or raise FACECAST_MAX_UPLOAD_BYTES on the server",
+    )
     job_id = new_job_id()
     folder = jobs.store.folder(job_id)
     folder.mkdir(parents=True)

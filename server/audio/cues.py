@@ -14,7 +14,7 @@ import json
 
 import numpy as np
 
-from .visemes import VISEME_NAMES
+from ..mpeg4.highlevel import VISEME_NAMES
 
 #: MPEG-4 viseme id (0 sil, 1 PP, 2 FF, 3 TH, 4 DD, 5 kk, 6 CH, 7 SS, 8 nn, 9 RR, 10 aa, 11 E,
 #: 12 ih, 13 oh, 14 ou) → Rhubarb mouth shape.

@@ -30,23 +30,6 @@ import scipy.ndimage
 from ..state import N_FAPS
 
 SIL, PP, FF, TH, DD, KK, CH, SS, NN, RR, AA, E, IH, OH, OU = range(15)
-VISEME_NAMES = (
-    "sil",
-    "PP",
-    "FF",
-    "TH",
-    "DD",
-    "kk",
-    "CH",
-    "SS",
-    "nn",
-    "RR",
-    "aa",
-    "E",
-    "ih",
-    "oh",
-    "ou",
-)
 #: Network class index (a e i o u) → viseme id.
 VOWEL_VISEMES = np.array([AA, E, IH, OH, OU])
 

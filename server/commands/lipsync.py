@@ -25,7 +25,7 @@ import sys
 
 from ..audio.cues import named_segments, rhubarb_cues, rhubarb_json, rhubarb_tsv
 from ..audio.pipeline import calibration_file, lipsync_file
-from ..audio.visemes import VISEME_NAMES
+from ..mpeg4.highlevel import VISEME_NAMES
 from ..output.atomic import write_bytes_atomic
 
 FORMATS = ("table", "cues", "json", "rhubarb", "rhubarb-tsv")

@@ -187,6 +187,19 @@ class UploadParser:
         self.dest.unlink(missing_ok=True)
 
 
+async def refuse_declared_oversize(request: Any, limit: int, overhead: int, advice: str) -> None:
+    """Refuse, before reading it, a body whose declared ``Content-Length`` exceeds ``limit`` bytes of
+    file plus ``overhead`` bytes of form (``PayloadTooLarge``, with ``advice`` on what to send)."""
+    declared = request.headers.get("content-length")
+    if declared and declared.isdigit() and int(declared) > limit + overhead:
+        await drain(request, 0)
+        raise PayloadTooLarge(
+            f"the upload is {int(declared)} bytes, more than this server's limit of {limit} "
+            f"bytes for {advice}",
+            where="file",
+        )
+
+
 async def receive(request: Any, parser: UploadParser) -> None:
     """Stream ``request``'s body into ``parser`` and finish it (the one upload loop of the routes).
 
