@@ -3,12 +3,14 @@
 ``LocalServer(data_dir, "--face", "default:2k").start()`` starts it on a free port, waits until
 ``/healthz`` answers (``start(ready=True)``: until the default face is loaded), and knows its URL,
 admin key (given, or the one the server generated in ``<data dir>/admin.key``), log file, CPU time
-and memory; ``stop()`` ends it. One harness for tests/conftest.py and the scripts in bench/.
+and memory; ``stop()`` ends it. ``RedisServer()`` does the same for a real ``redis-server`` (the
+broker of a cluster). One harness for tests/conftest.py and the scripts in bench/.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -185,6 +187,70 @@ class LocalServer:
         if self._logf is not None:
             self._logf.close()
             self._logf = None
+
+    def __enter__(self) -> Self:
+        return self if self.proc is not None else self.start()
+
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.stop()
+
+
+class RedisServer:
+    """A real ``redis-server`` on a free loopback port, in memory only (no RDB, no AOF).
+
+    ``start()`` waits until it answers PING; ``kill()`` ends it at once (SIGKILL), ``start()``
+    again brings it back on the same port (empty: nothing is persisted), ``stop()`` ends it.
+    ``available()`` says whether the binary is installed (``.ci/setup`` installs it).
+    """
+
+    def __init__(self, port: int | None = None) -> None:
+        self.port = port or free_port()
+        self.url = f"redis://127.0.0.1:{self.port}/0"
+        self.proc: subprocess.Popen[bytes] | None = None
+        self._tmp = tempfile.TemporaryDirectory(prefix="facecast-redis-")
+
+    @staticmethod
+    def available() -> bool:
+        return shutil.which("redis-server") is not None
+
+    def start(self, timeout: float = 20.0) -> Self:
+        """Start the process; raise ``RuntimeError`` with its output when it does not answer."""
+        log = Path(self._tmp.name) / "redis.log"
+        cmd = ["redis-server", "--port", str(self.port), "--bind", "127.0.0.1", "--save", ""]
+        cmd += ["--appendonly", "no", "--dir", self._tmp.name, "--logfile", str(log)]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                break
+            if self.ping():
+                return self
+            time.sleep(0.05)
+        self.kill()
+        text = log.read_text(errors="replace")[-2000:] if log.exists() else ""
+        raise RuntimeError(f"redis-server on port {self.port} did not answer PING:\n{text}")
+
+    def ping(self) -> bool:
+        """True when the server answers PING (a raw RESP exchange: no client library needed)."""
+        try:
+            with socket.create_connection(("127.0.0.1", self.port), timeout=1.0) as s:
+                s.sendall(b"PING\r\n")
+                return s.recv(64).startswith(b"+PONG")
+        except OSError:
+            return False
+
+    def kill(self) -> None:
+        """End the process at once (SIGKILL), as a crash would."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+
+    def stop(self) -> None:
+        """End the process and delete its folder."""
+        self.kill()
+        self._tmp.cleanup()
 
     def __enter__(self) -> Self:
         return self if self.proc is not None else self.start()

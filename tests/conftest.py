@@ -1,4 +1,5 @@
-"""Shared fixtures: the real data in ../shared/data, a seeded RNG, and a real server on loopback."""
+"""Shared fixtures: the real data in ../shared/data, a seeded RNG, a real server and a real Redis on
+loopback."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facecast.server.harness import LocalServer
+from facecast.server.harness import LocalServer, RedisServer
 from facecast.server.paths import shared_data
 
 ARTIFACTS = Path(__file__).parent / "artifacts"
@@ -61,3 +62,14 @@ def server(tmp_path_factory) -> RunningServer:
     s = RunningServer(tmp_path_factory.mktemp("server-data")).start()
     yield s
     s.stop()
+
+
+@pytest.fixture
+def redis_server() -> RedisServer:
+    """A real, empty ``redis-server`` on a free loopback port for one test (``.ci/setup`` installs
+    it; the test skips with a reason where it is missing). ``kill()``/``start()`` restart it."""
+    if not RedisServer.available():
+        pytest.skip("redis-server is not installed (bash .ci/setup installs it)")
+    r = RedisServer().start()
+    yield r
+    r.stop()
