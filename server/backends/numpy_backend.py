@@ -6,6 +6,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...protocol.quantize import dequantize_int16, quantize_int16  # noqa: F401  (re-exported)
+from ..deform.normals import incidence_matrix, vertex_normals
 from ..deform.operator import Operator
 
 
@@ -76,35 +77,11 @@ class NumpyDeformer:
 
     def normals(self, vertices: np.ndarray) -> np.ndarray:
         """Area-weighted unit vertex normals ``(V, 3) float32`` of deformed ``vertices (V, 3)``."""
-        return vertex_normals(vertices, self.triangles, self._vertex_face_incidence())
+        return vertex_normals(
+            vertices, self.triangles, incidence=self._vertex_face_incidence(), dtype=np.float32
+        )
 
     def _vertex_face_incidence(self) -> sp.csr_matrix:
         if self._incidence is None:
             self._incidence = incidence_matrix(self.triangles, self.n_vertices)
         return self._incidence
-
-
-def incidence_matrix(triangles: np.ndarray, n_vertices: int) -> sp.csr_matrix:
-    """``(V, F)`` 0/1 CSR matrix: vertex v touches triangle f."""
-    f = np.repeat(np.arange(len(triangles)), 3)
-    return sp.csr_matrix(
-        (np.ones(f.size, dtype=np.float32), (triangles.ravel(), f)),
-        shape=(n_vertices, len(triangles)),
-    )
-
-
-def vertex_normals(
-    vertices: np.ndarray, triangles: np.ndarray, incidence: sp.csr_matrix | None = None
-) -> np.ndarray:
-    """Area-weighted unit vertex normals: ``(V, 3)`` vertices, ``(F, 3)`` triangles -> ``(V, 3) float32``.
-
-    A vertex in no triangle (or whose triangles cancel) gets ``(0, 0, 0)``.
-    """
-    v = np.asarray(vertices, dtype=np.float32)
-    tri = v[triangles]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
-    if incidence is None:
-        incidence = incidence_matrix(triangles, len(v))
-    n = np.asarray(incidence @ fn, dtype=np.float32)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)

@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from .mesh_graph import components, edge_graph
+from .normals import vertex_normals
 from .operator import Operator
 from .smoothing import harmonic_fill
 
@@ -22,21 +23,6 @@ log = logging.getLogger(__name__)
 
 #: One axis of an operator as COO triples: ``(vertex (n,), control (n,), weight (n,))``.
 Triples = tuple[np.ndarray, np.ndarray, np.ndarray]
-
-
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals ``(V, 3) float64`` (zero for vertices in no triangle)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    tri = v[triangles]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    corners = np.asarray(triangles).ravel()
-    n = np.stack(
-        [np.bincount(corners, weights=np.repeat(fn[:, a], 3), minlength=len(v)) for a in range(3)],
-        axis=1,
-    )
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    unit: np.ndarray = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
-    return unit
 
 
 def control_sites(

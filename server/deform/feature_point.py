@@ -94,9 +94,9 @@ from .controls import (
     fill_inner,
     inner_is_membrane,
     validate_controls,
-    vertex_normals,
 )
 from .mesh_graph import bounded_distances, voronoi
+from .normals import vertex_normals
 from .operator import Operator
 from .smoothing import smooth_rows
 

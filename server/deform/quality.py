@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .normals import face_normals, vertex_normals
+
 #: How far outside the skin (mm) a socket vertex must be to count as poking through.
 POKE_TOL_MM = 0.2
 #: Candidate skin triangles per socket vertex (nearest by centroid in the rest pose).
@@ -41,24 +43,6 @@ def outer_skin_mask(face) -> np.ndarray:
     m[face.parts["skin"]] = True
     m[_sockets(face)] = False
     return m
-
-
-def face_normals(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """Unit normals ``(F, 3)`` float64 (0 for degenerate triangles)."""
-    p = p.astype(np.float64)
-    n = np.cross(p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]])
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, ln, out=np.zeros_like(n), where=ln > 0)
-
-
-def vertex_normals(p: np.ndarray, tri: np.ndarray, n_vertices: int) -> np.ndarray:
-    p = p.astype(np.float64)
-    fn = np.cross(p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]])
-    n = np.zeros((n_vertices, 3))
-    for k in range(3):
-        np.add.at(n, tri[:, k], fn)
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, ln, out=np.zeros_like(n), where=ln > 0)
 
 
 @dataclass

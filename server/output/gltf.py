@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..backends.numpy_backend import incidence_matrix
+from ..deform.normals import incidence_matrix
 from ..errors import Unprocessable
 from .atomic import atomic_path
 

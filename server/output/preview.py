@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..deform.normals import vertex_normals
 from .atomic import write_bytes_atomic
 
 #: Yaw of the model (degrees about +y) for each named view; positive turns the face's left towards the viewer.
@@ -46,23 +47,6 @@ def view_rotation(view: str | float, pitch: float = 0.0) -> np.ndarray:
     ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
     rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
     return rx @ ry
-
-
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """``(V, 3)`` area-weighted unit vertex normals (zero for unused vertices)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    fn = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, t[:, k], fn) if len(t) < 50_000 else _add_rows(n, t[:, k], fn)
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(norm > 0, norm, 1.0)
-
-
-def _add_rows(out: np.ndarray, idx: np.ndarray, rows: np.ndarray) -> None:
-    for c in range(out.shape[1]):
-        out[:, c] += np.bincount(idx, weights=rows[:, c], minlength=out.shape[0])
 
 
 def render_image(

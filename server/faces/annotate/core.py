@@ -14,8 +14,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ...deform.mesh_graph import components, edge_graph
+from ...deform.normals import vertex_normals
 from ...errors import InputError
-from ...output.preview import vertex_normals
 from ..face import FEATURE_POINT_IDS, UNIT_MM
 from .detect import mouth_corners, profile_landmarks, sphere_centre
 from .orient import Similarity, frame, place, umeyama

@@ -114,7 +114,7 @@ TEMPLATES = {"default": default_template, "ict": ict_template}
 
 def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Template:
     """An annotated face (MPEG-4 axes) as a template: in mm, without the parts ``drop``."""
-    from ...output.preview import vertex_normals
+    from ...deform.normals import vertex_normals
     from .detect import mouth_corners, profile_landmarks
 
     keep = np.ones(face.n_vertices, bool)

@@ -16,8 +16,8 @@ import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
+from ...deform.normals import vertex_normals
 from ...mocap.sampling import farthest_points
-from ...output.preview import vertex_normals
 from .template import Template
 
 #: Refinement rounds: (control points, correspondence distance limit in mm, smoothing).

@@ -1,0 +1,51 @@
+"""Triangle and vertex normals of a triangle mesh: the one implementation every module uses."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import DTypeLike
+
+
+def face_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unit triangle normals: ``(V, 3)`` vertices, ``(F, 3)`` triangles -> ``(F, 3) float64``
+    (zero for degenerate triangles)."""
+    p = np.asarray(vertices, dtype=np.float64)
+    n = np.cross(p[triangles[:, 1]] - p[triangles[:, 0]], p[triangles[:, 2]] - p[triangles[:, 0]])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    unit: np.ndarray = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+    return unit
+
+
+def incidence_matrix(triangles: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """``(V, F)`` 0/1 CSR matrix: vertex v touches triangle f."""
+    f = np.repeat(np.arange(len(triangles)), 3)
+    return sp.csr_matrix(
+        (np.ones(f.size, dtype=np.float32), (np.asarray(triangles).ravel(), f)),
+        shape=(n_vertices, len(triangles)),
+    )
+
+
+def vertex_normals(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    n_vertices: int | None = None,
+    *,
+    incidence: sp.csr_matrix | None = None,
+    dtype: DTypeLike = np.float64,
+) -> np.ndarray:
+    """Area-weighted unit vertex normals: ``(V, 3)`` vertices, ``(F, 3)`` triangles -> ``(N, 3)``.
+
+    ``N`` is ``n_vertices`` (default ``V``); a vertex in no triangle (or whose triangles cancel) gets
+    ``(0, 0, 0)``. ``dtype``: of the arithmetic and the result (float32 on the live path).
+    ``incidence``: ``incidence_matrix(triangles, N)``, made once by callers that repeat the call.
+    """
+    v = np.asarray(vertices, dtype=dtype)
+    tri = v[triangles]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+    if incidence is None:
+        incidence = incidence_matrix(triangles, len(v) if n_vertices is None else n_vertices)
+    n = np.asarray(incidence @ fn, dtype=dtype)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    unit: np.ndarray = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+    return unit
