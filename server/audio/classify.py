@@ -160,10 +160,10 @@ BLOCK_FRAMES = 4096
 def stack_context(F: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """``(T, D·len(offsets))``: row t holds rows ``t + o`` of ``F (T, D)`` for each offset o
     (edge rows repeated past either end)."""
-    return _stack_rows(F, offsets, 0, len(F))
+    return stack_rows(F, offsets, 0, len(F))
 
 
-def _stack_rows(F: np.ndarray, offsets: np.ndarray, lo: int, hi: int) -> np.ndarray:
+def stack_rows(F: np.ndarray, offsets: np.ndarray, lo: int, hi: int) -> np.ndarray:
     """Rows ``lo:hi`` of ``stack_context(F, offsets)``, ``(hi - lo, D·len(offsets))``."""
     offsets = np.asarray(offsets)
     idx = _stack_index(lo, hi, len(F), offsets.tobytes(), offsets.dtype.str)
@@ -172,7 +172,7 @@ def _stack_rows(F: np.ndarray, offsets: np.ndarray, lo: int, hi: int) -> np.ndar
 
 @functools.lru_cache(maxsize=64)
 def _stack_index(lo: int, hi: int, n: int, offsets: bytes, dtype: str) -> np.ndarray:
-    """``(hi - lo, len(offsets))`` row indices of ``_stack_rows`` (read-only; made once per
+    """``(hi - lo, len(offsets))`` row indices of ``stack_rows`` (read-only; made once per
     shape: the live path asks for the same few every chunk)."""
     offs = np.frombuffer(offsets, dtype=dtype)
     idx = np.arange(lo, hi)[:, None] + offs[None, :]
@@ -232,7 +232,7 @@ class FrameNet:
         F = np.asarray(F)
         T = len(F)
         blocks = (
-            _stack_rows(F, self.offsets, i, min(T, i + BLOCK_FRAMES))
+            stack_rows(F, self.offsets, i, min(T, i + BLOCK_FRAMES))
             for i in range(0, max(T, 1), BLOCK_FRAMES)
         )  # one block's inputs at a time
         return np.concatenate([self.proba_stacked(X) for X in blocks])

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..state import FaceState
-from .classify import FrameNet, _stack_rows, default_frame_net, frame_features
+from .classify import FrameNet, default_frame_net, frame_features, stack_rows
 from .io import CLIP_LEVEL, MAX_RATE, MIN_RATE, StreamResampler, validate_pcm
 from .lpc import (
     ANALYSIS_RATE,
@@ -297,7 +297,7 @@ class AudioLiveDriver:
         lo = max(0, self._n_p - self._past)
         hi = min(n_feat, avail + self._future)
         F = self._F[lo - self._f0 : hi - self._f0]  # only the rows to classify are stacked
-        p = self.net.proba_stacked(_stack_rows(F, self.net.offsets, self._n_p - lo, avail - lo))
+        p = self.net.proba_stacked(stack_rows(F, self.net.offsets, self._n_p - lo, avail - lo))
         self._p = np.concatenate([self._p, p])
         self._n_p = avail
 
