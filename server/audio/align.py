@@ -6,13 +6,15 @@ visual class the frame network knows (``classify.CLASSES``), every phone lasting
 class posteriors (divided by the class priors, hybrid style) finds the timing. Text that does not
 fit the audio is refused: when its phones would be spoken implausibly fast or slow over the
 audio's sound (``PHONE_RATE``), or when the forced path scores far below the network's own best
-reading under the same duration rules (``MAX_MISMATCH`` nats per speech frame), the text is not
-what was said.
+reading under the same duration rules (``MAX_MISMATCH`` nats per speech frame, with an allowance
+for short texts), the text is not what was said. Live streams follow a transcript known ahead
+frame by frame (``TextFollower``).
 """
 
 from __future__ import annotations
 
 import functools
+import logging
 import re
 import shutil
 import subprocess
@@ -26,6 +28,7 @@ from .lpc import Features
 from .pipeline import LipSync, features_of, frame_proba, track_of
 from .visemes import Calibration, Params, calibrate
 
+log = logging.getLogger(__name__)
 C = {name: i for i, name in enumerate(CLASSES)}
 #: IPA symbol (stress and length marks removed) → class; multi-letter symbols first.
 IPA_CLASSES = {
@@ -70,11 +73,16 @@ IPA_CLASSES = {
 }
 #: Frames (10 ms) each phone lasts at least.
 MIN_FRAMES = 3
-#: Refuse the text when the forced path scores this much below the free reading, nats per frame.
-#: Measured with speaker-held-out networks (bench/lipsync/folds.py, 38 real recordings): own
-#: transcripts median 0.87 (11 of 38 above 1.0: short or mumbled recordings), another recording's
-#: transcript min 0.86 (36 of 38 above 1.0). Set to refuse rather than animate the wrong text.
-MAX_MISMATCH = 1.0
+#: Refuse the text when the forced path scores more than this far below the free reading, nats
+#: per speech frame, less ``MISMATCH_SLACK / sqrt(phones)`` (a short text's free reading has few
+#: frames to average over: the 38 real transcripts' own gap is 1.3-1.8 on 6-15 phones, 0.5-1.0 on
+#: long ones). Chosen on speakers held out (bench/lipsync/folds.py: each recording scored by a
+#: network that never heard its speaker): the largest own-transcript value (1.31) + 0.05, so no
+#: correct transcript of those 38 is refused; in the bench each fold's limit comes from its
+#: training speakers alone.
+MAX_MISMATCH = 1.36
+#: Length allowance of the mismatch (nats per frame times sqrt(phones)), see ``MAX_MISMATCH``.
+MISMATCH_SLACK = 2.0
 #: Phones per second of sound (frames above the silence threshold) a transcript may imply:
 #: English speech runs at about 10-15; the 38 real recordings' own transcripts give 5.2-25.7
 #: (bench/lipsync/folds.py), another recording's transcript 1.2-50 (17 of 35 outside).
@@ -217,11 +225,25 @@ def text_fit(proba: np.ndarray, text: str, voice: str = "en-us") -> tuple[np.nda
     return path, (free - forced) / speech, n_phones
 
 
-def checked_fit(proba: np.ndarray, text: str, speech: float, voice: str = "en-us") -> np.ndarray:
+def mismatch_excess(mismatch: float, n_phones: int) -> float:
+    """The mismatch (nats per speech frame) judged against ``MAX_MISMATCH``: less the length
+    allowance ``MISMATCH_SLACK / sqrt(n_phones)``."""
+    return float(mismatch) - MISMATCH_SLACK / np.sqrt(max(int(n_phones), 1))
+
+
+def checked_fit(
+    proba: np.ndarray,
+    text: str,
+    speech: float,
+    voice: str = "en-us",
+    max_mismatch: float | None = None,
+) -> np.ndarray:
     """``text_fit``'s class per frame, or InputError when the text does not match the audio:
     ``speech`` seconds of sound (frames above the silence threshold) hold fewer than
     ``PHONE_RATE[0]`` or more than ``PHONE_RATE[1]`` of its phones per second, or the forced
-    reading is more than ``MAX_MISMATCH`` worse than the free one."""
+    reading is worse than the free one by more than ``max_mismatch`` (default ``MAX_MISMATCH``)
+    after the length allowance (``mismatch_excess``)."""
+    limit = MAX_MISMATCH if max_mismatch is None else float(max_mismatch)
     path, mismatch, n_phones = text_fit(proba, text, voice)
     rate = n_phones / max(speech, 0.1)
     lo, hi = PHONE_RATE
@@ -233,12 +255,13 @@ def checked_fit(proba: np.ndarray, text: str, speech: float, voice: str = "en-us
             "leave it out",
             where="text",
         )
-    if mismatch > MAX_MISMATCH:
+    excess = mismatch_excess(mismatch, n_phones)
+    if excess > limit:
         raise InputError(
             f"the transcript does not match the audio (its {n_phones} phones fit "
-            f"{mismatch:.2f} nats per frame worse than what the audio sounds like; "
-            f"limit {MAX_MISMATCH}): check that the text is what is said, or leave "
-            "it out",
+            f"{mismatch:.2f} nats per frame worse than what the audio sounds like, "
+            f"{excess:.2f} after the allowance for their number; limit {limit:g}): check "
+            "that the text is what is said, or leave it out",
             where="text",
         )
     return path
@@ -265,6 +288,7 @@ def align_text(
     table: np.ndarray | None = None,
     where: str = "audio",
     voice: str = "en-us",
+    max_mismatch: float | None = None,
 ) -> LipSync:
     """Lip-sync ``x`` at ``sr`` Hz knowing its transcript ``text`` (English by default).
 
@@ -286,6 +310,7 @@ def align_text(
         params=params,
         table=table,
         voice=voice,
+        max_mismatch=max_mismatch,
     )
 
 
@@ -301,6 +326,7 @@ def align_features(
     params: Params | None = None,
     table: np.ndarray | None = None,
     voice: str = "en-us",
+    max_mismatch: float | None = None,
 ) -> LipSync:
     """``align_text`` from the audio's features ``f`` and its ``duration`` (s), e.g. those of
     ``pipeline.lipsync_file``'s bounded decoding."""
@@ -308,7 +334,7 @@ def align_features(
     cal = calibration or calibrate(f.energy_db)
     proba = frame_proba(f, cal, net)
     speech = float(np.sum(np.asarray(f.energy_db) >= cal.silence_db)) * f.hop
-    path = checked_fit(proba, text, speech, voice)
+    path = checked_fit(proba, text, speech, voice, max_mismatch)
     onehot = np.eye(len(CLASSES))[path]
     return track_of(
         f,
@@ -320,3 +346,124 @@ def align_features(
         params=params,
         table=table,
     )
+
+
+class TextFollower:
+    """``forced_path`` one frame at a time, for live streams whose transcript is known ahead.
+
+    Each pushed frame advances the Viterbi scores over the text's states; the class of frame
+    t is decided ``lag`` frames later (fixed-lag: the best state at t + lag, traced back), so the
+    text constrains the classes within the stream's look-ahead. Emissions are log probabilities
+    over the mean of the probabilities so far (the batch path divides by the whole utterance's
+    mean). Past the text's last phone the frames take the network's own class (speech that goes
+    on beyond the text still moves the mouth). The text is dropped (``active`` False, the
+    network's own classes from then on) when, after ``CHECK_FRAMES`` frames of speech, the best
+    forced reading scores ``MAX_MISMATCH`` nats per speech frame below the free reading
+    (``free_score``), as the batch check refuses such a text.
+    """
+
+    #: Speech frames (10 ms) on the text's path before the mismatch is judged.
+    CHECK_FRAMES = 200
+
+    def __init__(self, text: str, *, lag: int = 1, voice: str = "en-us") -> None:
+        check_text(text)
+        words = text_phones(text, voice)
+        if not words:
+            raise InputError("the transcript has no speakable words", where="text")
+        self.cls, opt = _states(words)
+        S = len(self.cls)
+        #: phones up to and including each state's
+        self.phones_before = np.cumsum(~opt) // MIN_FRAMES
+        nxt = np.append(self.cls[1:], -1)
+        same_next = (self.cls == nxt) & ~opt & np.append(~opt[1:], False)
+        self.loop = ~same_next
+        self.skip_ok = np.zeros(S, dtype=bool)
+        self.skip_ok[2:] = opt[1:-1]
+        self.lag = max(0, int(lag))
+        self.active = True
+        self.score: np.ndarray | None = None
+        self.back: list[np.ndarray] = []  # the last ``lag`` frames' back pointers
+        self.pending: list[int] = []  # the network's own class of the undecided frames
+        self.psum = np.zeros(len(CLASSES))
+        self.n = 0
+        self.free = np.full((len(CLASSES), MIN_FRAMES), -1e18)
+        self.speech = 0  # frames whose best state is a phone
+
+    def _step(self, p: np.ndarray) -> None:
+        self.psum += p
+        self.n += 1
+        logp = np.log(np.maximum(p, 1e-8)) - np.log(np.maximum(self.psum / self.n, 1e-4))
+        emit = logp[self.cls]
+        neg = -1e18
+        if self.score is None:
+            self.score = np.full(len(self.cls), neg)
+            self.score[: min(2, len(self.cls))] = emit[:2]
+            self.free[:, 0] = logp
+            back = np.arange(len(self.cls))
+        else:
+            s = self.score
+            stay = np.where(self.loop, s, neg)
+            step = np.concatenate(([neg], s[:-1]))
+            jump = np.where(self.skip_ok, np.concatenate(([neg, neg], s[:-2])), neg)
+            best = np.maximum(np.maximum(stay, step), jump)
+            idx = np.arange(len(s))
+            back = np.where(best == stay, idx, np.where(best == step, idx - 1, idx - 2))
+            self.score = best + emit
+            f = np.empty_like(self.free)
+            f[:, 0] = self.free[:, -1].max()
+            f[:, 1:] = self.free[:, :-1]
+            f[:, -1] = np.maximum(f[:, -1], self.free[:, -1])
+            self.free = f + logp[:, None]
+        self.back.append(back)
+        self.pending.append(int(np.argmax(p)))
+
+    def _decide(self, n: int) -> list[int]:
+        """Classes of the ``n`` oldest undecided frames, traced back from the best state now."""
+        assert self.score is not None
+        s = int(np.argmax(self.score))
+        states = [s]
+        for back in reversed(self.back[1:]):
+            s = int(back[s])
+            states.append(s)
+        states.reverse()  # states of the undecided frames, oldest first
+        last = len(self.cls) - 1
+        out = [
+            own if (st == last or not self.active) else int(self.cls[st])
+            for st, own in zip(states[:n], self.pending[:n])
+        ]
+        del self.back[:n], self.pending[:n]
+        return out
+
+    def push(self, proba: np.ndarray) -> np.ndarray:
+        """Feed class probabilities ``(T, 10)`` of the next frames; return the classes of the
+        frames now decided (all but the last ``lag``), oldest first."""
+        out: list[int] = []
+        for p in np.asarray(proba, dtype=np.float64):
+            self._step(p)
+            if self.cls[int(np.argmax(self.score))] != C["sil"]:
+                self.speech += 1
+            if self.active and self.speech >= self.CHECK_FRAMES:
+                assert self.score is not None
+                best = int(np.argmax(self.score))
+                mismatch = mismatch_excess(
+                    (self.free.max() - self.score[best]) / self.speech,
+                    max(1, int(self.phones_before[best])),
+                )
+                if mismatch > MAX_MISMATCH:
+                    self.active = False
+                    log.warning(
+                        "the live transcript does not match the audio (%.2f nats per frame "
+                        "worse than what it sounds like after the allowance for its length; limit %s): "
+                        "following the audio alone",
+                        mismatch,
+                        MAX_MISMATCH,
+                    )
+            if len(self.pending) > self.lag:
+                out += self._decide(len(self.pending) - self.lag)
+        return np.array(out, dtype=np.int64)
+
+    def flush(self) -> np.ndarray:
+        """The classes of every undecided frame (end of stream); the text position is kept."""
+        if not self.pending:
+            return np.zeros(0, dtype=np.int64)
+        return np.array(self._decide(len(self.pending)), dtype=np.int64)
