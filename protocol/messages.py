@@ -86,6 +86,13 @@ class ProducerHello(_Model):
     input: InputKindIn = "fap"
     rate: int | None = Field(None, gt=0, le=384_000, description="audio: sample rate in Hz")
     sample_format: SampleFormat | None = Field(None, description="audio: 'i16' or 'f32' PCM chunks")
+    transcript: str | None = Field(
+        None,
+        min_length=1,
+        max_length=10_000,
+        description="audio: what will be said (English), when known ahead: the mouth follows "
+        "its phones as far as the look-ahead allows",
+    )
     markers: list[str] | None = Field(
         None, max_length=4096, description="markers: name of each marker, in frame order"
     )

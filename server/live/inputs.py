@@ -107,9 +107,10 @@ class AudioInput:
         fmt = hello.sample_format or "i16"
         self.kinds = frozenset({frames.Kind.PCM_I16 if fmt == "i16" else frames.Kind.PCM_F32})
         cls = load_driver_class("audio")
+        text = {"text": hello.transcript} if hello.transcript else {}  # known ahead: followed
         try:
             try:
-                self.driver = cls(face, hello.rate, fps=fps)
+                self.driver = cls(face, hello.rate, fps=fps, **text)
             except TypeError:  # a driver without an output-rate parameter
                 self.driver = cls(face, hello.rate)
         except (ValueError, FacecastError) as e:
