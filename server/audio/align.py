@@ -389,7 +389,8 @@ class TextFollower:
         self.free = np.full((len(CLASSES), MIN_FRAMES), -1e18)
         self.speech = 0  # frames whose best state is a phone
 
-    def _step(self, p: np.ndarray) -> None:
+    def _step(self, p: np.ndarray) -> np.ndarray:
+        """Advance by one frame of class probabilities ``p (10,)``; the state scores now."""
         self.psum += p
         self.n += 1
         logp = np.log(np.maximum(p, 1e-8)) - np.log(np.maximum(self.psum / self.n, 1e-4))
@@ -416,6 +417,7 @@ class TextFollower:
             self.free = f + logp[:, None]
         self.back.append(back)
         self.pending.append(int(np.argmax(p)))
+        return self.score
 
     def _decide(self, n: int) -> list[int]:
         """Classes of the ``n`` oldest undecided frames, traced back from the best state now."""
@@ -439,14 +441,13 @@ class TextFollower:
         frames now decided (all but the last ``lag``), oldest first."""
         out: list[int] = []
         for p in np.asarray(proba, dtype=np.float64):
-            self._step(p)
-            if self.cls[int(np.argmax(self.score))] != C["sil"]:
+            score = self._step(p)
+            best = int(np.argmax(score))
+            if self.cls[best] != C["sil"]:
                 self.speech += 1
             if self.active and self.speech >= self.CHECK_FRAMES:
-                assert self.score is not None
-                best = int(np.argmax(self.score))
                 mismatch = mismatch_excess(
-                    (self.free.max() - self.score[best]) / self.speech,
+                    (self.free.max() - score[best]) / self.speech,
                     max(1, int(self.phones_before[best])),
                 )
                 if mismatch > MAX_MISMATCH:
