@@ -194,3 +194,22 @@ def test_audio_session_with_a_transcript_through_a_real_server(tmp_path, bobby):
         assert "speakable" in str(err)
     finally:
         srv.stop()
+
+
+def test_frame_network_carries_its_mean_output(tmp_path):
+    """The shipped network stores its mean class probabilities (the live transcript path's
+    starting prior); a file without them loads with None, and both round-trip."""
+    from facecast.server.audio.classify import FRAME_WEIGHTS, FrameNet
+
+    net = FrameNet.load(FRAME_WEIGHTS)
+    assert net.mean_proba is not None and net.mean_proba.shape == (10,)
+    assert net.mean_proba.sum() == pytest.approx(1.0) and np.all(net.mean_proba > 0)
+    net.save(tmp_path / "with.npz")
+    np.testing.assert_array_equal(FrameNet.load(tmp_path / "with.npz").mean_proba, net.mean_proba)
+    net.mean_proba = None
+    net.save(tmp_path / "without.npz")
+    assert FrameNet.load(tmp_path / "without.npz").mean_proba is None
+    drv = AudioLiveDriver(None, 16000, net=net, text="a map")  # no prior: the running mean only
+    assert drv.follower is not None and drv.follower.n == 0
+    f = TextFollower("a map", prior=np.full(10, 0.1))
+    assert f.n == TextFollower.PRIOR_FRAMES

@@ -205,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
             exponents[fold[0]] = frames.tune_prior(pairs, prior, median=args.median)
             net = frames.with_prior(net, prior, exponents[fold[0]])
             log.info("fold %s: class prior exponent %s", fold, exponents[fold[0]])
+        net.mean_proba = frames.mean_proba(  # the live transcript path's starting prior
+            net, [it for it in real if it.utt.speaker not in fold] + ([] if args.no_dev else dev)
+        )
         # the transcript check's limit, from the training speakers alone (nested as the prior)
         inner = []
         for j in range(len(FOLDS)):

@@ -2,6 +2,7 @@
 
     python bench/lipsync/frames.py folds      # leave-one-speaker-out table → bench/out/lipsync_folds.*
     python bench/lipsync/frames.py ship       # train on every speaker → server/audio/frame_net.npz
+    python bench/lipsync/frames.py mean-proba # store the shipped network's mean output in it
 
 Material: the real recordings (``corpus.recordings_utterances``: PocketSphinx alignments of
 ../shared/data/real-speech, cached under bench/out, plus bobby and mary) and espeak-ng development
@@ -209,6 +210,28 @@ def with_prior(net, prior: np.ndarray, exponent: float):
     return net
 
 
+def mean_proba(net, items: list[Item]) -> np.ndarray:
+    """``(10,)`` the network's mean class probabilities over the clean copies of ``items`` (its
+    training speech): ``FrameNet.mean_proba``, the live transcript path's starting prior."""
+    return np.mean(np.concatenate([net.proba(it.feats[0]) for it in items]), axis=0)
+
+
+def add_mean_proba() -> int:
+    """Store ``mean_proba`` in the shipped network (weights and metadata unchanged)."""
+    from folds import cached_items
+
+    from facecast.server.audio.classify import FRAME_WEIGHTS, FrameNet
+
+    real, dev = cached_items()
+    net = FrameNet.load(FRAME_WEIGHTS)
+    net.mean_proba = mean_proba(net, real + dev)
+    with np.load(FRAME_WEIGHTS) as z:
+        meta = {k[5:]: str(z[k]) for k in z.files if k.startswith("meta_")}
+    net.save(FRAME_WEIGHTS, **meta)
+    print(f"mean class probabilities {np.round(net.mean_proba, 3)} -> {FRAME_WEIGHTS}")
+    return 0
+
+
 def ship(argv: list[str]) -> int:
     from folds import FOLDS, cached_items
 
@@ -222,6 +245,7 @@ def ship(argv: list[str]) -> int:
     prior = class_prior(real + dev)
     exponent = tune_prior(pairs, prior)
     net = with_prior(train(real + dev), prior, exponent)
+    net.mean_proba = mean_proba(net, real + dev)
     print(f"class prior exponent {exponent}")
     speakers = sorted({it.utt.speaker for it in real})
     net.save(
@@ -242,6 +266,8 @@ if __name__ == "__main__":
     cmd = sys.argv[1] if len(sys.argv) > 1 else "folds"
     if cmd == "ship":
         sys.exit(ship(sys.argv[2:]))
+    if cmd == "mean-proba":
+        sys.exit(add_mean_proba())
     from folds import main
 
     sys.exit(main(sys.argv[2:]))

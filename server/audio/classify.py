@@ -48,7 +48,9 @@ def _load(path: str | Path, what: str, make: str, *extra: str) -> list[np.ndarra
     if not path.is_file():
         raise FacecastError(f"{what} network weights missing: {path}; run '{make}'")
     with np.load(path) as z:
-        return [z[n].astype(np.float64) for n in _PARAMS] + [z[n] for n in extra]
+        return [z[n].astype(np.float64) for n in _PARAMS] + [
+            z[n] if n in z.files else None for n in extra
+        ]
 
 
 @dataclass
@@ -194,6 +196,9 @@ class FrameNet:
     mean: np.ndarray
     std: np.ndarray
     offsets: np.ndarray
+    #: ``(10,)`` mean class probabilities over the speech it was trained on (the prior a
+    #: transcript's alignment divides by before a stream has shown its own); None = unknown.
+    mean_proba: np.ndarray | None = None
 
     @property
     def future(self) -> int:
@@ -238,12 +243,19 @@ class FrameNet:
         return np.concatenate([self.proba_stacked(X) for X in blocks])
 
     def save(self, path: str | Path, **meta: str) -> None:
-        _save(path, self, CLASSES, meta, offsets=self.offsets)
+        extra = {} if self.mean_proba is None else {"mean_proba": self.mean_proba}
+        _save(path, self, CLASSES, meta, offsets=self.offsets, **extra)
 
     @classmethod
     def load(cls, path: str | Path = FRAME_WEIGHTS) -> FrameNet:
-        *params, offsets = _load(path, "frame", "python bench/lipsync/frames.py ship", "offsets")
-        return cls(*params, offsets=offsets.astype(np.int64))
+        *params, offsets, mean_proba = _load(
+            path, "frame", "python bench/lipsync/frames.py ship", "offsets", "mean_proba"
+        )
+        return cls(
+            *params,
+            offsets=offsets.astype(np.int64),
+            mean_proba=None if mean_proba is None else mean_proba.astype(np.float64),
+        )
 
 
 @functools.lru_cache(maxsize=1)

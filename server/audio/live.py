@@ -154,7 +154,7 @@ class AudioLiveDriver:
         if text is not None:
             from .align import TextFollower  # align builds on the pipeline, as this module
 
-            self.follower = TextFollower(text, lag=self.med_half)
+            self.follower = TextFollower(text, lag=self.med_half, prior=self.net.mean_proba)
         self._future, self._past = self.net.future, self.net.past  # read per chunk
         fixed = (
             StreamResampler(self.rate, ANALYSIS_RATE).delay
