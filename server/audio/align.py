@@ -371,6 +371,9 @@ class TextFollower:
     #: speakers, 100 in four folds of five; without it 0.583 / 0.495 on the transcribed
     #: recordings, with it 0.653 / 0.548).
     PRIOR_FRAMES = 100
+    #: States more than this many nats below the best are dropped (their paths cannot recover
+    #: within a stream's few frames of look-ahead; the bench's results are the same without).
+    BEAM = 100.0
 
     def __init__(
         self,
@@ -396,7 +399,9 @@ class TextFollower:
         self.lag = max(0, int(lag))
         self.active = True
         self.score: np.ndarray | None = None
-        self.back: list[np.ndarray] = []  # the last ``lag`` frames' back pointers
+        #: back pointers of the undecided frames: (first state, predecessor of each state)
+        self.back: list[tuple[int, np.ndarray]] = []
+        self.lo, self.hi = 0, 0  # the live band of states
         self.pending: list[int] = []  # the network's own class of the undecided frames
         self.psum = np.zeros(len(CLASSES))
         self.n = 0
@@ -407,32 +412,43 @@ class TextFollower:
         self.speech = 0  # frames whose best state is a phone
 
     def _step(self, p: np.ndarray) -> np.ndarray:
-        """Advance by one frame of class probabilities ``p (10,)``; the state scores now."""
+        """Advance by one frame of class probabilities ``p (10,)``; the state scores now.
+
+        Only the states within ``BEAM`` nats of the best are kept alive (a long text's far
+        states cost nothing): the scores are computed over the live band ``[lo, hi)`` and the
+        two states a frame can advance into."""
         self.psum += p
         self.n += 1
         logp = np.log(np.maximum(p, 1e-8)) - np.log(np.maximum(self.psum / self.n, 1e-4))
-        emit = logp[self.cls]
         neg = -1e18
+        S = len(self.cls)
         if self.score is None:
-            self.score = np.full(len(self.cls), neg)
-            self.score[: min(2, len(self.cls))] = emit[:2]
+            self.score = np.full(S, neg)
+            a, b = 0, min(2, S)
+            self.score[a:b] = logp[self.cls[a:b]]
             self.free[:, 0] = logp
-            back = np.arange(len(self.cls))
+            back = np.arange(a, b)
         else:
-            s = self.score
-            stay = np.where(self.loop, s, neg)
+            a, b = self.lo, min(S, self.hi + 2)
+            s = self.score[a:b]  # states below a are dead: no predecessor from there
+            stay = np.where(self.loop[a:b], s, neg)
             step = np.concatenate(([neg], s[:-1]))
-            jump = np.where(self.skip_ok, np.concatenate(([neg, neg], s[:-2])), neg)
+            jump = np.where(self.skip_ok[a:b], np.concatenate(([neg, neg], s[:-2]))[: b - a], neg)
             best = np.maximum(np.maximum(stay, step), jump)
-            idx = np.arange(len(s))
+            idx = np.arange(a, b)
             back = np.where(best == stay, idx, np.where(best == step, idx - 1, idx - 2))
-            self.score = best + emit
+            self.score[a:b] = best + logp[self.cls[a:b]]
             f = np.empty_like(self.free)
             f[:, 0] = self.free[:, -1].max()
             f[:, 1:] = self.free[:, :-1]
             f[:, -1] = np.maximum(f[:, -1], self.free[:, -1])
             self.free = f + logp[:, None]
-        self.back.append(back)
+        band = self.score[a:b]
+        alive = np.flatnonzero(band >= band.max() - self.BEAM)
+        band[: alive[0]] = neg
+        band[alive[-1] + 1 :] = neg
+        self.lo, self.hi = a + int(alive[0]), a + int(alive[-1]) + 1
+        self.back.append((a, back))
         self.pending.append(int(np.argmax(p)))
         return self.score
 
@@ -441,8 +457,8 @@ class TextFollower:
         assert self.score is not None
         s = int(np.argmax(self.score))
         states = [s]
-        for back in reversed(self.back[1:]):
-            s = int(back[s])
+        for a, back in reversed(self.back[1:]):
+            s = int(back[s - a])
             states.append(s)
         states.reverse()  # states of the undecided frames, oldest first
         last = len(self.cls) - 1
