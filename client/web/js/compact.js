@@ -66,9 +66,12 @@ function fixedCodes() {
   return FIXED;
 }
 
-/** Inflate the zlib stream `src` (Uint8Array) to exactly `want` bytes, or throw. */
-export function inflateExactly(src, want) {
-  const out = new Uint8Array(want);
+/**
+ * Inflate the zlib stream `src` (Uint8Array) to exactly `want` bytes, or throw; into `into` (a
+ * Uint8Array of at least `want` bytes, reused from call to call) when given.
+ */
+export function inflateExactly(src, want, into = null) {
+  const out = into && into.length >= want ? into.subarray(0, want) : new Uint8Array(want);
   const end = src.length;
   if (end < 6) throw bad('too short');
   const cmf = src[0], flg = src[1];
@@ -235,6 +238,8 @@ export class CompactDecoder {
     this.baseStep = 0;
     this.base = null; // Int32Array(3V) rest cells, axis-major
     this.wide = null; // Int32Array(3V) reused: zigzagged values of frames of 2-4 planes
+    this.raw = new Uint8Array(3 * this.V); // inflated payload of one-plane frames, reused
+    this.spare = null; // Int32Array(3V): the next key frame's cells go here (the held key's stay)
   }
 
   /** The frame's fields, or throws on a malformed frame (no payload decoding). */
@@ -296,7 +301,7 @@ export class CompactDecoder {
       ref = this.keyQ;
     }
     const n = 3 * V;
-    const raw = inflateExactly(f.payload, f.planes * n);
+    const raw = inflateExactly(f.payload, f.planes * n, this.raw);
     const P = f.planes;
     let zz = raw; // zigzagged differences, 3V of them: the bytes themselves when one plane
     if (P > 1) {
@@ -308,10 +313,11 @@ export class CompactDecoder {
         zz[j] = u;
       }
     }
-    const q = f.key ? new Int32Array(n) : null; // a key's cells are kept
+    const q = f.key ? this.spare || new Int32Array(n) : null; // a key's cells are kept
     const pos = out && out.length === n ? out : new Float32Array(n);
     place(zz, ref, q, pos, f.transforms, f.step, this.runs, V);
     if (f.key) {
+      this.spare = this.keyQ;
       this.keyQ = q;
       this.keySeq = f.seq;
       this.keyStep = f.step;
