@@ -362,8 +362,7 @@ class CompactEncoder:
         np.einsum("ij,ij->j", fd, fd, out=dist)  # squared distance, one pass
         move = np.greater(dist, self._keep2, out=b["move"])
         np.rint(fd, out=fd)
-        np.multiply(fd, move, out=fd)  # 0 where kept
-        np.copyto(r, fd, casting="unsafe")  # (3, V): axis-major
+        np.multiply(fd, move, out=r, casting="unsafe")  # 0 where kept; (3, V) int32, axis-major
         dd[:, 0] = r[:, 0]
         np.subtract(r[:, 1:], r[:, :-1], out=dd[:, 1:])
         planes, raw = self._zigzag(dd)
