@@ -14,7 +14,8 @@ vertices ``rest (V, 3) float32`` and rigid group per vertex ``groups (V,) uint8`
 A delta depends only on its key, so a viewer that skips any number of deltas still decodes every
 frame it gets exactly; a viewer that missed the key waits for the next one (``None`` from
 ``CompactDecoder.decode``), never showing a wrong face. ``README.md`` beside this file gives
-every byte. With ``step = 2 · tolerance / √3 · (1 − 2⁻⁸)`` a vertex rounded to its cell is within
+every byte. With ``step = 2 · tolerance / √3 · (1 − m)`` (``m``: ``float_margin``, 2⁻⁸ and more
+for large coordinates) a vertex rounded to its cell is within
 ``tolerance`` (Euclidean) of the input; the encoder keeps a vertex's reference cell instead when
 that is within the tolerance too, which turns small motions into zeros.
 
@@ -65,12 +66,29 @@ MAX_STEP = 1e6
 _MAX_CELL = 1 << 23
 
 
-def step_for_tolerance(tolerance: float) -> float:
-    """Grid step (face units, as float32) whose rounding error is within ``tolerance`` (face
-    units, Euclidean): ``2 · tol / √3`` less 2⁻⁸ of margin for float32 arithmetic."""
+def float_margin(tolerance: float, extent: float = 0.0) -> float:
+    """Share of ``tolerance`` kept for float32 arithmetic (the encoder's and decoders'
+    transforms) with coordinates up to ``extent`` (face units) from the origin: 2⁻⁸, plus 2⁻²¹
+    per grid step of extent (their rounding grows with the coordinates; measured: about 2⁻²⁴
+    per step on each side). Raises ``ValueError`` when no grid fits (tolerance too small)."""
     if not (math.isfinite(tolerance) and tolerance > 0):
         raise ValueError(f"tolerance must be a positive number, got {tolerance}")
-    return float(np.float32(2.0 * tolerance / math.sqrt(3.0) * (1.0 - 2.0**-8)))
+    if not (math.isfinite(extent) and extent >= 0):
+        raise ValueError(f"extent must be a finite number >= 0, got {extent}")
+    m = 2.0**-8 + extent / (2.0 * tolerance / math.sqrt(3.0)) * 2.0**-21
+    if m > 0.5:
+        raise ValueError(
+            f"tolerance {tolerance:g} is too small for coordinates up to {extent:g} in float32"
+        )
+    return m
+
+
+def step_for_tolerance(tolerance: float, extent: float = 0.0) -> float:
+    """Grid step (face units, as float32) whose rounding error is within ``tolerance`` (face
+    units, Euclidean) for coordinates up to ``extent`` from the origin: ``2 · tol / √3`` less
+    ``float_margin`` of it."""
+    m = float_margin(tolerance, extent)
+    return float(np.float32(2.0 * tolerance / math.sqrt(3.0) * (1.0 - m)))
 
 
 def grid_base(rest: np.ndarray, step: float) -> np.ndarray:
@@ -242,7 +260,10 @@ class CompactEncoder:
         if key_interval < 1:
             raise ValueError("key_interval must be >= 1")
         self.tolerance = float(tolerance)
-        self.step = step_for_tolerance(tolerance)
+        # coordinates up to twice the rest mesh's from the origin (motion, head pose) keep the bound
+        extent = 2.0 * float(np.abs(self.rest).max(initial=0.0))
+        self._margin = float_margin(self.tolerance, extent)
+        self.step = step_for_tolerance(self.tolerance, extent)
         self.key_interval, self.level, self.strategy = int(key_interval), int(level), int(strategy)
         self.key_seconds = key_seconds
         self._key_t = 0.0
@@ -250,7 +271,7 @@ class CompactEncoder:
         self.base_t = np.ascontiguousarray(self.base.T)
         self._base_f = self.base_t.astype(np.float32)  # cells < 2^23 are exact in float32
         self._plan = _GroupPlan.of(self.groups, self.n_groups)
-        self._keep2 = np.float32((self.tolerance * (1 - 2.0**-8) / self.step) ** 2)
+        self._keep2 = np.float32((self.tolerance * (1 - self._margin) / self.step) ** 2)
         n = len(self.rest)
         self._buf = {
             "vt": np.ones((4, n), np.float32),  # homogeneous: rows x, y, z, 1
