@@ -176,7 +176,13 @@ def _zlib_cases(rng: np.random.Generator) -> list[tuple[bytes, int]]:
             valid.append((c.compress(d) + c.flush(), len(d)))
     cases = list(valid)
     for z, n in valid:
-        cases += [(z, n + 1), (z, max(0, n - 1)), (z[:-1], n), (z + b"\0", n), (z[: len(z) // 2], n)]
+        cases += [
+            (z, n + 1),
+            (z, max(0, n - 1)),
+            (z[:-1], n),
+            (z + b"\0", n),
+            (z[: len(z) // 2], n),
+        ]
         for _ in range(12):
             b = bytearray(z)
             for _ in range(int(rng.integers(1, 4))):
