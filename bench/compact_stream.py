@@ -1,6 +1,7 @@
 """Compact vertex streams against int16 and well-kept alternative coders, on the same streams.
 
     python bench/compact_stream.py [--faces default ict] [--tolerance-mm 0.1] [--seconds 8]
+                                   [--baseline REF]
 
 Streams (rendered with the batch pipeline, ``pipeline.Animator``, NumPy backend, at their own frame
 rate): every Xface FAP file, speech through the lip-sync (``../shared/data/speech``), and a generated
@@ -19,10 +20,12 @@ meshoptimizer's vertex codec is left out: its PyPI wrapper (0.2.30a0, an alpha) 
 Reported: bytes per vertex per frame (whole frames, headers and transforms included), the largest
 decoded error (mm, over every vertex of every frame; compact's decoder only), and CPU time per
 frame on one thread (``time.thread_time``): encoding (for alternatives, their entropy stage next
-to compact's zlib stage) and decoding in Python, and compact.js's decoding under Node (V8, the
-engine of Chromium; ``DecompressionStream`` included). Keys every 250 ms of the stream's fps. The machine's
-load average goes into the JSON: the times are CPU times but contend for caches with other work.
-Writes ``bench/out/compact_stream.json`` and prints a markdown table.
+to compact's zlib stage) and decoding in Python; compact.js's decoding under Node (V8) and in
+headless Chromium (the page's engine: wall time per frame and the renderer's CPU per frame, see
+``chromium_decode_ms``). Keys every 250 ms of the stream's fps. ``--baseline REF``: compact.py and
+compact.js of commit REF too, stream by stream in the same run (a before/after table). The
+machine's load average goes into the JSON: the times are CPU times but contend for caches with
+other work. Writes ``bench/out/compact_stream.json`` and prints markdown tables.
 """
 
 from __future__ import annotations
