@@ -1,6 +1,7 @@
 """Compact vertex streams against int16 and well-kept alternative coders, on the same streams.
 
     python bench/compact_stream.py [--faces default ict] [--tolerance-mm 0.1] [--seconds 8]
+                                   [--baseline REF]
 
 Streams (rendered with the batch pipeline, ``pipeline.Animator``, NumPy backend, at their own frame
 rate): every Xface FAP file, speech through the lip-sync (``../shared/data/speech``), and a generated
@@ -19,22 +20,28 @@ meshoptimizer's vertex codec is left out: its PyPI wrapper (0.2.30a0, an alpha) 
 Reported: bytes per vertex per frame (whole frames, headers and transforms included), the largest
 decoded error (mm, over every vertex of every frame; compact's decoder only), and CPU time per
 frame on one thread (``time.thread_time``): encoding (for alternatives, their entropy stage next
-to compact's zlib stage) and decoding in Python, and compact.js's decoding under Node (V8, the
-engine of Chromium; ``DecompressionStream`` included). Keys every 250 ms of the stream's fps. The machine's
-load average goes into the JSON: the times are CPU times but contend for caches with other work.
-Writes ``bench/out/compact_stream.json`` and prints a markdown table.
+to compact's zlib stage) and decoding in Python; compact.js's decoding under Node (V8) and in
+headless Chromium (the page's engine: wall time per frame and the renderer's CPU per frame, see
+``chromium_decode_ms``). Keys every 250 ms of the stream's fps. ``--baseline REF``: compact.py and
+compact.js of commit REF too, stream by stream in the same run (a before/after table). The
+machine's load average goes into the JSON: the times are CPU times but contend for caches with
+other work. Writes ``bench/out/compact_stream.json`` and prints markdown tables.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
+import subprocess
 import sys
 import tempfile
 import time
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
@@ -68,7 +75,13 @@ def streams(face, data: Path, seconds: float):
 
 
 def measure(
-    name: str, fps: float, frames: np.ndarray, transforms: np.ndarray, face, tol_mm: float
+    name: str,
+    fps: float,
+    frames: np.ndarray,
+    transforms: np.ndarray,
+    face,
+    tol_mm: float,
+    base: Baseline | None = None,
 ) -> dict:
     import zstandard
 
@@ -94,11 +107,11 @@ def measure(
         "enc_ms": (t1 - t0) / n * 1e3,
     }
 
-    for label, level, strategy in (
-        ("compact", 1, zlib.Z_RLE),
-        ("compact-lz4", 4, zlib.Z_DEFAULT_STRATEGY),
-    ):
-        enc = cp.CompactEncoder(
+    coders = [("compact", cp, 1, zlib.Z_RLE), ("compact-lz4", cp, 4, zlib.Z_DEFAULT_STRATEGY)]
+    if base is not None:  # the earlier commit's encoder and decoder, right after this one's
+        coders.insert(1, ("compact-base", base.module, 1, zlib.Z_RLE))
+    for label, mod, level, strategy in coders:
+        enc = mod.CompactEncoder(
             face.vertices,
             face.rigid_group,
             tolerance=tol,
@@ -111,7 +124,7 @@ def measure(
             enc.encode(v, tr, seq=i, t=i / fps) for i, (v, tr) in enumerate(zip(frames, transforms))
         ]
         enc_s = clock() - t0
-        dec = cp.CompactDecoder(face.vertices, face.rigid_group)
+        dec = mod.CompactDecoder(face.vertices, face.rigid_group)
         err, dec_s = 0.0, 0.0
         for b, v in zip(wire, frames):
             t0 = clock()
@@ -160,7 +173,43 @@ def measure(
         }
     del zl
     res["compact"]["js_dec"] = js_decode_ms(face, main)
+    res["compact"]["chromium_dec"] = chromium_decode_ms(face, main)
+    if base is not None:
+        res["compact-base"]["chromium_dec"] = chromium_decode_ms(face, main, base.js)
     return res
+
+
+@dataclass
+class Baseline:
+    """``protocol/compact.py`` and ``client/web/js/compact.js`` of an earlier commit, measured
+    on the same streams in the same run (its frames decoded by its own decoders)."""
+
+    ref: str
+    module: ModuleType
+    js: Path
+
+    @staticmethod
+    def load(ref: str, tmp: Path) -> Baseline:
+        root = Path(__file__).resolve().parents[1]
+
+        def show(path: str) -> str:
+            return subprocess.run(
+                ["git", "show", f"{ref}:{path}"],
+                cwd=root,
+                capture_output=True,
+                text=True,
+                check=True,
+            ).stdout
+
+        (tmp / "compact_base.py").write_text(show("protocol/compact.py"))
+        (tmp / "compact_base.js").write_text(show("client/web/js/compact.js"))
+        name = "facecast.protocol._compact_base"  # in the package: its relative imports work
+        spec = importlib.util.spec_from_file_location(name, tmp / "compact_base.py")
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+        return Baseline(ref, module, tmp / "compact_base.js")
 
 
 CODERS = ("i16", "compact", "compact-lz4", "zstd-3", "zstd-9")
@@ -214,13 +263,102 @@ def js_decode_ms(face, wire: list[bytes]) -> dict | None:
         return json.loads(r.stdout) if r.returncode == 0 else None
 
 
+CHROMIUM_PAGE = """<!doctype html><meta charset=utf-8><title>compact decode</title>
+<script type=module>
+import { CompactDecoder } from './compact.js';
+const get = async (n) => (await fetch(n)).arrayBuffer();
+window.run = async (minMs) => {
+  const [rest, groups, all] = await Promise.all(['rest.bin', 'groups.bin', 'frames.bin'].map(get));
+  const sizes = await (await fetch('sizes.json')).json();
+  const frames = []; let o = 0;
+  for (const n of sizes) { frames.push(all.slice(o, o + n)); o += n; }
+  const dec = new CompactDecoder(new Float32Array(rest), new Uint8Array(groups));
+  const out = new Float32Array(new Float32Array(rest).length);
+  for (const f of frames.slice(0, 8)) await dec.decode(f, out);  // warm-up (JIT)
+  const times = [], start = performance.now();
+  while (times.length < 3 || performance.now() - start < minMs) {  // whole passes (a key opens it)
+    const t0 = performance.now();
+    for (const f of frames) await dec.decode(f, out);
+    times.push((performance.now() - t0) / frames.length);
+  }
+  times.sort((a, b) => a - b);
+  return { wall_ms: times[times.length >> 1], wall_ms_min: times[0], decoded: times.length * frames.length };
+};
+window.ready = true;
+</script>"""
+
+
+def chromium_decode_ms(face, wire: list[bytes], js: Path = JS, seconds: float = 2.0) -> dict | None:
+    """Per-frame decode time of ``compact.js`` in the page's engine: headless Chromium
+    (``/usr/bin/chromium``, ``--no-sandbox --disable-gpu``, driven by playwright), the module and
+    the recorded frames served from loopback, decoded in passes over the stream for ``seconds``:
+    ``wall_ms`` the median pass's wall time per frame (of awaited decodes), ``cpu_ms`` the
+    renderer processes' CPU time (/proc) per decoded frame; None without Chromium/playwright."""
+    import functools
+    import http.server
+    import shutil
+    import threading
+
+    from web_viewer import process_cpu  # CPU seconds of this process's Chromium, by type
+
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        return None
+    if not Path("/usr/bin/chromium").exists():
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        shutil.copy(js, d / "compact.js")
+        (d / "index.html").write_text(CHROMIUM_PAGE)
+        (d / "rest.bin").write_bytes(np.ascontiguousarray(face.vertices, "<f4").tobytes())
+        (d / "groups.bin").write_bytes(np.ascontiguousarray(face.rigid_group, np.uint8).tobytes())
+        (d / "frames.bin").write_bytes(b"".join(wire))
+        (d / "sizes.json").write_text(json.dumps([len(b) for b in wire]))
+
+        class Quiet(http.server.SimpleHTTPRequestHandler):
+            def log_message(self, *a) -> None:
+                pass
+
+        srv = http.server.ThreadingHTTPServer(
+            ("127.0.0.1", 0), functools.partial(Quiet, directory=str(d))
+        )
+        threading.Thread(target=srv.serve_forever, daemon=True).start()
+        try:
+            with sync_playwright() as p:
+                browser = p.chromium.launch(
+                    executable_path="/usr/bin/chromium", args=["--no-sandbox", "--disable-gpu"]
+                )
+                try:
+                    page = browser.new_page()
+                    page.goto(f"http://127.0.0.1:{srv.server_address[1]}/index.html")
+                    page.wait_for_function("window.ready === true")
+                    cpu0 = process_cpu().get("renderer", 0.0)
+                    r = page.evaluate("(ms) => window.run(ms)", 1000 * seconds)
+                    r["cpu_ms"] = 1000 * (process_cpu().get("renderer", 0.0) - cpu0) / r["decoded"]
+                    return r
+                finally:
+                    browser.close()
+        finally:
+            srv.shutdown()
+            srv.server_close()
+
+
 def main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--faces", nargs="+", default=["default", "ict"])
     p.add_argument("--tolerance-mm", type=float, default=0.1)
     p.add_argument("--seconds", type=float, default=8.0, help="longest stretch of each stream")
+    p.add_argument(
+        "--baseline",
+        metavar="REF",
+        help="also measure protocol/compact.py and compact.js of this git commit (e.g. HEAD~3), "
+        "stream by stream right after this checkout's: before/after in one run",
+    )
     p.add_argument("--out", default=str(OUT))
     a = p.parse_args(argv)
+    tmp = tempfile.TemporaryDirectory()
+    base = Baseline.load(a.baseline, Path(tmp.name)) if a.baseline else None
 
     from facecast.server.faces import load_face
     from facecast.server.paths import shared_data
@@ -235,7 +373,7 @@ def main(argv: list[str]) -> int:
         path = str(data / "ict-facekit" / "generic_neutral_mesh.obj") if spec == "ict" else spec
         face = load_face(path)
         for name, fps, frames, tr in streams(face, data, a.seconds):
-            r = measure(name, fps, frames, tr, face, a.tolerance_mm)
+            r = measure(name, fps, frames, tr, face, a.tolerance_mm, base)
             r["face"] = spec
             rows.append(r)
             print(
@@ -245,12 +383,22 @@ def main(argv: list[str]) -> int:
                 file=sys.stderr,
             )
     summary = {c: {"bpvf_mean": float(np.mean([r[c]["bpvf"] for r in rows]))} for c in CODERS}
-    for c in ("i16", "compact", "compact-lz4"):
+    compacts = ("compact", "compact-lz4") + (("compact-base",) if base else ())
+    if base:
+        summary["compact-base"] = {
+            "bpvf_mean": float(np.mean([r["compact-base"]["bpvf"] for r in rows]))
+        }
+    for c in ("i16", *compacts):
         summary[c]["enc_ms_mean"] = float(np.mean([r[c]["enc_ms"] for r in rows]))
-    for c in ("compact", "compact-lz4"):
+    for c in compacts:
         summary[c]["dec_ms_mean"] = float(np.mean([r[c]["dec_ms"] for r in rows]))
         summary[c]["max_err_mm"] = max(r[c]["max_err_mm"] for r in rows)
         summary[c]["all_within_tolerance"] = all(r[c]["within_tolerance"] for r in rows)
+    for c in ("compact", "compact-base"):
+        ch = [r[c]["chromium_dec"] for r in rows if r.get(c, {}).get("chromium_dec")]
+        if ch:
+            summary[c]["chromium_dec_wall_ms_mean"] = float(np.mean([x["wall_ms"] for x in ch]))
+            summary[c]["chromium_dec_cpu_ms_mean"] = float(np.mean([x["cpu_ms"] for x in ch]))
     js = [r["compact"]["js_dec"] for r in rows if r["compact"].get("js_dec")]
     if js:
         summary["compact"]["js_dec_cpu_ms_mean"] = float(np.mean([j["cpu_ms"] for j in js]))
@@ -259,6 +407,7 @@ def main(argv: list[str]) -> int:
         summary[c]["entropy_ms_mean"] = float(np.mean([r[c]["entropy_ms"] for r in rows]))
     result = {
         "tolerance_mm": a.tolerance_mm,
+        "baseline": a.baseline,
         "loadavg_start": load0,
         "loadavg_end": os.getloadavg(),
         "cpus": os.cpu_count(),
@@ -296,6 +445,36 @@ def main(argv: list[str]) -> int:
             f"\ncompact.js decode under Node: {s['compact']['js_dec_cpu_ms_mean']:.2f} ms CPU, "
             f"{s['compact']['js_dec_wall_ms_mean']:.2f} ms wall per frame (mean over streams)"
         )
+    if "chromium_dec_wall_ms_mean" in s["compact"]:
+        print(
+            f"compact.js decode in headless Chromium: {s['compact']['chromium_dec_wall_ms_mean']:.2f}"
+            f" ms wall, {s['compact']['chromium_dec_cpu_ms_mean']:.2f} ms renderer CPU per frame"
+        )
+    if base:
+        print(f"\nBefore ({a.baseline}) -> after, per frame (mean over streams):\n")
+        print("| face | stream | B/v/f | enc ms | Python dec ms | Chromium dec ms (wall / CPU) |")
+        print("|---|---|---|---|---|---|")
+        for r in rows + [{"face": "**mean**", "stream": "", "m": 1}]:
+            if "m" in r:
+                b, c = s["compact-base"], s["compact"]
+                vals = [(b[k], c[k]) for k in ("bpvf_mean", "enc_ms_mean", "dec_ms_mean")]
+                ch = [
+                    (b.get(k, float("nan")), c.get(k, float("nan")))
+                    for k in ("chromium_dec_wall_ms_mean", "chromium_dec_cpu_ms_mean")
+                ]
+            else:
+                b, c = r["compact-base"], r["compact"]
+                vals = [(b[k], c[k]) for k in ("bpvf", "enc_ms", "dec_ms")]
+                bc, cc = b.get("chromium_dec") or {}, c.get("chromium_dec") or {}
+                ch = [
+                    (bc.get(k, float("nan")), cc.get(k, float("nan")))
+                    for k in ("wall_ms", "cpu_ms")
+                ]
+            print(
+                f"| {r['face']} | {r['stream']} | "
+                + " | ".join(f"{x:.3f} -> {y:.3f}" for x, y in vals)
+                + f" | {ch[0][0]:.2f} / {ch[1][0]:.2f} -> {ch[0][1]:.2f} / {ch[1][1]:.2f} |"
+            )
     print(
         "\nbytes per vertex per frame; entropy stage ms/frame (same residuals): "
         + ", ".join(f"{c} {s[c]['entropy_ms_mean']:.2f}" for c in ("compact", "zstd-3", "zstd-9"))

@@ -14,7 +14,8 @@ vertices ``rest (V, 3) float32`` and rigid group per vertex ``groups (V,) uint8`
 A delta depends only on its key, so a viewer that skips any number of deltas still decodes every
 frame it gets exactly; a viewer that missed the key waits for the next one (``None`` from
 ``CompactDecoder.decode``), never showing a wrong face. ``README.md`` beside this file gives
-every byte. With ``step = 2 · tolerance / √3 · (1 − 2⁻⁸)`` a vertex rounded to its cell is within
+every byte. With ``step = 2 · tolerance / √3 · (1 − m)`` (``m``: ``float_margin``, 2⁻⁸ and more
+for large coordinates) a vertex rounded to its cell is within
 ``tolerance`` (Euclidean) of the input; the encoder keeps a vertex's reference cell instead when
 that is within the tolerance too, which turns small motions into zeros.
 
@@ -65,12 +66,29 @@ MAX_STEP = 1e6
 _MAX_CELL = 1 << 23
 
 
-def step_for_tolerance(tolerance: float) -> float:
-    """Grid step (face units, as float32) whose rounding error is within ``tolerance`` (face
-    units, Euclidean): ``2 · tol / √3`` less 2⁻⁸ of margin for float32 arithmetic."""
+def float_margin(tolerance: float, extent: float = 0.0) -> float:
+    """Share of ``tolerance`` kept for float32 arithmetic (the encoder's and decoders'
+    transforms) with coordinates up to ``extent`` (face units) from the origin: 2⁻⁸, plus 2⁻²¹
+    per grid step of extent (their rounding grows with the coordinates; measured: about 2⁻²⁴
+    per step on each side). Raises ``ValueError`` when no grid fits (tolerance too small)."""
     if not (math.isfinite(tolerance) and tolerance > 0):
         raise ValueError(f"tolerance must be a positive number, got {tolerance}")
-    return float(np.float32(2.0 * tolerance / math.sqrt(3.0) * (1.0 - 2.0**-8)))
+    if not (math.isfinite(extent) and extent >= 0):
+        raise ValueError(f"extent must be a finite number >= 0, got {extent}")
+    m = 2.0**-8 + extent / (2.0 * tolerance / math.sqrt(3.0)) * 2.0**-21
+    if m > 0.5:
+        raise ValueError(
+            f"tolerance {tolerance:g} is too small for coordinates up to {extent:g} in float32"
+        )
+    return m
+
+
+def step_for_tolerance(tolerance: float, extent: float = 0.0) -> float:
+    """Grid step (face units, as float32) whose rounding error is within ``tolerance`` (face
+    units, Euclidean) for coordinates up to ``extent`` from the origin: ``2 · tol / √3`` less
+    ``float_margin`` of it."""
+    m = float_margin(tolerance, extent)
+    return float(np.float32(2.0 * tolerance / math.sqrt(3.0) * (1.0 - m)))
 
 
 def grid_base(rest: np.ndarray, step: float) -> np.ndarray:
@@ -85,27 +103,68 @@ def grid_base(rest: np.ndarray, step: float) -> np.ndarray:
 
 def _unzigzag_planes(raw: bytes, planes: int, n: int) -> np.ndarray:
     """``raw``: ``planes`` byte planes (little end first) of ``n`` zigzagged values, as
-    ``CompactEncoder.encode`` writes them -> ``(n,) int32``."""
+    ``CompactEncoder.encode`` writes them -> ``(n,)`` signed integers, in the narrowest type
+    that holds them (int8 for one plane, int16 for two, else int32)."""
     p = np.frombuffer(raw, np.uint8).reshape(planes, n)
-    u = p[0].astype(np.uint32)
-    for k in range(1, planes):
-        u |= p[k].astype(np.uint32) << np.uint32(8 * k)
-    v: np.ndarray = (u >> np.uint32(1)) ^ (np.uint32(0) - (u & np.uint32(1)))
-    return v.view(np.int32)
+    if planes == 1:
+        u = p[0]
+    elif planes == 2:
+        u = p[1].astype(np.uint16)
+        u <<= np.uint16(8)
+        u |= p[0]
+    else:
+        u = p[0].astype(np.uint32)
+        for k in range(1, planes):
+            u |= p[k].astype(np.uint32) << np.uint32(8 * k)
+    one = u.dtype.type(1)
+    v: np.ndarray = u >> one
+    v ^= -(u & one)  # two's complement negation of 0 or 1: all zeros or all ones
+    return v.view(v.dtype.str.replace("u", "i"))
 
 
-def _group_spans(groups: np.ndarray, n_groups: int) -> list[list[slice | np.ndarray]]:
-    """Per group, its vertices as a few contiguous slices (parts are usually runs of the vertex
-    order), or one index array when they are scattered."""
-    spans: list[list[slice | np.ndarray]] = []
-    for g in range(n_groups):
-        idx = np.flatnonzero(groups == g)
-        cuts = np.flatnonzero(np.diff(idx) != 1) + 1
-        if len(cuts) < 32:
-            spans.append([slice(int(a[0]), int(a[-1]) + 1) for a in np.split(idx, cuts) if len(a)])
-        else:
-            spans.append([idx])
-    return spans
+#: A group in more runs of the vertex order than this is transformed over all vertices and kept
+#: where it belongs (one matmul and one masked copy: cheaper than gathering and scattering it).
+_MAX_RUNS = 8
+
+
+@dataclass(frozen=True, slots=True)
+class _GroupPlan:
+    """How to move every vertex by its group's ``(3, 4)`` transform, fast: the largest group over
+    all vertices (one matmul), then each other group over its few runs of the vertex order, or
+    over all vertices with a masked copy when it is scattered."""
+
+    first: int
+    others: tuple[tuple[int, tuple[slice, ...] | np.ndarray], ...]
+
+    @staticmethod
+    def of(groups: np.ndarray, n_groups: int) -> _GroupPlan:
+        sizes = np.bincount(groups, minlength=n_groups)
+        first = int(sizes.argmax())
+        others: list[tuple[int, tuple[slice, ...] | np.ndarray]] = []
+        for g in range(n_groups):
+            idx = np.flatnonzero(groups == g)
+            if g == first or not len(idx):
+                continue
+            cuts = np.flatnonzero(np.diff(idx) != 1) + 1
+            if len(cuts) < _MAX_RUNS:
+                others.append(
+                    (g, tuple(slice(int(a[0]), int(a[-1]) + 1) for a in np.split(idx, cuts)))
+                )
+            else:
+                others.append((g, groups == g))
+        return _GroupPlan(first, tuple(others))
+
+    def apply(self, m: np.ndarray, vt: np.ndarray, out: np.ndarray, tmp: np.ndarray) -> None:
+        """``out (3, V) = m[group] @ vt (4, V)`` per vertex (``vt`` homogeneous: last row 1);
+        ``tmp (3, V)`` scratch."""
+        np.matmul(m[self.first], vt, out=out)
+        for g, where in self.others:
+            if isinstance(where, tuple):
+                for sp in where:
+                    np.matmul(m[g], vt[:, sp], out=out[:, sp])
+            else:
+                np.matmul(m[g], vt, out=tmp)
+                np.copyto(out, tmp, where=where)
 
 
 @dataclass(frozen=True, slots=True)
@@ -201,28 +260,32 @@ class CompactEncoder:
         if key_interval < 1:
             raise ValueError("key_interval must be >= 1")
         self.tolerance = float(tolerance)
-        self.step = step_for_tolerance(tolerance)
+        # coordinates up to twice the rest mesh's from the origin (motion, head pose) keep the bound
+        extent = 2.0 * float(np.abs(self.rest).max(initial=0.0))
+        self._margin = float_margin(self.tolerance, extent)
+        self.step = step_for_tolerance(self.tolerance, extent)
         self.key_interval, self.level, self.strategy = int(key_interval), int(level), int(strategy)
         self.key_seconds = key_seconds
         self._key_t = 0.0
         self.base = grid_base(self.rest, self.step)
         self.base_t = np.ascontiguousarray(self.base.T)
         self._base_f = self.base_t.astype(np.float32)  # cells < 2^23 are exact in float32
-        self._spans = _group_spans(self.groups, self.n_groups)
-        self._keep2 = np.float32((self.tolerance * (1 - 2.0**-8) / self.step) ** 2)
+        self._plan = _GroupPlan.of(self.groups, self.n_groups)
+        self._keep2 = np.float32((self.tolerance * (1 - self._margin) / self.step) ** 2)
         n = len(self.rest)
         self._buf = {
             "vt": np.ones((4, n), np.float32),  # homogeneous: rows x, y, z, 1
             "local": np.empty((3, n), np.float32),
-            "qf": np.empty((3, n), np.float32),
-            "q": np.empty((3, n), np.int32),
+            "fd": np.empty((3, n), np.float32),
             "r": np.empty((3, n), np.int32),
             "dd": np.empty((3, n), np.int32),
-            "tmp": np.empty(3 * n, np.int32),
-            "fd": np.empty((3, n), np.float32),
             "dist": np.empty(n, np.float32),
-            "keep": np.empty(n, bool),
-            "u8": np.empty(3 * n, np.uint8),
+            "move": np.empty(n, bool),
+            "i8": np.empty((3, n), np.int8),
+            "i16": np.empty((3, n), np.int16),
+            "s8": np.empty((3, n), np.int8),
+            "s16": np.empty((3, n), np.int16),
+            "s32": np.empty((3, n), np.int32),
         }
         self._key_q: np.ndarray | None = None
         self._key_f: np.ndarray | None = None  # _key_q as float32
@@ -236,21 +299,38 @@ class CompactEncoder:
 
     def _local(self, v: np.ndarray, tr: np.ndarray) -> np.ndarray:
         """``(3, V) float32`` positions in their group's local frame, in grid steps (axis-major),
-        in a buffer reused from frame to frame: one matmul per run of a group's vertices, on
-        homogeneous coordinates (``vt``'s last row stays 1, so the translation comes with it)."""
+        in a buffer reused from frame to frame (``_GroupPlan``, on homogeneous coordinates:
+        ``vt``'s last row stays 1, so the translation comes with the matmul)."""
         m = np.empty((len(tr), 3, 4), np.float64)
         m[:, :, :3] = np.linalg.inv(tr[:, :, :3].astype(np.float64)) * (1.0 / self.step)
         m[:, :, 3:] = -np.matmul(m[:, :, :3], tr[:, :, 3:].astype(np.float64))
-        m32 = m.astype(np.float32)
         vt, out = self._buf["vt"], self._buf["local"]
         np.copyto(vt[:3], v.T)
-        for g in range(self.n_groups):
-            for sp in self._spans[g]:
-                if isinstance(sp, slice):
-                    np.matmul(m32[g], vt[:, sp], out=out[:, sp])
-                else:  # scattered vertices (rare): gather, transform, scatter
-                    out[:, sp] = m32[g] @ vt[:, sp]
+        self._plan.apply(m.astype(np.float32), vt, out, self._buf["fd"])
         return out
+
+    def _zigzag(self, dd: np.ndarray) -> tuple[int, np.ndarray]:
+        """``dd (3, V) int32`` -> (planes, raw): its zigzagged values ``(d << 1) ^ (d >> 31)``
+        as ``planes`` byte planes, little end first. Small values (most frames) are zigzagged
+        in the narrowest integer type that holds them: fewer bytes through every pass."""
+        b = self._buf
+        lo, hi = int(dd.min()), int(dd.max())
+        top = max(2 * hi, -2 * lo - 1)  # largest zigzagged value
+        planes = 1 if top < 1 << 8 else 2 if top < 1 << 16 else 3 if top < 1 << 24 else 4
+        if planes <= 2:
+            d, s = (b["i8"], b["s8"]) if planes == 1 else (b["i16"], b["s16"])
+            bits = 8 * d.itemsize - 1
+        else:
+            d, s, bits = dd, b["s32"], 31
+        if d is not dd:
+            np.copyto(d, dd, casting="unsafe")
+        np.right_shift(d, bits, out=s)
+        np.left_shift(d, 1, out=d)
+        np.bitwise_xor(d, s, out=d)
+        if planes == 1:
+            return 1, d
+        u = d.reshape(-1).view(np.uint8).reshape(-1, d.itemsize)
+        return planes, np.ascontiguousarray(u[:, :planes].T)
 
     def encode(
         self,
@@ -280,14 +360,11 @@ class CompactEncoder:
                 raise ValueError("transforms must be finite rigid motions (det R = 1)")
         b = self._buf
         local = self._local(v, tr)
-        qf, q, r, dd, tmp = b["qf"], b["q"], b["r"], b["dd"], b["tmp"]
-        np.rint(local, out=qf)
-        lo, hi = qf.min(initial=0), qf.max(initial=0)
-        if not (lo > -_MAX_CELL and hi < _MAX_CELL):  # also refuses NaN
+        lo, hi = local.min(initial=0), local.max(initial=0)
+        if not (lo > 1 - _MAX_CELL and hi < _MAX_CELL - 1):  # also refuses NaN
             raise ValueError(
                 "vertices must be finite and within 2^23 grid steps of their group's origin"
             )
-        np.copyto(q, qf, casting="unsafe")
         seq = int(seq) & 0xFFFFFFFF
         is_key = (
             key
@@ -298,37 +375,26 @@ class CompactEncoder:
         )
         ref_q, ref_f = (self.base_t, self._base_f) if is_key else (self._key_q, self._key_f)
         assert ref_q is not None and ref_f is not None  # the first frame is a key frame
-        np.subtract(q, ref_q, out=r)  # (3, V): axis-major
-        # Keep the reference cell where it is within the tolerance too: small motions cost nothing.
-        fd, dist = b["fd"], b["dist"]
-        np.subtract(ref_f, local, out=fd)
+        # fd = local - ref (in cells) serves twice: the reference cell is kept where it is within
+        # the tolerance too (small motions cost nothing), elsewhere r = rint(fd), which equals
+        # rint(local) - ref (the subtraction is exact: ref is an integer near local, Sterbenz).
+        fd, dist, r, dd = b["fd"], b["dist"], b["r"], b["dd"]
+        np.subtract(local, ref_f, out=fd)
         np.einsum("ij,ij->j", fd, fd, out=dist)  # squared distance, one pass
-        move = np.greater(dist, self._keep2, out=b["keep"])
-        np.multiply(r, move.view(np.uint8), out=r, casting="unsafe")  # r = 0 where kept
-        if is_key:
-            np.add(ref_q, r, out=q)
+        move = np.greater(dist, self._keep2, out=b["move"])
+        np.rint(fd, out=fd)
+        np.multiply(fd, move, out=r, casting="unsafe")  # 0 where kept; (3, V) int32, axis-major
         dd[:, 0] = r[:, 0]
         np.subtract(r[:, 1:], r[:, :-1], out=dd[:, 1:])
-        # zigzag into r (free now): (d << 1) ^ (d >> 31), as uint32
-        u = r.reshape(-1).view(np.uint32)
-        flat = dd.reshape(-1)
-        np.left_shift(flat, 1, out=r.reshape(-1))
-        np.right_shift(flat, 31, out=tmp)
-        np.bitwise_xor(r.reshape(-1), tmp, out=r.reshape(-1))
-        top = int(u.max())
-        planes = 1 if top < 1 << 8 else 2 if top < 1 << 16 else 3 if top < 1 << 24 else 4
-        if planes == 1:
-            np.copyto(b["u8"], u, casting="unsafe")
-            raw = b["u8"]
-        else:
-            raw = np.ascontiguousarray(u.view(np.uint8).reshape(-1, 4)[:, :planes].T)
+        planes, raw = self._zigzag(dd)
         # Z_RLE: runs and Huffman codes only; on these mostly-zero planes it is both smaller and
         # about twice as fast as the default LZ77 search (bench/compact_stream.py).
         zc = _deflate.compressobj(self.level, zlib.DEFLATED, 15, 9, self.strategy)
         z = zc.compress(raw) + zc.flush()
         if is_key:
-            self._key_q, self._key_seq, self._since_key, self._want_key = q.copy(), seq, 0, False
-            self._key_f = self._key_q.astype(np.float32)
+            q = ref_q + r
+            self._key_q, self._key_seq, self._since_key, self._want_key = q, seq, 0, False
+            self._key_f = q.astype(np.float32)
             self._key_t = float(t)
         else:
             self._since_key += 1
@@ -352,7 +418,11 @@ class CompactDecoder:
         if self.rest.ndim != 2 or self.rest.shape[1] != 3 or self.groups.shape != (len(self.rest),):
             raise ValueError("rest must be (V, 3) and groups (V,)")
         self.n_groups = int(self.groups.max()) + 1 if len(self.groups) else 1
-        self._spans = _group_spans(self.groups, self.n_groups)
+        self._plan = _GroupPlan.of(self.groups, self.n_groups)
+        n = len(self.rest)
+        self._p = np.ones((4, n), np.float32)  # homogeneous cell positions: rows x, y, z, 1
+        self._out = np.empty((3, n), np.float32)
+        self._tmp = np.empty((3, n), np.float32)
         self._base: tuple[float, np.ndarray] | None = None
         self._key: tuple[int, float, np.ndarray] | None = None  # seq, step, q
 
@@ -392,10 +462,10 @@ class CompactDecoder:
         else:
             ref = self._key[2]
         want = 3 * n * f.planes
-        d = zlib.decompressobj()
+        d = _deflate.decompressobj()
         try:
             raw = d.decompress(f.payload, want)
-        except zlib.error as e:
+        except (zlib.error, _deflate.error) as e:
             raise FrameError(f"payload is not a valid zlib stream: {e}", where="payload") from None
         if len(raw) != want or not d.eof or d.unconsumed_tail or d.unused_data:
             raise FrameError(
@@ -412,11 +482,7 @@ class CompactDecoder:
 
     def _positions(self, q: np.ndarray, step: float, tr: np.ndarray) -> np.ndarray:
         """``q (3, V)`` cells -> ``(V, 3) float32`` positions."""
-        p = q.astype(np.float32)
-        p *= np.float32(step)
-        out = tr[0, :, :3] @ p
-        out += tr[0, :, 3:]
-        for g in range(1, self.n_groups):
-            for sp in self._spans[g]:
-                out[:, sp] = tr[g, :, :3] @ p[:, sp] + tr[g, :, 3:]
-        return np.ascontiguousarray(out.T)
+        p = self._p
+        np.multiply(q, np.float32(step), out=p[:3])
+        self._plan.apply(tr, p, self._out, self._tmp)
+        return np.ascontiguousarray(self._out.T)

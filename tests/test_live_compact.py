@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from conftest import live_server, run
 
-from facecast.client.api import SessionAdmin, produce, stream_fap, watch
+from facecast.client.api import LiveError, SessionAdmin, produce, stream_fap, watch
 from facecast.protocol import frames
 from facecast.protocol.fap_file import read_fap
 
@@ -191,3 +191,14 @@ def test_tolerance_is_validated_and_reaches_the_hello(live):
     hello, other = run(main())
     assert hello.encoding == "compact" and hello.tolerance == pytest.approx(0.5)
     assert other.encoding == "i16" and other.tolerance is None
+
+
+def test_a_tolerance_no_float32_grid_can_keep_is_refused_at_create(live):
+    """Was accepted, then every compact viewer's connection failed (1006, a traceback)."""
+
+    async def main():
+        async with SessionAdmin(live.url, live.admin_key) as admin:
+            with pytest.raises(LiveError, match="HTTP 400.*too small"):
+                await admin.create(face=FACE, input="fap", fps=60.0, tolerance=1e-6)
+
+    run(main())

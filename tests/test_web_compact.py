@@ -130,3 +130,93 @@ def test_js_refuses_malformed_frames(node, tmp_path):
     for name in order:
         if name != "good.bin":
             assert "error" in results[name], (name, results[name])
+
+
+INFLATE_RUNNER = """
+import { readFileSync, writeFileSync } from 'node:fs';
+import { inflateExactly } from './compact.mjs';
+const dir = process.argv[2];
+const cases = JSON.parse(readFileSync(`${dir}/cases.json`));
+const all = readFileSync(`${dir}/cases.bin`);
+const out = [];
+for (const [start, size, want] of cases) {
+  try {
+    const got = inflateExactly(new Uint8Array(all.buffer, all.byteOffset + start, size), want);
+    out.push(Buffer.from(got).toString('base64'));
+  } catch (e) {
+    out.push(null);
+  }
+}
+writeFileSync(`${dir}/results.json`, JSON.stringify(out));
+"""
+
+
+def _zlib_cases(rng: np.random.Generator) -> list[tuple[bytes, int]]:
+    """(zlib stream, declared size): valid streams of every block type (stored, fixed, dynamic
+    Huffman; RLE, LZ77, Huffman-only), from compact-like and random data, and mutations of them
+    (bit flips, cuts, trailing bytes, wrong declared size)."""
+    datas = [
+        bytes(0),
+        bytes(3000),
+        rng.integers(0, 256, 5000, dtype=np.uint8).tobytes(),
+        np.where(rng.random(40000) < 0.93, 0, rng.integers(0, 9, 40000)).astype(np.uint8).tobytes(),
+        np.repeat(rng.integers(0, 4, 600), rng.integers(1, 300, 600)).astype(np.uint8).tobytes(),
+    ]
+    valid = []
+    for d in datas:
+        for level, strategy in (
+            (0, zlib.Z_DEFAULT_STRATEGY),
+            (1, zlib.Z_RLE),
+            (6, zlib.Z_DEFAULT_STRATEGY),
+            (9, zlib.Z_FILTERED),
+            (1, zlib.Z_HUFFMAN_ONLY),
+            (6, zlib.Z_FIXED),
+        ):
+            c = zlib.compressobj(level, zlib.DEFLATED, 15, 9, strategy)
+            valid.append((c.compress(d) + c.flush(), len(d)))
+    cases = list(valid)
+    for z, n in valid:
+        cases += [
+            (z, n + 1),
+            (z, max(0, n - 1)),
+            (z[:-1], n),
+            (z + b"\0", n),
+            (z[: len(z) // 2], n),
+        ]
+        for _ in range(12):
+            b = bytearray(z)
+            for _ in range(int(rng.integers(1, 4))):
+                i = int(rng.integers(0, len(b)))
+                b[i] ^= 1 << int(rng.integers(0, 8))
+            cases.append((bytes(b), n))
+    return cases
+
+
+def test_js_inflate_agrees_with_zlib(node, tmp_path):
+    """compact.js's own inflater accepts exactly the streams zlib accepts (at the declared size) and
+    gives the same bytes: valid streams of every block type and a few thousand mutations."""
+    import base64
+
+    cases = _zlib_cases(np.random.default_rng(11))
+    shutil.copy(JS, tmp_path / "compact.mjs")
+    (tmp_path / "run.mjs").write_text(INFLATE_RUNNER)
+    (tmp_path / "cases.bin").write_bytes(b"".join(z for z, _ in cases))
+    starts = np.cumsum([0] + [len(z) for z, _ in cases])
+    (tmp_path / "cases.json").write_text(
+        json.dumps([[int(s), len(z), n] for s, (z, n) in zip(starts, cases)])
+    )
+    subprocess.run([node, str(tmp_path / "run.mjs"), str(tmp_path)], check=True, timeout=120)
+    got = json.loads((tmp_path / "results.json").read_text())
+    accepted = 0
+    for (z, n), js in zip(cases, got):
+        d = zlib.decompressobj()
+        try:
+            raw = d.decompress(z, n)
+            ok = len(raw) == n and d.eof and not d.unconsumed_tail and not d.unused_data
+        except zlib.error:
+            ok = False
+        assert (js is not None) == ok, (z.hex()[:80], n, ok)
+        if ok:
+            accepted += 1
+            assert base64.b64decode(js) == raw
+    assert accepted >= 30

@@ -128,6 +128,7 @@ class SessionRegistry:
                 raise TooMany(
                     f"session limit {self.max_sessions} reached while this one was being set up"
                 )
+            _check_tolerance(req.tolerance, face)
             sid = secrets.token_hex(8)
             spec = SessionSpec(
                 id=sid,
@@ -262,3 +263,19 @@ class SessionRegistry:
             await self.close(sid, "the server is shutting down")
         self.executor.shutdown(wait=False, cancel_futures=True)
         self.batch_executor.shutdown(wait=False, cancel_futures=True)
+
+
+def _check_tolerance(tolerance_mm: float, face: Any) -> None:
+    """Refuse (``InputError``, 400) a compact tolerance no float32 grid of ``face`` can keep:
+    else every compact viewer of the session would fail (``protocol.compact.float_margin``)."""
+    from ...protocol.compact import float_margin
+
+    extent = 2.0 * float(abs(face.vertices).max())  # as the session's CompactEncoder takes it
+    try:
+        float_margin(tolerance_mm / face.mm_per_unit, extent)
+    except ValueError:
+        raise errors.InputError(
+            f"tolerance {tolerance_mm:g} mm is too small for this face's compact grid in float32 "
+            f"(coordinates up to {extent * face.mm_per_unit:g} mm from its origin)",
+            where="tolerance",
+        ) from None

@@ -1,34 +1,223 @@
 // VERTICES_COMPACT frames (kind 7), written from protocol/README.md section 3. A decoder holds the
 // face's topology (rest vertices, rigid group per vertex) and the last key frame's grid cells; the
-// payload is inflated with the platform's DecompressionStream('deflate') (zlib format).
+// payload (a zlib stream) is inflated here, synchronously (`inflateExactly`).
 
 const MAGIC = 0x54534346; // "FCST" little-endian
 export const KIND_COMPACT = 7;
 const HEAD = 48; // 32-byte frame header + 16-byte compact sub-header
 
-/** Inflate a zlib stream to exactly `want` bytes; throws if it is invalid, shorter or longer. */
-async function inflateExactly(bytes, want) {
-  const out = new Uint8Array(want);
-  let got = 0;
-  const ds = new DecompressionStream('deflate');
-  const writer = ds.writable.getWriter();
-  writer.write(bytes).catch(() => {});
-  writer.close().catch(() => {});
-  const reader = ds.readable.getReader();
-  try {
-    for (;;) {
-      const { done, value } = await reader.read();
-      if (done) break;
-      if (got + value.length > want) throw new Error(`compact payload inflates to more than ${want} bytes`);
-      out.set(value, got);
-      got += value.length;
-    }
-  } catch (e) {
-    reader.cancel().catch(() => {});
-    throw e instanceof Error && e.message.startsWith('compact') ? e : new Error(`compact payload is not a valid zlib stream (${e})`);
+// Inflate (RFC 1950 zlib wrapper around RFC 1951 deflate), written from the RFCs. The browser's
+// DecompressionStream('deflate') decodes the same streams, but its stream machinery cost ~1.5 ms per
+// frame in Chromium against ~0.1 ms of actual inflating; this synchronous one is bounded by the
+// frame's declared size (a zlib bomb stops at `want` bytes) and checks the Adler-32.
+
+const LEN_BASE = [3, 4, 5, 6, 7, 8, 9, 10, 11, 13, 15, 17, 19, 23, 27, 31, 35, 43, 51, 59, 67, 83, 99, 115, 131, 163, 195, 227, 258];
+const LEN_EXTRA = [0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3, 4, 4, 4, 4, 5, 5, 5, 5, 0];
+const DIST_BASE = [1, 2, 3, 4, 5, 7, 9, 13, 17, 25, 33, 49, 65, 97, 129, 193, 257, 385, 513, 769, 1025, 1537, 2049, 3073, 4097, 6145, 8193, 12289, 16385, 24577];
+const DIST_EXTRA = [0, 0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 6, 6, 7, 7, 8, 8, 9, 9, 10, 10, 11, 11, 12, 12, 13, 13];
+const CL_ORDER = [16, 17, 18, 0, 8, 7, 9, 6, 10, 5, 11, 4, 12, 3, 13, 2, 14, 1, 15];
+const FAST = 10; // bits looked up at once; longer codes are decoded canonically, bit by bit
+
+function bad(why) {
+  return new Error(`compact payload is not a valid zlib stream (${why})`);
+}
+
+/**
+ * A canonical Huffman code from its code lengths: {fast: Int32Array(1 << FAST) of (symbol << 4 | length)
+ * for codes of up to FAST bits (0: longer or unused), count[len], symbol[] in canonical order}.
+ */
+function huffman(lengths, n, check = 1) {
+  const count = new Uint16Array(16);
+  for (let i = 0; i < n; i++) count[lengths[i]]++;
+  count[0] = 0;
+  let left = 1, max = 0;
+  for (let len = 1; len < 16; len++) {
+    left = (left << 1) - count[len];
+    if (left < 0) throw bad('over-subscribed code');
+    if (count[len]) max = len;
   }
-  if (got !== want) throw new Error(`compact payload inflates to ${got} bytes, expected ${want}`);
+  // as zlib: a sent code may be incomplete only as a single one-bit code, never the code-length
+  // code (check 2); the fixed codes (check 0) are as RFC 1951 defines them
+  if (check && max > 0 && left > 0 && (check === 2 || max !== 1)) throw bad('incomplete code');
+  const offs = new Uint16Array(16);
+  for (let len = 1; len < 15; len++) offs[len + 1] = offs[len] + count[len];
+  const symbol = new Uint16Array(n);
+  for (let i = 0; i < n; i++) if (lengths[i]) symbol[offs[lengths[i]]++] = i;
+  const fast = new Int32Array(1 << FAST);
+  let code = 0, k = 0;
+  for (let len = 1; len <= FAST; len++, code <<= 1) {
+    for (let c = 0; c < count[len]; c++, code++, k++) {
+      let rev = 0; // deflate sends codes most significant bit first: index by the reversed code
+      for (let b = 0; b < len; b++) rev |= ((code >>> b) & 1) << (len - 1 - b);
+      const e = (symbol[k] << 4) | len;
+      for (let j = rev; j < 1 << FAST; j += 1 << len) fast[j] = e;
+    }
+  }
+  return { fast, count, symbol };
+}
+
+let FIXED = null;
+function fixedCodes() {
+  if (FIXED === null) {
+    const l = new Uint8Array(288);
+    l.fill(8, 0, 144); l.fill(9, 144, 256); l.fill(7, 256, 280); l.fill(8, 280, 288);
+    FIXED = [huffman(l, 288, 0), huffman(new Uint8Array(30).fill(5), 30, 0)];
+  }
+  return FIXED;
+}
+
+/**
+ * Inflate the zlib stream `src` (Uint8Array) to exactly `want` bytes, or throw; into `into` (a
+ * Uint8Array of at least `want` bytes, reused from call to call) when given.
+ */
+export function inflateExactly(src, want, into = null) {
+  const out = into && into.length >= want ? into.subarray(0, want) : new Uint8Array(want);
+  const end = src.length;
+  if (end < 6) throw bad('too short');
+  const cmf = src[0], flg = src[1];
+  if ((cmf & 15) !== 8 || cmf >> 4 > 7 || ((cmf << 8) | flg) % 31 !== 0 || flg & 32) throw bad('bad header');
+  let pos = 2, bits = 0, nb = 0, o = 0; // input byte, bit buffer (LSB first) and its size, output byte
+
+  const need = (n) => { // at least n (<= 24) bits in the buffer
+    while (nb < n) {
+      if (pos >= end) throw bad('truncated');
+      bits |= src[pos++] << nb;
+      nb += 8;
+    }
+  };
+  const take = (n) => {
+    need(n);
+    const v = bits & ((1 << n) - 1);
+    bits >>>= n;
+    nb -= n;
+    return v;
+  };
+  const sym = (h) => {
+    while (nb < 24 && pos < end) { bits |= src[pos++] << nb; nb += 8; }
+    const e = h.fast[bits & ((1 << FAST) - 1)];
+    if (e !== 0) {
+      const len = e & 15;
+      if (len > nb) throw bad('truncated');
+      bits >>>= len; nb -= len;
+      return e >> 4;
+    }
+    let code = 0, first = 0, index = 0; // canonical decoding, one bit at a time
+    for (let len = 1; len < 16; len++) {
+      if (len > nb) throw bad('truncated');
+      code |= (bits >>> (len - 1)) & 1;
+      const c = h.count[len];
+      if (code - first < c) { bits >>>= len; nb -= len; return h.symbol[index + code - first]; }
+      index += c; first = (first + c) << 1; code <<= 1;
+    }
+    throw bad('invalid code');
+  };
+
+  let last = 0;
+  while (!last) {
+    last = take(1);
+    const type = take(2);
+    if (type === 0) { // stored: byte-aligned LEN, NLEN, then LEN bytes
+      bits >>>= nb & 7; nb -= nb & 7;
+      pos -= nb >> 3; bits = 0; nb = 0;
+      if (pos + 4 > end) throw bad('truncated');
+      const len = src[pos] | (src[pos + 1] << 8), nlen = src[pos + 2] | (src[pos + 3] << 8);
+      if ((len ^ 0xffff) !== nlen) throw bad('stored block length check');
+      pos += 4;
+      if (pos + len > end) throw bad('truncated');
+      if (o + len > want) throw new Error(`compact payload inflates to more than ${want} bytes`);
+      out.set(src.subarray(pos, pos + len), o);
+      pos += len; o += len;
+      continue;
+    }
+    let lit, dist;
+    if (type === 1) [lit, dist] = fixedCodes();
+    else if (type === 2) {
+      const nlen = take(5) + 257, ndist = take(5) + 1, ncode = take(4) + 4;
+      if (nlen > 286 || ndist > 30) throw bad('bad code counts');
+      const cl = new Uint8Array(19);
+      for (let i = 0; i < ncode; i++) cl[CL_ORDER[i]] = take(3);
+      const clh = huffman(cl, 19, 2);
+      const lengths = new Uint8Array(nlen + ndist);
+      for (let i = 0; i < nlen + ndist;) {
+        const s = sym(clh);
+        if (s < 16) { lengths[i++] = s; continue; }
+        let rep, v = 0;
+        if (s === 16) {
+          if (i === 0) throw bad('repeat with no previous length');
+          v = lengths[i - 1]; rep = 3 + take(2);
+        } else rep = s === 17 ? 3 + take(3) : 11 + take(7);
+        if (i + rep > nlen + ndist) throw bad('too many lengths');
+        lengths.fill(v, i, i + rep); i += rep;
+      }
+      if (lengths[256] === 0) throw bad('no end-of-block code');
+      lit = huffman(lengths.subarray(0, nlen), nlen);
+      dist = huffman(lengths.subarray(nlen), ndist);
+    } else throw bad('reserved block type');
+    for (;;) {
+      let s = sym(lit);
+      if (s < 256) {
+        if (o >= want) throw new Error(`compact payload inflates to more than ${want} bytes`);
+        out[o++] = s;
+      } else if (s === 256) break;
+      else {
+        s -= 257;
+        if (s >= 29) throw bad('bad length code');
+        const len = LEN_BASE[s] + take(LEN_EXTRA[s]);
+        const d = sym(dist);
+        if (d >= 30) throw bad('bad distance code');
+        const back = DIST_BASE[d] + take(DIST_EXTRA[d]);
+        if (back > o) throw bad('distance too far back');
+        if (o + len > want) throw new Error(`compact payload inflates to more than ${want} bytes`);
+        if (back === 1) out.fill(out[o - 1], o, o + len);
+        else if (back >= len) out.copyWithin(o, o - back, o - back + len);
+        else for (let j = 0; j < len; j++) out[o + j] = out[o + j - back];
+        o += len;
+      }
+    }
+  }
+  pos -= nb >> 3; // unread whole bytes go back; then the Adler-32, big-endian, ends the stream
+  if (pos + 4 !== end) throw bad(pos + 4 > end ? 'truncated' : 'trailing bytes');
+  if (o !== want) throw new Error(`compact payload inflates to ${o} bytes, expected ${want}`);
+  let a = 1, b = 0;
+  for (let i = 0; i < want;) {
+    const stop = Math.min(want, i + 3800); // b < 2^31 over 3800 bytes: int32 arithmetic
+    for (; i + 3 < stop; i += 4) {
+      const x0 = out[i], x1 = out[i + 1], x2 = out[i + 2], x3 = out[i + 3];
+      b = (b + 4 * a + 4 * x0 + 3 * x1 + 2 * x2 + x3) | 0;
+      a = (a + x0 + x1 + x2 + x3) | 0;
+    }
+    for (; i < stop; i++) { a = (a + out[i]) | 0; b = (b + a) | 0; }
+    a %= 65521; b %= 65521;
+  }
+  const adler = ((src[pos] << 24) | (src[pos + 1] << 16) | (src[pos + 2] << 8) | src[pos + 3]) >>> 0;
+  if (((b << 16) | a) >>> 0 !== adler) throw bad('Adler-32 mismatch');
   return out;
+}
+
+/**
+ * The cells and positions of a frame, in one pass over the vertices: per axis a running sum of the
+ * unzigzagged differences `zz` (wrapping at 32 bits) plus the reference cells `ref`, kept in `q` when
+ * given (a key frame), scaled by the step and moved by the vertex's group transform into `pos`.
+ */
+function place(zz, ref, q, pos, T, s, runs, V) {
+  let ax = 0, ay = 0, az = 0;
+  for (let r = 0; r + 2 < runs.length; r += 2) { // a run of one group: its transform, step folded in
+    const m = 12 * runs[r + 1];
+    const a0 = T[m] * s, a1 = T[m + 1] * s, a2 = T[m + 2] * s, a3 = T[m + 3];
+    const b0 = T[m + 4] * s, b1 = T[m + 5] * s, b2 = T[m + 6] * s, b3 = T[m + 7];
+    const c0 = T[m + 8] * s, c1 = T[m + 9] * s, c2 = T[m + 10] * s, c3 = T[m + 11];
+    for (let i = runs[r], e = runs[r + 2]; i < e; i++) {
+      const ux = zz[i], uy = zz[V + i], uz = zz[2 * V + i];
+      ax = (ax + ((ux >>> 1) ^ -(ux & 1))) | 0;
+      ay = (ay + ((uy >>> 1) ^ -(uy & 1))) | 0;
+      az = (az + ((uz >>> 1) ^ -(uz & 1))) | 0;
+      const x = (ref[i] + ax) | 0, y = (ref[V + i] + ay) | 0, z = (ref[2 * V + i] + az) | 0;
+      if (q !== null) { q[i] = x; q[V + i] = y; q[2 * V + i] = z; }
+      pos[3 * i] = a0 * x + a1 * y + a2 * z + a3;
+      pos[3 * i + 1] = b0 * x + b1 * y + b2 * z + b3;
+      pos[3 * i + 2] = c0 * x + c1 * y + c2 * z + c3;
+    }
+  }
 }
 
 export class CompactDecoder {
@@ -39,12 +228,18 @@ export class CompactDecoder {
     this.rest = rest;
     this.groups = groups;
     this.nGroups = groups.reduce((m, g) => Math.max(m, g), 0) + 1;
+    const runs = []; // [start, group] of each run of one group along the vertex order
+    for (let i = 0; i < this.V; i++) if (i === 0 || groups[i] !== groups[i - 1]) runs.push(i, groups[i]);
+    runs.push(this.V, 0);
+    this.runs = Int32Array.from(runs);
     this.keySeq = null; // seq of the key frame held
     this.keyStep = 0;
     this.keyQ = null; // Int32Array(3V), axis-major: keyQ[a * V + i]
     this.baseStep = 0;
     this.base = null; // Int32Array(3V) rest cells, axis-major
-    this.scratch = null; // Int32Array(3V) reused for delta frames' cells
+    this.wide = null; // Int32Array(3V) reused: zigzagged values of frames of 2-4 planes
+    this.raw = new Uint8Array(3 * this.V); // inflated payload of one-plane frames, reused
+    this.spare = null; // Int32Array(3V): the next key frame's cells go here (the held key's stay)
   }
 
   /** The frame's fields, or throws on a malformed frame (no payload decoding). */
@@ -106,43 +301,26 @@ export class CompactDecoder {
       ref = this.keyQ;
     }
     const n = 3 * V;
-    const raw = await inflateExactly(f.payload, f.planes * n);
-    const q = f.key || !this.scratch ? new Int32Array(n) : this.scratch; // a key's cells are kept
+    const raw = inflateExactly(f.payload, f.planes * n, this.raw);
     const P = f.planes;
-    for (let a = 0; a < 3; a++) {
-      let acc = 0;
-      const end = (a + 1) * V;
-      if (P === 1) {
-        for (let j = a * V; j < end; j++) {
-          const u = raw[j];
-          acc = (acc + ((u >>> 1) ^ -(u & 1))) | 0;
-          q[j] = (ref[j] + acc) | 0;
-        }
-      } else {
-        for (let j = a * V; j < end; j++) {
-          let u = raw[j] | (raw[n + j] << 8);
-          if (P > 2) u |= raw[2 * n + j] << 16;
-          if (P > 3) u |= raw[3 * n + j] << 24;
-          acc = (acc + ((u >>> 1) ^ -(u & 1))) | 0;
-          q[j] = (ref[j] + acc) | 0;
-        }
+    let zz = raw; // zigzagged differences, 3V of them: the bytes themselves when one plane
+    if (P > 1) {
+      zz = this.wide && this.wide.length === n ? this.wide : (this.wide = new Int32Array(n));
+      for (let j = 0; j < n; j++) {
+        let u = raw[j] | (raw[n + j] << 8);
+        if (P > 2) u |= raw[2 * n + j] << 16;
+        if (P > 3) u |= raw[3 * n + j] << 24;
+        zz[j] = u;
       }
     }
+    const q = f.key ? this.spare || new Int32Array(n) : null; // a key's cells are kept
+    const pos = out && out.length === n ? out : new Float32Array(n);
+    place(zz, ref, q, pos, f.transforms, f.step, this.runs, V);
     if (f.key) {
+      this.spare = this.keyQ;
       this.keyQ = q;
       this.keySeq = f.seq;
       this.keyStep = f.step;
-    } else {
-      this.scratch = q;
-    }
-    const pos = out && out.length === n ? out : new Float32Array(n);
-    const T = f.transforms, s = f.step, g = this.groups;
-    for (let i = 0; i < V; i++) {
-      const m = 12 * g[i];
-      const px = q[i] * s, py = q[V + i] * s, pz = q[2 * V + i] * s;
-      pos[3 * i] = T[m] * px + T[m + 1] * py + T[m + 2] * pz + T[m + 3];
-      pos[3 * i + 1] = T[m + 4] * px + T[m + 5] * py + T[m + 6] * pz + T[m + 7];
-      pos[3 * i + 2] = T[m + 8] * px + T[m + 9] * py + T[m + 10] * pz + T[m + 11];
     }
     return { seq: f.seq, t: f.t, wall: f.wall, key: f.key, count: V, positions: pos };
   }
