@@ -221,6 +221,27 @@ class Geometry:
     head_pivot: np.ndarray = field(default_factory=lambda: np.zeros(3))
     visemes: np.ndarray = field(default_factory=lambda: VISEMES)
     expressions: np.ndarray = field(default_factory=lambda: EXPRESSIONS)
+    #: the eyes as Python floats (centre, axis) for the per-frame gaze arithmetic
+    eyes: tuple[tuple[tuple[float, ...], tuple[float, ...]], ...] = field(
+        init=False, repr=False, compare=False
+    )
+    #: high-level FAP expansions already made: (viseme, expression) -> (69,) read-only array
+    expansions: dict[object, np.ndarray] = field(
+        init=False, repr=False, compare=False, default_factory=dict
+    )
+
+    def __post_init__(self) -> None:
+        for name, shape in (("eye_pivots", (2, 3)), ("eye_axes", (2, 3)), ("head_pivot", (3,))):
+            v = np.asarray(getattr(self, name), dtype=np.float64)
+            if v.shape != shape or not np.all(np.isfinite(v)):
+                raise ValueError(f"{name} must be {shape} finite numbers")
+            object.__setattr__(self, name, v)
+        axes = self.eye_axes / np.linalg.norm(self.eye_axes, axis=1, keepdims=True)
+        object.__setattr__(self, "eye_axes", axes)
+        eyes = tuple(
+            (tuple(map(float, self.eye_pivots[i])), tuple(map(float, axes[i]))) for i in range(2)
+        )
+        object.__setattr__(self, "eyes", eyes)
 
     @classmethod
     def of_rig(cls, rig: Any) -> Geometry:
