@@ -414,3 +414,17 @@ class Mixer:
                 del self._layers[n]
             layers = list(self._layers.values())
         return mix(primary, layers, t, geometry=self.geometry, closures=self.closures)
+
+
+def mix_states(
+    states: Sequence[FaceState],
+    layers: Sequence[Layer],
+    *,
+    geometry: Geometry | None = None,
+    closures: bool = True,
+) -> list[FaceState]:
+    """``mix`` of every state of a stream (each at its own time) with ``layers``: a batch render's
+    layered animation. Without layers the states themselves are returned (same objects)."""
+    if not layers:
+        return list(states)
+    return [mix(s, layers, s.t, geometry=geometry, closures=closures) for s in states]
