@@ -40,7 +40,7 @@ from .model import Contribution, GazeTarget, Geometry, Layer, Role
 LIP_PAIRS: np.ndarray = np.array([[4, 5], [8, 10], [9, 11], [51, 52], [55, 57], [56, 58]])
 #: Primary lip gap (MNS) at and below which the lips count as closed, and above which as open;
 #: in between the overlay may open them in proportion.
-CLOSED_GAP, OPEN_GAP = 30.0, 150.0
+CLOSED_GAP, OPEN_GAP = 80.0, 300.0
 _AU = 1e-5
 _DEFAULT_GEOMETRY = Geometry()
 
@@ -219,8 +219,8 @@ def combine(
         if rest is not None:
             rest = rest * (1.0 - W)
 
-    # 3. offsets, averaged by weight inside a role
-    sums: dict[Role, list[Any]] = {}
+    # 3. offsets, averaged by weight inside a role (a layer weighs on the FAPs it moves)
+    roles: dict[Role, list[tuple[np.ndarray, Any]]] = {}
     for role, c in items:
         x = c.faps
         if c.viseme is not None or c.expression is not None:
@@ -228,20 +228,23 @@ def combine(
             x = h if x is None else x + h
         if x is None:
             continue
-        w = c.weight if c.amount == 1.0 else c.weight * c.amount
-        acc = sums.get(role)
-        if acc is None:
-            sums[role] = [w * x, w]
-        else:
-            acc[0] = acc[0] + w * x
-            acc[1] = acc[1] + w
-    if sums:
-        A: np.ndarray | None = None
-        for num, den in sums.values():
-            scalar = isinstance(den, float | int)
-            part = (num / den if den > 1.0 else num) if scalar else num / np.maximum(1.0, den)
-            A = part if A is None else A + part
-        assert A is not None
+        if c.amount != 1.0:
+            x = c.amount * x
+        roles.setdefault(role, []).append((x, c.weight))
+    if roles:
+        A: Any = 0.0
+        for group in roles.values():
+            if len(group) == 1:
+                x, w = group[0]
+                A = A + x * (min(float(w), 1.0) if np.ndim(w) == 0 else np.minimum(w, 1.0))
+            else:
+                num: Any = 0.0
+                den: Any = 0.0
+                for x, w in group:
+                    num = num + w * x
+                    den = den + w * (x != 0)
+                A = A + num / np.maximum(1.0, den)
+        A = np.asarray(A, dtype=np.float64)
         if closures:
             A = keep_closures(F, A)
         F += A
