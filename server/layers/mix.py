@@ -144,6 +144,8 @@ def gaze_faps(
 
 
 _TOP, _BOTTOM = LIP_PAIRS[:, 0].copy(), LIP_PAIRS[:, 1].copy()
+_PAIRS: tuple[tuple[int, int], ...] = tuple((int(a), int(b)) for a, b in LIP_PAIRS)
+_LIPS = LIP_PAIRS.reshape(-1)
 
 
 def closure_factor(F: np.ndarray) -> np.ndarray:
@@ -158,19 +160,26 @@ def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` with the lip opening they would add to the primary's FAPs ``F`` taken out
     where ``F`` holds the lips closed (``closure_factor``); corners, spreading and the lips' common
     shift stay. Returns ``A`` itself when nothing changes, else a new array."""
-    opening = -(A[_TOP] + A[_BOTTOM])
-    if A[3] <= 0 and not (opening > 0).any():
-        return A
-    c = closure_factor(F)
-    if not (c > 0).any():
-        return A
-    A = A.copy()
-    cut = np.maximum(opening, 0.0) * c / 2
-    A[_TOP] += cut
-    A[_BOTTOM] += cut
-    if A[3] > 0:
-        A[3] *= 1.0 - c[0]
-    return A
+    a = A[_LIPS].tolist()
+    jaw = float(A[3])
+    if jaw <= 0 and all(a[2 * i] + a[2 * i + 1] >= 0 for i in range(6)):
+        return A  # the offsets open neither the lips nor the jaw
+    f = F[_LIPS].tolist()
+    span = OPEN_GAP - CLOSED_GAP
+    out = None
+    for i, (top, bottom) in enumerate(_PAIRS):
+        x = (-(f[2 * i] + f[2 * i + 1]) - CLOSED_GAP) / span
+        c = 1.0 if x <= 0.0 else 0.0 if x >= 1.0 else 1.0 - x * x * (3.0 - 2.0 * x)
+        opening = -(a[2 * i] + a[2 * i + 1])
+        if i == 0 and jaw > 0 and c > 0:
+            out = A.copy() if out is None else out
+            out[3] = jaw * (1.0 - c)
+        if opening > 0 and c > 0:
+            out = A.copy() if out is None else out
+            cut = opening * c / 2
+            out[top] += cut
+            out[bottom] += cut
+    return A if out is None else out
 
 
 def combine(
@@ -203,13 +212,36 @@ def combine(
     if high is not None:
         F += high
 
+    # one pass over the contributions
+    poses: list[tuple[np.ndarray, float]] = []
+    gazes: list[tuple[GazeTarget, float]] = []
+    overrides: list[tuple[np.ndarray, Any]] = []
+    roles: dict[Role, list[tuple[np.ndarray, Any]]] = {}
+    for role, c in items:
+        if c.head is not None and c.head_weight > 0:
+            poses.append((c.head, c.head_weight))
+        if c.gaze is not None and c.gaze_weight > 0:
+            gazes.append((c.gaze, c.gaze_weight))
+        if c.override is not None:
+            overrides.append((c.override, c.override_weight))
+        x = c.faps
+        if c.viseme is not None or c.expression is not None:
+            h = _expand(c.viseme, c.expression, geo)
+            x = h if x is None else x + h
+        if x is None:
+            continue
+        if c.amount != 1.0:
+            x = c.amount * x
+        group = roles.get(role)
+        if group is None:
+            roles[role] = [(x, c.weight)]
+        else:
+            group.append((x, c.weight))
+
     # 2. head pose over the primary's
     head_out = primary.head
     rest: np.ndarray | None = None
-    poses = [(c.head, c.head_weight) for _, c in items if c.head is not None and c.head_weight > 0]
-    if head_out is not None and (
-        poses or any(c.gaze is not None or _touches_head(c) for _, c in items)
-    ):
+    if head_out is not None and (poses or gazes or any(_touches_head(c) for _, c in items)):
         F[48:51], rest = head_angles(head_out, geo.head_pivot)
     if poses:
         wsum = sum(w for _, w in poses)
@@ -220,45 +252,31 @@ def combine(
             rest = rest * (1.0 - W)
 
     # 3. offsets, averaged by weight inside a role (a layer weighs on the FAPs it moves)
-    roles: dict[Role, list[tuple[np.ndarray, Any]]] = {}
-    for role, c in items:
-        x = c.faps
-        if c.viseme is not None or c.expression is not None:
-            h = _expand(c.viseme, c.expression, geo)
-            x = h if x is None else x + h
-        if x is None:
-            continue
-        if c.amount != 1.0:
-            x = c.amount * x
-        roles.setdefault(role, []).append((x, c.weight))
     if roles:
-        A: Any = 0.0
+        A: Any = None
         for group in roles.values():
             if len(group) == 1:
-                x, w = group[0]
-                A = A + x * (min(float(w), 1.0) if np.ndim(w) == 0 else np.minimum(w, 1.0))
+                part = _weighted(*group[0])
             else:
                 num: Any = 0.0
                 den: Any = 0.0
                 for x, w in group:
                     num = num + w * x
                     den = den + w * (x != 0)
-                A = A + num / np.maximum(1.0, den)
-        A = np.asarray(A, dtype=np.float64)
+                part = num / np.maximum(1.0, den)
+            A = part if A is None else A + part
         if closures:
             A = keep_closures(F, A)
         F += A
         F[:3] = 0.0
 
     # 5. overrides
-    num_o: Any = None
-    den_o: Any = 0.0
-    for _, c in items:
-        if c.override is not None:
-            w = c.override_weight
-            num_o = w * c.override if num_o is None else num_o + w * c.override
+    if overrides:
+        num_o: Any = 0.0
+        den_o: Any = 0.0
+        for value, w in overrides:
+            num_o = num_o + w * value
             den_o = den_o + w
-    if num_o is not None:
         den = np.broadcast_to(np.asarray(den_o, dtype=np.float64), (69,))
         on = den > 0
         target = np.divide(num_o, den, out=np.zeros(69), where=on)
@@ -270,27 +288,33 @@ def combine(
         F[48:51] = 0.0
 
     # 6. gaze
-    gazes = [(c.gaze, c.gaze_weight) for _, c in items if c.gaze is not None and c.gaze_weight > 0]
     if gazes:
         if head_out is not None:
             H = np.asarray(head_out, dtype=np.float64).reshape(3, 4).tolist()
             R, tr = [row[:3] for row in H], [row[3] for row in H]
         else:
-            pitch, yaw, roll = (float(a) * _AU for a in F[48:51])
-            R = _rot(pitch, yaw, roll)
+            pitch, yaw, roll = F[48:51].tolist()
+            R = _rot(pitch * _AU, yaw * _AU, roll * _AU)
             pv = geo.head_pivot.tolist()
             Rp = _mv(R, pv)
             tr = [pv[0] - Rp[0], pv[1] - Rp[1], pv[2] - Rp[2]]
-        wsum = 0.0
-        eyes = [0.0, 0.0, 0.0, 0.0]
-        for g, w in gazes:
-            assert g is not None
-            e = gaze_faps(g, geo, R, tr)
-            eyes = [a + w * b for a, b in zip(eyes, e, strict=True)]
-            wsum += w
-        W = min(1.0, wsum)
-        for k in range(4):
-            F[23 + k] += W * (eyes[k] / wsum - F[23 + k])
+        if len(gazes) == 1:
+            g, W = gazes[0]
+            eyes = gaze_faps(g, geo, R, tr)
+            W = min(1.0, W)
+        else:
+            wsum = 0.0
+            eyes = [0.0, 0.0, 0.0, 0.0]
+            for g, w in gazes:
+                e = gaze_faps(g, geo, R, tr)
+                eyes = [a + w * b for a, b in zip(eyes, e, strict=True)]
+                wsum += w
+            eyes = [e / wsum for e in eyes]
+            W = min(1.0, wsum)
+        if W >= 1.0:
+            F[23:27] = eyes
+        else:
+            F[23:27] += W * (np.array(eyes) - F[23:27])
 
     if high is not None:
         F -= high
@@ -303,6 +327,13 @@ def combine(
         controls=primary.controls,
         head=head_out,
     )
+
+
+def _weighted(x: np.ndarray, w: Any) -> np.ndarray:
+    """``x`` of a layer alone in its role at weight ``w`` (float or ``(69,)``, capped at 1)."""
+    if type(w) is float or type(w) is int:
+        return x if w >= 1.0 else w * x
+    return x * np.minimum(w, 1.0)
 
 
 def _touches_head(c: Contribution) -> bool:
