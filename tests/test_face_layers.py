@@ -438,3 +438,20 @@ def test_render_without_layers_is_unchanged(data_dir, tmp_path):
     render_file(src, a, face="default:2k", backend="numpy")
     render_file(src, b, face="default:2k", backend="numpy", layers=[])
     assert a.read_bytes() == b.read_bytes()
+
+
+def test_gaze_on_the_ict_head(data_dir):
+    """The ICT head (centimetres; its pupils 7° from +z at rest) looks at its targets too."""
+    from facecast.server.faces import load_face
+    from facecast.server.pipeline import Animator
+
+    face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
+    animator = Animator(face, backend="numpy")
+    geo = Geometry.of_rig(animator.rig)
+    for head in (None, HeadPose(pitch=-8, yaw=25, roll=-4)):
+        for target in TARGETS:
+            if target.point is not None:  # the targets are in mm
+                target = GazeTarget(point=target.point / face.mm_per_unit)
+            layers = [GazeLayer(target), IdleLayer(seed=5)] + ([head] if head else [])
+            errors = _gaze_errors(face, animator, geo, layers, target)
+            assert max(errors) < 2.0, (target, head, errors)
