@@ -383,7 +383,7 @@ def default_head():
     return face, animator, Geometry.of_rig(animator.rig)
 
 
-@pytest.mark.parametrize("head", [None, HeadPose(pitch=10, yaw=-20, roll=5)])
+@pytest.mark.parametrize("head", [None, HeadPose(pitch=10, yaw=-12, roll=5)])
 @pytest.mark.parametrize("target", TARGETS, ids=range(len(TARGETS)))
 def test_gaze_points_the_deformed_eyes_at_the_target(default_head, target, head):
     face, animator, geo = default_head
@@ -448,10 +448,40 @@ def test_gaze_on_the_ict_head(data_dir):
     face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
     animator = Animator(face, backend="numpy")
     geo = Geometry.of_rig(animator.rig)
-    for head in (None, HeadPose(pitch=-8, yaw=25, roll=-4)):
+    for head in (None, HeadPose(pitch=-8, yaw=-12, roll=-4)):
         for target in TARGETS:
             if target.point is not None:  # the targets are in mm
                 target = GazeTarget(point=target.point / face.mm_per_unit)
             layers = [GazeLayer(target), IdleLayer(seed=5)] + ([head] if head else [])
             errors = _gaze_errors(face, animator, geo, layers, target)
             assert max(errors) < 2.0, (target, head, errors)
+
+
+def test_layers_refuse_bad_values_and_gaze_stays_in_the_eyes_range():
+    for make in (
+        lambda: ExpressionLayer(7),
+        lambda: ExpressionLayer("1"),  # type: ignore[arg-type]
+        lambda: ExpressionLayer(1, amount=float("inf")),
+        lambda: ExpressionLayer(1, envelope="soon"),  # type: ignore[arg-type]
+        lambda: ExpressionLayer(1, regions=("chin",)),
+        lambda: ExpressionLayer(1, regions="mouth"),  # type: ignore[arg-type]
+        lambda: ExpressionLayer(faps=np.zeros(5)),
+        lambda: HeadGesture("wink"),
+        lambda: HeadGesture("nod", repetitions=0),
+        lambda: HeadPose(yaw=200.0),
+        lambda: GazeLayer(amount=2.0),
+        lambda: GazeLayer(target=(1, 2, 3)),  # type: ignore[arg-type]
+        lambda: IdleLayer(blink_rate=0.0),
+        lambda: IdleLayer(seed=1.5),  # type: ignore[arg-type]
+        lambda: Envelope(start=float("nan")),
+        lambda: TrackLayer([], 25.0),
+        lambda: TrackLayer([FaceState()], 0.0),
+    ):
+        with pytest.raises(ValueError):
+            make()
+    # a target inside an eye, or behind the head: finite, within the eyes' range
+    geo = Geometry(eye_pivots=np.array([[30.0, 0, 70], [-30.0, 0, 70]]))
+    for point in ([30.0, 0, 70], [0.0, 0, -500]):
+        out = mix(None, [GazeLayer(GazeTarget(point=np.array(point)))], 0.0, geometry=geo)
+        assert np.all(np.isfinite(out.faps))
+        assert np.all(np.abs(out.faps[23:27]) <= np.radians(50) / 1e-5 + 1e-6)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import Contribution, N, Role, smoothstep
+from .model import Contribution, N, Role, check_number, smoothstep
 
 AU_PER_DEG = math.pi / 180 / 1e-5
 #: Closed lids: upper lids down one IRISD0 (tangent to the iris -> closed), lower lids up a little.
@@ -121,14 +121,21 @@ class IdleLayer:
     _fix_starts: list[float] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        if not 1.0 <= self.blink_rate <= 60.0:
-            raise ValueError("blink_rate must be 1..60 a minute")
-        if not 0.0 <= self.refractory < 60.0 / self.blink_rate:
-            raise ValueError("refractory must be shorter than the mean blink interval")
-        if not 0.0 <= self.amount <= 1.0:
-            raise ValueError("idle amount must be in [0, 1]")
-        if not 10.0 <= self.horizon <= 86400.0:
-            raise ValueError("horizon must be 10 s .. 1 day")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise ValueError("seed must be a whole number")
+        rate = check_number("blink_rate (a minute)", self.blink_rate, 1.0, 60.0)
+        check_number("refractory", self.refractory, 0.0, 60.0 / rate - 1e-3)
+        check_number("idle amount", self.amount, 0.0, 1.0)
+        check_number("horizon", self.horizon, 10.0, 86400.0)
+        for name in ("blinks", "saccades", "sway", "breathing"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true or false")
+        spread = tuple(self.gaze_spread)
+        if len(spread) != 2:
+            raise ValueError("gaze_spread is (yaw, pitch) degrees")
+        for v in spread:
+            check_number("gaze_spread (degrees)", v, 0.0, 15.0)
+        object.__setattr__(self, "gaze_spread", (float(spread[0]), float(spread[1])))
         rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, 18])
         b = blink_times(rng, self.horizon, self.blink_rate, self.refractory)
         f = fixations(rng, self.horizon, *self.gaze_spread)

@@ -42,6 +42,8 @@ LIP_PAIRS: np.ndarray = np.array([[4, 5], [8, 10], [9, 11], [51, 52], [55, 57], 
 #: in between the overlay may open them in proportion.
 CLOSED_GAP, OPEN_GAP = 80.0, 300.0
 _AU = 1e-5
+#: Farthest the eyes turn from their rest direction (radians): 50° sideways, 45° up or down.
+EYE_YAW_MAX, EYE_PITCH_MAX = math.radians(50.0), math.radians(45.0)
 _DEFAULT_GEOMETRY = Geometry()
 
 
@@ -112,16 +114,19 @@ def head_transform(
 
 def eye_angles(direction: Sequence[float], axis: Sequence[float]) -> tuple[float, float]:
     """``(yaw, pitch)`` radians with ``Ry(yaw) · Rx(pitch) · axis`` along ``direction`` (head-local;
-    ``axis`` the eyeball's unit neutral forward axis)."""
+    ``axis`` the eyeball's unit neutral forward axis), limited to what eyes do (``EYE_YAW_MAX``,
+    ``EYE_PITCH_MAX``: a target behind the head or inside the eye is looked at as far as they go)."""
     dx, dy, dz = direction
     n = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if not n > 1e-12:
+        return 0.0, 0.0
     ax, ay, az = axis
     r = math.hypot(ay, az)
     pitch = math.acos(max(-1.0, min(1.0, dy / n / r))) - math.atan2(az, ay)
     uz = ay * math.sin(pitch) + az * math.cos(pitch)
     yaw = math.atan2(dx, dz) - math.atan2(ax, uz)
     yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
-    return yaw, pitch
+    return max(-EYE_YAW_MAX, min(EYE_YAW_MAX, yaw)), max(-EYE_PITCH_MAX, min(EYE_PITCH_MAX, pitch))
 
 
 def gaze_faps(

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import enum
 import itertools
-import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -131,6 +130,38 @@ class Contribution:
 EMPTY = Contribution()
 
 
+def check_number(name: str, value: object, lo: float, hi: float) -> float:
+    """``value`` as a float if it is a real number (not a bool) within ``[lo, hi]``; ValueError
+    naming ``name`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise ValueError(f"{name} must be a number")
+    v = float(value)
+    if not lo <= v <= hi:  # (NaN fails too)
+        raise ValueError(f"{name} must be within [{lo:g}, {hi:g}]")
+    return v
+
+
+def check_envelope(value: object) -> None:
+    """ValueError unless ``value`` is an ``Envelope``."""
+    if not isinstance(value, Envelope):
+        raise ValueError("envelope must be an Envelope (start, attack_peak, relax, end)")
+
+
+def check_regions(value: object) -> tuple[str, ...] | None:
+    """``value`` (None or names of ``REGIONS``) as a tuple; ValueError otherwise."""
+    if value is None:
+        return None
+    if isinstance(value, str) or not isinstance(value, Iterable):
+        raise ValueError("regions must be a list of region names")
+    names = tuple(value)
+    if not all(isinstance(r, str) for r in names):
+        raise ValueError("regions must be a list of region names")
+    unknown = [r for r in names if r not in REGIONS]
+    if unknown:
+        raise ValueError(f"unknown face region {unknown[0]!r}; known: {', '.join(sorted(REGIONS))}")
+    return names
+
+
 def smoothstep(x: float) -> float:
     """``3x² − 2x³`` of ``x`` clipped to [0, 1]: a 0 → 1 ease with zero slope at both ends."""
     x = 0.0 if x <= 0.0 else min(1.0, x)
@@ -154,8 +185,8 @@ class Envelope:
     def __post_init__(self) -> None:
         for name in ("start", "attack_peak", "relax", "end"):
             v = getattr(self, name)
-            if v is not None and not math.isfinite(v):
-                raise ValueError(f"envelope {name} must be finite")
+            if v is not None or name == "start":
+                object.__setattr__(self, name, check_number(f"envelope {name}", v, -1e9, 1e9))
         times = [self.start, self.attack_peak, self.relax, self.end]
         given = [v for v in times if v is not None]
         if any(b < a for a, b in itertools.pairwise(given)):
