@@ -56,11 +56,26 @@ def test_no_layers_returns_the_primary_itself():
 
 def test_offsets_add_and_the_primary_keeps_its_high_level_faps():
     p = FaceState(t=0.0, faps=faps(f31=100), viseme=(10, 0, 63))
-    out = combine(p, [(Role.EXPRESSION, Contribution(faps=faps(f31=50, f41=30)))], closures=False)
+    items = [
+        (Role.EXPRESSION, Contribution(faps=faps(f41=30))),
+        (Role.HEAD, Contribution(faps=faps(f31=50, f48=1000))),
+    ]
+    out = combine(p, items)
     assert out.viseme == (10, 0, 63)
-    low = expand(out)
-    want = expand(p) + faps(f31=50, f41=30)
-    assert np.allclose(low, want)
+    assert np.allclose(expand(out), expand(p) + faps(f31=50, f41=30, f48=1000))
+
+
+def test_an_overlay_competes_with_the_primary_except_in_a_speaking_mouth():
+    p = FaceState(t=0.0, faps=faps(f31=100), viseme=(10, 0, 63))
+    over = Contribution(faps=faps(f31=300, f33=40, f12=100))
+    out = expand(combine(p, [(Role.EXPRESSION, over)]))
+    assert out[31] == pytest.approx(200.0)  # both move it: their mean
+    assert out[33] == pytest.approx(40.0)  # only the overlay moves it
+    assert out[12] == pytest.approx(VISEMES[10][12] + 100)  # speech and expression add
+    half = expand(combine(p, [(Role.EXPRESSION, Contribution(faps=faps(f31=300), weight=0.5))]))
+    assert half[31] == pytest.approx((100 + 150) / 1.5)
+    mute = expand(combine(p, [(Role.EXPRESSION, over)], closures=False))
+    assert mute[12] == pytest.approx((VISEMES[10][12] + 100) / 2)  # not speech: they compete
 
 
 def test_layers_of_one_role_compete_and_average_by_weight_roles_add():
