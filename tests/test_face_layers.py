@@ -585,3 +585,17 @@ def test_layer_specs_raise_only_input_errors(kind, fields):
         return
     out = mix(FaceState(t=0.5), [layer], 0.5, geometry=Geometry())
     assert np.all(np.isfinite(out.faps))
+
+
+def test_gaze_compensates_a_head_given_as_a_transform_as_one_given_as_faps(default_head):
+    _, _, geo = default_head
+    angles = [4000.0, -15000.0, 3000.0]
+    gaze = [GazeLayer(GazeTarget(point=np.array([50.0, 30.0, 500.0])))]
+    by_faps = mix(
+        FaceState(faps=faps(f48=angles[0], f49=angles[1], f50=angles[2])), gaze, 0.0, geometry=geo
+    )
+    M = head_transform(angles, geo.head_pivot)
+    by_matrix = mix(FaceState(head=M), gaze, 0.0, geometry=geo)
+    assert by_matrix.head is M
+    assert np.allclose(by_faps.faps[23:27], by_matrix.faps[23:27])
+    assert abs(by_faps.faps[23]) > 1000  # the eyes did turn

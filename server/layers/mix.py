@@ -253,7 +253,7 @@ def combine(
     # 2. head pose over the primary's
     head_out = primary.head
     rest: np.ndarray | None = None
-    if head_out is not None and (poses or gazes or any(_touches_head(c) for _, c in items)):
+    if head_out is not None and (poses or any(_touches_head(c) for _, c in items)):
         F[48:51], rest = head_angles(head_out, geo.head_pivot)
     if poses:
         wsum = sum(w for _, w in poses)
