@@ -1,0 +1,181 @@
+"""The idle layer: what a face does when nobody directs it. Blinks, saccades between fixations,
+a slow head sway and breathing, as a pure, seeded function of time.
+
+- **Blinks**: about ``blink_rate`` a minute (default 17; people at rest blink 10-25 times a
+  minute), Poisson-like: intervals are a refractory minimum plus an exponential wait. Each blink
+  closes in 100-150 ms, stays closed 20-60 ms and opens about twice as slowly (200-320 ms). The
+  lids are *set* closed by the closure (an override), so a blink closes over any expression.
+- **Saccades and fixations**: fixations of 0.3-3 s (log-normal, median 0.9 s) on points a few
+  degrees around straight ahead; a saccade's duration follows the main sequence,
+  ``21 ms + 2.2 ms/°`` of amplitude.
+- **Sway**: incommensurate sines of a few degrees on head pitch, yaw and roll.
+- **Breathing**: about 14 breaths a minute: a fraction of a degree of head pitch and a slight
+  flare of the nostrils.
+
+Events are drawn once for ``horizon`` seconds and repeat after it.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .model import Contribution, N, Role, check_number, smoothstep
+
+AU_PER_DEG = math.pi / 180 / 1e-5
+#: Closed lids: upper lids down one IRISD0 (tangent to the iris -> closed), lower lids up a little.
+CLOSED_LIDS = np.zeros(N)
+CLOSED_LIDS[[19, 20]] = 1024.0
+CLOSED_LIDS[[21, 22]] = 150.0
+_LID_MASK = np.zeros(N)
+_LID_MASK[19:23] = 1.0
+
+
+def blink_times(
+    rng: np.random.Generator, horizon: float, rate: float, refractory: float
+) -> np.ndarray:
+    """``(B, 4)`` blinks in ``[0, horizon)``: start, closing, closed, opening durations (s)."""
+    wait = max(60.0 / rate - refractory, 1e-3)
+    n = int(horizon / max(refractory, 0.05)) + 16  # more than can fit
+    close = rng.uniform(0.10, 0.15, n)
+    closed = rng.uniform(0.02, 0.06, n)
+    opening = close * rng.uniform(1.8, 2.4, n)
+    waits = rng.exponential(wait, n)
+    step = np.maximum(refractory, close + closed + opening) + waits
+    starts = np.concatenate([[waits[-1]], waits[-1] + np.cumsum(step[:-1])])
+    keep = starts < horizon
+    return np.stack([starts, close, closed, opening], axis=1)[keep]
+
+
+def blink_closure(t: float, blinks: Sequence[Sequence[float]], starts: Sequence[float]) -> float:
+    """Lid closure 0..1 at ``t`` for ``blinks`` (rows of ``blink_times``) starting at ``starts``."""
+    i = bisect.bisect_right(starts, t) - 1
+    if i < 0:
+        return 0.0
+    s, close, closed, opening = blinks[i]
+    d = t - s
+    if d < close:
+        return smoothstep(d / close)
+    d -= close
+    if d < closed:
+        return 1.0
+    d -= closed
+    if d < opening:
+        return 1.0 - smoothstep(d / opening)
+    return 0.0
+
+
+def fixations(
+    rng: np.random.Generator, horizon: float, yaw_deg: float, pitch_deg: float
+) -> np.ndarray:
+    """``(S, 4)`` fixations in ``[0, horizon)``: start (s), yaw, pitch (degrees), and the saccade
+    duration (s) that leads to it (main sequence: 21 ms + 2.2 ms per degree)."""
+    n = int(horizon / 0.3) + 2
+    durations = np.clip(rng.lognormal(np.log(0.9), 0.6, n), 0.3, 3.0)
+    spread = np.array([yaw_deg, pitch_deg])
+    points = np.clip(rng.normal(0.0, 1.0, (n, 2)) * spread, -2.5 * spread, 2.5 * spread)
+    points[0] = 0.0
+    starts = np.concatenate([[0.0], np.cumsum(durations[:-1])])
+    amplitude = np.hypot(*np.diff(points, axis=0, prepend=points[:1]).T)
+    rows = np.column_stack([starts, points, 0.021 + 0.0022 * amplitude])
+    rows[0, 3] = 0.0
+    return rows[starts < horizon]
+
+
+@dataclass(frozen=True)
+class IdleLayer:
+    """Idle motion, deterministic by ``seed`` (see the module docstring).
+
+    Attributes:
+        seed: the random seed of the events.
+        amount: scale of the saccades, sway and breathing (0..1; blinks are whole).
+        blink_rate: blinks a minute (mean); refractory: least time (s) from one blink to the next.
+        blinks, saccades, sway, breathing: which parts run.
+        gaze_spread: standard deviation (degrees yaw, pitch) of the fixation points.
+        horizon: seconds of events drawn; they repeat after it.
+    """
+
+    seed: int = 0
+    amount: float = 1.0
+    blink_rate: float = 17.0
+    refractory: float = 1.0
+    blinks: bool = True
+    saccades: bool = True
+    sway: bool = True
+    breathing: bool = True
+    gaze_spread: tuple[float, float] = (4.0, 2.0)
+    horizon: float = 1800.0
+    role: Role = Role.IDLE
+    _blinks: list[list[float]] = field(init=False, repr=False, compare=False)
+    _blink_starts: list[float] = field(init=False, repr=False, compare=False)
+    _fix: list[list[float]] = field(init=False, repr=False, compare=False)
+    _fix_starts: list[float] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise ValueError("seed must be a whole number")
+        rate = check_number("blink_rate (a minute)", self.blink_rate, 1.0, 60.0)
+        check_number("refractory", self.refractory, 0.0, 60.0 / rate - 1e-3)
+        check_number("idle amount", self.amount, 0.0, 1.0)
+        check_number("horizon", self.horizon, 10.0, 86400.0)
+        for name in ("blinks", "saccades", "sway", "breathing"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true or false")
+        spread = tuple(self.gaze_spread)
+        if len(spread) != 2:
+            raise ValueError("gaze_spread is (yaw, pitch) degrees")
+        for v in spread:
+            check_number("gaze_spread (degrees)", v, 0.0, 15.0)
+        object.__setattr__(self, "gaze_spread", (float(spread[0]), float(spread[1])))
+        rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, 18])
+        b = blink_times(rng, self.horizon, self.blink_rate, self.refractory)
+        f = fixations(rng, self.horizon, *self.gaze_spread)
+        object.__setattr__(self, "_blinks", b.tolist())
+        object.__setattr__(self, "_blink_starts", b[:, 0].tolist())
+        object.__setattr__(self, "_fix", f.tolist())
+        object.__setattr__(self, "_fix_starts", f[:, 0].tolist())
+
+    @property
+    def end(self) -> float | None:
+        return None
+
+    def closure(self, t: float) -> float:
+        """Lid closure 0..1 at ``t`` (s)."""
+        return blink_closure(t % self.horizon, self._blinks, self._blink_starts)
+
+    def gaze(self, t: float) -> tuple[float, float]:
+        """Eye ``(yaw, pitch)`` in degrees at ``t`` (s), before ``amount``."""
+        local = t % self.horizon
+        f = self._fix
+        j = bisect.bisect_right(self._fix_starts, local) - 1
+        cur = f[j]
+        if j > 0 and local - cur[0] < cur[3]:
+            u = smoothstep((local - cur[0]) / cur[3])
+            prev = f[j - 1]
+            return prev[1] + (cur[1] - prev[1]) * u, prev[2] + (cur[2] - prev[2]) * u
+        return cur[1], cur[2]
+
+    def sample(self, t: float) -> Contribution:
+        faps = np.zeros(N)
+        a = self.amount * AU_PER_DEG
+        if self.saccades:
+            yaw, pitch = self.gaze(t)
+            faps[23] = faps[24] = a * yaw
+            faps[25] = faps[26] = a * pitch
+        tau = 2 * math.pi * t
+        if self.sway:
+            faps[48] = a * (2.0 * math.sin(tau / 7.3) + 0.8 * math.sin(tau / 3.1))
+            faps[49] = a * 3.0 * math.sin(tau / 9.7 + 1.0)
+            faps[50] = a * 1.5 * math.sin(tau / 11.3 + 2.0)
+        if self.breathing:
+            b = math.sin(tau / 4.3)
+            faps[48] += a * 0.3 * b
+            faps[61] = faps[62] = self.amount * 20.0 * max(b, 0.0)
+        c = self.closure(t) if self.blinks else 0.0
+        if c > 0.0:
+            return Contribution(faps=faps, override=CLOSED_LIDS, override_weight=c * _LID_MASK)
+        return Contribution(faps=faps)

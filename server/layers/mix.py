@@ -1,0 +1,492 @@
+"""Mixing a primary face state with layers into one ``FaceState`` per frame, and a session's ``Mixer``.
+
+The rules (Kshirsagar et al. and Kähler's combining slide, ``research/seed-000-B.md`` §2.2), in the
+order they apply to one frame:
+
+1. **Primary**: the producer's state, high-level FAPs expanded with the face's tables.
+2. **Head pose**: contributions with a ``head`` pose replace the primary's head (FAPs 48-50, or
+   its ``head`` transform) by their weight (several: averaged by weight).
+3. **Offsets add**: each role's ``faps`` (plus its expanded viseme/expression) are added; inside
+   one role, FAPs two layers weigh on are averaged by weight, ``Σ w·x / max(1, Σ w)`` (one layer at
+   weight w adds ``w·x``; two at full weight give their mean; a layer weighs only on the FAPs it
+   moves). Expression overlays also compete with the primary, at weight 1, on the FAPs it moves
+   (a joy overlay over an anger stream gives their mean brows, not a sum no face can make), except
+   a speaking primary's speech in the mouth and tongue: speech and expression add there
+   (Kshirsagar et al.'s expressive speech, a vector sum), under rule 4; the primary's own
+   expression (FAP 2) still competes there.
+4. **Closures**: where the primary holds the lips together (a /p b m/, silence: a lip pair's gap
+   near or below contact) the offsets' lip-opening part is taken out, shared by both lips (their
+   common shift, the corners and the spreading stay), and so is their jaw opening.
+5. **Overrides** (``override``): absolute FAP values replace the result by their weight (blinks).
+6. **Gaze**: eye yaw/pitch (FAPs 23-26) turned to the target from the eye centres under the final
+   head pose, replacing the eyes' rotation by the weight.
+
+The result keeps the primary's viseme, expression and controls: its ``faps`` are the mixed
+low-level values minus the primary's high-level expansion, so the rig's ``expand`` gives the mix.
+With no layers the primary is returned as it is.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import numpy as np
+
+from ..errors import Conflict, InputError, NotFound
+from ..state import FaceState
+from .model import REGIONS, Contribution, GazeTarget, Geometry, Layer, Role
+
+#: Lip pairs (upper lip FAP, + down; lower lip FAP, + up): inner mid, left, right; outer the same.
+#: A pair's gap (FAPU MNS, 0 = the neutral closed mouth) is ``-(upper + lower)``.
+LIP_PAIRS: np.ndarray = np.array([[4, 5], [8, 10], [9, 11], [51, 52], [55, 57], [56, 58]])
+#: Primary lip gap (MNS) at and below which the lips count as closed, and above which as open;
+#: in between the overlay may open them in proportion.
+CLOSED_GAP, OPEN_GAP = 80.0, 300.0
+_AU = 1e-5
+#: The FAPs speech moves (mouth and tongue): where a speaking primary and an overlay add.
+_SPEECH = np.zeros(69, dtype=bool)
+_SPEECH[list(REGIONS["mouth"] + REGIONS["tongue"])] = True
+#: Farthest the eyes turn from their rest direction (radians): 50° sideways, 45° up or down.
+EYE_YAW_MAX, EYE_PITCH_MAX = math.radians(50.0), math.radians(45.0)
+_DEFAULT_GEOMETRY = Geometry()
+
+
+def _expand(
+    viseme: tuple[int, int, int] | None,
+    expression: tuple[int, int, int, int] | None,
+    geo: Geometry,
+) -> np.ndarray | None:
+    """``(69,)`` low-level FAPs of FAP 1/2 with the geometry's tables (None when both are None);
+    remembered per geometry (read-only arrays)."""
+    if viseme is None and expression is None:
+        return None
+    key = (viseme, expression)
+    cache = geo.expansions
+    hit = cache.get(key)
+    if hit is None:
+        from ..mpeg4.highlevel import expand
+
+        hit = expand(FaceState(viseme=viseme, expression=expression), geo.visemes, geo.expressions)
+        hit.flags.writeable = False
+        if len(cache) >= 4096:
+            cache.clear()
+        cache[key] = hit
+    return hit
+
+
+def _rot(pitch: float, yaw: float, roll: float) -> list[list[float]]:
+    """``Ry(yaw) · Rx(pitch) · Rz(roll)`` (radians), the rig's head rotation, as nested lists."""
+    cp, sp, cy, sy = math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    cr, sr = math.cos(roll), math.sin(roll)
+    return [
+        [cy * cr + sy * sp * sr, -cy * sr + sy * sp * cr, sy * cp],
+        [cp * sr, cp * cr, -sp],
+        [-sy * cr + cy * sp * sr, sy * sr + cy * sp * cr, cy * cp],
+    ]
+
+
+def _mv(R: list[list[float]], v: Sequence[float]) -> list[float]:
+    return [R[i][0] * v[0] + R[i][1] * v[1] + R[i][2] * v[2] for i in range(3)]
+
+
+def _mtv(R: list[list[float]], v: Sequence[float]) -> list[float]:
+    return [R[0][i] * v[0] + R[1][i] * v[1] + R[2][i] * v[2] for i in range(3)]
+
+
+def head_angles(head: np.ndarray, pivot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A head transform ``[R | t] (3, 4)`` as ``(pitch, yaw, roll)`` in AU (``R = Ry·Rx·Rz``) and
+    the translation left over after rotating about ``pivot`` (mesh units)."""
+    M = np.asarray(head, dtype=np.float64).reshape(3, 4)
+    R = M[:, :3]
+    pitch = float(np.arcsin(np.clip(-R[1, 2], -1.0, 1.0)))
+    yaw = float(np.arctan2(R[0, 2], R[2, 2]))
+    roll = float(np.arctan2(R[1, 0], R[1, 1]))
+    rest = M[:, 3] - (pivot - R @ pivot)
+    return np.array([pitch, yaw, roll]) / _AU, rest
+
+
+def head_transform(
+    angles: Sequence[float], pivot: np.ndarray, rest: np.ndarray | None = None
+) -> np.ndarray:
+    """``(3, 4)`` head transform of ``(pitch, yaw, roll)`` AU about ``pivot``, then ``rest``."""
+    R = np.array(_rot(*(float(a) * _AU for a in angles)))
+    out = np.empty((3, 4))
+    out[:, :3] = R
+    out[:, 3] = pivot - R @ pivot + (0.0 if rest is None else rest)
+    return out
+
+
+def eye_angles(direction: Sequence[float], axis: Sequence[float]) -> tuple[float, float]:
+    """``(yaw, pitch)`` radians with ``Ry(yaw) · Rx(pitch) · axis`` along ``direction`` (head-local;
+    ``axis`` the eyeball's unit neutral forward axis), limited to what eyes do (``EYE_YAW_MAX``,
+    ``EYE_PITCH_MAX``: a target behind the head or inside the eye is looked at as far as they go)."""
+    dx, dy, dz = direction
+    n = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if not n > 1e-12:
+        return 0.0, 0.0
+    ax, ay, az = axis
+    r = math.hypot(ay, az)
+    pitch = math.acos(max(-1.0, min(1.0, dy / n / r))) - math.atan2(az, ay)
+    uz = ay * math.sin(pitch) + az * math.cos(pitch)
+    yaw = math.atan2(dx, dz) - math.atan2(ax, uz)
+    yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
+    return max(-EYE_YAW_MAX, min(EYE_YAW_MAX, yaw)), max(-EYE_PITCH_MAX, min(EYE_PITCH_MAX, pitch))
+
+
+def gaze_faps(
+    target: GazeTarget, geo: Geometry, R: list[list[float]], t: Sequence[float]
+) -> list[float]:
+    """FAPs 23-26 (AU) turning both eyes to ``target`` under the head transform ``[R | t]``
+    (nested lists): the eye centres move with the head, the target stays put."""
+    out = [0.0, 0.0, 0.0, 0.0]
+    p = target.point
+    for i, (centre, axis) in enumerate(geo.eyes):
+        if p is not None:
+            c = _mv(R, centre)
+            d = [p[0] - c[0] - t[0], p[1] - c[1] - t[1], p[2] - c[2] - t[2]]
+        else:
+            assert target.direction is not None
+            d = target.direction.tolist()
+        yaw, pitch = eye_angles(_mtv(R, d), axis)
+        out[i], out[2 + i] = yaw / _AU, pitch / _AU
+    return out
+
+
+_TOP, _BOTTOM = LIP_PAIRS[:, 0].copy(), LIP_PAIRS[:, 1].copy()
+_PAIRS: tuple[tuple[int, int], ...] = tuple((int(a), int(b)) for a, b in LIP_PAIRS)
+_LIPS = LIP_PAIRS.reshape(-1)
+
+
+def closure_factor(F: np.ndarray) -> np.ndarray:
+    """``(6,)`` how closed each lip pair of the FAPs ``F (69,)`` is: 1 at or below ``CLOSED_GAP``,
+    0 from ``OPEN_GAP``."""
+    gap = -(F[_TOP] + F[_BOTTOM])
+    x = np.clip((gap - CLOSED_GAP) / (OPEN_GAP - CLOSED_GAP), 0.0, 1.0)
+    return 1.0 - x * x * (3.0 - 2.0 * x)
+
+
+def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Offsets ``A (69,)`` with the lip opening they would add to the primary's FAPs ``F`` taken out
+    where ``F`` holds the lips closed (``closure_factor``); corners, spreading and the lips' common
+    shift stay. Returns ``A`` itself when nothing changes, else a new array."""
+    a = A[_LIPS].tolist()
+    jaw = float(A[3])
+    if jaw <= 0 and all(a[2 * i] + a[2 * i + 1] >= 0 for i in range(6)):
+        return A  # the offsets open neither the lips nor the jaw
+    f = F[_LIPS].tolist()
+    span = OPEN_GAP - CLOSED_GAP
+    out = None
+    for i, (top, bottom) in enumerate(_PAIRS):
+        x = (-(f[2 * i] + f[2 * i + 1]) - CLOSED_GAP) / span
+        c = 1.0 if x <= 0.0 else 0.0 if x >= 1.0 else 1.0 - x * x * (3.0 - 2.0 * x)
+        opening = -(a[2 * i] + a[2 * i + 1])
+        if i == 0 and jaw > 0 and c > 0:
+            out = A.copy() if out is None else out
+            out[3] = jaw * (1.0 - c)
+        if opening > 0 and c > 0:
+            out = A.copy() if out is None else out
+            cut = opening * c / 2
+            out[top] += cut
+            out[bottom] += cut
+    return A if out is None else out
+
+
+def combine(
+    primary: FaceState | None,
+    items: Sequence[tuple[Role, Contribution]],
+    t: float | None = None,
+    *,
+    geometry: Geometry | None = None,
+    closures: bool = True,
+) -> FaceState:
+    """Mix ``primary`` with the layers' contributions (``(role, contribution)`` pairs) by the
+    module's rules into one ``FaceState`` at ``t`` (default: the primary's time).
+
+    ``primary`` None is the neutral face (and no closures to keep); ``closures`` False lets
+    overlays open the lips whatever the primary does (a primary that does not speak).
+    ``geometry``: the face's (``Geometry.of_rig``); needed for gaze and for head poses over a
+    primary ``head`` transform (the default has no eyes).
+    """
+    if primary is None:
+        primary, closures = FaceState(t=0.0 if t is None else t), False
+    t = primary.t if t is None else float(t)
+    if not items:
+        return primary if t == primary.t else dataclasses.replace(primary, t=t)
+    geo = _DEFAULT_GEOMETRY if geometry is None else geometry
+    F = np.array(primary.faps, dtype=np.float64)
+    if F.shape != (69,):
+        raise ValueError(f"FaceState.faps must have shape (69,), not {F.shape}")
+    F[:3] = 0.0
+    high = _expand(primary.viseme, primary.expression, geo)
+    if high is not None:
+        F += high
+
+    # one pass over the contributions
+    poses: list[tuple[np.ndarray, float]] = []
+    gazes: list[tuple[GazeTarget, float]] = []
+    overrides: list[tuple[np.ndarray, Any]] = []
+    roles: dict[Role, list[tuple[np.ndarray, Any]]] = {}
+    for role, c in items:
+        if c.head is not None and c.head_weight > 0:
+            poses.append((c.head, c.head_weight))
+        if c.gaze is not None and c.gaze_weight > 0:
+            gazes.append((c.gaze, c.gaze_weight))
+        if c.override is not None:
+            overrides.append((c.override, c.override_weight))
+        x = c.faps
+        if c.viseme is not None or c.expression is not None:
+            h = _expand(c.viseme, c.expression, geo)
+            x = h if x is None else x + h
+        if x is None:
+            continue
+        if c.amount != 1.0:
+            x = c.amount * x
+        group = roles.get(role)
+        if group is None:
+            roles[role] = [(x, c.weight)]
+        else:
+            group.append((x, c.weight))
+
+    # 2. head pose over the primary's
+    head_out = primary.head
+    rest: np.ndarray | None = None
+    if head_out is not None and (poses or any(_touches_head(c) for _, c in items)):
+        F[48:51], rest = head_angles(head_out, geo.head_pivot)
+    if poses:
+        wsum = sum(w for _, w in poses)
+        target = sum(np.asarray(p, dtype=np.float64) * w for p, w in poses) / wsum
+        W = min(1.0, wsum)
+        F[48:51] += W * (target - F[48:51])
+        if rest is not None:
+            rest = rest * (1.0 - W)
+
+    # 3. offsets, averaged by weight inside a role (a layer weighs on the FAPs it moves);
+    #    expression overlays also compete with the primary where it moves a FAP (weight 1),
+    #    except a speaking primary's mouth and tongue, where speech and expression add
+    if roles:
+        A: Any = None
+        for role, group in roles.items():
+            if role is Role.EXPRESSION:
+                num: Any = 0.0
+                den: Any = 0.0
+                for x, w in group:
+                    num = num + w * x
+                    den = den + w * (x != 0)
+                # what of the primary the overlays compete with: all of it, or, in a speaking
+                # mouth, only its own expression (FAP 2), never the speech
+                P = F
+                if closures:
+                    E = _expand(None, primary.expression, geo)
+                    P = np.where(_SPEECH, 0.0 if E is None else E, F)
+                part = (P + num) / np.maximum(1.0, (P != 0) + den) - P
+            elif len(group) == 1:
+                part = _weighted(*group[0])
+            else:
+                num = 0.0
+                den = 0.0
+                for x, w in group:
+                    num = num + w * x
+                    den = den + w * (x != 0)
+                part = num / np.maximum(1.0, den)
+            A = part if A is None else A + part
+        if closures:
+            A = keep_closures(F, A)
+        F += A
+        F[:3] = 0.0
+
+    # 5. overrides
+    if overrides:
+        num_o: Any = 0.0
+        den_o: Any = 0.0
+        for value, w in overrides:
+            num_o = num_o + w * value
+            den_o = den_o + w
+        den = np.broadcast_to(np.asarray(den_o, dtype=np.float64), (69,))
+        on = den > 0
+        target = np.divide(num_o, den, out=np.zeros(69), where=on)
+        F = np.where(on, F + np.minimum(1.0, den) * (target - F), F)
+
+    # head transform of the mix
+    if rest is not None:
+        head_out = head_transform(F[48:51].tolist(), geo.head_pivot, rest)
+        F[48:51] = 0.0
+
+    # 6. gaze
+    if gazes:
+        if head_out is not None:
+            H = np.asarray(head_out, dtype=np.float64).reshape(3, 4).tolist()
+            R, tr = [row[:3] for row in H], [row[3] for row in H]
+        else:
+            pitch, yaw, roll = F[48:51].tolist()
+            R = _rot(pitch * _AU, yaw * _AU, roll * _AU)
+            pv = geo.head_pivot.tolist()
+            Rp = _mv(R, pv)
+            tr = [pv[0] - Rp[0], pv[1] - Rp[1], pv[2] - Rp[2]]
+        if len(gazes) == 1:
+            g, W = gazes[0]
+            eyes = gaze_faps(g, geo, R, tr)
+            W = min(1.0, W)
+        else:
+            wsum = 0.0
+            eyes = [0.0, 0.0, 0.0, 0.0]
+            for g, w in gazes:
+                e = gaze_faps(g, geo, R, tr)
+                eyes = [a + w * b for a, b in zip(eyes, e, strict=True)]
+                wsum += w
+            eyes = [e / wsum for e in eyes]
+            W = min(1.0, wsum)
+        if W >= 1.0:
+            F[23:27] = eyes
+        else:
+            F[23:27] += W * (np.array(eyes) - F[23:27])
+
+    if high is not None:
+        F -= high
+        F[:3] = 0.0
+    return FaceState(
+        t=t,
+        faps=F,
+        viseme=primary.viseme,
+        expression=primary.expression,
+        controls=primary.controls,
+        head=head_out,
+    )
+
+
+def _weighted(x: np.ndarray, w: Any) -> np.ndarray:
+    """``x`` of a layer alone in its role at weight ``w`` (float or ``(69,)``, capped at 1)."""
+    if type(w) is float or type(w) is int:
+        return x if w >= 1.0 else w * x
+    return x * np.minimum(w, 1.0)
+
+
+def _touches_head(c: Contribution) -> bool:
+    """Whether ``c`` moves FAPs 48-50 (offsets or overrides)."""
+    return any(v is not None and bool(np.any(v[48:51] != 0)) for v in (c.faps, c.override))
+
+
+def mix(
+    primary: FaceState | None,
+    layers: Iterable[Layer],
+    t: float | None = None,
+    *,
+    geometry: Geometry | None = None,
+    closures: bool = True,
+) -> FaceState:
+    """Sample every layer at ``t`` (default: the primary's time) and ``combine`` them with
+    ``primary``: the one pure entry point of a frame's mix."""
+    if t is None:
+        t = 0.0 if primary is None else primary.t
+    items = [(layer.role, layer.sample(t)) for layer in layers]
+    return combine(primary, items, t, geometry=geometry, closures=closures)
+
+
+class Mixer:
+    """A session's active layers by name, mixed with the primary of each frame.
+
+    Thread-safe: ``set`` / ``remove`` / ``change`` may run on any thread while another mixes
+    (``mix`` works on a snapshot taken under the lock). Layers whose ``end`` has passed are
+    dropped as frames pass it.
+
+    Args:
+        geometry: the face's ``Geometry`` (gaze, head poses over transforms, high-level tables).
+        closures: keep the primary's lip closures (False when the primary does not speak).
+        max_layers: most layers held at once (``TooMany``... ``Conflict`` beyond it).
+    """
+
+    def __init__(
+        self, geometry: Geometry | None = None, *, closures: bool = True, max_layers: int = 32
+    ) -> None:
+        self.geometry = geometry
+        self.closures = closures
+        self.max_layers = max_layers
+        self._lock = threading.Lock()
+        self._layers: dict[str, Layer] = {}
+
+    @staticmethod
+    def _check_name(name: str) -> str:
+        if not isinstance(name, str) or not 0 < len(name) <= 64 or not name.isprintable():
+            raise InputError("a layer name is 1-64 printable characters")
+        return name
+
+    def set(self, name: str, layer: Layer) -> None:
+        """Add ``layer`` as ``name``, replacing a layer of that name. ``Conflict`` when full."""
+        if not isinstance(layer, Layer):
+            raise TypeError(f"not a layer: {type(layer).__name__}")
+        name = self._check_name(name)
+        with self._lock:
+            if name not in self._layers and len(self._layers) >= self.max_layers:
+                raise Conflict(f"a session holds at most {self.max_layers} layers")
+            self._layers[name] = layer
+
+    def add(self, name: str, layer: Layer) -> None:
+        """Add ``layer`` as ``name``; ``Conflict`` if the name is taken."""
+        with self._lock:
+            if name in self._layers:
+                raise Conflict(f"layer {name!r} exists already")
+        self.set(name, layer)
+
+    def remove(self, name: str) -> Layer | None:
+        """Remove and return layer ``name`` (None if there was none)."""
+        with self._lock:
+            return self._layers.pop(name, None)
+
+    def change(self, name: str, **fields: object) -> Layer:
+        """Replace layer ``name`` by a copy with ``fields`` changed (layers are frozen dataclasses:
+        ``change("smile", amount=0.5)``). ``NotFound`` without such a layer; ``InputError`` for a
+        field the layer has not or a value it refuses."""
+        with self._lock:
+            layer = self._layers.get(name)
+            if layer is None:
+                raise NotFound(f"no layer {name!r}")
+            try:
+                new = dataclasses.replace(layer, **fields)  # type: ignore[type-var]
+            except (TypeError, ValueError) as e:
+                raise InputError(f"layer {name!r}: {e}") from None
+            self._layers[name] = new
+            return new
+
+    def get(self, name: str) -> Layer | None:
+        with self._lock:
+            return self._layers.get(name)
+
+    def layers(self) -> dict[str, Layer]:
+        """A snapshot: name -> layer, in the order they were added."""
+        with self._lock:
+            return dict(self._layers)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._layers.clear()
+
+    def __len__(self) -> int:
+        return len(self._layers)
+
+    def mix(self, primary: FaceState | None, t: float | None = None) -> FaceState:
+        """The mixed state of this frame (``mix`` of the active layers); drops ended layers."""
+        if t is None:
+            t = 0.0 if primary is None else primary.t
+        with self._lock:
+            ended = [n for n, lay in self._layers.items() if lay.end is not None and lay.end < t]
+            for n in ended:
+                del self._layers[n]
+            layers = list(self._layers.values())
+        return mix(primary, layers, t, geometry=self.geometry, closures=self.closures)
+
+
+def mix_states(
+    states: Sequence[FaceState],
+    layers: Sequence[Layer],
+    *,
+    geometry: Geometry | None = None,
+    closures: bool = True,
+) -> list[FaceState]:
+    """``mix`` of every state of a stream (each at its own time) with ``layers``: a batch render's
+    layered animation. Without layers the states themselves are returned (same objects)."""
+    if not layers:
+        return list(states)
+    return [mix(s, layers, s.t, geometry=geometry, closures=closures) for s in states]
