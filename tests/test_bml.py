@@ -414,3 +414,143 @@ def test_cli_refuses_a_missing_recording_naming_the_speech(tmp_path):
     )
     assert r.returncode != 0 and not (tmp_path / "o.glb").exists()
     assert "line 3: <speech>: audio 'bobby.wav' is not a file next to the BML file" in r.stderr
+
+
+# --------------------------------------------------------------------------- REST job and live play
+
+
+@pytest.fixture(scope="module")
+def job_server(tmp_path_factory):
+    from conftest import RunningServer
+
+    s = RunningServer(
+        tmp_path_factory.mktemp("bml-jobs"), "--face", "default:2k", "--workers", "1"
+    ).start()
+    yield s
+    s.stop()
+
+
+def _speech_bytes(data_dir: Path) -> bytes:
+    return (data_dir / "speech" / "bobby_16bit_16khz.wav").read_bytes()
+
+
+def test_a_bml_job_with_its_uploaded_recording_renders_a_glb(job_server, data_dir):
+    import httpx
+    import pygltflib
+    from test_jobs import wait
+
+    srv = job_server
+    r = httpx.post(
+        srv.url + "/v1/jobs",
+        files=[
+            ("file", ("perf.bml", BOBBY.encode())),
+            ("audio", ("bobby.wav", _speech_bytes(data_dir))),
+        ],
+        data={"face": "default:2k"},
+        headers=srv.admin_headers,
+        timeout=60,
+    )
+    assert r.status_code == 202, r.text
+    assert r.json()["input_kind"] == "bml" and r.json()["input_name"] == "perf.bml"
+    done = wait(srv, r.json()["id"])
+    assert done["status"] == "done", done
+    glb = httpx.get(srv.url + done["result_url"], headers=srv.admin_headers, timeout=60)
+    assert glb.status_code == 200 and 'filename="perf.glb"' in glb.headers["content-disposition"]
+    gltf = pygltflib.GLTF2.load_from_bytes(glb.content)
+    assert gltf.asset.version == "2.0" and gltf.animations
+
+
+@pytest.mark.parametrize(
+    ("bml", "audio", "status", "says"),
+    [
+        (BOBBY, [], 400, "line 3: <speech>: audio 'bobby.wav' was not uploaded"),
+        (BOBBY, [("other.wav", b"x")], 400, "was not uploaded"),
+        (BOBBY.replace("bobby.wav", "../bobby.wav"), [], 400, "line 3: <speech>: audio="),
+        (BOBBY.replace("bobby.wav", "/etc/x.wav"), [], 400, "relative file name"),
+        (BOBBY.replace('lexeme="NOD"', 'lexeme="BOW"'), [], 400, "line 8: <head>: lexeme='BOW'"),
+        (
+            BOBBY.replace("<!-- -->", "").replace(
+                '<?xml version="1.0" encoding="UTF-8"?>', '<!DOCTYPE bml [<!ENTITY a "b">]>'
+            ),
+            [],
+            400,
+            "DOCTYPE",
+        ),
+    ],
+)
+def test_a_bad_bml_upload_is_refused_with_line_and_element(job_server, bml, audio, status, says):
+    import httpx
+
+    srv = job_server
+    files = [("file", ("perf.bml", bml.encode()))] + [("audio", a) for a in audio]
+    r = httpx.post(srv.url + "/v1/jobs", files=files, headers=srv.admin_headers, timeout=60)
+    assert r.status_code == status and says in r.json()["error"], r.text
+    assert "/tmp" not in r.text and "jobs/" not in r.text
+
+
+def test_unused_or_misplaced_audio_parts_are_refused(job_server, data_dir):
+    import httpx
+
+    srv = job_server
+    wav = _speech_bytes(data_dir)
+    extra = [("audio", ("bobby.wav", wav)), ("audio", ("spare.wav", wav))]
+    r = httpx.post(
+        srv.url + "/v1/jobs",
+        files=[("file", ("perf.bml", BOBBY.encode())), *extra],
+        headers=srv.admin_headers,
+        timeout=60,
+    )
+    assert r.status_code == 400 and "'spare.wav' is not named by any speech" in r.text
+    r = httpx.post(
+        srv.url + "/v1/jobs",
+        files=[("file", ("bobby.wav", wav)), ("audio", ("bobby.wav", wav))],
+        headers=srv.admin_headers,
+        timeout=60,
+    )
+    assert r.status_code == 400 and "go with a .bml performance only" in r.text
+
+
+def test_playing_a_bml_into_a_live_session_streams_the_performance(server, data_dir):
+    import asyncio
+
+    import httpx
+    from test_playback import collect, create
+
+    s = create(server)
+    r = httpx.post(
+        f"{server.url}/v1/sessions/{s['id']}/play?token={s['producer_token']}",
+        files=[
+            ("file", ("perf.bml", BOBBY.encode())),
+            ("audio", ("bobby.wav", _speech_bytes(data_dir))),
+        ],
+        timeout=120,
+    )
+    assert r.status_code == 202, r.text
+    info = r.json()
+    assert info["kind"] == "bml" and info["fps"] == 30 and info["seconds"] > 1.5
+    frames = asyncio.run(collect(server, s, 20))
+    pos = np.stack([f.positions() for f in frames])
+    assert np.abs(pos - pos[0]).max() > 0.1, "the performance did not move the face"
+    r = httpx.post(
+        f"{server.url}/v1/sessions/{s['id']}/play?token={s['producer_token']}",
+        files=[("file", ("perf.bml", BOBBY.encode()))],
+        timeout=60,
+    )
+    assert r.status_code in (400, 409) and ("not uploaded" in r.text or "already" in r.text)
+
+
+def test_render_server_uploads_the_recordings_named_by_the_bml(job_server, bobby, tmp_path):
+    from facecast.client.jobs import RemoteJobError, render_remote
+    from test_render import read_glb
+
+    out = render_remote(
+        job_server.url,
+        bobby,
+        tmp_path / "remote.glb",
+        options={"face": "default:2k"},
+        admin_key=job_server.admin_key,
+    )
+    assert read_glb(out)["gltf"].asset.version == "2.0"
+    (bobby.parent / "bobby.wav").unlink()
+    with pytest.raises(RemoteJobError, match="audio 'bobby.wav' is not a file next to"):
+        render_remote(job_server.url, bobby, tmp_path / "x.glb", admin_key=job_server.admin_key)
