@@ -540,8 +540,9 @@ def test_playing_a_bml_into_a_live_session_streams_the_performance(server, data_
 
 
 def test_render_server_uploads_the_recordings_named_by_the_bml(job_server, bobby, tmp_path):
-    from facecast.client.jobs import RemoteJobError, render_remote
     from test_render import read_glb
+
+    from facecast.client.jobs import RemoteJobError, render_remote
 
     out = render_remote(
         job_server.url,
