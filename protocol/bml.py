@@ -260,12 +260,6 @@ class _Node:
     line: int
     children: list[_Node | str] = field(default_factory=list)
 
-    def elements(self) -> list[_Node]:
-        return [c for c in self.children if isinstance(c, _Node)]
-
-    def text(self) -> str:
-        return "".join(c for c in self.children if isinstance(c, str))
-
 
 def _tree(data: bytes, where: str) -> _Node:
     """The document's element tree, parsed by expat with DTDs refused and the limits checked."""
@@ -387,8 +381,7 @@ class _Reader:
         raw = self.get(name)
         if raw is None:
             return default
-        value = raw.strip().upper().replace("_", "") if options is GAZE_DIRECTIONS else None
-        value = value if value is not None else raw.strip().upper()
+        value = raw.strip().upper().replace("_", "")  # UP_RIGHT: UPRIGHT (no option has '_')
         if value not in options:
             raise self.refuse(
                 f"{name}={_show(raw)} is not supported; supported: {', '.join(options)}"
