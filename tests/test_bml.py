@@ -290,6 +290,11 @@ def test_defaults_and_two_constraints_on_a_nod():
         ),
         ('<speech id="s" audio="a.wav" end="1"/>', 2, "would start at -1.000 s"),
         (
+            '<speech id="s" audio="a.wav"/>\n<speech id="t" audio="b.wav" start="s:end - 0.5"/>',
+            3,
+            "while s speaks (0.000-2.000 s); one voice speaks at a time",
+        ),
+        (
             '<head id="h" lexeme="NOD"/>\n<gaze id="g" target="user" start="h:start-1"/>',
             3,
             "before the block's start",
@@ -298,7 +303,7 @@ def test_defaults_and_two_constraints_on_a_nod():
 )
 def test_bad_references_are_refused_with_line_and_element(body, line, says):
     with pytest.raises(BmlError) as e:
-        _perf(body, {"s": SpeechTiming(2.0, {})})
+        _perf(body, {"s": SpeechTiming(2.0, {}), "t": SpeechTiming(1.0, {})})
     assert e.value.line == line and says in str(e.value), str(e.value)
     assert f"p.bml: line {line}: <" in str(e.value)
 
@@ -371,6 +376,25 @@ def test_a_mark_in_the_text_lands_on_its_word_and_the_smile_on_the_mark(bobby, d
     )  # nod at gaze end
     speech = faps[int(0.3 * FPS) : int((0.3 + 1.19) * FPS), 3]
     assert speech.max() > 50  # the jaw moves with the words
+
+
+def test_without_espeak_ng_the_marks_are_spread_by_characters(bobby, monkeypatch):
+    import shutil
+
+    from facecast.server.bml import speech as bml_speech
+
+    which = shutil.which
+    monkeypatch.setattr(  # the system edge: the phone finder is not installed
+        bml_speech.shutil, "which", lambda name: None if name == "espeak-ng" else which(name)
+    )
+    s1 = parse_bml(BOBBY).behaviours[0]
+    spoken = bml_speech.lipsync_speech(s1, bobby.parent / "bobby.wav", FPS)
+    assert spoken.marks_from == "characters"
+    mark = spoken.timing.marks["tm1"]  # 12 of 23 characters ("Bobby ripped") into the sound
+    loud = spoken.lipsync.features.energy_db >= spoken.lipsync.calibration.silence_db
+    times = spoken.lipsync.features.times[loud]
+    assert times[0] < mark < times[-1]
+    assert mark == pytest.approx(times[0] + (times[-1] + 0.01 - times[0]) * 12 / 23, abs=0.011)
 
 
 def test_cli_renders_a_bml_with_a_real_recording_to_a_valid_glb(bobby, tmp_path):

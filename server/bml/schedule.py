@@ -14,7 +14,8 @@ its kind's default timing (``DEFAULTS``, seconds from its start):
   constraint places it.
 
 Unconstrained behaviours start with the block (0 s); a completed point that falls before 0 is
-moved to 0 (a constraint before 0 is refused). Times are seconds from the block's start.
+moved to 0 (a constraint before 0 is refused). Speeches may not overlap (one voice). Times are
+seconds from the block's start.
 """
 
 from __future__ import annotations
@@ -318,4 +319,14 @@ def schedule(
             )
         times[b.id] = {p: max(0.0, t) for p, t in full.items()}
     timed = tuple(Timed(b, MappingProxyType(times[b.id])) for b in block.behaviours)
+    speeches = sorted((t for t in timed if isinstance(t.behaviour, Speech)), key=lambda t: t.start)
+    for a, b in itertools.pairwise(speeches):
+        if b.start < a.end - TOLERANCE:
+            raise _err(
+                b.behaviour,
+                f"starts at {b.start:.3f} s, while {a.behaviour.id} speaks "
+                f"({a.start:.3f}-{a.end:.3f} s); one voice speaks at a time: start it at "
+                f"'{a.behaviour.id}:end'",
+                where,
+            )
     return Performance(block, timed, max((t.end for t in timed), default=0.0))
