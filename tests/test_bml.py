@@ -579,3 +579,21 @@ def test_render_server_uploads_the_recordings_named_by_the_bml(job_server, bobby
     (bobby.parent / "bobby.wav").unlink()
     with pytest.raises(RemoteJobError, match="audio 'bobby.wav' is not a file next to"):
         render_remote(job_server.url, bobby, tmp_path / "x.glb", admin_key=job_server.admin_key)
+
+
+def test_a_gaze_with_head_influence_turns_the_head_most_of_the_way_and_the_eyes_the_rest():
+    from facecast.server.bml.perform import HEAD_SHARE
+
+    p = _perf(
+        '<gaze id="g" target="camera" influence="HEAD" offsetAngle="20" offsetDirection="LEFT" '
+        'start="0" ready="0.3" relax="1.7" end="2"/>\n'
+        '<gaze id="e" target="user" offsetAngle="10" offsetDirection="DOWN" start="3" end="4"/>'
+    )
+    faps = np.array([s.faps for s in render_performance(p, {}, FPS).states])
+    au_per_deg = math.pi / 180 / 1e-5
+    hold = faps[int(1.0 * FPS)]
+    assert hold[49] == pytest.approx(20 * HEAD_SHARE * au_per_deg, rel=1e-6)  # yaw to the left
+    assert hold[23] > 0 and hold[24] > 0  # the eyes turn further the same way
+    eyes = faps[int(3.5 * FPS)]
+    assert eyes[49] == 0 and eyes[25] != 0 and eyes[23] == pytest.approx(0, abs=1e-6)
+    assert np.all(faps[int(2.5 * FPS), 23:27] == 0)  # between the gazes: straight ahead
