@@ -491,6 +491,12 @@ def test_a_bml_job_with_its_uploaded_recording_renders_a_glb(job_server, data_di
         (BOBBY, [("other.wav", b"x")], 400, "was not uploaded"),
         (BOBBY.replace("bobby.wav", "../bobby.wav"), [], 400, "line 3: <speech>: audio="),
         (BOBBY.replace("bobby.wav", "/etc/x.wav"), [], 400, "relative file name"),
+        (
+            BOBBY.replace("bobby.wav", "input.bml/bobby.wav"),
+            [("bobby.wav", b"RIFF")],
+            400,
+            "cannot be kept under that name",
+        ),
         (BOBBY.replace('lexeme="NOD"', 'lexeme="BOW"'), [], 400, "line 8: <head>: lexeme='BOW'"),
         (
             BOBBY.replace("<!-- -->", "").replace(

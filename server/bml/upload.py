@@ -94,11 +94,19 @@ def match_media(
             where=AUDIO_PART,
         )
     for name, path in list(media.items()):
-        if into is not None:
-            dest = into / name  # a relative name without '..' (parse_bml)
+        # a job's: beside the BML under its name (relative, without '..': parse_bml); a play's:
+        # where it is, with its suffix (the audio decoder reads the type from it)
+        dest = into / name if into is not None else path.with_name(path.name + Path(name).suffix)
+        try:
             dest.parent.mkdir(parents=True, exist_ok=True)
-        else:  # where it is, with its suffix (the audio decoder reads the type from it)
-            dest = path.with_name(path.name + Path(name).suffix.lower())
-        path.replace(dest)
+            if dest.exists():
+                raise FileExistsError(dest)
+            path.replace(dest)
+        except OSError:  # 'input.bml/a.wav', 'a.wav' and 'a.wav/b.wav': a name that clashes
+            raise InputError(
+                f"audio {name!r} cannot be kept under that name beside the BML (it clashes with "
+                "another file of the job); name the recordings plainly, e.g. 'hello.wav'",
+                where=AUDIO_PART,
+            ) from None
         media[name] = dest
     return block, media
