@@ -24,6 +24,7 @@ from .model import (
     region_mask,
 )
 from .overlay import ExpressionLayer, TrackLayer
+from .spec import from_spec
 
 __all__ = [
     "EMPTY",
@@ -42,6 +43,7 @@ __all__ = [
     "Role",
     "TrackLayer",
     "combine",
+    "from_spec",
     "mix",
     "mix_states",
     "parse_gaze",

@@ -9,7 +9,7 @@ import numpy as np
 from .model import EMPTY, Contribution, Envelope, GazeTarget, Role, check_envelope, check_number
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class GazeLayer:
     """Eyes turned to ``target`` by ``amount`` × the envelope (replacing the eyes' rotation).
 

@@ -8,7 +8,11 @@ order they apply to one frame:
    its ``head`` transform) by their weight (several: averaged by weight).
 3. **Offsets add**: each role's ``faps`` (plus its expanded viseme/expression) are added; inside
    one role, FAPs two layers weigh on are averaged by weight, ``Σ w·x / max(1, Σ w)`` (one layer at
-   weight w adds ``w·x``; two at full weight give their mean).
+   weight w adds ``w·x``; two at full weight give their mean; a layer weighs only on the FAPs it
+   moves). Expression overlays also compete with the primary, at weight 1, on the FAPs it moves
+   (a joy overlay over an anger stream gives their mean brows, not a sum no face can make), except
+   a speaking primary's mouth and tongue: there speech and expression add (Kshirsagar et al.'s
+   expressive speech, a vector sum), under rule 4.
 4. **Closures**: where the primary holds the lips together (a /p b m/, silence: a lip pair's gap
    near or below contact) the offsets' lip-opening part is taken out, shared by both lips (their
    common shift, the corners and the spreading stay), and so is their jaw opening.
@@ -33,7 +37,7 @@ import numpy as np
 
 from ..errors import Conflict, InputError, NotFound
 from ..state import FaceState
-from .model import Contribution, GazeTarget, Geometry, Layer, Role
+from .model import REGIONS, Contribution, GazeTarget, Geometry, Layer, Role
 
 #: Lip pairs (upper lip FAP, + down; lower lip FAP, + up): inner mid, left, right; outer the same.
 #: A pair's gap (FAPU MNS, 0 = the neutral closed mouth) is ``-(upper + lower)``.
@@ -42,6 +46,9 @@ LIP_PAIRS: np.ndarray = np.array([[4, 5], [8, 10], [9, 11], [51, 52], [55, 57], 
 #: in between the overlay may open them in proportion.
 CLOSED_GAP, OPEN_GAP = 80.0, 300.0
 _AU = 1e-5
+#: The FAPs speech moves (mouth and tongue): where a speaking primary and an overlay add.
+_SPEECH = np.zeros(69, dtype=bool)
+_SPEECH[list(REGIONS["mouth"] + REGIONS["tongue"])] = True
 #: Farthest the eyes turn from their rest direction (radians): 50° sideways, 45° up or down.
 EYE_YAW_MAX, EYE_PITCH_MAX = math.radians(50.0), math.radians(45.0)
 _DEFAULT_GEOMETRY = Geometry()
@@ -246,7 +253,7 @@ def combine(
     # 2. head pose over the primary's
     head_out = primary.head
     rest: np.ndarray | None = None
-    if head_out is not None and (poses or gazes or any(_touches_head(c) for _, c in items)):
+    if head_out is not None and (poses or any(_touches_head(c) for _, c in items)):
         F[48:51], rest = head_angles(head_out, geo.head_pivot)
     if poses:
         wsum = sum(w for _, w in poses)
@@ -256,15 +263,26 @@ def combine(
         if rest is not None:
             rest = rest * (1.0 - W)
 
-    # 3. offsets, averaged by weight inside a role (a layer weighs on the FAPs it moves)
+    # 3. offsets, averaged by weight inside a role (a layer weighs on the FAPs it moves);
+    #    expression overlays also compete with the primary where it moves a FAP (weight 1),
+    #    except a speaking primary's mouth and tongue, where speech and expression add
     if roles:
         A: Any = None
-        for group in roles.values():
-            if len(group) == 1:
-                part = _weighted(*group[0])
-            else:
+        for role, group in roles.items():
+            if role is Role.EXPRESSION:
                 num: Any = 0.0
                 den: Any = 0.0
+                for x, w in group:
+                    num = num + w * x
+                    den = den + w * (x != 0)
+                mp = (F != 0) & (~_SPEECH if closures else True)
+                Fp = F * mp
+                part = (Fp + num) / np.maximum(1.0, mp + den) - Fp
+            elif len(group) == 1:
+                part = _weighted(*group[0])
+            else:
+                num = 0.0
+                den = 0.0
                 for x, w in group:
                     num = num + w * x
                     den = den + w * (x != 0)

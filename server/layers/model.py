@@ -64,7 +64,7 @@ def region_mask(regions: Mapping[str, float] | Iterable[str], amount: float = 1.
     return w
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class GazeTarget:
     """Where the eyes look: a ``point (3,)`` in the face's coordinates (mesh units; the neutral
     face's frame, so a turned head is compensated), or a ``direction (3,)`` (a target at
@@ -92,7 +92,7 @@ class GazeTarget:
         return cls(direction=np.array([0.0, 0.0, 1.0]))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class Contribution:
     """What one layer gives to one frame. Every channel is optional; an empty one gives nothing.
 
@@ -222,7 +222,7 @@ class Layer(Protocol):
     def sample(self, t: float) -> Contribution: ...
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class Geometry:
     """What mixing needs of the face: eye centres and neutral eye axes (gaze), the head pivot
     (poses given as transforms), the high-level tables (FAP 1/2 expansion).

@@ -24,7 +24,7 @@ def _weight(regions: tuple[str, ...] | None, w: float) -> float | np.ndarray:
     return w if regions is None else region_mask(regions, w)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class ExpressionLayer:
     """An expression held over the primary with BML timing.
 
@@ -78,7 +78,7 @@ class ExpressionLayer:
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class TrackLayer:
     """A FAP stream (a decoded ``.fap`` file, a recorded performance) played as offsets over the
     primary from ``start``: frame ``i`` at ``start + i / fps`` (nearest frame); nothing outside
