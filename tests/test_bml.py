@@ -499,7 +499,7 @@ def test_a_bml_job_with_its_uploaded_recording_renders_a_glb(job_server, data_di
         ),
         (BOBBY.replace('lexeme="NOD"', 'lexeme="BOW"'), [], 400, "line 8: <head>: lexeme='BOW'"),
         (
-            BOBBY.replace("<!-- -->", "").replace(
+            BOBBY.replace(
                 '<?xml version="1.0" encoding="UTF-8"?>', '<!DOCTYPE bml [<!ENTITY a "b">]>'
             ),
             [],
@@ -507,6 +507,7 @@ def test_a_bml_job_with_its_uploaded_recording_renders_a_glb(job_server, data_di
             "DOCTYPE",
         ),
     ],
+    ids=["missing", "other-name", "dotdot", "absolute", "clash", "lexeme", "doctype"],
 )
 def test_a_bad_bml_upload_is_refused_with_line_and_element(job_server, bml, audio, status, says):
     import httpx
