@@ -604,3 +604,22 @@ def test_a_gaze_with_head_influence_turns_the_head_most_of_the_way_and_the_eyes_
     eyes = faps[int(3.5 * FPS)]
     assert eyes[49] == 0 and eyes[25] != 0 and eyes[23] == pytest.approx(0, abs=1e-6)
     assert np.all(faps[int(2.5 * FPS), 23:27] == 0)  # between the gazes: straight ahead
+
+
+def test_speeches_share_one_audio_budget_refused_before_decoding(bobby, monkeypatch):
+    """Many speeches naming one recording cost no more than the limit: the one past it is refused
+    from its header, naming its line."""
+    from facecast.server.drivers import load_animation
+
+    monkeypatch.setenv("FACECAST_MAX_AUDIO_SECONDS", "3")
+    speeches = "\n".join(
+        f'<speech id="s{i}" audio="bobby.wav"' + (f' start="s{i - 1}:end"' if i else "") + "/>"
+        for i in range(300)
+    )
+    bobby.write_text(_bml(speeches))
+    with pytest.raises(BmlError) as e:
+        load_animation(bobby, None)
+    assert e.value.line == 4 and e.value.element == "speech"  # the third: 2 × 1.19 s, 0.6 s left
+    assert "over the limit of 1 s" in str(e.value) and "left of 3 s for all the speeches" in str(
+        e.value
+    )

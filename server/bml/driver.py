@@ -80,25 +80,44 @@ def perform(
     media: Mapping[str, Path] | None = None,
     where: str = "",
 ) -> tuple[Performance, dict[str, SpokenSpeech]]:
-    """Lip-sync ``block``'s speeches and schedule it: the performance and each speech's lip-sync."""
+    """Lip-sync ``block``'s speeches and schedule it: the performance and each speech's lip-sync.
+
+    The recordings together may last at most ``FACECAST_MAX_AUDIO_SECONDS`` (speeches do not
+    overlap, so no longer performance needs more): each is refused from its header, before it is
+    decoded, once the budget is spent (hundreds of speeches naming one long file cost no more).
+    """
     table = viseme_table(face)
     spoken: dict[str, SpokenSpeech] = {}
+    limit = left = max_audio_seconds()
     for b in block.behaviours:
         if isinstance(b, Speech):
             audio = audio_path(b, base, media, where)
+            if left <= 0:
+                raise BmlError(
+                    f"the speeches' recordings last more than this server's limit of {limit:g} s "
+                    "in all (FACECAST_MAX_AUDIO_SECONDS); split the performance",
+                    line=b.line,
+                    element="speech",
+                    where=where,
+                )
             try:
-                spoken[b.id] = lipsync_speech(b, audio, fps, table)
+                spoken[b.id] = lipsync_speech(b, audio, fps, table, max_seconds=left)
             except BmlError:
                 raise
             except InputError as e:  # name the speech at fault
                 raise BmlError(
-                    f"audio {b.audio!r}: {e}".replace(str(audio), b.audio or ""),
+                    f"audio {b.audio!r}: {e}".replace(str(audio), b.audio or "")
+                    + (
+                        f" (what is left of {limit:g} s for all the speeches)"
+                        if left < limit
+                        else ""
+                    ),
                     line=b.line,
                     element="speech",
                     where=where,
                 ) from None
+            left -= spoken[b.id].timing.duration
     perf = schedule(block, {k: s.timing for k, s in spoken.items()}, where=where)
-    limit = max_audio_seconds()
     if perf.duration > limit:
         raise BmlError(
             f"the performance lasts {perf.duration:.1f} s, longer than this server's limit of "

@@ -87,9 +87,15 @@ def char_marks(speech: Speech, ls: LipSync) -> dict[str, float]:
 
 
 def lipsync_speech(
-    speech: Speech, audio: Path, fps: float, table: np.ndarray | None = None
+    speech: Speech,
+    audio: Path,
+    fps: float,
+    table: np.ndarray | None = None,
+    *,
+    max_seconds: float | None = None,
 ) -> SpokenSpeech:
-    """Lip-sync ``speech``'s recording ``audio`` at ``fps`` and time its marks.
+    """Lip-sync ``speech``'s recording ``audio`` at ``fps`` and time its marks (a recording over
+    ``max_seconds``, default ``FACECAST_MAX_AUDIO_SECONDS``, is refused from its header).
 
     Raises:
         InputError: unreadable or too long audio, or a transcript that does not match it.
@@ -100,7 +106,14 @@ def lipsync_speech(
         log.warning(
             "speech %s: espeak-ng is missing: its marks are spread by characters", speech.id
         )
-    ls = lipsync_file(audio, fps=fps, params=Params(), table=table, text=text if aligned else None)
+    ls = lipsync_file(
+        audio,
+        fps=fps,
+        params=Params(),
+        table=table,
+        text=text if aligned else None,
+        max_seconds=max_seconds,
+    )
     marks: dict[str, float] = {}
     if speech.marks and aligned and text is not None:
         from ..audio.align import text_phones
