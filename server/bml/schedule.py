@@ -320,13 +320,13 @@ def schedule(
         times[b.id] = {p: max(0.0, t) for p, t in full.items()}
     timed = tuple(Timed(b, MappingProxyType(times[b.id])) for b in block.behaviours)
     speeches = sorted((t for t in timed if isinstance(t.behaviour, Speech)), key=lambda t: t.start)
-    for a, b in itertools.pairwise(speeches):
-        if b.start < a.end - TOLERANCE:
+    for first, then in itertools.pairwise(speeches):
+        if then.start < first.end - TOLERANCE:
             raise _err(
-                b.behaviour,
-                f"starts at {b.start:.3f} s, while {a.behaviour.id} speaks "
-                f"({a.start:.3f}-{a.end:.3f} s); one voice speaks at a time: start it at "
-                f"'{a.behaviour.id}:end'",
+                then.behaviour,
+                f"starts at {then.start:.3f} s, while {first.behaviour.id} speaks "
+                f"({first.start:.3f}-{first.end:.3f} s); one voice speaks at a time: start it at "
+                f"'{first.behaviour.id}:end'",
                 where,
             )
     return Performance(block, timed, max((t.end for t in timed), default=0.0))
