@@ -599,3 +599,10 @@ def test_gaze_compensates_a_head_given_as_a_transform_as_one_given_as_faps(defau
     assert by_matrix.head is M
     assert np.allclose(by_faps.faps[23:27], by_matrix.faps[23:27])
     assert abs(by_faps.faps[23]) > 1000  # the eyes did turn
+
+
+def test_in_a_speaking_mouth_an_overlay_competes_with_the_primary_expression_not_the_speech():
+    p = FaceState(t=0.0, viseme=(10, 0, 63), expression=(6, 63, 0, 0))  # "aa" while surprised
+    out = expand(mix(p, [ExpressionLayer(1)], 0.0))
+    k = 6  # a lip corner stretch: speech + the mean of the two expressions
+    assert out[k] == pytest.approx(VISEMES[10][k] + (EXPRESSIONS[6][k] + EXPRESSIONS[1][k]) / 2)

@@ -11,8 +11,9 @@ order they apply to one frame:
    weight w adds ``w·x``; two at full weight give their mean; a layer weighs only on the FAPs it
    moves). Expression overlays also compete with the primary, at weight 1, on the FAPs it moves
    (a joy overlay over an anger stream gives their mean brows, not a sum no face can make), except
-   a speaking primary's mouth and tongue: there speech and expression add (Kshirsagar et al.'s
-   expressive speech, a vector sum), under rule 4.
+   a speaking primary's speech in the mouth and tongue: speech and expression add there
+   (Kshirsagar et al.'s expressive speech, a vector sum), under rule 4; the primary's own
+   expression (FAP 2) still competes there.
 4. **Closures**: where the primary holds the lips together (a /p b m/, silence: a lip pair's gap
    near or below contact) the offsets' lip-opening part is taken out, shared by both lips (their
    common shift, the corners and the spreading stay), and so is their jaw opening.
@@ -275,9 +276,13 @@ def combine(
                 for x, w in group:
                     num = num + w * x
                     den = den + w * (x != 0)
-                mp = (F != 0) & (~_SPEECH if closures else True)
-                Fp = F * mp
-                part = (Fp + num) / np.maximum(1.0, mp + den) - Fp
+                # what of the primary the overlays compete with: all of it, or, in a speaking
+                # mouth, only its own expression (FAP 2), never the speech
+                P = F
+                if closures:
+                    E = _expand(None, primary.expression, geo)
+                    P = np.where(_SPEECH, 0.0 if E is None else E, F)
+                part = (P + num) / np.maximum(1.0, (P != 0) + den) - P
             elif len(group) == 1:
                 part = _weighted(*group[0])
             else:
