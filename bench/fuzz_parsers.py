@@ -1,6 +1,6 @@
-"""Fuzzing the parsers of client files: C3D, TRC, CSV, FAP and the ``.face.json`` annotation.
+"""Fuzzing the parsers of client files: C3D, TRC, CSV, FAP, the ``.face.json`` annotation and BML.
 
-    python bench/fuzz_parsers.py [--inputs 3000] [--seed 1] [--parsers c3d,trc,csv,fap,annotation]
+    python bench/fuzz_parsers.py [--inputs 3000] [--seed 1] [--parsers c3d,trc,csv,fap,annotation,bml]
     python bench/fuzz_parsers.py --parsers ezc3d    # baseline: the same C3D inputs through ezc3d
 
 Each input is a seed file (generated takes written by facecast's C3D writer and, when installed, by
@@ -29,7 +29,7 @@ from functools import cache, lru_cache
 from pathlib import Path
 
 OUT = Path(__file__).resolve().parent / "out" / "fuzz_parsers.json"
-PARSERS = ("c3d", "trc", "csv", "fap", "annotation")
+PARSERS = ("c3d", "trc", "csv", "fap", "annotation", "bml")
 #: Seconds one input may take before it counts as a hang (parsers take milliseconds).
 TIMEOUT_S = 10.0
 #: Address-space limit of the child (bytes): a parser that tries to allocate more fails there.
@@ -127,6 +127,8 @@ def seeds(parser: str) -> tuple[bytes, ...]:
         from facecast.server.faces.ict import ANNOTATION
 
         return (ANNOTATION.read_bytes(),)
+    if parser == "bml":
+        return (BML_SEED,)
     raise ValueError(f"unknown parser {parser!r}; one of {', '.join(PARSERS)}")
 
 
@@ -239,7 +241,25 @@ def _mutate_json(data: bytes, rng: random.Random) -> bytes:
     return json.dumps(doc).replace(f'"{HUGE_INT}"', "9" * 4301).encode()  # over int()'s limit
 
 
+#: A BML performance with every supported behaviour and reference form.
+BML_SEED = b"""<?xml version="1.0" encoding="UTF-8"?>
+<bml xmlns="http://www.bml-initiative.org/bml/bml-1.0" id="bml1" characterId="A">
+  <speech id="s1" audio="hello.wav" start="0.3">
+    <text>Hello there, <sync id="tm1"/> nice to <sync id="tm2"/> meet you.</text>
+  </speech>
+  <faceLexeme id="f1" lexeme="JOY" amount="0.8" start="s1:tm1" end="s1:end + 0.5"/>
+  <faceFacs id="a1" au="12" side="LEFT" attack="s1:tm2" relax="s1:end-0.2"/>
+  <face id="b1" lexeme="raise_brows" start="a1:relax" end="a1:end + 1e-1"/>
+  <gaze id="g1" target="camera" influence="HEAD" offsetAngle="10" offsetDirection="UPLEFT"
+        start="0" end="s1:tm2"/>
+  <gaze id="g2" target="0 12.5 300" ready="g1:end"/>
+  <head id="h1" lexeme="NOD" repetition="2" stroke-start="g1:end" amount=".4"/>
+  <head id="h2" lexeme="TILT" start="bml1:h1:end"/>
+</bml>
+"""
+
 KIND = {
+    "bml": "text",
     "c3d": "binary",
     "ezc3d": "binary",
     "trc": "text",
@@ -291,6 +311,10 @@ def parse(parser: str, data: bytes) -> None:
             parse_annotation(data, where="fuzz.json"),
             where="fuzz.json",
         )
+    elif parser == "bml":
+        from facecast.protocol.bml import parse_bml
+
+        parse_bml(data, where="fuzz.bml")
     elif parser == "ezc3d":  # the baseline: the native reader the server used before issue 12
         import tempfile
 

@@ -51,7 +51,7 @@ OUT = ROOT / "bench" / "out" / "robustness.json"
 sys.path.insert(0, str(ROOT / "bench"))  # sibling benches: fuzz_parsers, flood, gltf_encode
 
 #: Parsers fuzzed by ``bench/fuzz_parsers.py`` (the audio decoder is fuzzed here).
-PARSERS = ("c3d", "trc", "csv", "fap", "annotation")
+PARSERS = ("c3d", "trc", "csv", "fap", "annotation", "bml")
 #: Seconds without progress after which a fuzzed decode or a request counts as a hang.
 HANG_S = 20.0
 REQUEST_TIMEOUT = 60.0

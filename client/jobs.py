@@ -86,17 +86,40 @@ def read_layout(layout: str | Path) -> bytes:
     return data
 
 
+def bml_recordings(input: Path) -> list[str]:
+    """The recordings a ``.bml`` file's speeches name (none for other inputs); RemoteJobError when
+    the BML is malformed or one is missing beside it."""
+    if input.suffix.lower() != ".bml":
+        return []
+    from ..protocol.bml import BmlError, Speech, parse_bml
+
+    try:
+        block = parse_bml(input.read_bytes(), where=str(input))
+    except BmlError as e:
+        raise RemoteJobError(str(e)) from None
+    names = sorted({b.audio for b in block.behaviours if isinstance(b, Speech) and b.audio})
+    for name in names:
+        if not (input.parent / name).is_file():
+            raise RemoteJobError(f"{input}: audio {name!r} is not a file next to the BML file")
+    return names
+
+
 def submit(client: httpx.Client, input: Path, options: dict[str, Any]) -> dict[str, Any]:
     """POST the file and options; the job's status as the server returned it.
 
-    ``options["layout"]`` is a local layout file: its content is uploaded as the ``layout`` part.
+    ``options["layout"]`` is a local layout file: its content is uploaded as the ``layout`` part;
+    a ``.bml`` performance's recordings (beside it, as locally) go as ``audio`` parts.
     """
     data = {k: str(v) for k, v in options.items() if v is not None and k != "layout"}
-    files: dict[str, Any] = {}
+    files: list[tuple[str, Any]] = []
     if options.get("layout") is not None:
-        files["layout"] = ("layout.json", read_layout(options["layout"]), "application/json")
+        files.append(
+            ("layout", ("layout.json", read_layout(options["layout"]), "application/json"))
+        )
+    for name in bml_recordings(input):
+        files.append(("audio", (Path(name).name, (input.parent / name).read_bytes())))
     with open(input, "rb") as fh:
-        files["file"] = (input.name, fh, "application/octet-stream")
+        files.append(("file", (input.name, fh, "application/octet-stream")))
         resp = client.post("/v1/jobs", files=files, data=data)
     job: dict[str, Any] = _check(resp, f"the server refused {input.name}").json()
     return job

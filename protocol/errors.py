@@ -14,7 +14,7 @@ what to do. As in h11 and websockets, the tree splits on whose fault it is::
           │    │         ├── MessageError     a JSON control message (BadHello: a hello unfit
           │    │         │                    for the session)
           │    │         └── FileFormatError  a file: FapFormatError, MarkerFileError
-          │    │                              (C3D/TRC/CSV), TopologyError
+          │    │                              (C3D/TRC/CSV), TopologyError, BmlError
           │    └── Unauthorized 401, Forbidden 403, NotFound 404, TimedOut 408, Conflict 409,
           │        PayloadTooLarge 413, UnsupportedMedia 415, Unprocessable 422, TooMany 429 (Flood)
           └── LocalError          this side cannot do it: 5xx / 45xx
@@ -43,6 +43,7 @@ from typing import ClassVar
 
 __all__ = [
     "INTERNAL_MESSAGE",
+    "BmlError",
     "CloseCode",
     "Conflict",
     "ErrorReply",
@@ -201,6 +202,21 @@ class MessageError(ProtocolError):
 
 class FileFormatError(ProtocolError):
     """A file (or file-like blob) a client sent or named is malformed; HTTP 400 / close 4400."""
+
+
+class BmlError(FileFormatError):
+    """A BML script that is malformed or asks for what facecast does not support.
+
+    Attributes: ``line`` (1-based, 0 when not tied to a line), ``element`` (the XML element's name,
+    may be empty) and ``reason``; the message reads ``[where: ]line L: <element>: reason``.
+    """
+
+    def __init__(self, reason: str, *, line: int = 0, element: str = "", where: str = "") -> None:
+        self.line, self.element, self.reason = line, element, reason
+        at = ": ".join(
+            x for x in (f"line {line}" if line else "", f"<{element}>" if element else "") if x
+        )
+        super().__init__(f"{at}: {reason}" if at else reason, where=where)
 
 
 class Unauthorized(RemoteError):

@@ -118,7 +118,7 @@ class JobStatus(BaseModel):
     progress: float = Field(ge=0.0, le=1.0)
     error: str | None = None
     input_name: str = Field(description="the uploaded file's name (display only)")
-    input_kind: InputKindIn = Field(description="fap | audio | markers")
+    input_kind: InputKindIn | Literal["bml"] = Field(description="fap | audio | markers | bml")
     input_bytes: int
     options: JobOptions
     attempts: int = Field(description="times a worker started this job (restarts resume it)")

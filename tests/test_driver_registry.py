@@ -15,7 +15,8 @@ from facecast.server.live.inputs import load_driver_class
 
 
 def test_the_registry_names_every_input_kind_once():
-    assert tuple(DRIVERS) == INPUT_KINDS == ("fap", "audio", "markers")
+    assert tuple(DRIVERS) == (*INPUT_KINDS, "bml")
+    assert INPUT_KINDS == ("fap", "audio", "markers")  # bml is a file kind, no session input
     assert dict(SUFFIXES.items()) == {
         ".fap": "fap",
         ".wav": "audio",
@@ -24,6 +25,7 @@ def test_the_registry_names_every_input_kind_once():
         ".c3d": "markers",
         ".trc": "markers",
         ".csv": "markers",
+        ".bml": "bml",
     }
 
 

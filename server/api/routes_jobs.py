@@ -54,8 +54,13 @@ _UPLOAD_DOC = multipart_doc(
     file={
         "type": "string",
         "format": "binary",
-        "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv (type from the file name's "
-        "suffix, else from its content)",
+        "description": "input: .fap, .wav/.flac/.ogg, .c3d/.trc/.csv or .bml (type from the file "
+        "name's suffix, else from its content)",
+    },
+    audio={
+        "type": "array",
+        "items": {"type": "string", "format": "binary"},
+        "description": "a .bml input's recordings, each named as its speech's audio names it",
     },
     face={"type": "string", "description": "face name (GET /v1/faces)"},
     engine={"type": "string", "enum": ["fp", "rbf", "shell"], "default": "fp"},
@@ -134,7 +139,9 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
     job_id = new_job_id()
     folder = jobs.store.folder(job_id)
     folder.mkdir(parents=True)
-    parser = UploadParser(boundary, folder / ".upload", limit, kind_limit=cfg.upload_limit)
+    parser = UploadParser(
+        boundary, folder / ".upload", limit, kind_limit=cfg.upload_limit, attachment_field="audio"
+    )
     try:
         await receive(request, parser)
         try:
@@ -170,8 +177,14 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
         if layout is not None:
             (folder / LAYOUT_FILE).write_text(json.dumps(layout), encoding="utf-8")
             options["layout_file"] = LAYOUT_FILE
+        if parser.attachments and kind != "bml":
+            raise InputError("'audio' parts go with a .bml performance only", where="audio")
         (folder / ".upload").replace(folder / input_file)
         display = safe_display_name(parser.filename, f"upload{suffix}")
+        if kind == "bml":  # its recordings, matched to the 'audio' parts, kept beside it
+            from ..bml.upload import match_media
+
+            match_media(folder / input_file, parser.attachments, display=display, into=folder)
         job = jobs.store.add(
             job_id,
             input_name=display,

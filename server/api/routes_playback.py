@@ -4,8 +4,9 @@
   holding the admin key can watch any session it lists.
 - ``POST /v1/sessions/{id}/demo`` / ``DELETE .../demo`` (admin or ``?token=`` producer token): start
   or stop the demo performance (expressions, visemes, blinks, head sway, gaze) at the session's rate.
-- ``POST /v1/sessions/{id}/play`` (admin or producer token): upload a ``.fap``, audio or marker file
-  (a marker take with its layout's JSON content in a ``layout`` part; never a path); it is decoded
+- ``POST /v1/sessions/{id}/play`` (admin or producer token): upload a ``.fap``, audio, marker or
+  ``.bml`` file (a marker take with its layout's JSON content in a ``layout`` part, a BML with its
+  recordings as ``audio`` parts named as its speeches name them; never a path); it is decoded
   with the batch drivers and played into the session at its real rate. The answer gives
   ``start_wall`` (Unix seconds of media time 0) so a page can start the sound in sync. Uploads wait
   in ``<data dir>/tmp`` (emptied at each start), are limited by kind (``ServerConfig.upload_limit``),
@@ -122,9 +123,14 @@ _PLAY_DOC = multipart_doc(
     file={
         "type": "string",
         "format": "binary",
-        "description": "input: .fap, .wav/.flac/.ogg or .c3d/.trc/.csv",
+        "description": "input: .fap, .wav/.flac/.ogg, .c3d/.trc/.csv or .bml",
     },
     layout=LAYOUT_PART,
+    audio={
+        "type": "array",
+        "items": {"type": "string", "format": "binary"},
+        "description": "a .bml input's recordings, each named as its speech's audio names it",
+    },
 )
 
 
@@ -201,6 +207,7 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
             upload,
             int(cfg.max_upload_bytes),
             kind_limit=cfg.upload_limit,
+            attachment_field="audio",
         )
         await receive(request, parser)
         if parser.size == 0:
@@ -215,7 +222,14 @@ async def play(session_id: str, request: Request, token: str | None = None) -> d
                 f"unknown form field(s) {', '.join(unknown)}; known: file, layout", where="form"
             )
         layout = upload_layout(kind, parser.fields.get("layout"))
-        options = {} if layout is None else {"layout": layout}
+        options: dict = {} if layout is None else {"layout": layout}
+        if parser.attachments and kind != "bml":
+            raise InputError("'audio' parts go with a .bml performance only", where="audio")
+        if kind == "bml":  # its recordings: the 'audio' parts named as its speeches name them
+            from ..bml.upload import match_media
+
+            options["media"] = match_media(path, parser.attachments, display=name)[1]
+            options["fps"] = session.spec.fps
         slots = _decode_slots(app)
         if not slots.acquire(blocking=False):
             raise TooBusy(

@@ -24,6 +24,8 @@ MAX_FIELD_BYTES = 4096
 FIELD_LIMITS = {"layout": 1024 * 1024, "text": 64 * 1024}
 #: Form parts besides the file an upload may have.
 MAX_FIELDS = 16
+#: Files an upload may attach besides its input (a BML's recordings).
+MAX_ATTACHMENTS = 8
 #: Bytes of the file kept to recognise its type from content.
 SNIFF_BYTES = 4096
 
@@ -52,9 +54,21 @@ class UploadParser:
         limit: int,
         file_field: str = "file",
         kind_limit: Callable[[str], tuple[int, str]] | None = None,
+        attachment_field: str | None = None,
     ):
         """``limit``: bytes of the file at most; ``kind_limit(kind) -> (bytes, variable)`` lowers it
-        for the file's input kind (``fap`` | ``audio`` | ``markers``) once its first bytes are known."""
+        for the file's input kind (``fap`` | ``audio`` | ``markers``) once its first bytes are known.
+
+        ``attachment_field``: parts of that name are more files (a BML's recordings: ``audio``), at
+        most ``MAX_ATTACHMENTS``, each within the ``audio`` kind's limit and all together within
+        ``limit``; written beside ``dest`` and listed in ``attachments`` as ``(client file name,
+        path, bytes)``."""
+        self.attachment_field = attachment_field
+        self.attachments: list[tuple[str | None, Path, int]] = []
+        self._attachment_limit = (
+            min(limit, kind_limit("audio")[0]) if kind_limit is not None else limit
+        )
+        self._total_limit = limit
         self.dest = dest
         self.limit = limit
         self.limit_variable = "FACECAST_MAX_UPLOAD_BYTES"
@@ -73,6 +87,7 @@ class UploadParser:
         self._is_file = False
         self._value = bytearray()
         self._fh = None
+        self._attaching = False
         self._parser = MultipartParser(
             boundary,
             {
@@ -106,6 +121,9 @@ class UploadParser:
         self._name = opts.get(b"name", b"").decode("utf-8", "replace")
         self._value = bytearray()
         self._is_file = self._name == self.file_field
+        if self.attachment_field is not None and self._name == self.attachment_field:
+            self._begin_attachment(opts.get(b"filename"))
+            return
         if not self._is_file and len(self.fields) >= MAX_FIELDS:
             raise InputError(f"more than {MAX_FIELDS} form fields", where="form")
         if self._is_file:
@@ -117,9 +135,37 @@ class UploadParser:
             # open across the parser's callbacks; _part_end, finish and abort close it
             self._fh = open(self.dest, "wb")  # noqa: SIM115
 
+    def _begin_attachment(self, filename: bytes | None) -> None:
+        if len(self.attachments) >= MAX_ATTACHMENTS:
+            raise InputError(
+                f"more than {MAX_ATTACHMENTS} '{self.attachment_field}' files", where="form"
+            )
+        path = self.dest.with_name(f"{self.dest.name}.attachment{len(self.attachments)}")
+        name = filename.decode("utf-8", "replace") if filename is not None else None
+        self.attachments.append((name, path, 0))
+        self._is_file = False
+        self._attaching = True
+        self._fh = open(path, "wb")  # noqa: SIM115 - closed in _part_end, finish or abort
+
+    def _attachment_data(self, chunk: bytes) -> None:
+        name, path, size = self.attachments[-1]
+        size += len(chunk)
+        self.attachments[-1] = (name, path, size)
+        total = self.size + sum(a[2] for a in self.attachments)
+        if size > self._attachment_limit or total > self._total_limit:
+            limit = min(self._attachment_limit, self._total_limit)
+            raise PayloadTooLarge(
+                f"the upload's files are larger than this server's limit ({limit} bytes for a "
+                f"recording, {self._total_limit} in all); send shorter recordings",
+                where=self.attachment_field or "file",
+            )
+        self._fh.write(chunk)
+
     def _part_data(self, data: bytes, start: int, end: int) -> None:
         chunk = data[start:end]
-        if self._is_file:
+        if self._attaching:
+            self._attachment_data(chunk)
+        elif self._is_file:
             self.size += len(chunk)
             if len(self.head) < SNIFF_BYTES:
                 self.head += chunk[: SNIFF_BYTES - len(self.head)]
@@ -157,7 +203,11 @@ class UploadParser:
             )
 
     def _part_end(self) -> None:
-        if self._is_file:
+        if self._attaching:
+            self._attaching = False
+            self._fh.close()
+            self._fh = None
+        elif self._is_file:
             if self.size:
                 self._check_kind()
                 self._check_size()
@@ -185,6 +235,8 @@ class UploadParser:
             self._fh.close()
             self._fh = None
         self.dest.unlink(missing_ok=True)
+        for _, path, _ in self.attachments:
+            path.unlink(missing_ok=True)
 
 
 async def refuse_declared_oversize(request: Any, limit: int, overhead: int, advice: str) -> None:
@@ -370,6 +422,8 @@ def sniff_suffix(head: bytes) -> str | None:
         return ".c3d"
     if head.lstrip().startswith(b"PathFileType"):
         return ".trc"
+    if head.lstrip().startswith((b"<?xml", b"<bml")):
+        return ".bml"
     for line in head.splitlines():
         if not line.strip() or line.lstrip().startswith(b"#"):
             continue
