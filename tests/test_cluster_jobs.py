@@ -34,10 +34,9 @@ def node(root: Path, name: str, redis: RedisServer, shared: Path, workers: int) 
         "FACECAST_REDIS_URL": redis.url,
         "FACECAST_RESULTS_DIR": str(shared),
         "FACECAST_JOB_CLAIM_SECONDS": CLAIM_SECONDS,
+        "FACECAST_JOB_WORKERS": str(workers),
     }
-    return RunningServer(
-        root / name, "--face", FACE, "--backend", "numpy", "--workers", str(workers), env=env
-    )
+    return RunningServer(root / name, "--face", FACE, "--backend", "numpy", env=env)
 
 
 def submit(srv: RunningServer, name: str, content: bytes, **options: str) -> httpx.Response:
