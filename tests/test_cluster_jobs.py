@@ -297,3 +297,64 @@ def test_redis_restarted_while_idle(redis_server, data_dir, tmp_path):
     finally:
         a.stop()
         b.stop()
+
+
+def test_the_redis_store_changes_state_by_compare_and_set(redis_server, tmp_path):
+    """Claims count attempts; progress and verdicts of a superseded, cancelled or finished attempt
+    record nothing; 'done' is set once; every record is JSON in Redis and in the job's folder."""
+    import json
+
+    import redis as redis_client
+
+    from facecast.server.jobs.redis_queue import RedisJobStore
+    from facecast.server.jobs.store import new_job_id
+
+    store = RedisJobStore(redis_server.url, tmp_path)
+    assert store.ensure_group() and not store.ensure_group()
+
+    def add() -> str:
+        job_id = new_job_id()
+        store.folder(job_id).mkdir()
+        (store.folder(job_id) / "input.fap").write_text("x")
+        store.add(
+            job_id,
+            input_name="a.fap",
+            input_kind="fap",
+            input_file="input.fap",
+            input_bytes=1,
+            result_file="result.glb",
+            options={"format": "glb"},
+        )
+        return job_id
+
+    job = add()
+    assert store.get(job).status == "queued" and store.refresh_counts() == {"queued": 1}
+    first = store.claim(job)
+    second = store.claim(job)  # the first attempt's node died: taken again
+    assert (first, second) == (1, 2)
+    assert not store.progress(job, first, 0.5) and store.progress(job, second, 0.5)
+    assert not store.finish(job, first, "failed", "stale")  # a superseded attempt's failure
+    assert store.finish(job, first, "done")  # its result is the same bytes: done counts
+    assert not store.finish(job, second, "done") and not store.progress(job, second, 0.9)
+    done = store.get(job)
+    assert done.status == "done" and done.progress == 1.0 and done.attempts == 2
+    assert store.claim(job) is None and not store.cancel(job) and not store.fail(job, "x")
+    on_disk = json.loads((store.folder(job) / "job.json").read_text())
+    assert on_disk["status"] == "done" and json.loads(on_disk["options"]) == {"format": "glb"}
+    other = add()
+    attempt = store.claim(other)
+    assert store.cancel(other) and not store.progress(other, attempt, 0.1)
+    assert not store.finish(other, attempt, "done") and store.get(other).status == "cancelled"
+    assert store.refresh_counts() == {"done": 1, "cancelled": 1}
+    assert [j.id for j in store.list()] == [other, job] and store.list("bogus") == []
+    raw = redis_client.Redis.from_url(redis_server.url)
+    assert all(v.decode().isprintable() for v in raw.hgetall(store.key(job)).values())
+    raw.close()
+    # Redis loses everything: the record answers, and a queued job is queued again
+    queued = add()
+    redis_server.kill()
+    redis_server.start()
+    assert store.get(job).status == "done" and store.get(queued).status == "queued"
+    assert store.ensure_group() and store.recover() == [queued]
+    assert store.claim(queued) == 1
+    store.close()
