@@ -85,9 +85,6 @@ class RedisJobManager(JobManager):
         if self._loop_ref is not None:
             self._loop_ref.call_soon_threadsafe(self._wake.set)
 
-    def running(self) -> list[str]:
-        return [s.job_id for s in self._slots if s.job_id]
-
     # -- lifecycle -------------------------------------------------------------------------------
     async def start(self) -> None:
         self._loop_ref = asyncio.get_running_loop()
