@@ -24,10 +24,6 @@ CLAIM_SECONDS = "3"
 #: Generous deadline for any job to reach its end (seconds): the machine may be busy.
 DEADLINE = 300.0
 
-pytestmark = pytest.mark.skipif(
-    not RedisServer.available(), reason="redis-server is not installed (bash .ci/setup)"
-)
-
 
 def node(root: Path, name: str, redis: RedisServer, shared: Path, workers: int) -> RunningServer:
     env = {
@@ -358,3 +354,19 @@ def test_the_redis_store_changes_state_by_compare_and_set(redis_server, tmp_path
     assert store.ensure_group() and store.recover() == [queued]
     assert store.claim(queued) == 1
     store.close()
+
+
+def test_the_results_dir_holds_job_folders_without_redis_too(data_dir, tmp_path):
+    """One process, SQLite jobs: FACECAST_RESULTS_DIR still says where inputs and results go."""
+    shared = tmp_path / "results"
+    env = {"FACECAST_RESULTS_DIR": str(shared), "FACECAST_JOB_WORKERS": "1"}
+    srv = RunningServer(tmp_path / "data", "--face", FACE, "--backend", "numpy", env=env).start()
+    try:
+        content = (data_dir / "xface" / "faps" / "joy.fap").read_bytes()
+        done = wait(srv, submit(srv, "joy.fap", content).json()["id"])
+        assert done["status"] == "done"
+        assert (shared / done["id"] / "result.glb").read_bytes() == result(srv, done)
+        assert not (tmp_path / "data" / "jobs").exists()
+        assert (tmp_path / "data" / "jobs.sqlite").is_file()
+    finally:
+        srv.stop()
