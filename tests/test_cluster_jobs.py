@@ -372,3 +372,35 @@ def test_the_results_dir_holds_job_folders_without_redis_too(data_dir, tmp_path)
         assert (tmp_path / "data" / "jobs.sqlite").is_file()
     finally:
         srv.stop()
+
+
+def test_a_node_that_does_not_share_the_results_dir_fails_the_job_clearly(redis_server, tmp_path):
+    """Nodes misconfigured with folders of their own: the job fails with what to fix, not with a
+    decoder's 'file not found' about a path of the server."""
+    from collections import OrderedDict
+
+    from facecast.server.jobs import worker
+    from facecast.server.jobs.redis_queue import RedisJobStore
+    from facecast.server.jobs.store import new_job_id
+
+    here = RedisJobStore(redis_server.url, tmp_path / "a")
+    there = RedisJobStore(redis_server.url, tmp_path / "b")
+    job_id = new_job_id()
+    here.folder(job_id).mkdir()
+    (here.folder(job_id) / "input.fap").write_text("x")
+    here.add(
+        job_id,
+        input_name="a.fap",
+        input_kind="fap",
+        input_file="input.fap",
+        input_bytes=1,
+        result_file="result.glb",
+        options={"format": "glb", "face_spec": FACE},
+    )
+    attempt = there.claim(job_id)
+    worker.run_job(there, job_id, attempt, "numpy", None, None, OrderedDict())  # type: ignore[arg-type]
+    failed = here.get(job_id)
+    assert failed.status == "failed" and "FACECAST_RESULTS_DIR" in failed.error
+    assert str(tmp_path) not in failed.error
+    here.close()
+    there.close()

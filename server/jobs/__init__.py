@@ -9,6 +9,7 @@ in a cluster (``FACECAST_REDIS_URL``) queue and state in Redis, files in a share
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING
 
 from .store import JobRecord, JobStore
@@ -18,6 +19,7 @@ if TYPE_CHECKING:
     from .manager import JobManager
 
 __all__ = ["JobRecord", "JobStore", "make_manager"]
+log = logging.getLogger(__name__)
 
 
 def make_manager(config: ServerConfig) -> JobManager:
@@ -35,6 +37,13 @@ def make_manager(config: ServerConfig) -> JobManager:
     }
     if config.redis_url:
         from .redis_manager import RedisJobManager
+
+        if config.results_dir is None:
+            log.warning(
+                "FACECAST_RESULTS_DIR is unset: job folders are in %s; every node must see the "
+                "same folder there, or jobs sent to one node fail on another",
+                config.data_dir / "jobs",
+            )
 
         return RedisJobManager(
             config.redis_url,

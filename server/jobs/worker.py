@@ -222,6 +222,11 @@ def render(
         # Messages name the upload by its server path; show the client's file name instead.
         return text.replace(str(src), job.input_name).replace(str(store.folder(job.id)), "")
 
+    if not src.is_file():  # a cluster node that does not see the folder the job was sent to
+        return "failed", (
+            "the input of this job is not in the job folders of the server that ran it; "
+            "the operator must give every node the same FACECAST_RESULTS_DIR (a shared folder)"
+        )
     try:
         from ..errors import FacecastError
         from ..render import render_file
