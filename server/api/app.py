@@ -192,17 +192,9 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     app.state.scrub_paths = path_scrubber(app.state.private_roots)
     app.state.readiness = {"ready": False, "backend": None, "device": None}
 
-    from ..jobs.manager import JobManager
+    from ..jobs import make_manager
 
-    app.state.jobs = JobManager(
-        config.data_dir,
-        workers=config.job_workers,
-        backend=config.backend,
-        device=config.device,
-        retention_hours=config.job_retention_hours,
-        job_timeout=config.job_timeout_seconds,
-        memory_mb=config.job_memory_mb,
-    )
+    app.state.jobs = make_manager(config)  # SQLite, or Redis when config.redis_url is set
     app.state.metrics.watch_jobs(app.state.jobs.store.counts)
 
     def _answer(exc: Exception, **extra: Any) -> JSONResponse:

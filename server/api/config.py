@@ -36,7 +36,9 @@ class ServerConfig(LocalSettings):
     job_workers: int = 1  # worker processes for batch jobs
     # Cluster (issue 15): a Redis URL makes this process a node; unset = one process, in memory.
     redis_url: str | None = None  # FACECAST_REDIS_URL, e.g. redis://127.0.0.1:6379/0
-    results_dir: Path | None = None  # job results all nodes share; unset: <data_dir>/results
+    results_dir: Path | None = None  # job folders all nodes share; unset: <data_dir>/jobs
+    # a node's job that goes this long unrenewed (its node died) is taken by another node
+    job_claim_seconds: float = Field(default=30.0, ge=1.0, allow_inf_nan=False)
     # Uploads (jobs and /play): a file may not exceed its kind's limit nor max_upload_bytes.
     max_upload_bytes: int = Field(default=64 * 1024 * 1024, gt=0)
     max_fap_bytes: int = Field(default=8 * 1024 * 1024, gt=0)  # FAP text: about 18 min at 25 fps

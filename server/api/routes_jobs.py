@@ -5,7 +5,9 @@ kind (``max_fap_bytes``, ``max_markers_bytes``, ``max_audio_bytes``, all at most
 413 beyond it). A mocap take comes with its marker layout as content (a ``layout`` part holding the
 layout's JSON), never as a path. The job runs in a worker process (see ``server/jobs``), so a
 decoder that crashes or hangs on a hostile file costs that process, never the server; a job over
-``job_timeout_seconds`` is failed and its worker killed.
+``job_timeout_seconds`` is failed and its worker killed. In a cluster (``FACECAST_REDIS_URL``) the
+same routes answer on every node (``jobs.redis_manager``); store calls go through ``jobs.io`` (a
+thread when the store is a network away) and a lost broker answers 503.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+from functools import partial
 
 from fastapi import APIRouter, Depends, Request, Response, status
 from fastapi.responses import FileResponse
@@ -78,7 +81,7 @@ def job_status(job: JobRecord, request: Request | None = None) -> JobStatus:
     result_bytes = None
     if job.status == "done" and request is not None:
         path = request.app.state.jobs.store.result_path(job)
-        result_bytes = path.stat().st_size if path.is_file() else None
+        result_bytes = path.stat().st_size if path.is_file() else None  # a local or shared folder
     return JobStatus(
         id=job.id,
         status=job.status,
@@ -97,8 +100,9 @@ def job_status(job: JobRecord, request: Request | None = None) -> JobStatus:
     )
 
 
-def _job(request: Request, job_id: str) -> JobRecord:
-    job = request.app.state.jobs.store.get(job_id) if JOB_ID.match(job_id) else None
+async def _job(request: Request, job_id: str) -> JobRecord:
+    jobs = request.app.state.jobs
+    job = await jobs.io(jobs.store.get, job_id) if JOB_ID.match(job_id) else None
     if job is None:
         raise NotFound(
             f"no job {job_id!r} on this server; POST /v1/jobs returns the ids", where="job"
@@ -185,14 +189,17 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
             from ..bml.upload import match_media
 
             match_media(folder / input_file, parser.attachments, display=display, into=folder)
-        job = jobs.store.add(
-            job_id,
-            input_name=display,
-            input_kind=kind,
-            input_file=input_file,
-            input_bytes=parser.size,
-            result_file=f"result.{opts.format}",
-            options=options,
+        job = await jobs.io(
+            partial(
+                jobs.store.add,
+                job_id,
+                input_name=display,
+                input_kind=kind,
+                input_file=input_file,
+                input_bytes=parser.size,
+                result_file=f"result.{opts.format}",
+                options=options,
+            )
         )
     except BaseException:
         parser.abort()
@@ -208,14 +215,15 @@ async def submit_job(request: Request, response: Response) -> JobStatus:
 @router.get("", response_model=JobList)
 async def list_jobs(request: Request, status: str | None = None, limit: int = 100) -> JobList:
     """The newest jobs (optionally only those in one ``status``)."""
-    jobs = request.app.state.jobs.store.list(status, limit=max(1, min(limit, 1000)))
-    return JobList(jobs=[job_status(j, request) for j in jobs])
+    jobs = request.app.state.jobs
+    found = await jobs.io(partial(jobs.store.list, status, limit=max(1, min(limit, 1000))))
+    return JobList(jobs=[job_status(j, request) for j in found])
 
 
 @router.get("/{job_id}", response_model=JobStatus, responses={404: {"model": ErrorBody}})
 async def get_job(job_id: str, request: Request) -> JobStatus:
     """Status, progress (0..1) and error message of a job."""
-    return job_status(_job(request, job_id), request)
+    return job_status(await _job(request, job_id), request)
 
 
 @router.get(
@@ -232,7 +240,7 @@ async def get_job(job_id: str, request: Request) -> JobStatus:
 )
 async def get_result(job_id: str, request: Request):
     """The result file of a finished job (409 while it is queued or running, or if it failed)."""
-    job = _job(request, job_id)
+    job = await _job(request, job_id)
     if job.status != "done":
         what = {
             "queued": "is queued",
@@ -272,10 +280,11 @@ async def get_result(job_id: str, request: Request):
 async def cancel_job(job_id: str, request: Request) -> JobStatus:
     """Cancel a queued or running job (its worker is stopped). Cancelling it again is harmless;
     a job that already finished (done or failed) answers 409."""
-    job = _job(request, job_id)
+    job = await _job(request, job_id)
     if job.status in ("done", "failed"):
         raise Conflict(
             f"job {job_id} already {job.status}; there is nothing to cancel", where="job"
         )
-    request.app.state.jobs.cancel(job_id)
-    return job_status(_job(request, job_id))
+    jobs = request.app.state.jobs
+    await jobs.io(jobs.cancel, job_id)
+    return job_status(await _job(request, job_id))

@@ -18,12 +18,15 @@ import multiprocessing
 import os
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, TypeVar
 
 from .store import JobStore
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 MAX_ATTEMPTS = 3
 #: Signals of a worker that faulted in native code (a decoder on a malformed file): no retry.
@@ -75,10 +78,13 @@ class JobManager:
         retention_hours: float = DEFAULT_RETENTION_HOURS,
         job_timeout: float = 0.0,
         memory_mb: int = 0,
+        results_dir: Path | None = None,
     ):
         """``job_timeout``: seconds a job may run before it is failed and its worker killed (0: no limit);
-        ``memory_mb``: address space of a worker process in MiB (0: no limit)."""
-        self.store = JobStore(data_dir)
+        ``memory_mb``: address space of a worker process in MiB (0: no limit); ``results_dir``:
+        where job folders live (None: ``<data_dir>/jobs``)."""
+        self.store: JobStore = self._open_store(data_dir, results_dir)
+        self.data_dir = Path(data_dir)
         self.workers = max(0, int(workers))
         self.backend = backend
         self.device = device
@@ -90,6 +96,18 @@ class JobManager:
         self._next_purge = 0.0
         self.job_timeout = max(float(job_timeout), 0.0)
         self.memory_mb = max(int(memory_mb), 0)
+
+    def _open_store(self, data_dir: Path, results_dir: Path | None) -> JobStore:
+        return JobStore(data_dir, results_dir)
+
+    def store_spec(self) -> dict:
+        """What a worker process needs to open the same store (``worker.open_store``); JSON only."""
+        return {"results_dir": str(self.store.root)}
+
+    async def io(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` for a route: SQLite calls are quick and run here (subclasses whose store
+        waits on the network run them in a thread)."""
+        return fn(*args)
 
     # -- lifecycle -------------------------------------------------------------------------------
     async def start(self) -> None:
@@ -186,13 +204,21 @@ class JobManager:
                 continue
             if finished:
                 job_id, slot.job_id = slot.job_id, None
-                job = self.store.get(job_id)
-                if job is not None and job.status == "running":  # abandoned without a verdict
-                    self.store.fail(job_id, "the worker gave up on this job; submit it again")
+                self._finished(job_id)
             elif not slot.proc.is_alive():
                 job_id, code = slot.job_id, slot.proc.exitcode
                 slot.kill(0)
                 self._worker_died(job_id, code)
+
+    def _finished(self, job_id: str) -> None:
+        """A worker says it is done with ``job_id`` (its verdict is recorded, or it gave up)."""
+        job = self.store.get(job_id)
+        if job is not None and job.status == "running":  # abandoned without a verdict
+            self.store.fail(job_id, "the worker gave up on this job; submit it again")
+        self._over(job_id)
+
+    def _over(self, job_id: str) -> None:
+        """This server is done with ``job_id`` (a queue that delivers jobs acknowledges it here)."""
 
     def _time_out(self, slot: _Slot) -> None:
         """Fail the slot's job for running too long and kill its worker (a new one starts when needed)."""
@@ -210,6 +236,8 @@ class JobManager:
             slot.proc.pid if slot.proc else None,
         )
         slot.kill(1.0)
+        if job_id:
+            self._over(job_id)
 
     def _purge(self) -> None:
         now = time.time()
@@ -273,12 +301,13 @@ class JobManager:
             name="facecast-job-worker",
             daemon=True,
             args=(
-                str(self.store.data_dir),
+                str(self.data_dir),
                 theirs,
                 self.backend,
                 self.device,
                 os.getpid(),
                 self.memory_mb,
+                self.store_spec(),
             ),
         )
         slot.proc.start()

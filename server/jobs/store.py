@@ -1,4 +1,7 @@
-"""SQLite job store: ``<data_dir>/jobs.sqlite`` plus ``<data_dir>/jobs/<id>/`` for input and result.
+"""SQLite job store: ``<data_dir>/jobs.sqlite`` plus ``<results_dir>/<id>/`` for input and result.
+
+``results_dir`` (``FACECAST_RESULTS_DIR``) defaults to ``<data_dir>/jobs``. ``JobFiles`` (the job
+folders) is shared with the Redis store of a cluster (``redis_queue.RedisJobStore``).
 
 Every state change is one SQL statement, so a job's state is never half-written. Workers update
 their row only while it still carries their attempt number: a worker orphaned by a crashed server
@@ -87,13 +90,38 @@ def new_job_id() -> str:
     return uuid.uuid4().hex
 
 
-class JobStore:
+class JobFiles:
+    """The job folders ``<root>/<id>/``: each holds a job's input, options files and result."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def folder(self, job_id: str) -> Path:
+        """``<root>/<id>`` (``job_id`` must be a job id, never client text)."""
+        if not JOB_ID.match(job_id):
+            raise ValueError(f"not a job id: {job_id!r}")
+        return self.root / job_id
+
+    def input_path(self, job: JobRecord) -> Path:
+        return self.folder(job.id) / job.input_file
+
+    def result_path(self, job: JobRecord) -> Path:
+        return self.folder(job.id) / job.result_file
+
+
+def results_root(data_dir: Path, results_dir: Path | None = None) -> Path:
+    """Where job folders live: ``results_dir`` if set, else ``<data_dir>/jobs``."""
+    return Path(results_dir) if results_dir else Path(data_dir) / "jobs"
+
+
+class JobStore(JobFiles):
     """The job table of one data directory. Safe to use from several threads and processes."""
 
-    def __init__(self, data_dir: Path):
+    def __init__(self, data_dir: Path, results_dir: Path | None = None):
+        """``results_dir``: where job folders live (None: ``<data_dir>/jobs``)."""
         self.data_dir = Path(data_dir)
-        self.root = self.data_dir / "jobs"
-        self.root.mkdir(parents=True, exist_ok=True)
+        super().__init__(results_root(self.data_dir, results_dir))
         self.path = self.data_dir / "jobs.sqlite"
         self._lock = threading.Lock()
         self._db = sqlite3.connect(
@@ -110,19 +138,6 @@ class JobStore:
     def _exec(self, sql: str, args: tuple = ()) -> sqlite3.Cursor:
         with self._lock:
             return self._db.execute(sql, args)
-
-    # -- files -----------------------------------------------------------------------------------
-    def folder(self, job_id: str) -> Path:
-        """``<data_dir>/jobs/<id>`` (``job_id`` must be a job id, never client text)."""
-        if not JOB_ID.match(job_id):
-            raise ValueError(f"not a job id: {job_id!r}")
-        return self.root / job_id
-
-    def input_path(self, job: JobRecord) -> Path:
-        return self.folder(job.id) / job.input_file
-
-    def result_path(self, job: JobRecord) -> Path:
-        return self.folder(job.id) / job.result_file
 
     # -- rows ------------------------------------------------------------------------------------
     def add(

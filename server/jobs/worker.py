@@ -20,7 +20,8 @@ import traceback
 from collections import OrderedDict
 from pathlib import Path
 
-from .store import JobRecord, JobStore
+from ..errors import Unavailable
+from .store import JobRecord, JobStore, results_root
 
 log = logging.getLogger(__name__)
 
@@ -41,11 +42,13 @@ def serve(
     device: str | None = None,
     parent_pid: int | None = None,
     memory_mb: int = 0,
+    spec: dict | None = None,
 ) -> None:
     """Worker process entry point: run the jobs the manager sends until the pipe closes.
 
     ``memory_mb``: address-space limit of this process (0: none); a job over it fails with a
-    MemoryError message, and the server is not affected.
+    MemoryError message, and the server is not affected. ``spec``: the manager's store
+    (``JobManager.store_spec``; None: SQLite in ``data_dir``).
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
     die_with_parent(parent_pid)
@@ -55,7 +58,7 @@ def serve(
         stream=sys.stderr,
         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s",
     )
-    store = JobStore(Path(data_dir))
+    store = open_store(Path(data_dir), spec)
     faces: OrderedDict[str, object] = OrderedDict()
     try:
         while True:
@@ -68,20 +71,38 @@ def serve(
             job_id, attempt = msg
             try:
                 run_job(store, job_id, attempt, backend, device, parent_pid, faces)
+            except (
+                Unavailable
+            ) as e:  # the job queue's broker is away: no verdict, the server retries
+                log.warning("job %s: %s", job_id, e)
             except Exception:  # noqa: BLE001 - the worker outlives a job's failure; logged, failed
                 log.error("job %s: worker error:\n%s", job_id, traceback.format_exc())
-                store.finish(
-                    job_id,
-                    attempt,
-                    "failed",
-                    "internal error in the job worker; the server log has the details",
-                )
+                try:
+                    store.finish(
+                        job_id,
+                        attempt,
+                        "failed",
+                        "internal error in the job worker; the server log has the details",
+                    )
+                except Unavailable as e:
+                    log.warning("job %s: %s", job_id, e)
             try:
                 conn.send(job_id)
             except (EOFError, OSError):
                 break
     finally:
         store.close()
+
+
+def open_store(data_dir: Path, spec: dict | None = None) -> JobStore:
+    """The job store a manager's ``store_spec()`` describes: Redis when it names a URL, else SQLite."""
+    spec = spec or {}
+    results_dir = Path(spec["results_dir"]) if spec.get("results_dir") else None
+    if spec.get("redis_url"):
+        from .redis_queue import RedisJobStore
+
+        return RedisJobStore(spec["redis_url"], results_root(data_dir, results_dir))  # type: ignore[return-value]
+    return JobStore(data_dir, results_dir)
 
 
 #: Seconds between two checks that the server is still there (where the kernel cannot tell us).
@@ -158,7 +179,11 @@ def run_job(
         if now - last[0] < PROGRESS_INTERVAL and done < total:
             return
         last[0] = now
-        if not store.progress(job_id, attempt, done / total if total else 0.0):
+        try:
+            mine = store.progress(job_id, attempt, done / total if total else 0.0)
+        except Unavailable:
+            raise Stop("the job queue is unreachable") from None
+        if not mine:
             raise Stop("job cancelled or taken over")
 
     status, error = render(store, job, backend, device, progress, faces)
@@ -197,6 +222,11 @@ def render(
         # Messages name the upload by its server path; show the client's file name instead.
         return text.replace(str(src), job.input_name).replace(str(store.folder(job.id)), "")
 
+    if not src.is_file():  # a cluster node that does not see the folder the job was sent to
+        return "failed", (
+            "the input of this job is not in the job folders of the server that ran it; "
+            "the operator must give every node the same FACECAST_RESULTS_DIR (a shared folder)"
+        )
     try:
         from ..errors import FacecastError
         from ..render import render_file
