@@ -24,7 +24,9 @@ import numpy as np
 from ...protocol.compact import KEY
 from ...protocol.messages import InputKind, Stats, Status, dump_message
 from ..state import FaceState
+from .mixing import SessionMix
 from .ports import Deformer, DirectWriter, Outbox, ProducerSlot
+from .roles import Grants
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +162,9 @@ class LiveSession:
         self.metrics = metrics
         self.viewers: set[Outbox] = set()
         self._joining = 0  # viewers being greeted (count against the limit)
-        self._producer: ProducerSlot | None = None  # who holds the producer slot
+        self._producers: dict[str, ProducerSlot] = {}  # role -> who holds its slot
+        self.grants = Grants(spec.producer_token)  # producer tokens and their roles
+        self.mix = SessionMix(self)  # secondary producers' and REST layers, mixed into each state
         self.pending: deque[tuple[int, FaceState, float]] = deque()
         self._busy = False  # a state of this session is with the batcher
         self._in_flight = 0  # its seq
@@ -189,8 +193,13 @@ class LiveSession:
     # -- state, read-only outside this class -------------------------------------------------------
     @property
     def producer(self) -> ProducerSlot | None:
-        """Who holds the producer slot (``claim``), or None."""
-        return self._producer
+        """Who holds the primary producer slot (``claim``), or None."""
+        return self._producers.get("primary")
+
+    @property
+    def producers(self) -> dict[str, ProducerSlot]:
+        """A copy of role -> who holds that producer slot."""
+        return dict(self._producers)
 
     @property
     def batcher(self) -> Deformer:
@@ -215,7 +224,7 @@ class LiveSession:
     def busy(self) -> bool:
         """A viewer is connected (or joining) or a client's producer is: the session is in use. A
         server-side producer (demo, playback) alone does not count: nobody asked for it any more."""
-        remote = self._producer is not None and self._producer.remote
+        remote = any(p.remote for p in self._producers.values())
         return bool(self.viewers) or self._joining > 0 or remote
 
     def idle_for(self, now: float) -> float:
@@ -226,23 +235,28 @@ class LiveSession:
         return now - self.last_active
 
     # -- the producer slot and the control set ------------------------------------------------------
-    def claim(self, producer: ProducerSlot) -> bool:
-        """Take the producer slot for ``producer`` if it is free (True); viewers hear of it at
-        ``announce``. Call before any await, so that a second producer is refused."""
-        if self._producer is not None:
+    def claim(self, producer: ProducerSlot, role: str = "primary") -> bool:
+        """Take the ``role`` producer slot for ``producer`` if it is free (True); viewers hear of
+        it at ``announce``. Call before any await, so that a second producer is refused."""
+        if role in self._producers:
             return False
-        self._producer = producer
+        self._producers[role] = producer
         return True
 
     def announce(self, producer: ProducerSlot) -> None:
-        """``producer`` (holding the slot) is ready: tell the viewers."""
-        if self._producer is producer:
+        """``producer`` (holding a slot) is ready: tell the viewers."""
+        if any(p is producer for p in self._producers.values()):
             self._set_producer(producer)
 
     def release(self, producer: ProducerSlot) -> None:
-        """``producer`` leaves: free the slot if it holds it (idempotent)."""
-        if self._producer is producer:
-            self._set_producer(None)
+        """``producer`` leaves: free its slot if it holds one (idempotent); a secondary
+        producer's layer leaves the mix."""
+        for role, p in list(self._producers.items()):
+            if p is producer:
+                del self._producers[role]
+                if role != "primary":
+                    self.mix.drop(role)
+                self._set_producer(None)
 
     def needs_controls(self, control_vertices: np.ndarray | None) -> bool:
         """True if ``control_vertices`` (an input's explicit controls) are not those deformed now."""
@@ -286,8 +300,25 @@ class LiveSession:
         self._stats["frames_rejected"] += 1
 
     # -- producer side -----------------------------------------------------------------------------
-    def submit(self, states: list[FaceState], wall: float) -> None:
-        """Number ``states`` and queue them for deformation (oldest dropped beyond ``MAX_PENDING``)."""
+    def submit(self, states: list[FaceState], wall: float, role: str = "primary") -> None:
+        """Number ``states`` and queue them for deformation (oldest dropped beyond ``MAX_PENDING``).
+
+        The primary producer's states clock the frames: with layers in the mix, each is mixed
+        with them first. A secondary producer's (``role``) newest state becomes its layer.
+        """
+        mix = self.mix
+        if role != "primary":
+            if states:
+                mix.put(role, states[-1])
+            return
+        if mix.active:
+            states = mix.mix_primary(states)
+        elif states:
+            mix.primary = states[-1]  # held: layers set later mix over it
+        self.queue(states, wall)
+
+    def queue(self, states: list[FaceState], wall: float) -> None:
+        """Number ``states`` (final, mixed) and queue them for deformation."""
         for s in states:
             if len(self.pending) >= MAX_PENDING:
                 self.pending.popleft()
@@ -302,7 +333,6 @@ class LiveSession:
 
     def _set_producer(self, producer: ProducerSlot | None) -> None:
         """A producer connected (tell viewers now) or left (tell them once its frames are out)."""
-        self._producer = producer
         self.last_active = time.monotonic()
         if producer is not None:
             self.broadcast_status()
@@ -346,7 +376,7 @@ class LiveSession:
     def broadcast_status(self) -> None:
         text = dump_message(
             Status(
-                producer_connected=self._producer is not None,
+                producer_connected=bool(self._producers),
                 viewers=len(self.viewers),
                 last_seq=self.last_seq,
             )
@@ -364,7 +394,7 @@ class LiveSession:
             | {
                 "deform_ms_mean": round(1000 * self._deform_total / n, 3) if n else 0.0,
                 "viewers": len(self.viewers),
-                "producer_connected": self._producer is not None,
+                "producer_connected": bool(self._producers),
             }
         )
 
@@ -448,8 +478,9 @@ class LiveSession:
         """Stop the worker and tell every connection to end with ``code``."""
         self.closed = True
         self.pending.clear()
+        self.mix.stop()
         for v in list(self.viewers):
             v.end(code, error_json)
-        if self._producer is not None:
-            await self._producer.end(code, error_json)
+        for p in list(self._producers.values()):
+            await p.end(code, error_json)
         return None

@@ -1,0 +1,341 @@
+"""A live session's layers: secondary producers' latest states and REST layers, mixed into each
+frame with the session's ``layers.Mixer`` (``server/layers/``), and the clock of frames when no
+primary clocks them.
+
+The primary producer's states clock the frames (``LiveSession.submit`` mixes each). While the
+session holds layers and no primary state came for a frame period and a half (no primary
+producer, a FAP producer that sends only on change, a pause in the speech), a task ticks at the
+session's rate and sends the mix of the last primary state (or the neutral face) with the layers,
+as the demo producer clocks its frames (``server_producer``). Layer time is the session clock:
+seconds since the session was made (monotonic), so REST timings ("start in 0.5 s") are real time.
+
+Everything here runs on the event loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ...protocol.layers import (
+    EXPRESSION_NAMES,
+    MAX_LAYERS,
+    ROLE_FAPS,
+    ExpressionLayer,
+    GazeLayer,
+    HeadLayer,
+    IdleLayer,
+    LayerInfo,
+)
+from ..errors import NotFound, TooMany
+from ..state import FaceState
+
+if TYPE_CHECKING:
+    from ..layers import Contribution, Mixer
+    from .session import LiveSession
+
+log = logging.getLogger(__name__)
+
+Spec = IdleLayer | ExpressionLayer | GazeLayer | HeadLayer
+#: Prefix of the mixer's names of producers' layers (REST names cannot hold it).
+PRODUCER = "@"
+#: A primary state within this many frame periods clocks the frame: the layer clock waits.
+HOLD_PERIODS = 1.5
+
+
+class TooManyLayers(TooMany):
+    status = 429
+
+
+def _masks() -> dict[str, np.ndarray]:
+    out = {}
+    for role, faps in ROLE_FAPS.items():
+        m = np.zeros(69)
+        m[sorted(faps)] = 1.0
+        out[role] = m
+    return out
+
+
+#: Per role, ``(69,)`` 1 on the FAPs a producer of that role may drive.
+_MASK = _masks()
+
+
+def contribution_of(role: str, state: FaceState) -> Contribution:
+    """A secondary producer's state as its layer's contribution: expression and idle FAPs are
+    offsets (weighed on the FAPs it moves), gaze FAPs replace the eyes', head FAPs the head pose."""
+    from ..layers import Contribution
+
+    faps = np.array(state.faps, dtype=np.float64)
+    faps[:3] = 0.0
+    faps *= _MASK[role]
+    if role == "head":
+        return Contribution(head=faps[48:51].copy())
+    if role == "gaze":
+        return Contribution(override=faps, override_weight=_MASK["gaze"] * (faps != 0))
+    if state.expression is not None:
+        return Contribution(faps=faps, expression=state.expression)
+    return Contribution(faps=faps, weight=(faps != 0).astype(np.float64))
+
+
+@dataclass(frozen=True)
+class Held:
+    """A producer's layer: its newest contribution, the same at every time (``layers.Layer``)."""
+
+    role: Any  # ``layers.Role``
+    contribution: Any  # ``layers.Contribution``
+    end: float | None = None
+
+    def sample(self, t: float) -> Any:
+        return self.contribution
+
+
+@dataclass
+class _Rest:
+    spec: Spec
+    set_at: float  # session seconds
+
+
+class SessionMix:
+    """The layers of ``session`` and their mixing (see the module)."""
+
+    def __init__(self, session: LiveSession, clock: Any = time.monotonic) -> None:
+        self.session = session
+        self.clock = clock
+        self.t0 = clock()
+        self._mixer: Mixer | None = None
+        self._held: dict[str, float] = {}  # role -> session time of its newest state
+        self._rest: dict[str, _Rest] = {}
+        self.primary_at = -np.inf  # session time of the newest primary state
+        self.primary: FaceState | None = None  # the newest primary state (held between states)
+        self._task: asyncio.Task[None] | None = None
+        self.mixed = 0  # states mixed (for tests and stats)
+
+    # -- state -------------------------------------------------------------------------------------
+    @property
+    def active(self) -> bool:
+        """The session holds layers: each frame is mixed, and the layer clock runs."""
+        return bool(self._held or self._rest)
+
+    def now(self) -> float:
+        """Session time, seconds (layer time)."""
+        return self.clock() - self.t0
+
+    @property
+    def mixer(self) -> Mixer:
+        if self._mixer is None:
+            from ..layers import Mixer
+
+            self._mixer = Mixer(self._geometry(), max_layers=MAX_LAYERS + len(ROLE_FAPS))
+        return self._mixer
+
+    def _geometry(self) -> Any:
+        from ..layers import Geometry
+
+        rig = getattr(getattr(self.session.batcher, "animator", None), "rig", None)
+        if rig is not None:
+            try:
+                return Geometry.of_rig(rig)
+            except Exception:  # noqa: BLE001 - a face without eyes still mixes (no gaze)
+                log.warning("session %s: no face geometry for gaze", self.session.spec.id)
+        return Geometry()
+
+    # -- producers ---------------------------------------------------------------------------------
+    def put(self, role: str, state: FaceState) -> None:
+        """The newest state of the secondary producer of ``role``: its layer from now on."""
+        from ..layers import Role
+
+        self.mixer.set(PRODUCER + role, Held(Role(role), contribution_of(role, state)))
+        self._held[role] = self.now()
+        self._start()
+
+    def drop(self, role: str) -> None:
+        """The ``role`` producer left: its layer leaves the mix."""
+        if self._held.pop(role, None) is not None:
+            self.mixer.remove(PRODUCER + role)
+
+    # -- REST layers -------------------------------------------------------------------------------
+    def spec(self, name: str) -> Spec | None:
+        self._prune()
+        r = self._rest.get(name)
+        return None if r is None else r.spec
+
+    def set(self, name: str, spec: Spec) -> LayerInfo:
+        """Set the REST layer ``name`` (its times count from now)."""
+        self._prune()
+        if name not in self._rest and len(self._rest) >= MAX_LAYERS:
+            raise TooManyLayers(
+                f"a session holds at most {MAX_LAYERS} layers; DELETE one first", where="name"
+            )
+        now = self.now()
+        self.mixer.set(name, layer_of(spec, now, self.session))
+        self._rest[name] = _Rest(spec, now)
+        self._start()
+        return self.info(name)
+
+    def remove(self, name: str) -> None:
+        if self._rest.pop(name, None) is None:
+            raise self._missing(name)
+        self.mixer.remove(name)
+
+    def clear(self, kinds: frozenset[str]) -> None:
+        """Remove the REST layers of these kinds."""
+        for name, r in list(self._rest.items()):
+            if r.spec.kind in kinds:
+                self.remove(name)
+
+    def info(self, name: str) -> LayerInfo:
+        self._prune()
+        r = self._rest.get(name)
+        if r is None:
+            raise self._missing(name)
+        return LayerInfo(
+            name=name,
+            source="rest",
+            kind=r.spec.kind,
+            spec=r.spec.model_dump(),
+            age=round(self.now() - r.set_at, 3),
+        )
+
+    def infos(self) -> list[LayerInfo]:
+        """Every layer: the producers' (named by role) and the REST ones."""
+        self._prune()
+        now = self.now()
+        out = [
+            LayerInfo(name=role, source="producer", kind=role, age=round(now - at, 3))
+            for role, at in self._held.items()
+        ]
+        return out + [self.info(name) for name in self._rest]
+
+    def _missing(self, name: str) -> NotFound:
+        known = ", ".join(self._rest) or "none"
+        return NotFound(f"no layer {name!r} in this session (its layers: {known})", where="name")
+
+    def _prune(self) -> None:
+        """Forget REST layers the mixer dropped at their end."""
+        if self._rest and self._mixer is not None:
+            live = self._mixer.layers()
+            for name in [n for n in self._rest if n not in live]:
+                del self._rest[name]
+
+    # -- frames ------------------------------------------------------------------------------------
+    def mix_primary(self, states: list[FaceState]) -> list[FaceState]:
+        """The primary's ``states`` mixed with the layers (each keeps its own ``t``)."""
+        now = self.now()
+        last_t = states[-1].t if states else 0.0
+        out = []
+        for s in states:
+            m = self.mixer.mix(s, now + (s.t - last_t))
+            m.t = s.t
+            out.append(m)
+        if states:
+            self.primary, self.primary_at = states[-1], now
+        self.mixed += len(out)
+        return out
+
+    def _start(self) -> None:
+        if self._task is not None and not self._task.done():
+            return
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:  # no loop (a test of the core): frames only come from the primary
+            return
+        self._task = loop.create_task(self._clock(), name=f"layers-{self.session.spec.id}")
+
+    async def _clock(self) -> None:
+        """While the session holds layers: a frame each period no primary state clocked."""
+        session = self.session
+        period = 1.0 / session.spec.fps
+        due = self.clock()
+        try:
+            while self.active and not session.closed:
+                due += period
+                delay = due - self.clock()
+                if delay < -1.0:  # a stalled loop: skip ahead rather than rush frames out
+                    due = self.clock()
+                await asyncio.sleep(max(0.0, delay))
+                now = self.now()
+                if now - self.primary_at < HOLD_PERIODS * period or not self.active:
+                    continue
+                state = self.mixer.mix(self.primary, now)
+                self.mixed += 1
+                session.queue([state], time.time())
+        except Exception:
+            log.exception("session %s: the layer clock failed", session.spec.id)
+        finally:
+            self._task = None
+
+    def stop(self) -> None:
+        """The session closes: stop the clock."""
+        if self._task is not None:
+            self._task.cancel()
+            self._task = None
+
+
+def envelope(start: float, attack: float, relax: float, end: float | None) -> Any:
+    """A ``layers.Envelope`` from a start, rise and fall (s) and an optional end (session s);
+    rise and fall shrink to fit between start and end."""
+    from ..layers import Envelope
+
+    if end is None:
+        return Envelope(start=start, attack_peak=start + attack)
+    span = max(0.0, end - start)
+    rise = min(attack, span / 2) if attack + relax > span else attack
+    fall = min(relax, span - rise)
+    return Envelope(start=start, attack_peak=start + rise, relax=end - fall, end=end)
+
+
+def layer_of(spec: Spec, now: float, session: LiveSession) -> Any:
+    """The mixer's layer for a REST ``spec`` set at session time ``now`` (its times count from
+    ``now``)."""
+    from ..layers import Envelope, GazeTarget, layer_types
+
+    kinds = layer_types()
+    if isinstance(spec, IdleLayer):
+        return kinds.idle(seed=spec.seed, amount=spec.amount, start=now)
+    if isinstance(spec, ExpressionLayer):
+        faps = None
+        if spec.faps:
+            faps = np.zeros(69)
+            for k, v in spec.faps.items():
+                faps[k] = v
+        end = None if spec.end is None else now + spec.end
+        return kinds.expression(
+            expression=0
+            if spec.expression is None
+            else EXPRESSION_NAMES.index(spec.expression) + 1,
+            faps=faps,
+            amount=spec.amount,
+            envelope=envelope(now + spec.start, spec.attack, spec.relax, end),
+        )
+    if isinstance(spec, GazeLayer):
+        if spec.target == "camera":
+            target = GazeTarget.camera()
+        elif spec.target is not None:
+            target = GazeTarget(point=np.array(spec.target) / session.face.mm_per_unit)
+        else:
+            yaw, pitch = np.radians(spec.yaw or 0.0), np.radians(spec.pitch or 0.0)
+            target = GazeTarget(
+                direction=np.array(
+                    [np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)]
+                )
+            )
+        return kinds.gaze(target=target, envelope=Envelope(start=now, attack_peak=now))
+    if spec.gesture is not None:
+        from ..layers.head import GESTURES
+
+        scale = 1.0 if spec.amount is None else spec.amount / GESTURES[spec.gesture][1]
+        start = now + spec.start
+        return kinds.gesture(
+            kind=spec.gesture,
+            amount=scale,
+            envelope=Envelope(start=start, end=start + spec.duration * spec.repeat),
+            repetitions=spec.repeat,
+        )
+    return kinds.pose(
+        pitch=spec.pitch, yaw=spec.yaw, roll=spec.roll, envelope=envelope(now, 0.3, 0.3, None)
+    )
