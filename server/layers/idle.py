@@ -1,0 +1,174 @@
+"""The idle layer: what a face does when nobody directs it. Blinks, saccades between fixations,
+a slow head sway and breathing, as a pure, seeded function of time.
+
+- **Blinks**: about ``blink_rate`` a minute (default 17; people at rest blink 10-25 times a
+  minute), Poisson-like: intervals are a refractory minimum plus an exponential wait. Each blink
+  closes in 100-150 ms, stays closed 20-60 ms and opens about twice as slowly (200-320 ms). The
+  lids are *set* closed by the closure (an override), so a blink closes over any expression.
+- **Saccades and fixations**: fixations of 0.3-3 s (log-normal, median 0.9 s) on points a few
+  degrees around straight ahead; a saccade's duration follows the main sequence,
+  ``21 ms + 2.2 ms/°`` of amplitude.
+- **Sway**: incommensurate sines of a few degrees on head pitch, yaw and roll.
+- **Breathing**: about 14 breaths a minute: a fraction of a degree of head pitch and a slight
+  flare of the nostrils.
+
+Events are drawn once for ``horizon`` seconds and repeat after it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .model import Contribution, N, Role, smoothstep
+
+AU_PER_DEG = np.pi / 180 / 1e-5
+#: Closed lids: upper lids down one IRISD0 (tangent to the iris -> closed), lower lids up a little.
+CLOSED_LIDS = np.zeros(N)
+CLOSED_LIDS[[19, 20]] = 1024.0
+CLOSED_LIDS[[21, 22]] = 150.0
+_LID_MASK = np.zeros(N)
+_LID_MASK[19:23] = 1.0
+
+
+def blink_times(
+    rng: np.random.Generator, horizon: float, rate: float, refractory: float
+) -> np.ndarray:
+    """``(B, 4)`` blinks in ``[0, horizon)``: start, closing, closed, opening durations (s)."""
+    mean = 60.0 / rate
+    wait = max(mean - refractory, 1e-3)
+    rows, t = [], rng.exponential(wait)
+    while t < horizon:
+        close = rng.uniform(0.10, 0.15)
+        closed = rng.uniform(0.02, 0.06)
+        opening = close * rng.uniform(1.8, 2.4)
+        rows.append((t, close, closed, opening))
+        t += max(refractory, close + closed + opening) + rng.exponential(wait)
+    return np.array(rows, dtype=np.float64).reshape(-1, 4)
+
+
+def blink_closure(t: float, blinks: np.ndarray, starts: np.ndarray) -> float:
+    """Lid closure 0..1 at ``t`` for ``blinks`` (``blink_times``) whose start column is ``starts``."""
+    i = int(np.searchsorted(starts, t, side="right")) - 1
+    if i < 0:
+        return 0.0
+    s, close, closed, opening = blinks[i]
+    d = t - s
+    if d < close:
+        return smoothstep(d / close)
+    d -= close
+    if d < closed:
+        return 1.0
+    d -= closed
+    if d < opening:
+        return 1.0 - smoothstep(d / opening)
+    return 0.0
+
+
+def fixations(
+    rng: np.random.Generator, horizon: float, yaw_deg: float, pitch_deg: float
+) -> np.ndarray:
+    """``(S, 4)`` fixations in ``[0, horizon)``: start (s), yaw, pitch (degrees), and the saccade
+    duration (s) that leads to it (main sequence)."""
+    rows = [(0.0, 0.0, 0.0, 0.0)]
+    t, prev = 0.0, np.zeros(2)
+    while True:
+        t += float(np.clip(rng.lognormal(np.log(0.9), 0.6), 0.3, 3.0))
+        if t >= horizon:
+            break
+        g = np.clip(
+            rng.normal(0.0, 1.0, 2) * [yaw_deg, pitch_deg],
+            -2.5 * np.array([yaw_deg, pitch_deg]),
+            2.5 * np.array([yaw_deg, pitch_deg]),
+        )
+        amplitude = float(np.hypot(*(g - prev)))
+        rows.append((t, g[0], g[1], 0.021 + 0.0022 * amplitude))
+        prev = g
+    return np.array(rows, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class IdleLayer:
+    """Idle motion, deterministic by ``seed`` (see the module docstring).
+
+    Attributes:
+        seed: the random seed of the events.
+        amount: scale of the saccades, sway and breathing (0..1; blinks are whole).
+        blink_rate: blinks a minute (mean); refractory: least time (s) from one blink to the next.
+        blinks, saccades, sway, breathing: which parts run.
+        gaze_spread: standard deviation (degrees yaw, pitch) of the fixation points.
+        horizon: seconds of events drawn; they repeat after it.
+    """
+
+    seed: int = 0
+    amount: float = 1.0
+    blink_rate: float = 17.0
+    refractory: float = 1.0
+    blinks: bool = True
+    saccades: bool = True
+    sway: bool = True
+    breathing: bool = True
+    gaze_spread: tuple[float, float] = (4.0, 2.0)
+    horizon: float = 1800.0
+    role: Role = Role.IDLE
+    _blinks: np.ndarray = field(init=False, repr=False, compare=False)
+    _fix: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not 1.0 <= self.blink_rate <= 60.0:
+            raise ValueError("blink_rate must be 1..60 a minute")
+        if not 0.0 <= self.refractory < 60.0 / self.blink_rate:
+            raise ValueError("refractory must be shorter than the mean blink interval")
+        if not 0.0 <= self.amount <= 1.0:
+            raise ValueError("idle amount must be in [0, 1]")
+        if not 10.0 <= self.horizon <= 86400.0:
+            raise ValueError("horizon must be 10 s .. 1 day")
+        rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, 18])
+        b = blink_times(rng, self.horizon, self.blink_rate, self.refractory)
+        f = fixations(rng, self.horizon, *self.gaze_spread)
+        object.__setattr__(self, "_blinks", b)
+        object.__setattr__(self, "_fix", f)
+
+    @property
+    def end(self) -> float | None:
+        return None
+
+    def closure(self, t: float) -> float:
+        """Lid closure 0..1 at ``t`` (s)."""
+        return blink_closure(t % self.horizon, self._blinks, self._blinks[:, 0])
+
+    def gaze(self, t: float) -> tuple[float, float]:
+        """Eye ``(yaw, pitch)`` in degrees at ``t`` (s), before ``amount``."""
+        local = t % self.horizon
+        f = self._fix
+        j = int(np.searchsorted(f[:, 0], local, side="right")) - 1
+        cur = f[j]
+        if j > 0 and local - cur[0] < cur[3]:
+            u = smoothstep((local - cur[0]) / cur[3])
+            prev = f[j - 1]
+            return (
+                float(prev[1] + (cur[1] - prev[1]) * u),
+                float(prev[2] + (cur[2] - prev[2]) * u),
+            )
+        return float(cur[1]), float(cur[2])
+
+    def sample(self, t: float) -> Contribution:
+        faps = np.zeros(N)
+        a = self.amount * AU_PER_DEG
+        if self.saccades:
+            yaw, pitch = self.gaze(t)
+            faps[23] = faps[24] = a * yaw
+            faps[25] = faps[26] = a * pitch
+        if self.sway:
+            faps[48] = a * (2.0 * np.sin(2 * np.pi * t / 7.3) + 0.8 * np.sin(2 * np.pi * t / 3.1))
+            faps[49] = a * 3.0 * np.sin(2 * np.pi * t / 9.7 + 1.0)
+            faps[50] = a * 1.5 * np.sin(2 * np.pi * t / 11.3 + 2.0)
+        if self.breathing:
+            b = np.sin(2 * np.pi * t / 4.3)
+            faps[48] += a * 0.3 * b
+            faps[61] = faps[62] = self.amount * 20.0 * max(b, 0.0)
+        c = self.closure(t) if self.blinks else 0.0
+        if c > 0.0:
+            return Contribution(faps=faps, override=CLOSED_LIDS, override_weight=c * _LID_MASK)
+        return Contribution(faps=faps)
