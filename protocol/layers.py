@@ -246,7 +246,9 @@ def parse_layer(obj: object) -> IdleLayer | ExpressionLayer | GazeLayer | HeadLa
     except ValidationError as e:
         err = e.errors()[0]
         where = ".".join(str(x) for x in err["loc"][1:] or err["loc"])
-        raise MessageError(f"{err['msg']} ({e.error_count()} error(s))", where=where) from None
+        raise MessageError(
+            f"{where or 'layer'}: {err['msg']} ({e.error_count()} error(s))", where=where
+        ) from None
     except (ValueError, TypeError, RecursionError) as e:
         raise MessageError(f"invalid layer: {e}") from None
 

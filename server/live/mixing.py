@@ -3,11 +3,12 @@ frame with the session's ``layers.Mixer`` (``server/layers/``), and the clock of
 primary clocks them.
 
 The primary producer's states clock the frames (``LiveSession.submit`` mixes each). While the
-session holds layers and no primary state came for a frame period and a half (no primary
-producer, a FAP producer that sends only on change, a pause in the speech), a task ticks at the
-session's rate and sends the mix of the last primary state (or the neutral face) with the layers,
-as the demo producer clocks its frames (``server_producer``). Layer time is the session clock:
-seconds since the session was made (monotonic), so REST timings ("start in 0.5 s") are real time.
+session holds layers and no primary state came for ``HOLD_SECONDS`` (no primary producer, a FAP
+producer that sends only on change, a pause in the speech), a task ticks at the session's rate
+and sends the mix of the last primary state (or the neutral face) with the layers, as the demo
+producer clocks its frames (``server_producer``); those frames continue the primary's media time.
+Layer time is the session clock: seconds since the session was made (monotonic), so REST timings
+("start in 0.5 s") are real time.
 
 Everything here runs on the event loop.
 """
@@ -17,7 +18,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -44,8 +45,9 @@ log = logging.getLogger(__name__)
 Spec = IdleLayer | ExpressionLayer | GazeLayer | HeadLayer
 #: Prefix of the mixer's names of producers' layers (REST names cannot hold it).
 PRODUCER = "@"
-#: A primary state within this many frame periods clocks the frame: the layer clock waits.
-HOLD_PERIODS = 1.5
+#: While the primary sent a state this recently (s), it clocks the frames and the layer clock
+#: waits (audio producers send a few states per chunk, tens of milliseconds apart).
+HOLD_SECONDS = 0.25
 
 
 class TooManyLayers(TooMany):
@@ -110,7 +112,7 @@ class SessionMix:
         self._mixer: Mixer | None = None
         self._held: dict[str, float] = {}  # role -> session time of its newest state
         self._rest: dict[str, _Rest] = {}
-        self.primary_at = -np.inf  # session time of the newest primary state
+        self.primary_at: float | None = None  # session time of the newest mixed primary state
         self.primary: FaceState | None = None  # the newest primary state (held between states)
         self._task: asyncio.Task[None] | None = None
         self.mixed = 0  # states mixed (for tests and stats)
@@ -206,7 +208,7 @@ class SessionMix:
         self._prune()
         now = self.now()
         out = [
-            LayerInfo(name=role, source="producer", kind=role, age=round(now - at, 3))
+            LayerInfo(name=role, source="producer", kind=role, spec=None, age=round(now - at, 3))
             for role, at in self._held.items()
         ]
         return out + [self.info(name) for name in self._rest]
@@ -250,6 +252,7 @@ class SessionMix:
         """While the session holds layers: a frame each period no primary state clocked."""
         session = self.session
         period = 1.0 / session.spec.fps
+        hold = max(HOLD_SECONDS, 2 * period)
         due = self.clock()
         try:
             while self.active and not session.closed:
@@ -259,9 +262,12 @@ class SessionMix:
                     due = self.clock()
                 await asyncio.sleep(max(0.0, delay))
                 now = self.now()
-                if now - self.primary_at < HOLD_PERIODS * period or not self.active:
+                at = self.primary_at
+                if (at is not None and now - at < hold) or not self.active:
                     continue
                 state = self.mixer.mix(self.primary, now)
+                if self.primary is not None:  # its media time goes on
+                    state = replace(state, t=self.primary.t + (now - (now if at is None else at)))
                 self.mixed += 1
                 session.queue([state], time.time())
         except Exception:
@@ -292,50 +298,53 @@ def envelope(start: float, attack: float, relax: float, end: float | None) -> An
 def layer_of(spec: Spec, now: float, session: LiveSession) -> Any:
     """The mixer's layer for a REST ``spec`` set at session time ``now`` (its times count from
     ``now``)."""
-    from ..layers import Envelope, GazeTarget, layer_types
+    from .. import layers
 
-    kinds = layer_types()
     if isinstance(spec, IdleLayer):
-        return kinds.idle(seed=spec.seed, amount=spec.amount, start=now)
+        return layers.IdleLayer(seed=spec.seed, amount=spec.amount)
     if isinstance(spec, ExpressionLayer):
         faps = None
         if spec.faps:
             faps = np.zeros(69)
             for k, v in spec.faps.items():
                 faps[k] = v
-        end = None if spec.end is None else now + spec.end
-        return kinds.expression(
-            expression=0
-            if spec.expression is None
-            else EXPRESSION_NAMES.index(spec.expression) + 1,
+        name = spec.expression
+        return layers.ExpressionLayer(
+            expression=0 if name is None else EXPRESSION_NAMES.index(name) + 1,
             faps=faps,
             amount=spec.amount,
-            envelope=envelope(now + spec.start, spec.attack, spec.relax, end),
+            envelope=envelope(
+                now + spec.start,
+                spec.attack,
+                spec.relax,
+                None if spec.end is None else now + spec.end,
+            ),
         )
     if isinstance(spec, GazeLayer):
         if spec.target == "camera":
-            target = GazeTarget.camera()
+            target = layers.GazeTarget.camera()
         elif spec.target is not None:
-            target = GazeTarget(point=np.array(spec.target) / session.face.mm_per_unit)
+            point = np.array(spec.target, dtype=np.float64) / session.face.mm_per_unit
+            target = layers.GazeTarget(point=point)
         else:
             yaw, pitch = np.radians(spec.yaw or 0.0), np.radians(spec.pitch or 0.0)
-            target = GazeTarget(
+            target = layers.GazeTarget(
                 direction=np.array(
                     [np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)]
                 )
             )
-        return kinds.gaze(target=target, envelope=Envelope(start=now, attack_peak=now))
+        return layers.GazeLayer(target=target, envelope=envelope(now, 0.15, 0.15, None))
     if spec.gesture is not None:
         from ..layers.head import GESTURES
 
         scale = 1.0 if spec.amount is None else spec.amount / GESTURES[spec.gesture][1]
         start = now + spec.start
-        return kinds.gesture(
+        return layers.HeadGesture(
             kind=spec.gesture,
             amount=scale,
-            envelope=Envelope(start=start, end=start + spec.duration * spec.repeat),
+            envelope=layers.Envelope(start=start, end=start + spec.duration * spec.repeat),
             repetitions=spec.repeat,
         )
-    return kinds.pose(
+    return layers.HeadPose(
         pitch=spec.pitch, yaw=spec.yaw, roll=spec.roll, envelope=envelope(now, 0.3, 0.3, None)
     )
