@@ -363,3 +363,80 @@ def test_the_cli_streams_a_layer_and_sets_layers(live, data_dir, tmp_path):
     r = facecast("session", "layers", s.id, "--url", live.url, "--token", token)
     assert r.returncode == 0 and [x["name"] for x in json.loads(r.stdout)["layers"]] == ["idle"]
     run(_close(live.url, live.admin_key, s.id))
+
+
+@pytest.mark.browser
+def test_the_page_mixes_a_smile_and_idle_over_a_streamed_voice(live, data_dir, face, artifacts):
+    """The page watches an audio session that ``facecast stream`` speaks into; its 'joy' button
+    and idle toggle become layers over the voice: the corners go up while the lips keep talking.
+    Screenshot: tests/artifacts/layers_voice_joy_idle.png."""
+    from test_web import ARGS, CHROMIUM, open_page, wait_for
+
+    if not os.path.exists(CHROMIUM):
+        pytest.skip("Debian chromium not installed")
+    from playwright.sync_api import sync_playwright
+
+    s = run(_session(live.url, live.admin_key, input="audio", fps=30))
+    speech = data_dir / "speech/mary.wav"
+    stream = subprocess.Popen(
+        [
+            sys.executable, "-m", "facecast.server.cli", "stream", str(speech), "--url", live.url,
+            "--session", s.id, "--loop", "12",
+        ],
+        env=dict(os.environ, FACECAST_TOKEN=s.producer_token),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    fp = face.feature_points
+    # mouth corners over the nose tip (mm): the head's sway moves both
+    corners = (
+        f"(facecast.renderer.vertex({fp['8.3']})[1] + facecast.renderer.vertex({fp['8.4']})[1]) / 2"
+        f" - facecast.renderer.vertex({fp['9.3']})[1]"
+    )
+    gap = f"facecast.renderer.vertex({fp['2.2']})[1] - facecast.renderer.vertex({fp['2.3']})[1]"
+
+    def sample(page, n=15):
+        out = []
+        for _ in range(n):
+            page.wait_for_timeout(100)
+            out.append((page.evaluate(corners), page.evaluate(gap)))
+        return np.array(out) * face.mm_per_unit
+
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            page, problems = open_page(
+                browser,
+                f"{live.url}/#session={s.id}&token={s.viewer_token}&producer={s.producer_token}",
+            )
+            wait_for(page, "window.facecast.viewer.stats.frames >= 10", timeout=90)
+            before = sample(page)
+            page.click("#expressions button:text('joy')")
+            wait_for(page, "document.getElementById('layer-info').textContent.includes('joy')")
+            page.wait_for_timeout(600)  # the smile's attack
+            joy = sample(page)
+            page.click("#idle")
+            wait_for(page, "document.getElementById('layer-info').textContent.includes('idle on')")
+            page.wait_for_timeout(1500)
+            page.screenshot(path=str(artifacts / "layers_voice_joy_idle.png"))
+            with_idle = sample(page, 10)
+            browser.close()
+
+        async def layers():
+            async with SessionAdmin(live.url, live.admin_key) as admin:
+                return await admin.layers(s.id)
+
+        listed = run(layers())
+    finally:
+        stream.kill()
+        stream.communicate(timeout=30)
+        run(_close(live.url, live.admin_key, s.id))
+    assert not problems, problems
+    assert sorted((x.name, x.source) for x in listed.layers) == [
+        ("expression", "rest"),
+        ("idle", "rest"),
+    ]
+    # the smile raises the corners; the voice still opens and closes the lips under it
+    assert joy[:, 0].mean() - before[:, 0].mean() > 1.0, (before[:, 0], joy[:, 0])
+    assert np.ptp(joy[:, 1]) > 0.5 and np.ptp(with_idle[:, 1]) > 0.5, (joy[:, 1], with_idle[:, 1])
