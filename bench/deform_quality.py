@@ -12,6 +12,12 @@ Per frame p99 and max are taken, then the worst frame (max over frames) is repor
 Sources: the built-in demo performance (``server/drivers/demo.py``, 10 fps, one loop) on
 ``default``, and every ``../shared/data/xface/faps/*.fap`` on ``default`` and on the ICT head.
 Writes ``bench/out/deform_quality.json`` and a markdown table.
+
+``--layered``: layered streams instead (issue 18). The primaries are real speech
+(``../shared/data/speech``) and the sources above; the layers are a joy overlay, the idle layer,
+gaze at a point and a nod (``layered_sources``). Each primary gives three rows: ``NAME`` (alone),
+``NAME+layers`` (mixed) and ``layers@NAME`` (the layers over a neutral primary for as long);
+the mixed stream should have no more flipped triangles or creases than the other two.
 """
 
 from __future__ import annotations
@@ -41,6 +47,34 @@ def run_source(animator, states, qm: QualityMesh, step: int = 1) -> dict:
     return s
 
 
+def layered_sources(sources: dict, geometry) -> dict:
+    """Each source as itself, mixed with the layers, and the layers alone over as many frames."""
+    from facecast.server.layers import (
+        Envelope,
+        ExpressionLayer,
+        GazeLayer,
+        GazeTarget,
+        HeadGesture,
+        IdleLayer,
+        mix_states,
+    )
+    from facecast.server.state import FaceState
+
+    layers = [
+        ExpressionLayer(1, envelope=Envelope(start=0.2, attack_peak=0.8)),
+        IdleLayer(seed=2),
+        GazeLayer(GazeTarget(point=np.array([150.0, 80.0, 500.0]))),
+        HeadGesture("nod", envelope=Envelope(start=0.5, end=1.7), repetitions=2),
+    ]
+    out = {}
+    for name, states in sources.items():
+        out[name] = states
+        out[f"{name}+layers"] = mix_states(states, layers, geometry=geometry)
+        neutral = [FaceState(t=s.t) for s in states]
+        out[f"layers@{name}"] = mix_states(neutral, layers, geometry=geometry, closures=False)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     from facecast.server.drivers import load_animation
     from facecast.server.drivers.demo import demo_states
@@ -56,7 +90,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--step", type=int, default=1, help="use every N-th frame")
     ap.add_argument("--tag", default="")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "out" / "deform_quality.json"))
+    ap.add_argument(
+        "--layered", action="store_true", help="layered streams: each source alone, +layers, layers"
+    )
+    ap.add_argument(
+        "--out", default=None, help="JSON (default bench/out/deform_quality[_layered].json)"
+    )
     args = ap.parse_args(argv)
     params = {k: ast.literal_eval(v) for k, v in (p.split("=", 1) for p in args.param)}
     data = shared_data()
@@ -70,7 +109,13 @@ def main(argv: list[str] | None = None) -> int:
             faces["ict"] = load_face(data / "ict-facekit" / "generic_neutral_mesh.obj")
         else:
             faces[name] = load_face(name)
-    result = {"tag": args.tag, "params": params, "machine_loaded": True, "rows": []}
+    result = {
+        "tag": args.tag,
+        "params": params,
+        "layered": args.layered,
+        "machine_loaded": True,
+        "rows": [],
+    }
     for fname, face in faces.items():
         qm = QualityMesh.of(face)
         for engine in args.engines.split(","):
@@ -84,6 +129,14 @@ def main(argv: list[str] | None = None) -> int:
                 sources["demo"] = list(demo_states(10, loops=1))
             for path in faps:
                 sources[path.stem] = load_animation(path, face).states
+            if args.layered:
+                from facecast.server.layers import Geometry
+
+                for wav in ("mary.wav", "bobby_16bit_16khz.wav") if data else ():
+                    sources[Path(wav).stem.split("_")[0]] = load_animation(
+                        data / "speech" / wav, face
+                    ).states
+                sources = layered_sources(sources, Geometry.of_rig(anim.rig))
             rest = measure(face.vertices, qm)
             for sname, states in sources.items():
                 s = run_source(anim, states, qm, args.step)
@@ -103,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
                     f"pokes {s['pokes']} ({s['frames_with_pokes']} fr)",
                     file=sys.stderr,
                 )
-    out = Path(args.out)
+    name = "deform_quality_layered.json" if args.layered else "deform_quality.json"
+    out = Path(args.out or Path(__file__).parent / "out" / name)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
     print(

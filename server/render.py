@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from .errors import InputError
@@ -43,6 +43,7 @@ def render_file(
     progress: Callable[[int, int], None] | None = None,
     mocap: dict | None = None,
     text: str | None = None,
+    layers: Sequence | None = None,
 ) -> dict:
     """Decode ``input``, animate ``face`` and write ``output`` atomically (nothing is left on failure).
 
@@ -56,6 +57,9 @@ def render_file(
         mocap: mocap cleaning choices for ``mocap.driver.load`` (``filter``, ``lowrank``, ``stable``,
             ``neutral_frame``).
         text: audio input's transcript (``audio.driver.load``); None = none.
+        layers: ``server.layers`` layers (expression overlays, idle, gaze, head) mixed over the
+            input's states (``layers.mix_states``, the input keeping its lip closures); None or
+            empty: the input as it is.
 
     Returns:
         a summary: ``frames``, ``fps``, ``output`` and, for glTF, the ``extras.facecast`` record.
@@ -84,6 +88,12 @@ def render_file(
         animation = load_animation(input, face_obj, **options)
     if not animation.states:
         raise InputError("the input holds no frames", where=str(input))
+    if layers:
+        from .layers import Geometry, mix_states
+
+        animation.states = mix_states(
+            animation.states, list(layers), geometry=Geometry.of_face(face_obj)
+        )
     summary = {"frames": len(animation.states), "fps": float(animation.fps), "output": str(output)}
     if kind == "fap":
         from .output.fap import write_fap_file
@@ -122,7 +132,8 @@ def render_file(
             animation.fps,
             mm_per_unit=face_obj.mm_per_unit,
             name=input.stem or "facecast",
-            extras={"source": input.name, "face": str(face_obj.name)},
+            extras={"source": input.name, "face": str(face_obj.name)}
+            | ({"layers": [type(x).__name__ for x in layers]} if layers else {}),
         )
     log.info("rendered %s -> %s (%d frames at %g fps)", input, output, n_frames, animation.fps)
     return summary

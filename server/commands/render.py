@@ -6,6 +6,7 @@ With ``--server URL`` the ``facecast`` entry point runs ``facecast.client.comman
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -59,6 +60,31 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="frame of the actor's neutral face and the head's rest (default: the layout's, else auto: "
         "frame 0 unless another fits the face at rest clearly better)",
     )
+    lay = p.add_argument_group("layers (mixed over the input; local renders only)")
+    lay.add_argument(
+        "--layer",
+        action="append",
+        default=None,
+        metavar="FILE[@AMOUNT]",
+        help="a .fap stream added over the input from its start (an expression overlay), scaled "
+        "by AMOUNT (default 1); the input keeps its lip closures; repeatable",
+    )
+    lay.add_argument(
+        "--idle",
+        action="store_const",
+        const=True,
+        default=None,
+        help="idle motion: blinks, saccades, head sway, breathing",
+    )
+    lay.add_argument(
+        "--seed", type=int, default=None, help="random seed of the idle motion (default 0)"
+    )
+    lay.add_argument(
+        "--gaze",
+        default=None,
+        metavar="X,Y,Z|camera",
+        help="eyes at a point in the face's coordinates (mesh units) or at the camera",
+    )
     p.add_argument(
         "--server",
         metavar="URL",
@@ -100,6 +126,52 @@ def _mocap_options(args: argparse.Namespace) -> dict:
     return {k: v for k, v in opts.items() if v is not None}
 
 
+def parse_layer(text: str) -> tuple[Path, float]:
+    """``FILE[@AMOUNT]`` -> (path, amount); an ``@`` followed by no number belongs to the path."""
+    from ..errors import InputError
+
+    path, sep, tail = text.rpartition("@")
+    if sep:
+        try:
+            amount = float(tail)
+        except ValueError:
+            return Path(text), 1.0
+        if not (math.isfinite(amount) and abs(amount) <= 10):
+            raise InputError("a layer amount is a number within ±10", where=text)
+        return Path(path), amount
+    return Path(text), 1.0
+
+
+def build_layers(args: argparse.Namespace) -> list:
+    """The ``server.layers`` layers the flags ask for (empty without any); InputError names the
+    flag or file at fault."""
+    from ..drivers import load_animation
+    from ..errors import InputError
+    from ..layers import GazeLayer, IdleLayer, TrackLayer, parse_gaze
+
+    layers: list = []
+    for text in args.layer or ():
+        path, amount = parse_layer(text)
+        if path.suffix.lower() != ".fap":
+            raise InputError("a --layer is a .fap file (an expression or FAP stream)", where=text)
+        if not path.is_file():
+            raise InputError("layer file not found", where=str(path))
+        anim = load_animation(path, None)
+        if not anim.states:
+            raise InputError("the layer holds no frames", where=str(path))
+        layers.append(TrackLayer(anim.states, anim.fps, amount=amount))
+    if args.seed is not None and not args.idle:
+        raise InputError("--seed sets the idle motion's seed; add --idle", where="--seed")
+    if args.idle:
+        layers.append(IdleLayer(seed=args.seed or 0))
+    if args.gaze is not None:
+        try:
+            layers.append(GazeLayer(parse_gaze(args.gaze)))
+        except ValueError as e:
+            raise InputError(str(e), where="--gaze") from None
+    return layers
+
+
 def run(args: argparse.Namespace) -> int:
     """Render locally (``--server`` runs ``facecast.client.commands.render`` instead, see ``cli.REMOTE``)."""
     from ..errors import InputError
@@ -108,6 +180,7 @@ def run(args: argparse.Namespace) -> int:
     output_kind(args.output)
     if not args.input.is_file():
         raise InputError("input file not found", where=str(args.input))
+    layers = build_layers(args)
     progress, close = _progress_bar(args.input.name)
     try:
         render_file(
@@ -120,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
             layout=args.layout,
             progress=progress,
             mocap=_mocap_options(args),
+            layers=layers,
         )
     finally:
         close()

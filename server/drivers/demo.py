@@ -1,7 +1,7 @@
-"""The built-in demo performance: expressions, speech-like visemes and idle motion, as face states.
+"""The built-in demo performance: expressions and speech-like visemes over the idle layer, as face states.
 
-Idle motion follows what people do at rest: a blink every 2-6 s (about 150 ms closing, 100 ms
-closed, 200 ms opening), slow head sway of a few degrees, and gaze shifts (saccades) every 1-3 s.
+The script (``SCRIPT``) gives the expressions and visemes; the idle motion (blinks, saccades and
+fixations, head sway, breathing) is the idle layer (``server/layers/idle.py``) mixed over it.
 Everything is a deterministic function of the seed, so a demo can be replayed and tested.
 """
 
@@ -11,10 +11,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from ..state import FaceState, zero_faps
-
-#: AU per degree (MPEG-4 angle unit = 1e-5 rad).
-AU_PER_DEG = np.pi / 180 / 1e-5
+from ..layers import IdleLayer, mix
+from ..state import FaceState
 
 #: The script: (seconds, expression id 0-6, visemes spoken during it). Expressions: 1 joy,
 #: 2 sadness, 3 anger, 4 fear, 5 disgust, 6 surprise.
@@ -35,40 +33,12 @@ def _smoothstep(x: np.ndarray | float) -> np.ndarray | float:
     return x * x * (3 - 2 * x)
 
 
-def _events(rng: np.random.Generator, duration: float, lo: float, hi: float) -> np.ndarray:
-    """Event start times (s) with gaps drawn uniformly from [lo, hi)."""
-    times, t = [], rng.uniform(lo, hi) / 2
-    while t < duration:
-        times.append(t)
-        t += rng.uniform(lo, hi)
-    return np.array(times)
-
-
-def blink_closure(t: float, starts: np.ndarray) -> float:
-    """Eyelid closure 0..1 at time t for blinks starting at ``starts`` (s)."""
-    dt = t - starts
-    dt = dt[(dt >= 0) & (dt < 0.45)]
-    if not len(dt):
-        return 0.0
-    d = float(dt[-1])
-    if d < 0.15:
-        return float(_smoothstep(d / 0.15))
-    if d < 0.25:
-        return 1.0
-    return float(1 - _smoothstep((d - 0.25) / 0.2))
-
-
 def demo_states(
     fps: float = 30.0, *, loops: int | None = None, seed: int = 7
 ) -> Iterator[FaceState]:
     """Face states of the demo at ``fps``; endless when ``loops`` is None, else that many passes."""
-    rng = np.random.default_rng(seed)
+    idle = IdleLayer(seed=seed)
     period = sum(s for s, _, _ in SCRIPT)
-    blinks = _events(rng, period, 2.0, 6.0)
-    saccades = _events(rng, period, 1.0, 3.0)
-    gaze = rng.uniform(-1, 1, size=(len(saccades) + 1, 2)) * np.array(
-        [8.0, 4.0]
-    )  # degrees yaw, pitch
     starts = np.cumsum([0.0] + [s for s, _, _ in SCRIPT])
     n = 0
     while loops is None or n < loops * round(period * fps):
@@ -77,7 +47,6 @@ def demo_states(
         k = int(np.searchsorted(starts, local, side="right") - 1)
         seg_len, expr, visemes = SCRIPT[k]
         u = (local - starts[k]) / seg_len
-        faps = zero_faps()
         # Expressions rise and fall within their segment.
         intensity = (
             int(round(63 * _smoothstep(u / 0.25) * _smoothstep((1 - u) / 0.25))) if expr else 0
@@ -92,21 +61,6 @@ def demo_states(
             # Blend towards the next viseme over the last 40 % of each: simple coarticulation.
             blend = 63 if frac < 0.6 else int(round(63 * (1 - _smoothstep((frac - 0.6) / 0.4))))
             viseme = (visemes[i], nxt, blend)
-        closure = blink_closure(local, blinks)
-        faps[19] = faps[20] = 1024 * closure  # upper lids down by one IRISD0 when closed
-        faps[21] = faps[22] = 150 * closure
-        # Head sway: incommensurate sines, a few degrees.
-        faps[48] = AU_PER_DEG * (
-            2.0 * np.sin(2 * np.pi * t / 7.3) + 0.8 * np.sin(2 * np.pi * t / 3.1)
-        )
-        faps[49] = AU_PER_DEG * (3.0 * np.sin(2 * np.pi * t / 9.7 + 1.0))
-        faps[50] = AU_PER_DEG * (1.5 * np.sin(2 * np.pi * t / 11.3 + 2.0))
-        # Gaze: hold, then jump to the next target within 60 ms.
-        j = int(np.searchsorted(saccades, local, side="right"))
-        prev, cur = gaze[max(j - 1, 0)], gaze[j]
-        since = local - (saccades[j - 1] if j > 0 else 0.0)
-        g = prev + (cur - prev) * _smoothstep(since / 0.06) if j > 0 else cur
-        faps[23] = faps[24] = AU_PER_DEG * g[0]
-        faps[25] = faps[26] = AU_PER_DEG * g[1]
-        yield FaceState(t=t, faps=faps, viseme=viseme, expression=expression)
+        script = FaceState(t=t, viseme=viseme, expression=expression)
+        yield mix(script, [idle], t, closures=False)
         n += 1

@@ -11,7 +11,7 @@ from __future__ import annotations
 from .gaze import GazeLayer, parse_gaze
 from .head import HeadGesture, HeadPose
 from .idle import IdleLayer
-from .mix import Mixer, combine, mix
+from .mix import Mixer, combine, mix, mix_states
 from .model import (
     EMPTY,
     REGIONS,
@@ -43,6 +43,7 @@ __all__ = [
     "TrackLayer",
     "combine",
     "mix",
+    "mix_states",
     "parse_gaze",
     "region_mask",
 ]

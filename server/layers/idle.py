@@ -17,13 +17,16 @@ Events are drawn once for ``horizon`` seconds and repeat after it.
 
 from __future__ import annotations
 
+import bisect
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .model import Contribution, N, Role, smoothstep
 
-AU_PER_DEG = np.pi / 180 / 1e-5
+AU_PER_DEG = math.pi / 180 / 1e-5
 #: Closed lids: upper lids down one IRISD0 (tangent to the iris -> closed), lower lids up a little.
 CLOSED_LIDS = np.zeros(N)
 CLOSED_LIDS[[19, 20]] = 1024.0
@@ -48,9 +51,9 @@ def blink_times(
     return np.array(rows, dtype=np.float64).reshape(-1, 4)
 
 
-def blink_closure(t: float, blinks: np.ndarray, starts: np.ndarray) -> float:
-    """Lid closure 0..1 at ``t`` for ``blinks`` (``blink_times``) whose start column is ``starts``."""
-    i = int(np.searchsorted(starts, t, side="right")) - 1
+def blink_closure(t: float, blinks: Sequence[Sequence[float]], starts: Sequence[float]) -> float:
+    """Lid closure 0..1 at ``t`` for ``blinks`` (rows of ``blink_times``) starting at ``starts``."""
+    i = bisect.bisect_right(starts, t) - 1
     if i < 0:
         return 0.0
     s, close, closed, opening = blinks[i]
@@ -112,8 +115,10 @@ class IdleLayer:
     gaze_spread: tuple[float, float] = (4.0, 2.0)
     horizon: float = 1800.0
     role: Role = Role.IDLE
-    _blinks: np.ndarray = field(init=False, repr=False, compare=False)
-    _fix: np.ndarray = field(init=False, repr=False, compare=False)
+    _blinks: list[list[float]] = field(init=False, repr=False, compare=False)
+    _blink_starts: list[float] = field(init=False, repr=False, compare=False)
+    _fix: list[list[float]] = field(init=False, repr=False, compare=False)
+    _fix_starts: list[float] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not 1.0 <= self.blink_rate <= 60.0:
@@ -127,8 +132,10 @@ class IdleLayer:
         rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, 18])
         b = blink_times(rng, self.horizon, self.blink_rate, self.refractory)
         f = fixations(rng, self.horizon, *self.gaze_spread)
-        object.__setattr__(self, "_blinks", b)
-        object.__setattr__(self, "_fix", f)
+        object.__setattr__(self, "_blinks", b.tolist())
+        object.__setattr__(self, "_blink_starts", b[:, 0].tolist())
+        object.__setattr__(self, "_fix", f.tolist())
+        object.__setattr__(self, "_fix_starts", f[:, 0].tolist())
 
     @property
     def end(self) -> float | None:
@@ -136,22 +143,19 @@ class IdleLayer:
 
     def closure(self, t: float) -> float:
         """Lid closure 0..1 at ``t`` (s)."""
-        return blink_closure(t % self.horizon, self._blinks, self._blinks[:, 0])
+        return blink_closure(t % self.horizon, self._blinks, self._blink_starts)
 
     def gaze(self, t: float) -> tuple[float, float]:
         """Eye ``(yaw, pitch)`` in degrees at ``t`` (s), before ``amount``."""
         local = t % self.horizon
         f = self._fix
-        j = int(np.searchsorted(f[:, 0], local, side="right")) - 1
+        j = bisect.bisect_right(self._fix_starts, local) - 1
         cur = f[j]
         if j > 0 and local - cur[0] < cur[3]:
             u = smoothstep((local - cur[0]) / cur[3])
             prev = f[j - 1]
-            return (
-                float(prev[1] + (cur[1] - prev[1]) * u),
-                float(prev[2] + (cur[2] - prev[2]) * u),
-            )
-        return float(cur[1]), float(cur[2])
+            return prev[1] + (cur[1] - prev[1]) * u, prev[2] + (cur[2] - prev[2]) * u
+        return cur[1], cur[2]
 
     def sample(self, t: float) -> Contribution:
         faps = np.zeros(N)
@@ -160,12 +164,13 @@ class IdleLayer:
             yaw, pitch = self.gaze(t)
             faps[23] = faps[24] = a * yaw
             faps[25] = faps[26] = a * pitch
+        tau = 2 * math.pi * t
         if self.sway:
-            faps[48] = a * (2.0 * np.sin(2 * np.pi * t / 7.3) + 0.8 * np.sin(2 * np.pi * t / 3.1))
-            faps[49] = a * 3.0 * np.sin(2 * np.pi * t / 9.7 + 1.0)
-            faps[50] = a * 1.5 * np.sin(2 * np.pi * t / 11.3 + 2.0)
+            faps[48] = a * (2.0 * math.sin(tau / 7.3) + 0.8 * math.sin(tau / 3.1))
+            faps[49] = a * 3.0 * math.sin(tau / 9.7 + 1.0)
+            faps[50] = a * 1.5 * math.sin(tau / 11.3 + 2.0)
         if self.breathing:
-            b = np.sin(2 * np.pi * t / 4.3)
+            b = math.sin(tau / 4.3)
             faps[48] += a * 0.3 * b
             faps[61] = faps[62] = self.amount * 20.0 * max(b, 0.0)
         c = self.closure(t) if self.blinks else 0.0

@@ -24,8 +24,10 @@ With no layers the primary is returned as it is.
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 from collections.abc import Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -38,7 +40,7 @@ from .model import Contribution, GazeTarget, Geometry, Layer, Role
 LIP_PAIRS: np.ndarray = np.array([[4, 5], [8, 10], [9, 11], [51, 52], [55, 57], [56, 58]])
 #: Primary lip gap (MNS) at and below which the lips count as closed, and above which as open;
 #: in between the overlay may open them in proportion.
-CLOSED_GAP, OPEN_GAP = 30.0, 150.0
+CLOSED_GAP, OPEN_GAP = 80.0, 300.0
 _AU = 1e-5
 _DEFAULT_GEOMETRY = Geometry()
 
@@ -48,31 +50,41 @@ def _expand(
     expression: tuple[int, int, int, int] | None,
     geo: Geometry,
 ) -> np.ndarray | None:
-    """``(69,)`` low-level FAPs of FAP 1/2 with the geometry's tables (None when both are None)."""
+    """``(69,)`` low-level FAPs of FAP 1/2 with the geometry's tables (None when both are None);
+    remembered per geometry (read-only arrays)."""
     if viseme is None and expression is None:
         return None
-    from ..mpeg4.highlevel import expand
+    key = (viseme, expression)
+    cache = geo.expansions
+    hit = cache.get(key)
+    if hit is None:
+        from ..mpeg4.highlevel import expand
 
-    return expand(FaceState(viseme=viseme, expression=expression), geo.visemes, geo.expressions)
+        hit = expand(FaceState(viseme=viseme, expression=expression), geo.visemes, geo.expressions)
+        hit.flags.writeable = False
+        if len(cache) >= 4096:
+            cache.clear()
+        cache[key] = hit
+    return hit
 
 
-def _rot(pitch: float, yaw: float, roll: float) -> np.ndarray:
-    """``Ry(yaw) · Rx(pitch) · Rz(roll)`` (radians), the rig's head rotation."""
-    cp, sp, cy, sy, cr, sr = (
-        np.cos(pitch),
-        np.sin(pitch),
-        np.cos(yaw),
-        np.sin(yaw),
-        np.cos(roll),
-        np.sin(roll),
-    )
-    return np.array(
-        [
-            [cy * cr + sy * sp * sr, -cy * sr + sy * sp * cr, sy * cp],
-            [cp * sr, cp * cr, -sp],
-            [-sy * cr + cy * sp * sr, sy * sr + cy * sp * cr, cy * cp],
-        ]
-    )
+def _rot(pitch: float, yaw: float, roll: float) -> list[list[float]]:
+    """``Ry(yaw) · Rx(pitch) · Rz(roll)`` (radians), the rig's head rotation, as nested lists."""
+    cp, sp, cy, sy = math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    cr, sr = math.cos(roll), math.sin(roll)
+    return [
+        [cy * cr + sy * sp * sr, -cy * sr + sy * sp * cr, sy * cp],
+        [cp * sr, cp * cr, -sp],
+        [-sy * cr + cy * sp * sr, sy * sr + cy * sp * cr, cy * cp],
+    ]
+
+
+def _mv(R: list[list[float]], v: Sequence[float]) -> list[float]:
+    return [R[i][0] * v[0] + R[i][1] * v[1] + R[i][2] * v[2] for i in range(3)]
+
+
+def _mtv(R: list[list[float]], v: Sequence[float]) -> list[float]:
+    return [R[0][i] * v[0] + R[1][i] * v[1] + R[2][i] * v[2] for i in range(3)]
 
 
 def head_angles(head: np.ndarray, pivot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -88,49 +100,58 @@ def head_angles(head: np.ndarray, pivot: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def head_transform(
-    angles: np.ndarray, pivot: np.ndarray, rest: np.ndarray | None = None
+    angles: Sequence[float], pivot: np.ndarray, rest: np.ndarray | None = None
 ) -> np.ndarray:
     """``(3, 4)`` head transform of ``(pitch, yaw, roll)`` AU about ``pivot``, then ``rest``."""
-    R = _rot(*(float(a) * _AU for a in angles))
+    R = np.array(_rot(*(float(a) * _AU for a in angles)))
     out = np.empty((3, 4))
     out[:, :3] = R
     out[:, 3] = pivot - R @ pivot + (0.0 if rest is None else rest)
     return out
 
 
-def eye_angles(direction: np.ndarray, axis: np.ndarray) -> tuple[float, float]:
+def eye_angles(direction: Sequence[float], axis: Sequence[float]) -> tuple[float, float]:
     """``(yaw, pitch)`` radians with ``Ry(yaw) · Rx(pitch) · axis`` along ``direction`` (head-local;
     ``axis`` the eyeball's unit neutral forward axis)."""
-    d = direction / np.linalg.norm(direction)
-    ax, ay, az = (float(v) for v in axis)
-    r = float(np.hypot(ay, az))
-    phi = float(np.arctan2(az, ay))
-    pitch = float(np.arccos(np.clip(d[1] / r, -1.0, 1.0))) - phi
-    uz = ay * np.sin(pitch) + az * np.cos(pitch)
-    yaw = float(np.arctan2(d[0], d[2]) - np.arctan2(ax, uz))
-    yaw = (yaw + np.pi) % (2 * np.pi) - np.pi
+    dx, dy, dz = direction
+    n = math.sqrt(dx * dx + dy * dy + dz * dz)
+    ax, ay, az = axis
+    r = math.hypot(ay, az)
+    pitch = math.acos(max(-1.0, min(1.0, dy / n / r))) - math.atan2(az, ay)
+    uz = ay * math.sin(pitch) + az * math.cos(pitch)
+    yaw = math.atan2(dx, dz) - math.atan2(ax, uz)
+    yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
     return yaw, pitch
 
 
-def gaze_faps(target: GazeTarget, geo: Geometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``(4,)`` FAPs 23-26 (AU) turning both eyes to ``target`` (a ``GazeTarget``) under the head
-    transform ``[R | t]``: the eye centres move with the head, the target stays put."""
-    out = np.empty(4)
-    for i in range(2):
-        if target.point is not None:
-            d_world = target.point - (R @ geo.eye_pivots[i] + t)
+def gaze_faps(
+    target: GazeTarget, geo: Geometry, R: list[list[float]], t: Sequence[float]
+) -> list[float]:
+    """FAPs 23-26 (AU) turning both eyes to ``target`` under the head transform ``[R | t]``
+    (nested lists): the eye centres move with the head, the target stays put."""
+    out = [0.0, 0.0, 0.0, 0.0]
+    p = target.point
+    for i, (centre, axis) in enumerate(geo.eyes):
+        if p is not None:
+            c = _mv(R, centre)
+            d = [p[0] - c[0] - t[0], p[1] - c[1] - t[1], p[2] - c[2] - t[2]]
         else:
             assert target.direction is not None
-            d_world = target.direction
-        yaw, pitch = eye_angles(R.T @ d_world, geo.eye_axes[i])
+            d = target.direction.tolist()
+        yaw, pitch = eye_angles(_mtv(R, d), axis)
         out[i], out[2 + i] = yaw / _AU, pitch / _AU
     return out
+
+
+_TOP, _BOTTOM = LIP_PAIRS[:, 0].copy(), LIP_PAIRS[:, 1].copy()
+_PAIRS: tuple[tuple[int, int], ...] = tuple((int(a), int(b)) for a, b in LIP_PAIRS)
+_LIPS = LIP_PAIRS.reshape(-1)
 
 
 def closure_factor(F: np.ndarray) -> np.ndarray:
     """``(6,)`` how closed each lip pair of the FAPs ``F (69,)`` is: 1 at or below ``CLOSED_GAP``,
     0 from ``OPEN_GAP``."""
-    gap = -(F[LIP_PAIRS[:, 0]] + F[LIP_PAIRS[:, 1]])
+    gap = -(F[_TOP] + F[_BOTTOM])
     x = np.clip((gap - CLOSED_GAP) / (OPEN_GAP - CLOSED_GAP), 0.0, 1.0)
     return 1.0 - x * x * (3.0 - 2.0 * x)
 
@@ -138,18 +159,27 @@ def closure_factor(F: np.ndarray) -> np.ndarray:
 def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` with the lip opening they would add to the primary's FAPs ``F`` taken out
     where ``F`` holds the lips closed (``closure_factor``); corners, spreading and the lips' common
-    shift stay. Returns a new array."""
-    c = closure_factor(F)
-    if not np.any(c > 0):
-        return A
-    A = A.copy()
-    top, bottom = LIP_PAIRS[:, 0], LIP_PAIRS[:, 1]
-    opening = np.maximum(-(A[top] + A[bottom]), 0.0) * c
-    A[top] += opening / 2
-    A[bottom] += opening / 2
-    if A[3] > 0:
-        A[3] *= 1.0 - c[0]
-    return A
+    shift stay. Returns ``A`` itself when nothing changes, else a new array."""
+    a = A[_LIPS].tolist()
+    jaw = float(A[3])
+    if jaw <= 0 and all(a[2 * i] + a[2 * i + 1] >= 0 for i in range(6)):
+        return A  # the offsets open neither the lips nor the jaw
+    f = F[_LIPS].tolist()
+    span = OPEN_GAP - CLOSED_GAP
+    out = None
+    for i, (top, bottom) in enumerate(_PAIRS):
+        x = (-(f[2 * i] + f[2 * i + 1]) - CLOSED_GAP) / span
+        c = 1.0 if x <= 0.0 else 0.0 if x >= 1.0 else 1.0 - x * x * (3.0 - 2.0 * x)
+        opening = -(a[2 * i] + a[2 * i + 1])
+        if i == 0 and jaw > 0 and c > 0:
+            out = A.copy() if out is None else out
+            out[3] = jaw * (1.0 - c)
+        if opening > 0 and c > 0:
+            out = A.copy() if out is None else out
+            cut = opening * c / 2
+            out[top] += cut
+            out[bottom] += cut
+    return A if out is None else out
 
 
 def combine(
@@ -174,20 +204,45 @@ def combine(
     if not items:
         return primary if t == primary.t else dataclasses.replace(primary, t=t)
     geo = _DEFAULT_GEOMETRY if geometry is None else geometry
-    low = np.array(primary.faps, dtype=np.float64).reshape(-1)
-    if low.shape != (69,):
-        raise ValueError(f"FaceState.faps must have shape (69,), not {low.shape}")
-    low[:3] = 0.0
+    F = np.array(primary.faps, dtype=np.float64)
+    if F.shape != (69,):
+        raise ValueError(f"FaceState.faps must have shape (69,), not {F.shape}")
+    F[:3] = 0.0
     high = _expand(primary.viseme, primary.expression, geo)
-    F = low if high is None else low + high
+    if high is not None:
+        F += high
+
+    # one pass over the contributions
+    poses: list[tuple[np.ndarray, float]] = []
+    gazes: list[tuple[GazeTarget, float]] = []
+    overrides: list[tuple[np.ndarray, Any]] = []
+    roles: dict[Role, list[tuple[np.ndarray, Any]]] = {}
+    for role, c in items:
+        if c.head is not None and c.head_weight > 0:
+            poses.append((c.head, c.head_weight))
+        if c.gaze is not None and c.gaze_weight > 0:
+            gazes.append((c.gaze, c.gaze_weight))
+        if c.override is not None:
+            overrides.append((c.override, c.override_weight))
+        x = c.faps
+        if c.viseme is not None or c.expression is not None:
+            h = _expand(c.viseme, c.expression, geo)
+            x = h if x is None else x + h
+        if x is None:
+            continue
+        if c.amount != 1.0:
+            x = c.amount * x
+        group = roles.get(role)
+        if group is None:
+            roles[role] = [(x, c.weight)]
+        else:
+            group.append((x, c.weight))
 
     # 2. head pose over the primary's
     head_out = primary.head
     rest: np.ndarray | None = None
-    poses = [(c.head, c.head_weight) for _, c in items if c.head is not None and c.head_weight > 0]
-    head_touched = bool(poses) or any(c.gaze is not None or _touches_head(c) for _, c in items)
-    if primary.head is not None and head_touched:
-        F[48:51], rest = head_angles(primary.head, geo.head_pivot)
+    if head_out is not None and (poses or gazes or any(_touches_head(c) for _, c in items)):
+        F[48:51], rest = head_angles(head_out, geo.head_pivot)
     if poses:
         wsum = sum(w for _, w in poses)
         target = sum(np.asarray(p, dtype=np.float64) * w for p, w in poses) / wsum
@@ -196,75 +251,89 @@ def combine(
         if rest is not None:
             rest = rest * (1.0 - W)
 
-    # 3. offsets, averaged by weight inside a role
-    sums: dict[Role, list[np.ndarray | float]] = {}
-    for role, c in items:
-        x = c.faps
-        h = _expand(c.viseme, c.expression, geo)
-        if h is not None:
-            x = h if x is None else x + h
-        if x is None:
-            continue
-        if c.amount != 1.0:
-            x = c.amount * x
-        w = c.weight
-        acc = sums.get(role)
-        if acc is None:
-            sums[role] = [w * x, w]
-        else:
-            acc[0] = acc[0] + w * x
-            acc[1] = acc[1] + w
-    if sums:
-        A = np.zeros(69)
-        for num, den in sums.values():
-            A += np.asarray(num) / np.maximum(1.0, den)
-        A[:3] = 0.0
+    # 3. offsets, averaged by weight inside a role (a layer weighs on the FAPs it moves)
+    if roles:
+        A: Any = None
+        for group in roles.values():
+            if len(group) == 1:
+                part = _weighted(*group[0])
+            else:
+                num: Any = 0.0
+                den: Any = 0.0
+                for x, w in group:
+                    num = num + w * x
+                    den = den + w * (x != 0)
+                part = num / np.maximum(1.0, den)
+            A = part if A is None else A + part
         if closures:
             A = keep_closures(F, A)
-        F = F + A
+        F += A
+        F[:3] = 0.0
 
     # 5. overrides
-    num_o: np.ndarray | None = None
-    den_o: np.ndarray | float = 0.0
-    for _, c in items:
-        if c.override is not None:
-            w = c.override_weight
-            num_o = w * c.override if num_o is None else num_o + w * c.override
-            den_o = den_o + np.broadcast_to(w, (69,))
-    if num_o is not None:
-        den = np.asarray(den_o, dtype=np.float64)
+    if overrides:
+        num_o: Any = 0.0
+        den_o: Any = 0.0
+        for value, w in overrides:
+            num_o = num_o + w * value
+            den_o = den_o + w
+        den = np.broadcast_to(np.asarray(den_o, dtype=np.float64), (69,))
         on = den > 0
         target = np.divide(num_o, den, out=np.zeros(69), where=on)
-        W = np.minimum(1.0, den)
-        F = np.where(on, F + W * (target - F), F)
+        F = np.where(on, F + np.minimum(1.0, den) * (target - F), F)
 
     # head transform of the mix
     if rest is not None:
-        head_out = head_transform(F[48:51], geo.head_pivot, rest)
+        head_out = head_transform(F[48:51].tolist(), geo.head_pivot, rest)
         F[48:51] = 0.0
 
     # 6. gaze
-    gazes = [(c.gaze, c.gaze_weight) for _, c in items if c.gaze is not None and c.gaze_weight > 0]
     if gazes:
         if head_out is not None:
-            H = np.asarray(head_out, dtype=np.float64).reshape(3, 4)
+            H = np.asarray(head_out, dtype=np.float64).reshape(3, 4).tolist()
+            R, tr = [row[:3] for row in H], [row[3] for row in H]
         else:
-            H = head_transform(F[48:51], geo.head_pivot)
-        wsum = sum(w for _, w in gazes)
-        eyes = sum(gaze_faps(g, geo, H[:, :3], H[:, 3]) * w for g, w in gazes) / wsum
-        W = min(1.0, wsum)
-        F[23:27] += W * (eyes - F[23:27])
+            pitch, yaw, roll = F[48:51].tolist()
+            R = _rot(pitch * _AU, yaw * _AU, roll * _AU)
+            pv = geo.head_pivot.tolist()
+            Rp = _mv(R, pv)
+            tr = [pv[0] - Rp[0], pv[1] - Rp[1], pv[2] - Rp[2]]
+        if len(gazes) == 1:
+            g, W = gazes[0]
+            eyes = gaze_faps(g, geo, R, tr)
+            W = min(1.0, W)
+        else:
+            wsum = 0.0
+            eyes = [0.0, 0.0, 0.0, 0.0]
+            for g, w in gazes:
+                e = gaze_faps(g, geo, R, tr)
+                eyes = [a + w * b for a, b in zip(eyes, e, strict=True)]
+                wsum += w
+            eyes = [e / wsum for e in eyes]
+            W = min(1.0, wsum)
+        if W >= 1.0:
+            F[23:27] = eyes
+        else:
+            F[23:27] += W * (np.array(eyes) - F[23:27])
 
-    out = F if high is None else F - high
-    out[:3] = 0.0
+    if high is not None:
+        F -= high
+        F[:3] = 0.0
     return FaceState(
         t=t,
-        faps=out,
+        faps=F,
         viseme=primary.viseme,
         expression=primary.expression,
         controls=primary.controls,
         head=head_out,
     )
+
+
+def _weighted(x: np.ndarray, w: Any) -> np.ndarray:
+    """``x`` of a layer alone in its role at weight ``w`` (float or ``(69,)``, capped at 1)."""
+    if type(w) is float or type(w) is int:
+        return x if w >= 1.0 else w * x
+    return x * np.minimum(w, 1.0)
 
 
 def _touches_head(c: Contribution) -> bool:
@@ -379,3 +448,17 @@ class Mixer:
                 del self._layers[n]
             layers = list(self._layers.values())
         return mix(primary, layers, t, geometry=self.geometry, closures=self.closures)
+
+
+def mix_states(
+    states: Sequence[FaceState],
+    layers: Sequence[Layer],
+    *,
+    geometry: Geometry | None = None,
+    closures: bool = True,
+) -> list[FaceState]:
+    """``mix`` of every state of a stream (each at its own time) with ``layers``: a batch render's
+    layered animation. Without layers the states themselves are returned (same objects)."""
+    if not layers:
+        return list(states)
+    return [mix(s, layers, s.t, geometry=geometry, closures=closures) for s in states]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import enum
 import itertools
+import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -141,7 +142,8 @@ class Envelope:
     """BML timing of a behaviour (seconds of media time): 0 before ``start``, rising to 1 at
     ``attack_peak``, 1 until ``relax``, falling to 0 at ``end``; ``end=None`` holds for ever.
 
-    Missing ``attack_peak`` / ``relax`` default to a 0.3 s rise / fall (shortened to fit).
+    A missing ``attack_peak`` is an instant rise at ``start``, a missing ``relax`` an instant fall
+    at ``end``; rises and falls ease in and out (``smoothstep``). ``Envelope()`` is always 1.
     """
 
     start: float = 0.0
@@ -152,39 +154,24 @@ class Envelope:
     def __post_init__(self) -> None:
         for name in ("start", "attack_peak", "relax", "end"):
             v = getattr(self, name)
-            if v is not None and not np.isfinite(v):
+            if v is not None and not math.isfinite(v):
                 raise ValueError(f"envelope {name} must be finite")
         times = [self.start, self.attack_peak, self.relax, self.end]
         given = [v for v in times if v is not None]
         if any(b < a for a, b in itertools.pairwise(given)):
             raise ValueError("envelope times must satisfy start ≤ attack_peak ≤ relax ≤ end")
 
-    def peak(self) -> float:
-        """When the rise ends (s)."""
-        if self.attack_peak is not None:
-            return self.attack_peak
-        rise = 0.3 if self.end is None else min(0.3, (self.end - self.start) / 2)
-        return self.start + rise
-
-    def fall(self) -> float:
-        """When the fall starts (s; +inf without an end)."""
-        if self.relax is not None:
-            return self.relax
-        if self.end is None:
-            return float("inf")
-        return max(self.peak(), self.end - 0.3)
-
     def __call__(self, t: float) -> float:
         """The envelope's value 0..1 at media time ``t``."""
         if t < self.start or (self.end is not None and t >= self.end):
             return 0.0
-        peak = self.peak()
-        if t < peak:
+        peak = self.attack_peak
+        if peak is not None and t < peak:
             return smoothstep((t - self.start) / (peak - self.start))
-        fall = self.fall()
-        if t < fall or self.end is None:
+        relax = self.relax
+        if relax is None or self.end is None or t < relax:
             return 1.0
-        return 1.0 - smoothstep((t - fall) / (self.end - fall)) if self.end > fall else 0.0
+        return 1.0 - smoothstep((t - relax) / (self.end - relax))
 
 
 @runtime_checkable
@@ -221,6 +208,27 @@ class Geometry:
     head_pivot: np.ndarray = field(default_factory=lambda: np.zeros(3))
     visemes: np.ndarray = field(default_factory=lambda: VISEMES)
     expressions: np.ndarray = field(default_factory=lambda: EXPRESSIONS)
+    #: the eyes as Python floats (centre, axis) for the per-frame gaze arithmetic
+    eyes: tuple[tuple[tuple[float, ...], tuple[float, ...]], ...] = field(
+        init=False, repr=False, compare=False
+    )
+    #: high-level FAP expansions already made: (viseme, expression) -> (69,) read-only array
+    expansions: dict[object, np.ndarray] = field(
+        init=False, repr=False, compare=False, default_factory=dict
+    )
+
+    def __post_init__(self) -> None:
+        for name, shape in (("eye_pivots", (2, 3)), ("eye_axes", (2, 3)), ("head_pivot", (3,))):
+            v = np.asarray(getattr(self, name), dtype=np.float64)
+            if v.shape != shape or not np.all(np.isfinite(v)):
+                raise ValueError(f"{name} must be {shape} finite numbers")
+            object.__setattr__(self, name, v)
+        axes = self.eye_axes / np.linalg.norm(self.eye_axes, axis=1, keepdims=True)
+        object.__setattr__(self, "eye_axes", axes)
+        eyes = tuple(
+            (tuple(map(float, self.eye_pivots[i])), tuple(map(float, axes[i]))) for i in range(2)
+        )
+        object.__setattr__(self, "eyes", eyes)
 
     @classmethod
     def of_rig(cls, rig: Any) -> Geometry:

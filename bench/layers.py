@@ -1,0 +1,163 @@
+"""Face layers: what mixing costs per frame and session, next to the solve it sits on.
+
+    python bench/layers.py [--frames 3000] [--repeats 5]
+
+The primary is real speech (``../shared/data/speech``: mary and bobby through the audio driver,
+low-level FAPs at 25 fps, tiled to ``--frames``) on the built-in head. Per frame, in the same
+run: the solve as today (``FapRig.solve_batch`` in chunks of 32 as ``Animator.render``, and one
+state at a time as a lone live session), and ``Mixer.mix`` with 0-3 layers (an expression
+overlay, the idle layer, gaze at a point) and with three layers over a FAP 1 (viseme) primary;
+then the solve of the mixed states (what the layers cost the solve). Times are thread CPU time
+(``time.thread_time``; the machine is shared), median over repeats; wall time beside it.
+Writes ``bench/out/layers.json`` and a markdown table; the load average is in both.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from facecast.server.state import FaceState
+
+
+def per_frame(fn, n: int, repeats: int) -> tuple[float, float]:
+    """Median (thread CPU, wall) seconds per frame of ``fn()`` over ``repeats`` runs of ``n`` frames."""
+    cpu, wall = [], []
+    for _ in range(repeats):
+        c, w = time.thread_time(), time.perf_counter()
+        fn()
+        cpu.append((time.thread_time() - c) / n)
+        wall.append((time.perf_counter() - w) / n)
+    return statistics.median(cpu), statistics.median(wall)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from facecast.server.drivers import load_animation
+    from facecast.server.faces import load_face
+    from facecast.server.layers import (
+        Envelope,
+        ExpressionLayer,
+        GazeLayer,
+        GazeTarget,
+        Geometry,
+        IdleLayer,
+        Mixer,
+    )
+    from facecast.server.mpeg4.rig import FapRig
+    from facecast.server.paths import shared_data
+    from facecast.server.pipeline import CHUNK
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=3000)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--out", default=str(Path(__file__).parent / "out" / "layers.json"))
+    args = ap.parse_args(argv)
+    data = shared_data()
+    if data is None:
+        print("../shared/data not found: the bench needs its speech", file=sys.stderr)
+        return 2
+    load0 = os.getloadavg()
+    face = load_face("default")
+    rig = FapRig(face)
+    geo = Geometry.of_rig(rig)
+    speech = []
+    for wav in ("mary.wav", "bobby_16bit_16khz.wav"):
+        speech += load_animation(data / "speech" / wav, face).states
+    n = args.frames
+    fps = 25.0
+    primary = [FaceState(t=i / fps, faps=speech[i % len(speech)].faps) for i in range(n)]
+    visemes = [FaceState(t=i / fps, viseme=(1 + i % 14, 0, 40)) for i in range(n)]
+    layers = [
+        ("smile", ExpressionLayer(1, amount=0.7, envelope=Envelope(start=1.0, attack_peak=1.5))),
+        ("idle", IdleLayer(seed=1)),
+        ("gaze", GazeLayer(GazeTarget(point=np.array([100.0, 50.0, 600.0])))),
+    ]
+
+    def solve_chunks(states):
+        def run():
+            for s in range(0, n, CHUNK):
+                rig.solve_batch(states[s : s + CHUNK])
+
+        return run
+
+    def solve_single(states):
+        def run():
+            for st in states:
+                rig.solve_batch([st])
+
+        return run
+
+    def mixing(k: int, states):
+        m = Mixer(geo)
+        for name, layer in layers[:k]:
+            m.set(name, layer)
+
+        def run():
+            for st in states:
+                m.mix(st)
+
+        return run
+
+    rows = []
+
+    def row(name: str, fn) -> dict:
+        cpu, wall = per_frame(fn, n, args.repeats)
+        r = {"case": name, "cpu_ms": cpu * 1e3, "wall_ms": wall * 1e3}
+        rows.append(r)
+        print(f"{name:40s} {cpu * 1e3:8.4f} ms cpu {wall * 1e3:8.4f} ms wall", file=sys.stderr)
+        return r
+
+    base_chunk = row("solve, chunks of 32 (baseline)", solve_chunks(primary))
+    base_one = row("solve, one state (baseline)", solve_single(primary))
+    mixes = [row(f"mix, {k} layer(s)", mixing(k, primary)) for k in range(4)]
+    mix_vis = row("mix, 3 layers, viseme primary", mixing(3, visemes))
+    m = Mixer(geo)
+    for name, layer in layers:
+        m.set(name, layer)
+    mixed = [m.mix(st) for st in primary]
+    solved_mixed = row("solve of the mixed states, chunks of 32", solve_chunks(mixed))
+    load1 = os.getloadavg()
+    result = {
+        "frames": n,
+        "repeats": args.repeats,
+        "face": "default",
+        "vertices": face.n_vertices,
+        "controls": rig.n_controls,
+        "cpus": os.cpu_count(),
+        "loadavg_start": load0,
+        "loadavg_end": load1,
+        "target_ms": 0.05,
+        "mix3_cpu_ms": mixes[3]["cpu_ms"],
+        "mix3_over_solve_chunk": mixes[3]["cpu_ms"] / base_chunk["cpu_ms"],
+        "solve_mixed_extra_cpu_ms": solved_mixed["cpu_ms"] - base_chunk["cpu_ms"],
+        "rows": rows,
+    }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    print(
+        f"\nbuilt-in head ({face.n_vertices} vertices, {rig.n_controls} controls), {n} frames of "
+        f"real speech, median of {args.repeats}; load average {load0[0]:.1f} -> {load1[0]:.1f} "
+        f"on {os.cpu_count()} CPUs\n"
+    )
+    print("| per frame | CPU ms | wall ms |")
+    print("|---|---|---|")
+    for r in rows:
+        print(f"| {r['case']} | {r['cpu_ms']:.4f} | {r['wall_ms']:.4f} |")
+    print(
+        f"\nthree layers: {mixes[3]['cpu_ms']:.4f} ms per frame (target 0.05) over a "
+        f"{base_chunk['cpu_ms']:.4f} ms batched solve ({base_one['cpu_ms']:.4f} ms alone); "
+        f"viseme primary {mix_vis['cpu_ms']:.4f} ms"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

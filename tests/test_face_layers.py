@@ -1,0 +1,457 @@
+"""Face layers (issue 18): the mixing rules, speech keeping its closures under a smile (real
+speech), idle blinks at human rates, gaze on the deformed mesh, the Mixer, and `render --layer`."""
+
+from __future__ import annotations
+
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facecast.server.errors import Conflict, InputError, NotFound
+from facecast.server.layers import (
+    Contribution,
+    Envelope,
+    ExpressionLayer,
+    GazeLayer,
+    GazeTarget,
+    Geometry,
+    HeadGesture,
+    HeadPose,
+    IdleLayer,
+    Mixer,
+    Role,
+    TrackLayer,
+    combine,
+    mix,
+    mix_states,
+    parse_gaze,
+    region_mask,
+)
+from facecast.server.layers.head import AU_PER_DEG
+from facecast.server.layers.mix import head_angles, head_transform, keep_closures
+from facecast.server.mpeg4.highlevel import EXPRESSIONS, VISEMES, expand
+from facecast.server.state import FaceState, zero_faps
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def faps(**values: float) -> np.ndarray:
+    f = zero_faps()
+    for k, v in values.items():
+        f[int(k[1:])] = v
+    return f
+
+
+# -- mixing rules -----------------------------------------------------------------------------
+
+
+def test_no_layers_returns_the_primary_itself():
+    p = FaceState(t=0.5, faps=faps(f31=10), viseme=(1, 0, 63))
+    assert mix(p, []) is p
+    assert mix_states([p], []) == [p]
+
+
+def test_offsets_add_and_the_primary_keeps_its_high_level_faps():
+    p = FaceState(t=0.0, faps=faps(f31=100), viseme=(10, 0, 63))
+    out = combine(p, [(Role.EXPRESSION, Contribution(faps=faps(f31=50, f41=30)))], closures=False)
+    assert out.viseme == (10, 0, 63)
+    low = expand(out)
+    want = expand(p) + faps(f31=50, f41=30)
+    assert np.allclose(low, want)
+
+
+def test_layers_of_one_role_compete_and_average_by_weight_roles_add():
+    a = Contribution(faps=faps(f31=100, f33=40))
+    b = Contribution(faps=faps(f31=300))
+    out = combine(None, [(Role.EXPRESSION, a), (Role.EXPRESSION, b)])
+    assert out.faps[31] == pytest.approx(200.0)  # both at full weight: the mean
+    assert out.faps[33] == pytest.approx(40.0)  # only one layer weighs on it, still averaged by Σw
+    half = combine(None, [(Role.EXPRESSION, Contribution(faps=faps(f31=100), weight=0.5))])
+    assert half.faps[31] == pytest.approx(50.0)  # one layer below full weight: scaled
+    two = combine(
+        None,
+        [
+            (Role.EXPRESSION, Contribution(faps=faps(f31=100), weight=0.25)),
+            (Role.EXPRESSION, Contribution(faps=faps(f31=300), weight=0.25)),
+        ],
+    )
+    assert two.faps[31] == pytest.approx(100.0)  # Σw ≤ 1: weighted offsets add
+    roles = combine(None, [(Role.EXPRESSION, a), (Role.HEAD, b)])
+    assert roles.faps[31] == pytest.approx(400.0)  # different roles add
+
+
+def test_region_masks_limit_a_layer():
+    joy = ExpressionLayer(1, regions=("eyebrows",))
+    out = mix(None, [joy], 0.0)
+    brows = list(range(31, 39))
+    assert np.allclose(out.faps[brows], EXPRESSIONS[1][brows])
+    assert not np.any(out.faps[3:19]) and not np.any(out.faps[39:43])
+    with pytest.raises(KeyError, match="unknown face region"):
+        region_mask(["chin"])
+
+
+def test_amount_scales_and_envelope_times_the_overlay():
+    env = Envelope(start=1.0, attack_peak=1.5, relax=3.0, end=4.0)
+    layer = ExpressionLayer(6, amount=0.5, envelope=env)
+    assert mix(None, [layer], 0.9).faps[31] == 0.0
+    assert mix(None, [layer], 2.0).faps[31] == pytest.approx(0.5 * EXPRESSIONS[6][31])
+    assert 0 < mix(None, [layer], 1.25).faps[31] < 0.5 * EXPRESSIONS[6][31]
+    assert mix(None, [layer], 4.0).faps[31] == 0.0
+    assert [env(t) for t in (0.0, 1.0, 1.5, 2.0, 3.0, 3.5, 4.0)] == pytest.approx(
+        [0, 0, 1, 1, 1, 0.5, 0]
+    )
+    assert Envelope()(123.0) == 1.0
+    with pytest.raises(ValueError):
+        Envelope(start=2.0, end=1.0)
+
+
+def test_overrides_replace_what_is_below():
+    # a blink closes the lids over an expression that opens them wide (surprise)
+    idle = IdleLayer(seed=3)
+    t = next(t for t in np.arange(0, 30, 0.001) if idle.closure(t) == 1.0)
+    out = mix(FaceState(t=t), [ExpressionLayer(6), idle], t, closures=False)
+    assert out.faps[19] == pytest.approx(1024.0) and out.faps[20] == pytest.approx(1024.0)
+    # head pose replaces the primary's head FAPs; a nod adds on top
+    p = FaceState(t=0.0, faps=faps(f48=5000, f49=-7000))
+    pose = HeadPose(pitch=0.0, yaw=10.0)
+    out = mix(p, [pose], 0.0)
+    assert out.faps[49] == pytest.approx(10 * AU_PER_DEG) and out.faps[48] == pytest.approx(0.0)
+    nod = HeadGesture("nod", envelope=Envelope(start=0.0, end=0.6))
+    out = mix(p, [pose, nod], 0.3)
+    assert out.faps[48] == pytest.approx(8 * AU_PER_DEG)  # the nod's bottom, over the pose
+    half = mix(p, [HeadPose(yaw=10.0, amount=0.5)], 0.0)
+    assert half.faps[49] == pytest.approx(0.5 * (-7000) + 0.5 * 10 * AU_PER_DEG)
+
+
+def test_head_pose_over_a_primary_head_transform():
+    pivot = np.array([0.0, -50.0, -10.0])
+    geo = Geometry(head_pivot=pivot)
+    M = head_transform([3000.0, -12000.0, 2000.0], pivot, np.array([1.0, 2.0, 3.0]))
+    ang, rest = head_angles(M, pivot)
+    assert np.allclose(ang, [3000.0, -12000.0, 2000.0]) and np.allclose(rest, [1.0, 2.0, 3.0])
+    p = FaceState(t=0.0, head=M)
+    out = mix(p, [HeadPose(yaw=20.0)], 0.0, geometry=geo)
+    want = head_transform([0.0, 20 * AU_PER_DEG, 0.0], pivot)
+    assert np.allclose(out.head, want)
+    assert mix(p, [ExpressionLayer(1)], 0.0).head is M  # layers that leave the head alone
+
+
+def test_closures_keep_the_lips_shut_and_the_smile_corners():
+    pp = FaceState(t=0.0, viseme=(1, 0, 63))  # /p/: lips pressed
+    out = mix(pp, [ExpressionLayer(1)], 0.0)
+    F = expand(out)
+    gap = -(F[4] + F[5])
+    assert gap <= -(VISEMES[1][4] + VISEMES[1][5]) + 1e-9  # no more open than the /p/
+    for k in (6, 7, 12, 13, 53, 54, 59, 60):  # corners, spreading: the smile's
+        assert F[k] == pytest.approx(VISEMES[1][k] + EXPRESSIONS[1][k])
+    assert F[3] == pytest.approx(0.0)  # no jaw drop under closed lips
+    aa = FaceState(t=0.0, viseme=(10, 0, 63))  # wide open vowel: the smile adds freely
+    F = expand(mix(aa, [ExpressionLayer(1)], 0.0))
+    assert np.allclose(F, VISEMES[10] + EXPRESSIONS[1])
+    free = expand(mix(pp, [ExpressionLayer(1)], 0.0, closures=False))
+    assert -(free[4] + free[5]) > 0  # without the rule the smile parts a /p/
+    A = EXPRESSIONS[1].copy()
+    assert keep_closures(VISEMES[10], A) is A
+
+
+def test_gaze_target_parsing():
+    assert np.allclose(parse_gaze("camera").direction, [0, 0, 1])
+    assert np.allclose(parse_gaze(" 1, -2.5,300 ").point, [1, -2.5, 300])
+    for bad in ("", "1,2", "a,b,c", "1,2,nan", "1,2,3,4"):
+        with pytest.raises(ValueError, match="camera"):
+            parse_gaze(bad)
+    with pytest.raises(ValueError):
+        GazeTarget()
+
+
+# -- mixer ------------------------------------------------------------------------------------
+
+
+def test_mixer_add_change_remove_and_ended_layers():
+    m = Mixer(max_layers=3)
+    m.add("smile", ExpressionLayer(1, envelope=Envelope(end=2.0)))
+    with pytest.raises(Conflict):
+        m.add("smile", ExpressionLayer(2))
+    m.set("brow", ExpressionLayer(6, regions=("eyebrows",)))
+    m.set("idle", IdleLayer())
+    with pytest.raises(Conflict):
+        m.set("fourth", IdleLayer())
+    assert m.change("brow", amount=0.5).amount == 0.5
+    with pytest.raises(NotFound):
+        m.change("nope", amount=1.0)
+    with pytest.raises(InputError):
+        m.change("brow", colour=3)
+    with pytest.raises(InputError):
+        m.change("brow", amount=float("nan"))
+    with pytest.raises(InputError):
+        m.set("", IdleLayer())
+    with pytest.raises(TypeError):
+        m.set("x", object())  # type: ignore[arg-type]
+    assert list(m.layers()) == ["smile", "brow", "idle"]
+    m.mix(FaceState(t=1.0))
+    assert "smile" in m.layers()
+    m.mix(FaceState(t=2.5))
+    assert "smile" not in m.layers()  # its envelope ended
+    assert isinstance(m.remove("brow"), ExpressionLayer) and m.remove("brow") is None
+    assert len(m) == 1
+
+
+def test_mixer_mixes_while_another_thread_changes_it():
+    m = Mixer()
+    m.set("idle", IdleLayer())
+    stop = threading.Event()
+    errors: list[BaseException] = []
+
+    def churn() -> None:
+        i = 0
+        while not stop.is_set():
+            try:
+                m.set(f"e{i % 5}", ExpressionLayer(1 + i % 6, amount=0.5))
+                m.remove(f"e{(i + 2) % 5}")
+            except BaseException as e:  # noqa: BLE001 - reported by the test
+                errors.append(e)
+            i += 1
+
+    th = threading.Thread(target=churn)
+    th.start()
+    try:
+        for k in range(2000):
+            out = m.mix(FaceState(t=k / 100))
+            assert np.all(np.isfinite(out.faps))
+    finally:
+        stop.set()
+        th.join()
+    assert not errors
+
+
+# -- idle -------------------------------------------------------------------------------------
+
+
+def _blinks(layer: IdleLayer, seconds: float, dt: float = 0.001):
+    t = np.arange(0.0, seconds, dt)
+    c = np.array([layer.closure(x) for x in t])
+    moving = c > 0
+    starts = np.flatnonzero(moving[1:] & ~moving[:-1]) + 1
+    ends = np.flatnonzero(~moving[1:] & moving[:-1]) + 1
+    ends = ends[ends > starts[0]]
+    return t, c, starts, ends
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_idle_blinks_at_human_rates_and_durations(seed):
+    layer = IdleLayer(seed=seed)
+    minutes = 3.0
+    t, c, starts, ends = _blinks(layer, 60 * minutes)
+    rate = len(starts) / minutes
+    assert 10 <= rate <= 25
+    gaps = np.diff(t[starts])
+    assert gaps.min() >= layer.refractory
+    assert gaps.std() / gaps.mean() > 0.4  # irregular (Poisson-like), not a metronome
+    for s, e in zip(starts, ends, strict=False):  # (a blink cut by the window's end: left out)
+        blink = c[s:e]
+        peak = np.flatnonzero(blink >= 0.999)
+        closing = peak[0] * 0.001
+        opening = (len(blink) - peak[-1]) * 0.001
+        closed = (peak[-1] - peak[0]) * 0.001
+        assert 0.09 <= closing <= 0.16
+        assert closed <= 0.07
+        assert opening > 1.5 * closing
+    assert np.array_equal(c, _blinks(IdleLayer(seed=seed), 60 * minutes)[1])  # deterministic
+
+
+def test_idle_saccades_fixations_sway():
+    layer = IdleLayer(seed=4)
+    t = np.arange(0.0, 120.0, 0.005)
+    yaw = np.array([layer.gaze(x)[0] for x in t])
+    still = np.abs(np.diff(yaw)) < 1e-9
+    # fixations: runs of no eye motion, 0.3-3 s
+    edges = np.flatnonzero(np.diff(still.astype(int)))
+    runs = np.diff(edges)[still[edges[:-1] + 1]] * 0.005
+    assert runs.min() >= 0.25 and runs.max() <= 3.0
+    assert np.abs(yaw).max() < 12.0  # small amplitudes
+    out = [layer.sample(x).faps for x in (0.0, 2.0, 4.0)]
+    assert all(abs(f[48]) < 4 * AU_PER_DEG and abs(f[49]) < 4 * AU_PER_DEG for f in out)
+    assert len({round(f[49]) for f in out}) == 3  # the head sways
+
+
+def test_demo_is_its_script_over_the_idle_layer():
+    from facecast.server.drivers.demo import demo_states
+
+    states = list(demo_states(30, loops=1))
+    lids = np.array([s.faps[19] for s in states])
+    assert (lids > 1000).sum() > 0  # blinks
+    assert any(s.expression for s in states) and any(s.viseme for s in states)
+    assert np.ptp([s.faps[49] for s in states]) > AU_PER_DEG  # sway
+
+
+# -- speech keeps its closures (real speech) ---------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def lipsync_bench():
+    sys.path.insert(0, str(ROOT / "bench" / "lipsync"))
+    import classes
+    import textgrid
+
+    return classes, textgrid
+
+
+@pytest.mark.parametrize(
+    ("wav", "grid", "alphabet"),
+    [
+        ("mary.wav", "mary.TextGrid", "ipa"),
+        ("bobby_16bit_16khz.wav", "bobby_phones.TextGrid", "arpabet"),
+    ],
+)
+def test_speech_with_a_smile_keeps_its_lip_closures(data_dir, lipsync_bench, wav, grid, alphabet):
+    """Closed-frame accuracy (the lip-sync bench's open/closed classes as truth, the lip-contact
+    distance between the inner lip midpoints 2.2/2.3 of the face as the measure) does not drop
+    with a smile over the speech; without the closure rule it would."""
+    from facecast.server.drivers import load_animation
+    from facecast.server.faces import load_face
+    from facecast.server.mpeg4.rig import FapRig
+
+    classes, textgrid = lipsync_bench
+    face = load_face("default")
+    rig = FapRig(face)
+    geo = Geometry.of_rig(rig)
+    speech = load_animation(data_dir / "speech" / wav, face)
+    tiers = textgrid.read_tiers(data_dir / "speech" / grid)
+    tier = tiers.get("phone") or tiers.get("phones") or next(iter(tiers.values()))
+    truth = classes.frames_from_intervals(
+        tier, alphabet, len(speech.states) / speech.fps, speech.fps
+    )[: len(speech.states)]
+    known = truth >= 0
+    closed = known & ~classes.OPEN[np.maximum(truth, 0)]
+    ids = [next(i for i, n in enumerate(rig.fp_ids) if fp in n.split("+")) for fp in ("2.2", "2.3")]
+    rest = face.vertices[rig.control_vertices[ids], 1].astype(np.float64)
+
+    def closed_accuracy(states) -> float:
+        D, _ = rig.solve_batch(states)
+        gap_mm = ((rest[0] + D[:, ids[0], 1]) - (rest[1] + D[:, ids[1], 1])) * face.mm_per_unit
+        return float((gap_mm < 1.0)[closed].mean())
+
+    joy = load_animation(data_dir / "xface" / "faps" / "joy.fap", None)
+    base = closed_accuracy(speech.states)
+    assert base > 0.5  # the measure sees the speech's closures
+    for layer in (ExpressionLayer(1), TrackLayer(joy.states, joy.fps, loop=True)):
+        assert closed_accuracy(mix_states(speech.states, [layer], geometry=geo)) >= base
+        free = mix_states(speech.states, [layer], geometry=geo, closures=False)
+        assert closed_accuracy(free) < base
+
+
+# -- gaze on the deformed mesh ----------------------------------------------------------------
+
+
+def _sphere_centre(P: np.ndarray) -> np.ndarray:
+    A = np.c_[2 * P, np.ones(len(P))]
+    return np.linalg.lstsq(A, (P**2).sum(1), rcond=None)[0][:3]
+
+
+def _gaze_errors(face, animator, geo, layers, target: GazeTarget) -> list[float]:
+    """Angle (°) between each deformed eyeball's axis (centre -> pupil vertex) and the target."""
+    V = animator.frame(mix(FaceState(t=0.0), layers, 0.0, geometry=geo)).astype(np.float64)
+    out = []
+    for part, fp in (("eye_l", "3.5"), ("eye_r", "3.6")):
+        c = _sphere_centre(V[face.part(part)])
+        axis = V[face.feature_points[fp]] - c
+        want = target.point - c if target.point is not None else target.direction
+        cos = axis @ want / np.linalg.norm(axis) / np.linalg.norm(want)
+        out.append(float(np.degrees(np.arccos(np.clip(cos, -1, 1)))))
+    return out
+
+
+TARGETS = [
+    GazeTarget.camera(),
+    GazeTarget(point=np.array([0.0, 40.0, 250.0])),  # close, above: converging
+    GazeTarget(point=np.array([300.0, 100.0, 600.0])),
+    GazeTarget(point=np.array([-200.0, -150.0, 400.0])),
+    GazeTarget(direction=np.array([-0.3, 0.2, 1.0])),
+]
+
+
+@pytest.fixture(scope="module")
+def default_head():
+    from facecast.server.faces import load_face
+    from facecast.server.pipeline import Animator
+
+    face = load_face("default")
+    animator = Animator(face, backend="numpy")
+    return face, animator, Geometry.of_rig(animator.rig)
+
+
+@pytest.mark.parametrize("head", [None, HeadPose(pitch=10, yaw=-20, roll=5)])
+@pytest.mark.parametrize("target", TARGETS, ids=range(len(TARGETS)))
+def test_gaze_points_the_deformed_eyes_at_the_target(default_head, target, head):
+    face, animator, geo = default_head
+    assert face.feature_points["3.5"] in set(face.part("eye_l").tolist())
+    layers = [GazeLayer(target), IdleLayer(seed=1)] + ([head] if head else [])
+    errors = _gaze_errors(face, animator, geo, layers, target)
+    assert max(errors) < 2.0, errors
+    # without the gaze layer the eyes look elsewhere (the check is not vacuous)
+    if target.point is not None and head is not None:
+        assert max(_gaze_errors(face, animator, geo, layers[1:], target)) > 2.0
+
+
+# -- render CLI -------------------------------------------------------------------------------
+
+
+def test_render_with_layers_writes_a_valid_glb(data_dir, tmp_path):
+    from test_render import _cli, frames_of, read_glb
+
+    wav = data_dir / "speech" / "bobby_16bit_16khz.wav"
+    joy = data_dir / "xface" / "faps" / "joy.fap"
+    plain, layered = tmp_path / "plain.glb", tmp_path / "layered.glb"
+    common = ["--face", "default:2k", "--backend", "numpy"]
+    r = _cli("render", str(wav), "-o", str(plain), *common, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    r = _cli(
+        "render", str(wav), "-o", str(layered), *common,
+        "--layer", f"{joy}@0.8", "--idle", "--seed", "3", "--gaze", "camera",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    a, b = read_glb(plain), read_glb(layered)
+    assert b["extras"]["layers"] == ["TrackLayer", "IdleLayer", "GazeLayer"]
+    fa, fb = frames_of(a), frames_of(b)
+    assert fa.shape == fb.shape and np.all(np.isfinite(fb))
+    assert np.abs(fb - fa).max() > 1.0  # the layers show (mm)
+    for bad, where in (
+        (["--layer", str(tmp_path / "none.fap")], "none.fap"),
+        (["--layer", str(wav)], ".fap"),
+        (["--gaze", "1,2"], "--gaze"),
+        (["--seed", "3"], "--idle"),
+    ):
+        r = _cli("render", str(wav), "-o", str(tmp_path / "x.glb"), *common, *bad, cwd=tmp_path)
+        assert r.returncode != 0 and where in r.stderr, r.stderr
+        assert not (tmp_path / "x.glb").exists()
+
+
+def test_render_without_layers_is_unchanged(data_dir, tmp_path):
+    from facecast.server.render import render_file
+
+    src = data_dir / "xface" / "faps" / "joy.fap"
+    a, b = tmp_path / "a.glb", tmp_path / "b.glb"
+    render_file(src, a, face="default:2k", backend="numpy")
+    render_file(src, b, face="default:2k", backend="numpy", layers=[])
+    assert a.read_bytes() == b.read_bytes()
+
+
+def test_gaze_on_the_ict_head(data_dir):
+    """The ICT head (centimetres; its pupils 7° from +z at rest) looks at its targets too."""
+    from facecast.server.faces import load_face
+    from facecast.server.pipeline import Animator
+
+    face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
+    animator = Animator(face, backend="numpy")
+    geo = Geometry.of_rig(animator.rig)
+    for head in (None, HeadPose(pitch=-8, yaw=25, roll=-4)):
+        for target in TARGETS:
+            if target.point is not None:  # the targets are in mm
+                target = GazeTarget(point=target.point / face.mm_per_unit)
+            layers = [GazeLayer(target), IdleLayer(seed=5)] + ([head] if head else [])
+            errors = _gaze_errors(face, animator, geo, layers, target)
+            assert max(errors) < 2.0, (target, head, errors)
