@@ -249,27 +249,29 @@ class SessionMix:
         self._task = loop.create_task(self._clock(), name=f"layers-{self.session.spec.id}")
 
     async def _clock(self) -> None:
-        """While the session holds layers: a frame each period no primary state clocked."""
+        """While the session holds layers: a frame each period no primary state clocked. While
+        the primary clocks, it sleeps until the primary may have stopped (no wake-up per frame)."""
         session = self.session
         period = 1.0 / session.spec.fps
         hold = max(HOLD_SECONDS, 2 * period)
-        due = self.clock()
         try:
+            due = self.clock()
             while self.active and not session.closed:
-                due += period
-                delay = due - self.clock()
-                if delay < -1.0:  # a stalled loop: skip ahead rather than rush frames out
+                now, at = self.now(), self.primary_at
+                if at is not None and now - at < hold:
+                    await asyncio.sleep(at + hold - now)
                     due = self.clock()
-                await asyncio.sleep(max(0.0, delay))
-                now = self.now()
-                at = self.primary_at
-                if (at is not None and now - at < hold) or not self.active:
                     continue
                 state = self.mixer.mix(self.primary, now)
                 if self.primary is not None:  # its media time goes on
                     state = replace(state, t=self.primary.t + (now - (now if at is None else at)))
                 self.mixed += 1
                 session.queue([state], time.time())
+                due += period
+                delay = due - self.clock()
+                if delay < -1.0:  # a stalled loop: skip ahead rather than rush frames out
+                    due, delay = self.clock(), 0.0
+                await asyncio.sleep(max(0.0, delay))
         except Exception:
             log.exception("session %s: the layer clock failed", session.spec.id)
         finally:
