@@ -2,7 +2,7 @@
 frame with the session's ``layers.Mixer`` (``server/layers/``), and the clock of frames when no
 primary clocks them.
 
-The primary producer's states clock the frames (``LiveSession.submit`` mixes each). While the
+The primary producer's states clock the frames (each mixed as it goes to the deformer). While the
 session holds layers and no primary state came for ``HOLD_SECONDS`` (no primary producer, a FAP
 producer that sends only on change, a pause in the speech), a task ticks at the session's rate
 and sends the mix of the last primary state (or the neutral face) with the layers, as the demo
@@ -225,19 +225,20 @@ class SessionMix:
                 del self._rest[name]
 
     # -- frames ------------------------------------------------------------------------------------
-    def mix_primary(self, states: list[FaceState]) -> list[FaceState]:
-        """The primary's ``states`` mixed with the layers (each keeps its own ``t``)."""
+    def held(self, state: FaceState) -> None:
+        """The primary's newest state (cheap: on every primary submit)."""
+        self.primary = state
+        if self._task is not None:
+            self.primary_at = self.clock() - self.t0
+
+    def mix_primary(self, state: FaceState) -> FaceState:
+        """A primary ``state`` mixed with the layers now (it keeps its own ``t``)."""
         now = self.now()
-        last_t = states[-1].t if states else 0.0
-        out = []
-        for s in states:
-            m = self.mixer.mix(s, now + (s.t - last_t))
-            m.t = s.t
-            out.append(m)
-        if states:
-            self.primary, self.primary_at = states[-1], now
-        self.mixed += len(out)
-        return out
+        m = self.mixer.mix(state, now)
+        if m is not state:
+            m.t = state.t
+        self.mixed += 1
+        return m
 
     def _start(self) -> None:
         if self._task is not None and not self._task.done():

@@ -165,7 +165,8 @@ class LiveSession:
         self._producers: dict[str, ProducerSlot] = {}  # role -> who holds its slot
         self.grants = Grants(spec.producer_token)  # producer tokens and their roles
         self.mix = SessionMix(self)  # secondary producers' and REST layers, mixed into each state
-        self.pending: deque[tuple[int, FaceState, float]] = deque()
+        #: (seq, state, wall, mix: the layers are mixed in when it goes to the deformer)
+        self.pending: deque[tuple[int, FaceState, float, bool]] = deque()
         self._busy = False  # a state of this session is with the batcher
         self._in_flight = 0  # its seq
         self._encodings: dict[str, int] = {}  # encoding -> viewers that asked for it
@@ -304,28 +305,27 @@ class LiveSession:
         """Number ``states`` and queue them for deformation (oldest dropped beyond ``MAX_PENDING``).
 
         The primary producer's states clock the frames: with layers in the mix, each is mixed
-        with them first. A secondary producer's (``role``) newest state becomes its layer.
+        with them as it goes to the deformer (states dropped under load cost no mixing). A
+        secondary producer's (``role``) newest state becomes its layer.
         """
         mix = self.mix
         if role != "primary":
             if states:
                 mix.put(role, states[-1])
             return
-        if mix.active:
-            states = mix.mix_primary(states)
-        elif states:
-            mix.primary = states[-1]  # held: layers set later mix over it
-        self.queue(states, wall)
+        if states:
+            mix.held(states[-1])  # layers mix over it when no primary state comes
+        self.queue(states, wall, mix.active)
 
-    def queue(self, states: list[FaceState], wall: float) -> None:
-        """Number ``states`` (final, mixed) and queue them for deformation."""
+    def queue(self, states: list[FaceState], wall: float, mix: bool = False) -> None:
+        """Number ``states`` and queue them for deformation (``mix``: with the layers)."""
         for s in states:
             if len(self.pending) >= MAX_PENDING:
                 self.pending.popleft()
                 self._stats["frames_dropped"] += 1
                 if self.metrics:
                     self.metrics.frames_dropped.inc()
-            self.pending.append((self.seq, s, wall))
+            self.pending.append((self.seq, s, wall, mix))
             self.seq = (self.seq + 1) & 0xFFFFFFFF
             self._stats["states"] += 1
         if states and not self._busy:
@@ -403,9 +403,11 @@ class LiveSession:
         """Hand the oldest pending state to the batcher (one at a time per session); with nothing
         pending, send a status that was waiting for the frames to be out."""
         while self.pending and not self.closed:
-            seq, state, wall = self.pending.popleft()
+            seq, state, wall, mix = self.pending.popleft()
             if not self._encodings:
                 continue  # nobody watches: skip the work, the numbering still advances
+            if mix:
+                state = self.mix.mix_primary(state)
             self._busy = True
             self._in_flight = seq
             try:
