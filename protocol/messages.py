@@ -359,7 +359,8 @@ def parse_message(text: str | bytes) -> BaseModel:
         raise MessageError(
             f"unknown message type {obj.get('type')!r}"
             + (" without a role" if tag == "hello:None" else "")
-            + "; expected one of: " + ", ".join(_TAGS),
+            + "; expected one of: "
+            + ", ".join(_TAGS),
             where="type",
         )
     try:
