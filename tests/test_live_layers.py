@@ -20,6 +20,7 @@ from conftest import live_server, run
 
 from facecast.client.api import LiveError, SessionAdmin, produce, stream_pcm, watch
 from facecast.protocol.errors import CloseCode
+from facecast.protocol.layers import LayerList
 from facecast.protocol.messages import ProducerHello
 
 FACE = os.environ.get("FACECAST_TEST_LIVE_FACE", "default:2k")
@@ -421,19 +422,25 @@ def test_the_page_mixes_a_smile_and_idle_over_a_streamed_voice(live, data_dir, f
             page.wait_for_timeout(1500)
             page.screenshot(path=str(artifacts / "layers_voice_joy_idle.png"))
             with_idle = sample(page, 10)
+            page.evaluate("""() => {
+              const brows = document.querySelector('#sliders input[data-fap="31,32,33,34,35,36"]');
+              brows.value = 300; brows.dispatchEvent(new Event('input'));
+            }""")  # the sliders stream as an 'expression' producer over the voice
+            wait_for(
+                page, "window.facecast.state.layerProducer && facecast.state.layerProducer.open"
+            )
+            page.wait_for_timeout(500)
+            r = httpx.get(f"{live.url}/v1/sessions/{s.id}/layers", headers=live.admin_headers)
             browser.close()
 
-        async def layers():
-            async with SessionAdmin(live.url, live.admin_key) as admin:
-                return await admin.layers(s.id)
-
-        listed = run(layers())
+        listed = LayerList.model_validate(r.json())
     finally:
         stream.kill()
         stream.communicate(timeout=30)
         run(_close(live.url, live.admin_key, s.id))
     assert not problems, problems
     assert sorted((x.name, x.source) for x in listed.layers) == [
+        ("expression", "producer"),
         ("expression", "rest"),
         ("idle", "rest"),
     ]
