@@ -352,6 +352,8 @@ def parse_message(text: str | bytes) -> BaseModel:
         obj = json.loads(text)
     except (ValueError, UnicodeDecodeError) as e:
         raise MessageError(f"not JSON: {e}") from None
+    except RecursionError:
+        raise MessageError("the message nests too deeply") from None
     if not isinstance(obj, dict):
         raise MessageError("a control message must be a JSON object with a 'type' field")
     tag = _tag(obj)

@@ -17,6 +17,8 @@ import httpx
 import numpy as np
 import pytest
 from conftest import live_server, run
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from facecast.client.api import LiveError, SessionAdmin, produce, stream_pcm, watch
 from facecast.protocol.errors import CloseCode
@@ -291,6 +293,7 @@ def test_malformed_layer_requests_are_4xx_with_a_message(live):
     scoped = {"Authorization": f"Bearer {r.json()['token']}"}
     cases = [
         ("PUT", "/layers/idle", None, b"{not json", 400, "not JSON"),
+        ("PUT", "/layers/idle", None, b"[" * 60_000, 400, "nests too deeply"),
         ("PUT", "/layers/idle", None, {"kind": "sleep"}, 400, "'kind'"),
         ("PUT", "/layers/idle", None, {"kind": "idle", "amount": 2}, 400, "amount"),
         ("PUT", "/layers/x", None, {"kind": "expression"}, 400, "'expression'"),
@@ -447,3 +450,69 @@ def test_the_page_mixes_a_smile_and_idle_over_a_streamed_voice(live, data_dir, f
     # the smile raises the corners; the voice still opens and closes the lips under it
     assert joy[:, 0].mean() - before[:, 0].mean() > 1.0, (before[:, 0], joy[:, 0])
     assert np.ptp(joy[:, 1]) > 0.5 and np.ptp(with_idle[:, 1]) > 0.5, (joy[:, 1], with_idle[:, 1])
+
+
+# -------------------------------------------------------------------------------- pure pieces
+
+_json = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=12),
+    lambda inner: (
+        st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=10), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
+_KEYS = ["kind", "seed", "amount", "expression", "faps", "start", "attack", "relax", "end",
+         "target", "yaw", "pitch", "roll", "gesture", "duration", "repeat"]  # fmt: skip
+_KINDS = st.sampled_from(["idle", "expression", "gaze", "head", "sleep", 3, None])
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    body=st.dictionaries(st.sampled_from(_KEYS), _json, max_size=6) | _json,
+    kind=_KINDS,
+    changes=st.dictionaries(st.sampled_from(_KEYS), _json, max_size=3) | _json,
+)
+def test_layer_bodies_parse_or_raise_only_message_errors(body, kind, changes):
+    from facecast.protocol.errors import MessageError
+    from facecast.protocol.layers import parse_layer, patch_layer
+
+    if isinstance(body, dict) and kind is not None:
+        body = {**body, "kind": kind}
+    try:
+        spec = parse_layer(body)
+    except MessageError as e:
+        assert str(e)
+        return
+    try:
+        patched = patch_layer(spec, changes)
+    except MessageError:
+        return
+    assert patched.kind == spec.kind
+
+
+def test_scoped_tokens_carry_their_roles_only_and_are_bounded():
+    from facecast.protocol.errors import TooMany
+    from facecast.server.live.roles import ALL_ROLES, MAX_SCOPED_TOKENS, Grants
+
+    g = Grants("full")
+    assert (
+        g.roles_of("full") == ALL_ROLES and g.roles_of("nope") is None and g.roles_of(None) is None
+    )
+    t = g.mint(["gaze", "head"])
+    assert g.roles_of(t) == {"gaze", "head"} and t != "full"
+    with pytest.raises(ValueError, match="roles"):
+        g.mint(["king"])
+    for _ in range(MAX_SCOPED_TOKENS - 1):
+        g.mint(["idle"])
+    with pytest.raises(TooMany) as e:
+        g.mint(["idle"])
+    assert e.value.status == 429
+
+
+def test_a_deeply_nested_control_message_is_a_message_error():
+    """``json`` raises RecursionError past ~1000 levels (a 60 kB hello): it was a server fault."""
+    from facecast.protocol.errors import MessageError
+    from facecast.protocol.messages import parse_message
+
+    with pytest.raises(MessageError, match="nests too deeply"):
+        parse_message("[" * 60_000)

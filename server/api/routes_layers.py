@@ -115,6 +115,8 @@ async def _json(request: Request) -> Any:
         return json.loads(raw)
     except (ValueError, UnicodeDecodeError) as e:
         raise MessageError(f"the body is not JSON: {e}", where="body") from None
+    except RecursionError:
+        raise MessageError("the body nests too deeply to be a layer", where="body") from None
 
 
 @router.post("/tokens", status_code=status.HTTP_201_CREATED, response_model=TokenCreated)
