@@ -47,8 +47,10 @@ def run_source(animator, states, qm: QualityMesh, step: int = 1) -> dict:
     return s
 
 
-def layered_sources(sources: dict, geometry) -> dict:
-    """Each source as itself, mixed with the layers, and the layers alone over as many frames."""
+def layered_sources(sources: dict, geometry, speech: tuple[str, ...] = ()) -> dict:
+    """Each source as itself, mixed with the layers, and the layers alone over as many frames.
+    Sources named in ``speech`` or with visemes speak (they keep their closures, expressions add
+    to their mouth); the others are expression streams the overlay competes with."""
     from facecast.server.layers import (
         Envelope,
         ExpressionLayer,
@@ -69,7 +71,8 @@ def layered_sources(sources: dict, geometry) -> dict:
     out = {}
     for name, states in sources.items():
         out[name] = states
-        out[f"{name}+layers"] = mix_states(states, layers, geometry=geometry)
+        speaks = name in speech or any(s.viseme is not None for s in states)
+        out[f"{name}+layers"] = mix_states(states, layers, geometry=geometry, closures=speaks)
         neutral = [FaceState(t=s.t) for s in states]
         out[f"layers@{name}"] = mix_states(neutral, layers, geometry=geometry, closures=False)
     return out
@@ -132,11 +135,10 @@ def main(argv: list[str] | None = None) -> int:
             if args.layered:
                 from facecast.server.layers import Geometry
 
-                for wav in ("mary.wav", "bobby_16bit_16khz.wav") if data else ():
-                    sources[Path(wav).stem.split("_")[0]] = load_animation(
-                        data / "speech" / wav, face
-                    ).states
-                sources = layered_sources(sources, Geometry.of_rig(anim.rig))
+                speech = ("mary", "bobby") if data else ()
+                for name, wav in zip(speech, ("mary.wav", "bobby_16bit_16khz.wav"), strict=False):
+                    sources[name] = load_animation(data / "speech" / wav, face).states
+                sources = layered_sources(sources, Geometry.of_rig(anim.rig), speech)
             rest = measure(face.vertices, qm)
             for sname, states in sources.items():
                 s = run_source(anim, states, qm, args.step)

@@ -58,8 +58,10 @@ def render_file(
             ``neutral_frame``).
         text: audio input's transcript (``audio.driver.load``); None = none.
         layers: ``server.layers`` layers (expression overlays, idle, gaze, head) mixed over the
-            input's states (``layers.mix_states``, the input keeping its lip closures); None or
-            empty: the input as it is.
+            input's states (``layers.mix_states``). A speaking input (audio, mocap, a .fap with
+            visemes) keeps its lip closures and adds expressions to its mouth; an expression
+            stream (.fap without visemes) competes with them there. None or empty: the input
+            as it is.
 
     Returns:
         a summary: ``frames``, ``fps``, ``output`` and, for glTF, the ``extras.facecast`` record.
@@ -91,8 +93,12 @@ def render_file(
     if layers:
         from .layers import Geometry, mix_states
 
+        # audio and mocap speak; a .fap stream speaks when it carries visemes (FAP 1)
+        speaks = input.suffix.lower() != ".fap" or any(
+            s.viseme is not None for s in animation.states
+        )
         animation.states = mix_states(
-            animation.states, list(layers), geometry=Geometry.of_face(face_obj)
+            animation.states, list(layers), geometry=Geometry.of_face(face_obj), closures=speaks
         )
     summary = {"frames": len(animation.states), "fps": float(animation.fps), "output": str(output)}
     if kind == "fap":

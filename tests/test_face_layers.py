@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from facecast.server.errors import Conflict, InputError, NotFound
 from facecast.server.layers import (
@@ -56,11 +58,26 @@ def test_no_layers_returns_the_primary_itself():
 
 def test_offsets_add_and_the_primary_keeps_its_high_level_faps():
     p = FaceState(t=0.0, faps=faps(f31=100), viseme=(10, 0, 63))
-    out = combine(p, [(Role.EXPRESSION, Contribution(faps=faps(f31=50, f41=30)))], closures=False)
+    items = [
+        (Role.EXPRESSION, Contribution(faps=faps(f41=30))),
+        (Role.HEAD, Contribution(faps=faps(f31=50, f48=1000))),
+    ]
+    out = combine(p, items)
     assert out.viseme == (10, 0, 63)
-    low = expand(out)
-    want = expand(p) + faps(f31=50, f41=30)
-    assert np.allclose(low, want)
+    assert np.allclose(expand(out), expand(p) + faps(f31=50, f41=30, f48=1000))
+
+
+def test_an_overlay_competes_with_the_primary_except_in_a_speaking_mouth():
+    p = FaceState(t=0.0, faps=faps(f31=100), viseme=(10, 0, 63))
+    over = Contribution(faps=faps(f31=300, f33=40, f12=100))
+    out = expand(combine(p, [(Role.EXPRESSION, over)]))
+    assert out[31] == pytest.approx(200.0)  # both move it: their mean
+    assert out[33] == pytest.approx(40.0)  # only the overlay moves it
+    assert out[12] == pytest.approx(VISEMES[10][12] + 100)  # speech and expression add
+    half = expand(combine(p, [(Role.EXPRESSION, Contribution(faps=faps(f31=300), weight=0.5))]))
+    assert half[31] == pytest.approx((100 + 150) / 1.5)
+    mute = expand(combine(p, [(Role.EXPRESSION, over)], closures=False))
+    assert mute[12] == pytest.approx((VISEMES[10][12] + 100) / 2)  # not speech: they compete
 
 
 def test_layers_of_one_role_compete_and_average_by_weight_roles_add():
@@ -383,7 +400,7 @@ def default_head():
     return face, animator, Geometry.of_rig(animator.rig)
 
 
-@pytest.mark.parametrize("head", [None, HeadPose(pitch=10, yaw=-20, roll=5)])
+@pytest.mark.parametrize("head", [None, HeadPose(pitch=10, yaw=-12, roll=5)])
 @pytest.mark.parametrize("target", TARGETS, ids=range(len(TARGETS)))
 def test_gaze_points_the_deformed_eyes_at_the_target(default_head, target, head):
     face, animator, geo = default_head
@@ -402,12 +419,13 @@ def test_gaze_points_the_deformed_eyes_at_the_target(default_head, target, head)
 def test_render_with_layers_writes_a_valid_glb(data_dir, tmp_path):
     from test_render import _cli, frames_of, read_glb
 
+    from facecast.server.render import render_file
+
     wav = data_dir / "speech" / "bobby_16bit_16khz.wav"
     joy = data_dir / "xface" / "faps" / "joy.fap"
     plain, layered = tmp_path / "plain.glb", tmp_path / "layered.glb"
     common = ["--face", "default:2k", "--backend", "numpy"]
-    r = _cli("render", str(wav), "-o", str(plain), *common, cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
+    render_file(wav, plain, face="default:2k", backend="numpy")
     r = _cli(
         "render", str(wav), "-o", str(layered), *common,
         "--layer", f"{joy}@0.8", "--idle", "--seed", "3", "--gaze", "camera",
@@ -419,15 +437,23 @@ def test_render_with_layers_writes_a_valid_glb(data_dir, tmp_path):
     fa, fb = frames_of(a), frames_of(b)
     assert fa.shape == fb.shape and np.all(np.isfinite(fb))
     assert np.abs(fb - fa).max() > 1.0  # the layers show (mm)
+    import argparse
+
+    from facecast.server.commands.render import add_arguments, build_layers
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
     for bad, where in (
         (["--layer", str(tmp_path / "none.fap")], "none.fap"),
-        (["--layer", str(wav)], ".fap"),
+        (["--layer", str(wav)], ".wav"),
+        (["--layer", f"{joy}@nan"], "@nan"),
         (["--gaze", "1,2"], "--gaze"),
-        (["--seed", "3"], "--idle"),
+        (["--seed", "3"], "--seed"),
     ):
-        r = _cli("render", str(wav), "-o", str(tmp_path / "x.glb"), *common, *bad, cwd=tmp_path)
-        assert r.returncode != 0 and where in r.stderr, r.stderr
-        assert not (tmp_path / "x.glb").exists()
+        args = parser.parse_args([str(wav), "-o", str(tmp_path / "x.glb"), *bad])
+        with pytest.raises(InputError) as e:
+            build_layers(args)
+        assert where in str(e.value), str(e.value)
 
 
 def test_render_without_layers_is_unchanged(data_dir, tmp_path):
@@ -448,10 +474,135 @@ def test_gaze_on_the_ict_head(data_dir):
     face = load_face(data_dir / "ict-facekit" / "generic_neutral_mesh.obj")
     animator = Animator(face, backend="numpy")
     geo = Geometry.of_rig(animator.rig)
-    for head in (None, HeadPose(pitch=-8, yaw=25, roll=-4)):
+    for head in (None, HeadPose(pitch=-8, yaw=-12, roll=-4)):
         for target in TARGETS:
             if target.point is not None:  # the targets are in mm
                 target = GazeTarget(point=target.point / face.mm_per_unit)
             layers = [GazeLayer(target), IdleLayer(seed=5)] + ([head] if head else [])
             errors = _gaze_errors(face, animator, geo, layers, target)
             assert max(errors) < 2.0, (target, head, errors)
+
+
+def test_layers_refuse_bad_values_and_gaze_stays_in_the_eyes_range():
+    for make in (
+        lambda: ExpressionLayer(7),
+        lambda: ExpressionLayer("1"),  # type: ignore[arg-type]
+        lambda: ExpressionLayer(1, amount=float("inf")),
+        lambda: ExpressionLayer(1, envelope="soon"),  # type: ignore[arg-type]
+        lambda: ExpressionLayer(1, regions=("chin",)),
+        lambda: ExpressionLayer(1, regions="mouth"),  # type: ignore[arg-type]
+        lambda: ExpressionLayer(faps=np.zeros(5)),
+        lambda: HeadGesture("wink"),
+        lambda: HeadGesture("nod", repetitions=0),
+        lambda: HeadPose(yaw=200.0),
+        lambda: GazeLayer(amount=2.0),
+        lambda: GazeLayer(target=(1, 2, 3)),  # type: ignore[arg-type]
+        lambda: IdleLayer(blink_rate=0.0),
+        lambda: IdleLayer(seed=1.5),  # type: ignore[arg-type]
+        lambda: Envelope(start=float("nan")),
+        lambda: TrackLayer([], 25.0),
+        lambda: TrackLayer([FaceState()], 0.0),
+    ):
+        with pytest.raises(ValueError):
+            make()
+    # a target inside an eye, or behind the head: finite, within the eyes' range
+    geo = Geometry(eye_pivots=np.array([[30.0, 0, 70], [-30.0, 0, 70]]))
+    for point in ([30.0, 0, 70], [0.0, 0, -500]):
+        out = mix(None, [GazeLayer(GazeTarget(point=np.array(point)))], 0.0, geometry=geo)
+        assert np.all(np.isfinite(out.faps))
+        assert np.all(np.abs(out.faps[23:27]) <= np.radians(50) / 1e-5 + 1e-6)
+
+
+# -- layers from plain data -------------------------------------------------------------------
+
+
+def test_layers_from_specs():
+    from facecast.server.layers import from_spec
+
+    smile = from_spec(
+        {"kind": "expression", "expression": "joy", "amount": 0.5, "envelope": {"end": 2}}, t0=10
+    )
+    assert isinstance(smile, ExpressionLayer) and smile.expression == 1
+    assert smile.envelope == Envelope(start=10.0, end=12.0) and smile.end == 12.0
+    brow = from_spec(
+        {"kind": "expression", "faps": {"31": 100, "32": 100}, "regions": ["eyebrows"]}
+    )
+    assert brow.faps[31] == 100 and brow.regions == ("eyebrows",)
+    assert isinstance(from_spec({"kind": "idle", "seed": 2}), IdleLayer)
+    g = from_spec({"kind": "gaze", "target": [1, 2, 300]})
+    assert isinstance(g, GazeLayer) and np.allclose(g.target.point, [1, 2, 300])
+    assert np.allclose(from_spec({"kind": "gaze"}).target.direction, [0, 0, 1])
+    nod = from_spec({"kind": "head", "gesture": "nod", "repetitions": 2})
+    assert isinstance(nod, HeadGesture) and nod.end == pytest.approx(1.2)
+    pose = from_spec({"kind": "head", "pose": {"yaw": 10}, "amount": 0.5})
+    assert isinstance(pose, HeadPose) and pose.yaw == 10.0
+    for bad in (
+        [],
+        {"kind": "smile"},
+        {"kind": "expression"},
+        {"kind": "expression", "expression": "glee"},
+        {"kind": "expression", "expression": 1, "colour": "red"},
+        {"kind": "expression", "faps": {"1": 5}},
+        {"kind": "expression", "expression": 1, "envelope": {"start": 3, "end": 1}},
+        {"kind": "expression", "expression": 1, "envelope": {"start": "now"}},
+        {"kind": "idle", "blink_rate": 1000},
+        {"kind": "gaze", "target": [1, 2]},
+        {"kind": "head"},
+        {"kind": "head", "gesture": "nod", "pose": {}},
+        {"kind": "head", "pose": {"yaw": 400}},
+    ):
+        with pytest.raises(InputError):
+            from_spec(bad)
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+    lambda children: (
+        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=8), children, max_size=4)
+    ),
+    max_leaves=12,
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    kind=st.sampled_from(["expression", "idle", "gaze", "head", "x"]),
+    fields=st.dictionaries(
+        st.sampled_from(
+            ["expression", "faps", "amount", "envelope", "regions", "seed", "blink_rate",
+             "target", "gesture", "pose", "repetitions", "blinks", "other"]
+        ),
+        json_values,
+        max_size=4,
+    ),
+)  # fmt: skip
+def test_layer_specs_raise_only_input_errors(kind, fields):
+    from facecast.server.layers import from_spec
+
+    try:
+        layer = from_spec({"kind": kind, **fields})
+    except InputError:
+        return
+    out = mix(FaceState(t=0.5), [layer], 0.5, geometry=Geometry())
+    assert np.all(np.isfinite(out.faps))
+
+
+def test_gaze_compensates_a_head_given_as_a_transform_as_one_given_as_faps(default_head):
+    _, _, geo = default_head
+    angles = [4000.0, -15000.0, 3000.0]
+    gaze = [GazeLayer(GazeTarget(point=np.array([50.0, 30.0, 500.0])))]
+    by_faps = mix(
+        FaceState(faps=faps(f48=angles[0], f49=angles[1], f50=angles[2])), gaze, 0.0, geometry=geo
+    )
+    M = head_transform(angles, geo.head_pivot)
+    by_matrix = mix(FaceState(head=M), gaze, 0.0, geometry=geo)
+    assert by_matrix.head is M
+    assert np.allclose(by_faps.faps[23:27], by_matrix.faps[23:27])
+    assert abs(by_faps.faps[23]) > 1000  # the eyes did turn
+
+
+def test_in_a_speaking_mouth_an_overlay_competes_with_the_primary_expression_not_the_speech():
+    p = FaceState(t=0.0, viseme=(10, 0, 63), expression=(6, 63, 0, 0))  # "aa" while surprised
+    out = expand(mix(p, [ExpressionLayer(1)], 0.0))
+    k = 6  # a lip corner stretch: speech + the mean of the two expressions
+    assert out[k] == pytest.approx(VISEMES[10][k] + (EXPRESSIONS[6][k] + EXPRESSIONS[1][k]) / 2)

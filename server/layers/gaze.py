@@ -6,10 +6,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import EMPTY, Contribution, Envelope, GazeTarget, Role
+from .model import EMPTY, Contribution, Envelope, GazeTarget, Role, check_envelope, check_number
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class GazeLayer:
     """Eyes turned to ``target`` by ``amount`` × the envelope (replacing the eyes' rotation).
 
@@ -23,8 +23,10 @@ class GazeLayer:
     role: Role = Role.GAZE
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.amount <= 1.0:
-            raise ValueError("gaze amount must be in [0, 1]")
+        if not isinstance(self.target, GazeTarget):
+            raise ValueError("target must be a GazeTarget (a point or a direction)")
+        object.__setattr__(self, "amount", check_number("gaze amount", self.amount, 0.0, 1.0))
+        check_envelope(self.envelope)
 
     @property
     def end(self) -> float | None:

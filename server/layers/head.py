@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import EMPTY, Contribution, Envelope, N, Role
+from .model import EMPTY, Contribution, Envelope, N, Role, check_envelope, check_number
 
 #: AU per degree.
 AU_PER_DEG = np.pi / 180 / 1e-5
@@ -34,11 +34,13 @@ class HeadGesture:
     role: Role = Role.HEAD
 
     def __post_init__(self) -> None:
-        if self.kind not in GESTURES:
+        if not isinstance(self.kind, str) or self.kind not in GESTURES:
             raise ValueError(f"head gesture {self.kind!r}: expected one of {', '.join(GESTURES)}")
-        if not np.isfinite(self.amount):
-            raise ValueError("amount must be finite")
-        if not 1 <= int(self.repetitions) <= 100:
+        object.__setattr__(self, "amount", check_number("amount", self.amount, -5.0, 5.0))
+        check_envelope(self.envelope)
+        if isinstance(self.repetitions, bool) or not isinstance(self.repetitions, int):
+            raise ValueError("repetitions must be a whole number")
+        if not 1 <= self.repetitions <= 100:
             raise ValueError("repetitions must be 1..100")
 
     @property
@@ -83,11 +85,11 @@ class HeadPose:
     role: Role = Role.HEAD
 
     def __post_init__(self) -> None:
-        for v in (self.pitch, self.yaw, self.roll):
-            if not (np.isfinite(v) and abs(v) <= 90):
-                raise ValueError("head pose angles must be within ±90°")
-        if not 0.0 <= self.amount <= 1.0:
-            raise ValueError("head pose amount must be in [0, 1]")
+        for name in ("pitch", "yaw", "roll"):
+            v = check_number(f"head {name} (degrees)", getattr(self, name), -90.0, 90.0)
+            object.__setattr__(self, name, v)
+        object.__setattr__(self, "amount", check_number("head amount", self.amount, 0.0, 1.0))
+        check_envelope(self.envelope)
 
     @property
     def end(self) -> float | None:

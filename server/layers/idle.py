@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import Contribution, N, Role, smoothstep
+from .model import Contribution, N, Role, check_number, smoothstep
 
 AU_PER_DEG = math.pi / 180 / 1e-5
 #: Closed lids: upper lids down one IRISD0 (tangent to the iris -> closed), lower lids up a little.
@@ -39,16 +39,16 @@ def blink_times(
     rng: np.random.Generator, horizon: float, rate: float, refractory: float
 ) -> np.ndarray:
     """``(B, 4)`` blinks in ``[0, horizon)``: start, closing, closed, opening durations (s)."""
-    mean = 60.0 / rate
-    wait = max(mean - refractory, 1e-3)
-    rows, t = [], rng.exponential(wait)
-    while t < horizon:
-        close = rng.uniform(0.10, 0.15)
-        closed = rng.uniform(0.02, 0.06)
-        opening = close * rng.uniform(1.8, 2.4)
-        rows.append((t, close, closed, opening))
-        t += max(refractory, close + closed + opening) + rng.exponential(wait)
-    return np.array(rows, dtype=np.float64).reshape(-1, 4)
+    wait = max(60.0 / rate - refractory, 1e-3)
+    n = int(horizon / max(refractory, 0.05)) + 16  # more than can fit
+    close = rng.uniform(0.10, 0.15, n)
+    closed = rng.uniform(0.02, 0.06, n)
+    opening = close * rng.uniform(1.8, 2.4, n)
+    waits = rng.exponential(wait, n)
+    step = np.maximum(refractory, close + closed + opening) + waits
+    starts = np.concatenate([[waits[-1]], waits[-1] + np.cumsum(step[:-1])])
+    keep = starts < horizon
+    return np.stack([starts, close, closed, opening], axis=1)[keep]
 
 
 def blink_closure(t: float, blinks: Sequence[Sequence[float]], starts: Sequence[float]) -> float:
@@ -73,22 +73,17 @@ def fixations(
     rng: np.random.Generator, horizon: float, yaw_deg: float, pitch_deg: float
 ) -> np.ndarray:
     """``(S, 4)`` fixations in ``[0, horizon)``: start (s), yaw, pitch (degrees), and the saccade
-    duration (s) that leads to it (main sequence)."""
-    rows = [(0.0, 0.0, 0.0, 0.0)]
-    t, prev = 0.0, np.zeros(2)
-    while True:
-        t += float(np.clip(rng.lognormal(np.log(0.9), 0.6), 0.3, 3.0))
-        if t >= horizon:
-            break
-        g = np.clip(
-            rng.normal(0.0, 1.0, 2) * [yaw_deg, pitch_deg],
-            -2.5 * np.array([yaw_deg, pitch_deg]),
-            2.5 * np.array([yaw_deg, pitch_deg]),
-        )
-        amplitude = float(np.hypot(*(g - prev)))
-        rows.append((t, g[0], g[1], 0.021 + 0.0022 * amplitude))
-        prev = g
-    return np.array(rows, dtype=np.float64)
+    duration (s) that leads to it (main sequence: 21 ms + 2.2 ms per degree)."""
+    n = int(horizon / 0.3) + 2
+    durations = np.clip(rng.lognormal(np.log(0.9), 0.6, n), 0.3, 3.0)
+    spread = np.array([yaw_deg, pitch_deg])
+    points = np.clip(rng.normal(0.0, 1.0, (n, 2)) * spread, -2.5 * spread, 2.5 * spread)
+    points[0] = 0.0
+    starts = np.concatenate([[0.0], np.cumsum(durations[:-1])])
+    amplitude = np.hypot(*np.diff(points, axis=0, prepend=points[:1]).T)
+    rows = np.column_stack([starts, points, 0.021 + 0.0022 * amplitude])
+    rows[0, 3] = 0.0
+    return rows[starts < horizon]
 
 
 @dataclass(frozen=True)
@@ -121,14 +116,21 @@ class IdleLayer:
     _fix_starts: list[float] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        if not 1.0 <= self.blink_rate <= 60.0:
-            raise ValueError("blink_rate must be 1..60 a minute")
-        if not 0.0 <= self.refractory < 60.0 / self.blink_rate:
-            raise ValueError("refractory must be shorter than the mean blink interval")
-        if not 0.0 <= self.amount <= 1.0:
-            raise ValueError("idle amount must be in [0, 1]")
-        if not 10.0 <= self.horizon <= 86400.0:
-            raise ValueError("horizon must be 10 s .. 1 day")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise ValueError("seed must be a whole number")
+        rate = check_number("blink_rate (a minute)", self.blink_rate, 1.0, 60.0)
+        check_number("refractory", self.refractory, 0.0, 60.0 / rate - 1e-3)
+        check_number("idle amount", self.amount, 0.0, 1.0)
+        check_number("horizon", self.horizon, 10.0, 86400.0)
+        for name in ("blinks", "saccades", "sway", "breathing"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true or false")
+        spread = tuple(self.gaze_spread)
+        if len(spread) != 2:
+            raise ValueError("gaze_spread is (yaw, pitch) degrees")
+        for v in spread:
+            check_number("gaze_spread (degrees)", v, 0.0, 15.0)
+        object.__setattr__(self, "gaze_spread", (float(spread[0]), float(spread[1])))
         rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, 18])
         b = blink_times(rng, self.horizon, self.blink_rate, self.refractory)
         f = fixations(rng, self.horizon, *self.gaze_spread)

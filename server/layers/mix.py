@@ -8,7 +8,12 @@ order they apply to one frame:
    its ``head`` transform) by their weight (several: averaged by weight).
 3. **Offsets add**: each role's ``faps`` (plus its expanded viseme/expression) are added; inside
    one role, FAPs two layers weigh on are averaged by weight, ``Σ w·x / max(1, Σ w)`` (one layer at
-   weight w adds ``w·x``; two at full weight give their mean).
+   weight w adds ``w·x``; two at full weight give their mean; a layer weighs only on the FAPs it
+   moves). Expression overlays also compete with the primary, at weight 1, on the FAPs it moves
+   (a joy overlay over an anger stream gives their mean brows, not a sum no face can make), except
+   a speaking primary's speech in the mouth and tongue: speech and expression add there
+   (Kshirsagar et al.'s expressive speech, a vector sum), under rule 4; the primary's own
+   expression (FAP 2) still competes there.
 4. **Closures**: where the primary holds the lips together (a /p b m/, silence: a lip pair's gap
    near or below contact) the offsets' lip-opening part is taken out, shared by both lips (their
    common shift, the corners and the spreading stay), and so is their jaw opening.
@@ -33,7 +38,7 @@ import numpy as np
 
 from ..errors import Conflict, InputError, NotFound
 from ..state import FaceState
-from .model import Contribution, GazeTarget, Geometry, Layer, Role
+from .model import REGIONS, Contribution, GazeTarget, Geometry, Layer, Role
 
 #: Lip pairs (upper lip FAP, + down; lower lip FAP, + up): inner mid, left, right; outer the same.
 #: A pair's gap (FAPU MNS, 0 = the neutral closed mouth) is ``-(upper + lower)``.
@@ -42,6 +47,11 @@ LIP_PAIRS: np.ndarray = np.array([[4, 5], [8, 10], [9, 11], [51, 52], [55, 57], 
 #: in between the overlay may open them in proportion.
 CLOSED_GAP, OPEN_GAP = 80.0, 300.0
 _AU = 1e-5
+#: The FAPs speech moves (mouth and tongue): where a speaking primary and an overlay add.
+_SPEECH = np.zeros(69, dtype=bool)
+_SPEECH[list(REGIONS["mouth"] + REGIONS["tongue"])] = True
+#: Farthest the eyes turn from their rest direction (radians): 50° sideways, 45° up or down.
+EYE_YAW_MAX, EYE_PITCH_MAX = math.radians(50.0), math.radians(45.0)
 _DEFAULT_GEOMETRY = Geometry()
 
 
@@ -112,16 +122,19 @@ def head_transform(
 
 def eye_angles(direction: Sequence[float], axis: Sequence[float]) -> tuple[float, float]:
     """``(yaw, pitch)`` radians with ``Ry(yaw) · Rx(pitch) · axis`` along ``direction`` (head-local;
-    ``axis`` the eyeball's unit neutral forward axis)."""
+    ``axis`` the eyeball's unit neutral forward axis), limited to what eyes do (``EYE_YAW_MAX``,
+    ``EYE_PITCH_MAX``: a target behind the head or inside the eye is looked at as far as they go)."""
     dx, dy, dz = direction
     n = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if not n > 1e-12:
+        return 0.0, 0.0
     ax, ay, az = axis
     r = math.hypot(ay, az)
     pitch = math.acos(max(-1.0, min(1.0, dy / n / r))) - math.atan2(az, ay)
     uz = ay * math.sin(pitch) + az * math.cos(pitch)
     yaw = math.atan2(dx, dz) - math.atan2(ax, uz)
     yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
-    return yaw, pitch
+    return max(-EYE_YAW_MAX, min(EYE_YAW_MAX, yaw)), max(-EYE_PITCH_MAX, min(EYE_PITCH_MAX, pitch))
 
 
 def gaze_faps(
@@ -241,7 +254,7 @@ def combine(
     # 2. head pose over the primary's
     head_out = primary.head
     rest: np.ndarray | None = None
-    if head_out is not None and (poses or gazes or any(_touches_head(c) for _, c in items)):
+    if head_out is not None and (poses or any(_touches_head(c) for _, c in items)):
         F[48:51], rest = head_angles(head_out, geo.head_pivot)
     if poses:
         wsum = sum(w for _, w in poses)
@@ -251,15 +264,30 @@ def combine(
         if rest is not None:
             rest = rest * (1.0 - W)
 
-    # 3. offsets, averaged by weight inside a role (a layer weighs on the FAPs it moves)
+    # 3. offsets, averaged by weight inside a role (a layer weighs on the FAPs it moves);
+    #    expression overlays also compete with the primary where it moves a FAP (weight 1),
+    #    except a speaking primary's mouth and tongue, where speech and expression add
     if roles:
         A: Any = None
-        for group in roles.values():
-            if len(group) == 1:
-                part = _weighted(*group[0])
-            else:
+        for role, group in roles.items():
+            if role is Role.EXPRESSION:
                 num: Any = 0.0
                 den: Any = 0.0
+                for x, w in group:
+                    num = num + w * x
+                    den = den + w * (x != 0)
+                # what of the primary the overlays compete with: all of it, or, in a speaking
+                # mouth, only its own expression (FAP 2), never the speech
+                P = F
+                if closures:
+                    E = _expand(None, primary.expression, geo)
+                    P = np.where(_SPEECH, 0.0 if E is None else E, F)
+                part = (P + num) / np.maximum(1.0, (P != 0) + den) - P
+            elif len(group) == 1:
+                part = _weighted(*group[0])
+            else:
+                num = 0.0
+                den = 0.0
                 for x, w in group:
                     num = num + w * x
                     den = den + w * (x != 0)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import enum
 import itertools
-import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -65,7 +64,7 @@ def region_mask(regions: Mapping[str, float] | Iterable[str], amount: float = 1.
     return w
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class GazeTarget:
     """Where the eyes look: a ``point (3,)`` in the face's coordinates (mesh units; the neutral
     face's frame, so a turned head is compensated), or a ``direction (3,)`` (a target at
@@ -93,7 +92,7 @@ class GazeTarget:
         return cls(direction=np.array([0.0, 0.0, 1.0]))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class Contribution:
     """What one layer gives to one frame. Every channel is optional; an empty one gives nothing.
 
@@ -131,6 +130,38 @@ class Contribution:
 EMPTY = Contribution()
 
 
+def check_number(name: str, value: object, lo: float, hi: float) -> float:
+    """``value`` as a float if it is a real number (not a bool) within ``[lo, hi]``; ValueError
+    naming ``name`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise ValueError(f"{name} must be a number")
+    v = float(value)
+    if not lo <= v <= hi:  # (NaN fails too)
+        raise ValueError(f"{name} must be within [{lo:g}, {hi:g}]")
+    return v
+
+
+def check_envelope(value: object) -> None:
+    """ValueError unless ``value`` is an ``Envelope``."""
+    if not isinstance(value, Envelope):
+        raise ValueError("envelope must be an Envelope (start, attack_peak, relax, end)")
+
+
+def check_regions(value: object) -> tuple[str, ...] | None:
+    """``value`` (None or names of ``REGIONS``) as a tuple; ValueError otherwise."""
+    if value is None:
+        return None
+    if isinstance(value, str) or not isinstance(value, Iterable):
+        raise ValueError("regions must be a list of region names")
+    names = tuple(value)
+    if not all(isinstance(r, str) for r in names):
+        raise ValueError("regions must be a list of region names")
+    unknown = [r for r in names if r not in REGIONS]
+    if unknown:
+        raise ValueError(f"unknown face region {unknown[0]!r}; known: {', '.join(sorted(REGIONS))}")
+    return names
+
+
 def smoothstep(x: float) -> float:
     """``3x² − 2x³`` of ``x`` clipped to [0, 1]: a 0 → 1 ease with zero slope at both ends."""
     x = 0.0 if x <= 0.0 else min(1.0, x)
@@ -154,8 +185,8 @@ class Envelope:
     def __post_init__(self) -> None:
         for name in ("start", "attack_peak", "relax", "end"):
             v = getattr(self, name)
-            if v is not None and not math.isfinite(v):
-                raise ValueError(f"envelope {name} must be finite")
+            if v is not None or name == "start":
+                object.__setattr__(self, name, check_number(f"envelope {name}", v, -1e9, 1e9))
         times = [self.start, self.attack_peak, self.relax, self.end]
         given = [v for v in times if v is not None]
         if any(b < a for a, b in itertools.pairwise(given)):
@@ -191,7 +222,7 @@ class Layer(Protocol):
     def sample(self, t: float) -> Contribution: ...
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class Geometry:
     """What mixing needs of the face: eye centres and neutral eye axes (gaze), the head pivot
     (poses given as transforms), the high-level tables (FAP 1/2 expansion).

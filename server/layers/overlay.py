@@ -8,14 +8,23 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..state import FaceState
-from .model import EMPTY, Contribution, Envelope, Role, region_mask
+from .model import (
+    EMPTY,
+    Contribution,
+    Envelope,
+    Role,
+    check_envelope,
+    check_number,
+    check_regions,
+    region_mask,
+)
 
 
 def _weight(regions: tuple[str, ...] | None, w: float) -> float | np.ndarray:
     return w if regions is None else region_mask(regions, w)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class ExpressionLayer:
     """An expression held over the primary with BML timing.
 
@@ -37,18 +46,21 @@ class ExpressionLayer:
     role: Role = Role.EXPRESSION
 
     def __post_init__(self) -> None:
+        if isinstance(self.expression, bool) or not isinstance(self.expression, int | np.integer):
+            raise ValueError("expression must be an id 0..6")
         if not 0 <= int(self.expression) <= 6:
             raise ValueError(f"expression id {self.expression} is out of range 0..6")
-        if not np.isfinite(self.amount):
-            raise ValueError("amount must be finite")
+        object.__setattr__(self, "expression", int(self.expression))
+        object.__setattr__(self, "amount", check_number("amount", self.amount, -10.0, 10.0))
+        check_envelope(self.envelope)
+        if not isinstance(self.role, Role):
+            raise ValueError("role must be a Role")
         if self.faps is not None:
             f = np.asarray(self.faps, dtype=np.float64).reshape(-1)
             if f.shape != (69,) or not np.all(np.isfinite(f)):
                 raise ValueError("faps must be 69 finite numbers (index k = FAP k)")
             object.__setattr__(self, "faps", f)
-        if self.regions is not None:
-            region_mask(self.regions)  # names checked
-            object.__setattr__(self, "regions", tuple(self.regions))
+        object.__setattr__(self, "regions", check_regions(self.regions))
 
     @property
     def end(self) -> float | None:
@@ -66,7 +78,7 @@ class ExpressionLayer:
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
 class TrackLayer:
     """A FAP stream (a decoded ``.fap`` file, a recorded performance) played as offsets over the
     primary from ``start``: frame ``i`` at ``start + i / fps`` (nearest frame); nothing outside
@@ -93,12 +105,17 @@ class TrackLayer:
     def __post_init__(self) -> None:
         if not len(self.states):
             raise ValueError("a track layer needs at least one frame")
-        if not (np.isfinite(self.fps) and self.fps > 0):
-            raise ValueError("fps must be positive")
         object.__setattr__(self, "states", tuple(self.states))
-        if self.regions is not None:
-            region_mask(self.regions)
-            object.__setattr__(self, "regions", tuple(self.regions))
+        object.__setattr__(self, "fps", check_number("fps", self.fps, 1e-3, 1e4))
+        object.__setattr__(self, "start", check_number("start", self.start, -1e9, 1e9))
+        object.__setattr__(self, "amount", check_number("amount", self.amount, -10.0, 10.0))
+        if not isinstance(self.loop, bool):
+            raise ValueError("loop must be true or false")
+        if self.envelope is not None:
+            check_envelope(self.envelope)
+        if not isinstance(self.role, Role):
+            raise ValueError("role must be a Role")
+        object.__setattr__(self, "regions", check_regions(self.regions))
 
     @property
     def end(self) -> float | None:
