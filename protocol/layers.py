@@ -13,6 +13,7 @@ driver's states clock the frames; secondary producers (roles ``expression``, ``g
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 from typing import Annotated, Any, Literal
 
 from pydantic import (
@@ -33,9 +34,12 @@ __all__ = [
     "LAYER_NAME_PATTERN",
     "MAX_LAYERS",
     "ROLE_FAPS",
+    "Envelope",
     "ExpressionLayer",
+    "GazeDirection",
     "GazeLayer",
     "HeadLayer",
+    "HeadPoseAngles",
     "IdleLayer",
     "LayerInfo",
     "LayerList",
@@ -127,44 +131,81 @@ class TokenCreated(_Model):
 # ---------------------------------------------------------------------------------------- layers
 
 _Seconds = Annotated[float, Field(ge=0, le=MAX_SECONDS, allow_inf_nan=False)]
-_Amount = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+_Unit = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+_Xyz = tuple[
+    Annotated[float, Field(allow_inf_nan=False, ge=-1e6, le=1e6)],
+    Annotated[float, Field(allow_inf_nan=False, ge=-1e6, le=1e6)],
+    Annotated[float, Field(allow_inf_nan=False, ge=-1e6, le=1e6)],
+]
+#: Face regions an expression may be limited to (``server/layers/model.py`` ``REGIONS``).
+Region = Literal[
+    "jaw",
+    "lips",
+    "mouth",
+    "eyelids",
+    "eyes",
+    "eyebrows",
+    "cheeks",
+    "tongue",
+    "head",
+    "nose",
+    "ears",
+]
+
+
+class Envelope(_Model):
+    """When a layer acts (BML timing), seconds from the call: it rises from ``start`` to full at
+    ``attack_peak``, holds, falls from ``relax`` to nothing at ``end``. Missing: starts now, no
+    rise (or fall), no end."""
+
+    start: _Seconds | None = None
+    attack_peak: _Seconds | None = None
+    relax: _Seconds | None = None
+    end: _Seconds | None = None
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Envelope:
+        given = [v for v in (self.start, self.attack_peak, self.relax, self.end) if v is not None]
+        if any(b < a for a, b in pairwise(given)):
+            raise ValueError("envelope times must satisfy start <= attack_peak <= relax <= end")
+        return self
 
 
 class IdleLayer(_Model):
     """Idle behaviour: blinks, saccades and fixations, small head sway, breathing."""
 
     kind: Literal["idle"] = "idle"
-    seed: int = Field(
-        0, ge=0, le=2**31 - 1, description="random seed (the same seed, the same idle)"
-    )
-    amount: _Amount = Field(1.0, description="scale of the motion, 0-1")
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="the same seed, the same idle")
+    amount: _Unit = Field(1.0, description="scale of the motion, 0-1")
+    blink_rate: float | None = Field(None, ge=1, le=60, allow_inf_nan=False, description="/min")
+    blinks: bool | None = None
+    saccades: bool | None = None
+    sway: bool | None = None
+    breathing: bool | None = None
 
 
 class ExpressionLayer(_Model):
-    """An expression overlay (a named MPEG-4 expression, or FAPs) with intensity and timing.
-
-    Times are seconds from the call: it ramps in over ``attack`` from ``start``, holds, and ramps
-    out over ``relax`` before ``end`` (None: held until changed or removed).
-    """
+    """An expression overlay: a named MPEG-4 expression (or its id 1-6) and/or low-level FAPs,
+    scaled by ``amount``, timed by ``envelope``, optionally limited to face ``regions``."""
 
     kind: Literal["expression"] = "expression"
-    expression: Literal["joy", "sadness", "anger", "fear", "disgust", "surprise"] | None = None
+    expression: (
+        Literal["joy", "sadness", "anger", "fear", "disgust", "surprise"]
+        | Annotated[int, Field(ge=0, le=6)]
+        | None
+    ) = None
     faps: dict[int, float] | None = Field(
-        None, description="low-level FAPs (3..68, FAPU) of the overlay, instead of or with a name"
+        None, description="low-level FAP offsets (3..68, FAPU) at full strength"
     )
-    amount: _Amount = 1.0
-    start: _Seconds = 0.0
-    attack: _Seconds = 0.3
-    relax: _Seconds = 0.3
-    end: _Seconds | None = None
+    amount: float = Field(1.0, ge=0, le=2, allow_inf_nan=False)
+    envelope: Envelope | None = None
+    regions: list[Region] | None = Field(None, max_length=11)
 
     @field_validator("faps")
     @classmethod
     def _faps(cls, v: dict[int, float] | None) -> dict[int, float] | None:
         if v is None:
             return v
-        if len(v) > 66:
-            raise ValueError("at most the 66 low-level FAPs")
         for k, x in v.items():
             if not 3 <= k <= 68:
                 raise ValueError(f"FAP number {k} is not a low-level FAP (3..68)")
@@ -177,58 +218,58 @@ class ExpressionLayer(_Model):
 
     @model_validator(mode="after")
     def _whole(self) -> ExpressionLayer:
-        if self.expression is None and not self.faps:
+        if not self.expression and not self.faps:
             raise ValueError("an expression layer needs 'expression' (joy, ...) or 'faps'")
-        if self.end is not None and self.end < self.start:
-            raise ValueError("'end' comes before 'start'")
         return self
+
+
+class GazeDirection(_Model):
+    direction: _Xyz
+
+    @field_validator("direction")
+    @classmethod
+    def _nonzero(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not any(v):
+            raise ValueError("a gaze direction must not be zero")
+        return v
 
 
 class GazeLayer(_Model):
-    """Where the eyes look: a ``target`` point (millimetres, in the face's coordinates: +x the
-    face's left, +y up, +z out of the face), ``camera`` (straight ahead), or yaw/pitch (degrees,
-    a direction from the face). The eyes follow it whatever the head does."""
+    """Where the eyes look, whatever the head does: ``camera`` (straight ahead), a point
+    ``[x, y, z]`` in the face's mesh coordinates (+x its left, +y up, +z out of the face), or
+    ``{"direction": [x, y, z]}``."""
 
     kind: Literal["gaze"] = "gaze"
-    target: tuple[float, float, float] | Literal["camera"] | None = None
-    yaw: float | None = Field(
-        None, ge=-60, le=60, allow_inf_nan=False, description="degrees, + left"
-    )
-    pitch: float | None = Field(
-        None, ge=-45, le=45, allow_inf_nan=False, description="degrees, + up"
-    )
+    target: Literal["camera"] | _Xyz | GazeDirection = "camera"
+    amount: _Unit = 1.0
+    envelope: Envelope | None = None
 
-    @field_validator("target")
-    @classmethod
-    def _target(cls, v: Any) -> Any:
-        if isinstance(v, tuple) and not all(math.isfinite(x) and abs(x) <= 1e6 for x in v):
-            raise ValueError("target coordinates must be finite, within ±1e6 mm")
-        return v
 
-    @model_validator(mode="after")
-    def _whole(self) -> GazeLayer:
-        if self.target is None and self.yaw is None and self.pitch is None:
-            raise ValueError("a gaze layer needs 'target' ([x, y, z] mm or 'camera') or yaw/pitch")
-        if self.target is not None and (self.yaw is not None or self.pitch is not None):
-            raise ValueError("give 'target' or yaw/pitch, not both")
-        return self
+class HeadPoseAngles(_Model):
+    pitch: float = Field(0.0, ge=-90, le=90, allow_inf_nan=False, description="degrees, down +")
+    yaw: float = Field(0.0, ge=-90, le=90, allow_inf_nan=False, description="degrees, left +")
+    roll: float = Field(0.0, ge=-90, le=90, allow_inf_nan=False, description="degrees")
 
 
 class HeadLayer(_Model):
-    """Head motion: a ``gesture`` (nod, shake, tilt) of ``amount`` degrees (default: the
-    gesture's own, 8° nod, 12° shake, 10° tilt) from ``start``, each cycle ``duration`` seconds,
-    ``repeat`` times; or, without a gesture, a held pose (pitch down +, yaw to the face's left +,
-    roll; degrees) replacing the primary's head."""
+    """Head motion: a ``gesture`` (nod, shake, tilt; ``amount`` 1 = 8° nod, 12° shake, 10° tilt)
+    ``repetitions`` times, or a held ``pose`` (degrees) replacing the primary's head by
+    ``amount``."""
 
     kind: Literal["head"] = "head"
     gesture: Literal["nod", "shake", "tilt"] | None = None
-    amount: float | None = Field(None, gt=0, le=45, allow_inf_nan=False, description="degrees")
-    start: _Seconds = 0.0
-    duration: float = Field(0.6, gt=0, le=60, allow_inf_nan=False)
-    repeat: int = Field(1, ge=1, le=20)
-    yaw: float = Field(0.0, ge=-60, le=60, allow_inf_nan=False)
-    pitch: float = Field(0.0, ge=-45, le=45, allow_inf_nan=False)
-    roll: float = Field(0.0, ge=-45, le=45, allow_inf_nan=False)
+    pose: HeadPoseAngles | None = None
+    amount: float = Field(1.0, ge=-5, le=5, allow_inf_nan=False)
+    repetitions: int | None = Field(None, ge=1, le=100)
+    envelope: Envelope | None = None
+
+    @model_validator(mode="after")
+    def _one(self) -> HeadLayer:
+        if (self.gesture is None) == (self.pose is None):
+            raise ValueError("a head layer has a 'gesture' or a 'pose'")
+        if self.pose is not None and (self.repetitions is not None or not 0 <= self.amount <= 1):
+            raise ValueError("a pose takes an amount 0-1 and no repetitions")
+        return self
 
 
 LayerSpec = Annotated[

@@ -248,9 +248,7 @@ def test_rest_layers_drive_a_session_without_a_producer(live, face):
         async with SessionAdmin(live.url, live.admin_key) as admin:
             await admin.set_layer(s.id, "idle", {"kind": "idle", "seed": 3})
             idle = await frames_now(s, 20)
-            info = await admin.set_layer(
-                s.id, "smile", {"kind": "expression", "expression": "joy", "attack": 0.0}
-            )
+            info = await admin.set_layer(s.id, "smile", {"kind": "expression", "expression": "joy"})
             await admin.remove_layer(s.id, "idle")  # its sway would move the corners too
             await asyncio.sleep(0.1)
             joy = await frames_now(s, 5)
@@ -259,8 +257,10 @@ def test_rest_layers_drive_a_session_without_a_producer(live, face):
             off = await frames_now(s, 5)
             listed = await admin.layers(s.id)
             await admin.set_layer(s.id, "idle", {"kind": "idle", "seed": 3})
-            await admin.set_layer(s.id, "look", {"kind": "gaze", "yaw": 20})
-            await admin.set_layer(s.id, "nod", {"kind": "head", "gesture": "nod", "repeat": 2})
+            look = {"kind": "gaze", "target": {"direction": [0.34, 0.0, 0.94]}}
+            await admin.set_layer(s.id, "look", look)
+            nod = {"kind": "head", "gesture": "nod", "repetitions": 2}
+            await admin.set_layer(s.id, "nod", nod)
             await admin.remove_layer(s.id, "smile")
             after = await admin.layers(s.id)
             await admin.remove_layer(s.id)  # all
@@ -299,6 +299,16 @@ def test_malformed_layer_requests_are_4xx_with_a_message(live):
         ("PUT", "/layers/x", None, {"kind": "expression"}, 400, "'expression'"),
         ("PUT", "/layers/x", None, {"kind": "expression", "faps": {"3": 1e9}}, 400, "FAP 3"),
         ("PUT", "/layers/x", None, {"kind": "gaze", "target": "moon"}, 400, "target"),
+        ("PUT", "/layers/x", None, {"kind": "head"}, 400, "'gesture' or a 'pose'"),
+        ("PUT", "/layers/x", None, {"kind": "idle", "envelope": {}}, 400, "envelope"),
+        (
+            "PUT",
+            "/layers/x",
+            None,
+            {"kind": "expression", "faps": {"12": 1}, "envelope": {"start": 2, "end": 1}},
+            400,
+            "start <= attack_peak",
+        ),
         ("PUT", "/layers/x", None, [1, 2], 400, "JSON object"),
         ("PUT", "/layers/bad%20name", None, {"kind": "idle"}, 400, "layer name"),
         ("PUT", "/layers/x", None, {"kind": "idle", "x" * 70_000: 1}, 413, "at most"),
@@ -461,8 +471,8 @@ _json = st.recursive(
     ),
     max_leaves=12,
 )
-_KEYS = ["kind", "seed", "amount", "expression", "faps", "start", "attack", "relax", "end",
-         "target", "yaw", "pitch", "roll", "gesture", "duration", "repeat"]  # fmt: skip
+_KEYS = ["kind", "seed", "amount", "expression", "faps", "envelope", "regions", "blink_rate",
+         "target", "pose", "gesture", "repetitions", "blinks"]  # fmt: skip
 _KINDS = st.sampled_from(["idle", "expression", "gaze", "head", "sleep", 3, None])
 
 

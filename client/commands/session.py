@@ -65,8 +65,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "fields",
         nargs="*",
         help="the layer: key=value pairs (values as JSON: amount=0.5 target='[0,0,600]') or "
-        "one JSON object; kinds: idle (seed, amount), expression (expression, faps, amount, "
-        "start, attack, relax, end), gaze (target, yaw, pitch), head (gesture, amount, yaw...)",
+        "one JSON object; kinds: idle (seed, amount, blink_rate...), expression (expression, "
+        "faps, amount, envelope, regions), gaze (target: camera, [x,y,z] or {direction}), head "
+        "(gesture or pose, amount, repetitions, envelope); protocol/README.md has them all",
     )
     for q in (c, d, sub.choices["list"], t, ls, lay):
         q.add_argument("--url", required=True, help="server URL, e.g. http://127.0.0.1:8000")

@@ -24,7 +24,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ...protocol.layers import (
-    EXPRESSION_NAMES,
     MAX_LAYERS,
     ROLE_FAPS,
     ExpressionLayer,
@@ -174,7 +173,7 @@ class SessionMix:
                 f"a session holds at most {MAX_LAYERS} layers; DELETE one first", where="name"
             )
         now = self.now()
-        self.mixer.set(name, layer_of(spec, now, self.session))
+        self.mixer.set(name, layer_of(spec, now))
         self._rest[name] = _Rest(spec, now)
         self._start()
         return self.info(name)
@@ -199,7 +198,7 @@ class SessionMix:
             name=name,
             source="rest",
             kind=r.spec.kind,
-            spec=r.spec.model_dump(),
+            spec=r.spec.model_dump(mode="json", exclude_none=True),
             age=round(self.now() - r.set_at, 3),
         )
 
@@ -285,69 +284,9 @@ class SessionMix:
             self._task = None
 
 
-def envelope(start: float, attack: float, relax: float, end: float | None) -> Any:
-    """A ``layers.Envelope`` from a start, rise and fall (s) and an optional end (session s);
-    rise and fall shrink to fit between start and end."""
-    from ..layers import Envelope
-
-    if end is None:
-        return Envelope(start=start, attack_peak=start + attack)
-    span = max(0.0, end - start)
-    rise = min(attack, span / 2) if attack + relax > span else attack
-    fall = min(relax, span - rise)
-    return Envelope(start=start, attack_peak=start + rise, relax=end - fall, end=end)
-
-
-def layer_of(spec: Spec, now: float, session: LiveSession) -> Any:
+def layer_of(spec: Spec, now: float) -> Any:
     """The mixer's layer for a REST ``spec`` set at session time ``now`` (its times count from
-    ``now``)."""
-    from .. import layers
+    ``now``): the same vocabulary as ``layers.from_spec``, which builds it."""
+    from ..layers.spec import from_spec
 
-    if isinstance(spec, IdleLayer):
-        return layers.IdleLayer(seed=spec.seed, amount=spec.amount)
-    if isinstance(spec, ExpressionLayer):
-        faps = None
-        if spec.faps:
-            faps = np.zeros(69)
-            for k, v in spec.faps.items():
-                faps[k] = v
-        name = spec.expression
-        return layers.ExpressionLayer(
-            expression=0 if name is None else EXPRESSION_NAMES.index(name) + 1,
-            faps=faps,
-            amount=spec.amount,
-            envelope=envelope(
-                now + spec.start,
-                spec.attack,
-                spec.relax,
-                None if spec.end is None else now + spec.end,
-            ),
-        )
-    if isinstance(spec, GazeLayer):
-        if spec.target == "camera":
-            target = layers.GazeTarget.camera()
-        elif spec.target is not None:
-            point = np.array(spec.target, dtype=np.float64) / session.face.mm_per_unit
-            target = layers.GazeTarget(point=point)
-        else:
-            yaw, pitch = np.radians(spec.yaw or 0.0), np.radians(spec.pitch or 0.0)
-            target = layers.GazeTarget(
-                direction=np.array(
-                    [np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)]
-                )
-            )
-        return layers.GazeLayer(target=target, envelope=envelope(now, 0.15, 0.15, None))
-    if spec.gesture is not None:
-        from ..layers.head import GESTURES
-
-        scale = 1.0 if spec.amount is None else spec.amount / GESTURES[spec.gesture][1]
-        start = now + spec.start
-        return layers.HeadGesture(
-            kind=spec.gesture,
-            amount=scale,
-            envelope=layers.Envelope(start=start, end=start + spec.duration * spec.repeat),
-            repetitions=spec.repeat,
-        )
-    return layers.HeadPose(
-        pitch=spec.pitch, yaw=spec.yaw, roll=spec.roll, envelope=envelope(now, 0.3, 0.3, None)
-    )
+    return from_spec(spec.model_dump(mode="json", exclude_none=True), now)

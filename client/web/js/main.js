@@ -198,9 +198,10 @@ async function slidersAsLayers(moved) {
   const v = (f) => sliderValues[f] || 0;
   if (moved === '48' || moved === '49') {
     const yaw = v('49') * AU_TO_DEG, pitch = v('48') * AU_TO_DEG;
-    await setLayer('head', yaw || pitch ? { kind: 'head', yaw, pitch } : null);
+    await setLayer('head', yaw || pitch ? { kind: 'head', pose: { yaw, pitch } } : null);
   } else if (moved === '23,24') {
-    await setLayer('gaze', v('23') ? { kind: 'gaze', yaw: v('23') * AU_TO_DEG, pitch: 0 } : null);
+    const yaw = v('23') * 1e-5;  // radians
+    await setLayer('gaze', yaw ? { kind: 'gaze', target: { direction: [Math.sin(yaw), 0, Math.cos(yaw)] } } : null);
   } else {
     const faps = {};
     for (const [k, x] of Object.entries(sliderValues)) if (!['23', '24', '48', '49'].includes(k)) faps[k] = x;
