@@ -30,7 +30,6 @@ from .errors import MessageError
 from .messages import ROLES, Role
 
 __all__ = [
-    "EXPRESSION_NAMES",
     "LAYER_NAME_PATTERN",
     "MAX_LAYERS",
     "ROLE_FAPS",
@@ -55,8 +54,6 @@ __all__ = [
 LAYER_NAME_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
 #: REST layers a session holds at most.
 MAX_LAYERS = 16
-#: MPEG-4 expression names, by id (FAP 2: 1 joy ... 6 surprise).
-EXPRESSION_NAMES = ("joy", "sadness", "anger", "fear", "disgust", "surprise")
 #: Seconds into the future a layer may be scheduled (start / end), at most.
 MAX_SECONDS = 24 * 3600.0
 
