@@ -263,12 +263,18 @@ def test_rest_layers_drive_a_session_without_a_producer(live, face):
             await admin.set_layer(s.id, "nod", nod)
             await admin.remove_layer(s.id, "smile")
             after = await admin.layers(s.id)
-            await admin.remove_layer(s.id)  # all
-            empty = await admin.layers(s.id)
-            await asyncio.sleep(0.3)
-            info_end = await admin.info(s.id)
-            await asyncio.sleep(0.5)
-            info_later = await admin.info(s.id)
+            async with watch(live.url, s.id, s.viewer_token, encoding="f32"):  # one watches
+                await asyncio.sleep(0.3)
+                info_layers = await admin.info(s.id)
+                await asyncio.sleep(0.3)
+                info_later = await admin.info(s.id)
+                assert info_later.stats.states > info_layers.stats.states  # layers make frames
+                await admin.remove_layer(s.id)  # all
+                empty = await admin.layers(s.id)
+                await asyncio.sleep(0.3)
+                info_end = await admin.info(s.id)
+                await asyncio.sleep(0.5)
+                info_later = await admin.info(s.id)
         await _close(live.url, live.admin_key, s.id)
         return idle, info, joy, off, listed, after, empty, info_end, info_later
 

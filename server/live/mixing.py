@@ -262,11 +262,13 @@ class SessionMix:
                     await asyncio.sleep(at + hold - now)
                     due = self.clock()
                     continue
-                state = self.mixer.mix(self.primary, now)
-                if self.primary is not None:  # its media time goes on
-                    state = replace(state, t=self.primary.t + (now - (now if at is None else at)))
-                self.mixed += 1
-                session.queue([state], time.time())
+                if session.viewers:  # nobody watching: nothing to mix (the session still runs)
+                    state = self.mixer.mix(self.primary, now)
+                    if self.primary is not None:  # its media time goes on
+                        t = self.primary.t + (now - (now if at is None else at))
+                        state = replace(state, t=t)
+                    self.mixed += 1
+                    session.queue([state], time.time())
                 due += period
                 delay = due - self.clock()
                 if delay < -1.0:  # a stalled loop: skip ahead rather than rush frames out
