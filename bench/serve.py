@@ -128,7 +128,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "an earlier commit), point by point alternately with this checkout's, in the same run; "
         "reported side by side, with the ratio of server CPU per session-frame",
     )
+    p.add_argument(
+        "--layers",
+        type=int,
+        default=0,
+        choices=range(len(LAYERS) + 1),
+        help="REST layers per session mixed into every frame (1: idle, 2: and a smile, 3: and gaze "
+        "at the camera; default 0)",
+    )
     p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
+
+
+#: The layers ``--layers N`` sets on each session (the first N), over its producer's FAP frames.
+LAYERS = (
+    ("idle", {"kind": "idle", "seed": 1}),
+    ("smile", {"kind": "expression", "expression": "joy", "amount": 0.5}),
+    ("gaze", {"kind": "gaze", "target": "camera"}),
+)
 
 
 def _encodings(text: str) -> list[str]:
@@ -502,6 +518,9 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
     )
     async with SessionAdmin(url, key) as admin:
         made = [await admin.create(face=args.face, fps=args.fps) for _ in range(sessions)]
+        for s in made:
+            for name, spec in LAYERS[: getattr(args, "layers", 0)]:
+                await admin.set_layer(s.id, name, spec)
         stop = asyncio.Event()
         records: list[list] = []
         ready_events = []
@@ -757,6 +776,7 @@ def run(args: argparse.Namespace) -> int:
         "encoding": args.encoding,
         "by_encoding": by_encoding,
         "fps": args.fps,
+        "layers": args.layers,
         "backend": health.get("backend", args.backend),
         "device": health.get("device"),
         "viewer_kind": args.viewer_kind,

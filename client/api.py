@@ -1,6 +1,8 @@
 """The asyncio client of facecast live sessions.
 
-REST (httpx): ``SessionAdmin(url, admin_key)`` creates, lists and closes sessions.
+REST (httpx): ``SessionAdmin(url, admin_key)`` creates, lists and closes sessions; with the admin
+key or a session's producer token it also mints scoped producer tokens and sets the session's
+layers (``token``, ``layers``, ``set_layer``, ``patch_layer``, ``remove_layer``).
 WebSocket (websockets, per-message deflate off; the session token travels in an
 ``Authorization: Bearer`` header, never in the URL):
 
@@ -32,6 +34,7 @@ from websockets.exceptions import ConnectionClosed, WebSocketException
 
 from ..protocol import frames
 from ..protocol.errors import FrameError, UpstreamError
+from ..protocol.layers import LayerInfo, LayerList, TokenCreated
 from ..protocol.messages import (
     ErrorMessage,
     FapMessage,
@@ -145,6 +148,44 @@ class SessionAdmin:
     async def close(self, session: str) -> None:
         await self._call(
             "DELETE", f"/v1/sessions/{quote(session, safe='')}", f"cannot close session {session}"
+        )
+
+    # -- layers (the admin key or the session's producer token) -----------------------------------
+    async def token(self, session: str, roles: list[str]) -> TokenCreated:
+        """A producer token of ``session`` that may drive only ``roles`` (expression, gaze...)."""
+        resp = await self._call(
+            "POST",
+            f"/v1/sessions/{quote(session, safe='')}/tokens",
+            "cannot make a producer token",
+            json={"roles": list(roles)},
+        )
+        return TokenCreated.model_validate(resp.json())
+
+    def _layer_path(self, session: str, name: str | None = None) -> str:
+        path = f"/v1/sessions/{quote(session, safe='')}/layers"
+        return path if name is None else f"{path}/{quote(name, safe='')}"
+
+    async def layers(self, session: str) -> LayerList:
+        resp = await self._call("GET", self._layer_path(session), "cannot list the layers")
+        return LayerList.model_validate(resp.json())
+
+    async def set_layer(self, session: str, name: str, spec: dict[str, Any]) -> LayerInfo:
+        """Set layer ``name`` to ``spec`` (``{"kind": "idle", ...}``, ``protocol.layers``)."""
+        resp = await self._call(
+            "PUT", self._layer_path(session, name), f"cannot set layer {name}", json=spec
+        )
+        return LayerInfo.model_validate(resp.json())
+
+    async def patch_layer(self, session: str, name: str, changes: dict[str, Any]) -> LayerInfo:
+        resp = await self._call(
+            "PATCH", self._layer_path(session, name), f"cannot change layer {name}", json=changes
+        )
+        return LayerInfo.model_validate(resp.json())
+
+    async def remove_layer(self, session: str, name: str | None = None) -> None:
+        """Remove layer ``name`` (None: every layer set over REST)."""
+        await self._call(
+            "DELETE", self._layer_path(session, name), f"cannot remove layer {name or '(all)'}"
         )
 
 

@@ -30,6 +30,7 @@ __all__ = [
     "INPUT_ALIASES",
     "INPUT_KINDS",
     "PROTOCOL_VERSION",
+    "ROLES",
     "Encoding",
     "ErrorMessage",
     "FapMessage",
@@ -37,7 +38,9 @@ __all__ = [
     "InputKindIn",
     "Message",
     "ProducerHello",
+    "ProducerRole",
     "Ready",
+    "Role",
     "SessionCreate",
     "SessionCreated",
     "SessionInfo",
@@ -70,6 +73,15 @@ InputKindIn = Annotated[InputKind, BeforeValidator(input_kind_name)]
 Encoding = VertexEncoding  #: the one vocabulary, ``encoding.py``
 
 
+#: A producer's role in a session: the layer it drives. ``primary`` (the speech, FAP stream or
+#: mocap of the session's input kind) clocks the frames; the others add to each frame and send FAPs.
+Role = Literal["primary", "expression", "gaze", "head", "idle"]
+ROLES: tuple[Role, ...] = get_args(Role)
+#: What a producer hello's ``role`` may say: a ``Role``, or ``producer`` (older clients), read as
+#: ``primary``.
+ProducerRole = Literal["producer", "primary", "expression", "gaze", "head", "idle"]
+
+
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -81,7 +93,11 @@ class ProducerHello(_Model):
     """Producer -> server, the first message on ``/produce``: what the producer will send."""
 
     type: Literal["hello"] = "hello"
-    role: Literal["producer"] = "producer"
+    role: ProducerRole = Field(
+        "producer",
+        description="the layer this producer drives: primary (also 'producer', the default), "
+        "expression, gaze, head or idle; its token must carry that role",
+    )
     protocol: int = PROTOCOL_VERSION
     input: InputKindIn = "fap"
     rate: int | None = Field(None, gt=0, le=384_000, description="audio: sample rate in Hz")
@@ -105,6 +121,11 @@ class ProducerHello(_Model):
         None, max_length=16, description="markers: units of the positions (mm, cm, m)"
     )
 
+    @property
+    def layer(self) -> Role:
+        """The role as a layer name (``producer`` is ``primary``)."""
+        return "primary" if self.role == "producer" else self.role
+
 
 class Ready(_Model):
     """Server -> producer, the answer to its hello: the session accepts frames now."""
@@ -118,6 +139,9 @@ class Ready(_Model):
         description="input frames per second above which frames are dropped with an error"
     )
     vertex_count: int
+    role: Role | None = Field(
+        None, description="the layer this producer drives, when not the primary (omitted)"
+    )
 
 
 class ViewerHello(_Model):
@@ -229,10 +253,13 @@ class Status(_Model):
 
 
 def _tag(obj: object) -> str | None:
-    """Discriminator: ``type``, and for ``hello`` also ``role`` (producer and viewer hellos differ)."""
+    """Discriminator: ``type``, and for ``hello`` also ``role`` (a viewer's hello, or a producer's
+    whatever role it names: its model says which roles there are; a hello must name one)."""
     get = obj.get if isinstance(obj, dict) else lambda k, d=None: getattr(obj, k, d)
     kind = get("type")
-    return f"hello:{get('role')}" if kind == "hello" else kind
+    if kind != "hello" or get("role") is None:
+        return kind if kind != "hello" else "hello:None"
+    return "hello:viewer" if get("role") == "viewer" else "hello:producer"
 
 
 Message = Annotated[
@@ -332,13 +359,15 @@ def parse_message(text: str | bytes) -> BaseModel:
         obj = json.loads(text)
     except (ValueError, UnicodeDecodeError) as e:
         raise MessageError(f"not JSON: {e}") from None
+    except RecursionError:
+        raise MessageError("the message nests too deeply") from None
     if not isinstance(obj, dict):
         raise MessageError("a control message must be a JSON object with a 'type' field")
     tag = _tag(obj)
     if tag not in _TAGS:
         raise MessageError(
             f"unknown message type {obj.get('type')!r}"
-            + (f" with role {obj.get('role')!r}" if obj.get("type") == "hello" else "")
+            + (" without a role" if tag == "hello:None" else "")
             + "; expected one of: "
             + ", ".join(_TAGS),
             where="type",

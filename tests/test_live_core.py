@@ -189,15 +189,17 @@ def test_a_second_producer_is_refused_with_4409_until_the_first_leaves():
     session = _session()
     first, _ = _ready(session)
     second = _core(session)
-    step = second.connect()
+    assert second.connect() is NOTHING  # the role's slot is taken at the hello
+    step = second.receive_text(dump_message(ProducerHello()))
     assert step.close is not None and step.close.code == CloseCode.CONFLICT
+    assert "already has a 'primary' producer" in step.close.message
     second.close()  # a refused producer's close leaves the slot alone
     assert session.producer is first.slot
     first.close()
     first.close()  # idempotent
     assert session.producer is None
-    third = _core(session)
-    assert third.connect() is NOTHING and session.producer is third.slot
+    third, _ = _ready(session)
+    assert session.producer is third.slot
 
 
 def test_a_flood_is_dropped_with_one_warning_then_closed_with_1008():
@@ -435,6 +437,7 @@ def test_routes_feed_the_core_and_carry_out_its_steps(routed):
         error = producer.receive_json()  # the routes send what the core answered
         assert error["code"] == 4400 and not error["fatal"]
         with client.websocket_connect("/v1/sessions/s1/produce", headers=auth) as second:
+            second.send_text(dump_message(ProducerHello()))
             error, code = _refused(second)
             assert code == error["code"] == CloseCode.CONFLICT and error["fatal"]
         with client.websocket_connect(

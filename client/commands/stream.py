@@ -3,6 +3,10 @@
 INPUT: ``.fap`` (FAP frames), ``.wav/.flac/.ogg`` (PCM chunks, the session must take audio) or
 ``.trc/.csv`` (marker frames, the session must take markers). Frames are paced at the input's own
 rate (``--speed`` scales it) and carry the sender's wall clock, so viewers can measure latency.
+
+``--role`` names the layer the stream drives (default ``primary``): a ``.fap`` file streamed as
+``--role expression`` (or ``gaze``, ``head``, ``idle``) is mixed over the session's primary
+producer (the speech), with a token that carries that role (``facecast session token``).
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import time
 from pathlib import Path
 
 from ...protocol.errors import InputError
+from ...protocol.messages import ROLES
 from . import add_token_argument
 
 log = logging.getLogger(__name__)
@@ -29,6 +34,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--url", required=True, help="server URL, e.g. http://127.0.0.1:8000")
     p.add_argument("--session", required=True, help="session id (from 'facecast session create')")
     add_token_argument(p, "producer")
+    p.add_argument(
+        "--role",
+        choices=ROLES,
+        default="primary",
+        help="the layer this stream drives (default primary; the others take .fap files)",
+    )
     p.add_argument(
         "--speed",
         type=float,
@@ -124,9 +135,15 @@ async def _main(args: argparse.Namespace) -> dict:
 
     suffix = args.input.suffix.lower()
     t_start = time.monotonic()
+    role = getattr(args, "role", "primary")
+    if role != "primary" and suffix != ".fap":
+        raise StreamError(
+            f"{args.input}: a '{role}' stream sends FAP frames: give a .fap file (only the "
+            "primary producer sends audio or markers)"
+        )
     if suffix == ".fap":
         fap = _read_fap(args.input)
-        hello = ProducerHello(input="fap")
+        hello = ProducerHello(input="fap", role="producer" if role == "primary" else role)
         async with produce(args.url, args.session, args.token, hello) as p:
             n = 0
             for i in range(args.loop):
@@ -176,6 +193,7 @@ async def _main(args: argparse.Namespace) -> dict:
     return {
         "input": str(args.input),
         "kind": kind,
+        "role": role,
         "frames_sent": n,
         "rate": rate,
         "seconds": round(time.monotonic() - t_start, 3),

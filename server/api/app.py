@@ -28,7 +28,15 @@ from starlette.exceptions import HTTPException
 
 from ..errors import FacecastError
 from ..jobs.upload import clear_upload_dir, upload_dir
-from . import routes_faces, routes_health, routes_jobs, routes_playback, routes_sessions, routes_web
+from . import (
+    routes_faces,
+    routes_health,
+    routes_jobs,
+    routes_layers,
+    routes_playback,
+    routes_sessions,
+    routes_web,
+)
 from .config import ServerConfig
 from .errors import error_body, error_response, reply
 from .metrics import Metrics
@@ -243,6 +251,8 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     app.include_router(routes_jobs.router)
     app.include_router(routes_sessions.router)
     app.include_router(routes_playback.router)
+    app.include_router(routes_layers.router)
+    app.include_router(routes_layers.router)
     app.include_router(routes_web.router)
     return app
 

@@ -128,7 +128,8 @@ async def _accept(ws: WebSocket, query_token: str | None) -> str | None:
 async def _authorise(
     ws: WebSocket, session_id: str, token: str | None, role: str
 ) -> LiveSession | None:
-    """The session if ``token`` is its ``role`` token; else refuse and return None."""
+    """The session if ``token`` is its ``role`` token (for producers: any of its producer tokens,
+    whatever its roles); else refuse and return None."""
     session = registry(ws.app).sessions.get(session_id)
     sp = session.spec if session is not None else None
     mine, other = (
@@ -138,6 +139,8 @@ async def _authorise(
         if role == "producer"
         else (sp.viewer_token, sp.producer_token)
     )
+    if session is not None and role == "producer" and session.grants.roles_of(token):
+        mine = token or ""  # a scoped producer token
     refusal = authorise(session_id, session is not None, token, mine, other, role)
     if refusal is not None:
         await _refuse(ws, refusal)
@@ -173,9 +176,14 @@ async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> N
         return
     reg = registry(ws.app)
     core = ProducerCore(
-        session, _Producer(ws), animators=reg, max_fps=reg.max_fps, metrics=reg.metrics
+        session,
+        _Producer(ws),
+        animators=reg,
+        max_fps=reg.max_fps,
+        metrics=reg.metrics,
+        roles=session.grants.roles_of(token) or frozenset(),
     )
-    step = core.connect()  # takes the producer slot before any await
+    step = core.connect()
     if step.close is not None:
         await _refuse(ws, step.close)
         return

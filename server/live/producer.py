@@ -2,8 +2,10 @@
 
 States: ``AWAITING_HELLO`` → (``OPENING``, while its input is made off the event loop) → ``READY``
 → ``STREAMING`` (a frame was taken) → ``CLOSED``. The core decides everything about a producer:
-whether it may have the session's producer slot (a second producer is refused, 4409), whether its
-hello is usable, each message's budget (dropped with a 4429 warning, or the connection closed on a
+whether its token carries the role its hello names (else 4403), whether it may have that role's
+slot (one producer per role: a second is refused, 4409), whether its hello is usable (a
+secondary role sends FAP frames of its own FAPs only, ``protocol.layers.ROLE_FAPS``), each
+message's budget (dropped with a 4429 warning, or the connection closed on a
 flood, 1008, or an oversized message, 1009), what a malformed frame is answered with (a non-fatal
 4400 naming its ``seq``), when the session's animator must follow the input's control vertices
 (mocap), and the close code and message of every refusal (``core.client_error``).
@@ -27,11 +29,13 @@ from typing import Any
 import numpy as np
 
 from ...protocol import frames
-from ...protocol.errors import CloseCode, FrameError, MessageError
+from ...protocol.errors import CloseCode, Forbidden, FrameError, MessageError
+from ...protocol.layers import role_refusal
 from ...protocol.messages import (
     FapMessage,
     ProducerHello,
     Ready,
+    Role,
     dump_message,
     parse_message,
 )
@@ -51,6 +55,7 @@ from .core import (
 )
 from .inputs import make_input
 from .ports import Animators, Input, ProducerSlot
+from .roles import ALL_ROLES
 from .session import LiveSession
 
 log = logging.getLogger(__name__)
@@ -77,6 +82,7 @@ class ProducerCore:
         max_fps: the server's producer frame-rate limit (``ServerConfig.max_producer_fps``).
         metrics: the app's ``Metrics`` or None.
         clock: monotonic seconds (tests pass their own).
+        roles: the roles its token may drive (``roles.Grants.roles_of``; default: all).
     """
 
     def __init__(
@@ -88,8 +94,11 @@ class ProducerCore:
         max_fps: float,
         metrics: Any = None,
         clock: Callable[[], float] = time.monotonic,
+        roles: frozenset[str] = ALL_ROLES,
     ) -> None:
         self.session = session
+        self.roles = roles
+        self.role: Role = "primary"  # the role its hello names (a slot is held once it is claimed)
         self.slot = slot
         self.animators = animators
         self.max_fps = max_fps
@@ -105,25 +114,46 @@ class ProducerCore:
         # audio / mocap drivers do real work: their frames are pushed in a thread
         self._offload = session.spec.input != "fap"
         self._connected = False
+        self._claimed = False  # it holds its role's slot
+        self._check_faps: Callable[[Any], str | None] | None = None  # a secondary role's FAPs
         self._label = f"session {session.spec.id}: producer"
 
     # -- connection --------------------------------------------------------------------------------
     def connect(self) -> Step:
-        """The connection is accepted and authorised: take the session's producer slot (before any
-        await, so that a second producer is refused) or refuse with 4409."""
-        if not self.session.claim(self.slot):
-            self.state = State.CLOSED
-            return closing(
-                Close(
-                    CloseCode.CONFLICT,
-                    "this session already has a producer; only one may send at a time "
-                    "(connect again once it has disconnected)",
-                )
-            )
+        """The connection is accepted and authorised; its role's slot is taken at the hello."""
         self._connected = True
         if self.metrics:
             self.metrics.producers.inc()
         return NOTHING
+
+    def _claim(self, hello: ProducerHello) -> Close | None:
+        """Take the slot of the hello's role (no await before: a second producer is refused), or
+        why not: the token lacks the role (4403), a secondary role sends other than FAPs (4403),
+        the slot is taken (4409)."""
+        role = hello.layer
+        if role not in self.roles:
+            return Close(
+                CloseCode.FORBIDDEN,
+                f"this token may drive the role(s) {', '.join(sorted(self.roles))}, not "
+                f"'{role}'; ask for a token with that role (POST /v1/sessions/ID/tokens)",
+                where="hello.role",
+            )
+        if role != "primary" and hello.input != "fap":
+            return Close(
+                CloseCode.FORBIDDEN,
+                f"a '{role}' producer sends FAP frames (input 'fap'), not {hello.input}; only "
+                "the primary producer sends the session's input",
+                where="hello.input",
+            )
+        if not self.session.claim(self.slot, role):
+            return Close(
+                CloseCode.CONFLICT,
+                f"this session already has a '{role}' producer; only one per role may send at a "
+                "time (connect again once it has disconnected)",
+                where="hello.role",
+            )
+        self.role = role
+        return None
 
     @property
     def open(self) -> bool:
@@ -156,7 +186,9 @@ class ProducerCore:
     def close(self) -> None:
         """The connection is gone: free the producer slot (idempotent)."""
         self.state = State.CLOSED
-        self.session.release(self.slot)
+        if self._claimed:
+            self._claimed = False
+            self.session.release(self.slot)
         if self._connected:
             self._connected = False
             if self.metrics:
@@ -184,6 +216,8 @@ class ProducerCore:
                     where="type",
                 )
             seq = m.seq
+            if self._check_faps is not None:
+                self._forbid(self._check_faps(m.faps), m.viseme, m.expression)
             states = self.input.push_message(m)
         except Exception as e:  # noqa: BLE001 - a message's or driver's error: mapped to its reply (_rejected)
             return self._rejected(e, seq)
@@ -211,14 +245,30 @@ class ProducerCore:
         if self._offload:
             return Step(work=Work(partial(_push_into, self._push_frame, frame), self._pushed))
         try:
+            if self._check_faps is not None:
+                self._check_frame(frame)
             states = self._push_frame(frame)
         except Exception as e:  # noqa: BLE001 - a driver's error costs this frame only (_rejected)
             return self._rejected(e, frame.header.seq)
         self.state = State.STREAMING
         session = self.session
         session.count_in()
-        session.submit(states, frame.header.wall)
+        session.submit(states, frame.header.wall, self.role)
         return NOTHING
+
+    def _check_frame(self, frame: frames.Frame) -> None:
+        """A secondary role's binary FAP frame drives only that role's FAPs (else ``Forbidden``)."""
+        assert isinstance(frame, frames.FapFrame) and self._check_faps is not None
+        sent = np.flatnonzero(~np.isnan(frame.values[2:])) + 3
+        self._forbid(self._check_faps(sent.tolist()), frame.viseme, frame.expression)
+
+    def _forbid(self, why: str | None, viseme: Any, expression: Any) -> None:
+        if why is None and viseme is not None:
+            why = f"a '{self.role}' producer may not send visemes (the primary's mouth shapes)"
+        if why is None and expression is not None and self.role != "expression":
+            why = f"a '{self.role}' producer may not send expressions (the expression role's)"
+        if why is not None:
+            raise _NotItsRole(why, where="faps")
 
     # -- the hello ---------------------------------------------------------------------------------
     def _hello(self, text: str) -> Step:
@@ -237,9 +287,17 @@ class ProducerCore:
                 )
         except MessageError as e:
             return self._refuse(e)
+        refused = self._claim(hello)
+        if refused is not None:
+            return self._close(refused)
+        self._claimed = True
         self.state = State.OPENING
         spec = self.session.spec
-        run = partial(_open, spec.input, self.session.face, hello, spec.fps)
+        kind = spec.input if self.role == "primary" else "fap"
+        if self.role != "primary":
+            self._offload = False  # FAP frames: decoded and taken inline
+            self._check_faps = partial(role_refusal, self.role)
+        run = partial(_open, kind, self.session.face, hello, spec.fps)
         return Step(work=Work(run, partial(self._opened, hello)), event=Event.HELLO)
 
     def _opened(self, hello: ProducerHello, result: Input | BaseException) -> Step:
@@ -254,7 +312,7 @@ class ProducerCore:
     def _ready(self, hello: ProducerHello) -> Step:
         spec = self.session.spec
         limits = producer_limits(
-            spec.input,
+            spec.input if self.role == "primary" else "fap",
             self.max_fps,
             rate=hello.rate,
             sample_format=hello.sample_format,
@@ -269,10 +327,11 @@ class ProducerCore:
         self.session.announce(self.slot)  # tells viewers
         ready = Ready(
             session=spec.id,
-            input=spec.input,
+            input=spec.input if self.role == "primary" else "fap",
             fps=spec.fps,
             max_fps=self.max_fps,
             vertex_count=self.session.vertex_count,
+            role=None if self.role == "primary" else self.role,
         )
         return Step(send=(dump_message(ready),), event=Event.READY)
 
@@ -313,11 +372,11 @@ class ProducerCore:
     def _take(self, states: list[FaceState], wall: float) -> None:
         self.state = State.STREAMING
         self.session.count_in()
-        self.session.submit(states, wall)
+        self.session.submit(states, wall, self.role)
 
     def _flushed(self, tail: list[FaceState]) -> Step:
         if tail:
-            self.session.submit(tail, wall=time.time())
+            self.session.submit(tail, time.time(), self.role)
         return NOTHING
 
     # -- refusals ----------------------------------------------------------------------------------
@@ -362,6 +421,12 @@ class ProducerCore:
     def _close(self, close: Close) -> Step:
         self.state = State.CLOSED
         return closing(close)
+
+
+class _NotItsRole(Forbidden):
+    """A secondary producer's frame drives what its role may not (a non-fatal 4403)."""
+
+    status = 403
 
 
 # -- blocking work (the shell runs it, in a thread when offloaded); client faults are returned --

@@ -24,7 +24,9 @@ import numpy as np
 from ...protocol.compact import KEY
 from ...protocol.messages import InputKind, Stats, Status, dump_message
 from ..state import FaceState
+from .mixing import SessionMix
 from .ports import Deformer, DirectWriter, Outbox, ProducerSlot
+from .roles import Grants
 
 log = logging.getLogger(__name__)
 
@@ -160,8 +162,11 @@ class LiveSession:
         self.metrics = metrics
         self.viewers: set[Outbox] = set()
         self._joining = 0  # viewers being greeted (count against the limit)
-        self._producer: ProducerSlot | None = None  # who holds the producer slot
-        self.pending: deque[tuple[int, FaceState, float]] = deque()
+        self._producers: dict[str, ProducerSlot] = {}  # role -> who holds its slot
+        self.grants = Grants(spec.producer_token)  # producer tokens and their roles
+        self.mix = SessionMix(self)  # secondary producers' and REST layers, mixed into each state
+        #: (seq, state, wall, mix: the layers are mixed in when it goes to the deformer)
+        self.pending: deque[tuple[int, FaceState, float, bool]] = deque()
         self._busy = False  # a state of this session is with the batcher
         self._in_flight = 0  # its seq
         self._encodings: dict[str, int] = {}  # encoding -> viewers that asked for it
@@ -189,8 +194,13 @@ class LiveSession:
     # -- state, read-only outside this class -------------------------------------------------------
     @property
     def producer(self) -> ProducerSlot | None:
-        """Who holds the producer slot (``claim``), or None."""
-        return self._producer
+        """Who holds the primary producer slot (``claim``), or None."""
+        return self._producers.get("primary")
+
+    @property
+    def producers(self) -> dict[str, ProducerSlot]:
+        """A copy of role -> who holds that producer slot."""
+        return dict(self._producers)
 
     @property
     def batcher(self) -> Deformer:
@@ -215,7 +225,7 @@ class LiveSession:
     def busy(self) -> bool:
         """A viewer is connected (or joining) or a client's producer is: the session is in use. A
         server-side producer (demo, playback) alone does not count: nobody asked for it any more."""
-        remote = self._producer is not None and self._producer.remote
+        remote = any(p.remote for p in self._producers.values())
         return bool(self.viewers) or self._joining > 0 or remote
 
     def idle_for(self, now: float) -> float:
@@ -226,23 +236,28 @@ class LiveSession:
         return now - self.last_active
 
     # -- the producer slot and the control set ------------------------------------------------------
-    def claim(self, producer: ProducerSlot) -> bool:
-        """Take the producer slot for ``producer`` if it is free (True); viewers hear of it at
-        ``announce``. Call before any await, so that a second producer is refused."""
-        if self._producer is not None:
+    def claim(self, producer: ProducerSlot, role: str = "primary") -> bool:
+        """Take the ``role`` producer slot for ``producer`` if it is free (True); viewers hear of
+        it at ``announce``. Call before any await, so that a second producer is refused."""
+        if role in self._producers:
             return False
-        self._producer = producer
+        self._producers[role] = producer
         return True
 
     def announce(self, producer: ProducerSlot) -> None:
-        """``producer`` (holding the slot) is ready: tell the viewers."""
-        if self._producer is producer:
+        """``producer`` (holding a slot) is ready: tell the viewers."""
+        if any(p is producer for p in self._producers.values()):
             self._set_producer(producer)
 
     def release(self, producer: ProducerSlot) -> None:
-        """``producer`` leaves: free the slot if it holds it (idempotent)."""
-        if self._producer is producer:
-            self._set_producer(None)
+        """``producer`` leaves: free its slot if it holds one (idempotent); a secondary
+        producer's layer leaves the mix."""
+        for role, p in list(self._producers.items()):
+            if p is producer:
+                del self._producers[role]
+                if role != "primary":
+                    self.mix.drop(role)
+                self._set_producer(None)
 
     def needs_controls(self, control_vertices: np.ndarray | None) -> bool:
         """True if ``control_vertices`` (an input's explicit controls) are not those deformed now."""
@@ -286,15 +301,31 @@ class LiveSession:
         self._stats["frames_rejected"] += 1
 
     # -- producer side -----------------------------------------------------------------------------
-    def submit(self, states: list[FaceState], wall: float) -> None:
-        """Number ``states`` and queue them for deformation (oldest dropped beyond ``MAX_PENDING``)."""
+    def submit(self, states: list[FaceState], wall: float, role: str = "primary") -> None:
+        """Number ``states`` and queue them for deformation (oldest dropped beyond ``MAX_PENDING``).
+
+        The primary producer's states clock the frames: with layers in the mix, each is mixed
+        with them as it goes to the deformer (states dropped under load cost no mixing). A
+        secondary producer's (``role``) newest state becomes its layer.
+        """
+        mix = self.mix
+        if role != "primary":
+            if states:
+                mix.put(role, states[-1])
+            return
+        if states:
+            mix.held(states[-1])  # layers mix over it when no primary state comes
+        self.queue(states, wall, mix.active)
+
+    def queue(self, states: list[FaceState], wall: float, mix: bool = False) -> None:
+        """Number ``states`` and queue them for deformation (``mix``: with the layers)."""
         for s in states:
             if len(self.pending) >= MAX_PENDING:
                 self.pending.popleft()
                 self._stats["frames_dropped"] += 1
                 if self.metrics:
                     self.metrics.frames_dropped.inc()
-            self.pending.append((self.seq, s, wall))
+            self.pending.append((self.seq, s, wall, mix))
             self.seq = (self.seq + 1) & 0xFFFFFFFF
             self._stats["states"] += 1
         if states and not self._busy:
@@ -302,7 +333,6 @@ class LiveSession:
 
     def _set_producer(self, producer: ProducerSlot | None) -> None:
         """A producer connected (tell viewers now) or left (tell them once its frames are out)."""
-        self._producer = producer
         self.last_active = time.monotonic()
         if producer is not None:
             self.broadcast_status()
@@ -346,7 +376,7 @@ class LiveSession:
     def broadcast_status(self) -> None:
         text = dump_message(
             Status(
-                producer_connected=self._producer is not None,
+                producer_connected=bool(self._producers),
                 viewers=len(self.viewers),
                 last_seq=self.last_seq,
             )
@@ -364,7 +394,7 @@ class LiveSession:
             | {
                 "deform_ms_mean": round(1000 * self._deform_total / n, 3) if n else 0.0,
                 "viewers": len(self.viewers),
-                "producer_connected": self._producer is not None,
+                "producer_connected": bool(self._producers),
             }
         )
 
@@ -373,9 +403,11 @@ class LiveSession:
         """Hand the oldest pending state to the batcher (one at a time per session); with nothing
         pending, send a status that was waiting for the frames to be out."""
         while self.pending and not self.closed:
-            seq, state, wall = self.pending.popleft()
+            seq, state, wall, mix = self.pending.popleft()
             if not self._encodings:
                 continue  # nobody watches: skip the work, the numbering still advances
+            if mix:
+                state = self.mix.mix_primary(state)
             self._busy = True
             self._in_flight = seq
             try:
@@ -448,8 +480,9 @@ class LiveSession:
         """Stop the worker and tell every connection to end with ``code``."""
         self.closed = True
         self.pending.clear()
+        self.mix.stop()
         for v in list(self.viewers):
             v.end(code, error_json)
-        if self._producer is not None:
-            await self._producer.end(code, error_json)
+        for p in list(self._producers.values()):
+            await p.end(code, error_json)
         return None

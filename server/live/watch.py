@@ -79,7 +79,7 @@ class ViewerCore:
             encoding=cast(Encoding, self.encoding),
             fps=sp.fps,
             input=sp.input,
-            producer_connected=s.producer is not None,
+            producer_connected=bool(s.producers),
             tolerance=sp.tolerance / s.face.mm_per_unit if self.encoding == "compact" else None,
         )
         s.join()

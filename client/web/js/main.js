@@ -109,9 +109,11 @@ async function watch(sessionId) {
     state.tokens[sessionId] = { producer: t.producer_token, viewer: t.viewer_token };
   }
   if (state.producer && state.producer.session !== sessionId) { state.producer.close(); state.producer = null; }
+  if (state.layerProducer && state.layerProducer.session !== sessionId) { state.layerProducer.close(); state.layerProducer = null; }
   state.session = sessionId;
   viewer.close();
   viewer.watch(sessionId, state.tokens[sessionId].viewer, $('encoding').value);
+  if (idleOn && state.tokens[sessionId].producer) setLayer('idle', { kind: 'idle', seed: 1 }).catch(() => {});
 }
 
 /** Close a producer's connection; resolves once it is closed. */
@@ -155,6 +157,67 @@ async function openProducer() {
     await state.producer.connect({ input: 'fap' });
   }
   return state.producer;
+}
+
+// ---- layers: the controls over a voice ----------------------------------------------------------
+// While a voice drives the mouth (the microphone, or any session that takes audio), the page does
+// not take the primary producer slot: expression buttons set an expression layer over REST, the
+// sliders stream as an 'expression' producer (head and look sliders set head and gaze layers),
+// and the idle toggle sets the idle layer, all mixed by the server into every frame of the voice.
+const layered = () => Boolean(state.mic) || Boolean(viewer.hello && viewer.hello.input !== 'fap');
+
+/** PUT (or, with no spec, DELETE) the layer `name` of the watched session. */
+async function setLayer(name, spec) {
+  if (!state.session) { const s = await newSession('fap'); await watch(s.id); }
+  const path = `/v1/sessions/${state.session}/layers/${name}${producerQuery(state.session)}`;
+  if (spec) return api('PUT', path, spec);
+  try { await api('DELETE', path); } catch (e) { if (e.status !== 404) throw e; }
+  return null;
+}
+
+/** The page's 'expression' producer on the watched session (its sliders over the voice). */
+let layerConnecting = null;
+function expressionProducer() {
+  if (!layerConnecting) {
+    layerConnecting = (async () => {
+      const p = state.layerProducer;
+      if (!p || !p.open || p.session !== state.session) {
+        if (p) p.close();
+        state.layerProducer = new Producer(state.session, state.tokens[state.session].producer, setStatus);
+        await state.layerProducer.connect({ input: 'fap', role: 'expression' });
+      }
+      return state.layerProducer;
+    })().finally(() => { layerConnecting = null; });
+  }
+  return layerConnecting;
+}
+
+const AU_TO_DEG = 180 / Math.PI * 1e-5;
+/** The sliders as layers: expression FAPs to the expression producer, head and look as layers. */
+async function slidersAsLayers(moved) {
+  const v = (f) => sliderValues[f] || 0;
+  if (moved === '48' || moved === '49') {
+    const yaw = v('49') * AU_TO_DEG, pitch = v('48') * AU_TO_DEG;
+    await setLayer('head', yaw || pitch ? { kind: 'head', pose: { yaw, pitch } } : null);
+  } else if (moved === '23,24') {
+    const yaw = v('23') * 1e-5;  // radians
+    await setLayer('gaze', yaw ? { kind: 'gaze', target: { direction: [Math.sin(yaw), 0, Math.cos(yaw)] } } : null);
+  } else {
+    const faps = {};
+    for (const [k, x] of Object.entries(sliderValues)) if (!['23', '24', '48', '49'].includes(k)) faps[k] = x;
+    (await expressionProducer()).sendFaps(faps);
+  }
+}
+
+let idleOn = false;
+async function toggleIdle() {
+  idleOn = !idleOn;
+  $('idle').textContent = `Idle: ${idleOn ? 'on' : 'off'}`;
+  $('idle').setAttribute('aria-pressed', String(idleOn));
+  try {
+    await setLayer('idle', idleOn ? { kind: 'idle', seed: 1 } : null);
+    setInfo('layer-info', idleOn ? 'idle on: blinks, glances, sway and breathing mixed over the face' : 'idle off');
+  } catch (e) { setStatus(e.message, 'error'); }
 }
 
 // ---- rendering ----------------------------------------------------------------------------------
@@ -253,6 +316,12 @@ for (const [label, values] of [[EXPRESSIONS, 'expression'], [VISEMES, 'viseme']]
     b.title = item.title || item.name;
     b.onclick = async () => {
       try {
+        if (layered()) {
+          if (values === 'viseme') { setInfo('layer-info', 'the voice drives the mouth; visemes are its own'); return; }
+          await setLayer('expression', { kind: 'expression', expression: item.name, amount: 1 });
+          setInfo('layer-info', `${item.name} mixed over the voice`);
+          return;
+        }
         const p = await producer();
         p.sendFaps({ ...sliderValues }, values === 'viseme' ? [item.id, 0, 63] : null,
                    values === 'expression' ? [item.id, 63, 0, 0] : null);
@@ -269,15 +338,26 @@ for (const s of SLIDERS) {
   input.oninput = async () => {
     out.textContent = input.value;
     for (const f of s.fap.split(',')) sliderValues[f] = Number(input.value);
-    try { (await producer()).sendFaps({ ...sliderValues }); } catch (e) { setStatus(e.message, 'error'); }
+    try {
+      if (layered()) await slidersAsLayers(s.fap);
+      else (await producer()).sendFaps({ ...sliderValues });
+    } catch (e) { setStatus(e.message, 'error'); }
   };
   $('sliders').appendChild(row);
 }
 $('neutral').onclick = async () => {
   for (const k of Object.keys(sliderValues)) sliderValues[k] = 0;
   for (const i of document.querySelectorAll('#sliders input')) { i.value = 0; i.nextElementSibling.textContent = '0'; }
-  try { (await producer()).sendFaps({ ...sliderValues }, [0, 0, 63], [0, 0, 0, 0]); } catch (e) { setStatus(e.message, 'error'); }
+  try {
+    if (layered()) {
+      for (const name of ['expression', 'head', 'gaze']) await setLayer(name, null);
+      if (state.layerProducer && state.layerProducer.open) state.layerProducer.sendFaps({ ...sliderValues });
+      return;
+    }
+    (await producer()).sendFaps({ ...sliderValues }, [0, 0, 63], [0, 0, 0, 0]);
+  } catch (e) { setStatus(e.message, 'error'); }
 };
+$('idle').onclick = toggleIdle;
 
 const MARKERS = /\.(c3d|trc|csv)$/i;
 $('file').onchange = () => {
@@ -372,4 +452,4 @@ $('mic').onclick = async () => {
 })();
 
 window.addEventListener('hashchange', () => location.reload());  // a new #session=…&token=… link
-window.facecast = { renderer, viewer, state, counters, setQuality, watch, newSession, api };
+window.facecast = { renderer, viewer, state, counters, setQuality, watch, newSession, api, setLayer };
