@@ -9,6 +9,13 @@ sweeps, each point bounded in time (``--warmup`` + ``--seconds``):
 - **sessions**: N concurrent sessions, one producer (FAP frames at ``--fps``) and one viewer each;
 - **viewers**: one session, one producer, M viewers.
 
+``--cluster N`` then measures the sessions sweep again, same encoding, on a cluster on this
+machine: a real ``redis-server`` and N ``facecast serve --redis`` nodes, session k created on (and
+produced into) node k mod N and watched on node k + 1 mod N, so that every frame crosses Redis to
+reach its viewer (the producer->viewer latency is the cross-node one). Both are reported side by
+side with the largest session count each holds at the target (every viewer at 95 % of ``--fps``,
+p95 within ``--latency-target``) and their ratio (issue 15's target: 1.5 on two cores).
+
 Viewers use the real asyncio client (``facecast.client.api.watch``) with int16 frames (``--encoding``),
 spread over ``--viewer-processes`` client processes (default one per CPU: in a single Python process
 100 viewers, 6000 frames/s, saturate its core and the benchmark would measure itself).
@@ -47,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from facecast.server.harness import LocalServer, process_cpu_seconds
+from facecast.server.harness import LocalServer, RedisServer, process_cpu_seconds
 
 log = logging.getLogger(__name__)
 
@@ -128,6 +135,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "an earlier commit), point by point alternately with this checkout's, in the same run; "
         "reported side by side, with the ratio of server CPU per session-frame",
     )
+    p.add_argument(
+        "--cluster",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also run the sessions sweep on Redis and N cluster nodes (viewers on another node "
+        "than their session's producer), reported side by side with the single process",
+    )
+    p.add_argument(
+        "--cluster-sessions",
+        help="session counts of the cluster sweep (default: --sessions)",
+    )
     p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
 
 
@@ -143,10 +162,15 @@ def _encodings(text: str) -> list[str]:
 
 
 def _server(
-    face: str, backend: str, env: dict[str, str] | None = None, python: str = sys.executable
+    face: str,
+    backend: str,
+    env: dict[str, str] | None = None,
+    python: str = sys.executable,
+    extra: tuple[str, ...] = (),
 ) -> LocalServer:
     """A ``facecast serve`` of the bench's own (temporary data dir, no job workers, generous limits),
-    run by ``python`` (another checkout's interpreter for ``--baseline-python``)."""
+    run by ``python`` (another checkout's interpreter for ``--baseline-python``); ``extra``: more
+    options (``--redis URL``)."""
     limits = {
         "FACECAST_MAX_SESSIONS": "256",
         "FACECAST_MAX_VIEWERS_PER_SESSION": "1024",
@@ -160,10 +184,43 @@ def _server(
         backend,
         "--workers",
         "0",
+        *extra,
         admin_key=ADMIN_KEY,
         env={**limits, **(env or {})},
         python=python,
     )
+
+
+class _Cluster:
+    """A real ``redis-server`` and ``n`` ``facecast serve --redis`` nodes on this machine, each with
+    its own port and data dir and the bench's admin key; CPU time is theirs summed."""
+
+    def __init__(self, n: int, face: str, backend: str) -> None:
+        self.redis = RedisServer()
+        self.nodes = [_server(face, backend, extra=("--redis", self.redis.url)) for _ in range(n)]
+        self.admin_key = ADMIN_KEY
+        self.urls = [s.url for s in self.nodes]
+        self.url = self.urls[0]
+        self.health: dict = {}
+
+    def start(self, timeout: float = 300, *, ready: bool = True) -> _Cluster:
+        self.redis.start()
+        for node in self.nodes:
+            node.start(timeout, ready=ready)
+        self.health = self.nodes[0].health
+        return self
+
+    def stop(self) -> None:
+        for node in self.nodes:
+            node.stop()
+        self.redis.stop()
+
+    def cpu_seconds(self) -> float:
+        procs = [n.proc.pid for n in self.nodes if n.proc] + [self.redis.proc.pid]
+        return sum(process_cpu_seconds(pid) for pid in procs)
+
+    def redis_cpu_seconds(self) -> float:
+        return process_cpu_seconds(self.redis.proc.pid) if self.redis.proc else float("nan")
 
 
 class _External:
@@ -459,10 +516,11 @@ async def _light_viewer(
 
 @dataclass(frozen=True)
 class _Seat:
-    """What a viewer in another process needs of its session."""
+    """What a viewer in another process needs of its session (``url``: the node it watches on)."""
 
     id: str
     viewer_token: str
+    url: str
 
 
 def _viewer_process(url, seats, kind, encoding, opts, ready, stop, conn) -> None:
@@ -475,7 +533,7 @@ def _viewer_process(url, seats, kind, encoding, opts, ready, stop, conn) -> None
         recs = {slot: [] for slot in seats}
         evs = [asyncio.Event() for _ in seats]
         tasks = [
-            asyncio.create_task(fn(url, seat, encoding, local_stop, ev, recs[slot]))
+            asyncio.create_task(fn(seat.url or url, seat, encoding, local_stop, ev, recs[slot]))
             for (slot, seat), ev in zip(seats.items(), evs)
         ]
         await asyncio.wait_for(asyncio.gather(*(e.wait() for e in evs)), 120)
@@ -492,16 +550,29 @@ def _viewer_process(url, seats, kind, encoding, opts, ready, stop, conn) -> None
 
 
 async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> dict:
-    """One load point: ``sessions`` sessions with ``viewers`` viewers each, for warmup + seconds."""
+    """One load point: ``sessions`` sessions with ``viewers`` viewers each, for warmup + seconds.
+
+    On a ``_Cluster``, session k is created on node k mod N (its owner, where its producer
+    connects) and watched on node k + 1 mod N: every viewer is on another node than its producer.
+    """
+    from contextlib import AsyncExitStack
+
     from facecast.client.api import SessionAdmin
 
     key = (
         server.admin_key
-        if isinstance(server, LocalServer)
+        if isinstance(server, (LocalServer, _Cluster))
         else os.environ.get("FACECAST_ADMIN_KEY", ADMIN_KEY)
     )
-    async with SessionAdmin(url, key) as admin:
-        made = [await admin.create(face=args.face, fps=args.fps) for _ in range(sessions)]
+    nodes = server.urls if isinstance(server, _Cluster) else [url]
+    async with AsyncExitStack() as stack:
+        admins = [await stack.enter_async_context(SessionAdmin(u, key)) for u in nodes]
+        made = [
+            await admins[k % len(nodes)].create(face=args.face, fps=args.fps)
+            for k in range(sessions)
+        ]
+        owner = {s.id: k % len(nodes) for k, s in enumerate(made)}
+        watched_on = {s.id: nodes[(k + 1) % len(nodes)] for k, s in enumerate(made)}
         stop = asyncio.Event()
         records: list[list] = []
         ready_events = []
@@ -512,12 +583,12 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
             rec: list = []
             records.append(rec)
             if k % n_proc:
-                away[k % n_proc - 1][k] = _Seat(s.id, s.viewer_token)
+                away[k % n_proc - 1][k] = _Seat(s.id, s.viewer_token, watched_on[s.id])
                 continue
             ev = asyncio.Event()
             ready_events.append(ev)
             fn = _light_viewer if args.viewer_kind == "light" else _viewer
-            tasks.append(asyncio.create_task(fn(url, s, args.encoding, stop, ev, rec)))
+            tasks.append(asyncio.create_task(fn(watched_on[s.id], s, args.encoding, stop, ev, rec)))
         mp = multiprocessing.get_context("spawn")
         mp_stop, children = mp.Event(), []
         for seats in away:
@@ -543,14 +614,17 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
             if not await asyncio.to_thread(ready.wait, 180):
                 raise RuntimeError("a viewer process did not get its viewers connected")
         sent: list[int] = []
-        tasks += [asyncio.create_task(_producer(url, s, args.fps, stop, sent)) for s in made]
+        tasks += [
+            asyncio.create_task(_producer(nodes[owner[s.id]], s, args.fps, stop, sent))
+            for s in made
+        ]
         await asyncio.sleep(args.warmup)
 
         def clients_cpu() -> float:
             return _own_cpu() + sum(process_cpu_seconds(p.pid) for p, _, _ in children)
 
         async def deformed() -> int:  # frames the server deformed and encoded, all sessions
-            infos = await asyncio.gather(*(admin.info(s.id) for s in made))
+            infos = await asyncio.gather(*(admins[owner[s.id]].info(s.id) for s in made))
             return sum(i.stats.frames_deformed for i in infos)
 
         deformed0 = await deformed()
@@ -576,9 +650,9 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         failures = [r for r in results if isinstance(r, BaseException)]
         for r in failures[:3]:
             log.warning("a client failed: %r", r)
-        infos = [await admin.info(s.id) for s in made]
+        infos = [await admins[owner[s.id]].info(s.id) for s in made]
         for s in made:
-            await admin.close(s.id)
+            await admins[owner[s.id]].close(s.id)
 
     window = t1 - t0
     rates, lat, skipped, sizes = [], [], 0, []
@@ -689,6 +763,76 @@ async def _sweeps(server, url: str, args, baseline: LocalServer | None = None) -
     return res
 
 
+def _cluster_sweeps(args, encodings: list[str], by_encoding: dict) -> dict:
+    """The sessions sweep on a ``_Cluster`` of ``args.cluster`` nodes, per encoding:
+    ``{encoding: {"nodes", "sessions_sweep", "redis_cpu", ...}}``."""
+    out: dict = {}
+    cluster = _Cluster(args.cluster, args.face, args.backend)
+    sessions, viewers = args.sessions, args.viewers
+    args.sessions, args.viewers = args.cluster_sessions or args.sessions, ""
+    try:
+        cluster.start(300, ready=True)
+        for enc in encodings:
+            args.encoding = enc
+            r0 = cluster.redis_cpu_seconds()
+            t0 = time.time()
+            sweep = asyncio.run(_sweeps(cluster, cluster.url, args))["sessions_sweep"]
+            out[enc] = {
+                "nodes": args.cluster,
+                "sessions_sweep": sweep,
+                "redis_cpu_mean": round((cluster.redis_cpu_seconds() - r0) / (time.time() - t0), 3),
+                "sessions_at_target": _at_target(sweep, args),
+                "single_sessions_at_target": _at_target(by_encoding[enc]["sessions_sweep"], args),
+            }
+            single, multi = out[enc]["single_sessions_at_target"], out[enc]["sessions_at_target"]
+            out[enc]["ratio_vs_single"] = round(multi / single, 2) if single else None
+            log.info("cluster, %s: %s", enc, out[enc])
+    finally:
+        cluster.stop()
+        args.sessions, args.viewers, args.encoding = sessions, viewers, encodings[0]
+    return out
+
+
+def _at_target(points: list[dict], args) -> int:
+    """The largest session count of a sweep at which every viewer met the target (0: none)."""
+    return max((p["sessions"] for p in points if _ok(p, args)), default=0)
+
+
+def _cluster_table(enc: str, single: list[dict], cluster: dict, args) -> str:
+    """Single process and cluster side by side, point by point (same session counts where both
+    were measured)."""
+    by_n = {p["sessions"]: p for p in single}
+    lines = [
+        (
+            f"### Sessions at {args.fps:g} fps: one process vs {cluster['nodes']} nodes + Redis, "
+            f"{enc} (cluster viewers on another node than their producer)"
+        ),
+        "",
+        (
+            "| sessions | single fps min | single p95 ms | single | cluster fps min | cluster p95 ms "
+            "| cluster | cluster CPU (nodes + Redis) |"
+        ),
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for p in cluster["sessions_sweep"]:
+        s = by_n.get(p["sessions"])
+        sv = (
+            f"{s['fps_min']} | {s['latency_ms_p95']} | {'ok' if _ok(s, args) else 'miss'}"
+            if s
+            else "– | – | –"
+        )
+        lines.append(
+            f"| {p['sessions']} | {sv} | {p['fps_min']} | {p['latency_ms_p95']} | "
+            f"{'ok' if _ok(p, args) else 'miss'} | {p['server_cpu']} |"
+        )
+    lines.append(
+        f"\nSessions at target: single {cluster['single_sessions_at_target']}, cluster "
+        f"{cluster['sessions_at_target']} (ratio {cluster['ratio_vs_single']}; target ≥ 1.5); "
+        f"Redis CPU {cluster['redis_cpu_mean']} core(s) on average."
+    )
+    return "\n".join(lines)
+
+
 def _ratios(points: list[dict], baseline: list[dict], key: str) -> list[float | None]:
     """``key`` of each point over the baseline's at the same point (None where one is missing)."""
     return [
@@ -749,6 +893,9 @@ def run(args: argparse.Namespace) -> int:
                 d["server_cpu_ratio_vs_asgi"] = round(
                     d["server_cpu_us_per_frame"] / a["server_cpu_us_per_frame"], 2
                 )
+    cluster = None
+    if args.cluster and url is None:
+        cluster = _cluster_sweeps(args, encodings, by_encoding)
     load = os.getloadavg()
     report = {
         "bench": "serve",
@@ -765,6 +912,7 @@ def run(args: argparse.Namespace) -> int:
         "frame_costs_ms": costs,
         "latency_target_ms": args.latency_target,
         **res,
+        "cluster": cluster,
         "cpus": os.cpu_count(),
         "loadavg_before": [round(x, 2) for x in load_before],
         "loadavg_after": [round(x, 2) for x in load],
@@ -826,6 +974,10 @@ def run(args: argparse.Namespace) -> int:
                 print(
                     f"\nServer CPU per session-frame, this checkout / baseline, point by point: {ratios}\n"
                 )
+    if cluster is not None:
+        for enc in encodings:
+            print(_cluster_table(enc, by_encoding[enc]["sessions_sweep"], cluster[enc], args))
+            print()
     if "viewers_sweep_asgi" in res:
         print()
         print(
