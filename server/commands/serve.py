@@ -71,6 +71,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="close a live session after this long with no viewer and no connected "
         "producer (default 600; 0 = never)",
     )
+    p.add_argument(
+        "--redis",
+        metavar="URL",
+        help="make this process a node of a cluster sharing live sessions through Redis at URL "
+        "(redis://host:6379/0; FACECAST_REDIS_URL); without it: one process, in memory",
+    )
     p.add_argument("--log-level", default=None, help="uvicorn log level (default: warning)")
 
 
@@ -105,6 +111,7 @@ def make_config(args: argparse.Namespace):
             "job_workers": args.workers,
             "allow_remote": args.allow_remote,
             "session_idle_seconds": getattr(args, "session_idle", None),
+            "redis_url": getattr(args, "redis", None),
         }.items()
         if v is not None
     }
@@ -162,10 +169,21 @@ def run(args: argparse.Namespace) -> int:
     config.data_dir = config.data_dir.expanduser().resolve()
     lock = lock_data_dir(config.data_dir)  # noqa: F841  (held until the process exits)
     chosen = bool(config.admin_key)
-    key, generated = resolve_admin_key(config.admin_key, config.data_dir)
-    config.admin_key = key
     key_file = config.data_dir / "admin.key"
     page = f"http://{config.host}:{config.port}/"
+    if config.redis_url:  # a cluster node: Redis must answer now; the cluster's admin key
+        from ..cluster import bootstrap
+
+        key, source = bootstrap.admin_key(
+            bootstrap.connect(config.redis_url), config.admin_key, config.data_dir
+        )
+        generated = source == "generated"
+        if source == "cluster":
+            chosen = True
+            print("facecast: admin key: the cluster's (kept in its Redis)", flush=True)
+    else:
+        key, generated = resolve_admin_key(config.admin_key, config.data_dir)
+    config.admin_key = key
     if generated:  # shown this once; later starts only say where it is
         print(
             f"facecast: generated an admin key, kept in {key_file} (readable by you only); it is shown "
