@@ -158,7 +158,7 @@ def _server(
         face,
         "--backend",
         backend,
-        "--workers",
+        "--job-workers",
         "0",
         admin_key=ADMIN_KEY,
         env={**limits, **(env or {})},

@@ -48,10 +48,21 @@ def admin_key(r: Any, configured: str | None, data_dir: Path) -> tuple[str, str]
         return configured, "configured"
     shared = r.get(keys.ADMIN_KEY)
     if shared:
-        return shared.decode(), "cluster"
+        return _keep(shared.decode(), data_dir), "cluster"
     key, generated = resolve_admin_key(None, data_dir)
     r.set(keys.ADMIN_KEY, key, nx=True)
     winner = r.get(keys.ADMIN_KEY)
     if winner and winner.decode() != key:  # another node was quicker
-        return winner.decode(), "cluster"
+        return _keep(winner.decode(), data_dir), "cluster"
     return key, "generated" if generated else "file"
+
+
+def _keep(key: str, data_dir: Path) -> str:
+    """Keep the cluster's ``key`` in ``data_dir/admin.key`` (mode 0600), where a node keeps its own."""
+    from ..output.atomic import write_bytes_atomic
+
+    path = data_dir / "admin.key"
+    if not path.exists() or path.read_text().strip() != key:
+        data_dir.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(path, (key + "\n").encode(), mode=0o600)
+    return key
