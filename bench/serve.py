@@ -182,7 +182,7 @@ def _server(
         face,
         "--backend",
         backend,
-        "--workers",
+        "--job-workers",
         "0",
         *extra,
         admin_key=ADMIN_KEY,

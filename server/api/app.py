@@ -28,7 +28,15 @@ from starlette.exceptions import HTTPException
 
 from ..errors import FacecastError
 from ..jobs.upload import clear_upload_dir, upload_dir
-from . import routes_faces, routes_health, routes_jobs, routes_playback, routes_sessions, routes_web
+from . import (
+    routes_cluster,
+    routes_faces,
+    routes_health,
+    routes_jobs,
+    routes_playback,
+    routes_sessions,
+    routes_web,
+)
 from .config import ServerConfig
 from .errors import error_body, error_response, reply
 from .metrics import Metrics
@@ -148,9 +156,13 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         # A daemon thread: stopping the server never waits for a warm-up still in progress.
         threading.Thread(target=_warm_up, args=(app,), name="facecast-warm-up", daemon=True).start()
         await app.state.jobs.start()
+        if config.redis_url:  # a cluster node (server/cluster); else one process, in memory
+            await _join_cluster(app, config)
         try:
             yield
         finally:
+            if app.state.cluster is not None:
+                await app.state.cluster.stop()
             live = getattr(app.state, "live", None)
             if live is not None:
                 try:
@@ -170,6 +182,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     )
     app.state.config = config
     app.state.admin_key = admin_key
+    app.state.cluster = None
     app.state.metrics = Metrics()
     app.state.store = FaceStore(
         default=config.face,
@@ -250,9 +263,27 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     app.include_router(routes_faces.router)
     app.include_router(routes_jobs.router)
     app.include_router(routes_sessions.router)
+    app.include_router(routes_cluster.router)
     app.include_router(routes_playback.router)
     app.include_router(routes_web.router)
     return app
+
+
+async def _join_cluster(app: FastAPI, config: ServerConfig) -> None:
+    """Make this process a node of the cluster at ``config.redis_url`` (``app.state.cluster``)."""
+    from ..cluster.node import Cluster
+
+    assert config.redis_url is not None
+    cluster = Cluster(
+        config.redis_url,
+        routes_sessions.registry(app),
+        admin_key=app.state.admin_key,
+        url=f"http://{config.host}:{config.port}",
+        readiness=app.state.readiness,
+    )
+    await cluster.start()
+    app.state.cluster = cluster
+    app.state.metrics.watch_cluster(cluster.id, cluster.gauges)
 
 
 def jsonable(obj):

@@ -17,12 +17,14 @@ from fastapi import APIRouter, Depends, Request, Response, WebSocket, status
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from ...protocol.messages import SessionCreate, SessionCreated, SessionInfo, SessionList
+from ..errors import FacecastError
 from ..live.core import NOTHING, Close, Step, authorise
 from ..live.producer import HELLO_TIMEOUT, ProducerCore
 from ..live.registry import SessionRegistry
 from ..live.session import LiveSession, Viewer
 from ..live.watch import ViewerCore
 from . import transport
+from .routes_cluster import cluster_of, forward_producer
 from .security import require_admin, ws_token
 
 log = logging.getLogger(__name__)
@@ -70,7 +72,17 @@ def registry(app: Any) -> SessionRegistry:
 async def create_session(request: Request, body: SessionCreate | None = None) -> SessionCreated:
     """Open a live session; the answer's tokens are shown only once."""
     reg = registry(request.app)
-    return reg.created(await reg.create(body or SessionCreate.model_validate({})))
+    cluster = cluster_of(request.app)
+    if cluster is not None:
+        cluster.require()  # 503 while the cluster's Redis is unreachable
+    session = await reg.create(body or SessionCreate.model_validate({}))
+    if cluster is not None:
+        try:
+            await cluster.register(session)
+        except Exception:
+            await reg.close(session.spec.id, "the cluster's Redis is unreachable")
+            raise
+    return reg.created(session)
 
 
 @router.get("/v1/sessions", response_model=SessionList, dependencies=[Depends(require_admin)])
@@ -94,7 +106,11 @@ async def get_session(session_id: str, request: Request) -> SessionInfo:
 )
 async def close_session(session_id: str, request: Request) -> Response:
     """Close a session: its producer and viewers get an error 4000 and are disconnected."""
-    await registry(request.app).close(session_id)
+    reg, cluster = registry(request.app), cluster_of(request.app)
+    if cluster is not None and session_id not in reg.sessions:
+        await cluster.close_remote(session_id, "the session was closed by an admin")
+    else:
+        await reg.close(session_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
@@ -130,6 +146,13 @@ async def _authorise(
 ) -> LiveSession | None:
     """The session if ``token`` is its ``role`` token; else refuse and return None."""
     session = registry(ws.app).sessions.get(session_id)
+    cluster = cluster_of(ws.app)
+    if session is None and cluster is not None:  # another node's: this node's mirror of it
+        try:
+            session = await cluster.mirror(session_id)
+        except FacecastError as e:  # the broker is down, or the face is unknown here
+            await _refuse(ws, Close(e.close_code, str(e)))
+            return None
     sp = session.spec if session is not None else None
     mine, other = (
         ("", "")
@@ -168,10 +191,13 @@ async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> N
     The token: ``Authorization: Bearer``, a ``facecast.token.<token>`` subprotocol, or ``?token=``.
     """
     token = await _accept(ws, token)
+    reg, cluster = registry(ws.app), cluster_of(ws.app)
+    if cluster is not None and session_id not in reg.sessions:  # another node owns it
+        await forward_producer(ws, cluster, session_id, token)
+        return
     session = await _authorise(ws, session_id, token, "producer")
     if session is None:
         return
-    reg = registry(ws.app)
     core = ProducerCore(
         session, _Producer(ws), animators=reg, max_fps=reg.max_fps, metrics=reg.metrics
     )

@@ -24,7 +24,7 @@ import numpy as np
 from ...protocol.compact import KEY
 from ...protocol.messages import InputKind, Stats, Status, dump_message
 from ..state import FaceState
-from .ports import Deformer, DirectWriter, Outbox, ProducerSlot
+from .ports import Deformer, DirectWriter, Outbox, ProducerSlot, Relay
 
 log = logging.getLogger(__name__)
 
@@ -185,6 +185,10 @@ class LiveSession:
         self.closed = False
         self._status_due = False
         self.last_active = time.monotonic()  # last time a peer was seen (``busy``); for idle expiry
+        #: Cluster (``server/cluster``): where frames and viewer texts also go (other nodes' viewers)
+        #: and the encodings those viewers want; None and empty in one process.
+        self.relay: Relay | None = None
+        self.remote_encodings: frozenset[str] = frozenset()
 
     # -- state, read-only outside this class -------------------------------------------------------
     @property
@@ -216,7 +220,7 @@ class LiveSession:
         """A viewer is connected (or joining) or a client's producer is: the session is in use. A
         server-side producer (demo, playback) alone does not count: nobody asked for it any more."""
         remote = self._producer is not None and self._producer.remote
-        return bool(self.viewers) or self._joining > 0 or remote
+        return bool(self.viewers) or self._joining > 0 or remote or bool(self.remote_encodings)
 
     def idle_for(self, now: float) -> float:
         """Seconds (monotonic ``now``) since a peer was last seen; 0 while ``busy`` (seen now)."""
@@ -316,19 +320,30 @@ class LiveSession:
         self.viewers.add(viewer)
         self._encodings[viewer.encoding] = self._encodings.get(viewer.encoding, 0) + 1
         if viewer.encoding == "compact":
-            if self.compact is None:
-                from ...protocol.compact import CompactEncoder
-
-                self.compact = CompactEncoder(
-                    self.face.vertices,
-                    self.face.rigid_group,
-                    tolerance=self.spec.tolerance / self.face.mm_per_unit,
-                    key_interval=max(1, int(0.25 * self.spec.fps)),
-                    key_seconds=0.25,
-                )
-            self.compact.request_key()  # the new viewer starts at the next frame
+            self._compact_encoder().request_key()  # the new viewer starts at the next frame
         if self.metrics:
             self.metrics.viewers.inc()
+
+    def _compact_encoder(self) -> Any:
+        """The session's ``CompactEncoder`` (made on first use)."""
+        if self.compact is None:
+            from ...protocol.compact import CompactEncoder
+
+            self.compact = CompactEncoder(
+                self.face.vertices,
+                self.face.rigid_group,
+                tolerance=self.spec.tolerance / self.face.mm_per_unit,
+                key_interval=max(1, int(0.25 * self.spec.fps)),
+                key_seconds=0.25,
+            )
+        return self.compact
+
+    def set_remote_encodings(self, encodings: frozenset[str], key: bool = False) -> None:
+        """Cluster: other nodes' viewers want ``encodings`` too (``key``: a new compact viewer
+        there needs a key frame)."""
+        self.remote_encodings = encodings
+        if "compact" in encodings and (key or self.compact is None):
+            self._compact_encoder().request_key()
 
     def remove_viewer(self, viewer: Outbox) -> None:
         self.last_active = time.monotonic()
@@ -353,6 +368,8 @@ class LiveSession:
         )
         for v in self.viewers:
             v.say(text)
+        if self.relay is not None:
+            self.relay.text(text)
 
     def snapshot(self) -> Stats:
         n = self._stats["frames_deformed"]
@@ -374,7 +391,7 @@ class LiveSession:
         pending, send a status that was waiting for the frames to be out."""
         while self.pending and not self.closed:
             seq, state, wall = self.pending.popleft()
-            if not self._encodings:
+            if not self._encodings and not self.remote_encodings:
                 continue  # nobody watches: skip the work, the numbering still advances
             self._busy = True
             self._in_flight = seq
@@ -383,7 +400,7 @@ class LiveSession:
                     state,
                     seq=seq,
                     wall=wall,
-                    encodings=frozenset(self._encodings),
+                    encodings=frozenset(self._encodings) | self.remote_encodings,
                     done=self._done,
                     compact=self.compact,
                 )
@@ -432,12 +449,16 @@ class LiveSession:
             if self.metrics:
                 self.metrics.frames_dropped.inc(skipped)
         self.count_sent(sent_now)
+        if self.relay is not None:
+            self.relay.frame(self._in_flight, encoded)
         now = time.monotonic()
         if now - self._last_stats >= STATS_INTERVAL:
             self._last_stats = now
             text = dump_message(self.snapshot())
             for viewer in self.viewers:
                 viewer.say(text)
+            if self.relay is not None:
+                self.relay.text(text)
 
     def count_sent(self, n: int) -> None:
         """Add ``n`` sent frames to the Prometheus counter (the session's own count is per viewer)."""
