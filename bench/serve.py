@@ -197,7 +197,8 @@ class _Cluster:
 
     def __init__(self, n: int, face: str, backend: str) -> None:
         self.redis = RedisServer()
-        self.nodes = [_server(face, backend, extra=("--redis", self.redis.url)) for _ in range(n)]
+        extra = ("--redis", self.redis.url, "--workers", "1")  # one process per node, measured
+        self.nodes = [_server(face, backend, extra=extra) for _ in range(n)]
         self.admin_key = ADMIN_KEY
         self.urls = [s.url for s in self.nodes]
         self.url = self.urls[0]

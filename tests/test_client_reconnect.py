@@ -110,10 +110,17 @@ class Proxy:
         self.loop.close()
 
 
-def wait_for(what: str, check: Callable[[], bool], timeout: float = 120.0) -> None:
-    """Poll ``check`` until it is true (a generous bound only against a hang)."""
+def wait_for(
+    what: str, check: Callable[[], bool], timeout: float = 120.0, procs: tuple = ()
+) -> None:
+    """Poll ``check`` until it is true (a generous bound only against a hang); fail at once, with
+    its output, when one of ``procs`` (client commands) ended."""
     deadline = time.monotonic() + timeout
     while not check():
+        for proc in procs:
+            if proc is not None and proc.poll() is not None:
+                out, err = proc.communicate()
+                raise AssertionError(f"waiting for {what}: {proc.args[3]} ended: {out} {err}")
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(0.05)
@@ -284,24 +291,44 @@ def test_cli_stream_loop_and_watch_resume_after_the_node_went_away(node, data_di
     s = _session(node)
     fap = str(Path(data_dir) / "xface/faps/joy.fap")
     common = ["--url", proxy.url, "--session", s["id"]]
-    watcher = _spawn(["watch", *common, "--token", s["viewer_token"], "--json"])
     streamer = None
+    watcher = _spawn(["watch", *common, "--token", s["viewer_token"], "--json"])
     try:
-        wait_for("the viewer", lambda: stats(node, s["id"]).get("viewers") == 1)
+        wait_for(
+            "the viewer",
+            lambda: stats(node, s["id"]).get("viewers") == 1,
+            procs=(watcher, streamer),
+        )
         streamer = _spawn(
             ["stream", fap, *common, "--token", s["producer_token"], "--loop", "--seconds", "600"]
         )
-        wait_for("frames", lambda: stats(node, s["id"]).get("frames_sent", 0) >= 30)
+        wait_for(
+            "frames",
+            lambda: stats(node, s["id"]).get("frames_sent", 0) >= 30,
+            procs=(watcher, streamer),
+        )
         proxy.cut()
         time.sleep(OUTAGE)
         gone = lambda: (st := stats(node, s["id"]))["viewers"] == 0 and not st["producer_connected"]  # noqa: E731
-        wait_for("the server to see both clients go", gone)
+        wait_for("the server to see both clients go", gone, procs=(watcher, streamer))
         before = stats(node, s["id"])
         proxy.restore()
-        wait_for("the producer back", lambda: stats(node, s["id"]).get("producer_connected"))
-        wait_for("the viewer back", lambda: stats(node, s["id"]).get("viewers") == 1)
+        wait_for(
+            "the producer back",
+            lambda: stats(node, s["id"]).get("producer_connected"),
+            procs=(watcher, streamer),
+        )
+        wait_for(
+            "the viewer back",
+            lambda: stats(node, s["id"]).get("viewers") == 1,
+            procs=(watcher, streamer),
+        )
         sent = stats(node, s["id"])["frames_sent"]
-        wait_for("frames again", lambda: stats(node, s["id"])["frames_sent"] >= sent + 30)
+        wait_for(
+            "frames again",
+            lambda: stats(node, s["id"])["frames_sent"] >= sent + 30,
+            procs=(watcher, streamer),
+        )
         watched = _report(watcher)  # first: it would end by itself once the producer left
         streamed = _report(streamer)
     finally:
@@ -338,7 +365,9 @@ def test_a_final_refusal_after_a_reconnection_ends_the_stream_with_its_reason(no
         ]
     )
     try:
-        wait_for("frames", lambda: stats(node, s["id"]).get("frames_in", 0) >= 10)
+        wait_for(
+            "frames", lambda: stats(node, s["id"]).get("frames_in", 0) >= 10, procs=(streamer,)
+        )
         proxy.cut()
         httpx.delete(f"{node.url}/v1/sessions/{s['id']}", headers=node.admin_headers)
         proxy.restore()
@@ -360,6 +389,8 @@ def _cluster_node(data: Path, redis: RedisServer, port: int | None = None) -> Lo
         "default:2k",
         "--backend",
         "numpy",
+        "--workers",
+        "1",  # one node process: kill() is a kill -9 of the node
         "--redis",
         redis.url,
         admin_key="test-admin-key",
@@ -382,26 +413,36 @@ def test_cli_clients_resume_when_their_cluster_node_is_killed_and_restarted(
         pytest.skip("this facecast serve has no --redis yet (the cluster nodes of issue 15)")
     node = _cluster_node(tmp_path / "a", redis_server).start()
     streamer = watcher = None
+    wanted = 100  # frames the viewer waits for; the node is killed after about 30
     try:
         s = _session(node)
         fap = str(Path(data_dir) / "xface/faps/joy.fap")
         common = ["--url", node.url, "--session", s["id"]]
-        watcher = _spawn(["watch", *common, "--token", s["viewer_token"], "--json"])
-        wait_for("the viewer", lambda: stats(node, s["id"]).get("viewers") == 1)
+        watcher = _spawn(
+            ["watch", *common, "--token", s["viewer_token"], "--json", "--frames", str(wanted)]
+        )
+        wait_for("the viewer", lambda: stats(node, s["id"]).get("viewers") == 1, procs=(watcher,))
         streamer = _spawn(
             ["stream", fap, *common, "--token", s["producer_token"], "--loop", "--seconds", "600"]
         )
-        wait_for("frames", lambda: stats(node, s["id"]).get("frames_sent", 0) >= 30)
+        wait_for(
+            "frames",
+            lambda: stats(node, s["id"]).get("frames_sent", 0) >= 30,
+            procs=(watcher, streamer),
+        )
+        before = stats(node, s["id"])["frames_sent"]
         node.kill()
         node.start()
-        wait_for("the producer back", lambda: stats(node, s["id"]).get("producer_connected"))
-        wait_for("the viewer back", lambda: stats(node, s["id"]).get("viewers") == 1)
-        wait_for("frames again", lambda: stats(node, s["id"]).get("frames_sent", 0) >= 30)
-        watched, streamed = _report(watcher), _report(streamer)
+        # the viewer ends by itself once it has its frames: most of them came after the restart
+        out, err = watcher.communicate(timeout=180)
+        assert watcher.returncode == 0, err
+        watched = json.loads(out)
+        streamed = _report(streamer)
     finally:
         for proc in (watcher, streamer):
             if proc is not None and proc.poll() is None:
                 proc.kill()
         node.stop()
-    assert streamed["reconnects"] >= 1 and not streamed["errors"]
+    assert streamed["reconnects"] >= 1 and not streamed["errors"] and streamed["interrupted"]
+    assert watched["frames"] == wanted and wanted - before > 20
     assert watched["reconnects"] >= 1 and watched["max_gap_s"] > 0
