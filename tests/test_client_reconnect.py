@@ -446,3 +446,59 @@ def test_cli_clients_resume_when_their_cluster_node_is_killed_and_restarted(
     assert streamed["reconnects"] >= 1 and not streamed["errors"] and streamed["interrupted"]
     assert watched["frames"] == wanted and wanted - before > 20
     assert watched["reconnects"] >= 1 and watched["max_gap_s"] > 0
+
+
+# ----------------------------------------------------------------------------------------- the page
+
+
+@pytest.mark.browser
+def test_the_pages_producer_reconnects_when_its_node_went_away(node, tmp_path):
+    """The page drives the face (an expression button: its FAP producer); the proxy in front of the
+    server goes away and comes back: the page's producer reconnects by itself, says so, and the
+    next button press reaches the session."""
+    import shutil
+
+    chromium = shutil.which("chromium") or "/usr/bin/chromium"
+    if not Path(chromium).exists():
+        pytest.skip("Debian chromium not installed")
+    from playwright.sync_api import sync_playwright
+
+    proxy = Proxy(node.port)
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(
+                executable_path=chromium,
+                args=[
+                    "--no-sandbox",
+                    "--use-gl=angle",
+                    "--use-angle=swiftshader",
+                    "--enable-unsafe-swiftshader",
+                ],
+            )
+            page = browser.new_page()
+            page.goto(f"{proxy.url}/#key={node.admin_key}")
+            page.wait_for_function("document.querySelectorAll('#expressions button').length > 0")
+            page.click("#expressions button")
+            page.wait_for_function(
+                "window.facecast.state.producer && window.facecast.state.producer.open",
+                timeout=120_000,
+            )
+            session = page.evaluate("window.facecast.state.session")
+            wait_for("the producer", lambda: stats(node, session).get("producer_connected"))
+            proxy.cut()
+            page.wait_for_function(
+                "document.getElementById('status').textContent.includes('reconnecting')",
+                timeout=120_000,
+            )
+            proxy.restore()
+            page.wait_for_function(
+                "window.facecast.state.producer.reconnects >= 1", timeout=120_000
+            )
+            wait_for("the producer back", lambda: stats(node, session).get("producer_connected"))
+            before = stats(node, session)["frames_in"]
+            page.click("#expressions button")
+            wait_for("the press", lambda: stats(node, session)["frames_in"] > before)
+            assert page.evaluate("window.facecast.state.producer.open")
+            browser.close()
+    finally:
+        proxy.close()
