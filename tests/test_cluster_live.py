@@ -9,6 +9,7 @@ restarted under load, the nodes recover. No timed assertions: every wait has a g
 from __future__ import annotations
 
 import asyncio
+import os
 import subprocess
 import sys
 import time
@@ -261,6 +262,58 @@ def test_several_node_processes_need_redis(tmp_path):
         timeout=60,
     )
     assert r.returncode == 2 and "--redis" in r.stderr and "--workers" in r.stderr
+
+
+def test_info_url_shows_the_cluster(cluster):
+    _, (a, b, _) = cluster
+    r = subprocess.run(
+        [sys.executable, "-m", "facecast.server.cli", "info", "--url", b.url]
+        + ["--admin-key", b.admin_key],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "3 node(s), broker up" in r.stdout and a.url in r.stdout
+    assert next(line for line in r.stdout.splitlines() if line.startswith(" *")).count(b.url) == 1
+    r = subprocess.run(
+        [sys.executable, "-m", "facecast.server.cli", "info", "--url", b.url],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={k: v for k, v in os.environ.items() if k != "FACECAST_ADMIN_KEY"},
+    )
+    assert r.returncode == 2 and "401" in r.stderr and "--admin-key" in r.stderr
+
+
+def test_workers_n_runs_n_nodes_on_one_port(cluster, tmp_path):
+    redis, _ = cluster
+    srv = RunningServer(
+        tmp_path / "w",
+        "--face",
+        FACE,
+        "--job-workers",
+        "0",
+        "--workers",
+        "2",
+        "--redis",
+        redis.url,
+    ).start()
+    try:
+        seen: set[str] = set()
+
+        def both() -> bool:  # new connections land on either process (SO_REUSEPORT)
+            v = view(srv)
+            seen.add(v["self"])
+            return len(seen) == 2 and sum(n["url"] == srv.url for n in v["nodes"]) == 2
+
+        wait_for(both, what="two node processes on one port")
+    finally:
+        srv.stop()
+    wait_for(
+        lambda: sum(n["url"] == srv.url for n in view(cluster[1][1])["nodes"]) == 0,
+        what="the node processes leaving",
+    )
 
 
 def test_killing_the_owner_moves_the_session_and_viewers_see_a_gap_not_a_wrong_face(cluster):

@@ -142,6 +142,7 @@ class Cluster:
         self._adopting: set[str] = set()
         self._handoff: set[str] = set()
         self._last_beat = 0.0
+        self._last_retry_log = 0.0
         registry.on_close = self._closed
 
     # -- life ---------------------------------------------------------------------------------------
@@ -193,9 +194,14 @@ class Cluster:
 
     async def _close_pubsub(self) -> None:
         ps, self._pubsub = self._pubsub, None
+        await self._close(ps)
+
+    @staticmethod
+    async def _close(ps: Any) -> None:
+        """Close a pub/sub connection (at most 2 s: the peer may be gone)."""
         if ps is not None:
             try:
-                await ps.aclose()
+                await asyncio.wait_for(ps.aclose(), 2.0)
             except Exception:  # noqa: BLE001 - the connection is gone already
                 pass
 
@@ -229,7 +235,8 @@ class Cluster:
         log.warning("cluster: lost Redis (%s); reconnecting", exc)
         for fwd in list(self.forwards.values()):
             fwd.lose()
-        self._spawn(self._close_pubsub())
+        ps, self._pubsub = self._pubsub, None  # this one, not the next connection's
+        self._spawn(self._close(ps))
 
     def _spawn(self, coro: Coroutine[Any, Any, Any]) -> None:
         """Run ``coro`` in the background (kept referenced until done)."""
@@ -257,10 +264,13 @@ class Cluster:
             try:
                 if not self.up:
                     await self.redis.ping()
-                    await self._connect()
+                    await asyncio.wait_for(self._connect(), 10.0)
                 else:
                     await self._tick()
-            except (RedisError, OSError) as e:
+            except (RedisError, OSError, asyncio.TimeoutError) as e:
+                if not self.up and time.monotonic() - self._last_retry_log >= 10:
+                    self._last_retry_log = time.monotonic()
+                    log.warning("cluster: Redis still unreachable (%s)", e)
                 self._down(e)
             except asyncio.CancelledError:
                 raise
