@@ -354,10 +354,14 @@ def _faps(i: int, fps: float) -> dict[int, float]:
 # ------------------------------------------------------------------------------------------ load points
 
 
-async def _producer(url: str, s, fps: float, stop: asyncio.Event, sent: list[int]) -> None:
-    from facecast.client.api import Pacer, produce
+async def _producer(
+    url: str, s, fps: float, stop: asyncio.Event, sent: list[int], retry: bool = False
+) -> None:
+    """Send FAP frames at ``fps`` until ``stop``; ``retry``: reconnect as a cluster's clients do
+    (a session may change owner when a starved node misses its lease)."""
+    from facecast.client.api import Pacer, Retry, produce
 
-    async with produce(url, s.id, s.producer_token) as p:
+    async with produce(url, s.id, s.producer_token, retry=Retry() if retry else None) as p:
         pacer = Pacer(1.0)
         i = 0
         while not stop.is_set():
@@ -558,7 +562,7 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
     """
     from contextlib import AsyncExitStack
 
-    from facecast.client.api import SessionAdmin
+    from facecast.client.api import LiveError, SessionAdmin
 
     key = (
         server.admin_key
@@ -573,6 +577,19 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
             for k in range(sessions)
         ]
         owner = {s.id: k % len(nodes) for k, s in enumerate(made)}
+
+        async def info(sid: str) -> Any:
+            """The session's info from its owner (it may have moved: then from the node that
+            has it now, which answers for the sessions it owns)."""
+            err: LiveError | None = None
+            for k in _owner_first(owner[sid], len(nodes)):
+                try:
+                    return await admins[k].info(sid)
+                except LiveError as e:
+                    err = e
+            assert err is not None
+            raise err
+
         watched_on = {s.id: nodes[(k + 1) % len(nodes)] for k, s in enumerate(made)}
         stop = asyncio.Event()
         records: list[list] = []
@@ -616,7 +633,9 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
                 raise RuntimeError("a viewer process did not get its viewers connected")
         sent: list[int] = []
         tasks += [
-            asyncio.create_task(_producer(nodes[owner[s.id]], s, args.fps, stop, sent))
+            asyncio.create_task(
+                _producer(nodes[owner[s.id]], s, args.fps, stop, sent, retry=len(nodes) > 1)
+            )
             for s in made
         ]
         await asyncio.sleep(args.warmup)
@@ -625,7 +644,7 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
             return _own_cpu() + sum(process_cpu_seconds(p.pid) for p, _, _ in children)
 
         async def deformed() -> int:  # frames the server deformed and encoded, all sessions
-            infos = await asyncio.gather(*(admins[owner[s.id]].info(s.id) for s in made))
+            infos = await asyncio.gather(*(info(s.id) for s in made))
             return sum(i.stats.frames_deformed for i in infos)
 
         deformed0 = await deformed()
@@ -651,9 +670,14 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         failures = [r for r in results if isinstance(r, BaseException)]
         for r in failures[:3]:
             log.warning("a client failed: %r", r)
-        infos = [await admins[owner[s.id]].info(s.id) for s in made]
+        infos = [await info(s.id) for s in made]
         for s in made:
-            await admins[owner[s.id]].close(s.id)
+            for k in _owner_first(owner[s.id], len(nodes)):
+                try:
+                    await admins[k].close(s.id)
+                    break
+                except LiveError:
+                    continue
 
     window = t1 - t0
     rates, lat, skipped, sizes = [], [], 0, []
@@ -705,6 +729,11 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         "client_failures": len(failures),
         "seconds": round(window, 2),
     }
+
+
+def _owner_first(k: int, n: int) -> list[int]:
+    """Node indices, ``k`` first."""
+    return [k] + [i for i in range(n) if i != k]
 
 
 def _ok(p: dict, args) -> bool:
