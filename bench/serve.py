@@ -644,7 +644,11 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
             return _own_cpu() + sum(process_cpu_seconds(p.pid) for p, _, _ in children)
 
         async def deformed() -> int:  # frames the server deformed and encoded, all sessions
-            infos = await asyncio.gather(*(info(s.id) for s in made))
+            try:  # an overloaded server may not answer in time: the point is still measured
+                infos = await asyncio.gather(*(info(s.id) for s in made))
+            except LiveError as e:
+                log.warning("cannot count the frames deformed: %s", e)
+                return -1
             return sum(i.stats.frames_deformed for i in infos)
 
         deformed0 = await deformed()
@@ -670,7 +674,12 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         failures = [r for r in results if isinstance(r, BaseException)]
         for r in failures[:3]:
             log.warning("a client failed: %r", r)
-        infos = [await info(s.id) for s in made]
+        infos = []
+        for s in made:
+            try:
+                infos.append(await info(s.id))
+            except LiveError as e:
+                log.warning("cannot read session %s after the point: %s", s.id, e)
         for s in made:
             for k in _owner_first(owner[s.id], len(nodes)):
                 try:
@@ -722,9 +731,11 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         "server_cpu_us_per_deformed_frame": round(
             1e6 * (cpu_s1 - cpu_s0) / (deformed1 - deformed0), 1
         )
-        if deformed1 > deformed0
+        if deformed1 > deformed0 >= 0
         else None,
-        "server_frames_deformed_per_s": round((deformed1 - deformed0) / window, 1),
+        "server_frames_deformed_per_s": round((deformed1 - deformed0) / window, 1)
+        if min(deformed0, deformed1) >= 0
+        else None,
         "client_cpu_us_per_frame": round(1e6 * (cpu_c1 - cpu_c0) / len(lat), 1) if lat else None,
         "client_failures": len(failures),
         "seconds": round(window, 2),
