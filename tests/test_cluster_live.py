@@ -310,10 +310,14 @@ def test_workers_n_runs_n_nodes_on_one_port(cluster, tmp_path):
         wait_for(both, what="two node processes on one port")
     finally:
         srv.stop()
-    wait_for(
-        lambda: sum(n["url"] == srv.url for n in view(cluster[1][1])["nodes"]) == 0,
-        what="the node processes leaving",
-    )
+    try:
+        wait_for(
+            lambda: sum(n["url"] == srv.url for n in view(cluster[1][1])["nodes"]) == 0,
+            what="the node processes leaving",
+        )
+    except AssertionError:
+        print(srv.tail(), view(cluster[1][1]))
+        raise
 
 
 def test_killing_the_owner_moves_the_session_and_viewers_see_a_gap_not_a_wrong_face(cluster):
