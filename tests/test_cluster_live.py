@@ -264,6 +264,45 @@ def test_several_node_processes_need_redis(tmp_path):
     assert r.returncode == 2 and "--redis" in r.stderr and "--workers" in r.stderr
 
 
+def test_refusals_on_a_node_that_does_not_own_the_session(cluster):
+    """Tokens are checked from the shared record; a second producer is refused by the owner."""
+    from facecast.protocol.errors import CloseCode
+
+    _, (a, b, c) = cluster
+
+    async def refused(coro) -> int | None:
+        try:
+            async with coro:
+                await asyncio.sleep(0.2)
+        except LiveError as e:
+            return e.code
+        return None
+
+    async def main():
+        async with SessionAdmin(a.url, a.admin_key) as admin:
+            s = await admin.create(face=FACE, fps=FPS)
+        codes = {
+            "viewer, wrong token": await refused(watch(c.url, s.id, "wrong")),
+            "producer, viewer token": await refused(produce(b.url, s.id, s.viewer_token)),
+            "producer, no session": await refused(produce(b.url, "0" * 16, s.producer_token)),
+            "viewer, no session": await refused(watch(c.url, "0" * 16, s.viewer_token)),
+        }
+        async with produce(b.url, s.id, s.producer_token):
+            codes["second producer"] = await refused(produce(c.url, s.id, s.producer_token))
+        async with SessionAdmin(a.url, a.admin_key) as admin:
+            await admin.close(s.id)
+        return codes
+
+    codes = run(main())
+    assert codes == {
+        "viewer, wrong token": CloseCode.UNAUTHORIZED,
+        "producer, viewer token": CloseCode.FORBIDDEN,
+        "producer, no session": CloseCode.NOT_FOUND,
+        "viewer, no session": CloseCode.NOT_FOUND,
+        "second producer": CloseCode.CONFLICT,
+    }
+
+
 def test_info_url_shows_the_cluster(cluster):
     _, (a, b, _) = cluster
     r = subprocess.run(
