@@ -162,11 +162,19 @@ def test_session_made_on_a_produced_on_b_watched_on_a_and_c_equals_batch_render(
             sent = await stream_fap(p, joy, speed=2.0)
             errors = list(p.errors)
         got = await asyncio.wait_for(asyncio.gather(*viewers), 60)
-        async with SessionAdmin(c.url, c.admin_key) as admin:  # closed from another node
-            await admin.close(s.id)
-        return s, owner, sent, errors, got
+        async with SessionAdmin(c.url, c.admin_key) as admin:  # another node answers for A
+            for _ in range(600):
+                info = await admin.info(s.id)  # the owner's counters, written every second
+                if info.stats.frames_in == sent:
+                    break
+                await asyncio.sleep(0.1)
+            listed = [x.id for x in await admin.list()]
+            await admin.close(s.id)  # closed from another node
+        return s, owner, sent, errors, got, info, listed
 
-    s, owner, sent, errors, got = run(main())
+    s, owner, sent, errors, got, info, listed = run(main())
+    assert info.stats.frames_in == sent and info.vertex_count == s.vertex_count
+    assert s.id in listed
     assert [o["url"] for o in owner] == [a.url]
     assert errors == [] and sent == len(joy.frames)
     animation = to_animation(joy)

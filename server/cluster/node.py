@@ -26,6 +26,7 @@ from typing import Any
 
 from ...protocol.encoding import VERTEX_ENCODINGS
 from ...protocol.errors import CloseCode
+from ...protocol.messages import SessionInfo, Stats
 from .. import errors
 from ..live.core import error_json
 from ..live.registry import SessionRegistry
@@ -307,6 +308,12 @@ class Cluster:
                 await self._unsubscribe(keys.down(sid))
             elif m.viewers:
                 self._wants(m, False)
+        if self.owned:
+            pipe = self.redis.pipeline(transaction=False)
+            for sid, o in self.owned.items():
+                snap = o.session.snapshot().model_dump_json()
+                pipe.set(keys.stats(sid), snap, px=keys.NODE_TTL_MS)
+            await pipe.execute()
         nodes = {p.node for o in self.owned.values() for p in o.producers.values()}
         if nodes:
             alive = await self.redis.mget([keys.node(n) for n in sorted(nodes)])
@@ -327,7 +334,8 @@ class Cluster:
         try:
             epoch = await leases.acquire(self.redis, sid, self.id)
             await self.redis.set(
-                keys.session(sid), SessionRecord.of(session.spec).model_dump_json()
+                keys.session(sid),
+                SessionRecord.of(session.spec, session.vertex_count).model_dump_json(),
             )
             await self.redis.sadd(keys.SESSIONS, sid)
             await self._own(session, max(epoch, 1))
@@ -353,7 +361,9 @@ class Cluster:
         if epoch == 0:
             await self._demote(spec.id)
             return
-        await self.redis.set(keys.session(spec.id), SessionRecord.of(spec).model_dump_json())
+        await self.redis.set(
+            keys.session(spec.id), SessionRecord.of(spec, o.session.vertex_count).model_dump_json()
+        )
         await self.redis.sadd(keys.SESSIONS, spec.id)
         if epoch > 0:
             o.epoch = epoch
@@ -397,7 +407,7 @@ class Cluster:
             return
         try:
             await self.publisher.flush()
-            await self.redis.delete(keys.session(sid), keys.epoch(sid))
+            await self.redis.delete(keys.session(sid), keys.epoch(sid), keys.stats(sid))
             await self.redis.srem(keys.SESSIONS, sid)
             await leases.release(self.redis, sid, self.id)
         except Exception as e:  # noqa: BLE001 - the broker went away; nodes drop it on their own
@@ -484,6 +494,30 @@ class Cluster:
         m = self.mirrors[sid] = MirrorSession(rec.spec(), face, self._wants, self.reg.metrics)
         await self._subscribe(keys.down(sid))
         return m
+
+    async def infos(self, sids: list[str] | None = None) -> list[SessionInfo]:
+        """``SessionInfo`` of the cluster's sessions (``sids``, default all), with the counters
+        their owners last wrote (zeros when none did yet)."""
+        from redis.exceptions import RedisError
+
+        self.require()
+        try:
+            if sids is None:
+                sids = sorted(s.decode() for s in await self.redis.smembers(keys.SESSIONS))
+            if not sids:
+                return []
+            recs = await self.redis.mget([keys.session(s) for s in sids])
+            stats = await self.redis.mget([keys.stats(s) for s in sids])
+        except (RedisError, OSError) as e:
+            self._down(e)
+            raise Unavailable(BROKER_DOWN) from None
+        return [
+            SessionRecord.model_validate_json(r).info(
+                Stats.model_validate_json(st) if st is not None else Stats()
+            )
+            for r, st in zip(recs, stats)
+            if r is not None
+        ]
 
     def _wants(self, m: MirrorSession, key: bool) -> None:
         body = {"node": self.id, "encodings": sorted(m.encodings()), "key": key}
