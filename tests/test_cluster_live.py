@@ -505,3 +505,100 @@ def test_redis_restarted_under_load_nodes_recover(tmp_path):
             if n is not None:
                 n.stop()
         redis.stop()
+
+
+# -- without servers: the mirror's rules and the envelopes ------------------------------------------
+
+
+class _Outbox:
+    """A viewer outbox that records what it is offered."""
+
+    def __init__(self, encoding: str) -> None:
+        self.encoding, self.sent, self.got = encoding, 0, []
+
+    def offer(self, frame) -> int:
+        self.got.append(bytes(frame[0]))
+        return 0
+
+    def say(self, text: str) -> None:
+        pass
+
+    def end(self, code: int, error_json: str) -> None:
+        self.ended = code
+
+
+def test_a_mirror_never_lets_a_delta_through_against_another_owners_key():
+    """After a change of owner (a newer epoch), compact deltas wait for the new owner's key frame;
+    frames of an older owner are dropped; every frame the viewer gets decodes to its face."""
+    from facecast.protocol.compact import CompactDecoder, CompactEncoder
+    from facecast.server.api.store import FaceStore
+    from facecast.server.cluster import envelope
+    from facecast.server.cluster.mirror import MirrorSession
+    from facecast.server.cluster.records import SessionRecord
+    from facecast.server.live.wire import ws_binary_frame
+
+    face = FaceStore().face(FACE)
+    rec = SessionRecord(
+        id="s",
+        face=FACE,
+        input="fap",
+        fps=FPS,
+        engine="fp",
+        max_viewers=4,
+        producer_token="p",
+        viewer_token="v",
+        created=0.0,
+        tolerance=0.1,
+    )
+    wishes = []
+    m = MirrorSession(rec.spec(), face, lambda mirror, key: wishes.append(key))
+    out = _Outbox("compact")
+    m.viewers.add(out)
+    rng = np.random.default_rng(1)
+    tol = 0.1 / face.mm_per_unit
+
+    def owner():
+        """An owner's compact stream: ``frame(seq, epoch, key)`` -> the published message."""
+        enc = CompactEncoder(face.vertices, face.rigid_group, tolerance=tol, key_interval=1000)
+        shapes = {}
+
+        def frame(seq: int, epoch: int, key: bool = False) -> bytes:
+            v = face.vertices + rng.normal(0, 0.002, face.vertices.shape).astype(np.float32)
+            shapes[seq] = v
+            data = enc.encode(v, seq=seq, t=seq / FPS, key=key)
+            return envelope.frame(epoch, seq, "compact", ws_binary_frame(data))
+
+        return frame, shapes
+
+    old, old_shapes = owner()
+    new, new_shapes = owner()  # numbered from 0 too: only the epoch tells the owners apart
+    for i in range(5):
+        m.receive(old(i, 1))
+    n_old = len(out.got)
+    m.receive(envelope.with_json(envelope.OWNER, {"epoch": 2, "node": "n2"}))
+    new(0, 2)  # the new owner's first (key) frame, lost on the way
+    for i in range(1, 4):  # its deltas: held back until a key frame comes
+        m.receive(new(i, 2))
+    m.receive(old(5, 1))  # the old owner, cut off but still sending: dropped
+    assert len(out.got) == n_old and wishes  # and the change of owner asked for a key frame
+    m.receive(new(4, 2, key=True))
+    m.receive(new(5, 2))
+    assert len(out.got) == n_old + 2
+    shapes = [old_shapes] * n_old + [new_shapes] * 2
+    dec = CompactDecoder(face.vertices, face.rigid_group)
+    for payload, source in zip(out.got, shapes):
+        got = dec.decode(payload)
+        assert got is not None  # every frame offered is decodable, against its own owner's key
+        h, verts = got
+        np.testing.assert_allclose(verts, source[h.seq], atol=tol * 1.01 + 1e-6)
+
+
+@pytest.mark.parametrize(
+    "data", [b"", b"F", b"F\x00\x00", b"F" + bytes(9) + b"\x82", b"P12", b"Rxx"]
+)
+def test_envelopes_refuse_garbage_with_valueerror(data):
+    from facecast.server.cluster import envelope
+
+    parse = envelope.parse_conn if data[:1] in (b"P", b"R") else envelope.parse_frame
+    with pytest.raises(ValueError):
+        parse(data)
