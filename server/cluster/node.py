@@ -144,6 +144,7 @@ class Cluster:
         self._handoff: set[str] = set()
         self._last_beat = 0.0
         self._last_retry_log = 0.0
+        self._stopping = False
         registry.on_close = self._closed
 
     # -- life ---------------------------------------------------------------------------------------
@@ -165,9 +166,11 @@ class Cluster:
 
     async def stop(self) -> None:
         """Leave the cluster: other nodes take this node's sessions over at once."""
+        self._stopping = True  # the loops end even if a client library swallows a cancellation
         for t in self._tasks:
             t.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self._tasks:
+            await asyncio.wait(self._tasks, timeout=3.0)
         self._handoff = set(self.owned)
         for o in self.owned.values():
             for p in list(o.producers.values()):
@@ -260,7 +263,7 @@ class Cluster:
     async def _ticks(self) -> None:
         from redis.exceptions import RedisError
 
-        while True:
+        while not self._stopping:
             await asyncio.sleep(keys.TICK_SECONDS)
             try:
                 if not self.up:
@@ -575,7 +578,7 @@ class Cluster:
     async def _read(self) -> None:
         from redis.exceptions import RedisError
 
-        while True:
+        while not self._stopping:
             ps = self._pubsub
             if ps is None or not self.up:
                 await asyncio.sleep(keys.TICK_SECONDS)
