@@ -293,6 +293,8 @@ class Cluster:
             if any(until < now for _, until in o.wants.values()):
                 o.wants = {n: w for n, w in o.wants.items() if w[1] >= now}
                 self._update_wants(o)
+            elif o.session.remote_encodings:
+                o.session.last_active = now
         if self.forwards:
             sids = sorted({f.sid for f in self.forwards.values()})
             held = await leases.holders(self.redis, sids)
@@ -419,6 +421,8 @@ class Cluster:
     def _update_wants(self, o: Owned, key: bool = False) -> None:
         encs = frozenset(e for w, _ in o.wants.values() for e in w)
         o.session.set_remote_encodings(encs, key)
+        if encs:  # viewers on other nodes: the session is in use (idle expiry)
+            o.session.last_active = time.monotonic()
 
     # -- taking over --------------------------------------------------------------------------------
     async def _take_orphans(self) -> None:
