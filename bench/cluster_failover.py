@@ -6,7 +6,7 @@ A real ``redis-server`` and ``--nodes`` real ``facecast serve --redis URL --work
 on loopback (built-in face ``default:2k``, NumPy backend), all on this machine:
 
 - **latency**: ``--sessions`` sessions created on node A at 60 fps, each produced into on A (its
-  owner) with generated FAP frames for ``--seconds``, each watched (``compact``) on A and on
+  owner) with generated FAP frames for ``--seconds``, each watched (``--encoding``) on A and on
   another node; producer→viewer latency is the viewer's receipt minus the frame's send time (one
   clock). Reported per side: p50 / p95 / max, frames received per viewer and fps.
 - **failover**: ``--rounds`` times: a session on one node, its producer on a second one (it
@@ -15,7 +15,9 @@ on loopback (built-in face ``default:2k``, NumPy backend), all on this machine:
   viewer's first frame of the new owner (``resume_s``) and the viewer's longest gap between two
   frames (``gap_s``); the killed node is started again for the next round.
 
-Machine load (load average, cores) goes into the JSON. Writes ``bench/out/cluster_failover.json``
+Machine load (load average, cores) and the CPU each process used during the latency run (the
+viewers decode in this one process: with many sessions it is the first to saturate) go into
+the JSON. Writes ``bench/out/cluster_failover.json``
 and prints a markdown table.
 """
 
@@ -79,8 +81,11 @@ async def stream(url: str, sid: str, token: str, stop: asyncio.Event) -> int:
     return sent
 
 
+ENCODING = {"name": "compact"}  # --encoding
+
+
 async def view(url: str, sid: str, token: str, out: list, stop: asyncio.Event) -> None:
-    async with watch(url, sid, token, encoding="compact") as w:
+    async with watch(url, sid, token, encoding=ENCODING["name"]) as w:
         async for f in w:
             out.append((f.received, f.latency))
             if stop.is_set():
@@ -101,7 +106,9 @@ async def latency(nodes: list[LocalServer], sessions: int, seconds: float) -> di
     ]
     await asyncio.sleep(1.0)
     producers = [asyncio.create_task(stream(a.url, s.id, s.producer_token, stop)) for s in made]
+    cpu0 = [n.cpu_seconds() for n in nodes] + [time.process_time()]
     await asyncio.sleep(seconds)
+    cpu1 = [n.cpu_seconds() for n in nodes] + [time.process_time()]
     stop.set()
     await asyncio.gather(*producers)
     for v in viewers:
@@ -122,7 +129,12 @@ async def latency(nodes: list[LocalServer], sessions: int, seconds: float) -> di
             "frames": int(sum(len(r) for r in runs)),
         }
 
-    return {"owner_node_viewers": side(local), "other_node_viewers": side(remote)}
+    busy = [round((b - a) / seconds, 2) for a, b in zip(cpu0, cpu1)]
+    return {
+        "owner_node_viewers": side(local),
+        "other_node_viewers": side(remote),
+        "cpu_cores_busy": {"owner": busy[0], "other_nodes": busy[1:-1], "bench_clients": busy[-1]},
+    }
 
 
 async def failover_round(nodes: list[LocalServer], k: int) -> dict:
@@ -185,8 +197,16 @@ def main() -> None:
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--sessions", type=int, default=4)
     p.add_argument("--rounds", type=int, default=3)
+    p.add_argument(
+        "--encoding",
+        default="compact",
+        choices=("compact", "i16", "f32"),
+        help="viewers' encoding (the viewers decode in this process: with many sessions, f32 "
+        "keeps their decoding from being what is measured)",
+    )
     p.add_argument("--out", default=str(OUT))
     args = p.parse_args()
+    ENCODING["name"] = args.encoding
     if args.nodes < 3:
         p.error("--nodes must be 3 or more (owner, producer's node, viewer's node)")
     load0 = os.getloadavg()
@@ -205,7 +225,7 @@ def main() -> None:
         "sessions": args.sessions,
         "seconds": args.seconds,
         "face": FACE,
-        "encoding": "compact",
+        "encoding": args.encoding,
         "cores": os.cpu_count(),
         "loadavg_start": load0,
         "loadavg_end": os.getloadavg(),
@@ -214,7 +234,10 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2))
     lat = result["latency"]
-    print(f"| viewers ({args.sessions} sessions, 60 fps) | p50 ms | p95 ms | max ms | fps |")
+    print(
+        f"| {args.encoding} viewers ({args.sessions} sessions, 60 fps) | p50 ms | p95 ms | max ms "
+        "| fps |"
+    )
     print("|---|---|---|---|---|")
     for name, side in (
         ("on the owner node", "owner_node_viewers"),
@@ -222,6 +245,11 @@ def main() -> None:
     ):
         r = lat[side]
         print(f"| {name} | {r['p50_ms']} | {r['p95_ms']} | {r['max_ms']} | {r['fps_mean']} |")
+    cpu = lat["cpu_cores_busy"]
+    print(
+        f"\nCPU (cores busy): owner node {cpu['owner']}, other nodes {cpu['other_nodes']}, "
+        f"this process (producers and viewers) {cpu['bench_clients']}"
+    )
     print()
     print("| failover round | resume after kill -9 (s) | longest gap (s) | producer reconnects |")
     print("|---|---|---|---|")

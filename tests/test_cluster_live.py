@@ -162,11 +162,19 @@ def test_session_made_on_a_produced_on_b_watched_on_a_and_c_equals_batch_render(
             sent = await stream_fap(p, joy, speed=2.0)
             errors = list(p.errors)
         got = await asyncio.wait_for(asyncio.gather(*viewers), 60)
-        async with SessionAdmin(c.url, c.admin_key) as admin:  # closed from another node
-            await admin.close(s.id)
-        return s, owner, sent, errors, got
+        async with SessionAdmin(c.url, c.admin_key) as admin:  # another node answers for A
+            for _ in range(600):
+                info = await admin.info(s.id)  # the owner's counters, written every second
+                if info.stats.frames_in == sent:
+                    break
+                await asyncio.sleep(0.1)
+            listed = [x.id for x in await admin.list()]
+            await admin.close(s.id)  # closed from another node
+        return s, owner, sent, errors, got, info, listed
 
-    s, owner, sent, errors, got = run(main())
+    s, owner, sent, errors, got, info, listed = run(main())
+    assert info.stats.frames_in == sent and info.vertex_count == s.vertex_count
+    assert s.id in listed
     assert [o["url"] for o in owner] == [a.url]
     assert errors == [] and sent == len(joy.frames)
     animation = to_animation(joy)
@@ -264,6 +272,45 @@ def test_several_node_processes_need_redis(tmp_path):
     assert r.returncode == 2 and "--redis" in r.stderr and "--workers" in r.stderr
 
 
+def test_refusals_on_a_node_that_does_not_own_the_session(cluster):
+    """Tokens are checked from the shared record; a second producer is refused by the owner."""
+    from facecast.protocol.errors import CloseCode
+
+    _, (a, b, c) = cluster
+
+    async def refused(coro) -> int | None:
+        try:
+            async with coro:
+                await asyncio.sleep(0.2)
+        except LiveError as e:
+            return e.code
+        return None
+
+    async def main():
+        async with SessionAdmin(a.url, a.admin_key) as admin:
+            s = await admin.create(face=FACE, fps=FPS)
+        codes = {
+            "viewer, wrong token": await refused(watch(c.url, s.id, "wrong")),
+            "producer, viewer token": await refused(produce(b.url, s.id, s.viewer_token)),
+            "producer, no session": await refused(produce(b.url, "0" * 16, s.producer_token)),
+            "viewer, no session": await refused(watch(c.url, "0" * 16, s.viewer_token)),
+        }
+        async with produce(b.url, s.id, s.producer_token):
+            codes["second producer"] = await refused(produce(c.url, s.id, s.producer_token))
+        async with SessionAdmin(a.url, a.admin_key) as admin:
+            await admin.close(s.id)
+        return codes
+
+    codes = run(main())
+    assert codes == {
+        "viewer, wrong token": CloseCode.UNAUTHORIZED,
+        "producer, viewer token": CloseCode.FORBIDDEN,
+        "producer, no session": CloseCode.NOT_FOUND,
+        "viewer, no session": CloseCode.NOT_FOUND,
+        "second producer": CloseCode.CONFLICT,
+    }
+
+
 def test_info_url_shows_the_cluster(cluster):
     _, (a, b, _) = cluster
     r = subprocess.run(
@@ -310,10 +357,14 @@ def test_workers_n_runs_n_nodes_on_one_port(cluster, tmp_path):
         wait_for(both, what="two node processes on one port")
     finally:
         srv.stop()
-    wait_for(
-        lambda: sum(n["url"] == srv.url for n in view(cluster[1][1])["nodes"]) == 0,
-        what="the node processes leaving",
-    )
+    try:
+        wait_for(
+            lambda: sum(n["url"] == srv.url for n in view(cluster[1][1])["nodes"]) == 0,
+            what="the node processes leaving",
+        )
+    except AssertionError:
+        print(srv.tail(), view(cluster[1][1]))
+        raise
 
 
 def test_killing_the_owner_moves_the_session_and_viewers_see_a_gap_not_a_wrong_face(cluster):
@@ -454,3 +505,100 @@ def test_redis_restarted_under_load_nodes_recover(tmp_path):
             if n is not None:
                 n.stop()
         redis.stop()
+
+
+# -- without servers: the mirror's rules and the envelopes ------------------------------------------
+
+
+class _Outbox:
+    """A viewer outbox that records what it is offered."""
+
+    def __init__(self, encoding: str) -> None:
+        self.encoding, self.sent, self.got = encoding, 0, []
+
+    def offer(self, frame) -> int:
+        self.got.append(bytes(frame[0]))
+        return 0
+
+    def say(self, text: str) -> None:
+        pass
+
+    def end(self, code: int, error_json: str) -> None:
+        self.ended = code
+
+
+def test_a_mirror_never_lets_a_delta_through_against_another_owners_key():
+    """After a change of owner (a newer epoch), compact deltas wait for the new owner's key frame;
+    frames of an older owner are dropped; every frame the viewer gets decodes to its face."""
+    from facecast.protocol.compact import CompactDecoder, CompactEncoder
+    from facecast.server.api.store import FaceStore
+    from facecast.server.cluster import envelope
+    from facecast.server.cluster.mirror import MirrorSession
+    from facecast.server.cluster.records import SessionRecord
+    from facecast.server.live.wire import ws_binary_frame
+
+    face = FaceStore().face(FACE)
+    rec = SessionRecord(
+        id="s",
+        face=FACE,
+        input="fap",
+        fps=FPS,
+        engine="fp",
+        max_viewers=4,
+        producer_token="p",
+        viewer_token="v",
+        created=0.0,
+        tolerance=0.1,
+    )
+    wishes = []
+    m = MirrorSession(rec.spec(), face, lambda mirror, key: wishes.append(key))
+    out = _Outbox("compact")
+    m.viewers.add(out)
+    rng = np.random.default_rng(1)
+    tol = 0.1 / face.mm_per_unit
+
+    def owner():
+        """An owner's compact stream: ``frame(seq, epoch, key)`` -> the published message."""
+        enc = CompactEncoder(face.vertices, face.rigid_group, tolerance=tol, key_interval=1000)
+        shapes = {}
+
+        def frame(seq: int, epoch: int, key: bool = False) -> bytes:
+            v = face.vertices + rng.normal(0, 0.002, face.vertices.shape).astype(np.float32)
+            shapes[seq] = v
+            data = enc.encode(v, seq=seq, t=seq / FPS, key=key)
+            return envelope.frame(epoch, seq, "compact", ws_binary_frame(data))
+
+        return frame, shapes
+
+    old, old_shapes = owner()
+    new, new_shapes = owner()  # numbered from 0 too: only the epoch tells the owners apart
+    for i in range(5):
+        m.receive(old(i, 1))
+    n_old = len(out.got)
+    m.receive(envelope.with_json(envelope.OWNER, {"epoch": 2, "node": "n2"}))
+    new(0, 2)  # the new owner's first (key) frame, lost on the way
+    for i in range(1, 4):  # its deltas: held back until a key frame comes
+        m.receive(new(i, 2))
+    m.receive(old(5, 1))  # the old owner, cut off but still sending: dropped
+    assert len(out.got) == n_old and wishes  # and the change of owner asked for a key frame
+    m.receive(new(4, 2, key=True))
+    m.receive(new(5, 2))
+    assert len(out.got) == n_old + 2
+    shapes = [old_shapes] * n_old + [new_shapes] * 2
+    dec = CompactDecoder(face.vertices, face.rigid_group)
+    for payload, source in zip(out.got, shapes):
+        got = dec.decode(payload)
+        assert got is not None  # every frame offered is decodable, against its own owner's key
+        h, verts = got
+        np.testing.assert_allclose(verts, source[h.seq], atol=tol * 1.01 + 1e-6)
+
+
+@pytest.mark.parametrize(
+    "data", [b"", b"F", b"F\x00\x00", b"F" + bytes(9) + b"\x82", b"P12", b"Rxx"]
+)
+def test_envelopes_refuse_garbage_with_valueerror(data):
+    from facecast.server.cluster import envelope
+
+    parse = envelope.parse_conn if data[:1] in (b"P", b"R") else envelope.parse_frame
+    with pytest.raises(ValueError):
+        parse(data)

@@ -28,20 +28,13 @@ from starlette.exceptions import HTTPException
 
 from ..errors import FacecastError
 from ..jobs.upload import clear_upload_dir, upload_dir
-from . import (
-    routes_cluster,
-    routes_faces,
-    routes_health,
-    routes_jobs,
-    routes_playback,
-    routes_sessions,
-    routes_web,
-)
+from . import routes_faces, routes_health, routes_jobs, routes_playback, routes_sessions, routes_web
 from .config import ServerConfig
 from .errors import error_body, error_response, reply
 from .metrics import Metrics
 from .redact import path_scrubber
 from .responses import SafeJSONResponse, safe_json, safe_text
+from .routes_cluster import router as cluster_routes
 from .security import resolve_admin_key
 from .store import FaceStore, parse_faces_env
 
@@ -263,7 +256,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     app.include_router(routes_faces.router)
     app.include_router(routes_jobs.router)
     app.include_router(routes_sessions.router)
-    app.include_router(routes_cluster.router)
+    app.include_router(cluster_routes)
     app.include_router(routes_playback.router)
     app.include_router(routes_web.router)
     return app

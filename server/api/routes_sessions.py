@@ -87,15 +87,23 @@ async def create_session(request: Request, body: SessionCreate | None = None) ->
 
 @router.get("/v1/sessions", response_model=SessionList, dependencies=[Depends(require_admin)])
 async def list_sessions(request: Request) -> SessionList:
-    reg = registry(request.app)
-    return SessionList(sessions=[reg.info(s) for s in reg.sessions.values()])
+    reg, cluster = registry(request.app), cluster_of(request.app)
+    local = [reg.info(s) for s in reg.sessions.values()]
+    if cluster is not None:  # the cluster's: the others with their owners' last counters
+        local += [i for i in await cluster.infos() if i.id not in reg.sessions]
+    return SessionList(sessions=local)
 
 
 @router.get(
     "/v1/sessions/{session_id}", response_model=SessionInfo, dependencies=[Depends(require_admin)]
 )
 async def get_session(session_id: str, request: Request) -> SessionInfo:
-    reg = registry(request.app)
+    reg, cluster = registry(request.app), cluster_of(request.app)
+    if cluster is not None and session_id not in reg.sessions:  # another node owns it
+        found = await cluster.infos([session_id])
+        if found:
+            info: SessionInfo = found[0]
+            return info
     return reg.info(reg.get(session_id))
 
 

@@ -44,6 +44,11 @@ def epoch(sid: str) -> str:
     return f"{PREFIX}epoch:{sid}"
 
 
+def stats(sid: str) -> str:
+    """A session's counters as its owner last wrote them (JSON ``Stats``, every heartbeat)."""
+    return f"{PREFIX}stats:{sid}"
+
+
 def up(sid: str) -> str:
     """Channel to a session's owner: producer input forwarded, viewers' wishes, close requests."""
     return f"{PREFIX}up:{sid}"

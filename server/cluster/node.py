@@ -26,6 +26,7 @@ from typing import Any
 
 from ...protocol.encoding import VERTEX_ENCODINGS
 from ...protocol.errors import CloseCode
+from ...protocol.messages import SessionInfo, Stats
 from .. import errors
 from ..live.core import error_json
 from ..live.registry import SessionRegistry
@@ -143,6 +144,7 @@ class Cluster:
         self._handoff: set[str] = set()
         self._last_beat = 0.0
         self._last_retry_log = 0.0
+        self._stopping = False
         registry.on_close = self._closed
 
     # -- life ---------------------------------------------------------------------------------------
@@ -164,9 +166,11 @@ class Cluster:
 
     async def stop(self) -> None:
         """Leave the cluster: other nodes take this node's sessions over at once."""
+        self._stopping = True  # the loops end even if a client library swallows a cancellation
         for t in self._tasks:
             t.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self._tasks:
+            await asyncio.wait(self._tasks, timeout=3.0)
         self._handoff = set(self.owned)
         for o in self.owned.values():
             for p in list(o.producers.values()):
@@ -259,7 +263,7 @@ class Cluster:
     async def _ticks(self) -> None:
         from redis.exceptions import RedisError
 
-        while True:
+        while not self._stopping:
             await asyncio.sleep(keys.TICK_SECONDS)
             try:
                 if not self.up:
@@ -289,6 +293,8 @@ class Cluster:
             if any(until < now for _, until in o.wants.values()):
                 o.wants = {n: w for n, w in o.wants.items() if w[1] >= now}
                 self._update_wants(o)
+            elif o.session.remote_encodings:
+                o.session.last_active = now
         if self.forwards:
             sids = sorted({f.sid for f in self.forwards.values()})
             held = await leases.holders(self.redis, sids)
@@ -307,6 +313,12 @@ class Cluster:
                 await self._unsubscribe(keys.down(sid))
             elif m.viewers:
                 self._wants(m, False)
+        if self.owned:
+            pipe = self.redis.pipeline(transaction=False)
+            for sid, o in self.owned.items():
+                snap = o.session.snapshot().model_dump_json()
+                pipe.set(keys.stats(sid), snap, px=keys.NODE_TTL_MS)
+            await pipe.execute()
         nodes = {p.node for o in self.owned.values() for p in o.producers.values()}
         if nodes:
             alive = await self.redis.mget([keys.node(n) for n in sorted(nodes)])
@@ -327,7 +339,8 @@ class Cluster:
         try:
             epoch = await leases.acquire(self.redis, sid, self.id)
             await self.redis.set(
-                keys.session(sid), SessionRecord.of(session.spec).model_dump_json()
+                keys.session(sid),
+                SessionRecord.of(session.spec, session.vertex_count).model_dump_json(),
             )
             await self.redis.sadd(keys.SESSIONS, sid)
             await self._own(session, max(epoch, 1))
@@ -353,7 +366,9 @@ class Cluster:
         if epoch == 0:
             await self._demote(spec.id)
             return
-        await self.redis.set(keys.session(spec.id), SessionRecord.of(spec).model_dump_json())
+        await self.redis.set(
+            keys.session(spec.id), SessionRecord.of(spec, o.session.vertex_count).model_dump_json()
+        )
         await self.redis.sadd(keys.SESSIONS, spec.id)
         if epoch > 0:
             o.epoch = epoch
@@ -397,7 +412,7 @@ class Cluster:
             return
         try:
             await self.publisher.flush()
-            await self.redis.delete(keys.session(sid), keys.epoch(sid))
+            await self.redis.delete(keys.session(sid), keys.epoch(sid), keys.stats(sid))
             await self.redis.srem(keys.SESSIONS, sid)
             await leases.release(self.redis, sid, self.id)
         except Exception as e:  # noqa: BLE001 - the broker went away; nodes drop it on their own
@@ -406,6 +421,8 @@ class Cluster:
     def _update_wants(self, o: Owned, key: bool = False) -> None:
         encs = frozenset(e for w, _ in o.wants.values() for e in w)
         o.session.set_remote_encodings(encs, key)
+        if encs:  # viewers on other nodes: the session is in use (idle expiry)
+            o.session.last_active = time.monotonic()
 
     # -- taking over --------------------------------------------------------------------------------
     async def _take_orphans(self) -> None:
@@ -485,6 +502,30 @@ class Cluster:
         await self._subscribe(keys.down(sid))
         return m
 
+    async def infos(self, sids: list[str] | None = None) -> list[SessionInfo]:
+        """``SessionInfo`` of the cluster's sessions (``sids``, default all), with the counters
+        their owners last wrote (zeros when none did yet)."""
+        from redis.exceptions import RedisError
+
+        self.require()
+        try:
+            if sids is None:
+                sids = sorted(s.decode() for s in await self.redis.smembers(keys.SESSIONS))
+            if not sids:
+                return []
+            recs = await self.redis.mget([keys.session(s) for s in sids])
+            stats = await self.redis.mget([keys.stats(s) for s in sids])
+        except (RedisError, OSError) as e:
+            self._down(e)
+            raise Unavailable(BROKER_DOWN) from None
+        return [
+            SessionRecord.model_validate_json(r).info(
+                Stats.model_validate_json(st) if st is not None else Stats()
+            )
+            for r, st in zip(recs, stats)
+            if r is not None
+        ]
+
     def _wants(self, m: MirrorSession, key: bool) -> None:
         body = {"node": self.id, "encodings": sorted(m.encodings()), "key": key}
         self.publisher.put(keys.up(m.spec.id), envelope.with_json(envelope.WANT, body))
@@ -541,7 +582,7 @@ class Cluster:
     async def _read(self) -> None:
         from redis.exceptions import RedisError
 
-        while True:
+        while not self._stopping:
             ps = self._pubsub
             if ps is None or not self.up:
                 await asyncio.sleep(keys.TICK_SECONDS)

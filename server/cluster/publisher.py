@@ -34,6 +34,7 @@ class Publisher:
         self._wake = asyncio.Event()
         self._idle = asyncio.Event()  # nothing queued nor being sent
         self.enabled = False
+        self._stopped = False
         self.dropped = 0
         self.sent = 0
         self._task: asyncio.Task[None] | None = None
@@ -42,9 +43,10 @@ class Publisher:
         self._task = asyncio.get_running_loop().create_task(self._run())
 
     async def stop(self) -> None:
+        self._stopped = True
         if self._task is not None:
             self._task.cancel()
-            await asyncio.gather(self._task, return_exceptions=True)
+            await asyncio.wait({self._task}, timeout=3.0)
             self._task = None
 
     def put(self, channel: str, data: bytes) -> None:
@@ -70,7 +72,7 @@ class Publisher:
     async def _run(self) -> None:
         from redis.exceptions import RedisError
 
-        while True:
+        while not self._stopped:
             if not self._queue:
                 self._idle.set()
                 self._wake.clear()

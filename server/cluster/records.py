@@ -7,6 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from ...protocol.messages import SessionInfo, Stats
 from ..live.session import SessionSpec
 
 
@@ -36,10 +37,12 @@ class SessionRecord(BaseModel):
     viewer_token: str
     created: float
     tolerance: float
+    vertex_count: int = 0
 
     @classmethod
-    def of(cls, spec: SessionSpec) -> SessionRecord:
+    def of(cls, spec: SessionSpec, vertex_count: int = 0) -> SessionRecord:
         return cls(
+            vertex_count=vertex_count,
             id=spec.id,
             face=spec.face,
             input=spec.input,
@@ -53,7 +56,21 @@ class SessionRecord(BaseModel):
         )
 
     def spec(self) -> SessionSpec:
-        return SessionSpec(**self.model_dump())
+        return SessionSpec(**self.model_dump(exclude={"vertex_count"}))
+
+    def info(self, stats: Stats) -> SessionInfo:
+        """``GET /v1/sessions/{id}`` of this session, with its owner's last ``stats``."""
+        return SessionInfo(
+            id=self.id,
+            face=self.face,
+            input=self.input,
+            fps=self.fps,
+            engine=self.engine,
+            created=self.created,
+            vertex_count=self.vertex_count,
+            max_viewers=self.max_viewers,
+            stats=stats,
+        )
 
 
 class NodeView(BaseModel):

@@ -6,7 +6,8 @@ environment. Each child is a full node (its own event loop, sessions and node id
 same port with ``SO_REUSEPORT``: the kernel spreads incoming connections over them, WebSockets
 included, and a child that dies leaves the others serving (its sessions fail over to them). The
 parent forwards SIGTERM/SIGINT to the children and exits when they have all ended. Children end
-with the parent (``PR_SET_PDEATHSIG``), so ``kill -9`` of the parent does not leave them behind.
+with the parent (``PR_SET_PDEATHSIG``: killed as the parent is), so ``kill -9`` of the parent is
+that of a whole machine: their sessions fail over to other nodes.
 """
 
 from __future__ import annotations
@@ -21,6 +22,9 @@ import time
 from typing import Any
 
 log = logging.getLogger(__name__)
+
+#: Seconds node processes have to stop after SIGTERM before they are killed.
+STOP_SECONDS = 8.0
 
 #: Settings a child gets from its parent (flags become ``FACECAST_*`` variables).
 PASSED = (
@@ -55,7 +59,7 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child before e
     try:
         import ctypes
 
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except OSError:
         pass
 
@@ -81,16 +85,19 @@ def supervise(config: Any, workers: int, log_level: str | None) -> int:
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     status = 0
-    while any(c.poll() is None for c in children):
+    while any(c.poll() is None for c in children) and not stopping:
         time.sleep(0.2)
         for c in children:
-            if c.returncode not in (None, 0) and not stopping and c.returncode != -signal.SIGTERM:
+            if c.returncode not in (None, 0) and not stopping:
                 status = status or 1
-    deadline = time.monotonic() + 15
+    deadline = time.monotonic() + STOP_SECONDS
     for c in children:
         try:
             c.wait(max(0.1, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
+            log.warning("node process %d did not stop in %g s; killing it", c.pid, STOP_SECONDS)
+            c.send_signal(signal.SIGUSR1)  # its stacks to the log first (faulthandler)
+            time.sleep(0.5)
             c.kill()
     return 0 if stopping else status
 
@@ -109,8 +116,11 @@ def reuse_port_socket(host: str, port: int) -> socket.socket:
 
 def serve_node(app: Any, config: Any, log_level: str | None, ws_max_size: int) -> None:
     """Serve ``app`` as one node process of a ``--workers`` parent, on the shared port."""
+    import faulthandler
+
     import uvicorn
 
+    faulthandler.register(signal.SIGUSR1)  # stack traces of a stuck node process, on demand
     uconfig = uvicorn.Config(
         app,
         ws_per_message_deflate=False,

@@ -32,10 +32,11 @@ environment:
   FACECAST_JOB_MEMORY_MB        address space of a job worker process in MiB (default 0 = no limit)
   FACECAST_JOB_RETENTION_HOURS  delete finished jobs after this long (default 168; 0 = never)
   FACECAST_SESSION_IDLE_SECONDS close a live session idle this long (default 600; 0 = never)
+  FACECAST_REDIS_URL            make this process a cluster node (--redis; docs/CLUSTER.md)
   every flag also as FACECAST_<NAME> (FACECAST_PORT, FACECAST_JOB_WORKERS, ...); all settings, with their
   defaults: the Configuration table in README.md
 
-routes: /docs (OpenAPI), /healthz, /readyz, /metrics, /v1/faces, /v1/jobs, /v1/sessions
+routes: /docs (OpenAPI), /healthz, /readyz, /metrics, /v1/faces, /v1/jobs, /v1/sessions, /v1/cluster
 """
 
 

@@ -24,7 +24,8 @@ import numpy as np
 from ...protocol.compact import KEY
 from ...protocol.messages import InputKind, Stats, Status, dump_message
 from ..state import FaceState
-from .ports import Deformer, DirectWriter, Outbox, ProducerSlot, Relay
+from . import ports
+from .ports import Deformer, DirectWriter, Outbox, ProducerSlot
 
 log = logging.getLogger(__name__)
 
@@ -187,7 +188,7 @@ class LiveSession:
         self.last_active = time.monotonic()  # last time a peer was seen (``busy``); for idle expiry
         #: Cluster (``server/cluster``): where frames and viewer texts also go (other nodes' viewers)
         #: and the encodings those viewers want; None and empty in one process.
-        self.relay: Relay | None = None
+        self.relay: ports.Relay | None = None
         self.remote_encodings: frozenset[str] = frozenset()
 
     # -- state, read-only outside this class -------------------------------------------------------
@@ -220,7 +221,7 @@ class LiveSession:
         """A viewer is connected (or joining) or a client's producer is: the session is in use. A
         server-side producer (demo, playback) alone does not count: nobody asked for it any more."""
         remote = self._producer is not None and self._producer.remote
-        return bool(self.viewers) or self._joining > 0 or remote or bool(self.remote_encodings)
+        return bool(self.viewers) or self._joining > 0 or remote
 
     def idle_for(self, now: float) -> float:
         """Seconds (monotonic ``now``) since a peer was last seen; 0 while ``busy`` (seen now)."""
@@ -340,7 +341,15 @@ class LiveSession:
 
     def set_remote_encodings(self, encodings: frozenset[str], key: bool = False) -> None:
         """Cluster: other nodes' viewers want ``encodings`` too (``key``: a new compact viewer
-        there needs a key frame)."""
+        there needs a key frame). Each counts as one viewer of its encoding while wanted."""
+        for enc in self.remote_encodings - encodings:
+            left = self._encodings[enc] - 1
+            if left:
+                self._encodings[enc] = left
+            else:
+                del self._encodings[enc]
+        for enc in encodings - self.remote_encodings:
+            self._encodings[enc] = self._encodings.get(enc, 0) + 1
         self.remote_encodings = encodings
         if "compact" in encodings and (key or self.compact is None):
             self._compact_encoder().request_key()
@@ -391,7 +400,7 @@ class LiveSession:
         pending, send a status that was waiting for the frames to be out."""
         while self.pending and not self.closed:
             seq, state, wall = self.pending.popleft()
-            if not self._encodings and not self.remote_encodings:
+            if not self._encodings:
                 continue  # nobody watches: skip the work, the numbering still advances
             self._busy = True
             self._in_flight = seq
@@ -400,7 +409,7 @@ class LiveSession:
                     state,
                     seq=seq,
                     wall=wall,
-                    encodings=frozenset(self._encodings) | self.remote_encodings,
+                    encodings=frozenset(self._encodings),
                     done=self._done,
                     compact=self.compact,
                 )
