@@ -502,3 +502,54 @@ def test_the_pages_producer_reconnects_when_its_node_went_away(node, tmp_path):
             browser.close()
     finally:
         proxy.close()
+
+
+# ------------------------------------------------------------------------------ looping an input
+
+
+def test_replay_loops_with_media_time_going_on_and_stops_at_seconds():
+    import argparse
+
+    from facecast.client.commands.stream import _replay
+
+    calls = []
+
+    async def send(p, i, k, t):
+        calls.append((i, k, t))
+
+    counts = {"sent": 0, "skipped": 0}
+    args = argparse.Namespace(speed=0.0, loop=0, seconds=1.0, reconnect_for=60.0)
+    run(_replay(None, [0.0, 0.1, 0.2], 0.3, send, args, counts))
+    assert [t for *_, t in calls] == pytest.approx([0.1 * n for n in range(10)])
+    assert [(i, k) for i, k, _ in calls][:4] == [(0, 0), (1, 0), (2, 0), (0, 1)]
+    assert counts == {"sent": 10, "skipped": 0}
+    calls.clear()
+    args = argparse.Namespace(speed=0.0, loop=2, seconds=None, reconnect_for=0.0)
+    run(_replay(None, [0.0, 0.1, 0.2], 0.3, send, args, {"sent": 0, "skipped": 0}))
+    assert len(calls) == 6 and calls[-1][1] == 1
+
+
+def test_cli_stream_loops_an_audio_file_with_its_sample_offsets_going_on(node, tmp_path):
+    import soundfile as sf
+
+    rate, seconds = 16000, 0.4
+    t = np.arange(int(rate * seconds)) / rate
+    wav = tmp_path / "tone.wav"
+    sf.write(wav, (0.3 * np.sin(2 * np.pi * 220 * t) * 32767).astype(np.int16), rate)
+    s = _session(node, input="audio")
+    streamed = subprocess.run(
+        CLI
+        + ["stream", str(wav), "--url", node.url, "--session", s["id"]]
+        + ["--token", s["producer_token"], "--loop", "3", "--speed", "4"],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert streamed.returncode == 0, streamed.stderr
+    report = json.loads(streamed.stdout)
+    chunks = -(-int(rate * seconds) // int(0.02 * rate))
+    assert report["frames_sent"] + report["frames_skipped"] == 3 * chunks and not report["errors"]
+    # every chunk the server took continued the stream (a gap or overlap would be logged, not
+    # refused, so count what it accepted)
+    wait_for("the chunks", lambda: stats(node, s["id"]).get("frames_in") == report["frames_sent"])

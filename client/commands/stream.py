@@ -170,7 +170,7 @@ async def _replay(
     while args.loop == 0 or k < args.loop:
         for i, t in enumerate(times):
             tm = k * period + t
-            if args.seconds is not None and tm >= args.seconds:
+            if args.seconds is not None and tm >= args.seconds - 1e-9:  # k * period rounds
                 return
             if await pacer.until(tm):
                 await send(p, i, k, tm)
