@@ -217,7 +217,7 @@ def run_flood(
         face,
         "--backend",
         backend,
-        "--workers",
+        "--job-workers",
         "0",
         admin_key=ADMIN_KEY,
         env={"FACECAST_MAX_SESSIONS": "256", "FACECAST_MAX_PRODUCER_FPS": "250"},

@@ -9,6 +9,13 @@ sweeps, each point bounded in time (``--warmup`` + ``--seconds``):
 - **sessions**: N concurrent sessions, one producer (FAP frames at ``--fps``) and one viewer each;
 - **viewers**: one session, one producer, M viewers.
 
+``--cluster N`` then measures the sessions sweep again, same encoding, on a cluster on this
+machine: a real ``redis-server`` and N ``facecast serve --redis`` nodes, session k created on (and
+produced into) node k mod N and watched on node k + 1 mod N, so that every frame crosses Redis to
+reach its viewer (the producer->viewer latency is the cross-node one). Both are reported side by
+side with the largest session count each holds at the target (every viewer at 95 % of ``--fps``,
+p95 within ``--latency-target``) and their ratio (issue 15's target: 1.5 on two cores).
+
 Viewers use the real asyncio client (``facecast.client.api.watch``) with int16 frames (``--encoding``),
 spread over ``--viewer-processes`` client processes (default one per CPU: in a single Python process
 100 viewers, 6000 frames/s, saturate its core and the benchmark would measure itself).
@@ -47,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from facecast.server.harness import LocalServer, process_cpu_seconds
+from facecast.server.harness import LocalServer, RedisServer, process_cpu_seconds
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +143,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="REST layers per session mixed into every frame (1: idle, 2: and a smile, 3: and gaze "
         "at the camera; default 0)",
     )
+    p.add_argument(
+        "--cluster",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also run the sessions sweep on Redis and N cluster nodes (viewers on another node "
+        "than their session's producer), reported side by side with the single process",
+    )
+    p.add_argument(
+        "--cluster-sessions",
+        help="session counts of the cluster sweep (default: --sessions)",
+    )
     p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
 
 
@@ -159,10 +178,15 @@ def _encodings(text: str) -> list[str]:
 
 
 def _server(
-    face: str, backend: str, env: dict[str, str] | None = None, python: str = sys.executable
+    face: str,
+    backend: str,
+    env: dict[str, str] | None = None,
+    python: str = sys.executable,
+    extra: tuple[str, ...] = (),
 ) -> LocalServer:
     """A ``facecast serve`` of the bench's own (temporary data dir, no job workers, generous limits),
-    run by ``python`` (another checkout's interpreter for ``--baseline-python``)."""
+    run by ``python`` (another checkout's interpreter for ``--baseline-python``); ``extra``: more
+    options (``--redis URL``)."""
     limits = {
         "FACECAST_MAX_SESSIONS": "256",
         "FACECAST_MAX_VIEWERS_PER_SESSION": "1024",
@@ -174,12 +198,46 @@ def _server(
         face,
         "--backend",
         backend,
-        "--workers",
+        "--job-workers",
         "0",
+        *extra,
         admin_key=ADMIN_KEY,
         env={**limits, **(env or {})},
         python=python,
     )
+
+
+class _Cluster:
+    """A real ``redis-server`` and ``n`` ``facecast serve --redis`` nodes on this machine, each with
+    its own port and data dir and the bench's admin key; CPU time is theirs summed."""
+
+    def __init__(self, n: int, face: str, backend: str) -> None:
+        self.redis = RedisServer()
+        extra = ("--redis", self.redis.url, "--workers", "1")  # one process per node, measured
+        self.nodes = [_server(face, backend, extra=extra) for _ in range(n)]
+        self.admin_key = ADMIN_KEY
+        self.urls = [s.url for s in self.nodes]
+        self.url = self.urls[0]
+        self.health: dict = {}
+
+    def start(self, timeout: float = 300, *, ready: bool = True) -> _Cluster:
+        self.redis.start()
+        for node in self.nodes:
+            node.start(timeout, ready=ready)
+        self.health = self.nodes[0].health
+        return self
+
+    def stop(self) -> None:
+        for node in self.nodes:
+            node.stop()
+        self.redis.stop()
+
+    def cpu_seconds(self) -> float:
+        procs = [n.proc.pid for n in self.nodes if n.proc] + [self.redis.proc.pid]
+        return sum(process_cpu_seconds(pid) for pid in procs)
+
+    def redis_cpu_seconds(self) -> float:
+        return process_cpu_seconds(self.redis.proc.pid) if self.redis.proc else float("nan")
 
 
 class _External:
@@ -312,10 +370,14 @@ def _faps(i: int, fps: float) -> dict[int, float]:
 # ------------------------------------------------------------------------------------------ load points
 
 
-async def _producer(url: str, s, fps: float, stop: asyncio.Event, sent: list[int]) -> None:
-    from facecast.client.api import Pacer, produce
+async def _producer(
+    url: str, s, fps: float, stop: asyncio.Event, sent: list[int], retry: bool = False
+) -> None:
+    """Send FAP frames at ``fps`` until ``stop``; ``retry``: reconnect as a cluster's clients do
+    (a session may change owner when a starved node misses its lease)."""
+    from facecast.client.api import Pacer, Retry, produce
 
-    async with produce(url, s.id, s.producer_token) as p:
+    async with produce(url, s.id, s.producer_token, retry=Retry() if retry else None) as p:
         pacer = Pacer(1.0)
         i = 0
         while not stop.is_set():
@@ -340,6 +402,8 @@ async def _viewer(
     if _VIEWER_OPTS.get("rcvbuf") is not None:
         opts["receive_buffer"] = _VIEWER_OPTS["rcvbuf"] or None
     opts["max_queue"] = _VIEWER_OPTS.get("queue") or api.VIEWER_MAX_QUEUE
+    if _VIEWER_OPTS.get("retry"):  # a cluster's viewers follow a session that changes owner
+        opts["retry"] = api.Retry()
 
     async def receive(w: Any) -> None:
         async for f in w:
@@ -475,10 +539,11 @@ async def _light_viewer(
 
 @dataclass(frozen=True)
 class _Seat:
-    """What a viewer in another process needs of its session."""
+    """What a viewer in another process needs of its session (``url``: the node it watches on)."""
 
     id: str
     viewer_token: str
+    url: str
 
 
 def _viewer_process(url, seats, kind, encoding, opts, ready, stop, conn) -> None:
@@ -491,7 +556,7 @@ def _viewer_process(url, seats, kind, encoding, opts, ready, stop, conn) -> None
         recs = {slot: [] for slot in seats}
         evs = [asyncio.Event() for _ in seats]
         tasks = [
-            asyncio.create_task(fn(url, seat, encoding, local_stop, ev, recs[slot]))
+            asyncio.create_task(fn(seat.url or url, seat, encoding, local_stop, ev, recs[slot]))
             for (slot, seat), ev in zip(seats.items(), evs)
         ]
         await asyncio.wait_for(asyncio.gather(*(e.wait() for e in evs)), 120)
@@ -508,35 +573,62 @@ def _viewer_process(url, seats, kind, encoding, opts, ready, stop, conn) -> None
 
 
 async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> dict:
-    """One load point: ``sessions`` sessions with ``viewers`` viewers each, for warmup + seconds."""
-    from facecast.client.api import SessionAdmin
+    """One load point: ``sessions`` sessions with ``viewers`` viewers each, for warmup + seconds.
+
+    On a ``_Cluster``, session k is created on node k mod N (its owner, where its producer
+    connects) and watched on node k + 1 mod N: every viewer is on another node than its producer.
+    """
+    from contextlib import AsyncExitStack
+
+    from facecast.client.api import LiveError, SessionAdmin
 
     key = (
         server.admin_key
-        if isinstance(server, LocalServer)
+        if isinstance(server, (LocalServer, _Cluster))
         else os.environ.get("FACECAST_ADMIN_KEY", ADMIN_KEY)
     )
-    async with SessionAdmin(url, key) as admin:
-        made = [await admin.create(face=args.face, fps=args.fps) for _ in range(sessions)]
-        for s in made:
+    nodes = server.urls if isinstance(server, _Cluster) else [url]
+    async with AsyncExitStack() as stack:
+        admins = [await stack.enter_async_context(SessionAdmin(u, key)) for u in nodes]
+        made = [
+            await admins[k % len(nodes)].create(face=args.face, fps=args.fps)
+            for k in range(sessions)
+        ]
+        owner = {s.id: k % len(nodes) for k, s in enumerate(made)}
+        for s in made:  # REST layers live on the session's owner
             for name, spec in LAYERS[: getattr(args, "layers", 0)]:
-                await admin.set_layer(s.id, name, spec)
+                await admins[owner[s.id]].set_layer(s.id, name, spec)
+
+        async def info(sid: str) -> Any:
+            """The session's info from its owner (it may have moved: then from the node that
+            has it now, which answers for the sessions it owns)."""
+            err: LiveError | None = None
+            for k in _owner_first(owner[sid], len(nodes)):
+                try:
+                    return await admins[k].info(sid)
+                except LiveError as e:
+                    err = e
+            assert err is not None
+            raise err
+
+        watched_on = {s.id: nodes[(k + 1) % len(nodes)] for k, s in enumerate(made)}
         stop = asyncio.Event()
         records: list[list] = []
         ready_events = []
         tasks = []
         n_proc = max(1, min(getattr(args, "viewer_processes", 1), sessions * viewers))
+        _VIEWER_OPTS["retry"] = len(nodes) > 1
         away: list[dict] = [{} for _ in range(n_proc - 1)]  # seats of the other processes
         for k, s in enumerate(s for s in made for _ in range(viewers)):
             rec: list = []
             records.append(rec)
             if k % n_proc:
-                away[k % n_proc - 1][k] = _Seat(s.id, s.viewer_token)
+                away[k % n_proc - 1][k] = _Seat(s.id, s.viewer_token, watched_on[s.id])
                 continue
             ev = asyncio.Event()
             ready_events.append(ev)
             fn = _light_viewer if args.viewer_kind == "light" else _viewer
-            tasks.append(asyncio.create_task(fn(url, s, args.encoding, stop, ev, rec)))
+            tasks.append(asyncio.create_task(fn(watched_on[s.id], s, args.encoding, stop, ev, rec)))
         mp = multiprocessing.get_context("spawn")
         mp_stop, children = mp.Event(), []
         for seats in away:
@@ -562,14 +654,23 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
             if not await asyncio.to_thread(ready.wait, 180):
                 raise RuntimeError("a viewer process did not get its viewers connected")
         sent: list[int] = []
-        tasks += [asyncio.create_task(_producer(url, s, args.fps, stop, sent)) for s in made]
+        tasks += [
+            asyncio.create_task(
+                _producer(nodes[owner[s.id]], s, args.fps, stop, sent, retry=len(nodes) > 1)
+            )
+            for s in made
+        ]
         await asyncio.sleep(args.warmup)
 
         def clients_cpu() -> float:
             return _own_cpu() + sum(process_cpu_seconds(p.pid) for p, _, _ in children)
 
         async def deformed() -> int:  # frames the server deformed and encoded, all sessions
-            infos = await asyncio.gather(*(admin.info(s.id) for s in made))
+            try:  # an overloaded server may not answer in time: the point is still measured
+                infos = await asyncio.gather(*(info(s.id) for s in made))
+            except LiveError as e:
+                log.warning("cannot count the frames deformed: %s", e)
+                return -1
             return sum(i.stats.frames_deformed for i in infos)
 
         deformed0 = await deformed()
@@ -595,9 +696,19 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         failures = [r for r in results if isinstance(r, BaseException)]
         for r in failures[:3]:
             log.warning("a client failed: %r", r)
-        infos = [await admin.info(s.id) for s in made]
+        infos = []
         for s in made:
-            await admin.close(s.id)
+            try:
+                infos.append(await info(s.id))
+            except LiveError as e:
+                log.warning("cannot read session %s after the point: %s", s.id, e)
+        for s in made:
+            for k in _owner_first(owner[s.id], len(nodes)):
+                try:
+                    await admins[k].close(s.id)
+                    break
+                except LiveError:
+                    continue
 
     window = t1 - t0
     rates, lat, skipped, sizes = [], [], 0, []
@@ -609,7 +720,8 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         if len(inside) > 1:
             seqs = np.array([r[1] for r in inside], dtype=np.int64)
             d = np.diff(seqs) - 1
-            skipped += int(d[d > 0].sum())
+            # a new owner numbers its frames anew (from epoch << 20): no frames were skipped there
+            skipped += int(d[(d > 0) & (d < 1 << 19)].sum())
         lat += [1000 * (r[0] - r[2]) for r in inside if r[2] > 0]
         sizes += [r[3] for r in inside]
     lat_a = np.array(lat) if lat else np.array([np.nan])
@@ -642,13 +754,20 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         "server_cpu_us_per_deformed_frame": round(
             1e6 * (cpu_s1 - cpu_s0) / (deformed1 - deformed0), 1
         )
-        if deformed1 > deformed0
+        if deformed1 > deformed0 >= 0
         else None,
-        "server_frames_deformed_per_s": round((deformed1 - deformed0) / window, 1),
+        "server_frames_deformed_per_s": round((deformed1 - deformed0) / window, 1)
+        if min(deformed0, deformed1) >= 0
+        else None,
         "client_cpu_us_per_frame": round(1e6 * (cpu_c1 - cpu_c0) / len(lat), 1) if lat else None,
         "client_failures": len(failures),
         "seconds": round(window, 2),
     }
+
+
+def _owner_first(k: int, n: int) -> list[int]:
+    """Node indices, ``k`` first."""
+    return [k] + [i for i in range(n) if i != k]
 
 
 def _ok(p: dict, args) -> bool:
@@ -706,6 +825,76 @@ async def _sweeps(server, url: str, args, baseline: LocalServer | None = None) -
             )
             log.info("%s%s", prefix, res[prefix + sweep][-1])
     return res
+
+
+def _cluster_sweeps(args, encodings: list[str], by_encoding: dict) -> dict:
+    """The sessions sweep on a ``_Cluster`` of ``args.cluster`` nodes, per encoding:
+    ``{encoding: {"nodes", "sessions_sweep", "redis_cpu", ...}}``."""
+    out: dict = {}
+    cluster = _Cluster(args.cluster, args.face, args.backend)
+    sessions, viewers = args.sessions, args.viewers
+    args.sessions, args.viewers = args.cluster_sessions or args.sessions, ""
+    try:
+        cluster.start(300, ready=True)
+        for enc in encodings:
+            args.encoding = enc
+            r0 = cluster.redis_cpu_seconds()
+            t0 = time.time()
+            sweep = asyncio.run(_sweeps(cluster, cluster.url, args))["sessions_sweep"]
+            out[enc] = {
+                "nodes": args.cluster,
+                "sessions_sweep": sweep,
+                "redis_cpu_mean": round((cluster.redis_cpu_seconds() - r0) / (time.time() - t0), 3),
+                "sessions_at_target": _at_target(sweep, args),
+                "single_sessions_at_target": _at_target(by_encoding[enc]["sessions_sweep"], args),
+            }
+            single, multi = out[enc]["single_sessions_at_target"], out[enc]["sessions_at_target"]
+            out[enc]["ratio_vs_single"] = round(multi / single, 2) if single else None
+            log.info("cluster, %s: %s", enc, out[enc])
+    finally:
+        cluster.stop()
+        args.sessions, args.viewers, args.encoding = sessions, viewers, encodings[0]
+    return out
+
+
+def _at_target(points: list[dict], args) -> int:
+    """The largest session count of a sweep at which every viewer met the target (0: none)."""
+    return max((p["sessions"] for p in points if _ok(p, args)), default=0)
+
+
+def _cluster_table(enc: str, single: list[dict], cluster: dict, args) -> str:
+    """Single process and cluster side by side, point by point (same session counts where both
+    were measured)."""
+    by_n = {p["sessions"]: p for p in single}
+    lines = [
+        (
+            f"### Sessions at {args.fps:g} fps: one process vs {cluster['nodes']} nodes + Redis, "
+            f"{enc} (cluster viewers on another node than their producer)"
+        ),
+        "",
+        (
+            "| sessions | single fps min | single p95 ms | single | cluster fps min | cluster p95 ms "
+            "| cluster | cluster CPU (nodes + Redis) |"
+        ),
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for p in cluster["sessions_sweep"]:
+        s = by_n.get(p["sessions"])
+        sv = (
+            f"{s['fps_min']} | {s['latency_ms_p95']} | {'ok' if _ok(s, args) else 'miss'}"
+            if s
+            else "– | – | –"
+        )
+        lines.append(
+            f"| {p['sessions']} | {sv} | {p['fps_min']} | {p['latency_ms_p95']} | "
+            f"{'ok' if _ok(p, args) else 'miss'} | {p['server_cpu']} |"
+        )
+    lines.append(
+        f"\nSessions at target: single {cluster['single_sessions_at_target']}, cluster "
+        f"{cluster['sessions_at_target']} (ratio {cluster['ratio_vs_single']}; target ≥ 1.5); "
+        f"Redis CPU {cluster['redis_cpu_mean']} core(s) on average."
+    )
+    return "\n".join(lines)
 
 
 def _ratios(points: list[dict], baseline: list[dict], key: str) -> list[float | None]:
@@ -768,6 +957,9 @@ def run(args: argparse.Namespace) -> int:
                 d["server_cpu_ratio_vs_asgi"] = round(
                     d["server_cpu_us_per_frame"] / a["server_cpu_us_per_frame"], 2
                 )
+    cluster = None
+    if args.cluster and url is None:
+        cluster = _cluster_sweeps(args, encodings, by_encoding)
     load = os.getloadavg()
     report = {
         "bench": "serve",
@@ -785,6 +977,7 @@ def run(args: argparse.Namespace) -> int:
         "frame_costs_ms": costs,
         "latency_target_ms": args.latency_target,
         **res,
+        "cluster": cluster,
         "cpus": os.cpu_count(),
         "loadavg_before": [round(x, 2) for x in load_before],
         "loadavg_after": [round(x, 2) for x in load],
@@ -846,6 +1039,10 @@ def run(args: argparse.Namespace) -> int:
                 print(
                     f"\nServer CPU per session-frame, this checkout / baseline, point by point: {ratios}\n"
                 )
+    if cluster is not None:
+        for enc in encodings:
+            print(_cluster_table(enc, by_encoding[enc]["sessions_sweep"], cluster[enc], args))
+            print()
     if "viewers_sweep_asgi" in res:
         print()
         print(

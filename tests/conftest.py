@@ -47,7 +47,7 @@ def live_server(root: Path, face: str, *extra: str, env: dict | None = None) -> 
     """A started server for live tests: one ``face``, the NumPy backend (frames comparable with a batch
     render) and no job workers; ``extra`` CLI options, ``env`` extra environment."""
     return RunningServer(
-        root, "--face", face, "--backend", "numpy", "--workers", "0", *extra, env=env
+        root, "--face", face, "--backend", "numpy", "--job-workers", "0", *extra, env=env
     ).start()
 
 

@@ -52,6 +52,47 @@ def test_viewers_in_other_processes_are_measured(tmp_path):
     assert "Viewers of one session" in r.stdout
 
 
+@pytest.mark.slow
+def test_cluster_mode_measures_two_nodes_beside_the_single_process(tmp_path):
+    """``--cluster 2``: Redis and two nodes, every viewer on the node that does not own its
+    session; reported side by side with the single process."""
+    from facecast.server.harness import RedisServer
+
+    if not RedisServer.available():
+        pytest.skip("redis-server is not installed (bash .ci/setup installs it)")
+    out = tmp_path / "serve.json"
+    args = ["--face", "default:2k", "--sessions", "2", "--viewers", "", "--cluster", "2"]
+    r = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "serve.py"),
+            *args,
+            "--viewer-processes",
+            "1",
+            "--warmup",
+            "1",
+            "--seconds",
+            "2",
+            "--out",
+            str(out),
+        ],
+        check=False,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert r.returncode == 0, r.stderr[-4000:]
+    report = json.loads(out.read_text())
+    cluster = report["cluster"]["i16"]
+    (point,) = cluster["sessions_sweep"]
+    assert cluster["nodes"] == 2 and point["sessions"] == 2
+    # both viewers got frames through Redis from the other node
+    assert point["fps_min"] > 0 and point["frames_received"] > 0, r.stderr[-4000:]
+    assert report["sessions_sweep"][0]["sessions"] == 2
+    assert "one process vs 2 nodes + Redis" in r.stdout
+
+
 def test_the_old_command_says_where_the_benchmark_went(capsys):
     assert main(["bench", "serve", "--sessions", "1"]) == 2
     err = capsys.readouterr().err

@@ -71,7 +71,7 @@ def test_a_bad_url_exits_2_naming_the_flag():
 
 
 def test_a_url_without_scheme_reaches_the_server(tmp_path):
-    srv = RunningServer(tmp_path / "d", "--face", "default:2k", "--workers", "0").start()
+    srv = RunningServer(tmp_path / "d", "--face", "default:2k", "--job-workers", "0").start()
     try:
         import os
 
@@ -118,7 +118,7 @@ def test_logs_are_quiet_by_default_and_v_shows_info():
 
 
 def test_serve_logs_neither_info_nor_requests_by_default(tmp_path):
-    srv = RunningServer(tmp_path / "d", "--face", "default:2k", "--workers", "0").start()
+    srv = RunningServer(tmp_path / "d", "--face", "default:2k", "--job-workers", "0").start()
     try:
         for path in ("/healthz", "/v1/faces", "/v1/sessions"):
             httpx.get(srv.url + path, headers=srv.admin_headers, timeout=30)

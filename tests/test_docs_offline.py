@@ -55,7 +55,7 @@ def test_only_the_docs_assets_are_served(client):
 def test_swagger_ui_renders_the_api_with_no_network(tmp_path):
     from playwright.sync_api import sync_playwright
 
-    srv = RunningServer(tmp_path, "--face", "default:2k", "--workers", "0").start()
+    srv = RunningServer(tmp_path, "--face", "default:2k", "--job-workers", "0").start()
     outside: list[str] = []
     try:
         with sync_playwright() as p:

@@ -18,7 +18,7 @@ FACE = "default:2k"
 
 @pytest.fixture(scope="module")
 def srv(tmp_path_factory) -> RunningServer:
-    s = RunningServer(tmp_path_factory.mktemp("jobs"), "--face", FACE, "--workers", "1").start()
+    s = RunningServer(tmp_path_factory.mktemp("jobs"), "--face", FACE, "--job-workers", "1").start()
     yield s
     s.stop()
 
@@ -246,13 +246,13 @@ def test_metrics_count_jobs_by_state(srv):
 @pytest.mark.slow
 def test_queued_job_finishes_after_a_restart(tmp_path, data_dir):
     src = fap_file(data_dir)
-    first = RunningServer(tmp_path, "--face", FACE, "--workers", "0").start()
+    first = RunningServer(tmp_path, "--face", FACE, "--job-workers", "0").start()
     try:
         job = submit(first, src.name, src.read_bytes(), format="npz")
         assert status(first, job["id"])["status"] == "queued"
     finally:
         first.stop()
-    second = RunningServer(tmp_path, "--face", FACE, "--workers", "1").start()
+    second = RunningServer(tmp_path, "--face", FACE, "--job-workers", "1").start()
     try:
         done = wait(second, job["id"])
         assert done["status"] == "done", done
@@ -266,7 +266,7 @@ def test_queued_job_finishes_after_a_restart(tmp_path, data_dir):
 @pytest.mark.slow
 def test_running_job_resumes_after_a_restart(tmp_path, data_dir):
     src = fap_file(data_dir, "beg.fap")
-    first = RunningServer(tmp_path, "--face", FACE, "--workers", "1").start()
+    first = RunningServer(tmp_path, "--face", FACE, "--job-workers", "1").start()
     try:
         job = submit(first, src.name, src.read_bytes(), format="glb")
         # A fresh worker spends seconds starting (imports, face, device) while the job is running.
@@ -274,7 +274,7 @@ def test_running_job_resumes_after_a_restart(tmp_path, data_dir):
         assert seen["status"] == "running", seen
     finally:
         first.stop()
-    second = RunningServer(tmp_path, "--face", FACE, "--workers", "1").start()
+    second = RunningServer(tmp_path, "--face", FACE, "--job-workers", "1").start()
     try:
         done = wait(second, job["id"])
         assert done["status"] == "done", done
@@ -544,7 +544,7 @@ def alive(pid: int) -> bool:
 @pytest.mark.slow
 def test_a_job_over_the_time_limit_fails_and_its_worker_is_killed(tmp_path, data_dir):
     s = RunningServer(
-        tmp_path, "--face", FACE, "--workers", "1", env={"FACECAST_JOB_TIMEOUT_SECONDS": "0.5"}
+        tmp_path, "--face", FACE, "--job-workers", "1", env={"FACECAST_JOB_TIMEOUT_SECONDS": "0.5"}
     ).start()
     try:
         src = fap_file(data_dir, "disgust.fap")
@@ -568,7 +568,7 @@ def test_a_worker_dies_with_its_server(tmp_path, data_dir):
     import os
     import signal
 
-    s = RunningServer(tmp_path, "--face", FACE, "--workers", "1").start()
+    s = RunningServer(tmp_path, "--face", FACE, "--job-workers", "1").start()
     try:
         src = fap_file(data_dir, "disgust.fap")
         job = submit(s, src.name, src.read_bytes(), format="glb", face="default")

@@ -37,7 +37,7 @@ def srv(tmp_path_factory) -> RunningServer:
     if ICT_MESH is not None and ICT_MESH.is_file():
         env["FACECAST_FACES"] = f"ict={ICT_MESH}"
     s = RunningServer(
-        tmp_path_factory.mktemp("rest"), "--face", FACE, "--workers", "0", env=env
+        tmp_path_factory.mktemp("rest"), "--face", FACE, "--job-workers", "0", env=env
     ).start()
     yield s
     s.stop()

@@ -26,7 +26,7 @@ def parse(*argv: str):
 @pytest.mark.slow
 def test_generated_admin_key_is_printed_kept_and_required(tmp_path):
     srv = RunningServer(
-        tmp_path / "d", "--face", FACE, "--workers", "0", env={"FACECAST_ADMIN_KEY": ""}
+        tmp_path / "d", "--face", FACE, "--job-workers", "0", env={"FACECAST_ADMIN_KEY": ""}
     )
     srv.start()
     try:
@@ -58,7 +58,7 @@ def test_generated_admin_key_is_printed_kept_and_required(tmp_path):
     orphan.mkdir(parents=True)
     (orphan / ".upload").write_bytes(b"x" * 1000)
     again = RunningServer(
-        tmp_path / "d", "--face", FACE, "--workers", "0", env={"FACECAST_ADMIN_KEY": ""}
+        tmp_path / "d", "--face", FACE, "--job-workers", "0", env={"FACECAST_ADMIN_KEY": ""}
     )
     again.start()
     try:
@@ -136,7 +136,7 @@ def test_flags_override_environment(tmp_path, monkeypatch):
             "numpy",
             "--device",
             "1",
-            "--workers",
+            "--job-workers",
             "2",
         )
     )
@@ -150,8 +150,8 @@ def test_flags_override_environment(tmp_path, monkeypatch):
     )
     cfg = make_config(parse())
     assert (cfg.port, cfg.job_workers, cfg.backend, cfg.host) == (9001, 3, "opencl", "127.0.0.1")
-    with pytest.raises(InputError, match="workers"):
-        make_config(parse("--workers", "-1"))
+    with pytest.raises(InputError, match="job-workers"):
+        make_config(parse("--job-workers", "-1"))
 
 
 def test_environment_settings_reach_the_server_and_bad_ones_are_named(tmp_path, monkeypatch):
@@ -182,7 +182,7 @@ def test_websockets_are_never_compressed(tmp_path):
 
     from websockets.asyncio.client import connect
 
-    srv = RunningServer(tmp_path, "--face", FACE, "--workers", "0").start()
+    srv = RunningServer(tmp_path, "--face", FACE, "--job-workers", "0").start()
     try:
         created = httpx.post(
             srv.url + "/v1/sessions", json={}, headers=srv.admin_headers, timeout=120
@@ -239,7 +239,7 @@ def test_a_broken_default_face_is_reported_not_fatal(tmp_path):
         tmp_path,
         "--face",
         "broken",
-        "--workers",
+        "--job-workers",
         "0",
         env={"FACECAST_FACES": f"broken={tmp_path / 'missing.obj'}"},
     ).start()

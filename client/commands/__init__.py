@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import asyncio
 import os
+import signal
+from collections.abc import Awaitable
 
 
 def add_token_argument(p: argparse.ArgumentParser, role: str) -> None:
@@ -15,3 +18,32 @@ def add_token_argument(p: argparse.ArgumentParser, role: str) -> None:
         help=f"the session's {role} token (default: $FACECAST_TOKEN, which keeps it out of the "
         "process list); it is sent in the Authorization header, never in the URL",
     )
+
+
+async def until_signal(work: Awaitable[object]) -> bool:
+    """Run ``work`` until it ends or SIGINT/SIGTERM arrives (then it is cancelled, so that a command
+    can still report what it did); True when a signal stopped it."""
+    loop = asyncio.get_running_loop()
+    task = asyncio.ensure_future(work)
+    stopped = []
+
+    def stop() -> None:
+        stopped.append(True)
+        task.cancel()
+
+    handled = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, stop)
+            handled.append(sig)
+        except (ValueError, RuntimeError, NotImplementedError):  # not the main thread, Windows
+            pass
+    try:
+        await task
+    except asyncio.CancelledError:
+        if not stopped:
+            raise
+    finally:
+        for sig in handled:
+            loop.remove_signal_handler(sig)
+    return bool(stopped)

@@ -7,6 +7,12 @@ rate (``--speed`` scales it) and carry the sender's wall clock, so viewers can m
 ``--role`` names the layer the stream drives (default ``primary``): a ``.fap`` file streamed as
 ``--role expression`` (or ``gaze``, ``head``, ``idle``) is mixed over the session's primary
 producer (the speech), with a token that carries that role (``facecast session token``).
+
+``--loop`` replays the input (media time continues), ``--seconds S`` stops after S seconds of
+media time: ``facecast stream joy.fap --loop --seconds 600 ...`` is a ten-minute live source.
+When the connection drops (the node goes away, a failover), the producer reconnects by itself
+(backoff from 50 ms, capped at 1 s, jittered; ``--reconnect-for`` bounds the outage it waits out)
+and goes on at the media time the wall clock has reached, skipping what it could not send.
 """
 
 from __future__ import annotations
@@ -17,11 +23,13 @@ import json
 import logging
 import sys
 import time
+from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from ...protocol.errors import InputError
 from ...protocol.messages import ROLES
-from . import add_token_argument
+from . import add_token_argument, until_signal
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +55,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="pace multiplier (2 = twice real time; 0 = no pacing)",
     )
     p.add_argument(
-        "--loop", type=int, default=1, help="send the input this many times (media time continues)"
+        "--loop",
+        type=int,
+        nargs="?",
+        const=0,
+        default=1,
+        metavar="N",
+        help="send the input N times (media time continues); --loop alone: until --seconds "
+        "(or Ctrl-C)",
+    )
+    p.add_argument(
+        "--seconds",
+        type=float,
+        help="stop after this many seconds of media time (with --loop: replay until then)",
+    )
+    p.add_argument(
+        "--reconnect-for",
+        type=float,
+        default=60.0,
+        metavar="SECONDS",
+        help="when the connection drops, reconnect for up to this long before giving up "
+        "(default 60; 0 = do not reconnect)",
     )
     p.add_argument(
         "--json-frames",
@@ -129,10 +157,51 @@ def _read_layout(args: argparse.Namespace) -> dict:
     )
 
 
-async def _main(args: argparse.Namespace) -> dict:
-    from ...protocol.messages import ProducerHello
-    from ..api import produce, stream_fap, stream_markers, stream_pcm
+#: Seconds an input item may be overdue before it is skipped (after a reconnection, a stall).
+LATE = 0.25
 
+Send = Callable[[Any, int, int, float], Awaitable[None]]
+
+
+async def _replay(
+    p: Any,
+    times: Sequence[float],
+    period: float,
+    send: Send,
+    args: argparse.Namespace,
+    counts: dict[str, int],
+) -> None:
+    """Send items at media times ``times`` (s, one pass, paced at ``--speed``), ``--loop`` passes
+    of ``period`` s each, until ``--seconds``: ``send(p, item, pass, media_t)``. Items overdue by
+    more than ``LATE`` s are skipped when reconnecting is on. Counts ``sent`` and ``skipped``."""
+    from ..api import Pacer
+
+    pacer = Pacer(args.speed, late=LATE if args.reconnect_for > 0 else None)
+    k = 0
+    while args.loop == 0 or k < args.loop:
+        for i, t in enumerate(times):
+            tm = k * period + t
+            if args.seconds is not None and tm >= args.seconds - 1e-9:  # k * period rounds
+                return
+            if await pacer.until(tm):
+                await send(p, i, k, tm)
+                counts["sent"] += 1
+            else:
+                counts["skipped"] += 1
+        if period <= 0:
+            break
+        k += 1
+
+
+async def _main(args: argparse.Namespace) -> dict:
+    import numpy as np
+
+    from ...protocol.messages import ProducerHello
+    from ..api import Retry, fap_frames, produce
+
+    # callers that build the namespace themselves may leave out the newer options
+    args.seconds = getattr(args, "seconds", None)
+    args.reconnect_for = getattr(args, "reconnect_for", 0.0)
     suffix = args.input.suffix.lower()
     t_start = time.monotonic()
     role = getattr(args, "role", "primary")
@@ -141,60 +210,64 @@ async def _main(args: argparse.Namespace) -> dict:
             f"{args.input}: a '{role}' stream sends FAP frames: give a .fap file (only the "
             "primary producer sends audio or markers)"
         )
+    times: Sequence[float]
+    send: Send
     if suffix == ".fap":
         fap = _read_fap(args.input)
         hello = ProducerHello(input="fap", role="producer" if role == "primary" else role)
-        async with produce(args.url, args.session, args.token, hello) as p:
-            n = 0
-            for i in range(args.loop):
-                n += await stream_fap(
-                    p, fap, speed=args.speed, binary=not args.json_frames, t_offset=i * fap.duration
-                )
-            errors = p.errors
+        items = fap_frames(fap)
+        times, period = [t for t, *_ in items], float(fap.duration)
+
+        async def send(p: Any, i: int, k: int, t: float) -> None:
+            _, faps, vis, exp = items[i]
+            await p.send_faps(faps, t, viseme=vis, expression=exp, binary=not args.json_frames)
+
         kind, rate = "fap", float(fap.fps)
     elif suffix in AUDIO:
         samples, rate = _read_audio(args.input)
         hello = ProducerHello(input="audio", rate=rate, sample_format="i16")
-        async with produce(args.url, args.session, args.token, hello) as p:
-            n = 0
-            for i in range(args.loop):
-                n += await stream_pcm(
-                    p,
-                    samples,
-                    rate,
-                    chunk=args.chunk,
-                    speed=args.speed,
-                    sample_offset=i * len(samples),
-                )
-            errors = p.errors
+        step = max(1, int(round(args.chunk * rate)))
+        starts = range(0, len(samples), step)
+        times, period = [s / rate for s in starts], len(samples) / rate
+
+        async def send(p: Any, i: int, k: int, t: float) -> None:
+            start = starts[i]
+            await p.send_pcm(
+                samples[start : start + step], rate=rate, sample_offset=k * len(samples) + start
+            )
+
         kind = "audio"
     elif suffix in MARKERS:
         take = _read_markers(args.input)
         hello = ProducerHello(
             input="markers", markers=list(take.names), layout=_read_layout(args), units=take.units
         )
-        async with produce(args.url, args.session, args.token, hello) as p:
-            n = 0
-            for i in range(args.loop):
-                n += await stream_markers(
-                    p,
-                    take.xyz,
-                    take.fps,
-                    t0=take.t0 + i * take.n_frames / take.fps,
-                    speed=args.speed,
-                )
-            errors = p.errors
+        times, period = [i / take.fps for i in range(take.n_frames)], take.n_frames / take.fps
+
+        async def send(p: Any, i: int, k: int, t: float) -> None:
+            await p.send_markers(np.asarray(take.xyz[i], np.float32), take.t0 + t)
+
         kind, rate = "markers", float(take.fps)
     else:
         raise StreamError(
             f"{args.input}: unsupported input {suffix or '(none)'}; use .fap, "
             f"{', '.join(AUDIO)} or {', '.join(MARKERS)}"
         )
+    retry = Retry(give_up=args.reconnect_for) if args.reconnect_for > 0 else None
+    counts = {"sent": 0, "skipped": 0}
+    async with produce(args.url, args.session, args.token, hello, retry=retry) as p:
+        interrupted = await until_signal(_replay(p, times, period, send, args, counts))
+        errors = p.errors
+        reconnects, outages, dropped = p.reconnects, p.outages, p.dropped
     return {
         "input": str(args.input),
         "kind": kind,
         "role": role,
-        "frames_sent": n,
+        "frames_sent": counts["sent"] - dropped,
+        "frames_skipped": counts["skipped"] + dropped,
+        "interrupted": interrupted,
+        "reconnects": reconnects,
+        "max_outage_s": round(max(outages), 3) if outages else 0.0,
         "rate": rate,
         "seconds": round(time.monotonic() - t_start, 3),
         "errors": [e.message for e in errors],

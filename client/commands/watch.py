@@ -2,8 +2,10 @@
 
 Reports frames per second, end-to-end latency p50/p95 (viewer receive time minus the producer's
 send time carried in each frame; both clocks must agree, e.g. the same machine), bytes per frame
-and dropped frames (gaps in the frame numbers). Stops after ``--frames`` or ``--seconds``, or
-when the producer leaves (after frames were seen). ``--json`` prints one JSON object at the end.
+and bits per second, dropped frames (gaps in the frame numbers) and the longest time between two
+frames (``max_gap_s``: a node going away, a failover). Stops after ``--frames`` or ``--seconds``,
+or when the producer leaves (after frames were seen). ``--json`` prints one JSON object at the end.
+When its connection drops, the viewer reconnects by itself (``--reconnect-for``).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import sys
 import time
 
 from ...protocol.encoding import VERTEX_ENCODINGS
-from . import add_token_argument
+from . import add_token_argument, until_signal
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -39,16 +41,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--json", action="store_true", help="print one JSON object at the end (else a short table)"
     )
+    p.add_argument(
+        "--reconnect-for",
+        type=float,
+        default=60.0,
+        metavar="SECONDS",
+        help="when the connection drops, reconnect for up to this long before giving up "
+        "(default 60; 0 = do not reconnect)",
+    )
 
 
 async def _main(args: argparse.Namespace) -> dict:
-    from ..api import WatchedFrame, summary, watch
+    from ..api import Retry, WatchedFrame, summary, watch
 
     got: list[WatchedFrame] = []
     deadline = None if args.seconds is None else time.monotonic() + args.seconds
     until_end = args.frames is None and args.seconds is None
+    retry = Retry(give_up=args.reconnect_for) if args.reconnect_for > 0 else None
     async with watch(
-        args.url, args.session, args.token, encoding=args.encoding, until_producer_leaves=until_end
+        args.url,
+        args.session,
+        args.token,
+        encoding=args.encoding,
+        until_producer_leaves=until_end,
+        retry=retry,
     ) as w:
         hello = w.hello
 
@@ -60,14 +76,19 @@ async def _main(args: argparse.Namespace) -> dict:
 
         try:
             if deadline is None:
-                await consume()
+                interrupted = await until_signal(consume())
             else:
-                await asyncio.wait_for(consume(), max(0.0, deadline - time.monotonic()))
+                timeout = max(0.0, deadline - time.monotonic())
+                interrupted = await until_signal(asyncio.wait_for(consume(), timeout))
         except asyncio.TimeoutError:
-            pass
+            interrupted = False
         stats = w.stats
         waited = w.waited
+        reconnects, outages = w.reconnects, w.outages
     report = summary(got)
+    report["interrupted"] = interrupted
+    report["reconnects"] = reconnects
+    report["max_outage_s"] = round(max(outages), 3) if outages else 0.0
     if args.encoding == "compact":
         report["frames_waiting_for_key"] = waited
     if args.save:
@@ -114,6 +135,8 @@ def _table(r: dict) -> str:
         ("bytes/frame", r.get("bytes_per_frame")),
         ("bits/s", r.get("bits_per_second")),
         ("dropped", r.get("dropped")),
+        ("longest gap (s)", r.get("max_gap_s")),
+        ("reconnects", r.get("reconnects")),
         ("encoding", r.get("encoding")),
         ("vertices", r.get("vertex_count")),
     ]

@@ -42,6 +42,7 @@ from .errors import error_body, error_response, reply
 from .metrics import Metrics
 from .redact import path_scrubber
 from .responses import SafeJSONResponse, safe_json, safe_text
+from .routes_cluster import router as cluster_routes
 from .security import resolve_admin_key
 from .store import FaceStore, parse_faces_env
 
@@ -156,9 +157,13 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
         # A daemon thread: stopping the server never waits for a warm-up still in progress.
         threading.Thread(target=_warm_up, args=(app,), name="facecast-warm-up", daemon=True).start()
         await app.state.jobs.start()
+        if config.redis_url:  # a cluster node (server/cluster); else one process, in memory
+            await _join_cluster(app, config)
         try:
             yield
         finally:
+            if app.state.cluster is not None:
+                await app.state.cluster.stop()
             live = getattr(app.state, "live", None)
             if live is not None:
                 try:
@@ -178,6 +183,7 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     )
     app.state.config = config
     app.state.admin_key = admin_key
+    app.state.cluster = None
     app.state.metrics = Metrics()
     app.state.store = FaceStore(
         default=config.face,
@@ -250,11 +256,29 @@ def create_app(config: ServerConfig | None = None) -> FastAPI:
     app.include_router(routes_faces.router)
     app.include_router(routes_jobs.router)
     app.include_router(routes_sessions.router)
+    app.include_router(cluster_routes)
     app.include_router(routes_playback.router)
     app.include_router(routes_layers.router)
     app.include_router(routes_layers.router)
     app.include_router(routes_web.router)
     return app
+
+
+async def _join_cluster(app: FastAPI, config: ServerConfig) -> None:
+    """Make this process a node of the cluster at ``config.redis_url`` (``app.state.cluster``)."""
+    from ..cluster.node import Cluster
+
+    assert config.redis_url is not None
+    cluster = Cluster(
+        config.redis_url,
+        routes_sessions.registry(app),
+        admin_key=app.state.admin_key,
+        url=f"http://{config.host}:{config.port}",
+        readiness=app.state.readiness,
+    )
+    await cluster.start()
+    app.state.cluster = cluster
+    app.state.metrics.watch_cluster(cluster.id, cluster.gauges)
 
 
 def jsonable(obj):

@@ -33,6 +33,27 @@ class _JobCollector:
         yield g
 
 
+class _ClusterCollector:
+    """Reports ``facecast_cluster_<name>{node=...}`` from a callable returning name -> value."""
+
+    def __init__(self, node: str, gauges: Callable[[], dict[str, float]]):
+        self._node, self._gauges = node, gauges
+
+    def collect(self):
+        try:
+            values = self._gauges()
+        except Exception:  # the node is stopping; report nothing rather than fail the scrape
+            values = {}
+        for name, value in values.items():
+            g = GaugeMetricFamily(
+                f"facecast_cluster_{name}",
+                f"Cluster node: {name.replace('_', ' ')}",
+                labels=["node"],
+            )
+            g.add_metric([self._node], float(value))
+            yield g
+
+
 class Metrics:
     """The server's metrics. Attributes are prometheus_client objects; update them directly."""
 
@@ -77,6 +98,10 @@ class Metrics:
     def watch_jobs(self, counts: Callable[[], dict[str, int]]) -> None:
         """Report jobs by state from ``counts()`` at every scrape."""
         self.registry.register(_JobCollector(counts))
+
+    def watch_cluster(self, node: str, gauges: Callable[[], dict[str, float]]) -> None:
+        """Report this node's cluster numbers (sessions owned, broker up...) at every scrape."""
+        self.registry.register(_ClusterCollector(node, gauges))
 
     def render(self) -> bytes:
         """The Prometheus text exposition of every metric."""

@@ -44,9 +44,10 @@ async def healthz(request: Request) -> Health:
     },
 )
 async def readyz(request: Request, response: Response) -> Health:
-    """Like ``/healthz``, but 503 until the default face is loaded (for load balancers)."""
+    """Like ``/healthz``, but 503 until the default face is loaded, and while a cluster node's
+    Redis is unreachable (``errors.broker_error``), for load balancers."""
     health = await healthz(request)
-    if not health.ready:
+    if not health.ready or "broker_error" in health.errors:
         response.status_code = 503
     return health
 

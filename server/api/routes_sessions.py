@@ -17,12 +17,14 @@ from fastapi import APIRouter, Depends, Request, Response, WebSocket, status
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from ...protocol.messages import SessionCreate, SessionCreated, SessionInfo, SessionList
+from ..errors import FacecastError
 from ..live.core import NOTHING, Close, Step, authorise
 from ..live.producer import HELLO_TIMEOUT, ProducerCore
 from ..live.registry import SessionRegistry
 from ..live.session import LiveSession, Viewer
 from ..live.watch import ViewerCore
 from . import transport
+from .routes_cluster import cluster_of, forward_producer
 from .security import require_admin, ws_token
 
 log = logging.getLogger(__name__)
@@ -70,20 +72,38 @@ def registry(app: Any) -> SessionRegistry:
 async def create_session(request: Request, body: SessionCreate | None = None) -> SessionCreated:
     """Open a live session; the answer's tokens are shown only once."""
     reg = registry(request.app)
-    return reg.created(await reg.create(body or SessionCreate.model_validate({})))
+    cluster = cluster_of(request.app)
+    if cluster is not None:
+        cluster.require()  # 503 while the cluster's Redis is unreachable
+    session = await reg.create(body or SessionCreate.model_validate({}))
+    if cluster is not None:
+        try:
+            await cluster.register(session)
+        except Exception:
+            await reg.close(session.spec.id, "the cluster's Redis is unreachable")
+            raise
+    return reg.created(session)
 
 
 @router.get("/v1/sessions", response_model=SessionList, dependencies=[Depends(require_admin)])
 async def list_sessions(request: Request) -> SessionList:
-    reg = registry(request.app)
-    return SessionList(sessions=[reg.info(s) for s in reg.sessions.values()])
+    reg, cluster = registry(request.app), cluster_of(request.app)
+    local = [reg.info(s) for s in reg.sessions.values()]
+    if cluster is not None:  # the cluster's: the others with their owners' last counters
+        local += [i for i in await cluster.infos() if i.id not in reg.sessions]
+    return SessionList(sessions=local)
 
 
 @router.get(
     "/v1/sessions/{session_id}", response_model=SessionInfo, dependencies=[Depends(require_admin)]
 )
 async def get_session(session_id: str, request: Request) -> SessionInfo:
-    reg = registry(request.app)
+    reg, cluster = registry(request.app), cluster_of(request.app)
+    if cluster is not None and session_id not in reg.sessions:  # another node owns it
+        found = await cluster.infos([session_id])
+        if found:
+            info: SessionInfo = found[0]
+            return info
     return reg.info(reg.get(session_id))
 
 
@@ -94,7 +114,11 @@ async def get_session(session_id: str, request: Request) -> SessionInfo:
 )
 async def close_session(session_id: str, request: Request) -> Response:
     """Close a session: its producer and viewers get an error 4000 and are disconnected."""
-    await registry(request.app).close(session_id)
+    reg, cluster = registry(request.app), cluster_of(request.app)
+    if cluster is not None and session_id not in reg.sessions:
+        await cluster.close_remote(session_id, "the session was closed by an admin")
+    else:
+        await reg.close(session_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
@@ -131,6 +155,13 @@ async def _authorise(
     """The session if ``token`` is its ``role`` token (for producers: any of its producer tokens,
     whatever its roles); else refuse and return None."""
     session = registry(ws.app).sessions.get(session_id)
+    cluster = cluster_of(ws.app)
+    if session is None and cluster is not None:  # another node's: this node's mirror of it
+        try:
+            session = await cluster.mirror(session_id)
+        except FacecastError as e:  # the broker is down, or the face is unknown here
+            await _refuse(ws, Close(e.close_code, str(e)))
+            return None
     sp = session.spec if session is not None else None
     mine, other = (
         ("", "")
@@ -171,10 +202,13 @@ async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> N
     The token: ``Authorization: Bearer``, a ``facecast.token.<token>`` subprotocol, or ``?token=``.
     """
     token = await _accept(ws, token)
+    reg, cluster = registry(ws.app), cluster_of(ws.app)
+    if cluster is not None and session_id not in reg.sessions:  # another node owns it
+        await forward_producer(ws, cluster, session_id, token)
+        return
     session = await _authorise(ws, session_id, token, "producer")
     if session is None:
         return
-    reg = registry(ws.app)
     core = ProducerCore(
         session,
         _Producer(ws),

@@ -1,4 +1,6 @@
-"""``facecast info``: version, the deformation backend and OpenCL device in use, every device probed."""
+"""``facecast info``: version, the deformation backend and OpenCL device in use, every device probed;
+with ``--url``, a running server's cluster instead: its nodes and the live sessions each owns
+(``GET /v1/cluster``, admin key from ``--admin-key`` or ``$FACECAST_ADMIN_KEY``)."""
 
 from __future__ import annotations
 
@@ -21,6 +23,49 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="OpenCL device: 'P:D' index or part of its name (default: first that works)",
     )
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.add_argument(
+        "--url",
+        help="a running server: show its cluster (nodes, the sessions each owns) instead",
+    )
+    p.add_argument("--admin-key", help="admin key for --url (default: $FACECAST_ADMIN_KEY)")
+
+
+def cluster(url: str, admin_key: str | None, timeout: float = 10.0) -> dict:
+    """``GET /v1/cluster`` of the server at ``url``; ``UpstreamError`` with the server's reason."""
+    import httpx
+
+    from ..errors import UpstreamError
+
+    headers = {"Authorization": f"Bearer {admin_key}"} if admin_key else {}
+    try:
+        r = httpx.get(url.rstrip("/") + "/v1/cluster", headers=headers, timeout=timeout)
+    except httpx.HTTPError as e:
+        raise UpstreamError(f"cannot reach {url}: {e}", where="--url") from None
+    if r.status_code != 200:
+        try:
+            why = r.json().get("error", r.text)
+        except ValueError:
+            why = r.text
+        hint = " (pass --admin-key or set FACECAST_ADMIN_KEY)" if r.status_code == 401 else ""
+        raise UpstreamError(f"{url} answered {r.status_code}: {why}{hint}", where="--url")
+    out: dict = r.json()
+    return out
+
+
+def print_cluster(view: dict) -> None:
+    """The cluster as text: one line per node (``*`` marks the node that answered)."""
+    nodes = view.get("nodes", [])
+    print(f"cluster: {len(nodes)} node(s), broker {view.get('broker')}")
+    for n in nodes:
+        mark = "*" if n.get("self") else " "
+        sessions = n.get("sessions") or []
+        listed = ", ".join(sessions[:8]) + (" ..." if len(sessions) > 8 else "")
+        print(
+            f" {mark} {n['id']}  {n['url']}  {n['host']} pid {n['pid']}  "
+            f"{len(sessions)} session(s){': ' + listed if sessions else ''}"
+        )
+    if view.get("orphans"):
+        print(f"   sessions being taken over: {', '.join(view['orphans'])}")
 
 
 def gather(backend: str = "auto", device: str | None = None) -> dict:
@@ -83,6 +128,15 @@ def _version(module: str) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "url", None):
+        import os
+
+        view = cluster(args.url, args.admin_key or os.environ.get("FACECAST_ADMIN_KEY"))
+        if args.json:
+            print(json.dumps(view, indent=2))
+        else:
+            print_cluster(view)
+        return 0
     info = gather(args.backend, args.device)
     if args.json:
         print(json.dumps(info, indent=2))

@@ -32,10 +32,11 @@ environment:
   FACECAST_JOB_MEMORY_MB        address space of a job worker process in MiB (default 0 = no limit)
   FACECAST_JOB_RETENTION_HOURS  delete finished jobs after this long (default 168; 0 = never)
   FACECAST_SESSION_IDLE_SECONDS close a live session idle this long (default 600; 0 = never)
+  FACECAST_REDIS_URL            make this process a cluster node (--redis; docs/CLUSTER.md)
   every flag also as FACECAST_<NAME> (FACECAST_PORT, FACECAST_JOB_WORKERS, ...); all settings, with their
   defaults: the Configuration table in README.md
 
-routes: /docs (OpenAPI), /healthz, /readyz, /metrics, /v1/faces, /v1/jobs, /v1/sessions
+routes: /docs (OpenAPI), /healthz, /readyz, /metrics, /v1/faces, /v1/jobs, /v1/sessions, /v1/cluster
 """
 
 
@@ -55,8 +56,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", choices=("auto", "numpy", "opencl"), help="deformation backend")
     p.add_argument("--device", help="OpenCL device (index or name substring)")
     p.add_argument(
-        "--workers", type=int, help="batch job worker processes (default 1; 0 = queue only)"
+        "--job-workers",
+        type=int,
+        dest="job_workers",
+        help="batch job worker processes (default 1; 0 = queue only)",
     )
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="node processes on this machine, sharing the port (default: one per CPU core with "
+        "--redis, else 1; more than 1 needs --redis)",
+    )
+    # A node process started by a ``--workers N`` parent: it shares the parent's port and lock.
+    p.add_argument("--node-of", type=int, metavar="PID", help=argparse.SUPPRESS)
     p.add_argument(
         "--allow-remote",
         action="store_true",
@@ -70,6 +83,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="SECONDS",
         help="close a live session after this long with no viewer and no connected "
         "producer (default 600; 0 = never)",
+    )
+    p.add_argument(
+        "--redis",
+        metavar="URL",
+        help="make this process a node of a cluster sharing live sessions through Redis at URL "
+        "(redis://host:6379/0; FACECAST_REDIS_URL); without it: one process, in memory",
     )
     p.add_argument("--log-level", default=None, help="uvicorn log level (default: warning)")
 
@@ -102,9 +121,10 @@ def make_config(args: argparse.Namespace):
             "face": args.face,
             "backend": args.backend,
             "device": args.device,
-            "job_workers": args.workers,
+            "job_workers": getattr(args, "job_workers", None),
             "allow_remote": args.allow_remote,
             "session_idle_seconds": getattr(args, "session_idle", None),
+            "redis_url": getattr(args, "redis", None),
         }.items()
         if v is not None
     }
@@ -116,8 +136,24 @@ def make_config(args: argparse.Namespace):
             where="--host",
         )
     if config.job_workers < 0:
-        raise InputError("must be 0 or more", where="--workers")
+        raise InputError("must be 0 or more", where="--job-workers")
     return config
+
+
+def node_processes(args: argparse.Namespace, config) -> int:
+    """How many node processes ``--workers`` asks for (checked)."""
+    n = getattr(args, "workers", None)
+    if n is None:
+        return (os.cpu_count() or 1) if config.redis_url else 1
+    if n < 1:
+        raise InputError("must be 1 or more", where="--workers")
+    if n > 1 and not config.redis_url:
+        raise InputError(
+            f"{n} node processes need a broker to share live sessions: add --redis URL (or "
+            "FACECAST_REDIS_URL), or run one process (batch job workers are --job-workers)",
+            where="--workers",
+        )
+    return n
 
 
 def lock_data_dir(data_dir: Path):
@@ -160,12 +196,31 @@ def run(args: argparse.Namespace) -> int:
 
     config = make_config(args)
     config.data_dir = config.data_dir.expanduser().resolve()
-    lock = lock_data_dir(config.data_dir)  # noqa: F841  (held until the process exits)
+    parent = getattr(args, "node_of", None)
+    workers = 1 if parent else node_processes(args, config)
+    if not parent:  # a --workers parent holds the lock for its node processes
+        lock = lock_data_dir(config.data_dir)  # noqa: F841  (held until the process exits)
     chosen = bool(config.admin_key)
-    key, generated = resolve_admin_key(config.admin_key, config.data_dir)
-    config.admin_key = key
     key_file = config.data_dir / "admin.key"
     page = f"http://{config.host}:{config.port}/"
+    if config.redis_url:  # a cluster node: Redis must answer now; the cluster's admin key
+        from ..cluster import bootstrap
+
+        key, source = bootstrap.admin_key(
+            bootstrap.connect(config.redis_url), config.admin_key, config.data_dir
+        )
+        generated = source == "generated"
+        if source == "cluster":
+            chosen = True
+            print("facecast: admin key: the cluster's (kept in its Redis)", flush=True)
+    else:
+        key, generated = resolve_admin_key(config.admin_key, config.data_dir)
+    config.admin_key = key
+    if parent:
+        from ..cluster.workers import serve_node
+
+        serve_node(create_app(config), config, args.log_level, MAX_WS_MESSAGE)
+        return 0
     if generated:  # shown this once; later starts only say where it is
         print(
             f"facecast: generated an admin key, kept in {key_file} (readable by you only); it is shown "
@@ -178,6 +233,15 @@ def run(args: argparse.Namespace) -> int:
             f"facecast: admin key in {key_file}; web viewer with admin rights: {page}#key=<that key>",
             flush=True,
         )
+    if workers > 1:
+        from ..cluster.workers import supervise
+
+        print(
+            f"facecast: serving on {page} with {workers} node processes (data in "
+            f"{config.data_dir}, {config.job_workers} job worker(s), backend {config.backend})",
+            flush=True,
+        )
+        return supervise(config, workers, args.log_level)
     app = create_app(config)
     print(
         f"facecast: serving on {page} (data in {config.data_dir}, "

@@ -105,3 +105,14 @@ class Outbox(Protocol):
     def say(self, text: str) -> None: ...
 
     def end(self, code: int, error_json: str) -> None: ...
+
+
+class Relay(Protocol):
+    """Where a session's frames and viewer texts also go: other nodes of a cluster
+    (``cluster.node``); called on the event loop, never blocks."""
+
+    def frame(self, seq: int, encoded: dict[str, tuple[Any, Any]]) -> None:
+        """A frame, per encoding ``(payload, websocket frame)``."""
+
+    def text(self, text: str) -> None:
+        """A JSON text for every viewer (status, stats)."""

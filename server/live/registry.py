@@ -10,6 +10,7 @@ import asyncio
 import logging
 import secrets
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -82,6 +83,8 @@ class SessionRegistry:
         self._creating = 0
         self.idle_seconds = idle_seconds
         self._reaper: asyncio.Task[None] | None = None
+        #: Cluster: told of every session closed here (``server/cluster``); None in one process.
+        self.on_close: Callable[[LiveSession], None] | None = None
 
     def batcher_for(self, animator: Any) -> DeformBatcher:
         """The one ``DeformBatcher`` of ``animator`` (sessions of the same face share it)."""
@@ -153,6 +156,24 @@ class SessionRegistry:
         finally:
             self._creating -= 1
 
+    async def restore(self, spec: SessionSpec, session: LiveSession | None = None) -> LiveSession:
+        """Cluster: open a session another node owned, from its ``spec``; ``session``: this node's
+        copy of it (a mirror with viewers), which from now on deforms its frames here."""
+        loop = asyncio.get_running_loop()
+        face, animator = await loop.run_in_executor(
+            self.executor, self._load, spec.face, spec.engine
+        )
+        if session is None:
+            session = LiveSession(spec, face, self.batcher_for(animator), self.metrics)
+        else:
+            session.deform_with(self.batcher_for(animator), None)
+        self.sessions[spec.id] = session
+        self._start_reaper()
+        if self.metrics:
+            self.metrics.sessions.set(len(self.sessions))
+        log.info("live session %s taken over: face %s, input %s", spec.id, spec.face, spec.input)
+        return session
+
     def _load(self, face_name: str, engine: str) -> tuple[Any, Any]:
         face = self.store.face(face_name)
         try:
@@ -210,6 +231,8 @@ class SessionRegistry:
     ) -> None:
         s = self.get(session_id)
         del self.sessions[session_id]
+        if self.on_close is not None:
+            self.on_close(s)
         in_use = {id(x.batcher.animator) for x in self.sessions.values()}
         for key in [
             k for k in self._batchers if k not in in_use

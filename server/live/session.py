@@ -24,6 +24,7 @@ import numpy as np
 from ...protocol.compact import KEY
 from ...protocol.messages import InputKind, Stats, Status, dump_message
 from ..state import FaceState
+from . import ports
 from .mixing import SessionMix
 from .ports import Deformer, DirectWriter, Outbox, ProducerSlot
 from .roles import Grants
@@ -190,6 +191,10 @@ class LiveSession:
         self.closed = False
         self._status_due = False
         self.last_active = time.monotonic()  # last time a peer was seen (``busy``); for idle expiry
+        #: Cluster (``server/cluster``): where frames and viewer texts also go (other nodes' viewers)
+        #: and the encodings those viewers want; None and empty in one process.
+        self.relay: ports.Relay | None = None
+        self.remote_encodings: frozenset[str] = frozenset()
 
     # -- state, read-only outside this class -------------------------------------------------------
     @property
@@ -346,19 +351,38 @@ class LiveSession:
         self.viewers.add(viewer)
         self._encodings[viewer.encoding] = self._encodings.get(viewer.encoding, 0) + 1
         if viewer.encoding == "compact":
-            if self.compact is None:
-                from ...protocol.compact import CompactEncoder
-
-                self.compact = CompactEncoder(
-                    self.face.vertices,
-                    self.face.rigid_group,
-                    tolerance=self.spec.tolerance / self.face.mm_per_unit,
-                    key_interval=max(1, int(0.25 * self.spec.fps)),
-                    key_seconds=0.25,
-                )
-            self.compact.request_key()  # the new viewer starts at the next frame
+            self._compact_encoder().request_key()  # the new viewer starts at the next frame
         if self.metrics:
             self.metrics.viewers.inc()
+
+    def _compact_encoder(self) -> Any:
+        """The session's ``CompactEncoder`` (made on first use)."""
+        if self.compact is None:
+            from ...protocol.compact import CompactEncoder
+
+            self.compact = CompactEncoder(
+                self.face.vertices,
+                self.face.rigid_group,
+                tolerance=self.spec.tolerance / self.face.mm_per_unit,
+                key_interval=max(1, int(0.25 * self.spec.fps)),
+                key_seconds=0.25,
+            )
+        return self.compact
+
+    def set_remote_encodings(self, encodings: frozenset[str], key: bool = False) -> None:
+        """Cluster: other nodes' viewers want ``encodings`` too (``key``: a new compact viewer
+        there needs a key frame). Each counts as one viewer of its encoding while wanted."""
+        for enc in self.remote_encodings - encodings:
+            left = self._encodings[enc] - 1
+            if left:
+                self._encodings[enc] = left
+            else:
+                del self._encodings[enc]
+        for enc in encodings - self.remote_encodings:
+            self._encodings[enc] = self._encodings.get(enc, 0) + 1
+        self.remote_encodings = encodings
+        if "compact" in encodings and (key or self.compact is None):
+            self._compact_encoder().request_key()
 
     def remove_viewer(self, viewer: Outbox) -> None:
         self.last_active = time.monotonic()
@@ -383,6 +407,8 @@ class LiveSession:
         )
         for v in self.viewers:
             v.say(text)
+        if self.relay is not None:
+            self.relay.text(text)
 
     def snapshot(self) -> Stats:
         n = self._stats["frames_deformed"]
@@ -464,12 +490,16 @@ class LiveSession:
             if self.metrics:
                 self.metrics.frames_dropped.inc(skipped)
         self.count_sent(sent_now)
+        if self.relay is not None:
+            self.relay.frame(self._in_flight, encoded)
         now = time.monotonic()
         if now - self._last_stats >= STATS_INTERVAL:
             self._last_stats = now
             text = dump_message(self.snapshot())
             for viewer in self.viewers:
                 viewer.say(text)
+            if self.relay is not None:
+                self.relay.text(text)
 
     def count_sent(self, n: int) -> None:
         """Add ``n`` sent frames to the Prometheus counter (the session's own count is per viewer)."""

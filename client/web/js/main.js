@@ -150,7 +150,9 @@ async function openProducer() {
     const s = await newSession('fap');
     await watch(s.id);
   }
-  if (!state.producer || state.producer.session !== state.session || !state.producer.open) {
+  // a producer that lost its connection reconnects by itself (producer.js): keep it meanwhile
+  const live = state.producer && (state.producer.open || state.producer.reconnecting);
+  if (!state.producer || state.producer.session !== state.session || !live) {
     await closed(state.producer);
     try { await api('DELETE', `/v1/sessions/${state.session}/demo${producerQuery(state.session)}`); } catch { /* no demo running */ }
     state.producer = new Producer(state.session, state.tokens[state.session].producer, setStatus);

@@ -1,0 +1,132 @@
+"""``facecast serve --redis URL --workers N``: N node processes on one machine, one port.
+
+The parent checks Redis and settles the admin key (``bootstrap``), holds the data directory's
+lock, and starts N children (``facecast serve --node-of <parent pid>``) with its settings in their
+environment. Each child is a full node (its own event loop, sessions and node id) that binds the
+same port with ``SO_REUSEPORT``: the kernel spreads incoming connections over them, WebSockets
+included, and a child that dies leaves the others serving (its sessions fail over to them). The
+parent forwards SIGTERM/SIGINT to the children and exits when they have all ended. Children end
+with the parent (``PR_SET_PDEATHSIG``: killed as the parent is), so ``kill -9`` of the parent is
+that of a whole machine: their sessions fail over to other nodes.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+#: Seconds node processes have to stop after SIGTERM before they are killed.
+STOP_SECONDS = 8.0
+
+#: Settings a child gets from its parent (flags become ``FACECAST_*`` variables).
+PASSED = (
+    "host",
+    "port",
+    "data_dir",
+    "face",
+    "backend",
+    "device",
+    "job_workers",
+    "redis_url",
+    "admin_key",
+    "allow_remote",
+    "session_idle_seconds",
+)
+
+
+def child_env(config: Any, index: int) -> dict[str, str]:
+    """The environment of node process ``index``: the parent's, with its settings. Batch job
+    workers run in the first node only (they share the data directory's job store)."""
+    env = dict(os.environ)
+    for name in PASSED:
+        value = getattr(config, name)
+        if name == "job_workers" and index > 0:
+            value = 0
+        if value is not None:
+            env[f"FACECAST_{name.upper()}"] = str(int(value) if isinstance(value, bool) else value)
+    return env
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+def supervise(config: Any, workers: int, log_level: str | None) -> int:
+    """Run ``workers`` node processes until they end (or SIGTERM/SIGINT ends them); exit status."""
+    cmd = [sys.executable, "-m", "facecast.server.cli", "serve", "--node-of", str(os.getpid())]
+    if log_level:
+        cmd += ["--log-level", log_level]
+    children = [
+        subprocess.Popen(cmd, env=child_env(config, i), preexec_fn=_die_with_parent)  # noqa: PLW1509
+        for i in range(workers)
+    ]
+    stopping = False
+
+    def stop(signum: int, frame: Any) -> None:
+        nonlocal stopping
+        stopping = True
+        for c in children:
+            if c.poll() is None:
+                c.send_signal(signal.SIGTERM)
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    status = 0
+    while any(c.poll() is None for c in children) and not stopping:
+        time.sleep(0.2)
+        for c in children:
+            if c.returncode not in (None, 0) and not stopping:
+                status = status or 1
+    deadline = time.monotonic() + STOP_SECONDS
+    for c in children:
+        try:
+            c.wait(max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            log.warning("node process %d did not stop in %g s; killing it", c.pid, STOP_SECONDS)
+            c.send_signal(signal.SIGUSR1)  # its stacks to the log first (faulthandler)
+            time.sleep(0.5)
+            c.kill()
+    return 0 if stopping else status
+
+
+def reuse_port_socket(host: str, port: int) -> socket.socket:
+    """A listening TCP socket on ``host:port`` that other processes may bind too (SO_REUSEPORT)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+    sock.bind((host, port))
+    sock.listen(2048)
+    sock.set_inheritable(True)
+    return sock
+
+
+def serve_node(app: Any, config: Any, log_level: str | None, ws_max_size: int) -> None:
+    """Serve ``app`` as one node process of a ``--workers`` parent, on the shared port."""
+    import faulthandler
+
+    import uvicorn
+
+    faulthandler.register(signal.SIGUSR1)  # stack traces of a stuck node process, on demand
+    uconfig = uvicorn.Config(
+        app,
+        ws_per_message_deflate=False,
+        log_level=log_level or "warning",
+        lifespan="on",
+        timeout_graceful_shutdown=5,
+        ws_max_size=ws_max_size,
+    )
+    uvicorn.Server(uconfig).run(sockets=[reuse_port_socket(config.host, config.port)])
