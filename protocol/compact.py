@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import struct
+import threading
 import zlib
 from dataclasses import dataclass
 from types import ModuleType
@@ -120,6 +121,38 @@ def _unzigzag_planes(raw: bytes, planes: int, n: int) -> np.ndarray:
     v: np.ndarray = u >> one
     v ^= -(u & one)  # two's complement negation of 0 or 1: all zeros or all ones
     return v.view(v.dtype.str.replace("u", "i"))
+
+
+_scratch = threading.local()
+
+
+def _scratch_buffers(n: int) -> dict[str, np.ndarray]:
+    """This thread's scratch arrays for frames of ``n`` vertices, shared by all its encoders: a
+    server encoding many sessions' frames on a few threads touches one set of them, which stays
+    in the CPU cache, instead of one set per session (about 2 MB each on the 25k-vertex head)."""
+    have: dict[int, dict[str, np.ndarray]] | None = getattr(_scratch, "by_n", None)
+    if have is None:
+        have = _scratch.by_n = {}
+    b = have.get(n)
+    if b is None:
+        if len(have) >= 4:  # a few faces per thread at most; drop the others
+            have.clear()
+        b = have[n] = {
+            "vt": np.ones((4, n), np.float32),  # homogeneous: rows x, y, z, 1
+            "local": np.empty((3, n), np.float32),
+            "fd": np.empty((3, n), np.float32),
+            "r": np.empty((3, n), np.int32),
+            "dd": np.empty((3, n), np.int32),
+            "dist": np.empty(n, np.float32),
+            "move": np.empty(n, bool),
+            "movef": np.empty(n, np.float32),
+            "i8": np.empty((3, n), np.int8),
+            "i16": np.empty((3, n), np.int16),
+            "s8": np.empty((3, n), np.int8),
+            "s16": np.empty((3, n), np.int16),
+            "s32": np.empty((3, n), np.int32),
+        }
+    return b
 
 
 #: A group in more runs of the vertex order than this is transformed over all vertices and kept
@@ -272,23 +305,7 @@ class CompactEncoder:
         self._base_f = self.base_t.astype(np.float32)  # cells < 2^23 are exact in float32
         self._plan = _GroupPlan.of(self.groups, self.n_groups)
         self._keep2 = np.float32((self.tolerance * (1 - self._margin) / self.step) ** 2)
-        n = len(self.rest)
-        self._buf = {
-            "vt": np.ones((4, n), np.float32),  # homogeneous: rows x, y, z, 1
-            "local": np.empty((3, n), np.float32),
-            "fd": np.empty((3, n), np.float32),
-            "r": np.empty((3, n), np.int32),
-            "dd": np.empty((3, n), np.int32),
-            "dist": np.empty(n, np.float32),
-            "move": np.empty(n, bool),
-            "i8": np.empty((3, n), np.int8),
-            "i16": np.empty((3, n), np.int16),
-            "s8": np.empty((3, n), np.int8),
-            "s16": np.empty((3, n), np.int16),
-            "s32": np.empty((3, n), np.int32),
-        }
-        self._key_q: np.ndarray | None = None
-        self._key_f: np.ndarray | None = None  # _key_q as float32
+        self._key_f: np.ndarray | None = None  # cells of the last key frame, as float32 (exact)
         self._key_seq = 0
         self._since_key = 0
         self._want_key = True
@@ -297,23 +314,24 @@ class CompactEncoder:
         """Make the next frame a key frame (a new viewer, or a viewer asked for one)."""
         self._want_key = True
 
-    def _local(self, v: np.ndarray, tr: np.ndarray) -> np.ndarray:
+    def _local(self, v: np.ndarray, tr: np.ndarray, b: dict[str, np.ndarray]) -> np.ndarray:
         """``(3, V) float32`` positions in their group's local frame, in grid steps (axis-major),
-        in a buffer reused from frame to frame (``_GroupPlan``, on homogeneous coordinates:
+        in the scratch buffers ``b`` (``_GroupPlan``, on homogeneous coordinates:
         ``vt``'s last row stays 1, so the translation comes with the matmul)."""
         m = np.empty((len(tr), 3, 4), np.float64)
         m[:, :, :3] = np.linalg.inv(tr[:, :, :3].astype(np.float64)) * (1.0 / self.step)
         m[:, :, 3:] = -np.matmul(m[:, :, :3], tr[:, :, 3:].astype(np.float64))
-        vt, out = self._buf["vt"], self._buf["local"]
+        vt, out = b["vt"], b["local"]
         np.copyto(vt[:3], v.T)
-        self._plan.apply(m.astype(np.float32), vt, out, self._buf["fd"])
+        self._plan.apply(m.astype(np.float32), vt, out, b["fd"])
         return out
 
-    def _zigzag(self, dd: np.ndarray) -> tuple[int, np.ndarray]:
+    @staticmethod
+    def _zigzag(dd: np.ndarray, b: dict[str, np.ndarray]) -> tuple[int, np.ndarray]:
         """``dd (3, V) int32`` -> (planes, raw): its zigzagged values ``(d << 1) ^ (d >> 31)``
         as ``planes`` byte planes, little end first. Small values (most frames) are zigzagged
-        in the narrowest integer type that holds them: fewer bytes through every pass."""
-        b = self._buf
+        in the narrowest integer type that holds them: fewer bytes through every pass
+        (``d + d`` for ``d << 1``: the same bits, and NumPy adds small integers faster)."""
         lo, hi = int(dd.min()), int(dd.max())
         top = max(2 * hi, -2 * lo - 1)  # largest zigzagged value
         planes = 1 if top < 1 << 8 else 2 if top < 1 << 16 else 3 if top < 1 << 24 else 4
@@ -325,7 +343,7 @@ class CompactEncoder:
         if d is not dd:
             np.copyto(d, dd, casting="unsafe")
         np.right_shift(d, bits, out=s)
-        np.left_shift(d, 1, out=d)
+        np.add(d, d, out=d)
         np.bitwise_xor(d, s, out=d)
         if planes == 1:
             return 1, d
@@ -358,8 +376,8 @@ class CompactEncoder:
             tr = np.ascontiguousarray(tr[:g])
             if not np.isfinite(tr).all() or np.any(np.abs(np.linalg.det(tr[:, :, :3]) - 1) > 1e-3):
                 raise ValueError("transforms must be finite rigid motions (det R = 1)")
-        b = self._buf
-        local = self._local(v, tr)
+        b = _scratch_buffers(len(v))
+        local = self._local(v, tr, b)
         lo, hi = local.min(initial=0), local.max(initial=0)
         if not (lo > 1 - _MAX_CELL and hi < _MAX_CELL - 1):  # also refuses NaN
             raise ValueError(
@@ -369,12 +387,12 @@ class CompactEncoder:
         is_key = (
             key
             or self._want_key
-            or self._key_q is None
+            or self._key_f is None
             or self._since_key + 1 >= self.key_interval
             or (self.key_seconds is not None and not 0 <= t - self._key_t < self.key_seconds)
         )
-        ref_q, ref_f = (self.base_t, self._base_f) if is_key else (self._key_q, self._key_f)
-        assert ref_q is not None and ref_f is not None  # the first frame is a key frame
+        ref_f = self._base_f if is_key else self._key_f
+        assert ref_f is not None  # the first frame is a key frame
         # fd = local - ref (in cells) serves twice: the reference cell is kept where it is within
         # the tolerance too (small motions cost nothing), elsewhere r = rint(fd), which equals
         # rint(local) - ref (the subtraction is exact: ref is an integer near local, Sterbenz).
@@ -383,18 +401,21 @@ class CompactEncoder:
         np.einsum("ij,ij->j", fd, fd, out=dist)  # squared distance, one pass
         move = np.greater(dist, self._keep2, out=b["move"])
         np.rint(fd, out=fd)
-        np.multiply(fd, move, out=r, casting="unsafe")  # 0 where kept; (3, V) int32, axis-major
+        movef = b["movef"]
+        np.copyto(movef, move)
+        np.multiply(fd, movef, out=fd)  # 0 where kept
+        np.copyto(r, fd, casting="unsafe")  # (3, V) int32, axis-major (float32 x bool -> int32
+        # in one ufunc call is several times slower: NumPy casts the bool operand in chunks)
         dd[:, 0] = r[:, 0]
         np.subtract(r[:, 1:], r[:, :-1], out=dd[:, 1:])
-        planes, raw = self._zigzag(dd)
+        planes, raw = self._zigzag(dd, b)
         # Z_RLE: runs and Huffman codes only; on these mostly-zero planes it is both smaller and
         # about twice as fast as the default LZ77 search (bench/compact_stream.py).
         zc = _deflate.compressobj(self.level, zlib.DEFLATED, 15, 9, self.strategy)
         z = zc.compress(raw) + zc.flush()
-        if is_key:
-            q = ref_q + r
-            self._key_q, self._key_seq, self._since_key, self._want_key = q, seq, 0, False
-            self._key_f = q.astype(np.float32)
+        if is_key:  # the decoder's q = base + r: cells < 2^23, exact in float32
+            self._key_f = np.add(self._base_f, r, dtype=np.float32)
+            self._key_seq, self._since_key, self._want_key = seq, 0, False
             self._key_t = float(t)
         else:
             self._since_key += 1
