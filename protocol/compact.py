@@ -310,20 +310,29 @@ class CompactEncoder:
         self._since_key = 0
         self._want_key = True
 
+    @property
+    def keep2(self) -> float:
+        """Squared distance (grid steps²) within which a vertex keeps its reference cell."""
+        return float(self._keep2)
+
     def request_key(self) -> None:
         """Make the next frame a key frame (a new viewer, or a viewer asked for one)."""
         self._want_key = True
 
-    def _local(self, v: np.ndarray, tr: np.ndarray, b: dict[str, np.ndarray]) -> np.ndarray:
-        """``(3, V) float32`` positions in their group's local frame, in grid steps (axis-major),
-        in the scratch buffers ``b`` (``_GroupPlan``, on homogeneous coordinates:
-        ``vt``'s last row stays 1, so the translation comes with the matmul)."""
+    def _matrices(self, tr: np.ndarray) -> np.ndarray:
+        """``(G, 3, 4) float32`` maps from world to each group's local frame in grid steps."""
         m = np.empty((len(tr), 3, 4), np.float64)
         m[:, :, :3] = np.linalg.inv(tr[:, :, :3].astype(np.float64)) * (1.0 / self.step)
         m[:, :, 3:] = -np.matmul(m[:, :, :3], tr[:, :, 3:].astype(np.float64))
+        return m.astype(np.float32)
+
+    def _local(self, v: np.ndarray, m: np.ndarray, b: dict[str, np.ndarray]) -> np.ndarray:
+        """``(3, V) float32`` positions in their group's local frame, in grid steps (axis-major),
+        in the scratch buffers ``b`` (``_GroupPlan``, on homogeneous coordinates:
+        ``vt``'s last row stays 1, so the translation comes with the matmul)."""
         vt, out = b["vt"], b["local"]
         np.copyto(vt[:3], v.T)
-        self._plan.apply(m.astype(np.float32), vt, out, b["fd"])
+        self._plan.apply(m, vt, out, b["fd"])
         return out
 
     @staticmethod
@@ -362,37 +371,14 @@ class CompactEncoder:
     ) -> bytes:
         """One frame: ``vertices (V, 3)`` face units, ``transforms (G, 3, 4)`` (None = identity)
         the rigid pose of each group (the better they match the motion the smaller the frame)."""
-        v = np.asarray(vertices, np.float32)
-        if v.shape != self.rest.shape:
-            raise ValueError(f"vertices must be {self.rest.shape}, got {v.shape}")
-        g = self.n_groups
-        if transforms is None:
-            tr = np.zeros((g, 3, 4), np.float32)
-            tr[:, :, :3] = np.eye(3, dtype=np.float32)
-        else:
-            tr = np.asarray(transforms, np.float32)
-            if tr.ndim != 3 or tr.shape[1:] != (3, 4) or tr.shape[0] < g:
-                raise ValueError(f"transforms must be ({g}, 3, 4), got {tr.shape}")
-            tr = np.ascontiguousarray(tr[:g])
-            if not np.isfinite(tr).all() or np.any(np.abs(np.linalg.det(tr[:, :, :3]) - 1) > 1e-3):
-                raise ValueError("transforms must be finite rigid motions (det R = 1)")
+        v, tr, m, is_key, ref_f = self.prepare(vertices, transforms, t=t, key=key)
         b = _scratch_buffers(len(v))
-        local = self._local(v, tr, b)
+        local = self._local(v, m, b)
         lo, hi = local.min(initial=0), local.max(initial=0)
         if not (lo > 1 - _MAX_CELL and hi < _MAX_CELL - 1):  # also refuses NaN
             raise ValueError(
                 "vertices must be finite and within 2^23 grid steps of their group's origin"
             )
-        seq = int(seq) & 0xFFFFFFFF
-        is_key = (
-            key
-            or self._want_key
-            or self._key_f is None
-            or self._since_key + 1 >= self.key_interval
-            or (self.key_seconds is not None and not 0 <= t - self._key_t < self.key_seconds)
-        )
-        ref_f = self._base_f if is_key else self._key_f
-        assert ref_f is not None  # the first frame is a key frame
         # fd = local - ref (in cells) serves twice: the reference cell is kept where it is within
         # the tolerance too (small motions cost nothing), elsewhere r = rint(fd), which equals
         # rint(local) - ref (the subtraction is exact: ref is an integer near local, Sterbenz).
@@ -409,20 +395,80 @@ class CompactEncoder:
         dd[:, 0] = r[:, 0]
         np.subtract(r[:, 1:], r[:, :-1], out=dd[:, 1:])
         planes, raw = self._zigzag(dd, b)
+        # the decoder's q = base + r: cells < 2^23, exact in float32
+        new_key = np.add(self._base_f, r, dtype=np.float32) if is_key else None
+        return self.finish(tr, is_key, planes, raw, new_key, seq=seq, t=t, wall=wall)
+
+    def prepare(
+        self,
+        vertices: np.ndarray,
+        transforms: np.ndarray | None = None,
+        *,
+        t: float,
+        key: bool = False,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool, np.ndarray]:
+        """The first half of ``encode`` (no change of state): checks the arguments and returns
+        ``(v (V, 3), tr (G, 3, 4), m (G, 3, 4), is_key, ref (3, V))``, all float32: the vertices,
+        the transforms, the maps from world to each group's cells, whether this frame is a key
+        frame and the reference cells its residuals are taken from (for other encoders of the
+        same stream, e.g. on an OpenCL device, which then call ``finish``)."""
+        v = np.asarray(vertices, np.float32)
+        if v.shape != self.rest.shape:
+            raise ValueError(f"vertices must be {self.rest.shape}, got {v.shape}")
+        g = self.n_groups
+        if transforms is None:
+            tr = np.zeros((g, 3, 4), np.float32)
+            tr[:, :, :3] = np.eye(3, dtype=np.float32)
+        else:
+            tr = np.asarray(transforms, np.float32)
+            if tr.ndim != 3 or tr.shape[1:] != (3, 4) or tr.shape[0] < g:
+                raise ValueError(f"transforms must be ({g}, 3, 4), got {tr.shape}")
+            tr = np.ascontiguousarray(tr[:g])
+            if not np.isfinite(tr).all() or np.any(np.abs(np.linalg.det(tr[:, :, :3]) - 1) > 1e-3):
+                raise ValueError("transforms must be finite rigid motions (det R = 1)")
+        is_key = (
+            key
+            or self._want_key
+            or self._key_f is None
+            or self._since_key + 1 >= self.key_interval
+            or (self.key_seconds is not None and not 0 <= t - self._key_t < self.key_seconds)
+        )
+        ref_f = self._base_f if is_key else self._key_f
+        assert ref_f is not None  # the first frame is a key frame
+        return v, tr, self._matrices(tr), is_key, ref_f
+
+    def finish(
+        self,
+        tr: np.ndarray,
+        is_key: bool,
+        planes: int,
+        raw: np.ndarray,
+        new_key: np.ndarray | None,
+        *,
+        seq: int,
+        t: float,
+        wall: float = 0.0,
+    ) -> bytes:
+        """The second half of ``encode``: the frame of ``prepare``'s ``tr`` and ``is_key`` with
+        ``raw``, its residuals' ``planes`` byte planes (C-contiguous ``uint8`` or ``int8``, ``3 V``
+        bytes each); a key frame's ``new_key (3, V) float32`` cells become the reference of the
+        deltas that follow (kept: the caller must not reuse it)."""
+        seq = int(seq) & 0xFFFFFFFF
         # Z_RLE: runs and Huffman codes only; on these mostly-zero planes it is both smaller and
         # about twice as fast as the default LZ77 search (bench/compact_stream.py).
         zc = _deflate.compressobj(self.level, zlib.DEFLATED, 15, 9, self.strategy)
         z = zc.compress(raw) + zc.flush()
-        if is_key:  # the decoder's q = base + r: cells < 2^23, exact in float32
-            self._key_f = np.add(self._base_f, r, dtype=np.float32)
+        if is_key:
+            assert new_key is not None
+            self._key_f = new_key
             self._key_seq, self._since_key, self._want_key = seq, 0, False
             self._key_t = float(t)
         else:
             self._since_key += 1
         hdr = _header(  # the one header packer (frames.py)
-            Kind.VERTICES_COMPACT, seq, len(v), float(t), float(wall), KEY if is_key else 0
+            Kind.VERTICES_COMPACT, seq, len(self.rest), float(t), float(wall), KEY if is_key else 0
         )
-        sub = _SUB.pack(self._key_seq, self.step, g, planes, 0, len(z))
+        sub = _SUB.pack(self._key_seq, self.step, len(tr), planes, 0, len(z))
         return b"".join((hdr, sub, tr.astype("<f4").tobytes(), z))
 
 

@@ -66,3 +66,135 @@ def test_interleaved_sessions_encode_as_alone(face, threads):
             out = dec.decode(data)
             assert out is not None
             assert np.linalg.norm(out[1].astype(np.float64) - v, axis=1).max() <= tol
+
+
+# -- residual planes on the OpenCL device (backends/opencl/compact.py) -------------------------
+
+
+@pytest.fixture(scope="module")
+def device():
+    cl_backend = pytest.importorskip("facecast.server.backends.opencl")
+    ctx = cl_backend.default_context()
+    if ctx is None:
+        pytest.skip("no working OpenCL device (install pocl-opencl-icd)")
+    from facecast.server.backends.opencl.compact import DeviceCompact
+
+    return DeviceCompact(ctx)
+
+
+def _fap_stream(face, data_dir) -> tuple[np.ndarray, np.ndarray]:
+    """The Xface joy FAP file rendered on ``face``: ``(T, V, 3)`` frames, ``(T, G, 3, 4)`` poses."""
+    from facecast.server.drivers import load_animation
+
+    anim = load_animation(data_dir / "xface" / "faps" / "joy.fap", face)
+    anim.states = anim.states[:40]
+    a = Animator(face, backend="numpy", control_vertices=anim.control_vertices)
+    _, tr = a.solve_batch(anim.states)
+    return np.asarray(a.render(anim), np.float32), tr
+
+
+def _device_vs_host(device, face, frames: np.ndarray, poses: np.ndarray, sessions: int = 3):
+    """Each of ``sessions`` sessions (the stream from another start) encoded by the device, a
+    batch per round, and by the host encoder: the same bytes, decoded within tolerance."""
+    from facecast.server.backends.opencl import aligned_empty
+    from facecast.server.backends.opencl.compact import encode_batch
+
+    tol = 0.1 / face.mm_per_unit
+    kw = {"tolerance": tol, "key_interval": 7}
+    host = [CompactEncoder(face.vertices, face.rigid_group, **kw) for _ in range(sessions)]
+    dev = [CompactEncoder(face.vertices, face.rigid_group, **kw) for _ in range(sessions)]
+    decs = [CompactDecoder(face.vertices, face.rigid_group) for _ in range(sessions)]
+    buf = aligned_empty((sessions,) + frames.shape[1:], np.float32)
+    n = len(frames)
+    for i in range(n):
+        idx = [(i + 5 * s) % n for s in range(sessions)]
+        buf[:] = frames[idx]
+        want = [host[s].encode(buf[s], poses[idx[s]], seq=i, t=i / 25) for s in range(sessions)]
+        got = encode_batch(
+            device, buf, [(dev[s], s, poses[idx[s]], i, i / 25, 0.0) for s in range(sessions)]
+        )
+        assert got == want, f"frame {i}"
+        for s in range(sessions):
+            out = decs[s].decode(want[s])
+            assert out is not None
+            err = np.linalg.norm(out[1].astype(np.float64) - buf[s], axis=1).max()
+            assert err <= tol
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("face_name", ["default:2k", "default"])
+def test_device_residuals_give_the_host_encoders_bytes_on_a_fap_stream(device, data_dir, face_name):
+    face = load_face(face_name)
+    frames, poses = _fap_stream(face, data_dir)
+    _device_vs_host(device, face, frames, poses)
+
+
+@pytest.mark.opencl
+def test_device_handles_odd_vertex_counts_large_motions_and_bad_frames(device, face):
+    from facecast.server.backends.opencl import aligned_empty
+    from facecast.server.backends.opencl.compact import encode_batch
+
+    frames, poses = _stream(face, 0, 12)
+    keep = len(face.vertices) - len(face.vertices) % 16 - 5  # a count that is not a multiple of 16
+    rest, groups = face.vertices[:keep], face.rigid_group[:keep]
+    frames = frames[:, :keep].copy()
+    frames[6:9, 100:300] += 50 * 0.1 / face.mm_per_unit * 2**10  # residuals over 16 bits
+    tol = 0.1 / face.mm_per_unit
+    host = CompactEncoder(rest, groups, tolerance=tol, key_interval=4)
+    dev = CompactEncoder(rest, groups, tolerance=tol, key_interval=4)
+    buf = aligned_empty((1, keep, 3), np.float32)
+    for i in range(len(frames)):
+        buf[0] = frames[i]
+        if i == 10:
+            buf[0, 7] = np.nan  # a bad frame: refused alone, the encoder's state kept
+        (got,) = encode_batch(device, buf, [(dev, 0, poses[i], i, i / 60, 0.0)])
+        try:
+            want: bytes | ValueError = host.encode(buf[0], poses[i], seq=i, t=i / 60)
+        except ValueError as e:
+            want = e
+        if isinstance(want, ValueError):
+            assert isinstance(got, ValueError) and str(got) == str(want)
+        else:
+            assert got == want, f"frame {i}"
+
+
+@pytest.mark.opencl
+def test_batcher_encodes_compact_frames_on_the_device_as_alone(device, face, monkeypatch):
+    from facecast.server.live import batcher as batcher_mod
+    from facecast.server.live.batcher import DeformBatcher, _Job
+    from facecast.server.live.settings import LiveSettings
+
+    animator = Animator(face, backend="opencl")
+    batcher = DeformBatcher(animator, None, settings=LiveSettings())  # type: ignore[arg-type]
+    if batcher.quantizer is None:
+        pytest.skip("the OpenCL deformer does not share host memory")
+    calls = []
+    real = batcher_mod._encode_compact_device
+    monkeypatch.setattr(
+        batcher_mod, "_encode_compact_device", lambda *a: calls.append(1) or real(*a)
+    )
+    tol = 0.1 / face.mm_per_unit
+    n_sessions, n = 3, 10
+
+    def encoder() -> CompactEncoder:
+        return CompactEncoder(face.vertices, face.rigid_group, tolerance=tol, key_interval=4)
+
+    live = [encoder() for _ in range(n_sessions)]
+    alone = [encoder() for _ in range(n_sessions)]
+    enc = frozenset({"compact", "i16"})
+    for i in range(n):
+        states = []
+        for s in range(n_sessions):
+            faps = zero_faps()
+            faps[3] = 300 + 300 * math.sin(2 * math.pi * (0.5 + 0.2 * s) * i / 60)
+            faps[48] = 2000 * math.sin(2 * math.pi * 0.3 * i / 60 + s)
+            states.append(FaceState(t=i / 60, faps=faps))
+        jobs = [_Job(st, i, 0.0, enc, None, None, live[s]) for s, st in enumerate(states)]  # type: ignore[arg-type]
+        results = batcher._work(jobs)
+        D, T = animator.solve_batch(states)
+        for s, (encoded, _) in enumerate(results):
+            payload, framed = encoded["compact"]
+            assert bytes(framed).endswith(bytes(payload))
+            want = np.asarray(animator.deformer.deform(D[s], T[s]), np.float32)
+            assert bytes(payload) == alone[s].encode(want, T[s], seq=i, t=i / 60)
+    assert len(calls) == n

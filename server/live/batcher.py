@@ -45,6 +45,9 @@ DEVICE_MIN_FRAMES = 2
 #: sessions at 60 fps may make batches of 1-2 frames, waiting could save CPU.
 COALESCE_FRAMES = 8
 ACTIVE_WINDOW = 0.1
+#: Compact frames of a batch of 2 or more on the device too, when the int16 quantiser runs there
+#: (``backends.opencl.compact``: the same bytes, one launch instead of a dozen NumPy passes each).
+DEVICE_COMPACT = True
 
 #: encoding -> (payload, websocket frame). The payload is a view into the frame's buffer: both
 #: are written once and then only read (the same bytes serve every viewer).
@@ -186,6 +189,33 @@ def _encode_compact(job: _Job, v: np.ndarray, T: Any) -> tuple[memoryview, bytea
         return None
     buf = bytearray(ws_binary_header(len(data)) + data)
     return memoryview(buf)[len(buf) - len(data) :], buf
+
+
+def _frame(job: _Job, data: bytes | ValueError) -> tuple[memoryview, bytearray] | None:
+    if isinstance(data, ValueError):  # this frame only (non-finite vertices); the next is a key
+        log.warning("compact encoding of frame %d failed: %s", job.seq, data)
+        job.compact.request_key()
+        return None
+    buf = bytearray(ws_binary_header(len(data)) + data)
+    return memoryview(buf)[len(buf) - len(data) :], buf
+
+
+def _encode_compact_device(
+    deformer: Any, verts: np.ndarray, todo: list[tuple[int, _Job]], T: Any
+) -> list[tuple[memoryview, bytearray] | None]:
+    """``_encode_compact`` of the ``todo`` frames (``(k, job)``: frame k of ``verts``, aligned),
+    their residual planes computed on the deformer's OpenCL device in one launch
+    (``backends.opencl.compact``: the same bytes); on the host where the device fails."""
+    from ..backends.opencl.compact import device_compact, encode_batch
+
+    device = device_compact(deformer)
+    if device is not None:
+        try:
+            frames = [(j.compact, k, T[k], j.seq, j.state.t, j.wall) for k, j in todo]
+            return [_frame(j, d) for (_, j), d in zip(todo, encode_batch(device, verts, frames))]
+        except Exception:  # the host encoder serves this batch
+            log.warning("compact encoding on the device failed", exc_info=True)
+    return [_encode_compact(j, verts[k], T[k]) for k, j in todo]
 
 
 class DeformBatcher:
@@ -408,7 +438,9 @@ class DeformBatcher:
             if jobs[i].compact is not None and "compact" in jobs[i].encodings
         ]
         pool = _compact_executor(self.settings.compact_pool_threads) if len(todo) > 1 else None
-        if pool is not None:
+        if len(todo) > 1 and quantizer is not None and DEVICE_COMPACT:
+            done = _encode_compact_device(a.deformer, verts, todo, T)
+        elif pool is not None:
             done = list(pool.map(lambda kj: _encode_compact(kj[1], verts[kj[0]], T[kj[0]]), todo))
         else:
             done = [_encode_compact(j, verts[k], T[k]) for k, j in todo]

@@ -1,0 +1,152 @@
+// Compact frames on the device (protocol/compact.py's CompactEncoder, bit for bit): for frame j of
+// a batch and vertex i, the position in its rigid group's local frame, in grid steps, as NumPy's
+// float32 matmul computes it (OpenBLAS: a fused multiply-add chain over x, y, z, then + t); its
+// offset from the reference cell; the reference kept where within the tolerance, else the rounded
+// offset r; r minus the previous vertex's r per axis, zigzagged, as the low two byte planes.
+// One work-item per unit of 16 vertices, as float16 vectors (PoCL's vectoriser made slow scalar
+// code of one work-item per vertex: 2-3x the NumPy encoder's CPU); it recomputes the previous
+// unit's last r (one vertex) instead of a second pass. Rounding by adding 1.5 * 2^23 (ties to
+// even, as rint; PoCL's vector rint is several times slower) is exact below 2^22 cells: a
+// larger offset is flagged as over 16 bits and the frame goes to the host encoder.
+#pragma OPENCL FP_CONTRACT OFF
+
+#define MAX_CELL 8388608.0f
+
+inline int3 cells(__global const float *v, __global const float *m, __global const float *ref,
+                  const uint nv, const uint i, const float keep2, int *bad)
+{
+    const float x = v[3 * i], y = v[3 * i + 1], z = v[3 * i + 2];
+    const float l0 = fma(m[2], z, fma(m[1], y, m[0] * x)) + m[3];
+    const float l1 = fma(m[6], z, fma(m[5], y, m[4] * x)) + m[7];
+    const float l2 = fma(m[10], z, fma(m[9], y, m[8] * x)) + m[11];
+    *bad = !(l0 > 1.0f - MAX_CELL && l0 < MAX_CELL - 1.0f && l1 > 1.0f - MAX_CELL &&
+             l1 < MAX_CELL - 1.0f && l2 > 1.0f - MAX_CELL && l2 < MAX_CELL - 1.0f);
+    const float f0 = l0 - ref[i], f1 = l1 - ref[nv + i], f2 = l2 - ref[2 * nv + i];
+    const float p0 = f0 * f0, p1 = f1 * f1, p2 = f2 * f2;
+    const float dist = (p0 + p1) + p2;
+    if (!(dist > keep2))
+        return (int3)(0);
+    return (int3)((int)rint(f0), (int)rint(f1), (int)rint(f2));  // scalar: the few odd vertices
+}
+
+// keep2s[j]: squared tolerance in cells of frame j's encoder; frame_of[j]: frame of verts
+// (T, nv, 3) that compact frame j encodes; mats (J, G, 12): its groups' (3, 4) float32 matrices
+// (world -> cells); refs (J, 3, nv): its reference cells; key[j]: write keys[j] (3, nv) = ref + r
+// (a key frame's cells); planes (J, 2, 3 nv): zigzag bytes 0 and 1; flags[j]: bit 0 a bad vertex
+// (not finite, or out of the grid), bit 1 a value over 16 bits (atomically or-ed by any work-item
+// that finds one; the host zeroes them first).
+
+#define MAGIC 12582912.0f
+#define ZZ(d) ((as_uint16(d) << 1) ^ as_uint16((d) >> 31))
+
+inline void put(__global uchar *p, const uint nv, const uint i, const uint3 u)
+{
+    p[i] = (uchar)u.x;
+    p[nv + i] = (uchar)u.y;
+    p[2 * nv + i] = (uchar)u.z;
+    p[3 * nv + i] = (uchar)(u.x >> 8);
+    p[4 * nv + i] = (uchar)(u.y >> 8);
+    p[5 * nv + i] = (uchar)(u.z >> 8);
+}
+
+// One work-group of WG work-items per frame; each work-item a contiguous run of units, in a loop
+// (as quantize.cl: PoCL's vectoriser widens straight-line code across work-items, which made
+// scatters of these vector loads and stores), the tail vertices by the last one.
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void compact_frames(const uint nv, const uint n_groups, __global const float *keep2s,
+                    __global const float *verts, __global const uint *frame_of,
+                    __global const uchar *groups, __global const float *mats,
+                    __global const float *refs, __global const uchar *key,
+                    __global float *keys, __global uchar *planes, volatile __global uint *flags)
+{
+    const uint l = get_local_id(0), j = get_group_id(1), units = nv / 16;
+    const uint per = (units + WG - 1) / WG, u0 = min(l * per, units), u1 = min(u0 + per, units);
+    __global const float *v = verts + (size_t)frame_of[j] * 3 * nv;
+    __global const float *ms = mats + (size_t)j * n_groups * 12;
+    __global const float *ref = refs + (size_t)j * 3 * nv;
+    __global uchar *p = planes + (size_t)j * 6 * nv;
+    __global float *kk = keys + (size_t)j * 3 * nv;
+    const float keep2 = keep2s[j];
+    const int is_key = key[j];
+    const float lim = MAX_CELL - 1.0f, big = 4194304.0f;
+    int bad;
+    int3 prev = (int3)(0);
+    if (u0)
+        prev = cells(v, ms + 12 * groups[16 * u0 - 1], ref, nv, 16 * u0 - 1, keep2, &bad);
+    int16 oks = (int16)(-1), huges = (int16)(0);
+    uint16 zs = (uint16)(0);
+    for (uint u = u0; u < u1; ++u) {
+        const uint i0 = 16 * u;
+        __global const float *w = v + 3 * i0;
+        const float16 a = vload16(0, w), b = vload16(1, w), c = vload16(2, w);
+        const float16 x = shuffle2(shuffle2(a, b, (uint16)(0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30, 0, 0, 0, 0, 0)), c,
+                                   (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 17, 20, 23, 26, 29));
+        const float16 y = shuffle2(shuffle2(a, b, (uint16)(1, 4, 7, 10, 13, 16, 19, 22, 25, 28, 31, 0, 0, 0, 0, 0)), c,
+                                   (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 18, 21, 24, 27, 30));
+        const float16 z = shuffle2(shuffle2(a, b, (uint16)(2, 5, 8, 11, 14, 17, 20, 23, 26, 29, 0, 0, 0, 0, 0, 0)), c,
+                                   (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 16, 19, 22, 25, 28, 31));
+        const uchar16 g = vload16(0, groups + i0);
+        float16 m[12];
+        if (all(g == (uchar16)(g.s0))) {
+            __global const float *mg = ms + 12 * g.s0;
+            for (int k = 0; k < 12; ++k)
+                m[k] = (float16)(mg[k]);
+        } else {  // a unit across groups: each lane its group's matrix
+            for (int k = 0; k < 12; ++k)
+                m[k] = (float16)(ms[12 * g.s0 + k], ms[12 * g.s1 + k], ms[12 * g.s2 + k],
+                                 ms[12 * g.s3 + k], ms[12 * g.s4 + k], ms[12 * g.s5 + k],
+                                 ms[12 * g.s6 + k], ms[12 * g.s7 + k], ms[12 * g.s8 + k],
+                                 ms[12 * g.s9 + k], ms[12 * g.sa + k], ms[12 * g.sb + k],
+                                 ms[12 * g.sc + k], ms[12 * g.sd + k], ms[12 * g.se + k],
+                                 ms[12 * g.sf + k]);
+        }
+        const float16 l0 = fma(m[2], z, fma(m[1], y, m[0] * x)) + m[3];
+        const float16 l1 = fma(m[6], z, fma(m[5], y, m[4] * x)) + m[7];
+        const float16 l2 = fma(m[10], z, fma(m[9], y, m[8] * x)) + m[11];
+        oks &= (l0 > -lim) & (l0 < lim) & (l1 > -lim) & (l1 < lim) & (l2 > -lim) & (l2 < lim);
+        const float16 r0 = vload16(0, ref + i0), r1 = vload16(0, ref + nv + i0),
+                      r2 = vload16(0, ref + 2 * nv + i0);
+        const float16 f0 = l0 - r0, f1 = l1 - r1, f2 = l2 - r2;
+        const float16 p0 = f0 * f0, p1 = f1 * f1, p2 = f2 * f2;
+        const int16 move = (p0 + p1) + p2 > (float16)(keep2);
+        huges |= move & ((fabs(f0) >= big) | (fabs(f1) >= big) | (fabs(f2) >= big));
+        const int16 q0 = (as_int16(f0 + MAGIC) - 0x4B400000) & move;
+        const int16 q1 = (as_int16(f1 + MAGIC) - 0x4B400000) & move;
+        const int16 q2 = (as_int16(f2 + MAGIC) - 0x4B400000) & move;
+        const int16 d0 = q0 - (int16)(prev.x, q0.s01234567, q0.s89ab, q0.scd, q0.se);
+        const int16 d1 = q1 - (int16)(prev.y, q1.s01234567, q1.s89ab, q1.scd, q1.se);
+        const int16 d2 = q2 - (int16)(prev.z, q2.s01234567, q2.s89ab, q2.scd, q2.se);
+        prev = (int3)(q0.sf, q1.sf, q2.sf);
+        const uint16 z0 = ZZ(d0), z1 = ZZ(d1), z2 = ZZ(d2);
+        zs |= z0 | z1 | z2;
+        vstore16(convert_uchar16(z0), 0, p + i0);
+        vstore16(convert_uchar16(z1), 0, p + nv + i0);
+        vstore16(convert_uchar16(z2), 0, p + 2 * nv + i0);
+        vstore16(convert_uchar16(z0 >> 8), 0, p + 3 * nv + i0);
+        vstore16(convert_uchar16(z1 >> 8), 0, p + 4 * nv + i0);
+        vstore16(convert_uchar16(z2 >> 8), 0, p + 5 * nv + i0);
+        if (is_key) {
+            vstore16(r0 + convert_float16(q0), 0, kk + i0);
+            vstore16(r1 + convert_float16(q1), 0, kk + nv + i0);
+            vstore16(r2 + convert_float16(q2), 0, kk + 2 * nv + i0);
+        }
+    }
+    uint flag = (any(~oks) ? 1u : 0u) | (any(huges) || any((zs >> 16) != 0) ? 2u : 0u);
+    if (l == WG - 1) {  // the last nv % 16 vertices, one by one
+        for (uint i = 16 * units; i < nv; ++i) {
+            const int3 r = cells(v, ms + 12 * groups[i], ref, nv, i, keep2, &bad);
+            const int3 d = r - prev;
+            const uint3 zz = (as_uint3(d) << 1) ^ as_uint3(d >> 31);
+            put(p, nv, i, zz);
+            flag |= (bad ? 1u : 0u) | (((zz.x | zz.y | zz.z) >> 16) ? 2u : 0u);
+            if (is_key) {
+                kk[i] = ref[i] + (float)r.x;
+                kk[nv + i] = ref[nv + i] + (float)r.y;
+                kk[2 * nv + i] = ref[2 * nv + i] + (float)r.z;
+            }
+            prev = r;
+        }
+    }
+    if (flag)
+        atomic_or(flags + j, flag);
+}
