@@ -155,6 +155,17 @@ def _scratch_buffers(n: int) -> dict[str, np.ndarray]:
     return b
 
 
+def world_to_cells(tr: np.ndarray, step: float | np.ndarray) -> np.ndarray:
+    """``(..., 3, 4) float32`` maps from world to the local frames of rigid transforms
+    ``tr (..., 3, 4)`` in grid steps of ``step`` (or of steps broadcast against ``tr``):
+    ``[R⁻¹ / step | −R⁻¹ t / step]``, in float64 and then rounded (a stack of many frames'
+    transforms gives each the bits it gets alone)."""
+    m = np.empty(tr.shape, np.float64)
+    m[..., :3] = np.linalg.inv(tr[..., :3].astype(np.float64)) * (1.0 / step)
+    m[..., 3:] = -np.matmul(m[..., :3], tr[..., 3:].astype(np.float64))
+    return m.astype(np.float32)
+
+
 #: A group in more runs of the vertex order than this is transformed over all vertices and kept
 #: where it belongs (one matmul and one masked copy: cheaper than gathering and scattering it).
 _MAX_RUNS = 8
@@ -321,10 +332,7 @@ class CompactEncoder:
 
     def _matrices(self, tr: np.ndarray) -> np.ndarray:
         """``(G, 3, 4) float32`` maps from world to each group's local frame in grid steps."""
-        m = np.empty((len(tr), 3, 4), np.float64)
-        m[:, :, :3] = np.linalg.inv(tr[:, :, :3].astype(np.float64)) * (1.0 / self.step)
-        m[:, :, 3:] = -np.matmul(m[:, :, :3], tr[:, :, 3:].astype(np.float64))
-        return m.astype(np.float32)
+        return world_to_cells(tr, self.step)
 
     def _local(self, v: np.ndarray, m: np.ndarray, b: dict[str, np.ndarray]) -> np.ndarray:
         """``(3, V) float32`` positions in their group's local frame, in grid steps (axis-major),
@@ -406,12 +414,15 @@ class CompactEncoder:
         *,
         t: float,
         key: bool = False,
+        matrices: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool, np.ndarray]:
         """The first half of ``encode`` (no change of state): checks the arguments and returns
         ``(v (V, 3), tr (G, 3, 4), m (G, 3, 4), is_key, ref (3, V))``, all float32: the vertices,
         the transforms, the maps from world to each group's cells, whether this frame is a key
         frame and the reference cells its residuals are taken from (for other encoders of the
-        same stream, e.g. on an OpenCL device, which then call ``finish``)."""
+        same stream, e.g. on an OpenCL device, which then call ``finish``). ``matrices=False``:
+        ``m`` is left out (empty), for a caller that computes many frames' at once
+        (``world_to_cells`` of their transforms, with ``step``)."""
         v = np.asarray(vertices, np.float32)
         if v.shape != self.rest.shape:
             raise ValueError(f"vertices must be {self.rest.shape}, got {v.shape}")
@@ -435,7 +446,8 @@ class CompactEncoder:
         )
         ref_f = self._base_f if is_key else self._key_f
         assert ref_f is not None  # the first frame is a key frame
-        return v, tr, self._matrices(tr), is_key, ref_f
+        m = self._matrices(tr) if matrices else np.empty((0, 3, 4), np.float32)
+        return v, tr, m, is_key, ref_f
 
     def finish(
         self,
