@@ -201,18 +201,24 @@ def _frame(job: _Job, data: bytes | ValueError) -> tuple[memoryview, bytearray] 
 
 
 def _encode_compact_device(
-    deformer: Any, verts: np.ndarray, todo: list[tuple[int, _Job]], T: Any
+    deformer: Any,
+    verts: np.ndarray,
+    todo: list[tuple[int, _Job]],
+    T: Any,
+    pool: Executor | None = None,
 ) -> list[tuple[memoryview, bytearray] | None]:
     """``_encode_compact`` of the ``todo`` frames (``(k, job)``: frame k of ``verts``, aligned),
     their residual planes computed on the deformer's OpenCL device in one launch
-    (``backends.opencl.compact``: the same bytes); on the host where the device fails."""
+    (``backends.opencl.compact``: the same bytes), deflated on ``pool``; on the host where the
+    device fails."""
     from ..backends.opencl.compact import device_compact, encode_batch
 
     device = device_compact(deformer)
     if device is not None:
         try:
             frames = [(j.compact, k, T[k], j.seq, j.state.t, j.wall) for k, j in todo]
-            return [_frame(j, d) for (_, j), d in zip(todo, encode_batch(device, verts, frames))]
+            encoded = encode_batch(device, verts, frames, pool)
+            return [_frame(j, d) for (_, j), d in zip(todo, encoded)]
         except Exception:  # the host encoder serves this batch
             log.warning("compact encoding on the device failed", exc_info=True)
     return [_encode_compact(j, verts[k], T[k]) for k, j in todo]
@@ -439,7 +445,7 @@ class DeformBatcher:
         ]
         pool = _compact_executor(self.settings.compact_pool_threads) if len(todo) > 1 else None
         if len(todo) > 1 and quantizer is not None and DEVICE_COMPACT:
-            done = _encode_compact_device(a.deformer, verts, todo, T)
+            done = _encode_compact_device(a.deformer, verts, todo, T, pool)
         elif pool is not None:
             done = list(pool.map(lambda kj: _encode_compact(kj[1], verts[kj[0]], T[kj[0]]), todo))
         else:

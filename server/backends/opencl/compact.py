@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from concurrent.futures import Executor
 from typing import Any, Protocol
 
 import numpy as np
@@ -183,11 +184,13 @@ def encode_batch(
     device: DeviceCompact,
     verts: np.ndarray,
     frames: list[tuple[Encoder, int, np.ndarray, int, float, float]],
+    pool: Executor | None = None,
 ) -> list[bytes | ValueError]:
     """Compact frames of ``verts (T, V, 3)`` (aligned, as ``DeviceCompact.residuals`` wants):
     ``frames[j] = (encoder, frame index, transforms (G, 3, 4), seq, t, wall)``, one frame per
     encoder, encoders of one face. Returns each frame's bytes (``encoder.encode``'s) or the
-    ``ValueError`` its encoder raised (the encoder's state then stays as it was)."""
+    ``ValueError`` its encoder raised (the encoder's state then stays as it was). With a
+    ``pool``, the frames are deflated on its threads (outside the GIL) at once."""
     out: list[bytes | ValueError] = [ValueError()] * len(frames)
     todo: list[int] = []
     preps: list[tuple[np.ndarray, np.ndarray, np.ndarray, bool, np.ndarray]] = []
@@ -212,18 +215,25 @@ def encode_batch(
         [p[3] for p in preps],
         [frames[j][0].keep2 for j in todo],
     )
-    for n, (j, p) in enumerate(zip(todo, preps)):
-        enc, f, T, seq, t, wall = frames[j]
+
+    def finish(n: int) -> bytes | ValueError:
+        enc, f, T, seq, t, wall = frames[todo[n]]
+        _, tr, _, is_key, _ = preps[n]
         try:
             if flags[n]:  # a bad vertex (the encoder says which) or large residuals: on the host
-                out[j] = enc.encode(verts[f], T, seq=seq, t=t, wall=wall)
-                continue
+                return enc.encode(verts[f], T, seq=seq, t=t, wall=wall)
             two = bool(planes[n, 1].any())
             raw = planes[n] if two else planes[n, 0]
-            key = new_keys[n].copy() if p[3] and new_keys is not None else None
-            out[j] = enc.finish(p[1], p[3], 2 if two else 1, raw, key, seq=seq, t=t, wall=wall)
+            key = new_keys[n].copy() if is_key and new_keys is not None else None
+            return enc.finish(tr, is_key, 2 if two else 1, raw, key, seq=seq, t=t, wall=wall)
         except ValueError as e:
-            out[j] = e
+            return e
+
+    n = range(len(todo))
+    for j, r in zip(
+        todo, pool.map(finish, n) if pool is not None and len(n) > 1 else map(finish, n)
+    ):
+        out[j] = r
     return out
 
 
