@@ -22,7 +22,9 @@ decoded error (mm, over every vertex of every frame; compact's decoder only), an
 frame on one thread (``time.thread_time``): encoding (for alternatives, their entropy stage next
 to compact's zlib stage) and decoding in Python; compact.js's decoding under Node (V8) and in
 headless Chromium (the page's engine: wall time per frame and the renderer's CPU per frame, see
-``chromium_decode_ms``). Keys every 250 ms of the stream's fps. ``--baseline REF``: compact.py and
+``chromium_decode_ms``); and, as the live server encodes a batch of sessions, process CPU per frame
+of 8 sessions by the NumPy encoder and with the residual planes on the OpenCL device
+(``batch_encode_ms``; the device's bytes must equal the NumPy encoder's). Keys every 250 ms of the stream's fps. ``--baseline REF``: compact.py and
 compact.js of commit REF too, stream by stream in the same run (a before/after table). The
 machine's load average goes into the JSON: the times are CPU times but contend for caches with
 other work. Writes ``bench/out/compact_stream.json`` and prints markdown tables.
@@ -172,11 +174,66 @@ def measure(
             "entropy_dec_ms": (t2 - t1) / n * 1e3,
         }
     del zl
+    res["compact"]["batch"] = batch_encode_ms(face, fps, frames, transforms, tol, key, main)
     res["compact"]["js_dec"] = js_decode_ms(face, main)
     res["compact"]["chromium_dec"] = chromium_decode_ms(face, main)
     if base is not None:
         res["compact-base"]["chromium_dec"] = chromium_decode_ms(face, main, base.js)
     return res
+
+
+#: Sessions encoded together in ``batch_encode_ms`` (as a server's batch of busy sessions).
+BATCH = 8
+
+
+def batch_encode_ms(face, fps, frames, transforms, tol, key, wire) -> dict | None:
+    """Process CPU per frame (all threads: PoCL's too) of ``BATCH`` sessions of the stream (each
+    from another start) encoded a batch at a time as the live server does: by the NumPy encoder
+    (``host_cpu_ms``), and with the residual planes on the OpenCL device
+    (``backends.opencl.compact``, ``device_cpu_ms``); ``same_bytes``: the device's frames of the
+    first session equal ``wire``, the host encoder's. None without an OpenCL device."""
+    try:
+        from facecast.server.backends.opencl import aligned_empty, default_context
+        from facecast.server.backends.opencl.compact import DeviceCompact, encode_batch
+    except ImportError:
+        return None
+    ctx = default_context()
+    if ctx is None:
+        return None
+    from facecast.protocol.compact import CompactEncoder
+
+    device = DeviceCompact(ctx)
+    n = len(frames)
+
+    def encoders():
+        return [
+            CompactEncoder(face.vertices, face.rigid_group, tolerance=tol, key_interval=key)
+            for _ in range(BATCH)
+        ]
+
+    buf = aligned_empty((BATCH,) + frames.shape[1:], np.float32)
+    starts = [(s * n) // BATCH for s in range(BATCH)]
+    host, dev, first = encoders(), encoders(), []
+    host_s = dev_s = 0.0
+    for i in range(n):
+        idx = [(i + a) % n for a in starts]
+        buf[:] = frames[idx]
+        t0 = time.process_time()
+        for s, e in enumerate(host):
+            e.encode(buf[s], transforms[idx[s]], seq=i, t=i / fps)
+        t1 = time.process_time()
+        out = encode_batch(
+            device, buf, [(e, s, transforms[idx[s]], i, i / fps, 0.0) for s, e in enumerate(dev)]
+        )
+        dev_s += time.process_time() - t1
+        host_s += t1 - t0
+        first.append(out[0])
+    return {
+        "sessions": BATCH,
+        "host_cpu_ms": host_s / n / BATCH * 1e3,
+        "device_cpu_ms": dev_s / n / BATCH * 1e3,
+        "same_bytes": first == wire,
+    }
 
 
 @dataclass
@@ -403,6 +460,11 @@ def main(argv: list[str]) -> int:
     if js:
         summary["compact"]["js_dec_cpu_ms_mean"] = float(np.mean([j["cpu_ms"] for j in js]))
         summary["compact"]["js_dec_wall_ms_mean"] = float(np.mean([j["wall_ms"] for j in js]))
+    bt = [r["compact"]["batch"] for r in rows if r["compact"].get("batch")]
+    if bt:
+        for k in ("host_cpu_ms", "device_cpu_ms"):
+            summary["compact"][f"batch_{k}_mean"] = float(np.mean([b[k] for b in bt]))
+        summary["compact"]["batch_same_bytes"] = all(b["same_bytes"] for b in bt)
     for c in ("compact", "zstd-3", "zstd-9"):
         summary[c]["entropy_ms_mean"] = float(np.mean([r[c]["entropy_ms"] for r in rows]))
     result = {
@@ -440,6 +502,13 @@ def main(argv: list[str]) -> int:
         + f" | {s['compact']['max_err_mm']:.4f} | {s['compact']['enc_ms_mean']:.2f}"
         + f" | {s['compact']['dec_ms_mean']:.2f} |"
     )
+    if "batch_host_cpu_ms_mean" in s["compact"]:
+        print(
+            f"\ncompact encoding, {BATCH} sessions a batch (process CPU per frame, mean over "
+            f"streams): NumPy {s['compact']['batch_host_cpu_ms_mean']:.3f} ms, residuals on the "
+            f"OpenCL device {s['compact']['batch_device_cpu_ms_mean']:.3f} ms; same bytes: "
+            f"{s['compact']['batch_same_bytes']}"
+        )
     if "js_dec_cpu_ms_mean" in s["compact"]:
         print(
             f"\ncompact.js decode under Node: {s['compact']['js_dec_cpu_ms_mean']:.2f} ms CPU, "
@@ -479,7 +548,8 @@ def main(argv: list[str]) -> int:
         "\nbytes per vertex per frame; entropy stage ms/frame (same residuals): "
         + ", ".join(f"{c} {s[c]['entropy_ms_mean']:.2f}" for c in ("compact", "zstd-3", "zstd-9"))
     )
-    return 0 if s["compact"]["all_within_tolerance"] else 1
+    ok = s["compact"]["all_within_tolerance"] and s["compact"].get("batch_same_bytes", True)
+    return 0 if ok else 1
 
 
 if __name__ == "__main__":
