@@ -93,9 +93,30 @@ def _fap_stream(face, data_dir) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(a.render(anim), np.float32), tr
 
 
+def _blas_fuses() -> bool:
+    """Whether NumPy's float32 matmul rounds as the device kernel does (OpenBLAS on x86-64 with
+    FMA: a fused multiply-add chain); elsewhere the device's frames are as valid but may differ
+    from the host encoder's in a rounding tie, so only their decoded error is checked."""
+    rng = np.random.default_rng(5)
+    m = (rng.standard_normal((3, 4)) * 400).astype(np.float32)
+    vt = np.ones((4, 4096), np.float32)
+    vt[:3] = rng.standard_normal((3, 4096)) * 0.1
+    got = np.matmul(m, vt)
+    a, b = m.astype(np.float64), vt.astype(np.float64)
+
+    def fma(x, y, z):  # exact product and sum in float64, one rounding (a double rounding is rare)
+        return (x * y + z).astype(np.float32).astype(np.float64)
+
+    c = fma(a[:, 1:2], b[1], (a[:, 0:1] * b[0]).astype(np.float32).astype(np.float64))
+    c = fma(a[:, 3:4], b[3], fma(a[:, 2:3], b[2], c))
+    return bool((c.astype(np.float32) == got).all())
+
+
 def _device_vs_host(device, face, frames: np.ndarray, poses: np.ndarray, sessions: int = 3):
     """Each of ``sessions`` sessions (the stream from another start) encoded by the device, a
-    batch per round, and by the host encoder: the same bytes, decoded within tolerance."""
+    batch per round, and by the host encoder: the same bytes (where the BLAS rounds as the
+    device does), decoded within tolerance."""
+    exact = _blas_fuses()
     from facecast.server.backends.opencl import aligned_empty
     from facecast.server.backends.opencl.compact import encode_batch
 
@@ -113,9 +134,10 @@ def _device_vs_host(device, face, frames: np.ndarray, poses: np.ndarray, session
         got = encode_batch(
             device, buf, [(dev[s], s, poses[idx[s]], i, i / 25, 0.0) for s in range(sessions)]
         )
-        assert got == want, f"frame {i}"
+        if exact:
+            assert got == want, f"frame {i}"
         for s in range(sessions):
-            out = decs[s].decode(want[s])
+            out = decs[s].decode(got[s])
             assert out is not None
             err = np.linalg.norm(out[1].astype(np.float64) - buf[s], axis=1).max()
             assert err <= tol
@@ -134,6 +156,8 @@ def test_device_handles_odd_vertex_counts_large_motions_and_bad_frames(device, f
     from facecast.server.backends.opencl import aligned_empty
     from facecast.server.backends.opencl.compact import encode_batch
 
+    if not _blas_fuses():
+        pytest.skip("NumPy's matmul rounds otherwise here: the bytes may differ in a tie")
     frames, poses = _stream(face, 0, 12)
     keep = len(face.vertices) - len(face.vertices) % 16 - 5  # a count that is not a multiple of 16
     rest, groups = face.vertices[:keep], face.rigid_group[:keep]
@@ -164,6 +188,8 @@ def test_batcher_encodes_compact_frames_on_the_device_as_alone(device, face, mon
     from facecast.server.live.batcher import DeformBatcher, _Job
     from facecast.server.live.settings import LiveSettings
 
+    if not _blas_fuses():
+        pytest.skip("NumPy's matmul rounds otherwise here: the bytes may differ in a tie")
     animator = Animator(face, backend="opencl")
     batcher = DeformBatcher(animator, None, settings=LiveSettings())  # type: ignore[arg-type]
     if batcher.quantizer is None:
