@@ -7,7 +7,8 @@ them together (``Animator.solve_batch``, vectorised), deforms them with one ``de
 25k-vertex head) and writes each frame once, already framed for WebSocket, into one buffer per
 batch. On a host-memory OpenCL device the int16 quantisation of batches of 2 frames or more runs
 on the device too (``quantize_cl``), outside the GIL; elsewhere in NumPy
-(``quantize.quantize_int16``).
+(``quantize.quantize_int16``). There too, the residual planes of a batch's ``compact`` frames are
+computed in one launch (``backends.opencl.compact``); deflate runs on the compact threads.
 The callbacks then run on their event loop, all of a batch in one wake-up. Under light load a
 batch holds one frame and adds no delay; under heavy load batches grow by themselves.
 """

@@ -4,6 +4,7 @@
 - ``packing``: an ``Operator`` in the deform kernel's format (``pack_operator``; pure NumPy);
 - ``kernels``: the kernels' OpenCL C (the generated deform kernel, ``*.cl`` files) and building it;
 - ``quantize``: ``DeviceQuantizer``, int16 wire frames on the device, bit for bit the host's;
+- ``compact``: ``DeviceCompact``, a batch's compact residual planes on the device (the host's bytes);
 - ``host``: aligned host arrays the device reads and writes in place.
 
 Device selection is ``..select``'s (``default_context``).
