@@ -25,9 +25,9 @@ headless Chromium (the page's engine: wall time per frame and the renderer's CPU
 ``chromium_decode_ms``); and, as the live server encodes a batch of sessions, process CPU per frame
 of 8 sessions by the NumPy encoder and with the residual planes on the OpenCL device
 (``batch_encode_ms``; the device's bytes must equal the NumPy encoder's). Keys every 250 ms of
-the stream's fps. ``--baseline REF``: compact.py and compact.js of commit REF too, stream by stream in the same run (a before/after table). The
-machine's load average goes into the JSON: the times are CPU times but contend for caches with
-other work. Writes ``bench/out/compact_stream.json`` and prints markdown tables.
+the stream's fps. ``--baseline REF``: compact.py and compact.js of commit REF too, stream by
+stream in the same run (a before/after table). The machine's load average goes into the JSON: the
+times are CPU times but contend for caches with other work. Writes ``bench/out/compact_stream.json`` and prints markdown tables.
 """
 
 from __future__ import annotations
