@@ -27,7 +27,8 @@ of 8 sessions by the NumPy encoder and with the residual planes on the OpenCL de
 (``batch_encode_ms``; the device's bytes must equal the NumPy encoder's). Keys every 250 ms of
 the stream's fps. ``--baseline REF``: compact.py and compact.js of commit REF too, stream by
 stream in the same run (a before/after table). The machine's load average goes into the JSON: the
-times are CPU times but contend for caches with other work. Writes ``bench/out/compact_stream.json`` and prints markdown tables.
+times are CPU times but contend for caches with other work. Writes ``bench/out/compact_stream.json``
+and prints markdown tables.
 """
 
 from __future__ import annotations
