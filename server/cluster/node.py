@@ -13,6 +13,7 @@ restarted empty). ``docs/CLUSTER.md`` has the design.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import math
 import os
@@ -28,11 +29,11 @@ from ...protocol.encoding import VERTEX_ENCODINGS
 from ...protocol.errors import CloseCode
 from ...protocol.messages import SessionInfo, Stats
 from .. import errors
-from ..live.core import error_json
+from ..live.core import authorise, error_json
 from ..live.registry import SessionRegistry
 from ..live.session import LiveSession
 from . import envelope, keys, leases
-from .inbound import RemoteProducer, close_body
+from .inbound import RemoteProducer, close_body, close_reply
 from .mirror import MirrorSession
 from .publisher import Publisher
 from .records import ClusterView, NodeRecord, NodeView, SessionRecord
@@ -530,8 +531,9 @@ class Cluster:
         body = {"node": self.id, "encodings": sorted(m.encodings()), "key": key}
         self.publisher.put(keys.up(m.spec.id), envelope.with_json(envelope.WANT, body))
 
-    async def forward_open(self, sid: str) -> Forward | None:
-        """Start forwarding a producer of ``sid`` to its owner; None when no owner listens."""
+    async def forward_open(self, sid: str, token: str | None) -> Forward | None:
+        """Start forwarding a producer of ``sid`` (its ``token``) to the owner, which authorises
+        it; None when no owner listens."""
         from redis.exceptions import RedisError
 
         self.require()
@@ -541,7 +543,8 @@ class Cluster:
             if owner is None or owner == self.id:
                 return None
             fwd = self.forwards[conn] = Forward(conn, sid, owner)
-            opened = envelope.producer(conn, envelope.OPEN, self.id.encode())
+            body = json.dumps({"node": self.id, "token": token}).encode()
+            opened = envelope.producer(conn, envelope.OPEN, body)
             if await self.redis.publish(keys.up(sid), opened) == 0:
                 del self.forwards[conn]
                 return None
@@ -629,11 +632,18 @@ class Cluster:
         if kind == envelope.PRODUCER:
             conn, k, body = envelope.parse_conn(data)
             if k == envelope.OPEN:
-                node = body.decode("ascii")
+                opened = json.loads(body)
+                node, token = str(opened["node"]), opened.get("token")
                 inbox = keys.inbox(node)
-                p = RemoteProducer(
-                    self.reg, o.session, conn, node, lambda b: self.publisher.put(inbox, b)
+                send = lambda b: self.publisher.put(inbox, b)  # noqa: E731
+                spec = o.session.spec
+                refusal = authorise(
+                    sid, True, token, spec.producer_token, spec.viewer_token, "producer"
                 )
+                if refusal is not None:
+                    send(envelope.reply(conn, envelope.R_CLOSE, close_reply(refusal)))
+                    return
+                p = RemoteProducer(self.reg, o.session, conn, node, send)
                 if p.start():
                     o.producers[conn] = p
             else:
