@@ -585,6 +585,12 @@ def test_a_mirror_never_lets_a_delta_through_against_another_owners_key():
     m.receive(new(5, 2))
     assert len(out.got) == n_old + 2
     shapes = [old_shapes] * n_old + [new_shapes] * 2
+    # the owner's producer shows in this node's viewers' hellos; taken over, the slot is free
+    status = b'S{"type":"status","producer_connected":true,"viewers":1}'
+    m.receive(status)
+    assert m.producer is not None and not m.claim(object())  # type: ignore[arg-type]
+    m.promote()
+    assert m.producer is None and m.owned
     dec = CompactDecoder(face.vertices, face.rigid_group)
     for payload, source in zip(out.got, shapes):
         got = dec.decode(payload)

@@ -453,7 +453,7 @@ class Cluster:
             rec = SessionRecord.model_validate_json(raw)
             mirror = self.mirrors.pop(sid, None)
             if mirror is not None:
-                mirror.owned = True
+                mirror.promote()
                 await self._unsubscribe(keys.down(sid))
             session = await self.reg.restore(rec.spec(), mirror)
             session.seq = (epoch << 20) & 0xFFFFFFFF  # never a seq an old owner's key frame had
@@ -653,8 +653,11 @@ class Cluster:
         elif kind == envelope.WANT:
             w = envelope.parse_json(data)
             encs = frozenset(e for e in w.get("encodings", ()) if e in VERTEX_ENCODINGS)
+            new = str(w["node"]) not in o.wants
             o.wants[str(w["node"])] = (encs, time.monotonic() + keys.WANT_SECONDS)
             self._update_wants(o, bool(w.get("key")))
+            if new:  # a node's first viewers: tell them whether a producer is connected
+                o.session.broadcast_status()
         elif kind == envelope.CLOSE:
             reason = str(envelope.parse_json(data).get("reason") or "the session was closed")
             self._spawn(self.reg.close(sid, reason))
