@@ -146,6 +146,7 @@ class Cluster:
         self._last_beat = 0.0
         self._last_retry_log = 0.0
         self._stopping = False
+        self._orphaned: list[Forward] = []  # forwards closed while Redis was unreachable
         registry.on_close = self._closed
 
     # -- life ---------------------------------------------------------------------------------------
@@ -228,6 +229,9 @@ class Cluster:
             log.warning("cluster: Redis is back; node %s rejoined", self.id)
         for m in self.mirrors.values():
             self._wants(m, True)
+        for fwd in self._orphaned:  # closed while Redis was away: free their producer slots
+            self.forward(fwd, envelope.P_GONE)
+        self._orphaned.clear()
 
     def _down(self, exc: BaseException) -> None:
         """Redis failed: keep serving local viewers, refuse new sessions, reconnect later."""
@@ -240,6 +244,11 @@ class Cluster:
         log.warning("cluster: lost Redis (%s); reconnecting", exc)
         for fwd in list(self.forwards.values()):
             fwd.lose()
+            self._orphaned.append(fwd)  # its owner hears it is gone once Redis is back
+        for o in self.owned.values():  # producers on other nodes: those nodes close them too
+            for p in o.producers.values():
+                p.stop()
+            o.producers.clear()
         ps, self._pubsub = self._pubsub, None  # this one, not the next connection's
         self._spawn(self._close(ps))
 
