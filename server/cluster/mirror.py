@@ -17,6 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 from ...protocol.compact import KEY
+from ...protocol.messages import Status, parse_message
 from ..live.session import FLAGS_BYTE, LiveSession, SessionSpec, Viewer
 from ..state import FaceState
 from . import envelope
@@ -42,6 +43,18 @@ class _NoDeformer:
         raise RuntimeError("a mirror session does not deform; its owner node does")
 
 
+class _ProducerElsewhere:
+    """The producer slot of a mirror while the owner says a producer is connected."""
+
+    remote = False  # it keeps the owner's session in use, not this copy
+
+    async def end(self, code: int, error_json: str) -> None:
+        return None
+
+
+_THERE = _ProducerElsewhere()
+
+
 class MirrorSession(LiveSession):
     """Viewers on this node of a session another node owns.
 
@@ -62,6 +75,13 @@ class MirrorSession(LiveSession):
         self.need_key = True  # compact: no key frame of the current owner yet
         self.frames_relayed = 0
         self.quiet_since = time.monotonic()
+
+    def promote(self) -> None:
+        """This node takes the session over: from now on its frames are deformed here, and the
+        producer slot is free for the producer that reconnects."""
+        self.owned = True
+        if self._producer is _THERE:
+            self._producer = None
 
     def encodings(self) -> frozenset[str]:
         return frozenset(v.encoding for v in self.viewers)
@@ -90,6 +110,10 @@ class MirrorSession(LiveSession):
             self.deliver(envelope.parse_frame(data))
         elif kind == envelope.TEXT:
             text = data[1:].decode("utf-8", "replace")
+            if text.startswith('{"type":"status"'):  # the owner's producer, for viewers' hellos
+                status = parse_message(text)
+                if isinstance(status, Status):
+                    self._producer = _THERE if status.producer_connected else None
             for v in self.viewers:
                 v.say(text)
         elif kind == envelope.OWNER:
