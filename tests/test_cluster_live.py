@@ -21,6 +21,7 @@ from conftest import RunningServer, run
 
 from facecast.client.api import LiveError, SessionAdmin, produce, stream_fap, watch
 from facecast.protocol import frames
+from facecast.protocol.messages import ProducerHello
 from facecast.protocol.fap_file import read_fap
 from facecast.server.harness import RedisServer, free_port
 
@@ -273,7 +274,8 @@ def test_several_node_processes_need_redis(tmp_path):
 
 
 def test_refusals_on_a_node_that_does_not_own_the_session(cluster):
-    """Tokens are checked from the shared record; a second producer is refused by the owner."""
+    """Tokens are checked from the shared record (scoped ones by the owner, which minted them); a
+    second producer is refused by the owner."""
     from facecast.protocol.errors import CloseCode
 
     _, (a, b, c) = cluster
@@ -297,6 +299,13 @@ def test_refusals_on_a_node_that_does_not_own_the_session(cluster):
         }
         async with produce(b.url, s.id, s.producer_token):
             codes["second producer"] = await refused(produce(c.url, s.id, s.producer_token))
+        async with SessionAdmin(a.url, a.admin_key) as admin:  # a scoped token, minted on the owner
+            gaze = (await admin.token(s.id, ["gaze"])).token
+        as_expression = ProducerHello(input="fap", role="expression")
+        codes["scoped, its role"] = await refused(
+            produce(b.url, s.id, gaze, ProducerHello(input="fap", role="gaze"))
+        )
+        codes["scoped, another role"] = await refused(produce(b.url, s.id, gaze, as_expression))
         async with SessionAdmin(a.url, a.admin_key) as admin:
             await admin.close(s.id)
         return codes
@@ -308,6 +317,8 @@ def test_refusals_on_a_node_that_does_not_own_the_session(cluster):
         "producer, no session": CloseCode.NOT_FOUND,
         "viewer, no session": CloseCode.NOT_FOUND,
         "second producer": CloseCode.CONFLICT,
+        "scoped, its role": None,  # the owner knows the session's scoped tokens and their roles
+        "scoped, another role": CloseCode.FORBIDDEN,
     }
 
 

@@ -53,11 +53,17 @@ class RemoteProducer:
         conn: str,
         node: str,
         send: Callable[[bytes], None],
+        roles: frozenset[str] = frozenset(),
     ) -> None:
         self.conn, self.node, self.session = conn, node, session
         self._send = send
         self.core = ProducerCore(
-            session, self, animators=registry, max_fps=registry.max_fps, metrics=registry.metrics
+            session,
+            self,
+            animators=registry,
+            max_fps=registry.max_fps,
+            metrics=registry.metrics,
+            roles=roles,
         )
         self._executor = registry.executor
         self._queue: deque[tuple[bytes, bytes]] = deque()

@@ -80,8 +80,8 @@ class MirrorSession(LiveSession):
         """This node takes the session over: from now on its frames are deformed here, and the
         producer slot is free for the producer that reconnects."""
         self.owned = True
-        if self._producer is _THERE:
-            self._producer = None
+        if self._producers.get("primary") is _THERE:
+            del self._producers["primary"]
 
     def encodings(self) -> frozenset[str]:
         return frozenset(v.encoding for v in self.viewers)
@@ -113,7 +113,10 @@ class MirrorSession(LiveSession):
             if text.startswith('{"type":"status"'):  # the owner's producer, for viewers' hellos
                 status = parse_message(text)
                 if isinstance(status, Status):
-                    self._producer = _THERE if status.producer_connected else None
+                    if status.producer_connected:
+                        self._producers["primary"] = _THERE
+                    else:
+                        self._producers.pop("primary", None)
             for v in self.viewers:
                 v.say(text)
         elif kind == envelope.OWNER:

@@ -646,13 +646,13 @@ class Cluster:
                 inbox = keys.inbox(node)
                 send = lambda b: self.publisher.put(inbox, b)  # noqa: E731
                 spec = o.session.spec
-                refusal = authorise(
-                    sid, True, token, spec.producer_token, spec.viewer_token, "producer"
-                )
+                roles = o.session.grants.roles_of(token)  # the full token, or a scoped one
+                mine = (token or "") if roles else spec.producer_token
+                refusal = authorise(sid, True, token, mine, spec.viewer_token, "producer")
                 if refusal is not None:
                     send(envelope.reply(conn, envelope.R_CLOSE, close_reply(refusal)))
                     return
-                p = RemoteProducer(self.reg, o.session, conn, node, send)
+                p = RemoteProducer(self.reg, o.session, conn, node, send, roles or frozenset())
                 if p.start():
                     o.producers[conn] = p
             else:
