@@ -21,8 +21,8 @@ from conftest import RunningServer, run
 
 from facecast.client.api import LiveError, SessionAdmin, produce, stream_fap, watch
 from facecast.protocol import frames
-from facecast.protocol.messages import ProducerHello
 from facecast.protocol.fap_file import read_fap
+from facecast.protocol.messages import ProducerHello
 from facecast.server.harness import RedisServer, free_port
 
 FACE = "default:2k"
