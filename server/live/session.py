@@ -432,8 +432,6 @@ class LiveSession:
             seq, state, wall, mix = self.pending.popleft()
             if not self._encodings:
                 continue  # nobody watches: skip the work, the numbering still advances
-            if mix:
-                state = self.mix.mix_primary(state)
             self._busy = True
             self._in_flight = seq
             try:
@@ -444,6 +442,7 @@ class LiveSession:
                     encodings=frozenset(self._encodings),
                     done=self._done,
                     compact=self.compact,
+                    mix=self.mix if mix else None,  # mixed with the batch, in its thread
                 )
             except Exception:
                 self._busy = False
