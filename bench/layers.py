@@ -7,7 +7,9 @@ low-level FAPs at 25 fps, tiled to ``--frames``) on the built-in head. Per frame
 run: the solve as today (``FapRig.solve_batch`` in chunks of 32 as ``Animator.render``, and one
 state at a time as a lone live session), and ``Mixer.mix`` with 0-3 layers (an expression
 overlay, the idle layer, gaze at a point) and with three layers over a FAP 1 (viseme) primary;
-then the solve of the mixed states (what the layers cost the solve). Times are thread CPU time
+then the live path's batched mix (``layers.mix_batch``: one state of each of B sessions with the
+three layers, mixed together as the deform thread does, B = 1, 4, 8, 16, 32), and the solve of the
+mixed states (what the layers cost the solve). Times are thread CPU time
 (``time.thread_time``; the machine is shared), median over repeats; wall time beside it.
 Writes ``bench/out/layers.json`` and a markdown table; the load average is in both.
 """
@@ -50,6 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         IdleLayer,
         Mixer,
     )
+    from facecast.server.layers.mix import mix_batch
     from facecast.server.mpeg4.rig import FapRig
     from facecast.server.paths import shared_data
     from facecast.server.pipeline import CHUNK
@@ -118,6 +121,26 @@ def main(argv: list[str] | None = None) -> int:
     base_one = row("solve, one state (baseline)", solve_single(primary))
     mixes = [row(f"mix, {k} layer(s)", mixing(k, primary)) for k in range(4)]
     mix_vis = row("mix, 3 layers, viseme primary", mixing(3, visemes))
+
+    def batched(b: int):
+        """``mix_batch`` of one state of each of ``b`` sessions (own mixers), ``n`` states in all."""
+        mixers = []
+        for _ in range(b):
+            mixer = Mixer(geo)
+            for name, layer in layers:
+                mixer.set(name, layer)
+            mixers.append(mixer)
+
+        def run():
+            for s in range(0, n, b):
+                mix_batch(
+                    [(mixers[i - s], primary[i], primary[i].t) for i in range(s, min(n, s + b))]
+                )
+
+        return run
+
+    sizes = (1, 4, 8, 16, 32)
+    batch_rows = {b: row(f"live mix_batch, 3 layers, {b} sessions", batched(b)) for b in sizes}
     m = Mixer(geo)
     for name, layer in layers:
         m.set(name, layer)
@@ -137,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         "mix3_cpu_ms": mixes[3]["cpu_ms"],
         "mix3_over_solve_chunk": mixes[3]["cpu_ms"] / base_chunk["cpu_ms"],
         "solve_mixed_extra_cpu_ms": solved_mixed["cpu_ms"] - base_chunk["cpu_ms"],
+        "mix3_batched_cpu_ms": {b: r["cpu_ms"] for b, r in batch_rows.items()},
         "rows": rows,
     }
     out = Path(args.out)
@@ -154,7 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"\nthree layers: {mixes[3]['cpu_ms']:.4f} ms per frame (target 0.05) over a "
         f"{base_chunk['cpu_ms']:.4f} ms batched solve ({base_one['cpu_ms']:.4f} ms alone); "
-        f"viseme primary {mix_vis['cpu_ms']:.4f} ms"
+        f"viseme primary {mix_vis['cpu_ms']:.4f} ms; batched as live (mix_batch): "
+        + ", ".join(f"{b} sessions {r['cpu_ms']:.4f} ms" for b, r in batch_rows.items())
     )
     return 0
 

@@ -586,3 +586,18 @@ def test_a_deform_batch_mixes_its_sessions_states_together_each_as_alone(animato
         assert job.state.t == states[k].t and m.mixed == 1
         np.testing.assert_allclose(job.state.faps, want.faps, rtol=1e-9, atol=1e-6)
         assert not np.allclose(job.state.faps, states[k].faps)  # the layers did move it
+
+
+def test_a_rig_s_geometry_is_shared_while_it_lives_and_forgotten_with_it(face):
+    import gc
+
+    from facecast.server.live import mixing
+    from facecast.server.mpeg4.rig import FapRig
+
+    rig = FapRig(face)
+    geo = mixing.geometry_of(rig)
+    assert mixing.geometry_of(rig) is geo and id(rig) in mixing._geometries
+    key = id(rig)
+    del rig
+    gc.collect()
+    assert key not in mixing._geometries

@@ -498,8 +498,8 @@ def mix_states(
 
 # -- many frames at once -----------------------------------------------------------------------------
 #: Fewest frames ``combine_batch`` computes together: a batch costs about three frames' ``combine``
-#: in fixed NumPy calls (0.1 ms), then a few microseconds a frame.
-BATCH_MIN = 3
+#: in fixed NumPy calls (0.09 ms), then about 0.01 ms a frame (bench/layers.py: even at 4 frames).
+BATCH_MIN = 5
 #: One frame to mix: ``(primary, items, t)`` as ``combine``'s arguments.
 Frame = tuple[FaceState | None, Sequence[tuple[Role, Contribution]], float | None]
 

@@ -22,6 +22,7 @@ import asyncio
 import logging
 import threading
 import time
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Protocol
@@ -283,27 +284,32 @@ def layer_of(spec: Spec, now: float) -> Any:
     return from_spec(spec.model_dump(mode="json", exclude_none=True), now)
 
 
-_geometries: dict[int, tuple[Any, Any]] = {}  # id(rig) -> (rig, its Geometry)
+_geometries: dict[int, Any] = {}  # id(rig) -> its Geometry, while the rig lives
 _geometries_lock = threading.Lock()
 
 
 def geometry_of(rig: Any, sid: str = "?") -> Any:
-    """The ``layers.Geometry`` of ``rig`` (None: the default), one per rig: the sessions of a face
-    share it, so that their frames mix together (``layers.mix_batch`` groups by geometry)."""
+    """The ``layers.Geometry`` of ``rig`` (None: the default), one per rig while it lives: the
+    sessions of a face share it, so that their frames mix together (``layers.mix_batch`` groups
+    by geometry)."""
     from ..layers import Geometry
 
     if rig is None:
         return Geometry()
     with _geometries_lock:
-        hit = _geometries.get(id(rig))
-        if hit is None:
+        geo = _geometries.get(id(rig))
+        if geo is None:
             try:
                 geo = Geometry.of_rig(rig)
             except Exception:  # noqa: BLE001 - a face without eyes still mixes (no gaze)
                 log.warning("session %s: no face geometry for gaze", sid)
                 geo = Geometry()
-            hit = _geometries[id(rig)] = (rig, geo)  # holding rig keeps id(rig) unique
-        return hit[1]
+            try:  # forgotten with the rig (a mocap session's own animator), so ids stay unique
+                weakref.finalize(rig, _geometries.pop, id(rig), None)
+            except TypeError:  # not weakly referable: not shared
+                return geo
+            _geometries[id(rig)] = geo
+        return geo
 
 
 class MixJob(Protocol):
