@@ -39,6 +39,7 @@ class _NoDeformer:
         encodings: frozenset[str],
         done: Callable[[Any], None],
         compact: Any = None,
+        mix: Any = None,
     ) -> None:
         raise RuntimeError("a mirror session does not deform; its owner node does")
 
