@@ -7,7 +7,9 @@ low-level FAPs at 25 fps, tiled to ``--frames``) on the built-in head. Per frame
 run: the solve as today (``FapRig.solve_batch`` in chunks of 32 as ``Animator.render``, and one
 state at a time as a lone live session), and ``Mixer.mix`` with 0-3 layers (an expression
 overlay, the idle layer, gaze at a point) and with three layers over a FAP 1 (viseme) primary;
-then the solve of the mixed states (what the layers cost the solve). Times are thread CPU time
+then the live path's batched mix (``layers.mix_batch``: one state of each of B sessions with the
+three layers, mixed together as the deform thread does, B = 1, 4, 8, 16, 32), and the solve of the
+mixed states (what the layers cost the solve). Times are thread CPU time
 (``time.thread_time``; the machine is shared), median over repeats; wall time beside it.
 Writes ``bench/out/layers.json`` and a markdown table; the load average is in both.
 """
@@ -27,15 +29,61 @@ import numpy as np
 from facecast.server.state import FaceState
 
 
-def per_frame(fn, n: int, repeats: int) -> tuple[float, float]:
-    """Median (thread CPU, wall) seconds per frame of ``fn()`` over ``repeats`` runs of ``n`` frames."""
+def per_frame(fn, n: int, repeats: int, clock=time.thread_time) -> tuple[float, float]:
+    """Median (CPU by ``clock``, wall) seconds per frame of ``fn()`` over ``repeats`` runs of ``n``
+    frames."""
     cpu, wall = [], []
     for _ in range(repeats):
-        c, w = time.thread_time(), time.perf_counter()
+        c, w = clock(), time.perf_counter()
         fn()
-        cpu.append((time.thread_time() - c) / n)
+        cpu.append((clock() - c) / n)
         wall.append((time.perf_counter() - w) / n)
     return statistics.median(cpu), statistics.median(wall)
+
+
+def live_worker(face, geo, states, layers, repeats: int, row) -> dict:
+    """The live deform worker's whole job per frame (``DeformBatcher._work``: mix, solve, deform,
+    int16 encode; CPU of all the process' threads, OpenCL's included) in batches of B sessions'
+    states, without layers and with the three layers mixed in the thread (``mixing.mix_jobs``)."""
+    from types import SimpleNamespace
+
+    from facecast.server.layers import Mixer
+    from facecast.server.live.batcher import DeformBatcher, _Job
+    from facecast.server.pipeline import Animator
+
+    animator = Animator(face)
+    batcher = DeformBatcher(animator, None)
+    n = len(states)
+    out = {}
+    for b in (1, 8, 25):
+        mixes = []
+        for _ in range(b):
+            mixer = Mixer(geo)
+            for name, layer in layers:
+                mixer.set(name, layer)
+            mixes.append(mixer)
+
+        def run(with_layers: bool, b: int = b, mixes: list = mixes):
+            def go():
+                for s in range(0, n, b):
+                    jobs = [
+                        _Job(st, i, 0.0, frozenset({"i16"}), print, None)
+                        for i, st in enumerate(states[s : s + b])
+                    ]
+                    if with_layers:
+                        for job, mixer in zip(jobs, mixes):
+                            job.mix = SimpleNamespace(
+                                mixer=mixer, now=lambda t=job.state.t: t, mixed=0
+                            )
+                    batcher._work(jobs)  # noqa: SLF001 - the worker alone, no threads
+
+            return go
+
+        run(True)()  # warm up (OpenCL buffers, the quantiser)
+        plain = row(f"live worker, batch of {b}, no layers", run(False), time.process_time, n)
+        mixed = row(f"live worker, batch of {b}, 3 layers", run(True), time.process_time, n)
+        out[b] = {"plain": plain["cpu_ms"], "layers3": mixed["cpu_ms"]}
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -50,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         IdleLayer,
         Mixer,
     )
+    from facecast.server.layers.mix import mix_batch
     from facecast.server.mpeg4.rig import FapRig
     from facecast.server.paths import shared_data
     from facecast.server.pipeline import CHUNK
@@ -57,6 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=3000)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument(
+        "--worker-frames", type=int, default=800, help="frames per live worker case (deformed)"
+    )
     ap.add_argument("--out", default=str(Path(__file__).parent / "out" / "layers.json"))
     args = ap.parse_args(argv)
     data = shared_data()
@@ -107,8 +159,8 @@ def main(argv: list[str] | None = None) -> int:
 
     rows = []
 
-    def row(name: str, fn) -> dict:
-        cpu, wall = per_frame(fn, n, args.repeats)
+    def row(name: str, fn, clock=time.thread_time, frames: int | None = None) -> dict:
+        cpu, wall = per_frame(fn, frames or n, args.repeats, clock)
         r = {"case": name, "cpu_ms": cpu * 1e3, "wall_ms": wall * 1e3}
         rows.append(r)
         print(f"{name:40s} {cpu * 1e3:8.4f} ms cpu {wall * 1e3:8.4f} ms wall", file=sys.stderr)
@@ -118,6 +170,27 @@ def main(argv: list[str] | None = None) -> int:
     base_one = row("solve, one state (baseline)", solve_single(primary))
     mixes = [row(f"mix, {k} layer(s)", mixing(k, primary)) for k in range(4)]
     mix_vis = row("mix, 3 layers, viseme primary", mixing(3, visemes))
+
+    def batched(b: int):
+        """``mix_batch`` of one state of each of ``b`` sessions (own mixers), ``n`` states in all."""
+        mixers = []
+        for _ in range(b):
+            mixer = Mixer(geo)
+            for name, layer in layers:
+                mixer.set(name, layer)
+            mixers.append(mixer)
+
+        def run():
+            for s in range(0, n, b):
+                mix_batch(
+                    [(mixers[i - s], primary[i], primary[i].t) for i in range(s, min(n, s + b))]
+                )
+
+        return run
+
+    sizes = (1, 4, 8, 16, 32)
+    batch_rows = {b: row(f"live mix_batch, 3 layers, {b} sessions", batched(b)) for b in sizes}
+    worker = live_worker(face, geo, primary[: args.worker_frames], layers, args.repeats, row)
     m = Mixer(geo)
     for name, layer in layers:
         m.set(name, layer)
@@ -137,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
         "mix3_cpu_ms": mixes[3]["cpu_ms"],
         "mix3_over_solve_chunk": mixes[3]["cpu_ms"] / base_chunk["cpu_ms"],
         "solve_mixed_extra_cpu_ms": solved_mixed["cpu_ms"] - base_chunk["cpu_ms"],
+        "mix3_batched_cpu_ms": {b: r["cpu_ms"] for b, r in batch_rows.items()},
+        "live_worker_cpu_ms": worker,
         "rows": rows,
     }
     out = Path(args.out)
@@ -154,7 +229,14 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"\nthree layers: {mixes[3]['cpu_ms']:.4f} ms per frame (target 0.05) over a "
         f"{base_chunk['cpu_ms']:.4f} ms batched solve ({base_one['cpu_ms']:.4f} ms alone); "
-        f"viseme primary {mix_vis['cpu_ms']:.4f} ms"
+        f"viseme primary {mix_vis['cpu_ms']:.4f} ms; batched as live (mix_batch): "
+        + ", ".join(f"{b} sessions {r['cpu_ms']:.4f} ms" for b, r in batch_rows.items())
+    )
+    print(
+        "live worker (mix + solve + deform + int16, all threads) per frame, no layers -> 3 layers: "
+        + ", ".join(
+            f"batch of {b} {w['plain']:.3f} -> {w['layers3']:.3f} ms" for b, w in worker.items()
+        )
     )
     return 0
 

@@ -22,6 +22,7 @@ from conftest import RunningServer, run
 from facecast.client.api import LiveError, SessionAdmin, produce, stream_fap, watch
 from facecast.protocol import frames
 from facecast.protocol.fap_file import read_fap
+from facecast.protocol.messages import ProducerHello
 from facecast.server.harness import RedisServer, free_port
 
 FACE = "default:2k"
@@ -273,7 +274,8 @@ def test_several_node_processes_need_redis(tmp_path):
 
 
 def test_refusals_on_a_node_that_does_not_own_the_session(cluster):
-    """Tokens are checked from the shared record; a second producer is refused by the owner."""
+    """Tokens are checked from the shared record (scoped ones by the owner, which minted them); a
+    second producer is refused by the owner."""
     from facecast.protocol.errors import CloseCode
 
     _, (a, b, c) = cluster
@@ -297,6 +299,13 @@ def test_refusals_on_a_node_that_does_not_own_the_session(cluster):
         }
         async with produce(b.url, s.id, s.producer_token):
             codes["second producer"] = await refused(produce(c.url, s.id, s.producer_token))
+        async with SessionAdmin(a.url, a.admin_key) as admin:  # a scoped token, minted on the owner
+            gaze = (await admin.token(s.id, ["gaze"])).token
+        as_expression = ProducerHello(input="fap", role="expression")
+        codes["scoped, its role"] = await refused(
+            produce(b.url, s.id, gaze, ProducerHello(input="fap", role="gaze"))
+        )
+        codes["scoped, another role"] = await refused(produce(b.url, s.id, gaze, as_expression))
         async with SessionAdmin(a.url, a.admin_key) as admin:
             await admin.close(s.id)
         return codes
@@ -308,6 +317,8 @@ def test_refusals_on_a_node_that_does_not_own_the_session(cluster):
         "producer, no session": CloseCode.NOT_FOUND,
         "viewer, no session": CloseCode.NOT_FOUND,
         "second producer": CloseCode.CONFLICT,
+        "scoped, its role": None,  # the owner knows the session's scoped tokens and their roles
+        "scoped, another role": CloseCode.FORBIDDEN,
     }
 
 
@@ -446,12 +457,14 @@ def test_redis_restarted_under_load_nodes_recover(tmp_path):
         async def main():
             async with SessionAdmin(a.url, a.admin_key) as admin:
                 s = await admin.create(face=FACE, input="fap", fps=FPS)
+                t = await admin.create(face=FACE, input="fap", fps=FPS)  # produced through B
             local: list = []
             remote: list = []
+            forwarded: list = []
             stop = asyncio.Event()
 
-            async def viewer(srv, out):
-                async with watch(srv.url, s.id, s.viewer_token) as w:
+            async def viewer(srv, out, session=s):
+                async with watch(srv.url, session.id, session.viewer_token) as w:
                     async for f in w:
                         out.append(f)
                         if stop.is_set():
@@ -465,10 +478,24 @@ def test_redis_restarted_under_load_nodes_recover(tmp_path):
                         i += 1
                         await asyncio.sleep(1 / FPS)
 
+            async def forwarded_producer():  # reconnects by itself, as clients do
+                i = 0
+                while not stop.is_set():
+                    try:
+                        async with produce(b.url, t.id, t.producer_token) as p:
+                            while not stop.is_set():
+                                await p.send_faps(fap_vector(i), i / FPS)
+                                i += 1
+                                await asyncio.sleep(1 / FPS)
+                    except (LiveError, OSError):
+                        await asyncio.sleep(0.2)
+
             tasks = [
                 asyncio.create_task(viewer(a, local)),
                 asyncio.create_task(viewer(b, remote)),
                 asyncio.create_task(producer()),
+                asyncio.create_task(viewer(a, forwarded, t)),
+                asyncio.create_task(forwarded_producer()),
             ]
 
             await until(lambda: len(remote) >= 20, "no frames on the other node")
@@ -484,12 +511,16 @@ def test_redis_restarted_under_load_nodes_recover(tmp_path):
                 lambda: all(httpx.get(x.url + "/readyz").status_code == 200 for x in (a, b)),
                 "nodes did not reconnect",
             )
-            n_remote = len(remote)
+            n_remote, n_forwarded = len(remote), len(forwarded)
             await until(lambda: len(remote) >= n_remote + 20, "remote viewers did not resume")
+            await until(
+                lambda: len(forwarded) >= n_forwarded + 20,
+                "the producer on the other node was not taken again (its old slot held?)",
+            )
             stop.set()
-            await asyncio.wait_for(tasks[2], 30)
-            for t in tasks[:2]:
-                t.cancel()
+            await asyncio.wait_for(asyncio.gather(tasks[2], tasks[4]), 30)
+            for task in (tasks[0], tasks[1], tasks[3]):
+                task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             async with SessionAdmin(b.url, b.admin_key) as admin:
                 s2 = await admin.create(face=FACE, input="fap", fps=FPS)
@@ -499,7 +530,7 @@ def test_redis_restarted_under_load_nodes_recover(tmp_path):
         assert refused.status_code == 503 and "Redis" in refused.json()["error"]
         assert s2.id
         v = view(a)
-        assert len(v["nodes"]) == 2 and sum(len(n["sessions"]) for n in v["nodes"]) == 2
+        assert len(v["nodes"]) == 2 and sum(len(n["sessions"]) for n in v["nodes"]) == 3
     finally:
         for n in (a, b):
             if n is not None:
@@ -585,6 +616,12 @@ def test_a_mirror_never_lets_a_delta_through_against_another_owners_key():
     m.receive(new(5, 2))
     assert len(out.got) == n_old + 2
     shapes = [old_shapes] * n_old + [new_shapes] * 2
+    # the owner's producer shows in this node's viewers' hellos; taken over, the slot is free
+    status = b'S{"type":"status","producer_connected":true,"viewers":1}'
+    m.receive(status)
+    assert m.producer is not None and not m.claim(object())  # type: ignore[arg-type]
+    m.promote()
+    assert m.producer is None and m.owned
     dec = CompactDecoder(face.vertices, face.rigid_group)
     for payload, source in zip(out.got, shapes):
         got = dec.decode(payload)

@@ -606,3 +606,87 @@ def test_in_a_speaking_mouth_an_overlay_competes_with_the_primary_expression_not
     out = expand(mix(p, [ExpressionLayer(1)], 0.0))
     k = 6  # a lip corner stretch: speech + the mean of the two expressions
     assert out[k] == pytest.approx(VISEMES[10][k] + (EXPRESSIONS[6][k] + EXPRESSIONS[1][k]) / 2)
+
+
+# -- many frames at once ----------------------------------------------------------------------
+
+
+def _random_frame(rng: np.random.Generator, geo: Geometry):
+    """A primary (or None) and random contributions of every kind, as a live batch may hold."""
+    kind = rng.integers(6)
+    f = rng.normal(0.0, 150.0, 69) * (rng.random(69) < 0.6)
+    t = float(rng.uniform(0, 100))
+    primary = [
+        None,
+        FaceState(t=t, faps=f),
+        FaceState(t=t, faps=f, viseme=(int(rng.integers(15)), int(rng.integers(15)), 40)),
+        FaceState(t=t, faps=f, expression=(int(rng.integers(1, 7)), 50, 0, 0)),
+        FaceState(t=t, faps=np.zeros(69)),  # closed lips: closures cut the overlays
+        FaceState(t=t, faps=f, head=head_transform([3000.0, -2000.0, 500.0], geo.head_pivot)),
+    ][kind]
+    target = GazeTarget(point=rng.normal(0, 200, 3) + [0, 0, 500])
+    layers = [
+        ExpressionLayer(int(rng.integers(7)), amount=float(rng.uniform(0, 1.5))),
+        ExpressionLayer(int(rng.integers(1, 7)), regions=("eyebrows", "lips"), amount=0.7),
+        ExpressionLayer(
+            0, faps=rng.normal(0, 300, 69), envelope=Envelope(start=t - 0.1, attack_peak=t + 0.2)
+        ),
+        IdleLayer(seed=int(rng.integers(100))),
+        GazeLayer(target, amount=float(rng.uniform(0.2, 1.0))),
+        GazeLayer(GazeTarget.camera()),
+        HeadGesture("nod", envelope=Envelope(start=t - 0.5, end=t + 1.0)),
+        HeadPose(pitch=10, yaw=-5, amount=float(rng.uniform(0.3, 1.0))),
+        TrackLayer([FaceState(faps=rng.normal(0, 100, 69), viseme=(3, 0, 63))], fps=25, loop=True),
+    ]
+    chosen = [layers[i] for i in rng.choice(len(layers), int(rng.integers(0, 5)), replace=False)]
+    items = [(layer.role, layer.sample(t)) for layer in chosen]
+    # producers' layers: a gaze producer's override, an idle producer's weighted offsets
+    if rng.random() < 0.3:
+        items.append((Role.GAZE, Contribution(override=f, override_weight=(f != 0) * 1.0)))
+    if rng.random() < 0.3:
+        items.append((Role.IDLE, Contribution(faps=f[::-1].copy(), weight=(f != 0) * 1.0)))
+    if rng.random() < 0.2:
+        items.append((Role.IDLE, Contribution(faps=f, weight=1.7)))
+    return primary, items, (None if rng.random() < 0.3 else t + 0.01)
+
+
+@pytest.mark.parametrize("closures", [True, False])
+def test_combine_batch_equals_combine_frame_by_frame(default_head, closures):
+    """The batched mix of the live path gives each frame what ``combine`` gives it alone."""
+    from facecast.server.layers.mix import combine_batch
+
+    _, _, geo = default_head
+    rng = np.random.default_rng(18)
+    for _ in range(40):
+        frames = [_random_frame(rng, geo) for _ in range(int(rng.integers(1, 33)))]
+        batch = combine_batch(frames, geometry=geo, closures=closures)
+        for (p, items, t), got in zip(frames, batch, strict=True):
+            want = combine(p, items, t, geometry=geo, closures=closures)
+            assert got.t == want.t
+            assert got.viseme == want.viseme and got.expression == want.expression
+            assert got.controls is want.controls
+            np.testing.assert_allclose(got.faps, want.faps, rtol=1e-9, atol=1e-6)
+            if want.head is None:
+                assert got.head is None
+            else:
+                np.testing.assert_allclose(got.head, want.head, rtol=1e-9, atol=1e-9)
+
+
+def test_mix_batch_equals_each_mixer_alone(default_head):
+    from facecast.server.layers.mix import mix_batch
+
+    _, _, geo = default_head
+    mixers = []
+    for k in range(6):
+        m = Mixer(geo if k % 3 else None, closures=k != 4)
+        m.set("idle", IdleLayer(seed=k))
+        m.set("smile", ExpressionLayer(1, amount=0.5, envelope=Envelope(end=3.0)))
+        m.set("gaze", GazeLayer(GazeTarget.camera()))
+        mixers.append(m)
+    rng = np.random.default_rng(1)
+    states = [FaceState(t=0.04 * k, faps=rng.normal(0, 100, 69)) for k in range(6)]
+    for t in (1.0, 2.5, 4.0):  # the smile ends at 3 s: the mixers drop it
+        got = mix_batch([(m, s, t) for m, s in zip(mixers, states)])
+        for m, s, g in zip(mixers, states, got):
+            np.testing.assert_allclose(g.faps, m.mix(s, t).faps, rtol=1e-9, atol=1e-6)
+    assert all("smile" not in m.layers() for m in mixers)

@@ -46,7 +46,7 @@ class Deformer:
         self.animator = SimpleNamespace(name=name)
         self.states: list[Any] = []
 
-    def submit_nowait(self, state, *, seq, wall, encodings, done, compact=None) -> None:
+    def submit_nowait(self, state, *, seq, wall, encodings, done, compact=None, mix=None) -> None:
         self.states.append((seq, state, wall))
 
 

@@ -532,3 +532,72 @@ def test_a_deeply_nested_control_message_is_a_message_error():
 
     with pytest.raises(MessageError, match="nests too deeply"):
         parse_message("[" * 60_000)
+
+
+def test_a_deform_batch_mixes_its_sessions_states_together_each_as_alone(animator):
+    """The deform thread mixes a batch's layered states at once (``mixing.mix_jobs``): each job
+    gets what its session's mixer gives its state alone, keeps its media time; a job without
+    layers is left alone; a session whose layer fails fails its own frame only."""
+    from types import SimpleNamespace
+
+    from facecast.server.layers import (
+        Contribution,
+        ExpressionLayer,
+        GazeLayer,
+        GazeTarget,
+        IdleLayer,
+        Mixer,
+        Role,
+    )
+    from facecast.server.live.mixing import geometry_of, mix_jobs
+    from facecast.server.state import FaceState
+
+    geo = geometry_of(animator.rig)
+    assert geometry_of(animator.rig) is geo  # one per rig: the sessions of a face mix together
+
+    class Broken:
+        role, end = Role.IDLE, None
+
+        def sample(self, t: float) -> Contribution:
+            raise RuntimeError("a broken layer")
+
+    def session(k: int, broken: bool = False) -> SimpleNamespace:
+        m = Mixer(geo)
+        m.set("idle", IdleLayer(seed=k))
+        m.set("smile", ExpressionLayer(1, amount=0.5))
+        m.set("gaze", GazeLayer(GazeTarget(point=np.array([10.0 * k, 0.0, 500.0]))))
+        if broken:
+            m.set("broken", Broken())
+        return SimpleNamespace(mixer=m, now=lambda: 2.0 + k, mixed=0)
+
+    rng = np.random.default_rng(5)
+    mixes = [session(k, broken=k == 3) for k in range(8)]
+    states = [FaceState(t=0.04 * k, faps=rng.normal(0, 80, 69)) for k in range(9)]
+    jobs = [SimpleNamespace(state=s, mix=m) for s, m in zip(states, mixes)]
+    jobs.append(SimpleNamespace(state=states[8], mix=None))
+    failed = mix_jobs(jobs)
+    assert list(failed) == [3] and "broken" in str(failed[3])
+    assert jobs[8].state is states[8]  # no layers: not mixed
+    for k, (job, m) in enumerate(zip(jobs[:8], mixes)):
+        if k == 3:
+            assert job.state is states[3] and m.mixed == 0
+            continue
+        want = m.mixer.mix(states[k], 2.0 + k)
+        assert job.state.t == states[k].t and m.mixed == 1
+        np.testing.assert_allclose(job.state.faps, want.faps, rtol=1e-9, atol=1e-6)
+        assert not np.allclose(job.state.faps, states[k].faps)  # the layers did move it
+
+
+def test_a_rig_s_geometry_is_shared_while_it_lives_and_forgotten_with_it(face):
+    import gc
+
+    from facecast.server.live import mixing
+    from facecast.server.mpeg4.rig import FapRig
+
+    rig = FapRig(face)
+    geo = mixing.geometry_of(rig)
+    assert mixing.geometry_of(rig) is geo and id(rig) in mixing._geometries
+    key = id(rig)
+    del rig
+    gc.collect()
+    assert key not in mixing._geometries

@@ -17,7 +17,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from ..cluster import envelope
 from ..cluster.records import ClusterView, NodeView
-from ..live.core import Close, authorise
+from ..live.core import INTERNAL, Close, authorise
 from ..live.producer import HELLO_TIMEOUT
 from . import transport
 from .security import require_admin
@@ -65,8 +65,8 @@ async def cluster_view(request: Request) -> ClusterView:
 
 
 async def forward_producer(ws: WebSocket, cluster: Any, session_id: str, token: str | None) -> None:
-    """A producer on this node of a session another node owns: authorise it from the session's
-    record, then forward what it sends to the owner and carry out the owner's replies."""
+    """A producer on this node of a session another node owns: forward its token (the owner
+    authorises it), then what it sends, and carry out the owner's replies."""
     from .routes_sessions import _refuse
 
     try:
@@ -74,20 +74,12 @@ async def forward_producer(ws: WebSocket, cluster: Any, session_id: str, token: 
     except Exception as e:  # Unavailable (the broker is down): mapped to its close
         await _refuse(ws, Close(getattr(e, "close_code", 4503), str(e)))
         return
-    refusal = authorise(
-        session_id,
-        rec is not None,
-        token,
-        rec.producer_token if rec else "",
-        rec.viewer_token if rec else "",
-        "producer",
-    )
-    if refusal is not None:
-        await _refuse(ws, refusal)
+    if rec is None:  # the token is the owner's to check (it knows every token of the session)
+        await _refuse(ws, authorise(session_id, False, token, "", "", "producer") or INTERNAL)
         return
     from ..cluster.node import OWNER_GONE
 
-    fwd = await cluster.forward_open(session_id)
+    fwd = await cluster.forward_open(session_id, token)
     if fwd is None:
         await _refuse(ws, Close(4503, OWNER_GONE))
         return

@@ -16,7 +16,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from ..live.core import Step
+from ..live.core import Close, Step
 from ..live.producer import ProducerCore
 from ..live.registry import SessionRegistry
 from ..live.session import LiveSession
@@ -31,6 +31,11 @@ MAX_QUEUED = 256
 def close_body(code: int, error: str, reason: str = "", cut_off: bool = False) -> bytes:
     obj = {"code": int(code), "error": error, "reason": reason, "cut_off": cut_off}
     return json.dumps(obj).encode()
+
+
+def close_reply(c: Close) -> bytes:
+    """The ``R_CLOSE`` body of a close decision."""
+    return close_body(c.code, c.error, c.reason, c.cut_off)
 
 
 class RemoteProducer:
@@ -48,11 +53,17 @@ class RemoteProducer:
         conn: str,
         node: str,
         send: Callable[[bytes], None],
+        roles: frozenset[str] = frozenset(),
     ) -> None:
         self.conn, self.node, self.session = conn, node, session
         self._send = send
         self.core = ProducerCore(
-            session, self, animators=registry, max_fps=registry.max_fps, metrics=registry.metrics
+            session,
+            self,
+            animators=registry,
+            max_fps=registry.max_fps,
+            metrics=registry.metrics,
+            roles=roles,
         )
         self._executor = registry.executor
         self._queue: deque[tuple[bytes, bytes]] = deque()
@@ -142,8 +153,7 @@ class RemoteProducer:
         assert c is not None
         for text in step.send:
             self._send(envelope.reply(self.conn, envelope.R_TEXT, text.encode()))
-        body = close_body(c.code, c.error, c.reason, c.cut_off)
-        self._send(envelope.reply(self.conn, envelope.R_CLOSE, body))
+        self._send(envelope.reply(self.conn, envelope.R_CLOSE, close_reply(c)))
 
 
 def parse_close(body: bytes) -> dict[str, Any]:

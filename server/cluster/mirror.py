@@ -17,6 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 from ...protocol.compact import KEY
+from ...protocol.messages import Status, parse_message
 from ..live.session import FLAGS_BYTE, LiveSession, SessionSpec, Viewer
 from ..state import FaceState
 from . import envelope
@@ -38,8 +39,21 @@ class _NoDeformer:
         encodings: frozenset[str],
         done: Callable[[Any], None],
         compact: Any = None,
+        mix: Any = None,
     ) -> None:
         raise RuntimeError("a mirror session does not deform; its owner node does")
+
+
+class _ProducerElsewhere:
+    """The producer slot of a mirror while the owner says a producer is connected."""
+
+    remote = False  # it keeps the owner's session in use, not this copy
+
+    async def end(self, code: int, error_json: str) -> None:
+        return None
+
+
+_THERE = _ProducerElsewhere()
 
 
 class MirrorSession(LiveSession):
@@ -62,6 +76,13 @@ class MirrorSession(LiveSession):
         self.need_key = True  # compact: no key frame of the current owner yet
         self.frames_relayed = 0
         self.quiet_since = time.monotonic()
+
+    def promote(self) -> None:
+        """This node takes the session over: from now on its frames are deformed here, and the
+        producer slot is free for the producer that reconnects."""
+        self.owned = True
+        if self._producers.get("primary") is _THERE:
+            del self._producers["primary"]
 
     def encodings(self) -> frozenset[str]:
         return frozenset(v.encoding for v in self.viewers)
@@ -90,6 +111,13 @@ class MirrorSession(LiveSession):
             self.deliver(envelope.parse_frame(data))
         elif kind == envelope.TEXT:
             text = data[1:].decode("utf-8", "replace")
+            if text.startswith('{"type":"status"'):  # the owner's producer, for viewers' hellos
+                status = parse_message(text)
+                if isinstance(status, Status):
+                    if status.producer_connected:
+                        self._producers["primary"] = _THERE
+                    else:
+                        self._producers.pop("primary", None)
             for v in self.viewers:
                 v.say(text)
         elif kind == envelope.OWNER:

@@ -13,6 +13,7 @@ restarted empty). ``docs/CLUSTER.md`` has the design.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import math
 import os
@@ -28,11 +29,11 @@ from ...protocol.encoding import VERTEX_ENCODINGS
 from ...protocol.errors import CloseCode
 from ...protocol.messages import SessionInfo, Stats
 from .. import errors
-from ..live.core import error_json
+from ..live.core import authorise, error_json
 from ..live.registry import SessionRegistry
 from ..live.session import LiveSession
 from . import envelope, keys, leases
-from .inbound import RemoteProducer, close_body
+from .inbound import RemoteProducer, close_body, close_reply
 from .mirror import MirrorSession
 from .publisher import Publisher
 from .records import ClusterView, NodeRecord, NodeView, SessionRecord
@@ -145,6 +146,7 @@ class Cluster:
         self._last_beat = 0.0
         self._last_retry_log = 0.0
         self._stopping = False
+        self._orphaned: list[Forward] = []  # forwards closed while Redis was unreachable
         registry.on_close = self._closed
 
     # -- life ---------------------------------------------------------------------------------------
@@ -227,6 +229,9 @@ class Cluster:
             log.warning("cluster: Redis is back; node %s rejoined", self.id)
         for m in self.mirrors.values():
             self._wants(m, True)
+        for fwd in self._orphaned:  # closed while Redis was away: free their producer slots
+            self.forward(fwd, envelope.P_GONE)
+        self._orphaned.clear()
 
     def _down(self, exc: BaseException) -> None:
         """Redis failed: keep serving local viewers, refuse new sessions, reconnect later."""
@@ -239,6 +244,11 @@ class Cluster:
         log.warning("cluster: lost Redis (%s); reconnecting", exc)
         for fwd in list(self.forwards.values()):
             fwd.lose()
+            self._orphaned.append(fwd)  # its owner hears it is gone once Redis is back
+        for o in self.owned.values():  # producers on other nodes: those nodes close them too
+            for p in o.producers.values():
+                p.stop()
+            o.producers.clear()
         ps, self._pubsub = self._pubsub, None  # this one, not the next connection's
         self._spawn(self._close(ps))
 
@@ -452,7 +462,7 @@ class Cluster:
             rec = SessionRecord.model_validate_json(raw)
             mirror = self.mirrors.pop(sid, None)
             if mirror is not None:
-                mirror.owned = True
+                mirror.promote()
                 await self._unsubscribe(keys.down(sid))
             session = await self.reg.restore(rec.spec(), mirror)
             session.seq = (epoch << 20) & 0xFFFFFFFF  # never a seq an old owner's key frame had
@@ -530,8 +540,9 @@ class Cluster:
         body = {"node": self.id, "encodings": sorted(m.encodings()), "key": key}
         self.publisher.put(keys.up(m.spec.id), envelope.with_json(envelope.WANT, body))
 
-    async def forward_open(self, sid: str) -> Forward | None:
-        """Start forwarding a producer of ``sid`` to its owner; None when no owner listens."""
+    async def forward_open(self, sid: str, token: str | None) -> Forward | None:
+        """Start forwarding a producer of ``sid`` (its ``token``) to the owner, which authorises
+        it; None when no owner listens."""
         from redis.exceptions import RedisError
 
         self.require()
@@ -541,7 +552,8 @@ class Cluster:
             if owner is None or owner == self.id:
                 return None
             fwd = self.forwards[conn] = Forward(conn, sid, owner)
-            opened = envelope.producer(conn, envelope.OPEN, self.id.encode())
+            body = json.dumps({"node": self.id, "token": token}).encode()
+            opened = envelope.producer(conn, envelope.OPEN, body)
             if await self.redis.publish(keys.up(sid), opened) == 0:
                 del self.forwards[conn]
                 return None
@@ -629,11 +641,18 @@ class Cluster:
         if kind == envelope.PRODUCER:
             conn, k, body = envelope.parse_conn(data)
             if k == envelope.OPEN:
-                node = body.decode("ascii")
+                opened = json.loads(body)
+                node, token = str(opened["node"]), opened.get("token")
                 inbox = keys.inbox(node)
-                p = RemoteProducer(
-                    self.reg, o.session, conn, node, lambda b: self.publisher.put(inbox, b)
-                )
+                send = lambda b: self.publisher.put(inbox, b)  # noqa: E731
+                spec = o.session.spec
+                roles = o.session.grants.roles_of(token)  # the full token, or a scoped one
+                mine = (token or "") if roles else spec.producer_token
+                refusal = authorise(sid, True, token, mine, spec.viewer_token, "producer")
+                if refusal is not None:
+                    send(envelope.reply(conn, envelope.R_CLOSE, close_reply(refusal)))
+                    return
+                p = RemoteProducer(self.reg, o.session, conn, node, send, roles or frozenset())
                 if p.start():
                     o.producers[conn] = p
             else:
@@ -643,8 +662,11 @@ class Cluster:
         elif kind == envelope.WANT:
             w = envelope.parse_json(data)
             encs = frozenset(e for e in w.get("encodings", ()) if e in VERTEX_ENCODINGS)
+            new = str(w["node"]) not in o.wants
             o.wants[str(w["node"])] = (encs, time.monotonic() + keys.WANT_SECONDS)
             self._update_wants(o, bool(w.get("key")))
+            if new:  # a node's first viewers: tell them whether a producer is connected
+                o.session.broadcast_status()
         elif kind == envelope.CLOSE:
             reason = str(envelope.parse_json(data).get("reason") or "the session was closed")
             self._spawn(self.reg.close(sid, reason))

@@ -64,6 +64,7 @@ class _Job:
     done: Callable[[Any], None]
     loop: asyncio.AbstractEventLoop
     compact: Any = None  # the session's ``CompactEncoder`` when a viewer asked for ``compact``
+    mix: Any = None  # the session's ``SessionMix`` when its layers are to be mixed in (``mixing``)
 
 
 def _framed_buffer(encoding: str, n_vertices: int) -> tuple[bytearray, int]:
@@ -269,11 +270,14 @@ class DeformBatcher:
         encodings: frozenset[str],
         done: Callable[[Any], None],
         compact: Any = None,
+        mix: Any = None,
     ) -> None:
         """Deform and encode one state; later, on this event loop, ``done((frames, seconds))`` (the
         frames and the seconds of work they cost) or ``done(exception)``. Call on the event loop.
-        ``compact``: the session's ``CompactEncoder`` (stateful: one state per session at a time)."""
-        job = _Job(state, seq, wall, encodings, done, asyncio.get_running_loop(), compact)
+        ``compact``: the session's ``CompactEncoder`` (stateful: one state per session at a time).
+        ``mix``: the session's ``SessionMix``: the state is mixed with its layers first, in the
+        thread, together with the batch's other layered states (``mixing.mix_jobs``)."""
+        job = _Job(state, seq, wall, encodings, done, asyncio.get_running_loop(), compact, mix)
         with self._lock:
             self._pending.append(job)
             if self.coalesce > 0:  # who is active: only a coalescing drain asks (and prunes)
@@ -387,12 +391,16 @@ class DeformBatcher:
         """Solve the jobs' states together; a state that fails (or gives non-finite numbers)
         fails alone. Returns the indices that worked and their ``D``, ``T``."""
         a = self.animator
+        todo = [i for i, r in enumerate(results) if r is None]  # (not failed before the solve)
+        if not todo:
+            return [], None, None
         try:
-            D, T = a.solve_batch([j.state for j in jobs])
-            ok = list(range(len(jobs)))
+            D, T = a.solve_batch([jobs[i].state for i in todo])
+            ok = todo
         except Exception:  # noqa: BLE001 - find the bad state(s): one at a time
             ok, solved = [], []
-            for i, j in enumerate(jobs):
+            for i in todo:
+                j = jobs[i]
                 try:
                     solved.append(a.solve_batch([j.state]))
                     ok.append(i)
@@ -418,6 +426,11 @@ class DeformBatcher:
         t0 = time.perf_counter()
         a = self.animator
         results: list[Any] = [None] * len(jobs)
+        if any(j.mix is not None for j in jobs):  # layers: mixed here, the batch at once
+            from .mixing import mix_jobs
+
+            for i, e in mix_jobs(jobs).items():
+                results[i] = e
         ok, D, T = self._solve(jobs, results)
         if not ok:
             return results

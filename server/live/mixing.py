@@ -2,7 +2,9 @@
 frame with the session's ``layers.Mixer`` (``server/layers/``), and the clock of frames when no
 primary clocks them.
 
-The primary producer's states clock the frames (each mixed as it goes to the deformer). While the
+The primary producer's states clock the frames: each goes to the deformer with the session's
+``SessionMix``, and the deform thread mixes the states of a whole batch together (``mix_jobs``,
+``layers.mix_batch``: vectorised across sessions), off the event loop. While the
 session holds layers and no primary state came for ``HOLD_SECONDS`` (no primary producer, a FAP
 producer that sends only on change, a pause in the speech), a task ticks at the session's rate
 and sends the mix of the last primary state (or the neutral face) with the layers, as the demo
@@ -10,16 +12,20 @@ producer clocks its frames (``server_producer``); those frames continue the prim
 Layer time is the session clock: seconds since the session was made (monotonic), so REST timings
 ("start in 0.5 s") are real time.
 
-Everything here runs on the event loop.
+Everything here runs on the event loop, except ``mix_jobs`` (a deform thread; the ``Mixer`` is
+thread-safe).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 import time
+import weakref
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -135,15 +141,8 @@ class SessionMix:
         return self._mixer
 
     def _geometry(self) -> Any:
-        from ..layers import Geometry
-
         rig = getattr(getattr(self.session.batcher, "animator", None), "rig", None)
-        if rig is not None:
-            try:
-                return Geometry.of_rig(rig)
-            except Exception:  # noqa: BLE001 - a face without eyes still mixes (no gaze)
-                log.warning("session %s: no face geometry for gaze", self.session.spec.id)
-        return Geometry()
+        return geometry_of(rig, self.session.spec.id)
 
     # -- producers ---------------------------------------------------------------------------------
     def put(self, role: str, state: FaceState) -> None:
@@ -230,15 +229,6 @@ class SessionMix:
         if self._task is not None:
             self.primary_at = self.clock() - self.t0
 
-    def mix_primary(self, state: FaceState) -> FaceState:
-        """A primary ``state`` mixed with the layers now (it keeps its own ``t``)."""
-        now = self.now()
-        m = self.mixer.mix(state, now)
-        if m is not state:
-            m.t = state.t
-        self.mixed += 1
-        return m
-
     def _start(self) -> None:
         if self._task is not None and not self._task.done():
             return
@@ -292,3 +282,76 @@ def layer_of(spec: Spec, now: float) -> Any:
     from ..layers.spec import from_spec
 
     return from_spec(spec.model_dump(mode="json", exclude_none=True), now)
+
+
+_geometries: dict[int, Any] = {}  # id(rig) -> its Geometry, while the rig lives
+_geometries_lock = threading.Lock()
+
+
+def geometry_of(rig: Any, sid: str = "?") -> Any:
+    """The ``layers.Geometry`` of ``rig`` (None: the default), one per rig while it lives: the
+    sessions of a face share it, so that their frames mix together (``layers.mix_batch`` groups
+    by geometry)."""
+    from ..layers import Geometry
+
+    if rig is None:
+        return Geometry()
+    with _geometries_lock:
+        geo = _geometries.get(id(rig))
+        if geo is None:
+            try:
+                geo = Geometry.of_rig(rig)
+            except Exception:  # noqa: BLE001 - a face without eyes still mixes (no gaze)
+                log.warning("session %s: no face geometry for gaze", sid)
+                geo = Geometry()
+            try:  # forgotten with the rig (a mocap session's own animator), so ids stay unique
+                weakref.finalize(rig, _geometries.pop, id(rig), None)
+            except TypeError:  # not weakly referable: not shared
+                return geo
+            _geometries[id(rig)] = geo
+        return geo
+
+
+class MixJob(Protocol):
+    """What ``mix_jobs`` needs of a deform job: its state and its session's mix (or None)."""
+
+    state: FaceState
+    mix: SessionMix | None
+
+
+def mix_jobs(jobs: Sequence[MixJob]) -> dict[int, Exception]:
+    """Mix the states of a deform batch's ``jobs`` that carry their session's ``SessionMix`` with
+    its layers at the session's time now, all together (``layers.mix_batch``), in place: such a
+    job's ``state`` becomes the mix (keeping its ``t``). Runs in a deform thread. Returns the
+    failures by job index (those jobs keep their state; the others are mixed)."""
+    from ..layers.mix import mix_batch
+
+    todo = [i for i, j in enumerate(jobs) if j.mix is not None]
+    frames = []
+    for i in todo:
+        sm = jobs[i].mix
+        assert sm is not None
+        frames.append((sm.mixer, jobs[i].state, sm.now()))
+    mixed: list[FaceState | Exception]
+    try:
+        mixed = list(mix_batch(frames))
+    except Exception:  # find the frame that fails: one at a time
+        log.exception("mixing a batch of %d frames failed; one at a time", len(frames))
+        mixed = []
+        for mixer, state, t in frames:
+            try:
+                mixed.append(mixer.mix(state, t))
+            except Exception as e:  # noqa: BLE001 - that frame fails alone
+                mixed.append(e)
+    failed: dict[int, Exception] = {}
+    for i, m in zip(todo, mixed, strict=True):
+        job = jobs[i]
+        if isinstance(m, Exception):
+            failed[i] = m
+            continue
+        if m is not job.state:
+            m.t = job.state.t
+            job.state = m
+        assert job.mix is not None
+        job.mix.mixed += 1
+    return failed

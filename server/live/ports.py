@@ -33,8 +33,10 @@ class Deformer(Protocol):
         encodings: frozenset[str],
         done: Callable[[Any], None],
         compact: Any = None,
+        mix: Any = None,
     ) -> None:
-        """Later, on the caller's loop: ``done((encoded, seconds))`` or ``done(exception)``."""
+        """Later, on the caller's loop: ``done((encoded, seconds))`` or ``done(exception)``;
+        ``mix``: the session's ``SessionMix`` to mix the state with first."""
 
 
 class Animators(Protocol):

@@ -166,7 +166,7 @@ class LiveSession:
         self._producers: dict[str, ProducerSlot] = {}  # role -> who holds its slot
         self.grants = Grants(spec.producer_token)  # producer tokens and their roles
         self.mix = SessionMix(self)  # secondary producers' and REST layers, mixed into each state
-        #: (seq, state, wall, mix: the layers are mixed in when it goes to the deformer)
+        #: (seq, state, wall, mix: the deform thread mixes the layers in, with its batch)
         self.pending: deque[tuple[int, FaceState, float, bool]] = deque()
         self._busy = False  # a state of this session is with the batcher
         self._in_flight = 0  # its seq
@@ -310,7 +310,7 @@ class LiveSession:
         """Number ``states`` and queue them for deformation (oldest dropped beyond ``MAX_PENDING``).
 
         The primary producer's states clock the frames: with layers in the mix, each is mixed
-        with them as it goes to the deformer (states dropped under load cost no mixing). A
+        with them in the deform thread (states dropped under load cost no mixing). A
         secondary producer's (``role``) newest state becomes its layer.
         """
         mix = self.mix
@@ -432,8 +432,6 @@ class LiveSession:
             seq, state, wall, mix = self.pending.popleft()
             if not self._encodings:
                 continue  # nobody watches: skip the work, the numbering still advances
-            if mix:
-                state = self.mix.mix_primary(state)
             self._busy = True
             self._in_flight = seq
             try:
@@ -444,6 +442,7 @@ class LiveSession:
                     encodings=frozenset(self._encodings),
                     done=self._done,
                     compact=self.compact,
+                    mix=self.mix if mix else None,  # mixed with the batch, in its thread
                 )
             except Exception:
                 self._busy = False
