@@ -200,7 +200,7 @@ def test_batcher_encodes_compact_frames_on_the_device_as_alone(device, face, mon
         batcher_mod, "_encode_compact_device", lambda *a: calls.append(1) or real(*a)
     )
     tol = 0.1 / face.mm_per_unit
-    n_sessions, n = 3, 10
+    n_sessions, n = batcher_mod.DEVICE_COMPACT_MIN_FRAMES, 10
 
     def encoder() -> CompactEncoder:
         return CompactEncoder(face.vertices, face.rigid_group, tolerance=tol, key_interval=4)

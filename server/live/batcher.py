@@ -7,8 +7,8 @@ them together (``Animator.solve_batch``, vectorised), deforms them with one ``de
 25k-vertex head) and writes each frame once, already framed for WebSocket, into one buffer per
 batch. On a host-memory OpenCL device the int16 quantisation of batches of 2 frames or more runs
 on the device too (``quantize_cl``), outside the GIL; elsewhere in NumPy
-(``quantize.quantize_int16``). There too, the residual planes of a batch's ``compact`` frames are
-computed in one launch (``backends.opencl.compact``); deflate runs on the compact threads.
+(``quantize.quantize_int16``). There too, the residual planes of a batch's ``compact`` frames (4 or
+more) are computed in one launch (``backends.opencl.compact``); deflate runs on the compact threads.
 The callbacks then run on their event loop, all of a batch in one wake-up. Under light load a
 batch holds one frame and adds no delay; under heavy load batches grow by themselves.
 """
@@ -46,9 +46,13 @@ DEVICE_MIN_FRAMES = 2
 #: sessions at 60 fps may make batches of 1-2 frames, waiting could save CPU.
 COALESCE_FRAMES = 8
 ACTIVE_WINDOW = 0.1
-#: Compact frames of a batch of 2 or more on the device too, when the int16 quantiser runs there
-#: (``backends.opencl.compact``: the same bytes, one launch instead of a dozen NumPy passes each).
+#: Compact frames of a batch on the device too, when the int16 quantiser runs there
+#: (``backends.opencl.compact``: the same bytes, one launch instead of a dozen NumPy passes each),
+#: from this many compact frames in the batch: in-process (25k head, PoCL, 2 cores) 5 frames cost
+#: 0.42 against 0.52-0.56 ms of CPU each, 10 frames 0.43 against 0.49; 3 frames were even and
+#: 2 frames dearer (the launch's fixed cost).
 DEVICE_COMPACT = True
+DEVICE_COMPACT_MIN_FRAMES = 4
 
 #: encoding -> (payload, websocket frame). The payload is a view into the frame's buffer: both
 #: are written once and then only read (the same bytes serve every viewer).
@@ -458,7 +462,7 @@ class DeformBatcher:
             if jobs[i].compact is not None and "compact" in jobs[i].encodings
         ]
         pool = _compact_executor(self.settings.compact_pool_threads) if len(todo) > 1 else None
-        if len(todo) > 1 and quantizer is not None and DEVICE_COMPACT:
+        if len(todo) >= DEVICE_COMPACT_MIN_FRAMES and quantizer is not None and DEVICE_COMPACT:
             done = _encode_compact_device(a.deformer, verts, todo, T, pool)
         elif pool is not None:
             done = list(pool.map(lambda kj: _encode_compact(kj[1], verts[kj[0]], T[kj[0]]), todo))
