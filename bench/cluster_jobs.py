@@ -199,6 +199,8 @@ def main() -> int:
                     FACE,
                     "--backend",
                     "numpy",
+                    "--workers",
+                    "1",  # one process per node: its job worker is its child, killed as such
                     env=env,
                     admin_key=ADMIN_KEY,
                 )
