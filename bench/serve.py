@@ -152,6 +152,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "than their session's producer), reported side by side with the single process",
     )
     p.add_argument(
+        "--cluster-viewers",
+        choices=("other", "owner", "spread"),
+        default="other",
+        help="cluster: each session's viewer on another node than its owner (default: every frame "
+        "crosses Redis), on the owner, or half of each (what a round-robin balancer gives 2 nodes)",
+    )
+    p.add_argument(
         "--cluster-sessions",
         help="session counts of the cluster sweep (default: --sessions)",
     )
@@ -611,7 +618,10 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
             assert err is not None
             raise err
 
-        watched_on = {s.id: nodes[(k + 1) % len(nodes)] for k, s in enumerate(made)}
+        # a viewer's node against its session's owner (k): another, the owner, or half of each
+        shift = {"other": lambda k: 1, "owner": lambda k: 0, "spread": lambda k: k // len(nodes)}
+        away_by = shift[getattr(args, "cluster_viewers", "other")]
+        watched_on = {s.id: nodes[(k + away_by(k)) % len(nodes)] for k, s in enumerate(made)}
         stop = asyncio.Event()
         records: list[list] = []
         ready_events = []
@@ -843,6 +853,7 @@ def _cluster_sweeps(args, encodings: list[str], by_encoding: dict) -> dict:
             sweep = asyncio.run(_sweeps(cluster, cluster.url, args))["sessions_sweep"]
             out[enc] = {
                 "nodes": args.cluster,
+                "viewers_on": args.cluster_viewers,
                 "sessions_sweep": sweep,
                 "redis_cpu_mean": round((cluster.redis_cpu_seconds() - r0) / (time.time() - t0), 3),
                 "sessions_at_target": _at_target(sweep, args),
