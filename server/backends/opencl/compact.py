@@ -31,8 +31,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from ....protocol.compact import world_to_cells
-from .host import ALIGN, aligned_empty
-from .kernels import build, cl_source
+from .host import ALIGN, HostKernel, aligned_empty
 
 log = logging.getLogger(__name__)
 
@@ -82,30 +81,14 @@ class Encoder(Protocol):  # ``protocol.compact.CompactEncoder``'s halves used he
     ) -> bytes: ...
 
 
-class DeviceCompact:
+class DeviceCompact(HostKernel):
     """Residual planes of compact frames on one OpenCL context (thread-safe)."""
 
+    SOURCE, KERNEL, DEFINES = "compact", "compact_frames", {"WG": WG}
+
     def __init__(self, context: Any) -> None:
-        import pyopencl as cl
-
-        self._cl = cl
-        self.context = context
-        self.queue = cl.CommandQueue(context)
-        self._kernel = cl.Kernel(build(context, cl_source("compact"), {"WG": WG}), "compact_frames")
-        self._lock = threading.Lock()
+        super().__init__(context)
         self._group_bufs: dict[int, tuple[np.ndarray, Any, np.ndarray]] = {}
-
-    @classmethod
-    def for_deformer(cls, deformer: Any) -> DeviceCompact | None:
-        """One on ``deformer``'s context if it is a zero-copy OpenCL deformer, else None."""
-        ctx = getattr(deformer, "context", None)
-        if ctx is None or not getattr(deformer, "zero_copy", False):
-            return None
-        return cls(ctx)
-
-    def _host(self, arr: np.ndarray, flags: Any) -> Any:
-        cl = self._cl
-        return cl.Buffer(self.context, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
 
     def residuals(
         self,

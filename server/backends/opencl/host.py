@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import threading
+from typing import TYPE_CHECKING, Any, ClassVar
+
 import numpy as np
 from numpy.typing import DTypeLike
+
+from .kernels import build, cl_source
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
 
 #: Byte alignment of host arrays the kernels read or write in place.
 ALIGN = 128
@@ -16,3 +24,36 @@ def aligned_empty(shape: tuple[int, ...], dtype: DTypeLike, align: int = ALIGN) 
     raw = np.empty(n + align, dtype=np.uint8)
     off = (-raw.ctypes.data) % align
     return raw[off : off + n].view(dt).reshape(shape)
+
+
+class HostKernel:
+    """Kernel ``KERNEL`` of ``<SOURCE>.cl`` (built with ``DEFINES``) on an OpenCL context whose
+    device works in host memory, with its queue and a lock (kernel arguments belong to the kernel
+    object: one launch at a time)."""
+
+    SOURCE: ClassVar[str]
+    KERNEL: ClassVar[str]
+    DEFINES: ClassVar[dict[str, object]] = {}
+
+    def __init__(self, context: Any) -> None:
+        import pyopencl as cl
+
+        self._cl = cl
+        self.context = context
+        self.queue = cl.CommandQueue(context)
+        self._kernel = cl.Kernel(build(context, cl_source(self.SOURCE), self.DEFINES), self.KERNEL)
+        self._lock = threading.Lock()
+
+    @classmethod
+    def for_deformer(cls, deformer: Any) -> Self | None:
+        """One on ``deformer``'s context if it is a zero-copy OpenCL deformer, else None (a NumPy
+        deformer, or a device whose memory is not host memory)."""
+        ctx = getattr(deformer, "context", None)
+        if ctx is None or not getattr(deformer, "zero_copy", False):
+            return None
+        return cls(ctx)
+
+    def _host(self, arr: np.ndarray, flags: Any) -> Any:
+        """A buffer over ``arr`` itself (``USE_HOST_PTR``): no copy on a host-memory device."""
+        cl = self._cl
+        return cl.Buffer(self.context, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)

@@ -20,46 +20,22 @@ the vertices where ``deform_batch`` wrote them.
 
 from __future__ import annotations
 
-import threading
-from typing import Any
-
 import numpy as np
 
-from .host import ALIGN, aligned_empty
-from .kernels import build, cl_source
+from .host import ALIGN, HostKernel, aligned_empty
 
 #: Work-items per frame (one work-group per frame); each takes a contiguous run of the vertices.
 WG = 8
 
 
-class DeviceQuantizer:
+class DeviceQuantizer(HostKernel):
     """Quantises ``(T, V, 3) float32`` frames on ``deformer``'s device (thread-safe).
 
     Build with ``DeviceQuantizer.for_deformer``, which returns None where it does not apply (a
     NumPy deformer, or a device whose memory is not host memory).
     """
 
-    def __init__(self, context: Any) -> None:
-        import pyopencl as cl
-
-        self._cl = cl
-        self.context = context
-        self.queue = cl.CommandQueue(context)
-        program = build(context, cl_source("quantize"), {"WG": WG})
-        self._kernel = cl.Kernel(program, "quantize_frames")
-        self._lock = threading.Lock()  # kernel arguments are per kernel object
-
-    @classmethod
-    def for_deformer(cls, deformer: Any) -> DeviceQuantizer | None:
-        """A quantiser on ``deformer``'s context if it is a zero-copy OpenCL deformer, else None."""
-        ctx = getattr(deformer, "context", None)
-        if ctx is None or not getattr(deformer, "zero_copy", False):
-            return None
-        return cls(ctx)
-
-    def _host(self, arr: np.ndarray, flags: Any) -> Any:
-        cl = self._cl
-        return cl.Buffer(self.context, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
+    SOURCE, KERNEL, DEFINES = "quantize", "quantize_frames", {"WG": WG}
 
     def quantize_into(
         self, verts: np.ndarray, out: np.ndarray, start: int, stride: int
