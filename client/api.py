@@ -387,6 +387,8 @@ class Producer:
         self.ready = ready
         self.seq = 0
         self.errors: list[ErrorMessage] = []
+        #: errors the server closed a connection with, after which the producer reconnected
+        self.recovered: list[ErrorMessage] = []
         self.retry, self._reopen = retry, reopen
         self.reconnects = 0
         self.outages: list[float] = []
@@ -428,16 +430,20 @@ class Producer:
                 if (self.ws.close_code or 0) == 1000:
                     raise LiveError("the server ended the stream") from None
                 err = LiveError("the server is going away", self.ws.close_code or 1001)
-        await self._reconnect(err)
+        await self._reconnect(err, mine[-1] if mine else None)
 
-    async def _reconnect(self, err: LiveError) -> None:
-        """New connection (same hello) after ``err``; the frame being sent is dropped."""
+    async def _reconnect(self, err: LiveError, cause: ErrorMessage | None = None) -> None:
+        """New connection (same hello) after ``err``; the frame being sent is dropped. ``cause``,
+        the error message the server closed with, moves from ``errors`` to ``recovered``."""
         assert self.retry is not None and self._reopen is not None
         t0 = time.monotonic()
         log.warning("producer: connection lost (%s); reconnecting", err)
         self._reader.cancel()
         ws, ready = await reconnect(self.retry, self._reopen, "producer", err)
         self.ws, self.ready = ws, ready
+        if cause is not None and cause in self.errors:
+            self.errors.remove(cause)
+            self.recovered.append(cause)
         self._errors_before = len(self.errors)
         self._reader = asyncio.get_running_loop().create_task(self._read(ws))
         self.reconnects += 1

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -366,6 +367,15 @@ def test_workers_n_runs_n_nodes_on_one_port(cluster, tmp_path):
             return len(seen) == 2 and sum(n["url"] == srv.url for n in v["nodes"]) == 2
 
         wait_for(both, what="two node processes on one port")
+        # a node process that dies is started again: the machine keeps its two nodes
+        pids = {n["pid"] for n in view(srv)["nodes"] if n["url"] == srv.url}
+        os.kill(next(iter(pids)), signal.SIGKILL)
+
+        def replaced() -> bool:
+            now = {n["pid"] for n in view(srv)["nodes"] if n["url"] == srv.url}
+            return len(now) == 2 and now != pids
+
+        wait_for(replaced, what="the killed node process started again")
     finally:
         srv.stop()
     try:

@@ -257,7 +257,7 @@ async def _main(args: argparse.Namespace) -> dict:
     counts = {"sent": 0, "skipped": 0}
     async with produce(args.url, args.session, args.token, hello, retry=retry) as p:
         interrupted = await until_signal(_replay(p, times, period, send, args, counts))
-        errors = p.errors
+        errors, recovered = p.errors, p.recovered
         reconnects, outages, dropped = p.reconnects, p.outages, p.dropped
     return {
         "input": str(args.input),
@@ -271,6 +271,7 @@ async def _main(args: argparse.Namespace) -> dict:
         "rate": rate,
         "seconds": round(time.monotonic() - t_start, 3),
         "errors": [e.message for e in errors],
+        "recovered_errors": [e.message for e in recovered],  # closes it reconnected after
     }
 
 

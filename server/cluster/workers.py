@@ -25,6 +25,9 @@ log = logging.getLogger(__name__)
 
 #: Seconds node processes have to stop after SIGTERM before they are killed.
 STOP_SECONDS = 8.0
+#: A node process that dies this many times in a row, each within QUICK_SECONDS of its start,
+#: is not started again.
+QUICK_DEATHS, QUICK_SECONDS = 3, 10.0
 
 #: Settings a child gets from its parent (flags become ``FACECAST_*`` variables).
 PASSED = (
@@ -65,14 +68,23 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child before e
 
 
 def supervise(config: Any, workers: int, log_level: str | None) -> int:
-    """Run ``workers`` node processes until they end (or SIGTERM/SIGINT ends them); exit status."""
+    """Run ``workers`` node processes until SIGTERM/SIGINT ends them; exit status.
+
+    A node process that dies (a crash, kill -9, the OOM killer) is started again, so the machine
+    keeps its ``workers`` nodes (its sessions have moved to other nodes meanwhile); one that dies
+    ``QUICK_DEATHS`` times in a row within ``QUICK_SECONDS`` of its start is not (it cannot run:
+    its log says why), and the parent ends when no node process is left.
+    """
     cmd = [sys.executable, "-m", "facecast.server.cli", "serve", "--node-of", str(os.getpid())]
     if log_level:
         cmd += ["--log-level", log_level]
-    children = [
-        subprocess.Popen(cmd, env=child_env(config, i), preexec_fn=_die_with_parent)  # noqa: PLW1509
-        for i in range(workers)
-    ]
+
+    def start(i: int) -> subprocess.Popen[bytes]:
+        return subprocess.Popen(cmd, env=child_env(config, i), preexec_fn=_die_with_parent)  # noqa: PLW1509
+
+    children = [start(i) for i in range(workers)]
+    started = [time.monotonic()] * workers
+    quick = [0] * workers
     stopping = False
 
     def stop(signum: int, frame: Any) -> None:
@@ -85,11 +97,26 @@ def supervise(config: Any, workers: int, log_level: str | None) -> int:
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     status = 0
-    while any(c.poll() is None for c in children) and not stopping:
+    while not stopping:
         time.sleep(0.2)
-        for c in children:
-            if c.returncode not in (None, 0) and not stopping:
-                status = status or 1
+        for i, c in enumerate(children):
+            if stopping or c.poll() in (None, 0) or quick[i] >= QUICK_DEATHS:
+                continue
+            status = 1
+            lived = time.monotonic() - started[i]
+            quick[i] = quick[i] + 1 if lived < QUICK_SECONDS else 0
+            if quick[i] >= QUICK_DEATHS:
+                log.error(
+                    "node process %d died %d times within %g s of its start; not starting it again",
+                    c.pid,
+                    QUICK_DEATHS,
+                    QUICK_SECONDS,
+                )
+                continue
+            log.warning("node process %d ended with %s; starting another", c.pid, c.returncode)
+            children[i], started[i] = start(i), time.monotonic()
+        if all(c.poll() is not None for c in children):
+            break
     deadline = time.monotonic() + STOP_SECONDS
     for c in children:
         try:
