@@ -78,6 +78,18 @@ def _expand(
     return hit
 
 
+def _offsets(c: Contribution, geo: Geometry) -> np.ndarray | None:
+    """``(69,)`` FAP offsets of one contribution: its FAPs plus its FAP 1/2 expanded, times its
+    amount (None when it moves no FAP)."""
+    x = c.faps
+    h = _expand(c.viseme, c.expression, geo)
+    if h is not None:
+        x = h if x is None else x + h
+    if x is not None and c.amount != 1.0:
+        x = c.amount * x
+    return x
+
+
 def _rot(pitch: float, yaw: float, roll: float) -> list[list[float]]:
     """``Ry(yaw) · Rx(pitch) · Rz(roll)`` (radians), the rig's head rotation, as nested lists."""
     cp, sp, cy, sy = math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
@@ -237,14 +249,9 @@ def combine(
             gazes.append((c.gaze, c.gaze_weight))
         if c.override is not None:
             overrides.append((c.override, c.override_weight))
-        x = c.faps
-        if c.viseme is not None or c.expression is not None:
-            h = _expand(c.viseme, c.expression, geo)
-            x = h if x is None else x + h
+        x = _offsets(c, geo)
         if x is None:
             continue
-        if c.amount != 1.0:
-            x = c.amount * x
         group = roles.get(role)
         if group is None:
             roles[role] = [(x, c.weight)]
@@ -582,14 +589,9 @@ def combine_batch(
                     O_num, O_den = np.zeros((B, 69)), np.zeros((B, 69))
                 O_num[r] += c.override_weight * c.override
                 O_den[r] += c.override_weight
-            x = c.faps
-            if c.viseme is not None or c.expression is not None:
-                h = _expand(c.viseme, c.expression, geo)
-                x = h if x is None else x + h
+            x = _offsets(c, geo)
             if x is None:
                 continue
-            if c.amount != 1.0:
-                x = c.amount * x
             k = count.get(role, 0)
             count[role] = k + 1
             slot = slots.get((role, k))

@@ -51,7 +51,6 @@ ACTIVE_WINDOW = 0.1
 #: from this many compact frames in the batch: in-process (25k head, PoCL, 2 cores) 5 frames cost
 #: 0.42 against 0.52-0.56 ms of CPU each, 10 frames 0.43 against 0.49; 3 frames were even and
 #: 2 frames dearer (the launch's fixed cost).
-DEVICE_COMPACT = True
 DEVICE_COMPACT_MIN_FRAMES = 4
 
 #: encoding -> (payload, websocket frame). The payload is a view into the frame's buffer: both
@@ -188,16 +187,17 @@ def _encode_compact(job: _Job, v: np.ndarray, T: Any) -> tuple[memoryview, bytea
     """``job``'s frame ``v (V, 3)`` with rigid poses ``T (G, 3, 4)`` by its session's stateful
     ``CompactEncoder``, WebSocket-framed; None when that frame cannot be encoded."""
     try:
-        data = job.compact.encode(v, T, seq=job.seq, t=job.state.t, wall=job.wall)
-    except ValueError:  # this frame only (non-finite vertices); the next is a key
-        log.warning("compact encoding of frame %d failed", job.seq, exc_info=True)
-        job.compact.request_key()
-        return None
-    buf = bytearray(ws_binary_header(len(data)) + data)
-    return memoryview(buf)[len(buf) - len(data) :], buf
+        data: bytes | ValueError = job.compact.encode(
+            v, T, seq=job.seq, t=job.state.t, wall=job.wall
+        )
+    except ValueError as e:
+        data = e
+    return _frame(job, data)
 
 
 def _frame(job: _Job, data: bytes | ValueError) -> tuple[memoryview, bytearray] | None:
+    """A compact frame's bytes WebSocket-framed, or None (and a key asked for) when encoding it
+    failed."""
     if isinstance(data, ValueError):  # this frame only (non-finite vertices); the next is a key
         log.warning("compact encoding of frame %d failed: %s", job.seq, data)
         job.compact.request_key()
@@ -462,7 +462,7 @@ class DeformBatcher:
             if jobs[i].compact is not None and "compact" in jobs[i].encodings
         ]
         pool = _compact_executor(self.settings.compact_pool_threads) if len(todo) > 1 else None
-        if len(todo) >= DEVICE_COMPACT_MIN_FRAMES and quantizer is not None and DEVICE_COMPACT:
+        if len(todo) >= DEVICE_COMPACT_MIN_FRAMES and quantizer is not None:
             done = _encode_compact_device(a.deformer, verts, todo, T, pool)
         elif pool is not None:
             done = list(pool.map(lambda kj: _encode_compact(kj[1], verts[kj[0]], T[kj[0]]), todo))
