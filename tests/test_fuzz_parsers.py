@@ -37,27 +37,25 @@ FUZZ = settings(
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
 
+
+def _bench_fuzz():
+    """bench/fuzz_parsers.py, the one home of the interesting tokens both fuzzers draw."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_fuzz_parsers", Path(__file__).parents[1] / "bench" / "fuzz_parsers.py"
+    )
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+_BENCH = _bench_fuzz()
 #: Stands for an integer of 4,301 digits (json.dumps cannot write one; json.loads refuses it).
-HUGE_INT = "<4301 digits>"
-TOKENS = [
-    "nan",
-    "inf",
-    "-inf",
-    "1e309",
-    "-1",
-    "0",
-    "",
-    " ",
-    "\t",
-    ",",
-    "#",
-    "9" * 4301,
-    "1" * 19,
-    "\xff",
-    "\x00",
-    "٣",
-    "0x10",
-]
+HUGE_INT = _BENCH.HUGE_INT
+TOKENS = list(_BENCH.INTERESTING_TOKENS)
 
 
 def _take() -> MarkerTake:
