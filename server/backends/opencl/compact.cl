@@ -35,8 +35,8 @@ inline int3 cells(__global const float *v, __global const float *m, __global con
 // float32, kept across launches), then its groups' (3, 4) float32 matrices (world -> cells). Written: ``out``'s zigzag
 // bytes 0 and 1 of the residuals (2, 3 nv) at byte 6 nv j and, for a key frame, its new cells
 // ref + r (3, nv) float32 at float ``keys_at + 3 nv j``; flags: bit 0 a bad vertex (not finite,
-// or out of the grid), bit 1 a value over 16 bits (atomically or-ed by any work-item that finds
-// one; the host zeroes them first).
+// or out of the grid), bit 1 a value over 16 bits, bit 2 a value over 8 bits (the frame needs
+// both planes) (atomically or-ed by any work-item that finds one; the host zeroes them first).
 
 #define MAGIC 12582912.0f
 #define ZZ(d) ((as_uint16(d) << 1) ^ as_uint16((d) >> 31))
@@ -133,14 +133,16 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
             vstore16(r2 + convert_float16(q2), 0, kk + 2 * nv + i0);
         }
     }
-    uint flag = (any(~oks) ? 1u : 0u) | (any(huges) || any((zs >> 16) != 0) ? 2u : 0u);
+    uint flag = (any(~oks) ? 1u : 0u) | (any(huges) || any((zs >> 16) != 0) ? 2u : 0u) |
+                (any((zs >> 8) != 0) ? 4u : 0u);
     if (l == WG - 1) {  // the last nv % 16 vertices, one by one
         for (uint i = 16 * units; i < nv; ++i) {
             const int3 r = cells(v, ms + 12 * groups[i], ref, nv, i, keep2, &bad);
             const int3 d = r - prev;
             const uint3 zz = (as_uint3(d) << 1) ^ as_uint3(d >> 31);
             put(p, nv, i, zz);
-            flag |= (bad ? 1u : 0u) | (((zz.x | zz.y | zz.z) >> 16) ? 2u : 0u);
+            flag |= (bad ? 1u : 0u) | (((zz.x | zz.y | zz.z) >> 16) ? 2u : 0u) |
+                    (((zz.x | zz.y | zz.z) >> 8) ? 4u : 0u);
             if (is_key) {
                 kk[i] = ref[i] + (float)r.x;
                 kk[nv + i] = ref[nv + i] + (float)r.y;

@@ -150,7 +150,8 @@ class DeviceCompact(HostKernel):
         Returns ``planes (J, 2, 3 V) uint8`` (zigzag bytes 0 and 1 of the residuals),
         ``new_keys (J, 3, V) float32`` (row j the new key's cells where ``keys[j]``; None
         without key frames) and ``flags (J,) uint32`` (bit 0: a bad vertex, bit 1: a residual
-        over 16 bits; rows with a flag are not valid)."""
+        over 16 bits: rows with either are not valid; bit 2: a zigzagged value over 8 bits,
+        the frame needs both planes)."""
         cl = self._cl
         if verts.dtype != np.float32 or not verts.flags.c_contiguous or verts.ctypes.data % ALIGN:
             raise ValueError("verts must be C-contiguous, aligned float32")
@@ -251,9 +252,9 @@ def encode_batch(
         enc, f, T, seq, t, wall = frames[todo[n]]
         _, tr, _, is_key, _ = preps[n]
         try:
-            if flags[n]:  # a bad vertex (the encoder says which) or large residuals: on the host
+            if flags[n] & 3:  # a bad vertex (the encoder says which) or large residuals: host
                 return enc.encode(verts[f], T, seq=seq, t=t, wall=wall)
-            two = bool(planes[n, 1].any())
+            two = bool(flags[n] & 4)  # a value over 8 bits: both planes
             raw = planes[n] if two else planes[n, 0]
             key = new_keys[n].copy() if is_key and new_keys is not None else None
             return enc.finish(tr, is_key, 2 if two else 1, raw, key, seq=seq, t=t, wall=wall)
