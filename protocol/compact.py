@@ -141,7 +141,7 @@ def _scratch_buffers(n: int) -> dict[str, np.ndarray]:
             "vt": np.ones((4, n), np.float32),  # homogeneous: rows x, y, z, 1
             "local": np.empty((3, n), np.float32),
             "fd": np.empty((3, n), np.float32),
-            "r": np.empty((3, n), np.int32),
+            "ddf": np.empty((3, n), np.float32),
             "dd": np.empty((3, n), np.int32),
             "dist": np.empty(n, np.float32),
             "move": np.empty(n, bool),
@@ -317,6 +317,8 @@ class CompactEncoder:
         self._plan = _GroupPlan.of(self.groups, self.n_groups)
         self._keep2 = np.float32((self.tolerance * (1 - self._margin) / self.step) ** 2)
         self._key_f: np.ndarray | None = None  # cells of the last key frame, as float32 (exact)
+        self._key_max: float | None = None  # largest |cell| of ``_key_f`` (on first need)
+        self._base_max = float(np.abs(self.base).max(initial=0))
         self._key_seq = 0
         self._since_key = 0
         self._want_key = True
@@ -345,20 +347,20 @@ class CompactEncoder:
 
     @staticmethod
     def _zigzag(dd: np.ndarray, b: dict[str, np.ndarray]) -> tuple[int, np.ndarray]:
-        """``dd (3, V) int32`` -> (planes, raw): its zigzagged values ``(d << 1) ^ (d >> 31)``
-        as ``planes`` byte planes, little end first. Small values (most frames) are zigzagged
-        in the narrowest integer type that holds them: fewer bytes through every pass
-        (``d + d`` for ``d << 1``: the same bits, and NumPy adds small integers faster)."""
+        """``dd (3, V) float32`` integers -> (planes, raw): their zigzagged values
+        ``(d << 1) ^ (d >> 31)`` as ``planes`` byte planes, little end first. Small values (most
+        frames) are converted to, and zigzagged in, the narrowest integer type that holds them:
+        fewer bytes through every pass (``d + d`` for ``d << 1``: the same bits, and NumPy adds
+        small integers faster)."""
         lo, hi = int(dd.min()), int(dd.max())
         top = max(2 * hi, -2 * lo - 1)  # largest zigzagged value
         planes = 1 if top < 1 << 8 else 2 if top < 1 << 16 else 3 if top < 1 << 24 else 4
         if planes <= 2:
             d, s = (b["i8"], b["s8"]) if planes == 1 else (b["i16"], b["s16"])
-            bits = 8 * d.itemsize - 1
         else:
-            d, s, bits = dd, b["s32"], 31
-        if d is not dd:
-            np.copyto(d, dd, casting="unsafe")
+            d, s = b["dd"], b["s32"]
+        bits = 8 * d.itemsize - 1
+        np.copyto(d, dd, casting="unsafe")  # (float32 -> int: exact, the values fit)
         np.right_shift(d, bits, out=s)
         np.add(d, d, out=d)
         np.bitwise_xor(d, s, out=d)
@@ -366,6 +368,14 @@ class CompactEncoder:
             return 1, d
         u = d.reshape(-1).view(np.uint8).reshape(-1, d.itemsize)
         return planes, np.ascontiguousarray(u[:, :planes].T)
+
+    def _ref_max(self, is_key: bool) -> float:
+        """Largest ``|cell|`` of this frame's reference: the rest mesh's or the held key's."""
+        if is_key or self._key_f is None:
+            return self._base_max
+        if self._key_max is None:
+            self._key_max = float(np.abs(self._key_f).max(initial=0))
+        return self._key_max
 
     def encode(
         self,
@@ -382,29 +392,29 @@ class CompactEncoder:
         v, tr, m, is_key, ref_f = self.prepare(vertices, transforms, t=t, key=key)
         b = _scratch_buffers(len(v))
         local = self._local(v, m, b)
-        lo, hi = local.min(initial=0), local.max(initial=0)
-        if not (lo > 1 - _MAX_CELL and hi < _MAX_CELL - 1):  # also refuses NaN
-            raise ValueError(
-                "vertices must be finite and within 2^23 grid steps of their group's origin"
-            )
         # fd = local - ref (in cells) serves twice: the reference cell is kept where it is within
         # the tolerance too (small motions cost nothing), elsewhere r = rint(fd), which equals
         # rint(local) - ref (the subtraction is exact: ref is an integer near local, Sterbenz).
-        fd, dist, r, dd = b["fd"], b["dist"], b["r"], b["dd"]
+        fd, dist = b["fd"], b["dist"]
         np.subtract(local, ref_f, out=fd)
         np.einsum("ij,ij->j", fd, fd, out=dist)  # squared distance, one pass
+        # |local| <= |ref| + |fd|: one check of V distances (also refuses NaN and infinities)
+        # keeps every cell, residual and difference below 2^24, exact in float32
+        if not float(dist.max(initial=0)) < (_MAX_CELL - 1 - self._ref_max(is_key)) ** 2:
+            raise ValueError(
+                "vertices must be finite and within 2^23 grid steps of their group's origin"
+            )
         move = np.greater(dist, self._keep2, out=b["move"])
         np.rint(fd, out=fd)
         movef = b["movef"]
         np.copyto(movef, move)
-        np.multiply(fd, movef, out=fd)  # 0 where kept
-        np.copyto(r, fd, casting="unsafe")  # (3, V) int32, axis-major (float32 x bool -> int32
-        # in one ufunc call is several times slower: NumPy casts the bool operand in chunks)
+        r = np.multiply(fd, movef, out=fd)  # (3, V) residual cells as float32, 0 where kept
+        dd = b["ddf"]  # differences along the vertex order, exact in float32 (below 2^24)
         dd[:, 0] = r[:, 0]
         np.subtract(r[:, 1:], r[:, :-1], out=dd[:, 1:])
         planes, raw = self._zigzag(dd, b)
         # the decoder's q = base + r: cells < 2^23, exact in float32
-        new_key = np.add(self._base_f, r, dtype=np.float32) if is_key else None
+        new_key = np.add(self._base_f, r) if is_key else None
         return self.finish(tr, is_key, planes, raw, new_key, seq=seq, t=t, wall=wall)
 
     def prepare(
@@ -472,7 +482,7 @@ class CompactEncoder:
         z = zc.compress(raw) + zc.flush()
         if is_key:
             assert new_key is not None
-            self._key_f = new_key
+            self._key_f, self._key_max = new_key, None
             self._key_seq, self._since_key, self._want_key = seq, 0, False
             self._key_t = float(t)
         else:
@@ -560,8 +570,16 @@ class CompactDecoder:
         return f.header, self._positions(q, f.step, f.transforms)
 
     def _positions(self, q: np.ndarray, step: float, tr: np.ndarray) -> np.ndarray:
-        """``q (3, V)`` cells -> ``(V, 3) float32`` positions."""
+        """``q (3, V)`` cells -> ``(V, 3) float32`` positions: ``(R · step) q + t`` per group (the
+        step folded into the transforms, as compact.js does: the cells convert to float32
+        exactly, below 2^23), written out one axis at a time (a strided copy per axis costs a
+        quarter of NumPy's (3, V) -> (V, 3) transposition)."""
         p = self._p
-        np.multiply(q, np.float32(step), out=p[:3])
-        self._plan.apply(tr, p, self._out, self._tmp)
-        return np.ascontiguousarray(self._out.T)
+        np.copyto(p[:3], q, casting="unsafe")
+        m = tr.astype(np.float32)  # (a copy: the frame's transforms stay as sent)
+        m[:, :, :3] *= np.float32(step)
+        self._plan.apply(m, p, self._out, self._tmp)
+        out = np.empty((len(self.rest), 3), np.float32)
+        for a in range(3):
+            out[:, a] = self._out[a]
+        return out

@@ -224,3 +224,44 @@ def test_batcher_encodes_compact_frames_on_the_device_as_alone(device, face, mon
             want = np.asarray(animator.deformer.deform(D[s], T[s]), np.float32)
             assert bytes(payload) == alone[s].encode(want, T[s], seq=i, t=i / 60)
     assert len(calls) == n
+
+
+@pytest.mark.opencl
+def test_device_reference_pool_serves_many_sessions_in_changing_batches(face):
+    """More sessions than the device's reference slots (16 at first), in batches of changing
+    members and sizes: slots are reused and the pool grows, and every frame is still encoded
+    against its own session's reference (the host encoder's bytes)."""
+    from facecast.server.backends.opencl import aligned_empty, default_context
+    from facecast.server.backends.opencl.compact import DeviceCompact, encode_batch
+
+    if not _blas_fuses():
+        pytest.skip("NumPy's matmul rounds otherwise here: the bytes may differ in a tie")
+    device = DeviceCompact(default_context())  # a fresh pool
+    frames, poses = _stream(face, 0, 24)
+    tol = 0.1 / face.mm_per_unit
+    sessions = 24
+
+    def encoders() -> list[CompactEncoder]:
+        kw = {"tolerance": tol, "key_interval": 3}
+        return [CompactEncoder(face.vertices, face.rigid_group, **kw) for _ in range(sessions)]
+
+    host, dev = encoders(), encoders()
+    seq = [0] * sessions
+    rng = np.random.default_rng(2)
+    for r in range(10):
+        members = sorted(rng.choice(sessions, size=(4, 9, 20)[r % 3], replace=False))
+        buf = aligned_empty((len(members),) + frames.shape[1:], np.float32)
+        idx = [(seq[s] + 3 * s) % len(frames) for s in members]
+        buf[:] = frames[idx]
+        want = [
+            host[s].encode(buf[k], poses[idx[k]], seq=seq[s], t=seq[s] / 60)
+            for k, s in enumerate(members)
+        ]
+        got = encode_batch(
+            device,
+            buf,
+            [(dev[s], k, poses[idx[k]], seq[s], seq[s] / 60, 0.0) for k, s in enumerate(members)],
+        )
+        assert got == want, f"round {r}"
+        for s in members:
+            seq[s] += 1

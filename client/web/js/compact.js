@@ -17,6 +17,7 @@ const DIST_BASE = [1, 2, 3, 4, 5, 7, 9, 13, 17, 25, 33, 49, 65, 97, 129, 193, 25
 const DIST_EXTRA = [0, 0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 6, 6, 7, 7, 8, 8, 9, 9, 10, 10, 11, 11, 12, 12, 13, 13];
 const CL_ORDER = [16, 17, 18, 0, 8, 7, 9, 6, 10, 5, 11, 4, 12, 3, 13, 2, 14, 1, 15];
 const FAST = 10; // bits looked up at once; longer codes are decoded canonically, bit by bit
+const FAST_MASK = (1 << FAST) - 1;
 
 function bad(why) {
   return new Error(`compact payload is not a valid zlib stream (${why})`);
@@ -54,6 +55,23 @@ function huffman(lengths, n, check = 1) {
     }
   }
   return { fast, count, symbol };
+}
+
+/**
+ * For a literal/length code's `fast` table: Int32Array(1 << FAST) of (s2 << 8 | s1 | total length
+ * << 16) where the FAST bits start with two literal codes s1, s2 (0 elsewhere). A code is known by
+ * its first `length` bits, so the second is read from the bits after the first when it fits.
+ */
+function literalPairs(fast) {
+  const two = new Int32Array(1 << FAST);
+  for (let i = 0; i < 1 << FAST; i++) {
+    const e1 = fast[i], l1 = e1 & 15;
+    if (e1 === 0 || e1 >> 4 > 255) continue;
+    const e2 = fast[i >>> l1], l2 = e2 & 15;
+    if (e2 === 0 || e2 >> 4 > 255 || l1 + l2 > FAST) continue;
+    two[i] = (e1 >> 4) | ((e2 >> 4) << 8) | ((l1 + l2) << 16);
+  }
+  return two;
 }
 
 let FIXED = null;
@@ -153,8 +171,28 @@ export function inflateExactly(src, want, into = null) {
       lit = huffman(lengths.subarray(0, nlen), nlen);
       dist = huffman(lengths.subarray(nlen), ndist);
     } else throw bad('reserved block type');
+    // the symbols of the block, the fast path inline with the bit buffer in locals (a call per
+    // symbol to `sym` and its captured state cost about half the inflating)
+    const lf = lit.fast, two = literalPairs(lf);
     for (;;) {
-      let s = sym(lit);
+      while (nb < 24 && pos < end) { bits |= src[pos++] << nb; nb += 8; }
+      const pair = two[bits & FAST_MASK];
+      if (pair !== 0 && o + 2 <= want) { // two literals whose codes fit in the FAST bits
+        const len = pair >>> 16;
+        if (len <= nb) {
+          out[o] = pair & 255; out[o + 1] = (pair >>> 8) & 255; o += 2;
+          bits >>>= len; nb -= len;
+          continue;
+        }
+      }
+      let s;
+      const e = lf[bits & FAST_MASK];
+      if (e !== 0) {
+        const len = e & 15;
+        if (len > nb) throw bad('truncated');
+        bits >>>= len; nb -= len;
+        s = e >> 4;
+      } else s = sym(lit);
       if (s < 256) {
         if (o >= want) throw new Error(`compact payload inflates to more than ${want} bytes`);
         out[o++] = s;
@@ -178,16 +216,24 @@ export function inflateExactly(src, want, into = null) {
   pos -= nb >> 3; // unread whole bytes go back; then the Adler-32, big-endian, ends the stream
   if (pos + 4 !== end) throw bad(pos + 4 > end ? 'truncated' : 'trailing bytes');
   if (o !== want) throw new Error(`compact payload inflates to ${o} bytes, expected ${want}`);
+  // Adler-32 in blocks of up to 3800 bytes (int32 sums cannot overflow): four lanes of bytes
+  // i = 4m + r, each with its running sum A_r and sum of running sums B_r (independent chains);
+  // a block of n bytes adds sum(A_r) to a and n * a + sum(4 B_r - r A_r) to b
   let a = 1, b = 0;
   for (let i = 0; i < want;) {
-    const stop = Math.min(want, i + 3800); // b < 2^31 over 3800 bytes: int32 arithmetic
-    for (; i + 3 < stop; i += 4) {
-      const x0 = out[i], x1 = out[i + 1], x2 = out[i + 2], x3 = out[i + 3];
-      b = (b + 4 * a + 4 * x0 + 3 * x1 + 2 * x2 + x3) | 0;
-      a = (a + x0 + x1 + x2 + x3) | 0;
+    const n4 = (Math.min(want, i + 3800) - i) & ~3, e4 = i + n4;
+    let a0 = 0, a1 = 0, a2 = 0, a3 = 0, b0 = 0, b1 = 0, b2 = 0, b3 = 0;
+    for (; i < e4; i += 4) {
+      a0 = (a0 + out[i]) | 0; b0 = (b0 + a0) | 0;
+      a1 = (a1 + out[i + 1]) | 0; b1 = (b1 + a1) | 0;
+      a2 = (a2 + out[i + 2]) | 0; b2 = (b2 + a2) | 0;
+      a3 = (a3 + out[i + 3]) | 0; b3 = (b3 + a3) | 0;
     }
-    for (; i < stop; i++) { a = (a + out[i]) | 0; b = (b + a) | 0; }
-    a %= 65521; b %= 65521;
+    b = (b + n4 * a + 4 * (b0 + b1 + b2 + b3) - (a1 + 2 * a2 + 3 * a3)) % 65521; // exact: < 2^53
+    a = (a + a0 + a1 + a2 + a3) % 65521;
+    if (n4 === 0) { // the last 1-3 bytes
+      for (; i < want; i++) { a = (a + out[i]) % 65521; b = (b + a) % 65521; }
+    }
   }
   const adler = ((src[pos] << 24) | (src[pos + 1] << 16) | (src[pos + 2] << 8) | src[pos + 3]) >>> 0;
   if (((b << 16) | a) >>> 0 !== adler) throw bad('Adler-32 mismatch');

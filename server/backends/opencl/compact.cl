@@ -30,13 +30,13 @@ inline int3 cells(__global const float *v, __global const float *m, __global con
 }
 
 // The frames of a launch: frame j encodes frame param[j * P] of verts (T, nv, 3); row j of the
-// uint words ``param`` (P = 4 + 12 G each): frame index, key flag, keep2 (float bits: squared
-// tolerance, cells), flags, then its groups' (3, 4) float32 matrices (world -> cells); its
-// reference cells refs (3, nv) float32 at word ``refs_at + 3 nv j``. Written: ``out``'s zigzag
+// uint words ``param`` (P = 5 + 12 G each): frame index, key flag, keep2 (float bits: squared
+// tolerance, cells), flags, the slot of its reference cells in ``refs`` (slots of (3, nv)
+// float32, kept across launches), then its groups' (3, 4) float32 matrices (world -> cells). Written: ``out``'s zigzag
 // bytes 0 and 1 of the residuals (2, 3 nv) at byte 6 nv j and, for a key frame, its new cells
 // ref + r (3, nv) float32 at float ``keys_at + 3 nv j``; flags: bit 0 a bad vertex (not finite,
-// or out of the grid), bit 1 a value over 16 bits (atomically or-ed by any work-item that finds
-// one; the host zeroes them first).
+// or out of the grid), bit 1 a value over 16 bits, bit 2 a value over 8 bits (the frame needs
+// both planes) (atomically or-ed by any work-item that finds one; the host zeroes them first).
 
 #define MAGIC 12582912.0f
 #define ZZ(d) ((as_uint16(d) << 1) ^ as_uint16((d) >> 31))
@@ -56,18 +56,18 @@ inline void put(__global uchar *p, const uint nv, const uint i, const uint3 u)
 // scatters of these vector loads and stores), the tail vertices by the last one.
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void compact_frames(const uint nv, const uint n_groups, __global const float *verts,
-                    __global const uchar *groups, __global uint *param, const uint refs_at,
-                    __global uchar *out, const uint keys_at)
+                    __global const uchar *groups, __global uint *param,
+                    __global const float *refs, __global uchar *out, const uint keys_at)
 {
     const uint l = get_local_id(0), j = get_group_id(1), units = nv / 16;
     const uint per = (units + WG - 1) / WG, u0 = min(l * per, units), u1 = min(u0 + per, units);
-    __global uint *row = param + (size_t)j * (4 + 12 * n_groups);
+    __global uint *row = param + (size_t)j * (5 + 12 * n_groups);
     __global const float *v = verts + (size_t)row[0] * 3 * nv;
     const int is_key = row[1];
     const float keep2 = as_float(row[2]);
     volatile __global uint *flags = row + 3;
-    __global const float *ms = (__global const float *)(row + 4);
-    __global const float *ref = (__global const float *)(param + refs_at) + (size_t)j * 3 * nv;
+    __global const float *ms = (__global const float *)(row + 5);
+    __global const float *ref = refs + (size_t)row[4] * 3 * nv;
     __global uchar *p = out + (size_t)j * 6 * nv;
     __global float *kk = (__global float *)out + keys_at + (size_t)j * 3 * nv;
     const float lim = MAX_CELL - 1.0f, big = 4194304.0f;
@@ -133,14 +133,16 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
             vstore16(r2 + convert_float16(q2), 0, kk + 2 * nv + i0);
         }
     }
-    uint flag = (any(~oks) ? 1u : 0u) | (any(huges) || any((zs >> 16) != 0) ? 2u : 0u);
+    uint flag = (any(~oks) ? 1u : 0u) | (any(huges) || any((zs >> 16) != 0) ? 2u : 0u) |
+                (any((zs >> 8) != 0) ? 4u : 0u);
     if (l == WG - 1) {  // the last nv % 16 vertices, one by one
         for (uint i = 16 * units; i < nv; ++i) {
             const int3 r = cells(v, ms + 12 * groups[i], ref, nv, i, keep2, &bad);
             const int3 d = r - prev;
             const uint3 zz = (as_uint3(d) << 1) ^ as_uint3(d >> 31);
             put(p, nv, i, zz);
-            flag |= (bad ? 1u : 0u) | (((zz.x | zz.y | zz.z) >> 16) ? 2u : 0u);
+            flag |= (bad ? 1u : 0u) | (((zz.x | zz.y | zz.z) >> 16) ? 2u : 0u) |
+                    (((zz.x | zz.y | zz.z) >> 8) ? 4u : 0u);
             if (is_key) {
                 kk[i] = ref[i] + (float)r.x;
                 kk[nv + i] = ref[nv + i] + (float)r.y;

@@ -18,13 +18,16 @@ Measured on the 2-core shared machine (PoCL, 25k-vertex head, load 3-5): process
 sessions (solve + deform + encode) 0.43-0.45 against 0.48-0.53 ms. One work-item per vertex
 (PoCL's vectoriser across work-items) cost 2-3x the NumPy passes; float16 code per 16 vertices
 in a loop per work-item, one work-group per frame, is what pays. Deflate (0.1-0.3 ms a frame on
-noisy streams) is now most of a frame's cost.
+noisy streams) is now most of a frame's cost. Reference cells stay in slots on the device
+across launches (copied once per key frame, not once per frame: 0.24 -> 0.20 ms of the calling
+thread's CPU per frame, 0.375 -> 0.314 ms of the process's, 8 sessions a batch, FAP stream).
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+from collections import OrderedDict
 from concurrent.futures import Executor
 from typing import Any, Protocol
 
@@ -89,6 +92,44 @@ class DeviceCompact(HostKernel):
     def __init__(self, context: Any) -> None:
         super().__init__(context)
         self._group_bufs: dict[int, tuple[np.ndarray, Any, np.ndarray]] = {}
+        # reference cells of recent frames, one slot each, kept across launches: a reference (a
+        # key frame's cells, the rest mesh's) is copied in once, not once per frame (copying
+        # 12 V bytes a frame cost ~35 us of memory traffic each on the 25k head)
+        self._pool = np.empty((0, 3, 0), np.float32)
+        self._pool_buf: Any = None
+        self._slots: OrderedDict[int, tuple[np.ndarray, int]] = OrderedDict()  # id -> (ref, slot)
+
+    def _ref_slots(self, refs: list[np.ndarray], V: int) -> list[int]:
+        """The pool slot of each reference (``(3, V) float32``), copied into a free or the least
+        recently used slot when not there yet; the pool grows when the batch needs more slots.
+        Call with ``_lock`` held (a kernel reading the pool runs under it too). References are
+        known by identity: an encoder's reference array is replaced, never written to."""
+        need = len({id(r) for r in refs})
+        if self._pool.shape[2] != V or self._pool.shape[0] < need:
+            cap = max(16, 2 * need, self._pool.shape[0] if self._pool.shape[2] == V else 0)
+            self._pool = aligned_empty((cap, 3, V), np.float32)
+            self._pool_buf = self._host(self._pool, self._cl.mem_flags.READ_ONLY)
+            self._slots.clear()
+        used: set[int] = set()
+        out = []
+        for r in refs:
+            hit = self._slots.get(id(r))
+            if hit is not None and hit[0] is r:
+                self._slots.move_to_end(id(r))
+            else:
+                if hit is not None:  # a dead array's id, reused
+                    del self._slots[id(r)]
+                if len(self._slots) < self._pool.shape[0]:
+                    taken = {slot for _, slot in self._slots.values()}
+                    slot = next(k for k in range(self._pool.shape[0]) if k not in taken)
+                else:  # the least recently used slot not used by this batch
+                    old = next(k for k, (_, sl) in self._slots.items() if sl not in used)
+                    slot = self._slots.pop(old)[1]
+                self._pool[slot] = r
+                self._slots[id(r)] = hit = (r, slot)
+            used.add(hit[1])
+            out.append(hit[1])
+        return out
 
     def residuals(
         self,
@@ -103,11 +144,14 @@ class DeviceCompact(HostKernel):
         """Compact frame ``j`` of ``verts (T, V, 3)`` frame ``frame_of[j]`` (C-contiguous,
         ``ALIGN``-aligned float32), with ``mats[j] (G, 3, 4)`` and ``refs[j] (3, V)`` float32
         of ``CompactEncoder.prepare``, its encoder's ``keep2[j]`` (squared tolerance, cells), all
-        of one face (``groups (V,) uint8``).
+        of one face (``groups (V,) uint8``). A reference is copied to the device's slots once and
+        then known by identity: an array passed here must not be written to afterwards (an
+        encoder replaces its reference, never writes into it).
         Returns ``planes (J, 2, 3 V) uint8`` (zigzag bytes 0 and 1 of the residuals),
         ``new_keys (J, 3, V) float32`` (row j the new key's cells where ``keys[j]``; None
         without key frames) and ``flags (J,) uint32`` (bit 0: a bad vertex, bit 1: a residual
-        over 16 bits; rows with a flag are not valid)."""
+        over 16 bits: rows with either are not valid; bit 2: a zigzagged value over 8 bits,
+        the frame needs both planes)."""
         cl = self._cl
         if verts.dtype != np.float32 or not verts.flags.c_contiguous or verts.ctypes.data % ALIGN:
             raise ValueError("verts must be C-contiguous, aligned float32")
@@ -121,23 +165,20 @@ class DeviceCompact(HostKernel):
         G = mats[0].shape[0]
         if int(groups.max()) >= G:
             raise ValueError("a vertex's group has no matrix")
-        P = 4 + 12 * G
-        refs_at = -(-J * P // 32) * 32  # words: the references start 128-byte aligned
-        param = aligned_empty((refs_at + J * 3 * V,), np.uint32)
-        rows = param[: J * P].reshape(J, P)
+        P = 5 + 12 * G
+        param = aligned_empty((J * P,), np.uint32)
+        rows = param.reshape(J, P)
         rows[:, 0] = frame_of
         rows[:, 1] = keys
         rows[:, 2] = np.asarray(keep2, np.float32).view(np.uint32)
         rows[:, 3] = 0
-        ref_rows = param[refs_at:].view(np.float32).reshape(J, 3, V)
-        for j in range(J):
-            rows[j, 4:] = mats[j].reshape(-1).view(np.uint32)
-            ref_rows[j] = refs[j]
+        rows[:, 5:] = np.asarray(mats, np.float32).reshape(J, -1).view(np.uint32)
         any_key = any(keys)
         keys_at = -(-J * 6 * V // ALIGN) * ALIGN  # bytes: the new keys start aligned
         out = aligned_empty((keys_at + (J * 12 * V if any_key else 4),), np.uint8)
         mf = cl.mem_flags
         with self._lock:
+            rows[:, 4] = self._ref_slots(refs, V)
             self._kernel(
                 self.queue,
                 (WG, J),  # one work-group per frame
@@ -147,7 +188,7 @@ class DeviceCompact(HostKernel):
                 self._host(verts, mf.READ_ONLY),
                 self._groups(groups),
                 self._host(param, mf.READ_WRITE),
-                np.uint32(refs_at),
+                self._pool_buf,
                 self._host(out, mf.WRITE_ONLY),
                 np.uint32(keys_at // 4),
             ).wait()
@@ -211,9 +252,9 @@ def encode_batch(
         enc, f, T, seq, t, wall = frames[todo[n]]
         _, tr, _, is_key, _ = preps[n]
         try:
-            if flags[n]:  # a bad vertex (the encoder says which) or large residuals: on the host
+            if flags[n] & 3:  # a bad vertex (the encoder says which) or large residuals: host
                 return enc.encode(verts[f], T, seq=seq, t=t, wall=wall)
-            two = bool(planes[n, 1].any())
+            two = bool(flags[n] & 4)  # a value over 8 bits: both planes
             raw = planes[n] if two else planes[n, 0]
             key = new_keys[n].copy() if is_key and new_keys is not None else None
             return enc.finish(tr, is_key, 2 if two else 1, raw, key, seq=seq, t=t, wall=wall)
