@@ -761,7 +761,7 @@ async def _light_load(made, owner, nodes, watched_on, viewers, args, window):
         outs = []
         for _, conn in children:
             conn.send("stop")
-        for proc, conn in children:
+        for _proc, conn in children:
             if not await asyncio.to_thread(conn.poll, 60):
                 raise RuntimeError("a load generator process did not report its records")
             outs.append(conn.recv())
@@ -828,6 +828,7 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         shift = {"other": lambda k: 1, "owner": lambda k: 0, "spread": lambda k: k // len(nodes)}
         away_by = shift[getattr(args, "cluster_viewers", "other")]
         watched_on = {s.id: nodes[(k + away_by(k)) % len(nodes)] for k, s in enumerate(made)}
+
         async def deformed() -> int:  # frames the server deformed and encoded, all sessions
             try:  # an overloaded server may not answer in time: the point is still measured
                 infos = await asyncio.gather(*(info(s.id) for s in made))
