@@ -367,6 +367,8 @@ def test_workers_n_runs_n_nodes_on_one_port(cluster, tmp_path):
             return len(seen) == 2 and sum(n["url"] == srv.url for n in v["nodes"]) == 2
 
         wait_for(both, what="two node processes on one port")
+        # no FACECAST_RESULTS_DIR: the parent says so once, not each node process
+        assert srv.tail(100_000).count("FACECAST_RESULTS_DIR is unset") == 1, srv.tail()
         # a node process that dies is started again: the machine keeps its two nodes
         pids = {n["pid"] for n in view(srv)["nodes"] if n["url"] == srv.url}
         os.kill(next(iter(pids)), signal.SIGKILL)
