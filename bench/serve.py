@@ -60,6 +60,7 @@ log = logging.getLogger(__name__)
 
 ADMIN_KEY = "bench-serve-key"
 _VIEWER_OPTS: dict = {}  # --viewer-rcvbuf / --viewer-queue
+_SERVER_ENV: dict[str, str] = {}  # every server's (single and cluster nodes alike): --coalesce-ms
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -177,6 +178,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--cluster-sessions",
         help="session counts of the cluster sweep (default: --sessions)",
     )
+    p.add_argument(
+        "--coalesce-ms",
+        type=float,
+        default=None,
+        help="FACECAST_LIVE_COALESCE_MS of every server measured, the single process and the "
+        "cluster's nodes alike: how long a deformation batch may wait for more frames (a node "
+        "holding 1/N of the sessions makes smaller batches by itself)",
+    )
     p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
 
 
@@ -213,6 +222,7 @@ def _server(
         "FACECAST_MAX_SESSIONS": "256",
         "FACECAST_MAX_VIEWERS_PER_SESSION": "1024",
         "FACECAST_MAX_PRODUCER_FPS": "1000",
+        **_SERVER_ENV,
     }
     return LocalServer(
         None,
@@ -1036,20 +1046,30 @@ def _at_target(points: list[dict], args) -> int:
 
 def _cluster_table(enc: str, single: list[dict], cluster: dict, args) -> str:
     """Single process and cluster side by side, point by point (same session counts where both
-    were measured)."""
+    were measured), with who used the machine's cores in each window."""
     by_n = {p["sessions"]: p for p in single}
     lines = [
         (
             f"### Sessions at {args.fps:g} fps: one process vs {cluster['nodes']} nodes + Redis, "
-            f"{enc} (cluster viewers on another node than their producer)"
+            f"{enc} (cluster viewers: {cluster.get('viewers_on', 'other')})"
+        ),
+        "",
+        (
+            "Cores used in each window (CPU-seconds per second): the server (each node, Redis), "
+            "the load generator, and everything else on the machine (other work sharing it)."
         ),
         "",
         (
             "| sessions | single fps min | single p95 ms | single | cluster fps min | cluster p95 ms "
-            "| cluster | cluster CPU (nodes + Redis) |"
+            "| cluster | single CPU | cluster nodes CPU | Redis | generator single / cluster "
+            "| others single / cluster | µs/session-frame single / cluster |"
         ),
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+
+    def g(p: dict | None, k: str) -> Any:
+        return "–" if p is None or p.get(k) is None else p[k]
+
     for p in cluster["sessions_sweep"]:
         s = by_n.get(p["sessions"])
         sv = (
@@ -1057,9 +1077,13 @@ def _cluster_table(enc: str, single: list[dict], cluster: dict, args) -> str:
             if s
             else "– | – | –"
         )
+        nodes = " + ".join(f"{x:.2f}" for x in p.get("node_cpu") or [])
         lines.append(
             f"| {p['sessions']} | {sv} | {p['fps_min']} | {p['latency_ms_p95']} | "
-            f"{'ok' if _ok(p, args) else 'miss'} | {p['server_cpu']} |"
+            f"{'ok' if _ok(p, args) else 'miss'} | {g(s, 'server_cpu')} | {nodes} | "
+            f"{g(p, 'redis_cpu')} | {g(s, 'generator_cpu')} / {g(p, 'generator_cpu')} | "
+            f"{g(s, 'others_cpu')} / {g(p, 'others_cpu')} | "
+            f"{g(s, 'server_cpu_us_per_session_frame')} / {g(p, 'server_cpu_us_per_session_frame')} |"
         )
     lines.append(
         f"\nSessions at target: single {cluster['single_sessions_at_target']}, cluster "
@@ -1080,6 +1104,8 @@ def _ratios(points: list[dict], baseline: list[dict], key: str) -> list[float | 
 def run(args: argparse.Namespace) -> int:
     logging.getLogger("httpx").setLevel(logging.WARNING)
     _VIEWER_OPTS.update(rcvbuf=args.viewer_rcvbuf, queue=args.viewer_queue)
+    if args.coalesce_ms is not None:
+        _SERVER_ENV["FACECAST_LIVE_COALESCE_MS"] = f"{args.coalesce_ms:g}"
     t_start = time.time()
     load_before = os.getloadavg()
     costs = frame_costs(args.face, args.backend)
@@ -1141,6 +1167,8 @@ def run(args: argparse.Namespace) -> int:
         "by_encoding": by_encoding,
         "fps": args.fps,
         "layers": args.layers,
+        "generator": args.generator,
+        "coalesce_ms": args.coalesce_ms,
         "backend": health.get("backend", args.backend),
         "device": health.get("device"),
         "viewer_kind": args.viewer_kind,
