@@ -32,7 +32,7 @@ from .. import errors
 from ..live.core import authorise, error_json
 from ..live.registry import SessionRegistry
 from ..live.session import LiveSession
-from . import envelope, keys, leases
+from . import envelope, extras, keys, leases
 from .inbound import RemoteProducer, close_body, close_reply
 from .mirror import MirrorSession
 from .publisher import Publisher
@@ -71,6 +71,7 @@ class Owned:
     epoch: int
     wants: dict[str, tuple[frozenset[str], float]] = field(default_factory=dict)
     producers: dict[str, RemoteProducer] = field(default_factory=dict)
+    extras: str = ""  #: its tokens and layers as last written to Redis (``extras.snapshot``)
 
 
 class OwnerRelay:
@@ -345,6 +346,10 @@ class Cluster:
             for sid, o in self.owned.items():
                 snap = o.session.snapshot().model_dump_json()
                 pipe.set(keys.stats(sid), snap, px=keys.NODE_TTL_MS)
+                more = extras.snapshot(o.session)
+                if more != o.extras:  # scoped tokens or REST layers changed: for a takeover
+                    pipe.set(keys.extras(sid), more)
+                    o.extras = more
             await pipe.execute()
         nodes = {p.node for o in self.owned.values() for p in o.producers.values()}
         if nodes:
@@ -399,6 +404,7 @@ class Cluster:
         await self.redis.sadd(keys.SESSIONS, spec.id)
         if epoch > 0:
             o.epoch = epoch
+            o.extras = ""  # Redis may have restarted empty: written again at the next heartbeat
             if o.session.compact is not None:
                 o.session.compact.request_key()
             self.publisher.put(
@@ -439,7 +445,9 @@ class Cluster:
             return
         try:
             await self.publisher.flush()
-            await self.redis.delete(keys.session(sid), keys.epoch(sid), keys.stats(sid))
+            await self.redis.delete(
+                keys.session(sid), keys.epoch(sid), keys.stats(sid), keys.extras(sid)
+            )
             await self.redis.srem(keys.SESSIONS, sid)
             await leases.release(self.redis, sid, self.id)
         except Exception as e:  # noqa: BLE001 - the broker went away; nodes drop it on their own
@@ -477,6 +485,7 @@ class Cluster:
                 await leases.release(self.redis, sid, self.id)
                 return
             rec = SessionRecord.model_validate_json(raw)
+            more = await self.redis.get(keys.extras(sid))
             mirror = self.mirrors.pop(sid, None)
             if mirror is not None:
                 mirror.promote()
@@ -484,7 +493,9 @@ class Cluster:
             session = await self.reg.restore(rec.spec(), mirror)
             session.seq = (epoch << 20) & 0xFFFFFFFF  # never a seq an old owner's key frame had
             self.takeovers += 1
+            extras.restore(session, more)  # its scoped tokens and REST layers
             await self._own(session, epoch)
+            self.owned[sid].extras = extras.snapshot(session)
             log.warning("cluster: node %s took over session %s (epoch %d)", self.id, sid, epoch)
         except Exception:  # e.g. a face only another node has: let another try
             log.exception("cluster: taking over session %s failed", sid)
