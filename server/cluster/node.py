@@ -230,6 +230,9 @@ class Cluster:
     async def _connect(self) -> None:
         """(Re)join: subscribe, announce this node, share the admin key, write back owned sessions."""
         await self._close_pubsub()
+        # idle pooled connections may point at a Redis that restarted: the next command would
+        # find one closed and take the broker for lost again (a second 503 just after rejoining)
+        await self.redis.connection_pool.disconnect(inuse_connections=False)
         ps = self.redis.pubsub()
         channels = [keys.inbox(self.id)]
         channels += [keys.up(s) for s in self.owned] + [keys.down(s) for s in self.mirrors]
