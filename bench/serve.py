@@ -60,6 +60,7 @@ log = logging.getLogger(__name__)
 
 ADMIN_KEY = "bench-serve-key"
 _VIEWER_OPTS: dict = {}  # --viewer-rcvbuf / --viewer-queue
+_SERVER_ENV: dict[str, str] = {}  # every server's (single and cluster nodes alike): --coalesce-ms
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -102,6 +103,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="client",
         help="viewers: the real asyncio client (default; end to end) or a minimal reader that skips "
         "payloads (measures the server without the Python client's parsing cost)",
+    )
+    p.add_argument(
+        "--generator",
+        choices=("light", "client"),
+        default="light",
+        help="load generator: raw-socket producers and viewers in --generator-processes processes "
+        "on uvloop (default: a few µs of CPU per frame, bench/serve_load.py), or the real asyncio "
+        "client (producers in this process, viewers per --viewer-kind over --viewer-processes; "
+        "about as much CPU per frame as the server)",
+    )
+    p.add_argument(
+        "--generator-processes",
+        type=int,
+        default=1,
+        help="light generator: processes the producers and viewers are spread over (default 1)",
     )
     p.add_argument(
         "--viewer-processes",
@@ -162,6 +178,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--cluster-sessions",
         help="session counts of the cluster sweep (default: --sessions)",
     )
+    p.add_argument(
+        "--coalesce-ms",
+        type=float,
+        default=None,
+        help="FACECAST_LIVE_COALESCE_MS of every server measured, the single process and the "
+        "cluster's nodes alike: how long a deformation batch may wait for more frames (a node "
+        "holding 1/N of the sessions makes smaller batches by itself)",
+    )
     p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
 
 
@@ -198,6 +222,7 @@ def _server(
         "FACECAST_MAX_SESSIONS": "256",
         "FACECAST_MAX_VIEWERS_PER_SESSION": "1024",
         "FACECAST_MAX_PRODUCER_FPS": "1000",
+        **_SERVER_ENV,
     }
     return LocalServer(
         None,
@@ -242,6 +267,9 @@ class _Cluster:
     def cpu_seconds(self) -> float:
         procs = [n.proc.pid for n in self.nodes if n.proc] + [self.redis.proc.pid]
         return sum(process_cpu_seconds(pid) for pid in procs)
+
+    def node_cpu_seconds(self) -> list[float]:
+        return [process_cpu_seconds(n.proc.pid) if n.proc else float("nan") for n in self.nodes]
 
     def redis_cpu_seconds(self) -> float:
         return process_cpu_seconds(self.redis.proc.pid) if self.redis.proc else float("nan")
@@ -579,6 +607,194 @@ def _viewer_process(url, seats, kind, encoding, opts, ready, stop, conn) -> None
     conn.close()
 
 
+def _machine_cpu() -> tuple[float, float]:
+    """``(busy, total)`` CPU seconds of the whole machine so far (``/proc/stat``), or NaNs."""
+    try:
+        f = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    except (OSError, ValueError):
+        return float("nan"), float("nan")
+    tick = os.sysconf("SC_CLK_TCK")
+    idle = f[3] + (f[4] if len(f) > 4 else 0)
+    return (sum(f) - idle) / tick, sum(f) / tick
+
+
+def _cpu_snapshot(server, clients_cpu) -> dict:
+    """CPU seconds so far of the server (each node and Redis on a cluster), of the load generator
+    and of the whole machine."""
+    busy, total = _machine_cpu()
+    snap = {
+        "server": server.cpu_seconds() if server else float("nan"),
+        "clients": clients_cpu(),
+        "bench": _own_cpu(),
+        "machine_busy": busy,
+        "machine_total": total,
+    }
+    if isinstance(server, _Cluster):
+        snap["nodes"] = server.node_cpu_seconds()
+        snap["redis"] = server.redis_cpu_seconds()
+    return snap
+
+
+def _cpu_use(w: dict) -> dict:
+    """Cores each party used in window ``w`` (CPU seconds per second)."""
+    a, b, dt = w["cpu"], w["cpu1"], w["t1"] - w["t0"]
+    ncpu = os.cpu_count() or 1
+    machine = (
+        ncpu * (b["machine_busy"] - a["machine_busy"]) / (b["machine_total"] - a["machine_total"])
+        if b["machine_total"] > a["machine_total"]
+        else float("nan")
+    )
+    ours = (b["server"] - a["server"]) + (b["clients"] - a["clients"])
+    out = {
+        "server_cpu": round((b["server"] - a["server"]) / dt, 3),
+        "generator_cpu": round((b["clients"] - a["clients"]) / dt, 3),
+        "machine_cpu": round(machine, 3),
+        # everything else on the machine: other work sharing it (its helpers, CI, ...)
+        "others_cpu": round(machine - ours / dt, 3),
+    }
+    if "nodes" in a:
+        out["node_cpu"] = [round((y - x) / dt, 3) for x, y in zip(a["nodes"], b["nodes"])]
+        out["redis_cpu"] = round((b["redis"] - a["redis"]) / dt, 3)
+    return out
+
+
+async def _client_load(made, owner, nodes, watched_on, viewers, args, window, url):
+    """The real asyncio client as load: producers in this process, viewers (``--viewer-kind``)
+    spread over ``--viewer-processes`` processes. ``(records, window, failures)``."""
+    stop = asyncio.Event()
+    records: list[list] = []
+    ready_events = []
+    tasks = []
+    n_proc = max(1, min(getattr(args, "viewer_processes", 1), len(made) * viewers))
+    _VIEWER_OPTS["retry"] = len(nodes) > 1
+    away: list[dict] = [{} for _ in range(n_proc - 1)]  # seats of the other processes
+    for k, s in enumerate(s for s in made for _ in range(viewers)):
+        rec: list = []
+        records.append(rec)
+        if k % n_proc:
+            away[k % n_proc - 1][k] = _Seat(s.id, s.viewer_token, watched_on[s.id])
+            continue
+        ev = asyncio.Event()
+        ready_events.append(ev)
+        fn = _light_viewer if args.viewer_kind == "light" else _viewer
+        tasks.append(asyncio.create_task(fn(watched_on[s.id], s, args.encoding, stop, ev, rec)))
+    mp = multiprocessing.get_context("spawn")
+    mp_stop, children = mp.Event(), []
+    for seats in away:
+        ready, (mine, theirs) = mp.Event(), mp.Pipe(duplex=False)
+        proc = mp.Process(
+            target=_viewer_process,
+            daemon=True,
+            args=(
+                url,
+                seats,
+                args.viewer_kind,
+                args.encoding,
+                dict(_VIEWER_OPTS),
+                ready,
+                mp_stop,
+                theirs,
+            ),
+        )
+        proc.start()
+        children.append((proc, ready, mine))
+    await asyncio.wait_for(asyncio.gather(*(e.wait() for e in ready_events)), 120)
+    for _proc, ready, _ in children:
+        if not await asyncio.to_thread(ready.wait, 180):
+            raise RuntimeError("a viewer process did not get its viewers connected")
+    sent: list[int] = []
+    tasks += [
+        asyncio.create_task(
+            _producer(nodes[owner[s.id]], s, args.fps, stop, sent, retry=len(nodes) > 1)
+        )
+        for s in made
+    ]
+
+    def clients_cpu() -> float:
+        return _own_cpu() + sum(process_cpu_seconds(p.pid) for p, _, _ in children)
+
+    w = await window(clients_cpu)
+    stop.set()
+    mp_stop.set()
+    results = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 60)
+    for proc, _, conn in children:
+        for k, rec in (await asyncio.to_thread(conn.recv)).items():
+            records[k][:] = rec
+        proc.join(10)
+    failures = [r for r in results if isinstance(r, BaseException)]
+    return records, w, failures
+
+
+async def _light_load(made, owner, nodes, watched_on, viewers, args, window):
+    """The cheap generator (``bench/serve_load.py``): producers and viewers spread over
+    ``--generator-processes`` processes. ``(records, window, failures, generator info)``."""
+    from serve_load import ProducerSeat, ViewerSeat, run_generator
+
+    n_proc = max(1, args.generator_processes)
+    prods: list[list] = [[] for _ in range(n_proc)]
+    views: list[list] = [[] for _ in range(n_proc)]
+    for k, s in enumerate(made):
+        prods[k % n_proc].append(ProducerSeat(k, s.id, s.producer_token, nodes[owner[s.id]]))
+    slot = 0
+    for s in made:
+        for _ in range(viewers):
+            views[slot % n_proc].append(ViewerSeat(slot, s.id, s.viewer_token, watched_on[s.id]))
+            slot += 1
+    records: list[list] = [[] for _ in range(slot)]
+    mp = multiprocessing.get_context("spawn")
+    children = []
+    try:
+        for p, v in zip(prods, views):
+            mine, theirs = mp.Pipe()
+            proc = mp.Process(
+                target=run_generator, daemon=True, args=(p, v, args.fps, args.encoding, theirs)
+            )
+            proc.start()
+            children.append((proc, mine))
+
+        async def hear(conn, what: str, timeout: float) -> Any:
+            if not await asyncio.to_thread(conn.poll, timeout):
+                raise RuntimeError(f"a load generator process did not say {what!r} in {timeout} s")
+            got = conn.recv()
+            if got != what:
+                raise RuntimeError(f"a load generator process failed: {got!r}")
+            return got
+
+        for _, conn in children:  # every viewer connected
+            await hear(conn, "ready", 180)
+        for _, conn in children:
+            conn.send("go")
+        for _, conn in children:  # every producer connected and sending
+            await hear(conn, "producing", 180)
+        pids = [p.pid for p, _ in children]
+        w = await window(lambda: sum(process_cpu_seconds(pid) for pid in pids))
+        outs = []
+        for _, conn in children:
+            conn.send("stop")
+        for _proc, conn in children:
+            if not await asyncio.to_thread(conn.poll, 60):
+                raise RuntimeError("a load generator process did not report its records")
+            outs.append(conn.recv())
+    finally:
+        for proc, _ in children:
+            proc.join(10)
+            if proc.is_alive():
+                proc.kill()
+    failures: list = []
+    gen = {"producer_reconnects": 0, "viewer_reconnects": 0, "frames_sent": 0}
+    for out in outs:
+        if "error" in out:
+            failures.append(out["error"])
+            continue
+        for k, rec in out["records"].items():
+            records[k] = rec
+        failures += out["viewer_failures"]
+        gen["producer_reconnects"] += out["producer_reconnects"]
+        gen["viewer_reconnects"] += out["viewer_reconnects"]
+        gen["frames_sent"] += out["sent"]
+    return records, w, failures, gen
+
+
 async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> dict:
     """One load point: ``sessions`` sessions with ``viewers`` viewers each, for warmup + seconds.
 
@@ -622,58 +838,6 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         shift = {"other": lambda k: 1, "owner": lambda k: 0, "spread": lambda k: k // len(nodes)}
         away_by = shift[getattr(args, "cluster_viewers", "other")]
         watched_on = {s.id: nodes[(k + away_by(k)) % len(nodes)] for k, s in enumerate(made)}
-        stop = asyncio.Event()
-        records: list[list] = []
-        ready_events = []
-        tasks = []
-        n_proc = max(1, min(getattr(args, "viewer_processes", 1), sessions * viewers))
-        _VIEWER_OPTS["retry"] = len(nodes) > 1
-        away: list[dict] = [{} for _ in range(n_proc - 1)]  # seats of the other processes
-        for k, s in enumerate(s for s in made for _ in range(viewers)):
-            rec: list = []
-            records.append(rec)
-            if k % n_proc:
-                away[k % n_proc - 1][k] = _Seat(s.id, s.viewer_token, watched_on[s.id])
-                continue
-            ev = asyncio.Event()
-            ready_events.append(ev)
-            fn = _light_viewer if args.viewer_kind == "light" else _viewer
-            tasks.append(asyncio.create_task(fn(watched_on[s.id], s, args.encoding, stop, ev, rec)))
-        mp = multiprocessing.get_context("spawn")
-        mp_stop, children = mp.Event(), []
-        for seats in away:
-            ready, (mine, theirs) = mp.Event(), mp.Pipe(duplex=False)
-            proc = mp.Process(
-                target=_viewer_process,
-                daemon=True,
-                args=(
-                    url,
-                    seats,
-                    args.viewer_kind,
-                    args.encoding,
-                    dict(_VIEWER_OPTS),
-                    ready,
-                    mp_stop,
-                    theirs,
-                ),
-            )
-            proc.start()
-            children.append((proc, ready, mine))
-        await asyncio.wait_for(asyncio.gather(*(e.wait() for e in ready_events)), 120)
-        for _proc, ready, _ in children:
-            if not await asyncio.to_thread(ready.wait, 180):
-                raise RuntimeError("a viewer process did not get its viewers connected")
-        sent: list[int] = []
-        tasks += [
-            asyncio.create_task(
-                _producer(nodes[owner[s.id]], s, args.fps, stop, sent, retry=len(nodes) > 1)
-            )
-            for s in made
-        ]
-        await asyncio.sleep(args.warmup)
-
-        def clients_cpu() -> float:
-            return _own_cpu() + sum(process_cpu_seconds(p.pid) for p, _, _ in children)
 
         async def deformed() -> int:  # frames the server deformed and encoded, all sessions
             try:  # an overloaded server may not answer in time: the point is still measured
@@ -683,27 +847,25 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
                 return -1
             return sum(i.stats.frames_deformed for i in infos)
 
-        deformed0 = await deformed()
-        t0, cpu_s0, cpu_c0 = (
-            time.time(),
-            server.cpu_seconds() if server else float("nan"),
-            clients_cpu(),
-        )
-        await asyncio.sleep(args.seconds)
-        t1, cpu_s1, cpu_c1 = (
-            time.time(),
-            server.cpu_seconds() if server else float("nan"),
-            clients_cpu(),
-        )
-        deformed1 = await deformed()
-        stop.set()
-        mp_stop.set()
-        results = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 60)
-        for proc, _, conn in children:
-            for k, rec in (await asyncio.to_thread(conn.recv)).items():
-                records[k][:] = rec
-            proc.join(10)
-        failures = [r for r in results if isinstance(r, BaseException)]
+        async def window(clients_cpu) -> dict:
+            """The measured window, after the warmup: times, CPU of everyone, frames deformed."""
+            await asyncio.sleep(args.warmup)
+            w: dict = {"deformed0": await deformed()}
+            w.update(t0=time.time(), cpu=_cpu_snapshot(server, clients_cpu))
+            await asyncio.sleep(args.seconds)
+            w.update(t1=time.time(), cpu1=_cpu_snapshot(server, clients_cpu))
+            w["deformed1"] = await deformed()
+            return w
+
+        if getattr(args, "generator", "client") == "light":
+            records, w, failures, gen = await _light_load(
+                made, owner, nodes, watched_on, viewers, args, window
+            )
+        else:
+            records, w, failures = await _client_load(
+                made, owner, nodes, watched_on, viewers, args, window, url
+            )
+            gen = {}
         for r in failures[:3]:
             log.warning("a client failed: %r", r)
         infos = []
@@ -720,6 +882,9 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
                 except LiveError:
                     continue
 
+    t0, t1, deformed0, deformed1 = w["t0"], w["t1"], w["deformed0"], w["deformed1"]
+    cpu_s0, cpu_s1 = w["cpu"]["server"], w["cpu1"]["server"]
+    cpu_c0, cpu_c1 = w["cpu"]["clients"], w["cpu1"]["clients"]
     window = t1 - t0
     rates, lat, skipped, sizes = [], [], 0, []
     produced: set[tuple[int, int]] = set()  # (session, seq) of frames some viewer received
@@ -771,6 +936,12 @@ async def run_point(server, url: str, *, sessions: int, viewers: int, args) -> d
         else None,
         "client_cpu_us_per_frame": round(1e6 * (cpu_c1 - cpu_c0) / len(lat), 1) if lat else None,
         "client_failures": len(failures),
+        "generator": getattr(args, "generator", "client"),
+        **gen,
+        # cores used in the window: server (per node and Redis on a cluster), the load
+        # generator, the whole machine and what the rest of it ran (other work sharing it)
+        **_cpu_use(w),
+        "loadavg": [round(x, 2) for x in os.getloadavg()],
         "seconds": round(window, 2),
     }
 
@@ -875,20 +1046,30 @@ def _at_target(points: list[dict], args) -> int:
 
 def _cluster_table(enc: str, single: list[dict], cluster: dict, args) -> str:
     """Single process and cluster side by side, point by point (same session counts where both
-    were measured)."""
+    were measured), with who used the machine's cores in each window."""
     by_n = {p["sessions"]: p for p in single}
     lines = [
         (
             f"### Sessions at {args.fps:g} fps: one process vs {cluster['nodes']} nodes + Redis, "
-            f"{enc} (cluster viewers on another node than their producer)"
+            f"{enc} (cluster viewers: {cluster.get('viewers_on', 'other')})"
+        ),
+        "",
+        (
+            "Cores used in each window (CPU-seconds per second): the server (each node, Redis), "
+            "the load generator, and everything else on the machine (other work sharing it)."
         ),
         "",
         (
             "| sessions | single fps min | single p95 ms | single | cluster fps min | cluster p95 ms "
-            "| cluster | cluster CPU (nodes + Redis) |"
+            "| cluster | single CPU | cluster nodes CPU | Redis | generator single / cluster "
+            "| others single / cluster | µs/session-frame single / cluster |"
         ),
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+
+    def g(p: dict | None, k: str) -> Any:
+        return "–" if p is None or p.get(k) is None else p[k]
+
     for p in cluster["sessions_sweep"]:
         s = by_n.get(p["sessions"])
         sv = (
@@ -896,9 +1077,13 @@ def _cluster_table(enc: str, single: list[dict], cluster: dict, args) -> str:
             if s
             else "– | – | –"
         )
+        nodes = " + ".join(f"{x:.2f}" for x in p.get("node_cpu") or [])
         lines.append(
             f"| {p['sessions']} | {sv} | {p['fps_min']} | {p['latency_ms_p95']} | "
-            f"{'ok' if _ok(p, args) else 'miss'} | {p['server_cpu']} |"
+            f"{'ok' if _ok(p, args) else 'miss'} | {g(s, 'server_cpu')} | {nodes} | "
+            f"{g(p, 'redis_cpu')} | {g(s, 'generator_cpu')} / {g(p, 'generator_cpu')} | "
+            f"{g(s, 'others_cpu')} / {g(p, 'others_cpu')} | "
+            f"{g(s, 'server_cpu_us_per_session_frame')} / {g(p, 'server_cpu_us_per_session_frame')} |"
         )
     lines.append(
         f"\nSessions at target: single {cluster['single_sessions_at_target']}, cluster "
@@ -919,6 +1104,8 @@ def _ratios(points: list[dict], baseline: list[dict], key: str) -> list[float | 
 def run(args: argparse.Namespace) -> int:
     logging.getLogger("httpx").setLevel(logging.WARNING)
     _VIEWER_OPTS.update(rcvbuf=args.viewer_rcvbuf, queue=args.viewer_queue)
+    if args.coalesce_ms is not None:
+        _SERVER_ENV["FACECAST_LIVE_COALESCE_MS"] = f"{args.coalesce_ms:g}"
     t_start = time.time()
     load_before = os.getloadavg()
     costs = frame_costs(args.face, args.backend)
@@ -980,6 +1167,8 @@ def run(args: argparse.Namespace) -> int:
         "by_encoding": by_encoding,
         "fps": args.fps,
         "layers": args.layers,
+        "generator": args.generator,
+        "coalesce_ms": args.coalesce_ms,
         "backend": health.get("backend", args.backend),
         "device": health.get("device"),
         "viewer_kind": args.viewer_kind,

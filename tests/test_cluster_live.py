@@ -367,6 +367,8 @@ def test_workers_n_runs_n_nodes_on_one_port(cluster, tmp_path):
             return len(seen) == 2 and sum(n["url"] == srv.url for n in v["nodes"]) == 2
 
         wait_for(both, what="two node processes on one port")
+        # no FACECAST_RESULTS_DIR: the parent says so once, not each node process
+        assert srv.tail(100_000).count("FACECAST_RESULTS_DIR is unset") == 1, srv.tail()
         # a node process that dies is started again: the machine keeps its two nodes
         pids = {n["pid"] for n in view(srv)["nodes"] if n["url"] == srv.url}
         os.kill(next(iter(pids)), signal.SIGKILL)
@@ -550,6 +552,53 @@ def test_redis_restarted_under_load_nodes_recover(tmp_path):
             if n is not None:
                 n.stop()
         redis.stop()
+
+
+def test_scoped_tokens_and_rest_layers_survive_the_owners_death(tmp_path):
+    """A scoped producer token minted and a REST layer set on the owner work on the node that
+    takes the session over after the owner is killed (they were kept in Redis)."""
+    import redis as redis_sync
+
+    broker = RedisServer().start()
+    a = b = None
+    try:
+        a, b = node(broker.url, tmp_path, "a"), node(broker.url, tmp_path, "b")
+
+        async def before():
+            async with SessionAdmin(a.url, a.admin_key) as admin:
+                s = await admin.create(face=FACE, input="fap", fps=FPS)
+                scoped = await admin.token(s.id, ["expression"])
+                await admin.set_layer(s.id, "smile", {"kind": "expression", "expression": "joy"})
+            return s, scoped
+
+        s, scoped = run(before())
+        r = redis_sync.Redis.from_url(broker.url)
+        try:  # the owner writes them at its heartbeat
+            wait_for(lambda: b"smile" in (r.get(f"facecast:extras:{s.id}") or b""), what="extras")
+        finally:
+            r.close()
+        a.kill()
+        wait_for(lambda: s.id in next(n for n in view(b)["nodes"] if n["url"] == b.url)["sessions"])
+
+        async def after():
+            async with SessionAdmin(b.url, b.admin_key) as admin:
+                layers = await admin.layers(s.id)
+            hello = ProducerHello(role="expression")
+            async with produce(b.url, s.id, scoped.token, hello) as p:
+                await p.send_faps(fap_vector(0), 0.0)
+            with pytest.raises(LiveError):  # a token the session never had is still refused
+                async with produce(b.url, s.id, "not-" + scoped.token, hello):
+                    pass
+            return layers
+
+        layers = run(after())
+        smile = [x for x in layers.layers if x.name == "smile"]
+        assert smile and smile[0].source == "rest" and smile[0].spec["expression"] == "joy"
+    finally:
+        for n in (a, b):
+            if n is not None:
+                n.stop()
+        broker.stop()
 
 
 # -- without servers: the mirror's rules and the envelopes ------------------------------------------

@@ -49,6 +49,12 @@ def stats(sid: str) -> str:
     return f"{PREFIX}stats:{sid}"
 
 
+def extras(sid: str) -> str:
+    """What a session's owner adds to it while it runs, for a node that takes it over: scoped
+    producer tokens and REST layers (JSON ``SessionExtras``, written at its owner's heartbeat)."""
+    return f"{PREFIX}extras:{sid}"
+
+
 def up(sid: str) -> str:
     """Channel to a session's owner: producer input forwarded, viewers' wishes, close requests."""
     return f"{PREFIX}up:{sid}"

@@ -32,7 +32,7 @@ from .. import errors
 from ..live.core import authorise, error_json
 from ..live.registry import SessionRegistry
 from ..live.session import LiveSession
-from . import envelope, keys, leases
+from . import envelope, extras, keys, leases
 from .inbound import RemoteProducer, close_body, close_reply
 from .mirror import MirrorSession
 from .publisher import Publisher
@@ -71,6 +71,7 @@ class Owned:
     epoch: int
     wants: dict[str, tuple[frozenset[str], float]] = field(default_factory=dict)
     producers: dict[str, RemoteProducer] = field(default_factory=dict)
+    extras: str = ""  #: its tokens and layers as last written to Redis (``extras.snapshot``)
 
 
 class OwnerRelay:
@@ -139,6 +140,7 @@ class Cluster:
         self.publisher = Publisher(self.redis, self._down)
         self.takeovers = 0
         self._pubsub: Any = None
+        self._reader: asyncio.Task[None] | None = None  # reads ``_pubsub``; one per connection
         self._tasks: list[asyncio.Task[None]] = []
         self._background: set[asyncio.Task[Any]] = set()
         self._adopting: set[str] = set()
@@ -163,16 +165,17 @@ class Cluster:
         self.publisher.start()
         await self._connect()
         loop = asyncio.get_running_loop()
-        self._tasks = [loop.create_task(self._read()), loop.create_task(self._ticks())]
+        self._tasks = [loop.create_task(self._ticks())]
         log.info("cluster node %s on %s", self.id, redacted(self.redis_url))
 
     async def stop(self) -> None:
         """Leave the cluster: other nodes take this node's sessions over at once."""
         self._stopping = True  # the loops end even if a client library swallows a cancellation
-        for t in self._tasks:
+        tasks = [*self._tasks, *([self._reader] if self._reader is not None else [])]
+        for t in tasks:
             t.cancel()
-        if self._tasks:
-            await asyncio.wait(self._tasks, timeout=3.0)
+        if tasks:
+            await asyncio.wait(tasks, timeout=3.0)
         self._handoff = set(self.owned)
         for o in self.owned.values():
             for p in list(o.producers.values()):
@@ -200,11 +203,24 @@ class Cluster:
 
     async def _close_pubsub(self) -> None:
         ps, self._pubsub = self._pubsub, None
-        await self._close(ps)
+        await self._close(ps, self._stop_reader())
+
+    def _stop_reader(self) -> asyncio.Task[None] | None:
+        """Stop reading the pub/sub connection (the reader, to wait for; None if none or this is
+        it). Its read is cancelled before the connection is closed: a closed pub/sub gives its
+        connection back to the pool, where the next one must not find a read still waiting."""
+        reader, self._reader = self._reader, None
+        if reader is None or reader is asyncio.current_task():
+            return None
+        reader.cancel()
+        return reader
 
     @staticmethod
-    async def _close(ps: Any) -> None:
-        """Close a pub/sub connection (at most 2 s: the peer may be gone)."""
+    async def _close(ps: Any, reader: asyncio.Task[None] | None = None) -> None:
+        """Close a pub/sub connection once ``reader`` has stopped (at most 2 s each: the peer may
+        be gone)."""
+        if reader is not None:
+            await asyncio.wait({reader}, timeout=2.0)
         if ps is not None:
             try:
                 await asyncio.wait_for(ps.aclose(), 2.0)
@@ -214,11 +230,16 @@ class Cluster:
     async def _connect(self) -> None:
         """(Re)join: subscribe, announce this node, share the admin key, write back owned sessions."""
         await self._close_pubsub()
+        # idle pooled connections may point at a Redis that restarted: the next command would
+        # find one closed and take the broker for lost again (a second 503 just after rejoining)
+        await self.redis.connection_pool.disconnect(inuse_connections=False)
         ps = self.redis.pubsub()
         channels = [keys.inbox(self.id)]
         channels += [keys.up(s) for s in self.owned] + [keys.down(s) for s in self.mirrors]
         await ps.subscribe(*channels)
         self._pubsub = ps
+        self._stop_reader()
+        self._reader = asyncio.get_running_loop().create_task(self._read(ps))
         await self._beat()
         await self.redis.set(keys.ADMIN_KEY, self.admin_key, nx=True)
         for o in list(self.owned.values()):
@@ -250,7 +271,7 @@ class Cluster:
                 p.stop()
             o.producers.clear()
         ps, self._pubsub = self._pubsub, None  # this one, not the next connection's
-        self._spawn(self._close(ps))
+        self._spawn(self._close(ps, self._stop_reader()))
 
     def _spawn(self, coro: Coroutine[Any, Any, Any]) -> None:
         """Run ``coro`` in the background (kept referenced until done)."""
@@ -328,6 +349,10 @@ class Cluster:
             for sid, o in self.owned.items():
                 snap = o.session.snapshot().model_dump_json()
                 pipe.set(keys.stats(sid), snap, px=keys.NODE_TTL_MS)
+                more = extras.snapshot(o.session)
+                if more != o.extras:  # scoped tokens or REST layers changed: for a takeover
+                    pipe.set(keys.extras(sid), more)
+                    o.extras = more
             await pipe.execute()
         nodes = {p.node for o in self.owned.values() for p in o.producers.values()}
         if nodes:
@@ -382,6 +407,7 @@ class Cluster:
         await self.redis.sadd(keys.SESSIONS, spec.id)
         if epoch > 0:
             o.epoch = epoch
+            o.extras = ""  # Redis may have restarted empty: written again at the next heartbeat
             if o.session.compact is not None:
                 o.session.compact.request_key()
             self.publisher.put(
@@ -422,7 +448,9 @@ class Cluster:
             return
         try:
             await self.publisher.flush()
-            await self.redis.delete(keys.session(sid), keys.epoch(sid), keys.stats(sid))
+            await self.redis.delete(
+                keys.session(sid), keys.epoch(sid), keys.stats(sid), keys.extras(sid)
+            )
             await self.redis.srem(keys.SESSIONS, sid)
             await leases.release(self.redis, sid, self.id)
         except Exception as e:  # noqa: BLE001 - the broker went away; nodes drop it on their own
@@ -460,6 +488,7 @@ class Cluster:
                 await leases.release(self.redis, sid, self.id)
                 return
             rec = SessionRecord.model_validate_json(raw)
+            more = await self.redis.get(keys.extras(sid))
             mirror = self.mirrors.pop(sid, None)
             if mirror is not None:
                 mirror.promote()
@@ -467,7 +496,9 @@ class Cluster:
             session = await self.reg.restore(rec.spec(), mirror)
             session.seq = (epoch << 20) & 0xFFFFFFFF  # never a seq an old owner's key frame had
             self.takeovers += 1
+            extras.restore(session, more)  # its scoped tokens and REST layers
             await self._own(session, epoch)
+            self.owned[sid].extras = extras.snapshot(session)
             log.warning("cluster: node %s took over session %s (epoch %d)", self.id, sid, epoch)
         except Exception:  # e.g. a face only another node has: let another try
             log.exception("cluster: taking over session %s failed", sid)
@@ -591,26 +622,21 @@ class Cluster:
             except Exception as e:  # noqa: BLE001 - the broker is gone; resubscribing skips it
                 self._down(e)
 
-    async def _read(self) -> None:
-        from redis.exceptions import RedisError
+    async def _read(self, ps: Any) -> None:
+        """Read pub/sub connection ``ps`` until it is replaced or fails (then the broker is down).
 
-        while not self._stopping:
-            ps = self._pubsub
-            if ps is None or not self.up:
-                await asyncio.sleep(keys.TICK_SECONDS)
-                continue
+        Each read blocks until a message comes: no timer per message. ``_connect`` starts a new
+        reader for each new connection and cancels the old one, so a connection the client library
+        reconnected by itself is never read beside its successor."""
+        while not self._stopping and ps is self._pubsub:
             try:
-                msg = await ps.get_message(ignore_subscribe_messages=True, timeout=0.5)
-            except (RedisError, OSError) as e:
-                if ps is self._pubsub:
-                    self._down(e)
-                continue
+                msg = await ps.get_message(ignore_subscribe_messages=True, timeout=None)
             except asyncio.CancelledError:
                 raise
-            except Exception as e:  # noqa: BLE001 - e.g. the pubsub closed under us
+            except Exception as e:  # noqa: BLE001 - RedisError, OSError, closed under us...
                 if ps is self._pubsub:
                     self._down(e)
-                continue
+                return
             if msg is None or msg.get("type") != "message":
                 continue
             try:

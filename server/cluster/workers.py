@@ -29,6 +29,12 @@ STOP_SECONDS = 8.0
 #: is not started again.
 QUICK_DEATHS, QUICK_SECONDS = 3, 10.0
 
+#: What the parent says, once for all its node processes, when no results folder is set.
+RESULTS_DIR_UNSET = (
+    "FACECAST_RESULTS_DIR is unset: job folders are in %s; every node must see the same folder "
+    "there, or jobs sent to one node fail on another"
+)
+
 #: Settings a child gets from its parent (flags become ``FACECAST_*`` variables).
 PASSED = (
     "host",
@@ -47,8 +53,14 @@ PASSED = (
 
 def child_env(config: Any, index: int) -> dict[str, str]:
     """The environment of node process ``index``: the parent's, with its settings. Batch job
-    workers run in the first node only (they share the data directory's job store)."""
+    workers run in the first node only (they share the data directory's job store). With no
+    results folder set, each child is given the default one by name: the parent warned about it
+    once (``supervise``), instead of each node process."""
+    from ..jobs.store import results_root
+
     env = dict(os.environ)
+    if config.redis_url and config.results_dir is None:
+        env["FACECAST_RESULTS_DIR"] = str(results_root(config.data_dir))
     for name in PASSED:
         value = getattr(config, name)
         if name == "job_workers" and index > 0:
@@ -82,6 +94,10 @@ def supervise(config: Any, workers: int, log_level: str | None) -> int:
     def start(i: int) -> subprocess.Popen[bytes]:
         return subprocess.Popen(cmd, env=child_env(config, i), preexec_fn=_die_with_parent)  # noqa: PLW1509
 
+    if config.redis_url and config.results_dir is None:
+        from ..jobs.store import results_root
+
+        log.warning(RESULTS_DIR_UNSET, results_root(config.data_dir))
     children = [start(i) for i in range(workers)]
     started = [time.monotonic()] * workers
     quick = [0] * workers

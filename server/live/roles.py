@@ -58,3 +58,15 @@ class Grants:
         token = new_token()
         self._scoped.append((token, wanted))
         return token
+
+    def scoped(self) -> list[tuple[str, list[str]]]:
+        """The scoped tokens and their roles, to keep elsewhere (a cluster's Redis)."""
+        return [(t, sorted(roles)) for t, roles in self._scoped]
+
+    def keep(self, token: str, roles: Iterable[str]) -> None:
+        """Hold the scoped ``token`` again (a session taken over from another node); a token held
+        already, unknown roles and tokens past the limit are skipped."""
+        wanted = frozenset(roles) & ALL_ROLES
+        held = any(same(token, t) for t, _ in self._scoped)
+        if wanted and token and not held and len(self._scoped) < MAX_SCOPED_TOKENS:
+            self._scoped.append((token, wanted))
