@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         IdleLayer,
         Mixer,
     )
-    from facecast.server.layers.mix import mix_batch
+    from facecast.server.layers.batch import mix_batch
     from facecast.server.mpeg4.rig import FapRig
     from facecast.server.paths import shared_data
     from facecast.server.pipeline import CHUNK

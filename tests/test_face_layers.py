@@ -653,7 +653,7 @@ def _random_frame(rng: np.random.Generator, geo: Geometry):
 @pytest.mark.parametrize("closures", [True, False])
 def test_combine_batch_equals_combine_frame_by_frame(default_head, closures):
     """The batched mix of the live path gives each frame what ``combine`` gives it alone."""
-    from facecast.server.layers.mix import combine_batch
+    from facecast.server.layers.batch import combine_batch
 
     _, _, geo = default_head
     rng = np.random.default_rng(18)
@@ -673,7 +673,7 @@ def test_combine_batch_equals_combine_frame_by_frame(default_head, closures):
 
 
 def test_mix_batch_equals_each_mixer_alone(default_head):
-    from facecast.server.layers.mix import mix_batch
+    from facecast.server.layers.batch import mix_batch
 
     _, _, geo = default_head
     mixers = []
