@@ -251,7 +251,7 @@ def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -
 
 #: Below this many rows, lip closures and gaze are worked out row by row in Python floats (as
 #: ``combine``): NumPy's ~40 calls on small arrays cost more than a few rows' arithmetic.
-SMALL = 10
+SMALL = 8
 _ZERO = np.zeros(N)
 _ZERO.flags.writeable = False
 
