@@ -33,7 +33,8 @@ from facecast.server.layers import (
     region_mask,
 )
 from facecast.server.layers.head import AU_PER_DEG
-from facecast.server.layers.mix import head_angles, head_transform, keep_closures
+from facecast.server.layers.mix import LIP_PAIRS, head_angles, head_transform, keep_closures
+from facecast.server.layers.model import REGIONS
 from facecast.server.mpeg4.highlevel import EXPRESSIONS, VISEMES, expand
 from facecast.server.state import FaceState, zero_faps
 
@@ -165,13 +166,34 @@ def test_closures_keep_the_lips_shut_and_the_smile_corners():
     for k in (6, 7, 12, 13, 53, 54, 59, 60):  # corners, spreading: the smile's
         assert F[k] == pytest.approx(VISEMES[1][k] + EXPRESSIONS[1][k])
     assert F[3] == pytest.approx(0.0)  # no jaw drop under closed lips
-    aa = FaceState(t=0.0, viseme=(10, 0, 63))  # wide open vowel: the smile adds freely
-    F = expand(mix(aa, [ExpressionLayer(1)], 0.0))
-    assert np.allclose(F, VISEMES[10] + EXPRESSIONS[1])
     free = expand(mix(pp, [ExpressionLayer(1)], 0.0, closures=False))
     assert -(free[4] + free[5]) > 0  # without the rule the smile parts a /p/
     A = EXPRESSIONS[1].copy()
+    A[[3, 4, 5, 8, 9, 10, 11, 51, 52, 55, 56, 57, 58]] = 0.0  # corners and cheeks only
     assert keep_closures(VISEMES[10], A) is A
+
+
+def test_over_open_speech_a_smile_moves_the_mouth_no_further_than_the_larger_of_the_two():
+    """Rule 4's other half: over an open vowel, a mouth FAP that the smile moves the speech's way
+    goes as far as the larger of the two, not their sum (which creased the chin: issue 18); the
+    smile's corner raise, which the speech leaves alone, adds; the mouth opens as far as the
+    wider of the two. Outside the mouth the smile adds as before."""
+    V, X = VISEMES[10], EXPRESSIONS[1]  # "aa", joy
+    F = expand(mix(FaceState(t=0.0, viseme=(10, 0, 63)), [ExpressionLayer(1)], 0.0))
+    mouth = list(REGIONS["mouth"] + REGIONS["tongue"])
+    for k in range(3, 69):
+        if k in mouth and V[k] * X[k] > 0:
+            assert F[k] == pytest.approx(V[k] if abs(V[k]) > abs(X[k]) else X[k]), k
+        else:
+            assert F[k] == pytest.approx(V[k] + X[k]), k
+    for top, bottom in LIP_PAIRS:
+        gap = -(F[top] + F[bottom])
+        assert gap <= max(-(V[top] + V[bottom]), -(X[top] + X[bottom])) + 1e-9
+    assert F[3] == pytest.approx(max(V[3], X[3]))
+    half = FaceState(t=0.0, faps=np.where(np.arange(69) == 3, X[3] / 2, 0.0))  # jaw half of joy's
+    half.faps[[5, 52]] = -400.0  # the lower lip well open
+    F = expand(mix(half, [ExpressionLayer(1)], 0.0))
+    assert F[3] == pytest.approx(X[3])  # the jaw opens to the smile's, the larger
 
 
 def test_gaze_target_parsing():

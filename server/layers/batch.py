@@ -26,6 +26,7 @@ from .mix import (
     _expand,
     _eye_angles_batch,
     _keep_closures_batch,
+    _limit_mouth_batch,
     _mtv,
     _offsets,
     _rot,
@@ -33,6 +34,7 @@ from .mix import (
     combine,
     eye_angles,
     keep_closures,
+    limit_mouth,
 )
 from .model import Contribution, Geometry, Layer, N, Role, region_mask
 from .overlay import ExpressionLayer
@@ -327,9 +329,11 @@ def combine_columns(
             if B < SMALL:
                 for r in range(B):
                     if closing[r]:
-                        A[r] = keep_closures(F[r], A[r])
+                        A[r] = keep_closures(F[r], limit_mouth(F[r], A[r]))
             else:
-                _keep_closures_batch(F, A, np.array(closing))
+                rows = np.array(closing)
+                _limit_mouth_batch(F, A, rows)
+                _keep_closures_batch(F, A, rows)
         F += A
         F[:, :3] = 0.0
 

@@ -14,9 +14,15 @@ order they apply to one frame:
    a speaking primary's speech in the mouth and tongue: speech and expression add there
    (Kshirsagar et al.'s expressive speech, a vector sum), under rule 4; the primary's own
    expression (FAP 2) still competes there.
-4. **Closures**: where the primary holds the lips together (a /p b m/, silence: a lip pair's gap
-   near or below contact) the offsets' lip-opening part is taken out, shared by both lips (their
-   common shift, the corners and the spreading stay), and so is their jaw opening.
+4. **Closures and openings**: where the primary holds the lips together (a /p b m/, silence: a
+   lip pair's gap near or below contact) the offsets' lip-opening part is taken out, shared by both
+   lips (their common shift, the corners and the spreading stay), and so is their jaw opening.
+   Where the speech opens the mouth, the offsets open it only as far as they would alone: the
+   mouth opens by the larger of the two, not their sum. In a speaking mouth a FAP that the
+   speech and the offsets move the same way goes as far as the larger of the two
+   (``limit_mouth``; opposite ways they add): a smile's parted lips, dropped jaw and stretched
+   corners over an "aa" summed to a mouth wider than either makes, and creased the chin (issue
+   18); the mixed mouth stays within the ranges its parts use.
 5. **Overrides** (``override``): absolute FAP values replace the result by their weight (blinks).
 6. **Gaze**: eye yaw/pitch (FAPs 23-26) turned to the target from the eye centres under the final
    head pose, replacing the eyes' rotation by the weight.
@@ -181,6 +187,27 @@ def closure_factor(F: np.ndarray) -> np.ndarray:
     return 1.0 - x * x * (3.0 - 2.0 * x)
 
 
+def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Offsets ``A (69,)`` over a speaking primary's FAPs ``F`` limited in the mouth and tongue
+    (rule 4): where ``A`` moves a FAP the way ``F`` does, only what goes beyond ``F`` stays, so
+    ``F + A`` is the larger of the two (opposite ways they add). ``A`` itself when nothing
+    changes, else a new array."""
+    same = _SPEECH & (F * A > 0)
+    if not same.any():
+        return A
+    out = A.copy()
+    a, f = A[same], F[same]
+    out[same] = np.sign(a) * np.maximum(0.0, np.abs(a) - np.abs(f))
+    return out
+
+
+def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
+    """``limit_mouth`` of the ``rows`` (bool ``(B,)``) of ``F``, ``A (B, 69)``, in place on ``A``."""
+    same = (rows[:, None] & _SPEECH) & (F * A > 0)
+    if same.any():
+        A[same] = np.sign(A[same]) * np.maximum(0.0, np.abs(A[same]) - np.abs(F[same]))
+
+
 def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` with the lip opening they would add to the primary's FAPs ``F`` taken out
     where ``F`` holds the lips closed (``closure_factor``); corners, spreading and the lips' common
@@ -301,7 +328,7 @@ def combine(
                 part = num / np.maximum(1.0, den)
             A = part if A is None else A + part
         if closures:
-            A = keep_closures(F, A)
+            A = keep_closures(F, limit_mouth(F, A))
         F += A
         F[:3] = 0.0
 
