@@ -577,6 +577,30 @@ def test_layers_from_specs():
             from_spec(bad)
 
 
+def test_a_rest_layer_model_is_built_without_a_second_validation(monkeypatch):
+    """``from_spec`` takes the API's validated model as it is (the model is the one check); plain
+    data goes through the model first."""
+    from facecast.protocol import layers as wire
+    from facecast.server.layers import from_spec
+
+    body = {"kind": "expression", "expression": "joy", "envelope": {"end": 2}, "regions": ["lips"]}
+    model = wire.parse_layer(body)
+    calls = []
+    real = wire.parse_layer
+    monkeypatch.setattr(wire, "parse_layer", lambda x: calls.append(x) or real(x))
+    layer = from_spec(model, t0=5.0)
+    assert calls == []
+    assert layer.expression == 1 and layer.regions == ("lips",)
+    assert layer.envelope == Envelope(start=5.0, end=7.0)
+    assert from_spec(body, t0=5.0).envelope == layer.envelope and len(calls) == 1
+    idle = from_spec(wire.parse_layer({"kind": "idle", "seed": 4, "blink_rate": 12}))
+    assert isinstance(idle, IdleLayer) and idle.seed == 4 and idle.blink_rate == 12
+    gaze = from_spec(wire.parse_layer({"kind": "gaze", "target": {"direction": [0, 1, 1]}}))
+    assert np.allclose(gaze.target.direction, [0, 1, 1])
+    pose = from_spec(wire.parse_layer({"kind": "head", "pose": {"pitch": 5}, "amount": 0.5}))
+    assert isinstance(pose, HeadPose) and pose.pitch == 5 and pose.amount == 0.5
+
+
 json_values = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
     lambda children: (

@@ -283,11 +283,11 @@ class SessionMix:
 
 
 def layer_of(spec: Spec, now: float) -> Any:
-    """The mixer's layer for a REST ``spec`` set at session time ``now`` (its times count from
-    ``now``): the same vocabulary as ``layers.from_spec``, which builds it."""
+    """The mixer's layer for a REST ``spec`` (validated already: the model is the one check) set
+    at session time ``now`` (its times count from ``now``): ``layers.from_spec`` builds it."""
     from ..layers.spec import from_spec
 
-    return from_spec(spec.model_dump(mode="json", exclude_none=True), now)
+    return from_spec(spec, now)
 
 
 _geometries: dict[int, Any] = {}  # id(rig) -> its Geometry, while the rig lives
