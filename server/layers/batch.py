@@ -251,6 +251,9 @@ def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -
 # -- the rules on arrays ------------------------------------------------------------------------------
 
 
+#: Fewest frames ``mix_batch`` mixes together: one or two cost less one by one (``combine``:
+#: a batch has ~30 NumPy calls of fixed cost; bench/layers.py).
+BATCH_MIN = 3
 #: Below this many rows, lip closures and gaze are worked out row by row in Python floats (as
 #: ``combine``): NumPy's ~40 calls on small arrays cost more than a few rows' arithmetic.
 SMALL = 8
@@ -484,6 +487,11 @@ def mix_batch(frames: Sequence[tuple[Any, FaceState | None, float]]) -> list[Fac
         group[1].append(i)
         group[2].append(layers)
     for (_, closures), (geo, rows, layer_lists) in groups.items():
+        if len(rows) < BATCH_MIN:  # cheaper one by one
+            for i in rows:
+                mixer, primary, t = frames[i]
+                out[i] = mixer.mix(primary, t)
+            continue
         prims = [frames[i][1] for i in rows]
         ts = [float(frames[i][2]) for i in rows]
         entries = [(r, layer, ts[r]) for r, layers in enumerate(layer_lists) for layer in layers]

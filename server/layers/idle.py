@@ -38,6 +38,7 @@ LID_MASK[19:23] = 1.0
 _RATES = 1.0 / np.array([7.3, 3.1, 9.7, 11.3, 4.3])
 _PHASES = np.array([0.0, 0.0, 1.0, 2.0, 0.0])
 _SWAY = np.array([[2.0, 0.0, 0.0], [0.8, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 1.5]])
+_SINES = tuple(zip(_RATES.tolist(), _PHASES.tolist()))
 
 
 def blink_times(
@@ -165,11 +166,24 @@ class IdleLayer:
         return cur[1], cur[2]
 
     def sample(self, t: float) -> Contribution:
-        X, closure = IdleLayer.sample_many([self], np.array([float(t)]))
-        c = float(closure[0])
+        """One frame in Python floats (cheaper than ``sample_many`` for one)."""
+        faps = np.zeros(N)
+        a = self.amount * AU_PER_DEG
+        if self.saccades:
+            yaw, pitch = self.gaze(t)
+            faps[23] = faps[24] = a * yaw
+            faps[25] = faps[26] = a * pitch
+        sines = [math.sin(2 * math.pi * t * r + p) for r, p in _SINES]
+        if self.sway:
+            faps[48:51] = a * (np.array(sines[:4]) @ _SWAY)
+        if self.breathing:
+            b = sines[4]
+            faps[48] += a * 0.3 * b
+            faps[61] = faps[62] = self.amount * 20.0 * max(b, 0.0)
+        c = self.closure(t) if self.blinks else 0.0
         if c > 0.0:
-            return Contribution(faps=X[0], override=CLOSED_LIDS, override_weight=c * LID_MASK)
-        return Contribution(faps=X[0])
+            return Contribution(faps=faps, override=CLOSED_LIDS, override_weight=c * LID_MASK)
+        return Contribution(faps=faps)
 
     @staticmethod
     def sample_many(layers: Sequence[IdleLayer], ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
