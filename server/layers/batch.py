@@ -34,7 +34,6 @@ from .mix import (
     combine,
     eye_angles,
     keep_closures,
-    limit_mouth,
 )
 from .model import Contribution, Geometry, Layer, N, Role, region_mask
 from .overlay import ExpressionLayer
@@ -251,9 +250,9 @@ def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -
 # -- the rules on arrays ------------------------------------------------------------------------------
 
 
-#: Fewest frames ``mix_batch`` mixes together: one or two cost less one by one (``combine``:
-#: a batch has ~30 NumPy calls of fixed cost; bench/layers.py).
-BATCH_MIN = 3
+#: Fewest frames ``mix_batch`` mixes together: fewer cost less one by one (``combine``: a
+#: batch has ~30 NumPy calls of fixed cost; measured against it with bench/layers.py).
+BATCH_MIN = 5
 #: Below this many rows, lip closures and gaze are worked out row by row in Python floats (as
 #: ``combine``): NumPy's ~40 calls on small arrays cost more than a few rows' arithmetic.
 SMALL = 8
@@ -329,13 +328,13 @@ def combine_columns(
                 part = num / np.maximum(1.0, den)
             A = part if A is None else A + part
         if any(closing):
+            rows = np.array(closing)
+            _limit_mouth_batch(F, A, rows)  # (A is a new array: written in place)
             if B < SMALL:
                 for r in range(B):
                     if closing[r]:
-                        A[r] = keep_closures(F[r], limit_mouth(F[r], A[r]))
+                        A[r] = keep_closures(F[r], A[r])
             else:
-                rows = np.array(closing)
-                _limit_mouth_batch(F, A, rows)
                 _keep_closures_batch(F, A, rows)
         F += A
         F[:, :3] = 0.0

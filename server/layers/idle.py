@@ -149,6 +149,11 @@ class IdleLayer:
     def end(self) -> float | None:
         return None
 
+    @property
+    def flags(self) -> tuple[float, float, float, float]:
+        """Saccades, sway, breathing (1.0 or 0.0) and the amount: ``sample_many``'s row."""
+        return float(self.saccades), float(self.sway), float(self.breathing), self.amount
+
     def closure(self, t: float) -> float:
         """Lid closure 0..1 at ``t`` (s)."""
         return blink_closure(t % self.horizon, self._blinks, self._blink_starts)
@@ -191,15 +196,11 @@ class IdleLayer:
         sway, breathing) and the lid closure ``(K,)`` 0..1 (a blink: ``CLOSED_LIDS`` by it)."""
         K = len(layers)
         faps = np.zeros((K, N))
-        closure = np.zeros(K)
-        flags = np.zeros((K, 4))  # saccades, sway, breathing (0/1); amount
-        eyes = np.zeros((K, 2))
-        for k, (layer, t) in enumerate(zip(layers, ts.tolist())):
-            flags[k] = layer.saccades, layer.sway, layer.breathing, layer.amount
-            if layer.saccades:
-                eyes[k] = layer.gaze(t)
-            if layer.blinks:
-                closure[k] = layer.closure(t)
+        flags = np.array([x.flags for x in layers])  # (K, 4): saccades, sway, breathing; amount
+        eyes = np.array(
+            [x.gaze(t) if x.saccades else (0.0, 0.0) for x, t in zip(layers, ts.tolist())]
+        )
+        closure = np.array([x.closure(t) if x.blinks else 0.0 for x, t in zip(layers, ts.tolist())])
         amount = flags[:, 3]
         a = amount * AU_PER_DEG
         S = np.sin(np.multiply.outer(2 * math.pi * ts, _RATES) + _PHASES)  # (K, 5)
