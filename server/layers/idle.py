@@ -39,6 +39,7 @@ _RATES = 1.0 / np.array([7.3, 3.1, 9.7, 11.3, 4.3])
 _PHASES = np.array([0.0, 0.0, 1.0, 2.0, 0.0])
 _SWAY = np.array([[2.0, 0.0, 0.0], [0.8, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 1.5]])
 _SINES = tuple(zip(_RATES.tolist(), _PHASES.tolist()))
+_SWAY.flags.writeable = False
 
 
 def blink_times(
@@ -178,11 +179,13 @@ class IdleLayer:
             yaw, pitch = self.gaze(t)
             faps[23] = faps[24] = a * yaw
             faps[25] = faps[26] = a * pitch
-        sines = [math.sin(2 * math.pi * t * r + p) for r, p in _SINES]
-        if self.sway:
-            faps[48:51] = a * (np.array(sines[:4]) @ _SWAY)
+        s = [math.sin(2 * math.pi * t * r + p) for r, p in _SINES]
+        if self.sway:  # (S @ _SWAY)
+            faps[48] = a * (_SWAY[0, 0] * s[0] + _SWAY[1, 0] * s[1])
+            faps[49] = a * _SWAY[2, 1] * s[2]
+            faps[50] = a * _SWAY[3, 2] * s[3]
         if self.breathing:
-            b = sines[4]
+            b = s[4]
             faps[48] += a * 0.3 * b
             faps[61] = faps[62] = self.amount * 20.0 * max(b, 0.0)
         c = self.closure(t) if self.blinks else 0.0
