@@ -40,6 +40,7 @@ _PHASES = np.array([0.0, 0.0, 1.0, 2.0, 0.0])
 _SWAY = np.array([[2.0, 0.0, 0.0], [0.8, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 1.5]])
 _SINES = tuple(zip(_RATES.tolist(), _PHASES.tolist()))
 _SWAY.flags.writeable = False
+_SWAY_ROWS = _SWAY.tolist()
 
 
 def blink_times(
@@ -181,9 +182,10 @@ class IdleLayer:
             faps[25] = faps[26] = a * pitch
         s = [math.sin(2 * math.pi * t * r + p) for r, p in _SINES]
         if self.sway:  # (S @ _SWAY)
-            faps[48] = a * (_SWAY[0, 0] * s[0] + _SWAY[1, 0] * s[1])
-            faps[49] = a * _SWAY[2, 1] * s[2]
-            faps[50] = a * _SWAY[3, 2] * s[3]
+            w = _SWAY_ROWS
+            faps[48] = a * (w[0][0] * s[0] + w[1][0] * s[1])
+            faps[49] = a * w[2][1] * s[2]
+            faps[50] = a * w[3][2] * s[3]
         if self.breathing:
             b = s[4]
             faps[48] += a * 0.3 * b
