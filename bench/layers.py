@@ -12,6 +12,15 @@ three layers, mixed together as the deform thread does, B = 1, 4, 8, 16, 32), an
 mixed states (what the layers cost the solve). Times are thread CPU time
 (``time.thread_time``; the machine is shared), median over repeats; wall time beside it.
 Writes ``bench/out/layers.json`` and a markdown table; the load average is in both.
+
+    python bench/layers.py --serve-pairs 4 [--sessions 25] [--seconds 6] [--encoding i16]
+
+instead measures what layers cost a real server (``bench/serve.py``'s server and load points:
+``--sessions`` sessions, one FAP producer at 60 fps and one viewer each): points without layers
+(A) and with ``--layers`` (default 3: idle, a smile, gaze at the camera; B) on the same server
+process, in ABBA order, ``--serve-pairs`` pairs. Per point the server's CPU per session-frame;
+the difference B - A of each pair, their mean, standard deviation and standard error, and the
+ratio. Writes ``bench/out/layers_serve.json``.
 """
 
 from __future__ import annotations
@@ -86,6 +95,97 @@ def live_worker(face, geo, states, layers, repeats: int, row) -> dict:
     return out
 
 
+def serve_pairs(args: argparse.Namespace) -> int:
+    """``--serve-pairs``: layers on and off, ABBA, on one real server (see the module)."""
+    import asyncio
+    import logging
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import serve  # bench/serve.py: its server, load point and viewer processes
+
+    logging.basicConfig(level=logging.WARNING)
+    p = argparse.ArgumentParser()
+    serve.add_arguments(p)
+    sargs = p.parse_args(
+        ["--sessions", str(args.sessions), "--viewers", "", "--encoding", args.encoding]
+        + ["--warmup", str(args.warmup), "--seconds", str(args.seconds)]
+    )
+    sargs.encoding = sargs.encoding[0]
+    key = "server_cpu_us_per_session_frame"
+    load0 = os.getloadavg()
+    server = serve._server(sargs.face, sargs.backend)  # noqa: SLF001 - the bench's own server
+    server.start(300, ready=True)
+    points: list[dict] = []
+    try:
+
+        async def go() -> None:
+            for pair in range(args.serve_pairs):
+                order = (0, args.layers) if pair % 2 == 0 else (args.layers, 0)
+                for n in order:
+                    sargs.layers = n
+                    r = await serve.run_point(
+                        server, server.url, sessions=args.sessions, viewers=1, args=sargs
+                    )
+                    r.update(layers=n, pair=pair, loadavg=os.getloadavg()[0])
+                    points.append(r)
+                    print(
+                        f"pair {pair} layers {n}: {r[key]} us per session-frame, "
+                        f"fps {r['fps_mean']}, p95 {r['latency_ms_p95']} ms, "
+                        f"load {r['loadavg']:.1f}",
+                        file=sys.stderr,
+                    )
+
+        asyncio.run(go())
+    finally:
+        server.stop()
+    load1 = os.getloadavg()
+    a = {q["pair"]: q[key] for q in points if q["layers"] == 0}
+    b = {q["pair"]: q[key] for q in points if q["layers"] == args.layers}
+    diffs = [b[k] - a[k] for k in sorted(a) if k in b]
+    mean = statistics.mean(diffs)
+    sd = statistics.stdev(diffs) if len(diffs) > 1 else float("nan")
+    se = sd / len(diffs) ** 0.5
+    base = statistics.mean(a.values())
+    result = {
+        "sessions": args.sessions,
+        "encoding": args.encoding,
+        "layers": args.layers,
+        "pairs": args.serve_pairs,
+        "loadavg_start": load0,
+        "loadavg_end": load1,
+        "cpus": os.cpu_count(),
+        "us_per_session_frame_without": list(a.values()),
+        "us_per_session_frame_with": list(b.values()),
+        "diff_us": diffs,
+        "diff_mean_us": mean,
+        "diff_sd_us": sd,
+        "diff_se_us": se,
+        "ratio": statistics.mean(b.values()) / base,
+        "points": points,
+    }
+    out = Path(args.out)
+    if out == DEFAULT_OUT:
+        out = DEFAULT_OUT.with_name("layers_serve.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    print(
+        f"\n{args.sessions} sessions, {args.encoding}, {args.layers} layers, ABBA pairs; load "
+        f"{load0[0]:.1f} -> {load1[0]:.1f} on {os.cpu_count()} CPUs\n"
+    )
+    print("| pair | without µs | with µs | with - without |")
+    print("|---|---|---|---|")
+    for k, d in zip(sorted(a), diffs):
+        print(f"| {k} | {a[k]:.1f} | {b[k]:.1f} | {d:+.1f} |")
+    print(
+        f"\nlayers cost {mean:+.1f} µs per session-frame (sd {sd:.1f}, se {se:.1f}; "
+        f"{100 * mean / base:+.1f} % of {base:.1f} µs)"
+    )
+    return 0
+
+
+DEFAULT_OUT = Path(__file__).parent / "out" / "layers.json"
+
+
 def main(argv: list[str] | None = None) -> int:
     from facecast.server.drivers import load_animation
     from facecast.server.faces import load_face
@@ -98,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         IdleLayer,
         Mixer,
     )
-    from facecast.server.layers.mix import mix_batch
+    from facecast.server.layers.batch import mix_batch
     from facecast.server.mpeg4.rig import FapRig
     from facecast.server.paths import shared_data
     from facecast.server.pipeline import CHUNK
@@ -109,8 +209,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--worker-frames", type=int, default=800, help="frames per live worker case (deformed)"
     )
-    ap.add_argument("--out", default=str(Path(__file__).parent / "out" / "layers.json"))
+    ap.add_argument("--out", default=str(DEFAULT_OUT))
+    ap.add_argument(
+        "--serve-pairs",
+        type=int,
+        default=0,
+        help="measure a real server instead: this many ABBA pairs of points without and with layers",
+    )
+    ap.add_argument("--sessions", type=int, default=25, help="--serve-pairs: sessions per point")
+    ap.add_argument("--layers", type=int, default=3, help="--serve-pairs: layers (bench/serve.py)")
+    ap.add_argument("--encoding", default="i16", help="--serve-pairs: viewers' encoding")
+    ap.add_argument("--warmup", type=float, default=2.0, help="--serve-pairs: seconds")
+    ap.add_argument("--seconds", type=float, default=6.0, help="--serve-pairs: seconds measured")
     args = ap.parse_args(argv)
+    if args.serve_pairs:
+        return serve_pairs(args)
     data = shared_data()
     if data is None:
         print("../shared/data not found: the bench needs its speech", file=sys.stderr)

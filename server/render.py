@@ -82,6 +82,8 @@ def render_file(
         options.update(
             {k: v for k, v in (mocap or {}).items() if v is not None}
         )  # mocap.driver.load's
+    if layers and input.suffix.lower() == ".bml":  # a performance mixes them with its own
+        options["layers"], layers = list(layers), None  # (its gaze looks past the idle sway)
     if input.suffix.lower() == ".fap":  # FAPs do not depend on the face: check the input first
         animation = load_animation(input, None)
         face_obj = load_face(face) if isinstance(face, (str, Path)) else face

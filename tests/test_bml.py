@@ -623,3 +623,35 @@ def test_speeches_share_one_audio_budget_refused_before_decoding(bobby, monkeypa
     assert "over the limit of 1 s" in str(e.value) and "left of 3 s for all the speeches" in str(
         e.value
     )
+
+
+def test_render_idle_on_a_bml_is_a_layer_of_the_performance_so_its_gaze_looks_past_the_sway(
+    tmp_path,
+):
+    """``render x.bml --idle`` (``render_file`` with the idle layer) mixes idle with the
+    performance's own layers in one mix: the gaze at the camera is worked out from the head
+    pose the idle sway makes, so the eyes look at the camera within 2° in every frame (mixed
+    after the performance, the saccades added to the eyes and the sway turned them away)."""
+    from facecast.server.drivers import load_animation
+    from facecast.server.faces import load_face
+    from facecast.server.layers import GazeTarget, Geometry, IdleLayer
+    from facecast.server.layers.mix import _AU, _rot, gaze_faps
+    from facecast.server.render import render_file
+
+    face = load_face("default:2k")
+    bml = tmp_path / "look.bml"
+    bml.write_text(_bml('<gaze id="g" target="camera" start="0" end="4"/>'))
+    out = tmp_path / "look.fap"
+    render_file(bml, out, face=face, layers=[IdleLayer(seed=5)])
+    states = load_animation(out, None).states
+    geo = Geometry.of_face(face)
+    worst = 0.0
+    for s in [s for s in states if 0.3 <= s.t <= 3.7]:  # the gaze at full weight (no ramps)
+        pitch, yaw, roll = (float(s.faps[k]) * _AU for k in (48, 49, 50))
+        R = _rot(pitch, yaw, roll)
+        pv = geo.head_pivot.tolist()
+        t = [pv[i] - sum(R[i][j] * pv[j] for j in range(3)) for i in range(3)]
+        want = gaze_faps(GazeTarget.camera(), geo, R, t)
+        worst = max(worst, max(abs(a - b) for a, b in zip(s.faps[23:27], want)) * _AU)
+    assert abs(states[40].faps[49]) > 0  # the idle sway turns the head
+    assert math.degrees(worst) < 2.0

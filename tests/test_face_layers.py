@@ -33,7 +33,8 @@ from facecast.server.layers import (
     region_mask,
 )
 from facecast.server.layers.head import AU_PER_DEG
-from facecast.server.layers.mix import head_angles, head_transform, keep_closures
+from facecast.server.layers.mix import LIP_PAIRS, head_angles, head_transform, keep_closures
+from facecast.server.layers.model import REGIONS
 from facecast.server.mpeg4.highlevel import EXPRESSIONS, VISEMES, expand
 from facecast.server.state import FaceState, zero_faps
 
@@ -165,13 +166,34 @@ def test_closures_keep_the_lips_shut_and_the_smile_corners():
     for k in (6, 7, 12, 13, 53, 54, 59, 60):  # corners, spreading: the smile's
         assert F[k] == pytest.approx(VISEMES[1][k] + EXPRESSIONS[1][k])
     assert F[3] == pytest.approx(0.0)  # no jaw drop under closed lips
-    aa = FaceState(t=0.0, viseme=(10, 0, 63))  # wide open vowel: the smile adds freely
-    F = expand(mix(aa, [ExpressionLayer(1)], 0.0))
-    assert np.allclose(F, VISEMES[10] + EXPRESSIONS[1])
     free = expand(mix(pp, [ExpressionLayer(1)], 0.0, closures=False))
     assert -(free[4] + free[5]) > 0  # without the rule the smile parts a /p/
     A = EXPRESSIONS[1].copy()
+    A[[3, 4, 5, 8, 9, 10, 11, 51, 52, 55, 56, 57, 58]] = 0.0  # corners and cheeks only
     assert keep_closures(VISEMES[10], A) is A
+
+
+def test_over_open_speech_a_smile_moves_the_mouth_no_further_than_the_larger_of_the_two():
+    """Rule 4's other half: over an open vowel, a mouth FAP that the smile moves the speech's way
+    goes as far as the larger of the two, not their sum (which creased the chin: issue 18); the
+    smile's corner raise, which the speech leaves alone, adds; the mouth opens as far as the
+    wider of the two. Outside the mouth the smile adds as before."""
+    V, X = VISEMES[10], EXPRESSIONS[1]  # "aa", joy
+    F = expand(mix(FaceState(t=0.0, viseme=(10, 0, 63)), [ExpressionLayer(1)], 0.0))
+    mouth = list(REGIONS["mouth"] + REGIONS["tongue"])
+    for k in range(3, 69):
+        if k in mouth and V[k] * X[k] > 0:
+            assert F[k] == pytest.approx(V[k] if abs(V[k]) > abs(X[k]) else X[k]), k
+        else:
+            assert F[k] == pytest.approx(V[k] + X[k]), k
+    for top, bottom in LIP_PAIRS:
+        gap = -(F[top] + F[bottom])
+        assert gap <= max(-(V[top] + V[bottom]), -(X[top] + X[bottom])) + 1e-9
+    assert F[3] == pytest.approx(max(V[3], X[3]))
+    half = FaceState(t=0.0, faps=np.where(np.arange(69) == 3, X[3] / 2, 0.0))  # jaw half of joy's
+    half.faps[[5, 52]] = -400.0  # the lower lip well open
+    F = expand(mix(half, [ExpressionLayer(1)], 0.0))
+    assert F[3] == pytest.approx(X[3])  # the jaw opens to the smile's, the larger
 
 
 def test_gaze_target_parsing():
@@ -555,6 +577,30 @@ def test_layers_from_specs():
             from_spec(bad)
 
 
+def test_a_rest_layer_model_is_built_without_a_second_validation(monkeypatch):
+    """``from_spec`` takes the API's validated model as it is (the model is the one check); plain
+    data goes through the model first."""
+    from facecast.protocol import layers as wire
+    from facecast.server.layers import from_spec
+
+    body = {"kind": "expression", "expression": "joy", "envelope": {"end": 2}, "regions": ["lips"]}
+    model = wire.parse_layer(body)
+    calls = []
+    real = wire.parse_layer
+    monkeypatch.setattr(wire, "parse_layer", lambda x: calls.append(x) or real(x))
+    layer = from_spec(model, t0=5.0)
+    assert calls == []
+    assert layer.expression == 1 and layer.regions == ("lips",)
+    assert layer.envelope == Envelope(start=5.0, end=7.0)
+    assert from_spec(body, t0=5.0).envelope == layer.envelope and len(calls) == 1
+    idle = from_spec(wire.parse_layer({"kind": "idle", "seed": 4, "blink_rate": 12}))
+    assert isinstance(idle, IdleLayer) and idle.seed == 4 and idle.blink_rate == 12
+    gaze = from_spec(wire.parse_layer({"kind": "gaze", "target": {"direction": [0, 1, 1]}}))
+    assert np.allclose(gaze.target.direction, [0, 1, 1])
+    pose = from_spec(wire.parse_layer({"kind": "head", "pose": {"pitch": 5}, "amount": 0.5}))
+    assert isinstance(pose, HeadPose) and pose.pitch == 5 and pose.amount == 0.5
+
+
 json_values = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
     lambda children: (
@@ -653,7 +699,7 @@ def _random_frame(rng: np.random.Generator, geo: Geometry):
 @pytest.mark.parametrize("closures", [True, False])
 def test_combine_batch_equals_combine_frame_by_frame(default_head, closures):
     """The batched mix of the live path gives each frame what ``combine`` gives it alone."""
-    from facecast.server.layers.mix import combine_batch
+    from facecast.server.layers.batch import combine_batch
 
     _, _, geo = default_head
     rng = np.random.default_rng(18)
@@ -673,7 +719,7 @@ def test_combine_batch_equals_combine_frame_by_frame(default_head, closures):
 
 
 def test_mix_batch_equals_each_mixer_alone(default_head):
-    from facecast.server.layers.mix import mix_batch
+    from facecast.server.layers.batch import mix_batch
 
     _, _, geo = default_head
     mixers = []

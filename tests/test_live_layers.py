@@ -588,6 +588,34 @@ def test_a_deform_batch_mixes_its_sessions_states_together_each_as_alone(animato
         assert not np.allclose(job.state.faps, states[k].faps)  # the layers did move it
 
 
+def test_the_layer_clock_s_neutral_frames_are_mixed_in_the_deform_thread_as_no_primary(animator):
+    """Frames the layer clock makes without a primary reach the deform thread unmixed
+    (``Neutral``) and are mixed there as ``mix`` mixes no primary: no closures to keep, so an
+    overlay may open the lips; the frame keeps its time."""
+    from types import SimpleNamespace
+
+    from facecast.server.layers import ExpressionLayer, Mixer
+    from facecast.server.live.mixing import Neutral, geometry_of, mix_jobs
+    from facecast.server.state import FaceState
+
+    m = Mixer(geometry_of(animator.rig))
+    m.set("open", ExpressionLayer(0, faps=np.eye(69)[5] * -400.0))  # the lower lip down
+    jobs = [
+        SimpleNamespace(
+            state=Neutral(t=7.0), mix=SimpleNamespace(mixer=m, now=lambda: 1.0, mixed=0)
+        ),
+        SimpleNamespace(
+            state=FaceState(t=7.0), mix=SimpleNamespace(mixer=m, now=lambda: 1.0, mixed=0)
+        ),
+    ]
+    assert mix_jobs(jobs) == {}
+    neutral, closed = jobs[0].state, jobs[1].state
+    assert type(neutral) is FaceState and neutral.t == 7.0 and jobs[0].mix.mixed == 1
+    np.testing.assert_allclose(neutral.faps, m.mix(None, 1.0).faps)
+    assert neutral.faps[5] == -400.0  # opened: no primary holds the lips
+    assert closed.faps[5] > -400.0  # a primary's closed lips keep the overlay from opening them
+
+
 def test_a_rig_s_geometry_is_shared_while_it_lives_and_forgotten_with_it(face):
     import gc
 

@@ -11,7 +11,7 @@ behaviours mixed as layers over the speech.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -133,6 +133,7 @@ def load(
     fps: float = 25.0,
     idle: bool = False,
     media: Mapping[str, Path] | None = None,
+    layers: Sequence[Any] = (),
     **options: Any,
 ) -> Animation:
     """Decode the BML file at ``path`` into the performance's animation for ``face``.
@@ -142,6 +143,8 @@ def load(
         idle: add the idle layer (blinks, saccades, sway, breathing).
         media: the files uploaded with the BML (name as the BML writes it -> server path); None:
             the recordings are next to the BML file.
+        layers: more ``server.layers`` layers mixed with the performance's own (``render``'s
+            ``--idle``, ``--layer``, ``--gaze``), in the same mix.
         options: other drivers' options are ignored (logged).
     Raises:
         InputError (BmlError): unreadable, malformed or unsupported BML, a recording that is missing
@@ -164,6 +167,7 @@ def load(
         float(fps),
         geometry=geometry,
         idle=bool(idle),
+        layers=layers,
         source=where,
     )
     log.info(

@@ -138,6 +138,7 @@ def render_performance(
     *,
     geometry: Geometry | None = None,
     idle: bool = False,
+    layers: Sequence[Layer] = (),
     source: str = "",
 ) -> Animation:
     """One mixed ``FaceState`` per frame of ``perf`` (its duration, at least one frame).
@@ -146,6 +147,9 @@ def render_performance(
         speech: each speech's lip-sync states at ``fps`` (by id), from its recording's start.
         geometry: the face's (``Geometry.of_face``), for gaze and head turns; default: generic.
         idle: add the idle layer (blinks, saccades, sway, breathing; deterministic).
+        layers: more layers (``render --idle``, ``--layer``, ``--gaze``), mixed with the
+            performance's own in one mix: its gaze then looks past the idle sway, its head
+            gestures add to it.
     """
     geometry = geometry or Geometry()
     tracks = [
@@ -153,9 +157,9 @@ def render_performance(
         for t in perf.timed
         if isinstance(t.behaviour, Speech)
     ]
-    layers = performance_layers(perf, geometry)
+    own = performance_layers(perf, geometry) + list(layers)
     if idle:
-        layers.append(IdleLayer())
+        own.append(IdleLayer())
     n = int(math.floor(perf.duration * fps + 1e-9)) + 1
     states = []
     for i in range(n):
@@ -166,7 +170,7 @@ def render_performance(
             if primary is None
             else FaceState(t=t, faps=primary.faps, viseme=primary.viseme)
         )
-        state = mix(base, layers, t, geometry=geometry)
+        state = mix(base, own, t, geometry=geometry)
         state.t = t
         states.append(state)
     return Animation(fps=float(fps), states=states, source=source)

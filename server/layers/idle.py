@@ -31,8 +31,16 @@ AU_PER_DEG = math.pi / 180 / 1e-5
 CLOSED_LIDS = np.zeros(N)
 CLOSED_LIDS[[19, 20]] = 1024.0
 CLOSED_LIDS[[21, 22]] = 150.0
-_LID_MASK = np.zeros(N)
-_LID_MASK[19:23] = 1.0
+LID_MASK = np.zeros(N)
+LID_MASK[19:23] = 1.0
+#: Sway (head pitch, yaw, roll: degrees of sines of 7.3, 3.1, 9.7 and 11.3 s periods) and
+#: breathing (4.3 s): the sines' rates (1/s), phases and the sway's mix of them.
+_RATES = 1.0 / np.array([7.3, 3.1, 9.7, 11.3, 4.3])
+_PHASES = np.array([0.0, 0.0, 1.0, 2.0, 0.0])
+_SWAY = np.array([[2.0, 0.0, 0.0], [0.8, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 1.5]])
+_SINES = tuple(zip(_RATES.tolist(), _PHASES.tolist()))
+_SWAY.flags.writeable = False
+_SWAY_ROWS = _SWAY.tolist()
 
 
 def blink_times(
@@ -143,6 +151,11 @@ class IdleLayer:
     def end(self) -> float | None:
         return None
 
+    @property
+    def flags(self) -> tuple[float, float, float, float]:
+        """Saccades, sway, breathing (1.0 or 0.0) and the amount: ``sample_many``'s row."""
+        return float(self.saccades), float(self.sway), float(self.breathing), self.amount
+
     def closure(self, t: float) -> float:
         """Lid closure 0..1 at ``t`` (s)."""
         return blink_closure(t % self.horizon, self._blinks, self._blink_starts)
@@ -160,22 +173,46 @@ class IdleLayer:
         return cur[1], cur[2]
 
     def sample(self, t: float) -> Contribution:
+        """One frame in Python floats (cheaper than ``sample_many`` for one)."""
         faps = np.zeros(N)
         a = self.amount * AU_PER_DEG
         if self.saccades:
             yaw, pitch = self.gaze(t)
             faps[23] = faps[24] = a * yaw
             faps[25] = faps[26] = a * pitch
-        tau = 2 * math.pi * t
-        if self.sway:
-            faps[48] = a * (2.0 * math.sin(tau / 7.3) + 0.8 * math.sin(tau / 3.1))
-            faps[49] = a * 3.0 * math.sin(tau / 9.7 + 1.0)
-            faps[50] = a * 1.5 * math.sin(tau / 11.3 + 2.0)
+        s = [math.sin(2 * math.pi * t * r + p) for r, p in _SINES]
+        if self.sway:  # (S @ _SWAY)
+            w = _SWAY_ROWS
+            faps[48] = a * (w[0][0] * s[0] + w[1][0] * s[1])
+            faps[49] = a * w[2][1] * s[2]
+            faps[50] = a * w[3][2] * s[3]
         if self.breathing:
-            b = math.sin(tau / 4.3)
+            b = s[4]
             faps[48] += a * 0.3 * b
             faps[61] = faps[62] = self.amount * 20.0 * max(b, 0.0)
         c = self.closure(t) if self.blinks else 0.0
         if c > 0.0:
-            return Contribution(faps=faps, override=CLOSED_LIDS, override_weight=c * _LID_MASK)
+            return Contribution(faps=faps, override=CLOSED_LIDS, override_weight=c * LID_MASK)
         return Contribution(faps=faps)
+
+    @staticmethod
+    def sample_many(layers: Sequence[IdleLayer], ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``layers[k]`` at ``ts[k]`` (s), all at once: the FAP offsets ``(K, 69)`` (saccades,
+        sway, breathing) and the lid closure ``(K,)`` 0..1 (a blink: ``CLOSED_LIDS`` by it)."""
+        K = len(layers)
+        faps = np.zeros((K, N))
+        flags = np.array([x.flags for x in layers])  # (K, 4): saccades, sway, breathing; amount
+        eyes = np.array(
+            [x.gaze(t) if x.saccades else (0.0, 0.0) for x, t in zip(layers, ts.tolist())]
+        )
+        closure = np.array([x.closure(t) if x.blinks else 0.0 for x, t in zip(layers, ts.tolist())])
+        amount = flags[:, 3]
+        a = amount * AU_PER_DEG
+        S = np.sin(np.multiply.outer(2 * math.pi * ts, _RATES) + _PHASES)  # (K, 5)
+        faps[:, 23] = faps[:, 24] = a * eyes[:, 0]
+        faps[:, 25] = faps[:, 26] = a * eyes[:, 1]
+        faps[:, 48:51] = (a * flags[:, 1])[:, None] * (S[:, :4] @ _SWAY)
+        b = S[:, 4] * flags[:, 2]
+        faps[:, 48] += a * 0.3 * b
+        faps[:, 61] = faps[:, 62] = amount * 20.0 * np.maximum(b, 0.0)
+        return faps, closure

@@ -14,9 +14,15 @@ order they apply to one frame:
    a speaking primary's speech in the mouth and tongue: speech and expression add there
    (Kshirsagar et al.'s expressive speech, a vector sum), under rule 4; the primary's own
    expression (FAP 2) still competes there.
-4. **Closures**: where the primary holds the lips together (a /p b m/, silence: a lip pair's gap
-   near or below contact) the offsets' lip-opening part is taken out, shared by both lips (their
-   common shift, the corners and the spreading stay), and so is their jaw opening.
+4. **Closures and openings**: where the primary holds the lips together (a /p b m/, silence: a
+   lip pair's gap near or below contact) the offsets' lip-opening part is taken out, shared by both
+   lips (their common shift, the corners and the spreading stay), and so is their jaw opening.
+   Where the speech opens the mouth, the offsets open it only as far as they would alone: the
+   mouth opens by the larger of the two, not their sum. In a speaking mouth a FAP that the
+   speech and the offsets move the same way goes as far as the larger of the two
+   (``limit_mouth``; opposite ways they add): a smile's parted lips, dropped jaw and stretched
+   corners over an "aa" summed to a mouth wider than either makes, and creased the chin (issue
+   18); the mixed mouth stays within the ranges its parts use.
 5. **Overrides** (``override``): absolute FAP values replace the result by their weight (blinks).
 6. **Gaze**: eye yaw/pitch (FAPs 23-26) turned to the target from the eye centres under the final
    head pose, replacing the eyes' rotation by the weight.
@@ -50,6 +56,7 @@ _AU = 1e-5
 #: The FAPs speech moves (mouth and tongue): where a speaking primary and an overlay add.
 _SPEECH = np.zeros(69, dtype=bool)
 _SPEECH[list(REGIONS["mouth"] + REGIONS["tongue"])] = True
+_MOUTH = np.flatnonzero(_SPEECH).tolist()
 #: Farthest the eyes turn from their rest direction (radians): 50° sideways, 45° up or down.
 EYE_YAW_MAX, EYE_PITCH_MAX = math.radians(50.0), math.radians(45.0)
 _DEFAULT_GEOMETRY = Geometry()
@@ -181,6 +188,26 @@ def closure_factor(F: np.ndarray) -> np.ndarray:
     return 1.0 - x * x * (3.0 - 2.0 * x)
 
 
+def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Offsets ``A (69,)`` over a speaking primary's FAPs ``F`` limited in the mouth and tongue
+    (rule 4): where ``A`` moves a FAP the way ``F`` does, only what goes beyond ``F`` stays, so
+    ``F + A`` is the larger of the two (opposite ways they add). ``A`` itself when nothing
+    changes, else a new array. (Python floats over the mouth's FAPs: cheaper for one frame.)"""
+    out = None
+    for k, a, f in zip(_MOUTH, A[_MOUTH].tolist(), F[_MOUTH].tolist()):
+        if a * f > 0:
+            out = A.copy() if out is None else out
+            out[k] = max(0.0, a - f) if a > 0 else min(0.0, a - f)
+    return A if out is None else out
+
+
+def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
+    """``limit_mouth`` of the ``rows`` (bool ``(B,)``) of ``F``, ``A (B, 69)``, in place on ``A``."""
+    same = (rows[:, None] & _SPEECH) & (F * A > 0)
+    if same.any():
+        A[same] = np.sign(A[same]) * np.maximum(0.0, np.abs(A[same]) - np.abs(F[same]))
+
+
 def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` with the lip opening they would add to the primary's FAPs ``F`` taken out
     where ``F`` holds the lips closed (``closure_factor``); corners, spreading and the lips' common
@@ -301,7 +328,7 @@ def combine(
                 part = num / np.maximum(1.0, den)
             A = part if A is None else A + part
         if closures:
-            A = keep_closures(F, A)
+            A = keep_closures(F, limit_mouth(F, A))
         F += A
         F[:3] = 0.0
 
@@ -481,12 +508,18 @@ class Mixer:
 
     def items(self, t: float) -> list[tuple[Role, Contribution]]:
         """The active layers sampled at ``t`` (``combine``'s items); drops ended layers."""
+        return [(layer.role, layer.sample(t)) for layer in self.active(t)]
+
+    def active(self, t: float) -> list[Layer]:
+        """The layers at ``t``, in the order they were added; drops those whose end passed."""
         with self._lock:
-            ended = [n for n, lay in self._layers.items() if lay.end is not None and lay.end < t]
-            for n in ended:
-                del self._layers[n]
             layers = list(self._layers.values())
-        return [(layer.role, layer.sample(t)) for layer in layers]
+            if any(lay.end is not None and lay.end < t for lay in layers):
+                for n, lay in list(self._layers.items()):
+                    if lay.end is not None and lay.end < t:
+                        del self._layers[n]
+                layers = list(self._layers.values())
+        return layers
 
 
 def mix_states(
@@ -501,175 +534,6 @@ def mix_states(
     if not layers:
         return list(states)
     return [mix(s, layers, s.t, geometry=geometry, closures=closures) for s in states]
-
-
-# -- many frames at once -----------------------------------------------------------------------------
-#: Fewest frames ``combine_batch`` computes together: a batch costs about three frames' ``combine``
-#: in fixed NumPy calls (0.09 ms), then about 0.01 ms a frame (bench/layers.py: even at 4 frames).
-BATCH_MIN = 5
-#: One frame to mix: ``(primary, items, t)`` as ``combine``'s arguments.
-Frame = tuple[FaceState | None, Sequence[tuple[Role, Contribution]], float | None]
-
-
-def mix_batch(frames: Sequence[tuple[Mixer, FaceState | None, float]]) -> list[FaceState]:
-    """``mixer.mix(primary, t)`` of every ``(mixer, primary, t)``, the frames of mixers with the
-    same geometry (``is``) and closures combined together (``combine_batch``): what a batch of
-    live sessions' frames costs in one go."""
-    out: list[FaceState | None] = [None] * len(frames)
-    groups: dict[tuple[int, bool], tuple[Geometry | None, list[int], list[Frame]]] = {}
-    for i, (mixer, primary, t) in enumerate(frames):
-        geo = mixer.geometry
-        group = groups.setdefault((id(geo), mixer.closures), (geo, [], []))
-        group[1].append(i)
-        group[2].append((primary, mixer.items(t), t))
-    for (_, closures), (geo, rows, batch) in groups.items():
-        for i, state in zip(rows, combine_batch(batch, geometry=geo, closures=closures)):
-            out[i] = state
-    return out  # type: ignore[return-value]
-
-
-def combine_batch(
-    frames: Sequence[Frame], *, geometry: Geometry | None = None, closures: bool = True
-) -> list[FaceState]:
-    """``combine(primary, items, t, geometry=, closures=)`` of every frame, computed together on
-    ``(B, 69)`` arrays (NumPy's per-call overhead, which dominates on one ``(69,)`` vector, is paid
-    once per batch). The same results to rounding (a few ulp). Frames without items, and those
-    whose primary has a ``head`` transform, go through ``combine`` one by one."""
-    geo = _DEFAULT_GEOMETRY if geometry is None else geometry
-    out: list[FaceState | None] = [None] * len(frames)
-    todo: list[int] = []
-    for i, (p, items, t) in enumerate(frames):
-        if not items or (p is not None and p.head is not None):
-            out[i] = combine(p, items, t, geometry=geometry, closures=closures)
-        else:
-            todo.append(i)
-    if len(todo) < BATCH_MIN:  # fewer than that are cheaper one by one
-        for i in todo:
-            out[i] = combine(*frames[i], geometry=geometry, closures=closures)
-        return out  # type: ignore[return-value]
-    B = len(todo)
-    prims: list[FaceState] = []
-    ts: list[float] = []
-    closing = np.zeros(B, dtype=bool)  # rows that keep the primary's closures
-    H = np.zeros((B, 69))  # the primaries' high-level expansions
-    E = np.zeros((B, 69))  # ... of their expression alone (what overlays compete with)
-    has_high = np.zeros(B, dtype=bool)
-    # offsets by (role, k-th layer of the role in its row): rows, FAPs, weights
-    slots: dict[tuple[Role, int], tuple[list[int], list[np.ndarray], list[Any]]] = {}
-    poses: dict[int, list[tuple[np.ndarray, float]]] = {}
-    gazes: list[list[tuple[int, GazeTarget, float]]] = []  # by k-th gaze of its row
-    O_num: np.ndarray | None = None  # overrides: Σ w·value
-    O_den: np.ndarray | None = None  # ... Σ w
-    for r, i in enumerate(todo):
-        p, items, t = frames[i]
-        if p is None:
-            p = FaceState(t=0.0 if t is None else t)
-        else:
-            closing[r] = closures
-        prims.append(p)
-        ts.append(p.t if t is None else float(t))
-        high = _expand(p.viseme, p.expression, geo)
-        if high is not None:
-            H[r] = high
-            has_high[r] = True
-            if closing[r] and p.expression is not None:
-                E[r] = _expand(None, p.expression, geo)
-        count: dict[Role, int] = {}
-        n_gaze = 0
-        for role, c in items:
-            if c.head is not None and c.head_weight > 0:
-                poses.setdefault(r, []).append((c.head, c.head_weight))
-            if c.gaze is not None and c.gaze_weight > 0:
-                if n_gaze == len(gazes):
-                    gazes.append([])
-                gazes[n_gaze].append((r, c.gaze, c.gaze_weight))
-                n_gaze += 1
-            if c.override is not None:
-                if O_num is None or O_den is None:
-                    O_num, O_den = np.zeros((B, 69)), np.zeros((B, 69))
-                O_num[r] += c.override_weight * c.override
-                O_den[r] += c.override_weight
-            x = _offsets(c, geo)
-            if x is None:
-                continue
-            k = count.get(role, 0)
-            count[role] = k + 1
-            slot = slots.get((role, k))
-            if slot is None:
-                slot = slots[role, k] = ([], [], [])
-            slot[0].append(r)
-            slot[1].append(x)
-            slot[2].append(c.weight)
-
-    F = np.array([p.faps for p in prims], dtype=np.float64)
-    if F.shape != (B, 69):  # a malformed primary: let ``combine`` say which
-        return [combine(*f, geometry=geometry, closures=closures) for f in frames]
-    F[:, :3] = 0.0
-    F += H
-
-    # 2. head poses (replace the primary's head FAPs by their weight)
-    for r, ps in poses.items():
-        wsum = sum(w for _, w in ps)
-        target = sum(np.asarray(v, dtype=np.float64) * w for v, w in ps) / wsum
-        F[r, 48:51] += min(1.0, wsum) * (target - F[r, 48:51])
-
-    # 3. offsets: Σ w·x / max(1, Σ w·[x ≠ 0]) per role; expression overlays compete with the
-    #    primary too (outside a speaking mouth, with its expression only)
-    if slots:
-        sums: dict[Role, tuple[np.ndarray, np.ndarray]] = {}  # role -> Σ w·x, Σ w·[x ≠ 0]
-        for (role, _), (rows, xs, ws) in slots.items():
-            X = np.array(xs)
-            if all(type(w) is float or type(w) is int for w in ws):
-                W = np.array(ws, dtype=np.float64)[:, None]
-            else:
-                W = np.empty((len(ws), 69))
-                for j, w in enumerate(ws):
-                    W[j] = w
-            WX, WN = W * X, W * (X != 0)
-            if role not in sums:  # its first layers (k = 0: one per row)
-                if len(rows) == B:
-                    sums[role] = WX, WN
-                    continue
-                sums[role] = np.zeros((B, 69)), np.zeros((B, 69))
-            num, den = sums[role]
-            num[rows] += WX  # (rows are distinct within a slot)
-            den[rows] += WN
-        A = np.zeros((B, 69))
-        for role, (num, den) in sums.items():
-            if role is Role.EXPRESSION:
-                P = np.where(closing[:, None] & _SPEECH, E, F)
-                A += (P + num) / np.maximum(1.0, (P != 0) + den) - P
-            else:
-                A += num / np.maximum(1.0, den)
-        if closing.any():
-            _keep_closures_batch(F, A, closing)
-        F += A
-        F[:, :3] = 0.0
-
-    # 5. overrides
-    if O_num is not None and O_den is not None:
-        on = O_den > 0
-        target = np.divide(O_num, O_den, out=np.zeros((B, 69)), where=on)
-        F = np.where(on, F + np.minimum(1.0, O_den) * (target - F), F)
-
-    # 6. gaze, from the final head pose (FAPs 48-50: no primary here has a head transform)
-    if gazes:
-        _gaze_batch(F, gazes, geo)
-
-    if has_high.any():
-        F -= H
-        F[has_high, :3] = 0.0
-    for r, i in enumerate(todo):
-        p = prims[r]
-        out[i] = FaceState(
-            t=ts[r],
-            faps=F[r],
-            viseme=p.viseme,
-            expression=p.expression,
-            controls=p.controls,
-            head=p.head,
-        )
-    return out  # type: ignore[return-value]
 
 
 def _keep_closures_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
@@ -717,57 +581,3 @@ def _eye_angles_batch(d: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.n
     yaw = np.minimum(EYE_YAW_MAX, np.maximum(-EYE_YAW_MAX, yaw))
     pitch = np.minimum(EYE_PITCH_MAX, np.maximum(-EYE_PITCH_MAX, pitch))
     return np.where(ok, yaw, 0.0), np.where(ok, pitch, 0.0)
-
-
-def _gaze_batch(
-    F: np.ndarray, gazes: list[list[tuple[int, GazeTarget, float]]], geo: Geometry
-) -> None:
-    """Step 6 of ``combine`` on the rows of ``F (B, 69)`` that have gazes (``gazes[k]``: the
-    k-th gaze of each row that has one, ``(row, target, weight)``, rows ascending), in place.
-
-    An eye at ``c`` under the head ``[R | pv - R·pv]`` sees a point ``p`` along
-    ``Rᵀ(p - pv) + (pv - c)`` (head-local), a direction ``u`` along ``Rᵀu``."""
-    first = gazes[0]  # every row with a gaze has a first one
-    rows = np.array([r for r, _, _ in first])
-    head = F[rows, 48:51] * _AU  # (G, 3) pitch, yaw, roll
-    pv = geo.head_pivot
-    off = pv - geo.eye_pivots  # (2, 3)
-    at: dict[int, int] = {}
-    eyes = mean = None
-    wsum = np.zeros(len(rows))
-    for k, g in enumerate(gazes):
-        if k == 0:
-            sel: Any = slice(None)
-        else:
-            at = at or {r: j for j, r in enumerate(rows.tolist())}
-            sel = np.array([at[r] for r, _, _ in g])
-        w = np.array([x for _, _, x in g])
-        point = np.array([t.point is not None for _, t, _ in g])
-        q = np.array([t.point - pv if t.point is not None else t.direction for _, t, _ in g])
-        local = _unrotate(head[sel], q)[:, None, :]  # (G, 1, 3)
-        if point.all():
-            local = local + off
-        elif point.any():
-            local = local + point[:, None, None] * off
-        yaw, pitch = _eye_angles_batch(local, geo.eye_axes)
-        e = np.concatenate([yaw, pitch], axis=1) / _AU  # FAPs 23-26: yaw l, r, pitch l, r
-        if k == 0:
-            mean = e
-            if len(gazes) > 1:
-                eyes = w[:, None] * e
-        else:
-            assert eyes is not None
-            eyes[sel] += w[:, None] * e
-        wsum[sel] += w
-    assert mean is not None
-    if eyes is not None:  # rows with several gazes: their mean by weight
-        many = np.zeros(len(rows), dtype=bool)
-        for g in gazes[1:]:
-            many[[at[r] for r, _, _ in g]] = True
-        mean[many] = eyes[many] / wsum[many, None]
-    W = np.minimum(1.0, wsum)[:, None]
-    if (W >= 1.0).all():
-        F[rows, 23:27] = mean
-    else:
-        cur = F[rows, 23:27]
-        F[rows, 23:27] = np.where(W >= 1.0, mean, cur + W * (mean - cur))

@@ -7,13 +7,14 @@ The primary producer's states clock the frames: each goes to the deformer with t
 ``layers.mix_batch``: vectorised across sessions), off the event loop. While the
 session holds layers and no primary state came for ``HOLD_SECONDS`` (no primary producer, a FAP
 producer that sends only on change, a pause in the speech), a task ticks at the session's rate
-and sends the mix of the last primary state (or the neutral face) with the layers, as the demo
-producer clocks its frames (``server_producer``); those frames continue the primary's media time.
+and queues the last primary state (or the neutral face), to be mixed with the layers in the
+deform thread like the primary's, as the demo producer clocks its frames (``server_producer``);
+those frames continue the primary's media time.
 Layer time is the session clock: seconds since the session was made (monotonic), so REST timings
 ("start in 0.5 s") are real time.
 
 Everything here runs on the event loop, except ``mix_jobs`` (a deform thread; the ``Mixer`` is
-thread-safe).
+thread-safe): no frame is mixed on the event loop.
 """
 
 from __future__ import annotations
@@ -57,6 +58,11 @@ HOLD_SECONDS = 0.25
 
 class TooManyLayers(TooMany):
     status = 429
+
+
+class Neutral(FaceState):
+    """The neutral face the layer clock sends when no primary ever came: mixed as no primary
+    (``mix``'s None: no closures to keep)."""
 
 
 def _masks() -> dict[str, np.ndarray]:
@@ -253,12 +259,12 @@ class SessionMix:
                     due = self.clock()
                     continue
                 if session.viewers:  # nobody watching: nothing to mix (the session still runs)
-                    state = self.mixer.mix(self.primary, now)
-                    if self.primary is not None:  # its media time goes on
-                        t = self.primary.t + (now - (now if at is None else at))
-                        state = replace(state, t=t)
-                    self.mixed += 1
-                    session.queue([state], time.time())
+                    p = self.primary
+                    if p is None:
+                        state: FaceState = Neutral(t=now)
+                    else:  # its media time goes on
+                        state = replace(p, t=p.t + (now - (now if at is None else at)))
+                    session.queue([state], time.time(), True)  # mixed in the deform thread
                 due += period
                 delay = due - self.clock()
                 if delay < -1.0:  # a stalled loop: skip ahead rather than rush frames out
@@ -277,11 +283,11 @@ class SessionMix:
 
 
 def layer_of(spec: Spec, now: float) -> Any:
-    """The mixer's layer for a REST ``spec`` set at session time ``now`` (its times count from
-    ``now``): the same vocabulary as ``layers.from_spec``, which builds it."""
+    """The mixer's layer for a REST ``spec`` (validated already: the model is the one check) set
+    at session time ``now`` (its times count from ``now``): ``layers.from_spec`` builds it."""
     from ..layers.spec import from_spec
 
-    return from_spec(spec.model_dump(mode="json", exclude_none=True), now)
+    return from_spec(spec, now)
 
 
 _geometries: dict[int, Any] = {}  # id(rig) -> its Geometry, while the rig lives
@@ -324,14 +330,15 @@ def mix_jobs(jobs: Sequence[MixJob]) -> dict[int, Exception]:
     its layers at the session's time now, all together (``layers.mix_batch``), in place: such a
     job's ``state`` becomes the mix (keeping its ``t``). Runs in a deform thread. Returns the
     failures by job index (those jobs keep their state; the others are mixed)."""
-    from ..layers.mix import mix_batch
+    from ..layers.batch import mix_batch
 
     todo = [i for i, j in enumerate(jobs) if j.mix is not None]
     frames = []
     for i in todo:
         sm = jobs[i].mix
         assert sm is not None
-        frames.append((sm.mixer, jobs[i].state, sm.now()))
+        s = jobs[i].state
+        frames.append((sm.mixer, None if type(s) is Neutral else s, sm.now()))
     mixed: list[FaceState | Exception]
     try:
         mixed = list(mix_batch(frames))
