@@ -28,6 +28,9 @@ FP_REACH_MM = 9.0
 #: Asymmetry (mm) of a mirrored pair of feature points above which ``_mirror`` looks at it, and the
 #: difference (mm) in how far the two landed from where they were looked for above which it redoes one.
 MIRROR_MM, MIRROR_OFF_MM = 3.0, 1.5
+#: Largest angle (degrees) between the alignment and the mesh's own axes that is taken as the
+#: alignment's error, not the head's tilt (cranial points then take their direction in the axes).
+UPRIGHT_DEG = 10.0
 #: How far (mm) from the warped point a cranial feature point is looked for along its ray.
 RADIAL_MM = 25.0
 #: Neutral FAPU distances (mm, on a head scaled to the template) a human face has.
@@ -194,8 +197,15 @@ def annotate_mesh(
         & (np.abs(y[:, 2]) < 200)
     )
     parts = _parts(y, label, main_label, sizes, warped, tpl, box)
+    # The mesh's own axes, in the template frame: a head is modelled upright in them, and the
+    # alignment's few degrees off them come from the head's shape (a longer skull), not a tilt.
+    up, forward = axes or (pl.up, pl.forward)
+    upright = sim.rotation @ frame(up, forward).T
+    off_axis = _angle_deg(upright)
+    if off_axis > UPRIGHT_DEG:
+        upright = np.eye(3)
     fps, left_out, approximate = _feature_points(
-        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri
+        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright
     )
     warnings = _checks(y, fps, left_out, tpl)
 
@@ -208,12 +218,6 @@ def annotate_mesh(
     piv = sim.inverse(warp_points(np.array([tpl.pivots[k] for k in names]), fields))
     mm_per_unit = sim.scale
     unit = units or min(UNIT_MM, key=lambda u: abs(np.log(UNIT_MM[u] / mm_per_unit)))
-    up, forward = axes or (pl.up, pl.forward)
-    off_axis = float(
-        np.degrees(
-            np.arccos(np.clip((np.trace(frame(up, forward) @ sim.rotation.T) - 1) / 2, -1, 1))
-        )
-    )
     fit_err = float(np.median(cKDTree(warped[tpl.outer]).query(pts[head & ~target.rim])[0]))
     report = {
         "template": tpl.name,
@@ -504,7 +508,7 @@ def _mouth_parts(
 
 
 def _feature_points(
-    y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tri
+    y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tri, upright: np.ndarray
 ) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
@@ -563,7 +567,8 @@ def _feature_points(
             trees[key] = (cKDTree(y[ids]), ids)
         p = warped[tpl.feature_points[fp]]
         if key == "skin" and fp in tpl.cranial:
-            p = _radial(p, tpl.fp_position(fp), tpl.skull_centre, y, *trees["skin"])
+            t = tpl.skull_centre + upright @ (tpl.fp_position(fp) - tpl.skull_centre)
+            p = _radial(p, t, tpl.skull_centre, y, *trees["skin"])
         if key != "skin" and key == part:
             if key not in piece_fit:
                 piece_fit[key] = _fit_piece_from(warped, tpl, key, y[parts[key]])
@@ -697,6 +702,11 @@ def _radial(
         return p
     best = np.argsort(np.where(ok, tang, np.inf))[: min(4, int(ok.sum()))]
     return centre + d * float(np.mean(along[best]))
+
+
+def _angle_deg(rotation: np.ndarray) -> float:
+    """Angle (degrees) of a ``(3, 3)`` rotation."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
 
 
 def _ring(y: np.ndarray, triangles: np.ndarray) -> np.ndarray:
