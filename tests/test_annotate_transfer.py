@@ -34,6 +34,7 @@ def test_the_templates_cranial_points_are_the_smooth_skull_not_the_ears():
     assert {"11.1", "11.4", "11.5", "11.6"} <= tpl.cranial
     assert not any(k.startswith("10.") for k in tpl.cranial)  # the ears have shape
     assert not tpl.cranial & {"2.2", "8.3", "9.3", "3.1"}  # the face is the warp's
+    assert not tpl.cranial & {"2.13", "2.14"}  # the jaw angle sits where the jaw's shape puts it
     assert tpl.skull_centre[1] > tpl.fp_position("9.3")[1]  # above the nose tip
 
 
@@ -51,6 +52,16 @@ def test_a_longer_skulls_back_of_the_head_follows_the_meshs_own_axes():
         build_default_head(15_000, head_width=160.0, head_length=208.0, head_height=126.0)
     )
     assert max(err[k] for k in ("7.1", "11.6", "11.4", "11.5")) < 6.0
+
+
+def test_separate_ears_are_fitted_rigidly():
+    """Bigger ears on a shorter face: the warp left the ear's points up to 5 mm off the ear."""
+    err = _errors(
+        build_default_head(
+            15_000, ear_size=70.0, face_height=114.0, chin_length=42.0, eye_radius=11.5
+        )
+    )
+    assert max(err[k] for k in err if k.startswith("10.")) < 3.5
 
 
 @pytest.fixture(scope="module")

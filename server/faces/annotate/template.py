@@ -44,8 +44,10 @@ class Template:
             detected ends are taken as the corners).
         skull_centre: ``(3,)`` mm: centre of the sphere fitted to the skin above the brows.
         cranial: feature points on the smooth skull, off the face (crown, hairline, back of the
-            head, nape, jaw angle): nothing on the surface says where along it they are, so they are
+            head, nape): nothing on the surface says where along it they are, so they are
             carried over by direction from ``skull_centre``, not by the warp's closest point.
+        ear_points: the feature points on the ears (MPEG-4 group 10) the template has.
+        component: ``(N,)`` connected piece of each vertex.
     """
 
     name: str
@@ -62,6 +64,8 @@ class Template:
     mouth_corners: dict[str, np.ndarray]
     skull_centre: np.ndarray
     cranial: frozenset[str]
+    ear_points: frozenset[str]
+    component: np.ndarray
 
     @property
     def profile_heights(self) -> dict[str, float]:
@@ -120,6 +124,7 @@ TEMPLATES = {"default": default_template, "ict": ict_template}
 
 def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Template:
     """An annotated face (MPEG-4 axes) as a template: in mm, without the parts ``drop``."""
+    from ...deform.mesh_graph import components, edge_graph
     from ...deform.normals import vertex_normals
     from .detect import mouth_corners, profile_landmarks, sphere_centre
 
@@ -171,6 +176,8 @@ def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Templa
         mouth_corners=corners,
         skull_centre=sphere_centre(skull),
         cranial=_cranial(v, normals, outer, set(outer[front].tolist()), fps),
+        ear_points=frozenset(k for k in fps if k.startswith("10.") and label[fps[k]] == OUTER),
+        component=components(edge_graph(v, tri)),
     )
 
 
@@ -183,14 +190,15 @@ SMOOTH_COS, SMOOTH_MM = 0.05, 15.0
 def _cranial(
     v: np.ndarray, normals: np.ndarray, outer: np.ndarray, face: set[int], fps: dict[str, int]
 ) -> frozenset[str]:
-    """Feature points of the outer skin off the face region whose surroundings are smooth."""
+    """Feature points of the outer skin off the face region whose surroundings are smooth, but not
+    the jaw's (MPEG-4 group 2: the jaw angle is placed by the jaw's shape, which the warp fits)."""
     from scipy.spatial import cKDTree
 
     tree = cKDTree(v[outer])
     on_outer = set(outer.tolist())
     out = set()
     for k, i in fps.items():
-        if i in face or i not in on_outer:
+        if i in face or i not in on_outer or k.startswith("2."):
             continue
         near = outer[tree.query_ball_point(v[i], SMOOTH_MM)]
         if float(np.mean(1.0 - normals[near] @ normals[i])) < SMOOTH_COS:
