@@ -31,8 +31,6 @@ MIRROR_MM, MIRROR_OFF_MM = 3.0, 1.5
 #: Largest angle (degrees) between the alignment and the mesh's own axes that is taken as the
 #: alignment's error, not the head's tilt (cranial points then take their direction in the axes).
 UPRIGHT_DEG = 10.0
-#: Largest median distance (mm) from the warped template's ear to a mesh piece fitted as its ear.
-EAR_MM = 12.0
 #: How far (mm) from the warped point a cranial feature point is looked for along its ray.
 RADIAL_MM = 25.0
 #: Neutral FAPU distances (mm, on a head scaled to the template) a human face has.
@@ -207,7 +205,7 @@ def annotate_mesh(
     if off_axis > UPRIGHT_DEG:
         upright = np.eye(3)
     fps, left_out, approximate = _feature_points(
-        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright, label
+        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright
     )
     warnings = _checks(y, fps, left_out, tpl)
 
@@ -510,7 +508,7 @@ def _mouth_parts(
 
 
 def _feature_points(
-    y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tri, upright: np.ndarray, label
+    y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tri, upright: np.ndarray
 ) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
@@ -544,7 +542,6 @@ def _feature_points(
     approximate: dict[str, float] = {}
     fps: dict[str, int] = {}
     left_out: dict[str, str] = {}
-    ears = _ear_fits(y, warped, tpl, label)
     wanted = []
     aim: dict[str, np.ndarray] = {}  # where each point was looked for (template frame, mm)
     piece_fit: dict = {}
@@ -572,8 +569,6 @@ def _feature_points(
         if key == "skin" and fp in tpl.cranial:
             t = tpl.skull_centre + upright @ (tpl.fp_position(fp) - tpl.skull_centre)
             p = _radial(p, t, tpl.skull_centre, y, *trees["skin"])
-        if fp in ears:
-            p = ears[fp]
         if key != "skin" and key == part:
             if key not in piece_fit:
                 piece_fit[key] = _fit_piece_from(warped, tpl, key, y[parts[key]])
@@ -630,39 +625,6 @@ def _feature_points(
                 fps[fp] = vid
                 taken.add(vid)
     return fps, left_out, approximate
-
-
-def _ear_fits(
-    y: np.ndarray, warped: np.ndarray, tpl: Template, label: np.ndarray
-) -> dict[str, np.ndarray]:
-    """Ear feature point -> where it belongs (template frame, mm) where both the template and the
-    mesh have that ear as a separate piece: the template's ear fitted rigidly onto the mesh's. An
-    ear is small and strongly shaped; the smooth warp does not follow it (a larger skull moves it
-    5-10 mm). Ears joined to the head are left to the warp (the scalp would hold a fit in place)."""
-    out: dict[str, np.ndarray] = {}
-    comp, count = np.unique(tpl.component[tpl.outer], return_counts=True)
-    small = set(comp[count < 0.1 * len(tpl.outer)].tolist())
-    sizes = np.bincount(label[label >= 0])
-    for c in small:
-        points = [k for k in tpl.ear_points if tpl.component[tpl.feature_points[k]] == c]
-        if not points:
-            continue
-        src = warped[tpl.component == c]
-        # the mesh's small piece nearest the warped template ear (median distance under EAR_MM)
-        near = label[cKDTree(y).query(src)[1]]
-        near = near[near >= 0]
-        if not len(near):
-            continue
-        piece = int(np.bincount(near).argmax())
-        if sizes[piece] > 0.1 * sizes.max():
-            continue  # the ear is part of the head
-        dst = y[label == piece]
-        if len(dst) < 20 or np.median(cKDTree(dst).query(src)[0]) > EAR_MM:
-            continue
-        sim = _fit_piece(src, dst, cKDTree(dst), max_mm=EAR_MM)
-        for k in points:
-            out[k] = sim.apply(warped[tpl.feature_points[k]][None])[0]
-    return out
 
 
 def _mirror_pairs(tpl: Template) -> list[tuple[str, str]]:
@@ -780,13 +742,7 @@ def _fit_piece_from(
     return best[1], best[2]
 
 
-def _fit_piece(
-    src: np.ndarray,
-    dst: np.ndarray,
-    tree: cKDTree,
-    iterations: int = 12,
-    max_mm: float = PIECE_MAX_MM,
-) -> Similarity:
+def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int = 12) -> Similarity:
     """Rigid fit (rotation, translation, scale within 0.8-1.25) of a template piece ``src (N, 3)``
     (warped teeth, tongue) onto the mesh's piece ``dst (M, 3)``: trimmed ICP both ways. The warp
     fits the skin; the pieces inside follow it only smoothly, so their points are placed by this."""
@@ -814,7 +770,7 @@ def _fit_piece(
     # only part of one): the median gap is set against the mesh's own vertex spacing.
     gap = float(np.median(tree.query(sim.apply(src))[0]))
     spacing = float(np.median(tree.query(dst, k=2)[0][:, 1]))
-    if angle > PIECE_MAX_DEG or moved > max_mm or gap > PIECE_GAP_MM + spacing:
+    if angle > PIECE_MAX_DEG or moved > PIECE_MAX_MM or gap > PIECE_GAP_MM + spacing:
         return _front_shift(src, dst, tree)
     return sim
 

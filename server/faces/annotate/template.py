@@ -46,8 +46,6 @@ class Template:
         cranial: feature points on the smooth skull, off the face (crown, hairline, back of the
             head, nape): nothing on the surface says where along it they are, so they are
             carried over by direction from ``skull_centre``, not by the warp's closest point.
-        ear_points: the feature points on the ears (MPEG-4 group 10) the template has.
-        component: ``(N,)`` connected piece of each vertex.
     """
 
     name: str
@@ -64,8 +62,6 @@ class Template:
     mouth_corners: dict[str, np.ndarray]
     skull_centre: np.ndarray
     cranial: frozenset[str]
-    ear_points: frozenset[str]
-    component: np.ndarray
 
     @property
     def profile_heights(self) -> dict[str, float]:
@@ -124,7 +120,6 @@ TEMPLATES = {"default": default_template, "ict": ict_template}
 
 def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Template:
     """An annotated face (MPEG-4 axes) as a template: in mm, without the parts ``drop``."""
-    from ...deform.mesh_graph import components, edge_graph
     from ...deform.normals import vertex_normals
     from .detect import mouth_corners, profile_landmarks, sphere_centre
 
@@ -176,8 +171,6 @@ def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Templa
         mouth_corners=corners,
         skull_centre=sphere_centre(skull),
         cranial=_cranial(v, normals, outer, set(outer[front].tolist()), fps),
-        ear_points=frozenset(k for k in fps if k.startswith("10.") and label[fps[k]] == OUTER),
-        component=components(edge_graph(v, tri)),
     )
 
 
