@@ -25,6 +25,14 @@ from .warp import Target, fit, warp_points
 #: A feature point farther than this (template mm) from every mesh vertex is left out (1.6x this on
 #: the face, where a surface cannot be missing, only sunk into an eye or mouth opening).
 FP_REACH_MM = 9.0
+#: Asymmetry (mm) of a mirrored pair of feature points above which ``_mirror`` looks at it, and the
+#: difference (mm) in how far the two landed from where they were looked for above which it redoes one.
+MIRROR_MM, MIRROR_OFF_MM = 3.0, 1.5
+#: Largest angle (degrees) between the alignment and the mesh's own axes that is taken as the
+#: alignment's error, not the head's tilt (cranial points then take their direction in the axes).
+UPRIGHT_DEG = 10.0
+#: How far (mm) from the warped point a cranial feature point is looked for along its ray.
+RADIAL_MM = 25.0
 #: Neutral FAPU distances (mm, on a head scaled to the template) a human face has.
 FAPU_RANGE_MM: dict[str, tuple[float, float]] = {
     "IRISD": (4.0, 25.0),
@@ -53,6 +61,8 @@ ESSENTIAL = frozenset({"2.1", "3.1", "3.3", "3.5", "3.6", "9.15", "2.2", "8.3", 
 #: contact point down.
 FACING_MIN = 0.0
 FACING_NEAR = 1.5
+#: ... or within this fraction of the mesh's median edge (a coarse mesh's fold lies farther away).
+FACING_NEAR_EDGE = 0.35
 #: Median distance (mm) from a mouth piece to the warped template's pieces under which the
 #: template's part names label it.
 PIECE_NAMES_MM = 2.5
@@ -187,8 +197,15 @@ def annotate_mesh(
         & (np.abs(y[:, 2]) < 200)
     )
     parts = _parts(y, label, main_label, sizes, warped, tpl, box)
+    # The mesh's own axes, in the template frame: a head is modelled upright in them, and the
+    # alignment's few degrees off them come from the head's shape (a longer skull), not a tilt.
+    up, forward = axes or (pl.up, pl.forward)
+    upright = sim.rotation @ frame(up, forward).T
+    off_axis = _angle_deg(upright)
+    if off_axis > UPRIGHT_DEG:
+        upright = np.eye(3)
     fps, left_out, approximate = _feature_points(
-        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri
+        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright
     )
     warnings = _checks(y, fps, left_out, tpl)
 
@@ -201,12 +218,6 @@ def annotate_mesh(
     piv = sim.inverse(warp_points(np.array([tpl.pivots[k] for k in names]), fields))
     mm_per_unit = sim.scale
     unit = units or min(UNIT_MM, key=lambda u: abs(np.log(UNIT_MM[u] / mm_per_unit)))
-    up, forward = axes or (pl.up, pl.forward)
-    off_axis = float(
-        np.degrees(
-            np.arccos(np.clip((np.trace(frame(up, forward) @ sim.rotation.T) - 1) / 2, -1, 1))
-        )
-    )
     fit_err = float(np.median(cKDTree(warped[tpl.outer]).query(pts[head & ~target.rim])[0]))
     report = {
         "template": tpl.name,
@@ -497,7 +508,7 @@ def _mouth_parts(
 
 
 def _feature_points(
-    y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tri
+    y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tri, upright: np.ndarray
 ) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
@@ -523,6 +534,8 @@ def _feature_points(
         np.add.at(t_cnt, tpl.triangles[:, k], 1)
     t_ring = t_ring / np.maximum(t_cnt, 1)[:, None] - warped
 
+    edges = np.linalg.norm(y[wtri] - y[np.roll(wtri, 1, axis=1)], axis=2)
+    near_fold = max(FACING_NEAR, FACING_NEAR_EDGE * float(np.median(edges)))
     skin_ids = np.r_[parts["skin"], parts.get("mouth_socket", np.zeros(0, np.int64))]
     trees = {"skin": (cKDTree(y[skin_ids]), skin_ids)}
     taken: set[int] = set()
@@ -530,6 +543,7 @@ def _feature_points(
     fps: dict[str, int] = {}
     left_out: dict[str, str] = {}
     wanted = []
+    aim: dict[str, np.ndarray] = {}  # where each point was looked for (template frame, mm)
     piece_fit: dict = {}
     for fp in FEATURE_POINT_IDS:
         if fp not in tpl.feature_points:
@@ -552,16 +566,17 @@ def _feature_points(
             )
             trees[key] = (cKDTree(y[ids]), ids)
         p = warped[tpl.feature_points[fp]]
+        if key == "skin" and fp in tpl.cranial:
+            t = tpl.skull_centre + upright @ (tpl.fp_position(fp) - tpl.skull_centre)
+            p = _radial(p, t, tpl.skull_centre, y, *trees["skin"])
         if key != "skin" and key == part:
             if key not in piece_fit:
-                piece_fit[key] = _fit_piece(
-                    warped[tpl.label == 2 + PIECE_PARTS.index(key)],
-                    y[parts[key]],
-                    cKDTree(y[parts[key]]),
-                )
-            p = piece_fit[key].apply(p[None])[0]
+                piece_fit[key] = _fit_piece_from(warped, tpl, key, y[parts[key]])
+            start, sim = piece_fit[key]
+            p = sim.apply(start[tpl.feature_points[fp]][None])[0]
         d, i = trees[key][0].query(p, k=min(16, len(trees[key][1])))
         wanted.append((float(np.atleast_1d(d)[0]), fp, key, np.atleast_1d(d), np.atleast_1d(i)))
+        aim[fp] = p
     for d0, fp, key, d, i in sorted(wanted):
         reach = FP_REACH_MM * (
             2.0 if key != tpl.part_of(fp) else 1.0 if fp.split(".")[0] in ("7", "10", "11") else 1.6
@@ -578,13 +593,13 @@ def _feature_points(
         tr = t_ring[tpl.feature_points[fp]]
         cost = d + 2.0 * np.linalg.norm(ring[ids] - tr, axis=1) * (d < d0 + 0.5)
         cost[d >= d0 + 0.5] += 1e3
-        cost[socket_v[ids] & (d > FACING_NEAR)] += 2e3  # an eye socket, unless right at the point
+        cost[socket_v[ids] & (d > near_fold)] += 2e3  # an eye socket, unless right at the point
         vid = tpl.feature_points[fp]
         if tpl.label[vid] == OUTER:
             facing = yn[ids] @ t_normals[vid]
             # behind the surface: only if nothing else is near (a vertex within FACING_NEAR of the
             # point is where the surface folds, e.g. a coarse mesh's lips meeting: taken)
-            cost[(facing < FACING_MIN) & (d > FACING_NEAR)] += 2e3
+            cost[(facing < FACING_MIN) & (d > near_fold)] += 2e3
         free = [
             j
             for j in np.argsort(cost)
@@ -599,6 +614,7 @@ def _feature_points(
         ]
         fps[fp] = group[int(np.argmin(np.linalg.norm(own_ring[group] - tr, axis=1)))]
         taken.add(fps[fp])
+    _mirror(y, fps, aim, tpl, trees["skin"], taken, coincident)
     # Pupils: the front pole of each eyeball piece (a neutral head looks straight ahead, +z).
     for eye, fp in (("eye_l", "3.5"), ("eye_r", "3.6")):
         ids = parts.get(eye)
@@ -611,6 +627,88 @@ def _feature_points(
     return fps, left_out, approximate
 
 
+def _mirror_pairs(tpl: Template) -> list[tuple[str, str]]:
+    """``(left, right)`` skin feature points of the template that are mirror images (within 1.5 mm)."""
+    skin = {k: tpl.fp_position(k) for k in tpl.feature_points if tpl.part_of(k) == "skin"}
+    right = [k for k, p in skin.items() if p[0] < -1.0]
+    out = []
+    for a, p in skin.items():
+        if p[0] > 1.0 and right:
+            b = min(right, key=lambda k: float(np.linalg.norm(skin[k] - p * [-1, 1, 1])))
+            if np.linalg.norm(skin[b] - p * [-1, 1, 1]) < 1.5:
+                out.append((a, b))
+    return out
+
+
+def _mirror(
+    y: np.ndarray,
+    fps: dict[str, int],
+    aim: dict[str, np.ndarray],
+    tpl: Template,
+    tree: tuple[cKDTree, np.ndarray],
+    taken: set[int],
+    coincident: dict[int, list[int]],
+) -> None:
+    """Redo (in place) a skin point that is not the mirror image of its pair's on a mesh that is
+    symmetric there: the one that landed farther from where it was looked for (``aim``; pushed off
+    by a neighbour that took its vertex, or snapped across a coarse mesh's edge) moves to the free
+    vertex nearest its partner's mirror image, when that vertex lies within half the asymmetry of
+    it (the mesh has the mirrored surface there) and was near enough to be looked at."""
+    mid = [y[v, 0] for k, v in fps.items() if abs(tpl.fp_position(k)[0]) < 1.0]
+    if not mid:
+        return
+    cx = float(np.median(mid))
+    flip = np.array([-1.0, 1.0, 1.0])
+    for a, b in _mirror_pairs(tpl):
+        if a not in fps or b not in fps:
+            continue
+        pa, pb = y[fps[a]] - [cx, 0, 0], y[fps[b]] - [cx, 0, 0]
+        asym = float(np.linalg.norm(pa * flip - pb))
+        if asym < MIRROR_MM:
+            continue
+        off_a = float(np.linalg.norm(y[fps[a]] - aim[a]))
+        off_b = float(np.linalg.norm(y[fps[b]] - aim[b]))
+        if abs(off_a - off_b) < MIRROR_OFF_MM:
+            continue  # both where the warp put them: the face itself is not symmetric there
+        bad, good = (a, b) if off_a > off_b else (b, a)
+        want = (y[fps[good]] - [cx, 0, 0]) * flip + [cx, 0, 0]
+        d, i = tree[0].query(want, k=8)
+        for dist, j in zip(np.atleast_1d(d), np.atleast_1d(i)):
+            vid = int(tree[1][j])
+            group = [m for m in coincident.get(vid, [vid]) if m not in taken]
+            if dist > asym / 2 or np.linalg.norm(y[vid] - aim[bad]) > FP_REACH_MM:
+                break
+            if group:
+                taken.discard(fps[bad])
+                fps[bad] = group[0]
+                taken.add(group[0])
+                break
+
+
+def _radial(
+    p: np.ndarray, t: np.ndarray, centre: np.ndarray, y: np.ndarray, tree: cKDTree, ids: np.ndarray
+) -> np.ndarray:
+    """Where the ray from the template's skull ``centre`` through its feature point ``t`` meets
+    the mesh (``y``: template frame, mm; ``tree`` over ``y[ids]``), near the warped point ``p``
+    (all ``(3,)``): on the smooth skull the warp can slide the surface along itself, the similarity
+    alignment of the whole head cannot. ``p`` itself when no mesh vertex lies near the ray."""
+    near = ids[tree.query_ball_point(p, RADIAL_MM)]
+    d = (t - centre) / max(float(np.linalg.norm(t - centre)), 1e-9)
+    rel = y[near] - centre
+    along = rel @ d
+    tang = np.linalg.norm(rel - along[:, None] * d, axis=1)
+    ok = (along > 0) & (tang < RADIAL_MM / 2)
+    if not ok.any():
+        return p
+    best = np.argsort(np.where(ok, tang, np.inf))[: min(4, int(ok.sum()))]
+    return centre + d * float(np.mean(along[best]))
+
+
+def _angle_deg(rotation: np.ndarray) -> float:
+    """Angle (degrees) of a ``(3, 3)`` rotation."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
+
+
 def _ring(y: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """``(V, 3)``: mean centroid of each vertex's triangles minus the vertex (0 for unused ones): which
     side of the vertex its surface lies on."""
@@ -621,6 +719,27 @@ def _ring(y: np.ndarray, triangles: np.ndarray) -> np.ndarray:
         np.add.at(ring, triangles[:, k], cent)
         np.add.at(cnt, triangles[:, k], 1)
     return ring / np.maximum(cnt, 1)[:, None] - y * (cnt > 0)[:, None]
+
+
+def _fit_piece_from(
+    warped: np.ndarray, tpl: Template, key: str, dst: np.ndarray
+) -> tuple[np.ndarray, Similarity]:
+    """``(start, fit)``: the template piece ``key`` fitted rigidly onto the mesh's ``dst (M, 3)``
+    from the warped template or from the template as aligned (``start``: the template's vertices
+    it starts from, ``(N, 3)``), whichever ends nearer the mesh's piece (median both ways). The warp
+    fits the skin; inside the mouth its field only extends the lips' displacement, which on a
+    coarse mesh's chordal lips can push the teeth and tongue off by several mm."""
+    tree = cKDTree(dst)
+    sel = tpl.label == 2 + PIECE_PARTS.index(key)
+    best = None
+    for start in (warped, tpl.vertices):
+        sim = _fit_piece(start[sel], dst, tree)
+        moved = sim.apply(start[sel])
+        gap = float(np.median(tree.query(moved)[0]) + np.median(cKDTree(moved).query(dst)[0]))
+        if best is None or gap < best[0]:
+            best = (gap, start, sim)
+    assert best is not None
+    return best[1], best[2]
 
 
 def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int = 12) -> Similarity:

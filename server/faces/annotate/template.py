@@ -42,6 +42,10 @@ class Template:
         mouth_corners: where ``detect.mouth_corners`` ends the mouth slit on the template (for
             reference: the template's own 8.3/8.4 lie about 6 mm farther out; on a mesh the
             detected ends are taken as the corners).
+        skull_centre: ``(3,)`` mm: centre of the sphere fitted to the skin above the brows.
+        cranial: feature points on the smooth skull, off the face (crown, hairline, back of the
+            head, nape): nothing on the surface says where along it they are, so they are
+            carried over by direction from ``skull_centre``, not by the warp's closest point.
     """
 
     name: str
@@ -56,6 +60,8 @@ class Template:
     mouth_socket: np.ndarray
     profile: dict[str, np.ndarray]
     mouth_corners: dict[str, np.ndarray]
+    skull_centre: np.ndarray
+    cranial: frozenset[str]
 
     @property
     def profile_heights(self) -> dict[str, float]:
@@ -115,7 +121,7 @@ TEMPLATES = {"default": default_template, "ict": ict_template}
 def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Template:
     """An annotated face (MPEG-4 axes) as a template: in mm, without the parts ``drop``."""
     from ...deform.normals import vertex_normals
-    from .detect import mouth_corners, profile_landmarks
+    from .detect import mouth_corners, profile_landmarks, sphere_centre
 
     keep = np.ones(face.n_vertices, bool)
     for part in drop:
@@ -148,6 +154,8 @@ def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Templa
     profile = profile_landmarks(v, outer_tri)
     corners = mouth_corners(v, outer_tri, profile["slit"], abs(float(v[fps["8.3"], 0])))
     socket = face.part("mouth_socket")
+    normals = vertex_normals(v, tri)
+    skull = p[p[:, 1] > brow[1] + 10.0]
     return Template(
         name=name,
         vertices=v,
@@ -157,8 +165,35 @@ def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Templa
         feature_points=fps,
         pivots=pivots,
         face_region=outer[front],
-        normals=vertex_normals(v, tri),
+        normals=normals,
         mouth_socket=new_id[socket[keep[socket]]],
         profile=profile,
         mouth_corners=corners,
+        skull_centre=sphere_centre(skull),
+        cranial=_cranial(v, normals, outer, set(outer[front].tolist()), fps),
     )
+
+
+#: Mean ``1 - cos`` between a point's normal and the skin's normals within ``SMOOTH_MM`` under
+#: which the skin around the point is smooth (a sphere of the head's size gives about 0.01; an ear
+#: 0.5 or more).
+SMOOTH_COS, SMOOTH_MM = 0.05, 15.0
+
+
+def _cranial(
+    v: np.ndarray, normals: np.ndarray, outer: np.ndarray, face: set[int], fps: dict[str, int]
+) -> frozenset[str]:
+    """Feature points of the outer skin off the face region whose surroundings are smooth, but not
+    the jaw's (MPEG-4 group 2: the jaw angle is placed by the jaw's shape, which the warp fits)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(v[outer])
+    on_outer = set(outer.tolist())
+    out = set()
+    for k, i in fps.items():
+        if i in face or i not in on_outer or k.startswith("2."):
+            continue
+        near = outer[tree.query_ball_point(v[i], SMOOTH_MM)]
+        if float(np.mean(1.0 - normals[near] @ normals[i])) < SMOOTH_COS:
+            out.add(k)
+    return frozenset(out)

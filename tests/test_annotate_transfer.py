@@ -1,0 +1,104 @@
+"""How the fitted template's feature points are carried onto a mesh (``annotate.core``): the smooth
+skull by direction from its centre, pieces inside the mouth from the better of two starts, coarse
+lips that touch, and mirrored pairs redone when one was pushed off its place.
+
+The built-in head is its own truth: ``build_default_head`` at another resolution or with other
+proportions knows where its feature points are.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from facecast.server.faces.annotate import annotate_mesh
+from facecast.server.faces.annotate.core import _mirror
+from facecast.server.faces.annotate.template import default_template
+from facecast.server.faces.procedural import build_default_head
+
+
+def _errors(face) -> dict[str, float]:
+    """Feature point -> distance (mm) of the automatic point from the head's own."""
+    auto = annotate_mesh(face.vertices, face.triangles)
+    v = face.vertices.astype(np.float64)
+    return {
+        k: float(np.linalg.norm(v[auto["feature_points"][k]] - v[i]))
+        for k, i in face.feature_points.items()
+        if k in auto["feature_points"]
+    }
+
+
+def test_the_templates_cranial_points_are_the_smooth_skull_not_the_ears():
+    tpl = default_template()
+    assert {"11.1", "11.4", "11.5", "11.6"} <= tpl.cranial
+    assert not any(k.startswith("10.") for k in tpl.cranial)  # the ears have shape
+    assert not tpl.cranial & {"2.2", "8.3", "9.3", "3.1"}  # the face is the warp's
+    assert not tpl.cranial & {"2.13", "2.14"}  # the jaw angle sits where the jaw's shape puts it
+    assert tpl.skull_centre[1] > tpl.fp_position("9.3")[1]  # above the nose tip
+
+
+def test_a_wider_faces_crown_points_stay_on_the_crown():
+    """The warp slid 11.5 by 12 mm and 11.4 by 6 mm along a flat crown (wider face, 20k)."""
+    err = _errors(build_default_head(20_000, face_width=128.0, mouth_width=56.0))
+    assert max(err[k] for k in ("11.1", "11.2", "11.3", "11.4", "11.5", "11.6")) < 3.0
+    assert np.mean(list(err.values())) < 1.0
+
+
+def test_a_longer_skulls_back_of_the_head_follows_the_meshs_own_axes():
+    """A larger skull tilts the whole-head alignment 3 degrees off the mesh's axes: cast in the
+    alignment's frame the nape (7.1) and the back of the head (11.6) landed 12 and 9 mm off."""
+    err = _errors(
+        build_default_head(15_000, head_width=160.0, head_length=208.0, head_height=126.0)
+    )
+    assert max(err[k] for k in ("7.1", "11.6", "11.4", "11.5")) < 6.0
+
+
+@pytest.fixture(scope="module")
+def coarse():
+    return _errors(build_default_head(2000))
+
+
+def test_a_coarse_heads_touching_lips_keep_their_own_points(coarse):
+    """At 2k vertices the lower lip's contact point (2.3) faced away from its coincident vertex and
+    took the upper lip's 8.1, which was pushed on to 8.10's vertex (6.6 and 7.8 mm off)."""
+    assert coarse["2.3"] < 1.0 and coarse["8.1"] < 2.0
+
+
+def test_a_coarse_heads_tongue_points_come_from_the_better_fit(coarse):
+    """The warp's field pushed the tongue 6-8 mm forward (from the chordal lips); the rigid fit from
+    the aligned template lands on it."""
+    assert max(coarse[k] for k in ("6.1", "6.2", "6.3", "6.4")) < 3.0
+
+
+def _grid():
+    """A symmetric patch (x in -20..20 mm, y in -10..10, 1 mm apart) in the template frame."""
+    x, y = np.meshgrid(np.arange(-20.0, 21.0), np.arange(-10.0, 11.0))
+    pts = np.c_[x.ravel(), y.ravel(), np.zeros(x.size)]
+    return pts, cKDTree(pts), np.arange(len(pts))
+
+
+def _vid(pts, p) -> int:
+    return int(np.argmin(np.linalg.norm(pts - np.asarray(p, dtype=np.float64), axis=1)))
+
+
+def test_a_point_pushed_off_its_mirror_image_is_redone():
+    pts, tree, ids = _grid()
+    tpl = default_template()
+    a, b = "8.3", "8.4"  # mirrored in the template
+    fps = {a: _vid(pts, [15, 0, 0]), b: _vid(pts, [-15, -5, 0]), "2.2": _vid(pts, [0, 0, 0])}
+    aim = {a: pts[fps[a]], b: np.array([-15.0, 0, 0]), "2.2": pts[fps["2.2"]]}
+    taken = set(fps.values())
+    _mirror(pts, fps, aim, tpl, (tree, ids), taken, {})
+    assert np.allclose(pts[fps[b]], [-15, 0, 0]) and fps[b] in taken
+    assert len(taken) == 3
+
+
+def test_an_asymmetric_face_where_the_warp_put_it_is_kept():
+    pts, tree, ids = _grid()
+    tpl = default_template()
+    fps = {"8.3": _vid(pts, [15, 0, 0]), "8.4": _vid(pts, [-15, -5, 0]), "2.2": 0}
+    aim = {k: pts[v] for k, v in fps.items()}  # both landed where they were looked for
+    before = dict(fps)
+    _mirror(pts, fps, aim, tpl, (tree, ids), set(fps.values()), {})
+    assert fps == before
