@@ -48,6 +48,8 @@ __all__ = ["Processed", "find_layout", "load", "process"]
 #: (0.52 mm mean; 0.23 mm at 0.2); a take with a hold averages its hold (at 0.2 mm the generated
 #: take's stabilised displacements' p95 rose from 0.371 to 0.392 mm, at 0.4 it stays).
 HOLD_MM, STILL_MM = 0.4, 0.2
+#: ``load``'s face prior when none is chosen (``mocap.prior``).
+PRIOR_DEFAULT = "off"
 
 
 @dataclass
@@ -96,6 +98,7 @@ def process(
     stabilise_method: str = "auto",
     neutral_window: float = 0.5,
     where: str = "take",
+    prior=None,
 ) -> Processed:
     """Run the batch pipeline on a take already read (see module docstring).
 
@@ -225,7 +228,7 @@ def process(
         local, info["lowrank"] = denoise_displacements(
             local, neutral, stable, params.lowrank, unsmoothed=unsmoothed
         )
-    rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu)
+    rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu, prior=prior)
     states = rig.solve_batch(local, r, t, take.fps, 0.0)
     return Processed(take, layout, raw, cleaned, local, r, t, nf, rig, states, info)
 
@@ -352,6 +355,7 @@ def load(
     stable: list[str] | None = None,
     kernel: str = "imq",
     mu: float = 2.0,
+    prior: str | Path | None = PRIOR_DEFAULT,
     **options,
 ) -> Animation:
     """Decode a mocap take into an ``Animation`` for ``face``.
@@ -365,6 +369,8 @@ def load(
         lowrank: ``auto``, ``off`` or a count of principal motions kept (``CleanParams.lowrank``).
         stable: stable marker names overriding the layout's (each checked for rigidity).
         kernel, mu: retarget RBF.
+        prior: the face prior (``mocap.prior``): ``auto`` (the face's ``expressions/`` folder when
+            it has one), ``off``, a folder of expression meshes or an ``.npz`` basis.
     """
     path = Path(path)
     for k, v in options.items():
@@ -391,6 +397,7 @@ def load(
         kernel=kernel,
         mu=mu,
         where=str(path),
+        prior=prior,
     )
     log.info(
         "%s: %d frames at %g fps, %d markers (%d controls), %d occluded samples, %d spikes",

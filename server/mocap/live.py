@@ -72,8 +72,10 @@ class MarkerLiveDriver:
         q_pose: float = 1000.0,
         kernel: str = "imq",
         mu: float = 2.0,
+        prior=None,
     ):
         self.face = face
+        self.prior = prior  # the face prior's source (``rig.MarkerRig``), built once placed
         self.layout: Layout = load_layout(layout)
         self.names = [str(n) for n in names]
         if len(set(self.names)) != len(self.names):
@@ -111,10 +113,13 @@ class MarkerLiveDriver:
         self.control_vertices: np.ndarray | None = None
         if not auto:
             from .layout import place_markers
-            from .rig import anchor_vertices
+            from .rig import _prior, anchor_vertices
 
             markers = place_markers(self.layout, face).vertices
-            self.control_vertices = np.r_[markers, anchor_vertices(face, markers)].astype(np.int32)
+            anchors = anchor_vertices(face, markers)
+            self.prior = _prior(face, prior, markers, anchors)
+            virtual = self.prior.vertices if self.prior is not None else np.zeros(0, np.int64)
+            self.control_vertices = np.r_[markers, virtual, anchors].astype(np.int32)
 
     @property
     def ready(self) -> bool:
@@ -207,7 +212,9 @@ class MarkerLiveDriver:
                 "the hello or the layout",
                 where=f"frame {self.frames - 1}",
             )
-        self.rig = MarkerRig(self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu)
+        self.rig = MarkerRig(
+            self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu, prior=self.prior
+        )
         self._ref_stable = neutral[self.stable]
         # each marker's mean square off the head (mm², an exponential average over ~0.5 s); until
         # measured, the face markers count as moving 5 mm
