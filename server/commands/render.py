@@ -65,8 +65,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="auto|off|PATH",
         help="face prior: the face's expression shapes fitted to the markers (auto: the expressions/ "
-        "folder beside the face mesh; PATH: a folder of .obj/.obj.xz shapes or an .npz basis; "
-        "default off)",
+        "folder beside the face mesh, the default; PATH: a folder of .obj/.obj.xz shapes or an "
+        ".npz basis)",
     )
     lay = p.add_argument_group("layers (mixed over the input; local renders only)")
     lay.add_argument(

@@ -26,6 +26,7 @@ from .clean import CleanParams, clean, lowrank_denoise, motion_rank
 from .io import read_take
 from .layout import Layout, load_layout
 from .neutral import find_neutral
+from .prior import DEFAULT as PRIOR_DEFAULT
 from .rig import MarkerRig, match_names
 from .stabilise import (
     check_stable,
@@ -48,8 +49,6 @@ __all__ = ["Processed", "find_layout", "load", "process"]
 #: (0.52 mm mean; 0.23 mm at 0.2); a take with a hold averages its hold (at 0.2 mm the generated
 #: take's stabilised displacements' p95 rose from 0.371 to 0.392 mm, at 0.4 it stays).
 HOLD_MM, STILL_MM = 0.4, 0.2
-#: ``load``'s face prior when none is chosen (``mocap.prior``).
-PRIOR_DEFAULT = "off"
 
 
 @dataclass
@@ -369,8 +368,8 @@ def load(
         lowrank: ``auto``, ``off`` or a count of principal motions kept (``CleanParams.lowrank``).
         stable: stable marker names overriding the layout's (each checked for rigidity).
         kernel, mu: retarget RBF.
-        prior: the face prior (``mocap.prior``): ``auto`` (the face's ``expressions/`` folder when
-            it has one), ``off``, a folder of expression meshes or an ``.npz`` basis.
+        prior: the face prior (``mocap.prior``): ``auto`` (default: the face's ``expressions/``
+            folder when it has one), ``off``, a folder of expression meshes or an ``.npz`` basis.
     """
     path = Path(path)
     for k, v in options.items():

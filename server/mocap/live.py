@@ -4,12 +4,13 @@ Per frame: head pose from the measured stable markers (Kabsch / three-marker, on
 filtered by a constant-velocity Kalman filter on its rotation vector and the stable markers'
 centroid; its removal from the raw markers; a constant-velocity Kalman filter with spike gating on
 the stabilised markers (``clean.KalmanCV``: the face's motion alone is gentle, so it filters more
-than it would with the head's on top); RBF retarget onto the face (``rig.MarkerRig``).
-The actor's neutral is taken from the first ``neutral_frames`` frames in which at least three
-stable markers are visible, more until every control marker has been seen
-(``stabilise.start_neutral``: stabilised and averaged, in the first frame's head pose); until then
-``push`` returns no state. Each frame's head pose uses every marker that has shown itself rigid
-(``stabilise.robust_pose``).
+than it would with the head's on top); RBF retarget onto the face (``rig.MarkerRig``), and the
+face prior (``prior``, the same as batch: the face's expression shapes fitted to each frame, warm
+started from the last, driving virtual controls). The actor's neutral is taken from the first
+``neutral_frames`` frames in which at least three stable markers are visible, more until every
+control marker has been seen (``stabilise.start_neutral``: stabilised and averaged, in the first
+frame's head pose); until then ``push`` returns no state. Each frame's head pose uses every marker
+that has shown itself rigid (``stabilise.robust_pose``).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from ..state import FaceState
 from .clean import KalmanCV
 from .io import FACE_SPAN_MM, detect_units
 from .layout import Layout, load_layout
+from .prior import DEFAULT as PRIOR_DEFAULT
 from .rig import MarkerRig, match_names
 from .stabilise import rigidity_weights, robust_pose, solve_pose, start_neutral
 
@@ -72,7 +74,7 @@ class MarkerLiveDriver:
         q_pose: float = 1000.0,
         kernel: str = "imq",
         mu: float = 2.0,
-        prior=None,
+        prior=PRIOR_DEFAULT,
     ):
         self.face = face
         self.prior = prior  # the face prior's source (``rig.MarkerRig``), built once placed

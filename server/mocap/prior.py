@@ -38,6 +38,7 @@ from .sampling import farthest_points
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "DEFAULT",
     "ExpressionBasis",
     "ExpressionPrior",
     "fit_weights",
@@ -54,6 +55,11 @@ TRUST = (0.3, 0.5)
 RIDGE = 0.03
 #: Virtual controls spread over the skin the shapes move (more than MIN_MOTION_MM).
 N_VIRTUAL = 500
+#: The prior batch and live use when none is chosen: the face's own shapes when it has them. On
+#: held-out folds (bench/mocap_fidelity.py, rendered output) it is better where a take's shapes are
+#: known only by their mirror images (technician 0.40x -> 0.24x) and within 0.01x of the engine
+#: alone where they are unknown in any form.
+DEFAULT = "auto"
 
 
 @dataclass(frozen=True)
