@@ -55,6 +55,8 @@ TRUST = (0.3, 0.5)
 RIDGE = 0.03
 #: Virtual controls spread over the skin the shapes move (more than MIN_MOTION_MM).
 N_VIRTUAL = 500
+#: Fit iterations per live frame, warm started from the last (batch: 200 from zero).
+WARM_ITERS = 30
 #: The prior batch and live use when none is chosen: the face's own shapes when it has them. On
 #: held-out folds (bench/mocap_fidelity.py, rendered output) it is better where a take's shapes are
 #: known only by their mirror images (technician 0.40x -> 0.24x) and within 0.01x of the engine
@@ -194,7 +196,8 @@ def fit_weights(
     y, t = w.copy(), 1.0
     step = 1.0 / lipschitz
     for _ in range(iters):
-        w_next = np.clip(y - step * (y @ gram - rhs), 0.0, 1.0)
+        w_next = y - step * (y @ gram - rhs)
+        np.minimum(np.maximum(w_next, 0.0, out=w_next), 1.0, out=w_next)
         t_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
         y = w_next + ((t - 1.0) / t_next) * (w_next - w)
         w, t = w_next, t_next
@@ -261,7 +264,7 @@ class ExpressionPrior:
         scale = float((a**2).sum(axis=0).mean())
         self._gram = a.T @ a + ridge * scale * np.eye(a.shape[1])
         self._lip = float(np.linalg.eigvalsh(self._gram)[-1])
-        self._virt = self.shapes[:, self.vertices].astype(np.float64)  # (E, N, 3)
+        self._virt = self.shapes[:, self.vertices].reshape(len(self.shapes), -1).astype(np.float64)
         self._interp: np.ndarray | None = None
         self._last: np.ndarray | None = None
 
@@ -272,7 +275,8 @@ class ExpressionPrior:
     def set_interpolation(self, rows: np.ndarray) -> None:
         """``rows (N, K, 3)``: per axis, how the markers alone interpolate to the virtual vertices
         (the engine's rows there): the fall-back when the shapes do not explain a frame."""
-        self._interp = np.asarray(rows, dtype=np.float64)
+        rows = np.asarray(rows, dtype=np.float64)
+        self._interp = np.ascontiguousarray(rows.transpose(2, 1, 0))  # (3, K, N)
 
     def weights(self, d: np.ndarray, warm: bool = False) -> np.ndarray:
         """``(T, E)`` shape weights fitted to marker displacements ``d (T, K, 3)`` (face units);
@@ -281,7 +285,7 @@ class ExpressionPrior:
         w0 = None
         if warm and self._last is not None:
             w0 = np.repeat(self._last[None], len(d), axis=0)
-        w = fit_weights(self._gram, b @ self._a, self._lip, w0, iters=60 if warm else 200)
+        w = fit_weights(self._gram, b @ self._a, self._lip, w0, iters=WARM_ITERS if warm else 200)
         self._last = w[-1].copy()
         return w
 
@@ -297,11 +301,11 @@ class ExpressionPrior:
         lo, hi = self.trust
         beta = np.clip((hi - rel) / max(hi - lo, 1e-9), 0.0, 1.0)
         beta[size <= 1e-12] = 1.0
-        shaped = np.einsum("te,enc->tnc", w, self._virt)
+        shaped = (w @ self._virt).reshape(len(d), -1, 3)
         if self._interp is None:
             out = beta[:, None, None] * shaped
-        else:
-            own = np.einsum("nkc,tkc->tnc", self._interp, d)
+        else:  # per axis: (T, K) @ (K, N)
+            own = np.stack([d[:, :, c] @ self._interp[c] for c in range(3)], axis=2)
             out = beta[:, None, None] * shaped + (1.0 - beta[:, None, None]) * own
         return out.astype(np.float32), beta
 
