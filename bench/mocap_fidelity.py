@@ -2,6 +2,7 @@
 
     python bench/mocap_fidelity.py [--variants issue16 sparse30 ...] [--folds 3] [--seconds 3]
                                    [--engine fp] [--every 2] [--live]
+                                   [--protocol random|strict|mirror] [--priors off fold]
 
 For each take variant (``facecast.server.mocap.variants``: layouts, headbands, capture axes and
 units, motion from frame 0, pivots, fast expressions) and each fold of held-out ICT expressions
@@ -14,6 +15,12 @@ folds). The written vertices, head motion included, are compared with the truth'
 - head pose error: per frame the rigid motion that best maps the output onto the truth over the skin
   that no expression moves (the skull): its angle (degrees) and its mean displacement of the skin (mm);
 - non-rigid error: the skin error left after that per-frame rigid correction (an oracle).
+
+Each take is rendered once per ``--priors`` entry: ``off`` (the engine alone) and ``fold`` (the face
+prior, ``mocap.prior``, built from the fold's prior shapes only, saved as an ``.npz`` basis and passed
+as ``render``'s ``prior``). ``--protocol`` (``variants.fold_protocol``) says which shapes a fold's
+prior may know: ``strict`` none of the held-out families (nor their mirrors), ``mirror`` the held-out
+shape's other side (as ICT ships one side of several pairs), ``random`` whatever the split leaves.
 
 ``--live`` also streams the take frame by frame through the live session's ``MarkerLiveDriver``
 (causal), scored from its first state on.
