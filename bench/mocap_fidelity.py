@@ -2,6 +2,7 @@
 
     python bench/mocap_fidelity.py [--variants issue16 sparse30 ...] [--folds 3] [--seconds 3]
                                    [--engine fp] [--every 2] [--live]
+                                   [--protocol random|strict|mirror] [--priors off fold]
 
 For each take variant (``facecast.server.mocap.variants``: layouts, headbands, capture axes and
 units, motion from frame 0, pivots, fast expressions) and each fold of held-out ICT expressions
@@ -14,6 +15,12 @@ folds). The written vertices, head motion included, are compared with the truth'
 - head pose error: per frame the rigid motion that best maps the output onto the truth over the skin
   that no expression moves (the skull): its angle (degrees) and its mean displacement of the skin (mm);
 - non-rigid error: the skin error left after that per-frame rigid correction (an oracle).
+
+Each take is rendered once per ``--priors`` entry: ``off`` (the engine alone) and ``fold`` (the face
+prior, ``mocap.prior``, built from the fold's prior shapes only, saved as an ``.npz`` basis and passed
+as ``render``'s ``prior``). ``--protocol`` (``variants.fold_protocol``) says which shapes a fold's
+prior may know: ``strict`` none of the held-out families (nor their mirrors), ``mirror`` the held-out
+shape's other side (as ICT ships one side of several pairs), ``random`` whatever the split leaves.
 
 ``--live`` also streams the take frame by frame through the live session's ``MarkerLiveDriver``
 (causal), scored from its first state on.
@@ -33,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-OUT = Path(__file__).resolve().parent / "out" / "mocap_fidelity.json"
+OUT = Path(__file__).resolve().parent / "out" / "mocap_fidelity.json"  # suffixed by protocol
 
 
 def rigid_errors(
@@ -60,7 +67,9 @@ def rigid_errors(
     }
 
 
-def live_vertices(tr, fmt: str, face, engine: str, backend: str) -> tuple[np.ndarray, int]:
+def live_vertices(
+    tr, fmt: str, face, engine: str, backend: str, prior=None
+) -> tuple[np.ndarray, int]:
     """The take streamed frame by frame through ``MarkerLiveDriver`` (the live session's driver) and
     rendered: ``(vertices (T - first, V, 3), first frame with a state)``."""
     from facecast.server.mocap.io import read_take
@@ -69,7 +78,7 @@ def live_vertices(tr, fmt: str, face, engine: str, backend: str) -> tuple[np.nda
 
     layout = json.loads(tr.paths["layout"].read_text())
     take = read_take(tr.paths[fmt], default_units=layout["units"])
-    drv = MarkerLiveDriver(face, take.names, layout, units=take.units, fps=take.fps)
+    drv = MarkerLiveDriver(face, take.names, layout, units=take.units, fps=take.fps, prior=prior)
     states, first = [], None
     for i, frame in enumerate(take.xyz):
         out = drv.push(frame, i / take.fps)
@@ -85,7 +94,8 @@ def live_vertices(tr, fmt: str, face, engine: str, backend: str) -> tuple[np.nda
 
 
 def main(argv: list[str]) -> int:
-    from facecast.server.mocap.variants import VARIANTS, folds, make_take, usable_expressions
+    from facecast.server.mocap.prior import ExpressionBasis
+    from facecast.server.mocap.variants import PROTOCOLS, VARIANTS, fold_protocol, make_take
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
@@ -98,6 +108,20 @@ def main(argv: list[str]) -> int:
     p.add_argument("--engine", default="fp")
     p.add_argument("--backend", default="numpy")
     p.add_argument("--live", action="store_true", help="also the causal (live) filter")
+    p.add_argument(
+        "--protocol",
+        default="random",
+        choices=PROTOCOLS,
+        help="expression folds (variants.fold_protocol): random, strict (whole families held "
+        "out), mirror (one side held out, the other in the prior)",
+    )
+    p.add_argument(
+        "--priors",
+        nargs="+",
+        default=["off", "fold"],
+        choices=["off", "fold"],
+        help="face priors rendered in the same run: off, fold (the fold's prior shapes only)",
+    )
     p.add_argument(
         "--neutral-frame",
         default=None,
@@ -115,11 +139,11 @@ def main(argv: list[str]) -> int:
     skin = face.part("skin")
     motion = np.linalg.norm(deltas[:, skin], axis=2).max(axis=0) * mm
     moving, still = skin[motion > 0.5], skin[motion < 0.01]
-    splits = folds(len(enames), a.folds, seed=0, usable=usable_expressions(enames))
+    splits = fold_protocol(enames, a.protocol, a.folds)
     rows = []
     formats = ("trc", "c3d", "csv")
     for vname in a.variants:
-        for k, held in enumerate(splits[: a.run_folds or len(splits)]):
+        for k, (held, known) in enumerate(splits[: a.run_folds or len(splits)]):
             with tempfile.TemporaryDirectory() as tmp:
                 tr = make_take(
                     vname,
@@ -146,54 +170,65 @@ def main(argv: list[str]) -> int:
                     }
 
                 base = score(rest)
-                row = {
-                    "variant": vname,
-                    "fold": k,
-                    "held_out": [enames[i] for i in held],
-                    "format": fmt,
-                    "frames": len(tr.weights),
-                    "not_deforming": base,
-                }
-                t0 = time.perf_counter()
-                out = Path(tmp) / "out.npz"
-                render_file(
-                    tr.paths[fmt],
-                    out,
-                    face=face,
-                    engine=a.engine,
-                    backend=a.backend,
-                    layout=str(tr.paths["layout"]),
-                    mocap={"neutral_frame": a.neutral_frame},
+                # the fold's prior: only the shapes the protocol lets it know (never a held-out one)
+                basis = ExpressionBasis([enames[i] for i in known], deltas[known]).save(
+                    Path(tmp) / "prior.npz"
                 )
-                row["render_s"] = time.perf_counter() - t0
-                with np.load(out) as z:
-                    got = z["vertices"][frames]
-                row["batch"] = {**score(got), **rigid_errors(got, gt, still, skin, mm)}
-                row["batch"]["ratio"] = row["batch"]["skin_mm_mean"] / base["skin_mm_mean"]
-                if a.live:
-                    got, first = live_vertices(tr, fmt, face, a.engine, a.backend)
-                    keep = frames >= first  # states start once the live neutral is taken
-                    got = got[frames[keep] - first]
-                    sc = score(got, gt[keep])
-                    row["live"] = {
-                        **sc,
-                        **rigid_errors(got, gt[keep], still, skin, mm),
-                        "ratio": sc["skin_mm_mean"] / score(rest[keep], gt[keep])["skin_mm_mean"],
-                        "first_frame": int(first),
+                for prior in a.priors:
+                    source = str(basis) if prior == "fold" else "off"
+                    row = {
+                        "variant": vname,
+                        "fold": k,
+                        "protocol": a.protocol,
+                        "prior": prior,
+                        "held_out": [enames[i] for i in held],
+                        "format": fmt,
+                        "frames": len(tr.weights),
+                        "not_deforming": base,
                     }
-                rows.append(row)
-                print(
-                    f"{vname} fold {k} ({fmt}): batch {row['batch']['ratio']:.2f}x, pose "
-                    f"{row['batch']['pose_deg_mean']:.3f} deg",
-                    file=sys.stderr,
-                    flush=True,
-                )
+                    t0 = time.perf_counter()
+                    out = Path(tmp) / "out.npz"
+                    render_file(
+                        tr.paths[fmt],
+                        out,
+                        face=face,
+                        engine=a.engine,
+                        backend=a.backend,
+                        layout=str(tr.paths["layout"]),
+                        mocap={"neutral_frame": a.neutral_frame, "prior": source},
+                    )
+                    row["render_s"] = time.perf_counter() - t0
+                    with np.load(out) as z:
+                        got = z["vertices"][frames]
+                    row["batch"] = {**score(got), **rigid_errors(got, gt, still, skin, mm)}
+                    row["batch"]["ratio"] = row["batch"]["skin_mm_mean"] / base["skin_mm_mean"]
+                    if a.live:
+                        got, first = live_vertices(tr, fmt, face, a.engine, a.backend, source)
+                        keep = frames >= first  # states start once the live neutral is taken
+                        got = got[frames[keep] - first]
+                        sc = score(got, gt[keep])
+                        row["live"] = {
+                            **sc,
+                            **rigid_errors(got, gt[keep], still, skin, mm),
+                            "ratio": sc["skin_mm_mean"]
+                            / score(rest[keep], gt[keep])["skin_mm_mean"],
+                            "first_frame": int(first),
+                        }
+                    rows.append(row)
+                    print(
+                        f"{vname} {a.protocol} fold {k} ({fmt}) prior {prior}: batch "
+                        f"{row['batch']['ratio']:.2f}x, pose {row['batch']['pose_deg_mean']:.3f} deg"
+                        + (f", live {row['live']['ratio']:.2f}x" if a.live else ""),
+                        file=sys.stderr,
+                        flush=True,
+                    )
     load = os.getloadavg()
     rec = {
         "seconds": a.seconds,
         "fps": a.fps,
         "engine": a.engine,
         "folds": a.folds,
+        "protocol": a.protocol,
         "every": a.every,
         "skin_vertices": len(skin),
         "moving_skin_vertices": len(moving),
@@ -201,8 +236,9 @@ def main(argv: list[str]) -> int:
         "loadavg": load,
         "rows": rows,
     }
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(rec, indent=1) + "\n")
+    out_json = OUT.with_name(f"mocap_fidelity-{a.protocol}.json")
+    out_json.parent.mkdir(parents=True, exist_ok=True)
+    out_json.write_text(json.dumps(rec, indent=1) + "\n")
 
     print(
         f"Mocap fidelity through `render` (ICT head, engine {a.engine}, {a.seconds:g} s at {a.fps:g} fps, "
@@ -210,28 +246,32 @@ def main(argv: list[str]) -> int:
     )
     paths = ["batch"] + (["live"] if a.live else [])
     print(
-        "| variant | fold | fmt | not deforming (mm) | path | skin mean (mm) | ratio | pose (deg) | pose (mm) "
-        "| non-rigid (mm) |"
+        "| variant | fold | fmt | prior | not deforming (mm) | path | skin mean (mm) | ratio | pose (deg) "
+        "| pose (mm) | non-rigid (mm) |"
     )
-    print("|---|---|---|---:|---|---:|---:|---:|---:|---:|")
+    print("|---|---|---|---|---:|---|---:|---:|---:|---:|---:|")
     for r in rows:
         for pth in paths:
             s = r[pth]
             print(
-                f"| {r['variant']} | {r['fold']} | {r['format']} | {r['not_deforming']['skin_mm_mean']:.3f} | "
+                f"| {r['variant']} | {r['fold']} | {r['format']} | {r['prior']} | "
+                f"{r['not_deforming']['skin_mm_mean']:.3f} | "
                 f"{pth} | {s['skin_mm_mean']:.3f} | {s['ratio']:.2f}x | {s['pose_deg_mean']:.3f} | "
                 f"{s['pose_mm_mean']:.3f} | {s['nonrigid_mm_mean']:.3f} |"
             )
     print()
-    for pth, target in (("batch", 0.25), ("live", 0.4)):
-        if pth not in paths:
-            continue
-        ratio = np.mean([r[pth]["ratio"] for r in rows])
-        pose = np.mean([r[pth]["pose_deg_mean"] for r in rows])
-        print(
-            f"- {pth}: mean ratio {ratio:.2f}x (target <= {target}x): {'met' if ratio <= target else 'NOT met'}; "
-            f"mean head pose error {pose:.3f} deg (target <= 0.1): {'met' if pose <= 0.1 else 'NOT met'}"
-        )
+    for prior in a.priors:
+        sel = [r for r in rows if r["prior"] == prior]
+        for pth, target in (("batch", 0.25), ("live", 0.4)):
+            if pth not in paths:
+                continue
+            ratio = np.mean([r[pth]["ratio"] for r in sel])
+            pose = np.mean([r[pth]["pose_deg_mean"] for r in sel])
+            print(
+                f"- prior {prior}, {pth} ({a.protocol} folds): mean ratio {ratio:.2f}x (target <= "
+                f"{target}x): {'met' if ratio <= target else 'NOT met'}; mean head pose error "
+                f"{pose:.3f} deg (target <= 0.1): {'met' if pose <= 0.1 else 'NOT met'}"
+            )
     return 0
 
 

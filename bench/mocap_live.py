@@ -1,6 +1,7 @@
 """Live mocap: time from marker frame in to vertex frame out, and the Kalman filter's lag.
 
     python bench/mocap_live.py [--face default] [--markers 60] [--fps 120] [--seconds 10] [--backend auto]
+                               [--prior off|auto|PATH]
 
 A synthetic take (``facecast.server.mocap.synthetic``: 60 markers on the face, 0.5 mm noise, gaps,
 head motion) is pushed frame by frame through ``MarkerLiveDriver`` and a ``pipeline.Animator``
@@ -21,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-OUT = Path(__file__).resolve().parent / "out" / "mocap_live.json"
+OUT = Path(__file__).resolve().parent / "out" / "mocap_live.json"  # suffixed by the prior
 
 
 def pct(ms: list[float]) -> dict:
@@ -43,6 +44,9 @@ def main(argv: list[str]) -> int:
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--engine", default="fp")
     p.add_argument("--backend", default="auto")
+    p.add_argument(
+        "--prior", default="off", help="the face prior (mocap.prior): off, auto or a basis path"
+    )
     a = p.parse_args(argv)
 
     from facecast.server.faces import load_face
@@ -56,14 +60,14 @@ def main(argv: list[str]) -> int:
         face, n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=7, noise_mm=0.5, gaps=True
     )
     frames = syn.take.xyz.astype(np.float32)
-    drv = MarkerLiveDriver(face, syn.take.names, syn.layout, fps=a.fps)
+    drv = MarkerLiveDriver(face, syn.take.names, syn.layout, fps=a.fps, prior=a.prior)
     t0 = time.perf_counter()
     anim = Animator(face, engine=a.engine, backend=a.backend, control_vertices=drv.control_vertices)
     setup_s = time.perf_counter() - t0
     backend = getattr(anim.deformer, "name", type(anim.deformer).__name__)
 
     # warm up (kernels, caches) on a copy of the driver
-    warm = MarkerLiveDriver(face, syn.take.names, syn.layout, fps=a.fps)
+    warm = MarkerLiveDriver(face, syn.take.names, syn.layout, fps=a.fps, prior=a.prior)
     for i in range(40):
         for s in warm.push(frames[i], i / a.fps):
             anim.frame(s)
@@ -103,6 +107,7 @@ def main(argv: list[str]) -> int:
     sine_lag = kalman_lag(a.fps, drv.kf.Q[1, 1] / drv.kf.dt, drv.kf.r)
     rec = {
         "face": a.face,
+        "prior": a.prior,
         "vertices": face.n_vertices,
         "markers": a.markers,
         "controls": len(drv.control_vertices),
@@ -127,11 +132,12 @@ def main(argv: list[str]) -> int:
             "p95": float(np.nanpercentile(raw_err, 95)),
         },
     }
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(rec, indent=1) + "\n")
+    out = OUT if a.prior == "off" else OUT.with_name("mocap_live-prior.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(rec, indent=1) + "\n")
 
     print(
-        f"Mocap live — face {a.face} ({face.n_vertices} vertices), {a.markers} markers "
+        f"Mocap live — face {a.face} ({face.n_vertices} vertices), prior {a.prior}, {a.markers} markers "
         f"({rec['controls']} controls with anchors), {a.fps:g} Hz, {len(states)} frames, {a.engine} on {backend}\n"
     )
     print("| per frame | mean (ms) | p50 | p95 | p99 | max |")

@@ -233,3 +233,13 @@ def test_hold_pose_shares_the_neutral_frames_pose_error_over_its_hold(rng):
         np.c_[np.zeros(n), np.radians(np.linspace(0, 0.25, n)), np.zeros(n)]
     ).as_matrix()
     assert err(*hold_pose(slow, np.zeros((n, 3)), range(n), 0, centre, least=2))[0] < 0.01
+
+
+def test_only_a_held_neutral_moves_the_neutral_frame():
+    """``neutral.held_frames``: a face passing through neutral for an instant is no hold."""
+    from facecast.server.mocap.neutral import held_frames
+
+    low = np.array([1, 1, 0, 1, 1, 1, 0, 1, 1, 1, 1], dtype=bool)
+    assert held_frames(low, 3).tolist() == [0, 0, 0, 1, 1, 1, 0, 1, 1, 1, 1]
+    assert not held_frames(low, 5).any()
+    assert held_frames(np.ones(4, bool), 4).all()

@@ -21,7 +21,17 @@ from ...protocol.rest import OutputFormat
 #: Output suffixes a job can produce: ``.glb``, ``.npz``, ``.fap``.
 OUTPUT_SUFFIXES = tuple(f".{name}" for name in get_args(OutputFormat))
 #: ``render`` flags (argparse names) that tune the local mocap cleaning; a server uses its own.
-LOCAL_ONLY_FLAGS = ("filter", "lowrank", "stable", "neutral_frame", "layer", "idle", "seed", "gaze")
+LOCAL_ONLY_FLAGS = (
+    "filter",
+    "lowrank",
+    "stable",
+    "neutral_frame",
+    "prior",
+    "layer",
+    "idle",
+    "seed",
+    "gaze",
+)
 
 
 class _Refused(InputError):
@@ -64,8 +74,8 @@ def render(args: argparse.Namespace) -> None:
         raise _Refused("input file not found", where=str(args.input))
     if any(getattr(args, name, None) is not None for name in LOCAL_ONLY_FLAGS):
         raise _Refused(
-            "--filter, --lowrank, --stable, --neutral-frame, --layer, --idle, --seed and --gaze "
-            "apply to local renders only",
+            "--filter, --lowrank, --stable, --neutral-frame, --prior, --layer, --idle, --seed and "
+            "--gaze apply to local renders only",
             where="--server",
         )
     options = {"face": args.face, "engine": args.engine}

@@ -60,6 +60,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="frame of the actor's neutral face and the head's rest (default: the layout's, else auto: "
         "frame 0 unless another fits the face at rest clearly better)",
     )
+    m.add_argument(
+        "--prior",
+        default=None,
+        metavar="auto|off|PATH",
+        help="face prior: the face's expression shapes fitted to the markers (auto: the expressions/ "
+        "folder beside the face mesh, the default; PATH: a folder of .obj/.obj.xz shapes or an "
+        ".npz basis)",
+    )
     lay = p.add_argument_group("layers (mixed over the input; local renders only)")
     lay.add_argument(
         "--layer",
@@ -121,6 +129,7 @@ def _mocap_options(args: argparse.Namespace) -> dict:
         "filter": args.filter,
         "lowrank": args.lowrank,
         "neutral_frame": args.neutral_frame,
+        "prior": args.prior,
         "stable": [s.strip() for s in args.stable.split(",") if s.strip()] if args.stable else None,
     }
     return {k: v for k, v in opts.items() if v is not None}

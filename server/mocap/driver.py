@@ -26,6 +26,7 @@ from .clean import CleanParams, clean, lowrank_denoise, motion_rank
 from .io import read_take
 from .layout import Layout, load_layout
 from .neutral import find_neutral
+from .prior import DEFAULT as PRIOR_DEFAULT
 from .rig import MarkerRig, match_names
 from .stabilise import (
     check_stable,
@@ -96,6 +97,7 @@ def process(
     stabilise_method: str = "auto",
     neutral_window: float = 0.5,
     where: str = "take",
+    prior=None,
 ) -> Processed:
     """Run the batch pipeline on a take already read (see module docstring).
 
@@ -225,7 +227,7 @@ def process(
         local, info["lowrank"] = denoise_displacements(
             local, neutral, stable, params.lowrank, unsmoothed=unsmoothed
         )
-    rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu)
+    rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu, prior=prior)
     states = rig.solve_batch(local, r, t, take.fps, 0.0)
     return Processed(take, layout, raw, cleaned, local, r, t, nf, rig, states, info)
 
@@ -352,6 +354,7 @@ def load(
     stable: list[str] | None = None,
     kernel: str = "imq",
     mu: float = 2.0,
+    prior: str | Path | None = PRIOR_DEFAULT,
     **options,
 ) -> Animation:
     """Decode a mocap take into an ``Animation`` for ``face``.
@@ -365,6 +368,8 @@ def load(
         lowrank: ``auto``, ``off`` or a count of principal motions kept (``CleanParams.lowrank``).
         stable: stable marker names overriding the layout's (each checked for rigidity).
         kernel, mu: retarget RBF.
+        prior: the face prior (``mocap.prior``): ``auto`` (default: the face's ``expressions/``
+            folder when it has one), ``off``, a folder of expression meshes or an ``.npz`` basis.
     """
     path = Path(path)
     for k, v in options.items():
@@ -391,6 +396,7 @@ def load(
         kernel=kernel,
         mu=mu,
         where=str(path),
+        prior=prior,
     )
     log.info(
         "%s: %d frames at %g fps, %d markers (%d controls), %d occluded samples, %d spikes",

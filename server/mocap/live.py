@@ -4,12 +4,13 @@ Per frame: head pose from the measured stable markers (Kabsch / three-marker, on
 filtered by a constant-velocity Kalman filter on its rotation vector and the stable markers'
 centroid; its removal from the raw markers; a constant-velocity Kalman filter with spike gating on
 the stabilised markers (``clean.KalmanCV``: the face's motion alone is gentle, so it filters more
-than it would with the head's on top); RBF retarget onto the face (``rig.MarkerRig``).
-The actor's neutral is taken from the first ``neutral_frames`` frames in which at least three
-stable markers are visible, more until every control marker has been seen
-(``stabilise.start_neutral``: stabilised and averaged, in the first frame's head pose); until then
-``push`` returns no state. Each frame's head pose uses every marker that has shown itself rigid
-(``stabilise.robust_pose``).
+than it would with the head's on top); RBF retarget onto the face (``rig.MarkerRig``), and the
+face prior (``prior``, the same as batch: the face's expression shapes fitted to each frame, warm
+started from the last, driving virtual controls). The actor's neutral is taken from the first
+``neutral_frames`` frames in which at least three stable markers are visible, more until every
+control marker has been seen (``stabilise.start_neutral``: stabilised and averaged, in the first
+frame's head pose); until then ``push`` returns no state. Each frame's head pose uses every marker
+that has shown itself rigid (``stabilise.robust_pose``).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from ..state import FaceState
 from .clean import KalmanCV
 from .io import FACE_SPAN_MM, detect_units
 from .layout import Layout, load_layout
+from .prior import DEFAULT as PRIOR_DEFAULT
 from .rig import MarkerRig, match_names
 from .stabilise import rigidity_weights, robust_pose, solve_pose, start_neutral
 
@@ -72,8 +74,10 @@ class MarkerLiveDriver:
         q_pose: float = 1000.0,
         kernel: str = "imq",
         mu: float = 2.0,
+        prior=PRIOR_DEFAULT,
     ):
         self.face = face
+        self.prior = prior  # the face prior's source (``rig.MarkerRig``), built once placed
         self.layout: Layout = load_layout(layout)
         self.names = [str(n) for n in names]
         if len(set(self.names)) != len(self.names):
@@ -111,10 +115,13 @@ class MarkerLiveDriver:
         self.control_vertices: np.ndarray | None = None
         if not auto:
             from .layout import place_markers
-            from .rig import anchor_vertices
+            from .rig import _prior, anchor_vertices
 
             markers = place_markers(self.layout, face).vertices
-            self.control_vertices = np.r_[markers, anchor_vertices(face, markers)].astype(np.int32)
+            anchors = anchor_vertices(face, markers)
+            self.prior = _prior(face, prior, markers, anchors)
+            virtual = self.prior.vertices if self.prior is not None else np.zeros(0, np.int64)
+            self.control_vertices = np.r_[markers, virtual, anchors].astype(np.int32)
 
     @property
     def ready(self) -> bool:
@@ -207,7 +214,9 @@ class MarkerLiveDriver:
                 "the hello or the layout",
                 where=f"frame {self.frames - 1}",
             )
-        self.rig = MarkerRig(self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu)
+        self.rig = MarkerRig(
+            self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu, prior=self.prior
+        )
         self._ref_stable = neutral[self.stable]
         # each marker's mean square off the head (mm², an exponential average over ~0.5 s); until
         # measured, the face markers count as moving 5 mm

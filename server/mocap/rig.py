@@ -9,6 +9,7 @@ stabilised frame into a ``FaceState``.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 
@@ -16,6 +17,7 @@ from ..errors import InputError
 from ..faces.face import Face
 from ..state import FaceState, zero_faps
 from .layout import Layout, load_layout, marker_gains, place_markers
+from .prior import ExpressionBasis, ExpressionPrior, load_basis
 from .retarget import RBFMap
 from .sampling import farthest_points
 from .stabilise import pose_in_frame, to_matrix
@@ -102,6 +104,7 @@ class MarkerRig:
         kernel: str = "imq",
         mu: float = 2.0,
         anchors: bool = True,
+        prior: str | Path | ExpressionBasis | None = None,
     ):
         self.face = face
         self.layout = load_layout(layout)
@@ -117,7 +120,11 @@ class MarkerRig:
         self.anchor_vertices = (
             anchor_vertices(face, placement.vertices) if anchors else np.zeros(0, np.int32)
         )
-        self.control_vertices = np.r_[placement.vertices, self.anchor_vertices].astype(np.int32)
+        self.prior = _prior(face, prior, placement.vertices, self.anchor_vertices)
+        virtual = self.prior.vertices if self.prior is not None else np.zeros(0, np.int64)
+        self.control_vertices = np.r_[placement.vertices, virtual, self.anchor_vertices].astype(
+            np.int32
+        )
         self.stable = np.array([pos[n] for n in self.layout.stable], dtype=np.int64)
         unseen = [names[i] for i in self.control if not np.isfinite(self.neutral[i]).all()]
         if unseen:
@@ -172,12 +179,14 @@ class MarkerRig:
         """One ``FaceState`` from ``(L, 3)`` stabilised markers (mm, layout order) and the head pose."""
         d = self.rbf.displacements(local_mm[self.control]).astype(np.float32) * self.gains
         head = self.head_matrix(r, t)
-        return self.state(d, head, time)
+        virtual = self.prior.virtual(d[None], warm=True)[0][0] if self.prior is not None else None
+        return self.state(d, head, time, virtual)
 
-    def _with_anchors(self, d: np.ndarray) -> np.ndarray:
-        if not len(self.anchor_vertices):
-            return d
-        return np.concatenate([d, np.zeros((len(self.anchor_vertices), 3), dtype=d.dtype)], axis=0)
+    def _with_anchors(self, d: np.ndarray, virtual: np.ndarray | None = None) -> np.ndarray:
+        parts = [d] if virtual is None else [d, virtual.astype(d.dtype)]
+        if len(self.anchor_vertices):
+            parts.append(np.zeros((len(self.anchor_vertices), 3), dtype=d.dtype))
+        return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)
 
     def solve_batch(
         self, local_mm: np.ndarray, r: np.ndarray, t: np.ndarray, fps: float, t0: float = 0.0
@@ -185,18 +194,62 @@ class MarkerRig:
         """``solve`` for ``(T, L, 3)`` frames at once."""
         d = self.rbf.displacements(local_mm[:, self.control]).astype(np.float32) * self.gains
         heads = self.head_matrix(r, t)
-        return [self.state(d[i], heads[i], t0 + i / fps) for i in range(len(d))]
+        virtual = self.prior.virtual(d)[0] if self.prior is not None else [None] * len(d)
+        return [self.state(d[i], heads[i], t0 + i / fps, virtual[i]) for i in range(len(d))]
 
-    def state(self, d: np.ndarray, head: np.ndarray, time: float) -> FaceState:
-        """A ``FaceState`` from ``(K, 3)`` control displacements (face units) and a ``(3, 4)`` head."""
+    def state(
+        self, d: np.ndarray, head: np.ndarray, time: float, virtual: np.ndarray | None = None
+    ) -> FaceState:
+        """A ``FaceState`` from ``(K, 3)`` marker control displacements (face units), the prior's
+        ``(N, 3)`` virtual controls (when it has one) and a ``(3, 4)`` head."""
         faps = (
             self.fap_projection.faps(d, head[:, :3])
             if self.fap_projection is not None
             else zero_faps()
         )
         return FaceState(
-            t=float(time), faps=faps, controls=self._with_anchors(d), head=head.astype(np.float64)
+            t=float(time),
+            faps=faps,
+            controls=self._with_anchors(d, virtual),
+            head=head.astype(np.float64),
         )
+
+
+def _prior(face: Face, source, markers: np.ndarray, anchors: np.ndarray) -> ExpressionPrior | None:
+    """The rig's ``prior.ExpressionPrior`` (None for ``off``/None or a face without shapes), with
+    the fall-back interpolation of the markers alone taken from the fp engine's rows."""
+    if isinstance(source, ExpressionPrior):
+        return source
+    if source is None or str(source) == "off":
+        return None
+    basis = source if isinstance(source, ExpressionBasis) else load_basis(face, source)
+    if basis is None:
+        return None
+    prior = ExpressionPrior(face, basis, markers, anchors)
+    from ..deform.build import get_operator
+
+    op = get_operator(face, np.r_[markers, anchors], engine="fp")
+    prior.set_interpolation(operator_rows(op, prior.vertices, len(markers)))
+    log.info(
+        "prior: %d expression shapes (with mirrors), %d virtual controls",
+        len(prior.shapes),
+        prior.n_virtual,
+    )
+    return prior
+
+
+def operator_rows(op, vertices: np.ndarray, n: int) -> np.ndarray:
+    """``(N, n, 3)`` per-axis weights of the first ``n`` controls at ``vertices`` of an operator."""
+    rows = np.zeros((len(vertices), n, 3))
+    if op.is_sparse:
+        for i, v in enumerate(vertices):
+            lo, hi = op.indptr[v], op.indptr[v + 1]
+            idx, wts = op.indices[lo:hi], op.weights[lo:hi]
+            sel = idx < n
+            np.add.at(rows[i], idx[sel], wts[sel])
+    else:
+        rows[:] = op.dense[vertices, :n, None]
+    return rows
 
 
 def check_vertex_fit(layout: Layout, face: Face, placement, actor_mm: np.ndarray) -> dict:

@@ -29,7 +29,17 @@ from .io import write_take
 from .sampling import farthest_points
 from .stabilise import matrix_from_euler
 
-__all__ = ["VARIANTS", "Variant", "VariantTruth", "choose_layout", "folds", "make_take"]
+__all__ = [
+    "PROTOCOLS",
+    "VARIANTS",
+    "Variant",
+    "VariantTruth",
+    "choose_layout",
+    "family",
+    "fold_protocol",
+    "folds",
+    "make_take",
+]
 
 #: Capture axes: face axes (x left, y up, z forward) -> lab axes.
 AXES = {
@@ -132,6 +142,61 @@ def folds(
     idx = np.arange(n_expressions) if usable is None else np.asarray(usable)
     perm = np.random.default_rng(seed).permutation(idx)
     return [np.sort(perm[i::k]) for i in range(k)]
+
+
+#: Expression fold protocols (``fold_protocol``).
+PROTOCOLS = ("random", "strict", "mirror")
+
+
+def family(name: str) -> str:
+    """An expression's family: its name without the side (``browDown_L`` -> ``browDown``;
+    ``mouthLeft``/``mouthRight`` -> ``mouthLeftRight``)."""
+    if name in ("mouthLeft", "mouthRight"):
+        return "mouthLeftRight"
+    return name[:-2] if name.endswith(("_L", "_R")) else name
+
+
+def fold_protocol(
+    names: list[str], protocol: str, k: int = 3, seed: int = 0
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``[(held_out, prior_shapes)]`` index pairs into ``names`` for a fold protocol:
+
+    - ``random``: ``folds`` (k folds); the prior may hold a held-out shape's other side;
+    - ``strict``: k folds of whole families: neither a held-out shape nor its other side (nor a
+      mirror of either) is in the prior: the expressions it has never seen in any form;
+    - ``mirror``: the left sides of the two-sided families, then the right sides; the prior has every
+      other shape, the held-out one's other side included: a shape known only by its mirror image
+      (as the ICT FaceKit ships only one side of several pairs).
+    """
+    use = usable_expressions(names)
+    if protocol == "random":
+        return [(h, np.setdiff1d(use, h)) for h in folds(len(names), k, seed, use)]
+    fams = sorted({family(names[i]) for i in use})
+    if protocol == "strict":
+        perm = np.random.default_rng(seed).permutation(fams)
+        out = []
+        for j in range(k):
+            held = np.array([i for i in use if family(names[i]) in set(perm[j::k])])
+            out.append((held, np.setdiff1d(use, held)))
+        return out
+    if protocol == "mirror":
+        two = {f for f in fams if sum(family(names[i]) == f for i in use) == 2}
+        out = []
+        for side in ("_L", "_R"):
+            held = np.array(
+                [
+                    i
+                    for i in use
+                    if family(names[i]) in two
+                    and (
+                        names[i].endswith(side)
+                        or names[i] == f"mouth{'Left' if side == '_L' else 'Right'}"
+                    )
+                ]
+            )
+            out.append((held, np.setdiff1d(use, held)))
+        return out
+    raise ValueError(f"unknown fold protocol {protocol!r}; choose one of {', '.join(PROTOCOLS)}")
 
 
 def usable_expressions(names: list[str]) -> np.ndarray:

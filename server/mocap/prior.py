@@ -1,0 +1,322 @@
+"""A face prior for mocap: the target face's own expression space fitted to the markers.
+
+Markers see a few dozen skin points; the skin between and beyond them (eyelids, lip rolls, the
+cheeks' bulge) is what an engine can only interpolate. When the face comes with expression shapes
+(blendshapes: full meshes in its vertex order, e.g. the ICT FaceKit's ``expressions/``), each frame's
+marker displacements ``d (K, 3)`` are fitted by shape weights ``w`` in [0, 1] (bounded ridge least
+squares, ``fit_weights``), and the shapes give the whole skin: ``B w``. The prior carries that to the
+engine as *virtual controls*: skin vertices the shapes move, spread where they move most, whose
+displacements are the fitted shapes' (``ExpressionPrior.virtual``); the engine then interpolates
+markers and virtual controls alike, so batch and live share it and any engine renders it.
+
+A take may show expressions the shapes do not span. Each frame's relative fit residual
+``|d - B_m w| / |d|`` says how well they do: below ``trust[0]`` the virtual controls take the fitted
+shapes' displacements, above ``trust[1]`` they take what the markers alone interpolate to (the
+engine's own result), and in between a linear blend of the two.
+
+A symmetric face's shapes are also taken mirrored (x -> -x, ``mirror_map``): a left-side shape gives
+the right side's.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import lzma
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import InputError
+from ..faces.face import Face
+from ..output.atomic import atomic_path
+from ..paths import cache_dir
+from .sampling import farthest_points
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "DEFAULT",
+    "ExpressionBasis",
+    "ExpressionPrior",
+    "fit_weights",
+    "load_basis",
+    "mirror_map",
+    "prior_for",
+]
+
+#: Shapes whose largest skin motion is below this (mm) are left out (pupil dilation, eye turns).
+MIN_MOTION_MM = 0.3
+#: Relative marker fit residual: fully trusted below TRUST[0], not at all above TRUST[1].
+TRUST = (0.3, 0.5)
+#: Ridge weight (relative to the mean squared column norm of the marker block).
+RIDGE = 0.03
+#: Virtual controls spread over the skin the shapes move (more than MIN_MOTION_MM).
+N_VIRTUAL = 500
+#: Fit iterations per live frame, warm started from the last (batch: 200 from zero).
+WARM_ITERS = 30
+#: The prior batch and live use when none is chosen: the face's own shapes when it has them. On
+#: held-out folds (bench/mocap_fidelity.py, rendered output) it is better where a take's shapes are
+#: known only by their mirror images (technician 0.40x -> 0.24x) and within 0.01x of the engine
+#: alone where they are unknown in any form.
+DEFAULT = "auto"
+
+
+@dataclass(frozen=True)
+class ExpressionBasis:
+    """Expression shapes of one face: ``deltas (E, V, 3) float32`` from its neutral, face units."""
+
+    names: list[str]
+    deltas: np.ndarray
+
+    def __post_init__(self) -> None:
+        if (
+            self.deltas.ndim != 3
+            or self.deltas.shape[2] != 3
+            or len(self.names) != len(self.deltas)
+        ):
+            raise InputError(
+                f"an expression basis is (E, V, 3) with E names; got {self.deltas.shape} and "
+                f"{len(self.names)} names",
+                where="prior",
+            )
+
+    def save(self, path: Path) -> Path:
+        """Write as ``.npz`` (``names``, ``deltas``) atomically; returns ``path``."""
+        with atomic_path(Path(path)) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, names=np.array(self.names), deltas=self.deltas.astype(np.float32))
+        return Path(path)
+
+
+def _read_obj_vertices(text: str) -> np.ndarray:
+    rows = [ln.split()[1:4] for ln in text.splitlines() if ln.startswith("v ")]
+    return np.asarray(rows, dtype=np.float32).reshape(-1, 3)
+
+
+def _shape_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.name.endswith((".obj", ".obj.xz")))
+
+
+def load_basis(face: Face, source: str | Path = "auto") -> ExpressionBasis | None:
+    """The face's expression shapes from ``source``:
+
+    - ``auto``: the ``expressions/`` folder beside the face's mesh file, if there is one (else None);
+    - a folder of ``.obj`` / ``.obj.xz`` meshes in the face's vertex order;
+    - an ``.npz`` with ``names (E,)`` and ``deltas (E, V, 3)`` (face units, from its neutral).
+
+    Folders are read once and cached under ``cache_dir("mocap")``. InputError when a named source is
+    missing or does not match the face's vertex count."""
+    if str(source) == "auto":
+        mesh = Path(str(face.name))
+        folder = mesh.parent / "expressions"
+        if not mesh.is_file() or not folder.is_dir() or not _shape_files(folder):
+            return None
+        source = folder
+    path = Path(source)
+    if path.is_dir():
+        files = _shape_files(path)
+        if not files:
+            raise InputError("no .obj or .obj.xz expression meshes in the folder", where=str(path))
+        key = hashlib.sha256(
+            "|".join(f"{f.name}:{f.stat().st_size}:{f.stat().st_mtime_ns}" for f in files).encode()
+        ).hexdigest()[:16]
+        cache = cache_dir("mocap") / f"basis-{face.mesh_hash}-{key}.npz"
+        if cache.is_file():
+            return _read_npz(cache, face)
+        names, deltas = [], []
+        for f in files:
+            opener = lzma.open if f.name.endswith(".xz") else open
+            with opener(f, "rt") as fh:
+                v = _read_obj_vertices(fh.read())
+            if v.shape != face.vertices.shape:
+                raise InputError(
+                    f"expression mesh has {len(v)} vertices, the face {face.n_vertices}",
+                    where=str(f),
+                )
+            names.append(f.name.split(".obj")[0])
+            deltas.append(v - face.vertices)
+        basis = ExpressionBasis(names, np.stack(deltas).astype(np.float32))
+        basis.save(cache)
+        return basis
+    if path.suffix.lower() == ".npz" and path.is_file():
+        return _read_npz(path, face)
+    raise InputError(
+        "the prior must be auto, off, a folder of expression meshes or an .npz basis",
+        where=str(source),
+    )
+
+
+def _read_npz(path: Path, face: Face) -> ExpressionBasis:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            names, deltas = [str(n) for n in z["names"]], np.asarray(z["deltas"], np.float32)
+    except (OSError, KeyError, ValueError) as e:
+        raise InputError(f"unreadable expression basis ({e})", where=str(path)) from None
+    if deltas.ndim != 3 or deltas.shape[1:] != face.vertices.shape:
+        raise InputError(
+            f"expression basis is {deltas.shape}, the face has {face.n_vertices} vertices",
+            where=str(path),
+        )
+    return ExpressionBasis(names, deltas)
+
+
+def mirror_map(face: Face, tolerance_mm: float = 0.5) -> np.ndarray | None:
+    """``(V,)`` each vertex's mirror image (x -> -x) when the face is symmetric about x = 0 (the
+    90th percentile of the mirrored skin's distance to the nearest vertex within ``tolerance_mm``),
+    else None."""
+    v = face.vertices.astype(np.float64)
+    dist, idx = cKDTree(v).query(v * np.array([-1.0, 1.0, 1.0]))
+    skin = face.parts.get("skin")
+    sel = dist if skin is None or not len(skin) else dist[skin]
+    if np.percentile(sel, 90) * face.mm_per_unit > tolerance_mm:
+        return None
+    return idx.astype(np.int64)
+
+
+def mirrored(deltas: np.ndarray, mirror: np.ndarray) -> np.ndarray:
+    """``(E, V, 3)`` the shapes reflected through x = 0 (``mirror_map``)."""
+    out = deltas[:, mirror].copy()
+    out[..., 0] *= -1.0
+    return out
+
+
+def fit_weights(
+    gram: np.ndarray,
+    rhs: np.ndarray,
+    lipschitz: float,
+    w0: np.ndarray | None = None,
+    iters: int = 150,
+) -> np.ndarray:
+    """Bounded least squares: ``w (T, E)`` in [0, 1] minimising ``w G w / 2 - w . rhs`` row by row
+    (accelerated projected gradient, FISTA). ``gram (E, E)`` = AᵀA (+ ridge), ``rhs (T, E)`` = Aᵀb,
+    ``lipschitz`` its largest eigenvalue; ``w0`` a warm start."""
+    w = np.zeros_like(rhs) if w0 is None else np.clip(w0, 0.0, 1.0)
+    y, t = w.copy(), 1.0
+    step = 1.0 / lipschitz
+    for _ in range(iters):
+        w_next = y - step * (y @ gram - rhs)
+        np.minimum(np.maximum(w_next, 0.0, out=w_next), 1.0, out=w_next)
+        t_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
+        y = w_next + ((t - 1.0) / t_next) * (w_next - w)
+        w, t = w_next, t_next
+    return w
+
+
+class ExpressionPrior:
+    """The prior for one control set on one face (see the module docstring).
+
+    Args:
+        face: the target face.
+        basis: its expression shapes (mirrored copies added when ``mirror`` and the face is symmetric).
+        markers: ``(K,)`` the marker control vertices.
+        avoid: vertices no virtual control may take (the anchors).
+        n_virtual, ridge, trust: see the module constants.
+
+    Attributes:
+        vertices: ``(N,)`` the virtual control vertices.
+        shapes: ``(E, V, 3)`` the shapes fitted (with mirrors).
+    """
+
+    def __init__(
+        self,
+        face: Face,
+        basis: ExpressionBasis,
+        markers: np.ndarray,
+        avoid: np.ndarray | None = None,
+        *,
+        mirror: bool = True,
+        n_virtual: int = N_VIRTUAL,
+        ridge: float = RIDGE,
+        trust: tuple[float, float] = TRUST,
+    ):
+        mm = face.mm_per_unit
+        skin = face.parts.get("skin")
+        skin = np.arange(face.n_vertices) if skin is None or not len(skin) else np.asarray(skin)
+        deltas = basis.deltas
+        motion = np.linalg.norm(deltas[:, skin], axis=2).max(axis=1) * mm
+        keep = motion >= MIN_MOTION_MM
+        deltas = deltas[keep]
+        self.names = [n for n, k in zip(basis.names, keep) if k]
+        mirror_idx = mirror_map(face) if mirror else None
+        if mirror_idx is not None and len(deltas):
+            deltas = np.concatenate([deltas, mirrored(deltas, mirror_idx)])
+            self.names += [f"{n}~mirror" for n in self.names]
+        if not len(deltas):
+            raise InputError("the expression basis moves no skin", where="prior")
+        self.shapes = deltas.astype(np.float32)
+        self.markers = np.asarray(markers, dtype=np.int64)
+        self.trust = trust
+        # virtual controls: skin the shapes move, denser where they move more, away from markers
+        moves = np.linalg.norm(self.shapes[:, skin], axis=2).max(axis=0) * mm
+        cand = skin[moves > MIN_MOTION_MM]
+        taken = np.r_[self.markers, np.asarray(avoid if avoid is not None else [], np.int64)]
+        mask = ~np.isin(cand, taken)
+        cand, cmove = cand[mask], moves[moves > MIN_MOTION_MM][mask]
+        v = face.vertices.astype(np.float64)
+        pick = farthest_points(
+            v[cand], n_virtual, seed_points=v[self.markers], weights=np.sqrt(cmove)
+        )
+        self.vertices = cand[np.sort(pick)].astype(np.int64)
+        a = self.shapes[:, self.markers].reshape(len(self.shapes), -1).T.astype(np.float64)
+        self._a = a  # (3K, E)
+        scale = float((a**2).sum(axis=0).mean())
+        self._gram = a.T @ a + ridge * scale * np.eye(a.shape[1])
+        self._lip = float(np.linalg.eigvalsh(self._gram)[-1])
+        self._virt = self.shapes[:, self.vertices].reshape(len(self.shapes), -1).astype(np.float64)
+        self._interp: np.ndarray | None = None
+        self._last: np.ndarray | None = None
+
+    @property
+    def n_virtual(self) -> int:
+        return len(self.vertices)
+
+    def set_interpolation(self, rows: np.ndarray) -> None:
+        """``rows (N, K, 3)``: per axis, how the markers alone interpolate to the virtual vertices
+        (the engine's rows there): the fall-back when the shapes do not explain a frame."""
+        rows = np.asarray(rows, dtype=np.float64)
+        self._interp = np.ascontiguousarray(rows.transpose(2, 1, 0))  # (3, K, N)
+
+    def weights(self, d: np.ndarray, warm: bool = False) -> np.ndarray:
+        """``(T, E)`` shape weights fitted to marker displacements ``d (T, K, 3)`` (face units);
+        ``warm``: start from the previous call's last frame (live)."""
+        b = d.reshape(len(d), -1).astype(np.float64)
+        w0 = None
+        if warm and self._last is not None:
+            w0 = np.repeat(self._last[None], len(d), axis=0)
+        w = fit_weights(self._gram, b @ self._a, self._lip, w0, iters=WARM_ITERS if warm else 200)
+        self._last = w[-1].copy()
+        return w
+
+    def virtual(self, d: np.ndarray, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """``(virtual displacements (T, N, 3) float32, trust (T,))`` for marker displacements
+        ``d (T, K, 3)`` (face units): the fitted shapes', blended towards the markers' own
+        interpolation as the fit residual grows (module docstring)."""
+        d = np.asarray(d, dtype=np.float64)
+        w = self.weights(d, warm)
+        fit = (w @ self._a.T).reshape(d.shape)
+        size = np.linalg.norm(d.reshape(len(d), -1), axis=1)
+        rel = np.linalg.norm((d - fit).reshape(len(d), -1), axis=1) / np.maximum(size, 1e-12)
+        lo, hi = self.trust
+        beta = np.clip((hi - rel) / max(hi - lo, 1e-9), 0.0, 1.0)
+        beta[size <= 1e-12] = 1.0
+        shaped = (w @ self._virt).reshape(len(d), -1, 3)
+        if self._interp is None:
+            out = beta[:, None, None] * shaped
+        else:  # per axis: (T, K) @ (K, N)
+            own = np.stack([d[:, :, c] @ self._interp[c] for c in range(3)], axis=2)
+            out = beta[:, None, None] * shaped + (1.0 - beta[:, None, None]) * own
+        return out.astype(np.float32), beta
+
+
+def prior_for(
+    face: Face, source: str | Path | None, markers: np.ndarray, avoid: np.ndarray, **options
+) -> ExpressionPrior | None:
+    """The ``ExpressionPrior`` for ``source`` (``load_basis``; ``off``/None: none)."""
+    if source is None or str(source) == "off":
+        return None
+    basis = load_basis(face, source)
+    if basis is None:
+        return None
+    return ExpressionPrior(face, basis, markers, avoid, **options)

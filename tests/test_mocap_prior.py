@@ -1,0 +1,171 @@
+"""The mocap face prior: bounded shape fit, virtual controls, trust, folds, render and live."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from facecast.server.errors import InputError
+from facecast.server.mocap.prior import (
+    ExpressionBasis,
+    ExpressionPrior,
+    fit_weights,
+    load_basis,
+    mirror_map,
+)
+from facecast.server.mocap.variants import family, fold_protocol
+
+
+def test_fit_weights_recovers_bounded_weights():
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(60, 8))
+    w = rng.uniform(0.0, 1.0, (5, 8))
+    w[0, 2] = 1.6  # outside the bounds: the fit stops at 1
+    gram = a.T @ a
+    got = fit_weights(gram, (w @ a.T) @ a, float(np.linalg.eigvalsh(gram)[-1]), iters=3000)
+    assert np.allclose(got[1:], w[1:], atol=1e-4)
+    assert got.min() >= 0.0 and got.max() <= 1.0 and got[0, 2] == pytest.approx(1.0)
+
+
+NAMES = [
+    "PupilDilate_L",
+    "browDown_L",
+    "browDown_R",
+    "eyeBlink_L",
+    "jawOpen",
+    "mouthLeft",
+    "mouthRight",
+    "mouthSmile_L",
+    "mouthSmile_R",
+    "cheekPuff_L",
+]
+
+
+def test_strict_folds_keep_held_out_families_out_of_the_prior():
+    folds = fold_protocol(NAMES, "strict", 3)
+    assert sorted(np.concatenate([h for h, _ in folds])) == list(range(1, len(NAMES)))
+    for held, known in folds:
+        assert not set(held) & set(known)
+        assert not {family(NAMES[i]) for i in held} & {family(NAMES[i]) for i in known}
+
+
+def test_mirror_folds_hold_one_side_and_keep_the_other():
+    for held, known in fold_protocol(NAMES, "mirror"):
+        assert len(held) == 3 and not set(held) & set(known)
+        for i in held:  # the other side is in the prior
+            assert any(family(NAMES[j]) == family(NAMES[i]) for j in known)
+
+
+@pytest.fixture(scope="module")
+def ict():
+    from facecast.server.paths import shared_data
+
+    d = shared_data()
+    if d is None or not (d / "ict-facekit" / "expressions").is_dir():
+        pytest.skip("../shared/data/ict-facekit is not beside this checkout")
+    from facecast.server.mocap.generate import load_expressions, load_ict
+    from facecast.server.mocap.rig import anchor_vertices
+    from facecast.server.mocap.variants import VARIANTS, choose_layout
+
+    face = load_ict()
+    names, deltas = load_expressions(face)
+    _, verts, _, stable = choose_layout(face, deltas, VARIANTS["issue16"])
+    markers = verts[len(stable) :]
+    return face, names, deltas, markers, anchor_vertices(face, markers)
+
+
+def test_ict_is_mirror_symmetric(ict):
+    face = ict[0]
+    m = mirror_map(face)
+    assert m is not None
+    skin = face.part("skin")
+    assert np.mean(m[m[skin]] == skin) > 0.95
+
+
+def test_shapes_the_prior_knows_reach_the_virtual_controls(ict):
+    face, names, deltas, markers, anchors = ict
+    basis = ExpressionBasis(names[2:20], deltas[2:20])
+    prior = ExpressionPrior(face, basis, markers, anchors, mirror=False, n_virtual=200)
+    assert not np.isin(prior.vertices, np.r_[markers, anchors]).any()
+    w = np.zeros(len(prior.shapes))
+    w[[1, 5]] = [0.7, 0.4]
+    d = np.einsum("e,ekc->kc", w, prior.shapes[:, markers])[None]
+    virtual, trust = prior.virtual(d)
+    want = np.einsum("e,enc->nc", w, prior.shapes[:, prior.vertices])
+    assert trust[0] == 1.0
+    err = np.linalg.norm(virtual[0] - want, axis=1).mean() * face.mm_per_unit
+    assert err < 0.05 * np.linalg.norm(want, axis=1).mean() * face.mm_per_unit + 1e-3
+
+
+def test_motion_the_shapes_cannot_explain_falls_back_to_the_markers_own(ict):
+    face, names, deltas, markers, anchors = ict
+    prior = ExpressionPrior(
+        face, ExpressionBasis(names[2:20], deltas[2:20]), markers, anchors, n_virtual=100
+    )
+    rows = np.random.default_rng(0).uniform(0, 1, (prior.n_virtual, len(markers), 3))
+    prior.set_interpolation(rows)
+    d = np.random.default_rng(1).normal(0, 0.1, (1, len(markers), 3))  # no expression's pattern
+    virtual, trust = prior.virtual(d)
+    assert trust[0] == 0.0
+    assert np.allclose(virtual[0], np.einsum("nkc,kc->nc", rows, d[0]), atol=1e-5)
+
+
+def test_basis_sources(ict, tmp_path):
+    face, names, deltas = ict[:3]
+    auto = load_basis(face, "auto")
+    assert auto is not None and auto.names == names
+    path = ExpressionBasis(names[:3], deltas[:3]).save(tmp_path / "b.npz")
+    assert load_basis(face, path).names == names[:3]
+    np.savez(tmp_path / "bad.npz", names=np.array(["a"]), deltas=np.zeros((1, 10, 3)))
+    with pytest.raises(InputError, match="vertices"):
+        load_basis(face, tmp_path / "bad.npz")
+    with pytest.raises(InputError, match="prior must be"):
+        load_basis(face, tmp_path / "missing.npz")
+    from facecast.server.faces import load_face
+
+    assert load_basis(load_face("default"), "auto") is None  # the built-in head has no shapes
+
+
+def test_render_with_the_prior_beats_the_engine_on_mirrored_shapes(ict, tmp_path):
+    """A take blending left-side shapes; the prior knows only their right sides (mirrored)."""
+    from facecast.server.cli import main
+    from facecast.server.mocap.variants import make_take
+
+    face, names, deltas = ict[:3]
+    held, known = fold_protocol(names, "mirror")[0]
+    tr = make_take(
+        "issue16", tmp_path, seed=2, seconds=0.6, fps=60, expressions=held, face=face,
+        formats=("trc",),
+    )  # fmt: skip
+    basis = ExpressionBasis([names[i] for i in known], deltas[known]).save(tmp_path / "p.npz")
+    truth = tr.posed(face, deltas)
+    skin = face.part("skin")
+    errs = {}
+    for prior in ("off", str(basis)):
+        out = tmp_path / "out.npz"
+        argv = ["render", str(tr.paths["trc"]), "--layout", str(tr.paths["layout"])]
+        argv += ["--face", str(face.name), "--prior", prior, "-o", str(out)]
+        assert main(argv) == 0
+        with np.load(out) as z:
+            errs[prior] = np.linalg.norm(z["vertices"][:, skin] - truth[:, skin], axis=2).mean()
+    assert errs[str(basis)] < 0.95 * errs["off"]
+
+
+def test_live_driver_drives_the_virtual_controls(ict, tmp_path):
+    from facecast.server.mocap.io import read_take
+    from facecast.server.mocap.live import MarkerLiveDriver
+    from facecast.server.mocap.variants import make_take
+
+    face = ict[0]
+    tr = make_take("technician", tmp_path, seed=1, seconds=0.5, fps=60, face=face, formats=("trc",))
+    layout = json.loads(tr.paths["layout"].read_text())
+    take = read_take(tr.paths["trc"], default_units=layout["units"])
+    drv = MarkerLiveDriver(face, take.names, layout, fps=60.0, prior="auto")
+    before = drv.control_vertices.copy()
+    states = [s for i, f in enumerate(take.xyz) for s in drv.push(f, i / 60.0)]
+    assert states and np.array_equal(drv.control_vertices, before)
+    assert len(before) > len(drv.rig.control) + len(drv.rig.anchor_vertices)
+    assert all(s.controls.shape == (len(before), 3) for s in states)
+    assert all(np.isfinite(s.controls).all() for s in states)
