@@ -267,6 +267,7 @@ def ship(argv: list[str]) -> int:
         FRAME_WEIGHTS,
         command="python bench/lipsync/frames.py ship",
         prior_exponent=str(exponent),
+        members=str(MEMBERS),
         speakers=" ".join(speakers),
         utterances=str(len(real) + len(dev)),
     )
