@@ -94,3 +94,23 @@ def test_training_command_is_reproducible(tmp_path):
     np.testing.assert_array_equal(outs[0].w1, outs[1].w1)
     np.testing.assert_array_equal(outs[0].w2, outs[1].w2)
     assert outs[0].w1.shape == (12, 10)
+
+
+def test_merged_frame_networks_give_the_members_geometric_mean():
+    """``merge_frame_nets``: one wider network whose output is the members' normalised product
+    (what ``bench/lipsync/frames.py`` ships), and members with other inputs are refused."""
+    from facecast.server.audio.train import fit_frames, merge_frame_nets
+
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(400, 6)).astype(np.float32)
+    y = rng.integers(0, 10, 400)
+    offsets = np.array([-1, 0, 1])
+    nets = [fit_frames(X, y, offsets, hidden=5, epochs=2, seed=s) for s in range(3)]
+    merged = merge_frame_nets(nets)
+    assert merged.w1.shape == (6, 15) and merged.w2.shape == (15, 10)
+    logp = np.mean([np.log(n.proba_stacked(X)) for n in nets], axis=0)
+    expect = np.exp(logp) / np.exp(logp).sum(axis=1, keepdims=True)
+    np.testing.assert_allclose(merged.proba_stacked(X), expect, atol=1e-5)
+    other = fit_frames(X + 1, y, offsets, hidden=5, epochs=1)
+    with pytest.raises(ValueError, match="share their inputs"):
+        merge_frame_nets([nets[0], other])

@@ -107,6 +107,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--offsets", default=",".join(map(str, frames.OFFSETS)))
     ap.add_argument("--balance", type=float, default=frames.BALANCE)
     ap.add_argument("--step", type=int, default=frames.STEP)
+    ap.add_argument(
+        "--members", type=int, default=frames.MEMBERS, help="networks merged into one (seeds)"
+    )
     ap.add_argument("--median", type=int, default=3)
     ap.add_argument("--no-dev", action="store_true", help="train without synthetic speech")
     ap.add_argument("--cmvn", action="store_true", help="quick: per-utterance mean removal")
@@ -152,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
             / "nets"
             / (
                 f"{'-'.join(map(str, groups))}_e{args.epochs}_h{args.hidden}_b{args.balance}"
-                f"_s{args.step}_o{args.offsets.replace(',', '.')}{'_nodev' if args.no_dev else ''}"
+                f"_s{args.step}_m{args.members}_o{args.offsets.replace(',', '.')}{'_nodev' if args.no_dev else ''}"
                 f"_c{cache_stamp}.npz"
             )
         )
@@ -171,6 +174,7 @@ def main(argv: list[str] | None = None) -> int:
                 hidden=args.hidden,
                 balance=args.balance,
                 step=args.step,
+                members=args.members,
             )
             log.info(
                 "without %s: trained on %d utterances in %.0f s",

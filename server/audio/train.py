@@ -179,5 +179,33 @@ def fit_frames(
     )
 
 
+def merge_frame_nets(nets: list[FrameNet]) -> FrameNet:
+    """One ``FrameNet`` whose output is the normalised geometric mean of ``nets``' outputs.
+
+    Members trained on the same inputs (same standardisation and offsets) with different seeds
+    side by side: the hidden layers are concatenated (``H·len(nets)`` units) and the output
+    logits averaged, ``softmax(mean_i z_i)`` = the product of the members' probabilities,
+    renormalised. One matrix product per layer, so a frame costs one wider network, not
+    ``len(nets)`` calls."""
+    first = nets[0]
+    for n in nets[1:]:
+        if not (
+            np.array_equal(n.offsets, first.offsets)
+            and np.allclose(n.mean, first.mean)
+            and np.allclose(n.std, first.std)
+        ):
+            raise ValueError("ensemble members must share their inputs (offsets, standardisation)")
+    k = len(nets)
+    return FrameNet(
+        np.concatenate([n.w1 for n in nets], axis=1),
+        np.concatenate([n.b1 for n in nets]),
+        np.concatenate([n.w2 for n in nets], axis=0) / k,
+        np.mean([n.b2 for n in nets], axis=0),
+        first.mean,
+        first.std,
+        first.offsets,
+    )
+
+
 if __name__ == "__main__":
     sys.exit(main())
