@@ -391,17 +391,6 @@ def _state(i: int, fps: float, FaceState, zero_faps):
     return FaceState(t=t, faps=faps)
 
 
-def _faps(i: int, fps: float) -> dict[int, float]:
-    t = i / fps
-    return {
-        3: 400 + 400 * math.sin(2 * math.pi * 0.7 * t),
-        5: 150 * math.sin(2 * math.pi * 1.3 * t),
-        12: 200 * math.sin(2 * math.pi * 0.4 * t),
-        13: 200 * math.sin(2 * math.pi * 0.4 * t),
-        19: 500 * max(0.0, math.sin(2 * math.pi * 0.25 * t)) ** 8,
-    }
-
-
 # ------------------------------------------------------------------------------------------ load points
 
 
@@ -410,6 +399,8 @@ async def _producer(
 ) -> None:
     """Send FAP frames at ``fps`` until ``stop``; ``retry``: reconnect as a cluster's clients do
     (a session may change owner when a starved node misses its lease)."""
+    from serve_load import faps
+
     from facecast.client.api import Pacer, Retry, produce
 
     async with produce(url, s.id, s.producer_token, retry=Retry() if retry else None) as p:
@@ -417,7 +408,7 @@ async def _producer(
         i = 0
         while not stop.is_set():
             await pacer.until(i / fps)
-            await p.send_faps(_faps(i, fps), i / fps)
+            await p.send_faps(faps(i, fps), i / fps)
             i += 1
         sent.append(i)
 
