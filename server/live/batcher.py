@@ -486,28 +486,12 @@ class DeformBatcher:
         return results
 
 
-_quantizers: dict[int, tuple[Any, DeviceQuantizer | None]] = {}
-_quantizers_lock = threading.Lock()
-
-
 def device_quantizer(deformer: Any, enabled: bool = True) -> DeviceQuantizer | None:
     """The ``DeviceQuantizer`` for ``deformer``'s OpenCL context (one per context), or None: a
     NumPy or copying deformer, not ``enabled`` (``FACECAST_LIVE_DEVICE_QUANTIZE=0``), or a device
     that fails."""
     if not enabled:
         return None
-    ctx = getattr(deformer, "context", None)
-    if ctx is None or not getattr(deformer, "zero_copy", False):
-        return None
-    with _quantizers_lock:
-        hit = _quantizers.get(id(ctx))
-        if hit is None:
-            try:
-                q = DeviceQuantizer.for_deformer(deformer)
-            except Exception:
-                log.warning(
-                    "int16 quantisation on the device failed to build; using NumPy", exc_info=True
-                )
-                q = None
-            hit = _quantizers[id(ctx)] = (ctx, q)  # holding ctx keeps id(ctx) unique
-        return hit[1]
+    return DeviceQuantizer.shared(
+        deformer, "int16 quantisation on the device failed to build; using NumPy"
+    )

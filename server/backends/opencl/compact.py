@@ -26,7 +26,6 @@ thread's CPU per frame, 0.375 -> 0.314 ms of the process's, 8 sessions a batch, 
 from __future__ import annotations
 
 import logging
-import threading
 from collections import OrderedDict
 from concurrent.futures import Executor
 from typing import Any, Protocol
@@ -269,23 +268,7 @@ def encode_batch(
     return out
 
 
-_devices: dict[int, tuple[Any, DeviceCompact | None]] = {}
-_devices_lock = threading.Lock()
-
-
 def device_compact(deformer: Any) -> DeviceCompact | None:
     """The ``DeviceCompact`` of ``deformer``'s OpenCL context (one per context, built on first
     use), or None: not a zero-copy OpenCL deformer, or a device that fails to build it."""
-    ctx = getattr(deformer, "context", None)
-    if ctx is None or not getattr(deformer, "zero_copy", False):
-        return None
-    with _devices_lock:
-        hit = _devices.get(id(ctx))
-        if hit is None:
-            try:
-                d = DeviceCompact(ctx)
-            except Exception:  # the host encoder serves instead
-                log.warning("compact encoding on the device failed to build", exc_info=True)
-                d = None
-            hit = _devices[id(ctx)] = (ctx, d)  # holding ctx keeps id(ctx) unique
-        return hit[1]
+    return DeviceCompact.shared(deformer, "compact encoding on the device failed to build")

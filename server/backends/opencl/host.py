@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -12,6 +13,8 @@ from .kernels import build, cl_source
 
 if TYPE_CHECKING:
     from typing_extensions import Self
+
+log = logging.getLogger(__name__)
 
 #: Byte alignment of host arrays the kernels read or write in place.
 ALIGN = 128
@@ -53,7 +56,30 @@ class HostKernel:
             return None
         return cls(ctx)
 
+    @classmethod
+    def shared(cls, deformer: Any, failure: str) -> Self | None:
+        """The one ``cls`` of ``deformer``'s OpenCL context (built on first use, thread-safe), or
+        None: not a zero-copy OpenCL deformer, or a device that fails to build it (``failure``
+        is logged as a warning once; the host path serves instead)."""
+        ctx = getattr(deformer, "context", None)
+        if ctx is None or not getattr(deformer, "zero_copy", False):
+            return None
+        with _shared_lock:
+            hit = _shared.get((cls, id(ctx)))
+            if hit is None:
+                try:
+                    k: HostKernel | None = cls(ctx)
+                except Exception:
+                    log.warning(failure, exc_info=True)
+                    k = None
+                hit = _shared[cls, id(ctx)] = (ctx, k)  # holding ctx keeps id(ctx) unique
+            return hit[1]  # type: ignore[return-value]
+
     def _host(self, arr: np.ndarray, flags: Any) -> Any:
         """A buffer over ``arr`` itself (``USE_HOST_PTR``): no copy on a host-memory device."""
         cl = self._cl
         return cl.Buffer(self.context, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
+
+
+_shared: dict[tuple[type, int], tuple[Any, HostKernel | None]] = {}
+_shared_lock = threading.Lock()
