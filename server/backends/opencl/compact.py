@@ -28,59 +28,17 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict
 from concurrent.futures import Executor
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-from ....protocol.compact import world_to_cells
+from ....protocol.compact import CompactEncoder, world_to_cells
 from .host import ALIGN, HostKernel, aligned_empty
 
 log = logging.getLogger(__name__)
 
 #: Work-items per frame (one work-group), each a contiguous run of its units of 16 vertices.
 WG = 8
-
-
-class Encoder(Protocol):  # ``protocol.compact.CompactEncoder``'s halves used here
-    groups: np.ndarray
-    step: float
-
-    @property
-    def keep2(self) -> float: ...
-
-    def prepare(
-        self,
-        vertices: np.ndarray,
-        transforms: np.ndarray | None = ...,
-        *,
-        t: float,
-        key: bool = ...,
-        matrices: bool = ...,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool, np.ndarray]: ...
-
-    def finish(
-        self,
-        tr: np.ndarray,
-        is_key: bool,
-        planes: int,
-        raw: np.ndarray,
-        new_key: np.ndarray | None,
-        *,
-        seq: int,
-        t: float,
-        wall: float = ...,
-    ) -> bytes: ...
-
-    def encode(
-        self,
-        vertices: np.ndarray,
-        transforms: np.ndarray | None = ...,
-        *,
-        seq: int,
-        t: float,
-        wall: float = ...,
-        key: bool = ...,
-    ) -> bytes: ...
 
 
 class DeviceCompact(HostKernel):
@@ -214,7 +172,7 @@ class DeviceCompact(HostKernel):
 def encode_batch(
     device: DeviceCompact,
     verts: np.ndarray,
-    frames: list[tuple[Encoder, int, np.ndarray, int, float, float]],
+    frames: list[tuple[CompactEncoder, int, np.ndarray, int, float, float]],
     pool: Executor | None = None,
 ) -> list[bytes | ValueError]:
     """Compact frames of ``verts (T, V, 3)`` (aligned, as ``DeviceCompact.residuals`` wants):
