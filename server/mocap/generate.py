@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import lzma
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,8 +37,7 @@ from scipy.spatial import cKDTree
 from ...protocol.markers_file import MarkerTake
 from ..errors import InputError
 from ..faces.face import Face
-from ..output.atomic import atomic_path
-from ..paths import cache_dir, shared_data
+from ..paths import shared_data
 from .io import write_take
 from .sampling import farthest_points
 from .stabilise import matrix_from_euler
@@ -114,35 +112,15 @@ def load_ict() -> Face:
     return load_face(face_path())
 
 
-def _read_obj_vertices(text: str) -> np.ndarray:
-    rows = [ln.split()[1:4] for ln in text.splitlines() if ln.startswith("v ")]
-    return np.asarray(rows, dtype=np.float32)
-
-
 def load_expressions(face: Face | None = None) -> tuple[list[str], np.ndarray]:
     """The 45 ICT expressions as ``(names, deltas (E, V, 3) float32)`` from the neutral (cm), cached
-    under ``cache_dir("mocap")``."""
+    under ``cache_dir("mocap")`` (``prior.load_basis`` of the kit's ``expressions/`` folder)."""
+    from .prior import load_basis
+
     face = face or load_ict()
-    folder = ict_dir() / "expressions"
-    files = sorted(folder.glob("*.obj.xz"))
-    cache = cache_dir("mocap") / f"ict-expressions-{face.mesh_hash}-{len(files)}.npz"
-    if cache.is_file():
-        with np.load(cache) as z:
-            return [str(n) for n in z["names"]], z["deltas"]
-    names, deltas = [], []
-    for f in files:
-        with lzma.open(f, "rt") as fh:
-            v = _read_obj_vertices(fh.read())
-        if v.shape != face.vertices.shape:
-            raise InputError(
-                f"expression has {len(v)} vertices, the neutral {face.n_vertices}", where=str(f)
-            )
-        names.append(f.name[: -len(".obj.xz")])
-        deltas.append(v - face.vertices)
-    arr = np.stack(deltas).astype(np.float32)
-    with atomic_path(cache) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, names=np.array(names), deltas=arr)
-    return names, arr
+    basis = load_basis(face, ict_dir() / "expressions")
+    assert basis is not None  # a named folder gives a basis or raises
+    return basis.names, basis.deltas
 
 
 #: A facial-capture layout sheet (see the module docstring), in the order a technician would drop
