@@ -44,7 +44,6 @@ __all__ = [
     "fit_weights",
     "load_basis",
     "mirror_map",
-    "prior_for",
 ]
 
 #: Shapes whose largest skin motion is below this (mm) are left out (pupil dilation, eye turns).
@@ -308,15 +307,3 @@ class ExpressionPrior:
             own = np.stack([d[:, :, c] @ self._interp[c] for c in range(3)], axis=2)
             out = beta[:, None, None] * shaped + (1.0 - beta[:, None, None]) * own
         return out.astype(np.float32), beta
-
-
-def prior_for(
-    face: Face, source: str | Path | None, markers: np.ndarray, avoid: np.ndarray, **options
-) -> ExpressionPrior | None:
-    """The ``ExpressionPrior`` for ``source`` (``load_basis``; ``off``/None: none)."""
-    if source is None or str(source) == "off":
-        return None
-    basis = load_basis(face, source)
-    if basis is None:
-        return None
-    return ExpressionPrior(face, basis, markers, avoid, **options)
