@@ -101,7 +101,10 @@ def run_phase(
     ``broker_pid``: Redis, whose CPU time counts with the nodes'."""
     busy0, total0 = machine_cpu()
     own = [n.proc.pid for n in nodes if n.proc] + ([broker_pid] if broker_pid else [])
-    cpu0 = sum(process_cpu_seconds(pid) for pid in own)
+    # per process: the job workers may have started (and spent CPU) before the phase
+    cpu0 = {
+        pid: process_cpu_seconds(pid) for pid in own + [p for n in nodes for p in worker_pids(n)]
+    }
     t0 = time.perf_counter()
     ids = [submit(nodes[i % len(nodes)], name, body) for i, (name, body) in enumerate(jobs)]
     t_submitted = time.perf_counter() - t0
@@ -134,7 +137,8 @@ def run_phase(
     busy1, total1 = machine_cpu()
     # the nodes', Redis's and the live workers' CPU seconds (a killed worker's are lost)
     own_cpu = sum(
-        process_cpu_seconds(pid) for pid in own + [p for n in nodes for p in worker_pids(n)]
+        process_cpu_seconds(pid) - cpu0.get(pid, 0.0)
+        for pid in own + [p for n in nodes for p in worker_pids(n)]
     )
     results = {}
     for k, job_id in enumerate(ids):
@@ -150,7 +154,7 @@ def run_phase(
         "failed": [s for s in states.values() if s["status"] != "done"],
         "attempts": sum(int(s["attempts"]) for s in states.values()),
         "machine_cpu_busy": round((busy1 - busy0) / max(total1 - total0, 1.0), 3),
-        "facecast_cpu_s": round(own_cpu - cpu0, 1),
+        "facecast_cpu_s": round(own_cpu, 1),
         "killed": killed,
         "load_end": load(),
         "_results": results,
