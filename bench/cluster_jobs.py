@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 import httpx
+from serve import machine_cpu  # bench/serve.py: (busy, total) CPU s of the machine
 
 from facecast.protocol.fap_file import read_fap, write_fap
 from facecast.server.harness import LocalServer, RedisServer, process_cpu_seconds
@@ -40,13 +41,6 @@ OUT = Path(__file__).resolve().parent / "out"
 FACE = "default:2k"
 ADMIN_KEY = "bench-cluster-jobs"
 DEADLINE = 900.0
-
-
-def cpu_times() -> tuple[float, float]:
-    """(busy, total) jiffies of the whole machine so far (``/proc/stat``)."""
-    f = [float(x) for x in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
-    idle = f[3] + (f[4] if len(f) > 4 else 0.0)
-    return sum(f) - idle, sum(f)
 
 
 def load() -> dict:
@@ -105,9 +99,12 @@ def run_phase(
 ) -> dict:
     """Submit ``jobs`` round-robin, wait for all; kill one busy worker after ``kill_after`` done.
     ``broker_pid``: Redis, whose CPU time counts with the nodes'."""
-    busy0, total0 = cpu_times()
+    busy0, total0 = machine_cpu()
     own = [n.proc.pid for n in nodes if n.proc] + ([broker_pid] if broker_pid else [])
-    cpu0 = sum(process_cpu_seconds(pid) for pid in own)
+    # per process: the job workers may have started (and spent CPU) before the phase
+    cpu0 = {
+        pid: process_cpu_seconds(pid) for pid in own + [p for n in nodes for p in worker_pids(n)]
+    }
     t0 = time.perf_counter()
     ids = [submit(nodes[i % len(nodes)], name, body) for i, (name, body) in enumerate(jobs)]
     t_submitted = time.perf_counter() - t0
@@ -137,10 +134,11 @@ def run_phase(
                     break
         time.sleep(0.02)
     wall = time.perf_counter() - t0
-    busy1, total1 = cpu_times()
+    busy1, total1 = machine_cpu()
     # the nodes', Redis's and the live workers' CPU seconds (a killed worker's are lost)
     own_cpu = sum(
-        process_cpu_seconds(pid) for pid in own + [p for n in nodes for p in worker_pids(n)]
+        process_cpu_seconds(pid) - cpu0.get(pid, 0.0)
+        for pid in own + [p for n in nodes for p in worker_pids(n)]
     )
     results = {}
     for k, job_id in enumerate(ids):
@@ -156,7 +154,7 @@ def run_phase(
         "failed": [s for s in states.values() if s["status"] != "done"],
         "attempts": sum(int(s["attempts"]) for s in states.values()),
         "machine_cpu_busy": round((busy1 - busy0) / max(total1 - total0, 1.0), 3),
-        "facecast_cpu_s": round(own_cpu - cpu0, 1),
+        "facecast_cpu_s": round(own_cpu, 1),
         "killed": killed,
         "load_end": load(),
         "_results": results,

@@ -326,6 +326,16 @@ console.log(JSON.stringify({ wall_ms: times[times.length >> 1],
 """
 
 
+def write_decode_inputs(d: Path, face, wire: list[bytes]) -> None:
+    """The files a JS decoder run reads from ``d``: ``rest.bin`` (rest vertices, (n, 3) <f4),
+    ``groups.bin`` (rigid groups, (n,) u8), ``frames.bin`` (the wire frames back to back) and
+    ``sizes.json`` (each frame's byte length)."""
+    (d / "rest.bin").write_bytes(np.ascontiguousarray(face.vertices, "<f4").tobytes())
+    (d / "groups.bin").write_bytes(np.ascontiguousarray(face.rigid_group, np.uint8).tobytes())
+    (d / "frames.bin").write_bytes(b"".join(wire))
+    (d / "sizes.json").write_text(json.dumps([len(b) for b in wire]))
+
+
 def js_decode_ms(face, wire: list[bytes]) -> dict | None:
     """Per-frame decode time of ``client/web/js/compact.js`` under Node (V8, as in Chromium), or
     None: ``wall_ms`` the median frame (each timed alone, over passes of at least a second after
@@ -340,10 +350,7 @@ def js_decode_ms(face, wire: list[bytes]) -> dict | None:
         d = Path(tmp)
         shutil.copy(JS, d / "compact.mjs")
         (d / "run.mjs").write_text(NODE_RUNNER)
-        (d / "rest.bin").write_bytes(np.ascontiguousarray(face.vertices, "<f4").tobytes())
-        (d / "groups.bin").write_bytes(np.ascontiguousarray(face.rigid_group, np.uint8).tobytes())
-        (d / "frames.bin").write_bytes(b"".join(wire))
-        (d / "sizes.json").write_text(json.dumps([len(b) for b in wire]))
+        write_decode_inputs(d, face, wire)
         r = subprocess.run(
             [node, str(d / "run.mjs"), str(d)],
             capture_output=True,
@@ -418,10 +425,7 @@ def chromium_decode_ms(face, wire: list[bytes], js: Path = JS, seconds: float = 
         d = Path(tmp)
         shutil.copy(js, d / "compact.js")
         (d / "index.html").write_text(CHROMIUM_PAGE)
-        (d / "rest.bin").write_bytes(np.ascontiguousarray(face.vertices, "<f4").tobytes())
-        (d / "groups.bin").write_bytes(np.ascontiguousarray(face.rigid_group, np.uint8).tobytes())
-        (d / "frames.bin").write_bytes(b"".join(wire))
-        (d / "sizes.json").write_text(json.dumps([len(b) for b in wire]))
+        write_decode_inputs(d, face, wire)
 
         class Quiet(http.server.SimpleHTTPRequestHandler):
             def log_message(self, *a) -> None:

@@ -50,13 +50,22 @@ def per_frame(fn, n: int, repeats: int, clock=time.thread_time) -> tuple[float, 
     return statistics.median(cpu), statistics.median(wall)
 
 
+def mixer_of(geo, layers):
+    """A session's ``Mixer`` over ``geo`` holding ``layers`` ((name, layer) pairs)."""
+    from facecast.server.layers import Mixer
+
+    mixer = Mixer(geo)
+    for name, layer in layers:
+        mixer.set(name, layer)
+    return mixer
+
+
 def live_worker(face, geo, states, layers, repeats: int, row) -> dict:
     """The live deform worker's whole job per frame (``DeformBatcher._work``: mix, solve, deform,
     int16 encode; CPU of all the process' threads, OpenCL's included) in batches of B sessions'
     states, without layers and with the three layers mixed in the thread (``mixing.mix_jobs``)."""
     from types import SimpleNamespace
 
-    from facecast.server.layers import Mixer
     from facecast.server.live.batcher import DeformBatcher, _Job
     from facecast.server.pipeline import Animator
 
@@ -65,12 +74,7 @@ def live_worker(face, geo, states, layers, repeats: int, row) -> dict:
     n = len(states)
     out = {}
     for b in (1, 8, 25):
-        mixes = []
-        for _ in range(b):
-            mixer = Mixer(geo)
-            for name, layer in layers:
-                mixer.set(name, layer)
-            mixes.append(mixer)
+        mixes = [mixer_of(geo, layers) for _ in range(b)]
 
         def run(with_layers: bool, b: int = b, mixes: list = mixes):
             def go():
@@ -196,7 +200,6 @@ def main(argv: list[str] | None = None) -> int:
         GazeTarget,
         Geometry,
         IdleLayer,
-        Mixer,
     )
     from facecast.server.layers.batch import mix_batch
     from facecast.server.mpeg4.rig import FapRig
@@ -260,9 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         return run
 
     def mixing(k: int, states):
-        m = Mixer(geo)
-        for name, layer in layers[:k]:
-            m.set(name, layer)
+        m = mixer_of(geo, layers[:k])
 
         def run():
             for st in states:
@@ -286,12 +287,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def batched(b: int):
         """``mix_batch`` of one state of each of ``b`` sessions (own mixers), ``n`` states in all."""
-        mixers = []
-        for _ in range(b):
-            mixer = Mixer(geo)
-            for name, layer in layers:
-                mixer.set(name, layer)
-            mixers.append(mixer)
+        mixers = [mixer_of(geo, layers) for _ in range(b)]
 
         def run():
             for s in range(0, n, b):
@@ -304,9 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     sizes = (1, 4, 8, 16, 32)
     batch_rows = {b: row(f"live mix_batch, 3 layers, {b} sessions", batched(b)) for b in sizes}
     worker = live_worker(face, geo, primary[: args.worker_frames], layers, args.repeats, row)
-    m = Mixer(geo)
-    for name, layer in layers:
-        m.set(name, layer)
+    m = mixer_of(geo, layers)
     mixed = [m.mix(st) for st in primary]
     solved_mixed = row("solve of the mixed states, chunks of 32", solve_chunks(mixed))
     load1 = os.getloadavg()

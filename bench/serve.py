@@ -598,7 +598,7 @@ def _viewer_process(url, seats, kind, encoding, opts, ready, stop, conn) -> None
     conn.close()
 
 
-def _machine_cpu() -> tuple[float, float]:
+def machine_cpu() -> tuple[float, float]:
     """``(busy, total)`` CPU seconds of the whole machine so far (``/proc/stat``), or NaNs."""
     try:
         f = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
@@ -612,7 +612,7 @@ def _machine_cpu() -> tuple[float, float]:
 def _cpu_snapshot(server, clients_cpu) -> dict:
     """CPU seconds so far of the server (each node and Redis on a cluster), of the load generator
     and of the whole machine."""
-    busy, total = _machine_cpu()
+    busy, total = machine_cpu()
     snap = {
         "server": server.cpu_seconds() if server else float("nan"),
         "clients": clients_cpu(),

@@ -15,33 +15,26 @@ from facecast.server.cli import main
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.slow
-def test_viewers_in_other_processes_are_measured(tmp_path):
+def _serve(tmp_path: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], Path]:
+    """Run ``bench/serve.py`` with ``args`` for 2 s after 1 s of warm-up; (the run, its JSON)."""
     out = tmp_path / "serve.json"
     r = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "bench" / "serve.py"),
-            "--face",
-            "default:2k",
-            "--sessions",
-            "",
-            "--viewers",
-            "3",
-            "--viewer-processes",
-            "2",
-            "--warmup",
-            "1",
-            "--seconds",
-            "2",
-            "--out",
-            str(out),
-        ],
+        [sys.executable, str(ROOT / "bench" / "serve.py"), *args]
+        + ["--warmup", "1", "--seconds", "2", "--out", str(out)],
         check=False,
         cwd=tmp_path,
         capture_output=True,
         text=True,
         timeout=600,
+    )
+    return r, out
+
+
+@pytest.mark.slow
+def test_viewers_in_other_processes_are_measured(tmp_path):
+    r, out = _serve(
+        tmp_path,
+        *("--face", "default:2k", "--sessions", "", "--viewers", "3", "--viewer-processes", "2"),
     )
     assert r.returncode == 0, r.stderr[-4000:]
     point = json.loads(out.read_text())["viewers_sweep"][0]
@@ -60,28 +53,8 @@ def test_cluster_mode_measures_two_nodes_beside_the_single_process(tmp_path):
 
     if not RedisServer.available():
         pytest.skip("redis-server is not installed (bash .ci/setup installs it)")
-    out = tmp_path / "serve.json"
     args = ["--face", "default:2k", "--sessions", "2", "--viewers", "", "--cluster", "2"]
-    r = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "bench" / "serve.py"),
-            *args,
-            "--viewer-processes",
-            "1",
-            "--warmup",
-            "1",
-            "--seconds",
-            "2",
-            "--out",
-            str(out),
-        ],
-        check=False,
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    r, out = _serve(tmp_path, *args, "--viewer-processes", "1")
     assert r.returncode == 0, r.stderr[-4000:]
     report = json.loads(out.read_text())
     cluster = report["cluster"]["i16"]
