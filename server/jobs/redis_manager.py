@@ -92,12 +92,7 @@ class RedisJobManager(JobManager):
 
     async def stop(self) -> None:
         """Stop taking jobs, end the workers and hand their jobs back to the other nodes at once."""
-        if self._task:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
+        await self._stop_loop()
         await asyncio.to_thread(self._release)
         self.store.close()
 
