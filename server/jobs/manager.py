@@ -173,12 +173,16 @@ class JobManager:
         return changed
 
     # -- dispatch loop ---------------------------------------------------------------------------
+    async def _step(self) -> None:
+        """One round of the dispatcher (subclasses whose store is a network away use a thread)."""
+        self._reap()
+        self._dispatch()
+        self._purge()
+
     async def _loop(self) -> None:
         while True:
             try:
-                self._reap()
-                self._dispatch()
-                self._purge()
+                await self._step()
             except Exception:  # never let the dispatcher die silently
                 log.exception("job dispatcher error")
             try:

@@ -123,17 +123,8 @@ class RedisJobManager(JobManager):
                         self.claim_seconds,
                     )
 
-    async def _loop(self) -> None:
-        while True:
-            try:
-                await asyncio.to_thread(self._tick)
-            except Exception:  # never let the dispatcher die silently
-                log.exception("job dispatcher error")
-            try:
-                await asyncio.wait_for(self._wake.wait(), 0.2)
-            except asyncio.TimeoutError:
-                pass
-            self._wake.clear()
+    async def _step(self) -> None:
+        await asyncio.to_thread(self._tick)
 
     def _tick(self) -> None:
         with self._lock:
