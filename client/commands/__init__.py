@@ -20,6 +20,18 @@ def add_token_argument(p: argparse.ArgumentParser, role: str) -> None:
     )
 
 
+def add_reconnect_argument(p: argparse.ArgumentParser) -> None:
+    """``--reconnect-for SECONDS`` (default 60; 0: do not reconnect)."""
+    p.add_argument(
+        "--reconnect-for",
+        type=float,
+        default=60.0,
+        metavar="SECONDS",
+        help="when the connection drops, reconnect for up to this long before giving up "
+        "(default 60; 0 = do not reconnect)",
+    )
+
+
 async def until_signal(work: Awaitable[object]) -> bool:
     """Run ``work`` until it ends or SIGINT/SIGTERM arrives (then it is cancelled, so that a command
     can still report what it did); True when a signal stopped it."""

@@ -29,7 +29,7 @@ from typing import Any
 
 from ...protocol.errors import InputError
 from ...protocol.messages import ROLES
-from . import add_token_argument, until_signal
+from . import add_reconnect_argument, add_token_argument, until_signal
 
 log = logging.getLogger(__name__)
 
@@ -69,14 +69,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         help="stop after this many seconds of media time (with --loop: replay until then)",
     )
-    p.add_argument(
-        "--reconnect-for",
-        type=float,
-        default=60.0,
-        metavar="SECONDS",
-        help="when the connection drops, reconnect for up to this long before giving up "
-        "(default 60; 0 = do not reconnect)",
-    )
+    add_reconnect_argument(p)
     p.add_argument(
         "--json-frames",
         action="store_true",

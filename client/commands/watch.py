@@ -17,7 +17,7 @@ import sys
 import time
 
 from ...protocol.encoding import VERTEX_ENCODINGS
-from . import add_token_argument, until_signal
+from . import add_reconnect_argument, add_token_argument, until_signal
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -41,14 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--json", action="store_true", help="print one JSON object at the end (else a short table)"
     )
-    p.add_argument(
-        "--reconnect-for",
-        type=float,
-        default=60.0,
-        metavar="SECONDS",
-        help="when the connection drops, reconnect for up to this long before giving up "
-        "(default 60; 0 = do not reconnect)",
-    )
+    add_reconnect_argument(p)
 
 
 async def _main(args: argparse.Namespace) -> dict:

@@ -29,12 +29,6 @@ STOP_SECONDS = 8.0
 #: is not started again.
 QUICK_DEATHS, QUICK_SECONDS = 3, 10.0
 
-#: What the parent says, once for all its node processes, when no results folder is set.
-RESULTS_DIR_UNSET = (
-    "FACECAST_RESULTS_DIR is unset: job folders are in %s; every node must see the same folder "
-    "there, or jobs sent to one node fail on another"
-)
-
 #: Settings a child gets from its parent (flags become ``FACECAST_*`` variables).
 PASSED = (
     "host",
@@ -95,9 +89,9 @@ def supervise(config: Any, workers: int, log_level: str | None) -> int:
         return subprocess.Popen(cmd, env=child_env(config, i), preexec_fn=_die_with_parent)  # noqa: PLW1509
 
     if config.redis_url and config.results_dir is None:
-        from ..jobs.store import results_root
+        from ..jobs import RESULTS_DIR_UNSET, results_root
 
-        log.warning(RESULTS_DIR_UNSET, results_root(config.data_dir))
+        log.warning(RESULTS_DIR_UNSET, results_root(config.data_dir))  # once for all its nodes
     children = [start(i) for i in range(workers)]
     started = [time.monotonic()] * workers
     quick = [0] * workers

@@ -12,14 +12,20 @@ from __future__ import annotations
 import logging
 from typing import TYPE_CHECKING
 
-from .store import JobRecord, JobStore
+from .store import JobRecord, JobStore, results_root
 
 if TYPE_CHECKING:
     from ..api.config import ServerConfig
     from .manager import JobManager
 
-__all__ = ["JobRecord", "JobStore", "make_manager"]
+__all__ = ["RESULTS_DIR_UNSET", "JobRecord", "JobStore", "make_manager", "results_root"]
 log = logging.getLogger(__name__)
+
+#: The warning, with the folder used, when a cluster node has no shared results folder set.
+RESULTS_DIR_UNSET = (
+    "FACECAST_RESULTS_DIR is unset: job folders are in %s; every node must see the same folder "
+    "there, or jobs sent to one node fail on another"
+)
 
 
 def make_manager(config: ServerConfig) -> JobManager:
@@ -39,11 +45,7 @@ def make_manager(config: ServerConfig) -> JobManager:
         from .redis_manager import RedisJobManager
 
         if config.results_dir is None:
-            log.warning(
-                "FACECAST_RESULTS_DIR is unset: job folders are in %s; every node must see the "
-                "same folder there, or jobs sent to one node fail on another",
-                config.data_dir / "jobs",
-            )
+            log.warning(RESULTS_DIR_UNSET, results_root(config.data_dir))
 
         return RedisJobManager(
             config.redis_url,

@@ -125,12 +125,7 @@ class JobManager:
 
     async def stop(self) -> None:
         """Stop dispatching and end the workers (running jobs resume at the next start)."""
-        if self._task:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
+        await self._stop_loop()
         for slot in self._slots:
             if slot.job_id:
                 log.info(
@@ -143,6 +138,15 @@ class JobManager:
                     pass
         await asyncio.gather(*(asyncio.to_thread(s.kill, 5.0) for s in self._slots))
         self.store.close()
+
+    async def _stop_loop(self) -> None:
+        """Cancel the dispatcher task and wait for it to end."""
+        if self._task:
+            self._task.cancel()
+            try:
+                await self._task
+            except asyncio.CancelledError:
+                pass
 
     def wake(self) -> None:
         """Look for queued jobs now (after a submit)."""
@@ -169,12 +173,16 @@ class JobManager:
         return changed
 
     # -- dispatch loop ---------------------------------------------------------------------------
+    async def _step(self) -> None:
+        """One round of the dispatcher (subclasses whose store is a network away use a thread)."""
+        self._reap()
+        self._dispatch()
+        self._purge()
+
     async def _loop(self) -> None:
         while True:
             try:
-                self._reap()
-                self._dispatch()
-                self._purge()
+                await self._step()
             except Exception:  # never let the dispatcher die silently
                 log.exception("job dispatcher error")
             try:

@@ -92,12 +92,7 @@ class RedisJobManager(JobManager):
 
     async def stop(self) -> None:
         """Stop taking jobs, end the workers and hand their jobs back to the other nodes at once."""
-        if self._task:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
+        await self._stop_loop()
         await asyncio.to_thread(self._release)
         self.store.close()
 
@@ -128,17 +123,8 @@ class RedisJobManager(JobManager):
                         self.claim_seconds,
                     )
 
-    async def _loop(self) -> None:
-        while True:
-            try:
-                await asyncio.to_thread(self._tick)
-            except Exception:  # never let the dispatcher die silently
-                log.exception("job dispatcher error")
-            try:
-                await asyncio.wait_for(self._wake.wait(), 0.2)
-            except asyncio.TimeoutError:
-                pass
-            self._wake.clear()
+    async def _step(self) -> None:
+        await asyncio.to_thread(self._tick)
 
     def _tick(self) -> None:
         with self._lock:
