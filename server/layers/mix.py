@@ -43,6 +43,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import Conflict, InputError, NotFound
+from ..mocap.stabilise import euler_from_matrix
+from ..mpeg4.rig import about
 from ..state import FaceState
 from .model import REGIONS, Contribution, GazeTarget, Geometry, Layer, Role
 
@@ -121,22 +123,14 @@ def head_angles(head: np.ndarray, pivot: np.ndarray) -> tuple[np.ndarray, np.nda
     the translation left over after rotating about ``pivot`` (mesh units)."""
     M = np.asarray(head, dtype=np.float64).reshape(3, 4)
     R = M[:, :3]
-    pitch = float(np.arcsin(np.clip(-R[1, 2], -1.0, 1.0)))
-    yaw = float(np.arctan2(R[0, 2], R[2, 2]))
-    roll = float(np.arctan2(R[1, 0], R[1, 1]))
-    rest = M[:, 3] - (pivot - R @ pivot)
-    return np.array([pitch, yaw, roll]) / _AU, rest
+    return euler_from_matrix(R) / _AU, M[:, 3] - (pivot - R @ pivot)
 
 
 def head_transform(
     angles: Sequence[float], pivot: np.ndarray, rest: np.ndarray | None = None
 ) -> np.ndarray:
     """``(3, 4)`` head transform of ``(pitch, yaw, roll)`` AU about ``pivot``, then ``rest``."""
-    R = np.array(_rot(*(float(a) * _AU for a in angles)))
-    out = np.empty((3, 4))
-    out[:, :3] = R
-    out[:, 3] = pivot - R @ pivot + (0.0 if rest is None else rest)
-    return out
+    return about(np.array(_rot(*(float(a) * _AU for a in angles))), pivot, rest)
 
 
 def eye_angles(direction: Sequence[float], axis: Sequence[float]) -> tuple[float, float]:
