@@ -174,14 +174,6 @@ _PAIRS: tuple[tuple[int, int], ...] = tuple((int(a), int(b)) for a, b in LIP_PAI
 _LIPS = LIP_PAIRS.reshape(-1)
 
 
-def closure_factor(F: np.ndarray) -> np.ndarray:
-    """``(6,)`` how closed each lip pair of the FAPs ``F (69,)`` is: 1 at or below ``CLOSED_GAP``,
-    0 from ``OPEN_GAP``."""
-    gap = -(F[_TOP] + F[_BOTTOM])
-    x = np.clip((gap - CLOSED_GAP) / (OPEN_GAP - CLOSED_GAP), 0.0, 1.0)
-    return 1.0 - x * x * (3.0 - 2.0 * x)
-
-
 def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` over a speaking primary's FAPs ``F`` limited in the mouth and tongue
     (rule 4): where ``A`` moves a FAP the way ``F`` does, only what goes beyond ``F`` stays, so
@@ -204,8 +196,8 @@ def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
 
 def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` with the lip opening they would add to the primary's FAPs ``F`` taken out
-    where ``F`` holds the lips closed (``closure_factor``); corners, spreading and the lips' common
-    shift stay. Returns ``A`` itself when nothing changes, else a new array."""
+    where ``F`` holds the lips closed (1 at or below ``CLOSED_GAP``, 0 from ``OPEN_GAP``); corners,
+    spreading and the lips' common shift stay. Returns ``A`` itself when nothing changes, else a new array."""
     a = A[_LIPS].tolist()
     jaw = float(A[3])
     if jaw <= 0 and all(a[2 * i] + a[2 * i + 1] >= 0 for i in range(6)):
