@@ -736,3 +736,28 @@ def test_mix_batch_equals_each_mixer_alone(default_head):
         for m, s, g in zip(mixers, states, got):
             np.testing.assert_allclose(g.faps, m.mix(s, t).faps, rtol=1e-9, atol=1e-6)
     assert all("smile" not in m.layers() for m in mixers)
+
+
+def test_mix_states_equals_mix_frame_by_frame(default_head):
+    """The batch render's ``mix_states`` (sampled and combined together, in chunks) gives each
+    state what ``mix`` gives it alone, a state with a head transform included."""
+    _, _, geo = default_head
+    rng = np.random.default_rng(5)
+    states = [FaceState(t=i / 30, faps=rng.normal(0, 60, 69)) for i in range(1100)]
+    states[7].head = np.hstack([np.eye(3), np.zeros((3, 1))])
+    layers = [
+        IdleLayer(seed=3),
+        GazeLayer(GazeTarget.camera(), envelope=Envelope(start=2.0, end=20.0)),
+        ExpressionLayer(1, amount=0.6, envelope=Envelope(end=30.0)),
+        HeadPose(pitch=5, yaw=-8),
+    ]
+    for closures in (True, False):
+        got = mix_states(states, layers, geometry=geo, closures=closures)
+        for s, g in zip(states, got, strict=True):
+            want = mix(s, layers, s.t, geometry=geo, closures=closures)
+            assert g.t == want.t and g.expression == want.expression
+            np.testing.assert_allclose(g.faps, want.faps, rtol=1e-9, atol=1e-6)
+            if want.head is None:
+                assert g.head is None
+            else:
+                np.testing.assert_allclose(g.head, want.head, rtol=1e-9, atol=1e-9)

@@ -31,6 +31,7 @@ from ...protocol.layers import (
 )
 from ...protocol.rest import ErrorBody
 from ..errors import Unauthorized
+from ..live.mixing import Spec
 from ..live.roles import ALL_ROLES
 from ..live.session import LiveSession
 from .routes_sessions import registry
@@ -119,6 +120,19 @@ async def _json(request: Request) -> Any:
         raise MessageError("the body nests too deeply to be a layer", where="body") from None
 
 
+def _reach(
+    request: Request, session_id: str, name: str, token: str | None
+) -> tuple[LiveSession, Spec | None]:
+    """The session and the spec of its REST layer ``name`` (None: no such layer), once the
+    caller is known (401) and may reach that layer's kind (403)."""
+    session = registry(request.app).get(session_id)
+    roles = _roles(request, session, token)
+    old = session.mix.spec(_name(name))
+    if old is not None:
+        _may(roles, old.kind, name)
+    return session, old
+
+
 @router.post("/tokens", status_code=status.HTTP_201_CREATED, response_model=TokenCreated)
 async def create_token(session_id: str, request: Request, token: str | None = None) -> TokenCreated:
     """A producer token for some roles only (the admin key or the full producer token mints)."""
@@ -190,13 +204,10 @@ async def patch_layer_route(
     session_id: str, name: str, request: Request, token: str | None = None
 ) -> LayerInfo:
     """Change some fields of the layer ``name`` (its timing restarts from now)."""
-    session = registry(request.app).get(session_id)
-    roles = _roles(request, session, token)
-    old = session.mix.spec(_name(name))
+    session, old = _reach(request, session_id, name, token)
     if old is None:
         session.mix.info(name)  # NotFound, with the message
         raise AssertionError("unreachable")
-    _may(roles, old.kind, name)
     return session.mix.set(name, patch_layer(old, await _json(request)))
 
 
@@ -204,10 +215,6 @@ async def patch_layer_route(
 async def delete_layer(
     session_id: str, name: str, request: Request, token: str | None = None
 ) -> Response:
-    session = registry(request.app).get(session_id)
-    roles = _roles(request, session, token)
-    old = session.mix.spec(_name(name))
-    if old is not None:
-        _may(roles, old.kind, name)
+    session, _ = _reach(request, session_id, name, token)
     session.mix.remove(name)
     return Response(status_code=status.HTTP_204_NO_CONTENT)

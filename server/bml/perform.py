@@ -27,7 +27,7 @@ from ..layers import (
     HeadPose,
     IdleLayer,
     Layer,
-    mix,
+    mix_states,
 )
 from ..state import Animation, FaceState
 from .lexemes import face_shape
@@ -161,16 +161,14 @@ def render_performance(
     if idle:
         own.append(IdleLayer())
     n = int(math.floor(perf.duration * fps + 1e-9)) + 1
-    states = []
+    bases = []
     for i in range(n):
         t = i / fps
         primary = next((s for s in (tr.at(t) for tr in tracks) if s is not None), None)
-        base = (
+        bases.append(
             FaceState(t=t)
             if primary is None
             else FaceState(t=t, faps=primary.faps, viseme=primary.viseme)
         )
-        state = mix(base, own, t, geometry=geometry)
-        state.t = t
-        states.append(state)
+    states = mix_states(bases, own, geometry=geometry)
     return Animation(fps=float(fps), states=states, source=source)

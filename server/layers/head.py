@@ -6,10 +6,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import EMPTY, Contribution, Envelope, N, Role, check_envelope, check_number
+from .model import (
+    AU_PER_DEG,
+    EMPTY,
+    Contribution,
+    Envelope,
+    N,
+    Role,
+    check_envelope,
+    check_number,
+)
 
-#: AU per degree.
-AU_PER_DEG = np.pi / 180 / 1e-5
 #: Gesture -> (FAP moved, amplitude in degrees at amount 1). Nod: pitch down (+), shake: yaw,
 #: tilt: roll.
 GESTURES: dict[str, tuple[int, float]] = {"nod": (48, 8.0), "shake": (49, 12.0), "tilt": (50, 10.0)}

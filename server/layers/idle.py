@@ -24,9 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import Contribution, N, Role, check_number, smoothstep
+from .model import AU_PER_DEG, Contribution, N, Role, check_number, smoothstep
 
-AU_PER_DEG = math.pi / 180 / 1e-5
 #: Closed lids: upper lids down one IRISD0 (tangent to the iris -> closed), lower lids up a little.
 CLOSED_LIDS = np.zeros(N)
 CLOSED_LIDS[[19, 20]] = 1024.0

@@ -43,6 +43,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import Conflict, InputError, NotFound
+from ..mocap.stabilise import euler_from_matrix
+from ..mpeg4.rig import about
 from ..state import FaceState
 from .model import REGIONS, Contribution, GazeTarget, Geometry, Layer, Role
 
@@ -121,22 +123,14 @@ def head_angles(head: np.ndarray, pivot: np.ndarray) -> tuple[np.ndarray, np.nda
     the translation left over after rotating about ``pivot`` (mesh units)."""
     M = np.asarray(head, dtype=np.float64).reshape(3, 4)
     R = M[:, :3]
-    pitch = float(np.arcsin(np.clip(-R[1, 2], -1.0, 1.0)))
-    yaw = float(np.arctan2(R[0, 2], R[2, 2]))
-    roll = float(np.arctan2(R[1, 0], R[1, 1]))
-    rest = M[:, 3] - (pivot - R @ pivot)
-    return np.array([pitch, yaw, roll]) / _AU, rest
+    return euler_from_matrix(R) / _AU, M[:, 3] - (pivot - R @ pivot)
 
 
 def head_transform(
     angles: Sequence[float], pivot: np.ndarray, rest: np.ndarray | None = None
 ) -> np.ndarray:
     """``(3, 4)`` head transform of ``(pitch, yaw, roll)`` AU about ``pivot``, then ``rest``."""
-    R = np.array(_rot(*(float(a) * _AU for a in angles)))
-    out = np.empty((3, 4))
-    out[:, :3] = R
-    out[:, 3] = pivot - R @ pivot + (0.0 if rest is None else rest)
-    return out
+    return about(np.array(_rot(*(float(a) * _AU for a in angles))), pivot, rest)
 
 
 def eye_angles(direction: Sequence[float], axis: Sequence[float]) -> tuple[float, float]:
@@ -180,14 +174,6 @@ _PAIRS: tuple[tuple[int, int], ...] = tuple((int(a), int(b)) for a, b in LIP_PAI
 _LIPS = LIP_PAIRS.reshape(-1)
 
 
-def closure_factor(F: np.ndarray) -> np.ndarray:
-    """``(6,)`` how closed each lip pair of the FAPs ``F (69,)`` is: 1 at or below ``CLOSED_GAP``,
-    0 from ``OPEN_GAP``."""
-    gap = -(F[_TOP] + F[_BOTTOM])
-    x = np.clip((gap - CLOSED_GAP) / (OPEN_GAP - CLOSED_GAP), 0.0, 1.0)
-    return 1.0 - x * x * (3.0 - 2.0 * x)
-
-
 def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` over a speaking primary's FAPs ``F`` limited in the mouth and tongue
     (rule 4): where ``A`` moves a FAP the way ``F`` does, only what goes beyond ``F`` stays, so
@@ -210,8 +196,8 @@ def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
 
 def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` with the lip opening they would add to the primary's FAPs ``F`` taken out
-    where ``F`` holds the lips closed (``closure_factor``); corners, spreading and the lips' common
-    shift stay. Returns ``A`` itself when nothing changes, else a new array."""
+    where ``F`` holds the lips closed (1 at or below ``CLOSED_GAP``, 0 from ``OPEN_GAP``); corners,
+    spreading and the lips' common shift stay. Returns ``A`` itself when nothing changes, else a new array."""
     a = A[_LIPS].tolist()
     jaw = float(A[3])
     if jaw <= 0 and all(a[2 * i] + a[2 * i + 1] >= 0 for i in range(6)):
@@ -530,10 +516,33 @@ def mix_states(
     closures: bool = True,
 ) -> list[FaceState]:
     """``mix`` of every state of a stream (each at its own time) with ``layers``: a batch render's
-    layered animation. Without layers the states themselves are returned (same objects)."""
+    layered animation, sampled and combined together (as ``batch.mix_batch``). Without layers the states
+    themselves are returned (same objects)."""
     if not layers:
         return list(states)
-    return [mix(s, layers, s.t, geometry=geometry, closures=closures) for s in states]
+    from .batch import combine_columns, sample_columns  # (batch imports this module)
+
+    geo = _DEFAULT_GEOMETRY if geometry is None else geometry
+    out = list(states)
+    rows = []
+    for i, s in enumerate(states):
+        if s.head is None and np.shape(s.faps) == (69,):
+            rows.append(i)
+        else:  # a head transform (or FAPs ``combine`` refuses): one by one
+            out[i] = mix(s, layers, s.t, geometry=geometry, closures=closures)
+    for k in range(0, len(rows), _CHUNK):
+        chunk = rows[k : k + _CHUNK]
+        prims = [states[i] for i in chunk]
+        ts = [float(s.t) for s in prims]
+        entries = [(r, layer, ts[r]) for r in range(len(chunk)) for layer in layers]
+        mixed = combine_columns(prims, ts, sample_columns(entries, geo), geo, closures)
+        for i, state in zip(chunk, mixed, strict=True):
+            out[i] = state
+    return out
+
+
+#: Most frames ``mix_states`` mixes in one go (bounds its arrays' memory: ~0.5 MB each).
+_CHUNK = 1024
 
 
 def _keep_closures_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:

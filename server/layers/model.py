@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import enum
 import itertools
+import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -23,6 +24,8 @@ from ..mpeg4.highlevel import EXPRESSIONS, VISEMES
 
 #: Length of a FAP vector: index k = FAP k (0 unused, 1/2 high-level).
 N = 69
+#: AU (MPEG-4 angle unit, 1e-5 rad) per degree.
+AU_PER_DEG = math.pi / 180 / 1e-5
 
 
 class Role(str, enum.Enum):
