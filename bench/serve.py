@@ -43,7 +43,6 @@ import logging
 import math
 import multiprocessing
 import os
-import resource
 import socket
 import struct
 import sys
@@ -285,11 +284,6 @@ class _External:
         return process_cpu_seconds(self.pid)
 
 
-def _own_cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
-
-
 # ----------------------------------------------------------------------------------------- in-process
 
 
@@ -374,10 +368,10 @@ def _cpu_ms(fn, repeats: int = 20, rounds: int = 3) -> float:
     fn()
     best = math.inf
     for _ in range(rounds):
-        c0 = _own_cpu()
+        c0 = time.process_time()
         for _ in range(repeats):
             fn()
-        best = min(best, (_own_cpu() - c0) / repeats)
+        best = min(best, (time.process_time() - c0) / repeats)
     return 1000 * best
 
 
@@ -616,7 +610,7 @@ def _cpu_snapshot(server, clients_cpu) -> dict:
     snap = {
         "server": server.cpu_seconds() if server else float("nan"),
         "clients": clients_cpu(),
-        "bench": _own_cpu(),
+        "bench": time.process_time(),
         "machine_busy": busy,
         "machine_total": total,
     }
@@ -702,7 +696,7 @@ async def _client_load(made, owner, nodes, watched_on, viewers, args, window, ur
     ]
 
     def clients_cpu() -> float:
-        return _own_cpu() + sum(process_cpu_seconds(p.pid) for p, _, _ in children)
+        return time.process_time() + sum(process_cpu_seconds(p.pid) for p, _, _ in children)
 
     w = await window(clients_cpu)
     stop.set()
