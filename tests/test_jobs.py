@@ -724,3 +724,61 @@ def test_audio_job_with_its_transcript(srv, data_dir):
             timeout=60,
         )
         assert 400 <= resp.status_code < 500 and message in resp.json()["error"], resp.text
+
+
+def test_the_listing_reports_result_sizes_read_off_the_event_loop(tmp_path, monkeypatch):
+    """``GET /v1/jobs`` and ``GET /v1/jobs/{id}`` give each done job's result size; the ``stat``
+    (a network away on a shared results folder) runs in a thread, never on the event loop."""
+    import asyncio
+
+    from fastapi.testclient import TestClient
+
+    from facecast.server.api.app import create_app
+    from facecast.server.api.config import ServerConfig
+
+    cfg = ServerConfig(data_dir=tmp_path, admin_key="k", job_workers=0, backend="numpy")
+    app = create_app(cfg)
+    store = app.state.jobs.store
+    sizes = {}
+    for k, n in enumerate((10, 2000, 0)):
+        job_id = f"{k:032x}"
+        store.folder(job_id).mkdir(parents=True)
+        store.add(
+            job_id,
+            input_name="a.fap",
+            input_kind="fap",
+            input_file="input.fap",
+            input_bytes=1,
+            result_file="result.glb",
+            options={"format": "glb"},
+        )
+        store.finish(job_id, store.claim(job_id), "done")
+        (store.folder(job_id) / "result.glb").write_bytes(b"x" * n)
+        sizes[job_id] = n
+    store.add(  # a queued job has no result size
+        f"{9:032x}",
+        input_name="b.fap",
+        input_kind="fap",
+        input_file="input.fap",
+        input_bytes=1,
+        result_file="result.glb",
+        options={},
+    )
+    on_loop: list[bool] = []
+    result_path = store.result_path
+
+    def watched(job):
+        try:
+            asyncio.get_running_loop()
+            on_loop.append(True)
+        except RuntimeError:
+            on_loop.append(False)
+        return result_path(job)
+
+    monkeypatch.setattr(store, "result_path", watched)
+    client = TestClient(app)
+    listed = client.get("/v1/jobs", headers={"Authorization": "Bearer k"}).json()["jobs"]
+    assert {j["id"]: j["result_bytes"] for j in listed} == {**sizes, f"{9:032x}": None}
+    one = client.get(f"/v1/jobs/{0:032x}", headers={"Authorization": "Bearer k"}).json()
+    assert one["result_bytes"] == 10
+    assert on_loop and not any(on_loop)

@@ -12,6 +12,7 @@ thread when the store is a network away) and a lost broker answers 503.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import shutil
@@ -24,7 +25,7 @@ from pydantic import ValidationError
 from ...protocol.rest import RESULT_MEDIA_TYPES, ErrorBody, JobList, JobOptions, JobStatus
 from ..drivers import input_kind
 from ..errors import Conflict, InputError, NotFound
-from ..jobs.store import JOB_ID, JobRecord, new_job_id
+from ..jobs.store import JOB_ID, JobFiles, JobRecord, new_job_id
 from ..jobs.upload import (
     LAYOUT_PART,
     UploadParser,
@@ -72,16 +73,33 @@ _UPLOAD_DOC = multipart_doc(
 )
 
 
-def job_status(job: JobRecord, request: Request | None = None) -> JobStatus:
+def result_sizes(files: JobFiles, jobs: list[JobRecord]) -> dict[str, int]:
+    """Bytes of each done job's result file that is there, by job id. A ``stat`` per job, in a
+    local or shared folder (a network away): the routes run it in a thread, off the event loop."""
+    out = {}
+    for job in jobs:
+        if job.status == "done":
+            path = files.result_path(job)
+            if path.is_file():
+                out[job.id] = path.stat().st_size
+    return out
+
+
+async def job_statuses(request: Request, jobs: list[JobRecord]) -> list[JobStatus]:
+    """``jobs``' statuses with their result sizes (read in a thread)."""
+    done = any(j.status == "done" for j in jobs)
+    sizes = (
+        await asyncio.to_thread(result_sizes, request.app.state.jobs.store, jobs) if done else {}
+    )
+    return [job_status(j, sizes.get(j.id)) for j in jobs]
+
+
+def job_status(job: JobRecord, result_bytes: int | None = None) -> JobStatus:
     opts = {k: v for k, v in job.options.items() if k in JobOptions.model_fields}
     if job.options.get("layout_file"):
         opts["layout"] = (
             "uploaded"  # the content stays on the server; the status only says it is there
         )
-    result_bytes = None
-    if job.status == "done" and request is not None:
-        path = request.app.state.jobs.store.result_path(job)
-        result_bytes = path.stat().st_size if path.is_file() else None  # a local or shared folder
     return JobStatus(
         id=job.id,
         status=job.status,
@@ -217,13 +235,14 @@ async def list_jobs(request: Request, status: str | None = None, limit: int = 10
     """The newest jobs (optionally only those in one ``status``)."""
     jobs = request.app.state.jobs
     found = await jobs.io(partial(jobs.store.list, status, limit=max(1, min(limit, 1000))))
-    return JobList(jobs=[job_status(j, request) for j in found])
+    return JobList(jobs=await job_statuses(request, found))
 
 
 @router.get("/{job_id}", response_model=JobStatus, responses={404: {"model": ErrorBody}})
 async def get_job(job_id: str, request: Request) -> JobStatus:
     """Status, progress (0..1) and error message of a job."""
-    return job_status(await _job(request, job_id), request)
+    (found,) = await job_statuses(request, [await _job(request, job_id)])
+    return found
 
 
 @router.get(
