@@ -133,3 +133,43 @@ def test_a_clip_the_writer_cannot_represent_is_refused_with_exit_2(
     assert code == 2 and not out.exists() and not list(tmp_path.iterdir())
     assert err.startswith(f"facecast: {out}: refusing to write a wrong file: 108 frames of a ")
     assert "more than 2 morph targets to stay within 0.01 mm" in err and "write .npz instead" in err
+
+
+def test_glb_normals_are_the_deform_modules_vertex_normals(tmp_path, rng):
+    """The .glb's rest normals (read back by pygltflib) are ``deform.normals.vertex_normals`` of the
+    rest mesh in float32, ``+z`` where a vertex is in no triangle; the writer's per-frame normals
+    (16 frames per batch) are that function's on each frame alone."""
+    from facecast.server.deform.normals import incidence_matrix, vertex_normals
+
+    n = 7  # a bumpy 7 x 7 grid and one vertex in no triangle
+    x, y = np.meshgrid(np.arange(n, dtype=np.float32), np.arange(n, dtype=np.float32))
+    rest = np.stack([x.ravel(), y.ravel(), 0.3 * np.sin(x + 2 * y).ravel()], axis=1)
+    rest = np.vstack([rest, [[3.0, 3.0, 5.0]]]).astype(np.float32)
+    quads = [
+        (i * n + j, i * n + j + 1, (i + 1) * n + j) for i in range(n - 1) for j in range(n - 1)
+    ]
+    quads += [
+        (i * n + j + 1, (i + 1) * n + j + 1, (i + 1) * n + j)
+        for i in range(n - 1)
+        for j in range(n - 1)
+    ]
+    tri = np.asarray(quads, dtype=np.int64)
+    frames = (rest[None] + rng.normal(0, 0.05, (40, len(rest), 3))).astype(np.float32)
+
+    expected = np.stack([vertex_normals(f, tri, dtype=np.float32) for f in frames])
+    expected[:, -1] = (0.0, 0.0, 1.0)
+    inc = incidence_matrix(tri.astype(np.int32), len(rest))
+    np.testing.assert_array_equal(gltf.unit_normals(frames, tri.astype(np.uint32), inc), expected)
+
+    path = tmp_path / "grid.glb"
+    blob, _ = gltf.encode_glb(frames, rest, tri, 30.0)
+    path.write_bytes(blob)
+    g = pygltflib.GLTF2().load_binary(str(path))
+    a = g.accessors[g.meshes[0].primitives[0].attributes.NORMAL]
+    v = g.bufferViews[a.bufferView]
+    shown = np.frombuffer(
+        g.binary_blob(), np.float32, a.count * 3, v.byteOffset + (a.byteOffset or 0)
+    ).reshape(-1, 3)
+    want = vertex_normals(rest, tri, dtype=np.float32)
+    want[-1] = (0.0, 0.0, 1.0)
+    np.testing.assert_array_equal(shown, want)

@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..deform.normals import incidence_matrix
+from ..deform.normals import incidence_matrix, vertex_normals
 from ..errors import Unprocessable
 from .atomic import atomic_path
 
@@ -476,32 +476,15 @@ def _exact(
 
 
 def unit_normals(frames: np.ndarray, triangles: np.ndarray, incidence) -> np.ndarray:
-    """Area-weighted unit vertex normals of ``(c, V, 3)`` frames -> ``(c, V, 3) float32``; a vertex in
-    no triangle gets ``+z`` (glTF needs unit normals everywhere). ``incidence``: ``(V, F)`` CSR."""
-    c, V = frames.shape[:2]
-    F = len(triangles)
-    i0, i1, i2 = (np.ascontiguousarray(triangles[:, i]) for i in range(3))
-    out = np.empty((c, V, 3), dtype=np.float32)
-    for s in range(0, c, 16):  # 16 frames per sparse product (V, F) @ (F, 3 * 16)
-        p = np.ascontiguousarray(
-            np.asarray(frames[s : s + 16], dtype=np.float32).transpose(2, 0, 1)
-        )  # (3, b, V)
-        b = p.shape[1]
-        p0 = p[:, :, i0]
-        e1, e2 = p[:, :, i1] - p0, p[:, :, i2] - p0  # (3, b, F)
-        fn = np.empty((F, 3, b), dtype=np.float32)  # face normals, length = 2 * area
-        fn[:, 0] = (e1[1] * e2[2] - e1[2] * e2[1]).T
-        fn[:, 1] = (e1[2] * e2[0] - e1[0] * e2[2]).T
-        fn[:, 2] = (e1[0] * e2[1] - e1[1] * e2[0]).T
-        n = (
-            np.asarray(incidence @ fn.reshape(F, 3 * b), dtype=np.float32)
-            .reshape(V, 3, b)
-            .transpose(2, 0, 1)
+    """Area-weighted unit vertex normals of ``(c, V, 3)`` frames -> ``(c, V, 3) float32``
+    (``deform.normals.vertex_normals``, 16 frames per sparse product); a vertex in no triangle gets
+    ``+z`` (glTF needs unit normals everywhere). ``incidence``: ``(V, F)`` CSR."""
+    out = np.empty((len(frames), frames.shape[1], 3), dtype=np.float32)
+    for s in range(0, len(frames), 16):
+        out[s : s + 16] = vertex_normals(
+            frames[s : s + 16], triangles, incidence=incidence, dtype=np.float32
         )
-        length = np.sqrt(np.einsum("bvc,bvc->bv", n, n))[..., None]
-        n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
-        n[~(np.abs(n).sum(axis=2) > 0)] = (0.0, 0.0, 1.0)
-        out[s : s + b] = n
+    out[~(np.abs(out).sum(axis=2) > 0)] = (0.0, 0.0, 1.0)
     return out
 
 
