@@ -43,8 +43,6 @@ import logging
 import math
 import multiprocessing
 import os
-import socket
-import struct
 import sys
 import time
 from dataclasses import dataclass
@@ -444,114 +442,28 @@ async def _viewer(
             raise error
 
 
-class _LightViewer(asyncio.Protocol):
-    """A minimal WebSocket viewer for load generation: it reads each server frame's length and the
-    first 32 bytes of binary payloads (seq, wall time) and skips the rest without copying it, so
-    the benchmark measures the server rather than the Python client's parser (``--viewer client``
-    uses the real client). Server frames are never masked or fragmented (RFC 6455 §5.1)."""
-
-    def __init__(self, path: str, host: str, out: list, ready: asyncio.Event) -> None:
-        self.request = (
-            f"GET {path} HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\n"
-            "Connection: Upgrade\r\nSec-WebSocket-Key: ZmFjZWNhc3QtYmVuY2gtMQ==\r\n"
-            "Sec-WebSocket-Version: 13\r\n\r\n"
-        ).encode()
-        self.out, self.ready = out, ready
-        self.buf = bytearray()
-        self.upgraded = False
-        self.skip = 0  # payload bytes of the current frame still to skip
-        self.want_head = 0  # payload bytes of the current frame still to keep (first 32)
-        self.head = bytearray()
-        self.size = 0
-        self.closed = asyncio.get_running_loop().create_future()
-
-    def connection_made(self, transport) -> None:
-        self.transport = transport
-        sock = transport.get_extra_info("socket")
-        if sock is not None:
-            from facecast.client.api import VIEWER_RECEIVE_BUFFER
-
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, VIEWER_RECEIVE_BUFFER)
-        transport.write(self.request)
-
-    def connection_lost(self, exc) -> None:
-        if not self.closed.done():
-            self.closed.set_result(None)
-
-    def data_received(self, data: bytes) -> None:
-        view = memoryview(data)
-        while view:
-            if self.want_head or self.skip:  # inside a payload
-                take = min(self.want_head, len(view))
-                if take:
-                    self.head += view[:take]
-                    self.want_head -= take
-                else:
-                    take = min(self.skip, len(view))
-                    self.skip -= take
-                view = view[take:]
-                if not self.want_head and not self.skip:
-                    self._frame_done()
-                continue
-            self.buf += view  # a header (or the HTTP answer) in pieces
-            view = memoryview(b"")
-            if not self.upgraded:
-                end = self.buf.find(b"\r\n\r\n")
-                if end < 0:
-                    return
-                if not self.buf.startswith(b"HTTP/1.1 101"):
-                    self.transport.close()
-                    return
-                self.upgraded = True
-                view = memoryview(bytes(self.buf[end + 4 :]))
-                self.buf.clear()
-                continue
-            if len(self.buf) < 2:
-                return
-            b0, b1 = self.buf[0], self.buf[1] & 0x7F
-            hlen = 2 if b1 < 126 else 4 if b1 == 126 else 10
-            if len(self.buf) < hlen:
-                return
-            n = b1 if b1 < 126 else int.from_bytes(self.buf[2:hlen], "big")
-            self.opcode, self.size = b0 & 0x0F, n
-            view = memoryview(bytes(self.buf[hlen:]))
-            self.buf.clear()
-            self.head = bytearray()
-            keep = min(n, 32) if self.opcode == 2 else n
-            self.want_head, self.skip = keep, n - keep
-            if n == 0:
-                self._frame_done()
-
-    def _frame_done(self) -> None:
-        if self.want_head or self.skip:
-            return
-        if self.opcode == 2 and len(self.head) >= 32:
-            seq, wall = (
-                struct.unpack_from("<I", self.head, 8)[0],
-                struct.unpack_from("<d", self.head, 24)[0],
-            )
-            self.out.append((time.time(), seq, wall, self.size))
-        elif self.opcode == 1 and not self.ready.is_set():
-            self.ready.set()  # the viewer hello
-        elif self.opcode == 8:
-            self.transport.close()
-        self.head = bytearray()
-        self.opcode = None
-
-
 async def _light_viewer(
     url: str, s, encoding: str, stop: asyncio.Event, ready: asyncio.Event, out: list
 ) -> None:
-    from urllib.parse import urlsplit
+    """A minimal viewer for load generation (``serve_load.Viewer``: it reads each server frame's
+    length and the seq and wall time of binary ones, and skips the rest without copying it), so
+    the benchmark measures the server rather than the Python client's parser (``--viewer client``
+    uses the real client)."""
+    from urllib.parse import quote
 
-    from facecast.client.api import ws_url
+    from serve_load import Viewer, upgrade_request
 
-    u = urlsplit(ws_url(url, f"/v1/sessions/{s.id}/watch", token=s.viewer_token, encoding=encoding))
+    from facecast.client.api import VIEWER_RECEIVE_BUFFER
+
+    path = f"/v1/sessions/{quote(s.id, safe='')}/watch"
+    host, port, request = upgrade_request(url, path, s.viewer_token, encoding=encoding)
     loop = asyncio.get_running_loop()
-    transport, _proto = await loop.create_connection(
-        lambda: _LightViewer(f"{u.path}?{u.query}", u.netloc, out, ready), u.hostname, u.port
+    transport, proto = await loop.create_connection(
+        lambda: Viewer(request, out, VIEWER_RECEIVE_BUFFER), host, port
     )
     try:
+        await proto.ready  # the viewer hello
+        ready.set()
         await stop.wait()
     finally:
         transport.close()

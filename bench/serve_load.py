@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import socket
 import struct
 import time
 from dataclasses import dataclass
@@ -109,19 +110,27 @@ def upgrade_request(url: str, path: str, token: str, **query: str) -> tuple[str,
 
 class _Reader(asyncio.Protocol):
     """The server side of a WebSocket: the upgrade answer, then frame headers; payloads of
-    binary frames are skipped after their first ``keep`` bytes. Subclasses handle frames."""
+    binary frames are skipped after their first ``keep`` bytes (the rest of a payload that spans
+    reads is dropped as it comes, never copied). Subclasses handle frames. ``rcvbuf``: the
+    socket's receive buffer in bytes (None: the system's)."""
 
     keep = 32
 
-    def __init__(self, request: bytes) -> None:
+    def __init__(self, request: bytes, rcvbuf: int | None = None) -> None:
         self.request = request
+        self.rcvbuf = rcvbuf
         self.buf = bytearray()
         self.upgraded = False
         self.transport: Any = None
         self.lost = asyncio.get_running_loop().create_future()
+        self.skip = 0  # bytes of the current binary payload still to drop
+        self.pending = (b"", 0)  # that frame's first ``keep`` bytes and its size
 
     def connection_made(self, transport: Any) -> None:
         self.transport = transport
+        sock = transport.get_extra_info("socket")
+        if self.rcvbuf is not None and sock is not None:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.rcvbuf)
         transport.write(self.request)
 
     def connection_lost(self, exc: BaseException | None) -> None:
@@ -129,8 +138,17 @@ class _Reader(asyncio.Protocol):
             self.lost.set_result(None)
 
     def data_received(self, data: bytes) -> None:
+        rest: bytes | memoryview = data
+        if self.skip:  # inside a binary payload whose first bytes were kept
+            take = min(self.skip, len(data))
+            self.skip -= take
+            if self.skip:
+                return
+            head, n = self.pending
+            self.binary(head, 0, n)
+            rest = memoryview(data)[take:]
         buf = self.buf
-        buf += data
+        buf += rest
         if not self.upgraded:
             end = buf.find(b"\r\n\r\n")
             if end < 0:
@@ -147,10 +165,13 @@ class _Reader(asyncio.Protocol):
             if size - at < head:
                 break
             n = b1 if b1 < 126 else int.from_bytes(buf[at + 2 : at + head], "big")
-            if size - at < head + n:
+            opcode, body = b0 & 0x0F, at + head
+            if size - body < n:
+                if opcode == 2 and size - body >= self.keep:  # keep its head, drop the rest
+                    self.pending = (bytes(buf[body : body + self.keep]), n)
+                    self.skip = n - (size - body)
+                    at = size
                 break
-            opcode = b0 & 0x0F
-            body = at + head
             if opcode == 2:
                 self.binary(buf, body, n)
             else:
@@ -159,7 +180,7 @@ class _Reader(asyncio.Protocol):
         if at:
             del buf[:at]
 
-    def binary(self, buf: bytearray, at: int, n: int) -> None:
+    def binary(self, buf: bytes | bytearray, at: int, n: int) -> None:
         pass
 
     def control(self, opcode: int, body: bytes) -> None:
@@ -170,12 +191,14 @@ class _Reader(asyncio.Protocol):
 class Viewer(_Reader):
     """Records ``(received, seq, wall, size)`` of each binary frame; ``ready`` at the hello."""
 
-    def __init__(self, request: bytes, out: list[tuple[float, int, float, int]]) -> None:
-        super().__init__(request)
+    def __init__(
+        self, request: bytes, out: list[tuple[float, int, float, int]], rcvbuf: int | None = None
+    ) -> None:
+        super().__init__(request, rcvbuf)
         self.out = out
         self.ready = asyncio.get_running_loop().create_future()
 
-    def binary(self, buf: bytearray, at: int, n: int) -> None:
+    def binary(self, buf: bytes | bytearray, at: int, n: int) -> None:
         if n >= 32:
             seq = struct.unpack_from("<I", buf, at + _SEQ)[0]
             wall = struct.unpack_from("<d", buf, at + _WALL)[0]
