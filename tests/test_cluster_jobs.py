@@ -16,57 +16,34 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from cluster_support import (
+    DEADLINE,
+    FACE,
+    add_job,
+    cluster_node,
+    running,
+    status,
+    submit,
+    wait,
+    wait_for,
+)
 from conftest import RunningServer
 
 from facecast.server.harness import RedisServer
 
-FACE = "default:2k"
 #: Seconds an unrenewed job waits before another node takes it (small, to keep tests short).
 CLAIM_SECONDS = "3"
-#: Generous deadline for any job to reach its end (seconds): the machine may be busy.
-DEADLINE = 300.0
 
 
 def node(root: Path, name: str, redis: RedisServer, shared: Path, workers: int) -> RunningServer:
+    """A node (not started) that finds Redis and the shared results folder in its environment."""
     env = {
         "FACECAST_REDIS_URL": redis.url,
         "FACECAST_RESULTS_DIR": str(shared),
         "FACECAST_JOB_CLAIM_SECONDS": CLAIM_SECONDS,
         "FACECAST_JOB_WORKERS": str(workers),
     }
-    # one node process (with --redis, serve defaults to one per core): its job workers are its
-    # own children, and a kill -9 of it is a node's death
-    return RunningServer(
-        root / name, "--face", FACE, "--backend", "numpy", "--workers", "1", env=env
-    )
-
-
-def submit(srv: RunningServer, name: str, content: bytes, **options: str) -> httpx.Response:
-    return httpx.post(
-        srv.url + "/v1/jobs",
-        files={"file": (name, content)},
-        data={"face": FACE, "format": "glb", **options},
-        headers=srv.admin_headers,
-        timeout=60,
-    )
-
-
-def status(srv: RunningServer, job_id: str) -> dict:
-    r = httpx.get(f"{srv.url}/v1/jobs/{job_id}", headers=srv.admin_headers, timeout=30)
-    assert r.status_code == 200, r.text
-    return r.json()
-
-
-def wait(
-    srv: RunningServer, job_id: str, until: tuple[str, ...] = ("done", "failed", "cancelled")
-) -> dict:
-    deadline = time.monotonic() + DEADLINE
-    while time.monotonic() < deadline:
-        job = status(srv, job_id)
-        if job["status"] in until:
-            return job
-        time.sleep(0.02)
-    raise AssertionError(f"job {job_id} never reached {until}: {job}")
+    return cluster_node(root / name, None, env=env)
 
 
 def result(srv: RunningServer, job: dict) -> bytes:
@@ -158,10 +135,7 @@ def running_worker(front: RunningServer, srv: RunningServer, job_id: str) -> int
 def eventually(check, what: str) -> None:
     """Wait until ``check()`` is true (a node acknowledges an entry just after the verdict it
     records, and counts are refreshed at its next tick), within the generous deadline."""
-    deadline = time.monotonic() + DEADLINE
-    while not check():
-        assert time.monotonic() < deadline, what
-        time.sleep(0.05)
+    wait_for(check, what=what, poll=0.05)
 
 
 def queue_is_empty(redis: RedisServer) -> bool:
@@ -185,17 +159,11 @@ def cluster(tmp_path_factory) -> Iterator[tuple[RedisServer, RunningServer, Runn
         pytest.skip("redis-server is not installed (bash .ci/setup)")
     root = tmp_path_factory.mktemp("cluster")
     shared = root / "results"
-    redis = RedisServer().start()
+    redis = RedisServer()
     a = node(root, "a", redis, shared, workers=0)
     b = node(root, "b", redis, shared, workers=1)
-    try:
-        a.start()
-        b.start()
+    with running(redis, [a, b]):
         yield redis, a, b, shared
-    finally:
-        a.stop()
-        b.stop()
-        redis.stop()
 
 
 def test_a_job_submitted_on_one_node_runs_and_is_served_on_another(cluster, data_dir, tmp_path):
@@ -354,25 +322,12 @@ def test_the_redis_store_changes_state_by_compare_and_set(redis_server, tmp_path
     import redis as redis_client
 
     from facecast.server.jobs.redis_queue import RedisJobStore
-    from facecast.server.jobs.store import new_job_id
 
     store = RedisJobStore(redis_server.url, tmp_path)
     assert store.ensure_group() and not store.ensure_group()
 
     def add() -> str:
-        job_id = new_job_id()
-        store.folder(job_id).mkdir()
-        (store.folder(job_id) / "input.fap").write_text("x")
-        store.add(
-            job_id,
-            input_name="a.fap",
-            input_kind="fap",
-            input_file="input.fap",
-            input_bytes=1,
-            result_file="result.glb",
-            options={"format": "glb"},
-        )
-        return job_id
+        return add_job(store, options={"format": "glb"})
 
     job = add()
     assert store.get(job).status == "queued" and store.refresh_counts() == {"queued": 1}
@@ -430,22 +385,10 @@ def test_a_node_that_does_not_share_the_results_dir_fails_the_job_clearly(redis_
 
     from facecast.server.jobs import worker
     from facecast.server.jobs.redis_queue import RedisJobStore
-    from facecast.server.jobs.store import new_job_id
 
     here = RedisJobStore(redis_server.url, tmp_path / "a")
     there = RedisJobStore(redis_server.url, tmp_path / "b")
-    job_id = new_job_id()
-    here.folder(job_id).mkdir()
-    (here.folder(job_id) / "input.fap").write_text("x")
-    here.add(
-        job_id,
-        input_name="a.fap",
-        input_kind="fap",
-        input_file="input.fap",
-        input_bytes=1,
-        result_file="result.glb",
-        options={"format": "glb", "face_spec": FACE},
-    )
+    job_id = add_job(here, options={"format": "glb", "face_spec": FACE})
     attempt = there.claim(job_id)
     worker.run_job(there, job_id, attempt, "numpy", None, None, OrderedDict())  # type: ignore[arg-type]
     failed = here.get(job_id)

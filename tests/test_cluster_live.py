@@ -18,6 +18,7 @@ import time
 import httpx
 import numpy as np
 import pytest
+from cluster_support import FACE, cluster_node, running, wait_for
 from conftest import RunningServer, run
 
 from facecast.client.api import LiveError, SessionAdmin, produce, stream_fap, watch
@@ -26,7 +27,6 @@ from facecast.protocol.fap_file import read_fap
 from facecast.protocol.messages import ProducerHello
 from facecast.server.harness import RedisServer, free_port
 
-FACE = "default:2k"
 FPS = 60.0
 
 pytestmark = pytest.mark.skipif(
@@ -34,54 +34,25 @@ pytestmark = pytest.mark.skipif(
 )
 
 
-def node(redis_url: str, tmp_path, name: str, **env: str) -> RunningServer:
-    """One node process (``--workers 1``), started and ready."""
-    return RunningServer(
-        tmp_path / name,
-        "--face",
-        FACE,
-        "--backend",
-        "numpy",
-        "--job-workers",
-        "0",
-        "--workers",
-        "1",
-        "--redis",
-        redis_url,
-        env=env or None,
-    ).start(ready=True)
+def node(redis_url: str, tmp_path, name: str) -> RunningServer:
+    """One node process (``--workers 1``), not started."""
+    return cluster_node(tmp_path / name, redis_url, "--job-workers", "0")
 
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
     """Redis and three nodes A, B, C (the module's last test kills A)."""
     tmp = tmp_path_factory.mktemp("cluster")
-    redis = RedisServer().start()
-    nodes: list[RunningServer] = []
-    try:
-        for name in "abc":
-            nodes.append(node(redis.url, tmp, name))
+    redis = RedisServer()
+    nodes = [node(redis.url, tmp, name) for name in "abc"]
+    with running(redis, nodes, ready=True):
         yield redis, nodes
-    finally:
-        for n in nodes:
-            n.stop()
-        redis.stop()
 
 
 def view(srv: RunningServer) -> dict:
     r = httpx.get(srv.url + "/v1/cluster", headers=srv.admin_headers, timeout=10)
     assert r.status_code == 200, r.text
     return r.json()
-
-
-def wait_for(check, timeout: float = 60.0, what: str = "the cluster"):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        got = check()
-        if got:
-            return got
-        time.sleep(0.1)
-    raise AssertionError(f"{what} did not settle within {timeout:g} s")
 
 
 def fap_vector(i: int) -> np.ndarray:
@@ -198,17 +169,8 @@ def test_session_made_on_a_produced_on_b_watched_on_a_and_c_equals_batch_render(
 
 def test_node_without_admin_key_adopts_the_clusters(cluster, tmp_path):
     redis, (a, _, _) = cluster
-    d = RunningServer(
-        tmp_path / "d",
-        "--face",
-        FACE,
-        "--job-workers",
-        "0",
-        "--workers",
-        "1",
-        "--redis",
-        redis.url,
-        env={"FACECAST_ADMIN_KEY": ""},
+    d = cluster_node(
+        tmp_path / "d", redis.url, "--job-workers", "0", env={"FACECAST_ADMIN_KEY": ""}
     )
     d.admin_key = ""
     d.start()
@@ -347,17 +309,7 @@ def test_info_url_shows_the_cluster(cluster):
 
 def test_workers_n_runs_n_nodes_on_one_port(cluster, tmp_path):
     redis, _ = cluster
-    srv = RunningServer(
-        tmp_path / "w",
-        "--face",
-        FACE,
-        "--job-workers",
-        "0",
-        "--workers",
-        "2",
-        "--redis",
-        redis.url,
-    ).start()
+    srv = cluster_node(tmp_path / "w", redis.url, "--job-workers", "0", workers=2).start()
     try:
         seen: set[str] = set()
 
@@ -465,10 +417,9 @@ def test_killing_the_owner_moves_the_session_and_viewers_see_a_gap_not_a_wrong_f
 
 
 def test_redis_restarted_under_load_nodes_recover(tmp_path):
-    redis = RedisServer().start()
-    a = b = None
-    try:
-        a, b = node(redis.url, tmp_path, "a"), node(redis.url, tmp_path, "b")
+    redis = RedisServer()
+    a, b = node(redis.url, tmp_path, "a"), node(redis.url, tmp_path, "b")
+    with running(redis, [a, b], ready=True):
 
         async def main():
             async with SessionAdmin(a.url, a.admin_key) as admin:
@@ -547,11 +498,6 @@ def test_redis_restarted_under_load_nodes_recover(tmp_path):
         assert s2.id
         v = view(a)
         assert len(v["nodes"]) == 2 and sum(len(n["sessions"]) for n in v["nodes"]) == 3
-    finally:
-        for n in (a, b):
-            if n is not None:
-                n.stop()
-        redis.stop()
 
 
 def test_scoped_tokens_and_rest_layers_survive_the_owners_death(tmp_path):
@@ -559,10 +505,9 @@ def test_scoped_tokens_and_rest_layers_survive_the_owners_death(tmp_path):
     takes the session over after the owner is killed (they were kept in Redis)."""
     import redis as redis_sync
 
-    broker = RedisServer().start()
-    a = b = None
-    try:
-        a, b = node(broker.url, tmp_path, "a"), node(broker.url, tmp_path, "b")
+    broker = RedisServer()
+    a, b = node(broker.url, tmp_path, "a"), node(broker.url, tmp_path, "b")
+    with running(broker, [a, b], ready=True):
 
         async def before():
             async with SessionAdmin(a.url, a.admin_key) as admin:
@@ -594,11 +539,6 @@ def test_scoped_tokens_and_rest_layers_survive_the_owners_death(tmp_path):
         layers = run(after())
         smile = [x for x in layers.layers if x.name == "smile"]
         assert smile and smile[0].source == "rest" and smile[0].spec["expression"] == "joy"
-    finally:
-        for n in (a, b):
-            if n is not None:
-                n.stop()
-        broker.stop()
 
 
 # -- without servers: the mirror's rules and the envelopes ------------------------------------------

@@ -6,14 +6,14 @@ import io
 import time
 from pathlib import Path
 
+import cluster_support
 import httpx
 import numpy as np
 import pytest
+from cluster_support import FACE, add_job, status, wait
 from conftest import RunningServer
 
 from facecast.client.jobs import RemoteJobError, render_remote
-
-FACE = "default:2k"
 
 
 @pytest.fixture(scope="module")
@@ -33,31 +33,10 @@ def fap_file(data_dir: Path, name: str = "joy.fap") -> Path:
 
 
 def submit(srv: RunningServer, name: str, content: bytes, **options) -> dict:
-    resp = httpx.post(
-        srv.url + "/v1/jobs",
-        files={"file": (name, content)},
-        data={"face": FACE, **options},
-        headers=srv.admin_headers,
-        timeout=60,
-    )
+    resp = cluster_support.submit(srv, name, content, **options)
     assert resp.status_code == 202, resp.text
     assert resp.headers["location"] == f"/v1/jobs/{resp.json()['id']}"
     return resp.json()
-
-
-def status(srv: RunningServer, job_id: str) -> dict:
-    return httpx.get(f"{srv.url}/v1/jobs/{job_id}", headers=srv.admin_headers, timeout=30).json()
-
-
-def wait(
-    srv: RunningServer, job_id: str, until=("done", "failed", "cancelled"), polls: int = 6000
-) -> dict:
-    for _ in range(polls):
-        job = status(srv, job_id)
-        if job["status"] in until:
-            return job
-        time.sleep(0.05)
-    raise AssertionError(f"job {job_id} never reached {until}: {job}")
 
 
 def test_fap_job_renders_a_valid_glb(srv, data_dir, n_vertices):
@@ -291,7 +270,7 @@ def test_worker_records_progress_frame_by_frame(tmp_path, data_dir, monkeypatch)
     from collections import OrderedDict
 
     from facecast.server.jobs import worker
-    from facecast.server.jobs.store import JobStore, new_job_id
+    from facecast.server.jobs.store import JobStore
 
     class RecordingStore(JobStore):
         def progress(self, job_id, attempt, fraction):
@@ -301,19 +280,9 @@ def test_worker_records_progress_frame_by_frame(tmp_path, data_dir, monkeypatch)
     seen: list[float] = []
     monkeypatch.setattr(worker, "PROGRESS_INTERVAL", 0.0)
     store = RecordingStore(tmp_path)
-    job_id = new_job_id()
-    store.folder(job_id).mkdir(parents=True)
     src = fap_file(data_dir, "happy-for.fap")
-    (store.folder(job_id) / "input.fap").write_bytes(src.read_bytes())
-    store.add(
-        job_id,
-        input_name=src.name,
-        input_kind="fap",
-        input_file="input.fap",
-        input_bytes=1,
-        result_file="result.npz",
-        options={"format": "npz", "face_spec": FACE, "engine": "fp"},
-    )
+    opts = {"format": "npz", "face_spec": FACE, "engine": "fp"}
+    job_id = add_job(store, src.read_bytes(), name=src.name, result="result.npz", options=opts)
     attempt = store.claim(job_id)
     worker.run_job(store, job_id, attempt, "numpy", None, None, OrderedDict())
     job = store.get(job_id)
@@ -323,18 +292,7 @@ def test_worker_records_progress_frame_by_frame(tmp_path, data_dir, monkeypatch)
     )  # batches of frames
     assert store.result_path(job).is_file()
     # A cancelled job stops at its next progress report and records nothing more.
-    job2 = new_job_id()
-    store.folder(job2).mkdir(parents=True)
-    (store.folder(job2) / "input.fap").write_bytes(src.read_bytes())
-    store.add(
-        job2,
-        input_name=src.name,
-        input_kind="fap",
-        input_file="input.fap",
-        input_bytes=1,
-        result_file="result.npz",
-        options={"format": "npz", "face_spec": FACE, "engine": "fp"},
-    )
+    job2 = add_job(store, src.read_bytes(), name=src.name, result="result.npz", options=opts)
     attempt = store.claim(job2)
     store.cancel(job2)
     seen.clear()
@@ -345,23 +303,12 @@ def test_worker_records_progress_frame_by_frame(tmp_path, data_dir, monkeypatch)
 
 
 def test_store_purges_only_old_finished_jobs(tmp_path):
-    from facecast.server.jobs.store import JobStore, new_job_id
+    from facecast.server.jobs.store import JobStore
 
     store = JobStore(tmp_path)
     ids = {}
     for state in ("done", "failed", "cancelled", "queued", "running"):
-        job_id = new_job_id()
-        store.folder(job_id).mkdir(parents=True)
-        (store.folder(job_id) / "input.fap").write_text("x")
-        store.add(
-            job_id,
-            input_name="a.fap",
-            input_kind="fap",
-            input_file="input.fap",
-            input_bytes=1,
-            result_file="result.glb",
-            options={},
-        )
+        job_id = add_job(store)
         if state != "queued":
             attempt = store.claim(job_id)
             if state in ("done", "failed"):
@@ -654,22 +601,11 @@ def test_a_worker_killed_by_a_fault_fails_the_job_at_once(tmp_path):
     import signal
 
     from facecast.server.jobs.manager import JobManager
-    from facecast.server.jobs.store import new_job_id
 
     jobs = JobManager(tmp_path, workers=0)
     ids = []
     for _ in range(2):
-        job_id = new_job_id()
-        jobs.store.folder(job_id).mkdir(parents=True)
-        jobs.store.add(
-            job_id,
-            input_name="take.c3d",
-            input_kind="mocap",
-            input_file="input.c3d",
-            input_bytes=1,
-            result_file="result.glb",
-            options={},
-        )
+        job_id = add_job(jobs.store, name="take.c3d", kind="mocap")
         jobs.store.claim(job_id)
         ids.append(job_id)
     jobs._worker_died(ids[0], -int(signal.SIGSEGV))
@@ -716,13 +652,7 @@ def test_audio_job_with_its_transcript(srv, data_dir):
         (fap_file(data_dir).name, fap_file(data_dir).read_bytes(), "hello", "audio input only"),
         (wav.name, wav.read_bytes(), "   ", "empty"),
     ):
-        resp = httpx.post(
-            srv.url + "/v1/jobs",
-            files={"file": (name, content)},
-            data={"face": FACE, "text": text},
-            headers=srv.admin_headers,
-            timeout=60,
-        )
+        resp = cluster_support.submit(srv, name, content, text=text)
         assert 400 <= resp.status_code < 500 and message in resp.json()["error"], resp.text
 
 
@@ -741,29 +671,11 @@ def test_the_listing_reports_result_sizes_read_off_the_event_loop(tmp_path, monk
     store = app.state.jobs.store
     sizes = {}
     for k, n in enumerate((10, 2000, 0)):
-        job_id = f"{k:032x}"
-        store.folder(job_id).mkdir(parents=True)
-        store.add(
-            job_id,
-            input_name="a.fap",
-            input_kind="fap",
-            input_file="input.fap",
-            input_bytes=1,
-            result_file="result.glb",
-            options={"format": "glb"},
-        )
+        job_id = add_job(store, job_id=f"{k:032x}", options={"format": "glb"})
         store.finish(job_id, store.claim(job_id), "done")
         (store.folder(job_id) / "result.glb").write_bytes(b"x" * n)
         sizes[job_id] = n
-    store.add(  # a queued job has no result size
-        f"{9:032x}",
-        input_name="b.fap",
-        input_kind="fap",
-        input_file="input.fap",
-        input_bytes=1,
-        result_file="result.glb",
-        options={},
-    )
+    add_job(store, job_id=f"{9:032x}")  # a queued job has no result size
     on_loop: list[bool] = []
     result_path = store.result_path
 
