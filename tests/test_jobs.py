@@ -97,54 +97,29 @@ def test_render_remote_reports_progress_and_writes_atomically(srv, data_dir, tmp
     )
 
 
-def test_render_cli_with_server_option(srv, data_dir, tmp_path):
+def render_on(srv: RunningServer, src: Path, out: Path, *extra: str, admin_key: str):
+    """``facecast render SRC -o OUT --face FACE --server URL *extra`` as a user runs it, with
+    ``FACECAST_ADMIN_KEY`` set to ``admin_key``; the finished process."""
     import os
     import subprocess
     import sys
 
-    out = tmp_path / "joy.fap"
-    env = {**os.environ, "FACECAST_ADMIN_KEY": srv.admin_key}
-    run = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "facecast.server.cli",
-            "render",
-            str(fap_file(data_dir)),
-            "-o",
-            str(out),
-            "--face",
-            FACE,
-            "--server",
-            srv.url,
-        ],
-        env=env,
+    cmd = [sys.executable, "-m", "facecast.server.cli", "render", str(src), "-o", str(out)]
+    return subprocess.run(
+        [*cmd, "--face", FACE, "--server", srv.url, *extra],
+        env={**os.environ, "FACECAST_ADMIN_KEY": admin_key},
         capture_output=True,
         text=True,
         timeout=300,
     )
+
+
+def test_render_cli_with_server_option(srv, data_dir, tmp_path):
+    out = tmp_path / "joy.fap"
+    run = render_on(srv, fap_file(data_dir), out, admin_key=srv.admin_key)
     assert run.returncode == 0, run.stderr
     assert out.read_text().lstrip().startswith(("#", "2.1"))
-    env["FACECAST_ADMIN_KEY"] = "wrong"
-    run = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "facecast.server.cli",
-            "render",
-            str(fap_file(data_dir)),
-            "-o",
-            str(tmp_path / "x.fap"),
-            "--face",
-            FACE,
-            "--server",
-            srv.url,
-        ],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    run = render_on(srv, fap_file(data_dir), tmp_path / "x.fap", admin_key="wrong")
     last = run.stderr.strip().splitlines()[-1]
     assert run.returncode == 2 and last.startswith("facecast:") and "admin key" in last
 
@@ -173,24 +148,17 @@ def test_malformed_file_fails_the_job_with_a_clear_error(srv, tmp_path):
     resp = httpx.get(f"{srv.url}/v1/jobs/{job['id']}/result", headers=srv.admin_headers)
     assert resp.status_code == 409 and "failed" in resp.json()["error"]
     (tmp_path / "broken.fap").write_bytes(bad)
-    with pytest.raises(RemoteJobError, match="broken.fap"):
-        render_remote(
-            srv.url,
-            tmp_path / "broken.fap",
-            tmp_path / "out.glb",
-            options={"face": FACE},
-            admin_key=srv.admin_key,
-        )
-    assert not (tmp_path / "out.glb").exists()
-    # The worker survives bad input: the next job still runs.
-    with pytest.raises(RemoteJobError, match="admin key"):
-        render_remote(
-            srv.url,
-            tmp_path / "broken.fap",
-            tmp_path / "out.glb",
-            options={"face": FACE},
-            admin_key="wrong",
-        )
+    # the job's error, then (a wrong key) the server's, reach the client; no file is written
+    for key, error in ((srv.admin_key, "broken.fap"), ("wrong", "admin key")):
+        with pytest.raises(RemoteJobError, match=error):
+            render_remote(
+                srv.url,
+                tmp_path / "broken.fap",
+                tmp_path / "out.glb",
+                options={"face": FACE},
+                admin_key=key,
+            )
+        assert not (tmp_path / "out.glb").exists()
 
 
 def test_cancel_a_running_job(srv, data_dir):
@@ -372,34 +340,10 @@ def test_a_mocap_take_renders_with_its_layout_as_content(srv, mocap_take, n_vert
 
 
 def test_render_server_mode_uploads_the_layout_file(srv, mocap_take, tmp_path):
-    import os
-    import subprocess
-    import sys
-
     take, layout, _ = mocap_take
-    env = {**os.environ, "FACECAST_ADMIN_KEY": srv.admin_key}
     for extra in (["--layout", str(layout)], []):  # given, or found beside the take as locally
         out = tmp_path / f"take{len(extra)}.fap"
-        run = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "facecast.server.cli",
-                "render",
-                str(take),
-                "-o",
-                str(out),
-                "--face",
-                FACE,
-                "--server",
-                srv.url,
-                *extra,
-            ],
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
+        run = render_on(srv, take, out, *extra, admin_key=srv.admin_key)
         assert run.returncode == 0, run.stderr
         assert out.read_text().lstrip().startswith(("#", "2.1"))
     lone = tmp_path / "lone" / "take.trc"
