@@ -44,6 +44,7 @@ import struct
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -556,9 +557,20 @@ def glb_parts(
     extras: dict | None = None,
     where: str = "glTF",
 ) -> tuple[list, dict]:
-    """The ``.glb`` as a list of byte buffers (header, JSON, binary pieces) and its
-    ``extras.facecast`` record; OutputError when no morph basis within ``max_targets`` meets
-    ``tolerance_mm`` (see module docstring) or the file would pass 4 GiB. Arguments: ``encode_glb``."""
+    """The ``.glb`` of an animation as a list of byte buffers (header, JSON, binary pieces) and its
+    ``extras.facecast`` record (see module docstring).
+
+    Args:
+        frames: ``(T, V, 3)`` vertices per frame (mesh units), or a callable returning a fresh
+            iterable of ``(c, V, 3)`` chunks of them (called once per pass over the frames);
+            ``rest``: ``(V, 3)`` neutral mesh.
+        triangles: ``(F, 3)``; ``fps``: frames per second; ``mm_per_unit``: mesh unit size.
+        tolerance_mm: largest vertex error allowed in any frame (mm); ``max_targets``: cap on targets
+            (default ``MAX_TARGETS``). ``where``: what an error names.
+
+    Raises OutputError (nothing written) when no basis of at most ``max_targets`` targets meets
+    ``tolerance_mm``, or the file would pass the 4 GiB limit of the format.
+    """
     if not callable(frames):
         frames = np.asarray(frames, dtype=np.float32)
         if frames.ndim != 3 or len(frames) < 1:
@@ -686,41 +698,11 @@ def glb_parts(
 
 
 def encode_glb(
-    frames: FrameSource,
-    rest: np.ndarray,
-    triangles: np.ndarray,
-    fps: float,
-    *,
-    mm_per_unit: float = 1.0,
-    tolerance_mm: float = 0.01,
-    max_targets: int | None = None,
-    name: str = "facecast",
-    extras: dict | None = None,
+    frames: FrameSource, rest: np.ndarray, triangles: np.ndarray, fps: float, **options: Any
 ) -> tuple[bytes, dict]:
-    """The ``.glb`` bytes of an animation and its ``extras.facecast`` record (see module docstring).
-
-    Args:
-        frames: ``(T, V, 3)`` vertices per frame (mesh units), or a callable returning a fresh
-            iterable of ``(c, V, 3)`` chunks of them (called once per pass over the frames);
-            ``rest``: ``(V, 3)`` neutral mesh.
-        triangles: ``(F, 3)``; ``fps``: frames per second; ``mm_per_unit``: mesh unit size.
-        tolerance_mm: largest vertex error allowed in any frame (mm); ``max_targets``: cap on targets
-            (default ``MAX_TARGETS``).
-
-    Raises OutputError (nothing written) when no basis of at most ``max_targets`` targets meets
-    ``tolerance_mm``, or the file would pass the 4 GiB limit of the format.
-    """
-    parts, record = glb_parts(
-        frames,
-        rest,
-        triangles,
-        fps,
-        mm_per_unit=mm_per_unit,
-        tolerance_mm=tolerance_mm,
-        max_targets=max_targets,
-        name=name,
-        extras=extras,
-    )
+    """The ``.glb`` bytes of an animation and its ``extras.facecast`` record: ``glb_parts`` joined
+    (its arguments)."""
+    parts, record = glb_parts(frames, rest, triangles, fps, **options)
     return b"".join(parts), record
 
 
@@ -730,9 +712,9 @@ def write_glb(
     rest: np.ndarray,
     triangles: np.ndarray,
     fps: float,
-    **options,
+    **options: Any,
 ) -> dict:
-    """Write the ``.glb`` of ``encode_glb(...)`` to ``path`` atomically, piece by piece (no copy of the
+    """Write the ``.glb`` of ``glb_parts(...)`` to ``path`` atomically, piece by piece (no copy of the
     whole file in memory); returns the ``extras.facecast`` record. OutputError: nothing is written."""
     parts, record = glb_parts(frames, rest, triangles, fps, where=str(path), **options)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
