@@ -9,8 +9,11 @@ import signal
 from collections.abc import Awaitable
 
 
-def add_token_argument(p: argparse.ArgumentParser, role: str) -> None:
-    """``--token``: the session's ``role`` (producer, viewer) token, default ``$FACECAST_TOKEN``."""
+def add_session_arguments(p: argparse.ArgumentParser, role: str) -> None:
+    """``--url``, ``--session`` and ``--token``: the session's ``role`` (producer, viewer) token,
+    default ``$FACECAST_TOKEN``."""
+    p.add_argument("--url", required=True, help="server URL, e.g. http://127.0.0.1:8000")
+    p.add_argument("--session", required=True, help="session id (from 'facecast session create')")
     p.add_argument(
         "--token",
         default=os.environ.get("FACECAST_TOKEN"),

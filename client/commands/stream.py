@@ -29,7 +29,7 @@ from typing import Any
 
 from ...protocol.errors import InputError
 from ...protocol.messages import ROLES
-from . import add_reconnect_argument, add_token_argument, until_signal
+from . import add_reconnect_argument, add_session_arguments, until_signal
 
 log = logging.getLogger(__name__)
 
@@ -39,9 +39,7 @@ MARKERS = (".trc", ".csv", ".c3d")
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", type=Path, help=".fap, .wav/.flac/.ogg or .trc/.csv file")
-    p.add_argument("--url", required=True, help="server URL, e.g. http://127.0.0.1:8000")
-    p.add_argument("--session", required=True, help="session id (from 'facecast session create')")
-    add_token_argument(p, "producer")
+    add_session_arguments(p, "producer")
     p.add_argument(
         "--role",
         choices=ROLES,

@@ -17,13 +17,11 @@ import sys
 import time
 
 from ...protocol.encoding import VERTEX_ENCODINGS
-from . import add_reconnect_argument, add_token_argument, until_signal
+from . import add_reconnect_argument, add_session_arguments, until_signal
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--url", required=True, help="server URL, e.g. http://127.0.0.1:8000")
-    p.add_argument("--session", required=True, help="session id")
-    add_token_argument(p, "viewer")
+    add_session_arguments(p, "viewer")
     p.add_argument(
         "--encoding",
         choices=VERTEX_ENCODINGS,
