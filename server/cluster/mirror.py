@@ -30,17 +30,7 @@ class _NoDeformer:
 
     animator = None
 
-    def submit_nowait(
-        self,
-        state: FaceState,
-        *,
-        seq: int,
-        wall: float,
-        encodings: frozenset[str],
-        done: Callable[[Any], None],
-        compact: Any = None,
-        mix: Any = None,
-    ) -> None:
+    def submit_nowait(self, state: FaceState, **_: Any) -> None:  # ``ports.Deformer``'s
         raise RuntimeError("a mirror session does not deform; its owner node does")
 
 
