@@ -34,7 +34,12 @@ import httpx
 from serve import machine_cpu  # bench/serve.py: (busy, total) CPU s of the machine
 
 from facecast.protocol.fap_file import read_fap, write_fap
-from facecast.server.harness import LocalServer, RedisServer, process_cpu_seconds
+from facecast.server.harness import (
+    LocalServer,
+    RedisServer,
+    process_cpu_seconds,
+    spawned_children,
+)
 from facecast.server.paths import shared_data
 
 OUT = Path(__file__).resolve().parent / "out"
@@ -77,18 +82,7 @@ def submit(srv: LocalServer, name: str, body: bytes) -> str:
 
 def worker_pids(srv: LocalServer) -> list[int]:
     """The job worker processes of a server (its ``spawn``-ed children)."""
-    out = []
-    for p in Path("/proc").iterdir():
-        try:
-            if not p.name.isdigit() or srv.proc is None:
-                continue
-            ppid = int((p / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            cmd = (p / "cmdline").read_bytes()
-        except (OSError, IndexError, ValueError):
-            continue
-        if ppid == srv.proc.pid and b"spawn_main" in cmd:
-            out.append(int(p.name))
-    return out
+    return spawned_children(srv.proc.pid) if srv.proc is not None else []
 
 
 def run_phase(

@@ -47,6 +47,21 @@ def process_cpu_seconds(pid: int) -> float:
         return float("nan")
 
 
+def spawned_children(pid: int) -> list[int]:
+    """Pids of the ``multiprocessing`` spawn children of process ``pid`` (a server's job workers;
+    not its resource tracker), from Linux /proc; empty elsewhere."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            cmd = (stat.parent / "cmdline").read_bytes()
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == pid and b"spawn_main" in cmd and b"resource_tracker" not in cmd:
+            out.append(int(stat.parent.name))
+    return out
+
+
 class LocalServer:
     """``facecast serve --port P --data-dir D *args`` as a child process of this one.
 

@@ -29,7 +29,7 @@ from cluster_support import (
 )
 from conftest import RunningServer
 
-from facecast.server.harness import RedisServer
+from facecast.server.harness import RedisServer, spawned_children
 
 #: Seconds an unrenewed job waits before another node takes it (small, to keep tests short).
 CLAIM_SECONDS = "3"
@@ -103,18 +103,7 @@ def assert_same_render(got: bytes, expected: bytes, tmp_path: Path) -> None:
 def workers_of(srv: RunningServer) -> list[int]:
     """Pids of the job worker processes of a server (its ``spawn``-ed children)."""
     assert srv.proc is not None
-    out = []
-    for p in Path("/proc").iterdir():
-        if not p.name.isdigit():
-            continue
-        try:
-            ppid = int((p / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            cmd = (p / "cmdline").read_bytes()
-        except (OSError, IndexError, ValueError):
-            continue
-        if ppid == srv.proc.pid and b"spawn_main" in cmd and b"resource_tracker" not in cmd:
-            out.append(int(p.name))
-    return out
+    return spawned_children(srv.proc.pid)
 
 
 def running_worker(front: RunningServer, srv: RunningServer, job_id: str) -> int:

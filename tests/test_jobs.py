@@ -14,6 +14,7 @@ from cluster_support import FACE, add_job, status, wait
 from conftest import RunningServer
 
 from facecast.client.jobs import RemoteJobError, render_remote
+from facecast.server.harness import spawned_children
 
 
 @pytest.fixture(scope="module")
@@ -410,20 +411,6 @@ def test_uploads_are_limited_by_kind(srv):
 # ---------------------------------------------------------------------- job timeout, worker lifetime
 
 
-def children(pid: int) -> list[int]:
-    """Job workers whose parent is ``pid`` (from /proc; not multiprocessing's resource tracker)."""
-    out = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-            cmdline = (stat.parent / "cmdline").read_bytes()
-        except OSError:
-            continue
-        if int(fields[1]) == pid and b"spawn_main" in cmdline:
-            out.append(int(stat.parent.name))
-    return out
-
-
 def alive(pid: int) -> bool:
     try:
         state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
@@ -446,10 +433,10 @@ def test_a_job_over_the_time_limit_fails_and_its_worker_is_killed(tmp_path, data
             "longer than" in failed["error"] and "FACECAST_JOB_TIMEOUT_SECONDS" in failed["error"]
         )
         for _ in range(200):  # the killed worker is reaped
-            if not [p for p in children(s.proc.pid) if alive(p)]:
+            if not [p for p in spawned_children(s.proc.pid) if alive(p)]:
                 break
             time.sleep(0.05)
-        assert not [p for p in children(s.proc.pid) if alive(p)]
+        assert not [p for p in spawned_children(s.proc.pid) if alive(p)]
     finally:
         s.stop()
 
@@ -464,7 +451,7 @@ def test_a_worker_dies_with_its_server(tmp_path, data_dir):
         src = fap_file(data_dir, "disgust.fap")
         job = submit(s, src.name, src.read_bytes(), format="glb", face="default")
         assert wait(s, job["id"], until=("running", "done", "failed"))["status"] == "running"
-        workers = [p for p in children(s.proc.pid) if alive(p)]
+        workers = [p for p in spawned_children(s.proc.pid) if alive(p)]
         assert workers
         os.kill(s.proc.pid, signal.SIGKILL)
         s.proc.wait(30)
