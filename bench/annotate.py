@@ -11,15 +11,18 @@ Heads whose truth is known:
 
 Cases are split into a *tuning* set (looked at while developing: the wide-face, long-nose,
 big-skull, small-skull, broad-nose and big-ears-short variants, ``default`` at 2k, 10k and 25k
-vertices, and ICT identity000) and a *held-out* set (reported, never looked at while developing).
+vertices, and ICT identity000), a *held-out* set (reported, never looked at while developing; two
+were partly seen at stop 12), and a *fresh* set added at stop 15 before that stop's code changes
+(other knob combinations at 7k-35k, a remeshed head, one lying on its side facing -x in metres).
 The template is chosen automatically (the built-in head, or the ICT FaceKit neutral when the head
 aligns to it better); the ICT variants are also annotated with the built-in head as the template
 (``cross`` rows: a template of another family, whose points differ in definition; identity000's
-is "cross-tuning"). Also: ``bench/fidelity.py``'s error on ICT's artist expressions with the
-automatic annotation of the ICT neutral against the shipped one, and the time to annotate a
-100k-vertex head.
+is "cross-tuning"; part of their error is definitional: ``definitions`` prints where the two
+annotations put the same MPEG-4 points on a face, measured on the templates). Also:
+``bench/fidelity.py``'s error on ICT's artist expressions with the automatic annotation of the ICT
+neutral against the shipped one, and the time to annotate a 100k-vertex head.
 
-    python bench/annotate.py [--quick]
+    python bench/annotate.py [--quick] [--fresh-only]
 
 Writes ``bench/out/annotate.json`` and prints a markdown table.
 """
@@ -323,6 +326,30 @@ def ict_cases(data: Path, quick: bool) -> list[dict]:
     return cases
 
 
+def definitions() -> dict:
+    """Where each template defines points the cross rows compare (measured on the templates, mm or
+    fractions): the built-in head's and ICT's annotations put some points elsewhere on the same
+    face, so part of a cross row's error is that difference, not the fit."""
+    from facecast.server.faces.annotate.template import default_template, ict_template
+
+    out = {}
+    for tpl in (default_template(), ict_template()):
+        p = tpl.fp_position
+        eyes, base = (p("3.5")[1] + p("3.6")[1]) / 2, p("9.15")[1]
+        mouth = abs(p("8.4")[0] - p("8.3")[0])
+        out[tpl.name] = {
+            "9.12 height, nose base 0 to pupils 1": (p("9.12")[1] - base) / (eyes - base),
+            "9.6-9.7 apart mm": abs(p("9.6")[0] - p("9.7")[0]),
+            "2.4-2.5 apart / 8.3-8.4 apart": abs(p("2.5")[0] - p("2.4")[0]) / mouth,
+            "8.5 x / half mouth width": 2 * p("8.5")[0] / mouth,
+            "3.5 in front of 3.1 mm": p("3.5")[2] - p("3.1")[2],
+        }
+    print("\npoint definitions (cross rows compare these; measured on the two templates):")
+    for k in out["default"]:
+        print(f"  {k}: built-in {out['default'][k]:.2f}, ICT {out['ict'][k]:.2f}")
+    return {n: {k: float(v) for k, v in d.items()} for n, d in out.items()}
+
+
 def fidelity(data: Path) -> dict:
     """bench/fidelity.py's default engine on ICT with the shipped and the automatic feature points."""
     sys.path.insert(0, str(Path(__file__).parent))
@@ -422,6 +449,7 @@ def main(argv: list[str] | None = None) -> int:
     if data is not None and not args.fresh_only:
         cases += ict_cases(data, args.quick)
         result["fidelity"] = fidelity(data)
+        result["definitions"] = definitions()
     result["load_after"] = os.getloadavg()
     for split in ("tuning", "held-out", "fresh", "cross-tuning", "cross"):
         ok = [c for c in cases if c["split"] == split and "error" not in c]
