@@ -19,7 +19,14 @@ from ...errors import InputError
 from ..face import FEATURE_POINT_IDS, UNIT_MM
 from .detect import mouth_corners, profile_landmarks, sphere_centre
 from .orient import Similarity, frame, place, umeyama
-from .template import INNER, OUTER, PIECE_PARTS, TEMPLATES, Template, ict_available
+from .template import (
+    INNER,
+    OUTER,
+    PIECE_PARTS,
+    TEMPLATES,
+    Template,
+    ict_available,
+)
 from .warp import Target, fit, warp_points
 
 #: A feature point farther than this (template mm) from every mesh vertex is left out (1.6x this on
@@ -31,6 +38,10 @@ MIRROR_MM, MIRROR_OFF_MM = 3.0, 1.5
 #: Largest angle (degrees) between the alignment and the mesh's own axes that is taken as the
 #: alignment's error, not the head's tilt (cranial points then take their direction in the axes).
 UPRIGHT_DEG = 10.0
+#: The jaw's corners (gonion), placed by the face's landmarks (``_face_fit``), not the warp.
+JAW_ANGLE = ("2.13", "2.14")
+#: ``_face_fit``: landmarks it needs, and the largest scale (either way) it may have.
+FACE_MIN_ANCHORS, FACE_MAX_SCALE = 6, 1.15
 #: How far (mm) from the warped point a cranial feature point is looked for along its ray.
 RADIAL_MM = 25.0
 #: Neutral FAPU distances (mm, on a head scaled to the template) a human face has.
@@ -70,6 +81,12 @@ PIECE_NAMES_MM = 2.5
 PIECE_MAX_DEG, PIECE_MAX_MM = 10.0, 5.0
 #: Largest median gap (mm, over the mesh's vertex spacing) from a fitted piece to the mesh's.
 PIECE_GAP_MM = 1.5
+#: Ear pieces (``_fit_ears``): largest median gap (mm) from the warped template ear to the mesh's,
+#: largest rotation (degrees) and shift (mm) of the fit from the warp.
+EAR_GAP_MM, EAR_MAX_DEG, EAR_MAX_MM = 8.0, 30.0, 15.0
+#: Ear feature points off the ear piece (where it joins the head) within this distance (template
+#: mm) of a fitted ear move with it.
+EAR_NEAR_MM = 25.0
 _FAPU_CHECK = True  # tests and debugging may look at a failed fit
 _FAPU_POINTS = {p for a, b, _ in _FAPU.values() for p in (a, b)}
 
@@ -204,8 +221,10 @@ def annotate_mesh(
     off_axis = _angle_deg(upright)
     if off_axis > UPRIGHT_DEG:
         upright = np.eye(3)
+    ears = _fit_ears(y, label, surface, wtri, warped, tpl)
+    face = _face_fit(anchors)
     fps, left_out, approximate = _feature_points(
-        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright
+        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright, ears, face
     )
     warnings = _checks(y, fps, left_out, tpl)
 
@@ -508,7 +527,18 @@ def _mouth_parts(
 
 
 def _feature_points(
-    y, yn, wtri, parts, warped, tpl: Template, socket_v, rep, tri, upright: np.ndarray
+    y,
+    yn,
+    wtri,
+    parts,
+    warped,
+    tpl: Template,
+    socket_v,
+    rep,
+    tri,
+    upright: np.ndarray,
+    ears=(),
+    face: tuple[Similarity, Similarity] | None = None,
 ) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
@@ -567,8 +597,25 @@ def _feature_points(
             trees[key] = (cKDTree(y[ids]), ids)
         p = warped[tpl.feature_points[fp]]
         if key == "skin" and fp in tpl.cranial:
-            t = tpl.skull_centre + upright @ (tpl.fp_position(fp) - tpl.skull_centre)
-            p = _radial(p, t, tpl.skull_centre, y, *trees["skin"])
+            c0 = tpl.skull_centre
+            if face is not None:
+                centre, t = face[0].apply(np.array([c0, tpl.fp_position(fp)]))
+            else:
+                centre, t = c0, c0 + upright @ (tpl.fp_position(fp) - c0)
+            p = _radial(p, t, centre, y, *trees["skin"])
+        if fp in JAW_ANGLE and face is not None:
+            # The smooth jaw lets the warp slide its corner along it: the template's corner as the
+            # face's landmarks place it (with their scale) is nearer.
+            p = face[1].apply(tpl.fp_position(fp)[None])[0]
+        ear = _ear_of(fp, tpl, ears)
+        if key == "skin" and ear is not None:
+            ids_t, e_sim, e_ids, joint = ear
+            if tpl.feature_points[fp] in ids_t:  # on the ear itself: on the mesh's ear
+                p = e_sim.apply(tpl.fp_position(fp)[None])[0]
+                trees[fp] = (cKDTree(y[e_ids]), e_ids)
+                key = fp
+            else:
+                p = joint.apply(tpl.fp_position(fp)[None])[0]
         if key != "skin" and key == part:
             if key not in piece_fit:
                 piece_fit[key] = _fit_piece_from(warped, tpl, key, y[parts[key]])
@@ -625,6 +672,37 @@ def _feature_points(
                 fps[fp] = vid
                 taken.add(vid)
     return fps, left_out, approximate
+
+
+def _face_fit(anchors) -> tuple[Similarity, Similarity] | None:
+    """``(rigid, similarity)`` (template frame) taking the template's landmarks onto the mesh's
+    (``anchors``: ``(src, dst)``), when there are ``FACE_MIN_ANCHORS`` and they stay within
+    ``UPRIGHT_DEG`` and ``FACE_MAX_SCALE`` of the alignment; else None.
+
+    The alignment fits the whole head, so a longer or broader skull turns and shrinks the face by
+    a few degrees and per cent in it. The cranial points are placed by rays from the skull's
+    centre as the face implies it (where the template's would be behind the mesh's face, turned
+    and shifted with it but not scaled: a smaller face is not a smaller skull); the jaw's corners
+    where the face (scaled) puts them."""
+    if anchors is None or len(anchors[0]) < FACE_MIN_ANCHORS:
+        return None
+    fit = umeyama(anchors[0], anchors[1])
+    rigid = umeyama(anchors[0], anchors[1], scale=1.0)
+    turn = max(_angle_deg(fit.rotation), _angle_deg(rigid.rotation))
+    if turn > UPRIGHT_DEG or abs(np.log(fit.scale)) > np.log(FACE_MAX_SCALE):
+        return None
+    return rigid, fit
+
+
+def _ear_of(fp: str, tpl: Template, ears) -> tuple | None:
+    """The fitted ear (``_fit_ears``) that carries ear feature point ``fp`` (MPEG-4 group 10): the
+    one it lies on, or the nearest within ``EAR_NEAR_MM``; None when there is none."""
+    if not fp.startswith("10.") or not ears:
+        return None
+    p = tpl.fp_position(fp)
+    d = [float(np.min(np.linalg.norm(tpl.vertices[e[0]] - p, axis=1))) for e in ears]
+    k = int(np.argmin(d))
+    return ears[k] if d[k] < EAR_NEAR_MM else None
 
 
 def _mirror_pairs(tpl: Template) -> list[tuple[str, str]]:
@@ -746,22 +824,9 @@ def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int 
     """Rigid fit (rotation, translation, scale within 0.8-1.25) of a template piece ``src (N, 3)``
     (warped teeth, tongue) onto the mesh's piece ``dst (M, 3)``: trimmed ICP both ways. The warp
     fits the skin; the pieces inside follow it only smoothly, so their points are placed by this."""
-    sim = Similarity(1.0, np.eye(3), np.zeros(3))
     if len(src) < 10 or len(dst) < 10:
-        return sim
-    src_tree_pts = src
-    for _ in range(iterations):
-        cur = sim.apply(src_tree_pts)
-        d, j = tree.query(cur)
-        keep = d <= np.quantile(d, 0.8)
-        d2, i2 = cKDTree(cur).query(dst)
-        keep2 = d2 <= np.quantile(d2, 0.8)
-        a = np.r_[src_tree_pts[keep], src_tree_pts[i2[keep2]]]
-        b = np.r_[dst[j[keep]], dst[keep2]]
-        new = umeyama(a, b)
-        if not 0.8 <= new.scale <= 1.25:
-            break
-        sim = new
+        return Similarity(1.0, np.eye(3), np.zeros(3))
+    sim = _icp_both_ways(src, dst, tree, iterations, (0.8, 1.25))
     # A piece of another shape (a whole dental arch against the template's) can slide along itself:
     # such a fit is not trusted.
     angle = np.degrees(np.arccos(np.clip((np.trace(sim.rotation) - 1) / 2, -1.0, 1.0)))
@@ -773,6 +838,126 @@ def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int 
     if angle > PIECE_MAX_DEG or moved > PIECE_MAX_MM or gap > PIECE_GAP_MM + spacing:
         return _front_shift(src, dst, tree)
     return sim
+
+
+def _icp_both_ways(
+    src: np.ndarray,
+    dst: np.ndarray,
+    tree: cKDTree,
+    iterations: int,
+    scales: tuple[float, float],
+    start: Similarity | None = None,
+    rigid: bool = False,
+) -> Similarity:
+    """Similarity taking ``src (N, 3)`` onto ``dst (M, 3)`` (``tree`` over ``dst``): trimmed ICP with
+    pairs both ways (each side's nearest 80 %), stopping before a scale outside ``scales``;
+    ``rigid``: keeping the scale of ``start``."""
+    sim = start or Similarity(1.0, np.eye(3), np.zeros(3))
+    for _ in range(iterations):
+        cur = sim.apply(src)
+        d, j = tree.query(cur)
+        keep = d <= np.quantile(d, 0.8)
+        d2, i2 = cKDTree(cur).query(dst)
+        keep2 = d2 <= np.quantile(d2, 0.8)
+        new = umeyama(
+            np.r_[src[keep], src[i2[keep2]]],
+            np.r_[dst[j[keep]], dst[keep2]],
+            scale=sim.scale if rigid else None,
+        )
+        if not scales[0] <= new.scale <= scales[1]:
+            break
+        sim = new
+    return sim
+
+
+def _moments(v: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(centroid (3,), variances (3,) ascending, axes (3, 3) as columns)`` of the surface
+    ``tri`` over ``v``, weighted by triangle area (so not by how finely it is sampled)."""
+    a, b, c = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
+    w = np.linalg.norm(np.cross(b - a, c - a), axis=1) / 2
+    w = w / max(float(w.sum()), 1e-12)
+    cent = (a + b + c) / 3
+    m = w @ cent
+    d = cent - m
+    cov = (d * w[:, None]).T @ d
+    evals, evecs = np.linalg.eigh(cov)
+    return m, evals, evecs
+
+
+def _fit_ears(
+    y: np.ndarray,
+    label: np.ndarray,
+    surface: list[int],
+    wtri: np.ndarray,
+    warped: np.ndarray,
+    tpl: Template,
+) -> list[tuple[np.ndarray, Similarity, np.ndarray, Similarity]]:
+    """``[(template piece ids, fit, mesh piece ids, joint)]``: each of the template's separate skin pieces
+    (the built-in head's ears) fitted onto the mesh's separate piece where it has one.
+
+    The warp matches a thin, folded ear by closest points, so on a head of other proportions it
+    slides along the rim (by 5-8 mm; ICP from there stays stuck too). Where both ears are whole
+    pieces, their area-weighted centres and principal axes say where the ear is, how it is turned
+    (the axis signs nearest the warp's) and its size (the long axis); a rigid ICP at that size
+    refines it (``joint``: the same at the warp's scale, for the points where the ear joins the
+    head). Trusted for the mesh piece the warped ear lies on (median gap under
+    ``EAR_GAP_MM``, size within 0.6-1.6x), within ``EAR_MAX_DEG`` and ``EAR_MAX_MM`` of the warp."""
+    out: list[tuple[np.ndarray, Similarity, np.ndarray, Similarity]] = []
+    others = [c for c in surface if c != surface[0]]
+    if not tpl.skin_pieces or not others:
+        return out
+    pieces = {c: np.nonzero(label == c)[0] for c in others}
+    t_in = np.zeros(len(tpl.vertices), bool)
+    for ids_t in tpl.skin_pieces:
+        src = warped[ids_t]
+        centre = src.mean(axis=0)
+        best = None
+        for c, ids in pieces.items():
+            if np.linalg.norm(y[ids].mean(axis=0) - centre) > 40.0:
+                continue
+            gap = float(np.median(cKDTree(y[ids]).query(src)[0]))
+            if best is None or gap < best[0]:
+                best = (gap, c, ids)
+        if best is None or best[0] > EAR_GAP_MM:
+            continue
+        _, c, ids = best
+        mtri = wtri[(label[wtri] == c).all(axis=1)]
+        t_in[:] = False
+        t_in[ids_t] = True
+        ttri = tpl.triangles[t_in[tpl.triangles].all(axis=1)]
+        if len(mtri) < 20 or len(ttri) < 20:
+            continue
+        m_c, m_var, m_ax = _moments(y, mtri)
+        t_c, t_var, t_ax = _moments(tpl.vertices, ttri)
+        size = float(np.sqrt(m_var[-1] / max(t_var[-1], 1e-12)))
+        if not 0.6 <= size <= 1.6:
+            continue
+        warp_fit = umeyama(tpl.vertices[ids_t], src)
+        rot = None
+        for signs in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)):
+            r = m_ax @ np.diag(signs) @ t_ax.T
+            if np.linalg.det(r) < 0:
+                r = m_ax @ np.diag([-x for x in signs]) @ t_ax.T
+            if rot is None or np.trace(r @ warp_fit.rotation.T) > np.trace(
+                rot @ warp_fit.rotation.T
+            ):
+                rot = r
+        assert rot is not None
+        start = Similarity(size, rot, m_c - size * rot @ t_c)
+        tree = cKDTree(y[ids])
+        sim = _icp_both_ways(tpl.vertices[ids_t], y[ids], tree, 10, (0.6, 1.6), start, rigid=True)
+        shift = float(np.linalg.norm(sim.apply(tpl.vertices[ids_t]).mean(axis=0) - centre))
+        if _angle_deg(sim.rotation @ warp_fit.rotation.T) > EAR_MAX_DEG or shift > EAR_MAX_MM:
+            continue
+        # Where it joins the head scales with the head, not the ear: the fit's place and turn at
+        # the warp's scale, about the ear's centre.
+        joint = Similarity(
+            warp_fit.scale,
+            sim.rotation,
+            sim.apply(t_c[None])[0] - warp_fit.scale * sim.rotation @ t_c,
+        )
+        out.append((ids_t, sim, ids, joint))
+    return out
 
 
 def _front_shift(src: np.ndarray, dst: np.ndarray, tree: cKDTree) -> Similarity:

@@ -78,8 +78,11 @@ def head_crop(p: np.ndarray) -> tuple[float, float, bool]:
     return top, w, HEAD_ASPECT * w < 0.9 * height
 
 
-def umeyama(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> Similarity:
-    """Least-squares similarity taking ``src (N, 3)`` onto ``dst (N, 3)`` (optional weights)."""
+def umeyama(
+    src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None, scale: float | None = None
+) -> Similarity:
+    """Least-squares similarity taking ``src (N, 3)`` onto ``dst (N, 3)`` (optional weights), or
+    with its ``scale`` given, the least-squares rotation and translation at that scale."""
     w = np.ones(len(src)) if w is None else w
     w = w / w.sum()
     ms, md = w @ src, w @ dst
@@ -90,7 +93,8 @@ def umeyama(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> Si
     sign = np.array([1.0, 1.0, d])
     rot = u @ np.diag(sign) @ vt
     var = float(w @ (a**2).sum(axis=1))
-    scale = float((s * sign).sum() / var) if var > 0 else 1.0
+    if scale is None:
+        scale = float((s * sign).sum() / var) if var > 0 else 1.0
     return Similarity(scale, rot, md - scale * rot @ ms)
 
 

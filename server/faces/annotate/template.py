@@ -46,6 +46,8 @@ class Template:
         cranial: feature points on the smooth skull, off the face (crown, hairline, back of the
             head, nape): nothing on the surface says where along it they are, so they are
             carried over by direction from ``skull_centre``, not by the warp's closest point.
+        skin_pieces: ids of each outer-skin piece apart from the head's own surface (the built-in
+            head's ears; none for ICT, whose ears are part of its skin).
     """
 
     name: str
@@ -62,6 +64,7 @@ class Template:
     mouth_corners: dict[str, np.ndarray]
     skull_centre: np.ndarray
     cranial: frozenset[str]
+    skin_pieces: tuple[np.ndarray, ...] = ()
 
     @property
     def profile_heights(self) -> dict[str, float]:
@@ -120,6 +123,7 @@ TEMPLATES = {"default": default_template, "ict": ict_template}
 
 def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Template:
     """An annotated face (MPEG-4 axes) as a template: in mm, without the parts ``drop``."""
+    from ...deform.mesh_graph import components, edge_graph
     from ...deform.normals import vertex_normals
     from .detect import mouth_corners, profile_landmarks, sphere_centre
 
@@ -156,6 +160,13 @@ def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Templa
     socket = face.part("mouth_socket")
     normals = vertex_normals(v, tri)
     skull = p[p[:, 1] > brow[1] + 10.0]
+    piece = components(edge_graph(v, outer_tri))
+    sizes = np.bincount(piece[outer], minlength=piece.max() + 1)
+    pieces = tuple(
+        np.nonzero(piece == c)[0]
+        for c in np.nonzero(sizes)[0]
+        if c != np.argmax(sizes) and sizes[c] >= 20
+    )
     return Template(
         name=name,
         vertices=v,
@@ -171,6 +182,7 @@ def template_from_face(face, name: str, *, drop: tuple[str, ...] = ()) -> Templa
         mouth_corners=corners,
         skull_centre=sphere_centre(skull),
         cranial=_cranial(v, normals, outer, set(outer[front].tolist()), fps),
+        skin_pieces=pieces,
     )
 
 
