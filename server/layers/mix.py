@@ -16,13 +16,18 @@ order they apply to one frame:
    expression (FAP 2) still competes there.
 4. **Closures and openings**: where the primary holds the lips together (a /p b m/, silence: a
    lip pair's gap near or below contact) the offsets' lip-opening part is taken out, shared by both
-   lips (their common shift, the corners and the spreading stay), and so is their jaw opening.
+   lips (their common shift and the corners stay), and so is their jaw opening.
    Where the speech opens the mouth, the offsets open it only as far as they would alone: the
    mouth opens by the larger of the two, not their sum. In a speaking mouth a FAP that the
    speech and the offsets move the same way goes as far as the larger of the two
    (``limit_mouth``; opposite ways they add): a smile's parted lips, dropped jaw and stretched
    corners over an "aa" summed to a mouth wider than either makes, and creased the chin (issue
-   18); the mixed mouth stays within the ranges its parts use.
+   18); the mixed mouth stays within the ranges its parts use. The lips' width (the corners'
+   stretch, ``WIDTH``) is the speech's articulation (spread, rounded, or neutral: a position
+   too) as much as the overlay's, so where the offsets move it the two compete and are averaged
+   (rule 3's mean at weight 1 each), whichever way each goes: summed, a smile's stretch over
+   closed, rounded or open lips pulled the lips through the teeth on the ICT head (issue 18:
+   42-50 socket vertices poking through against 32-36 for the parts alone; averaged, 24-26).
 5. **Overrides** (``override``): absolute FAP values replace the result by their weight (blinks).
 6. **Gaze**: eye yaw/pitch (FAPs 23-26) turned to the target from the eye centres under the final
    head pose, replacing the eyes' rotation by the weight.
@@ -238,22 +243,37 @@ for _a in (_SPEECH_F, _OTHER_F, _ZEROS, _ONES):
     _a.flags.writeable = False
 
 
+#: The lips' width: the corners' stretch, inner and outer (FAPs 6, 7, 53, 54).
+WIDTH: np.ndarray = np.array([6, 7, 53, 54])
+_WIDTH = WIDTH.tolist()
+
+
 def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` over a speaking primary's FAPs ``F`` limited in the mouth and tongue
     (rule 4): where ``A`` moves a FAP the way ``F`` does, only what goes beyond ``F`` stays, so
     ``F + A`` is the larger of the two (opposite ways they add): ``A - clip(F, min(0, A),
-    max(0, A))`` there. A new array."""
+    max(0, A))`` there; the lips' width (``WIDTH``) that ``A`` moves is the mean of the two,
+    ``(F + A) / 2``. A new array."""
     f = F * _SPEECH_F
     np.maximum(f, np.minimum(A, _ZEROS), out=f)
     np.minimum(f, np.maximum(A, _ZEROS), out=f)
-    return A - f
+    out = A - f
+    a = A[WIDTH].tolist()
+    if a[0] or a[1] or a[2] or a[3]:
+        w = F[WIDTH].tolist()
+        out[WIDTH] = [(x - y) / 2 if x else 0.0 for x, y in zip(a, w, strict=True)]
+    return out
 
 
 def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
     """``limit_mouth`` of the ``rows`` (bool ``(B,)``) of ``F``, ``A (B, 69)``, in place on ``A``."""
+    a = A[:, WIDTH]
+    mean = rows[:, None] & (a != 0)
     same = (rows[:, None] & _SPEECH) & (F * A > 0)
     if same.any():
         A[same] = np.sign(A[same]) * np.maximum(0.0, np.abs(A[same]) - np.abs(F[same]))
+    if mean.any():
+        A[:, WIDTH] = np.where(mean, (a - F[:, WIDTH]) / 2, A[:, WIDTH])
 
 
 def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
