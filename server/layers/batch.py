@@ -207,11 +207,13 @@ def _gaze_columns(
         g = layer.target
         keep.append(r)
         ps.append(g.point is not None)
-        qs.append(g.point - geo.head_pivot if g.point is not None else g.direction)
+        qs.append(g.direction if g.point is None else g.point)
         ws.append(w)
     if not keep:
         return None
-    return Columns(role, gaze=(_rows(keep), np.array(qs), np.array(ps), np.array(ws)))
+    Q, point = np.array(qs), np.array(ps)
+    Q[point] -= geo.head_pivot  # a point from the head pivot
+    return Columns(role, gaze=(_rows(keep), Q, point, np.array(ws)))
 
 
 def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -> list[Columns]:
@@ -222,7 +224,10 @@ def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -
     for r, layer, t in entries:
         kind = type(layer)
         if kind is IdleLayer or kind is ExpressionLayer or kind is GazeLayer:
-            group = kinds.setdefault((kind, layer.role), ([], [], []))
+            key = (kind, layer.role)
+            group = kinds.get(key)
+            if group is None:
+                group = kinds[key] = ([], [], [])
             group[0].append(r)
             group[1].append(layer)
             group[2].append(t)

@@ -268,10 +268,11 @@ def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
 def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
     """``limit_mouth`` of the ``rows`` (bool ``(B,)``) of ``F``, ``A (B, 69)``, in place on ``A``."""
     a = A[:, WIDTH]
+    f = F * (rows[:, None] * _SPEECH_F)
+    np.maximum(f, np.minimum(A, 0.0), out=f)
+    np.minimum(f, np.maximum(A, 0.0), out=f)
+    A -= f
     mean = rows[:, None] & (a != 0)
-    same = (rows[:, None] & _SPEECH) & (F * A > 0)
-    if same.any():
-        A[same] = np.sign(A[same]) * np.maximum(0.0, np.abs(A[same]) - np.abs(F[same]))
     if mean.any():
         A[:, WIDTH] = np.where(mean, (a - F[:, WIDTH]) / 2, A[:, WIDTH])
 
