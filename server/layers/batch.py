@@ -155,7 +155,7 @@ def _overlay_offsets(layer: ExpressionLayer, geo: Geometry) -> np.ndarray | None
         x.flags.writeable = False
     if len(cache) >= 4096:
         cache.clear()
-    cache[key] = x  # type: ignore[assignment]
+    cache[key] = x
     return x
 
 

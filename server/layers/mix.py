@@ -124,7 +124,7 @@ def _offsets_nz(c: Contribution, geo: Geometry) -> tuple[np.ndarray, np.ndarray 
         if len(cache) >= 4096:
             cache.clear()
         hit = cache[key] = (x, nz)
-    return hit  # type: ignore[no-any-return]
+    return hit
 
 
 def _rot(pitch: float, yaw: float, roll: float) -> list[list[float]]:
@@ -341,7 +341,7 @@ def combine(
     poses: list[tuple[np.ndarray, float]] = []
     gazes: list[tuple[GazeTarget, float]] = []
     overrides: list[tuple[np.ndarray, Any]] = []
-    roles: dict[Role, list[tuple[np.ndarray, np.ndarray, Any]]] = {}
+    roles: dict[Role, list[tuple[np.ndarray, np.ndarray | None, Any]]] = {}
     for role, c in items:
         if c.head is not None and c.head_weight > 0:
             poses.append((c.head, c.head_weight))
@@ -388,7 +388,9 @@ def combine(
                 elif primary.expression is None:
                     P = F * _OTHER_F
                 else:
-                    P = np.where(_SPEECH, _expand(None, primary.expression, geo), F)
+                    E = _expand(None, primary.expression, geo)
+                    assert E is not None
+                    P = np.where(_SPEECH, E, F)
             part = _role_part(group, P)
             A = part if A is None else A + part
         if closures:
