@@ -261,7 +261,7 @@ BATCH_MIN = 8
 #: ``combine``): NumPy's ~40 calls on small arrays cost more than a few rows' arithmetic.
 SMALL = 8
 #: Below this many gaze rows, gaze is worked out row by row (``_gaze_rows``).
-SMALL_GAZE = 16
+SMALL_GAZE = 10
 _ZERO = np.zeros(N)
 _ZERO.flags.writeable = False
 
