@@ -755,18 +755,19 @@ def test_mix_batch_equals_each_mixer_alone(default_head):
 
     _, _, geo = default_head
     mixers = []
-    for k in range(6):
-        m = Mixer(geo if k % 3 else None, closures=k != 4)
+    for k in range(20):  # (fewer than BATCH_MIN frames are mixed one by one: both ways here)
+        m = Mixer(geo if k % 3 else None, closures=k % 6 != 4)
         m.set("idle", IdleLayer(seed=k))
         m.set("smile", ExpressionLayer(1, amount=0.5, envelope=Envelope(end=3.0)))
         m.set("gaze", GazeLayer(GazeTarget.camera()))
         mixers.append(m)
     rng = np.random.default_rng(1)
-    states = [FaceState(t=0.04 * k, faps=rng.normal(0, 100, 69)) for k in range(6)]
+    states = [FaceState(t=0.04 * k, faps=rng.normal(0, 100, 69)) for k in range(20)]
     for t in (1.0, 2.5, 4.0):  # the smile ends at 3 s: the mixers drop it
-        got = mix_batch([(m, s, t) for m, s in zip(mixers, states)])
-        for m, s, g in zip(mixers, states, got):
-            np.testing.assert_allclose(g.faps, m.mix(s, t).faps, rtol=1e-9, atol=1e-6)
+        for n in (3, 20):
+            got = mix_batch([(m, s, t) for m, s in zip(mixers[:n], states[:n])])
+            for m, s, g in zip(mixers, states, got):
+                np.testing.assert_allclose(g.faps, m.mix(s, t).faps, rtol=1e-9, atol=1e-6)
     assert all("smile" not in m.layers() for m in mixers)
 
 

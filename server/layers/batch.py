@@ -471,6 +471,8 @@ def mix_batch(frames: Sequence[tuple[Any, FaceState | None, float]]) -> list[Fac
     """``mixer.mix(primary, t)`` of every ``(mixer, primary, t)`` (a ``Mixer``), the frames of
     mixers with the same geometry (``is``) and closures computed together: what a batch of live
     sessions' frames costs in one go. Drops the layers whose end has passed."""
+    if len(frames) < BATCH_MIN:  # too few to gain from it: each alone
+        return [mixer.mix(primary, t) for mixer, primary, t in frames]
     out: list[FaceState | None] = [None] * len(frames)
     groups: dict[tuple[int, bool], tuple[Geometry, list[int], list[Any]]] = {}
     for i, (mixer, primary, t) in enumerate(frames):
