@@ -21,6 +21,13 @@ instead measures what layers cost a real server (``bench/serve.py``'s server and
 process, in ABBA order, ``--serve-pairs`` pairs. Per point the server's CPU per session-frame;
 the difference B - A of each pair, their mean, standard deviation and standard error, and the
 ratio. Writes ``bench/out/layers_serve.json``.
+
+    python bench/layers.py --against REF [--repeats 7]
+
+instead times the live path's mix (``mix_batch``, three layers, B sessions a batch) of the code at
+git ``REF`` (its ``server/layers`` loaded beside the working tree's) against the working tree's,
+interleaved in the same process (thread CPU time, median of ``--repeats``): the ratio of the two
+holds on a loaded machine where the absolute times do not. Writes ``bench/out/layers_against.json``.
 """
 
 from __future__ import annotations
@@ -190,6 +197,136 @@ def serve_pairs(args: argparse.Namespace) -> int:
 DEFAULT_OUT = Path(__file__).parent / "out" / "layers.json"
 
 
+def load_layers_at(ref: str):
+    """The ``server/layers`` package of git ``ref`` as module ``facecast.server._layers_at``
+    (written to a temporary directory; its relative imports resolve to the working tree's
+    ``facecast.server``)."""
+    import importlib.util
+    import subprocess
+    import tempfile
+
+    root = Path(__file__).resolve().parents[1]
+    names = subprocess.run(
+        ["git", "ls-tree", "--name-only", ref, "server/layers/"],
+        cwd=root,
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.split()
+    where = Path(tempfile.mkdtemp(prefix="layers_at_"))
+    for name in names:
+        if name.endswith(".py"):
+            text = subprocess.run(
+                ["git", "show", f"{ref}:{name}"], cwd=root, check=True, capture_output=True
+            ).stdout
+            (where / Path(name).name).write_bytes(text)
+    spec = importlib.util.spec_from_file_location(
+        "facecast.server._layers_at", where / "__init__.py", submodule_search_locations=[str(where)]
+    )
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def against(args: argparse.Namespace) -> int:
+    """``--against REF``: the live path's mix at ``REF`` against the working tree's (module doc)."""
+    import importlib
+
+    from facecast.server.drivers import load_animation
+    from facecast.server.faces import load_face
+    from facecast.server.mpeg4.rig import FapRig
+    from facecast.server.paths import shared_data
+
+    data = shared_data()
+    if data is None:
+        print("../shared/data not found: the bench needs its speech", file=sys.stderr)
+        return 2
+    load0 = os.getloadavg()
+    face = load_face("default")
+    rig = FapRig(face)
+    speech = []
+    for wav in ("mary.wav", "bobby_16bit_16khz.wav"):
+        speech += load_animation(data / "speech" / wav, face).states
+    n = min(args.frames, 1200)
+    primary = [FaceState(t=i / 25.0, faps=speech[i % len(speech)].faps) for i in range(n)]
+    old = load_layers_at(args.against)
+    import facecast.server.layers as new
+
+    def runner(L, batch, b: int):
+        geo = L.Geometry.of_rig(rig)
+        layers = [
+            (
+                "smile",
+                L.ExpressionLayer(1, amount=0.7, envelope=L.Envelope(start=1.0, attack_peak=1.5)),
+            ),
+            ("idle", L.IdleLayer(seed=1)),
+            ("gaze", L.GazeLayer(L.GazeTarget(point=np.array([100.0, 50.0, 600.0])))),
+        ]
+        mixers = [mixer_of_module(L, geo, layers) for _ in range(b)]
+
+        def run():
+            for s in range(0, n, b):
+                batch.mix_batch(
+                    [(mixers[i - s], primary[i], primary[i].t) for i in range(s, min(n, s + b))]
+                )
+
+        return run
+
+    rows = []
+    for b in (1, 2, 4, 8, 12, 16, 32):
+        runs = {
+            "ref": runner(old, importlib.import_module("facecast.server._layers_at.batch"), b),
+            "tree": runner(new, importlib.import_module("facecast.server.layers.batch"), b),
+        }
+        times: dict[str, list[float]] = {"ref": [], "tree": []}
+        for fn in runs.values():
+            fn()  # warm up
+        for _ in range(args.repeats):
+            for k, fn in runs.items():
+                c = time.thread_time()
+                fn()
+                times[k].append((time.thread_time() - c) / n * 1e3)
+        ref, tree = statistics.median(times["ref"]), statistics.median(times["tree"])
+        rows.append({"sessions": b, "ref_cpu_ms": ref, "tree_cpu_ms": tree, "ratio": tree / ref})
+        print(f"{b} sessions: {args.against} {ref:.4f} ms, tree {tree:.4f} ms", file=sys.stderr)
+    load1 = os.getloadavg()
+    result = {
+        "ref": args.against,
+        "frames": n,
+        "repeats": args.repeats,
+        "cpus": os.cpu_count(),
+        "loadavg_start": load0,
+        "loadavg_end": load1,
+        "rows": rows,
+    }
+    out = Path(args.out)
+    if out == DEFAULT_OUT:
+        out = DEFAULT_OUT.with_name("layers_against.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    print(
+        f"\nlive mix (mix_batch, 3 layers) per frame, thread CPU, median of {args.repeats}; load "
+        f"{load0[0]:.1f} -> {load1[0]:.1f} on {os.cpu_count()} CPUs\n"
+    )
+    print(f"| sessions a batch | {args.against} ms | working tree ms | ratio |")
+    print("|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['sessions']} | {r['ref_cpu_ms']:.4f} | {r['tree_cpu_ms']:.4f} | {r['ratio']:.3f} |"
+        )
+    return 0
+
+
+def mixer_of_module(L, geo, layers):
+    """``mixer_of`` with the ``Mixer`` of the layers package ``L``."""
+    mixer = L.Mixer(geo)
+    for name, layer in layers:
+        mixer.set(name, layer)
+    return mixer
+
+
 def main(argv: list[str] | None = None) -> int:
     from facecast.server.drivers import load_animation
     from facecast.server.faces import load_face
@@ -224,9 +361,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--encoding", default="i16", help="--serve-pairs: viewers' encoding")
     ap.add_argument("--warmup", type=float, default=2.0, help="--serve-pairs: seconds")
     ap.add_argument("--seconds", type=float, default=6.0, help="--serve-pairs: seconds measured")
+    ap.add_argument(
+        "--against",
+        default=None,
+        metavar="REF",
+        help="time the live mix of git REF's server/layers against the working tree's instead",
+    )
     args = ap.parse_args(argv)
     if args.serve_pairs:
         return serve_pairs(args)
+    if args.against:
+        return against(args)
     data = shared_data()
     if data is None:
         print("../shared/data not found: the bench needs its speech", file=sys.stderr)

@@ -33,7 +33,13 @@ from facecast.server.layers import (
     region_mask,
 )
 from facecast.server.layers.head import AU_PER_DEG
-from facecast.server.layers.mix import LIP_PAIRS, head_angles, head_transform, keep_closures
+from facecast.server.layers.mix import (
+    LIP_PAIRS,
+    WIDTH,
+    head_angles,
+    head_transform,
+    keep_closures,
+)
 from facecast.server.layers.model import REGIONS
 from facecast.server.mpeg4.highlevel import EXPRESSIONS, VISEMES, expand
 from facecast.server.state import FaceState, zero_faps
@@ -163,8 +169,10 @@ def test_closures_keep_the_lips_shut_and_the_smile_corners():
     F = expand(out)
     gap = -(F[4] + F[5])
     assert gap <= -(VISEMES[1][4] + VISEMES[1][5]) + 1e-9  # no more open than the /p/
-    for k in (6, 7, 12, 13, 53, 54, 59, 60):  # corners, spreading: the smile's
+    for k in (12, 13, 59, 60):  # the corners' raise: the smile's
         assert F[k] == pytest.approx(VISEMES[1][k] + EXPRESSIONS[1][k])
+    for k in WIDTH:  # the lips' width (the corners' stretch): the mean of speech and smile
+        assert F[k] == pytest.approx((VISEMES[1][k] + EXPRESSIONS[1][k]) / 2)
     assert F[3] == pytest.approx(0.0)  # no jaw drop under closed lips
     free = expand(mix(pp, [ExpressionLayer(1)], 0.0, closures=False))
     assert -(free[4] + free[5]) > 0  # without the rule the smile parts a /p/
@@ -182,7 +190,9 @@ def test_over_open_speech_a_smile_moves_the_mouth_no_further_than_the_larger_of_
     F = expand(mix(FaceState(t=0.0, viseme=(10, 0, 63)), [ExpressionLayer(1)], 0.0))
     mouth = list(REGIONS["mouth"] + REGIONS["tongue"])
     for k in range(3, 69):
-        if k in mouth and V[k] * X[k] > 0:
+        if k in WIDTH:
+            assert F[k] == pytest.approx((V[k] + X[k]) / 2), k
+        elif k in mouth and V[k] * X[k] > 0:
             assert F[k] == pytest.approx(V[k] if abs(V[k]) > abs(X[k]) else X[k]), k
         else:
             assert F[k] == pytest.approx(V[k] + X[k]), k
@@ -194,6 +204,27 @@ def test_over_open_speech_a_smile_moves_the_mouth_no_further_than_the_larger_of_
     half.faps[[5, 52]] = -400.0  # the lower lip well open
     F = expand(mix(half, [ExpressionLayer(1)], 0.0))
     assert F[3] == pytest.approx(X[3])  # the jaw opens to the smile's, the larger
+
+
+def test_in_a_speaking_mouth_the_lips_width_is_the_mean_of_speech_and_overlay():
+    """Rule 4's width: the corners' stretch (FAPs 6, 7, 53, 54) is the speech's articulation
+    (spread, rounded) as much as the smile's, so where an overlay moves it the two compete and
+    average, whichever way each goes (summed, a smile's stretch over closed, rounded or open
+    lips pulled the ICT lips through the teeth: issue 18); where the overlay leaves it, the
+    speech's width stays whole; a primary that does not speak still adds."""
+    smile = np.zeros(69)
+    smile[WIDTH] = 120.0
+    smile[[12, 13]] = 200.0
+    for width in (0.0, 40.0, -100.0):  # neutral, spread, rounded
+        speech = FaceState(t=0.0, faps=faps(f3=150.0, f5=-200.0))
+        speech.faps[WIDTH] = width
+        F = mix(speech, [ExpressionLayer(0, faps=smile)], 0.0).faps
+        assert np.allclose(F[WIDTH], (width + 120.0) / 2)
+        assert np.allclose(F[[12, 13]], 200.0)  # the corners' raise adds
+        idle = mix(speech, [ExpressionLayer(0, faps=faps(f12=200.0))], 0.0).faps
+        assert np.allclose(idle[WIDTH], width)  # the speech's width, whole
+        free = mix(speech, [ExpressionLayer(0, faps=smile)], 0.0, closures=False).faps
+        assert np.allclose(free[WIDTH], (width + 120.0) / 2 if width else 120.0)
 
 
 def test_gaze_target_parsing():
@@ -650,8 +681,9 @@ def test_gaze_compensates_a_head_given_as_a_transform_as_one_given_as_faps(defau
 def test_in_a_speaking_mouth_an_overlay_competes_with_the_primary_expression_not_the_speech():
     p = FaceState(t=0.0, viseme=(10, 0, 63), expression=(6, 63, 0, 0))  # "aa" while surprised
     out = expand(mix(p, [ExpressionLayer(1)], 0.0))
-    k = 6  # a lip corner stretch: speech + the mean of the two expressions
-    assert out[k] == pytest.approx(VISEMES[10][k] + (EXPRESSIONS[6][k] + EXPRESSIONS[1][k]) / 2)
+    k = 6  # a lip corner stretch (the width): the mean of speech and the two expressions' mean
+    both = (EXPRESSIONS[6][k] + EXPRESSIONS[1][k]) / 2
+    assert out[k] == pytest.approx((VISEMES[10][k] + both) / 2)
 
 
 # -- many frames at once ----------------------------------------------------------------------
@@ -723,18 +755,19 @@ def test_mix_batch_equals_each_mixer_alone(default_head):
 
     _, _, geo = default_head
     mixers = []
-    for k in range(6):
-        m = Mixer(geo if k % 3 else None, closures=k != 4)
+    for k in range(20):  # (fewer than BATCH_MIN frames are mixed one by one: both ways here)
+        m = Mixer(geo if k % 3 else None, closures=k % 6 != 4)
         m.set("idle", IdleLayer(seed=k))
         m.set("smile", ExpressionLayer(1, amount=0.5, envelope=Envelope(end=3.0)))
         m.set("gaze", GazeLayer(GazeTarget.camera()))
         mixers.append(m)
     rng = np.random.default_rng(1)
-    states = [FaceState(t=0.04 * k, faps=rng.normal(0, 100, 69)) for k in range(6)]
+    states = [FaceState(t=0.04 * k, faps=rng.normal(0, 100, 69)) for k in range(20)]
     for t in (1.0, 2.5, 4.0):  # the smile ends at 3 s: the mixers drop it
-        got = mix_batch([(m, s, t) for m, s in zip(mixers, states)])
-        for m, s, g in zip(mixers, states, got):
-            np.testing.assert_allclose(g.faps, m.mix(s, t).faps, rtol=1e-9, atol=1e-6)
+        for n in (3, 20):
+            got = mix_batch([(m, s, t) for m, s in zip(mixers[:n], states[:n])])
+            for m, s, g in zip(mixers, states, got):
+                np.testing.assert_allclose(g.faps, m.mix(s, t).faps, rtol=1e-9, atol=1e-6)
     assert all("smile" not in m.layers() for m in mixers)
 
 

@@ -206,8 +206,7 @@ async def patch_layer_route(
     """Change some fields of the layer ``name`` (its timing restarts from now)."""
     session, old = _reach(request, session_id, name, token)
     if old is None:
-        session.mix.info(name)  # NotFound, with the message
-        raise AssertionError("unreachable")
+        raise session.mix.missing(name)
     return session.mix.set(name, patch_layer(old, await _json(request)))
 
 

@@ -25,14 +25,13 @@ from .mix import (
     _SPEECH,
     _expand,
     _eye_angles_batch,
+    _eyes_to,
     _keep_closures_batch,
     _limit_mouth_batch,
-    _mtv,
     _offsets,
-    _rot,
     _unrotate,
+    _unrotate1,
     combine,
-    eye_angles,
     keep_closures,
 )
 from .model import Contribution, Geometry, Layer, N, Role, region_mask
@@ -156,7 +155,7 @@ def _overlay_offsets(layer: ExpressionLayer, geo: Geometry) -> np.ndarray | None
         x.flags.writeable = False
     if len(cache) >= 4096:
         cache.clear()
-    cache[key] = x  # type: ignore[assignment]
+    cache[key] = x
     return x
 
 
@@ -208,11 +207,13 @@ def _gaze_columns(
         g = layer.target
         keep.append(r)
         ps.append(g.point is not None)
-        qs.append(g.point - geo.head_pivot if g.point is not None else g.direction)
+        qs.append(g.direction if g.point is None else g.point)
         ws.append(w)
     if not keep:
         return None
-    return Columns(role, gaze=(_rows(keep), np.array(qs), np.array(ps), np.array(ws)))
+    Q, point = np.array(qs), np.array(ps)
+    Q[point] -= geo.head_pivot  # a point from the head pivot
+    return Columns(role, gaze=(_rows(keep), Q, point, np.array(ws)))
 
 
 def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -> list[Columns]:
@@ -223,7 +224,10 @@ def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -
     for r, layer, t in entries:
         kind = type(layer)
         if kind is IdleLayer or kind is ExpressionLayer or kind is GazeLayer:
-            group = kinds.setdefault((kind, layer.role), ([], [], []))
+            key = (kind, layer.role)
+            group = kinds.get(key)
+            if group is None:
+                group = kinds[key] = ([], [], [])
             group[0].append(r)
             group[1].append(layer)
             group[2].append(t)
@@ -252,10 +256,12 @@ def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -
 
 #: Fewest frames ``mix_batch`` mixes together: fewer cost less one by one (``combine``: a
 #: batch has ~30 NumPy calls of fixed cost; measured against it with bench/layers.py).
-BATCH_MIN = 5
+BATCH_MIN = 8
 #: Below this many rows, lip closures and gaze are worked out row by row in Python floats (as
 #: ``combine``): NumPy's ~40 calls on small arrays cost more than a few rows' arithmetic.
 SMALL = 8
+#: Below this many gaze rows, gaze is worked out row by row (``_gaze_rows``).
+SMALL_GAZE = 10
 _ZERO = np.zeros(N)
 _ZERO.flags.writeable = False
 
@@ -353,7 +359,7 @@ def combine_columns(
     # 6. gaze, from the final head pose (FAPs 48-50)
     gazes = [c.gaze for c in columns if c.gaze is not None]
     if gazes:
-        if sum(len(g[0]) for g in gazes) < SMALL:
+        if sum(len(g[0]) for g in gazes) < SMALL_GAZE:
             _gaze_rows(F, gazes, geo)
         else:
             _gaze(F, gazes, geo)
@@ -374,31 +380,22 @@ def _gaze_rows(
     gazes: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
     geo: Geometry,
 ) -> None:
-    """``_gaze`` row by row in Python floats (``mix.gaze_faps``): cheaper for a few rows."""
+    """``_gaze`` row by row in Python floats (as ``combine``): cheaper for a few rows."""
     per_row: dict[int, list[tuple[list[float], bool, float]]] = {}
     for rows, Q, point, w in gazes:
         for r, q, is_point, x in zip(rows.tolist(), Q.tolist(), point.tolist(), w.tolist()):
             per_row.setdefault(r, []).append((q, is_point, x))
-    pv = geo.head_pivot.tolist()
+    pv = geo.pivot
     for r, gs in per_row.items():
-        pitch, yaw, roll = F[r, 48:51].tolist()
-        R = _rot(pitch * _AU, yaw * _AU, roll * _AU)
+        angles = F[r, 48:51].tolist()
         W = 0.0
         eyes = [0.0, 0.0, 0.0, 0.0]
-        for q, is_point, x in gs:
-            for i, (centre, axis) in enumerate(geo.eyes):
-                if is_point:  # Rᵀ(p - pv) + (pv - c)
-                    d = _mtv(R, q)
-                    d = [
-                        d[0] + pv[0] - centre[0],
-                        d[1] + pv[1] - centre[1],
-                        d[2] + pv[2] - centre[2],
-                    ]
-                else:
-                    d = _mtv(R, q)
-                ey, ep = eye_angles(d, axis)
-                eyes[i] += x * ey / _AU
-                eyes[2 + i] += x * ep / _AU
+        for q, is_point, x in gs:  # q: the point minus the pivot, or a direction
+            d = _unrotate1(angles, q)
+            if is_point:  # Rᵀ(p - pv) + pv, seen from each eye
+                d = (d[0] + pv[0], d[1] + pv[1], d[2] + pv[2])
+            e = _eyes_to(d, is_point, geo)
+            eyes = [a + x * b for a, b in zip(eyes, e)]
             W += x
         eyes = [e / W for e in eyes]
         if W >= 1.0:
@@ -474,6 +471,8 @@ def mix_batch(frames: Sequence[tuple[Any, FaceState | None, float]]) -> list[Fac
     """``mixer.mix(primary, t)`` of every ``(mixer, primary, t)`` (a ``Mixer``), the frames of
     mixers with the same geometry (``is``) and closures computed together: what a batch of live
     sessions' frames costs in one go. Drops the layers whose end has passed."""
+    if len(frames) < BATCH_MIN:  # too few to gain from it: each alone
+        return [mixer.mix(primary, t) for mixer, primary, t in frames]
     out: list[FaceState | None] = [None] * len(frames)
     groups: dict[tuple[int, bool], tuple[Geometry, list[int], list[Any]]] = {}
     for i, (mixer, primary, t) in enumerate(frames):
@@ -487,9 +486,10 @@ def mix_batch(frames: Sequence[tuple[Any, FaceState | None, float]]) -> list[Fac
         group[2].append(layers)
     for (_, closures), (geo, rows, layer_lists) in groups.items():
         if len(rows) < BATCH_MIN:  # cheaper one by one
-            for i in rows:
+            for i, layers in zip(rows, layer_lists):
                 mixer, primary, t = frames[i]
-                out[i] = mixer.mix(primary, t)
+                items = mixer.items(t, layers)
+                out[i] = combine(primary, items, t, geometry=geo, closures=closures)
             continue
         prims = [frames[i][1] for i in rows]
         ts = [float(frames[i][2]) for i in rows]

@@ -171,6 +171,12 @@ class IdleLayer:
             return prev[1] + (cur[1] - prev[1]) * u, prev[2] + (cur[2] - prev[2]) * u
         return cur[1], cur[2]
 
+    def events(self, t: float) -> tuple[float, float, float]:
+        """The eyes' ``(yaw, pitch)`` (degrees, before ``amount``; 0 without saccades) and the
+        lids' closure at ``t`` (s): ``sample_many``'s row."""
+        yaw, pitch = self.gaze(t) if self.saccades else (0.0, 0.0)
+        return yaw, pitch, self.closure(t) if self.blinks else 0.0
+
     def sample(self, t: float) -> Contribution:
         """One frame in Python floats (cheaper than ``sample_many`` for one)."""
         faps = np.zeros(N)
@@ -201,15 +207,13 @@ class IdleLayer:
         K = len(layers)
         faps = np.zeros((K, N))
         flags = np.array([x.flags for x in layers])  # (K, 4): saccades, sway, breathing; amount
-        eyes = np.array(
-            [x.gaze(t) if x.saccades else (0.0, 0.0) for x, t in zip(layers, ts.tolist())]
-        )
-        closure = np.array([x.closure(t) if x.blinks else 0.0 for x, t in zip(layers, ts.tolist())])
+        events = np.array([x.events(t) for x, t in zip(layers, ts.tolist())])  # (K, 3)
+        closure = events[:, 2]
         amount = flags[:, 3]
         a = amount * AU_PER_DEG
         S = np.sin(np.multiply.outer(2 * math.pi * ts, _RATES) + _PHASES)  # (K, 5)
-        faps[:, 23] = faps[:, 24] = a * eyes[:, 0]
-        faps[:, 25] = faps[:, 26] = a * eyes[:, 1]
+        faps[:, 23] = faps[:, 24] = a * events[:, 0]
+        faps[:, 25] = faps[:, 26] = a * events[:, 1]
         faps[:, 48:51] = (a * flags[:, 1])[:, None] * (S[:, :4] @ _SWAY)
         b = S[:, 4] * flags[:, 2]
         faps[:, 48] += a * 0.3 * b

@@ -16,13 +16,18 @@ order they apply to one frame:
    expression (FAP 2) still competes there.
 4. **Closures and openings**: where the primary holds the lips together (a /p b m/, silence: a
    lip pair's gap near or below contact) the offsets' lip-opening part is taken out, shared by both
-   lips (their common shift, the corners and the spreading stay), and so is their jaw opening.
+   lips (their common shift and the corners stay), and so is their jaw opening.
    Where the speech opens the mouth, the offsets open it only as far as they would alone: the
    mouth opens by the larger of the two, not their sum. In a speaking mouth a FAP that the
    speech and the offsets move the same way goes as far as the larger of the two
    (``limit_mouth``; opposite ways they add): a smile's parted lips, dropped jaw and stretched
    corners over an "aa" summed to a mouth wider than either makes, and creased the chin (issue
-   18); the mixed mouth stays within the ranges its parts use.
+   18); the mixed mouth stays within the ranges its parts use. The lips' width (the corners'
+   stretch, ``WIDTH``) is the speech's articulation (spread, rounded, or neutral: a position
+   too) as much as the overlay's, so where the offsets move it the two compete and are averaged
+   (rule 3's mean at weight 1 each), whichever way each goes: summed, a smile's stretch over
+   closed, rounded or open lips pulled the lips through the teeth on the ICT head (issue 18:
+   42-50 socket vertices poking through against 32-36 for the parts alone; averaged, 24-26).
 5. **Overrides** (``override``): absolute FAP values replace the result by their weight (blinks).
 6. **Gaze**: eye yaw/pitch (FAPs 23-26) turned to the target from the eye centres under the final
    head pose, replacing the eyes' rotation by the weight.
@@ -99,6 +104,29 @@ def _offsets(c: Contribution, geo: Geometry) -> np.ndarray | None:
     return x
 
 
+def _offsets_nz(c: Contribution, geo: Geometry) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """``_offsets`` of ``c`` and, for a contribution of high-level FAPs alone (an expression
+    overlay's), where they are non-zero (``(69,)`` float 0/1; else None: ``x != 0`` when
+    needed): those are remembered per geometry (read-only)."""
+    if c.faps is not None:
+        x = _offsets(c, geo)
+        return None if x is None else (x, None)
+    key = (c.viseme, c.expression, c.amount)
+    cache = geo.expansions
+    hit = cache.get(key)
+    if hit is None:
+        x = _offsets(c, geo)
+        if x is None:
+            return None
+        x = np.array(x, dtype=np.float64)
+        nz = (x != 0).astype(np.float64)
+        x.flags.writeable = nz.flags.writeable = False
+        if len(cache) >= 4096:
+            cache.clear()
+        hit = cache[key] = (x, nz)
+    return hit
+
+
 def _rot(pitch: float, yaw: float, roll: float) -> list[list[float]]:
     """``Ry(yaw) · Rx(pitch) · Rz(roll)`` (radians), the rig's head rotation, as nested lists."""
     cp, sp, cy, sy = math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
@@ -154,19 +182,51 @@ def gaze_faps(
     target: GazeTarget, geo: Geometry, R: list[list[float]], t: Sequence[float]
 ) -> list[float]:
     """FAPs 23-26 (AU) turning both eyes to ``target`` under the head transform ``[R | t]``
-    (nested lists): the eye centres move with the head, the target stays put."""
-    out = [0.0, 0.0, 0.0, 0.0]
+    (nested lists): the eye centres move with the head, the target stays put. (An eye at ``c``
+    sees a point ``p`` along ``Rᵀ(p - t) - c``, head-local, a direction ``u`` along ``Rᵀu``.)"""
     p = target.point
-    for i, (centre, axis) in enumerate(geo.eyes):
-        if p is not None:
-            c = _mv(R, centre)
-            d = [p[0] - c[0] - t[0], p[1] - c[1] - t[1], p[2] - c[2] - t[2]]
-        else:
-            assert target.direction is not None
-            d = target.direction.tolist()
-        yaw, pitch = eye_angles(_mtv(R, d), axis)
-        out[i], out[2 + i] = yaw / _AU, pitch / _AU
-    return out
+    if p is None:
+        assert target.direction is not None
+        return _eyes_to(_mtv(R, target.direction.tolist()), False, geo)
+    px, py, pz = p.tolist()
+    return _eyes_to(_mtv(R, (px - t[0], py - t[1], pz - t[2])), True, geo)
+
+
+def _gaze_about_pivot(target: GazeTarget, geo: Geometry, angles: Sequence[float]) -> list[float]:
+    """``gaze_faps`` under the head rotation ``angles`` (pitch, yaw, roll AU) about the head
+    pivot ``pv``: ``Rᵀ(p - pv) + pv`` as three plane rotations (``R`` is not formed)."""
+    p = target.point
+    if p is None:
+        assert target.direction is not None
+        return _eyes_to(_unrotate1(angles, target.direction.tolist()), False, geo)
+    pv = geo.pivot
+    px, py, pz = p.tolist()
+    x, y, z = _unrotate1(angles, (px - pv[0], py - pv[1], pz - pv[2]))
+    return _eyes_to((x + pv[0], y + pv[1], z + pv[2]), True, geo)
+
+
+def _unrotate1(angles: Sequence[float], q: Sequence[float]) -> tuple[float, float, float]:
+    """``Rᵀ q`` for ``R = Ry(yaw)·Rx(pitch)·Rz(roll)`` of ``angles`` (pitch, yaw, roll AU)."""
+    pitch, yaw, roll = angles[0] * _AU, angles[1] * _AU, angles[2] * _AU
+    cp, sp, cy, sy = math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    cr, sr = math.cos(roll), math.sin(roll)
+    qx, qy, qz = q
+    x, z = cy * qx - sy * qz, sy * qx + cy * qz  # Ryᵀ
+    y, z = cp * qy + sp * z, cp * z - sp * qy  # Rxᵀ
+    return cr * x + sr * y, cr * y - sr * x, z  # Rzᵀ
+
+
+def _eyes_to(q: Sequence[float], point: bool, geo: Geometry) -> list[float]:
+    """FAPs 23-26 (AU) of both eyes looking along ``q`` (head-local: a direction) or at ``q``
+    (``point``: head-local, seen from each eye's centre)."""
+    (cl, al), (cr, ar) = geo.eyes
+    if point:
+        yl, pl = eye_angles((q[0] - cl[0], q[1] - cl[1], q[2] - cl[2]), al)
+        yr, pr = eye_angles((q[0] - cr[0], q[1] - cr[1], q[2] - cr[2]), ar)
+    else:
+        yl, pl = eye_angles(q, al)
+        yr, pr = eye_angles(q, ar)
+    return [yl / _AU, yr / _AU, pl / _AU, pr / _AU]
 
 
 _TOP, _BOTTOM = LIP_PAIRS[:, 0].copy(), LIP_PAIRS[:, 1].copy()
@@ -174,24 +234,47 @@ _PAIRS: tuple[tuple[int, int], ...] = tuple((int(a), int(b)) for a, b in LIP_PAI
 _LIPS = LIP_PAIRS.reshape(-1)
 
 
+#: ``(69,)`` 1.0 on the mouth and tongue FAPs (``_SPEECH``), 0.0 elsewhere; its complement.
+_SPEECH_F = _SPEECH.astype(np.float64)
+_OTHER_F = 1.0 - _SPEECH_F
+_ZEROS = np.zeros(69)
+_ONES = np.ones(69)
+for _a in (_SPEECH_F, _OTHER_F, _ZEROS, _ONES):
+    _a.flags.writeable = False
+
+
+#: The lips' width: the corners' stretch, inner and outer (FAPs 6, 7, 53, 54).
+WIDTH: np.ndarray = np.array([6, 7, 53, 54])
+_WIDTH = WIDTH.tolist()
+
+
 def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` over a speaking primary's FAPs ``F`` limited in the mouth and tongue
     (rule 4): where ``A`` moves a FAP the way ``F`` does, only what goes beyond ``F`` stays, so
-    ``F + A`` is the larger of the two (opposite ways they add). ``A`` itself when nothing
-    changes, else a new array. (Python floats over the mouth's FAPs: cheaper for one frame.)"""
-    out = None
-    for k, a, f in zip(_MOUTH, A[_MOUTH].tolist(), F[_MOUTH].tolist()):
-        if a * f > 0:
-            out = A.copy() if out is None else out
-            out[k] = max(0.0, a - f) if a > 0 else min(0.0, a - f)
-    return A if out is None else out
+    ``F + A`` is the larger of the two (opposite ways they add): ``A - clip(F, min(0, A),
+    max(0, A))`` there; the lips' width (``WIDTH``) that ``A`` moves is the mean of the two,
+    ``(F + A) / 2``. A new array."""
+    f = F * _SPEECH_F
+    np.maximum(f, np.minimum(A, _ZEROS), out=f)
+    np.minimum(f, np.maximum(A, _ZEROS), out=f)
+    out = A - f
+    a = A[WIDTH].tolist()
+    if a[0] or a[1] or a[2] or a[3]:
+        w = F[WIDTH].tolist()
+        out[WIDTH] = [(x - y) / 2 if x else 0.0 for x, y in zip(a, w, strict=True)]
+    return out
 
 
 def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
     """``limit_mouth`` of the ``rows`` (bool ``(B,)``) of ``F``, ``A (B, 69)``, in place on ``A``."""
-    same = (rows[:, None] & _SPEECH) & (F * A > 0)
-    if same.any():
-        A[same] = np.sign(A[same]) * np.maximum(0.0, np.abs(A[same]) - np.abs(F[same]))
+    a = A[:, WIDTH]
+    f = F * (rows[:, None] * _SPEECH_F)
+    np.maximum(f, np.minimum(A, 0.0), out=f)
+    np.minimum(f, np.maximum(A, 0.0), out=f)
+    A -= f
+    mean = rows[:, None] & (a != 0)
+    if mean.any():
+        A[:, WIDTH] = np.where(mean, (a - F[:, WIDTH]) / 2, A[:, WIDTH])
 
 
 def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
@@ -245,8 +328,12 @@ def combine(
     F = np.array(primary.faps, dtype=np.float64)
     if F.shape != (69,):
         raise ValueError(f"FaceState.faps must have shape (69,), not {F.shape}")
-    F[:3] = 0.0
-    high = _expand(primary.viseme, primary.expression, geo)
+    F[0] = F[1] = F[2] = 0.0
+    high = (
+        None
+        if primary.viseme is None and primary.expression is None
+        else _expand(primary.viseme, primary.expression, geo)
+    )
     if high is not None:
         F += high
 
@@ -254,7 +341,7 @@ def combine(
     poses: list[tuple[np.ndarray, float]] = []
     gazes: list[tuple[GazeTarget, float]] = []
     overrides: list[tuple[np.ndarray, Any]] = []
-    roles: dict[Role, list[tuple[np.ndarray, Any]]] = {}
+    roles: dict[Role, list[tuple[np.ndarray, np.ndarray | None, Any]]] = {}
     for role, c in items:
         if c.head is not None and c.head_weight > 0:
             poses.append((c.head, c.head_weight))
@@ -262,14 +349,16 @@ def combine(
             gazes.append((c.gaze, c.gaze_weight))
         if c.override is not None:
             overrides.append((c.override, c.override_weight))
-        x = _offsets(c, geo)
-        if x is None:
+        if c.faps is None and c.viseme is None and c.expression is None:
+            continue
+        xn = _offsets_nz(c, geo)
+        if xn is None:
             continue
         group = roles.get(role)
         if group is None:
-            roles[role] = [(x, c.weight)]
+            roles[role] = [(*xn, c.weight)]
         else:
-            group.append((x, c.weight))
+            group.append((*xn, c.weight))
 
     # 2. head pose over the primary's
     head_out = primary.head
@@ -290,33 +379,24 @@ def combine(
     if roles:
         A: Any = None
         for role, group in roles.items():
+            P = None
             if role is Role.EXPRESSION:
-                num: Any = 0.0
-                den: Any = 0.0
-                for x, w in group:
-                    num = num + w * x
-                    den = den + w * (x != 0)
                 # what of the primary the overlays compete with: all of it, or, in a speaking
                 # mouth, only its own expression (FAP 2), never the speech
-                P = F
-                if closures:
+                if not closures:
+                    P = F
+                elif primary.expression is None:
+                    P = F * _OTHER_F
+                else:
                     E = _expand(None, primary.expression, geo)
-                    P = np.where(_SPEECH, 0.0 if E is None else E, F)
-                part = (P + num) / np.maximum(1.0, (P != 0) + den) - P
-            elif len(group) == 1:
-                part = _weighted(*group[0])
-            else:
-                num = 0.0
-                den = 0.0
-                for x, w in group:
-                    num = num + w * x
-                    den = den + w * (x != 0)
-                part = num / np.maximum(1.0, den)
+                    assert E is not None
+                    P = np.where(_SPEECH, E, F)
+            part = _role_part(group, P)
             A = part if A is None else A + part
         if closures:
             A = keep_closures(F, limit_mouth(F, A))
         F += A
-        F[:3] = 0.0
+        F[0] = F[1] = F[2] = 0.0
 
     # 5. overrides
     if overrides:
@@ -340,21 +420,24 @@ def combine(
         if head_out is not None:
             H = np.asarray(head_out, dtype=np.float64).reshape(3, 4).tolist()
             R, tr = [row[:3] for row in H], [row[3] for row in H]
+
+            def eyes_of(g: GazeTarget) -> list[float]:
+                return gaze_faps(g, geo, R, tr)
         else:
-            pitch, yaw, roll = F[48:51].tolist()
-            R = _rot(pitch * _AU, yaw * _AU, roll * _AU)
-            pv = geo.head_pivot.tolist()
-            Rp = _mv(R, pv)
-            tr = [pv[0] - Rp[0], pv[1] - Rp[1], pv[2] - Rp[2]]
+            angles = F[48:51].tolist()
+
+            def eyes_of(g: GazeTarget) -> list[float]:
+                return _gaze_about_pivot(g, geo, angles)
+
         if len(gazes) == 1:
             g, W = gazes[0]
-            eyes = gaze_faps(g, geo, R, tr)
+            eyes = eyes_of(g)
             W = min(1.0, W)
         else:
             wsum = 0.0
             eyes = [0.0, 0.0, 0.0, 0.0]
             for g, w in gazes:
-                e = gaze_faps(g, geo, R, tr)
+                e = eyes_of(g)
                 eyes = [a + w * b for a, b in zip(eyes, e, strict=True)]
                 wsum += w
             eyes = [e / wsum for e in eyes]
@@ -375,6 +458,34 @@ def combine(
         controls=primary.controls,
         head=head_out,
     )
+
+
+def _role_part(group: list[tuple[np.ndarray, np.ndarray | None, Any]], P: np.ndarray | None) -> Any:
+    """What one role's layers ``(x, nz, w)`` (offsets, where they are non-zero or None, weight)
+    add: ``Σ w·x / max(1, Σ w·[x ≠ 0])``; with ``P``, the primary an expression overlay competes
+    with (weight 1 where it is non-zero), ``(P + Σ w·x) / max(1, [P ≠ 0] + Σ w·[x ≠ 0]) - P``.
+    May be ``x`` itself (read-only)."""
+    x, nz, w = group[0]
+    if len(group) == 1 and (type(w) is float or type(w) is int):
+        if P is None:
+            return x if w >= 1.0 else w * x
+        if w <= 1.0 and not np.count_nonzero(P):
+            return x if w == 1.0 else w * x  # Σ w ≤ 1, nothing to compete with: (P + w·x) / 1 - P
+    if P is None and len(group) == 1:
+        return _weighted(x, w)
+    num: Any = 0.0
+    den: Any = 0.0
+    for x, nz, w in group:
+        num = num + w * x
+        den = den + w * (x != 0 if nz is None else nz)
+    if P is None:
+        return num / np.maximum(_ONES, den)
+    d = (P != 0) + den
+    np.maximum(d, _ONES, out=d)
+    part = P + num
+    part /= d
+    part -= P
+    return part
 
 
 def _weighted(x: np.ndarray, w: Any) -> np.ndarray:
@@ -426,6 +537,12 @@ class Mixer:
         self.max_layers = max_layers
         self._lock = threading.Lock()
         self._layers: dict[str, Layer] = {}
+        self._next_end: float | None = None  # the earliest ``end`` of the layers (None: none ends)
+
+    def _changed(self) -> None:
+        """Note the layers changed (call with the lock held): their earliest end."""
+        ends = [e for e in (lay.end for lay in self._layers.values()) if e is not None]
+        self._next_end = min(ends) if ends else None
 
     @staticmethod
     def _check_name(name: str) -> str:
@@ -442,6 +559,7 @@ class Mixer:
             if name not in self._layers and len(self._layers) >= self.max_layers:
                 raise Conflict(f"a session holds at most {self.max_layers} layers")
             self._layers[name] = layer
+            self._changed()
 
     def add(self, name: str, layer: Layer) -> None:
         """Add ``layer`` as ``name``; ``Conflict`` if the name is taken."""
@@ -453,7 +571,9 @@ class Mixer:
     def remove(self, name: str) -> Layer | None:
         """Remove and return layer ``name`` (None if there was none)."""
         with self._lock:
-            return self._layers.pop(name, None)
+            layer = self._layers.pop(name, None)
+            self._changed()
+            return layer
 
     def change(self, name: str, **fields: object) -> Layer:
         """Replace layer ``name`` by a copy with ``fields`` changed (layers are frozen dataclasses:
@@ -468,6 +588,7 @@ class Mixer:
             except (TypeError, ValueError) as e:
                 raise InputError(f"layer {name!r}: {e}") from None
             self._layers[name] = new
+            self._changed()
             return new
 
     def get(self, name: str) -> Layer | None:
@@ -482,6 +603,7 @@ class Mixer:
     def clear(self) -> None:
         with self._lock:
             self._layers.clear()
+            self._next_end = None
 
     def __len__(self) -> int:
         return len(self._layers)
@@ -492,20 +614,26 @@ class Mixer:
             t = 0.0 if primary is None else primary.t
         return combine(primary, self.items(t), t, geometry=self.geometry, closures=self.closures)
 
-    def items(self, t: float) -> list[tuple[Role, Contribution]]:
-        """The active layers sampled at ``t`` (``combine``'s items); drops ended layers."""
-        return [(layer.role, layer.sample(t)) for layer in self.active(t)]
+    def items(
+        self, t: float, layers: Iterable[Layer] | None = None
+    ) -> list[tuple[Role, Contribution]]:
+        """The active layers (or ``layers``, from ``active``) sampled at ``t`` (``combine``'s
+        items); drops ended layers."""
+        return [
+            (layer.role, layer.sample(t))
+            for layer in (self.active(t) if layers is None else layers)
+        ]
 
     def active(self, t: float) -> list[Layer]:
         """The layers at ``t``, in the order they were added; drops those whose end passed."""
         with self._lock:
-            layers = list(self._layers.values())
-            if any(lay.end is not None and lay.end < t for lay in layers):
+            end = self._next_end
+            if end is not None and end < t:
                 for n, lay in list(self._layers.items()):
                     if lay.end is not None and lay.end < t:
                         del self._layers[n]
-                layers = list(self._layers.values())
-        return layers
+                self._changed()
+            return list(self._layers.values())
 
 
 def mix_states(

@@ -246,8 +246,11 @@ class Geometry:
     eyes: tuple[tuple[tuple[float, ...], tuple[float, ...]], ...] = field(
         init=False, repr=False, compare=False
     )
-    #: high-level FAP expansions already made: (viseme, expression) -> (69,) read-only array
-    expansions: dict[object, np.ndarray] = field(
+    #: the head pivot as Python floats
+    pivot: tuple[float, ...] = field(init=False, repr=False, compare=False)
+    #: what mixing remembers of this face: high-level FAP expansions ((viseme, expression) ->
+    #: (69,)), overlays' offsets and masks (read-only arrays)
+    expansions: dict[object, Any] = field(
         init=False, repr=False, compare=False, default_factory=dict
     )
 
@@ -263,6 +266,7 @@ class Geometry:
             (tuple(map(float, self.eye_pivots[i])), tuple(map(float, axes[i]))) for i in range(2)
         )
         object.__setattr__(self, "eyes", eyes)
+        object.__setattr__(self, "pivot", tuple(map(float, self.head_pivot)))
 
     @classmethod
     def of_rig(cls, rig: Any) -> Geometry:

@@ -185,7 +185,7 @@ class SessionMix:
 
     def remove(self, name: str) -> None:
         if self._rest.pop(name, None) is None:
-            raise self._missing(name)
+            raise self.missing(name)
         self.mixer.remove(name)
 
     def clear(self, kinds: frozenset[str]) -> None:
@@ -198,7 +198,7 @@ class SessionMix:
         self._prune()
         r = self._rest.get(name)
         if r is None:
-            raise self._missing(name)
+            raise self.missing(name)
         return LayerInfo(
             name=name,
             source="rest",
@@ -217,7 +217,8 @@ class SessionMix:
         ]
         return out + [self.info(name) for name in self._rest]
 
-    def _missing(self, name: str) -> NotFound:
+    def missing(self, name: str) -> NotFound:
+        """The error of a missing REST layer ``name``, naming the session's layers."""
         known = ", ".join(self._rest) or "none"
         return NotFound(f"no layer {name!r} in this session (its layers: {known})", where="name")
 
