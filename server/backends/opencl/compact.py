@@ -4,8 +4,10 @@ the deformed frames already are (kernel ``compact.cl``), in one launch for all t
 batch; only joining its pieces and deflate stay on the host.
 
 The encoder's NumPy passes (local frame, offset from the reference, keep-or-round, difference
-along the vertex order, zigzag, byte planes: about a dozen passes over the frame) become one
-pass of vectorised CPU code on PoCL, outside the GIL. The local frame is computed as NumPy's
+along the vertex order, zigzag, bitmaps, packing the non-zero values: about a dozen passes over
+the frame) become one pass of vectorised CPU code on PoCL, outside the GIL. Each work-item packs
+the non-zero values of its own run of vertices where that run's values would start; the host
+joins the runs (``Residuals.payload``: a few KB a frame). The local frame is computed as NumPy's
 float32 matmul computes it with OpenBLAS on x86-64 (a fused multiply-add chain): where a BLAS
 rounds otherwise the frames stay exactly as valid (the decoder reconstructs from the integer
 cells the frame carries, the tolerance holds with the encoder's margin) but may differ from the
@@ -18,8 +20,12 @@ Measured on the 2-core shared machine (PoCL, 25k-vertex head, load 3-5): process
 0.405 ms for the NumPy encoder (the same bytes on every stream); in-process live batches of 10
 sessions (solve + deform + encode) 0.43-0.45 against 0.48-0.53 ms. One work-item per vertex
 (PoCL's vectoriser across work-items) cost 2-3x the NumPy passes; float16 code per 16 vertices
-in a loop per work-item, one work-group per frame, is what pays. Deflate (0.1-0.3 ms a frame on
-noisy streams) is now most of a frame's cost. Reference cells stay in slots on the device
+in a loop per work-item, one work-group per frame, is what pays. Deflate was then most of a
+frame's cost (0.1-0.3 ms of every residual); format 2 deflates only the bitmaps and the non-zero
+values, by ISA-L: process CPU per frame of 10 sessions a batch with the deflate pool, as the
+server runs it, 0.25-0.30 ms against format 1's 0.32-0.48 ms (FAP, speech and mocap streams on
+the 25k head, two runs alternating with the previous commit's, load 10; ``bench/compact_stream.py``
+reports it as ``batch_device_cpu_ms``). Reference cells stay in slots on the device
 across launches (copied once per key frame, not once per frame: 0.24 -> 0.20 ms of the calling
 thread's CPU per frame, 0.375 -> 0.314 ms of the process's, 8 sessions a batch, FAP stream).
 """
