@@ -174,6 +174,32 @@ def test_seq_wraps(stream):
         assert h.seq == (2**32 - 2 + i) % 2**32 and _err(x, frames[i]) <= 0.1
 
 
+def test_every_deflate_coder_makes_the_same_frames_but_the_zlib_stream(stream, monkeypatch):
+    """ISA-L (the default), zlib-ng without it, zlib-ng at another level: one format, any inflater
+    decodes each; only the zlib stream differs."""
+    rest, groups, frames, transforms = stream
+
+    def run() -> list[bytes]:
+        enc = cp.CompactEncoder(rest, groups, tolerance=0.1, key_interval=4)
+        return [enc.encode(v, tr, seq=i, t=i) for i, (v, tr) in enumerate(zip(frames, transforms))]
+
+    default = run()
+    monkeypatch.setattr(cp, "_isal", None)
+    fallback = run()
+    level4 = [
+        cp.CompactEncoder(rest, groups, tolerance=0.1, key_interval=4, level=4).encode(
+            frames[0], transforms[0], seq=0, t=0
+        )
+    ]
+    for a, b in zip(default, fallback):
+        assert a[:44] == b[:44] and a[48 : 52 + 48 * a[40]] == b[48 : 52 + 48 * b[40]]
+        assert zlib.decompress(a[52 + 48 * a[40] :]) == zlib.decompress(b[52 + 48 * b[40] :])
+    dec = cp.CompactDecoder(rest, groups)
+    for b, v in zip(fallback, frames):
+        assert _err(dec.decode(b)[1], v) <= 0.1
+    assert _err(cp.CompactDecoder(rest, groups).decode(level4[0])[1], frames[0]) <= 0.1
+
+
 def test_layout_is_as_documented(stream):
     rest, groups, frames, transforms = stream
     enc = cp.CompactEncoder(rest, groups, tolerance=0.1)
