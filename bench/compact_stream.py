@@ -9,12 +9,12 @@ mocap take (``mocap.synthetic``: 60 markers, 0.5 mm noise, gaps, head motion) th
 mocap driver; each on the built-in head and on ICT FaceKit. Per stream and coder:
 
 - ``i16``: today's ``VERTICES_I16`` frames (56 + 6·V bytes; error half a per-frame step);
-- ``compact``: ``VERTICES_COMPACT`` as the server sends it (deflate with the Z_RLE strategy, by
-  zlib-ng when installed, as in ``protocol/compact.py``),
-  and ``compact-lz4`` with zlib's default LZ77 search at level 4 (same format, other encoder choice);
-- ``zstd-3`` / ``zstd-9``: the same residual byte planes as ``compact``, zstd instead of deflate;
-- ``compact-isal``: the same planes deflated by ISA-L (``isal``, level 1): still a zlib stream
-  (same format, every decoder), about half zlib-ng's deflate time, about a fifth more bytes;
+- ``compact``: ``VERTICES_COMPACT`` (format 2: bitmaps of the non-zero residuals, then those) as
+  the server sends it (deflated by ISA-L, level 1, as in ``protocol/compact.py``),
+  and ``compact-lz4`` with zlib-ng's default LZ77 search at level 4 (same format, other encoder);
+- ``zstd-3`` / ``zstd-9``: the same payloads as ``compact`` before deflate, zstd instead;
+- ``compact-zng``: the same payloads deflated by zlib-ng (level 1, Z_RLE; ``protocol/compact.py``'s
+  fall-back without ISA-L): still a zlib stream (same format, every decoder);
 
 meshoptimizer's vertex codec is left out: its PyPI wrapper (0.2.30a0, an alpha) corrupts the heap
 ("free(): corrupted unsorted chunks") round-tripping one 25k-vertex int32 buffer.
@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import inspect
 import json
 import os
 import subprocess
@@ -112,9 +113,13 @@ def measure(
         "enc_ms": (t1 - t0) / n * 1e3,
     }
 
-    coders = [("compact", cp, 1, zlib.Z_RLE), ("compact-lz4", cp, 4, zlib.Z_DEFAULT_STRATEGY)]
+    coders: list[tuple[str, ModuleType, int | None, int]] = [
+        ("compact", cp, None, zlib.Z_RLE),
+        ("compact-lz4", cp, 4, zlib.Z_DEFAULT_STRATEGY),
+    ]
     if base is not None:  # the earlier commit's encoder and decoder, right after this one's
-        coders.insert(1, ("compact-base", base.module, 1, zlib.Z_RLE))
+        coders.insert(1, ("compact-base", base.module, base.level, zlib.Z_RLE))
+    wires: dict[str, list[bytes]] = {}
     for label, mod, level, strategy in coders:
         enc = mod.CompactEncoder(
             face.vertices,
@@ -136,7 +141,7 @@ def measure(
             _, x = dec.decode(b)
             dec_s += clock() - t0
             err = max(err, float(np.linalg.norm(x.astype(np.float64) - v, axis=1).max()))
-        keys = [b for b in wire if cp.parse_compact(b).key]
+        keys = [b for b in wire if b[6] & 1]  # header flag bit 0: a key frame (both formats)
         res[label] = {
             "bpvf": sum(map(len, wire)) / n / nv,
             "max_err_mm": err * face.mm_per_unit,
@@ -146,8 +151,8 @@ def measure(
             "key_bpv": sum(map(len, keys)) / len(keys) / nv,
             "delta_bpv": (sum(map(len, wire)) - sum(map(len, keys))) / max(1, n - len(keys)) / nv,
         }
-        if label == "compact":
-            main = wire
+        wires[label] = wire
+    main = wires["compact"]
 
     # Alternatives on the same residuals: the compact frames' own payloads, re-coded.
     raws, heads = [], []
@@ -156,11 +161,9 @@ def measure(
         raw = zlib.decompress(f.payload)
         raws.append(raw)
         heads.append(len(b) - len(f.payload))
+    coder = cp.CompactEncoder(face.vertices[:1], face.rigid_group[:1], tolerance=tol)
     t0 = clock()
-    zl = []
-    for r in raws:
-        zc = getattr(cp, "_deflate", zlib).compressobj(1, zlib.DEFLATED, 15, 9, zlib.Z_RLE)
-        zl.append(zc.compress(r) + zc.flush())
+    zl = [coder.deflate(r) for r in raws]
     res["compact"]["entropy_ms"] = (clock() - t0) / n * 1e3
     for label, level in (("zstd-3", 3), ("zstd-9", 9)):
         c = zstandard.ZstdCompressor(level=level)
@@ -177,26 +180,34 @@ def measure(
             "entropy_dec_ms": (t2 - t1) / n * 1e3,
         }
     del zl
-    res["compact-isal"] = isal_row(raws, heads, n, nv)
+    res["compact-zng"] = zng_row(raws, heads, n, nv)
     res["compact"]["batch"] = batch_encode_ms(face, fps, frames, transforms, tol, key, main)
     res["compact"]["js_dec"] = js_decode_ms(face, main)
     res["compact"]["chromium_dec"] = chromium_decode_ms(face, main)
     if base is not None:
-        res["compact-base"]["chromium_dec"] = chromium_decode_ms(face, main, base.js)
+        res["compact-base"]["chromium_dec"] = chromium_decode_ms(
+            face, wires["compact-base"], base.js
+        )
     return res
 
 
-def isal_row(raws: list[bytes], heads: list[int], n: int, nv: int) -> dict | None:
-    """The same compact frames with their residual planes deflated by ISA-L (``isal``, level 1)
-    instead of zlib-ng's Z_RLE: the same format (a zlib stream every decoder reads, checked here),
-    another encoder's speed and size; None without ``isal``."""
+def zng_row(raws: list[bytes], heads: list[int], n: int, nv: int) -> dict | None:
+    """The same compact frames with their payloads deflated by zlib-ng (level 1, Z_RLE:
+    ``protocol/compact.py``'s coder without ISA-L) instead of ISA-L: the same format (a zlib
+    stream every decoder reads, checked here), the other encoder's speed and size; None without
+    ``zlib_ng``."""
     try:
-        from isal import isal_zlib
+        from zlib_ng import zlib_ng
     except ImportError:
         return None
+
+    def deflate(r: bytes) -> bytes:
+        zc = zlib_ng.compressobj(1, zlib.DEFLATED, 15, 9, zlib.Z_RLE)
+        return zc.compress(r) + zc.flush()
+
     clock = time.thread_time
     t0 = clock()
-    out = [isal_zlib.compress(r, 1) for r in raws]
+    out = [deflate(r) for r in raws]
     t1 = clock()
     same = all(zlib.decompress(o) == r for o, r in zip(out, raws))
     return {
@@ -268,6 +279,7 @@ class Baseline:
     ref: str
     module: ModuleType
     js: Path
+    level: int | None  #: the encoder's default deflate level (format 1 took 1, format 2 None)
 
     @staticmethod
     def load(ref: str, tmp: Path) -> Baseline:
@@ -290,7 +302,8 @@ class Baseline:
         module = importlib.util.module_from_spec(spec)
         sys.modules[name] = module
         spec.loader.exec_module(module)
-        return Baseline(ref, module, tmp / "compact_base.js")
+        default = inspect.signature(module.CompactEncoder).parameters["level"].default
+        return Baseline(ref, module, tmp / "compact_base.js", default)
 
 
 CODERS = ("i16", "compact", "compact-lz4", "zstd-3", "zstd-9")
@@ -604,18 +617,18 @@ def main(argv: list[str]) -> int:
                 + " | ".join(f"{x:.3f} -> {y:.3f}" for x, y in vals)
                 + f" | {ch[0][0]:.2f} / {ch[1][0]:.2f} -> {ch[0][1]:.2f} / {ch[1][1]:.2f} |"
             )
-    isal = [r["compact-isal"] for r in rows if r.get("compact-isal")]
-    if isal:
-        summary["compact-isal"] = {
-            "bpvf_mean": float(np.mean([x["bpvf"] for x in isal])),
-            "entropy_ms_mean": float(np.mean([x["entropy_ms"] for x in isal])),
-            "zlib_decodes_it": all(x["zlib_decodes_it"] for x in isal),
+    zng = [r["compact-zng"] for r in rows if r.get("compact-zng")]
+    if zng:
+        summary["compact-zng"] = {
+            "bpvf_mean": float(np.mean([x["bpvf"] for x in zng])),
+            "entropy_ms_mean": float(np.mean([x["entropy_ms"] for x in zng])),
+            "zlib_decodes_it": all(x["zlib_decodes_it"] for x in zng),
         }
         print(
-            f"\ncompact deflated by ISA-L level 1 instead (same format; zlib decodes it: "
-            f"{summary['compact-isal']['zlib_decodes_it']}): "
-            f"{summary['compact-isal']['bpvf_mean']:.3f} B/v/f mean against "
-            f"{s['compact']['bpvf_mean']:.3f}, deflate {summary['compact-isal']['entropy_ms_mean']:.3f}"
+            f"\ncompact deflated by zlib-ng level 1 Z_RLE instead (same format; zlib decodes it: "
+            f"{summary['compact-zng']['zlib_decodes_it']}): "
+            f"{summary['compact-zng']['bpvf_mean']:.3f} B/v/f mean against "
+            f"{s['compact']['bpvf_mean']:.3f}, deflate {summary['compact-zng']['entropy_ms_mean']:.3f}"
             f" ms/frame against {s['compact']['entropy_ms_mean']:.3f}"
         )
     print(

@@ -8,8 +8,11 @@ vertices ``rest (V, 3) float32`` and rigid group per vertex ``groups (V,) uint8`
   for the session): integer cells ``q (V, 3) int32``, position = R_g · (q · step) + t_g;
 - ``q`` minus a reference: for a **key** frame the rest mesh on the same grid
   (``base = floor(rest / step + 0.5)``, float64), for a **delta** frame the ``q`` of the key frame
-  it names; the difference is differenced again along the vertex order per axis, zigzagged to
-  ``uint32``, split into byte planes and deflated (zlib format).
+  it names; the difference is differenced again along the vertex order per axis and zigzagged to
+  ``uint32``; most of these are 0, so the payload (format 2) is a bitmap of the non-zero ones per
+  axis, then only those, as byte planes, deflated (zlib format): deflate sees 8-25 % of the bytes
+  it saw in format 1 (all the values), and ISA-L codes that as small as zlib-ng coded format 1 in
+  under half the time (``bench/compact_stream.py``).
 
 A delta depends only on its key, so a viewer that skips any number of deltas still decodes every
 frame it gets exactly; a viewer that missed the key waits for the next one (``None`` from
@@ -39,6 +42,12 @@ try:  # zlib-ng: the same deflate streams (Z_RLE output is byte for byte zlib's 
     _deflate: ModuleType = zlib_ng
 except ImportError:  # pragma: no cover - a platform without its wheel
     _deflate = zlib
+try:  # ISA-L: on format 2's bitmaps and values as small as zlib-ng's Z_RLE, in under half the time
+    from isal import isal_zlib
+
+    _isal: ModuleType | None = isal_zlib
+except ImportError:  # pragma: no cover - a platform without its wheel
+    _isal = None
 
 from .errors import FrameError
 from .frames import HEADER_SIZE, MAX_VERTICES, Header, Kind, _header, parse_header
@@ -58,8 +67,11 @@ __all__ = [
 KEY = 1
 #: Most rigid groups a frame may carry.
 MAX_GROUPS = 255
-#: ref (u32), step (f32), G (u8), planes (u8), reserved (u16), zlen (u32): 16 bytes after the header.
-_SUB = struct.Struct("<IfBBHI")
+#: Version of the compact frame layout (sub-header bytes 42-43); 1 (no bitmaps) is not read.
+FORMAT = 2
+#: ref (u32), step (f32), G (u8), planes (u8), format (u16), zlen (u32), nnz (u32): 20 bytes after
+#: the header.
+_SUB = struct.Struct("<IfBBHII")
 SUB_SIZE = _SUB.size
 #: Largest grid step a decoder accepts (face units); with |R| <= 1 and |q| < 2^31 positions stay finite.
 MAX_STEP = 1e6
@@ -102,11 +114,11 @@ def grid_base(rest: np.ndarray, step: float) -> np.ndarray:
     return b.astype(np.int32)
 
 
-def _unzigzag_planes(raw: bytes, planes: int, n: int) -> np.ndarray:
+def _unzigzag_planes(raw: bytes | memoryview, planes: int, n: int) -> np.ndarray:
     """``raw``: ``planes`` byte planes (little end first) of ``n`` zigzagged values, as
     ``CompactEncoder.encode`` writes them -> ``(n,)`` signed integers, in the narrowest type
     that holds them (int8 for one plane, int16 for two, else int32)."""
-    p = np.frombuffer(raw, np.uint8).reshape(planes, n)
+    p = np.frombuffer(raw, np.uint8, planes * n).reshape(planes, n)
     if planes == 1:
         u = p[0]
     elif planes == 2:
@@ -121,6 +133,48 @@ def _unzigzag_planes(raw: bytes, planes: int, n: int) -> np.ndarray:
     v: np.ndarray = u >> one
     v ^= -(u & one)  # two's complement negation of 0 or 1: all zeros or all ones
     return v.view(v.dtype.str.replace("u", "i"))
+
+
+def bitmap_size(n_vertices: int) -> int:
+    """Bytes of one axis's bitmap of non-zero values: ``ceil(V / 8)``."""
+    return (n_vertices + 7) // 8
+
+
+def pack_payload(zz: np.ndarray, planes: int) -> tuple[int, bytes]:
+    """``zz (3, V)``: zigzagged values (any integer type; only their low ``planes`` bytes are
+    kept) -> ``(nnz, raw)``: the count of non-zero ones and the payload before deflate: per axis a
+    bitmap of the non-zero values (``bitmap_size(V)`` bytes, bit ``i % 8`` of byte ``i // 8``,
+    least significant first), then the ``nnz`` non-zero values (axis-major, vertex order) as
+    ``planes`` byte planes, little end first."""
+    mask = zz != 0
+    bits = np.packbits(mask, axis=1, bitorder="little")  # (3, ceil(V / 8)): each axis padded
+    vals = np.compress(mask.reshape(-1), zz.reshape(-1))
+    k = len(vals)
+    if planes > 1 and vals.itemsize > 1:  # byte planes: byte 0 of every value, then byte 1...
+        vals = np.ascontiguousarray(vals.view(np.uint8).reshape(k, vals.itemsize)[:, :planes].T)
+    return k, bits.tobytes() + vals.tobytes()
+
+
+def unpack_payload(raw: bytes | memoryview, planes: int, nnz: int, n_vertices: int) -> np.ndarray:
+    """``pack_payload``'s ``raw`` (exactly ``3 bitmap_size(V) + planes nnz`` bytes) -> the
+    differences ``(3, V) int32`` (un-zigzagged). Raises ``FrameError`` when the bitmaps' set bits
+    are not ``nnz``, a bit past ``V`` is set, or a value marked non-zero is 0."""
+    n, nb = n_vertices, bitmap_size(n_vertices)
+    bits = np.frombuffer(raw, np.uint8, 3 * nb).reshape(3, nb)
+    if n % 8 and bits[:, -1].max(initial=0) >> (n % 8):
+        raise FrameError("bitmap bits past the last vertex must be 0", where="payload")
+    mask = np.unpackbits(bits, axis=1, count=n, bitorder="little").view(bool)
+    if int(np.count_nonzero(mask)) != nnz:
+        raise FrameError(
+            f"the bitmaps mark {int(np.count_nonzero(mask))} non-zero values, nnz says {nnz}",
+            where="payload",
+        )
+    d = _unzigzag_planes(memoryview(raw)[3 * nb :], planes, nnz)
+    if nnz and not d.all():
+        raise FrameError("a value the bitmap marks as non-zero is 0", where="payload")
+    dd = np.zeros((3, n), np.int32)
+    dd.reshape(-1)[mask.reshape(-1)] = d
+    return dd
 
 
 _scratch = threading.local()
@@ -220,6 +274,7 @@ class CompactFrame:
     step: float  #: grid step, face units
     transforms: np.ndarray  #: (G, 3, 4) float32
     planes: int
+    nnz: int  #: non-zero values the payload carries
     payload: memoryview  #: zlib stream
 
     @property
@@ -241,15 +296,20 @@ def parse_compact(data: bytes | bytearray | memoryview) -> CompactFrame:
             f"compact frame of {len(data)} bytes is shorter than its "
             f"{HEADER_SIZE + SUB_SIZE}-byte headers"
         )
-    ref, step, g, planes, reserved, zlen = _SUB.unpack_from(data, HEADER_SIZE)
+    ref, step, g, planes, fmt, zlen, nnz = _SUB.unpack_from(data, HEADER_SIZE)
+    if fmt != FORMAT:
+        raise FrameError(
+            f"compact format {fmt} is not supported (this decoder reads format {FORMAT})",
+            where="bytes 42-43",
+        )
     if not (math.isfinite(step) and 0 < step <= MAX_STEP):
         raise FrameError(f"grid step must be in (0, {MAX_STEP:g}], got {step}", where="bytes 36-39")
     if g < 1:
         raise FrameError("a compact frame carries at least one transform", where="byte 40")
     if not 1 <= planes <= 4:
         raise FrameError(f"planes must be 1-4, got {planes}", where="byte 41")
-    if reserved:
-        raise FrameError("reserved bytes must be 0", where="bytes 42-43")
+    if nnz > 3 * h.count:
+        raise FrameError(f"nnz {nnz} is over the frame's 3 x {h.count} values", where="bytes 48-51")
     if h.flags & KEY and ref != h.seq:
         raise FrameError(
             f"a key frame must name itself: ref {ref} != seq {h.seq}", where="bytes 32-35"
@@ -268,7 +328,7 @@ def parse_compact(data: bytes | bytearray | memoryview) -> CompactFrame:
             "transforms must be finite with rotation entries in [-1.001, 1.001]",
             where=f"bytes {o}-{o + 48 * g - 1}",
         )
-    return CompactFrame(h, ref, step, tr, planes, memoryview(data)[o + 48 * g :])
+    return CompactFrame(h, ref, step, tr, planes, nnz, memoryview(data)[o + 48 * g :])
 
 
 class CompactEncoder:
@@ -280,7 +340,8 @@ class CompactEncoder:
         tolerance: largest distance of a decoded vertex from the input, face units.
         key_interval: a key frame at least every this many frames (e.g. 250 ms of the session's fps).
         key_seconds: and at least every this many seconds of media time ``t`` (None: no limit).
-        level, strategy: zlib's (decoders do not care).
+        level, strategy: the deflate coder (decoders do not care): None, ISA-L's level 1 when
+            installed (else zlib-ng's level 1); a number, zlib-ng's ``level`` and ``strategy``.
     """
 
     def __init__(
@@ -291,7 +352,7 @@ class CompactEncoder:
         tolerance: float,
         key_interval: int = 15,
         key_seconds: float | None = None,
-        level: int = 1,
+        level: int | None = None,
         strategy: int = zlib.Z_RLE,
     ) -> None:
         self.rest = np.ascontiguousarray(rest, np.float32)
@@ -308,7 +369,8 @@ class CompactEncoder:
         extent = 2.0 * float(np.abs(self.rest).max(initial=0.0))
         self._margin = float_margin(self.tolerance, extent)
         self.step = step_for_tolerance(self.tolerance, extent)
-        self.key_interval, self.level, self.strategy = int(key_interval), int(level), int(strategy)
+        self.key_interval, self.strategy = int(key_interval), int(strategy)
+        self.level = None if level is None else int(level)
         self.key_seconds = key_seconds
         self._key_t = 0.0
         self.base = grid_base(self.rest, self.step)
@@ -347,11 +409,11 @@ class CompactEncoder:
 
     @staticmethod
     def _zigzag(dd: np.ndarray, b: dict[str, np.ndarray]) -> tuple[int, np.ndarray]:
-        """``dd (3, V) float32`` integers -> (planes, raw): their zigzagged values
-        ``(d << 1) ^ (d >> 31)`` as ``planes`` byte planes, little end first. Small values (most
-        frames) are converted to, and zigzagged in, the narrowest integer type that holds them:
-        fewer bytes through every pass (``d + d`` for ``d << 1``: the same bits, and NumPy adds
-        small integers faster)."""
+        """``dd (3, V) float32`` integers -> (planes, zz): ``planes`` bytes hold every zigzagged
+        value ``(d << 1) ^ (d >> 31)``, and ``zz (3, V)`` those values, converted to, and
+        zigzagged in, the narrowest integer type that holds them (most frames: int8): fewer bytes
+        through every pass (``d + d`` for ``d << 1``: the same bits, and NumPy adds small integers
+        faster)."""
         lo, hi = int(dd.min()), int(dd.max())
         top = max(2 * hi, -2 * lo - 1)  # largest zigzagged value
         planes = 1 if top < 1 << 8 else 2 if top < 1 << 16 else 3 if top < 1 << 24 else 4
@@ -364,10 +426,7 @@ class CompactEncoder:
         np.right_shift(d, bits, out=s)
         np.add(d, d, out=d)
         np.bitwise_xor(d, s, out=d)
-        if planes == 1:
-            return 1, d
-        u = d.reshape(-1).view(np.uint8).reshape(-1, d.itemsize)
-        return planes, np.ascontiguousarray(u[:, :planes].T)
+        return planes, d
 
     def _ref_max(self, is_key: bool) -> float:
         """Largest ``|cell|`` of this frame's reference: the rest mesh's or the held key's."""
@@ -412,10 +471,11 @@ class CompactEncoder:
         dd = b["ddf"]  # differences along the vertex order, exact in float32 (below 2^24)
         dd[:, 0] = r[:, 0]
         np.subtract(r[:, 1:], r[:, :-1], out=dd[:, 1:])
-        planes, raw = self._zigzag(dd, b)
+        planes, zz = self._zigzag(dd, b)
+        nnz, raw = pack_payload(zz, planes)
         # the decoder's q = base + r: cells < 2^23, exact in float32
         new_key = np.add(self._base_f, r) if is_key else None
-        return self.finish(tr, is_key, planes, raw, new_key, seq=seq, t=t, wall=wall)
+        return self.finish(tr, is_key, planes, nnz, raw, new_key, seq=seq, t=t, wall=wall)
 
     def prepare(
         self,
@@ -459,12 +519,25 @@ class CompactEncoder:
         m = self._matrices(tr) if matrices else np.empty((0, 3, 4), np.float32)
         return v, tr, m, is_key, ref_f
 
+    def deflate(self, raw: bytes | bytearray | memoryview) -> bytes:
+        """``raw`` as one zlib stream, by this encoder's coder (``level`` None: ISA-L's level 1
+        when installed, else zlib-ng's level 1 with ``strategy``)."""
+        if self.level is None and _isal is not None:
+            return bytes(_isal.compress(raw, 1))
+        # Z_RLE: runs and Huffman codes only; on these sparse bytes smaller and faster than
+        # the default LZ77 search (bench/compact_stream.py)
+        zc = _deflate.compressobj(
+            1 if self.level is None else self.level, zlib.DEFLATED, 15, 9, self.strategy
+        )
+        return bytes(zc.compress(raw) + zc.flush())
+
     def finish(
         self,
         tr: np.ndarray,
         is_key: bool,
         planes: int,
-        raw: np.ndarray,
+        nnz: int,
+        raw: bytes | bytearray | memoryview,
         new_key: np.ndarray | None,
         *,
         seq: int,
@@ -472,14 +545,11 @@ class CompactEncoder:
         wall: float = 0.0,
     ) -> bytes:
         """The second half of ``encode``: the frame of ``prepare``'s ``tr`` and ``is_key`` with
-        ``raw``, its residuals' ``planes`` byte planes (C-contiguous ``uint8`` or ``int8``, ``3 V``
-        bytes each); a key frame's ``new_key (3, V) float32`` cells become the reference of the
-        deltas that follow (kept: the caller must not reuse it)."""
+        ``raw``, its payload before deflate (``pack_payload``'s, ``nnz`` non-zero values of
+        ``planes`` bytes); a key frame's ``new_key (3, V) float32`` cells become the reference of
+        the deltas that follow (kept: the caller must not reuse it)."""
         seq = int(seq) & 0xFFFFFFFF
-        # Z_RLE: runs and Huffman codes only; on these mostly-zero planes it is both smaller and
-        # about twice as fast as the default LZ77 search (bench/compact_stream.py).
-        zc = _deflate.compressobj(self.level, zlib.DEFLATED, 15, 9, self.strategy)
-        z = zc.compress(raw) + zc.flush()
+        z = self.deflate(raw)
         if is_key:
             assert new_key is not None
             self._key_f, self._key_max = new_key, None
@@ -490,7 +560,7 @@ class CompactEncoder:
         hdr = _header(  # the one header packer (frames.py)
             Kind.VERTICES_COMPACT, seq, len(self.rest), float(t), float(wall), KEY if is_key else 0
         )
-        sub = _SUB.pack(self._key_seq, self.step, len(tr), planes, 0, len(z))
+        sub = _SUB.pack(self._key_seq, self.step, len(tr), planes, FORMAT, len(z), nnz)
         return b"".join((hdr, sub, tr.astype("<f4").tobytes(), z))
 
 
@@ -550,19 +620,19 @@ class CompactDecoder:
             )
         else:
             ref = self._key[2]
-        want = 3 * n * f.planes
+        want = 3 * bitmap_size(n) + f.planes * f.nnz
         d = _deflate.decompressobj()
         try:
-            raw = d.decompress(f.payload, want)
+            raw = d.decompress(f.payload, max(want, 1))  # (0 would mean no limit)
         except (zlib.error, _deflate.error) as e:
             raise FrameError(f"payload is not a valid zlib stream: {e}", where="payload") from None
         if len(raw) != want or not d.eof or d.unconsumed_tail or d.unused_data:
             raise FrameError(
-                f"payload must inflate to exactly {want} bytes ({f.planes} planes of "
-                f"3 x {n} values) and end there",
+                f"payload must inflate to exactly {want} bytes (3 bitmaps of {n} bits, "
+                f"{f.planes} planes of {f.nnz} values) and end there",
                 where="payload",
             )
-        dd = _unzigzag_planes(raw, f.planes, 3 * n).reshape(3, n)
+        dd = unpack_payload(raw, f.planes, f.nnz, n)
         q = np.cumsum(dd, axis=1, dtype=np.int32)  # wraps modulo 2^32, as specified
         q += ref
         if f.key:

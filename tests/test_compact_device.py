@@ -183,6 +183,37 @@ def test_device_handles_odd_vertex_counts_large_motions_and_bad_frames(device, f
 
 
 @pytest.mark.opencl
+@pytest.mark.parametrize("n_vertices", [37, 1000, 1003])
+def test_device_bitmaps_and_values_equal_the_hosts_two_planes_and_short_runs(
+    device, face, n_vertices
+):
+    """Format 2 on the device: the per-axis bitmaps and the non-zero values the work-items compact
+    (some with no units at all when V < 16 WG, the last with the tail) are the host encoder's,
+    also for frames whose values need two bytes."""
+    from facecast.server.backends.opencl import aligned_empty
+    from facecast.server.backends.opencl.compact import encode_batch
+
+    if not _blas_fuses():
+        pytest.skip("NumPy's matmul rounds otherwise here: the bytes may differ in a tie")
+    frames, poses = _stream(face, 0, 8)
+    rest, groups = face.vertices[:n_vertices], face.rigid_group[:n_vertices]
+    frames = frames[:, :n_vertices].copy()
+    tol = 0.1 / face.mm_per_unit
+    frames[2:5, n_vertices // 3 : n_vertices // 2] += 300 * 1.2 * tol  # ~300 cells: two planes
+    host = CompactEncoder(rest, groups, tolerance=tol, key_interval=3)
+    dev = CompactEncoder(rest, groups, tolerance=tol, key_interval=3)
+    buf = aligned_empty((1, n_vertices, 3), np.float32)
+    planes = set()
+    for i in range(len(frames)):
+        buf[0] = frames[i]
+        (got,) = encode_batch(device, buf, [(dev, 0, poses[i], i, i / 60, 0.0)])
+        assert got == host.encode(buf[0], poses[i], seq=i, t=i / 60), f"frame {i}"
+        assert isinstance(got, bytes)
+        planes.add(got[41])
+    assert planes == {1, 2}
+
+
+@pytest.mark.opencl
 def test_batcher_encodes_compact_frames_on_the_device_as_alone(device, face, monkeypatch):
     from facecast.server.live import batcher as batcher_mod
     from facecast.server.live.batcher import DeformBatcher, _Job

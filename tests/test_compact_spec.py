@@ -26,10 +26,10 @@ class SpecDecoder:
         assert (magic, version, kind) == (b"FCST", 1, 7) and flags in (0, 1)
         V = count
         assert len(self.rest) == V
-        ref, step, G, P, reserved, zlen = struct.unpack_from("<IfBBHI", msg, 32)
-        assert reserved == 0 and 1 <= P <= 4 and max(self.group) + 1 <= G
-        assert len(msg) == 48 + 48 * G + zlen
-        transforms = [struct.unpack_from("<12f", msg, 48 + 48 * g) for g in range(G)]
+        ref, step, G, P, fmt, zlen, K = struct.unpack_from("<IfBBHII", msg, 32)
+        assert fmt == 2 and 1 <= P <= 4 and max(self.group) + 1 <= G and K <= 3 * V
+        assert len(msg) == 52 + 48 * G + zlen
+        transforms = [struct.unpack_from("<12f", msg, 52 + 48 * g) for g in range(G)]
         key = flags & 1
         if key:
             assert ref == seq
@@ -38,17 +38,29 @@ class SpecDecoder:
             return None  # wait for the next key frame
         else:
             base = self.key_q
+        B = (V + 7) // 8
         z = zlib.decompressobj()
-        raw = z.decompress(msg[48 + 48 * G :], P * 3 * V)
-        assert len(raw) == P * 3 * V and z.eof and not z.unused_data
+        raw = z.decompress(msg[52 + 48 * G :], 3 * B + P * K)
+        assert len(raw) == 3 * B + P * K and z.eof and not z.unused_data
+        # the bitmaps: bit i % 8 of byte a B + i // 8; none past V; K set
         n = 3 * V
+        u = [0] * n
+        c = 0
+        for a in range(3):
+            for i in range(8 * B):
+                if raw[a * B + i // 8] >> (i % 8) & 1:
+                    assert i < V
+                    w = sum(raw[3 * B + k * K + c] << (8 * k) for k in range(P))
+                    assert w != 0
+                    u[a * V + i] = w
+                    c += 1
+        assert c == K
         q = [[0, 0, 0] for _ in range(V)]
         for a in range(3):
             acc = 0
             for i in range(V):
                 j = a * V + i
-                u = sum(raw[k * n + j] << (8 * k) for k in range(P))
-                d = (u >> 1) ^ -(u & 1)
+                d = (u[j] >> 1) ^ -(u[j] & 1)
                 acc = (acc + d + 2**31) % 2**32 - 2**31  # int32 wrap
                 q[i][a] = (base[i][a] + acc + 2**31) % 2**32 - 2**31
         if key:

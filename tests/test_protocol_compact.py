@@ -174,17 +174,50 @@ def test_seq_wraps(stream):
         assert h.seq == (2**32 - 2 + i) % 2**32 and _err(x, frames[i]) <= 0.1
 
 
+def test_every_deflate_coder_makes_the_same_frames_but_the_zlib_stream(stream, monkeypatch):
+    """ISA-L (the default), zlib-ng without it, zlib-ng at another level: one format, any inflater
+    decodes each; only the zlib stream differs."""
+    rest, groups, frames, transforms = stream
+
+    def run() -> list[bytes]:
+        enc = cp.CompactEncoder(rest, groups, tolerance=0.1, key_interval=4)
+        return [enc.encode(v, tr, seq=i, t=i) for i, (v, tr) in enumerate(zip(frames, transforms))]
+
+    default = run()
+    monkeypatch.setattr(cp, "_isal", None)
+    fallback = run()
+    level4 = [
+        cp.CompactEncoder(rest, groups, tolerance=0.1, key_interval=4, level=4).encode(
+            frames[0], transforms[0], seq=0, t=0
+        )
+    ]
+    for a, b in zip(default, fallback):
+        assert a[:44] == b[:44] and a[48 : 52 + 48 * a[40]] == b[48 : 52 + 48 * b[40]]
+        assert zlib.decompress(a[52 + 48 * a[40] :]) == zlib.decompress(b[52 + 48 * b[40] :])
+    dec = cp.CompactDecoder(rest, groups)
+    for b, v in zip(fallback, frames):
+        assert _err(dec.decode(b)[1], v) <= 0.1
+    assert _err(cp.CompactDecoder(rest, groups).decode(level4[0])[1], frames[0]) <= 0.1
+
+
 def test_layout_is_as_documented(stream):
     rest, groups, frames, transforms = stream
     enc = cp.CompactEncoder(rest, groups, tolerance=0.1)
     b = enc.encode(frames[0], transforms[0], seq=9, t=0.5)
     assert b[:4] == b"FCST" and b[5] == 7 and struct.unpack_from("<H", b, 6)[0] == 1
-    ref, step, g, planes, reserved, zlen = struct.unpack_from("<IfBBHI", b, 32)
-    assert (ref, g, reserved) == (9, 4, 0) and len(b) == 48 + 48 * g + zlen
+    ref, step, g, planes, fmt, zlen, nnz = struct.unpack_from("<IfBBHII", b, 32)
+    assert (ref, g, fmt) == (9, 4, 2) and len(b) == 52 + 48 * g + zlen
     cells = 2 * np.abs(rest).max() / (2 * 0.1 / math.sqrt(3))  # float32's margin: 2^-8, 2^-21/cell
     assert step == np.float32(2 * 0.1 / math.sqrt(3) * (1 - 2**-8 - cells * 2**-21))
-    assert np.array_equal(np.frombuffer(b, "<f4", 48, 48).reshape(4, 3, 4), transforms[0])
-    assert len(zlib.decompress(b[48 + 48 * g :])) == planes * 3 * len(rest)
+    assert np.array_equal(np.frombuffer(b, "<f4", 48, 52).reshape(4, 3, 4), transforms[0])
+    raw = zlib.decompress(b[52 + 48 * g :])
+    nb = -(-len(rest) // 8)
+    assert len(raw) == 3 * nb + planes * nnz  # 3 bitmaps of V bits, then the non-zero values
+    bits = np.unpackbits(
+        np.frombuffer(raw, np.uint8, 3 * nb).reshape(3, nb), axis=1, bitorder="little"
+    )
+    assert bits.sum() == nnz and not bits[:, len(rest) :].any()
+    assert 0 < nnz < len(rest)  # the key frame of a moving face: mostly zeros
     with pytest.raises(FrameError, match="CompactDecoder"):
         fr.decode(b)  # stateless decode refuses them with a pointer
 
@@ -260,10 +293,12 @@ def _with(b: bytes, offset: int, value: bytes) -> bytes:
         (40, b"\x03", "transforms|bytes"),
         (41, b"\x00", "planes"),
         (41, b"\x05", "planes"),
-        (42, b"\x01", "reserved"),
+        (42, b"\x01", "format 1"),
+        (42, b"\x03", "format 3"),
         (44, struct.pack("<I", 1), "bytes"),
-        (48, struct.pack("<f", float("inf")), "finite"),
-        (48, struct.pack("<f", 3.0), "rotation"),
+        (48, struct.pack("<I", 901), "nnz"),
+        (52, struct.pack("<f", float("inf")), "finite"),
+        (52, struct.pack("<f", 3.0), "rotation"),
     ],
 )
 def test_bad_fields_are_named(wire, offset, value, match):
@@ -271,12 +306,14 @@ def test_bad_fields_are_named(wire, offset, value, match):
         _decoder_after_key(wire).decode(_with(wire[2][0], offset, value))
 
 
-def _rebuild(b: bytes, payload: bytes, planes: int | None = None) -> bytes:
+def _rebuild(b: bytes, payload: bytes, planes: int | None = None, nnz: int | None = None) -> bytes:
     g = b[40]
-    head = bytearray(b[: 48 + 48 * g])
+    head = bytearray(b[: 52 + 48 * g])
     head[44:48] = struct.pack("<I", len(payload))
     if planes is not None:
         head[41] = planes
+    if nnz is not None:
+        head[48:52] = struct.pack("<I", nnz)
     return bytes(head) + payload
 
 
@@ -284,7 +321,7 @@ def test_payloads_that_inflate_wrongly_are_refused(wire):
     rest, groups, frames = wire
     b, n = frames[0], len(rest)
     g = b[40]
-    raw = zlib.decompress(b[48 + 48 * g :])
+    raw = zlib.decompress(b[52 + 48 * g :])
     for payload, match in (
         (b"not zlib at all", "zlib"),
         (zlib.compress(raw[:-1]), "exactly"),
@@ -297,6 +334,37 @@ def test_payloads_that_inflate_wrongly_are_refused(wire):
             cp.CompactDecoder(rest, groups).decode(_rebuild(b, payload))
     with pytest.raises(FrameError, match="exactly"):
         cp.CompactDecoder(rest, groups).decode(_rebuild(b, zlib.compress(raw), planes=b[41] + 1))
+
+
+def test_bitmaps_that_disagree_with_the_values_are_refused(wire):
+    """Format 2's payload: the bitmaps' set bits must be nnz, none past V, no value 0."""
+    rest, groups, frames = wire
+    b, n = frames[0], len(rest)
+    g, planes, nnz = b[40], b[41], struct.unpack_from("<I", b, 48)[0]
+    raw = bytearray(zlib.decompress(b[52 + 48 * g :]))
+    nb = -(-n // 8)
+    bits = np.unpackbits(np.frombuffer(bytes(raw[: 3 * nb]), np.uint8), bitorder="little")
+    on, off = int(np.flatnonzero(bits)[0]), int(np.flatnonzero(bits[: 8 * nb] == 0)[0])
+    assert n % 8 == 4  # 300 vertices: the last byte of each bitmap has 4 bits past V
+
+    def flip(bit: int) -> bytes:
+        r = bytearray(raw)
+        r[bit // 8] ^= 1 << (bit % 8)
+        return bytes(r)
+
+    cases = [
+        (_rebuild(b, zlib.compress(flip(off)), nnz=nnz), "bitmaps mark"),  # one more set bit
+        (_rebuild(b, zlib.compress(flip(on)), nnz=nnz), "bitmaps mark"),  # one fewer
+        (_rebuild(b, zlib.compress(flip(8 * nb - 1)), nnz=nnz), "past the last vertex"),
+        (_rebuild(b, zlib.compress(bytes(raw[:-1])), nnz=nnz - 1), "bitmaps mark"),
+    ]
+    zero = bytearray(raw)
+    zero[3 * nb] = 0  # the first value, byte 0 (one plane: the whole value)
+    if planes == 1:
+        cases.append((_rebuild(b, zlib.compress(bytes(zero))), "is 0"))
+    for frame, match in cases:
+        with pytest.raises(FrameError, match=match):
+            cp.CompactDecoder(rest, groups).decode(frame)
 
 
 def test_delta_without_its_key_is_waited_out_not_shown(wire):

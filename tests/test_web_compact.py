@@ -105,13 +105,25 @@ def test_js_refuses_malformed_frames(node, tmp_path):
     rest, groups, frames, transforms = synthetic_stream(n_vertices=300, n_frames=3, seed=4)
     enc = CompactEncoder(rest, groups, tolerance=0.1)
     key = enc.encode(frames[0], transforms[0], seq=0, t=0)
-    g, planes = key[40], key[41]
-    raw = zlib.decompress(key[48 + 48 * g :])
+    g, planes, nnz = key[40], key[41], struct.unpack_from("<I", key, 48)[0]
+    raw = zlib.decompress(key[52 + 48 * g :])
+    nb = -(-len(rest) // 8)
 
-    def rebuild(payload: bytes) -> bytes:
-        head = bytearray(key[: 48 + 48 * g])
+    def rebuild(payload: bytes, k: int = nnz) -> bytes:
+        head = bytearray(key[: 52 + 48 * g])
         head[44:48] = struct.pack("<I", len(payload))
+        head[48:52] = struct.pack("<I", k)
         return bytes(head) + payload
+
+    def flip(bit: int) -> bytes:
+        r = bytearray(raw)
+        r[bit // 8] ^= 1 << (bit % 8)
+        return bytes(r)
+
+    bits = np.unpackbits(np.frombuffer(raw[: 3 * nb], np.uint8), bitorder="little")
+    on, off = int(np.flatnonzero(bits)[0]), int(np.flatnonzero(bits == 0)[0])
+    zero = bytearray(raw)
+    zero[3 * nb] = 0
 
     bad = {
         "truncated.bin": key[:-1],
@@ -121,15 +133,24 @@ def test_js_refuses_malformed_frames(node, tmp_path):
         "notzlib.bin": rebuild(b"not a zlib stream"),
         "bomb.bin": rebuild(zlib.compress(bytes(3 * len(rest) * planes * 1000))),
         "short.bin": rebuild(zlib.compress(raw[:-1])),
-        "rotation.bin": key[:48] + struct.pack("<f", 7.0) + key[52:],
+        "rotation.bin": key[:52] + struct.pack("<f", 7.0) + key[56:],
+        "format1.bin": key[:42] + b"\x01\x00" + key[44:],
+        "nnz.bin": key[:48] + struct.pack("<I", 3 * len(rest) + 1) + key[52:],
+        "bitmore.bin": rebuild(zlib.compress(flip(off))),
+        "bitless.bin": rebuild(zlib.compress(flip(on))),
+        "bitpast.bin": rebuild(zlib.compress(flip(8 * nb - 1))),
+        "fewer.bin": rebuild(zlib.compress(raw[:-1]), nnz - 1),
         "good.bin": key,
     }
+    if planes == 1:  # a value the bitmap marks, 0
+        bad["zero.bin"] = rebuild(zlib.compress(bytes(zero)))
     order = sorted(bad)
     results = dict(zip(order, _run(node, tmp_path, rest, groups, bad, order)))
     assert "error" not in results["good.bin"] and results["good.bin"]["key"]
     for name in order:
         if name != "good.bin":
             assert "error" in results[name], (name, results[name])
+    assert "format 1" in results["format1.bin"]["error"]
 
 
 INFLATE_RUNNER = """

@@ -1,10 +1,12 @@
 // VERTICES_COMPACT frames (kind 7), written from protocol/README.md section 3. A decoder holds the
 // face's topology (rest vertices, rigid group per vertex) and the last key frame's grid cells; the
-// payload (a zlib stream) is inflated here, synchronously (`inflateExactly`).
+// payload (a zlib stream: bitmaps of the non-zero values, then those values, compact format 2) is
+// inflated here, synchronously (`inflateExactly`).
 
 const MAGIC = 0x54534346; // "FCST" little-endian
 export const KIND_COMPACT = 7;
-const HEAD = 48; // 32-byte frame header + 16-byte compact sub-header
+const HEAD = 52; // 32-byte frame header + 20-byte compact sub-header
+export const COMPACT_FORMAT = 2; // sub-header bytes 42-43
 
 // Inflate (RFC 1950 zlib wrapper around RFC 1951 deflate), written from the RFCs. The browser's
 // DecompressionStream('deflate') decodes the same streams, but its stream machinery cost ~1.5 ms per
@@ -266,6 +268,12 @@ function place(zz, ref, q, pos, T, s, runs, V) {
   }
 }
 
+function popcount8(m) {
+  m = m - ((m >> 1) & 0x55);
+  m = (m & 0x33) + ((m >> 2) & 0x33);
+  return (m + (m >> 4)) & 15;
+}
+
 export class CompactDecoder {
   /** rest: Float32Array(3V) rest vertices; groups: Uint8Array(V) rigid group per vertex (topology). */
   constructor(rest, groups) {
@@ -283,8 +291,9 @@ export class CompactDecoder {
     this.keyQ = null; // Int32Array(3V), axis-major: keyQ[a * V + i]
     this.baseStep = 0;
     this.base = null; // Int32Array(3V) rest cells, axis-major
-    this.wide = null; // Int32Array(3V) reused: zigzagged values of frames of 2-4 planes
-    this.raw = new Uint8Array(3 * this.V); // inflated payload of one-plane frames, reused
+    this.nb = (this.V + 7) >> 3; // bytes of one axis's bitmap
+    this.zz = new Int32Array(3 * this.V); // zigzagged differences of a frame, reused
+    this.raw = new Uint8Array(3 * this.nb + 3 * this.V); // inflated payload, reused (grows)
     this.spare = null; // Int32Array(3V): the next key frame's cells go here (the held key's stay)
   }
 
@@ -295,18 +304,21 @@ export class CompactDecoder {
     if (dv.getUint32(0, true) !== MAGIC) throw new Error('not a facecast frame (bad magic)');
     if (dv.getUint8(4) !== 1) throw new Error(`unsupported frame version ${dv.getUint8(4)}`);
     if (dv.getUint8(5) !== KIND_COMPACT) throw new Error(`not a compact frame (kind ${dv.getUint8(5)})`);
+    const format = dv.getUint16(42, true);
+    if (format !== COMPACT_FORMAT) throw new Error(`compact format ${format} is not supported (this page reads ${COMPACT_FORMAT}): reload the page`);
     const flags = dv.getUint16(6, true);
     if (flags & ~1) throw new Error(`unknown flag bits ${flags}`);
     const f = {
       key: (flags & 1) === 1, seq: dv.getUint32(8, true), count: dv.getUint32(12, true),
       t: dv.getFloat64(16, true), wall: dv.getFloat64(24, true), ref: dv.getUint32(32, true),
       step: dv.getFloat32(36, true), G: dv.getUint8(40), planes: dv.getUint8(41), zlen: dv.getUint32(44, true),
+      nnz: dv.getUint32(48, true),
     };
     if (!Number.isFinite(f.t) || !Number.isFinite(f.wall)) throw new Error('media and wall times must be finite');
     if (!(f.step > 0 && f.step <= 1e6)) throw new Error(`grid step ${f.step} out of range`);
     if (f.G < 1) throw new Error('a compact frame carries at least one transform');
     if (f.planes < 1 || f.planes > 4) throw new Error(`planes must be 1-4, got ${f.planes}`);
-    if (dv.getUint16(42, true) !== 0) throw new Error('reserved bytes must be 0');
+    if (f.nnz > 3 * f.count) throw new Error(`nnz ${f.nnz} is over the frame's 3 x ${f.count} values`);
     if (f.key && f.ref !== f.seq) throw new Error('a key frame must name itself');
     if (buffer.byteLength !== HEAD + 48 * f.G + f.zlen) throw new Error('compact frame length does not match its fields');
     f.transforms = new Float32Array(buffer.slice(HEAD, HEAD + 48 * f.G)); // G x [3][4]
@@ -346,19 +358,36 @@ export class CompactDecoder {
     } else {
       ref = this.keyQ;
     }
-    const n = 3 * V;
-    const raw = inflateExactly(f.payload, f.planes * n, this.raw);
-    const P = f.planes;
-    let zz = raw; // zigzagged differences, 3V of them: the bytes themselves when one plane
-    if (P > 1) {
-      zz = this.wide && this.wide.length === n ? this.wide : (this.wide = new Int32Array(n));
-      for (let j = 0; j < n; j++) {
-        let u = raw[j] | (raw[n + j] << 8);
-        if (P > 2) u |= raw[2 * n + j] << 16;
-        if (P > 3) u |= raw[3 * n + j] << 24;
-        zz[j] = u;
+    const n = 3 * V, P = f.planes, K = f.nnz, nb = this.nb;
+    const want = 3 * nb + P * K;
+    if (this.raw.length < want) this.raw = new Uint8Array(want);
+    const raw = inflateExactly(f.payload, want, this.raw);
+    const zz = this.zz; // zigzagged differences, 3V of them: 0 but where the bitmaps say
+    zz.fill(0);
+    let c = 0; // the next non-zero value; its byte k at 3 nb + k K + c
+    const v0 = 3 * nb;
+    for (let a = 0; a < 3; a++) {
+      const bm = a * nb, za = a * V;
+      for (let b = 0; b < nb; b++) {
+        let m = raw[bm + b];
+        if (m === 0) continue;
+        if (c + 8 > K && c + popcount8(m) > K) throw new Error(`the bitmaps mark more than nnz = ${K} values`);
+        const i0 = 8 * b;
+        if (i0 + 8 > V && m >> (V - i0)) throw new Error('bitmap bits past the last vertex must be 0');
+        do {
+          const i = i0 + (31 - Math.clz32(m & -m));
+          let u = raw[v0 + c];
+          if (P > 1) u |= raw[v0 + K + c] << 8;
+          if (P > 2) u |= raw[v0 + 2 * K + c] << 16;
+          if (P > 3) u |= raw[v0 + 3 * K + c] << 24;
+          if (u === 0) throw new Error('a value the bitmap marks as non-zero is 0');
+          zz[za + i] = u;
+          c++;
+          m &= m - 1;
+        } while (m !== 0);
       }
     }
+    if (c !== K) throw new Error(`the bitmaps mark ${c} non-zero values, nnz says ${K}`);
     const q = f.key ? this.spare || new Int32Array(n) : null; // a key's cells are kept
     const pos = out && out.length === n ? out : new Float32Array(n);
     place(zz, ref, q, pos, f.transforms, f.step, this.runs, V);

@@ -2,7 +2,8 @@
 // a batch and vertex i, the position in its rigid group's local frame, in grid steps, as NumPy's
 // float32 matmul computes it (OpenBLAS: a fused multiply-add chain over x, y, z, then + t); its
 // offset from the reference cell; the reference kept where within the tolerance, else the rounded
-// offset r; r minus the previous vertex's r per axis, zigzagged, as the low two byte planes.
+// offset r; r minus the previous vertex's r per axis, zigzagged; per axis a bitmap of the non-zero
+// values and those values' low two bytes (protocol/README.md, compact format 2).
 // One work-item per unit of 16 vertices, as float16 vectors (PoCL's vectoriser made slow scalar
 // code of one work-item per vertex: 2-3x the NumPy encoder's CPU); it recomputes the previous
 // unit's last r (one vertex) instead of a second pass. Rounding by adding 1.5 * 2^23 (ties to
@@ -32,8 +33,11 @@ inline int3 cells(__global const float *v, __global const float *m, __global con
 // The frames of a launch: frame j encodes frame param[j * P] of verts (T, nv, 3); row j of the
 // uint words ``param`` (P = 5 + 12 G each): frame index, key flag, keep2 (float bits: squared
 // tolerance, cells), flags, the slot of its reference cells in ``refs`` (slots of (3, nv)
-// float32, kept across launches), then its groups' (3, 4) float32 matrices (world -> cells). Written: ``out``'s zigzag
-// bytes 0 and 1 of the residuals (2, 3 nv) at byte 6 nv j and, for a key frame, its new cells
+// float32, kept across launches), then its groups' (3, 4) float32 matrices (world -> cells).
+// Written: ``bits`` (3, NB = ceil(nv / 8)) at byte 3 NB j, per axis a bitmap of the non-zero
+// zigzagged values (bit i % 8 of byte i / 8); the non-zero values' bytes 0 and 1 in ``out``, byte k
+// of axis a's values of work-item l's vertices from byte 6 nv j + k 3 nv + a nv + 16 u0 (u0: the
+// work-item's first unit), ``counts[(3 j + a) WG + l]`` of them; for a key frame, its new cells
 // ref + r (3, nv) float32 at float ``keys_at + 3 nv j``; flags: bit 0 a bad vertex (not finite,
 // or out of the grid), bit 1 a value over 16 bits, bit 2 a value over 8 bits (the frame needs
 // both planes) (atomically or-ed by any work-item that finds one; the host zeroes them first).
@@ -41,14 +45,43 @@ inline int3 cells(__global const float *v, __global const float *m, __global con
 #define MAGIC 12582912.0f
 #define ZZ(d) ((as_uint16(d) << 1) ^ as_uint16((d) >> 31))
 
-inline void put(__global uchar *p, const uint nv, const uint i, const uint3 u)
+// The 16 lanes' non-zero bits: lane k -> bit k.
+inline uint mask16(const uint16 z)
 {
-    p[i] = (uchar)u.x;
-    p[nv + i] = (uchar)u.y;
-    p[2 * nv + i] = (uchar)u.z;
-    p[3 * nv + i] = (uchar)(u.x >> 8);
-    p[4 * nv + i] = (uchar)(u.y >> 8);
-    p[5 * nv + i] = (uchar)(u.z >> 8);
+    const uint16 b = (uint16)(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096, 8192, 16384,
+                              32768) & as_uint16(z != (uint16)(0));
+    const uint8 s8 = b.lo | b.hi;
+    const uint4 s4 = s8.lo | s8.hi;
+    const uint2 s2 = s4.lo | s4.hi;
+    return s2.x | s2.y;
+}
+
+// The lanes of z set in m (in lane order), bytes 0 and 1 at lo[c], hi[c], ...: the new count.
+inline uint put_nz(const uint16 z, uint m, __global uchar *lo, __global uchar *hi, uint c)
+{
+    uint t[16];
+    vstore16(z, 0, t);
+    while (m) {
+        const uint k = 31 - clz(m & (0u - m));
+        lo[c] = (uchar)t[k];
+        hi[c] = (uchar)(t[k] >> 8);
+        ++c;
+        m &= m - 1;
+    }
+    return c;
+}
+
+// One value of the scalar tail: its bit and, when not 0, its bytes.
+inline uint put1(const uint u, const uint i, __global uchar *bm, __global uchar *lo,
+                 __global uchar *hi, uint c)
+{
+    if (u) {
+        bm[i >> 3] |= (uchar)(1u << (i & 7));
+        lo[c] = (uchar)u;
+        hi[c] = (uchar)(u >> 8);
+        ++c;
+    }
+    return c;
 }
 
 // One work-group of WG work-items per frame; each work-item a contiguous run of units, in a loop
@@ -57,7 +90,8 @@ inline void put(__global uchar *p, const uint nv, const uint i, const uint3 u)
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void compact_frames(const uint nv, const uint n_groups, __global const float *verts,
                     __global const uchar *groups, __global uint *param,
-                    __global const float *refs, __global uchar *out, const uint keys_at)
+                    __global const float *refs, __global uchar *out, const uint keys_at,
+                    __global uchar *bits, __global uint *counts)
 {
     const uint l = get_local_id(0), j = get_group_id(1), units = nv / 16;
     const uint per = (units + WG - 1) / WG, u0 = min(l * per, units), u1 = min(u0 + per, units);
@@ -70,6 +104,11 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
     __global const float *ref = refs + (size_t)row[4] * 3 * nv;
     __global uchar *p = out + (size_t)j * 6 * nv;
     __global float *kk = (__global float *)out + keys_at + (size_t)j * 3 * nv;
+    const uint nb = (nv + 7) / 8;
+    __global uchar *bm0 = bits + (size_t)j * 3 * nb, *bm1 = bm0 + nb, *bm2 = bm1 + nb;
+    __global uchar *lo0 = p + 16 * u0, *lo1 = lo0 + nv, *lo2 = lo1 + nv;
+    __global uchar *hi0 = lo0 + 3 * nv, *hi1 = lo1 + 3 * nv, *hi2 = lo2 + 3 * nv;
+    uint c0 = 0, c1 = 0, c2 = 0;
     const float lim = MAX_CELL - 1.0f, big = 4194304.0f;
     int bad;
     int3 prev = (int3)(0);
@@ -121,12 +160,19 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
         prev = (int3)(q0.sf, q1.sf, q2.sf);
         const uint16 z0 = ZZ(d0), z1 = ZZ(d1), z2 = ZZ(d2);
         zs |= z0 | z1 | z2;
-        vstore16(convert_uchar16(z0), 0, p + i0);
-        vstore16(convert_uchar16(z1), 0, p + nv + i0);
-        vstore16(convert_uchar16(z2), 0, p + 2 * nv + i0);
-        vstore16(convert_uchar16(z0 >> 8), 0, p + 3 * nv + i0);
-        vstore16(convert_uchar16(z1 >> 8), 0, p + 4 * nv + i0);
-        vstore16(convert_uchar16(z2 >> 8), 0, p + 5 * nv + i0);
+        const uint m0 = mask16(z0), m1 = mask16(z1), m2 = mask16(z2);
+        bm0[2 * u] = (uchar)m0;
+        bm0[2 * u + 1] = (uchar)(m0 >> 8);
+        bm1[2 * u] = (uchar)m1;
+        bm1[2 * u + 1] = (uchar)(m1 >> 8);
+        bm2[2 * u] = (uchar)m2;
+        bm2[2 * u + 1] = (uchar)(m2 >> 8);
+        if (m0)
+            c0 = put_nz(z0, m0, lo0, hi0, c0);
+        if (m1)
+            c1 = put_nz(z1, m1, lo1, hi1, c1);
+        if (m2)
+            c2 = put_nz(z2, m2, lo2, hi2, c2);
         if (is_key) {
             vstore16(r0 + convert_float16(q0), 0, kk + i0);
             vstore16(r1 + convert_float16(q1), 0, kk + nv + i0);
@@ -136,11 +182,15 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
     uint flag = (any(~oks) ? 1u : 0u) | (any(huges) || any((zs >> 16) != 0) ? 2u : 0u) |
                 (any((zs >> 8) != 0) ? 4u : 0u);
     if (l == WG - 1) {  // the last nv % 16 vertices, one by one
+        for (uint b = 2 * units; b < nb; ++b)
+            bm0[b] = bm1[b] = bm2[b] = 0;
         for (uint i = 16 * units; i < nv; ++i) {
             const int3 r = cells(v, ms + 12 * groups[i], ref, nv, i, keep2, &bad);
             const int3 d = r - prev;
             const uint3 zz = (as_uint3(d) << 1) ^ as_uint3(d >> 31);
-            put(p, nv, i, zz);
+            c0 = put1(zz.x, i, bm0, lo0, hi0, c0);
+            c1 = put1(zz.y, i, bm1, lo1, hi1, c1);
+            c2 = put1(zz.z, i, bm2, lo2, hi2, c2);
             flag |= (bad ? 1u : 0u) | (((zz.x | zz.y | zz.z) >> 16) ? 2u : 0u) |
                     (((zz.x | zz.y | zz.z) >> 8) ? 4u : 0u);
             if (is_key) {
@@ -151,6 +201,9 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
             prev = r;
         }
     }
+    counts[(3 * j) * WG + l] = c0;
+    counts[(3 * j + 1) * WG + l] = c1;
+    counts[(3 * j + 2) * WG + l] = c2;
     if (flag)
         atomic_or(flags, flag);
 }

@@ -1,10 +1,13 @@
 """Compact frames of a batch on the deformer's OpenCL device: ``protocol.compact.CompactEncoder``'s
-residual planes, bit for bit, computed where the deformed frames already are (kernel
-``compact.cl``), in one launch for all the sessions of a batch; only deflate stays on the host.
+payload before deflate (the residuals' bitmaps and non-zero values), bit for bit, computed where
+the deformed frames already are (kernel ``compact.cl``), in one launch for all the sessions of a
+batch; only joining its pieces and deflate stay on the host.
 
 The encoder's NumPy passes (local frame, offset from the reference, keep-or-round, difference
-along the vertex order, zigzag, byte planes: about a dozen passes over the frame) become one
-pass of vectorised CPU code on PoCL, outside the GIL. The local frame is computed as NumPy's
+along the vertex order, zigzag, bitmaps, packing the non-zero values: about a dozen passes over
+the frame) become one pass of vectorised CPU code on PoCL, outside the GIL. Each work-item packs
+the non-zero values of its own run of vertices where that run's values would start; the host
+joins the runs (``Residuals.payload``: a few KB a frame). The local frame is computed as NumPy's
 float32 matmul computes it with OpenBLAS on x86-64 (a fused multiply-add chain): where a BLAS
 rounds otherwise the frames stay exactly as valid (the decoder reconstructs from the integer
 cells the frame carries, the tolerance holds with the encoder's margin) but may differ from the
@@ -17,8 +20,12 @@ Measured on the 2-core shared machine (PoCL, 25k-vertex head, load 3-5): process
 0.405 ms for the NumPy encoder (the same bytes on every stream); in-process live batches of 10
 sessions (solve + deform + encode) 0.43-0.45 against 0.48-0.53 ms. One work-item per vertex
 (PoCL's vectoriser across work-items) cost 2-3x the NumPy passes; float16 code per 16 vertices
-in a loop per work-item, one work-group per frame, is what pays. Deflate (0.1-0.3 ms a frame on
-noisy streams) is now most of a frame's cost. Reference cells stay in slots on the device
+in a loop per work-item, one work-group per frame, is what pays. Deflate was then most of a
+frame's cost (0.1-0.3 ms of every residual); format 2 deflates only the bitmaps and the non-zero
+values, by ISA-L: process CPU per frame of 10 sessions a batch with the deflate pool, as the
+server runs it, 0.25-0.30 ms against format 1's 0.32-0.48 ms (FAP, speech and mocap streams on
+the 25k head, two runs alternating with the previous commit's, load 10; ``bench/compact_stream.py``
+reports it as ``batch_device_cpu_ms``). Reference cells stay in slots on the device
 across launches (copied once per key frame, not once per frame: 0.24 -> 0.20 ms of the calling
 thread's CPU per frame, 0.375 -> 0.314 ms of the process's, 8 sessions a batch, FAP stream).
 """
@@ -28,17 +35,54 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict
 from concurrent.futures import Executor
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from ....protocol.compact import CompactEncoder, world_to_cells
+from ....protocol.compact import CompactEncoder, bitmap_size, world_to_cells
 from .host import ALIGN, HostKernel, aligned_empty
 
 log = logging.getLogger(__name__)
 
 #: Work-items per frame (one work-group), each a contiguous run of its units of 16 vertices.
 WG = 8
+
+
+@dataclass(frozen=True, slots=True)
+class Residuals:
+    """``DeviceCompact.residuals`` of ``J`` frames of ``V`` vertices: ``bits (J, 3, ceil(V / 8))``
+    each frame's bitmaps of non-zero values; ``planes (J, 2, 3 V) uint8`` their bytes 0 and 1,
+    ``counts[j, a, l]`` values of axis ``a`` from byte ``a V + 16 u0(l)`` of each plane (``u0``:
+    work-item ``l``'s first unit of 16 vertices); ``new_keys (J, 3, V) float32`` (row j the new
+    key's cells where frame j is a key frame; None without key frames); ``flags (J,) uint32``
+    (bit 0: a bad vertex, bit 1: a residual over 16 bits: rows with either are not valid; bit 2:
+    a zigzagged value over 8 bits, the frame needs both planes)."""
+
+    planes: np.ndarray
+    bits: np.ndarray
+    counts: np.ndarray
+    new_keys: np.ndarray | None
+    flags: np.ndarray
+
+    def payload(self, j: int, planes: int) -> tuple[int, bytes]:
+        """Frame ``j``'s ``(nnz, raw)`` as ``protocol.compact.pack_payload`` gives them, with
+        ``planes`` (1 or 2) bytes a value."""
+        V = self.planes.shape[2] // 3
+        units = V // 16
+        per = -(-units // WG)
+        starts = [16 * min(lane * per, units) for lane in range(WG)]
+        c = self.counts[j].tolist()
+        flat = self.planes[j].reshape(-1)
+        pieces: list[Any] = [self.bits[j]]
+        for k in range(planes):
+            for a in range(3):
+                for lane, s in enumerate(starts):
+                    n = c[a][lane]
+                    if n:
+                        o = k * 3 * V + a * V + s
+                        pieces.append(flat[o : o + n])
+        return sum(map(sum, c)), b"".join(pieces)
 
 
 class DeviceCompact(HostKernel):
@@ -97,26 +141,27 @@ class DeviceCompact(HostKernel):
         refs: list[np.ndarray],
         keys: list[bool],
         keep2: list[float],
-    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    ) -> Residuals:
         """Compact frame ``j`` of ``verts (T, V, 3)`` frame ``frame_of[j]`` (C-contiguous,
         ``ALIGN``-aligned float32), with ``mats[j] (G, 3, 4)`` and ``refs[j] (3, V)`` float32
         of ``CompactEncoder.prepare``, its encoder's ``keep2[j]`` (squared tolerance, cells), all
         of one face (``groups (V,) uint8``). A reference is copied to the device's slots once and
         then known by identity: an array passed here must not be written to afterwards (an
         encoder replaces its reference, never writes into it).
-        Returns ``planes (J, 2, 3 V) uint8`` (zigzag bytes 0 and 1 of the residuals),
-        ``new_keys (J, 3, V) float32`` (row j the new key's cells where ``keys[j]``; None
-        without key frames) and ``flags (J,) uint32`` (bit 0: a bad vertex, bit 1: a residual
-        over 16 bits: rows with either are not valid; bit 2: a zigzagged value over 8 bits,
-        the frame needs both planes)."""
+        Returns the frames' ``Residuals``."""
         cl = self._cl
         if verts.dtype != np.float32 or not verts.flags.c_contiguous or verts.ctypes.data % ALIGN:
             raise ValueError("verts must be C-contiguous, aligned float32")
         J, V = len(frame_of), verts.shape[1]
         if not (J == len(mats) == len(refs) == len(keys) == len(keep2)) or groups.shape != (V,):
             raise ValueError("one matrix set, reference and key flag per frame; a group per vertex")
+        nb = bitmap_size(V)
+        bits = aligned_empty((J, 3, nb), np.uint8)
+        counts = aligned_empty((J, 3, WG), np.uint32)
         if J == 0 or V == 0:
-            return np.zeros((J, 2, 3 * V), np.uint8), None, np.zeros(J, np.uint32)
+            counts[:] = 0
+            bits[:] = 0
+            return Residuals(np.zeros((J, 2, 3 * V), np.uint8), bits, counts, None, counts[:, 0, 0])
         if not all(0 <= f < verts.shape[0] for f in frame_of):
             raise ValueError("frame_of names a frame verts does not have")
         G = mats[0].shape[0]
@@ -148,10 +193,12 @@ class DeviceCompact(HostKernel):
                 self._pool_buf,
                 self._host(out, mf.WRITE_ONLY),
                 np.uint32(keys_at // 4),
+                self._host(bits, mf.WRITE_ONLY),
+                self._host(counts, mf.WRITE_ONLY),
             ).wait()
         planes = out[: J * 6 * V].reshape(J, 2, 3 * V)
         new_keys = out[keys_at:].view(np.float32).reshape(J, 3, V) if any_key else None
-        return planes, new_keys, rows[:, 3].copy()
+        return Residuals(planes, bits, counts, new_keys, rows[:, 3].copy())
 
     def _groups(self, groups: np.ndarray) -> Any:
         """A read-only buffer of ``groups``, kept for the face (one per array object)."""
@@ -195,7 +242,7 @@ def encode_batch(
     # all frames' maps in one call: the same bits as one by one, a tenth of the NumPy overhead
     steps = np.array([frames[j][0].step for j in todo], np.float64)[:, None, None, None]
     mats = world_to_cells(np.stack([p[1] for p in preps]), steps)
-    planes, new_keys, flags = device.residuals(
+    res = device.residuals(
         verts,
         [frames[j][1] for j in todo],
         first.groups,
@@ -209,12 +256,14 @@ def encode_batch(
         enc, f, T, seq, t, wall = frames[todo[n]]
         _, tr, _, is_key, _ = preps[n]
         try:
-            if flags[n] & 3:  # a bad vertex (the encoder says which) or large residuals: host
+            flags = int(res.flags[n])
+            if flags & 3:  # a bad vertex (the encoder says which) or large residuals: host
                 return enc.encode(verts[f], T, seq=seq, t=t, wall=wall)
-            two = bool(flags[n] & 4)  # a value over 8 bits: both planes
-            raw = planes[n] if two else planes[n, 0]
+            planes = 2 if flags & 4 else 1  # a value over 8 bits: both planes
+            nnz, raw = res.payload(n, planes)
+            new_keys = res.new_keys
             key = new_keys[n].copy() if is_key and new_keys is not None else None
-            return enc.finish(tr, is_key, 2 if two else 1, raw, key, seq=seq, t=t, wall=wall)
+            return enc.finish(tr, is_key, planes, nnz, raw, key, seq=seq, t=t, wall=wall)
         except ValueError as e:
             return e
 
