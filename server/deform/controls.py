@@ -175,58 +175,6 @@ def front_vertices(
     return out
 
 
-def floating_sources(
-    vertices: np.ndarray,
-    graph: sp.csr_matrix,
-    deformable: np.ndarray,
-    site_vertices: np.ndarray,
-    rigid_group: np.ndarray | None,
-    attach_distance: float,
-    *,
-    anchors_only: bool = False,
-) -> tuple[np.ndarray, ...]:
-    """Vertices of unreachable components and the reached vertex each one copies.
-
-    A deformable component with no control is attached when it comes within ``attach_distance``
-    of a reached vertex of the same rigid group; each of its vertices then copies its own nearest
-    such vertex. Returns ``(orphans (n,), sources (n,))`` vertex ids. With ``anchors_only`` only the
-    vertices themselves within ``attach_distance`` are returned, and a third array lists the other
-    vertices of the attached components, ``(orphans, sources, rest)``.
-    """
-    empty = np.zeros(0, np.int64)
-    label, seeded = seeded_components(graph, site_vertices)
-    floating = deformable & ~seeded
-    reached = deformable & seeded
-    if not floating.any() or not reached.any() or attach_distance <= 0:
-        return (empty, empty, empty) if anchors_only else (empty, empty)
-    group = (
-        np.zeros(len(vertices), np.int64)
-        if rigid_group is None
-        else np.asarray(rigid_group, np.int64)
-    )
-    src_of = np.full(len(vertices), -1)
-    rest = np.zeros(len(vertices), dtype=bool)
-    for g in np.unique(group[floating]):
-        target = np.flatnonzero(reached & (group == g))
-        orphans = np.flatnonzero(floating & (group == g))
-        if not len(target) or not len(orphans):
-            continue
-        dist, nearest = cKDTree(vertices[target]).query(vertices[orphans])
-        comp_min = np.full(label.max() + 1, np.inf)
-        np.minimum.at(comp_min, label[orphans], dist)
-        ok = comp_min[label[orphans]] <= attach_distance
-        if anchors_only:
-            rest[orphans[ok & (dist > attach_distance)]] = True
-            ok &= dist <= attach_distance
-        src_of[orphans[ok]] = target[nearest[ok]]
-    orphans = np.flatnonzero(src_of >= 0)
-    if len(orphans):
-        log.debug("attached %d vertices of unreachable components", len(orphans))
-    if anchors_only:
-        return orphans, src_of[orphans], np.flatnonzero(rest)
-    return orphans, src_of[orphans]
-
-
 def attached_rows(
     vertices: np.ndarray,
     graph: sp.csr_matrix,
@@ -237,26 +185,46 @@ def attached_rows(
     *,
     membrane: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``floating_sources`` as the engines use it: ``(orphans (n,), sources (n,), free (V,) bool,
-    floating (V,) bool)``; each orphan copies its source's row. With ``membrane`` only the anchors
-    copy and ``free`` marks the other vertices of attached components (for ``fill_inner``);
-    ``floating`` marks all vertices of attached components."""
-    free = np.zeros(len(vertices), dtype=bool)
-    found = floating_sources(
-        vertices,
-        graph,
-        deformable,
-        site_vertices,
-        rigid_group,
-        attach_distance,
-        anchors_only=membrane,
+    """Vertices of unreachable components and the reached vertex whose row each one copies.
+
+    A deformable component with no control is attached when it comes within ``attach_distance``
+    of a reached vertex of the same rigid group; each of its vertices then copies its own nearest
+    such vertex. With ``membrane`` only the vertices themselves within ``attach_distance`` (the
+    anchors) copy. Returns ``(orphans (n,), sources (n,), free (V,) bool, floating (V,) bool)``:
+    ``free`` the other vertices of attached components (with ``membrane``, for ``fill_inner``),
+    ``floating`` all vertices of attached components.
+    """
+    n_vertices = len(vertices)
+    free = np.zeros(n_vertices, dtype=bool)
+    label, seeded = seeded_components(graph, site_vertices)
+    floating = deformable & ~seeded
+    reached = deformable & seeded
+    if not floating.any() or not reached.any() or attach_distance <= 0:
+        empty = np.zeros(0, np.int64)
+        return empty, empty, free, free.copy()
+    group = (
+        np.zeros(n_vertices, np.int64) if rigid_group is None else np.asarray(rigid_group, np.int64)
     )
-    orphans, src = found[0], found[1]
-    if membrane:
-        free[found[2]] = True
-    floating = free.copy()
-    floating[orphans] = True
-    return orphans, src, free, floating
+    src_of = np.full(n_vertices, -1)
+    for g in np.unique(group[floating]):
+        target = np.flatnonzero(reached & (group == g))
+        orphans = np.flatnonzero(floating & (group == g))
+        if not len(target) or not len(orphans):
+            continue
+        dist, nearest = cKDTree(vertices[target]).query(vertices[orphans])
+        comp_min = np.full(label.max() + 1, np.inf)
+        np.minimum.at(comp_min, label[orphans], dist)
+        ok = comp_min[label[orphans]] <= attach_distance
+        if membrane:
+            free[orphans[ok & (dist > attach_distance)]] = True
+            ok &= dist <= attach_distance
+        src_of[orphans[ok]] = target[nearest[ok]]
+    orphans = np.flatnonzero(src_of >= 0)
+    if len(orphans):
+        log.debug("attached %d vertices of unreachable components", len(orphans))
+    attached = free.copy()
+    attached[orphans] = True
+    return orphans, src_of[orphans], free, attached
 
 
 def copy_rows(per_axis: list[Triples], orphans: np.ndarray, src: np.ndarray) -> list[Triples]:
