@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 import types
@@ -33,22 +32,12 @@ ENGINE_MODULES = {"fp": "feature_point", "rbf": "rbf", "shell": "shell"}
 
 def baseline_engines(rev: str) -> dict[str, types.ModuleType]:
     """The engines' modules (and their ``controls``) at ``rev``, as modules of the same package."""
+    from facecast.server.bench.history import module_at
 
     def load(name: str, replace: dict[str, str]) -> types.ModuleType:
-        src = subprocess.run(
-            ["git", "show", f"{rev}:server/deform/{name}.py"],
-            cwd=ROOT,
-            check=True,
-            capture_output=True,
-            text=True,
-        ).stdout
-        for old, new in replace.items():
-            src = src.replace(old, new)
-        mod = types.ModuleType(f"{PACKAGE}._baseline_{name}")
-        mod.__package__ = PACKAGE
-        sys.modules[mod.__name__] = mod
-        exec(compile(src, f"{rev}:server/deform/{name}.py", "exec"), mod.__dict__)  # noqa: S102 (our own history)
-        return mod
+        return module_at(
+            ROOT, rev, f"server/deform/{name}.py", f"{PACKAGE}._baseline_{name}", replace
+        )
 
     load("controls", {})
     uses_old_controls = {"from .controls import": "from ._baseline_controls import"}

@@ -188,20 +188,11 @@ def check_markdown(rows: list[dict]) -> str:
 
 def baseline_module():
     """The previous ``facecast.server.output.gltf`` (from git history) as a module of the same package."""
-    import subprocess
-    import types
+    from facecast.server.bench.history import module_at
 
-    src = subprocess.run(
-        ["git", "show", f"{BASELINE}:server/output/gltf.py"],
-        cwd=ROOT,
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout
-    mod = types.ModuleType("facecast.server.output._gltf_baseline")
-    mod.__package__ = "facecast.server.output"
-    exec(compile(src, f"{BASELINE}:server/output/gltf.py", "exec"), mod.__dict__)  # noqa: S102 (our own history)
-    return mod
+    return module_at(
+        ROOT, BASELINE, "server/output/gltf.py", "facecast.server.output._gltf_baseline"
+    )
 
 
 def clip(face, n_frames: int, seed: int):
