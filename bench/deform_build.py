@@ -1,11 +1,13 @@
 """Operator build time and output of the deformation engines against a baseline commit.
 
-Builds each engine's operator (``fp``, ``rbf``, ``shell``; build.DEFAULTS) on the built-in head,
-with its MPEG-4 FAP controls (per-axis constraints: the sparse path of ``rbf`` and ``shell``) and
-with every axis constrained (their dense path), once with the current code and once with the
-engines as they were at ``--baseline`` (from git history), alternately, ``--rounds`` times. Checks
-that both give the same operator (bit for bit) and reports the median time ratio new/old; the
-machine's load goes into each record. Writes ``bench/out/deform_build.json`` and a short table.
+Builds each engine's operator (``fp``, ``rbf``, ``shell``) as the server does
+(``build.build_operator``, its DEFAULTS) on the built-in head, with its MPEG-4 FAP controls
+(per-axis constraints: the sparse path of ``rbf`` and ``shell``) and with every axis constrained
+(their dense path), ``inner`` copy and membrane, once with the current engines and once with the
+engines (and ``BASELINE_MODULES``) as they were at ``--baseline`` (from git history), alternately,
+``--rounds`` times. Checks that both give the same operator (bit for bit) and reports the median
+time ratio new/old; the machine's load goes into each record. Writes
+``bench/out/deform_build.json`` and a short table.
 
     python bench/deform_build.py [--baseline REV] [--vertices 25000] [--rounds 3]
 
@@ -30,18 +32,20 @@ PACKAGE = "facecast.server.deform"
 ENGINE_MODULES = {"fp": "feature_point", "rbf": "rbf", "shell": "shell"}
 
 
+#: The modules loaded from the baseline, in import order (the rest of the package is current).
+BASELINE_MODULES = ("operator", "smoothing", "controls", "feature_point", "rbf", "shell")
+
+
 def baseline_engines(rev: str) -> dict[str, types.ModuleType]:
-    """The engines' modules (and their ``controls``) at ``rev``, as modules of the same package."""
+    """The engines' modules at ``rev`` (with their ``BASELINE_MODULES``), in the same package."""
     from facecast.server.bench.history import module_at
 
-    def load(name: str, replace: dict[str, str]) -> types.ModuleType:
-        return module_at(
-            ROOT, rev, f"server/deform/{name}.py", f"{PACKAGE}._baseline_{name}", replace
-        )
-
-    load("controls", {})
-    uses_old_controls = {"from .controls import": "from ._baseline_controls import"}
-    return {e: load(m, uses_old_controls) for e, m in ENGINE_MODULES.items()}
+    old = {f"from .{m} import": f"from ._baseline_{m} import" for m in BASELINE_MODULES}
+    loaded = {
+        m: module_at(ROOT, rev, f"server/deform/{m}.py", f"{PACKAGE}._baseline_{m}", old)
+        for m in BASELINE_MODULES
+    }
+    return {e: loaded[m] for e, m in ENGINE_MODULES.items()}
 
 
 def same_operator(a, b) -> bool:
@@ -50,6 +54,18 @@ def same_operator(a, b) -> bool:
         return False
     names = ("indptr", "indices", "weights") if a.is_sparse else ("dense",)
     return all(np.array_equal(getattr(a, n), getattr(b, n)) for n in names)
+
+
+def build_with(build, fn, face, controls, engine: str, constrained, inner: str):
+    """``build.build_operator`` (the server's call of an engine) with ``fn`` as ``engine``."""
+    current = build.ENGINES[engine]
+    build.ENGINES[engine] = fn
+    try:
+        return build.build_operator(
+            face, controls, engine=engine, constrained=constrained, inner=inner
+        )
+    finally:
+        build.ENGINES[engine] = current
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -71,9 +87,6 @@ def main(argv: list[str] | None = None) -> int:
     for engine in args.engines.split(","):
         for label, constrained in (("per-axis", per_axis), ("all axes", None)):
             for inner in ("copy", "membrane"):
-                params = build.engine_params(engine, {"inner": inner})
-                if engine == "shell":
-                    params["surface"] = build.skin_vertices(face)
                 fns = {
                     "new": build.ENGINES[engine],
                     "old": getattr(old[engine], build.ENGINES[engine].__name__),
@@ -83,15 +96,8 @@ def main(argv: list[str] | None = None) -> int:
                 for _ in range(args.rounds):
                     for which, fn in fns.items():
                         t0 = time.perf_counter()
-                        ops[which] = fn(
-                            face.vertices,
-                            face.triangles,
-                            controls,
-                            constrained=constrained,
-                            deformable=face.deformable,
-                            rigid_group=face.rigid_group,
-                            inner_vertices=build.inner_vertices(face),
-                            **params,
+                        ops[which] = build_with(
+                            build, fn, face, controls, engine, constrained, inner
                         )
                         times[which].append(time.perf_counter() - t0)
                 same = same_operator(ops["new"], ops["old"])
