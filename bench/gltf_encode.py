@@ -249,6 +249,33 @@ def measure(fn, repeats: int) -> tuple[float, float, object]:
     return best, peak, out
 
 
+def encode_row(
+    frames: int,
+    face,
+    method: str,
+    seconds: float,
+    peak: int,
+    data: bytes,
+    rec: dict,
+    input_mb: float,
+) -> dict:
+    """One row of the table: an encoding of ``frames`` frames of ``face`` by ``method``, which took
+    ``seconds`` and ``peak`` bytes and gave ``data`` (the .glb) and ``rec`` (its record)."""
+    return {
+        "frames": frames,
+        "vertices": face.n_vertices,
+        "method": method,
+        "targets": rec["targets"],
+        "max_error_mm": rec["max_error_mm"],
+        "seconds": seconds,
+        "peak_mb": peak / 2**20,
+        "glb_mb": len(data) / 1e6,
+        "input_mb": input_mb,
+        "capped": rec.get("capped"),
+        "passes": rec.get("passes"),
+    }
+
+
 def markdown(rows: list[dict]) -> str:
     lines = [
         (
@@ -320,19 +347,7 @@ def main(argv: list[str]) -> int:
                 ),
                 args.repeats,
             )
-            row = {
-                "frames": T,
-                "vertices": face.n_vertices,
-                "method": method,
-                "targets": rec["targets"],
-                "max_error_mm": rec["max_error_mm"],
-                "seconds": sec,
-                "peak_mb": peak / 2**20,
-                "glb_mb": len(data) / 1e6,
-                "input_mb": frames.nbytes / 2**20,
-                "capped": rec.get("capped"),
-                "passes": rec.get("passes"),
-            }
+            row = encode_row(T, face, method, sec, peak, data, rec, frames.nbytes / 2**20)
             bsec, _, _ = measure(
                 lambda mod=mod, frames=frames: mod.morph_basis(
                     frames,
@@ -366,19 +381,7 @@ def main(argv: list[str]) -> int:
             1,
         )
         rows.append(
-            {
-                "frames": T,
-                "vertices": face.n_vertices,
-                "method": "new, streamed (incl. rendering)",
-                "targets": rec["targets"],
-                "max_error_mm": rec["max_error_mm"],
-                "seconds": sec,
-                "peak_mb": peak / 2**20,
-                "glb_mb": len(data) / 1e6,
-                "input_mb": 0.0,
-                "capped": rec["capped"],
-                "passes": rec["passes"],
-            }
+            encode_row(T, face, "new, streamed (incl. rendering)", sec, peak, data, rec, 0.0)
         )
         print(f"  T={T} streamed: {sec:.2f} s, peak {peak / 2**20:.0f} MB", file=sys.stderr)
     info = {
