@@ -188,20 +188,11 @@ def check_markdown(rows: list[dict]) -> str:
 
 def baseline_module():
     """The previous ``facecast.server.output.gltf`` (from git history) as a module of the same package."""
-    import subprocess
-    import types
+    from facecast.server.bench.history import module_at
 
-    src = subprocess.run(
-        ["git", "show", f"{BASELINE}:server/output/gltf.py"],
-        cwd=ROOT,
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout
-    mod = types.ModuleType("facecast.server.output._gltf_baseline")
-    mod.__package__ = "facecast.server.output"
-    exec(compile(src, f"{BASELINE}:server/output/gltf.py", "exec"), mod.__dict__)  # noqa: S102 (our own history)
-    return mod
+    return module_at(
+        ROOT, BASELINE, "server/output/gltf.py", "facecast.server.output._gltf_baseline"
+    )
 
 
 def clip(face, n_frames: int, seed: int):
@@ -256,6 +247,33 @@ def measure(fn, repeats: int) -> tuple[float, float, object]:
         tracemalloc.stop()
         best = min(best, dt)
     return best, peak, out
+
+
+def encode_row(
+    frames: int,
+    face,
+    method: str,
+    seconds: float,
+    peak: int,
+    data: bytes,
+    rec: dict,
+    input_mb: float,
+) -> dict:
+    """One row of the table: an encoding of ``frames`` frames of ``face`` by ``method``, which took
+    ``seconds`` and ``peak`` bytes and gave ``data`` (the .glb) and ``rec`` (its record)."""
+    return {
+        "frames": frames,
+        "vertices": face.n_vertices,
+        "method": method,
+        "targets": rec["targets"],
+        "max_error_mm": rec["max_error_mm"],
+        "seconds": seconds,
+        "peak_mb": peak / 2**20,
+        "glb_mb": len(data) / 1e6,
+        "input_mb": input_mb,
+        "capped": rec.get("capped"),
+        "passes": rec.get("passes"),
+    }
 
 
 def markdown(rows: list[dict]) -> str:
@@ -329,19 +347,7 @@ def main(argv: list[str]) -> int:
                 ),
                 args.repeats,
             )
-            row = {
-                "frames": T,
-                "vertices": face.n_vertices,
-                "method": method,
-                "targets": rec["targets"],
-                "max_error_mm": rec["max_error_mm"],
-                "seconds": sec,
-                "peak_mb": peak / 2**20,
-                "glb_mb": len(data) / 1e6,
-                "input_mb": frames.nbytes / 2**20,
-                "capped": rec.get("capped"),
-                "passes": rec.get("passes"),
-            }
+            row = encode_row(T, face, method, sec, peak, data, rec, frames.nbytes / 2**20)
             bsec, _, _ = measure(
                 lambda mod=mod, frames=frames: mod.morph_basis(
                     frames,
@@ -375,19 +381,7 @@ def main(argv: list[str]) -> int:
             1,
         )
         rows.append(
-            {
-                "frames": T,
-                "vertices": face.n_vertices,
-                "method": "new, streamed (incl. rendering)",
-                "targets": rec["targets"],
-                "max_error_mm": rec["max_error_mm"],
-                "seconds": sec,
-                "peak_mb": peak / 2**20,
-                "glb_mb": len(data) / 1e6,
-                "input_mb": 0.0,
-                "capped": rec["capped"],
-                "passes": rec["passes"],
-            }
+            encode_row(T, face, "new, streamed (incl. rendering)", sec, peak, data, rec, 0.0)
         )
         print(f"  T={T} streamed: {sec:.2f} s, peak {peak / 2**20:.0f} MB", file=sys.stderr)
     info = {

@@ -120,30 +120,8 @@ def load_subject(n_vertices: int, engine: str = "fp") -> tuple[Face, Operator, s
     except Exception as e:  # noqa: BLE001 - the bench falls back, logs why and records the kind
         log.warning("built-in head unavailable (%s: %s); using an ellipsoid", type(e).__name__, e)
         face, face_kind = ellipsoid_face(n_vertices), "ellipsoid (procedural head unavailable)"
-    if engine == "fp":
-        try:
-            from ..deform.build import get_operator  # the deform engineer's operator cache
-            from ..mpeg4 import fap_controls
-
-            _fp_ids, vertex_ids, constrained = fap_controls(face)
-            return (
-                face,
-                get_operator(face, vertex_ids, engine="fp", constrained=constrained),
-                face_kind,
-                "fp",
-            )
-        except Exception as e:  # noqa: BLE001 - e.g. the face lacks feature points; logged, recorded
-            log.info("feature-point operator unavailable (%s); using a synthetic one", e)
-        return face, synthetic_fp_operator(face), face_kind, "synthetic-fp"
-    rng = np.random.default_rng(1)
-    K = 84
-    dense = rng.random((face.n_vertices, K), dtype=np.float32) / K
-    return (
-        face,
-        Operator(face.n_vertices, K, dense=dense, meta={"engine": "synthetic-dense"}),
-        face_kind,
-        "synthetic-dense",
-    )
+    operator, operator_kind = _operator_for(face, engine)
+    return face, operator, face_kind, operator_kind
 
 
 # --------------------------------------------------------------------------------- measuring
@@ -484,7 +462,7 @@ def _operator_for(face: Face, engine: str) -> tuple[Operator, str]:
 
             _, vertex_ids, constrained = fap_controls(face)
             return get_operator(face, vertex_ids, engine="fp", constrained=constrained), "fp"
-        except Exception as e:  # noqa: BLE001 - as in load_subject: logged, and the kind recorded
+        except Exception as e:  # noqa: BLE001 - e.g. the face lacks feature points; logged, recorded
             log.info("feature-point operator unavailable (%s); using a synthetic one", e)
             return synthetic_fp_operator(face), "synthetic-fp"
     rng = np.random.default_rng(1)

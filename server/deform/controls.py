@@ -7,7 +7,8 @@ per-axis ``(vertex, control, weight)`` triples into an ``Operator``.
 from __future__ import annotations
 
 import logging
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 import numpy as np
 import scipy.sparse as sp
@@ -23,6 +24,8 @@ log = logging.getLogger(__name__)
 
 #: One axis of an operator as COO triples: ``(vertex (n,), control (n,), weight (n,))``.
 Triples = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+T = TypeVar("T")
 
 
 def control_sites(
@@ -52,12 +55,15 @@ def control_sites(
     return graph, attach_distance, usable, sites, site_of.reshape(-1)
 
 
-def validate_controls(
-    n_vertices: int, control_vertices: Any, constrained: Any, deformable: Any
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(controls (K,) int64, constrained (K, 3) bool, deformable (V,) bool)`` from the engines'
-    arguments (``None``: every axis constrained, every vertex deformable); ``InputError`` when a
-    vertex id is out of range or a shape is wrong."""
+def engine_inputs(
+    vertices: Any, triangles: Any, control_vertices: Any, constrained: Any, deformable: Any
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(vertices (V, 3) float64, triangles (F, 3) int64, controls (K,) int64, constrained (K, 3)
+    bool, deformable (V,) bool)`` from the engines' arguments (``None``: every axis constrained,
+    every vertex deformable); ``InputError`` when a vertex id is out of range or a shape is wrong."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    n_vertices = len(vertices)
     controls = np.asarray(control_vertices, dtype=np.int64).reshape(-1)
     if len(controls) and (controls.min() < 0 or controls.max() >= n_vertices):
         raise InputError(
@@ -76,7 +82,41 @@ def validate_controls(
     deformable = np.asarray(deformable, dtype=bool)
     if deformable.shape != (n_vertices,):
         raise InputError(f"deformable must have shape ({n_vertices},)", where="deformable")
-    return controls, constrained, deformable
+    return vertices, triangles, controls, constrained, deformable
+
+
+def seeded_components(
+    graph: sp.csr_matrix, site_vertices: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(label (V,), seeded (V,) bool)``: each vertex's component of ``graph`` and whether that
+    component holds one of ``site_vertices``."""
+    label = components(graph)
+    seeded = np.zeros(label.max() + 1 if len(label) else 0, dtype=bool)
+    seeded[label[np.asarray(site_vertices, dtype=np.int64)]] = True
+    return label, seeded[label]
+
+
+def by_axis(
+    constrained: np.ndarray, usable: np.ndarray, build: Callable[[np.ndarray], T]
+) -> list[T]:
+    """``[build(ctl) for each axis]``, ``ctl`` the usable controls constrained on that axis; built
+    once per distinct set (axes with the same controls share the very same result)."""
+    built: dict[bytes, T] = {}
+    out = []
+    for a in range(3):
+        ctl = np.flatnonzero(constrained[:, a] & usable)
+        key = ctl.tobytes()
+        if key not in built:
+            built[key] = build(ctl)
+        out.append(built[key])
+    return out
+
+
+def expand_sites(x: np.ndarray, members: np.ndarray, ctl_site: np.ndarray) -> np.ndarray:
+    """Per-site columns ``x (n, len(members))`` (``members`` sorted, distinct site ids) to
+    per-control columns ``(n, len(ctl_site))``: a control at a site shared by m of them gets 1/m."""
+    count = np.bincount(ctl_site)
+    return x[:, np.searchsorted(members, ctl_site)] / count[ctl_site][None, :]
 
 
 def inner_is_membrane(inner: str) -> bool:
@@ -135,7 +175,7 @@ def front_vertices(
     return out
 
 
-def floating_sources(
+def attached_rows(
     vertices: np.ndarray,
     graph: sp.csr_matrix,
     deformable: np.ndarray,
@@ -143,31 +183,29 @@ def floating_sources(
     rigid_group: np.ndarray | None,
     attach_distance: float,
     *,
-    anchors_only: bool = False,
-) -> tuple[np.ndarray, ...]:
-    """Vertices of unreachable components and the reached vertex each one copies.
+    membrane: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices of unreachable components and the reached vertex whose row each one copies.
 
     A deformable component with no control is attached when it comes within ``attach_distance``
     of a reached vertex of the same rigid group; each of its vertices then copies its own nearest
-    such vertex. Returns ``(orphans (n,), sources (n,))`` vertex ids. With ``anchors_only`` only the
-    vertices themselves within ``attach_distance`` are returned, and a third array lists the other
-    vertices of the attached components, ``(orphans, sources, rest)``.
+    such vertex. With ``membrane`` only the vertices themselves within ``attach_distance`` (the
+    anchors) copy. Returns ``(orphans (n,), sources (n,), free (V,) bool, floating (V,) bool)``:
+    ``free`` the other vertices of attached components (with ``membrane``, for ``fill_inner``),
+    ``floating`` all vertices of attached components.
     """
-    empty = np.zeros(0, np.int64)
-    label = components(graph)
-    seeded = np.zeros(label.max() + 1 if len(label) else 0, dtype=bool)
-    seeded[label[np.asarray(site_vertices, dtype=np.int64)]] = True
-    floating = deformable & ~seeded[label]
-    reached = deformable & seeded[label]
+    n_vertices = len(vertices)
+    free = np.zeros(n_vertices, dtype=bool)
+    label, seeded = seeded_components(graph, site_vertices)
+    floating = deformable & ~seeded
+    reached = deformable & seeded
     if not floating.any() or not reached.any() or attach_distance <= 0:
-        return (empty, empty, empty) if anchors_only else (empty, empty)
+        empty = np.zeros(0, np.int64)
+        return empty, empty, free, free.copy()
     group = (
-        np.zeros(len(vertices), np.int64)
-        if rigid_group is None
-        else np.asarray(rigid_group, np.int64)
+        np.zeros(n_vertices, np.int64) if rigid_group is None else np.asarray(rigid_group, np.int64)
     )
-    src_of = np.full(len(vertices), -1)
-    rest = np.zeros(len(vertices), dtype=bool)
+    src_of = np.full(n_vertices, -1)
     for g in np.unique(group[floating]):
         target = np.flatnonzero(reached & (group == g))
         orphans = np.flatnonzero(floating & (group == g))
@@ -177,54 +215,23 @@ def floating_sources(
         comp_min = np.full(label.max() + 1, np.inf)
         np.minimum.at(comp_min, label[orphans], dist)
         ok = comp_min[label[orphans]] <= attach_distance
-        if anchors_only:
-            rest[orphans[ok & (dist > attach_distance)]] = True
+        if membrane:
+            free[orphans[ok & (dist > attach_distance)]] = True
             ok &= dist <= attach_distance
         src_of[orphans[ok]] = target[nearest[ok]]
     orphans = np.flatnonzero(src_of >= 0)
     if len(orphans):
         log.debug("attached %d vertices of unreachable components", len(orphans))
-    if anchors_only:
-        return orphans, src_of[orphans], np.flatnonzero(rest)
-    return orphans, src_of[orphans]
+    attached = free.copy()
+    attached[orphans] = True
+    return orphans, src_of[orphans], free, attached
 
 
-def attach_floating(
-    per_axis: list[Triples],
-    vertices: np.ndarray,
-    graph: sp.csr_matrix,
-    deformable: np.ndarray,
-    site_vertices: np.ndarray,
-    rigid_group: np.ndarray | None,
-    attach_distance: float,
-    *,
-    membrane: bool = False,
-) -> tuple[list[Triples], np.ndarray, np.ndarray]:
-    """Append, per axis, copies of the rows of the vertices that floating vertices attach to.
-
-    Returns ``(per_axis, free (V,) bool, floating (V,) bool)``: with ``membrane`` only the anchors
-    copy and ``free`` marks the other vertices of attached components (for ``fill_inner``);
-    ``floating`` marks all vertices of attached components."""
-    free = np.zeros(len(vertices), dtype=bool)
-    if membrane:
-        orphans, src, rest = floating_sources(
-            vertices,
-            graph,
-            deformable,
-            site_vertices,
-            rigid_group,
-            attach_distance,
-            anchors_only=True,
-        )
-        free[rest] = True
-    else:
-        orphans, src = floating_sources(
-            vertices, graph, deformable, site_vertices, rigid_group, attach_distance
-        )
-    floating = free.copy()
-    floating[orphans] = True
+def copy_rows(per_axis: list[Triples], orphans: np.ndarray, src: np.ndarray) -> list[Triples]:
+    """Append, per axis, a copy of the row of each vertex of ``src (n,)`` as the row of the vertex
+    in ``orphans (n,)`` (``attached_rows``)."""
     if not len(orphans):
-        return per_axis, free, floating
+        return per_axis
     out = []
     for r, c, v in per_axis:
         order = np.argsort(r, kind="stable")
@@ -234,7 +241,7 @@ def attach_floating(
         n = stop - start
         idx = np.repeat(start, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
         out.append((np.r_[r, np.repeat(orphans, n)], np.r_[c, c[idx]], np.r_[v, v[idx]]))
-    return out, free, floating
+    return out
 
 
 def assemble_per_axis(

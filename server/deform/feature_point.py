@@ -89,11 +89,12 @@ import numpy as np
 from ..errors import InputError
 from .controls import (
     assemble_per_axis,
-    attach_floating,
+    attached_rows,
     control_sites,
+    copy_rows,
+    engine_inputs,
     fill_inner,
     inner_is_membrane,
-    validate_controls,
 )
 from .mesh_graph import bounded_distances, voronoi
 from .normals import vertex_normals
@@ -227,13 +228,10 @@ def feature_point_operator(
             f"normalisation must be one of {', '.join(NORMALISATIONS)}, not {normalisation!r}",
             where="normalisation",
         )
-    vertices = np.asarray(vertices, dtype=np.float64)
-    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    n_vertices = len(vertices)
-    controls, constrained, deformable = validate_controls(
-        n_vertices, control_vertices, constrained, deformable
+    vertices, triangles, controls, constrained, deformable = engine_inputs(
+        vertices, triangles, control_vertices, constrained, deformable
     )
-    n_controls = len(controls)
+    n_vertices, n_controls = len(vertices), len(controls)
     meta = {
         "engine": "fp",
         "normalisation": normalisation,
@@ -380,16 +378,10 @@ def feature_point_operator(
         per_axis.append((rr, cc, vv))
 
     membrane = inner_is_membrane(inner)
-    per_axis, free, floating = attach_floating(
-        per_axis,
-        vertices,
-        graph,
-        deformable,
-        sites[active],
-        rigid_group,
-        attach_distance,
-        membrane=membrane,
+    orphans, src, free, floating = attached_rows(
+        vertices, graph, deformable, sites[active], rigid_group, attach_distance, membrane=membrane
     )
+    per_axis = copy_rows(per_axis, orphans, src)
     op = assemble_per_axis(per_axis, n_vertices, n_controls, meta)
     fixed = np.zeros((n_vertices, 3), dtype=bool)
     for a in range(3):

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..output.atomic import atomic_path
 
@@ -52,6 +53,13 @@ class Operator:
     @property
     def nnz(self) -> int:
         return int(self.indptr[-1]) if self.is_sparse else self.n_vertices * self.n_controls
+
+    def axis_matrix(self, a: int) -> sp.csr_matrix:
+        """Axis ``a`` of a sparse operator as a ``(V, K)`` CSR matrix with float64 weights."""
+        return sp.csr_matrix(
+            (self.weights[:, a].astype(np.float64), self.indices, self.indptr),
+            shape=(self.n_vertices, self.n_controls),
+        )
 
     def apply(self, D: np.ndarray) -> np.ndarray:
         """Reference product: ``D (K, 3)`` -> ``u (V, 3) float32`` (slow path, for tests)."""

@@ -44,14 +44,16 @@ from scipy.sparse.csgraph import dijkstra
 from ..errors import InputError
 from .controls import (
     assemble_per_axis,
-    attach_floating,
+    attached_rows,
+    by_axis,
     control_sites,
+    copy_rows,
+    engine_inputs,
+    expand_sites,
     fill_inner,
-    floating_sources,
     inner_is_membrane,
-    validate_controls,
+    seeded_components,
 )
-from .mesh_graph import components
 from .operator import Operator
 
 log = logging.getLogger(__name__)
@@ -226,13 +228,10 @@ def rbf_operator(
             "kernel 'r' needs distance='euclidean' (use kernel 'imq' for surface distances)",
             where="distance",
         )
-    vertices = np.asarray(vertices, dtype=np.float64)
-    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    n_vertices = len(vertices)
-    controls, constrained, deformable = validate_controls(
-        n_vertices, control_vertices, constrained, deformable
+    vertices, triangles, controls, constrained, deformable = engine_inputs(
+        vertices, triangles, control_vertices, constrained, deformable
     )
-    n_controls = len(controls)
+    n_vertices, n_controls = len(vertices), len(controls)
     meta = {
         "engine": "rbf",
         "kernel": kernel,
@@ -246,92 +245,56 @@ def rbf_operator(
     graph, attach_distance, usable, sites, site_of = control_sites(
         vertices, triangles, controls, deformable, rigid_group, attach_distance
     )
-    label = components(graph)
     site_ok = deformable[sites]
-    seeded = np.zeros(label.max() + 1, dtype=bool)
-    seeded[label[sites[site_ok]]] = True
-    warped = np.flatnonzero(deformable & seeded[label])
+    warped = np.flatnonzero(deformable & seeded_components(graph, sites[site_ok])[1])
 
     surface = between = None
     column = np.cumsum(site_ok) - 1  # site index -> column of the surface-distance arrays
     if distance == "surface":
         surface, between = _surface_distances(graph, sites[site_ok], warped)
 
-    per_axis = []
-    cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
-    for a in range(3):
-        ctl = np.flatnonzero(constrained[:, a] & usable)
-        key = tuple(ctl)
-        if key not in cache:
-            members = np.unique(site_of[ctl])
-            cpos = vertices[sites[members]]
-            if surface is not None:
-                cols = column[members]
-                # Centres in different components are treated as very far apart.
-                rcc = between[np.ix_(cols, cols)]
-                finite = np.isfinite(rcc)
-                far = (rcc[finite].max() if finite.any() else 1.0) * 1e3 + 1.0
-                rcc = np.where(finite, rcc, far)
-                rvx = surface[:, cols]
-                rvx[~np.isfinite(rvx)] = far
-            else:
-                rcc = rvx = None
-            b = rbf_matrix(
-                vertices[warped],
-                cpos,
-                kernel=kernel,
-                shape=shape,
-                affine=affine,
-                centre_distances=rcc,
-                vertex_distances=rvx,
-            )
-            cache[key] = (members, b)
-        members, b = cache[key]
-        # Expand sites to controls: each control at a site with m constrained controls gets 1/m.
-        col_of_site = {s: i for i, s in enumerate(members)}
-        count = np.bincount(site_of[ctl], minlength=len(sites))
-        cols = np.array([col_of_site[s] for s in site_of[ctl]], dtype=np.int64)
-        vals = b[:, cols] / count[site_of[ctl]][None, :] if len(ctl) else np.zeros((len(warped), 0))
-        per_axis.append((ctl, vals))
+    def axis_columns(ctl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(ctl, (len(warped), len(ctl)))``: the warp of the controls ``ctl`` of one axis."""
+        members = np.unique(site_of[ctl])
+        cpos = vertices[sites[members]]
+        if surface is not None:
+            cols = column[members]
+            # Centres in different components are treated as very far apart.
+            rcc = between[np.ix_(cols, cols)]
+            finite = np.isfinite(rcc)
+            far = (rcc[finite].max() if finite.any() else 1.0) * 1e3 + 1.0
+            rcc = np.where(finite, rcc, far)
+            rvx = surface[:, cols]
+            rvx[~np.isfinite(rvx)] = far
+        else:
+            rcc = rvx = None
+        b = rbf_matrix(
+            vertices[warped],
+            cpos,
+            kernel=kernel,
+            shape=shape,
+            affine=affine,
+            centre_distances=rcc,
+            vertex_distances=rvx,
+        )
+        return ctl, expand_sites(b, members, site_of[ctl])
 
-    same = all(np.array_equal(per_axis[0][0], p[0]) for p in per_axis)
-    if same:
+    per_axis = by_axis(constrained, usable, axis_columns)
+    orphans, src, free, floating = attached_rows(
+        vertices, graph, deformable, sites[site_ok], rigid_group, attach_distance, membrane=membrane
+    )
+    if all(np.array_equal(per_axis[0][0], p[0]) for p in per_axis):
         ctl, vals = per_axis[0]
         dense = np.zeros((n_vertices, n_controls), dtype=np.float32)
         dense[np.ix_(warped, ctl)] = vals
-        found = floating_sources(
-            vertices,
-            graph,
-            deformable,
-            sites[site_ok],
-            rigid_group,
-            attach_distance,
-            anchors_only=membrane,
-        )
-        orphans, src = found[0], found[1]
         dense[orphans] = dense[src]
-        free = np.zeros(n_vertices, dtype=bool)
-        if membrane:
-            free[found[2]] = True
-        floating = free.copy()
-        floating[orphans] = True
         op = Operator(n_vertices, n_controls, dense=dense, meta=meta)
     else:
         triples = [
             (np.repeat(warped, len(ctl)), np.tile(ctl, len(warped)), vals.ravel())
             for ctl, vals in per_axis
         ]
-        triples, free, floating = attach_floating(
-            triples,
-            vertices,
-            graph,
-            deformable,
-            sites[site_ok],
-            rigid_group,
-            attach_distance,
-            membrane=membrane,
-        )
-        op = assemble_per_axis(triples, n_vertices, n_controls, meta)
+        op = assemble_per_axis(copy_rows(triples, orphans, src), n_vertices, n_controls, meta)
     if not membrane:
         return op
     held = np.zeros(n_vertices, dtype=bool)

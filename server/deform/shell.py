@@ -44,13 +44,15 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from .controls import (
+    attached_rows,
+    by_axis,
     control_sites,
+    engine_inputs,
+    expand_sites,
     fill_inner,
-    floating_sources,
     inner_is_membrane,
-    validate_controls,
+    seeded_components,
 )
-from .mesh_graph import components
 from .operator import Operator
 
 log = logging.getLogger(__name__)
@@ -174,13 +176,10 @@ def shell_operator(
     """
     if not np.isfinite(stretch) or stretch < 0:
         raise InputError(f"stretch must be a number >= 0, not {stretch!r}", where="stretch")
-    vertices = np.asarray(vertices, dtype=np.float64)
-    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    n_vertices = len(vertices)
-    controls, constrained, deformable = validate_controls(
-        n_vertices, control_vertices, constrained, deformable
+    vertices, triangles, controls, constrained, deformable = engine_inputs(
+        vertices, triangles, control_vertices, constrained, deformable
     )
-    n_controls = len(controls)
+    n_vertices, n_controls = len(vertices), len(controls)
     membrane = inner_is_membrane(inner)
     meta = {
         "engine": "shell",
@@ -191,10 +190,8 @@ def shell_operator(
     graph, attach_distance, usable, sites, site_of = control_sites(
         vertices, triangles, controls, deformable, rigid_group, attach_distance
     )
-    label = components(graph)
-    seeded = np.zeros(label.max() + 1, dtype=bool)
-    seeded[label[sites[deformable[sites]]]] = True
-    reached = deformable & seeded[label]
+    label, seeded = seeded_components(graph, sites[deformable[sites]])
+    reached = deformable & seeded
     # The shell's domain: the surface (skin) where a component has some, the whole component otherwise.
     on_surface = np.ones(n_vertices, dtype=bool)
     if surface is not None:
@@ -223,36 +220,26 @@ def shell_operator(
             return dense
         members = np.unique(site_of[ctl])
         rows, x = _solve_sites(a, domain, sites[members])
-        count = np.bincount(site_of[ctl], minlength=len(sites))
-        col = {s: i for i, s in enumerate(members)}
-        cols = np.array([col[s] for s in site_of[ctl]], dtype=np.int64)
-        dense[np.ix_(rows, ctl)] = x[:, cols] / count[site_of[ctl]][None, :]
+        dense[np.ix_(rows, ctl)] = expand_sites(x, members, site_of[ctl])
         solved = np.zeros(n_vertices, dtype=bool)
         solved[rows] = True
         # attach what the shell does not cover: floating components copy (their roots), sockets and
         # the rest of floating components hang as membranes from the skin
-        orphans, src, rest = floating_sources(
+        orphans, src, free, _ = attached_rows(
             vertices,
             graph,
             deformable,
             sites[members],
             rigid_group,
             attach_distance,
-            anchors_only=True,
+            membrane=membrane,
         )
-        if not membrane:
-            orphans, src = floating_sources(
-                vertices, graph, deformable, sites[members], rigid_group, attach_distance
-            )
-            rest = np.zeros(0, np.int64)
         dense[orphans] = dense[src]
         if not membrane:  # the other deformable vertices copy their nearest shell vertex
             other = np.flatnonzero(reached & ~solved)
             if len(other) and len(rows):
                 dense[other] = dense[rows[cKDTree(vertices[rows]).query(vertices[other])[1]]]
             return dense
-        free = np.zeros(n_vertices, dtype=bool)
-        free[rest] = True
         free |= reached & ~solved  # sockets and other deformable non-shell vertices
         held = np.zeros(n_vertices, dtype=bool)
         held[controls[usable]] = True
@@ -269,15 +256,8 @@ def shell_operator(
         )
         return op.dense
 
-    cache: dict[tuple, np.ndarray] = {}
-    per_axis = []
-    for ax in range(3):
-        ctl = np.flatnonzero(constrained[:, ax] & usable)
-        key = tuple(ctl)
-        if key not in cache:
-            cache[key] = axis_matrix(ctl)
-        per_axis.append(cache[key])
-    if len(cache) == 1:
+    per_axis = by_axis(constrained, usable, axis_matrix)
+    if per_axis[0] is per_axis[1] is per_axis[2]:
         return Operator(n_vertices, n_controls, dense=per_axis[0], meta=meta)
     nz = (per_axis[0] != 0) | (per_axis[1] != 0) | (per_axis[2] != 0)
     rows, cols = np.nonzero(nz)

@@ -57,9 +57,7 @@ def smooth_rows(
     out = []
     cache: dict[bytes, sp.csr_matrix] = {}
     for a in range(3):
-        b0 = sp.csr_matrix(
-            (op.weights[:, a].astype(np.float64), op.indices, op.indptr), shape=(n, k)
-        )
+        b0 = op.axis_matrix(a)
         key = op.weights[:, a].tobytes() + keep[a].tobytes()
         if key in cache:
             out.append(cache[key])
@@ -159,9 +157,7 @@ def harmonic_fill(
         if key in done:  # axes with the same weights (all controls constrained on all axes)
             mats.append(done[key])
             continue
-        b = sp.csr_matrix(
-            (op.weights[:, ax].astype(np.float64), op.indices, op.indptr), shape=(n, k)
-        )
+        b = op.axis_matrix(ax)
         rhs = (afb @ b[bid]).tocsc()
         cols = np.flatnonzero(np.diff(rhs.indptr))  # only controls that reach the boundary
         x = np.zeros((len(fid), k))
