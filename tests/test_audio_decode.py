@@ -369,3 +369,34 @@ def test_stream_resampler_reused_plans_give_the_batch_output(rng, rate):
     want = resample(x[: bounds[-1]], rate, ANALYSIS_RATE)[: len(y)]
     np.testing.assert_allclose(y, want, atol=1e-12)
     assert len(y) > 0.9 * bounds[-1] * ANALYSIS_RATE / rate
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int16, np.uint8])
+def test_validate_pcm_copies_clips_and_refuses_non_finite(dtype, rng):
+    """``validate_pcm``: a fresh float64 array in [-1, 1] (never the caller's), unchanged below
+    the clip level; loud floats are clipped; NaN, inf and -inf are refused wherever they are."""
+    from facecast.server.audio.io import validate_pcm
+
+    info = np.iinfo(dtype) if np.dtype(dtype).kind in "iu" else None
+    x = (
+        rng.integers(info.min, int(info.max) + 1, 500).astype(dtype)
+        if info is not None
+        else (rng.uniform(-0.9, 0.9, 500)).astype(dtype)
+    )
+    y = validate_pcm(x, 16000)
+    assert y.dtype == np.float64 and not np.shares_memory(x, y)
+    assert np.all(np.abs(y) <= 1.0)
+    if info is None:
+        np.testing.assert_array_equal(y, x.astype(np.float64))
+        y[:] = 0  # the caller's samples are untouched
+        assert np.any(x != 0)
+        loud = x.astype(np.float64) * 3
+        np.testing.assert_array_equal(validate_pcm(loud, 16000), np.clip(loud, -1, 1))
+        for bad in (np.nan, np.inf, -np.inf):
+            z = x.copy()
+            z[123] = bad
+            with pytest.raises(InputError, match="first at sample 123"):
+                validate_pcm(z, 16000)
+    assert validate_pcm(x[:0], 16000, allow_empty=True).shape == (0,)
+    with pytest.raises(InputError, match="no audio samples"):
+        validate_pcm(x[:0], 16000)

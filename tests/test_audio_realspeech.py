@@ -229,3 +229,42 @@ def test_speed_copy_stretches_the_classes_with_the_audio(bench_modules, rng):
         assert len(F) == len(t) == pytest.approx(200 * factor, abs=2)
         assert np.all(np.diff(t) >= 0) and set(t) == set(range(10))
         assert np.abs(np.bincount(t)[1:-1] - 20 * factor).max() <= 1
+
+
+def test_live_calibrated_training_features_are_what_the_live_driver_computes(
+    bench_modules, bobby, monkeypatch
+):
+    """``frames.live_calibrated`` (the training copies' calibration columns) equals the live
+    driver's own: the running calibration of the stream's frame energies, frame by frame."""
+    from facecast.server.audio.classify import CALIBRATION_COLUMNS, calibration_columns
+    from facecast.server.audio.live import AudioLiveDriver, RunningCalibration
+
+    sys.path.insert(0, str(BENCH))
+    try:
+        import frames
+    finally:
+        sys.path.remove(str(BENCH))
+    x, sr = read_audio(bobby)
+    F, e = frames.utterance_features(x, sr)
+    drv = AudioLiveDriver(None, sr, fps=100.0)
+    seen: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    update = RunningCalibration.update
+
+    def spy(self, energy_db):
+        sil, mx = update(self, energy_db)
+        seen.append((np.asarray(energy_db), sil, mx))
+        return sil, mx
+
+    monkeypatch.setattr(RunningCalibration, "update", spy)
+    for i in range(0, len(x), 320):
+        drv.push(x[i : i + 320].astype(np.float32), i / sr)
+    drv.flush()
+    e_live, sil, mx = (np.concatenate(v) for v in zip(*seen))
+    assert len(e_live) == len(e)
+    live = np.stack(calibration_columns(e_live, sil, mx), axis=1)
+    got = frames.live_calibrated(F, e)
+    np.testing.assert_allclose(got[:, CALIBRATION_COLUMNS], live, atol=0.02)
+    other = np.ones(F.shape[1], dtype=bool)
+    other[CALIBRATION_COLUMNS] = False
+    np.testing.assert_array_equal(got[:, other], F[:, other])
+    assert not np.allclose(got, F)  # the first frames' levels differ from the whole file's

@@ -22,7 +22,12 @@ from facecast.server.audio.align import (
 from facecast.server.audio.io import read_audio
 from facecast.server.audio.live import AudioLiveDriver, RunningCalibration
 from facecast.server.audio.pipeline import features_of
-from facecast.server.audio.visemes import calibrate
+from facecast.server.audio.visemes import (
+    MIN_SILENCE_DB,
+    NOISE_MARGIN_DB,
+    SILENCE_RANGE_DB,
+    calibrate,
+)
 from facecast.server.errors import InputError
 
 BOBBY_TEXT = "Bobby ripped the ledger."
@@ -135,7 +140,7 @@ def test_running_calibration_converges_to_the_file_calibration(bobby):
     x, sr = bobby
     e = features_of(x, sr).energy_db
     cal = RunningCalibration()
-    sil, mx = cal.update(e, 0.01)
+    sil, mx = cal.update(e)
     want = calibrate(e)
     assert sil[-1] == pytest.approx(want.silence_db, abs=0.5)
     assert mx[-1] == pytest.approx(want.max_db, abs=0.5)
@@ -213,3 +218,35 @@ def test_frame_network_carries_its_mean_output(tmp_path):
     assert drv.follower is not None and drv.follower.n == 0
     f = TextFollower("a map", prior=np.full(10, 0.1))
     assert f.n == TextFollower.PRIOR_FRAMES
+
+
+def test_running_calibration_tracks_the_histogram_percentiles(rng):
+    """The incremental percentiles equal those of the whole histogram's cumulative sum after
+    every frame, with energies out of range, -inf and NaN among them, fed in uneven chunks."""
+    e = np.concatenate(
+        [rng.normal(-60, 30, 3000), [-np.inf, np.nan, 500.0, -500.0], rng.normal(-20, 5, 500)]
+    )
+    rng.shuffle(e)
+    cal = RunningCalibration()
+    hist = np.zeros(len(cal.hist))
+    got_sil, want_sil, got_max, want_max = [], [], [], []
+    i = 0
+    for n in rng.integers(0, 7, 1000):
+        chunk = e[i : i + n]
+        i += n
+        sil, mx = cal.update(chunk)
+        got_sil += sil.tolist()
+        got_max += mx.tolist()
+        for v in chunk:
+            b = int((v - cal.lo) / cal.step) if np.isfinite(v) else 0
+            hist[min(max(b, 0), len(hist) - 1)] += 1
+            c = np.cumsum(hist)
+            noise, top = cal.lo + cal.step * (
+                np.searchsorted(c, (0.05 * c[-1], 0.99 * c[-1])) + 0.5
+            )
+            s = max(noise + NOISE_MARGIN_DB, top - SILENCE_RANGE_DB, MIN_SILENCE_DB)
+            want_sil.append(s)
+            want_max.append(max(top, s + 10.0))
+    assert i > 2000 and cal.n == i
+    assert got_sil == want_sil and got_max == want_max
+    assert list(hist) == cal.hist

@@ -112,6 +112,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--median", type=int, default=3)
     ap.add_argument("--no-dev", action="store_true", help="train without synthetic speech")
+    ap.add_argument(
+        "--no-live-cal",
+        action="store_true",
+        help="train every copy under its file calibration (frames.LIVE_CALIBRATION off)",
+    )
     ap.add_argument("--cmvn", action="store_true", help="quick: per-utterance mean removal")
     ap.add_argument(
         "--no-prior",
@@ -156,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
             / (
                 f"{'-'.join(map(str, groups))}_e{args.epochs}_h{args.hidden}_b{args.balance}"
                 f"_s{args.step}_m{args.members}_o{args.offsets.replace(',', '.')}{'_nodev' if args.no_dev else ''}"
+                f"{'' if args.no_live_cal or not frames.LIVE_CALIBRATION else '_lc'}"
                 f"_c{cache_stamp}.npz"
             )
         )
@@ -175,6 +181,7 @@ def main(argv: list[str] | None = None) -> int:
                 balance=args.balance,
                 step=args.step,
                 members=args.members,
+                live_cal=frames.LIVE_CALIBRATION and not args.no_live_cal,
             )
             log.info(
                 "without %s: trained on %d utterances in %.0f s",

@@ -135,11 +135,9 @@ def frame_features(
     shape ``(T, 16)`` (``Features.shape``, /4); ``cep (T, 12)`` is ``Features.cep``."""
     # np.minimum/np.maximum: np.clip's overhead weighs on the live path's few frames
     k = np.minimum(np.maximum(np.asarray(k, dtype=np.float64), -0.999), 0.999)
-    e = np.asarray(energy_db, dtype=np.float64)
     lar = np.log((1 - k) / (1 + k))
     gain = 10 * np.log10(np.prod(1 - k * k, axis=1) + 1e-12) / 10
-    rel_max = np.minimum(np.maximum((e - max_db) / 10, -6.0), 1.0)
-    rel_sil = np.minimum(np.maximum((e - silence_db) / 10, -3.0), 5.0)
+    rel_max, rel_sil = calibration_columns(energy_db, silence_db, max_db)
     # one concatenate of 2-D columns: np.column_stack's per-array conversions cost more
     return np.concatenate(
         [
@@ -153,6 +151,21 @@ def frame_features(
         ],
         axis=1,
     )
+
+
+#: Columns of ``frame_features`` that depend on the energy calibration (``calibration_columns``).
+CALIBRATION_COLUMNS = slice(25, 27)
+
+
+def calibration_columns(
+    energy_db: np.ndarray, silence_db: np.ndarray | float, max_db: np.ndarray | float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``frame_features``' ``(rel_max (T,), rel_sil (T,))``: energy relative to the calibrated
+    maximum and to the silence threshold, dB/10, clipped to [-6, 1] and [-3, 5]."""
+    e = np.asarray(energy_db, dtype=np.float64)
+    rel_max = np.minimum(np.maximum((e - max_db) / 10, -6.0), 1.0)
+    rel_sil = np.minimum(np.maximum((e - silence_db) / 10, -3.0), 5.0)
+    return rel_max, rel_sil
 
 
 #: Frames per block of ``FrameNet.proba`` (the stacked inputs of a block: about 14 MB).

@@ -11,6 +11,7 @@ the file's own rate: for tools and tests, not for uploads).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -396,14 +397,21 @@ def validate_pcm(
         x = x.astype(np.float64)
     else:
         raise InputError(f"unsupported sample type {x.dtype}", where=where)
-    if x.size == 0 and not allow_empty:
-        raise InputError("no audio samples", where=where)
-    if not np.isfinite(x).all():
+    if x.size == 0:
+        if not allow_empty:
+            raise InputError("no audio samples", where=where)
+        return x
+    # two reductions decide the common case (finite, below the clip level) without temporaries;
+    # NaN or inf makes the min or the max non-finite
+    lo, hi = float(x.min()), float(x.max())
+    if not (math.isfinite(lo) and math.isfinite(hi)):
         bad = ~np.isfinite(x)
         raise InputError(
             f"{int(bad.sum())} NaN/inf samples (first at sample {int(np.argmax(bad))})", where=where
         )
-    clipped = np.mean(np.abs(x) >= CLIP_LEVEL) if x.size and warn_clipping else 0.0
+    if max(-lo, hi) < CLIP_LEVEL:
+        return x  # (a copy: made above; within the clip level, so within [-1, 1])
+    clipped = np.mean(np.abs(x) >= CLIP_LEVEL) if warn_clipping else 0.0
     if clipped > CLIP_WARN_FRACTION:
         log.warning(
             "%s: %.1f%% of samples are clipped; intensity will saturate", where, 100 * clipped

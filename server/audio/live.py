@@ -63,32 +63,61 @@ class RunningCalibration:
     the noise floor's neighbourhood and everything is silence. Speakers held out
     (bench/lipsync/folds.py): live 0.517 / 0.360 with the former peak follower (+6 dB headroom,
     2 dB/s decay), 0.523 / 0.370 with the percentiles (batch 0.550 / 0.378).
+
+    Each percentile is tracked incrementally: its bin and the count of energies up to and
+    including that bin move by a few bins per frame (no cumulative sum over the histogram).
     """
+
+    #: Quantiles tracked (noise floor, maximum).
+    QUANTILES = (0.05, 0.99)
 
     def __init__(
         self, range_db: tuple[float, float] = (-140.0, 20.0), step_db: float = 0.25
     ) -> None:
         self.lo, self.step = float(range_db[0]), float(step_db)
-        self.hist = np.zeros(int(round((range_db[1] - range_db[0]) / step_db)) + 1)
+        #: energies counted per bin (Python ints: updated frame by frame)
+        self.hist = [0] * (int(round((range_db[1] - range_db[0]) / step_db)) + 1)
         self.n = 0
+        self._bin = [0, 0]  # each quantile's bin: the first whose cumulative count reaches it
+        self._cum = [0, 0]  # cumulative count up to and including that bin
 
     def levels(self) -> tuple[float, float]:
         """``(noise, top)`` dB: the 5th and 99th percentiles of the energies so far."""
-        c = np.cumsum(self.hist)
-        noise, top = np.searchsorted(c, (0.05 * self.n, 0.99 * self.n))
+        noise, top = self._bin
         return self.lo + self.step * (noise + 0.5), self.lo + self.step * (top + 0.5)
 
-    def update(self, energy_db: np.ndarray, hop: float) -> tuple[np.ndarray, np.ndarray]:
-        """Feed frame energies ``(T,)``; return per-frame ``(silence_db, max_db)`` arrays (each
-        frame's levels include it and every frame before). ``hop`` (s) is unused."""
+    def _add(self, b: int) -> None:
+        """Count one energy in bin ``b``; move each quantile's bin to the first whose cumulative
+        count reaches ``q·n`` (``np.searchsorted(np.cumsum(hist), q·n)``)."""
+        counts = self.hist
+        counts[b] += 1
+        self.n += 1
+        for j, q in enumerate(self.QUANTILES):
+            target = q * self.n
+            i, c = self._bin[j], self._cum[j]
+            if b <= i:
+                c += 1
+            while i > 0 and c - counts[i] >= target:  # the bin below already reaches it
+                c -= counts[i]
+                i -= 1
+            while c < target:
+                i += 1
+                c += counts[i]
+            self._bin[j], self._cum[j] = i, c
+
+    def update(self, energy_db: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Feed frame energies ``(T,)`` dB; return per-frame ``(silence_db, max_db)`` arrays
+        (each frame's levels include it and every frame before)."""
         sil = np.empty(len(energy_db))
         mx = np.empty(len(energy_db))
         last = len(self.hist) - 1
+        lo, step = self.lo, self.step
         for i, e in enumerate(np.asarray(energy_db, dtype=np.float64).tolist()):
-            b = int((e - self.lo) / self.step) if math.isfinite(e) else 0
-            self.hist[min(max(b, 0), last)] += 1
-            self.n += 1
-            noise, top = self.levels()
+            b = int((e - lo) / step) if math.isfinite(e) else 0
+            b = min(max(b, 0), last)
+            self._add(b)
+            noise = lo + step * (self._bin[0] + 0.5)
+            top = lo + step * (self._bin[1] + 0.5)
             s = max(noise + NOISE_MARGIN_DB, top - SILENCE_RANGE_DB, MIN_SILENCE_DB)
             sil[i], mx[i] = s, max(top, s + 10.0)
         return sil, mx
@@ -290,7 +319,7 @@ class AudioLiveDriver:
                 sil = np.full(len(e), self.fixed_calibration.silence_db)
                 mx = np.full(len(e), self.fixed_calibration.max_db)
             else:
-                sil, mx = self._cal.update(e, self.hop)
+                sil, mx = self._cal.update(e)
             self._e = np.concatenate([self._e, e])
             self._F = np.concatenate([self._F, frame_features(k, e, z, sil, mx, sh, cep)])
             if self._first is None and np.any(e >= sil):  # the stream's first sound
