@@ -45,6 +45,11 @@ inline int3 cells(__global const float *v, __global const float *m, __global con
 #define MAGIC 12582912.0f
 #define ZZ(d) ((as_uint16(d) << 1) ^ as_uint16((d) >> 31))
 
+// Row k of matrix m (3, 4) applied to the unit's x, y, z (as NumPy's matmul: an fma chain).
+#define LOCAL(m, k)                                                                              \
+    (fma((float16)((m)[k + 2]), z, fma((float16)((m)[k + 1]), y, (float16)((m)[k]) * x)) +       \
+     (float16)((m)[k + 3]))
+
 // The 16 lanes' non-zero bits: lane k -> bit k.
 inline uint mask16(const uint16 z)
 {
@@ -57,16 +62,16 @@ inline uint mask16(const uint16 z)
 }
 
 // The lanes of z set in m (in lane order), bytes 0 and 1 at lo[c], hi[c], ...: the new count.
+// Branch-free: every lane is stored, the count advances on the set ones (the stores past the
+// new count stay inside the work-item's run, and are overwritten or never read).
 inline uint put_nz(const uint16 z, uint m, __global uchar *lo, __global uchar *hi, uint c)
 {
     uint t[16];
     vstore16(z, 0, t);
-    while (m) {
-        const uint k = 31 - clz(m & (0u - m));
+    for (uint k = 0; k < 16; ++k) {
         lo[c] = (uchar)t[k];
         hi[c] = (uchar)(t[k] >> 8);
-        ++c;
-        m &= m - 1;
+        c += (m >> k) & 1;
     }
     return c;
 }
@@ -127,23 +132,21 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
         const float16 z = shuffle2(shuffle2(a, b, (uint16)(2, 5, 8, 11, 14, 17, 20, 23, 26, 29, 0, 0, 0, 0, 0, 0)), c,
                                    (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 16, 19, 22, 25, 28, 31));
         const uchar16 g = vload16(0, groups + i0);
-        float16 m[12];
-        if (all(g == (uchar16)(g.s0))) {
-            __global const float *mg = ms + 12 * g.s0;
-            for (int k = 0; k < 12; ++k)
-                m[k] = (float16)(mg[k]);
-        } else {  // a unit across groups: each lane its group's matrix
-            for (int k = 0; k < 12; ++k)
-                m[k] = (float16)(ms[12 * g.s0 + k], ms[12 * g.s1 + k], ms[12 * g.s2 + k],
-                                 ms[12 * g.s3 + k], ms[12 * g.s4 + k], ms[12 * g.s5 + k],
-                                 ms[12 * g.s6 + k], ms[12 * g.s7 + k], ms[12 * g.s8 + k],
-                                 ms[12 * g.s9 + k], ms[12 * g.sa + k], ms[12 * g.sb + k],
-                                 ms[12 * g.sc + k], ms[12 * g.sd + k], ms[12 * g.se + k],
-                                 ms[12 * g.sf + k]);
+        // the local frame by the unit's first group's matrix; the lanes of another group (7
+        // units of 1553 on the 25k head) by theirs, selected: a branch of 16 gathered matrices
+        // per unit made PoCL's code of the common case ~20% slower
+        float16 l0 = LOCAL(ms + 12 * g.s0, 0), l1 = LOCAL(ms + 12 * g.s0, 4),
+                l2 = LOCAL(ms + 12 * g.s0, 8);
+        if (any(g != (uchar16)(g.s0))) {
+            for (uint h = 0; h < n_groups; ++h) {
+                const int16 sel = convert_int16(as_char16(g == (uchar16)(h)));
+                if (h == g.s0 || !any(sel))
+                    continue;
+                l0 = select(l0, LOCAL(ms + 12 * h, 0), sel);
+                l1 = select(l1, LOCAL(ms + 12 * h, 4), sel);
+                l2 = select(l2, LOCAL(ms + 12 * h, 8), sel);
+            }
         }
-        const float16 l0 = fma(m[2], z, fma(m[1], y, m[0] * x)) + m[3];
-        const float16 l1 = fma(m[6], z, fma(m[5], y, m[4] * x)) + m[7];
-        const float16 l2 = fma(m[10], z, fma(m[9], y, m[8] * x)) + m[11];
         oks &= (l0 > -lim) & (l0 < lim) & (l1 > -lim) & (l1 < lim) & (l2 > -lim) & (l2 < lim);
         const float16 r0 = vload16(0, ref + i0), r1 = vload16(0, ref + nv + i0),
                       r2 = vload16(0, ref + 2 * nv + i0);
