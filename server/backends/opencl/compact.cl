@@ -50,16 +50,19 @@ inline int3 cells(__global const float *v, __global const float *m, __global con
     (fma((float16)((m)[k + 2]), z, fma((float16)((m)[k + 1]), y, (float16)((m)[k]) * x)) +       \
      (float16)((m)[k + 3]))
 
-// The 16 lanes' non-zero bits: lane k -> bit k.
-inline uint mask16(const uint16 z)
+// The bitwise or of the 16 lanes.
+inline uint or16(const uint16 b)
 {
-    const uint16 b = (uint16)(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096, 8192, 16384,
-                              32768) & as_uint16(z != (uint16)(0));
     const uint8 s8 = b.lo | b.hi;
     const uint4 s4 = s8.lo | s8.hi;
     const uint2 s2 = s4.lo | s4.hi;
     return s2.x | s2.y;
 }
+
+// Lane k of the vector 1 where z is non-zero, shifted to bit k + o (min and shift: no masks).
+#define NZ(z, o) (min((z), (uint16)(1)) << ((uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15) + (o)))
+// A float's magnitude as an unsigned int: ordered as the magnitudes, NaN above infinity.
+#define MAG(f) (as_uint16(f) & (uint16)(0x7FFFFFFF))
 
 // The lanes of z set in m (in lane order), bytes 0 and 1 at lo[c], hi[c], ...: the new count.
 // Branch-free: every lane is stored, the count advances on the set ones (the stores past the
@@ -119,8 +122,8 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
     int3 prev = (int3)(0);
     if (u0)
         prev = cells(v, ms + 12 * groups[16 * u0 - 1], ref, nv, 16 * u0 - 1, keep2, &bad);
-    int16 oks = (int16)(-1), huges = (int16)(0);
-    uint16 zs = (uint16)(0);
+    // the largest local-frame and moved offset magnitudes (MAG): integer max, no compare masks
+    uint16 mags = (uint16)(0), moved = (uint16)(0), zs = (uint16)(0);
     for (uint u = u0; u < u1; ++u) {
         const uint i0 = 16 * u;
         __global const float *w = v + 3 * i0;
@@ -147,13 +150,13 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
                 l2 = select(l2, LOCAL(ms + 12 * h, 8), sel);
             }
         }
-        oks &= (l0 > -lim) & (l0 < lim) & (l1 > -lim) & (l1 < lim) & (l2 > -lim) & (l2 < lim);
+        mags = max(mags, max(max(MAG(l0), MAG(l1)), MAG(l2)));
         const float16 r0 = vload16(0, ref + i0), r1 = vload16(0, ref + nv + i0),
                       r2 = vload16(0, ref + 2 * nv + i0);
         const float16 f0 = l0 - r0, f1 = l1 - r1, f2 = l2 - r2;
         const float16 p0 = f0 * f0, p1 = f1 * f1, p2 = f2 * f2;
         const int16 move = (p0 + p1) + p2 > (float16)(keep2);
-        huges |= move & ((fabs(f0) >= big) | (fabs(f1) >= big) | (fabs(f2) >= big));
+        moved = max(moved, max(max(MAG(f0), MAG(f1)), MAG(f2)) & as_uint16(move));
         const int16 q0 = (as_int16(f0 + MAGIC) - 0x4B400000) & move;
         const int16 q1 = (as_int16(f1 + MAGIC) - 0x4B400000) & move;
         const int16 q2 = (as_int16(f2 + MAGIC) - 0x4B400000) & move;
@@ -163,7 +166,8 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
         prev = (int3)(q0.sf, q1.sf, q2.sf);
         const uint16 z0 = ZZ(d0), z1 = ZZ(d1), z2 = ZZ(d2);
         zs |= z0 | z1 | z2;
-        const uint m0 = mask16(z0), m1 = mask16(z1), m2 = mask16(z2);
+        const uint m01 = or16(NZ(z0, 0) | NZ(z1, 16)), m2 = or16(NZ(z2, 0));
+        const uint m0 = m01 & 0xFFFF, m1 = m01 >> 16;
         bm0[2 * u] = (uchar)m0;
         bm0[2 * u + 1] = (uchar)(m0 >> 8);
         bm1[2 * u] = (uchar)m1;
@@ -182,7 +186,8 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
             vstore16(r2 + convert_float16(q2), 0, kk + 2 * nv + i0);
         }
     }
-    uint flag = (any(~oks) ? 1u : 0u) | (any(huges) || any((zs >> 16) != 0) ? 2u : 0u) |
+    uint flag = (any(mags >= (uint16)(as_uint(lim))) ? 1u : 0u) |
+                (any(moved >= (uint16)(as_uint(big))) || any((zs >> 16) != 0) ? 2u : 0u) |
                 (any((zs >> 8) != 0) ? 4u : 0u);
     if (l == WG - 1) {  // the last nv % 16 vertices, one by one
         for (uint b = 2 * units; b < nb; ++b)
