@@ -34,13 +34,15 @@ inline int3 cells(__global const float *v, __global const float *m, __global con
 // uint words ``param`` (P = 5 + 12 G each): frame index, key flag, keep2 (float bits: squared
 // tolerance, cells), flags, the slot of its reference cells in ``refs`` (slots of (3, nv)
 // float32, kept across launches), then its groups' (3, 4) float32 matrices (world -> cells).
-// Written: ``bits`` (3, NB = ceil(nv / 8)) at byte 3 NB j, per axis a bitmap of the non-zero
-// zigzagged values (bit i % 8 of byte i / 8); the non-zero values' bytes 0 and 1 in ``out``, byte k
+// Written: ``packed`` from byte (3 NB + 6 nv) j (NB = ceil(nv / 8)): per axis a bitmap of the
+// non-zero zigzagged values (bit i % 8 of byte i / 8), then the non-zero values' byte 0 (axis
+// after axis, in vertex order), then their byte 1 if bit 2 of the flags is set (none of that if
+// bit 0 or 1 is). Staged first: the non-zero values' bytes 0 and 1 in ``out``, byte k
 // of axis a's values of work-item l's vertices from byte 6 nv j + k 3 nv + a nv + 16 u0 (u0: the
 // work-item's first unit), ``counts[(3 j + a) WG + l]`` of them; for a key frame, its new cells
 // ref + r (3, nv) float32 at float ``keys_at + 3 nv j``; flags: bit 0 a bad vertex (not finite,
 // or out of the grid), bit 1 a value over 16 bits, bit 2 a value over 8 bits (the frame needs
-// both planes) (atomically or-ed by any work-item that finds one; the host zeroes them first).
+// both planes) (or-ed in by the work-group's first work-item; the host zeroes them first).
 
 #define MAGIC 12582912.0f
 #define ZZ(d) ((as_uint16(d) << 1) ^ as_uint16((d) >> 31))
@@ -92,6 +94,16 @@ inline uint put1(const uint u, const uint i, __global uchar *bm, __global uchar 
     return c;
 }
 
+// n bytes from src to dst, 16 at a time (PoCL's byte loop was several times slower).
+inline void copy(__global uchar *dst, __global const uchar *src, const uint n)
+{
+    uint i = 0;
+    for (; i + 16 <= n; i += 16)
+        vstore16(vload16(0, src + i), 0, dst + i);
+    for (; i < n; ++i)
+        dst[i] = src[i];
+}
+
 // One work-group of WG work-items per frame; each work-item a contiguous run of units, in a loop
 // (as quantize.cl: PoCL's vectoriser widens straight-line code across work-items, which made
 // scatters of these vector loads and stores), the tail vertices by the last one.
@@ -99,7 +111,7 @@ __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void compact_frames(const uint nv, const uint n_groups, __global const float *verts,
                     __global const uchar *groups, __global uint *param,
                     __global const float *refs, __global uchar *out, const uint keys_at,
-                    __global uchar *bits, __global uint *counts)
+                    __global uchar *packed, __global uint *counts)
 {
     const uint l = get_local_id(0), j = get_group_id(1), units = nv / 16;
     const uint per = (units + WG - 1) / WG, u0 = min(l * per, units), u1 = min(u0 + per, units);
@@ -113,7 +125,8 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
     __global uchar *p = out + (size_t)j * 6 * nv;
     __global float *kk = (__global float *)out + keys_at + (size_t)j * 3 * nv;
     const uint nb = (nv + 7) / 8;
-    __global uchar *bm0 = bits + (size_t)j * 3 * nb, *bm1 = bm0 + nb, *bm2 = bm1 + nb;
+    __global uchar *pk = packed + (size_t)j * (3 * nb + 6 * nv);
+    __global uchar *bm0 = pk, *bm1 = bm0 + nb, *bm2 = bm1 + nb;
     __global uchar *lo0 = p + 16 * u0, *lo1 = lo0 + nv, *lo2 = lo1 + nv;
     __global uchar *hi0 = lo0 + 3 * nv, *hi1 = lo1 + 3 * nv, *hi2 = lo2 + 3 * nv;
     uint c0 = 0, c1 = 0, c2 = 0;
@@ -212,6 +225,35 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
     counts[(3 * j) * WG + l] = c0;
     counts[(3 * j + 1) * WG + l] = c1;
     counts[(3 * j + 2) * WG + l] = c2;
-    if (flag)
-        atomic_or(flags, flag);
+    // the runs joined after the bitmaps (lo bytes of axes 0, 1, 2, then their hi bytes if the
+    // frame needs them): the payload is one slice for the host (joining ~48 slices in Python
+    // cost more than these copies)
+    __local uint lc[3 * WG], lf[WG];
+    lc[l] = c0;
+    lc[WG + l] = c1;
+    lc[2 * WG + l] = c2;
+    lf[l] = flag;
+    barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
+    uint all = 0, nnz = 0;
+    for (uint k = 0; k < WG; ++k)
+        all |= lf[k];
+    for (uint k = 0; k < 3 * WG; ++k)
+        nnz += lc[k];
+    if (l == 0 && all)
+        atomic_or(flags, all);
+    if (all & 3)  // the host encodes this frame
+        return;
+    __global uchar *dst = pk + 3 * nb;
+    uint pre = 0;
+    for (uint a = 0; a < 3; ++a) {
+        for (uint k = 0; k < l; ++k)
+            pre += lc[a * WG + k];
+        const uint n = lc[a * WG + l];
+        __global const uchar *lo = p + a * nv + 16 * u0, *hi = lo + 3 * nv;
+        copy(dst + pre, lo, n);
+        if (all & 4)
+            copy(dst + nnz + pre, hi, n);
+        for (uint k = l; k < WG; ++k)
+            pre += lc[a * WG + k];
+    }
 }
