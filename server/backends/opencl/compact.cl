@@ -66,42 +66,47 @@ inline uint or16(const uint16 b)
 // A float's magnitude as an unsigned int: ordered as the magnitudes, NaN above infinity.
 #define MAG(f) (as_uint16(f) & (uint16)(0x7FFFFFFF))
 
-// The lanes of z set in m (in lane order), bytes 0 and 1 at lo[c], hi[c], ...: the new count.
+// The lanes of z set in m (in lane order), low 16 bits at st[c], ...: the new count.
 // Branch-free: every lane is stored, the count advances on the set ones (the stores past the
 // new count stay inside the work-item's run, and are overwritten or never read).
-inline uint put_nz(const uint16 z, uint m, __global uchar *lo, __global uchar *hi, uint c)
+inline uint put_nz(const uint16 z, const uint m, __global ushort *st, uint c)
 {
     uint t[16];
     vstore16(z, 0, t);
     for (uint k = 0; k < 16; ++k) {
-        lo[c] = (uchar)t[k];
-        hi[c] = (uchar)(t[k] >> 8);
+        st[c] = (ushort)t[k];
         c += (m >> k) & 1;
     }
     return c;
 }
 
-// One value of the scalar tail: its bit and, when not 0, its bytes.
-inline uint put1(const uint u, const uint i, __global uchar *bm, __global uchar *lo,
-                 __global uchar *hi, uint c)
+// One value of the scalar tail: its bit and, when not 0, its low 16 bits.
+inline uint put1(const uint u, const uint i, __global uchar *bm, __global ushort *st, uint c)
 {
     if (u) {
         bm[i >> 3] |= (uchar)(1u << (i & 7));
-        lo[c] = (uchar)u;
-        hi[c] = (uchar)(u >> 8);
-        ++c;
+        st[c++] = (ushort)u;
     }
     return c;
 }
 
-// n bytes from src to dst, 16 at a time (PoCL's byte loop was several times slower).
-inline void copy(__global uchar *dst, __global const uchar *src, const uint n)
+// n staged values' byte 0 to lo, and byte 1 to hi when hi is not null: 16 at a time (PoCL's
+// byte loop was several times slower).
+inline void unstage(__global uchar *lo, __global uchar *hi, __global const ushort *st,
+                    const uint n)
 {
     uint i = 0;
-    for (; i + 16 <= n; i += 16)
-        vstore16(vload16(0, src + i), 0, dst + i);
-    for (; i < n; ++i)
-        dst[i] = src[i];
+    for (; i + 16 <= n; i += 16) {
+        const ushort16 w = vload16(0, st + i);
+        vstore16(convert_uchar16(w), 0, lo + i);
+        if (hi)
+            vstore16(convert_uchar16(w >> (ushort16)(8)), 0, hi + i);
+    }
+    for (; i < n; ++i) {
+        lo[i] = (uchar)st[i];
+        if (hi)
+            hi[i] = (uchar)(st[i] >> 8);
+    }
 }
 
 // One work-group of WG work-items per frame; each work-item a contiguous run of units, in a loop
@@ -127,8 +132,7 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
     const uint nb = (nv + 7) / 8;
     __global uchar *pk = packed + (size_t)j * (3 * nb + 6 * nv);
     __global uchar *bm0 = pk, *bm1 = bm0 + nb, *bm2 = bm1 + nb;
-    __global uchar *lo0 = p + 16 * u0, *lo1 = lo0 + nv, *lo2 = lo1 + nv;
-    __global uchar *hi0 = lo0 + 3 * nv, *hi1 = lo1 + 3 * nv, *hi2 = lo2 + 3 * nv;
+    __global ushort *st0 = (__global ushort *)p + 16 * u0, *st1 = st0 + nv, *st2 = st1 + nv;
     uint c0 = 0, c1 = 0, c2 = 0;
     const float lim = MAX_CELL - 1.0f, big = 4194304.0f;
     int bad;
@@ -188,11 +192,11 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
         bm2[2 * u] = (uchar)m2;
         bm2[2 * u + 1] = (uchar)(m2 >> 8);
         if (m0)
-            c0 = put_nz(z0, m0, lo0, hi0, c0);
+            c0 = put_nz(z0, m0, st0, c0);
         if (m1)
-            c1 = put_nz(z1, m1, lo1, hi1, c1);
+            c1 = put_nz(z1, m1, st1, c1);
         if (m2)
-            c2 = put_nz(z2, m2, lo2, hi2, c2);
+            c2 = put_nz(z2, m2, st2, c2);
         if (is_key) {
             vstore16(r0 + convert_float16(q0), 0, kk + i0);
             vstore16(r1 + convert_float16(q1), 0, kk + nv + i0);
@@ -209,9 +213,9 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
             const int3 r = cells(v, ms + 12 * groups[i], ref, nv, i, keep2, &bad);
             const int3 d = r - prev;
             const uint3 zz = (as_uint3(d) << 1) ^ as_uint3(d >> 31);
-            c0 = put1(zz.x, i, bm0, lo0, hi0, c0);
-            c1 = put1(zz.y, i, bm1, lo1, hi1, c1);
-            c2 = put1(zz.z, i, bm2, lo2, hi2, c2);
+            c0 = put1(zz.x, i, bm0, st0, c0);
+            c1 = put1(zz.y, i, bm1, st1, c1);
+            c2 = put1(zz.z, i, bm2, st2, c2);
             flag |= (bad ? 1u : 0u) | (((zz.x | zz.y | zz.z) >> 16) ? 2u : 0u) |
                     (((zz.x | zz.y | zz.z) >> 8) ? 4u : 0u);
             if (is_key) {
@@ -248,11 +252,8 @@ void compact_frames(const uint nv, const uint n_groups, __global const float *ve
     for (uint a = 0; a < 3; ++a) {
         for (uint k = 0; k < l; ++k)
             pre += lc[a * WG + k];
-        const uint n = lc[a * WG + l];
-        __global const uchar *lo = p + a * nv + 16 * u0, *hi = lo + 3 * nv;
-        copy(dst + pre, lo, n);
-        if (all & 4)
-            copy(dst + nnz + pre, hi, n);
+        unstage(dst + pre, all & 4 ? dst + nnz + pre : 0,
+                 (__global const ushort *)p + a * nv + 16 * u0, lc[a * WG + l]);
         for (uint k = l; k < WG; ++k)
             pre += lc[a * WG + k];
     }
