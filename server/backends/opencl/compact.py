@@ -29,6 +29,11 @@ the 25k head, two runs alternating with the previous commit's, load 10; ``bench/
 reports it as ``batch_device_cpu_ms``). Reference cells stay in slots on the device
 across launches (copied once per key frame, not once per frame: 0.24 -> 0.20 ms of the calling
 thread's CPU per frame, 0.375 -> 0.314 ms of the process's, 8 sessions a batch, FAP stream).
+The kernel without compare masks or a 16-gather branch, its runs joined on the device: kernel
+CPU 0.93-0.95x, whole ``encode_batch`` 0.95x of the previous kernel per session-frame (five FAP
+files, 10 sessions a batch, load 6, ``bench/compact_kernel.py --ref``). What stays costly in
+it: packing the non-zero values (~20% of the kernel: a store per lane of each unit that has
+one; a loop over the set bits, or a shuffle by a table, measured slower under PoCL).
 """
 
 from __future__ import annotations
