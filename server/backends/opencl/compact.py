@@ -6,8 +6,9 @@ batch; only joining its pieces and deflate stay on the host.
 The encoder's NumPy passes (local frame, offset from the reference, keep-or-round, difference
 along the vertex order, zigzag, bitmaps, packing the non-zero values: about a dozen passes over
 the frame) become one pass of vectorised CPU code on PoCL, outside the GIL. Each work-item packs
-the non-zero values of its own run of vertices where that run's values would start; the host
-joins the runs (``Residuals.payload``: a few KB a frame). The local frame is computed as NumPy's
+the non-zero values of its own run of vertices where that run's values would start; after a
+barrier the work-group joins the runs behind the bitmaps, so a frame's payload is one slice of
+host memory (joining ~48 slices in Python cost ~10 us a frame of the GIL's time). The local frame is computed as NumPy's
 float32 matmul computes it with OpenBLAS on x86-64 (a fused multiply-add chain): where a BLAS
 rounds otherwise the frames stay exactly as valid (the decoder reconstructs from the integer
 cells the frame carries, the tolerance holds with the encoder's margin) but may differ from the
@@ -28,6 +29,11 @@ the 25k head, two runs alternating with the previous commit's, load 10; ``bench/
 reports it as ``batch_device_cpu_ms``). Reference cells stay in slots on the device
 across launches (copied once per key frame, not once per frame: 0.24 -> 0.20 ms of the calling
 thread's CPU per frame, 0.375 -> 0.314 ms of the process's, 8 sessions a batch, FAP stream).
+The kernel without compare masks or a 16-gather branch, its runs joined on the device: kernel
+CPU 0.93-0.95x, whole ``encode_batch`` 0.95x of the previous kernel per session-frame (five FAP
+files, 10 sessions a batch, load 6, ``bench/compact_kernel.py --ref``). What stays costly in
+it: packing the non-zero values (~20% of the kernel: a store per lane of each unit that has
+one; a loop over the set bits, or a shuffle by a table, measured slower under PoCL).
 """
 
 from __future__ import annotations
@@ -51,38 +57,25 @@ WG = 8
 
 @dataclass(frozen=True, slots=True)
 class Residuals:
-    """``DeviceCompact.residuals`` of ``J`` frames of ``V`` vertices: ``bits (J, 3, ceil(V / 8))``
-    each frame's bitmaps of non-zero values; ``planes (J, 2, 3 V) uint8`` their bytes 0 and 1,
-    ``counts[j, a, l]`` values of axis ``a`` from byte ``a V + 16 u0(l)`` of each plane (``u0``:
-    work-item ``l``'s first unit of 16 vertices); ``new_keys (J, 3, V) float32`` (row j the new
-    key's cells where frame j is a key frame; None without key frames); ``flags (J,) uint32``
-    (bit 0: a bad vertex, bit 1: a residual over 16 bits: rows with either are not valid; bit 2:
-    a zigzagged value over 8 bits, the frame needs both planes)."""
+    """``DeviceCompact.residuals`` of ``J`` frames of ``V`` vertices: ``packed (J, 3 NB + 6 V)
+    uint8`` (``NB = ceil(V / 8)``) each frame's payload before deflate (its bitmaps of non-zero
+    values, those values' bytes 0, then their bytes 1 where flag bit 2 is set); ``nnz (J,)``
+    their number; ``new_keys (J, 3, V) float32`` (row j the new key's cells where frame j is a
+    key frame; None without key frames); ``flags (J,) uint32`` (bit 0: a bad vertex, bit 1: a
+    residual over 16 bits: rows with either are not valid; bit 2: a zigzagged value over 8 bits,
+    the frame needs both planes)."""
 
-    planes: np.ndarray
-    bits: np.ndarray
-    counts: np.ndarray
+    packed: np.ndarray
+    head: int  #: bytes of the bitmaps, 3 NB
+    nnz: list[int]
     new_keys: np.ndarray | None
     flags: np.ndarray
 
-    def payload(self, j: int, planes: int) -> tuple[int, bytes]:
+    def payload(self, j: int, planes: int) -> tuple[int, memoryview]:
         """Frame ``j``'s ``(nnz, raw)`` as ``protocol.compact.pack_payload`` gives them, with
-        ``planes`` (1 or 2) bytes a value."""
-        V = self.planes.shape[2] // 3
-        units = V // 16
-        per = -(-units // WG)
-        starts = [16 * min(lane * per, units) for lane in range(WG)]
-        c = self.counts[j].tolist()
-        flat = self.planes[j].reshape(-1)
-        pieces: list[Any] = [self.bits[j]]
-        for k in range(planes):
-            for a in range(3):
-                for lane, s in enumerate(starts):
-                    n = c[a][lane]
-                    if n:
-                        o = k * 3 * V + a * V + s
-                        pieces.append(flat[o : o + n])
-        return sum(map(sum, c)), b"".join(pieces)
+        ``planes`` (1 or 2) bytes a value (``raw``: a view of ``packed``)."""
+        n = self.nnz[j]
+        return n, self.packed[j, : self.head + planes * n].data
 
 
 class DeviceCompact(HostKernel):
@@ -156,12 +149,11 @@ class DeviceCompact(HostKernel):
         if not (J == len(mats) == len(refs) == len(keys) == len(keep2)) or groups.shape != (V,):
             raise ValueError("one matrix set, reference and key flag per frame; a group per vertex")
         nb = bitmap_size(V)
-        bits = aligned_empty((J, 3, nb), np.uint8)
+        packed = aligned_empty((J, 3 * nb + 6 * V), np.uint8)
         counts = aligned_empty((J, 3, WG), np.uint32)
         if J == 0 or V == 0:
-            counts[:] = 0
-            bits[:] = 0
-            return Residuals(np.zeros((J, 2, 3 * V), np.uint8), bits, counts, None, counts[:, 0, 0])
+            packed[:] = 0
+            return Residuals(packed, 3 * nb, [0] * J, None, np.zeros(J, np.uint32))
         if not all(0 <= f < verts.shape[0] for f in frame_of):
             raise ValueError("frame_of names a frame verts does not have")
         G = mats[0].shape[0]
@@ -193,12 +185,12 @@ class DeviceCompact(HostKernel):
                 self._pool_buf,
                 self._host(out, mf.WRITE_ONLY),
                 np.uint32(keys_at // 4),
-                self._host(bits, mf.WRITE_ONLY),
+                self._host(packed, mf.WRITE_ONLY),
                 self._host(counts, mf.WRITE_ONLY),
             ).wait()
-        planes = out[: J * 6 * V].reshape(J, 2, 3 * V)
         new_keys = out[keys_at:].view(np.float32).reshape(J, 3, V) if any_key else None
-        return Residuals(planes, bits, counts, new_keys, rows[:, 3].copy())
+        nnz = counts.reshape(J, -1).sum(axis=1).tolist()
+        return Residuals(packed, 3 * nb, nnz, new_keys, rows[:, 3].copy())
 
     def _groups(self, groups: np.ndarray) -> Any:
         """A read-only buffer of ``groups``, kept for the face (one per array object)."""
