@@ -31,6 +31,10 @@ class FaceState:
         controls: ``(K, 3) float32`` displacements of an explicit control set (e.g. retargeted mocap
             markers) in mesh units, added to what the FAPs give; None for pure FAP input.
         head: ``(3, 4)`` rigid head transform ``[R | t]`` (mesh units) that replaces FAPs 48-50, or None.
+        shapes: per-vertex shapes mixed in by ``shape_weights`` (``Shapes``; e.g. a mocap face prior's
+            fit, ``mocap.prior``), added to what the controls give before the rigid transforms, or
+            None.
+        shape_weights: ``(E,)`` the weights of ``shapes``' deltas.
     """
 
     t: float = 0.0
@@ -39,6 +43,31 @@ class FaceState:
     expression: tuple[int, int, int, int] | None = None
     controls: np.ndarray | None = None
     head: np.ndarray | None = None
+    shapes: Shapes | None = None
+    shape_weights: np.ndarray | None = None
+
+    def offsets(self) -> np.ndarray | None:
+        """``(n, 3) float32`` this state's per-vertex displacements at ``shapes.vertices`` (None without)."""
+        if self.shapes is None or self.shape_weights is None:
+            return None
+        return self.shapes.mix(self.shape_weights)
+
+
+@dataclass(frozen=True, eq=False)
+class Shapes:
+    """Per-vertex shapes a ``FaceState`` mixes in: ``deltas (E, n, 3) float32`` at the face's
+    ``vertices (n,) int`` (face units, the face's rest frame: the rigid transforms move them as
+    they move the vertices). One object is shared by every state of a stream."""
+
+    vertices: np.ndarray
+    deltas: np.ndarray
+
+    def mix(self, weights: np.ndarray) -> np.ndarray:
+        """``(n, 3) float32``: the deltas weighted by ``weights (E,)`` (its zeros skipped)."""
+        w = np.asarray(weights, dtype=np.float32).reshape(-1)
+        nz = np.flatnonzero(w)
+        flat = self.deltas.reshape(len(self.deltas), -1)
+        return (w[nz] @ flat[nz]).reshape(-1, 3)
 
 
 @dataclass

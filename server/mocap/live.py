@@ -115,13 +115,12 @@ class MarkerLiveDriver:
         self.control_vertices: np.ndarray | None = None
         if not auto:
             from .layout import place_markers
-            from .rig import _prior, anchor_vertices
+            from .rig import anchor_vertices, rig_controls
 
             markers = place_markers(self.layout, face).vertices
-            anchors = anchor_vertices(face, markers)
-            self.prior = _prior(face, prior, markers, anchors)
-            virtual = self.prior.vertices if self.prior is not None else np.zeros(0, np.int64)
-            self.control_vertices = np.r_[markers, virtual, anchors].astype(np.int32)
+            self.prior, self.control_vertices = rig_controls(
+                face, markers, anchor_vertices(face, markers), prior
+            )
 
     @property
     def ready(self) -> bool:
