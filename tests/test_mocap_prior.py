@@ -60,18 +60,13 @@ def test_mirror_folds_hold_one_side_and_keep_the_other():
 
 
 @pytest.fixture(scope="module")
-def ict():
-    from facecast.server.paths import shared_data
-
-    d = shared_data()
-    if d is None or not (d / "ict-facekit" / "expressions").is_dir():
-        pytest.skip("../shared/data/ict-facekit is not beside this checkout")
-    from facecast.server.mocap.generate import load_expressions, load_ict
+def ict(ict_head):
+    """``(face, names, deltas, markers, anchors)``: the ICT head, its shapes, the issue16 layout's
+    face markers and their anchors."""
     from facecast.server.mocap.rig import anchor_vertices
     from facecast.server.mocap.variants import VARIANTS, choose_layout
 
-    face = load_ict()
-    names, deltas = load_expressions(face)
+    face, names, deltas = ict_head
     _, verts, _, stable = choose_layout(face, deltas, VARIANTS["issue16"])
     markers = verts[len(stable) :]
     return face, names, deltas, markers, anchor_vertices(face, markers)

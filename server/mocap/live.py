@@ -16,6 +16,7 @@ that has shown itself rigid (``stabilise.robust_pose``).
 from __future__ import annotations
 
 import logging
+from collections import deque
 
 import numpy as np
 
@@ -27,13 +28,18 @@ from ..state import FaceState
 from .clean import KalmanCV
 from .io import FACE_SPAN_MM, detect_units
 from .layout import Layout, load_layout
+from .neutral import AUTO_RATIO, HOLD_S, rest_score, tied_positions
 from .prior import DEFAULT as PRIOR_DEFAULT
 from .rig import MarkerRig, match_names
-from .stabilise import rigidity_weights, robust_pose, solve_pose, start_neutral
+from .stabilise import ShapePose, rigidity_weights, robust_pose, solve_pose, start_neutral
 
 log = logging.getLogger(__name__)
 
 __all__ = ["MarkerFrameError", "MarkerLiveDriver"]
+
+#: Each frame's head pose is refined with every marker, the face's motion explained by the face
+#: prior's shapes (``stabilise.ShapePose``), when the face has a prior.
+SHAPE_POSE = True
 
 
 class MarkerFrameError(FrameError):
@@ -113,6 +119,16 @@ class MarkerLiveDriver:
             for s in self.layout.markers.values()
         )
         self.control_vertices: np.ndarray | None = None
+        # the automatic neutral (``_watch_neutral``) needs 4 face markers tied to the face, and
+        # controls that do not move with the neutral (no marker placed automatically)
+        self.retakes = 0
+        target = tied_positions(self.layout, face)
+        tied = np.setdiff1d(np.flatnonzero(np.isfinite(target).all(axis=1)), self.stable)
+        self._tied = tied if len(tied) >= 4 and not auto else None
+        self._target = target[tied]
+        self._recent: deque[np.ndarray] = deque(maxlen=max(2, round(HOLD_S * self.fps)))
+        self._window: deque[np.ndarray] = deque(maxlen=self.neutral_frames)
+        self._run, self._neutral_score = 0, np.inf
         if not auto:
             from .layout import place_markers
             from .rig import anchor_vertices, rig_controls
@@ -166,7 +182,48 @@ class MarkerLiveDriver:
         local = self.kf.step(raw_local)
         # markers never seen since the start hold their neutral position
         local = np.where(np.isfinite(local), local, self.rig.neutral)
-        return [self.rig.solve(local, r, tr, float(t))]
+        state = self.rig.solve(local, r, tr, float(t))
+        self._watch_neutral(z, raw_local)
+        return [state]
+
+    def _watch_neutral(self, z: np.ndarray, raw_local: np.ndarray) -> None:
+        """The automatic neutral, causally (as batch's ``neutral.auto_neutral_frame``): the mean
+        of the last ``neutral_frames`` stabilised frames is scored against the face at rest
+        (``neutral.rest_score``), as the neutral (the mean of as many frames) was; a hold of
+        ``neutral.HOLD_S`` seconds fitting ``AUTO_RATIO`` times better than the neutral (a take
+        that started on an expression) becomes the neutral from the next frame on (``_retake``)."""
+        if self._tied is None:
+            return
+        self._recent.append(z)
+        self._window.append(raw_local[self._tied])
+        if len(self._window) < self.neutral_frames:
+            return
+        frames = np.stack(self._window)
+        seen = np.isfinite(frames)
+        with np.errstate(invalid="ignore"):
+            mean = np.where(seen, frames, 0.0).sum(axis=0) / seen.sum(axis=0)
+        score = rest_score(mean, self._target)
+        self._run = self._run + 1 if score * AUTO_RATIO <= self._neutral_score else 0
+        if self._run >= self._recent.maxlen:  # type: ignore[operator]
+            self._retake(np.stack(self._recent), score, self._neutral_score)
+
+    def _retake(self, frames: np.ndarray, score: float, old: float) -> None:
+        """Take the actor's neutral again from ``frames (N, L, 3)`` mm (a hold at rest), in the
+        pose of the first of them; the filters start again from it."""
+        with np.errstate(invalid="ignore"):
+            neutral = start_neutral(frames, self.stable)
+        self._build_rig(neutral)
+        self.kf = KalmanCV(len(self.layout.names), self.kf.dt, q=self._q, r=self.kf.r)
+        self.kf_pose = KalmanCV(2, self.kf.dt, q=self._q_pose, r=self.kf_pose.r, gate=1e9)
+        self.retakes += 1
+        log.info(
+            "live markers: neutral taken again at frame %d from a %.2f s hold fitting the face at "
+            "rest %.2f mm (the frames after the last neutral %.2f mm)",
+            self.frames - 1,
+            len(frames) / self.fps,
+            score,
+            old,
+        )
 
     def _set_dt(self, dt: float) -> None:
         from .clean import _cv_model
@@ -213,22 +270,37 @@ class MarkerLiveDriver:
                 "the hello or the layout",
                 where=f"frame {self.frames - 1}",
             )
-        self.rig = MarkerRig(
-            self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu, prior=self.prior
-        )
-        self._ref_stable = neutral[self.stable]
+        self._build_rig(neutral)
         # each marker's mean square off the head (mm², an exponential average over ~0.5 s); until
         # measured, the face markers count as moving 5 mm
         self._disp_sq = np.full(len(neutral), 25.0)
         self._noise = 3.0 * self.kf.r  # mm², three axes
         self._alpha = 1.0 / (0.5 * self.fps)
-        self._centre = np.nanmean(self._ref_stable, axis=0)
-        self.control_vertices = self.rig.control_vertices
         log.info(
             "live markers: neutral taken from %d frames; %d controls",
             self._neutral_n,
             len(self.rig.control),
         )
+
+    def _build_rig(self, neutral: np.ndarray) -> None:
+        """The rig, pose reference and rest score of the actor's ``neutral (L, 3)`` mm."""
+        self.rig = MarkerRig(
+            self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu, prior=self.prior
+        )
+        self._ref_stable = neutral[self.stable]
+        self._centre = np.nanmean(self._ref_stable, axis=0)
+        self.control_vertices = self.rig.control_vertices
+        motion = self.rig.marker_motion() if SHAPE_POSE else None
+        self._shape_pose = (
+            None
+            if motion is None
+            else ShapePose(np.where(np.isfinite(neutral), neutral, 0.0), self._centre, motion)
+        )
+        self._recent.clear()
+        self._window.clear()
+        self._run = 0
+        if self._tied is not None:
+            self._neutral_score = rest_score(neutral[self._tied], self._target)
 
     def _solve_pose(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Filtered head pose: ``stabilise.robust_pose`` over every marker, weighted by rigidity (the
@@ -242,6 +314,8 @@ class MarkerLiveDriver:
             # stable markers alone one frame's pose is uncertain by ~0.4 deg at 0.5 mm noise
             w = rigidity_weights(self._disp_sq, self.stable, self._noise, gate=2.0)
             pose = robust_pose(self.rig.neutral, z, w, scale_mm=1.5)
+            if pose is not None and self._shape_pose is not None:
+                pose = self._shape_pose(z, *pose)
         if pose is None:
             pose = solve_pose(self._ref_stable, cur)
         c = self._centre

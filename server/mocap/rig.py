@@ -173,6 +173,17 @@ class MarkerRig:
             fit.mean(),
         )
 
+    def marker_motion(self) -> np.ndarray | None:
+        """``(E, L, 3)`` the face prior's shapes at the layout's markers, carried back into the
+        capture frame (mm, the retarget's similarity undone; zero at markers that are not
+        controls), or None without a prior: how the actor's markers move (``stabilise.ShapePose``)."""
+        if self.prior is None:
+            return None
+        at = self.prior.shapes[:, self.placement.vertices].astype(np.float64) / self.gains[None]
+        out = np.zeros((len(self.prior.shapes), self.n_markers, 3))
+        out[:, self.control] = at @ self.q / self.s
+        return out
+
     @property
     def n_markers(self) -> int:
         return len(self.layout.names)
