@@ -95,11 +95,17 @@ class Animator:
         group = self.face.rigid_group
         for v, s, T in zip(verts, states, transforms):
             off = s.offsets()
-            if off is None:
+            if off is None or s.shapes is None:
                 continue
-            ids = s.shapes.vertices  # type: ignore[union-attr]
             R = np.asarray(T, dtype=np.float32)[:, :, :3]
-            v[ids] += np.einsum("nij,nj->ni", R[group[ids]], off)
+            g = group[s.shapes.vertices]
+            one = (g == g[0]).all()  # one rigid group (the usual case): one rotation
+            off = off @ R[g[0]].T if one else np.einsum("nij,nj->ni", R[g], off)
+            if v.flags.c_contiguous:
+                flat = v.reshape(-1)  # a view
+                flat[s.shapes.flat] += off.reshape(-1)
+            else:
+                v[s.shapes.vertices] += off
 
     def render(
         self, animation: Animation, progress: Callable[[int, int], None] | None = None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
@@ -48,7 +49,7 @@ class FaceState:
 
     def offsets(self) -> np.ndarray | None:
         """``(n, 3) float32`` this state's per-vertex displacements at ``shapes.vertices`` (None without)."""
-        if self.shapes is None or self.shape_weights is None:
+        if self.shapes is None or self.shape_weights is None or not np.any(self.shape_weights):
             return None
         return self.shapes.mix(self.shape_weights)
 
@@ -56,8 +57,8 @@ class FaceState:
 @dataclass(frozen=True, eq=False)
 class Shapes:
     """Per-vertex shapes a ``FaceState`` mixes in: ``deltas (E, n, 3) float32`` at the face's
-    ``vertices (n,) int`` (face units, the face's rest frame: the rigid transforms move them as
-    they move the vertices). One object is shared by every state of a stream."""
+    ``vertices (n,) int`` (distinct; face units, the face's rest frame: the rigid transforms move
+    them as they move the vertices). One object is shared by every state of a stream."""
 
     vertices: np.ndarray
     deltas: np.ndarray
@@ -68,6 +69,13 @@ class Shapes:
         nz = np.flatnonzero(w)
         flat = self.deltas.reshape(len(self.deltas), -1)
         return (w[nz] @ flat[nz]).reshape(-1, 3)
+
+    @cached_property
+    def flat(self) -> np.ndarray:
+        """``(3n,) int64``: the rows' coordinates in a flattened ``(V, 3)`` array (a 1-D index
+        adds ~4x faster than a row gather and scatter)."""
+        v = np.asarray(self.vertices, dtype=np.int64)
+        return (v[:, None] * 3 + np.arange(3)).ravel()
 
 
 @dataclass

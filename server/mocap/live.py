@@ -40,6 +40,8 @@ __all__ = ["MarkerFrameError", "MarkerLiveDriver"]
 #: Each frame's head pose is refined with every marker, the face's motion explained by the face
 #: prior's shapes (``stabilise.ShapePose``), when the face has a prior.
 SHAPE_POSE = True
+#: The automatic neutral scores every this many frames (a hold lasts ``neutral.HOLD_S``).
+WATCH_EVERY = 4
 
 
 class MarkerFrameError(FrameError):
@@ -187,23 +189,25 @@ class MarkerLiveDriver:
         return [state]
 
     def _watch_neutral(self, z: np.ndarray, raw_local: np.ndarray) -> None:
-        """The automatic neutral, causally (as batch's ``neutral.auto_neutral_frame``): the mean
-        of the last ``neutral_frames`` stabilised frames is scored against the face at rest
-        (``neutral.rest_score``), as the neutral (the mean of as many frames) was; a hold of
-        ``neutral.HOLD_S`` seconds fitting ``AUTO_RATIO`` times better than the neutral (a take
-        that started on an expression) becomes the neutral from the next frame on (``_retake``)."""
+        """The automatic neutral, causally (as batch's ``neutral.auto_neutral_frame``): every
+        ``WATCH_EVERY`` frames, the mean of the last ``neutral_frames`` stabilised frames is
+        scored against the face at rest (``neutral.rest_score``), as the neutral (the mean of as
+        many frames) was; a hold of ``neutral.HOLD_S`` seconds fitting ``AUTO_RATIO`` times better
+        than the neutral (a take that started on an expression) becomes the neutral from the next
+        frame on (``_retake``)."""
         if self._tied is None:
             return
         self._recent.append(z)
         self._window.append(raw_local[self._tied])
-        if len(self._window) < self.neutral_frames:
+        if len(self._window) < self.neutral_frames or self.frames % WATCH_EVERY:
             return
         frames = np.stack(self._window)
         seen = np.isfinite(frames)
         with np.errstate(invalid="ignore"):
             mean = np.where(seen, frames, 0.0).sum(axis=0) / seen.sum(axis=0)
         score = rest_score(mean, self._target)
-        self._run = self._run + 1 if score * AUTO_RATIO <= self._neutral_score else 0
+        held = score * AUTO_RATIO <= self._neutral_score
+        self._run = self._run + WATCH_EVERY if held else 0
         if self._run >= self._recent.maxlen:  # type: ignore[operator]
             self._retake(np.stack(self._recent), score, self._neutral_score)
 
@@ -294,7 +298,12 @@ class MarkerLiveDriver:
         self._shape_pose = (
             None
             if motion is None
-            else ShapePose(np.where(np.isfinite(neutral), neutral, 0.0), self._centre, motion)
+            else ShapePose(
+                np.where(np.isfinite(neutral), neutral, 0.0),
+                self._centre,
+                motion,
+                noise_mm=float(np.sqrt(self.kf.r)),
+            )
         )
         self._recent.clear()
         self._window.clear()
