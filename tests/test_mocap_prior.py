@@ -1,4 +1,5 @@
-"""The mocap face prior: bounded shape fit, virtual controls, trust, folds, render and live."""
+"""The mocap face prior: bounded shape fit, virtual controls, the per-vertex channel, trust, folds,
+render and live."""
 
 from __future__ import annotations
 

@@ -6,11 +6,14 @@ centroid; its removal from the raw markers; a constant-velocity Kalman filter wi
 the stabilised markers (``clean.KalmanCV``: the face's motion alone is gentle, so it filters more
 than it would with the head's on top); RBF retarget onto the face (``rig.MarkerRig``), and the
 face prior (``prior``, the same as batch: the face's expression shapes fitted to each frame, warm
-started from the last, driving virtual controls). The actor's neutral is taken from the first
-``neutral_frames`` frames in which at least three stable markers are visible, more until every
-control marker has been seen (``stabilise.start_neutral``: stabilised and averaged, in the first
-frame's head pose); until then ``push`` returns no state. Each frame's head pose uses every marker
-that has shown itself rigid (``stabilise.robust_pose``).
+started from the last, carried to every vertex by the states' per-vertex channel). The actor's
+neutral is taken from the first ``neutral_frames`` frames in which at least three stable markers
+are visible, more until every control marker has been seen (``stabilise.start_neutral``:
+stabilised and averaged, in the first frame's head pose); until then ``push`` returns no state.
+A take that starts on an expression gets its neutral again where it later holds the face at rest
+(``_watch_neutral``, scored as batch's ``--neutral-frame auto``). Each frame's head pose uses
+every marker that has shown itself rigid (``stabilise.robust_pose``) and, with a face prior, every
+marker again, the face's motion explained by the prior's shapes (``stabilise.ShapePose``).
 """
 
 from __future__ import annotations

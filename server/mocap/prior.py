@@ -199,10 +199,11 @@ def mirrored(deltas: np.ndarray, mirror: np.ndarray) -> np.ndarray:
 def apply_operator(op: Operator, values: np.ndarray) -> np.ndarray:
     """``(E, V, 3)``: ``op`` applied to each of ``values (E, K, 3)`` (all at once per axis)."""
     e = len(values)
-    if not op.is_sparse:
+    if op.dense is not None:
         return np.einsum("vk,ekc->evc", op.dense.astype(np.float64), values)
     import scipy.sparse as sp
 
+    assert op.weights is not None  # a sparse operator
     out = np.empty((e, op.n_vertices, 3))
     for c in range(3):
         m = sp.csr_matrix(
