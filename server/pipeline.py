@@ -100,7 +100,10 @@ class Animator:
             R = np.asarray(T, dtype=np.float32)[:, :, :3]
             g = group[s.shapes.vertices]
             one = (g == g[0]).all()  # one rigid group (the usual case): one rotation
-            off = off @ R[g[0]].T if one else np.einsum("nij,nj->ni", R[g], off)
+            # (einsum: its own loop; a BLAS product threads, and stalls on a loaded machine)
+            off = (
+                np.einsum("nj,ij->ni", off, R[g[0]]) if one else np.einsum("nij,nj->ni", R[g], off)
+            )
             if v.flags.c_contiguous:
                 flat = v.reshape(-1)  # a view
                 flat[s.shapes.flat] += off.reshape(-1)

@@ -64,11 +64,14 @@ class Shapes:
     deltas: np.ndarray
 
     def mix(self, weights: np.ndarray) -> np.ndarray:
-        """``(n, 3) float32``: the deltas weighted by ``weights (E,)`` (its zeros skipped)."""
+        """``(n, 3) float32``: the deltas weighted by ``weights (E,)`` (its zeros skipped). One
+        shape at a time, not a BLAS product: on a loaded machine OpenBLAS's threads made that
+        ~12 ms (p50) where this loop takes 0.2 ms for 20 shapes over 17k vertices."""
         w = np.asarray(weights, dtype=np.float32).reshape(-1)
-        nz = np.flatnonzero(w)
-        flat = self.deltas.reshape(len(self.deltas), -1)
-        return (w[nz] @ flat[nz]).reshape(-1, 3)
+        out = np.zeros(self.deltas.shape[1:], dtype=np.float32)
+        for i in np.flatnonzero(w):
+            out += w[i] * self.deltas[i]
+        return out
 
     @cached_property
     def flat(self) -> np.ndarray:
