@@ -227,3 +227,48 @@ def test_animator_turns_the_shapes_with_the_head():
     assert not np.allclose(got, plain)
     batch = anim.render(Animation(fps=30.0, states=[state, state], control_vertices=controls))
     assert np.allclose(batch, got[None], atol=1e-6)
+
+
+def test_live_batcher_adds_the_shapes_as_a_render_does():
+    """The live deform thread (``live.batcher``) adds each state's shapes: its f32 frames equal
+    ``Animator.frame``, singly and in a batch, and differ from the frames without shapes."""
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from facecast.protocol import frames as fr
+    from facecast.server.faces import load_face
+    from facecast.server.live.batcher import DeformBatcher
+    from facecast.server.pipeline import Animator
+    from facecast.server.state import FaceState, Shapes
+
+    face = load_face("default:2k")
+    skin = np.flatnonzero(face.deformable & (face.rigid_group == 0))[:80]
+    controls = skin[::10].astype(np.int32)
+    anim = Animator(face, backend="numpy", control_vertices=controls)
+    shapes = Shapes(skin, np.random.default_rng(4).normal(0, 0.01, (3, len(skin), 3)).astype("f4"))
+    rng = np.random.default_rng(5)
+    states = [
+        FaceState(
+            t=i / 30,
+            controls=rng.normal(0, 0.002, (len(controls), 3)).astype(np.float32),
+            shapes=shapes,
+            shape_weights=rng.uniform(0, 1, 3).astype(np.float32),
+        )
+        for i in range(5)
+    ]
+
+    async def go(batcher, batch):
+        return await asyncio.gather(
+            *(
+                batcher.submit(s, seq=i, wall=0.0, encodings=frozenset({"f32"}))
+                for i, s in enumerate(batch)
+            )
+        )
+
+    batcher = DeformBatcher(anim, ThreadPoolExecutor(1))
+    for batch in (states[:1], states):
+        for i, (encoded, _) in enumerate(asyncio.run(go(batcher, batch))):
+            got = fr.decode(encoded["f32"][0]).positions()
+            np.testing.assert_allclose(got, anim.frame(batch[i]), atol=1e-6)
+            plain = FaceState(t=batch[i].t, controls=batch[i].controls)
+            assert not np.allclose(got, anim.frame(plain))
