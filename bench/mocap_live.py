@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from facecast.protocol.units import UNIT_MM
+
 OUT = Path(__file__).resolve().parent / "out" / "mocap_live.json"  # suffixed by the prior
 
 
@@ -47,6 +49,12 @@ def main(argv: list[str]) -> int:
     p.add_argument(
         "--prior", default="off", help="the face prior (mocap.prior): off, auto or a basis path"
     )
+    p.add_argument(
+        "--take",
+        default=None,
+        help="a generated ICT take of this variant (mocap.variants: issue16, technician, ...) "
+        "instead of the synthetic one: the face prior then fits real expressions (its cost)",
+    )
     a = p.parse_args(argv)
 
     from facecast.server.faces import load_face
@@ -55,19 +63,35 @@ def main(argv: list[str]) -> int:
     from facecast.server.mocap.synthetic import synthetic_take
     from facecast.server.pipeline import Animator
 
-    face = load_face(a.face)
-    syn = synthetic_take(
-        face, n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=7, noise_mm=0.5, gaps=True
-    )
-    frames = syn.take.xyz.astype(np.float32)
-    drv = MarkerLiveDriver(face, syn.take.names, syn.layout, fps=a.fps, prior=a.prior)
+    syn = None
+    if a.take:
+        import tempfile
+
+        from facecast.server.mocap.generate import load_ict
+        from facecast.server.mocap.io import read_take
+        from facecast.server.mocap.variants import make_take
+
+        face = load_ict()
+        tmp = tempfile.mkdtemp()
+        tr = make_take(a.take, tmp, seconds=a.seconds, fps=a.fps, face=face, formats=("trc",))
+        layout = json.loads(tr.paths["layout"].read_text())
+        take = read_take(tr.paths["trc"], default_units=layout["units"])
+        names, frames = take.names, (take.xyz * UNIT_MM[take.units or "mm"]).astype(np.float32)
+        layout["units"] = "mm"
+    else:
+        face = load_face(a.face)
+        syn = synthetic_take(
+            face, n_markers=a.markers, seconds=a.seconds, fps=a.fps, seed=7, noise_mm=0.5, gaps=True
+        )
+        names, layout, frames = syn.take.names, syn.layout, syn.take.xyz.astype(np.float32)
+    drv = MarkerLiveDriver(face, names, layout, fps=a.fps, prior=a.prior)
     t0 = time.perf_counter()
     anim = Animator(face, engine=a.engine, backend=a.backend, control_vertices=drv.control_vertices)
     setup_s = time.perf_counter() - t0
     backend = getattr(anim.deformer, "name", type(anim.deformer).__name__)
 
     # warm up (kernels, caches) on a copy of the driver
-    warm = MarkerLiveDriver(face, syn.take.names, syn.layout, fps=a.fps, prior=a.prior)
+    warm = MarkerLiveDriver(face, names, layout, fps=a.fps, prior=a.prior)
     for i in range(40):
         for s in warm.push(frames[i], i / a.fps):
             anim.frame(s)
@@ -94,19 +118,24 @@ def main(argv: list[str]) -> int:
         anim.frame(s)
         base_ms.append(1e3 * (time.perf_counter() - t1))
 
-    # Kalman lag and error: the driver's controls against the truth (mm)
-    n0 = len(frames) - len(states)
-    d = np.stack([s.controls[: a.markers] for s in states]) * face.mm_per_unit
-    truth = (syn.local - syn.local[0])[n0:]
-    lag = best_delay(d, truth)
-    err = np.linalg.norm(d - truth, axis=2)
-    raw = syn.take.xyz * 1.0  # capture noise baseline: raw markers stabilised with the true pose
-    raw_local = np.einsum("tmj,tji->tmi", raw - syn.head_t[:, None], syn.head_r)
-    raw_err = np.linalg.norm((raw_local - syn.local)[n0:], axis=2)
+    # Kalman lag and error (synthetic take): the driver's controls against the truth (mm)
+    lag, err, raw_err = 0, np.full(1, np.nan), np.full(1, np.nan)
+    if syn is not None:
+        n0 = len(frames) - len(states)
+        d = np.stack([s.controls[: a.markers] for s in states]) * face.mm_per_unit
+        truth = (syn.local - syn.local[0])[n0:]
+        lag = best_delay(d, truth)
+        err = np.linalg.norm(d - truth, axis=2)
+        raw = (
+            syn.take.xyz * 1.0
+        )  # capture noise baseline: raw markers stabilised with the true pose
+        raw_local = np.einsum("tmj,tji->tmi", raw - syn.head_t[:, None], syn.head_r)
+        raw_err = np.linalg.norm((raw_local - syn.local)[n0:], axis=2)
 
     sine_lag = kalman_lag(a.fps, drv.kf.Q[1, 1] / drv.kf.dt, drv.kf.r)
     rec = {
         "face": a.face,
+        "take": a.take or "synthetic",
         "prior": a.prior,
         "vertices": face.n_vertices,
         "markers": a.markers,
@@ -133,6 +162,8 @@ def main(argv: list[str]) -> int:
         },
     }
     out = OUT if a.prior == "off" else OUT.with_name("mocap_live-prior.json")
+    if a.take:
+        out = out.with_name(out.stem + f"-{a.take}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(rec, indent=1) + "\n")
 

@@ -81,7 +81,34 @@ class Animator:
 
     def frame(self, state: FaceState) -> np.ndarray:
         """Deformed vertices ``(V, 3) float32`` of one state."""
-        return np.asarray(self.deformer.deform(*self.solve(state)), dtype=np.float32)
+        D, T = self.solve(state)
+        out = np.asarray(self.deformer.deform(D, T), dtype=np.float32)
+        self.add_shapes(out[None], [state], T[None])
+        return out
+
+    def add_shapes(
+        self, verts: np.ndarray, states: list[FaceState], transforms: np.ndarray
+    ) -> None:
+        """Add each state's per-vertex shapes (``FaceState.shapes``), turned by its rigid
+        transforms ``(T, G, 3, 4)`` as the deformer turns the rest shape, to its deformed
+        ``verts (T, V, 3)`` in place."""
+        group = self.face.rigid_group
+        for v, s, T in zip(verts, states, transforms):
+            off = s.offsets()
+            if off is None or s.shapes is None:
+                continue
+            R = np.asarray(T, dtype=np.float32)[:, :, :3]
+            g = group[s.shapes.vertices]
+            one = (g == g[0]).all()  # one rigid group (the usual case): one rotation
+            # (einsum: its own loop; a BLAS product threads, and stalls on a loaded machine)
+            off = (
+                np.einsum("nj,ij->ni", off, R[g[0]]) if one else np.einsum("nij,nj->ni", R[g], off)
+            )
+            if v.flags.c_contiguous:
+                flat = v.reshape(-1)  # a view
+                flat[s.shapes.flat] += off.reshape(-1)
+            else:
+                v[s.shapes.vertices] += off
 
     def render(
         self, animation: Animation, progress: Callable[[int, int], None] | None = None
@@ -93,6 +120,7 @@ class Animator:
             states = animation.states[start : start + CHUNK]
             D, T = self.solve_batch(states)
             self.deformer.deform_batch(D, T, out=out[start : start + len(states)])
+            self.add_shapes(out[start : start + len(states)], states, T)
             if progress is not None:
                 progress(start + len(states), total)
         return out

@@ -163,8 +163,11 @@ def _frame_chunks(
         passes.append(1)
         total = len(animation.states)
         for start in range(0, total, size):
-            D, T = animator.solve_batch(animation.states[start : start + size])
-            yield np.asarray(animator.deformer.deform_batch(D, T), dtype=np.float32)
+            states = animation.states[start : start + size]
+            D, T = animator.solve_batch(states)
+            verts = np.asarray(animator.deformer.deform_batch(D, T), dtype=np.float32)
+            animator.add_shapes(verts, states, T)
+            yield verts
             if progress is not None and first:
                 progress(start + len(D), total)
 

@@ -24,6 +24,18 @@ def data_dir() -> Path:
     return d
 
 
+@pytest.fixture(scope="session")
+def ict_head(data_dir: Path):
+    """The ICT FaceKit head and its expression shapes: ``(face, names, deltas (E, V, 3))``."""
+    if not (data_dir / "ict-facekit" / "expressions").is_dir():
+        pytest.skip("../shared/data/ict-facekit is not beside this checkout")
+    from facecast.server.mocap.generate import load_expressions, load_ict
+
+    face = load_ict()
+    names, deltas = load_expressions(face)
+    return face, names, deltas
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(20261121)

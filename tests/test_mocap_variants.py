@@ -16,19 +16,6 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(Rotation.from_matrix(np.einsum("tji,tjk->tik", a, b)).magnitude())
 
 
-@pytest.fixture(scope="module")
-def ict():
-    from facecast.server.paths import shared_data
-
-    d = shared_data()
-    if d is None or not (d / "ict-facekit" / "expressions").is_dir():
-        pytest.skip("../shared/data/ict-facekit is not beside this checkout")
-    from facecast.server.mocap.generate import load_expressions, load_ict
-
-    face = load_ict()
-    return face, load_expressions(face)[1]
-
-
 def test_check_stable_names_and_drops_a_marker_that_moves(rng):
     n = 200
     ref = rng.normal(size=(6, 3)) * 60
@@ -50,11 +37,11 @@ def test_check_stable_names_and_drops_a_marker_that_moves(rng):
     assert len(keep) == 3 and added and added[0] != "S2"
 
 
-def test_variants_round_trip_through_c3d_trc_and_csv(tmp_path, ict):
+def test_variants_round_trip_through_c3d_trc_and_csv(tmp_path, ict_head):
     from facecast.server.mocap.io import read_take
     from facecast.server.mocap.variants import VARIANTS, make_take
 
-    face, _ = ict
+    face = ict_head[0]
     for name, v in VARIANTS.items():
         truth = make_take(v, tmp_path / name, seconds=0.25, fps=60.0, face=face)
         takes = {fmt: read_take(truth.paths[fmt]) for fmt in ("c3d", "trc", "csv")}
@@ -78,11 +65,11 @@ def _process(truth, face, layout=None):
 
 
 @pytest.mark.parametrize("variant", ["issue16", "sparse30"])
-def test_a_wrong_stable_marker_is_named_and_left_out(tmp_path, ict, variant):
+def test_a_wrong_stable_marker_is_named_and_left_out(tmp_path, ict_head, variant):
     """issue16: a fifth "stable" marker on the mouth; sparse30: one of three replaced by it."""
     from facecast.server.mocap.variants import make_take
 
-    face, deltas = ict
+    face, _, deltas = ict_head
     truth = make_take(variant, tmp_path, seconds=1.5, face=face)
     layout = json.loads(truth.paths["layout"].read_text())
     assert _process(truth, face, layout).info["stable_dropped"] == []  # the true ones are rigid
@@ -98,10 +85,10 @@ def test_a_wrong_stable_marker_is_named_and_left_out(tmp_path, ict, variant):
     assert _angle_deg(proc.rig.head_matrix(proc.r, proc.t)[:, :, :3], truth.r).mean() < 0.3
 
 
-def test_a_take_without_a_neutral_hold_stabilises(tmp_path, ict):
+def test_a_take_without_a_neutral_hold_stabilises(tmp_path, ict_head):
     from facecast.server.mocap.variants import make_take
 
-    face, _ = ict
+    face = ict_head[0]
     truth = make_take("issue16", tmp_path, seconds=1.5, face=face)  # moves from frame 0
     proc = _process(truth, face)
     head = proc.rig.head_matrix(proc.r, proc.t)
@@ -113,21 +100,21 @@ def test_a_take_without_a_neutral_hold_stabilises(tmp_path, ict):
     assert 0 < proc.info["pose_frame_sd_deg"] < 1.0
     # the neutral is not averaged over the expression that starts at frame 0 (that left a constant
     # 0.48 mm on every marker's displacement; 0.54 mm mean on this take, 0.37 now)
-    _, deltas = ict
+    deltas = ict_head[2]
     pv = proc.rig.placement.vertices
     got = np.stack([st.controls[: len(pv)] for st in proc.states]) * face.mm_per_unit
     want = (truth.local(face, deltas)[:, pv] - face.vertices[pv]) * face.mm_per_unit
     assert np.linalg.norm(got - want, axis=2).mean() < 0.45
 
 
-def test_pose_error_of_a_known_rigid_motion_is_below_the_noise_share(tmp_path, ict):
+def test_pose_error_of_a_known_rigid_motion_is_below_the_noise_share(tmp_path, ict_head):
     """A rigid head (no expression): the pose error at the face markers is below what the noise
     alone would leave on one frame's markers (0.5 mm per axis), and matches the reported error."""
     from dataclasses import replace
 
     from facecast.server.mocap.variants import VARIANTS, make_take
 
-    face, _ = ict
+    face = ict_head[0]
     v = replace(VARIANTS["issue16"], expr_max=0.0)
     truth = make_take(v, tmp_path, seconds=1.5, face=face, gaps=False)
     proc = _process(truth, face)
@@ -141,14 +128,14 @@ def test_pose_error_of_a_known_rigid_motion_is_below_the_noise_share(tmp_path, i
     assert err < 0.5 * np.sqrt(3) / 4  # a quarter of the noise's per-marker displacement
 
 
-def test_live_driver_takes_its_neutral_on_a_take_moving_from_frame_0(tmp_path, ict):
+def test_live_driver_takes_its_neutral_on_a_take_moving_from_frame_0(tmp_path, ict_head):
     """The live neutral is in the first frame's head pose, the head's motion over the gathered frames
     removed (a plain average left every later pose 0.43 deg off on this take)."""
     from facecast.server.mocap.io import read_take
     from facecast.server.mocap.live import MarkerLiveDriver
     from facecast.server.mocap.variants import make_take
 
-    face, _ = ict
+    face = ict_head[0]
     truth = make_take("issue16", tmp_path, seconds=1.5, face=face)
     layout = json.loads(truth.paths["layout"].read_text())
     take = read_take(truth.paths["trc"], default_units=layout["units"])
@@ -164,11 +151,67 @@ def test_live_driver_takes_its_neutral_on_a_take_moving_from_frame_0(tmp_path, i
     assert _angle_deg(heads[:, :, :3], truth.r[frames]).mean() < 0.3
 
 
-def test_render_exposes_the_mocap_cleaning_choices(tmp_path, ict, capsys):
+def test_live_head_pose_uses_the_face_prior(tmp_path, ict_head):
+    """With the face's shapes explaining its markers' motion (``stabilise.ShapePose``), every
+    marker steadies the live head pose: its error falls well below the stable markers' own."""
+    from facecast.server.mocap.io import read_take
+    from facecast.server.mocap.live import MarkerLiveDriver
+    from facecast.server.mocap.variants import make_take
+
+    face = ict_head[0]
+    truth = make_take("issue16", tmp_path, seed=3, seconds=1.0, face=face, formats=("trc",))
+    layout = json.loads(truth.paths["layout"].read_text())
+    take = read_take(truth.paths["trc"], default_units=layout["units"])
+    err = {}
+    for prior in ("off", "auto"):
+        drv = MarkerLiveDriver(face, take.names, layout, fps=take.fps, prior=prior)
+        heads, frames = [], []
+        for i, f in enumerate(take.xyz):
+            for s in drv.push(f, i / take.fps):
+                heads.append(s.head)
+                frames.append(i)
+        err[prior] = _angle_deg(np.asarray(heads)[:, :, :3], truth.r[frames]).mean()
+    assert err["auto"] < 0.7 * err["off"]
+
+
+def test_live_takes_the_neutral_again_at_a_later_hold(tmp_path, ict_head):
+    """A take that starts on an expression and holds the neutral at its end (``neutral-last``):
+    the live driver's first neutral is the expression; after ``neutral.HOLD_S`` of the hold it
+    takes the neutral shape again there: the face at rest is still again, and the head goes on
+    without a jump (its rest stays the start's)."""
+    from facecast.server.mocap.io import read_take
+    from facecast.server.mocap.live import MarkerLiveDriver
+    from facecast.server.mocap.variants import make_take
+
+    face, _, deltas = ict_head
+    truth = make_take("neutral-last", tmp_path, seed=1, seconds=2.0, face=face, formats=("trc",))
+    layout = json.loads(truth.paths["layout"].read_text())
+    take = read_take(truth.paths["trc"], default_units=layout["units"])
+    drv = MarkerLiveDriver(face, take.names, layout, fps=take.fps, prior="off")
+    states, frames, retaken = [], [], None
+    for i, f in enumerate(take.xyz):
+        out = drv.push(f, i / take.fps)
+        states += out
+        frames += [i] * len(out)
+        if drv.retakes and retaken is None:
+            retaken = len(states)
+    assert drv.retakes == 1 and retaken is not None
+    # the markers' true displacements from the face at rest (face units) against the output's
+    at = deltas[truth.expressions][:, drv.rig.placement.vertices]  # (E, K, 3)
+    want = np.einsum("te,ekc->tkc", truth.weights[frames], at)
+    got = np.stack([s.controls[: len(drv.rig.control)] for s in states])
+    err = np.linalg.norm(got - want, axis=2).mean(axis=1) * face.mm_per_unit
+    after, before = err[retaken:].mean(), err[retaken - 10 : retaken].mean()
+    assert after < 0.7 * before  # at rest against the new neutral, not the expression taken first
+    heads = np.stack([s.head[:, :3] for s in states[retaken - 3 : retaken + 3]])
+    assert _angle_deg(heads[1:], heads[:-1]).max() < 0.5
+
+
+def test_render_exposes_the_mocap_cleaning_choices(tmp_path, ict_head, capsys):
     from facecast.server.cli import main
     from facecast.server.mocap.variants import make_take
 
-    face, _ = ict
+    face = ict_head[0]
     truth = make_take("sparse30", tmp_path, seconds=0.5, face=face)
     from facecast.server.paths import shared_data
 
@@ -195,7 +238,7 @@ def test_render_exposes_the_mocap_cleaning_choices(tmp_path, ict, capsys):
     assert "NOPE" in capsys.readouterr().err
 
 
-def test_neutral_frame_auto_takes_the_neutral_where_the_markers_say_it_is(tmp_path, ict):
+def test_neutral_frame_auto_takes_the_neutral_where_the_markers_say_it_is(tmp_path, ict_head):
     """A take that starts on an expression and holds the neutral at its end: ``auto`` (the default
     when neither the flag nor the layout names a frame) finds the hold, frame 0 is an expression; a
     take moving from its neutral frame 0 keeps frame 0."""
@@ -203,7 +246,7 @@ def test_neutral_frame_auto_takes_the_neutral_where_the_markers_say_it_is(tmp_pa
     from facecast.server.mocap.layout import load_layout
     from facecast.server.mocap.variants import make_take
 
-    face, deltas = ict
+    face, _, deltas = ict_head
     truth = make_take("neutral-last", tmp_path, seconds=1.5, face=face, formats=("trc",))
     layout = json.loads(truth.paths["layout"].read_text())
     local = truth.local(face, deltas)
@@ -235,14 +278,14 @@ def _process_fmt(truth, face, fmt, layout=None, **kw):
     return process(read_take(truth.paths[fmt], default_units=lay["units"]), face, lay, **kw)
 
 
-def test_exaggeration_masks_scale_their_region_only(tmp_path, ict):
+def test_exaggeration_masks_scale_their_region_only(tmp_path, ict_head):
     """A layout's ``exaggerate`` region scales its markers' displacements (batch and live share the
     rig); the other markers and the head are untouched; bad regions are refused, the field named."""
     from facecast.server.errors import InputError
     from facecast.server.mocap.layout import load_layout
     from facecast.server.mocap.variants import make_take
 
-    face, _ = ict
+    face = ict_head[0]
 
     truth = make_take("sparse30", tmp_path, seconds=0.5, face=face, formats=("trc",))
     layout = json.loads(truth.paths["layout"].read_text())

@@ -370,7 +370,9 @@ def combine_columns(
     return [
         FaceState(t=ts[r], faps=F[r])
         if p is None
-        else FaceState(ts[r], F[r], p.viseme, p.expression, p.controls, p.head)
+        else FaceState(
+            ts[r], F[r], p.viseme, p.expression, p.controls, p.head, p.shapes, p.shape_weights
+        )
         for r, p in enumerate(prims)
     ]
 

@@ -457,6 +457,8 @@ def combine(
         expression=primary.expression,
         controls=primary.controls,
         head=head_out,
+        shapes=primary.shapes,
+        shape_weights=primary.shape_weights,
     )
 
 

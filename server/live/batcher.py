@@ -445,6 +445,7 @@ class DeformBatcher:
             verts = np.asarray(a.deformer.deform(D[0], T[0]), dtype=np.float32)[None]
         else:
             verts = np.asarray(a.deformer.deform_batch(D, T), dtype=np.float32)
+        a.add_shapes(verts, [jobs[i].state for i in ok], T)  # per-vertex shapes (mocap prior)
         meta = [(jobs[i].seq, jobs[i].state.t, jobs[i].wall, jobs[i].encodings) for i in ok]
         try:
             encoded = encode_batch(verts, meta, quantizer)

@@ -12,7 +12,8 @@ Modules:
     retarget    RBF map actor neutral -> face (inverse multiquadric or r, with an affine part)
     rig         per-take set-up shared by batch and live (placement, retarget, anchors, FAPs)
     prior       the face prior: the face's expression shapes (and mirrors) fitted to the markers,
-                driving virtual controls (``--prior auto``, the default, when the face has shapes)
+                carried to every vertex by a per-vertex channel (``FaceState.shapes``;
+                ``--prior auto``, the default, when the face has shapes)
     to_fap      projection of retargeted displacements to MPEG-4 FAPs
     driver      batch: ``load(path, face, layout=None, **options) -> Animation``
     live        ``MarkerLiveDriver(face, names, layout).push(xyz (M, 3), t) -> [FaceState]``

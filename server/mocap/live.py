@@ -6,16 +6,20 @@ centroid; its removal from the raw markers; a constant-velocity Kalman filter wi
 the stabilised markers (``clean.KalmanCV``: the face's motion alone is gentle, so it filters more
 than it would with the head's on top); RBF retarget onto the face (``rig.MarkerRig``), and the
 face prior (``prior``, the same as batch: the face's expression shapes fitted to each frame, warm
-started from the last, driving virtual controls). The actor's neutral is taken from the first
-``neutral_frames`` frames in which at least three stable markers are visible, more until every
-control marker has been seen (``stabilise.start_neutral``: stabilised and averaged, in the first
-frame's head pose); until then ``push`` returns no state. Each frame's head pose uses every marker
-that has shown itself rigid (``stabilise.robust_pose``).
+started from the last, carried to every vertex by the states' per-vertex channel). The actor's
+neutral is taken from the first ``neutral_frames`` frames in which at least three stable markers
+are visible, more until every control marker has been seen (``stabilise.start_neutral``:
+stabilised and averaged, in the first frame's head pose); until then ``push`` returns no state.
+A take that starts on an expression gets its neutral shape again where it later holds the face at
+rest (``_watch_neutral``, scored as batch's ``--neutral-frame auto``). Each frame's head pose uses
+every marker that has shown itself rigid (``stabilise.robust_pose``) and, with a face prior, every
+marker again, the face's motion explained by the prior's shapes (``stabilise.ShapePose``).
 """
 
 from __future__ import annotations
 
 import logging
+from collections import deque
 
 import numpy as np
 
@@ -27,13 +31,20 @@ from ..state import FaceState
 from .clean import KalmanCV
 from .io import FACE_SPAN_MM, detect_units
 from .layout import Layout, load_layout
+from .neutral import AUTO_RATIO, HOLD_S, rest_score, tied_positions
 from .prior import DEFAULT as PRIOR_DEFAULT
 from .rig import MarkerRig, match_names
-from .stabilise import rigidity_weights, robust_pose, solve_pose, start_neutral
+from .stabilise import ShapePose, rigidity_weights, robust_pose, solve_pose, start_neutral
 
 log = logging.getLogger(__name__)
 
 __all__ = ["MarkerFrameError", "MarkerLiveDriver"]
+
+#: Each frame's head pose is refined with every marker, the face's motion explained by the face
+#: prior's shapes (``stabilise.ShapePose``), when the face has a prior.
+SHAPE_POSE = True
+#: The automatic neutral scores every this many frames (a hold lasts ``neutral.HOLD_S``).
+WATCH_EVERY = 4
 
 
 class MarkerFrameError(FrameError):
@@ -113,15 +124,24 @@ class MarkerLiveDriver:
             for s in self.layout.markers.values()
         )
         self.control_vertices: np.ndarray | None = None
+        # the automatic neutral (``_watch_neutral``) needs 4 face markers tied to the face, and
+        # controls that do not move with the neutral (no marker placed automatically)
+        self.retakes = 0
+        target = tied_positions(self.layout, face)
+        tied = np.setdiff1d(np.flatnonzero(np.isfinite(target).all(axis=1)), self.stable)
+        self._tied = tied if len(tied) >= 4 and not auto else None
+        self._target = target[tied]
+        self._recent: deque[np.ndarray] = deque(maxlen=max(2, round(HOLD_S * self.fps)))
+        self._window: deque[np.ndarray] = deque(maxlen=self.neutral_frames)
+        self._run, self._neutral_score = 0, np.inf
         if not auto:
             from .layout import place_markers
-            from .rig import _prior, anchor_vertices
+            from .rig import anchor_vertices, rig_controls
 
             markers = place_markers(self.layout, face).vertices
-            anchors = anchor_vertices(face, markers)
-            self.prior = _prior(face, prior, markers, anchors)
-            virtual = self.prior.vertices if self.prior is not None else np.zeros(0, np.int64)
-            self.control_vertices = np.r_[markers, virtual, anchors].astype(np.int32)
+            self.prior, self.control_vertices = rig_controls(
+                face, markers, anchor_vertices(face, markers), prior
+            )
 
     @property
     def ready(self) -> bool:
@@ -167,7 +187,53 @@ class MarkerLiveDriver:
         local = self.kf.step(raw_local)
         # markers never seen since the start hold their neutral position
         local = np.where(np.isfinite(local), local, self.rig.neutral)
-        return [self.rig.solve(local, r, tr, float(t))]
+        state = self.rig.solve(local, r, tr, float(t))
+        self._watch_neutral(z, raw_local)
+        return [state]
+
+    def _watch_neutral(self, z: np.ndarray, raw_local: np.ndarray) -> None:
+        """The automatic neutral, causally (as batch's ``neutral.auto_neutral_frame``): every
+        ``WATCH_EVERY`` frames, the mean of the last ``neutral_frames`` stabilised frames is
+        scored against the face at rest (``neutral.rest_score``), as the neutral (the mean of as
+        many frames) was; a hold of ``neutral.HOLD_S`` seconds fitting ``AUTO_RATIO`` times better
+        than the neutral (a take that started on an expression) gives the neutral shape from the
+        next frame on (``_retake``)."""
+        if self._tied is None:
+            return
+        self._recent.append(raw_local)
+        self._window.append(raw_local[self._tied])
+        if len(self._window) < self.neutral_frames or self.frames % WATCH_EVERY:
+            return
+        frames = np.stack(self._window)
+        seen = np.isfinite(frames)
+        with np.errstate(invalid="ignore"):
+            mean = np.where(seen, frames, 0.0).sum(axis=0) / seen.sum(axis=0)
+        score = rest_score(mean, self._target)
+        held = score * AUTO_RATIO <= self._neutral_score
+        self._run = self._run + WATCH_EVERY if held else 0
+        if self._run >= self._recent.maxlen:  # type: ignore[operator]
+            self._retake(np.stack(self._recent), score, self._neutral_score)
+
+    def _retake(self, frames: np.ndarray, score: float, old: float) -> None:
+        """Take the actor's neutral shape again from ``frames (N, L, 3)`` mm (a hold at rest,
+        stabilised): their mean. The head's rest stays where it was: a hold later in a take may
+        come with the head turned (taking its pose as the rest too turned every later frame, 2.6x
+        -> 14.9x of not deforming on a fast-expression take, while on a take that ended on its
+        neutral it gained 14.9x against 15.5x), and the pose filter goes on undisturbed."""
+        seen = np.isfinite(frames)
+        with np.errstate(invalid="ignore"):
+            mean = np.where(seen, frames, 0.0).sum(axis=0) / seen.sum(axis=0)
+        assert self.rig is not None
+        self._build_rig(np.where(np.isfinite(mean), mean, self.rig.neutral))
+        self.retakes += 1
+        log.info(
+            "live markers: neutral shape taken again at frame %d from a %.2f s hold fitting the "
+            "face at rest %.2f mm (the neutral's %.2f mm)",
+            self.frames - 1,
+            len(frames) / self.fps,
+            score,
+            old,
+        )
 
     def _set_dt(self, dt: float) -> None:
         from .clean import _cv_model
@@ -214,22 +280,42 @@ class MarkerLiveDriver:
                 "the hello or the layout",
                 where=f"frame {self.frames - 1}",
             )
-        self.rig = MarkerRig(
-            self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu, prior=self.prior
-        )
-        self._ref_stable = neutral[self.stable]
+        self._build_rig(neutral)
         # each marker's mean square off the head (mm², an exponential average over ~0.5 s); until
         # measured, the face markers count as moving 5 mm
         self._disp_sq = np.full(len(neutral), 25.0)
         self._noise = 3.0 * self.kf.r  # mm², three axes
         self._alpha = 1.0 / (0.5 * self.fps)
-        self._centre = np.nanmean(self._ref_stable, axis=0)
-        self.control_vertices = self.rig.control_vertices
         log.info(
             "live markers: neutral taken from %d frames; %d controls",
             self._neutral_n,
             len(self.rig.control),
         )
+
+    def _build_rig(self, neutral: np.ndarray) -> None:
+        """The rig, pose reference and rest score of the actor's ``neutral (L, 3)`` mm."""
+        self.rig = MarkerRig(
+            self.face, self.layout, neutral, kernel=self.kernel, mu=self.mu, prior=self.prior
+        )
+        self._ref_stable = neutral[self.stable]
+        self._centre = np.nanmean(self._ref_stable, axis=0)
+        self.control_vertices = self.rig.control_vertices
+        motion = self.rig.marker_motion() if SHAPE_POSE else None
+        self._shape_pose = (
+            None
+            if motion is None
+            else ShapePose(
+                np.where(np.isfinite(neutral), neutral, 0.0),
+                self._centre,
+                motion,
+                noise_mm=float(np.sqrt(self.kf.r)),
+            )
+        )
+        self._recent.clear()
+        self._window.clear()
+        self._run = 0
+        if self._tied is not None:
+            self._neutral_score = rest_score(neutral[self._tied], self._target)
 
     def _solve_pose(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Filtered head pose: ``stabilise.robust_pose`` over every marker, weighted by rigidity (the
@@ -243,6 +329,8 @@ class MarkerLiveDriver:
             # stable markers alone one frame's pose is uncertain by ~0.4 deg at 0.5 mm noise
             w = rigidity_weights(self._disp_sq, self.stable, self._noise, gate=2.0)
             pose = robust_pose(self.rig.neutral, z, w, scale_mm=1.5)
+            if pose is not None and self._shape_pose is not None:
+                pose = self._shape_pose(z, *pose)
         if pose is None:
             pose = solve_pose(self._ref_stable, cur)
         c = self._centre

@@ -29,6 +29,7 @@ __all__ = [
     "auto_neutral_frame",
     "find_neutral",
     "held_frames",
+    "rest_score",
     "tied_positions",
 ]
 
@@ -92,14 +93,7 @@ def auto_neutral_frame(
     with np.errstate(invalid="ignore", divide="ignore"):
         smooth = (csum[hi] - csum[lo]) / (ccnt[hi] - ccnt[lo])
     dst = target[tied]
-    score = np.full(n, np.inf)
-    for f in range(n):
-        vis = np.isfinite(smooth[f]).all(axis=1)
-        if vis.sum() < max(4, (3 * len(tied)) // 4):
-            continue  # too many markers unseen to judge this frame
-        q, s, c = similarity(smooth[f, vis], dst[vis])
-        score[f] = float(np.median(np.linalg.norm(s * smooth[f, vis] @ q.T + c - dst[vis], axis=1)))
-        score[f] /= max(s, 1e-12)  # in the take's units (mm), not the face's
+    score = np.array([rest_score(smooth[f], dst) for f in range(n)])
     if not np.isfinite(score).any() or not 0 <= default < n:
         return default, f"no frame shows enough of the tied markers: frame {default}"
     best = int(np.argmin(score))
@@ -119,6 +113,18 @@ def auto_neutral_frame(
         f"frame {best} fits the face at rest best ({score[best]:.2f} mm median off it; frame "
         f"{default} {score[default]:.2f} mm, the take's median {np.median(score[np.isfinite(score)]):.2f} mm)"
     )
+
+
+def rest_score(markers: np.ndarray, target: np.ndarray) -> float:
+    """How far ``markers (n, 3)`` (mm, NaN = unseen) lie from the face at rest ``target (n, 3)``
+    (``tied_positions``, face units): the median residual (mm) after the best similarity; inf
+    when fewer than three quarters of them (or 4) are seen. Shared by batch and live."""
+    vis = np.isfinite(markers).all(axis=1) & np.isfinite(target).all(axis=1)
+    if vis.sum() < max(4, (3 * len(markers)) // 4):
+        return float("inf")  # too many markers unseen to judge this frame
+    q, s, c = similarity(markers[vis], target[vis])
+    res = np.linalg.norm(s * markers[vis] @ q.T + c - target[vis], axis=1)
+    return float(np.median(res)) / max(s, 1e-12)  # in the take's units (mm), not the face's
 
 
 def held_frames(low: np.ndarray, min_len: int) -> np.ndarray:

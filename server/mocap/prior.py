@@ -5,14 +5,21 @@ cheeks' bulge) is what an engine can only interpolate. When the face comes with 
 (blendshapes: full meshes in its vertex order, e.g. the ICT FaceKit's ``expressions/``), each frame's
 marker displacements ``d (K, 3)`` are fitted by shape weights ``w`` in [0, 1] (bounded ridge least
 squares, ``fit_weights``), and the shapes give the whole skin: ``B w``. The prior carries that to the
-engine as *virtual controls*: skin vertices the shapes move, spread where they move most, whose
-displacements are the fitted shapes' (``ExpressionPrior.virtual``); the engine then interpolates
-markers and virtual controls alike, so batch and live share it and any engine renders it.
+output through a *direct per-vertex channel* (``ExpressionPrior.set_channel``): each frame's
+``FaceState`` carries the fitted weights, scaled by the fit's trust, of per-vertex shapes
+(``state.Shapes``): each shape minus what the engine spreads of it from the markers, so the output
+is ``E d + trust (B w - E B_m w)``: the fitted shapes' own skin, with the engine interpolating only
+what they leave unexplained at the markers (``E``: the engine's operator, ``B_m`` the shapes at the
+markers). Before it, the fit reached the output only through ~500 *virtual controls* (skin
+vertices taking the fitted shapes' displacements, interpolated by the engine; ``n_virtual``, now
+off by default), which lost much of it: with exact markers the prior alone reached 0.24x of not
+deforming, carried through them 0.31-0.38x.
 
 A take may show expressions the shapes do not span. Each frame's relative fit residual
-``|d - B_m w| / |d|`` says how well they do: below ``trust[0]`` the virtual controls take the fitted
-shapes' displacements, above ``trust[1]`` they take what the markers alone interpolate to (the
-engine's own result), and in between a linear blend of the two.
+``|d - B_m w| / |d|`` says how well they do: below ``trust[0]`` the channel and the virtual
+controls take the fitted shapes' displacements, above ``trust[1]`` they take what the markers alone interpolate to (the
+engine's own result), and in between a linear blend of the two; the channel's weights are scaled
+by the same trust.
 
 A symmetric face's shapes are also taken mirrored (x -> -x, ``mirror_map``): a left-side shape gives
 the right side's.
@@ -29,10 +36,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..deform.operator import Operator
 from ..errors import InputError
 from ..faces.face import Face
 from ..output.atomic import atomic_path
 from ..paths import cache_dir
+from ..state import Shapes
 from .sampling import farthest_points
 
 log = logging.getLogger(__name__)
@@ -52,8 +61,14 @@ MIN_MOTION_MM = 0.3
 TRUST = (0.3, 0.5)
 #: Ridge weight (relative to the mean squared column norm of the marker block).
 RIDGE = 0.03
-#: Virtual controls spread over the skin the shapes move (more than MIN_MOTION_MM).
-N_VIRTUAL = 500
+#: Virtual controls spread over the skin the shapes move (more than MIN_MOTION_MM); none by
+#: default: the direct channel (``set_channel``) carries the fit to every vertex. On mirror folds
+#: (issue16 and technician variants, 2-s takes, folds 0/1; the folds the choice was made on) 500
+#: virtual controls with the channel gave 0.45/0.87 and 0.16/0.67x, none 0.46/0.87 and 0.15/0.66x
+#: (the virtual controls alone: 0.51/0.90 and 0.24/0.73x); none keeps the live frame cheaper.
+N_VIRTUAL = 0
+#: The direct channel keeps the vertices where some shape's channel delta exceeds this (mm).
+CHANNEL_MM = 0.005
 #: Fit iterations per live frame, warm started from the last (batch: 200 from zero).
 WARM_ITERS = 30
 #: The prior batch and live use when none is chosen: the face's own shapes when it has them. On
@@ -181,6 +196,24 @@ def mirrored(deltas: np.ndarray, mirror: np.ndarray) -> np.ndarray:
     return out
 
 
+def apply_operator(op: Operator, values: np.ndarray) -> np.ndarray:
+    """``(E, V, 3)``: ``op`` applied to each of ``values (E, K, 3)`` (all at once per axis)."""
+    e = len(values)
+    if op.dense is not None:
+        return np.einsum("vk,ekc->evc", op.dense.astype(np.float64), values)
+    import scipy.sparse as sp
+
+    assert op.weights is not None  # a sparse operator
+    out = np.empty((e, op.n_vertices, 3))
+    for c in range(3):
+        m = sp.csr_matrix(
+            (op.weights[:, c].astype(np.float64), op.indices, op.indptr),
+            shape=(op.n_vertices, op.n_controls),
+        )
+        out[:, :, c] = (m @ values[:, :, c].T).T
+    return out
+
+
 def fit_weights(
     gram: np.ndarray,
     rhs: np.ndarray,
@@ -254,8 +287,10 @@ class ExpressionPrior:
         mask = ~np.isin(cand, taken)
         cand, cmove = cand[mask], moves[moves > MIN_MOTION_MM][mask]
         v = face.vertices.astype(np.float64)
-        pick = farthest_points(
-            v[cand], n_virtual, seed_points=v[self.markers], weights=np.sqrt(cmove)
+        pick = (
+            farthest_points(v[cand], n_virtual, seed_points=v[self.markers], weights=np.sqrt(cmove))
+            if n_virtual > 0 and len(cand)
+            else np.zeros(0, np.int64)
         )
         self.vertices = cand[np.sort(pick)].astype(np.int64)
         a = self.shapes[:, self.markers].reshape(len(self.shapes), -1).T.astype(np.float64)
@@ -266,10 +301,31 @@ class ExpressionPrior:
         self._virt = self.shapes[:, self.vertices].reshape(len(self.shapes), -1).astype(np.float64)
         self._interp: np.ndarray | None = None
         self._last: np.ndarray | None = None
+        self.channel: Shapes | None = None  # set_channel
 
     @property
     def n_virtual(self) -> int:
         return len(self.vertices)
+
+    def set_channel(self, op: Operator, controls: np.ndarray, face: Face) -> None:
+        """The direct per-vertex channel (``channel``): ``op`` the engine's operator over
+        ``controls`` (the rig's control vertices: the markers, the virtual controls, then anchors
+        that never move). Each shape's channel delta is what the engine misses of it when its
+        controls take the shape's displacements: ``B_e - E B_e(controls)`` over the skin it
+        touches (the face's deformable, head-carried vertices where it exceeds ``CHANNEL_MM``).
+        A frame's output is then ``E d + trust (B - E B_m) w`` (markers at ``d``, virtual controls
+        at their blend): where the fit is trusted, the shapes' own skin plus the engine's
+        interpolation of what the shapes leave unexplained at the markers."""
+        controls = np.asarray(controls, dtype=np.int64)
+        values = np.zeros((len(self.shapes), len(controls), 3), np.float64)
+        n = len(self.markers) + self.n_virtual
+        values[:, :n] = self.shapes[:, controls[:n]]
+        spread = apply_operator(op, values)  # (E, V, 3)
+        delta = self.shapes - spread.astype(np.float32)
+        where = face.deformable & (face.rigid_group == 0)
+        size = np.abs(delta).max(axis=(0, 2)) * face.mm_per_unit
+        keep = np.flatnonzero(where & (size > CHANNEL_MM))
+        self.channel = Shapes(keep, np.ascontiguousarray(delta[:, keep], dtype=np.float32))
 
     def set_interpolation(self, rows: np.ndarray) -> None:
         """``rows (N, K, 3)``: per axis, how the markers alone interpolate to the virtual vertices
@@ -288,10 +344,10 @@ class ExpressionPrior:
         self._last = w[-1].copy()
         return w
 
-    def virtual(self, d: np.ndarray, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """``(virtual displacements (T, N, 3) float32, trust (T,))`` for marker displacements
-        ``d (T, K, 3)`` (face units): the fitted shapes', blended towards the markers' own
-        interpolation as the fit residual grows (module docstring)."""
+    def fit(self, d: np.ndarray, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """``(weights (T, E), trust (T,))`` for marker displacements ``d (T, K, 3)`` (face units):
+        the shape weights and how far the fit is trusted (1 below ``trust[0]`` relative residual,
+        0 above ``trust[1]``, linear between; 1 for a frame at rest)."""
         d = np.asarray(d, dtype=np.float64)
         w = self.weights(d, warm)
         fit = (w @ self._a.T).reshape(d.shape)
@@ -300,6 +356,32 @@ class ExpressionPrior:
         lo, hi = self.trust
         beta = np.clip((hi - rel) / max(hi - lo, 1e-9), 0.0, 1.0)
         beta[size <= 1e-12] = 1.0
+        return w, beta
+
+    def solve(
+        self, d: np.ndarray, warm: bool = False
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``(virtual displacements (T, N, 3) float32 or None without virtual controls, channel
+        weights (T, E) float32 or None without the direct channel)`` for marker displacements
+        ``d (T, K, 3)`` (face units): what a ``FaceState`` carries (``controls`` after the markers',
+        ``shape_weights`` of ``channel``)."""
+        d = np.asarray(d, dtype=np.float64)
+        w, beta = self.fit(d, warm)
+        virtual = self._virtual(d, w, beta)[0] if self.n_virtual else None
+        weights = None if self.channel is None else (beta[:, None] * w).astype(np.float32)
+        return virtual, weights
+
+    def virtual(self, d: np.ndarray, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """``(virtual displacements (T, N, 3) float32, trust (T,))`` for marker displacements
+        ``d (T, K, 3)`` (face units): the fitted shapes', blended towards the markers' own
+        interpolation as the fit residual grows (module docstring)."""
+        d = np.asarray(d, dtype=np.float64)
+        w, beta = self.fit(d, warm)
+        return self._virtual(d, w, beta)
+
+    def _virtual(
+        self, d: np.ndarray, w: np.ndarray, beta: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         shaped = (w @ self._virt).reshape(len(d), -1, 3)
         if self._interp is None:
             out = beta[:, None, None] * shaped

@@ -24,7 +24,14 @@ from .stabilise import pose_in_frame, to_matrix
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FIT_SPACING_FRACTION", "MarkerRig", "check_vertex_fit", "match_names", "similarity"]
+__all__ = [
+    "FIT_SPACING_FRACTION",
+    "MarkerRig",
+    "check_vertex_fit",
+    "match_names",
+    "rig_controls",
+    "similarity",
+]
 
 #: A layout is refused when its vertex-tied markers, after the best similarity (rotation, scale,
 #: shift) onto their face vertices, sit a median distance from the actor's neutral markers above this
@@ -37,6 +44,8 @@ __all__ = ["FIT_SPACING_FRACTION", "MarkerRig", "check_vertex_fit", "match_names
 #: ~3 mm with 60 markers: several times the noise, far below a mismatch. Markers tied to feature
 #: points or placed automatically are not judged: they retarget across faces by design.
 FIT_SPACING_FRACTION = 0.25
+#: The face prior's direct per-vertex channel (``prior.ExpressionPrior.set_channel``) is on.
+CHANNEL = True
 
 
 def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -120,10 +129,8 @@ class MarkerRig:
         self.anchor_vertices = (
             anchor_vertices(face, placement.vertices) if anchors else np.zeros(0, np.int32)
         )
-        self.prior = _prior(face, prior, placement.vertices, self.anchor_vertices)
-        virtual = self.prior.vertices if self.prior is not None else np.zeros(0, np.int64)
-        self.control_vertices = np.r_[placement.vertices, virtual, self.anchor_vertices].astype(
-            np.int32
+        self.prior, self.control_vertices = rig_controls(
+            face, placement.vertices, self.anchor_vertices, prior
         )
         self.stable = np.array([pos[n] for n in self.layout.stable], dtype=np.int64)
         unseen = [names[i] for i in self.control if not np.isfinite(self.neutral[i]).all()]
@@ -166,6 +173,17 @@ class MarkerRig:
             fit.mean(),
         )
 
+    def marker_motion(self) -> np.ndarray | None:
+        """``(E, L, 3)`` the face prior's shapes at the layout's markers, carried back into the
+        capture frame (mm, the retarget's similarity undone; zero at markers that are not
+        controls), or None without a prior: how the actor's markers move (``stabilise.ShapePose``)."""
+        if self.prior is None:
+            return None
+        at = self.prior.shapes[:, self.placement.vertices].astype(np.float64) / self.gains[None]
+        out = np.zeros((len(self.prior.shapes), self.n_markers, 3))
+        out[:, self.control] = at @ self.q / self.s
+        return out
+
     @property
     def n_markers(self) -> int:
         return len(self.layout.names)
@@ -179,8 +197,16 @@ class MarkerRig:
         """One ``FaceState`` from ``(L, 3)`` stabilised markers (mm, layout order) and the head pose."""
         d = self.rbf.displacements(local_mm[self.control]).astype(np.float32) * self.gains
         head = self.head_matrix(r, t)
-        virtual = self.prior.virtual(d[None], warm=True)[0][0] if self.prior is not None else None
-        return self.state(d, head, time, virtual)
+        if self.prior is None:
+            return self.state(d, head, time)
+        virtual, weights = self.prior.solve(d[None], warm=True)
+        return self.state(
+            d,
+            head,
+            time,
+            None if virtual is None else virtual[0],
+            None if weights is None else weights[0],
+        )
 
     def _with_anchors(self, d: np.ndarray, virtual: np.ndarray | None = None) -> np.ndarray:
         parts = [d] if virtual is None else [d, virtual.astype(d.dtype)]
@@ -194,14 +220,30 @@ class MarkerRig:
         """``solve`` for ``(T, L, 3)`` frames at once."""
         d = self.rbf.displacements(local_mm[:, self.control]).astype(np.float32) * self.gains
         heads = self.head_matrix(r, t)
-        virtual = self.prior.virtual(d)[0] if self.prior is not None else [None] * len(d)
-        return [self.state(d[i], heads[i], t0 + i / fps, virtual[i]) for i in range(len(d))]
+        none: list[None] = [None] * len(d)
+        virtual, weights = self.prior.solve(d) if self.prior is not None else (none, none)
+        return [
+            self.state(
+                d[i],
+                heads[i],
+                t0 + i / fps,
+                None if virtual is None else virtual[i],
+                None if weights is None else weights[i],
+            )
+            for i in range(len(d))
+        ]
 
     def state(
-        self, d: np.ndarray, head: np.ndarray, time: float, virtual: np.ndarray | None = None
+        self,
+        d: np.ndarray,
+        head: np.ndarray,
+        time: float,
+        virtual: np.ndarray | None = None,
+        weights: np.ndarray | None = None,
     ) -> FaceState:
         """A ``FaceState`` from ``(K, 3)`` marker control displacements (face units), the prior's
-        ``(N, 3)`` virtual controls (when it has one) and a ``(3, 4)`` head."""
+        ``(N, 3)`` virtual controls and ``(E,)`` channel weights (when it has them) and a
+        ``(3, 4)`` head."""
         faps = (
             self.fap_projection.faps(d, head[:, :3])
             if self.fap_projection is not None
@@ -212,12 +254,27 @@ class MarkerRig:
             faps=faps,
             controls=self._with_anchors(d, virtual),
             head=head.astype(np.float64),
+            shapes=None if weights is None or self.prior is None else self.prior.channel,
+            shape_weights=weights,
         )
+
+
+def rig_controls(
+    face: Face, markers: np.ndarray, anchors: np.ndarray, prior
+) -> tuple[ExpressionPrior | None, np.ndarray]:
+    """``(the face prior or None, (K,) int32 control vertices)`` of a rig whose markers sit on
+    ``markers`` (face vertices) with ``anchors`` pinned: the markers, the prior's virtual controls
+    (if any), then the anchors; ``prior`` the prior's source (``MarkerRig``) or a built one."""
+    built = _prior(face, prior, markers, anchors)
+    virtual = built.vertices if built is not None else np.zeros(0, np.int64)
+    return built, np.r_[markers, virtual, anchors].astype(np.int32)
 
 
 def _prior(face: Face, source, markers: np.ndarray, anchors: np.ndarray) -> ExpressionPrior | None:
     """The rig's ``prior.ExpressionPrior`` (None for ``off``/None or a face without shapes), with
-    the fall-back interpolation of the markers alone taken from the fp engine's rows."""
+    the fall-back interpolation of the markers alone taken from the fp engine's rows, and its
+    direct channel against the fp engine's operator over all the rig's controls (the default
+    engine's; another engine spreads the controls a little otherwise)."""
     if isinstance(source, ExpressionPrior):
         return source
     if source is None or str(source) == "off":
@@ -228,12 +285,17 @@ def _prior(face: Face, source, markers: np.ndarray, anchors: np.ndarray) -> Expr
     prior = ExpressionPrior(face, basis, markers, anchors)
     from ..deform.build import get_operator
 
-    op = get_operator(face, np.r_[markers, anchors], engine="fp")
-    prior.set_interpolation(operator_rows(op, prior.vertices, len(markers)))
+    if prior.n_virtual:
+        op = get_operator(face, np.r_[markers, anchors], engine="fp")
+        prior.set_interpolation(operator_rows(op, prior.vertices, len(markers)))
+    if CHANNEL:
+        controls = np.r_[markers, prior.vertices, anchors].astype(np.int32)
+        prior.set_channel(get_operator(face, controls, engine="fp"), controls, face)
     log.info(
-        "prior: %d expression shapes (with mirrors), %d virtual controls",
+        "prior: %d expression shapes (with mirrors), %d virtual controls, channel over %d vertices",
         len(prior.shapes),
         prior.n_virtual,
+        0 if prior.channel is None else len(prior.channel.vertices),
     )
     return prior
 

@@ -17,7 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "ShapePose",
     "check_stable",
+    "compose_correction",
     "euler_from_matrix",
     "head_track",
     "hold_pose",
@@ -288,7 +290,6 @@ def refine_poses(
     0.218 on seed 2, 0.223 to 0.215 on seed 3), both followed by a low-rank projection; the true
     poses would have given 0.165. ``driver.denoise_displacements`` has the current pipeline's.
     """
-    from scipy.spatial.transform import Rotation
 
     from .clean import estimate_q_cv, estimate_r, optimal_rank, rts_smooth
 
@@ -324,10 +325,100 @@ def refine_poses(
         q=estimate_q_cv(track[ok], fps, noise),
         r=noise,
     )
-    # stabilised = S x_true + (c - S c + tau): frame = R S x_true + R (c - S c + tau) + t
-    s = Rotation.from_rotvec(track[:, 0] / 100.0).as_matrix()
-    off = centre - np.einsum("tij,j->ti", s, centre) + track[:, 1]
-    return np.einsum("tij,tjk->tik", r, s), np.einsum("tij,tj->ti", r, off) + t, k
+    rr, tt = compose_correction(r, t, track[:, 0] / 100.0, track[:, 1], centre)
+    return rr, tt, k
+
+
+def compose_correction(
+    r: np.ndarray, t: np.ndarray, rotvec: np.ndarray, shift: np.ndarray, centre: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Poses ``(..., 3, 3)``, ``(..., 3)`` with a small rigid motion of their stabilised markers
+    (``rotvec`` radians about ``centre``, then ``shift``, ``(..., 3)``: as ``rigid_fields``)
+    composed in: stabilised = ``S x + (c - S c + shift)``, so frame = ``R S x + R (c - S c + shift)
+    + t``."""
+    from scipy.spatial.transform import Rotation
+
+    s = Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64)).as_matrix()
+    off = centre - np.einsum("...ij,j->...i", s, centre) + shift
+    return np.einsum("...ij,...jk->...ik", r, s), np.einsum("...ij,...j->...i", r, off) + t
+
+
+class ShapePose:
+    """One frame's head pose refined with every marker, the face's own motion explained by known
+    shapes (a face prior's, at the markers): the causal counterpart of ``refine_poses``, whose
+    motion basis is the take's principal motions, known only afterwards.
+
+    Each frame's stabilised markers minus the ``neutral (M, 3)`` are fitted, by ridge least squares
+    (the shapes' weights regularised by ``ridge`` x their mean squared column norm, the rigid part
+    not), by a small rigid motion about ``centre`` (``rigid_fields``) plus a combination of
+    ``motion (E, M, 3)`` (mm, capture frame; zero at the stable markers); the rigid part corrects
+    the pose (``compose_correction``), scaled by how well the fit explains the frame: fully while
+    the residual's rms per coordinate is within ``trust[0]`` x the markers' noise ``noise_mm``, not
+    at all from ``trust[1]`` x (motion the shapes do not span would otherwise be taken for the
+    head's). The normal equations are factored once; a frame with markers unseen removes
+    their rows (a solve of E + 6 unknowns, cached while the same markers stay unseen)."""
+
+    def __init__(
+        self,
+        neutral: np.ndarray,
+        centre: np.ndarray,
+        motion: np.ndarray,
+        ridge: float = 0.03,
+        noise_mm: float = 0.5,
+        trust: tuple[float, float] = (1.0, 2.0),
+    ):
+        from scipy.linalg import cho_factor
+
+        self.neutral = np.asarray(neutral, dtype=np.float64)
+        self.centre = np.asarray(centre, dtype=np.float64)
+        self.trust = (trust[0] * noise_mm, trust[1] * noise_mm)
+        m = len(self.neutral)
+        shapes = np.asarray(motion, dtype=np.float64).reshape(len(motion), 3 * m).T  # (3M, E)
+        self._a = np.concatenate([rigid_fields(self.neutral, self.centre), shapes], axis=1)
+        scale = float((shapes**2).sum(axis=0).mean()) if shapes.size else 0.0
+        reg = np.r_[np.zeros(6), np.full(shapes.shape[1], ridge * scale)]
+        self._gram = self._a.T @ self._a + np.diag(reg) + 1e-9 * np.eye(self._a.shape[1])
+        self._full = cho_factor(self._gram)
+        self._mask: np.ndarray | None = None
+        self._part = self._full
+
+    def _factor(self, seen: np.ndarray):
+        """The Cholesky factor of the normal equations over the markers ``seen (M,) bool``."""
+        from scipy.linalg import cho_factor
+
+        if seen.all():
+            return self._full
+        if self._mask is None or not np.array_equal(seen, self._mask):
+            gone = self._a[np.repeat(~seen, 3)]
+            self._part = cho_factor(self._gram - gone.T @ gone)
+            self._mask = seen.copy()
+        return self._part
+
+    def delta(self, res: np.ndarray) -> np.ndarray | None:
+        """``(6,)`` the rigid part (``rigid_fields``) of stabilised markers minus the neutral
+        ``res (M, 3)`` (NaN = unseen), scaled by the fit's trust (the class docstring); None with fewer than 6 markers
+        seen."""
+        from scipy.linalg import cho_solve
+
+        seen = np.isfinite(res).all(axis=1)
+        if seen.sum() < 6:
+            return None
+        b = np.where(seen[:, None], res, 0.0).reshape(-1)
+        x = cho_solve(self._factor(seen), self._a.T @ b)
+        rows = np.repeat(seen, 3)
+        rms = float(np.sqrt(np.mean((self._a[rows] @ x - b[rows]) ** 2)))
+        lo, hi = self.trust
+        return x[:6] * float(np.clip((hi - rms) / max(hi - lo, 1e-9), 0.0, 1.0))
+
+    def __call__(
+        self, frame: np.ndarray, r: np.ndarray, t: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(R, t)``: the pose ``r (3, 3)``, ``t (3,)`` of ``frame (M, 3)`` (mm, NaN = unseen)
+        refined; as it was with fewer than 6 markers seen."""
+        delta = self.delta(remove_head(np.asarray(frame, dtype=np.float64), r, t) - self.neutral)
+        if delta is None:
+            return r, t
+        return compose_correction(r, t, delta[:3], delta[3:], self.centre)
 
 
 def _distance_spread(xyz: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
