@@ -22,6 +22,7 @@ from .idle import CLOSED_LIDS, LID_MASK, IdleLayer
 from .mix import (
     _AU,
     _DEFAULT_GEOMETRY,
+    _LIDS_CHEEKS,
     _SPEECH,
     _expand,
     _eye_angles_batch,
@@ -33,6 +34,7 @@ from .mix import (
     _unrotate1,
     combine,
     keep_closures,
+    meet_lids,
 )
 from .model import Contribution, Geometry, Layer, N, Role, region_mask
 from .overlay import ExpressionLayer
@@ -291,6 +293,7 @@ def combine_columns(
             E[r] = _expand(None, p.expression, geo)
     if H is not None:
         F += H
+    before = F[:, _LIDS_CHEEKS]
 
     # 2. head poses
     heads = [c.head for c in columns if c.head is not None]
@@ -355,6 +358,7 @@ def combine_columns(
         on = oden > 0
         target = np.divide(onum, oden, out=np.zeros((B, N)), where=on)
         F = np.where(on, F + np.minimum(1.0, oden) * (target - F), F)
+    meet_lids(F, before)
 
     # 6. gaze, from the final head pose (FAPs 48-50)
     gazes = [c.gaze for c in columns if c.gaze is not None]

@@ -29,6 +29,12 @@ order they apply to one frame:
    closed, rounded or open lips pulled the lips through the teeth on the ICT head (issue 18:
    42-50 socket vertices poking through against 32-36 for the parts alone; averaged, 24-26).
 5. **Overrides** (``override``): absolute FAP values replace the result by their weight (blinks).
+   **The lids meet**: where the layers changed an eye's upper lid or cheek, the upper lid closes
+   (FAP 19/20 > 0) no further than ``LIDS_MEET - LID_PER_CHEEK · cheek`` (FAPs 41/42 raised,
+   ENS): a raised cheek (a smile's squint) lifts the lower lid, so a closed upper lid meets it
+   higher (``meet_lids``). A blink over a smile's cheeks, or a smile over a stream's closed lids,
+   closing the full way folded the skin at the eyes' outer corners (issue 18, the built-in head:
+   4 flipped triangles in each part, 6 in the mix with a primary's lowered brows).
 6. **Gaze**: eye yaw/pitch (FAPs 23-26) turned to the target from the eye centres under the final
    head pose, replacing the eyes' rotation by the weight.
 
@@ -277,6 +283,36 @@ def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
         A[:, WIDTH] = np.where(mean, (a - F[:, WIDTH]) / 2, A[:, WIDTH])
 
 
+#: Closed upper lids (IRISD: one IRISD0 down, the idle layer's blink) and how much closure
+#: (IRISD) a raised cheek (ENS) takes off them (rule 5, ``meet_lids``).
+LIDS_MEET, LID_PER_CHEEK = 1024.0, 2.0
+#: The upper lids' and cheeks' FAPs (left, right): close_t_*_eyelid, lift_*_cheek.
+_LIDS_CHEEKS = [19, 20, 41, 42]
+
+
+def meet_lids(F: np.ndarray, before: np.ndarray) -> None:
+    """Rule 5's meeting lids, in place on the mixed FAPs ``F (..., 69)``: where an eye's upper lid
+    or cheek differs from the primary's (``before (..., 4)``: FAPs 19, 20, 41, 42 of it), its
+    upper lid closes at most ``max(0, LIDS_MEET - LID_PER_CHEEK · max(0, cheek))``."""
+    lids, cheeks = F[..., 19:21], F[..., 41:43]
+    changed = (lids != before[..., :2]) | (cheeks != before[..., 2:])
+    cap = np.maximum(LIDS_MEET - LID_PER_CHEEK * np.maximum(cheeks, 0.0), 0.0)
+    F[..., 19:21] = np.where(changed, np.minimum(lids, cap), lids)
+
+
+def _meet_lids1(F: np.ndarray, before: list[float]) -> None:
+    """``meet_lids`` of one frame (``F (69,)``, ``before`` 4 floats), with Python floats."""
+    after = F[_LIDS_CHEEKS].tolist()
+    if after == before:
+        return
+    for side in (0, 1):
+        lid, cheek = after[side], after[2 + side]
+        if lid != before[side] or cheek != before[2 + side]:
+            cap = max(LIDS_MEET - LID_PER_CHEEK * max(cheek, 0.0), 0.0)
+            if lid > cap:
+                F[19 + side] = cap
+
+
 def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` with the lip opening they would add to the primary's FAPs ``F`` taken out
     where ``F`` holds the lips closed (1 at or below ``CLOSED_GAP``, 0 from ``OPEN_GAP``); corners,
@@ -336,6 +372,7 @@ def combine(
     )
     if high is not None:
         F += high
+    before = F[_LIDS_CHEEKS].tolist()
 
     # one pass over the contributions
     poses: list[tuple[np.ndarray, float]] = []
@@ -409,6 +446,7 @@ def combine(
         on = den > 0
         target = np.divide(num_o, den, out=np.zeros(69), where=on)
         F = np.where(on, F + np.minimum(1.0, den) * (target - F), F)
+    _meet_lids1(F, before)
 
     # head transform of the mix
     if rest is not None:
