@@ -213,7 +213,9 @@ def test_in_a_speaking_mouth_the_lips_width_is_the_mean_of_speech_and_overlay():
     (spread, rounded) as much as the smile's, so where an overlay moves it the two compete and
     average, whichever way each goes (summed, a smile's stretch over closed, rounded or open
     lips pulled the ICT lips through the teeth: issue 18); where the overlay leaves it, the
-    speech's width stays whole; a primary that does not speak still adds."""
+    speech's width stays whole. A primary that does not speak competes the same way where it
+    moves its lips (its mouth's shape: ICT's ``beg`` pressed lips under a smile poked the teeth
+    through); with its lips at rest the overlay's width adds."""
     smile = np.zeros(69)
     smile[WIDTH] = 120.0
     smile[[12, 13]] = 200.0
@@ -226,7 +228,10 @@ def test_in_a_speaking_mouth_the_lips_width_is_the_mean_of_speech_and_overlay():
         idle = mix(speech, [ExpressionLayer(0, faps=faps(f12=200.0))], 0.0).faps
         assert np.allclose(idle[WIDTH], width)  # the speech's width, whole
         free = mix(speech, [ExpressionLayer(0, faps=smile)], 0.0, closures=False).faps
-        assert np.allclose(free[WIDTH], (width + 120.0) / 2 if width else 120.0)
+        assert np.allclose(free[WIDTH], (width + 120.0) / 2)
+    still = FaceState(t=0.0, faps=faps(f3=150.0, f19=300.0))  # a jaw and lids, lips at rest
+    free = mix(still, [ExpressionLayer(0, faps=smile)], 0.0, closures=False).faps
+    assert np.allclose(free[WIDTH], 120.0)
 
 
 def test_gaze_target_parsing():

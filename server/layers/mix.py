@@ -28,6 +28,10 @@ order they apply to one frame:
    (rule 3's mean at weight 1 each), whichever way each goes: summed, a smile's stretch over
    closed, rounded or open lips pulled the lips through the teeth on the ICT head (issue 18:
    42-50 socket vertices poking through against 32-36 for the parts alone; averaged, 24-26).
+   A primary that does not speak but moves its lips (a pout, pressed lips) shapes its mouth
+   too: there its lips' width competes with the overlays' even where it is 0 (rule 3's mean,
+   ``_role_part``'s ``width``); added in full, a smile's stretch over ICT's pressed lips in
+   ``beg`` poked 42 socket vertices through against 36 for the parts alone.
 5. **Overrides** (``override``): absolute FAP values replace the result by their weight (blinks).
    **The lids meet**: where the layers changed an eye's upper lid or cheek, the upper lid closes
    (FAP 19/20 > 0) no further than ``LIDS_MEET - LID_PER_CHEEK · cheek`` (FAPs 41/42 raised,
@@ -252,6 +256,8 @@ for _a in (_SPEECH_F, _OTHER_F, _ZEROS, _ONES):
 #: The lips' width: the corners' stretch, inner and outer (FAPs 6, 7, 53, 54).
 WIDTH: np.ndarray = np.array([6, 7, 53, 54])
 _WIDTH = WIDTH.tolist()
+#: The lips' FAPs (``REGIONS["lips"]``): a primary moving any of them shapes its mouth.
+_LIPS_REGION: np.ndarray = np.array(REGIONS["lips"])
 
 
 def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
@@ -295,9 +301,11 @@ def meet_lids(F: np.ndarray, before: np.ndarray) -> None:
     or cheek differs from the primary's (``before (..., 4)``: FAPs 19, 20, 41, 42 of it), its
     upper lid closes at most ``max(0, LIDS_MEET - LID_PER_CHEEK · max(0, cheek))``."""
     lids, cheeks = F[..., 19:21], F[..., 41:43]
-    changed = (lids != before[..., :2]) | (cheeks != before[..., 2:])
     cap = np.maximum(LIDS_MEET - LID_PER_CHEEK * np.maximum(cheeks, 0.0), 0.0)
-    F[..., 19:21] = np.where(changed, np.minimum(lids, cap), lids)
+    over = lids > cap
+    if over.any():  # (rare: a blink or closed lids over raised cheeks)
+        over &= (lids != before[..., :2]) | (cheeks != before[..., 2:])
+        F[..., 19:21] = np.where(over, cap, lids)
 
 
 def _meet_lids1(F: np.ndarray, before: list[float]) -> None:
@@ -372,7 +380,6 @@ def combine(
     )
     if high is not None:
         F += high
-    before = F[_LIDS_CHEEKS].tolist()
 
     # one pass over the contributions
     poses: list[tuple[np.ndarray, float]] = []
@@ -428,7 +435,7 @@ def combine(
                     E = _expand(None, primary.expression, geo)
                     assert E is not None
                     P = np.where(_SPEECH, E, F)
-            part = _role_part(group, P)
+            part = _role_part(group, P, not closures and bool(F[_LIPS_REGION].any()))
             A = part if A is None else A + part
         if closures:
             A = keep_closures(F, limit_mouth(F, A))
@@ -446,7 +453,9 @@ def combine(
         on = den > 0
         target = np.divide(num_o, den, out=np.zeros(69), where=on)
         F = np.where(on, F + np.minimum(1.0, den) * (target - F), F)
-    _meet_lids1(F, before)
+    if F[19] > 0.0 or F[20] > 0.0:  # closing lids (rare): rule 5's meeting, against the primary's
+        before = np.asarray(primary.faps, dtype=np.float64)[_LIDS_CHEEKS]
+        _meet_lids1(F, (before if high is None else before + high[_LIDS_CHEEKS]).tolist())
 
     # head transform of the mix
     if rest is not None:
@@ -498,11 +507,16 @@ def combine(
     )
 
 
-def _role_part(group: list[tuple[np.ndarray, np.ndarray | None, Any]], P: np.ndarray | None) -> Any:
+def _role_part(
+    group: list[tuple[np.ndarray, np.ndarray | None, Any]],
+    P: np.ndarray | None,
+    width: bool = False,
+) -> Any:
     """What one role's layers ``(x, nz, w)`` (offsets, where they are non-zero or None, weight)
     add: ``Σ w·x / max(1, Σ w·[x ≠ 0])``; with ``P``, the primary an expression overlay competes
     with (weight 1 where it is non-zero), ``(P + Σ w·x) / max(1, [P ≠ 0] + Σ w·[x ≠ 0]) - P``.
-    May be ``x`` itself (read-only)."""
+    ``width``: the primary's lips' width (``WIDTH``) competes even where it is 0 (rule 4: a
+    still primary that moves its lips). May be ``x`` itself (read-only)."""
     x, nz, w = group[0]
     if len(group) == 1 and (type(w) is float or type(w) is int):
         if P is None:
@@ -519,6 +533,8 @@ def _role_part(group: list[tuple[np.ndarray, np.ndarray | None, Any]], P: np.nda
     if P is None:
         return num / np.maximum(_ONES, den)
     d = (P != 0) + den
+    if width:
+        d[WIDTH] += P[WIDTH] == 0
     np.maximum(d, _ONES, out=d)
     part = P + num
     part /= d
@@ -718,6 +734,8 @@ def _keep_closures_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None
     c = 1.0 - x * x * (3.0 - 2.0 * x)  # (B, 6): 1 closed .. 0 open
     if not rows.all():
         c[~rows] = 0.0
+    if not c.any():
+        return  # every mouth open: nothing to keep
     jaw = A[:, 3]
     A[:, 3] = np.where(jaw > 0, jaw * (1.0 - c[:, 0]), jaw)
     cut = np.maximum(0.0, -(A[:, _TOP] + A[:, _BOTTOM])) * c / 2
