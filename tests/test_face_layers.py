@@ -34,6 +34,8 @@ from facecast.server.layers import (
 )
 from facecast.server.layers.head import AU_PER_DEG
 from facecast.server.layers.mix import (
+    LID_PER_CHEEK,
+    LIDS_MEET,
     LIP_PAIRS,
     WIDTH,
     head_angles,
@@ -211,7 +213,9 @@ def test_in_a_speaking_mouth_the_lips_width_is_the_mean_of_speech_and_overlay():
     (spread, rounded) as much as the smile's, so where an overlay moves it the two compete and
     average, whichever way each goes (summed, a smile's stretch over closed, rounded or open
     lips pulled the ICT lips through the teeth: issue 18); where the overlay leaves it, the
-    speech's width stays whole; a primary that does not speak still adds."""
+    speech's width stays whole. A primary that does not speak competes the same way where it
+    moves its lips (its mouth's shape: ICT's ``beg`` pressed lips under a smile poked the teeth
+    through); with its lips at rest the overlay's width adds."""
     smile = np.zeros(69)
     smile[WIDTH] = 120.0
     smile[[12, 13]] = 200.0
@@ -224,7 +228,10 @@ def test_in_a_speaking_mouth_the_lips_width_is_the_mean_of_speech_and_overlay():
         idle = mix(speech, [ExpressionLayer(0, faps=faps(f12=200.0))], 0.0).faps
         assert np.allclose(idle[WIDTH], width)  # the speech's width, whole
         free = mix(speech, [ExpressionLayer(0, faps=smile)], 0.0, closures=False).faps
-        assert np.allclose(free[WIDTH], (width + 120.0) / 2 if width else 120.0)
+        assert np.allclose(free[WIDTH], (width + 120.0) / 2)
+    still = FaceState(t=0.0, faps=faps(f3=150.0, f19=300.0))  # a jaw and lids, lips at rest
+    free = mix(still, [ExpressionLayer(0, faps=smile)], 0.0, closures=False).faps
+    assert np.allclose(free[WIDTH], 120.0)
 
 
 def test_gaze_target_parsing():
@@ -769,6 +776,34 @@ def test_mix_batch_equals_each_mixer_alone(default_head):
             for m, s, g in zip(mixers, states, got):
                 np.testing.assert_allclose(g.faps, m.mix(s, t).faps, rtol=1e-9, atol=1e-6)
     assert all("smile" not in m.layers() for m in mixers)
+
+
+def test_closed_lids_meet_the_cheeks_a_layer_raised(default_head):
+    """Rule 5: a blink over a smile, or a smile over a stream's closed lids, closes the upper lids
+    onto the lower lids the smile's cheeks lifted, not the full way: the full way folded the skin
+    at the eye's outer corner of the built-in head (issue 18)."""
+    from facecast.server.deform.quality import QualityMesh, measure
+
+    face, animator, geo = default_head
+    idle = IdleLayer(seed=3)
+    t = next(t for t in np.arange(0, 30, 0.001) if idle.closure(t) == 1.0)
+    cheek = float(EXPRESSIONS[1][41])
+    met = LIDS_MEET - LID_PER_CHEEK * cheek
+    blink_over_joy = mix(FaceState(t=t, expression=(1, 63, 0, 0)), [idle], t, geometry=geo)
+    joy_over_closed = mix(FaceState(t=t, faps=faps(f19=1024, f20=1024)), [ExpressionLayer(1)], t)
+    for out in (blink_over_joy, joy_over_closed):
+        assert out.faps[19] == pytest.approx(met) and out.faps[20] == pytest.approx(met)
+    # below the meeting point (a sad droop under the smile) the lids are the mix's
+    sad = mix(FaceState(t=t, faps=faps(f19=250, f20=250)), [ExpressionLayer(1)], t)
+    assert sad.faps[19] == pytest.approx(250.0)
+    # what the layers do not touch stays the primary's, whatever it is
+    own = mix(FaceState(t=t, faps=faps(f19=1024, f41=200)), [GazeLayer(GazeTarget.camera())], t)
+    assert own.faps[19] == 1024.0
+    qm = QualityMesh.of(face)
+    rest = face.vertices
+    for out in (blink_over_joy, joy_over_closed):
+        points = rest + animator.operator.apply(animator.solve(out)[0])
+        assert measure(points, qm)["flips"] == 0
 
 
 def test_mix_states_equals_mix_frame_by_frame(default_head):

@@ -22,7 +22,10 @@ from .idle import CLOSED_LIDS, LID_MASK, IdleLayer
 from .mix import (
     _AU,
     _DEFAULT_GEOMETRY,
+    _LIDS_CHEEKS,
+    _LIPS_REGION,
     _SPEECH,
+    WIDTH,
     _expand,
     _eye_angles_batch,
     _eyes_to,
@@ -33,6 +36,7 @@ from .mix import (
     _unrotate1,
     combine,
     keep_closures,
+    meet_lids,
 )
 from .model import Contribution, Geometry, Layer, N, Role, region_mask
 from .overlay import ExpressionLayer
@@ -291,6 +295,7 @@ def combine_columns(
             E[r] = _expand(None, p.expression, geo)
     if H is not None:
         F += H
+    before = F[:, _LIDS_CHEEKS]
 
     # 2. head poses
     heads = [c.head for c in columns if c.head is not None]
@@ -329,7 +334,11 @@ def combine_columns(
                 if any(closing):
                     mask = np.array(closing)[:, None] & _SPEECH
                     P = np.where(mask, 0.0 if E is None else E, F)
-                part = (P + num) / np.maximum(1.0, (P != 0) + den) - P
+                present = P != 0
+                if not all(closing):  # a still primary's lips' width competes (rule 4)
+                    shaped = (F[:, _LIPS_REGION] != 0).any(axis=1) & ~np.array(closing)
+                    present[:, WIDTH] |= shaped[:, None]
+                part = (P + num) / np.maximum(1.0, present + den) - P
             else:
                 part = num / np.maximum(1.0, den)
             A = part if A is None else A + part
@@ -355,6 +364,8 @@ def combine_columns(
         on = oden > 0
         target = np.divide(onum, oden, out=np.zeros((B, N)), where=on)
         F = np.where(on, F + np.minimum(1.0, oden) * (target - F), F)
+    if (F[:, 19:21] > 0.0).any():  # closing lids (rare): rule 5's meeting
+        meet_lids(F, before)
 
     # 6. gaze, from the final head pose (FAPs 48-50)
     gazes = [c.gaze for c in columns if c.gaze is not None]

@@ -28,7 +28,17 @@ order they apply to one frame:
    (rule 3's mean at weight 1 each), whichever way each goes: summed, a smile's stretch over
    closed, rounded or open lips pulled the lips through the teeth on the ICT head (issue 18:
    42-50 socket vertices poking through against 32-36 for the parts alone; averaged, 24-26).
+   A primary that does not speak but moves its lips (a pout, pressed lips) shapes its mouth
+   too: there its lips' width competes with the overlays' even where it is 0 (rule 3's mean,
+   ``_role_part``'s ``width``); added in full, a smile's stretch over ICT's pressed lips in
+   ``beg`` poked 42 socket vertices through against 36 for the parts alone.
 5. **Overrides** (``override``): absolute FAP values replace the result by their weight (blinks).
+   **The lids meet**: where the layers changed an eye's upper lid or cheek, the upper lid closes
+   (FAP 19/20 > 0) no further than ``LIDS_MEET - LID_PER_CHEEK · cheek`` (FAPs 41/42 raised,
+   ENS): a raised cheek (a smile's squint) lifts the lower lid, so a closed upper lid meets it
+   higher (``meet_lids``). A blink over a smile's cheeks, or a smile over a stream's closed lids,
+   closing the full way folded the skin at the eyes' outer corners (issue 18, the built-in head:
+   4 flipped triangles in each part, 6 in the mix with a primary's lowered brows).
 6. **Gaze**: eye yaw/pitch (FAPs 23-26) turned to the target from the eye centres under the final
    head pose, replacing the eyes' rotation by the weight.
 
@@ -246,6 +256,8 @@ for _a in (_SPEECH_F, _OTHER_F, _ZEROS, _ONES):
 #: The lips' width: the corners' stretch, inner and outer (FAPs 6, 7, 53, 54).
 WIDTH: np.ndarray = np.array([6, 7, 53, 54])
 _WIDTH = WIDTH.tolist()
+#: The lips' FAPs (``REGIONS["lips"]``): a primary moving any of them shapes its mouth.
+_LIPS_REGION: np.ndarray = np.array(REGIONS["lips"])
 
 
 def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
@@ -275,6 +287,38 @@ def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
     mean = rows[:, None] & (a != 0)
     if mean.any():
         A[:, WIDTH] = np.where(mean, (a - F[:, WIDTH]) / 2, A[:, WIDTH])
+
+
+#: Closed upper lids (IRISD: one IRISD0 down, the idle layer's blink) and how much closure
+#: (IRISD) a raised cheek (ENS) takes off them (rule 5, ``meet_lids``).
+LIDS_MEET, LID_PER_CHEEK = 1024.0, 2.0
+#: The upper lids' and cheeks' FAPs (left, right): close_t_*_eyelid, lift_*_cheek.
+_LIDS_CHEEKS = [19, 20, 41, 42]
+
+
+def meet_lids(F: np.ndarray, before: np.ndarray) -> None:
+    """Rule 5's meeting lids, in place on the mixed FAPs ``F (..., 69)``: where an eye's upper lid
+    or cheek differs from the primary's (``before (..., 4)``: FAPs 19, 20, 41, 42 of it), its
+    upper lid closes at most ``max(0, LIDS_MEET - LID_PER_CHEEK · max(0, cheek))``."""
+    lids, cheeks = F[..., 19:21], F[..., 41:43]
+    cap = np.maximum(LIDS_MEET - LID_PER_CHEEK * np.maximum(cheeks, 0.0), 0.0)
+    over = lids > cap
+    if over.any():  # (rare: a blink or closed lids over raised cheeks)
+        over &= (lids != before[..., :2]) | (cheeks != before[..., 2:])
+        F[..., 19:21] = np.where(over, cap, lids)
+
+
+def _meet_lids1(F: np.ndarray, before: list[float]) -> None:
+    """``meet_lids`` of one frame (``F (69,)``, ``before`` 4 floats), with Python floats."""
+    after = F[_LIDS_CHEEKS].tolist()
+    if after == before:
+        return
+    for side in (0, 1):
+        lid, cheek = after[side], after[2 + side]
+        if lid != before[side] or cheek != before[2 + side]:
+            cap = max(LIDS_MEET - LID_PER_CHEEK * max(cheek, 0.0), 0.0)
+            if lid > cap:
+                F[19 + side] = cap
 
 
 def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
@@ -391,7 +435,7 @@ def combine(
                     E = _expand(None, primary.expression, geo)
                     assert E is not None
                     P = np.where(_SPEECH, E, F)
-            part = _role_part(group, P)
+            part = _role_part(group, P, not closures and bool(F[_LIPS_REGION].any()))
             A = part if A is None else A + part
         if closures:
             A = keep_closures(F, limit_mouth(F, A))
@@ -409,6 +453,9 @@ def combine(
         on = den > 0
         target = np.divide(num_o, den, out=np.zeros(69), where=on)
         F = np.where(on, F + np.minimum(1.0, den) * (target - F), F)
+    if F[19] > 0.0 or F[20] > 0.0:  # closing lids (rare): rule 5's meeting, against the primary's
+        before = np.asarray(primary.faps, dtype=np.float64)[_LIDS_CHEEKS]
+        _meet_lids1(F, (before if high is None else before + high[_LIDS_CHEEKS]).tolist())
 
     # head transform of the mix
     if rest is not None:
@@ -462,11 +509,16 @@ def combine(
     )
 
 
-def _role_part(group: list[tuple[np.ndarray, np.ndarray | None, Any]], P: np.ndarray | None) -> Any:
+def _role_part(
+    group: list[tuple[np.ndarray, np.ndarray | None, Any]],
+    P: np.ndarray | None,
+    width: bool = False,
+) -> Any:
     """What one role's layers ``(x, nz, w)`` (offsets, where they are non-zero or None, weight)
     add: ``Σ w·x / max(1, Σ w·[x ≠ 0])``; with ``P``, the primary an expression overlay competes
     with (weight 1 where it is non-zero), ``(P + Σ w·x) / max(1, [P ≠ 0] + Σ w·[x ≠ 0]) - P``.
-    May be ``x`` itself (read-only)."""
+    ``width``: the primary's lips' width (``WIDTH``) competes even where it is 0 (rule 4: a
+    still primary that moves its lips). May be ``x`` itself (read-only)."""
     x, nz, w = group[0]
     if len(group) == 1 and (type(w) is float or type(w) is int):
         if P is None:
@@ -483,6 +535,8 @@ def _role_part(group: list[tuple[np.ndarray, np.ndarray | None, Any]], P: np.nda
     if P is None:
         return num / np.maximum(_ONES, den)
     d = (P != 0) + den
+    if width:
+        d[WIDTH] += P[WIDTH] == 0
     np.maximum(d, _ONES, out=d)
     part = P + num
     part /= d
@@ -682,6 +736,8 @@ def _keep_closures_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None
     c = 1.0 - x * x * (3.0 - 2.0 * x)  # (B, 6): 1 closed .. 0 open
     if not rows.all():
         c[~rows] = 0.0
+    if not c.any():
+        return  # every mouth open: nothing to keep
     jaw = A[:, 3]
     A[:, 3] = np.where(jaw > 0, jaw * (1.0 - c[:, 0]), jaw)
     cut = np.maximum(0.0, -(A[:, _TOP] + A[:, _BOTTOM])) * c / 2
