@@ -174,11 +174,7 @@ def serve_pairs(args: argparse.Namespace) -> int:
         "ratio": statistics.mean(b.values()) / base,
         "points": points,
     }
-    out = Path(args.out)
-    if out == DEFAULT_OUT:
-        out = DEFAULT_OUT.with_name("layers_serve.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
+    write_json(args.out, "layers_serve.json", result)
     print(
         f"\n{args.sessions} sessions, {args.encoding}, {args.layers} layers, ABBA pairs; load "
         f"{load0[0]:.1f} -> {load1[0]:.1f} on {os.cpu_count()} CPUs\n"
@@ -195,6 +191,15 @@ def serve_pairs(args: argparse.Namespace) -> int:
 
 
 DEFAULT_OUT = Path(__file__).parent / "out" / "layers.json"
+
+
+def write_json(out_arg: str, default_name: str, result: dict) -> None:
+    """Writes ``result`` to ``--out``, or to ``default_name`` beside the default output."""
+    out = Path(out_arg)
+    if out == DEFAULT_OUT:
+        out = DEFAULT_OUT.with_name(default_name)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
 
 
 def load_layers_at(ref: str):
@@ -301,11 +306,7 @@ def against(args: argparse.Namespace) -> int:
         "loadavg_end": load1,
         "rows": rows,
     }
-    out = Path(args.out)
-    if out == DEFAULT_OUT:
-        out = DEFAULT_OUT.with_name("layers_against.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
+    write_json(args.out, "layers_against.json", result)
     print(
         f"\nlive mix (mix_batch, 3 layers) per frame, thread CPU, median of {args.repeats}; load "
         f"{load0[0]:.1f} -> {load1[0]:.1f} on {os.cpu_count()} CPUs\n"
