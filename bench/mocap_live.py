@@ -138,7 +138,7 @@ def main(argv: list[str]) -> int:
         "take": a.take or "synthetic",
         "prior": a.prior,
         "vertices": face.n_vertices,
-        "markers": a.markers,
+        "markers": len(names),
         "controls": len(drv.control_vertices),
         "fps": a.fps,
         "frames": len(states),
@@ -167,8 +167,9 @@ def main(argv: list[str]) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(rec, indent=1) + "\n")
 
+    subject = f"generated ICT take {a.take!r}" if a.take else f"face {a.face}"
     print(
-        f"Mocap live — face {a.face} ({face.n_vertices} vertices), prior {a.prior}, {a.markers} markers "
+        f"Mocap live — {subject} ({face.n_vertices} vertices), prior {a.prior}, {len(names)} markers "
         f"({rec['controls']} controls with anchors), {a.fps:g} Hz, {len(states)} frames, {a.engine} on {backend}\n"
     )
     print("| per frame | mean (ms) | p50 | p95 | p99 | max |")
