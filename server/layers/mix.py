@@ -228,15 +228,22 @@ def _unrotate1(angles: Sequence[float], q: Sequence[float]) -> tuple[float, floa
 
 def _eyes_to(q: Sequence[float], point: bool, geo: Geometry) -> list[float]:
     """FAPs 23-26 (AU) of both eyes looking along ``q`` (head-local: a direction) or at ``q``
-    (``point``: head-local, seen from each eye's centre)."""
-    (cl, al), (cr, ar) = geo.eyes
-    if point:
-        yl, pl = eye_angles((q[0] - cl[0], q[1] - cl[1], q[2] - cl[2]), al)
-        yr, pr = eye_angles((q[0] - cr[0], q[1] - cr[1], q[2] - cr[2]), ar)
-    else:
-        yl, pl = eye_angles(q, al)
-        yr, pr = eye_angles(q, ar)
-    return [yl / _AU, yr / _AU, pl / _AU, pr / _AU]
+    (``point``: head-local, seen from each eye's centre): ``eye_angles`` of each eye, inlined
+    with its axis' constants (``Geometry.eye_consts``)."""
+    out = [0.0, 0.0, 0.0, 0.0]  # yaw l, r, pitch l, r
+    qx, qy, qz = q
+    for side, (cx, cy, cz, ax, ay, az, r, phi) in enumerate(geo.eye_consts):
+        dx, dy, dz = (qx - cx, qy - cy, qz - cz) if point else (qx, qy, qz)
+        n = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if not n > 1e-12:
+            continue
+        pitch = math.acos(max(-1.0, min(1.0, dy / n / r))) - phi
+        uz = ay * math.sin(pitch) + az * math.cos(pitch)
+        yaw = math.atan2(dx, dz) - math.atan2(ax, uz)
+        yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
+        out[side] = max(-EYE_YAW_MAX, min(EYE_YAW_MAX, yaw)) / _AU
+        out[2 + side] = max(-EYE_PITCH_MAX, min(EYE_PITCH_MAX, pitch)) / _AU
+    return out
 
 
 _TOP, _BOTTOM = LIP_PAIRS[:, 0].copy(), LIP_PAIRS[:, 1].copy()

@@ -248,6 +248,9 @@ class Geometry:
     )
     #: the head pivot as Python floats
     pivot: tuple[float, ...] = field(init=False, repr=False, compare=False)
+    #: per eye ``(cx, cy, cz, ax, ay, az, hypot(ay, az), atan2(az, ay))``: what ``eye_angles``
+    #: works out of its centre and axis, once
+    eye_consts: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
     #: what mixing remembers of this face: high-level FAP expansions ((viseme, expression) ->
     #: (69,)), overlays' offsets and masks (read-only arrays)
     expansions: dict[object, Any] = field(
@@ -267,6 +270,10 @@ class Geometry:
         )
         object.__setattr__(self, "eyes", eyes)
         object.__setattr__(self, "pivot", tuple(map(float, self.head_pivot)))
+        consts = tuple(
+            (*c, ax, ay, az, math.hypot(ay, az), math.atan2(az, ay)) for c, (ax, ay, az) in eyes
+        )
+        object.__setattr__(self, "eye_consts", consts)
 
     @classmethod
     def of_rig(cls, rig: Any) -> Geometry:
