@@ -38,7 +38,7 @@ from .mix import (
     keep_closures,
     meet_lids,
 )
-from .model import Contribution, Geometry, Layer, N, Role, region_mask
+from .model import Contribution, GazeTarget, Geometry, Layer, N, Role, region_mask
 from .overlay import ExpressionLayer
 
 #: One frame to mix: ``(primary, items, t)`` as ``combine``'s arguments.
@@ -200,6 +200,22 @@ def _expression_columns(
     return Columns(role, off=(_rows(keep), np.array(xs), W))
 
 
+def _gaze_q(target: GazeTarget, geo: Geometry) -> np.ndarray:
+    """``(3,)`` a target's point minus the head pivot, or its direction; remembered with the
+    geometry's expansions (read-only)."""
+    key = (target, "q")
+    cache = geo.expansions
+    q = cache.get(key)
+    if q is None:
+        q = target.direction if target.point is None else target.point - geo.head_pivot
+        q = np.array(q, dtype=np.float64)
+        q.flags.writeable = False
+        if len(cache) >= 4096:
+            cache.clear()
+        cache[key] = q
+    return q
+
+
 def _gaze_columns(
     rows: list[int], layers: list[GazeLayer], ts: np.ndarray, geo: Geometry, role: Role
 ) -> Columns | None:
@@ -211,13 +227,11 @@ def _gaze_columns(
         g = layer.target
         keep.append(r)
         ps.append(g.point is not None)
-        qs.append(g.direction if g.point is None else g.point)
+        qs.append(_gaze_q(g, geo))
         ws.append(w)
     if not keep:
         return None
-    Q, point = np.array(qs), np.array(ps)
-    Q[point] -= geo.head_pivot  # a point from the head pivot
-    return Columns(role, gaze=(_rows(keep), Q, point, np.array(ws)))
+    return Columns(role, gaze=(_rows(keep), np.array(qs), np.array(ps), np.array(ws)))
 
 
 def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -> list[Columns]:
@@ -317,10 +331,12 @@ def combine_columns(
             continue
         rows, X, W = c.off
         WX, WN = (X, X != 0) if W is None else (W * X, W * (X != 0))
-        acc = sums.setdefault(c.role, [None, None])
+        acc = sums.setdefault(c.role, [None, None, False])
         if acc[0] is None and len(rows) == B and (rows == every).all():
-            acc[0], acc[1] = WX, WN  # (fresh arrays, or X itself: never written to)
+            # (fresh arrays, or X itself: never written to); alone and unweighted, its mean is X
+            acc[0], acc[1], acc[2] = WX, WN, W is None
             continue
+        acc[2] = False
         if acc[0] is None or acc[0] is X:
             acc[0] = np.zeros((B, N)) if acc[0] is None else acc[0].copy()
             acc[1] = np.zeros((B, N)) if acc[1] is None else acc[1].astype(np.float64)
@@ -328,7 +344,7 @@ def combine_columns(
         np.add.at(acc[1], rows, WN)
     if sums:
         A: Any = None
-        for role, (num, den) in sums.items():
+        for role, (num, den, alone) in sums.items():
             if role is Role.EXPRESSION:
                 P = F
                 if any(closing):
@@ -339,6 +355,8 @@ def combine_columns(
                     shaped = (F[:, _LIPS_REGION] != 0).any(axis=1) & ~np.array(closing)
                     present[:, WIDTH] |= shaped[:, None]
                 part = (P + num) / np.maximum(1.0, present + den) - P
+            elif alone:  # one unweighted layer on every row: X / max(1, [X != 0]) is X
+                part = num if A is not None or len(sums) > 1 else num.copy()
             else:
                 part = num / np.maximum(1.0, den)
             A = part if A is None else A + part

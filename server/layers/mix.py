@@ -287,7 +287,7 @@ def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
 def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
     """``limit_mouth`` of the ``rows`` (bool ``(B,)``) of ``F``, ``A (B, 69)``, in place on ``A``."""
     a = A[:, WIDTH]
-    f = F * (rows[:, None] * _SPEECH_F)
+    f = F * (_SPEECH_F if rows.all() else rows[:, None] * _SPEECH_F)
     np.maximum(f, np.minimum(A, 0.0), out=f)
     np.minimum(f, np.maximum(A, 0.0), out=f)
     A -= f
