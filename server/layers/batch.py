@@ -297,6 +297,8 @@ def combine_columns(
     F = np.array([_ZERO if p is None else p.faps for p in prims], dtype=np.float64)
     F[:, :3] = 0.0
     closing = [closures and p is not None for p in prims]
+    some_close, all_close = any(closing), all(closing)
+    closing_rows = np.array(closing)
     H = E = None  # the primaries' high-level expansions; of their expression alone
     high = [r for r, p in enumerate(prims) if p is not None and (p.viseme or p.expression)]
     for r in high:
@@ -347,12 +349,12 @@ def combine_columns(
         for role, (num, den, alone) in sums.items():
             if role is Role.EXPRESSION:
                 P = F
-                if any(closing):
-                    mask = np.array(closing)[:, None] & _SPEECH
+                if some_close:
+                    mask = _SPEECH if all_close else closing_rows[:, None] & _SPEECH
                     P = np.where(mask, 0.0 if E is None else E, F)
                 present = P != 0
-                if not all(closing):  # a still primary's lips' width competes (rule 4)
-                    shaped = (F[:, _LIPS_REGION] != 0).any(axis=1) & ~np.array(closing)
+                if not all_close:  # a still primary's lips' width competes (rule 4)
+                    shaped = (F[:, _LIPS_REGION] != 0).any(axis=1) & ~closing_rows
                     present[:, WIDTH] |= shaped[:, None]
                 part = (P + num) / np.maximum(1.0, present + den) - P
             elif alone:  # one unweighted layer on every row: X / max(1, [X != 0]) is X
@@ -360,8 +362,8 @@ def combine_columns(
             else:
                 part = num / np.maximum(1.0, den)
             A = part if A is None else A + part
-        if any(closing):
-            rows = np.array(closing)
+        if some_close:
+            rows = closing_rows
             _limit_mouth_batch(F, A, rows)  # (A is a new array: written in place)
             if B < SMALL:
                 for r in range(B):
