@@ -121,6 +121,7 @@ class IdleLayer:
     _blink_starts: list[float] = field(init=False, repr=False, compare=False)
     _fix: list[list[float]] = field(init=False, repr=False, compare=False)
     _fix_starts: list[float] = field(init=False, repr=False, compare=False)
+    _flags: tuple[float, float, float, float] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
@@ -145,6 +146,8 @@ class IdleLayer:
         object.__setattr__(self, "_blink_starts", b[:, 0].tolist())
         object.__setattr__(self, "_fix", f.tolist())
         object.__setattr__(self, "_fix_starts", f[:, 0].tolist())
+        flags = float(self.saccades), float(self.sway), float(self.breathing), self.amount
+        object.__setattr__(self, "_flags", flags)
 
     @property
     def end(self) -> float | None:
@@ -153,7 +156,7 @@ class IdleLayer:
     @property
     def flags(self) -> tuple[float, float, float, float]:
         """Saccades, sway, breathing (1.0 or 0.0) and the amount: ``sample_many``'s row."""
-        return float(self.saccades), float(self.sway), float(self.breathing), self.amount
+        return self._flags
 
     def closure(self, t: float) -> float:
         """Lid closure 0..1 at ``t`` (s)."""
