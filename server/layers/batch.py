@@ -144,33 +144,22 @@ def _idle_columns(rows: list[int], layers: list[IdleLayer], ts: np.ndarray) -> C
 def _overlay_offsets(layer: ExpressionLayer, geo: Geometry) -> np.ndarray | None:
     """``(69,)`` what ``layer`` adds at full weight (``_offsets`` of its contribution), remembered
     with the geometry's expansions (read-only)."""
-    key = (layer, "offsets")
-    cache = geo.expansions
-    if key in cache:
-        return cache[key]
-    c = Contribution(
-        faps=layer.faps,
-        amount=layer.amount,
-        expression=(layer.expression, 63, 0, 0) if layer.expression else None,
-    )
-    x = _offsets(c, geo)
-    if x is not None:
-        x = np.array(x, dtype=np.float64)
-        x.flags.writeable = False
-    if len(cache) >= 4096:
-        cache.clear()
-    cache[key] = x
-    return x
+
+    def make() -> np.ndarray | None:
+        c = Contribution(
+            faps=layer.faps,
+            amount=layer.amount,
+            expression=(layer.expression, 63, 0, 0) if layer.expression else None,
+        )
+        x = _offsets(c, geo)
+        return None if x is None else np.array(x, dtype=np.float64)
+
+    return geo.remember((layer, "offsets"), make)
 
 
 def _overlay_mask(layer: ExpressionLayer, geo: Geometry) -> np.ndarray:
     """``(69,)`` the region mask of ``layer`` (``region_mask(regions)``), remembered."""
-    key = (layer, "mask")
-    hit = geo.expansions.get(key)
-    if hit is None:
-        hit = geo.expansions[key] = region_mask(layer.regions or ())
-        hit.flags.writeable = False
-    return hit
+    return geo.remember((layer, "mask"), lambda: region_mask(layer.regions or ()))
 
 
 def _expression_columns(
@@ -203,17 +192,12 @@ def _expression_columns(
 def _gaze_q(target: GazeTarget, geo: Geometry) -> np.ndarray:
     """``(3,)`` a target's point minus the head pivot, or its direction; remembered with the
     geometry's expansions (read-only)."""
-    key = (target, "q")
-    cache = geo.expansions
-    q = cache.get(key)
-    if q is None:
+
+    def make() -> np.ndarray:
         q = target.direction if target.point is None else target.point - geo.head_pivot
-        q = np.array(q, dtype=np.float64)
-        q.flags.writeable = False
-        if len(cache) >= 4096:
-            cache.clear()
-        cache[key] = q
-    return q
+        return np.array(q, dtype=np.float64)
+
+    return geo.remember((target, "q"), make)
 
 
 def _gaze_columns(

@@ -88,18 +88,13 @@ def _expand(
     remembered per geometry (read-only arrays)."""
     if viseme is None and expression is None:
         return None
-    key = (viseme, expression)
-    cache = geo.expansions
-    hit = cache.get(key)
-    if hit is None:
+
+    def make() -> np.ndarray:
         from ..mpeg4.highlevel import expand
 
-        hit = expand(FaceState(viseme=viseme, expression=expression), geo.visemes, geo.expressions)
-        hit.flags.writeable = False
-        if len(cache) >= 4096:
-            cache.clear()
-        cache[key] = hit
-    return hit
+        return expand(FaceState(viseme=viseme, expression=expression), geo.visemes, geo.expressions)
+
+    return geo.remember((viseme, expression), make)
 
 
 def _offsets(c: Contribution, geo: Geometry) -> np.ndarray | None:
@@ -121,20 +116,15 @@ def _offsets_nz(c: Contribution, geo: Geometry) -> tuple[np.ndarray, np.ndarray 
     if c.faps is not None:
         x = _offsets(c, geo)
         return None if x is None else (x, None)
-    key = (c.viseme, c.expression, c.amount)
-    cache = geo.expansions
-    hit = cache.get(key)
-    if hit is None:
+
+    def make() -> tuple[np.ndarray, np.ndarray] | None:
         x = _offsets(c, geo)
         if x is None:
             return None
         x = np.array(x, dtype=np.float64)
-        nz = (x != 0).astype(np.float64)
-        x.flags.writeable = nz.flags.writeable = False
-        if len(cache) >= 4096:
-            cache.clear()
-        hit = cache[key] = (x, nz)
-    return hit
+        return x, (x != 0).astype(np.float64)
+
+    return geo.remember((c.viseme, c.expression, c.amount), make)
 
 
 def _rot(pitch: float, yaw: float, roll: float) -> list[list[float]]:

@@ -14,13 +14,16 @@ from __future__ import annotations
 import enum
 import itertools
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
 from ..mpeg4.highlevel import EXPRESSIONS, VISEMES
+
+_T = TypeVar("_T")
+_MISSING = object()
 
 #: Length of a FAP vector: index k = FAP k (0 unused, 1/2 high-level).
 N = 69
@@ -274,6 +277,20 @@ class Geometry:
             (*c, ax, ay, az, math.hypot(ay, az), math.atan2(az, ay)) for c, (ax, ay, az) in eyes
         )
         object.__setattr__(self, "eye_consts", consts)
+
+    def remember(self, key: object, make: Callable[[], _T]) -> _T:
+        """``make()`` kept in ``expansions`` under ``key`` (the arrays in it made read-only; the
+        cache is emptied when it holds 4096 entries), so that it is worked out once per face."""
+        hit = self.expansions.get(key, _MISSING)
+        if hit is _MISSING:
+            hit = make()
+            for a in hit if isinstance(hit, tuple) else (hit,):
+                if isinstance(a, np.ndarray):
+                    a.flags.writeable = False
+            if len(self.expansions) >= 4096:
+                self.expansions.clear()
+            self.expansions[key] = hit
+        return hit
 
     @classmethod
     def of_rig(cls, rig: Any) -> Geometry:
