@@ -235,10 +235,9 @@ def load_layers_at(ref: str):
     return module
 
 
-def against(args: argparse.Namespace) -> int:
-    """``--against REF``: the live path's mix at ``REF`` against the working tree's (module doc)."""
-    import importlib
-
+def speech_on_default():
+    """``(face, FapRig, states)``: the built-in head, its rig and the FAP states of the shared
+    speech files (mary, bobby); None, said on stderr, when ``../shared/data`` is absent."""
     from facecast.server.drivers import load_animation
     from facecast.server.faces import load_face
     from facecast.server.mpeg4.rig import FapRig
@@ -247,13 +246,23 @@ def against(args: argparse.Namespace) -> int:
     data = shared_data()
     if data is None:
         print("../shared/data not found: the bench needs its speech", file=sys.stderr)
-        return 2
-    load0 = os.getloadavg()
+        return None
     face = load_face("default")
-    rig = FapRig(face)
     speech = []
     for wav in ("mary.wav", "bobby_16bit_16khz.wav"):
         speech += load_animation(data / "speech" / wav, face).states
+    return face, FapRig(face), speech
+
+
+def against(args: argparse.Namespace) -> int:
+    """``--against REF``: the live path's mix at ``REF`` against the working tree's (module doc)."""
+    import importlib
+
+    load0 = os.getloadavg()
+    got = speech_on_default()
+    if got is None:
+        return 2
+    _face, rig, speech = got
     n = min(args.frames, 1200)
     primary = [FaceState(t=i / 25.0, faps=speech[i % len(speech)].faps) for i in range(n)]
     old = load_layers_at(args.against)
@@ -329,8 +338,6 @@ def mixer_of_module(L, geo, layers):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from facecast.server.drivers import load_animation
-    from facecast.server.faces import load_face
     from facecast.server.layers import (
         Envelope,
         ExpressionLayer,
@@ -340,8 +347,6 @@ def main(argv: list[str] | None = None) -> int:
         IdleLayer,
     )
     from facecast.server.layers.batch import mix_batch
-    from facecast.server.mpeg4.rig import FapRig
-    from facecast.server.paths import shared_data
     from facecast.server.pipeline import CHUNK
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -373,17 +378,12 @@ def main(argv: list[str] | None = None) -> int:
         return serve_pairs(args)
     if args.against:
         return against(args)
-    data = shared_data()
-    if data is None:
-        print("../shared/data not found: the bench needs its speech", file=sys.stderr)
-        return 2
     load0 = os.getloadavg()
-    face = load_face("default")
-    rig = FapRig(face)
+    got = speech_on_default()
+    if got is None:
+        return 2
+    face, rig, speech = got
     geo = Geometry.of_rig(rig)
-    speech = []
-    for wav in ("mary.wav", "bobby_16bit_16khz.wav"):
-        speech += load_animation(data / "speech" / wav, face).states
     n = args.frames
     fps = 25.0
     primary = [FaceState(t=i / fps, faps=speech[i % len(speech)].faps) for i in range(n)]
