@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import logging
+import weakref
 from collections.abc import Callable
 
 import numpy as np
 
 from .mpeg4.rig import FapRig
-from .state import Animation, FaceState
+from .state import Animation, FaceState, Shapes
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +45,10 @@ class Animator:
         from .backends import make_deformer
 
         self.face = face
+        #: per ``Shapes`` of a stream: its vertices' rigid groups and whether they are one group
+        self._shape_groups: weakref.WeakKeyDictionary[Shapes, tuple[np.ndarray, bool]] = (
+            weakref.WeakKeyDictionary()
+        )
         self.rig = FapRig(face, control_vertices, per_axis=per_axis)
         if operator is None:
             from .deform.build import get_operator
@@ -98,8 +103,11 @@ class Animator:
             if off is None or s.shapes is None:
                 continue
             R = np.asarray(T, dtype=np.float32)[:, :, :3]
-            g = group[s.shapes.vertices]
-            one = (g == g[0]).all()  # one rigid group (the usual case): one rotation
+            hit = self._shape_groups.get(s.shapes)
+            if hit is None:  # once per stream, not per frame
+                g = group[s.shapes.vertices]
+                hit = self._shape_groups[s.shapes] = (g, bool((g == g[0]).all()))
+            g, one = hit  # one rigid group (the usual case): one rotation
             # (einsum: its own loop; a BLAS product threads, and stalls on a loaded machine)
             off = (
                 np.einsum("nj,ij->ni", off, R[g[0]]) if one else np.einsum("nij,nj->ni", R[g], off)
