@@ -47,6 +47,14 @@ SHAPE_POSE = True
 WATCH_EVERY = 4
 
 
+def _mean_seen(frames: np.ndarray) -> np.ndarray:
+    """``(L, 3)``: the mean over ``frames (N, L, 3)`` of each marker where it was seen (finite);
+    NaN for a marker never seen."""
+    seen = np.isfinite(frames)
+    with np.errstate(invalid="ignore"):
+        return np.where(seen, frames, 0.0).sum(axis=0) / seen.sum(axis=0)
+
+
 class MarkerFrameError(FrameError):
     """A marker frame the driver cannot use (wrong shape, implausible units): an ``InputError`` and,
     as every ``FrameError``, a ``ValueError`` (HTTP 400 / close 4400; the frame is dropped)."""
@@ -204,11 +212,7 @@ class MarkerLiveDriver:
         self._window.append(raw_local[self._tied])
         if len(self._window) < self.neutral_frames or self.frames % WATCH_EVERY:
             return
-        frames = np.stack(self._window)
-        seen = np.isfinite(frames)
-        with np.errstate(invalid="ignore"):
-            mean = np.where(seen, frames, 0.0).sum(axis=0) / seen.sum(axis=0)
-        score = rest_score(mean, self._target)
+        score = rest_score(_mean_seen(np.stack(self._window)), self._target)
         held = score * AUTO_RATIO <= self._neutral_score
         self._run = self._run + WATCH_EVERY if held else 0
         if self._run >= self._recent.maxlen:  # type: ignore[operator]
@@ -220,9 +224,7 @@ class MarkerLiveDriver:
         come with the head turned (taking its pose as the rest too turned every later frame, 2.6x
         -> 14.9x of not deforming on a fast-expression take, while on a take that ended on its
         neutral it gained 14.9x against 15.5x), and the pose filter goes on undisturbed."""
-        seen = np.isfinite(frames)
-        with np.errstate(invalid="ignore"):
-            mean = np.where(seen, frames, 0.0).sum(axis=0) / seen.sum(axis=0)
+        mean = _mean_seen(frames)
         assert self.rig is not None
         self._build_rig(np.where(np.isfinite(mean), mean, self.rig.neutral))
         self.retakes += 1
