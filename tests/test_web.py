@@ -561,6 +561,52 @@ def test_per_vertex_lighting_draws_the_same_lit_face(face_page, artifacts):
     assert not problems, problems
 
 
+#: One triangle in the plane z = 0 seen from +z, of part `part`, wound to face the eye (or away, `back`),
+#: drawn with every vertex normal set to `n` (no session: the page's mesh is replaced). Returns the RGB
+#: in the middle of the canvas for each shading mode.
+ONE_TRIANGLE_JS = """([n, part, back]) => {
+  const r = facecast.renderer, gl = r.gl;
+  const tri = back ? [0, 2, 1] : [0, 1, 2];
+  const corners = Float32Array.from([-1, -1, 0, 1, -1, 0, 0, 1, 0]);
+  r.setMesh(corners, Uint32Array.from(tri), Uint8Array.from([0, 0, 0]), [part]);
+  r.camera.yaw = 0; r.camera.pitch = 0;
+  const out = {};
+  for (const shading of ['pixel', 'vertex']) {
+    r.shading = shading;
+    gl.bindBuffer(gl.ARRAY_BUFFER, r.mesh.nrm);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, Float32Array.from([...n, ...n, ...n]));
+    r.draw();
+    const px = new Uint8Array(4);
+    gl.readPixels(r.canvas.width >> 1, r.canvas.height >> 1, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
+    out[shading] = Array.from(px.slice(0, 3));
+  }
+  r.shading = 'pixel';
+  return out;
+}"""
+
+
+def test_a_front_face_is_lit_with_its_own_normal_even_where_it_points_away(server, browser):
+    """Interpolated normals of a closed surface point away from the eye along silhouettes and in
+    creases (the crown seen from the front, the eyelids): lighting them from the other side drew a
+    dark rim on the crown and dark patches around the eyes. Only the back of a two-sided sheet is lit
+    with its normal reversed."""
+    page, problems = open_page(browser, server.url + "/")
+    wait_for(page, "document.getElementById('status').textContent.includes('loaded')")
+    away = np.array([0.3, 0.95, -0.1]) / np.linalg.norm([0.3, 0.95, -0.1])  # towards the key light
+    lit = page.evaluate(ONE_TRIANGLE_JS, [away.tolist(), "skin", False])
+    reversed_ = page.evaluate(ONE_TRIANGLE_JS, [(-away).tolist(), "skin", False])
+    for shading in ("pixel", "vertex"):
+        assert sum(lit[shading]) > sum(reversed_[shading]) + 60, (shading, lit, reversed_)
+    # the back of a two-sided sheet is lit as the front with the normal reversed
+    sheet_back = page.evaluate(ONE_TRIANGLE_JS, [(-away).tolist(), "eyelashes", True])
+    sheet_front = page.evaluate(ONE_TRIANGLE_JS, [away.tolist(), "eyelashes", False])
+    for shading in ("pixel", "vertex"):
+        diff = np.abs(np.subtract(sheet_back[shading], sheet_front[shading])).max()
+        assert diff <= 2, (shading, sheet_back, sheet_front)
+    assert not problems, problems
+    page.close()
+
+
 def test_the_coarse_level_draws_the_same_lit_face(face_page, artifacts):
     page, problems = face_page
     r = page.evaluate(TWO_RENDERS_JS, ["lod", 0.35, 0.08])

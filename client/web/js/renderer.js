@@ -8,10 +8,9 @@ import {
 } from './mesh.js';
 
 // The lighting model, shared by both shading modes: a key and a fill light, a specular highlight and
-// a rim. Surfaces facing away (the inside of the mouth, two-sided sheets) are lit from the viewer's side.
+// a rim; n is the unit normal of the side being seen (see PIXEL and VERTEX), v the unit vector to the eye.
 const LIGHT = `
 vec3 light(vec3 n, vec3 v, vec3 base) {
-  if (dot(n, v) < 0.0) n = -n;
   const vec3 key = vec3(0.3319, 0.4979, 0.8298);    // normalize(0.4, 0.6, 1.0)
   const vec3 fill = vec3(-0.8087, 0.1155, 0.5776);  // normalize(-0.7, 0.1, 0.5)
   float diff = max(dot(n, key), 0.0) * 0.75 + max(dot(n, fill), 0.0) * 0.25;
@@ -30,10 +29,16 @@ uniform mat4 u_viewProj;
 uniform vec3 u_offset;
 uniform vec3 u_scale;
 uniform bool u_quantized;
+uniform bool u_twoSided;
 uniform vec3 u_eye;
 vec3 position() { return u_quantized ? u_offset + a_i16 * u_scale : a_f32; }`;
 
-/** Per-pixel lighting: normal, position and colour interpolated, lit in the fragment shader. */
+/**
+ * Per-pixel lighting: normal, position and colour interpolated, lit in the fragment shader. The back of a
+ * triangle (seen only on the two-sided sheets) is lit with the normal reversed. A front face is lit with
+ * its own normal even where that points away from the eye (at a silhouette, in a crease): reversing it
+ * there turned the lit side dark (a dark rim along the crown, dark patches on the eyelids).
+ */
 const PIXEL = {
   vert: `${HEAD}
 out vec3 v_normal;
@@ -52,17 +57,24 @@ in vec3 v_color;
 uniform vec3 u_eye;
 out vec4 outColor;
 ${LIGHT}
-void main() { outColor = vec4(light(normalize(v_normal), normalize(u_eye - v_pos), v_color), 1.0); }`,
+void main() {
+  vec3 n = normalize(v_normal);
+  outColor = vec4(light(gl_FrontFacing ? n : -n, normalize(u_eye - v_pos), v_color), 1.0);
+}`,
 };
 
-/** Per-vertex lighting (Gouraud): the fragment shader only writes the interpolated colour. */
+/**
+ * Per-vertex lighting (Gouraud): the fragment shader only writes the interpolated colour. A vertex serves
+ * both sides of a two-sided sheet, so there the side facing the eye is lit (u_twoSided); on closed,
+ * culled surfaces the normal is kept as it is (see PIXEL).
+ */
 const VERTEX = {
   vert: `${HEAD}
 out vec3 v_lit;
 ${LIGHT}
 void main() {
-  vec3 p = position();
-  v_lit = light(normalize(a_normal), normalize(u_eye - p), a_color);
+  vec3 p = position(), n = normalize(a_normal), v = normalize(u_eye - p);
+  v_lit = light(u_twoSided && dot(n, v) < 0.0 ? -n : n, v, a_color);
   gl_Position = u_viewProj * vec4(p, 1.0);
 }`,
   frag: `#version 300 es
@@ -152,7 +164,7 @@ export class FaceRenderer {
       gl.linkProgram(prog);
       if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
       const loc = { ...ATTR };
-      for (const n of ['u_viewProj', 'u_offset', 'u_scale', 'u_quantized', 'u_eye']) loc[n] = gl.getUniformLocation(prog, n);
+      for (const n of ['u_viewProj', 'u_offset', 'u_scale', 'u_quantized', 'u_twoSided', 'u_eye']) loc[n] = gl.getUniformLocation(prog, n);
       this.programs[name] = { prog, loc };
     }
     this.loc = ATTR;
@@ -326,6 +338,7 @@ export class FaceRenderer {
         gl.scissor(x0, y0, x1 - x0, y1 - y0);
       }
       if (g.cull) gl.enable(gl.CULL_FACE); else gl.disable(gl.CULL_FACE);
+      gl.uniform1i(loc.u_twoSided, g.cull ? 0 : 1);
       gl.drawElements(gl.TRIANGLES, g.count, type, bytes * g.first);
       gl.disable(gl.SCISSOR_TEST);
     }
