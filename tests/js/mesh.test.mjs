@@ -4,7 +4,7 @@ import assert from 'node:assert/strict';
 import test from 'node:test';
 
 import {
-  VertexNormals, bounds, cacheOrder, coarsen, drawOrder, mouthShell, mouthWindow, partColors, shortIndices,
+  VertexNormals, bounds, cornerAngle, cacheOrder, coarsen, drawOrder, mouthShell, mouthWindow, partColors, shortIndices,
   smoothColors, vertexRuns,
 } from '../../client/web/js/mesh.js';
 
@@ -54,6 +54,50 @@ test('vertex normals point out of a closed box, and int16 frames give the same d
     const la = Math.hypot(...a), lb = Math.hypot(...b);
     for (let k = 0; k < 3; k++) assert.ok(close(a[k] / la, b[k] / lb, 1e-5), `vertex ${v}: ${a} vs ${b}`);
   }
+});
+
+/**
+ * The corner of the unit cube at the origin where three faces meet: the faces x = 0 and y = 0 one
+ * triangle each, the face z = 0 a fan of k triangles from the corner out to a quarter circle (outward
+ * winding). Returns the unit normal at the corner.
+ */
+function cubeCornerNormal(k) {
+  const p = [0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 1, 0], tris = [0, 1, 2, 0, 2, 3];
+  let prev = 1;
+  for (let i = 1; i <= k; i++) {
+    const t = (Math.PI / 2) * (i / k);
+    const q = i === k ? 3 : p.push(Math.cos(t), Math.sin(t), 0) / 3 - 1;
+    tris.push(0, q, prev);
+    prev = q;
+  }
+  const n = new VertexNormals(Uint32Array.from(tris), p.length / 3).compute(Float32Array.from(p), null);
+  const l = Math.hypot(n[0], n[1], n[2]);
+  return [n[0] / l, n[1] / l, n[2] / l];
+}
+
+test('a vertex normal does not depend on how the faces around it are cut into triangles', () => {
+  // Three faces meeting at right angles: the normal is the diagonal whether the face z = 0 is one
+  // triangle or a fan of thin ones (area weights tilted it up to 10 degrees towards that face; the
+  // skin grid's pole at the default head's crown is such a fan).
+  const diagonal = -1 / Math.sqrt(3);
+  for (const k of [1, 2, 8, 40]) {
+    const n = cubeCornerNormal(k);
+    const off = Math.acos(Math.min(1, (n[0] + n[1] + n[2]) * diagonal)) * 180 / Math.PI;
+    assert.ok(off < 0.5, `a fan of ${k}: the corner's normal is ${off.toFixed(2)} degrees off the diagonal (${n})`);
+  }
+});
+
+test('corner angles: within 0.005 rad of atan2 over the half circle, exact at 0, pi/2 and pi', () => {
+  let worst = 0;
+  for (let i = 0; i <= 20000; i++) {
+    const t = Math.PI * (i / 20000), r = 0.5 + (i % 7);
+    worst = Math.max(worst, Math.abs(cornerAngle(r * Math.sin(t), r * Math.cos(t)) - Math.atan2(Math.sin(t), Math.cos(t))));
+  }
+  assert.ok(worst < 0.005, `worst error ${worst} rad`);
+  assert.equal(cornerAngle(0, 2), 0);
+  assert.ok(close(cornerAngle(3, 0), Math.PI / 2, 1e-12));
+  assert.ok(close(cornerAngle(0, -1), Math.PI, 1e-12));
+  assert.equal(cornerAngle(0, 0), 0);
 });
 
 test('vertex normals reuse one output array and reset it each frame', () => {
@@ -113,6 +157,27 @@ test('coarsening keeps openings open and fine parts whole', () => {
   const kept = split(coarsen(Uint32Array.from(tris), 72, partIds, [false, true]));
   assert.equal(kept.filter((t) => t.every((v) => v >= 36)).length, 50, 'the kept part lost triangles');
   assert.equal(kept.filter((t) => t.every((v) => v < 36)).length, all.filter((t) => t.every((v) => v < 36)).length);
+});
+
+test('coarsening keeps the vertices on a border between parts, and a wide fan on its apex', () => {
+  // An 8x8-vertex grid, rows 0-3 part 0 and rows 4-7 part 1 (joined: rows 3 and 4 are the border).
+  const tris = [], partIds = new Uint8Array(64);
+  for (let v = 32; v < 64; v++) partIds[v] = 1;
+  for (let y = 0; y < 7; y++) for (let x = 0; x < 7; x++) {
+    const v = 8 * y + x;
+    tris.push(v, v + 1, v + 9, v, v + 9, v + 8);
+  }
+  const grid = coarsen(Uint32Array.from(tris), 64, partIds);
+  assert.ok(grid.length < tris.length, 'nothing coarsened');
+  const used = new Set(grid);
+  for (let v = 24; v < 40; v++) assert.ok(used.has(v), `border vertex ${v} was merged away`);
+  // A fan of 24 triangles around its apex, the last vertex (the ring is visited first): the apex stays
+  // the fan's centre instead of being pulled onto one ring vertex.
+  const fan = [];
+  for (let i = 0; i < 24; i++) fan.push(24, i, (i + 1) % 24);
+  const cone = coarsen(Uint32Array.from(fan), 25, new Uint8Array(25));
+  assert.ok(cone.length < fan.length, 'nothing coarsened');
+  for (let i = 0; i < cone.length; i += 3) assert.ok(Array.from(cone.slice(i, i + 3)).includes(24), 'a triangle lost the apex');
 });
 
 test('vertex-cache order keeps every triangle and shades fewer vertices', () => {
