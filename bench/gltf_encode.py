@@ -2,7 +2,7 @@
 (``server/output/gltf.py``) against the previous ``T x T`` Gram-matrix SVD, measured in the same run.
 
     python bench/gltf_encode.py [--face default] [--frames 100 400 1500 6000] [--old-max 1500]
-                                [--stream 6000] [--threads N] [--repeats 1]
+                                [--stream 6000] [--threads N] [--repeats 1] [--baseline REV]
 
 Frames: the five XFace ``.fap`` files (``../shared/data/xface/faps``) played one after the other and
 looped, every loop after the first with smooth random per-FAP gains (seeded) so that the clip does
@@ -12,8 +12,9 @@ Measured per method and length: ``encode_glb`` wall time (the whole .glb: basis,
 normals, packing) on frames already in memory and of the morph basis alone (no normals), the
 encode's peak traced allocation (``tracemalloc``; the input
 frames are allocated before and not counted, their size is given separately), the target count,
-the measured max vertex error and the file size. The old method is the previous ``gltf.py`` taken
-from git history (``BASELINE`` commit), run for ``T <= --old-max``. ``--stream T`` also encodes a
+the measured max vertex error and the file size. The old method is ``gltf.py`` taken from git
+history at ``--baseline`` (default ``BASELINE``, the last ``T x T`` Gram-matrix encoder; any later
+revision compares against that one instead), run for ``T <= --old-max``. ``--stream T`` also encodes a
 clip of ``T`` frames from a chunk source that renders them anew on each pass (as ``render_file``
 does for long clips): wall time then includes the rendering, memory is everything.
 
@@ -34,8 +35,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "bench" / "out" / "gltf_encode.json"
-#: The last commit with the T x T Gram-matrix encoder.
+#: The last commit with the T x T Gram-matrix encoder (the default ``--baseline``).
 BASELINE = "bfb3ea5"
+#: Old source text -> today's, for the APIs of the current package an old ``gltf.py`` calls: the third
+#: positional argument of ``vertex_normals`` was the incidence matrix, it is now the vertex count.
+BASELINE_COMPAT = {"vertex_normals(v, tri, inc)": "vertex_normals(v, tri, incidence=inc)"}
 
 
 def parse(argv: list[str]) -> argparse.Namespace:
@@ -50,6 +54,9 @@ def parse(argv: list[str]) -> argparse.Namespace:
         "--threads", type=int, default=None, help="BLAS threads (sets OPENBLAS/OMP/MKL_NUM_THREADS)"
     )
     p.add_argument("--repeats", type=int, default=1, help="best of this many runs per point")
+    p.add_argument(
+        "--baseline", default=BASELINE, help=f"git revision of the old gltf.py (default {BASELINE})"
+    )
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--out", type=Path, default=OUT, help="JSON output")
     p.add_argument(
@@ -186,13 +193,26 @@ def check_markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def baseline_module():
-    """The previous ``facecast.server.output.gltf`` (from git history) as a module of the same package."""
+def baseline_module(rev: str = BASELINE):
+    """``facecast.server.output.gltf`` at git revision ``rev`` as a module of the same package (its
+    calls adapted to today's APIs, ``BASELINE_COMPAT``)."""
     from facecast.server.bench.history import module_at
 
     return module_at(
-        ROOT, BASELINE, "server/output/gltf.py", "facecast.server.output._gltf_baseline"
+        ROOT,
+        rev,
+        "server/output/gltf.py",
+        "facecast.server.output._gltf_baseline",
+        BASELINE_COMPAT,
     )
+
+
+def basis_options(mod) -> dict:
+    """Keyword arguments of ``mod.morph_basis`` for the basis alone: no normals where it computes
+    them (the current encoder and later baselines), none for the old encoder that never did."""
+    import inspect
+
+    return {"normals": None} if "normals" in inspect.signature(mod.morph_basis).parameters else {}
 
 
 def clip(face, n_frames: int, seed: int):
@@ -320,7 +340,7 @@ def main(argv: list[str]) -> int:
 
     face = load_face(args.face)
     animator = Animator(face, backend="numpy")
-    old = baseline_module()
+    old = baseline_module(args.baseline)
     n_max = max(args.frames)
     anim = clip(face, max(n_max, *(args.stream or [0])), args.seed)
     import time
@@ -350,10 +370,7 @@ def main(argv: list[str]) -> int:
             row = encode_row(T, face, method, sec, peak, data, rec, frames.nbytes / 2**20)
             bsec, _, _ = measure(
                 lambda mod=mod, frames=frames: mod.morph_basis(
-                    frames,
-                    face.vertices,
-                    0.01 / face.mm_per_unit,
-                    **({} if mod is old else {"normals": None}),
+                    frames, face.vertices, 0.01 / face.mm_per_unit, **basis_options(mod)
                 ),
                 1,
             )
@@ -388,7 +405,7 @@ def main(argv: list[str]) -> int:
         "face": args.face,
         "vertices": face.n_vertices,
         "threads": args.threads,
-        "baseline": BASELINE,
+        "baseline": args.baseline,
         "render_ms_per_frame": 1e3 * render_s / n_max,
         "load_avg": os.getloadavg(),
         "rows": rows,
