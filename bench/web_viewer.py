@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import sys
@@ -41,7 +42,7 @@ from pathlib import Path
 
 import httpx
 
-from facecast.server.harness import LocalServer
+from facecast.server.harness import LocalServer, descendants, process_cpu_seconds
 
 ROOT = Path(__file__).resolve().parents[1]
 ICT = ROOT.parent / "shared" / "data" / "ict-facekit" / "generic_neutral_mesh.obj"
@@ -113,39 +114,21 @@ COUNTERS_JS = """() => { const c = facecast.counters, s = facecast.viewer.stats;
   return { t: performance.now(), rafs: c.rafs, draws: c.draws, fresh: c.newFrameDraws, received: s.frames,
            superseded: s.superseded, dropped: s.dropped, decode: [...s.decodeMs] }; }"""
 
-TCK = os.sysconf("SC_CLK_TCK")
-
 
 def process_cpu() -> dict[str, float]:
     """CPU seconds (user + system) of this process's Chromium descendants, summed by process type."""
-    children: dict[int, list[int]] = {}
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                ppid = int(Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(ppid, []).append(int(d))
     out: dict[str, float] = {}
-    stack = [os.getpid()]
-    while stack:
-        pid = stack.pop()
-        stack.extend(children.get(pid, []))
+    for pid in descendants(os.getpid()):
         try:
             cmd = Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ").split()
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
         except OSError:
             continue
-        if not cmd or "chrom" not in Path(cmd[0]).name:
+        seconds = process_cpu_seconds(pid)
+        if not cmd or "chrom" not in Path(cmd[0]).name or math.isnan(seconds):
             continue
         kind = next((a.split("=", 1)[1] for a in cmd if a.startswith("--type=")), "browser")
-        out[kind] = out.get(kind, 0.0) + (int(fields[11]) + int(fields[12])) / TCK
+        out[kind] = out.get(kind, 0.0) + seconds
     return out
-
-
-def pid_cpu(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / TCK
 
 
 def ceiling(browser, width: int, height: int, ms: int, sweep: tuple[int, ...] = ()) -> dict:
@@ -195,9 +178,9 @@ VARIANTS: dict[str, tuple[list[str], dict[str, str], str]] = {
 def sample(page, server_pid: int, seconds: float) -> dict:
     """The page's counters and the processes' CPU over `seconds` of streaming."""
     page.evaluate("facecast.viewer.stats.decodeMs = []")
-    c0, s0, a = process_cpu(), pid_cpu(server_pid), page.evaluate(COUNTERS_JS)
+    c0, s0, a = process_cpu(), process_cpu_seconds(server_pid), page.evaluate(COUNTERS_JS)
     time.sleep(seconds)
-    c1, s1, b = process_cpu(), pid_cpu(server_pid), page.evaluate(COUNTERS_JS)
+    c1, s1, b = process_cpu(), process_cpu_seconds(server_pid), page.evaluate(COUNTERS_JS)
     el = (b["t"] - a["t"]) / 1000
     dec = sorted(b["decode"])
 

@@ -47,18 +47,44 @@ def process_cpu_seconds(pid: int) -> float:
         return float("nan")
 
 
+def parent_pids() -> dict[int, int]:
+    """``pid -> parent pid`` of every process now (Linux /proc); empty elsewhere."""
+    out = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            out[int(stat.parent.name)] = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+    return out
+
+
 def spawned_children(pid: int) -> list[int]:
     """Pids of the ``multiprocessing`` spawn children of process ``pid`` (a server's job workers;
     not its resource tracker), from Linux /proc; empty elsewhere."""
     out = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-            cmd = (stat.parent / "cmdline").read_bytes()
-        except (OSError, IndexError, ValueError):
+    for child, parent in parent_pids().items():
+        if parent != pid:
             continue
-        if ppid == pid and b"spawn_main" in cmd and b"resource_tracker" not in cmd:
-            out.append(int(stat.parent.name))
+        try:
+            cmd = Path(f"/proc/{child}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in cmd and b"resource_tracker" not in cmd:
+            out.append(child)
+    return out
+
+
+def descendants(pid: int) -> list[int]:
+    """Pids of the children of process ``pid``, their children and so on (Linux /proc; empty
+    elsewhere)."""
+    children: dict[int, list[int]] = {}
+    for child, parent in parent_pids().items():
+        children.setdefault(parent, []).append(child)
+    out, stack = [], list(children.get(pid, []))
+    while stack:
+        p = stack.pop()
+        out.append(p)
+        stack.extend(children.get(p, []))
     return out
 
 
