@@ -4,7 +4,7 @@ import assert from 'node:assert/strict';
 import test from 'node:test';
 
 import {
-  VertexNormals, bounds, cornerAngle, cacheOrder, coarsen, drawOrder, mouthShell, mouthWindow, partColors, shortIndices,
+  VertexNormals, bounds, cacheOrder, coarsen, drawOrder, mouthShell, mouthWindow, partColors, shortIndices,
   smoothColors, vertexRuns,
 } from '../../client/web/js/mesh.js';
 
@@ -38,7 +38,7 @@ test('part colours: by part name, the fallback for parts without one', () => {
 
 test('vertex normals point out of a closed box, and int16 frames give the same directions', () => {
   const { p, tris, V } = box([2, 3, 4], [5, -1, 0]);
-  const n = new VertexNormals(tris, V).compute(p, null);
+  const n = new VertexNormals(tris, V, p).compute(p, null);
   for (let v = 0; v < V; v++) {
     const c = [6, 0.5, 2];  // the box's centre
     const out = [0, 1, 2].map((a) => p[3 * v + a] - c[a]);
@@ -48,7 +48,7 @@ test('vertex normals point out of a closed box, and int16 frames give the same d
   // the same box as int16 with a per-axis scale: normals of the scaled mesh, same directions
   const scale = [0.5, 0.25, 2], q = new Int16Array(24);
   for (let i = 0; i < 24; i++) q[i] = Math.round((p[i] - [5, -1, 0][i % 3]) / scale[i % 3]);
-  const nq = Float32Array.from(new VertexNormals(tris, V).compute(q, scale));
+  const nq = Float32Array.from(new VertexNormals(tris, V, p).compute(q, scale));
   for (let v = 0; v < V; v++) {
     const a = Array.from(n.subarray(3 * v, 3 * v + 3)), b = Array.from(nq.subarray(3 * v, 3 * v + 3));
     const la = Math.hypot(...a), lb = Math.hypot(...b);
@@ -70,7 +70,7 @@ function cubeCornerNormal(k) {
     tris.push(0, q, prev);
     prev = q;
   }
-  const n = new VertexNormals(Uint32Array.from(tris), p.length / 3).compute(Float32Array.from(p), null);
+  const rest = Float32Array.from(p), n = new VertexNormals(Uint32Array.from(tris), p.length / 3, rest).compute(rest, null);
   const l = Math.hypot(n[0], n[1], n[2]);
   return [n[0] / l, n[1] / l, n[2] / l];
 }
@@ -87,22 +87,9 @@ test('a vertex normal does not depend on how the faces around it are cut into tr
   }
 });
 
-test('corner angles: within 0.005 rad of atan2 over the half circle, exact at 0, pi/2 and pi', () => {
-  let worst = 0;
-  for (let i = 0; i <= 20000; i++) {
-    const t = Math.PI * (i / 20000), r = 0.5 + (i % 7);
-    worst = Math.max(worst, Math.abs(cornerAngle(r * Math.sin(t), r * Math.cos(t)) - Math.atan2(Math.sin(t), Math.cos(t))));
-  }
-  assert.ok(worst < 0.005, `worst error ${worst} rad`);
-  assert.equal(cornerAngle(0, 2), 0);
-  assert.ok(close(cornerAngle(3, 0), Math.PI / 2, 1e-12));
-  assert.ok(close(cornerAngle(0, -1), Math.PI, 1e-12));
-  assert.equal(cornerAngle(0, 0), 0);
-});
-
 test('vertex normals reuse one output array and reset it each frame', () => {
   const { p, tris, V } = box();
-  const vn = new VertexNormals(tris, V);
+  const vn = new VertexNormals(tris, V, p);
   const first = Float32Array.from(vn.compute(p, null));
   const again = vn.compute(p, null);
   assert.equal(again, vn.out);

@@ -203,7 +203,7 @@ export class FaceRenderer {
     const ibo = gl.createBuffer();
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ibo);
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, order, gl.STATIC_DRAW);
-    this.normals = new VertexNormals(triangles, V);
+    this.normals = new VertexNormals(triangles, V, rest);
     this.mouthShell = mouthShell(triangles, partIds, partNames, V);
     this.mesh = { vao, ibo, f32, i16, nrm, color, V, count: triangles.length, groups, partIds, partNames, coarse: null,
                   quantized: false,
