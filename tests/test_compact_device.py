@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import ThreadPoolExecutor
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -71,15 +72,23 @@ def test_interleaved_sessions_encode_as_alone(face, threads):
 # -- residual planes on the OpenCL device (backends/opencl/compact.py) -------------------------
 
 
-@pytest.fixture(scope="module")
-def device():
+@pytest.fixture(scope="module", params=["native", "portable"])
+def device(request):
+    """The kernel as built for this device (AVX-512 compress and mask tests where the device
+    has them) and with its portable code only: both must give the host encoder's bytes."""
     cl_backend = pytest.importorskip("facecast.server.backends.opencl")
     ctx = cl_backend.default_context()
     if ctx is None:
         pytest.skip("no working OpenCL device (install pocl-opencl-icd)")
-    from facecast.server.backends.opencl.compact import DeviceCompact
+    from facecast.server.backends.opencl.compact import WG, DeviceCompact
 
-    return DeviceCompact(ctx)
+    if request.param == "native":
+        return DeviceCompact(ctx)
+
+    class Portable(DeviceCompact):
+        DEFINES: ClassVar[dict[str, object]] = {"WG": WG, "COMPACT_PORTABLE": 1}
+
+    return Portable(ctx)
 
 
 def _fap_stream(face, data_dir) -> tuple[np.ndarray, np.ndarray]:

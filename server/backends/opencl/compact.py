@@ -31,9 +31,13 @@ across launches (copied once per key frame, not once per frame: 0.24 -> 0.20 ms 
 thread's CPU per frame, 0.375 -> 0.314 ms of the process's, 8 sessions a batch, FAP stream).
 The kernel without compare masks or a 16-gather branch, its runs joined on the device: kernel
 CPU 0.93-0.95x, whole ``encode_batch`` 0.95x of the previous kernel per session-frame (five FAP
-files, 10 sessions a batch, load 6, ``bench/compact_kernel.py --ref``). What stays costly in
-it: packing the non-zero values (~20% of the kernel: a store per lane of each unit that has
-one; a loop over the set bits, or a shuffle by a table, measured slower under PoCL).
+files, 10 sessions a batch, load 6, ``bench/compact_kernel.py --ref``). Where the device has
+AVX-512 (PoCL builds for the host CPU), each axis's bitmap of a unit is one compare into a mask
+register and its non-zero values one compress into a register and one store (instead of an
+or-reduction of 16 lanes and 16 scalar stores), and the vertices are de-interleaved by two
+``__builtin_shufflevector`` each (PoCL's ``shuffle2`` became 24 scalar loads and inserts):
+kernel CPU 0.74x, ``encode_batch`` 0.85x (joy, 10 sessions a batch, load 8); the same bytes,
+and ``-DCOMPACT_PORTABLE=1`` (tested) keeps the portable code.
 """
 
 from __future__ import annotations
