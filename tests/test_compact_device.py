@@ -192,6 +192,42 @@ def test_device_handles_odd_vertex_counts_large_motions_and_bad_frames(device, f
 
 
 @pytest.mark.opencl
+def test_device_batch_refuses_only_the_frames_whose_transforms_are_not_rigid(device, face):
+    """The batch's transforms are checked at once: a frame with a scaled, NaN or short set of
+    transforms gets its encoder's ``ValueError`` alone; the others, the host encoder's bytes."""
+    from facecast.server.backends.opencl import aligned_empty
+    from facecast.server.backends.opencl.compact import encode_batch
+
+    frames, poses = _stream(face, 0, 6)
+    tol = 0.1 / face.mm_per_unit
+    n = 5
+    host = [CompactEncoder(face.vertices, face.rigid_group, tolerance=tol) for _ in range(n)]
+    dev = [CompactEncoder(face.vertices, face.rigid_group, tolerance=tol) for _ in range(n)]
+    buf = aligned_empty((n,) + frames.shape[1:], np.float32)
+    for i in range(len(frames)):
+        buf[:] = frames[i]
+        trs = [poses[i].astype(np.float32).copy() for _ in range(n)]
+        if i in (2, 4):
+            trs[1][0, :, :3] *= 1.01  # not a rigid motion
+            trs[3][-1, 0, 3] = np.nan
+        if i == 3:
+            trs[2] = trs[2][:1]  # too few groups: the encoder says so
+        got = encode_batch(device, buf, [(dev[s], s, trs[s], i, i / 60, 0.0) for s in range(n)])
+        for s in range(n):
+            try:
+                want: bytes | ValueError = host[s].encode(buf[s], trs[s], seq=i, t=i / 60)
+            except ValueError as e:
+                want = e
+            if isinstance(want, ValueError):
+                assert isinstance(got[s], ValueError) and str(got[s]) == str(want)
+            elif _blas_fuses():
+                assert got[s] == want, f"frame {i}, session {s}"
+            else:
+                assert isinstance(got[s], bytes)
+        assert sum(isinstance(g, ValueError) for g in got) == {2: 2, 3: 1, 4: 2}.get(i, 0)
+
+
+@pytest.mark.opencl
 @pytest.mark.parametrize("n_vertices", [37, 1000, 1003])
 def test_device_bitmaps_and_values_equal_the_hosts_two_planes_and_short_runs(
     device, face, n_vertices

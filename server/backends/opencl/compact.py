@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from ....protocol.compact import CompactEncoder, bitmap_size, world_to_cells
+from ....protocol.compact import CompactEncoder, bitmap_size, rigid_motions, world_to_cells
 from .host import ALIGN, HostKernel, aligned_empty
 
 log = logging.getLogger(__name__)
@@ -226,9 +226,10 @@ def encode_batch(
     out: list[bytes | ValueError] = [ValueError()] * len(frames)
     todo: list[int] = []
     preps: list[tuple[np.ndarray, np.ndarray, np.ndarray, bool, np.ndarray]] = []
+    ok = _rigid(frames)
     for j, (enc, f, T, _seq, t, _wall) in enumerate(frames):
         try:
-            preps.append(enc.prepare(verts[f], T, t=t, matrices=False))
+            preps.append(enc.prepare(verts[f], T, t=t, matrices=False, checked=bool(ok[j])))
             todo.append(j)
         except ValueError as e:
             out[j] = e
@@ -269,6 +270,22 @@ def encode_batch(
     ):
         out[j] = r
     return out
+
+
+def _rigid(frames: list[tuple[CompactEncoder, int, np.ndarray, int, float, float]]) -> np.ndarray:
+    """``(J,) bool``: frame j's transforms are finite rigid motions, checked for the whole batch
+    at once (False where they are not, or not as its encoder wants them: its ``prepare`` then
+    checks, and says what is wrong)."""
+    J = len(frames)
+    if J == 0:
+        return np.zeros(0, bool)
+    g = frames[0][0].n_groups
+    trs = [np.asarray(T, np.float32) for _, _, T, _, _, _ in frames]
+    if any(e.n_groups != g for e, *_ in frames) or any(
+        tr.ndim != 3 or tr.shape[0] < g or tr.shape[1:] != (3, 4) for tr in trs
+    ):
+        return np.zeros(J, bool)
+    return rigid_motions(np.stack([tr[:g] for tr in trs]))
 
 
 def device_compact(deformer: Any) -> DeviceCompact | None:
