@@ -43,6 +43,7 @@ and ``-DCOMPACT_PORTABLE=1`` (tested) keeps the portable code.
 from __future__ import annotations
 
 import logging
+import threading
 from collections import OrderedDict
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -61,7 +62,8 @@ WG = 8
 
 @dataclass(frozen=True, slots=True)
 class Residuals:
-    """``DeviceCompact.residuals`` of ``J`` frames of ``V`` vertices: ``packed (J, 3 NB + 6 V)
+    """``DeviceCompact.residuals`` of ``J`` frames of ``V`` vertices (views of the calling
+    thread's scratch memory: valid until its next ``residuals``): ``packed (J, 3 NB + 6 V)
     uint8`` (``NB = ceil(V / 8)``) each frame's payload before deflate (its bitmaps of non-zero
     values, those values' bytes 0, then their bytes 1 where flag bit 2 is set); ``nnz (J,)``
     their number; ``new_keys (J, 3, V) float32`` (row j the new key's cells where frame j is a
@@ -82,6 +84,42 @@ class Residuals:
         return n, self.packed[j, : self.head + planes * n].data
 
 
+@dataclass(frozen=True, slots=True)
+class _Scratch:
+    """One thread's kernel outputs for up to ``J`` frames of ``V`` vertices, with their device
+    buffers (over the same host memory): ``packed (J, 3 NB + 6 V) uint8``, ``counts (J, 3, WG)
+    uint32``, and ``out`` (the staged values, then the new keys from byte ``keys_at``)."""
+
+    J: int
+    V: int
+    packed: np.ndarray
+    counts: np.ndarray
+    out: np.ndarray
+    keys_at: int
+    packed_buf: Any
+    counts_buf: Any
+    out_buf: Any
+
+    @staticmethod
+    def make(kernel: HostKernel, J: int, V: int) -> _Scratch:
+        packed = aligned_empty((J, 3 * bitmap_size(V) + 6 * V), np.uint8)
+        counts = aligned_empty((J, 3, WG), np.uint32)
+        keys_at = -(-J * 6 * V // ALIGN) * ALIGN  # bytes: the new keys start aligned
+        out = aligned_empty((keys_at + J * 12 * V,), np.uint8)
+        wo = kernel._cl.mem_flags.WRITE_ONLY  # noqa: SLF001 - the kernel's own module
+        return _Scratch(
+            J,
+            V,
+            packed,
+            counts,
+            out,
+            keys_at,
+            kernel._host(packed, wo),  # noqa: SLF001
+            kernel._host(counts, wo),  # noqa: SLF001
+            kernel._host(out, wo),  # noqa: SLF001
+        )
+
+
 class DeviceCompact(HostKernel):
     """Residual planes of compact frames on one OpenCL context (thread-safe)."""
 
@@ -96,6 +134,7 @@ class DeviceCompact(HostKernel):
         self._pool = np.empty((0, 3, 0), np.float32)
         self._pool_buf: Any = None
         self._slots: OrderedDict[int, tuple[np.ndarray, int]] = OrderedDict()  # id -> (ref, slot)
+        self._local = threading.local()  # per calling thread: its ``_Scratch``
 
     def _ref_slots(self, refs: list[np.ndarray], V: int) -> list[int]:
         """The pool slot of each reference (``(3, V) float32``), copied into a free or the least
@@ -153,11 +192,11 @@ class DeviceCompact(HostKernel):
         if not (J == len(mats) == len(refs) == len(keys) == len(keep2)) or groups.shape != (V,):
             raise ValueError("one matrix set, reference and key flag per frame; a group per vertex")
         nb = bitmap_size(V)
-        packed = aligned_empty((J, 3 * nb + 6 * V), np.uint8)
-        counts = aligned_empty((J, 3, WG), np.uint32)
         if J == 0 or V == 0:
-            packed[:] = 0
+            packed = np.zeros((J, 3 * nb + 6 * V), np.uint8)
             return Residuals(packed, 3 * nb, [0] * J, None, np.zeros(J, np.uint32))
+        sc = self._scratch_for(J, V)
+        packed, counts = sc.packed[:J], sc.counts[:J]
         if not all(0 <= f < verts.shape[0] for f in frame_of):
             raise ValueError("frame_of names a frame verts does not have")
         G = mats[0].shape[0]
@@ -172,8 +211,7 @@ class DeviceCompact(HostKernel):
         rows[:, 3] = 0
         rows[:, 5:] = np.asarray(mats, np.float32).reshape(J, -1).view(np.uint32)
         any_key = any(keys)
-        keys_at = -(-J * 6 * V // ALIGN) * ALIGN  # bytes: the new keys start aligned
-        out = aligned_empty((keys_at + (J * 12 * V if any_key else 4),), np.uint8)
+        keys_at, out = sc.keys_at, sc.out
         mf = cl.mem_flags
         with self._lock:
             rows[:, 4] = self._ref_slots(refs, V)
@@ -187,14 +225,25 @@ class DeviceCompact(HostKernel):
                 self._groups(groups),
                 self._host(param, mf.READ_WRITE),
                 self._pool_buf,
-                self._host(out, mf.WRITE_ONLY),
+                sc.out_buf,
                 np.uint32(keys_at // 4),
-                self._host(packed, mf.WRITE_ONLY),
-                self._host(counts, mf.WRITE_ONLY),
+                sc.packed_buf,
+                sc.counts_buf,
             ).wait()
-        new_keys = out[keys_at:].view(np.float32).reshape(J, 3, V) if any_key else None
+        new_keys = out[keys_at:].view(np.float32)[: J * 3 * V].reshape(J, 3, V) if any_key else None
         nnz = counts.reshape(J, -1).sum(axis=1).tolist()
         return Residuals(packed, 3 * nb, nnz, new_keys, rows[:, 3].copy())
+
+    def _scratch_for(self, J: int, V: int) -> _Scratch:
+        """This thread's ``_Scratch`` for ``J`` frames of ``V`` vertices (made, or grown, on
+        first need; then reused: fresh megabytes each launch cost their page faults, ~20-40 us a
+        frame)."""
+        sc: _Scratch | None = getattr(self._local, "scratch", None)
+        if sc is None or sc.V != V or sc.J < J:
+            sc = self._local.scratch = _Scratch.make(
+                self, max(J, sc.J if sc and sc.V == V else 0), V
+            )
+        return sc
 
     def _groups(self, groups: np.ndarray) -> Any:
         """A read-only buffer of ``groups``, kept for the face (one per array object)."""
