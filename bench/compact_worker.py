@@ -31,6 +31,9 @@ def main(argv: list[str]) -> int:
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--frames", type=int, default=60, help="frames of each session a round")
     p.add_argument(
+        "--compact-threads", type=int, help="the compact pool's threads (default: the server's)"
+    )
+    p.add_argument(
         "--device-min",
         type=int,
         help="compact frames on the device from this many a batch (default: the batcher's)",
@@ -43,13 +46,15 @@ def main(argv: list[str]) -> int:
     from facecast.server.api.store import FaceStore
     from facecast.server.live import batcher as batcher_module
     from facecast.server.live.batcher import DeformBatcher, _Job
+    from facecast.server.live.settings import LiveSettings
     from facecast.server.state import FaceState, zero_faps
 
     if a.device_min is not None:
         batcher_module.DEVICE_COMPACT_MIN_FRAMES = a.device_min
     animator = FaceStore(default=a.face, backend="auto").animator(a.face)
     face = animator.face
-    batcher = DeformBatcher(animator, None)  # type: ignore[arg-type]
+    settings = LiveSettings(compact_threads=a.compact_threads)
+    batcher = DeformBatcher(animator, None, settings=settings)  # type: ignore[arg-type]
     work = batcher._work  # noqa: SLF001 - white-box: the worker's job, synchronously
     fps = 60.0
 

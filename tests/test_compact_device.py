@@ -121,7 +121,9 @@ def _blas_fuses() -> bool:
     return bool((c.astype(np.float32) == got).all())
 
 
-def _device_vs_host(device, face, frames: np.ndarray, poses: np.ndarray, sessions: int = 3):
+def _device_vs_host(
+    device, face, frames: np.ndarray, poses: np.ndarray, sessions: int = 3, pool=None
+):
     """Each of ``sessions`` sessions (the stream from another start) encoded by the device, a
     batch per round, and by the host encoder: the same bytes (where the BLAS rounds as the
     device does), decoded within tolerance."""
@@ -141,7 +143,10 @@ def _device_vs_host(device, face, frames: np.ndarray, poses: np.ndarray, session
         buf[:] = frames[idx]
         want = [host[s].encode(buf[s], poses[idx[s]], seq=i, t=i / 25) for s in range(sessions)]
         got = encode_batch(
-            device, buf, [(dev[s], s, poses[idx[s]], i, i / 25, 0.0) for s in range(sessions)]
+            device,
+            buf,
+            [(dev[s], s, poses[idx[s]], i, i / 25, 0.0) for s in range(sessions)],
+            pool,
         )
         if exact:
             assert got == want, f"frame {i}"
@@ -158,6 +163,13 @@ def test_device_residuals_give_the_host_encoders_bytes_on_a_fap_stream(device, d
     face = load_face(face_name)
     frames, poses = _fap_stream(face, data_dir)
     _device_vs_host(device, face, frames, poses)
+
+
+@pytest.mark.opencl
+def test_device_frames_deflated_half_on_a_pool_are_the_same(device, face):
+    frames, poses = _stream(face, 1, 20)
+    with ThreadPoolExecutor(2) as pool:
+        _device_vs_host(device, face, frames, poses, sessions=5, pool=pool)
 
 
 @pytest.mark.opencl

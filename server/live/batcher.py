@@ -7,8 +7,8 @@ them together (``Animator.solve_batch``, vectorised), deforms them with one ``de
 25k-vertex head) and writes each frame once, already framed for WebSocket, into one buffer per
 batch. On a host-memory OpenCL device the int16 quantisation of batches of 2 frames or more runs
 on the device too (``quantize_cl``), outside the GIL; elsewhere in NumPy
-(``quantize.quantize_int16``). There too, the residual planes of a batch's ``compact`` frames (4 or
-more) are computed in one launch (``backends.opencl.compact``); deflate runs on the compact threads.
+(``quantize.quantize_int16``). There too, the residual planes of a batch's ``compact`` frames (2 or
+more) are computed in one launch (``backends.opencl.compact``) and deflated in the same thread.
 The callbacks then run on their event loop, all of a batch in one wake-up. Under light load a
 batch holds one frame and adds no delay; under heavy load batches grow by themselves.
 """
@@ -466,8 +466,8 @@ class DeformBatcher:
             self._quantizer = None
             encoded = encode_batch(verts, meta)
         pool = _compact_executor(self.settings.compact_pool_threads) if len(todo) > 1 else None
-        if on_device:
-            done = _encode_compact_device(a.deformer, verts, todo, T, pool)
+        if on_device:  # deflated here: the pool's hand-overs cost more CPU than they overlap
+            done = _encode_compact_device(a.deformer, verts, todo, T)
         elif pool is not None:
             done = list(pool.map(lambda kj: _encode_compact(kj[1], verts[kj[0]], T[kj[0]]), todo))
         else:
