@@ -92,31 +92,38 @@ class _Scratch:
 
     J: int
     V: int
+    G: int
     packed: np.ndarray
     counts: np.ndarray
     out: np.ndarray
     keys_at: int
+    param: np.ndarray  #: (J, 5 + 12 G) uint32: the kernel's rows of parameters
     packed_buf: Any
     counts_buf: Any
     out_buf: Any
+    param_buf: Any
 
     @staticmethod
-    def make(kernel: HostKernel, J: int, V: int) -> _Scratch:
+    def make(kernel: HostKernel, J: int, V: int, G: int) -> _Scratch:
         packed = aligned_empty((J, 3 * bitmap_size(V) + 6 * V), np.uint8)
         counts = aligned_empty((J, 3, WG), np.uint32)
         keys_at = -(-J * 6 * V // ALIGN) * ALIGN  # bytes: the new keys start aligned
         out = aligned_empty((keys_at + J * 12 * V,), np.uint8)
-        wo = kernel._cl.mem_flags.WRITE_ONLY  # noqa: SLF001 - the kernel's own module
+        param = aligned_empty((J, 5 + 12 * G), np.uint32)
+        mf = kernel._cl.mem_flags  # noqa: SLF001 - the kernel's own module
         return _Scratch(
             J,
             V,
+            G,
             packed,
             counts,
             out,
             keys_at,
-            kernel._host(packed, wo),  # noqa: SLF001
-            kernel._host(counts, wo),  # noqa: SLF001
-            kernel._host(out, wo),  # noqa: SLF001
+            param,
+            kernel._host(packed, mf.WRITE_ONLY),  # noqa: SLF001
+            kernel._host(counts, mf.WRITE_ONLY),  # noqa: SLF001
+            kernel._host(out, mf.WRITE_ONLY),  # noqa: SLF001
+            kernel._host(param, mf.READ_WRITE),  # noqa: SLF001
         )
 
 
@@ -135,6 +142,8 @@ class DeviceCompact(HostKernel):
         self._pool_buf: Any = None
         self._slots: OrderedDict[int, tuple[np.ndarray, int]] = OrderedDict()  # id -> (ref, slot)
         self._local = threading.local()  # per calling thread: its ``_Scratch``
+        self._verts: OrderedDict[int, tuple[Any, int]] = OrderedDict()  # start -> (buffer, bytes)
+        self._args: tuple[Any, ...] | None = None  # the kernel's arguments as last set
 
     def _ref_slots(self, refs: list[np.ndarray], V: int) -> list[int]:
         """The pool slot of each reference (``(3, V) float32``), copied into a free or the least
@@ -185,7 +194,6 @@ class DeviceCompact(HostKernel):
         then known by identity: an array passed here must not be written to afterwards (an
         encoder replaces its reference, never writes into it).
         Returns the frames' ``Residuals``."""
-        cl = self._cl
         if verts.dtype != np.float32 or not verts.flags.c_contiguous or verts.ctypes.data % ALIGN:
             raise ValueError("verts must be C-contiguous, aligned float32")
         J, V = len(frame_of), verts.shape[1]
@@ -195,16 +203,13 @@ class DeviceCompact(HostKernel):
         if J == 0 or V == 0:
             packed = np.zeros((J, 3 * nb + 6 * V), np.uint8)
             return Residuals(packed, 3 * nb, [0] * J, None, np.zeros(J, np.uint32))
-        sc = self._scratch_for(J, V)
-        packed, counts = sc.packed[:J], sc.counts[:J]
         if not all(0 <= f < verts.shape[0] for f in frame_of):
             raise ValueError("frame_of names a frame verts does not have")
         G = mats[0].shape[0]
         if int(groups.max()) >= G:
             raise ValueError("a vertex's group has no matrix")
-        P = 5 + 12 * G
-        param = aligned_empty((J * P,), np.uint32)
-        rows = param.reshape(J, P)
+        sc = self._scratch_for(J, V, G)
+        packed, counts, rows = sc.packed[:J], sc.counts[:J], sc.param[:J]
         rows[:, 0] = frame_of
         rows[:, 1] = keys
         rows[:, 2] = np.asarray(keep2, np.float32).view(np.uint32)
@@ -212,38 +217,59 @@ class DeviceCompact(HostKernel):
         rows[:, 5:] = np.asarray(mats, np.float32).reshape(J, -1).view(np.uint32)
         any_key = any(keys)
         keys_at, out = sc.keys_at, sc.out
-        mf = cl.mem_flags
         with self._lock:
             rows[:, 4] = self._ref_slots(refs, V)
-            self._kernel(
-                self.queue,
-                (WG, J),  # one work-group per frame
-                (WG, 1),
+            args = (
                 np.uint32(V),
                 np.uint32(G),
-                self._host(verts, mf.READ_ONLY),
+                self._verts_buffer(verts),
                 self._groups(groups),
-                self._host(param, mf.READ_WRITE),
+                sc.param_buf,
                 self._pool_buf,
                 sc.out_buf,
                 np.uint32(keys_at // 4),
                 sc.packed_buf,
                 sc.counts_buf,
+            )
+            if self._args is None or any(
+                a is not b and not (isinstance(a, np.uint32) and a == b)
+                for a, b in zip(args, self._args)
+            ):  # kernel arguments stay set between launches (setting all cost ~50 us of CPU)
+                self._kernel.set_args(*args)
+                self._args = args
+            self._cl.enqueue_nd_range_kernel(
+                self.queue,
+                self._kernel,
+                (WG, J),
+                (WG, 1),  # one work-group per frame
             ).wait()
         new_keys = out[keys_at:].view(np.float32)[: J * 3 * V].reshape(J, 3, V) if any_key else None
         nnz = counts.reshape(J, -1).sum(axis=1).tolist()
         return Residuals(packed, 3 * nb, nnz, new_keys, rows[:, 3].copy())
 
-    def _scratch_for(self, J: int, V: int) -> _Scratch:
-        """This thread's ``_Scratch`` for ``J`` frames of ``V`` vertices (made, or grown, on
-        first need; then reused: fresh megabytes each launch cost their page faults, ~20-40 us a
-        frame)."""
+    def _scratch_for(self, J: int, V: int, G: int) -> _Scratch:
+        """This thread's ``_Scratch`` for ``J`` frames of ``V`` vertices in ``G`` groups (made,
+        or grown, on first need; then reused: fresh megabytes each launch cost their page faults,
+        ~20-40 us a frame, and fresh buffers their set-up)."""
         sc: _Scratch | None = getattr(self._local, "scratch", None)
-        if sc is None or sc.V != V or sc.J < J:
-            sc = self._local.scratch = _Scratch.make(
-                self, max(J, sc.J if sc and sc.V == V else 0), V
-            )
+        if sc is None or sc.V != V or sc.G != G or sc.J < J:
+            keep = sc.J if sc is not None and (sc.V, sc.G) == (V, G) else 0
+            sc = self._local.scratch = _Scratch.make(self, max(J, keep), V, G)
         return sc
+
+    def _verts_buffer(self, verts: np.ndarray) -> Any:
+        """A read-only buffer over ``verts``' memory, kept (a few, most recent first) for callers
+        that pass views of one reused array (the batcher's frame buffer): a buffer over the same
+        start and at least as many bytes serves again. Call with ``_lock`` held."""
+        ptr, size = verts.ctypes.data, verts.nbytes
+        hit = self._verts.get(ptr)
+        if hit is None or hit[1] < size:
+            hit = (self._host(verts, self._cl.mem_flags.READ_ONLY), size)
+            self._verts[ptr] = hit  # (the buffer holds verts: its memory stays this array's)
+            while len(self._verts) > 4:
+                self._verts.popitem(last=False)
+        self._verts.move_to_end(ptr)
+        return hit[0]
 
     def _groups(self, groups: np.ndarray) -> Any:
         """A read-only buffer of ``groups``, kept for the face (one per array object)."""
