@@ -37,7 +37,11 @@ register and its non-zero values one compress into a register and one store (ins
 or-reduction of 16 lanes and 16 scalar stores), and the vertices are de-interleaved by two
 ``__builtin_shufflevector`` each (PoCL's ``shuffle2`` became 24 scalar loads and inserts):
 kernel CPU 0.74x, ``encode_batch`` 0.85x (joy, 10 sessions a batch, load 8); the same bytes,
-and ``-DCOMPACT_PORTABLE=1`` (tested) keeps the portable code.
+and ``-DCOMPACT_PORTABLE=1`` (tested) keeps the portable code. A launch's fixed cost is most
+of a small batch's: each thread's outputs and parameter rows are kept with their buffers, and
+the kernel's arguments set only when one changes (pyopencl's per-call setting cost ~50 us of CPU,
+fresh megabytes their page faults): kernel CPU per session-frame 0.82x at 1 session a batch,
+0.93x at 10 (``bench/compact_kernel.py --ref`` of the previous commit, load 7).
 """
 
 from __future__ import annotations
