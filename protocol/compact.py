@@ -226,7 +226,9 @@ def rigid_motions(tr: np.ndarray) -> np.ndarray:
     determinants as alone, at a fraction of the call's ~20 us)."""
     finite = np.isfinite(tr).all(axis=(1, 2, 3))
     rot = np.where(finite[:, None, None, None], tr[..., :3], np.float32(1))  # no NaN warnings
-    return finite & ~np.any(np.abs(np.linalg.det(rot) - 1) > 1e-3, axis=1)
+    off = np.any(np.abs(np.linalg.det(rot) - 1) > 1e-3, axis=1)
+    ok: np.ndarray = finite & ~off
+    return ok
 
 
 #: A group in more runs of the vertex order than this is transformed over all vertices and kept
