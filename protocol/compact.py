@@ -220,6 +220,17 @@ def world_to_cells(tr: np.ndarray, step: float | np.ndarray) -> np.ndarray:
     return m.astype(np.float32)
 
 
+def rigid_motions(tr: np.ndarray) -> np.ndarray:
+    """``(J,) bool``: whether each of ``tr (J, G, 3, 4) float32``'s transform sets is finite with
+    ``|det R - 1| <= 1e-3`` for every group (one LAPACK call for the stack: per set, the same
+    determinants as alone, at a fraction of the call's ~20 us)."""
+    finite = np.isfinite(tr).all(axis=(1, 2, 3))
+    rot = np.where(finite[:, None, None, None], tr[..., :3], np.float32(1))  # no NaN warnings
+    off = np.any(np.abs(np.linalg.det(rot) - 1) > 1e-3, axis=1)
+    ok: np.ndarray = finite & ~off
+    return ok
+
+
 #: A group in more runs of the vertex order than this is transformed over all vertices and kept
 #: where it belongs (one matmul and one masked copy: cheaper than gathering and scattering it).
 _MAX_RUNS = 8
@@ -485,6 +496,7 @@ class CompactEncoder:
         t: float,
         key: bool = False,
         matrices: bool = True,
+        checked: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool, np.ndarray]:
         """The first half of ``encode`` (no change of state): checks the arguments and returns
         ``(v (V, 3), tr (G, 3, 4), m (G, 3, 4), is_key, ref (3, V))``, all float32: the vertices,
@@ -492,7 +504,8 @@ class CompactEncoder:
         frame and the reference cells its residuals are taken from (for other encoders of the
         same stream, e.g. on an OpenCL device, which then call ``finish``). ``matrices=False``:
         ``m`` is left out (empty), for a caller that computes many frames' at once
-        (``world_to_cells`` of their transforms, with ``step``)."""
+        (``world_to_cells`` of their transforms, with ``step``). ``checked``: ``transforms`` are
+        known to be finite rigid motions (``rigid_motions`` of a stack said so), not checked again."""
         v = np.asarray(vertices, np.float32)
         if v.shape != self.rest.shape:
             raise ValueError(f"vertices must be {self.rest.shape}, got {v.shape}")
@@ -505,7 +518,7 @@ class CompactEncoder:
             if tr.ndim != 3 or tr.shape[1:] != (3, 4) or tr.shape[0] < g:
                 raise ValueError(f"transforms must be ({g}, 3, 4), got {tr.shape}")
             tr = np.ascontiguousarray(tr[:g])
-            if not np.isfinite(tr).all() or np.any(np.abs(np.linalg.det(tr[:, :, :3]) - 1) > 1e-3):
+            if not checked and not rigid_motions(tr[None])[0]:
                 raise ValueError("transforms must be finite rigid motions (det R = 1)")
         is_key = (
             key

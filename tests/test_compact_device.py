@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import ThreadPoolExecutor
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -71,15 +72,23 @@ def test_interleaved_sessions_encode_as_alone(face, threads):
 # -- residual planes on the OpenCL device (backends/opencl/compact.py) -------------------------
 
 
-@pytest.fixture(scope="module")
-def device():
+@pytest.fixture(scope="module", params=["native", "portable"])
+def device(request):
+    """The kernel as built for this device (AVX-512 compress and mask tests where the device
+    has them) and with its portable code only: both must give the host encoder's bytes."""
     cl_backend = pytest.importorskip("facecast.server.backends.opencl")
     ctx = cl_backend.default_context()
     if ctx is None:
         pytest.skip("no working OpenCL device (install pocl-opencl-icd)")
-    from facecast.server.backends.opencl.compact import DeviceCompact
+    from facecast.server.backends.opencl.compact import WG, DeviceCompact
 
-    return DeviceCompact(ctx)
+    if request.param == "native":
+        return DeviceCompact(ctx)
+
+    class Portable(DeviceCompact):
+        DEFINES: ClassVar[dict[str, object]] = {"WG": WG, "COMPACT_PORTABLE": 1}
+
+    return Portable(ctx)
 
 
 def _fap_stream(face, data_dir) -> tuple[np.ndarray, np.ndarray]:
@@ -112,7 +121,9 @@ def _blas_fuses() -> bool:
     return bool((c.astype(np.float32) == got).all())
 
 
-def _device_vs_host(device, face, frames: np.ndarray, poses: np.ndarray, sessions: int = 3):
+def _device_vs_host(
+    device, face, frames: np.ndarray, poses: np.ndarray, sessions: int = 3, pool=None
+):
     """Each of ``sessions`` sessions (the stream from another start) encoded by the device, a
     batch per round, and by the host encoder: the same bytes (where the BLAS rounds as the
     device does), decoded within tolerance."""
@@ -132,7 +143,10 @@ def _device_vs_host(device, face, frames: np.ndarray, poses: np.ndarray, session
         buf[:] = frames[idx]
         want = [host[s].encode(buf[s], poses[idx[s]], seq=i, t=i / 25) for s in range(sessions)]
         got = encode_batch(
-            device, buf, [(dev[s], s, poses[idx[s]], i, i / 25, 0.0) for s in range(sessions)]
+            device,
+            buf,
+            [(dev[s], s, poses[idx[s]], i, i / 25, 0.0) for s in range(sessions)],
+            pool,
         )
         if exact:
             assert got == want, f"frame {i}"
@@ -149,6 +163,13 @@ def test_device_residuals_give_the_host_encoders_bytes_on_a_fap_stream(device, d
     face = load_face(face_name)
     frames, poses = _fap_stream(face, data_dir)
     _device_vs_host(device, face, frames, poses)
+
+
+@pytest.mark.opencl
+def test_device_frames_deflated_half_on_a_pool_are_the_same(device, face):
+    frames, poses = _stream(face, 1, 20)
+    with ThreadPoolExecutor(2) as pool:
+        _device_vs_host(device, face, frames, poses, sessions=5, pool=pool)
 
 
 @pytest.mark.opencl
@@ -180,6 +201,42 @@ def test_device_handles_odd_vertex_counts_large_motions_and_bad_frames(device, f
             assert isinstance(got, ValueError) and str(got) == str(want)
         else:
             assert got == want, f"frame {i}"
+
+
+@pytest.mark.opencl
+def test_device_batch_refuses_only_the_frames_whose_transforms_are_not_rigid(device, face):
+    """The batch's transforms are checked at once: a frame with a scaled, NaN or short set of
+    transforms gets its encoder's ``ValueError`` alone; the others, the host encoder's bytes."""
+    from facecast.server.backends.opencl import aligned_empty
+    from facecast.server.backends.opencl.compact import encode_batch
+
+    frames, poses = _stream(face, 0, 6)
+    tol = 0.1 / face.mm_per_unit
+    n = 5
+    host = [CompactEncoder(face.vertices, face.rigid_group, tolerance=tol) for _ in range(n)]
+    dev = [CompactEncoder(face.vertices, face.rigid_group, tolerance=tol) for _ in range(n)]
+    buf = aligned_empty((n,) + frames.shape[1:], np.float32)
+    for i in range(len(frames)):
+        buf[:] = frames[i]
+        trs = [poses[i].astype(np.float32).copy() for _ in range(n)]
+        if i in (2, 4):
+            trs[1][0, :, :3] *= 1.01  # not a rigid motion
+            trs[3][-1, 0, 3] = np.nan
+        if i == 3:
+            trs[2] = trs[2][:1]  # too few groups: the encoder says so
+        got = encode_batch(device, buf, [(dev[s], s, trs[s], i, i / 60, 0.0) for s in range(n)])
+        for s in range(n):
+            try:
+                want: bytes | ValueError = host[s].encode(buf[s], trs[s], seq=i, t=i / 60)
+            except ValueError as e:
+                want = e
+            if isinstance(want, ValueError):
+                assert isinstance(got[s], ValueError) and str(got[s]) == str(want)
+            elif _blas_fuses():
+                assert got[s] == want, f"frame {i}, session {s}"
+            else:
+                assert isinstance(got[s], bytes)
+        assert sum(isinstance(g, ValueError) for g in got) == {2: 2, 3: 1, 4: 2}.get(i, 0)
 
 
 @pytest.mark.opencl

@@ -7,8 +7,8 @@ them together (``Animator.solve_batch``, vectorised), deforms them with one ``de
 25k-vertex head) and writes each frame once, already framed for WebSocket, into one buffer per
 batch. On a host-memory OpenCL device the int16 quantisation of batches of 2 frames or more runs
 on the device too (``quantize_cl``), outside the GIL; elsewhere in NumPy
-(``quantize.quantize_int16``). There too, the residual planes of a batch's ``compact`` frames (4 or
-more) are computed in one launch (``backends.opencl.compact``); deflate runs on the compact threads.
+(``quantize.quantize_int16``). There too, the residual planes of a batch's ``compact`` frames (2 or
+more) are computed in one launch (``backends.opencl.compact``) and deflated in the same thread.
 The callbacks then run on their event loop, all of a batch in one wake-up. Under light load a
 batch holds one frame and adds no delay; under heavy load batches grow by themselves.
 """
@@ -48,10 +48,12 @@ COALESCE_FRAMES = 8
 ACTIVE_WINDOW = 0.1
 #: Compact frames of a batch on the device too, when the int16 quantiser runs there
 #: (``backends.opencl.compact``: the same bytes, one launch instead of a dozen NumPy passes each),
-#: from this many compact frames in the batch: in-process (25k head, PoCL, 2 cores) 5 frames cost
-#: 0.42 against 0.52-0.56 ms of CPU each, 10 frames 0.43 against 0.49; 3 frames were even and
-#: 2 frames dearer (the launch's fixed cost).
-DEVICE_COMPACT_MIN_FRAMES = 4
+#: from this many compact frames in the batch (the frames are then deformed into the aligned
+#: buffer even when the int16 quantiser would not run). With the AVX-512 kernel, the worker's job
+#: per session-frame (``bench/compact_worker.py --device-min``, 25k head, load 8): 2 frames 716-748
+#: against 743-809 us on the host, 3 frames 524-558 against 652-688; 1 frame stays cheaper on the
+#: host (the launch's fixed cost).
+DEVICE_COMPACT_MIN_FRAMES = 2
 
 #: encoding -> (payload, websocket frame). The payload is a view into the frame's buffer: both
 #: are written once and then only read (the same bytes serve every viewer).
@@ -439,7 +441,15 @@ class DeformBatcher:
         if not ok:
             return results
         quantizer = self.quantizer if len(ok) >= DEVICE_MIN_FRAMES else None
-        if quantizer is not None:  # deform into an aligned buffer the quantiser reads in place
+        # compact: only for sessions with a compact viewer; a session has one state in a batch
+        # at most, so its encoder is used by one thread at a time
+        todo = [
+            (k, jobs[i])
+            for k, i in enumerate(ok)
+            if jobs[i].compact is not None and "compact" in jobs[i].encodings
+        ]
+        on_device = len(todo) >= DEVICE_COMPACT_MIN_FRAMES and self.quantizer is not None
+        if quantizer is not None or on_device:  # an aligned buffer the device reads in place
             verts = a.deformer.deform_batch(D, T, out=self._frame_buffer(len(ok)))
         elif len(ok) == 1:
             verts = np.asarray(a.deformer.deform(D[0], T[0]), dtype=np.float32)[None]
@@ -455,16 +465,9 @@ class DeformBatcher:
             log.warning("int16 quantisation on the device failed; NumPy from now on", exc_info=True)
             self._quantizer = None
             encoded = encode_batch(verts, meta)
-        # compact: only for sessions with a compact viewer; a session has one state in a batch
-        # at most, so its encoder is used by one thread at a time
-        todo = [
-            (k, jobs[i])
-            for k, i in enumerate(ok)
-            if jobs[i].compact is not None and "compact" in jobs[i].encodings
-        ]
         pool = _compact_executor(self.settings.compact_pool_threads) if len(todo) > 1 else None
-        if len(todo) >= DEVICE_COMPACT_MIN_FRAMES and quantizer is not None:
-            done = _encode_compact_device(a.deformer, verts, todo, T, pool)
+        if on_device:  # deflated here: the pool's hand-overs cost more CPU than they overlap
+            done = _encode_compact_device(a.deformer, verts, todo, T)
         elif pool is not None:
             done = list(pool.map(lambda kj: _encode_compact(kj[1], verts[kj[0]], T[kj[0]]), todo))
         else:

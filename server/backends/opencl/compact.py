@@ -31,14 +31,23 @@ across launches (copied once per key frame, not once per frame: 0.24 -> 0.20 ms 
 thread's CPU per frame, 0.375 -> 0.314 ms of the process's, 8 sessions a batch, FAP stream).
 The kernel without compare masks or a 16-gather branch, its runs joined on the device: kernel
 CPU 0.93-0.95x, whole ``encode_batch`` 0.95x of the previous kernel per session-frame (five FAP
-files, 10 sessions a batch, load 6, ``bench/compact_kernel.py --ref``). What stays costly in
-it: packing the non-zero values (~20% of the kernel: a store per lane of each unit that has
-one; a loop over the set bits, or a shuffle by a table, measured slower under PoCL).
+files, 10 sessions a batch, load 6, ``bench/compact_kernel.py --ref``). Where the device has
+AVX-512 (PoCL builds for the host CPU), each axis's bitmap of a unit is one compare into a mask
+register and its non-zero values one compress into a register and one store (instead of an
+or-reduction of 16 lanes and 16 scalar stores), and the vertices are de-interleaved by two
+``__builtin_shufflevector`` each (PoCL's ``shuffle2`` became 24 scalar loads and inserts):
+kernel CPU 0.74x, ``encode_batch`` 0.85x (joy, 10 sessions a batch, load 8); the same bytes,
+and ``-DCOMPACT_PORTABLE=1`` (tested) keeps the portable code. A launch's fixed cost is most
+of a small batch's: each thread's outputs and parameter rows are kept with their buffers, and
+the kernel's arguments set only when one changes (pyopencl's per-call setting cost ~50 us of CPU,
+fresh megabytes their page faults): kernel CPU per session-frame 0.82x at 1 session a batch,
+0.93x at 10 (``bench/compact_kernel.py --ref`` of the previous commit, load 7).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 from collections import OrderedDict
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -46,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from ....protocol.compact import CompactEncoder, bitmap_size, world_to_cells
+from ....protocol.compact import CompactEncoder, bitmap_size, rigid_motions, world_to_cells
 from .host import ALIGN, HostKernel, aligned_empty
 
 log = logging.getLogger(__name__)
@@ -57,7 +66,8 @@ WG = 8
 
 @dataclass(frozen=True, slots=True)
 class Residuals:
-    """``DeviceCompact.residuals`` of ``J`` frames of ``V`` vertices: ``packed (J, 3 NB + 6 V)
+    """``DeviceCompact.residuals`` of ``J`` frames of ``V`` vertices (views of the calling
+    thread's scratch memory: valid until its next ``residuals``): ``packed (J, 3 NB + 6 V)
     uint8`` (``NB = ceil(V / 8)``) each frame's payload before deflate (its bitmaps of non-zero
     values, those values' bytes 0, then their bytes 1 where flag bit 2 is set); ``nnz (J,)``
     their number; ``new_keys (J, 3, V) float32`` (row j the new key's cells where frame j is a
@@ -78,6 +88,49 @@ class Residuals:
         return n, self.packed[j, : self.head + planes * n].data
 
 
+@dataclass(frozen=True, slots=True)
+class _Scratch:
+    """One thread's kernel outputs for up to ``J`` frames of ``V`` vertices, with their device
+    buffers (over the same host memory): ``packed (J, 3 NB + 6 V) uint8``, ``counts (J, 3, WG)
+    uint32``, and ``out`` (the staged values, then the new keys from byte ``keys_at``)."""
+
+    J: int
+    V: int
+    G: int
+    packed: np.ndarray
+    counts: np.ndarray
+    out: np.ndarray
+    keys_at: int
+    param: np.ndarray  #: (J, 5 + 12 G) uint32: the kernel's rows of parameters
+    packed_buf: Any
+    counts_buf: Any
+    out_buf: Any
+    param_buf: Any
+
+    @staticmethod
+    def make(kernel: HostKernel, J: int, V: int, G: int) -> _Scratch:
+        packed = aligned_empty((J, 3 * bitmap_size(V) + 6 * V), np.uint8)
+        counts = aligned_empty((J, 3, WG), np.uint32)
+        keys_at = -(-J * 6 * V // ALIGN) * ALIGN  # bytes: the new keys start aligned
+        out = aligned_empty((keys_at + J * 12 * V,), np.uint8)
+        param = aligned_empty((J, 5 + 12 * G), np.uint32)
+        mf = kernel._cl.mem_flags  # noqa: SLF001 - the kernel's own module
+        return _Scratch(
+            J,
+            V,
+            G,
+            packed,
+            counts,
+            out,
+            keys_at,
+            param,
+            kernel._host(packed, mf.WRITE_ONLY),  # noqa: SLF001
+            kernel._host(counts, mf.WRITE_ONLY),  # noqa: SLF001
+            kernel._host(out, mf.WRITE_ONLY),  # noqa: SLF001
+            kernel._host(param, mf.READ_WRITE),  # noqa: SLF001
+        )
+
+
 class DeviceCompact(HostKernel):
     """Residual planes of compact frames on one OpenCL context (thread-safe)."""
 
@@ -92,6 +145,9 @@ class DeviceCompact(HostKernel):
         self._pool = np.empty((0, 3, 0), np.float32)
         self._pool_buf: Any = None
         self._slots: OrderedDict[int, tuple[np.ndarray, int]] = OrderedDict()  # id -> (ref, slot)
+        self._local = threading.local()  # per calling thread: its ``_Scratch``
+        self._verts: OrderedDict[int, tuple[Any, int]] = OrderedDict()  # start -> (buffer, bytes)
+        self._args: tuple[Any, ...] | None = None  # the kernel's arguments as last set
 
     def _ref_slots(self, refs: list[np.ndarray], V: int) -> list[int]:
         """The pool slot of each reference (``(3, V) float32``), copied into a free or the least
@@ -142,55 +198,82 @@ class DeviceCompact(HostKernel):
         then known by identity: an array passed here must not be written to afterwards (an
         encoder replaces its reference, never writes into it).
         Returns the frames' ``Residuals``."""
-        cl = self._cl
         if verts.dtype != np.float32 or not verts.flags.c_contiguous or verts.ctypes.data % ALIGN:
             raise ValueError("verts must be C-contiguous, aligned float32")
         J, V = len(frame_of), verts.shape[1]
         if not (J == len(mats) == len(refs) == len(keys) == len(keep2)) or groups.shape != (V,):
             raise ValueError("one matrix set, reference and key flag per frame; a group per vertex")
         nb = bitmap_size(V)
-        packed = aligned_empty((J, 3 * nb + 6 * V), np.uint8)
-        counts = aligned_empty((J, 3, WG), np.uint32)
         if J == 0 or V == 0:
-            packed[:] = 0
+            packed = np.zeros((J, 3 * nb + 6 * V), np.uint8)
             return Residuals(packed, 3 * nb, [0] * J, None, np.zeros(J, np.uint32))
         if not all(0 <= f < verts.shape[0] for f in frame_of):
             raise ValueError("frame_of names a frame verts does not have")
         G = mats[0].shape[0]
         if int(groups.max()) >= G:
             raise ValueError("a vertex's group has no matrix")
-        P = 5 + 12 * G
-        param = aligned_empty((J * P,), np.uint32)
-        rows = param.reshape(J, P)
+        sc = self._scratch_for(J, V, G)
+        packed, counts, rows = sc.packed[:J], sc.counts[:J], sc.param[:J]
         rows[:, 0] = frame_of
         rows[:, 1] = keys
         rows[:, 2] = np.asarray(keep2, np.float32).view(np.uint32)
         rows[:, 3] = 0
         rows[:, 5:] = np.asarray(mats, np.float32).reshape(J, -1).view(np.uint32)
         any_key = any(keys)
-        keys_at = -(-J * 6 * V // ALIGN) * ALIGN  # bytes: the new keys start aligned
-        out = aligned_empty((keys_at + (J * 12 * V if any_key else 4),), np.uint8)
-        mf = cl.mem_flags
+        keys_at, out = sc.keys_at, sc.out
         with self._lock:
             rows[:, 4] = self._ref_slots(refs, V)
-            self._kernel(
-                self.queue,
-                (WG, J),  # one work-group per frame
-                (WG, 1),
+            args = (
                 np.uint32(V),
                 np.uint32(G),
-                self._host(verts, mf.READ_ONLY),
+                self._verts_buffer(verts),
                 self._groups(groups),
-                self._host(param, mf.READ_WRITE),
+                sc.param_buf,
                 self._pool_buf,
-                self._host(out, mf.WRITE_ONLY),
+                sc.out_buf,
                 np.uint32(keys_at // 4),
-                self._host(packed, mf.WRITE_ONLY),
-                self._host(counts, mf.WRITE_ONLY),
+                sc.packed_buf,
+                sc.counts_buf,
+            )
+            if self._args is None or any(
+                a is not b and not (isinstance(a, np.uint32) and a == b)
+                for a, b in zip(args, self._args)
+            ):  # kernel arguments stay set between launches (setting all cost ~50 us of CPU)
+                self._kernel.set_args(*args)
+                self._args = args
+            self._cl.enqueue_nd_range_kernel(
+                self.queue,
+                self._kernel,
+                (WG, J),
+                (WG, 1),  # one work-group per frame
             ).wait()
-        new_keys = out[keys_at:].view(np.float32).reshape(J, 3, V) if any_key else None
+        new_keys = out[keys_at:].view(np.float32)[: J * 3 * V].reshape(J, 3, V) if any_key else None
         nnz = counts.reshape(J, -1).sum(axis=1).tolist()
         return Residuals(packed, 3 * nb, nnz, new_keys, rows[:, 3].copy())
+
+    def _scratch_for(self, J: int, V: int, G: int) -> _Scratch:
+        """This thread's ``_Scratch`` for ``J`` frames of ``V`` vertices in ``G`` groups (made,
+        or grown, on first need; then reused: fresh megabytes each launch cost their page faults,
+        ~20-40 us a frame, and fresh buffers their set-up)."""
+        sc: _Scratch | None = getattr(self._local, "scratch", None)
+        if sc is None or sc.V != V or sc.G != G or sc.J < J:
+            keep = sc.J if sc is not None and (sc.V, sc.G) == (V, G) else 0
+            sc = self._local.scratch = _Scratch.make(self, max(J, keep), V, G)
+        return sc
+
+    def _verts_buffer(self, verts: np.ndarray) -> Any:
+        """A read-only buffer over ``verts``' memory, kept (a few, most recent first) for callers
+        that pass views of one reused array (the batcher's frame buffer): a buffer over the same
+        start and at least as many bytes serves again. Call with ``_lock`` held."""
+        ptr, size = verts.ctypes.data, verts.nbytes
+        hit = self._verts.get(ptr)
+        if hit is None or hit[1] < size:
+            hit = (self._host(verts, self._cl.mem_flags.READ_ONLY), size)
+            self._verts[ptr] = hit  # (the buffer holds verts: its memory stays this array's)
+            while len(self._verts) > 4:
+                self._verts.popitem(last=False)
+        self._verts.move_to_end(ptr)
+        return hit[0]
 
     def _groups(self, groups: np.ndarray) -> Any:
         """A read-only buffer of ``groups``, kept for the face (one per array object)."""
@@ -218,13 +301,16 @@ def encode_batch(
     ``frames[j] = (encoder, frame index, transforms (G, 3, 4), seq, t, wall)``, one frame per
     encoder, encoders of one face. Returns each frame's bytes (``encoder.encode``'s) or the
     ``ValueError`` its encoder raised (the encoder's state then stays as it was). With a
-    ``pool``, the frames are deflated on its threads (outside the GIL) at once."""
+    ``pool``, half the frames are deflated on one of its threads (outside the GIL) while this
+    thread deflates the other half (a task per frame cost ~15-20 us of CPU a frame in hand-overs:
+    ``bench/compact_worker.py --compact-threads 1`` against 2)."""
     out: list[bytes | ValueError] = [ValueError()] * len(frames)
     todo: list[int] = []
     preps: list[tuple[np.ndarray, np.ndarray, np.ndarray, bool, np.ndarray]] = []
+    ok = _rigid(frames)
     for j, (enc, f, T, _seq, t, _wall) in enumerate(frames):
         try:
-            preps.append(enc.prepare(verts[f], T, t=t, matrices=False))
+            preps.append(enc.prepare(verts[f], T, t=t, matrices=False, checked=bool(ok[j])))
             todo.append(j)
         except ValueError as e:
             out[j] = e
@@ -259,12 +345,34 @@ def encode_batch(
         except ValueError as e:
             return e
 
-    n = range(len(todo))
-    for j, r in zip(
-        todo, pool.map(finish, n) if pool is not None and len(n) > 1 else map(finish, n)
-    ):
+    def run(ns: range) -> list[bytes | ValueError]:
+        return [finish(n) for n in ns]
+
+    n = len(todo)
+    if pool is not None and n > 1:  # half on the pool, half here: one hand-over, not one a frame
+        later = pool.submit(run, range(n // 2, n))
+        done = run(range(n // 2)) + later.result()
+    else:
+        done = run(range(n))
+    for j, r in zip(todo, done):
         out[j] = r
     return out
+
+
+def _rigid(frames: list[tuple[CompactEncoder, int, np.ndarray, int, float, float]]) -> np.ndarray:
+    """``(J,) bool``: frame j's transforms are finite rigid motions, checked for the whole batch
+    at once (False where they are not, or not as its encoder wants them: its ``prepare`` then
+    checks, and says what is wrong)."""
+    J = len(frames)
+    if J == 0:
+        return np.zeros(0, bool)
+    g = frames[0][0].n_groups
+    trs = [np.asarray(T, np.float32) for _, _, T, _, _, _ in frames]
+    if any(e.n_groups != g for e, *_ in frames) or any(
+        tr.ndim != 3 or tr.shape[0] < g or tr.shape[1:] != (3, 4) for tr in trs
+    ):
+        return np.zeros(J, bool)
+    return rigid_motions(np.stack([tr[:g] for tr in trs]))
 
 
 def device_compact(deformer: Any) -> DeviceCompact | None:
