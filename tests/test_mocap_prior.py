@@ -272,3 +272,22 @@ def test_live_batcher_adds_the_shapes_as_a_render_does():
             np.testing.assert_allclose(got, anim.frame(batch[i]), atol=1e-6)
             plain = FaceState(t=batch[i].t, controls=batch[i].controls)
             assert not np.allclose(got, anim.frame(plain))
+
+
+def test_operator_rows_are_the_operators_own_axis_matrices(ict):
+    """``rig.operator_rows`` (through ``Operator.axis_matrix``) gives, per axis, each vertex's
+    weights on the first n controls, duplicates summed: the same as walking the CSR rows."""
+    from facecast.server.deform.build import get_operator
+    from facecast.server.mocap.rig import operator_rows
+
+    face, _, _, markers, anchors = ict
+    op = get_operator(face, np.r_[markers, anchors].astype(np.int32), engine="fp")
+    verts = np.r_[markers[:5], face.part("skin")[::997]]
+    n = len(markers)
+    want = np.zeros((len(verts), n, 3))
+    for i, v in enumerate(verts):  # the CSR rows by hand
+        for e in range(op.indptr[v], op.indptr[v + 1]):
+            if op.indices[e] < n:
+                want[i, op.indices[e]] += op.weights[e]
+    got = operator_rows(op, verts, n)
+    assert got.shape == want.shape and np.allclose(got, want, rtol=0, atol=1e-12)

@@ -201,16 +201,9 @@ def apply_operator(op: Operator, values: np.ndarray) -> np.ndarray:
     e = len(values)
     if op.dense is not None:
         return np.einsum("vk,ekc->evc", op.dense.astype(np.float64), values)
-    import scipy.sparse as sp
-
-    assert op.weights is not None  # a sparse operator
     out = np.empty((e, op.n_vertices, 3))
     for c in range(3):
-        m = sp.csr_matrix(
-            (op.weights[:, c].astype(np.float64), op.indices, op.indptr),
-            shape=(op.n_vertices, op.n_controls),
-        )
-        out[:, :, c] = (m @ values[:, :, c].T).T
+        out[:, :, c] = (op.axis_matrix(c) @ values[:, :, c].T).T
     return out
 
 
