@@ -50,8 +50,13 @@ __all__ = ["Processed", "find_layout", "load", "process"]
 #: (0.52 mm mean; 0.23 mm at 0.2); a take with a hold averages its hold (at 0.2 mm the generated
 #: take's stabilised displacements' p95 rose from 0.371 to 0.392 mm, at 0.4 it stays).
 HOLD_MM, STILL_MM = 0.4, 0.2
-#: Batch takes with a face prior refine their head poses with its shapes too
-#: (``stabilise.refine_with_shapes``), after the take's own principal motions (``refine_poses``).
+#: Batch takes with a face prior may refine their head poses with its shapes too
+#: (``stabilise.refine_with_shapes``, ridge ``SHAPE_RIDGE``), after the take's own principal
+#: motions (``refine_poses``). Off: it helps where the prior spans the take and hurts where it does
+#: not. 2-s takes, batch ratio to not deforming, without fast-large fold 1: mirror folds (the
+#: held-out shape's other side in the prior) 0.533 -> 0.524x on issue16 + technician (the ridge
+#: chosen there), 0.718 -> 0.692x on the other variants, head pose 0.106 -> 0.073 deg; strict folds
+#: (whole families held out) 0.605 -> 0.632x and 0.701 -> 0.716x, head pose 0.109 -> 0.111 deg.
 SHAPE_POSE = False
 SHAPE_RIDGE = 0.003
 
