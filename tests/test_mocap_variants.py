@@ -107,6 +107,46 @@ def test_a_take_without_a_neutral_hold_stabilises(tmp_path, ict_head):
     assert np.linalg.norm(got - want, axis=2).mean() < 0.45
 
 
+def test_a_late_neutral_with_the_head_turned_keeps_the_start_as_the_heads_rest(tmp_path, ict_head):
+    """A fast-expression take whose face passes through neutral late, with the head turned 13.8
+    degrees (strict fold 1's expressions): the automatic neutral takes that frame's shape, but the
+    head's rest stays frame 0's, the pose squarer to the capture axes (``neutral.rest_frame``).
+    Taking the neutral frame's pose as the rest turned every output frame by 13.8 degrees."""
+    from facecast.server.mocap.variants import fold_protocol, make_take
+
+    face, names, _ = ict_head
+    held = fold_protocol(names, "strict", 3)[1][0]
+    truth = make_take(
+        "fast-large", tmp_path, seed=2, seconds=2.0, face=face, expressions=held, formats=("c3d",)
+    )
+    proc = _process(truth, face)
+    nf = proc.neutral_frame
+    assert nf > 100 and truth.weights[nf].sum() < 0.01  # a neutral, late
+    assert np.degrees(Rotation.from_matrix(truth.r[nf]).magnitude()) > 10.0  # the head turned
+    err = _angle_deg(proc.rig.head_matrix(proc.r, proc.t)[:, :, :3], truth.r)
+    assert err.mean() < 0.3  # 13.8 before
+
+
+def test_a_neutral_held_at_the_end_with_the_head_at_rest_is_the_heads_rest():
+    """``rest_frame`` between the default frame and the automatic neutral: the one whose head is
+    squarer to the capture axes (any axes: here Z up), by more than the margin."""
+    from facecast.server.mocap.neutral import axis_deviation, rest_frame
+
+    rng = np.random.default_rng(4)
+    target = rng.normal(size=(20, 3)) * 5.0
+    zup = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    turn = Rotation.from_euler("y", 8.0, degrees=True).as_matrix()
+    square = target @ zup.T * 10.0 + 300.0  # mm, 10 mm a face unit
+    turned = target @ (zup @ turn).T * 10.0 + 300.0
+    assert axis_deviation(square, target) < 1e-6
+    assert axis_deviation(turned, target) == pytest.approx(8.0, abs=1e-6)
+    raw = np.stack([turned, square, square])
+    assert rest_frame(raw, target, nf=2, default=0) == 2  # the neutral's head is square: its own
+    raw = np.stack([square, turned, turned])
+    assert rest_frame(raw, target, nf=2, default=0) == 0  # the neutral's head turned: the start's
+    assert rest_frame(raw, target, nf=0, default=0) == 0
+
+
 def test_pose_error_of_a_known_rigid_motion_is_below_the_noise_share(tmp_path, ict_head):
     """A rigid head (no expression): the pose error at the face markers is below what the noise
     alone would leave on one frame's markers (0.5 mm per axis), and matches the reported error."""

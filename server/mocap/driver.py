@@ -25,7 +25,7 @@ from ..state import Animation, FaceState
 from .clean import CleanParams, clean, lowrank_denoise, motion_rank
 from .io import read_take
 from .layout import Layout, load_layout
-from .neutral import find_neutral
+from .neutral import find_neutral, rest_frame, tied_positions
 from .prior import DEFAULT as PRIOR_DEFAULT
 from .rig import MarkerRig, match_names
 from .stabilise import (
@@ -34,6 +34,7 @@ from .stabilise import (
     hold_pose,
     pose_uncertainty,
     refine_poses,
+    refine_with_shapes,
     remove_head,
     smooth_poses,
 )
@@ -49,6 +50,15 @@ __all__ = ["Processed", "find_layout", "load", "process"]
 #: (0.52 mm mean; 0.23 mm at 0.2); a take with a hold averages its hold (at 0.2 mm the generated
 #: take's stabilised displacements' p95 rose from 0.371 to 0.392 mm, at 0.4 it stays).
 HOLD_MM, STILL_MM = 0.4, 0.2
+#: Batch takes with a face prior may refine their head poses with its shapes too
+#: (``stabilise.refine_with_shapes``, ridge ``SHAPE_RIDGE``), after the take's own principal
+#: motions (``refine_poses``). Off: it helps where the prior spans the take and hurts where it does
+#: not. 2-s takes, batch ratio to not deforming, without fast-large fold 1: mirror folds (the
+#: held-out shape's other side in the prior) 0.533 -> 0.524x on issue16 + technician (the ridge
+#: chosen there), 0.718 -> 0.692x on the other variants, head pose 0.106 -> 0.073 deg; strict folds
+#: (whole families held out) 0.605 -> 0.632x and 0.701 -> 0.716x, head pose 0.109 -> 0.111 deg.
+SHAPE_POSE = False
+SHAPE_RIDGE = 0.003
 
 
 @dataclass
@@ -136,7 +146,19 @@ def process(
         )
     params = clean_params or CleanParams()
     nf = neutral_frame if neutral_frame is not None else layout.neutral_frame
-    nf = find_neutral(raw, layout, face, take.fps, where) if nf in (None, "auto") else nf
+    rest = None  # the frame of the head's rest: the neutral frame's unless auto says otherwise
+    if nf in (None, "auto"):
+        nf = find_neutral(raw, layout, face, take.fps, where)
+        default = layout.neutral_frame if isinstance(layout.neutral_frame, int) else 0
+        rest = rest_frame(raw, tied_positions(layout, face), nf, default)
+        if rest != nf:
+            log.info(
+                "%s: the head's rest is frame %d's pose (frame %d's head, the neutral, is turned "
+                "from the capture axes)",
+                where,
+                rest,
+                nf,
+            )
     if not 0 <= nf < n:
         raise InputError(
             f"neutral_frame {nf} is outside the take's {n} frames",
@@ -195,11 +217,18 @@ def process(
     w = round(
         neutral_window * take.fps
     )  # a neutral hold's frames share their pose (stabilise.hold_pose)
-    r[nf], t[nf] = hold_pose(
-        r, t, neutral_frames(local, nf, w, HOLD_MM), nf, np.nanmean(local[nf, stable], 0), w // 4
-    )
-    r0, t0 = r[nf].copy(), t[nf].copy()
-    r, t = reanchor(r, t, nf)
+    if rest is None or rest == nf:
+        rest = nf
+        r[nf], t[nf] = hold_pose(
+            r,
+            t,
+            neutral_frames(local, nf, w, HOLD_MM),
+            nf,
+            np.nanmean(local[nf, stable], 0),
+            w // 4,
+        )
+    r0, t0 = r[rest].copy(), t[rest].copy()
+    r, t = reanchor(r, t, rest)
     local = local @ r0.T + t0
     if params.filter in ("rts", "kalman"):
         unsmoothed = unsmoothed @ r0.T + t0
@@ -223,6 +252,24 @@ def process(
         info["pose_frame_sd_deg"],
         info["pose_frame_sd_mm"],
     )
+    if params.filter == "rts" and params.lowrank != "off" and SHAPE_POSE and prior is not None:
+        rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu, prior=prior)
+        motion = rig.marker_motion()
+        if motion is not None:  # the poses again, the face's motion explained by the prior
+            r, t = refine_with_shapes(
+                filled,
+                r,
+                t,
+                neutral,
+                stable,
+                motion,
+                take.fps,
+                float(np.sqrt(info["r"])),
+                SHAPE_RIDGE,
+            )
+            unsmoothed = remove_head(filled, r, t)
+            local = clean(unsmoothed, take.fps, replace(params, despike=False))[0]
+            neutral = still_neutral(local, nf, round(neutral_window * take.fps))
     if params.filter == "rts" and params.lowrank != "off":
         local, info["lowrank"] = denoise_displacements(
             local, neutral, stable, params.lowrank, unsmoothed=unsmoothed

@@ -26,9 +26,12 @@ log = logging.getLogger(__name__)
 __all__ = [
     "AUTO_RATIO",
     "HOLD_S",
+    "REST_MARGIN_DEG",
     "auto_neutral_frame",
+    "axis_deviation",
     "find_neutral",
     "held_frames",
+    "rest_frame",
     "rest_score",
     "tied_positions",
 ]
@@ -49,6 +52,9 @@ AUTO_RATIO = 2.0
 #: no rule tells from a take that starts on an expression). The neutral-last takes' 0.5 s holds are
 #: found as before (7 of 8).
 HOLD_S = 0.4
+#: ``rest_frame``: the default frame's head pose is the head's rest instead of the automatic
+#: neutral frame's when its face sits this much (degrees) closer to the capture axes.
+REST_MARGIN_DEG = 1.0
 
 
 def tied_positions(layout: Layout, face: Face) -> np.ndarray:
@@ -153,3 +159,43 @@ def find_neutral(
     )
     log.info("%s: neutral frame %d (auto: %s)", where, frame, why)
     return frame
+
+
+def axis_deviation(markers: np.ndarray, target: np.ndarray) -> float:
+    """How far (degrees) the head of ``markers (n, 3)`` (mm, NaN = unseen) is turned from the
+    capture axes: the rotation of the best similarity onto the face at rest ``target (n, 3)``
+    (``tied_positions``) against the nearest axis-aligned rotation (a signed permutation: Y-up,
+    Z-up, facing any axis). inf with fewer than 4 markers seen."""
+    from scipy.spatial.transform import Rotation
+
+    vis = np.isfinite(markers).all(axis=1) & np.isfinite(target).all(axis=1)
+    if vis.sum() < 4:
+        return float("inf")
+    q = similarity(markers[vis], target[vis])[0]
+    best = float("inf")
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        for signs in np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).T.reshape(-1, 3):
+            p = np.zeros((3, 3))
+            p[np.arange(3), perm] = signs
+            if np.linalg.det(p) > 0:
+                best = min(best, float(Rotation.from_matrix(q @ p.T).magnitude()))
+    return float(np.degrees(best))
+
+
+def rest_frame(raw: np.ndarray, target: np.ndarray, nf: int, default: int) -> int:
+    """The frame whose head pose is the output head's rest when the automatic neutral ``nf`` is
+    not the ``default`` frame: ``default`` when its head sits ``REST_MARGIN_DEG`` closer to the
+    capture axes (``axis_deviation``; ``raw (T, L, 3)`` mm, ``target`` ``tied_positions``), else
+    ``nf``.
+
+    A face passes through neutral between fast expressions, and a take may hold its neutral late
+    with the head turned: the neutral's shape is right there, but taking its pose as the head's rest
+    turned every output frame (a fast-expression take: 13.8 degrees, 41.7x not deforming). A take
+    that ends on its neutral hold with the head at rest (and starts turned) keeps the hold's pose.
+    Captures set their axes square to the actor (Y or Z up, facing an axis), so of the two
+    candidate rests the one squarer to them is taken; each is within a few hundredths of a degree of
+    its true turn on generated takes (0.5 mm noise, one frame)."""
+    if nf == default or not 0 <= default < len(raw):
+        return nf
+    own, other = axis_deviation(raw[nf], target), axis_deviation(raw[default], target)
+    return default if other + REST_MARGIN_DEG < own else nf

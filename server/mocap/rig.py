@@ -302,16 +302,9 @@ def _prior(face: Face, source, markers: np.ndarray, anchors: np.ndarray) -> Expr
 
 def operator_rows(op, vertices: np.ndarray, n: int) -> np.ndarray:
     """``(N, n, 3)`` per-axis weights of the first ``n`` controls at ``vertices`` of an operator."""
-    rows = np.zeros((len(vertices), n, 3))
-    if op.is_sparse:
-        for i, v in enumerate(vertices):
-            lo, hi = op.indptr[v], op.indptr[v + 1]
-            idx, wts = op.indices[lo:hi], op.weights[lo:hi]
-            sel = idx < n
-            np.add.at(rows[i], idx[sel], wts[sel])
-    else:
-        rows[:] = op.dense[vertices, :n, None]
-    return rows
+    if not op.is_sparse:
+        return np.repeat(op.dense[vertices, :n, None].astype(np.float64), 3, axis=2)
+    return np.stack([op.axis_matrix(a)[vertices][:, :n].toarray() for a in range(3)], axis=2)
 
 
 def check_vertex_fit(layout: Layout, face: Face, placement, actor_mm: np.ndarray) -> dict:
