@@ -112,8 +112,23 @@ def test_blockwise_analysis_equals_one_block(rng, monkeypatch):
     monkeypatch.setattr(lpc, "BLOCK", 7)
     monkeypatch.setattr(lpc, "SMALL", 0)  # the same (vectorised) arithmetic as the whole
     parts = analyze(x, sr=10000)
-    np.testing.assert_array_equal(parts.k, whole.k)
-    np.testing.assert_array_equal(parts.energy_db, whole.energy_db)
+    # equal to rounding: the autocorrelation's matrix product (``_autocorr_basis``) may round
+    # differently for another number of rows
+    np.testing.assert_allclose(parts.k, whole.k, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(parts.energy_db, whole.energy_db, rtol=0, atol=1e-10)
+
+
+def test_autocorrelation_basis_equals_the_inverse_fft(rng):
+    """``p @ _autocorr_basis(n, order)`` is the first ``order + 1`` lags of ``irfft(p, n)``."""
+    from facecast.server.audio.lpc import _autocorr_basis
+
+    for n in (256, 512):
+        y = rng.standard_normal((5, n // 2 + 20))
+        spec = np.fft.rfft(y, n=n)
+        p = spec.real**2 + spec.imag**2
+        np.testing.assert_allclose(
+            p @ _autocorr_basis(n, 12), np.fft.irfft(p, n=n)[:, :13], rtol=0, atol=1e-10
+        )
 
 
 def test_scalar_path_for_few_frames_equals_the_vectorised_one(rng, monkeypatch):

@@ -252,6 +252,18 @@ def cepstrum(a: np.ndarray, n: int = ORDER) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
+def _autocorr_basis(n_fft: int, order: int) -> np.ndarray:
+    """``(n_fft//2 + 1, order + 1)``: a power spectrum ``p`` of ``n_fft`` points times this is
+    ``irfft(p, n_fft)[:order + 1]`` (the autocorrelation's first lags), one small matrix product
+    instead of a whole inverse FFT per frame (read-only, made once)."""
+    m = np.arange(n_fft // 2 + 1)[:, None]
+    w = np.where((m == 0) | (2 * m == n_fft), 1.0, 2.0) / n_fft
+    basis = w * np.cos(2 * np.pi * m * np.arange(order + 1)[None, :] / n_fft)
+    basis.flags.writeable = False
+    return basis
+
+
+@functools.lru_cache(maxsize=8)
 def _hamming(n: int) -> np.ndarray:
     """``np.hamming(n)``, made once per length."""
     w = np.hamming(n)
@@ -267,8 +279,8 @@ def analyze_frames(
     order: int = ORDER,
 ) -> tuple[np.ndarray, ...]:
     """LPC features of already-cut frames. The autocorrelation comes from the frame's power
-    spectrum (one FFT, zero-padded past ``N + order`` so no lag wraps), which also gives the
-    spectral shape.
+    spectrum (one FFT, zero-padded past ``N + order`` so no lag wraps; its first lags by
+    ``_autocorr_basis``), which also gives the spectral shape.
 
     Args:
         raw_frames: ``(T, N)`` frames of the signal (for the zero-crossing rate).
@@ -282,7 +294,7 @@ def analyze_frames(
     n_r = n_fft if n_fft >= n + order else 2 * n_fft
     spec = np.fft.rfft(y, n=n_r)
     p = spec.real**2 + spec.imag**2
-    r = np.fft.irfft(p, n=n_r)[..., : order + 1]
+    r = p @ _autocorr_basis(n_r, order)
     a, k, _ = levinson(r, order=order)
     energy_db = 10.0 * np.log10(np.maximum(r[..., 0], 0.0) / n + 1e-12)
     shape = _shape_of_power(p if n_r == n_fft else p[..., ::2], n_fft, sr)
