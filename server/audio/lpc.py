@@ -86,6 +86,11 @@ def autocorrelate(frames: np.ndarray, *, max_lag: int) -> np.ndarray:
 #: Up to this many frames, ``levinson`` and ``cepstrum`` run a scalar loop per frame: NumPy's
 #: per-call overhead dominates on the live path's one or two frames per chunk (10x faster there).
 SMALL = 8
+#: ``levinson`` treats frames with ``R0`` at or below this as digital silence (mean power near
+#: -220 dB, far below any recording's noise floor): on the decaying tails of filters, whose
+#: samples reach the denormal range, the prediction error would underflow to 0 and the
+#: recursion give NaN.
+SILENT_R0 = 1e-20
 
 
 def levinson(r: np.ndarray, *, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -97,7 +102,8 @@ def levinson(r: np.ndarray, *, order: int) -> tuple[np.ndarray, np.ndarray, np.n
     Returns:
         ``(a, k, err)``: ``a (..., p+1)`` predictor polynomial with ``a[..., 0] = 1``;
         ``k (..., p)`` reflection coefficients in (-1, 1); ``err (...,)`` final prediction-error
-        power. Frames with ``R0 <= 0`` (digital silence) give ``a = [1, 0, ...]``, ``k = 0``.
+        power. Frames with ``R0 <= SILENT_R0`` (digital silence) give ``a = [1, 0, ...]``,
+        ``k = 0``.
     """
     r = np.asarray(r, dtype=np.float64)
     lead = r.shape[:-1]
@@ -113,7 +119,7 @@ def _levinson_rows(r: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, n
     a[:, 0] = 1.0
     k = np.zeros((T, order))
     err = r[:, 0].copy()
-    silent = ~(err > 0)
+    silent = ~(err > SILENT_R0)
     err[silent] = np.inf  # digital silence: every k is 0
     for i in range(1, order + 1):
         acc = r[:, i] + np.einsum("ij,ij->i", a[:, 1:i], r[:, i - 1 : 0 : -1])
@@ -134,7 +140,7 @@ def _levinson_small(r: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, 
     A[:, 0] = 1.0
     for t, row in enumerate(r.tolist()):
         err = row[0]
-        if not err > 0:
+        if not err > SILENT_R0:
             continue
         a, ks = [1.0] + [0.0] * order, [0.0] * order
         for i in range(1, order + 1):
