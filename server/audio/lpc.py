@@ -86,6 +86,11 @@ def autocorrelate(frames: np.ndarray, *, max_lag: int) -> np.ndarray:
 #: Up to this many frames, ``levinson`` and ``cepstrum`` run a scalar loop per frame: NumPy's
 #: per-call overhead dominates on the live path's one or two frames per chunk (10x faster there).
 SMALL = 8
+#: ``levinson`` treats frames with ``R0`` at or below this as digital silence (mean power near
+#: -220 dB, far below any recording's noise floor): on the decaying tails of filters, whose
+#: samples reach the denormal range, the prediction error would underflow to 0 and the
+#: recursion give NaN.
+SILENT_R0 = 1e-20
 
 
 def levinson(r: np.ndarray, *, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -97,7 +102,8 @@ def levinson(r: np.ndarray, *, order: int) -> tuple[np.ndarray, np.ndarray, np.n
     Returns:
         ``(a, k, err)``: ``a (..., p+1)`` predictor polynomial with ``a[..., 0] = 1``;
         ``k (..., p)`` reflection coefficients in (-1, 1); ``err (...,)`` final prediction-error
-        power. Frames with ``R0 <= 0`` (digital silence) give ``a = [1, 0, ...]``, ``k = 0``.
+        power. Frames with ``R0 <= SILENT_R0`` (digital silence) give ``a = [1, 0, ...]``,
+        ``k = 0``.
     """
     r = np.asarray(r, dtype=np.float64)
     lead = r.shape[:-1]
@@ -113,7 +119,7 @@ def _levinson_rows(r: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, n
     a[:, 0] = 1.0
     k = np.zeros((T, order))
     err = r[:, 0].copy()
-    silent = ~(err > 0)
+    silent = ~(err > SILENT_R0)
     err[silent] = np.inf  # digital silence: every k is 0
     for i in range(1, order + 1):
         acc = r[:, i] + np.einsum("ij,ij->i", a[:, 1:i], r[:, i - 1 : 0 : -1])
@@ -134,7 +140,7 @@ def _levinson_small(r: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, 
     A[:, 0] = 1.0
     for t, row in enumerate(r.tolist()):
         err = row[0]
-        if not err > 0:
+        if not err > SILENT_R0:
             continue
         a, ks = [1.0] + [0.0] * order, [0.0] * order
         for i in range(1, order + 1):
@@ -252,6 +258,18 @@ def cepstrum(a: np.ndarray, n: int = ORDER) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
+def _autocorr_basis(n_fft: int, order: int) -> np.ndarray:
+    """``(n_fft//2 + 1, order + 1)``: a power spectrum ``p`` of ``n_fft`` points times this is
+    ``irfft(p, n_fft)[:order + 1]`` (the autocorrelation's first lags), one small matrix product
+    instead of a whole inverse FFT per frame (read-only, made once)."""
+    m = np.arange(n_fft // 2 + 1)[:, None]
+    w = np.where((m == 0) | (2 * m == n_fft), 1.0, 2.0) / n_fft
+    basis = w * np.cos(2 * np.pi * m * np.arange(order + 1)[None, :] / n_fft)
+    basis.flags.writeable = False
+    return basis
+
+
+@functools.lru_cache(maxsize=8)
 def _hamming(n: int) -> np.ndarray:
     """``np.hamming(n)``, made once per length."""
     w = np.hamming(n)
@@ -267,8 +285,8 @@ def analyze_frames(
     order: int = ORDER,
 ) -> tuple[np.ndarray, ...]:
     """LPC features of already-cut frames. The autocorrelation comes from the frame's power
-    spectrum (one FFT, zero-padded past ``N + order`` so no lag wraps), which also gives the
-    spectral shape.
+    spectrum (one FFT, zero-padded past ``N + order`` so no lag wraps; its first lags by
+    ``_autocorr_basis``), which also gives the spectral shape.
 
     Args:
         raw_frames: ``(T, N)`` frames of the signal (for the zero-crossing rate).
@@ -282,7 +300,7 @@ def analyze_frames(
     n_r = n_fft if n_fft >= n + order else 2 * n_fft
     spec = np.fft.rfft(y, n=n_r)
     p = spec.real**2 + spec.imag**2
-    r = np.fft.irfft(p, n=n_r)[..., : order + 1]
+    r = p @ _autocorr_basis(n_r, order)
     a, k, _ = levinson(r, order=order)
     energy_db = 10.0 * np.log10(np.maximum(r[..., 0], 0.0) / n + 1e-12)
     shape = _shape_of_power(p if n_r == n_fft else p[..., ::2], n_fft, sr)
