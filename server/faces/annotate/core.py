@@ -634,8 +634,8 @@ def _feature_points(
             cands = [
                 sim.apply(start[tpl.feature_points[fp]][None])[0] for start, sim in piece_fit[key]
             ]
-            near = [float(trees[key][0].query(c)[0]) for c in cands]
-            p = cands[0] if near[0] <= FP_REACH_MM or near[1] >= near[0] else cands[1]
+            gaps = [float(trees[key][0].query(c)[0]) for c in cands]
+            p = cands[0] if gaps[0] <= FP_REACH_MM or gaps[1] >= gaps[0] else cands[1]
         d, i = trees[key][0].query(p, k=min(16, len(trees[key][1])))
         wanted.append((float(np.atleast_1d(d)[0]), fp, key, np.atleast_1d(d), np.atleast_1d(i)))
         aim[fp] = p
