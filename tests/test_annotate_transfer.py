@@ -137,3 +137,67 @@ def test_an_asymmetric_face_where_the_warp_put_it_is_kept():
     before = dict(fps)
     _mirror(pts, fps, aim, tpl, (tree, ids), set(fps.values()), {})
     assert fps == before
+
+
+def test_a_coarse_heads_teeth_are_not_cut_at_the_mouth_slit():
+    """At 2k vertices each tooth is its own piece, and the upper incisors reach below the slit: cut
+    at the slit, their tips went to the lower jaw, and 9.10 (upper teeth) landed 7.8 mm up the gum."""
+    from facecast.server.deform.mesh_graph import components, edge_graph
+    from facecast.server.faces.annotate.core import weld
+
+    face = build_default_head(2000)
+    auto = annotate_mesh(face.vertices, face.triangles)
+    rep, wtri = weld(face.vertices, face.triangles)
+    piece = components(edge_graph(face.vertices, wtri))[rep]
+    part = np.full(len(face.vertices), "", dtype=object)
+    for name in ("teeth_upper", "teeth_lower", "gums_upper", "gums_lower", "tongue"):
+        for r in auto["parts"].get(name, []):
+            a, b = (r, r) if isinstance(r, int) else r
+            part[a : b + 1] = name
+    upper = part == "teeth_upper"
+    for c in np.unique(piece[upper]):
+        # every upper tooth rides with the head as a whole (none split onto the lower jaw)
+        names = set(part[piece == c])
+        assert not names & {"teeth_lower", "gums_lower", "tongue"}, names
+    v = face.vertices.astype(np.float64)
+    assert np.linalg.norm(v[auto["feature_points"]["9.10"]] - v[face.feature_points["9.10"]]) < 2.0
+
+
+@pytest.fixture(scope="module")
+def short_face():
+    """A short face with a short chin and a wide jaw (a tuning head of bench/annotate.py)."""
+    return _errors(
+        build_default_head(
+            8000, face_height=117.0, chin_length=43.0, jaw_width=110.0, mouth_width=53.0
+        )
+    )
+
+
+def test_a_short_faces_jaw_angle_follows_its_chin(short_face):
+    """The eyes, nose and mouth cannot say how long the chin is: a short face's jaw angle landed
+    5.9 mm low (slid under the wider jaw's corner) and its chin points 2-4 mm off. The gnathion
+    found on the profile sets the jaw angle's height, and the jaw's width is where the mesh is."""
+    assert max(short_face[k] for k in ("2.13", "2.14")) < 2.5
+    assert max(short_face[k] for k in ("2.1", "2.10", "2.11", "2.12")) < 2.5
+    assert max(short_face.values()) < 6.0
+
+
+def test_the_gnathion_is_where_the_chins_front_turns_under():
+    """On a synthetic profile (a vertical chin front at z = 90 down to y = -95, a 45-degree turn,
+    a receding underside, then a gently sloping neck) the gnathion is the turn; a profile cut at
+    the chin (a mask) has none."""
+    from facecast.server.faces.annotate.detect import gnathion
+
+    ys = np.arange(-160.0, -60.0, 1.0)
+    # z(y): 90 above -95; below, a circle of radius 10 turning under, then the underside and neck
+    z = np.where(ys >= -95, 90.0, 90.0 - (10 - np.sqrt(np.clip(100 - (ys + 95) ** 2, 0, None))))
+    under = ys < -105
+    z[under] = 80.0 - 3.0 * (-105 - ys[under])  # the underside, receding 3 mm per mm
+    neck = z < 40
+    z[neck] = 40.0 - 0.3 * (np.nonzero(neck)[0][0] - np.arange(len(ys)))[neck].clip(0)
+    g = gnathion(ys, z, start_y=-70.0)
+    assert g is not None
+    # on the circle the tangent is 45 degrees at 10 / sqrt(2) mm below its top
+    assert abs(g[1] - (-95 - 10 / np.sqrt(2))) < 1.0
+    cut = ys >= -100
+    assert gnathion(ys[cut], np.where(ys[cut] >= -95, 90.0, z[cut]), start_y=-70.0) is None

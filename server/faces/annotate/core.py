@@ -38,7 +38,8 @@ MIRROR_MM, MIRROR_OFF_MM = 3.0, 1.5
 #: Largest angle (degrees) between the alignment and the mesh's own axes that is taken as the
 #: alignment's error, not the head's tilt (cranial points then take their direction in the axes).
 UPRIGHT_DEG = 10.0
-#: The jaw's corners (gonion), placed by the face's landmarks (``_face_fit``), not the warp.
+#: The jaw's corners (gonion), placed by the face's landmarks and the chin (``_face_fit``), not the
+#: warp.
 JAW_ANGLE = ("2.13", "2.14")
 #: ``_face_fit``: landmarks it needs, and the largest scale (either way) it may have.
 FACE_MIN_ANCHORS, FACE_MAX_SCALE = 6, 1.15
@@ -222,7 +223,7 @@ def annotate_mesh(
     if off_axis > UPRIGHT_DEG:
         upright = np.eye(3)
     ears = _fit_ears(y, label, surface, wtri, warped, tpl)
-    face = _face_fit(anchors)
+    face = _face_fit(anchors, found)
     fps, left_out, approximate = _feature_points(
         y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright, ears, face
     )
@@ -509,6 +510,12 @@ def _mouth_parts(
         upper = np.char.endswith(name, "_upper").mean()
         if close and (upper > 0.7 or upper < 0.3):
             above[:] = upper > 0.5
+        elif close and teeth.mean() > 0.5:
+            # a tooth is never cut at the slit (upper incisors reach below it): the whole piece
+            # goes with the jaw the template's names mostly say, on a tie the one it reaches into
+            # farther
+            reach_up = float(y[ids, 1].max()) - slit_y > slit_y - float(y[ids, 1].min())
+            above[:] = upper > 0.5 or (upper == 0.5 and reach_up)
         elif above.mean() > 0.8 or above.mean() < 0.2:
             above[:] = above.mean() > 0.5
         if teeth.mean() > 0.8 or teeth.mean() < 0.2 or above.all() or not above.any():
@@ -538,7 +545,7 @@ def _feature_points(
     tri,
     upright: np.ndarray,
     ears=(),
-    face: tuple[Similarity, Similarity] | None = None,
+    face: tuple[Similarity, Similarity, np.ndarray] | None = None,
 ) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
@@ -605,8 +612,11 @@ def _feature_points(
             p = _radial(p, t, centre, y, *trees["skin"])
         if fp in JAW_ANGLE and face is not None:
             # The smooth jaw lets the warp slide its corner along it: the template's corner as the
-            # face's landmarks place it (with their scale) is nearer.
-            p = face[1].apply(tpl.fp_position(fp)[None])[0]
+            # face's landmarks place it (with their scale), at the height the chin says, is nearer.
+            p = face[1].apply(tpl.fp_position(fp)[None])[0] + face[2]
+            # ... and as wide as the mesh's jaw is there: sideways from the midline onto the mesh
+            # (the nearest surface to a point inside a wider jaw lies lower, under the corner)
+            p = _radial(p, p, p * [0.0, 1.0, 1.0], y, *trees["skin"])
         ear = _ear_of(fp, tpl, ears)
         if key == "skin" and ear is not None:
             ids_t, e_sim, e_ids, joint = ear
@@ -619,8 +629,13 @@ def _feature_points(
         if key != "skin" and key == part:
             if key not in piece_fit:
                 piece_fit[key] = _fit_piece_from(warped, tpl, key, y[parts[key]])
-            start, sim = piece_fit[key]
-            p = sim.apply(start[tpl.feature_points[fp]][None])[0]
+            # from the start that fits the piece better; where that leaves the point beyond reach
+            # of the mesh's piece (a piece of another family, partly named otherwise), the other
+            cands = [
+                sim.apply(start[tpl.feature_points[fp]][None])[0] for start, sim in piece_fit[key]
+            ]
+            gaps = [float(trees[key][0].query(c)[0]) for c in cands]
+            p = cands[0] if gaps[0] <= FP_REACH_MM or gaps[1] >= gaps[0] else cands[1]
         d, i = trees[key][0].query(p, k=min(16, len(trees[key][1])))
         wanted.append((float(np.atleast_1d(d)[0]), fp, key, np.atleast_1d(d), np.atleast_1d(i)))
         aim[fp] = p
@@ -674,24 +689,37 @@ def _feature_points(
     return fps, left_out, approximate
 
 
-def _face_fit(anchors) -> tuple[Similarity, Similarity] | None:
-    """``(rigid, similarity)`` (template frame) taking the template's landmarks onto the mesh's
-    (``anchors``: ``(src, dst)``), when there are ``FACE_MIN_ANCHORS`` and they stay within
-    ``UPRIGHT_DEG`` and ``FACE_MAX_SCALE`` of the alignment; else None.
+def _face_fit(
+    anchors: tuple[np.ndarray, np.ndarray] | None, found: list[str]
+) -> tuple[Similarity, Similarity, np.ndarray] | None:
+    """``(rigid, similarity, jaw shift)`` (template frame) taking the template's landmarks onto the
+    mesh's (``anchors``: ``(src, dst)``, named by ``found``), when there are ``FACE_MIN_ANCHORS``
+    besides the chin and they stay within ``UPRIGHT_DEG`` and ``FACE_MAX_SCALE`` of the alignment;
+    else None.
 
     The alignment fits the whole head, so a longer or broader skull turns and shrinks the face by
     a few degrees and per cent in it. The cranial points are placed by rays from the skull's
     centre as the face implies it (where the template's would be behind the mesh's face, turned
     and shifted with it but not scaled: a smaller face is not a smaller skull); the jaw's corners
-    where the face (scaled) puts them."""
-    if anchors is None or len(anchors[0]) < FACE_MIN_ANCHORS:
+    where the face (scaled) puts them, moved up or down (``(3,)``, mm) as far as the mesh's chin
+    (the gnathion) lies above or below where the face puts the template's. The chin is left out of
+    the fit itself: its length varies apart from the eyes, nose and mouth."""
+    if anchors is None:
         return None
-    fit = umeyama(anchors[0], anchors[1])
-    rigid = umeyama(anchors[0], anchors[1], scale=1.0)
+    chin = np.array([k == "gnathion" for k in found], bool)
+    src, dst = anchors[0][~chin], anchors[1][~chin]
+    if len(src) < FACE_MIN_ANCHORS:
+        return None
+    fit = umeyama(src, dst)
+    rigid = umeyama(src, dst, scale=1.0)
     turn = max(_angle_deg(fit.rotation), _angle_deg(rigid.rotation))
     if turn > UPRIGHT_DEG or abs(np.log(fit.scale)) > np.log(FACE_MAX_SCALE):
         return None
-    return rigid, fit
+    shift = np.zeros(3)
+    if chin.any():
+        g = int(np.argmax(chin))
+        shift[1] = anchors[1][g][1] - fit.apply(anchors[0][g][None])[0][1]
+    return rigid, fit, shift
 
 
 def _ear_of(fp: str, tpl: Template, ears) -> tuple | None:
@@ -801,23 +829,23 @@ def _ring(y: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 def _fit_piece_from(
     warped: np.ndarray, tpl: Template, key: str, dst: np.ndarray
-) -> tuple[np.ndarray, Similarity]:
-    """``(start, fit)``: the template piece ``key`` fitted rigidly onto the mesh's ``dst (M, 3)``
-    from the warped template or from the template as aligned (``start``: the template's vertices
-    it starts from, ``(N, 3)``), whichever ends nearer the mesh's piece (median both ways). The warp
+) -> list[tuple[np.ndarray, Similarity]]:
+    """``[(start, fit)]``: the template piece ``key`` fitted rigidly onto the mesh's ``dst (M, 3)``
+    from the warped template and from the template as aligned (``start``: the template's vertices
+    it starts from, ``(N, 3)``), the one that ends nearer the mesh's piece (median both ways)
+    first. The warp
     fits the skin; inside the mouth its field only extends the lips' displacement, which on a
     coarse mesh's chordal lips can push the teeth and tongue off by several mm."""
     tree = cKDTree(dst)
     sel = tpl.label == 2 + PIECE_PARTS.index(key)
-    best = None
+    fits = []
     for start in (warped, tpl.vertices):
         sim = _fit_piece(start[sel], dst, tree)
         moved = sim.apply(start[sel])
         gap = float(np.median(tree.query(moved)[0]) + np.median(cKDTree(moved).query(dst)[0]))
-        if best is None or gap < best[0]:
-            best = (gap, start, sim)
-    assert best is not None
-    return best[1], best[2]
+        fits.append((gap, start, sim))
+    fits.sort(key=lambda f: f[0])
+    return [(start, sim) for _, start, sim in fits]
 
 
 def _fit_piece(src: np.ndarray, dst: np.ndarray, tree: cKDTree, iterations: int = 12) -> Similarity:

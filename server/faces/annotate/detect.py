@@ -4,8 +4,10 @@ mm, y up, z forward, the face's midline near x = 0).
 The midline profile (the front-most surface point every millimetre of height within a thin slab
 around x = 0) rises and falls in a fixed order going down from the nose tip: subnasale (dip), upper
 lip (bump), mouth slit (dip), lower lip (bump), the fold under the lip (dip), chin (bump); the
-nasion is the deepest point above the tip. The same detector runs on the template and on the mesh,
-so the pairs it finds pull the template's features onto the mesh's during the warp.
+nasion is the deepest point above the tip. Below the lower lip, the gnathion is where the chin's
+front turns under towards the neck (``gnathion``): it says how long the chin is. The same detector
+runs on the template and on the mesh, so the pairs it finds pull the template's features onto the
+mesh's during the warp.
 """
 
 from __future__ import annotations
@@ -14,7 +16,20 @@ import numpy as np
 from scipy.signal import find_peaks
 
 #: Names of the profile landmarks, in order from the top.
-PROFILE = ("nasion", "tip", "subnasale", "lip_upper", "slit", "lip_lower", "fold", "chin")
+PROFILE = (
+    "nasion",
+    "tip",
+    "subnasale",
+    "lip_upper",
+    "slit",
+    "lip_lower",
+    "fold",
+    "chin",
+    "gnathion",
+)
+#: ``gnathion``: the profile's slope (mm of depth lost per mm of height, going down: 45 degrees) where
+#: the chin turns under, and how far (mm) below the lower lip it is looked for.
+GNATHION_SLOPE, GNATHION_SPAN_MM = 1.0, 50.0
 
 
 def midline_section(
@@ -186,7 +201,42 @@ def profile_landmarks(
         ):
             del out["nasion"]
     out.update(below)
+    start = [out[k][1] for k in ("lip_lower", "fold", "chin") if k in out]
+    g = gnathion(ys, z, float(min(start))) if start else None
+    if g is not None and expect is not None and "tip" in expect:
+        if "gnathion" not in expect:
+            g = None
+        else:
+            ratio = (ys[i_tip] - g[1]) / max(expect["tip"] - expect["gnathion"], 1e-6)
+            if not _plausible(np.array([ratio]), np.array([g[1]]), expect["gnathion"])[0]:
+                g = None
+    if g is not None:
+        out["gnathion"] = g
     return out
+
+
+def gnathion(ys: np.ndarray, z: np.ndarray, start_y: float) -> np.ndarray | None:
+    """The chin's lower front corner ``(3,)`` on the midline profile ``(ys, z)`` (``midline_profile``),
+    or None: within ``GNATHION_SPAN_MM`` below ``start_y`` (the lower lip, or the chin's bump), the
+    profile point farthest forward and down at 45 degrees (largest z - y: where the chin's front
+    turns under towards the neck), refined to where the profile's slope passes 1. None when that
+    is at either end of the span (the lip's underside, or a neck: no chin turns there; a mask cut
+    at the chin)."""
+    span = (ys <= start_y) & (ys >= start_y - GNATHION_SPAN_MM)
+    idx = np.nonzero(span)[0]
+    if len(idx) < 5:
+        return None
+    k = int(idx[np.argmax(z[idx] - GNATHION_SLOPE * ys[idx])])
+    if k <= idx[0] + 1 or k >= idx[-1] - 1:
+        return None
+    slope = np.gradient(z, ys)  # dz/dy: above 1 below the corner, under 1 above it
+    y = float(ys[k])
+    for a, b in ((k - 1, k), (k, k + 1)):
+        sa, sb = slope[a] - GNATHION_SLOPE, slope[b] - GNATHION_SLOPE
+        if sa * sb <= 0 and sa != sb:
+            y = float(ys[a] + sa / (sa - sb) * (ys[b] - ys[a]))
+            break
+    return np.array([0.0, y, float(np.interp(y, ys, z))])
 
 
 def _plausible(ratio: np.ndarray, y: np.ndarray, expect_y: float) -> np.ndarray:
