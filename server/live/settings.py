@@ -23,8 +23,9 @@ class LiveSettings:
     coalesce_ms: longest wait of a batch for more frames (``FACECAST_LIVE_COALESCE_MS``; 0, no
         wait). On the shared 2-core machine (load 5-9) batches of 20 sessions held 6-13 frames
         by themselves and a 3 ms wait changed nothing measurable.
-    compact_threads: threads encoding ``compact`` frames at once
-        (``FACECAST_LIVE_COMPACT_THREADS``; the CPU count).
+    compact_threads: threads encoding ``compact`` frames at once on the host
+        (``FACECAST_LIVE_COMPACT_THREADS``; the CPU count). Batches encoded on the device are
+        deflated in the batcher's own thread.
     device_quantize: quantise int16 frames on the OpenCL device when it shares host memory
         (``FACECAST_LIVE_DEVICE_QUANTIZE``; true).
     direct: write vertex frames straight to viewers' transports (``FACECAST_LIVE_DIRECT``;
