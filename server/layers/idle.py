@@ -121,7 +121,8 @@ class IdleLayer:
     _blink_starts: list[float] = field(init=False, repr=False, compare=False)
     _fix: list[list[float]] = field(init=False, repr=False, compare=False)
     _fix_starts: list[float] = field(init=False, repr=False, compare=False)
-    _flags: tuple[float, float, float, float] = field(init=False, repr=False, compare=False)
+    _scale: float = field(init=False, repr=False, compare=False)
+    _factors: tuple[float, float, float] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
@@ -146,17 +147,16 @@ class IdleLayer:
         object.__setattr__(self, "_blink_starts", b[:, 0].tolist())
         object.__setattr__(self, "_fix", f.tolist())
         object.__setattr__(self, "_fix_starts", f[:, 0].tolist())
-        flags = float(self.saccades), float(self.sway), float(self.breathing), self.amount
-        object.__setattr__(self, "_flags", flags)
+        a = self.amount * AU_PER_DEG
+        object.__setattr__(self, "_scale", a)
+        sway, breath = float(self.sway), float(self.breathing)
+        object.__setattr__(
+            self, "_factors", (a * sway, a * 0.3 * breath, self.amount * 20.0 * breath)
+        )
 
     @property
     def end(self) -> float | None:
         return None
-
-    @property
-    def flags(self) -> tuple[float, float, float, float]:
-        """Saccades, sway, breathing (1.0 or 0.0) and the amount: ``sample_many``'s row."""
-        return self._flags
 
     def closure(self, t: float) -> float:
         """Lid closure 0..1 at ``t`` (s)."""
@@ -174,11 +174,18 @@ class IdleLayer:
             return prev[1] + (cur[1] - prev[1]) * u, prev[2] + (cur[2] - prev[2]) * u
         return cur[1], cur[2]
 
-    def events(self, t: float) -> tuple[float, float, float]:
-        """The eyes' ``(yaw, pitch)`` (degrees, before ``amount``; 0 without saccades) and the
-        lids' closure at ``t`` (s): ``sample_many``'s row."""
-        yaw, pitch = self.gaze(t) if self.saccades else (0.0, 0.0)
-        return yaw, pitch, self.closure(t) if self.blinks else 0.0
+    def row(self, t: float) -> list[float]:
+        """``sample_many``'s row at ``t`` (s): the eyes' yaw and pitch (AU, ``amount`` applied; 0
+        without saccades), the lids' closure (0 without blinks), and what scales the sines: the
+        sway's (AU), the breath's head pitch (AU) and the nostrils' flare (0 for a part off)."""
+        a = self._scale
+        yaw = pitch = c = 0.0
+        if self.saccades:
+            yaw, pitch = self.gaze(t)
+            yaw, pitch = a * yaw, a * pitch
+        if self.blinks:
+            c = self.closure(t)
+        return [yaw, pitch, c, *self._factors]
 
     def sample(self, t: float) -> Contribution:
         """One frame in Python floats (cheaper than ``sample_many`` for one)."""
@@ -206,19 +213,19 @@ class IdleLayer:
     @staticmethod
     def sample_many(layers: Sequence[IdleLayer], ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``layers[k]`` at ``ts[k]`` (s), all at once: the FAP offsets ``(K, 69)`` (saccades,
-        sway, breathing) and the lid closure ``(K,)`` 0..1 (a blink: ``CLOSED_LIDS`` by it)."""
+        sway, breathing) and the lid closure ``(K,)`` 0..1 (a blink: ``CLOSED_LIDS`` by it).
+        The events (fixations, blinks) are looked up row by row, the sines computed together."""
         K = len(layers)
-        faps = np.zeros((K, N))
-        flags = np.array([x.flags for x in layers])  # (K, 4): saccades, sway, breathing; amount
-        events = np.array([x.events(t) for x, t in zip(layers, ts.tolist())])  # (K, 3)
-        closure = events[:, 2]
-        amount = flags[:, 3]
-        a = amount * AU_PER_DEG
+        flat: list[float] = []
+        for x, t in zip(layers, ts.tolist()):
+            flat += x.row(t)
+        V = np.array(flat).reshape(K, 6)
         S = np.sin(np.multiply.outer(2 * math.pi * ts, _RATES) + _PHASES)  # (K, 5)
-        faps[:, 23] = faps[:, 24] = a * events[:, 0]
-        faps[:, 25] = faps[:, 26] = a * events[:, 1]
-        faps[:, 48:51] = (a * flags[:, 1])[:, None] * (S[:, :4] @ _SWAY)
-        b = S[:, 4] * flags[:, 2]
-        faps[:, 48] += a * 0.3 * b
-        faps[:, 61] = faps[:, 62] = amount * 20.0 * np.maximum(b, 0.0)
-        return faps, closure
+        faps = np.zeros((K, N))
+        faps[:, 23:25] = V[:, 0:1]
+        faps[:, 25:27] = V[:, 1:2]
+        faps[:, 48:51] = V[:, 3:4] * (S[:, :4] @ _SWAY)
+        b = S[:, 4:5]
+        faps[:, 48:49] += V[:, 4:5] * b
+        faps[:, 61:63] = V[:, 5:6] * np.maximum(b, 0.0)
+        return faps, V[:, 2]

@@ -274,18 +274,6 @@ def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     return out
 
 
-def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
-    """``limit_mouth`` of the ``rows`` (bool ``(B,)``) of ``F``, ``A (B, 69)``, in place on ``A``."""
-    a = A[:, WIDTH]
-    f = F * (_SPEECH_F if rows.all() else rows[:, None] * _SPEECH_F)
-    np.maximum(f, np.minimum(A, 0.0), out=f)
-    np.minimum(f, np.maximum(A, 0.0), out=f)
-    A -= f
-    mean = rows[:, None] & (a != 0)
-    if mean.any():
-        A[:, WIDTH] = np.where(mean, (a - F[:, WIDTH]) / 2, A[:, WIDTH])
-
-
 #: Closed upper lids (IRISD: one IRISD0 down, the idle layer's blink) and how much closure
 #: (IRISD) a raised cheek (ENS) takes off them (rule 5, ``meet_lids``).
 LIDS_MEET, LID_PER_CHEEK = 1024.0, 2.0
@@ -300,7 +288,7 @@ def meet_lids(F: np.ndarray, before: np.ndarray) -> None:
     lids, cheeks = F[..., 19:21], F[..., 41:43]
     cap = np.maximum(LIDS_MEET - LID_PER_CHEEK * np.maximum(cheeks, 0.0), 0.0)
     over = lids > cap
-    if over.any():  # (rare: a blink or closed lids over raised cheeks)
+    if np.count_nonzero(over):  # (rare: a blink or closed lids over raised cheeks)
         over &= (lids != before[..., :2]) | (cheeks != before[..., 2:])
         F[..., 19:21] = np.where(over, cap, lids)
 
@@ -724,52 +712,3 @@ def mix_states(
 
 #: Most frames ``mix_states`` mixes in one go (bounds its arrays' memory: ~0.5 MB each).
 _CHUNK = 1024
-
-
-def _keep_closures_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
-    """``keep_closures`` of the ``rows`` (bool ``(B,)``) of ``F``, ``A (B, 69)``, in place on ``A``."""
-    x = (-(F[:, _TOP] + F[:, _BOTTOM]) - CLOSED_GAP) / (OPEN_GAP - CLOSED_GAP)
-    x = np.minimum(1.0, np.maximum(0.0, x))
-    c = 1.0 - x * x * (3.0 - 2.0 * x)  # (B, 6): 1 closed .. 0 open
-    if not rows.all():
-        c[~rows] = 0.0
-    if not c.any():
-        return  # every mouth open: nothing to keep
-    jaw = A[:, 3]
-    A[:, 3] = np.where(jaw > 0, jaw * (1.0 - c[:, 0]), jaw)
-    cut = np.maximum(0.0, -(A[:, _TOP] + A[:, _BOTTOM])) * c / 2
-    A[:, _TOP] += cut
-    A[:, _BOTTOM] += cut
-
-
-def _unrotate(angles: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``Rᵀ q`` row by row: ``R = Ry(yaw)·Rx(pitch)·Rz(roll)`` (``_rot``) of ``angles (G, 3)``
-    (pitch, yaw, roll radians), ``q (G, 3)``; three plane rotations, R itself is not formed."""
-    cp, cy, cr = np.cos(angles).T
-    sp, sy, sr = np.sin(angles).T
-    qx, qy, qz = q.T
-    x, z = cy * qx - sy * qz, sy * qx + cy * qz  # Ryᵀ
-    y, z = cp * qy + sp * z, cp * z - sp * qy  # Rxᵀ
-    out = np.empty_like(q)
-    out[:, 0] = cr * x + sr * y  # Rzᵀ
-    out[:, 1] = cr * y - sr * x
-    out[:, 2] = z
-    return out
-
-
-def _eye_angles_batch(d: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``eye_angles`` of directions ``d (G, 2, 3)`` (head-local) for the eyes' unit axes
-    ``axes (2, 3)``: ``(yaw, pitch)`` radians, each ``(G, 2)``. (With ``u = cos(pitch + φ)``,
-    ``φ = atan2(az, ay)``, the rotated axis' z is ``ay·sin(pitch) + az·cos(pitch) = r·√(1 - u²)``.)"""
-    dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
-    n = np.sqrt(dx * dx + dy * dy + dz * dz)
-    ok = n > 1e-12
-    ax, ay, az = axes.T
-    r = np.hypot(ay, az)
-    u = np.minimum(1.0, np.maximum(-1.0, dy / np.where(ok, n, 1.0) / r))
-    pitch = np.arccos(u) - np.arctan2(az, ay)
-    yaw = np.arctan2(dx, dz) - np.arctan2(ax, r * np.sqrt(1.0 - u * u))
-    yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
-    yaw = np.minimum(EYE_YAW_MAX, np.maximum(-EYE_YAW_MAX, yaw))
-    pitch = np.minimum(EYE_PITCH_MAX, np.maximum(-EYE_PITCH_MAX, pitch))
-    return np.where(ok, yaw, 0.0), np.where(ok, pitch, 0.0)
