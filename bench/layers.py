@@ -22,6 +22,13 @@ process, in ABBA order, ``--serve-pairs`` pairs. Per point the server's CPU per 
 the difference B - A of each pair, their mean, standard deviation and standard error, and the
 ratio. Writes ``bench/out/layers_serve.json``.
 
+    python bench/layers.py --capacity 60,70 [--seconds 8] [--encoding i16]
+
+instead measures what a user of ``bench/serve.py`` sees, on one real server: at each session
+count a point without layers and one with ``--layers``, frame rates, p95 latency, whether the
+target holds (every viewer at 95 % of 60 fps, p95 within 50 ms) and the server's CPU per
+session-frame. Writes ``bench/out/layers_capacity.json``.
+
     python bench/layers.py --against REF [--repeats 7] [--scenario bench|serve]
 
 instead times the live path's mix (``mix_batch``, three layers, B sessions a batch) of the code at
@@ -108,6 +115,78 @@ def live_worker(face, geo, states, layers, repeats: int, row) -> dict:
         mixed = row(f"live worker, batch of {b}, 3 layers", run(True), time.process_time, n)
         out[b] = {"plain": plain["cpu_ms"], "layers3": mixed["cpu_ms"]}
     return out
+
+
+def serve_capacity(args: argparse.Namespace) -> int:
+    """``--capacity N,M``: what a user of ``bench/serve.py`` sees with and without layers, on one
+    real server: at each session count, a point without layers and one with ``--layers`` (their
+    order alternating), each viewer's frame rate, p95 latency, whether the point holds the
+    target (every viewer at 95 % of 60 fps, p95 within 50 ms) and the server's CPU per
+    session-frame. Writes ``bench/out/layers_capacity.json``."""
+    import asyncio
+    import logging
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import serve
+
+    logging.basicConfig(level=logging.WARNING)
+    counts = [int(x) for x in args.capacity.split(",") if x.strip()]
+    p = argparse.ArgumentParser()
+    serve.add_arguments(p)
+    sargs = p.parse_args(
+        ["--sessions", ",".join(map(str, counts)), "--viewers", "", "--encoding", args.encoding]
+        + ["--warmup", str(args.warmup), "--seconds", str(args.seconds)]
+    )
+    sargs.encoding = sargs.encoding[0]
+    key = "server_cpu_us_per_session_frame"
+    load0 = os.getloadavg()
+    server = serve._server(sargs.face, sargs.backend)  # noqa: SLF001 - the bench's own server
+    server.start(300, ready=True)
+    points: list[dict] = []
+    try:
+
+        async def go() -> None:
+            for k, sessions in enumerate(counts):
+                for n in (0, args.layers) if k % 2 == 0 else (args.layers, 0):
+                    sargs.layers = n
+                    r = await serve.run_point(
+                        server, server.url, sessions=sessions, viewers=1, args=sargs
+                    )
+                    held = serve._ok(r, sargs)  # noqa: SLF001 - serve.py's own target
+                    r.update(layers=n, held=held, loadavg=os.getloadavg()[0])
+                    points.append(r)
+                    print(
+                        f"{sessions} sessions, layers {n}: fps {r['fps_mean']} (min "
+                        f"{r['fps_min']}), p95 {r['latency_ms_p95']} ms, {r[key]} us per "
+                        f"session-frame, load {r['loadavg']:.1f}",
+                        file=sys.stderr,
+                    )
+
+        asyncio.run(go())
+    finally:
+        server.stop()
+    load1 = os.getloadavg()
+    result = {
+        "encoding": args.encoding,
+        "layers": args.layers,
+        "loadavg_start": load0,
+        "loadavg_end": load1,
+        "cpus": os.cpu_count(),
+        "points": points,
+    }
+    write_json(args.out, "layers_capacity.json", result)
+    print(
+        f"\n{args.encoding}, 0 and {args.layers} layers per session, one server; load "
+        f"{load0[0]:.1f} -> {load1[0]:.1f} on {os.cpu_count()} CPUs\n"
+    )
+    print("| sessions | layers | fps mean | fps min | p95 ms | held | server µs/session-frame |")
+    print("|---|---|---|---|---|---|---|")
+    for q in sorted(points, key=lambda q: (q["sessions"], q["layers"])):
+        print(
+            f"| {q['sessions']} | {q['layers']} | {q['fps_mean']} | {q['fps_min']} | "
+            f"{q['latency_ms_p95']} | {'yes' if q['held'] else 'no'} | {q[key]} |"
+        )
+    return 0
 
 
 def serve_pairs(args: argparse.Namespace) -> int:
@@ -423,6 +502,12 @@ def main(argv: list[str] | None = None) -> int:
         help="measure a real server instead: this many ABBA pairs of points without and with layers",
     )
     ap.add_argument("--sessions", type=int, default=25, help="--serve-pairs: sessions per point")
+    ap.add_argument(
+        "--capacity",
+        default="",
+        metavar="N,M",
+        help="measure a real server instead: these session counts, without and with layers",
+    )
     ap.add_argument("--layers", type=int, default=3, help="--serve-pairs: layers (bench/serve.py)")
     ap.add_argument("--encoding", default="i16", help="--serve-pairs: viewers' encoding")
     ap.add_argument("--warmup", type=float, default=2.0, help="--serve-pairs: seconds")
@@ -442,6 +527,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.serve_pairs:
         return serve_pairs(args)
+    if args.capacity:
+        return serve_capacity(args)
     if args.against:
         return against(args)
     load0 = os.getloadavg()

@@ -55,7 +55,8 @@ class Columns:
     Attributes:
         off: ``(rows (K,), X (K, 69) offsets (amount applied; (1, 69): the same on every row,
             with weights), W (K, 1) or (K, 69) weights, or None: 1)``.
-        over: ``(rows, O (K, 69) absolute values, OW (K, 69) weights)``.
+        over: ``(rows, O (K, 69) or (1, 69): the same on every row, absolute values, OW (K, 69)
+            weights)``.
         head: ``(rows, V (K, 3) poses in AU, w (K,))``.
         gaze: ``(rows, Q (K, 3): a point minus the head pivot or a direction, is_point (K,),
             w (K,))``.
@@ -133,13 +134,8 @@ def _idle_columns(rows: list[int], layers: list[IdleLayer], ts: np.ndarray) -> C
     r = _rows(rows)
     col = Columns(Role.IDLE, off=(r, X, None))
     blink = closure > 0.0
-    if blink.any():
-        k = int(blink.sum())
-        col.over = (
-            r[blink],
-            np.broadcast_to(CLOSED_LIDS, (k, N)),
-            closure[blink, None] * LID_MASK,
-        )
+    if np.count_nonzero(blink):
+        col.over = (r[blink], CLOSED_LIDS[None], closure[blink, None] * LID_MASK)
     return col
 
 
@@ -408,7 +404,7 @@ def _every(rows: np.ndarray, B: int) -> bool:
 
 def _ascending(rows: np.ndarray) -> bool:
     """Whether ``rows`` ascend strictly (no row twice)."""
-    return len(rows) < 2 or bool((rows[1:] > rows[:-1]).all())
+    return np.count_nonzero(rows[1:] > rows[:-1]) == len(rows) - 1 if len(rows) > 1 else True
 
 
 def _sums(
