@@ -43,6 +43,8 @@ from .mix import (
 from .model import Contribution, GazeTarget, Geometry, Layer, N, Role, region_mask
 from .overlay import ExpressionLayer
 
+_UNSEEN = object()  # (not in a cache)
+
 #: One frame to mix: ``(primary, items, t)`` as ``combine``'s arguments.
 Frame = tuple[FaceState | None, Sequence[tuple[Role, Contribution]], float | None]
 
@@ -143,6 +145,10 @@ def _overlay_offsets(layer: ExpressionLayer, geo: Geometry) -> np.ndarray | None
     """``(69,)`` what ``layer`` adds at full weight (``_offsets`` of its contribution), remembered
     with the geometry's expansions (read-only; one array for the overlays of one expression and
     amount without FAPs of their own)."""
+    key = ("overlay", layer.expression, layer.amount) if layer.faps is None else (layer, "offsets")
+    hit = geo.expansions.get(key, _UNSEEN)
+    if hit is not _UNSEEN:
+        return hit  # type: ignore[no-any-return]
 
     def make() -> np.ndarray | None:
         c = Contribution(
@@ -153,9 +159,7 @@ def _overlay_offsets(layer: ExpressionLayer, geo: Geometry) -> np.ndarray | None
         x = _offsets(c, geo)
         return None if x is None else np.array(x, dtype=np.float64)
 
-    if layer.faps is None:
-        return geo.remember(("overlay", layer.expression, layer.amount), make)
-    return geo.remember((layer, "offsets"), make)
+    return geo.remember(key, make)
 
 
 def _overlay_mask(layer: ExpressionLayer, geo: Geometry) -> np.ndarray:
@@ -195,6 +199,9 @@ def _expression_columns(
 def _gaze_q(target: GazeTarget, geo: Geometry) -> np.ndarray:
     """``(3,)`` a target's point minus the head pivot, or its direction; remembered with the
     geometry's expansions (read-only)."""
+    hit = geo.expansions.get((target, "q"))
+    if hit is not None:
+        return hit  # type: ignore[no-any-return]
 
     def make() -> np.ndarray:
         q = target.direction if target.point is None else target.point - geo.head_pivot
@@ -221,10 +228,15 @@ def _gaze_columns(
     return Columns(role, gaze=(_rows(keep), np.array(qs), np.array(ps), np.array(ws)))
 
 
+#: Layers sampled by kind, many rows at once: ``(type, role) -> (rows, layers, times)``.
+Kinds = dict[tuple[type, Role], tuple[list[int], list[Any], list[float]]]
+_TOGETHER = (IdleLayer, ExpressionLayer, GazeLayer)
+
+
 def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -> list[Columns]:
     """The contributions of layers ``(row, layer, t)`` at their times, as ``Columns``: idle,
     expression and gaze layers sampled together by kind, the others one at a time."""
-    kinds: dict[tuple[type, Role], tuple[list[int], list[Any], list[float]]] = {}
+    kinds: Kinds = {}
     other: list[tuple[int, Role, Contribution]] = []
     for r, layer, t in entries:
         kind = type(layer)
@@ -238,6 +250,13 @@ def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -
             group[2].append(t)
         else:
             other.append((r, layer.role, layer.sample(t)))
+    return _columns(kinds, other, geo)
+
+
+def _columns(
+    kinds: Kinds, other: list[tuple[int, Role, Contribution]], geo: Geometry
+) -> list[Columns]:
+    """``Columns`` of the layers sampled by kind and of the others' contributions."""
     out = columns_of(other, geo) if other else []
     for (kind, role), (rows, layers, ts) in kinds.items():
         T = np.array(ts, dtype=np.float64)
@@ -254,6 +273,34 @@ def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -
         if col is not None:
             out.append(col)
     return out
+
+
+def _sample_alike(
+    alike: dict[tuple[tuple[type, Role], ...], tuple[list[int], list[tuple[Layer, ...]]]],
+    ts: list[float],
+    geo: Geometry,
+) -> list[Columns]:
+    """``sample_columns`` of rows whose layers are alike (the same ``(type, role)`` in the same
+    order: ``Mixer.snapshot``): ``signature -> (rows, their layers)``, ``ts`` by row. A kind's
+    layers are gathered by position, not layer by layer; the columns are ``sample_columns``'s,
+    their rows in another order."""
+    kinds: Kinds = {}
+    other: list[tuple[int, Role, Contribution]] = []
+    for sig, (rows, layer_lists) in alike.items():
+        times = [ts[r] for r in rows]
+        for k, key in enumerate(sig):
+            layers = [x[k] for x in layer_lists]
+            if key[0] in _TOGETHER:
+                group = kinds.get(key)
+                if group is None:
+                    kinds[key] = (list(rows), layers, list(times))
+                else:
+                    group[0].extend(rows)
+                    group[1].extend(layers)
+                    group[2].extend(times)
+            else:
+                other += [(r, x.role, x.sample(t)) for r, x, t in zip(rows, layers, times)]
+    return _columns(kinds, other, geo)
 
 
 # -- the rules on arrays ------------------------------------------------------------------------------
@@ -638,27 +685,34 @@ def mix_batch(frames: Sequence[tuple[Any, FaceState | None, float]]) -> list[Fac
     if len(frames) < BATCH_MIN:  # too few to gain from it: each alone
         return [mixer.mix(primary, t) for mixer, primary, t in frames]
     out: list[FaceState | None] = [None] * len(frames)
-    groups: dict[tuple[int, bool], tuple[Geometry, list[int], list[Any]]] = {}
+    # (geometry, closures) -> the geometry, frame indices, and by signature their rows and layers
+    groups: dict[tuple[int, bool], tuple[Geometry, list[int], dict[Any, Any]]] = {}
     for i, (mixer, primary, t) in enumerate(frames):
-        layers = mixer.active(t)
+        layers, sig = mixer.snapshot(t)
         if not layers or (primary is not None and primary.head is not None) or not _shaped(primary):
             out[i] = mixer.mix(primary, t)
             continue
         geo = _DEFAULT_GEOMETRY if mixer.geometry is None else mixer.geometry
-        group = groups.setdefault((id(geo), mixer.closures), (geo, [], []))
-        group[1].append(i)
-        group[2].append(layers)
-    for (_, closures), (geo, rows, layer_lists) in groups.items():
+        group = groups.get((id(geo), mixer.closures))
+        if group is None:
+            group = groups[(id(geo), mixer.closures)] = (geo, [], {})
+        rows = group[1]
+        same = group[2].get(sig)
+        if same is None:
+            group[2][sig] = ([len(rows)], [layers])
+        else:
+            same[0].append(len(rows))
+            same[1].append(layers)
+        rows.append(i)
+    for (_, closures), (geo, rows, alike) in groups.items():
         if len(rows) < BATCH_MIN:  # cheaper one by one
-            for i, layers in zip(rows, layer_lists):
+            for i in rows:
                 mixer, primary, t = frames[i]
-                items = mixer.items(t, layers)
-                out[i] = combine(primary, items, t, geometry=geo, closures=closures)
+                out[i] = mixer.mix(primary, t)
             continue
         prims = [frames[i][1] for i in rows]
         ts = [float(frames[i][2]) for i in rows]
-        entries = [(r, layer, ts[r]) for r, layers in enumerate(layer_lists) for layer in layers]
-        mixed = combine_columns(prims, ts, sample_columns(entries, geo), geo, closures)
+        mixed = combine_columns(prims, ts, _sample_alike(alike, ts, geo), geo, closures)
         for i, state in zip(rows, mixed):
             out[i] = state
     return out  # type: ignore[return-value]
@@ -671,5 +725,6 @@ def _time(primary: FaceState | None, t: float | None) -> float:
 
 
 def _shaped(primary: FaceState | None) -> bool:
-    """A primary whose FAPs are a ``(69,)`` vector (else ``combine`` says what is wrong)."""
-    return primary is None or np.shape(primary.faps) == (N,)
+    """A primary whose FAPs are a ``(69,)`` array (else ``combine`` converts them, or says what
+    is wrong)."""
+    return primary is None or getattr(primary.faps, "shape", None) == (N,)

@@ -579,11 +579,15 @@ class Mixer:
         self._lock = threading.Lock()
         self._layers: dict[str, Layer] = {}
         self._next_end: float | None = None  # the earliest ``end`` of the layers (None: none ends)
+        self._snapshot: tuple[tuple[Layer, ...], tuple[tuple[type, Role], ...]] = ((), ())
 
     def _changed(self) -> None:
-        """Note the layers changed (call with the lock held): their earliest end."""
+        """Note the layers changed (call with the lock held): their earliest end, and the
+        snapshot ``snapshot`` gives."""
         ends = [e for e in (lay.end for lay in self._layers.values()) if e is not None]
         self._next_end = min(ends) if ends else None
+        layers = tuple(self._layers.values())
+        self._snapshot = layers, tuple((type(lay), lay.role) for lay in layers)
 
     @staticmethod
     def _check_name(name: str) -> str:
@@ -644,7 +648,7 @@ class Mixer:
     def clear(self) -> None:
         with self._lock:
             self._layers.clear()
-            self._next_end = None
+            self._changed()
 
     def __len__(self) -> int:
         return len(self._layers)
@@ -667,6 +671,11 @@ class Mixer:
 
     def active(self, t: float) -> list[Layer]:
         """The layers at ``t``, in the order they were added; drops those whose end passed."""
+        return list(self.snapshot(t)[0])
+
+    def snapshot(self, t: float) -> tuple[tuple[Layer, ...], tuple[tuple[type, Role], ...]]:
+        """``active(t)`` as a tuple, and each layer's ``(type, role)`` (the same objects until
+        the layers change: ``batch.mix_batch`` samples the frames of alike mixers together)."""
         with self._lock:
             end = self._next_end
             if end is not None and end < t:
@@ -674,7 +683,7 @@ class Mixer:
                     if lay.end is not None and lay.end < t:
                         del self._layers[n]
                 self._changed()
-            return list(self._layers.values())
+            return self._snapshot
 
 
 def mix_states(
