@@ -72,7 +72,25 @@ class Columns:
 
 
 def _rows(x: list[int]) -> np.ndarray:
+    """``x`` as an index array; ``0, 1, ..., K - 1`` as the one read-only array of them
+    (``_every`` knows it by identity)."""
+    if x == list(range(len(x))):
+        return _range(len(x))
     return np.array(x, dtype=np.intp)
+
+
+_RANGES: dict[int, np.ndarray] = {}
+
+
+def _range(K: int) -> np.ndarray:
+    """The read-only ``arange(K)`` of ``_rows``."""
+    r = _RANGES.get(K)
+    if r is None:
+        r = np.arange(K, dtype=np.intp)
+        r.flags.writeable = False
+        if len(_RANGES) < 4096:
+            _RANGES[K] = r
+    return r
 
 
 def columns_of(entries: Sequence[tuple[int, Role, Contribution]], geo: Geometry) -> list[Columns]:
@@ -446,12 +464,16 @@ def _override(F: np.ndarray, overs: list[tuple[np.ndarray, np.ndarray, np.ndarra
 
 def _every(rows: np.ndarray, B: int) -> bool:
     """Whether ``rows`` are ``0, 1, ..., B - 1``."""
-    return len(rows) == B and B > 0 and rows[0] == 0 and rows[-1] == B - 1 and _ascending(rows)
+    if len(rows) != B or B == 0:
+        return False
+    return rows is _RANGES.get(B) or (rows[0] == 0 and rows[-1] == B - 1 and _ascending(rows))
 
 
 def _ascending(rows: np.ndarray) -> bool:
     """Whether ``rows`` ascend strictly (no row twice)."""
-    return np.count_nonzero(rows[1:] > rows[:-1]) == len(rows) - 1 if len(rows) > 1 else True
+    if len(rows) < 2 or rows is _RANGES.get(len(rows)):
+        return True
+    return bool(np.count_nonzero(rows[1:] > rows[:-1]) == len(rows) - 1)
 
 
 def _sums(

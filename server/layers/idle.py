@@ -40,6 +40,8 @@ _SWAY = np.array([[2.0, 0.0, 0.0], [0.8, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 
 _SINES = tuple(zip(_RATES.tolist(), _PHASES.tolist()))
 _SWAY.flags.writeable = False
 _SWAY_ROWS = _SWAY.tolist()
+#: The FAPs ``sample`` sets: the eyes' yaw l, r, pitch l, r; the head; the nostrils l, r.
+_MOVED = np.array([23, 24, 25, 26, 48, 49, 50, 61, 62])
 
 
 def blink_times(
@@ -189,22 +191,23 @@ class IdleLayer:
 
     def sample(self, t: float) -> Contribution:
         """One frame in Python floats (cheaper than ``sample_many`` for one)."""
-        faps = np.zeros(N)
-        a = self.amount * AU_PER_DEG
+        a = self._scale
+        yaw = pitch = h48 = h49 = h50 = nose = 0.0
         if self.saccades:
             yaw, pitch = self.gaze(t)
-            faps[23] = faps[24] = a * yaw
-            faps[25] = faps[26] = a * pitch
+            yaw, pitch = a * yaw, a * pitch
         s = [math.sin(2 * math.pi * t * r + p) for r, p in _SINES]
         if self.sway:  # (S @ _SWAY)
             w = _SWAY_ROWS
-            faps[48] = a * (w[0][0] * s[0] + w[1][0] * s[1])
-            faps[49] = a * w[2][1] * s[2]
-            faps[50] = a * w[3][2] * s[3]
+            h48 = a * (w[0][0] * s[0] + w[1][0] * s[1])
+            h49 = a * w[2][1] * s[2]
+            h50 = a * w[3][2] * s[3]
         if self.breathing:
             b = s[4]
-            faps[48] += a * 0.3 * b
-            faps[61] = faps[62] = self.amount * 20.0 * max(b, 0.0)
+            h48 += a * 0.3 * b
+            nose = self.amount * 20.0 * max(b, 0.0)
+        faps = np.zeros(N)
+        faps.put(_MOVED, (yaw, yaw, pitch, pitch, h48, h49, h50, nose, nose))
         c = self.closure(t) if self.blinks else 0.0
         if c > 0.0:
             return Contribution(faps=faps, override=CLOSED_LIDS, override_weight=c * LID_MASK)

@@ -267,9 +267,9 @@ def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     np.maximum(f, np.minimum(A, _ZEROS), out=f)
     np.minimum(f, np.maximum(A, _ZEROS), out=f)
     out = A - f
-    a = A[WIDTH].tolist()
+    a = A.take(WIDTH).tolist()
     if a[0] or a[1] or a[2] or a[3]:
-        w = F[WIDTH].tolist()
+        w = F.take(WIDTH).tolist()
         out[WIDTH] = [(x - y) / 2 if x else 0.0 for x, y in zip(a, w, strict=True)]
     return out
 
@@ -310,11 +310,11 @@ def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` with the lip opening they would add to the primary's FAPs ``F`` taken out
     where ``F`` holds the lips closed (1 at or below ``CLOSED_GAP``, 0 from ``OPEN_GAP``); corners,
     spreading and the lips' common shift stay. Returns ``A`` itself when nothing changes, else a new array."""
-    a = A[_LIPS].tolist()
+    a = A.take(_LIPS).tolist()
     jaw = float(A[3])
     if jaw <= 0 and all(a[2 * i] + a[2 * i + 1] >= 0 for i in range(6)):
         return A  # the offsets open neither the lips nor the jaw
-    f = F[_LIPS].tolist()
+    f = F.take(_LIPS).tolist()
     span = OPEN_GAP - CLOSED_GAP
     out = None
     for i, (top, bottom) in enumerate(_PAIRS):
