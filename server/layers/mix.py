@@ -222,7 +222,11 @@ def _eyes_to(q: Sequence[float], point: bool, geo: Geometry) -> list[float]:
     with its axis' constants (``Geometry.eye_consts``)."""
     out = [0.0, 0.0, 0.0, 0.0]  # yaw l, r, pitch l, r
     qx, qy, qz = q
-    for side, (cx, cy, cz, ax, ay, az, r, phi) in enumerate(geo.eye_consts):
+    left, right = geo.eye_consts
+    for side, (cx, cy, cz, ax, ay, az, r, phi) in enumerate((left, right)):
+        if side and not point and left[3:] == right[3:]:  # the same axis, the same direction
+            out[1], out[3] = out[0], out[2]
+            break
         dx, dy, dz = (qx - cx, qy - cy, qz - cz) if point else (qx, qy, qz)
         n = math.sqrt(dx * dx + dy * dy + dz * dz)
         if not n > 1e-12:
@@ -514,9 +518,12 @@ def _role_part(
         return _weighted(x, w)
     num: Any = 0.0
     den: Any = 0.0
-    for x, nz, w in group:
-        num = num + w * x
-        den = den + w * (x != 0 if nz is None else nz)
+    if len(group) == 1 and nz is not None and type(w) is float and w == 1.0:
+        num, den = x, nz  # (0 + 1·x is x; read-only here)
+    else:
+        for x, nz, w in group:
+            num = num + w * x
+            den = den + w * (x != 0 if nz is None else nz)
     if P is None:
         return num / np.maximum(_ONES, den)
     d = (P != 0) + den
