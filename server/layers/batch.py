@@ -25,7 +25,7 @@ from .idle import CLOSED_LIDS, LID_MASK, IdleLayer
 from .mix import (
     _AU,
     _DEFAULT_GEOMETRY,
-    _LIDS_CHEEKS,
+    _LIDS_CHEEKS_AT,
     _LIPS,
     _LIPS_REGION,
     _SPEECH,
@@ -334,7 +334,6 @@ BATCH_MIN = 5
 SMALL_GAZE = 7
 _ZERO = np.zeros(N)
 _ZERO.flags.writeable = False
-_LIDS_CHEEKS_AT = np.array(_LIDS_CHEEKS)
 _WIDTH_AT = np.array(WIDTH)
 _SPAN = OPEN_GAP - CLOSED_GAP
 _TWO_PI = 2 * math.pi

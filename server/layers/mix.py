@@ -282,7 +282,7 @@ def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
 #: (IRISD) a raised cheek (ENS) takes off them (rule 5, ``meet_lids``).
 LIDS_MEET, LID_PER_CHEEK = 1024.0, 2.0
 #: The upper lids' and cheeks' FAPs (left, right): close_t_*_eyelid, lift_*_cheek.
-_LIDS_CHEEKS = [19, 20, 41, 42]
+_LIDS_CHEEKS_AT = np.array([19, 20, 41, 42])
 
 
 def meet_lids(F: np.ndarray, before: np.ndarray) -> None:
@@ -299,7 +299,7 @@ def meet_lids(F: np.ndarray, before: np.ndarray) -> None:
 
 def _meet_lids1(F: np.ndarray, before: list[float]) -> None:
     """``meet_lids`` of one frame (``F (69,)``, ``before`` 4 floats), with Python floats."""
-    after = F[_LIDS_CHEEKS].tolist()
+    after = F.take(_LIDS_CHEEKS_AT).tolist()
     if after == before:
         return
     for side in (0, 1):
@@ -443,8 +443,8 @@ def combine(
         target = np.divide(num_o, den, out=np.zeros(69), where=on)
         F = np.where(on, F + np.minimum(1.0, den) * (target - F), F)
     if F[19] > 0.0 or F[20] > 0.0:  # closing lids (rare): rule 5's meeting, against the primary's
-        before = np.asarray(primary.faps, dtype=np.float64)[_LIDS_CHEEKS]
-        _meet_lids1(F, (before if high is None else before + high[_LIDS_CHEEKS]).tolist())
+        before = np.asarray(primary.faps, dtype=np.float64).take(_LIDS_CHEEKS_AT)
+        _meet_lids1(F, (before if high is None else before + high.take(_LIDS_CHEEKS_AT)).tolist())
 
     # head transform of the mix
     if rest is not None:
