@@ -330,8 +330,8 @@ def _sample_alike(
 #: batch has ~100 NumPy calls of fixed cost; 4 frames cost 1.1x, 5 about the same, 6 0.9x
 #: ``combine``'s, bench/serve.py's layers at load 6-7).
 BATCH_MIN = 5
-#: Below this many gaze rows, gaze is worked out row by row (``_gaze_rows``; 6 rows about even).
-SMALL_GAZE = 7
+#: Below this many gaze rows, gaze is worked out row by row (``_gaze_rows``; 7 rows about even).
+SMALL_GAZE = 8
 _ZERO = np.zeros(N)
 _ZERO.flags.writeable = False
 _WIDTH_AT = np.array(WIDTH)
