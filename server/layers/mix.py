@@ -274,7 +274,7 @@ def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     a = A.take(WIDTH).tolist()
     if a[0] or a[1] or a[2] or a[3]:
         w = F.take(WIDTH).tolist()
-        out[WIDTH] = [(x - y) / 2 if x else 0.0 for x, y in zip(a, w, strict=True)]
+        out.put(WIDTH, [(x - y) / 2 if x else 0.0 for x, y in zip(a, w, strict=True)])
     return out
 
 
@@ -438,7 +438,9 @@ def combine(
         for value, w in overrides:
             num_o = num_o + w * value
             den_o = den_o + w
-        den = np.broadcast_to(np.asarray(den_o, dtype=np.float64), (69,))
+        den = den_o
+        if not (type(den) is np.ndarray and den.shape == (69,) and den.dtype == np.float64):
+            den = np.broadcast_to(np.asarray(den_o, dtype=np.float64), (69,))
         on = den > 0
         target = np.divide(num_o, den, out=np.zeros(69), where=on)
         F = np.where(on, F + np.minimum(1.0, den) * (target - F), F)
