@@ -22,17 +22,28 @@ process, in ABBA order, ``--serve-pairs`` pairs. Per point the server's CPU per 
 the difference B - A of each pair, their mean, standard deviation and standard error, and the
 ratio. Writes ``bench/out/layers_serve.json``.
 
-    python bench/layers.py --against REF [--repeats 7]
+    python bench/layers.py --capacity 60,70 [--seconds 8] [--encoding i16]
+
+instead measures what a user of ``bench/serve.py`` sees, on one real server: at each session
+count a point without layers and one with ``--layers``, frame rates, p95 latency, whether the
+target holds (every viewer at 95 % of 60 fps, p95 within 50 ms) and the server's CPU per
+session-frame. Writes ``bench/out/layers_capacity.json``.
+
+    python bench/layers.py --against REF [--repeats 7] [--scenario bench|serve]
 
 instead times the live path's mix (``mix_batch``, three layers, B sessions a batch) of the code at
 git ``REF`` (its ``server/layers`` loaded beside the working tree's) against the working tree's,
 interleaved in the same process (thread CPU time, median of ``--repeats``): the ratio of the two
-holds on a loaded machine where the absolute times do not. Writes ``bench/out/layers_against.json``.
+holds on a loaded machine where the absolute times do not. ``--scenario serve`` mixes
+``bench/serve.py``'s layers (idle, joy at 0.5, gaze at the camera, from their REST bodies) over its
+producer's FAP frames instead of this bench's over speech. Both outputs are compared too (their
+largest difference, FAPU). Writes ``bench/out/layers_against_<scenario>.json``.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import statistics
@@ -104,6 +115,78 @@ def live_worker(face, geo, states, layers, repeats: int, row) -> dict:
         mixed = row(f"live worker, batch of {b}, 3 layers", run(True), time.process_time, n)
         out[b] = {"plain": plain["cpu_ms"], "layers3": mixed["cpu_ms"]}
     return out
+
+
+def serve_capacity(args: argparse.Namespace) -> int:
+    """``--capacity N,M``: what a user of ``bench/serve.py`` sees with and without layers, on one
+    real server: at each session count, a point without layers and one with ``--layers`` (their
+    order alternating), each viewer's frame rate, p95 latency, whether the point holds the
+    target (every viewer at 95 % of 60 fps, p95 within 50 ms) and the server's CPU per
+    session-frame. Writes ``bench/out/layers_capacity.json``."""
+    import asyncio
+    import logging
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import serve
+
+    logging.basicConfig(level=logging.WARNING)
+    counts = [int(x) for x in args.capacity.split(",") if x.strip()]
+    p = argparse.ArgumentParser()
+    serve.add_arguments(p)
+    sargs = p.parse_args(
+        ["--sessions", ",".join(map(str, counts)), "--viewers", "", "--encoding", args.encoding]
+        + ["--warmup", str(args.warmup), "--seconds", str(args.seconds)]
+    )
+    sargs.encoding = sargs.encoding[0]
+    key = "server_cpu_us_per_session_frame"
+    load0 = os.getloadavg()
+    server = serve._server(sargs.face, sargs.backend)  # noqa: SLF001 - the bench's own server
+    server.start(300, ready=True)
+    points: list[dict] = []
+    try:
+
+        async def go() -> None:
+            for k, sessions in enumerate(counts):
+                for n in (0, args.layers) if k % 2 == 0 else (args.layers, 0):
+                    sargs.layers = n
+                    r = await serve.run_point(
+                        server, server.url, sessions=sessions, viewers=1, args=sargs
+                    )
+                    held = serve._ok(r, sargs)  # noqa: SLF001 - serve.py's own target
+                    r.update(layers=n, held=held, loadavg=os.getloadavg()[0])
+                    points.append(r)
+                    print(
+                        f"{sessions} sessions, layers {n}: fps {r['fps_mean']} (min "
+                        f"{r['fps_min']}), p95 {r['latency_ms_p95']} ms, {r[key]} us per "
+                        f"session-frame, load {r['loadavg']:.1f}",
+                        file=sys.stderr,
+                    )
+
+        asyncio.run(go())
+    finally:
+        server.stop()
+    load1 = os.getloadavg()
+    result = {
+        "encoding": args.encoding,
+        "layers": args.layers,
+        "loadavg_start": load0,
+        "loadavg_end": load1,
+        "cpus": os.cpu_count(),
+        "points": points,
+    }
+    write_json(args.out, "layers_capacity.json", result)
+    print(
+        f"\n{args.encoding}, 0 and {args.layers} layers per session, one server; load "
+        f"{load0[0]:.1f} -> {load1[0]:.1f} on {os.cpu_count()} CPUs\n"
+    )
+    print("| sessions | layers | fps mean | fps min | p95 ms | held | server µs/session-frame |")
+    print("|---|---|---|---|---|---|---|")
+    for q in sorted(points, key=lambda q: (q["sessions"], q["layers"])):
+        print(
+            f"| {q['sessions']} | {q['layers']} | {q['fps_mean']} | {q['fps_min']} | "
+            f"{q['latency_ms_p95']} | {'yes' if q['held'] else 'no'} | {q[key]} |"
+        )
+    return 0
 
 
 def serve_pairs(args: argparse.Namespace) -> int:
@@ -254,60 +337,115 @@ def speech_on_default():
     return face, FapRig(face), speech
 
 
-def against(args: argparse.Namespace) -> int:
-    """``--against REF``: the live path's mix at ``REF`` against the working tree's (module doc)."""
-    import importlib
+def scenario_layers(L, scenario: str, t0: float = 0.0) -> list:
+    """``(name, layer)`` pairs of the layers package ``L``: ``bench`` (a smile rising at 1 s, idle,
+    gaze at a point) or ``serve`` (``bench/serve.py``'s ``LAYERS``: idle, joy at 0.5, gaze at the
+    camera, built from their REST bodies as the server does)."""
+    if scenario == "serve":
+        sys.path.insert(0, str(Path(__file__).parent))
+        import serve
 
-    load0 = os.getloadavg()
+        spec = importlib.import_module(L.__name__ + ".spec")
+        return [(name, spec.from_spec(body, t0)) for name, body in serve.LAYERS]
+    return [
+        (
+            "smile",
+            L.ExpressionLayer(1, amount=0.7, envelope=L.Envelope(start=1.0, attack_peak=1.5)),
+        ),
+        ("idle", L.IdleLayer(seed=1)),
+        ("gaze", L.GazeLayer(L.GazeTarget(point=np.array([100.0, 50.0, 600.0])))),
+    ]
+
+
+def scenario_primary(scenario: str, n: int) -> list[FaceState] | None:
+    """``n`` primary states: the shared speech at 25 fps (``bench``) or ``bench/serve.py``'s
+    producer's FAP frames at 60 fps (``serve``: jaw, lips, brows and a blink); None without
+    ``../shared/data`` for ``bench``."""
+    if scenario == "serve":
+        sys.path.insert(0, str(Path(__file__).parent))
+        import serve_load
+
+        out = []
+        for i in range(n):
+            f = np.zeros(69)
+            for k, x in serve_load.faps(i, 60.0).items():
+                f[k] = x
+            out.append(FaceState(t=i / 60.0, faps=f))
+        return out
     got = speech_on_default()
     if got is None:
-        return 2
-    _face, rig, speech = got
+        return None
+    speech = got[2]
+    return [FaceState(t=i / 25.0, faps=speech[i % len(speech)].faps) for i in range(n)]
+
+
+def against(args: argparse.Namespace) -> int:
+    """``--against REF``: the live path's mix at ``REF`` against the working tree's (module doc)."""
+    from facecast.server.faces import load_face
+    from facecast.server.mpeg4.rig import FapRig
+
+    load0 = os.getloadavg()
     n = min(args.frames, 1200)
-    primary = [FaceState(t=i / 25.0, faps=speech[i % len(speech)].faps) for i in range(n)]
+    primary = scenario_primary(args.scenario, n)
+    if primary is None:
+        return 2
+    rig = FapRig(load_face("default"))
     old = load_layers_at(args.against)
     import facecast.server.layers as new
 
     def runner(L, batch, b: int):
         geo = L.Geometry.of_rig(rig)
-        layers = [
-            (
-                "smile",
-                L.ExpressionLayer(1, amount=0.7, envelope=L.Envelope(start=1.0, attack_peak=1.5)),
-            ),
-            ("idle", L.IdleLayer(seed=1)),
-            ("gaze", L.GazeLayer(L.GazeTarget(point=np.array([100.0, 50.0, 600.0])))),
-        ]
-        mixers = [mixer_of_module(L, geo, layers) for _ in range(b)]
+        mixers = [mixer_of_module(L, geo, scenario_layers(L, args.scenario)) for _ in range(b)]
 
         def run():
-            for s in range(0, n, b):
-                batch.mix_batch(
-                    [(mixers[i - s], primary[i], primary[i].t) for i in range(s, min(n, s + b))]
+            out = []
+            for s in range(0, n, b):  # the sessions' clocks a little apart, as live
+                out += batch.mix_batch(
+                    [
+                        (mixers[i - s], primary[i], primary[i].t + 0.003 * (i - s))
+                        for i in range(s, min(n, s + b))
+                    ]
                 )
+            return out
 
         return run
 
     rows = []
-    for b in (1, 2, 4, 8, 12, 16, 32):
+    for b in (1, 2, 4, 8, 12, 16, 25, 32):
         runs = {
             "ref": runner(old, importlib.import_module("facecast.server._layers_at.batch"), b),
             "tree": runner(new, importlib.import_module("facecast.server.layers.batch"), b),
         }
+        outs = {k: fn() for k, fn in runs.items()}  # warm up, and the outputs compared
+        diff = max(
+            float(np.max(np.abs(np.asarray(x.faps) - np.asarray(y.faps))))
+            for x, y in zip(outs["ref"], outs["tree"], strict=True)
+        )
         times: dict[str, list[float]] = {"ref": [], "tree": []}
-        for fn in runs.values():
-            fn()  # warm up
         for _ in range(args.repeats):
             for k, fn in runs.items():
                 c = time.thread_time()
                 fn()
                 times[k].append((time.thread_time() - c) / n * 1e3)
         ref, tree = statistics.median(times["ref"]), statistics.median(times["tree"])
-        rows.append({"sessions": b, "ref_cpu_ms": ref, "tree_cpu_ms": tree, "ratio": tree / ref})
-        print(f"{b} sessions: {args.against} {ref:.4f} ms, tree {tree:.4f} ms", file=sys.stderr)
+        rows.append(
+            {
+                "sessions": b,
+                "ref_cpu_ms": ref,
+                "tree_cpu_ms": tree,
+                "ratio": tree / ref,
+                "max_abs_diff_fapu": diff,
+            }
+        )
+        print(
+            f"{b} sessions: {args.against} {ref:.4f} ms, tree {tree:.4f} ms, "
+            f"outputs differ by {diff:.2g} FAPU at most",
+            file=sys.stderr,
+        )
     load1 = os.getloadavg()
     result = {
         "ref": args.against,
+        "scenario": args.scenario,
         "frames": n,
         "repeats": args.repeats,
         "cpus": os.cpu_count(),
@@ -315,16 +453,17 @@ def against(args: argparse.Namespace) -> int:
         "loadavg_end": load1,
         "rows": rows,
     }
-    write_json(args.out, "layers_against.json", result)
+    write_json(args.out, f"layers_against_{args.scenario}.json", result)
     print(
-        f"\nlive mix (mix_batch, 3 layers) per frame, thread CPU, median of {args.repeats}; load "
-        f"{load0[0]:.1f} -> {load1[0]:.1f} on {os.cpu_count()} CPUs\n"
+        f"\nlive mix (mix_batch, 3 layers, {args.scenario} scenario) per frame, thread CPU, median "
+        f"of {args.repeats}; load {load0[0]:.1f} -> {load1[0]:.1f} on {os.cpu_count()} CPUs\n"
     )
-    print(f"| sessions a batch | {args.against} ms | working tree ms | ratio |")
-    print("|---|---|---|---|")
+    print(f"| sessions a batch | {args.against} ms | working tree ms | ratio | max abs diff FAPU |")
+    print("|---|---|---|---|---|")
     for r in rows:
         print(
-            f"| {r['sessions']} | {r['ref_cpu_ms']:.4f} | {r['tree_cpu_ms']:.4f} | {r['ratio']:.3f} |"
+            f"| {r['sessions']} | {r['ref_cpu_ms']:.4f} | {r['tree_cpu_ms']:.4f} | "
+            f"{r['ratio']:.3f} | {r['max_abs_diff_fapu']:.2g} |"
         )
     return 0
 
@@ -363,10 +502,22 @@ def main(argv: list[str] | None = None) -> int:
         help="measure a real server instead: this many ABBA pairs of points without and with layers",
     )
     ap.add_argument("--sessions", type=int, default=25, help="--serve-pairs: sessions per point")
+    ap.add_argument(
+        "--capacity",
+        default="",
+        metavar="N,M",
+        help="measure a real server instead: these session counts, without and with layers",
+    )
     ap.add_argument("--layers", type=int, default=3, help="--serve-pairs: layers (bench/serve.py)")
     ap.add_argument("--encoding", default="i16", help="--serve-pairs: viewers' encoding")
     ap.add_argument("--warmup", type=float, default=2.0, help="--serve-pairs: seconds")
     ap.add_argument("--seconds", type=float, default=6.0, help="--serve-pairs: seconds measured")
+    ap.add_argument(
+        "--scenario",
+        choices=("bench", "serve"),
+        default="bench",
+        help="--against: this bench's layers over speech, or bench/serve.py's over its FAP frames",
+    )
     ap.add_argument(
         "--against",
         default=None,
@@ -376,6 +527,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.serve_pairs:
         return serve_pairs(args)
+    if args.capacity:
+        return serve_capacity(args)
     if args.against:
         return against(args)
     load0 = os.getloadavg()

@@ -778,6 +778,46 @@ def test_mix_batch_equals_each_mixer_alone(default_head):
     assert all("smile" not in m.layers() for m in mixers)
 
 
+@pytest.mark.parametrize("tilted", [False, True])
+def test_mix_batch_equals_each_mixer_alone_in_blinks_and_shared_overlays(default_head, tilted):
+    """The live path's batch (``mix_batch``) against each session's own mix (``combine``), in the
+    cases its shortcuts take: rows in a blink (one override a row), overlays sharing their offsets
+    (one expression and amount), a masked one, lids closing over raised cheeks, gaze at the camera
+    and at points, eyes looking straight ahead (the built-in head) or not (tilted axes)."""
+    from facecast.server.layers.batch import BATCH_MIN, mix_batch
+
+    _, _, geo = default_head
+    if tilted:
+        geo = Geometry(
+            eye_pivots=geo.eye_pivots,
+            eye_axes=[[0.2, 0.1, 1.0], [-0.15, 0.05, 1.0]],
+            head_pivot=geo.head_pivot,
+            visemes=geo.visemes,
+            expressions=geo.expressions,
+        )
+    rng = np.random.default_rng(7)
+    frames = []
+    for k in range(12):
+        idle = IdleLayer(seed=k)
+        t = float(rng.uniform(0, 60))
+        if k % 2:  # in a blink
+            t = next(x for x in np.arange(t, t + 60, 0.01) if 0 < idle.closure(x) <= 1)
+        m = Mixer(geo, closures=k % 5 != 3)
+        m.set("idle", idle)
+        m.set("smile", ExpressionLayer(1, amount=0.5))
+        if k % 4 == 1:
+            m.set("brows", ExpressionLayer(4, amount=0.8, regions=("eyebrows",)))
+        target = GazeTarget.camera() if k % 3 else GazeTarget(point=rng.normal(0, 200, 3) + 600)
+        m.set("gaze", GazeLayer(target, amount=1.0 if k % 4 else 0.6))
+        f = rng.normal(0, 150, 69) * (rng.random(69) < 0.5)
+        f[19] = f[20] = 900.0 if k % 3 == 0 else f[19]
+        frames.append((m, FaceState(t=t, faps=f), t))
+    for n in (BATCH_MIN, 12):
+        got = mix_batch(frames[:n])
+        for (m, s, t), g in zip(frames, got):
+            np.testing.assert_allclose(g.faps, m.mix(s, t).faps, rtol=0, atol=1e-6)
+
+
 def test_closed_lids_meet_the_cheeks_a_layer_raised(default_head):
     """Rule 5: a blink over a smile, or a smile over a stream's closed lids, closes the upper lids
     onto the lower lids the smile's cheeks lifted, not the full way: the full way folded the skin

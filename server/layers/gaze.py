@@ -21,22 +21,25 @@ class GazeLayer:
     amount: float = 1.0
     envelope: Envelope = field(default_factory=Envelope)
     role: Role = Role.GAZE
+    _held: Contribution = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.target, GazeTarget):
             raise ValueError("target must be a GazeTarget (a point or a direction)")
         object.__setattr__(self, "amount", check_number("gaze amount", self.amount, 0.0, 1.0))
         check_envelope(self.envelope)
+        object.__setattr__(self, "_held", Contribution(gaze=self.target, gaze_weight=self.amount))
 
     @property
     def end(self) -> float | None:
         return self.envelope.end
 
     def sample(self, t: float) -> Contribution:
-        w = self.amount * self.envelope(t)
+        e = self.envelope(t)
+        w = self.amount * e
         if w <= 0.0:
             return EMPTY
-        return Contribution(gaze=self.target, gaze_weight=w)
+        return self._held if e == 1.0 else Contribution(gaze=self.target, gaze_weight=w)
 
 
 def parse_gaze(text: str) -> GazeTarget:

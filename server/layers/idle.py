@@ -40,6 +40,8 @@ _SWAY = np.array([[2.0, 0.0, 0.0], [0.8, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 
 _SINES = tuple(zip(_RATES.tolist(), _PHASES.tolist()))
 _SWAY.flags.writeable = False
 _SWAY_ROWS = _SWAY.tolist()
+#: The FAPs ``sample`` sets: the eyes' yaw l, r, pitch l, r; the head; the nostrils l, r.
+_MOVED = np.array([23, 24, 25, 26, 48, 49, 50, 61, 62])
 
 
 def blink_times(
@@ -121,7 +123,8 @@ class IdleLayer:
     _blink_starts: list[float] = field(init=False, repr=False, compare=False)
     _fix: list[list[float]] = field(init=False, repr=False, compare=False)
     _fix_starts: list[float] = field(init=False, repr=False, compare=False)
-    _flags: tuple[float, float, float, float] = field(init=False, repr=False, compare=False)
+    _scale: float = field(init=False, repr=False, compare=False)
+    _factors: tuple[float, float, float] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
@@ -146,17 +149,16 @@ class IdleLayer:
         object.__setattr__(self, "_blink_starts", b[:, 0].tolist())
         object.__setattr__(self, "_fix", f.tolist())
         object.__setattr__(self, "_fix_starts", f[:, 0].tolist())
-        flags = float(self.saccades), float(self.sway), float(self.breathing), self.amount
-        object.__setattr__(self, "_flags", flags)
+        a = self.amount * AU_PER_DEG
+        object.__setattr__(self, "_scale", a)
+        sway, breath = float(self.sway), float(self.breathing)
+        object.__setattr__(
+            self, "_factors", (a * sway, a * 0.3 * breath, self.amount * 20.0 * breath)
+        )
 
     @property
     def end(self) -> float | None:
         return None
-
-    @property
-    def flags(self) -> tuple[float, float, float, float]:
-        """Saccades, sway, breathing (1.0 or 0.0) and the amount: ``sample_many``'s row."""
-        return self._flags
 
     def closure(self, t: float) -> float:
         """Lid closure 0..1 at ``t`` (s)."""
@@ -174,30 +176,38 @@ class IdleLayer:
             return prev[1] + (cur[1] - prev[1]) * u, prev[2] + (cur[2] - prev[2]) * u
         return cur[1], cur[2]
 
-    def events(self, t: float) -> tuple[float, float, float]:
-        """The eyes' ``(yaw, pitch)`` (degrees, before ``amount``; 0 without saccades) and the
-        lids' closure at ``t`` (s): ``sample_many``'s row."""
-        yaw, pitch = self.gaze(t) if self.saccades else (0.0, 0.0)
-        return yaw, pitch, self.closure(t) if self.blinks else 0.0
+    def row(self, t: float) -> list[float]:
+        """``sample_many``'s row at ``t`` (s): the eyes' yaw and pitch (AU, ``amount`` applied; 0
+        without saccades), the lids' closure (0 without blinks), and what scales the sines: the
+        sway's (AU), the breath's head pitch (AU) and the nostrils' flare (0 for a part off)."""
+        a = self._scale
+        yaw = pitch = c = 0.0
+        if self.saccades:
+            yaw, pitch = self.gaze(t)
+            yaw, pitch = a * yaw, a * pitch
+        if self.blinks:
+            c = self.closure(t)
+        return [yaw, pitch, c, *self._factors]
 
     def sample(self, t: float) -> Contribution:
         """One frame in Python floats (cheaper than ``sample_many`` for one)."""
-        faps = np.zeros(N)
-        a = self.amount * AU_PER_DEG
+        a = self._scale
+        yaw = pitch = h48 = h49 = h50 = nose = 0.0
         if self.saccades:
             yaw, pitch = self.gaze(t)
-            faps[23] = faps[24] = a * yaw
-            faps[25] = faps[26] = a * pitch
+            yaw, pitch = a * yaw, a * pitch
         s = [math.sin(2 * math.pi * t * r + p) for r, p in _SINES]
         if self.sway:  # (S @ _SWAY)
             w = _SWAY_ROWS
-            faps[48] = a * (w[0][0] * s[0] + w[1][0] * s[1])
-            faps[49] = a * w[2][1] * s[2]
-            faps[50] = a * w[3][2] * s[3]
+            h48 = a * (w[0][0] * s[0] + w[1][0] * s[1])
+            h49 = a * w[2][1] * s[2]
+            h50 = a * w[3][2] * s[3]
         if self.breathing:
             b = s[4]
-            faps[48] += a * 0.3 * b
-            faps[61] = faps[62] = self.amount * 20.0 * max(b, 0.0)
+            h48 += a * 0.3 * b
+            nose = self.amount * 20.0 * max(b, 0.0)
+        faps = np.zeros(N)
+        faps.put(_MOVED, (yaw, yaw, pitch, pitch, h48, h49, h50, nose, nose))
         c = self.closure(t) if self.blinks else 0.0
         if c > 0.0:
             return Contribution(faps=faps, override=CLOSED_LIDS, override_weight=c * LID_MASK)
@@ -206,19 +216,19 @@ class IdleLayer:
     @staticmethod
     def sample_many(layers: Sequence[IdleLayer], ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``layers[k]`` at ``ts[k]`` (s), all at once: the FAP offsets ``(K, 69)`` (saccades,
-        sway, breathing) and the lid closure ``(K,)`` 0..1 (a blink: ``CLOSED_LIDS`` by it)."""
+        sway, breathing) and the lid closure ``(K,)`` 0..1 (a blink: ``CLOSED_LIDS`` by it).
+        The events (fixations, blinks) are looked up row by row, the sines computed together."""
         K = len(layers)
-        faps = np.zeros((K, N))
-        flags = np.array([x.flags for x in layers])  # (K, 4): saccades, sway, breathing; amount
-        events = np.array([x.events(t) for x, t in zip(layers, ts.tolist())])  # (K, 3)
-        closure = events[:, 2]
-        amount = flags[:, 3]
-        a = amount * AU_PER_DEG
+        flat: list[float] = []
+        for x, t in zip(layers, ts.tolist()):
+            flat += x.row(t)
+        V = np.array(flat).reshape(K, 6)
         S = np.sin(np.multiply.outer(2 * math.pi * ts, _RATES) + _PHASES)  # (K, 5)
-        faps[:, 23] = faps[:, 24] = a * events[:, 0]
-        faps[:, 25] = faps[:, 26] = a * events[:, 1]
-        faps[:, 48:51] = (a * flags[:, 1])[:, None] * (S[:, :4] @ _SWAY)
-        b = S[:, 4] * flags[:, 2]
-        faps[:, 48] += a * 0.3 * b
-        faps[:, 61] = faps[:, 62] = amount * 20.0 * np.maximum(b, 0.0)
-        return faps, closure
+        faps = np.zeros((K, N))
+        faps[:, 23:25] = V[:, 0:1]
+        faps[:, 25:27] = V[:, 1:2]
+        faps[:, 48:51] = V[:, 3:4] * (S[:, :4] @ _SWAY)
+        b = S[:, 4:5]
+        faps[:, 48:49] += V[:, 4:5] * b
+        faps[:, 61:63] = V[:, 5:6] * np.maximum(b, 0.0)
+        return faps, V[:, 2]

@@ -222,7 +222,11 @@ def _eyes_to(q: Sequence[float], point: bool, geo: Geometry) -> list[float]:
     with its axis' constants (``Geometry.eye_consts``)."""
     out = [0.0, 0.0, 0.0, 0.0]  # yaw l, r, pitch l, r
     qx, qy, qz = q
-    for side, (cx, cy, cz, ax, ay, az, r, phi) in enumerate(geo.eye_consts):
+    left, right = geo.eye_consts
+    for side, (cx, cy, cz, ax, ay, az, r, phi) in enumerate((left, right)):
+        if side and not point and left[3:] == right[3:]:  # the same axis, the same direction
+            out[1], out[3] = out[0], out[2]
+            break
         dx, dy, dz = (qx - cx, qy - cy, qz - cz) if point else (qx, qy, qz)
         n = math.sqrt(dx * dx + dy * dy + dz * dz)
         if not n > 1e-12:
@@ -267,30 +271,18 @@ def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     np.maximum(f, np.minimum(A, _ZEROS), out=f)
     np.minimum(f, np.maximum(A, _ZEROS), out=f)
     out = A - f
-    a = A[WIDTH].tolist()
+    a = A.take(WIDTH).tolist()
     if a[0] or a[1] or a[2] or a[3]:
-        w = F[WIDTH].tolist()
-        out[WIDTH] = [(x - y) / 2 if x else 0.0 for x, y in zip(a, w, strict=True)]
+        w = F.take(WIDTH).tolist()
+        out.put(WIDTH, [(x - y) / 2 if x else 0.0 for x, y in zip(a, w, strict=True)])
     return out
-
-
-def _limit_mouth_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
-    """``limit_mouth`` of the ``rows`` (bool ``(B,)``) of ``F``, ``A (B, 69)``, in place on ``A``."""
-    a = A[:, WIDTH]
-    f = F * (_SPEECH_F if rows.all() else rows[:, None] * _SPEECH_F)
-    np.maximum(f, np.minimum(A, 0.0), out=f)
-    np.minimum(f, np.maximum(A, 0.0), out=f)
-    A -= f
-    mean = rows[:, None] & (a != 0)
-    if mean.any():
-        A[:, WIDTH] = np.where(mean, (a - F[:, WIDTH]) / 2, A[:, WIDTH])
 
 
 #: Closed upper lids (IRISD: one IRISD0 down, the idle layer's blink) and how much closure
 #: (IRISD) a raised cheek (ENS) takes off them (rule 5, ``meet_lids``).
 LIDS_MEET, LID_PER_CHEEK = 1024.0, 2.0
 #: The upper lids' and cheeks' FAPs (left, right): close_t_*_eyelid, lift_*_cheek.
-_LIDS_CHEEKS = [19, 20, 41, 42]
+_LIDS_CHEEKS_AT = np.array([19, 20, 41, 42])
 
 
 def meet_lids(F: np.ndarray, before: np.ndarray) -> None:
@@ -300,14 +292,14 @@ def meet_lids(F: np.ndarray, before: np.ndarray) -> None:
     lids, cheeks = F[..., 19:21], F[..., 41:43]
     cap = np.maximum(LIDS_MEET - LID_PER_CHEEK * np.maximum(cheeks, 0.0), 0.0)
     over = lids > cap
-    if over.any():  # (rare: a blink or closed lids over raised cheeks)
+    if np.count_nonzero(over):  # (rare: a blink or closed lids over raised cheeks)
         over &= (lids != before[..., :2]) | (cheeks != before[..., 2:])
         F[..., 19:21] = np.where(over, cap, lids)
 
 
 def _meet_lids1(F: np.ndarray, before: list[float]) -> None:
     """``meet_lids`` of one frame (``F (69,)``, ``before`` 4 floats), with Python floats."""
-    after = F[_LIDS_CHEEKS].tolist()
+    after = F.take(_LIDS_CHEEKS_AT).tolist()
     if after == before:
         return
     for side in (0, 1):
@@ -322,11 +314,11 @@ def keep_closures(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` with the lip opening they would add to the primary's FAPs ``F`` taken out
     where ``F`` holds the lips closed (1 at or below ``CLOSED_GAP``, 0 from ``OPEN_GAP``); corners,
     spreading and the lips' common shift stay. Returns ``A`` itself when nothing changes, else a new array."""
-    a = A[_LIPS].tolist()
+    a = A.take(_LIPS).tolist()
     jaw = float(A[3])
     if jaw <= 0 and all(a[2 * i] + a[2 * i + 1] >= 0 for i in range(6)):
         return A  # the offsets open neither the lips nor the jaw
-    f = F[_LIPS].tolist()
+    f = F.take(_LIPS).tolist()
     span = OPEN_GAP - CLOSED_GAP
     out = None
     for i, (top, bottom) in enumerate(_PAIRS):
@@ -446,13 +438,15 @@ def combine(
         for value, w in overrides:
             num_o = num_o + w * value
             den_o = den_o + w
-        den = np.broadcast_to(np.asarray(den_o, dtype=np.float64), (69,))
+        den = den_o
+        if not (type(den) is np.ndarray and den.shape == (69,) and den.dtype == np.float64):
+            den = np.broadcast_to(np.asarray(den_o, dtype=np.float64), (69,))
         on = den > 0
         target = np.divide(num_o, den, out=np.zeros(69), where=on)
         F = np.where(on, F + np.minimum(1.0, den) * (target - F), F)
     if F[19] > 0.0 or F[20] > 0.0:  # closing lids (rare): rule 5's meeting, against the primary's
-        before = np.asarray(primary.faps, dtype=np.float64)[_LIDS_CHEEKS]
-        _meet_lids1(F, (before if high is None else before + high[_LIDS_CHEEKS]).tolist())
+        before = np.asarray(primary.faps, dtype=np.float64).take(_LIDS_CHEEKS_AT)
+        _meet_lids1(F, (before if high is None else before + high.take(_LIDS_CHEEKS_AT)).tolist())
 
     # head transform of the mix
     if rest is not None:
@@ -526,9 +520,12 @@ def _role_part(
         return _weighted(x, w)
     num: Any = 0.0
     den: Any = 0.0
-    for x, nz, w in group:
-        num = num + w * x
-        den = den + w * (x != 0 if nz is None else nz)
+    if len(group) == 1 and nz is not None and type(w) is float and w == 1.0:
+        num, den = x, nz  # (0 + 1·x is x; read-only here)
+    else:
+        for x, nz, w in group:
+            num = num + w * x
+            den = den + w * (x != 0 if nz is None else nz)
     if P is None:
         return num / np.maximum(_ONES, den)
     d = (P != 0) + den
@@ -591,11 +588,15 @@ class Mixer:
         self._lock = threading.Lock()
         self._layers: dict[str, Layer] = {}
         self._next_end: float | None = None  # the earliest ``end`` of the layers (None: none ends)
+        self._snapshot: tuple[tuple[Layer, ...], tuple[tuple[type, Role], ...]] = ((), ())
 
     def _changed(self) -> None:
-        """Note the layers changed (call with the lock held): their earliest end."""
+        """Note the layers changed (call with the lock held): their earliest end, and the
+        snapshot ``snapshot`` gives."""
         ends = [e for e in (lay.end for lay in self._layers.values()) if e is not None]
         self._next_end = min(ends) if ends else None
+        layers = tuple(self._layers.values())
+        self._snapshot = layers, tuple((type(lay), lay.role) for lay in layers)
 
     @staticmethod
     def _check_name(name: str) -> str:
@@ -656,7 +657,7 @@ class Mixer:
     def clear(self) -> None:
         with self._lock:
             self._layers.clear()
-            self._next_end = None
+            self._changed()
 
     def __len__(self) -> int:
         return len(self._layers)
@@ -679,6 +680,11 @@ class Mixer:
 
     def active(self, t: float) -> list[Layer]:
         """The layers at ``t``, in the order they were added; drops those whose end passed."""
+        return list(self.snapshot(t)[0])
+
+    def snapshot(self, t: float) -> tuple[tuple[Layer, ...], tuple[tuple[type, Role], ...]]:
+        """``active(t)`` as a tuple, and each layer's ``(type, role)`` (the same objects until
+        the layers change: ``batch.mix_batch`` samples the frames of alike mixers together)."""
         with self._lock:
             end = self._next_end
             if end is not None and end < t:
@@ -686,7 +692,7 @@ class Mixer:
                     if lay.end is not None and lay.end < t:
                         del self._layers[n]
                 self._changed()
-            return list(self._layers.values())
+            return self._snapshot
 
 
 def mix_states(
@@ -724,52 +730,3 @@ def mix_states(
 
 #: Most frames ``mix_states`` mixes in one go (bounds its arrays' memory: ~0.5 MB each).
 _CHUNK = 1024
-
-
-def _keep_closures_batch(F: np.ndarray, A: np.ndarray, rows: np.ndarray) -> None:
-    """``keep_closures`` of the ``rows`` (bool ``(B,)``) of ``F``, ``A (B, 69)``, in place on ``A``."""
-    x = (-(F[:, _TOP] + F[:, _BOTTOM]) - CLOSED_GAP) / (OPEN_GAP - CLOSED_GAP)
-    x = np.minimum(1.0, np.maximum(0.0, x))
-    c = 1.0 - x * x * (3.0 - 2.0 * x)  # (B, 6): 1 closed .. 0 open
-    if not rows.all():
-        c[~rows] = 0.0
-    if not c.any():
-        return  # every mouth open: nothing to keep
-    jaw = A[:, 3]
-    A[:, 3] = np.where(jaw > 0, jaw * (1.0 - c[:, 0]), jaw)
-    cut = np.maximum(0.0, -(A[:, _TOP] + A[:, _BOTTOM])) * c / 2
-    A[:, _TOP] += cut
-    A[:, _BOTTOM] += cut
-
-
-def _unrotate(angles: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``Rᵀ q`` row by row: ``R = Ry(yaw)·Rx(pitch)·Rz(roll)`` (``_rot``) of ``angles (G, 3)``
-    (pitch, yaw, roll radians), ``q (G, 3)``; three plane rotations, R itself is not formed."""
-    cp, cy, cr = np.cos(angles).T
-    sp, sy, sr = np.sin(angles).T
-    qx, qy, qz = q.T
-    x, z = cy * qx - sy * qz, sy * qx + cy * qz  # Ryᵀ
-    y, z = cp * qy + sp * z, cp * z - sp * qy  # Rxᵀ
-    out = np.empty_like(q)
-    out[:, 0] = cr * x + sr * y  # Rzᵀ
-    out[:, 1] = cr * y - sr * x
-    out[:, 2] = z
-    return out
-
-
-def _eye_angles_batch(d: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``eye_angles`` of directions ``d (G, 2, 3)`` (head-local) for the eyes' unit axes
-    ``axes (2, 3)``: ``(yaw, pitch)`` radians, each ``(G, 2)``. (With ``u = cos(pitch + φ)``,
-    ``φ = atan2(az, ay)``, the rotated axis' z is ``ay·sin(pitch) + az·cos(pitch) = r·√(1 - u²)``.)"""
-    dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
-    n = np.sqrt(dx * dx + dy * dy + dz * dz)
-    ok = n > 1e-12
-    ax, ay, az = axes.T
-    r = np.hypot(ay, az)
-    u = np.minimum(1.0, np.maximum(-1.0, dy / np.where(ok, n, 1.0) / r))
-    pitch = np.arccos(u) - np.arctan2(az, ay)
-    yaw = np.arctan2(dx, dz) - np.arctan2(ax, r * np.sqrt(1.0 - u * u))
-    yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
-    yaw = np.minimum(EYE_YAW_MAX, np.maximum(-EYE_YAW_MAX, yaw))
-    pitch = np.minimum(EYE_PITCH_MAX, np.maximum(-EYE_PITCH_MAX, pitch))
-    return np.where(ok, yaw, 0.0), np.where(ok, pitch, 0.0)

@@ -44,6 +44,7 @@ class ExpressionLayer:
     envelope: Envelope = field(default_factory=Envelope)
     regions: tuple[str, ...] | None = None
     role: Role = Role.EXPRESSION
+    _held: Contribution = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if isinstance(self.expression, bool) or not isinstance(self.expression, int | np.integer):
@@ -61,6 +62,7 @@ class ExpressionLayer:
                 raise ValueError("faps must be 69 finite numbers (index k = FAP k)")
             object.__setattr__(self, "faps", f)
         object.__setattr__(self, "regions", check_regions(self.regions))
+        object.__setattr__(self, "_held", self._at(1.0))
 
     @property
     def end(self) -> float | None:
@@ -70,12 +72,19 @@ class ExpressionLayer:
         e = self.envelope(t)
         if e <= 0.0:
             return EMPTY
-        return Contribution(
+        return self._held if e == 1.0 else self._at(e)
+
+    def _at(self, e: float) -> Contribution:
+        """The contribution at envelope ``e`` (at 1, ``_held``: made once, its arrays read-only)."""
+        c = Contribution(
             faps=self.faps,
             amount=self.amount,
             weight=_weight(self.regions, e),
             expression=(self.expression, 63, 0, 0) if self.expression else None,
         )
+        if isinstance(c.weight, np.ndarray):
+            c.weight.flags.writeable = False
+        return c
 
 
 @dataclass(frozen=True, eq=False)  # (holds arrays: compared by identity)
