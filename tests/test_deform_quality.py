@@ -15,6 +15,7 @@ from facecast.server.faces.face import Face
 from facecast.server.pipeline import Animator
 
 SURPRISE = 75  # demo_states(10): jaw open + brows up
+SPEECH = 51  # demo_states(10): speaking (visemes)
 
 
 def grid_face(n: int = 21) -> Face:
@@ -174,17 +175,21 @@ def test_normal_turn_on_the_surprise_frame_2k_is_bounded(head2k):
 @pytest.mark.slow
 def test_membrane_socket_stops_the_poke_through_on_the_default_head():
     """On the 25k head the socket poked through below a mouth corner in the surprise (the socket
-    copied or kept the lips' rows while the chin dropped); the default membrane keeps it inside."""
+    copied or kept the lips' rows while the chin dropped); the default membrane keeps it inside.
+    Since the mouth pocket is mirror-symmetric the old rows poke through in the speech (frame 51,
+    6 vertices) rather than the surprise."""
     face = load_face("default")
     qm = QualityMesh.of(face)
-    state = list(demo_states(10, loops=1))[SURPRISE]
+    states = list(demo_states(10, loops=1))
     old = Animator(face, backend="numpy", smooth=0.0, inner="copy")
     new = Animator(face, backend="numpy")
-    m_old = measure(face.vertices + old.operator.apply(old.solve(state)[0]), qm)
-    m_new = measure(face.vertices + new.operator.apply(new.solve(state)[0]), qm)
-    assert m_old["pokes"] > 0  # the check can see it
-    assert m_new["pokes"] == 0, m_new
-    assert m_new["dihedral_p99"] < m_old["dihedral_p99"]
+    m_old, m_new = {}, {}
+    for frame in (SURPRISE, SPEECH):
+        m_old[frame] = measure(face.vertices + old.operator.apply(old.solve(states[frame])[0]), qm)
+        m_new[frame] = measure(face.vertices + new.operator.apply(new.solve(states[frame])[0]), qm)
+    assert max(m["pokes"] for m in m_old.values()) > 0  # the check can see it
+    assert all(m["pokes"] == 0 for m in m_new.values()), m_new
+    assert m_new[SURPRISE]["dihedral_p99"] < m_old[SURPRISE]["dihedral_p99"]
 
 
 def test_default_operator_stays_sparse(head2k):

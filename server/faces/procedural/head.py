@@ -414,7 +414,7 @@ def _assemble(model: SkinModel, lay: Layout, spacing: float, name: str) -> Face:
     slit = skin_v[grid.ids[jm]]
     pocket_v, loop, (k, m), pocket_side, pocket_depth = mouth_pocket(model, grid, slit, spacing)
     n_grid = len(skin_v)
-    pocket_f = pocket_triangles(loop, k, m, n_grid)
+    pocket_f = pocket_triangles(loop, k, m, n_grid, skin_v[loop, 0])
     near = np.isin(grid.triangles, loop).any(axis=1)
     if _has_duplicate_directed_edges(np.concatenate([grid.triangles[near], pocket_f[: 2 * m]])):
         pocket_f = pocket_f[:, ::-1]
@@ -427,7 +427,7 @@ def _assemble(model: SkinModel, lay: Layout, spacing: float, name: str) -> Face:
         centre = lay.eye_centre_l * np.array([sgn, 1.0, 1.0])
         cols = (col["inl" if sgn > 0 else "inr"], col["outl" if sgn > 0 else "outr"])
         sac_v, sac_loop, sk, sm = eye_sac(grid, skin_v, centre, lay.conf.eye_radius, cols, spacing)
-        sac_f = pocket_triangles(sac_loop, sk, sm, nv)
+        sac_f = pocket_triangles(sac_loop, sk, sm, nv, skin_v[sac_loop, 0])
         near = np.isin(grid.triangles, sac_loop).any(axis=1)
         if _has_duplicate_directed_edges(np.concatenate([grid.triangles[near], sac_f[: 2 * sm]])):
             sac_f = sac_f[:, ::-1]

@@ -69,6 +69,20 @@ def grid_triangles(
     return tris[keep]
 
 
+def mirror_cells(x: np.ndarray) -> np.ndarray:
+    """``(C,) bool``: the cells of a wrapped ring of columns (cell j joins columns j and j+1 mod C,
+    ``x (C,)`` their x) on the +x side, for ``grid_triangles(mirror_cols=...)``.
+
+    A ring symmetric under x -> -x runs through its mirror half in the opposite direction, so the
+    same diagonal in every cell gives mirrored cells opposite diagonals; flipping one half makes the
+    triangulation mirror-symmetric (and the surface distances and weights built on it). The +x half
+    is flipped: of the two symmetric choices, the -x halves' diagonal is the one that did not fold
+    (joy folded the left eye's sac at its outer corner, surprise the mouth pocket on the left).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    return (x + np.roll(x, -1)) > 0
+
+
 def closed_grid(n_rings: int, n_seg: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Index layout of a closed surface with two poles: ``(ids (n_rings+2, n_seg), ring index, segment index)``.
 
@@ -87,11 +101,13 @@ def closed_surface(
     t_rings: np.ndarray,
     n_seg: int,
     flip: bool = False,
+    mirror: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sample a closed two-pole parametric surface.
 
     ``points(t, w)`` maps ``t`` in [0, 1] (0, 1 = poles) and angle ``w`` in [0, 2π) to ``(..., 3)`` points.
-    ``t_rings`` are the interior ring parameters (strictly between 0 and 1). Returns
+    ``t_rings`` are the interior ring parameters (strictly between 0 and 1). ``mirror``: the surface
+    is symmetric under x -> -x; triangulate it symmetrically too (``mirror_cells``). Returns
     ``(vertices (n, 3), triangles (m, 3))``; vertex 0 is the pole ``t = 0``, the last the pole ``t = 1``.
     """
     t_rings = np.asarray(t_rings, dtype=np.float64)
@@ -102,7 +118,9 @@ def closed_surface(
     p1 = points(np.ones(1), np.zeros(1)).reshape(1, 3)
     verts = np.concatenate([p0, ring_pts, p1])
     ids, _, _ = closed_grid(len(t_rings), n_seg)
-    tris = grid_triangles(ids, ids, wrap=True)
+    mid = len(t_rings) // 2 * n_seg  # a middle ring: widest, no x near 0 but on the mirror plane
+    cells = mirror_cells(ring_pts[mid : mid + n_seg, 0]) if mirror and len(t_rings) else None
+    tris = grid_triangles(ids, ids, wrap=True, mirror_cols=cells)
     if flip:
         tris = tris[:, ::-1]
     return verts, tris

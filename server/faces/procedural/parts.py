@@ -191,7 +191,7 @@ def tongue(lay: Layout, spacing: float) -> Part:
         z = z_tip - length * tt
         return np.stack([x, y, np.broadcast_to(z, x.shape)], -1)
 
-    v, f = closed_surface(pts, t, n_seg)
+    v, f = closed_surface(pts, t, n_seg, mirror=True)
     f = orient_outward(v - v.mean(axis=0), f)
     r_body, r_edge = _ring_index(t, t_body), _ring_index(t, t_edge)
     anchors = {

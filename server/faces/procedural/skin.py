@@ -28,6 +28,7 @@ from .layout import (
 from .mesh import (
     graded_axis,
     grid_triangles,
+    mirror_cells,
     ray_exit,
     ray_exit_cylinder,
     smooth_max,
@@ -452,13 +453,21 @@ def mouth_pocket(
     )
 
 
-def pocket_triangles(loop: np.ndarray, k: int, m: int, first_id: int) -> np.ndarray:
-    """Triangles of the pocket: ring 0 = ``loop`` (skin ids), rings 1..k new ids from ``first_id``, then the pole."""
+def pocket_triangles(
+    loop: np.ndarray, k: int, m: int, first_id: int, loop_x: np.ndarray | None = None
+) -> np.ndarray:
+    """Triangles of the pocket: ring 0 = ``loop`` (skin ids), rings 1..k new ids from ``first_id``, then the pole.
+
+    ``loop_x (m,)``: x of the loop vertices; the cells on the -x side take the other diagonal
+    (``mirror_cells``), so the mouth pocket is mirror-symmetric and the right eye's sac is the
+    mirror image of the left's (whose loop runs the other way round).
+    """
     ids = np.empty((k + 2, m), dtype=np.int64)
     ids[0] = loop
     ids[1:-1] = first_id + np.arange(k * m).reshape(k, m)
     ids[-1] = first_id + k * m
-    return grid_triangles(ids, ids, wrap=True)
+    cells = None if loop_x is None else mirror_cells(loop_x)
+    return grid_triangles(ids, ids, wrap=True, mirror_cols=cells)
 
 
 def eye_sac_rings(spacing: float, radius: float) -> int:
