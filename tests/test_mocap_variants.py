@@ -247,6 +247,32 @@ def test_live_takes_the_neutral_again_at_a_later_hold(tmp_path, ict_head):
     assert _angle_deg(heads[1:], heads[:-1]).max() < 0.5
 
 
+def test_live_take_starting_with_the_head_turned_renders_it_turned(tmp_path, ict_head):
+    """A live take whose head starts turned from the capture axes (``neutral-last``: its rest is the
+    hold at the end, 6-9 deg away): the layout's face positions give the start's turn
+    (``neutral.square_rest``), so the output's head is turned as the actor's from the first state,
+    not taken for the rest (every frame 6-9 deg off before). A take starting square keeps its
+    start for the rest."""
+    from facecast.server.mocap.io import read_take
+    from facecast.server.mocap.live import MarkerLiveDriver
+    from facecast.server.mocap.variants import make_take
+
+    face = ict_head[0]
+    for name, seed in (("neutral-last", 0), ("neutral-last", 1), ("issue16", 0)):
+        truth = make_take(name, tmp_path / f"{name}{seed}", seed=seed, seconds=1.0, face=face)
+        layout = json.loads(truth.paths["layout"].read_text())
+        take = read_take(truth.paths["trc"], default_units=layout["units"])
+        drv = MarkerLiveDriver(face, take.names, layout, fps=take.fps, prior="off")
+        heads, frames = [], []
+        for i, f in enumerate(take.xyz):
+            for s in drv.push(f, i / take.fps):
+                heads.append(s.head)
+                frames.append(i)
+        err = _angle_deg(np.asarray(heads)[:, :, :3], truth.r[frames])
+        assert err.mean() < 0.5, (name, seed, err.mean())
+        assert (drv.rest_turn_deg > 1.0) == (name == "neutral-last")
+
+
 def test_render_exposes_the_mocap_cleaning_choices(tmp_path, ict_head, capsys):
     from facecast.server.cli import main
     from facecast.server.mocap.variants import make_take

@@ -9,7 +9,9 @@ face prior (``prior``, the same as batch: the face's expression shapes fitted to
 started from the last, carried to every vertex by the states' per-vertex channel). The actor's
 neutral is taken from the first ``neutral_frames`` frames in which at least three stable markers
 are visible, more until every control marker has been seen (``stabilise.start_neutral``:
-stabilised and averaged, in the first frame's head pose); until then ``push`` returns no state.
+stabilised and averaged, in the first frame's head pose, turned back square to the capture axes
+when the head starts turned from them: ``neutral.square_rest``); until then ``push`` returns no
+state.
 A take that starts on an expression gets its neutral shape again where it later holds the face at
 rest (``_watch_neutral``, scored as batch's ``--neutral-frame auto``). Each frame's head pose uses
 every marker that has shown itself rigid (``stabilise.robust_pose``) and, with a face prior, every
@@ -31,7 +33,7 @@ from ..state import FaceState
 from .clean import KalmanCV
 from .io import FACE_SPAN_MM, detect_units
 from .layout import Layout, load_layout
-from .neutral import AUTO_RATIO, HOLD_S, rest_score, tied_positions
+from .neutral import AUTO_RATIO, HOLD_S, rest_score, square_rest, tied_positions
 from .prior import DEFAULT as PRIOR_DEFAULT
 from .rig import MarkerRig, match_names
 from .stabilise import ShapePose, rigidity_weights, robust_pose, solve_pose, start_neutral
@@ -77,6 +79,8 @@ class MarkerLiveDriver:
         control_vertices: ``(K,) int32`` face vertices driven, or None until the neutral is taken when
             the layout asks for automatic placement.
         lag_frames: frames since the last measured sample, per marker (diagnostics).
+        rest_turn_deg: how far the head started turned from the capture axes (degrees; 0 when the
+            start was taken for the rest: ``neutral.square_rest``).
     """
 
     def __init__(
@@ -138,6 +142,8 @@ class MarkerLiveDriver:
         target = tied_positions(self.layout, face)
         tied = np.setdiff1d(np.flatnonzero(np.isfinite(target).all(axis=1)), self.stable)
         self._tied = tied if len(tied) >= 4 and not auto else None
+        self._face_at_rest = target  # (L, 3) face units, NaN for markers not tied to the face
+        self.rest_turn_deg = 0.0
         self._target = target[tied]
         self._recent: deque[np.ndarray] = deque(maxlen=max(2, round(HOLD_S * self.fps)))
         self._window: deque[np.ndarray] = deque(maxlen=self.neutral_frames)
@@ -281,6 +287,16 @@ class MarkerLiveDriver:
                 + ": declare the right units in "
                 "the hello or the layout",
                 where=f"frame {self.frames - 1}",
+            )
+        # a take that starts with the head turned from the capture axes: the rest is square to them
+        neutral, self.rest_turn_deg = square_rest(
+            neutral, self._face_at_rest, self.stable, self.face.pivot("head")
+        )
+        if self.rest_turn_deg:
+            log.info(
+                "live markers: the head starts turned %.2f deg from the capture axes; its rest is "
+                "square to them",
+                self.rest_turn_deg,
             )
         self._build_rig(neutral)
         # each marker's mean square off the head (mm², an exponential average over ~0.5 s); until
