@@ -247,6 +247,66 @@ def test_live_takes_the_neutral_again_at_a_later_hold(tmp_path, ict_head):
     assert _angle_deg(heads[1:], heads[:-1]).max() < 0.5
 
 
+def test_live_take_starting_with_the_head_turned_renders_it_turned(tmp_path, ict_head):
+    """A live take whose head starts turned from the capture axes (``neutral-last``: its rest is the
+    hold at the end, 6-9 deg away): the layout's face positions give the start's turn
+    (``neutral.square_rest``), so the output's head is turned as the actor's from the first state,
+    not taken for the rest (every frame 6-9 deg off before). A take starting square keeps its
+    start for the rest."""
+    from facecast.server.mocap.io import read_take
+    from facecast.server.mocap.live import MarkerLiveDriver
+    from facecast.server.mocap.variants import make_take
+
+    face = ict_head[0]
+    for name, seed in (("neutral-last", 0), ("neutral-last", 1), ("issue16", 0)):
+        truth = make_take(name, tmp_path / f"{name}{seed}", seed=seed, seconds=1.0, face=face)
+        layout = json.loads(truth.paths["layout"].read_text())
+        take = read_take(truth.paths["trc"], default_units=layout["units"])
+        drv = MarkerLiveDriver(face, take.names, layout, fps=take.fps, prior="off")
+        heads, frames = [], []
+        for i, f in enumerate(take.xyz):
+            for s in drv.push(f, i / take.fps):
+                heads.append(s.head)
+                frames.append(i)
+        err = _angle_deg(np.asarray(heads)[:, :, :3], truth.r[frames])
+        assert err.mean() < 0.5, (name, seed, err.mean())
+        assert (drv.rest_turn_deg > 1.0) == (name == "neutral-last")
+
+
+def test_live_rest_slides_to_a_square_neutral_hold_after_a_turned_start(tmp_path, ict_head):
+    """A take that starts turned and on an expression, and holds its neutral square to the axes at
+    the end (``neutral-last``): no layout tells where the head rests, so the start's position is
+    kept until the hold, then the rest slides there (``MarkerLiveDriver._retake``) over
+    ``REST_SLIDE_S``: the head ends nearer where the actor's is (it stayed ~5 mm off without the
+    slide), and no frame steps by more than the slide's share."""
+    from facecast.server.mocap.io import read_take
+    from facecast.server.mocap.live import REST_SLIDE_S, MarkerLiveDriver
+    from facecast.server.mocap.variants import make_take
+
+    face = ict_head[0]
+    truth = make_take("neutral-last", tmp_path, seed=3, seconds=2.0, face=face, formats=("trc",))
+    layout = json.loads(truth.paths["layout"].read_text())
+    take = read_take(truth.paths["trc"], default_units=layout["units"])
+    drv = MarkerLiveDriver(face, take.names, layout, fps=take.fps, prior="off")
+    heads, frames = [], []
+    for i, f in enumerate(take.xyz):
+        for s in drv.push(f, i / take.fps):
+            heads.append(s.head)
+            frames.append(i)
+    assert drv.retakes >= 1
+    h = np.asarray(heads)
+    r, t = truth.head(face, np.asarray(frames))
+    v = face.vertices[face.part("skin")].astype(np.float64)
+    got = np.einsum("tij,vj->tvi", h[:, :, :3], v) + h[:, None, :, 3]
+    want = np.einsum("tij,vj->tvi", r, v) + t[:, None]
+    off = np.linalg.norm(got - want, axis=2).mean(axis=1) * face.mm_per_unit
+    # (the hold starts 0.5 s before the end; the slide begins 0.4 s into it)
+    assert off[-5:].mean() < 0.7 * off[: len(off) // 2].mean()
+    step = np.linalg.norm(np.diff(h[:, :, 3], axis=0), axis=1) * face.mm_per_unit
+    slide = 15.0 / (REST_SLIDE_S * take.fps)  # mm per frame of a 15 mm slide
+    assert step.max() < slide + 2.0  # the head's own motion: well under 2 mm a frame
+
+
 def test_render_exposes_the_mocap_cleaning_choices(tmp_path, ict_head, capsys):
     from facecast.server.cli import main
     from facecast.server.mocap.variants import make_take

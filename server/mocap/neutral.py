@@ -27,12 +27,15 @@ __all__ = [
     "AUTO_RATIO",
     "HOLD_S",
     "REST_MARGIN_DEG",
+    "SQUARE_MAX_DEG",
     "auto_neutral_frame",
     "axis_deviation",
+    "axis_turn",
     "find_neutral",
     "held_frames",
     "rest_frame",
     "rest_score",
+    "square_rest",
     "tied_positions",
 ]
 
@@ -55,6 +58,9 @@ HOLD_S = 0.4
 #: ``rest_frame``: the default frame's head pose is the head's rest instead of the automatic
 #: neutral frame's when its face sits this much (degrees) closer to the capture axes.
 REST_MARGIN_DEG = 1.0
+#: ``square_rest``: a start turned further than this (degrees) from the capture axes is not taken
+#: for a turned head (the axes are then not square to the actor, or the layout does not fit).
+SQUARE_MAX_DEG = 30.0
 
 
 def tied_positions(layout: Layout, face: Face) -> np.ndarray:
@@ -161,25 +167,40 @@ def find_neutral(
     return frame
 
 
-def axis_deviation(markers: np.ndarray, target: np.ndarray) -> float:
-    """How far (degrees) the head of ``markers (n, 3)`` (mm, NaN = unseen) is turned from the
-    capture axes: the rotation of the best similarity onto the face at rest ``target (n, 3)``
-    (``tied_positions``) against the nearest axis-aligned rotation (a signed permutation: Y-up,
-    Z-up, facing any axis). inf with fewer than 4 markers seen."""
+def axis_turn(markers: np.ndarray, target: np.ndarray, min_seen: int = 4) -> np.ndarray | None:
+    """``(3, 3)``: how the head of ``markers (n, 3)`` (mm, NaN = unseen) is turned in capture space
+    from the nearest pose square to the capture axes (Y-up, Z-up, facing any axis: a signed
+    permutation of the face's axes): ``markers ~ D (square pose)`` about their centre. From the
+    rotation ``Q`` of the best similarity onto the face at rest ``target (n, 3)`` (``tied_positions``):
+    ``Q = P D^T`` with ``P`` the nearest signed permutation. None with fewer than ``min_seen``
+    markers seen (3 fix a rotation)."""
     from scipy.spatial.transform import Rotation
 
     vis = np.isfinite(markers).all(axis=1) & np.isfinite(target).all(axis=1)
-    if vis.sum() < 4:
-        return float("inf")
+    if vis.sum() < max(3, min_seen):
+        return None
     q = similarity(markers[vis], target[vis])[0]
-    best = float("inf")
+    best, turn = float("inf"), np.eye(3)
     for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
         for signs in np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).T.reshape(-1, 3):
             p = np.zeros((3, 3))
             p[np.arange(3), perm] = signs
             if np.linalg.det(p) > 0:
-                best = min(best, float(Rotation.from_matrix(q @ p.T).magnitude()))
-    return float(np.degrees(best))
+                angle = float(Rotation.from_matrix(q @ p.T).magnitude())
+                if angle < best:
+                    best, turn = angle, q.T @ p
+    return turn
+
+
+def axis_deviation(markers: np.ndarray, target: np.ndarray) -> float:
+    """How far (degrees) the head of ``markers (n, 3)`` (mm, NaN = unseen) is turned from the
+    capture axes (``axis_turn``'s angle); inf with fewer than 4 markers seen."""
+    from scipy.spatial.transform import Rotation
+
+    turn = axis_turn(markers, target)
+    return (
+        float("inf") if turn is None else float(np.degrees(Rotation.from_matrix(turn).magnitude()))
+    )
 
 
 def rest_frame(raw: np.ndarray, target: np.ndarray, nf: int, default: int) -> int:
@@ -199,3 +220,50 @@ def rest_frame(raw: np.ndarray, target: np.ndarray, nf: int, default: int) -> in
         return nf
     own, other = axis_deviation(raw[nf], target), axis_deviation(raw[default], target)
     return default if other + REST_MARGIN_DEG < own else nf
+
+
+def square_rest(
+    neutral: np.ndarray, target: np.ndarray, stable: np.ndarray, pivot: np.ndarray | None = None
+) -> tuple[np.ndarray, float]:
+    """The live driver's head rest when it starts with the head turned: ``(neutral' (L, 3) mm,
+    degrees)``, ``neutral (L, 3)`` (mm, NaN = unseen, the first frames' pose) carried back by the
+    head's turn from the capture axes (``axis_turn``) about the face's head ``pivot`` (face units,
+    carried into the capture frame by the best similarity; the stable markers' centre without
+    one), and that turn's angle; ``(neutral, 0.0)`` unchanged when the head sits square.
+
+    The turn is taken when the face markers tied to the face (``target``, ``tied_positions``) and
+    the stable markers tied to it (when 3 are) both say the head is turned more than
+    ``REST_MARGIN_DEG`` (and at most ``SQUARE_MAX_DEG``) from the axes, as batch's ``rest_frame``
+    trusts a squarer frame by that margin; its rotation comes from the stable markers, which no
+    expression moves (a take may start on one: the face markers were 0.9 deg off the true turn at
+    an expression, the stable ones 0.07-0.1 deg; on square starts they gave 0.04-0.21 deg and the
+    face markers 0.07-0.48 deg, generated takes, 0.5 mm noise). Every later pose is then solved
+    against the square neutral, so the output's head is turned from the first state on, as the
+    actor's is, instead of taking the turned start for the rest (6-9 deg on every frame of a take
+    that holds its neutral at the end)."""
+    from scipy.spatial.transform import Rotation
+
+    def angle(turn: np.ndarray | None) -> float:
+        return (
+            float("inf")
+            if turn is None
+            else float(np.degrees(Rotation.from_matrix(turn).magnitude()))
+        )
+
+    every = axis_turn(neutral, target)
+    only = np.full_like(target, np.nan)
+    only[stable] = target[stable]
+    band = axis_turn(neutral, only, min_seen=3)
+    turn = band if band is not None else every
+    deg = angle(turn)
+    checks = [angle(every)] + ([deg] if band is not None else [])
+    if turn is None or not all(REST_MARGIN_DEG < d <= SQUARE_MAX_DEG for d in checks):
+        return neutral, 0.0
+    vis = np.isfinite(neutral).all(axis=1) & np.isfinite(target).all(axis=1)
+    if pivot is not None:
+        q, scale, shift = similarity(neutral[vis], target[vis])
+        c = (np.asarray(pivot, dtype=np.float64) - shift) @ q / scale
+    else:
+        seen = np.isfinite(neutral[stable]).all(axis=1)
+        c = neutral[stable][seen].mean(axis=0) if seen.any() else np.nanmean(neutral, axis=0)
+    return (neutral - c) @ turn + c, deg
