@@ -98,6 +98,33 @@ def run_live(
     return np.array([s.viseme[0] for s in states])
 
 
+def net_path(
+    groups: tuple[int, ...],
+    stamp: int,
+    *,
+    epochs: int = frames.EPOCHS,
+    hidden: int = frames.HIDDEN,
+    balance: float = frames.BALANCE,
+    step: int = frames.STEP,
+    members: int = frames.MEMBERS,
+    offsets=frames.OFFSETS,
+    dev: bool = True,
+    live_cal: bool = frames.LIVE_CALIBRATION,
+) -> Path:
+    """Cache file (under bench/out, gitignored) of the network trained without the speakers of
+    ``FOLDS[g]`` for g in ``groups`` by this recipe, on the cached features of mtime ``stamp``."""
+    return (
+        frames.OUT
+        / "lipsync_data"
+        / "nets"
+        / (
+            f"{'-'.join(map(str, groups))}_e{epochs}_h{hidden}_b{balance}_s{step}_m{members}"
+            f"_o{'.'.join(map(str, offsets))}{'' if dev else '_nodev'}{'_lc' if live_cal else ''}"
+            f"_c{stamp}.npz"
+        )
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--refresh", action="store_true", help="recompute the cached features")
@@ -154,16 +181,17 @@ def main(argv: list[str] | None = None) -> int:
 
     def net_without(groups: tuple[int, ...]):
         """The network trained without the speakers of ``FOLDS[g]`` for g in ``groups``."""
-        cache = (
-            frames.OUT
-            / "lipsync_data"
-            / "nets"
-            / (
-                f"{'-'.join(map(str, groups))}_e{args.epochs}_h{args.hidden}_b{args.balance}"
-                f"_s{args.step}_m{args.members}_o{args.offsets.replace(',', '.')}{'_nodev' if args.no_dev else ''}"
-                f"{'' if args.no_live_cal or not frames.LIVE_CALIBRATION else '_lc'}"
-                f"_c{cache_stamp}.npz"
-            )
+        cache = net_path(
+            groups,
+            cache_stamp,
+            epochs=args.epochs,
+            hidden=args.hidden,
+            balance=args.balance,
+            step=args.step,
+            members=args.members,
+            offsets=offsets,
+            dev=not args.no_dev,
+            live_cal=frames.LIVE_CALIBRATION and not args.no_live_cal,
         )
         if groups not in nets and cache.exists() and not args.cmvn:
             nets[groups] = FrameNet.load(cache)

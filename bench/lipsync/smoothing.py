@@ -38,7 +38,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 
 import frames
-from folds import FOLDS, cached_items, items_path
+from folds import FOLDS, cached_items, items_path, net_path
 from run import scores
 
 from facecast.server.audio.classify import FrameNet
@@ -47,21 +47,6 @@ from facecast.server.audio.visemes import median_filter_proba
 Decide = Callable[[np.ndarray], np.ndarray]
 #: (probabilities (T, 10), truth (T,), inner fold index or -1 for held out)
 Pair = tuple[np.ndarray, np.ndarray, int]
-
-
-def net_path(groups: tuple[int, ...], stamp: int) -> Path:
-    """``folds.py``'s cache file of the default recipe's network without ``groups``."""
-    o = ".".join(map(str, frames.OFFSETS))
-    return (
-        frames.OUT
-        / "lipsync_data"
-        / "nets"
-        / (
-            f"{'-'.join(map(str, groups))}_e{frames.EPOCHS}_h{frames.HIDDEN}_b{frames.BALANCE}"
-            f"_s{frames.STEP}_m{frames.MEMBERS}_o{o}{'_lc' if frames.LIVE_CALIBRATION else ''}"
-            f"_c{stamp}.npz"
-        )
-    )
 
 
 def nested_outputs() -> dict[int, dict]:
