@@ -63,6 +63,20 @@ def live_server(root: Path, face: str, *extra: str, env: dict | None = None) -> 
     ).start()
 
 
+def bench_module(name: str):
+    """``bench/<name>.py`` loaded as a module (bench/ is not a package), for tests of a bench's
+    own helpers."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        f"_bench_{name}", Path(__file__).resolve().parents[1] / "bench" / f"{name}.py"
+    )
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def run(coro, timeout: float = 120):
     """Run ``coro`` to completion in a fresh event loop, at most ``timeout`` seconds."""
     return asyncio.run(asyncio.wait_for(coro, timeout))

@@ -3,26 +3,16 @@ encoder) and a recent revision both load against today's package and encode a sm
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import bench_module
 
 from facecast.server.output import gltf
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _bench():
-    spec = importlib.util.spec_from_file_location(
-        "_bench_gltf_encode", ROOT / "bench" / "gltf_encode.py"
-    )
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _has_revision(rev: str) -> bool:
@@ -46,7 +36,7 @@ def _clip() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("rev", ["default", "HEAD"])
 def test_the_baseline_encoder_runs_against_todays_package(rev):
-    bench = _bench()
+    bench = bench_module("gltf_encode")
     rev = bench.BASELINE if rev == "default" else rev
     if not _has_revision(rev):
         pytest.skip(f"git history without {rev} (a shallow clone)")

@@ -4,17 +4,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from conftest import bench_module
 
 from facecast.server.harness import descendants
-
-ROOT = Path(__file__).resolve().parents[1]
 
 #: Burns 0.2 s of its own CPU time, says so, then waits for its stdin to close.
 BURN = (
@@ -23,16 +21,6 @@ BURN = (
     "print('burnt', flush=True)\n"
     "sys.stdin.read()\n"
 )
-
-
-def _bench():
-    spec = importlib.util.spec_from_file_location(
-        "_bench_web_viewer", ROOT / "bench" / "web_viewer.py"
-    )
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
@@ -53,7 +41,7 @@ def test_chromium_cpu_is_summed_by_process_type_over_descendants(tmp_path):
             assert proc.stdout.readline().strip() == "burnt"
             below = descendants(os.getpid())
             assert proc.pid in below and len(below) >= 2, below
-            cpu = _bench().process_cpu()
+            cpu = bench_module("web_viewer").process_cpu()
             assert cpu.get("renderer", 0.0) >= 0.15, cpu  # the stand-in's 0.2 s (10 ms clock ticks)
             assert "browser" not in cpu, cpu  # the python launcher is not Chromium
         finally:
