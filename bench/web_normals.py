@@ -62,8 +62,9 @@ def frame_of(face_spec: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     face = load_face(face_spec)
     tri = np.ascontiguousarray(face.triangles, dtype=np.uint32)
     rest = np.ascontiguousarray(face.vertices, dtype=np.float32)
-    joy = shared_data() / "xface" / "faps" / "joy.fap"
-    if not joy.is_file():
+    data = shared_data()
+    joy = data / "xface" / "faps" / "joy.fap" if data is not None else None
+    if joy is None or not joy.is_file():
         return rest, rest, tri, "rest pose"
     frames = Animator(face, backend="numpy").render(load_fap(joy, face))
     return np.ascontiguousarray(frames[-1], dtype=np.float32), rest, tri, "last frame of joy.fap"

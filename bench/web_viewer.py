@@ -123,8 +123,10 @@ def process_cpu() -> dict[str, float]:
             cmd = Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ").split()
         except OSError:
             continue
+        if not cmd or "chrom" not in Path(cmd[0]).name:
+            continue
         seconds = process_cpu_seconds(pid)
-        if not cmd or "chrom" not in Path(cmd[0]).name or math.isnan(seconds):
+        if math.isnan(seconds):  # gone meanwhile
             continue
         kind = next((a.split("=", 1)[1] for a in cmd if a.startswith("--type=")), "browser")
         out[kind] = out.get(kind, 0.0) + seconds
