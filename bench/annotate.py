@@ -330,18 +330,16 @@ def builtin_cases(quick: bool) -> list[dict]:
                 "tuning" if res in TUNING_RESOLUTIONS else "held-out",
             )
         )
-    for vname, (n, conf) in TUNING2_VARIANTS.items():
-        if not wanted("tuning"):
-            continue
+    for vname, (n, conf) in TUNING2_VARIANTS.items() if wanted("tuning") else ():
         f = build_default_head(n, **conf)
         truth = {k: f.vertices[i].astype(np.float64) for k, i in f.feature_points.items()}
         cases.append(
             run_case(f"default:{n // 1000}k {vname}", f.vertices, f.triangles, truth, 1.0, "tuning")
         )
     for split, variants in (("tuning", TUNING_VARIANTS), ("held-out", HELD_OUT_VARIANTS)):
+        if not wanted(split):
+            continue
         for vname, conf in variants.items():
-            if not wanted(split):
-                continue
             f = build_default_head(20000, **conf)
             truth = {k: f.vertices[i].astype(np.float64) for k, i in f.feature_points.items()}
             cases.append(
@@ -364,11 +362,11 @@ def transform(v: np.ndarray, how: str) -> tuple[np.ndarray, float]:
 def fresh_cases(split: str = "fresh") -> list[dict]:
     """``FRESH_VARIANTS`` (held out at stop 15, split ``fresh``) or ``FRESH2_VARIANTS`` (held out at
     stop 25, split ``fresh2``)."""
+    if not wanted(split):
+        return []
     cases = []
     variants = FRESH_VARIANTS if split == "fresh" else FRESH2_VARIANTS
     for vname, (n, conf, cell, how) in variants.items():
-        if not wanted(split):
-            continue
         f = build_default_head(n, **conf)
         v, tri = f.vertices.astype(np.float64), f.triangles
         truth_mm = {k: v[i].copy() for k, i in f.feature_points.items()}
@@ -389,9 +387,9 @@ def ict_cases(data: Path, quick: bool) -> list[dict]:
         ("tuning", TUNING_ICT),
         ("held-out", HELD_OUT_ICT[:1] if quick else HELD_OUT_ICT),
     ):
+        if not wanted(split) and not wanted("cross" if split == "held-out" else "cross-tuning"):
+            continue
         for i in ids:
-            if not wanted(split) and not wanted("cross" if split == "held-out" else "cross-tuning"):
-                continue
             v, tri = read_obj(data / "heads" / "ict-identities" / f"identity{i:03d}.obj.xz")
             truth = {k: v[vid].astype(np.float64) for k, vid in shipped["feature_points"].items()}
             rv, rt = remesh(v.astype(np.float64), tri, 0.15, seed=i)
