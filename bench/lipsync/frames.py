@@ -91,14 +91,9 @@ def channel(x: np.ndarray, sr: int, rng: np.random.Generator) -> np.ndarray:
     return np.clip(y / (np.abs(y).max() + 1e-12) * rng.uniform(0.05, 0.9), -1, 1)
 
 
-def utterance_frames(x: np.ndarray, sr: int) -> np.ndarray:
-    """``(T, 44)`` frame features of one utterance with its own file calibration."""
-    return utterance_features(x, sr)[0]
-
-
 def utterance_features(x: np.ndarray, sr: int) -> tuple[np.ndarray, np.ndarray]:
     """``(T, 44)`` frame features of one utterance with its own file calibration, and its
-    ``(T,)`` frame energies (dB: the calibration's input, see ``calibrated``)."""
+    ``(T,)`` frame energies (dB: the calibration's input, see ``live_calibrated``)."""
     f = features_of(x, sr)
     cal = calibrate(f.energy_db)
     F = frame_features(f.k, f.energy_db, f.zcr, cal.silence_db, cal.max_db, f.shape, f.cep)
