@@ -111,13 +111,10 @@ class RunningCalibration:
         sil = np.empty(len(energy_db))
         mx = np.empty(len(energy_db))
         last = len(self.hist) - 1
-        lo, step = self.lo, self.step
         for i, e in enumerate(np.asarray(energy_db, dtype=np.float64).tolist()):
-            b = int((e - lo) / step) if math.isfinite(e) else 0
-            b = min(max(b, 0), last)
-            self._add(b)
-            noise = lo + step * (self._bin[0] + 0.5)
-            top = lo + step * (self._bin[1] + 0.5)
+            b = int((e - self.lo) / self.step) if math.isfinite(e) else 0
+            self._add(min(max(b, 0), last))
+            noise, top = self.levels()
             s = max(noise + NOISE_MARGIN_DB, top - SILENCE_RANGE_DB, MIN_SILENCE_DB)
             sil[i], mx[i] = s, max(top, s + 10.0)
         return sil, mx
