@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from facecast.server.bench.history import source_at
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "out" / "web_normals.json"
 MESH_JS = "client/web/js/mesh.js"
@@ -83,13 +85,7 @@ def main(argv: list[str]) -> int:
         print("web_normals: Node.js is not installed (.ci/setup installs it)", file=sys.stderr)
         return 2
     frame, rest, tri, what = frame_of(args.face)
-    old = subprocess.run(
-        ["git", "show", f"{args.baseline}:{MESH_JS}"],
-        cwd=ROOT,
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout
+    old = source_at(ROOT, args.baseline, MESH_JS)
     load0 = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="web-normals-") as tmp:
         d = Path(tmp)
