@@ -45,6 +45,12 @@ def animator(head):
     return Animator(head[0], engine="fp", backend="numpy")
 
 
+def _posed(face, animator, expression: int) -> np.ndarray:
+    """``(V, 3)`` the head's vertices under high-level ``expression`` at full strength."""
+    state = FaceState(t=0.0, expression=(expression, 63, 0, 0))
+    return face.vertices.astype(np.float64) + animator.operator.apply(animator.solve(state)[0])
+
+
 def test_triangulation_is_mirror_symmetric(head):
     face, mirror = head
     tri = np.sort(face.triangles.astype(np.int64), axis=1)
@@ -64,9 +70,7 @@ def test_expressions_deform_symmetrically(head, animator, expression):
     is the engine's tie-breaking between equidistant midline feature points (e.g. 4.1/4.2 at the
     glabella), up to 0.17 mm p99 (anger) and 2 mm at one vertex (surprise)."""
     face, mirror = head
-    rest = face.vertices.astype(np.float64)
-    state = FaceState(t=0.0, expression=(expression, 63, 0, 0))
-    moved = rest + animator.operator.apply(animator.solve(state)[0])
+    moved = _posed(face, animator, expression)
     asym = np.linalg.norm(moved - moved[mirror] * _M, axis=1) * face.mm_per_unit
     assert np.percentile(asym, 99) < (0.05 if expression == 1 else 0.2)
 
@@ -76,9 +80,7 @@ def test_joy_folds_no_eye_corner(head, animator):
     face, _ = head
     tri = face.triangles.astype(np.int64)
     rest = face.vertices.astype(np.float64)
-    moved = rest + animator.operator.apply(
-        animator.solve(FaceState(t=0.0, expression=(1, 63, 0, 0)))[0]
-    )
+    moved = _posed(face, animator, 1)
     turn = np.einsum(
         "ij,ij->i", face_normals(rest, tri), face_normals(moved.astype(np.float64), tri)
     )
