@@ -17,12 +17,10 @@ a table with the ratios and the machine's load.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -32,23 +30,20 @@ OUT = Path(__file__).resolve().parent / "out" / "compact_kernel.json"
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def load_ref(ref: str, tmp: Path):
+def load_ref(ref: str):
     """REF's ``backends/opencl/compact.py`` as a module of the package, building REF's kernel."""
     from facecast.server.backends.opencl import host
+    from facecast.server.bench.history import module_at
 
-    def show(path: str) -> str:
-        return subprocess.run(
-            ["git", "show", f"{ref}:{path}"], cwd=ROOT, capture_output=True, text=True, check=True
-        ).stdout
-
-    src = show("server/backends/opencl/compact.cl")
-    (tmp / "compact_ref.py").write_text(show("server/backends/opencl/compact.py"))
+    src = subprocess.run(
+        ["git", "show", f"{ref}:server/backends/opencl/compact.cl"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     name = "facecast.server.backends.opencl._compact_ref"
-    spec = importlib.util.spec_from_file_location(name, tmp / "compact_ref.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
+    mod = module_at(ROOT, ref, "server/backends/opencl/compact.py", name)
     real = host.cl_source
 
     def build(ctx):
@@ -95,8 +90,7 @@ def main(argv: list[str]) -> int:
     frames = np.asarray(an.render(anim), np.float32)
     fps, n, S = float(anim.fps), len(frames), a.sessions
     tol, key = 0.1 / face.mm_per_unit, max(1, round(0.25 * anim.fps))
-    tmp = tempfile.TemporaryDirectory()
-    old, build_old = load_ref(a.ref, Path(tmp.name))
+    old, build_old = load_ref(a.ref)
     sides = {"ref": (old, build_old(ctx)), "new": (new, new.DeviceCompact(ctx))}
 
     def encoders():

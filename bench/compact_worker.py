@@ -42,10 +42,10 @@ def main(argv: list[str]) -> int:
 
     from serve_load import faps
 
-    from facecast.protocol.compact import CompactEncoder
     from facecast.server.api.store import FaceStore
     from facecast.server.live import batcher as batcher_module
     from facecast.server.live.batcher import DeformBatcher, _Job
+    from facecast.server.live.session import compact_encoder
     from facecast.server.live.settings import LiveSettings
     from facecast.server.state import FaceState, zero_faps
 
@@ -68,16 +68,7 @@ def main(argv: list[str]) -> int:
     sizes = [int(x) for x in a.batches.split(",")]
     res: dict[str, dict[str, float]] = {}
     for n in sizes:
-        encs = [
-            CompactEncoder(
-                face.vertices,
-                face.rigid_group,
-                tolerance=0.1 / face.mm_per_unit,
-                key_interval=15,
-                key_seconds=0.25,
-            )
-            for _ in range(n)
-        ]
+        encs = [compact_encoder(face, 0.1, fps) for _ in range(n)]
         phase = [(s * 97) % len(states) for s in range(n)]
 
         def jobs(i: int, enc: str) -> list[_Job]:

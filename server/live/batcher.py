@@ -213,11 +213,10 @@ def _encode_compact_device(
     verts: np.ndarray,
     todo: list[tuple[int, _Job]],
     T: Any,
-    pool: Executor | None = None,
 ) -> list[tuple[memoryview, bytearray] | None]:
     """``_encode_compact`` of the ``todo`` frames (``(k, job)``: frame k of ``verts``, aligned),
     their residual planes computed on the deformer's OpenCL device in one launch
-    (``backends.opencl.compact``: the same bytes), deflated on ``pool``; on the host where the
+    (``backends.opencl.compact``: the same bytes), deflated in this thread; on the host where the
     device fails."""
     from ..backends.opencl.compact import device_compact, encode_batch
 
@@ -225,7 +224,7 @@ def _encode_compact_device(
     if device is not None:
         try:
             frames = [(j.compact, k, T[k], j.seq, j.state.t, j.wall) for k, j in todo]
-            encoded = encode_batch(device, verts, frames, pool)
+            encoded = encode_batch(device, verts, frames)
             return [_frame(j, d) for (_, j), d in zip(todo, encoded)]
         except Exception:  # the host encoder serves this batch
             log.warning("compact encoding on the device failed", exc_info=True)
@@ -465,7 +464,11 @@ class DeformBatcher:
             log.warning("int16 quantisation on the device failed; NumPy from now on", exc_info=True)
             self._quantizer = None
             encoded = encode_batch(verts, meta)
-        pool = _compact_executor(self.settings.compact_pool_threads) if len(todo) > 1 else None
+        pool = (
+            _compact_executor(self.settings.compact_pool_threads)
+            if len(todo) > 1 and not on_device
+            else None
+        )
         if on_device:  # deflated here: the pool's hand-overs cost more CPU than they overlap
             done = _encode_compact_device(a.deformer, verts, todo, T)
         elif pool is not None:

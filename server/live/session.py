@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ...protocol.compact import KEY
+from ...protocol.compact import KEY, CompactEncoder
 from ...protocol.messages import InputKind, Stats, Status, dump_message
 from ..state import FaceState
 from . import ports
@@ -145,6 +145,18 @@ class SessionSpec:
     viewer_token: str
     created: float = field(default_factory=time.time)
     tolerance: float = 0.1  # mm: largest error of a decoded vertex in the ``compact`` encoding
+
+
+def compact_encoder(face: Any, tolerance_mm: float, fps: float) -> CompactEncoder:
+    """A session's ``CompactEncoder`` of ``face``: ``tolerance_mm`` (mm), a key frame every 250 ms
+    of frames at ``fps`` (frames/s) and of wall time."""
+    return CompactEncoder(
+        face.vertices,
+        face.rigid_group,
+        tolerance=tolerance_mm / face.mm_per_unit,
+        key_interval=max(1, int(0.25 * fps)),
+        key_seconds=0.25,
+    )
 
 
 class LiveSession:
@@ -358,15 +370,7 @@ class LiveSession:
     def _compact_encoder(self) -> Any:
         """The session's ``CompactEncoder`` (made on first use)."""
         if self.compact is None:
-            from ...protocol.compact import CompactEncoder
-
-            self.compact = CompactEncoder(
-                self.face.vertices,
-                self.face.rigid_group,
-                tolerance=self.spec.tolerance / self.face.mm_per_unit,
-                key_interval=max(1, int(0.25 * self.spec.fps)),
-                key_seconds=0.25,
-            )
+            self.compact = compact_encoder(self.face, self.spec.tolerance, self.spec.fps)
         return self.compact
 
     def set_remote_encodings(self, encodings: frozenset[str], key: bool = False) -> None:
