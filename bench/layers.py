@@ -55,6 +55,10 @@ import numpy as np
 
 from facecast.server.state import FaceState
 
+BENCH = str(Path(__file__).parent)  # the sibling benches' folder: serve, serve_load
+if BENCH not in sys.path:
+    sys.path.insert(0, BENCH)
+
 
 def per_frame(fn, n: int, repeats: int, clock=time.thread_time) -> tuple[float, float]:
     """Median (CPU by ``clock``, wall) seconds per frame of ``fn()`` over ``repeats`` runs of ``n``
@@ -123,7 +127,6 @@ def serve_server(args: argparse.Namespace, sessions: str):
     ``--warmup`` and ``--seconds``, and its server, started (the caller stops it)."""
     import logging
 
-    sys.path.insert(0, str(Path(__file__).parent))
     import serve
 
     logging.basicConfig(level=logging.WARNING)
@@ -338,7 +341,6 @@ def scenario_layers(L, scenario: str, t0: float = 0.0) -> list:
     gaze at a point) or ``serve`` (``bench/serve.py``'s ``LAYERS``: idle, joy at 0.5, gaze at the
     camera, built from their REST bodies as the server does)."""
     if scenario == "serve":
-        sys.path.insert(0, str(Path(__file__).parent))
         import serve
 
         spec = importlib.import_module(L.__name__ + ".spec")
@@ -358,7 +360,6 @@ def scenario_primary(scenario: str, n: int) -> list[FaceState] | None:
     producer's FAP frames at 60 fps (``serve``: jaw, lips, brows and a blink); None without
     ``../shared/data`` for ``bench``."""
     if scenario == "serve":
-        sys.path.insert(0, str(Path(__file__).parent))
         import serve_load
 
         out = []
