@@ -260,7 +260,7 @@ def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -
     other: list[tuple[int, Role, Contribution]] = []
     for r, layer, t in entries:
         kind = type(layer)
-        if kind is IdleLayer or kind is ExpressionLayer or kind is GazeLayer:
+        if kind in _TOGETHER:
             key = (kind, layer.role)
             group = kinds.get(key)
             if group is None:
