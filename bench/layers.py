@@ -55,6 +55,10 @@ import numpy as np
 
 from facecast.server.state import FaceState
 
+BENCH = str(Path(__file__).parent)  # the sibling benches' folder: serve, serve_load
+if BENCH not in sys.path:
+    sys.path.insert(0, BENCH)
+
 
 def per_frame(fn, n: int, repeats: int, clock=time.thread_time) -> tuple[float, float]:
     """Median (CPU by ``clock``, wall) seconds per frame of ``fn()`` over ``repeats`` runs of ``n``
@@ -117,6 +121,27 @@ def live_worker(face, geo, states, layers, repeats: int, row) -> dict:
     return out
 
 
+def serve_server(args: argparse.Namespace, sessions: str):
+    """``(serve, sargs, server)``: ``bench/serve.py`` (its server, load point and viewer
+    processes), its arguments for ``sessions`` (``N`` or ``N,M``) and this bench's ``--encoding``,
+    ``--warmup`` and ``--seconds``, and its server, started (the caller stops it)."""
+    import logging
+
+    import serve
+
+    logging.basicConfig(level=logging.WARNING)
+    p = argparse.ArgumentParser()
+    serve.add_arguments(p)
+    sargs = p.parse_args(
+        ["--sessions", sessions, "--viewers", "", "--encoding", args.encoding]
+        + ["--warmup", str(args.warmup), "--seconds", str(args.seconds)]
+    )
+    sargs.encoding = sargs.encoding[0]
+    server = serve._server(sargs.face, sargs.backend)  # noqa: SLF001 - the bench's own server
+    server.start(300, ready=True)
+    return serve, sargs, server
+
+
 def serve_capacity(args: argparse.Namespace) -> int:
     """``--capacity N,M``: what a user of ``bench/serve.py`` sees with and without layers, on one
     real server: at each session count, a point without layers and one with ``--layers`` (their
@@ -124,24 +149,11 @@ def serve_capacity(args: argparse.Namespace) -> int:
     target (every viewer at 95 % of 60 fps, p95 within 50 ms) and the server's CPU per
     session-frame. Writes ``bench/out/layers_capacity.json``."""
     import asyncio
-    import logging
 
-    sys.path.insert(0, str(Path(__file__).parent))
-    import serve
-
-    logging.basicConfig(level=logging.WARNING)
     counts = [int(x) for x in args.capacity.split(",") if x.strip()]
-    p = argparse.ArgumentParser()
-    serve.add_arguments(p)
-    sargs = p.parse_args(
-        ["--sessions", ",".join(map(str, counts)), "--viewers", "", "--encoding", args.encoding]
-        + ["--warmup", str(args.warmup), "--seconds", str(args.seconds)]
-    )
-    sargs.encoding = sargs.encoding[0]
-    key = "server_cpu_us_per_session_frame"
     load0 = os.getloadavg()
-    server = serve._server(sargs.face, sargs.backend)  # noqa: SLF001 - the bench's own server
-    server.start(300, ready=True)
+    serve, sargs, server = serve_server(args, ",".join(map(str, counts)))
+    key = "server_cpu_us_per_session_frame"
     points: list[dict] = []
     try:
 
@@ -192,23 +204,10 @@ def serve_capacity(args: argparse.Namespace) -> int:
 def serve_pairs(args: argparse.Namespace) -> int:
     """``--serve-pairs``: layers on and off, ABBA, on one real server (see the module)."""
     import asyncio
-    import logging
 
-    sys.path.insert(0, str(Path(__file__).parent))
-    import serve  # bench/serve.py: its server, load point and viewer processes
-
-    logging.basicConfig(level=logging.WARNING)
-    p = argparse.ArgumentParser()
-    serve.add_arguments(p)
-    sargs = p.parse_args(
-        ["--sessions", str(args.sessions), "--viewers", "", "--encoding", args.encoding]
-        + ["--warmup", str(args.warmup), "--seconds", str(args.seconds)]
-    )
-    sargs.encoding = sargs.encoding[0]
-    key = "server_cpu_us_per_session_frame"
     load0 = os.getloadavg()
-    server = serve._server(sargs.face, sargs.backend)  # noqa: SLF001 - the bench's own server
-    server.start(300, ready=True)
+    serve, sargs, server = serve_server(args, str(args.sessions))
+    key = "server_cpu_us_per_session_frame"
     points: list[dict] = []
     try:
 
@@ -342,7 +341,6 @@ def scenario_layers(L, scenario: str, t0: float = 0.0) -> list:
     gaze at a point) or ``serve`` (``bench/serve.py``'s ``LAYERS``: idle, joy at 0.5, gaze at the
     camera, built from their REST bodies as the server does)."""
     if scenario == "serve":
-        sys.path.insert(0, str(Path(__file__).parent))
         import serve
 
         spec = importlib.import_module(L.__name__ + ".spec")
@@ -362,7 +360,6 @@ def scenario_primary(scenario: str, n: int) -> list[FaceState] | None:
     producer's FAP frames at 60 fps (``serve``: jaw, lips, brows and a blink); None without
     ``../shared/data`` for ``bench``."""
     if scenario == "serve":
-        sys.path.insert(0, str(Path(__file__).parent))
         import serve_load
 
         out = []

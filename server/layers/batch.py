@@ -260,7 +260,7 @@ def sample_columns(entries: Sequence[tuple[int, Layer, float]], geo: Geometry) -
     other: list[tuple[int, Role, Contribution]] = []
     for r, layer, t in entries:
         kind = type(layer)
-        if kind is IdleLayer or kind is ExpressionLayer or kind is GazeLayer:
+        if kind in _TOGETHER:
             key = (kind, layer.role)
             group = kinds.get(key)
             if group is None:
@@ -334,7 +334,6 @@ BATCH_MIN = 5
 SMALL_GAZE = 8
 _ZERO = np.zeros(N)
 _ZERO.flags.writeable = False
-_WIDTH_AT = np.array(WIDTH)
 _SPAN = OPEN_GAP - CLOSED_GAP
 _TWO_PI = 2 * math.pi
 
@@ -511,7 +510,7 @@ def _mouth(F: np.ndarray, A: np.ndarray, rows: np.ndarray | None) -> None:
     of speaking primaries: ``limit_mouth``, then ``keep_closures``. (NumPy's calls on arrays this
     small cost more than their arithmetic: ``take`` and ``count_nonzero`` are its cheap ones.)"""
     # limit_mouth: what of A goes the way F does beyond F; the lips' width: their mean
-    a = A.take(_WIDTH_AT, 1)
+    a = A.take(WIDTH, 1)
     f = F * (_SPEECH_F if rows is None else rows[:, None] * _SPEECH_F)
     f = np.minimum(np.maximum(f, np.minimum(A, 0.0)), np.maximum(A, 0.0))
     A -= f
@@ -520,9 +519,9 @@ def _mouth(F: np.ndarray, A: np.ndarray, rows: np.ndarray | None) -> None:
         moved &= rows[:, None]
     k = np.count_nonzero(moved)
     if k == moved.size:
-        A[:, _WIDTH_AT] = (a - F.take(_WIDTH_AT, 1)) / 2
+        A[:, WIDTH] = (a - F.take(WIDTH, 1)) / 2
     elif k:
-        A[:, _WIDTH_AT] = np.where(moved, (a - F.take(_WIDTH_AT, 1)) / 2, A.take(_WIDTH_AT, 1))
+        A[:, WIDTH] = np.where(moved, (a - F.take(WIDTH, 1)) / 2, A.take(WIDTH, 1))
     # keep_closures: what A opens (lips, jaw) taken out by how closed F holds the lips
     LA = A.take(_LIPS, 1)
     shut = LA[:, 0::2] + LA[:, 1::2]  # (B, 6): minus what A opens each lip pair

@@ -413,18 +413,20 @@ def combine(
         A: Any = None
         for role, group in roles.items():
             P = None
+            width = False  # a still primary's lips' width competes (rule 4)
             if role is Role.EXPRESSION:
                 # what of the primary the overlays compete with: all of it, or, in a speaking
                 # mouth, only its own expression (FAP 2), never the speech
                 if not closures:
                     P = F
+                    width = bool(F[_LIPS_REGION].any())
                 elif primary.expression is None:
                     P = F * _OTHER_F
                 else:
                     E = _expand(None, primary.expression, geo)
                     assert E is not None
                     P = np.where(_SPEECH, E, F)
-            part = _role_part(group, P, not closures and bool(F[_LIPS_REGION].any()))
+            part = _role_part(group, P, width)
             A = part if A is None else A + part
         if closures:
             A = keep_closures(F, limit_mouth(F, A))
