@@ -404,8 +404,8 @@ class ShapePose:
             return None
         b = np.where(seen[:, None], res, 0.0).reshape(-1)
         x = cho_solve(self._factor(seen), self._a.T @ b)
-        rows = np.repeat(seen, 3)
-        rms = float(np.sqrt(np.mean((self._a[rows] @ x - b[rows]) ** 2)))
+        # the residual over the seen rows (no copy of the fit's matrix per frame)
+        rms = float(np.sqrt(np.mean((self._a @ x - b)[np.repeat(seen, 3)] ** 2)))
         lo, hi = self.trust
         return x[:6] * float(np.clip((hi - rms) / max(hi - lo, 1e-9), 0.0, 1.0))
 
