@@ -220,8 +220,7 @@ class MarkerRig:
         """``solve`` for ``(T, L, 3)`` frames at once."""
         d = self.rbf.displacements(local_mm[:, self.control]).astype(np.float32) * self.gains
         heads = self.head_matrix(r, t)
-        none: list[None] = [None] * len(d)
-        virtual, weights = self.prior.solve(d) if self.prior is not None else (none, none)
+        virtual, weights = self.prior.solve(d) if self.prior is not None else (None, None)
         return [
             self.state(
                 d[i],
