@@ -100,21 +100,7 @@ def main(argv: list[str]) -> int:
                 # the true marker displacements (face units) through the same prior and engine
                 mv = rig.placement.vertices
                 dx = (gl[:, mv] - face.vertices[mv][None]).astype(np.float32) * rig.gains[None]
-                virt, wts = (
-                    rig.prior.solve(dx) if rig.prior is not None else (None, [None] * len(dx))
-                )
-                exact = render(
-                    [
-                        rig.state(
-                            dx[i],
-                            heads[i],
-                            i / tr.fps,
-                            None if virt is None else virt[i],
-                            None if wts is None else wts[i],
-                        )
-                        for i in range(len(dx))
-                    ]
-                )
+                exact = render(rig.states(dx, heads, tr.fps))
                 noprior = render(
                     [
                         replace(rig.state(dx[i], heads[i], i / tr.fps), shapes=None)
@@ -125,16 +111,9 @@ def main(argv: list[str]) -> int:
                 if rig.prior is not None:
                     b = rig.prior.shapes[:, skin].reshape(len(rig.prior.shapes), -1).T
                     y = (gl[:, skin] - face.vertices[skin][None]).reshape(len(gl), -1).T
-                    coef = np.linalg.lstsq(b.astype(np.float64), y.astype(np.float64), rcond=None)[
-                        0
-                    ]
-                    proj = (b @ coef).T.reshape(len(gl), -1, 3)
-                    span = float(
-                        (
-                            np.linalg.norm(proj - (gl[:, skin] - face.vertices[skin][None]), axis=2)
-                            * mm
-                        ).mean()
-                    )
+                    coef = np.linalg.lstsq(b.astype(np.float64), y.astype(np.float64), rcond=None)
+                    res = (b @ coef[0] - y).T.reshape(len(gl), -1, 3)
+                    span = float((np.linalg.norm(res, axis=2) * mm).mean())
                 else:
                     span = float("nan")
                 row = {

@@ -72,10 +72,10 @@ def main(argv: list[str]) -> int:
         from facecast.server.mocap.variants import make_take
 
         face = load_ict()
-        tmp = tempfile.mkdtemp()
-        tr = make_take(a.take, tmp, seconds=a.seconds, fps=a.fps, face=face, formats=("trc",))
-        layout = json.loads(tr.paths["layout"].read_text())
-        take = read_take(tr.paths["trc"], default_units=layout["units"])
+        with tempfile.TemporaryDirectory() as tmp:  # the take is read whole, then removed
+            tr = make_take(a.take, tmp, seconds=a.seconds, fps=a.fps, face=face, formats=("trc",))
+            layout = json.loads(tr.paths["layout"].read_text())
+            take = read_take(tr.paths["trc"], default_units=layout["units"])
         names, frames = take.names, (take.xyz * UNIT_MM[take.units or "mm"]).astype(np.float32)
         layout["units"] = "mm"
     else:
@@ -126,10 +126,8 @@ def main(argv: list[str]) -> int:
         truth = (syn.local - syn.local[0])[n0:]
         lag = best_delay(d, truth)
         err = np.linalg.norm(d - truth, axis=2)
-        raw = (
-            syn.take.xyz * 1.0
-        )  # capture noise baseline: raw markers stabilised with the true pose
-        raw_local = np.einsum("tmj,tji->tmi", raw - syn.head_t[:, None], syn.head_r)
+        # capture noise baseline: raw markers stabilised with the true pose
+        raw_local = np.einsum("tmj,tji->tmi", syn.take.xyz - syn.head_t[:, None], syn.head_r)
         raw_err = np.linalg.norm((raw_local - syn.local)[n0:], axis=2)
 
     sine_lag = kalman_lag(a.fps, drv.kf.Q[1, 1] / drv.kf.dt, drv.kf.r)

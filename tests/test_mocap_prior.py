@@ -170,41 +170,10 @@ def test_live_driver_drives_the_channel(ict, tmp_path):
     assert max(np.abs(s.shape_weights).max() for s in states) > 0
 
 
-def test_channel_carries_the_fitted_shapes_to_every_vertex(ict):
-    """Markers moved exactly by known shapes: the engine plus the channel gives the shapes' own
-    skin, far closer than the engine interpolating the markers alone (the defect the channel
-    mends: the fit reached the output only through a few hundred interpolated points)."""
-    from facecast.server.deform.build import get_operator
-    from facecast.server.mocap.prior import apply_operator
-
-    face, names, deltas, markers, anchors = ict
-    prior = ExpressionPrior(
-        face, ExpressionBasis(names[2:30], deltas[2:30]), markers, anchors, n_virtual=0
-    )
-    controls = np.r_[markers, anchors].astype(np.int32)
-    op = get_operator(face, controls, engine="fp")
-    prior.set_channel(op, controls, face)
-    w = np.zeros(len(prior.shapes))
-    w[[3, 9, 20]] = [0.8, 0.5, 0.6]
-    truth = np.einsum("e,evc->vc", w, prior.shapes)
-    d = truth[markers][None]
-    values = np.zeros((1, len(controls), 3))
-    values[0, : len(markers)] = d[0]
-    engine = apply_operator(op, values)[0]
-    virtual, weights = prior.solve(d)
-    assert virtual is None and weights.shape == (1, len(prior.shapes))
-    out = engine.copy()
-    out[prior.channel.vertices] += prior.channel.mix(weights[0])
-    skin = face.part("skin")
-    mm = face.mm_per_unit
-    err = np.linalg.norm(out[skin] - truth[skin], axis=1).mean() * mm
-    alone = np.linalg.norm(engine[skin] - truth[skin], axis=1).mean() * mm
-    assert err < 0.3 * alone
-
-
-def test_an_exact_fit_is_barely_shrunk_by_the_ridge(ict):
-    """Markers moved exactly by three known shapes: the channel's skin is within a tenth of the
-    engine's error alone (0.025 mm against 0.33; the ridge at 0.03 shrank the fit to 0.047 mm)."""
+def _exact_fit(ict):
+    """Markers moved exactly by three known shapes, a prior without virtual controls and its
+    channel against the fp engine: ``(face, prior, truth (V, 3), engine (V, 3): the markers alone
+    interpolated, prior.solve of the markers)``."""
     from facecast.server.deform.build import get_operator
     from facecast.server.mocap.prior import apply_operator
 
@@ -221,7 +190,28 @@ def test_an_exact_fit_is_barely_shrunk_by_the_ridge(ict):
     values = np.zeros((1, len(controls), 3))
     values[0, : len(markers)] = truth[markers]
     engine = apply_operator(op, values)[0]
-    weights = prior.solve(truth[markers][None])[1]
+    return face, prior, truth, engine, prior.solve(truth[markers][None])
+
+
+def test_channel_carries_the_fitted_shapes_to_every_vertex(ict):
+    """Markers moved exactly by known shapes: the engine plus the channel gives the shapes' own
+    skin, far closer than the engine interpolating the markers alone (the defect the channel
+    mends: the fit reached the output only through a few hundred interpolated points)."""
+    face, prior, truth, engine, (virtual, weights) = _exact_fit(ict)
+    assert virtual is None and weights.shape == (1, len(prior.shapes))
+    out = engine.copy()
+    out[prior.channel.vertices] += prior.channel.mix(weights[0])
+    skin = face.part("skin")
+    mm = face.mm_per_unit
+    err = np.linalg.norm(out[skin] - truth[skin], axis=1).mean() * mm
+    alone = np.linalg.norm(engine[skin] - truth[skin], axis=1).mean() * mm
+    assert err < 0.3 * alone
+
+
+def test_an_exact_fit_is_barely_shrunk_by_the_ridge(ict):
+    """Markers moved exactly by three known shapes: the channel's skin is within a tenth of the
+    engine's error alone (0.025 mm against 0.33; the ridge at 0.03 shrank the fit to 0.047 mm)."""
+    face, prior, truth, engine, (_, weights) = _exact_fit(ict)
     assert weights is not None
     out = engine.copy()
     out[prior.channel.vertices] += prior.channel.mix(weights[0])

@@ -191,6 +191,17 @@ def test_live_driver_takes_its_neutral_on_a_take_moving_from_frame_0(tmp_path, i
     assert _angle_deg(heads[:, :, :3], truth.r[frames]).mean() < 0.3
 
 
+def _live_heads(drv, take) -> tuple[np.ndarray, list[int]]:
+    """``(heads (N, 3, 4), frames)``: the live driver's head of each state it gives for ``take``'s
+    frames pushed in turn, and the frame each came from."""
+    heads, frames = [], []
+    for i, f in enumerate(take.xyz):
+        for s in drv.push(f, i / take.fps):
+            heads.append(s.head)
+            frames.append(i)
+    return np.asarray(heads), frames
+
+
 def test_live_head_pose_uses_the_face_prior(tmp_path, ict_head):
     """With the face's shapes explaining its markers' motion (``stabilise.ShapePose``), every
     marker steadies the live head pose: its error falls well below the stable markers' own."""
@@ -205,12 +216,8 @@ def test_live_head_pose_uses_the_face_prior(tmp_path, ict_head):
     err = {}
     for prior in ("off", "auto"):
         drv = MarkerLiveDriver(face, take.names, layout, fps=take.fps, prior=prior)
-        heads, frames = [], []
-        for i, f in enumerate(take.xyz):
-            for s in drv.push(f, i / take.fps):
-                heads.append(s.head)
-                frames.append(i)
-        err[prior] = _angle_deg(np.asarray(heads)[:, :, :3], truth.r[frames]).mean()
+        heads, frames = _live_heads(drv, take)
+        err[prior] = _angle_deg(heads[:, :, :3], truth.r[frames]).mean()
     assert err["auto"] < 0.7 * err["off"]
 
 
@@ -263,12 +270,8 @@ def test_live_take_starting_with_the_head_turned_renders_it_turned(tmp_path, ict
         layout = json.loads(truth.paths["layout"].read_text())
         take = read_take(truth.paths["trc"], default_units=layout["units"])
         drv = MarkerLiveDriver(face, take.names, layout, fps=take.fps, prior="off")
-        heads, frames = [], []
-        for i, f in enumerate(take.xyz):
-            for s in drv.push(f, i / take.fps):
-                heads.append(s.head)
-                frames.append(i)
-        err = _angle_deg(np.asarray(heads)[:, :, :3], truth.r[frames])
+        heads, frames = _live_heads(drv, take)
+        err = _angle_deg(heads[:, :, :3], truth.r[frames])
         assert err.mean() < 0.5, (name, seed, err.mean())
         assert (drv.rest_turn_deg > 1.0) == (name == "neutral-last")
 
@@ -288,13 +291,8 @@ def test_live_rest_slides_to_a_square_neutral_hold_after_a_turned_start(tmp_path
     layout = json.loads(truth.paths["layout"].read_text())
     take = read_take(truth.paths["trc"], default_units=layout["units"])
     drv = MarkerLiveDriver(face, take.names, layout, fps=take.fps, prior="off")
-    heads, frames = [], []
-    for i, f in enumerate(take.xyz):
-        for s in drv.push(f, i / take.fps):
-            heads.append(s.head)
-            frames.append(i)
+    h, frames = _live_heads(drv, take)
     assert drv.retakes >= 1
-    h = np.asarray(heads)
     r, t = truth.head(face, np.asarray(frames))
     v = face.vertices[face.part("skin")].astype(np.float64)
     got = np.einsum("tij,vj->tvi", h[:, :, :3], v) + h[:, None, :, 3]

@@ -34,7 +34,6 @@ from .stabilise import (
     hold_pose,
     pose_uncertainty,
     refine_poses,
-    refine_with_shapes,
     remove_head,
     smooth_poses,
 )
@@ -50,15 +49,14 @@ __all__ = ["Processed", "find_layout", "load", "process"]
 #: (0.52 mm mean; 0.23 mm at 0.2); a take with a hold averages its hold (at 0.2 mm the generated
 #: take's stabilised displacements' p95 rose from 0.371 to 0.392 mm, at 0.4 it stays).
 HOLD_MM, STILL_MM = 0.4, 0.2
-#: Batch takes with a face prior may refine their head poses with its shapes too
-#: (``stabilise.refine_with_shapes``, ridge ``SHAPE_RIDGE``), after the take's own principal
-#: motions (``refine_poses``). Off: it helps where the prior spans the take and hurts where it does
-#: not. 2-s takes, batch ratio to not deforming, without fast-large fold 1: mirror folds (the
-#: held-out shape's other side in the prior) 0.533 -> 0.524x on issue16 + technician (the ridge
-#: chosen there), 0.718 -> 0.692x on the other variants, head pose 0.106 -> 0.073 deg; strict folds
-#: (whole families held out) 0.605 -> 0.632x and 0.701 -> 0.716x, head pose 0.109 -> 0.111 deg.
-SHAPE_POSE = False
-SHAPE_RIDGE = 0.003
+# Tried and left out: batch head poses refined again with every marker, the face's motion
+# explained by the face prior's shapes (``stabilise.ShapePose`` over the take, then RTS-smoothed as
+# ``refine_poses`` smooths its corrections; ridge 0.003), after ``refine_poses``. It helped where
+# the prior spans the take and hurt where it does not. 2-s takes, batch ratio to not deforming,
+# without fast-large fold 1: mirror folds (the held-out shape's other side in the prior) 0.533 ->
+# 0.524x on issue16 + technician (the ridge chosen there), 0.718 -> 0.692x on the other variants,
+# head pose 0.106 -> 0.073 deg; strict folds (whole families held out) 0.605 -> 0.632x and 0.701
+# -> 0.716x, head pose 0.109 -> 0.111 deg. (Live uses ``ShapePose`` per frame: ``live.SHAPE_POSE``.)
 
 
 @dataclass
@@ -252,24 +250,6 @@ def process(
         info["pose_frame_sd_deg"],
         info["pose_frame_sd_mm"],
     )
-    if params.filter == "rts" and params.lowrank != "off" and SHAPE_POSE and prior is not None:
-        rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu, prior=prior)
-        motion = rig.marker_motion()
-        if motion is not None:  # the poses again, the face's motion explained by the prior
-            r, t = refine_with_shapes(
-                filled,
-                r,
-                t,
-                neutral,
-                stable,
-                motion,
-                take.fps,
-                float(np.sqrt(info["r"])),
-                SHAPE_RIDGE,
-            )
-            unsmoothed = remove_head(filled, r, t)
-            local = clean(unsmoothed, take.fps, replace(params, despike=False))[0]
-            neutral = still_neutral(local, nf, round(neutral_window * take.fps))
     if params.filter == "rts" and params.lowrank != "off":
         local, info["lowrank"] = denoise_displacements(
             local, neutral, stable, params.lowrank, unsmoothed=unsmoothed

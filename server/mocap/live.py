@@ -40,6 +40,7 @@ from .neutral import (
     rest_score,
     square_rest,
     tied_positions,
+    turn_deg,
 )
 from .prior import DEFAULT as PRIOR_DEFAULT
 from .rig import MarkerRig, match_names
@@ -255,8 +256,7 @@ class MarkerLiveDriver:
         self._build_rig(np.where(np.isfinite(mean), mean, self.rig.neutral))
         self.retakes += 1
         r, t = self._pose
-        turn = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
-        if self.rest_turn_deg and turn < REST_MARGIN_DEG:
+        if self.rest_turn_deg and turn_deg(r) < REST_MARGIN_DEG:
             self._shift_to = r @ self._centre + t - self._centre
             self._shift_left = max(1, round(REST_SLIDE_S * self.fps))
         log.info(

@@ -37,6 +37,7 @@ __all__ = [
     "rest_score",
     "square_rest",
     "tied_positions",
+    "turn_deg",
 ]
 
 #: The default frame stays the neutral unless it fits the face at rest this many times worse than
@@ -195,9 +196,13 @@ def axis_turn(markers: np.ndarray, target: np.ndarray, min_seen: int = 4) -> np.
 def axis_deviation(markers: np.ndarray, target: np.ndarray) -> float:
     """How far (degrees) the head of ``markers (n, 3)`` (mm, NaN = unseen) is turned from the
     capture axes (``axis_turn``'s angle); inf with fewer than 4 markers seen."""
+    return turn_deg(axis_turn(markers, target))
+
+
+def turn_deg(turn: np.ndarray | None) -> float:
+    """The angle (degrees) of the rotation ``turn (3, 3)``; inf for None."""
     from scipy.spatial.transform import Rotation
 
-    turn = axis_turn(markers, target)
     return (
         float("inf") if turn is None else float(np.degrees(Rotation.from_matrix(turn).magnitude()))
     )
@@ -241,22 +246,13 @@ def square_rest(
     against the square neutral, so the output's head is turned from the first state on, as the
     actor's is, instead of taking the turned start for the rest (6-9 deg on every frame of a take
     that holds its neutral at the end)."""
-    from scipy.spatial.transform import Rotation
-
-    def angle(turn: np.ndarray | None) -> float:
-        return (
-            float("inf")
-            if turn is None
-            else float(np.degrees(Rotation.from_matrix(turn).magnitude()))
-        )
-
     every = axis_turn(neutral, target)
     only = np.full_like(target, np.nan)
     only[stable] = target[stable]
     band = axis_turn(neutral, only, min_seen=3)
     turn = band if band is not None else every
-    deg = angle(turn)
-    checks = [angle(every)] + ([deg] if band is not None else [])
+    deg = turn_deg(turn)
+    checks = [turn_deg(every)] + ([deg] if band is not None else [])
     if turn is None or not all(REST_MARGIN_DEG < d <= SQUARE_MAX_DEG for d in checks):
         return neutral, 0.0
     vis = np.isfinite(neutral).all(axis=1) & np.isfinite(target).all(axis=1)

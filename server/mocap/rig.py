@@ -219,9 +219,14 @@ class MarkerRig:
     ) -> list[FaceState]:
         """``solve`` for ``(T, L, 3)`` frames at once."""
         d = self.rbf.displacements(local_mm[:, self.control]).astype(np.float32) * self.gains
-        heads = self.head_matrix(r, t)
-        none: list[None] = [None] * len(d)
-        virtual, weights = self.prior.solve(d) if self.prior is not None else (none, none)
+        return self.states(d, self.head_matrix(r, t), fps, t0)
+
+    def states(
+        self, d: np.ndarray, heads: np.ndarray, fps: float, t0: float = 0.0
+    ) -> list[FaceState]:
+        """``FaceState``s from ``(T, K, 3)`` marker control displacements (face units) and
+        ``(T, 3, 4)`` heads, the prior fitted to all frames at once (``solve_batch``'s tail)."""
+        virtual, weights = self.prior.solve(d) if self.prior is not None else (None, None)
         return [
             self.state(
                 d[i],

@@ -28,7 +28,6 @@ __all__ = [
     "pose_in_frame",
     "pose_uncertainty",
     "refine_poses",
-    "refine_with_shapes",
     "remove_head",
     "rigid_fields",
     "rigidity_weights",
@@ -291,7 +290,6 @@ def refine_poses(
     0.218 on seed 2, 0.223 to 0.215 on seed 3), both followed by a low-rank projection; the true
     poses would have given 0.165. ``driver.denoise_displacements`` has the current pipeline's.
     """
-
     from .clean import estimate_q_cv, estimate_r, optimal_rank, rts_smooth
 
     t_n, m = xyz.shape[:2]
@@ -328,52 +326,6 @@ def refine_poses(
     )
     rr, tt = compose_correction(r, t, track[:, 0] / 100.0, track[:, 1], centre)
     return rr, tt, k
-
-
-def refine_with_shapes(
-    xyz: np.ndarray,
-    r: np.ndarray,
-    t: np.ndarray,
-    neutral: np.ndarray,
-    stable: np.ndarray,
-    motion: np.ndarray,
-    fps: float,
-    noise_mm: float = 0.5,
-    ridge: float = 0.03,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Head poses refined with every marker, the face's motion explained by a face prior's shapes
-    (batch; ``ShapePose`` per frame, then smoothed as ``refine_poses`` smooths its corrections).
-
-    ``refine_poses`` explains the face's motion by the take's own principal motions, which hold
-    whatever pose error the stable markers left (the rank is strict, but a pose error moving with
-    an expression is one of its directions): the displacements kept a per-frame rigid error (0.26 mm
-    at the markers on a generated take). A prior's shapes move no skull, so the rigid part of the
-    fit is the pose's error alone; frames the shapes do not explain are trusted less
-    (``ShapePose.trust``).
-
-    Args:
-        xyz: ``(T, M, 3)`` gap-filled capture-space markers (mm); ``r``, ``t`` the poses to refine.
-        neutral: ``(M, 3)`` stabilised neutral; ``stable``: the stable marker indices.
-        motion: ``(E, M, 3)`` the shapes at the markers (mm, the neutral's frame: ``MarkerRig.marker_motion``).
-        noise_mm: the markers' noise (per coordinate, mm).
-    """
-    from .clean import estimate_q_cv, estimate_r, rts_smooth
-
-    centre = np.asarray(neutral, dtype=np.float64)[stable].mean(axis=0)
-    fit = ShapePose(neutral, centre, motion, ridge=ridge, noise_mm=noise_mm)
-    res = remove_head(np.asarray(xyz, dtype=np.float64), r, t) - neutral
-    delta = np.full((len(res), 6), np.nan)
-    for f, x in enumerate(res):
-        got = fit.delta(x)
-        if got is not None:
-            delta[f] = got
-    ok = np.isfinite(delta).all(axis=1)
-    if ok.sum() < 12:
-        return r, t
-    track = np.stack([delta[:, :3] * 100.0, delta[:, 3:]], axis=1)  # as refine_poses
-    noise = estimate_r(track[ok])
-    track = rts_smooth(track, fps, q=estimate_q_cv(track[ok], fps, noise), r=noise)
-    return compose_correction(r, t, track[:, 0] / 100.0, track[:, 1], centre)
 
 
 def compose_correction(
@@ -452,8 +404,8 @@ class ShapePose:
             return None
         b = np.where(seen[:, None], res, 0.0).reshape(-1)
         x = cho_solve(self._factor(seen), self._a.T @ b)
-        rows = np.repeat(seen, 3)
-        rms = float(np.sqrt(np.mean((self._a[rows] @ x - b[rows]) ** 2)))
+        # the residual over the seen rows (no copy of the fit's matrix per frame)
+        rms = float(np.sqrt(np.mean((self._a @ x - b)[np.repeat(seen, 3)] ** 2)))
         lo, hi = self.trust
         return x[:6] * float(np.clip((hi - rms) / max(hi - lo, 1e-9), 0.0, 1.0))
 
