@@ -17,6 +17,20 @@ log = logging.getLogger(__name__)
 CHUNK = 32
 
 
+def turn(points: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """``(n, 3) float32``: ``points (n, 3) float32`` turned by ``rotation (3, 3)`` (``p @ R.T``),
+    column by column: einsum's loop over three-long rows took 0.25-0.3 ms for 17k points, a BLAS
+    product threads (and stalls on a loaded machine) on larger faces; this takes ~0.05 ms."""
+    out = np.empty_like(points)
+    tmp = np.empty(len(points), dtype=points.dtype)
+    for r in range(3):
+        col = out[:, r]
+        np.multiply(points[:, 0], rotation[r, 0], out=col)
+        col += np.multiply(points[:, 1], rotation[r, 1], out=tmp)
+        col += np.multiply(points[:, 2], rotation[r, 2], out=tmp)
+    return out
+
+
 class Animator:
     """Animates one face: builds its FAP rig, its deformation operator and a deformer.
 
@@ -108,10 +122,7 @@ class Animator:
                 g = group[s.shapes.vertices]
                 hit = self._shape_groups[s.shapes] = (g, bool((g == g[0]).all()))
             g, one = hit  # one rigid group (the usual case): one rotation
-            # (einsum: its own loop; a BLAS product threads, and stalls on a loaded machine)
-            off = (
-                np.einsum("nj,ij->ni", off, R[g[0]]) if one else np.einsum("nij,nj->ni", R[g], off)
-            )
+            off = turn(off, R[g[0]]) if one else np.einsum("nij,nj->ni", R[g], off)
             if v.flags.c_contiguous:
                 flat = v.reshape(-1)  # a view
                 flat[s.shapes.flat] += off.reshape(-1)

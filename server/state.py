@@ -69,8 +69,9 @@ class Shapes:
         ~12 ms (p50) where this loop takes 0.2 ms for 20 shapes over 17k vertices."""
         w = np.asarray(weights, dtype=np.float32).reshape(-1)
         out = np.zeros(self.deltas.shape[1:], dtype=np.float32)
+        tmp = np.empty_like(out)  # one scratch row, not a fresh product per shape
         for i in np.flatnonzero(w):
-            out += w[i] * self.deltas[i]
+            out += np.multiply(self.deltas[i], w[i], out=tmp)
         return out
 
     @cached_property

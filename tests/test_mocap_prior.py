@@ -248,6 +248,17 @@ def test_animator_turns_the_shapes_with_the_head():
     assert np.allclose(batch, got[None], atol=1e-6)
 
 
+def test_turn_is_the_rotation_product():
+    """``pipeline.turn`` (the channel's head rotation, column by column) is ``p @ R.T``."""
+    from facecast.server.pipeline import turn
+
+    rng = np.random.default_rng(5)
+    p = rng.normal(size=(1000, 3)).astype(np.float32)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    r = q.astype(np.float32)
+    assert np.allclose(turn(p, r), p @ r.T, atol=1e-6)
+
+
 def test_live_batcher_adds_the_shapes_as_a_render_does():
     """The live deform thread (``live.batcher``) adds each state's shapes: its f32 frames equal
     ``Animator.frame``, singly and in a batch, and differ from the frames without shapes."""
