@@ -8,14 +8,18 @@ head motion) is pushed frame by frame through ``MarkerLiveDriver`` and a ``pipel
 (deformation + rigid parts). Reported: per-frame time of the driver alone and of driver + deform
 (mean, p50, p95, p99), the sustained rate (frames / wall time, back to back), and, as the baseline
 from the same run, the deformation alone. The Kalman filter's lag is the delay that best aligns the
-driver's stabilised output with the ground truth. Target (issue 6): >= 120 frames/s sustained with
-60 markers on the 25k-vertex face. Writes ``bench/out/mocap_live.json`` and prints a table.
+driver's stabilised output with the ground truth. Also this thread's CPU time per frame (``host_cpu``;
+the OpenCL device's threads not counted), which a loaded machine moves far less than the wall
+time: run two versions alternately (``PYTHONPATH`` an exported tree) and compare it. Target
+(issue 6): >= 120 frames/s sustained with 60 markers on the 25k-vertex face. Writes
+``bench/out/mocap_live.json`` and prints a table.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -96,18 +100,21 @@ def main(argv: list[str]) -> int:
         for s in warm.push(frames[i], i / a.fps):
             anim.frame(s)
 
-    drv_ms, total_ms, states = [], [], []
+    drv_ms, total_ms, cpu_ms, states = [], [], [], []
     wall0 = time.perf_counter()
     for i, f in enumerate(frames):
+        c1 = time.thread_time()
         t1 = time.perf_counter()
         out = drv.push(f, i / a.fps)
         t2 = time.perf_counter()
         for s in out:
             verts = anim.frame(s)
         t3 = time.perf_counter()
+        c3 = time.thread_time()
         if out:
             drv_ms.append(1e3 * (t2 - t1))
             total_ms.append(1e3 * (t3 - t1))
+            cpu_ms.append(1e3 * (c3 - c1))
             states.append(out[-1])
     wall = time.perf_counter() - wall0
     assert np.isfinite(verts).all()
@@ -146,6 +153,10 @@ def main(argv: list[str]) -> int:
         "driver": pct(drv_ms),
         "driver_plus_deform": pct(total_ms),
         "deform_only": pct(base_ms),
+        # this thread's CPU time per frame (the device's threads not counted): on a loaded machine
+        # it moves far less than the wall time, so it compares code versions run side by side
+        "host_cpu": pct(cpu_ms),
+        "loadavg": os.getloadavg(),
         "sustained_fps": len(frames) / wall,
         "kalman_lag_frames": lag,
         "kalman_lag_ms": 1e3 * lag / a.fps,
@@ -170,6 +181,7 @@ def main(argv: list[str]) -> int:
         ("driver (filter, stabilise, retarget)", "driver"),
         ("driver + deform (marker frame in -> vertices out)", "driver_plus_deform"),
         ("deform alone (baseline)", "deform_only"),
+        ("host CPU of marker in -> vertices out (this thread)", "host_cpu"),
     ):
         r = rec[key]
         print(
@@ -179,7 +191,8 @@ def main(argv: list[str]) -> int:
     print(
         f"\nsustained: {rec['sustained_fps']:.0f} frames/s back to back (target >= {a.fps:g}): "
         f"{'met' if rec['sustained_fps'] >= a.fps else 'NOT met'}; driver share of a frame: "
-        f"{rec['driver']['mean_ms'] / rec['driver_plus_deform']['mean_ms']:.0%}"
+        f"{rec['driver']['mean_ms'] / rec['driver_plus_deform']['mean_ms']:.0%}; load "
+        + " ".join(f"{x:.2f}" for x in rec["loadavg"])
     )
     print(
         "Kalman lag on sinusoids (steady state): "
