@@ -312,6 +312,8 @@ class ExpressionPrior:
         self._virt = self.shapes[:, self.vertices].reshape(len(self.shapes), -1).astype(np.float64)
         self._interp: np.ndarray | None = None
         self._last: np.ndarray | None = None
+        self.last_fit: np.ndarray | None = None  # ``fit``'s last frame at the markers (K, 3)
+        self.last_residual = 0.0  # and its relative residual
         self.channel: Shapes | None = None  # set_channel
 
     @property
@@ -367,6 +369,9 @@ class ExpressionPrior:
         lo, hi = self.trust
         beta = np.clip((hi - rel) / max(hi - lo, 1e-9), 0.0, 1.0)
         beta[size <= 1e-12] = 1.0
+        # the last frame's fit at the markers and its relative residual (the live path's
+        # ``live.TOWARD_FIT``)
+        self.last_fit, self.last_residual = fit[-1], float(rel[-1]) if size[-1] > 1e-12 else 0.0
         return w, beta
 
     def solve(
