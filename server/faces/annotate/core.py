@@ -38,7 +38,7 @@ MIRROR_MM, MIRROR_OFF_MM = 3.0, 1.5
 #: Largest angle (degrees) between the alignment and the mesh's own axes that is taken as the
 #: alignment's error, not the head's tilt (cranial points then take their direction in the axes).
 UPRIGHT_DEG = 10.0
-#: The jaw's corners (gonion), placed by the face's landmarks and the chin (``_face_fit``), not the
+#: The jaw's corners (gonion), placed with the skull and the chin (``_skull_fit``, ``_face_fit``), not the
 #: warp.
 JAW_ANGLE = ("2.13", "2.14")
 #: ``_face_fit``: landmarks it needs, and the largest scale (either way) it may have.
@@ -224,8 +224,15 @@ def annotate_mesh(
         upright = np.eye(3)
     ears = _fit_ears(y, label, surface, wtri, warped, tpl)
     face = _face_fit(anchors, found)
+    # Upright heads: the skull and the jaw's corners placed in the mesh's own axes (the face fit
+    # turns a few degrees with the face's proportions, e.g. a longer nose).
+    skull = (
+        _skull_fit(anchors, found, upright, tpl, y[parts["skin"]])
+        if face is not None and off_axis <= UPRIGHT_DEG
+        else None
+    )
     fps, left_out, approximate = _feature_points(
-        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright, ears, face
+        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright, ears, face, skull
     )
     warnings = _checks(y, fps, left_out, tpl)
 
@@ -546,6 +553,7 @@ def _feature_points(
     upright: np.ndarray,
     ears=(),
     face: tuple[Similarity, Similarity, np.ndarray] | None = None,
+    skull: tuple[Similarity, float, float | None] | None = None,
 ) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
@@ -605,12 +613,22 @@ def _feature_points(
         p = warped[tpl.feature_points[fp]]
         if key == "skin" and fp in tpl.cranial:
             c0 = tpl.skull_centre
-            if face is not None:
+            if skull is not None:
+                # the ray keeps its height and depth and widens as the mesh's skull does
+                rel = (tpl.fp_position(fp) - c0) * [skull[1], 1.0, 1.0]
+                centre, t = skull[0].apply(np.array([c0, c0 + rel]))
+            elif face is not None:
                 centre, t = face[0].apply(np.array([c0, tpl.fp_position(fp)]))
             else:
                 centre, t = c0, c0 + upright @ (tpl.fp_position(fp) - c0)
             p = _radial(p, t, centre, y, *trees["skin"])
-        if fp in JAW_ANGLE and face is not None:
+        if fp in JAW_ANGLE and skull is not None and skull[2] is not None:
+            # the template's corner placed with the skull (unscaled: the face's scale comes from
+            # its height, not its depth), as far up or down as the mesh's chin is; then sideways
+            # from the midline onto the mesh's jaw
+            p = skull[0].apply(tpl.fp_position(fp)[None])[0] + [0.0, skull[2], 0.0]
+            p = _radial(p, p, p * [0.0, 1.0, 1.0], y, *trees["skin"])
+        elif fp in JAW_ANGLE and face is not None:
             # The smooth jaw lets the warp slide its corner along it: the template's corner as the
             # face's landmarks place it (with their scale), at the height the chin says, is nearer.
             p = face[1].apply(tpl.fp_position(fp)[None])[0] + face[2]
@@ -703,7 +721,8 @@ def _face_fit(
     and shifted with it but not scaled: a smaller face is not a smaller skull); the jaw's corners
     where the face (scaled) puts them, moved up or down (``(3,)``, mm) as far as the mesh's chin
     (the gnathion) lies above or below where the face puts the template's. The chin is left out of
-    the fit itself: its length varies apart from the eyes, nose and mouth."""
+    the fit itself: its length varies apart from the eyes, nose and mouth. (Used for heads tilted
+    beyond ``UPRIGHT_DEG`` in their own axes; upright ones use ``_skull_fit``.)"""
     if anchors is None:
         return None
     chin = np.array([k == "gnathion" for k in found], bool)
@@ -720,6 +739,46 @@ def _face_fit(
         g = int(np.argmax(chin))
         shift[1] = anchors[1][g][1] - fit.apply(anchors[0][g][None])[0][1]
     return rigid, fit, shift
+
+
+def _skull_fit(
+    anchors: tuple[np.ndarray, np.ndarray],
+    found: list[str],
+    upright: np.ndarray,
+    tpl: Template,
+    skin: np.ndarray,
+) -> tuple[Similarity, float, float | None]:
+    """``(placement, width ratio, chin shift)`` of the template's skull on the mesh (template
+    frame, mm; ``skin``: the mesh's skin points ``(N, 3)`` in it).
+
+    The placement is rigid: turned as the mesh's own axes say (``upright``: heads are modelled
+    upright in them, while a fit of the face's landmarks turns a few degrees with the face's
+    proportions), shifted as the upper face's landmarks (those above the template's nose tip:
+    eyes, nasion; the lower face's heights vary with its length) say on average. The width ratio
+    is the mesh's skull breadth over the template's (``_skull_breadth``, clipped to 0.8-1.25); the
+    chin shift (mm, None without a detected chin) how far the mesh's gnathion lies above the
+    placed template's."""
+    src, dst = anchors
+    upper = src[:, 1] > tpl.profile["tip"][1] if "tip" in tpl.profile else np.ones(len(src), bool)
+    if not upper.any():
+        upper[:] = True
+    place_ = Similarity(1.0, upright, np.mean(dst[upper] - src[upper] @ upright.T, axis=0))
+    chin = None
+    if "gnathion" in found:
+        g = found.index("gnathion")
+        chin = float(dst[g][1] - place_.apply(src[g][None])[0][1])
+    c0 = tpl.skull_centre
+    ratio = _skull_breadth(place_.inverse(skin), c0) / _skull_breadth(tpl.vertices[tpl.outer], c0)
+    return place_, float(np.clip(ratio, 0.8, 1.25)) if np.isfinite(ratio) else 1.0, chin
+
+
+def _skull_breadth(p: np.ndarray, centre: np.ndarray) -> float:
+    """Half the x-extent (mm) of skin points ``p (N, 3)`` in the band from the height of the skull's
+    ``centre`` to 40 mm above it (above the ears), within 30 mm of its depth; NaN when the band
+    is nearly empty (a face mask)."""
+    rel = p - centre
+    band = (rel[:, 1] > 0) & (rel[:, 1] < 40.0) & (np.abs(rel[:, 2]) < 30.0)
+    return float(np.ptp(rel[band, 0]) / 2) if band.sum() > 10 else float("nan")
 
 
 def _ear_of(fp: str, tpl: Template, ears) -> tuple | None:
