@@ -368,7 +368,7 @@ def pack(
     """The layers of rows ``signature -> (rows, their layers)`` (``batch._sample_alike``'s) at
     their times ``ts`` (by row) as ``Packed``; None when one is of a kind the kernel does not mix
     (the NumPy path mixes that batch)."""
-    from .batch import _gaze_q, _overlay_mask, _overlay_offsets
+    from .batch import _overlay_mask, _overlay_offsets
 
     ints: list[int] = []
     floats: list[float] = []
@@ -379,23 +379,25 @@ def pack(
     M: list[np.ndarray] = []
     pad = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for sig, (rows, layer_lists) in alike.items():
+        kinds = []  # per position: its kind's code and its role's index
         for kind, role in sig:
-            if not (
-                (kind is IdleLayer and role is Role.IDLE)
-                or kind is ExpressionLayer
-                or kind is GazeLayer
-            ):
+            if kind is IdleLayer and role is Role.IDLE:
+                code = IDLE
+            elif kind is ExpressionLayer:
+                code = OVERLAY
+            elif kind is GazeLayer:
+                code = GAZE
+            else:
                 return None
+            kinds.append((code, -1 if code == GAZE else roles.setdefault(role, len(roles))))
         for r, layers in zip(rows, layer_lists):
             t = ts[r]
-            for layer in layers:
-                kind = type(layer)
-                if kind is IdleLayer:
-                    ri = roles.setdefault(layer.role, len(roles))
+            for (code, ri), layer in zip(kinds, layers):
+                if code == IDLE:
                     ints += (IDLE, r, ri, -1, -1)
                     floats.append(t)
                     floats += layer.row(t)
-                elif kind is ExpressionLayer:
+                elif code == OVERLAY:
                     e = layer.envelope(t)
                     if e <= 0.0:
                         continue
@@ -412,7 +414,6 @@ def pack(
                         if mi < 0:
                             mi = ms[layer.regions] = len(M)
                             M.append(_overlay_mask(layer, geo))
-                    ri = roles.setdefault(layer.role, len(roles))
                     ints += (OVERLAY, r, ri, xi, mi)
                     floats.append(e)
                     floats += pad
@@ -420,11 +421,10 @@ def pack(
                     w = layer.amount * layer.envelope(t)
                     if w <= 0.0:
                         continue
-                    g = layer.target
-                    ints += (GAZE, r, -1, int(g.point is not None), -1)
+                    point, q = _gaze_entry(layer.target, geo)
+                    ints += (GAZE, r, -1, point, -1)
                     floats.append(w)
-                    floats += _gaze_q(g, geo).tolist()
-                    floats += (0.0, 0.0, 0.0)
+                    floats += q
     K = len(ints) // 5
     return Packed(
         np.array(ints, dtype=np.int64).reshape(K, 5),
@@ -433,6 +433,20 @@ def pack(
         np.array(M) if M else _EMPTY,
         np.array([int(r is Role.EXPRESSION) for r in roles], dtype=np.int8),
     )
+
+
+def _gaze_entry(target: Any, geo: Geometry) -> tuple[int, tuple[float, ...]]:
+    """A gaze target's ``ints[k, 3]`` (a point: 1) and ``floats[k, 1:]`` (``batch._gaze_q``, then
+    padding), remembered with the geometry's expansions."""
+    from .batch import _gaze_q
+
+    hit = geo.expansions.get((target, "kernel"))
+    if hit is None:
+        q = _gaze_q(target, geo).tolist()
+        hit = geo.remember(
+            (target, "kernel"), lambda: (int(target.point is not None), (*q, 0.0, 0.0, 0.0))
+        )
+    return hit
 
 
 def _geo_consts(geo: Geometry) -> np.ndarray:
