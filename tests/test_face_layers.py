@@ -980,16 +980,16 @@ def test_a_kernel_that_refuses_its_arrays_leaves_the_mix_to_numpy(default_head, 
         np.testing.assert_allclose(g.faps, m.mix(s, t).faps, rtol=0, atol=1e-9)
 
 
-def test_idle_closure_remembering_its_open_span_equals_the_lookup():
+def test_idle_closure_and_gaze_remembering_their_spans_equal_the_lookups():
     """``IdleLayer.closure`` skips the blink lookup between the two blinks it last found the lids
-    open between; at every time, in order, out of order and across the horizon, it equals the
-    lookup itself."""
-    from facecast.server.layers.idle import blink_closure
-
+    open between, ``gaze`` the fixation lookup in the fixation it last found the eyes holding; at
+    every time, in order, out of order and across the horizon, they equal the lookups
+    themselves (a fresh layer of the same seed, which remembers nothing: its first lookup)."""
     for seed in range(3):
         idle = IdleLayer(seed=seed, horizon=60.0)
         rng = np.random.default_rng(seed)
         times = [*np.arange(0, 130, 1 / 60), *rng.uniform(0, 200, 3000), *np.arange(59, 61, 1e-3)]
         for t in times:
-            want = blink_closure(t % idle.horizon, idle._blinks, idle._blink_starts)
-            assert idle.closure(t) == want
+            fresh = IdleLayer(seed=seed, horizon=60.0)
+            assert idle.closure(t) == fresh.closure(t)
+            assert idle.gaze(t) == fresh.gaze(t)
