@@ -871,10 +871,13 @@ def test_mix_states_equals_mix_frame_by_frame(default_head):
                 np.testing.assert_allclose(g.head, want.head, rtol=1e-9, atol=1e-9)
 
 
-def _kernel_frames(rng: np.random.Generator, geo: Geometry, n: int) -> list:
-    """``n`` live frames ``(mixer, primary, t)`` whose layers are all of the kinds the compiled
-    kernel mixes: idle layers (in blinks too, two at once), overlays (shared, masked, of their own
-    FAPs, rising), gaze at the camera and at points (weights below 1, two at once)."""
+def _kernel_frames(rng: np.random.Generator, geo: Geometry, n: int, others: bool = False) -> list:
+    """``n`` live frames ``(mixer, primary, t)``: idle layers (in blinks too, two at once),
+    overlays (shared, masked, of their own FAPs, rising), gaze at the camera and at points
+    (weights below 1, two at once); ``others``: and other layers (head gestures and poses,
+    tracks, producers' layers, an idle layer in another role)."""
+    from facecast.server.live.mixing import Held, contribution_of
+
     frames = []
     for k in range(n):
         t = float(rng.uniform(0, 60))
@@ -894,6 +897,20 @@ def _kernel_frames(rng: np.random.Generator, geo: Geometry, n: int) -> list:
         layers.append(GazeLayer(target, amount=1.0 if k % 4 else 0.6))
         if k % 7 == 3:
             layers.append(GazeLayer(GazeTarget(point=np.array([50.0, -20.0, 700.0])), amount=0.5))
+        if others:  # read through their contributions: head gestures and poses, tracks, producers
+            g = rng.normal(0, 100, 69) * (rng.random(69) < 0.4)
+            extra = [
+                HeadGesture("nod", envelope=Envelope(start=t - 0.5, end=t + 1.0)),
+                HeadPose(pitch=10, yaw=-5, amount=float(rng.uniform(0.3, 1.0))),
+                TrackLayer([FaceState(faps=g, viseme=(3, 0, 63))], fps=25, loop=True),
+                Held(Role.GAZE, contribution_of("gaze", FaceState(faps=g))),
+                Held(Role.IDLE, contribution_of("idle", FaceState(faps=g))),
+                Held(Role.HEAD, contribution_of("head", FaceState(faps=g))),
+                Held(Role.EXPRESSION, contribution_of("expression", FaceState(faps=g))),
+                Held(Role.IDLE, Contribution(faps=g, weight=1.7)),
+                IdleLayer(seed=k, role=Role.EXPRESSION),
+            ]
+            layers += [extra[i] for i in rng.choice(len(extra), 1 + k % 3, replace=False)]
         rng.shuffle(layers)
         for i, layer in enumerate(layers):
             m.set(f"l{i}", layer)
@@ -912,12 +929,13 @@ def _kernel_frames(rng: np.random.Generator, geo: Geometry, n: int) -> list:
 
 @pytest.mark.parametrize("tilted", [False, True])
 def test_the_compiled_mix_equals_each_mixer_alone(default_head, tilted):
-    """The live path's compiled kernel (``layers.kernel``: idle, overlays, gaze) gives each frame
-    what its session's own mix (``combine``) gives it, within 1e-9 FAPU, whatever the batch's
-    size (1 to 32 frames); a batch holding another kind of layer (a head pose) takes the NumPy
-    path, with the same result."""
+    """The live path's compiled kernel (``layers.kernel``) gives each frame what its session's
+    own mix (``combine``) gives it, within 1e-9 FAPU, whatever the batch's size (1 to 32 frames)
+    and its layers (tilted: other kinds too, read through their contributions); a contribution
+    that gazes but not from a ``GazeLayer`` takes the NumPy path, with the same result."""
     from facecast.server.layers import kernel
     from facecast.server.layers.batch import mix_batch
+    from facecast.server.live.mixing import Held
 
     if not kernel.warm(block=True):
         pytest.skip("numba is not installed: the NumPy path mixes every batch")
@@ -931,7 +949,7 @@ def test_the_compiled_mix_equals_each_mixer_alone(default_head, tilted):
             expressions=geo.expressions,
         )
     rng = np.random.default_rng(11 + tilted)
-    frames = _kernel_frames(rng, geo, 32)
+    frames = _kernel_frames(rng, geo, 32, others=tilted)
     packs = []
     real = kernel.pack
 
@@ -949,7 +967,8 @@ def test_the_compiled_mix_equals_each_mixer_alone(default_head, tilted):
                 assert g.t == want.t and g.viseme == want.viseme
                 np.testing.assert_allclose(g.faps, want.faps, rtol=0, atol=1e-9)
         assert packs and all(p is not None for p in packs)
-        frames[0][0].set("nod", HeadPose(pitch=5, amount=0.5))
+        odd = Held(Role.GAZE, Contribution(gaze=GazeTarget.camera(), gaze_weight=0.5))
+        frames[0][0].set("odd", odd)
         packs.clear()
         got = mix_batch(frames[:8])
         assert None in packs  # (the group of frame 0's geometry and closures)

@@ -19,7 +19,7 @@ speech keeps its lip closures, blinks/gaze/head poses override.
   the camera, compensating the head), ``HeadGesture`` (nod, shake, tilt), ``HeadPose``.
 - ``spec.from_spec(data, t0)``: a layer from plain data (a REST body), ``InputError`` otherwise.
 - ``batch.mix_batch``: the live path's mix of a deform batch (one frame per session) together;
-  ``kernel``: the same for idle layers, overlays and gaze in one numba-compiled call.
+  ``kernel``: the same rules in one numba-compiled call a batch.
 """
 
 from __future__ import annotations

@@ -9,9 +9,8 @@ and a fixed ~0.1 ms a batch. Most of it is NumPy's cost per call on arrays this 
 rules use its cheap calls (``take``, ``count_nonzero``, ufuncs without keywords), skip what
 cannot change the result, and sample the rows of alike sessions together (``Mixer.snapshot``).
 
-``mix_batch`` hands the groups whose layers are all idle layers, expression overlays and gaze to
-``kernel`` (the same rules in one compiled call: a few µs a batch, whatever its size); this path
-mixes the others, and every batch until the kernel is compiled (or without numba).
+``mix_batch`` hands its batches to ``kernel`` (the same rules in one compiled call: a few µs a
+batch, whatever its size); this path mixes them until the kernel is compiled, and without numba.
 """
 
 from __future__ import annotations
@@ -708,8 +707,8 @@ def combine_batch(
 def mix_batch(frames: Sequence[tuple[Any, FaceState | None, float]]) -> list[FaceState]:
     """``mixer.mix(primary, t)`` of every ``(mixer, primary, t)`` (a ``Mixer``), the frames of
     mixers with the same geometry (``is``) and closures computed together: what a batch of live
-    sessions' frames costs in one go (by the compiled ``kernel`` when it is ready and the layers
-    are of its kinds). Drops the layers whose end has passed."""
+    sessions' frames costs in one go (by the compiled ``kernel`` once it is ready). Drops the
+    layers whose end has passed."""
     fast = kernel.ready() or kernel.warm()
     if len(frames) < BATCH_MIN and not fast:  # too few to gain from it: each alone
         return [mixer.mix(primary, t) for mixer, primary, t in frames]

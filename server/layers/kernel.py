@@ -6,10 +6,11 @@ a batch: at the live batches' 2-8 frames it cost 25-35 µs a frame, measurable i
 (issue 18). Here the layers are sampled in Python floats (``pack``: a few numbers per layer and
 frame) and every rule runs in ``_mix_rows``, compiled by numba: a few µs a batch.
 
-``pack`` returns None for a batch holding another kind of layer (a producer's, a head gesture, a
-track): those batches take the NumPy path, as do all batches until the kernel is compiled
-(``ready``; ``warm`` compiles it in a thread, cached on disk by numba) or without numba. The
-results equal ``combine_columns``'s to rounding (tests: within 1e-9 FAPU).
+Other layers (a producer's, a head gesture or pose, a track) are sampled as they sample themselves
+and their contributions read as ``batch.columns_of`` reads them (offsets, head poses, overrides).
+Every batch takes the NumPy path until the kernel is compiled (``ready``; ``warm`` compiles it in
+a thread, cached on disk by numba), and without numba. The results equal ``combine_columns``'s to
+rounding (tests: within 1e-9 FAPU).
 """
 
 from __future__ import annotations
@@ -38,8 +39,9 @@ from .mix import (
     OPEN_GAP,
     WIDTH,
     _expand,
+    _offsets,
 )
-from .model import Geometry, Role
+from .model import Geometry, N, Role
 from .overlay import ExpressionLayer
 
 log = logging.getLogger(__name__)
@@ -49,8 +51,10 @@ try:  # numba compiles the kernel; without it the NumPy path mixes every batch
 except ImportError:  # pragma: no cover - numba is a dependency
     numba = None  # type: ignore[assignment]
 
-#: Entry kinds (``ints[k, 0]``).
-IDLE, OVERLAY, GAZE = 0, 1, 2
+#: Entry kinds (``ints[k, 0]``): an idle layer, offsets (an overlay's, or any contribution's), a
+#: gaze, a head pose, an override.
+IDLE, OVERLAY, GAZE, HEAD, OVERRIDE = 0, 1, 2, 3, 4
+OTHER = -1  # (``pack``: a layer read through its contribution)
 #: No rows (``H``, ``E``, ``X``, ``M`` without any). The kernel's arrays are all writeable (a
 #: read-only array is another type to numba: another compilation), though it writes only ``F``.
 _EMPTY = np.zeros((0, 69))
@@ -88,12 +92,14 @@ def _mix_rows(
         H, E: ``(B, 69)`` the primaries' high-level expansion and that of their expression alone
             (``(0, 69)``: none).
         flags: ``(B, 2)`` int8: the row keeps closures (a speaking primary); it has ``H``.
-        ints, floats: ``(K, 5)`` / ``(K, 7)``, one entry per layer and row: ``ints`` kind
-            (``IDLE``, ``OVERLAY``, ``GAZE``), row, role (index into ``roles``), then an overlay's
-            offsets row in ``X`` and mask row in ``M`` (-1: none), a gaze's is-a-point; ``floats``
-            an idle layer's ``t`` and ``IdleLayer.row``, an overlay's weight (its envelope), a
-            gaze's weight and target (its point minus the head pivot, or its direction).
-        X, M: ``(U, 69)`` overlays' offsets (amount applied) and ``(V, 69)`` region masks.
+        ints, floats: ``(K, 5)`` / ``(K, 7)``, one entry per layer and row (a contribution may
+            give several): ``ints`` kind (``IDLE``, ``OVERLAY``, ``GAZE``, ``HEAD``,
+            ``OVERRIDE``), row, role (index into ``roles``), then offsets' (an override's values)
+            row in ``X`` and weights' (an overlay's regions, an override's weights) row in ``M``
+            (-1: none), a gaze's is-a-point; ``floats`` an idle layer's ``t`` and
+            ``IdleLayer.row``, offsets' weight (an overlay's envelope), a gaze's weight and target
+            (its point minus the head pivot, or its direction), a head pose's weight and pose (AU).
+        X, M: ``(U, 69)`` offsets (amount applied) or override values, ``(V, 69)`` weights.
         roles: ``(R,)`` int8, 1 for ``Role.EXPRESSION`` (which competes with the primary).
         geo: ``(19,)`` the head pivot, then per eye ``Geometry.eye_consts``.
     """
@@ -115,6 +121,23 @@ def _mix_rows(
         before[b, 2] = F[b, 41]
         before[b, 3] = F[b, 42]
 
+    # 2. head poses, averaged by weight, replace the head (FAPs 48-50) by min(1, Σ w)
+    for b in range(B):
+        wsum = 0.0
+        h0 = h1 = h2 = 0.0
+        for k in range(K):
+            if ints[k, 0] == HEAD and ints[k, 1] == b:
+                w = floats[k, 0]
+                h0 += floats[k, 1] * w
+                h1 += floats[k, 2] * w
+                h2 += floats[k, 3] * w
+                wsum += w
+        if wsum > 0.0:
+            W = min(1.0, wsum)
+            F[b, 48] += W * (h0 / wsum - F[b, 48])
+            F[b, 49] += W * (h1 / wsum - F[b, 49])
+            F[b, 50] += W * (h2 / wsum - F[b, 50])
+
     # 3. offsets: Σ w·x / max(1, Σ w·[x ≠ 0]) per role; expression overlays compete with the primary
     if R > 0:
         A = np.zeros((B, 69))
@@ -125,7 +148,7 @@ def _mix_rows(
             num[:] = 0.0
             den[:] = 0.0
             for k in range(K):
-                if ints[k, 2] != r or ints[k, 0] == GAZE:
+                if ints[k, 2] != r or ints[k, 0] > OVERLAY:
                     continue
                 b = ints[k, 1]
                 if ints[k, 0] == IDLE:  # IdleLayer.sample_many's row
@@ -215,23 +238,40 @@ def _mix_rows(
             F[b, 1] = 0.0
             F[b, 2] = 0.0
 
-    # 5. overrides (a blink's closed lids), then the lids meet
+    # 5. overrides (a blink's closed lids, a producer's gaze), averaged by weight per FAP,
+    #    replace the mix by min(1, Σ w); then the lids meet
+    onum = np.zeros(69)
+    oden = np.zeros(69)
     for b in range(B):
-        onum = np.zeros(4)
-        oden = np.zeros(4)
         some = False
         for k in range(K):
-            if ints[k, 0] == IDLE and ints[k, 1] == b and floats[k, 3] > 0.0:
+            if ints[k, 1] != b:
+                continue
+            if ints[k, 0] == IDLE and floats[k, 3] > 0.0:
+                if not some:
+                    onum[:] = 0.0
+                    oden[:] = 0.0
+                    some = True
                 c = floats[k, 3]
-                some = True
-                for i in range(4):
-                    onum[i] += c * (1024.0 if i < 2 else 150.0)
-                    oden[i] += c
+                for j in range(19, 23):
+                    onum[j] += c * (1024.0 if j < 21 else 150.0)
+                    oden[j] += c
+            elif ints[k, 0] == OVERRIDE:
+                if not some:
+                    onum[:] = 0.0
+                    oden[:] = 0.0
+                    some = True
+                xi = ints[k, 3]
+                mi = ints[k, 4]
+                for j in range(69):
+                    ow = M[mi, j]
+                    onum[j] += ow * X[xi, j]
+                    oden[j] += ow
         if some:
-            for i in range(4):
-                if oden[i] > 0.0:
-                    fv = F[b, 19 + i]
-                    F[b, 19 + i] = fv + min(1.0, oden[i]) * (onum[i] / oden[i] - fv)
+            for j in range(69):
+                if oden[j] > 0.0:
+                    fv = F[b, j]
+                    F[b, j] = fv + min(1.0, oden[j]) * (onum[j] / oden[j] - fv)
         for s in range(2):
             lid = F[b, 19 + s]
             cheek = F[b, 41 + s]
@@ -366,8 +406,8 @@ def pack(
     geo: Geometry,
 ) -> Packed | None:
     """The layers of rows ``signature -> (rows, their layers)`` (``batch._sample_alike``'s) at
-    their times ``ts`` (by row) as ``Packed``; None when one is of a kind the kernel does not mix
-    (the NumPy path mixes that batch)."""
+    their times ``ts`` (by row) as ``Packed``; None when a contribution gazes but not from a
+    ``GazeLayer`` (the NumPy path mixes that batch)."""
     from .batch import _overlay_mask, _overlay_offsets
 
     ints: list[int] = []
@@ -388,7 +428,7 @@ def pack(
             elif kind is GazeLayer:
                 code = GAZE
             else:
-                return None
+                code = OTHER
             kinds.append((code, -1 if code == GAZE else roles.setdefault(role, len(roles))))
         for r, layers in zip(rows, layer_lists):
             t = ts[r]
@@ -417,7 +457,7 @@ def pack(
                     ints += (OVERLAY, r, ri, xi, mi)
                     floats.append(e)
                     floats += pad
-                else:
+                elif code == GAZE:
                     w = layer.amount * layer.envelope(t)
                     if w <= 0.0:
                         continue
@@ -425,12 +465,40 @@ def pack(
                     ints += (GAZE, r, -1, point, -1)
                     floats.append(w)
                     floats += q
+                else:  # any other layer: its contribution (``batch.columns_of``'s reading)
+                    c = layer.sample(t)
+                    if c.gaze is not None and c.gaze_weight > 0:
+                        return None  # (only a GazeLayer gazes)
+                    if c.head is not None and c.head_weight > 0:
+                        ints += (HEAD, r, -1, -1, -1)
+                        floats.append(float(c.head_weight))
+                        floats += np.asarray(c.head, dtype=np.float64).tolist()
+                        floats += (0.0, 0.0, 0.0)
+                    x = _offsets(c, geo)
+                    if x is not None:
+                        w = c.weight
+                        mi = -1
+                        if not (type(w) is float or type(w) is int):
+                            mi = len(M)
+                            M.append(np.broadcast_to(np.asarray(w, dtype=np.float64), (N,)))
+                            w = 1.0
+                        ints += (OVERLAY, r, ri, len(X), mi)
+                        X.append(x)
+                        floats.append(float(w))
+                        floats += pad
+                    if c.override is not None:
+                        ow = np.asarray(c.override_weight, dtype=np.float64)
+                        ints += (OVERRIDE, r, -1, len(X), len(M))
+                        X.append(c.override)
+                        M.append(np.broadcast_to(ow, (N,)))
+                        floats.append(0.0)
+                        floats += pad
     K = len(ints) // 5
     return Packed(
         np.array(ints, dtype=np.int64).reshape(K, 5),
         np.array(floats, dtype=np.float64).reshape(K, 7),
-        np.array(X) if X else _EMPTY,
-        np.array(M) if M else _EMPTY,
+        np.array(X, dtype=np.float64) if X else _EMPTY,
+        np.array(M, dtype=np.float64) if M else _EMPTY,
         np.array([int(r is Role.EXPRESSION) for r in roles], dtype=np.int8),
     )
 
