@@ -265,6 +265,7 @@ def serve_pairs(args: argparse.Namespace) -> int:
         "diff_mean_us": mean,
         "diff_sd_us": sd,
         "diff_se_us": se,
+        "diff_median_us": statistics.median(diffs),
         "ratio": statistics.mean(b.values()) / base,
         "points": points,
     }
@@ -279,7 +280,7 @@ def serve_pairs(args: argparse.Namespace) -> int:
         print(f"| {k} | {a[k]:.1f} | {b[k]:.1f} | {d:+.1f} |")
     print(
         f"\nlayers cost {mean:+.1f} µs per session-frame (sd {sd:.1f}, se {se:.1f}; "
-        f"{100 * mean / base:+.1f} % of {base:.1f} µs)"
+        f"{100 * mean / base:+.1f} % of {base:.1f} µs); median pair {statistics.median(diffs):+.1f} µs"
     )
     return 0
 
