@@ -15,6 +15,7 @@ rounding (tests: within 1e-9 FAPU).
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import math
 import threading
@@ -46,10 +47,9 @@ from .overlay import ExpressionLayer
 
 log = logging.getLogger(__name__)
 
-try:  # numba compiles the kernel; without it the NumPy path mixes every batch
-    import numba
-except ImportError:  # pragma: no cover - numba is a dependency
-    numba = None  # type: ignore[assignment]
+#: numba compiles the kernel (imported in the compiling thread: ~1 s, not in a deform thread);
+#: without it the NumPy path mixes every batch.
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 
 #: Entry kinds (``ints[k, 0]``): an idle layer, offsets (an overlay's, or any contribution's), a
 #: gaze, a head pose, an override.
@@ -349,7 +349,7 @@ def warm(block: bool = False) -> bool:
     """Compile the kernel (numba; cached on disk) in a thread, once (``block``: wait for it);
     whether it is ready now. Without numba it never is."""
     global _thread
-    if _compiled is not None or numba is None:
+    if _compiled is not None or not HAVE_NUMBA:
         return _compiled is not None
     with _lock:
         if not _disabled and _thread is None:
@@ -371,6 +371,8 @@ def disable() -> None:
 def _compile() -> None:
     global _compiled
     try:
+        import numba
+
         fn = numba.njit(cache=True, error_model="numpy")(_mix_rows)  # (holding the GIL: a
         # few µs; released, the deform thread waited for it back behind the event loop)
         F = np.zeros((1, 69))
