@@ -1,10 +1,13 @@
-"""The live mix of a batch in one compiled call: ``batch.combine_columns``'s rules for the common
-layers (the idle layer, expression overlays, gaze), as one loop over rows and FAPs.
+"""The live mix of a batch in one compiled call: ``batch.combine_columns``'s rules as one loop over
+rows and FAPs.
 
 The NumPy path (``batch``) pays a fixed ~1 µs per NumPy call on arrays of a few frames, ~100 calls
-a batch: at the live batches' 2-8 frames it cost 25-35 µs a frame, measurable in ``bench serve``
-(issue 18). Here the layers are sampled in Python floats (``pack``: a few numbers per layer and
-frame) and every rule runs in ``_mix_rows``, compiled by numba: a few µs a batch.
+a batch: at the live batches' 2-8 frames (4.7 a batch at 25 sessions) it cost 25-35 µs a frame,
+measurable in ``bench serve`` (issue 18). Here the layers are sampled in Python floats (``pack``:
+a few numbers per layer and frame) and every rule runs in ``_mix_rows``, compiled by numba, in
+about 2 µs a batch; what is left is Python's per frame (sampling, ``FaceState``): ``bench/layers.py
+--against`` (serve's 3 layers, thread CPU, load 9) 35 -> 18 µs a frame at 1 frame a batch, 35 ->
+10 at 4, 25 -> 9 at 8, 13 -> 8 at 25.
 
 Other layers (a producer's, a head gesture or pose, a track) are sampled as they sample themselves
 and their contributions read as ``batch.columns_of`` reads them (offsets, head poses, overrides).
