@@ -741,7 +741,7 @@ def mix_batch(frames: Sequence[tuple[Any, FaceState | None, float]]) -> list[Fac
                 out[i] = mixer.mix(primary, t)
             continue
         prims = [frames[i][1] for i in rows]
-        got = None  # the common layers: the compiled kernel
+        got = None  # (None: the kernel is not ready, or refused the batch)
         if packed is not None:
             got = kernel.combine_packed(prims, ts, packed, geo, closures)
         mixed = got or combine_columns(prims, ts, _sample_alike(alike, ts, geo), geo, closures)
