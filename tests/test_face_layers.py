@@ -869,3 +869,146 @@ def test_mix_states_equals_mix_frame_by_frame(default_head):
                 assert g.head is None
             else:
                 np.testing.assert_allclose(g.head, want.head, rtol=1e-9, atol=1e-9)
+
+
+def _kernel_frames(rng: np.random.Generator, geo: Geometry, n: int, others: bool = False) -> list:
+    """``n`` live frames ``(mixer, primary, t)``: idle layers (in blinks too, two at once),
+    overlays (shared, masked, of their own FAPs, rising), gaze at the camera and at points
+    (weights below 1, two at once); ``others``: and other layers (head gestures and poses,
+    tracks, producers' layers, an idle layer in another role)."""
+    from facecast.server.live.mixing import Held, contribution_of
+
+    frames = []
+    for k in range(n):
+        t = float(rng.uniform(0, 60))
+        idle = IdleLayer(seed=int(rng.integers(50)), amount=float(rng.uniform(0.3, 1.0)))
+        if k % 3 == 1:  # in a blink
+            t = next(x for x in np.arange(t, t + 60, 0.01) if 0 < idle.closure(x) <= 1)
+        m = Mixer(geo, closures=k % 5 != 3)
+        layers: list = [idle, ExpressionLayer(1, amount=0.5)]
+        if k % 4 == 1:
+            layers.append(ExpressionLayer(4, amount=0.8, regions=("eyebrows", "lips")))
+        if k % 4 == 2:
+            rise = Envelope(start=t - 0.1, attack_peak=t + 0.2)
+            layers.append(ExpressionLayer(0, faps=rng.normal(0, 300, 69), envelope=rise))
+        if k % 6 == 5:
+            layers.append(IdleLayer(seed=k, blink_rate=40.0, refractory=0.2))
+        target = GazeTarget.camera() if k % 3 else GazeTarget(point=rng.normal(0, 200, 3) + 600)
+        layers.append(GazeLayer(target, amount=1.0 if k % 4 else 0.6))
+        if k % 7 == 3:
+            layers.append(GazeLayer(GazeTarget(point=np.array([50.0, -20.0, 700.0])), amount=0.5))
+        if others:  # read through their contributions: head gestures and poses, tracks, producers
+            g = rng.normal(0, 100, 69) * (rng.random(69) < 0.4)
+            extra = [
+                HeadGesture("nod", envelope=Envelope(start=t - 0.5, end=t + 1.0)),
+                HeadPose(pitch=10, yaw=-5, amount=float(rng.uniform(0.3, 1.0))),
+                TrackLayer([FaceState(faps=g, viseme=(3, 0, 63))], fps=25, loop=True),
+                Held(Role.GAZE, contribution_of("gaze", FaceState(faps=g))),
+                Held(Role.IDLE, contribution_of("idle", FaceState(faps=g))),
+                Held(Role.HEAD, contribution_of("head", FaceState(faps=g))),
+                Held(Role.EXPRESSION, contribution_of("expression", FaceState(faps=g))),
+                Held(Role.IDLE, Contribution(faps=g, weight=1.7)),
+                IdleLayer(seed=k, role=Role.EXPRESSION),
+            ]
+            layers += [extra[i] for i in rng.choice(len(extra), 1 + k % 3, replace=False)]
+        rng.shuffle(layers)
+        for i, layer in enumerate(layers):
+            m.set(f"l{i}", layer)
+        f = rng.normal(0, 150, 69) * (rng.random(69) < 0.5)
+        f[19] = f[20] = 900.0 if k % 3 == 0 else f[19]
+        primary = [
+            FaceState(t=t, faps=f),
+            FaceState(t=t, faps=np.zeros(69)),  # closed lips: closures cut the overlays
+            FaceState(t=t, faps=f, viseme=(int(rng.integers(15)), int(rng.integers(15)), 40)),
+            FaceState(t=t, faps=f, expression=(int(rng.integers(1, 7)), 50, 0, 0)),
+            None,
+        ][k % 5 if k % 11 else 4]
+        frames.append((m, primary, t + 0.003 * k))
+    return frames
+
+
+@pytest.mark.parametrize("tilted", [False, True])
+def test_the_compiled_mix_equals_each_mixer_alone(default_head, tilted):
+    """The live path's compiled kernel (``layers.kernel``) gives each frame what its session's
+    own mix (``combine``) gives it, within 1e-9 FAPU, whatever the batch's size (1 to 32 frames)
+    and its layers (tilted: other kinds too, read through their contributions); a contribution
+    that gazes but not from a ``GazeLayer`` takes the NumPy path, with the same result."""
+    from facecast.server.layers import kernel
+    from facecast.server.layers.batch import mix_batch
+    from facecast.server.live.mixing import Held
+
+    if not kernel.warm(block=True):
+        pytest.skip("numba is not installed: the NumPy path mixes every batch")
+    _, _, geo = default_head
+    if tilted:
+        geo = Geometry(
+            eye_pivots=geo.eye_pivots,
+            eye_axes=[[0.2, 0.1, 1.0], [-0.15, 0.05, 1.0]],
+            head_pivot=geo.head_pivot,
+            visemes=geo.visemes,
+            expressions=geo.expressions,
+        )
+    rng = np.random.default_rng(11 + tilted)
+    frames = _kernel_frames(rng, geo, 32, others=tilted)
+    packs = []
+    real = kernel.pack
+
+    def spy(*args):
+        packed = real(*args)
+        packs.append(packed)
+        return packed
+
+    kernel.pack = spy  # (which path mixed)
+    try:
+        for n in (1, 2, 5, 32):
+            got = mix_batch(frames[:n])
+            for (m, s, t), g in zip(frames, got):
+                want = m.mix(s, t)
+                assert g.t == want.t and g.viseme == want.viseme
+                np.testing.assert_allclose(g.faps, want.faps, rtol=0, atol=1e-9)
+        assert packs and all(p is not None for p in packs)
+        odd = Held(Role.GAZE, Contribution(gaze=GazeTarget.camera(), gaze_weight=0.5))
+        frames[0][0].set("odd", odd)
+        packs.clear()
+        got = mix_batch(frames[:8])
+        assert None in packs  # (the group of frame 0's geometry and closures)
+        for (m, s, t), g in zip(frames, got):
+            np.testing.assert_allclose(g.faps, m.mix(s, t).faps, rtol=0, atol=1e-9)
+    finally:
+        kernel.pack = real
+
+
+def test_a_kernel_that_refuses_its_arrays_leaves_the_mix_to_numpy(default_head, monkeypatch):
+    """Arrays of a type the kernel was not compiled for (numba refuses them: TypeError) are a bug;
+    the batch is mixed by NumPy, as are the next ones, with the same result."""
+    from facecast.server.layers import kernel
+    from facecast.server.layers.batch import mix_batch
+
+    if not kernel.warm(block=True):
+        pytest.skip("numba is not installed")
+    _, _, geo = default_head
+    frames = _kernel_frames(np.random.default_rng(3), geo, 6)
+
+    def refuse(*args):
+        raise TypeError("No matching definition")
+
+    monkeypatch.setattr(kernel, "_compiled", refuse)
+    got = mix_batch(frames)
+    assert not kernel.ready()
+    for (m, s, t), g in zip(frames, got):
+        np.testing.assert_allclose(g.faps, m.mix(s, t).faps, rtol=0, atol=1e-9)
+
+
+def test_idle_closure_and_gaze_remembering_their_spans_equal_the_lookups():
+    """``IdleLayer.closure`` skips the blink lookup between the two blinks it last found the lids
+    open between, ``gaze`` the fixation lookup in the fixation it last found the eyes holding; at
+    every time, in order, out of order and across the horizon, they equal the lookups
+    themselves (a fresh layer of the same seed, which remembers nothing: its first lookup)."""
+    for seed in range(3):
+        idle = IdleLayer(seed=seed, horizon=60.0)
+        rng = np.random.default_rng(seed)
+        times = [*np.arange(0, 130, 1 / 60), *rng.uniform(0, 200, 3000), *np.arange(59, 61, 1e-3)]
+        for t in times:
+            fresh = IdleLayer(seed=seed, horizon=60.0)
+            assert idle.closure(t) == fresh.closure(t)
+            assert idle.gaze(t) == fresh.gaze(t)

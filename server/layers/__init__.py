@@ -18,6 +18,8 @@ speech keeps its lip closures, blinks/gaze/head poses override.
   overlay), ``IdleLayer`` (blinks, saccades, sway, breathing; seeded), ``GazeLayer`` (a point or
   the camera, compensating the head), ``HeadGesture`` (nod, shake, tilt), ``HeadPose``.
 - ``spec.from_spec(data, t0)``: a layer from plain data (a REST body), ``InputError`` otherwise.
+- ``batch.mix_batch``: the live path's mix of a deform batch (one frame per session) together;
+  ``kernel``: the same rules in one numba-compiled call a batch.
 """
 
 from __future__ import annotations

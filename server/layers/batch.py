@@ -8,6 +8,9 @@ of ``mix`` then run once on ``(B, 69)`` arrays, whatever the batch holds. The re
 and a fixed ~0.1 ms a batch. Most of it is NumPy's cost per call on arrays this small, so the
 rules use its cheap calls (``take``, ``count_nonzero``, ufuncs without keywords), skip what
 cannot change the result, and sample the rows of alike sessions together (``Mixer.snapshot``).
+
+``mix_batch`` hands its batches to ``kernel`` (the same rules in one compiled call: a few µs a
+batch, whatever its size); this path mixes them until the kernel is compiled, and without numba.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from ..state import FaceState
+from . import kernel
 from .gaze import GazeLayer
 from .idle import CLOSED_LIDS, LID_MASK, IdleLayer
 from .mix import (
@@ -703,8 +707,10 @@ def combine_batch(
 def mix_batch(frames: Sequence[tuple[Any, FaceState | None, float]]) -> list[FaceState]:
     """``mixer.mix(primary, t)`` of every ``(mixer, primary, t)`` (a ``Mixer``), the frames of
     mixers with the same geometry (``is``) and closures computed together: what a batch of live
-    sessions' frames costs in one go. Drops the layers whose end has passed."""
-    if len(frames) < BATCH_MIN:  # too few to gain from it: each alone
+    sessions' frames costs in one go (by the compiled ``kernel`` once it is ready). Drops the
+    layers whose end has passed."""
+    fast = kernel.ready() or kernel.warm()
+    if len(frames) < BATCH_MIN and not fast:  # too few to gain from it: each alone
         return [mixer.mix(primary, t) for mixer, primary, t in frames]
     out: list[FaceState | None] = [None] * len(frames)
     # (geometry, closures) -> the geometry, frame indices, and by signature their rows and layers
@@ -727,14 +733,18 @@ def mix_batch(frames: Sequence[tuple[Any, FaceState | None, float]]) -> list[Fac
             same[1].append(layers)
         rows.append(i)
     for (_, closures), (geo, rows, alike) in groups.items():
-        if len(rows) < BATCH_MIN:  # cheaper one by one
+        ts = [float(frames[i][2]) for i in rows]
+        packed = kernel.pack(alike, ts, geo) if fast else None
+        if packed is None and len(rows) < BATCH_MIN:  # cheaper one by one
             for i in rows:
                 mixer, primary, t = frames[i]
                 out[i] = mixer.mix(primary, t)
             continue
         prims = [frames[i][1] for i in rows]
-        ts = [float(frames[i][2]) for i in rows]
-        mixed = combine_columns(prims, ts, _sample_alike(alike, ts, geo), geo, closures)
+        got = None  # (None: the kernel is not ready, or refused the batch)
+        if packed is not None:
+            got = kernel.combine_packed(prims, ts, packed, geo, closures)
+        mixed = got or combine_columns(prims, ts, _sample_alike(alike, ts, geo), geo, closures)
         for i, state in zip(rows, mixed):
             out[i] = state
     return out  # type: ignore[return-value]

@@ -125,6 +125,12 @@ class IdleLayer:
     _fix_starts: list[float] = field(init=False, repr=False, compare=False)
     _scale: float = field(init=False, repr=False, compare=False)
     _factors: tuple[float, float, float] = field(init=False, repr=False, compare=False)
+    #: ``[lo, hi)`` (s, within the horizon) where the lids were last found open between two
+    #: blinks (replaced whole: a thread reads the old span or the new one, both right)
+    _open: tuple[float, float] = field(init=False, repr=False, compare=False)
+    #: ``[lo, hi)`` (s) and the fixation's yaw and pitch where the eyes were last found holding
+    #: it, past its saccade (as ``_open``)
+    _hold: tuple[float, float, float, float] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
@@ -149,6 +155,8 @@ class IdleLayer:
         object.__setattr__(self, "_blink_starts", b[:, 0].tolist())
         object.__setattr__(self, "_fix", f.tolist())
         object.__setattr__(self, "_fix_starts", f[:, 0].tolist())
+        object.__setattr__(self, "_open", (0.0, 0.0))
+        object.__setattr__(self, "_hold", (0.0, 0.0, 0.0, 0.0))
         a = self.amount * AU_PER_DEG
         object.__setattr__(self, "_scale", a)
         sway, breath = float(self.sway), float(self.breathing)
@@ -162,18 +170,42 @@ class IdleLayer:
 
     def closure(self, t: float) -> float:
         """Lid closure 0..1 at ``t`` (s)."""
-        return blink_closure(t % self.horizon, self._blinks, self._blink_starts)
+        local = t % self.horizon
+        lo, hi = self._open
+        if lo <= local < hi:  # (between the same two blinks as last time: open)
+            return 0.0
+        c = blink_closure(local, self._blinks, self._blink_starts)
+        if c == 0.0:  # remember the open span ``local`` is in: the frames after it are there too
+            starts = self._blink_starts
+            i = bisect.bisect_right(starts, local)
+            if i > 0:
+                s, close, closed, opening = self._blinks[i - 1]
+                lo = s + close + closed + opening
+            else:
+                lo = 0.0
+            hi = starts[i] if i < len(starts) else self.horizon
+            if lo <= local < hi:
+                object.__setattr__(self, "_open", (lo, hi))
+        return c
 
     def gaze(self, t: float) -> tuple[float, float]:
         """Eye ``(yaw, pitch)`` in degrees at ``t`` (s), before ``amount``."""
         local = t % self.horizon
+        lo, hi, yaw, pitch = self._hold
+        if lo <= local < hi:  # (in the fixation found last time, past its saccade)
+            return yaw, pitch
         f = self._fix
-        j = bisect.bisect_right(self._fix_starts, local) - 1
+        starts = self._fix_starts
+        j = bisect.bisect_right(starts, local) - 1
         cur = f[j]
         if j > 0 and local - cur[0] < cur[3]:
             u = smoothstep((local - cur[0]) / cur[3])
             prev = f[j - 1]
             return prev[1] + (cur[1] - prev[1]) * u, prev[2] + (cur[2] - prev[2]) * u
+        lo = cur[0] + cur[3] if j > 0 else cur[0]
+        hi = starts[j + 1] if j + 1 < len(starts) else self.horizon
+        if lo <= local < hi:
+            object.__setattr__(self, "_hold", (lo, hi, cur[1], cur[2]))
         return cur[1], cur[2]
 
     def row(self, t: float) -> list[float]:
