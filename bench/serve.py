@@ -172,6 +172,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "crosses Redis), on the owner, or half of each (what a round-robin balancer gives 2 nodes)",
     )
     p.add_argument(
+        "--cluster-pin",
+        choices=("auto", "off"),
+        default="auto",
+        help="cluster: place the nodes as `facecast serve --workers N` does (auto: each on its "
+        "own cores, its PoCL pool sized to them, when N <= CPUs) or leave them unpinned (off)",
+    )
+    p.add_argument(
         "--cluster-sessions",
         help="session counts of the cluster sweep (default: --sessions)",
     )
@@ -240,10 +247,15 @@ class _Cluster:
     """A real ``redis-server`` and ``n`` ``facecast serve --redis`` nodes on this machine, each with
     its own port and data dir and the bench's admin key; CPU time is theirs summed."""
 
-    def __init__(self, n: int, face: str, backend: str) -> None:
+    def __init__(self, n: int, face: str, backend: str, pin: bool = True) -> None:
+        from facecast.server.cluster.workers import placement
+
         self.redis = RedisServer()
         extra = ("--redis", self.redis.url, "--workers", "1")  # one process per node, measured
-        self.nodes = [_server(face, backend, extra=extra) for _ in range(n)]
+        # placed as ``facecast serve --workers n`` places its node processes (pinned to their
+        # own cores, PoCL sized to them), unless ``pin`` is off
+        self.placement = [placement(k, n) if pin else (None, {}) for k in range(n)]
+        self.nodes = [_server(face, backend, env=env, extra=extra) for _, env in self.placement]
         self.admin_key = ADMIN_KEY
         self.urls = [s.url for s in self.nodes]
         self.url = self.urls[0]
@@ -251,8 +263,15 @@ class _Cluster:
 
     def start(self, timeout: float = 300, *, ready: bool = True) -> _Cluster:
         self.redis.start()
-        for node in self.nodes:
-            node.start(timeout, ready=ready)
+        for node, (cpus, _) in zip(self.nodes, self.placement):
+            mine = os.sched_getaffinity(0) if cpus else None
+            if cpus:  # the node process inherits this thread's CPUs (as --workers' preexec_fn)
+                os.sched_setaffinity(0, cpus)
+            try:
+                node.start(timeout, ready=ready)
+            finally:
+                if mine:
+                    os.sched_setaffinity(0, mine)
         self.health = self.nodes[0].health
         return self
 
@@ -909,7 +928,7 @@ def _cluster_sweeps(args, encodings: list[str], by_encoding: dict) -> dict:
     """The sessions sweep on a ``_Cluster`` of ``args.cluster`` nodes, per encoding:
     ``{encoding: {"nodes", "sessions_sweep", "redis_cpu", ...}}``."""
     out: dict = {}
-    cluster = _Cluster(args.cluster, args.face, args.backend)
+    cluster = _Cluster(args.cluster, args.face, args.backend, pin=args.cluster_pin == "auto")
     sessions, viewers = args.sessions, args.viewers
     args.sessions, args.viewers = args.cluster_sessions or args.sessions, ""
     try:
@@ -922,6 +941,8 @@ def _cluster_sweeps(args, encodings: list[str], by_encoding: dict) -> dict:
             out[enc] = {
                 "nodes": args.cluster,
                 "viewers_on": args.cluster_viewers,
+                "node_cpus": [sorted(c) if c else None for c, _ in cluster.placement],
+                "node_env": [env for _, env in cluster.placement],
                 "sessions_sweep": sweep,
                 "redis_cpu_mean": round((cluster.redis_cpu_seconds() - r0) / (time.time() - t0), 3),
                 "sessions_at_target": _at_target(sweep, args),
