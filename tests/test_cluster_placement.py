@@ -25,14 +25,20 @@ def cpus(monkeypatch):
 
 def test_one_node_per_core_pins_each_to_its_core_with_one_pocl_thread(cpus):
     cpus({0, 1})
-    assert workers.placement(0, 2) == ({0}, {"POCL_MAX_PTHREAD_COUNT": "1"})
-    assert workers.placement(1, 2) == ({1}, {"POCL_MAX_PTHREAD_COUNT": "1"})
+    assert workers.placement(0, 2) == ({0}, {"POCL_MAX_PTHREAD_COUNT": "1", "POCL_AFFINITY": "0"})
+    assert workers.placement(1, 2) == ({1}, {"POCL_MAX_PTHREAD_COUNT": "1", "POCL_AFFINITY": "0"})
 
 
 def test_fewer_nodes_than_cores_share_them_out(cpus):
     cpus({2, 3, 5, 7, 8})  # only the CPUs this process may use, in order; one left over
-    assert workers.placement(0, 2) == ({2, 3}, {"POCL_MAX_PTHREAD_COUNT": "2"})
-    assert workers.placement(1, 2) == ({5, 7}, {"POCL_MAX_PTHREAD_COUNT": "2"})
+    assert workers.placement(0, 2) == (
+        {2, 3},
+        {"POCL_MAX_PTHREAD_COUNT": "2", "POCL_AFFINITY": "0"},
+    )
+    assert workers.placement(1, 2) == (
+        {5, 7},
+        {"POCL_MAX_PTHREAD_COUNT": "2", "POCL_AFFINITY": "0"},
+    )
 
 
 @pytest.mark.parametrize(("available", "n"), [({0, 1}, 3), ({0, 1}, 1), ({0}, 1)])
@@ -47,7 +53,7 @@ def test_pinning_can_be_switched_off_and_a_chosen_pocl_pool_is_kept(cpus, monkey
     assert workers.placement(0, 2) == (None, {})
     monkeypatch.setenv(workers.PIN_ENV, "1")
     monkeypatch.setenv("POCL_MAX_PTHREAD_COUNT", "2")
-    assert workers.placement(1, 2) == ({1}, {})
+    assert workers.placement(1, 2) == ({1}, {"POCL_AFFINITY": "0"})
 
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPUs")

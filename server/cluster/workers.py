@@ -89,7 +89,11 @@ def placement(index: int, workers: int) -> tuple[set[int] | None, dict[str, str]
     k = len(mine) // workers if workers > 1 else 0
     if k < 1:
         return None, {}
-    env = {} if "POCL_MAX_PTHREAD_COUNT" in os.environ else {"POCL_MAX_PTHREAD_COUNT": str(k)}
+    # PoCL's own pinning (thread j to CPU j, ``backends.select.pin_pocl_workers``) would move
+    # the pool of node i off its CPUs: off, the node's affinity holds its threads
+    env = {"POCL_AFFINITY": "0"}
+    if "POCL_MAX_PTHREAD_COUNT" not in os.environ:
+        env["POCL_MAX_PTHREAD_COUNT"] = str(k)
     return set(mine[index * k : (index + 1) * k]), env
 
 
