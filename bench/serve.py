@@ -172,6 +172,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "crosses Redis), on the owner, or half of each (what a round-robin balancer gives 2 nodes)",
     )
     p.add_argument(
+        "--cluster-pin",
+        choices=("auto", "off"),
+        default="auto",
+        help="cluster: place the nodes as `facecast serve --workers N` does (auto: each on its "
+        "own cores, its PoCL pool sized to them, when N <= CPUs) or leave them unpinned (off)",
+    )
+    p.add_argument(
         "--cluster-sessions",
         help="session counts of the cluster sweep (default: --sessions)",
     )
@@ -182,6 +189,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="FACECAST_LIVE_COALESCE_MS of every server measured, the single process and the "
         "cluster's nodes alike: how long a deformation batch may wait for more frames (a node "
         "holding 1/N of the sessions makes smaller batches by itself)",
+    )
+    p.add_argument(
+        "--cluster-coalesce-ms",
+        type=float,
+        default=None,
+        help="the cluster nodes' FACECAST_LIVE_COALESCE_MS (default: --coalesce-ms): a node "
+        "holding 1/N of the sessions fills a batch N times slower",
+    )
+    p.add_argument(
+        "--cluster-coalesce-frames",
+        type=int,
+        default=None,
+        help="the cluster nodes' FACECAST_LIVE_COALESCE_FRAMES (default: the server's, 8)",
     )
     p.add_argument("--out", type=Path, default=Path("bench/out/serve.json"))
 
@@ -240,10 +260,20 @@ class _Cluster:
     """A real ``redis-server`` and ``n`` ``facecast serve --redis`` nodes on this machine, each with
     its own port and data dir and the bench's admin key; CPU time is theirs summed."""
 
-    def __init__(self, n: int, face: str, backend: str) -> None:
+    def __init__(
+        self, n: int, face: str, backend: str, pin: bool = True, env: dict[str, str] | None = None
+    ) -> None:
+        from facecast.server.cluster.workers import placement
+
         self.redis = RedisServer()
         extra = ("--redis", self.redis.url, "--workers", "1")  # one process per node, measured
-        self.nodes = [_server(face, backend, extra=extra) for _ in range(n)]
+        # placed as ``facecast serve --workers n`` places its node processes (pinned to their
+        # own cores, PoCL sized to them), unless ``pin`` is off
+        self.placement = [placement(k, n) if pin else (None, {}) for k in range(n)]
+        self.nodes = [
+            _server(face, backend, env={**(env or {}), **pocl}, extra=extra)
+            for _, pocl in self.placement
+        ]
         self.admin_key = ADMIN_KEY
         self.urls = [s.url for s in self.nodes]
         self.url = self.urls[0]
@@ -251,8 +281,15 @@ class _Cluster:
 
     def start(self, timeout: float = 300, *, ready: bool = True) -> _Cluster:
         self.redis.start()
-        for node in self.nodes:
-            node.start(timeout, ready=ready)
+        for node, (cpus, _) in zip(self.nodes, self.placement):
+            mine = os.sched_getaffinity(0) if cpus else None
+            if cpus:  # the node process inherits this thread's CPUs (as --workers' preexec_fn)
+                os.sched_setaffinity(0, cpus)
+            try:
+                node.start(timeout, ready=ready)
+            finally:
+                if mine:
+                    os.sched_setaffinity(0, mine)
         self.health = self.nodes[0].health
         return self
 
@@ -909,7 +946,13 @@ def _cluster_sweeps(args, encodings: list[str], by_encoding: dict) -> dict:
     """The sessions sweep on a ``_Cluster`` of ``args.cluster`` nodes, per encoding:
     ``{encoding: {"nodes", "sessions_sweep", "redis_cpu", ...}}``."""
     out: dict = {}
-    cluster = _Cluster(args.cluster, args.face, args.backend)
+    cluster = _Cluster(
+        args.cluster,
+        args.face,
+        args.backend,
+        pin=getattr(args, "cluster_pin", "auto") == "auto",
+        env=_cluster_env(args),
+    )
     sessions, viewers = args.sessions, args.viewers
     args.sessions, args.viewers = args.cluster_sessions or args.sessions, ""
     try:
@@ -922,6 +965,11 @@ def _cluster_sweeps(args, encodings: list[str], by_encoding: dict) -> dict:
             out[enc] = {
                 "nodes": args.cluster,
                 "viewers_on": args.cluster_viewers,
+                "node_cpus": [sorted(c) if c else None for c, _ in cluster.placement],
+                "node_env": [
+                    {k: v for k, v in n.env.items() if k.startswith(("FACECAST_LIVE", "POCL_"))}
+                    for n in cluster.nodes
+                ],
                 "sessions_sweep": sweep,
                 "redis_cpu_mean": round((cluster.redis_cpu_seconds() - r0) / (time.time() - t0), 3),
                 "sessions_at_target": _at_target(sweep, args),
@@ -934,6 +982,16 @@ def _cluster_sweeps(args, encodings: list[str], by_encoding: dict) -> dict:
         cluster.stop()
         args.sessions, args.viewers, args.encoding = sessions, viewers, encodings[0]
     return out
+
+
+def _cluster_env(args) -> dict[str, str]:
+    """The cluster nodes' own live settings (``--cluster-coalesce-*``), over ``_SERVER_ENV``."""
+    env = {}
+    if getattr(args, "cluster_coalesce_ms", None) is not None:
+        env["FACECAST_LIVE_COALESCE_MS"] = f"{args.cluster_coalesce_ms:g}"
+    if getattr(args, "cluster_coalesce_frames", None) is not None:
+        env["FACECAST_LIVE_COALESCE_FRAMES"] = str(args.cluster_coalesce_frames)
+    return env
 
 
 def _at_target(points: list[dict], args) -> int:
@@ -985,7 +1043,8 @@ def _cluster_table(enc: str, single: list[dict], cluster: dict, args) -> str:
     lines.append(
         f"\nSessions at target: single {cluster['single_sessions_at_target']}, cluster "
         f"{cluster['sessions_at_target']} (ratio {cluster['ratio_vs_single']}; target ≥ 1.5); "
-        f"Redis CPU {cluster['redis_cpu_mean']} core(s) on average."
+        f"Redis CPU {cluster['redis_cpu_mean']} core(s) on average. Nodes' CPUs "
+        f"{cluster.get('node_cpus')}, settings {cluster.get('node_env')}."
     )
     return "\n".join(lines)
 

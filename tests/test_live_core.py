@@ -492,6 +492,7 @@ def test_live_settings_are_read_once_from_the_environment(monkeypatch):
     monkeypatch.setenv("FACECAST_LIVE_DIRECT", "0")
     monkeypatch.setenv("FACECAST_LIVE_BATCHES", "2")
     monkeypatch.setenv("FACECAST_LIVE_COALESCE_MS", "3")
+    monkeypatch.setenv("FACECAST_LIVE_COALESCE_FRAMES", "24")
     app = NS(state=NS(config=ServerConfig(), store=None, metrics=None))
     monkeypatch.setenv("FACECAST_LIVE_BATCHES", "5")  # read once: later changes do nothing
     reg = routes_sessions.registry(app)
@@ -500,11 +501,13 @@ def test_live_settings_are_read_once_from_the_environment(monkeypatch):
         assert (s.direct, s.batches, s.coalesce_seconds) == (False, 2, 0.003)
         assert DirectSender.attach(NS(), s.direct) is None  # frames go through ASGI
         assert reg.batcher_for(NS(deformer=None)).coalesce == 0.003
+        assert reg.batcher_for(NS(deformer=None)).coalesce_frames == 24
     finally:
         reg.executor.shutdown()
         reg.batch_executor.shutdown()
     defaults = ServerConfig.model_construct().live_settings()
     assert (defaults.direct, defaults.batch_threads, defaults.device_quantize) == (True, 1, True)
+    assert defaults.coalesce_frames == 8
     monkeypatch.setenv("FACECAST_LIVE_THREADS", "many")
     with pytest.raises(ValueError, match="live_threads"):
         ServerConfig()

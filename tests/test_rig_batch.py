@@ -214,3 +214,45 @@ def test_a_coalescing_batcher_waits_for_the_other_sessions_frame(face, rng, monk
     assert batcher.batches == first + 1 and batcher.frames == 4  # frames 2 and 3: one batch
     got = [fr.decode(r[0]["f32"][0]) for r in a.results + b.results]
     assert sorted(f.header.seq for f in got) == [0, 1, 2, 3]
+
+
+def test_a_coalescing_batcher_waits_for_coalesce_frames_at_most(face, rng, monkeypatch):
+    """``LiveSettings.coalesce_frames``: with three sessions active and a target of 2 frames, a
+    batch goes as soon as two frames wait (it does not wait for the third session's)."""
+    import facecast.server.live.batcher as batcher_mod
+    from facecast.server.live.settings import LiveSettings
+    from facecast.server.pipeline import Animator
+
+    monkeypatch.setattr(batcher_mod, "ACTIVE_WINDOW", 600.0)
+    animator = Animator(face, backend="numpy")
+    states = _random_states(rng, 5)
+    settings = LiveSettings(coalesce_ms=600_000.0, coalesce_frames=2)  # only frames end a wait
+
+    class Session:
+        def __init__(self) -> None:
+            self.arrived = asyncio.Event()
+
+        def done(self, result) -> None:
+            self.arrived.set()
+
+    async def go() -> DeformBatcher:
+        batcher = DeformBatcher(animator, ThreadPoolExecutor(1), settings=settings)
+        assert batcher.coalesce_frames == 2
+        a, b, c = Session(), Session(), Session()
+        enc = frozenset({"f32"})
+        for k, s in enumerate((a, b, c)):  # all three active
+            batcher.submit_nowait(states[k], seq=k, wall=0.0, encodings=enc, done=s.done)
+        await asyncio.wait_for(asyncio.gather(*(s.arrived.wait() for s in (a, b, c))), 60)
+        a.arrived.clear()
+        b.arrived.clear()
+        batcher.submit_nowait(states[3], seq=3, wall=0.0, encodings=enc, done=a.done)
+        batcher.submit_nowait(states[4], seq=4, wall=0.0, encodings=enc, done=b.done)
+        await asyncio.wait_for(asyncio.gather(a.arrived.wait(), b.arrived.wait()), 60)
+        return batcher
+
+    batcher = asyncio.run(go())
+    assert batcher.frames == 5
+    assert (
+        DeformBatcher(animator, None, settings=LiveSettings(coalesce_frames=99)).coalesce_frames
+        == 32
+    )

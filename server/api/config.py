@@ -69,6 +69,7 @@ class ServerConfig(LocalSettings):
     live_coalesce_ms: float = Field(
         default=0.0, ge=0, allow_inf_nan=False
     )  # batch wait for more frames
+    live_coalesce_frames: int = Field(default=8, ge=1, le=32)  # ... until this many wait
     live_compact_threads: int | None = Field(default=None, ge=1)  # compact encoders; unset: CPUs
     live_device_quantize: bool = True  # int16 quantisation on a host-memory OpenCL device
     live_direct: bool = True  # vertex frames straight to viewers' transports (0: through ASGI)
@@ -79,6 +80,7 @@ class ServerConfig(LocalSettings):
             threads=self.live_threads,
             batches=self.live_batches,
             coalesce_ms=self.live_coalesce_ms,
+            coalesce_frames=self.live_coalesce_frames,
             compact_threads=self.live_compact_threads,
             device_quantize=self.live_device_quantize,
             direct=self.live_direct,

@@ -19,6 +19,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -28,6 +29,9 @@ STOP_SECONDS = 8.0
 #: A node process that dies this many times in a row, each within QUICK_SECONDS of its start,
 #: is not started again.
 QUICK_DEATHS, QUICK_SECONDS = 3, 10.0
+
+#: ``FACECAST_PIN_NODES=0`` leaves node processes unpinned (``placement``).
+PIN_ENV = "FACECAST_PIN_NODES"
 
 #: Settings a child gets from its parent (flags become ``FACECAST_*`` variables).
 PASSED = (
@@ -64,6 +68,35 @@ def child_env(config: Any, index: int) -> dict[str, str]:
     return env
 
 
+def placement(index: int, workers: int) -> tuple[set[int] | None, dict[str, str]]:
+    """Where node process ``index`` of ``workers`` runs: ``(cpus, env)``, the CPUs it is pinned to
+    (None: not pinned) and the variables that size its OpenCL (PoCL) thread pool to them.
+
+    With no more nodes than the CPUs this process may use, node i gets its own ``k = cpus // n``
+    of them and a PoCL pool of ``k`` threads; each PoCL otherwise starts one thread per CPU and
+    pins thread j to CPU j, so every node's kernel launches wait for every core, and two nodes'
+    launches for each other. Measured (``docs/SCALING.md``): pinned, each node on one core with
+    one PoCL thread, two nodes on this 2-core machine held 50 sessions at p95 9.7-11 ms where
+    unpinned they missed (p95 80-100 ms), in the same runs. More nodes than CPUs, or
+    ``FACECAST_PIN_NODES=0``: no pinning, PoCL as it starts by itself.
+    """
+    if os.environ.get(PIN_ENV, "1").strip() in ("0", "false", "no", "off"):
+        return None, {}
+    try:
+        mine = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return None, {}
+    k = len(mine) // workers if workers > 1 else 0
+    if k < 1:
+        return None, {}
+    # PoCL's own pinning (thread j to CPU j, ``backends.select.pin_pocl_workers``) would move
+    # the pool of node i off its CPUs: off, the node's affinity holds its threads
+    env = {"POCL_AFFINITY": "0"}
+    if "POCL_MAX_PTHREAD_COUNT" not in os.environ:
+        env["POCL_MAX_PTHREAD_COUNT"] = str(k)
+    return set(mine[index * k : (index + 1) * k]), env
+
+
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
     try:
         import ctypes
@@ -71,6 +104,18 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child before e
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except OSError:
         pass
+
+
+def before_exec(cpus: set[int] | None) -> Callable[[], None]:
+    """What a node process does before exec: die with its parent, run on ``cpus`` (if any; the
+    affinity is inherited by all its threads, PoCL's included, which start after exec)."""
+
+    def prepare() -> None:  # pragma: no cover - runs in the child before exec
+        _die_with_parent()
+        if cpus:
+            os.sched_setaffinity(0, cpus)
+
+    return prepare
 
 
 def supervise(config: Any, workers: int, log_level: str | None) -> int:
@@ -86,7 +131,9 @@ def supervise(config: Any, workers: int, log_level: str | None) -> int:
         cmd += ["--log-level", log_level]
 
     def start(i: int) -> subprocess.Popen[bytes]:
-        return subprocess.Popen(cmd, env=child_env(config, i), preexec_fn=_die_with_parent)  # noqa: PLW1509
+        cpus, pocl = placement(i, workers)
+        env = {**child_env(config, i), **pocl}
+        return subprocess.Popen(cmd, env=env, preexec_fn=before_exec(cpus))  # noqa: PLW1509
 
     if config.redis_url and config.results_dir is None:
         from ..jobs import RESULTS_DIR_UNSET, results_root

@@ -39,12 +39,12 @@ MAX_BATCH = 32
 #: Fewest frames quantised on the device at once: a launch costs PoCL 0.1-0.2 ms of CPU, so a
 #: single frame was 0.03-0.1 ms cheaper in NumPy (4 of 5 bench runs); from 2 frames on, the device.
 DEVICE_MIN_FRAMES = 2
-#: A drain about to start a batch of fewer frames than this, while more sessions than that
-#: have been submitting (within ``ACTIVE_WINDOW`` seconds), waits up to ``LiveSettings.coalesce_ms``
-#: for more. A batch has a fixed cost (two OpenCL launches, ~0.15 ms of PoCL CPU each, and the
-#: solve's NumPy calls) of about six frames' marginal cost, so on a quiet machine, where 20
-#: sessions at 60 fps may make batches of 1-2 frames, waiting could save CPU.
-COALESCE_FRAMES = 8
+#: A drain about to start a batch of fewer frames than ``LiveSettings.coalesce_frames``, while more
+#: sessions than that have been submitting (within ``ACTIVE_WINDOW`` seconds), waits up to
+#: ``LiveSettings.coalesce_ms`` for more. A batch has a fixed cost (two OpenCL launches and the
+#: solve's NumPy calls: ~0.6 ms of CPU against ~0.15 ms per frame, ``bench/compact_worker.py``),
+#: so on a quiet machine, where 20 sessions at 60 fps may make batches of 1-2 frames, and on a
+#: cluster node, which holds a share of a machine's sessions, waiting saves CPU.
 ACTIVE_WINDOW = 0.1
 #: Compact frames of a batch on the device too, when the int16 quantiser runs there
 #: (``backends.opencl.compact``: the same bytes, one launch instead of a dozen NumPy passes each),
@@ -254,6 +254,7 @@ class DeformBatcher:
         self._want = 1  # ... until this many jobs wait
         self._sources: dict[Any, float] = {}  # who submitted (session) -> when (monotonic)
         self.coalesce = settings.coalesce_seconds
+        self.coalesce_frames = min(max_batch, settings.coalesce_frames)
         self._running = 0  # drains at work
         self._delivering = False  # ``_deliver`` is running callbacks (event loop side)
         #: Batches worked on at once: the solve and the int16 encoding of one batch overlap with the
@@ -331,15 +332,15 @@ class DeformBatcher:
         return await future
 
     def _coalesce(self) -> None:
-        """Wait (up to ``coalesce`` seconds) until ``COALESCE_FRAMES`` jobs, or one per recently
+        """Wait (up to ``coalesce`` seconds) until ``coalesce_frames`` jobs, or one per recently
         active source, are waiting. Call with ``_lock`` held."""
-        if self.coalesce <= 0 or len(self._pending) >= COALESCE_FRAMES:
+        if self.coalesce <= 0 or len(self._pending) >= self.coalesce_frames:
             return
         now = time.monotonic()
         stale = [k for k, t in self._sources.items() if now - t > ACTIVE_WINDOW]
         for k in stale:
             del self._sources[k]
-        want = self._want = min(COALESCE_FRAMES, len(self._sources))
+        want = self._want = min(self.coalesce_frames, len(self._sources))
         deadline = now + self.coalesce
         self._waiting += 1
         try:

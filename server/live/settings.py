@@ -23,6 +23,11 @@ class LiveSettings:
     coalesce_ms: longest wait of a batch for more frames (``FACECAST_LIVE_COALESCE_MS``; 0, no
         wait). On the shared 2-core machine (load 5-9) batches of 20 sessions held 6-13 frames
         by themselves and a 3 ms wait changed nothing measurable.
+    coalesce_frames: ... until this many frames wait (``FACECAST_LIVE_COALESCE_FRAMES``; 8, at
+        most a batch's 32). A cluster node holding half the sessions of a machine fills a batch
+        half as fast: measured with two nodes on 2 cores (50 sessions), 12 ms / 32 frames cost
+        353-364 µs per session-frame against 416-468 at 4 ms / 8 (``docs/SCALING.md``); one
+        process gained nothing from it (its batches grow by themselves) and its p95 grew.
     compact_threads: threads encoding ``compact`` frames at once on the host
         (``FACECAST_LIVE_COMPACT_THREADS``; the CPU count). Batches encoded on the device are
         deflated in the batcher's own thread.
@@ -35,6 +40,7 @@ class LiveSettings:
     threads: int | None = None
     batches: int = 1
     coalesce_ms: float = 0.0
+    coalesce_frames: int = 8
     compact_threads: int | None = None
     device_quantize: bool = True
     direct: bool = True
