@@ -110,7 +110,7 @@ def test_a_take_without_a_neutral_hold_stabilises(tmp_path, ict_head):
 def test_batch_head_poses_refined_in_several_passes_beat_one(tmp_path, ict_head, monkeypatch):
     """``driver.REFINE_PASSES``: the poses refined with every marker again from the last pass's
     poses, neutral and principal motions. Three headband markers (sparse30) leave one pass 0.143 deg
-    off on this take; three passes 0.113."""
+    off on this take; six passes 0.094 (three 0.113)."""
     from facecast.server.mocap import driver
     from facecast.server.mocap.variants import make_take
 
@@ -123,7 +123,7 @@ def test_batch_head_poses_refined_in_several_passes_beat_one(tmp_path, ict_head,
 
     several = pose_error()
     monkeypatch.setattr(driver, "REFINE_PASSES", 1)
-    assert several < 0.9 * pose_error()
+    assert several < 0.8 * pose_error()
 
 
 def test_a_late_neutral_with_the_head_turned_keeps_the_start_as_the_heads_rest(tmp_path, ict_head):

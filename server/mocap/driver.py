@@ -55,11 +55,12 @@ HOLD_MM, STILL_MM = 0.4, 0.2
 #: the expression part a pass took for head motion shrinks over the passes. One pass left a rigid
 #: error tied to the take's neutral frame, carried into every output frame (0.08 deg on the issue16
 #: take, 0.2 deg on sparse30's three headband markers). 2-s generated takes, batch ratio to not
-#: deforming and head pose (degrees), 1 -> 3 passes: tuning (issue16 and technician, mirror folds)
-#: 0.497 -> 0.479x, 0.071 -> 0.064 deg (6 passes: 0.467x, 0.057 deg, twice the time); held out, the
-#: other five variants' mirror folds 0.788 -> 0.759x, 0.106 -> 0.094 deg, every variant's strict
-#: folds 0.679 -> 0.640x, 0.109 -> 0.091 deg (all 24 held-out takes better or equal).
-REFINE_PASSES = 3
+#: deforming and head pose (degrees), 1 / 3 / 6 passes: tuning (issue16 and technician, mirror
+#: folds) 0.497 / 0.479 / 0.467x, 0.071 / 0.064 / 0.057 deg; held out, the other five variants'
+#: mirror folds 0.788 / 0.759 / 0.733x, 0.106 / 0.094 / 0.083 deg; every variant's strict folds
+#: 0.679 / 0.640 / 0.634x, 0.109 / 0.091 / 0.082 deg. The batch pipeline's CPU time: 1.3 s one pass,
+#: 1.75 s three, 2.3 s six (a 4-s take, prior off: each pass adds about 0.2 s a 4-s take).
+REFINE_PASSES = 6
 # Tried and left out: batch head poses refined again with every marker, the face's motion
 # explained by the face prior's shapes (``stabilise.ShapePose`` over the take, then RTS-smoothed as
 # ``refine_poses`` smooths its corrections; ridge 0.003), after ``refine_poses``. It helped where
