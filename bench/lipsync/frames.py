@@ -60,8 +60,11 @@ BALANCE = 1.0
 #: Dropout of the hidden units in training (``train.fit_frames``; inference unchanged). Nested
 #: inner speaker folds (``recipes.py``: one member, seeds 0, 1, 2; mean and range, acc / F1):
 #: none 0.562 / 0.388 (0.560-0.564 / 0.387-0.390), 0.2 0.570 / 0.398 (0.570-0.571 /
-#: 0.395-0.401): every seed above every seed without.
-DROPOUT = 0.2
+#: 0.395-0.401): every seed above every seed without. Held out (folds.py, the 3-member network
+#: with it): 0.584 / 0.406 -> 0.585 / 0.413, within the seed spread; and the shipped network made
+#: with it closed bobby's lips on 4 of his 9 closure frames instead of 6 (the closure check of
+#: tests/test_face_layers.py). Not shipped: 0 (the option stays, ``recipes.py dropout=0.2``).
+DROPOUT = 0.0
 #: Networks trained with consecutive seeds and merged into one (their outputs' geometric mean,
 #: ``merge_frame_nets``). Speakers held out (scratch nested runs, prior exponent chosen on the
 #: training speakers): one network 0.550 / 0.378 (seeds 1, 2: 0.543 / 0.372, 0.558 / 0.374),
@@ -323,7 +326,7 @@ def ship(argv: list[str]) -> int:
         command="python bench/lipsync/frames.py ship",
         prior_exponent=str(exponent),
         members=str(MEMBERS),
-        dropout=str(DROPOUT),
+        **({"dropout": str(DROPOUT)} if DROPOUT else {}),
         speakers=" ".join(speakers),
         utterances=str(len(real) + len(dev)),
     )
