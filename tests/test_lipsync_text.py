@@ -87,7 +87,7 @@ def test_mismatch_allowance_shrinks_with_the_number_of_phones():
     assert mismatch_excess(1.0, 4) == pytest.approx(1.0 - MISMATCH_SLACK / 2)
     assert mismatch_excess(1.0, 400) == pytest.approx(1.0 - MISMATCH_SLACK / 20)
     assert mismatch_excess(1.0, 0) == pytest.approx(1.0 - MISMATCH_SLACK)  # no division by 0
-    assert 1.0 < MAX_MISMATCH < 2.0
+    assert 0.5 < MAX_MISMATCH < 2.0  # re-chosen with each shipped network (align.MAX_MISMATCH)
 
 
 def test_live_driver_follows_a_transcript_known_ahead(recordings):

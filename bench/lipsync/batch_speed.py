@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from facecast.server.audio.classify import FrameNet
 from facecast.server.audio.io import read_audio
 from facecast.server.audio.pipeline import lipsync
 from facecast.server.paths import shared_data
@@ -43,7 +44,9 @@ def main() -> int:
     ap.add_argument("--compare", type=Path)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--label", default="current")
+    ap.add_argument("--net", type=Path, help="frame network file (default: the shipped one)")
     a = ap.parse_args()
+    net = FrameNet.load(a.net) if a.net else None
     data = shared_data()
     root = data / "real-speech" if data else Path("/nonexistent")
     clips = [(f, *read_audio(root / f)) for f in FILES if (root / f).is_file()]
@@ -52,16 +55,17 @@ def main() -> int:
         return 2
     dur = sum(len(x) / sr for _, x, sr in clips)
     for _, x, sr in clips[:1]:
-        lipsync(x, sr)  # load the network, warm caches
+        lipsync(x, sr, net=net)  # load the network, warm caches
     best, outs = np.inf, {}
     for _ in range(a.repeat):
         c = time.process_time()
         for name, x, sr in clips:
-            ls = lipsync(x, sr)
+            ls = lipsync(x, sr, net=net)
             outs[name + ":proba"], outs[name + ":visemes"] = ls.proba, ls.visemes
         best = min(best, time.process_time() - c)
     res = {
         "label": a.label,
+        "net": str(a.net or "shipped"),
         "audio_s": dur,
         "cpu_s": best,
         "x_realtime": dur / best,

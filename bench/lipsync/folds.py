@@ -105,6 +105,7 @@ def net_path(
     epochs: int = frames.EPOCHS,
     hidden: int = frames.HIDDEN,
     balance: float = frames.BALANCE,
+    dropout: float = frames.DROPOUT,
     step: int = frames.STEP,
     members: int = frames.MEMBERS,
     offsets=frames.OFFSETS,
@@ -119,6 +120,7 @@ def net_path(
         / "nets"
         / (
             f"{'-'.join(map(str, groups))}_e{epochs}_h{hidden}_b{balance}_s{step}_m{members}"
+            f"{f'_d{dropout}' if dropout else ''}"
             f"_o{'.'.join(map(str, offsets))}{'' if dev else '_nodev'}{'_lc' if live_cal else ''}"
             f"_c{stamp}.npz"
         )
@@ -133,6 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hidden", type=int, default=frames.HIDDEN)
     ap.add_argument("--offsets", default=",".join(map(str, frames.OFFSETS)))
     ap.add_argument("--balance", type=float, default=frames.BALANCE)
+    ap.add_argument("--dropout", type=float, default=frames.DROPOUT)
     ap.add_argument("--step", type=int, default=frames.STEP)
     ap.add_argument(
         "--members", type=int, default=frames.MEMBERS, help="networks merged into one (seeds)"
@@ -187,6 +190,7 @@ def main(argv: list[str] | None = None) -> int:
             epochs=args.epochs,
             hidden=args.hidden,
             balance=args.balance,
+            dropout=args.dropout,
             step=args.step,
             members=args.members,
             offsets=offsets,
@@ -207,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
                 epochs=args.epochs,
                 hidden=args.hidden,
                 balance=args.balance,
+                dropout=args.dropout,
                 step=args.step,
                 members=args.members,
                 live_cal=frames.LIVE_CALIBRATION and not args.no_live_cal,

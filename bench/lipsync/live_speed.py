@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from facecast.server.audio.classify import FrameNet
 from facecast.server.audio.io import read_audio
 from facecast.server.audio.live import AudioLiveDriver
 from facecast.server.paths import shared_data
@@ -34,8 +35,8 @@ FILES = (
 )
 
 
-def run(x: np.ndarray, sr: int, fap1: bool, chunk: float = 0.02) -> list:
-    drv = AudioLiveDriver(None, sr, fps=100.0, fap1=fap1)
+def run(x: np.ndarray, sr: int, fap1: bool, chunk: float = 0.02, net=None) -> list:
+    drv = AudioLiveDriver(None, sr, fps=100.0, fap1=fap1, net=net)
     n = max(1, int(chunk * sr))
     states = []
     for i in range(0, len(x), n):
@@ -49,7 +50,9 @@ def main() -> int:
     ap.add_argument("--compare", type=Path)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--label", default="current")
+    ap.add_argument("--net", type=Path, help="frame network file (default: the shipped one)")
     a = ap.parse_args()
+    net = FrameNet.load(a.net) if a.net else None
     root = shared_data() / "real-speech"
     clips = []
     for f in FILES:
@@ -66,14 +69,21 @@ def main() -> int:
     for _ in range(a.repeat):
         c = time.process_time()
         for name, x, sr in clips:
-            states = run(x, sr, fap1=False)
+            states = run(x, sr, fap1=False, net=net)
             outs[name + ":t"] = np.array([s.t for s in states])
             outs[name + ":faps"] = np.array([s.faps for s in states])
         best = min(best, time.process_time() - c)
     for name, x, sr in clips:
-        outs[name + ":fap1"] = np.array([s.viseme for s in run(x, sr, fap1=True)])
+        outs[name + ":fap1"] = np.array([s.viseme for s in run(x, sr, fap1=True, net=net)])
     load = os.getloadavg()[0]
-    res = {"label": a.label, "audio_s": dur, "cpu_s": best, "x_realtime": dur / best, "load": load}
+    res = {
+        "label": a.label,
+        "net": str(a.net or "shipped"),
+        "audio_s": dur,
+        "cpu_s": best,
+        "x_realtime": dur / best,
+        "load": load,
+    }
     if a.save:
         np.savez(a.save, **outs)
     if a.compare:

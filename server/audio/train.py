@@ -130,6 +130,7 @@ def fit_frames(
     batch: int = 256,
     l2: float = 1e-4,
     balance: float = 0.5,
+    dropout: float = 0.0,
     seed: int = 0,
     n_classes: int = 10,
 ):
@@ -137,6 +138,9 @@ def fit_frames(
     context-stacked inputs ``X (N, D)`` and class labels ``y (N,)`` (0..9).
 
     Class weights are ``(N / (C·count))**balance`` (0 = none, 1 = fully balanced), for macro-F1.
+    ``dropout``: the fraction of hidden units zeroed per training example (inverted dropout: the
+    kept ones scaled by ``1 / (1 - dropout)``, so inference is unchanged); 0 = none, and then no
+    random numbers are drawn for it (the same weights as before it existed).
     Reproducible from ``seed``.
     """
     rng = np.random.default_rng(seed)
@@ -161,12 +165,18 @@ def fit_frames(
             w1, b1, w2, b2 = params
             xb, tb, wb = x[idx], onehot[idx], cw[y[idx]][:, None]
             h = np.tanh(xb @ w1 + b1)
-            z = h @ w2 + b2
+            hd = h
+            if dropout > 0:
+                mask = (rng.random(h.shape, dtype=np.float32) >= dropout) / np.float32(1 - dropout)
+                hd = h * mask
+            z = hd @ w2 + b2
             p = np.exp(z - z.max(axis=1, keepdims=True))
             p /= p.sum(axis=1, keepdims=True)
             dz = (p - tb) * wb / wb.sum()
             dh = (dz @ w2.T) * (1 - h * h)
-            grads = (xb.T @ dh + l2 * w1, dh.sum(0), h.T @ dz + l2 * w2, dz.sum(0))
+            if dropout > 0:
+                dh *= mask
+            grads = (xb.T @ dh + l2 * w1, dh.sum(0), hd.T @ dz + l2 * w2, dz.sum(0))
             step += 1
             for i, g in enumerate(grads):
                 m[i] = 0.9 * m[i] + 0.1 * g
