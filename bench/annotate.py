@@ -209,6 +209,10 @@ KNOB_RANGES: dict[str, tuple[float, float]] = {
 GENERATED_SPLITS = {"tuning3": (100, 12), "blind3": (900, 8)}
 
 
+# every split, in the order the report lists them
+SPLITS = ("tuning", "tuning3", "held-out", "fresh", "fresh2", "blind3", "cross-tuning", "cross")
+
+
 def generated_variants(split: str) -> dict[str, tuple[int, dict[str, float], float, str]]:
     """Random heads for a generated split, like ``FRESH_VARIANTS``: each from its own seed, every
     knob moved with probability 1/2 (uniform in ``KNOB_RANGES``), 6k-40k vertices, remeshed one time
@@ -620,16 +624,7 @@ def main(argv: list[str] | None = None) -> int:
     cases = [c for c in cases if c is not None]
     result["cases"] = cases
     result["load_after"] = os.getloadavg()
-    for split in (
-        "tuning",
-        "tuning3",
-        "held-out",
-        "fresh",
-        "fresh2",
-        "blind3",
-        "cross-tuning",
-        "cross",
-    ):
+    for split in SPLITS:
         ok = [c for c in cases if c["split"] == split and "error" not in c]
         if ok:
             result[split] = {
@@ -653,16 +648,7 @@ def main(argv: list[str] | None = None) -> int:
             f"| {c['case']} | {c['split']} | {c['template']} | {c['vertices']} | {c['n']} | {c['mean_mm']:.2f} | "
             f"{w[1]:.2f} ({w[0]}) | {len(c['left_out'])} | {c['seconds']:.1f} | {c['cpu_seconds']:.1f} |"
         )
-    for split in (
-        "tuning",
-        "tuning3",
-        "held-out",
-        "fresh",
-        "fresh2",
-        "blind3",
-        "cross-tuning",
-        "cross",
-    ):
+    for split in SPLITS:
         if split in result:
             r = result[split]
             print(

@@ -45,6 +45,7 @@ from .mix import (
     _unrotate1,
     combine,
     meet_lids,
+    mixed_states,
 )
 from .model import Contribution, GazeTarget, Geometry, Layer, N, Role, region_mask
 from .overlay import ExpressionLayer
@@ -436,14 +437,7 @@ def combine_columns(
     if H is not None:
         F -= H
         F[high, :3] = 0.0
-    return [
-        FaceState(t=ts[r], faps=F[r])
-        if p is None
-        else FaceState(
-            ts[r], F[r], p.viseme, p.expression, p.controls, p.head, p.shapes, p.shape_weights
-        )
-        for r, p in enumerate(prims)
-    ]
+    return mixed_states(F, ts, prims)
 
 
 def _override(F: np.ndarray, overs: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:

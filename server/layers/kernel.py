@@ -44,6 +44,7 @@ from .mix import (
     WIDTH,
     _expand,
     _offsets,
+    mixed_states,
 )
 from .model import Geometry, N, Role
 from .overlay import ExpressionLayer
@@ -565,14 +566,7 @@ def combine_packed(
         log.exception("the layers' mix kernel refused its arguments; mixing with NumPy")
         disable()
         return None
-    return [
-        FaceState(t=ts[r], faps=F[r])
-        if p is None
-        else FaceState(
-            ts[r], F[r], p.viseme, p.expression, p.controls, p.head, p.shapes, p.shape_weights
-        )
-        for r, p in enumerate(prims)
-    ]
+    return mixed_states(F, ts, prims)
 
 
 _ZERO = np.zeros(69)

@@ -261,6 +261,21 @@ _WIDTH = WIDTH.tolist()
 _LIPS_REGION: np.ndarray = np.array(REGIONS["lips"])
 
 
+def mixed_states(
+    F: np.ndarray, ts: Sequence[float], prims: Sequence[FaceState | None]
+) -> list[FaceState]:
+    """Each row of the mixed FAPs ``F (R, 69)`` as a ``FaceState`` at ``ts[r]``, keeping its
+    primary's viseme, expression, controls, head and shapes (a row without a primary: FAPs only)."""
+    return [
+        FaceState(t=ts[r], faps=F[r])
+        if p is None
+        else FaceState(
+            ts[r], F[r], p.viseme, p.expression, p.controls, p.head, p.shapes, p.shape_weights
+        )
+        for r, p in enumerate(prims)
+    ]
+
+
 def limit_mouth(F: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Offsets ``A (69,)`` over a speaking primary's FAPs ``F`` limited in the mouth and tongue
     (rule 4): where ``A`` moves a FAP the way ``F`` does, only what goes beyond ``F`` stays, so
