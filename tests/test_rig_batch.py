@@ -154,8 +154,10 @@ def test_batcher_fails_a_bad_state_alone_and_renders_the_others_exactly(face, rn
     states[2] = FaceState(t=0.1, viseme=(20, 0, 0))  # invalid viseme id
     states[4].faps[3] = 1e308  # overflows to inf in the rig: the deformer would refuse the batch
 
+    pool = ThreadPoolExecutor(1)
+
     async def go():
-        batcher = DeformBatcher(animator, ThreadPoolExecutor(1))
+        batcher = DeformBatcher(animator, pool)
         return await asyncio.gather(
             *(
                 batcher.submit(s, seq=i, wall=0.0, encodings=frozenset({"f32"}))
@@ -190,8 +192,10 @@ def test_a_coalescing_batcher_waits_for_the_other_sessions_frame(face, rng, monk
             self.results.append(result)
             self.arrived.set()
 
+    pool = ThreadPoolExecutor(1)
+
     async def go():
-        batcher = DeformBatcher(animator, ThreadPoolExecutor(1))
+        batcher = DeformBatcher(animator, pool)
         batcher.coalesce = (
             30.0  # longer than the test: only the second session's frame ends the wait
         )
@@ -208,10 +212,23 @@ def test_a_coalescing_batcher_waits_for_the_other_sessions_frame(face, rng, monk
         assert not a.arrived.is_set()
         batcher.submit_nowait(states[3], seq=3, wall=0.0, encodings=enc, done=b.done)
         await asyncio.wait_for(asyncio.gather(a.arrived.wait(), b.arrived.wait()), 60)
-        return batcher, a, b, first
+        n = batcher.batches
+        batcher.coalesce = 0.0  # the drain waits for the next round: one more, unwaited, ends it
+        a.arrived.clear()
+        b.arrived.clear()
+        batcher.submit_nowait(states[0], seq=4, wall=0.0, encodings=enc, done=a.done)
+        batcher.submit_nowait(states[1], seq=5, wall=0.0, encodings=enc, done=b.done)
+        await asyncio.wait_for(asyncio.gather(a.arrived.wait(), b.arrived.wait()), 60)
+        a.results.pop()
+        b.results.pop()
+        return batcher, a, b, first, n
 
-    batcher, a, b, first = asyncio.run(go())
-    assert batcher.batches == first + 1 and batcher.frames == 4  # frames 2 and 3: one batch
+    batcher, a, b, first, n = asyncio.run(go())
+    pool.shutdown(wait=False)
+    for thread in list(pool._threads):  # no drain outlives the test (it held pytest's exit)
+        thread.join(30)
+        assert not thread.is_alive()
+    assert n == first + 1 and batcher.frames == 6  # frames 2 and 3: one batch
     got = [fr.decode(r[0]["f32"][0]) for r in a.results + b.results]
     assert sorted(f.header.seq for f in got) == [0, 1, 2, 3]
 
@@ -235,8 +252,10 @@ def test_a_coalescing_batcher_waits_for_coalesce_frames_at_most(face, rng, monke
         def done(self, result) -> None:
             self.arrived.set()
 
+    pool = ThreadPoolExecutor(1)
+
     async def go() -> DeformBatcher:
-        batcher = DeformBatcher(animator, ThreadPoolExecutor(1), settings=settings)
+        batcher = DeformBatcher(animator, pool, settings=settings)
         assert batcher.coalesce_frames == 2
         a, b, c = Session(), Session(), Session()
         enc = frozenset({"f32"})
@@ -248,10 +267,22 @@ def test_a_coalescing_batcher_waits_for_coalesce_frames_at_most(face, rng, monke
         batcher.submit_nowait(states[3], seq=3, wall=0.0, encodings=enc, done=a.done)
         batcher.submit_nowait(states[4], seq=4, wall=0.0, encodings=enc, done=b.done)
         await asyncio.wait_for(asyncio.gather(a.arrived.wait(), b.arrived.wait()), 60)
+        # the drain now waits (up to the 10 minutes) for the next round: without waits, one more
+        # round ends it, so no thread outlives the test (it held pytest's exit for minutes)
+        batcher.coalesce = 0.0
+        a.arrived.clear()
+        c.arrived.clear()
+        batcher.submit_nowait(states[0], seq=5, wall=0.0, encodings=enc, done=a.done)
+        batcher.submit_nowait(states[1], seq=6, wall=0.0, encodings=enc, done=c.done)
+        await asyncio.wait_for(asyncio.gather(a.arrived.wait(), c.arrived.wait()), 60)
         return batcher
 
     batcher = asyncio.run(go())
-    assert batcher.frames == 5
+    assert batcher.frames == 7
+    pool.shutdown(wait=False)
+    for thread in list(pool._threads):
+        thread.join(30)
+        assert not thread.is_alive()
     assert (
         DeformBatcher(animator, None, settings=LiveSettings(coalesce_frames=99)).coalesce_frames
         == 32
