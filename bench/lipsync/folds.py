@@ -182,21 +182,20 @@ def main(argv: list[str] | None = None) -> int:
     # rerun that changes only the scoring (transcript path, live driver) does not retrain
     cache_stamp = int(items_path().stat().st_mtime)
 
+    # the training recipe: what names a cached network and what trains it
+    recipe = {
+        "epochs": args.epochs,
+        "hidden": args.hidden,
+        "balance": args.balance,
+        "dropout": args.dropout,
+        "step": args.step,
+        "members": args.members,
+        "live_cal": frames.LIVE_CALIBRATION and not args.no_live_cal,
+    }
+
     def net_without(groups: tuple[int, ...]):
         """The network trained without the speakers of ``FOLDS[g]`` for g in ``groups``."""
-        cache = net_path(
-            groups,
-            cache_stamp,
-            epochs=args.epochs,
-            hidden=args.hidden,
-            balance=args.balance,
-            dropout=args.dropout,
-            step=args.step,
-            members=args.members,
-            offsets=offsets,
-            dev=not args.no_dev,
-            live_cal=frames.LIVE_CALIBRATION and not args.no_live_cal,
-        )
+        cache = net_path(groups, cache_stamp, offsets=offsets, dev=not args.no_dev, **recipe)
         if groups not in nets and cache.exists() and not args.cmvn:
             nets[groups] = FrameNet.load(cache)
         if groups not in nets:
@@ -205,17 +204,7 @@ def main(argv: list[str] | None = None) -> int:
             train_items = [it for it in real if it.utt.speaker not in held] + (
                 [] if args.no_dev else dev
             )
-            nets[groups] = frames.train(
-                train_items,
-                offsets,
-                epochs=args.epochs,
-                hidden=args.hidden,
-                balance=args.balance,
-                dropout=args.dropout,
-                step=args.step,
-                members=args.members,
-                live_cal=frames.LIVE_CALIBRATION and not args.no_live_cal,
-            )
+            nets[groups] = frames.train(train_items, offsets, **recipe)
             log.info(
                 "without %s: trained on %d utterances in %.0f s",
                 sorted(held),
