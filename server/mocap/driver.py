@@ -198,13 +198,13 @@ def process(
         if params.filter == "rts" and params.lowrank != "off" and solved.sum() > 12:
             # the poses again with every marker (stabilise.refine_poses), then the markers again
             # (REFINE_PASSES times; the later passes keep the first's noise estimates)
-            again = replace(params, despike=False)
-            for _ in range(REFINE_PASSES):
+            first = replace(params, despike=False)
+            later = replace(first, q=info["q"], r=info["r"])
+            for i in range(REFINE_PASSES):
                 neutral = still_neutral(local, nf, window)
                 r, t, _ = refine_poses(filled, r, t, neutral, stable, local - neutral, take.fps)
                 unsmoothed = remove_head(filled, r, t)
-                local = clean(unsmoothed, take.fps, again)[0]
-                again = replace(again, q=info["q"], r=info["r"])
+                local = clean(unsmoothed, take.fps, first if i == 0 else later)[0]
         cleaned = np.einsum("tij,tmj->tmi", r, local) + t[:, None, :]
         if (
             params.filter == "kalman"

@@ -218,22 +218,29 @@ def apply_operator(op: Operator, values: np.ndarray) -> np.ndarray:
     return out
 
 
+def gradient_step(gram: np.ndarray, lipschitz: float) -> np.ndarray:
+    """``(E, E)``: FISTA's gradient step as one product, y - (y G - rhs) / L = y (I - G / L) +
+    rhs / L (a live frame runs 30 iterations on one row: the calls, not the arithmetic, cost)."""
+    return np.eye(len(gram)) - np.asarray(gram) / lipschitz
+
+
 def fit_weights(
     gram: np.ndarray,
     rhs: np.ndarray,
     lipschitz: float,
     w0: np.ndarray | None = None,
     iters: int = 150,
+    move: np.ndarray | None = None,
 ) -> np.ndarray:
     """Bounded least squares: ``w (T, E)`` in [0, 1] minimising ``w G w / 2 - w . rhs`` row by row
     (accelerated projected gradient, FISTA). ``gram (E, E)`` = AᵀA (+ ridge), ``rhs (T, E)`` = Aᵀb,
-    ``lipschitz`` its largest eigenvalue; ``w0`` a warm start."""
+    ``lipschitz`` its largest eigenvalue; ``w0`` a warm start; ``move`` = ``gradient_step(gram,
+    lipschitz)`` when the caller keeps it."""
     w = np.zeros_like(rhs) if w0 is None else np.clip(w0, 0.0, 1.0)
     y, t = w.copy(), 1.0
     step = 1.0 / lipschitz
-    # the gradient step as one product: y - step (y G - rhs) = y (I - step G) + step rhs (a live
-    # frame runs 30 iterations on one row: the calls, not the arithmetic, cost)
-    move = np.eye(len(gram)) - step * np.asarray(gram)
+    if move is None:
+        move = gradient_step(gram, lipschitz)
     push = step * rhs
     for _ in range(iters):
         w_next = y @ move
@@ -309,6 +316,7 @@ class ExpressionPrior:
         scale = float((a**2).sum(axis=0).mean())
         self._gram = a.T @ a + ridge * scale * np.eye(a.shape[1])
         self._lip = float(np.linalg.eigvalsh(self._gram)[-1])
+        self._move = gradient_step(self._gram, self._lip)  # (``fit_weights``', once)
         self._virt = self.shapes[:, self.vertices].reshape(len(self.shapes), -1).astype(np.float64)
         self._interp: np.ndarray | None = None
         self._last: np.ndarray | None = None
@@ -353,7 +361,8 @@ class ExpressionPrior:
         w0 = None
         if warm and self._last is not None:
             w0 = np.repeat(self._last[None], len(d), axis=0)
-        w = fit_weights(self._gram, b @ self._a, self._lip, w0, iters=WARM_ITERS if warm else 200)
+        iters = WARM_ITERS if warm else 200
+        w = fit_weights(self._gram, b @ self._a, self._lip, w0, iters=iters, move=self._move)
         self._last = w[-1].copy()
         return w
 
