@@ -778,6 +778,17 @@ def test_mix_batch_equals_each_mixer_alone(default_head):
     assert all("smile" not in m.layers() for m in mixers)
 
 
+def _tilted(geo: Geometry) -> Geometry:
+    """``geo`` with eyes that do not look along z (the gaze's general path)."""
+    return Geometry(
+        eye_pivots=geo.eye_pivots,
+        eye_axes=[[0.2, 0.1, 1.0], [-0.15, 0.05, 1.0]],
+        head_pivot=geo.head_pivot,
+        visemes=geo.visemes,
+        expressions=geo.expressions,
+    )
+
+
 @pytest.mark.parametrize("tilted", [False, True])
 def test_mix_batch_equals_each_mixer_alone_in_blinks_and_shared_overlays(default_head, tilted):
     """The live path's batch (``mix_batch``) against each session's own mix (``combine``), in the
@@ -788,13 +799,7 @@ def test_mix_batch_equals_each_mixer_alone_in_blinks_and_shared_overlays(default
 
     _, _, geo = default_head
     if tilted:
-        geo = Geometry(
-            eye_pivots=geo.eye_pivots,
-            eye_axes=[[0.2, 0.1, 1.0], [-0.15, 0.05, 1.0]],
-            head_pivot=geo.head_pivot,
-            visemes=geo.visemes,
-            expressions=geo.expressions,
-        )
+        geo = _tilted(geo)
     rng = np.random.default_rng(7)
     frames = []
     for k in range(12):
@@ -941,13 +946,7 @@ def test_the_compiled_mix_equals_each_mixer_alone(default_head, tilted):
         pytest.skip("numba is not installed: the NumPy path mixes every batch")
     _, _, geo = default_head
     if tilted:
-        geo = Geometry(
-            eye_pivots=geo.eye_pivots,
-            eye_axes=[[0.2, 0.1, 1.0], [-0.15, 0.05, 1.0]],
-            head_pivot=geo.head_pivot,
-            visemes=geo.visemes,
-            expressions=geo.expressions,
-        )
+        geo = _tilted(geo)
     rng = np.random.default_rng(11 + tilted)
     frames = _kernel_frames(rng, geo, 32, others=tilted)
     packs = []

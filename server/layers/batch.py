@@ -703,7 +703,7 @@ def mix_batch(frames: Sequence[tuple[Any, FaceState | None, float]]) -> list[Fac
     mixers with the same geometry (``is``) and closures computed together: what a batch of live
     sessions' frames costs in one go (by the compiled ``kernel`` once it is ready). Drops the
     layers whose end has passed."""
-    fast = kernel.ready() or kernel.warm()
+    fast = kernel.warm()
     if len(frames) < BATCH_MIN and not fast:  # too few to gain from it: each alone
         return [mixer.mix(primary, t) for mixer, primary, t in frames]
     out: list[FaceState | None] = [None] * len(frames)
