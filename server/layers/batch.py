@@ -24,6 +24,7 @@ import numpy as np
 
 from ..state import FaceState
 from . import kernel
+from .expansions import gaze_q, overlay_mask, overlay_offsets
 from .gaze import GazeLayer
 from .idle import CLOSED_LIDS, LID_MASK, IdleLayer
 from .mix import (
@@ -39,18 +40,16 @@ from .mix import (
     EYE_YAW_MAX,
     OPEN_GAP,
     WIDTH,
-    _expand,
     _eyes_to,
     _offsets,
     _unrotate1,
     combine,
     meet_lids,
     mixed_states,
+    primaries,
 )
-from .model import Contribution, GazeTarget, Geometry, Layer, N, Role, region_mask
+from .model import Contribution, Geometry, Layer, N, Role
 from .overlay import ExpressionLayer
-
-_UNSEEN = object()  # (not in a cache)
 
 #: One frame to mix: ``(primary, items, t)`` as ``combine``'s arguments.
 Frame = tuple[FaceState | None, Sequence[tuple[Role, Contribution]], float | None]
@@ -166,32 +165,6 @@ def _idle_columns(rows: list[int], layers: list[IdleLayer], ts: np.ndarray) -> C
     return col
 
 
-def _overlay_offsets(layer: ExpressionLayer, geo: Geometry) -> np.ndarray | None:
-    """``(69,)`` what ``layer`` adds at full weight (``_offsets`` of its contribution), remembered
-    with the geometry's expansions (read-only; one array for the overlays of one expression and
-    amount without FAPs of their own)."""
-    key = ("overlay", layer.expression, layer.amount) if layer.faps is None else (layer, "offsets")
-    hit = geo.expansions.get(key, _UNSEEN)
-    if hit is not _UNSEEN:
-        return hit
-
-    def make() -> np.ndarray | None:
-        c = Contribution(
-            faps=layer.faps,
-            amount=layer.amount,
-            expression=(layer.expression, 63, 0, 0) if layer.expression else None,
-        )
-        x = _offsets(c, geo)
-        return None if x is None else np.array(x, dtype=np.float64)
-
-    return geo.remember(key, make)
-
-
-def _overlay_mask(layer: ExpressionLayer, geo: Geometry) -> np.ndarray:
-    """``(69,)`` the region mask of ``layer`` (``region_mask(regions)``), remembered."""
-    return geo.remember(("mask", layer.regions), lambda: region_mask(layer.regions or ()))
-
-
 def _expression_columns(
     rows: list[int], layers: list[ExpressionLayer], ts: np.ndarray, geo: Geometry, role: Role
 ) -> Columns | None:
@@ -203,7 +176,7 @@ def _expression_columns(
         e = layer.envelope(t)
         if e <= 0.0:
             continue
-        x = _overlay_offsets(layer, geo)
+        x = overlay_offsets(layer, geo)
         if x is None:
             continue
         keep.append(r)
@@ -211,7 +184,7 @@ def _expression_columns(
         if layer.regions is None:
             ws.append(e)
         else:
-            ws.append(_overlay_mask(layer, geo) * e)
+            ws.append(overlay_mask(layer, geo) * e)
             scalar = False
     if not keep:
         return None
@@ -219,20 +192,6 @@ def _expression_columns(
     x0 = xs[0]
     X = x0[None] if all(x is x0 for x in xs) else np.array(xs)  # (1, 69): the same on every row
     return Columns(role, off=(_rows(keep), X, W))
-
-
-def _gaze_q(target: GazeTarget, geo: Geometry) -> np.ndarray:
-    """``(3,)`` a target's point minus the head pivot, or its direction; remembered with the
-    geometry's expansions (read-only)."""
-    hit = geo.expansions.get((target, "q"))
-    if hit is not None:
-        return hit
-
-    def make() -> np.ndarray:
-        q = target.direction if target.point is None else target.point - geo.head_pivot
-        return np.array(q, dtype=np.float64)
-
-    return geo.remember((target, "q"), make)
 
 
 def _gaze_columns(
@@ -246,7 +205,7 @@ def _gaze_columns(
         g = layer.target
         keep.append(r)
         ps.append(g.point is not None)
-        qs.append(_gaze_q(g, geo))
+        qs.append(gaze_q(g, geo))
         ws.append(w)
     if not keep:
         return None
@@ -337,8 +296,6 @@ def _sample_alike(
 BATCH_MIN = 5
 #: Below this many gaze rows, gaze is worked out row by row (``_gaze_rows``; 7 rows about even).
 SMALL_GAZE = 8
-_ZERO = np.zeros(N)
-_ZERO.flags.writeable = False
 _SPAN = OPEN_GAP - CLOSED_GAP
 _TWO_PI = 2 * math.pi
 
@@ -353,21 +310,9 @@ def combine_columns(
     """``combine`` of ``B`` frames: primaries (None: the neutral face; none with a ``head``
     transform), their times, and every layer's contribution as ``columns``."""
     B = len(prims)
-    F = np.array([_ZERO if p is None else p.faps for p in prims], dtype=np.float64)
+    F, H, E, closing_rows, high = primaries(prims, geo, closures)
     F[:, :3] = 0.0
-    closing = [closures and p is not None for p in prims]
-    some_close, all_close = any(closing), all(closing)
-    closing_rows = np.array(closing)
-    H = E = None  # the primaries' high-level expansions; of their expression alone
-    high = [r for r, p in enumerate(prims) if p is not None and (p.viseme or p.expression)]
-    for r in high:
-        p = prims[r]
-        assert p is not None
-        H = np.zeros((B, N)) if H is None else H
-        H[r] = _expand(p.viseme, p.expression, geo)
-        if closing[r] and p.expression is not None:
-            E = np.zeros((B, N)) if E is None else E
-            E[r] = _expand(None, p.expression, geo)
+    some_close, all_close = bool(closing_rows.any()), bool(closing_rows.all())
     if H is not None:
         F += H
     before = F.take(_LIDS_CHEEKS_AT, 1)

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from ..state import FaceState
+from .expansions import gaze_q, overlay_mask, overlay_offsets
 from .gaze import GazeLayer
 from .idle import _PHASES, _RATES, _SWAY, IdleLayer
 from .mix import (
@@ -42,9 +43,9 @@ from .mix import (
     LIDS_MEET,
     OPEN_GAP,
     WIDTH,
-    _expand,
     _offsets,
     mixed_states,
+    primaries,
 )
 from .model import Geometry, N, Role
 from .overlay import ExpressionLayer
@@ -414,8 +415,6 @@ def pack(
     """The layers of rows ``signature -> (rows, their layers)`` (``batch._sample_alike``'s) at
     their times ``ts`` (by row) as ``Packed``; None when a contribution gazes but not from a
     ``GazeLayer`` (the NumPy path mixes that batch)."""
-    from .batch import _overlay_mask, _overlay_offsets
-
     ints: list[int] = []
     floats: list[float] = []
     roles: dict[Role, int] = {}
@@ -447,7 +446,7 @@ def pack(
                     e = layer.envelope(t)
                     if e <= 0.0:
                         continue
-                    x = _overlay_offsets(layer, geo)
+                    x = overlay_offsets(layer, geo)
                     if x is None:
                         continue
                     xi = xs.get(id(x))
@@ -459,7 +458,7 @@ def pack(
                         mi = ms.get(layer.regions, -1)
                         if mi < 0:
                             mi = ms[layer.regions] = len(M)
-                            M.append(_overlay_mask(layer, geo))
+                            M.append(overlay_mask(layer, geo))
                     ints += (OVERLAY, r, ri, xi, mi)
                     floats.append(e)
                     floats += pad
@@ -510,13 +509,11 @@ def pack(
 
 
 def _gaze_entry(target: Any, geo: Geometry) -> tuple[int, tuple[float, ...]]:
-    """A gaze target's ``ints[k, 3]`` (a point: 1) and ``floats[k, 1:]`` (``batch._gaze_q``, then
+    """A gaze target's ``ints[k, 3]`` (a point: 1) and ``floats[k, 1:]`` (``expansions.gaze_q``, then
     padding), remembered with the geometry's expansions."""
-    from .batch import _gaze_q
-
     hit = geo.expansions.get((target, "kernel"))
     if hit is None:
-        q = _gaze_q(target, geo).tolist()
+        q = gaze_q(target, geo).tolist()
         hit = geo.remember(
             (target, "kernel"), lambda: (int(target.point is not None), (*q, 0.0, 0.0, 0.0))
         )
@@ -541,33 +538,13 @@ def combine_packed(
     """``batch.combine_columns`` of ``B`` frames (primaries: None the neutral face, none with a
     ``head`` transform) with their layers ``packed``, by the compiled kernel (``ready()``); None
     if it refuses them (then ``disable``d)."""
-    B = len(prims)
-    F = np.array([_ZERO if p is None else p.faps for p in prims], dtype=np.float64)
-    flags = np.zeros((B, 2), dtype=np.int8)
-    H = E = _EMPTY
-    for r, p in enumerate(prims):
-        if p is None:
-            continue
-        if closures:
-            flags[r, 0] = 1
-        if p.viseme or p.expression:
-            if H is _EMPTY:
-                H = np.zeros((B, 69))
-            flags[r, 1] = 1
-            H[r] = _expand(p.viseme, p.expression, geo)
-            if closures and p.expression is not None:
-                if E is _EMPTY:
-                    E = np.zeros((B, 69))
-                E[r] = _expand(None, p.expression, geo)
+    F, H, E, closing, high = primaries(prims, geo, closures)
+    flags = np.stack([closing, high], axis=1).astype(np.int8)
     args = (packed.ints, packed.floats, packed.X, packed.M, packed.roles, _geo_consts(geo))
     try:
-        _compiled(F, H, E, flags, *args)
+        _compiled(F, _EMPTY if H is None else H, _EMPTY if E is None else E, flags, *args)
     except TypeError:  # arrays of a type it was not compiled for (a bug): NumPy from now on
         log.exception("the layers' mix kernel refused its arguments; mixing with NumPy")
         disable()
         return None
     return mixed_states(F, ts, prims)
-
-
-_ZERO = np.zeros(69)
-_ZERO.flags.writeable = False

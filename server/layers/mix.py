@@ -261,6 +261,34 @@ _WIDTH = WIDTH.tolist()
 _LIPS_REGION: np.ndarray = np.array(REGIONS["lips"])
 
 
+def primaries(
+    prims: Sequence[FaceState | None], geo: Geometry, closures: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray]:
+    """The primaries of ``B`` frames (None: the neutral face) as the batch mixes read them:
+    ``(B, 69)`` their FAPs (a new array); ``(B, 69)`` the expansions of their visemes and
+    expressions (None when none has one); ``(B, 69)`` of their expressions alone where they
+    close the lips (None when none); ``(B,)`` bool which close the lips (``closures`` and a
+    primary); ``(B,)`` bool which have a viseme or an expression."""
+    B = len(prims)
+    F = np.array([_NEUTRAL if p is None else p.faps for p in prims], dtype=np.float64)
+    closing = np.array([closures and p is not None for p in prims], dtype=bool)
+    high = np.array([p is not None and bool(p.viseme or p.expression) for p in prims], dtype=bool)
+    H = E = None
+    for r in np.flatnonzero(high).tolist():
+        p = prims[r]
+        assert p is not None
+        H = np.zeros((B, 69)) if H is None else H
+        H[r] = _expand(p.viseme, p.expression, geo)
+        if closing[r] and p.expression is not None:
+            E = np.zeros((B, 69)) if E is None else E
+            E[r] = _expand(None, p.expression, geo)
+    return F, H, E, closing, high
+
+
+_NEUTRAL = np.zeros(69)
+_NEUTRAL.flags.writeable = False
+
+
 def mixed_states(
     F: np.ndarray, ts: Sequence[float], prims: Sequence[FaceState | None]
 ) -> list[FaceState]:
