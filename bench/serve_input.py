@@ -4,7 +4,8 @@
 What the event loop spends on a session's frames apart from deforming them: N sessions, each with
 one producer sending FAP frames at ``--fps`` (``bench/serve_load.py``'s cheap generator), and
 ``--viewers`` viewers each (0 by default: a session nobody watches skips deformation, so the
-server's CPU is its input path: WebSocket reads, decoding, budgets, FAP input, queueing). Each
+server's CPU is its input path: WebSocket reads, decoding, budgets, FAP input, queueing). Frames
+are counted by the server's ``/metrics`` at the window's two ends. Each
 round starts a fresh server of each interpreter in turn (this one, then ``--baseline-python``'s,
 e.g. a checkout of main run with its ``PYTHONPATH``), measures ``--seconds`` after ``--warmup``,
 and reports server CPU µs per frame sent (``/proc``). Rounds alternate so that a shared machine's
@@ -25,6 +26,8 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+import httpx
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -76,11 +79,13 @@ async def _point(server: LocalServer, args: argparse.Namespace) -> dict[str, Any
                     mine.send("go")
             await asyncio.sleep(args.warmup)
             pid = server.proc.pid if server.proc else 0
-            infos0 = [await admin.info(s.id) for s in made]
-            c0, g0, t0 = process_cpu_seconds(pid), process_cpu_seconds(proc.pid), time.time()
-            await asyncio.sleep(args.seconds)
-            c1, g1, t1 = process_cpu_seconds(pid), process_cpu_seconds(proc.pid), time.time()
-            infos1 = [await admin.info(s.id) for s in made]
+            auth = {"Authorization": f"Bearer {ADMIN_KEY}"}
+            async with httpx.AsyncClient(timeout=30, headers=auth) as http:
+                n0 = await _counters(http, server.url)
+                c0, g0, t0 = process_cpu_seconds(pid), process_cpu_seconds(proc.pid), time.time()
+                await asyncio.sleep(args.seconds)
+                c1, g1, t1 = process_cpu_seconds(pid), process_cpu_seconds(proc.pid), time.time()
+                n1 = await _counters(http, server.url)
             mine.send("stop")
             if not await asyncio.to_thread(mine.poll, 60):
                 raise RuntimeError("the generator did not report")
@@ -91,10 +96,8 @@ async def _point(server: LocalServer, args: argparse.Namespace) -> dict[str, Any
                 proc.kill()
         if "error" in out:
             raise RuntimeError(f"the generator failed: {out['error']}")
-        frames_in = sum(b.stats.frames_in - a.stats.frames_in for a, b in zip(infos0, infos1))
-        deformed = sum(
-            b.stats.frames_deformed - a.stats.frames_deformed for a, b in zip(infos0, infos1)
-        )
+        frames_in = n1["facecast_frames_received_total"] - n0["facecast_frames_received_total"]
+        deformed = n1["facecast_deform_seconds_count"] - n0["facecast_deform_seconds_count"]
         seconds = t1 - t0
         return {
             "frames_in_per_s": round(frames_in / seconds, 1),
@@ -104,6 +107,18 @@ async def _point(server: LocalServer, args: argparse.Namespace) -> dict[str, Any
             "server_us_per_frame_in": round(1e6 * (c1 - c0) / frames_in, 1) if frames_in else None,
             "loadavg": [round(x, 2) for x in os.getloadavg()],
         }
+
+
+async def _counters(http: Any, url: str) -> dict[str, float]:
+    """The server's Prometheus counters now (``/metrics``: one request, counted at once)."""
+    r = await http.get(url + "/metrics")
+    r.raise_for_status()
+    out = {}
+    for line in r.text.splitlines():
+        name, _, value = line.partition(" ")
+        if name in ("facecast_frames_received_total", "facecast_deform_seconds_count"):
+            out[name] = float(value)
+    return out
 
 
 def _measure(python: str, args: argparse.Namespace) -> dict[str, Any]:
