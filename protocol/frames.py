@@ -490,6 +490,6 @@ def decode(data: bytes | bytearray | memoryview, *, kinds: frozenset[Kind] | Non
     if exp is not None:
         _check_expression(exp, FrameError)
     values = np.frombuffer(data, "<f4", n, o + _FAP_SUB.size)
-    if np.isinf(values).any():
+    if np.count_nonzero(np.isinf(values)):  # (``.any()`` costs twice as much on 68 values)
         raise FrameError("FAP values must be finite (NaN means 'not sent')", where="bytes 40-311")
     return FapFrame(h, values, vis, exp)

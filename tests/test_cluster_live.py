@@ -285,6 +285,51 @@ def test_refusals_on_a_node_that_does_not_own_the_session(cluster):
     }
 
 
+def test_a_forwarded_producers_bad_frames_get_errors_and_good_ones_still_come(cluster):
+    """A producer on a node that does not own its session: each bad binary frame (taken by the
+    owner as it arrives, or queued behind another) is answered with a non-fatal 4400 naming it,
+    in order, and the good frames around them reach a viewer on the owner."""
+    from facecast.protocol.errors import CloseCode
+
+    _, (a, b, _) = cluster
+
+    async def main():
+        async with SessionAdmin(a.url, a.admin_key) as admin:
+            s = await admin.create(face=FACE, fps=FPS)
+        got: list = []
+        started = asyncio.Event()
+
+        async def collect():
+            async with watch(a.url, s.id, s.viewer_token, encoding="f32") as w:
+                started.set()
+                async for f in w:
+                    got.append(f.frame.header.seq)
+                    if f.frame.header.seq == 5:
+                        return
+
+        viewer = asyncio.create_task(collect())
+        await started.wait()
+        async with produce(b.url, s.id, s.producer_token) as p:
+            for i in range(6):
+                good = frames.encode_faps(fap_vector(i), seq=i, t=i / FPS, wall=time.time())
+                await p.send_raw(good)
+                await asyncio.sleep(0.05)  # the owner waits again: the next frame is taken at once
+                await p.send_raw(good[:-3])  # truncated: a 4400 naming seq i
+                await asyncio.sleep(0.05)
+            await until(lambda: len(p.errors) >= 6, "six errors")
+            errors = list(p.errors)
+            await asyncio.wait_for(viewer, 60)
+        async with SessionAdmin(a.url, a.admin_key) as admin:
+            await admin.close(s.id)
+        return errors, got
+
+    errors, got = run(main())
+    assert [(e.code, e.fatal, e.seq) for e in errors] == [
+        (CloseCode.BAD_REQUEST, False, i) for i in range(6)
+    ]
+    assert got and got[-1] == 5
+
+
 def test_info_url_shows_the_cluster(cluster):
     _, (a, b, _) = cluster
     r = subprocess.run(

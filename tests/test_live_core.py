@@ -137,6 +137,24 @@ def test_hello_then_frames_stream_into_the_session():
     assert sent == [sent[0]]  # nothing but the ready message was answered
 
 
+def test_prometheus_counts_every_frame_once_the_producer_leaves():
+    """Frames taken reach the Prometheus counter in batches, all of them by the producer's exit."""
+    from facecast.server.api.metrics import Metrics
+
+    session = _session()
+    session.metrics = metrics = Metrics()
+    core, _ = _ready(session)
+
+    def counted() -> float:
+        return metrics.registry.get_sample_value("facecast_frames_received_total") or 0.0
+
+    for i in range(45):
+        core.receive_bytes(_faps(i))
+        assert counted() <= session.stats["frames_in"] == i + 1
+    core.close()  # the producer leaves
+    assert counted() == 45
+
+
 @pytest.mark.parametrize(
     ("first", "words"),
     [

@@ -10,6 +10,7 @@ import json
 import os
 import secrets
 import socket
+from functools import partial
 from typing import Any
 
 from fastapi import APIRouter, Depends, Request, WebSocket
@@ -112,6 +113,11 @@ async def forward_producer(ws: WebSocket, cluster: Any, session_id: str, token: 
         cluster.forward_done(fwd, gone)
 
 
+def _forward_bytes(cluster: Any, fwd: Any, data: bytes) -> None:
+    """A producer's binary message, forwarded from the connection's callback: nothing left."""
+    cluster.forward(fwd, envelope.P_BYTES, data)
+
+
 async def _forward_in(ws: WebSocket, cluster: Any, fwd: Any) -> None:
     """Forward what the producer sends, as is; its hello within ``HELLO_TIMEOUT`` s."""
     try:
@@ -122,6 +128,10 @@ async def _forward_in(ws: WebSocket, cluster: Any, fwd: Any) -> None:
     except (WebSocketDisconnect, OSError, RuntimeError):
         msg = {"type": "websocket.disconnect"}
     received = 0
+    # binary messages forwarded from the connection's callback while this waits
+    direct = transport.DirectReceiver.attach(
+        ws, partial(_forward_bytes, cluster, fwd), cluster.reg.settings.direct
+    )
     try:
         while True:
             if msg["type"] == "websocket.disconnect":
@@ -134,7 +144,14 @@ async def _forward_in(ws: WebSocket, cluster: Any, fwd: Any) -> None:
             received += 1
             if received % YIELD_EVERY == 0:
                 await asyncio.sleep(0)
+            if direct is not None:
+                direct.waiting = True
             msg = await ws.receive()
+            if direct is not None:
+                direct.waiting = False
     except (WebSocketDisconnect, OSError, RuntimeError):
         pass
+    finally:
+        if direct is not None:
+            direct.detach()
     fwd.replies.put_nowait((b"Z", b""))  # the producer left: end the shell

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from functools import partial
 from typing import Any
 
 from fastapi import APIRouter, Depends, Request, Response, WebSocket, status
@@ -235,31 +236,53 @@ async def produce(ws: WebSocket, session_id: str, token: str | None = None) -> N
 
 
 async def _produce(ws: WebSocket, core: ProducerCore, reg: SessionRegistry) -> None:
-    """Receive until the producer leaves or the core closes; carry out each step."""
+    """Receive until the producer leaves or the core closes; carry out each step. Binary messages
+    are taken in the connection's callback while this waits (``transport.DirectReceiver``)."""
     try:
         msg = await asyncio.wait_for(ws.receive(), HELLO_TIMEOUT)
     except asyncio.TimeoutError:  # (TimeoutError itself from Python 3.11 on)
         await _carry_out(ws, core.timeout(), reg)
         return
+    direct = transport.DirectReceiver.attach(ws, partial(_take, core), reg.settings.direct)
     received = 0
-    while True:
-        if msg["type"] == "websocket.disconnect":
-            await _carry_out(ws, core.disconnected(), reg)
-            return
-        data = msg.get("bytes")
-        step = (
-            core.receive_bytes(data)
-            if data is not None
-            else core.receive_text(msg.get("text") or "")
-        )
-        if step is not NOTHING and not await _carry_out(ws, step, reg):
-            return
-        if not core.open:
-            return
-        received += 1
-        if received % YIELD_EVERY == 0:
-            await asyncio.sleep(0)
-        msg = await ws.receive()
+    try:
+        while True:
+            if msg["type"] == "websocket.disconnect":
+                await _carry_out(ws, core.disconnected(), reg)
+                return
+            handed = msg.get(transport.HANDED)
+            if handed is not None:  # what a message taken in the callback left to do
+                if isinstance(handed, BaseException):
+                    raise handed
+                step = handed
+            else:
+                data = msg.get("bytes")
+                step = (
+                    core.receive_bytes(data)
+                    if data is not None
+                    else core.receive_text(msg.get("text") or "")
+                )
+            if step is not NOTHING and not await _carry_out(ws, step, reg):
+                return
+            if not core.open:
+                return
+            received += 1
+            if received % YIELD_EVERY == 0:
+                await asyncio.sleep(0)
+            if direct is not None:
+                direct.waiting = True
+            msg = await ws.receive()
+            if direct is not None:
+                direct.waiting = False
+    finally:
+        if direct is not None:
+            direct.detach()
+
+
+def _take(core: ProducerCore, data: bytes) -> Step | None:
+    """A binary message taken in the connection's callback: None when nothing is left to do."""
+    step = core.receive_bytes(data)
+    return step if step is not NOTHING or not core.open else None
 
 
 async def _carry_out(ws: WebSocket, step: Step, reg: SessionRegistry) -> bool:

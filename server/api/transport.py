@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
+from collections.abc import Callable
 from typing import Any
 
 from starlette.websockets import WebSocket
@@ -161,3 +162,63 @@ class DirectSender:
         ):
             raise ViewerGone("viewer connection closed")
         p.transport.write(framed)
+
+
+#: The key of a message ``DirectReceiver`` queues for the app: what a message taken in the
+#: protocol's callback left to do (a step to carry out, or the exception it raised).
+HANDED = "facecast.handed"
+
+
+class DirectReceiver:
+    """Takes a producer's binary messages in the connection's ``data_received`` callback, by
+    ``take(data)``, instead of queueing each for the app's task.
+
+    Through ASGI each message costs the event loop a queue hand-over, a wake-up of the app's task,
+    a pause and a resume of the socket's reading and Starlette's checks: more than the decoding and
+    queueing of a FAP frame itself. Here, while the app's task waits for the next message
+    (``waiting``, set by the task around ``receive``) and nothing is queued ahead of it (so the
+    order of messages holds), a complete binary message goes to ``take`` at once. What ``take``
+    returns other than None (work for the task: a reply to send, a close), or the exception it
+    raises, is queued for the task under ``HANDED``, and ``waiting`` stays false until the task
+    waits again: meanwhile messages are queued as before. Text messages are always queued.
+    """
+
+    def __init__(self, proto: Any, take: Callable[[Any], object | None]) -> None:
+        self.proto = proto
+        self.take = take
+        self.waiting = False
+        self._queue_it = proto.handle_bytes
+        proto.handle_bytes = self._handle  # this connection's: the instance's attribute
+
+    @classmethod
+    def attach(
+        cls, ws: WebSocket, take: Callable[[Any], object | None], enabled: bool = True
+    ) -> DirectReceiver | None:
+        """A receiver for ``ws``, or None (``enabled`` false: ``FACECAST_LIVE_DIRECT=0``; an ASGI
+        server other than uvicorn's sans-I/O one)."""
+        if not enabled:
+            return None
+        proto = protocol_of(ws)
+        needed = ("queue", "handle_bytes", "close_sent")
+        if proto is None or not all(hasattr(proto, a) for a in needed):
+            return None
+        return cls(proto, take)
+
+    def detach(self) -> None:
+        """Queue every message again (idempotent)."""
+        self.waiting = False
+        if self.proto.__dict__.get("handle_bytes") == self._handle:
+            del self.proto.handle_bytes
+
+    def _handle(self, event: Any) -> None:
+        p = self.proto
+        if not self.waiting or not event.fin or p.close_sent or not p.queue.empty():
+            self._queue_it(event)
+            return
+        try:
+            handed = self.take(event.data)
+        except Exception as e:  # the task raises it, as if it had taken the message
+            handed = e
+        if handed is not None:
+            self.waiting = False
+            p.queue.put_nowait({"type": "websocket.receive", HANDED: handed})

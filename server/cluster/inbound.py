@@ -16,7 +16,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from ..live.core import Close, Step
+from ..live.core import NOTHING, Close, Step
 from ..live.producer import ProducerCore
 from ..live.registry import SessionRegistry
 from ..live.session import LiveSession
@@ -26,6 +26,8 @@ log = logging.getLogger(__name__)
 
 #: Forwarded messages waiting for the core, per connection; beyond this they are dropped.
 MAX_QUEUED = 256
+#: The queue's mark of a frame ``feed`` took itself: what is left of it follows (a step, an error).
+HANDED = b"handed"
 
 
 def close_body(code: int, error: str, reason: str = "", cut_off: bool = False) -> bytes:
@@ -66,8 +68,10 @@ class RemoteProducer:
             roles=roles,
         )
         self._executor = registry.executor
-        self._queue: deque[tuple[bytes, bytes]] = deque()
+        #: forwarded messages (kind, body), or (``HANDED``, what a frame taken in ``feed`` left)
+        self._queue: deque[tuple[bytes, Any]] = deque()
         self._wake = asyncio.Event()
+        self._waiting = False  # the loop waits for ``_wake`` with nothing queued
         self.task: asyncio.Task[None] | None = None
         self.done = False
 
@@ -88,7 +92,20 @@ class RemoteProducer:
         if len(self._queue) >= MAX_QUEUED and kind in (envelope.P_TEXT, envelope.P_BYTES):
             self.session.count_rejected()
             return
-        self._queue.append((kind, body))
+        if kind == envelope.P_BYTES and self._waiting and not self._queue:
+            # the loop waits with nothing queued: take the frame now, not after a task wake-up
+            # (as ``api.transport.DirectReceiver`` does for a local producer)
+            step: Step | Exception
+            try:
+                step = self.core.receive_bytes(body)
+            except Exception as e:  # noqa: BLE001 - the loop's to handle, as if it had taken it
+                step = e
+            if step is NOTHING and self.core.open:
+                return
+            self._queue.append((HANDED, step))
+        else:
+            self._queue.append((kind, body))
+        self._waiting = False
         self._wake.set()
 
     def stop(self) -> None:
@@ -110,10 +127,15 @@ class RemoteProducer:
             while not self.done:
                 if not self._queue:
                     self._wake.clear()
+                    self._waiting = True
                     await self._wake.wait()
                     continue
                 kind, body = self._queue.popleft()
-                if kind == envelope.P_BYTES:
+                if kind is HANDED:
+                    if isinstance(body, BaseException):
+                        raise body
+                    step = body
+                elif kind == envelope.P_BYTES:
                     step = core.receive_bytes(body)
                 elif kind == envelope.P_TEXT:
                     step = core.receive_text(body.decode("utf-8", "replace"))
@@ -130,6 +152,7 @@ class RemoteProducer:
             self._close_reply(core.failed(e))
         finally:
             self.done = True
+            self._waiting = False
             core.close()
 
     async def _carry_out(self, step: Step) -> bool:

@@ -84,10 +84,8 @@ class FapInput:
 
     def push_frame(self, frame: frames.Frame) -> list[FaceState]:
         assert isinstance(frame, frames.FapFrame)
-        v = frame.values
-        sent = ~np.isnan(v)
-        sent[:2] = False  # FAPs 1 and 2 travel in the sub-header
-        self.faps[1:][sent] = v[sent]
+        v = frame.values[2:]  # FAPs 1 and 2 travel in the sub-header
+        np.copyto(self.faps[3:], v, where=~np.isnan(v))  # NaN: not sent, the previous value holds
         if frame.viseme is not None:
             self.viseme = cast(Viseme, tuple(frame.viseme))
         if frame.expression is not None:

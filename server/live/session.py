@@ -42,6 +42,10 @@ MAX_PENDING = 2
 MAX_CONTROL = 16
 #: Seconds between ``stats`` messages to viewers.
 STATS_INTERVAL = 2.0
+#: Frames taken and sent are added to the Prometheus counters this many at a time (an update takes
+#: a lock: once per frame it was a measurable share of the event loop's time per frame), and when
+#: the producer comes or goes, at each ``stats`` message and when the session closes.
+METER_EVERY = 32
 
 
 class Viewer:
@@ -199,6 +203,7 @@ class LiveSession:
             0,
         )
         self._deform_total = 0.0
+        self._unmetered_in = self._unmetered_sent = 0  # not yet added to the Prometheus counters
         self._last_stats = time.monotonic()
         self.closed = False
         self._status_due = False
@@ -311,7 +316,9 @@ class LiveSession:
         """A producer frame was taken."""
         self._stats["frames_in"] += 1
         if self.metrics:
-            self.metrics.frames_in.inc()
+            self._unmetered_in += 1
+            if self._unmetered_in >= METER_EVERY:
+                self.meter()
 
     def count_rejected(self) -> None:
         """A producer frame was refused (over the budget, malformed, or the driver failed)."""
@@ -351,6 +358,7 @@ class LiveSession:
     def _set_producer(self, producer: ProducerSlot | None) -> None:
         """A producer connected (tell viewers now) or left (tell them once its frames are out)."""
         self.last_active = time.monotonic()
+        self.meter()
         if producer is not None:
             self.broadcast_status()
         else:
@@ -400,6 +408,7 @@ class LiveSession:
             self._stats["frames_sent"] += viewer.sent
             if self.metrics:
                 self.metrics.viewers.dec()
+                self.meter()
 
     def broadcast_status(self) -> None:
         text = dump_message(
@@ -498,6 +507,7 @@ class LiveSession:
         now = time.monotonic()
         if now - self._last_stats >= STATS_INTERVAL:
             self._last_stats = now
+            self.meter()
             text = dump_message(self.snapshot())
             for viewer in self.viewers:
                 viewer.say(text)
@@ -507,11 +517,25 @@ class LiveSession:
     def count_sent(self, n: int) -> None:
         """Add ``n`` sent frames to the Prometheus counter (the session's own count is per viewer)."""
         if self.metrics and n:
-            self.metrics.frames_sent.inc(n)
+            self._unmetered_sent += n
+            if self._unmetered_sent >= METER_EVERY:
+                self.meter()
+
+    def meter(self) -> None:
+        """Add the frames taken and sent since the last call to the Prometheus counters."""
+        m = self.metrics
+        if m:
+            if self._unmetered_in:
+                m.frames_in.inc(self._unmetered_in)
+                self._unmetered_in = 0
+            if self._unmetered_sent:
+                m.frames_sent.inc(self._unmetered_sent)
+                self._unmetered_sent = 0
 
     async def close(self, code: int, error_json: str) -> Callable[[], None] | None:
         """Stop the worker and tell every connection to end with ``code``."""
         self.closed = True
+        self.meter()
         self.pending.clear()
         self.mix.stop()
         for v in list(self.viewers):
