@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from facecast.server.errors import InputError
-from facecast.server.faces.face import Face
 from facecast.server.mocap.prior import (
     ExpressionBasis,
     ExpressionPrior,
@@ -372,59 +371,3 @@ def test_a_frame_the_shapes_explain_but_for_noise_keeps_the_prior_fully(ict):
     fitted, beta = prior.fit(noisy.reshape(1, -1, 3))
     assert beta[0] == 1.0
     assert np.linalg.norm(a @ fitted[0] - d) < 0.3 * np.linalg.norm(d)  # the brow, near enough
-
-
-def _sheet(n: int = 21) -> Face:
-    """A flat ``n x n`` sheet of skin, 100 mm square about x = 0 (left/right symmetric)."""
-    g = np.linspace(-50.0, 50.0, n)
-    x, y = np.meshgrid(g, g)
-    verts = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1).astype(np.float32)
-    i = np.arange(n - 1)
-    a = (i[:, None] * n + i[None, :]).ravel()
-    tris = np.concatenate([np.stack([a, a + 1, a + n], 1), np.stack([a + 1, a + n + 1, a + n], 1)])
-    return Face("sheet", verts, tris.astype(np.int32), units="mm", parts={"skin": np.arange(n * n)})
-
-
-def test_regional_prior_reaches_an_expression_the_global_one_cannot():
-    """Held out: one shape on the left half of the face, another on the right (as a one-sided
-    expression made of two known ones). A global prior can only blend whole-face shapes; the
-    regional prior (``regions``) mixes them per region and fits it."""
-    face = _sheet()
-    v = face.vertices.astype(np.float64)
-    bump_a = np.exp(-((v[:, 1] - 20.0) ** 2) / 400.0)  # a brow-like band, both sides
-    bump_b = np.exp(-((v[:, 1] + 25.0) ** 2) / 300.0)  # a mouth-like band
-    deltas = np.zeros((2, len(v), 3), np.float32)
-    deltas[0, :, 2], deltas[1, :, 1] = 4.0 * bump_a, 3.0 * bump_b
-    basis = ExpressionBasis(["a", "b"], deltas)
-    left = 1.0 / (1.0 + np.exp(v[:, 0] / 6.0))  # soft left half
-    truth = left[:, None] * deltas[0] + (1.0 - left)[:, None] * deltas[1]
-    markers = np.arange(0, len(v), 7)  # 63 of 441 vertices spread over the sheet
-    d = truth[markers][None]
-
-    def skin_error(**kw) -> float:
-        prior = ExpressionPrior(face, basis, markers, mirror=False, **kw)
-        w, _ = prior.fit(d)
-        got = np.einsum("e,evc->vc", w[0], prior.shapes.astype(np.float64))
-        return float(np.linalg.norm(got - truth, axis=1).mean())
-
-    size = float(np.linalg.norm(truth, axis=1).mean())
-    glob, regional = skin_error(regions=0), skin_error(regions=2, tie=0.01)
-    assert glob > 0.3 * size  # the global blend is far off
-    assert regional < 0.25 * glob and regional < 0.25 * size
-
-
-def test_regional_prior_keeps_a_whole_face_shape_global():
-    """A shape the basis has, on the whole face: the regional prior fits it as well as the global."""
-    face = _sheet()
-    v = face.vertices.astype(np.float64)
-    deltas = np.zeros((2, len(v), 3), np.float32)
-    deltas[0, :, 2] = 4.0 * np.exp(-((v[:, 1] - 20.0) ** 2) / 400.0)
-    deltas[1, :, 1] = 3.0 * np.exp(-((v[:, 1] + 25.0) ** 2) / 300.0)
-    markers = np.arange(0, len(v), 7)
-    truth = 0.7 * deltas[0] + 0.4 * deltas[1]
-    prior = ExpressionPrior(
-        face, ExpressionBasis(["a", "b"], deltas), markers, mirror=False, regions=4
-    )
-    w, _ = prior.fit(truth[markers][None].astype(np.float64))
-    got = np.einsum("e,evc->vc", w[0], prior.shapes.astype(np.float64))
-    assert np.linalg.norm(got - truth, axis=1).mean() < 0.02 * np.linalg.norm(truth, axis=1).mean()

@@ -54,7 +54,6 @@ __all__ = [
     "fit_weights",
     "load_basis",
     "mirror_map",
-    "region_weights",
 ]
 
 #: Shapes whose largest skin motion is below this (mm) are left out (pupil dilation, eye turns).
@@ -83,13 +82,18 @@ N_VIRTUAL = 0
 CHANNEL_MM = 0.005
 #: Fit iterations per live frame, warm started from the last (batch: 200 from zero).
 WARM_ITERS = 30
-#: Regions of the regional prior (``region_weights``): 0 or 1 fits each shape to the whole face.
-#: With R regions every shape is split by R soft region weights over the skin (summing to 1 per
-#: vertex), so a frame may mix the shapes differently per region (Tena et al. 2011).
-REGIONS = 0
-#: How strongly neighbouring regions' weights of one shape are tied (a graph-Laplacian penalty,
-#: relative to the mean squared column norm of the marker block, as ``RIDGE``).
-REGION_TIE = 1.0
+# Tried and left out: a regional prior (Tena et al. 2011): each shape split by R soft region
+# weights over the skin (k-means centres on one half of the moving skin, mirrored; Gaussian falloff,
+# summing to 1 per vertex), fitted with a Laplacian penalty tying a shape's weights in overlapping
+# regions. Its span reaches much more of an unseen expression (ICT strict folds 0/1, the held-out
+# shapes' skin projected by least squares: global 0.59/0.78 of their motion left, 6 regions
+# 0.32/0.48, 10 0.27/0.38, 16 0.22/0.33; mirror folds 0.002 either way), but 64 or 30 noisy
+# markers do not pin the extra weights. Batch (bench/mocap_diagnose.py, 2-s takes, fold priors, 6
+# regions, tie 1), global -> regional: strict issue16 0.49/0.69 -> 0.487/0.695, sparse30
+# 0.70/0.81 -> 0.701/0.807, dense100 fold 0 0.44 -> 0.444 (with exact markers the prior adds nothing
+# there: 0.313 against 0.316 without it); mirror issue16 0.42/0.75 -> 0.416/0.780, sparse30
+# 0.83/0.93 -> 0.902/1.005 (more freedom fits the markers' noise). The prior alone from exact
+# markers + 0.2 mm noise, 10-16 regions, ties 0.01-10: no setting better on both protocols.
 #: The prior batch and live use when none is chosen: the face's own shapes when it has them. On
 #: held-out folds (bench/mocap_fidelity.py, rendered output) it is better where a take's shapes are
 #: known only by their mirror images (technician 0.40x -> 0.24x) and within 0.01x of the engine
@@ -215,39 +219,6 @@ def mirrored(deltas: np.ndarray, mirror: np.ndarray) -> np.ndarray:
     return out
 
 
-def region_weights(face: Face, n: int, moving: np.ndarray, width: float = 0.5) -> np.ndarray:
-    """``(V, n) float64`` soft region weights summing to 1 per vertex: ``n // 2`` centres spread over
-    the ``moving`` vertices of one half of the face (farthest points on ``|x|``, then k-means) and
-    mirrored to the other half, each vertex's weights a Gaussian of its distance to every centre
-    (sigma ``width`` times the centres' median nearest spacing), normalised."""
-    v = face.vertices.astype(np.float64)
-    p = v[np.asarray(moving, np.int64)].copy()
-    p[:, 0] = np.abs(p[:, 0])
-    half = max(1, n // 2)
-    c = p[farthest_points(p, half)]
-    for _ in range(20):
-        lab = np.argmin(((p[:, None] - c[None]) ** 2).sum(-1), axis=1)
-        c = np.stack([p[lab == j].mean(axis=0) if (lab == j).any() else c[j] for j in range(half)])
-    c = np.concatenate([c, c * np.array([-1.0, 1.0, 1.0])])
-    gap = ((c[:, None] - c[None]) ** 2).sum(-1)
-    np.fill_diagonal(gap, np.inf)
-    sigma = width * float(np.sqrt(np.median(gap.min(axis=1))))
-    d2 = ((v[:, None] - c[None]) ** 2).sum(-1)
-    w = np.exp(-(d2 - d2.min(axis=1, keepdims=True)) / (2.0 * sigma * sigma))
-    return w / w.sum(axis=1, keepdims=True)
-
-
-def region_tie(weights: np.ndarray, n_shapes: int) -> np.ndarray:
-    """``(E R, E R)`` the penalty tying each shape's weights in overlapping regions: the Laplacian of
-    the regions' overlap graph (``weights (V, R)``'s Gram, normalised to a mean degree of 1), per
-    shape (columns ``e R + r``)."""
-    adj = weights.T @ weights
-    np.fill_diagonal(adj, 0.0)
-    adj /= max(float(adj.sum(axis=1).mean()), 1e-12)
-    lap = np.diag(adj.sum(axis=1)) - adj
-    return np.kron(np.eye(n_shapes), lap)
-
-
 def apply_operator(op: Operator, values: np.ndarray) -> np.ndarray:
     """``(E, V, 3)``: ``op`` applied to each of ``values (E, K, 3)`` (all at once per axis)."""
     e = len(values)
@@ -303,8 +274,7 @@ class ExpressionPrior:
         basis: its expression shapes (mirrored copies added when ``mirror`` and the face is symmetric).
         markers: ``(K,)`` the marker control vertices.
         avoid: vertices no virtual control may take (the anchors).
-        n_virtual, ridge, trust, regions, tie: see the module constants (``REGIONS``,
-            ``REGION_TIE``; None: the module's at the call).
+        n_virtual, ridge, trust: see the module constants.
 
     Attributes:
         vertices: ``(N,)`` the virtual control vertices.
@@ -322,8 +292,6 @@ class ExpressionPrior:
         n_virtual: int = N_VIRTUAL,
         ridge: float = RIDGE,
         trust: tuple[float, float] = TRUST,
-        regions: int | None = None,
-        tie: float | None = None,
     ):
         mm = face.mm_per_unit
         skin = face.parts.get("skin")
@@ -339,18 +307,6 @@ class ExpressionPrior:
             self.names += [f"{n}~mirror" for n in self.names]
         if not len(deltas):
             raise InputError("the expression basis moves no skin", where="prior")
-        n_global = len(deltas)
-        regions = REGIONS if regions is None else regions  # (the module's, read at each call)
-        tie = REGION_TIE if tie is None else tie
-        region = None
-        if regions > 1:  # each shape split by soft region weights: columns e R + r
-            moving = skin[np.linalg.norm(deltas[:, skin], axis=2).max(axis=0) * mm > MIN_MOTION_MM]
-            region = region_weights(face, regions, moving)
-            r = region.shape[1]
-            deltas = (deltas[:, None] * region.T[None, :, :, None].astype(np.float32)).reshape(
-                -1, *deltas.shape[1:]
-            )
-            self.names = [f"{n}@{j}" for n in self.names for j in range(r)]
         self.shapes = deltas.astype(np.float32)
         self.markers = np.asarray(markers, dtype=np.int64)
         self.trust = trust
@@ -371,8 +327,6 @@ class ExpressionPrior:
         self._a = a  # (3K, E)
         scale = float((a**2).sum(axis=0).mean())
         self._gram = a.T @ a + ridge * scale * np.eye(a.shape[1])
-        if region is not None:
-            self._gram += tie * scale * region_tie(region, n_global)
         self._lip = float(np.linalg.eigvalsh(self._gram)[-1])
         self._move = gradient_step(self._gram, self._lip)  # (``fit_weights``', once)
         self._virt = self.shapes[:, self.vertices].reshape(len(self.shapes), -1).astype(np.float64)
