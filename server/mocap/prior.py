@@ -395,7 +395,7 @@ class ExpressionPrior:
         # the last frame's fit at the markers and its relative residual (the live path's
         # ``live.TOWARD_FIT``)
         self.last_fit, self.last_residual = fit[-1], float(rel[-1]) if size[-1] > 1e-12 else 0.0
-        self.fits, self.residuals = fit, np.where(size > 1e-12, rel, 0.0)  # every frame's
+        self.fits, self.residuals = fit, rel  # every frame's (0 at rest: w = 0, fit = 0)
         return w, beta
 
     def solve(
