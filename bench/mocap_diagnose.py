@@ -2,7 +2,7 @@
 the face prior's span against marker interpolation and marker estimation.
 
     python bench/mocap_diagnose.py [--variants issue16 ...] [--protocol mirror] [--folds 2]
-                                   [--run-folds 2] [--seconds 2]
+                                   [--run-folds 2] [--seconds 2] [--toward-fit LO HI] [--tag=-x]
 
 For each variant and fold (held-out expressions, as ``bench/mocap_fidelity.py``, prior ``fold``) the
 take is processed by the batch driver (``mocap.driver.process``, as ``render`` does) and rendered
@@ -13,7 +13,9 @@ deforming:
   ``mocap_fidelity.rigid_errors`` over the skin no expression moves);
 - ``oracle_head``: the same states with the true head pose: ``batch - oracle_head`` is the pose part;
 - ``exact_markers``: the true marker displacements (no noise, no stabilisation error) through the
-  prior and the engine, true head: the floor of the non-rigid path with perfect markers;
+  prior and the engine, true head: the floor of the non-rigid path with perfect markers
+  (moved toward the prior's fit as the batch's, ``rig.BATCH_TOWARD_FIT``; ``--toward-fit LO HI``
+  sets that gate for a run);
 - ``exact_noprior``: the same without the prior (the engine alone interpolating the markers);
 - ``span``: the truth's skin displacements projected (least squares over the skin) onto the prior's
   shapes: what no fit from markers can beat with this prior (the held-out shape's residual).
@@ -59,7 +61,15 @@ def main(argv: list[str]) -> int:
     p.add_argument("--seconds", type=float, default=2.0)
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--every", type=int, default=2)
+    p.add_argument(
+        "--toward-fit", type=float, nargs=2, default=None, help="rig.BATCH_TOWARD_FIT (lo hi)"
+    )
+    p.add_argument("--tag", default="", help="a suffix for the output file")
     a = p.parse_args(argv)
+    from facecast.server.mocap import rig as rig_mod
+
+    if a.toward_fit is not None:
+        rig_mod.BATCH_TOWARD_FIT = tuple(a.toward_fit)
 
     face = load_ict()
     enames, deltas = load_expressions(face)
@@ -144,8 +154,16 @@ def main(argv: list[str]) -> int:
                     flush=True,
                 )
     OUT.mkdir(exist_ok=True)
-    (OUT / f"mocap_diagnose-{a.protocol}.json").write_text(
-        json.dumps({"loadavg": os.getloadavg(), "rows": rows}, indent=1) + "\n"
+    (OUT / f"mocap_diagnose-{a.protocol}{a.tag}.json").write_text(
+        json.dumps(
+            {
+                "loadavg": os.getloadavg(),
+                "toward_fit": rig_mod.BATCH_TOWARD_FIT,
+                "rows": rows,
+            },
+            indent=1,
+        )
+        + "\n"
     )
     print(
         f"Batch error split ({a.protocol} folds, {a.seconds:g} s, prior fold; ratios to not deforming)\n"

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from facecast.server.errors import InputError
+from facecast.server.faces.face import Face
 from facecast.server.mocap.prior import (
     ExpressionBasis,
     ExpressionPrior,
@@ -371,3 +372,39 @@ def test_a_frame_the_shapes_explain_but_for_noise_keeps_the_prior_fully(ict):
     fitted, beta = prior.fit(noisy.reshape(1, -1, 3))
     assert beta[0] == 1.0
     assert np.linalg.norm(a @ fitted[0] - d) < 0.3 * np.linalg.norm(d)  # the brow, near enough
+
+
+def _sheet(n: int = 21) -> tuple[Face, ExpressionBasis]:
+    """A flat ``n x n`` sheet of skin (mm) and two smooth shapes on it (a brow-like band moving
+    out, a mouth-like band moving up)."""
+    g = np.linspace(-50.0, 50.0, n)
+    x, y = np.meshgrid(g, g)
+    verts = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1).astype(np.float32)
+    i = np.arange(n - 1)
+    a = (i[:, None] * n + i[None, :]).ravel()
+    tris = np.concatenate([np.stack([a, a + 1, a + n], 1), np.stack([a + 1, a + n + 1, a + n], 1)])
+    face = Face("sheet", verts, tris.astype(np.int32), units="mm", parts={"skin": np.arange(n * n)})
+    deltas = np.zeros((2, n * n, 3), np.float32)
+    deltas[0, :, 2] = 4.0 * np.exp(-((verts[:, 1] - 20.0) ** 2) / 400.0)
+    deltas[1, :, 1] = 3.0 * np.exp(-((verts[:, 1] + 25.0) ** 2) / 300.0)
+    return face, ExpressionBasis(["a", "b"], deltas)
+
+
+def test_batch_markers_move_to_the_fit_where_the_shapes_explain_them():
+    """``rig.toward_fit``: noisy markers of a known blend move to the fitted shapes' positions
+    (their noise no longer reaches the skin); markers the shapes do not explain stay as they are."""
+    from facecast.server.mocap.rig import toward_fit
+
+    face, basis = _sheet()
+    markers = np.arange(0, face.n_vertices, 7)
+    prior = ExpressionPrior(face, basis, markers, mirror=False)
+    rng = np.random.default_rng(5)
+    clean = np.einsum("te,emc->tmc", rng.uniform(0.3, 1.0, (6, 2)), basis.deltas[:, markers])
+    noisy = clean + rng.normal(0.0, 0.2, clean.shape)
+    prior.fit(noisy)
+    moved = toward_fit(noisy, prior, (0.3, 0.6))
+    before = np.linalg.norm(noisy - clean, axis=2).mean()
+    assert np.linalg.norm(moved - clean, axis=2).mean() < 0.3 * before
+    other = rng.normal(0.0, 2.0, clean.shape)  # nothing the shapes span
+    prior.fit(other)
+    assert np.array_equal(toward_fit(other, prior, (0.3, 0.6)), other)

@@ -82,6 +82,18 @@ N_VIRTUAL = 0
 CHANNEL_MM = 0.005
 #: Fit iterations per live frame, warm started from the last (batch: 200 from zero).
 WARM_ITERS = 30
+# Tried and left out: a regional prior (Tena et al. 2011): each shape split by R soft region
+# weights over the skin (k-means centres on one half of the moving skin, mirrored; Gaussian falloff,
+# summing to 1 per vertex), fitted with a Laplacian penalty tying a shape's weights in overlapping
+# regions. Its span reaches much more of an unseen expression (ICT strict folds 0/1, the held-out
+# shapes' skin projected by least squares: global 0.59/0.78 of their motion left, 6 regions
+# 0.32/0.48, 10 0.27/0.38, 16 0.22/0.33; mirror folds 0.002 either way), but 64 or 30 noisy
+# markers do not pin the extra weights. Batch (bench/mocap_diagnose.py, 2-s takes, fold priors, 6
+# regions, tie 1), global -> regional: strict issue16 0.49/0.69 -> 0.487/0.695, sparse30
+# 0.70/0.81 -> 0.701/0.807, dense100 fold 0 0.44 -> 0.444 (with exact markers the prior adds nothing
+# there: 0.313 against 0.316 without it); mirror issue16 0.42/0.75 -> 0.416/0.780, sparse30
+# 0.83/0.93 -> 0.902/1.005 (more freedom fits the markers' noise). The prior alone from exact
+# markers + 0.2 mm noise, 10-16 regions, ties 0.01-10: no setting better on both protocols.
 #: The prior batch and live use when none is chosen: the face's own shapes when it has them. On
 #: held-out folds (bench/mocap_fidelity.py, rendered output) it is better where a take's shapes are
 #: known only by their mirror images (technician 0.40x -> 0.24x) and within 0.01x of the engine
@@ -322,6 +334,8 @@ class ExpressionPrior:
         self._last: np.ndarray | None = None
         self.last_fit: np.ndarray | None = None  # ``fit``'s last frame at the markers (K, 3)
         self.last_residual = 0.0  # and its relative residual
+        self.fits: np.ndarray | None = None  # the same for each frame of the last call (T, K, 3)
+        self.residuals: np.ndarray | None = None  # (T,)
         self.channel: Shapes | None = None  # set_channel
 
     @property
@@ -381,6 +395,7 @@ class ExpressionPrior:
         # the last frame's fit at the markers and its relative residual (the live path's
         # ``live.TOWARD_FIT``)
         self.last_fit, self.last_residual = fit[-1], float(rel[-1]) if size[-1] > 1e-12 else 0.0
+        self.fits, self.residuals = fit, rel  # every frame's (0 at rest: w = 0, fit = 0)
         return w, beta
 
     def solve(
