@@ -189,10 +189,11 @@ def main(argv: list[str] | None = None) -> int:
         kw = parse_recipe(text)
         d = dev * int(kw.pop("dev", 1))  # dev=0: no synthetic speech, dev=2: twice its weight
         key = text + (f"+{args.features}" if args.features else "")
+        cache_key = f"{key}_norm{int(kw.get('norm', frames.NORM))}"  # the default moves
         res: dict[str, list] = {}
         for seed in seeds:
             t0 = time.process_time()
-            outs = inner_outputs(real, d, kw, seed, key=key)
+            outs = inner_outputs(real, d, kw, seed, key=cache_key)
             for rname in args.rule or ["shipped"]:
                 r = evaluate(outs, RULES[rname](), held_out=False)
                 res.setdefault(rname, []).append(r["inner"])
