@@ -114,6 +114,12 @@ def test_merged_frame_networks_give_the_members_geometric_mean():
     other = fit_frames(X + 1, y, offsets, hidden=5, epochs=1)
     with pytest.raises(ValueError, match="share their inputs"):
         merge_frame_nets([nets[0], other])
+    for n in nets:  # the speaker normalisation is an input too: kept, and must agree
+        n.norm_mean = np.ones(40)
+    np.testing.assert_array_equal(merge_frame_nets(nets).norm_mean, np.ones(40))
+    nets[1].norm_mean = np.zeros(40)
+    with pytest.raises(ValueError, match="share their inputs"):
+        merge_frame_nets(nets)
 
 
 def test_frame_network_dropout_is_reproducible_and_trains():
@@ -135,3 +141,63 @@ def test_frame_network_dropout_is_reproducible_and_trains():
     np.testing.assert_array_equal(plain.w1, zero.w1)
     assert not np.array_equal(a.w1, plain.w1)
     assert np.mean(np.argmax(a.proba_stacked(X), 1) == y) > 0.9
+
+
+def _feature_rows(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``(n, 44)`` random frame-feature rows, about half of them speech (column 26 > 0)."""
+    F = rng.normal(size=(n, 44)) + 3.0
+    F[:, 26] = rng.normal(size=n)
+    return F
+
+
+def test_speaker_norm_is_causal_and_the_same_in_any_chunks():
+    """``SpeakerNorm`` (the frame network's per-speaker normalisation): the live path's chunks of
+    any size give the rows the whole file gives (loop and filter paths alike); a row depends on
+    no later row; silent frames do not move the mean; the spectral columns of a steady speaker
+    end near 0 (its own mean taken out) and the other columns are untouched."""
+    from facecast.server.audio.classify import SPECTRAL_COLUMNS, SpeakerNorm
+
+    rng = np.random.default_rng(2)
+    F = _feature_rows(rng, 700)
+    mean = rng.normal(size=40)
+    whole = SpeakerNorm(mean)(F)
+    for size in (1, 2, 4, 5, 37, 4096):
+        norm = SpeakerNorm(mean)
+        chunked = np.concatenate([norm(F[i : i + size]) for i in range(0, len(F), size)])
+        np.testing.assert_allclose(chunked, whole, atol=1e-12)
+    np.testing.assert_allclose(SpeakerNorm(mean)(F[:300]), whole[:300], atol=1e-12)
+    other = np.setdiff1d(np.arange(44), SPECTRAL_COLUMNS)
+    np.testing.assert_array_equal(whole[:, other], F[:, other])
+    silent = F.copy()
+    silent[:, 26] = -1.0
+    np.testing.assert_allclose(
+        SpeakerNorm(mean)(silent)[:, SPECTRAL_COLUMNS], F[:, SPECTRAL_COLUMNS] - mean
+    )
+    steady = np.tile(F[:1], (3000, 1))
+    steady[:, 26] = 1.0
+    assert np.abs(SpeakerNorm(mean)(steady)[-1, SPECTRAL_COLUMNS]).max() < 1e-3
+
+
+def test_frame_network_speaker_norm_is_saved_and_applied(tmp_path):
+    """A ``FrameNet`` with ``norm_mean`` keeps it through save/load and reads its inputs through a
+    fresh ``SpeakerNorm`` per utterance; one without reads them as they come."""
+    from facecast.server.audio.classify import FrameNet, SpeakerNorm, stack_context
+    from facecast.server.audio.train import fit_frames
+
+    rng = np.random.default_rng(3)
+    F = _feature_rows(rng, 300)
+    offsets = np.array([-1, 0, 1])
+    X = stack_context(F, offsets)
+    net = fit_frames(X, rng.integers(0, 10, len(X)), offsets, hidden=5, epochs=1)
+    plain = net.proba(F)
+    np.testing.assert_allclose(plain, net.proba_stacked(X), atol=1e-6)
+    net.save(tmp_path / "plain.npz")
+    assert FrameNet.load(tmp_path / "plain.npz").norm_mean is None
+    net.norm_mean = rng.normal(size=40)
+    net.save(tmp_path / "norm.npz")
+    loaded = FrameNet.load(tmp_path / "norm.npz")
+    np.testing.assert_array_equal(loaded.norm_mean, net.norm_mean)
+    expect = net.proba_stacked(stack_context(SpeakerNorm(net.norm_mean)(F), offsets))
+    np.testing.assert_allclose(loaded.proba(F), expect, atol=1e-6)
+    np.testing.assert_allclose(loaded.proba(F), loaded.proba(F))  # no state left behind
+    assert not np.allclose(loaded.proba(F), plain, atol=1e-3)

@@ -111,6 +111,7 @@ def net_path(
     offsets=frames.OFFSETS,
     dev: bool = True,
     live_cal: bool = frames.LIVE_CALIBRATION,
+    norm: bool = frames.NORM,
 ) -> Path:
     """Cache file (under bench/out, gitignored) of the network trained without the speakers of
     ``FOLDS[g]`` for g in ``groups`` by this recipe, on the cached features of mtime ``stamp``."""
@@ -122,6 +123,7 @@ def net_path(
             f"{'-'.join(map(str, groups))}_e{epochs}_h{hidden}_b{balance}_s{step}_m{members}"
             f"{f'_d{dropout}' if dropout else ''}"
             f"_o{'.'.join(map(str, offsets))}{'' if dev else '_nodev'}{'_lc' if live_cal else ''}"
+            f"{'_n' if norm else ''}"
             f"_c{stamp}.npz"
         )
     )
@@ -147,6 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="train every copy under its file calibration (frames.LIVE_CALIBRATION off)",
     )
+    ap.add_argument("--no-norm", action="store_true", help="no per-speaker running normalisation")
     ap.add_argument("--cmvn", action="store_true", help="quick: per-utterance mean removal")
     ap.add_argument(
         "--no-prior",
@@ -191,6 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         "step": args.step,
         "members": args.members,
         "live_cal": frames.LIVE_CALIBRATION and not args.no_live_cal,
+        "norm": frames.NORM and not args.no_norm,
     }
 
     def net_without(groups: tuple[int, ...]):

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import scipy.signal
 
 from ..errors import FacecastError
 
@@ -136,7 +137,7 @@ def frame_features(
     # np.minimum/np.maximum: np.clip's overhead weighs on the live path's few frames
     k = np.minimum(np.maximum(np.asarray(k, dtype=np.float64), -0.999), 0.999)
     lar = np.log((1 - k) / (1 + k))
-    gain = 10 * np.log10(np.prod(1 - k * k, axis=1) + 1e-12) / 10
+    gain = 10 * np.log10((1 - k * k).prod(axis=1) + 1e-12) / 10  # the method: no wrapper
     rel_max, rel_sil = calibration_columns(energy_db, silence_db, max_db)
     # one concatenate of 2-D columns: np.column_stack's per-array conversions cost more
     return np.concatenate(
@@ -166,6 +167,68 @@ def calibration_columns(
     rel_max = np.minimum(np.maximum((e - max_db) / 10, -6.0), 1.0)
     rel_sil = np.minimum(np.maximum((e - silence_db) / 10, -3.0), 5.0)
     return rel_max, rel_sil
+
+
+#: Columns of ``frame_features`` that a speaker's vocal tract and channel move (log-area ratios,
+#: cepstrum, mel-band shape): ``SpeakerNorm`` takes their running mean out.
+SPECTRAL_COLUMNS = np.r_[0:24, 28:44]
+#: Column of ``frame_features`` above 0 on speech (energy over the silence threshold).
+SPEECH_COLUMN = 26
+
+
+class SpeakerNorm:
+    """Causal per-speaker normalisation of ``frame_features`` rows: the ``SPECTRAL_COLUMNS``
+    minus their running mean over the speech frames so far (each speech frame's weight decays
+    with time constant ``TAU`` seconds of speech), the mean starting at the training speech's
+    ``mean (40,)`` counted as ``PRIOR`` frames. Calls carry the state on, so a stream fed in
+    chunks gets the rows the whole file gets (batch and live read the same inputs)."""
+
+    TAU = 2.0
+    PRIOR = 50.0
+
+    def __init__(self, mean: np.ndarray, hop: float = 0.01) -> None:
+        self.decay = float(np.exp(-hop / self.TAU))
+        #: 1 on the ``SPECTRAL_COLUMNS`` of a feature row, 0 elsewhere
+        self.mask = np.zeros(N_FRAME_FEATURES)
+        self.mask[SPECTRAL_COLUMNS] = 1.0
+        self.acc = np.zeros(N_FRAME_FEATURES)
+        self.acc[SPECTRAL_COLUMNS] = self.PRIOR * np.asarray(mean, dtype=np.float64)
+        self.w = self.PRIOR
+        self.mean = self.acc / self.w  # the running mean, 0 off the spectral columns
+
+    def __call__(self, F: np.ndarray) -> np.ndarray:
+        """``F (T, 44)`` normalised (a new array); the state moves past its rows."""
+        F = np.asarray(F, dtype=np.float64)
+        d = self.decay
+        if len(F) <= 4:  # the live path's few frames: one small matrix product, no filter
+            flags = (F[:, SPEECH_COLUMN] > 0).tolist()
+            if not any(flags):
+                return F - self.mean
+            # row t's mean = (d^c_t·acc + sum over speech rows j <= t of d^(c_t - c_j)·F_j) / w_t,
+            # c_t = speech rows up to t: coefficients in Python, then one product
+            coef, w, acc_c, rows = [], self.w, 1.0, [0.0] * len(flags)
+            for j, sp in enumerate(flags):
+                if sp:
+                    acc_c *= d
+                    rows = [r * d for r in rows]
+                    rows[j] = 1.0
+                    w = d * w + 1.0
+                coef.append([acc_c / w] + [r / w for r in rows])
+            M = np.array(coef) @ np.concatenate([self.acc[None], F])  # (T, 44) running means
+            self.w = w
+            self.acc = M[-1] * w
+            self.mean = M[-1] * self.mask
+            return F - M * self.mask
+        speech = F[:, SPEECH_COLUMN] > 0
+        n = int(np.count_nonzero(speech))
+        if n == 0:
+            return F - self.mean
+        acc, _ = scipy.signal.lfilter([1.0], [1.0, -d], F[speech], axis=0, zi=d * self.acc[None])
+        dn = d ** np.arange(1, n + 1)
+        w = dn * self.w + (1 - dn) / (1 - d)
+        means = np.concatenate([self.mean[None], (acc / w[:, None]) * self.mask])
+        self.acc, self.w, self.mean = acc[-1], float(w[-1]), means[-1]
+        return F - means[np.cumsum(speech)]
 
 
 #: Frames per block of ``FrameNet.proba`` (the stacked inputs of a block: about 14 MB).
@@ -212,6 +275,13 @@ class FrameNet:
     #: ``(10,)`` mean class probabilities over the speech it was trained on (the prior a
     #: transcript's alignment divides by before a stream has shown its own); None = unknown.
     mean_proba: np.ndarray | None = None
+    #: ``(40,)`` the training speech's mean of the ``SPECTRAL_COLUMNS``: inputs pass through a
+    #: ``SpeakerNorm`` started from it; None = none (inputs as they come).
+    norm_mean: np.ndarray | None = None
+
+    def speaker_norm(self) -> SpeakerNorm | None:
+        """A fresh ``SpeakerNorm`` for one utterance or stream (None: the network has none)."""
+        return None if self.norm_mean is None else SpeakerNorm(self.norm_mean)
 
     @property
     def future(self) -> int:
@@ -241,16 +311,24 @@ class FrameNet:
         return _softmax(h.astype(np.float64) @ self.w2 + self.b2)
 
     def proba(self, F: np.ndarray) -> np.ndarray:
-        """``(T, 10)`` class probabilities of per-frame features ``F (T, 44)`` (one utterance).
+        """``(T, 10)`` class probabilities of per-frame features ``F (T, 44)`` (one utterance,
+        through a fresh ``speaker_norm`` when the network has one).
 
         The context-stacked inputs are built ``BLOCK_FRAMES`` rows at a time (as
         ``stack_context``: edge rows repeated past either end of the utterance), so the memory
         beyond ``F`` and the output does not grow with the utterance's length.
         """
-        # float32 before stacking (the hidden layer's type): one conversion of F, not of the
-        # ten times larger stacked inputs; the same values
-        F = np.asarray(F, dtype=np.float32)
         T = len(F)
+        norm = self.speaker_norm()
+        if norm is None:
+            # float32 before stacking (the hidden layer's type): one conversion of F, not of
+            # the ten times larger stacked inputs; the same values
+            F = np.asarray(F, dtype=np.float32)
+        else:  # normalised a block at a time (the state carries on), into float32
+            G = np.empty(np.shape(F), dtype=np.float32)
+            for i in range(0, T, BLOCK_FRAMES):
+                G[i : i + BLOCK_FRAMES] = norm(F[i : i + BLOCK_FRAMES])
+            F = G
         blocks = (
             stack_rows(F, self.offsets, i, min(T, i + BLOCK_FRAMES))
             for i in range(0, max(T, 1), BLOCK_FRAMES)
@@ -258,18 +336,26 @@ class FrameNet:
         return np.concatenate([self.proba_stacked(X) for X in blocks])
 
     def save(self, path: str | Path, **meta: str) -> None:
-        extra = {} if self.mean_proba is None else {"mean_proba": self.mean_proba}
+        extra = {
+            n: getattr(self, n) for n in ("mean_proba", "norm_mean") if getattr(self, n) is not None
+        }
         _save(path, self, CLASSES, meta, offsets=self.offsets, **extra)
 
     @classmethod
     def load(cls, path: str | Path = FRAME_WEIGHTS) -> FrameNet:
-        *params, offsets, mean_proba = _load(
-            path, "frame", "python bench/lipsync/frames.py ship", "offsets", "mean_proba"
+        *params, offsets, mean_proba, norm_mean = _load(
+            path,
+            "frame",
+            "python bench/lipsync/frames.py ship",
+            "offsets",
+            "mean_proba",
+            "norm_mean",
         )
         return cls(
             *params,
             offsets=offsets.astype(np.int64),
             mean_proba=None if mean_proba is None else mean_proba.astype(np.float64),
+            norm_mean=None if norm_mean is None else norm_mean.astype(np.float64),
         )
 
 

@@ -202,6 +202,7 @@ class AudioLiveDriver:
         self._n_in = 0  # input samples consumed
         self._rs = StreamResampler(self.rate, ANALYSIS_RATE)
         self._cal = RunningCalibration()
+        self._norm = self.net.speaker_norm()
         self._buf = np.zeros(self.n_frame // 2)  # centred frames: half a frame of zeros first
         self._buf_start = -(self.n_frame // 2)  # analysis-rate index of _buf[0]
         self._emph_prev = 0.0
@@ -318,7 +319,8 @@ class AudioLiveDriver:
             else:
                 sil, mx = self._cal.update(e)
             self._e = np.concatenate([self._e, e])
-            self._F = np.concatenate([self._F, frame_features(k, e, z, sil, mx, sh, cep)])
+            F = frame_features(k, e, z, sil, mx, sh, cep)
+            self._F = np.concatenate([self._F, F if self._norm is None else self._norm(F)])
             if self._first is None and np.any(e >= sil):  # the stream's first sound
                 self._first = start_i + int(np.argmax(e >= sil))
             self._sil = np.concatenate([self._sil, sil])

@@ -203,8 +203,13 @@ def merge_frame_nets(nets: list[FrameNet]) -> FrameNet:
             np.array_equal(n.offsets, first.offsets)
             and np.allclose(n.mean, first.mean)
             and np.allclose(n.std, first.std)
+            and (n.norm_mean is None) == (first.norm_mean is None)
+            and (n.norm_mean is None or np.allclose(n.norm_mean, first.norm_mean))
         ):
-            raise ValueError("ensemble members must share their inputs (offsets, standardisation)")
+            raise ValueError(
+                "ensemble members must share their inputs (offsets, standardisation, "
+                "speaker normalisation)"
+            )
     k = len(nets)
     return FrameNet(
         np.concatenate([n.w1 for n in nets], axis=1),
@@ -214,6 +219,7 @@ def merge_frame_nets(nets: list[FrameNet]) -> FrameNet:
         first.mean,
         first.std,
         first.offsets,
+        norm_mean=first.norm_mean,
     )
 
 
