@@ -242,29 +242,8 @@ def annotate_mesh(
         for k in ("eye_l", "eye_r")
         if anchors is not None and k in found and skull is not None
     }
-    # the mouth's pieces sit behind its slit: the template moved as far as its slit lies from
-    # the mesh's is one more start for their fits
-    slit = (
-        anchors[1][found.index("slit")] - anchors[0][found.index("slit")]
-        if anchors is not None and "slit" in found
-        else None
-    )
     fps, left_out, approximate = _feature_points(
-        y,
-        yn,
-        wtri,
-        parts,
-        warped,
-        tpl,
-        socket_v,
-        rep,
-        tri,
-        upright,
-        ears,
-        face,
-        skull,
-        eye_at,
-        slit,
+        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright, ears, face, skull, eye_at
     )
     warnings = _checks(y, fps, left_out, tpl)
 
@@ -587,7 +566,6 @@ def _feature_points(
     face: tuple[Similarity, Similarity, np.ndarray] | None = None,
     skull: tuple[Similarity, float, np.ndarray | None] | None = None,
     eye_at: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
-    slit: np.ndarray | None = None,
 ) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
@@ -689,7 +667,7 @@ def _feature_points(
                 p = joint.apply(tpl.fp_position(fp)[None])[0]
         if key != "skin" and key == part:
             if key not in piece_fit:
-                piece_fit[key] = _fit_piece_from(warped, tpl, key, y[parts[key]], slit)
+                piece_fit[key] = _fit_piece_from(warped, tpl, key, y[parts[key]])
             # from the start that fits the piece better; where that leaves the point beyond reach
             # of the mesh's piece (a piece of another family, partly named otherwise), the other
             cands = [
@@ -930,7 +908,7 @@ def _ring(y: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 def _fit_piece_from(
-    warped: np.ndarray, tpl: Template, key: str, dst: np.ndarray, slit: np.ndarray | None = None
+    warped: np.ndarray, tpl: Template, key: str, dst: np.ndarray
 ) -> list[tuple[np.ndarray, Similarity]]:
     """``[(start, fit)]``: the template piece ``key`` fitted rigidly onto the mesh's ``dst (M, 3)``
     from the warped template and from the template as aligned (``start``: the template's vertices
@@ -941,8 +919,7 @@ def _fit_piece_from(
     tree = cKDTree(dst)
     sel = tpl.label == 2 + PIECE_PARTS.index(key)
     fits = []
-    starts = [warped, tpl.vertices] + ([tpl.vertices + slit] if slit is not None else [])
-    for start in starts:
+    for start in (warped, tpl.vertices):
         sim = _fit_piece(start[sel], dst, tree)
         moved = sim.apply(start[sel])
         gap = float(np.median(tree.query(moved)[0]) + np.median(cKDTree(moved).query(dst)[0]))

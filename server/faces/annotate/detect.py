@@ -190,13 +190,7 @@ def profile_landmarks(
             elif not len(cand):
                 break
             pos = int(cand[0])
-            # the subnasale is where the nose's underside ends, also when the lip below it is
-            # hollow (its dip lower down): the chain goes on below the dip
-            i = (
-                i_tip
-                - 1
-                - (base if name == "subnasale" and base is not None and base < pos else pos)
-            )
+            i = i_tip - 1 - pos
             found[name] = np.array([0.0, ys[i], z[i]])
         return found
 
