@@ -44,8 +44,6 @@ JAW_ANGLE = ("2.13", "2.14")
 #: The chin's points below and beside the gnathion (the chin's bottom, its sides), placed with the
 #: skull and moved as the mesh's chin is (``_skull_fit``), not slid along the smooth chin by the warp.
 CHIN = ("2.1", "2.11", "2.12")
-#: The eyeball (``_anchors``) each brow point is placed from.
-BROW_EYE = {f"4.{i}": "eye_l" if i % 2 else "eye_r" for i in range(1, 7)}
 #: ``_face_fit``: landmarks it needs, and the largest scale (either way) it may have.
 FACE_MIN_ANCHORS, FACE_MAX_SCALE = 6, 1.15
 #: How far (mm) from the warped point a cranial feature point is looked for along its ray.
@@ -236,14 +234,8 @@ def annotate_mesh(
         if face is not None and off_axis <= UPRIGHT_DEG
         else None
     )
-    # where each side's eyeball centre is, for the brows above it
-    eye_at = {
-        k: (anchors[0][found.index(k)], anchors[1][found.index(k)])
-        for k in ("eye_l", "eye_r")
-        if anchors is not None and k in found and skull is not None
-    }
     fps, left_out, approximate = _feature_points(
-        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright, ears, face, skull, eye_at
+        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright, ears, face, skull
     )
     warnings = _checks(y, fps, left_out, tpl)
 
@@ -565,7 +557,6 @@ def _feature_points(
     ears=(),
     face: tuple[Similarity, Similarity, np.ndarray] | None = None,
     skull: tuple[Similarity, float, np.ndarray | None] | None = None,
-    eye_at: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
@@ -644,11 +635,6 @@ def _feature_points(
             # the template's point placed with the skull, moved as far as the mesh's gnathion lies
             # from the placed template's (a longer chin reaches lower); the nearest surface to it
             p = skull[0].apply(tpl.fp_position(fp)[None])[0] + skull[2]
-        elif eye_at and BROW_EYE.get(fp) in eye_at:
-            # a brow above its eye: the template's offset from its eyeball centre, turned into
-            # the mesh's axes, from the mesh's eyeball centre (the warp slides it along the brow)
-            src_e, dst_e = eye_at[BROW_EYE[fp]]
-            p = dst_e + upright @ (tpl.fp_position(fp) - src_e)
         elif fp in JAW_ANGLE and face is not None:
             # The smooth jaw lets the warp slide its corner along it: the template's corner as the
             # face's landmarks place it (with their scale), at the height the chin says, is nearer.
