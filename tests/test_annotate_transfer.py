@@ -229,3 +229,40 @@ def test_a_long_faces_jaw_angle_is_placed_unscaled_with_the_skull():
         )
     )
     assert max(err["2.13"], err["2.14"]) < 3.0, err
+
+
+def test_a_long_chins_bottom_and_sides_follow_its_gnathion():
+    """A chin longer than the template's: the warp slid its sides (2.11) and bottom (2.1) along the
+    smooth chin, leaving them 7 and 4 mm high. They are placed with the skull and moved as far as
+    the gnathion found on the profile lies from the template's."""
+    err = _errors(build_default_head(10000, face_height=131.0, chin_length=54.0, jaw_width=107.0))
+    assert max(err[k] for k in ("2.1", "2.11", "2.12")) < 2.5, err
+
+
+def test_an_upper_lip_without_a_dip_under_the_nose_keeps_the_mouth_in_place():
+    """A short upper lip that rises straight from the nose (no dip between them): the profile's
+    first dip is the mouth's slit, and taking it for the subnasale put the lips 11-13 mm low. The
+    profile is also read from the nose's base, and the reading that explains more is kept."""
+    face = build_default_head(
+        9000, face_height=121.0, chin_length=55.0, nose_length=56.0, mouth_width=48.0
+    )
+    auto = annotate_mesh(face.vertices, face.triangles)
+    assert "slit" in auto["automatic"]["landmarks"]
+    v = face.vertices.astype(np.float64)
+    err = {
+        k: float(np.linalg.norm(v[auto["feature_points"][k]] - v[face.feature_points[k]]))
+        for k in ("2.2", "8.2", "8.3", "8.4")
+    }
+    assert max(err["2.2"], err["8.2"]) < 2.5, err
+    assert max(err["8.3"], err["8.4"]) < 5.0, err
+
+
+def test_the_noses_base_is_where_its_underside_ends():
+    """Synthetic profile going down from the tip: a rounded tip, a steep underside (4 mm of depth
+    lost per mm), then a lip face (0.2 mm per mm): the base is the first mm after the underside."""
+    from facecast.server.faces.annotate.detect import nose_base
+
+    drop = np.r_[np.full(6, 0.3), np.full(4, 4.0), np.full(20, 0.2)]
+    below = 120.0 - np.r_[0.0, np.cumsum(drop)]
+    assert nose_base(below) == 10
+    assert nose_base(120.0 - 0.5 * np.arange(30.0)) is None  # no underside: a flat face

@@ -41,6 +41,9 @@ UPRIGHT_DEG = 10.0
 #: The jaw's corners (gonion), placed with the skull and the chin (``_skull_fit``, ``_face_fit``), not the
 #: warp.
 JAW_ANGLE = ("2.13", "2.14")
+#: The chin's points below and beside the gnathion (the chin's bottom, its sides), placed with the
+#: skull and moved as the mesh's chin is (``_skull_fit``), not slid along the smooth chin by the warp.
+CHIN = ("2.1", "2.11", "2.12")
 #: ``_face_fit``: landmarks it needs, and the largest scale (either way) it may have.
 FACE_MIN_ANCHORS, FACE_MAX_SCALE = 6, 1.15
 #: How far (mm) from the warped point a cranial feature point is looked for along its ray.
@@ -553,7 +556,7 @@ def _feature_points(
     upright: np.ndarray,
     ears=(),
     face: tuple[Similarity, Similarity, np.ndarray] | None = None,
-    skull: tuple[Similarity, float, float | None] | None = None,
+    skull: tuple[Similarity, float, np.ndarray | None] | None = None,
 ) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
@@ -626,8 +629,12 @@ def _feature_points(
             # the template's corner placed with the skull (unscaled: the face's scale comes from
             # its height, not its depth), as far up or down as the mesh's chin is; then sideways
             # from the midline onto the mesh's jaw
-            p = skull[0].apply(tpl.fp_position(fp)[None])[0] + [0.0, skull[2], 0.0]
+            p = skull[0].apply(tpl.fp_position(fp)[None])[0] + [0.0, skull[2][1], 0.0]
             p = _radial(p, p, p * [0.0, 1.0, 1.0], y, *trees["skin"])
+        elif fp in CHIN and skull is not None and skull[2] is not None:
+            # the template's point placed with the skull, moved as far as the mesh's gnathion lies
+            # from the placed template's (a longer chin reaches lower); the nearest surface to it
+            p = skull[0].apply(tpl.fp_position(fp)[None])[0] + skull[2]
         elif fp in JAW_ANGLE and face is not None:
             # The smooth jaw lets the warp slide its corner along it: the template's corner as the
             # face's landmarks place it (with their scale), at the height the chin says, is nearer.
@@ -747,7 +754,7 @@ def _skull_fit(
     upright: np.ndarray,
     tpl: Template,
     skin: np.ndarray,
-) -> tuple[Similarity, float, float | None]:
+) -> tuple[Similarity, float, np.ndarray | None]:
     """``(placement, width ratio, chin shift)`` of the template's skull on the mesh (template
     frame, mm; ``skin``: the mesh's skin points ``(N, 3)`` in it).
 
@@ -766,7 +773,7 @@ def _skull_fit(
     chin = None
     if "gnathion" in found:
         g = found.index("gnathion")
-        chin = float(dst[g][1] - place_.apply(src[g][None])[0][1])
+        chin = dst[g] - place_.apply(src[g][None])[0]
     c0 = tpl.skull_centre
     ratio = _skull_breadth(place_.inverse(skin), c0) / _skull_breadth(tpl.vertices[tpl.outer], c0)
     return place_, float(np.clip(ratio, 0.8, 1.25)) if np.isfinite(ratio) else 1.0, chin

@@ -27,6 +27,10 @@ PROFILE = (
     "chin",
     "gnathion",
 )
+#: A first dip farther (mm) below the nose's base (``nose_base``) than this may be on the lips (an
+#: upper lip that rises straight from the nose, with no dip between them): the profile is then also
+#: read with the base as the subnasale.
+SUBNASALE_MM = 3.0
 #: ``gnathion``: the profile's slope (mm of depth lost per mm of height, going down: 45 degrees) where
 #: the chin turns under, and how far (mm) below the lower lip it is looked for.
 GNATHION_SLOPE, GNATHION_SPAN_MM = 1.0, 50.0
@@ -156,12 +160,22 @@ def profile_landmarks(
     peaks, _ = find_peaks(below, prominence=0.4)
     dips, _ = find_peaks(-below, prominence=0.4)
     order = ("subnasale", "lip_upper", "slit", "lip_lower", "fold", "chin")
+    base = nose_base(below)
 
-    def chain(matched: bool) -> dict[str, np.ndarray]:
+    def chain(matched: bool, from_base: bool = False) -> dict[str, np.ndarray]:
         found, pos = {}, 0
         for name in order:
             cand = dips if name in ("subnasale", "slit", "fold") else peaks
             cand = cand[cand > pos]
+            if name == "subnasale" and from_base and base is not None:
+                # the nose's base itself: the lip rises straight from the nose (no dip between)
+                cand = np.array([base])
+            if not matched and len(cand) and name != "subnasale":
+                # dips and bumps alternate: a dip where a bump is looked for means the bump is
+                # missing (an upper lip merged into the nose), not that the next bump is it
+                other = peaks if name in ("subnasale", "slit", "fold") else dips
+                if ((other > pos) & (other < cand[0])).any():
+                    continue
             if matched:
                 # the dip or bump whose depth below the tip is nearest the template's; a feature
                 # the profile lacks is skipped, not guessed
@@ -182,16 +196,28 @@ def profile_landmarks(
 
     below = chain(False)
     if expect is not None and "tip" in expect:
-        # The dips and bumps in order, trusted up to the first implausible one; or, when that keeps
+        # The dips and bumps in order, trusted up to the first implausible one; where the first dip
+        # lies well below the nose's base, also read from the base as the subnasale (the dip may
+        # then be the mouth's slit) and the reading that explains more kept; or, when both keep
         # fewer, each matched to the template's by its depth below the tip.
-        kept = {}
-        for name in order:
-            if name not in below or name not in expect:
-                break
-            ratio = (ys[i_tip] - below[name][1]) / max(expect["tip"] - expect[name], 1e-6)
-            if not _plausible(np.array([ratio]), np.array([below[name][1]]), expect[name])[0]:
-                break
-            kept[name] = below[name]
+        readings = [below]
+        first = dips[0] if len(dips) else None
+        if base is not None and (first is None or first - base > SUBNASALE_MM):
+            readings.append(chain(False, from_base=True))
+        kept: dict[str, np.ndarray] = {}
+        for reading in readings:
+            plausible = {}
+            for name in order:
+                if name not in reading:
+                    continue  # missing from the profile (``chain``), not implausible
+                if name not in expect:
+                    break
+                ratio = (ys[i_tip] - reading[name][1]) / max(expect["tip"] - expect[name], 1e-6)
+                if not _plausible(np.array([ratio]), np.array([reading[name][1]]), expect[name])[0]:
+                    break
+                plausible[name] = reading[name]
+            if len(plausible) > len(kept):
+                kept = plausible
         matched = chain(True)
         below = kept if len(kept) >= len(matched) else matched
         if (
@@ -213,6 +239,19 @@ def profile_landmarks(
     if g is not None:
         out["gnathion"] = g
     return out
+
+
+def nose_base(below: np.ndarray) -> int | None:
+    """Index into ``below`` (the profile's depth every mm going down from the nose tip, index 0 just
+    below it) where the nose's underside ends: the first point after its steepest descent (within
+    25 mm of the tip) where the profile turns steeper than 45 degrees (less than 1 mm of depth lost
+    per mm of height). None when there is no underside (under 2 mm per mm anywhere)."""
+    drop = -np.diff(below[:26])  # depth lost from each mm to the next
+    if not len(drop) or drop.max() < 2.0:
+        return None
+    k = int(np.argmax(drop))
+    flat = np.nonzero(drop[k:] < 1.0)[0]
+    return int(k + flat[0]) if len(flat) else None
 
 
 def gnathion(ys: np.ndarray, z: np.ndarray, start_y: float) -> np.ndarray | None:
