@@ -113,11 +113,6 @@ async def forward_producer(ws: WebSocket, cluster: Any, session_id: str, token: 
         cluster.forward_done(fwd, gone)
 
 
-def _forward_bytes(cluster: Any, fwd: Any, data: bytes) -> None:
-    """A producer's binary message, forwarded from the connection's callback: nothing left."""
-    cluster.forward(fwd, envelope.P_BYTES, data)
-
-
 async def _forward_in(ws: WebSocket, cluster: Any, fwd: Any) -> None:
     """Forward what the producer sends, as is; its hello within ``HELLO_TIMEOUT`` s."""
     try:
@@ -130,7 +125,7 @@ async def _forward_in(ws: WebSocket, cluster: Any, fwd: Any) -> None:
     received = 0
     # binary messages forwarded from the connection's callback while this waits
     direct = transport.DirectReceiver.attach(
-        ws, partial(_forward_bytes, cluster, fwd), cluster.reg.settings.direct
+        ws, partial(cluster.forward, fwd, envelope.P_BYTES), cluster.reg.settings.direct
     )
     try:
         while True:
@@ -144,11 +139,7 @@ async def _forward_in(ws: WebSocket, cluster: Any, fwd: Any) -> None:
             received += 1
             if received % YIELD_EVERY == 0:
                 await asyncio.sleep(0)
-            if direct is not None:
-                direct.waiting = True
-            msg = await ws.receive()
-            if direct is not None:
-                direct.waiting = False
+            msg = await transport.receive(ws, direct)
     except (WebSocketDisconnect, OSError, RuntimeError):
         pass
     finally:

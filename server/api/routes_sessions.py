@@ -250,12 +250,8 @@ async def _produce(ws: WebSocket, core: ProducerCore, reg: SessionRegistry) -> N
             if msg["type"] == "websocket.disconnect":
                 await _carry_out(ws, core.disconnected(), reg)
                 return
-            handed = msg.get(transport.HANDED)
-            if handed is not None:  # what a message taken in the callback left to do
-                if isinstance(handed, BaseException):
-                    raise handed
-                step = handed
-            else:
+            step = msg.get(transport.HANDED)  # what a message taken in the callback left to do
+            if step is None:
                 data = msg.get("bytes")
                 step = (
                     core.receive_bytes(data)
@@ -269,11 +265,7 @@ async def _produce(ws: WebSocket, core: ProducerCore, reg: SessionRegistry) -> N
             received += 1
             if received % YIELD_EVERY == 0:
                 await asyncio.sleep(0)
-            if direct is not None:
-                direct.waiting = True
-            msg = await ws.receive()
-            if direct is not None:
-                direct.waiting = False
+            msg = await transport.receive(ws, direct)
     finally:
         if direct is not None:
             direct.detach()

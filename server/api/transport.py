@@ -176,7 +176,7 @@ class DirectReceiver:
     Through ASGI each message costs the event loop a queue hand-over, a wake-up of the app's task,
     a pause and a resume of the socket's reading and Starlette's checks: more than the decoding and
     queueing of a FAP frame itself. Here, while the app's task waits for the next message
-    (``waiting``, set by the task around ``receive``) and nothing is queued ahead of it (so the
+    (``waiting``, set around its ``ws.receive()`` by ``receive``) and nothing is queued ahead of it (so the
     order of messages holds), a complete binary message goes to ``take`` at once. What ``take``
     returns other than None (work for the task: a reply to send, a close), or the exception it
     raises, is queued for the task under ``HANDED``, and ``waiting`` stays false until the task
@@ -222,3 +222,17 @@ class DirectReceiver:
         if handed is not None:
             self.waiting = False
             p.queue.put_nowait({"type": "websocket.receive", HANDED: handed})
+
+
+async def receive(ws: WebSocket, direct: DirectReceiver | None) -> Any:
+    """``ws.receive()``, with ``direct`` (if any) taking binary messages in the callback meanwhile;
+    the exception a message taken there raised is raised here, as if this had taken it."""
+    if direct is None:
+        return await ws.receive()
+    direct.waiting = True
+    msg = await ws.receive()
+    direct.waiting = False
+    handed = msg.get(HANDED)
+    if isinstance(handed, BaseException):
+        raise handed
+    return msg
