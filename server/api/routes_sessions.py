@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from functools import partial
 from typing import Any
 
 from fastapi import APIRouter, Depends, Request, Response, WebSocket, status
@@ -243,7 +242,7 @@ async def _produce(ws: WebSocket, core: ProducerCore, reg: SessionRegistry) -> N
     except asyncio.TimeoutError:  # (TimeoutError itself from Python 3.11 on)
         await _carry_out(ws, core.timeout(), reg)
         return
-    direct = transport.DirectReceiver.attach(ws, partial(_take, core), reg.settings.direct)
+    direct = transport.DirectReceiver.attach(ws, core.take_bytes, reg.settings.direct)
     received = 0
     try:
         while True:
@@ -269,12 +268,6 @@ async def _produce(ws: WebSocket, core: ProducerCore, reg: SessionRegistry) -> N
     finally:
         if direct is not None:
             direct.detach()
-
-
-def _take(core: ProducerCore, data: bytes) -> Step | None:
-    """A binary message taken in the connection's callback: None when nothing is left to do."""
-    step = core.receive_bytes(data)
-    return step if step is not NOTHING or not core.open else None
 
 
 async def _carry_out(ws: WebSocket, step: Step, reg: SessionRegistry) -> bool:

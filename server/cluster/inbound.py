@@ -16,7 +16,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from ..live.core import NOTHING, Close, Step
+from ..live.core import Close, Step
 from ..live.producer import ProducerCore
 from ..live.registry import SessionRegistry
 from ..live.session import LiveSession
@@ -95,12 +95,12 @@ class RemoteProducer:
         if kind == envelope.P_BYTES and self._waiting and not self._queue:
             # the loop waits with nothing queued: take the frame now, not after a task wake-up
             # (as ``api.transport.DirectReceiver`` does for a local producer)
-            step: Step | Exception
+            step: Step | Exception | None
             try:
-                step = self.core.receive_bytes(body)
+                step = self.core.take_bytes(body)
             except Exception as e:  # noqa: BLE001 - the loop's to handle, as if it had taken it
                 step = e
-            if step is NOTHING and self.core.open:
+            if step is None:
                 return
             self._queue.append((HANDED, step))
         else:

@@ -256,6 +256,12 @@ class ProducerCore:
         session.submit(states, frame.header.wall, self.role)
         return NOTHING
 
+    def take_bytes(self, data: bytes) -> Step | None:
+        """``receive_bytes`` for a message taken as it arrives, outside the connection's task:
+        None when nothing is left for the task to do."""
+        step = self.receive_bytes(data)
+        return step if step is not NOTHING or not self.open else None
+
     def _check_frame(self, frame: frames.Frame) -> None:
         """A secondary role's binary FAP frame drives only that role's FAPs (else ``Forbidden``)."""
         assert isinstance(frame, frames.FapFrame) and self._check_faps is not None
