@@ -33,8 +33,9 @@ class LiveSettings:
         deflated in the batcher's own thread.
     device_quantize: quantise int16 frames on the OpenCL device when it shares host memory
         (``FACECAST_LIVE_DEVICE_QUANTIZE``; true).
-    direct: write vertex frames straight to viewers' transports (``FACECAST_LIVE_DIRECT``;
-        true; false sends them through ASGI, the baseline of ``bench serve --compare-asgi``).
+    direct: write vertex frames straight to viewers' transports and take producers' binary
+        frames in their connections' callbacks (``FACECAST_LIVE_DIRECT``; true; false sends and
+        receives them through ASGI, the baseline of ``bench serve --compare-asgi``).
     """
 
     threads: int | None = None
