@@ -539,3 +539,28 @@ def test_a_session_closed_while_the_hello_is_handled_gets_no_ready():
     session.closed = True  # an admin closed it while the input was being made
     assert step.work.then(step.work.run()) is NOTHING
     assert core.state is State.CLOSED and not core.open
+
+
+def test_metrics_count_every_frame_taken_while_the_producer_streams(routed):
+    """``/metrics`` brings the sessions' batched frame counts up to date before it renders: every
+    frame taken so far is counted while the producer still streams (fewer than a batch of 32)."""
+    from facecast.server.api import routes_health
+    from facecast.server.api.metrics import Metrics
+
+    client, session = routed
+    session.metrics = metrics = Metrics()
+    client.app.include_router(routes_health.router)
+    client.app.state.metrics = metrics
+    with client.websocket_connect(
+        "/v1/sessions/s1/produce", headers={"Authorization": "Bearer P"}
+    ) as producer:
+        producer.send_text(dump_message(ProducerHello()))
+        assert producer.receive_json()["type"] == "ready"
+        for i in range(5):
+            producer.send_bytes(_faps(i))
+        producer.send_text(dump_message(ProducerHello()))  # answered after the frames: all taken
+        producer.receive_json()
+        assert session.stats["frames_in"] == 5
+        text = client.get("/metrics").text
+        assert "facecast_frames_received_total 5.0" in text
+        producer.close()

@@ -13,7 +13,7 @@ from starlette.routing import WebSocketRoute
 from starlette.websockets import WebSocket
 from websockets.asyncio.client import connect
 
-from facecast.server.api.transport import HANDED, DirectReceiver
+from facecast.server.api.transport import HANDED, DirectReceiver, receive
 
 
 def _free_port() -> int:
@@ -117,3 +117,60 @@ def test_binary_messages_are_taken_in_the_callback_in_order():
 
 def test_a_disabled_receiver_is_none():
     assert DirectReceiver.attach(None, lambda d: None, enabled=False) is None  # type: ignore[arg-type]
+
+
+def test_a_burst_is_taken_at_most_take_per_wait_messages_per_wait_of_the_task():
+    """One read can hold a flood of small frames: the callback takes at most ``TAKE_PER_WAIT`` of
+    them per wait of the task, the rest go to the task (which yields between them), in order."""
+    log: list[tuple[str, bytes]] = []
+    done = asyncio.Event()
+    ready = asyncio.Event()
+    n = 200
+
+    async def route(ws: WebSocket) -> None:
+        await ws.accept()
+        rx = DirectReceiver.attach(ws, lambda data: log.append(("direct", bytes(data))))
+        assert rx is not None
+        ready.set()
+        try:
+            while True:
+                msg = await receive(ws, rx)
+                if msg["type"] == "websocket.disconnect":
+                    break
+                log.append(("task", msg["bytes"]))
+        finally:
+            rx.detach()
+            done.set()
+
+    async def main() -> None:
+        port = _free_port()
+        app = Starlette(routes=[WebSocketRoute("/ws", route)])
+        server = uvicorn.Server(
+            uvicorn.Config(
+                app, host="127.0.0.1", port=port, ws="websockets-sansio", log_level="error"
+            )
+        )
+        serving = asyncio.create_task(server.serve())
+        await _until(lambda: server.started, "the server started")
+        try:
+            async with connect(f"ws://127.0.0.1:{port}/ws") as c:
+                await asyncio.wait_for(ready.wait(), 20)
+                await asyncio.sleep(0.05)  # the task waits in ``receive``
+                await c.send((0).to_bytes(2, "big"))
+                for i in range(1, n):  # one burst: the client's writes coalesce on loopback
+                    c.protocol.send_binary(i.to_bytes(2, "big"))
+                c.send_data()
+                await _until(lambda: len(log) >= n, "every message seen")
+        finally:
+            await asyncio.wait_for(done.wait(), 20)
+            server.should_exit = True
+            await serving
+
+    asyncio.run(asyncio.wait_for(main(), 60))
+    assert [int.from_bytes(p, "big") for _, p in log] == list(range(n))
+    run = longest = 0
+    for how, _ in log:
+        run = run + 1 if how == "direct" else 0
+        longest = max(longest, run)
+    assert longest <= DirectReceiver.TAKE_PER_WAIT
+    assert any(how == "task" for how, _ in log)  # the burst went through the task too

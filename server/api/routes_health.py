@@ -59,4 +59,7 @@ async def readyz(request: Request, response: Response) -> Health:
 )
 async def metrics(request: Request) -> Response:
     """Sessions, viewers, frames sent and dropped, deform time, jobs by state (Prometheus text)."""
+    live = getattr(request.app.state, "live", None)
+    if live is not None:  # the sessions' batched frame counts, up to now
+        live.meter()
     return Response(request.app.state.metrics.render(), media_type=CONTENT_TYPE)

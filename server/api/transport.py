@@ -180,13 +180,19 @@ class DirectReceiver:
     order of messages holds), a complete binary message goes to ``take`` at once. What ``take``
     returns other than None (work for the task: a reply to send, a close), or the exception it
     raises, is queued for the task under ``HANDED``, and ``waiting`` stays false until the task
-    waits again: meanwhile messages are queued as before. Text messages are always queued.
+    waits again: meanwhile messages are queued as before. Text messages are always queued. At most
+    ``TAKE_PER_WAIT`` messages are taken per wait of the task: one read can hold hundreds of small
+    frames, and a flood must not hold the event loop longer than the task's own cadence would.
     """
+
+    #: Messages taken in callbacks while the task waits once (the producer loops' ``YIELD_EVERY``).
+    TAKE_PER_WAIT = 8
 
     def __init__(self, proto: Any, take: Callable[[Any], object | None]) -> None:
         self.proto = proto
         self.take = take
         self.waiting = False
+        self.taken = 0  # messages taken since the task last started waiting
         self._queue_it = proto.handle_bytes
         proto.handle_bytes = self._handle  # this connection's: the instance's attribute
 
@@ -219,6 +225,9 @@ class DirectReceiver:
             handed = self.take(event.data)
         except Exception as e:  # the task raises it, as if it had taken the message
             handed = e
+        self.taken += 1
+        if self.taken >= self.TAKE_PER_WAIT:  # the rest through the task, which yields
+            self.waiting = False
         if handed is not None:
             self.waiting = False
             p.queue.put_nowait({"type": "websocket.receive", HANDED: handed})
@@ -229,7 +238,7 @@ async def receive(ws: WebSocket, direct: DirectReceiver | None) -> Any:
     the exception a message taken there raised is raised here, as if this had taken it."""
     if direct is None:
         return await ws.receive()
-    direct.waiting = True
+    direct.waiting, direct.taken = True, 0
     msg = await ws.receive()
     direct.waiting = False
     handed = msg.get(HANDED)

@@ -95,6 +95,12 @@ class SessionRegistry:
             )
         return b
 
+    def meter(self) -> None:
+        """Bring every session's frames taken and sent to the Prometheus counters now (sessions
+        add them in batches: ``LiveSession.meter``), before ``/metrics`` renders them."""
+        for s in list(self.sessions.values()):
+            s.meter()
+
     def get(self, session_id: str) -> LiveSession:
         s = self.sessions.get(session_id)
         if s is None:
