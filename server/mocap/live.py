@@ -257,7 +257,7 @@ class MarkerLiveDriver:
         prior = self.rig.prior if self.rig is not None else None
         if TOWARD_FIT is None or prior is None or prior.last_fit is None:
             return
-        g = float(ramp(prior.last_residual, TOWARD_FIT))
+        g = ramp(prior.last_residual, TOWARD_FIT)
         if g > 0.0:
             d = state.controls[: len(prior.markers)]
             d -= (g * (d - prior.last_fit)).astype(d.dtype)

@@ -33,6 +33,7 @@ import lzma
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -231,12 +232,19 @@ def apply_operator(op: Operator, values: np.ndarray) -> np.ndarray:
     return out
 
 
-def ramp(x: float | np.ndarray, band: tuple[float, float]) -> np.ndarray:
+@overload
+def ramp(x: float, band: tuple[float, float]) -> float: ...
+@overload
+def ramp(x: np.ndarray, band: tuple[float, float]) -> np.ndarray: ...
+def ramp(x: float | np.ndarray, band: tuple[float, float]) -> float | np.ndarray:
     """How far a fit with relative residual ``x`` (a number or an array) is trusted: 1 below
     ``band[0]``, 0 above ``band[1]``, linear between (``ExpressionPrior.trust``, the live and
-    batch ``TOWARD_FIT`` gates)."""
+    batch ``TOWARD_FIT`` gates, ``stabilise.ShapePose``'s trust)."""
     lo, hi = band
-    return np.clip((hi - x) / max(hi - lo, 1e-9), 0.0, 1.0)
+    r = (hi - x) / max(hi - lo, 1e-9)
+    if isinstance(r, np.ndarray):
+        return np.clip(r, 0.0, 1.0)
+    return min(max(r, 0.0), 1.0)  # a number (a live frame's): np.clip's overhead is 10x this
 
 
 def gradient_step(gram: np.ndarray, lipschitz: float) -> np.ndarray:

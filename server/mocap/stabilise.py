@@ -408,7 +408,7 @@ class ShapePose:
         x = cho_solve(self._factor(seen), self._a.T @ b)
         # the residual over the seen rows (no copy of the fit's matrix per frame)
         rms = float(np.sqrt(np.mean((self._a @ x - b)[np.repeat(seen, 3)] ** 2)))
-        return x[:6] * float(ramp(rms, self.trust))
+        return x[:6] * ramp(rms, self.trust)
 
     def __call__(
         self, frame: np.ndarray, r: np.ndarray, t: np.ndarray
