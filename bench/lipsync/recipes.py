@@ -37,6 +37,8 @@ import frames
 from folds import FOLDS, cached_items, items_path
 from smoothing import A, acc_f1, biases, evaluate, f1_floor, grid, median_rule
 
+from facecast.server.audio.classify import SpeakerNorm
+
 #: Decision rules compared on the same inner outputs (``--rule``): the shipped one (prior
 #: exponent a for accuracy + macro-F1), a chosen for macro-F1 alone (over exponents down to
 #: -0.6: logit adjustment past the class-balanced network) or for macro-F1 with accuracy kept
@@ -77,35 +79,14 @@ def past_context(F: np.ndarray, energy_db: np.ndarray) -> np.ndarray:
     return np.stack(cols, axis=1)
 
 
-#: Columns of ``classify.frame_features`` that describe the spectrum's shape (log-area ratios,
-#: cepstrum, mel-band shape): what a speaker's vocal tract and channel move.
-SPECTRAL = np.r_[0:24, 28:44]
-
-
-def running_norm(F: np.ndarray, mu0: np.ndarray, tau: float = 2.0, prior: float = 50.0):
-    """``F (T, 44)`` with its spectral columns minus their causal running mean over the speech
-    frames so far (exponential forgetting, time constant ``tau`` s of speech), which starts at
-    ``mu0 (40,)`` counted as ``prior`` frames: a per-speaker normalisation a live stream can
-    compute (``mu0``: the synthetic training speech's mean, no real speaker's)."""
-    x = F[:, SPECTRAL]
-    speech = F[:, 26] > 0  # above the silence threshold
-    a = 1 - np.exp(-0.01 / tau)
-    acc, w = prior * mu0, prior
-    out = F.copy()
-    for t in range(len(x)):
-        if speech[t]:
-            acc = (1 - a) * acc + x[t]
-            w = (1 - a) * w + 1
-        out[t, SPECTRAL] = x[t] - acc / w
-    return out
-
-
 FEATURES = ("past", "norm")
 
 
 def with_features(items, name: str, mu0: np.ndarray):
     """Copies of ``items`` with ``past_context``'s columns appended to every copy's features
-    (``name`` "past") or their spectral columns normalised by ``running_norm`` ("norm")."""
+    (``name`` "past") or their spectral columns normalised by a ``classify.SpeakerNorm`` from
+    ``mu0 (40,)`` ("norm": a live stream's per-speaker normalisation; ``mu0`` the synthetic
+    training speech's mean, no real speaker's)."""
     out = []
     for it in items:
         it = copy.copy(it)
@@ -115,7 +96,7 @@ def with_features(items, name: str, mu0: np.ndarray):
                 for F, e in zip(it.feats, it.energies)
             ]
         else:
-            it.feats = [running_norm(F, mu0) for F in it.feats]
+            it.feats = [SpeakerNorm(mu0)(F) for F in it.feats]
         out.append(it)
     return out
 
@@ -179,8 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     real, dev = cached_items()
     if args.features:
-        S = np.concatenate([it.feats[0] for it in dev])
-        mu0 = S[S[:, 26] > 0][:, SPECTRAL].mean(0)  # synthetic speech only
+        mu0 = frames.norm_mean(dev)  # synthetic speech only
         real, dev = with_features(real, args.features, mu0), with_features(dev, args.features, mu0)
     seeds = [int(s) for s in args.seeds.split(",")]
     runs = []

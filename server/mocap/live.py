@@ -44,6 +44,7 @@ from .neutral import (
     turn_deg,
 )
 from .prior import DEFAULT as PRIOR_DEFAULT
+from .prior import ramp
 from .rig import MarkerRig, match_names
 from .stabilise import ShapePose, rigidity_weights, robust_pose, solve_pose, start_neutral
 
@@ -256,8 +257,7 @@ class MarkerLiveDriver:
         prior = self.rig.prior if self.rig is not None else None
         if TOWARD_FIT is None or prior is None or prior.last_fit is None:
             return
-        lo, hi = TOWARD_FIT
-        g = min(max((hi - prior.last_residual) / max(hi - lo, 1e-9), 0.0), 1.0)
+        g = ramp(prior.last_residual, TOWARD_FIT)
         if g > 0.0:
             d = state.controls[: len(prior.markers)]
             d -= (g * (d - prior.last_fit)).astype(d.dtype)

@@ -33,6 +33,7 @@ import lzma
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -54,6 +55,7 @@ __all__ = [
     "fit_weights",
     "load_basis",
     "mirror_map",
+    "ramp",
 ]
 
 #: Shapes whose largest skin motion is below this (mm) are left out (pupil dilation, eye turns).
@@ -230,6 +232,21 @@ def apply_operator(op: Operator, values: np.ndarray) -> np.ndarray:
     return out
 
 
+@overload
+def ramp(x: float, band: tuple[float, float]) -> float: ...
+@overload
+def ramp(x: np.ndarray, band: tuple[float, float]) -> np.ndarray: ...
+def ramp(x: float | np.ndarray, band: tuple[float, float]) -> float | np.ndarray:
+    """How far a fit with relative residual ``x`` (a number or an array) is trusted: 1 below
+    ``band[0]``, 0 above ``band[1]``, linear between (``ExpressionPrior.trust``, the live and
+    batch ``TOWARD_FIT`` gates, ``stabilise.ShapePose``'s trust)."""
+    lo, hi = band
+    r = (hi - x) / max(hi - lo, 1e-9)
+    if isinstance(r, np.ndarray):
+        return np.clip(r, 0.0, 1.0)
+    return min(max(r, 0.0), 1.0)  # a number (a live frame's): np.clip's overhead is 10x this
+
+
 def gradient_step(gram: np.ndarray, lipschitz: float) -> np.ndarray:
     """``(E, E)``: FISTA's gradient step as one product, y - (y G - rhs) / L = y (I - G / L) +
     rhs / L (a live frame runs 30 iterations on one row: the calls, not the arithmetic, cost)."""
@@ -389,8 +406,7 @@ class ExpressionPrior:
         fit = (w @ self._a.T).reshape(d.shape)
         size = np.linalg.norm(d.reshape(len(d), -1), axis=1)
         rel = np.linalg.norm((d - fit).reshape(len(d), -1), axis=1) / np.maximum(size, 1e-12)
-        lo, hi = self.trust
-        beta = np.clip((hi - rel) / max(hi - lo, 1e-9), 0.0, 1.0)
+        beta = ramp(rel, self.trust)
         beta[size <= 1e-12] = 1.0
         # the last frame's fit at the markers and its relative residual (the live path's
         # ``live.TOWARD_FIT``)

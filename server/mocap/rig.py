@@ -17,7 +17,7 @@ from ..errors import InputError
 from ..faces.face import Face
 from ..state import FaceState, zero_faps
 from .layout import Layout, load_layout, marker_gains, place_markers
-from .prior import ExpressionBasis, ExpressionPrior, load_basis
+from .prior import ExpressionBasis, ExpressionPrior, load_basis, ramp
 from .retarget import RBFMap
 from .sampling import farthest_points
 from .stabilise import pose_in_frame, to_matrix
@@ -284,8 +284,7 @@ def toward_fit(d: np.ndarray, prior: ExpressionPrior, gate: tuple[float, float])
     last ``fit`` over the same frames): ``d - g (d - B_m w)``, ``g`` 1 below ``gate[0]`` relative
     residual, 0 above ``gate[1]``, linear between (as ``live.TOWARD_FIT`` does per frame)."""
     assert prior.fits is not None and prior.residuals is not None
-    lo, hi = gate
-    g = np.clip((hi - prior.residuals) / max(hi - lo, 1e-9), 0.0, 1.0)[:, None, None]
+    g = ramp(prior.residuals, gate)[:, None, None]
     return (d - g * (d - prior.fits)).astype(d.dtype)
 
 

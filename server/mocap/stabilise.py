@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .prior import ramp
+
 __all__ = [
     "ShapePose",
     "check_stable",
@@ -406,8 +408,7 @@ class ShapePose:
         x = cho_solve(self._factor(seen), self._a.T @ b)
         # the residual over the seen rows (no copy of the fit's matrix per frame)
         rms = float(np.sqrt(np.mean((self._a @ x - b)[np.repeat(seen, 3)] ** 2)))
-        lo, hi = self.trust
-        return x[:6] * float(np.clip((hi - rms) / max(hi - lo, 1e-9), 0.0, 1.0))
+        return x[:6] * ramp(rms, self.trust)
 
     def __call__(
         self, frame: np.ndarray, r: np.ndarray, t: np.ndarray

@@ -763,8 +763,8 @@ def _skull_fit(
     proportions), shifted as the upper face's landmarks (those above the template's nose tip:
     eyes, nasion; the lower face's heights vary with its length) say on average. The width ratio
     is the mesh's skull breadth over the template's (``_skull_breadth``, clipped to 0.8-1.25); the
-    chin shift (mm, None without a detected chin) how far the mesh's gnathion lies above the
-    placed template's."""
+    chin shift ``(3,)`` (mm, None without a detected chin) the mesh's gnathion less the placed
+    template's."""
     src, dst = anchors
     upper = src[:, 1] > tpl.profile["tip"][1] if "tip" in tpl.profile else np.ones(len(src), bool)
     if not upper.any():

@@ -165,7 +165,8 @@ def profile_landmarks(
     def chain(matched: bool, from_base: bool = False) -> dict[str, np.ndarray]:
         found, pos = {}, 0
         for name in order:
-            cand = dips if name in ("subnasale", "slit", "fold") else peaks
+            dip = name in ("subnasale", "slit", "fold")
+            cand = dips if dip else peaks
             cand = cand[cand > pos]
             if name == "subnasale" and from_base and base is not None:
                 # the nose's base itself: the lip rises straight from the nose (no dip between)
@@ -173,7 +174,7 @@ def profile_landmarks(
             if not matched and len(cand) and name != "subnasale":
                 # dips and bumps alternate: a dip where a bump is looked for means the bump is
                 # missing (an upper lip merged into the nose), not that the next bump is it
-                other = peaks if name in ("subnasale", "slit", "fold") else dips
+                other = peaks if dip else dips
                 if ((other > pos) & (other < cand[0])).any():
                     continue
             if matched:
