@@ -37,8 +37,6 @@ import frames
 from folds import FOLDS, cached_items, items_path
 from smoothing import A, acc_f1, biases, evaluate, f1_floor, grid, median_rule
 
-from facecast.server.audio.classify import SpeakerNorm
-
 #: Decision rules compared on the same inner outputs (``--rule``): the shipped one (prior
 #: exponent a for accuracy + macro-F1), a chosen for macro-F1 alone (over exponents down to
 #: -0.6: logit adjustment past the class-balanced network) or for macro-F1 with accuracy kept
@@ -79,24 +77,20 @@ def past_context(F: np.ndarray, energy_db: np.ndarray) -> np.ndarray:
     return np.stack(cols, axis=1)
 
 
-FEATURES = ("past", "norm")
+#: Extra per-frame columns a recipe can add. (The per-speaker normalisation is ``frames.NORM``,
+#: on by default: a recipe does not add it again.)
+FEATURES = ("past",)
 
 
-def with_features(items, name: str, mu0: np.ndarray):
-    """Copies of ``items`` with ``past_context``'s columns appended to every copy's features
-    (``name`` "past") or their spectral columns normalised by a ``classify.SpeakerNorm`` from
-    ``mu0 (40,)`` ("norm": a live stream's per-speaker normalisation; ``mu0`` the synthetic
-    training speech's mean, no real speaker's)."""
+def with_features(items, name: str):
+    """Copies of ``items`` with ``past_context``'s columns (``name`` "past") appended to every
+    copy's features."""
     out = []
     for it in items:
         it = copy.copy(it)
-        if name == "past":
-            it.feats = [
-                np.concatenate([F, past_context(F, e)], axis=1)
-                for F, e in zip(it.feats, it.energies)
-            ]
-        else:
-            it.feats = [SpeakerNorm(mu0)(F) for F in it.feats]
+        it.feats = [
+            np.concatenate([F, past_context(F, e)], axis=1) for F, e in zip(it.feats, it.energies)
+        ]
         out.append(it)
     return out
 
@@ -160,8 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     real, dev = cached_items()
     if args.features:
-        mu0 = frames.norm_mean(dev)  # synthetic speech only
-        real, dev = with_features(real, args.features, mu0), with_features(dev, args.features, mu0)
+        real, dev = with_features(real, args.features), with_features(dev, args.features)
     seeds = [int(s) for s in args.seeds.split(",")]
     runs = []
     lines = ["| recipe | rule | seed | inner acc / F1 |", "|---|---|---|---|"]
