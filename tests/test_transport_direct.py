@@ -5,6 +5,7 @@ every message keeps its order, and what a taken message leaves to do reaches the
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 
 import uvicorn
@@ -28,6 +29,25 @@ async def _until(cond, what: str, seconds: float = 20.0) -> None:
             return
         await asyncio.sleep(0.01)
     raise AssertionError(f"never: {what}")
+
+
+@contextlib.asynccontextmanager
+async def _serving(route, done: asyncio.Event):
+    """A real uvicorn (sans-I/O WebSockets) on a free loopback port serving ``route`` at ``/ws``:
+    yields its URL; on exit waits for the route to end (``done``) and stops the server."""
+    port = _free_port()
+    app = Starlette(routes=[WebSocketRoute("/ws", route)])
+    server = uvicorn.Server(
+        uvicorn.Config(app, host="127.0.0.1", port=port, ws="websockets-sansio", log_level="error")
+    )
+    serving = asyncio.create_task(server.serve())
+    await _until(lambda: server.started, "the server started")
+    try:
+        yield f"ws://127.0.0.1:{port}/ws"
+    finally:
+        await asyncio.wait_for(done.wait(), 20)
+        server.should_exit = True
+        await serving
 
 
 def test_binary_messages_are_taken_in_the_callback_in_order():
@@ -70,35 +90,21 @@ def test_binary_messages_are_taken_in_the_callback_in_order():
             done.set()
 
     async def main() -> None:
-        port = _free_port()
-        app = Starlette(routes=[WebSocketRoute("/ws", route)])
-        server = uvicorn.Server(
-            uvicorn.Config(
-                app, host="127.0.0.1", port=port, ws="websockets-sansio", log_level="error"
-            )
-        )
-        serving = asyncio.create_task(server.serve())
-        await _until(lambda: server.started, "the server started")
-        try:
-            async with connect(f"ws://127.0.0.1:{port}/ws") as c:
-                seen = lambda n: sum(how != "handed" for how, _ in log) >= n  # noqa: E731
-                waiting = lambda: bool(receivers) and receivers[0].waiting  # noqa: E731
-                await _until(waiting, "the app waits")
-                await c.send(b"a")
-                await _until(lambda: seen(1), "a taken")
-                for m in (b"b", "t", b"c"):
-                    await c.send(m)
-                await _until(lambda: seen(4) and waiting(), "b, t, c seen")
-                for m in (b"step", b"d", b"e"):
-                    await c.send(m)
-                await _until(lambda: seen(7) and waiting(), "step, d, e seen")
-                for m in (b"boom", b"f"):
-                    await c.send(m)
-                await _until(lambda: seen(9), "boom, f seen")
-        finally:
-            await asyncio.wait_for(done.wait(), 20)
-            server.should_exit = True
-            await serving
+        async with _serving(route, done) as url, connect(url) as c:
+            seen = lambda n: sum(how != "handed" for how, _ in log) >= n  # noqa: E731
+            waiting = lambda: bool(receivers) and receivers[0].waiting  # noqa: E731
+            await _until(waiting, "the app waits")
+            await c.send(b"a")
+            await _until(lambda: seen(1), "a taken")
+            for m in (b"b", "t", b"c"):
+                await c.send(m)
+            await _until(lambda: seen(4) and waiting(), "b, t, c seen")
+            for m in (b"step", b"d", b"e"):
+                await c.send(m)
+            await _until(lambda: seen(7) and waiting(), "step, d, e seen")
+            for m in (b"boom", b"f"):
+                await c.send(m)
+            await _until(lambda: seen(9), "boom, f seen")
 
     asyncio.run(asyncio.wait_for(main(), 60))
     assert log[0] == ("direct", b"a")
@@ -143,28 +149,14 @@ def test_a_burst_is_taken_at_most_take_per_wait_messages_per_wait_of_the_task():
             done.set()
 
     async def main() -> None:
-        port = _free_port()
-        app = Starlette(routes=[WebSocketRoute("/ws", route)])
-        server = uvicorn.Server(
-            uvicorn.Config(
-                app, host="127.0.0.1", port=port, ws="websockets-sansio", log_level="error"
-            )
-        )
-        serving = asyncio.create_task(server.serve())
-        await _until(lambda: server.started, "the server started")
-        try:
-            async with connect(f"ws://127.0.0.1:{port}/ws") as c:
-                await asyncio.wait_for(ready.wait(), 20)
-                await asyncio.sleep(0.05)  # the task waits in ``receive``
-                await c.send((0).to_bytes(2, "big"))
-                for i in range(1, n):  # one burst: the client's writes coalesce on loopback
-                    c.protocol.send_binary(i.to_bytes(2, "big"))
-                c.send_data()
-                await _until(lambda: len(log) >= n, "every message seen")
-        finally:
-            await asyncio.wait_for(done.wait(), 20)
-            server.should_exit = True
-            await serving
+        async with _serving(route, done) as url, connect(url) as c:
+            await asyncio.wait_for(ready.wait(), 20)
+            await asyncio.sleep(0.05)  # the task waits in ``receive``
+            await c.send((0).to_bytes(2, "big"))
+            for i in range(1, n):  # one burst: the client's writes coalesce on loopback
+                c.protocol.send_binary(i.to_bytes(2, "big"))
+            c.send_data()
+            await _until(lambda: len(log) >= n, "every message seen")
 
     asyncio.run(asyncio.wait_for(main(), 60))
     assert [int.from_bytes(p, "big") for _, p in log] == list(range(n))
