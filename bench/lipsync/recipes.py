@@ -1,14 +1,15 @@
 """Training recipes compared on nested inner speaker folds only:
 ``python bench/lipsync/recipes.py --recipe base --recipe dropout=0.2 --seeds 0,1,2``.
 
-For each recipe (``frames.train`` keyword overrides, ``name=value``, and ``dev=n``: the
-synthetic sentences n times, 0 = none; ``base`` = the shipped recipe; ``--features``: extra or
-normalised feature columns) and seed, one network (one member) per pair of ``folds.FOLDS``
-(k, j) is trained without both folds' speakers; it scores fold j's speakers for outer fold k and
-fold k's for outer fold j. Each outer fold's inner score is ``smoothing.evaluate``'s for each
-``--rule`` (default the shipped decision rule, its prior exponent tuned on the other inner
-folds), mean over the outer folds. The inner outputs are kept under bench/out, so further rules
-score them without retraining. No outer speaker is ever
+For each recipe (``frames.train`` keyword overrides, ``name=value``; ``dev=n``: the synthetic
+sentences n times, 0 = none; ``tau=s`` and ``norm_prior=n``: ``classify.SpeakerNorm``'s time
+constant and prior weight, in training and scoring; ``base`` = the shipped recipe;
+``--features``: extra feature columns) and seed, one network (one member) per pair of
+``folds.FOLDS`` (k, j) is trained without both folds' speakers; it scores fold j's speakers for
+outer fold k and fold k's for outer fold j. Each outer fold's inner score is
+``smoothing.evaluate``'s for each ``--rule`` (default the shipped decision rule, its prior
+exponent tuned on the other inner folds), mean over the outer folds. The inner outputs are kept
+under bench/out, so further rules score them without retraining. No outer speaker is ever
 scored here: this is the model-selection number. Reports each recipe's mean over seeds and the
 seed spread; writes bench/out/lipsync_recipes.json and .md (appending to the JSON's runs).
 """
@@ -36,6 +37,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 import frames
 from folds import FOLDS, cached_items, items_path
 from smoothing import A, acc_f1, biases, evaluate, f1_floor, grid, median_rule
+
+from facecast.server.audio.classify import SpeakerNorm
 
 #: Decision rules compared on the same inner outputs (``--rule``): the shipped one (prior
 #: exponent a for accuracy + macro-F1), a chosen for macro-F1 alone (over exponents down to
@@ -161,6 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     for text in args.recipe or ["base"]:
         kw = parse_recipe(text)
         d = dev * int(kw.pop("dev", 1))  # dev=0: no synthetic speech, dev=2: twice its weight
+        shipped_norm = SpeakerNorm.TAU, SpeakerNorm.PRIOR
+        SpeakerNorm.TAU = float(kw.pop("tau", SpeakerNorm.TAU))  # read by every new SpeakerNorm
+        SpeakerNorm.PRIOR = float(kw.pop("norm_prior", SpeakerNorm.PRIOR))
         key = text + (f"+{args.features}" if args.features else "")
         cache_key = f"{key}_norm{int(kw.get('norm', frames.NORM))}"  # the default moves
         res: dict[str, list] = {}
@@ -190,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"(acc {lo[0]:.3f}-{hi[0]:.3f}, F1 {lo[1]:.3f}-{hi[1]:.3f}) |"
             )
             print(lines[-1], flush=True)
+        SpeakerNorm.TAU, SpeakerNorm.PRIOR = shipped_norm
     text = "\n".join(lines) + f"\n\nLoad average {os.getloadavg()[0]:.1f}.\n"
     frames.OUT.mkdir(parents=True, exist_ok=True)
     path = frames.OUT / "lipsync_recipes.json"  # read now: other runs may have appended
