@@ -266,3 +266,15 @@ def test_the_noses_base_is_where_its_underside_ends():
     below = 120.0 - np.r_[0.0, np.cumsum(drop)]
     assert nose_base(below) == 10
     assert nose_base(120.0 - 0.5 * np.arange(30.0)) is None  # no underside: a flat face
+
+
+def test_a_short_skulls_brows_keep_their_height_above_the_eyes():
+    """A shorter, narrower skull turns the whole-head alignment: the warp slid the right brow
+    (4.4) 7.5 mm up the forehead. A brow point that far off its height above its eyeball's centre
+    is now moved to the template's height above it (measured: worst brow 4.7 mm)."""
+    err = _errors(
+        build_default_head(
+            15000, head_width=142.0, head_length=186.0, head_height=120.0, chin_length=50.0
+        )
+    )
+    assert max(err[f"4.{i}"] for i in range(1, 7)) < 5.5, err

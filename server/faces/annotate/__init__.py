@@ -25,7 +25,7 @@ __all__ = ["annotate_mesh", "cached_annotation", "merge", "mesh_key"]
 log = logging.getLogger(__name__)
 
 #: Bump when a change makes the annotator give different results (invalidates the cache).
-VERSION = 9
+VERSION = 10
 
 
 def mesh_key(vertices: np.ndarray, triangles: np.ndarray) -> str:

@@ -44,6 +44,11 @@ JAW_ANGLE = ("2.13", "2.14")
 #: The chin's points below and beside the gnathion (the chin's bottom, its sides), placed with the
 #: skull and moved as the mesh's chin is (``_skull_fit``), not slid along the smooth chin by the warp.
 CHIN = ("2.1", "2.11", "2.12")
+#: The eyeball (``_anchors``) whose centre sets each brow point's height (``_feature_points``).
+BROW_EYE = {f"4.{i}": "eye_l" if i % 2 else "eye_r" for i in range(1, 7)}
+#: How far (mm) up or down from its eye's height a brow point must lie to be moved there: ICT's
+#: and MakeHuman's lie within 3.2, a short skull's slid 7-9.
+BROW_SLIP_MM = 4.0
 #: ``_face_fit``: landmarks it needs, and the largest scale (either way) it may have.
 FACE_MIN_ANCHORS, FACE_MAX_SCALE = 6, 1.15
 #: How far (mm) from the warped point a cranial feature point is looked for along its ray.
@@ -234,8 +239,14 @@ def annotate_mesh(
         if face is not None and off_axis <= UPRIGHT_DEG
         else None
     )
+    # each side's eyeball centre, template's and mesh's, for the height of the brows above it
+    eye_at = {
+        k: (anchors[0][found.index(k)], anchors[1][found.index(k)])
+        for k in ("eye_l", "eye_r")
+        if anchors is not None and k in found and skull is not None
+    }
     fps, left_out, approximate = _feature_points(
-        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright, ears, face, skull
+        y, yn, wtri, parts, warped, tpl, socket_v, rep, tri, upright, ears, face, skull, eye_at
     )
     warnings = _checks(y, fps, left_out, tpl)
 
@@ -557,6 +568,7 @@ def _feature_points(
     ears=(),
     face: tuple[Similarity, Similarity, np.ndarray] | None = None,
     skull: tuple[Similarity, float, np.ndarray | None] | None = None,
+    eye_at: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[dict[str, int], dict[str, str], dict]:
     """MPEG-4 id -> mesh vertex id, the ids left out with the reason, and the essential ones placed
     on the nearest surface though it is farther than the reach (id -> mm).
@@ -651,6 +663,17 @@ def _feature_points(
                 key = fp
             else:
                 p = joint.apply(tpl.fp_position(fp)[None])[0]
+        if eye_at and BROW_EYE.get(fp) in eye_at:
+            # A short skull's alignment slides the brows up the forehead (7-9 mm): where the warp's
+            # point lies farther than BROW_SLIP_MM from the template's height above its eyeball's
+            # centre (in the mesh's axes, from the mesh's eyeball centre), it is moved to that
+            # height, keeping its place across and in depth. Nearer, the warp's point is kept
+            # (moving those few mm flips more triangles at full-strength expressions).
+            src_e, dst_e = eye_at[BROW_EYE[fp]]
+            up = upright[:, 1]
+            rise = float(up @ (dst_e + upright @ (tpl.fp_position(fp) - src_e) - p))
+            if abs(rise) > BROW_SLIP_MM:
+                p = p + up * rise
         if key != "skin" and key == part:
             if key not in piece_fit:
                 piece_fit[key] = _fit_piece_from(warped, tpl, key, y[parts[key]])
