@@ -65,7 +65,15 @@ HOLD_MM, STILL_MM = 0.4, 0.2
 REFINE_PASSES = 6
 #: Batch head poses then refit rigidly to every control marker where the face prior explains the
 #: frame (``fit_pose``): passes (0: off) and the relative-residual gate (the prior's fit trusted
-#: fully below gate[0], not at all above gate[1]; ``rig.BATCH_TOWARD_FIT``'s).
+#: fully below gate[0], not at all above gate[1]; ``rig.BATCH_TOWARD_FIT``'s, not tuned again).
+#: 2-s generated takes, fold priors, bench/mocap_diagnose.py --fit-pose 0 / 2 in the same minutes
+#: (load 13-20), the five variants never tuned on (sparse30, dense100, neck-pivot, neutral-last,
+#: fast-large), folds 0/1: mirror batch ratio 0.702 -> 0.684x, head pose 0.082 -> 0.072 deg
+#: (sparse30 fold 0 0.186 -> 0.150, dense100 0.085/0.072 -> 0.072/0.063; sparse30 fold 1 0.065
+#: -> 0.076 deg with batch 0.885 -> 0.887x, the one row worse by more than 0.01x: neutral-last
+#: fold 1 0.748 -> 0.768x); strict (the gate stays mostly shut) 0.660 -> 0.658x, 0.0874 -> 0.0869
+#: deg, no row worse in batch. The corrections RTS-smoothed over frames (as ``refine_poses``'s):
+#: the same numbers to 0.001 on the six rows measured, left out.
 FIT_POSE_PASSES = 2
 FIT_POSE_GATE = (0.3, 0.6)
 # Tried and left out: batch head poses refined again with every marker, the face's motion
