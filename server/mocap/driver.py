@@ -74,7 +74,10 @@ REFINE_PASSES = 6
 #: fold 1 0.748 -> 0.768x); strict (the gate stays mostly shut) 0.660 -> 0.658x, 0.0874 -> 0.0869
 #: deg, no row worse in batch. 4 passes: mirror 0.681x, 0.0685 deg (sparse30 fold 0 0.130),
 #: strict 0.657x, 0.0867 deg; each pass ~0.13 s CPU on a 2-s take (1.9 s without, 2.3 s with 4;
-#: load 0.6). The corrections RTS-smoothed over frames (as ``refine_poses``'s): the same numbers
+#: load 0.6). The rows tuned on earlier (issue16, technician), 4 passes: mirror 0.455 -> 0.430x,
+#: 0.058 -> 0.046 deg; strict 0.579 -> 0.585x: technician fold 0 0.688 -> 0.712x, 0.057 -> 0.077
+#: deg (a fold the shapes half explain: the gate opens on frames it should not), the others equal
+#: or better. The corrections RTS-smoothed over frames (as ``refine_poses``'s): the same numbers
 #: to 0.001 on the six rows measured, left out.
 FIT_POSE_PASSES = 4
 FIT_POSE_GATE = (0.3, 0.6)
