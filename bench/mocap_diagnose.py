@@ -64,12 +64,17 @@ def main(argv: list[str]) -> int:
     p.add_argument(
         "--toward-fit", type=float, nargs=2, default=None, help="rig.BATCH_TOWARD_FIT (lo hi)"
     )
+    p.add_argument("--fit-pose", type=int, default=None, help="driver.FIT_POSE_PASSES (0: off)")
     p.add_argument("--tag", default="", help="a suffix for the output file")
     a = p.parse_args(argv)
     from facecast.server.mocap import rig as rig_mod
 
     if a.toward_fit is not None:
         rig_mod.BATCH_TOWARD_FIT = tuple(a.toward_fit)
+    from facecast.server.mocap import driver as driver_mod
+
+    if a.fit_pose is not None:
+        driver_mod.FIT_POSE_PASSES = a.fit_pose
 
     face = load_ict()
     enames, deltas = load_expressions(face)
@@ -159,6 +164,7 @@ def main(argv: list[str]) -> int:
             {
                 "loadavg": os.getloadavg(),
                 "toward_fit": rig_mod.BATCH_TOWARD_FIT,
+                "fit_pose_passes": driver_mod.FIT_POSE_PASSES,
                 "rows": rows,
             },
             indent=1,

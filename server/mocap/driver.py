@@ -27,11 +27,13 @@ from .io import read_take
 from .layout import Layout, load_layout
 from .neutral import find_neutral, rest_frame, tied_positions
 from .prior import DEFAULT as PRIOR_DEFAULT
+from .prior import ramp
 from .rig import MarkerRig, match_names
 from .stabilise import (
     check_stable,
     head_track,
     hold_pose,
+    kabsch,
     pose_uncertainty,
     refine_poses,
     remove_head,
@@ -61,6 +63,24 @@ HOLD_MM, STILL_MM = 0.4, 0.2
 #: 0.679 / 0.640 / 0.634x, 0.109 / 0.091 / 0.082 deg. The batch pipeline's CPU time: 1.3 s one pass,
 #: 1.75 s three, 2.3 s six (a 4-s take, prior off: each pass adds about 0.2 s a 4-s take).
 REFINE_PASSES = 6
+#: Batch head poses then refit rigidly to every control marker where the face prior explains the
+#: frame (``fit_pose``): passes (0: off) and the relative-residual gate (the prior's fit trusted
+#: fully below gate[0], not at all above gate[1]; ``rig.BATCH_TOWARD_FIT``'s, not tuned again).
+#: 2-s generated takes, fold priors, bench/mocap_diagnose.py --fit-pose 0 / 2 in the same minutes
+#: (load 13-20), the five variants never tuned on (sparse30, dense100, neck-pivot, neutral-last,
+#: fast-large), folds 0/1: mirror batch ratio 0.702 -> 0.684x, head pose 0.082 -> 0.072 deg
+#: (sparse30 fold 0 0.186 -> 0.150, dense100 0.085/0.072 -> 0.072/0.063; sparse30 fold 1 0.065
+#: -> 0.076 deg with batch 0.885 -> 0.887x, the one row worse by more than 0.01x: neutral-last
+#: fold 1 0.748 -> 0.768x); strict (the gate stays mostly shut) 0.660 -> 0.658x, 0.0874 -> 0.0869
+#: deg, no row worse in batch. 4 passes: mirror 0.681x, 0.0685 deg (sparse30 fold 0 0.130),
+#: strict 0.657x, 0.0867 deg; each pass ~0.13 s CPU on a 2-s take (1.9 s without, 2.3 s with 4;
+#: load 0.6). The rows tuned on earlier (issue16, technician), 4 passes: mirror 0.455 -> 0.430x,
+#: 0.058 -> 0.046 deg; strict 0.579 -> 0.585x: technician fold 0 0.688 -> 0.712x, 0.057 -> 0.077
+#: deg (a fold the shapes half explain: the gate opens on frames it should not), the others equal
+#: or better. The corrections RTS-smoothed over frames (as ``refine_poses``'s): the same numbers
+#: to 0.001 on the six rows measured, left out.
+FIT_POSE_PASSES = 4
+FIT_POSE_GATE = (0.3, 0.6)
 # Tried and left out: batch head poses refined again with every marker, the face's motion
 # explained by the face prior's shapes (``stabilise.ShapePose`` over the take, then RTS-smoothed as
 # ``refine_poses`` smooths its corrections; ridge 0.003), after ``refine_poses``. It helped where
@@ -272,7 +292,57 @@ def process(
         )
     rig = MarkerRig(face, layout, neutral, kernel=kernel, mu=mu, prior=prior)
     states = rig.solve_batch(local, r, t, take.fps, 0.0)
+    if params.filter == "rts" and rig.prior is not None:
+        for _ in range(FIT_POSE_PASSES):
+            r, t, local = fit_pose(rig, local, r, t, FIT_POSE_GATE)
+            states = rig.solve_batch(local, r, t, take.fps, 0.0)
     return Processed(take, layout, raw, cleaned, local, r, t, nf, rig, states, info)
+
+
+def fit_pose(
+    rig: MarkerRig,
+    local: np.ndarray,
+    r: np.ndarray,
+    t: np.ndarray,
+    gate: tuple[float, float],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(R, t, local)``: batch head poses refit rigidly to every control marker on frames the face
+    prior explains (after ``rig.solve_batch``, whose prior fit it reads).
+
+    The stabilised markers ``local (T, L, 3)`` mm carried back to the capture frame by the poses
+    ``r (T,3,3)``, ``t (T,3)`` are fitted (Kabsch) by the model's markers: the stable markers at the
+    neutral, the control markers at the stabilised markers less what the prior leaves unexplained of
+    them (``d - B_m w``, face units, carried back into mm by the retarget's similarity), so the
+    rigid part of that residual becomes head motion. Each frame's correction is scaled by
+    ``ramp(relative residual, gate)`` (none where the shapes do not explain the frame); the
+    markers are re-stabilised with the new poses."""
+    from scipy.spatial.transform import Rotation
+
+    prior = rig.prior
+    assert prior is not None and prior.fits is not None and prior.residuals is not None
+    g = ramp(prior.residuals, gate)
+    if not (g > 0).any():
+        return r, t, local
+    d = rig.rbf.displacements(local[:, rig.control]) * rig.gains  # (T, K, 3) face units
+    unexplained = ((d - prior.fits) / rig.gains) @ rig.q / rig.s  # mm, capture axes
+    model = local.copy()
+    model[:, rig.control] -= unexplained
+    use = np.r_[rig.stable, rig.control]
+    model[:, rig.stable] = rig.neutral[rig.stable]
+    frame = np.einsum("tij,tmj->tmi", r, local) + t[:, None, :]
+    rr, tt = r.copy(), t.copy()
+    for i in np.flatnonzero(g > 0):
+        ok = use[np.isfinite(frame[i, use]).all(axis=1) & np.isfinite(model[i, use]).all(axis=1)]
+        if len(ok) < 4:
+            continue
+        rk, tk = kabsch(model[i, ok], frame[i, ok])
+        # the correction in the stabilised frame: frame = R S x + (R c + t) about the origin
+        s_full = r[i].T @ rk
+        rotvec = Rotation.from_matrix(s_full).as_rotvec() * g[i]
+        s = Rotation.from_rotvec(rotvec).as_matrix()
+        shift = g[i] * (r[i].T @ (tk - t[i]))
+        rr[i], tt[i] = r[i] @ s, r[i] @ shift + t[i]
+    return rr, tt, remove_head(frame, rr, tt)
 
 
 def _rigid_stable(
