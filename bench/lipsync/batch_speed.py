@@ -16,18 +16,14 @@ import os
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # one core
     os.environ.setdefault(_v, "1")
 
-import argparse
-import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
+import speed  # (bench/lipsync, beside this script)
 
 from facecast.server.audio.classify import FrameNet
-from facecast.server.audio.io import read_audio
 from facecast.server.audio.pipeline import lipsync
-from facecast.server.paths import shared_data
 
 #: Recordings timed (four speakers, about 48 s in all).
 FILES = (
@@ -39,19 +35,10 @@ FILES = (
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--save", type=Path)
-    ap.add_argument("--compare", type=Path)
-    ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--label", default="current")
-    ap.add_argument("--net", type=Path, help="frame network file (default: the shipped one)")
-    a = ap.parse_args()
+    a = speed.arguments(__doc__, repeat=5)
     net = FrameNet.load(a.net) if a.net else None
-    data = shared_data()
-    root = data / "real-speech" if data else Path("/nonexistent")
-    clips = [(f, *read_audio(root / f)) for f in FILES if (root / f).is_file()]
-    if not clips:
-        print(f"no recordings under {root}", file=sys.stderr)
+    clips = speed.clips(FILES)
+    if clips is None:
         return 2
     dur = sum(len(x) / sr for _, x, sr in clips)
     for _, x, sr in clips[:1]:
@@ -63,14 +50,7 @@ def main() -> int:
             ls = lipsync(x, sr, net=net)
             outs[name + ":proba"], outs[name + ":visemes"] = ls.proba, ls.visemes
         best = min(best, time.process_time() - c)
-    res = {
-        "label": a.label,
-        "net": str(a.net or "shipped"),
-        "audio_s": dur,
-        "cpu_s": best,
-        "x_realtime": dur / best,
-        "load": os.getloadavg()[0],
-    }
+    res = speed.result(a, dur, best)
     if a.save:
         np.savez(a.save, **outs)
     if a.compare:
@@ -83,11 +63,7 @@ def main() -> int:
             res["visemes_identical"] = all(
                 np.array_equal(ref[k], outs[k]) for k in ref.files if k.endswith(":visemes")
             )
-    print(json.dumps(res))
-    out = Path(__file__).resolve().parents[1] / "out" / "lipsync_batch_speed.json"
-    out.parent.mkdir(exist_ok=True)
-    with out.open("a") as fh:
-        fh.write(json.dumps(res) + "\n")
+    speed.write(res, "lipsync_batch_speed.json")
     return 0
 
 

@@ -11,19 +11,14 @@ alternating; results go to ``bench/out/lipsync_live_speed.json``.
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
+import speed  # (bench/lipsync, beside this script)
 
 from facecast.server.audio.classify import FrameNet
-from facecast.server.audio.io import read_audio
 from facecast.server.audio.live import AudioLiveDriver
-from facecast.server.paths import shared_data
 
 #: Recordings timed (a few speakers, about 40 s in all).
 FILES = (
@@ -45,24 +40,12 @@ def run(x: np.ndarray, sr: int, fap1: bool, chunk: float = 0.02, net=None) -> li
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--save", type=Path)
-    ap.add_argument("--compare", type=Path)
-    ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--label", default="current")
-    ap.add_argument("--net", type=Path, help="frame network file (default: the shipped one)")
-    a = ap.parse_args()
+    a = speed.arguments(__doc__, repeat=3)
     net = FrameNet.load(a.net) if a.net else None
-    root = shared_data() / "real-speech"
-    clips = []
-    for f in FILES:
-        p = root / f
-        if p.is_file():
-            x, sr = read_audio(p)
-            clips.append((f, x.astype(np.float32), int(sr)))
-    if not clips:
-        print(f"no recordings under {root}", file=sys.stderr)
+    got = speed.clips(FILES)
+    if got is None:
         return 2
+    clips = [(f, x.astype(np.float32), int(sr)) for f, x, sr in got]
     dur = sum(len(x) / sr for _, x, sr in clips)
     best = np.inf
     outs: dict[str, np.ndarray] = {}
@@ -75,15 +58,7 @@ def main() -> int:
         best = min(best, time.process_time() - c)
     for name, x, sr in clips:
         outs[name + ":fap1"] = np.array([s.viseme for s in run(x, sr, fap1=True, net=net)])
-    load = os.getloadavg()[0]
-    res = {
-        "label": a.label,
-        "net": str(a.net or "shipped"),
-        "audio_s": dur,
-        "cpu_s": best,
-        "x_realtime": dur / best,
-        "load": load,
-    }
+    res = speed.result(a, dur, best)
     if a.save:
         np.savez(a.save, **outs)
     if a.compare:
@@ -93,11 +68,7 @@ def main() -> int:
                 np.array_equal(ref[k], outs[k]) for k in ref.files if k.endswith("fap1")
             )
         res["max_abs_diff"], res["fap1_identical"] = diff, same_fap1
-    print(json.dumps(res))
-    out = Path(__file__).resolve().parents[1] / "out" / "lipsync_live_speed.json"
-    out.parent.mkdir(exist_ok=True)
-    with out.open("a") as fh:
-        fh.write(json.dumps(res) + "\n")
+    speed.write(res, "lipsync_live_speed.json")
     return 0
 
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..state import FaceState
 from . import kernel
-from .expansions import gaze_q, overlay_mask, overlay_offsets
+from .expansions import gaze_q, overlay_at, overlay_mask
 from .gaze import GazeLayer
 from .idle import CLOSED_LIDS, LID_MASK, IdleLayer
 from .mix import (
@@ -173,12 +173,10 @@ def _expression_columns(
     ws: list[Any] = []
     scalar = True
     for r, layer, t in zip(rows, layers, ts.tolist()):
-        e = layer.envelope(t)
-        if e <= 0.0:
+        got = overlay_at(layer, t, geo)
+        if got is None:
             continue
-        x = overlay_offsets(layer, geo)
-        if x is None:
-            continue
+        e, x = got
         keep.append(r)
         xs.append(x)
         if layer.regions is None:

@@ -51,3 +51,13 @@ def gaze_q(target: GazeTarget, geo: Geometry) -> np.ndarray:
         return np.array(q, dtype=np.float64)
 
     return geo.remember((target, "q"), make)
+
+
+def overlay_at(layer: ExpressionLayer, t: float, geo: Geometry) -> tuple[float, np.ndarray] | None:
+    """``(envelope, offsets (69,))`` of an expression overlay at time ``t`` (s): its envelope and
+    ``overlay_offsets``; None when it adds nothing then (envelope 0, or no offsets)."""
+    e = layer.envelope(t)
+    if e <= 0.0:
+        return None
+    x = overlay_offsets(layer, geo)
+    return None if x is None else (e, x)

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from ..state import FaceState
-from .expansions import gaze_q, overlay_mask, overlay_offsets
+from .expansions import gaze_q, overlay_at, overlay_mask
 from .gaze import GazeLayer
 from .idle import _PHASES, _RATES, _SWAY, IdleLayer
 from .mix import (
@@ -443,16 +443,14 @@ def pack(
                     floats.append(t)
                     floats += layer.row(t)
                 elif code == OVERLAY:
-                    e = layer.envelope(t)
-                    if e <= 0.0:
+                    got = overlay_at(layer, t, geo)
+                    if got is None:
                         continue
-                    x = overlay_offsets(layer, geo)
-                    if x is None:
-                        continue
-                    xi = xs.get(id(x))
+                    e, offsets = got
+                    xi = xs.get(id(offsets))
                     if xi is None:
-                        xi = xs[id(x)] = len(X)
-                        X.append(x)
+                        xi = xs[id(offsets)] = len(X)
+                        X.append(offsets)
                     mi = -1
                     if layer.regions is not None:
                         mi = ms.get(layer.regions, -1)
